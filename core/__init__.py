@@ -1,0 +1,5 @@
+"""The NumPy splat core: never imports bpy or pxr."""
+
+from .splats import SplatCloud, SplatValidationError
+
+__all__ = ["SplatCloud", "SplatValidationError"]

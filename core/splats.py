@@ -1,0 +1,192 @@
+"""The splat model: one cloud of N Gaussians stored as 3DGS training produces them."""
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import geometry, sh as shmod
+
+FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+
+
+class SplatValidationError(ValueError):
+    """A cloud whose arrays are malformed or hold values no renderer can use."""
+
+
+def sigmoid(x):
+    x = np.asarray(x, dtype=np.float64)
+    # exp(-|x|) never overflows, so +-1e4 logits give exactly 0 or 1 instead of a warning.
+    with np.errstate(under="ignore"):
+        e = np.exp(-np.abs(x))
+    return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+def logit(p, eps=1e-7):
+    p = np.clip(np.asarray(p, dtype=np.float64), eps, 1.0 - eps)
+    return np.log(p) - np.log1p(-p)
+
+
+@dataclass(eq=False)
+class SplatCloud:
+    """N Gaussians. Arrays are float32; see the field table in the design notes.
+
+    positions (N,3), rotations (N,4) w,x,y,z as stored, log_scales (N,3), opacity_logits (N,),
+    sh (N,K,3) with K=(d+1)^2 and sh[:,0] the DC term. `extras` holds any other per-splat arrays
+    (first axis N) that a file carried or a tool attached, e.g. PLY normals or the source triangle
+    of a converted mesh; selection and concatenation keep them aligned.
+    """
+
+    positions: np.ndarray
+    rotations: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        for name in FIELDS:
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float32))
+        self.extras = {k: np.asarray(v) for k, v in self.extras.items()}
+        self._check_shapes()
+
+    # construction ---------------------------------------------------------------------------
+
+    @classmethod
+    def empty(cls, sh_degree=0):
+        k = shmod.num_coeffs(sh_degree)
+        return cls(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, k, 3)))
+
+    @classmethod
+    def from_activated(cls, positions, rotations, scales, opacities, colors=None, sh=None, extras=None):
+        """Build from linear scales, opacities in [0,1] and either display-sRGB colours or raw SH."""
+        positions = np.asarray(positions, dtype=np.float64)
+        if sh is None:
+            colors = np.zeros((len(positions), 3)) + 0.5 if colors is None else np.asarray(colors, np.float64)
+            sh = shmod.rgb_to_dc(colors)[:, None, :]
+        with np.errstate(divide="ignore"):
+            log_scales = np.log(np.asarray(scales, dtype=np.float64))
+        return cls(positions, rotations, log_scales, logit(opacities), sh, extras or {})
+
+    @classmethod
+    def concatenate(cls, clouds):
+        """One cloud from many; lower SH degrees are zero-padded (same colours), extras kept where
+        every cloud has them."""
+        clouds = list(clouds)
+        if not clouds:
+            return cls.empty()
+        degree = max(c.sh_degree for c in clouds)
+        clouds = [c.with_sh_degree(degree) for c in clouds]
+        common = set.intersection(*(set(c.extras) for c in clouds))
+        return cls(
+            *(np.concatenate([getattr(c, name) for c in clouds]) for name in FIELDS),
+            extras={k: np.concatenate([c.extras[k] for c in clouds]) for k in sorted(common)},
+        )
+
+    # basic protocol ------------------------------------------------------------------------
+
+    def __len__(self):
+        return len(self.positions)
+
+    def __getitem__(self, index):
+        """Select splats by boolean mask, integer indices or slice."""
+        if isinstance(index, (int, np.integer)):
+            index = [index]
+        return SplatCloud(*(getattr(self, name)[index] for name in FIELDS),
+                          extras={k: v[index] for k, v in self.extras.items()})
+
+    select = __getitem__
+
+    def copy(self):
+        return SplatCloud(*(getattr(self, name).copy() for name in FIELDS),
+                          extras={k: v.copy() for k, v in self.extras.items()})
+
+    def replace(self, **changes):
+        """A new cloud with some fields replaced (arrays are shared, not copied)."""
+        return replace(self, **changes)
+
+    def __repr__(self):
+        return f"SplatCloud(n={len(self)}, sh_degree={self.sh_degree}, extras={sorted(self.extras)})"
+
+    # activated views ---------------------------------------------------------------------------
+
+    @property
+    def sh_degree(self):
+        return shmod.degree_of(self.sh.shape[1])
+
+    @property
+    def scales(self):
+        return np.exp(self.log_scales.astype(np.float64))
+
+    @property
+    def opacities(self):
+        return sigmoid(self.opacity_logits)
+
+    @property
+    def unit_rotations(self):
+        """Normalised quaternions w,x,y,z, float64."""
+        return geometry.normalize_quaternions(self.rotations)
+
+    def rotation_matrices(self):
+        return geometry.quaternions_to_matrices(self.rotations)
+
+    def covariances(self):
+        """World-space covariances R S S^T R^T, float64 (N,3,3)."""
+        return geometry.covariances(self.rotations, self.scales)
+
+    def colors(self, camera_center=None, directions=None):
+        """Display-sRGB colours (N,3) seen from a camera centre or along given view directions."""
+        if directions is None:
+            if camera_center is None:
+                directions = np.tile([0.0, 0.0, 1.0], (len(self), 1))
+            else:
+                directions = self.positions.astype(np.float64) - np.asarray(camera_center, np.float64)
+        return shmod.colors(self.sh, directions)
+
+    def with_sh_degree(self, degree):
+        """Truncate (or zero-pad) the SH to `degree`; truncation drops view-dependent detail only."""
+        if degree == self.sh_degree:
+            return self
+        return self.replace(sh=shmod.truncate(self.sh, degree))
+
+    # validation --------------------------------------------------------------------------------
+
+    def _check_shapes(self):
+        n = len(self.positions)
+        expect = {"positions": (n, 3), "rotations": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,)}
+        wrong = [f"{k} has shape {getattr(self, k).shape}, expected {v}"
+                 for k, v in expect.items() if getattr(self, k).shape != v]
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 \
+                or self.sh.shape[1] not in shmod.VALID_COUNTS:
+            wrong.append(f"sh has shape {self.sh.shape}, expected ({n}, K, 3) with K in {shmod.VALID_COUNTS}")
+        wrong += [f"extra '{k}' has {len(v)} rows, expected {n}"
+                  for k, v in self.extras.items() if v.ndim == 0 or len(v) != n]
+        if wrong:
+            raise SplatValidationError("malformed splat cloud: " + "; ".join(wrong))
+
+    def problems(self):
+        """Human-readable list of value problems (empty when the cloud is usable)."""
+        found = []
+        for name in FIELDS:
+            values = getattr(self, name)
+            bad = ~np.isfinite(values).reshape(len(values), -1).all(axis=1) if len(values) else np.zeros(0, bool)
+            if bad.any():
+                found.append(f"{int(bad.sum())} splats with non-finite {name}")
+        qn = np.linalg.norm(self.rotations.astype(np.float64), axis=1)
+        zero = np.isfinite(qn) & (qn < 1e-12)
+        if zero.any():
+            found.append(f"{int(zero.sum())} splats with a zero rotation quaternion")
+        return found
+
+    def validate(self):
+        """Raise SplatValidationError naming every problem and its count; return self if clean."""
+        found = self.problems()
+        if found:
+            raise SplatValidationError("invalid splat cloud: " + "; ".join(found))
+        return self
+
+    def finite_mask(self):
+        """True for splats whose every stored value is finite."""
+        ok = np.ones(len(self), bool)
+        for name in FIELDS:
+            ok &= np.isfinite(getattr(self, name)).reshape(len(self), -1).all(axis=1)
+        return ok

@@ -1,0 +1,46 @@
+"""Splat file formats. `read_splats`/`write_splats` pick the format by extension; every other part
+of Splatwright reads and writes through them."""
+
+import importlib
+from pathlib import Path
+
+from .common import SplatFileError
+
+# extension -> module in this package exposing read(path) -> SplatCloud and write(path, cloud, **options)
+FORMATS = {
+    ".ply": "ply",
+    ".usd": "usd",
+    ".usda": "usd",
+    ".usdc": "usd",
+    ".usdz": "usd",
+    ".spz": "spz",
+    ".splat": "splat",
+}
+
+
+def format_of(path):
+    """The format module name for a path, or SplatFileError naming the unknown extension."""
+    ext = Path(path).suffix.lower()
+    if ext not in FORMATS:
+        known = ", ".join(sorted(FORMATS))
+        raise SplatFileError(path, f"unknown splat file extension '{ext}' (known: {known})")
+    return FORMATS[ext]
+
+
+def _module(path):
+    return importlib.import_module(f".{format_of(path)}", __name__)
+
+
+def read_splats(path, **options):
+    """Read a splat file of any known format into a SplatCloud."""
+    if not Path(path).is_file():
+        raise SplatFileError(path, "no such file")
+    return _module(path).read(path, **options)
+
+
+def write_splats(path, cloud, **options):
+    """Write a SplatCloud in the format its extension names; the file appears whole or not at all."""
+    return _module(path).write(path, cloud, **options)
+
+
+__all__ = ["FORMATS", "SplatFileError", "format_of", "read_splats", "write_splats"]
