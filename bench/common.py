@@ -1,0 +1,66 @@
+"""What every benchmark shares: repeated timing with spread, the machine, and result rows.
+
+Each bench/<topic>.py defines `run(quick=False) -> list[Row]` (and runs itself when executed);
+bench/run.py collects every topic into bench/REPORT.md. Speeds are always reported as a ratio
+against a baseline timed in the same run, next to the error they buy.
+"""
+
+import os
+import platform
+import statistics
+import time
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Timing:
+    median: float
+    spread: float      # (max - min) / 2 over the runs, seconds
+    runs: int
+
+    def __str__(self):
+        return f"{self.median:.4g} s ± {self.spread:.2g} (n={self.runs})"
+
+
+def timeit(fn, repeat=5, warmup=1):
+    """Median and spread of `repeat` timed calls of fn() after `warmup` untimed ones."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return Timing(statistics.median(times), (max(times) - min(times)) / 2, repeat)
+
+
+@dataclass
+class Row:
+    """One measured configuration: what it is, how fast, against what baseline, at what error."""
+    topic: str
+    case: str
+    timing: Timing
+    baseline: Timing | None = None
+    error: dict = field(default_factory=dict)    # metric name -> value
+    extra: dict = field(default_factory=dict)    # anything else worth a column
+
+    @property
+    def ratio(self):
+        """How many times faster than the baseline (baseline time / our time)."""
+        return None if self.baseline is None else self.baseline.median / self.timing.median
+
+
+def machine():
+    """A one-line description of the machine the numbers come from."""
+    import numpy as np
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"Python {platform.python_version()}, NumPy {np.__version__}, {platform.system()}")
+
+
+def print_rows(rows):
+    for r in rows:
+        ratio = f"  x{r.ratio:.1f} vs baseline ({r.baseline})" if r.baseline else ""
+        err = "  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.error.items()) \
+            if r.error else ""
+        ext = "  " + ", ".join(f"{k}={v}" for k, v in r.extra.items()) if r.extra else ""
+        print(f"[{r.topic}] {r.case}: {r.timing}{ratio}{err}{ext}")
