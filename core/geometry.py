@@ -73,3 +73,94 @@ def decompose_covariances(cov):
     flip = np.linalg.det(vecs) < 0
     vecs[flip, :, 0] *= -1
     return matrices_to_quaternions(vecs), np.sqrt(np.maximum(vals, 0.0))
+
+
+def multiply_quaternions(a, b):
+    """Hamilton products a * b of (..., 4) w,x,y,z quaternions: the rotation b, then a."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                     aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def determinants(m):
+    """det of (..., 3, 3) matrices by the triple product (no LAPACK call per matrix)."""
+    m = np.asarray(m, dtype=np.float64)
+    return np.einsum("...i,...i->...", m[..., 0, :], np.cross(m[..., 1, :], m[..., 2, :]))
+
+
+def _require_finite(a, what):
+    bad = ~np.isfinite(a).reshape(a.shape[:-2] + (-1,)).all(axis=-1)
+    if bad.any():
+        raise ValueError(f"{what}: {int(bad.sum())} matrices hold NaN or Inf")
+
+
+def polar_decomposition(a):
+    """A = R S for (..., 3, 3) matrices: R orthogonal (det -1 where A mirrors), S symmetric PSD.
+
+    From the SVD A = U diag(sigma) V^T:  R = U V^T  and  S = V diag(sigma) V^T. The SVD keeps both
+    accurate for nearly singular A: R is then still orthogonal and S holds the tiny stretch.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    if a.shape[-2:] != (3, 3):
+        raise ValueError(f"polar_decomposition needs (..., 3, 3) matrices, got shape {a.shape}")
+    _require_finite(a, "polar_decomposition")
+    u, sigma, vt = np.linalg.svd(a)
+    v = np.swapaxes(vt, -1, -2)
+    s = (v * sigma[..., None, :]) @ vt
+    return u @ vt, 0.5 * (s + np.swapaxes(s, -1, -2))
+
+
+def anisotropy(a):
+    """How far the linear map A is from a similarity (rotation or mirror times uniform scale):
+    sigma_max / sigma_min - 1 over A's singular values, the stretch of its polar part. 0 for
+    similarities, inf for singular A.
+
+    It bounds how wrong view-dependent colour gets when a transform rotates SH by the polar rotation
+    alone: view directions then deviate by at most atan(k / (2 sqrt(1 + k))) radians, k = anisotropy.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    _require_finite(a, "anisotropy")
+    sigma = np.linalg.svd(a, compute_uv=False)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = sigma[..., 0] / sigma[..., -1]
+    return np.where(sigma[..., -1] > 0, ratio - 1.0, np.inf)
+
+
+def split_affine(matrix, condition_limit=1e12):
+    """(A, t) of an affine map x -> A x + t given as a 4x4 matrix (last row 0 0 0 1) or a 3x3 A.
+
+    Rejects, with the reason, matrices that are malformed, hold NaN/Inf, project (last row not
+    0 0 0 1) or collapse space (A singular, or sigma_max / sigma_min above condition_limit).
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape not in ((4, 4), (3, 3)):
+        raise ValueError(f"transform must be a 4x4 affine or 3x3 linear matrix, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise ValueError("transform holds NaN or Inf")
+    if m.shape == (4, 4) and not np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"transform is projective (last row {m[3].tolist()}, expected [0, 0, 0, 1])")
+    a, t = m[:3, :3], (m[:3, 3] if m.shape == (4, 4) else np.zeros(3))
+    sigma = np.linalg.svd(a, compute_uv=False)
+    if not sigma[-1] > sigma[0] / condition_limit:
+        raise ValueError(f"transform is singular (singular values {sigma.tolist()}): it would flatten "
+                         "splats to zero thickness")
+    return a.copy(), t.copy()
+
+
+def transform_covariances(a, rotations, scales):
+    """The Gaussians N(0, A Sigma A^T) for Sigma = R S S^T R^T, as (w,x,y,z quaternions, scales).
+
+    Takes the SVD of the factor A R S = U diag(sigma) V^T rather than the eigen-decomposition of
+    A Sigma A^T: then A Sigma A^T = U diag(sigma)^2 U^T, and sigma keeps its accuracy relative to the
+    largest scale (eigh of the product would square the spread: 1e-7 and 1e4 in one splat would
+    lose the small axis altogether). A reflected U becomes a rotation by flipping one column.
+    """
+    factor = np.asarray(a, dtype=np.float64) @ (quaternions_to_matrices(rotations)
+                                                * np.asarray(scales, dtype=np.float64)[..., None, :])
+    u, sigma, _ = np.linalg.svd(factor)
+    u[determinants(u) < 0, :, 2] *= -1
+    return matrices_to_quaternions(u), sigma

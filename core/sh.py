@@ -1,5 +1,9 @@
 """Real spherical harmonics for degrees 0..3, with the constants of the 3DGS reference rasteriser."""
 
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 C0 = 0.28209479177387814
@@ -73,3 +77,266 @@ def evaluate(sh, directions):
 def colors(sh, directions):
     """Display-sRGB colours max(0, 0.5 + sum_k Y_k(d) sh_k), as the 3DGS rasteriser computes them."""
     return np.maximum(0.0, 0.5 + evaluate(sh, directions))
+
+
+# Rotation -------------------------------------------------------------------------------------
+#
+# A rotation R turns the coloured sphere function f into f'(d) = f(R^T d). Every band l is mapped
+# onto itself, by a (2l+1)x(2l+1) matrix D_l(R) (the real Wigner-D matrix of this basis), and
+# D(R1 R2) = D(R1) D(R2). Two kinds of rotation are cheap in this basis:
+#
+#  * about z by t: in each band the coefficients of m and -m (m >= 1) multiply K cos(m phi) and
+#    K sin(m phi) with the same K, so the complex number c_m + i c_-m turns by e^{i m t}, and m = 0
+#    stays;
+#  * about x by 90 degrees: a constant matrix X per band (fitted once, below).
+#
+# Any proper rotation is R = Rz(a) Ry(b) Rz(g) (z-y-z Euler angles), and Ry(b) = Rx(-90) Rz(b) Rx(90),
+# so  D(R) = Z(a) X^T Z(b) X Z(g):  three per-splat phase rotations and two products with a constant
+# matrix that has one or two non-zeros per row. An improper Q (det -1) is -R with R proper; as
+# Y_l(-d) = (-1)^l Y_l(d), D(Q) is D(R) with the odd bands negated.
+#
+# The work array is (K, C, n): coefficient, channel, splat (splats innermost, so every NumPy operation
+# runs over long contiguous rows). Band l fills rows l^2 .. l^2+2l in "working order": m = 0, then
+# m = 1..l, then m = -1..-l.
+
+_ORTHOGONALITY_TOLERANCE = 1e-4
+_CHUNK = 1 << 13        # splats per work item: keeps the float64 temporaries in cache
+
+
+def _band_rows(l):
+    """Rows of band l in the work array (and indices of band l in 3DGS order)."""
+    return slice(l * l, (l + 1) ** 2)
+
+
+def _working_order(degree):
+    """3DGS indices of the coefficients, in the order of the work array's rows."""
+    return np.array([l * l + l + m for l in range(degree + 1)
+                     for m in [0, *range(1, l + 1), *range(-1, -l - 1, -1)]])
+
+
+def _sphere_samples(count):
+    """Near-uniform unit directions (a Fibonacci spiral)."""
+    i = np.arange(count) + 0.5
+    z = 1 - 2 * i / count
+    phi = np.pi * (1 + 5**0.5) * i
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def fitted_rotation_matrix(rotation, degree, samples=64):
+    """D(R) by least squares on sampled directions: basis(R^T d) = basis(d) D for every d.
+
+    Exact up to round-off (each band is closed under rotation), but slow; rotation_matrix() is the
+    fast closed form. Used for the constant X and as an independent reference.
+    """
+    dirs = _sphere_samples(samples)
+    rotated = dirs @ np.asarray(rotation, dtype=np.float64)        # rows are R^T d
+    return np.linalg.lstsq(basis(dirs, degree), basis(rotated, degree), rcond=None)[0]
+
+
+@functools.cache
+def _x90(l):
+    """D_l(Rx(90 degrees)) in working order (its inverse is its transpose)."""
+    rx90 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    rows = _working_order(l)[_band_rows(l)]
+    d = fitted_rotation_matrix(rx90, l)[np.ix_(rows, rows)]
+    d[np.abs(d) < 1e-12] = 0.0
+    return d
+
+
+@functools.cache
+def _x90_rows(l, transposed):
+    """The non-zeros of X (or X^T) row by row, [(row, [(column, value), ...])]: one or two per row."""
+    x = _x90(l).T if transposed else _x90(l)
+    return [(i, [(j, x[i, j]) for j in np.flatnonzero(x[i])]) for i in range(len(x))]
+
+
+def _euler_angles(r):
+    """cos and sin of a, b, g with R = Rz(a) Ry(b) Rz(g), from the entries r[i][j] (each (n,)) of
+    proper rotations. In complex form, with c, s = cos b, sin b >= 0:
+
+        r22 = c,   r02 + i r12 = s e^{ia},
+        r00 + r11 + i (r10 - r01) = (1 + c) e^{i(a+g)},   r11 - r00 - i (r01 + r10) = (1 - c) e^{i(a-g)}.
+
+    a comes from the third column (its direction is arbitrary where s = 0), and g from whichever of
+    a+g, a-g has the factor >= 1, so every angle is accurate to round-off even where s is tiny.
+    Returns ((cos a, sin a), (cos b, sin b), (cos g, sin g)).
+    """
+    cb, sb = r[2][2], np.sqrt(r[0][2] ** 2 + r[1][2] ** 2)        # entries are at most 1: no overflow
+    safe = np.where(sb > 0, sb, 1.0)
+    ca, sa = r[0][2] / safe + (sb == 0), r[1][2] / safe
+    # e^{i(a+g)} where c >= 0, else e^{i(a-g)}; then g = (a+g) - a, or g = a - (a-g).
+    u = np.where(cb >= 0, 1.0, -1.0)
+    x, y = r[1][1] + u * r[0][0], u * r[1][0] - r[0][1]
+    size = np.sqrt(x * x + y * y)
+    x /= size
+    y /= size
+    return (ca, sa), (cb, sb), (x * ca + y * sa, u * (y * ca - x * sa))
+
+
+def _multiples(angle, degree):
+    """cos(m t), sin(m t) for m = 1..degree, each (degree, 1, n), from (cos t, sin t)."""
+    c, s = angle
+    cos, sin = [c], [s]
+    for _ in range(degree - 1):
+        c_m, s_m = cos[-1], sin[-1]
+        cos.append(c_m * c - s_m * s)
+        sin.append(s_m * c + c_m * s)
+    return np.stack(cos)[:, None, :], np.stack(sin)[:, None, :]
+
+
+def _spin(work, angle, degree):
+    """Z rotation in place: (c_m + i c_-m) *= e^{i m t} in every band."""
+    cos, sin = _multiples(angle, degree)
+    for l in range(1, degree + 1):
+        band = work[_band_rows(l)]
+        plus, minus = band[1:l + 1], band[l + 1:]
+        c, s = cos[:l], sin[:l]
+        minus_sin = minus * s
+        plus_sin = plus * s
+        plus *= c
+        plus -= minus_sin
+        minus *= c
+        minus += plus_sin
+
+
+def _x_turn(work, degree, inverse=False):
+    """X work (or X^T work, which is X^-1 work) band by band, using that X is sparse."""
+    out = np.empty_like(work)
+    out[0] = work[0]
+    for l in range(1, degree + 1):
+        band, target = work[_band_rows(l)], out[_band_rows(l)]
+        for i, row in _x90_rows(l, inverse):
+            (j, v), *rest = row
+            np.multiply(band[j], v, out=target[i])
+            for j, v in rest:
+                target[i] += band[j] * v
+    return out
+
+
+def _rotate_working(work, angles, degree):
+    """D(R) = Z(a) X^T Z(b) X Z(g) applied to the work array; returns the result."""
+    a, b, g = angles
+    _spin(work, g, degree)
+    work = _x_turn(work, degree)
+    _spin(work, b, degree)
+    work = _x_turn(work, degree, inverse=True)
+    _spin(work, a, degree)
+    return work
+
+
+def _orthogonality_error(r):
+    """max |R R^T - I| per matrix, from the rows r[i] (each (3, n))."""
+    err = [np.abs(np.einsum("kn,kn->n", r[i], r[j]) - (i == j)) for i in range(3) for j in range(i, 3)]
+    return np.max(err, axis=0)
+
+
+def _determinant(r):
+    return np.einsum("kn,kn->n", r[0], np.cross(r[1], r[2], axis=0))
+
+
+def _check_rotation_shape(rot):
+    if rot.ndim not in (2, 3) or rot.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation must have shape (3, 3) or (N, 3, 3), got {rot.shape}")
+
+
+def _in_chunks(n, work, chunk=_CHUNK):
+    """Call work(start, stop) over [0, n) in chunks, on as many threads as there are cores."""
+    spans = [(a, min(a + chunk, n)) for a in range(0, n, chunk)]
+    workers = min(len(spans), os.cpu_count() or 1)
+    if workers <= 1:
+        for span in spans:
+            work(*span)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        for _ in pool.map(lambda span: work(*span), spans):
+            pass
+
+
+def _rotate_each(coeffs, rot, out):
+    """out[n] = D(rot[n]) coeffs[n] for (n, K, C) coefficients: by Euler angles, in threaded chunks."""
+    degree = degree_of(coeffs.shape[1])
+    order = _working_order(degree)
+    deviation = np.zeros(len(rot))
+
+    def work(start, stop):
+        r = np.ascontiguousarray(np.moveaxis(rot[start:stop], 0, -1))     # r[i][j] is (n,)
+        deviation[start:stop] = _orthogonality_error(r)
+        if degree == 0:
+            out[start:stop] = coeffs[start:stop]
+            return
+        sign = np.where(_determinant(r) < 0, -1.0, 1.0)
+        w = np.empty((len(order), coeffs.shape[2], stop - start))
+        for row, k in enumerate(order):
+            w[row] = coeffs[start:stop, k].T
+        with np.errstate(invalid="ignore", divide="ignore"):      # bad matrices are reported below
+            w = _rotate_working(w, _euler_angles(r * sign), degree)
+        if (sign < 0).any():
+            for l in range(1, degree + 1, 2):
+                w[_band_rows(l)] *= sign
+        np.moveaxis(out[start:stop], 0, -1)[order] = w
+
+    _in_chunks(len(coeffs), work)
+    bad = ~(deviation <= _ORTHOGONALITY_TOLERANCE)
+    if bad.any():
+        raise ValueError(f"rotation must be orthogonal: {int(bad.sum())} of {len(rot)} matrices are not "
+                         f"(largest |R R^T - I| is {np.nanmax(np.where(bad, deviation, 0)):.3g}"
+                         f"{', some are not finite' if np.isnan(deviation).any() else ''}); "
+                         "geometry.polar_decomposition gives the rotation of a general matrix")
+    return out
+
+
+def rotation_matrix(rotation, degree):
+    """Real Wigner-D matrices in this basis: (K, K) for a (3, 3) rotation, (N, K, K) for (N, 3, 3).
+
+    rotate(sh, R)[n] == D[n] @ sh[n]; block diagonal by band with D[0, 0] = 1. Mirrors (det -1) too.
+    """
+    rot = np.asarray(rotation, dtype=np.float64)
+    _check_rotation_shape(rot)
+    batch = rot.reshape(-1, 3, 3)
+    k = num_coeffs(degree)
+    # Column c of D is the image of basis vector c: rotate the identity, one "channel" per column.
+    identity = np.broadcast_to(np.eye(k), (len(batch), k, k))
+    out = _rotate_each(identity, batch, np.empty((len(batch), k, k)))
+    return out.reshape(rot.shape[:-2] + (k, k))
+
+
+def rotate(sh, rotation):
+    """SH coefficients of the rotated colour function: evaluate(rotate(sh, R), d) == evaluate(sh, R^T d).
+
+    sh (N, K, 3) or (K, 3); rotation (3, 3) for every splat or (N, 3, 3) one per splat, orthogonal
+    (mirrors with det -1 included). float32 in gives float32 out; the arithmetic is float64.
+    """
+    sh = np.asarray(sh)
+    rot = np.asarray(rotation, dtype=np.float64)
+    _check_rotation_shape(rot)
+    if sh.ndim not in (2, 3):
+        raise ValueError(f"sh must have shape (N, K, 3) or (K, 3), got {sh.shape}")
+    coeffs = sh[None] if sh.ndim == 2 else sh
+    degree = degree_of(coeffs.shape[1])
+    dtype = np.float32 if sh.dtype == np.float32 else np.float64
+    if rot.ndim == 2:
+        out = _apply_matrix(coeffs, rotation_matrix(rot, degree), np.empty(coeffs.shape, dtype))
+        return out[0] if sh.ndim == 2 else out
+    if sh.ndim == 2:
+        coeffs = np.broadcast_to(coeffs, (len(rot),) + coeffs.shape[1:])
+    if len(rot) != len(coeffs):
+        raise ValueError(f"{len(rot)} rotations for {len(coeffs)} splats")
+    return _rotate_each(coeffs, rot, np.empty(coeffs.shape, dtype))
+
+
+def _apply_matrix(coeffs, d, out):
+    """out[n] = d @ coeffs[n] for one block-diagonal (K, K) matrix: BLAS products band by band."""
+    degree = degree_of(d.shape[0])
+
+    def work(start, stop):
+        w = np.empty((d.shape[0], coeffs.shape[2], stop - start))
+        for k in range(len(w)):
+            w[k] = coeffs[start:stop, k].T
+        for l in range(1, degree + 1):
+            band = w[_band_rows(l)]
+            band[...] = (d[_band_rows(l), _band_rows(l)] @ band.reshape(2 * l + 1, -1)).reshape(band.shape)
+        np.moveaxis(out[start:stop], 0, -1)[...] = w
+
+    _in_chunks(len(coeffs), work)
+    return out

@@ -8,6 +8,10 @@ from . import geometry, sh as shmod
 
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 
+# transformed(): a linear part whose anisotropy (geometry.anisotropy) is at most this is treated as a
+# similarity; the covariance error that allows (about twice this, relative) is float32 round-off.
+SIMILARITY_TOLERANCE = 1e-6
+
 
 class SplatValidationError(ValueError):
     """A cloud whose arrays are malformed or hold values no renderer can use."""
@@ -147,6 +151,48 @@ class SplatCloud:
         if degree == self.sh_degree:
             return self
         return self.replace(sh=shmod.truncate(self.sh, degree))
+
+    # transforms ----------------------------------------------------------------------------------
+
+    def transformed(self, matrix):
+        """The cloud under the affine map x -> A x + t, given as a 4x4 matrix (or a 3x3 A, t = 0).
+
+        Positions become A p + t (in float64), covariances A Sigma A^T, re-diagonalised into rotations
+        and log-scales, and the SH turn with R of the polar decomposition A = R S. Rigid and similarity
+        maps, mirrors included, are exact; a non-uniform stretch S changes view-dependent colour in a
+        way no SH rotation expresses, and geometry.anisotropy(A) says by how much. Output quaternions
+        are unit (a zero one is read as the identity, as everywhere); non-finite values stay
+        non-finite, so validation still reports them; extras are kept as they are. A singular,
+        projective or non-finite matrix raises ValueError.
+        """
+        a, t = geometry.split_affine(matrix)
+        rotation, _ = geometry.polar_decomposition(a)
+        if geometry.anisotropy(a) <= SIMILARITY_TOLERANCE:
+            rotations, log_scales = self._similarity_frames(a, rotation)
+        else:
+            rotations, log_scales = self._affine_frames(a)
+        return self.replace(positions=self.positions.astype(np.float64) @ a.T + t, rotations=rotations,
+                            log_scales=log_scales, sh=shmod.rotate(self.sh, rotation))
+
+    def _similarity_frames(self, a, rotation):
+        """A = scale * Q: quaternions compose with Q's proper part (-Q if Q mirrors, which leaves
+        covariances alone) and log-scales shift by log(scale)."""
+        turn = geometry.matrices_to_quaternions(rotation * np.sign(np.linalg.det(a)))
+        rotations = self.rotations.astype(np.float64)
+        ok = np.isfinite(rotations).all(axis=1)          # non-finite rows stay as they are
+        rotations[ok] = geometry.multiply_quaternions(turn, self.unit_rotations[ok])
+        return rotations, self.log_scales.astype(np.float64) + np.log(abs(np.linalg.det(a))) / 3.0
+
+    def _affine_frames(self, a):
+        """General A: re-diagonalise A Sigma A^T per splat (splats with non-finite values kept as they are)."""
+        rotations, log_scales = self.rotations.astype(np.float64), self.log_scales.astype(np.float64)
+        scales = self.scales
+        ok = np.isfinite(rotations).all(axis=1) & np.isfinite(scales).all(axis=1)
+        quaternions, sigma = geometry.transform_covariances(a, rotations[ok], scales[ok])
+        rotations[ok] = quaternions
+        with np.errstate(divide="ignore"):      # a zero scale stays a zero scale (log -inf)
+            log_scales[ok] = np.log(sigma)
+        return rotations, log_scales
 
     # validation --------------------------------------------------------------------------------
 

@@ -1,0 +1,110 @@
+"""Run every benchmark under bench/ and write bench/REPORT.md with PNG plots beside it.
+
+    ./run bench            all topics, full size
+    ./run bench --quick    smaller inputs, for a smoke test
+    ./run bench render ply only these topics
+"""
+
+import argparse
+import importlib
+import sys
+import time
+import traceback
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from common import machine  # noqa: E402
+
+NOT_TOPICS = {"common", "run"}
+
+
+def topics():
+    return sorted(p.stem for p in HERE.glob("*.py") if p.stem not in NOT_TOPICS and not p.stem.startswith("_"))
+
+
+def fmt(v):
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def table(rows):
+    err_keys = sorted({k for r in rows for k in r.error})
+    extra_keys = sorted({k for r in rows for k in r.extra})
+    head = ["case", "median s", "± s", "baseline s", "speed-up"] + err_keys + extra_keys
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r.case, fmt(r.timing.median), fmt(r.timing.spread),
+                 fmt(r.baseline.median) if r.baseline else "", f"{r.ratio:.1f}x" if r.ratio else ""]
+        cells += [fmt(r.error.get(k)) for k in err_keys] + [fmt(r.extra.get(k)) for k in extra_keys]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(topic, rows, out_dir):
+    """Speed against error for a topic's rows that carry both; returns the PNG name or None."""
+    err_keys = [k for k in sorted({k for r in rows for k in r.error})
+                if all(isinstance(r.error.get(k), (int, float)) for r in rows if k in r.error)]
+    if not err_keys:
+        return None
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    key = err_keys[0]
+    pts = [(r.error[key], r.timing.median, r.timing.spread, r.case) for r in rows if key in r.error]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for e, t, s, name in pts:
+        ax.errorbar([e], [t], yerr=[s], fmt="o", capsize=3)
+        ax.annotate(name, (e, t), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel(key)
+    ax.set_ylabel("median seconds")
+    ax.set_title(f"{topic}: speed against {key}")
+    if all(t > 0 for _, t, _, _ in pts):
+        ax.set_yscale("log")
+    fig.tight_layout()
+    name = f"{topic}.png"
+    fig.savefig(out_dir / name, dpi=110)
+    plt.close(fig)
+    return name
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("topics", nargs="*", help=f"default: all of {', '.join(topics())}")
+    parser.add_argument("--quick", action="store_true", help="smaller inputs (smoke test)")
+    parser.add_argument("--report", default=str(HERE / "REPORT.md"))
+    args = parser.parse_args(argv)
+    report = Path(args.report)
+    sections, failed = [], []
+    for topic in args.topics or topics():
+        print(f"== {topic}", flush=True)
+        t0 = time.perf_counter()
+        try:
+            rows = importlib.import_module(topic).run(quick=args.quick)
+        except Exception:
+            traceback.print_exc()
+            failed.append(topic)
+            continue
+        png = plot(topic, rows, report.parent)
+        section = f"## {topic}\n\n{table(rows)}\n"
+        if png:
+            section += f"\n![{topic}]({png})\n"
+        sections.append(section + f"\n_{time.perf_counter() - t0:.0f} s for this topic._\n")
+    header = (f"# Benchmark report\n\nMachine: {machine()}. Generated {time.strftime('%Y-%m-%d %H:%M')}"
+              f"{' (quick sizes)' if args.quick else ''} by `./run bench`. Every time is the median of "
+              "several runs, ± half their range; speed-up is baseline time / our time, both measured in "
+              "this run.\n")
+    report.write_text(header + "\n" + "\n".join(sections))
+    print(f"wrote {report}")
+    if failed:
+        print(f"failed topics: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,228 @@
+"""SH evaluation, truncation and rotation against independent references: brute-force evaluation at
+rotated directions, least-squares fits, and numerical quadrature on the sphere."""
+
+import numpy as np
+import pytest
+
+from splatwright.core import geometry, sh
+
+
+def random_rotations(rng, n):
+    return geometry.quaternions_to_matrices(rng.normal(size=(n, 4)))
+
+
+def axis_angle(axis, angle):
+    axis = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    return geometry.quaternions_to_matrices(np.r_[np.cos(angle / 2), np.sin(angle / 2) * axis])
+
+
+def unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def assert_rotates(coeffs, rotations, directions, atol=1e-12):
+    """evaluate(rotate(sh, R), d) == evaluate(sh, R^T d), one rotation per splat."""
+    rotated = sh.rotate(coeffs, rotations)
+    turned_back = np.einsum("nji,nj->ni", rotations, directions)     # R^T d
+    np.testing.assert_allclose(sh.evaluate(rotated, directions), sh.evaluate(coeffs, turned_back),
+                               rtol=0, atol=atol)
+
+
+# Basis and truncation ---------------------------------------------------------------------------
+
+def sphere_quadrature(n_theta=12, n_phi=24):
+    """Gauss-Legendre in cos(theta) times uniform phi: exact for polynomials of degree < 2 n_theta."""
+    z, w = np.polynomial.legendre.leggauss(n_theta)
+    phi = 2 * np.pi * np.arange(n_phi) / n_phi
+    zz, pp = np.meshgrid(z, phi, indexing="ij")
+    r = np.sqrt(1 - zz**2)
+    dirs = np.stack([r * np.cos(pp), r * np.sin(pp), zz], axis=-1).reshape(-1, 3)
+    weights = np.repeat(w, n_phi) * (2 * np.pi / n_phi)
+    return dirs, weights
+
+
+def test_basis_is_orthonormal_on_the_sphere():
+    dirs, weights = sphere_quadrature()
+    y = sh.basis(dirs, 3)
+    gram = y.T @ (y * weights[:, None])
+    np.testing.assert_allclose(gram, np.eye(16), atol=1e-13)
+
+
+def test_basis_follows_the_reference_constants_and_ordering():
+    d = unit(np.array([[0.3, -0.5, 0.8]]))[0]
+    x, y, z = d
+    c1, c2, c3 = sh.C1, sh.C2, sh.C3
+    expected = [sh.C0, -c1 * y, c1 * z, -c1 * x,
+                c2[0] * x * y, c2[1] * y * z, c2[2] * (2 * z * z - x * x - y * y), c2[3] * x * z,
+                c2[4] * (x * x - y * y),
+                c3[0] * y * (3 * x * x - y * y), c3[1] * x * y * z, c3[2] * y * (4 * z * z - x * x - y * y),
+                c3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y), c3[4] * x * (4 * z * z - x * x - y * y),
+                c3[5] * z * (x * x - y * y), c3[6] * x * (x * x - 3 * y * y)]
+    np.testing.assert_allclose(sh.basis(d * 7.0, 3), expected, rtol=1e-14)   # directions get normalised
+    # The constants are the normalisations of the real harmonics: C0 = 1/(2 sqrt(pi)), C1 = sqrt(3/(4 pi)).
+    assert sh.C0 == pytest.approx(0.5 / np.sqrt(np.pi), rel=1e-15)
+    assert sh.C1 == pytest.approx(np.sqrt(3 / (4 * np.pi)), rel=1e-15)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_truncation_keeps_exactly_the_low_bands(rng, degree):
+    coeffs = rng.normal(size=(50, 16, 3))
+    d = rng.normal(size=(50, 3))
+    low = sh.truncate(coeffs, degree)
+    assert low.shape == (50, (degree + 1) ** 2, 3)
+    # Brute force: the full sum over only the kept basis functions.
+    y = sh.basis(d, 3)[:, : (degree + 1) ** 2]
+    np.testing.assert_allclose(sh.evaluate(low, d), np.einsum("nk,nkc->nc", y, coeffs[:, : len(y[0])]),
+                               atol=1e-13)
+    # Band by band, truncation is the L2 projection: the dropped bands are orthogonal to the kept ones.
+    dirs, weights = sphere_quadrature()
+    one = coeffs[:1]
+    full = sh.evaluate(np.repeat(one, len(dirs), 0), dirs)
+    kept = sh.evaluate(np.repeat(sh.truncate(one, degree), len(dirs), 0), dirs)
+    inner = ((full - kept) * kept * weights[:, None]).sum(axis=0)
+    np.testing.assert_allclose(inner, 0, atol=1e-12)
+    # Padding back up changes no colour.
+    np.testing.assert_allclose(sh.evaluate(sh.truncate(low, 3), d), sh.evaluate(low, d), atol=1e-13)
+
+
+# Rotation: brute force ---------------------------------------------------------------------------
+
+def test_1000_random_rotations_match_brute_force(rng):
+    for _ in range(1000):
+        r = random_rotations(rng, 1)[0]
+        coeffs = rng.normal(0, 0.5, size=(16, 3))
+        d = unit(rng.normal(size=(64, 3)))
+        rotated = sh.rotate(coeffs, r)
+        assert rotated.shape == (16, 3)
+        diff = sh.evaluate(np.broadcast_to(rotated, (64, 16, 3)), d) - \
+            sh.evaluate(np.broadcast_to(coeffs, (64, 16, 3)), d @ r)
+        assert np.abs(diff).max() < 1e-12
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_per_splat_rotations_match_brute_force(rng, degree):
+    n = 20000      # more than one chunk, so the threaded path runs
+    coeffs = rng.normal(0, 0.5, size=(n, (degree + 1) ** 2, 3))
+    rotations = random_rotations(rng, n)
+    rotations[::5] *= -1                                   # mirrors among them
+    assert_rotates(coeffs, rotations, unit(rng.normal(size=(n, 3))))
+
+
+def test_float32_in_float32_out_within_1e5(rng):
+    coeffs = rng.normal(0, 1, size=(1000, 16, 3)).astype(np.float32)
+    rotations = random_rotations(rng, 1000)
+    d = unit(rng.normal(size=(1000, 3)))
+    for rotation in (rotations, rotations[0]):
+        rotated = sh.rotate(coeffs, rotation)
+        assert rotated.dtype == np.float32
+        r = np.broadcast_to(rotation, (1000, 3, 3))
+        diff = sh.evaluate(rotated, d) - sh.evaluate(coeffs.astype(np.float64), np.einsum("nji,nj->ni", r, d))
+        assert np.abs(diff).max() < 1e-5
+    assert sh.rotate(coeffs.astype(np.float64), rotations).dtype == np.float64
+
+
+def test_identity_changes_nothing(rng):
+    coeffs = rng.normal(size=(100, 16, 3))
+    np.testing.assert_allclose(sh.rotate(coeffs, np.eye(3)), coeffs, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(sh.rotate(coeffs, np.tile(np.eye(3), (100, 1, 1))), coeffs, rtol=0, atol=1e-13)
+    as_float32 = coeffs.astype(np.float32)
+    np.testing.assert_array_equal(sh.rotate(as_float32, np.eye(3)), as_float32)
+
+
+def awkward_rotations():
+    """Half turns and rotations at the singular points of z-y-z Euler angles (b = 0, b = pi, tiny b)."""
+    axes = [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -2, 3], [0, 1, 1e-9]]
+    yield from (axis_angle(a, np.pi) for a in axes)                      # 180 degrees
+    yield from (axis_angle([0, 0, 1], t) for t in (0.3, -2.0, np.pi / 2))  # b = 0 exactly
+    yield axis_angle([1, 0, 0], np.pi) @ axis_angle([0, 0, 1], 0.7)      # b = pi exactly
+    for tiny in (1e-7, 1e-10, 1e-15):
+        yield axis_angle([0, 0, 1], 1.1) @ axis_angle([1, 2, 0], tiny) @ axis_angle([0, 0, 1], -0.4)
+        yield axis_angle([0, 1, 0], np.pi - tiny) @ axis_angle([0, 0, 1], 2.5)
+    yield np.diag([1.0, -1.0, -1.0])
+
+
+def test_half_turns_and_euler_singularities(rng):
+    rotations = np.array(list(awkward_rotations()))
+    n = len(rotations)
+    coeffs = rng.normal(size=(n, 16, 3))
+    assert_rotates(coeffs, rotations, unit(rng.normal(size=(n, 3))))
+    for r in rotations:     # the single-matrix path too, against the least-squares reference
+        np.testing.assert_allclose(sh.rotation_matrix(r, 3), sh.fitted_rotation_matrix(r, 3), atol=1e-12)
+
+
+def test_mirrors_follow_y_of_minus_d(rng):
+    coeffs = rng.normal(size=(1, 16, 3))
+    d = unit(rng.normal(size=(1, 3)))
+    # The point inversion -I: Y_l(-d) = (-1)^l Y_l(d), so odd bands flip sign.
+    signs = np.array([1, -1, -1, -1] + [1] * 5 + [-1] * 7, dtype=float)
+    np.testing.assert_allclose(sh.rotate(coeffs, -np.eye(3)), coeffs * signs[None, :, None], atol=1e-14)
+    # Mirror planes, and random improper matrices, against brute force.
+    mirrors = [np.diag([1.0, 1.0, -1.0]), np.diag([-1.0, 1.0, 1.0]), np.eye(3)[[1, 0, 2]]]
+    mirrors += list(random_rotations(rng, 20) @ np.diag([1.0, -1.0, 1.0]))
+    for q in mirrors:
+        assert np.linalg.det(q) < 0
+        assert_rotates(coeffs, q[None], d)
+        np.testing.assert_allclose(sh.rotation_matrix(q, 3), sh.fitted_rotation_matrix(q, 3), atol=1e-12)
+
+
+def test_rotation_matrices_are_an_orthogonal_representation(rng):
+    r1, r2 = random_rotations(rng, 2)
+    d1, d2, d12 = (sh.rotation_matrix(r, 3) for r in (r1, r2, r1 @ r2))
+    np.testing.assert_allclose(d12, d1 @ d2, atol=1e-13)       # D(R1 R2) = D(R1) D(R2)
+    np.testing.assert_allclose(d1 @ d1.T, np.eye(16), atol=1e-13)
+    mask = np.zeros((16, 16), bool)                            # block diagonal by band
+    for l in range(4):
+        mask[l * l:(l + 1) ** 2, l * l:(l + 1) ** 2] = True
+    assert np.abs(d1[~mask]).max() < 1e-14
+    batched = sh.rotation_matrix(np.stack([r1, r2]), 2)
+    np.testing.assert_allclose(batched, [sh.fitted_rotation_matrix(r, 2) for r in (r1, r2)], atol=1e-12)
+
+
+def test_band_one_turns_like_a_vector(rng):
+    """The band-1 coefficients (-C1 y, C1 z, -C1 x) are a vector a = (-c3, -c1, c2): a' = R a."""
+    r = random_rotations(rng, 1)[0]
+    c = rng.normal(size=(4, 1))
+    rotated = sh.rotate(c, r)
+    a = np.array([-c[3, 0], -c[1, 0], c[2, 0]])
+    np.testing.assert_allclose([-rotated[3, 0], -rotated[1, 0], rotated[2, 0]], r @ a, atol=1e-14)
+
+
+def test_a_broken_splat_does_not_spread(rng):
+    coeffs = rng.normal(size=(10, 16, 3))
+    coeffs[3, 5, 1] = np.nan
+    before = coeffs.copy()
+    rotations = random_rotations(rng, 10)
+    rotated = sh.rotate(coeffs, rotations)
+    np.testing.assert_array_equal(coeffs, before)                    # the input is left alone
+    ok = np.arange(10) != 3
+    assert np.isfinite(rotated[ok]).all()
+    np.testing.assert_allclose(rotated[ok], sh.rotate(coeffs[ok], rotations[ok]), atol=1e-14)
+
+
+def test_one_coefficient_set_under_many_rotations(rng):
+    coeffs = rng.normal(size=(16, 3))
+    rotations = random_rotations(rng, 7)
+    rotated = sh.rotate(coeffs, rotations)
+    assert rotated.shape == (7, 16, 3)
+    np.testing.assert_allclose(rotated[3], sh.rotate(coeffs, rotations[3]), atol=1e-14)
+
+
+def test_bad_rotations_are_refused_with_the_reason(rng):
+    coeffs = rng.normal(size=(3, 16, 3))
+    rotations = random_rotations(rng, 3)
+    sheared = rotations.copy()
+    sheared[1] = sheared[1] @ np.array([[1, 0.1, 0], [0, 1, 0], [0, 0, 1]])
+    with pytest.raises(ValueError, match=r"orthogonal: 1 of 3 matrices"):
+        sh.rotate(coeffs, sheared)
+    broken = rotations.copy()
+    broken[2, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="not finite"):
+        sh.rotate(coeffs, broken)
+    with pytest.raises(ValueError, match="orthogonal"):
+        sh.rotate(coeffs, 2 * np.eye(3))
+    with pytest.raises(ValueError, match=r"2 rotations for 3 splats"):
+        sh.rotate(coeffs, rotations[:2])
+    with pytest.raises(ValueError, match=r"shape \(3, 3\) or \(N, 3, 3\)"):
+        sh.rotate(coeffs, np.eye(4))
+    with pytest.raises(ValueError, match="SH coefficients per channel"):
+        sh.rotate(rng.normal(size=(3, 5, 3)), np.eye(3))
