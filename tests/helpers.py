@@ -1,8 +1,16 @@
 """Test helpers shared by several test modules (tests/ is on sys.path)."""
 
+import functools
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
 import numpy as np
 
 from splatwright.core import SplatCloud
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def random_cloud(n, sh_degree=3, seed=0, spread=1.0):
@@ -16,3 +24,28 @@ def random_cloud(n, sh_degree=3, seed=0, spread=1.0):
         opacity_logits=rng.normal(0, 2, n),
         sh=rng.normal(0, 0.3, (n, k, 3)),
     )
+
+
+@functools.lru_cache(maxsize=None)
+def blender_ext_script():
+    """Blender's own extension tool, blender_ext.py, from the bpy module (looked up in a child
+    process so the test process does not import bpy)."""
+    scripts = subprocess.run([sys.executable, "-c", "import bpy; print(bpy.utils.system_resource('SCRIPTS'))"],
+                             capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
+    return Path(scripts) / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"
+
+
+def run_blender_ext(*args):
+    """Run blender_ext.py with this Python; returns the CompletedProcess (text output)."""
+    return subprocess.run([sys.executable, str(blender_ext_script()), *map(str, args)],
+                          capture_output=True, text=True, timeout=300)
+
+
+def build_extension_zip(out_dir):
+    """Build the Blender extension zip from the repository with `blender_ext.py build`; returns its path."""
+    manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
+    out = Path(out_dir) / f"{manifest['id']}-{manifest['version']}.zip"
+    done = run_blender_ext("build", "--source-dir", REPO_ROOT, "--output-filepath", out)
+    if done.returncode != 0 or not out.is_file():
+        raise RuntimeError(f"blender_ext.py build failed ({done.returncode}):\n{done.stdout}\n{done.stderr}")
+    return out

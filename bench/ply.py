@@ -1,0 +1,85 @@
+"""PLY read/write speed for a 1M-splat degree-3 cloud against raw np.fromfile / tofile of the very
+same bytes (the floor any PLY reader or writer could reach), with the error each buys (none: both
+directions are exact)."""
+
+import shutil
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+from common import Row, Timing, machine, print_rows, timeit  # noqa: E402
+from helpers import random_cloud  # noqa: E402
+
+from splatwright.io import ply  # noqa: E402
+
+
+def _fresh(path, write):
+    """Time writing a new file (as a first save does), not overwriting: replacing a file of this
+    size makes the file system flush the old one, a cost that would swamp both sides."""
+    def run():
+        if path.exists():
+            path.unlink()
+        write(path)
+    return run
+
+
+def _paired(baseline, ours, repeat):
+    """Timings of baseline and ours, run alternately so that both meet the same load on a shared
+    machine (one untimed warm-up each)."""
+    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
+             for i in range(repeat)]
+    return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
+
+
+def _combine(timings):
+    times = [t.median for t in timings]
+    return Timing(statistics.median(times), (max(times) - min(times)) / 2, len(times))
+
+
+def _max_error(a, b):
+    return max(float(np.abs(getattr(a, f).astype(np.float64) - getattr(b, f)).max())
+               for f in ("positions", "rotations", "log_scales", "opacity_logits", "sh"))
+
+
+def run(quick=False):
+    n = 100_000 if quick else 1_000_000
+    repeat = 3 if quick else 7
+    cloud = random_cloud(n, sh_degree=3, seed=0)
+    tmp = Path(tempfile.mkdtemp(prefix="splatwright-bench-ply-"))
+    try:
+        path = tmp / "cloud.ply"
+        ply.write(path, cloud)
+        raw = np.fromfile(path, np.uint8)
+        size = f"{len(raw) / 2**20:.0f} MiB"
+
+        read_base, read_ours = _paired(lambda: np.fromfile(path, np.uint8), lambda: ply.read(path), repeat)
+        back = ply.read(path)
+        write_base, write_ours = _paired(_fresh(tmp / "raw.bin", raw.tofile),
+                                         _fresh(tmp / "out.ply", lambda p: ply.write(p, back)), repeat)
+        same_bytes = (tmp / "out.ply").read_bytes() == path.read_bytes()
+        written_error = _max_error(ply.read(tmp / "out.ply"), cloud)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    case = f"{n:,} splats, SH degree 3, {size}"
+    return [
+        Row("ply", f"read {case}", read_ours, read_base,
+            error={"max_abs_error": _max_error(back, cloud)},
+            extra={"baseline": "np.fromfile", "slowdown": f"{read_ours.median / read_base.median:.2f}x",
+                   "threads": ply.WORKERS}),
+        Row("ply", f"write {case}", write_ours, write_base,
+            error={"max_abs_error": written_error},
+            extra={"baseline": "ndarray.tofile", "bytes_identical": same_bytes, "slowdown": f"{write_ours.median / write_base.median:.2f}x",
+                   "threads": ply.WORKERS}),
+    ]
+
+
+if __name__ == "__main__":
+    print(machine())
+    print_rows(run(quick="--quick" in sys.argv))

@@ -1,0 +1,511 @@
+"""PLY in the 3DGS/INRIA layout, read and written without losing anything.
+
+Vertex properties `x y z [nx ny nz] f_dc_0..2 f_rest_0..M opacity scale_0..2 rot_0..3`, looked up
+by name. Reading accepts ASCII and binary of either byte order, every PLY scalar type, any property
+order and other elements beside `vertex`; properties the layout does not name are kept in
+`cloud.extras` under their own name and dtype and written back after the layout's own.
+Normals are kept as float32 extras `nx`, `ny`, `nz` unless they are all zero (the placeholder the
+3DGS reference writes); the writer puts them in the normal slot, or zeros when absent.
+
+2DGS files (scale_0 and scale_1, no scale_2) get a flat third axis of sigma FLAT_SIGMA and a
+SplatFileWarning saying so; they are written back as 3DGS files with that scale_2.
+
+Non-finite values: `read` refuses a file whose splats hold NaN or Inf (also a double too large for
+float32) with a SplatFileError counting them per field, unless told `nonfinite="keep"` (keep them,
+warn, and let SplatCloud.problems() report) or `nonfinite="drop"` (drop those splats, warn).
+`write` applies the same rule, so no NaN reaches a file unless asked for.
+"""
+
+import os
+import re
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core import SplatCloud
+from ..core.splats import FIELDS as CORE_FIELDS
+from ..core import sh as shmod
+from .common import SplatFileError, atomic_write
+
+FLAT_SIGMA = 1e-6                      # 2DGS third axis: thin next to any real splat, still invertible
+FLAT_LOG_SCALE = float(np.log(FLAT_SIGMA))
+NONFINITE_POLICIES = ("raise", "keep", "drop")
+
+# PLY scalar type names (both spellings of the spec) -> NumPy type codes, and back for writing.
+PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+             "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+             "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
+              "f4": "float", "f8": "double"}
+FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
+
+NORMALS = ("nx", "ny", "nz")
+REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
+            "rot_0", "rot_1", "rot_2", "rot_3")
+MAX_HEADER = 1 << 20
+WORKERS = min(4, os.cpu_count() or 1)
+PARALLEL_ROWS = 1 << 16                # below this, threads cost more than they save
+CHUNK_ROWS = 1 << 13                   # rows converted together while they are in cache (~2 MB)
+
+
+class SplatFileWarning(UserWarning):
+    """A file was read, but not exactly as stored (2DGS flattened, non-finite splats kept/dropped)."""
+
+
+def layout_names(sh_degree):
+    """The 3DGS reference property order for an SH degree."""
+    rest = 3 * (shmod.num_coeffs(sh_degree) - 1)
+    return (["x", "y", "z", *NORMALS, "f_dc_0", "f_dc_1", "f_dc_2"]
+            + [f"f_rest_{i}" for i in range(rest)]
+            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+
+# header -------------------------------------------------------------------------------------------
+
+@dataclass
+class Element:
+    name: str
+    count: int
+    properties: list          # (name, type code) or (name, ("list", count code, item code))
+
+    @property
+    def has_lists(self):
+        return any(isinstance(t, tuple) for _, t in self.properties)
+
+    def dtype(self, order):
+        return np.dtype([(name, order + code) for name, code in self.properties])
+
+
+def _read_header(path, f):
+    """(format, elements, header length in bytes) from an open file."""
+    head = f.read(MAX_HEADER)
+    if not re.match(rb"ply[ \t]*\r?\n", head):
+        raise SplatFileError(path, "not a PLY file (it does not start with a 'ply' line)")
+    end = re.search(rb"\nend_header[ \t]*\r?\n", head)
+    if end is None:
+        raise SplatFileError(path, "PLY header has no 'end_header' line (truncated file?)")
+    try:
+        lines = head[:end.start()].decode("ascii").splitlines()[1:]
+    except UnicodeDecodeError:
+        raise SplatFileError(path, "PLY header is not ASCII text") from None
+    fmt, elements = None, []
+    for number, line in enumerate(lines, start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        where = f"PLY header line {number} '{line.strip()}'"
+        if words[0] == "format":
+            if len(words) != 3 or words[1] not in FORMATS or words[2] != "1.0":
+                raise SplatFileError(path, f"{where}: unsupported format (expected ascii, "
+                                           "binary_little_endian or binary_big_endian, version 1.0)")
+            fmt = words[1]
+        elif words[0] == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise SplatFileError(path, f"{where}: expected 'element NAME COUNT'")
+            elements.append(Element(words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if not elements:
+                raise SplatFileError(path, f"{where}: property before any element")
+            elements[-1].properties.append(_parse_property(path, where, words))
+        else:
+            raise SplatFileError(path, f"{where}: unknown keyword '{words[0]}'")
+    if fmt is None:
+        raise SplatFileError(path, "PLY header has no 'format' line")
+    return fmt, elements, end.end()
+
+
+def _parse_property(path, where, words):
+    if len(words) == 5 and words[1] == "list":
+        types = words[2:4]
+        if all(t in PLY_TYPES for t in types):
+            return words[4], ("list", PLY_TYPES[types[0]], PLY_TYPES[types[1]])
+    elif len(words) == 3 and words[1] in PLY_TYPES:
+        return words[2], PLY_TYPES[words[1]]
+    raise SplatFileError(path, f"{where}: expected 'property TYPE NAME' or 'property list TYPE TYPE NAME' "
+                               f"with TYPE one of {', '.join(sorted(set(TYPE_NAMES.values())))}")
+
+
+def _vertex_element(path, elements):
+    """The vertex element and its index, checked for what this reader cannot take."""
+    index = next((i for i, e in enumerate(elements) if e.name == "vertex"), None)
+    if index is None:
+        raise SplatFileError(path, "PLY file has no 'vertex' element")
+    vertex = elements[index]
+    lists = [name for name, t in vertex.properties if isinstance(t, tuple)]
+    if lists:
+        raise SplatFileError(path, f"vertex element has list properties {lists}, which splat files do not use")
+    names = [name for name, _ in vertex.properties]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise SplatFileError(path, f"vertex element repeats properties {dupes}")
+    return index, vertex
+
+
+# data ---------------------------------------------------------------------------------------------
+
+def _binary_layout(path, fmt, elements, index, header_len):
+    """(vertex record dtype, byte offset of the vertex data), once the file size matches the header."""
+    order = FORMATS[fmt]
+    before, vertex, after = elements[:index], elements[index], elements[index + 1:]
+    if any(e.has_lists for e in before):
+        names = [e.name for e in before if e.has_lists]
+        raise SplatFileError(path, f"elements {names} with list properties come before 'vertex'; "
+                                   "this reader cannot skip them")
+    dtype = vertex.dtype(order)
+    start = header_len + sum(e.count * e.dtype(order).itemsize for e in before)
+    need = start + vertex.count * dtype.itemsize \
+        + sum(e.count * e.dtype(order).itemsize for e in after if not e.has_lists)
+    size = os.path.getsize(path)
+    if size < need:
+        raise SplatFileError(path, f"truncated: the header promises {vertex.count} vertices of "
+                                   f"{dtype.itemsize} bytes ({need - header_len} data bytes in all) "
+                                   f"but only {size - header_len} bytes follow the header")
+    exact = not any(e.has_lists for e in after)    # list elements have no size known in advance
+    if exact and size > need:
+        raise SplatFileError(path, f"{size - need} bytes beyond the data the header describes "
+                                   f"(does its vertex count of {vertex.count} understate the file?)")
+    return dtype, start
+
+
+def _read_ascii(path, elements, index, header_len):
+    """The vertex records of an ASCII file, parsed by np.loadtxt (one C loop, no Python per row)."""
+    with open(path, "rb") as f:
+        f.seek(header_len)
+        data = f.read()
+    try:
+        lines = data.decode("ascii").split("\n")
+    except UnicodeDecodeError:
+        raise SplatFileError(path, "ASCII PLY data holds non-ASCII bytes") from None
+    while lines and not lines[-1].strip():
+        lines.pop()
+    vertex = elements[index]
+    start = sum(e.count for e in elements[:index])
+    expected = sum(e.count for e in elements)
+    if len(lines) < expected:
+        raise SplatFileError(path, f"truncated: the header promises {expected} data lines "
+                                   f"({vertex.count} vertices) but the file has {len(lines)}")
+    if len(lines) > expected:
+        raise SplatFileError(path, f"{len(lines) - expected} data lines beyond what the header describes "
+                                   f"(does its vertex count of {vertex.count} understate the file?)")
+    dtype = vertex.dtype("=")
+    if vertex.count == 0:
+        return np.zeros(0, dtype)
+    try:
+        return np.loadtxt(lines[start:start + vertex.count], dtype=dtype, comments=None, ndmin=1)
+    except ValueError as exc:
+        raise SplatFileError(path, f"vertex data (rows counted from the first vertex): {exc}") from None
+
+
+def _bytes(records):
+    return memoryview(records.view(np.uint8))
+
+
+def _read_into(path, f, offset, records):
+    """Fill `records` from byte `offset` of the open file (reads may come back short)."""
+    f.seek(offset)
+    view = _bytes(records)
+    while len(view):
+        got = f.readinto(view)
+        if not got:
+            raise SplatFileError(path, "truncated: the file ended while it was being read")
+        view = view[got:]
+
+
+def _write_at(fd, records, offset):
+    view = _bytes(records)
+    while len(view):
+        done = os.pwrite(fd, view, offset)
+        view, offset = view[done:], offset + done
+
+
+# row chunks on every core -------------------------------------------------------------------------
+
+def _in_parallel(n, work):
+    """Run work(rows) on one contiguous slice of rows per core (NumPy and file I/O release the GIL)."""
+    if n < PARALLEL_ROWS or WORKERS < 2:
+        work(slice(0, n))
+        return
+    bounds = np.linspace(0, n, WORKERS + 1).astype(int)
+    with ThreadPoolExecutor(WORKERS) as pool:
+        list(pool.map(work, [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]))
+
+
+def _chunks(rows):
+    """Slices of at most CHUNK_ROWS, so each chunk is converted while it is still in cache."""
+    for a in range(rows.start, rows.stop, CHUNK_ROWS):
+        yield slice(a, min(a + CHUNK_ROWS, rows.stop))
+
+
+def _nonfinite_rows(arrays, rows):
+    """{field: splats among `rows` with a NaN/Inf in that field}, only fields that have some."""
+    found = {}
+    for name, a in arrays.items():
+        block = a[rows]
+        if not np.isfinite(block).all():
+            found[name] = int((~np.isfinite(block.reshape(len(block), -1)).all(axis=1)).sum())
+    return found
+
+
+def _merge(tallies):
+    total = {}
+    for tally in tallies:
+        for name, count in tally.items():
+            total[name] = total.get(name, 0) + count
+    return {name: total[name] for name in CORE_FIELDS if name in total}
+
+
+def _core_arrays(cloud):
+    return {name: getattr(cloud, name) for name in CORE_FIELDS}
+
+
+def _block(records, names):
+    """(m, len(names)) float32 of these properties: a strided view when they are adjacent native
+    floats in the records (the usual layout), else a converted copy."""
+    fields, f32 = records.dtype.fields, np.dtype(np.float32)
+    offset = fields[names[0]][1]
+    if all(fields[n][0] == f32 and fields[n][1] == offset + 4 * i for i, n in enumerate(names)):
+        return np.ndarray((len(records), len(names)), np.float32, buffer=records.view(np.uint8),
+                          offset=offset, strides=(records.itemsize, 4))
+    with np.errstate(over="ignore"):   # doubles beyond float32 become inf: reported as non-finite
+        return np.stack([records[n].astype(np.float32) for n in names], axis=1)
+
+
+def sh_order(k):
+    """Column permutation from the file's f_dc_0..2, f_rest_* (channel-major) to the cloud's
+    (K, 3) coefficient-major SH: sh.reshape(N, 3K) = file_columns[:, sh_order(k)]."""
+    j, c = np.meshgrid(np.arange(1, k), np.arange(3), indexing="ij")   # coefficient j, channel c
+    return np.concatenate([[0, 1, 2], 3 + c.ravel() * (k - 1) + (j.ravel() - 1)])
+
+
+# reading ------------------------------------------------------------------------------------------
+
+class _Converter:
+    """Fills the cloud's (contiguous) arrays from vertex records, one chunk of rows at a time, so
+    each chunk is reordered and checked while it is still in cache."""
+
+    def __init__(self, path, dtype, n):
+        names = set(dtype.names)
+        missing = [p for p in REQUIRED if p not in names]
+        if missing:
+            raise SplatFileError(path, f"vertex element lacks required 3DGS properties: {', '.join(missing)}")
+        self.flat = "scale_2" not in names
+        k = _sh_count(path, names)
+        self.sh_names = ["f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+        self.sh_order = sh_order(k)
+        self.arrays = {"positions": np.empty((n, 3), np.float32), "rotations": np.empty((n, 4), np.float32),
+                       "log_scales": np.empty((n, 3), np.float32), "opacity_logits": np.empty(n, np.float32),
+                       "sh": np.empty((n, k, 3), np.float32)}
+        layout = set(layout_names(shmod.degree_of(k))) - set(NORMALS)
+        # Normals belong to the layout, so they are float32 like its other fields; extras keep their dtype.
+        self.extras = {p: np.empty(n, np.float32 if p in NORMALS else dtype[p].newbyteorder("="))
+                       for p in dtype.names if p not in layout}
+        self.tallies = []
+
+    def convert(self, records, rows):
+        out = self.arrays
+        out["positions"][rows] = _block(records, ["x", "y", "z"])
+        out["rotations"][rows] = _block(records, ["rot_0", "rot_1", "rot_2", "rot_3"])
+        out["opacity_logits"][rows] = _block(records, ["opacity"])[:, 0]
+        if self.flat:
+            out["log_scales"][rows, :2] = _block(records, ["scale_0", "scale_1"])
+            out["log_scales"][rows, 2] = FLAT_LOG_SCALE
+        else:
+            out["log_scales"][rows] = _block(records, ["scale_0", "scale_1", "scale_2"])
+        sh = out["sh"].reshape(len(out["sh"]), -1)
+        np.take(_block(records, self.sh_names), self.sh_order, axis=1, out=sh[rows], mode="clip")
+        with np.errstate(over="ignore"):
+            for name, values in self.extras.items():
+                values[rows] = records[name]
+        self.tallies.append(_nonfinite_rows(out, rows))
+
+    def cloud(self):
+        extras = dict(self.extras)
+        if all(p in extras for p in NORMALS) and not any(extras[p].any() for p in NORMALS):
+            for p in NORMALS:          # all zero: the reference writer's placeholder, nothing to keep
+                del extras[p]
+        return SplatCloud(**self.arrays, extras=extras)
+
+
+def _sh_count(path, names):
+    """K, the SH coefficients per channel, from the f_rest properties present."""
+    rest = [p for p in names if p.startswith("f_rest_")]
+    numbers = sorted(int(p[7:]) for p in rest if p[7:].isdigit())
+    if len(numbers) != len(rest) or numbers != list(range(len(rest))):
+        raise SplatFileError(path, "f_rest properties must be numbered f_rest_0 .. f_rest_M without gaps, "
+                                   f"found {sorted(rest, key=lambda p: (len(p), p))}")
+    if len(rest) not in (0, 9, 24, 45):
+        raise SplatFileError(path, f"{len(rest)} f_rest properties; 3DGS files have 0, 9, 24 or 45 "
+                                   "(SH degree 0..3)")
+    return len(rest) // 3 + 1
+
+
+def _apply_nonfinite(path, cloud, counts, policy, verb):
+    """Raise, warn and keep, or warn and drop, for the non-finite values `counts` tallies per field."""
+    if not counts:
+        return cloud
+    bad = ~cloud.finite_mask()
+    detail = ", ".join(f"{name} in {c}" for name, c in counts.items())
+    what = f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf or beyond float32): {detail}"
+    if policy == "raise":
+        raise SplatFileError(path, f"{what}; {verb} with nonfinite='keep' or 'drop' to go on anyway")
+    warnings.warn(f"{path}: {what}; {'kept' if policy == 'keep' else 'dropped'}", SplatFileWarning, stacklevel=3)
+    return cloud if policy == "keep" else cloud[~bad]
+
+
+def _check_policy(policy):
+    if policy not in NONFINITE_POLICIES:
+        raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {policy!r}")
+
+
+def read(path, nonfinite="raise"):
+    """Read a 3DGS PLY into a SplatCloud.
+
+    Binary data is read a cache-sized chunk at a time on every core and each chunk is reordered
+    into the cloud's arrays (and checked for non-finite values) before the next is read.
+    """
+    _check_policy(nonfinite)
+    try:
+        convert = _load(path)
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    if convert.flat:
+        warnings.warn(f"{path}: 2DGS file (scale_0, scale_1 only); third axis set flat "
+                      f"(sigma {FLAT_SIGMA:g}, log-scale {FLAT_LOG_SCALE:.4f})", SplatFileWarning, stacklevel=2)
+    return _apply_nonfinite(path, convert.cloud(), _merge(convert.tallies), nonfinite, "read")
+
+
+def _load(path):
+    """A _Converter holding every vertex of the file."""
+    with open(path, "rb") as f:
+        fmt, elements, header_len = _read_header(path, f)
+    index, vertex = _vertex_element(path, elements)
+    n = vertex.count
+    if fmt == "ascii":
+        records = _read_ascii(path, elements, index, header_len)
+        convert = _Converter(path, records.dtype, n)
+        _in_parallel(n, lambda rows: [convert.convert(records[c], c) for c in _chunks(rows)])
+        return convert
+    dtype, start = _binary_layout(path, fmt, elements, index, header_len)
+    convert = _Converter(path, dtype, n)     # checks the properties before any data is read
+
+    def load(rows):
+        buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)
+        with open(path, "rb", buffering=0) as f:
+            for chunk in _chunks(rows):
+                part = buffer[:chunk.stop - chunk.start]
+                _read_into(path, f, start + chunk.start * dtype.itemsize, part)
+                convert.convert(part, chunk)
+    _in_parallel(n, load)
+    return convert
+
+
+# writing ------------------------------------------------------------------------------------------
+
+def write(path, cloud, nonfinite="raise"):
+    """Write binary little-endian 3DGS PLY: the reference layout, then the extras.
+
+    The body is filled a cache-sized chunk at a time on every core and written in place; the file
+    appears whole or not at all (also when non-finite values stop it under nonfinite='raise').
+    """
+    _check_policy(nonfinite)
+    if nonfinite != "raise":
+        cloud = _apply_nonfinite(path, cloud, _scan_nonfinite(cloud), nonfinite, "write")
+    names = layout_names(cloud.sh_degree)
+    extras = _extra_columns(path, cloud, set(names))
+    dtype = np.dtype([("core", "<f4", (len(names),))] + [(name, a.dtype.newbyteorder("<")) for name, a in extras])
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(cloud)}"]
+    header += [f"property float {name}" for name in names]
+    header += [f"property {TYPE_NAMES[a.dtype.str[1:]]} {name}" for name, a in extras]
+    header = ("\n".join(header) + "\nend_header\n").encode("ascii")
+    fill = _Filler(cloud, extras)
+    tallies = []
+    try:
+        with atomic_write(path) as f:
+            f.write(header)
+            f.flush()
+
+            def fill_and_write(rows):
+                buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)
+                for chunk in _chunks(rows):
+                    part = buffer[:chunk.stop - chunk.start]
+                    fill(part, chunk)
+                    tallies.append(_nonfinite_rows(_core_arrays(cloud), chunk))
+                    _write_at(f.fileno(), part, len(header) + chunk.start * dtype.itemsize)
+            _in_parallel(len(cloud), fill_and_write)
+            if nonfinite == "raise":
+                _apply_nonfinite(path, cloud, _merge(tallies), "raise", "write")
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot write: {exc.strerror or exc}") from exc
+
+
+def _scan_nonfinite(cloud):
+    tallies = []
+    _in_parallel(len(cloud), lambda rows: tallies.extend(_nonfinite_rows(_core_arrays(cloud), c)
+                                                          for c in _chunks(rows)))
+    return _merge(tallies)
+
+
+class _Filler:
+    """Fills vertex records with a cloud's splats in the reference layout."""
+
+    def __init__(self, cloud, extras):
+        self.cloud, self.extras = cloud, extras
+        self.normals = [cloud.extras.get(name) for name in NORMALS]
+        k = cloud.sh.shape[1]
+        self.sh_columns = np.argsort(sh_order(k))       # cloud SH (K*3) -> file f_dc, f_rest order
+        self.m = 3 * k                                  # f_dc + f_rest columns
+
+    def __call__(self, part, rows):
+        cloud, core, m = self.cloud, part["core"], self.m
+        core[:, 0:3] = cloud.positions[rows]
+        for i, normal in enumerate(self.normals):
+            core[:, 3 + i] = 0.0 if normal is None else normal[rows]
+        sh = cloud.sh[rows].reshape(len(part), m)
+        core[:, 6:6 + m] = np.take(sh, self.sh_columns, axis=1, mode="clip")
+        core[:, 6 + m] = cloud.opacity_logits[rows]
+        core[:, 7 + m:10 + m] = cloud.log_scales[rows]
+        core[:, 10 + m:14 + m] = cloud.rotations[rows]
+        for name, values in self.extras:
+            part[name] = values[rows]
+
+
+def _extra_columns(path, cloud, taken):
+    """(property name, 1-D array of a PLY type) for each extra but the normals; 2-D extras become
+    name_0, name_1, ..."""
+    columns = []
+    for key, values in cloud.extras.items():
+        if key in NORMALS:
+            if values.ndim != 1:
+                raise SplatFileError(path, f"extra '{key}' must hold one value per splat to be a PLY normal")
+            continue
+        flat = _ply_typed(path, key, values.reshape(len(values), -1))
+        names = [key] if values.ndim == 1 else [f"{key}_{i}" for i in range(flat.shape[1])]
+        columns += [(name, flat[:, i]) for i, name in enumerate(names)]
+    seen = set(taken) | set(NORMALS)
+    for name, _ in columns:
+        # f_rest_* would be read back as SH coefficients, so those names belong to the layout too.
+        if name in seen or name.startswith("f_rest_") or not name or not name.isascii() \
+                or any(c.isspace() for c in name):
+            raise SplatFileError(path, f"extra '{name}' cannot be a PLY property: it is empty, not ASCII, "
+                                       "holds whitespace or clashes with a 3DGS or another extra property")
+        seen.add(name)
+    return columns
+
+
+def _ply_typed(path, key, a):
+    """`a` in a dtype PLY can hold, converting only where no value changes."""
+    if a.dtype == bool:
+        return a.astype(np.uint8)
+    if a.dtype.kind in "iu" and a.dtype.itemsize == 8:
+        small = np.int32 if a.dtype.kind == "i" else np.uint32
+        info = np.iinfo(small)
+        if a.size == 0 or (a.min() >= info.min and a.max() <= info.max):
+            return a.astype(small)
+    if a.dtype == np.float16:
+        return a.astype(np.float32)
+    if a.dtype.kind in "iuf" and a.dtype.str[1:] in TYPE_NAMES:
+        return a
+    raise SplatFileError(path, f"extra '{key}' has dtype {a.dtype}, which PLY cannot store "
+                               "(PLY has 8-32 bit integers, float and double)")
