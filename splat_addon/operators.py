@@ -1,0 +1,280 @@
+"""Import / export operators, usable from Python in background mode (execute never needs a UI)."""
+
+import importlib
+import inspect
+import warnings
+from pathlib import Path
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, CollectionProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper, ImportHelper, axis_conversion, orientation_helper
+
+from ..core import SplatCloud, SplatValidationError
+from ..io import FORMATS, SplatFileError, format_of, read_splats, write_splats
+from . import data, display
+
+FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)
+EXTENSIONS = ";".join(FORMATS)
+DISPLAY_BUDGET = 1_000_000      # splats drawn per object before the display thins itself out
+
+# 3DGS captures come out of COLMAP/OpenCV: the scene's up is -Y and cameras look along +Z. These
+# defaults turn that upright in Blender (file x, y, z -> Blender x, z, -y, a quarter turn about X).
+FILE_FORWARD, FILE_UP = "Z", "-Y"
+# The USD reader returns Y-up clouds (it applies the stage's upAxis) and the writer declares Y up, so
+# USD files default to the usual Y-up convention instead, unless the axes are given explicitly.
+FORMAT_AXES = {"usd": ("-Z", "Y")}
+
+# What a failed read or write can raise; anything else is a bug and should surface as one.
+EXPECTED_ERRORS = (SplatFileError, SplatValidationError, data.SplatObjectError, OSError, ValueError)
+
+
+def _skip_save_axes(cls):
+    """Keep the axis choice out of Blender's remembered operator settings, so a format's own default
+    axes (FORMAT_AXES) apply whenever the user has not picked axes for this call."""
+    for name in ("axis_forward", "axis_up"):
+        cls.__annotations__[name].keywords["options"] = {"SKIP_SAVE"}
+    return cls
+
+
+def file_axes(op, path):
+    """(forward, up) of the file: the operator's axes if given explicitly, else the format default."""
+    if op.properties.is_property_set("axis_forward") or op.properties.is_property_set("axis_up"):
+        return op.axis_forward, op.axis_up
+    return FORMAT_AXES.get(format_of(path), (op.axis_forward, op.axis_up))
+
+
+class _Progress:
+    """Blender's progress API where there is a window to show it in; silent otherwise."""
+
+    def __init__(self, context, total):
+        self.wm = context.window_manager if context.window is not None else None
+        if self.wm is not None:
+            self.wm.progress_begin(0, max(total, 1))
+
+    def update(self, value):
+        if self.wm is not None:
+            self.wm.progress_update(value)
+
+    def end(self):
+        if self.wm is not None:
+            self.wm.progress_end()
+
+
+def read_cloud(path, drop_invalid, report):
+    """Read a splat file, passing the format's warnings on as Blender warnings. Splats with NaN/Inf
+    cannot be drawn or rendered: with `drop_invalid` they are dropped (and counted in a warning),
+    otherwise the file is refused."""
+    reader = importlib.import_module(f"..io.{format_of(path)}", __package__).read
+    handles_nonfinite = "nonfinite" in inspect.signature(reader).parameters
+    options = {"nonfinite": "drop" if drop_invalid else "raise"} if handles_nonfinite else {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_splats(path, **options)
+    for w in caught:
+        report({"WARNING"}, str(w.message))
+    if handles_nonfinite:
+        return cloud
+    finite = cloud.finite_mask()
+    if finite.all():
+        return cloud
+    what = f"{int((~finite).sum())} of {len(cloud)} splats have NaN/Inf values"
+    if not drop_invalid:
+        raise SplatFileError(path, what)
+    report({"WARNING"}, f"{path}: {what}; dropped")
+    return cloud[finite]
+
+
+@_skip_save_axes
+@orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
+class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
+    """Import Gaussian splats (PLY, OpenUSD, SPZ, .splat) as splat objects"""
+
+    bl_idname = "splat.import_file"
+    bl_label = "Import Splats"
+    bl_options = {"REGISTER", "UNDO", "PRESET"}
+
+    filename_ext = ".ply"
+    filter_glob: StringProperty(default=FILTER_GLOB, options={"HIDDEN"})
+    files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
+    directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
+    drop_invalid: BoolProperty(name="Drop Invalid Splats", default=True,
+                               description="Drop splats holding NaN or Inf values (with a warning) "
+                                           "instead of refusing the file")
+
+    def _paths(self):
+        names = [f.name for f in self.files if f.name]
+        if names and self.directory:
+            return [Path(self.directory) / name for name in names]
+        return [Path(bpy.path.abspath(self.filepath))]
+
+    def execute(self, context):
+        paths = self._paths()
+        progress = _Progress(context, 2 * len(paths))
+        try:
+            clouds = []
+            for i, path in enumerate(paths):     # read everything first: a bad file changes nothing
+                clouds.append(read_cloud(path, self.drop_invalid, self.report))
+                progress.update(i + 1)
+            objects = self._create(context, paths, clouds, progress)
+        except EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        finally:
+            progress.end()
+        for obj in context.view_layer.objects:
+            obj.select_set(False)
+        for obj in objects:
+            obj.select_set(True)
+        context.view_layer.objects.active = objects[-1]
+        total = sum(len(c) for c in clouds)
+        self.report({"INFO"}, f"imported {total} splats from {len(paths)} file(s)")
+        return {"FINISHED"}
+
+    def _create(self, context, paths, clouds, progress):
+        collection = context.collection or context.scene.collection
+        created = []
+        try:
+            for i, (path, cloud) in enumerate(zip(paths, clouds)):
+                forward, up = file_axes(self, path)
+                matrix = axis_conversion(from_forward=forward, from_up=up).to_4x4()
+                obj, skipped = data.new_splat_object(cloud, path.stem, collection, matrix)
+                created.append(obj)
+                display.add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))
+                if skipped:
+                    self.report({"WARNING"}, f"{path}: extras not kept (no matching attribute type): "
+                                             f"{', '.join(skipped)}")
+                progress.update(len(paths) + i + 1)
+        except BaseException:
+            for obj in created:          # leave the scene as it was
+                mesh = obj.data
+                bpy.data.objects.remove(obj)
+                bpy.data.meshes.remove(mesh)
+            raise
+        return created
+
+
+def export_objects(context, selected_only):
+    """The splat objects an export writes, or SplatObjectError saying why there are none."""
+    if selected_only:
+        candidates = list(context.selected_objects)
+        if not candidates:
+            raise data.SplatObjectError("nothing is selected")
+    else:
+        candidates = [obj for obj in context.view_layer.objects if obj.visible_get()]
+    splats = [obj for obj in candidates if data.is_splat_object(obj)]
+    if not splats:
+        others = ", ".join(f"'{o.name}' ({o.type})" for o in candidates[:5])
+        where = "selected" if selected_only else "visible"
+        why = f"; {others} are not splat clouds" if others else ""
+        raise data.SplatObjectError(f"no splat objects {where}{why}")
+    return splats
+
+
+def _sync_edit_mode(objects):
+    """Objects in Edit Mode keep their edits in the edit mesh until synced back."""
+    for obj in objects:
+        if obj.mode == "EDIT":
+            obj.update_from_editmode()
+
+
+def scene_cloud(context, objects, conversion):
+    """One cloud in file space: every object's evaluated world matrix, then `conversion`, applied."""
+    _sync_edit_mode(objects)
+    depsgraph = context.evaluated_depsgraph_get()
+    conversion = np.array(conversion, dtype=np.float64)
+    clouds = [data.evaluated_cloud(obj, depsgraph, conversion @ data.world_matrix(obj, depsgraph)) for obj in objects]
+    return clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
+
+
+@_skip_save_axes
+@orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
+class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
+    """Export splat objects (with their transforms applied) to PLY, OpenUSD, SPZ or .splat"""
+
+    bl_idname = "splat.export_file"
+    bl_label = "Export Splats"
+    bl_options = {"REGISTER", "PRESET"}
+
+    filename_ext = ".ply"
+    check_extension = None          # the extension picks the format: keep what the user typed
+    filter_glob: StringProperty(default=FILTER_GLOB, options={"HIDDEN"})
+    selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",
+                                default=False)
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        progress = _Progress(context, 2)
+        try:
+            objects = export_objects(context, self.selected_only)
+            forward, up = file_axes(self, path)
+            conversion = axis_conversion(to_forward=forward, to_up=up).to_4x4()
+            cloud = scene_cloud(context, objects, conversion)
+            progress.update(1)
+            write_splats(path, cloud)
+        except EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        finally:
+            progress.end()
+        self.report({"INFO"}, f"wrote {len(cloud)} splats from {len(objects)} object(s) to {path}")
+        return {"FINISHED"}
+
+
+class SPLAT_OT_apply_transform(bpy.types.Operator):
+    """Bake the whole object transform into the splats (centres, orientations, sizes and SH), leaving
+    an identity transform; use this instead of Apply > Rotation/Scale, which moves centres only"""
+
+    bl_idname = "splat.apply_transform"
+    bl_label = "Apply Splat Transform"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.mode == "OBJECT" and data.is_splat_object(context.active_object)
+
+    def execute(self, context):
+        targets = [o for o in context.selected_objects if data.is_splat_object(o)] or [context.active_object]
+        shared = [o.name for o in targets if o.data.users > 1]
+        if shared:
+            self.report({"ERROR"}, f"splat data shared by several objects: {', '.join(shared)}")
+            return {"CANCELLED"}
+        try:
+            baked = [data.object_to_cloud(o, np.array(o.matrix_basis, dtype=np.float64)) for o in targets]
+        except EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for obj, cloud in zip(targets, baked):
+            data.update_mesh(obj.data, cloud)
+            obj.matrix_basis.identity()
+        return {"FINISHED"}
+
+
+class SPLAT_FH_files(bpy.types.FileHandler):
+    bl_idname = "SPLAT_FH_files"
+    bl_label = "Gaussian splats"
+    bl_import_operator = "splat.import_file"
+    bl_export_operator = "splat.export_file"
+    bl_file_extensions = EXTENSIONS
+
+    @classmethod
+    def poll_drop(cls, context):
+        return context.area is not None and context.area.type == "VIEW_3D"
+
+
+def menu_import(self, context):
+    self.layout.operator(SPLAT_OT_import_file.bl_idname, text="Gaussian Splats (.ply, .usd, .spz, .splat)")
+
+
+def menu_export(self, context):
+    self.layout.operator(SPLAT_OT_export_file.bl_idname, text="Gaussian Splats (.ply, .usd, .spz, .splat)")
+    self.layout.operator("splat.export_animation", text="Gaussian Splat Animation (.usd, .ply ####)")
+
+
+def menu_apply(self, context):
+    self.layout.operator(SPLAT_OT_apply_transform.bl_idname)
+
+
+CLASSES = (SPLAT_OT_import_file, SPLAT_OT_export_file, SPLAT_OT_apply_transform, SPLAT_FH_files)
+MENUS = ((bpy.types.TOPBAR_MT_file_import, menu_import), (bpy.types.TOPBAR_MT_file_export, menu_export),
+         (bpy.types.VIEW3D_MT_object_apply, menu_apply))
