@@ -1,0 +1,144 @@
+"""A frame range of splat objects exported as one animated OpenUSD file (time samples on one prim,
+time code = frame number) or as a numbered sequence of files, one per frame.
+
+Sequence names follow Blender's output paths: the last run of '#' in the file name becomes the
+frame number zero-padded to that many digits (shot_####.ply -> shot_0007.ply); without '#',
+"_" and four digits go before the extension (shot.ply -> shot_0007.ply). A frame's file name never
+depends on the range exported, so render-farm jobs can split a range and write the same files.
+Every frame goes through the same evaluated-cloud path as a single export (operators.scene_cloud).
+"""
+
+import re
+from pathlib import Path
+
+import bpy
+from bpy.props import BoolProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper, axis_conversion, orientation_helper
+
+from ..io import SplatFileError, format_of, write_splats
+from . import operators
+
+HASHES = re.compile(r"#+")
+DEFAULT_PADDING = 4                 # Blender's own default, ####
+
+
+def frame_path(pattern, frame):
+    """The file for `frame` in a sequence named by `pattern` (see the module notes)."""
+    pattern = Path(pattern)
+    name = pattern.name
+    runs = list(HASHES.finditer(name))
+    if runs:
+        last = runs[-1]
+        name = f"{name[:last.start()]}{frame:0{len(last.group())}d}{name[last.end():]}"
+    else:
+        name = f"{pattern.stem}_{frame:0{DEFAULT_PADDING}d}{pattern.suffix}"
+    return pattern.with_name(name)
+
+
+def is_single_file(path):
+    """OpenUSD holds every frame in one file; other formats are written one file per frame."""
+    return format_of(path) == "usd"
+
+
+def frame_range(start, end, step=1):
+    """The frames start, start + step, ..., end; ValueError naming the problem for a bad range."""
+    if step < 1:
+        raise ValueError(f"frame step must be at least 1, got {step}")
+    if end < start:
+        raise ValueError(f"frame range {start}-{end} ends before it starts")
+    return list(range(start, end + 1, step))
+
+
+def export_conversion(forward=None, up=None):
+    """The Blender -> file axis matrix: the given axes, else the default (a 3DGS capture's axes).
+    The same for every format: the io layer turns the model's axes into each format's own (OpenUSD
+    files come out Y-up, with Blender's Z as their Y)."""
+    return axis_conversion(to_forward=forward or operators.FILE_FORWARD, to_up=up or operators.FILE_UP).to_4x4()
+
+
+def export_animation(context, objects, path, frames, conversion=None, progress=None):
+    """Write `objects` (splat objects) at each of `frames` to `path`; returns the files written.
+
+    conversion: the Blender -> file axis matrix (default: export_conversion()).
+    progress(done, total, message) is called after each frame. The scene's frame is restored.
+    """
+    path = Path(path)
+    frames = list(frames)
+    if not frames:
+        raise ValueError("no frames to export")
+    single = is_single_file(path)            # raises SplatFileError for an unknown extension
+    if not path.parent.is_dir():
+        raise SplatFileError(path, f"folder {path.parent} does not exist")
+    conversion = export_conversion() if conversion is None else conversion
+    scene = context.scene
+    current, subframe = scene.frame_current, scene.frame_subframe
+    clouds, written = [], []
+    try:
+        for i, frame in enumerate(frames):
+            scene.frame_set(frame)
+            cloud = operators.scene_cloud(context, objects, conversion)
+            if single:
+                clouds.append(cloud)
+                message = f"frame {frame}: {len(cloud)} splats"
+            else:
+                out = frame_path(path, frame)
+                write_splats(out, cloud)
+                written.append(out)
+                message = f"frame {frame}: {len(cloud)} splats -> {out}"
+            if progress:
+                progress(i + 1, len(frames), message)
+        if single:
+            from ..io import usd
+            usd.write_frames(path, clouds, times=frames)
+            written.append(path)
+    finally:
+        scene.frame_set(current, subframe=subframe)
+    return written
+
+
+@orientation_helper(axis_forward=operators.FILE_FORWARD, axis_up=operators.FILE_UP)
+class SPLAT_OT_export_animation(bpy.types.Operator, ExportHelper):
+    """Export splat objects over a frame range: one animated OpenUSD file, or one file per frame
+    (name_####.ply) for other formats"""
+
+    bl_idname = "splat.export_animation"
+    bl_label = "Export Splat Animation"
+    bl_options = {"REGISTER", "PRESET"}
+
+    filename_ext = ".usdc"
+    check_extension = None
+    filter_glob: StringProperty(default=operators.FILTER_GLOB, options={"HIDDEN"})
+    selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",
+                                default=False)
+    use_scene_range: BoolProperty(name="Scene Frame Range", default=True,
+                                  description="Export the scene's frame range and step")
+    frame_start: IntProperty(name="Start", default=1, description="First frame (without the scene range)")
+    frame_end: IntProperty(name="End", default=250, description="Last frame (without the scene range)")
+    frame_step: IntProperty(name="Step", default=1, min=1, description="Frames between exported frames")
+
+    def frames(self, scene):
+        if self.use_scene_range:
+            return frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
+        return frame_range(self.frame_start, self.frame_end, self.frame_step)
+
+    def execute(self, context):
+        path = Path(bpy.path.abspath(self.filepath))
+        try:
+            frames = self.frames(context.scene)
+            objects = operators.export_objects(context, self.selected_only)
+            progress = operators._Progress(context, len(frames))
+            try:
+                written = export_animation(context, objects, path, frames,
+                                           export_conversion(self.axis_forward, self.axis_up),
+                                           progress=lambda done, total, message: progress.update(done))
+            finally:
+                progress.end()
+        except operators.EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        where = written[0] if len(written) == 1 else f"{written[0]} ... {written[-1].name}"
+        self.report({"INFO"}, f"wrote {len(frames)} frame(s) of {len(objects)} object(s) to {where}")
+        return {"FINISHED"}
+
+
+CLASSES = (SPLAT_OT_export_animation,)      # listed in File > Export by operators.menu_export

@@ -1,0 +1,291 @@
+"""`blender -b scene.blend --command splatwright VERB ...`: batch export, render and mesh conversion.
+
+    export OUT [--frames A-B[:STEP]] [--format usd|ply|spz|splat] [--objects NAMES]
+    render [OUT] [--frames A-B[:STEP]] [--objects NAMES]
+    from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed]
+
+Progress goes to stdout, one line per step; a failure prints "splatwright: error: ..." to stderr and
+exits non-zero (1 for a failed job, 2 for a bad command line). `execute(argv)` is the handler
+registered with bpy.utils.register_cli_command; it also runs in any Blender session.
+"""
+
+import argparse
+import contextlib
+import re
+import sys
+import traceback
+from pathlib import Path
+
+import bpy
+
+from ..io import FORMATS, format_of, write_splats
+from . import animation, data, from_mesh, operators
+
+COMMAND = "splatwright"
+FORMAT_EXTENSIONS = {"usd": ".usdc", "ply": ".ply", "spz": ".spz", "splat": ".splat"}
+# render OUT's extension -> image formats that write it (the first is chosen if none is set)
+IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), ".jpg": ("JPEG",),
+                 ".jpeg": ("JPEG",), ".tif": ("TIFF",), ".tiff": ("TIFF",)}
+FRAMES = re.compile(r"^\s*(-?\d+)\s*(?:-\s*(-?\d+))?\s*(?::\s*(\d+))?\s*$")
+
+_handle = None
+
+
+class CommandError(Exception):
+    """A job that cannot run as asked; the message says why."""
+
+
+class _Exit(Exception):
+    """argparse wanted to end the process (help, usage error): the handler returns `code` instead."""
+
+    def __init__(self, code):
+        super().__init__(code)
+        self.code = code
+
+
+class _Parser(argparse.ArgumentParser):
+    def exit(self, status=0, message=None):          # never sys.exit inside Blender
+        if message:
+            print(message, file=sys.stderr, end="")
+        raise _Exit(status)
+
+    def error(self, message):
+        self.print_usage(sys.stderr)
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _say(message):
+    print(f"{COMMAND}: {message}", flush=True)
+
+
+def parser():
+    top = _Parser(prog=f"blender -b FILE.blend --command {COMMAND}",
+                  description="Export, render or convert splats in a .blend file, without a window.")
+    verbs = top.add_subparsers(dest="verb", required=True, parser_class=_Parser)
+    frames_help = "frames A-B, A-B:STEP or A (default: the scene's frame range and step)"
+    objects_help = "comma-separated object names (default: every visible splat object)"
+
+    p = verbs.add_parser("export", help="write splat objects over a frame range (animated USD or numbered files)")
+    p.add_argument("output", help="file, or sequence pattern: shot.usdc, shot_####.ply (see README)")
+    p.add_argument("--frames", help=frames_help)
+    p.add_argument("--format", choices=sorted(FORMAT_EXTENSIONS), help="the file format, when OUT has no extension")
+    p.add_argument("--objects", help=objects_help)
+    p.add_argument("--axis-forward", choices=("X", "Y", "Z", "-X", "-Y", "-Z"), help="file forward axis")
+    p.add_argument("--axis-up", choices=("X", "Y", "Z", "-X", "-Y", "-Z"), help="file up axis")
+
+    p = verbs.add_parser("render", help="render frames with the Splatwright engine")
+    p.add_argument("output", nargs="?", help="output path pattern as in Output Properties (default: the scene's); "
+                                             ".png/.exr/.jpg/.tif pick that image format")
+    p.add_argument("--frames", help=frames_help)
+    p.add_argument("--objects", help="only these splat objects are rendered (default: all)")
+
+    p = verbs.add_parser("from-mesh", help="convert mesh objects to splat objects")
+    p.add_argument("output", help="a .blend to save the scene with the new splat objects to, or a splat "
+                                  "file (.ply, .usdc, ...) to write them to")
+    p.add_argument("--objects", help="comma-separated mesh objects (default: every visible mesh object)")
+    p.add_argument("--max-splats", type=int, help=f"splats per object (default {from_mesh.DEFAULT_BUDGET}); "
+                                                  "with --target-psnr, the most per object")
+    p.add_argument("--target-psnr", type=float, help="refine until renders reach this PSNR (dB)")
+    p.add_argument("--posed", action="store_true",
+                   help="convert armature-deformed meshes as posed (default: in the rest position)")
+    return top
+
+
+def execute(argv):
+    """The command handler: run one verb; returns the exit code."""
+    try:
+        args = parser().parse_args(list(argv))
+    except _Exit as done:
+        return done.code
+    runs = {"export": run_export, "render": run_render, "from-mesh": run_from_mesh}
+    try:
+        runs[args.verb](args, bpy.context)
+    except (CommandError, from_mesh.MeshConversionError, *operators.EXPECTED_ERRORS, RuntimeError) as exc:
+        print(f"{COMMAND}: error: {exc}", file=sys.stderr, flush=True)
+        return 1
+    except Exception:
+        traceback.print_exc()
+        print(f"{COMMAND}: error: internal error in '{args.verb}' (traceback above)", file=sys.stderr, flush=True)
+        return 1
+    return 0
+
+
+# arguments ------------------------------------------------------------------------------------------
+
+def parse_frames(text, scene):
+    """Frames from "A-B", "A-B:STEP" or "A"; the scene's range and step when `text` is None."""
+    if text is None:
+        return animation.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
+    match = FRAMES.match(text)
+    if match is None:
+        raise CommandError(f"--frames '{text}': expected A-B, A-B:STEP or A (whole frame numbers)")
+    start = int(match.group(1))
+    end = int(match.group(2)) if match.group(2) is not None else start
+    step = int(match.group(3)) if match.group(3) is not None else 1
+    try:
+        return animation.frame_range(start, end, step)
+    except ValueError as exc:
+        raise CommandError(f"--frames '{text}': {exc}") from None
+
+
+def named_objects(text, scene):
+    """Scene objects named in a comma-separated list, or CommandError naming the unknown ones."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise CommandError("--objects names no objects")
+    missing = [n for n in names if scene.objects.get(n) is None]
+    if missing:
+        known = ", ".join(sorted(o.name for o in scene.objects)[:20])
+        raise CommandError(f"no object named {', '.join(repr(n) for n in missing)} in scene '{scene.name}' "
+                           f"(it has: {known})")
+    return [scene.objects[n] for n in names]
+
+
+def splat_objects(text, context):
+    if text is None:
+        return operators.export_objects(context, selected_only=False)
+    objects = named_objects(text, context.scene)
+    wrong = [f"'{o.name}' ({o.type})" for o in objects if not data.is_splat_object(o)]
+    if wrong:
+        raise CommandError(f"not splat objects: {', '.join(wrong)}")
+    return objects
+
+
+def output_path(text, fmt):
+    """OUT as an absolute path ('//' is the .blend's folder) whose extension names the format."""
+    path = Path(bpy.path.abspath(text))
+    known = FORMATS.get(path.suffix.lower())
+    if fmt is None:
+        format_of(path)                      # SplatFileError naming an unknown extension
+        return path
+    if known is None:
+        return path.with_name(path.name + FORMAT_EXTENSIONS[fmt])
+    if known != fmt:
+        raise CommandError(f"{text} has the extension {path.suffix} but --format is {fmt}")
+    return path
+
+
+# verbs ---------------------------------------------------------------------------------------------
+
+def run_export(args, context):
+    scene = context.scene
+    path = output_path(args.output, args.format)
+    frames = parse_frames(args.frames, scene)
+    objects = splat_objects(args.objects, context)
+    conversion = animation.export_conversion(args.axis_forward, args.axis_up)
+    _say(f"export {len(objects)} object(s), frames {frames[0]}-{frames[-1]} ({len(frames)}) to {path}")
+    written = animation.export_animation(context, objects, path, frames, conversion,
+                                         progress=lambda done, total, message: _say(f"[{done}/{total}] {message}"))
+    _say(f"done: {len(written)} file(s) written")
+
+
+@contextlib.contextmanager
+def _restored(*settings):
+    """Set (owner, attribute, value) triples for the duration, then put the old values back."""
+    old = [(owner, name, getattr(owner, name)) for owner, name, _ in settings]
+    try:
+        for owner, name, value in settings:
+            setattr(owner, name, value)
+        yield
+    finally:
+        for owner, name, value in reversed(old):
+            setattr(owner, name, value)
+
+
+def _render_settings(scene, output, only):
+    """The temporary settings a render job needs: our engine, OUT and its image format, and the splat
+    objects left out of the render."""
+    render = scene.render
+    settings = [(render, "engine", "SPLATWRIGHT")]
+    if output is not None:
+        settings.append((render, "filepath", output))
+        formats = IMAGE_FORMATS.get(Path(output).suffix.lower())
+        image = render.image_settings
+        if formats and image.file_format not in formats:
+            if hasattr(image, "media_type"):             # Blender 5: pick the media type first
+                settings.append((image, "media_type", "IMAGE"))
+            settings.append((image, "file_format", formats[0]))
+    if only is not None:
+        settings += [(obj, "hide_render", obj not in only) for obj in scene.objects if data.is_splat_object(obj)]
+    return settings
+
+
+def run_render(args, context):
+    scene = context.scene
+    frames = parse_frames(args.frames, scene)
+    only = splat_objects(args.objects, context) if args.objects else None
+    if scene.camera is None:
+        raise CommandError(f"scene '{scene.name}' has no camera")
+    current = scene.frame_current
+    with _restored(*_render_settings(scene, args.output, only)):
+        paths = [Path(scene.render.frame_path(frame=f)) for f in frames]
+        _say(f"render frames {frames[0]}-{frames[-1]} ({len(frames)}) to {paths[0].parent}")
+        try:
+            for i, (frame, path) in enumerate(zip(frames, paths)):
+                scene.frame_set(frame)
+                _render_still(scene, path, frame)
+                _say(f"[{i + 1}/{len(frames)}] frame {frame} -> {path}")
+        finally:
+            scene.frame_set(current)
+    _say(f"done: {len(frames)} frame(s) rendered")
+
+
+def _render_still(scene, path, frame):
+    if not path.parent.is_dir():
+        raise CommandError(f"frame {frame}: folder {path.parent} does not exist")
+    before = path.stat().st_mtime_ns if path.exists() else None
+    with _restored((scene.render, "filepath", str(path))):
+        bpy.ops.render.render(write_still=True)       # an engine error raises RuntimeError here
+    if not path.is_file() or path.stat().st_mtime_ns == before:
+        raise CommandError(f"frame {frame}: no image was written to {path}")
+
+
+def run_from_mesh(args, context):
+    scene = context.scene
+    out = Path(bpy.path.abspath(args.output))
+    is_blend = out.suffix.lower() == ".blend"
+    if not is_blend:
+        format_of(out)
+    if not out.parent.is_dir():
+        raise CommandError(f"folder {out.parent} does not exist")
+    if args.objects:
+        objects = named_objects(args.objects, scene)
+        wrong = [f"'{o.name}' ({o.type})" for o in objects if o.type != "MESH" or data.is_splat_object(o)]
+        if wrong:
+            raise CommandError(f"not mesh objects: {', '.join(wrong)}")
+    else:
+        objects = [o for o in context.view_layer.objects if o.visible_get() and o.type == "MESH"
+                   and not data.is_splat_object(o)]
+        if not objects:
+            raise CommandError(f"scene '{scene.name}' has no visible mesh objects to convert")
+    budget = args.max_splats
+    if budget is None and args.target_psnr is None:
+        budget = from_mesh.DEFAULT_BUDGET
+    _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}")
+    results = from_mesh.convert_objects(
+        context, objects, max_splats=budget, target_psnr=args.target_psnr, use_rest_pose=not args.posed,
+        progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
+    created = from_mesh.create_splat_objects(context, results)
+    for obj in created:
+        _say(f"{obj.name}: {len(obj.data.vertices)} splats")
+    if is_blend:
+        bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
+    else:
+        write_splats(out, operators.scene_cloud(context, created, animation.export_conversion()))
+    _say(f"done: wrote {out}")
+
+
+# registration -------------------------------------------------------------------------------------
+
+def register():
+    """Register the command where Blender has command-line commands (4.2 and later)."""
+    global _handle
+    if _handle is None and hasattr(bpy.utils, "register_cli_command"):
+        _handle = bpy.utils.register_cli_command(COMMAND, execute)
+
+
+def unregister():
+    global _handle
+    if _handle is not None:
+        bpy.utils.unregister_cli_command(_handle)
+        _handle = None
