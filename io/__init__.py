@@ -4,7 +4,7 @@ of Splatwright reads and writes through them."""
 import importlib
 from pathlib import Path
 
-from .common import SplatFileError
+from .common import SplatFileError, SplatFileWarning
 
 # extension -> module in this package exposing read(path) -> SplatCloud and write(path, cloud, **options)
 FORMATS = {
@@ -32,7 +32,10 @@ def _module(path):
 
 
 def read_splats(path, **options):
-    """Read a splat file of any known format into a SplatCloud."""
+    """Read a splat file of any known format into a SplatCloud.
+
+    Every reader takes `nonfinite="raise"|"keep"|"drop"` (default raise) for splats holding NaN/Inf,
+    and reports anything it could not read exactly as a SplatFileWarning."""
     if not Path(path).is_file():
         raise SplatFileError(path, "no such file")
     return _module(path).read(path, **options)
@@ -43,4 +46,4 @@ def write_splats(path, cloud, **options):
     return _module(path).write(path, cloud, **options)
 
 
-__all__ = ["FORMATS", "SplatFileError", "format_of", "read_splats", "write_splats"]
+__all__ = ["FORMATS", "SplatFileError", "SplatFileWarning", "format_of", "read_splats", "write_splats"]

@@ -3,7 +3,14 @@
 import contextlib
 import os
 import tempfile
+import warnings
 from pathlib import Path
+
+import numpy as np
+
+from ..core.splats import FIELDS as CORE_FIELDS
+
+NONFINITE_POLICIES = ("raise", "keep", "drop")
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
@@ -16,6 +23,59 @@ class SplatFileError(ValueError):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+
+class SplatFileWarning(UserWarning):
+    """A file was read or written, but not exactly as stored (2DGS flattened, non-finite splats kept
+    or dropped, view-dependent colour dropped by a format without it, ...)."""
+
+
+def check_nonfinite_policy(policy):
+    if policy not in NONFINITE_POLICIES:
+        raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {policy!r}")
+
+
+def nonfinite_counts(cloud):
+    """{field: splats with a NaN/Inf in that field}, only the fields that have some."""
+    counts = {}
+    for name in CORE_FIELDS:
+        values = getattr(cloud, name)
+        if not np.isfinite(values).all():
+            counts[name] = int((~np.isfinite(values.reshape(len(values), -1)).all(axis=1)).sum())
+    return counts
+
+
+def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
+    """The rule every format follows for NaN/Inf: 'raise' a SplatFileError counting them per field,
+    'keep' them with a warning (SplatCloud.problems() reports them), or 'drop' those splats with a
+    warning. `counts` may come from a reader that tallied while parsing."""
+    check_nonfinite_policy(policy)
+    counts = nonfinite_counts(cloud) if counts is None else counts
+    if not counts:
+        return cloud
+    bad = ~cloud.finite_mask()
+    detail = ", ".join(f"{name} in {c}" for name, c in counts.items())
+    what = f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf or beyond float32): {detail}"
+    if policy == "raise":
+        raise SplatFileError(path, f"{what}; {verb} with nonfinite='keep' or 'drop' to go on anyway")
+    warnings.warn(f"{path}: {what}; {'kept' if policy == 'keep' else 'dropped'}", SplatFileWarning, stacklevel=3)
+    return cloud if policy == "keep" else cloud[~bad]
+
+
+def log_scales_from_linear(scales, notes):
+    """float32 natural logs of linear scales; negative scales count by magnitude and zero ones (a
+    flat axis) become the smallest normal float32, so the log stays finite. Repairs go to `notes`."""
+    scales = np.array(scales, dtype=np.float32)
+    negative = scales < 0
+    if negative.any():
+        notes.append(f"{int(negative.sum())} negative scales taken as their absolute values")
+        scales = np.abs(scales)
+    zero = scales == 0
+    if zero.any():
+        notes.append(f"{int(zero.sum())} zero scales set to {np.finfo(np.float32).tiny:g}")
+        scales[zero] = np.finfo(np.float32).tiny
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(scales.astype(np.float64)).astype(np.float32)
 
 
 @contextlib.contextmanager

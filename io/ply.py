@@ -27,11 +27,10 @@ import numpy as np
 from ..core import SplatCloud
 from ..core.splats import FIELDS as CORE_FIELDS
 from ..core import sh as shmod
-from .common import SplatFileError, atomic_write
+from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
 
 FLAT_SIGMA = 1e-6                      # 2DGS third axis: thin next to any real splat, still invertible
 FLAT_LOG_SCALE = float(np.log(FLAT_SIGMA))
-NONFINITE_POLICIES = ("raise", "keep", "drop")
 
 # PLY scalar type names (both spellings of the spec) -> NumPy type codes, and back for writing.
 PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -48,10 +47,6 @@ MAX_HEADER = 1 << 20
 WORKERS = min(4, os.cpu_count() or 1)
 PARALLEL_ROWS = 1 << 16                # below this, threads cost more than they save
 CHUNK_ROWS = 1 << 13                   # rows converted together while they are in cache (~2 MB)
-
-
-class SplatFileWarning(UserWarning):
-    """A file was read, but not exactly as stored (2DGS flattened, non-finite splats kept/dropped)."""
 
 
 def layout_names(sh_degree):
@@ -341,31 +336,13 @@ def _sh_count(path, names):
     return len(rest) // 3 + 1
 
 
-def _apply_nonfinite(path, cloud, counts, policy, verb):
-    """Raise, warn and keep, or warn and drop, for the non-finite values `counts` tallies per field."""
-    if not counts:
-        return cloud
-    bad = ~cloud.finite_mask()
-    detail = ", ".join(f"{name} in {c}" for name, c in counts.items())
-    what = f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf or beyond float32): {detail}"
-    if policy == "raise":
-        raise SplatFileError(path, f"{what}; {verb} with nonfinite='keep' or 'drop' to go on anyway")
-    warnings.warn(f"{path}: {what}; {'kept' if policy == 'keep' else 'dropped'}", SplatFileWarning, stacklevel=3)
-    return cloud if policy == "keep" else cloud[~bad]
-
-
-def _check_policy(policy):
-    if policy not in NONFINITE_POLICIES:
-        raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {policy!r}")
-
-
 def read(path, nonfinite="raise"):
     """Read a 3DGS PLY into a SplatCloud.
 
     Binary data is read a cache-sized chunk at a time on every core and each chunk is reordered
     into the cloud's arrays (and checked for non-finite values) before the next is read.
     """
-    _check_policy(nonfinite)
+    check_nonfinite_policy(nonfinite)
     try:
         convert = _load(path)
     except OSError as exc:
@@ -373,7 +350,7 @@ def read(path, nonfinite="raise"):
     if convert.flat:
         warnings.warn(f"{path}: 2DGS file (scale_0, scale_1 only); third axis set flat "
                       f"(sigma {FLAT_SIGMA:g}, log-scale {FLAT_LOG_SCALE:.4f})", SplatFileWarning, stacklevel=2)
-    return _apply_nonfinite(path, convert.cloud(), _merge(convert.tallies), nonfinite, "read")
+    return apply_nonfinite_policy(path, convert.cloud(), nonfinite, "read", _merge(convert.tallies))
 
 
 def _load(path):
@@ -409,9 +386,9 @@ def write(path, cloud, nonfinite="raise"):
     The body is filled a cache-sized chunk at a time on every core and written in place; the file
     appears whole or not at all (also when non-finite values stop it under nonfinite='raise').
     """
-    _check_policy(nonfinite)
+    check_nonfinite_policy(nonfinite)
     if nonfinite != "raise":
-        cloud = _apply_nonfinite(path, cloud, _scan_nonfinite(cloud), nonfinite, "write")
+        cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     names = layout_names(cloud.sh_degree)
     extras = _extra_columns(path, cloud, set(names))
     dtype = np.dtype([("core", "<f4", (len(names),))] + [(name, a.dtype.newbyteorder("<")) for name, a in extras])
@@ -435,16 +412,9 @@ def write(path, cloud, nonfinite="raise"):
                     _write_at(f.fileno(), part, len(header) + chunk.start * dtype.itemsize)
             _in_parallel(len(cloud), fill_and_write)
             if nonfinite == "raise":
-                _apply_nonfinite(path, cloud, _merge(tallies), "raise", "write")
+                apply_nonfinite_policy(path, cloud, "raise", "write", _merge(tallies))
     except OSError as exc:
         raise SplatFileError(path, f"cannot write: {exc.strerror or exc}") from exc
-
-
-def _scan_nonfinite(cloud):
-    tallies = []
-    _in_parallel(len(cloud), lambda rows: tallies.extend(_nonfinite_rows(_core_arrays(cloud), c)
-                                                          for c in _chunks(rows)))
-    return _merge(tallies)
 
 
 class _Filler:

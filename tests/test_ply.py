@@ -11,7 +11,7 @@ import pytest
 from helpers import random_cloud
 
 from splatwright.core import SplatCloud
-from splatwright.io import SplatFileError, ply, read_splats, write_splats
+from splatwright.io import SplatFileError, ply, read_splats, write_splats, SplatFileWarning
 
 # An independent PLY writer -----------------------------------------------------------------------
 
@@ -257,7 +257,7 @@ def test_2dgs_file_gets_a_flat_third_axis_and_says_so(tmp_path):
     cols = gaussian_columns(25, 2, extras=False)
     del cols["scale_2"]
     path = write_bytes(tmp_path, build_ply(cols))
-    with pytest.warns(ply.SplatFileWarning, match="2DGS.*flat"):
+    with pytest.warns(SplatFileWarning, match="2DGS.*flat"):
         cloud = ply.read(path)
     np.testing.assert_array_equal(cloud.log_scales[:, :2], np.stack([cols["scale_0"], cols["scale_1"]], 1).astype(np.float32))
     np.testing.assert_array_equal(cloud.log_scales[:, 2], np.float32(np.log(1e-6)))
@@ -464,11 +464,11 @@ def test_non_finite_values_are_refused_by_default(tmp_path, fmt):
     path = write_bytes(tmp_path, build_ply(nonfinite_columns(), types, fmt))
     with raises_naming(path, "3 of 10 splats", "positions in 1", "rotations in 1", "opacity_logits in 1", "sh in 1"):
         ply.read(path)
-    with pytest.warns(ply.SplatFileWarning, match="3 of 10 splats.*kept"):
+    with pytest.warns(SplatFileWarning, match="3 of 10 splats.*kept"):
         kept = ply.read(path, nonfinite="keep")
     assert len(kept) == 10 and np.isnan(kept.opacity_logits[2]) and np.isinf(kept.rotations[7, 1])
     assert any("non-finite opacity_logits" in p for p in kept.problems())
-    with pytest.warns(ply.SplatFileWarning, match="dropped"):
+    with pytest.warns(SplatFileWarning, match="dropped"):
         dropped = ply.read(path, nonfinite="drop")
     expected = expected_fields(nonfinite_columns())
     keep = np.array([i not in (2, 5, 7) for i in range(10)])
@@ -484,12 +484,12 @@ def test_writing_non_finite_values_is_refused_and_leaves_nothing(tmp_path):
     with raises_naming(path, "1 of 10 splats", "sh in 1"):
         ply.write(path, cloud)
     assert os.listdir(tmp_path) == []
-    with pytest.warns(ply.SplatFileWarning):
+    with pytest.warns(SplatFileWarning):
         ply.write(path, cloud, nonfinite="drop")
     assert len(ply.read(path)) == 9
-    with pytest.warns(ply.SplatFileWarning):
+    with pytest.warns(SplatFileWarning):
         ply.write(path, cloud, nonfinite="keep")
-    with pytest.warns(ply.SplatFileWarning):
+    with pytest.warns(SplatFileWarning):
         assert np.isnan(ply.read(path, nonfinite="keep").sh[4, 2, 1])
 
 

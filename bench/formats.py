@@ -1,0 +1,103 @@
+"""OpenUSD, SPZ and .splat against PLY: read and write time of a 1M-splat degree-3 cloud (PLY timed
+alternately in the same run as the baseline), file size, and the error each lossy format introduces
+per attribute (position, scale, rotation angle, opacity, colour, higher SH)."""
+
+import statistics
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+
+from common import Row, Timing, machine, print_rows, timeit  # noqa: E402
+from helpers import random_cloud  # noqa: E402
+
+from splatwright.core import sh as shmod  # noqa: E402
+from splatwright.io import ply, splat, spz, usd  # noqa: E402
+from splatwright.io import SplatFileWarning  # noqa: E402
+
+# name -> (file suffix, write(path, cloud), read(path), share of the full splat count)
+FORMATS = {
+    "USD float (.usdc)": (".usdc", usd.write, usd.read, 1),
+    "USD half (.usdc)": (".usdc", lambda p, c: usd.write(p, c, half=True), usd.read, 1),
+    # the lossy web formats compress slowly (gzip 6 / zstd 12, as Niantic's writer): a fifth of the
+    # splats measures the same per-splat speed ratio and the same errors
+    "SPZ v2": (".spz", lambda p, c: spz.write(p, c, version=2), spz.read, 5),
+    "SPZ v3": (".spz", lambda p, c: spz.write(p, c, version=3), spz.read, 5),
+    "SPZ v4 (zstd)": (".spz", lambda p, c: spz.write(p, c, version=4), spz.read, 5),
+    ".splat": (".splat", splat.write, splat.read, 1),
+}
+
+
+def _fresh(path, write):
+    """Write a new file each time: replacing one this large would time the file system's clean-up."""
+    def run():
+        if path.exists():
+            path.unlink()
+        write(path)
+    return run
+
+
+def _paired(baseline, ours, repeat):
+    """Median timings of baseline and ours run alternately, so both meet the same machine load."""
+    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)).median, timeit(ours, repeat=1, warmup=int(i == 0)).median)
+             for i in range(repeat)]
+    return tuple(Timing(statistics.median(t), (max(t) - min(t)) / 2, len(t)) for t in zip(*pairs))
+
+
+def attribute_errors(got, want):
+    """Per-attribute error of a decoded cloud against the original."""
+    a, b = got.unit_rotations, want.unit_rotations
+    b = b * np.where((a * b).sum(axis=1, keepdims=True) < 0, -1, 1)       # q and -q: one rotation
+    angles = np.degrees(4 * np.arcsin(np.minimum(1, np.linalg.norm(a - b, axis=1) / 2)))
+    k = min(got.sh.shape[1], want.sh.shape[1])
+    rest = np.abs(got.sh[:, 1:k].astype(np.float64) - want.sh[:, 1:k]) if k > 1 else np.zeros(1)
+    dropped = np.abs(want.sh[:, k:]) if want.sh.shape[1] > k else np.zeros(1)
+    rest = np.concatenate([rest.reshape(-1), dropped.reshape(-1)])
+    return {
+        "position_max_m": float(np.abs(got.positions.astype(np.float64) - want.positions).max()),
+        "scale_rel_max": float((np.abs(got.scales - want.scales) / want.scales).max()),
+        "rotation_deg_median": float(np.median(angles)),
+        "rotation_deg_max": float(angles.max()),
+        "opacity_max": float(np.abs(got.opacities - want.opacities).max()),
+        "dc_rgb_max": float(np.abs(shmod.dc_to_rgb(got.sh[:, 0]) - shmod.dc_to_rgb(want.sh[:, 0])).max()),
+        "sh_rest_p99": float(np.percentile(rest, 99)),
+        "sh_rest_max": float(rest.max()),
+    }
+
+
+def run(quick=False):
+    n = 100_000 if quick else 1_000_000
+    repeat = 3 if quick else 5
+    full = random_cloud(n, sh_degree=3, seed=0)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="splatwright-bench-formats-") as folder, warnings.catch_warnings():
+        warnings.simplefilter("ignore", SplatFileWarning)     # clamping and dropped SH: measured below
+        tmp = Path(folder)
+        for name, (suffix, write, read, share) in FORMATS.items():
+            cloud = full[:n // share]
+            ply_path = tmp / "cloud.ply"
+            ply.write(ply_path, cloud)
+            ply_size = ply_path.stat().st_size
+            case = f"{len(cloud):,} splats, SH degree 3"
+            path = tmp / f"out{suffix}"
+            write_ply, write_ours = _paired(_fresh(tmp / "base.ply", lambda p: ply.write(p, cloud)),
+                                            _fresh(path, lambda p: write(p, cloud)), repeat)
+            read_ply, read_ours = _paired(lambda: ply.read(ply_path), lambda: read(path), repeat)
+            size = path.stat().st_size
+            errors = attribute_errors(read(path), cloud)
+            extra = {"MiB": f"{size / 2**20:.1f}", "bytes_per_splat": f"{size / len(cloud):.1f}",
+                     "size_vs_ply": f"{size / ply_size:.3f}"}
+            for verb, ours, base in (("write", write_ours, write_ply), ("read", read_ours, read_ply)):
+                rows.append(Row("formats", f"{verb} {name}, {case}", ours, base, errors,
+                                {**extra, "baseline": f"PLY {verb}", "slowdown": f"{ours.median / base.median:.2f}x"}))
+    return rows
+
+
+if __name__ == "__main__":
+    print(machine())
+    print_rows(run(quick="--quick" in sys.argv))

@@ -1,0 +1,385 @@
+"""Niantic SPZ, versions 2 and 3 (read and write) and 4 (read and write with the zstandard package).
+
+v2/v3: a gzip stream of a 16-byte header (magic 0x5053474E "NGSP", version, count, SH degree,
+fractional bits, flags) then, with flag 0x2, extension records, then per-attribute blocks:
+    positions  N x 3 x int24  fixed point, `fractional bits` after the binary point
+    alphas     N x u8         sigmoid(opacity) * 255
+    colours    N x 3 x u8     DC * 0.15 * 255 + 127.5 (0.15 rather than C0 leaves head room)
+    scales     N x 3 x u8     (log scale + 10) * 16
+    rotations  v2: N x 3 x u8 x, y, z of the unit quaternion with w >= 0, q * 127.5 + 127.5
+               v3+: N x u32   "smallest three": 2 bits index of the largest |component| (x,y,z,w
+                              order), then the other three as sign bit + 9 bits of |q| / sqrt(1/2)
+    SH         N x (K-1) x 3 x u8, coefficient-major, channel fastest: q * 128 + 128, rounded to a
+               bucket of 2^(8-5) for degree 1 and 2^(8-4) above (or min/max scaled when the Adobe
+               SH-quantization extension 0xADBE0001 says so)
+v4: the same header fields uncompressed in a 32-byte header (byte 15: stream count, bytes 16..19:
+table-of-contents offset), extension records up to that offset, a table of (compressed, raw) u64
+sizes, then one zstd frame per attribute block in the order above.
+
+Axes: SPZ is RUB (x right, y up, z back), the model (like 3DGS PLY) is RDF. Reading and writing
+flip y and z: positions negate, quaternions (w, x, -y, -z), and each SH coefficient by its parity
+under the flip. axes=None skips the flip.
+
+Positions use 12 fractional bits (1/4096) when the cloud fits in +-2048, else the most that fit
+(a warning states the resolution). Values outside what a byte can hold are clamped and counted in a
+warning: log scales outside [-10, 5.94], DC colours outside [-3.33, 3.33], SH outside [-1, 1].
+"""
+
+import os
+import struct
+import warnings
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ..core import SplatCloud, geometry
+from ..core import sh as shmod
+from ..core.splats import logit, sigmoid
+from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write
+from .splat import to_u8
+
+MAGIC = 0x5053474E
+VERSIONS = (2, 3, 4)
+HEADER = struct.Struct("<IIIBBBB")            # magic, version, count, SH degree, fractional bits, flags, reserved
+V4_HEADER = struct.Struct("<IIIBBBBI12x")     # ... , stream count, TOC offset, reserved
+COLOR_SCALE = 0.15
+SQRT1_2 = np.float32(0.7071067811865476)
+FLAG_ANTIALIASED, FLAG_EXTENSIONS = 0x1, 0x2
+SH_QUANTIZATION_EXT = 0xADBE0001
+MAX_POINTS = 1 << 28
+SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}    # higher-order coefficients per channel
+GZIP_LEVEL, ZSTD_LEVEL = 6, 12                 # what Niantic's writer uses (v4 output is byte-identical)
+GZIP_CHUNK = 1 << 20                           # deflated independently, in parallel, like pigz
+WORKERS = min(2, os.cpu_count() or 1)
+
+
+# the RUB <-> RDF flip: y and z negate --------------------------------------------------------------
+
+def _flip_signs():
+    """Sign of each SH basis function under (x, y, z) -> (x, -y, -z), from the basis itself."""
+    d = np.array([[0.267, 0.535, 0.802]])
+    return np.sign(shmod.basis(d * [1, -1, -1], 3)[0] / shmod.basis(d, 3)[0]).astype(np.float32)
+
+
+SH_FLIP = _flip_signs()
+
+
+def flip_yz(cloud):
+    """The cloud seen in axes with y and z reversed (RDF <-> RUB); exact, it only changes signs."""
+    k = cloud.sh.shape[1]
+    return cloud.replace(positions=cloud.positions * np.float32([1, -1, -1]),
+                         rotations=cloud.rotations * np.float32([1, 1, -1, -1]),
+                         sh=cloud.sh * SH_FLIP[None, :k, None])
+
+
+# reading ------------------------------------------------------------------------------------------
+
+def _block_sizes(n, dim, version):
+    """(name, bytes) of the attribute blocks in file order."""
+    return [("positions", 9 * n), ("alphas", n), ("colors", 3 * n), ("scales", 3 * n),
+            ("rotations", (4 if version >= 3 else 3) * n), ("sh", 3 * dim * n)]
+
+
+def _check_header(path, magic, version, n, degree, bits):
+    if magic != MAGIC:
+        raise SplatFileError(path, f"not an SPZ file (magic 0x{magic:08X}, expected 0x{MAGIC:08X})")
+    if version not in VERSIONS:
+        raise SplatFileError(path, f"SPZ version {version} is not supported (this reader takes {VERSIONS})")
+    if n > MAX_POINTS:
+        raise SplatFileError(path, f"header claims {n} splats, more than the {MAX_POINTS} this reader accepts")
+    if degree not in SH_DIMS:
+        raise SplatFileError(path, f"SH degree {degree} in the header; SPZ allows 0..4")
+    if bits > 23:
+        raise SplatFileError(path, f"{bits} fractional bits in the header; a 24-bit position allows at most 23")
+
+
+def _gunzip_legacy(path, raw):
+    """(header fields, payload after the header) of a v2/v3 gzip file, decompressing no more than
+    the header says the file holds (plus extension records)."""
+    if not raw.startswith(b"\x1f\x8b"):
+        raise SplatFileError(path, "not an SPZ file (neither gzip nor an NGSP v4 header)")
+    d = zlib.decompressobj(31)
+    try:
+        head = d.decompress(raw, HEADER.size)
+        if len(head) < HEADER.size:
+            raise SplatFileError(path, f"truncated: {len(head)} of {HEADER.size} header bytes")
+        magic, version, n, degree, bits, flags, _ = HEADER.unpack(head)
+        _check_header(path, magic, version, n, degree, bits)
+        if version == 4:
+            raise SplatFileError(path, "SPZ version 4 inside gzip; v4 files are not gzipped")
+        need = sum(size for _, size in _block_sizes(n, SH_DIMS[degree], version))
+        body = d.decompress(d.unconsumed_tail, need + (1 << 16) + 1)
+    except zlib.error as exc:
+        raise SplatFileError(path, f"corrupt gzip stream: {exc}") from None
+    if not d.eof and len(body) <= need + (1 << 16):
+        raise SplatFileError(path, f"truncated: the gzip stream ends early ({len(body)} of {need} data bytes)")
+    return (version, n, degree, bits, flags), body
+
+
+def _split_legacy(path, fields, body):
+    """{attribute: bytes} from a v2/v3 payload, skipping extension records (flag 0x2)."""
+    version, n, degree, _, flags = fields
+    sizes = _block_sizes(n, SH_DIMS[degree], version)
+    need = sum(size for _, size in sizes)
+    extra = len(body) - need
+    if extra < 0:
+        raise SplatFileError(path, f"truncated: {len(body)} data bytes, the header's {n} splats need {need}")
+    if extra and not flags & FLAG_EXTENSIONS:
+        raise SplatFileError(path, f"{extra} bytes beyond the data the header describes "
+                                   f"(does its count of {n} understate the file?)")
+    blocks, at = {"extensions": body[:extra]}, extra
+    for name, size in sizes:
+        blocks[name], at = body[at:at + size], at + size
+    return blocks
+
+
+def _zstd(path):
+    try:
+        import zstandard
+    except ImportError:
+        raise SplatFileError(path, "SPZ version 4 is zstd-compressed and needs the zstandard package "
+                                   "(pip install zstandard)") from None
+    return zstandard
+
+
+def _split_v4(path, raw):
+    if len(raw) < V4_HEADER.size:
+        raise SplatFileError(path, f"truncated: {len(raw)} bytes, an SPZ v4 header has {V4_HEADER.size}")
+    magic, version, n, degree, bits, flags, streams, toc = V4_HEADER.unpack_from(raw)
+    _check_header(path, magic, version, n, degree, bits)
+    if version != 4:
+        raise SplatFileError(path, f"uncompressed NGSP header with version {version}; only v4 is stored so")
+    sizes = _block_sizes(n, SH_DIMS[degree], version)
+    if streams < len(sizes) or toc < V4_HEADER.size or toc + 16 * streams > len(raw):
+        raise SplatFileError(path, f"bad v4 table of contents ({streams} streams at byte {toc} of {len(raw)})")
+    table = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
+    decompressor = _zstd(path).ZstdDecompressor()
+    blocks, at = {"extensions": raw[V4_HEADER.size:toc]}, toc + 16 * streams
+    for (name, size), (packed, unpacked) in zip(sizes, table):
+        if unpacked != size:
+            raise SplatFileError(path, f"v4 {name} stream holds {unpacked} bytes, the header's {n} splats need {size}")
+        if at + packed > len(raw):
+            raise SplatFileError(path, f"truncated: the {name} stream runs past the end of the file")
+        try:
+            blocks[name] = decompressor.decompress(raw[at:at + int(packed)], max_output_size=int(size))
+        except Exception as exc:                     # zstandard.ZstdError
+            raise SplatFileError(path, f"corrupt zstd {name} stream: {exc}") from None
+        if len(blocks[name]) != size:
+            raise SplatFileError(path, f"v4 {name} stream decompressed to {len(blocks[name])} of {size} bytes")
+        at += int(packed)
+    return (version, n, degree, bits, flags), blocks
+
+
+def _sh_range(extensions):
+    """(min, max) of the Adobe SH-quantization extension if present, else the legacy (-1, 1).
+
+    Records are [u32 type][u32 length][payload]; the first writers omitted the length, so a record
+    that does not fit that way is read as type + u8 sh1Bits + u8 shRestBits + f32 min + f32 max."""
+    at = 0
+    while at + 8 <= len(extensions):
+        kind, length = struct.unpack_from("<II", extensions, at)
+        if kind == SH_QUANTIZATION_EXT:
+            if length == 10 and at + 18 <= len(extensions):
+                return struct.unpack_from("<ff", extensions, at + 10)
+            if at + 14 <= len(extensions):
+                return struct.unpack_from("<ff", extensions, at + 6)
+        if at + 8 + length > len(extensions):
+            break
+        at += 8 + length
+    return -1.0, 1.0
+
+
+def _decode_rotations(data, n, version):
+    """(N,4) x, y, z, w float32 unit quaternions."""
+    if version < 3:
+        xyz = np.frombuffer(data, np.uint8).reshape(n, 3).astype(np.float32) / np.float32(127.5) - 1
+        w = np.sqrt(np.maximum(0, 1 - (xyz * xyz).sum(axis=1)))
+        return np.column_stack([xyz, w])
+    comp = np.frombuffer(data, "<u4").astype(np.uint32)
+    largest = (comp >> 30).astype(np.int64)
+    q = np.zeros((n, 4), np.float32)
+    slot = np.zeros(n, np.int64)        # how many 10-bit fields were already taken, from the low end
+    for i in (3, 2, 1, 0):              # the last component sits in the lowest bits
+        here = largest != i
+        field = (comp >> (10 * slot).astype(np.uint32)) & 0x3FF
+        value = SQRT1_2 * (field & 0x1FF).astype(np.float32) / np.float32(511)
+        q[:, i] = np.where(here, np.where(field >> 9 == 1, -value, value), 0)
+        slot += here
+    rows = np.arange(n)
+    q[rows, largest] = np.sqrt(np.maximum(0, 1 - (q * q).sum(axis=1)))
+    return q
+
+
+def decode(path, raw, axes="RDF"):
+    """SplatCloud and file facts {version, fractional_bits, antialiased, sh_degree_in_file} from bytes."""
+    if raw[:4] == b"NGSP":
+        fields, blocks = _split_v4(path, raw)
+    else:
+        fields, body = _gunzip_legacy(path, raw)
+        blocks = _split_legacy(path, fields, body)
+    version, n, degree, bits, flags = fields
+    p = np.frombuffer(blocks["positions"], np.uint8).reshape(n, 3, 3).astype(np.int32)
+    fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
+    fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
+    positions = fixed.astype(np.float32) / np.float32(1 << bits)
+    alphas = np.frombuffer(blocks["alphas"], np.uint8).astype(np.float64) / 255.0
+    colors = np.frombuffer(blocks["colors"], np.uint8).reshape(n, 3).astype(np.float32)
+    scales = np.frombuffer(blocks["scales"], np.uint8).reshape(n, 3).astype(np.float32)
+    xyzw = _decode_rotations(blocks["rotations"], n, version)
+    dim = SH_DIMS[degree]
+    sh = np.empty((n, 1 + min(dim, 15), 3), np.float32)
+    sh[:, 0] = (colors / np.float32(255) - np.float32(0.5)) / np.float32(COLOR_SCALE)
+    if dim:
+        lo, hi = _sh_range(blocks["extensions"])
+        u = np.frombuffer(blocks["sh"], np.uint8).reshape(n, dim, 3)[:, :15].astype(np.float32)
+        sh[:, 1:] = (u - 128) / 128 if (lo, hi) == (-1.0, 1.0) else lo + u / np.float32(255) * np.float32(hi - lo)
+    cloud = SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], scales / np.float32(16) - np.float32(10),
+                       logit(alphas), sh)
+    if axes == "RDF":
+        cloud = flip_yz(cloud)
+    elif axes is not None:
+        raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
+    return cloud, {"version": version, "fractional_bits": bits, "antialiased": bool(flags & FLAG_ANTIALIASED),
+                   "sh_degree_in_file": degree}
+
+
+def read(path, axes="RDF", nonfinite="raise"):
+    """Read an SPZ file (v2, v3, or v4 with zstandard) into a SplatCloud in RDF axes."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
+    cloud, facts = decode(path, raw, axes)
+    if facts["sh_degree_in_file"] > shmod.MAX_DEGREE:
+        warnings.warn(f"{path}: SH degree {facts['sh_degree_in_file']} truncated to {shmod.MAX_DEGREE}",
+                      SplatFileWarning, stacklevel=2)
+    return apply_nonfinite_policy(path, cloud, nonfinite, "read")
+
+
+# writing ------------------------------------------------------------------------------------------
+
+def fractional_bits_for(positions, preferred=12):
+    """`preferred` fractional bits if every position fits 24-bit fixed point with them, else the most
+    that fit; None when even 0 bits overflow (|x| >= 2^23)."""
+    reach = float(np.abs(positions).max()) if len(positions) else 0.0
+    for bits in range(preferred, -1, -1):
+        if round(reach * (1 << bits)) < (1 << 23):
+            return bits
+    return None
+
+
+def _encode_rotations(q_xyzw, version):
+    q = geometry.normalize_quaternions(q_xyzw[:, [3, 0, 1, 2]])[:, [1, 2, 3, 0]]
+    if version < 3:
+        q = q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+        return to_u8(q[:, :3] * 127.5 + 127.5).tobytes()
+    n = len(q)
+    largest = np.argmax(np.abs(q), axis=1)
+    negate = q[np.arange(n), largest] < 0
+    comp = largest.astype(np.uint32)
+    for i in range(4):
+        here = largest != i
+        sign = ((q[:, i] < 0) ^ negate).astype(np.uint32)
+        mag = np.minimum(np.floor(511 * np.abs(q[:, i]) / float(SQRT1_2) + 0.5), 511).astype(np.uint32)
+        comp = np.where(here, (comp << 10) | (sign << 9) | mag, comp)
+    return comp.astype("<u4").tobytes()
+
+
+def _quantize_sh(sh, degree, sh1_bits, rest_bits):
+    """u8 SH bytes (N, K-1, 3) rounded to buckets of 2^(8-bits), 128 = 0."""
+    q = np.rint(sh.astype(np.float64) * 128) + 128
+    buckets = np.full(sh.shape[1], 1 << (8 - rest_bits))
+    buckets[:3] = 1 << (8 - sh1_bits)
+    b = buckets[None, :, None]
+    return np.clip((q + b // 2) // b * b, 0, 255).astype(np.uint8)
+
+
+def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=False,
+           axes="RDF", level=None, notes=None):
+    """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); level: gzip (v2/v3) or
+    zstd (v4) compression level, by default the reference writer's."""
+    notes = [] if notes is None else notes
+    if version not in VERSIONS:
+        raise ValueError(f"SPZ version must be one of {VERSIONS}, got {version}")
+    if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
+        raise ValueError("sh1_bits and sh_rest_bits must be 1..8")
+    if axes == "RDF":
+        cloud = flip_yz(cloud)
+    elif axes is not None:
+        raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
+    n, degree = len(cloud), cloud.sh_degree
+    bits = fractional_bits_for(cloud.positions) if fractional_bits is None else int(fractional_bits)
+    if bits is None or not 0 <= bits <= 23 or (n and np.abs(cloud.positions).max() * (1 << bits) >= (1 << 23)):
+        raise ValueError(f"positions up to {np.abs(cloud.positions).max():g} do not fit SPZ's 24-bit fixed "
+                         f"point with {bits} fractional bits")
+    if fractional_bits is None and bits < 12:
+        notes.append(f"positions reach {np.abs(cloud.positions).max():g}; stored with {bits} fractional bits "
+                     f"(resolution {2.0 ** -bits:g})")
+    fixed = np.rint(cloud.positions.astype(np.float64) * (1 << bits)).astype(np.int64) & 0xFFFFFF
+    positions = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, fixed >> 16], axis=-1).astype(np.uint8)
+    log_scales = cloud.log_scales.astype(np.float64)
+    colors = cloud.sh[:, 0].astype(np.float64) * (COLOR_SCALE * 255) + 127.5
+    _count_clamped(notes, "log scales", (log_scales + 10) * 16, "[-10, 5.94]")
+    _count_clamped(notes, "DC colours", colors, f"[{-0.5 / COLOR_SCALE:.3g}, {0.5 / COLOR_SCALE:.3g}]")
+    _count_clamped(notes, "SH coefficients", cloud.sh[:, 1:].astype(np.float64) * 128 + 128, "[-1, 1]")
+    blocks = [positions.tobytes(),
+              to_u8(sigmoid(cloud.opacity_logits) * 255).tobytes(),
+              to_u8(colors).tobytes(),
+              to_u8((log_scales + 10) * 16).tobytes(),
+              _encode_rotations(cloud.rotations[:, [1, 2, 3, 0]], version),
+              _quantize_sh(cloud.sh[:, 1:], degree, sh1_bits, sh_rest_bits).tobytes()]
+    flags = FLAG_ANTIALIASED if antialiased else 0
+    if version == 4:
+        return _pack_v4(n, degree, bits, flags, blocks, ZSTD_LEVEL if level is None else level)
+    header = HEADER.pack(MAGIC, version, n, degree, bits, flags, 0)
+    return _gzip(header + b"".join(blocks), GZIP_LEVEL if level is None else level)
+
+
+def _gzip(data, level):
+    """One gzip member whose deflate stream is made of independently compressed 1 MiB chunks (each
+    ends byte-aligned, only the last is final), compressed on every core: zlib releases the GIL."""
+    view = memoryview(data)
+    chunks = [view[at:at + GZIP_CHUNK] for at in range(0, len(data), GZIP_CHUNK)] or [view]
+
+    def deflate(index):
+        z = zlib.compressobj(level, zlib.DEFLATED, -zlib.MAX_WBITS, 9)
+        return z.compress(chunks[index]) + z.flush(zlib.Z_FINISH if index == len(chunks) - 1 else zlib.Z_SYNC_FLUSH)
+
+    with ThreadPoolExecutor(WORKERS) as pool:
+        body = b"".join(pool.map(deflate, range(len(chunks))))
+    header = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\xff"        # deflate, no name, no mtime, OS unknown
+    return header + body + struct.pack("<II", zlib.crc32(data), len(data) & 0xFFFFFFFF)
+
+
+def _count_clamped(notes, what, scaled, valid):
+    outside = (np.rint(scaled) < 0) | (np.rint(scaled) > 255)
+    if outside.any():
+        notes.append(f"{int(outside.sum())} {what} outside {valid} clamped")
+
+
+def _pack_v4(n, degree, bits, flags, blocks, level):
+    zstd = _zstd("SPZ v4")
+    with ThreadPoolExecutor(WORKERS) as pool:     # one frame per block; zstd releases the GIL
+        frames = list(pool.map(lambda b: zstd.ZstdCompressor(level=level).compress(b), blocks))
+    header = V4_HEADER.pack(MAGIC, 4, n, degree, bits, flags, len(frames), V4_HEADER.size)
+    toc = b"".join(struct.pack("<QQ", len(f), len(b)) for f, b in zip(frames, blocks))
+    return header + toc + b"".join(frames)
+
+
+def write(path, cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=False,
+          axes="RDF", level=None, nonfinite="raise"):
+    """Write an SPZ file (default version 3, gzip). Version 4 needs the zstandard package."""
+    cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
+    notes = []
+    try:
+        data = encode(cloud, version, fractional_bits, sh1_bits, sh_rest_bits, antialiased, axes, level, notes)
+    except ValueError as exc:
+        raise SplatFileError(path, str(exc)) from None
+    except SplatFileError as exc:
+        raise SplatFileError(path, exc.problem) from None
+    if notes:
+        warnings.warn(f"{path}: " + "; ".join(notes), SplatFileWarning, stacklevel=2)
+    with atomic_write(path) as f:
+        f.write(data)

@@ -1,0 +1,810 @@
+"""OpenUSD splats: `ParticleField3DGaussianSplat` prims in .usda, .usdc and .usdz files.
+
+Schema (pxr.UsdVol, usd-core >= 26.3): `positions` point3f[], `orientations` quatf[] (w first in
+Gf.Quatf), `scales` float3[] LINEAR, `opacities` float[] LINEAR in [0,1],
+`radiance:sphericalHarmonicsDegree` uniform int, `radiance:sphericalHarmonicsCoefficients` float3[]
+with (d+1)^2 raw 3DGS coefficients per particle, particle-major (entry 0 = DC); each has a half
+twin (`positionsh`, ...). We author `extent` ourselves: the box holding every splat out to the
+radius where its alpha falls below 1/255, r = sqrt(2 ln(255 o)) sigma, the renderer's own rule.
+
+Reading (`read`, `read_stage`, `read_frames`)
+- Every ParticleField3DGaussianSplat prim (instance proxies included), plus UsdGeomPoints in the
+  layout Adobe's USD file-format plugins write for splats, recognised by `primvars:rot`,
+  `primvars:widths1` and `primvars:widths2`: `points`; `widths`/`primvars:widths1`/`widths2` are
+  2 sigma per axis; `primvars:rot` quatf; `primvars:displayOpacity` linear; `primvars:displayColor`
+  the DC colour clamped to [0,1]; `primvars:fRest0..` channel-major like PLY's f_rest. Other prims
+  are skipped with a SplatFileWarning listing them.
+- Float attributes are preferred to their half twins, as the schema asks. Per the schema, an array
+  too long is truncated to the particle count and one too short is ignored (orientation identity,
+  scale 1, opacity 1, SH a grey DC); each such repair is reported in a warning.
+- Each prim's local-to-world transform is applied, then the stage's upAxis and metersPerUnit, then
+  the flip from USD's Y-up (RUB) to the model's 3DGS axes (RDF: y down, z forward), so clouds come
+  out in the model's axes and metres. axes="RUB" keeps Y-up, axes=None the stage's own axes;
+  meters_per_unit=None keeps its units. USD's fallbacks apply to unauthored metadata: Y up, 0.01 m
+  per unit (a warning says so).
+  A transform that is not a rotation times a uniform scale is exact for positions and covariances
+  (re-diagonalised into rotation and scales) but not for SH colours; its anisotropy is reported.
+- Our own files also carry `splatwright:opacityLogits` and `splatwright:logScales` (float32 as the
+  model stores them), used when they still agree with `opacities`/`scales`, so PLY -> USD -> PLY is
+  exact; and a cloud read from USD and written back unchanged reproduces the file's linear values.
+
+Writing (`write`, `write_stage`, `write_frames`): Y-up, metersPerUnit 1 (the model's RDF axes
+flipped to RUB unless axes="RUB"), one prim per cloud (default /Splats); a sequence of same-count
+clouds becomes time samples on one prim. half=True stores orientations, scales, opacities and SH
+as half floats (about half the size; positions stay float32 unless half_positions=True). Extras
+become `primvars:<name>` with vertex interpolation. Without pxr.UsdVol's schema classes (an older
+pxr, e.g. one bundled with Blender) the same prim and attributes are authored by name through the
+generic API, giving the same file.
+"""
+
+import ctypes
+import os
+import tempfile
+import warnings
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core import SplatCloud, geometry
+from ..core import sh as shmod
+from ..core.splats import logit, sigmoid
+from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_path,
+                     log_scales_from_linear)
+from .spz import SH_FLIP, flip_yz
+
+try:
+    from pxr import Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt
+except ImportError:                                    # reported when a USD file is used
+    Usd = None
+try:
+    from pxr import UsdVol
+except ImportError:
+    UsdVol = None
+
+TYPE_NAME = "ParticleField3DGaussianSplat"
+SH_DEGREE = "radiance:sphericalHarmonicsDegree"
+SH_COEFFS = "radiance:sphericalHarmonicsCoefficients"
+LOGITS = "splatwright:opacityLogits"
+LOG_SCALES = "splatwright:logScales"
+ANISOTROPY_TOLERANCE = 1e-6        # below this a transform counts as rotation * uniform scale
+
+# schema attribute -> (Sdf type name, uniform?, schema creator method)
+SCHEMA = {
+    "positions": ("point3f[]", False, "CreatePositionsAttr"),
+    "positionsh": ("point3h[]", False, "CreatePositionshAttr"),
+    "orientations": ("quatf[]", False, "CreateOrientationsAttr"),
+    "orientationsh": ("quath[]", False, "CreateOrientationshAttr"),
+    "scales": ("float3[]", False, "CreateScalesAttr"),
+    "scalesh": ("half3[]", False, "CreateScaleshAttr"),
+    "opacities": ("float[]", False, "CreateOpacitiesAttr"),
+    "opacitiesh": ("half[]", False, "CreateOpacitieshAttr"),
+    SH_DEGREE: ("int", True, "CreateRadianceSphericalHarmonicsDegreeAttr"),
+    SH_COEFFS: ("float3[]", False, "CreateRadianceSphericalHarmonicsCoefficientsAttr"),
+    SH_COEFFS + "h": ("half3[]", False, "CreateRadianceSphericalHarmonicsCoefficientshAttr"),
+    "extent": ("float3[]", False, "CreateExtentAttr"),
+}
+CUSTOM = {LOGITS: "float[]", LOG_SCALES: "float3[]"}
+
+# NumPy dtype of an extra -> Sdf scalar type of its primvar (narrow ints widen to int, restored on read)
+EXTRA_TYPES = {"float32": "float", "float64": "double", "float16": "half", "int32": "int",
+               "uint32": "uint", "int64": "int64", "uint64": "uint64", "uint8": "uchar", "bool": "bool",
+               "int8": "int", "int16": "int", "uint16": "int"}
+DTYPE_KEY = "splatwright:dtype"
+ADOBE_PRIMVARS = {"rot", "widths1", "widths2", "displayColor", "displayOpacity", "clipping"}
+
+# Linear values read from a file, kept per cloud object so that writing an unchanged cloud back
+# reproduces them bit for bit (the model stores logs and logits, which float32 cannot invert exactly).
+_READ_LINEAR = weakref.WeakKeyDictionary()
+
+
+@dataclass
+class SplatPrim:
+    """One splat prim of a stage: its path, the cloud (world space, target axes and units) and what
+    reading it had to report."""
+    path: str
+    cloud: SplatCloud
+    source: str                        # "ParticleField3DGaussianSplat" or "Points (Adobe 3DGS primvars)"
+    to_world: np.ndarray               # 4x4 (column vectors) applied to the prim's local values
+    anisotropy: float = 0.0            # how far to_world is from rotation * uniform scale
+    notes: list = field(default_factory=list)
+
+
+# opening ------------------------------------------------------------------------------------------
+
+MAGIC = {".usdc": (b"PXR-USDC",), ".usdz": (b"PK\x03\x04",), ".usda": (b"#usda",),
+         ".usd": (b"PXR-USDC", b"#usda")}
+
+
+def _require_pxr(path):
+    if Usd is None:
+        raise SplatFileError(path, "OpenUSD files need the pxr module (pip install usd-core)")
+
+
+def _open(path):
+    _require_pxr(path)
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
+    expected = MAGIC.get(os.path.splitext(path)[1].lower(), ())
+    if expected and not any(head.startswith(m) for m in expected):
+        names = " or ".join(repr(m.decode("latin-1")) for m in expected)
+        raise SplatFileError(path, f"not a {os.path.splitext(path)[1]} file (it does not start with {names})")
+    layer = Sdf.Layer.Find(os.path.abspath(path))
+    if layer is not None:             # a layer still cached from an earlier open may be stale
+        layer.Reload(True)
+    try:
+        stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+    except Tf.ErrorException as exc:
+        raise SplatFileError(path, f"OpenUSD cannot open it (truncated or corrupt?): {_tf_message(exc)}") from None
+    if stage is None:
+        raise SplatFileError(path, "OpenUSD cannot open it")
+    return stage
+
+
+def _tf_message(exc):
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[0].split(" : ", 1)[-1] if lines else "unknown error"
+
+
+def _time(stage, time):
+    return Usd.TimeCode.EarliestTime() if time is None else Usd.TimeCode(float(time))
+
+
+# stage units and axes ----------------------------------------------------------------------------
+
+Z_UP_TO_Y_UP = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float)    # (x, y, z) -> (x, z, -y)
+RUB_TO_RDF = np.diag([1.0, -1.0, -1.0])                                 # y and z reversed
+AXES = ("RDF", "RUB", None)
+FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def stage_matrix(stage, axes="RDF", meters_per_unit=1.0, notes=None):
+    """4x4 taking stage coordinates to the target axes and units.
+
+    axes: "RDF" (the model's convention, as 3DGS PLY: y down, z forward), "RUB" (Y-up as USD
+    itself), or None (keep the stage's axes, Z-up included). meters_per_unit None keeps its units.
+    """
+    if axes not in AXES:
+        raise ValueError(f"axes must be one of {AXES}, got {axes!r}")
+    notes = [] if notes is None else notes
+    m = np.eye(4)
+    if axes is not None:
+        if str(UsdGeom.GetStageUpAxis(stage)) == "Z":
+            m[:3, :3] = Z_UP_TO_Y_UP
+        if axes == "RDF":
+            m[:3, :3] = RUB_TO_RDF @ m[:3, :3]
+    if meters_per_unit is not None:
+        if not stage.HasAuthoredMetadata("metersPerUnit"):
+            notes.append("metersPerUnit is not authored; USD's fallback of 0.01 (centimetres) applies")
+        m[:3, :3] *= UsdGeom.GetStageMetersPerUnit(stage) / float(meters_per_unit)
+    return m
+
+
+def _world_matrix(prim, time):
+    """The prim's local-to-world transform as a 4x4 acting on column vectors."""
+    return np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64).T
+
+
+# reading values -----------------------------------------------------------------------------------
+
+def _value(prim, name, time):
+    """An authored array attribute as NumPy, or None."""
+    attr = prim.GetAttribute(name)
+    if not attr or not attr.HasAuthoredValue():
+        return None
+    value = attr.Get(time)
+    return None if value is None else np.asarray(value)
+
+
+def _float_or_half(prim, name, time):
+    """The float attribute if authored, else its half twin widened to float32."""
+    for attr_name in (name, name + "h"):
+        value = _value(prim, attr_name, time)
+        if value is not None:
+            return value.astype(np.float32, copy=False)
+    return None
+
+
+def _fit(values, n, shape, name, default, notes):
+    """Per the schema: too long -> truncated to n, too short or absent -> the default."""
+    if values is None:
+        if n:
+            notes.append(f"{name} not authored; using {default}")
+        return None
+    values = values.reshape((-1,) + shape)
+    if len(values) > n:
+        notes.append(f"{name} has {len(values)} entries for {n} particles; truncated")
+        return values[:n]
+    if len(values) < n:
+        notes.append(f"{name} has {len(values)} entries for {n} particles; ignored, using {default}")
+        return None
+    return values
+
+
+def _sh_from(prim, coeffs, degree, n, notes):
+    """(n, K, 3) SH from a particle-major coefficient array, following the schema's length rules."""
+    if coeffs is None:
+        if n:
+            notes.append(f"{SH_COEFFS} not authored; using grey (SH degree 0, DC 0)")
+        return np.zeros((n, 1, 3), np.float32)
+    coeffs = coeffs.reshape(-1, 3)
+    if degree is None:                  # unauthored: infer from the count, else the schema's fallback 3
+        per = len(coeffs) // n if n else 16
+        degree = shmod.degree_of(per) if n and len(coeffs) == n * per and per in shmod.VALID_COUNTS else 3
+    if degree < 0:
+        raise SplatFileError(prim.GetStage().GetRootLayer().identifier,
+                             f"{prim.GetPath()}: {SH_DEGREE} is {degree}")
+    k = (degree + 1) ** 2
+    if len(coeffs) < n * k:
+        notes.append(f"{SH_COEFFS} has {len(coeffs)} entries, {n * k} needed for degree {degree}; "
+                     "ignored, using grey")
+        return np.zeros((n, 1, 3), np.float32)
+    if len(coeffs) > n * k:
+        notes.append(f"{SH_COEFFS} has {len(coeffs)} entries for {n} particles; truncated")
+    sh = coeffs[:n * k].reshape(n, k, 3)
+    if degree > shmod.MAX_DEGREE:
+        notes.append(f"SH degree {degree} truncated to {shmod.MAX_DEGREE}")
+        sh = sh[:, :shmod.num_coeffs(shmod.MAX_DEGREE)]
+    return sh
+
+
+def _valid_opacities(opacities, notes):
+    bad = np.isfinite(opacities) & ((opacities < 0) | (opacities > 1))
+    if bad.any():
+        notes.append(f"{int(bad.sum())} opacities outside [0, 1] clamped")
+        return np.clip(opacities, 0, 1)
+    return opacities
+
+
+def _logits_from(opacities, stored, notes):
+    """float32 logits: the stored exact ones where they still reproduce `opacities`, else derived."""
+    derived = logit(opacities).astype(np.float32)
+    return _prefer_stored(derived, stored, sigmoid(stored).astype(np.float32) if stored is not None else None,
+                          opacities, LOGITS, notes)
+
+
+def _log_scales_from(scales, stored, notes):
+    derived = log_scales_from_linear(scales, notes)
+    check = np.exp(stored.astype(np.float64)).astype(np.float32) if stored is not None else None
+    return _prefer_stored(derived, stored, check, np.abs(scales), LOG_SCALES, notes)
+
+
+def _prefer_stored(derived, stored, stored_linear, linear, name, notes):
+    if stored is None:
+        return derived
+    if stored.shape != derived.shape:
+        notes.append(f"{name} has shape {stored.shape}, expected {derived.shape}; ignored")
+        return derived
+    # Where the schema value was edited elsewhere, the stored exact value is stale: use the schema's.
+    ok = _within_one_ulp(stored_linear, linear)
+    if ok.ndim > 1:
+        ok = ok.all(axis=1, keepdims=True)
+    if not ok.all():
+        notes.append(f"{name}: {int((~ok).sum())} entries no longer match the schema values; re-derived")
+    return np.where(ok, stored, derived).astype(np.float32)
+
+
+def _within_one_ulp(a, b):
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    return (np.abs(a.astype(np.float64) - b) <= np.spacing(np.maximum(np.abs(a), np.abs(b)))) | (a == b)
+
+
+def _gaussian_cloud(prim, time, notes):
+    """A ParticleField3DGaussianSplat prim's particles in its local space."""
+    positions = _float_or_half(prim, "positions", time)
+    n = 0 if positions is None else len(positions.reshape(-1, 3))
+    positions = np.zeros((0, 3), np.float32) if positions is None else positions.reshape(-1, 3)
+    quats = _fit(_float_or_half(prim, "orientations", time), n, (4,), "orientations", "identity", notes)
+    scales = _fit(_float_or_half(prim, "scales", time), n, (3,), "scales", "1", notes)
+    opacities = _fit(_float_or_half(prim, "opacities", time), n, (), "opacities", "1 (opaque)", notes)
+    degree_attr = prim.GetAttribute(SH_DEGREE)
+    degree = degree_attr.Get() if degree_attr and degree_attr.HasAuthoredValue() else None
+    sh = _sh_from(prim, _float_or_half(prim, SH_COEFFS, time), degree, n, notes)
+    stored_logits = _fit(_value(prim, LOGITS, time), n, (), LOGITS, "-", []) if opacities is not None else None
+    stored_logs = _fit(_value(prim, LOG_SCALES, time), n, (3,), LOG_SCALES, "-", []) if scales is not None else None
+    rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1)) if quats is None else quats[:, [3, 0, 1, 2]]
+    opacities = np.ones(n, np.float32) if opacities is None else _valid_opacities(opacities, notes)
+    scales = np.ones((n, 3), np.float32) if scales is None else scales
+    logits = _logits_from(opacities, stored_logits, notes)
+    log_scales = _log_scales_from(scales, stored_logs, notes)
+    cloud = SplatCloud(positions, rotations, log_scales, logits, sh, _extras(prim, time, n, set(), notes))
+    return cloud, opacities, np.abs(scales)
+
+
+def _is_adobe_splat(prim):
+    pv = UsdGeom.PrimvarsAPI(prim)
+    return prim.IsA(UsdGeom.Points) and all(pv.HasPrimvar(n) for n in ("rot", "widths1", "widths2"))
+
+
+def _primvar(prim, name, time):
+    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
+    if not pv or not pv.HasAuthoredValue():
+        return None
+    value = pv.ComputeFlattened(time)
+    return None if value is None else np.asarray(value)
+
+
+def _adobe_cloud(prim, time, notes):
+    """UsdGeomPoints with Adobe's 3DGS primvars, in the prim's local space."""
+    points = UsdGeom.Points(prim)
+    positions = np.asarray(points.GetPointsAttr().Get(time) or [], np.float32).reshape(-1, 3)
+    n = len(positions)
+    widths = [np.asarray(points.GetWidthsAttr().Get(time) or [], np.float32),
+              _primvar(prim, "widths1", time), _primvar(prim, "widths2", time)]
+    # a single width is constant interpolation: one value for every point
+    widths = [None if w is None else (np.full(n, w[0], np.float32) if len(w) == 1 else w) for w in widths]
+    per_axis = [_fit(w, n, (), f"widths axis {i}", "2 (sigma 1)", notes) for i, w in enumerate(widths)]
+    scales = np.stack([np.ones(n, np.float32) if a is None else a / np.float32(2) for a in per_axis], axis=1)
+    quats = _fit(_primvar(prim, "rot", time), n, (4,), "primvars:rot", "identity", notes)
+    rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1)) if quats is None else quats[:, [3, 0, 1, 2]]
+    opacities = _fit(_primvar(prim, "displayOpacity", time), n, (), "primvars:displayOpacity", "1", notes)
+    opacities = np.ones(n, np.float32) if opacities is None else _valid_opacities(opacities.astype(np.float32), notes)
+    colors = _fit(_primvar(prim, "displayColor", time), n, (3,), "primvars:displayColor", "grey", notes)
+    dc = np.zeros((n, 3)) if colors is None else shmod.rgb_to_dc(colors)
+    rest = _adobe_rest(prim, time, n, notes)
+    sh = np.concatenate([dc[:, None, :], rest], axis=1)
+    clip = _primvar(prim, "clipping", time)
+    if clip is not None:
+        notes.append(f"primvars:clipping box {clip.reshape(-1, 3).tolist()} not applied")
+    taken = ADOBE_PRIMVARS | {f"fRest{i}" for i in range(45)}
+    cloud = SplatCloud(positions, rotations, _log_scales_from(scales, None, notes),
+                       _logits_from(opacities, None, notes), sh, _extras(prim, time, n, taken, notes))
+    return cloud, opacities, np.abs(scales)
+
+
+def _adobe_rest(prim, time, n, notes):
+    """(n, K-1, 3) higher-order SH from fRest0.., channel-major: fRest[c*(K-1) + j]."""
+    found = []
+    while (value := _primvar(prim, f"fRest{len(found)}", time)) is not None and len(found) < 45:
+        found.append(value)
+    if len(found) not in (0, 9, 24, 45) or any(len(v) != n for v in found):
+        notes.append(f"{len(found)} fRest primvars (or wrong lengths); view-dependent colour dropped")
+        found = []
+    k1 = len(found) // 3
+    if not k1:
+        return np.zeros((n, 0, 3), np.float32)
+    return np.stack(found, axis=1).reshape(n, 3, k1).transpose(0, 2, 1).astype(np.float32)
+
+
+def _extras(prim, time, n, taken, notes):
+    """Per-particle primvars (vertex/varying, length n * elementSize) as extras."""
+    extras = {}
+    for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithAuthoredValues():
+        name = pv.GetPrimvarName()
+        if name in taken or name in ("displayColor", "displayOpacity"):
+            continue
+        if pv.GetInterpolation() not in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+            continue
+        value = pv.ComputeFlattened(time)
+        if value is None:
+            continue
+        values = np.asarray(value)
+        size = max(pv.GetElementSize(), 1)
+        if values.dtype == object or values.ndim > 1 or len(values) != n * size:
+            notes.append(f"primvar {name} is not one {size}-value entry per particle; not kept")
+            continue
+        dtype = pv.GetAttr().GetCustomDataByKey(DTYPE_KEY)
+        values = values.astype(dtype) if dtype else values
+        extras[str(name)] = values.reshape(n, size) if size > 1 else values
+    return extras
+
+
+def _read_prim(prim, time, stage_m, notes):
+    """SplatPrim for a splat prim, or None for any other prim."""
+    if prim.GetTypeName() == TYPE_NAME:
+        source, reader = TYPE_NAME, _gaussian_cloud
+    elif _is_adobe_splat(prim):
+        source, reader = "Points (Adobe 3DGS primvars)", _adobe_cloud
+    else:
+        return None
+    prim_notes = []
+    cloud, opacities, scales = reader(prim, time, prim_notes)
+    to_world = stage_m @ _world_matrix(prim, time)
+    anisotropy = 0.0
+    if np.array_equal(to_world, np.eye(4)) or np.array_equal(to_world, FLIP):
+        cloud = cloud if to_world[1, 1] == 1 else flip_yz(cloud)       # exact: only signs change
+        _READ_LINEAR[cloud] = (cloud.opacity_logits.copy(), opacities, cloud.log_scales.copy(), scales)
+    else:
+        try:
+            anisotropy = float(geometry.anisotropy(to_world[:3, :3]))
+            cloud = cloud.transformed(to_world)
+        except ValueError as exc:
+            raise SplatFileError(prim.GetStage().GetRootLayer().identifier,
+                                 f"{prim.GetPath()}: cannot apply its transform: {exc}") from None
+        if anisotropy > ANISOTROPY_TOLERANCE:
+            angle = np.degrees(np.arctan(anisotropy / (2 * np.sqrt(1 + anisotropy))))
+            prim_notes.append(f"its transform stretches unevenly (anisotropy {anisotropy:.3g}): positions "
+                              "and covariances are exact, SH colours follow its nearest rotation only "
+                              f"(view directions off by up to {angle:.3g} degrees)")
+    notes += [f"{prim.GetPath()}: {text}" for text in prim_notes]
+    return SplatPrim(str(prim.GetPath()), cloud, source, to_world, anisotropy, prim_notes)
+
+
+def _splat_prims(stage, time, axes, meters_per_unit, notes):
+    stage_m = stage_matrix(stage, axes, meters_per_unit, notes)
+    found, skipped = [], {}
+    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+        got = _read_prim(prim, time, stage_m, notes)
+        if got is not None:
+            found.append(got)
+        elif prim.IsA(UsdGeom.Gprim) or prim.GetTypeName().startswith("ParticleField"):
+            skipped.setdefault(str(prim.GetTypeName()), []).append(str(prim.GetPath()))
+    if skipped:
+        listed = "; ".join(f"{t} x{len(p)} ({', '.join(p[:3])}{', ...' if len(p) > 3 else ''})"
+                           for t, p in sorted(skipped.items()))
+        notes.append(f"skipped prims that are not splats: {listed}")
+    return found
+
+
+def _warn(path, notes):
+    if notes:
+        warnings.warn(f"{path}: " + "; ".join(notes), SplatFileWarning, stacklevel=3)
+
+
+# public reading -----------------------------------------------------------------------------------
+
+def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise"):
+    """Every splat prim of a stage as a SplatPrim (path, world-space cloud, transform, notes).
+
+    time: a time code (default: the earliest sample, or the default value of unanimated files).
+    """
+    return _read_stage(_open(path), path, time, axes, meters_per_unit, nonfinite)
+
+
+def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite):
+    notes = []
+    prims = _splat_prims(stage, _time(stage, time), axes, meters_per_unit, notes)
+    for p in prims:
+        p.cloud = apply_nonfinite_policy(f"{path}:{p.path}", p.cloud, nonfinite, "read")
+    _warn(path, notes)
+    return prims
+
+
+def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise"):
+    """All splat prims of the stage, in world space, concatenated into one SplatCloud."""
+    prims = read_stage(path, time, axes, meters_per_unit, nonfinite)
+    if not prims:
+        raise SplatFileError(path, f"no {TYPE_NAME} prims (nor UsdGeomPoints with 3DGS primvars) on the stage")
+    if len(prims) == 1:
+        return prims[0].cloud
+    clouds = [p.cloud for p in prims]
+    cloud = SplatCloud.concatenate(clouds)
+    remembered = [_READ_LINEAR.get(c) for c in clouds]
+    if all(r is not None for r in remembered):
+        _READ_LINEAR[cloud] = tuple(np.concatenate(parts) for parts in zip(*remembered))
+    return cloud
+
+
+def time_codes(path, prim_path=None):
+    """Sorted time codes at which the splat prims (or one of them) have samples; [] if unanimated."""
+    return _time_codes(_open(path), path, prim_path)
+
+
+def _time_codes(stage, path, prim_path):
+    if prim_path:
+        prims = [stage.GetPrimAtPath(prim_path)]
+        if not prims[0]:
+            raise SplatFileError(path, f"no prim at {prim_path}")
+    else:
+        prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
+                 if p.GetTypeName() == TYPE_NAME or _is_adobe_splat(p)]
+    times = set()
+    for prim in prims:
+        for attr in prim.GetAttributes():        # transform ops included: a moving prim is animated too
+            times.update(attr.GetTimeSamples())
+    return sorted(times)
+
+
+def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise"):
+    """[(time code, cloud)] for every time sample of the stage's splat prims (concatenated per time),
+    or of the one at prim_path; one (None, cloud) entry for an unanimated file."""
+    stage = _open(path)
+    frames = []
+    for t in _time_codes(stage, path, prim_path) or [None]:
+        prims = _read_stage(stage, path, t, axes, meters_per_unit, nonfinite)
+        if prim_path:
+            prims = [p for p in prims if p.path == prim_path]
+        if not prims:
+            raise SplatFileError(path, f"no splat prim at {prim_path}" if prim_path else "no splat prims")
+        frames.append((t, SplatCloud.concatenate([p.cloud for p in prims]) if len(prims) > 1 else prims[0].cloud))
+    return frames
+
+
+# writing ------------------------------------------------------------------------------------------
+
+EXTENT_PAD = 1e-12         # relative: covers float64 round-off in the half widths below
+EXTENT_CHUNK = 1 << 15     # splats per block: a block's temporaries stay in cache
+
+
+def _extent_block(positions, rotations, scales, opacities):
+    """(lo, hi) float64 corners of one block of splats (+-inf where none is finite)."""
+    # Half width along axis i: reach * sqrt(sum_j (R_ij s_j)^2). With the unnormalised rotation
+    # matrix M = |q|^2 R (entries quadratic in q) that is sqrt(sum_j (M_ij s_j)^2) / |q|^2, so no
+    # normalisation pass; q is first divided by its largest component so no square under- or
+    # overflows, and everything runs on contiguous columns, which NumPy streams fastest.
+    q = np.ascontiguousarray(rotations.T, dtype=np.float64)
+    big = np.abs(q).max(axis=0)
+    unit = big > 0                                            # a zero quaternion means the identity
+    w, x, y, z = q / np.where(unit, big, 1)
+    ww, xx, yy, zz = w * w, x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    m = [(ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)),
+         (2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)),
+         (2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz)]
+    sx, sy, sz = np.ascontiguousarray(scales.T, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        reach = np.sqrt(2 * np.log(np.maximum(255 * opacities.astype(np.float64), 1)))
+        reach *= (1 + EXTENT_PAD) / np.where(unit, ww + xx + yy + zz, 1)
+        lo, hi, ok = [], [], np.ones(len(w), bool)
+        for i, (a, b, c) in enumerate(m):
+            if not unit.all():
+                a, b, c = (np.where(unit, v, e) for v, e in zip((a, b, c), np.eye(3)[i]))
+            half = reach * np.sqrt((a * sx) ** 2 + (b * sy) ** 2 + (c * sz) ** 2)
+            p = positions[:, i].astype(np.float64)
+            lo.append(p - half)
+            hi.append(p + half)
+            ok &= np.isfinite(lo[-1]) & np.isfinite(hi[-1])
+    if not ok.all():
+        lo, hi = [np.where(ok, v, np.inf) for v in lo], [np.where(ok, v, -np.inf) for v in hi]
+    return np.array([v.min() for v in lo]), np.array([v.max() for v in hi])
+
+
+def alpha_extent(positions, rotations, scales, opacities):
+    """(2,3) float32 box holding every splat out to where its alpha falls below 1/255 (rounded
+    outwards), or None when no splat is finite. rotations w,x,y,z; scales and opacities linear."""
+    corners = [_extent_block(*(v[a:a + EXTENT_CHUNK] for v in (positions, rotations, scales, opacities)))
+               for a in range(0, len(positions), EXTENT_CHUNK)]
+    if not corners:
+        return None
+    lo, hi = np.min([c[0] for c in corners], axis=0), np.max([c[1] for c in corners], axis=0)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return None
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+    hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+    return np.stack([lo32, hi32])
+
+
+def _linear_values(cloud):
+    """float32 (opacities, scales) to write: the values read from a file where the cloud still holds
+    exactly what was read from them, else sigmoid/exp of the model's values."""
+    opacities = sigmoid(cloud.opacity_logits).astype(np.float32)
+    with np.errstate(over="ignore"):
+        scales = np.exp(cloud.log_scales.astype(np.float64)).astype(np.float32)
+    read_back = _READ_LINEAR.get(cloud)
+    if read_back is not None:
+        logits, read_o, logs, read_s = read_back
+        if logits.shape == cloud.opacity_logits.shape:
+            opacities = np.where(logits == cloud.opacity_logits, read_o, opacities)
+            same = (logs == cloud.log_scales).all(axis=1, keepdims=True)
+            scales = np.where(same, read_s, scales)
+    return opacities, scales
+
+
+def _vt_filled(cls, length, shape, dtype, fill):
+    """A new Vt array (cls, e.g. Vt.Vec3fArray) of `length` elements, filled by fill(ndarray).
+
+    cls.FromNumpy converts element by element and needs a finished NumPy copy first; for 16M SH
+    triples that costs more than the whole file write. A fresh Vt array owns its storage alone, so
+    we let NumPy write straight into it. Falls back to FromNumpy if the storage is not laid out
+    exactly as expected.
+    """
+    out = cls(length)
+    view = np.asarray(out)
+    if view.shape != shape or view.dtype != dtype or not view.flags.c_contiguous or not view.size:
+        data = np.empty(shape, dtype)
+        fill(data)
+        return cls.FromNumpy(data)
+    raw = (ctypes.c_char * view.nbytes).from_address(view.ctypes.data)
+    fill(np.frombuffer(raw, dtype).reshape(shape))
+    return out
+
+
+def _vt(cls, values):
+    """A Vt array holding a copy of `values`."""
+    values = np.asarray(values)
+    return _vt_filled(cls, len(values), values.shape, values.dtype, lambda out: np.copyto(out, values))
+
+
+def _half(path, name, values):
+    """`values` as float16, or a SplatFileError when finite values would overflow to infinity."""
+    _check_half_range(path, name, values)
+    return values.astype(np.float16)
+
+
+def _check_half_range(path, name, values):
+    big = np.isfinite(values) & (np.abs(values) > np.finfo(np.float16).max)
+    if big.any():
+        raise SplatFileError(path, f"{int(big.sum())} {name} values exceed the half-float range "
+                                   "(65504); write without half=True")
+
+
+def _frame_values(path, cloud, options):
+    """{attribute name: Vt array} for one cloud."""
+    half, half_positions, exact, axes = options
+    n, k = len(cloud), cloud.sh.shape[1]
+    opacities, scales = _linear_values(cloud)
+    # The stage is Y-up (RUB): RDF clouds flip y and z, folded into the copies Vt needs anyway.
+    flip = axes == "RDF"
+    positions = cloud.positions * np.float32([1, -1, -1]) if flip else np.ascontiguousarray(cloud.positions)
+    xyzw = cloud.rotations[:, [1, 2, 3, 0]]                                  # Vt's memory order
+    xyzw = xyzw * np.float32([1, -1, -1, 1]) if flip else xyzw
+    signs = np.repeat(SH_FLIP[:k], 3) if flip else np.ones(3 * k, np.float32)
+    flat = cloud.sh.reshape(n, 3 * k)                                       # (N, K*3): fast broadcast
+    if half:                   # the extent below is taken from the values as stored
+        _check_half_range(path, "SH", flat)
+        xyzw, scales, opacities = (_half(path, name, v) for name, v in
+                                   (("rotation", xyzw), ("scale", scales), ("opacity", opacities)))
+        values = {"orientationsh": _vt(Vt.QuathArray, xyzw),
+                  "scalesh": _vt(Vt.Vec3hArray, scales),
+                  "opacitiesh": _vt(Vt.HalfArray, opacities),
+                  SH_COEFFS + "h": _vt_filled(Vt.Vec3hArray, n * k, (n * k, 3), np.float16,
+                                              lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k),
+                                                                      casting="same_kind"))}
+    else:
+        values = {"orientations": _vt(Vt.QuatfArray, xyzw),
+                  "scales": _vt(Vt.Vec3fArray, scales),
+                  "opacities": _vt(Vt.FloatArray, opacities),
+                  SH_COEFFS: _vt_filled(Vt.Vec3fArray, n * k, (n * k, 3), np.float32,
+                                        lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k)))}
+    if half_positions:
+        positions = _half(path, "position", positions)
+        values["positionsh"] = _vt(Vt.Vec3hArray, positions)
+    else:
+        values["positions"] = _vt(Vt.Vec3fArray, positions)
+    if exact and not half:
+        values[LOGITS] = _vt(Vt.FloatArray, cloud.opacity_logits)
+        values[LOG_SCALES] = _vt(Vt.Vec3fArray, np.ascontiguousarray(cloud.log_scales))
+    box = alpha_extent(positions, xyzw[:, [3, 0, 1, 2]], scales, opacities)
+    if box is not None:
+        values["extent"] = _vt(Vt.Vec3fArray, box)
+    return values
+
+
+def _schema_class():
+    return getattr(UsdVol, TYPE_NAME, None) if UsdVol is not None else None
+
+
+def _define_splat_prim(stage, prim_path):
+    schema = _schema_class()
+    if schema is not None:
+        return schema.Define(stage, prim_path).GetPrim()
+    return stage.DefinePrim(prim_path, TYPE_NAME)
+
+
+def _attribute(prim, name):
+    """The attribute `name`, created through the schema class when pxr has it, else by name."""
+    if name in CUSTOM:
+        return prim.CreateAttribute(name, Sdf.ValueTypeNames.Find(CUSTOM[name]), True)
+    type_name, uniform, creator = SCHEMA[name]
+    schema = _schema_class()
+    if schema is not None:
+        return getattr(schema(prim), creator)()
+    variability = Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying
+    return prim.CreateAttribute(name, Sdf.ValueTypeNames.Find(type_name), False, variability)
+
+
+def _extra_primvars(path, prim, cloud):
+    """[(attribute, extra name, widen to int32?)] authoring each extra as a vertex primvar."""
+    api = UsdGeom.PrimvarsAPI(prim)
+    out = []
+    for key, values in cloud.extras.items():
+        type_name = EXTRA_TYPES.get(values.dtype.name)
+        if type_name is None or not Sdf.Path.IsValidNamespacedIdentifier(key):
+            raise SplatFileError(path, f"extra '{key}' ({values.dtype}) cannot be a USD primvar: it needs a "
+                                       f"valid identifier and one of the dtypes {sorted(EXTRA_TYPES)}")
+        size = int(np.prod(values.shape[1:])) if values.ndim > 1 else -1
+        pv = api.CreatePrimvar(key, Sdf.ValueTypeNames.Find(type_name + "[]"), UsdGeom.Tokens.vertex, size)
+        widen = type_name == "int" and values.dtype != np.int32
+        if widen:
+            pv.GetAttr().SetCustomDataByKey(DTYPE_KEY, values.dtype.name)
+        out.append((pv.GetAttr(), key, widen))
+    return out
+
+
+VT_ARRAYS = {"float32": "FloatArray", "float64": "DoubleArray", "float16": "HalfArray", "int32": "IntArray",
+             "uint32": "UIntArray", "int64": "Int64Array", "uint64": "UInt64Array", "uint8": "UCharArray",
+             "bool": "BoolArray"}
+
+
+def _author_prim(path, stage, prim_path, frames, times, options):
+    prim = _define_splat_prim(stage, prim_path)
+    _attribute(prim, SH_DEGREE).Set(frames[0].sh_degree)
+    extras = _extra_primvars(path, prim, frames[0])
+    codes = [Usd.TimeCode.Default()] if times is None else [Usd.TimeCode(float(t)) for t in times]
+    for cloud, code in zip(frames, codes):
+        for name, value in _frame_values(path, cloud, options).items():
+            _attribute(prim, name).Set(value, code)
+        for attr, key, widen in extras:
+            flat = np.ascontiguousarray(cloud.extras[key].reshape(-1))
+            flat = flat.astype(np.int32) if widen else flat
+            attr.Set(_vt(getattr(Vt, VT_ARRAYS[flat.dtype.name]), flat), code)
+
+
+def _check_frames(path, prim_path, frames, times, nonfinite):
+    if isinstance(frames, SplatCloud):
+        frames = [frames]
+    frames = [apply_nonfinite_policy(f"{path}:{prim_path}", c, nonfinite, "write") for c in frames]
+    if not frames:
+        raise SplatFileError(path, f"{prim_path}: no clouds to write")
+    shapes = {(len(c), c.sh_degree, tuple(sorted(c.extras))) for c in frames}
+    if len(shapes) > 1:
+        raise SplatFileError(path, f"{prim_path}: time samples need the same splat count, SH degree and "
+                                   f"extras in every frame, got (count, degree, extras) {sorted(shapes)}")
+    if times is None and len(frames) > 1:
+        raise SplatFileError(path, f"{prim_path}: {len(frames)} clouds but no time codes")
+    if times is not None and len(times) != len(frames):
+        raise SplatFileError(path, f"{prim_path}: {len(times)} time codes for {len(frames)} clouds")
+    return frames
+
+
+def write_stage(path, prims, times=None, half=False, half_positions=False, exact=True, axes="RDF",
+                nonfinite="raise"):
+    """Write {prim path: cloud, or a list of clouds one per time code} as a Y-up, metre stage.
+
+    times: time codes for the frames of animated prims (every list in `prims` must match it).
+    half: orientations, scales, opacities and SH as half floats; half_positions: positions too.
+    exact: also store the model's float32 logits and log scales, so reading back is exact.
+    axes: "RDF" (the model's convention; flipped to the stage's Y-up) or "RUB" (written as is).
+    """
+    _require_pxr(path)
+    if axes not in ("RDF", "RUB"):
+        raise ValueError(f"axes must be 'RDF' or 'RUB', got {axes!r}")
+    options = (half, half_positions, exact, axes)
+    path = os.fspath(path)
+    if not prims:
+        raise SplatFileError(path, "no prims to write")
+    checked = {}
+    for prim_path, frames in prims.items():
+        if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsoluteRootOrPrimPath() \
+                or prim_path == "/":
+            raise SplatFileError(path, f"'{prim_path}' is not an absolute prim path")
+        prim_times = None if isinstance(frames, SplatCloud) else times
+        checked[prim_path] = (_check_frames(path, prim_path, frames, prim_times, nonfinite), prim_times)
+    with atomic_path(path) as tmp:
+        if path.lower().endswith(".usdz"):
+            with tempfile.TemporaryDirectory(dir=os.path.dirname(os.path.abspath(path))) as folder:
+                layer_path = os.path.join(folder, os.path.splitext(os.path.basename(path))[0] + ".usdc")
+                _save_stage(layer_path, checked, options)
+                if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(layer_path), str(tmp)):
+                    raise SplatFileError(path, "OpenUSD could not package the .usdz")
+        else:
+            _save_stage(str(tmp), checked, options)
+
+
+def _save_stage(layer_path, checked, options):
+    layer = Sdf.Layer.CreateNew(layer_path)
+    stage = Usd.Stage.Open(layer)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    all_times = []
+    for prim_path, (frames, times) in checked.items():
+        for ancestor in Sdf.Path(prim_path).GetParentPath().GetPrefixes():
+            if not stage.GetPrimAtPath(ancestor):
+                stage.DefinePrim(ancestor, "Xform")
+        _author_prim(layer_path, stage, prim_path, frames, times, options)
+        all_times += list(times or [])
+    root = Sdf.Path(next(iter(checked))).GetPrefixes()[0]
+    stage.SetDefaultPrim(stage.GetPrimAtPath(root))
+    if all_times:
+        stage.SetStartTimeCode(float(min(all_times)))
+        stage.SetEndTimeCode(float(max(all_times)))
+    if not layer.Save():
+        raise SplatFileError(layer_path, "OpenUSD could not save the layer")
+
+
+def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",
+          nonfinite="raise"):
+    """Write one cloud as one ParticleField3DGaussianSplat prim."""
+    write_stage(path, {prim_path: cloud}, None, half, half_positions, exact, axes, nonfinite)
+
+
+def write_frames(path, clouds, times=None, prim_path="/Splats", **options):
+    """Write same-count clouds as time samples of one prim (times default to 0, 1, 2, ...)."""
+    clouds = list(clouds)
+    times = list(range(len(clouds))) if times is None else list(times)
+    write_stage(path, {prim_path: clouds}, times, **options)
