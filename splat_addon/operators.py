@@ -1,7 +1,5 @@
 """Import / export operators, usable from Python in background mode (execute never needs a UI)."""
 
-import importlib
-import inspect
 import warnings
 from pathlib import Path
 
@@ -11,7 +9,7 @@ from bpy.props import BoolProperty, CollectionProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper, axis_conversion, orientation_helper
 
 from ..core import SplatCloud, SplatValidationError
-from ..io import FORMATS, SplatFileError, format_of, read_splats, write_splats
+from ..io import FORMATS, SplatFileError, read_splats, write_splats
 from . import data, display
 
 FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)
@@ -21,27 +19,8 @@ DISPLAY_BUDGET = 1_000_000      # splats drawn per object before the display thi
 # 3DGS captures come out of COLMAP/OpenCV: the scene's up is -Y and cameras look along +Z. These
 # defaults turn that upright in Blender (file x, y, z -> Blender x, z, -y, a quarter turn about X).
 FILE_FORWARD, FILE_UP = "Z", "-Y"
-# The USD reader returns Y-up clouds (it applies the stage's upAxis) and the writer declares Y up, so
-# USD files default to the usual Y-up convention instead, unless the axes are given explicitly.
-FORMAT_AXES = {"usd": ("-Z", "Y")}
-
 # What a failed read or write can raise; anything else is a bug and should surface as one.
 EXPECTED_ERRORS = (SplatFileError, SplatValidationError, data.SplatObjectError, OSError, ValueError)
-
-
-def _skip_save_axes(cls):
-    """Keep the axis choice out of Blender's remembered operator settings, so a format's own default
-    axes (FORMAT_AXES) apply whenever the user has not picked axes for this call."""
-    for name in ("axis_forward", "axis_up"):
-        cls.__annotations__[name].keywords["options"] = {"SKIP_SAVE"}
-    return cls
-
-
-def file_axes(op, path):
-    """(forward, up) of the file: the operator's axes if given explicitly, else the format default."""
-    if op.properties.is_property_set("axis_forward") or op.properties.is_property_set("axis_up"):
-        return op.axis_forward, op.axis_up
-    return FORMAT_AXES.get(format_of(path), (op.axis_forward, op.axis_up))
 
 
 class _Progress:
@@ -65,27 +44,14 @@ def read_cloud(path, drop_invalid, report):
     """Read a splat file, passing the format's warnings on as Blender warnings. Splats with NaN/Inf
     cannot be drawn or rendered: with `drop_invalid` they are dropped (and counted in a warning),
     otherwise the file is refused."""
-    reader = importlib.import_module(f"..io.{format_of(path)}", __package__).read
-    handles_nonfinite = "nonfinite" in inspect.signature(reader).parameters
-    options = {"nonfinite": "drop" if drop_invalid else "raise"} if handles_nonfinite else {}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        cloud = read_splats(path, **options)
+        cloud = read_splats(path, nonfinite="drop" if drop_invalid else "raise")
     for w in caught:
         report({"WARNING"}, str(w.message))
-    if handles_nonfinite:
-        return cloud
-    finite = cloud.finite_mask()
-    if finite.all():
-        return cloud
-    what = f"{int((~finite).sum())} of {len(cloud)} splats have NaN/Inf values"
-    if not drop_invalid:
-        raise SplatFileError(path, what)
-    report({"WARNING"}, f"{path}: {what}; dropped")
-    return cloud[finite]
+    return cloud
 
 
-@_skip_save_axes
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
 class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
     """Import Gaussian splats (PLY, OpenUSD, SPZ, .splat) as splat objects"""
@@ -136,7 +102,7 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         created = []
         try:
             for i, (path, cloud) in enumerate(zip(paths, clouds)):
-                forward, up = file_axes(self, path)
+                forward, up = self.axis_forward, self.axis_up
                 matrix = axis_conversion(from_forward=forward, from_up=up).to_4x4()
                 obj, skipped = data.new_splat_object(cloud, path.stem, collection, matrix)
                 created.append(obj)
@@ -187,7 +153,6 @@ def scene_cloud(context, objects, conversion):
     return clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
 
 
-@_skip_save_axes
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
 class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
     """Export splat objects (with their transforms applied) to PLY, OpenUSD, SPZ or .splat"""
@@ -207,7 +172,7 @@ class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
         progress = _Progress(context, 2)
         try:
             objects = export_objects(context, self.selected_only)
-            forward, up = file_axes(self, path)
+            forward, up = self.axis_forward, self.axis_up
             conversion = axis_conversion(to_forward=forward, to_up=up).to_4x4()
             cloud = scene_cloud(context, objects, conversion)
             progress.update(1)
