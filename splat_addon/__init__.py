@@ -3,10 +3,11 @@ the SPLATWRIGHT render engine. The only package that imports bpy."""
 
 import bpy
 
-from . import animation, command, engine, from_mesh, operators
+from . import animation, collide, command, engine, from_mesh, operators, rigging
 
-CLASSES = operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + engine.CLASSES
-MENUS = operators.MENUS + from_mesh.MENUS
+CLASSES = (operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + rigging.CLASSES + collide.CLASSES
+           + engine.CLASSES)
+MENUS = operators.MENUS + from_mesh.MENUS + rigging.MENUS + collide.MENUS
 
 
 def register():
@@ -15,11 +16,13 @@ def register():
     for menu, draw in MENUS:
         menu.append(draw)
     engine.add_to_panels()
+    rigging.register()
     command.register()
 
 
 def unregister():
     command.unregister()
+    rigging.unregister()
     engine.remove_from_panels()
     for menu, draw in MENUS:
         menu.remove(draw)

@@ -3,6 +3,7 @@
     export OUT [--frames A-B[:STEP]] [--format usd|ply|spz|splat] [--objects NAMES]
     render [OUT] [--frames A-B[:STEP]] [--objects NAMES]
     from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed]
+    collide A B [--frames A-B[:STEP]] [--sigma K] [--ignore-bones NAMES] [--json OUT]
 
 Progress goes to stdout, one line per step; a failure prints "splatwright: error: ..." to stderr and
 exits non-zero (1 for a failed job, 2 for a bad command line). `execute(argv)` is the handler
@@ -11,6 +12,7 @@ registered with bpy.utils.register_cli_command; it also runs in any Blender sess
 
 import argparse
 import contextlib
+import json
 import re
 import sys
 import traceback
@@ -19,7 +21,8 @@ from pathlib import Path
 import bpy
 
 from ..io import FORMATS, format_of, write_splats
-from . import animation, data, from_mesh, operators
+from ..io.common import atomic_write
+from . import animation, collide, data, from_mesh, operators
 
 COMMAND = "splatwright"
 FORMAT_EXTENSIONS = {"usd": ".usdc", "ply": ".ply", "spz": ".spz", "splat": ".splat"}
@@ -88,6 +91,18 @@ def parser():
     p.add_argument("--target-psnr", type=float, help="refine until renders reach this PSNR (dB)")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
+
+    p = verbs.add_parser("collide", help="check two splat objects for contact over a frame range")
+    p.add_argument("object_a", help="a splat object (e.g. a rigged avatar)")
+    p.add_argument("object_b", help="the other splat object (e.g. the environment)")
+    p.add_argument("--frames", help=frames_help)
+    p.add_argument("--sigma", type=float, default=collide.DEFAULT_SIGMA,
+                   help=f"splats touch when their ellipsoids of this many standard deviations meet "
+                        f"(default {collide.DEFAULT_SIGMA:g})")
+    p.add_argument("--min-opacity", type=float, default=collide.DEFAULT_MIN_OPACITY,
+                   help=f"leave out splats fainter than this (default {collide.DEFAULT_MIN_OPACITY:g})")
+    p.add_argument("--ignore-bones", help="comma-separated bones whose splats are left out")
+    p.add_argument("--json", help="write the per-frame report to this JSON file")
     return top
 
 
@@ -97,7 +112,7 @@ def execute(argv):
         args = parser().parse_args(list(argv))
     except _Exit as done:
         return done.code
-    runs = {"export": run_export, "render": run_render, "from-mesh": run_from_mesh}
+    runs = {"export": run_export, "render": run_render, "from-mesh": run_from_mesh, "collide": run_collide}
     try:
         runs[args.verb](args, bpy.context)
     except (CommandError, from_mesh.MeshConversionError, *operators.EXPECTED_ERRORS, RuntimeError) as exc:
@@ -273,6 +288,29 @@ def run_from_mesh(args, context):
     else:
         write_splats(out, operators.scene_cloud(context, created, animation.export_conversion()))
     _say(f"done: wrote {out}")
+
+
+def run_collide(args, context):
+    scene = context.scene
+    frames = parse_frames(args.frames, scene)
+    obj_a, obj_b = collide.splat_objects_pair(scene, args.object_a, args.object_b)
+    out = Path(bpy.path.abspath(args.json)) if args.json else None
+    if out is not None and not out.parent.is_dir():
+        raise CommandError(f"folder {out.parent} does not exist")
+    ignore = [n.strip() for n in (args.ignore_bones or "").split(",") if n.strip()]
+    _say(f"collide '{obj_a.name}' with '{obj_b.name}', frames {frames[0]}-{frames[-1]} ({len(frames)})")
+
+    def progress(done, total, found):
+        bones = ", ".join(f"{name} {count}" for name, count in found.bones_a.items())
+        _say(f"[{done}/{total}] frame {found.frame}: {found.pairs} splat pairs in contact"
+             + (f" (bones: {bones})" if bones else ""))
+
+    report = collide.check_collisions(context, obj_a, obj_b, frames, args.sigma, args.min_opacity, ignore,
+                                      progress=progress)
+    if out is not None:
+        with atomic_write(out, "w") as f:
+            json.dump(report.as_dict(), f, indent=1)
+    _say(f"done: {report.summary()}")
 
 
 # registration -------------------------------------------------------------------------------------

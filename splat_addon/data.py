@@ -295,3 +295,12 @@ def evaluated_cloud(obj, depsgraph, matrix=None):
     for deform in DEFORMERS:
         cloud = deform(obj, depsgraph, cloud)
     return transform_cloud(cloud, world_matrix(obj, depsgraph) if matrix is None else matrix)
+
+
+def _armature_pose(obj, depsgraph, cloud):
+    """Splats bound to an armature (see rigging); imported on use, as rigging imports this module."""
+    from . import rigging
+    return rigging.deform(obj, depsgraph, cloud)
+
+
+DEFORMERS.append(_armature_pose)

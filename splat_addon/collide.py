@@ -1,0 +1,262 @@
+"""Collisions between two splat objects over a frame range, by the core's exact ellipsoid test.
+
+At each frame both objects are read as they are posed and placed there (data.evaluated_cloud: the
+same splats export and rendering see, in world space) and every pair of splats whose k-sigma
+ellipsoids intersect is found (core.collision.ellipsoid_contacts). A bound splat object names its
+splats by their largest-weight bone, so contacts are reported per bone. Splats fainter than
+`min_opacity` are left out, as are splats of `ignore_bones` (say, feet that stand on the floor).
+
+Each object gets the point attribute `splat_contact` (FLOAT): the fraction of the checked frames in
+which the splat touched the other object (0 never, 1 at every frame); view it in the spreadsheet or
+through an Attribute node. Export leaves it out.
+"""
+
+from dataclasses import dataclass, field
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
+
+from ..core.collision import CollisionInputError, EnvironmentIndex, ellipsoid_contacts
+from ..core.skinning import SkinningError
+from . import data, rigging
+from .animation import frame_range
+from .operators import EXPECTED_ERRORS, _Progress
+
+CONTACT_ATTRIBUTE = "splat_contact"
+DEFAULT_SIGMA = 3.0
+DEFAULT_MIN_OPACITY = 0.05
+
+
+class CollisionSetupError(ValueError):
+    """Objects or settings a collision check cannot use; the message names them."""
+
+
+@dataclass
+class FrameContacts:
+    """What touched at one frame: splat pairs, splats of each object, and splats per bone."""
+    frame: int
+    pairs: int = 0
+    splats_a: int = 0
+    splats_b: int = 0
+    bones_a: dict = field(default_factory=dict)    # bone name -> splats of A in contact
+    bones_b: dict = field(default_factory=dict)
+    deepest: float = float("inf")                  # smallest sigma multiple at which a pair touches
+
+
+@dataclass
+class CollisionReport:
+    object_a: str
+    object_b: str
+    k: float
+    frames: list                 # FrameContacts per checked frame
+    contact_a: np.ndarray        # (N_a,) fraction of frames each splat of A was in contact
+    contact_b: np.ndarray
+
+    @property
+    def contact_frames(self):
+        return [f.frame for f in self.frames if f.pairs]
+
+    def as_dict(self):
+        """Plain numbers, for JSON."""
+        frames = [{"frame": f.frame, "pairs": f.pairs, "splats_a": f.splats_a, "splats_b": f.splats_b,
+                   "bones_a": f.bones_a, "bones_b": f.bones_b,
+                   "deepest_sigma": None if np.isinf(f.deepest) else f.deepest} for f in self.frames]
+        return {"object_a": self.object_a, "object_b": self.object_b, "sigma": self.k,
+                "contact_frames": self.contact_frames, "frames": frames}
+
+    def summary(self):
+        if not self.contact_frames:
+            return f"'{self.object_a}' and '{self.object_b}' never touch in {len(self.frames)} frame(s)"
+        bones = sorted({b for f in self.frames for b in f.bones_a})
+        where = f" (bones of '{self.object_a}': {', '.join(bones)})" if bones else ""
+        return (f"'{self.object_a}' touches '{self.object_b}' at {len(self.contact_frames)} of {len(self.frames)} "
+                f"frame(s): {_ranges(self.contact_frames)}{where}")
+
+
+def _ranges(frames):
+    """[1, 2, 3, 7] -> "1-3, 7"."""
+    runs, start = [], None
+    for i, f in enumerate(frames):
+        if start is None:
+            start = f
+        if i + 1 == len(frames) or frames[i + 1] != f + 1:
+            runs.append(str(start) if start == f else f"{start}-{f}")
+            start = None
+    return ", ".join(runs)
+
+
+def splat_objects_pair(scene, name_a, name_b, context=None):
+    """The two splat objects to test: named, or (for empty names) the active object and the one
+    other selected object."""
+    if not name_a or not name_b:
+        if context is None:
+            raise CollisionSetupError("name both objects")
+        active = context.view_layer.objects.active
+        others = [o for o in context.selected_objects if o != active]
+        name_a = name_a or (active.name if active is not None else "")
+        name_b = name_b or (others[0].name if len(others) == 1 else "")
+        if not name_a or not name_b:
+            raise CollisionSetupError("name both objects, or select two with one of them active")
+    objects = []
+    for name in (name_a, name_b):
+        obj = scene.objects.get(name)
+        if obj is None:
+            raise CollisionSetupError(f"no object named '{name}' in scene '{scene.name}'")
+        if not data.is_splat_object(obj):
+            raise CollisionSetupError(f"'{name}' ({obj.type.lower()}) is not a splat object")
+        objects.append(obj)
+    if objects[0] == objects[1]:
+        raise CollisionSetupError(f"'{name_a}' cannot collide with itself")
+    return objects
+
+
+def _labels(obj):
+    """(bone names, per-splat bone index or -1) of a splat object; ([], all -1) when unbound."""
+    bound = rigging.main_bones(obj)
+    return bound if bound is not None else ([], np.full(len(obj.data.vertices), -1))
+
+
+def _kept(cloud, bones, labels, ignore, min_opacity):
+    keep = cloud.opacities >= min_opacity
+    ignored = [i for i, name in enumerate(bones) if name in ignore]
+    if ignored:
+        keep &= ~np.isin(labels, ignored)
+    return np.flatnonzero(keep)
+
+
+def _per_bone(bones, labels):
+    counts = np.bincount(labels[labels >= 0], minlength=len(bones))
+    return {bones[i]: int(c) for i, c in enumerate(counts) if c}
+
+
+class _Environment:
+    """B's environment index, rebuilt only when B's splats moved since the last frame."""
+
+    def __init__(self):
+        self.cloud, self.index = None, None
+
+    def get(self, cloud):
+        same = self.cloud is not None and all(np.array_equal(getattr(self.cloud, f), getattr(cloud, f))
+                                              for f in ("positions", "rotations", "log_scales", "opacity_logits"))
+        if not same:
+            self.cloud, self.index = cloud, EnvironmentIndex(cloud)
+        return self.index
+
+
+def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity=DEFAULT_MIN_OPACITY,
+                     ignore_bones=(), write_attribute=True, progress=None):
+    """Test splat objects `obj_a` and `obj_b` for contact at each of `frames`; returns a
+    CollisionReport and (with `write_attribute`) writes `splat_contact` on both. The scene's frame
+    is restored. progress(done, total, FrameContacts) is called after each frame."""
+    frames = list(frames)
+    if not frames:
+        raise CollisionSetupError("no frames to check")
+    if not k > 0:
+        raise CollisionSetupError(f"the sigma multiple must be positive, got {k}")
+    ignore = set(ignore_bones)
+    (bones_a, labels_a), (bones_b, labels_b) = _labels(obj_a), _labels(obj_b)
+    unknown = ignore - set(bones_a) - set(bones_b)
+    if unknown:
+        raise CollisionSetupError(f"no bones named {', '.join(sorted(unknown))} bind '{obj_a.name}' or '{obj_b.name}'")
+    hits_a, hits_b = np.zeros(len(labels_a)), np.zeros(len(labels_b))
+    scene = context.scene
+    current, subframe = scene.frame_current, scene.frame_subframe
+    environment, results = _Environment(), []
+    try:
+        for i, frame in enumerate(frames):
+            scene.frame_set(frame)
+            depsgraph = context.evaluated_depsgraph_get()
+            cloud_a, cloud_b = data.evaluated_cloud(obj_a, depsgraph), data.evaluated_cloud(obj_b, depsgraph)
+            keep_a = _kept(cloud_a, bones_a, labels_a, ignore, min_opacity)
+            keep_b = _kept(cloud_b, bones_b, labels_b, ignore, min_opacity)
+            found = FrameContacts(frame)
+            if len(keep_a) and len(keep_b):
+                contacts = ellipsoid_contacts(cloud_a[keep_a], environment.get(cloud_b[keep_b]), k=k)
+                touched_a, touched_b = keep_a[np.unique(contacts.robot)], keep_b[np.unique(contacts.env)]
+                hits_a[touched_a] += 1
+                hits_b[touched_b] += 1
+                found = FrameContacts(frame, len(contacts), len(touched_a), len(touched_b),
+                                      _per_bone(bones_a, labels_a[touched_a]), _per_bone(bones_b, labels_b[touched_b]),
+                                      float(contacts.sigma.min(initial=np.inf)))
+            results.append(found)
+            if progress:
+                progress(i + 1, len(frames), found)
+    finally:
+        scene.frame_set(current, subframe=subframe)
+    report = CollisionReport(obj_a.name, obj_b.name, float(k), results, hits_a / len(frames), hits_b / len(frames))
+    if write_attribute:
+        for obj, values in ((obj_a, report.contact_a), (obj_b, report.contact_b)):
+            write_contact(obj, values)
+    return report
+
+
+def write_contact(obj, values):
+    mesh = obj.data
+    attr = mesh.attributes.get(CONTACT_ATTRIBUTE)
+    if attr is not None and (attr.data_type != "FLOAT" or attr.domain != "POINT"):
+        mesh.attributes.remove(attr)
+        attr = None
+    if attr is None:
+        attr = mesh.attributes.new(CONTACT_ATTRIBUTE, "FLOAT", "POINT")
+    attr.data.foreach_set("value", np.ascontiguousarray(values, np.float32))
+    mesh.update()
+
+
+# the operator ---------------------------------------------------------------------------------------
+
+class SPLAT_OT_check_collisions(bpy.types.Operator):
+    """Find the frames and bones at which two splat objects touch (exact k-sigma ellipsoid test) and
+    store each splat's share of frames in contact in its 'splat_contact' attribute"""
+
+    bl_idname = "splat.check_collisions"
+    bl_label = "Check Splat Collisions"
+    bl_options = {"REGISTER", "UNDO"}
+
+    object_a: StringProperty(name="Object A", default="",
+                             description="A splat object, e.g. a rigged avatar (empty: the active object)")
+    object_b: StringProperty(name="Object B", default="",
+                             description="The other splat object (empty: the other selected object)")
+    use_scene_range: BoolProperty(name="Scene Frame Range", default=True,
+                                  description="Check the scene's frame range and step")
+    frame_start: IntProperty(name="Start", default=1, description="First frame (without the scene range)")
+    frame_end: IntProperty(name="End", default=250, description="Last frame (without the scene range)")
+    frame_step: IntProperty(name="Step", default=1, min=1, description="Frames between checked frames")
+    sigma: FloatProperty(name="Sigma", default=DEFAULT_SIGMA, min=0.1, max=10.0,
+                         description="Splats touch when their ellipsoids of this many standard deviations meet")
+    min_opacity: FloatProperty(name="Min Opacity", default=DEFAULT_MIN_OPACITY, min=0.0, max=1.0,
+                               description="Leave out splats fainter than this")
+    ignore_bones: StringProperty(name="Ignore Bones", default="",
+                                 description="Comma-separated bones whose splats are left out (e.g. feet on a floor)")
+
+    @classmethod
+    def poll(cls, context):
+        return context.mode == "OBJECT"
+
+    def execute(self, context):
+        scene = context.scene
+        try:
+            obj_a, obj_b = splat_objects_pair(scene, self.object_a, self.object_b, context)
+            start, end, step = (scene.frame_start, scene.frame_end, scene.frame_step) if self.use_scene_range \
+                else (self.frame_start, self.frame_end, self.frame_step)
+            frames = frame_range(start, end, step)
+            ignore = [n.strip() for n in self.ignore_bones.split(",") if n.strip()]
+            progress = _Progress(context, len(frames))
+            try:
+                report = check_collisions(context, obj_a, obj_b, frames, self.sigma, self.min_opacity, ignore,
+                                          progress=lambda done, total, found: progress.update(done))
+            finally:
+                progress.end()
+        except (CollisionSetupError, CollisionInputError, SkinningError, *EXPECTED_ERRORS) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, report.summary())
+        return {"FINISHED"}
+
+
+def menu_object(self, context):
+    self.layout.operator(SPLAT_OT_check_collisions.bl_idname)
+
+
+CLASSES = (SPLAT_OT_check_collisions,)
+MENUS = ((bpy.types.VIEW3D_MT_object, menu_object),)

@@ -1,0 +1,545 @@
+"""Splat objects bound to an armature: bone weights as vertex groups, an Armature modifier, and the
+posing deformer that export, animated export, collisions and the render engine read splats through.
+
+Binding (`bind_armature`) gives each splat up to k bone weights, stored as vertex groups named by
+bone so they can be painted, and adds an Armature modifier first in the stack, so the viewport
+display shows the posed centres. The weights come from:
+
+- the skinned mesh the splats were made from (the splat mesh's `splatwright_source` names it): its
+  vertex-group weights interpolated with each splat's barycentrics over `source_vertices`, an exact
+  transfer, since a surface point deforms with the barycentric blend of its corners' weights;
+- otherwise the bones themselves: w_b proportional to (d_min / d_b)^falloff, d_b the distance from the
+  splat centre to bone b's rest segment, so each splat follows its nearest bone and splats near a
+  joint blend the bones meeting there.
+
+Weights below `min_weight` of a splat's total are dropped, then all but the k largest; the rest is
+normalised (Blender divides by the total anyway).
+
+Posing (`deform`, listed in data.DEFORMERS): Blender's Armature modifier moves the vertices only,
+so the deformer re-reads the splats from the original mesh, reads the weights from the vertex groups
+and skins centres, covariances and SH with the core (linear blend, or dual quaternions with the
+modifier's Preserve Volume), in armature space as Blender does. Only vertex-group weights are used:
+bone envelopes, the modifier's own vertex-group mask, B-Bone curves and multi-modifier mixing are not.
+
+Vertex-group weights cannot be read through foreach_get. They are read in one pass per mesh by a
+temporary object evaluating a tiny geometry-nodes group (Mesh to Points turns every vertex group into
+a float point attribute, which foreach_get can read), and cached per mesh until the mesh, its groups
+or the object's geometry is edited. The read needs the main thread (it adds an object for a moment):
+a render in a background thread uses the cache, which interactive sessions keep filled.
+"""
+
+import json
+import threading
+from dataclasses import dataclass
+
+import bpy
+import numpy as np
+from bpy.app.handlers import persistent
+from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
+
+from ..core.skinning import Binding, BonePose, SkinningError, skin
+from . import data
+from .from_mesh import SOURCE
+from .operators import EXPECTED_ERRORS
+
+READER_GROUP = ".Splatwright Weight Reader"
+READER_TAG = "splatwright_weight_reader"        # node group property: build version
+READER_VERSION = 1
+READER_DROPPED = ("splat_sh_*", "splat_extra_*")  # splat data the reader need not copy
+TEMP_ATTRIBUTE = "splatwright_weight_in"        # holds one bone's weights while it becomes a group
+DEFAULT_INFLUENCES = 4
+DEFAULT_FALLOFF = 4.0
+DEFAULT_MIN_WEIGHT = 0.01
+REFRESH_DELAY = 0.3                             # seconds after an edit before cached weights refill
+
+
+class RiggingError(ValueError):
+    """A binding that cannot be made; the message names the object and the problem."""
+
+
+# armatures and bones -------------------------------------------------------------------------------
+
+def armature_modifier(obj, depsgraph=None):
+    """The first Armature modifier of `obj` that deforms by vertex groups in the depsgraph's mode
+    (viewport or render) with an armature object set, or None."""
+    render = depsgraph is not None and depsgraph.mode == "RENDER"
+    for mod in obj.modifiers:
+        if mod.type == "ARMATURE" and (mod.show_render if render else mod.show_viewport) \
+                and mod.object is not None and mod.object.type == "ARMATURE" and mod.use_vertex_groups:
+            return mod
+    return None
+
+
+def deform_bones(arm):
+    """Names of the bones of an armature object that deform, in the armature's order."""
+    return [bone.name for bone in arm.data.bones if bone.use_deform]
+
+
+def bone_pose(arm, names):
+    """The core BonePose of the named bones of an (evaluated) armature object, in armature space:
+    rest = bone.matrix_local, pose = pose_bone.matrix, as Blender's Armature modifier uses them."""
+    rest = np.array([arm.data.bones[n].matrix_local for n in names], dtype=np.float64)
+    pose = np.array([arm.pose.bones[n].matrix for n in names], dtype=np.float64)
+    return BonePose.from_blender(rest, pose)
+
+
+def to_armature_space(obj, arm, depsgraph=None):
+    """The matrix taking `obj`'s object space to `arm`'s armature space (float64)."""
+    return np.linalg.inv(data.world_matrix(arm, depsgraph)) @ data.world_matrix(obj, depsgraph)
+
+
+# reading vertex groups --------------------------------------------------------------------------------
+
+def _reader_group():
+    """The node group that turns a mesh into points, one per vertex, vertex groups becoming float
+    point attributes (built once per file)."""
+    group = bpy.data.node_groups.get(READER_GROUP)
+    if group is not None and group.get(READER_TAG) == READER_VERSION:
+        return group
+    group = bpy.data.node_groups.new(READER_GROUP, "GeometryNodeTree")
+    group[READER_TAG] = READER_VERSION
+    group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    nodes, links = group.nodes, group.links
+    socket = nodes.new("NodeGroupInput").outputs[0]
+    for pattern in READER_DROPPED:
+        drop = nodes.new("GeometryNodeRemoveAttribute")
+        drop.inputs["Pattern Mode"].default_value = "Wildcard"
+        drop.inputs["Name"].default_value = pattern
+        links.new(socket, drop.inputs["Geometry"])
+        socket = drop.outputs["Geometry"]
+    to_points = nodes.new("GeometryNodeMeshToPoints")
+    links.new(socket, to_points.inputs["Mesh"])
+    links.new(to_points.outputs["Points"], nodes.new("NodeGroupOutput").inputs[0])
+    return group
+
+
+def can_read_groups():
+    """Reading vertex groups adds an object for a moment: only the main thread may do that."""
+    return threading.current_thread() is threading.main_thread()
+
+
+def read_vertex_groups(mesh, names):
+    """(len(names), V) float32 weights of the named vertex groups of `mesh`, 0 where a vertex is not
+    in a group. One evaluation of a temporary object sharing the mesh; main thread only."""
+    out = np.zeros((len(names), len(mesh.vertices)), np.float32)
+    if not names or not len(mesh.vertices):
+        return out
+    if not can_read_groups():
+        raise data.SplatObjectError(f"'{mesh.name}': vertex-group weights can only be read on Blender's "
+                                    "main thread")
+    helper = bpy.data.objects.new(".splatwright weights", mesh)
+    try:
+        helper.modifiers.new("Read Weights", "NODES").node_group = _reader_group()
+        bpy.context.scene.collection.objects.link(helper)
+        geometry = helper.evaluated_get(bpy.context.evaluated_depsgraph_get()).evaluated_geometry()
+        points = geometry.pointcloud          # lives as long as `geometry`
+        for row, name in zip(out, names):
+            attr = points.attributes.get(name) if points is not None else None
+            if attr is None or attr.data_type != "FLOAT" or len(attr.data) != len(row):
+                raise data.SplatObjectError(f"'{mesh.name}': vertex group '{name}' could not be read")
+            attr.data.foreach_get("value", row)
+    finally:
+        bpy.data.objects.remove(helper)
+    return out
+
+
+def group_weights(obj, bones):
+    """(bone names with a vertex group, (G, V) weights) for `obj`'s vertex groups named like `bones`,
+    in the object's group order."""
+    wanted = set(bones)
+    names = [g.name for g in obj.vertex_groups if g.name in wanted]
+    return names, read_vertex_groups(obj.data, names)
+
+
+def binding_from_groups(columns, bone_of_column, count):
+    """A core Binding from per-group weight columns (G, N). A splat's influences keep the group
+    order, as Blender blends a vertex's groups in their order; nothing is pruned."""
+    rows, cols = np.nonzero(columns.T > 0)          # sorted by splat, then by group
+    per_splat = np.bincount(rows, minlength=count)
+    width = max(int(per_splat.max(initial=0)), 1)
+    slot = np.arange(len(rows)) - np.repeat(np.cumsum(per_splat) - per_splat, per_splat)
+    indices = np.zeros((count, width), np.int32)
+    weights = np.zeros((count, width), np.float32)
+    indices[rows, slot] = np.asarray(bone_of_column, np.int32)[cols]
+    weights[rows, slot] = columns[cols, rows]
+    return Binding.from_weights(indices, weights, tolerance=0.0)
+
+
+# cached bindings: mesh session_uid -> ((groups, vertex count, bones), Binding)
+_CACHE = {}
+
+
+def splat_binding(obj, bones):
+    """The Binding of splat object `obj` to the bones named `bones` (indices into that list), from
+    its vertex groups; cached until the mesh or its groups change."""
+    mesh = obj.data
+    state = (tuple(g.name for g in obj.vertex_groups), len(mesh.vertices), tuple(bones))
+    cached = _CACHE.get(mesh.session_uid)
+    if cached is not None and cached[0] == state:
+        return cached[1]
+    if not can_read_groups():
+        raise data.SplatObjectError(f"'{obj.name}': its bone weights changed and cannot be re-read during "
+                                    "this render; render again")
+    names, columns = group_weights(obj, bones)
+    index = {name: i for i, name in enumerate(bones)}
+    binding = binding_from_groups(columns, [index[n] for n in names], len(mesh.vertices))
+    _CACHE[mesh.session_uid] = (state, binding)
+    return binding
+
+
+def forget_weights(mesh=None):
+    """Drop the cached weights of `mesh` (all meshes when None)."""
+    if mesh is None:
+        _CACHE.clear()
+    else:
+        _CACHE.pop(mesh.session_uid, None)
+
+
+# posing -----------------------------------------------------------------------------------------------
+
+def deform(obj, depsgraph, cloud):
+    """The splats of `obj` (object space) posed by its Armature modifier at the depsgraph's frame;
+    the cloud itself when nothing binds it. A DEFORMERS hook (see data.evaluated_cloud)."""
+    mod = armature_modifier(obj, depsgraph)
+    if mod is None:
+        return cloud
+    arm = mod.object.evaluated_get(depsgraph)
+    bones = deform_bones(arm)
+    if not bones or not any(g.name in bones for g in obj.vertex_groups):
+        return cloud
+    binding = splat_binding(obj, bones)
+    to_arm = to_armature_space(obj, arm, depsgraph)
+    mode = "dqs" if mod.use_deform_preserve_volume else "lbs"
+    posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones), mode=mode)
+    return data.transform_cloud(posed, np.linalg.inv(to_arm))
+
+
+def main_bones(obj):
+    """(bone names, (N,) index of each splat's largest-weight bone, -1 for none) for a splat object
+    bound by an Armature modifier; None when it is not bound."""
+    mod = armature_modifier(obj)
+    if mod is None:
+        return None
+    bones = deform_bones(mod.object)
+    binding = splat_binding(obj, bones)
+    largest = np.argmax(binding.weights, axis=1)
+    top = np.take_along_axis(binding.indices, largest[:, None], axis=1)[:, 0]
+    bound = binding.weights.max(axis=1) > 0
+    return bones, np.where(bound, top, -1)
+
+
+# computing weights ------------------------------------------------------------------------------------
+
+def segment_distances(points, heads, tails):
+    """(N, B) distances from points (N,3) to the segments heads[b]-tails[b] (B,3)."""
+    axis = tails - heads
+    length2 = np.einsum("bi,bi->b", axis, axis)
+    rel = points[:, None, :] - heads[None]
+    t = np.einsum("nbi,bi->nb", rel, axis) / np.where(length2 > 0, length2, 1.0)
+    t = np.clip(t, 0.0, 1.0)
+    return np.linalg.norm(rel - t[..., None] * axis[None], axis=2)
+
+
+def bone_weights(points, heads, tails, falloff=DEFAULT_FALLOFF, chunk=1 << 15):
+    """(N, B) weights from distances to the bones' segments: (d_min / d_b)^falloff, 1 for the nearest
+    bone, smooth wherever two bones are about as near (at joints)."""
+    scale = max(float(np.linalg.norm(tails - heads, axis=1).max(initial=0.0)), 1e-9)
+    out = np.empty((len(points), len(heads)))
+    for start in range(0, len(points), chunk):
+        d = segment_distances(points[start:start + chunk], heads, tails) + 1e-9 * scale
+        out[start:start + chunk] = (d.min(axis=1, keepdims=True) / d) ** falloff
+    return out
+
+
+def source_weights(obj, bones, warn):
+    """(N, B) weights interpolated from the skinned mesh `obj` was made from, or None when it was not
+    made from a mesh with vertex groups named like `bones` (or its indices no longer fit)."""
+    record = json.loads(obj.data.get(SOURCE, "null") or "null")
+    if not record:
+        return None
+    source = bpy.data.objects.get(record.get("object", ""))
+    if source is None or source.type != "MESH":
+        warn(f"'{obj.name}': its source mesh '{record.get('object')}' is gone; weights come from the bones")
+        return None
+    extras = data.mesh_to_cloud(obj.data, owner=obj.name).extras
+    corners, bary = extras.get("source_vertices"), extras.get("barycentric")
+    if corners is None or bary is None:
+        return None
+    if record.get("vertices") != record.get("original_vertices"):
+        warn(f"'{obj.name}' was made from '{source.name}' after modifiers that change its vertices, so its "
+             "splats cannot be traced to the mesh's vertices; weights come from the bones")
+        return None
+    vertex_count = len(source.data.vertices)
+    if record.get("vertices") != vertex_count or corners.size and corners.max() >= vertex_count:
+        warn(f"'{obj.name}': '{source.name}' no longer has the vertices its splats were made from; "
+             "weights come from the bones")
+        return None
+    names, columns = group_weights(source, bones)
+    if not names:
+        return None
+    if not record.get("rest_pose", True):
+        warn(f"'{obj.name}' was made from the posed mesh; the binding takes its splats as the rest pose")
+    corners = corners.astype(np.int64)
+    bary = bary.astype(np.float64)
+    weights = np.zeros((len(corners), len(bones)))
+    for name, column in zip(names, columns):
+        weights[:, bones.index(name)] = np.einsum("nk,nk->n", bary, column.astype(np.float64)[corners])
+    return np.maximum(weights, 0.0)
+
+
+@dataclass
+class BindPlan:
+    """The weights one splat object gets: (N, B) dense weights over `bones` after pruning."""
+    obj: object
+    bones: list
+    weights: np.ndarray
+    source: str          # where the weights came from, for the report
+    report: dict
+
+
+def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, falloff=DEFAULT_FALLOFF,
+                 min_weight=DEFAULT_MIN_WEIGHT, warn=print):
+    """Compute the weights binding splat object `obj` to armature object `arm` (nothing changes)."""
+    if not data.is_splat_object(obj):
+        raise RiggingError(f"'{obj.name}' is not a splat object")
+    bones = deform_bones(arm)
+    if not bones:
+        raise RiggingError(f"armature '{arm.name}' has no deforming bones")
+    if len(obj.data.vertices) == 0:
+        raise RiggingError(f"'{obj.name}' has no splats to bind")
+    dense = source_weights(obj, bones, warn) if use_source else None
+    if dense is not None:
+        # Splats on unweighted vertices stay unbound: they stay put, as those vertices do.
+        source, tolerance = f"mesh '{json.loads(obj.data[SOURCE])['object']}'", 1e-6
+    else:
+        centres = data.mesh_to_cloud(obj.data, owner=obj.name).positions.astype(np.float64)
+        to_arm = to_armature_space(obj, arm)
+        centres = centres @ to_arm[:3, :3].T + to_arm[:3, 3]
+        heads = np.array([arm.data.bones[n].head_local for n in bones], np.float64)
+        tails = np.array([arm.data.bones[n].tail_local for n in bones], np.float64)
+        dense = bone_weights(centres, heads, tails, falloff)
+        source, tolerance = "bones", min_weight
+    binding = Binding.from_dense(dense, max_influences=max_influences, tolerance=tolerance)
+    pruned = np.zeros_like(dense, dtype=np.float32)
+    rows, slots = np.nonzero(binding.weights > 0)        # unused slots pad with bone 0: skip them
+    pruned[rows, binding.indices[rows, slots]] = binding.weights[rows, slots]
+    return BindPlan(obj, bones, pruned, source, binding.report())
+
+
+# writing the binding ----------------------------------------------------------------------------------
+
+def write_vertex_groups(obj, bones, weights):
+    """Replace `obj`'s vertex groups named like `bones` with the columns of (N, B) `weights`, each
+    group holding only its splats with a nonzero weight; every bone gets a group, to paint into."""
+    for name in bones:
+        group = obj.vertex_groups.get(name)
+        if group is not None:
+            obj.vertex_groups.remove(group)
+    mesh = obj.data
+    for b, name in enumerate(bones):
+        if not weights[:, b].any():
+            obj.vertex_groups.new(name=name)
+            continue
+        # A whole column at once: a float attribute converted to a vertex group (no per-vertex calls).
+        attr = mesh.attributes.new(TEMP_ATTRIBUTE, "FLOAT", "POINT")
+        attr.data.foreach_set("value", np.ascontiguousarray(weights[:, b], np.float32))
+        mesh.attributes.active = mesh.attributes[TEMP_ATTRIBUTE]
+        with bpy.context.temp_override(object=obj, active_object=obj):
+            done = bpy.ops.geometry.attribute_convert(mode="VERTEX_GROUP")
+        group = obj.vertex_groups.get(TEMP_ATTRIBUTE)
+        if done != {"FINISHED"} or group is None:
+            if TEMP_ATTRIBUTE in mesh.attributes:
+                mesh.attributes.remove(mesh.attributes[TEMP_ATTRIBUTE])
+            raise RiggingError(f"'{obj.name}': could not store the weights of bone '{name}'")
+        group.name = name
+
+
+def attach(obj, arm, preserve_volume=False):
+    """Parent `obj` to `arm` (keeping where it is) and deform it with an Armature modifier, first
+    in the stack so the viewport display draws the posed splats."""
+    mod = next((m for m in obj.modifiers if m.type == "ARMATURE"), None) or obj.modifiers.new("Armature", "ARMATURE")
+    mod.object = arm
+    mod.use_vertex_groups, mod.use_bone_envelopes = True, False
+    mod.use_deform_preserve_volume = preserve_volume
+    obj.modifiers.move(list(obj.modifiers).index(mod), 0)
+    world = obj.matrix_world.copy()
+    obj.parent, obj.parent_type = arm, "OBJECT"
+    obj.matrix_parent_inverse = arm.matrix_world.inverted()
+    obj.matrix_world = world
+    return mod
+
+
+def _snapshot(obj):
+    return {"groups": [g.name for g in obj.vertex_groups], "modifiers": [m.name for m in obj.modifiers],
+            "parent": obj.parent, "matrix_parent_inverse": obj.matrix_parent_inverse.copy(),
+            "matrix_world": obj.matrix_world.copy()}
+
+
+def _restore(obj, snap):
+    """Undo what binding did to `obj` (groups and modifiers it added, its parenting); weights of
+    groups it replaced are not brought back, Blender's undo does that."""
+    for group in list(obj.vertex_groups):
+        if group.name not in snap["groups"]:
+            obj.vertex_groups.remove(group)
+    for mod in list(obj.modifiers):
+        if mod.name not in snap["modifiers"]:
+            obj.modifiers.remove(mod)
+    obj.parent, obj.matrix_parent_inverse = snap["parent"], snap["matrix_parent_inverse"]
+    obj.matrix_world = snap["matrix_world"]
+
+
+def find_armature(context, name):
+    """The armature object named `name`, or the active object when `name` is empty."""
+    if name:
+        arm = bpy.data.objects.get(name)
+        if arm is None:
+            raise RiggingError(f"no object named '{name}'")
+    else:
+        arm = context.view_layer.objects.active
+        if arm is None:
+            raise RiggingError("no armature given and no active object: name one or make it the active object")
+    if arm.type != "ARMATURE":
+        raise RiggingError(f"'{arm.name}' is {arm.type.lower()}, not an armature")
+    return arm
+
+
+def bind_armature(objects, armature, max_influences=DEFAULT_INFLUENCES, use_source=True,
+                  falloff=DEFAULT_FALLOFF, min_weight=DEFAULT_MIN_WEIGHT, preserve_volume=False, warn=print):
+    """Bind the splat objects among `objects` to `armature` (an object); returns their BindPlans.
+    Every binding is computed before anything changes, so an error leaves the scene as it was."""
+    if max_influences < 1:
+        raise RiggingError(f"max_influences must be at least 1, got {max_influences}")
+    targets = [o for o in objects if o != armature and data.is_splat_object(o)]
+    if not targets:
+        listed = ", ".join(f"'{o.name}' ({o.type.lower()})" for o in objects if o != armature)
+        raise RiggingError("no splat objects to bind" + (f"; {listed} are not splat objects" if listed else ""))
+    plans = [plan_binding(o, armature, max_influences, use_source, falloff, min_weight, warn) for o in targets]
+    snapshots = [_snapshot(plan.obj) for plan in plans]
+    try:
+        for plan in plans:
+            write_vertex_groups(plan.obj, plan.bones, plan.weights)
+            attach(plan.obj, armature, preserve_volume)
+    except BaseException:
+        for plan, snap in zip(plans, snapshots):
+            _restore(plan.obj, snap)
+        raise
+    finally:
+        for plan in plans:
+            forget_weights(plan.obj.data)
+    return plans
+
+
+# the operator ---------------------------------------------------------------------------------------
+
+class SPLAT_OT_bind_armature(bpy.types.Operator):
+    """Bind the selected splat objects to an armature (the active one unless named): bone weights as
+    vertex groups, from the skinned mesh the splats were made from or from the bones, and an
+    Armature modifier that poses centres, orientations, sizes and SH colours"""
+
+    bl_idname = "splat.bind_armature"
+    bl_label = "Bind Splats to Armature"
+    bl_options = {"REGISTER", "UNDO"}
+
+    armature: StringProperty(name="Armature", default="",
+                             description="Armature object to bind to (empty: the active object)")
+    max_influences: IntProperty(name="Max Influences", default=DEFAULT_INFLUENCES, min=1, max=32,
+                                description="Bones per splat, at most")
+    use_source_weights: BoolProperty(name="Weights From Source Mesh", default=True,
+                                     description="Interpolate the vertex-group weights of the skinned mesh the "
+                                                 "splats were made from, when there is one")
+    falloff: FloatProperty(name="Falloff", default=DEFAULT_FALLOFF, min=1.0, max=16.0,
+                           description="Weights from bones: how fast a bone's weight falls with distance "
+                                       "(higher gives sharper joints)")
+    min_weight: FloatProperty(name="Min Weight", default=DEFAULT_MIN_WEIGHT, min=0.0, max=0.5,
+                              description="Weights from bones: drop bones below this share of a splat's weight")
+    preserve_volume: BoolProperty(name="Preserve Volume", default=False,
+                                  description="Dual-quaternion skinning (the Armature modifier's Preserve Volume)")
+
+    @classmethod
+    def poll(cls, context):
+        return context.mode == "OBJECT"
+
+    def execute(self, context):
+        warn = lambda message: self.report({"WARNING"}, message)
+        try:
+            arm = find_armature(context, self.armature)
+            plans = bind_armature(context.selected_objects, arm, self.max_influences, self.use_source_weights,
+                                  self.falloff, self.min_weight, self.preserve_volume, warn)
+        except (RiggingError, SkinningError, *EXPECTED_ERRORS) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for plan in plans:
+            r = plan.report
+            self.report({"INFO"}, f"'{plan.obj.name}': {r['splats']} splats bound to '{arm.name}' (weights from "
+                                  f"{plan.source}), up to {r['max_influences']} bones each, "
+                                  f"{r['pruned_splats']} splats pruned (at most {r['max_pruned_weight']:.1%} "
+                                  "of their weight)")
+        return {"FINISHED"}
+
+
+def menu_parent(self, context):
+    self.layout.operator(SPLAT_OT_bind_armature.bl_idname, text="Splats to Armature (Bone Weights)")
+
+
+CLASSES = (SPLAT_OT_bind_armature,)
+MENUS = ((bpy.types.VIEW3D_MT_object_parent, menu_parent),)
+
+
+# keeping cached weights true -------------------------------------------------------------------------
+
+@persistent
+def _on_depsgraph_update(scene, depsgraph):
+    """Edits that may change weights (painting, groups added, renamed or assigned, vertices deleted)
+    tag the mesh or the object's geometry; frame changes do not come through here."""
+    dropped = False
+    for update in depsgraph.updates:
+        owner = update.id.original
+        mesh = owner if isinstance(owner, bpy.types.Mesh) else \
+            owner.data if isinstance(owner, bpy.types.Object) and update.is_updated_geometry else None
+        if isinstance(mesh, bpy.types.Mesh) and mesh.session_uid in _CACHE:
+            forget_weights(mesh)
+            dropped = True
+    if dropped and not bpy.app.background and not bpy.app.timers.is_registered(_refill):
+        bpy.app.timers.register(_refill, first_interval=REFRESH_DELAY)
+
+
+@persistent
+def _on_load(*_):
+    forget_weights()
+    if not bpy.app.background and not bpy.app.timers.is_registered(_refill):
+        bpy.app.timers.register(_refill, first_interval=REFRESH_DELAY)
+
+
+def _refill():
+    """Re-read the weights of bound splat objects on the main thread, so that a render started from
+    the interface (which runs in another thread) finds them."""
+    scene = bpy.context.scene
+    for obj in scene.objects if scene is not None else ():
+        mod = armature_modifier(obj) if data.is_splat_object(obj) else None
+        if mod is not None:
+            try:
+                splat_binding(obj, deform_bones(mod.object))
+            except (SkinningError, *EXPECTED_ERRORS):
+                pass          # reported when the splats are next posed
+    return None
+
+
+HANDLERS = ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update),
+            (bpy.app.handlers.load_post, _on_load), (bpy.app.handlers.undo_post, _on_load),
+            (bpy.app.handlers.redo_post, _on_load))
+
+
+def register():
+    for handlers, fn in HANDLERS:
+        if fn not in handlers:
+            handlers.append(fn)
+
+
+def unregister():
+    for handlers, fn in HANDLERS:
+        if fn in handlers:
+            handlers.remove(fn)
+    if bpy.app.timers.is_registered(_refill):
+        bpy.app.timers.unregister(_refill)
+    forget_weights()
