@@ -1,0 +1,556 @@
+"""Exact EWA splatting in NumPy, with the conventions of the 3DGS reference rasteriser.
+
+The image is defined per pixel, front to back over splats sorted by camera depth:
+alpha = min(0.99, o exp(-d^T Sigma2D^-1 d / 2)), splats with alpha < 1/255 are skipped, compositing
+stops before a splat that would take the transmittance T below 1e-4, C += T alpha c, T *= 1 - alpha,
+and the final colour is C + T background. Every splat gets an extent that contains all of its
+alpha >= 1/255 pixels, so nothing visible is cut off.
+
+How it runs fast without a loop per splat or per pixel:
+- projection, covariances and SH colours are vectorised over splats (float64, relative to the camera);
+- splats are binned into square tiles, keeping only tiles their ellipse really touches, and a stable
+  sort by tile of the depth-ordered (tile, splat) entries gives every tile its front-to-back list;
+- tiles are composited in waves of up to `wave` entries per tile. A batch of tiles with similar entry
+  counts becomes one dense (entries, tiles, pixels) block: the Gaussian exponent is a quadratic in the
+  pixel offset from the tile centre, so it is one small matrix product (entry coefficients x a fixed
+  basis), followed by exp, a running product for T over the entry axis and one batched matrix product
+  that sums weights times (colour, depth, 1) per pixel. Tiles whose pixels have all stopped drop out
+  after each wave, which is where opaque scenes save most of their work;
+- batches run on a thread pool: NumPy and BLAS release the GIL for the heavy calls.
+"""
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import geometry, sh as shmod
+from .splats import sigmoid
+
+ALPHA_MIN = 1.0 / 255.0     # skip a splat at a pixel below this alpha
+ALPHA_MAX = 0.99            # per-splat alpha clamp
+T_MIN = 1e-4                # stop before T would drop below this
+LOW_PASS = 0.3              # px^2 added to the projected covariance's diagonal
+AA_MIN_RATIO = 0.000025     # floor of det(Sigma2D) / det(Sigma2D + 0.3 I) in antialiased mode
+FRUSTUM_MARGIN = 1.3        # the Jacobian is taken at x/z, y/z clamped to 1.3 x the half field of view
+MODES = ("classic", "antialiased")
+PRECISIONS = {"float32": np.float32, "float64": np.float64}
+
+# OpenBLAS runs larger products on its own threads, which fights our pool and is slower for these
+# thin products; it stays single-threaded below m*n*k = 65536 * 4 (its SMP threshold).
+_BLAS_SINGLE_THREAD_MNK = 65536 * 4
+_BATCH_EVALS = 1 << 18      # splat-pixel evaluations per batch (measured sweet spot)
+
+
+@dataclass
+class RenderResult:
+    """A rendered image.
+
+    color: (H,W,3) float32 display sRGB, background included (black when rendered with
+        background=None, i.e. colour premultiplied by alpha).
+    alpha: (H,W) float32 coverage, 1 - final transmittance.
+    depth: (H,W) float32 alpha-weighted expected camera z, sum(w z) / sum(w) over the blended
+        splats with weights w = T alpha; 0 where alpha is 0 (no splat), never NaN or Inf.
+    counts: (H,W) int32 number of splats blended into each pixel, when requested; else None.
+    background: the background colour used, or None for a transparent render.
+    stats: counts of splats and work (input, skipped_nonfinite, visible, entries, evaluated).
+    """
+
+    color: np.ndarray
+    alpha: np.ndarray
+    depth: np.ndarray
+    counts: np.ndarray | None = None
+    background: tuple | None = (0.0, 0.0, 0.0)
+    stats: dict = field(default_factory=dict)
+
+
+@dataclass
+class Projected:
+    """Visible splats in front-to-back order (ties by index), in pixel space.
+
+    Each splat is one 64-byte record (a cache line, so the compositor fetches it with one read):
+    float64 u, v (pixel-space mean) and conic a, b, c (inverse of Sigma2D + 0.3 I), then float32
+    log opacity, r, g, b, camera z and 1. The last record is padding whose alpha is exactly 0.
+    """
+
+    index: np.ndarray       # (n,) index into the input cloud
+    records: np.ndarray     # (n+1, 8) float64, laid out as above
+    r2: np.ndarray          # (n,) squared Mahalanobis extent: alpha >= 1/255 inside
+    bbox: np.ndarray        # (n, 4) int64 inclusive pixel box x0, y0, x1, y1 (clipped to the image)
+    skipped_nonfinite: int
+
+    def __len__(self):
+        return len(self.index)
+
+    @property
+    def mean_conic(self):
+        """(n+1, 5) float64 view: u, v, conic a, b, c."""
+        return self.records[:, :5]
+
+
+
+def _records(n):
+    """Room for n records plus the padding record."""
+    rec = np.zeros((n + 1, 8))
+    _floats(rec[n:])[:, 0] = -1e30          # padding: exp(-1e30) = 0
+    return rec
+
+
+def _floats(records):
+    """The float32 part of records: (m, 6) log opacity, r, g, b, camera z, 1."""
+    return records[:, 5:].view(np.float32)
+
+
+def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_counts=False, *,
+           tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32", threads=None,
+           progress=None):
+    """Render a SplatCloud through a Camera; returns a RenderResult.
+
+    background: display-sRGB colour behind the splats, or None for a transparent render.
+    mode: "classic" (the reference rasteriser) or "antialiased" (opacity compensated for the
+        0.3 px^2 low-pass, as in Mip-Splatting / gsplat's antialiased mode).
+    Speed options (the defaults give the exact image): tile_size in pixels; wave, entries per tile
+    composited between checks for finished tiles; t_min, the transmittance stop (0 disables it);
+    max_sigma caps each splat's extent in standard deviations (3 mimics the reference rasteriser,
+    dropping faint tails); precision "float32" or "float64" for the per-pixel work; threads
+    (default: all cores). progress(done_tiles, total_tiles, label) is called between waves.
+
+    Splats with non-finite values are skipped and counted in stats["skipped_nonfinite"].
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
+    if int(tile_size) != tile_size or not 1 <= tile_size <= 64:
+        raise ValueError(f"tile_size must be an integer in 1..64, got {tile_size!r}")
+    if int(wave) != wave or wave < 1:
+        raise ValueError(f"wave must be a positive integer, got {wave!r}")
+    if not 0.0 <= t_min < 1.0:
+        raise ValueError(f"t_min must be in [0, 1), got {t_min!r}")
+    if max_sigma is not None and not max_sigma > 0:
+        raise ValueError(f"max_sigma must be > 0 or None, got {max_sigma!r}")
+    bg = None if background is None else np.asarray(background, dtype=np.float64).reshape(-1)
+    if bg is not None and (bg.shape != (3,) or not np.isfinite(bg).all()):
+        raise ValueError(f"background must be three finite numbers (r, g, b), got {background!r}")
+    with _pool(threads) as pool:
+        proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
+        bins = bin_tiles(proj, camera, int(tile_size), pool=pool)
+        compositor = _Compositor(proj, bins, PRECISIONS[precision], int(wave), t_min, return_counts, pool)
+        acc, counts = compositor.run(progress)
+    result = _finish(acc, counts, camera, bins, bg, background, proj, cloud)
+    result.stats["evaluated"] = compositor.evaluated
+    return result
+
+
+class _pool:
+    """A thread pool of `threads` workers (default: all cores) as a context manager; with one
+    thread, map() runs inline."""
+
+    def __init__(self, threads=None):
+        self.threads = max(1, int(threads or os.cpu_count() or 1))
+        self.executor = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.executor is not None:
+            self.executor.shutdown()
+
+    def map(self, fn, items):
+        if self.executor is None or len(items) < 2:
+            return [fn(item) for item in items]
+        return list(self.executor.map(fn, items))
+
+
+# projection -----------------------------------------------------------------------------------
+
+_PROJECT_CHUNK = 1 << 16    # splats per projection task
+
+
+def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
+    """Cull and project every splat: pixel-space means, conics, extents and view-dependent colours
+    of the visible ones, sorted front to back (equal depths keep input order)."""
+    pool = pool or _pool(1)
+    chunks = [slice(i, i + _PROJECT_CHUNK) for i in range(0, len(cloud), _PROJECT_CHUNK)] or [slice(0, 0)]
+    parts = pool.map(lambda sl: _project_chunk(cloud, sl, camera, mode, max_sigma), chunks)
+    skipped = sum(p.pop("skipped") for p in parts)
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
+    # float32 precision are ties, kept in index order (chunks are in index order), so round-off in
+    # a far-from-origin camera pose cannot reorder them.
+    # (Positive float32 values sort like their bit patterns: two 16-bit radix passes.)
+    order = _stable_argsort(cols["z"].astype(np.float32).view(np.uint32), 1 << 32)
+    records = _records(len(order))
+    np.take(cols["records"], order, axis=0, out=records[:-1])
+    return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
+
+
+def _project_chunk(cloud, sl, camera, mode, max_sigma):
+    """Projection of cloud[sl], unsorted, as columns (float64 unless noted)."""
+    idx = np.arange(len(cloud))[sl]
+    fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
+    every = fields + [cloud.sh[sl]]
+    if not all(np.isfinite(f).all() for f in every):      # rare: find the bad splats
+        good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
+        idx, fields = idx[good], [f[good] for f in fields]
+    skipped = len(every[-1]) - len(idx)
+    positions, rotations, log_scales, logits = fields
+
+    rel = positions.astype(np.float64) - camera.center      # world offsets from the eye
+    cam = _rotate(rel, camera.rotation)
+    z = cam[:, 2]
+    opacity = sigmoid(logits)
+    keep = np.flatnonzero((z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
+    if len(keep) < len(z):
+        idx, rel, cam, z, opacity = idx[keep], rel[keep], cam[keep], z[keep], opacity[keep]
+        rotations, log_scales = rotations[keep], log_scales[keep]
+
+    u, v, m0, m1 = _screen_rows(cam, camera)
+    # Sigma2D = V V^T with V = J W R S (2x3): exactly symmetric and PSD, and det(V V^T) is the
+    # squared cross product of V's rows, free of the cancellation in a c - b^2 for needles.
+    rs = geometry.quaternions_to_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
+    with np.errstate(over="ignore", invalid="ignore"):
+        v0 = np.einsum("nj,njk->nk", m0, rs)
+        v1 = np.einsum("nj,njk->nk", m1, rs)
+        a, b, c = _dot3(v0, v0), _dot3(v0, v1), _dot3(v1, v1)
+        det0 = _dot3(*(_cross3(v0, v1),) * 2)
+        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
+        if mode == "antialiased":
+            opacity = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, det0 / det))
+        r2 = 2.0 * np.log(np.maximum(255.0 * opacity, 1e-300))
+        if max_sigma is not None:
+            r2 = np.minimum(r2, float(max_sigma) ** 2)
+        a, c = a + LOW_PASS, c + LOW_PASS
+        half_x, half_y = np.sqrt(r2 * a), np.sqrt(r2 * c)
+    finite = np.isfinite(det) & np.isfinite(u) & np.isfinite(v)
+    skipped += int((~finite).sum())
+    box = [np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
+           np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
+           np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
+           np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1)]
+    sel = np.flatnonzero(finite & (r2 > 0) & (box[0] <= box[2]) & (box[1] <= box[3]))
+
+    if camera.is_orthographic:    # parallel rays: every splat is seen along the camera axis
+        directions = np.broadcast_to(camera.forward, (len(sel), 3))
+    else:
+        directions = rel[sel]
+    rgb = shmod.colors(cloud.sh[idx[sel]], directions) if len(sel) else np.zeros((0, 3))
+    d = det[sel]
+    records = _records(len(sel))[:-1]
+    records[:, 0], records[:, 1] = u[sel], v[sel]
+    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d   # the conic
+    floats = _floats(records)
+    floats[:, 0], floats[:, 1:4], floats[:, 4], floats[:, 5] = np.log(opacity[sel]), rgb, z[sel], 1.0
+    bbox = np.empty((len(sel), 4), dtype=np.int64)
+    for k, x in enumerate(box):
+        bbox[:, k] = x[sel]
+    return {"index": idx[sel], "z": z[sel], "records": records, "r2": r2[sel], "bbox": bbox, "skipped": skipped}
+
+
+def _rotate(points, rotation):
+    """points @ rotation.T, written out: a BLAS product this thin would start BLAS's own threads."""
+    out = np.empty_like(points)
+    for k in range(3):
+        out[:, k] = points[:, 0] * rotation[k, 0] + points[:, 1] * rotation[k, 1] + points[:, 2] * rotation[k, 2]
+    return out
+
+
+def _dot3(p, q):
+    return p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1] + p[:, 2] * q[:, 2]
+
+
+def _cross3(p, q):
+    return np.stack([p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
+                     p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
+                     p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]], axis=1)
+
+
+def _screen_rows(cam, camera):
+    """Pixel-space means and the rows of J W (the projection's Jacobian at each camera-space point
+    times the world-to-camera rotation), each (n,3)."""
+    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
+    rot = camera.rotation
+    if camera.is_orthographic:
+        u, v = camera.fx * x + camera.cx, camera.fy * y + camera.cy
+        return u, v, np.broadcast_to(camera.fx * rot[0], cam.shape), np.broadcast_to(camera.fy * rot[1], cam.shape)
+    tx, ty = x / z, y / z
+    u, v = camera.fx * tx + camera.cx, camera.fy * ty + camera.cy
+    # The reference clamps x/z, y/z to 1.3 x tan(half fov) around the centre; with an off-centre
+    # principal point the same 30% margin is kept beyond each image edge.
+    mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
+    tx = np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx)
+    ty = np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy)
+    # J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]]; each row times W
+    fz, gz = camera.fx / z, camera.fy / z
+    m0, m1 = np.empty_like(cam), np.empty_like(cam)
+    for k in range(3):
+        m0[:, k] = fz * (rot[0, k] - tx * rot[2, k])
+        m1[:, k] = gz * (rot[1, k] - ty * rot[2, k])
+    return u, v, m0, m1
+
+
+# tile binning ---------------------------------------------------------------------------------
+
+@dataclass
+class Bins:
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    entry_splat: np.ndarray     # (E,) splat per entry, grouped by tile, front to back within a tile
+    offsets: np.ndarray         # (tiles+1,) entries of tile t are entry_splat[offsets[t]:offsets[t+1]]
+
+    @property
+    def n_tiles(self):
+        return self.tiles_x * self.tiles_y
+
+
+def bin_tiles(proj, camera, tile_size, pool=None):
+    """Every (tile, splat) pair whose alpha >= 1/255 ellipse reaches the rectangle spanned by the
+    tile's pixel centres, grouped by tile and front to back within each tile.
+
+    Runs on depth-ordered chunks of splats in parallel; each chunk's entries are sorted by tile,
+    then the chunks' per-tile runs are laid out one after the other, which keeps depth order.
+    """
+    pool = pool or _pool(1)
+    ts = tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles = tiles_x * tiles_y
+    n = len(proj)
+    bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
+    parts = pool.map(lambda k: _bin_chunk(proj, bounds[k], bounds[k + 1], ts, tiles_x, n_tiles),
+                     list(range(len(bounds) - 1)))
+    counts = np.stack([c for _, c in parts])                      # (chunks, tiles)
+    offsets = np.zeros(n_tiles + 1, dtype=np.int64)
+    np.cumsum(counts.sum(axis=0), out=offsets[1:])
+    starts = offsets[:-1] + np.cumsum(counts, axis=0) - counts     # where each chunk's run begins
+    entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
+
+    def place(k):
+        splat, count = parts[k]
+        local = np.cumsum(count) - count
+        entry_splat[np.repeat(starts[k] - local, count) + np.arange(len(splat))] = splat
+
+    pool.map(place, list(range(len(parts))))
+    return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
+
+
+def _bin_chunk(proj, lo, hi, ts, tiles_x, n_tiles):
+    """Entries of splats lo..hi-1 sorted by tile (stable): (splat ids, entries per tile)."""
+    box = proj.bbox[lo:hi]
+    row0 = box[:, 1] // ts
+    rows = box[:, 3] // ts - row0 + 1
+    splat = np.repeat(np.arange(lo, hi, dtype=np.int32), rows)
+    row = np.repeat(row0, rows) + _ramp(rows)
+    col0, col1 = np.repeat(box[:, 0] // ts, rows), np.repeat(box[:, 2] // ts, rows)
+    # A box one tile high or wide meets every tile it covers; only larger ones need the ellipse.
+    big = np.flatnonzero((rows > 1) & (box[:, 2] // ts > box[:, 0] // ts))
+    if len(big):
+        fit = np.repeat(np.cumsum(rows)[big] - rows[big], rows[big]) + _ramp(rows[big])
+        col0[fit], col1[fit] = _row_extent(proj, lo + big, rows[big], row[fit], ts)
+    cols = np.maximum(col1 - col0 + 1, 0)
+    splat = np.repeat(splat, cols)
+    tile = np.repeat(row * tiles_x + col0, cols) + _ramp(cols)
+    order = _stable_argsort(tile, n_tiles)
+    return splat[order], np.bincount(tile, minlength=n_tiles)
+
+
+def _ramp(counts):
+    """0, 1, ..., c-1 for each count c, concatenated."""
+    total = int(counts.sum())
+    return np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
+def _row_extent(proj, ids, rows, row, ts):
+    """First and last tile column that the splat's ellipse reaches within a tile row (its band of
+    pixel-centre rows, cut to the splat's box). The right edge of the ellipse, x(dy), is concave in
+    dy with its maximum at the ellipse's rightmost point, so over a band of dy it peaks there or at
+    the band end nearest to it; the left edge mirrors this. `ids` are splats spanning `rows` tile
+    rows each; `row` lists those rows, splat by splat."""
+    u, v, a, b, c = proj.mean_conic[ids].T
+    r2 = proj.r2[ids]
+    det = a * c - b * b
+    sxx = c / det                                           # covariance entries
+    half_x = np.sqrt(r2 * sxx)
+    peak = np.sqrt(r2 / sxx) * (-b / det)                  # dy of the rightmost point (leftmost: -peak)
+    box = proj.bbox[ids]
+    u, v, a, b, r2, det, half_x, peak = (np.repeat(x, rows) for x in (u, v, a, b, r2, det, half_x, peak))
+    box = np.repeat(box, rows, axis=0)
+    lo = np.maximum(row * ts, box[:, 1]) + 0.5 - v
+    hi = np.minimum(row * ts + ts - 1, box[:, 3]) + 0.5 - v
+
+    def edge(dy, sign):
+        return (-b * dy + sign * np.sqrt(np.maximum(a * r2 - det * dy * dy, 0.0))) / a
+
+    right = np.where((peak >= lo) & (peak <= hi), half_x, edge(np.minimum(np.maximum(peak, lo), hi), 1.0))
+    left = np.where((-peak >= lo) & (-peak <= hi), -half_x, edge(np.minimum(np.maximum(-peak, lo), hi), -1.0))
+    x0 = np.maximum(np.ceil(u + left - 0.5), box[:, 0]).astype(np.int64)
+    x1 = np.minimum(np.floor(u + right - 0.5), box[:, 2]).astype(np.int64)
+    return x0 // ts, np.where(x1 >= x0, x1 // ts, x0 // ts - 1)
+
+
+def _stable_argsort(keys, n_keys):
+    """Stable argsort of non-negative integers below n_keys <= 2^32: NumPy radix-sorts 16-bit
+    keys, and two 16-bit passes (low half, then high half) sort larger ones."""
+    if n_keys <= 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable")
+    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    high = np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")
+    return low[high]
+
+
+# compositing ----------------------------------------------------------------------------------
+
+class _Compositor:
+    """Front-to-back compositing of every tile, in waves of at most `wave` entries per tile."""
+
+    def __init__(self, proj, bins, dtype, wave, t_min, want_counts, pool):
+        self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
+        self.t_min = dtype(t_min)
+        ts = bins.tile_size
+        self.pixels = ts * ts
+        e = np.arange(ts) + 0.5 - ts / 2             # pixel-centre offsets from the tile centre
+        ey, ex = np.repeat(e, ts), np.tile(e, ts)    # row-major pixels within a tile
+        self.basis = np.stack([np.ones_like(ex), ex, ey, ex * ex, ex * ey, ey * ey]).astype(dtype)
+        n_tiles = bins.n_tiles
+        self.acc = np.zeros((n_tiles, self.pixels, 5), dtype=dtype)     # sum w * (r, g, b, z, 1)
+        self.trans = np.ones((n_tiles, self.pixels), dtype=dtype)       # T, or 0 once a pixel stopped
+        self.counts = np.zeros((n_tiles, self.pixels), dtype=np.int32) if want_counts else None
+        self.records, self.entry_splat = self._by_locality(proj, bins)
+        self.evaluated = 0
+
+    @staticmethod
+    def _by_locality(proj, bins):
+        """Records renumbered by the tile of their box's top-left corner, so that the entries of
+        neighbouring tiles read neighbouring records (cache hits) instead of depth-scattered ones."""
+        n = len(proj)
+        first_tile = (proj.bbox[:, 1] // bins.tile_size) * bins.tiles_x + proj.bbox[:, 0] // bins.tile_size
+        order = _stable_argsort(first_tile, bins.n_tiles)
+        renumber = np.empty(n + 1, dtype=np.int32)
+        renumber[order] = np.arange(n, dtype=np.int32)
+        renumber[n] = n
+        records = proj.records.take(np.append(order, n), axis=0)
+        return records, renumber.take(bins.entry_splat)
+
+    def run(self, progress=None):
+        bins = self.bins
+        total = np.diff(bins.offsets)
+        cursor = self._cursor = np.zeros(bins.n_tiles, dtype=np.int64)
+        alive = np.flatnonzero(total > 0)
+        done_tiles = bins.n_tiles - len(alive)
+        while len(alive):
+            take = np.minimum(total[alive] - cursor[alive], self.wave)
+            batches = self._batches(alive, take)
+            self.evaluated += sum(len(t) * d for t, _, d in batches) * self.pixels
+            finished = self.pool.map(lambda b: self._composite(*b), batches)
+            cursor[alive] += take
+            stopped = np.zeros(bins.n_tiles, bool)
+            for tiles, flags in finished:
+                stopped[tiles] = flags
+            still = (cursor[alive] < total[alive]) & ~stopped[alive]
+            done_tiles += int((~still).sum())
+            alive = alive[still]
+            if progress is not None:
+                progress(done_tiles, bins.n_tiles, "render")
+        return self.acc, self.counts
+
+    def _batches(self, alive, take):
+        """Split the alive tiles into batches of similar entry counts, ~_BATCH_EVALS evaluations each."""
+        order = np.argsort(-take, kind="stable")
+        tiles, take = alive[order], take[order]
+        out, i = [], 0
+        while i < len(tiles):
+            depth = int(take[i])
+            g = max(1, _BATCH_EVALS // (depth * self.pixels))
+            out.append((tiles[i:i + g], take[i:i + g], depth))
+            i += g
+        return out
+
+    def _composite(self, tiles, take, depth):
+        """Composite the next `take` entries of each tile (padded to `depth`); returns the tiles
+        and whether each has stopped at every pixel."""
+        bins, dtype = self.bins, self.dtype
+        g, p = len(tiles), self.pixels
+        slot = np.arange(depth)[:, None]
+        pos = (bins.offsets[tiles] + self._cursor[tiles])[None, :] + slot
+        splat = np.where(slot < take[None, :], self.entry_splat.take(pos, mode="clip"),
+                         len(self.proj)).ravel()                     # (depth * g), padding -> no-op row
+        rec = self.records.take(splat, axis=0)                       # one cache line per entry
+        log_o = _floats(rec)[:, 0]
+        power = self._exponent(rec, tiles)                           # (depth * g, p) log alpha
+        bright = np.flatnonzero(log_o > math.log(ALPHA_MAX))
+        if len(bright):                                              # clamp alpha at 0.99
+            power[bright] = np.minimum(power[bright], dtype(math.log(ALPHA_MAX)))
+        visible = power >= dtype(math.log(ALPHA_MIN))   # (multiplying by a mask beats masked stores)
+        alpha = np.exp(power, out=power)
+        alpha *= visible
+        alpha = alpha.reshape(depth, g, p)
+
+        trans = np.empty((depth + 1, g, p), dtype=dtype)             # T before each entry
+        trans[0] = self.trans[tiles]
+        keep = np.subtract(1, alpha, dtype=dtype)
+        for k in range(depth):
+            np.multiply(trans[k], keep[k], out=trans[k + 1])
+        weight = np.multiply(trans[:-1], alpha, out=keep)            # w = T alpha
+        crossed = trans[-1] < self.t_min
+        if (crossed & (trans[0] >= self.t_min)).any():               # a pixel stops in this wave
+            weight *= trans[1:] >= self.t_min
+        feat = _floats(rec)[:, 1:].astype(dtype, copy=False).reshape(depth, g, 5)
+        self.acc[tiles] += np.matmul(weight.transpose(1, 2, 0), feat.transpose(1, 0, 2))
+        if self.counts is not None:
+            self.counts[tiles] += np.count_nonzero(weight, axis=0).astype(np.int32)
+        last = trans[-1]
+        last *= ~crossed
+        self.trans[tiles] = last
+        return tiles, ~last.any(axis=1)
+
+    def _exponent(self, rec, tiles):
+        """log(o) - q/2 at every pixel of every entry (records `rec`, slot-major over `tiles`).
+        q is a quadratic in the pixel's offset e from the tile centre, q = q0 + 2 g.e + e^T Q e,
+        expanded in float64 around the tile centre (so large pixel coordinates never meet in
+        float32) and evaluated as coefficients @ basis."""
+        ts, g = self.bins.tile_size, len(tiles)
+        u, v, a, b, c = rec[:, :5].T
+        reps = len(rec) // g
+        dx = np.tile((tiles % self.bins.tiles_x) * ts + ts / 2, reps) - u
+        dy = np.tile((tiles // self.bins.tiles_x) * ts + ts / 2, reps) - v
+        gx, gy = a * dx + b * dy, b * dx + c * dy
+        coef = np.empty((len(rec), 6), dtype=self.dtype)
+        coef[:, 0] = _floats(rec)[:, 0] - 0.5 * (gx * dx + gy * dy)
+        coef[:, 1], coef[:, 2] = -gx, -gy
+        coef[:, 3], coef[:, 4], coef[:, 5] = -0.5 * a, -b, -0.5 * c
+        out = np.empty((len(rec), self.pixels), dtype=self.dtype)
+        step = max(1, _BLAS_SINGLE_THREAD_MNK // (6 * self.pixels) - 1)
+        for i in range(0, len(rec), step):
+            np.matmul(coef[i:i + step], self.basis, out=out[i:i + step])
+        return out
+
+
+def _finish(acc, counts, camera, bins, bg, background, proj, cloud):
+    """Tile accumulators -> image arrays."""
+    ts, h, w = bins.tile_size, camera.height, camera.width
+
+    def image(a):
+        a = a.reshape(bins.tiles_y, bins.tiles_x, ts, ts, *a.shape[2:]).swapaxes(1, 2)
+        return a.reshape(bins.tiles_y * ts, bins.tiles_x * ts, *a.shape[4:])[:h, :w]
+
+    acc = image(acc)                    # (H, W, 5): the one copy out of tile order
+    weight = acc[..., 4]
+    alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
+    color = acc[..., :3].astype(np.float32)
+    if bg is not None:
+        color += (1.0 - alpha)[..., None] * bg.astype(np.float32)
+    depth = np.zeros_like(alpha)
+    np.divide(acc[..., 3], weight, out=depth, where=weight > 0)
+    stats = {"input": len(cloud), "skipped_nonfinite": proj.skipped_nonfinite, "visible": len(proj),
+             "entries": len(bins.entry_splat)}
+    return RenderResult(
+        color=color,
+        alpha=alpha,
+        depth=depth,
+        counts=None if counts is None else image(counts).copy(),
+        background=None if background is None else tuple(float(x) for x in bg),
+        stats=stats,
+    )

@@ -1,0 +1,102 @@
+"""Writing rendered images: 8-bit PNG (via Pillow) or float EXR with R, G, B, A and Z.
+
+    write_image("frame.png", result)     # a core.render.RenderResult
+    write_image("frame.exr", {"color": rgb, "alpha": a, "depth": z})
+    write_image("mask.png", gray)         # or a bare (H,W), (H,W,3) or (H,W,4) array
+
+Colours are display sRGB in [0, 1]. A render made with background=None is transparent: its colour
+is premultiplied by alpha, so PNG (which stores straight alpha) gets colour / alpha and an alpha
+channel, while EXR (premultiplied by convention) gets the colour as it is. A render over a
+background is opaque: PNG gets RGB only, EXR gets the colour and its coverage as A. Files appear
+whole or not at all.
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+from .common import SplatFileError, atomic_write
+
+FORMATS = (".png", ".exr")
+
+
+def write_image(path, image, half=False):
+    """Write a RenderResult, a dict with "color" and optional "alpha"/"depth", or an array.
+
+    half: EXR only, store 16-bit floats instead of 32-bit.
+    """
+    ext = Path(path).suffix.lower()
+    if ext not in FORMATS:
+        raise SplatFileError(path, f"unknown image extension '{ext}' (known: {', '.join(FORMATS)})")
+    color, alpha, depth, kind = _planes(path, image)
+    if ext == ".png":
+        _write_png(path, color, None if kind == "opaque" else alpha, kind == "premultiplied")
+    else:
+        from .exr import write_exr
+        if kind == "straight" and alpha is not None:       # EXR colour is premultiplied
+            color = color * alpha[..., None]
+        channels = {"R": color[..., 0], "G": color[..., 1], "B": color[..., 2]}
+        if alpha is not None:
+            channels["A"] = alpha
+        if depth is not None:
+            channels["Z"] = depth
+        write_exr(path, channels, half=half)
+
+
+def _planes(path, image):
+    """(color (H,W,3), alpha (H,W) or None, depth (H,W) or None, kind) as float arrays; kind is
+    "opaque" (alpha is coverage only: the colour already holds a background), "premultiplied" or
+    "straight"."""
+    if hasattr(image, "color"):    # a RenderResult
+        kind = "premultiplied" if getattr(image, "background", ()) is None else "opaque"
+        return (_array(path, "color", image.color), _array(path, "alpha", image.alpha),
+                _array(path, "depth", image.depth), kind)
+    if isinstance(image, dict):
+        if "color" not in image:
+            raise SplatFileError(path, "an image dict needs a 'color' entry")
+        alpha = image.get("alpha")
+        depth = image.get("depth")
+        return (_array(path, "color", image["color"]), None if alpha is None else _array(path, "alpha", alpha),
+                None if depth is None else _array(path, "depth", depth),
+                "premultiplied" if image.get("premultiplied") else "straight")
+    a = _array(path, "image", image)
+    if a.ndim == 2:
+        return np.repeat(a[..., None], 3, axis=2), None, None, "opaque"
+    if a.shape[2] == 4:
+        return a[..., :3], a[..., 3], None, "straight"
+    return a, None, None, "opaque"
+
+
+_SHAPES = {"color": "(H, W, 3)", "alpha": "(H, W)", "depth": "(H, W)", "image": "(H, W), (H, W, 3) or (H, W, 4)"}
+
+
+def _array(path, name, values):
+    a = np.asarray(values, dtype=np.float64)
+    if name == "color":
+        ok = a.ndim == 3 and a.shape[2] == 3
+    elif name == "image":
+        ok = a.ndim == 2 or (a.ndim == 3 and a.shape[2] in (3, 4))
+    else:
+        ok = a.ndim == 2
+    if not ok or 0 in a.shape:
+        raise SplatFileError(path, f"{name} has shape {a.shape}, expected {_SHAPES[name]}")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise SplatFileError(path, f"{name} holds {int(bad.sum())} NaN or infinite values")
+    return a
+
+
+def _write_png(path, color, alpha, premultiplied):
+    from PIL import Image
+    if alpha is not None and alpha.shape != color.shape[:2]:
+        raise SplatFileError(path, f"alpha has shape {alpha.shape}, colour {color.shape[:2]}")
+    # RGBA only when alpha matters: a transparent render, or an image given with partial alpha.
+    with_alpha = alpha is not None and (premultiplied or bool((alpha < 1.0).any()))
+    if with_alpha and premultiplied:
+        safe = np.where(alpha > 0, alpha, 1.0)
+        color = np.where(alpha[..., None] > 0, color / safe[..., None], 0.0)
+    planes = [color] + ([alpha[..., None]] if with_alpha else [])
+    pixels = np.round(np.clip(np.concatenate(planes, axis=2), 0.0, 1.0) * 255.0).astype(np.uint8)
+    picture = Image.fromarray(pixels, "RGBA" if with_alpha else "RGB")
+    with atomic_write(path) as f:
+        picture.save(f, format="PNG")

@@ -1,0 +1,120 @@
+"""Float64 brute-force reference renderer, for tests and benchmarks only.
+
+Every splat is evaluated at every pixel (or at a given subset of pixels) with the conventions of
+the 3DGS reference rasteriser written out literally: full 3x3 / 2x3 matrix products for the EWA
+covariance, an explicit 2x2 inverse, and a sequential front-to-back loop over splats that applies
+the 1/255 skip, the 0.99 clamp and the T < 1e-4 stop pixel by pixel. It shares no code with
+core/render.py; from the core it uses only the quaternion -> matrix and SH evaluation helpers,
+which have tests of their own.
+"""
+
+import numpy as np
+
+from splatwright.core import geometry, sh
+
+ALPHA_MIN, ALPHA_MAX, T_MIN, LOW_PASS = 1.0 / 255.0, 0.99, 1e-4, 0.3
+
+
+def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN):
+    """Returns a dict with color (.., 3), alpha, depth and counts, float64 (counts int).
+
+    pixels: optional (M, 2) integer array of (column, row) to evaluate; the outputs are then (M, ...)
+    instead of (H, W, ...).
+    """
+    if pixels is None:
+        rows, cols = np.mgrid[0:camera.height, 0:camera.width]
+        px, py = cols.ravel() + 0.5, rows.ravel() + 0.5
+    else:
+        pixels = np.asarray(pixels)
+        px, py = pixels[:, 0] + 0.5, pixels[:, 1] + 0.5
+    splats = _project_all(cloud, camera, mode)
+
+    m = len(px)
+    trans = np.ones(m)
+    color = np.zeros((m, 3))
+    depth_sum = np.zeros(m)
+    counts = np.zeros(m, dtype=np.int64)
+    done = np.zeros(m, bool)
+    chunk = max(1, 4_000_000 // max(m, 1))
+    for start in range(0, len(splats["z"]), chunk):
+        sl = slice(start, start + chunk)
+        dx = px[None, :] - splats["mean"][sl, 0, None]
+        dy = py[None, :] - splats["mean"][sl, 1, None]
+        con = splats["conic"][sl]
+        q = con[:, 0, 0, None] * dx * dx + 2 * con[:, 0, 1, None] * dx * dy + con[:, 1, 1, None] * dy * dy
+        alpha = np.minimum(ALPHA_MAX, splats["opacity"][sl, None] * np.exp(-0.5 * q))
+        for k in np.flatnonzero((alpha >= ALPHA_MIN).any(axis=1)):
+            a = alpha[k]
+            use = ~done & (a >= ALPHA_MIN)
+            test = trans * (1.0 - a)
+            stop = use & (test < t_min)
+            done |= stop
+            use &= ~stop
+            w = np.where(use, trans * a, 0.0)
+            color += w[:, None] * splats["color"][start + k]
+            depth_sum += w * splats["z"][start + k]
+            counts += use
+            trans = np.where(use, test, trans)
+
+    alpha = 1.0 - trans
+    out = {
+        "color": color + trans[:, None] * np.asarray(background, dtype=np.float64),
+        "alpha": alpha,
+        "depth": np.where(alpha > 0, depth_sum / np.where(alpha > 0, alpha, 1.0), 0.0),
+        "counts": counts,
+    }
+    if pixels is None:
+        out = {k: v.reshape((camera.height, camera.width) + v.shape[1:]) for k, v in out.items()}
+    return out
+
+
+def _project_all(cloud, camera, mode):
+    """Per-splat pixel mean, 2D conic, opacity, colour and depth of the splats in front of the
+    camera, sorted by depth with ties in index order."""
+    fields = (cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits[:, None],
+              cloud.sh.reshape(len(cloud), -1))
+    finite = np.all([np.isfinite(f).all(axis=1) for f in fields], axis=0)
+    idx = np.flatnonzero(finite)
+    pos = cloud.positions[idx].astype(np.float64)
+    w2c = camera.world_to_camera
+    cam = pos @ w2c[:3, :3].T + w2c[:3, 3]
+    with np.errstate(over="ignore"):
+        opacity = 1.0 / (1.0 + np.exp(-cloud.opacity_logits[idx].astype(np.float64)))
+    z = cam[:, 2]
+    keep = (z > camera.near) & (z <= camera.far)
+    idx, pos, cam, z, opacity = idx[keep], pos[keep], cam[keep], z[keep], opacity[keep]
+    order = np.argsort(z.astype(np.float32), kind="stable")     # float32 depth keys, ties by index
+    idx, pos, cam, z, opacity = idx[order], pos[order], cam[order], z[order], opacity[order]
+
+    rot = geometry.quaternions_to_matrices(cloud.rotations[idx])
+    s2 = np.exp(2.0 * cloud.log_scales[idx].astype(np.float64))
+    sigma = np.einsum("nij,nj,nkj->nik", rot, s2, rot)
+    n = len(idx)
+    jac = np.zeros((n, 2, 3))
+    if camera.projection == "orthographic":
+        jac[:, 0, 0], jac[:, 1, 1] = camera.fx, camera.fy
+        mean = np.stack([camera.fx * cam[:, 0] + camera.cx, camera.fy * cam[:, 1] + camera.cy], axis=1)
+        directions = np.tile(w2c[2, :3], (n, 1))
+    else:
+        w, h = camera.width, camera.height
+        lim_x = ((-camera.cx - 0.15 * w) / camera.fx, (w - camera.cx + 0.15 * w) / camera.fx)
+        lim_y = ((-camera.cy - 0.15 * h) / camera.fy, (h - camera.cy + 0.15 * h) / camera.fy)
+        tx = np.clip(cam[:, 0] / z, *lim_x) * z
+        ty = np.clip(cam[:, 1] / z, *lim_y) * z
+        jac[:, 0, 0] = camera.fx / z
+        jac[:, 0, 2] = -camera.fx * tx / z**2
+        jac[:, 1, 1] = camera.fy / z
+        jac[:, 1, 2] = -camera.fy * ty / z**2
+        mean = np.stack([camera.fx * cam[:, 0] / z + camera.cx, camera.fy * cam[:, 1] / z + camera.cy], axis=1)
+        directions = pos - camera.center
+    t = jac @ w2c[:3, :3]
+    cov = t @ sigma @ np.swapaxes(t, 1, 2)
+    det0 = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0]
+    cov = cov + LOW_PASS * np.eye(2)
+    det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0]
+    if mode == "antialiased":
+        opacity = opacity * np.sqrt(np.maximum(0.000025, det0 / det))
+    conic = np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
+                      np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], 1) / det[:, None, None]
+    color = sh.colors(cloud.sh[idx], directions) if n else np.zeros((0, 3))
+    return {"mean": mean, "conic": conic, "opacity": opacity, "color": color, "z": z}

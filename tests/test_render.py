@@ -1,0 +1,327 @@
+"""The fast renderer against the float64 brute-force reference (tests/reference_render.py), the
+hard cases of the design notes, and image writing."""
+
+import numpy as np
+import pytest
+from helpers import random_cloud
+from reference_render import reference_render
+
+from splatwright.core import SplatCloud
+from splatwright.core.camera import Camera
+from splatwright.core.render import render
+from splatwright.core.scenes import seed_cube
+from splatwright.io import SplatFileError, write_splats
+from splatwright.io.exr import read_exr
+from splatwright.io.image import write_image
+
+STEP = 1.0 / 255.0
+
+
+def scene(n=300, seed=0, center=(0.0, 0.0, 3.0), spread=0.7, sh_degree=3, log_scale=(-4.0, -1.5)):
+    """A random anisotropic SH cloud in front of the cameras below, with non-unit quaternions."""
+    c = random_cloud(n, sh_degree=sh_degree, seed=seed, spread=spread)
+    rng = np.random.default_rng(seed + 100)
+    return c.replace(positions=c.positions + np.float32(center),
+                     log_scales=rng.uniform(*log_scale, (n, 3)).astype(np.float32))
+
+
+def perspective(width=64, height=48, fov=60.0, eye=(1.8, 1.2, 4.5), target=(0.0, 0.0, 3.0)):
+    return Camera.look_at(eye, target, fov_deg=fov, width=width, height=height)
+
+
+def orthographic(width=64, height=48):
+    return Camera.look_at_ortho((1.8, 1.2, 4.5), (0.0, 0.0, 3.0), ortho_scale=2.5, width=width, height=height)
+
+
+def assert_matches_reference(cloud, camera, color_tol=STEP, background=(0.0, 0.0, 0.0), **options):
+    mode = options.get("mode", "classic")
+    got = render(cloud, camera, background=background, return_counts=True, **options)
+    ref = reference_render(cloud, camera, background=background, mode=mode,
+                           t_min=options.get("t_min", 1e-4))
+    for name in ("color", "alpha", "depth"):
+        assert np.isfinite(getattr(got, name)).all(), f"non-finite {name}"
+    assert got.color.shape == (camera.height, camera.width, 3) and got.color.dtype == np.float32
+    assert np.abs(got.color - ref["color"]).max() <= color_tol
+    assert np.abs(got.alpha - ref["alpha"]).max() <= color_tol
+    seen = ref["alpha"] > 0.05
+    np.testing.assert_allclose(got.depth[seen], ref["depth"][seen], rtol=1e-3)
+    assert (got.depth[ref["alpha"] == 0] == 0).all()
+    # the 1/255 and stopping rules pick the same splats (a pixel might flip at float32 round-off)
+    assert (got.counts != ref["counts"]).sum() <= 1
+    return got, ref
+
+
+# agreement with the reference -----------------------------------------------------------------
+
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+@pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_sh3_scenes_match_the_float64_reference(mode, make_camera, seed):
+    got, ref = assert_matches_reference(scene(seed=seed), make_camera(), mode=mode, background=(0.2, 0.5, 0.9))
+    assert ref["alpha"].max() > 0.9 and (ref["counts"] > 3).any()    # a scene with real overlap
+
+
+@pytest.mark.parametrize("options", [{"tile_size": 8}, {"tile_size": 7, "wave": 3}, {"tile_size": 1},
+                                     {"tile_size": 32, "wave": 1000}, {"threads": 1}])
+def test_speed_options_do_not_change_the_image(options):
+    assert_matches_reference(scene(seed=2), perspective(), **options)
+
+
+def test_float64_precision_agrees_to_round_off():
+    got, ref = assert_matches_reference(scene(seed=3), perspective(), precision="float64")
+    assert np.abs(got.color - ref["color"]).max() < 1e-6
+
+
+def test_opaque_pile_stops_at_the_transmittance_limit_and_clamps_alpha():
+    """Many opaque splats (logit +1e4: alpha clamps at 0.99) stacked in depth, so most pixels stop
+    before T < 1e-4, and the background never shows through."""
+    rng = np.random.default_rng(5)
+    n = 200
+    cloud = SplatCloud.from_activated(
+        positions=np.column_stack([rng.normal(0, 0.15, n), rng.normal(0, 0.15, n), rng.uniform(2.5, 3.5, n)]),
+        rotations=rng.normal(size=(n, 4)), scales=np.exp(rng.uniform(-3, -1.5, (n, 3))),
+        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
+    cloud.opacity_logits[: n // 2] = 1e4
+    got, ref = assert_matches_reference(cloud, perspective(), background=(1.0, 1.0, 1.0))
+    stopped = reference_render(cloud, perspective(), t_min=0.0)["counts"] > ref["counts"]
+    assert stopped.sum() > 100
+
+
+def test_two_threads_and_one_thread_give_identical_images_on_a_large_cloud():
+    """More than one projection and binning chunk: the parallel paths must not change a bit."""
+    cloud = scene(n=70_000, seed=4, spread=0.8, log_scale=(-6, -3.5), sh_degree=1)   # > 1 chunk
+    cam = perspective(96, 64)
+    a = render(cloud, cam, return_counts=True, threads=2)
+    b = render(cloud, cam, return_counts=True, threads=1)
+    for name in ("color", "alpha", "depth", "counts"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    pixels = np.random.default_rng(0).integers(0, [96, 64], (300, 2))
+    ref = reference_render(cloud, cam, pixels=pixels)
+    assert np.abs(a.color[pixels[:, 1], pixels[:, 0]] - ref["color"]).max() <= STEP
+    assert (a.counts > 20).any()
+
+
+# hard cases --------------------------------------------------------------------------------------
+
+def test_near_plane_behind_on_and_across():
+    cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=60, width=48, height=40, near=0.25)
+    z = np.array([-1.0, 0.1, 0.25, 0.25 + 2.0**-20, 0.26, 0.3, 0.5, 1.0])     # float32-exact
+    n = len(z)
+    cloud = SplatCloud.from_activated(
+        positions=np.column_stack([np.linspace(-0.05, 0.05, n), np.zeros(n), z]),
+        rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
+        scales=np.column_stack([np.full(n, 0.3), np.full(n, 0.05), np.full(n, 0.4)]),   # reach across z = 0.2
+        opacities=np.full(n, 0.6), colors=np.linspace(0, 1, 3 * n).reshape(n, 3))
+    got, ref = assert_matches_reference(cloud, cam)
+    assert got.stats["visible"] == 5                     # z <= near is culled, as in the reference
+
+
+def test_scales_from_1e_minus_7_to_1e4_in_one_cloud():
+    cloud = scene(n=60, seed=6)
+    exps = np.linspace(np.log(1e-7), np.log(1e4), 60)
+    cloud.log_scales[:] = (exps[:, None] + np.array([0.0, -0.5, 0.3])).astype(np.float32)
+    cloud.opacity_logits[:] = np.linspace(-3, 3, 60)
+    assert_matches_reference(cloud, perspective(), mode="classic")
+    assert_matches_reference(cloud, perspective(), mode="antialiased")
+
+
+def test_needles_and_pancakes():
+    rng = np.random.default_rng(8)
+    cloud = scene(n=150, seed=8)
+    thin = rng.integers(0, 3, 150)
+    scales = np.full((150, 3), 0.15)
+    scales[np.arange(150), thin] = 1e-5                    # pancakes
+    scales[:75] = 1e-5
+    scales[np.arange(75), thin[:75]] = 0.3                 # needles
+    cloud.log_scales[:] = np.log(scales)
+    assert_matches_reference(cloud, perspective())
+
+
+def test_far_from_origin_renders_like_the_same_scene_at_the_origin():
+    base = scene(n=200, seed=9, center=(0, 0, 0), spread=0.5)
+    grid = np.round(base.positions * 16) / 16             # exactly representable at 1e6 too
+    offset = np.array([1e6, -1e6, 5e5])
+    far = base.replace(positions=(grid + offset).astype(np.float32))
+    near = base.replace(positions=grid.astype(np.float32))
+    assert np.array_equal(far.positions.astype(np.float64) - offset, near.positions)
+    eye, target = np.array([1.8, 1.2, 1.5]), np.zeros(3)
+    cam_far = Camera.look_at(eye + offset, target + offset, fov_deg=60, width=64, height=48)
+    cam_near = Camera.look_at(eye, target, fov_deg=60, width=64, height=48)
+    got = render(far, cam_far)
+    ref = reference_render(near, cam_near)
+    assert np.abs(got.color - ref["color"]).max() <= STEP
+    assert ref["alpha"].max() > 0.5
+
+
+def test_identical_depths_sort_by_index():
+    """Overlapping splats at one depth: the earlier index is in front, as with a stable sort."""
+    n = 30
+    rng = np.random.default_rng(10)
+    pos = np.column_stack([rng.normal(0, 0.1, n), rng.normal(0, 0.1, n), np.full(n, 3.0)])
+    cloud = SplatCloud.from_activated(pos, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 0.15),
+                                      np.full(n, 0.9), colors=rng.uniform(0, 1, (n, 3)))
+    cam = Camera.look_at_ortho((0, 0, 0), (0, 0, 1), ortho_scale=1.0, width=40, height=40)
+    got, _ = assert_matches_reference(cloud, cam)
+    flipped = cloud[np.arange(n)[::-1]]
+    got_flipped, _ = assert_matches_reference(flipped, cam)
+    assert np.abs(got.color - got_flipped.color).max() > 0.1      # order matters, and is followed
+
+
+@pytest.mark.parametrize("width, height, fov", [(1, 1, 60.0), (1, 7, 60.0), (64, 48, 5.0), (64, 48, 160.0)])
+def test_tiny_images_and_extreme_fields_of_view(width, height, fov):
+    cloud = scene(seed=11, spread=0.3 if fov < 10 else 0.7)
+    assert_matches_reference(cloud, perspective(width, height, fov))
+
+
+def test_off_centre_principal_point():
+    cam = perspective()
+    shifted = cam.with_(cx=cam.cx + 13.5, cy=cam.cy - 7.25, fy=cam.fy * 1.3)
+    assert_matches_reference(scene(seed=12), shifted)
+
+
+def test_empty_cloud_and_nothing_visible():
+    cam = perspective()
+    for cloud in (SplatCloud.empty(3), scene(seed=13, center=(0, 0, 30)).replace(opacity_logits=np.full(300, -20))):
+        got = render(cloud, cam, background=(0.1, 0.2, 0.3), return_counts=True)
+        np.testing.assert_array_equal(got.color, np.broadcast_to(np.float32([0.1, 0.2, 0.3]), (48, 64, 3)))
+        assert not got.alpha.any() and not got.depth.any() and not got.counts.any()
+
+
+def test_non_finite_splats_are_skipped_and_counted():
+    cloud = scene(seed=14)
+    bad = cloud.copy()
+    bad.positions[3, 0] = np.nan
+    bad.rotations[5] = np.inf
+    bad.log_scales[7, 2] = np.inf
+    bad.opacity_logits[9] = np.nan
+    bad.sh[11, 4, 1] = -np.inf
+    got = render(bad, perspective())
+    clean = render(cloud[np.setdiff1d(np.arange(len(cloud)), [3, 5, 7, 9, 11])], perspective())
+    assert got.stats["skipped_nonfinite"] == 5
+    np.testing.assert_array_equal(got.color, clean.color)
+
+
+def test_extreme_logits_and_zero_quaternions():
+    cloud = scene(seed=15)
+    cloud.opacity_logits[::3] = 1e4
+    cloud.opacity_logits[1::3] = -1e4
+    cloud.rotations[::4] = 0.0
+    with np.errstate(over="raise", invalid="raise", divide="raise"):
+        got = render(cloud, perspective())
+    assert np.isfinite(got.color).all()
+    assert_matches_reference(cloud, perspective())
+
+
+def test_no_transmittance_stop_counts_every_footprint_pixel():
+    cloud = scene(seed=16)
+    got, ref = assert_matches_reference(cloud, perspective(), t_min=0.0)
+    assert got.counts.sum() == ref["counts"].sum()
+
+
+def test_three_sigma_cut_only_drops_faint_tails():
+    cloud = scene(seed=17)
+    ref = reference_render(cloud, perspective())
+    cut = render(cloud, perspective(), max_sigma=3.0)
+    err = np.abs(cut.color - ref["color"]).max()
+    assert 0 < err < 0.05
+
+
+def test_bad_options_are_refused():
+    for kwargs, message in [({"mode": "fast"}, "mode"), ({"tile_size": 0}, "tile_size"),
+                            ({"precision": "float16"}, "precision"), ({"background": (1, 2)}, "background"),
+                            ({"t_min": 1.0}, "t_min"), ({"wave": 0}, "wave")]:
+        with pytest.raises(ValueError, match=message):
+            render(scene(n=5), perspective(), **kwargs)
+
+
+def test_progress_reports_every_tile():
+    calls = []
+    render(scene(seed=18), perspective(), tile_size=16, progress=lambda done, total, label: calls.append((done, total)))
+    assert calls and calls[-1][0] == calls[-1][1] == 4 * 3
+    assert all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))
+
+
+# images -----------------------------------------------------------------------------------------
+
+def test_png_and_exr_hold_what_was_rendered(tmp_path):
+    from PIL import Image
+    result = render(seed_cube(), perspective(), background=(0.0, 0.0, 0.0))
+    write_image(tmp_path / "a.png", result)
+    png = np.asarray(Image.open(tmp_path / "a.png"))
+    assert png.shape == (48, 64, 3)                       # opaque background: no alpha channel
+    np.testing.assert_array_equal(png, np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8))
+    write_image(tmp_path / "a.exr", result)
+    exr = read_exr(tmp_path / "a.exr")
+    assert sorted(exr) == ["A", "B", "G", "R", "Z"]
+    np.testing.assert_array_equal(np.stack([exr["R"], exr["G"], exr["B"]], -1), result.color)
+    np.testing.assert_array_equal(exr["A"], result.alpha)
+    np.testing.assert_array_equal(exr["Z"], result.depth)
+
+
+def test_transparent_png_stores_straight_colour(tmp_path):
+    from PIL import Image
+    result = render(seed_cube(), perspective(), background=None)
+    write_image(tmp_path / "t.png", result)
+    png = np.asarray(Image.open(tmp_path / "t.png")).astype(np.float64) / 255
+    assert png.shape == (48, 64, 4)
+    np.testing.assert_allclose(png[..., 3], result.alpha, atol=0.5 / 255)
+    seen = result.alpha > 0.2
+    straight = result.color[seen] / result.alpha[seen][:, None]
+    np.testing.assert_allclose(png[..., :3][seen], np.clip(straight, 0, 1), atol=0.5 / 255 + 1e-6)
+
+
+def test_straight_alpha_arrays_are_premultiplied_in_exr_and_kept_in_png(tmp_path):
+    from PIL import Image
+    rng = np.random.default_rng(19)
+    rgba = rng.uniform(0, 1, (5, 7, 4))
+    write_image(tmp_path / "s.png", rgba)
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "s.png")), np.round(rgba * 255).astype(np.uint8))
+    write_image(tmp_path / "s.exr", rgba)
+    exr = read_exr(tmp_path / "s.exr")
+    np.testing.assert_allclose(exr["R"], rgba[..., 0] * rgba[..., 3], rtol=1e-6)
+    np.testing.assert_allclose(exr["A"], rgba[..., 3], rtol=1e-6)
+
+
+def test_bad_images_are_refused_and_leave_no_file(tmp_path):
+    with pytest.raises(SplatFileError, match="NaN"):
+        write_image(tmp_path / "x.png", np.full((4, 4, 3), np.nan))
+    with pytest.raises(SplatFileError, match="extension"):
+        write_image(tmp_path / "x.jpg", np.zeros((4, 4, 3)))
+    with pytest.raises(SplatFileError, match="shape"):
+        write_image(tmp_path / "x.png", np.zeros((4, 4, 2)))
+    assert list(tmp_path.iterdir()) == []
+
+
+# command line -----------------------------------------------------------------------------------
+
+def test_cli_render_frames_the_cloud_and_follows_an_explicit_camera(tmp_path, capsys):
+    from PIL import Image
+
+    from splatwright.cli import main
+    cloud = seed_cube()
+    write_splats(tmp_path / "cube.ply", cloud)
+    assert main(["render", str(tmp_path / "cube.ply"), "-o", str(tmp_path / "auto.png"),
+                 "--width", "80", "--height", "60"]) == 0
+    auto = np.asarray(Image.open(tmp_path / "auto.png"))
+    assert auto.shape == (60, 80, 3)
+    assert auto[0].max() < 40 and auto[-1].max() < 40 and auto[:, 0].max() < 40 and auto[:, -1].max() < 40
+    assert auto.max() > 150                                # all of the cube inside, borders dark
+
+    args = ["render", str(tmp_path / "cube.ply"), "-o", str(tmp_path / "cam.exr"), "--width", "64",
+            "--height", "48", "--fov", "60", "--camera-pos", "1.8,1.2,4.5", "--look-at", "0,0,3",
+            "--background", "0.5,0.5,0.5"]
+    assert main(args) == 0
+    assert "rendered 1000 of 1000 splats" in capsys.readouterr().out
+    exr = read_exr(tmp_path / "cam.exr")
+    ref = reference_render(cloud, perspective(), background=(0.5, 0.5, 0.5))
+    assert np.abs(np.stack([exr["R"], exr["G"], exr["B"]], -1) - ref["color"]).max() <= STEP
+    np.testing.assert_allclose(exr["A"], ref["alpha"], atol=STEP)
+
+
+def test_cli_render_reports_bad_input(tmp_path, capsys):
+    from splatwright.cli import main
+    assert main(["render", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "x.png")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    write_splats(tmp_path / "c.ply", seed_cube(2))
+    with pytest.raises(SystemExit, match="camera-pos"):
+        main(["render", str(tmp_path / "c.ply"), "-o", str(tmp_path / "x.png"), "--camera-pos", "1,2"])
