@@ -98,20 +98,72 @@ def _require_finite(a, what):
         raise ValueError(f"{what}: {int(bad.sum())} matrices hold NaN or Inf")
 
 
+POLAR_NEWTON_CONDITION = 1e6     # above this condition number the SVD is the safer road
+
+
 def polar_decomposition(a):
     """A = R S for (..., 3, 3) matrices: R orthogonal (det -1 where A mirrors), S symmetric PSD.
 
-    From the SVD A = U diag(sigma) V^T:  R = U V^T  and  S = V diag(sigma) V^T. The SVD keeps both
-    accurate for nearly singular A: R is then still orthogonal and S holds the tiny stretch.
+    Well-conditioned matrices (nearly all, in skinning and object transforms) take Higham's scaled
+    Newton iteration R <- (g R + R^-T / g) / 2 with closed-form 3x3 inverses, faster than a batched
+    LAPACK SVD. Nearly singular ones take the SVD A = U diag(sigma) V^T, R = U V^T, which keeps R
+    orthogonal however thin A is. Either way S = sym(R^T A).
     """
     a = np.asarray(a, dtype=np.float64)
     if a.shape[-2:] != (3, 3):
         raise ValueError(f"polar_decomposition needs (..., 3, 3) matrices, got shape {a.shape}")
     _require_finite(a, "polar_decomposition")
-    u, sigma, vt = np.linalg.svd(a)
-    v = np.swapaxes(vt, -1, -2)
-    s = (v * sigma[..., None, :]) @ vt
-    return u @ vt, 0.5 * (s + np.swapaxes(s, -1, -2))
+    flat = a.reshape(-1, 3, 3)
+    r, singular = _polar_rotation_newton(flat)
+    if len(singular):
+        u, _, vt = np.linalg.svd(flat[singular])
+        r[singular] = u @ vt
+    r = r.reshape(a.shape)
+    s = np.einsum("...ji,...jk->...ik", r, a)
+    return r, 0.5 * (s + np.swapaxes(s, -1, -2))
+
+
+def _polar_rotation_newton(m, tolerance=1e-15, max_iterations=40):
+    """Orthogonal polar factors of (n, 3, 3) matrices by scaled Newton steps, and the indices of the
+    matrices too close to singular for it (condition number >= POLAR_NEWTON_CONDITION), left unset.
+
+    Works on the nine entries as separate contiguous arrays (elementwise NumPy at memory speed, no
+    batched small-matrix calls) and keeps iterating only the matrices that have not converged.
+    """
+    out = np.empty_like(m)
+    x = [np.ascontiguousarray(m[:, i, j]) for i in range(3) for j in range(3)]
+    todo = np.arange(len(m))
+    singular = np.zeros(0, dtype=np.intp)
+    for step in range(max_iterations):
+        a, b, c, d, e, f, g, h, k = x
+        # cofactors of [[a b c] [d e f] [g h k]]: inverse transpose = cof / det
+        cof = [e * k - f * h, f * g - d * k, d * h - e * g,
+               c * h - b * k, a * k - c * g, b * g - a * h,
+               b * f - c * e, c * d - a * f, a * e - b * d]
+        det = a * cof[0] + b * cof[1] + c * cof[2]
+        norm_x, norm_cof = sum(v * v for v in x), sum(v * v for v in cof)
+        if step == 0:
+            # condition number in the Frobenius norm: |A| |A^-1| = sqrt(|A|^2 |cof|^2) / |det|
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ok = np.sqrt(norm_x * norm_cof) < POLAR_NEWTON_CONDITION * np.abs(det)
+            if not ok.all():
+                singular, todo = todo[~ok], todo[ok]
+                x, cof = [v[ok] for v in x], [v[ok] for v in cof]
+                det, norm_x, norm_cof = det[ok], norm_x[ok], norm_cof[ok]
+        # Frobenius-norm scaling, gamma = sqrt(|X^-1| / |X|), converges in a few steps at any condition.
+        gamma = np.sqrt(np.sqrt(norm_cof / norm_x) / np.abs(det))
+        half_g, half_inv = 0.5 * gamma, 0.5 / (gamma * det)
+        nxt = [half_g * v + half_inv * w for v, w in zip(x, cof)]
+        done = np.maximum.reduce([np.abs(v - w) for v, w in zip(nxt, x)]) < 10 * tolerance
+        if done.any():
+            out[todo[done]] = np.stack([v[done] for v in nxt], axis=1).reshape(-1, 3, 3)
+            todo, nxt = todo[~done], [v[~done] for v in nxt]
+        x = nxt
+        if len(todo) == 0:
+            break
+    else:
+        out[todo] = np.stack(x, axis=1).reshape(-1, 3, 3)
+    return out, singular
 
 
 def anisotropy(a):

@@ -1,10 +1,10 @@
 """Real spherical harmonics for degrees 0..3, with the constants of the 3DGS reference rasteriser."""
 
 import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+from .parallel import in_chunks
 
 C0 = 0.28209479177387814
 MAX_DEGREE = 3
@@ -240,19 +240,6 @@ def _check_rotation_shape(rot):
         raise ValueError(f"rotation must have shape (3, 3) or (N, 3, 3), got {rot.shape}")
 
 
-def _in_chunks(n, work, chunk=_CHUNK):
-    """Call work(start, stop) over [0, n) in chunks, on as many threads as there are cores."""
-    spans = [(a, min(a + chunk, n)) for a in range(0, n, chunk)]
-    workers = min(len(spans), os.cpu_count() or 1)
-    if workers <= 1:
-        for span in spans:
-            work(*span)
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        for _ in pool.map(lambda span: work(*span), spans):
-            pass
-
-
 def _rotate_each(coeffs, rot, out):
     """out[n] = D(rot[n]) coeffs[n] for (n, K, C) coefficients: by Euler angles, in threaded chunks."""
     degree = degree_of(coeffs.shape[1])
@@ -276,7 +263,7 @@ def _rotate_each(coeffs, rot, out):
                 w[_band_rows(l)] *= sign
         np.moveaxis(out[start:stop], 0, -1)[order] = w
 
-    _in_chunks(len(coeffs), work)
+    in_chunks(len(coeffs), work, _CHUNK)
     bad = ~(deviation <= _ORTHOGONALITY_TOLERANCE)
     if bad.any():
         raise ValueError(f"rotation must be orthogonal: {int(bad.sum())} of {len(rot)} matrices are not "
@@ -338,5 +325,5 @@ def _apply_matrix(coeffs, d, out):
             band[...] = (d[_band_rows(l), _band_rows(l)] @ band.reshape(2 * l + 1, -1)).reshape(band.shape)
         np.moveaxis(out[start:stop], 0, -1)[...] = w
 
-    _in_chunks(len(coeffs), work)
+    in_chunks(len(coeffs), work, _CHUNK)
     return out

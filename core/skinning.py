@@ -20,13 +20,12 @@ splats bound to a single bone (rigid binding, as for robot links) move exactly b
 mu' = T mu, Sigma' = R Sigma R^T.
 """
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import geometry, sh as shmod
+from .parallel import in_chunks
 from .splats import SplatCloud
 
 # Blender leaves a vertex in place when the total of its weights is not above this.
@@ -421,18 +420,6 @@ def _covariance_chunk(rotations, log_scales, linear, lbs_stretch):
     return new_rot, new_log
 
 
-def _in_chunks(n, work):
-    """work(start, stop) over [0, n) in chunks, on every core (NumPy releases the GIL)."""
-    spans = [(a, min(a + _CHUNK, n)) for a in range(0, n, _CHUNK)]
-    workers = min(len(spans), os.cpu_count() or 1)
-    if workers <= 1:
-        for span in spans:
-            work(*span)
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        list(pool.map(lambda span: work(*span), spans))
-
-
 _MODES = {"lbs": _lbs_chunk, "dqs": _dqs_chunk}
 
 
@@ -472,7 +459,7 @@ def skin_centres(positions, binding, pose, mode="lbs"):
     def work(a, b):
         out[a:b] = chunk_fn(*_chunk_inputs(positions, binding, a, b), bones, False)[0].T
 
-    _in_chunks(len(positions), work)
+    in_chunks(len(positions), work, _CHUNK)
     return out
 
 
@@ -502,6 +489,6 @@ def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretc
         if turn is not None:
             turn[a:b] = linear["rotation"]
 
-    _in_chunks(n, work)
+    in_chunks(n, work, _CHUNK)
     new_sh = shmod.rotate(cloud.sh, turn) if turn is not None else cloud.sh
     return SplatCloud(positions, rotations, log_scales, cloud.opacity_logits, new_sh, dict(cloud.extras))

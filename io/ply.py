@@ -19,7 +19,6 @@ warn, and let SplatCloud.problems() report) or `nonfinite="drop"` (drop those sp
 import os
 import re
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +26,7 @@ import numpy as np
 from ..core import SplatCloud
 from ..core.splats import FIELDS as CORE_FIELDS
 from ..core import sh as shmod
+from ..core.parallel import WORKERS, in_chunks
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
 
 FLAT_SIGMA = 1e-6                      # 2DGS third axis: thin next to any real splat, still invertible
@@ -44,7 +44,6 @@ NORMALS = ("nx", "ny", "nz")
 REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
             "rot_0", "rot_1", "rot_2", "rot_3")
 MAX_HEADER = 1 << 20
-WORKERS = min(4, os.cpu_count() or 1)
 PARALLEL_ROWS = 1 << 16                # below this, threads cost more than they save
 CHUNK_ROWS = 1 << 13                   # rows converted together while they are in cache (~2 MB)
 
@@ -218,13 +217,9 @@ def _write_at(fd, records, offset):
 # row chunks on every core -------------------------------------------------------------------------
 
 def _in_parallel(n, work):
-    """Run work(rows) on one contiguous slice of rows per core (NumPy and file I/O release the GIL)."""
-    if n < PARALLEL_ROWS or WORKERS < 2:
-        work(slice(0, n))
-        return
-    bounds = np.linspace(0, n, WORKERS + 1).astype(int)
-    with ThreadPoolExecutor(WORKERS) as pool:
-        list(pool.map(work, [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]))
+    """Run work(rows) on one contiguous slice of rows per core (NumPy and file I/O release the GIL);
+    below PARALLEL_ROWS, threads cost more than they save."""
+    in_chunks(n, lambda a, b: work(slice(a, b)), chunk=max(PARALLEL_ROWS, -(-n // WORKERS)))
 
 
 def _chunks(rows):
