@@ -5,8 +5,12 @@ To add a verb, write `_add_<verb>(parser)` and `_run_<verb>(args)` and list them
 
 import argparse
 import json
+import os
 import sys
+import tempfile
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -64,8 +68,12 @@ def summarize(cloud):
 
 def _run_info(args):
     from .io import format_of, read_splats
-    cloud = read_splats(args.file)
-    summary = {"file": args.file, "format": format_of(args.file), **summarize(cloud)}
+    # info reports non-finite values (and any other reader warning) instead of refusing the file.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_splats(args.file, nonfinite="keep")
+    summary = {"file": args.file, "format": format_of(args.file), **summarize(cloud),
+               "warnings": [str(w.message) for w in caught]}
     if args.json:
         print(json.dumps(summary))
     else:
@@ -80,15 +88,203 @@ def _add_convert(p):
     p.add_argument("input")
     p.add_argument("output")
     p.add_argument("--sh-degree", type=int, choices=range(4), help="truncate SH to this degree")
+    p.add_argument("--spz-version", type=int, choices=(2, 3, 4), help="SPZ version to write (default 3)")
+    p.add_argument("--half", action="store_true",
+                   help="OpenUSD output: orientations, scales, opacities and SH as half floats")
+    p.add_argument("--prune-opacity", type=float, metavar="T", help="drop splats whose opacity is below T (0..1)")
+    p.add_argument("--prune-invisible", type=float, nargs="?", const=0.0, metavar="W",
+                   help="drop splats that add nothing to any pixel of the views around the cloud (with W: "
+                        "whose blending weight T*alpha never exceeds W; 0.004 is about one 8-bit step)")
+    p.add_argument("--views", type=int, default=12,
+                   help="views around the cloud that --prune-invisible keeps what they see of (default 12); "
+                        "the error is measured from as many others, between them")
+    p.add_argument("--view-size", type=int, default=128, help="pixels per side of those views (default 128)")
+    p.add_argument("--no-check", action="store_true",
+                   help="skip measuring the render error of the economies (quicker for huge files)")
+
+
+def _write_options(args):
+    """Format-specific write options from the convert flags, refusing flags the output cannot use."""
+    from .io import SplatFileError, format_of
+    fmt = format_of(args.output)
+    options = {}
+    if args.spz_version is not None:
+        if fmt != "spz":
+            raise SplatFileError(args.output, "--spz-version needs a .spz output")
+        options["version"] = args.spz_version
+    if args.half:
+        if fmt != "usd":
+            raise SplatFileError(args.output, "--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
+        options["half"] = True
+    return options
 
 
 def _run_convert(args):
     from .io import read_splats, write_splats
+    options = _write_options(args)
+    if args.views < 1 or args.view_size < 1:
+        raise SystemExit("splatwright convert: error: --views and --view-size must be >= 1")
     cloud = read_splats(args.input)
-    if args.sh_degree is not None:
-        cloud = cloud.with_sh_degree(args.sh_degree)
-    write_splats(args.output, cloud)
+    stages = _economy_stages(args, cloud, options)
+    if stages:
+        _write_stages(args, cloud, stages)
+        cloud = stages[-1][1]
+    else:
+        write_splats(args.output, cloud, **options)
     print(f"wrote {len(cloud)} splats (SH degree {cloud.sh_degree}) to {args.output}")
+    return 0
+
+
+def _economy_stages(args, cloud, options):
+    """[(label, cloud, write options)]: the input as the output format writes it, then one stage per
+    economy asked for, each applied to the one before; [] when none is asked for."""
+    from .core import economy
+    plain = {k: v for k, v in options.items() if k != "half"}
+    stages = [(f"as {Path(args.output).suffix}", cloud, plain)]
+    try:
+        if args.prune_opacity is not None:
+            cloud = cloud[economy.opacity_mask(cloud, args.prune_opacity)]
+            stages.append((f"prune opacity < {args.prune_opacity:g}", cloud, plain))
+        if args.prune_invisible is not None:
+            views = economy.orbit_views(economy.cloud_points(stages[0][1]), args.views, args.view_size)
+            print(f"finding splats that {len(views)} views of {args.view_size} px see ...", file=sys.stderr)
+            cloud = cloud[economy.visible_mask(cloud, views, min_weight=args.prune_invisible)]
+            weight = f" (weight <= {args.prune_invisible:g})" if args.prune_invisible else ""
+            stages.append((f"prune invisible{weight}", cloud, plain))
+    except ValueError as exc:
+        raise SystemExit(f"splatwright convert: error: {exc}") from None
+    if args.sh_degree is not None and args.sh_degree != cloud.sh_degree:
+        stages.append((f"SH degree {cloud.sh_degree} -> {args.sh_degree}", cloud.with_sh_degree(args.sh_degree), plain))
+    if args.half:
+        stages.append(("half floats", stages[-1][1], options))
+    return stages if len(stages) > 1 else []
+
+
+def _write_stages(args, original, stages):
+    """Write every stage (the last one to the output, the others to a temporary folder) and print
+    what each saves against the stage before and, unless --no-check, the render error of the file
+    written (read back, so format losses count) against the input from views around it. Warnings
+    about the files written only to be measured are left out: the output's own are shown."""
+    from .core import economy
+    from .io import read_splats, write_splats
+    views = reference = None
+    if not args.no_check:
+        views = economy.orbit_views(economy.cloud_points(original), args.views, args.view_size, phase=0.5)
+        reference = economy.render_views(original, views)
+    errors = "" if views is None else f"{'PSNR dB':>10}{'max abs':>10}"
+    print(f"{'economy':<34}{'splats':>10}{'':>9}{'bytes':>14}{'':>9}{errors}")
+    print(f"{Path(args.input).name[:33]:<34}{len(original):>10}{'':>9}{os.path.getsize(args.input):>14}")
+    previous = None
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (label, cloud, options) in enumerate(stages):
+            final = i == len(stages) - 1
+            path = args.output if final else Path(tmp) / f"stage{i}{Path(args.output).suffix}"
+            with warnings.catch_warnings():
+                if not final:
+                    warnings.simplefilter("ignore")
+                write_splats(path, cloud, **options)
+            size = os.path.getsize(path)
+            row = f"{label[:33]:<34}{len(cloud):>10}{_change(len(cloud), previous and previous[0]):>9}" \
+                  f"{size:>14}{_change(size, previous and previous[1]):>9}"
+            if views is not None:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    written = read_splats(path)
+                error = economy.image_error(reference, written, views)
+                row += f"{error.psnr:>10.2f}{error.max_abs:>10.4f}"
+            print(row, flush=True)
+            previous = (len(cloud), size)
+    if views is not None:
+        print(f"error: RGBA renders of each file written against the input, {len(views)} views of "
+              f"{args.view_size} px around it (colour premultiplied, clipped to [0, 1])")
+
+
+def _change(value, before):
+    """'-12.5%' for a change from `before`; '' without one."""
+    return f"{100.0 * (value - before) / before:+.1f}%" if before else ""
+
+
+# render -------------------------------------------------------------------------------------------
+
+def _add_render(p):
+    p.add_argument("input", help="a splat file")
+    p.add_argument("-o", "--output", required=True, help="image to write: .png (8-bit) or .exr (R,G,B,A,Z)")
+    p.add_argument("--width", type=int, default=512)
+    p.add_argument("--height", type=int, default=512)
+    p.add_argument("--fov", type=float, default=60.0, help="horizontal field of view in degrees")
+    p.add_argument("--camera-pos", type=_parse_vec, help="x,y,z (default: frame the cloud)")
+    p.add_argument("--look-at", type=_parse_vec, help="x,y,z (default: the centre of the cloud)")
+    p.add_argument("--up", type=_parse_vec, default=np.array([0.0, 1.0, 0.0]), help="x,y,z world up")
+    p.add_argument("--background", type=lambda t: None if t.lower() == "none" else _parse_vec(t),
+                   default=np.zeros(3),
+                   help="r,g,b display sRGB in [0,1]; 'none' for a transparent image")
+    p.add_argument("--ortho-scale", type=float, help="orthographic camera showing this width in world units")
+    p.add_argument("--mode", choices=("classic", "antialiased"), default="classic")
+    p.add_argument("--near", type=float, help="near clip distance (default 0.2, less for tiny scenes)")
+
+
+def _run_render(args):
+    from .core.camera import frame_points
+    from .core.render import render
+    from .io import read_splats
+    from .io.image import write_image
+    for name in ("camera_pos", "look_at", "up", "background"):
+        value = getattr(args, name)
+        if value is not None and len(value) != 3:
+            raise SystemExit(f"splatwright render: error: --{name.replace('_', '-')} needs 3 numbers")
+    if args.width < 1 or args.height < 1:
+        raise SystemExit("splatwright render: error: --width and --height must be >= 1")
+    cloud = read_splats(args.input)
+    try:
+        camera = frame_points(cloud.positions[cloud.opacities >= 1 / 255], args.width, args.height, args.fov,
+                              ortho_scale=args.ortho_scale, eye=args.camera_pos, target=args.look_at, up=args.up)
+        if args.near is not None:
+            camera = camera.with_(near=args.near)
+    except ValueError as exc:
+        raise SystemExit(f"splatwright render: error: {exc}") from None
+    start = time.perf_counter()
+    result = render(cloud, camera, background=args.background, mode=args.mode, progress=Progress())
+    write_image(args.output, result)
+    skipped = result.stats["skipped_nonfinite"]
+    print(f"rendered {result.stats['visible']} of {len(cloud)} splats at {args.width}x{args.height} in "
+          f"{time.perf_counter() - start:.2f} s to {args.output}"
+          + (f" ({skipped} splats with non-finite values skipped)" if skipped else ""))
+    return 0
+
+
+# mesh2splats --------------------------------------------------------------------------------------
+
+def _add_mesh2splats(p):
+    from .core.mesh_to_splats import DEFAULT_TARGET_PSNR
+    p.add_argument("mesh", help="a triangle mesh (.obj with its .mtl and textures)")
+    p.add_argument("output", help="the splat file to write (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat)")
+    size = p.add_mutually_exclusive_group()
+    size.add_argument("--max-splats", type=int, metavar="N", help="a splat budget, spread by area")
+    size.add_argument("--target-psnr", type=float, metavar="DB",
+                      help=f"refine until renders reach this PSNR against the mesh (default {DEFAULT_TARGET_PSNR:g})")
+    p.add_argument("--view-size", type=int, default=256, help="pixels per side of the views PSNR is measured in")
+    p.add_argument("--mode", choices=("classic", "antialiased"), default="classic",
+                   help="the render mode the splats are sized for")
+
+
+def _run_mesh2splats(args):
+    from .core.mesh_to_splats import mesh_to_splats
+    from .io import SplatFileError, write_splats
+    from .io.mesh import read_mesh
+    start = time.perf_counter()
+    mesh = read_mesh(args.mesh)
+    info = {}
+    try:
+        cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), max_splats=args.max_splats,
+                               target_psnr=args.target_psnr, view_size=args.view_size, render_mode=args.mode,
+                               progress=Progress(), info=info)
+    except ValueError as exc:
+        raise SplatFileError(args.mesh, str(exc)) from None
+    write_splats(args.output, cloud)
+    skipped = info.get("repaired")
+    quality = f", {info['psnr']:.1f} dB PSNR over {info['views']} views" if "psnr" in info else ""
+    print(f"wrote {len(cloud)} splats from {len(mesh.faces)} faces{quality} to {args.output} in "
+          f"{time.perf_counter() - start:.1f} s" + (f" (skipped or repaired: {skipped})" if skipped else ""))
     return 0
 
 
@@ -106,6 +302,8 @@ def _run_demo(args):
 VERBS = {
     "info": (_add_info, _run_info, "summarise a splat file"),
     "convert": (_add_convert, _run_convert, "convert between splat formats"),
+    "render": (_add_render, _run_render, "render a splat file to a PNG or EXR image"),
+    "mesh2splats": (_add_mesh2splats, _run_mesh2splats, "convert a triangle mesh to splats"),
     "demo": (_add_demo, _run_demo, "run the built-in demo scene end to end"),
 }
 

@@ -234,5 +234,6 @@ class SplatCloud:
         """True for splats whose every stored value is finite."""
         ok = np.ones(len(self), bool)
         for name in FIELDS:
-            ok &= np.isfinite(getattr(self, name)).reshape(len(self), -1).all(axis=1)
+            values = getattr(self, name)
+            ok &= np.isfinite(values).reshape(len(self), int(np.prod(values.shape[1:]))).all(axis=1)   # also for N = 0
         return ok
