@@ -215,6 +215,44 @@ class SPLAT_OT_apply_transform(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class SPLAT_OT_join(bpy.types.Operator):
+    """Join the selected splat objects into the active one, turning each one's splats (orientations,
+    sizes and SH too) into the active object's space; Blender's own Join moves centres only"""
+
+    bl_idname = "splat.join"
+    bl_label = "Join Splats"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.mode == "OBJECT" and data.is_splat_object(context.active_object)
+
+    def execute(self, context):
+        target = context.active_object
+        others = [o for o in context.selected_objects if o is not target]
+        wrong = [o.name for o in others if not data.is_splat_object(o)]
+        shared = [o.name for o in others if o.data.users > 1 or o.data is target.data]
+        if wrong or shared or not others:
+            self.report({"ERROR"}, f"not splat objects: {', '.join(wrong)}" if wrong else
+                        f"splat data shared by several objects: {', '.join(shared)}" if shared else
+                        "select the splat objects to join into the active one")
+            return {"CANCELLED"}
+        to_target = np.linalg.inv(np.array(target.matrix_world, dtype=np.float64))
+        try:
+            # Read everything before changing anything, so an error leaves the scene as it was.
+            moved = [data.object_to_cloud(o, to_target @ np.array(o.matrix_world, dtype=np.float64))
+                     for o in others]
+        except EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for obj, cloud in zip(others, moved):
+            data.update_mesh(obj.data, cloud)
+            obj.matrix_world = target.matrix_world
+        with context.temp_override(active_object=target, selected_editable_objects=[target, *others],
+                                   selected_objects=[target, *others]):
+            return bpy.ops.object.join()
+
+
 class SPLAT_FH_files(bpy.types.FileHandler):
     bl_idname = "SPLAT_FH_files"
     bl_label = "Gaussian splats"
@@ -240,6 +278,11 @@ def menu_apply(self, context):
     self.layout.operator(SPLAT_OT_apply_transform.bl_idname)
 
 
-CLASSES = (SPLAT_OT_import_file, SPLAT_OT_export_file, SPLAT_OT_apply_transform, SPLAT_FH_files)
+def menu_join(self, context):
+    if data.is_splat_object(context.active_object):
+        self.layout.operator(SPLAT_OT_join.bl_idname)
+
+
+CLASSES = (SPLAT_OT_import_file, SPLAT_OT_export_file, SPLAT_OT_apply_transform, SPLAT_OT_join, SPLAT_FH_files)
 MENUS = ((bpy.types.TOPBAR_MT_file_import, menu_import), (bpy.types.TOPBAR_MT_file_export, menu_export),
-         (bpy.types.VIEW3D_MT_object_apply, menu_apply))
+         (bpy.types.VIEW3D_MT_object_apply, menu_apply), (bpy.types.VIEW3D_MT_object, menu_join))

@@ -22,7 +22,8 @@ import pytest
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker for the module: ~5-15 s
 
 MODULE = "bl_ext.user_default.splatwright"
-MENUS = ("TOPBAR_MT_file_import", "TOPBAR_MT_file_export", "VIEW3D_MT_object_apply")
+# menu -> entries the extension adds to it (the Object menu gets Join Splats and Check Collisions)
+MENUS = {"TOPBAR_MT_file_import": 1, "TOPBAR_MT_file_export": 1, "VIEW3D_MT_object_apply": 1, "VIEW3D_MT_object": 2}
 ROTATION, LOG_SCALE, OPACITY, SH = "splat_rotation", "splat_log_scale", "splat_opacity_logit", "splat_sh_"
 # file (x, y, z) -> Blender (x, z, -y): the documented default for 3DGS captures (-Y up, +Z forward)
 DEFAULT_AXES = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
@@ -225,8 +226,22 @@ class Worker:
         with bpy.context.temp_override(active_object=a, selected_editable_objects=[a, b], selected_objects=[a, b]):
             bpy.ops.object.join()
         self.select([a])
-        return {"objects": [o.name for o in bpy.data.objects if o.type == "MESH"],
-                "export": self.export("joined.ply", selected_only=True)}
+        res = {"objects": [o.name for o in bpy.data.objects if o.type == "MESH"],
+               "export": self.export("joined.ply", selected_only=True)}
+        # Join Splats: b turned and stretched, joined into a moved a; the splats keep their world shape.
+        self.clear_scene()
+        a, b = self.import_file("a.ply"), self.import_file("b.ply")
+        a.location = (0.5, 0.0, -1.0)
+        b.rotation_euler = (0.3, -0.7, 1.1)
+        b.scale = (1.0, 2.0, 0.5)
+        bpy.context.view_layer.update()
+        res["world_a"], res["world_b"] = ([list(map(list, o.matrix_world)) for o in (a, b)])
+        self.select([a, b], active=a)
+        res["join_splats"] = self.call(bpy.ops.splat.join)
+        self.select([a])
+        res["splat_objects"] = [o.name for o in bpy.data.objects if o.type == "MESH" and o.name != "Cube"]
+        res["export_splats"] = self.export("joined_splats.ply", selected_only=True)
+        return res
 
     def selected_only(self):
         a = self.import_file("a.ply")
@@ -568,7 +583,7 @@ def test_install_enables_operators_engine_and_menus(blender):
     assert MODULE in res["addons"]
     assert res["operators"] == [True, True]
     assert res["engine"]
-    assert res["menus"] == dict.fromkeys(MENUS, 1)
+    assert res["menus"] == MENUS
 
 
 def test_import_ply_stores_documented_attributes_upright(blender):
@@ -684,6 +699,20 @@ def test_export_of_joined_objects(blender):
     np.testing.assert_array_equal(tail.rotations, b_src.rotations)
     np.testing.assert_array_equal(tail.sh[:, :4], b_src.sh)           # degree 1 joined into degree 3:
     assert not tail.sh[:, 4:].any()                                  # zero-padded, same colours
+
+
+def test_join_splats_keeps_every_splat_in_world_space(blender):
+    res = blender.step("join")
+    assert res["join_splats"]["error"] is None and res["export_splats"]["error"] is None
+    assert len(res["splat_objects"]) == 1
+    a, b = read(blender.work / "a.ply"), read(blender.work / "b.ply")
+    joined = read(blender.out / "joined_splats.ply")
+    to_file = np.linalg.inv(DEFAULT_AXES)
+    # Independent reference: each source transformed on its own by its world matrix.
+    for part, src, world in ((joined[: len(a)], a, res["world_a"]), (joined[len(a):], b, res["world_b"])):
+        total = to_file @ np.array(world)
+        u, _, vt = np.linalg.svd(total[:3, :3])            # SH turn with the polar rotation U V^T
+        check_transformed(src, part, total, sh_rotation=u @ vt)
 
 
 def test_export_selected_visible_and_all(blender):
@@ -904,13 +933,13 @@ def test_animation_renders_each_frame(blender):
 
 def test_unregister_register_twice_leaves_nothing_behind(blender):
     res = blender.step("reregister")
-    assert res["enabled"]["menus"] == dict.fromkeys(MENUS, 1)
+    assert res["enabled"]["menus"] == MENUS
     assert res["enabled"]["operators"] and res["enabled"]["engine_panels"] > 10
     off = res["disabled"]
     assert off["menus"] == dict.fromkeys(MENUS, 0)
     assert off["engine_panels"] == 0 and off["types_left"] == []
     assert not off["engine"] and MODULE not in off["addons"]
-    assert res["re_enabled_menus"] == dict.fromkeys(MENUS, 1)
+    assert res["re_enabled_menus"] == MENUS
 
 
 if __name__ == "__main__":
