@@ -48,11 +48,14 @@ C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.37317633259
       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
 
 
-def basis(directions, degree):
-    """Real SH basis (N, (degree+1)^2) at unit-normalised directions, in the 3DGS ordering and signs."""
+def basis(directions, degree, dtype=np.float64):
+    """Real SH basis (N, (degree+1)^2) at unit-normalised directions, in the 3DGS ordering and signs.
+
+    Directions are normalised in float64 (they may come from far-apart points); the polynomials are
+    evaluated in `dtype`."""
     d = np.asarray(directions, dtype=np.float64)
     norm = np.linalg.norm(d, axis=-1, keepdims=True)
-    d = d / np.where(norm > 0, norm, 1.0)
+    d = (d / np.where(norm > 0, norm, 1.0)).astype(dtype, copy=False)
     x, y, z = d[..., 0], d[..., 1], d[..., 2]
     out = [np.full_like(x, C0)]
     if degree >= 1:
@@ -68,10 +71,14 @@ def basis(directions, degree):
 
 
 def evaluate(sh, directions):
-    """sum_k Y_k(d) sh_k per splat: (N,K,3) coefficients, (N,3) directions -> (N,3), float64."""
+    """sum_k Y_k(d) sh_k per splat: (N,K,3) coefficients, (N,3) directions -> (N,3).
+
+    In the coefficients' own precision: float32 SH (as stored) give float32 sums, whose rounding
+    (about 1e-6) is far below a display step, at a quarter of the float64 cost."""
     sh = np.asarray(sh)
-    y = basis(directions, degree_of(sh.shape[1]))
-    return np.einsum("nk,nkc->nc", y, sh, optimize=True)
+    dtype = np.float32 if sh.dtype == np.float32 else np.float64
+    y = basis(directions, degree_of(sh.shape[1]), dtype)
+    return np.einsum("nk,nkc->nc", y, sh.astype(dtype, copy=False))
 
 
 def colors(sh, directions):
