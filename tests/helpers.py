@@ -49,3 +49,46 @@ def build_extension_zip(out_dir):
     if done.returncode != 0 or not out.is_file():
         raise RuntimeError(f"blender_ext.py build failed ({done.returncode}):\n{done.stdout}\n{done.stderr}")
     return out
+
+
+# independent references (textbook formulas in float64, none of the code under test) ------------------
+
+def read(path):
+    """A splat file read through splatwright.io (each reader is tested against its format elsewhere)."""
+    from splatwright.io import read_splats
+    return read_splats(path)
+
+
+def quat_matrices(q):
+    """Rotation matrices of (w, x, y, z) quaternions of any length, float64."""
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
+def covariances(rotations, log_scales):
+    """Float64 R S S^T R^T straight from stored quaternions and log-scales."""
+    rs = quat_matrices(rotations) * np.exp(np.asarray(log_scales, np.float64))[:, None, :]
+    return rs @ rs.transpose(0, 2, 1)
+
+
+def cloud_covariances(cloud):
+    return covariances(cloud.rotations, cloud.log_scales)
+
+
+def psnr(a, b):
+    """Peak signal-to-noise ratio in dB of images with values in 0..1."""
+    return 10 * np.log10(1.0 / np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+
+
+def srgb_to_linear(c):
+    c = np.asarray(c, np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c):
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)

@@ -9,19 +9,15 @@ files read by splatwright.io, float64 covariances and SH colours, Blender's own 
 (world_to_camera_view) and the core renderer.
 """
 
-import json
-import os
-import subprocess
-import sys
-import traceback
-from pathlib import Path
+import warnings
 
 import numpy as np
 import pytest
+from blender_session import MODULE, BlenderWorker, run_worker, worker_main
+from helpers import cloud_covariances, read
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker for the module: ~5-15 s
 
-MODULE = "bl_ext.user_default.splatwright"
 # menu -> entries the extension adds to it (the Object menu gets Join Splats and Check Collisions)
 MENUS = {"TOPBAR_MT_file_import": 1, "TOPBAR_MT_file_export": 1, "VIEW3D_MT_object_apply": 1, "VIEW3D_MT_object": 2}
 ROTATION, LOG_SCALE, OPACITY, SH = "splat_rotation", "splat_log_scale", "splat_opacity_logit", "splat_sh_"
@@ -48,52 +44,16 @@ FORMAT_CLOUD = (200, 3, 2)          # _random_cloud(n, degree, seed) written as 
 
 # the worker (runs inside a separate Python process with bpy) ---------------------------------------
 
-class Worker:
+class Worker(BlenderWorker):
     """Every Blender-side step; each records into self.results[step] (or the traceback on failure)."""
 
-    def __init__(self, work, zip_path):
-        import bpy
-        self.bpy, self.work, self.zip = bpy, Path(work), zip_path
-        self.out = self.work / "out"
-        self.out.mkdir(exist_ok=True)
-        self.results = {}
-
-    def run(self):
-        steps = [self.install, self.import_ply, self.formats, self.export_axes, self.edits, self.join,
-                 self.selected_only, self.bad_inputs, self.wrong_objects, self.display, self.render,
-                 self.render_edges, self.animation, self.reregister]
-        for step in steps:
-            self.clear_scene()
-            try:
-                self.results[step.__name__] = step() or {}
-            except Exception:
-                self.results[step.__name__] = {"worker_error": traceback.format_exc()}
-        (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
+    steps = ("install", "import_ply", "formats", "export_axes", "edits", "join", "selected_only", "bad_inputs",
+             "wrong_objects", "display", "render", "render_edges", "animation", "reregister")
+    keep_objects = ("Cube", "Camera", "Light")     # the startup scene; every step adds only splat meshes
+    orphan_kinds = ("meshes",)
+    inventory_kinds = ("objects", "meshes", "materials", "node_groups", "cameras", "collections")
 
     # helpers -----------------------------------------------------------------------------------
-
-    def clear_scene(self):
-        bpy = self.bpy
-        for obj in list(bpy.data.objects):
-            if obj.type == "MESH" and obj.name != "Cube":
-                bpy.data.objects.remove(obj)
-        for mesh in list(bpy.data.meshes):
-            if mesh.users == 0:
-                bpy.data.meshes.remove(mesh)
-
-    def inventory(self):
-        bpy = self.bpy
-        kinds = ("objects", "meshes", "materials", "node_groups", "cameras", "collections")
-        inv = {k: sorted(x.name for x in getattr(bpy.data, k)) for k in kinds}
-        inv["selected"] = sorted(o.name for o in bpy.context.selected_objects)
-        return inv
-
-    def call(self, op, **kw):
-        """Run an operator; ERROR reports raise RuntimeError in background mode: return the message."""
-        try:
-            return {"result": sorted(op(**kw)), "error": None}
-        except RuntimeError as exc:
-            return {"result": ["CANCELLED"], "error": str(exc)}
 
     def import_file(self, name, **kw):
         res = self.call(self.bpy.ops.splat.import_file, filepath=str(self.work / name), **kw)
@@ -103,11 +63,6 @@ class Worker:
 
     def export(self, name, **kw):
         return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name), **kw)
-
-    def select(self, objects, active=None):
-        for obj in self.bpy.context.view_layer.objects:
-            obj.select_set(obj in objects)
-        self.bpy.context.view_layer.objects.active = active or (objects[0] if objects else None)
 
     def dump(self, obj, name):
         """The object's point attributes read through Blender's API by their documented names."""
@@ -132,12 +87,11 @@ class Worker:
 
     def install(self):
         bpy = self.bpy
-        bpy.ops.extensions.package_install_files(filepath=str(self.zip), repo="user_default",
-                                                 enable_on_install=True)
+        self.install_extension()
         return {"addons": [a.module for a in bpy.context.preferences.addons],
                 "operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_import_file", "SPLAT_OT_export_file")],
                 "engine": self.engine_registered(),
-                "menus": self.menu_entries()}
+                "menus": self.added_menus()}
 
     def engine_registered(self):
         """Whether the scene accepts SPLATWRIGHT as its render engine (it must be registered)."""
@@ -150,13 +104,8 @@ class Worker:
         render.engine = before
         return True
 
-    def menu_entries(self):
-        bpy = self.bpy
-        found = {}
-        for menu in MENUS:
-            funcs = getattr(getattr(bpy.types, menu).draw, "_draw_funcs", [])
-            found[menu] = sum(1 for f in funcs if f.__module__.startswith(MODULE))
-        return found
+    def added_menus(self):
+        return {menu: self.menu_entries(menu) for menu in MENUS}
 
     def import_ply(self):
         obj = self.import_file("a.ply")
@@ -447,17 +396,17 @@ class Worker:
         for _ in range(2):
             addon_utils.disable(MODULE, default_set=True)
             addon_utils.enable(MODULE, default_set=True)
-        enabled = {"menus": self.menu_entries(), "engine_panels": self.engine_panels(),
+        enabled = {"menus": self.added_menus(), "engine_panels": self.engine_panels(),
                    "operators": hasattr(bpy.types, "SPLAT_OT_import_file")}
         addon_utils.disable(MODULE, default_set=True)
         engine = self.engine_registered()
         left = [n for n in dir(bpy.types) if n.startswith(("SPLAT_", "RENDER_PT_splatwright"))
                 or n == "SplatwrightRenderEngine"]
-        disabled = {"menus": self.menu_entries(), "engine_panels": self.engine_panels(),
+        disabled = {"menus": self.added_menus(), "engine_panels": self.engine_panels(),
                     "engine": engine, "types_left": left,
                     "addons": [a.module for a in bpy.context.preferences.addons]}
         addon_utils.enable(MODULE, default_set=True)
-        return {"enabled": enabled, "disabled": disabled, "re_enabled_menus": self.menu_entries()}
+        return {"enabled": enabled, "disabled": disabled, "re_enabled_menus": self.added_menus()}
 
     def engine_panels(self):
         """Blender's own panels that list our engine (ours are checked through bpy.types)."""
@@ -504,59 +453,18 @@ def _write_inputs(work):
     write_splats(work / "nan.ply", bad, nonfinite="keep")
 
 
-class Session:
-    def __init__(self, work, results, log):
-        self.work, self.out, self.results, self.log = work, work / "out", results, log
-
-    def step(self, name):
-        res = self.results.get(name)
-        if res is None:
-            pytest.fail(f"worker did not reach step {name}:\n{self.log}")
-        if "worker_error" in res:
-            pytest.fail(f"worker step {name} failed:\n{res['worker_error']}")
-        return res
-
-
 @pytest.fixture(scope="module")
-def blender(tmp_path_factory):
-    import warnings
-    from helpers import build_extension_zip
+def blender(tmp_path_factory, extension_zip):
     work = tmp_path_factory.mktemp("blender")
-    (work / "zip").mkdir()
-    zip_path = build_extension_zip(work / "zip")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         _write_inputs(work)
-    env = {**os.environ, "BLENDER_USER_RESOURCES": str(work / "user")}
-    proc = subprocess.run([sys.executable, __file__, str(work), str(zip_path)], env=env, capture_output=True,
-                          text=True, timeout=600)
-    log = f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
-    results_file = work / "results.json"
-    if not results_file.exists():
-        pytest.fail(f"Blender worker wrote no results:\n{log}")
-    return Session(work, json.loads(results_file.read_text()), log)
-
-
-def read(path):
-    from splatwright.io import read_splats
-    return read_splats(path)
+    return run_worker(__file__, work, extension_zip)
 
 
 def assert_clouds_equal(a, b):
     for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-
-
-def covariances(cloud):
-    """Float64 R S S^T R^T straight from the stored numbers (independent of any transform code)."""
-    q = cloud.rotations.astype(np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
-    rs = r * np.exp(cloud.log_scales.astype(np.float64))[:, None, :]
-    return rs @ rs.transpose(0, 2, 1)
 
 
 def check_transformed(source, result, matrix, sh_rotation=None):
@@ -565,10 +473,10 @@ def check_transformed(source, result, matrix, sh_rotation=None):
     from splatwright.core import sh as shmod
     lin, t = matrix[:3, :3], matrix[:3, 3]
     np.testing.assert_allclose(result.positions, source.positions.astype(np.float64) @ lin.T + t, atol=2e-5, rtol=1e-5)
-    expected = lin @ covariances(source) @ lin.T
+    expected = lin @ cloud_covariances(source) @ lin.T
     scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
-    assert np.abs(covariances(result) - expected).max(initial=0) <= 0 or \
-        np.max(np.abs(covariances(result) - expected) / scale) < 2e-5
+    assert np.abs(cloud_covariances(result) - expected).max(initial=0) <= 0 or \
+        np.max(np.abs(cloud_covariances(result) - expected) / scale) < 2e-5
     np.testing.assert_allclose(result.opacity_logits, source.opacity_logits, rtol=0, atol=0)
     if sh_rotation is not None:
         dirs = np.random.default_rng(9).normal(size=(len(source), 3))
@@ -638,7 +546,7 @@ def _format_errors(a, b):
     """Largest differences a format can make: centres, covariances (relative), opacity, colours."""
     from splatwright.core import sh as shmod
     dirs = np.random.default_rng(8).normal(size=(len(a), 3))
-    cov_a, cov_b = covariances(a), covariances(b)
+    cov_a, cov_b = cloud_covariances(a), cloud_covariances(b)
     degree = min(a.sh_degree, b.sh_degree)
     return {"positions": np.abs(a.positions - b.positions).max(),
             "covariance": np.max(np.abs(cov_a - cov_b).max(axis=(1, 2)) / np.abs(cov_b).max(axis=(1, 2))),
@@ -943,4 +851,4 @@ def test_unregister_register_twice_leaves_nothing_behind(blender):
 
 
 if __name__ == "__main__":
-    Worker(sys.argv[1], sys.argv[2]).run()
+    worker_main(Worker)

@@ -12,18 +12,14 @@ made from the posed mesh, and a brute-force ellipsoid contact test.
 import contextlib
 import io
 import json
-import os
-import subprocess
-import sys
-import traceback
-from pathlib import Path
 
 import numpy as np
 import pytest
+from blender_session import MODULE, BlenderWorker, run_worker, worker_main
+from helpers import covariances, linear_to_srgb, psnr
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker for the module
 
-MODULE = "bl_ext.user_default.splatwright"
 # A rig that exercises every part of Blender's skinning: bone rolls, an unconnected child, scaled
 # bones (uniform and not), a bone that does not deform, and an armature object placed off the origin.
 RIG_BONES = {  # name: head, tail, parent, connected, roll, deforms
@@ -78,58 +74,11 @@ def rig_weights(n, seed=4):
     return weights
 
 
-class Worker:
-    def __init__(self, work, zip_path):
-        import bpy
-        self.bpy, self.work, self.zip = bpy, Path(work), zip_path
-        self.out = self.work / "out"
-        self.out.mkdir(exist_ok=True)
-        self.results = {}
-
-    def run(self):
-        steps = [self.install, self.skinning, self.transfer, self.bone_weights, self.render, self.errors,
-                 self.collide_small, self.collide_demo, self.reregister]
-        for step in steps:
-            self.clear_scene()
-            try:
-                self.results[step.__name__] = step() or {}
-            except Exception:
-                self.results[step.__name__] = {"worker_error": traceback.format_exc()}
-        (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
+class Worker(BlenderWorker):
+    steps = ("install", "skinning", "transfer", "bone_weights", "render", "errors", "collide_small",
+             "collide_demo", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
-
-    def module(self, name):
-        import importlib
-        return importlib.import_module(f"{MODULE}.{name}")
-
-    def clear_scene(self):
-        bpy = self.bpy
-        for obj in list(bpy.data.objects):
-            if obj.name not in ("Camera", "Light"):
-                bpy.data.objects.remove(obj)
-        for coll in (bpy.data.meshes, bpy.data.armatures, bpy.data.materials, bpy.data.images,
-                     bpy.data.collections, bpy.data.actions):
-            for item in list(coll):
-                if item.users == 0:
-                    coll.remove(item)
-        scene = bpy.context.scene
-        scene.frame_start, scene.frame_end, scene.frame_step = 1, 250, 1
-        scene.frame_set(1)
-
-    def save(self, name, **arrays):
-        np.savez(self.out / f"{name}.npz", **arrays)
-
-    def call(self, op, **kw):
-        try:
-            return {"result": sorted(op(**kw)), "error": None}
-        except RuntimeError as exc:
-            return {"result": ["CANCELLED"], "error": str(exc)}
-
-    def select(self, objects, active=None):
-        for obj in self.bpy.context.view_layer.objects:
-            obj.select_set(obj in objects)
-        self.bpy.context.view_layer.objects.active = active if active is not None else (objects[0] if objects else None)
 
     def splat_object(self, name, arrays, matrix=None):
         core = self.module("core")
@@ -168,6 +117,7 @@ class Worker:
         return co.reshape(-1, 3)
 
     def inventory(self):
+        """What a failed bind or collision check must leave as it was (armature bindings included)."""
         bpy = self.bpy
         inv = {k: sorted(x.name for x in getattr(bpy.data, k)) for k in ("objects", "meshes", "armatures")}
         inv["groups"] = {o.name: [g.name for g in o.vertex_groups] for o in bpy.data.objects}
@@ -211,11 +161,8 @@ class Worker:
 
     def install(self):
         bpy = self.bpy
-        bpy.ops.extensions.package_install_files(filepath=str(self.zip), repo="user_default",
-                                                 enable_on_install=True)
-        menus = {name: sum(1 for f in getattr(getattr(bpy.types, name).draw, "_draw_funcs", [])
-                           if f.__module__.startswith(MODULE))
-                 for name in ("VIEW3D_MT_object_parent", "VIEW3D_MT_object")}
+        self.install_extension()
+        menus = {name: self.menu_entries(name) for name in ("VIEW3D_MT_object_parent", "VIEW3D_MT_object")}
         data = self.module("splat_addon.data")
         return {"operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_bind_armature", "SPLAT_OT_check_collisions")],
                 "menus": menus, "deformers": [f.__name__ for f in data.DEFORMERS],
@@ -494,49 +441,9 @@ class Worker:
 
 # the pytest side ----------------------------------------------------------------------------------
 
-class Session:
-    def __init__(self, work, results, log):
-        self.work, self.out, self.results, self.log = work, work / "out", results, log
-
-    def step(self, name):
-        res = self.results.get(name)
-        if res is None:
-            pytest.fail(f"worker did not reach step {name}:\n{self.log}")
-        if "worker_error" in res:
-            pytest.fail(f"worker step {name} failed:\n{res['worker_error']}")
-        return res
-
-    def npz(self, name):
-        return dict(np.load(self.out / f"{name}.npz"))
-
-
 @pytest.fixture(scope="module")
-def blender(tmp_path_factory):
-    from helpers import build_extension_zip
-    work = tmp_path_factory.mktemp("rigging")
-    (work / "zip").mkdir()
-    zip_path = build_extension_zip(work / "zip")
-    env = {**os.environ, "BLENDER_USER_RESOURCES": str(work / "user")}
-    proc = subprocess.run([sys.executable, __file__, str(work), str(zip_path)], env=env, capture_output=True,
-                          text=True, timeout=600)
-    log = f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
-    if not (work / "results.json").exists():
-        pytest.fail(f"Blender worker wrote no results:\n{log}")
-    return Session(work, json.loads((work / "results.json").read_text()), log)
-
-
-def quat_matrices(q):
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
-
-
-def covariances(rotations, log_scales):
-    r = quat_matrices(rotations.astype(np.float64))
-    s = np.exp(log_scales.astype(np.float64))
-    return np.einsum("nij,nj,nkj->nik", r, s * s, r)
+def blender(tmp_path_factory, extension_zip):
+    return run_worker(__file__, tmp_path_factory.mktemp("rigging"), extension_zip)
 
 
 def segment_distances(points, heads, tails):
@@ -548,21 +455,12 @@ def segment_distances(points, heads, tails):
     return d
 
 
-def psnr(a, b):
-    return 10 * np.log10(1.0 / np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-
-
-def linear_to_srgb(c):
-    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-
-
 # install --------------------------------------------------------------------------------------------
 
 def test_install_registers_operators_menus_deformer_and_handlers(blender):
     res = blender.step("install")
     assert res["operators"] == [True, True]
-    assert res["menus"] == {"VIEW3D_MT_object_parent": 1, "VIEW3D_MT_object": 1}
+    assert res["menus"] == {"VIEW3D_MT_object_parent": 1, "VIEW3D_MT_object": 2}     # Check Collisions, Join Splats
     assert "_armature_pose" in res["deformers"]
     assert res["handlers"] == 4
 
@@ -818,4 +716,4 @@ def test_cli_collide(blender):
 
 
 if __name__ == "__main__":
-    Worker(sys.argv[1], sys.argv[2]).run()
+    worker_main(Worker)

@@ -11,18 +11,14 @@ lookup and sRGB curve, object matrices per frame, and OpenUSD read with pxr dire
 import contextlib
 import io
 import json
-import os
-import subprocess
-import sys
-import traceback
-from pathlib import Path
 
 import numpy as np
 import pytest
+from blender_session import MODULE, BlenderWorker, run_worker, worker_main
+from helpers import linear_to_srgb, random_cloud, read, srgb_to_linear
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker for the module
 
-MODULE = "bl_ext.user_default.splatwright"
 C0 = 0.28209479177387814
 # file (x, y, z) -> Blender (x, z, -y): the default export axes are its inverse
 DEFAULT_AXES = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
@@ -53,62 +49,11 @@ def skewed_uv(p):
     return np.column_stack([0.1 + 0.6 * p[:, 0] + 0.1 * p[:, 1], 0.55 + 0.5 * p[:, 1] - 0.05 * p[:, 0]])
 
 
-class Worker:
-    def __init__(self, work, zip_path):
-        import bpy
-        self.bpy, self.work, self.zip = bpy, Path(work), zip_path
-        self.out = self.work / "out"
-        self.out.mkdir(exist_ok=True)
-        self.results = {}
-
-    def run(self):
-        steps = [self.install, self.textured, self.colors, self.errors, self.demo_rig, self.rest_pose,
-                 self.target_psnr, self.animation, self.frame_names, self.cli, self.reregister]
-        for step in steps:
-            self.clear_scene()
-            try:
-                self.results[step.__name__] = step() or {}
-            except Exception:
-                self.results[step.__name__] = {"worker_error": traceback.format_exc()}
-        (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
+class Worker(BlenderWorker):
+    steps = ("install", "textured", "colors", "errors", "demo_rig", "rest_pose", "target_psnr", "animation",
+             "frame_names", "cli", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
-
-    def module(self, name):
-        import importlib
-        return importlib.import_module(f"{MODULE}.splat_addon.{name}")
-
-    def clear_scene(self):
-        bpy = self.bpy
-        for obj in list(bpy.data.objects):
-            if obj.name not in ("Camera", "Light"):
-                bpy.data.objects.remove(obj)
-        for coll in (bpy.data.meshes, bpy.data.armatures, bpy.data.materials, bpy.data.images,
-                     bpy.data.collections, bpy.data.actions):
-            for item in list(coll):
-                if item.users == 0:
-                    coll.remove(item)
-        scene = bpy.context.scene
-        scene.frame_start, scene.frame_end, scene.frame_step = 1, 250, 1
-        scene.frame_set(1)
-
-    def inventory(self):
-        bpy = self.bpy
-        kinds = ("objects", "meshes", "materials", "node_groups", "collections")
-        inv = {k: sorted(x.name for x in getattr(bpy.data, k)) for k in kinds}
-        inv["selected"] = sorted(o.name for o in bpy.context.selected_objects)
-        return inv
-
-    def call(self, op, **kw):
-        try:
-            return {"result": sorted(op(**kw)), "error": None}
-        except RuntimeError as exc:
-            return {"result": ["CANCELLED"], "error": str(exc)}
-
-    def select(self, objects):
-        for obj in self.bpy.context.view_layer.objects:
-            obj.select_set(obj in objects)
-        self.bpy.context.view_layer.objects.active = objects[0] if objects else None
 
     def grid(self, name, nx=4, ny=3, size=(2.0, 1.5), uv=None, wobble=0.0):
         """A grid of quads in the z = wobble * f(x, y) surface with per-loop UVs."""
@@ -199,19 +144,14 @@ class Worker:
         created = [o for o in self.bpy.data.objects if o not in before]
         return res, created
 
-    def save(self, name, **arrays):
-        np.savez(self.out / f"{name}.npz", **arrays)
-
     # steps ---------------------------------------------------------------------------------------
 
     def install(self):
         bpy = self.bpy
-        bpy.ops.extensions.package_install_files(filepath=str(self.zip), repo="user_default",
-                                                 enable_on_install=True)
-        convert_menu = getattr(bpy.types.VIEW3D_MT_object_convert.draw, "_draw_funcs", [])
+        self.install_extension()
         return {"operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_from_mesh", "SPLAT_OT_export_animation")],
-                "command_registered": self.module("command")._handle is not None,
-                "convert_menu": sum(1 for f in convert_menu if f.__module__.startswith(MODULE))}
+                "command_registered": self.module("splat_addon.command")._handle is not None,
+                "convert_menu": self.menu_entries("VIEW3D_MT_object_convert")}
 
     def textured(self):
         bpy = self.bpy
@@ -295,8 +235,8 @@ class Worker:
 
         def rgb(nodes):
             return nodes.new("ShaderNodeRGB").outputs[0]
-        look = self.module("from_mesh").material_appearance(self.material("odd", (0.25, 0.5, 0.75), rgb),
-                                                            warnings.append)
+        look = self.module("splat_addon.from_mesh").material_appearance(
+            self.material("odd", (0.25, 0.5, 0.75), rgb), warnings.append)
         res["odd"] = {"warnings": warnings, "base": list(look.material.base_color)}
         # an image whose file is missing has no pixels: warned, the base colour used
         missing = bpy.data.images.new("missing", 4, 4)
@@ -307,8 +247,8 @@ class Worker:
             node.image = missing
             return node.outputs["Color"]
         warnings = []
-        look = self.module("from_mesh").material_appearance(self.material("lost", (0.5, 0.25, 0.125), texture),
-                                                            warnings.append)
+        look = self.module("splat_addon.from_mesh").material_appearance(
+            self.material("lost", (0.5, 0.25, 0.125), texture), warnings.append)
         res["missing image"] = {"warnings": warnings, "base": list(look.material.base_color),
                                 "texture": look.material.texture is not None}
         # a NaN vertex: the faces around it get no splats, the rest converts, nothing is NaN
@@ -350,7 +290,7 @@ class Worker:
     def demo_rig(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        rig = self.module("demo_rig").build_demo_rig(scene, environment_splats=3000)
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=3000)
         body, arm = rig.body, rig.armature
         mesh = body.data
         weights = np.zeros((len(mesh.vertices), len(arm.data.bones)))
@@ -378,14 +318,14 @@ class Worker:
                 "light": rig.light.type, "materials": [m.name for m in mesh.materials],
                 "textured": any(n.bl_idname == "ShaderNodeTexImage"
                                 for m in mesh.materials for n in m.node_tree.nodes),
-                "environment": {"splat": self.module("data").is_splat_object(env), "count": len(env.data.vertices),
-                                "source": json.loads(env.data["splatwright_source"])},
+                "environment": {"splat": self.module("splat_addon.data").is_splat_object(env),
+                                "count": len(env.data.vertices), "source": json.loads(env.data["splatwright_source"])},
                 "animated": arm.animation_data is not None and arm.animation_data.action is not None}
 
     def rest_pose(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        rig = self.module("demo_rig").build_demo_rig(scene, environment_splats=0)
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=0)
         scene.frame_set(12)
         rest = np.array([tuple(v.co) for v in rig.body.data.vertices])
         posed = self.source_dump(rig.body)
@@ -463,7 +403,7 @@ class Worker:
         return res
 
     def frame_names(self):
-        frame_path = self.module("animation").frame_path
+        frame_path = self.module("splat_addon.animation").frame_path
         cases = [("/a/shot_####.ply", 7), ("/a/shot.ply", 7), ("/a/shot_##.ply", 123), ("/a/v#_f###.spz", 5),
                  ("/a/shot_####.ply", -3), ("/a/shot.ply", 12345), ("/a/shot", 2)]
         return {"names": [[p, f, str(frame_path(p, f))] for p, f in cases]}
@@ -471,7 +411,7 @@ class Worker:
     def cli(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        execute = self.module("command").execute
+        execute = self.module("splat_addon.command").execute
         obj = self.animated_splats()
         grid = self.grid("Grid", wobble=0.2)
         grid.location = (0.0, 3.0, 0.0)
@@ -543,64 +483,24 @@ class Worker:
         for _ in range(2):
             addon_utils.disable(MODULE, default_set=True)
             addon_utils.enable(MODULE, default_set=True)
-        command = self.module("command")
+        command = self.module("splat_addon.command")
         on = command._handle is not None
         addon_utils.disable(MODULE, default_set=True)
         off = command._handle is not None          # unregister() gave the command back
         left = [n for n in dir(self.bpy.types) if n.startswith("SPLAT_")]
         addon_utils.enable(MODULE, default_set=True)
         return {"enabled": on, "disabled_handle": off, "types_left": left,
-                "re_enabled": self.module("command")._handle is not None}
+                "re_enabled": self.module("splat_addon.command")._handle is not None}
 
 
 # the pytest side ----------------------------------------------------------------------------------
 
-class Session:
-    def __init__(self, work, results, log):
-        self.work, self.out, self.results, self.log = work, work / "out", results, log
-
-    def step(self, name):
-        res = self.results.get(name)
-        if res is None:
-            pytest.fail(f"worker did not reach step {name}:\n{self.log}")
-        if "worker_error" in res:
-            pytest.fail(f"worker step {name} failed:\n{res['worker_error']}")
-        return res
-
-    def npz(self, name):
-        return dict(np.load(self.out / f"{name}.npz"))
-
-
 @pytest.fixture(scope="module")
-def blender(tmp_path_factory):
-    from helpers import build_extension_zip, random_cloud
+def blender(tmp_path_factory, extension_zip):
     from splatwright.io import write_splats
     work = tmp_path_factory.mktemp("workflows")
-    (work / "zip").mkdir()
-    zip_path = build_extension_zip(work / "zip")
     write_splats(work / "cloud.ply", random_cloud(150, sh_degree=1, seed=5))
-    env = {**os.environ, "BLENDER_USER_RESOURCES": str(work / "user")}
-    proc = subprocess.run([sys.executable, __file__, str(work), str(zip_path)], env=env, capture_output=True,
-                          text=True, timeout=600)
-    log = f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
-    if not (work / "results.json").exists():
-        pytest.fail(f"Blender worker wrote no results:\n{log}")
-    return Session(work, json.loads((work / "results.json").read_text()), log)
-
-
-def read(path):
-    from splatwright.io import read_splats
-    return read_splats(path)
-
-
-def srgb_to_linear(c):
-    c = np.asarray(c, np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c):
-    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+    return run_worker(__file__, work, extension_zip)
 
 
 def bilinear_blender(pixels, uv):
@@ -1013,4 +913,4 @@ def test_command_survives_re_registration(blender):
 
 
 if __name__ == "__main__":
-    Worker(sys.argv[1], sys.argv[2]).run()
+    worker_main(Worker)
