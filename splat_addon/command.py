@@ -286,7 +286,7 @@ def run_from_mesh(args, context):
     if is_blend:
         bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
     else:
-        write_splats(out, operators.scene_cloud(context, created, animation.export_conversion()))
+        write_splats(out, operators.scene_cloud(context, created, animation.export_conversion(), keep_source=True))
     _say(f"done: wrote {out}")
 
 

@@ -24,6 +24,9 @@ from ..core import SplatCloud, sh as shmod
 MARKER = "splatwright"
 LAYOUT_VERSION = 1
 EXTRAS_SPEC = "splatwright_extras"     # mesh property: JSON {name: [dtype, columns, ndim]}
+# Extras that tie splats made from a mesh to its triangles (rigging reads them): bookkeeping of this
+# Blender file, not scene content, so exports leave them out.
+SOURCE_EXTRAS = ("source_triangle", "barycentric", "source_vertices")
 
 ROTATION = "splat_rotation"
 LOG_SCALE = "splat_log_scale"

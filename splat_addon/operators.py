@@ -144,13 +144,18 @@ def _sync_edit_mode(objects):
             obj.update_from_editmode()
 
 
-def scene_cloud(context, objects, conversion):
-    """One cloud in file space: every object's evaluated world matrix, then `conversion`, applied."""
+def scene_cloud(context, objects, conversion, keep_source=False):
+    """One cloud in file space: every object's evaluated world matrix, then `conversion`, applied.
+    The extras a file carried are kept; the from-mesh bookkeeping (data.SOURCE_EXTRAS) only when
+    `keep_source` (the output of a conversion, which a pipeline may bind later)."""
     _sync_edit_mode(objects)
     depsgraph = context.evaluated_depsgraph_get()
     conversion = np.array(conversion, dtype=np.float64)
     clouds = [data.evaluated_cloud(obj, depsgraph, conversion @ data.world_matrix(obj, depsgraph)) for obj in objects]
-    return clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
+    cloud = clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
+    if keep_source:
+        return cloud
+    return cloud.replace(extras={k: v for k, v in cloud.extras.items() if k not in data.SOURCE_EXTRAS})
 
 
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)

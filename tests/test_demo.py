@@ -397,6 +397,10 @@ def test_demo_exports_read_back_consistently(demo):
     assert names == [f"arm_{f:04d}.ply" for f in range(1, 25)]
     frames = {f: read_splats(out / "arm_ply" / f"arm_{f:04d}.ply") for f in (1, 12, 24)}
     assert all(len(c) == arm for c in frames.values())
+    # exports hold the scene, not the from-mesh bookkeeping that ties splats to their triangles
+    provenance = ("source_triangle", "barycentric", "source_vertices")
+    assert not [p.name for p in scene.properties if p.name.startswith(provenance)]
+    assert not [k for c in frames.values() for k in c.extras if k.startswith(provenance)]
     xyz = lambda v: np.column_stack([v["x"], v["y"], v["z"]])
     np.testing.assert_array_equal(xyz(scene)[:arm], frames[12].positions)       # the arm comes first
     np.testing.assert_array_equal(frames[1].positions, frames[24].positions)    # rest pose at both ends
