@@ -3,7 +3,7 @@ modifier (plain and Preserve Volume), rigid exactness, sign flips, weights, scal
 
 import numpy as np
 import pytest
-from helpers import random_cloud
+from helpers import cloud_covariances, random_cloud
 
 from splatwright.core import SplatCloud, sh as shmod
 from splatwright.core.articulation import (Binding, BonePose, KinematicTree, SkinningError, skin,
@@ -33,18 +33,6 @@ def about(r, pivot):
     """The rigid transform turning by r about `pivot`."""
     pivot = np.asarray(pivot, float)
     return hom(r, pivot - r @ pivot)
-
-
-def cov_of(cloud):
-    """Covariances from stored quaternions and log scales, by textbook formulas."""
-    q = cloud.rotations.astype(np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
-    rs = r * np.exp(cloud.log_scales.astype(np.float64))[:, None, :]
-    return rs @ rs.transpose(0, 2, 1)
 
 
 def svd_polar(m):
@@ -169,7 +157,7 @@ def test_single_bone_rotation_moves_centres_covariances_and_colours(mode, rng):
     posed = skin(cloud, Binding.rigid(np.zeros(300, int)), [about(r, pivot)], mode=mode)
     p = cloud.positions.astype(np.float64)
     np.testing.assert_allclose(posed.positions, (p - pivot) @ r.T + pivot, atol=2e-6)
-    assert cov_rel(cov_of(posed), r @ cov_of(cloud) @ r.T) < 2e-6
+    assert cov_rel(cloud_covariances(posed), r @ cloud_covariances(cloud) @ r.T) < 2e-6
     np.testing.assert_array_equal(posed.log_scales, cloud.log_scales)
     d = rng.normal(size=(300, 3))
     np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, d @ r), atol=2e-5)
@@ -195,12 +183,12 @@ def test_two_bone_linear_blend_closed_form(a, theta):
     # (1-a) I + a Rz(theta) is a turn by phi about z times a uniform shrink of x and y.
     phi = np.arctan2(a * np.sin(theta), 1 - a + a * np.cos(theta))
     turn = rot_z(phi)
-    assert cov_rel(cov_of(posed), turn @ cov_of(cloud) @ turn.T) < 3e-6
+    assert cov_rel(cloud_covariances(posed), turn @ cloud_covariances(cloud) @ turn.T) < 3e-6
     d = np.random.default_rng(1).normal(size=(len(p), 3))
     np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, d @ turn), atol=3e-5)
     # The literal blended map, for comparison, shrinks splats in the bending plane.
     literal = skin(cloud, binding, deform, "lbs", lbs_stretch="blend")
-    assert cov_rel(cov_of(literal), blend @ cov_of(cloud) @ blend.T) < 3e-6
+    assert cov_rel(cloud_covariances(literal), blend @ cloud_covariances(cloud) @ blend.T) < 3e-6
 
 
 @pytest.mark.parametrize("a, theta", [(0.3, 1.0), (0.5, 2.0), (0.9, -2.8)])
@@ -213,7 +201,7 @@ def test_two_bone_dual_quaternion_closed_form(a, theta):
     turn = rot_z(phi)
     posed = skin(cloud, binding, deform, "dqs")
     np.testing.assert_allclose(posed.positions, (p - pivot) @ turn.T + pivot, atol=3e-6)
-    assert cov_rel(cov_of(posed), turn @ cov_of(cloud) @ turn.T) < 3e-6
+    assert cov_rel(cloud_covariances(posed), turn @ cloud_covariances(cloud) @ turn.T) < 3e-6
     d = np.random.default_rng(2).normal(size=(len(p), 3))
     np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, d @ turn), atol=3e-5)
 
@@ -256,7 +244,7 @@ def test_weights_not_summing_to_one_are_normalised_and_tiny_totals_stay_put():
     for mode in ("lbs", "dqs"):
         posed = skin(cloud, tiny, deform, mode)
         np.testing.assert_array_equal(posed.positions, cloud.positions)
-        assert cov_rel(cov_of(posed), cov_of(cloud)) < 1e-6
+        assert cov_rel(cloud_covariances(posed), cloud_covariances(cloud)) < 1e-6
 
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
@@ -272,7 +260,7 @@ def test_scaling_bone_carries_scale_into_covariances(mode):
     p = cloud.positions.astype(np.float64)
     np.testing.assert_allclose(posed.positions, p @ deform[:3, :3].T + deform[:3, 3], atol=1e-5)
     a = deform[:3, :3]
-    assert cov_rel(cov_of(posed), a @ cov_of(cloud) @ a.T) < 1e-5
+    assert cov_rel(cloud_covariances(posed), a @ cloud_covariances(cloud) @ a.T) < 1e-5
     turn = svd_polar(a)[0]
     d = rng.normal(size=(n, 3))
     np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, d @ turn), atol=3e-5)
@@ -332,7 +320,7 @@ def test_matches_blender_armature_modifier_per_splat(mode):
     # Blender's 1e-5 bar; weights are stored as float32 (as Blender stores them), positions too.
     assert rel(centres, expect) < 1e-6
     assert rel(posed.positions, expect) < 1e-6
-    assert cov_rel(cov_of(posed), maps @ cov_of(cloud) @ maps.transpose(0, 2, 1)) < 1e-5
+    assert cov_rel(cloud_covariances(posed), maps @ cloud_covariances(cloud) @ maps.transpose(0, 2, 1)) < 1e-5
 
 
 # exactness, hard cases ----------------------------------------------------------------------------
@@ -351,7 +339,7 @@ def test_rigid_binding_is_exact():
         ulp = np.spacing(np.abs(expect).astype(np.float32)).astype(np.float64)
         assert (np.abs(posed.positions - expect) <= ulp).all()
         r = bones[link, :3, :3]
-        assert cov_rel(cov_of(posed), r @ cov_of(cloud) @ r.transpose(0, 2, 1)) < 1e-6
+        assert cov_rel(cloud_covariances(posed), r @ cloud_covariances(cloud) @ r.transpose(0, 2, 1)) < 1e-6
         np.testing.assert_array_equal(posed.log_scales, cloud.log_scales)
 
 
@@ -383,7 +371,7 @@ def test_hard_cases_stay_finite_symmetric_and_positive():
             posed = skin(cloud, binding, deform, mode, lbs_stretch=stretch)
             for name in ("positions", "rotations", "log_scales", "sh"):
                 assert np.isfinite(getattr(posed, name)).all(), (mode, stretch, name)
-            cov = cov_of(posed)
+            cov = cloud_covariances(posed)
             assert np.allclose(cov, cov.transpose(0, 2, 1))
             assert (np.linalg.eigvalsh(cov) >= -1e-6 * np.abs(cov).max(axis=(1, 2))[:, None]).all()
 

@@ -11,7 +11,7 @@ import zipfile
 from pathlib import Path
 
 import pytest
-from helpers import REPO_ROOT, build_extension_zip, run_blender_ext
+from helpers import REPO_ROOT, run_blender_ext
 
 from splatwright.core.scenes import seed_cube
 from splatwright.io import write_splats
@@ -36,11 +36,6 @@ def test_manifest_validates():
     done = run_blender_ext("validate", REPO_ROOT)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "Success" in done.stdout
-
-
-@pytest.fixture(scope="module")
-def extension_zip(tmp_path_factory):
-    return build_extension_zip(tmp_path_factory.mktemp("ext"))
 
 
 def test_built_zip_validates_and_leaves_out_dev_files(extension_zip):
