@@ -122,7 +122,7 @@ def run(quick=False):
             options += [("tile 4", {"tile_size": 4}), ("tile 16", {"tile_size": 16}),
                         ("wave 8", {"wave": 8}), ("wave 128", {"wave": 128}),
                         ("float64", {"precision": "float64"}), ("max_sigma 3 (reference cut)", {"max_sigma": 3.0}),
-                        ("1 thread", {"threads": 1})]
+                        ("1 thread", {"threads": 1}), ("with max_weight per splat", {"return_weights": True})]
         for label, opts in options:
             result = render(cloud, cam, return_counts=True, **opts)
             timing = timeit(lambda: render(cloud, cam, **opts), repeat=repeat)

@@ -27,7 +27,6 @@ from .camera import frame_points
 from .metrics import psnr
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
-_BLOCK_EVALS = 1 << 20        # splat-pixel evaluations per block of tiles (bounds memory)
 
 
 # pruning --------------------------------------------------------------------------------------------
@@ -48,76 +47,24 @@ def contributions(cloud, views, mode="classic", tile_size=8, threads=None):
     """(N,) float32: each splat's largest blending weight T * alpha over every pixel of every view,
     0 for splats that reach no pixel (culled, off-image, too faint or hidden behind others).
 
-    Views run in parallel threads (NumPy releases the GIL); each view composites its tiles in waves,
-    dropping tiles once every pixel has stopped."""
+    Each view is a render that also returns its weights (`render(..., return_weights=True)`, by the
+    renderer's float32 arithmetic). Views render in parallel threads, the cores shared out among
+    them: for many small views that beats rendering them in turn on every core."""
     views = list(views)
     if not views:
         raise ValueError("contributions need at least one view")
+    threads = max(1, int(threads or os.cpu_count() or 1))
+    workers = min(len(views), threads)
     best = np.zeros(len(cloud), np.float32)
-    workers = max(1, min(len(views), int(threads or os.cpu_count() or 1)))
+
+    def weights(camera):
+        return rendering.render(cloud, camera, background=None, mode=mode, return_weights=True,
+                                tile_size=tile_size, threads=threads // workers).max_weight
+
     with ThreadPoolExecutor(workers) as pool:
-        for index, weight in pool.map(lambda cam: _view_contributions(cloud, cam, mode, tile_size), views):
-            np.maximum.at(best, index, weight)
+        for weight in pool.map(weights, views):
+            np.maximum(best, weight, out=best)
     return best
-
-
-def _view_contributions(cloud, camera, mode, tile_size):
-    """(cloud indices, largest weight of each) for the splats one view projects."""
-    proj = rendering.project(cloud, camera, mode=mode)
-    n = len(proj)
-    best = np.zeros(n + 1, np.float32)                    # the last slot takes padding entries
-    if n == 0:
-        return proj.index, best[:n]
-    bins = rendering.bin_tiles(proj, camera, tile_size)
-    tiles = _Tiles(bins, camera)
-    log_o = proj.records[:, 5:].view(np.float32)[:, 0]    # the records' documented float32 part
-    u, v, a, b, c = proj.mean_conic.T
-    total = np.diff(bins.offsets)
-    cursor = np.zeros(bins.n_tiles, np.int64)
-    trans = tiles.initial_transmittance()
-    alive = np.flatnonzero(total > 0)
-    wave = 32
-    while len(alive):
-        take = np.minimum(total[alive] - cursor[alive], wave)
-        per_block = max(1, _BLOCK_EVALS // (wave * tiles.pixels))
-        for start in range(0, len(alive), per_block):
-            group, count = alive[start:start + per_block], take[start:start + per_block]
-            slot = np.arange(wave)[:, None]
-            entry = np.where(slot < count, bins.entry_splat.take(bins.offsets[group] + cursor[group] + slot,
-                                                                 mode="clip"), n)      # (wave, g)
-            dx = tiles.x[group][None] - u[entry][..., None]                           # (wave, g, p)
-            dy = tiles.y[group][None] - v[entry][..., None]
-            power = log_o[entry][..., None] - 0.5 * (a[entry][..., None] * dx * dx + c[entry][..., None] * dy * dy
-                                                     + 2.0 * b[entry][..., None] * dx * dy)
-            alpha = np.minimum(np.exp(power), rendering.ALPHA_MAX)
-            alpha *= alpha >= rendering.ALPHA_MIN
-            after = trans[group][None] * np.cumprod(1.0 - alpha, axis=0)            # T after each entry
-            before = np.concatenate([trans[group][None], after[:-1]])
-            # A pixel stops before the splat that would take T below t_min; T only falls, so the
-            # splats from there on are exactly those with after < t_min.
-            weight = before * alpha * (after >= rendering.T_MIN)
-            np.maximum.at(best, entry.ravel(), weight.max(axis=2).ravel().astype(np.float32))
-            trans[group] = np.where(after[-1] >= rendering.T_MIN, after[-1], 0.0)
-        cursor[alive] += take
-        alive = alive[(cursor[alive] < total[alive]) & trans[alive].any(axis=1)]
-    return proj.index, best[:n]
-
-
-class _Tiles:
-    """Pixel-centre coordinates of every pixel of every tile; pixels beyond the image edge get a
-    transmittance of 0, so nothing counts there."""
-
-    def __init__(self, bins, camera):
-        ts = bins.tile_size
-        self.pixels = ts * ts
-        t = np.arange(bins.n_tiles)
-        k = np.arange(self.pixels)
-        self.x = (t % bins.tiles_x)[:, None] * ts + (k % ts)[None] + 0.5      # (tiles, pixels)
-        self.y = (t // bins.tiles_x)[:, None] * ts + (k // ts)[None] + 0.5
-        self.inside = (self.x < camera.width) & (self.y < camera.height)
-
-    def initial_transmittance(self):
-        return self.inside.astype(np.float64)
 
 
 # views and image error ------------------------------------------------------------------------------

@@ -15,12 +15,14 @@ How it runs fast without a loop per splat or per pixel:
   pixel offset from the tile centre, so it is one small matrix product (entry coefficients x a fixed
   basis), followed by exp, a running product for T over the entry axis and one batched matrix product
   that sums weights times (colour, depth, 1) per pixel. Tiles whose pixels have all stopped drop out
-  after each wave, which is where opaque scenes save most of their work;
+  after each wave, which is where opaque scenes save most of their work. Asked for, the largest weight
+  of each entry over its tile's pixels also goes into a per-splat maximum (one more pass);
 - batches run on a thread pool: NumPy and BLAS release the GIL for the heavy calls.
 """
 
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -54,6 +56,9 @@ class RenderResult:
     depth: (H,W) float32 alpha-weighted expected camera z, sum(w z) / sum(w) over the blended
         splats with weights w = T alpha; 0 where alpha is 0 (no splat), never NaN or Inf.
     counts: (H,W) int32 number of splats blended into each pixel, when requested; else None.
+    max_weight: (N,) float32 when requested, else None: each input splat's largest blending weight
+        T alpha over all pixels, by the rules above; 0 for splats that reach no pixel (culled,
+        off-image, too faint for 1/255, hidden behind pixels that stopped, or non-finite).
     background: the background colour used, or None for a transparent render.
     stats: counts of splats and work (input, skipped_nonfinite, visible, entries, evaluated).
     """
@@ -62,6 +67,7 @@ class RenderResult:
     alpha: np.ndarray
     depth: np.ndarray
     counts: np.ndarray | None = None
+    max_weight: np.ndarray | None = None
     background: tuple | None = (0.0, 0.0, 0.0)
     stats: dict = field(default_factory=dict)
 
@@ -104,13 +110,14 @@ def _floats(records):
 
 
 def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_counts=False, *,
-           tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32", threads=None,
-           progress=None):
+           return_weights=False, tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
+           threads=None, progress=None):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
     mode: "classic" (the reference rasteriser) or "antialiased" (opacity compensated for the
         0.3 px^2 low-pass, as in Mip-Splatting / gsplat's antialiased mode).
+    return_counts, return_weights: also give result.counts, result.max_weight.
     Speed options (the defaults give the exact image): tile_size in pixels; wave, entries per tile
     composited between checks for finished tiles; t_min, the transmittance stop (0 disables it);
     max_sigma caps each splat's extent in standard deviations (3 mimics the reference rasteriser,
@@ -137,10 +144,13 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
     with _pool(threads) as pool:
         proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
         bins = bin_tiles(proj, camera, int(tile_size), pool=pool)
-        compositor = _Compositor(proj, bins, PRECISIONS[precision], int(wave), t_min, return_counts, pool)
+        compositor = _Compositor(proj, bins, camera, PRECISIONS[precision], int(wave), t_min, pool,
+                                 return_counts, return_weights)
         acc, counts = compositor.run(progress)
     result = _finish(acc, counts, camera, bins, bg, background, proj, cloud)
     result.stats["evaluated"] = compositor.evaluated
+    if return_weights:
+        result.max_weight = compositor.max_weight(len(cloud))
     return result
 
 
@@ -406,7 +416,7 @@ def _stable_argsort(keys, n_keys):
 class _Compositor:
     """Front-to-back compositing of every tile, in waves of at most `wave` entries per tile."""
 
-    def __init__(self, proj, bins, dtype, wave, t_min, want_counts, pool):
+    def __init__(self, proj, bins, camera, dtype, wave, t_min, pool, want_counts=False, want_weights=False):
         self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
         self.t_min = dtype(t_min)
         ts = bins.tile_size
@@ -416,15 +426,28 @@ class _Compositor:
         self.basis = np.stack([np.ones_like(ex), ex, ey, ex * ex, ex * ey, ey * ey]).astype(dtype)
         n_tiles = bins.n_tiles
         self.acc = np.zeros((n_tiles, self.pixels, 5), dtype=dtype)     # sum w * (r, g, b, z, 1)
-        self.trans = np.ones((n_tiles, self.pixels), dtype=dtype)       # T, or 0 once a pixel stopped
+        self.trans = self._inside_image(bins, camera).astype(dtype)     # T, or 0 once a pixel stopped
         self.counts = np.zeros((n_tiles, self.pixels), dtype=np.int32) if want_counts else None
-        self.records, self.entry_splat = self._by_locality(proj, bins)
+        self.order, self.records, self.entry_splat = self._by_locality(proj, bins)
+        # largest weight of each (renumbered) splat; the last slot takes the padding entries
+        self.best = np.zeros(len(proj) + 1, np.float32) if want_weights else None
+        self.best_lock = threading.Lock()
         self.evaluated = 0
+
+    @staticmethod
+    def _inside_image(bins, camera):
+        """(tiles, pixels) bool: which pixels of the edge tiles lie inside the image. Those beyond
+        start with T = 0, so they take no weight and never keep a tile alive."""
+        ts, k = bins.tile_size, np.arange(bins.tile_size ** 2)
+        tiles = np.arange(bins.n_tiles)[:, None]
+        return (((tiles % bins.tiles_x) * ts + k % ts < camera.width)
+                & ((tiles // bins.tiles_x) * ts + k // ts < camera.height))
 
     @staticmethod
     def _by_locality(proj, bins):
         """Records renumbered by the tile of their box's top-left corner, so that the entries of
-        neighbouring tiles read neighbouring records (cache hits) instead of depth-scattered ones."""
+        neighbouring tiles read neighbouring records (cache hits) instead of depth-scattered ones.
+        Returns the order (new number -> old), the records and the entries renumbered."""
         n = len(proj)
         first_tile = (proj.bbox[:, 1] // bins.tile_size) * bins.tiles_x + proj.bbox[:, 0] // bins.tile_size
         order = _stable_argsort(first_tile, bins.n_tiles)
@@ -432,7 +455,13 @@ class _Compositor:
         renumber[order] = np.arange(n, dtype=np.int32)
         renumber[n] = n
         records = proj.records.take(np.append(order, n), axis=0)
-        return records, renumber.take(bins.entry_splat)
+        return order, records, renumber.take(bins.entry_splat)
+
+    def max_weight(self, n_cloud):
+        """(n_cloud,) float32: the largest weight of every input splat, 0 for those not projected."""
+        out = np.zeros(n_cloud, np.float32)
+        out[self.proj.index[self.order]] = self.best[:-1]
+        return out
 
     def run(self, progress=None):
         bins = self.bins
@@ -501,10 +530,20 @@ class _Compositor:
         self.acc[tiles] += np.matmul(weight.transpose(1, 2, 0), feat.transpose(1, 0, 2))
         if self.counts is not None:
             self.counts[tiles] += np.count_nonzero(weight, axis=0).astype(np.int32)
+        if self.best is not None:
+            self._keep_best(splat, weight)
         last = trans[-1]
         last *= ~crossed
         self.trans[tiles] = last
         return tiles, ~last.any(axis=1)
+
+    def _keep_best(self, splat, weight):
+        """Fold each entry's largest weight over its pixels into the per-splat maximum."""
+        rows = weight.reshape(len(splat), -1)         # slot-major, like `splat`
+        peak = rows[np.arange(len(rows)), rows.argmax(axis=1)]    # (argmax is ~3x faster than max)
+        hit = np.flatnonzero(peak)
+        with self.best_lock:                         # batches run in parallel threads
+            np.maximum.at(self.best, splat[hit], peak[hit].astype(np.float32))
 
     def _exponent(self, rec, tiles):
         """log(o) - q/2 at every pixel of every entry (records `rec`, slot-major over `tiles`).

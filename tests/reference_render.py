@@ -16,7 +16,8 @@ ALPHA_MIN, ALPHA_MAX, T_MIN, LOW_PASS = 1.0 / 255.0, 0.99, 1e-4, 0.3
 
 
 def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN):
-    """Returns a dict with color (.., 3), alpha, depth and counts, float64 (counts int).
+    """Returns a dict with color (.., 3), alpha, depth and counts, float64 (counts int), and
+    max_weight (N,): each splat's largest blending weight T * alpha over the pixels, 0 if none.
 
     pixels: optional (M, 2) integer array of (column, row) to evaluate; the outputs are then (M, ...)
     instead of (H, W, ...).
@@ -35,6 +36,7 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     depth_sum = np.zeros(m)
     counts = np.zeros(m, dtype=np.int64)
     done = np.zeros(m, bool)
+    max_weight = np.zeros(len(cloud))
     chunk = max(1, 4_000_000 // max(m, 1))
     for start in range(0, len(splats["z"]), chunk):
         sl = slice(start, start + chunk)
@@ -54,6 +56,7 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
             color += w[:, None] * splats["color"][start + k]
             depth_sum += w * splats["z"][start + k]
             counts += use
+            max_weight[splats["index"][start + k]] = w.max(initial=0.0)
             trans = np.where(use, test, trans)
 
     alpha = 1.0 - trans
@@ -65,12 +68,13 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     }
     if pixels is None:
         out = {k: v.reshape((camera.height, camera.width) + v.shape[1:]) for k, v in out.items()}
+    out["max_weight"] = max_weight
     return out
 
 
 def _project_all(cloud, camera, mode):
-    """Per-splat pixel mean, 2D conic, opacity, colour and depth of the splats in front of the
-    camera, sorted by depth with ties in index order."""
+    """Per-splat pixel mean, 2D conic, opacity, colour, depth and cloud index of the splats in
+    front of the camera, sorted by depth with ties in index order."""
     fields = (cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits[:, None],
               cloud.sh.reshape(len(cloud), -1))
     finite = np.all([np.isfinite(f).all(axis=1) for f in fields], axis=0)
@@ -117,4 +121,4 @@ def _project_all(cloud, camera, mode):
     conic = np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
                       np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], 1) / det[:, None, None]
     color = sh.colors(cloud.sh[idx], directions) if n else np.zeros((0, 3))
-    return {"mean": mean, "conic": conic, "opacity": opacity, "color": color, "z": z}
+    return {"mean": mean, "conic": conic, "opacity": opacity, "color": color, "z": z, "index": idx}

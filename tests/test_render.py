@@ -241,6 +241,84 @@ def test_progress_reports_every_tile():
     assert all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))
 
 
+# per-splat weights ---------------------------------------------------------------------------------
+
+def assert_weights_match_reference(cloud, camera, atol=2e-6, **options):
+    """max_weight against the reference's float64 per-splat maximum of T * alpha, and the image
+    unchanged by asking for it."""
+    got = render(cloud, camera, return_weights=True, **options)
+    ref = reference_render(cloud, camera, mode=options.get("mode", "classic"), t_min=options.get("t_min", 1e-4))
+    assert got.max_weight.shape == (len(cloud),) and got.max_weight.dtype == np.float32
+    assert np.isfinite(got.max_weight).all()
+    np.testing.assert_array_equal(got.max_weight > 0, ref["max_weight"] > 0)
+    np.testing.assert_allclose(got.max_weight, ref["max_weight"], rtol=0, atol=atol)
+    plain = render(cloud, camera, **options)
+    assert plain.max_weight is None
+    np.testing.assert_array_equal(got.color, plain.color)
+    return got.max_weight, ref["max_weight"]
+
+
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+@pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
+def test_max_weights_match_the_float64_reference(mode, make_camera):
+    got, want = assert_weights_match_reference(scene(seed=20), make_camera(), mode=mode)
+    assert (want > 0.5).any() and (want > 0).sum() > 100 and (want == 0).any()
+
+
+@pytest.mark.parametrize("options", [{"tile_size": 7, "wave": 3}, {"tile_size": 1}, {"threads": 1},
+                                     {"precision": "float64"}, {"t_min": 0.0}])
+def test_max_weights_do_not_depend_on_speed_options(options):
+    atol = 1e-7 if options.get("precision") == "float64" else 2e-6     # float64: float32 output rounding
+    assert_weights_match_reference(scene(seed=21), perspective(61, 45), atol=atol, **options)
+
+
+def test_max_weights_follow_the_stop_rule_and_skip_hidden_faint_and_broken_splats():
+    """A pile of splats, half clamped at alpha 0.99, in front of three broad layers of opacity 0.98
+    filling the view: every pixel stops before the third layer (0.02^3 < 1e-4), so it and the
+    splats behind it get no weight. Then one splat too faint for 1/255, one behind the camera, one
+    off-image and one with NaN."""
+    rng = np.random.default_rng(22)
+    n = 80
+    pile = SplatCloud.from_activated(
+        positions=np.column_stack([rng.normal(0, 0.1, n), rng.normal(0, 0.1, n), rng.uniform(2.5, 3.5, n)]),
+        rotations=rng.normal(size=(n, 4)), scales=np.exp(rng.uniform(-2.5, -1.5, (n, 3))),
+        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
+    pile.opacity_logits[: n // 2] = 1e4
+    back = SplatCloud.from_activated(
+        positions=[[0, 0, 4.0], [0, 0, 4.1], [0, 0, 4.2], [0, 0, 4.5], [0.1, 0.1, 4.6],
+                   [0.3, 0.2, 2.0], [0, 0, -2.0], [9.0, 0, 3.0], [np.nan, 0, 3.0]],
+        rotations=np.tile([1.0, 0, 0, 0], (9, 1)), scales=[[100.0] * 3] * 3 + [[0.02] * 3] * 6,
+        opacities=[0.98] * 3 + [0.9] * 2 + [1 / 300, 0.9, 0.9, 0.9], colors=np.full((9, 3), 0.5))
+    cloud = SplatCloud.concatenate([pile, back])
+    cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=30, width=40, height=36)
+    with np.errstate(invalid="ignore"):
+        got, want = assert_weights_match_reference(cloud, cam)
+        unstopped = reference_render(cloud, cam, t_min=0.0)["max_weight"]
+    assert (want[:n + 2] > 0).all() and (want[n + 2:] == 0).all()
+    assert (unstopped[n + 2:n + 5] > 0).all()           # seen but for the stop rule
+    assert not got[n + 2:].any()
+
+
+def test_max_weights_of_an_empty_or_unseen_cloud_are_zero():
+    for cloud in (SplatCloud.empty(3), scene(seed=23, center=(0, 0, 30))):      # behind the camera
+        got = render(cloud, perspective(), return_weights=True)
+        assert got.max_weight.shape == (len(cloud),) and not got.max_weight.any()
+
+
+def test_max_weights_count_only_pixels_inside_the_image():
+    """Splats centred just beyond the right and bottom edges of an image that is not a whole number
+    of tiles: their peak lies in the last tiles' pixels outside the image, which must not count."""
+    cam = Camera.look_at_ortho((0, 0, 0), (0, 0, 1), up=(0, -1, 0), ortho_scale=2.0, width=61, height=45)
+    pixel = 2.0 / 61
+    edge = [[30.5 * pixel + 1.2 * pixel, 0.0, 2.0], [0.0, 22.5 * pixel + 1.2 * pixel, 2.0]]
+    cloud = SplatCloud.from_activated(edge, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), pixel),
+                                      np.full(2, 0.9), colors=np.full((2, 3), 0.5))
+    pixels, _ = cam.project(cloud.positions)
+    assert pixels[0, 0] > 61 and pixels[1, 1] > 45                   # both centres outside
+    got, want = assert_weights_match_reference(cloud, cam)
+    assert (want > 0).all() and (want < 0.5 * 0.9).all()             # well below the peak alpha
+
+
 # images -----------------------------------------------------------------------------------------
 
 def test_png_and_exr_hold_what_was_rendered(tmp_path):
