@@ -2,7 +2,8 @@
 
     ./run bench            all topics, full size
     ./run bench --quick    smaller inputs, for a smoke test
-    ./run bench render ply only these topics
+    ./run bench render ply only these topics (their sections of an existing report are replaced,
+                           the others kept)
 """
 
 import argparse
@@ -72,6 +73,17 @@ def plot(topic, rows, out_dir):
     return name
 
 
+def _merge_with_existing(report, sections):
+    """Keep the existing report's sections for topics not run this time, in topic order."""
+    fresh = {sec.split("\n", 1)[0][3:].strip(): sec for sec in sections}
+    old = {}
+    if report.exists():
+        for part in report.read_text().split("\n## ")[1:]:
+            old[part.split("\n", 1)[0].strip()] = "## " + part.rstrip() + "\n"
+    merged = {**old, **fresh}
+    return [merged[t] for t in sorted(merged)]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("topics", nargs="*", help=f"default: all of {', '.join(topics())}")
@@ -79,6 +91,7 @@ def main(argv=None):
     parser.add_argument("--report", default=str(HERE / "REPORT.md"))
     args = parser.parse_args(argv)
     report = Path(args.report)
+    report.parent.mkdir(parents=True, exist_ok=True)
     sections, failed = [], []
     for topic in args.topics or topics():
         print(f"== {topic}", flush=True)
@@ -93,9 +106,10 @@ def main(argv=None):
         section = f"## {topic}\n\n{table(rows)}\n"
         if png:
             section += f"\n![{topic}]({png})\n"
-        sections.append(section + f"\n_{time.perf_counter() - t0:.0f} s for this topic._\n")
-    header = (f"# Benchmark report\n\nMachine: {machine()}. Generated {time.strftime('%Y-%m-%d %H:%M')}"
-              f"{' (quick sizes)' if args.quick else ''} by `./run bench`. Every time is the median of "
+        sections.append(section + f"\n_{time.perf_counter() - t0:.0f} s for this topic, measured "
+                        f"{time.strftime('%Y-%m-%d %H:%M')}{' at quick sizes' if args.quick else ''}._\n")
+    sections = _merge_with_existing(report, sections)
+    header = (f"# Benchmark report\n\nMachine: {machine()}. Written by `./run bench`. Every time is the median of "
               "several runs, ± half their range; speed-up is baseline time / our time, both measured in "
               "this run.\n")
     report.write_text(header + "\n" + "\n".join(sections))
