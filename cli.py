@@ -261,7 +261,8 @@ def _add_mesh2splats(p):
     size = p.add_mutually_exclusive_group()
     size.add_argument("--max-splats", type=int, metavar="N", help="a splat budget, spread by area")
     size.add_argument("--target-psnr", type=float, metavar="DB",
-                      help=f"refine until renders reach this PSNR against the mesh (default {DEFAULT_TARGET_PSNR:g})")
+                      help=f"refine until renders from every view reach this PSNR against the mesh's "
+                           f"(default {DEFAULT_TARGET_PSNR:g})")
     p.add_argument("--view-size", type=int, default=256, help="pixels per side of the views PSNR is measured in")
     p.add_argument("--mode", choices=("classic", "antialiased"), default="classic",
                    help="the render mode the splats are sized for")
@@ -275,14 +276,18 @@ def _run_mesh2splats(args):
     mesh = read_mesh(args.mesh)
     info = {}
     try:
-        cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), max_splats=args.max_splats,
-                               target_psnr=args.target_psnr, view_size=args.view_size, render_mode=args.mode,
-                               progress=Progress(), info=info)
+        cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(),
+                               max_splats=args.max_splats, target_psnr=args.target_psnr,
+                               view_size=args.view_size, render_mode=args.mode, progress=Progress(), info=info)
     except ValueError as exc:
         raise SplatFileError(args.mesh, str(exc)) from None
     write_splats(args.output, cloud)
     skipped = info.get("repaired")
-    quality = f", {info['psnr']:.1f} dB PSNR over {info['views']} views" if "psnr" in info else ""
+    quality = ""
+    if "psnr" in info:
+        quality = f", {info['psnr']:.1f} dB PSNR in the worst of {info['views']} views"
+    if info.get("reached") is False:
+        quality += f" (target {info['target_psnr']:g} dB not reached)"
     print(f"wrote {len(cloud)} splats from {len(mesh.faces)} faces{quality} to {args.output} in "
           f"{time.perf_counter() - start:.1f} s" + (f" (skipped or repaired: {skipped})" if skipped else ""))
     return 0

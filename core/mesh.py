@@ -1,0 +1,390 @@
+"""Triangle meshes with unlit appearance: the input of mesh-to-splats and of the mesh rasteriser.
+
+Colour spaces (every input is stated here once, and converted once):
+- `Material.base_color` and per-corner/vertex colours are scene-linear RGB, as Blender's Base Color
+  socket and colour attributes (`.color`) hold them and as Blender's OBJ importer treats MTL `Kd`.
+- `Material.texture` carries its own colour space: `texture_srgb=True` for sRGB-encoded images
+  (8-bit PNG/JPEG, Blender colourspace 'sRGB'), False for linear data ('Linear Rec.709', float EXR).
+  Texels are decoded to linear once and filtered in linear, as a renderer does.
+- The surface colour is linear: (texture if the material has one, else base_color) * corner colour.
+  Display sRGB (what splat SH hold) is `color.linear_to_srgb(clip(linear, 0, 1))`, which is what an
+  emission shader shows under Blender's 'Standard' view transform.
+"""
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import color
+
+# A triangle whose area is below this fraction of its longest edge squared has no usable normal.
+DEGENERATE_RATIO = 1e-10
+
+
+@dataclass(eq=False)
+class Material:
+    """Unlit appearance of one material.
+
+    base_color: scene-linear RGB. texture: optional image (H,W,3|4), uint8/uint16 or float, row 0
+    at the top (v = 1), sampled bilinearly with repeat wrapping at texel centres; alpha is ignored.
+    uv_scale, uv_offset: the texture is looked up at uv * uv_scale + uv_offset.
+    rim_color: optional scene-linear RGB seen at grazing angles: the colour is
+    mix(surface, rim_color, 1 - |cos(view, normal)|), a view-dependent 'facing' blend.
+    """
+
+    base_color: tuple = (0.8, 0.8, 0.8)
+    texture: np.ndarray | None = None
+    texture_srgb: bool = True
+    uv_scale: tuple = (1.0, 1.0)
+    uv_offset: tuple = (0.0, 0.0)
+    rim_color: tuple | None = None
+    name: str = ""
+    _linear: np.ndarray | None = field(default=None, repr=False)
+    _mips: list | None = field(default=None, repr=False)
+
+    def linear_texture(self):
+        """The texture as float32 linear RGB (H,W,3), decoded once and cached."""
+        if self.texture is None:
+            return None
+        if self._linear is None:
+            self._linear = decode_texture(self.texture, self.texture_srgb)
+        return self._linear
+
+    def mipmap(self):
+        """The linear texture and its 2x2 box-filtered reductions down to one texel, cached."""
+        if self._mips is None:
+            levels = [self.linear_texture()]
+            while max(levels[-1].shape[:2]) > 1:
+                a = levels[-1]
+                a = np.pad(a, ((0, a.shape[0] % 2), (0, a.shape[1] % 2), (0, 0)), mode="edge")
+                levels.append(0.25 * (a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]))
+            self._mips = levels
+        return self._mips
+
+    @property
+    def view_dependent(self):
+        return self.rim_color is not None
+
+
+def decode_texture(image, srgb=True):
+    """Image array -> float32 linear RGB (H,W,3); integer images are scaled by their type's maximum."""
+    img = np.asarray(image)
+    if img.ndim == 2:
+        img = img[:, :, None]
+    if img.ndim != 3 or img.shape[2] not in (1, 2, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"texture has shape {img.shape}, expected (H, W, 1..4)")
+    if np.issubdtype(img.dtype, np.integer):
+        rgb = img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
+    else:
+        rgb = np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    channels = rgb.shape[2]
+    rgb = rgb[:, :, :1].repeat(3, axis=2) if channels <= 2 else rgb[:, :, :3]
+    if srgb:
+        rgb = color.srgb_to_linear(rgb).astype(np.float32)
+    return np.ascontiguousarray(rgb)
+
+
+def sample_texture(texture, uv):
+    """Bilinear lookup with repeat wrapping: (H,W,C) texture, (n,2) uv with v up -> (n,C) float64."""
+    h, w = texture.shape[:2]
+    x = np.asarray(uv[:, 0], np.float64) * w - 0.5
+    y = (1.0 - np.asarray(uv[:, 1], np.float64)) * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0 = x0.astype(np.int64) % w
+    y0 = y0.astype(np.int64) % h
+    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+    top = texture[y0, x0] * (1 - fx) + texture[y0, x1] * fx
+    bottom = texture[y1, x0] * (1 - fx) + texture[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def sample_mipmap(levels, uv, level):
+    """Trilinear lookup: bilinear in the two mip levels around `level` (n,), blended."""
+    level = np.clip(level, 0.0, len(levels) - 1.0)
+    lo = np.floor(level).astype(np.int64)
+    frac = level - lo
+    out = np.empty((len(uv), levels[0].shape[2]))
+    present = np.flatnonzero(np.bincount(lo, minlength=len(levels)))
+    for k in present:
+        sel = slice(None) if len(present) == 1 else np.flatnonzero(lo == k)
+        value = sample_texture(levels[k], uv[sel])
+        blend = np.flatnonzero(frac[sel] > 0)          # only where the footprint is between levels
+        if len(blend):
+            f = frac[sel][blend, None]
+            above = sample_texture(levels[min(k + 1, len(levels) - 1)], uv[sel][blend])
+            value[blend] = value[blend] * (1 - f) + above * f
+        out[sel] = value
+    return out
+
+
+@dataclass(eq=False)
+class Mesh:
+    """A triangle mesh and its appearance, as `mesh_to_splats` and `render_mesh` take them.
+
+    vertices (V,3); faces (F,3) int; corner_uvs (F,3,2) or None; face_materials (F,) int or None
+    (index into materials; out of range means the default material); materials: list of Material;
+    corner_colors (F,3,3) per corner or (V,3) per vertex, scene-linear, or None.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    corner_uvs: np.ndarray | None = None
+    face_materials: np.ndarray | None = None
+    materials: list = field(default_factory=list)
+    corner_colors: np.ndarray | None = None
+
+    def appearance(self):
+        """The keyword arguments mesh_to_splats and render_mesh take besides vertices and faces."""
+        return dict(corner_uvs=self.corner_uvs, face_materials=self.face_materials,
+                    materials=self.materials, corner_colors=self.corner_colors)
+
+
+class Surface:
+    """A validated mesh ready for sampling: float64 geometry, per-face areas, normals and materials.
+
+    Degenerate faces (zero or numerically zero area, non-finite vertices) are kept in the arrays
+    but marked in `valid`; `report` counts what was skipped or repaired.
+    """
+
+    def __init__(self, vertices, faces, corner_uvs=None, face_materials=None, materials=None,
+                 corner_colors=None):
+        self.report, self._cache = {}, {}
+        self.vertices = _as_array(vertices, "vertices", (None, 3), np.float64)
+        self.faces = _faces(faces, len(self.vertices))
+        f = len(self.faces)
+        corners = self.vertices[self.faces]                       # (F,3,3)
+        self.origin = corners[:, 0]
+        self.edge1 = corners[:, 1] - corners[:, 0]
+        self.edge2 = corners[:, 2] - corners[:, 0]
+        with np.errstate(invalid="ignore", over="ignore"):
+            cross = np.cross(self.edge1, self.edge2)
+            double_area = np.linalg.norm(cross, axis=1)
+            longest2 = np.max(np.stack([np.einsum("ij,ij->i", e, e) for e in
+                                        (self.edge1, self.edge2, self.edge2 - self.edge1)]), axis=0)
+            finite = np.isfinite(corners).all(axis=(1, 2)) & np.isfinite(double_area) & np.isfinite(longest2)
+            self.valid = finite & (double_area > DEGENERATE_RATIO * 2 * longest2) & (double_area > 0)
+        self.area = np.where(self.valid, 0.5 * double_area, 0.0)
+        safe = np.where(self.valid, double_area, 1.0)[:, None]
+        self.normal = np.where(self.valid[:, None], cross / safe, 0.0)
+        self.normal[~self.valid, 2] = 1.0
+        self._count("non-finite vertices", ~finite)
+        self._count("zero-area faces", finite & ~self.valid)
+        self.materials = list(materials) if materials else [Material()]
+        self.face_materials = self._face_materials(face_materials, f)
+        self.corner_uvs = self._uvs(corner_uvs, f)
+        self.corner_colors = self._corner_colors(corner_colors, f)
+        if self.corner_uvs is None and any(m.texture is not None for m in self.materials):
+            self.report["textured faces without UVs (base colour used)"] = int(self.valid.sum())
+            warnings.warn("mesh has textured materials but no UVs: using the materials' base colours")
+
+    # validation helpers -------------------------------------------------------------------------
+
+    def _count(self, what, mask):
+        n = int(np.count_nonzero(mask))
+        if n:
+            self.report[what] = n
+
+    def _face_materials(self, face_materials, f):
+        if face_materials is None:
+            return np.zeros(f, np.int64)
+        fm = _as_array(face_materials, "face_materials", (f,), np.int64)
+        bad = (fm < 0) | (fm >= len(self.materials))
+        self._count("faces with an unknown material (default used)", bad)
+        return np.where(bad, 0, fm)
+
+    def _uvs(self, corner_uvs, f):
+        if corner_uvs is None:
+            return None
+        uv = _as_array(corner_uvs, "corner_uvs", (f, 3, 2), np.float64)
+        bad = ~np.isfinite(uv).all(axis=(1, 2))
+        self._count("faces with non-finite UVs (set to 0)", bad)
+        return np.where(np.isfinite(uv), uv, 0.0)
+
+    def _corner_colors(self, corner_colors, f):
+        if corner_colors is None:
+            return None
+        c = np.asarray(corner_colors, np.float64)
+        if c.ndim == 2 and c.shape[0] == len(self.vertices) and c.shape[1] in (3, 4):
+            c = c[self.faces]                                     # per vertex -> per corner
+        if c.ndim != 3 or c.shape[:2] != (f, 3) or c.shape[2] not in (3, 4):
+            raise ValueError(f"corner_colors has shape {c.shape}, expected ({f}, 3, 3) per corner "
+                             f"or ({len(self.vertices)}, 3) per vertex")
+        c = c[:, :, :3]
+        self._count("faces with non-finite colours (set to 0)", ~np.isfinite(c).all(axis=(1, 2)))
+        return np.where(np.isfinite(c), np.maximum(c, 0.0), 0.0)
+
+    # queries ----------------------------------------------------------------------------------
+
+    @property
+    def view_dependent(self):
+        return any(m.view_dependent for m in self.materials)
+
+    def points(self, tri, bary):
+        """World positions (n,3) float64 of barycentric points (n,3) on faces tri (n,)."""
+        return self.origin[tri] + bary[:, 1:2] * self.edge1[tri] + bary[:, 2:3] * self.edge2[tri]
+
+    def linear_colors(self, tri, bary, footprint=None):
+        """Scene-linear surface colour (n,3) float64 at barycentric points on faces tri.
+
+        `footprint` (n,) is the world-space width each point stands for (a splat's share of the
+        surface); textures are then averaged over it (trilinear mipmap lookup), so a splat
+        covering many texels shows their mean rather than whichever texel its centre hits.
+        """
+        out = np.empty((len(tri), 3))
+        mat = self.face_materials[tri]
+        uv = None
+        if self.corner_uvs is not None:
+            uv = np.einsum("nk,nkc->nc", bary, self.corner_uvs[tri])
+        for m, material in enumerate(self.materials):
+            sel = np.flatnonzero(mat == m) if len(self.materials) > 1 else slice(None)
+            if material.texture is not None and uv is not None:
+                scale = np.asarray(material.uv_scale, float)
+                lookup = uv[sel] * scale + np.asarray(material.uv_offset, float)
+                if footprint is None:
+                    out[sel] = sample_texture(material.linear_texture(), lookup)
+                else:
+                    texels = footprint[sel] * self._texel_density(material, scale)[tri[sel]]
+                    out[sel] = sample_mipmap(material.mipmap(), lookup, np.log2(np.maximum(texels, 1.0)))
+            else:
+                out[sel] = np.asarray(material.base_color, np.float64)[:3]
+        if self.corner_colors is not None:
+            out *= np.einsum("nk,nkc->nc", bary, self.corner_colors[tri])
+        return np.maximum(out, 0.0)
+
+    def _texel_density(self, material, uv_scale):
+        """Texels per world unit on each face for a material's texture (square root of the ratio
+        of the face's areas in texels and in world units)."""
+        h, w = material.texture.shape[:2]
+        uv = self.corner_uvs * uv_scale
+        d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        texel_area = 0.5 * np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]) * w * h
+        return np.sqrt(texel_area / np.where(self.area > 0, self.area, np.inf))
+
+    def welded_faces(self):
+        """Faces with vertices that coincide in position merged (UV and normal seams closed)."""
+        if "welded" not in self._cache:
+            _, weld = np.unique(_weld_keys(self.vertices), axis=0, return_inverse=True)
+            self._cache["welded"] = weld.reshape(-1)[self.faces]
+        return self._cache["welded"]
+
+    def sharp_edges(self, angle_deg=25.0):
+        """(F,3) bool: edge k of a face (opposite corner k) is an outline edge: on the boundary,
+        shared by more than two faces, or a crease whose faces turn by more than `angle_deg`."""
+        key = ("_sharp", angle_deg)
+        if key not in self._cache:
+            self._cache[key] = self._sharp_edges(angle_deg)
+        return self._cache[key]
+
+    def _sharp_edges(self, angle_deg):
+        welded = self.welded_faces()
+        a, b = welded[:, [1, 2, 0]], welded[:, [2, 0, 1]]
+        n = np.int64(len(self.vertices))
+        _, inverse = np.unique((np.minimum(a, b) * n + np.maximum(a, b)).ravel(), return_inverse=True)
+        uses = np.bincount(inverse, weights=np.repeat(self.valid, 3))
+        normals = np.where(self.valid[:, None], self.normal, 0.0)
+        total = np.zeros((len(uses), 3))
+        np.add.at(total, inverse, np.repeat(normals, 3, axis=0))
+        other = total[inverse] - np.repeat(normals, 3, axis=0)        # the neighbour across the edge
+        turn = np.einsum("ij,ij->i", other, np.repeat(normals, 3, axis=0))
+        sharp = (uses[inverse] != 2) | (turn < np.cos(np.radians(angle_deg)))
+        return sharp.reshape(-1, 3) & self.valid[:, None]
+
+    def outward_signs(self):
+        """Per face +1 or -1 so that sign * normal points out of the solid, 0 where there is no solid.
+
+        Computed per connected part (vertices welded by position): a part is a solid when it is
+        closed (every edge shared by exactly two faces) and consistently wound (each edge used once
+        in each direction); the sign of its enclosed volume then tells outward from inward.
+        """
+        faces = self.welded_faces()
+        part = _connected_parts(faces, len(self.vertices))
+        n_vertices = np.int64(len(self.vertices))
+        a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
+        edge_part = np.repeat(part, 3)
+        directed, dcount = np.unique(a * n_vertices + b, return_counts=True)
+        _, inverse, counts = np.unique(np.minimum(a, b) * n_vertices + np.maximum(a, b),
+                                       return_inverse=True, return_counts=True)
+        once = dcount[np.searchsorted(directed, a * n_vertices + b)] == 1
+        # Closed and consistently wound: each edge has exactly two uses, one in each direction.
+        good_edge = (counts[inverse] == 2) & once & np.isin(b * n_vertices + a, directed) & (a != b)
+        n_parts = part.max() + 1 if len(part) else 0
+        solid = np.bincount(edge_part, weights=~good_edge, minlength=n_parts) == 0
+        corners = self.vertices[self.faces]
+        center = corners.reshape(-1, 3).mean(axis=0) if len(corners) else np.zeros(3)
+        c = np.where(np.isfinite(corners), corners - center, 0.0)
+        volume = np.bincount(part, weights=np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])),
+                             minlength=n_parts)
+        sign = np.where(solid & (volume != 0), np.sign(volume), 0.0)
+        return sign[part] * self.valid
+
+    def rim_colors(self, tri):
+        """Per-point rim colour (n,3) and a mask of points whose material has one."""
+        rims = np.array([m.rim_color if m.view_dependent else (0, 0, 0) for m in self.materials], np.float64)
+        has = np.array([m.view_dependent for m in self.materials])
+        mat = self.face_materials[tri]
+        return rims[mat, :3], has[mat]
+
+
+def shade(base_linear, rim_linear, has_rim, cos_view):
+    """Linear colour seen at |cos(view, normal)| = cos_view: the facing blend for rim materials."""
+    facing = np.where(has_rim, 1.0 - np.abs(cos_view), 0.0)[..., None]
+    return base_linear * (1.0 - facing) + rim_linear * facing
+
+
+def to_display(linear):
+    """Scene-linear -> display sRGB as an emission shader shows it under the 'Standard' view."""
+    return color.linear_to_srgb(np.clip(linear, 0.0, 1.0))
+
+
+def _weld_keys(vertices, tolerance=1e-9):
+    """Integer keys equal for vertices that coincide to `tolerance` times the mesh size."""
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.any():
+        return np.zeros((len(vertices), 3), np.int64)
+    lo, hi = vertices[finite].min(axis=0), vertices[finite].max(axis=0)
+    step = tolerance * max(float(np.max(hi - lo)), 1e-300)
+    keys = np.round((np.where(finite[:, None], vertices, lo) - lo) / step)
+    return np.where(finite[:, None], keys, -1 - np.arange(len(vertices))[:, None]).astype(np.int64)
+
+
+def _connected_parts(faces, n_vertices):
+    """Part label per face: faces sharing a vertex belong to one part (label propagation with
+    pointer jumping, vectorised over faces)."""
+    label = np.arange(n_vertices)
+    flat = faces.ravel()
+    while True:
+        face_min = label[faces].min(axis=1)
+        new = label.copy()
+        np.minimum.at(new, flat, np.repeat(face_min, 3))
+        new = new[new]
+        if np.array_equal(new, label):
+            break
+        label = new
+    if not len(faces):
+        return np.zeros(0, np.int64)
+    return np.unique(label[faces[:, 0]], return_inverse=True)[1].reshape(-1)
+
+
+def _as_array(value, name, shape, dtype):
+    a = np.asarray(value)
+    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name} has shape {a.shape}, expected {want}")
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise ValueError(f"{name} has dtype {a.dtype}, expected numbers")
+    if np.issubdtype(dtype, np.integer) and not np.issubdtype(a.dtype, np.integer):
+        if a.size and not np.array_equal(a, np.round(a)):
+            raise ValueError(f"{name} holds non-integer values")
+    return a.astype(dtype)
+
+
+def _faces(faces, n_vertices):
+    f = _as_array(faces, "faces", (None, 3), np.int64)
+    bad = (f < 0) | (f >= n_vertices)
+    if bad.any():
+        row = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise ValueError(f"faces: face {row} refers to vertex {int(f[row][bad[row]][0])}, but there are "
+                         f"{n_vertices} vertices ({int(bad.any(axis=1).sum())} faces out of range)")
+    return f

@@ -1,0 +1,296 @@
+"""Mesh to splats: flat Gaussians lying in the surface, spent where the mesh needs them.
+
+Counts: every face gets a density (splats per unit area). Its expected count, density * area, is
+made an integer by systematic sampling along a Morton curve through the face centroids: counts
+are proportional to area to within one splat per face, and faces smaller than a splat share
+splats with their spatial neighbours instead of each tossing a coin (no clumps, no holes).
+Points: inside a face, the centroids of an equal-area longest-edge bisection into `count`
+pieces (measured in the face's own metric, so slivers are cut across and stay covered).
+Shape: a disc of standard deviation `overlap / sqrt(density)` in the face plane and `thickness`
+times that along the normal, narrowed across nearby outline edges (boundaries, creases) so it
+does not reach into the air past them. Colour: the surface colour at the point, as display sRGB
+SH; degree 2 for view-dependent (rim) materials, else degree 0.
+
+Sizing: a budget (`max_splats`) spreads one density over the whole surface; a target PSNR lets
+core/mesh_refine.py choose the density per face from the render error against the mesh.
+"""
+
+import numpy as np
+
+from . import geometry, sh as shmod
+from .mesh import Surface, shade, to_display
+from .splats import SplatCloud, logit
+
+DEFAULT_TARGET_PSNR = 36.0
+EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
+MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
+
+
+def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
+                   corner_colors=None, max_splats=None, target_psnr=None, progress=None,
+                   overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
+                   render_mode="classic", info=None):
+    """Convert a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
+
+    vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
+    `materials` (a list of core.mesh.Material); corner_colors (F,3,3) or (V,3), scene-linear.
+    core/mesh.py states the colour space of every input.
+
+    Size: `max_splats` alone is a budget (exactly that many splats, spread by area); given
+    `views` too, the silhouettes of closed parts are also calibrated for those cameras.
+    `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
+    the mesh rendered by core.mesh_render in every one of `views` (default: eight cameras around
+    the mesh at `view_size` pixels, black background; see core/mesh_refine.py), with `max_splats`
+    as a cap. With neither, the target is DEFAULT_TARGET_PSNR.
+    Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
+    surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
+    `progress(done, total, label)` is called as work proceeds; `info`, if a dict, receives
+    "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
+    (the worst view), "psnr_all_views", "inset_pixels", "views" and (target mode) "reached".
+
+    Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
+    "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
+    source_triangle, k]] + normal_offset * (unit normal of the face's winding). The offset is 0
+    without views; with views, closed surfaces are pulled in by about a pixel of the views.
+    Degenerate faces (zero area, non-finite vertices) get no splats; ValueError for malformed
+    arrays or a mesh without any face of positive area.
+    """
+    surface = Surface(vertices, faces, corner_uvs, face_materials, materials, corner_colors)
+    if not surface.valid.any():
+        raise ValueError(f"mesh has no face with positive area ({len(surface.faces)} faces, "
+                         f"{len(surface.vertices)} vertices)")
+    if max_splats is not None and int(max_splats) < 1:
+        raise ValueError(f"max_splats must be at least 1, got {max_splats}")
+    style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
+    if target_psnr is None and max_splats is not None and views is None:
+        cloud = build_splats(surface, _uniform_density(surface, int(max_splats)), **style)
+        if progress:
+            progress(1, 1, "mesh2splats")
+    else:
+        from .mesh_refine import refine_to_target
+        budget_only = target_psnr is None and max_splats is not None
+        target = DEFAULT_TARGET_PSNR if target_psnr is None else float(target_psnr)
+        cloud = refine_to_target(surface, np.inf if budget_only else target, max_splats, views, view_size,
+                                 render_mode, progress, info, style, uniform=budget_only)
+    if isinstance(info, dict):
+        info.update(splats=len(cloud), repaired=dict(surface.report))
+    return cloud
+
+
+def _uniform_density(surface, count):
+    return np.where(surface.valid, count / surface.area.sum(), 0.0)
+
+
+def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
+                 offset=None):
+    """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
+    `offset` (world units, default 0) along its unit normal."""
+    expected = density * surface.area
+    if max_splats is not None and expected.sum() > max_splats:
+        expected *= max_splats / expected.sum()
+    counts = systematic_counts(expected, morton_order(surface.origin + (surface.edge1 + surface.edge2) / 3),
+                               np.random.default_rng(seed))
+    offset = np.zeros(len(counts)) if offset is None else np.asarray(offset, np.float64)
+    tri, bary = bisection_samples(surface, counts)
+    return _cloud(surface, tri, bary, density[tri], offset[tri], _face_rotations(surface)[tri],
+                  overlap, opacity, thickness)
+
+
+# counts per face ---------------------------------------------------------------------------------
+
+def morton_order(points):
+    """Indices sorting points along a 3D Morton (Z-order) curve, 21 bits per axis."""
+    p = np.asarray(points, np.float64)
+    finite = np.isfinite(p).all(axis=1)
+    if not finite.any():
+        return np.arange(len(p))
+    lo, hi = p[finite].min(axis=0), p[finite].max(axis=0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    q = np.where(finite[:, None], (p - lo) / span, 0.0)
+    q = np.clip(q * (2**21 - 1), 0, 2**21 - 1).astype(np.uint64)
+    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) \
+        | (_spread_bits(q[:, 2]) << np.uint64(2))
+    return np.argsort(code, kind="stable")
+
+
+def _spread_bits(x):
+    """Insert two zero bits between each of the low 21 bits (the classic magic-number sequence)."""
+    x = x & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def systematic_counts(expected, order, rng):
+    """Integer counts with sum round(sum(expected)) and |count - expected| < 1 for every face.
+
+    One uniform offset u: count_i = floor(C_i + u) - floor(C_{i-1} + u) with C the running sum of
+    `expected` in `order`; neighbours along the order share fractional splats, so small faces are
+    covered by spatially stratified picks rather than independent coin flips.
+    """
+    e = np.asarray(expected, np.float64)[order]
+    total = e.sum()
+    running = np.cumsum(e)
+    running *= np.round(total) / total if total > 0 else 0.0
+    marks = np.floor(np.concatenate([[0.0], running]) + rng.uniform())
+    counts = np.empty(len(e), np.int64)
+    counts[order] = np.diff(marks).astype(np.int64)
+    return counts
+
+
+# points inside faces -----------------------------------------------------------------------------
+
+def bisection_samples(surface, counts):
+    """(tri (N,), bary (N,3)) with counts[f] points in face f: centroids of an equal-area bisection.
+
+    Pieces are tracked as their corners' (b1, b2) barycentric coordinates; a piece holding n > 1
+    points is cut across its longest edge (measured in the face's own metric) at the fraction
+    floor(n/2)/n, so both halves keep one point per equal share of area.
+    """
+    faces = np.flatnonzero(counts > 0)
+    gram = np.stack([np.einsum("ij,ij->i", surface.edge1, surface.edge1),
+                     np.einsum("ij,ij->i", surface.edge1, surface.edge2),
+                     np.einsum("ij,ij->i", surface.edge2, surface.edge2)], axis=1)
+    reference = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    tri, n, corners = faces, counts[faces], np.broadcast_to(reference, (len(faces), 3, 2)).copy()
+    out_tri, out_uv = [], []
+    while len(tri):
+        leaf = n == 1
+        out_tri.append(tri[leaf])
+        out_uv.append(corners[leaf].mean(axis=1))
+        tri, n, corners = tri[~leaf], n[~leaf], corners[~leaf]
+        if len(tri):
+            tri, n, corners = _bisect(tri, n, corners, gram[tri])
+    tri = np.concatenate(out_tri)
+    uv = np.concatenate(out_uv)
+    bary = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv])
+    return tri, np.clip(bary, 0.0, 1.0)
+
+
+def _longest_edge(corners, gram):
+    """Corners (a, b) of each piece's longest edge and the corner c opposite it."""
+    rows = np.arange(len(corners))
+    # Edge k joins corners k+1 and k+2 (mod 3); its length^2 in the face metric is d^T G d.
+    d = corners[:, [2, 0, 1]] - corners[:, [1, 2, 0]]
+    length2 = gram[:, None, 0] * d[..., 0] ** 2 + 2 * gram[:, None, 1] * d[..., 0] * d[..., 1] \
+        + gram[:, None, 2] * d[..., 1] ** 2
+    k = np.argmax(length2, axis=1)
+    return corners[rows, (k + 1) % 3], corners[rows, (k + 2) % 3], corners[rows, k]
+
+
+def _bisect(tri, n, corners, gram):
+    a, b, c = _longest_edge(corners, gram)
+    n1 = n // 2
+    m = a + (n1 / n)[:, None] * (b - a)
+    first = np.stack([a, m, c], axis=1)
+    second = np.stack([m, b, c], axis=1)
+    return (np.concatenate([tri, tri]), np.concatenate([n1, n - n1]), np.concatenate([first, second]))
+
+
+# splats ------------------------------------------------------------------------------------------
+
+def _cloud(surface, tri, bary, density, shift, rotations, overlap, opacity, thickness):
+    """Flat discs at the sample points: in-plane sigma overlap/sqrt(density), normal axis thin."""
+    n = len(tri)
+    positions = surface.points(tri, bary) + shift[:, None] * surface.normal[tri]
+    sigma = overlap / np.sqrt(density)
+    rotations, in_plane = _outline_frames(surface, tri, bary, sigma, rotations)
+    scales = np.column_stack([in_plane, thickness * sigma])
+    linear = surface.linear_colors(tri, bary, footprint=1.0 / np.sqrt(density))
+    if surface.view_dependent:
+        sh = _rim_sh(surface, tri, linear)
+    else:
+        sh = shmod.rgb_to_dc(to_display(linear))[:, None, :]
+    with np.errstate(divide="ignore"):
+        log_scales = np.log(scales)
+    return SplatCloud(positions, rotations, log_scales, np.full(n, logit(opacity)), sh,
+                      extras={"source_triangle": tri.astype(np.int32), "barycentric": bary.astype(np.float32),
+                              "normal_offset": shift.astype(np.float32)})
+
+
+def _outline_frames(surface, tri, bary, sigma, rotations):
+    """Rotations and in-plane scales (N,2), narrowed across nearby outline edges.
+
+    A disc near a boundary or a sharp crease would reach past it into the air and fatten the
+    silhouette; its spread across that edge is therefore kept below its distance to the edge
+    divided by EDGE_SOFTNESS (a rank-one update of the in-plane covariance per edge), so the
+    coverage falls to about one half on the edge itself, like an antialiased edge.
+    """
+    in_plane = np.column_stack([sigma, sigma])
+    near = surface.sharp_edges()[tri]
+    sel = np.flatnonzero(near.any(axis=1))
+    if not len(sel):
+        return rotations, in_plane
+    f, b, s = tri[sel], bary[sel], sigma[sel]
+    t1 = surface.edge1[f] / np.linalg.norm(surface.edge1[f], axis=1, keepdims=True)
+    t2 = np.cross(surface.normal[f], t1)
+    corners = np.zeros((len(f), 3, 2))                  # the face's corners in its own (t1, t2) frame
+    corners[:, 1, 0] = np.linalg.norm(surface.edge1[f], axis=1)
+    corners[:, 2] = np.column_stack([np.einsum("ij,ij->i", surface.edge2[f], t1),
+                                     np.einsum("ij,ij->i", surface.edge2[f], t2)])
+    cov = s[:, None, None] ** 2 * np.eye(2)
+    for k in range(3):
+        p, q = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+        length = np.linalg.norm(q - p, axis=1)
+        across = np.column_stack([p[:, 1] - q[:, 1], q[:, 0] - p[:, 0]]) / length[:, None]
+        across *= np.sign(np.einsum("ij,ij->i", across, corners[:, k] - p))[:, None]
+        limit = np.maximum(b[:, k] * 2 * surface.area[f] / length / EDGE_SOFTNESS, MIN_ACROSS * s)
+        spread = np.einsum("ni,nij,nj->n", across, cov, across)
+        keep = np.where(near[sel, k] & (spread > limit**2), limit**2 / spread, 1.0)
+        lever = np.einsum("nij,nj->ni", cov, across)
+        cov -= ((1 - keep) / spread)[:, None, None] * lever[:, :, None] * lever[:, None, :]
+    half_diff, mean = (cov[:, 0, 0] - cov[:, 1, 1]) / 2, (cov[:, 0, 0] + cov[:, 1, 1]) / 2
+    radius = np.hypot(half_diff, cov[:, 0, 1])
+    angle = 0.5 * np.arctan2(2 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
+    major = np.cos(angle)[:, None] * t1 + np.sin(angle)[:, None] * t2
+    minor = np.cross(surface.normal[f], major)
+    rotations = rotations.copy()
+    rotations[sel] = geometry.matrices_to_quaternions(np.stack([major, minor, surface.normal[f]], axis=2))
+    in_plane[sel] = np.sqrt(np.column_stack([mean + radius, np.maximum(mean - radius, 0.0)]))
+    return rotations, in_plane
+
+
+def _face_rotations(surface):
+    """w,x,y,z quaternions of the frames (first edge, normal x first edge, normal) of all faces."""
+    length = np.linalg.norm(surface.edge1, axis=1, keepdims=True)
+    t1 = np.where(surface.valid[:, None], surface.edge1 / np.where(length > 0, length, 1.0), [1.0, 0.0, 0.0])
+    normal = surface.normal
+    t2 = np.cross(normal, t1)
+    return geometry.matrices_to_quaternions(np.stack([t1, t2, normal], axis=2))
+
+
+# view-dependent materials: the facing blend projected onto SH ------------------------------------
+
+def _legendre_weights(degree=2, nodes=64):
+    """lambda_l = 2 pi * integral of g(t) P_l(t) over [-1, 1] as Gauss-Legendre weights per node.
+
+    Split at t = 0 because the facing blend has a kink in |t| there.
+    """
+    x, w = np.polynomial.legendre.leggauss(nodes)
+    t = np.concatenate([(x - 1) / 2, (x + 1) / 2])
+    wt = np.concatenate([w, w]) / 2
+    p = np.stack([np.polynomial.legendre.legval(t, np.eye(degree + 1)[l]) for l in range(degree + 1)])
+    return t, 2 * np.pi * p * wt                     # (Q,), (L+1, Q)
+
+
+def _rim_sh(surface, tri, base_linear, chunk=1 << 15):
+    """Degree-2 SH of the display colour g(n.d) = sRGB(mix(base, rim, 1 - |n.d|)) (Funk-Hecke).
+
+    A function of n.d alone projects to sh_lm = lambda_l Y_lm(n); |n.d| is even, so odd bands
+    vanish and degree 2 holds everything up to degree 3. Splats without a rim get their DC term.
+    """
+    sh = np.zeros((len(tri), 9, 3))
+    sh[:, 0] = shmod.rgb_to_dc(to_display(base_linear))
+    rim, has = surface.rim_colors(tri)
+    t, weights = _legendre_weights()
+    band = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
+    for start in range(0, len(tri), chunk):
+        sel = np.flatnonzero(has[start:start + chunk]) + start
+        if not len(sel):
+            continue
+        g = to_display(shade(base_linear[sel, None, :], rim[sel, None, :], True, t[None, :]))  # (n,Q,3)
+        lam = np.einsum("lq,nqc->nlc", weights, g)                                          # (n,3,3)
+        sh[sel] = lam[:, band, :] * shmod.basis(surface.normal[tri[sel]], 2)[:, :, None]
+        sh[sel, 0] -= 0.5 / shmod.C0                    # rgb = 0.5 + sum Y sh
+    return sh

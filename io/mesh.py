@@ -1,0 +1,230 @@
+"""Triangle meshes from Wavefront OBJ files with their MTL materials (diffuse colour and texture).
+
+`read_mesh(path) -> core.mesh.Mesh`. Polygons are fan-triangulated; negative (relative) indices,
+`v x y z r g b` vertex colours, `usemtl`/`mtllib` and line continuations are understood. Colour
+spaces follow Blender's OBJ importer: `Kd` is scene-linear, vertex colours are sRGB-encoded (and
+converted to linear here), `map_Kd` images are sRGB-encoded 8/16-bit images read with Pillow; its
+`-o` and `-s` options offset and scale the UVs. A texture replaces `Kd`, as in Blender.
+
+Malformed lines raise SplatFileError naming the file and line. A missing MTL file or texture
+image is reported with a warning and the material falls back to its `Kd` (or the default grey).
+"""
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..core import color
+from ..core.mesh import Material, Mesh
+from .common import SplatFileError
+
+# map_* options and how many numbers each takes (at most; -o/-s/-t take one to three).
+_MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
+                "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1, "-type": 1}
+
+
+def read_mesh(path):
+    """Read an OBJ file (and the MTL files and textures it names) into a core.mesh.Mesh."""
+    path = Path(path)
+    if not path.is_file():
+        raise SplatFileError(path, "no such file")
+    if path.suffix.lower() != ".obj":
+        raise SplatFileError(path, f"unknown mesh file extension '{path.suffix}' (known: .obj)")
+    return _ObjReader(path).read()
+
+
+class _ObjReader:
+    def __init__(self, path):
+        self.path = path
+        self.positions, self.colors, self.uvs = [], [], []
+        self.corner_v, self.corner_t, self.face_sizes, self.face_mat = [], [], [], []
+        self.materials, self.material_index, self.library = [], {}, {}
+        self.current = -1
+
+    def read(self):
+        text = self.path.read_text(encoding="utf-8", errors="replace")
+        text = text.replace("\\\r\n", " ").replace("\\\n", " ")          # line continuations
+        for number, line in enumerate(text.splitlines(), 1):
+            parts = line.split("#", 1)[0].split()
+            if parts:
+                try:
+                    self._line(parts)
+                except (ValueError, IndexError) as exc:
+                    raise SplatFileError(self.path, f"line {number}: {exc}: '{line.strip()[:80]}'") from None
+        return self._mesh()
+
+    def _line(self, parts):
+        key = parts[0]
+        if key == "v":
+            values = [float(p) for p in parts[1:]]
+            if len(values) < 3:
+                raise ValueError("a vertex needs x y z")
+            self.positions.append(values[:3])
+            self.colors.append(values[3:6] if len(values) >= 6 else None)
+        elif key == "vt":
+            values = [float(p) for p in parts[1:3]]
+            if not values:
+                raise ValueError("a texture coordinate needs u [v]")
+            self.uvs.append(values + [0.0] * (2 - len(values)))
+        elif key == "f":
+            self._face(parts[1:])
+        elif key == "usemtl":
+            self.current = self._material(" ".join(parts[1:]))
+        elif key == "mtllib":
+            self._library(" ".join(parts[1:]))
+
+    def _face(self, corners):
+        if len(corners) < 3:
+            raise ValueError(f"a face needs at least 3 corners, got {len(corners)}")
+        for corner in corners:
+            fields = corner.split("/")
+            self.corner_v.append(_index(fields[0], len(self.positions), "vertex"))
+            has_uv = len(fields) > 1 and fields[1] != ""
+            self.corner_t.append(_index(fields[1], len(self.uvs), "texture coordinate") if has_uv else -1)
+        self.face_sizes.append(len(corners))
+        self.face_mat.append(self.current)
+
+    def _material(self, name):
+        if name not in self.material_index:
+            self.material_index[name] = len(self.materials)
+            self.materials.append(self.library.get(name) or Material(name=name))
+        return self.material_index[name]
+
+    def _library(self, names):
+        candidates = [names] + names.split()
+        found = next((self.path.parent / n for n in candidates if (self.path.parent / n).is_file()), None)
+        if found is None:
+            warnings.warn(f"{self.path}: material library '{names}' not found; using default colours")
+            return
+        self.library.update(read_mtl(found))
+        # Materials used before their library was named pick up its definitions.
+        for name, i in self.material_index.items():
+            if name in self.library:
+                self.materials[i] = self.library[name]
+
+    def _mesh(self):
+        if not self.positions:
+            raise SplatFileError(self.path, "no vertices")
+        if not self.face_sizes:
+            raise SplatFileError(self.path, "no faces")
+        sizes = np.asarray(self.face_sizes)
+        corner_v, corner_t = np.asarray(self.corner_v), np.asarray(self.corner_t)
+        # Fan triangulation, vectorised: polygon corners (0, k, k+1) for k = 1 .. n-2.
+        starts = np.cumsum(sizes) - sizes
+        tri_poly = np.repeat(np.arange(len(sizes)), sizes - 2)
+        k = np.arange(len(tri_poly)) - np.repeat(np.cumsum(sizes - 2) - (sizes - 2), sizes - 2) + 1
+        base = starts[tri_poly]
+        corner_ids = np.stack([base, base + k, base + k + 1], axis=1)
+        faces = corner_v[corner_ids]
+        uv_ids = corner_t[corner_ids]
+        corner_uvs = None
+        if self.uvs and (uv_ids >= 0).any():
+            uvs = np.asarray(self.uvs, np.float64)
+            corner_uvs = np.where((uv_ids >= 0)[..., None], uvs[np.maximum(uv_ids, 0)], 0.0)
+        face_mat = np.asarray(self.face_mat)[tri_poly]
+        materials = list(self.materials)
+        if (face_mat < 0).any():        # faces before any usemtl get the default material
+            face_mat = np.where(face_mat < 0, len(materials), face_mat)
+            materials.append(Material(name="default"))
+        return Mesh(np.asarray(self.positions, np.float64), faces, corner_uvs, face_mat, materials,
+                    self._vertex_colors())
+
+    def _vertex_colors(self):
+        if all(c is None for c in self.colors):
+            return None
+        rgb = np.array([c if c is not None else (1.0, 1.0, 1.0) for c in self.colors], np.float64)
+        return color.srgb_to_linear(np.clip(rgb, 0.0, 1.0))
+
+
+def _index(text, count, what):
+    i = int(text)
+    if i == 0:
+        raise ValueError(f"{what} index 0 (OBJ indices start at 1)")
+    resolved = i - 1 if i > 0 else count + i
+    if not 0 <= resolved < count:
+        raise ValueError(f"{what} index {i} out of range ({count} defined so far)")
+    return resolved
+
+
+def read_mtl(path):
+    """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image."""
+    path = Path(path)
+    materials, current = {}, None
+    for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+        parts = line.split("#", 1)[0].split()
+        if not parts:
+            continue
+        key = parts[0].lower()
+        try:
+            if key == "newmtl":
+                current = Material(name=" ".join(parts[1:]))
+                materials[current.name] = current
+            elif current is None:
+                continue
+            elif key == "kd":
+                values = [float(p) for p in parts[1:4]]
+                current.base_color = tuple(values + [values[-1]] * (3 - len(values)))
+            elif key == "map_kd":
+                _texture(current, parts[1:], path)
+        except (ValueError, IndexError) as exc:
+            raise SplatFileError(path, f"line {number}: {exc}: '{line.strip()[:80]}'") from None
+    return materials
+
+
+def _texture(material, args, mtl_path):
+    options, i = {}, 0
+    while i < len(args) and args[i].lower() in _MAP_OPTIONS:
+        name, most = args[i].lower(), _MAP_OPTIONS[args[i].lower()]
+        values = []
+        i += 1
+        numeric_only = name in ("-o", "-s", "-t")               # these take one to three numbers
+        while len(values) < most and i < len(args) and (_is_number(args[i]) or not numeric_only):
+            values.append(args[i])
+            i += 1
+        options[name] = values
+    if i >= len(args):
+        raise ValueError("map_Kd without a file name")
+    image_path = _find_image(" ".join(args[i:]), mtl_path.parent)
+    if image_path is None:
+        warnings.warn(f"{mtl_path}: texture '{' '.join(args[i:])}' of material '{material.name}' not found; "
+                      f"using its Kd colour")
+        return
+    material.texture = load_image(image_path)
+    material.texture_srgb = True
+    material.uv_offset = _pair(options.get("-o"), 0.0)
+    material.uv_scale = _pair(options.get("-s"), 1.0)
+
+
+def _pair(values, default):
+    values = [float(v) for v in (values or [])[:2]]
+    return tuple(values + [default] * (2 - len(values)))
+
+
+def load_image(path):
+    """An image file as a uint8/uint16 array (H,W,3), row 0 at the top."""
+    from PIL import Image
+    try:
+        with Image.open(path) as img:
+            if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+                a = np.asarray(img, dtype=np.uint32)
+                return np.repeat(np.clip(a, 0, 65535).astype(np.uint16)[:, :, None], 3, axis=2)
+            return np.asarray(img.convert("RGB"))
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read image: {exc}") from None
+
+
+def _find_image(name, folder):
+    name = name.strip().strip('"').replace("\\", "/")
+    for candidate in (Path(name), folder / name, folder / Path(name).name):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _is_number(text):
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
