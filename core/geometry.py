@@ -102,12 +102,21 @@ POLAR_NEWTON_CONDITION = 1e6     # above this condition number the SVD is the sa
 
 
 def polar_decomposition(a):
-    """A = R S for (..., 3, 3) matrices: R orthogonal (det -1 where A mirrors), S symmetric PSD.
+    """A = R S for (..., 3, 3) matrices: R orthogonal (det -1 where A mirrors), S = sym(R^T A)
+    symmetric PSD. See polar_rotation for how R is found."""
+    a = np.asarray(a, dtype=np.float64)
+    r = polar_rotation(a)
+    s = np.einsum("...ji,...jk->...ik", r, a)
+    return r, 0.5 * (s + np.swapaxes(s, -1, -2))
+
+
+def polar_rotation(a):
+    """R of the polar decomposition A = R S, for (..., 3, 3) matrices.
 
     Well-conditioned matrices (nearly all, in skinning and object transforms) take Higham's scaled
     Newton iteration R <- (g R + R^-T / g) / 2 with closed-form 3x3 inverses, faster than a batched
     LAPACK SVD. Nearly singular ones take the SVD A = U diag(sigma) V^T, R = U V^T, which keeps R
-    orthogonal however thin A is. Either way S = sym(R^T A).
+    orthogonal however thin A is.
     """
     a = np.asarray(a, dtype=np.float64)
     if a.shape[-2:] != (3, 3):
@@ -118,9 +127,7 @@ def polar_decomposition(a):
     if len(singular):
         u, _, vt = np.linalg.svd(flat[singular])
         r[singular] = u @ vt
-    r = r.reshape(a.shape)
-    s = np.einsum("...ji,...jk->...ik", r, a)
-    return r, 0.5 * (s + np.swapaxes(s, -1, -2))
+    return r.reshape(a.shape)
 
 
 def _polar_rotation_newton(m, tolerance=1e-15, max_iterations=40):

@@ -349,7 +349,7 @@ def _lbs_chunk(p, idx, w, bones, want_linear):
     quat = np.take(bones["quat"], idx[0], axis=1)
     multi = w[0] != 1.0                                      # kept influences come first
     if multi.any():
-        rotation[multi] = geometry.polar_decomposition(linear_part[multi])[0]
+        rotation[multi] = geometry.polar_rotation(linear_part[multi])
         sign = np.where(geometry.determinants(rotation[multi]) < 0, -1.0, 1.0)[:, None, None]
         quat[:, multi] = geometry.matrices_to_quaternions(sign * rotation[multi]).T
     linear = {"rotation": rotation, "quat": quat, "blended": linear_part}

@@ -166,7 +166,7 @@ class SplatCloud:
         projective or non-finite matrix raises ValueError.
         """
         a, t = geometry.split_affine(matrix)
-        rotation, _ = geometry.polar_decomposition(a)
+        rotation = geometry.polar_rotation(a)
         if geometry.anisotropy(a) <= SIMILARITY_TOLERANCE:
             rotations, log_scales = self._similarity_frames(a, rotation)
         else:
