@@ -403,7 +403,8 @@ def write(path, cloud, nonfinite="raise"):
                 for chunk in _chunks(rows):
                     part = buffer[:chunk.stop - chunk.start]
                     fill(part, chunk)
-                    tallies.append(_nonfinite_rows(_core_arrays(cloud), chunk))
+                    if not np.isfinite(part["core"]).all():    # one pass over the filled block; tally rarely
+                        tallies.append(_nonfinite_rows(_core_arrays(cloud), chunk))
                     _write_at(f.fileno(), part, len(header) + chunk.start * dtype.itemsize)
             _in_parallel(len(cloud), fill_and_write)
             if nonfinite == "raise":
