@@ -20,7 +20,6 @@ skinning, without SH rotation, with the literal blended-matrix covariance, and c
 independent samplings of the same surface give the floor that sampling alone allows.
 """
 
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -30,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from common import Row, Timing, machine, print_rows, timeit  # noqa: E402
+from common import Row, Timing, machine, paired, print_rows, timeit  # noqa: E402
 from helpers import random_cloud  # noqa: E402
 
 from splatwright.core import geometry, sh as shmod  # noqa: E402
@@ -49,20 +48,6 @@ def cpu_seconds(fn):
     fn()
     return time.process_time() - start
 
-
-def paired(baseline, ours, repeat):
-    """Alternate baseline and ours so that both see the same load on a shared machine."""
-    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
-             for i in range(repeat)]
-    return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
-
-
-def _combine(timings):
-    times = [t.median for t in timings]
-    return Timing(statistics.median(times), (max(times) - min(times)) / 2, len(times))
-
-
-# the skinning workload ----------------------------------------------------------------------------
 
 def armature(n_bones=20, seed=1, scaled=False):
     """Rest and pose matrices in Blender's terms; with `scaled`, bones 3 and 7 also scale (one of

@@ -50,6 +50,29 @@ class Row:
         return None if self.baseline is None else self.baseline.median / self.timing.median
 
 
+def paired(baseline, ours, repeat=5):
+    """(baseline Timing, our Timing) from runs that alternate, so both meet the same load on a shared
+    machine; one untimed warm-up each."""
+    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
+             for i in range(repeat)]
+    return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
+
+
+def _combine(timings):
+    times = [t.median for t in timings]
+    return Timing(statistics.median(times), (max(times) - min(times)) / 2, len(times))
+
+
+def fresh_file(path, write):
+    """A callable writing `write(path)` to a new file each time: replacing a large file makes the
+    file system flush the old one first, a cost that would swamp what is measured."""
+    def run():
+        if path.exists():
+            path.unlink()
+        write(path)
+    return run
+
+
 def machine():
     """A one-line description of the machine the numbers come from."""
     import numpy as np

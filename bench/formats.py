@@ -2,7 +2,6 @@
 alternately in the same run as the baseline), file size, and the error each lossy format introduces
 per attribute (position, scale, rotation angle, opacity, colour, higher SH)."""
 
-import statistics
 import sys
 import tempfile
 import warnings
@@ -13,7 +12,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from common import Row, Timing, machine, print_rows, timeit  # noqa: E402
+from common import Row, fresh_file, machine, paired, print_rows  # noqa: E402
 from helpers import random_cloud  # noqa: E402
 
 from splatwright.core import sh as shmod  # noqa: E402
@@ -31,22 +30,6 @@ FORMATS = {
     "SPZ v4 (zstd)": (".spz", lambda p, c: spz.write(p, c, version=4), spz.read, 5),
     ".splat": (".splat", splat.write, splat.read, 1),
 }
-
-
-def _fresh(path, write):
-    """Write a new file each time: replacing one this large would time the file system's clean-up."""
-    def run():
-        if path.exists():
-            path.unlink()
-        write(path)
-    return run
-
-
-def _paired(baseline, ours, repeat):
-    """Median timings of baseline and ours run alternately, so both meet the same machine load."""
-    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)).median, timeit(ours, repeat=1, warmup=int(i == 0)).median)
-             for i in range(repeat)]
-    return tuple(Timing(statistics.median(t), (max(t) - min(t)) / 2, len(t)) for t in zip(*pairs))
 
 
 def attribute_errors(got, want):
@@ -85,9 +68,9 @@ def run(quick=False):
             ply_size = ply_path.stat().st_size
             case = f"{len(cloud):,} splats, SH degree 3"
             path = tmp / f"out{suffix}"
-            write_ply, write_ours = _paired(_fresh(tmp / "base.ply", lambda p: ply.write(p, cloud)),
-                                            _fresh(path, lambda p: write(p, cloud)), repeat)
-            read_ply, read_ours = _paired(lambda: ply.read(ply_path), lambda: read(path), repeat)
+            write_ply, write_ours = paired(fresh_file(tmp / "base.ply", lambda p: ply.write(p, cloud)),
+                                            fresh_file(path, lambda p: write(p, cloud)), repeat)
+            read_ply, read_ours = paired(lambda: ply.read(ply_path), lambda: read(path), repeat)
             size = path.stat().st_size
             errors = attribute_errors(read(path), cloud)
             extra = {"MiB": f"{size / 2**20:.1f}", "bytes_per_splat": f"{size / len(cloud):.1f}",

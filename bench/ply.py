@@ -3,7 +3,6 @@ same bytes (the floor any PLY reader or writer could reach), with the error each
 directions are exact)."""
 
 import shutil
-import statistics
 import sys
 import tempfile
 from pathlib import Path
@@ -13,33 +12,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from common import Row, Timing, machine, print_rows, timeit  # noqa: E402
+from common import Row, fresh_file, machine, paired, print_rows  # noqa: E402
 from helpers import random_cloud  # noqa: E402
 
 from splatwright.io import ply  # noqa: E402
-
-
-def _fresh(path, write):
-    """Time writing a new file (as a first save does), not overwriting: replacing a file of this
-    size makes the file system flush the old one, a cost that would swamp both sides."""
-    def run():
-        if path.exists():
-            path.unlink()
-        write(path)
-    return run
-
-
-def _paired(baseline, ours, repeat):
-    """Timings of baseline and ours, run alternately so that both meet the same load on a shared
-    machine (one untimed warm-up each)."""
-    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
-             for i in range(repeat)]
-    return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
-
-
-def _combine(timings):
-    times = [t.median for t in timings]
-    return Timing(statistics.median(times), (max(times) - min(times)) / 2, len(times))
 
 
 def _max_error(a, b):
@@ -58,10 +34,10 @@ def run(quick=False):
         raw = np.fromfile(path, np.uint8)
         size = f"{len(raw) / 2**20:.0f} MiB"
 
-        read_base, read_ours = _paired(lambda: np.fromfile(path, np.uint8), lambda: ply.read(path), repeat)
+        read_base, read_ours = paired(lambda: np.fromfile(path, np.uint8), lambda: ply.read(path), repeat)
         back = ply.read(path)
-        write_base, write_ours = _paired(_fresh(tmp / "raw.bin", raw.tofile),
-                                         _fresh(tmp / "out.ply", lambda p: ply.write(p, back)), repeat)
+        write_base, write_ours = paired(fresh_file(tmp / "raw.bin", raw.tofile),
+                                         fresh_file(tmp / "out.ply", lambda p: ply.write(p, back)), repeat)
         same_bytes = (tmp / "out.ply").read_bytes() == path.read_bytes()
         written_error = _max_error(ply.read(tmp / "out.ply"), cloud)
     finally:
