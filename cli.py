@@ -314,7 +314,8 @@ VERBS = {
 
 
 def build_parser():
-    parser = argparse.ArgumentParser(prog="splatwright", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="splatwright", description="3D Gaussian splats: inspect, convert, render, make from meshes, and a demo.")
     sub = parser.add_subparsers(dest="verb", required=True)
     for name, (add, run, help_text) in VERBS.items():
         p = sub.add_parser(name, help=help_text)
