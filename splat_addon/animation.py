@@ -13,7 +13,7 @@ from pathlib import Path
 
 import bpy
 from bpy.props import BoolProperty, IntProperty, StringProperty
-from bpy_extras.io_utils import ExportHelper, axis_conversion, orientation_helper
+from bpy_extras.io_utils import ExportHelper, orientation_helper
 
 from ..io import SplatFileError, format_of, write_splats
 from . import operators
@@ -49,17 +49,10 @@ def frame_range(start, end, step=1):
     return list(range(start, end + 1, step))
 
 
-def export_conversion(forward=None, up=None):
-    """The Blender -> file axis matrix: the given axes, else the default (a 3DGS capture's axes).
-    The same for every format: the io layer turns the model's axes into each format's own (OpenUSD
-    files come out Y-up, with Blender's Z as their Y)."""
-    return axis_conversion(to_forward=forward or operators.FILE_FORWARD, to_up=up or operators.FILE_UP).to_4x4()
-
-
 def export_animation(context, objects, path, frames, conversion=None, progress=None):
     """Write `objects` (splat objects) at each of `frames` to `path`; returns the files written.
 
-    conversion: the Blender -> file axis matrix (default: export_conversion()).
+    conversion: the Blender -> file axis matrix (default: operators.export_conversion()).
     progress(done, total, message) is called after each frame. The scene's frame is restored.
     """
     path = Path(path)
@@ -69,7 +62,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
     single = is_single_file(path)            # raises SplatFileError for an unknown extension
     if not path.parent.is_dir():
         raise SplatFileError(path, f"folder {path.parent} does not exist")
-    conversion = export_conversion() if conversion is None else conversion
+    conversion = operators.export_conversion() if conversion is None else conversion
     scene = context.scene
     current, subframe = scene.frame_current, scene.frame_subframe
     clouds, written = [], []
@@ -129,7 +122,7 @@ class SPLAT_OT_export_animation(bpy.types.Operator, ExportHelper):
             progress = operators._Progress(context, len(frames))
             try:
                 written = export_animation(context, objects, path, frames,
-                                           export_conversion(self.axis_forward, self.axis_up),
+                                           operators.export_conversion(self.axis_forward, self.axis_up),
                                            progress=lambda done, total, message: progress.update(done))
             finally:
                 progress.end()

@@ -187,7 +187,7 @@ def run_export(args, context):
     path = output_path(args.output, args.format)
     frames = parse_frames(args.frames, scene)
     objects = splat_objects(args.objects, context)
-    conversion = animation.export_conversion(args.axis_forward, args.axis_up)
+    conversion = operators.export_conversion(args.axis_forward, args.axis_up)
     _say(f"export {len(objects)} object(s), frames {frames[0]}-{frames[-1]} ({len(frames)}) to {path}")
     written = animation.export_animation(context, objects, path, frames, conversion,
                                          progress=lambda done, total, message: _say(f"[{done}/{total}] {message}"))
@@ -286,7 +286,7 @@ def run_from_mesh(args, context):
     if is_blend:
         bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
     else:
-        write_splats(out, operators.scene_cloud(context, created, animation.export_conversion(), keep_source=True))
+        write_splats(out, operators.scene_cloud(context, created, operators.export_conversion(), keep_source=True))
     _say(f"done: wrote {out}")
 
 

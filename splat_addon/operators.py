@@ -23,6 +23,13 @@ FILE_FORWARD, FILE_UP = "Z", "-Y"
 EXPECTED_ERRORS = (SplatFileError, SplatValidationError, data.SplatObjectError, OSError, ValueError)
 
 
+def export_conversion(forward=None, up=None):
+    """The Blender -> file axis matrix: the given axes, else the default (a 3DGS capture's axes).
+    The same for every format: the io layer turns the model's axes into each format's own (OpenUSD
+    files come out Y-up, with Blender's Z as their Y)."""
+    return axis_conversion(to_forward=forward or FILE_FORWARD, to_up=up or FILE_UP).to_4x4()
+
+
 class _Progress:
     """Blender's progress API where there is a window to show it in; silent otherwise."""
 
@@ -177,9 +184,7 @@ class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
         progress = _Progress(context, 2)
         try:
             objects = export_objects(context, self.selected_only)
-            forward, up = self.axis_forward, self.axis_up
-            conversion = axis_conversion(to_forward=forward, to_up=up).to_4x4()
-            cloud = scene_cloud(context, objects, conversion)
+            cloud = scene_cloud(context, objects, export_conversion(self.axis_forward, self.axis_up))
             progress.update(1)
             write_splats(path, cloud)
         except EXPECTED_ERRORS as exc:
