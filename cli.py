@@ -224,6 +224,7 @@ def _add_render(p):
 
 
 def _run_render(args):
+    from .core import economy
     from .core.camera import frame_points
     from .core.render import render
     from .io import read_splats
@@ -236,7 +237,7 @@ def _run_render(args):
         raise SystemExit("splatwright render: error: --width and --height must be >= 1")
     cloud = read_splats(args.input)
     try:
-        camera = frame_points(cloud.positions[cloud.opacities >= 1 / 255], args.width, args.height, args.fov,
+        camera = frame_points(economy.cloud_points(cloud), args.width, args.height, args.fov,
                               ortho_scale=args.ortho_scale, eye=args.camera_pos, target=args.look_at, up=args.up)
         if args.near is not None:
             camera = camera.with_(near=args.near)
