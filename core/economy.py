@@ -24,7 +24,7 @@ import numpy as np
 
 from . import render as rendering
 from .camera import frame_points
-from .metrics import psnr
+from .metrics import psnr, psnr_from_mse
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -122,6 +122,6 @@ def image_error(before, after, views, mode="classic"):
         raise ValueError(f"need one image per view: {len(ref)} and {len(test)} images for {len(views)} views")
     diff = [np.abs(np.asarray(t, np.float64) - r) for r, t in zip(ref, test)]
     mse = sum(float((d * d).sum()) for d in diff) / sum(d.size for d in diff)
-    return ImageError(float("inf") if mse == 0 else float(-10.0 * np.log10(mse)),
+    return ImageError(psnr_from_mse(mse),
                       max(float(d.max(initial=0.0)) for d in diff),
                       [psnr(t, r) for r, t in zip(ref, test)])

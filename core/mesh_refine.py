@@ -25,6 +25,7 @@ import numpy as np
 from .camera import Camera
 from .mesh_render import render_mesh
 from .mesh_to_splats import build_splats
+from .metrics import psnr_from_mse
 from .render import render
 
 VIEW_COUNT = 8
@@ -106,11 +107,7 @@ class _Views:
             err_sum += np.bincount(owner[mine], weights=sub[mine], minlength=n)
             px_sum += np.bincount(owner[mine], minlength=n) / SUPERSAMPLE**2
         dilation = excess / self.outline if self.outline > 0 else 0.0
-        return _psnr(max(mses)), err_sum, px_sum, dilation, _psnr(np.mean(mses))
-
-
-def _psnr(mse):
-    return math.inf if mse == 0 else -10 * math.log10(mse)
+        return psnr_from_mse(max(mses)), err_sum, px_sum, dilation, psnr_from_mse(np.mean(mses))
 
 
 def refine_to_target(surface, target, max_splats, views, view_size, render_mode, progress, info, style,

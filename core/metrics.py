@@ -5,7 +5,11 @@ import numpy as np
 
 def psnr(image, reference, peak=1.0):
     """Peak signal-to-noise ratio in dB (inf for identical images)."""
-    mse = np.mean((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2)
+    return psnr_from_mse(np.mean((np.asarray(image, np.float64) - np.asarray(reference, np.float64)) ** 2), peak)
+
+
+def psnr_from_mse(mse, peak=1.0):
+    """PSNR in dB of a mean squared error (inf for 0), for errors pooled over several images."""
     return float("inf") if mse == 0 else float(10.0 * np.log10(peak * peak / mse))
 
 
