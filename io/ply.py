@@ -214,6 +214,15 @@ def _write_at(fd, records, offset):
         view, offset = view[done:], offset + done
 
 
+def _reserve(fd, size):
+    """Allocate the file's blocks up front (as ndarray.tofile does): the file system then need not
+    extend the file page by page while the body is written. Only a hint; ignored where unsupported."""
+    try:
+        os.posix_fallocate(fd, 0, size)
+    except (AttributeError, OSError):
+        pass
+
+
 # row chunks on every core -------------------------------------------------------------------------
 
 def _in_parallel(n, work):
@@ -397,6 +406,7 @@ def write(path, cloud, nonfinite="raise"):
         with atomic_write(path) as f:
             f.write(header)
             f.flush()
+            _reserve(f.fileno(), len(header) + len(cloud) * dtype.itemsize)
 
             def fill_and_write(rows):
                 buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)

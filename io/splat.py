@@ -74,4 +74,4 @@ def write(path, cloud, nonfinite="raise"):
                       "view-dependent colour dropped", SplatFileWarning, stacklevel=2)
     rec = encode(cloud)
     with atomic_write(path) as f:
-        f.write(rec.tobytes())
+        rec.tofile(f)
