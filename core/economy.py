@@ -17,7 +17,6 @@ counts even where its colour matches the background. `orbit_views` makes views a
 
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +24,7 @@ import numpy as np
 from . import render as rendering
 from .camera import frame_points
 from .metrics import psnr, psnr_from_mse
+from .parallel import map_threads
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -61,9 +61,8 @@ def contributions(cloud, views, mode="classic", tile_size=8, threads=None):
         return rendering.render(cloud, camera, background=None, mode=mode, return_weights=True,
                                 tile_size=tile_size, threads=threads // workers).max_weight
 
-    with ThreadPoolExecutor(workers) as pool:
-        for weight in pool.map(weights, views):
-            np.maximum(best, weight, out=best)
+    for weight in map_threads(weights, views, workers):
+        np.maximum(best, weight, out=best)
     return best
 
 

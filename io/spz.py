@@ -25,16 +25,15 @@ Positions use 12 fractional bits (1/4096) when the cloud fits in +-2048, else th
 warning: log scales outside [-10, 5.94], DC colours outside [-3.33, 3.33], SH outside [-1, 1].
 """
 
-import os
 import struct
 import warnings
 import zlib
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..core import SplatCloud, geometry
 from ..core import sh as shmod
+from ..core.parallel import map_threads
 from ..core.splats import logit, sigmoid
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write
 from .splat import to_u8
@@ -51,7 +50,6 @@ MAX_POINTS = 1 << 28
 SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}    # higher-order coefficients per channel
 GZIP_LEVEL, ZSTD_LEVEL = 6, 12                 # what Niantic's writer uses (v4 output is byte-identical)
 GZIP_CHUNK = 1 << 20                           # deflated independently, in parallel, like pigz
-WORKERS = min(2, os.cpu_count() or 1)
 
 
 # the RUB <-> RDF flip: y and z negate --------------------------------------------------------------
@@ -347,8 +345,7 @@ def _gzip(data, level):
         z = zlib.compressobj(level, zlib.DEFLATED, -zlib.MAX_WBITS, 9)
         return z.compress(chunks[index]) + z.flush(zlib.Z_FINISH if index == len(chunks) - 1 else zlib.Z_SYNC_FLUSH)
 
-    with ThreadPoolExecutor(WORKERS) as pool:
-        body = b"".join(pool.map(deflate, range(len(chunks))))
+    body = b"".join(map_threads(deflate, range(len(chunks))))
     header = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\xff"        # deflate, no name, no mtime, OS unknown
     return header + body + struct.pack("<II", zlib.crc32(data), len(data) & 0xFFFFFFFF)
 
@@ -361,8 +358,8 @@ def _count_clamped(notes, what, scaled, valid):
 
 def _pack_v4(n, degree, bits, flags, blocks, level):
     zstd = _zstd("SPZ v4")
-    with ThreadPoolExecutor(WORKERS) as pool:     # one frame per block; zstd releases the GIL
-        frames = list(pool.map(lambda b: zstd.ZstdCompressor(level=level).compress(b), blocks))
+    # one frame per block, compressed in parallel
+    frames = map_threads(lambda b: zstd.ZstdCompressor(level=level).compress(b), blocks)
     header = V4_HEADER.pack(MAGIC, 4, n, degree, bits, flags, len(frames), V4_HEADER.size)
     toc = b"".join(struct.pack("<QQ", len(f), len(b)) for f, b in zip(frames, blocks))
     return header + toc + b"".join(frames)
