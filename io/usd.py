@@ -38,6 +38,7 @@ generic API, giving the same file.
 """
 
 import ctypes
+import math
 import os
 import tempfile
 import warnings
@@ -743,10 +744,11 @@ def _check_frames(path, prim_path, frames, times, nonfinite):
 
 
 def write_stage(path, prims, times=None, half=False, half_positions=False, exact=True, axes="RDF",
-                nonfinite="raise"):
+                nonfinite="raise", fps=None):
     """Write {prim path: cloud, or a list of clouds one per time code} as a Y-up, metre stage.
 
     times: time codes for the frames of animated prims (every list in `prims` must match it).
+    fps: time codes per second for players (OpenUSD assumes 24 when the stage does not say).
     half: orientations, scales, opacities and SH as half floats; half_positions: positions too.
     exact: also store the model's float32 logits and log scales, so reading back is exact.
     axes: "RDF" (the model's convention; flipped to the stage's Y-up) or "RUB" (written as is).
@@ -756,6 +758,8 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
         raise ValueError(f"axes must be 'RDF' or 'RUB', got {axes!r}")
     options = (half, half_positions, exact, axes)
     path = os.fspath(path)
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a positive number, got {fps}")
     if not prims:
         raise SplatFileError(path, "no prims to write")
     checked = {}
@@ -769,14 +773,14 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
         if path.lower().endswith(".usdz"):
             with tempfile.TemporaryDirectory(dir=os.path.dirname(os.path.abspath(path))) as folder:
                 layer_path = os.path.join(folder, os.path.splitext(os.path.basename(path))[0] + ".usdc")
-                _save_stage(layer_path, checked, options)
+                _save_stage(layer_path, checked, options, fps)
                 if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(layer_path), str(tmp)):
                     raise SplatFileError(path, "OpenUSD could not package the .usdz")
         else:
-            _save_stage(str(tmp), checked, options)
+            _save_stage(str(tmp), checked, options, fps)
 
 
-def _save_stage(layer_path, checked, options):
+def _save_stage(layer_path, checked, options, fps):
     layer = Sdf.Layer.CreateNew(layer_path)
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
@@ -793,6 +797,9 @@ def _save_stage(layer_path, checked, options):
     if all_times:
         stage.SetStartTimeCode(float(min(all_times)))
         stage.SetEndTimeCode(float(max(all_times)))
+    if fps is not None:
+        stage.SetTimeCodesPerSecond(float(fps))
+        stage.SetFramesPerSecond(float(fps))
     if not layer.Save():
         raise SplatFileError(layer_path, "OpenUSD could not save the layer")
 
@@ -804,7 +811,8 @@ def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, ex
 
 
 def write_frames(path, clouds, times=None, prim_path="/Splats", **options):
-    """Write same-count clouds as time samples of one prim (times default to 0, 1, 2, ...)."""
+    """Write same-count clouds as time samples of one prim (times default to 0, 1, 2, ...);
+    options as write_stage's (fps among them)."""
     clouds = list(clouds)
     times = list(range(len(clouds))) if times is None else list(times)
     write_stage(path, {prim_path: clouds}, times, **options)

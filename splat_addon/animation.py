@@ -1,5 +1,5 @@
 """A frame range of splat objects exported as one animated OpenUSD file (time samples on one prim,
-time code = frame number) or as a numbered sequence of files, one per frame.
+time code = frame number, played at the scene's frame rate) or as a numbered sequence of files, one per frame.
 
 Sequence names follow Blender's output paths: the last run of '#' in the file name becomes the
 frame number zero-padded to that many digits (shot_####.ply -> shot_0007.ply); without '#',
@@ -82,7 +82,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
                 progress(i + 1, len(frames), message)
         if single:
             from ..io import usd
-            usd.write_frames(path, clouds, times=frames)
+            usd.write_frames(path, clouds, times=frames, fps=scene.render.fps / scene.render.fps_base)
             written.append(path)
     finally:
         scene.frame_set(current, subframe=subframe)

@@ -386,8 +386,10 @@ class Worker(BlenderWorker):
         (self.out / "plain").mkdir()
         scene.frame_start, scene.frame_end, scene.frame_step = 1, 3, 2
         res["plain"] = self.call(exp, filepath=str(self.out / "plain" / "anim.ply"))
+        scene.render.fps, scene.render.fps_base = 30, 1.001          # NTSC 29.97
         res["usd"] = self.call(exp, filepath=str(self.out / "anim.usdc"), use_scene_range=False,
                                frame_start=1, frame_end=4)
+        scene.render.fps, scene.render.fps_base = 24, 1.0
         res["usd_selected"] = self.call(exp, filepath=str(self.out / "anim_sel.usda"), use_scene_range=False,
                                         frame_start=1, frame_end=2, selected_only=True)
         bad = {}
@@ -754,6 +756,8 @@ def test_animation_usd_has_one_time_sample_per_frame(blender):
     stage = Usd.Stage.Open(str(blender.out / "anim.usdc"))
     assert UsdGeom.GetStageUpAxis(stage) == "Y"
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1.0, 4.0)
+    assert stage.GetTimeCodesPerSecond() == pytest.approx(30 / 1.001, rel=1e-6)   # the scene's rate
+    assert stage.GetFramesPerSecond() == pytest.approx(30 / 1.001, rel=1e-6)
     prim = stage.GetPrimAtPath("/Splats")
     positions = prim.GetAttribute("positions")
     assert positions.GetTimeSamples() == [1.0, 2.0, 3.0, 4.0]

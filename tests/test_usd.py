@@ -399,6 +399,7 @@ def test_frames_are_time_samples_of_one_prim(tmp_path):
     assert prim.GetAttribute("positions").GetTimeSamples() == [1, 5, 9]
     assert prim.GetAttribute("extent").GetTimeSamples() == [1, 5, 9]
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1, 9)
+    assert not stage.GetRootLayer().HasTimeCodesPerSecond()     # no rate given: players assume 24
     assert usd.time_codes(path) == [1, 5, 9]
     for (t, got), want in zip(usd.read_frames(path), frames):
         assert_same(got, want)
@@ -406,6 +407,17 @@ def test_frames_are_time_samples_of_one_prim(tmp_path):
     assert_same(usd.read(path), frames[0])                # default: the earliest sample
     with pytest.raises(SplatFileError, match="same splat count"):
         usd.write_frames(tmp_path / "bad.usdc", [frames[0], frames[1][:10]])
+
+
+def test_frame_rate_is_written_for_players(tmp_path):
+    path = tmp_path / "anim.usda"
+    usd.write_frames(path, [random_cloud(5, 0, seed=s) for s in range(2)], fps=25)
+    stage = Usd.Stage.Open(str(path))
+    assert (stage.GetTimeCodesPerSecond(), stage.GetFramesPerSecond()) == (25, 25)
+    for bad in (0, -24, float("nan")):
+        with pytest.raises(ValueError, match="fps must be a positive number"):
+            usd.write_frames(tmp_path / "bad.usda", [random_cloud(5, 0)], fps=bad)
+    assert not (tmp_path / "bad.usda").exists()
 
 
 def test_many_prims_animated_and_static_in_one_stage(tmp_path):
