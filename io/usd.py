@@ -38,6 +38,7 @@ generic API, giving the same file.
 """
 
 import ctypes
+import itertools
 import math
 import os
 import tempfile
@@ -50,7 +51,7 @@ import numpy as np
 from ..core import SplatCloud, geometry
 from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
-from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_path,
+from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_path, check_nonfinite_policy,
                      log_scales_from_linear)
 from .spz import SH_FLIP, flip_yz
 
@@ -624,9 +625,19 @@ def _check_half_range(path, name, values):
                                    "(65504); write without half=True")
 
 
+@dataclass(frozen=True)
+class _WriteOptions:
+    """How write_stage stores values (its arguments of the same names)."""
+    half: bool = False
+    half_positions: bool = False
+    exact: bool = True
+    axes: str = "RDF"
+    nonfinite: str = "raise"
+
+
 def _frame_values(path, cloud, options):
     """{attribute name: Vt array} for one cloud."""
-    half, half_positions, exact, axes = options
+    half, half_positions, exact, axes = options.half, options.half_positions, options.exact, options.axes
     n, k = len(cloud), cloud.sh.shape[1]
     opacities, scales = _linear_values(cloud)
     # The stage is Y-up (RUB): RDF clouds flip y and z, folded into the copies Vt needs anyway.
@@ -713,41 +724,97 @@ VT_ARRAYS = {"float32": "FloatArray", "float64": "DoubleArray", "float16": "Half
 
 
 def _author_prim(path, stage, prim_path, frames, times, options):
+    """Author one prim from its frames (a cloud, or clouds one per time code), consumed one at a
+    time so only the stage holds them; returns the time codes used ([] for a static prim)."""
+    frames = _checked_frames(path, prim_path, frames, times, options)
+    cloud, code = next(frames)
     prim = _define_splat_prim(stage, prim_path)
-    _attribute(prim, SH_DEGREE).Set(frames[0].sh_degree)
-    extras = _extra_primvars(path, prim, frames[0])
-    codes = [Usd.TimeCode.Default()] if times is None else [Usd.TimeCode(float(t)) for t in times]
-    for cloud, code in zip(frames, codes):
-        for name, value in _frame_values(path, cloud, options).items():
-            _attribute(prim, name).Set(value, code)
+    _attribute(prim, SH_DEGREE).Set(cloud.sh_degree)
+    extras = _extra_primvars(path, prim, cloud)
+    samples, codes = {}, []
+    while cloud is not None:
+        values = _frame_values(path, cloud, options)
         for attr, key, widen in extras:
             flat = np.ascontiguousarray(cloud.extras[key].reshape(-1))
             flat = flat.astype(np.int32) if widen else flat
-            attr.Set(_vt(getattr(Vt, VT_ARRAYS[flat.dtype.name]), flat), code)
+            values[attr.GetName()] = _vt(getattr(Vt, VT_ARRAYS[flat.dtype.name]), flat)
+        for name, value in values.items():
+            if name not in samples:
+                samples[name] = _Samples(prim.GetAttribute(name) or _attribute(prim, name), name != "positions")
+            samples[name].add(value, code)
+        codes.append(code)
+        cloud = values = flat = None         # let this frame go before the next one is made
+        cloud, code = next(frames, (None, None))
+    for attr in samples.values():
+        attr.finish()
+    return [c.GetValue() for c in codes if not c.IsDefault()]
 
 
-def _check_frames(path, prim_path, frames, times, nonfinite):
-    if isinstance(frames, SplatCloud):
-        frames = [frames]
-    frames = [apply_nonfinite_policy(f"{path}:{prim_path}", c, nonfinite, "write") for c in frames]
-    if not frames:
+class _Samples:
+    """One attribute's values over the frames. With `hold`, a value the same in every frame (an
+    opacity that is never animated, say) is authored once, not once per frame."""
+
+    def __init__(self, attr, hold):
+        self.attr, self.held, self.first, self.waiting = attr, hold, None, []
+
+    def add(self, value, code):
+        if self.held and (self.first is None or _same_bytes(value, self.first)):
+            self.first = value if self.first is None else self.first
+            self.waiting.append(code)
+            return
+        if self.held:                        # the first change: the frames so far get samples
+            self.held = False
+            for earlier in self.waiting:
+                self.attr.Set(self.first, earlier)
+        self.attr.Set(value, code)
+
+    def finish(self):
+        if self.held:
+            self.attr.Set(self.first)
+
+
+def _same_bytes(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and np.array_equal(a.reshape(-1).view(np.uint8), b.reshape(-1).view(np.uint8))
+
+
+def _checked_frames(path, prim_path, frames, times, options):
+    """(cloud, time code) pairs, each cloud checked as it comes: the same splat count, SH degree and
+    extras in every frame, one time code per cloud, the non-finite policy applied."""
+    static = isinstance(frames, SplatCloud)
+    if static:
+        frames, codes = [frames], [Usd.TimeCode.Default()]
+    else:
+        codes = (Usd.TimeCode(float(t)) for t in (itertools.count() if times is None else times))
+    shape, count = None, 0
+    for cloud in frames:
+        code = next(codes, None) if not static else codes[0]
+        if code is None:
+            raise SplatFileError(path, f"{prim_path}: more clouds than time codes ({count})")
+        cloud = apply_nonfinite_policy(f"{path}:{prim_path}", cloud, options.nonfinite, "write")
+        this = (len(cloud), cloud.sh_degree, tuple(sorted(cloud.extras)))
+        if shape is not None and this != shape:
+            raise SplatFileError(path, f"{prim_path}: time samples need the same splat count, SH degree and "
+                                       f"extras in every frame; frame {count} has (count, degree, extras) "
+                                       f"{this}, the first {shape}")
+        shape, count = this, count + 1
+        yield cloud, code
+        del cloud
+    if count == 0:
         raise SplatFileError(path, f"{prim_path}: no clouds to write")
-    shapes = {(len(c), c.sh_degree, tuple(sorted(c.extras))) for c in frames}
-    if len(shapes) > 1:
-        raise SplatFileError(path, f"{prim_path}: time samples need the same splat count, SH degree and "
-                                   f"extras in every frame, got (count, degree, extras) {sorted(shapes)}")
-    if times is None and len(frames) > 1:
-        raise SplatFileError(path, f"{prim_path}: {len(frames)} clouds but no time codes")
-    if times is not None and len(times) != len(frames):
-        raise SplatFileError(path, f"{prim_path}: {len(times)} time codes for {len(frames)} clouds")
-    return frames
+    if not static and times is not None and next(codes, None) is not None:
+        raise SplatFileError(path, f"{prim_path}: more time codes than clouds ({count})")
 
 
 def write_stage(path, prims, times=None, half=False, half_positions=False, exact=True, axes="RDF",
                 nonfinite="raise", fps=None):
-    """Write {prim path: cloud, or a list of clouds one per time code} as a Y-up, metre stage.
+    """Write {prim path: cloud, or clouds one per time code} as a Y-up, metre stage.
 
-    times: time codes for the frames of animated prims (every list in `prims` must match it).
+    The clouds of an animated prim may come from any iterable (a generator, say): each is authored
+    and let go before the next is asked for. An attribute that holds the same values in every frame
+    is authored once rather than per frame (positions always get a sample per frame).
+    times: time codes for the frames of animated prims (every sequence in `prims` must match it;
+    default 0, 1, 2, ...).
     fps: time codes per second for players (OpenUSD assumes 24 when the stage does not say).
     half: orientations, scales, opacities and SH as half floats; half_positions: positions too.
     exact: also store the model's float32 logits and log scales, so reading back is exact.
@@ -756,43 +823,42 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
     _require_pxr(path)
     if axes not in ("RDF", "RUB"):
         raise ValueError(f"axes must be 'RDF' or 'RUB', got {axes!r}")
-    options = (half, half_positions, exact, axes)
+    check_nonfinite_policy(nonfinite)
+    options = _WriteOptions(half, half_positions, exact, axes, nonfinite)
     path = os.fspath(path)
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps}")
     if not prims:
         raise SplatFileError(path, "no prims to write")
-    checked = {}
-    for prim_path, frames in prims.items():
+    for prim_path in prims:
         if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsoluteRootOrPrimPath() \
                 or prim_path == "/":
             raise SplatFileError(path, f"'{prim_path}' is not an absolute prim path")
-        prim_times = None if isinstance(frames, SplatCloud) else times
-        checked[prim_path] = (_check_frames(path, prim_path, frames, prim_times, nonfinite), prim_times)
+    if times is not None:
+        times = list(times)
     with atomic_path(path) as tmp:
         if path.lower().endswith(".usdz"):
             with tempfile.TemporaryDirectory(dir=os.path.dirname(os.path.abspath(path))) as folder:
                 layer_path = os.path.join(folder, os.path.splitext(os.path.basename(path))[0] + ".usdc")
-                _save_stage(layer_path, checked, options, fps)
+                _save_stage(path, layer_path, prims, times, options, fps)
                 if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(layer_path), str(tmp)):
                     raise SplatFileError(path, "OpenUSD could not package the .usdz")
         else:
-            _save_stage(str(tmp), checked, options, fps)
+            _save_stage(path, str(tmp), prims, times, options, fps)
 
 
-def _save_stage(layer_path, checked, options, fps):
+def _save_stage(path, layer_path, prims, times, options, fps):
     layer = Sdf.Layer.CreateNew(layer_path)
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     all_times = []
-    for prim_path, (frames, times) in checked.items():
+    for prim_path, frames in prims.items():
         for ancestor in Sdf.Path(prim_path).GetParentPath().GetPrefixes():
             if not stage.GetPrimAtPath(ancestor):
                 stage.DefinePrim(ancestor, "Xform")
-        _author_prim(layer_path, stage, prim_path, frames, times, options)
-        all_times += list(times or [])
-    root = Sdf.Path(next(iter(checked))).GetPrefixes()[0]
+        all_times += _author_prim(path, stage, prim_path, frames, times, options)
+    root = Sdf.Path(next(iter(prims))).GetPrefixes()[0]
     stage.SetDefaultPrim(stage.GetPrimAtPath(root))
     if all_times:
         stage.SetStartTimeCode(float(min(all_times)))
@@ -801,18 +867,18 @@ def _save_stage(layer_path, checked, options, fps):
         stage.SetTimeCodesPerSecond(float(fps))
         stage.SetFramesPerSecond(float(fps))
     if not layer.Save():
-        raise SplatFileError(layer_path, "OpenUSD could not save the layer")
+        raise SplatFileError(path, "OpenUSD could not save the layer")
 
 
 def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",
           nonfinite="raise"):
     """Write one cloud as one ParticleField3DGaussianSplat prim."""
+    if not isinstance(cloud, SplatCloud):
+        raise TypeError(f"write takes one SplatCloud, got {type(cloud).__name__}; write_frames takes a sequence")
     write_stage(path, {prim_path: cloud}, None, half, half_positions, exact, axes, nonfinite)
 
 
 def write_frames(path, clouds, times=None, prim_path="/Splats", **options):
-    """Write same-count clouds as time samples of one prim (times default to 0, 1, 2, ...);
-    options as write_stage's (fps among them)."""
-    clouds = list(clouds)
-    times = list(range(len(clouds))) if times is None else list(times)
+    """Write same-count clouds (any iterable, consumed one at a time) as time samples of one prim;
+    times default to 0, 1, 2, ...; options as write_stage's (fps among them)."""
     write_stage(path, {prim_path: clouds}, times, **options)

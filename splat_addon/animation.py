@@ -65,28 +65,30 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
     conversion = operators.export_conversion() if conversion is None else conversion
     scene = context.scene
     current, subframe = scene.frame_current, scene.frame_subframe
-    clouds, written = [], []
-    try:
+
+    def clouds():
+        """Each frame's cloud, evaluated when the writer asks for it: one frame in memory at a time."""
         for i, frame in enumerate(frames):
             scene.frame_set(frame)
             cloud = operators.scene_cloud(context, objects, conversion)
-            if single:
-                clouds.append(cloud)
-                message = f"frame {frame}: {len(cloud)} splats"
-            else:
-                out = frame_path(path, frame)
-                write_splats(out, cloud)
-                written.append(out)
-                message = f"frame {frame}: {len(cloud)} splats -> {out}"
+            count = len(cloud)
+            yield cloud
+            del cloud                        # before the next frame is evaluated
             if progress:
-                progress(i + 1, len(frames), message)
+                where = "" if single else f" -> {frame_path(path, frame)}"
+                progress(i + 1, len(frames), f"frame {frame}: {count} splats{where}")
+
+    try:
         if single:
             from ..io import usd
-            usd.write_frames(path, clouds, times=frames, fps=scene.render.fps / scene.render.fps_base)
-            written.append(path)
+            usd.write_frames(path, clouds(), times=frames, fps=scene.render.fps / scene.render.fps_base)
+            return [path]
+        written = [frame_path(path, frame) for frame in frames]
+        for out, cloud in zip(written, clouds()):
+            write_splats(out, cloud)
+        return written
     finally:
         scene.frame_set(current, subframe=subframe)
-    return written
 
 
 @orientation_helper(axis_forward=operators.FILE_FORWARD, axis_up=operators.FILE_UP)

@@ -420,6 +420,57 @@ def test_frame_rate_is_written_for_players(tmp_path):
     assert not (tmp_path / "bad.usda").exists()
 
 
+def test_unchanging_attributes_are_authored_once(tmp_path):
+    """A rigid move changes positions and orientations only: opacities, scales and SH are written
+    once, and every frame still reads back exactly. The SH change at the last frame backfills."""
+    base = random_cloud(40, 1, seed=7)
+    frames = []
+    for t in range(4):
+        c = base.copy()
+        c.positions = c.positions + np.float32(0.1 * t)
+        c.rotations = np.roll(c.rotations, t, axis=1)
+        if t == 3:
+            c.sh = c.sh * np.float32(0.5)
+        frames.append(c)
+    path = tmp_path / "rigid.usdc"
+    usd.write_frames(path, frames, times=[10, 11, 12, 13])
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/Splats")
+    sampled = {a.GetName() for a in prim.GetAttributes() if a.GetTimeSamples()}
+    assert sampled == {"positions", "orientations", "extent", usd.SH_COEFFS}
+    assert prim.GetAttribute("opacities").HasAuthoredValue()           # the one default value
+    assert prim.GetAttribute(usd.SH_COEFFS).GetTimeSamples() == [10, 11, 12, 13]
+    for (t, got), want in zip(usd.read_frames(path), frames):
+        assert_same(got, want)
+    assert usd.time_codes(path) == [10, 11, 12, 13]
+
+
+def test_frames_stream_from_a_generator(tmp_path):
+    """Each cloud is authored before the next is asked for; a failure midway leaves no file."""
+    asked = []
+
+    def clouds(fail_at=None):
+        for i in range(3):
+            if i == fail_at:
+                raise RuntimeError("the scene could not be evaluated")
+            asked.append(i)
+            yield random_cloud(20, 0, seed=i)
+
+    usd.write_frames(tmp_path / "gen.usdc", clouds())              # times default to 0, 1, 2
+    assert asked == [0, 1, 2] and usd.time_codes(tmp_path / "gen.usdc") == [0, 1, 2]
+    assert_same(usd.read(tmp_path / "gen.usdc", time=2), random_cloud(20, 0, seed=2))
+    with pytest.raises(RuntimeError, match="could not be evaluated"):
+        usd.write_frames(tmp_path / "half.usdc", clouds(fail_at=2))
+    assert list(tmp_path.iterdir()) == [tmp_path / "gen.usdc"]
+    with pytest.raises(SplatFileError, match="more clouds than time codes"):
+        usd.write_frames(tmp_path / "bad.usdc", clouds(), times=[1, 2])
+    with pytest.raises(SplatFileError, match="more time codes than clouds"):
+        usd.write_frames(tmp_path / "bad.usdc", clouds(), times=[1, 2, 3, 4])
+    with pytest.raises(SplatFileError, match="no clouds to write"):
+        usd.write_frames(tmp_path / "bad.usdc", [])
+    assert list(tmp_path.iterdir()) == [tmp_path / "gen.usdc"]
+
+
 def test_many_prims_animated_and_static_in_one_stage(tmp_path):
     static, frames = random_cloud(30, 3, seed=1), [random_cloud(12, 0, seed=s) for s in (2, 3)]
     path = tmp_path / "set.usdc"
