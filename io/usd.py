@@ -30,7 +30,8 @@ Reading (`read`, `read_stage`, `read_frames`)
 
 Writing (`write`, `write_stage`, `write_frames`): Y-up, metersPerUnit 1 (the model's RDF axes
 flipped to RUB unless axes="RUB"), one prim per cloud (default /Splats); a sequence of same-count
-clouds becomes time samples on one prim. half=True stores orientations, scales, opacities and SH
+clouds (any iterable, consumed one at a time) becomes time samples on one prim, where an attribute
+that never changes is authored once as its default value. half=True stores orientations, scales, opacities and SH
 as half floats (about half the size; positions stay float32 unless half_positions=True). Extras
 become `primvars:<name>` with vertex interpolation. Without pxr.UsdVol's schema classes (an older
 pxr, e.g. one bundled with Blender) the same prim and attributes are authored by name through the
