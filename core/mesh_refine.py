@@ -26,6 +26,7 @@ from .camera import Camera
 from .mesh_render import render_mesh
 from .mesh_to_splats import build_splats
 from .metrics import psnr_from_mse
+from .parallel import map_threads
 from .render import render
 
 VIEW_COUNT = 8
@@ -65,8 +66,8 @@ class _Views:
 
     def __init__(self, surface, cameras, render_mode, solid):
         self.surface, self.cameras, self.mode = surface, cameras, render_mode
-        self.refs = [render_mesh(surface, cam, background=BACKGROUND, supersample=SUPERSAMPLE)
-                     for cam in cameras]
+        self.refs = map_threads(lambda cam: render_mesh(surface, cam, background=BACKGROUND,
+                                                        supersample=SUPERSAMPLE), cameras)
         self.owners = [_dilate_labels(ref.face, 2 * SUPERSAMPLE) for ref in self.refs]
         self.pixel = self._pixel_sizes()
         # Pixels around the silhouettes of solid parts, and the silhouette length there (pixels).

@@ -90,6 +90,8 @@ def rasterize(surface, cam):
     bbuf = np.zeros((h * w, 3))
     v = cam.to_camera(surface.vertices)[surface.faces]                  # (F,3,3) camera space
     faces, x0, x1, y0, y1 = _screen_boxes(surface, cam, v)
+    a, b, c = _edge_functions(v[faces], cam)
+    depths = v[faces, :, 2]
     rows_face = np.repeat(np.arange(len(faces)), y1 - y0)
     rows_y = y0[rows_face] + _ramp(y1 - y0)
     widths = (x1 - x0)[rows_face]
@@ -99,13 +101,30 @@ def rasterize(surface, cam):
         stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + CANDIDATES_PER_CHUNK, "right"))
         stop = max(stop, start + 1)
         rf, ry, rw = rows_face[start:stop], rows_y[start:stop], widths[start:stop]
-        cand_row = np.repeat(np.arange(len(rf)), rw)
-        local = rf[cand_row]
-        px, py = x0[local] + _ramp(rw), ry[cand_row]
-        _hit_and_keep(cam, v[faces[local]], faces[local], px, py, zbuf, fbuf, bbuf)
+        # Along a row only x changes: e = a x + (b y + c), the bracket once per row.
+        px = np.repeat(x0[rf], rw) + _ramp(rw)
+        e = np.repeat(a[rf], rw, axis=0) * px[:, None].astype(np.float64)
+        e += np.repeat(b[rf] * ry[:, None].astype(np.float64) + c[rf], rw, axis=0)
+        _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), zbuf, fbuf, bbuf)
         start = stop
     depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
     return fbuf.reshape(h, w), bbuf.reshape(h, w, 3), depth.reshape(h, w)
+
+
+def _edge_functions(v, cam):
+    """Per face, (a, b, c), each (F,3): the edge function of the edge opposite corner k at the centre
+    of pixel (x, y) is a_k x + b_k y + c_k, proportional to the perspective-correct barycentric k.
+
+    It is r . (v_{k+1} x v_{k+2}) for the pixel's ray r = ((x + 0.5 - cx) / fx, (y + 0.5 - cy) / fy, 1):
+    the signed volume of the ray with the edge. Orthographic rays are parallel, from (x, y) in r's
+    units; there the corners enter as (x, y, 1), which makes the same product the 2D edge function.
+    Faces sharing an edge get exactly opposite values along it (a x b = -(b x a) in floating point
+    too), so no pixel centre falls through the crack between them."""
+    if cam.is_orthographic:
+        v = np.concatenate([v[..., :2], np.ones(v.shape[:-1] + (1,))], axis=-1)
+    planes = np.cross(v[:, [1, 2, 0]], v[:, [2, 0, 1]])
+    a, b = planes[..., 0] / cam.fx, planes[..., 1] / cam.fy
+    return a, b, planes[..., 2] + a * (0.5 - cam.cx) + b * (0.5 - cam.cy)
 
 
 def _ramp(counts):
@@ -137,23 +156,16 @@ def _screen_boxes(surface, cam, v):
     return faces, x0[faces], x1[faces], y0[faces], y1[faces]
 
 
-def _hit_and_keep(cam, tv, tri, px, py, zbuf, fbuf, bbuf):
-    """Intersect candidate pixel rays with their faces and keep the nearest hit per pixel."""
-    r = _rays(cam, px, py)
-    if cam.is_orthographic:
-        # Parallel rays along +z from (x, y, 0): 2D edge functions, then depth by barycentrics.
-        e = np.stack([_edge2d(tv[:, (k + 1) % 3], tv[:, (k + 2) % 3], r) for k in range(3)], axis=1)
-    else:
-        # e_k = r . (v_{k+1} x v_{k+2}): signed volumes, proportional to perspective-correct barycentrics.
-        e = np.stack([np.einsum("ij,ij->i", r, np.cross(tv[:, (k + 1) % 3], tv[:, (k + 2) % 3]))
-                      for k in range(3)], axis=1)
+def _keep_nearest(cam, e, local, depths, faces, pix, zbuf, fbuf, bbuf):
+    """Of the candidates (edge functions e (M,3) of face faces[local] at pixel pix), keep each
+    pixel's nearest hit in the buffers."""
     total = e.sum(axis=1)
     inside = (total != 0) & (((e >= 0).all(axis=1)) | ((e <= 0).all(axis=1)))
+    local, pix = local[inside], pix[inside]
     bary = e[inside] / total[inside, None]
-    z = np.einsum("ik,ik->i", bary, tv[inside, :, 2])
+    z = np.einsum("ik,ik->i", bary, depths[local])
     keep = (z > cam.near) & (z <= cam.far)
-    pix = (py * cam.width + px)[inside][keep]
-    z, bary, tri = z[keep], bary[keep], tri[inside][keep]
+    pix, z, bary, tri = pix[keep], z[keep], bary[keep], faces[local[keep]]
     order = np.lexsort((tri, z, pix))            # nearest first per pixel; ties by face index
     pix, z, bary, tri = pix[order], z[order], bary[order], tri[order]
     first = np.ones(len(pix), bool)
@@ -162,7 +174,3 @@ def _hit_and_keep(cam, tv, tri, px, py, zbuf, fbuf, bbuf):
     closer = (z < zbuf[pix]) | ((z == zbuf[pix]) & (tri < fbuf[pix]))
     pix = pix[closer]
     zbuf[pix], fbuf[pix], bbuf[pix] = z[closer], tri[closer], bary[closer]
-
-
-def _edge2d(a, b, r):
-    return (b[:, 0] - a[:, 0]) * (r[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (r[:, 0] - a[:, 0])
