@@ -7,9 +7,11 @@ Uses the OpenEXR package (v3 API). Channel names are free-form ("N.x", "albedo.R
 list them alphabetically, so the order of the dict is not kept. Files are written atomically.
 """
 
+import warnings
+
 import numpy as np
 
-from .common import SplatFileError, atomic_path
+from .common import SplatFileError, SplatFileWarning, atomic_path
 
 HALF_MAX = float(np.finfo(np.float16).max)   # 65504
 EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -76,11 +78,15 @@ def write_exr(path, channels, half=False, compression="zip", header=None):
             raise SplatFileError(path, f"OpenEXR could not write the image: {exc}") from exc
 
 
-def read_exr(path, part=0):
+def read_exr(path, part=0, nan="raise"):
     """{channel name: (H,W) float32} of one part of an EXR file (half channels widened exactly).
 
     Unsigned-int channels (object ids) are converted to float32 too, exactly up to 2^24.
+    nan: "raise" (a SplatFileError counting them, as write_exr refuses them) or "keep" (with a
+    SplatFileWarning) for channels holding NaN; infinities are kept either way.
     """
+    if nan not in ("raise", "keep"):
+        raise ValueError(f"nan must be 'raise' or 'keep', got {nan!r}")
     OpenEXR = _openexr(path)
     try:
         with open(path, "rb") as f:
@@ -89,9 +95,13 @@ def read_exr(path, part=0):
         image = OpenEXR.File(str(path), separate_channels=True)
     except FileNotFoundError:
         raise SplatFileError(path, "no such file") from None
-    except RuntimeError as exc:
-        raise SplatFileError(path, f"OpenEXR could not read the image: {exc}") from exc
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
+    except (RuntimeError, ValueError, TypeError) as exc:     # ValueError includes UnicodeDecodeError
+        raise SplatFileError(path, f"OpenEXR could not read the image (truncated or corrupt?): {exc}") from exc
     parts = image.parts
+    if not parts:
+        raise SplatFileError(path, "OpenEXR found no readable image part (truncated or corrupt?)")
     if not 0 <= part < len(parts):
         raise SplatFileError(path, f"part {part} requested, the file has {len(parts)}")
     out = {}
@@ -103,5 +113,15 @@ def read_exr(path, part=0):
         if pixels is None or pixels.ndim != 2:
             raise SplatFileError(path, f"channel '{name}' has no flat pixel data (deep images are not supported)")
         out[name] = pixels.astype(np.float32)
+    _check_nan(path, out, nan)
     return out
 
+
+def _check_nan(path, channels, policy):
+    counts = {name: int(np.isnan(a).sum()) for name, a in channels.items()}
+    detail = ", ".join(f"'{name}' {count}" for name, count in counts.items() if count)
+    if not detail:
+        return
+    if policy == "raise":
+        raise SplatFileError(path, f"channels hold NaN values ({detail}); read with nan='keep' to go on anyway")
+    warnings.warn(f"{path}: channels hold NaN values ({detail}); kept", SplatFileWarning, stacklevel=3)

@@ -43,7 +43,7 @@ class _ObjReader:
         self.current = -1
 
     def read(self):
-        text = self.path.read_text(encoding="utf-8", errors="replace")
+        text = _read_text(self.path)
         text = text.replace("\\\r\n", " ").replace("\\\n", " ")          # line continuations
         for number, line in enumerate(text.splitlines(), 1):
             parts = line.split("#", 1)[0].split()
@@ -108,6 +108,7 @@ class _ObjReader:
             raise SplatFileError(self.path, "no vertices")
         if not self.face_sizes:
             raise SplatFileError(self.path, "no faces")
+        positions = _finite_rows(self.path, np.asarray(self.positions, np.float64), "vertex")
         sizes = np.asarray(self.face_sizes)
         corner_v, corner_t = np.asarray(self.corner_v), np.asarray(self.corner_t)
         # Fan triangulation, vectorised: polygon corners (0, k, k+1) for k = 1 .. n-2.
@@ -120,21 +121,46 @@ class _ObjReader:
         uv_ids = corner_t[corner_ids]
         corner_uvs = None
         if self.uvs and (uv_ids >= 0).any():
-            uvs = np.asarray(self.uvs, np.float64)
+            uvs = _finite_rows(self.path, np.asarray(self.uvs, np.float64), "texture coordinate")
             corner_uvs = np.where((uv_ids >= 0)[..., None], uvs[np.maximum(uv_ids, 0)], 0.0)
         face_mat = np.asarray(self.face_mat)[tri_poly]
         materials = list(self.materials)
         if (face_mat < 0).any():        # faces before any usemtl get the default material
             face_mat = np.where(face_mat < 0, len(materials), face_mat)
             materials.append(Material(name="default"))
-        return Mesh(np.asarray(self.positions, np.float64), faces, corner_uvs, face_mat, materials,
-                    self._vertex_colors())
+        return Mesh(positions, faces, corner_uvs, face_mat, materials, self._vertex_colors())
 
     def _vertex_colors(self):
         if all(c is None for c in self.colors):
             return None
         rgb = np.array([c if c is not None else (1.0, 1.0, 1.0) for c in self.colors], np.float64)
+        _finite_rows(self.path, rgb, "vertex colour")
         return color.srgb_to_linear(np.clip(rgb, 0.0, 1.0))
+
+
+def _read_text(path):
+    try:
+        return path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
+
+
+def _finite_rows(path, values, what):
+    """`values` (one row per OBJ entry), or a SplatFileError naming the first with NaN or Inf."""
+    bad = ~np.isfinite(values).all(axis=1)
+    if bad.any():
+        first = int(np.argmax(bad))
+        raise SplatFileError(path, f"{what} {first + 1} holds NaN or infinite values "
+                                   f"({int(bad.sum())} {what}s in all)")
+    return values
+
+
+def _finite(texts):
+    """Numbers from text; NaN and infinities are refused (ValueError, reported with the line)."""
+    values = [float(t) for t in texts]
+    if not all(np.isfinite(values)):
+        raise ValueError("numbers must be finite")
+    return values
 
 
 def _index(text, count, what):
@@ -151,7 +177,7 @@ def read_mtl(path):
     """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image."""
     path = Path(path)
     materials, current = {}, None
-    for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+    for number, line in enumerate(_read_text(path).splitlines(), 1):
         parts = line.split("#", 1)[0].split()
         if not parts:
             continue
@@ -163,7 +189,7 @@ def read_mtl(path):
             elif current is None:
                 continue
             elif key == "kd":
-                values = [float(p) for p in parts[1:4]]
+                values = _finite(parts[1:4])
                 current.base_color = tuple(values + [values[-1]] * (3 - len(values)))
             elif key == "map_kd":
                 _texture(current, parts[1:], path)
@@ -197,7 +223,7 @@ def _texture(material, args, mtl_path):
 
 
 def _pair(values, default):
-    values = [float(v) for v in (values or [])[:2]]
+    values = _finite((values or [])[:2])
     return tuple(values + [default] * (2 - len(values)))
 
 
@@ -210,7 +236,8 @@ def load_image(path):
                 a = np.asarray(img, dtype=np.uint32)
                 return np.repeat(np.clip(a, 0, 65535).astype(np.uint16)[:, :, None], 3, axis=2)
             return np.asarray(img.convert("RGB"))
-    except OSError as exc:
+    except (OSError, ValueError, EOFError, SyntaxError, Image.DecompressionBombError) as exc:
+        # Pillow reports a corrupt or hostile file (a header claiming 10^10 pixels) in all of these.
         raise SplatFileError(path, f"cannot read image: {exc}") from None
 
 

@@ -107,6 +107,11 @@ def _read_header(path, f):
             raise SplatFileError(path, f"{where}: unknown keyword '{words[0]}'")
     if fmt is None:
         raise SplatFileError(path, "PLY header has no 'format' line")
+    for element in elements:
+        names = [name for name, _ in element.properties]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise SplatFileError(path, f"{element.name} element repeats properties {dupes}")
     return fmt, elements, end.end()
 
 
@@ -130,10 +135,6 @@ def _vertex_element(path, elements):
     lists = [name for name, t in vertex.properties if isinstance(t, tuple)]
     if lists:
         raise SplatFileError(path, f"vertex element has list properties {lists}, which splat files do not use")
-    names = [name for name, _ in vertex.properties]
-    dupes = sorted({n for n in names if names.count(n) > 1})
-    if dupes:
-        raise SplatFileError(path, f"vertex element repeats properties {dupes}")
     return index, vertex
 
 
@@ -186,10 +187,30 @@ def _read_ascii(path, elements, index, header_len):
     dtype = vertex.dtype("=")
     if vertex.count == 0:
         return np.zeros(0, dtype)
+    # Integer properties are parsed as float64 (exact far beyond any PLY integer) and checked after:
+    # np.loadtxt would wrap out-of-range integers silently.
+    parsed = np.dtype([(name, "f8" if dtype[name].kind in "iu" else dtype[name]) for name in dtype.names])
     try:
-        return np.loadtxt(lines[start:start + vertex.count], dtype=dtype, comments=None, ndmin=1)
+        records = np.loadtxt(lines[start:start + vertex.count], dtype=parsed, comments=None, ndmin=1)
     except ValueError as exc:
         raise SplatFileError(path, f"vertex data (rows counted from the first vertex): {exc}") from None
+    return records if parsed == dtype else _as_integers(path, records, dtype)
+
+
+def _as_integers(path, records, dtype):
+    """ASCII records with their integer properties converted to `dtype`, each value checked."""
+    out = np.empty(len(records), dtype)
+    for name in dtype.names:
+        values = records[name]
+        if dtype[name].kind in "iu":
+            info = np.iinfo(dtype[name])
+            bad = ~((values == np.round(values)) & (values >= info.min) & (values <= info.max))
+            if bad.any():
+                row = int(np.argmax(bad))
+                raise SplatFileError(path, f"vertex {row}: {TYPE_NAMES[dtype[name].str[1:]]} property '{name}' "
+                                           f"holds {float(values[row])!r}, not an integer in {info.min}..{info.max}")
+        out[name] = values
+    return out
 
 
 def _bytes(records):
@@ -330,8 +351,7 @@ class _Converter:
 def _sh_count(path, names):
     """K, the SH coefficients per channel, from the f_rest properties present."""
     rest = [p for p in names if p.startswith("f_rest_")]
-    numbers = sorted(int(p[7:]) for p in rest if p[7:].isdigit())
-    if len(numbers) != len(rest) or numbers != list(range(len(rest))):
+    if set(rest) != {f"f_rest_{i}" for i in range(len(rest))}:
         raise SplatFileError(path, "f_rest properties must be numbered f_rest_0 .. f_rest_M without gaps, "
                                    f"found {sorted(rest, key=lambda p: (len(p), p))}")
     if len(rest) not in (0, 9, 24, 45):

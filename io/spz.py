@@ -50,6 +50,10 @@ MAX_POINTS = 1 << 28
 SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}    # higher-order coefficients per channel
 GZIP_LEVEL, ZSTD_LEVEL = 6, 12                 # what Niantic's writer uses (v4 output is byte-identical)
 GZIP_CHUNK = 1 << 20                           # deflated independently, in parallel, like pigz
+# The most a compressed byte can expand to: deflate reaches at most 1032:1; a zstd block (a 3-byte
+# header at least) holds at most 128 KiB. A header claiming more splats than that is lying.
+DEFLATE_MAX_RATIO = 1032
+ZSTD_BLOCK_HEADER, ZSTD_MAX_BLOCK = 3, 128 << 10
 
 
 # the RUB <-> RDF flip: y and z negate --------------------------------------------------------------
@@ -107,6 +111,9 @@ def _gunzip_legacy(path, raw):
         if version == 4:
             raise SplatFileError(path, "SPZ version 4 inside gzip; v4 files are not gzipped")
         need = sum(size for _, size in _block_sizes(n, SH_DIMS[degree], version))
+        if need > DEFLATE_MAX_RATIO * len(raw):
+            raise SplatFileError(path, f"header claims {n} splats ({need} data bytes), more than a "
+                                       f"{len(raw)}-byte gzip file can hold (truncated or corrupt?)")
         body = d.decompress(d.unconsumed_tail, need + (1 << 16) + 1)
     except zlib.error as exc:
         raise SplatFileError(path, f"corrupt gzip stream: {exc}") from None
@@ -154,19 +161,32 @@ def _split_v4(path, raw):
     table = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
     decompressor = _zstd(path).ZstdDecompressor()
     blocks, at = {"extensions": raw[V4_HEADER.size:toc]}, toc + 16 * streams
-    for (name, size), (packed, unpacked) in zip(sizes, table):
+    for (name, size), (packed, unpacked) in zip(sizes, table.tolist()):     # Python ints: no uint64 wrap
         if unpacked != size:
             raise SplatFileError(path, f"v4 {name} stream holds {unpacked} bytes, the header's {n} splats need {size}")
         if at + packed > len(raw):
             raise SplatFileError(path, f"truncated: the {name} stream runs past the end of the file")
-        try:
-            blocks[name] = decompressor.decompress(raw[at:at + int(packed)], max_output_size=int(size))
-        except Exception as exc:                     # zstandard.ZstdError
-            raise SplatFileError(path, f"corrupt zstd {name} stream: {exc}") from None
+        if size > -(-packed // ZSTD_BLOCK_HEADER) * ZSTD_MAX_BLOCK:
+            raise SplatFileError(path, f"v4 {name} stream of {packed} bytes cannot hold the {size} bytes "
+                                       f"the header's {n} splats need (truncated or corrupt?)")
+        blocks[name] = _unzstd(path, name, decompressor, raw[at:at + packed], size)
         if len(blocks[name]) != size:
             raise SplatFileError(path, f"v4 {name} stream decompressed to {len(blocks[name])} of {size} bytes")
-        at += int(packed)
+        at += packed
     return (version, n, degree, bits, flags), blocks
+
+
+def _unzstd(path, name, decompressor, frame, size):
+    """One zstd frame that must hold `size` bytes. The frame's own content size is checked first:
+    zstandard allocates whatever a frame declares, whatever max_output_size says."""
+    zstandard = _zstd(path)
+    try:
+        declared = zstandard.frame_content_size(frame)
+        if declared not in (-1, size):
+            raise SplatFileError(path, f"v4 {name} stream declares {declared} bytes, the header's splats need {size}")
+        return decompressor.decompress(frame, max_output_size=max(size, 1))   # 0 would mean no limit
+    except zstandard.ZstdError as exc:
+        raise SplatFileError(path, f"corrupt zstd {name} stream: {exc}") from None
 
 
 def _sh_range(extensions):

@@ -21,7 +21,11 @@ def read_urdf(path):
     path = Path(path)
     if not path.is_file():
         raise SplatFileError(path, "no such file")
-    return parse_urdf(path.read_text(encoding="utf-8", errors="replace"), source=str(path))
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    return parse_urdf(text, source=str(path))
 
 
 def parse_urdf(text, source="<string>"):
@@ -92,8 +96,8 @@ def _joint(source, element, links):
     axis_tag = element.find("axis")
     axis = _numbers(source, axis_tag.get("xyz", "1 0 0"), 3, f"{where} axis") if axis_tag is not None \
         else np.array([1.0, 0.0, 0.0])
-    if kind != "fixed" and np.linalg.norm(axis) < 1e-12:
-        raise SplatFileError(source, f"{where} has a zero axis")
+    if kind != "fixed" and not 1e-12 <= np.linalg.norm(axis) < np.inf:
+        raise SplatFileError(source, f"{where} has a zero axis or one too long for floating point")
     lower, upper = -np.inf, np.inf
     if kind in ("revolute", "prismatic"):
         limit = element.find("limit")

@@ -94,6 +94,7 @@ EXTRA_TYPES = {"float32": "float", "float64": "double", "float16": "half", "int3
                "uint32": "uint", "int64": "int64", "uint64": "uint64", "uint8": "uchar", "bool": "bool",
                "int8": "int", "int16": "int", "uint16": "int"}
 DTYPE_KEY = "splatwright:dtype"
+NARROW_INTS = {name for name, sdf in EXTRA_TYPES.items() if sdf == "int" and name != "int32"}
 ADOBE_PRIMVARS = {"rot", "widths1", "widths2", "displayColor", "displayOpacity", "clipping"}
 
 # Linear values read from a file, kept per cloud object so that writing an unchanged cloud back
@@ -149,7 +150,11 @@ def _open(path):
 
 
 def _tf_message(exc):
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    try:
+        text = str(exc)
+    except UnicodeDecodeError:          # OpenUSD quoting bytes of the file that are not UTF-8
+        return "it holds bytes that are not UTF-8 text"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
     return lines[0].split(" : ", 1)[-1] if lines else "unknown error"
 
 
@@ -194,19 +199,34 @@ def _world_matrix(prim, time):
 
 # reading values -----------------------------------------------------------------------------------
 
-def _value(prim, name, time):
-    """An authored array attribute as NumPy, or None."""
+def _file(prim):
+    return prim.GetStage().GetRootLayer().identifier
+
+
+def _value(prim, name, time, shape=()):
+    """An authored array attribute as NumPy (numbers, `shape` per entry), or None."""
     attr = prim.GetAttribute(name)
     if not attr or not attr.HasAuthoredValue():
         return None
     value = attr.Get(time)
-    return None if value is None else np.asarray(value)
+    return None if value is None else _numbers(prim, name, value, shape)
 
 
-def _float_or_half(prim, name, time):
+def _numbers(prim, name, value, shape):
+    """`value` as NumPy, or a SplatFileError when it is not an array of numbers with `shape` per
+    entry (strings, a single value, a float[] where the schema has point3f[] ...)."""
+    values = np.asarray(value)
+    if values.dtype.kind not in "iuf" or values.ndim != 1 + len(shape) or values.shape[1:] != shape:
+        entries = f"{shape[0]}-component vectors" if shape else "numbers"
+        raise SplatFileError(_file(prim), f"{prim.GetPath()}: {name} holds a {type(value).__name__} "
+                                          f"({values.dtype}, shape {values.shape}), expected an array of {entries}")
+    return values
+
+
+def _float_or_half(prim, name, time, shape):
     """The float attribute if authored, else its half twin widened to float32."""
     for attr_name in (name, name + "h"):
-        value = _value(prim, attr_name, time)
+        value = _value(prim, attr_name, time, shape)
         if value is not None:
             return value.astype(np.float32, copy=False)
     return None
@@ -238,9 +258,6 @@ def _sh_from(prim, coeffs, degree, n, notes):
     if degree is None:                  # unauthored: infer from the count, else the schema's fallback 3
         per = len(coeffs) // n if n else 16
         degree = shmod.degree_of(per) if n and len(coeffs) == n * per and per in shmod.VALID_COUNTS else 3
-    if degree < 0:
-        raise SplatFileError(prim.GetStage().GetRootLayer().identifier,
-                             f"{prim.GetPath()}: {SH_DEGREE} is {degree}")
     k = (degree + 1) ** 2
     if len(coeffs) < n * k:
         notes.append(f"{SH_COEFFS} has {len(coeffs)} entries, {n * k} needed for degree {degree}; "
@@ -265,7 +282,8 @@ def _valid_opacities(opacities, notes):
 
 def _logits_from(opacities, stored, notes):
     """float32 logits: the stored exact ones where they still reproduce `opacities`, else derived."""
-    derived = logit(opacities).astype(np.float32)
+    # NaN and Inf stay as they are (logit would clamp Inf to a finite value) for the non-finite policy
+    derived = np.where(np.isfinite(opacities), logit(opacities), opacities).astype(np.float32)
     return _prefer_stored(derived, stored, sigmoid(stored).astype(np.float32) if stored is not None else None,
                           opacities, LOGITS, notes)
 
@@ -298,17 +316,16 @@ def _within_one_ulp(a, b):
 
 def _gaussian_cloud(prim, time, notes):
     """A ParticleField3DGaussianSplat prim's particles in its local space."""
-    positions = _float_or_half(prim, "positions", time)
-    n = 0 if positions is None else len(positions.reshape(-1, 3))
-    positions = np.zeros((0, 3), np.float32) if positions is None else positions.reshape(-1, 3)
-    quats = _fit(_float_or_half(prim, "orientations", time), n, (4,), "orientations", "identity", notes)
-    scales = _fit(_float_or_half(prim, "scales", time), n, (3,), "scales", "1", notes)
-    opacities = _fit(_float_or_half(prim, "opacities", time), n, (), "opacities", "1 (opaque)", notes)
-    degree_attr = prim.GetAttribute(SH_DEGREE)
-    degree = degree_attr.Get() if degree_attr and degree_attr.HasAuthoredValue() else None
-    sh = _sh_from(prim, _float_or_half(prim, SH_COEFFS, time), degree, n, notes)
+    positions = _float_or_half(prim, "positions", time, (3,))
+    positions = np.zeros((0, 3), np.float32) if positions is None else positions
+    n = len(positions)
+    quats = _fit(_float_or_half(prim, "orientations", time, (4,)), n, (4,), "orientations", "identity", notes)
+    scales = _fit(_float_or_half(prim, "scales", time, (3,)), n, (3,), "scales", "1", notes)
+    opacities = _fit(_float_or_half(prim, "opacities", time, ()), n, (), "opacities", "1 (opaque)", notes)
+    sh = _sh_from(prim, _float_or_half(prim, SH_COEFFS, time, (3,)), _sh_degree(prim), n, notes)
     stored_logits = _fit(_value(prim, LOGITS, time), n, (), LOGITS, "-", []) if opacities is not None else None
-    stored_logs = _fit(_value(prim, LOG_SCALES, time), n, (3,), LOG_SCALES, "-", []) if scales is not None else None
+    stored_logs = _fit(_value(prim, LOG_SCALES, time, (3,)), n, (3,), LOG_SCALES, "-", []) \
+        if scales is not None else None
     rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1)) if quats is None else quats[:, [3, 0, 1, 2]]
     opacities = np.ones(n, np.float32) if opacities is None else _valid_opacities(opacities, notes)
     scales = np.ones((n, 3), np.float32) if scales is None else scales
@@ -318,39 +335,49 @@ def _gaussian_cloud(prim, time, notes):
     return cloud, opacities, np.abs(scales)
 
 
+def _sh_degree(prim):
+    """The authored SH degree, None if unauthored, or a SplatFileError if it is no int >= 0."""
+    attr = prim.GetAttribute(SH_DEGREE)
+    if not attr or not attr.HasAuthoredValue():
+        return None
+    degree = attr.Get()
+    if not isinstance(degree, int) or isinstance(degree, bool) or degree < 0:
+        raise SplatFileError(_file(prim), f"{prim.GetPath()}: {SH_DEGREE} is {degree!r}, expected an int >= 0")
+    return degree
+
+
 def _is_adobe_splat(prim):
     pv = UsdGeom.PrimvarsAPI(prim)
     return prim.IsA(UsdGeom.Points) and all(pv.HasPrimvar(n) for n in ("rot", "widths1", "widths2"))
 
 
-def _primvar(prim, name, time):
+def _primvar(prim, name, time, shape=()):
     pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
     if not pv or not pv.HasAuthoredValue():
         return None
     value = pv.ComputeFlattened(time)
-    return None if value is None else np.asarray(value)
+    return None if value is None else _numbers(prim, f"primvars:{name}", value, shape)
 
 
 def _adobe_cloud(prim, time, notes):
     """UsdGeomPoints with Adobe's 3DGS primvars, in the prim's local space."""
-    points = UsdGeom.Points(prim)
-    positions = np.asarray(points.GetPointsAttr().Get(time) or [], np.float32).reshape(-1, 3)
+    positions = _value(prim, "points", time, (3,))
+    positions = np.zeros((0, 3), np.float32) if positions is None else positions.astype(np.float32)
     n = len(positions)
-    widths = [np.asarray(points.GetWidthsAttr().Get(time) or [], np.float32),
-              _primvar(prim, "widths1", time), _primvar(prim, "widths2", time)]
+    widths = [_value(prim, "widths", time), _primvar(prim, "widths1", time), _primvar(prim, "widths2", time)]
     # a single width is constant interpolation: one value for every point
     widths = [None if w is None else (np.full(n, w[0], np.float32) if len(w) == 1 else w) for w in widths]
     per_axis = [_fit(w, n, (), f"widths axis {i}", "2 (sigma 1)", notes) for i, w in enumerate(widths)]
     scales = np.stack([np.ones(n, np.float32) if a is None else a / np.float32(2) for a in per_axis], axis=1)
-    quats = _fit(_primvar(prim, "rot", time), n, (4,), "primvars:rot", "identity", notes)
+    quats = _fit(_primvar(prim, "rot", time, (4,)), n, (4,), "primvars:rot", "identity", notes)
     rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1)) if quats is None else quats[:, [3, 0, 1, 2]]
     opacities = _fit(_primvar(prim, "displayOpacity", time), n, (), "primvars:displayOpacity", "1", notes)
     opacities = np.ones(n, np.float32) if opacities is None else _valid_opacities(opacities.astype(np.float32), notes)
-    colors = _fit(_primvar(prim, "displayColor", time), n, (3,), "primvars:displayColor", "grey", notes)
+    colors = _fit(_primvar(prim, "displayColor", time, (3,)), n, (3,), "primvars:displayColor", "grey", notes)
     dc = np.zeros((n, 3)) if colors is None else shmod.rgb_to_dc(colors)
     rest = _adobe_rest(prim, time, n, notes)
     sh = np.concatenate([dc[:, None, :], rest], axis=1)
-    clip = _primvar(prim, "clipping", time)
+    clip = _primvar(prim, "clipping", time, (3,))
     if clip is not None:
         notes.append(f"primvars:clipping box {clip.reshape(-1, 3).tolist()} not applied")
     taken = ADOBE_PRIMVARS | {f"fRest{i}" for i in range(45)}
@@ -390,10 +417,22 @@ def _extras(prim, time, n, taken, notes):
         if values.dtype == object or values.ndim > 1 or len(values) != n * size:
             notes.append(f"primvar {name} is not one {size}-value entry per particle; not kept")
             continue
-        dtype = pv.GetAttr().GetCustomDataByKey(DTYPE_KEY)
-        values = values.astype(dtype) if dtype else values
+        values = _narrowed(values, pv.GetAttr().GetCustomDataByKey(DTYPE_KEY), name, notes)
         extras[str(name)] = values.reshape(n, size) if size > 1 else values
     return extras
+
+
+def _narrowed(values, dtype, name, notes):
+    """An int primvar back in the narrow integer dtype the writer widened it from (its custom
+    data), when every value fits that dtype."""
+    if dtype is None:
+        return values
+    if isinstance(dtype, str) and dtype in NARROW_INTS and values.dtype == np.int32:
+        narrow = values.astype(dtype)
+        if np.array_equal(narrow, values):
+            return narrow
+    notes.append(f"primvar {name}: {DTYPE_KEY} {dtype!r} does not fit its {values.dtype} values; ignored")
+    return values
 
 
 def _read_prim(prim, time, stage_m, notes):
@@ -416,7 +455,7 @@ def _read_prim(prim, time, stage_m, notes):
             anisotropy = float(geometry.anisotropy(to_world[:3, :3]))
             cloud = cloud.transformed(to_world)
         except ValueError as exc:
-            raise SplatFileError(prim.GetStage().GetRootLayer().identifier,
+            raise SplatFileError(_file(prim),
                                  f"{prim.GetPath()}: cannot apply its transform: {exc}") from None
         if anisotropy > ANISOTROPY_TOLERANCE:
             angle = np.degrees(np.arctan(anisotropy / (2 * np.sqrt(1 + anisotropy))))
