@@ -8,6 +8,7 @@ depends on the range exported, so render-farm jobs can split a range and write t
 Every frame goes through the same evaluated-cloud path as a single export (operators.scene_cloud).
 """
 
+import contextlib
 import re
 from pathlib import Path
 
@@ -16,7 +17,8 @@ from bpy.props import BoolProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, orientation_helper
 
 from ..io import SplatFileError, format_of, write_splats
-from . import operators
+from ..io.common import atomic_path
+from . import data, operators
 
 HASHES = re.compile(r"#+")
 DEFAULT_PADDING = 4                 # Blender's own default, ####
@@ -51,6 +53,7 @@ def frame_range(start, end, step=1):
 
 def export_animation(context, objects, path, frames, conversion=None, progress=None):
     """Write `objects` (splat objects) at each of `frames` to `path`; returns the files written.
+    All or nothing: a frame that fails leaves every file of the sequence as it was.
 
     conversion: the Blender -> file axis matrix (default: operators.export_conversion()).
     progress(done, total, message) is called after each frame. The scene's frame is restored.
@@ -70,7 +73,10 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
         """Each frame's cloud, evaluated when the writer asks for it: one frame in memory at a time."""
         for i, frame in enumerate(frames):
             scene.frame_set(frame)
-            cloud = operators.scene_cloud(context, objects, conversion)
+            try:
+                cloud = operators.scene_cloud(context, objects, conversion)
+            except data.SplatObjectError as exc:
+                raise data.SplatObjectError(f"frame {frame}: {exc}") from None
             count = len(cloud)
             yield cloud
             del cloud                        # before the next frame is evaluated
@@ -84,8 +90,15 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
             usd.write_frames(path, clouds(), times=frames, fps=scene.render.fps / scene.render.fps_base)
             return [path]
         written = [frame_path(path, frame) for frame in frames]
-        for out, cloud in zip(written, clouds()):
-            write_splats(out, cloud)
+        blocked = next((out for out in written if out.is_dir()), None)
+        if blocked is not None:              # found before any frame is written, not when renaming
+            raise SplatFileError(blocked, "a folder of that name is in the way")
+        with contextlib.ExitStack() as renames:     # each frame lands on its name once all are written
+            for out, cloud in zip(written, clouds()):
+                try:
+                    write_splats(renames.enter_context(atomic_path(out)), cloud)
+                except SplatFileError as exc:            # name the frame's file, not its temporary
+                    raise SplatFileError(out, exc.problem) from None
         return written
     finally:
         scene.frame_set(current, subframe=subframe)

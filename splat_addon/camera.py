@@ -6,7 +6,7 @@ from ..core.camera import Camera
 
 
 class CameraError(ValueError):
-    """A camera the core renderer cannot reproduce (panoramic)."""
+    """A camera the core renderer cannot reproduce (panoramic, not a camera, a degenerate transform)."""
 
 
 def lens_settings(cam_data, render):
@@ -31,8 +31,12 @@ def lens_settings(cam_data, render):
 def from_object(cam_obj, scene, width, height, origin=(0.0, 0.0, 0.0)):
     """The core Camera for an (evaluated) Blender camera object at the given output size, in a world
     frame moved by -`origin`."""
+    if cam_obj.type != "CAMERA":
+        raise CameraError(f"the scene camera '{cam_obj.name}' is {cam_obj.type.lower()}, not a camera object")
     cam_data = cam_obj.data
     matrix = np.array(cam_obj.matrix_world, dtype=np.float64)
+    if not np.isfinite(matrix).all() or np.linalg.det(matrix[:3, :3]) == 0:
+        raise CameraError(f"camera '{cam_obj.name}' has a zero scale or a transform holding NaN or Inf")
     matrix[:3, 3] -= origin
     return Camera.from_blender(matrix, width, height,
                                clip_start=cam_data.clip_start, clip_end=cam_data.clip_end,

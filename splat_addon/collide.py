@@ -125,6 +125,18 @@ def _kept(cloud, bones, labels, ignore, min_opacity):
     return np.flatnonzero(keep)
 
 
+def _check_finite(frame, *objects_and_clouds):
+    """CollisionSetupError naming the object and frame where a splat the test reads holds NaN/Inf."""
+    for obj, cloud in objects_and_clouds:
+        bad = np.zeros(len(cloud), bool)
+        for name in ("positions", "rotations", "log_scales", "opacity_logits"):
+            values = getattr(cloud, name)
+            bad |= ~np.isfinite(values).all(axis=tuple(range(1, values.ndim)))
+        if bad.any():
+            raise CollisionSetupError(f"frame {frame}: {int(bad.sum())} splats of '{obj.name}' hold NaN or "
+                                      "infinite values")
+
+
 def _per_bone(bones, labels):
     counts = np.bincount(labels[labels >= 0], minlength=len(bones))
     return {bones[i]: int(c) for i, c in enumerate(counts) if c}
@@ -152,8 +164,10 @@ def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity
     frames = list(frames)
     if not frames:
         raise CollisionSetupError("no frames to check")
-    if not k > 0:
-        raise CollisionSetupError(f"the sigma multiple must be positive, got {k}")
+    if not 0 < k < np.inf:
+        raise CollisionSetupError(f"the sigma multiple must be positive and finite, got {k}")
+    if not 0 <= min_opacity <= 1:
+        raise CollisionSetupError(f"the minimum opacity must be between 0 and 1, got {min_opacity}")
     ignore = set(ignore_bones)
     (bones_a, labels_a), (bones_b, labels_b) = _labels(obj_a), _labels(obj_b)
     unknown = ignore - set(bones_a) - set(bones_b)
@@ -168,6 +182,7 @@ def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity
             scene.frame_set(frame)
             depsgraph = context.evaluated_depsgraph_get()
             cloud_a, cloud_b = data.evaluated_cloud(obj_a, depsgraph), data.evaluated_cloud(obj_b, depsgraph)
+            _check_finite(frame, (obj_a, cloud_a), (obj_b, cloud_b))
             keep_a = _kept(cloud_a, bones_a, labels_a, ignore, min_opacity)
             keep_b = _kept(cloud_b, bones_b, labels_b, ignore, min_opacity)
             found = FrameContacts(frame)

@@ -276,6 +276,8 @@ def run_from_mesh(args, context):
     budget = args.max_splats
     if budget is None and args.target_psnr is None:
         budget = from_mesh.DEFAULT_BUDGET
+    if args.target_psnr is not None and not 0 < args.target_psnr < float("inf"):
+        raise CommandError(f"--target-psnr must be a positive number of dB, got {args.target_psnr}")
     _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}")
     results = from_mesh.convert_objects(
         context, objects, max_splats=budget, target_psnr=args.target_psnr, use_rest_pose=not args.posed,
@@ -283,10 +285,14 @@ def run_from_mesh(args, context):
     created = from_mesh.create_splat_objects(context, results)
     for obj in created:
         _say(f"{obj.name}: {len(obj.data.vertices)} splats")
-    if is_blend:
-        bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
-    else:
-        write_splats(out, operators.scene_cloud(context, created, operators.export_conversion(), keep_source=True))
+    try:
+        if is_blend:
+            bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
+        else:
+            write_splats(out, operators.scene_cloud(context, created, operators.export_conversion(), keep_source=True))
+    except BaseException:
+        from_mesh.remove_objects(created)          # a session that goes on keeps the scene it had
+        raise
     _say(f"done: wrote {out}")
 
 

@@ -72,7 +72,7 @@ def _set(mesh, name, kind, values):
 
 
 def _write_core(mesh, cloud):
-    mesh.attributes["position"].data.foreach_set("vector", np.ascontiguousarray(cloud.positions).reshape(-1))
+    _set(mesh, "position", "FLOAT_VECTOR", cloud.positions)      # an empty mesh has no position attribute yet
     _set(mesh, ROTATION, "QUATERNION", cloud.rotations)
     _set(mesh, LOG_SCALE, "FLOAT_VECTOR", cloud.log_scales)
     _set(mesh, OPACITY, "FLOAT", cloud.opacity_logits)
@@ -271,6 +271,8 @@ def transform_cloud(cloud, matrix):
     """`cloud` under the affine 4x4 `matrix`; the identity returns the cloud itself, untouched, and
     a pure translation moves the centres only."""
     matrix = snap_matrix(matrix)
+    if not np.isfinite(matrix).all():      # the translation-only path below would spread NaN silently
+        raise ValueError("transform holds NaN or Inf")
     if np.array_equal(matrix[:3, :3], np.eye(3)) and np.array_equal(matrix[3], [0, 0, 0, 1]):
         if not matrix[:3, 3].any():
             return cloud
@@ -280,7 +282,15 @@ def transform_cloud(cloud, matrix):
 
 def object_to_cloud(obj, matrix):
     """The splat cloud of `obj` with `matrix` (usually conversion @ world matrix) applied."""
-    return transform_cloud(mesh_to_cloud(obj.data, owner=obj.name), matrix)
+    return _transformed(obj, mesh_to_cloud(obj.data, owner=obj.name), matrix)
+
+
+def _transformed(obj, cloud, matrix):
+    """transform_cloud, with a transform it refuses (singular, NaN) reported as the object's."""
+    try:
+        return transform_cloud(cloud, matrix)
+    except ValueError as exc:
+        raise SplatObjectError(f"'{obj.name}': {exc}") from None
 
 
 # Posing hooks: callables (obj, depsgraph, cloud) -> cloud that deform a splat object's cloud in
@@ -297,7 +307,7 @@ def evaluated_cloud(obj, depsgraph, matrix=None):
     cloud = mesh_to_cloud(obj.data, owner=obj.name)
     for deform in DEFORMERS:
         cloud = deform(obj, depsgraph, cloud)
-    return transform_cloud(cloud, world_matrix(obj, depsgraph) if matrix is None else matrix)
+    return _transformed(obj, cloud, world_matrix(obj, depsgraph) if matrix is None else matrix)
 
 
 def _armature_pose(obj, depsgraph, cloud):

@@ -331,12 +331,17 @@ def create_splat_objects(context, results):
             obj.data[SOURCE] = json.dumps(record)
             display.add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))
     except BaseException:
-        for obj in created:
-            mesh = obj.data
-            bpy.data.objects.remove(obj)
-            bpy.data.meshes.remove(mesh)
+        remove_objects(created)
         raise
     return created
+
+
+def remove_objects(objects):
+    """Remove splat objects this module created, with their meshes."""
+    for obj in objects:
+        mesh = obj.data
+        bpy.data.objects.remove(obj)
+        bpy.data.meshes.remove(mesh)
 
 
 def from_mesh(context, objects, **options):

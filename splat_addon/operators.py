@@ -79,10 +79,13 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         names = [f.name for f in self.files if f.name]
         if names and self.directory:
             return [Path(self.directory) / name for name in names]
-        return [Path(bpy.path.abspath(self.filepath))]
+        return [Path(bpy.path.abspath(self.filepath))] if self.filepath else []
 
     def execute(self, context):
         paths = self._paths()
+        if not paths:
+            self.report({"ERROR"}, "no file to import: give a filepath (or a directory and files)")
+            return {"CANCELLED"}
         progress = _Progress(context, 2 * len(paths))
         try:
             clouds = []
@@ -240,16 +243,15 @@ class SPLAT_OT_join(bpy.types.Operator):
     def execute(self, context):
         target = context.active_object
         others = [o for o in context.selected_objects if o is not target]
-        wrong = [o.name for o in others if not data.is_splat_object(o)]
-        shared = [o.name for o in others if o.data.users > 1 or o.data is target.data]
-        if wrong or shared or not others:
-            self.report({"ERROR"}, f"not splat objects: {', '.join(wrong)}" if wrong else
-                        f"splat data shared by several objects: {', '.join(shared)}" if shared else
-                        "select the splat objects to join into the active one")
+        problem = _join_problem(target, others)
+        if problem:
+            self.report({"ERROR"}, problem)
             return {"CANCELLED"}
         to_target = np.linalg.inv(np.array(target.matrix_world, dtype=np.float64))
         try:
-            # Read everything before changing anything, so an error leaves the scene as it was.
+            # Read everything before changing anything, so an error leaves the scene as it was; the
+            # target too, or Join would fill its missing attributes with made-up defaults.
+            data.mesh_to_cloud(target.data, owner=target.name)
             moved = [data.object_to_cloud(o, to_target @ np.array(o.matrix_world, dtype=np.float64))
                      for o in others]
         except EXPECTED_ERRORS as exc:
@@ -260,7 +262,30 @@ class SPLAT_OT_join(bpy.types.Operator):
             obj.matrix_world = target.matrix_world
         with context.temp_override(active_object=target, selected_editable_objects=[target, *others],
                                    selected_objects=[target, *others]):
-            return bpy.ops.object.join()
+            done = bpy.ops.object.join()
+        if done != {"FINISHED"}:
+            self.report({"ERROR"}, f"Blender's Join did not join the splat objects into '{target.name}'")
+        return done
+
+
+def _join_problem(target, others):
+    """Why `others` cannot be joined into the splat object `target`, or None."""
+    wrong = [o.name for o in others if not data.is_splat_object(o)]
+    if wrong:
+        return f"not splat objects: {', '.join(wrong)}"
+    shared = [o.name for o in others if o.data.users > 1 or o.data is target.data]
+    if shared:
+        return f"splat data shared by several objects: {', '.join(shared)}"
+    if not others:
+        return "select the splat objects to join into the active one"
+    if not any(len(o.data.vertices) for o in others):      # Blender's Join would cancel
+        return f"nothing to join: the selected splat objects hold no splats ({', '.join(o.name for o in others)})"
+    matrix = np.array(target.matrix_world, dtype=np.float64)
+    if not np.isfinite(matrix).all():
+        return f"'{target.name}' has a transform holding NaN or Inf: splats cannot be joined into it"
+    if np.linalg.det(matrix[:3, :3]) == 0:
+        return f"'{target.name}' has a zero scale: splats cannot be joined into it"
+    return None
 
 
 class SPLAT_FH_files(bpy.types.FileHandler):

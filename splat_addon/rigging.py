@@ -277,6 +277,9 @@ def source_weights(obj, bones, warn):
         return None
     names, columns = group_weights(source, bones)
     if not names:
+        if len(source.vertex_groups):
+            warn(f"'{obj.name}': no vertex group of its source mesh '{source.name}' is named like a deforming "
+                 "bone; weights come from the bones")
         return None
     if not record.get("rest_pose", True):
         warn(f"'{obj.name}' was made from the posed mesh; the binding takes its splats as the rest pose")
@@ -316,6 +319,10 @@ def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, f
         centres = data.mesh_to_cloud(obj.data, owner=obj.name).positions.astype(np.float64)
         to_arm = to_armature_space(obj, arm)
         centres = centres @ to_arm[:3, :3].T + to_arm[:3, 3]
+        bad = ~np.isfinite(centres).all(axis=1)
+        if bad.any():       # (its transform or its splats): no bone is nearest to them
+            raise RiggingError(f"'{obj.name}': {int(bad.sum())} splat centres are NaN or infinite where "
+                               f"'{arm.name}' sees them")
         heads = np.array([arm.data.bones[n].head_local for n in bones], np.float64)
         tails = np.array([arm.data.bones[n].tail_local for n in bones], np.float64)
         dense = bone_weights(centres, heads, tails, falloff)
