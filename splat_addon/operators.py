@@ -10,6 +10,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper, axis_conversion, ori
 
 from ..core import SplatCloud, SplatValidationError
 from ..io import FORMATS, SplatFileError, read_splats, write_splats
+from ..io.common import nonfinite_counts
 from . import data, display
 
 FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)
@@ -57,6 +58,21 @@ def read_cloud(path, drop_invalid, report):
     for w in caught:
         report({"WARNING"}, str(w.message))
     return cloud
+
+
+def finite_for_export(path, cloud, drop_invalid, report):
+    """The splats to write: those holding NaN/Inf are left out (counted in a warning) with
+    `drop_invalid`, otherwise the export is refused before anything is written."""
+    finite = cloud.finite_mask()
+    bad = len(cloud) - int(finite.sum())
+    if not bad:
+        return cloud
+    if not drop_invalid:
+        detail = ", ".join(f"{name} in {count}" for name, count in nonfinite_counts(cloud).items())
+        raise SplatFileError(path, f"{bad} of {len(cloud)} splats have non-finite values (NaN or Inf): {detail}; "
+                                   "turn on Drop Invalid Splats to export the others")
+    report({"WARNING"}, f"left out {bad} of {len(cloud)} splats holding NaN or infinite values")
+    return cloud[finite]
 
 
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
@@ -181,6 +197,9 @@ class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
     filter_glob: StringProperty(default=FILTER_GLOB, options={"HIDDEN"})
     selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",
                                 default=False)
+    drop_invalid: BoolProperty(name="Drop Invalid Splats", default=False,
+                               description="Leave out splats holding NaN or infinite values (counted in a "
+                                           "warning) instead of refusing to export")
 
     def execute(self, context):
         path = Path(bpy.path.abspath(self.filepath))
@@ -189,6 +208,7 @@ class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
             objects = export_objects(context, self.selected_only)
             cloud = scene_cloud(context, objects, export_conversion(self.axis_forward, self.axis_up))
             progress.update(1)
+            cloud = finite_for_export(path, cloud, self.drop_invalid, self.report)
             write_splats(path, cloud)
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))

@@ -283,6 +283,8 @@ class Worker(BlenderWorker):
         cases["export NaN over a file"] = self.attempt(ops.export_file, filepath=str(self.out / "precious.ply"),
                                                        selected_only=True)
         cases["precious kept"] = (self.out / "precious.ply").read_bytes() == b"precious"
+        cases["export NaN dropped"] = self.call(ops.export_file, filepath=str(self.out / "dropped.ply"),
+                                                selected_only=True, drop_invalid=True)
         return cases
 
     def animation_files(self):
@@ -606,6 +608,18 @@ def test_wrong_objects_are_refused_or_hidden(blender, kind):
 ])
 def test_bad_paths_and_files_are_refused(blender, name, words):
     assert_refused(blender.step("files")[name], *words)
+
+
+def test_export_can_drop_invalid_splats(blender):
+    """Asked to, export leaves out exactly the splats that hold NaN/Inf and says how many."""
+    case = blender.step("files")["export NaN dropped"]
+    assert case["result"] == ["FINISHED"], case
+    source = random_cloud(N, sh_degree=1, seed=3)            # as Worker.defective("nan_values") made it
+    finite = np.ones(N, bool)
+    finite[[3, 5, 7]] = False                                # the splats it gave NaN or Inf
+    got = read(blender.out / "dropped.ply")
+    np.testing.assert_array_equal(got.opacity_logits, source.opacity_logits[finite])
+    np.testing.assert_array_equal(got.log_scales, source.log_scales[finite])
 
 
 def test_a_failed_export_keeps_the_file_it_would_replace(blender):
