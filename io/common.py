@@ -30,6 +30,15 @@ class SplatFileWarning(UserWarning):
     or dropped, view-dependent colour dropped by a format without it, ...)."""
 
 
+def read_text(path):
+    """A text file's contents (undecodable bytes replaced), or a SplatFileError naming why it
+    cannot be read (missing, a folder, no permission)."""
+    try:
+        return Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
+
+
 def check_nonfinite_policy(policy):
     if policy not in NONFINITE_POLICIES:
         raise ValueError(f"nonfinite must be one of {NONFINITE_POLICIES}, got {policy!r}")

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..core import color
 from ..core.mesh import Material, Mesh
-from .common import SplatFileError
+from .common import SplatFileError, read_text
 
 # map_* options and how many numbers each takes (at most; -o/-s/-t take one to three).
 _MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
@@ -43,7 +43,7 @@ class _ObjReader:
         self.current = -1
 
     def read(self):
-        text = _read_text(self.path)
+        text = read_text(self.path)
         text = text.replace("\\\r\n", " ").replace("\\\n", " ")          # line continuations
         for number, line in enumerate(text.splitlines(), 1):
             parts = line.split("#", 1)[0].split()
@@ -138,13 +138,6 @@ class _ObjReader:
         return color.srgb_to_linear(np.clip(rgb, 0.0, 1.0))
 
 
-def _read_text(path):
-    try:
-        return path.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
-
-
 def _finite_rows(path, values, what):
     """`values` (one row per OBJ entry), or a SplatFileError naming the first with NaN or Inf."""
     bad = ~np.isfinite(values).all(axis=1)
@@ -177,7 +170,7 @@ def read_mtl(path):
     """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image."""
     path = Path(path)
     materials, current = {}, None
-    for number, line in enumerate(_read_text(path).splitlines(), 1):
+    for number, line in enumerate(read_text(path).splitlines(), 1):
         parts = line.split("#", 1)[0].split()
         if not parts:
             continue

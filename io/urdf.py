@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.kinematics import KinematicsError, KinematicTree, rpy_matrices, transforms
-from .common import SplatFileError
+from .common import SplatFileError, read_text
 
 _TYPES = ("fixed", "revolute", "continuous", "prismatic")
 
@@ -21,11 +21,7 @@ def read_urdf(path):
     path = Path(path)
     if not path.is_file():
         raise SplatFileError(path, "no such file")
-    try:
-        text = path.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
-    return parse_urdf(text, source=str(path))
+    return parse_urdf(read_text(path), source=str(path))
 
 
 def parse_urdf(text, source="<string>"):
