@@ -766,28 +766,32 @@ VT_ARRAYS = {"float32": "FloatArray", "float64": "DoubleArray", "float16": "Half
 def _author_prim(path, stage, prim_path, frames, times, options):
     """Author one prim from its frames (a cloud, or clouds one per time code), consumed one at a
     time so only the stage holds them; returns the time codes used ([] for a static prim)."""
-    frames = _checked_frames(path, prim_path, frames, times, options)
-    cloud, code = next(frames)
-    prim = _define_splat_prim(stage, prim_path)
-    _attribute(prim, SH_DEGREE).Set(cloud.sh_degree)
-    extras = _extra_primvars(path, prim, cloud)
-    samples, codes = {}, []
-    while cloud is not None:
-        values = _frame_values(path, cloud, options)
-        for attr, key, widen in extras:
-            flat = np.ascontiguousarray(cloud.extras[key].reshape(-1))
-            flat = flat.astype(np.int32) if widen else flat
-            values[attr.GetName()] = _vt(getattr(Vt, VT_ARRAYS[flat.dtype.name]), flat)
+    prim, samples, codes = None, {}, []
+    for cloud, code in _checked_frames(path, prim_path, frames, times, options):
+        if prim is None:                     # the first frame sets the prim up
+            prim = _define_splat_prim(stage, prim_path)
+            _attribute(prim, SH_DEGREE).Set(cloud.sh_degree)
+            extras = _extra_primvars(path, prim, cloud)
+        values = {**_frame_values(path, cloud, options), **_extra_values(cloud, extras)}
         for name, value in values.items():
             if name not in samples:
                 samples[name] = _Samples(prim.GetAttribute(name) or _attribute(prim, name), name != "positions")
             samples[name].add(value, code)
         codes.append(code)
-        cloud = values = flat = None         # let this frame go before the next one is made
-        cloud, code = next(frames, (None, None))
+        del cloud, values                    # let this frame go before the next one is made
     for attr in samples.values():
         attr.finish()
     return [c.GetValue() for c in codes if not c.IsDefault()]
+
+
+def _extra_values(cloud, extras):
+    """{primvar attribute name: Vt array} of a cloud's extras (see _extra_primvars)."""
+    values = {}
+    for attr, key, widen in extras:
+        flat = np.ascontiguousarray(cloud.extras[key].reshape(-1))
+        flat = flat.astype(np.int32) if widen else flat
+        values[attr.GetName()] = _vt(getattr(Vt, VT_ARRAYS[flat.dtype.name]), flat)
+    return values
 
 
 class _Samples:
@@ -798,12 +802,13 @@ class _Samples:
         self.attr, self.held, self.first, self.waiting = attr, hold, None, []
 
     def add(self, value, code):
-        if self.held and (self.first is None or _same_bytes(value, self.first)):
-            self.first = value if self.first is None else self.first
-            self.waiting.append(code)
-            return
-        if self.held:                        # the first change: the frames so far get samples
-            self.held = False
+        if self.held:
+            if self.first is None:
+                self.first = value
+            if value is self.first or _same_bytes(value, self.first):
+                self.waiting.append(code)
+                return
+            self.held = False                # the first change: the frames so far get samples
             for earlier in self.waiting:
                 self.attr.Set(self.first, earlier)
         self.attr.Set(value, code)
@@ -821,14 +826,13 @@ def _same_bytes(a, b):
 def _checked_frames(path, prim_path, frames, times, options):
     """(cloud, time code) pairs, each cloud checked as it comes: the same splat count, SH degree and
     extras in every frame, one time code per cloud, the non-finite policy applied."""
-    static = isinstance(frames, SplatCloud)
-    if static:
-        frames, codes = [frames], [Usd.TimeCode.Default()]
+    if isinstance(frames, SplatCloud):
+        frames, codes = [frames], iter([Usd.TimeCode.Default()])
     else:
         codes = (Usd.TimeCode(float(t)) for t in (itertools.count() if times is None else times))
     shape, count = None, 0
     for cloud in frames:
-        code = next(codes, None) if not static else codes[0]
+        code = next(codes, None)
         if code is None:
             raise SplatFileError(path, f"{prim_path}: more clouds than time codes ({count})")
         cloud = apply_nonfinite_policy(f"{path}:{prim_path}", cloud, options.nonfinite, "write")
@@ -842,7 +846,7 @@ def _checked_frames(path, prim_path, frames, times, options):
         del cloud
     if count == 0:
         raise SplatFileError(path, f"{prim_path}: no clouds to write")
-    if not static and times is not None and next(codes, None) is not None:
+    if times is not None and next(codes, None) is not None:
         raise SplatFileError(path, f"{prim_path}: more time codes than clouds ({count})")
 
 
