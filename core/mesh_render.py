@@ -103,8 +103,8 @@ def rasterize(surface, cam):
         rf, ry, rw = rows_face[start:stop], rows_y[start:stop], widths[start:stop]
         # Along a row only x changes: e = a x + (b y + c), the bracket once per row.
         px = np.repeat(x0[rf], rw) + _ramp(rw)
-        e = np.repeat(a[rf], rw, axis=0) * px[:, None].astype(np.float64)
-        e += np.repeat(b[rf] * ry[:, None].astype(np.float64) + c[rf], rw, axis=0)
+        e = np.repeat(a[rf], rw, axis=0) * px[:, None]
+        e += np.repeat(b[rf] * ry[:, None] + c[rf], rw, axis=0)
         _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), zbuf, fbuf, bbuf)
         start = stop
     depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
