@@ -72,16 +72,22 @@ def test_float64_precision_agrees_to_round_off():
     assert np.abs(got.color - ref["color"]).max() < 1e-6
 
 
+def opaque_pile(n, seed, spread, log_scales):
+    """n splats around the axis (sideways sigma `spread`, depth 2.5..3.5), opacities 0.5..1, the
+    first half at logit +1e4 so their alpha clamps at 0.99."""
+    rng = np.random.default_rng(seed)
+    pile = SplatCloud.from_activated(
+        positions=np.column_stack([rng.normal(0, spread, n), rng.normal(0, spread, n), rng.uniform(2.5, 3.5, n)]),
+        rotations=rng.normal(size=(n, 4)), scales=np.exp(rng.uniform(*log_scales, (n, 3))),
+        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
+    pile.opacity_logits[: n // 2] = 1e4
+    return pile
+
+
 def test_opaque_pile_stops_at_the_transmittance_limit_and_clamps_alpha():
     """Many opaque splats (logit +1e4: alpha clamps at 0.99) stacked in depth, so most pixels stop
     before T < 1e-4, and the background never shows through."""
-    rng = np.random.default_rng(5)
-    n = 200
-    cloud = SplatCloud.from_activated(
-        positions=np.column_stack([rng.normal(0, 0.15, n), rng.normal(0, 0.15, n), rng.uniform(2.5, 3.5, n)]),
-        rotations=rng.normal(size=(n, 4)), scales=np.exp(rng.uniform(-3, -1.5, (n, 3))),
-        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
-    cloud.opacity_logits[: n // 2] = 1e4
+    cloud = opaque_pile(200, seed=5, spread=0.15, log_scales=(-3, -1.5))
     got, ref = assert_matches_reference(cloud, perspective(), background=(1.0, 1.0, 1.0))
     stopped = reference_render(cloud, perspective(), t_min=0.0)["counts"] > ref["counts"]
     assert stopped.sum() > 100
@@ -277,13 +283,8 @@ def test_max_weights_follow_the_stop_rule_and_skip_hidden_faint_and_broken_splat
     filling the view: every pixel stops before the third layer (0.02^3 < 1e-4), so it and the
     splats behind it get no weight. Then one splat too faint for 1/255, one behind the camera, one
     off-image and one with NaN."""
-    rng = np.random.default_rng(22)
     n = 80
-    pile = SplatCloud.from_activated(
-        positions=np.column_stack([rng.normal(0, 0.1, n), rng.normal(0, 0.1, n), rng.uniform(2.5, 3.5, n)]),
-        rotations=rng.normal(size=(n, 4)), scales=np.exp(rng.uniform(-2.5, -1.5, (n, 3))),
-        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
-    pile.opacity_logits[: n // 2] = 1e4
+    pile = opaque_pile(n, seed=22, spread=0.1, log_scales=(-2.5, -1.5))
     back = SplatCloud.from_activated(
         positions=[[0, 0, 4.0], [0, 0, 4.1], [0, 0, 4.2], [0, 0, 4.5], [0.1, 0.1, 4.6],
                    [0.3, 0.2, 2.0], [0, 0, -2.0], [9.0, 0, 3.0], [np.nan, 0, 3.0]],
