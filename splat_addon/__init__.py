@@ -3,7 +3,11 @@ the SPLATWRIGHT render engine. The only package that imports bpy."""
 
 import bpy
 
-from . import animation, collide, command, engine, from_mesh, operators, rigging
+from . import bundled
+
+bundled.expose("pxr")      # before any io module imports it
+
+from . import animation, collide, command, engine, from_mesh, operators, rigging  # noqa: E402
 
 CLASSES = (operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + rigging.CLASSES + collide.CLASSES
            + engine.CLASSES)

@@ -112,9 +112,20 @@ def splat_objects_pair(scene, name_a, name_b, context=None):
 
 
 def _labels(obj):
-    """(bone names, per-splat bone index or -1) of a splat object; ([], all -1) when unbound."""
-    bound = rigging.main_bones(obj)
-    return bound if bound is not None else ([], np.full(len(obj.data.vertices), -1))
+    """(bone names, per-splat bone index or -1) of a splat object; ([], None) when unbound."""
+    bound = rigging.main_bones(obj) if data.splat_form(obj) == data.MESH_FORM else None
+    return bound if bound is not None else ([], None)
+
+
+def _own_splats(touched, own_count, shown_count):
+    """Indices of the object's own splats among `touched` splats of what the scene shows: modifiers
+    that copy the splats whole (Array, Mirror) show own_count * k of them, copy j of splat i at
+    j * own_count + i. None when the shown splats cannot be traced back (a changed count otherwise)."""
+    if shown_count == own_count:
+        return touched
+    if own_count == 0 or shown_count % own_count:
+        return None
+    return np.unique(touched % own_count)
 
 
 def _kept(cloud, bones, labels, ignore, min_opacity):
@@ -173,7 +184,8 @@ def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity
     unknown = ignore - set(bones_a) - set(bones_b)
     if unknown:
         raise CollisionSetupError(f"no bones named {', '.join(sorted(unknown))} bind '{obj_a.name}' or '{obj_b.name}'")
-    hits_a, hits_b = np.zeros(len(labels_a)), np.zeros(len(labels_b))
+    hits_a, hits_b = np.zeros(data.splat_count(obj_a.data)), np.zeros(data.splat_count(obj_b.data))
+    traced = [True, True]           # whether every frame's contacts map back onto each object's splats
     scene = context.scene
     current, subframe = scene.frame_current, scene.frame_subframe
     environment, results = _Environment(), []
@@ -183,16 +195,22 @@ def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity
             depsgraph = context.evaluated_depsgraph_get()
             cloud_a, cloud_b = data.evaluated_cloud(obj_a, depsgraph), data.evaluated_cloud(obj_b, depsgraph)
             _check_finite(frame, (obj_a, cloud_a), (obj_b, cloud_b))
-            keep_a = _kept(cloud_a, bones_a, labels_a, ignore, min_opacity)
-            keep_b = _kept(cloud_b, bones_b, labels_b, ignore, min_opacity)
+            shown_a = labels_a if labels_a is not None else np.full(len(cloud_a), -1)
+            shown_b = labels_b if labels_b is not None else np.full(len(cloud_b), -1)
+            keep_a = _kept(cloud_a, bones_a, shown_a, ignore, min_opacity)
+            keep_b = _kept(cloud_b, bones_b, shown_b, ignore, min_opacity)
             found = FrameContacts(frame)
             if len(keep_a) and len(keep_b):
                 contacts = ellipsoid_contacts(cloud_a[keep_a], environment.get(cloud_b[keep_b]), k=k)
                 touched_a, touched_b = keep_a[np.unique(contacts.robot)], keep_b[np.unique(contacts.env)]
-                hits_a[touched_a] += 1
-                hits_b[touched_b] += 1
+                for side, (hits, touched, cloud) in enumerate(((hits_a, touched_a, cloud_a), (hits_b, touched_b, cloud_b))):
+                    own = _own_splats(touched, len(hits), len(cloud))
+                    if own is None:
+                        traced[side] = False
+                    else:
+                        hits[own] += 1
                 found = FrameContacts(frame, len(contacts), len(touched_a), len(touched_b),
-                                      _per_bone(bones_a, labels_a[touched_a]), _per_bone(bones_b, labels_b[touched_b]),
+                                      _per_bone(bones_a, shown_a[touched_a]), _per_bone(bones_b, shown_b[touched_b]),
                                       float(contacts.sigma.min(initial=np.inf)))
             results.append(found)
             if progress:
@@ -201,21 +219,14 @@ def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity
         scene.frame_set(current, subframe=subframe)
     report = CollisionReport(obj_a.name, obj_b.name, float(k), results, hits_a / len(frames), hits_b / len(frames))
     if write_attribute:
-        for obj, values in ((obj_a, report.contact_a), (obj_b, report.contact_b)):
-            write_contact(obj, values)
+        for obj, values, ok in ((obj_a, report.contact_a, traced[0]), (obj_b, report.contact_b, traced[1])):
+            if ok:
+                write_contact(obj, values)
     return report
 
 
 def write_contact(obj, values):
-    mesh = obj.data
-    attr = mesh.attributes.get(CONTACT_ATTRIBUTE)
-    if attr is not None and (attr.data_type != "FLOAT" or attr.domain != "POINT"):
-        mesh.attributes.remove(attr)
-        attr = None
-    if attr is None:
-        attr = mesh.attributes.new(CONTACT_ATTRIBUTE, "FLOAT", "POINT")
-    attr.data.foreach_set("value", np.ascontiguousarray(values, np.float32))
-    mesh.update()
+    data.set_attribute(obj.data, CONTACT_ATTRIBUTE, "FLOAT", values)
 
 
 # the operator ---------------------------------------------------------------------------------------

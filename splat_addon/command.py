@@ -263,6 +263,8 @@ def run_from_mesh(args, context):
         format_of(out)
     if not out.parent.is_dir():
         raise CommandError(f"folder {out.parent} does not exist")
+    if out.is_dir():            # Blender 4.2 would save a .blend over it
+        raise CommandError(f"{out} is a folder")
     if args.objects:
         objects = named_objects(args.objects, scene)
         wrong = [f"'{o.name}' ({o.type})" for o in objects if o.type != "MESH" or data.is_splat_object(o)]
@@ -284,7 +286,7 @@ def run_from_mesh(args, context):
         progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
     created = from_mesh.create_splat_objects(context, results)
     for obj in created:
-        _say(f"{obj.name}: {len(obj.data.vertices)} splats")
+        _say(f"{obj.name}: {data.splat_count(obj.data)} splats")
     try:
         if is_blend:
             bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)

@@ -1,5 +1,5 @@
-"""Viewport display: a geometry-nodes modifier turns a splat mesh into points, one per splat, sized
-by its largest standard deviation and coloured by its DC colour through a shared material.
+"""Viewport display: a geometry-nodes modifier adds to a splat mesh points, one per splat, sized by
+its largest standard deviation and coloured by its DC colour through a shared material.
 
 Loose vertices are invisible in object mode, so without this a splat object would show nothing.
 Points draw as spheres in Solid mode and take the DC colour in Material Preview; the node group
@@ -10,24 +10,19 @@ The modifier is viewport-only: the render engine and the exporter read the splat
 import bpy
 
 from ..core import sh as shmod
-from .data import LOG_SCALE, OPACITY, sh_attribute
+from .data import LOG_SCALE, OPACITY, built_datablock, sh_attribute
 
 GROUP_NAME = "Splatwright Display"
 MATERIAL_NAME = "Splatwright Splat"
 MODIFIER_NAME = "Splatwright Display"
 TAG = "splatwright_display"     # custom property on the node group and material: build version
-VERSION = 1
+VERSION = 3                     # 3: the mesh passes through; gamma by a Gamma node (POWER is 4.3+)
 SRGB_GAMMA = 2.2                # display-only approximation of the sRGB -> linear curve
-
-
-def _tagged(collection, name):
-    item = collection.get(name)
-    return item if item is not None and item.get(TAG) == VERSION else None
 
 
 def display_material():
     """The shared material: emission coloured max(0, 0.5 + C0 * DC) ^ 2.2 (display sRGB -> linear)."""
-    mat = _tagged(bpy.data.materials, MATERIAL_NAME)
+    mat = built_datablock(bpy.data.materials, MATERIAL_NAME, TAG, VERSION)
     if mat is not None:
         return mat
     mat = bpy.data.materials.new(MATERIAL_NAME)
@@ -40,7 +35,8 @@ def display_material():
     attr.attribute_type, attr.attribute_name = "GEOMETRY", sh_attribute(0)
     dc_to_rgb = _vector_math(nodes, "MULTIPLY_ADD", None, (shmod.C0,) * 3, (0.5,) * 3)
     clamp = _vector_math(nodes, "MAXIMUM", None, (0.0,) * 3)
-    to_linear = _vector_math(nodes, "POWER", None, (SRGB_GAMMA,) * 3)
+    to_linear = nodes.new("ShaderNodeGamma")        # Vector Math has POWER only from Blender 4.3
+    to_linear.inputs["Gamma"].default_value = SRGB_GAMMA
     emission = nodes.new("ShaderNodeEmission")
     out = nodes.new("ShaderNodeOutputMaterial")
     links.new(attr.outputs["Vector"], dc_to_rgb.inputs[0])
@@ -98,7 +94,7 @@ def _socket(tree, name, in_out, socket_type, default=None, minimum=None, maximum
 def display_group():
     """The shared node group: Mesh to Points with radius exp(max log scale) * Radius Scale, keeping
     splats at least Min Opacity opaque and a random Display Ratio of them."""
-    group = _tagged(bpy.data.node_groups, GROUP_NAME)
+    group = built_datablock(bpy.data.node_groups, GROUP_NAME, TAG, VERSION)
     if group is not None:
         return group
     group = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
@@ -120,8 +116,14 @@ def display_group():
     set_mat = nodes.new("GeometryNodeSetMaterial")
     set_mat.inputs["Material"].default_value = display_material()
     links.new(to_points.outputs["Points"], set_mat.inputs["Geometry"])
-    links.new(set_mat.outputs["Geometry"], gout.inputs["Geometry"])
-    gin.location, to_points.location, set_mat.location, gout.location = (-400, 0), (400, 0), (600, 0), (800, 0)
+    # The splat mesh passes through beside the points (its loose vertices draw nothing in Object Mode):
+    # the evaluated mesh is what export and rendering read, modifiers and edit-mode changes included.
+    join = nodes.new("GeometryNodeJoinGeometry")
+    links.new(set_mat.outputs["Geometry"], join.inputs["Geometry"])
+    links.new(gin.outputs["Geometry"], join.inputs["Geometry"])
+    links.new(join.outputs["Geometry"], gout.inputs["Geometry"])
+    for node, x in ((gin, -400), (to_points, 400), (set_mat, 600), (join, 800), (gout, 1000)):
+        node.location = (x, 0)
     return group
 
 
@@ -162,8 +164,12 @@ def add_display(obj, display_ratio=1.0):
 
 
 def set_input(mod, name, value):
-    """Set one of the display modifier's inputs by its name."""
+    """Set one of the display modifier's inputs by its name. Up to Blender 5.1 the values are ID
+    properties of the modifier; from 5.2 each is a struct under `properties.inputs` with a `value`."""
     identifier = next(item.identifier for item in mod.node_group.interface.items_tree
                       if getattr(item, "name", None) == name and item.in_out == "INPUT")
-    mod[identifier] = value
+    if "properties" in mod.bl_rna.properties:
+        getattr(mod.properties.inputs, identifier).value = value
+    else:
+        mod[identifier] = value
     mod.id_data.update_tag()

@@ -7,7 +7,6 @@ import traceback
 import bpy
 import numpy as np
 
-from ..core import SplatCloud
 from ..core.color import linear_to_srgb, srgb_to_linear
 from . import camera as blender_camera
 from . import data
@@ -22,17 +21,14 @@ def render_size(render):
 
 
 def scene_splats(depsgraph, origin):
-    """All splat objects the depsgraph renders as one cloud, in world space shifted by -`origin`
-    (None if there are none). Objects whose transform collapses them (zero scale) show nothing."""
+    """Every splat object and instance the depsgraph renders as one cloud, in world space shifted by
+    -`origin` (None if there are none). Instances whose transform collapses them (zero scale) show
+    nothing."""
     shift = np.eye(4)
     shift[:3, 3] = -origin
-    clouds = []
-    for obj in depsgraph.objects:
-        if obj.type == "MESH" and data.is_splat_object(obj.original) and not obj.original.hide_render:
-            matrix = np.array(obj.matrix_world, dtype=np.float64)
-            if abs(np.linalg.det(matrix[:3, :3])) > 0:
-                clouds.append(data.evaluated_cloud(obj, depsgraph, shift @ matrix))
-    return SplatCloud.concatenate(clouds) if clouds else None
+    instances = [(i.obj, i.matrix) for i in data.splat_instances(depsgraph)
+                 if (i.instancer is not None or not i.obj.hide_render) and abs(np.linalg.det(i.matrix[:3, :3])) > 0]
+    return data.instances_cloud(depsgraph, instances, shift) if instances else None
 
 
 def world_color(scene):

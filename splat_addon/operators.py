@@ -132,53 +132,56 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
                 matrix = axis_conversion(from_forward=forward, from_up=up).to_4x4()
                 obj, skipped = data.new_splat_object(cloud, path.stem, collection, matrix)
                 created.append(obj)
-                display.add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))
+                display.add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))    # mesh form only
                 if skipped:
                     self.report({"WARNING"}, f"{path}: extras not kept (no matching attribute type): "
                                              f"{', '.join(skipped)}")
                 progress.update(len(paths) + i + 1)
         except BaseException:
             for obj in created:          # leave the scene as it was
-                mesh = obj.data
-                bpy.data.objects.remove(obj)
-                bpy.data.meshes.remove(mesh)
+                data.remove_splat_object(obj)
             raise
         return created
 
 
 def export_objects(context, selected_only):
-    """The splat objects an export writes, or SplatObjectError saying why there are none."""
+    """The objects an export writes: splat objects, and objects that instance them (an Empty
+    instancing a collection of splat objects, say); SplatObjectError saying why there are none."""
     if selected_only:
         candidates = list(context.selected_objects)
         if not candidates:
             raise data.SplatObjectError("nothing is selected")
     else:
         candidates = [obj for obj in context.view_layer.objects if obj.visible_get()]
-    splats = [obj for obj in candidates if data.is_splat_object(obj)]
-    if not splats:
+    instancers = {i.instancer.name for i in data.splat_instances(context.evaluated_depsgraph_get()) if i.instancer}
+    chosen = [obj for obj in candidates if data.is_splat_object(obj) or obj.name in instancers]
+    if not chosen:
         others = ", ".join(f"'{o.name}' ({o.type})" for o in candidates[:5])
         where = "selected" if selected_only else "visible"
         why = f"; {others} are not splat clouds" if others else ""
         raise data.SplatObjectError(f"no splat objects {where}{why}")
-    return splats
+    return chosen
 
 
-def _sync_edit_mode(objects):
-    """Objects in Edit Mode keep their edits in the edit mesh until synced back."""
-    for obj in objects:
-        if obj.mode == "EDIT":
-            obj.update_from_editmode()
+def scene_instances(depsgraph, objects):
+    """(splat object, world matrix) pairs `objects` put in the scene at the depsgraph's frame: each
+    splat object itself (drawn or not), and every splat instance an object of `objects` makes."""
+    names = {obj.name for obj in objects}
+    own = [(obj, data.world_matrix(obj, depsgraph)) for obj in objects if data.is_splat_object(obj)]
+    return own + [(i.obj, i.matrix) for i in data.splat_instances(depsgraph)
+                  if i.instancer is not None and i.instancer.name in names]
 
 
 def scene_cloud(context, objects, conversion, keep_source=False):
-    """One cloud in file space: every object's evaluated world matrix, then `conversion`, applied.
-    The extras a file carried are kept; the from-mesh bookkeeping (data.SOURCE_EXTRAS) only when
-    `keep_source` (the output of a conversion, which a pipeline may bind later)."""
-    _sync_edit_mode(objects)
+    """One cloud in file space: the splats of `objects` and their instances (see scene_instances) as the
+    scene shows them, each instance's world matrix, then `conversion`, applied. The extras a file carried
+    are kept; the from-mesh bookkeeping (data.SOURCE_EXTRAS) only when `keep_source` (the output of a
+    conversion, which a pipeline may bind later)."""
     depsgraph = context.evaluated_depsgraph_get()
-    conversion = np.array(conversion, dtype=np.float64)
-    clouds = [data.evaluated_cloud(obj, depsgraph, conversion @ data.world_matrix(obj, depsgraph)) for obj in objects]
-    cloud = clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
+    instances = scene_instances(depsgraph, objects)
+    if not instances:
+        return SplatCloud.empty()
+    cloud = data.instances_cloud(depsgraph, instances, np.array(conversion, dtype=np.float64))
     if keep_source:
         return cloud
     return cloud.replace(extras={k: v for k, v in cloud.extras.items() if k not in data.SOURCE_EXTRAS})
@@ -243,7 +246,7 @@ class SPLAT_OT_apply_transform(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         for obj, cloud in zip(targets, baked):
-            data.update_mesh(obj.data, cloud)
+            data.update_splats(obj, cloud)
             obj.matrix_basis.identity()
         return {"FINISHED"}
 
@@ -271,14 +274,21 @@ class SPLAT_OT_join(bpy.types.Operator):
         try:
             # Read everything before changing anything, so an error leaves the scene as it was; the
             # target too, or Join would fill its missing attributes with made-up defaults.
-            data.mesh_to_cloud(target.data, owner=target.name)
+            own = data.object_cloud(target)
             moved = [data.object_to_cloud(o, to_target @ np.array(o.matrix_world, dtype=np.float64))
                      for o in others]
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
+        if all(data.splat_form(o) == data.MESH_FORM for o in (target, *others)):
+            return self._join_meshes(context, target, others, moved)
+        return self._join_clouds(context, target, others, [own, *moved])
+
+    def _join_meshes(self, context, target, others, moved):
+        """Blender's own Join, after each splat object is turned into the target's space: vertex
+        groups and materials join as Blender joins them."""
         for obj, cloud in zip(others, moved):
-            data.update_mesh(obj.data, cloud)
+            data.update_splats(obj, cloud)
             obj.matrix_world = target.matrix_world
         with context.temp_override(active_object=target, selected_editable_objects=[target, *others],
                                    selected_objects=[target, *others]):
@@ -286,6 +296,26 @@ class SPLAT_OT_join(bpy.types.Operator):
         if done != {"FINISHED"}:
             self.report({"ERROR"}, f"Blender's Join did not join the splat objects into '{target.name}'")
         return done
+
+    def _join_clouds(self, context, target, others, clouds):
+        """Native splats (Blender joins no point clouds): the target gets new data, in its own form,
+        holding every cloud; the others are removed."""
+        try:
+            joined = SplatCloud.concatenate(clouds)
+            made, skipped = data.new_splat_object(joined, target.name, context.scene.collection,
+                                                  form=data.splat_form(target))
+        except EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        old = target.data
+        target.data = made.data
+        bpy.data.objects.remove(made)
+        data.remove_geometry(old)
+        for obj in others:
+            data.remove_splat_object(obj)
+        if skipped:
+            self.report({"WARNING"}, f"extras not kept: {', '.join(skipped)}")
+        return {"FINISHED"}
 
 
 def _join_problem(target, others):
@@ -298,7 +328,7 @@ def _join_problem(target, others):
         return f"splat data shared by several objects: {', '.join(shared)}"
     if not others:
         return "select the splat objects to join into the active one"
-    if not any(len(o.data.vertices) for o in others):      # Blender's Join would cancel
+    if not any(data.splat_count(o.data) for o in others):      # Blender's Join would cancel
         return f"nothing to join: the selected splat objects hold no splats ({', '.join(o.name for o in others)})"
     matrix = np.array(target.matrix_world, dtype=np.float64)
     if not np.isfinite(matrix).all():

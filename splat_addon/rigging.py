@@ -15,7 +15,7 @@ display shows the posed centres. The weights come from:
 Weights below `min_weight` of a splat's total are dropped, then all but the k largest; the rest is
 normalised (Blender divides by the total anyway).
 
-Posing (`deform`, listed in data.DEFORMERS): Blender's Armature modifier moves the vertices only,
+Posing (`poser`, listed in data.POSERS): Blender's Armature modifier moves the vertices only,
 so the deformer re-reads the splats from the original mesh, reads the weights from the vertex groups
 and skins centres, covariances and SH with the core (linear blend, or dual quaternions with the
 modifier's Preserve Volume), in armature space as Blender does. Only vertex-group weights are used:
@@ -44,7 +44,7 @@ from .operators import EXPECTED_ERRORS
 
 READER_GROUP = ".Splatwright Weight Reader"
 READER_TAG = "splatwright_weight_reader"        # node group property: build version
-READER_VERSION = 1
+READER_VERSION = 2                                # 2: loose vertices, read through to_mesh()
 READER_DROPPED = ("splat_sh_*", "splat_extra_*")  # splat data the reader need not copy
 TEMP_ATTRIBUTE = "splatwright_weight_in"        # holds one bone's weights while it becomes a group
 DEFAULT_INFLUENCES = 4
@@ -91,10 +91,10 @@ def to_armature_space(obj, arm, depsgraph=None):
 # reading vertex groups --------------------------------------------------------------------------------
 
 def _reader_group():
-    """The node group that turns a mesh into points, one per vertex, vertex groups becoming float
-    point attributes (built once per file)."""
-    group = bpy.data.node_groups.get(READER_GROUP)
-    if group is not None and group.get(READER_TAG) == READER_VERSION:
+    """The node group that turns a mesh into loose vertices, one per vertex, its vertex groups
+    becoming float point attributes (built once per file)."""
+    group = data.built_datablock(bpy.data.node_groups, READER_GROUP, READER_TAG, READER_VERSION)
+    if group is not None:
         return group
     group = bpy.data.node_groups.new(READER_GROUP, "GeometryNodeTree")
     group[READER_TAG] = READER_VERSION
@@ -104,13 +104,19 @@ def _reader_group():
     socket = nodes.new("NodeGroupInput").outputs[0]
     for pattern in READER_DROPPED:
         drop = nodes.new("GeometryNodeRemoveAttribute")
-        drop.inputs["Pattern Mode"].default_value = "Wildcard"
+        if "Pattern Mode" in drop.inputs:            # a menu socket from Blender 5.0, a property before
+            drop.inputs["Pattern Mode"].default_value = "Wildcard"
+        else:
+            drop.pattern_mode = "WILDCARD"
         drop.inputs["Name"].default_value = pattern
         links.new(socket, drop.inputs["Geometry"])
         socket = drop.outputs["Geometry"]
-    to_points = nodes.new("GeometryNodeMeshToPoints")
+    # Points have no vertex groups, so the groups become plain attributes; back to vertices, they stay
+    # so on the evaluated mesh, where foreach_get reads them (every Blender has to_mesh()).
+    to_points, to_vertices = nodes.new("GeometryNodeMeshToPoints"), nodes.new("GeometryNodePointsToVertices")
     links.new(socket, to_points.inputs["Mesh"])
-    links.new(to_points.outputs["Points"], nodes.new("NodeGroupOutput").inputs[0])
+    links.new(to_points.outputs["Points"], to_vertices.inputs["Points"])
+    links.new(to_vertices.outputs["Mesh"], nodes.new("NodeGroupOutput").inputs[0])
     return group
 
 
@@ -132,13 +138,16 @@ def read_vertex_groups(mesh, names):
     try:
         helper.modifiers.new("Read Weights", "NODES").node_group = _reader_group()
         bpy.context.scene.collection.objects.link(helper)
-        geometry = helper.evaluated_get(bpy.context.evaluated_depsgraph_get()).evaluated_geometry()
-        points = geometry.pointcloud          # lives as long as `geometry`
-        for row, name in zip(out, names):
-            attr = points.attributes.get(name) if points is not None else None
-            if attr is None or attr.data_type != "FLOAT" or len(attr.data) != len(row):
-                raise data.SplatObjectError(f"'{mesh.name}': vertex group '{name}' could not be read")
-            attr.data.foreach_get("value", row)
+        evaluated = helper.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        try:
+            vertices = evaluated.to_mesh()
+            for row, name in zip(out, names):
+                attr = vertices.attributes.get(name)
+                if attr is None or attr.data_type != "FLOAT" or len(attr.data) != len(row):
+                    raise data.SplatObjectError(f"'{mesh.name}': vertex group '{name}' could not be read")
+                attr.data.foreach_get("value", row)
+        finally:
+            evaluated.to_mesh_clear()
     finally:
         bpy.data.objects.remove(helper)
     return out
@@ -198,21 +207,31 @@ def forget_weights(mesh=None):
 
 # posing -----------------------------------------------------------------------------------------------
 
-def deform(obj, depsgraph, cloud):
-    """The splats of `obj` (object space) posed by its Armature modifier at the depsgraph's frame;
-    the cloud itself when nothing binds it. A DEFORMERS hook (see data.evaluated_cloud)."""
-    mod = armature_modifier(obj, depsgraph)
+def poser(obj, depsgraph):
+    """None when nothing binds `obj` at the depsgraph; else a function posing its own splats (object
+    space) by its Armature modifier there. A data.POSERS hook (see data.evaluated_cloud)."""
+    mod = armature_modifier(obj, depsgraph) if obj.type == "MESH" else None
     if mod is None:
-        return cloud
+        return None
     arm = mod.object.evaluated_get(depsgraph)
     bones = deform_bones(arm)
     if not bones or not any(g.name in bones for g in obj.vertex_groups):
-        return cloud
-    binding = splat_binding(obj, bones)
-    to_arm = to_armature_space(obj, arm, depsgraph)
-    mode = "dqs" if mod.use_deform_preserve_volume else "lbs"
-    posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones), mode=mode)
-    return data.transform_cloud(posed, np.linalg.inv(to_arm))
+        return None
+
+    def pose(cloud):
+        binding = splat_binding(obj, bones)
+        to_arm = to_armature_space(obj, arm, depsgraph)
+        mode = "dqs" if mod.use_deform_preserve_volume else "lbs"
+        posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones), mode=mode)
+        return data.transform_cloud(posed, np.linalg.inv(to_arm))
+    return pose
+
+
+def deform(obj, depsgraph, cloud):
+    """`cloud` (the splats of `obj`, object space) posed at the depsgraph's frame; itself when nothing
+    binds the object."""
+    pose = poser(obj, depsgraph)
+    return cloud if pose is None else pose(cloud)
 
 
 def main_bones(obj):

@@ -1,119 +1,34 @@
-"""The harness of the headless Blender tests (tests/test_blender_*.py).
+"""The pytest half of the headless Blender tests (tests/test_blender_*.py), and their version matrix.
 
-Each of those files is also its own worker script: pytest runs it in a child process with
-BLENDER_USER_RESOURCES pointing at a fresh folder (Blender reads it when bpy is imported, so the
-pytest process never imports bpy). The worker installs the extension zip into that user repository,
-runs the file's steps one after another and writes what each returned, or its traceback, to
-results.json; the tests read it back through a Session.
+Each test module names a worker module (tests/workers/*.py) and gets, through `blender_fixture`, one
+Session per Blender version of tests/blender_envs.py: the worker runs in a child process of that
+version's bpy-only Python, with BLENDER_USER_RESOURCES pointing at a fresh folder, installs the
+extension zip there as a user does, runs its steps and writes results.json. Every test of the module
+runs once per version (its id ends in the version, e.g. [4.2]); a version whose Python this machine
+lacks is skipped with one line that says so.
 """
 
-import importlib
 import json
 import os
 import subprocess
-import sys
-import traceback
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-MODULE = "bl_ext.user_default.splatwright"      # the extension's package once installed
+import blender_envs
 
+TESTS = Path(__file__).resolve().parent
+from workers.base import MODULE  # noqa: F401  (the test modules import it from here)
 
-# the worker (a separate Python process with bpy) ------------------------------------------------------
-
-class BlenderWorker:
-    """Runs the step methods named in `steps`, each on a cleared scene, and records into
-    self.results[step] what it returned (or the traceback on failure)."""
-
-    steps = ()                                  # names of step methods, in the order they run
-    keep_objects = ("Camera", "Light")          # what clear_scene leaves of the startup scene
-    orphan_kinds = ("meshes", "armatures", "materials", "images", "collections", "actions")
-    inventory_kinds = ("objects", "meshes", "materials", "node_groups", "collections")
-
-    def __init__(self, work, zip_path):
-        import bpy
-        self.bpy, self.work, self.zip = bpy, Path(work), zip_path
-        self.out = self.work / "out"
-        self.out.mkdir(exist_ok=True)
-        self.results = {}
-
-    def run(self):
-        for name in self.steps:
-            self.clear_scene()
-            try:
-                self.results[name] = getattr(self, name)() or {}
-            except Exception:
-                self.results[name] = {"worker_error": traceback.format_exc()}
-        (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
-
-    def clear_scene(self):
-        """Remove what earlier steps made: objects but `keep_objects`, then unused data of `orphan_kinds`;
-        back to the default frame range at frame 1."""
-        bpy = self.bpy
-        for obj in list(bpy.data.objects):
-            if obj.name not in self.keep_objects:
-                bpy.data.objects.remove(obj)
-        for kind in self.orphan_kinds:
-            collection = getattr(bpy.data, kind)
-            for item in list(collection):
-                if item.users == 0:
-                    collection.remove(item)
-        scene = bpy.context.scene
-        scene.frame_start, scene.frame_end, scene.frame_step = 1, 250, 1
-        scene.frame_set(1)
-
-    def install_extension(self):
-        """Install the zip into the user repository and enable it, as Install from Disk does."""
-        self.bpy.ops.extensions.package_install_files(filepath=str(self.zip), repo="user_default",
-                                                      enable_on_install=True)
-
-    def module(self, name):
-        """A module of the installed extension, e.g. "splat_addon.data" or "core.render"."""
-        return importlib.import_module(f"{MODULE}.{name}")
-
-    def menu_entries(self, menu):
-        """How many draw functions the extension has added to `menu` (a bpy.types menu name)."""
-        funcs = getattr(getattr(self.bpy.types, menu).draw, "_draw_funcs", [])
-        return sum(1 for f in funcs if f.__module__.startswith(MODULE))
-
-    def call(self, op, **kw):
-        """Run an operator; ERROR reports raise RuntimeError in background mode: return the message."""
-        try:
-            return {"result": sorted(op(**kw)), "error": None}
-        except RuntimeError as exc:
-            return {"result": ["CANCELLED"], "error": str(exc)}
-
-    def select(self, objects, active=None):
-        """Select exactly `objects`; the active object is `active`, else the first of them (or none)."""
-        for obj in self.bpy.context.view_layer.objects:
-            obj.select_set(obj in objects)
-        self.bpy.context.view_layer.objects.active = active if active is not None else (objects[0] if objects else None)
-
-    def inventory(self):
-        """Names of the data a failed operator must leave as it was, and the selection."""
-        bpy = self.bpy
-        inv = {k: sorted(x.name for x in getattr(bpy.data, k)) for k in self.inventory_kinds}
-        inv["selected"] = sorted(o.name for o in bpy.context.selected_objects)
-        return inv
-
-    def save(self, name, **arrays):
-        np.savez(self.out / f"{name}.npz", **arrays)
-
-
-def worker_main(worker_class):
-    """A test file run as a script: `python test_x.py WORK ZIP` runs its worker."""
-    worker_class(sys.argv[1], sys.argv[2]).run()
-
-
-# the pytest side ------------------------------------------------------------------------------------
 
 class Session:
-    """The worker's results and output folder, seen from the tests."""
+    """The worker's results and output folder, seen from the tests, and the Blender version it ran."""
 
-    def __init__(self, work, results, log):
+    def __init__(self, work, results, log, version):
         self.work, self.out, self.results, self.log = work, work / "out", results, log
+        self.version = version
+        self.version_tuple = tuple(int(x) for x in version.split("."))
 
     def step(self, name):
         res = self.results.get(name)
@@ -127,14 +42,32 @@ class Session:
         return dict(np.load(self.out / f"{name}.npz"))
 
 
-def run_worker(script, work, zip_path):
-    """Run the test file `script` as the worker on `work` (its inputs already written there), with a
-    user resource folder of its own, so the zip installs into a fresh repository; returns its Session."""
-    env = {**os.environ, "BLENDER_USER_RESOURCES": str(work / "user")}
-    proc = subprocess.run([sys.executable, str(script), str(work), str(zip_path)], env=env, capture_output=True,
-                          text=True, timeout=600)
-    log = f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
+def run_worker(worker, work, zip_path, version=blender_envs.PRIMARY):
+    """Run the worker module `worker` ("workers.addon") on `work` (its inputs already written there) in
+    Blender `version`'s bpy-only Python, with a user resource folder of its own, so the zip installs
+    into a fresh repository; returns its Session. Skips when this machine cannot run that version."""
+    try:
+        python = blender_envs.python_of(version)
+    except blender_envs.Unavailable as exc:
+        pytest.skip(str(exc))
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    env.update(BLENDER_USER_RESOURCES=str(work / "user"), PYTHONPATH=str(TESTS))
+    proc = subprocess.run([python, "-m", worker, str(work), str(zip_path)], cwd=work, env=env,
+                          capture_output=True, text=True, timeout=900)
+    log = f"Blender {version}, exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
     results_file = work / "results.json"
     if not results_file.exists():
         pytest.fail(f"Blender worker wrote no results:\n{log}")
-    return Session(work, json.loads(results_file.read_text()), log)
+    return Session(work, json.loads(results_file.read_text()), log, version)
+
+
+def blender_fixture(worker, write_inputs=None):
+    """The module-scoped fixture `blender` of a test module: one Session per Blender version, its
+    worker module run on a fresh folder that `write_inputs(folder)` (if given) filled first."""
+    @pytest.fixture(scope="module", params=list(blender_envs.VERSIONS))
+    def blender(request, tmp_path_factory, extension_zip):
+        work = tmp_path_factory.mktemp(f"{worker.rsplit('.', 1)[-1]}_{request.param}")
+        if write_inputs is not None:
+            write_inputs(work)
+        return run_worker(worker, work, extension_zip, request.param)
+    return blender

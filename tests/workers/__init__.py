@@ -1,0 +1,1 @@
+"""Worker modules of the headless Blender tests (see base.py)."""

@@ -1,0 +1,130 @@
+"""The worker half of the headless Blender tests: a Python process with `bpy` and nothing of ours
+installed. It installs the extension zip into a fresh user repository (BLENDER_USER_RESOURCES, set by
+the test before bpy is imported), runs one worker class's steps, each on a cleared scene, and writes
+what each returned, or its traceback, to results.json. tests/blender_session.py starts it and reads
+the results back.
+
+Worker modules (tests/workers/*.py) import only the standard library, NumPy and this module at their
+top, and bpy and the installed extension (self.module(...)) inside their steps, because they run in
+every Blender of the version matrix, whose Python has neither pytest nor splatwright.
+"""
+
+import importlib
+import json
+import sys
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+MODULE = "bl_ext.user_default.splatwright"      # the extension's package once installed
+
+
+def random_cloud_arrays(n, sh_degree=3, seed=0, spread=1.0):
+    """The fields of a random anisotropic cloud with every field populated and non-unit quaternions
+    (tests/helpers.random_cloud wraps them in a SplatCloud)."""
+    rng = np.random.default_rng(seed)
+    k = (sh_degree + 1) ** 2
+    return dict(positions=rng.normal(0, spread, (n, 3)),
+                rotations=rng.normal(0, 1, (n, 4)) * rng.uniform(0.5, 2.0, (n, 1)),
+                log_scales=rng.uniform(-4, -1, (n, 3)),
+                opacity_logits=rng.normal(0, 2, n),
+                sh=rng.normal(0, 0.3, (n, k, 3)))
+
+
+class BlenderWorker:
+    """Runs the step methods named in `steps`, each on a cleared scene, and records into
+    self.results[step] what it returned (or the traceback on failure)."""
+
+    steps = ()                                  # names of step methods, in the order they run
+    keep_objects = ("Camera", "Light")          # what clear_scene leaves of the startup scene
+    orphan_kinds = ("meshes", "armatures", "materials", "images", "collections", "actions")
+    inventory_kinds = ("objects", "meshes", "materials", "node_groups", "collections")
+
+    def __init__(self, work, zip_path):
+        import bpy
+        self.bpy, self.work, self.zip = bpy, Path(work), zip_path
+        self.out = self.work / "out"
+        self.out.mkdir(exist_ok=True)
+        self.results = {}
+
+    def run(self):
+        for name in self.steps:
+            self.clear_scene()
+            try:
+                self.results[name] = getattr(self, name)() or {}
+            except Exception:
+                self.results[name] = {"worker_error": traceback.format_exc()}
+        (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
+
+    def clear_scene(self):
+        """Remove what earlier steps made: objects but `keep_objects`, then unused data of `orphan_kinds`;
+        back to the default frame range at frame 1."""
+        bpy = self.bpy
+        for obj in list(bpy.data.objects):
+            if obj.name not in self.keep_objects:
+                bpy.data.objects.remove(obj)
+        for kind in self.orphan_kinds:
+            collection = getattr(bpy.data, kind)
+            for item in list(collection):
+                if item.users == 0:
+                    collection.remove(item)
+        scene = bpy.context.scene
+        scene.frame_start, scene.frame_end, scene.frame_step = 1, 250, 1
+        scene.frame_set(1)
+
+    def install_extension(self):
+        """Install the zip into the user repository and enable it, as Install from Disk does."""
+        self.bpy.ops.extensions.package_install_files(filepath=str(self.zip), repo="user_default",
+                                                      enable_on_install=True)
+
+    def module(self, name):
+        """A module of the installed extension, e.g. "splat_addon.data" or "core.render"."""
+        return importlib.import_module(f"{MODULE}.{name}")
+
+    def menu_entries(self, menu):
+        """How many draw functions the extension has added to `menu` (a bpy.types menu name)."""
+        funcs = getattr(getattr(self.bpy.types, menu).draw, "_draw_funcs", [])
+        return sum(1 for f in funcs if f.__module__.startswith(MODULE))
+
+    def call(self, op, **kw):
+        """Run an operator; ERROR reports raise RuntimeError in background mode: return the message."""
+        try:
+            return {"result": sorted(op(**kw)), "error": None}
+        except RuntimeError as exc:
+            return {"result": ["CANCELLED"], "error": str(exc)}
+
+    def select(self, objects, active=None):
+        """Select exactly `objects`; the active object is `active`, else the first of them (or none)."""
+        for obj in self.bpy.context.view_layer.objects:
+            obj.select_set(obj in objects)
+        self.bpy.context.view_layer.objects.active = active if active is not None else (objects[0] if objects else None)
+
+    def inventory(self):
+        """Names of the data a failed operator must leave as it was, and the selection."""
+        bpy = self.bpy
+        inv = {k: sorted(x.name for x in getattr(bpy.data, k)) for k in self.inventory_kinds}
+        inv["selected"] = sorted(o.name for o in bpy.context.selected_objects)
+        return inv
+
+    @staticmethod
+    def image_format(settings, file_format, **values):
+        """Set a render's image format (and other image settings) as this Blender wants it: from 5.0
+        the media type comes first."""
+        if hasattr(settings, "media_type"):
+            settings.media_type = "MULTI_LAYER_IMAGE" if file_format == "OPEN_EXR_MULTILAYER" else "IMAGE"
+        settings.file_format = file_format
+        for name, value in values.items():
+            setattr(settings, name, value)
+
+    def save(self, name, **arrays):
+        np.savez(self.out / f"{name}.npz", **arrays)
+
+    def random_cloud(self, n, sh_degree=3, seed=0, spread=1.0):
+        """random_cloud_arrays as a SplatCloud of the installed extension."""
+        return self.module("core").SplatCloud(**random_cloud_arrays(n, sh_degree, seed, spread))
+
+
+def worker_main(worker_class):
+    """A worker module run as a script: `python -m workers.x WORK ZIP` runs its worker."""
+    worker_class(sys.argv[1], sys.argv[2]).run()

@@ -1,0 +1,433 @@
+"""The Blender side of tests/test_blender_rigging.py (run in each Blender of the version matrix; see
+workers/base.py)."""
+
+import contextlib
+import io
+import json
+import numpy as np
+
+from workers.base import MODULE, BlenderWorker, worker_main
+
+
+# A rig that exercises every part of Blender's skinning: bone rolls, an unconnected child, scaled
+# bones (uniform and not), a bone that does not deform, and an armature object placed off the origin.
+RIG_BONES = {  # name: head, tail, parent, connected, roll, deforms
+    "Root": ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), None, False, 0.0, True),
+    "Mid": ((0.0, 0.0, 1.0), (0.2, 0.1, 2.0), "Root", True, 0.3, True),
+    "Side": ((0.1, 0.0, 0.9), (1.0, 0.2, 1.2), "Root", False, -0.4, True),
+    "Tip": ((0.2, 0.1, 2.0), (0.3, 0.1, 2.7), "Mid", True, 0.0, True),
+    "Ctrl": ((0.0, 0.0, -0.5), (0.0, 0.5, -0.5), None, False, 0.0, False),
+}
+RIG_POSE = {  # name: location, Euler XYZ rotation, scale (bone space)
+    "Root": ((0.1, -0.2, 0.05), (0.3, -0.2, 0.4), (1.0, 1.0, 1.0)),
+    "Mid": ((0.0, 0.0, 0.0), (0.9, 0.2, -0.5), (1.3, 0.8, 1.1)),
+    "Side": ((0.05, 0.0, 0.0), (-0.6, 0.7, 0.1), (1.5, 1.5, 1.5)),
+    "Tip": ((0.0, 0.0, 0.0), (0.2, -1.2, 0.8), (0.7, 1.2, 0.9)),
+    "Ctrl": ((0.5, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
+}
+GROUP_ORDER = ("Side", "Root", "Ctrl", "Tip", "Mid")      # not the bone order
+ARM_TRANSFORM = dict(location=(0.3, -0.2, 0.1), rotation_euler=(0.1, 0.2, -0.3), scale=(1.1, 1.1, 1.1))
+SPLAT_TRANSFORM = dict(location=(0.5, 0.4, -0.2), rotation_euler=(0.3, -0.1, 0.5), scale=(1.0, 1.3, 0.8))
+RIG_SPLATS = 400
+RENDER_SIZE = (480, 360)
+BENT_FRAME = 12
+
+
+# the worker (a separate Python process with bpy) -----------------------------------------------------
+
+def rig_cloud_arrays(n, seed=3):
+    """Splats scattered around the rig's bones, anisotropic, with non-unit quaternions and SH degree 1."""
+    rng = np.random.default_rng(seed)
+    heads = np.array([RIG_BONES[b][0] for b in GROUP_ORDER if RIG_BONES[b][5]])
+    tails = np.array([RIG_BONES[b][1] for b in GROUP_ORDER if RIG_BONES[b][5]])
+    pick, t = rng.integers(0, len(heads), n), rng.uniform(0, 1, (n, 1))
+    positions = heads[pick] + t * (tails[pick] - heads[pick]) + rng.normal(0, 0.15, (n, 3))
+    return dict(positions=positions, rotations=rng.normal(0, 1, (n, 4)) * rng.uniform(0.5, 2, (n, 1)),
+                log_scales=rng.uniform(-4, -2, (n, 3)), opacity_logits=rng.normal(2, 1, n),
+                sh=rng.normal(0, 0.3, (n, 4, 3)))
+
+
+def rig_weights(n, seed=4):
+    """Sparse group weights {group: {vertex: weight}} that do not sum to one: splats 0-9 in no group,
+    10-19 only in the non-deforming Ctrl, 20-119 in one deforming group, the rest in 2-4 groups."""
+    rng = np.random.default_rng(seed)
+    deforming = [g for g in GROUP_ORDER if RIG_BONES[g][5]]
+    weights = {g: {} for g in GROUP_ORDER}
+    for v in range(10, 20):
+        weights["Ctrl"][v] = float(rng.uniform(0.2, 0.9))
+    for v in range(20, 120):
+        weights[deforming[v % len(deforming)]][v] = float(rng.uniform(0.2, 0.9))
+    for v in range(120, n):
+        for g in rng.choice(GROUP_ORDER, size=rng.integers(2, 5), replace=False):
+            weights[g][v] = float(rng.uniform(0.05, 0.9))
+    return weights
+
+
+class Worker(BlenderWorker):
+    steps = ("install", "skinning", "transfer", "bone_weights", "render", "errors", "collide_small",
+             "collide_demo", "reregister")
+
+    # helpers -------------------------------------------------------------------------------------
+
+    def splat_object(self, name, arrays, matrix=None):
+        core = self.module("core")
+        data = self.module("splat_addon.data")
+        obj, _ = data.new_splat_object(core.SplatCloud(**arrays), name, self.bpy.context.scene.collection, matrix)
+        return obj
+
+    def group_matrix(self, obj, names):
+        """(V, len(names)) weights read one vertex at a time through VertexGroup.weight."""
+        out = np.zeros((len(obj.data.vertices), len(names)))
+        for j, name in enumerate(names):
+            group = obj.vertex_groups.get(name)
+            for i in range(len(out)) if group is not None else ():
+                with contextlib.suppress(RuntimeError):      # not in the group
+                    out[i, j] = group.weight(i)
+        return out
+
+    def blender_positions(self, obj):
+        """The evaluated mesh's vertices (object space) with the display modifier off."""
+        depsgraph = self.bpy.context.evaluated_depsgraph_get()
+        ev = obj.evaluated_get(depsgraph)
+        mesh = ev.to_mesh()
+        try:
+            co = np.empty(len(mesh.vertices) * 3, np.float32)
+            mesh.vertices.foreach_get("co", co)
+            return co.reshape(-1, 3)
+        finally:
+            ev.to_mesh_clear()
+
+    def display_positions(self, obj):
+        """The viewport display's points (object space)."""
+        depsgraph = self.bpy.context.evaluated_depsgraph_get()
+        for inst in depsgraph.object_instances:      # instance data is only valid during iteration
+            if inst.object.type == "POINTCLOUD" and inst.object.original == obj:
+                points = inst.object.data
+                co = np.empty(len(points.points) * 3, np.float32)
+                points.attributes["position"].data.foreach_get("vector", co)
+                return co.reshape(-1, 3)
+        raise RuntimeError(f"'{obj.name}' shows no display points")
+
+    def inventory(self):
+        """What a failed bind or collision check must leave as it was (armature bindings included)."""
+        bpy = self.bpy
+        inv = {k: sorted(x.name for x in getattr(bpy.data, k)) for k in ("objects", "meshes", "armatures")}
+        inv["groups"] = {o.name: [g.name for g in o.vertex_groups] for o in bpy.data.objects}
+        inv["modifiers"] = {o.name: [m.name for m in o.modifiers] for o in bpy.data.objects}
+        inv["parents"] = {o.name: o.parent.name if o.parent else None for o in bpy.data.objects}
+        inv["attributes"] = {m.name: sorted(a.name for a in m.attributes) for m in bpy.data.meshes}
+        return inv
+
+    def build_rig(self):
+        """The test rig's armature object, posed by RIG_POSE."""
+        bpy = self.bpy
+        arm = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
+        bpy.context.scene.collection.objects.link(arm)
+        for key, value in ARM_TRANSFORM.items():
+            setattr(arm, key, value)
+        self.select([arm])
+        bpy.ops.object.mode_set(mode="EDIT")
+        for name, (head, tail, parent, connected, roll, deforms) in RIG_BONES.items():
+            bone = arm.data.edit_bones.new(name)
+            bone.head, bone.tail, bone.roll, bone.use_deform = head, tail, roll, deforms
+            if parent is not None:
+                bone.parent, bone.use_connect = arm.data.edit_bones[parent], connected
+        bpy.ops.object.mode_set(mode="OBJECT")
+        for name, (loc, rot, scale) in RIG_POSE.items():
+            pb = arm.pose.bones[name]
+            pb.rotation_mode = "XYZ"
+            pb.location, pb.rotation_euler, pb.scale = loc, rot, scale
+        return arm
+
+    def demo(self, environment_splats=0, body_splats=3000):
+        """The demo rig and its arm converted to splats in the rest pose (selected, the armature active)."""
+        bpy = self.bpy
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(bpy.context.scene, environment_splats)
+        self.select([rig.body])
+        bpy.ops.splat.from_mesh(max_splats=body_splats)
+        splats = bpy.context.active_object
+        self.select([splats, rig.armature], active=rig.armature)
+        return rig, splats
+
+    # steps ---------------------------------------------------------------------------------------
+
+    def install(self):
+        bpy = self.bpy
+        self.install_extension()
+        menus = {name: self.menu_entries(name) for name in ("VIEW3D_MT_object_parent", "VIEW3D_MT_object")}
+        data = self.module("splat_addon.data")
+        return {"operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_bind_armature", "SPLAT_OT_check_collisions")],
+                "menus": menus, "posers": [f.__name__ for f in data.POSERS],
+                "handlers": self.handler_count()}
+
+    def handler_count(self):
+        handlers = self.bpy.app.handlers
+        return sum(1 for lst in (handlers.depsgraph_update_post, handlers.load_post, handlers.undo_post,
+                                 handlers.redo_post) for f in lst if f.__module__.startswith(MODULE))
+
+    def skinning(self):
+        bpy = self.bpy
+        data = self.module("splat_addon.data")
+        display = self.module("splat_addon.display")
+        arm = self.build_rig()
+        arrays = rig_cloud_arrays(RIG_SPLATS)
+        obj = self.splat_object("RigSplats", arrays)
+        for key, value in SPLAT_TRANSFORM.items():
+            setattr(obj, key, value)
+        for name, members in rig_weights(RIG_SPLATS).items():      # groups in GROUP_ORDER
+            group = obj.vertex_groups.new(name=name)
+            for v, w in members.items():
+                group.add([v], w, "REPLACE")
+        mod = obj.modifiers.new("Armature", "ARMATURE")
+        mod.object = arm
+        shown = display.add_display(obj)
+        display.set_input(shown, "Min Opacity", 0.0)
+        bpy.context.view_layer.update()
+        res = {"modifiers": [m.type for m in obj.modifiers]}
+        names = list(RIG_BONES)
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        arm_world, obj_world = np.array(arm.matrix_world), np.array(obj.matrix_world)
+        to_obj = np.linalg.inv(obj_world) @ arm_world
+        deform = np.stack([to_obj @ np.array(arm.pose.bones[n].matrix)
+                           @ np.linalg.inv(np.array(arm.data.bones[n].matrix_local)) @ np.linalg.inv(to_obj)
+                           for n in names])
+        arrays_out = {}
+        for mode, volume in (("lbs", False), ("dqs", True)):
+            mod.use_deform_preserve_volume = volume
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            ours = data.evaluated_cloud(obj, depsgraph, np.eye(4))
+            arrays_out[f"{mode}_display"] = self.display_positions(obj)
+            shown.show_viewport = False
+            arrays_out[f"{mode}_blender"] = self.blender_positions(obj)
+            shown.show_viewport = True
+            arrays_out.update({f"{mode}_positions": ours.positions, f"{mode}_rotations": ours.rotations,
+                               f"{mode}_log_scales": ours.log_scales, f"{mode}_sh": ours.sh})
+        weights = self.group_matrix(obj, names)
+        # weights painted after the first evaluation: the cached weights must follow
+        mod.use_deform_preserve_volume = False
+        group = obj.vertex_groups["Tip"]
+        group.add(list(range(20, 60)), 0.7, "REPLACE")
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        arrays_out["repainted_positions"] = data.evaluated_cloud(obj, depsgraph, np.eye(4)).positions
+        shown.show_viewport = False
+        arrays_out["repainted_blender"] = self.blender_positions(obj)
+        self.save("skinning", rest_positions=arrays["positions"], rest_rotations=arrays["rotations"],
+                  rest_log_scales=arrays["log_scales"], deform=deform, bones=np.array(names),
+                  weights=weights, **arrays_out)
+        return res
+
+    def transfer(self):
+        bpy = self.bpy
+        data = self.module("splat_addon.data")
+        rig, splats = self.demo()
+        names = [b.name for b in rig.armature.data.bones]
+        res = {"bind": self.call(bpy.ops.splat.bind_armature, armature=rig.armature.name, max_influences=8)}
+        extras = data.mesh_to_cloud(splats.data).extras
+        res.update(groups=[g.name for g in splats.vertex_groups],
+                   modifiers=[[m.type, m.object.name if m.type == "ARMATURE" else None] for m in splats.modifiers],
+                   parent=splats.parent.name if splats.parent else None,
+                   matrix_kept=bool(np.allclose(np.array(splats.matrix_world), np.array(rig.body.matrix_world))),
+                   source=json.loads(splats.data["splatwright_source"]))
+        self.save("transfer", weights=self.group_matrix(splats, names), source=self.group_matrix(rig.body, names),
+                  source_vertices=extras["source_vertices"], barycentric=extras["barycentric"])
+        # the active armature, one influence
+        self.select([rig.body])
+        bpy.ops.splat.from_mesh(max_splats=3000)
+        single = bpy.context.active_object
+        self.select([single, rig.armature], active=rig.armature)
+        res["single"] = self.call(bpy.ops.splat.bind_armature, max_influences=1)
+        self.save("transfer_single", weights=self.group_matrix(single, names))
+        # a source mesh that is gone: weights from the bones, with a warning
+        self.select([rig.body])
+        bpy.ops.splat.from_mesh(max_splats=200)
+        orphan = bpy.context.active_object
+        rig.body.name = "Renamed Arm"
+        warnings = []
+        plans = self.module("splat_addon.rigging").bind_armature([orphan], rig.armature, warn=warnings.append)
+        res["orphan"] = {"warnings": warnings, "source": plans[0].source}
+        return res
+
+    def bone_weights(self):
+        """A splat object not made from a mesh gets weights from distances to the bones."""
+        bpy = self.bpy
+        arm = self.build_rig()
+        arrays = rig_cloud_arrays(300, seed=9)
+        obj = self.splat_object("Loose", arrays)
+        for key, value in SPLAT_TRANSFORM.items():
+            setattr(obj, key, value)
+        bpy.context.view_layer.update()
+        self.select([obj], active=arm)
+        res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2, falloff=4.0, min_weight=0.01,
+                                 preserve_volume=True)}
+        names = list(RIG_BONES)
+        res["preserve_volume"] = obj.modifiers[0].use_deform_preserve_volume
+        res["groups"] = [g.name for g in obj.vertex_groups]
+        to_arm = np.linalg.inv(np.array(arm.matrix_world)) @ np.array(obj.matrix_world)
+        self.save("bone_weights", weights=self.group_matrix(obj, names), positions=arrays["positions"],
+                  to_arm=to_arm, heads=np.array([arm.data.bones[n].head_local for n in names]),
+                  tails=np.array([arm.data.bones[n].tail_local for n in names]), bones=np.array(names))
+        return res
+
+    def render(self):
+        bpy = self.bpy
+        scene = bpy.context.scene
+        data = self.module("splat_addon.data")
+        rigging = self.module("splat_addon.rigging")
+        camera = self.module("splat_addon.camera")
+        from_mesh = self.module("splat_addon.from_mesh")
+        render = self.module("core.render").render
+        rig, splats = self.demo(body_splats=8000)
+        res = {"bind": self.call(bpy.ops.splat.bind_armature)}
+        rest = data.evaluated_cloud(splats, bpy.context.evaluated_depsgraph_get())
+        scene.frame_set(BENT_FRAME)
+        reference = from_mesh.convert_objects(bpy.context, [rig.body], max_splats=8000, use_rest_pose=False)[0][1]
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        ours = data.evaluated_cloud(splats, depsgraph)
+        reference = data.transform_cloud(reference, data.world_matrix(rig.body, depsgraph))
+        width, height = RENDER_SIZE
+        cam = camera.from_object(scene.camera.evaluated_get(depsgraph), scene, width, height)
+        images = {name: render(cloud, cam, background=(0.0, 0.0, 0.0))
+                  for name, cloud in (("ours", ours), ("reference", reference), ("rest", rest),
+                                      ("centres_only", rest.replace(positions=ours.positions)))}
+        # the render engine (its own render depsgraph), with the weights cache empty
+        render_settings = scene.render
+        render_settings.engine = "SPLATWRIGHT"
+        render_settings.resolution_x, render_settings.resolution_y, render_settings.resolution_percentage = \
+            width, height, 100
+        self.image_format(render_settings.image_settings, "OPEN_EXR")
+        render_settings.filepath = str(self.out / "engine.exr")
+        scene.world = None
+        rigging.forget_weights()
+        res["engine"] = self.call(bpy.ops.render.render, write_still=True)
+        self.save("render", **{f"{k}_color": v.color for k, v in images.items()},
+                  **{f"{k}_alpha": v.alpha for k, v in images.items()})
+        return res
+
+    def errors(self):
+        bpy = self.bpy
+        rig, splats = self.demo(body_splats=300)
+        env = self.splat_object("Env", rig_cloud_arrays(50, seed=1))
+        cases = {}
+        bind = bpy.ops.splat.bind_armature
+        for name, selected, active, kw in (
+                ("active not an armature", [splats], splats, {}),
+                ("unknown armature", [splats], splats, {"armature": "Nope"}),
+                ("camera as armature", [splats], splats, {"armature": "Camera"}),
+                ("no active object", [splats], None, {}),
+                ("no splat objects", [rig.body], rig.armature, {}),
+                ("nothing selected", [], rig.armature, {})):
+            self.select(selected, active=active)
+            if active is None:
+                bpy.context.view_layer.objects.active = None
+            before = self.inventory()
+            cases[name] = {**self.call(bind, **kw), "unchanged": before == self.inventory()}
+        collide = bpy.ops.splat.check_collisions
+        base = dict(use_scene_range=False, frame_start=1, frame_end=2)
+        for name, kw in (("unknown object", dict(object_a=splats.name, object_b="Nope")),
+                         ("same object", dict(object_a=splats.name, object_b=splats.name)),
+                         ("not splats", dict(object_a=splats.name, object_b=rig.body.name)),
+                         ("backwards", dict(object_a=splats.name, object_b=env.name, frame_start=5, frame_end=2)),
+                         ("unknown bone", dict(object_a=splats.name, object_b=env.name, ignore_bones="Nope"))):
+            before = self.inventory()
+            cases[name] = {**self.call(collide, **{**base, **kw}), "unchanged": before == self.inventory(),
+                           "frame": bpy.context.scene.frame_current}
+        return cases
+
+    def collide_small(self):
+        """A bound cloud (two bones, the lower one turning) and a cloud that flies in at frame 3."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        data = self.module("splat_addon.data")
+        collide = self.module("splat_addon.collide")
+        arm = bpy.data.objects.new("Pole", bpy.data.armatures.new("Pole"))
+        scene.collection.objects.link(arm)
+        self.select([arm])
+        bpy.ops.object.mode_set(mode="EDIT")
+        lower = arm.data.edit_bones.new("Lower")
+        lower.head, lower.tail = (0, 0, 0), (0, 0, 1)
+        upper = arm.data.edit_bones.new("Upper")
+        upper.head, upper.tail, upper.parent, upper.use_connect = (0, 0, 1), (0, 0, 2), lower, True
+        bpy.ops.object.mode_set(mode="OBJECT")
+        rng = np.random.default_rng(11)
+        n_a, n_b = 60, 50
+        pole = dict(positions=np.column_stack([rng.normal(0, 0.08, (n_a, 2)), rng.uniform(0, 2, n_a)]),
+                    rotations=rng.normal(0, 1, (n_a, 4)), log_scales=rng.uniform(-3.2, -2.0, (n_a, 3)),
+                    opacity_logits=np.full(n_a, 4.0), sh=np.zeros((n_a, 1, 3)))
+        blob = dict(positions=rng.normal(0, 0.15, (n_b, 3)), rotations=rng.normal(0, 1, (n_b, 4)),
+                    log_scales=rng.uniform(-3.0, -2.0, (n_b, 3)),
+                    opacity_logits=np.where(np.arange(n_b) < 5, -6.0, 3.0), sh=np.zeros((n_b, 1, 3)))
+        a, b = self.splat_object("PoleSplats", pole), self.splat_object("Blob", blob)
+        self.select([a], active=arm)
+        res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2)}
+        pb = arm.pose.bones["Lower"]
+        pb.rotation_mode = "XYZ"
+        for frame, angle, where in ((1, 0.0, (0.0, -3.0, 1.5)), (3, 0.25, (0.0, -0.45, 1.45))):
+            pb.rotation_euler = (angle, 0.0, 0.0)
+            pb.keyframe_insert("rotation_euler", frame=frame)
+            b.location = where
+            b.keyframe_insert("location", frame=frame)
+        scene.frame_set(2)
+        res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=a.name, object_b=b.name,
+                              use_scene_range=False, frame_start=1, frame_end=3)
+        res["frame_after"] = scene.frame_current
+        report = collide.check_collisions(bpy.context, a, b, [1, 2, 3], write_attribute=False)
+        res["report"] = report.as_dict()
+        clouds = {}
+        for frame in (1, 2, 3):
+            scene.frame_set(frame)
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            for key, obj in (("a", a), ("b", b)):
+                cloud = data.evaluated_cloud(obj, depsgraph)
+                clouds[f"{key}{frame}_positions"] = cloud.positions
+                clouds[f"{key}{frame}_rotations"] = cloud.rotations
+                clouds[f"{key}{frame}_log_scales"] = cloud.log_scales
+                clouds[f"{key}{frame}_opacity_logits"] = cloud.opacity_logits
+        contact = {}
+        for key, obj in (("a", a), ("b", b)):
+            values = np.empty(len(obj.data.vertices), np.float32)
+            obj.data.attributes["splat_contact"].data.foreach_get("value", values)
+            contact[f"contact_{key}"] = values
+        self.save("collide_small", weights=self.group_matrix(a, ["Lower", "Upper"]), **clouds, **contact)
+        return res
+
+    def collide_demo(self):
+        bpy = self.bpy
+        scene = bpy.context.scene
+        collide = self.module("splat_addon.collide")
+        rig, splats = self.demo(environment_splats=20_000, body_splats=8000)
+        res = {"bind": self.call(bpy.ops.splat.bind_armature)}
+        env = rig.environment
+        res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=splats.name, object_b=env.name,
+                              ignore_bones="Base")
+        values = np.empty(len(splats.data.vertices), np.float32)
+        splats.data.attributes["splat_contact"].data.foreach_get("value", values)
+        res["contact_max"], res["contact_splats"] = float(values.max()), int((values > 0).sum())
+        res["exported_extras"] = sorted(self.module("splat_addon.data").mesh_to_cloud(splats.data).extras)
+        res["report"] = collide.check_collisions(bpy.context, splats, env, range(1, 25), ignore_bones=["Base"],
+                                                 write_attribute=False).as_dict()
+        res["with_base"] = collide.check_collisions(bpy.context, splats, env, [1], write_attribute=False).as_dict()
+        execute = self.module("splat_addon.command").execute
+        runs = {"ok": ["collide", splats.name, env.name, "--frames", "1-12:11", "--ignore-bones", "Base",
+                       "--json", str(self.out / "collide.json")],
+                "unknown": ["collide", splats.name, "Nope", "--frames", "1"],
+                "bad sigma": ["collide", splats.name, env.name, "--frames", "1", "--sigma", "-1"],
+                "missing folder": ["collide", splats.name, env.name, "--frames", "1",
+                                   "--json", str(self.out / "nowhere" / "c.json")]}
+        res["cli"] = {}
+        for name, argv in runs.items():
+            out, err = io.StringIO(), io.StringIO()
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = execute(argv)
+            res["cli"][name] = {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue()}
+        return res
+
+    def reregister(self):
+        import addon_utils
+        addon_utils.disable(MODULE, default_set=True)
+        off = self.handler_count()
+        addon_utils.enable(MODULE, default_set=True)
+        return {"off": off, "on": self.handler_count()}
+
+
+if __name__ == "__main__":
+    worker_main(Worker)

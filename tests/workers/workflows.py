@@ -1,0 +1,489 @@
+"""The Blender side of tests/test_blender_workflows.py (run in each Blender of the version matrix; see
+workers/base.py)."""
+
+import contextlib
+import io
+import json
+import numpy as np
+
+from workers.base import MODULE, BlenderWorker, worker_main
+
+
+C0 = 0.28209479177387814
+# file (x, y, z) -> Blender (x, z, -y): the default export axes are its inverse
+DEFAULT_AXES = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+TEXTURE_SIZE = (7, 5)          # width, height: small, so every splat sees texel boundaries
+PLANE_TRANSFORM = dict(location=(1.0, -2.0, 0.5), rotation_euler=(0.4, -0.3, 0.9), scale=(2.0, 0.5, 1.5))
+BUDGETS = (400, 37)
+MATERIAL_COLORS = ((0.8, 0.1, 0.05), (0.02, 0.6, 0.1), (0.1, 0.2, 0.9))
+ANIM = {1: dict(location=(0.0, 0.0, 0.0), rotation_euler=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)),
+        4: dict(location=(0.5, -1.0, 2.0), rotation_euler=(0.3, 0.0, 1.1), scale=(1.5, 1.5, 1.5))}
+
+
+# the worker (a separate Python process with bpy) -----------------------------------------------------
+
+def srgb_bytes(rng, shape):
+    return rng.integers(0, 256, shape) / 255.0
+
+
+def grid_vertices(nx=4, ny=3, size=(2.0, 1.5), wobble=0.0):
+    """(nx+1)(ny+1) vertices of a grid in the surface z = wobble sin(2x) cos(3y), row by row."""
+    xs, ys = np.meshgrid(np.linspace(-size[0] / 2, size[0] / 2, nx + 1),
+                         np.linspace(-size[1] / 2, size[1] / 2, ny + 1))
+    x, y = xs.ravel(), ys.ravel()
+    return np.column_stack([x, y, wobble * np.sin(2 * x) * np.cos(3 * y)])
+
+
+def skewed_uv(p):
+    """UVs that are not a plain projection and reach below 0 (the texture repeats)."""
+    return np.column_stack([0.1 + 0.6 * p[:, 0] + 0.1 * p[:, 1], 0.55 + 0.5 * p[:, 1] - 0.05 * p[:, 0]])
+
+
+class Worker(BlenderWorker):
+    steps = ("install", "textured", "colors", "errors", "demo_rig", "rest_pose", "target_psnr", "animation",
+             "frame_names", "cli", "reregister")
+
+    # helpers -------------------------------------------------------------------------------------
+
+    def grid(self, name, nx=4, ny=3, size=(2.0, 1.5), uv=None, wobble=0.0):
+        """A grid of quads in the z = wobble * f(x, y) surface with per-loop UVs."""
+        bpy = self.bpy
+        verts = grid_vertices(nx, ny, size, wobble)
+        faces = [[j * (nx + 1) + i, j * (nx + 1) + i + 1, (j + 1) * (nx + 1) + i + 1, (j + 1) * (nx + 1) + i]
+                 for j in range(ny) for i in range(nx)]
+        mesh = bpy.data.meshes.new(name)
+        mesh.from_pydata(verts.tolist(), [], faces)
+        layer = mesh.uv_layers.new(name="UVMap")
+        loop_verts = np.array([v for f in faces for v in f])
+        uvs = verts[loop_verts, :2] if uv is None else uv(verts[loop_verts])
+        layer.uv.foreach_set("vector", np.asarray(uvs, np.float32).ravel())
+        mesh.update()
+        obj = bpy.data.objects.new(name, mesh)
+        bpy.context.scene.collection.objects.link(obj)
+        return obj
+
+    def material(self, name, color=(0.8, 0.8, 0.8), link=None):
+        """A Principled material; link(nodes) returns an output socket to feed Base Color."""
+        mat = self.bpy.data.materials.new(name)
+        if self.bpy.app.version < (5, 0, 0):
+            mat.use_nodes = True
+        bsdf = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+        if link is not None:
+            mat.node_tree.links.new(link(mat.node_tree.nodes), bsdf.inputs["Base Color"])
+        return mat
+
+    def image(self, name, pixels, float_buffer=False):
+        h, w = pixels.shape[:2]
+        img = self.bpy.data.images.new(name, w, h, float_buffer=float_buffer)
+        img.pixels.foreach_set(np.asarray(pixels, np.float32).ravel())
+        back = np.empty(w * h * 4, np.float32)
+        img.pixels.foreach_get(back)
+        return img, back.reshape(h, w, 4)
+
+    def source_dump(self, obj):
+        """What Blender says about the evaluated mesh: vertices, loop triangles, UVs, colours."""
+        depsgraph = self.bpy.context.evaluated_depsgraph_get()
+        ev = obj.evaluated_get(depsgraph)
+        mesh = ev.to_mesh()
+        try:
+            mesh.calc_loop_triangles()
+            lt = mesh.loop_triangles
+            arrays = {}
+            for key, prop, width, dtype in (("tri_verts", "vertices", 3, np.int32),
+                                            ("tri_loops", "loops", 3, np.int32),
+                                            ("tri_poly", "polygon_index", 1, np.int32),
+                                            ("tri_mat", "material_index", 1, np.int32)):
+                a = np.empty(len(lt) * width, dtype)
+                lt.foreach_get(prop, a)
+                arrays[key] = a.reshape(len(lt), width) if width > 1 else a
+            co = np.empty(len(mesh.vertices) * 3, np.float32)
+            mesh.vertices.foreach_get("co", co)
+            arrays["co"] = co.reshape(-1, 3)
+            if mesh.uv_layers.active is not None:
+                uv = np.empty(len(mesh.loops) * 2, np.float32)
+                mesh.uv_layers.active.uv.foreach_get("vector", uv)
+                arrays["uv"] = uv.reshape(-1, 2)
+            for attr in mesh.color_attributes:
+                c = np.empty(len(attr.data) * 4, np.float32)
+                attr.data.foreach_get("color", c)
+                arrays[f"color_{attr.name}"] = c.reshape(-1, 4)
+            return arrays
+        finally:
+            ev.to_mesh_clear()
+
+    def splat_dump(self, obj):
+        mesh = obj.data
+        n = len(mesh.vertices)
+        arrays = {}
+        props = {"FLOAT": ("value", 1), "INT": ("value", 1), "FLOAT_VECTOR": ("vector", 3),
+                 "QUATERNION": ("value", 4)}
+        for attr in mesh.attributes:
+            if attr.domain == "POINT" and attr.data_type in props and not attr.name.startswith("."):
+                prop, width = props[attr.data_type]
+                values = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
+                attr.data.foreach_get(prop, values)
+                arrays[attr.name] = values.reshape(n, width)
+        return arrays
+
+    def convert(self, objects, **kw):
+        """Run from_mesh on `objects`; returns (result, the new active object or None)."""
+        self.select(objects)
+        before = set(self.bpy.data.objects)
+        res = self.call(self.bpy.ops.splat.from_mesh, **kw)
+        created = [o for o in self.bpy.data.objects if o not in before]
+        return res, created
+
+    # steps ---------------------------------------------------------------------------------------
+
+    def install(self):
+        bpy = self.bpy
+        self.install_extension()
+        return {"operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_from_mesh", "SPLAT_OT_export_animation")],
+                "command_registered": self.module("splat_addon.command")._handle is not None,
+                "convert_menu": self.menu_entries("VIEW3D_MT_object_convert")}
+
+    def textured(self):
+        bpy = self.bpy
+        rng = np.random.default_rng(1)
+        res = {}
+        w, h = TEXTURE_SIZE
+        cases = {"srgb": (srgb_bytes(rng, (h, w, 4)), False), "float": (rng.uniform(0, 1, (h, w, 4)), True)}
+        for name, (pixels, is_float) in cases.items():
+            img, stored = self.image(f"tex_{name}", pixels, float_buffer=is_float)
+
+            def texture(nodes, img=img):
+                node = nodes.new("ShaderNodeTexImage")
+                node.image = img
+                return node.outputs["Color"]
+            obj = self.grid(f"plane_{name}", wobble=0.2, uv=skewed_uv)
+            obj.data.materials.append(self.material(f"mat_{name}", (0.3, 0.3, 0.3), texture))
+            for key, value in PLANE_TRANSFORM.items():
+                setattr(obj, key, value)
+            bpy.context.view_layer.update()
+            counts = []
+            for budget in BUDGETS:
+                op, created = self.convert([obj], max_splats=budget)
+                counts.append(len(created[0].data.vertices) if created else None)
+                res[f"{name}_{budget}"] = op
+                if budget == BUDGETS[0]:
+                    splats = created[0]
+                    selected = sorted(o.name for o in bpy.context.selected_objects)
+            self.save(f"textured_{name}", texels=stored, splat_matrix=np.array(splats.matrix_world),
+                      source_matrix=np.array(obj.matrix_world), **self.source_dump(obj), **self.splat_dump(splats))
+            res[name] = {"counts": counts, "colorspace": img.colorspace_settings.name, "is_float": img.is_float,
+                         "source": json.loads(splats.data["splatwright_source"]),
+                         "modifiers": [m.name for m in splats.modifiers], "name": splats.name,
+                         "selected": selected}
+        # modifiers applied: an Array modifier doubles the surface
+        cube = self.grid("arrayed", nx=2, ny=2)
+        mod = cube.modifiers.new("Array", "ARRAY")
+        mod.count, mod.relative_offset_displace = 2, (1.5, 0.0, 0.0)
+        cube.data.materials.append(self.material("plain", (0.2, 0.5, 0.8)))
+        op, created = self.convert([cube], max_splats=300)
+        res["arrayed"] = {**op, "original_faces": len(cube.data.polygons),
+                          "source": json.loads(created[0].data["splatwright_source"])}
+        self.save("arrayed", **self.source_dump(cube), **self.splat_dump(created[0]))
+        return res
+
+    def colors(self):
+        bpy = self.bpy
+        rng = np.random.default_rng(2)
+        res = {}
+        # a corner colour attribute feeding Base Color through a Color Attribute node
+        painted = self.grid("painted", wobble=0.1)
+        attr = painted.data.color_attributes.new("Paint", "BYTE_COLOR", "CORNER")
+        attr.data.foreach_set("color", srgb_bytes(rng, (len(attr.data), 4)).astype(np.float32).ravel())
+        painted.data.color_attributes.new("Other", "FLOAT_COLOR", "POINT")      # not the one the material names
+
+        def paint(nodes):
+            node = nodes.new("ShaderNodeVertexColor")
+            node.layer_name = "Paint"
+            return node.outputs["Color"]
+        painted.data.materials.append(self.material("painted", (0.1, 0.1, 0.1), paint))
+        op, created = self.convert([painted], max_splats=300)
+        res["painted"] = op
+        self.save("painted", **self.source_dump(painted), **self.splat_dump(created[0]))
+        # no material: the render colour attribute (point domain, float)
+        bare = self.grid("bare")
+        attr = bare.data.color_attributes.new("Tint", "FLOAT_COLOR", "POINT")
+        attr.data.foreach_set("color", rng.uniform(0, 1, (len(attr.data), 4)).astype(np.float32).ravel())
+        op, created = self.convert([bare], max_splats=300)
+        res["bare"] = op
+        self.save("bare", **self.source_dump(bare), **self.splat_dump(created[0]))
+        # one material per face, plain values
+        multi = self.grid("multi", nx=3, ny=3)
+        for i, color in enumerate(MATERIAL_COLORS):
+            multi.data.materials.append(self.material(f"multi_{i}", color))
+        multi.data.polygons.foreach_set("material_index", (np.arange(9) * 7 % 3).astype(np.int32))
+        multi.data.update()
+        op, created = self.convert([multi], max_splats=500)
+        res["multi"] = op
+        self.save("multi", **self.source_dump(multi), **self.splat_dump(created[0]))
+        # a Base Color fed by a node the converter does not follow: warned, the socket's value used
+        warnings = []
+
+        def rgb(nodes):
+            return nodes.new("ShaderNodeRGB").outputs[0]
+        look = self.module("splat_addon.from_mesh").material_appearance(
+            self.material("odd", (0.25, 0.5, 0.75), rgb), warnings.append)
+        res["odd"] = {"warnings": warnings, "base": list(look.material.base_color)}
+        # an image whose file is missing has no pixels: warned, the base colour used
+        missing = bpy.data.images.new("missing", 4, 4)
+        missing.source, missing.filepath = "FILE", str(self.work / "no_such_texture.png")
+
+        def texture(nodes):
+            node = nodes.new("ShaderNodeTexImage")
+            node.image = missing
+            return node.outputs["Color"]
+        warnings = []
+        look = self.module("splat_addon.from_mesh").material_appearance(
+            self.material("lost", (0.5, 0.25, 0.125), texture), warnings.append)
+        res["missing image"] = {"warnings": warnings, "base": list(look.material.base_color),
+                                "texture": look.material.texture is not None}
+        # a NaN vertex: the faces around it get no splats, the rest converts, nothing is NaN
+        broken = self.grid("broken")
+        co = np.empty(len(broken.data.vertices) * 3, np.float32)
+        broken.data.vertices.foreach_get("co", co)
+        co[3 * 6 + 2] = np.nan
+        broken.data.vertices.foreach_set("co", co)
+        broken.data.update()
+        op, created = self.convert([broken], max_splats=200)
+        res["nan vertex"] = op
+        self.save("nan_vertex", **self.splat_dump(created[0]))
+        return res
+
+    def errors(self):
+        bpy = self.bpy
+        cases = {}
+        good = self.grid("good")
+        empty = bpy.data.objects.new("empty_mesh", bpy.data.meshes.new("empty_mesh"))
+        empty.data.from_pydata([(0, 0, 0), (1, 0, 0), (0, 1, 0)], [], [])
+        flat = bpy.data.objects.new("collapsed", bpy.data.meshes.new("collapsed"))
+        flat.data.from_pydata([(0, 0, 0), (1, 0, 0), (2, 0, 0)], [], [(0, 1, 2)])
+        for obj in (empty, flat):
+            bpy.context.scene.collection.objects.link(obj)
+        op, created = self.convert([good], max_splats=50)
+        splat_obj = created[0]
+        for name, objects in (("camera", [bpy.data.objects["Camera"]]), ("empty mesh", [empty]),
+                              ("good and empty", [good, empty]), ("zero-area faces", [flat]),
+                              ("splat object", [splat_obj]), ("nothing", [])):
+            self.select(objects)
+            before = self.inventory()
+            res = self.call(bpy.ops.splat.from_mesh, max_splats=50)
+            cases[name] = {**res, "unchanged": before == self.inventory()}
+        self.select([good, bpy.data.objects["Camera"]])
+        res, created = self.convert([good, bpy.data.objects["Camera"]], max_splats=50)
+        cases["good and camera"] = {**res, "created": [o.name for o in created]}
+        return cases
+
+    def demo_rig(self):
+        bpy = self.bpy
+        scene = bpy.context.scene
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=3000)
+        body, arm = rig.body, rig.armature
+        mesh = body.data
+        weights = np.zeros((len(mesh.vertices), len(arm.data.bones)))
+        names = [b.name for b in arm.data.bones]
+        for group in body.vertex_groups:
+            for i in range(len(mesh.vertices)):
+                try:
+                    weights[i, names.index(group.name)] = group.weight(i)
+                except RuntimeError:       # vertex not in the group
+                    pass
+        rest = np.array([tuple(v.co) for v in mesh.vertices])
+        scene.frame_set(12)
+        posed = self.source_dump(body)["co"]
+        deform = {b.name: np.array(arm.pose.bones[b.name].matrix) @ np.linalg.inv(np.array(b.matrix_local))
+                  for b in arm.data.bones}
+        self.save("demo_rig", weights=weights, rest=rest, posed=posed,
+                  deform=np.stack([deform[n] for n in names]), body_matrix=np.array(body.matrix_world),
+                  arm_matrix=np.array(arm.matrix_world))
+        scene.frame_set(1)
+        env = rig.environment
+        return {"bones": names, "parents": [b.parent.name if b.parent else None for b in arm.data.bones],
+                "groups": [g.name for g in body.vertex_groups],
+                "modifiers": [(m.type, m.object.name if m.type == "ARMATURE" else None) for m in body.modifiers],
+                "frames": [scene.frame_start, scene.frame_end], "camera": scene.camera.name,
+                "light": rig.light.type, "materials": [m.name for m in mesh.materials],
+                "textured": any(n.bl_idname == "ShaderNodeTexImage"
+                                for m in mesh.materials for n in m.node_tree.nodes),
+                "environment": {"splat": self.module("splat_addon.data").is_splat_object(env),
+                                "count": len(env.data.vertices), "source": json.loads(env.data["splatwright_source"])},
+                "animated": arm.animation_data is not None and arm.animation_data.action is not None}
+
+    def rest_pose(self):
+        bpy = self.bpy
+        scene = bpy.context.scene
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=0)
+        scene.frame_set(12)
+        rest = np.array([tuple(v.co) for v in rig.body.data.vertices])
+        posed = self.source_dump(rig.body)
+        res = {}
+        for key, use_rest in (("rest", True), ("posed", False)):
+            op, created = self.convert([rig.body], max_splats=800, use_rest_pose=use_rest)
+            res[key] = {**op, "source": json.loads(created[0].data["splatwright_source"])}
+            self.save(f"rig_{key}", **self.splat_dump(created[0]))
+        res["pose_position"] = rig.armature.data.pose_position
+        self.save("rig_mesh", rest=rest, posed=posed["co"], tri_verts=posed["tri_verts"])
+        return res
+
+    def target_psnr(self):
+        obj = self.grid("quality", nx=2, ny=2)
+        rng = np.random.default_rng(3)
+        img, _ = self.image("quality_tex", srgb_bytes(rng, (4, 4, 4)))
+
+        def texture(nodes):
+            node = nodes.new("ShaderNodeTexImage")
+            node.image = img
+            return node.outputs["Color"]
+        obj.data.materials.append(self.material("quality", link=texture))
+        op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000)
+        return {**op, "count": len(created[0].data.vertices) if created else None}
+
+    def animated_splats(self, name="moving"):
+        """A splat object imported with identity axes, keyed at frames 1 and 4."""
+        bpy = self.bpy
+        bpy.ops.splat.import_file(filepath=str(self.work / "cloud.ply"), axis_forward="Y", axis_up="Z")
+        obj = bpy.context.active_object
+        obj.name = name
+        for frame, values in ANIM.items():
+            for key, value in values.items():
+                setattr(obj, key, value)
+                obj.keyframe_insert(key, frame=frame)
+        return obj
+
+    def matrices(self, obj, frames):
+        scene = self.bpy.context.scene
+        out = {}
+        for f in frames:
+            scene.frame_set(f)
+            out[str(f)] = np.array(obj.matrix_world).tolist()
+        return out
+
+    def animation(self):
+        bpy = self.bpy
+        scene = bpy.context.scene
+        obj = self.animated_splats()
+        res = {"matrices": self.matrices(obj, range(1, 5))}
+        scene.frame_set(3)
+        self.select([obj])
+        exp = bpy.ops.splat.export_animation
+        (self.out / "seq").mkdir()
+        res["ply"] = self.call(exp, filepath=str(self.out / "seq" / "anim_####.ply"), use_scene_range=False,
+                               frame_start=2, frame_end=4)
+        res["frame_after"] = scene.frame_current
+        (self.out / "plain").mkdir()
+        scene.frame_start, scene.frame_end, scene.frame_step = 1, 3, 2
+        res["plain"] = self.call(exp, filepath=str(self.out / "plain" / "anim.ply"))
+        scene.render.fps, scene.render.fps_base = 30, 1.001          # NTSC 29.97
+        res["usd"] = self.call(exp, filepath=str(self.out / "anim.usdc"), use_scene_range=False,
+                               frame_start=1, frame_end=4)
+        scene.render.fps, scene.render.fps_base = 24, 1.0
+        res["usd_selected"] = self.call(exp, filepath=str(self.out / "anim_sel.usda"), use_scene_range=False,
+                                        frame_start=1, frame_end=2, selected_only=True)
+        bad = {}
+        for name, kw in (("missing folder", dict(filepath=str(self.out / "nowhere" / "a.ply"))),
+                         ("backwards", dict(filepath=str(self.out / "never.ply"), use_scene_range=False,
+                                            frame_start=5, frame_end=2)),
+                         ("unknown extension", dict(filepath=str(self.out / "never.xyz")))):
+            bad[name] = self.call(exp, **kw)
+        self.select([bpy.data.objects["Camera"]])
+        bad["not splats"] = self.call(exp, filepath=str(self.out / "never2.ply"), selected_only=True)
+        bad["written"] = sorted(p.name for pattern in ("never*", "nowhere*") for p in self.out.glob(pattern))
+        res["bad"] = bad
+        return res
+
+    def frame_names(self):
+        frame_path = self.module("splat_addon.animation").frame_path
+        cases = [("/a/shot_####.ply", 7), ("/a/shot.ply", 7), ("/a/shot_##.ply", 123), ("/a/v#_f###.spz", 5),
+                 ("/a/shot_####.ply", -3), ("/a/shot.ply", 12345), ("/a/shot", 2)]
+        return {"names": [[p, f, str(frame_path(p, f))] for p, f in cases]}
+
+    def cli(self):
+        bpy = self.bpy
+        scene = bpy.context.scene
+        execute = self.module("splat_addon.command").execute
+        obj = self.animated_splats()
+        grid = self.grid("Grid", wobble=0.2)
+        grid.location = (0.0, 3.0, 0.0)
+        grid.data.materials.append(self.material("grid", (0.7, 0.3, 0.1)))
+        res = {"matrices": self.matrices(obj, range(1, 5)), "grid_matrix": np.array(grid.matrix_world).tolist()}
+        scene.frame_set(2)
+        render = scene.render
+        render.resolution_x, render.resolution_y, render.resolution_percentage = 32, 24, 100
+        self.image_format(render.image_settings, "PNG")
+        render.filepath = "//untouched_"
+        cam = bpy.data.objects["Camera"]
+        cam.location, cam.rotation_euler = (0.0, -8.0, 1.0), (1.45, 0.0, 0.0)
+        scene.camera = cam
+        (self.out / "cli").mkdir()
+        d = self.out / "cli"
+        runs = {
+            "export ply": ["export", str(d / "seq_####.ply"), "--frames", "1-3"],
+            "export usd": ["export", str(d / "anim"), "--format", "usd", "--frames", "2-4", "--objects", "moving"],
+            "export step": ["export", str(d / "step.ply"), "--frames", "1-4:3", "--objects", "moving"],
+            "export axes": ["export", str(d / "axes.ply"), "--frames", "4", "--axis-forward", "Y", "--axis-up", "Z"],
+            "backwards": ["export", str(d / "x.ply"), "--frames", "3-1"],
+            "not frames": ["export", str(d / "x.ply"), "--frames", "a-b"],
+            "unknown object": ["export", str(d / "x.ply"), "--objects", "moving,Nope"],
+            "not splats": ["export", str(d / "x.ply"), "--objects", "Grid"],
+            "missing folder": ["export", str(d / "nowhere" / "x.ply"), "--frames", "1"],
+            "format clash": ["export", str(d / "x.usdc"), "--format", "ply"],
+            "unknown extension": ["export", str(d / "x.xyz")],
+            "no output": ["export"],
+            "unknown verb": ["frobnicate"],
+            "render": ["render", str(d / "frame_####.png"), "--frames", "1-2"],
+            "render unknown object": ["render", str(d / "none_"), "--frames", "4", "--objects", "moving_missing"],
+            "render no hash": ["render", str(d / "plain_"), "--frames", "4"],
+            "render exr": ["render", str(d / "deep_####.exr"), "--frames", "3"],
+            "from-mesh ply": ["from-mesh", str(d / "grid.ply"), "--objects", "Grid", "--max-splats", "250"],
+            "from-mesh blend": ["from-mesh", str(d / "grid.blend"), "--objects", "Grid", "--max-splats", "100"],
+            "from-mesh camera": ["from-mesh", str(d / "cam.ply"), "--objects", "Camera"],
+            "from-mesh unknown": ["from-mesh", str(d / "cam.ply"), "--objects", "Nope"],
+            "from-mesh bad extension": ["from-mesh", str(d / "grid.xyz"), "--objects", "Grid"],
+        }
+        outcomes = {}
+        for name, argv in runs.items():
+            out, err = io.StringIO(), io.StringIO()
+            before = len(bpy.data.objects)
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                code = execute(argv)
+            outcomes[name] = {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue(),
+                              "new_objects": len(bpy.data.objects) - before}
+        res["after"] = {"frame": scene.frame_current, "engine": render.engine, "filepath": render.filepath,
+                        "hidden": [o.name for o in scene.objects if o.hide_render],
+                        "format": render.image_settings.file_format}
+        cam.data.type = "PANO"
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            outcomes["render panoramic"] = {"code": execute(["render", str(d / "pano_"), "--frames", "1"]),
+                                            "stderr": err.getvalue()}
+        cam.data.type = "PERSP"
+        scene.camera = None
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            outcomes["render no camera"] = {"code": execute(["render", str(d / "nocam_"), "--frames", "1"]),
+                                            "stderr": err.getvalue()}
+        scene.camera = cam
+        res["outcomes"] = outcomes
+        res["files"] = sorted(p.name for p in d.iterdir())
+        return res
+
+    def reregister(self):
+        import addon_utils
+        for _ in range(2):
+            addon_utils.disable(MODULE, default_set=True)
+            addon_utils.enable(MODULE, default_set=True)
+        command = self.module("splat_addon.command")
+        on = command._handle is not None
+        addon_utils.disable(MODULE, default_set=True)
+        off = command._handle is not None          # unregister() gave the command back
+        left = [n for n in dir(self.bpy.types) if n.startswith("SPLAT_")]
+        addon_utils.enable(MODULE, default_set=True)
+        return {"enabled": on, "disabled_handle": off, "types_left": left,
+                "re_enabled": self.module("splat_addon.command")._handle is not None}
+
+
+if __name__ == "__main__":
+    worker_main(Worker)
