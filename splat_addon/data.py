@@ -592,7 +592,14 @@ def own_cloud(obj, depsgraph):
 
 
 def _evaluated_geometry_cloud(obj, depsgraph):
-    return geometry_cloud(obj.evaluated_get(depsgraph).data, obj.name, splat_form(obj), spec_owner=obj.data)
+    evaluated, form = obj.evaluated_get(depsgraph), splat_form(obj)
+    if obj.mode != "EDIT" or obj.type != "MESH":
+        return geometry_cloud(evaluated.data, obj.name, form, spec_owner=obj.data)
+    mesh = evaluated.to_mesh()      # apart from the edit data, where the attribute API would look
+    try:
+        return geometry_cloud(mesh, obj.name, form, spec_owner=obj.data)
+    finally:
+        evaluated.to_mesh_clear()
 
 
 def is_modified(obj, depsgraph):
@@ -669,7 +676,7 @@ def splat_instances(depsgraph):
         original = evaluated.original
         if evaluated.type != original.type or not is_splat_object(original):
             continue
-        instancer = inst.instance_object.original if inst.is_instance and inst.instance_object else None
+        instancer = inst.parent.original if inst.is_instance and inst.parent else None
         found.append(SplatInstance(original, instancer, np.array(inst.matrix_world, dtype=np.float64)))
     return found
 

@@ -153,7 +153,10 @@ def _kept(nodes, links, gin):
 
 
 def add_display(obj, display_ratio=1.0):
-    """Give a splat object the display modifier (once); returns the modifier."""
+    """Give a splat mesh the display modifier (once); returns the modifier. Native splat point clouds
+    need none (Blender draws them): None."""
+    if obj.type != "MESH":
+        return None
     mod = obj.modifiers.get(MODIFIER_NAME)
     if mod is None:
         mod = obj.modifiers.new(MODIFIER_NAME, "NODES")

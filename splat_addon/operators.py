@@ -5,7 +5,7 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, CollectionProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper, axis_conversion, orientation_helper
 
 from ..core import SplatCloud, SplatValidationError
@@ -338,6 +338,88 @@ def _join_problem(target, others):
     return None
 
 
+def convert_form(context, obj, form):
+    """Replace splat object `obj` by one of the other form (data.MESH_FORM or data.NATIVE_FORM) holding
+    the same splats, name, transform, parent, collections and armature binding; returns the new
+    object. Modifiers other than Splatwright's own are not carried over (a warning names them)."""
+    from . import rigging
+    cloud = data.object_cloud(obj)
+    rig = rigging.rig_of(obj)
+    bones = rigging.weight_names(obj)
+    weights = rigging.group_weights(obj, bones)[1].T if rig is not None else None
+    name, collections = obj.name, list(obj.users_collection)
+    made, skipped = data.new_splat_object(cloud, name + ".converting", collections[0], form=form)
+    try:
+        for collection in collections[1:]:
+            collection.objects.link(made)
+        made.parent, made.matrix_parent_inverse = obj.parent, obj.matrix_parent_inverse.copy()
+        made.matrix_world = obj.matrix_world.copy()
+        if form == data.MESH_FORM:
+            display.add_display(made, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))
+        if rig is not None:
+            rigging.write_weights(made, bones, weights)
+            rigging.attach(made, rig[0], rig[1])
+    except BaseException:
+        data.remove_splat_object(made)
+        raise
+    dropped = [m.name for m in obj.modifiers if m.name not in data.OWN_MODIFIERS and m.type != "ARMATURE"]
+    selected, active = obj.select_get(), context.view_layer.objects.active == obj
+    data.remove_splat_object(obj)
+    made.name = name
+    made.select_set(selected)
+    if active:
+        context.view_layer.objects.active = made
+    return made, skipped, dropped
+
+
+class SPLAT_OT_convert_form(bpy.types.Operator):
+    """Turn splat objects into Blender's own Gaussian-splat point clouds (drawn by Blender 5.3's viewport,
+    EEVEE and Cycles) or into Splatwright's splat meshes, keeping their splats, transform and binding"""
+
+    bl_idname = "splat.convert_form"
+    bl_label = "Convert Splat Form"
+    bl_options = {"REGISTER", "UNDO"}
+
+    form: EnumProperty(name="Form", default="NATIVE", items=(
+        ("NATIVE", "Point Cloud (Blender's Gaussian splats)", "Blender 5.3's own splat point clouds"),
+        ("MESH", "Splat Mesh", "Splatwright's mesh form, drawn by its display modifier")))
+
+    @classmethod
+    def poll(cls, context):
+        return context.mode == "OBJECT"
+
+    def execute(self, context):
+        targets = [o for o in context.selected_objects if data.is_splat_object(o) and data.splat_form(o) != self.form]
+        if not targets:
+            self.report({"ERROR"}, f"no selected splat objects to convert to the {self.form.lower()} form")
+            return {"CANCELLED"}
+        shared = [o.name for o in targets if o.data.users > 1]
+        if shared:
+            self.report({"ERROR"}, f"splat data shared by several objects: {', '.join(shared)}")
+            return {"CANCELLED"}
+        try:
+            for obj in targets:              # every object readable before any is replaced
+                data.object_cloud(obj)
+        except EXPECTED_ERRORS as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        if self.form == data.NATIVE_FORM and not data.native_supported():
+            self.report({"ERROR"}, f"Blender {bpy.app.version_string} cannot make point clouds from Python "
+                                   "(Blender 4.5 and later can)")
+            return {"CANCELLED"}
+        for obj in targets:
+            try:
+                made, skipped, dropped = convert_form(context, obj, self.form)
+            except EXPECTED_ERRORS as exc:
+                self.report({"ERROR"}, str(exc))
+                return {"CANCELLED"}
+            if skipped:
+                self.report({"WARNING"}, f"'{made.name}': extras not kept: {', '.join(skipped)}")
+            if dropped:
+                self.report({"WARNING"}, f"'{made.name}': modifiers not carried over: {', '.join(dropped)}")
+        return {"FINISHED"}
+
+
 class SPLAT_FH_files(bpy.types.FileHandler):
     bl_idname = "SPLAT_FH_files"
     bl_label = "Gaussian splats"
@@ -366,8 +448,10 @@ def menu_apply(self, context):
 def menu_join(self, context):
     if data.is_splat_object(context.active_object):
         self.layout.operator(SPLAT_OT_join.bl_idname)
+        self.layout.operator_menu_enum(SPLAT_OT_convert_form.bl_idname, "form")
 
 
-CLASSES = (SPLAT_OT_import_file, SPLAT_OT_export_file, SPLAT_OT_apply_transform, SPLAT_OT_join, SPLAT_FH_files)
+CLASSES = (SPLAT_OT_import_file, SPLAT_OT_export_file, SPLAT_OT_apply_transform, SPLAT_OT_join, SPLAT_OT_convert_form,
+           SPLAT_FH_files)
 MENUS = ((bpy.types.TOPBAR_MT_file_import, menu_import), (bpy.types.TOPBAR_MT_file_export, menu_export),
          (bpy.types.VIEW3D_MT_object_apply, menu_apply), (bpy.types.VIEW3D_MT_object, menu_join))

@@ -47,6 +47,9 @@ READER_TAG = "splatwright_weight_reader"        # node group property: build ver
 READER_VERSION = 2                                # 2: loose vertices, read through to_mesh()
 READER_DROPPED = ("splat_sh_*", "splat_extra_*")  # splat data the reader need not copy
 TEMP_ATTRIBUTE = "splatwright_weight_in"        # holds one bone's weights while it becomes a group
+WEIGHT_PREFIX = "splat_weight:"                  # native splats: one FLOAT point attribute per bone
+ARMATURE_PROPERTY = "splatwright_armature"         # native splats: the armature object binding them
+PRESERVE_VOLUME_PROPERTY = "splatwright_preserve_volume"
 DEFAULT_INFLUENCES = 4
 DEFAULT_FALLOFF = 4.0
 DEFAULT_MIN_WEIGHT = 0.01
@@ -68,6 +71,25 @@ def armature_modifier(obj, depsgraph=None):
                 and mod.object is not None and mod.object.type == "ARMATURE" and mod.use_vertex_groups:
             return mod
     return None
+
+
+def rig_of(obj, depsgraph=None):
+    """(armature object, preserve volume) that bind splat object `obj`, or None: the Armature modifier
+    of a splat mesh (in the depsgraph's mode), the armature property of native splats."""
+    if obj.type == "MESH":
+        mod = armature_modifier(obj, depsgraph)
+        return None if mod is None else (mod.object, mod.use_deform_preserve_volume)
+    arm = obj.get(ARMATURE_PROPERTY)
+    if not isinstance(arm, bpy.types.Object) or arm.type != "ARMATURE":
+        return None
+    return arm, bool(obj.get(PRESERVE_VOLUME_PROPERTY, False))
+
+
+def weight_names(obj):
+    """Bone names `obj` holds weights for: its vertex groups (mesh) or weight attributes (native)."""
+    if obj.type == "MESH":
+        return [g.name for g in obj.vertex_groups]
+    return [a.name[len(WEIGHT_PREFIX):] for a in obj.data.attributes if a.name.startswith(WEIGHT_PREFIX)]
 
 
 def deform_bones(arm):
@@ -154,11 +176,16 @@ def read_vertex_groups(mesh, names):
 
 
 def group_weights(obj, bones):
-    """(bone names with a vertex group, (G, V) weights) for `obj`'s vertex groups named like `bones`,
-    in the object's group order."""
+    """(bone names with weights, (G, N) weights) for `obj`'s vertex groups (mesh) or weight attributes
+    (native) named like `bones`, in the object's order."""
     wanted = set(bones)
-    names = [g.name for g in obj.vertex_groups if g.name in wanted]
-    return names, read_vertex_groups(obj.data, names)
+    names = [name for name in weight_names(obj) if name in wanted]
+    if obj.type == "MESH":
+        return names, read_vertex_groups(obj.data, names)
+    columns = np.empty((len(names), data.splat_count(obj.data)), np.float32)
+    for row, name in zip(columns, names):
+        obj.data.attributes[WEIGHT_PREFIX + name].data.foreach_get("value", row)
+    return names, columns
 
 
 def binding_from_groups(columns, bone_of_column, count):
@@ -182,18 +209,19 @@ _CACHE = {}
 def splat_binding(obj, bones):
     """The Binding of splat object `obj` to the bones named `bones` (indices into that list), from
     its vertex groups; cached until the mesh or its groups change."""
-    mesh = obj.data
-    state = (tuple(g.name for g in obj.vertex_groups), len(mesh.vertices), tuple(bones))
-    cached = _CACHE.get(mesh.session_uid)
+    geometry = obj.data
+    count = data.splat_count(geometry)
+    state = (tuple(weight_names(obj)), count, tuple(bones))
+    cached = _CACHE.get(geometry.session_uid)
     if cached is not None and cached[0] == state:
         return cached[1]
-    if not can_read_groups():
+    if obj.type == "MESH" and not can_read_groups():
         raise data.SplatObjectError(f"'{obj.name}': its bone weights changed and cannot be re-read during "
                                     "this render; render again")
     names, columns = group_weights(obj, bones)
     index = {name: i for i, name in enumerate(bones)}
-    binding = binding_from_groups(columns, [index[n] for n in names], len(mesh.vertices))
-    _CACHE[mesh.session_uid] = (state, binding)
+    binding = binding_from_groups(columns, [index[n] for n in names], count)
+    _CACHE[geometry.session_uid] = (state, binding)
     return binding
 
 
@@ -209,20 +237,20 @@ def forget_weights(mesh=None):
 
 def poser(obj, depsgraph):
     """None when nothing binds `obj` at the depsgraph; else a function posing its own splats (object
-    space) by its Armature modifier there. A data.POSERS hook (see data.evaluated_cloud)."""
-    mod = armature_modifier(obj, depsgraph) if obj.type == "MESH" else None
-    if mod is None:
+    space) by its armature there. A data.POSERS hook (see data.evaluated_cloud)."""
+    rig = rig_of(obj, depsgraph)
+    if rig is None:
         return None
-    arm = mod.object.evaluated_get(depsgraph)
+    arm, preserve_volume = rig[0].evaluated_get(depsgraph), rig[1]
     bones = deform_bones(arm)
-    if not bones or not any(g.name in bones for g in obj.vertex_groups):
+    if not bones or not set(bones) & set(weight_names(obj)):
         return None
 
     def pose(cloud):
         binding = splat_binding(obj, bones)
         to_arm = to_armature_space(obj, arm, depsgraph)
-        mode = "dqs" if mod.use_deform_preserve_volume else "lbs"
-        posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones), mode=mode)
+        posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones),
+                     mode="dqs" if preserve_volume else "lbs")
         return data.transform_cloud(posed, np.linalg.inv(to_arm))
     return pose
 
@@ -236,11 +264,11 @@ def deform(obj, depsgraph, cloud):
 
 def main_bones(obj):
     """(bone names, (N,) index of each splat's largest-weight bone, -1 for none) for a splat object
-    bound by an Armature modifier; None when it is not bound."""
-    mod = armature_modifier(obj)
-    if mod is None:
+    bound to an armature; None when it is not bound."""
+    rig = rig_of(obj)
+    if rig is None:
         return None
-    bones = deform_bones(mod.object)
+    bones = deform_bones(rig[0])
     binding = splat_binding(obj, bones)
     largest = np.argmax(binding.weights, axis=1)
     top = np.take_along_axis(binding.indices, largest[:, None], axis=1)[:, 0]
@@ -281,7 +309,7 @@ def source_weights(obj, bones, warn):
     if source is None or source.type != "MESH":
         warn(f"'{obj.name}': its source mesh '{record.get('object')}' is gone; weights come from the bones")
         return None
-    extras = data.mesh_to_cloud(obj.data, owner=obj.name).extras
+    extras = data.object_cloud(obj).extras
     corners, bary = extras.get("source_vertices"), extras.get("barycentric")
     if corners is None or bary is None:
         return None
@@ -328,14 +356,14 @@ def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, f
     bones = deform_bones(arm)
     if not bones:
         raise RiggingError(f"armature '{arm.name}' has no deforming bones")
-    if len(obj.data.vertices) == 0:
+    if data.splat_count(obj.data) == 0:
         raise RiggingError(f"'{obj.name}' has no splats to bind")
     dense = source_weights(obj, bones, warn) if use_source else None
     if dense is not None:
         # Splats on unweighted vertices stay unbound: they stay put, as those vertices do.
         source, tolerance = f"mesh '{json.loads(obj.data[SOURCE])['object']}'", 1e-6
     else:
-        centres = data.mesh_to_cloud(obj.data, owner=obj.name).positions.astype(np.float64)
+        centres = data.object_cloud(obj).positions.astype(np.float64)
         to_arm = to_armature_space(obj, arm)
         centres = centres @ to_arm[:3, :3].T + to_arm[:3, 3]
         bad = ~np.isfinite(centres).all(axis=1)
@@ -354,6 +382,16 @@ def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, f
 
 
 # writing the binding ----------------------------------------------------------------------------------
+
+def write_weights(obj, bones, weights):
+    """Store the columns of (N, B) `weights` on `obj` as its weights for `bones`: vertex groups on a
+    splat mesh (to paint into), FLOAT attributes splat_weight:<bone> on native splats."""
+    if obj.type == "MESH":
+        write_vertex_groups(obj, bones, weights)
+        return
+    for name in bones:
+        data.set_attribute(obj.data, WEIGHT_PREFIX + name, "FLOAT", weights[:, bones.index(name)])
+
 
 def write_vertex_groups(obj, bones, weights):
     """Replace `obj`'s vertex groups named like `bones` with the columns of (N, B) `weights`, each
@@ -382,32 +420,48 @@ def write_vertex_groups(obj, bones, weights):
 
 
 def attach(obj, arm, preserve_volume=False):
-    """Parent `obj` to `arm` (keeping where it is) and deform it with an Armature modifier, first
-    in the stack so the viewport display draws the posed splats."""
-    mod = next((m for m in obj.modifiers if m.type == "ARMATURE"), None) or obj.modifiers.new("Armature", "ARMATURE")
-    mod.object = arm
-    mod.use_vertex_groups, mod.use_bone_envelopes = True, False
-    mod.use_deform_preserve_volume = preserve_volume
-    obj.modifiers.move(list(obj.modifiers).index(mod), 0)
+    """Parent `obj` to `arm` (keeping where it is) and let `arm` pose it: an Armature modifier first in
+    the stack of a splat mesh, so the viewport display draws the posed splats; the armature
+    properties on native splats."""
+    if obj.type == "MESH":
+        mod = next((m for m in obj.modifiers if m.type == "ARMATURE"), None) or \
+            obj.modifiers.new("Armature", "ARMATURE")
+        mod.object = arm
+        mod.use_vertex_groups, mod.use_bone_envelopes = True, False
+        mod.use_deform_preserve_volume = preserve_volume
+        mod.show_in_editmode = False             # Edit Mode edits the rest pose (see data.own_cloud)
+        obj.modifiers.move(list(obj.modifiers).index(mod), 0)
+    else:
+        obj[ARMATURE_PROPERTY] = arm
+        obj[PRESERVE_VOLUME_PROPERTY] = bool(preserve_volume)
     world = obj.matrix_world.copy()
     obj.parent, obj.parent_type = arm, "OBJECT"
     obj.matrix_parent_inverse = arm.matrix_world.inverted()
     obj.matrix_world = world
-    return mod
 
 
 def _snapshot(obj):
-    return {"groups": [g.name for g in obj.vertex_groups], "modifiers": [m.name for m in obj.modifiers],
-            "parent": obj.parent, "matrix_parent_inverse": obj.matrix_parent_inverse.copy(),
-            "matrix_world": obj.matrix_world.copy()}
+    return {"groups": [g.name for g in obj.vertex_groups] if obj.type == "MESH" else [],
+            "attributes": [a.name for a in obj.data.attributes],
+            "properties": {k: obj[k] for k in (ARMATURE_PROPERTY, PRESERVE_VOLUME_PROPERTY) if k in obj},
+            "modifiers": [m.name for m in obj.modifiers], "parent": obj.parent,
+            "matrix_parent_inverse": obj.matrix_parent_inverse.copy(), "matrix_world": obj.matrix_world.copy()}
 
 
 def _restore(obj, snap):
-    """Undo what binding did to `obj` (groups and modifiers it added, its parenting); weights of
-    groups it replaced are not brought back, Blender's undo does that."""
-    for group in list(obj.vertex_groups):
-        if group.name not in snap["groups"]:
-            obj.vertex_groups.remove(group)
+    """Undo what binding did to `obj` (groups, attributes, properties and modifiers it added, its
+    parenting); weights it replaced are not brought back, Blender's undo does that."""
+    if obj.type == "MESH":
+        for group in list(obj.vertex_groups):
+            if group.name not in snap["groups"]:
+                obj.vertex_groups.remove(group)
+    for name in [a.name for a in obj.data.attributes if a.name not in snap["attributes"]]:
+        obj.data.attributes.remove(obj.data.attributes[name])
+    for key in (ARMATURE_PROPERTY, PRESERVE_VOLUME_PROPERTY):
+        if key in snap["properties"]:
+            obj[key] = snap["properties"][key]
+        elif key in obj:
+            del obj[key]
     for mod in list(obj.modifiers):
         if mod.name not in snap["modifiers"]:
             obj.modifiers.remove(mod)
@@ -444,7 +498,7 @@ def bind_armature(objects, armature, max_influences=DEFAULT_INFLUENCES, use_sour
     snapshots = [_snapshot(plan.obj) for plan in plans]
     try:
         for plan in plans:
-            write_vertex_groups(plan.obj, plan.bones, plan.weights)
+            write_weights(plan.obj, plan.bones, plan.weights)
             attach(plan.obj, armature, preserve_volume)
     except BaseException:
         for plan, snap in zip(plans, snapshots):
@@ -514,6 +568,9 @@ MENUS = ((bpy.types.VIEW3D_MT_object_parent, menu_parent),)
 
 # keeping cached weights true -------------------------------------------------------------------------
 
+GEOMETRY_TYPES = (bpy.types.Mesh, bpy.types.PointCloud)
+
+
 @persistent
 def _on_depsgraph_update(scene, depsgraph):
     """Edits that may change weights (painting, groups added, renamed or assigned, vertices deleted)
@@ -521,10 +578,10 @@ def _on_depsgraph_update(scene, depsgraph):
     dropped = False
     for update in depsgraph.updates:
         owner = update.id.original
-        mesh = owner if isinstance(owner, bpy.types.Mesh) else \
+        geometry = owner if isinstance(owner, GEOMETRY_TYPES) else \
             owner.data if isinstance(owner, bpy.types.Object) and update.is_updated_geometry else None
-        if isinstance(mesh, bpy.types.Mesh) and mesh.session_uid in _CACHE:
-            forget_weights(mesh)
+        if isinstance(geometry, GEOMETRY_TYPES) and geometry.session_uid in _CACHE:
+            forget_weights(geometry)
             dropped = True
     if dropped and not bpy.app.background and not bpy.app.timers.is_registered(_refill):
         bpy.app.timers.register(_refill, first_interval=REFRESH_DELAY)
@@ -542,10 +599,10 @@ def _refill():
     the interface (which runs in another thread) finds them."""
     scene = bpy.context.scene
     for obj in scene.objects if scene is not None else ():
-        mod = armature_modifier(obj) if data.is_splat_object(obj) else None
-        if mod is not None:
+        rig = rig_of(obj) if data.is_splat_object(obj) else None
+        if rig is not None:
             try:
-                splat_binding(obj, deform_bones(mod.object))
+                splat_binding(obj, deform_bones(rig[0]))
             except (SkinningError, *EXPECTED_ERRORS):
                 pass          # reported when the splats are next posed
     return None

@@ -86,3 +86,40 @@ def srgb_to_linear(c):
 def linear_to_srgb(c):
     c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+
+# comparing clouds ------------------------------------------------------------------------------------
+
+def assert_clouds_equal(a, b):
+    for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def check_transformed(source, result, matrix, sh_rotation=None):
+    """`result` is `source` under the affine `matrix`: centres, covariances L Sigma L^T and (when the
+    linear part is a rotation times a uniform scale, `sh_rotation`) the colour seen from every side."""
+    from splatwright.core import sh as shmod
+    lin, t = matrix[:3, :3], matrix[:3, 3]
+    np.testing.assert_allclose(result.positions, source.positions.astype(np.float64) @ lin.T + t, atol=2e-5, rtol=1e-5)
+    expected = lin @ cloud_covariances(source) @ lin.T
+    scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
+    assert np.abs(cloud_covariances(result) - expected).max(initial=0) <= 0 or \
+        np.max(np.abs(cloud_covariances(result) - expected) / scale) < 2e-5
+    np.testing.assert_allclose(result.opacity_logits, source.opacity_logits, rtol=0, atol=0)
+    if sh_rotation is not None:
+        dirs = np.random.default_rng(9).normal(size=(len(source), 3))
+        np.testing.assert_allclose(shmod.colors(result.sh, dirs @ sh_rotation.T), shmod.colors(source.sh, dirs),
+                                   atol=2e-5)
+
+
+def format_errors(a, b):
+    """Largest differences a format can make: centres, covariances (relative), opacity, colours."""
+    from splatwright.core import sh as shmod
+    dirs = np.random.default_rng(8).normal(size=(len(a), 3))
+    cov_a, cov_b = cloud_covariances(a), cloud_covariances(b)
+    degree = min(a.sh_degree, b.sh_degree)
+    return {"positions": np.abs(a.positions - b.positions).max(),
+            "covariance": np.max(np.abs(cov_a - cov_b).max(axis=(1, 2)) / np.abs(cov_b).max(axis=(1, 2))),
+            "opacity": np.abs(a.opacities - b.opacities).max(),
+            "colour": np.abs(shmod.colors(a.with_sh_degree(degree).sh, dirs)
+                             - shmod.colors(b.with_sh_degree(degree).sh, dirs)).max()}

@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 import pytest
 from blender_session import MODULE, blender_fixture
-from helpers import cloud_covariances, read
+from helpers import check_transformed, format_errors, read
 from workers.addon import (ANIM_OFFSET, DEFAULT_AXES, FORMAT_CLOUD, LOG_SCALE, MENUS, OPACITY, RENDER_CASES, ROTATION,
                            SH, WORLD_COLOR)
 
@@ -65,28 +65,6 @@ def _write_inputs_quietly(work):
 
 
 blender = blender_fixture("workers.addon", _write_inputs_quietly)
-
-
-def assert_clouds_equal(a, b):
-    for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
-
-
-def check_transformed(source, result, matrix, sh_rotation=None):
-    """`result` is `source` under the affine `matrix`: centres, covariances L Sigma L^T and (when the
-    linear part is a rotation times a uniform scale, `sh_rotation`) the colour seen from every side."""
-    from splatwright.core import sh as shmod
-    lin, t = matrix[:3, :3], matrix[:3, 3]
-    np.testing.assert_allclose(result.positions, source.positions.astype(np.float64) @ lin.T + t, atol=2e-5, rtol=1e-5)
-    expected = lin @ cloud_covariances(source) @ lin.T
-    scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
-    assert np.abs(cloud_covariances(result) - expected).max(initial=0) <= 0 or \
-        np.max(np.abs(cloud_covariances(result) - expected) / scale) < 2e-5
-    np.testing.assert_allclose(result.opacity_logits, source.opacity_logits, rtol=0, atol=0)
-    if sh_rotation is not None:
-        dirs = np.random.default_rng(9).normal(size=(len(source), 3))
-        np.testing.assert_allclose(shmod.colors(result.sh, dirs @ sh_rotation.T), shmod.colors(source.sh, dirs),
-                                   atol=2e-5)
 
 
 # install, import, export -------------------------------------------------------------------------
@@ -141,23 +119,10 @@ def test_each_format_imports_and_exports(blender, name):
     np.testing.assert_allclose(res[name]["matrix_world"], DEFAULT_AXES, atol=1e-7)
     # Blender writes back what it read: re-encoding the decoded splats may lose no more than the
     # first encoding of the original cloud did (zero for lossless formats)
-    first = _format_errors(read(blender.work / name), _random_cloud(*FORMAT_CLOUD))
-    second = _format_errors(back, source)
+    first = format_errors(read(blender.work / name), _random_cloud(*FORMAT_CLOUD))
+    second = format_errors(back, source)
     for key, value in second.items():
         assert value <= max(2 * first[key], 1e-6), (key, value, first[key])
-
-
-def _format_errors(a, b):
-    """Largest differences a format can make: centres, covariances (relative), opacity, colours."""
-    from splatwright.core import sh as shmod
-    dirs = np.random.default_rng(8).normal(size=(len(a), 3))
-    cov_a, cov_b = cloud_covariances(a), cloud_covariances(b)
-    degree = min(a.sh_degree, b.sh_degree)
-    return {"positions": np.abs(a.positions - b.positions).max(),
-            "covariance": np.max(np.abs(cov_a - cov_b).max(axis=(1, 2)) / np.abs(cov_b).max(axis=(1, 2))),
-            "opacity": np.abs(a.opacities - b.opacities).max(),
-            "colour": np.abs(shmod.colors(a.with_sh_degree(degree).sh, dirs)
-                             - shmod.colors(b.with_sh_degree(degree).sh, dirs)).max()}
 
 
 def test_export_axes_are_the_inverse_convention(blender):

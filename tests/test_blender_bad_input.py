@@ -48,7 +48,7 @@ def assert_refused(case, *words):
 def test_every_operator_is_exercised(blender):
     assert blender.step("install")["operators"] == [
         "SPLAT_OT_apply_transform", "SPLAT_OT_bind_armature", "SPLAT_OT_check_collisions",
-        "SPLAT_OT_export_animation", "SPLAT_OT_export_file", "SPLAT_OT_from_mesh", "SPLAT_OT_import_file",
+        "SPLAT_OT_convert_form", "SPLAT_OT_export_animation", "SPLAT_OT_export_file", "SPLAT_OT_from_mesh", "SPLAT_OT_import_file",
         "SPLAT_OT_join"]
 
 
@@ -58,7 +58,8 @@ MISSING = {f"no_{a}": f"no '{a}' point attribute" for a in ("splat_rotation", "s
                                                            "splat_opacity_logit")}
 MISSING.update(no_splat_sh_0="missing [0]", no_splat_sh_2="missing [2]",
                int_opacity="'splat_opacity_logit' is INT on POINT, expected FLOAT")
-READERS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind", "render")
+READERS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind", "convert",
+           "render")
 
 
 @pytest.mark.parametrize("defect", sorted(MISSING))
@@ -156,6 +157,7 @@ def test_wrong_objects_are_refused_or_hidden(blender, kind):
     if kind != "plain_mesh":
         assert_refused(d[f"{kind} from_mesh"], "nothing is selected" if kind == "nothing" else "no mesh objects")
     assert_refused(d[f"{kind} bind onto splats"], "'good' is mesh, not an armature")
+    assert_refused(d[f"{kind} convert"], "no selected splat objects")
     assert d[f"{kind} written"] == []
     if kind == "nothing":
         assert_refused(d[f"{kind} bind"], "no splat objects to bind")

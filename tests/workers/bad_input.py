@@ -17,7 +17,7 @@ RENDER_SIZE = (24, 16)
 DEFECTS = ("nan_values", "empty", "no_splat_rotation", "no_splat_log_scale", "no_splat_opacity_logit",
            "no_splat_sh_0", "no_splat_sh_2", "int_opacity", "zero_scale", "nan_location")
 OPERATIONS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind",
-              "render")
+              "convert", "render")
 WRONG_KINDS = ("camera", "empty_object", "curve", "armature", "plain_mesh", "nothing")
 # Blender attribute type -> (foreach property, components, dtype), for fingerprints of every attribute
 FOREACH = {"FLOAT": ("value", 1, np.float32), "INT": ("value", 1, np.int32), "INT8": ("value", 1, np.int32),
@@ -185,6 +185,9 @@ class Worker(BlenderWorker):
             arm = self.armature("Rig")
             self.select([obj], active=arm)
             res = self.attempt(ops.bind_armature)
+        elif operation == "convert":
+            self.select([obj])
+            res = self.attempt(ops.convert_form, form="NATIVE")
         else:
             good.hide_render = True
             self.setup_render(name)
@@ -211,6 +214,7 @@ class Worker(BlenderWorker):
                 "join": (ops.join, {}),
                 "from_mesh": (ops.from_mesh, dict(max_splats=20)),
                 "bind onto splats": (ops.bind_armature, dict(armature="good")),
+                "convert": (ops.convert_form, dict(form="NATIVE")),
             }
             for name, (op, kw) in runs.items():
                 if name == "from_mesh" and kind == "plain_mesh":

@@ -1,0 +1,295 @@
+"""The Blender side of tests/test_blender_scene_data.py (run in each Blender of the version matrix; see
+workers/base.py): splat objects as users leave them (Edit Mode, modifiers, shape keys, instances) and
+Blender 5.3's own splat point clouds, built here attribute by attribute as Blender's importer makes them."""
+
+import numpy as np
+
+from workers.base import BlenderWorker, random_cloud_arrays, worker_main
+
+N = 60                                   # splats of the test clouds
+RENDER_SIZE = (40, 30)
+EDIT_OFFSET = (0.3, -0.2, 0.1)           # vertex 0 moved in Edit Mode
+ARRAY_OFFSET = (0.75, 0.0, 0.0)          # the Array modifier's constant offset
+GN_ROTATION, GN_SCALE = (0.3, -0.2, 0.5), (1.0, 1.7, 0.6)    # a geometry-nodes Transform Geometry
+SHAPE_OFFSET = (0.0, 0.0, 0.4)           # a shape key moves splat 1
+INSTANCE = dict(location=(1.5, -0.5, 0.25), rotation_euler=(0.4, 0.1, -0.7), scale=(1.3, 1.3, 1.3))
+DUPLICATE = dict(location=(-1.0, 0.5, 0.0), rotation_euler=(0.0, 0.6, 0.2), scale=(0.8, 1.0, 1.2))
+NATIVE_TRANSFORM = dict(location=(0.2, -0.4, 0.3), rotation_euler=(0.5, -0.3, 0.8), scale=(1.2, 0.9, 1.1))
+BONES = {"Upper": ((0, 0, -1.5), (0, 0, 0)), "Lower": ((0, 0, 0), (0, 0, 1.5))}     # head, tail
+POSE = {"Upper": (0.2, 0.0, 0.1), "Lower": (0.0, 0.7, -0.3)}                         # Euler XYZ
+
+
+def native_arrays(arrays):
+    """A cloud's fields as Blender 5.3's importer stores them (see splat_addon/data.py): linear scale,
+    the sigmoid of the logit in radiance:base's alpha, higher SH as radiance:sh_<j>; float32."""
+    sh = np.asarray(arrays["sh"], np.float32)
+    base = np.c_[sh[:, 0], 1.0 / (1.0 + np.exp(-np.asarray(arrays["opacity_logits"], np.float64)))]
+    out = {"position": ("FLOAT_VECTOR", arrays["positions"]),
+           "scale": ("FLOAT_VECTOR", np.exp(np.asarray(arrays["log_scales"], np.float64))),
+           "rotation": ("QUATERNION", arrays["rotations"]),
+           "radiance:base": ("FLOAT_COLOR", base)}
+    for j in range(1, sh.shape[1]):
+        out[f"radiance:sh_{j - 1}"] = ("FLOAT_VECTOR", sh[:, j])
+    return out
+
+
+FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+
+
+class Worker(BlenderWorker):
+    steps = ("install", "edit_mode", "modifiers", "instances", "native_forms", "native_rig")
+    keep_objects = ("Camera", "Light")
+    orphan_kinds = ("meshes", "armatures", "materials", "collections", "pointclouds", "node_groups", "actions")
+
+    # helpers -------------------------------------------------------------------------------------
+
+    def splats(self, name, arrays, **transform):
+        """A splat mesh (Splatwright's own form) holding `arrays`, with the display modifier."""
+        ext = self.module("splat_addon")
+        obj, _ = ext.data.new_splat_object(self.module("core").SplatCloud(**arrays), name,
+                                           self.bpy.context.scene.collection, form="MESH")
+        ext.display.add_display(obj)
+        for key, value in transform.items():
+            setattr(obj, key, value)
+        return obj
+
+    def reimported(self, name, path):
+        """A splat mesh holding the splats of a file written earlier in the step."""
+        cloud = self.module("io").read_splats(path)
+        return self.splats(name, {f: getattr(cloud, f) for f in FIELDS})
+
+    def native_object(self, name, arrays, **transform):
+        """A point cloud with Blender 5.3's Gaussian-splat attributes, made without the extension: a mesh
+        of loose vertices carrying them, converted by Blender (or a resized point cloud on 5.2+)."""
+        bpy = self.bpy
+        n = len(arrays["positions"])
+        if hasattr(bpy.types.PointCloud, "resize"):
+            geometry = bpy.data.pointclouds.new(name)
+            geometry.resize(n)
+            obj = bpy.data.objects.new(name, geometry)
+            bpy.context.scene.collection.objects.link(obj)
+        else:
+            mesh = bpy.data.meshes.new(name)
+            mesh.vertices.add(n)
+            obj = bpy.data.objects.new(name, mesh)
+            bpy.context.scene.collection.objects.link(obj)
+            self.select([obj])
+            bpy.ops.object.convert(target="POINTCLOUD")
+            obj = bpy.context.view_layer.objects.active
+            geometry = obj.data
+        props = {"FLOAT_VECTOR": "vector", "QUATERNION": "value", "FLOAT_COLOR": "color"}
+        for attr_name, (kind, values) in native_arrays(arrays).items():
+            attr = geometry.attributes.get(attr_name) or geometry.attributes.new(attr_name, kind, "POINT")
+            attr.data.foreach_set(props[kind], np.ascontiguousarray(values, np.float32).ravel())
+        for key, value in transform.items():
+            setattr(obj, key, value)
+        return obj
+
+    def export(self, name, objects=None):
+        """Export (world space = file space) the visible splats, or `objects` selected."""
+        if objects is not None:
+            self.select(objects)
+        return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name),
+                         axis_forward="Y", axis_up="Z", selected_only=objects is not None)
+
+    def render(self, name, shown=None):
+        """F12 through the engine to a 32-bit EXR (the tests read it); only `shown` splat objects when given."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        hidden = []
+        if shown is not None:
+            hidden = [o for o in scene.objects if o not in shown and not o.hide_render and o.type in ("MESH", "POINTCLOUD")]
+            for obj in hidden:
+                obj.hide_render = True
+        scene.render.engine = "SPLATWRIGHT"
+        scene.render.resolution_x, scene.render.resolution_y = RENDER_SIZE
+        scene.render.resolution_percentage = 100
+        scene.render.film_transparent = False
+        scene.view_settings.view_transform = "Standard"
+        scene.world = None
+        self.image_format(scene.render.image_settings, "OPEN_EXR", color_depth="32")
+        cam = scene.camera
+        cam.location, cam.rotation_euler = (0.0, -7.0, 0.5), (np.pi / 2, 0.0, 0.0)
+        scene.render.filepath = str(self.out / f"{name}.exr")
+        done = self.call(bpy.ops.render.render, write_still=True)
+        for obj in hidden:
+            obj.hide_render = False
+        return done
+
+    def matrix(self, obj):
+        self.bpy.context.view_layer.update()
+        return np.array(obj.matrix_world, dtype=np.float64).tolist()
+
+    def apply_transform(self, obj):
+        self.select([obj])
+        return self.call(self.bpy.ops.splat.apply_transform)
+
+    def join(self, target, other):
+        self.select([target, other], active=target)
+        return self.call(self.bpy.ops.splat.join)
+
+    def rig(self):
+        """An armature of two bones, posed at frame 1."""
+        bpy = self.bpy
+        arm = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
+        bpy.context.scene.collection.objects.link(arm)
+        arm.location = (0.1, 0.0, -0.2)
+        self.select([arm])
+        bpy.ops.object.mode_set(mode="EDIT")
+        for name, (head, tail) in BONES.items():
+            bone = arm.data.edit_bones.new(name)
+            bone.head, bone.tail = head, tail
+        arm.data.edit_bones["Lower"].parent = arm.data.edit_bones["Upper"]
+        bpy.ops.object.mode_set(mode="OBJECT")
+        for name, euler in POSE.items():
+            pose_bone = arm.pose.bones[name]
+            pose_bone.rotation_mode = "XYZ"
+            pose_bone.rotation_euler = euler
+        return arm
+
+    # steps ---------------------------------------------------------------------------------------
+
+    def install(self):
+        self.install_extension()
+        return {"native_supported": self.module("splat_addon.data").native_supported()}
+
+    def edit_mode(self):
+        """A splat mesh left in Edit Mode after a vertex moved there: export, animation export and F12."""
+        import bmesh
+        from mathutils import Vector
+        bpy = self.bpy
+        obj = self.splats("edited", random_cloud_arrays(N, 2, seed=1))
+        self.select([obj])
+        bpy.ops.object.mode_set(mode="EDIT")
+        edit = bmesh.from_edit_mesh(obj.data)
+        edit.verts.ensure_lookup_table()
+        edit.verts[0].co += Vector(EDIT_OFFSET)
+        bmesh.update_edit_mesh(obj.data)
+        res = {"export": self.export("edit.ply"),
+               "animation": self.call(bpy.ops.splat.export_animation, filepath=str(self.out / "edit_####.ply"),
+                                      use_scene_range=False, frame_start=1, frame_end=2, axis_forward="Y",
+                                      axis_up="Z"),
+               "render": self.render("edit_render"), "mode": obj.mode}
+        bpy.ops.object.mode_set(mode="OBJECT")
+        reference = self.reimported("reference", self.out / "edit.ply")
+        res["reference_render"] = self.render("edit_reference", [reference])
+        return res
+
+    def modifiers(self):
+        """Array, Mirror, a geometry-nodes Transform and a shape key, each on its own splat mesh after
+        the display modifier."""
+        arrays = random_cloud_arrays(N, 2, seed=2)
+        array = self.splats("array", arrays)
+        mod = array.modifiers.new("Array", "ARRAY")
+        mod.count, mod.use_relative_offset, mod.use_constant_offset = 2, False, True
+        mod.constant_offset_displace = ARRAY_OFFSET
+        mirror = self.splats("mirror", arrays)
+        mod = mirror.modifiers.new("Mirror", "MIRROR")
+        mod.use_axis = (True, False, False)
+        mod.use_mirror_merge = False
+        transform = self.splats("transform", arrays)
+        transform.modifiers.new("Turn", "NODES").node_group = self.transform_group()
+        shaped = self.splats("shaped", arrays)
+        shaped.shape_key_add(name="Basis")
+        key = shaped.shape_key_add(name="Lift")
+        key.data[1].co = [a + b for a, b in zip(key.data[1].co, SHAPE_OFFSET)]
+        key.value = 1.0
+        return {obj.name: self.export(f"mod_{obj.name}.ply", [obj]) for obj in (array, mirror, transform, shaped)}
+
+    def transform_group(self):
+        bpy = self.bpy
+        group = bpy.data.node_groups.new("Turn", "GeometryNodeTree")
+        group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        gin, gout = group.nodes.new("NodeGroupInput"), group.nodes.new("NodeGroupOutput")
+        node = group.nodes.new("GeometryNodeTransform")
+        node.inputs["Rotation"].default_value = GN_ROTATION
+        node.inputs["Scale"].default_value = GN_SCALE
+        group.links.new(gin.outputs[0], node.inputs["Geometry"])
+        group.links.new(node.outputs["Geometry"], gout.inputs[0])
+        return group
+
+    def instances(self):
+        """A splat object in a collection left out of the view layer, drawn by an Empty instancing that
+        collection, and a linked duplicate of it: export and F12."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        collection = bpy.data.collections.new("Splat Source")
+        scene.collection.children.link(collection)
+        source = self.splats("source", random_cloud_arrays(N, 3, seed=3))
+        scene.collection.objects.unlink(source)
+        collection.objects.link(source)
+        bpy.context.view_layer.layer_collection.children[collection.name].exclude = True
+        empty = bpy.data.objects.new("instancer", None)
+        empty.instance_type, empty.instance_collection = "COLLECTION", collection
+        for key, value in INSTANCE.items():
+            setattr(empty, key, value)
+        scene.collection.objects.link(empty)
+        duplicate = source.copy()          # shares the mesh: a linked duplicate
+        for key, value in DUPLICATE.items():
+            setattr(duplicate, key, value)
+        scene.collection.objects.link(duplicate)
+        res = {"visible": self.export("inst_visible.ply"), "selected_empty": self.export("inst_empty.ply", [empty]),
+               "matrices": {"instance": self.matrix(empty), "duplicate": self.matrix(duplicate)},
+               "render": self.render("inst_render")}
+        reference = self.reimported("reference", self.out / "inst_visible.ply")
+        res["reference_render"] = self.render("inst_reference", [reference])
+        return res
+
+    def native_forms(self):
+        """The same random SH-3 cloud as a splat mesh and as Blender's own splat point cloud, both under
+        one object transform: export, Apply Splat Transform, Join, collisions, F12 and form conversion."""
+        if not self.module("splat_addon.data").native_supported():
+            return {"skipped": self.bpy.app.version_string}
+        ext = self.module("splat_addon")
+        arrays, second = random_cloud_arrays(N, 3, seed=4), random_cloud_arrays(N // 2, 3, seed=5)
+        ours = self.splats("ours", arrays, **NATIVE_TRANSFORM)
+        theirs = self.native_object("theirs", arrays, **NATIVE_TRANSFORM)
+        res = {"forms": [ext.data.splat_form(ours), ext.data.splat_form(theirs)],
+               "export": [self.export("nat_ours.ply", [ours]), self.export("nat_theirs.ply", [theirs])],
+               "render": [self.render("nat_ours", [ours]), self.render("nat_theirs", [theirs])]}
+        env = self.splats("env", random_cloud_arrays(N, 0, seed=6, spread=0.8))
+        reports = [ext.collide.check_collisions(self.bpy.context, obj, env, [1]) for obj in (ours, theirs)]
+        res["contacts"] = [r.as_dict()["frames"][0] for r in reports]
+        res["contact_values"] = [np.asarray(r.contact_a).tolist() for r in reports]
+        res["apply"] = [self.apply_transform(ours), self.apply_transform(theirs)]
+        res["applied_matrices"] = [self.matrix(ours), self.matrix(theirs)]
+        for obj in (ours, theirs):
+            self.export(f"nat_{obj.name}_applied.ply", [obj])
+        res["join"] = [self.join(ours, self.splats("ours_more", second, **DUPLICATE)),
+                       self.join(theirs, self.native_object("theirs_more", second, **DUPLICATE))]
+        res["joined_forms"] = [ext.data.splat_form(ours), ext.data.splat_form(theirs)]
+        for obj in (ours, theirs):
+            self.export(f"nat_{obj.name}_joined.ply", [obj])
+        self.select([ours])
+        res["to_native"] = self.call(self.bpy.ops.splat.convert_form, form="NATIVE")
+        converted = self.bpy.data.objects["ours"]
+        res["converted_form"] = ext.data.splat_form(converted)
+        self.export("nat_converted.ply", [converted])
+        self.select([converted])
+        res["to_mesh"] = self.call(self.bpy.ops.splat.convert_form, form="MESH")
+        res["back_form"] = ext.data.splat_form(self.bpy.data.objects["ours"])
+        self.export("nat_back.ply", [self.bpy.data.objects["ours"]])
+        return res
+
+    def native_rig(self):
+        """Both forms bound to one two-bone armature (weights from the bones) and posed: export and F12."""
+        if not self.module("splat_addon.data").native_supported():
+            return {"skipped": self.bpy.app.version_string}
+        bpy = self.bpy
+        arrays = random_cloud_arrays(N, 3, seed=7)
+        arrays["positions"] = arrays["positions"] * [0.4, 0.4, 1.2]        # along the bones
+        ours = self.splats("ours", arrays, **NATIVE_TRANSFORM)
+        theirs = self.native_object("theirs", arrays, **NATIVE_TRANSFORM)
+        arm = self.rig()
+        self.select([ours, theirs], active=arm)
+        res = {"bind": self.call(bpy.ops.splat.bind_armature, armature=arm.name, use_source_weights=False)}
+        bpy.context.view_layer.update()
+        res["export"] = [self.export("rig_ours.ply", [ours]), self.export("rig_theirs.ply", [theirs])]
+        res["render"] = [self.render("rig_ours", [ours]), self.render("rig_theirs", [theirs])]
+        res["weights"] = sorted(a.name for a in theirs.data.attributes if a.name.startswith("splat_weight:"))
+        return res
+
+
+if __name__ == "__main__":
+    worker_main(Worker)
