@@ -7,7 +7,7 @@ from . import bundled
 
 bundled.expose("pxr")      # before any io module imports it
 
-from . import animation, collide, command, engine, from_mesh, operators, rigging  # noqa: E402
+from . import animation, apply_guard, collide, command, engine, from_mesh, operators, rigging  # noqa: E402
 
 CLASSES = (operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + rigging.CLASSES + collide.CLASSES
            + engine.CLASSES)
@@ -21,11 +21,13 @@ def register():
         menu.append(draw)
     engine.add_to_panels()
     rigging.register()
+    apply_guard.register()
     command.register()
 
 
 def unregister():
     command.unregister()
+    apply_guard.unregister()
     rigging.unregister()
     engine.remove_from_panels()
     for menu, draw in MENUS:

@@ -487,6 +487,7 @@ def new_splat_object(cloud, name, collection, matrix=None, form=None):
         if matrix is not None:
             obj.matrix_world = matrix
         collection.objects.link(obj)
+        remember_frame(obj)
     except BaseException:
         remove(geometry)
         raise
@@ -515,6 +516,30 @@ def object_cloud(obj):
     if form is None:
         raise SplatObjectError(f"'{obj.name}' is not a splat object ({obj.type})")
     return geometry_cloud(obj.data, obj.name, form)
+
+
+FRAME_RECORD = "splatwright_frame"          # object property: matrix_basis and probe centres (apply_guard)
+
+
+def probe_indices(count):
+    """A few splats spread over the cloud whose centres stand for all of them in a frame record."""
+    return sorted({0, count // 3, (2 * count) // 3, count - 1}) if count else []
+
+
+def probe_centres(obj, indices):
+    """(k, 3) float64 centres of the splats `indices` of `obj`'s own data (Object Mode)."""
+    position = obj.data.attributes["position"].data
+    return np.array([position[i].vector for i in indices], dtype=np.float64).reshape(-1, 3)
+
+
+def remember_frame(obj):
+    """Record `obj`'s matrix_basis and probe centres: apply_guard tells from them whether a change to
+    both was Blender's Apply. Operators that change a splat object's data and transform together call
+    this at once, so their own change is not taken for one."""
+    count = splat_count(obj.data)
+    indices = probe_indices(count)
+    obj[FRAME_RECORD] = {"basis": np.array(obj.matrix_basis, dtype=np.float64).ravel().tolist(), "count": count,
+                         "probes": indices, "centres": probe_centres(obj, indices).ravel().tolist()}
 
 
 def world_matrix(obj, depsgraph=None):

@@ -248,6 +248,7 @@ class SPLAT_OT_apply_transform(bpy.types.Operator):
         for obj, cloud in zip(targets, baked):
             data.update_splats(obj, cloud)
             obj.matrix_basis.identity()
+            data.remember_frame(obj)
         return {"FINISHED"}
 
 
@@ -290,6 +291,7 @@ class SPLAT_OT_join(bpy.types.Operator):
         for obj, cloud in zip(others, moved):
             data.update_splats(obj, cloud)
             obj.matrix_world = target.matrix_world
+            data.remember_frame(obj)
         with context.temp_override(active_object=target, selected_editable_objects=[target, *others],
                                    selected_objects=[target, *others]):
             done = bpy.ops.object.join()
@@ -354,6 +356,7 @@ def convert_form(context, obj, form):
             collection.objects.link(made)
         made.parent, made.matrix_parent_inverse = obj.parent, obj.matrix_parent_inverse.copy()
         made.matrix_world = obj.matrix_world.copy()
+        data.remember_frame(made)
         if form == data.MESH_FORM:
             display.add_display(made, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))
         if rig is not None:

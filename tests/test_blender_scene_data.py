@@ -144,6 +144,22 @@ def test_instances_render_like_the_same_splats_as_objects(blender):
     assert_same_image(blender, "inst_render", "inst_reference")
 
 
+# Blender's own Apply -----------------------------------------------------------------------------------
+
+def test_blenders_apply_rotation_scale_and_all_keeps_the_splats_where_they_were(blender):
+    res = blender.step("blender_apply")
+    forms = ["mesh_form"] + (["native_form"] if "native_form before" in res else [])
+    for form in forms:
+        for stage in ("before", "rotation_scale", "all"):
+            finished(res[f"{form} {stage}"])
+        basis = np.array(res[f"{form} basis"])
+        np.testing.assert_allclose(basis[:3, :3], np.eye(3), atol=1e-6)          # only the location is left
+        assert res[f"{form} identity"]
+        before = read(blender.out / f"apply_{form}_before.ply")
+        for stage in ("rs", "all"):
+            assert_close_clouds(read(blender.out / f"apply_{form}_{stage}.ply"), before, opacity=0)
+
+
 # Blender 5.3's own splat point clouds -----------------------------------------------------------------
 
 def native_step(blender, name):

@@ -14,6 +14,7 @@ GN_ROTATION, GN_SCALE = (0.3, -0.2, 0.5), (1.0, 1.7, 0.6)    # a geometry-nodes 
 SHAPE_OFFSET = (0.0, 0.0, 0.4)           # a shape key moves splat 1
 INSTANCE = dict(location=(1.5, -0.5, 0.25), rotation_euler=(0.4, 0.1, -0.7), scale=(1.3, 1.3, 1.3))
 DUPLICATE = dict(location=(-1.0, 0.5, 0.0), rotation_euler=(0.0, 0.6, 0.2), scale=(0.8, 1.0, 1.2))
+APPLIED = dict(location=(0.5, 0.2, -0.3), rotation_euler=(0.7, -0.4, 1.1), scale=(1.5, 0.6, 1.0))
 NATIVE_TRANSFORM = dict(location=(0.2, -0.4, 0.3), rotation_euler=(0.5, -0.3, 0.8), scale=(1.2, 0.9, 1.1))
 BONES = {"Upper": ((0, 0, -1.5), (0, 0, 0)), "Lower": ((0, 0, 0), (0, 0, 1.5))}     # head, tail
 POSE = {"Upper": (0.2, 0.0, 0.1), "Lower": (0.0, 0.7, -0.3)}                         # Euler XYZ
@@ -37,7 +38,7 @@ FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "edit_mode", "modifiers", "instances", "native_forms", "native_rig")
+    steps = ("install", "edit_mode", "modifiers", "instances", "blender_apply", "native_forms", "native_rig")
     keep_objects = ("Camera", "Light")
     orphan_kinds = ("meshes", "armatures", "materials", "collections", "pointclouds", "node_groups", "actions")
 
@@ -234,6 +235,24 @@ class Worker(BlenderWorker):
                "render": self.render("inst_render")}
         reference = self.reimported("reference", self.out / "inst_visible.ply")
         res["reference_render"] = self.render("inst_reference", [reference])
+        return res
+
+    def blender_apply(self):
+        """Blender's own Object > Apply on splat objects: rotation and scale, then all transforms, on a
+        splat mesh and (where this Blender can make one) on native splats."""
+        bpy = self.bpy
+        res = {}
+        objects = [self.splats("mesh_form", random_cloud_arrays(N, 2, seed=8), **APPLIED)]
+        if self.module("splat_addon.data").native_supported():
+            objects.append(self.native_object("native_form", random_cloud_arrays(N, 2, seed=8), **APPLIED))
+        for obj in objects:
+            res[f"{obj.name} before"] = self.export(f"apply_{obj.name}_before.ply", [obj])
+            bpy.ops.object.transform_apply(location=False, rotation=True, scale=True)
+            res[f"{obj.name} rotation_scale"] = self.export(f"apply_{obj.name}_rs.ply", [obj])
+            res[f"{obj.name} basis"] = np.array(obj.matrix_basis).tolist()
+            bpy.ops.object.transform_apply(location=True, rotation=True, scale=True)
+            res[f"{obj.name} all"] = self.export(f"apply_{obj.name}_all.ply", [obj])
+            res[f"{obj.name} identity"] = np.allclose(np.array(obj.matrix_basis), np.eye(4))
         return res
 
     def native_forms(self):
