@@ -129,18 +129,18 @@ class Demo:
         return f"Blender {bpy.app.version_string}, extension registered from {Path(__file__).parent}"
 
     def build_rig(self):
-        from .splat_addon import demo_rig
+        from .splat_addon import data, demo_rig
         self.rig = demo_rig.build_demo_rig(self.bpy.context.scene, environment_splats=ENVIRONMENT_SPLATS)
         self.env = self.rig.environment
-        self.summary["environment_splats"] = len(self.env.data.vertices)
+        self.summary["environment_splats"] = data.splat_count(self.env.data)
         return f"robot arm with {len(self.rig.armature.data.bones)} bones, frames 1-24; environment " \
-               f"'{self.env.name}': {len(self.env.data.vertices)} splats"
+               f"'{self.env.name}': {data.splat_count(self.env.data)} splats"
 
     def convert_arm(self):
-        from .splat_addon import from_mesh
+        from .splat_addon import data, from_mesh
         self.arm = from_mesh.from_mesh(self.bpy.context, [self.rig.body], max_splats=ARM_SPLATS)[0]
-        self.summary["arm_splats"] = len(self.arm.data.vertices)
-        return f"'{self.arm.name}': {len(self.arm.data.vertices)} splats from '{self.rig.body.name}' in its rest pose"
+        self.summary["arm_splats"] = data.splat_count(self.arm.data)
+        return f"'{self.arm.name}': {data.splat_count(self.arm.data)} splats from '{self.rig.body.name}' in its rest pose"
 
     def bind(self):
         from .splat_addon import rigging
@@ -165,7 +165,7 @@ class Demo:
         try:
             depsgraph = bpy.context.evaluated_depsgraph_get()
             posed = data.evaluated_cloud(self.arm, depsgraph)
-            rest = data.mesh_to_cloud(self.arm.data, owner=self.arm.name)
+            rest = data.object_cloud(self.arm)
             rest = data.transform_cloud(rest, data.world_matrix(self.arm, depsgraph))
             _, remade, _ = from_mesh.convert_objects(bpy.context, [self.rig.body], max_splats=ARM_SPLATS,
                                                      use_rest_pose=False)[0]
@@ -215,7 +215,7 @@ class Demo:
                f"frames {', '.join(map(str, frames))}, in {folder.name}/"
 
     def export(self):
-        from .splat_addon import animation
+        from .splat_addon import animation, data
         context, scene = self.bpy.context, self.bpy.context.scene
         frames = animation.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
         everything = [self.arm, self.env]
@@ -225,7 +225,8 @@ class Demo:
                                               progress=self._frames_progress("PLY sequence"))
         usd, = animation.export_animation(context, [self.arm], self.out / "arm.usdc", frames,
                                           progress=self._frames_progress("OpenUSD"))
-        self.summary["exports"] = {"ply": one.name, "ply_splats": len(self.arm.data.vertices) + len(self.env.data.vertices),
+        splats = data.splat_count(self.arm.data) + data.splat_count(self.env.data)
+        self.summary["exports"] = {"ply": one.name, "ply_splats": splats,
                                    "ply_sequence": [p.relative_to(self.out).as_posix() for p in sequence],
                                    "usd": usd.name, "usd_frames": frames}
         self._files(one, *sequence, usd)

@@ -8,6 +8,9 @@ list of centres and float64 foreach_set for its attributes. Baseline export: a P
 every splat's attributes element by element, rows built as tuples, then written. The baselines are
 timed on a subset and scaled linearly (they are linear in the splat count), as the row notes say.
 Error: max abs difference between the source file's arrays and those of the file written back.
+
+A second import row sets ours against Blender's own `wm.ply_import` of the same file (raw vertex
+attributes only, no splat layout), timed alternately in the same run.
 """
 
 import sys
@@ -18,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import Row, Timing, print_rows, timeit  # noqa: E402
+from common import Row, Timing, paired, print_rows, timeit  # noqa: E402
 
 from splatwright.core import SplatCloud  # noqa: E402
 from splatwright.io import read_splats, write_splats  # noqa: E402
@@ -43,6 +46,24 @@ def _remove(bpy, obj):
     mesh = obj.data
     bpy.data.objects.remove(obj)
     bpy.data.meshes.remove(mesh)
+
+
+def _against_blender_import(bpy, src, repeat):
+    """(Blender's wm.ply_import, our import) of the same file, timed alternately (see common.paired)."""
+    made = []
+
+    def importer(op):
+        def run():
+            while made:                  # one imported object alive at a time
+                _remove(bpy, made.pop())
+            op(filepath=str(src))
+            made.append(bpy.context.active_object)
+        return run
+
+    timings = paired(importer(bpy.ops.wm.ply_import), importer(bpy.ops.splat.import_file), repeat)
+    while made:
+        _remove(bpy, made.pop())
+    return timings
 
 
 def _ours(bpy, src, out, repeat):
@@ -163,6 +184,7 @@ def run(quick=False):
             write_splats(src, cloud)
             write_splats(sub, cloud[:subset])
             t_import, t_export, t_display = _ours(bpy, src, out, repeat)
+            t_blender, t_import_paired = _against_blender_import(bpy, src, repeat)
             ours_error = max_abs_error(read_splats(src), read_splats(out))
             (b_import, b_export), b_error = _baseline(bpy, sub, tmp / "b.ply", subset, n / subset, max(1, repeat - 2))
     finally:
@@ -171,6 +193,8 @@ def run(quick=False):
     return [
         Row(TOPIC, "PLY -> Blender object (splat.import_file)", t_import, b_import,
             {"max_abs_roundtrip": ours_error, "baseline_max_abs_roundtrip": b_error}, note),
+        Row(TOPIC, "PLY -> Blender object, against Blender's own wm.ply_import", t_import_paired, t_blender,
+            {"max_abs_roundtrip": ours_error}, {**note, "baseline": "wm.ply_import (raw attributes)"}),
         Row(TOPIC, "Blender object -> PLY (splat.export_file)", t_export, b_export,
             {"max_abs_roundtrip": ours_error, "baseline_max_abs_roundtrip": b_error}, note),
         Row(TOPIC, "viewport display evaluation (geometry nodes)", t_display, None, {},
