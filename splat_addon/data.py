@@ -64,6 +64,7 @@ MAX_NAME = 63                          # Blender attribute names are cut at 64 b
 NATIVE_SCALE, NATIVE_ROTATION, NATIVE_BASE = "scale", "rotation", "radiance:base"
 NATIVE_SH_PREFIX = "radiance:sh_"      # radiance:sh_<j> holds SH coefficient j + 1
 EXACT_LOG_SCALE, EXACT_LOGIT = ".splatwright_log_scale", ".splatwright_opacity_logit"
+REST_PREFIX = ".splatwright_rest:"     # bound native splats: their rest pose, while Blender draws the posed
 NATIVE_REQUIRED = ("position", NATIVE_SCALE, NATIVE_ROTATION, NATIVE_BASE)
 
 # Blender attribute type -> (foreach property, components, NumPy buffer dtype)
@@ -226,38 +227,60 @@ def _read_mesh_form(mesh, owner):
 
 # the native form --------------------------------------------------------------------------------------
 
-def _write_native_form(pointcloud, cloud):
-    _set(pointcloud, "position", "FLOAT_VECTOR", cloud.positions)
-    _set(pointcloud, NATIVE_ROTATION, "QUATERNION", cloud.rotations)
+def _write_native_form(pointcloud, cloud, prefix=""):
+    """Write `cloud` as native attributes; `prefix` REST_PREFIX keeps it as the rest pose instead."""
+    _set(pointcloud, prefix + "position", "FLOAT_VECTOR", cloud.positions)
+    _set(pointcloud, prefix + NATIVE_ROTATION, "QUATERNION", cloud.rotations)
     with np.errstate(over="ignore"):
-        _set(pointcloud, NATIVE_SCALE, "FLOAT_VECTOR", np.exp(cloud.log_scales))
+        _set(pointcloud, prefix + NATIVE_SCALE, "FLOAT_VECTOR", np.exp(cloud.log_scales))
     base = np.empty((len(cloud), 4), np.float32)
     base[:, :3] = cloud.sh[:, 0]
     base[:, 3] = sigmoid(cloud.opacity_logits)
-    _set(pointcloud, NATIVE_BASE, "FLOAT_COLOR", base)
+    _set(pointcloud, prefix + NATIVE_BASE, "FLOAT_COLOR", base)
+    sh_prefix = prefix + NATIVE_SH_PREFIX
     by_coefficient = _coefficient_major(cloud.sh)
     for k in range(1, cloud.sh.shape[1]):
-        _set(pointcloud, f"{NATIVE_SH_PREFIX}{k - 1}", "FLOAT_VECTOR", by_coefficient[k])
-    for name in [a.name for a in pointcloud.attributes if a.name.startswith(NATIVE_SH_PREFIX)]:
-        suffix = name[len(NATIVE_SH_PREFIX):]
+        _set(pointcloud, f"{sh_prefix}{k - 1}", "FLOAT_VECTOR", by_coefficient[k])
+    for name in [a.name for a in pointcloud.attributes if a.name.startswith(sh_prefix)]:
+        suffix = name[len(sh_prefix):]
         if suffix.isdigit() and int(suffix) >= cloud.sh.shape[1] - 1:      # a lower degree than before
             pointcloud.attributes.remove(pointcloud.attributes[name])
-    _set(pointcloud, EXACT_LOG_SCALE, "FLOAT_VECTOR", cloud.log_scales)
-    _set(pointcloud, EXACT_LOGIT, "FLOAT", cloud.opacity_logits)
+    _set(pointcloud, prefix + EXACT_LOG_SCALE, "FLOAT_VECTOR", cloud.log_scales)
+    _set(pointcloud, prefix + EXACT_LOGIT, "FLOAT", cloud.opacity_logits)
 
 
 def _read_native_form(pointcloud, owner):
-    count = _sh_count(pointcloud, NATIVE_SH_PREFIX, 1, owner)
-    sh = _read_sh(pointcloud, NATIVE_SH_PREFIX, 1, owner, count)
-    base = _get(pointcloud, NATIVE_BASE, ("FLOAT_COLOR", "QUATERNION"), owner)
+    """The native splats' own values: the rest pose where one is kept (see show_posed)."""
+    prefix = REST_PREFIX if is_posed_native(pointcloud) else ""
+    count = _sh_count(pointcloud, prefix + NATIVE_SH_PREFIX, 1, owner)
+    sh = _read_sh(pointcloud, prefix + NATIVE_SH_PREFIX, 1, owner, count)
+    base = _get(pointcloud, prefix + NATIVE_BASE, ("FLOAT_COLOR", "QUATERNION"), owner)
     sh[:, 0] = base[:, :3]
-    scales = _get(pointcloud, NATIVE_SCALE, "FLOAT_VECTOR", owner)
-    return dict(positions=_get(pointcloud, "position", "FLOAT_VECTOR", owner),
-                rotations=_get(pointcloud, NATIVE_ROTATION, "QUATERNION", owner),
-                log_scales=_exact_or(pointcloud, EXACT_LOG_SCALE, "FLOAT_VECTOR", owner, scales, native_log_scales),
-                opacity_logits=_exact_or(pointcloud, EXACT_LOGIT, "FLOAT", owner, base[:, 3:],
+    scales = _get(pointcloud, prefix + NATIVE_SCALE, "FLOAT_VECTOR", owner)
+    return dict(positions=_get(pointcloud, prefix + "position", "FLOAT_VECTOR", owner),
+                rotations=_get(pointcloud, prefix + NATIVE_ROTATION, "QUATERNION", owner),
+                log_scales=_exact_or(pointcloud, prefix + EXACT_LOG_SCALE, "FLOAT_VECTOR", owner, scales,
+                                     native_log_scales),
+                opacity_logits=_exact_or(pointcloud, prefix + EXACT_LOGIT, "FLOAT", owner, base[:, 3:],
                                          native_opacity_logits)[:, 0],
                 sh=sh)
+
+
+def is_posed_native(pointcloud):
+    """Whether native splats keep a rest pose apart from what Blender draws (bound to an armature)."""
+    return REST_PREFIX + "position" in pointcloud.attributes
+
+
+def keep_rest_pose(obj):
+    """From now on `obj`'s native attributes show it posed: its own splats move to the rest attributes."""
+    if not is_posed_native(obj.data):
+        _write_native_form(obj.data, object_cloud(obj), REST_PREFIX)
+
+
+def show_posed(obj, posed):
+    """Write `posed` (object space) into the native attributes Blender draws; the rest pose stays."""
+    _write_native_form(obj.data, posed)
+    _changed(obj.data)
 
 
 def native_log_scales(scales):
@@ -450,7 +473,12 @@ def update_splats(obj, cloud):
     geometry, form = obj.data, splat_form(obj)
     if len(cloud) != splat_count(geometry):
         raise SplatObjectError(f"'{obj.name}' has {splat_count(geometry)} splats, the cloud has {len(cloud)}")
-    (_write_mesh_form if form == MESH_FORM else _write_native_form)(geometry, cloud)
+    if form == MESH_FORM:
+        _write_mesh_form(geometry, cloud)
+    else:
+        if is_posed_native(geometry):
+            _write_native_form(geometry, cloud, REST_PREFIX)
+        _write_native_form(geometry, cloud)
     spec = json.loads(geometry.get(EXTRAS_SPEC, "{}"))
     for name, values in cloud.extras.items():
         kind = _extra_kind(values)

@@ -432,6 +432,7 @@ def attach(obj, arm, preserve_volume=False):
         mod.show_in_editmode = False             # Edit Mode edits the rest pose (see data.own_cloud)
         obj.modifiers.move(list(obj.modifiers).index(mod), 0)
     else:
+        data.keep_rest_pose(obj)
         obj[ARMATURE_PROPERTY] = arm
         obj[PRESERVE_VOLUME_PROPERTY] = bool(preserve_volume)
     world = obj.matrix_world.copy()
@@ -587,6 +588,38 @@ def _on_depsgraph_update(scene, depsgraph):
         bpy.app.timers.register(_refill, first_interval=REFRESH_DELAY)
 
 
+def show_poses(depsgraph, armatures=None):
+    """Write the posed splats of every bound native splat object (of `armatures`, when given) into
+    the attributes Blender draws, so its viewport, EEVEE and Cycles show the pose our renderer does."""
+    for obj in depsgraph.scene.objects:
+        if data.splat_form(obj) != data.NATIVE_FORM:
+            continue
+        rig = rig_of(obj)
+        if rig is None or (armatures is not None and rig[0].name not in armatures):
+            continue
+        pose = poser(obj, depsgraph)
+        if pose is not None:
+            try:
+                data.show_posed(obj, pose(data.object_cloud(obj)))
+            except (SkinningError, *EXPECTED_ERRORS):
+                pass             # reported when the splats are next exported or rendered
+
+
+@persistent
+def _on_frame_change(scene, depsgraph=None):
+    show_poses(depsgraph or bpy.context.evaluated_depsgraph_get())
+
+
+@persistent
+def _on_pose_edit(scene, depsgraph):
+    """Posing bones by hand changes no frame: repose the native splats of the armatures that moved."""
+    moved = {u.id.original.name for u in depsgraph.updates
+             if isinstance(u.id, bpy.types.Object) and u.id.type == "ARMATURE"
+             and (u.is_updated_transform or u.is_updated_geometry)}
+    if moved:
+        show_poses(depsgraph, moved)
+
+
 @persistent
 def _on_load(*_):
     forget_weights()
@@ -609,6 +642,8 @@ def _refill():
 
 
 HANDLERS = ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update),
+            (bpy.app.handlers.depsgraph_update_post, _on_pose_edit),
+            (bpy.app.handlers.frame_change_post, _on_frame_change),
             (bpy.app.handlers.load_post, _on_load), (bpy.app.handlers.undo_post, _on_load),
             (bpy.app.handlers.redo_post, _on_load))
 

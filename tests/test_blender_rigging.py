@@ -39,11 +39,11 @@ def test_install_registers_operators_menus_deformer_and_handlers(blender):
     assert res["operators"] == [True, True]
     assert res["menus"] == {"VIEW3D_MT_object_parent": 1, "VIEW3D_MT_object": 2}     # Check Collisions, Join Splats
     assert "_armature_pose" in res["posers"]
-    assert res["handlers"] == 6          # weights cache (4) and Blender's Apply completed (2)
+    assert res["handlers"] == 7          # weights cache (4), native poses (1), Blender's Apply completed (2)
 
 
 def test_handlers_follow_the_extension(blender):
-    assert blender.step("reregister") == {"off": 0, "on": 6}
+    assert blender.step("reregister") == {"off": 0, "on": 7}
 
 
 # posing against Blender's Armature modifier -----------------------------------------------------------

@@ -249,3 +249,20 @@ def test_native_splats_bind_and_pose_like_splat_meshes(blender):
     unposed = rest @ matrix[:3, :3].T + matrix[:3, 3]
     assert np.abs(ours.positions - unposed).max() > 0.1           # the pose moved them
     assert_same_image(blender, "rig_ours", "rig_theirs")
+
+
+def test_blender_draws_bound_native_splats_posed(blender):
+    """The attributes Blender's own viewport and renderers draw hold our exact posed splats (object
+    space) at the current frame, to float32."""
+    native_step(blender, "native_rig")
+    d = blender.npz("rig_drawn")
+    sign = np.sign(np.sum(d["rotation"] * d["exact_rotations"], axis=1, keepdims=True))     # q and -q agree
+    errors = {"position": np.abs(d["position"] - d["exact_positions"]).max(),
+              "rotation": np.abs(d["rotation"] * sign - d["exact_rotations"]).max(),
+              "scale": np.abs(d["scale"] / d["exact_scales"] - 1).max(),
+              "opacity": np.abs(d["radiance__base"][:, 3] - d["exact_opacities"]).max(),
+              "sh": max(np.abs(d[f"radiance__sh_{j}"] - d["exact_sh"][:, j + 1]).max() for j in range(15))}
+    print(f"\nposed native splats as Blender draws them, against our exact pose: {errors}")
+    assert errors["position"] < 1e-6 and errors["rotation"] < 1e-6 and errors["scale"] < 1e-6
+    assert errors["opacity"] < 1e-7 and errors["sh"] < 1e-6
+    assert np.abs(d["position"] - random_cloud_arrays(N, 3, seed=7)["positions"] * [0.4, 0.4, 1.2]).max() > 0.1

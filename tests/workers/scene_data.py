@@ -35,6 +35,7 @@ def native_arrays(arrays):
 
 
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+FOREACH = {"FLOAT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "QUATERNION": ("value", 4), "FLOAT_COLOR": ("color", 4)}
 
 
 class Worker(BlenderWorker):
@@ -307,6 +308,20 @@ class Worker(BlenderWorker):
         res["export"] = [self.export("rig_ours.ply", [ours]), self.export("rig_theirs.ply", [theirs])]
         res["render"] = [self.render("rig_ours", [ours]), self.render("rig_theirs", [theirs])]
         res["weights"] = sorted(a.name for a in theirs.data.attributes if a.name.startswith("splat_weight:"))
+        # what Blender itself draws: the native attributes, written for the frame when it changes
+        bpy.context.scene.frame_set(2)
+        bpy.context.scene.frame_set(1)
+        drawn = {}
+        for name, attr in theirs.data.attributes.items():
+            if not name.startswith(".") and attr.domain == "POINT" and attr.data_type in FOREACH:
+                prop, width = FOREACH[attr.data_type]
+                values = np.empty(len(attr.data) * width, np.float32)
+                attr.data.foreach_get(prop, values)
+                drawn[name] = values.reshape(-1, width)
+        exact = self.module("splat_addon.data").evaluated_cloud(theirs, bpy.context.evaluated_depsgraph_get(), np.eye(4))
+        self.save("rig_drawn", **{k.replace(":", "__"): v for k, v in drawn.items()},
+                  exact_positions=exact.positions, exact_rotations=exact.unit_rotations, exact_scales=exact.scales,
+                  exact_opacities=exact.opacities, exact_sh=exact.sh)
         return res
 
 
