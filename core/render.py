@@ -18,6 +18,11 @@ How it runs fast without a loop per splat or per pixel:
   after each wave, which is where opaque scenes save most of their work. Asked for, the largest weight
   of each entry over its tile's pixels also goes into a per-splat maximum (one more pass);
 - batches run on a thread pool: NumPy and BLAS release the GIL for the heavy calls.
+
+A Layer (a surface rendered by something else: per pixel a colour, an alpha and a camera depth)
+joins each pixel's front-to-back list as one more element, before the first splat whose camera z
+is not in front of it. In the running product for T that is a factor (1 - layer alpha) on the
+splat where the pixel crosses the layer, so the waves above take it with a few extra products.
 """
 
 import math
@@ -61,6 +66,10 @@ class RenderResult:
         off-image, too faint for 1/255, hidden behind pixels that stopped, or non-finite).
     background: the background colour used, or None for a transparent render.
     stats: counts of splats and work (input, skipped_nonfinite, visible, entries, evaluated).
+    layer_transmittance: (H,W) float32 when rendered with a layer, else None: T where the pixel
+        reached the layer (what the layer's colour was multiplied by). With a layer, `color` and
+        `alpha` include it; the splats' own part is color - layer_transmittance * layer.color
+        (- (1 - alpha) * background).
     """
 
     color: np.ndarray
@@ -70,6 +79,42 @@ class RenderResult:
     max_weight: np.ndarray | None = None
     background: tuple | None = (0.0, 0.0, 0.0)
     stats: dict = field(default_factory=dict)
+    layer_transmittance: np.ndarray | None = None
+
+
+@dataclass
+class Layer:
+    """A surface seen with the splats, e.g. meshes rendered by a path tracer: per pixel a colour
+    (display sRGB, premultiplied by alpha), an alpha and the camera z of the surface (inf where
+    there is none).
+
+    Each pixel composites it front to back as one more element of its list, before the first splat
+    whose camera z is >= depth: C += T color, T *= 1 - alpha. It is never clamped, skipped or
+    stopped at; a pixel that stopped before reaching it still gives it the T it stopped with, as it
+    gives the background. An opaque layer (alpha 1) hides every splat behind it.
+    """
+
+    color: np.ndarray
+    alpha: np.ndarray
+    depth: np.ndarray
+
+    def checked(self, camera):
+        """The layer as float32 arrays of the camera's image size, or ValueError naming the problem."""
+        shape = (camera.height, camera.width)
+        arrays = {}
+        for name, want in (("color", shape + (3,)), ("alpha", shape), ("depth", shape)):
+            a = np.asarray(getattr(self, name), dtype=np.float32)
+            if a.shape != want:
+                raise ValueError(f"layer {name} has shape {a.shape}, expected {want} for a "
+                                 f"{camera.width}x{camera.height} image")
+            bad = np.isnan(a) if name == "depth" else ~np.isfinite(a)
+            if bad.any():
+                raise ValueError(f"layer {name} holds {int(bad.sum())} {'NaN' if name == 'depth' else 'non-finite'} "
+                                 "values")
+            arrays[name] = a
+        if (arrays["alpha"] < 0).any() or (arrays["alpha"] > 1).any():
+            raise ValueError("layer alpha must lie in [0, 1]")
+        return Layer(**arrays)
 
 
 @dataclass
@@ -111,7 +156,7 @@ def _floats(records):
 
 def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_counts=False, *,
            return_weights=False, tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
-           threads=None, progress=None):
+           threads=None, progress=None, layer=None):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
@@ -123,6 +168,7 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
     max_sigma caps each splat's extent in standard deviations (3 mimics the reference rasteriser,
     dropping faint tails); precision "float32" or "float64" for the per-pixel work; threads
     (default: all cores). progress(done_tiles, total_tiles, label) is called between waves.
+    layer: a Layer composited with the splats in depth order (see Layer), or None.
 
     Splats with non-finite values are skipped and counted in stats["skipped_nonfinite"].
     """
@@ -141,13 +187,15 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
     bg = None if background is None else np.asarray(background, dtype=np.float64).reshape(-1)
     if bg is not None and (bg.shape != (3,) or not np.isfinite(bg).all()):
         raise ValueError(f"background must be three finite numbers (r, g, b), got {background!r}")
+    layer = None if layer is None else layer.checked(camera)
     with _pool(threads) as pool:
         proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
         bins = bin_tiles(proj, camera, int(tile_size), pool=pool)
+        crossing = None if layer is None else _LayerCrossing(layer, bins, PRECISIONS[precision])
         compositor = _Compositor(proj, bins, camera, PRECISIONS[precision], int(wave), t_min, pool,
-                                 return_counts, return_weights)
+                                 return_counts, return_weights, crossing)
         acc, counts = compositor.run(progress)
-    result = _finish(acc, counts, camera, bins, bg, background, proj, cloud)
+    result = _finish(acc, counts, camera, bins, bg, background, proj, cloud, crossing)
     result.stats["evaluated"] = compositor.evaluated
     if return_weights:
         result.max_weight = compositor.max_weight(len(cloud))
@@ -416,8 +464,10 @@ def _stable_argsort(keys, n_keys):
 class _Compositor:
     """Front-to-back compositing of every tile, in waves of at most `wave` entries per tile."""
 
-    def __init__(self, proj, bins, camera, dtype, wave, t_min, pool, want_counts=False, want_weights=False):
+    def __init__(self, proj, bins, camera, dtype, wave, t_min, pool, want_counts=False, want_weights=False,
+                 crossing=None):
         self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
+        self.crossing = crossing
         self.t_min = dtype(t_min)
         ts = bins.tile_size
         self.pixels = ts * ts
@@ -520,8 +570,11 @@ class _Compositor:
         trans = np.empty((depth + 1, g, p), dtype=dtype)             # T before each entry
         trans[0] = self.trans[tiles]
         keep = np.subtract(1, alpha, dtype=dtype)
+        first = None if self.crossing is None else self.crossing.enter(tiles, _floats(rec)[:, 4], alpha, keep)
         for k in range(depth):
             np.multiply(trans[k], keep[k], out=trans[k + 1])
+        if first is not None:
+            self.crossing.record(tiles, first, trans, self.t_min)
         weight = np.multiply(trans[:-1], alpha, out=keep)            # w = T alpha
         crossed = trans[-1] < self.t_min
         if (crossed & (trans[0] >= self.t_min)).any():               # a pixel stops in this wave
@@ -567,7 +620,7 @@ class _Compositor:
         return out
 
 
-def _finish(acc, counts, camera, bins, bg, background, proj, cloud):
+def _finish(acc, counts, camera, bins, bg, background, proj, cloud, crossing=None):
     """Tile accumulators -> image arrays."""
     ts, h, w = bins.tile_size, camera.height, camera.width
 
@@ -579,6 +632,11 @@ def _finish(acc, counts, camera, bins, bg, background, proj, cloud):
     weight = acc[..., 4]
     alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
     color = acc[..., :3].astype(np.float32)
+    layer_t = None
+    if crossing is not None:
+        layer_t = crossing.transmittance(image(crossing.t), image(crossing.pending), alpha)
+        color += layer_t[..., None] * crossing.layer.color
+        alpha = np.clip(alpha + layer_t * crossing.layer.alpha, 0.0, 1.0)
     if bg is not None:
         color += (1.0 - alpha)[..., None] * bg.astype(np.float32)
     depth = np.zeros_like(alpha)
@@ -592,4 +650,69 @@ def _finish(acc, counts, camera, bins, bg, background, proj, cloud):
         counts=None if counts is None else image(counts).copy(),
         background=None if background is None else tuple(float(x) for x in bg),
         stats=stats,
+        layer_transmittance=layer_t,
     )
+
+
+class _LayerCrossing:
+    """Where each pixel meets the Layer, in tile layout (tiles, pixels): the layer's depth and
+    1 - alpha, whether the pixel still waits for it, and the T it was reached with."""
+
+    def __init__(self, layer, bins, dtype):
+        self.layer = layer
+        self.depth = self._tiled(layer.depth, bins, np.inf).astype(dtype)
+        self.keep = self._tiled(1.0 - layer.alpha, bins, 1.0).astype(dtype)
+        self.pending = np.ones(self.depth.shape, bool)
+        self.t = np.zeros(self.depth.shape, dtype)
+        # the nearest layer depth of each tile: a wave whose splats all lie in front skips the test
+        self.nearest = self.depth.min(axis=1)
+
+    @staticmethod
+    def _tiled(a, bins, fill):
+        """(H, W) image -> (tiles, pixels), pixels beyond the image edge set to `fill`."""
+        ts = bins.tile_size
+        padded = np.full((bins.tiles_y * ts, bins.tiles_x * ts), fill, dtype=np.float64)
+        padded[:a.shape[0], :a.shape[1]] = a
+        return padded.reshape(bins.tiles_y, ts, bins.tiles_x, ts).swapaxes(1, 2).reshape(bins.n_tiles, ts * ts)
+
+    def enter(self, tiles, z, alpha, keep):
+        """Put the layer into a wave: `z` (depth * g,) are the entries' camera depths, slot-major;
+        alpha and keep (depth, g, p) are scaled by the layer's 1 - alpha at the entry where each
+        waiting pixel crosses it. Returns where that happens for record(), or None if no pixel of
+        these tiles crosses in this wave. Only the tiles and entries that can cross are looked at."""
+        depth, g = alpha.shape[:2]
+        z = z.reshape(depth, g)
+        reach = z >= self.nearest[tiles]                 # (depth, g): entry at or past the tile's nearest
+        cross = np.flatnonzero(reach[-1] | reach.any(axis=0))
+        if not len(cross):
+            return None
+        k0 = int(reach[:, cross].any(axis=1).argmax())   # entries are sorted by z: nothing crosses before
+        sel = tiles[cross]
+        behind = z[k0:, cross, None] >= self.depth[sel][None]
+        np.logical_or.accumulate(behind, axis=0, out=behind)         # padding (z = 0) comes last
+        first = behind
+        first[1:] &= ~behind[:-1]
+        first &= self.pending[sel][None]
+        factor = np.where(first, self.keep[sel][None], alpha.dtype.type(1))
+        alpha[k0:, cross] *= factor
+        keep[k0:, cross] *= factor
+        return k0, cross, first
+
+    def record(self, tiles, crossing, trans, t_min):
+        """Keep T where each pixel reached the layer. A pixel that had already stopped (T below
+        t_min) keeps waiting: it gives the layer the T it stopped with (see transmittance)."""
+        k0, cross, first = crossing
+        sel = tiles[cross]
+        reached = first.any(axis=0)
+        at = (trans[k0:-1, cross] * first).sum(axis=0)
+        reached &= at >= t_min
+        self.t[sel] = np.where(reached, at, self.t[sel])
+        pending = self.pending[sel] & ~reached
+        self.pending[sel] = pending
+        self.nearest[sel] = np.where(pending, self.depth[sel], np.inf).min(axis=1)
+
+    @staticmethod
+    def transmittance(t, pending, splat_alpha):
+        """(H, W) T at the layer: where the pixel never crossed it (no splat behind, or stopped
+        first), what the splats left."""
+        return np.where(pending, 1.0 - splat_alpha, t).astype(np.float32)

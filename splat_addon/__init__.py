@@ -19,7 +19,7 @@ def register():
         bpy.utils.register_class(cls)
     for menu, draw in MENUS:
         menu.append(draw)
-    engine.add_to_panels()
+    engine.register()
     rigging.register()
     apply_guard.register()
     command.register()
@@ -29,7 +29,7 @@ def unregister():
     command.unregister()
     apply_guard.unregister()
     rigging.unregister()
-    engine.remove_from_panels()
+    engine.unregister()
     for menu, draw in MENUS:
         menu.remove(draw)
     for cls in reversed(CLASSES):

@@ -1,7 +1,7 @@
 """`blender -b scene.blend --command splatwright VERB ...`: batch export, render and mesh conversion.
 
     export OUT [--frames A-B[:STEP]] [--format usd|ply|spz|splat] [--objects NAMES]
-    render [OUT] [--frames A-B[:STEP]] [--objects NAMES]
+    render [OUT] [--frames A-B[:STEP]] [--objects NAMES] [--meshes cycles|eevee|workbench|none]
     from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed]
     collide A B [--frames A-B[:STEP]] [--sigma K] [--ignore-bones NAMES] [--json OUT]
 
@@ -22,7 +22,7 @@ import bpy
 
 from ..io import FORMATS, format_of, write_splats
 from ..io.common import atomic_write
-from . import animation, collide, data, from_mesh, operators
+from . import animation, collide, data, engine, from_mesh, mesh_layer, operators
 
 COMMAND = "splatwright"
 FORMAT_EXTENSIONS = {"usd": ".usdc", "ply": ".ply", "spz": ".spz", "splat": ".splat"}
@@ -81,6 +81,9 @@ def parser():
                                              ".png/.exr/.jpg/.tif pick that image format")
     p.add_argument("--frames", help=frames_help)
     p.add_argument("--objects", help="only these splat objects are rendered (default: all)")
+    p.add_argument("--meshes", choices=[key.lower() for key, *_ in mesh_layer.ENGINE_CHOICES],
+                   help="what renders the meshes, curves, volumes and world that the splats are composited "
+                        "with (default: the scene's Splatwright > Meshes setting)")
 
     p = verbs.add_parser("from-mesh", help="convert mesh objects to splat objects")
     p.add_argument("output", help="a .blend to save the scene with the new splat objects to, or a splat "
@@ -196,22 +199,26 @@ def run_export(args, context):
 
 @contextlib.contextmanager
 def _restored(*settings):
-    """Set (owner, attribute, value) triples for the duration, then put the old values back."""
+    """Set (owner, attribute, value) triples for the duration, then put the old values back, in the
+    same order (an image's media type goes back before the file format that needs it). Each
+    attribute is named once."""
     old = [(owner, name, getattr(owner, name)) for owner, name, _ in settings]
     try:
         for owner, name, value in settings:
             setattr(owner, name, value)
         yield
     finally:
-        for owner, name, value in reversed(old):
+        for owner, name, value in old:
             setattr(owner, name, value)
 
 
-def _render_settings(scene, output, only):
-    """The temporary settings a render job needs: our engine, OUT and its image format, and the splat
-    objects left out of the render."""
+def _render_settings(scene, output, only, meshes=None):
+    """The temporary settings a render job needs: our engine and what renders the meshes, OUT and its
+    image format, and the splat objects left out of the render."""
     render = scene.render
     settings = [(render, "engine", "SPLATWRIGHT")]
+    if meshes is not None:
+        settings.append((scene, engine.MESH_ENGINE, meshes.upper()))
     if output is not None:
         settings.append((render, "filepath", output))
         formats = IMAGE_FORMATS.get(Path(output).suffix.lower())
@@ -232,7 +239,7 @@ def run_render(args, context):
     if scene.camera is None:
         raise CommandError(f"scene '{scene.name}' has no camera")
     current = scene.frame_current
-    with _restored(*_render_settings(scene, args.output, only)):
+    with _restored(*_render_settings(scene, args.output, only, args.meshes)):
         paths = [Path(scene.render.frame_path(frame=f)) for f in frames]
         _say(f"render frames {frames[0]}-{frames[-1]} ({len(frames)}) to {paths[0].parent}")
         try:

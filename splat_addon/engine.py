@@ -1,6 +1,7 @@
 """The SPLATWRIGHT render engine: every visible splat object, rendered by the core renderer from the
-scene camera, written as Combined (scene-linear) and Depth passes so F12, render.render(write_still)
-and animations save through Blender's own output settings."""
+scene camera, composited in depth order with the meshes (and the world) that Cycles, EEVEE or
+Workbench renders (mesh_layer.py), written as Combined (scene-linear), Depth, Splats and Meshes
+passes so F12, render.render(write_still) and animations save through Blender's own output settings."""
 
 import traceback
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from ..core.color import linear_to_srgb, srgb_to_linear
 from . import camera as blender_camera
-from . import data
+from . import data, mesh_layer
 
 EMPTY_DEPTH = 1e10      # what Blender's own engines write in the Depth pass where nothing was hit
 
@@ -65,8 +66,14 @@ def to_scene_linear(color, alpha):
     return rgba
 
 
-class _Cancelled(Exception):
-    pass
+_Cancelled = mesh_layer.Cancelled
+
+MESH_ENGINE = "splatwright_mesh_engine"          # Scene property: what renders everything but the splats
+SPLAT_PASSES = "splatwright_use_pass_splats"     # ViewLayer property: write the Splats (and Meshes) pass
+
+
+def mesh_engine(scene):
+    return getattr(scene, MESH_ENGINE, "NONE")
 
 
 class SplatwrightRenderEngine(bpy.types.RenderEngine):
@@ -81,7 +88,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             self._render(depsgraph)
         except _Cancelled:
             pass
-        except (ValueError, data.SplatObjectError) as exc:     # CameraError is a ValueError
+        except (ValueError, data.SplatObjectError, mesh_layer.MeshLayerError) as exc:   # CameraError is a ValueError
             self.report({"ERROR"}, f"Splatwright: {exc}")
         except Exception as exc:
             # Reported, not raised: a traceback kept by Blender would hold evaluated data that the
@@ -101,20 +108,27 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
         cloud = scene_splats(depsgraph, origin)
         transparent = scene.render.film_transparent
-        background = None if transparent else linear_to_srgb(world_color(scene))
+        meshes = self._mesh_layer(depsgraph, width, height)
+        layer = None if meshes is None else meshes.as_layer()
+        background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")
-        color, alpha, depth = self._image(cloud, cam, background)
-        if not transparent:
-            alpha = np.ones_like(alpha)
-        self._write(width, height, to_scene_linear(color, alpha), depth)
+        image = self._image(cloud, cam, background, layer)
+        alpha = image.alpha if transparent else np.ones_like(image.alpha)
+        self._write(width, height, to_scene_linear(image.color, alpha), composite_depth(image, layer),
+                    splat_passes(image, layer, meshes))
 
-    def _image(self, cloud, cam, background):
-        """(display-sRGB colour, coverage, depth) from the core renderer; transparent when
-        `background` is None (colour premultiplied by coverage)."""
-        if cloud is None or len(cloud) == 0:
-            shape = (cam.height, cam.width)
-            color = np.zeros(shape + (3,)) if background is None else np.broadcast_to(background, shape + (3,))
-            return color, np.zeros(shape), np.full(shape, EMPTY_DEPTH)
+    def _mesh_layer(self, depsgraph, width, height):
+        """The scene's meshes and world rendered by the chosen engine, or None (splats only, or
+        nothing but splats to render)."""
+        engine = mesh_engine(depsgraph.scene)
+        if engine == "NONE" or not (mesh_layer.has_geometry(depsgraph) or textured_world(depsgraph.scene)):
+            return None
+        self.update_stats("", f"Splatwright: rendering the meshes with {engine.title()}")
+        return mesh_layer.render(depsgraph, engine, width, height, test_break=self.test_break)
+
+    def _image(self, cloud, cam, background, layer=None):
+        """The core renderer's RenderResult (display-sRGB colour, transparent when `background` is
+        None), composited with `layer`."""
         from ..core.render import render     # the renderer loads on first use
 
         def progress(done, total, label=""):
@@ -122,22 +136,69 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             if self.test_break():
                 raise _Cancelled
 
-        image = render(cloud, cam, background=background, progress=progress)
-        return image.color, image.alpha, np.where(image.alpha > 0, image.depth, EMPTY_DEPTH)
+        return render(cloud if cloud is not None else _no_splats(), cam, background=background, layer=layer,
+                      progress=progress)
 
-    def _write(self, width, height, rgba, depth):
+    def _write(self, width, height, rgba, depth, extra):
         result = self.begin_result(0, 0, width, height)
         layer = result.layers[0]
         # Blender's pixel rows start at the bottom; the core's row 0 is the top.
         layer.passes["Combined"].rect.foreach_set(np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel())
-        if "Depth" in layer.passes:
-            layer.passes["Depth"].rect.foreach_set(np.ascontiguousarray(depth[::-1], dtype=np.float32).ravel())
+        for name, pixels in (("Depth", depth), *extra.items()):
+            if name in layer.passes:
+                layer.passes[name].rect.foreach_set(np.ascontiguousarray(pixels[::-1], dtype=np.float32).ravel())
         self.end_result(result)
 
     def update_render_passes(self, scene=None, renderlayer=None):
         self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
         if renderlayer.use_pass_z:
             self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
+        if getattr(renderlayer, SPLAT_PASSES, False):
+            self.register_pass(scene, renderlayer, "Splats", 4, "RGBA", "COLOR")
+            if mesh_engine(scene) != "NONE":
+                self.register_pass(scene, renderlayer, "Meshes", 4, "RGBA", "COLOR")
+
+
+def splat_alpha(image, layer):
+    """The splats' own coverage in a render composited with `layer` (or without one)."""
+    return image.alpha if layer is None else image.alpha - image.layer_transmittance * layer.alpha
+
+
+def composite_depth(image, layer):
+    """The Depth pass: the nearer of the splats' depth (where any splat shows) and the mesh
+    surface; EMPTY_DEPTH where there is neither."""
+    surface = np.full(image.depth.shape, EMPTY_DEPTH, np.float32) if layer is None else layer.depth
+    return np.where(splat_alpha(image, layer) > 0, np.minimum(image.depth, surface), surface)
+
+
+def splat_passes(image, layer, meshes):
+    """The Splats pass (what the splats add to the picture, scene-linear, premultiplied, with their
+    coverage in front of the meshes as alpha) and the Meshes pass (the mesh layer as its engine
+    rendered it). In display sRGB, Splats over Meshes is Combined: the colour everywhere, the alpha
+    where the meshes are opaque or absent."""
+    color, alpha = image.color, splat_alpha(image, layer)
+    if layer is not None:
+        color = color - image.layer_transmittance[..., None] * layer.color
+        alpha = 1.0 - image.layer_transmittance
+    passes = {"Splats": to_scene_linear(np.maximum(color, 0.0), np.clip(alpha, 0.0, 1.0))}
+    if meshes is not None:
+        passes["Meshes"] = meshes.rgba
+    return passes
+
+
+def textured_world(scene):
+    """Whether the world's background is more than one colour (a texture or nodes drive it): then
+    the mesh layer renders it, else world_color() stands for it."""
+    world = scene.world
+    if world is None or world.node_tree is None or (bpy.app.version < (5, 0, 0) and not world.use_nodes):
+        return False
+    node = _background_node(world.node_tree)
+    return node is None or node.inputs["Color"].is_linked or node.inputs["Strength"].is_linked
+
+
+def _no_splats():
+    from ..core.splats import SplatCloud
+    return SplatCloud.empty()
 
 
 class RENDER_PT_splatwright(bpy.types.Panel):
@@ -154,8 +215,18 @@ class RENDER_PT_splatwright(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         layout.use_property_split = True
-        layout.prop(context.scene.render, "film_transparent")
+        scene = context.scene
+        layout.prop(scene, MESH_ENGINE)
+        engine = mesh_engine(scene)
+        if engine == "CYCLES" and hasattr(scene, "cycles"):       # the mesh engine's own quality settings
+            layout.prop(scene.cycles, "device", text="Cycles Device")
+            layout.prop(scene.cycles, "samples", text="Cycles Samples")
+            layout.prop(scene.cycles, "use_denoising", text="Denoise")
+        elif engine == "EEVEE":
+            layout.prop(scene.eevee, "taa_render_samples", text="EEVEE Samples")
+        layout.prop(scene.render, "film_transparent")
         layout.prop(context.view_layer, "use_pass_z", text="Depth Pass")
+        layout.prop(context.view_layer, SPLAT_PASSES)
         world = context.scene.world
         if world is not None:
             layout.prop(world, "color", text="World Colour (without nodes)")
@@ -180,11 +251,23 @@ def _generic_panels():
             yield panel
 
 
-def add_to_panels():
+def register():
+    setattr(bpy.types.Scene, MESH_ENGINE, bpy.props.EnumProperty(
+        name="Meshes", items=mesh_layer.ENGINE_CHOICES, default="CYCLES",
+        description="What renders everything that is not a splat (meshes, curves, volumes, the world); "
+                    "the splats are composited with it in depth order"))
+    setattr(bpy.types.ViewLayer, SPLAT_PASSES, bpy.props.BoolProperty(
+        name="Splats and Meshes Passes", default=True,
+        description="Also write the splats alone (with their alpha) and the meshes alone as passes, so a "
+                    "compositor can redo the mix"))
     for panel in _generic_panels():
         panel.COMPAT_ENGINES.add(SplatwrightRenderEngine.bl_idname)
+    mesh_layer.register()
 
 
-def remove_from_panels():
+def unregister():
+    mesh_layer.unregister()
     for panel in _generic_panels():
         panel.COMPAT_ENGINES.discard(SplatwrightRenderEngine.bl_idname)
+    delattr(bpy.types.ViewLayer, SPLAT_PASSES)
+    delattr(bpy.types.Scene, MESH_ENGINE)

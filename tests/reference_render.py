@@ -15,12 +15,16 @@ from splatwright.core import geometry, sh
 ALPHA_MIN, ALPHA_MAX, T_MIN, LOW_PASS = 1.0 / 255.0, 0.99, 1e-4, 0.3
 
 
-def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN):
+def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN,
+                     layer=None):
     """Returns a dict with color (.., 3), alpha, depth and counts, float64 (counts int), and
     max_weight (N,): each splat's largest blending weight T * alpha over the pixels, 0 if none.
 
     pixels: optional (M, 2) integer array of (column, row) to evaluate; the outputs are then (M, ...)
     instead of (H, W, ...).
+    layer: optional (color (.., 3) premultiplied, alpha, depth) of a surface, composited once per
+    pixel just before the first splat whose depth is not in front of it (or after the last); the
+    result then also holds layer_t, the T it was composited with.
     """
     if pixels is None:
         rows, cols = np.mgrid[0:camera.height, 0:camera.width]
@@ -37,6 +41,18 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     counts = np.zeros(m, dtype=np.int64)
     done = np.zeros(m, bool)
     max_weight = np.zeros(len(cloud))
+    if layer is not None:
+        l_color, l_alpha, l_depth = (np.asarray(a, np.float64).reshape(m, -1) for a in layer)
+        l_alpha, l_depth = l_alpha[:, 0], l_depth[:, 0]
+        waiting, layer_t = np.ones(m, bool), np.zeros(m)
+
+    def cross(where):
+        """Composite the layer at the waiting pixels in `where`."""
+        layer_t[where] = trans[where]
+        color[where] += trans[where, None] * l_color[where]
+        trans[where] *= 1.0 - l_alpha[where]
+        waiting[where] = False
+
     chunk = max(1, 4_000_000 // max(m, 1))
     for start in range(0, len(splats["z"]), chunk):
         sl = slice(start, start + chunk)
@@ -46,6 +62,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
         q = con[:, 0, 0, None] * dx * dx + 2 * con[:, 0, 1, None] * dx * dy + con[:, 1, 1, None] * dy * dy
         alpha = np.minimum(ALPHA_MAX, splats["opacity"][sl, None] * np.exp(-0.5 * q))
         for k in np.flatnonzero((alpha >= ALPHA_MIN).any(axis=1)):
+            if layer is not None:
+                cross(waiting & (splats["z"][start + k] >= l_depth))
             a = alpha[k]
             use = ~done & (a >= ALPHA_MIN)
             test = trans * (1.0 - a)
@@ -59,6 +77,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
             max_weight[splats["index"][start + k]] = w.max(initial=0.0)
             trans = np.where(use, test, trans)
 
+    if layer is not None:
+        cross(waiting.copy())
     alpha = 1.0 - trans
     out = {
         "color": color + trans[:, None] * np.asarray(background, dtype=np.float64),
@@ -66,6 +86,10 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
         "depth": np.where(alpha > 0, depth_sum / np.where(alpha > 0, alpha, 1.0), 0.0),
         "counts": counts,
     }
+    if layer is not None:      # depth and alpha of the splats alone, without the layer's share
+        out["layer_t"] = layer_t
+        splat_alpha = alpha - layer_t * l_alpha
+        out["depth"] = np.where(splat_alpha > 0, depth_sum / np.where(splat_alpha > 0, splat_alpha, 1.0), 0.0)
     if pixels is None:
         out = {k: v.reshape((camera.height, camera.width) + v.shape[1:]) for k, v in out.items()}
     out["max_weight"] = max_weight

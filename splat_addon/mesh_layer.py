@@ -1,0 +1,303 @@
+"""The mesh layer of a SPLATWRIGHT render: everything in the scene that is not a splat (meshes,
+curves, hair, volumes and the world), rendered by Cycles, EEVEE or Workbench with the user's
+materials, lights and samples, and handed to the core renderer as a Layer (colour, alpha and the
+surface depth per pixel), which composites the splats with it exactly in depth order.
+
+How: a child Blender renders a snapshot of the scene. A Python render engine cannot start another
+engine inside its own render: from the interface, render() runs in the render job's thread, where
+operators are unsafe and the render pipeline is busy with our own job; Cycles and EEVEE have no API
+that renders into a Python engine's result. So:
+
+1. the scene is written to a snapshot .blend with bpy.data.libraries.write (the scene and all it
+   uses). That must happen on Blender's main thread (before Blender 4.4 a partial write moves data
+   blocks between lists of the open file): at once when render() runs there (background renders,
+   `bpy.ops.render.render()` from a script), else through a timer that the extension keeps on the
+   main thread and that the render thread waits for;
+2. a child Blender (the same executable, or the same Python for the bpy module) started once and
+   kept for later frames opens the snapshot, hides the splat objects, sets the frame and renders the
+   view layer with the chosen engine to an uncompressed multilayer EXR (Combined and Depth);
+3. io/exr_plain.py reads it back (Blender's Python has no EXR reader).
+
+Limits: see "Meshes and splats in one picture" in docs/DESIGN.md.
+"""
+
+import atexit
+import collections
+import json
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ..core.color import linear_to_srgb
+from ..core.render import Layer
+from ..io.exr_plain import read_plain_exr
+from . import data
+
+CHILD_SCRIPT = Path(__file__).with_name("mesh_layer_child.py")
+REPLY = "@splatwright-mesh-layer "          # the child's answer lines start with this (mesh_layer_child.REPLY)
+ENGINE_CHOICES = (
+    ("CYCLES", "Cycles", "Meshes, curves, volumes and the world rendered by Cycles with the scene's Cycles settings"),
+    ("EEVEE", "EEVEE", "Rendered by EEVEE with the scene's EEVEE settings (needs a GPU, also in background mode)"),
+    ("WORKBENCH", "Workbench", "Rendered by Workbench (needs a GPU)"),
+    ("NONE", "None", "Splats only: meshes do not show in the render"),
+)
+# every object type that Blender's engines draw as a surface, volume or strokes
+GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES", "POINTCLOUD", "VOLUME", "GPENCIL",
+                  "GREASEPENCIL"}
+NO_SURFACE = 1e10          # what the Depth pass holds where nothing was hit
+
+
+class MeshLayerError(RuntimeError):
+    """The mesh layer could not be rendered; the message says why."""
+
+
+class Cancelled(Exception):
+    """The user stopped the render."""
+
+
+def engine_id(choice):
+    """Blender's engine identifier for an ENGINE_CHOICES key (EEVEE changed its name in 5.0)."""
+    if choice == "EEVEE":
+        return "BLENDER_EEVEE" if bpy.app.version >= (5, 0, 0) else "BLENDER_EEVEE_NEXT"
+    return {"CYCLES": "CYCLES", "WORKBENCH": "BLENDER_WORKBENCH"}[choice]
+
+
+@dataclass
+class MeshLayer:
+    """The rendered mesh layer: rgba (H,W,4) scene-linear premultiplied, depth (H,W) camera z
+    (NO_SURFACE where nothing was hit), rows top first; seconds it took."""
+
+    rgba: np.ndarray
+    depth: np.ndarray
+    seconds: float = 0.0
+
+    def as_layer(self):
+        """The core renderer's Layer: display sRGB premultiplied (the curve on the straight colour,
+        as the engine applies it to splats), alpha, depth."""
+        alpha = np.clip(self.rgba[..., 3].astype(np.float64), 0.0, 1.0)
+        straight = np.where(alpha[..., None] > 0, self.rgba[..., :3] / np.where(alpha > 0, alpha, 1.0)[..., None], 0.0)
+        return Layer(linear_to_srgb(straight) * alpha[..., None], alpha, self.depth)
+
+
+def has_geometry(depsgraph):
+    """Whether the depsgraph renders anything besides splats (a mesh, curve, volume, ...)."""
+    for inst in depsgraph.object_instances:
+        obj = inst.object
+        if obj.type in GEOMETRY_TYPES and not data.is_splat_object(obj.original):
+            return True
+    return False
+
+
+def render(depsgraph, engine, width, height, test_break=lambda: False):
+    """Render the mesh layer of the depsgraph's scene and view layer at its current frame with
+    `engine` (an ENGINE_CHOICES key); returns a MeshLayer of width x height."""
+    start = time.perf_counter()
+    scene = depsgraph.scene
+    work = _workdir()
+    stamp = f"{os.getpid()}_{next(_counter)}"
+    blend, exr = work / f"scene_{stamp}.blend", work / f"layer_{stamp}.exr"
+    try:
+        hide = on_main_thread(lambda: write_snapshot(scene.name, blend), test_break)
+        request = {"blend": str(blend), "scene": scene.name, "view_layer": depsgraph.view_layer.name,
+                   "frame": scene.frame_current, "subframe": scene.frame_subframe,
+                   "camera": scene.camera.name if scene.camera else "", "engine": engine_id(engine),
+                   "hide": hide, "out": str(exr), "autoexec": not bpy.app.autoexec_fail}
+        reply = _child().ask(request, test_break)
+        if not reply.get("ok"):
+            raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")
+        channels = read_plain_exr(exr)
+    finally:
+        for path in (blend, exr):
+            path.unlink(missing_ok=True)
+    return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, time.perf_counter() - start)
+
+
+def _layer_from_channels(channels, view_layer, width, height, seconds):
+    names = {c: f"{view_layer}.Combined.{c}" for c in "RGBA"}
+    depth_name = f"{view_layer}.Depth.Z"
+    missing = [n for n in (*names.values(), depth_name) if n not in channels]
+    if missing:
+        raise MeshLayerError(f"the mesh layer has no {', '.join(missing)} (it has {', '.join(sorted(channels))})")
+    rgba = np.stack([channels[names[c]] for c in "RGBA"], axis=-1)
+    if rgba.shape[:2] != (height, width):
+        raise MeshLayerError(f"the mesh layer is {rgba.shape[1]}x{rgba.shape[0]}, the render {width}x{height}")
+    depth = channels[depth_name]
+    bad = ~np.isfinite(rgba).all(axis=-1) | np.isnan(depth)
+    if bad.any():
+        raise MeshLayerError(f"the mesh layer holds NaN or Inf at {int(bad.sum())} pixels")
+    return MeshLayer(rgba, depth, seconds)
+
+
+def write_snapshot(scene_name, path):
+    """Write the scene and everything it uses to `path` (main thread only); returns the names of
+    the splat objects, which the child hides."""
+    scene = bpy.data.scenes[scene_name]
+    bpy.data.libraries.write(str(path), {scene}, path_remap="ABSOLUTE", fake_user=True)
+    return sorted(o.name for o in bpy.data.objects if data.is_splat_object(o))
+
+
+# the main thread ------------------------------------------------------------------------------------
+
+_calls = queue.Queue()
+MAIN_THREAD_POLL = 0.05     # seconds between the main-thread timer's looks at the queue
+
+
+def on_main_thread(fn, test_break=lambda: False):
+    """fn() run on Blender's main thread, its result returned (its exception raised). On the main
+    thread it runs at once; from another thread (the render job of the interface) the extension's
+    timer runs it while this thread waits, giving up if the render is cancelled."""
+    if threading.current_thread() is threading.main_thread():
+        return fn()
+    done, box = threading.Event(), {}
+
+    def call():
+        if box.get("cancelled"):
+            return
+        try:
+            box["value"] = fn()
+        except Exception as exc:
+            box["error"] = exc
+        finally:
+            done.set()
+
+    _calls.put(call)
+    while not done.wait(0.05):
+        if test_break():
+            box["cancelled"] = True
+            raise Cancelled
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
+def _serve_main_thread():
+    """The timer on Blender's main thread: run what render threads queued."""
+    while True:
+        try:
+            call = _calls.get_nowait()
+        except queue.Empty:
+            return MAIN_THREAD_POLL
+        call()
+
+
+# the child Blender ----------------------------------------------------------------------------------
+
+_counter = iter(range(1, 1 << 62))
+_lock = threading.Lock()
+_state = {"child": None, "workdir": None}
+
+
+def child_command():
+    """How to start a Blender without a window that runs mesh_layer_child.py: this Blender's own
+    executable, or, for the bpy module (no executable of its own), this Python."""
+    binary = bpy.app.binary_path
+    if binary and Path(binary).exists() and "python" not in Path(binary).name.lower():
+        return [binary, "-b", "-noaudio", "--python", str(CHILD_SCRIPT)]
+    return [sys.executable, str(CHILD_SCRIPT)]
+
+
+class _Child:
+    """One child Blender and the lines it prints, read by a thread so its pipe never fills."""
+
+    def __init__(self):
+        flags = subprocess.CREATE_NO_WINDOW if sys.platform == "win32" else 0
+        try:
+            self.proc = subprocess.Popen(child_command(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                         stderr=subprocess.STDOUT, text=True, bufsize=1, creationflags=flags)
+        except OSError as exc:
+            raise MeshLayerError(f"cannot start a Blender to render the meshes ({child_command()[0]}): {exc}") from exc
+        self.replies, self.log = queue.Queue(), collections.deque(maxlen=40)
+        self.busy = threading.Lock()          # one request at a time
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self):
+        for line in self.proc.stdout:
+            if line.startswith(REPLY):
+                self.replies.put(json.loads(line[len(REPLY):]))
+            else:
+                self.log.append(line.rstrip())
+
+    def alive(self):
+        return self.proc.poll() is None
+
+    def ask(self, request, test_break):
+        """Send one request and wait for its reply, watching for a cancelled render."""
+        with self.busy:
+            try:
+                self.proc.stdin.write(json.dumps(request) + "\n")
+                self.proc.stdin.flush()
+            except OSError:
+                self.close(kill=True)
+                raise MeshLayerError("the Blender rendering the meshes has ended:\n" + "\n".join(self.log)) from None
+            while True:
+                try:
+                    return self.replies.get(timeout=0.05)
+                except queue.Empty:
+                    pass
+                if test_break():
+                    self.close(kill=True)     # a render cannot be stopped half way: start afresh next time
+                    raise Cancelled
+                if not self.alive():
+                    raise MeshLayerError("the Blender rendering the meshes ended unexpectedly:\n"
+                                         + "\n".join(self.log))
+
+    def close(self, kill=False):
+        """Let the child end (its stdin closes), or kill it."""
+        try:
+            if kill:
+                self.proc.kill()
+            else:
+                self.proc.stdin.close()
+            self.proc.wait(timeout=10)
+        except (OSError, subprocess.TimeoutExpired):
+            self.proc.kill()
+            self.proc.wait()
+
+
+def _child():
+    with _lock:
+        child = _state["child"]
+        if child is None or not child.alive():
+            child = _state["child"] = _Child()
+        return child
+
+
+def _workdir():
+    with _lock:
+        if _state["workdir"] is None:
+            _state["workdir"] = Path(tempfile.mkdtemp(prefix="splatwright-meshes-"))
+        return _state["workdir"]
+
+
+def stop():
+    """End the child Blender and remove the snapshots' folder."""
+    with _lock:
+        child, work = _state["child"], _state["workdir"]
+        _state["child"] = _state["workdir"] = None
+    if child is not None:
+        child.close()
+    if work is not None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def register():
+    if not bpy.app.timers.is_registered(_serve_main_thread):
+        bpy.app.timers.register(_serve_main_thread, first_interval=MAIN_THREAD_POLL, persistent=True)
+    atexit.register(stop)
+
+
+def unregister():
+    if bpy.app.timers.is_registered(_serve_main_thread):
+        bpy.app.timers.unregister(_serve_main_thread)
+    atexit.unregister(stop)
+    stop()

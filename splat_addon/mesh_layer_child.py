@@ -1,0 +1,64 @@
+"""The child Blender of a SPLATWRIGHT render (see mesh_layer.py): renders the mesh layer of a scene
+snapshot with Cycles, EEVEE or Workbench into an uncompressed multilayer EXR.
+
+Run as a script, never imported: `blender -b --python mesh_layer_child.py` (a Blender install) or
+`python mesh_layer_child.py` (the bpy module). It answers one JSON request per stdin line with one
+line starting with REPLY, and ends when stdin closes:
+
+    {"blend": snapshot.blend, "scene": name, "view_layer": name, "frame": 12, "subframe": 0.0,
+     "camera": name, "engine": "CYCLES", "hide": [splat object names], "out": layer.exr,
+     "autoexec": true}
+"""
+
+import json
+import sys
+import time
+import traceback
+
+REPLY = "@splatwright-mesh-layer "
+
+
+def render(request):
+    import bpy
+    bpy.ops.wm.open_mainfile(filepath=request["blend"], load_ui=False,
+                             use_scripts=request.get("autoexec", False))
+    scene = bpy.data.scenes[request["scene"]]
+    for name in request["hide"]:
+        obj = bpy.data.objects.get(name)
+        if obj is not None:
+            obj.hide_render = True
+    scene.frame_set(request["frame"], subframe=request["subframe"])
+    if request.get("camera"):
+        scene.camera = bpy.data.objects[request["camera"]]
+    settings = scene.render
+    settings.engine = request["engine"]
+    settings.use_border = False
+    settings.use_compositing = False       # the render layer itself, not what the compositor makes of it
+    settings.use_sequencer = False
+    settings.filepath = request["out"]
+    image = settings.image_settings
+    if hasattr(image, "media_type"):
+        image.media_type = "MULTI_LAYER_IMAGE"
+    image.file_format = "OPEN_EXR_MULTILAYER"
+    image.color_depth = "32"
+    image.exr_codec = "NONE"
+    layer = scene.view_layers[request["view_layer"]]
+    layer.use_pass_combined = layer.use_pass_z = True
+    bpy.ops.render.render(write_still=True, scene=scene.name, layer=layer.name)
+
+
+def main():
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        start = time.perf_counter()
+        try:
+            render(json.loads(line))
+            reply = {"ok": True, "seconds": time.perf_counter() - start}
+        except Exception as exc:
+            reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()}
+        print(REPLY + json.dumps(reply), flush=True)
+
+
+if __name__ == "__main__":
+    main()

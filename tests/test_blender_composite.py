@@ -1,0 +1,202 @@
+"""Splats and meshes in one picture, headless in every Blender of the version matrix.
+
+The oracle: Cycles renders the plane and sphere alone (the splats hidden), and the float64 brute-force
+reference (tests/reference_render.py, no code of core/render.py) composites the splat cloud with that
+picture as the final layer at Cycles' own depth; the SPLATWRIGHT engine's F12 output must equal it to
+1/255. With flat emission the meshes can also be turned into dense opaque splats: one splat render of
+everything must then agree with the composite within the PSNR stated below. Every file is read by
+OpenEXR and Pillow.
+"""
+
+import numpy as np
+import pytest
+from blender_session import blender_fixture
+from reference_render import reference_render
+from workers.composite import EMISSION, SIZE, WORLD, oracle_cloud_arrays
+
+from splatwright.core import SplatCloud
+from splatwright.core.camera import Camera
+from splatwright.core.color import linear_to_srgb, srgb_to_linear
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+STEP = 1.0 / 255.0
+EMISSION_PSNR = 38.0            # dB: flat-emission composite against the meshes made of splats, off outlines
+EMISSION_PSNR_WHOLE = 22.0      # dB: the same over the whole 192x144 picture, outlines included
+
+blender = blender_fixture("workers.composite")
+
+
+def exr(path):
+    import OpenEXR
+    with OpenEXR.File(str(path)) as f:
+        return {name: ch.pixels for part in f.parts for name, ch in part.channels.items()}
+
+
+def png(path):
+    from PIL import Image
+    return np.asarray(Image.open(path), dtype=np.float64) / 255.0
+
+
+def camera(rec):
+    x, y, pct = rec["resolution"]
+    lens = {k: rec[k] for k in ("lens", "sensor_width", "sensor_height", "sensor_fit", "shift_x", "shift_y",
+                                "type", "ortho_scale", "pixel_aspect_x", "pixel_aspect_y")}
+    return Camera.from_blender(np.array(rec["matrix_world"]), x * pct // 100, y * pct // 100,
+                               clip_start=rec["clip_start"], clip_end=rec["clip_end"], **lens)
+
+
+def display(rgba):
+    """Scene-linear premultiplied RGBA -> display-sRGB premultiplied colour and alpha (the curve on the
+    straight colour, as the engine treats every colour)."""
+    alpha = rgba[..., 3].astype(np.float64)
+    straight = np.where(alpha[..., None] > 0, rgba[..., :3] / np.maximum(alpha, 1e-30)[..., None], 0.0)
+    return linear_to_srgb(straight) * alpha[..., None], alpha
+
+
+def linear(color, alpha):
+    straight = np.where(alpha[..., None] > 0, color / np.maximum(alpha, 1e-30)[..., None], 0.0)
+    return np.concatenate([srgb_to_linear(straight) * alpha[..., None], alpha[..., None]], axis=-1)
+
+
+def oracle(blender, film):
+    """The reference picture: the splats composited by the float64 brute force with Cycles' meshes."""
+    meshes = exr(blender.out / f"meshes_{film}.exr")
+    color, alpha = display(meshes["ViewLayer.Combined"])
+    cloud = SplatCloud(**oracle_cloud_arrays())
+    ref = reference_render(cloud, camera(blender.step("oracle")["camera"]),
+                           layer=(color, alpha, meshes["ViewLayer.Depth.Z"]))
+    return ref, meshes
+
+
+@pytest.mark.parametrize("film", ["opaque", "transparent"])
+def test_composite_equals_the_splats_rendered_over_cycles_meshes(blender, film):
+    ref, meshes = oracle(blender, film)
+    got = exr(blender.out / f"composite_{film}.exr")
+    assert got["ViewLayer.Combined"].shape == (SIZE[1], SIZE[0], 4)
+    want = linear(ref["color"], ref["alpha"])
+    if film == "opaque":
+        assert (want[..., 3] == 1).all()
+    # in display terms (what the PNG holds) every pixel is within 1/255 of the oracle
+    got_color, got_alpha = display(got["ViewLayer.Combined"])
+    assert np.abs(got_color - ref["color"]).max() <= STEP
+    assert np.abs(got_alpha - ref["alpha"]).max() <= STEP
+    picture = png(blender.out / f"composite_{film}.png")
+    straight = np.where(ref["alpha"][..., None] > 0, ref["color"] / np.maximum(ref["alpha"], 1e-30)[..., None], 0)
+    seen = ref["alpha"] > 0.05
+    assert np.abs(picture[..., :3][seen] - np.clip(straight[seen], 0, 1)).max() <= 1.01 * STEP
+    assert np.abs(picture[..., 3] - ref["alpha"]).max() <= 1.01 * STEP
+    # the scene really mixes both: splats hidden behind the meshes, splats over them, bare meshes
+    cut = ref["layer_t"] < 0.95
+    behind = reference_render(SplatCloud(**oracle_cloud_arrays()), camera(blender.step("oracle")["camera"]))
+    assert (cut & (meshes["ViewLayer.Combined"][..., 3] > 0.99)).sum() > 100
+    assert (np.abs(behind["color"] - ref["color"]).max(axis=-1) > 0.2).sum() > 100
+
+
+@pytest.mark.parametrize("film", ["opaque", "transparent"])
+def test_passes_depth_splats_and_meshes(blender, film):
+    ref, meshes = oracle(blender, film)
+    got = exr(blender.out / f"composite_{film}.exr")
+    # the Meshes pass is Cycles' own picture (the same settings and seed give the same pixels)
+    np.testing.assert_allclose(got["ViewLayer.Meshes"], meshes["ViewLayer.Combined"], atol=1e-6)
+    # Depth: the nearer of the splats (where any is blended) and the mesh surface
+    surface = meshes["ViewLayer.Depth.Z"]
+    splat_alpha = ref["alpha"] - ref["layer_t"] * display(meshes["ViewLayer.Combined"])[1]
+    want = np.where(splat_alpha > 1e-4, np.minimum(ref["depth"], surface), surface)
+    clear = np.abs(splat_alpha - 1e-4) > 1e-5             # not on the edge of the "any splat" test
+    np.testing.assert_allclose(got["ViewLayer.Depth.Z"][clear], want[clear], rtol=2e-4)
+    # Splats: what the splats add, with their coverage in front of the meshes; over the meshes (in
+    # display terms) they give Combined where the meshes are opaque or absent. (Where a mesh edge is
+    # partly transparent, splats seen through it add colour at zero coverage, which a premultiplied
+    # pass cannot hold.)
+    splats_color, splats_alpha = display(got["ViewLayer.Splats"])
+    assert np.abs(splats_alpha - (1 - ref["layer_t"])).max() <= STEP
+    mesh_color, mesh_alpha = display(got["ViewLayer.Meshes"])
+    whole = (mesh_alpha == 0) | (mesh_alpha == 1)
+    over = splats_color + (1 - splats_alpha)[..., None] * mesh_color
+    assert np.abs(over - ref["color"])[whole].max() <= STEP
+    assert np.abs(splats_alpha + (1 - splats_alpha) * mesh_alpha - ref["alpha"])[whole].max() <= STEP
+
+
+def mesh_splats(triangles, color, spacing):
+    """Flat emission triangles as dense, thin, opaque splats: about one per spacing^2 of area, each
+    a disc of sigma `spacing` in the triangle's plane, the emission colour in display sRGB."""
+    rng = np.random.default_rng(0)
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    normal = np.cross(b - a, c - a)
+    area = 0.5 * np.linalg.norm(normal, axis=1)
+    count = rng.poisson(area / spacing ** 2 + 0.5)
+    tri = np.repeat(np.arange(len(triangles)), count)
+    u, v = rng.uniform(size=(2, len(tri)))
+    flip = u + v > 1
+    u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+    points = a[tri] + u[:, None] * (b - a)[tri] + v[:, None] * (c - a)[tri]
+    n = normal[tri] / np.linalg.norm(normal[tri], axis=1, keepdims=True)
+    # the quaternion turning z onto the normal
+    axis = np.cross([0.0, 0.0, 1.0], n)
+    w = 1.0 + n[:, 2]
+    quat = np.column_stack([w, axis])
+    quat[w < 1e-9] = [0.0, 1.0, 0.0, 0.0]
+    m = len(points)
+    return SplatCloud.from_activated(positions=points, rotations=quat,
+                                     scales=np.tile([spacing, spacing, spacing * 1e-3], (m, 1)),
+                                     opacities=np.full(m, 0.999), colors=np.tile(linear_to_srgb(color), (m, 1)))
+
+
+def silhouettes(image, width=2):
+    """Pixels within `width` px of a colour edge of a flat-coloured image."""
+    edge = np.zeros(image.shape[:2], bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            edge |= np.abs(np.roll(image, (dy, dx), axis=(0, 1)) - image).max(axis=-1) > 0.05
+    for _ in range(width - 1):
+        edge |= np.roll(edge, 1, 0) | np.roll(edge, -1, 0) | np.roll(edge, 1, 1) | np.roll(edge, -1, 1)
+    return edge
+
+
+def test_flat_emission_meshes_agree_with_the_meshes_made_of_splats(blender):
+    """Away from the meshes' outlines the composite converges to the all-splat picture as the mesh
+    splats get denser; at the outlines a dense opaque splat surface is about a pixel wider (the 0.3 px^2
+    low-pass summed over many splats) than Cycles' filtered edge, which bounds the whole-image PSNR."""
+    from splatwright.core.metrics import psnr
+    from splatwright.core.render import render
+    rec = blender.step("emission")
+    cam = camera(rec["camera"])
+    triangles = blender.npz("emission_triangles")
+    picture = png(blender.out / "emission.png")[..., :3]
+    splats = SplatCloud(**oracle_cloud_arrays())
+    inside, whole = [], []
+    for spacing in (0.06, 0.015):
+        meshes = SplatCloud.concatenate([mesh_splats(triangles[n], np.array(EMISSION[n]), spacing) for n in EMISSION])
+        everything = np.clip(render(SplatCloud.concatenate([splats, meshes]), cam).color, 0, 1)
+        away = ~silhouettes(np.clip(render(meshes, cam).color, 0, 1))
+        inside.append(psnr(everything[away], picture[away]))
+        whole.append(psnr(everything, picture))
+    assert inside[1] >= EMISSION_PSNR and inside[1] > inside[0] + 3, inside     # closer as the splats get denser
+    assert whole[1] >= EMISSION_PSNR_WHOLE, whole
+
+
+def test_command_verb_gives_the_f12_picture_and_can_leave_meshes_out(blender):
+    res = blender.step("command")
+    assert res["codes"] == [0, 0] and res["mesh_engine_after"] == "CYCLES"
+    f12, verb = exr(blender.out / "f12.exr"), exr(blender.out / "verb_0001.exr")
+    for name in ("ViewLayer.Combined", "ViewLayer.Depth.Z", "ViewLayer.Splats", "ViewLayer.Meshes"):
+        np.testing.assert_array_equal(verb[name], f12[name])
+    # --meshes none: the splats alone over the world colour, the plane and sphere gone
+    alone = png(blender.out / "verb_none_0001.png")[..., :3]
+    ref = reference_render(SplatCloud(**oracle_cloud_arrays()), camera(blender.step("oracle")["camera"]),
+                           background=linear_to_srgb(np.array(WORLD)))
+    assert np.abs(alone - np.clip(ref["color"], 0, 1)).max() <= 1.01 * STEP
+
+
+def test_render_animation_renders_each_frames_meshes(blender):
+    res = blender.step("animation")
+    assert res["frame_after"] == 1
+    frames = {f: exr(blender.out / f"anim_{f:04d}.exr") for f in (1, 2)}
+    for f in (1, 2):
+        meshes = exr(blender.out / f"anim_meshes_{f}.exr")
+        np.testing.assert_allclose(frames[f]["ViewLayer.Meshes"], meshes["ViewLayer.Combined"], atol=1e-6)
+        np.testing.assert_allclose(frames[f]["ViewLayer.Depth.Z"].min(), min(meshes["ViewLayer.Depth.Z"].min(),
+                                   frames[f]["ViewLayer.Depth.Z"].min()))
+    moved = np.abs(frames[1]["ViewLayer.Meshes"] - frames[2]["ViewLayer.Meshes"]).max(axis=-1) > 0.05
+    assert moved.sum() > 50
