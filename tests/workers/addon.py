@@ -254,6 +254,7 @@ class Worker(BlenderWorker):
         from mathutils import Vector
         scene = bpy.context.scene
         scene.render.engine = "SPLATWRIGHT"
+        scene.splatwright_mesh_engine = "NONE"          # splats alone: the startup Cube stays out
         scene.view_settings.view_transform = "Standard"
         scene.view_settings.look = "None"
         scene.view_settings.exposure = 0.0

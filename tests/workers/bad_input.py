@@ -114,6 +114,7 @@ class Worker(BlenderWorker):
         scene = self.bpy.context.scene
         render = scene.render
         render.engine = "SPLATWRIGHT"
+        scene.splatwright_mesh_engine = "NONE"          # splats alone
         render.resolution_x, render.resolution_y, render.resolution_percentage = *RENDER_SIZE, 100
         self.image_format(render.image_settings, "OPEN_EXR")
         render.film_transparent = transparent

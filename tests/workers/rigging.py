@@ -292,6 +292,7 @@ class Worker(BlenderWorker):
         # the render engine (its own render depsgraph), with the weights cache empty
         render_settings = scene.render
         render_settings.engine = "SPLATWRIGHT"
+        scene.splatwright_mesh_engine = "NONE"          # splats alone: the skinned mesh stays out
         render_settings.resolution_x, render_settings.resolution_y, render_settings.resolution_percentage = \
             width, height, 100
         self.image_format(render_settings.image_settings, "OPEN_EXR")

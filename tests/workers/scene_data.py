@@ -104,6 +104,7 @@ class Worker(BlenderWorker):
             for obj in hidden:
                 obj.hide_render = True
         scene.render.engine = "SPLATWRIGHT"
+        scene.splatwright_mesh_engine = "NONE"          # splats alone
         scene.render.resolution_x, scene.render.resolution_y = RENDER_SIZE
         scene.render.resolution_percentage = 100
         scene.render.film_transparent = False
