@@ -113,9 +113,12 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")
         image = self._image(cloud, cam, background, layer)
+        passes = splat_passes(image, layer, meshes)
+        world = None if meshes is None else meshes.world()
+        if world is not None:               # the world rendered apart: behind everything, per pixel
+            image.color += (1.0 - image.alpha)[..., None] * world
         alpha = image.alpha if transparent else np.ones_like(image.alpha)
-        self._write(width, height, to_scene_linear(image.color, alpha), composite_depth(image, layer),
-                    splat_passes(image, layer, meshes))
+        self._write(width, height, to_scene_linear(image.color, alpha), composite_depth(image, layer), passes)
 
     def _mesh_layer(self, depsgraph, width, height):
         """The scene's meshes and world rendered by the chosen engine, or None (splats only, or
@@ -182,7 +185,7 @@ def splat_passes(image, layer, meshes):
         alpha = 1.0 - image.layer_transmittance
     passes = {"Splats": to_scene_linear(np.maximum(color, 0.0), np.clip(alpha, 0.0, 1.0))}
     if meshes is not None:
-        passes["Meshes"] = meshes.rgba
+        passes["Meshes"] = meshes.picture()
     return passes
 
 

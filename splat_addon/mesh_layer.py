@@ -74,17 +74,48 @@ def engine_id(choice):
 
 @dataclass
 class MeshLayer:
-    """The rendered mesh layer: rgba (H,W,4) scene-linear premultiplied, depth (H,W) camera z
-    (NO_SURFACE where nothing was hit), rows top first; seconds it took."""
+    """The rendered mesh layer, rows top first: rgba (H,W,4) scene-linear premultiplied, depth (H,W)
+    camera z (NO_SURFACE where nothing was hit) and, when the world was rendered apart (the engine
+    renders an opaque film as a transparent one plus its Environment pass), environment (H,W,3): the
+    world seen through each pixel, in front of nothing else; seconds it took."""
 
     rgba: np.ndarray
     depth: np.ndarray
+    environment: np.ndarray | None = None
     seconds: float = 0.0
 
+    @property
+    def alpha(self):
+        return np.clip(self.rgba[..., 3].astype(np.float64), 0.0, 1.0)
+
+    def world(self):
+        """(H,W,3) display sRGB of the world behind each pixel, or None (a transparent film, or an
+        engine whose picture already holds the world)."""
+        if self.environment is None:
+            return None
+        clear = 1.0 - self.alpha
+        behind = np.where(clear[..., None] > 1e-6, self.environment / np.maximum(clear, 1e-6)[..., None], 0.0)
+        return linear_to_srgb(behind)
+
+    def picture(self):
+        """The meshes as their engine shows them, scene-linear premultiplied (the Meshes pass)."""
+        if self.environment is None:
+            return self.rgba
+        out = self.rgba.copy()
+        out[..., :3] += self.environment
+        out[..., 3] = 1.0
+        return out
+
     def as_layer(self):
-        """The core renderer's Layer: display sRGB premultiplied (the curve on the straight colour,
-        as the engine applies it to splats), alpha, depth."""
-        alpha = np.clip(self.rgba[..., 3].astype(np.float64), 0.0, 1.0)
+        """The core renderer's Layer: display sRGB premultiplied, alpha, depth. The curve goes on the
+        straight colour, as the engine treats splats. With the world apart, the colour is chosen so
+        that the layer over the world (in display terms, as splats meet it) is the engine's own
+        mix of meshes and world, which the engine makes in linear light: at a partly covered pixel,
+        display(meshes + world) - (1 - alpha) display(world)."""
+        alpha = self.alpha
+        if self.environment is not None:
+            color = linear_to_srgb(self.rgba[..., :3] + self.environment) - (1.0 - alpha)[..., None] * self.world()
+            return Layer(np.maximum(color, 0.0), alpha, self.depth)
         straight = np.where(alpha[..., None] > 0, self.rgba[..., :3] / np.where(alpha > 0, alpha, 1.0)[..., None], 0.0)
         return Layer(linear_to_srgb(straight) * alpha[..., None], alpha, self.depth)
 
@@ -108,10 +139,13 @@ def render(depsgraph, engine, width, height, test_break=lambda: False):
     blend, exr = work / f"scene_{stamp}.blend", work / f"layer_{stamp}.exr"
     try:
         hide = on_main_thread(lambda: write_snapshot(scene.name, blend), test_break)
+        # Cycles renders the world apart (its Environment pass) when the film is opaque, so that
+        # splats behind a translucent surface show through it; the others render the film as set.
+        apart = engine == "CYCLES" and not scene.render.film_transparent
         request = {"blend": str(blend), "scene": scene.name, "view_layer": depsgraph.view_layer.name,
                    "frame": scene.frame_current, "subframe": scene.frame_subframe,
                    "camera": scene.camera.name if scene.camera else "", "engine": engine_id(engine),
-                   "hide": hide, "out": str(exr), "autoexec": not bpy.app.autoexec_fail}
+                   "hide": hide, "out": str(exr), "autoexec": not bpy.app.autoexec_fail, "environment": apart}
         reply = _child().ask(request, test_break)
         if not reply.get("ok"):
             raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")
@@ -119,23 +153,29 @@ def render(depsgraph, engine, width, height, test_break=lambda: False):
     finally:
         for path in (blend, exr):
             path.unlink(missing_ok=True)
-    return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, time.perf_counter() - start)
+    return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart,
+                                time.perf_counter() - start)
 
 
-def _layer_from_channels(channels, view_layer, width, height, seconds):
-    names = {c: f"{view_layer}.Combined.{c}" for c in "RGBA"}
-    depth_name = f"{view_layer}.Depth.Z"
-    missing = [n for n in (*names.values(), depth_name) if n not in channels]
+def _layer_from_channels(channels, view_layer, width, height, environment, seconds):
+    """The MeshLayer in an EXR's channels, or MeshLayerError naming what is missing or wrong."""
+    names = [f"{view_layer}.Combined.{c}" for c in "RGBA"] + [f"{view_layer}.Depth.Z"]
+    if environment:                       # the pass is "Env" before Blender 5.0
+        env = "Environment" if f"{view_layer}.Environment.R" in channels else "Env"
+        names += [f"{view_layer}.{env}.{c}" for c in "RGB"]
+    missing = [n for n in names if n not in channels]
     if missing:
         raise MeshLayerError(f"the mesh layer has no {', '.join(missing)} (it has {', '.join(sorted(channels))})")
-    rgba = np.stack([channels[names[c]] for c in "RGBA"], axis=-1)
+    rgba, depth = np.stack([channels[n] for n in names[:4]], axis=-1), channels[names[4]]
+    env = np.stack([channels[n] for n in names[5:]], axis=-1) if environment else None
     if rgba.shape[:2] != (height, width):
         raise MeshLayerError(f"the mesh layer is {rgba.shape[1]}x{rgba.shape[0]}, the render {width}x{height}")
-    depth = channels[depth_name]
     bad = ~np.isfinite(rgba).all(axis=-1) | np.isnan(depth)
+    if env is not None:
+        bad |= ~np.isfinite(env).all(axis=-1)
     if bad.any():
         raise MeshLayerError(f"the mesh layer holds NaN or Inf at {int(bad.sum())} pixels")
-    return MeshLayer(rgba, depth, seconds)
+    return MeshLayer(rgba, depth, env, seconds)
 
 
 def write_snapshot(scene_name, path):

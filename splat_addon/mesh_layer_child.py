@@ -7,7 +7,10 @@ line starting with REPLY, and ends when stdin closes:
 
     {"blend": snapshot.blend, "scene": name, "view_layer": name, "frame": 12, "subframe": 0.0,
      "camera": name, "engine": "CYCLES", "hide": [splat object names], "out": layer.exr,
-     "autoexec": true}
+     "autoexec": true, "environment": true}
+
+With "environment", the film is transparent and the Environment pass is written too: the world
+seen through each pixel, apart from the meshes.
 """
 
 import json
@@ -44,6 +47,9 @@ def render(request):
     image.exr_codec = "NONE"
     layer = scene.view_layers[request["view_layer"]]
     layer.use_pass_combined = layer.use_pass_z = True
+    if request.get("environment"):
+        settings.film_transparent = True
+        layer.use_pass_environment = True
     bpy.ops.render.render(write_still=True, scene=scene.name, layer=layer.name)
 
 

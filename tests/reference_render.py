@@ -24,7 +24,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     instead of (H, W, ...).
     layer: optional (color (.., 3) premultiplied, alpha, depth) of a surface, composited once per
     pixel just before the first splat whose depth is not in front of it (or after the last); the
-    result then also holds layer_t, the T it was composited with.
+    result then also holds layer_t, the T it was composited with. A list of such surfaces (each
+    behind the one before it wherever both are present) gives layer_t as a list.
     """
     if pixels is None:
         rows, cols = np.mgrid[0:camera.height, 0:camera.width]
@@ -41,17 +42,18 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     counts = np.zeros(m, dtype=np.int64)
     done = np.zeros(m, bool)
     max_weight = np.zeros(len(cloud))
-    if layer is not None:
-        l_color, l_alpha, l_depth = (np.asarray(a, np.float64).reshape(m, -1) for a in layer)
-        l_alpha, l_depth = l_alpha[:, 0], l_depth[:, 0]
-        waiting, layer_t = np.ones(m, bool), np.zeros(m)
+    surfaces = [] if layer is None else [layer] if isinstance(layer, tuple) else list(layer)
+    surfaces = [[np.asarray(a, np.float64).reshape(m, -1) for a in s] for s in surfaces]
+    waiting, layer_t = [np.ones(m, bool) for _ in surfaces], [np.zeros(m) for _ in surfaces]
 
-    def cross(where):
-        """Composite the layer at the waiting pixels in `where`."""
-        layer_t[where] = trans[where]
+    def cross(j, where):
+        """Composite surface j at its waiting pixels in `where`."""
+        l_color, l_alpha, _ = surfaces[j]
+        where = where & waiting[j]
+        layer_t[j][where] = trans[where]
         color[where] += trans[where, None] * l_color[where]
-        trans[where] *= 1.0 - l_alpha[where]
-        waiting[where] = False
+        trans[where] *= 1.0 - l_alpha[where, 0]
+        waiting[j][where] = False
 
     chunk = max(1, 4_000_000 // max(m, 1))
     for start in range(0, len(splats["z"]), chunk):
@@ -62,8 +64,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
         q = con[:, 0, 0, None] * dx * dx + 2 * con[:, 0, 1, None] * dx * dy + con[:, 1, 1, None] * dy * dy
         alpha = np.minimum(ALPHA_MAX, splats["opacity"][sl, None] * np.exp(-0.5 * q))
         for k in np.flatnonzero((alpha >= ALPHA_MIN).any(axis=1)):
-            if layer is not None:
-                cross(waiting & (splats["z"][start + k] >= l_depth))
+            for j, (_, _, l_depth) in enumerate(surfaces):
+                cross(j, splats["z"][start + k] >= l_depth[:, 0])
             a = alpha[k]
             use = ~done & (a >= ALPHA_MIN)
             test = trans * (1.0 - a)
@@ -77,8 +79,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
             max_weight[splats["index"][start + k]] = w.max(initial=0.0)
             trans = np.where(use, test, trans)
 
-    if layer is not None:
-        cross(waiting.copy())
+    for j in range(len(surfaces)):
+        cross(j, np.ones(m, bool))
     alpha = 1.0 - trans
     out = {
         "color": color + trans[:, None] * np.asarray(background, dtype=np.float64),
@@ -86,9 +88,9 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
         "depth": np.where(alpha > 0, depth_sum / np.where(alpha > 0, alpha, 1.0), 0.0),
         "counts": counts,
     }
-    if layer is not None:      # depth and alpha of the splats alone, without the layer's share
-        out["layer_t"] = layer_t
-        splat_alpha = alpha - layer_t * l_alpha
+    if surfaces:               # depth and alpha of the splats alone, without the surfaces' share
+        out["layer_t"] = layer_t[0] if isinstance(layer, tuple) else np.stack(layer_t, axis=-1)
+        splat_alpha = alpha - sum(t * s[1][:, 0] for t, s in zip(layer_t, surfaces))
         out["depth"] = np.where(splat_alpha > 0, depth_sum / np.where(splat_alpha > 0, splat_alpha, 1.0), 0.0)
     if pixels is None:
         out = {k: v.reshape((camera.height, camera.width) + v.shape[1:]) for k, v in out.items()}

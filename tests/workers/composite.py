@@ -17,6 +17,7 @@ SPHERE = dict(radius=0.55, location=(0.35, 0.1, 0.5), color=(0.8, 0.15, 0.1))
 WORLD = (0.05, 0.08, 0.12)
 EMISSION = {"Plane": (0.2, 0.45, 0.9), "Sphere": (0.95, 0.6, 0.1)}
 SPHERE_MOVE = (-0.6, 0.0, 0.2)          # frame 2 of the animation: the sphere moved by this
+GLASS = dict(size=1.5, location=(-0.45, -0.45, 0.85), color=(0.1, 0.9, 0.3), alpha=0.6)   # upright, translucent
 SAMPLES = 8
 
 
@@ -31,7 +32,7 @@ def oracle_cloud_arrays():
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "oracle", "emission", "command", "animation")
+    steps = ("install", "oracle", "emission", "translucent", "command", "animation")
     keep_objects = ("Camera", "Light")
     orphan_kinds = ("meshes", "materials", "actions")
 
@@ -73,19 +74,29 @@ class Worker(BlenderWorker):
         bpy.context.view_layer.update()
         return splats
 
-    def material(self, name, color, emission):
+    def material(self, name, color, emission, alpha=1.0):
+        """Principled with a base colour, or flat emission; emission with alpha < 1 is mixed with a
+        Transparent BSDF, which Cycles counts as that alpha."""
         bpy = self.bpy
         mat = bpy.data.materials.new(name)
         if bpy.app.version < (5, 0, 0):
             mat.use_nodes = True
-        nodes = mat.node_tree.nodes
+        tree = mat.node_tree
+        nodes = tree.nodes
         if emission:
             nodes.remove(next(n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"))
             node = nodes.new("ShaderNodeEmission")
             node.inputs["Color"].default_value = (*color, 1.0)
             node.inputs["Strength"].default_value = 1.0
             output = next(n for n in nodes if n.bl_idname == "ShaderNodeOutputMaterial")
-            mat.node_tree.links.new(node.outputs["Emission"], output.inputs["Surface"])
+            shader = node.outputs["Emission"]
+            if alpha < 1.0:
+                mix = nodes.new("ShaderNodeMixShader")
+                mix.inputs[0].default_value = alpha
+                tree.links.new(nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[1])
+                tree.links.new(shader, mix.inputs[2])
+                shader = mix.outputs[0]
+            tree.links.new(shader, output.inputs["Surface"])
         else:
             bsdf = next(n for n in nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
             bsdf.inputs["Base Color"].default_value = (*color, 1.0)
@@ -163,6 +174,35 @@ class Worker(BlenderWorker):
             triangles[name] = co[tris.reshape(-1, 3)]
         self.save("emission_triangles", **triangles)
         return {"camera": self.camera_record(), "hidden": splats.hide_render}
+
+    def translucent(self):
+        """A translucent upright plane through the cloud, partly over the world, partly over the
+        ground; the film opaque. Cycles also renders the meshes alone, all together, the glass alone
+        and the rest alone (film transparent): the single-layer and the two-layer truths."""
+        bpy = self.bpy
+        splats = self.build(emission=True)
+        scene = bpy.context.scene
+        background = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        background.inputs["Strength"].default_value = 1.0
+        scene.render.resolution_x, scene.render.resolution_y = SIZE
+        bpy.ops.mesh.primitive_plane_add(size=GLASS["size"], location=GLASS["location"], rotation=(np.pi / 2, 0, 0))
+        glass = bpy.context.active_object
+        glass.name = "Glass"
+        glass.data.materials.append(self.material("Glass", GLASS["color"], True, GLASS["alpha"]))
+        bpy.context.view_layer.update()
+        self.composited("translucent")
+        self.cycles_alone(splats, "tr_meshes_opaque")
+        scene.render.film_transparent = True
+        self.cycles_alone(splats, "tr_meshes")
+        solid = [scene.objects["Plane"], scene.objects["Sphere"]]
+        for shown, name in (([glass], "tr_glass"), (solid, "tr_solid")):
+            hidden = [o for o in [glass] + solid if o not in shown]
+            for obj in hidden:
+                obj.hide_render = True
+            self.cycles_alone(splats, name)
+            for obj in hidden:
+                obj.hide_render = False
+        return {"camera": self.camera_record()}
 
     def command(self):
         self.build()
