@@ -10,7 +10,7 @@ import numpy as np
 
 from ..core.color import linear_to_srgb, srgb_to_linear
 from . import camera as blender_camera
-from . import data, mesh_layer
+from . import data, mesh_layer, viewport
 
 EMPTY_DEPTH = 1e10      # what Blender's own engines write in the Depth pass where nothing was hit
 
@@ -81,7 +81,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
     bl_label = "Splatwright"
     bl_use_preview = False
     bl_use_postprocess = True
-    bl_use_eevee_viewport = True     # Material Preview / Rendered viewport: the coloured display points
+    bl_use_eevee_viewport = True     # Material Preview: EEVEE draws the coloured display points
 
     def render(self, depsgraph):
         try:
@@ -119,6 +119,32 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             image.color += (1.0 - image.alpha)[..., None] * world
         alpha = image.alpha if transparent else np.ones_like(image.alpha)
         self._write(width, height, to_scene_linear(image.color, alpha), composite_depth(image, layer), passes)
+
+    # the Rendered viewport (viewport.py) ------------------------------------------------------------
+
+    def view_update(self, context, depsgraph):
+        try:
+            self._viewport().update(depsgraph)
+        except Exception:
+            traceback.print_exc()
+
+    def view_draw(self, context, depsgraph):
+        try:
+            self._viewport().draw(self, context)
+        except Exception:
+            traceback.print_exc()
+
+    def _viewport(self):
+        if getattr(self, "_preview", None) is None:
+            self._preview = viewport.Viewport(self)
+        return self._preview
+
+    def __del__(self):
+        preview = getattr(self, "_preview", None)
+        if preview is not None:
+            preview.stop()
+
+    # final renders ------------------------------------------------------------------------------------
 
     def _mesh_layer(self, depsgraph, width, height):
         """The scene's meshes and world rendered by the chosen engine, or None (splats only, or

@@ -262,3 +262,24 @@ def test_render_animation_renders_each_frames_meshes(blender):
                                    frames[f]["ViewLayer.Depth.Z"].min()))
     moved = np.abs(frames[1]["ViewLayer.Meshes"] - frames[2]["ViewLayer.Meshes"]).max(axis=-1) > 0.05
     assert moved.sum() > 50
+
+
+def test_viewport_picture_is_the_splats_over_the_meshes_seen_from_the_region(blender):
+    """Rendered shading, headless: the region camera built from the view and projection matrices
+    matches the scene camera; a coarse pass comes first, then the full picture, which is the
+    float64 reference of the splats composited with the flat-shaded mesh layer; that layer's depth
+    is Cycles' depth of the same meshes wherever both cover the whole pixel."""
+    res = blender.step("viewport")
+    got = blender.npz("viewport")
+    cam = camera(res["camera"])
+    assert res["scales"][0] == 0.25 and res["scales"][-1] == 1.0 and res["redraws"] >= 2
+    assert got["coarse"].shape == (SIZE[1] // 4, SIZE[0] // 4, 4) and got["full"].shape == (SIZE[1], SIZE[0], 4)
+    assert res["splats"] == len(oracle_cloud_arrays()["positions"]) and res["triangles"] > 500
+    layer = (got["layer_color"], got["layer_alpha"], got["layer_depth"])
+    ref = reference_render(SplatCloud(**oracle_cloud_arrays()), cam, background=res["background"], layer=layer)
+    color, alpha = display(got["full"])
+    assert np.abs(color - ref["color"]).max() <= STEP and (alpha == 1).all()
+    cycles = exr(blender.out / "meshes_transparent.exr")
+    inside = (cycles["ViewLayer.Combined"][..., 3] == 1) & (got["layer_alpha"] == 1)
+    assert inside.sum() > 0.3 * inside.size
+    np.testing.assert_allclose(got["layer_depth"][inside], cycles["ViewLayer.Depth.Z"][inside], rtol=1e-3)

@@ -32,7 +32,7 @@ def oracle_cloud_arrays():
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "oracle", "emission", "translucent", "command", "animation")
+    steps = ("install", "oracle", "emission", "translucent", "command", "animation", "viewport")
     keep_objects = ("Camera", "Light")
     orphan_kinds = ("meshes", "materials", "actions")
 
@@ -229,6 +229,57 @@ class Worker(BlenderWorker):
         scene.render.filepath = str(self.out / "anim_####")
         self.bpy.ops.render.render(animation=True)
         return {"frame_after": scene.frame_current}
+
+    def viewport(self):
+        """The Rendered viewport's picture, headless: the region camera from the scene camera's view
+        and projection matrices, the picture at full and coarse scale through the progressive
+        renderer, and the mesh layer it composites with."""
+        import time
+        bpy = self.bpy
+        self.build()
+        scene = bpy.context.scene
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        cam = scene.camera
+        view = np.array(cam.matrix_world.inverted())
+        projection = np.array(cam.calc_matrix_camera(depsgraph, x=SIZE[0], y=SIZE[1]))
+        viewport = self.module("splat_addon.viewport")
+        preview = self.module("core.preview")
+
+        class Region:
+            width, height = SIZE
+
+        class RegionData:
+            view_matrix, window_matrix = cam.matrix_world.inverted(), projection
+
+        class Engine:
+            redraws = 0
+
+            def tag_redraw(self):
+                Engine.redraws += 1
+
+        engine = Engine()
+        port = viewport.Viewport(engine)
+        port.update(depsgraph)
+        camera = viewport.region_camera(Region, RegionData)
+        frames, start = [], time.monotonic()
+        try:
+            while time.monotonic() - start < 60:
+                frame = port.progressive.show(viewport.View(camera))
+                if frame is not None and (not frames or frames[-1] is not frame):
+                    frames.append(frame)
+                    if frame.scale == 1.0:
+                        break
+                time.sleep(0.01)
+        finally:
+            port.stop()
+        cloud, meshes, background = port.inputs
+        layer = preview.mesh_layer(meshes, camera)
+        self.save("viewport", full=frames[-1].image, coarse=frames[0].image, layer_color=layer.color,
+                  layer_alpha=layer.alpha, layer_depth=layer.depth, world=view, projection=projection)
+        return {"camera": self.camera_record(), "scales": [f.scale for f in frames], "redraws": Engine.redraws,
+                "splats": len(cloud), "triangles": len(meshes), "background": list(background),
+                "mesh_triangles": sum(len(o.data.polygons) * 2 for o in scene.objects if o.type == "MESH"
+                                      and o.name != "Splats")}
 
 
 if __name__ == "__main__":

@@ -1,0 +1,141 @@
+"""The SPLATWRIGHT engine in a 3D viewport's Rendered shading: the splats composited with the meshes
+(core/preview.py: triangles shaded flat with a headlight, composited by the final render's rule),
+rendered progressively on a thread (a coarse pass while the view moves, the full picture once it
+stops) so drawing never waits. Solid and Material Preview keep Blender's own drawing.
+
+view_update (main thread) copies what the picture needs out of the depsgraph; view_draw builds the
+camera of the region, asks for the picture and draws the latest finished one: the only lines that
+need a GPU, which background mode does not have.
+"""
+
+import weakref
+
+import bpy
+import numpy as np
+
+from ..core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
+from ..core.splats import SplatCloud
+from . import data
+
+SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}      # what to_mesh() turns into triangles
+
+
+class View:
+    """A region's camera, compared by its numbers."""
+
+    def __init__(self, camera):
+        self.camera, self.key = camera, view_key(camera)
+
+    def __eq__(self, other):
+        return isinstance(other, View) and self.key == other.key
+
+
+def region_camera(region, region_3d):
+    """The core Camera of a 3D viewport region."""
+    return camera_from_opengl(np.array(region_3d.view_matrix), np.array(region_3d.window_matrix),
+                              region.width, region.height)
+
+
+def triangles(depsgraph):
+    """Every visible surface that is not a splat object, as world-space triangles with the viewport
+    colour of each face's material (the object's colour without one)."""
+    corners, colors = [], []
+    for inst in depsgraph.object_instances:
+        obj = inst.object
+        if obj.type not in SURFACE_TYPES or data.is_splat_object(obj.original):
+            continue
+        mesh = obj.to_mesh()
+        try:
+            if mesh is None or not len(mesh.polygons):
+                continue
+            mesh.calc_loop_triangles()
+            n = len(mesh.loop_triangles)
+            co = np.empty(len(mesh.vertices) * 3)
+            mesh.vertices.foreach_get("co", co)
+            tris = np.empty(n * 3, np.int64)
+            mesh.loop_triangles.foreach_get("vertices", tris)
+            slots = np.empty(n, np.int64)
+            mesh.loop_triangles.foreach_get("material_index", slots)
+            palette = [tuple(m.diffuse_color[:3]) if m is not None else tuple(obj.color[:3])
+                       for m in (obj.material_slots[i].material for i in range(len(obj.material_slots)))]
+            palette = np.array(palette or [tuple(obj.color[:3])], np.float64)
+            matrix = np.array(inst.matrix_world, np.float64)
+            world = co.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
+            corners.append(world[tris.reshape(-1, 3)])
+            colors.append(palette[np.minimum(slots, len(palette) - 1)])
+        finally:
+            obj.to_mesh_clear()
+    if not corners:
+        return Triangles.empty()
+    return Triangles(np.concatenate(corners), np.concatenate(colors))
+
+
+def picture_inputs(depsgraph):
+    """(splats, triangles, background) of the depsgraph's scene for the viewport picture."""
+    from .engine import linear_to_srgb, mesh_engine, scene_splats, world_color
+    scene = depsgraph.scene
+    cloud = scene_splats(depsgraph, np.zeros(3))
+    meshes = triangles(depsgraph) if mesh_engine(scene) != "NONE" else Triangles.empty()
+    background = None if scene.render.film_transparent else linear_to_srgb(world_color(scene))
+    return (cloud if cloud is not None else SplatCloud.empty()), meshes, background
+
+
+class Viewport:
+    """One viewport's pictures: the scene's inputs, the progressive renderer and the texture drawn."""
+
+    def __init__(self, engine):
+        engine_ref = weakref.ref(engine)
+        self.inputs = (SplatCloud.empty(), Triangles.empty(), None)
+        self.progressive = Progressive(self.picture, on_ready=lambda: _redraw(engine_ref))
+        self.texture, self.drawn = None, None
+
+    def update(self, depsgraph):
+        self.inputs = picture_inputs(depsgraph)
+        self.progressive.refresh()
+
+    def picture(self, view, scale, check):
+        """Scene-linear premultiplied RGBA (rows top first) of `view` at `scale` (on the thread)."""
+        from .engine import to_scene_linear
+        cloud, meshes, background = self.inputs
+        image = preview_image(cloud, meshes, scaled(view.camera, scale), background=background,
+                              progress=lambda *_: check())
+        return to_scene_linear(image.color, image.alpha if background is None else np.ones_like(image.alpha))
+
+    def draw(self, engine, context):
+        frame = self.progressive.show(View(region_camera(context.region, context.region_data)))
+        if frame is None:
+            return
+        if frame is not self.drawn:
+            self.texture, self.drawn = _texture(frame.image), frame
+        _draw(engine, context, self.texture)
+
+    def stop(self):
+        self.progressive.stop()
+
+
+def _redraw(engine_ref):
+    engine = engine_ref()
+    if engine is not None:
+        try:
+            engine.tag_redraw()
+        except ReferenceError:          # the viewport closed meanwhile
+            pass
+
+
+# the GPU: untestable without a window, kept to these lines ------------------------------------------
+
+def _texture(rgba):
+    import gpu
+    h, w = rgba.shape[:2]
+    pixels = np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel()      # GPU rows start at the bottom
+    return gpu.types.GPUTexture((w, h), format="RGBA16F", data=gpu.types.Buffer("FLOAT", pixels.size, pixels))
+
+
+def _draw(engine, context, texture):
+    import gpu
+    from gpu_extras.presets import draw_texture_2d
+    gpu.state.blend_set("ALPHA_PREMULT")
+    engine.bind_display_space_shader(context.scene)
+    draw_texture_2d(texture, (0, 0), context.region.width, context.region.height)
+    engine.unbind_display_space_shader()
+    gpu.state.blend_set("NONE")
