@@ -7,8 +7,10 @@ Splats), convert the arm's mesh to splats, bind them to the armature (weights tr
 from the skinned mesh), measure the posed splats against splats made from the posed mesh, render
 frames to PNG and EXR with the SPLATWRIGHT engine through Blender's output settings, export one
 frame as PLY, the animation as a PLY sequence and as one animated OpenUSD file, check the arm
-against the environment for collisions over the animation, and save the scene. A summary with
-timings and errors ends the run and is also written to summary.json.
+against the environment for collisions over the animation, and save the scene. The frames show the
+arm's splats standing on the environment's meshes (a floor and a box, rendered by Cycles and
+composited with the splats in depth order); the environment's splats are there for the collision
+check. A summary with timings and errors ends the run and is also written to summary.json.
 """
 
 import json
@@ -26,6 +28,8 @@ ENVIRONMENT_SPLATS = 20_000
 BENT_FRAME = 12                      # the demo rig's most bent pose
 RENDER_FRAMES = "6-24:6"             # frames 6, 12, 18, 24
 RENDER_SIZE = (480, 360)
+CYCLES_SAMPLES = 16                  # the floor and box, lit by the sun: few samples suffice
+WORLD_COLOR = (0.03, 0.035, 0.045)   # a dim sky, which also lights the shadows
 IGNORE_BONES = ("Base",)             # the base stands on the floor: not a collision
 
 
@@ -78,7 +82,7 @@ class Demo:
             ("convert the arm's mesh to splats", self.convert_arm),
             ("bind the arm's splats to the armature", self.bind),
             (f"measure the posed splats at frame {BENT_FRAME}", self.measure_pose),
-            ("render PNG and EXR frames with the SPLATWRIGHT engine", self.render),
+            ("render PNG and EXR frames: the arm's splats on the meshes", self.render),
             ("export PLY, a PLY sequence and an animated OpenUSD file", self.export),
             ("check the arm against the environment for collisions", self.collide),
             ("save the scene and the seed cube", self.save),
@@ -196,6 +200,7 @@ class Demo:
         render.resolution_percentage = 100
         scene.view_settings.view_transform = "Standard"     # PNG colours as 3DGS viewers show them
         self.bpy.context.view_layer.use_pass_z = True       # the EXR gets the depth pass too
+        self._meshes_for_render(scene)
         folder = self.out / "render"
         folder.mkdir(exist_ok=True)
         written = {}
@@ -204,15 +209,35 @@ class Demo:
                 render.image_settings.media_type = "IMAGE" if kind == "png" else "MULTI_LAYER_IMAGE"
             render.image_settings.file_format = image_format
             pattern = folder / f"frame_####.{kind}"
-            if command.execute(["render", str(pattern), "--frames", RENDER_FRAMES]) != 0:
+            if command.execute(["render", str(pattern), "--frames", RENDER_FRAMES, "--meshes", "cycles"]) != 0:
                 raise DemoError(f"rendering {kind.upper()} frames failed (the error is above)")
             frames = command.parse_frames(RENDER_FRAMES, scene)
             written[kind] = [folder / f"frame_{f:04d}.{kind}" for f in frames]
-        self.summary["render"] = {"frames": frames, "size": list(RENDER_SIZE),
+        self.summary["render"] = {"frames": frames, "size": list(RENDER_SIZE), "meshes": "Cycles",
+                                  "cycles_samples": CYCLES_SAMPLES,
                                   **{k: [p.name for p in v] for k, v in written.items()}}
         self._files(*written["png"], *written["exr"])
-        return f"{len(frames)} PNG + {len(frames)} EXR (RGBA + depth) frames at {RENDER_SIZE[0]}x{RENDER_SIZE[1]}, " \
-               f"frames {', '.join(map(str, frames))}, in {folder.name}/"
+        return f"{len(frames)} PNG + {len(frames)} EXR (Combined, Depth, Splats, Meshes) frames at " \
+               f"{RENDER_SIZE[0]}x{RENDER_SIZE[1]}, frames {', '.join(map(str, frames))}: the arm's splats on the " \
+               f"floor and box meshes (Cycles, {CYCLES_SAMPLES} samples), in {folder.name}/"
+
+    def _meshes_for_render(self, scene):
+        """The environment shows as its meshes (Cycles renders them), the arm as its splats: the
+        environment's splats and the arm's source mesh stay out of the picture."""
+        bpy = self.bpy
+        self.rig.environment_mesh.hide_render = False
+        self.env.hide_render = True
+        self.rig.body.hide_render = True
+        scene.cycles.samples = CYCLES_SAMPLES
+        scene.cycles.use_denoising = False    # OIDN would take longer than the render here
+        scene.cycles.device = "CPU"
+        if scene.world is None:
+            scene.world = bpy.data.worlds.new("Splatwright Demo Sky")
+        scene.world.color = WORLD_COLOR
+        if scene.world.node_tree is not None:
+            background = next((n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground"), None)
+            if background is not None:
+                background.inputs["Color"].default_value = (*WORLD_COLOR, 1.0)
 
     def export(self):
         from .splat_addon import animation, data
@@ -283,7 +308,7 @@ class Demo:
             f"  posed splats vs splats of the posed mesh, frame {pose['frame']}: PSNR {pose['psnr_db']:.2f} dB "
             f"(centres only: {pose['centres_only_psnr_db']:.2f} dB)",
             f"  renders: {len(s['render']['png'])} PNG + {len(s['render']['exr'])} EXR at "
-            f"{s['render']['size'][0]}x{s['render']['size'][1]}",
+            f"{s['render']['size'][0]}x{s['render']['size'][1]}, splats on Cycles meshes",
             f"  collisions: contact frames {_ranges(hits['contact_frames']) or 'none'}; "
             f"{hits['pairs_at_bent_frame']} splat pairs at frame {BENT_FRAME}",
             f"  files: {len(s['files'])}, {sum(s['files'].values()) / 1e6:.2f} MB in all (sizes in summary.json)",

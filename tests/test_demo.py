@@ -358,27 +358,38 @@ def test_demo_pose_check_parses_and_clears_30_db(demo):
 @pytest.mark.blender
 @pytest.mark.slow
 def test_demo_png_and_exr_frames_show_the_posed_arm(demo):
+    """The arm's splats stand on the environment's meshes: the Meshes pass (Cycles) holds the floor
+    and the box, not the arm; the Splats pass holds the arm; Combined is the splats over the meshes."""
     from PIL import Image
     from splatwright.core.color import linear_to_srgb
+    from splatwright.demo import WORLD_COLOR
     from splatwright.io.exr import read_exr
     out, _, summary = demo
-    assert summary["render"]["frames"] == list(RENDER_FRAMES)
+    assert summary["render"]["frames"] == list(RENDER_FRAMES) and summary["render"]["meshes"] == "Cycles"
     png = {}
     for frame in RENDER_FRAMES:
         image = Image.open(out / "render" / f"frame_{frame:04d}.png")
         assert image.size == (480, 360)
         png[frame] = np.asarray(image.convert("RGB"), np.float64) / 255
-        combined, depth = read_exr(out / "render" / f"frame_{frame:04d}.exr"), \
-            read_exr(out / "render" / f"frame_{frame:04d}.exr", part=1)
-        rgb = np.dstack([combined[f"ViewLayer.Combined.{c}"] for c in "RGB"])
-        assert rgb.shape == (360, 480, 3) and np.isfinite(rgb).all()
+        path = out / "render" / f"frame_{frame:04d}.exr"
+        channels = {k: v for part in range(4) for k, v in read_exr(path, part=part).items()}
+        rgb, meshes, splats = (np.dstack([channels[f"ViewLayer.{name}.{c}"] for c in "RGBA"])
+                               for name in ("Combined", "Meshes", "Splats"))
+        assert rgb.shape == (360, 480, 4) and np.isfinite(rgb).all()
         # Standard view transform: the PNG is the EXR's scene-linear colour in sRGB (dither aside)
-        assert np.abs(linear_to_srgb(np.clip(rgb, 0, 1)) - png[frame]).max() < 3 / 255
-        hit = depth["ViewLayer.Depth.Z"] < 1e9
-        assert 0.2 < hit.mean() < 0.9                                  # the floor and the arm, not the sky
-        z = depth["ViewLayer.Depth.Z"][hit]
+        assert np.abs(linear_to_srgb(np.clip(rgb[..., :3], 0, 1)) - png[frame]).max() < 3 / 255
+        depth = channels["ViewLayer.Depth.Z"]
+        hit = depth < 1e9
+        assert 0.3 < hit.mean() < 0.9                                  # the floor, the box and the arm, not the sky
+        z = depth[hit]
         assert 3 < z.min() and z.max() < 25                            # the camera is ~9 m from the arm
-        assert (png[frame][hit].max(axis=1) > 0.05).mean() > 0.95 and png[frame][~hit].max() <= 2 / 255
+        sky = linear_to_srgb(np.array(WORLD_COLOR))
+        assert np.abs(png[frame][~hit] - sky).max() <= 2 / 255
+        arm = splats[..., 3] > 0.5
+        assert 1000 < arm.sum() < 0.3 * arm.size                       # the arm's splats, in front of the meshes
+        assert (meshes[..., 3] == 1).all()                             # the film is opaque: Cycles' world included
+        # where the arm covers the floor, Combined shows the arm, not the floor behind it
+        assert np.abs(rgb[..., :3] - meshes[..., :3])[splats[..., 3] > 0.99].max(axis=-1).mean() > 0.05
     moved = np.abs(png[12] - png[24]).max(axis=2) > 0.1
     assert moved.sum() > 500                                           # bent at 12, at rest at 24
 
