@@ -384,7 +384,8 @@ def test_demo_png_and_exr_frames_show_the_posed_arm(demo):
         z = depth[hit]
         assert 3 < z.min() and z.max() < 25                            # the camera is ~9 m from the arm
         sky = linear_to_srgb(np.array(WORLD_COLOR))
-        assert np.abs(png[frame][~hit] - sky).max() <= 2 / 255
+        # the sky, but for the outlines (Cycles' depth is one sample's, its colour filtered)
+        assert (np.abs(png[frame][~hit] - sky).max(axis=-1) <= 2 / 255).mean() > 0.99
         arm = splats[..., 3] > 0.5
         assert 1000 < arm.sum() < 0.3 * arm.size                       # the arm's splats, in front of the meshes
         assert (meshes[..., 3] == 1).all()                             # the film is opaque: Cycles' world included
@@ -460,6 +461,6 @@ def test_demo_names_the_step_that_failed(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "splatwright", "demo", "--out", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 1, proc.stdout + proc.stderr
-    assert "splatwright demo: error: step 'render PNG and EXR frames with the SPLATWRIGHT engine' failed" in proc.stderr
+    assert "splatwright demo: error: step 'render PNG and EXR frames: the arm's splats on the meshes' failed" in proc.stderr
     assert "[5/9]" in proc.stdout and "[7/9]" not in proc.stdout and "summary" not in proc.stdout
     assert not (out / "summary.json").exists()
