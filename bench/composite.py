@@ -5,9 +5,10 @@ cloud and a box standing in it, rasterised at pixel centres (core.preview.mesh_l
 Cases, each timed alternately with the baseline (the same splats rendered alone):
 
 - the renderer with the layer (opaque meshes, translucent meshes at alpha 0.5, meshes out of view);
-- everything the SPLATWRIGHT engine adds per frame besides Cycles itself: reading the mesh layer's
-  uncompressed EXR, turning it into the layer (display sRGB, the world apart), the layer render and
-  the Splats / Meshes passes (this case imports the extension's engine module, so it needs bpy).
+- the SPLATWRIGHT engine's own work per frame besides Cycles itself: reading the mesh layer's
+  uncompressed EXR, turning it into the layer, the layer render and the Combined, Depth, Splats and
+  Meshes passes, against its splat-only frame (the render, Combined and Depth); this case imports
+  the extension's engine module, so it needs bpy.
 
 Errors are max abs differences, in 1/255 steps of display sRGB, against the float64 brute-force
 reference (tests/reference_render.py) given the same layer, at a random sample of pixels.
@@ -85,7 +86,8 @@ def mesh_exr(layer, folder):
 
 
 def engine_side(cloud, camera, layer, folder):
-    """The SPLATWRIGHT engine's per-frame work around Cycles, as a callable (None without bpy)."""
+    """The SPLATWRIGHT engine's per-frame work with meshes and without, as two callables (None
+    without bpy)."""
     try:
         from splatwright.io.exr_plain import read_plain_exr
         from splatwright.splat_addon import engine, mesh_layer as meshes_module
@@ -93,7 +95,12 @@ def engine_side(cloud, camera, layer, folder):
         return None
     path = mesh_exr(layer, folder)
 
-    def run():
+    def splats_only():
+        image = render(cloud, camera, background=(0.1, 0.1, 0.1))
+        engine.to_scene_linear(image.color, np.ones_like(image.alpha))
+        engine.composite_depth(image, None)
+
+    def composited():
         got = meshes_module._layer_from_channels(read_plain_exr(path), "ViewLayer", camera.width, camera.height,
                                                  False, 0.0)
         surface = got.as_layer()
@@ -101,7 +108,7 @@ def engine_side(cloud, camera, layer, folder):
         engine.splat_passes(image, surface, got)
         engine.to_scene_linear(image.color, np.ones_like(image.alpha))
         engine.composite_depth(image, surface)
-    return run
+    return splats_only, composited
 
 
 def run(quick=False):
@@ -123,7 +130,7 @@ def run(quick=False):
         opaque = layers(camera)["opaque meshes through the cloud"]
         engine = engine_side(cloud, camera, opaque, folder)
         if engine is not None:
-            base, ours = paired(baseline, engine, repeat)
+            base, ours = paired(*engine, repeat)
             rows.append(Row(TOPIC, "engine: EXR read, layer, composite, passes", ours, base,
                             extra={"splats": len(cloud), "size": f"{camera.width}x{camera.height}",
                                    "added": f"{ours.median / base.median - 1:+.1%}"}))

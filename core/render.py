@@ -678,38 +678,38 @@ class _LayerCrossing:
     def enter(self, tiles, z, alpha, keep):
         """Put the layer into a wave: `z` (depth * g,) are the entries' camera depths, slot-major;
         alpha and keep (depth, g, p) are scaled by the layer's 1 - alpha at the entry where each
-        waiting pixel crosses it. Returns where that happens for record(), or None if no pixel of
-        these tiles crosses in this wave. Only the tiles and entries that can cross are looked at."""
+        waiting pixel crosses it: the first entry not in front of it (entries are sorted by z; the
+        padding, z = 0, counts as behind everything). Returns where that happens for record(), or
+        None if no pixel crosses in this wave. Only tiles and entries that can cross are looked at."""
         depth, g = alpha.shape[:2]
         z = z.reshape(depth, g)
-        reach = z >= self.nearest[tiles]                 # (depth, g): entry at or past the tile's nearest
-        cross = np.flatnonzero(reach[-1] | reach.any(axis=0))
+        z = np.where(z > 0, z, np.inf)
+        reach = z >= self.nearest[tiles]                 # (depth, g): at or past the tile's nearest waiting pixel
+        cross = np.flatnonzero(reach.any(axis=0))
         if not len(cross):
             return None
-        k0 = int(reach[:, cross].any(axis=1).argmax())   # entries are sorted by z: nothing crosses before
+        k0 = int(reach[:, cross].any(axis=1).argmax())   # every entry before k0 is in front of every waiting pixel
         sel = tiles[cross]
-        behind = z[k0:, cross, None] >= self.depth[sel][None]
-        np.logical_or.accumulate(behind, axis=0, out=behind)         # padding (z = 0) comes last
-        first = behind
-        first[1:] &= ~behind[:-1]
-        first &= self.pending[sel][None]
-        factor = np.where(first, self.keep[sel][None], alpha.dtype.type(1))
-        alpha[k0:, cross] *= factor
-        keep[k0:, cross] *= factor
-        return k0, cross, first
+        slot = k0 + (z[k0:, cross, None] < self.depth[sel][None]).sum(axis=0, dtype=np.int32)
+        hit_g, hit_p = np.nonzero(self.pending[sel] & (slot < depth))
+        if not len(hit_g):
+            return None
+        at_slot, at_tile = slot[hit_g, hit_p], cross[hit_g]
+        factor = self.keep[sel[hit_g], hit_p]
+        alpha[at_slot, at_tile, hit_p] *= factor
+        keep[at_slot, at_tile, hit_p] *= factor
+        return at_slot, at_tile, hit_p, sel[hit_g]
 
     def record(self, tiles, crossing, trans, t_min):
         """Keep T where each pixel reached the layer. A pixel that had already stopped (T below
         t_min) keeps waiting: it gives the layer the T it stopped with (see transmittance)."""
-        k0, cross, first = crossing
-        sel = tiles[cross]
-        reached = first.any(axis=0)
-        at = (trans[k0:-1, cross] * first).sum(axis=0)
-        reached &= at >= t_min
-        self.t[sel] = np.where(reached, at, self.t[sel])
-        pending = self.pending[sel] & ~reached
-        self.pending[sel] = pending
-        self.nearest[sel] = np.where(pending, self.depth[sel], np.inf).min(axis=1)
+        at_slot, at_tile, pixel, tile = crossing
+        t = trans[at_slot, at_tile, pixel]
+        ok = t >= t_min
+        self.t[tile[ok], pixel[ok]] = t[ok]
+        self.pending[tile[ok], pixel[ok]] = False
+        changed = np.unique(tile[ok])
+        self.nearest[changed] = np.where(self.pending[changed], self.depth[changed], np.inf).min(axis=1)
 
     @staticmethod
     def transmittance(t, pending, splat_alpha):

@@ -55,13 +55,13 @@ def _background_node(tree):
 
 
 def to_scene_linear(color, alpha):
-    """Display-sRGB colour premultiplied by `alpha` -> premultiplied scene-linear RGBA. The curve is
-    applied to the straight colour, so a transparent film saves exactly the core image's colours."""
-    alpha = np.asarray(alpha, dtype=np.float64)[..., None]
-    safe = np.where(alpha > 0, alpha, 1.0)
-    straight = np.where(alpha > 0, np.asarray(color, dtype=np.float64) / safe, 0.0)
+    """Display-sRGB colour premultiplied by `alpha` -> premultiplied scene-linear RGBA (float32). The
+    curve is applied to the straight colour, so a transparent film saves exactly the core image's
+    colours."""
+    alpha = np.asarray(alpha, dtype=np.float32)[..., None]
+    straight = np.asarray(color, dtype=np.float32) / np.where(alpha > 0, alpha, np.float32(1))
     rgba = np.empty(alpha.shape[:-1] + (4,), dtype=np.float32)
-    rgba[..., :3] = srgb_to_linear(straight) * alpha
+    rgba[..., :3] = srgb_to_linear(straight, np.float32) * alpha
     rgba[..., 3] = alpha[..., 0]
     return rgba
 

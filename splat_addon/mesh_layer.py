@@ -86,7 +86,7 @@ class MeshLayer:
 
     @property
     def alpha(self):
-        return np.clip(self.rgba[..., 3].astype(np.float64), 0.0, 1.0)
+        return np.clip(self.rgba[..., 3], 0.0, 1.0, dtype=np.float32)
 
     def world(self):
         """(H,W,3) display sRGB of the world behind each pixel, or None (a transparent film, or an
@@ -95,7 +95,7 @@ class MeshLayer:
             return None
         clear = 1.0 - self.alpha
         behind = np.where(clear[..., None] > 1e-6, self.environment / np.maximum(clear, 1e-6)[..., None], 0.0)
-        return linear_to_srgb(behind)
+        return linear_to_srgb(behind, np.float32)
 
     def picture(self):
         """The meshes as their engine shows them, scene-linear premultiplied (the Meshes pass)."""
@@ -114,10 +114,11 @@ class MeshLayer:
         display(meshes + world) - (1 - alpha) display(world)."""
         alpha = self.alpha
         if self.environment is not None:
-            color = linear_to_srgb(self.rgba[..., :3] + self.environment) - (1.0 - alpha)[..., None] * self.world()
+            color = linear_to_srgb(self.rgba[..., :3] + self.environment, np.float32) \
+                - (1.0 - alpha)[..., None] * self.world()
             return Layer(np.maximum(color, 0.0), alpha, self.depth)
-        straight = np.where(alpha[..., None] > 0, self.rgba[..., :3] / np.where(alpha > 0, alpha, 1.0)[..., None], 0.0)
-        return Layer(linear_to_srgb(straight) * alpha[..., None], alpha, self.depth)
+        straight = self.rgba[..., :3] / np.where(alpha > 0, alpha, np.float32(1))[..., None]
+        return Layer(linear_to_srgb(straight, np.float32) * alpha[..., None], alpha, self.depth)
 
 
 def has_geometry(depsgraph):
