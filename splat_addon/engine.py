@@ -153,7 +153,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if engine == "NONE" or not (mesh_layer.has_geometry(depsgraph) or textured_world(depsgraph.scene)):
             return None
         self.update_stats("", f"Splatwright: rendering the meshes with {engine.title()}")
-        return mesh_layer.render(depsgraph, engine, width, height, test_break=self.test_break)
+        return mesh_layer.render(depsgraph, engine, width, height, test_break=self.test_break,
+                                 progress=self.update_progress)
 
     def _image(self, cloud, cam, background, layer=None):
         """The core renderer's RenderResult (display-sRGB colour, transparent when `background` is

@@ -26,6 +26,7 @@ import collections
 import json
 import os
 import queue
+import re
 import shutil
 import subprocess
 import sys
@@ -55,6 +56,7 @@ ENGINE_CHOICES = (
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES", "POINTCLOUD", "VOLUME", "GPENCIL",
                   "GREASEPENCIL"}
 NO_SURFACE = 1e10          # what the Depth pass holds where nothing was hit
+SAMPLE = re.compile(r"\| Sample (\d+)/(\d+)")    # a child's Cycles progress line
 
 
 class MeshLayerError(RuntimeError):
@@ -130,9 +132,10 @@ def has_geometry(depsgraph):
     return False
 
 
-def render(depsgraph, engine, width, height, test_break=lambda: False):
+def render(depsgraph, engine, width, height, test_break=lambda: False, progress=lambda fraction: None):
     """Render the mesh layer of the depsgraph's scene and view layer at its current frame with
-    `engine` (an ENGINE_CHOICES key); returns a MeshLayer of width x height."""
+    `engine` (an ENGINE_CHOICES key); returns a MeshLayer of width x height. progress(fraction) is
+    called while Cycles reports its samples."""
     start = time.perf_counter()
     scene = depsgraph.scene
     work = _workdir()
@@ -147,7 +150,7 @@ def render(depsgraph, engine, width, height, test_break=lambda: False):
                    "frame": scene.frame_current, "subframe": scene.frame_subframe,
                    "camera": scene.camera.name if scene.camera else "", "engine": engine_id(engine),
                    "hide": hide, "out": str(exr), "autoexec": not bpy.app.autoexec_fail, "environment": apart}
-        reply = _child().ask(request, test_break)
+        reply = _child().ask(request, test_break, progress)
         if not reply.get("ok"):
             raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")
         channels = read_plain_exr(exr)
@@ -254,11 +257,13 @@ class _Child:
         flags = subprocess.CREATE_NO_WINDOW if sys.platform == "win32" else 0
         try:
             self.proc = subprocess.Popen(child_command(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         stderr=subprocess.STDOUT, text=True, bufsize=1, creationflags=flags)
+                                         stderr=subprocess.STDOUT, text=True, encoding="utf-8", errors="replace",
+                                         bufsize=1, creationflags=flags)
         except OSError as exc:
             raise MeshLayerError(f"cannot start a Blender to render the meshes ({child_command()[0]}): {exc}") from exc
         self.replies, self.log = queue.Queue(), collections.deque(maxlen=40)
         self.busy = threading.Lock()          # one request at a time
+        self.samples = None                   # (done, total) of the frame being rendered
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self):
@@ -267,13 +272,17 @@ class _Child:
                 self.replies.put(json.loads(line[len(REPLY):]))
             else:
                 self.log.append(line.rstrip())
+                found = SAMPLE.search(line)
+                if found:
+                    self.samples = (int(found.group(1)), int(found.group(2)))
 
     def alive(self):
         return self.proc.poll() is None
 
-    def ask(self, request, test_break):
+    def ask(self, request, test_break, progress=lambda fraction: None):
         """Send one request and wait for its reply, watching for a cancelled render."""
         with self.busy:
+            self.samples = None
             try:
                 self.proc.stdin.write(json.dumps(request) + "\n")
                 self.proc.stdin.flush()
@@ -285,6 +294,8 @@ class _Child:
                     return self.replies.get(timeout=0.05)
                 except queue.Empty:
                     pass
+                if self.samples is not None:
+                    progress(self.samples[0] / max(self.samples[1], 1))
                 if test_break():
                     self.close(kill=True)     # a render cannot be stopped half way: start afresh next time
                     raise Cancelled
