@@ -8,6 +8,7 @@ camera of the region, asks for the picture and draws the latest finished one: th
 need a GPU, which background mode does not have.
 """
 
+import os
 import weakref
 
 import bpy
@@ -98,6 +99,7 @@ class Viewport:
         from .engine import to_scene_linear
         cloud, meshes, background = self.inputs
         image = preview_image(cloud, meshes, scaled(view.camera, scale), background=background,
+                              threads=max(1, (os.cpu_count() or 2) - 1),      # a core stays with the interface
                               progress=lambda *_: check())
         return to_scene_linear(image.color, image.alpha if background is None else np.ones_like(image.alpha))
 
