@@ -684,7 +684,8 @@ class _LayerCrossing:
         depth, g = alpha.shape[:2]
         z = z.reshape(depth, g)
         z = np.where(z > 0, z, np.inf)
-        reach = z >= self.nearest[tiles]                 # (depth, g): at or past the tile's nearest waiting pixel
+        nearest = self.nearest[tiles]                    # inf: no surface left to cross (finish() adds the rest)
+        reach = (z >= nearest) & np.isfinite(nearest)    # (depth, g): at or past the tile's nearest waiting pixel
         cross = np.flatnonzero(reach.any(axis=0))
         if not len(cross):
             return None
