@@ -254,9 +254,12 @@ class KinematicTree:
             depth[i] = 0 if p < 0 else depth[p] + 1
         order = np.argsort(depth, kind="stable")
         self._levels = np.split(order, np.flatnonzero(np.diff(depth[order])) + 1) if n else []
-        self._kernel_args = (self.parents, np.ascontiguousarray(self.origins), self._codes,
-                             self.dof_offsets.astype(np.int64), self._scale, self._shift,
-                             np.ascontiguousarray(self.axes), np.ascontiguousarray(self.plane_axes))
+        # the compiled pass takes two tables (few arguments: each costs time at every call)
+        self._kernel_ints = np.ascontiguousarray(np.column_stack([self.parents, self._codes, self.dof_offsets]),
+                                                 dtype=np.int64)
+        self._kernel_floats = np.ascontiguousarray(np.column_stack([
+            self.origins[:, :3, :].reshape(n, 12), self._scale, self._shift, self.axes,
+            self.plane_axes.reshape(n, 6)]))
 
     # construction ---------------------------------------------------------------------------
 
@@ -434,23 +437,21 @@ class KinematicTree:
     def forward_kinematics(self, q=None, base=None, clamp=False):
         """World transforms of every link: (L,4,4) for one configuration (dof,), (B,L,4,4) for a
         batch (B,dof). `base` (4,4) places the roots; `clamp` first applies the joint limits."""
+        if _fk_kernel is not None and q is not None and not clamp and self.names:
+            q = np.asarray(q, dtype=np.float64)
+            if q.ndim == 1 and base is None and q.shape[0] == self.dof:     # the planner's hot path
+                world = np.empty((1, len(self.names), 4, 4))
+                if _fk_kernel(q.reshape(1, -1), self._kernel_ints, self._kernel_floats, _IDENTITY, world):
+                    return world[0]
+            return self._compiled_fk(q, base)
         q = self.zero() if q is None else self._check_configuration(q)
         if clamp:
             q = self.clamp(q)
+        if _fk_kernel is not None and len(self):
+            return self._compiled_fk(q, base)
         base = _IDENTITY if base is None else _check_base(base)
         single = q.ndim == 1
-        q2 = np.ascontiguousarray(q.reshape(-1, self.dof))
-        if _fk_kernel is not None and len(self):
-            world = np.empty((len(q2), len(self), 4, 4))
-            if len(q2) >= _PARALLEL_BATCH:
-                from .parallel import map_threads
-                halves = np.array_split(np.arange(len(q2)), 2)
-                map_threads(lambda h: _fk_kernel(q2[h[0]:h[-1] + 1], *self._kernel_args, base,
-                                                 world[h[0]:h[-1] + 1]), halves)
-            else:
-                _fk_kernel(q2, *self._kernel_args, base, world)
-            return world[0] if single else world
-        local = self._local_transforms(q2)
+        local = self._local_transforms(np.atleast_2d(q))
         world = np.empty_like(local)
         for level in self._levels:
             parent = self.parents[level]
@@ -459,6 +460,26 @@ class KinematicTree:
             else:
                 world[level] = world[parent] @ local[level]
         return world[:, 0] if single else np.ascontiguousarray(np.swapaxes(world, 0, 1))
+
+    def _compiled_fk(self, q, base):
+        """The compiled pass, checks included (it reports non-finite values itself): a few
+        microseconds for one configuration."""
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape[-1:] != (self.dof,) or q.ndim > 2:
+            self._check_configuration(q)                           # raises, naming the shape
+        base = _IDENTITY if base is None else _check_base(base)
+        q2 = q if q.ndim == 2 else q.reshape(1, self.dof)
+        world = np.empty((len(q2), len(self), 4, 4))
+        tables = (self._kernel_ints, self._kernel_floats, base)
+        if len(q2) >= _PARALLEL_BATCH:
+            from .parallel import map_threads
+            halves = [(h[0], h[-1] + 1) for h in np.array_split(np.arange(len(q2)), 2)]
+            finite = all(map_threads(lambda h: _fk_kernel(q2[h[0]:h[1]], *tables, world[h[0]:h[1]]), halves))
+        else:
+            finite = _fk_kernel(q2, *tables, world)
+        if not finite:
+            raise KinematicsError("configuration has non-finite values")
+        return world if q.ndim == 2 else world[0]
 
     def rest_transforms(self, base=None):
         """World transforms of every link at the zero configuration, (L,4,4)."""
@@ -472,7 +493,7 @@ class KinematicTree:
 
 
 _IDENTITY = np.eye(4)
-_PARALLEL_BATCH = 2048          # configurations from which both cores share forward kinematics
+_PARALLEL_BATCH = 8192          # configurations from which both cores share forward kinematics
 
 
 def _check_base(base):
@@ -535,44 +556,49 @@ def _rotvec_into(vx, vy, vz, r):
     r[1, 2], r[2, 1] = b * vy * vz - a * vx, b * vy * vz + a * vx
 
 
-def _fk_pass(q, parents, origins, codes, cols, scale, shift, axes, plane, base, out):
-    """out (B,L,4,4) = world transforms for configurations q (B,dof); see KinematicTree."""
-    n_links = parents.shape[0]
+def _fk_pass(q, ints, floats, base, out):
+    """out (B,L,4,4) = world transforms for configurations q (B,dof); False (nothing written) when q
+    holds a non-finite value. ints (L,3): parent, joint code, first column; floats (L,23): the
+    origin's top 3x4, mimic multiplier and offset, axis, two plane axes (see KinematicTree)."""
+    for b in range(q.shape[0]):
+        for c in range(q.shape[1]):
+            if not np.isfinite(q[b, c]):
+                return False
     r = np.empty((3, 3))
     t = np.empty(3)
     local = np.empty((3, 4))
     for b in range(q.shape[0]):
-        for i in range(n_links):
-            code, c = codes[i], cols[i]
+        for i in range(ints.shape[0]):
+            p, code, c = ints[i, 0], ints[i, 1], ints[i, 2]
+            o = floats[i]
+            ax, ay, az = o[14], o[15], o[16]
             for a in range(3):
                 t[a] = 0.0
                 for k in range(3):
                     r[a, k] = 1.0 if a == k else 0.0
             if code == 1:                                   # revolute, continuous
-                x = q[b, c] * scale[i] + shift[i]
-                _rotvec_into(axes[i, 0] * x, axes[i, 1] * x, axes[i, 2] * x, r)
+                x = q[b, c] * o[12] + o[13]
+                _rotvec_into(ax * x, ay * x, az * x, r)
             elif code == 2:                                 # prismatic
-                x = q[b, c] * scale[i] + shift[i]
-                for a in range(3):
-                    t[a] = axes[i, a] * x
+                x = q[b, c] * o[12] + o[13]
+                t[0], t[1], t[2] = ax * x, ay * x, az * x
             elif code == 3:                                 # ball
                 _rotvec_into(q[b, c], q[b, c + 1], q[b, c + 2], r)
             elif code == 4:                                 # planar
                 x = q[b, c + 2]
-                _rotvec_into(axes[i, 0] * x, axes[i, 1] * x, axes[i, 2] * x, r)
+                _rotvec_into(ax * x, ay * x, az * x, r)
                 for a in range(3):
-                    t[a] = q[b, c] * plane[i, 0, a] + q[b, c + 1] * plane[i, 1, a]
+                    t[a] = q[b, c] * o[17 + a] + q[b, c + 1] * o[20 + a]
             elif code == 5:                                 # floating
                 _rotvec_into(q[b, c + 3], q[b, c + 4], q[b, c + 5], r)
                 for a in range(3):
                     t[a] = q[b, c + a]
             for a in range(3):                              # local = origin @ [r | t]
                 for k in range(3):
-                    local[a, k] = origins[i, a, 0] * r[0, k] + origins[i, a, 1] * r[1, k] + origins[i, a, 2] * r[2, k]
-                local[a, 3] = origins[i, a, 0] * t[0] + origins[i, a, 1] * t[1] + origins[i, a, 2] * t[2] \
-                    + origins[i, a, 3]
-            p = parents[i]
-            for a in range(4):                              # world = world[parent] (or base) @ local
+                    local[a, k] = o[4 * a] * r[0, k] + o[4 * a + 1] * r[1, k] + o[4 * a + 2] * r[2, k]
+                local[a, 3] = o[4 * a] * t[0] + o[4 * a + 1] * t[1] + o[4 * a + 2] * t[2] + o[4 * a + 3]
+            out[b, i, 3, 0], out[b, i, 3, 1], out[b, i, 3, 2], out[b, i, 3, 3] = 0.0, 0.0, 0.0, 1.0
+            for a in range(3):                              # world = world[parent] (or base) @ local
                 for k in range(4):
                     if p >= 0:
                         s = out[b, p, a, 3] if k == 3 else 0.0
@@ -583,6 +609,7 @@ def _fk_pass(q, parents, origins, codes, cols, scale, shift, axes, plane, base, 
                         for m in range(3):
                             s += base[a, m] * local[m, k]
                     out[b, i, a, k] = s
+    return True
 
 
 _rotvec_into = kernel(_rotvec_into)          # numba resolves it as a global when compiling _fk_pass

@@ -145,6 +145,10 @@ def _links_and_joints(robot, source):
     if len(declared) != len(links):
         raise SplatFileError(source, "link names are not unique")
     joints = [_joint(source, j, declared) for j in robot.findall("joint")]
+    if joints:                                   # every origin in one batch: per-joint NumPy calls add up
+        poses = np.array([j["origin"] for j in joints])
+        for j, m in zip(joints, transforms(rpy_matrices(poses[:, 1]), poses[:, 0])):
+            j["origin"] = m
     if len({j["name"] for j in joints}) != len(joints):
         raise SplatFileError(source, "joint names are not unique")
     return links, joints
@@ -185,12 +189,17 @@ def _numbers(source, text, count, where):
 
 def _origin(source, element, where):
     """The (4,4) transform of an element's <origin> (identity without one)."""
+    xyz, rpy = _pose(source, element, where)
+    return transforms(rpy_matrices(rpy), xyz)
+
+
+def _pose(source, element, where):
+    """The xyz and rpy of an element's <origin> (zeros without one)."""
     origin = element.find("origin")
     if origin is None:
-        return np.eye(4)
-    xyz = _numbers(source, origin.get("xyz", "0 0 0"), 3, f"{where} origin xyz")
-    rpy = _numbers(source, origin.get("rpy", "0 0 0"), 3, f"{where} origin rpy")
-    return transforms(rpy_matrices(rpy), xyz)
+        return np.zeros(3), np.zeros(3)
+    return (_numbers(source, origin.get("xyz", "0 0 0"), 3, f"{where} origin xyz"),
+            _numbers(source, origin.get("rpy", "0 0 0"), 3, f"{where} origin rpy"))
 
 
 def _joint(source, element, links):
@@ -213,7 +222,7 @@ def _joint(source, element, links):
     if kind in ("revolute", "continuous", "prismatic", "planar") and not 1e-12 <= np.linalg.norm(axis) < np.inf:
         raise SplatFileError(source, f"{where} has a zero axis or one too long for floating point")
     lower, upper = _limits(source, element, kind, where)
-    return {"name": name, "type": kind, **ends, "origin": _origin(source, element, where),
+    return {"name": name, "type": kind, **ends, "origin": _pose(source, element, where),
             "axis": axis, "lower": lower, "upper": upper, "mimic": _mimic(source, element, where)}
 
 
