@@ -273,12 +273,16 @@ class EnvironmentIndex:
             cls = np.floor(np.log(top / np.maximum(sig, top * 1e-15)) / math.log(level_ratio)).astype(np.int64)
             by_class = np.argsort(cls, kind="stable")
             edges = np.flatnonzero(np.diff(cls[by_class])) + 1
+            parts, sparse = [], []
             for members in np.split(keep[by_class], edges):
-                for part in _dense_parts(flat, members, cell_factor, cells_per_splat):
-                    level, order = self._build_level(flat, part, cell_factor, cells_per_splat,
-                                                     sum(map(len, orders)))
-                    self.levels.append(level)
-                    orders.append(order)
+                dense, rest = _dense_parts(flat, members, cell_factor, cells_per_splat)
+                parts += dense
+                sparse.append(rest)
+            sparse = np.concatenate(sparse)
+            for part in parts + ([sparse] if len(sparse) else []):   # outliers of every class share a grid
+                level, order = self._build_level(flat, part, cell_factor, cells_per_splat, sum(map(len, orders)))
+                self.levels.append(level)
+                orders.append(order)
         self.order = o = np.concatenate(orders) if orders else np.zeros(0, np.int64)
         self.mx, self.my, self.mz = (flat.means[a][o] for a in range(3))
         self.cov6 = np.stack([c[o] for c in flat.cov6]) if len(o) else np.zeros((6, 0))
@@ -475,16 +479,18 @@ class EnvironmentIndex:
 
 
 def _dense_parts(flat, members, cell_factor, cells_per_splat, depth=2):
-    """Split a size class whose grid would not fit the cell budget at its natural cell size into
-    its dense part (the box of the coarse blocks, COARSE cells a side, holding at least 2 members
-    and 1% of the fullest block) and, recursively, the rest; a class without a dense part (or one
-    that is dense everywhere) stays whole, with coarser cells."""
+    """A size class as (groups that get grids of their own, the sparse rest): a class whose grid
+    would not fit the cell budget at its natural cell size gives up everything outside its dense
+    part (the box of the coarse blocks, COARSE cells a side, holding at least 2 members and 1% of
+    the fullest block), recursively; a class without a dense part (or dense everywhere) stays whole,
+    with coarser cells."""
+    none = members[:0]
     pts = np.column_stack([m[members] for m in flat.means])
     h0 = cell_factor * float(np.sqrt(flat.lam[members].max()))
     cap = cells_per_splat * len(members) + 64
     lo = pts.min(axis=0)
-    if depth == 0 or h0 <= 0 or np.prod(np.floor((pts.max(axis=0) - lo) / h0) + 1) <= cap:
-        return [members]
+    if h0 <= 0 or np.prod(np.floor((pts.max(axis=0) - lo) / h0) + 1) <= cap:
+        return [members], none
     block = np.floor((pts - lo) / (COARSE * h0)).astype(np.int64)
     order = np.lexsort(block.T[::-1])
     first = np.concatenate([[True], (np.diff(block[order], axis=0) != 0).any(axis=1)])
@@ -492,12 +498,17 @@ def _dense_parts(flat, members, cell_factor, cells_per_splat, depth=2):
     group[order] = np.cumsum(first) - 1
     counts = np.bincount(group)
     dense = (counts >= max(2.0, 0.01 * counts.max()))[group]
-    if dense.all() or not dense.any():
-        return [members]
+    if dense.all():
+        return [members], none
+    if not dense.any():
+        return [], members
     inside = ((block >= block[dense].min(axis=0)) & (block <= block[dense].max(axis=0))).all(axis=1)
     if inside.all():
-        return [members]
-    return [members[inside]] + _dense_parts(flat, members[~inside], cell_factor, cells_per_splat, depth - 1)
+        return [members], none
+    if depth == 0:
+        return [members[inside]], members[~inside]
+    more, rest = _dense_parts(flat, members[~inside], cell_factor, cells_per_splat, depth - 1)
+    return [members[inside]] + more, rest
 
 
 def _clip(x, lo, hi):
