@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import Row, Timing, print_rows, timeit  # noqa: E402
+from common import Row, Timing, paired, print_rows, timeit  # noqa: E402
 
 from splatwright.core import SplatCloud, collision as col, geometry  # noqa: E402
 from splatwright.core.kinematics import KinematicTree, axis_angle_matrices, transforms  # noqa: E402
@@ -250,7 +250,7 @@ def room_rows(robot, env, quick):
     before = module_before("core/collision.py")
     rest = robot.gaussians()
     deform = lambda q: robot.tree.forward_kinematics(q, base=PANDA_ON_TABLE) @ np.linalg.inv(robot.tree.rest_transforms())
-    free = robot.tree.pack({"panda_joint4": -0.3})
+    free = robot.tree.pack({"panda_joint4": -0.3})      # clear of the table (the room's own floaters touch it)
     deep = robot.tree.pack({"panda_joint2": 1.6, "panda_joint4": -0.4, "panda_joint6": 1.5})
     poses = {"free": col.pose_robot(rest, deform(free)), "deep contact": col.pose_robot(rest, deform(deep))}
     indexes = {"room": col.EnvironmentIndex(env),
@@ -263,30 +263,64 @@ def room_rows(robot, env, quick):
         "signed distance of 2k robot splats, max 0.1 m": lambda r, ix: col.signed_distance(ix, r.means[::len(r) // 2000][:2000], max_distance=0.1),
         "occupancy, 10k points": lambda r, ix: col.occupancy(ix, probes),
     }
-    rows, plain = [], {}
-    repeat = 2 if quick else 3
-    for where, ix in indexes.items():
-        for state, posed in poses.items():
-            for name, query in queries.items():
-                t = timeit(lambda: query(posed, ix), repeat=repeat)
-                extra = {"where": where, "robot": state}
-                if name.startswith("contacts"):
-                    extra["pairs"] = len(query(posed, ix))
-                base = plain.get((state, name))
-                if base is None:
-                    plain[(state, name)] = t
-                else:
-                    extra["vs room alone"] = f"{t.median / base.median:.2f}x (target <= 1.5x)"
-                if name.startswith("contacts") and state == "deep contact":
-                    extra["vs free"] = f"{t.median / timeit(lambda: query(poses['free'], ix), repeat=repeat).median:.2f}x (target <= 3x)"
-                baseline = None
-                if name.startswith("contacts") and where == "room":
-                    old_index = before.EnvironmentIndex(env)
-                    old_robot = before.Gaussians(posed.means, posed.covs, posed.weights, posed.links)
-                    baseline = timeit(lambda: before.ellipsoid_contacts(old_robot, old_index, k=3.0), repeat=1)
-                    extra["baseline"] = "the code before"
-                rows.append(Row(TOPIC, f"Panda {state}, {where}: {name}", t, baseline, extra=extra))
+    rows = []
+    repeat = 3 if quick else 5
+    (room, floating), = [tuple(indexes.values())]
+    for state, posed in poses.items():
+        for name, query in queries.items():
+            # the room and the room with floaters timed alternately, so both meet the same load
+            t_room, t_float = paired(lambda: query(posed, room), lambda: query(posed, floating), repeat)
+            extra = {"robot": state}
+            if name.startswith("contacts"):
+                extra["pairs"] = len(query(posed, room))
+                if state == "deep contact":
+                    t_free, t_deep = paired(lambda: query(poses["free"], room), lambda: query(posed, room), repeat)
+                    extra["deep / free"] = f"{t_deep.median / t_free.median:.2f}x (target <= 3x)"
+                old_robot = before.Gaussians(posed.means, posed.covs, posed.weights, posed.links)
+                old_index = before.EnvironmentIndex(env)
+                baseline = timeit(lambda: before.ellipsoid_contacts(old_robot, old_index, k=3.0), repeat=1)
+                rows.append(Row(TOPIC, f"Panda {state}, room: {name}", t_room, baseline,
+                                extra={**extra, "baseline": "the code before"}))
+            else:
+                rows.append(Row(TOPIC, f"Panda {state}, room: {name}", t_room, extra=extra))
+            rows.append(Row(TOPIC, f"Panda {state}, room + 1,000 floaters over 1 km: {name}", t_float, t_room,
+                            extra={"robot": state, "floaters / room": f"{t_float.median / t_room.median:.2f}x (target <= 1.5x)",
+                                   "baseline": "the room alone, timed alternately"}))
     return rows
+
+
+def sdf_rows(robot, quick):
+    """Signed distance from 11k points around the Panda to its own (flat) splats, and to round splats
+    at the same centres: time against the splats within reach, and against the code before."""
+    from _before import module_before
+    before = module_before("core/collision.py")
+    flat = robot.cloud
+    round_ = flat.replace(log_scales=np.repeat(flat.log_scales.mean(axis=1, keepdims=True), 3, axis=1))
+    rng = np.random.default_rng(10)
+    lo, hi = flat.positions.min(axis=0), flat.positions.max(axis=0)
+    points = rng.uniform(lo - 0.2, hi + 0.2, (3000 if quick else 11_000, 3))
+    rows = []
+    for label, cloud in (("flat", flat), ("round", round_)):
+        index, old_index = col.EnvironmentIndex(cloud), before.EnvironmentIndex(cloud)
+        for reach in (0.05, 0.1, 0.5):
+            t = timeit(lambda: col.signed_distance(index, points, max_distance=reach), repeat=2 if quick else 3)
+            near = _pairs_within(index, points, reach)
+            baseline = None
+            if reach < 0.5 or not quick:
+                baseline = timeit(lambda: before.signed_distance(old_index, points, max_distance=reach), repeat=1, warmup=0)
+            rows.append(Row(TOPIC, f"signed distance, {len(points):,} points to the Panda's {label} splats, "
+                                   f"max {reach:g} m", t, baseline,
+                            extra={"splats within max (pairs)": near, "ns per pair": f"{t.median / max(near, 1) * 1e9:.0f}",
+                                   "baseline": "the code before"}))
+    return rows
+
+
+def _pairs_within(index, points, reach):
+    """How many (point, splat) pairs have their centres within `reach`."""
+    def count(i, j):
+        d = (points[i, 0] - index.mx[j]) ** 2 + (points[i, 1] - index.my[j]) ** 2 + (points[i, 2] - index.mz[j]) ** 2
+        return int((d <= reach * reach).sum())
+    return sum(index.query(points, lambda lv: np.full(len(points), reach), count))
 
 
 def demo_rig_clouds(arm_splats=20_000, env_splats=20_000):
@@ -436,6 +470,7 @@ def run(quick=False):
     robot, description = panda()
     rows += fcl_rows(robot, description, quick)
     rows += room_rows(robot, env, quick)
+    rows += sdf_rows(robot, quick)
     rows += demo_rig_rows(quick)
     return rows
 
