@@ -242,3 +242,44 @@ def test_urdf2splats_verb_writes_the_posed_robot(robot_dir, capsys):
     assert "mimics 'grip'" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(args + ["--joint", "shoulder"])
+
+
+def test_everything_works_where_numba_cannot_be_imported(robot_dir):
+    """Blender's Python has no numba: forward kinematics, contacts and distances take their NumPy
+    paths there and give the same numbers as the compiled ones here."""
+    import json
+    import subprocess
+    import sys
+    import textwrap
+    script = textwrap.dedent(f"""
+        import json, sys
+        class NoNumba:
+            def find_spec(self, name, path=None, target=None):
+                if name == "numba" or name.startswith("numba."):
+                    raise ImportError("numba is blocked in this test")
+        sys.meta_path.insert(0, NoNumba())
+        import numpy as np
+        from splatwright.core import collision as col, jit, kinematics
+        from splatwright.io.urdf import read_robot
+        assert not jit.ENABLED and kinematics._fk_kernel is None and col._contact_kernel is None
+        robot = read_robot({str(robot_dir / 'robot' / 'testbot.urdf')!r}, [{str(robot_dir / 'share')!r}], max_splats=2000)
+        q = robot.tree.pack({{"shoulder": 2.0, "elbow": -1.9}})          # folded onto the base
+        posed = col.pose_robot(robot.gaussians(), robot.deform(q))
+        hits = col.ellipsoid_contacts(posed, robot.cloud, k=3.0)
+        sdf = col.signed_distance(robot.cloud, np.array([[0.3, 0.2, 0.4], [0, 0, 0.8]]), max_distance=1.0)
+        print(json.dumps({{"fk": robot.tree.forward_kinematics(q).tolist(), "pairs": len(hits),
+                          "sigma": float(hits.sigma.sum()), "sdf": sdf.tolist()}}))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    there = json.loads(done.stdout.strip().splitlines()[-1])
+    from splatwright.core import collision as col
+    robot = read_robot(robot_dir / "robot" / "testbot.urdf", [robot_dir / "share"], max_splats=2000)
+    q = robot.tree.pack({"shoulder": 2.0, "elbow": -1.9})
+    posed = col.pose_robot(robot.gaussians(), robot.deform(q))
+    hits = col.ellipsoid_contacts(posed, robot.cloud, k=3.0)
+    assert there["pairs"] == len(hits) > 100
+    np.testing.assert_allclose(there["fk"], robot.tree.forward_kinematics(q), atol=1e-14)
+    np.testing.assert_allclose(there["sigma"], hits.sigma.sum(), rtol=1e-9)
+    np.testing.assert_allclose(there["sdf"], col.signed_distance(robot.cloud, np.array([[0.3, 0.2, 0.4], [0, 0, 0.8]]),
+                                                                  max_distance=1.0), rtol=1e-12)
