@@ -306,7 +306,8 @@ def urdf_rows(quick):
         ours = timeit(lambda: parse_urdf(text), repeat=3)
         baseline = timeit(lambda: before.parse_urdf(text), repeat=1, warmup=0) if n <= 4000 else None
         rows.append(Row(TOPIC, f"read a URDF chain of {n:,} links", ours, baseline,
-                        extra={"baseline": "the reader before (quadratic)" if baseline else "before: > 120 s, not run"}))
+                        extra={"baseline": "the reader before (quadratic)" if baseline
+                               else "before: > 120 s, not run"}))
     return rows
 
 

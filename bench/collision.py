@@ -236,8 +236,9 @@ def fcl_rows(robot, description, quick):
 def floaters(count=1000, seed=8):
     """Splats scattered over a kilometre around the room."""
     rng = np.random.default_rng(seed)
+    sizes = np.exp(rng.uniform(np.log(0.004), np.log(0.1), (count, 3)))
     return SplatCloud.from_activated(rng.uniform(-500, 500, (count, 3)) + [3, 2.5, 1.5], rng.normal(size=(count, 4)),
-                                     np.exp(rng.uniform(np.log(0.004), np.log(0.1), (count, 3))), rng.uniform(0.05, 0.9, count))
+                                     sizes, rng.uniform(0.05, 0.9, count))
 
 
 PANDA_ON_TABLE = transforms(translations=(2.9, 2.55, TABLE_TOP + 0.05))     # on a 5 cm plate: free means free
@@ -249,7 +250,8 @@ def room_rows(robot, env, quick):
     from _before import module_before
     before = module_before("core/collision.py")
     rest = robot.gaussians()
-    deform = lambda q: robot.tree.forward_kinematics(q, base=PANDA_ON_TABLE) @ np.linalg.inv(robot.tree.rest_transforms())
+    rest_inv = np.linalg.inv(robot.tree.rest_transforms())
+    deform = lambda q: robot.tree.forward_kinematics(q, base=PANDA_ON_TABLE) @ rest_inv
     free = robot.tree.pack({"panda_joint4": -0.3})      # clear of the table (the room's own floaters touch it)
     deep = robot.tree.pack({"panda_joint2": 1.6, "panda_joint4": -0.4, "panda_joint6": 1.5})
     poses = {"free": col.pose_robot(rest, deform(free)), "deep contact": col.pose_robot(rest, deform(deep))}
@@ -260,7 +262,8 @@ def room_rows(robot, env, quick):
     queries = {
         "cost+gradient": lambda r, ix: col.overlap(r, ix),
         "contacts, 3 sigma": lambda r, ix: col.ellipsoid_contacts(r, ix, k=3.0),
-        "signed distance of 2k robot splats, max 0.1 m": lambda r, ix: col.signed_distance(ix, r.means[::len(r) // 2000][:2000], max_distance=0.1),
+        "signed distance of 2k robot splats, max 0.1 m":
+            lambda r, ix: col.signed_distance(ix, r.means[::len(r) // 2000][:2000], max_distance=0.1),
         "occupancy, 10k points": lambda r, ix: col.occupancy(ix, probes),
     }
     rows = []
@@ -284,8 +287,8 @@ def room_rows(robot, env, quick):
             else:
                 rows.append(Row(TOPIC, f"Panda {state}, room: {name}", t_room, extra=extra))
             rows.append(Row(TOPIC, f"Panda {state}, room + 1,000 floaters over 1 km: {name}", t_float, t_room,
-                            extra={"robot": state, "floaters / room": f"{t_float.median / t_room.median:.2f}x (target <= 1.5x)",
-                                   "baseline": "the room alone, timed alternately"}))
+                            extra={"robot": state, "baseline": "the room alone, timed alternately",
+                                   "floaters / room": f"{t_float.median / t_room.median:.2f}x (target <= 1.5x)"}))
     return rows
 
 
@@ -307,11 +310,12 @@ def sdf_rows(robot, quick):
             near = _pairs_within(index, points, reach)
             baseline = None
             if reach < 0.5 or not quick:
-                baseline = timeit(lambda: before.signed_distance(old_index, points, max_distance=reach), repeat=1, warmup=0)
+                baseline = timeit(lambda: before.signed_distance(old_index, points, max_distance=reach),
+                                  repeat=1, warmup=0)
             rows.append(Row(TOPIC, f"signed distance, {len(points):,} points to the Panda's {label} splats, "
                                    f"max {reach:g} m", t, baseline,
-                            extra={"splats within max (pairs)": near, "ns per pair": f"{t.median / max(near, 1) * 1e9:.0f}",
-                                   "baseline": "the code before"}))
+                            extra={"splats within max (pairs)": near, "baseline": "the code before",
+                                   "ns per pair": f"{t.median / max(near, 1) * 1e9:.0f}"}))
     return rows
 
 
@@ -375,7 +379,8 @@ def demo_rig_rows(quick):
             pairs = len(col.ellipsoid_contacts(arm, index, k=3.0))
         finally:
             collision._contact_kernel = saved
-        rows.append(Row(TOPIC, f"demo rig contacts per frame, {label} (CPU s)", Timing(ours, 0.0, 1), Timing(old, 0.0, 1),
+        rows.append(Row(TOPIC, f"demo rig contacts per frame, {label} (CPU s)", Timing(ours, 0.0, 1),
+                        Timing(old, 0.0, 1),
                         extra={"pairs": pairs, "target": "4x faster than before", "baseline": "the code before"}))
     return rows
 

@@ -627,7 +627,8 @@ def overlap(robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False
         far = 0.0
         if bound:                                            # each far term is below its cheap bound
             with np.errstate(divide="ignore", under="ignore"):
-                far = float(np.sum(robot.weights[i[~close]] * index.w[j[~close]] * np.exp(-0.5 * d2[~close] / lam[~close])))
+                out = ~close
+                far = float(np.sum(robot.weights[i[out]] * index.w[j[out]] * np.exp(-0.5 * d2[out] / lam[out])))
         near = np.flatnonzero(close)
         i, j = i[near], j[near]
         d = (dx[near], dy[near], dz[near])
@@ -739,7 +740,8 @@ def _joint_gradient(tree, q, world, base, robot, g, gcov):
         elif kind == "floating":                                 # translate, then turn about the moved point
             pivot = point + rot @ q[col:col + 3]
             grad[col:col + 3] += rot.T @ force[i]
-            grad[col + 3:col + 6] += (rot @ _left_jacobian(q[col + 3:col + 6])).T @ (moment[i] - np.cross(pivot, force[i]))
+            torque = moment[i] - np.cross(pivot, force[i])
+            grad[col + 3:col + 6] += (rot @ _left_jacobian(q[col + 3:col + 6])).T @ torque
     return grad
 
 
@@ -1095,7 +1097,8 @@ def _bounds_pass(i, j, points, mx, my, mz, cov, w, min_opacity, k, rho, out):
         centre = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         c00, c01, c02, c11, c12, c22 = cov[0, e], cov[1, e], cov[2, e], cov[3, e], cov[4, e], cov[5, e]
         if centre > 0:
-            spread = c00 * d0 * d0 + c11 * d1 * d1 + c22 * d2 * d2 + 2.0 * (c01 * d0 * d1 + c02 * d0 * d2 + c12 * d1 * d2)
+            spread = (c00 * d0 * d0 + c11 * d1 * d1 + c22 * d2 * d2
+                      + 2.0 * (c01 * d0 * d1 + c02 * d0 * d2 + c12 * d1 * d2))
             if centre - k * np.sqrt(max(spread, 0.0)) / centre > rho[p]:
                 continue
         r = np.sqrt(_ldl_quadratic(c00, c01, c02, c11, c12, c22, d0, d1, d2, x)) / k

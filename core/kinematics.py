@@ -527,7 +527,8 @@ def _joint_values(name, kind, value):
         value = quaternions_to_rotvec(value.reshape(4))
     elif kind == "floating" and value.shape == (4, 4):
         r, t = value[:3, :3], value[:3, 3]
-        if np.abs(r.T @ r - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0 or np.abs(value[3] - [0, 0, 0, 1]).max() > 0:
+        rigid = np.abs(r.T @ r - np.eye(3)).max() <= 1e-6 and np.linalg.det(r) > 0
+        if not rigid or (value[3] != [0, 0, 0, 1]).any():
             raise KinematicsError(f"joint '{name}' (floating): the 4x4 matrix is not a rigid transform")
         value = np.concatenate([t, quaternions_to_rotvec(geometry.matrices_to_quaternions(r))])
     elif kind == "floating" and value.size == 7:

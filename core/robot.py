@@ -145,7 +145,8 @@ def primitive(kind, size):
         nxt = lambda r: 1 + r * n + (np.arange(n) + 1) % n
         faces = [np.column_stack([np.zeros(n, int), ring(0), nxt(0)])]
         for r in range(rings - 2):
-            faces += [np.column_stack([ring(r), ring(r + 1), nxt(r + 1)]), np.column_stack([ring(r), nxt(r + 1), nxt(r)])]
+            faces += [np.column_stack([ring(r), ring(r + 1), nxt(r + 1)]),
+                      np.column_stack([ring(r), nxt(r + 1), nxt(r)])]
         bottom = len(vertices) - 1
         faces.append(np.column_stack([np.full(n, bottom), nxt(rings - 2), ring(rings - 2)]))
         return vertices, np.concatenate(faces)

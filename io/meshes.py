@@ -46,7 +46,8 @@ def read_mesh_file(path):
         raise SplatFileError(path, "no triangles")
     mesh = join_meshes(parts)
     if not np.isfinite(mesh.vertices).all():
-        raise SplatFileError(path, f"{int((~np.isfinite(mesh.vertices).all(axis=1)).sum())} vertices are NaN or infinite")
+        bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
+        raise SplatFileError(path, f"{bad} vertices are NaN or infinite")
     return mesh
 
 
@@ -78,7 +79,8 @@ def _part(geometry):
         return Mesh(vertices, faces, corner_uvs, np.zeros(len(faces), np.int64), [material])
     if kind == "vertex":
         rgb = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255.0
-        return Mesh(vertices, faces, corner_colors=color.srgb_to_linear(rgb), materials=[Material(base_color=(1, 1, 1))])
+        return Mesh(vertices, faces, corner_colors=color.srgb_to_linear(rgb),
+                    materials=[Material(base_color=(1, 1, 1))])
     if kind == "face":
         rgb = np.asarray(visual.face_colors, np.float64)[:, :3] / 255.0
         corner = np.repeat(color.srgb_to_linear(rgb)[:, None], 3, axis=1)

@@ -515,7 +515,8 @@ def test_zero_scales_skin_as_points(mode):
     posed = skin(cloud, Binding.rigid(np.arange(40) % 2), deform, mode=mode)
     np.testing.assert_array_equal(np.isneginf(posed.log_scales), np.isneginf(cloud.log_scales))
     odd = np.arange(40) % 2 == 1
-    np.testing.assert_allclose(posed.positions[odd], cloud.positions[odd] @ deform[1, :3, :3].T + [0.5, 0, 0], atol=1e-6)
+    expect = cloud.positions[odd] @ deform[1, :3, :3].T + [0.5, 0, 0]
+    np.testing.assert_allclose(posed.positions[odd], expect, atol=1e-6)
     with pytest.raises(SkinningError, match="non-finite log_scales"):
         skin(cloud.replace(log_scales=np.where(np.isneginf(cloud.log_scales), np.inf, cloud.log_scales)),
              Binding.rigid(np.arange(40) % 2), deform)

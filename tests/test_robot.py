@@ -43,7 +43,8 @@ URDF = """<?xml version="1.0"?>
   </link>
   <link name="ball"><visual><geometry><sphere radius="0.06"/></geometry><material name="teal"/></visual></link>
   <link name="claw">
-    <visual><origin xyz="0.02 0 0" rpy="0 0 0.3"/><geometry><mesh filename="package://toolkit/meshes/tetra.stl" scale="0.1 0.2 0.05"/></geometry>
+    <visual><origin xyz="0.02 0 0" rpy="0 0 0.3"/>
+      <geometry><mesh filename="package://toolkit/meshes/tetra.stl" scale="0.1 0.2 0.05"/></geometry>
       <material name="red"/></visual>
   </link>
   <link name="plate"><visual><geometry><mesh filename="plate.obj"/></geometry><material name="red"/></visual></link>
@@ -131,7 +132,8 @@ DAE = """<?xml version="1.0" encoding="utf-8"?>
         <param name="X" type="float"/><param name="Y" type="float"/><param name="Z" type="float"/>
       </accessor></technique_common></source>
     <vertices id="quad-vtx"><input semantic="POSITION" source="#quad-pos"/></vertices>
-    <triangles material="mat" count="2"><input semantic="VERTEX" source="#quad-vtx" offset="0"/><p>0 1 2 0 2 3</p></triangles>
+    <triangles material="mat" count="2"><input semantic="VERTEX" source="#quad-vtx" offset="0"/>
+      <p>0 1 2 0 2 3</p></triangles>
   </mesh></geometry></library_geometries>
   <library_visual_scenes><visual_scene id="scene"><node id="n">
     <matrix>2 0 0 0.5  0 3 0 0  0 0 1 0.25  0 0 0 1</matrix>
@@ -226,7 +228,8 @@ def test_urdf2splats_verb_writes_the_posed_robot(robot_dir, capsys):
     urdf = str(robot_dir / "robot" / "testbot.urdf")
     code = main(["urdf2splats", urdf, str(out), "--package-path", str(robot_dir / "share"), "--max-splats", "3000",
                  "--joint", "shoulder=0.7", "--joint", "grip=0.05"])
-    assert code == 0 and "wrote 3000 splats on 5 of 5 links of 'testbot' (3 degrees of freedom)" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert code == 0 and "wrote 3000 splats on 5 of 5 links of 'testbot' (3 degrees of freedom)" in printed
     written = read_splats(out)
     robot = read_robot(urdf, [robot_dir / "share"], max_splats=3000)
     expect = robot.pose(robot.tree.pack({"shoulder": 0.7, "grip": 0.05}))
@@ -262,7 +265,8 @@ def test_everything_works_where_numba_cannot_be_imported(robot_dir):
         from splatwright.core import collision as col, jit, kinematics
         from splatwright.io.urdf import read_robot
         assert not jit.ENABLED and kinematics._fk_kernel is None and col._contact_kernel is None
-        robot = read_robot({str(robot_dir / 'robot' / 'testbot.urdf')!r}, [{str(robot_dir / 'share')!r}], max_splats=2000)
+        urdf, share = {str(robot_dir / 'robot' / 'testbot.urdf')!r}, {str(robot_dir / 'share')!r}
+        robot = read_robot(urdf, [share], max_splats=2000)
         q = robot.tree.pack({{"shoulder": 2.0, "elbow": -1.9}})          # folded onto the base
         posed = col.pose_robot(robot.gaussians(), robot.deform(q))
         hits = col.ellipsoid_contacts(posed, robot.cloud, k=3.0)

@@ -366,8 +366,10 @@ def test_mimic_errors_are_named():
 
 FREE_URDF = """<robot name="free">
   <link name="world"/><link name="body"/><link name="cart"/><link name="head"/>
-  <joint name="float" type="floating"><parent link="world"/><child link="body"/><origin xyz="1 0 0" rpy="0 0 0.5"/></joint>
-  <joint name="table" type="planar"><parent link="body"/><child link="cart"/><origin xyz="0 0 0.2"/><axis xyz="0 0 1"/></joint>
+  <joint name="float" type="floating"><parent link="world"/><child link="body"/>
+    <origin xyz="1 0 0" rpy="0 0 0.5"/></joint>
+  <joint name="table" type="planar"><parent link="body"/><child link="cart"/>
+    <origin xyz="0 0 0.2"/><axis xyz="0 0 1"/></joint>
   <joint name="neck" type="spherical"><parent link="cart"/><child link="head"/><origin xyz="0 0 0.1"/></joint>
 </robot>"""
 
