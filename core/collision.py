@@ -1176,6 +1176,8 @@ def fit_proxies(robot, per_link=16, links=None, reference_sigma=None, iterations
         raise CollisionInputError(f"per_link must be at least 1, got {per_link}")
     if reference_sigma is None:
         reference_sigma = float(np.median(np.sqrt(np.trace(robot.covs, axis1=1, axis2=2) / 3))) if len(robot) else 0.0
+    if reference_sigma <= 0 and len(robot):        # point splats: a size from the robot's extent, or masses vanish
+        reference_sigma = 1e-3 * max(float(np.ptp(robot.means, axis=0).max()), 1e-6)
     ref = reference_sigma ** 2 * np.eye(3)
     mass = robot.weights * (2 * np.pi) ** 1.5 * np.sqrt(np.maximum(np.linalg.det(robot.covs + ref), 0.0))
     means, covs, weights, owner = [], [], [], []

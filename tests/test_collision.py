@@ -560,3 +560,18 @@ def test_joint_gradient_of_mimic_planar_and_floating_joints():
     cost = lambda x: col.overlap_at(tree, x, robot, env, 30.0).cost
     fd = [(cost(q + h * e) - cost(q - h * e)) / (2 * h) for e in np.eye(tree.dof)]
     np.testing.assert_allclose(r.grad_q, fd, rtol=1e-6, atol=1e-7 * np.abs(fd).max())
+
+
+@pytest.mark.filterwarnings("error")
+def test_all_zero_covariances_give_point_answers_without_warnings():
+    points = gaussians([[0, 0, 0], [0.5, 0, 0], [0, 0, 1e-3]], np.zeros((3, 3)))
+    env = gaussians([[0, 0, 0], [0.2, 0, 0]], np.zeros((2, 3)))
+    mu = col.contact_sigma(points.means, points.covs, env.means[[0, 0, 1]], env.covs[[0, 0, 1]])
+    assert mu.tolist() == [0.0, np.inf, np.inf]               # coincident points touch at any k
+    assert col.signed_distance(env, points.means, max_distance=1.0).tolist() == pytest.approx([0.0, 0.3, 1e-3])
+    assert col.occupancy(env, points.means).values.tolist() == pytest.approx([1 - np.exp(-1), 0, 0])
+    assert col.overlap(points, env, cov_gradient=True).cost == 1.0
+    hits = col.ellipsoid_contacts(points, env)
+    assert list(zip(hits.robot, hits.env)) == [(0, 0)] and hits.sigma.tolist() == [0.0]
+    proxies = col.fit_proxies(points, per_link=2)          # (zero masses made them vanish)
+    assert len(proxies) == 2 and np.isfinite(proxies.weights).all() and (proxies.weights > 0).all()
