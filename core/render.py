@@ -172,8 +172,9 @@ def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_
             compositor = _Compositor(proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights)
         else:
             proj = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool)
-            bins = _bin_compiled(kernels, proj, camera, tile_size, pool)
-            compositor = _CompiledCompositor(kernels, proj, bins, camera, dtype, t_min, pool,
+            order, number = _by_first_tile(proj, camera, tile_size)
+            bins = _bin_compiled(kernels, proj, camera, tile_size, pool, number)
+            compositor = _CompiledCompositor(kernels, proj, bins, order, camera, dtype, t_min, pool,
                                              return_counts, return_weights)
         images = compositor.images(progress)
     result = _finish(*images, bg, background, proj, bins, cloud)
@@ -549,11 +550,13 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool):
     return Projected(index[rows], out, r2[rows], bbox[rows], sum(skipped for _, _, skipped in parts))
 
 
-def _bin_compiled(kernels, proj, camera, tile_size, pool):
-    """bin_tiles() by the compiled kernels: count each chunk's entries per tile, then place them."""
+def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
+    """bin_tiles() by the compiled kernels: count each chunk's entries per tile, then place them.
+    Entries hold number[splat] when given (a renumbering of the splats), else the splat."""
     ts = tile_size
     tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
     n_tiles, n = tiles_x * tiles_y, len(proj)
+    number = np.arange(n, dtype=np.int32) if number is None else number
     bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
     chunks = list(range(len(bounds) - 1))
     rec64 = proj.records
@@ -565,18 +568,31 @@ def _bin_compiled(kernels, proj, camera, tile_size, pool):
     cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts       # where each chunk's run begins
     entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
     pool.map(lambda k: kernels.fill_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
-                                          cursor[k], entry_splat), chunks)
+                                          number, cursor[k], entry_splat), chunks)
     return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
+
+
+def _by_first_tile(proj, camera, tile_size):
+    """Splat numbers in the order of the tile of their box's top-left corner (then depth): records
+    stored so put a tile's entries near each other in memory. Returns (order, number), number the
+    inverse of order."""
+    tiles_x = -(-camera.width // tile_size)
+    n_tiles = tiles_x * -(-camera.height // tile_size)
+    order = _stable_argsort(proj.bbox[:, 1] // tile_size * tiles_x + proj.bbox[:, 0] // tile_size, n_tiles)
+    number = np.empty(len(order), np.int32)
+    number[order] = np.arange(len(order), dtype=np.int32)
+    return order, number
 
 
 class _CompiledCompositor:
     """Every tile composited by the compiled kernel, straight into image arrays; the tiles are
-    split into runs of similar work, handed to the cores in turn."""
+    split into runs of similar work, handed to the cores in turn. The kernel reads the records
+    in the order `order` (entries number them so)."""
 
     RUNS_PER_THREAD = 16
 
-    def __init__(self, kernels, proj, bins, camera, dtype, t_min, pool, want_counts, want_weights):
-        self.kernels, self.proj, self.bins, self.camera = kernels, proj, bins, camera
+    def __init__(self, kernels, proj, bins, order, camera, dtype, t_min, pool, want_counts, want_weights):
+        self.kernels, self.proj, self.bins, self.order, self.camera = kernels, proj, bins, order, camera
         self.dtype, self.t_min, self.pool = dtype, float(t_min), pool
         h, w = camera.height, camera.width
         self.color = np.empty((h, w, 3), np.float32)
@@ -593,16 +609,25 @@ class _CompiledCompositor:
         cuts = np.searchsorted(work, np.linspace(0, work[-1], parts + 1)[1:-1])
         return [r for r in zip(np.r_[0, cuts], np.r_[cuts, bins.n_tiles]) if r[1] > r[0]]
 
+    def _records(self):
+        """The records and boxes in the order the entries number them."""
+        proj, n = self.proj, len(self.proj)
+        records, bbox = _records(n), np.empty((n, 4), np.int64)
+        bounds = np.linspace(0, n, self.pool.threads + 1).astype(np.int64)
+        self.pool.map(lambda k: self.kernels.gather(self.order, proj.records, proj.bbox, bounds[k], bounds[k + 1],
+                                                    records, bbox), list(range(self.pool.threads)))
+        return records, bbox
+
     def images(self, progress=None):
-        bins, proj, cam = self.bins, self.proj, self.camera
-        rec32 = proj.records.view(np.float32)
+        bins, cam = self.bins, self.camera
+        records, bbox = self._records()
+        rec32 = records.view(np.float32)
         k = self.kernels.exp_constants(self.dtype)
         ts = bins.tile_size
 
         def run(span):
             return span, self.kernels.composite_tiles(
-                np.arange(*span), bins.offsets, bins.entry_splat, proj.records, rec32, proj.bbox,
-                ts, bins.tiles_x, cam.width, cam.height, self.t_min, k,
+                np.arange(*span), bins.offsets, bins.entry_splat, records, rec32, bbox, ts, bins.tiles_x, cam.width, cam.height, self.t_min, k,
                 self.color, self.weight, self.depth_sum, self.counts, self.peaks)
 
         done = 0
@@ -618,7 +643,7 @@ class _CompiledCompositor:
         best = np.zeros(len(self.proj), np.float32)
         self.kernels.peak_per_splat(self.bins.entry_splat, self.peaks, best)
         out = np.zeros(n_cloud, np.float32)
-        out[self.proj.index] = best
+        out[self.proj.index[self.order]] = best
         return out
 
 

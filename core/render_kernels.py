@@ -219,15 +219,27 @@ def count_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, counts):
 
 
 @njit
-def fill_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, cursor, entry_splat):
-    """Entries of splats lo..hi-1 (in this order, so front to back) at cursor[tile], which advances."""
+def fill_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, number, cursor, entry_splat):
+    """Entries of splats lo..hi-1 (in this order, so front to back), as number[splat], at
+    cursor[tile], which advances."""
     for s in range(lo, hi):
         for row in range(bbox[s, 1] // ts, bbox[s, 3] // ts + 1):
             c0, c1 = _tile_columns(rec64, r2, bbox, s, row, ts)
             for col in range(c0, c1 + 1):
                 tile = row * tiles_x + col
-                entry_splat[cursor[tile]] = s
+                entry_splat[cursor[tile]] = number[s]
                 cursor[tile] += 1
+
+
+@njit
+def gather(rows, records, bbox, lo, hi, records_out, bbox_out):
+    """Rows lo..hi-1 of the outputs from rows[lo..hi-1] of records and bbox."""
+    for j in range(lo, hi):
+        r = rows[j]
+        for c in range(8):
+            records_out[j, c] = records[r, c]
+        for c in range(4):
+            bbox_out[j, c] = bbox[r, c]
 
 
 # compositing --------------------------------------------------------------------------------------
