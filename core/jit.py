@@ -40,7 +40,7 @@ def cache_dir():
 
 
 def load(name, check=None):
-    """The compiled kernel module `splatwright.core.<name>` (it imports numba), or None when numba
+    """The compiled kernel module `splatwright.<name>` (e.g. "core.render_kernels"; it imports numba), or None when numba
     cannot be loaded or kernels are turned off. Imported once per process; `check(module)`, if
     given, then runs the kernels once (compiling them, or loading them from the cache) and must
     return without an error for the module to be used."""
@@ -50,7 +50,7 @@ def load(name, check=None):
         if name not in _modules:
             try:
                 _install_cache_locator()
-                module = importlib.import_module(f"{__package__}.{name}")
+                module = importlib.import_module(f"{__package__.rpartition('.')[0]}.{name}")
                 if check is not None:
                     check(module)
                 _modules[name] = module

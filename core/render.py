@@ -45,7 +45,7 @@ FRUSTUM_MARGIN = 1.3        # the Jacobian is taken at x/z, y/z clamped to 1.3 x
 MODES = ("classic", "antialiased")
 PRECISIONS = {"float32": np.float32, "float64": np.float64}
 BACKENDS = ("auto", "compiled", "numpy")
-KERNELS = "render_kernels"      # the compiled module, loaded by core.jit
+KERNELS = "core.render_kernels"     # the compiled module, loaded by core.jit
 
 # OpenBLAS runs larger products on its own threads, which fights our pool and is slower for these
 # thin products; it stays single-threaded below m*n*k = 65536 * 4 (its SMP threshold).
