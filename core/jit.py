@@ -40,8 +40,8 @@ def cache_dir():
 
 
 def load(name, check=None):
-    """The compiled kernel module `splatwright.<name>` (e.g. "core.render_kernels"; it imports numba), or None when numba
-    cannot be loaded or kernels are turned off. Imported once per process; `check(module)`, if
+    """The compiled kernel module `splatwright.<name>` (e.g. "core.render_kernels"; it imports
+    numba), or None when numba cannot be loaded or kernels are turned off. Imported once per process; `check(module)`, if
     given, then runs the kernels once (compiling them, or loading them from the cache) and must
     return without an error for the module to be used."""
     if not enabled():

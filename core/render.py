@@ -627,7 +627,8 @@ class _CompiledCompositor:
 
         def run(span):
             return span, self.kernels.composite_tiles(
-                np.arange(*span), bins.offsets, bins.entry_splat, records, rec32, bbox, ts, bins.tiles_x, cam.width, cam.height, self.t_min, k,
+                np.arange(*span), bins.offsets, bins.entry_splat, records, rec32, bbox, ts, bins.tiles_x,
+                cam.width, cam.height, self.t_min, k,
                 self.color, self.weight, self.depth_sum, self.counts, self.peaks)
 
         done = 0

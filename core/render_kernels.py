@@ -4,8 +4,9 @@ The same rules as the NumPy path in core/render.py, which stays the readable ref
 fallback: these loops compute, per splat or per tile, what it computes with whole-array operations.
 What the loops buy besides speed:
 - compositing walks each tile's entries front to back over the tile's pixel state, but evaluates
-  only the pixel rows that an entry's alpha >= 1/255 ellipse crosses, so a sub-pixel splat costs a
-  row or two of its tile, not all of it, and a tile stops at the entry after its last pixel stops;
+  only the tile rows that an entry's alpha >= 1/255 ellipse (its box) crosses, so a sub-pixel splat
+  costs a row or two of its tile, not all of it, and a tile stops within a few entries of its last
+  pixel stopping;
 - the image is written straight from each tile, with no per-tile accumulators (memory is the
   image, the projected splats and the tile lists).
 Each kernel runs on one thread over a range of splats or tiles; core.render spreads the ranges
