@@ -18,8 +18,8 @@ import numpy as np
 class Progress:
     """A one-line progress indicator on stderr: `progress(done, total, label)`."""
 
-    def __init__(self, stream=sys.stderr, min_interval=0.1):
-        self.stream, self.min_interval, self._last = stream, min_interval, 0.0
+    def __init__(self, stream=None, min_interval=0.1):
+        self.stream, self.min_interval, self._last = stream or sys.stderr, min_interval, 0.0
 
     def __call__(self, done, total, label=""):
         now = time.monotonic()
@@ -220,7 +220,8 @@ def _add_render(p):
                    help="r,g,b display sRGB in [0,1]; 'none' for a transparent image")
     p.add_argument("--ortho-scale", type=float, help="orthographic camera showing this width in world units")
     p.add_argument("--mode", choices=("classic", "antialiased"), default="classic")
-    p.add_argument("--near", type=float, help="near clip distance (default 0.2, less for tiny scenes)")
+    p.add_argument("--near", type=float, default=0.2,
+                   help="near clip distance (default 0.2, as the 3DGS reference; the same wherever the camera looks)")
 
 
 def _run_render(args):
@@ -238,9 +239,8 @@ def _run_render(args):
     cloud = read_splats(args.input)
     try:
         camera = frame_points(economy.cloud_points(cloud), args.width, args.height, args.fov,
-                              ortho_scale=args.ortho_scale, eye=args.camera_pos, target=args.look_at, up=args.up)
-        if args.near is not None:
-            camera = camera.with_(near=args.near)
+                              ortho_scale=args.ortho_scale, eye=args.camera_pos, target=args.look_at, up=args.up,
+                              near=args.near)
     except ValueError as exc:
         raise SystemExit(f"splatwright render: error: {exc}") from None
     start = time.perf_counter()

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import geometry
-from .jit import kernel
+from . import jit
 
 DEFAULT_CUTOFF = 6.0          # Mahalanobis distance beyond which pairs are skipped
 BOUND_MARGIN = 1.0            # with a bound, pairs up to cutoff + this are visited and their skipped terms summed
@@ -851,10 +851,12 @@ def ellipsoid_contacts(robot, env, k=3.0, links=None, opacity_weights=True, thre
     def reach(lv):
         return k * (rs + lv.sigma)
 
+    kernel = _contact_kernel()
+
     def work(i, j):
-        if _contact_kernel is not None:
+        if kernel is not None:
             mu = np.empty(len(i))
-            _contact_kernel(i, j, rx, ry, rz, rcov6, rs, index.mx, index.my, index.mz, index.cov6, index.lam, k, mu)
+            kernel(i, j, rx, ry, rz, rcov6, rs, index.mx, index.my, index.mz, index.cov6, index.lam, k, mu)
             hit = np.flatnonzero(mu <= k)
             return i[hit], j[hit], mu[hit]
         d = (rx[i] - index.mx[j], ry[i] - index.my[j], rz[i] - index.mz[j])
@@ -956,8 +958,9 @@ def _contact_pass(i, j, rx, ry, rz, rc, rs, ex, ey, ez, ec, elam, k, out):
         out[p] = np.sqrt(max(f, 0.0))
 
 
-_ldl_quadratic = kernel(_ldl_quadratic)           # numba resolves it as a global when compiling _contact_pass
-_contact_kernel = kernel(_contact_pass) if _ldl_quadratic is not None else None
+def _contact_kernel():
+    """The compiled contact pass (core.jit), or None: the NumPy path then does the work."""
+    return jit.compiled(__name__, ("_ldl_quadratic", "_contact_pass"))
 
 
 def _full(c6):
@@ -1052,10 +1055,12 @@ def _least_upper_bounds(index, points, rho, k, min_opacity, threads):
     def reach(lv):
         return rho + k * lv.sigma
 
+    kernel = _bounds_kernel()
+
     def least(i, j):
         out = np.full(len(points), np.inf)
-        if _bounds_kernel is not None:
-            _bounds_kernel(i, j, points, index.mx, index.my, index.mz, index.cov6, index.w, min_opacity, k, rho, out)
+        if kernel is not None:
+            kernel(i, j, points, index.mx, index.my, index.mz, index.cov6, index.w, min_opacity, k, rho, out)
             return out
         lower, upper, _, _ = _distance_bounds(index, points, i, j, k)
         keep = (lower <= rho[i]) & (index.w[j] >= min_opacity)
@@ -1107,7 +1112,9 @@ def _bounds_pass(i, j, points, mx, my, mz, cov, w, min_opacity, k, rho, out):
             out[p] = upper
 
 
-_bounds_kernel = kernel(_bounds_pass) if _ldl_quadratic is not None else None
+def _bounds_kernel():
+    """The compiled distance-bound pass (core.jit), or None: the NumPy path then does the work."""
+    return jit.compiled(__name__, ("_ldl_quadratic", "_bounds_pass"))
 
 
 def _ellipsoid_signed_distance(d, cov, k):

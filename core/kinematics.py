@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import geometry
-from .jit import kernel
+from . import jit
 
 JOINT_DOF = {"fixed": 0, "revolute": 1, "continuous": 1, "prismatic": 1, "ball": 3, "planar": 3, "floating": 6}
 _ROTATING = ("revolute", "continuous")
@@ -437,17 +437,18 @@ class KinematicTree:
     def forward_kinematics(self, q=None, base=None, clamp=False):
         """World transforms of every link: (L,4,4) for one configuration (dof,), (B,L,4,4) for a
         batch (B,dof). `base` (4,4) places the roots; `clamp` first applies the joint limits."""
-        if _fk_kernel is not None and q is not None and not clamp and self.names:
+        kernel = _fk_kernel()
+        if kernel is not None and q is not None and not clamp and self.names:
             q = np.asarray(q, dtype=np.float64)
             if q.ndim == 1 and base is None and q.shape[0] == self.dof:     # the planner's hot path
                 world = np.empty((1, len(self.names), 4, 4))
-                if _fk_kernel(q.reshape(1, -1), self._kernel_ints, self._kernel_floats, _IDENTITY, world):
+                if kernel(q.reshape(1, -1), self._kernel_ints, self._kernel_floats, _IDENTITY, world):
                     return world[0]
             return self._compiled_fk(q, base)
         q = self.zero() if q is None else self._check_configuration(q)
         if clamp:
             q = self.clamp(q)
-        if _fk_kernel is not None and len(self):
+        if kernel is not None and len(self):
             return self._compiled_fk(q, base)
         base = _IDENTITY if base is None else _check_base(base)
         single = q.ndim == 1
@@ -470,13 +471,13 @@ class KinematicTree:
         base = _IDENTITY if base is None else _check_base(base)
         q2 = q if q.ndim == 2 else q.reshape(1, self.dof)
         world = np.empty((len(q2), len(self), 4, 4))
-        tables = (self._kernel_ints, self._kernel_floats, base)
+        tables, kernel = (self._kernel_ints, self._kernel_floats, base), _fk_kernel()
         if len(q2) >= _PARALLEL_BATCH:
             from .parallel import map_threads
             halves = [(h[0], h[-1] + 1) for h in np.array_split(np.arange(len(q2)), 2)]
-            finite = all(map_threads(lambda h: _fk_kernel(q2[h[0]:h[1]], *tables, world[h[0]:h[1]]), halves))
+            finite = all(map_threads(lambda h: kernel(q2[h[0]:h[1]], *tables, world[h[0]:h[1]]), halves))
         else:
-            finite = _fk_kernel(q2, *tables, world)
+            finite = kernel(q2, *tables, world)
         if not finite:
             raise KinematicsError("configuration has non-finite values")
         return world if q.ndim == 2 else world[0]
@@ -613,5 +614,6 @@ def _fk_pass(q, ints, floats, base, out):
     return True
 
 
-_rotvec_into = kernel(_rotvec_into)          # numba resolves it as a global when compiling _fk_pass
-_fk_kernel = kernel(_fk_pass) if _rotvec_into is not None else None
+def _fk_kernel():
+    """The compiled FK pass (core.jit), or None: the NumPy path then does the work."""
+    return jit.compiled(__name__, ("_rotvec_into", "_fk_pass"))
