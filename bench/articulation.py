@@ -247,6 +247,74 @@ def fk_rows(repeat):
                        "baseline": f"per-config per-joint loop, timed on {len(few)} configs, scaled"})]
 
 
+def panda_fk_rows(repeat):
+    """The Franka Panda of pybullet's data against Pinocchio (framesForwardKinematics) in its own
+    environment: one configuration at a time, and a batch of 1000 against a Python loop of
+    Pinocchio calls; the compiled pass and the NumPy one (what Blender's Python runs)."""
+    import warnings
+    from _oracles import panda_urdf, run_oracle
+    from splatwright.core import kinematics
+    from splatwright.io.urdf import read_urdf
+    path = panda_urdf()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tree = read_urdf(path)
+    rng = np.random.default_rng(4)
+    lower = np.where(np.isfinite(tree.lower), tree.lower, -np.pi)[tree._limited]
+    upper = np.where(np.isfinite(tree.upper), tree.upper, np.pi)[tree._limited]
+    q = rng.uniform(lower, upper, (1000, tree.dof))
+    one = np.flatnonzero(np.isin(tree.joint_types, ("revolute", "continuous", "prismatic")))
+    pin = run_oracle("pinocchio_fk", urdf=str(path), links=np.array(tree.names),
+                     joint_names=np.array([tree.joint_names[i] for i in one]),
+                     joint_values=tree.joint_values(q)[:, one], repeat=repeat + 2)
+    err = float(np.abs(tree.forward_kinematics(q) - pin["transforms"]).max())
+    rows = []
+    for label, fk_kernel in (("compiled", kinematics._fk_kernel), ("NumPy", None)):
+        saved, kinematics._fk_kernel = kinematics._fk_kernel, fk_kernel
+        try:
+            single = timeit(lambda: [tree.forward_kinematics(q[0]) for _ in range(1000)], repeat=repeat + 2)
+            batch = timeit(lambda: tree.forward_kinematics(q), repeat=repeat + 2)
+        finally:
+            kinematics._fk_kernel = saved
+        common = {"dof": f"{tree.dof} (Pinocchio: {int(pin['nq'])}, the mimic finger counted)", "links": len(tree)}
+        rows.append(Row(TOPIC, f"Panda FK, one configuration, {label} (vs Pinocchio)", _per(single, 1000),
+                        Timing(float(pin["single"]), 0.0, repeat + 2), error={"max_abs_err": err},
+                        extra={**common, "target": "within 5x of Pinocchio (speed-up >= 0.2)"}))
+        rows.append(Row(TOPIC, f"Panda FK, batch of {len(q)}, {label} (vs a Pinocchio loop)", batch,
+                        Timing(float(pin["batch"]), 0.0, repeat + 2), error={"max_abs_err": err},
+                        extra={**common, "target": "faster than the loop (speed-up > 1)"}))
+    return rows
+
+
+def chain_urdf(n):
+    links = "".join(f'<link name="l{k}"/>' for k in range(n))
+    joints = "".join(f'<joint name="j{k}" type="revolute"><parent link="l{k}"/><child link="l{k + 1}"/>'
+                     f'<origin xyz="0 0 0.01"/><axis xyz="0 1 0"/><limit lower="-1" upper="1"/></joint>'
+                     for k in range(n - 1))
+    return f"<robot name='chain'>{links}{joints}</robot>"
+
+
+def urdf_rows(quick):
+    """Reading long chains: today's reader against the one before (quadratic in links)."""
+    from _before import module_before
+    from splatwright.io.urdf import parse_urdf
+    module_before("core/kinematics.py")
+    before = module_before("io/urdf.py", {"..core.kinematics import": "..core._kinematics_before import"})
+    rows = []
+    for n in (1000, 4000) if quick else (4000, 20_000):
+        text = chain_urdf(n)
+        ours = timeit(lambda: parse_urdf(text), repeat=3)
+        baseline = timeit(lambda: before.parse_urdf(text), repeat=1, warmup=0) if n <= 4000 else None
+        rows.append(Row(TOPIC, f"read a URDF chain of {n:,} links", ours, baseline,
+                        extra={"baseline": "the reader before (quadratic)" if baseline
+                               else "before: > 120 s, not run"}))
+    return rows
+
+
+def _per(t, n):
+    return Timing(t.median / n, t.spread / n, t.runs)
+
+
 # the bent cylinder --------------------------------------------------------------------------------
 
 JOINT_Y, BLEND_HALF_WIDTH, BEND_DEGREES = 1.0, 0.25, 70.0
@@ -329,7 +397,8 @@ def cylinder_rows(quick):
 def run(quick=False):
     n = 100_000 if quick else 1_000_000
     repeat = 3 if quick else 5
-    return fk_rows(repeat) + skinning_rows(n, repeat) + skinning_rows(n, repeat, scaled=True) + cylinder_rows(quick)
+    return (fk_rows(repeat) + panda_fk_rows(repeat) + urdf_rows(quick) + skinning_rows(n, repeat)
+            + skinning_rows(n, repeat, scaled=True) + cylinder_rows(quick))
 
 
 if __name__ == "__main__":

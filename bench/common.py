@@ -22,15 +22,17 @@ class Timing:
         return f"{self.median:.4g} s ± {self.spread:.2g} (n={self.runs})"
 
 
-def timeit(fn, repeat=5, warmup=1):
-    """Median and spread of `repeat` timed calls of fn() after `warmup` untimed ones."""
+def timeit(fn, repeat=5, warmup=1, clock=time.perf_counter):
+    """Median and spread of `repeat` timed calls of fn() after `warmup` untimed ones; `clock` may be
+    time.process_time for CPU seconds (all threads of the process), which a shared machine disturbs
+    less than wall time."""
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeat):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return Timing(statistics.median(times), (max(times) - min(times)) / 2, repeat)
 
 
@@ -50,11 +52,10 @@ class Row:
         return None if self.baseline is None else self.baseline.median / self.timing.median
 
 
-def paired(baseline, ours, repeat=5):
+def paired(baseline, ours, repeat=5, clock=time.perf_counter):
     """(baseline Timing, our Timing) from runs that alternate, so both meet the same load on a shared
     machine; one untimed warm-up each."""
-    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
-             for i in range(repeat)]
+    pairs = [(timeit(baseline, 1, int(i == 0), clock), timeit(ours, 1, int(i == 0), clock)) for i in range(repeat)]
     return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
 
 

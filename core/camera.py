@@ -156,14 +156,15 @@ class Camera:
 
 
 def frame_points(points, width=512, height=512, fov_deg=60.0, ortho_scale=None, eye=None, target=None,
-                 up=(0.0, 1.0, 0.0), direction=(1.2, 0.8, 1.0)):
+                 up=(0.0, 1.0, 0.0), direction=(1.2, 0.8, 1.0), near=0.2):
     """A camera that sees all of `points` (their bounding sphere), for previews.
 
     Looks at `target` (default: the centre of the points' box) from `eye` (default: along
-    `direction` from the target, just far enough for the sphere to fit the narrower field of view).
-    Orthographic when `ortho_scale` is given (0 picks one that fits the sphere). The near plane
-    shrinks below 0.2 for small scenes so nothing in front of the camera is culled. Non-finite
-    points are ignored; with none left the unit sphere at the origin is framed.
+    `direction` from the target, just far enough for the sphere to fit the narrower field of view,
+    and never so close that the sphere reaches the near plane). Orthographic when `ortho_scale` is
+    given (0 picks one that fits the sphere). The near plane is `near` (0.2, as for every Camera)
+    wherever the camera looks. Non-finite points are ignored; with none left the unit sphere at
+    the origin is framed.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
@@ -176,9 +177,8 @@ def frame_points(points, width=512, height=512, fov_deg=60.0, ortho_scale=None, 
         half = math.radians(fov_deg) / 2
         narrow = min(half, math.atan(math.tan(half) / aspect))
         distance = radius / math.sin(narrow) if ortho_scale is None else 2.0 * radius
+        distance = max(distance, 1.01 * (radius + near))
         eye = center + d / np.linalg.norm(d) * distance
-    distance = float(np.linalg.norm(np.asarray(eye, dtype=np.float64) - center))
-    near = min(0.2, max(0.01 * distance, 1e-6))
     if ortho_scale is None:
         return Camera.look_at(eye, center, up, fov_deg, width, height, near=near)
     scale = ortho_scale or 2.0 * radius * max(1.0, aspect)

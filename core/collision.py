@@ -21,22 +21,48 @@ and far pairs underflow to exactly 0 instead of NaN.
 
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import geometry
+from . import jit
 
 DEFAULT_CUTOFF = 6.0          # Mahalanobis distance beyond which pairs are skipped
+BOUND_MARGIN = 1.0            # with a bound, pairs up to cutoff + this are visited and their skipped terms summed
 PIVOT_FLOOR = 1e-12           # relative floor on L D L^T pivots (see module notes)
 _TINY = 1e-300                # absolute floor, for all-zero covariances (point splats)
 _UNIT_PAIRS = 1 << 18         # candidate pairs per work unit: bounded memory, two units in flight
+COARSE = 32                   # cells a side of the blocks that find a size class's dense part
 _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # the 6 entries of a symmetric 3x3
 
 
 class CollisionInputError(ValueError):
     """Inputs that no collision query can use; the message names the array and the problem."""
+
+
+class CollisionPrecisionWarning(UserWarning):
+    """Inputs whose stored precision moves the results: float32 positions far from the origin."""
+
+
+QUANTISATION_LIMIT = 0.01     # warn when float32 rounds positions by more than this fraction of a splat
+
+
+def _check_precision(name, positions, sigma):
+    """Warn when float32 positions are rounded by more than QUANTISATION_LIMIT of their splat's size
+    (at 1e6, float32 steps are 6 cm: centimetre splats there are moved by more than their size)."""
+    if positions.dtype != np.float32 or not len(positions):
+        return
+    step = np.spacing(np.abs(positions).max(axis=1))
+    coarse = (step > QUANTISATION_LIMIT * sigma) & (sigma > 0)
+    if coarse.any():
+        warnings.warn(f"{name}: {int(coarse.sum())} splats lie so far from the origin (up to "
+                      f"{float(np.abs(positions[coarse]).max()):.3g}) that their float32 positions are rounded by "
+                      f"up to {float(step[coarse].max()):.3g}, more than {QUANTISATION_LIMIT:.0%} of their size, and "
+                      "collision results shift with them; move the scene nearer the origin, or give "
+                      "float64 Gaussians", CollisionPrecisionWarning, stacklevel=4)
 
 
 # Gaussians: the float64 view every query works on ----------------------------------------------
@@ -92,6 +118,7 @@ class Gaussians:
             _require_finite(f"{name}.{field_name}", getattr(cloud, field_name))
         _require_finite(f"{name}.log_scales", cloud.log_scales, allow_neg_inf=True)
         scales = cloud.scales
+        _check_precision(name, cloud.positions, scales.max(axis=1) if len(cloud) else np.zeros(0))
         weights = cloud.opacities if opacity_weights else np.ones(len(cloud))
         return cls(cloud.positions, geometry.covariances(cloud.rotations, scales), weights, links,
                    scales.max(axis=1) if len(cloud) else np.zeros(0))
@@ -157,8 +184,10 @@ def _flatten(x, opacity_weights=True, name="cloud", threads=None):
     cat = lambda arrays: np.concatenate(arrays) if arrays else np.zeros(0)
     cov6 = [cat([p[0][k] for p in parts]) for k in range(6)]
     weights = x.opacities if opacity_weights else np.ones(n)
+    lam = cat([p[1] for p in parts])
+    _check_precision(name, x.positions, np.sqrt(lam))
     return _Flat([x.positions[:, a].astype(np.float64) for a in range(3)], cov6, weights,
-                 cat([p[1] for p in parts]), cat([p[2] for p in parts]))
+                 lam, cat([p[2] for p in parts]))
 
 
 # the pair kernel ---------------------------------------------------------------------------------
@@ -193,14 +222,17 @@ def _solve(factors):
     return [z0 - l10 * x1 - l20 * z2, x1, z2]
 
 
-def _gauss_terms(d, s, w, limit, want_x):
-    """Pairs with q = d^T S^-1 d <= limit: their indices, w exp(-q/2) and (if asked) S^-1 d."""
+def _gauss_terms(d, s, w, limit, want_x, want_skipped=False):
+    """Pairs with q = d^T S^-1 d <= limit: their indices, w exp(-q/2) and (if asked) S^-1 d, and
+    (if asked) the sum of the terms beyond the limit."""
     q, factors = _mahalanobis(d, s)
-    keep = np.flatnonzero(q <= limit)
+    inside = q <= limit
+    keep = np.flatnonzero(inside)
     with np.errstate(under="ignore"):
         e = w[keep] * np.exp(-0.5 * q[keep])
+        skipped = float(np.sum(w[~inside] * np.exp(-0.5 * q[~inside]))) if want_skipped else 0.0
     x = _solve([f[keep] for f in factors]) if want_x else None
-    return keep, e, x
+    return keep, e, x, skipped
 
 
 # broad phase: a sorted grid per size class ----------------------------------------------------------
@@ -221,7 +253,12 @@ class EnvironmentIndex:
     """The environment, built once: Gaussians sorted into one uniform grid per size class (sizes
     within a factor `level_ratio`), cells `cell_factor` times the class's largest sigma (coarsened so
     a class never has more than `cells_per_splat` cells per Gaussian). Queries walk the cells near
-    each query point, z-runs of cells at a time, so the cost is the candidates, not the scene."""
+    each query point, z-runs of cells at a time, so the cost is the candidates, not the scene.
+
+    Captured scenes have floaters far from everything: a class whose grid at its natural cell size
+    would be too large keeps its dense part (the blocks of 32^3 cells that hold more than one
+    member and 1% of the fullest block) in one grid and the rest in grids of their own, so a few
+    distant splats never coarsen the cells of the many."""
 
     def __init__(self, env, opacity_weights=True, cell_factor=2.0, level_ratio=2.0, cells_per_splat=4,
                  threads=None):
@@ -236,14 +273,20 @@ class EnvironmentIndex:
             cls = np.floor(np.log(top / np.maximum(sig, top * 1e-15)) / math.log(level_ratio)).astype(np.int64)
             by_class = np.argsort(cls, kind="stable")
             edges = np.flatnonzero(np.diff(cls[by_class])) + 1
+            parts, sparse = [], []
             for members in np.split(keep[by_class], edges):
-                level, order = self._build_level(flat, members, cell_factor, cells_per_splat,
-                                                 sum(map(len, orders)))
+                dense, rest = _dense_parts(flat, members, cell_factor, cells_per_splat)
+                parts += dense
+                sparse.append(rest)
+            sparse = np.concatenate(sparse)
+            for part in parts + ([sparse] if len(sparse) else []):   # outliers of every class share a grid
+                level, order = self._build_level(flat, part, cell_factor, cells_per_splat, sum(map(len, orders)))
                 self.levels.append(level)
                 orders.append(order)
         self.order = o = np.concatenate(orders) if orders else np.zeros(0, np.int64)
         self.mx, self.my, self.mz = (flat.means[a][o] for a in range(3))
-        self.cov = [c[o] for c in flat.cov6]
+        self.cov6 = np.stack([c[o] for c in flat.cov6]) if len(o) else np.zeros((6, 0))
+        self.cov = list(self.cov6)                   # row views: one array per entry, no copy
         self.w = flat.weights[o]
         self.lam = flat.lam[o]
         self.nu = flat.nu[o]
@@ -272,6 +315,7 @@ class EnvironmentIndex:
 
     def __len__(self):
         return self.size
+
 
     @property
     def typical_sigma(self):
@@ -434,6 +478,39 @@ class EnvironmentIndex:
         return _count_boxes(lv.svt, lo, cells[:, None, :] + radius[None, :, None] + 1)
 
 
+def _dense_parts(flat, members, cell_factor, cells_per_splat, depth=2):
+    """A size class as (groups that get grids of their own, the sparse rest): a class whose grid
+    would not fit the cell budget at its natural cell size gives up everything outside its dense
+    part (the box of the coarse blocks, COARSE cells a side, holding at least 2 members and 1% of
+    the fullest block), recursively; a class without a dense part (or dense everywhere) stays whole,
+    with coarser cells."""
+    none = members[:0]
+    pts = np.column_stack([m[members] for m in flat.means])
+    h0 = cell_factor * float(np.sqrt(flat.lam[members].max()))
+    cap = cells_per_splat * len(members) + 64
+    lo = pts.min(axis=0)
+    if h0 <= 0 or np.prod(np.floor((pts.max(axis=0) - lo) / h0) + 1) <= cap:
+        return [members], none
+    block = np.floor((pts - lo) / (COARSE * h0)).astype(np.int64)
+    order = np.lexsort(block.T[::-1])
+    first = np.concatenate([[True], (np.diff(block[order], axis=0) != 0).any(axis=1)])
+    group = np.empty(len(pts), np.int64)
+    group[order] = np.cumsum(first) - 1
+    counts = np.bincount(group)
+    dense = (counts >= max(2.0, 0.01 * counts.max()))[group]
+    if dense.all():
+        return [members], none
+    if not dense.any():
+        return [], members
+    inside = ((block >= block[dense].min(axis=0)) & (block <= block[dense].max(axis=0))).all(axis=1)
+    if inside.all():
+        return [members], none
+    if depth == 0:
+        return [members[inside]], members[~inside]
+    more, rest = _dense_parts(flat, members[~inside], cell_factor, cells_per_splat, depth - 1)
+    return [members[inside]] + more, rest
+
+
 def _clip(x, lo, hi):
     """np.clip without its per-call overhead (it matters at thousands of calls per second)."""
     return np.minimum(np.maximum(x, lo), hi)
@@ -537,25 +614,34 @@ def overlap(robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False
     rlam = robot.sigma_max ** 2
     rcov = _sym6(robot.covs)
     c2 = cutoff * cutoff
+    visit = cutoff + (BOUND_MARGIN if bound else 0.0)        # pairs the query sees (and accounts for)
 
     def reach(lv):
-        return cutoff * np.sqrt(rlam + lv.sigma ** 2)
+        return visit * np.sqrt(rlam + lv.sigma ** 2)
 
     def work(i, j):
         dx, dy, dz = rx[i] - index.mx[j], ry[i] - index.my[j], rz[i] - index.mz[j]
         # d^T S^-1 d >= |d|^2 / lmax(S) >= |d|^2 / (lmax_i + lmax_j): a cheap test first
-        near = np.flatnonzero(dx * dx + dy * dy + dz * dz <= c2 * (rlam[i] + index.lam[j]))
+        d2, lam = dx * dx + dy * dy + dz * dz, rlam[i] + index.lam[j]
+        close = d2 <= visit * visit * lam
+        far = 0.0
+        if bound:                                            # each far term is below its cheap bound
+            with np.errstate(divide="ignore", under="ignore"):
+                out = ~close
+                far = float(np.sum(robot.weights[i[out]] * index.w[j[out]] * np.exp(-0.5 * d2[out] / lam[out])))
+        near = np.flatnonzero(close)
         i, j = i[near], j[near]
         d = (dx[near], dy[near], dz[near])
         s = [rc[i] + ec[j] for rc, ec in zip(rcov, index.cov)]
-        keep, e, x = _gauss_terms(d, s, robot.weights[i] * index.w[j], c2, gradient or cov_gradient)
-        return _accumulate(i[keep], n, e, x, gradient, cov_gradient)
+        keep, e, x, skipped = _gauss_terms(d, s, robot.weights[i] * index.w[j], c2, gradient or cov_gradient, bound)
+        return (*_accumulate(i[keep], n, e, x, gradient, cov_gradient), far + skipped)
 
-    def skipped():
-        return float(index.skipped_bound(rm, rlam, robot.weights, cutoff).sum()) if bound else 0.0
+    def unvisited():
+        return float(index.skipped_bound(rm, rlam, robot.weights, visit).sum()) if bound else 0.0
 
-    parts, skip = index.query(rm, reach, work, threads, meanwhile=skipped) if n else ([], 0.0)
+    parts, skip = index.query(rm, reach, work, threads, meanwhile=unvisited) if n else ([], 0.0)
     per, grad, gcov, pairs = _finish(n, parts, gradient, cov_gradient)
+    skip += sum(part[4] for part in parts)
     relative = skip / per.sum() if per.sum() > 0 else (0.0 if skip == 0 else math.inf)
     return Overlap(float(per.sum()), per, grad, gcov, skip, relative, pairs, cutoff)
 
@@ -577,7 +663,7 @@ def overlap_all_pairs(robot, env, gradient=True, cov_gradient=False, opacity_wei
         d = [robot.means[i, k] - env.means[j, k] for k in range(3)]
         s = [rc[i] + ec[j] for rc, ec in zip(rcov, ecov)]
         # q < 1500 keeps every term that does not underflow to exactly 0
-        keep, e, x = _gauss_terms(d, s, robot.weights[i] * env.weights[j], 1500.0, gradient or cov_gradient)
+        keep, e, x, _ = _gauss_terms(d, s, robot.weights[i] * env.weights[j], 1500.0, gradient or cov_gradient)
         return _accumulate(i[keep], n, e, x, gradient, cov_gradient)
 
     per, grad, gcov, pairs = _finish(n, _map(work, spans, threads)[0], gradient, cov_gradient)
@@ -607,9 +693,11 @@ def overlap_at(tree, q, robot_rest, env, cutoff=DEFAULT_CUTOFF, base=None, threa
     dmu = w x (mu - p) dt and dSigma = (W Sigma - Sigma W) dt (W = [w]x), so
     dC/dt = w . sum_subtree (mu x g + tau - p x g), g = dC/dmu, tau = -2 vex(Sigma G - G Sigma),
     G = dC/dSigma. A prismatic joint gives a . sum g; a ball joint's three values turn about the
-    columns of the SO(3) left Jacobian of its rotation vector.
+    columns of the SO(3) left Jacobian of its rotation vector; planar and floating joints slide
+    (a . sum g per direction) and turn about the point they slid to; a mimic joint adds multiplier x
+    its own derivative to the column of the joint it follows.
     """
-    q = np.asarray(q, np.float64)
+    q = tree._check_configuration(q)
     world = tree.forward_kinematics(q, base=base)
     robot = pose_robot(robot_rest, world @ np.linalg.inv(tree.rest_transforms(base)))
     result = overlap(robot, env, cutoff, gradient=True, cov_gradient=True, threads=threads, **kwargs)
@@ -635,15 +723,25 @@ def _joint_gradient(tree, q, world, base, robot, g, gcov):
     frames = parent_world @ tree.origins
     grad = np.zeros(tree.dof)
     for i, kind in enumerate(tree.joint_types):
-        col = tree.dof_offsets[i]
+        col, scale = tree.dof_offsets[i], tree._scale[i]           # a mimic joint adds to its source's column
         rot, point = frames[i, :3, :3], frames[i, :3, 3]
-        torque = moment[i] - np.cross(point, force[i])
+        axis = rot @ tree.axes[i]
         if kind in ("revolute", "continuous"):
-            grad[col] = (rot @ tree.axes[i]) @ torque
+            grad[col] += scale * axis @ (moment[i] - np.cross(point, force[i]))
         elif kind == "prismatic":
-            grad[col] = (rot @ tree.axes[i]) @ force[i]
+            grad[col] += scale * axis @ force[i]
         elif kind == "ball":
-            grad[col:col + 3] = (rot @ _left_jacobian(q[col:col + 3])).T @ torque
+            grad[col:col + 3] += (rot @ _left_jacobian(q[col:col + 3])).T @ (moment[i] - np.cross(point, force[i]))
+        elif kind == "planar":                                   # slide along the plane, then turn about the axis
+            a, b, _ = q[col:col + 3]
+            u, v = rot @ tree.plane_axes[i, 0], rot @ tree.plane_axes[i, 1]
+            pivot = point + a * u + b * v
+            grad[col:col + 3] += [u @ force[i], v @ force[i], axis @ (moment[i] - np.cross(pivot, force[i]))]
+        elif kind == "floating":                                 # translate, then turn about the moved point
+            pivot = point + rot @ q[col:col + 3]
+            grad[col:col + 3] += rot.T @ force[i]
+            torque = moment[i] - np.cross(pivot, force[i])
+            grad[col + 3:col + 6] += (rot @ _left_jacobian(q[col + 3:col + 6])).T @ torque
     return grad
 
 
@@ -675,34 +773,47 @@ def contact_sigma(mean_a, cov_a, mean_b, cov_b, iterations=100):
     c = a + np.asarray(cov_b, np.float64)
     if not len(d):
         return np.zeros(0)
-    cvals, cvecs = np.linalg.eigh(c)
-    floor = np.maximum(PIVOT_FLOOR * cvals.sum(axis=1, keepdims=True), _TINY)
-    white = np.swapaxes(cvecs, 1, 2) / np.sqrt(np.maximum(cvals, floor))[:, :, None]   # W C W^T = I
-    m = white @ a @ np.swapaxes(white, 1, 2)
-    alpha, vecs = np.linalg.eigh(0.5 * (m + np.swapaxes(m, 1, 2)))
-    alpha = np.clip(alpha, 0.0, 1.0)
-    beta = 1.0 - alpha
-    e2 = np.einsum("pji,pj->pi", vecs, np.einsum("pij,pj->pi", white, d)) ** 2
-    s = np.full(len(d), 0.5)
-    lo, hi = np.zeros(len(d)), np.ones(len(d))
-    for _ in range(iterations):
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):   # point splats: mu is inf
+        cvals, cvecs = np.linalg.eigh(c)
+        floor = np.maximum(PIVOT_FLOOR * cvals.sum(axis=1, keepdims=True), _TINY)
+        white = np.swapaxes(cvecs, 1, 2) / np.sqrt(np.maximum(cvals, floor))[:, :, None]   # W C W^T = I
+        m = white @ a @ np.swapaxes(white, 1, 2)
+        alpha, vecs = np.linalg.eigh(0.5 * (m + np.swapaxes(m, 1, 2)))
+        alpha = np.clip(alpha, 0.0, 1.0)
+        beta = 1.0 - alpha
+        e2 = np.einsum("pji,pj->pi", vecs, np.einsum("pij,pj->pi", white, d)) ** 2
+        s = _contact_parameter(alpha, e2, iterations)
         den = alpha * s[:, None] + beta * (1.0 - s[:, None])
-        num = beta * (1.0 - s[:, None]) ** 2 - alpha * s[:, None] ** 2
-        g = (e2 * num / den ** 2).sum(axis=1)
-        dnum = -2.0 * (beta * (1.0 - s[:, None]) + alpha * s[:, None])
-        gp = (e2 * (dnum * den - 2.0 * num * (alpha - beta)) / den ** 3).sum(axis=1)
-        lo = np.where(g > 0, s, lo)
-        hi = np.where(g > 0, hi, s)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = s - g / gp
-        step = np.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
-        done = np.abs(step - s) <= 4e-16
-        s = step
-        if done.all():
-            break
-    den = alpha * s[:, None] + beta * (1.0 - s[:, None])
-    f = s * (1.0 - s) * (e2 / den).sum(axis=1)
+        f = s * (1.0 - s) * (e2 / den).sum(axis=1)
+    f = np.where((d == 0).all(axis=1), 0.0, np.nan_to_num(f, nan=np.inf, posinf=np.inf))    # coincident: 0
     return np.sqrt(np.maximum(f, 0.0))
+
+
+def _contact_parameter(alpha, e2, iterations):
+    """The s in [0,1] maximising f(s) = s(1-s) sum e_k^2 / (a_k s + (1-a_k)(1-s)): bracketed Newton on
+    f'(s), each pair dropped from the work once its step is below 1e-12 (f is flat at its maximum,
+    so f is then exact to round-off)."""
+    n = len(alpha)
+    s, lo, hi = np.full(n, 0.5), np.zeros(n), np.ones(n)
+    active = np.arange(n)
+    for _ in range(iterations):
+        if not len(active):
+            break
+        a, e, x = alpha[active], e2[active], s[active]
+        b, xc = 1.0 - a, x[:, None]
+        den = a * xc + b * (1.0 - xc)
+        num = b * (1.0 - xc) ** 2 - a * xc ** 2
+        g = (e * num / den ** 2).sum(axis=1)
+        dnum = -2.0 * (b * (1.0 - xc) + a * xc)
+        gp = (e * (dnum * den - 2.0 * num * (a - b)) / den ** 3).sum(axis=1)
+        low = np.where(g > 0, x, lo[active])
+        high = np.where(g > 0, hi[active], x)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = x - g / gp
+        step = np.where((step > low) & (step < high), step, 0.5 * (low + high))
+        lo[active], hi[active], s[active] = low, high, step
+        active = active[np.abs(step - x) > 1e-12]
+    return s
 
 
 @dataclass
@@ -734,11 +845,20 @@ def ellipsoid_contacts(robot, env, k=3.0, links=None, opacity_weights=True, thre
     rs = robot.sigma_max
     rx, ry, rz = (robot.means[:, a] for a in range(3))
     rcov = _sym6(robot.covs)
+    rcov6 = np.stack(rcov) if len(robot) else np.zeros((6, 0))
+    rx, ry, rz = (np.ascontiguousarray(robot.means[:, a]) for a in range(3))
 
     def reach(lv):
         return k * (rs + lv.sigma)
 
+    kernel = _contact_kernel()
+
     def work(i, j):
+        if kernel is not None:
+            mu = np.empty(len(i))
+            kernel(i, j, rx, ry, rz, rcov6, rs, index.mx, index.my, index.mz, index.cov6, index.lam, k, mu)
+            hit = np.flatnonzero(mu <= k)
+            return i[hit], j[hit], mu[hit]
         d = (rx[i] - index.mx[j], ry[i] - index.my[j], rz[i] - index.mz[j])
         near = np.flatnonzero(d[0] ** 2 + d[1] ** 2 + d[2] ** 2 <= (k * (rs[i] + np.sqrt(index.lam[j]))) ** 2)
         i, j = i[near], j[near]
@@ -765,6 +885,82 @@ def ellipsoid_contacts(robot, env, k=3.0, links=None, opacity_weights=True, thre
     touched = np.unique(i)
     return Contacts(i, index.order[j], mu, float(k), np.bincount(links[i], minlength=n_links),
                     np.bincount(links[touched], minlength=n_links), min_sigma)
+
+
+def _ldl_quadratic(s00, s01, s02, s11, s12, s22, d0, d1, d2, x):
+    """d^T S^-1 d for one symmetric S by L D L^T with pivots floored as in _mahalanobis; x gets S^-1 d."""
+    floor = max(PIVOT_FLOOR * (s00 + s11 + s22), _TINY)
+    p0 = max(s00, floor)
+    l10, l20 = s01 / p0, s02 / p0
+    p1 = max(s11 - l10 * s01, floor)
+    t12 = s12 - l20 * s01
+    l21 = t12 / p1
+    p2 = max(s22 - l20 * s02 - l21 * t12, floor)
+    y0 = d0
+    y1 = d1 - l10 * y0
+    y2 = d2 - l20 * y0 - l21 * y1
+    z0, z1, z2 = y0 / p0, y1 / p1, y2 / p2
+    x[2] = z2
+    x[1] = z1 - l21 * z2
+    x[0] = z0 - l10 * x[1] - l20 * z2
+    return y0 * z0 + y1 * z1 + y2 * z2
+
+
+def _contact_pass(i, j, rx, ry, rz, rc, rs, ex, ey, ez, ec, elam, k, out):
+    """out[p] = contact_sigma of robot Gaussian i[p] and environment Gaussian j[p], or inf where the
+    bounding spheres or mu^2 >= d^T (A+B)^-1 d / 2 already rule out contact at k sigma.
+
+    The same maximum as contact_sigma, found without eigendecompositions: with K(s) = sA + (1-s)B
+    and x = K^-1 d, f = s(1-s) d.x, f' = (1-2s) d.x - s(1-s) u and f'' = -2 d.x - 2(1-2s) u +
+    2 s(1-s) w, where u = x.(A-B)x and w = y.K^-1 y, y = (A-B)x; bracketed Newton on f'."""
+    x = np.empty(3)
+    z = np.empty(3)
+    limit = 2.0 * k * k * (1.0 + 1e-9)
+    for p in range(len(i)):
+        a, b = i[p], j[p]
+        d0, d1, d2 = rx[a] - ex[b], ry[a] - ey[b], rz[a] - ez[b]
+        reach = k * (rs[a] + np.sqrt(elam[b]))
+        out[p] = np.inf
+        if d0 * d0 + d1 * d1 + d2 * d2 > reach * reach:
+            continue
+        a00, a01, a02, a11, a12, a22 = rc[0, a], rc[1, a], rc[2, a], rc[3, a], rc[4, a], rc[5, a]
+        b00, b01, b02, b11, b12, b22 = ec[0, b], ec[1, b], ec[2, b], ec[3, b], ec[4, b], ec[5, b]
+        q = _ldl_quadratic(a00 + b00, a01 + b01, a02 + b02, a11 + b11, a12 + b12, a22 + b22, d0, d1, d2, x)
+        if q > limit:
+            continue
+        s, lo, hi = 0.5, 0.0, 1.0
+        for _ in range(100):
+            t = 1.0 - s
+            dx = _ldl_quadratic(s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02, s * a11 + t * b11,
+                                s * a12 + t * b12, s * a22 + t * b22, d0, d1, d2, x)
+            y0 = (a00 - b00) * x[0] + (a01 - b01) * x[1] + (a02 - b02) * x[2]
+            y1 = (a01 - b01) * x[0] + (a11 - b11) * x[1] + (a12 - b12) * x[2]
+            y2 = (a02 - b02) * x[0] + (a12 - b12) * x[1] + (a22 - b22) * x[2]
+            u = x[0] * y0 + x[1] * y1 + x[2] * y2
+            w = _ldl_quadratic(s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02, s * a11 + t * b11,
+                               s * a12 + t * b12, s * a22 + t * b22, y0, y1, y2, z)
+            g = (1.0 - 2.0 * s) * dx - s * t * u
+            gp = -2.0 * dx - 2.0 * (1.0 - 2.0 * s) * u + 2.0 * s * t * w
+            if g > 0:
+                lo = s
+            else:
+                hi = s
+            step = s - g / gp if gp < 0 else 0.5 * (lo + hi)
+            if not lo < step < hi:
+                step = 0.5 * (lo + hi)
+            done = abs(step - s) <= 1e-12
+            s = step
+            if done:
+                break
+        t = 1.0 - s
+        f = s * t * _ldl_quadratic(s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02, s * a11 + t * b11,
+                                   s * a12 + t * b12, s * a22 + t * b22, d0, d1, d2, x)
+        out[p] = np.sqrt(max(f, 0.0))
+
+
+def _contact_kernel():
+    """The compiled contact pass (core.jit), or None: the NumPy path then does the work."""
+    return jit.compiled(__name__, ("_ldl_quadratic", "_contact_pass"))
 
 
 def _full(c6):
@@ -804,8 +1000,12 @@ def signed_distance(env, points, k=3.0, max_distance=1.0, opacity_weights=True, 
     root per pair, see _outside_distance), minimised over ellipsoids. Inside, it is
     -a_min (1 - r), r the point's k-sigma radius and a_min the shortest semi-axis: a lower bound on
     the depth inside that ellipsoid (exact for spheres); the union's true depth may be larger.
-    The search grows a radius rho from near the smallest splat up to max_distance, keeping only
-    ellipsoids whose centre distance minus k sigma_max is below the best inscribed-sphere distance.
+
+    Each point searches a radius rho that starts near the smallest splat. Every ellipsoid met gives
+    two cheap bounds on its distance (see _distance_bounds); the least upper bound caps the search,
+    and only ellipsoids whose lower bound is below it get the exact distance. A point with no
+    ellipsoid in reach doubles its rho (up to max_distance); one with an upper bound beyond rho
+    jumps to it. The work follows the number of splats within reach, not their shapes.
     """
     if not k > 0 or not max_distance > 0:
         raise CollisionInputError(f"k and max_distance must be positive, got {k} and {max_distance}")
@@ -815,41 +1015,106 @@ def signed_distance(env, points, k=3.0, max_distance=1.0, opacity_weights=True, 
     best = np.full(len(points), float(max_distance))
     if not index.levels or not len(points):
         return best
-    # start near the smallest splat; at most ~20 doublings to max_distance
-    rho = min(float(max_distance), max(k * min(lv.sigma for lv in index.levels), 1e-6 * max_distance))
+    start = min(float(max_distance), max(k * min(lv.sigma for lv in index.levels), 1e-6 * max_distance))
+    rho = np.full(len(points), start)
     todo = np.arange(len(points))
     while len(todo):
-        found = _distance_pass(index, points[todo], rho, k, min_opacity, threads)
+        upper = _least_upper_bounds(index, points[todo], rho[todo], k, min_opacity, threads)
+        # a hair beyond the bound: the ellipsoid that gave it lies exactly at the edge of its reach
+        radius = np.minimum(rho[todo], upper + 1e-9 * (np.abs(upper) + start))
+        found = _exact_distances(index, points[todo], radius, k, min_opacity, threads)
         best[todo] = np.minimum(best[todo], found)
-        # a point is settled once its distance is within the searched radius
-        todo = todo[(found > rho) & (rho < max_distance)]
-        rho = min(2.0 * rho, float(max_distance))
+        # settled once its distance is within the radius searched; otherwise search further
+        open_ = (found > radius) & (rho[todo] < max_distance)
+        grow = np.where(np.isfinite(upper) & (upper > rho[todo]), upper, 2.0 * rho[todo])
+        rho[todo] = np.minimum(grow, max_distance)
+        todo = todo[open_]
     return best
 
 
-def _distance_pass(index, points, rho, k, min_opacity, threads):
-    """Signed distance of points to the ellipsoids whose lower bound |d| - k sigma_max <= rho
-    (inf where there are none)."""
-    def reach(lv):
-        return np.full(len(points), rho + k * lv.sigma)
+def _distance_bounds(index, points, i, j, k):
+    """For point/ellipsoid pairs: a lower bound on the distance (the separating plane normal to
+    d = point - centre: |d| - k sqrt(d^T Sigma d) / |d|, tight for flat and needle splats too) and an
+    upper bound (the ray from the centre leaves the ellipsoid at |d| / r, r = sqrt(d^T Sigma^-1 d) / k;
+    0 inside), the offsets d and the 6 covariance entries."""
+    d = (points[i, 0] - index.mx[j], points[i, 1] - index.my[j], points[i, 2] - index.mz[j])
+    centre = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    c = [x[j] for x in index.cov]
+    spread = (c[0] * d[0] * d[0] + c[3] * d[1] * d[1] + c[5] * d[2] * d[2]
+              + 2.0 * (c[1] * d[0] * d[1] + c[2] * d[0] * d[2] + c[4] * d[1] * d[2]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lower = np.where(centre > 0, centre - k * np.sqrt(np.maximum(spread, 0.0)) / centre, -np.inf)
+        r = np.sqrt(_mahalanobis(d, c)[0]) / k
+        upper = np.where(r > 1.0, centre * (1.0 - 1.0 / r), 0.0)
+    return lower, upper, d, c
 
-    def work(i, j):
-        dx, dy, dz = points[i, 0] - index.mx[j], points[i, 1] - index.my[j], points[i, 2] - index.mz[j]
-        centre = np.sqrt(dx * dx + dy * dy + dz * dz)
-        lower = centre - k * np.sqrt(index.lam[j])
-        keep = (lower <= rho) & (index.w[j] >= min_opacity)
-        i, j, lower = i[keep], j[keep], lower[keep]
-        d = np.column_stack([dx[keep], dy[keep], dz[keep]])
-        # prune with the inscribed sphere: ellipsoid j is within |d| - k sigma_min of the point
-        upper = np.full(len(points), np.inf)
-        np.minimum.at(upper, i, centre[keep] - k * np.sqrt(index.nu[j]))
-        keep = lower <= upper[i]
-        return i[keep], _ellipsoid_signed_distance(d[keep], _full([c[j[keep]] for c in index.cov]), k)
+
+def _least_upper_bounds(index, points, rho, k, min_opacity, threads):
+    """Per point, the least upper bound on its distance over the ellipsoids whose lower bound is
+    within its rho (inf where there are none)."""
+    def reach(lv):
+        return rho + k * lv.sigma
+
+    kernel = _bounds_kernel()
+
+    def least(i, j):
+        out = np.full(len(points), np.inf)
+        if kernel is not None:
+            kernel(i, j, points, index.mx, index.my, index.mz, index.cov6, index.w, min_opacity, k, rho, out)
+            return out
+        lower, upper, _, _ = _distance_bounds(index, points, i, j, k)
+        keep = (lower <= rho[i]) & (index.w[j] >= min_opacity)
+        np.minimum.at(out, i[keep], upper[keep])
+        return out
+
+    parts = index.query(points, reach, least, threads)
+    return np.minimum.reduce(parts) if parts else np.full(len(points), np.inf)
+
+
+def _exact_distances(index, points, radius, k, min_opacity, threads):
+    """Per point, the least signed distance to the ellipsoids whose lower bound is within its
+    radius (inf where there are none)."""
+    def reach(lv):
+        return radius + k * lv.sigma
+
+    def exact(i, j):
+        lower, _, d, c = _distance_bounds(index, points, i, j, k)
+        # both bounds are rounded: keep ties
+        keep = (lower <= radius[i] + 1e-9 * (np.abs(radius[i]) + np.abs(lower))) & (index.w[j] >= min_opacity)
+        cov = _full([x[keep] for x in c])
+        return i[keep], _ellipsoid_signed_distance(np.column_stack([x[keep] for x in d]), cov, k)
 
     out = np.full(len(points), np.inf)
-    for i, dist in index.query(points, reach, work, threads):
+    for i, dist in index.query(points, reach, exact, threads):
         np.minimum.at(out, i, dist)
     return out
+
+
+def _bounds_pass(i, j, points, mx, my, mz, cov, w, min_opacity, k, rho, out):
+    """out[p] = min over pairs of the point p of _distance_bounds' upper bound, for pairs whose
+    lower bound is within rho[p] (compiled: no per-pair temporaries)."""
+    x = np.empty(3)
+    for n in range(len(i)):
+        p, e = i[n], j[n]
+        if w[e] < min_opacity:
+            continue
+        d0, d1, d2 = points[p, 0] - mx[e], points[p, 1] - my[e], points[p, 2] - mz[e]
+        centre = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        c00, c01, c02, c11, c12, c22 = cov[0, e], cov[1, e], cov[2, e], cov[3, e], cov[4, e], cov[5, e]
+        if centre > 0:
+            spread = (c00 * d0 * d0 + c11 * d1 * d1 + c22 * d2 * d2
+                      + 2.0 * (c01 * d0 * d1 + c02 * d0 * d2 + c12 * d1 * d2))
+            if centre - k * np.sqrt(max(spread, 0.0)) / centre > rho[p]:
+                continue
+        r = np.sqrt(_ldl_quadratic(c00, c01, c02, c11, c12, c22, d0, d1, d2, x)) / k
+        upper = centre * (1.0 - 1.0 / r) if r > 1.0 else 0.0
+        if upper < out[p]:
+            out[p] = upper
+
+
+def _bounds_kernel():
+    """The compiled distance-bound pass (core.jit), or None: the NumPy path then does the work."""
+    return jit.compiled(__name__, ("_ldl_quadratic", "_bounds_pass"))
 
 
 def _ellipsoid_signed_distance(d, cov, k):
@@ -859,11 +1124,12 @@ def _ellipsoid_signed_distance(d, cov, k):
     semi = k * np.sqrt(np.maximum(vals, 0.0))
     semi = np.maximum(semi, np.maximum(1e-6 * semi.max(axis=1, keepdims=True), 1e-150))
     z = np.abs(np.einsum("pji,pj->pi", vecs, d))
-    r = np.sqrt(((z / semi) ** 2).sum(axis=1))
-    out = np.empty(len(d))
-    inside = r <= 1.0
-    out[inside] = -semi[inside].min(axis=1) * (1.0 - r[inside])
-    out[~inside] = _outside_distance(z[~inside], semi[~inside])
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):   # point splats: r is inf outside
+        r = np.sqrt(((z / semi) ** 2).sum(axis=1))
+        out = np.empty(len(d))
+        inside = r <= 1.0
+        out[inside] = -semi[inside].min(axis=1) * (1.0 - r[inside])
+        out[~inside] = _outside_distance(z[~inside], semi[~inside])
     return out
 
 
@@ -917,6 +1183,8 @@ def fit_proxies(robot, per_link=16, links=None, reference_sigma=None, iterations
         raise CollisionInputError(f"per_link must be at least 1, got {per_link}")
     if reference_sigma is None:
         reference_sigma = float(np.median(np.sqrt(np.trace(robot.covs, axis1=1, axis2=2) / 3))) if len(robot) else 0.0
+    if reference_sigma <= 0 and len(robot):        # point splats: a size from the robot's extent, or masses vanish
+        reference_sigma = 1e-3 * max(float(np.ptp(robot.means, axis=0).max()), 1e-6)
     ref = reference_sigma ** 2 * np.eye(3)
     mass = robot.weights * (2 * np.pi) ** 1.5 * np.sqrt(np.maximum(np.linalg.det(robot.covs + ref), 0.0))
     means, covs, weights, owner = [], [], [], []

@@ -19,10 +19,15 @@ How it runs fast without a loop per splat or per pixel:
   of each entry over its tile's pixels also goes into a per-splat maximum (one more pass);
 - batches run on a thread pool: NumPy and BLAS release the GIL for the heavy calls.
 
+That NumPy path is the readable reference and the fallback. Where numba loads (core.jit), the same
+three stages run as compiled loops (core/render_kernels.py), which also skip the pixel rows of a
+tile that a splat's ellipse does not cross and write the image without per-tile accumulators.
+`render(..., backend=...)` picks one; both are tested against the float64 reference.
+
 A Layer (a surface rendered by something else: per pixel a colour, an alpha and a camera depth)
 joins each pixel's front-to-back list as one more element, before the first splat whose camera z
-is not in front of it. In the running product for T that is a factor (1 - layer alpha) on the
-splat where the pixel crosses the layer, so the waves above take it with a few extra products.
+is not in front of it. In the NumPy path's running product for T that is a factor (1 - layer alpha)
+on the splat where the pixel crosses the layer; the compiled path applies it between two entries.
 """
 
 import math
@@ -33,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import geometry, sh as shmod
+from . import geometry, jit, sh as shmod
 from .splats import sigmoid
 
 ALPHA_MIN = 1.0 / 255.0     # skip a splat at a pixel below this alpha
@@ -44,6 +49,8 @@ AA_MIN_RATIO = 0.000025     # floor of det(Sigma2D) / det(Sigma2D + 0.3 I) in an
 FRUSTUM_MARGIN = 1.3        # the Jacobian is taken at x/z, y/z clamped to 1.3 x the half field of view
 MODES = ("classic", "antialiased")
 PRECISIONS = {"float32": np.float32, "float64": np.float64}
+BACKENDS = ("auto", "compiled", "numpy")
+KERNELS = "core.render_kernels"     # the compiled module, loaded by core.jit
 
 # OpenBLAS runs larger products on its own threads, which fights our pool and is slower for these
 # thin products; it stays single-threaded below m*n*k = 65536 * 4 (its SMP threshold).
@@ -156,7 +163,7 @@ def _floats(records):
 
 def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_counts=False, *,
            return_weights=False, tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
-           threads=None, progress=None, layer=None):
+           threads=None, progress=None, backend="auto", layer=None):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
@@ -164,13 +171,17 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
         0.3 px^2 low-pass, as in Mip-Splatting / gsplat's antialiased mode).
     return_counts, return_weights: also give result.counts, result.max_weight.
     Speed options (the defaults give the exact image): tile_size in pixels; wave, entries per tile
-    composited between checks for finished tiles; t_min, the transmittance stop (0 disables it);
-    max_sigma caps each splat's extent in standard deviations (3 mimics the reference rasteriser,
-    dropping faint tails); precision "float32" or "float64" for the per-pixel work; threads
-    (default: all cores). progress(done_tiles, total_tiles, label) is called between waves.
+    composited between checks for finished tiles (NumPy path only); t_min, the transmittance stop
+    (0 disables it); max_sigma caps each splat's extent in standard deviations (3 mimics the
+    reference rasteriser, dropping faint tails); precision "float32" or "float64" for the per-pixel
+    work; threads (default: all cores); backend "auto" (compiled kernels where numba loads, else
+    NumPy), "compiled" (an error if they cannot load) or "numpy". progress(done_tiles,
+    total_tiles, label) is called from the calling thread as tiles finish.
     layer: a Layer composited with the splats in depth order (see Layer), or None.
 
-    Splats with non-finite values are skipped and counted in stats["skipped_nonfinite"].
+    Splats with non-finite values are skipped and counted in stats["skipped_nonfinite"];
+    stats["backend"] says which path ran. An image whose buffers would not fit in this machine's
+    memory is refused (ValueError) before anything is allocated.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -184,22 +195,122 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
         raise ValueError(f"t_min must be in [0, 1), got {t_min!r}")
     if max_sigma is not None and not max_sigma > 0:
         raise ValueError(f"max_sigma must be > 0 or None, got {max_sigma!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     bg = None if background is None else np.asarray(background, dtype=np.float64).reshape(-1)
     if bg is not None and (bg.shape != (3,) or not np.isfinite(bg).all()):
         raise ValueError(f"background must be three finite numbers (r, g, b), got {background!r}")
     layer = None if layer is None else layer.checked(camera)
+    kernels = None if backend == "numpy" else jit.load(KERNELS, check=_check_kernels)
+    if kernels is None and backend == "compiled":
+        raise RuntimeError(f"compiled render kernels are not available: {jit.status(KERNELS)}")
+    check_image_memory(camera, int(tile_size), return_counts, compiled=kernels is not None)
+    return _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, int(tile_size),
+                   int(wave), t_min, max_sigma, PRECISIONS[precision], threads, progress, layer)
+
+
+def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, tile_size, wave,
+            t_min, max_sigma, dtype, threads, progress, layer=None):
+    """The checked render() by the compiled kernels, or by NumPy when kernels is None."""
     with _pool(threads) as pool:
-        proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
-        bins = bin_tiles(proj, camera, int(tile_size), pool=pool)
-        crossing = None if layer is None else _LayerCrossing(layer, bins, PRECISIONS[precision])
-        compositor = _Compositor(proj, bins, camera, PRECISIONS[precision], int(wave), t_min, pool,
-                                 return_counts, return_weights, crossing)
-        acc, counts = compositor.run(progress)
-    result = _finish(acc, counts, camera, bins, bg, background, proj, cloud, crossing)
+        if kernels is None:
+            proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
+            bins = bin_tiles(proj, camera, tile_size, pool=pool)
+            crossing = None if layer is None else _LayerCrossing(layer, bins, dtype)
+            compositor = _Compositor(proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights,
+                                     crossing)
+        else:
+            proj = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool)
+            order, number = _by_first_tile(proj, camera, tile_size)
+            bins = _bin_compiled(kernels, proj, camera, tile_size, pool, number)
+            compositor = _CompiledCompositor(kernels, proj, bins, order, camera, dtype, t_min, pool,
+                                             return_counts, return_weights, layer)
+        images = compositor.images(progress)
+    layer_t = None if layer is None else compositor.layer_transmittance(images[1])
+    result = _finish(*images, bg, background, proj, bins, cloud, layer, layer_t)
     result.stats["evaluated"] = compositor.evaluated
-    if return_weights:
-        result.max_weight = compositor.max_weight(len(cloud))
+    result.stats["backend"] = "numpy" if kernels is None else "compiled"
+    result.max_weight = compositor.max_weight(len(cloud)) if return_weights else None
     return result
+
+
+def _check_kernels(kernels):
+    """Run the compiled kernels once on a small scene (compiling them, or loading them from the
+    cache) and compare with the NumPy path: a broken build falls back to NumPy, not a wrong image."""
+    from .camera import Camera
+    from .splats import SplatCloud
+    rng = np.random.default_rng(0)
+    n = 64
+    cloud = SplatCloud(rng.normal(0, 0.3, (n, 3)) + [0, 0, 3], rng.normal(size=(n, 4)),
+                       rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 16, 3)))
+    camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20)
+    for mode in MODES:
+        args = (cloud, camera, np.zeros(3), (0, 0, 0), mode, True, True, 8, 32, T_MIN, None, np.float32, 1, None)
+        for layer in (None, _check_layer(camera)):
+            got, want = _render(kernels, *args, layer), _render(None, *args, layer)
+            if np.abs(got.color - want.color).max() > 1e-3 or np.abs(got.max_weight - want.max_weight).max() > 1e-3:
+                raise RuntimeError("the compiled render kernels disagree with the NumPy path on a test scene")
+
+
+def _check_layer(camera):
+    """A half-transparent surface tilted through _check_kernels' scene."""
+    shape = (camera.height, camera.width)
+    depth = 2.6 + 0.05 * np.arange(camera.width)[None, :] + np.zeros(shape)
+    return Layer(np.full(shape + (3,), 0.3), np.full(shape, 0.5), depth).checked(camera)
+
+
+def backend_status():
+    """'compiled' when the compiled kernels load here (loading them), else why the NumPy path is used."""
+    jit.load(KERNELS, check=_check_kernels)
+    return jit.status(KERNELS)
+
+
+# memory -----------------------------------------------------------------------------------------
+
+def image_bytes(width, height, tile_size=8, counts=False, compiled=True):
+    """Bytes a render of this size holds for its image buffers, whatever the cloud: the result's
+    colour, alpha and depth and the working images (the NumPy path keeps five float32
+    accumulators and a transmittance per pixel of whole tiles)."""
+    pixels = width * height
+    per_pixel = 12 + 4 + 4 + (4 if counts else 0)                       # the result
+    if compiled:
+        per_pixel += 12 + 4 + 4 + (4 if counts else 0)                  # colour, weight, depth sums
+    else:
+        tiled = -(-width // tile_size) * tile_size * -(-height // tile_size) * tile_size
+        per_pixel += (20 + 4 + 1 + (4 if counts else 0)) * tiled / pixels + 20   # tiles, then one copy
+    return int(pixels * per_pixel)
+
+
+def physical_memory():
+    """This machine's memory in bytes, or None where it cannot be told."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        pass
+    try:                                # Windows
+        import ctypes
+
+        class Status(ctypes.Structure):
+            _fields_ = [("length", ctypes.c_ulong), ("load", ctypes.c_ulong), ("total", ctypes.c_ulonglong),
+                        ("available", ctypes.c_ulonglong), ("page_total", ctypes.c_ulonglong),
+                        ("page_available", ctypes.c_ulonglong), ("virtual_total", ctypes.c_ulonglong),
+                        ("virtual_available", ctypes.c_ulonglong), ("extended", ctypes.c_ulonglong)]
+        status = Status()
+        status.length = ctypes.sizeof(Status)
+        if ctypes.windll.kernel32.GlobalMemoryStatusEx(ctypes.byref(status)):
+            return int(status.total)
+    except Exception:
+        pass
+    return None
+
+
+def check_image_memory(camera, tile_size=8, counts=False, compiled=True):
+    """Refuse (ValueError) an image whose buffers alone would take more than this machine's memory."""
+    need, have = image_bytes(camera.width, camera.height, tile_size, counts, compiled), physical_memory()
+    if have is not None and need > have:
+        raise ValueError(f"a {camera.width}x{camera.height} render needs {need / 2**30:.1f} GiB for its image "
+                         f"buffers alone, more than this machine's {have / 2**30:.1f} GiB of memory; render it "
+                         "in pieces (a camera per piece: smaller width and height, cx and cy shifted)")
 
 
 class _pool:
@@ -218,9 +329,13 @@ class _pool:
             self.executor.shutdown()
 
     def map(self, fn, items):
+        return list(self.imap(fn, items))
+
+    def imap(self, fn, items):
+        """fn over items, results yielded in order in the calling thread as they come."""
         if self.executor is None or len(items) < 2:
-            return [fn(item) for item in items]
-        return list(self.executor.map(fn, items))
+            return (fn(item) for item in items)
+        return self.executor.map(fn, items)
 
 
 # projection -----------------------------------------------------------------------------------
@@ -459,6 +574,148 @@ def _stable_argsort(keys, n_keys):
     return low[high]
 
 
+# the compiled path -----------------------------------------------------------------------------------
+
+def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool):
+    """project() by the compiled kernel: the same Projected, built chunk by chunk on every core."""
+    n = len(cloud)
+    fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32)
+              for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")]
+    records = _records(n)
+    index, depth = np.empty(n, np.int64), np.empty(n, np.float32)
+    r2, bbox = np.empty(n), np.empty((n, 4), np.int64)
+    w, h = camera.width, camera.height
+    mx, my = (FRUSTUM_MARGIN - 1) / 2 * w, (FRUSTUM_MARGIN - 1) / 2 * h
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    clip = np.array([camera.near, camera.far, (-camera.cx - mx) / camera.fx, (w - camera.cx + mx) / camera.fx,
+                     (-camera.cy - my) / camera.fy, (h - camera.cy + my) / camera.fy])
+    max_r2 = math.inf if max_sigma is None else float(max_sigma) ** 2
+    rotation = np.ascontiguousarray(camera.rotation)
+    rec32 = records.view(np.float32)
+
+    def run(lo):
+        hi = min(lo + _PROJECT_CHUNK, n)
+        return lo, *kernels.project_range(*fields, lo, hi, camera.center, rotation, intrinsics,
+                                          np.array([w, h]), clip, camera.is_orthographic,
+                                          mode == "antialiased", max_r2, records, rec32, index, depth, r2, bbox)
+
+    parts = pool.map(run, list(range(0, n, _PROJECT_CHUNK)))
+    rows = np.concatenate([np.arange(lo, lo + count) for lo, count, _ in parts] or [np.zeros(0, np.int64)])
+    # float32 depth keys, ties in index order (see project())
+    rows = rows[_stable_argsort(depth[rows].view(np.uint32), 1 << 32)]
+    out = _records(len(rows))
+    np.take(records, rows, axis=0, out=out[:-1])
+    return Projected(index[rows], out, r2[rows], bbox[rows], sum(skipped for _, _, skipped in parts))
+
+
+def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
+    """bin_tiles() by the compiled kernels: count each chunk's entries per tile, then place them.
+    Entries hold number[splat] when given (a renumbering of the splats), else the splat."""
+    ts = tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles, n = tiles_x * tiles_y, len(proj)
+    number = np.arange(n, dtype=np.int32) if number is None else number
+    bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
+    chunks = list(range(len(bounds) - 1))
+    rec64 = proj.records
+    counts = np.zeros((len(chunks), n_tiles), np.int64)
+    pool.map(lambda k: kernels.count_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
+                                           counts[k]), chunks)
+    offsets = np.zeros(n_tiles + 1, dtype=np.int64)
+    np.cumsum(counts.sum(axis=0), out=offsets[1:])
+    cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts       # where each chunk's run begins
+    entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
+    pool.map(lambda k: kernels.fill_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
+                                          number, cursor[k], entry_splat), chunks)
+    return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
+
+
+def _by_first_tile(proj, camera, tile_size):
+    """Splat numbers in the order of the tile of their box's top-left corner (then depth): records
+    stored so put a tile's entries near each other in memory. Returns (order, number), number the
+    inverse of order."""
+    tiles_x = -(-camera.width // tile_size)
+    n_tiles = tiles_x * -(-camera.height // tile_size)
+    order = _stable_argsort(proj.bbox[:, 1] // tile_size * tiles_x + proj.bbox[:, 0] // tile_size, n_tiles)
+    number = np.empty(len(order), np.int32)
+    number[order] = np.arange(len(order), dtype=np.int32)
+    return order, number
+
+
+class _CompiledCompositor:
+    """Every tile composited by the compiled kernel, straight into image arrays; the tiles are
+    split into runs of similar work, handed to the cores in turn. The kernel reads the records
+    in the order `order` (entries number them so)."""
+
+    RUNS_PER_THREAD = 16
+
+    def __init__(self, kernels, proj, bins, order, camera, dtype, t_min, pool, want_counts, want_weights,
+                 layer=None):
+        self.kernels, self.proj, self.bins, self.order, self.camera = kernels, proj, bins, order, camera
+        self.dtype, self.t_min, self.pool = dtype, float(t_min), pool
+        h, w = camera.height, camera.width
+        self.color = np.empty((h, w, 3), np.float32)
+        self.weight, self.depth_sum = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+        self.counts = np.empty((h, w), np.int32) if want_counts else np.zeros((0, 0), np.int32)
+        self.peaks = np.zeros(len(bins.entry_splat), np.float32) if want_weights else np.zeros(0, np.float32)
+        # the layer's depth and 1 - alpha, and T where each pixel reached it (written by the kernel)
+        empty = np.zeros((0, 0), np.float32)
+        self.layer_depth = empty if layer is None else layer.depth
+        self.layer_keep = empty if layer is None else 1.0 - layer.alpha
+        self.layer_t = empty if layer is None else np.empty((h, w), np.float32)
+        self.evaluated = 0
+
+    def layer_transmittance(self, weight):
+        return self.layer_t
+
+    def _runs(self):
+        """Consecutive tile ranges of about equal entry counts (empty tiles still need writing)."""
+        bins = self.bins
+        work = bins.offsets + np.arange(bins.n_tiles + 1)          # entries, and one per tile
+        parts = self.RUNS_PER_THREAD * self.pool.threads
+        cuts = np.searchsorted(work, np.linspace(0, work[-1], parts + 1)[1:-1])
+        return [r for r in zip(np.r_[0, cuts], np.r_[cuts, bins.n_tiles]) if r[1] > r[0]]
+
+    def _records(self):
+        """The records and boxes in the order the entries number them."""
+        proj, n = self.proj, len(self.proj)
+        records, bbox = _records(n), np.empty((n, 4), np.int64)
+        bounds = np.linspace(0, n, self.pool.threads + 1).astype(np.int64)
+        self.pool.map(lambda k: self.kernels.gather(self.order, proj.records, proj.bbox, bounds[k], bounds[k + 1],
+                                                    records, bbox), list(range(self.pool.threads)))
+        return records, bbox
+
+    def images(self, progress=None):
+        bins, cam = self.bins, self.camera
+        records, bbox = self._records()
+        rec32 = records.view(np.float32)
+        k = self.kernels.exp_constants(self.dtype)
+        ts = bins.tile_size
+
+        def run(span):
+            return span, self.kernels.composite_tiles(
+                np.arange(*span), bins.offsets, bins.entry_splat, records, rec32, bbox, ts, bins.tiles_x,
+                cam.width, cam.height, self.t_min, k,
+                self.color, self.weight, self.depth_sum, self.counts, self.peaks,
+                self.layer_depth, self.layer_keep, self.layer_t)
+
+        done = 0
+        for (lo, hi), evaluated in self.pool.imap(run, self._runs()):
+            self.evaluated += evaluated
+            done += hi - lo
+            if progress is not None:
+                progress(done, bins.n_tiles, "render")
+        return self.color, self.weight, self.depth_sum, self.counts if self.counts.size else None
+
+    def max_weight(self, n_cloud):
+        """(n_cloud,) float32: the largest weight of every input splat, 0 for those not projected."""
+        best = np.zeros(len(self.proj), np.float32)
+        self.kernels.peak_per_splat(self.bins.entry_splat, self.peaks, best)
+        out = np.zeros(n_cloud, np.float32)
+        out[self.proj.index[self.order]] = best
+        return out
+
+
 # compositing ----------------------------------------------------------------------------------
 
 class _Compositor:
@@ -468,6 +725,7 @@ class _Compositor:
                  crossing=None):
         self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
         self.crossing = crossing
+        self.width, self.height = camera.width, camera.height
         self.t_min = dtype(t_min)
         ts = bins.tile_size
         self.pixels = ts * ts
@@ -512,6 +770,24 @@ class _Compositor:
         out = np.zeros(n_cloud, np.float32)
         out[self.proj.index[self.order]] = self.best[:-1]
         return out
+
+    def images(self, progress=None):
+        """Composite every tile; returns (colour sums (H,W,3), weights, depth sums, counts or None)
+        in image layout."""
+        acc, counts = self.run(progress)
+        acc = self._image(acc)              # (H, W, 5): the one copy out of tile order
+        return acc[..., :3], acc[..., 4], acc[..., 3], None if counts is None else self._image(counts).copy()
+
+    def _image(self, a):
+        """(tiles, pixels, ...) -> (H, W, ...)."""
+        bins, ts = self.bins, self.bins.tile_size
+        a = a.reshape(bins.tiles_y, bins.tiles_x, ts, ts, *a.shape[2:]).swapaxes(1, 2)
+        return a.reshape(bins.tiles_y * ts, bins.tiles_x * ts, *a.shape[4:])[:self.height, :self.width]
+
+    def layer_transmittance(self, weight):
+        """(H, W) T where each pixel reached the layer (see _LayerCrossing.transmittance)."""
+        return self.crossing.transmittance(self._image(self.crossing.t), self._image(self.crossing.pending),
+                                           np.clip(weight, 0.0, 1.0))
 
     def run(self, progress=None):
         bins = self.bins
@@ -620,34 +896,25 @@ class _Compositor:
         return out
 
 
-def _finish(acc, counts, camera, bins, bg, background, proj, cloud, crossing=None):
-    """Tile accumulators -> image arrays."""
-    ts, h, w = bins.tile_size, camera.height, camera.width
-
-    def image(a):
-        a = a.reshape(bins.tiles_y, bins.tiles_x, ts, ts, *a.shape[2:]).swapaxes(1, 2)
-        return a.reshape(bins.tiles_y * ts, bins.tiles_x * ts, *a.shape[4:])[:h, :w]
-
-    acc = image(acc)                    # (H, W, 5): the one copy out of tile order
-    weight = acc[..., 4]
+def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud, layer=None, layer_t=None):
+    """Image sums (colour and depth weighted by T alpha, and the weight) -> the result; with a layer,
+    its colour at the T each pixel reached it with (layer_t) goes in, before the background."""
     alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
-    color = acc[..., :3].astype(np.float32)
-    layer_t = None
-    if crossing is not None:
-        layer_t = crossing.transmittance(image(crossing.t), image(crossing.pending), alpha)
-        color += layer_t[..., None] * crossing.layer.color
-        alpha = np.clip(alpha + layer_t * crossing.layer.alpha, 0.0, 1.0)
+    color = np.ascontiguousarray(color, dtype=np.float32)
+    if layer is not None:
+        color += layer_t[..., None] * layer.color
+        alpha = np.clip(alpha + layer_t * layer.alpha, 0.0, 1.0)
     if bg is not None:
         color += (1.0 - alpha)[..., None] * bg.astype(np.float32)
     depth = np.zeros_like(alpha)
-    np.divide(acc[..., 3], weight, out=depth, where=weight > 0)
+    np.divide(depth_sum, weight, out=depth, where=weight > 0)
     stats = {"input": len(cloud), "skipped_nonfinite": proj.skipped_nonfinite, "visible": len(proj),
              "entries": len(bins.entry_splat)}
     return RenderResult(
         color=color,
         alpha=alpha,
         depth=depth,
-        counts=None if counts is None else image(counts).copy(),
+        counts=counts,
         background=None if background is None else tuple(float(x) for x in bg),
         stats=stats,
         layer_transmittance=layer_t,

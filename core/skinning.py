@@ -432,7 +432,8 @@ def _chunk_inputs(positions, binding, a, b):
 def _check_call(arrays, binding, pose, mode, lbs_stretch="bones"):
     """Validate a skinning call; `arrays` maps field names to per-splat arrays that must be finite."""
     for name, values in arrays.items():
-        bad = ~np.isfinite(values).reshape(len(values), -1).all(axis=1)
+        ok = np.isfinite(values) | (np.isneginf(values) if name == "log_scales" else False)   # -inf: a zero scale
+        bad = ~ok.reshape(len(values), -1).all(axis=1)
         if bad.any():
             raise SkinningError(f"{int(bad.sum())} splats have non-finite {name}")
     if mode not in _MODES:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..core import SplatCloud
 from ..core.splats import FIELDS as CORE_FIELDS
-from ..core import sh as shmod
+from ..core import jit, sh as shmod
 from ..core.parallel import WORKERS, in_chunks
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
 
@@ -420,7 +420,7 @@ def write(path, cloud, nonfinite="raise"):
     header += [f"property float {name}" for name in names]
     header += [f"property {TYPE_NAMES[a.dtype.str[1:]]} {name}" for name, a in extras]
     header = ("\n".join(header) + "\nend_header\n").encode("ascii")
-    fill = _Filler(cloud, extras)
+    fill = _Filler(cloud, extras, jit.load("io.ply_kernels", check=_check_kernels))
     tallies = []
     try:
         with atomic_write(path) as f:
@@ -432,8 +432,7 @@ def write(path, cloud, nonfinite="raise"):
                 buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)
                 for chunk in _chunks(rows):
                     part = buffer[:chunk.stop - chunk.start]
-                    fill(part, chunk)
-                    if not np.isfinite(part["core"]).all():    # one pass over the filled block; tally rarely
+                    if not fill(part, chunk):                  # tally the non-finite values (rarely)
                         tallies.append(_nonfinite_rows(_core_arrays(cloud), chunk))
                     _write_at(f.fileno(), part, len(header) + chunk.start * dtype.itemsize)
             _in_parallel(len(cloud), fill_and_write)
@@ -444,16 +443,35 @@ def write(path, cloud, nonfinite="raise"):
 
 
 class _Filler:
-    """Fills vertex records with a cloud's splats in the reference layout."""
+    """Fills vertex records with a cloud's splats in the reference layout; returns whether every
+    layout value is finite. A compiled loop does it in one pass where numba loads (core.jit)."""
 
-    def __init__(self, cloud, extras):
-        self.cloud, self.extras = cloud, extras
+    def __init__(self, cloud, extras, kernels=None):
+        self.cloud, self.extras, self.kernels = cloud, extras, kernels
         self.normals = [cloud.extras.get(name) for name in NORMALS]
         k = cloud.sh.shape[1]
         self.sh_columns = np.argsort(sh_order(k))       # cloud SH (K*3) -> file f_dc, f_rest order
         self.m = 3 * k                                  # f_dc + f_rest columns
+        if kernels is not None:
+            c = cloud
+            normals = np.zeros((0, 0), np.float32) if all(n is None for n in self.normals) else np.stack(
+                [np.zeros(len(c), np.float32) if n is None else n.astype(np.float32) for n in self.normals])
+            self.arrays = [np.ascontiguousarray(c.positions, dtype=np.float32), normals,
+                           np.ascontiguousarray(c.sh, dtype=np.float32).reshape(len(c), self.m),
+                           self.sh_columns.astype(np.int64)] + [
+                np.ascontiguousarray(a, dtype=np.float32) for a in (c.opacity_logits, c.log_scales, c.rotations)]
 
     def __call__(self, part, rows):
+        if self.kernels is not None:
+            finite = self.kernels.fill_rows(*self.arrays, rows.start, part["core"])
+            for name, values in self.extras:
+                part[name] = values[rows]
+            return finite
+        self._fill(part, rows)
+        return np.isfinite(part["core"]).all()
+
+    def _fill(self, part, rows):
+        """The NumPy path: one block of columns at a time."""
         cloud, core, m = self.cloud, part["core"], self.m
         core[:, 0:3] = cloud.positions[rows]
         for i, normal in enumerate(self.normals):
@@ -465,6 +483,17 @@ class _Filler:
         core[:, 10 + m:14 + m] = cloud.rotations[rows]
         for name, values in self.extras:
             part[name] = values[rows]
+
+
+def _check_kernels(kernels):
+    """The compiled fill against the NumPy one on a small cloud (compiling it, or loading the cache)."""
+    from ..core.scenes import seed_cube
+    cloud = seed_cube(2)
+    dtype = np.dtype([("core", "<f4", (len(layout_names(cloud.sh_degree)),))])
+    fast, slow = _Filler(cloud, [], kernels), _Filler(cloud, [])
+    got, want = np.empty(len(cloud), dtype), np.empty(len(cloud), dtype)
+    if not (fast(got, slice(0, len(cloud))) and slow(want, slice(0, len(cloud))) and np.array_equal(got, want)):
+        raise RuntimeError("the compiled PLY fill disagrees with the NumPy one")
 
 
 def _extra_columns(path, cloud, taken):

@@ -1,19 +1,65 @@
-"""URDF robot descriptions, kinematic part only: links, joints, origins, axes and limits.
+"""URDF robot descriptions: links, joints (origins, axes, limits, mimics) and visuals.
 
-Visual, collision and inertial elements (and their meshes) are ignored. The result is a
-core.kinematics.KinematicTree whose links are the URDF links in topological order and whose
-joint at each link is the URDF joint that has the link as its child.
+`read_urdf(path)` gives the core.kinematics.KinematicTree: links in topological order, each with
+the URDF joint that has it as its child. `read_description(path, package_paths)` adds each link's
+visuals (origin, box / cylinder / sphere / mesh file with its scale, material colour) with their
+files resolved, and `read_robot(path, ...)` turns all of it into a core.robot.SplatRobot: the
+visuals' meshes converted to splats, bound rigidly to their links.
+
+Mesh files: `package://name/rest` is looked up in the search path (`package_paths`, then the
+ROS_PACKAGE_PATH environment variable, then the URDF's folder and its parents): as
+`<dir>/name/rest`, or `<dir>/rest` for a folder itself called `name`, or the bare `rest` relative
+to the URDF (what pybullet does for its data); `file://` paths and plain relative paths are
+taken from the URDF's folder. Meshes are read by io.meshes (OBJ natively, STL and DAE through
+trimesh).
+
+Lenient where the common loaders (pybullet, yourdfpy, Pinocchio) are and it is harmless: text
+before `<?xml` that is only whitespace, limits given upper-first (swapped, with a warning), a
+missing <limit> on a revolute or prismatic joint (no limits, with a warning), and the joint type
+"spherical" (a ball joint). Anything else malformed raises SplatFileError naming the file, the
+element and the problem.
 """
 
+import os
+import warnings
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..core import color
 from ..core.kinematics import KinematicsError, KinematicTree, rpy_matrices, transforms
-from .common import SplatFileError, read_text
+from .common import SplatFileError, SplatFileWarning, read_text
 
-_TYPES = ("fixed", "revolute", "continuous", "prismatic")
+_TYPES = ("fixed", "revolute", "continuous", "prismatic", "floating", "planar", "spherical")
+
+
+@dataclass
+class Visual:
+    """One <visual> of a link. origin: (4,4) in the link's frame. geometry: 'box' (size = x, y, z),
+    'cylinder' (radius, length, along z), 'sphere' (radius,) or 'mesh' (path, scale). rgba: the
+    material colour as written (display sRGB, as URDF viewers show it), or None."""
+    link: str
+    origin: np.ndarray
+    geometry: str
+    size: tuple = ()
+    path: Path = None
+    scale: np.ndarray = field(default_factory=lambda: np.ones(3))
+    rgba: tuple = None
+    name: str = ""
+
+    @property
+    def linear_color(self):
+        return None if self.rgba is None else tuple(color.srgb_to_linear(np.clip(self.rgba[:3], 0.0, 1.0)))
+
+
+@dataclass
+class RobotDescription:
+    """A URDF: its name, kinematic tree and visuals (in file order)."""
+    name: str
+    tree: KinematicTree
+    visuals: list
 
 
 def read_urdf(path):
@@ -26,20 +72,89 @@ def read_urdf(path):
 
 def parse_urdf(text, source="<string>"):
     """Parse URDF XML text into a KinematicTree (`source` names it in error messages)."""
+    robot = _root(text, source)
+    links, joints = _links_and_joints(robot, source)
+    return _tree(links, joints, source)
+
+
+def read_description(path, package_paths=()):
+    """Read a .urdf file with its visuals (mesh paths resolved, not yet read) into a RobotDescription."""
+    path = Path(path)
+    if not path.is_file():
+        raise SplatFileError(path, "no such file")
+    source = str(path)
+    robot = _root(read_text(path), source)
+    links, joints = _links_and_joints(robot, source)
+    tree = _tree(links, joints, source)
+    resolver = _Resolver(path, package_paths)
+    materials = _materials(robot, source)
+    visuals = [v for link in robot.findall("link") for v in _visuals(source, link, materials, resolver)]
+    return RobotDescription(robot.get("name", path.stem), tree, visuals)
+
+
+def read_robot(path, package_paths=(), max_splats=None, target_psnr=None, progress=None, info=None, **style):
+    """A URDF as a core.robot.SplatRobot: every visual meshed (primitives tessellated, mesh files
+    read and scaled), placed by its origin on its link at the zero configuration, and converted to
+    splats in one pass (one density over the whole robot: `max_splats` or `target_psnr` as in
+    core.mesh_to_splats.mesh_to_splats; the default is a budget of DEFAULT_SPLATS)."""
+    from ..core.robot import DEFAULT_SPLATS, splat_robot, visual_mesh
+    from .meshes import has_own_colours, read_mesh_file
+    description = read_description(path, package_paths)
+    if not description.visuals:
+        raise SplatFileError(path, "no <visual> elements: nothing to make splats from")
+    index = {name: i for i, name in enumerate(description.tree.names)}
+    files, parts = {}, []
+    for visual in description.visuals:
+        mesh = None
+        if visual.geometry == "mesh":
+            if visual.path not in files:
+                files[visual.path] = read_mesh_file(visual.path)
+            mesh = files[visual.path]
+            colour = None if has_own_colours(mesh) else visual.linear_color
+        else:
+            colour = visual.linear_color
+        parts.append((index[visual.link], visual_mesh(visual.geometry, visual.size, mesh, visual.scale, colour),
+                      visual.origin))
+    if max_splats is None and target_psnr is None:
+        max_splats = DEFAULT_SPLATS
+    try:
+        return splat_robot(description.tree, parts, max_splats=max_splats, target_psnr=target_psnr,
+                           progress=progress, info=info, name=description.name, **style)
+    except ValueError as exc:
+        raise SplatFileError(path, str(exc)) from None
+
+
+# parsing -----------------------------------------------------------------------------------------
+
+def _root(text, source):
+    text = text.lstrip("\ufeff \t\r\n")          # a BOM or blank lines before <?xml: harmless
     try:
         robot = ET.fromstring(text)
     except ET.ParseError as exc:
         raise SplatFileError(source, f"not valid XML: {exc}") from None
     if robot.tag != "robot":
         raise SplatFileError(source, f"root element is <{robot.tag}>, expected <robot>")
+    return robot
+
+
+def _links_and_joints(robot, source):
     links = [_attr(source, link, "name", "link") for link in robot.findall("link")]
     if not links:
         raise SplatFileError(source, "no <link> elements")
-    if len(set(links)) != len(links):
+    declared = set(links)
+    if len(declared) != len(links):
         raise SplatFileError(source, "link names are not unique")
-    joints = [_joint(source, j, set(links)) for j in robot.findall("joint")]
+    joints = [_joint(source, j, declared) for j in robot.findall("joint")]
+    if joints:                                   # every origin in one batch: per-joint NumPy calls add up
+        poses = np.array([j["origin"] for j in joints])
+        for j, m in zip(joints, transforms(rpy_matrices(poses[:, 1]), poses[:, 0])):
+            j["origin"] = m
     if len({j["name"] for j in joints}) != len(joints):
         raise SplatFileError(source, "joint names are not unique")
+    return links, joints
+
+
+def _tree(links, joints, source):
     children = {j["child"] for j in joints}
     roots = [name for name in links if name not in children]
     if len(roots) != 1:
@@ -72,6 +187,21 @@ def _numbers(source, text, count, where):
     return values
 
 
+def _origin(source, element, where):
+    """The (4,4) transform of an element's <origin> (identity without one)."""
+    xyz, rpy = _pose(source, element, where)
+    return transforms(rpy_matrices(rpy), xyz)
+
+
+def _pose(source, element, where):
+    """The xyz and rpy of an element's <origin> (zeros without one)."""
+    origin = element.find("origin")
+    if origin is None:
+        return np.zeros(3), np.zeros(3)
+    return (_numbers(source, origin.get("xyz", "0 0 0"), 3, f"{where} origin xyz"),
+            _numbers(source, origin.get("rpy", "0 0 0"), 3, f"{where} origin rpy"))
+
+
 def _joint(source, element, links):
     name = _attr(source, element, "name", "joint")
     where = f"joint '{name}'"
@@ -86,22 +216,121 @@ def _joint(source, element, links):
         if tag.get("link") not in links:
             raise SplatFileError(source, f"{where}: {end} link '{tag.get('link')}' is not declared")
         ends[end] = tag.get("link")
-    origin = element.find("origin")
-    xyz = _numbers(source, origin.get("xyz", "0 0 0"), 3, f"{where} origin xyz") if origin is not None else np.zeros(3)
-    rpy = _numbers(source, origin.get("rpy", "0 0 0"), 3, f"{where} origin rpy") if origin is not None else np.zeros(3)
     axis_tag = element.find("axis")
     axis = _numbers(source, axis_tag.get("xyz", "1 0 0"), 3, f"{where} axis") if axis_tag is not None \
         else np.array([1.0, 0.0, 0.0])
-    if kind != "fixed" and not 1e-12 <= np.linalg.norm(axis) < np.inf:
+    if kind in ("revolute", "continuous", "prismatic", "planar") and not 1e-12 <= np.linalg.norm(axis) < np.inf:
         raise SplatFileError(source, f"{where} has a zero axis or one too long for floating point")
-    lower, upper = -np.inf, np.inf
-    if kind in ("revolute", "prismatic"):
-        limit = element.find("limit")
-        if limit is None:
-            raise SplatFileError(source, f"{where} ({kind}) has no <limit> (URDF requires one)")
-        lower = _numbers(source, limit.get("lower", "0"), 1, f"{where} limit lower")[0]
-        upper = _numbers(source, limit.get("upper", "0"), 1, f"{where} limit upper")[0]
-        if lower > upper:
-            raise SplatFileError(source, f"{where}: limit lower {lower} is above upper {upper}")
-    return {"name": name, "type": kind, **ends, "origin": transforms(rpy_matrices(rpy), xyz),
-            "axis": axis, "lower": lower, "upper": upper}
+    lower, upper = _limits(source, element, kind, where)
+    return {"name": name, "type": kind, **ends, "origin": _pose(source, element, where),
+            "axis": axis, "lower": lower, "upper": upper, "mimic": _mimic(source, element, where)}
+
+
+def _limits(source, element, kind, where):
+    if kind not in ("revolute", "prismatic"):
+        return -np.inf, np.inf
+    limit = element.find("limit")
+    if limit is None:
+        warnings.warn(f"{source}: {where} ({kind}) has no <limit> (URDF requires one); left unlimited",
+                      SplatFileWarning, stacklevel=4)
+        return -np.inf, np.inf
+    lower = _numbers(source, limit.get("lower", "0"), 1, f"{where} limit lower")[0]
+    upper = _numbers(source, limit.get("upper", "0"), 1, f"{where} limit upper")[0]
+    if lower > upper:
+        warnings.warn(f"{source}: {where}: limit lower {lower:g} is above upper {upper:g}; swapped",
+                      SplatFileWarning, stacklevel=4)
+        lower, upper = upper, lower
+    return lower, upper
+
+
+def _mimic(source, element, where):
+    tag = element.find("mimic")
+    if tag is None:
+        return None
+    target = _attr(source, tag, "joint", "mimic")
+    multiplier = _numbers(source, tag.get("multiplier", "1"), 1, f"{where} mimic multiplier")[0]
+    offset = _numbers(source, tag.get("offset", "0"), 1, f"{where} mimic offset")[0]
+    return (target, multiplier, offset)
+
+
+def _rgba(source, material, where):
+    tag = material.find("color")
+    if tag is None:
+        return None
+    return tuple(_numbers(source, tag.get("rgba", ""), 4, f"{where} color rgba"))
+
+
+def _materials(robot, source):
+    """Named material colours, from anywhere in the file (URDF materials are global by name)."""
+    named = {}
+    for material in robot.iter("material"):
+        name = material.get("name")
+        rgba = _rgba(source, material, f"material '{name}'")
+        if name and rgba is not None:
+            named.setdefault(name, rgba)
+    return named
+
+
+def _visuals(source, link, materials, resolver):
+    name = link.get("name")
+    out = []
+    for k, visual in enumerate(link.findall("visual")):
+        where = f"link '{name}' visual {k}"
+        geometry = visual.find("geometry")
+        shape = next(iter(geometry), None) if geometry is not None else None
+        if shape is None:
+            raise SplatFileError(source, f"{where} has no <geometry> shape")
+        material = visual.find("material")
+        rgba = None
+        if material is not None:
+            rgba = _rgba(source, material, where) or materials.get(material.get("name"))
+        item = Visual(name, _origin(source, visual, where), shape.tag, rgba=rgba, name=visual.get("name", ""))
+        if shape.tag == "box":
+            item.size = tuple(_numbers(source, shape.get("size", ""), 3, f"{where} box size"))
+        elif shape.tag == "cylinder":
+            item.size = (_positive(source, shape, "radius", where), _positive(source, shape, "length", where))
+        elif shape.tag == "sphere":
+            item.size = (_positive(source, shape, "radius", where),)
+        elif shape.tag == "mesh":
+            item.path = resolver.resolve(_attr(source, shape, "filename", "mesh"), where)
+            if shape.get("scale") is not None:
+                item.scale = _numbers(source, shape.get("scale"), 3, f"{where} mesh scale")
+        else:
+            raise SplatFileError(source, f"{where} has geometry <{shape.tag}>; supported: box, cylinder, "
+                                         "sphere, mesh")
+        out.append(item)
+    return out
+
+
+def _positive(source, shape, key, where):
+    value = _numbers(source, shape.get(key, ""), 1, f"{where} {shape.tag} {key}")[0]
+    if value <= 0:
+        raise SplatFileError(source, f"{where}: {shape.tag} {key} {value:g} is not positive")
+    return value
+
+
+class _Resolver:
+    """Mesh filenames to files: package://, file:// and relative paths (see the module notes)."""
+
+    def __init__(self, urdf_path, package_paths):
+        self.urdf = Path(urdf_path).resolve()
+        env = [p for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
+        self.search = [Path(p) for p in [*package_paths, *env]] + list(self.urdf.parents)
+
+    def resolve(self, filename, where):
+        if filename.startswith("package://"):
+            package, _, rest = filename[len("package://"):].partition("/")
+            candidates = [d / package / rest for d in self.search]
+            candidates += [d / rest for d in self.search if d.name == package]
+            candidates.append(self.urdf.parent / package / rest)
+            candidates.append(self.urdf.parent / rest)
+        elif filename.startswith("file://"):
+            candidates = [self.urdf.parent / filename[len("file://"):]]
+        else:
+            candidates = [self.urdf.parent / filename]
+        for path in candidates:
+            if path.is_file():
+                return path
+        raise SplatFileError(self.urdf, f"{where}: mesh '{filename}' not found (looked in "
+                                        f"{', '.join(str(p) for p in candidates[:4])}"
+                                        f"{' ...' if len(candidates) > 4 else ''}; add its folder with a package path)")

@@ -35,8 +35,31 @@ def run_blender_ext(*args):
                           capture_output=True, text=True, timeout=300)
 
 
+def fetch_wheels():
+    """Download the wheels the manifest bundles into wheels/ (kept there, git-ignored), as Blender's
+    manual describes: `pip download --no-deps --only-binary=:all: --python-version V --platform P`.
+    Skips the calling test with one line when PyPI cannot be reached."""
+    import pytest
+    manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
+    for entry in manifest.get("wheels", []):
+        path = REPO_ROOT / entry
+        if path.exists():
+            continue
+        name, version, python = path.name.split("-")[:3]
+        platform = path.stem.split("-")[-1].split(".")[-1]
+        done = subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
+                               "--python-version", f"{python[2]}.{python[3:]}", "--platform", platform,
+                               "-d", str(path.parent), f"{name}=={version}"], capture_output=True, text=True)
+        if not path.exists():
+            if "Could not fetch" in done.stdout + done.stderr or "NewConnectionError" in done.stderr:
+                pytest.skip(f"cannot reach PyPI to fetch the bundled wheel {path.name}")
+            raise RuntimeError(f"pip download of {path.name} failed:\n{done.stdout}\n{done.stderr}")
+
+
 def build_extension_zip(out_dir):
-    """Build the Blender extension zip from the repository with `blender_ext.py build`; returns its path."""
+    """Build the Blender extension zip from the repository with `blender_ext.py build` (its bundled
+    wheels fetched first); returns its path."""
+    fetch_wheels()
     manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
     out = Path(out_dir) / f"{manifest['id']}-{manifest['version']}.zip"
     done = run_blender_ext("build", "--source-dir", REPO_ROOT, "--output-filepath", out)

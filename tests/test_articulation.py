@@ -501,3 +501,22 @@ def test_bent_cylinder_renders_like_splats_of_the_bent_surface(mode):
     assert score["full skinning"] > floor - 4.0, score
     assert score["full skinning"] > score["centres only"] + 8.0, score
     assert score["full skinning"] > score["no SH rotation"] + 2.0, score
+
+
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_zero_scales_skin_as_points(mode):
+    # log-scale -inf (a zero scale) renders and collides as a point; skinning keeps it one
+    cloud = random_cloud(40, 1, seed=41)
+    cloud.log_scales[:4, 2] = -np.inf
+    cloud.log_scales[4:6] = -np.inf
+    deform = np.stack([np.eye(4), np.eye(4)])
+    deform[1, :3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    deform[1, :3, 3] = [0.5, 0, 0]
+    posed = skin(cloud, Binding.rigid(np.arange(40) % 2), deform, mode=mode)
+    np.testing.assert_array_equal(np.isneginf(posed.log_scales), np.isneginf(cloud.log_scales))
+    odd = np.arange(40) % 2 == 1
+    expect = cloud.positions[odd] @ deform[1, :3, :3].T + [0.5, 0, 0]
+    np.testing.assert_allclose(posed.positions[odd], expect, atol=1e-6)
+    with pytest.raises(SkinningError, match="non-finite log_scales"):
+        skin(cloud.replace(log_scales=np.where(np.isneginf(cloud.log_scales), np.inf, cloud.log_scales)),
+             Binding.rigid(np.arange(40) % 2), deform)

@@ -125,6 +125,20 @@ def test_each_format_imports_and_exports(blender, name):
         assert value <= max(2 * first[key], 1e-6), (key, value, first[key])
 
 
+def test_openusd_written_by_blenders_own_pxr_reads_in_usd_core_as_the_schema(blender):
+    """The extension authors through Blender's bundled pxr, whose UsdVol lacks the splat schema class;
+    usd-core (this process) must still see a ParticleField3DGaussianSplat with the values written."""
+    from pxr import Usd, UsdVol
+    res = blender.step("formats")
+    assert res["fmt.usdc"]["export"]["error"] is None
+    stage = Usd.Stage.Open(str(blender.out / "re_fmt.usdc"))
+    prims = [p for p in stage.Traverse() if p.GetTypeName() == "ParticleField3DGaussianSplat"]
+    assert len(prims) == 1
+    field = UsdVol.ParticleField3DGaussianSplat(prims[0])
+    assert field and len(field.GetPositionsAttr().Get()) == FORMAT_CLOUD[0]
+    assert field.GetRadianceSphericalHarmonicsDegreeAttr().Get() == FORMAT_CLOUD[1]
+
+
 def test_export_axes_are_the_inverse_convention(blender):
     res = blender.step("export_axes")
     assert res["export"]["error"] is None

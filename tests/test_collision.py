@@ -437,3 +437,141 @@ def test_point_and_huge_splats_give_finite_results_without_warnings():
     r = col.overlap(env, env, cov_gradient=True)
     assert np.isfinite([r.cost, r.bound]).all() and np.isfinite(r.grad_means).all() and np.isfinite(r.grad_covs).all()
     assert len(col.ellipsoid_contacts(env, env)) >= 3
+
+
+# far floaters, compiled kernels, precision and bounds ---------------------------------------------
+
+def room_with_floaters(n=20_000, floaters=200, seed=30):
+    rng = np.random.default_rng(seed)
+    env = plane_env(n, seed=seed, size=1.0)
+    far = SplatCloud.from_activated(rng.uniform(-500, 500, (floaters, 3)), rng.normal(size=(floaters, 4)),
+                                    rng.uniform(0.01, 0.03, (floaters, 3)), rng.uniform(0.2, 1.0, floaters))
+    one = SplatCloud.from_activated([[1e3, 1e3, 1e3]], [[1, 0, 0, 0]], [[0.02, 0.02, 0.004]], [0.9])
+    return env, SplatCloud.concatenate([env, far, one])
+
+
+def test_far_floaters_leave_the_dense_grids_as_they_were():
+    env, with_floaters = room_with_floaters()
+    plain, index = col.EnvironmentIndex(env), col.EnvironmentIndex(with_floaters)
+    dense = lambda ix: sorted((lv.count, lv.h) for lv in ix.levels if lv.count > 1000)
+    assert dense(index) == dense(plain)                  # same cells for the splats that matter
+    assert sum(lv.count for lv in index.levels) == len(with_floaters)
+    rng = np.random.default_rng(31)
+    robot = gaussians(rng.uniform([-0.3, -0.3, -0.02], [0.3, 0.3, 0.05], (80, 3)), rng.uniform(0.005, 0.02, (80, 3)),
+                      rng.normal(size=(80, 4)))
+    a, b = col.ellipsoid_contacts(robot, plain), col.ellipsoid_contacts(robot, index)
+    assert len(a) > 20 and set(zip(a.robot, a.env)) == set(zip(b.robot, b.env))
+    assert col.overlap(robot, index).cost == pytest.approx(col.overlap(robot, plain).cost, rel=1e-12)
+
+
+def test_compiled_contacts_match_the_eigen_solution_including_flat_needle_and_point_splats(monkeypatch):
+    rng = np.random.default_rng(32)
+    n = 3000
+    scales_a, scales_b = rng.uniform(0.01, 0.1, (n, 3)), rng.uniform(0.01, 0.1, (n, 3))
+    scales_a[:300, 2] = 1e-7                             # discs
+    scales_b[300:600, 1:] = 1e-7                         # needles
+    scales_b[600:650] = 0.0                              # points
+    robot = gaussians(rng.normal(0, 1.0, (n, 3)), scales_a, rng.normal(size=(n, 4)), links=np.arange(n) % 3)
+    env = gaussians(robot.means + rng.normal(0, 0.08, (n, 3)), scales_b, rng.normal(size=(n, 4)))
+    mu = col.contact_sigma(robot.means, robot.covs, env.means, env.covs)
+    found = col.ellipsoid_contacts(robot, env, k=3.0)
+    pairs = dict(zip(zip(found.robot.tolist(), found.env.tolist()), found.sigma))
+    same = [(i, pairs[(i, i)]) for i in range(n) if (i, i) in pairs]
+    assert len(same) > 500 and sum(mu <= 3.0) >= len(same)
+    idx, got = np.array(same).T
+    idx = idx.astype(int)
+    thin = idx < 650              # thinner than the pivot floor: both solutions are at its resolution
+    np.testing.assert_allclose(got[~thin], mu[idx[~thin]], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(got[thin], mu[idx[thin]], rtol=1e-6)
+    from splatwright.core import collision
+    monkeypatch.setattr(collision, "_contact_kernel", None)    # the NumPy path finds the same pairs
+    numpy_path = col.ellipsoid_contacts(robot, env, k=3.0)
+    np.testing.assert_array_equal(numpy_path.robot, found.robot)
+    np.testing.assert_array_equal(numpy_path.env, found.env)
+    regular = (numpy_path.robot >= 650) & (numpy_path.env >= 650)
+    np.testing.assert_allclose(numpy_path.sigma[regular], found.sigma[regular], rtol=1e-10)
+    np.testing.assert_allclose(numpy_path.sigma, found.sigma, rtol=1e-3)
+
+
+def test_signed_distance_among_flat_splats_matches_every_ellipsoid(monkeypatch):
+    env_cloud = plane_env(1500, seed=33, size=0.3, sigma=(0.005, 0.02))
+    env = col.Gaussians.from_cloud(env_cloud)
+    rng = np.random.default_rng(34)
+    points = rng.uniform([-0.4, -0.4, -0.3], [0.4, 0.4, 0.3], (150, 3))
+    k = 3.0
+    brute = np.array([col._ellipsoid_signed_distance(p - env.means, env.covs, k).min() for p in points])
+    for compiled in (True, False):
+        if not compiled:
+            from splatwright.core import collision
+            monkeypatch.setattr(collision, "_bounds_kernel", None)
+        got = col.signed_distance(env_cloud, points, k=k, max_distance=0.25)
+        np.testing.assert_allclose(got, np.minimum(brute, 0.25), rtol=1e-12, atol=1e-14)
+
+
+def test_float32_positions_far_away_warn_that_results_shift():
+    cloud = random_cloud(50, 0, seed=35, spread=0.1)
+    cloud.log_scales[:] = np.log(0.01)
+    far = cloud.replace(positions=(cloud.positions.astype(np.float64) + 1e6).astype(np.float32))
+    with pytest.warns(col.CollisionPrecisionWarning, match="50 splats lie so far from the origin"):
+        col.EnvironmentIndex(far)
+    with pytest.warns(col.CollisionPrecisionWarning, match="rounded by up to 0.0625"):
+        col.Gaussians.from_cloud(far)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        col.EnvironmentIndex(cloud)                       # near the origin: no warning
+        # float64 Gaussians far away keep their precision: the same cost as near the origin
+        shift = np.array([1e6, 1e6, 1e6])
+        g = col.Gaussians.from_cloud(cloud)
+        here = col.overlap(g, g).cost
+        assert col.overlap(g.transformed(np.eye(3), shift), g.transformed(np.eye(3), shift)).cost == \
+            pytest.approx(here, rel=1e-9)
+
+
+def test_reported_bound_is_close_to_what_the_cutoff_dropped():
+    env = plane_env(4000)
+    rng = np.random.default_rng(36)
+    robot = gaussians(rng.uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 0.08], (60, 3)), rng.uniform(0.01, 0.03, (60, 3)),
+                      rng.normal(size=(60, 4)), rng.uniform(0.3, 1.0, 60))
+    exact = col.overlap_all_pairs(robot, env, gradient=False).cost
+    index = col.EnvironmentIndex(env)
+    for cutoff in (3.0, col.DEFAULT_CUTOFF):
+        r = col.overlap(robot, index, cutoff, gradient=False)
+        dropped = exact - r.cost
+        assert 0 < dropped <= r.bound <= 30 * dropped       # was 10^3 - 10^4 times looser
+
+
+def test_joint_gradient_of_mimic_planar_and_floating_joints():
+    t = lambda p: transforms(None, p)
+    tree = KinematicTree(names=["body", "cart", "arm", "twin"], parents=[-1, 0, 1, 1],
+                         origins=[t([0.1, 0, 0]), t([0, 0.1, 0.2]), t([0, 0, 0.3]), t([0.1, 0, 0.3])],
+                         joint_types=["floating", "planar", "revolute", "prismatic"],
+                         axes=[[1, 0, 0], [0.3, 0.2, 1], [0, 1, 0], [0, 0, 1]],
+                         mimic=[None, None, None, ("arm", -0.5, 0.02)])
+    assert tree.dof == 10
+    rng = np.random.default_rng(37)
+    local = col.Gaussians.from_cloud(random_cloud(120, 0, seed=38, spread=0.08), links=rng.integers(0, 4, 120))
+    robot = col.pose_robot(local, tree.rest_transforms())
+    env = col.EnvironmentIndex(random_cloud(400, 0, seed=39, spread=0.4))
+    q = rng.normal(0, 0.3, tree.dof)
+    r = col.overlap_at(tree, q, robot, env, cutoff=30.0)
+    assert r.cost > 1.0
+    h = 1e-6
+    cost = lambda x: col.overlap_at(tree, x, robot, env, 30.0).cost
+    fd = [(cost(q + h * e) - cost(q - h * e)) / (2 * h) for e in np.eye(tree.dof)]
+    np.testing.assert_allclose(r.grad_q, fd, rtol=1e-6, atol=1e-7 * np.abs(fd).max())
+
+
+@pytest.mark.filterwarnings("error")
+def test_all_zero_covariances_give_point_answers_without_warnings():
+    points = gaussians([[0, 0, 0], [0.5, 0, 0], [0, 0, 1e-3]], np.zeros((3, 3)))
+    env = gaussians([[0, 0, 0], [0.2, 0, 0]], np.zeros((2, 3)))
+    mu = col.contact_sigma(points.means, points.covs, env.means[[0, 0, 1]], env.covs[[0, 0, 1]])
+    assert mu.tolist() == [0.0, np.inf, np.inf]               # coincident points touch at any k
+    assert col.signed_distance(env, points.means, max_distance=1.0).tolist() == pytest.approx([0.0, 0.3, 1e-3])
+    assert col.occupancy(env, points.means).values.tolist() == pytest.approx([1 - np.exp(-1), 0, 0])
+    assert col.overlap(points, env, cov_gradient=True).cost == 1.0
+    hits = col.ellipsoid_contacts(points, env)
+    assert list(zip(hits.robot, hits.env)) == [(0, 0)] and hits.sigma.tolist() == [0.0]
+    proxies = col.fit_proxies(points, per_link=2)          # (zero masses made them vanish)
+    assert len(proxies) == 2 and np.isfinite(proxies.weights).all() and (proxies.weights > 0).all()

@@ -91,3 +91,29 @@ def test_console_script_and_python_dash_m(tmp_path):
                               cwd=tmp_path, env=env, timeout=120)
         assert info.returncode == 0, info.stderr
         assert json.loads(info.stdout)["count"] == 1000
+
+
+def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_path):
+    """Blender installs the numba/llvmlite wheels the manifest bundles for its Python; the installed
+    extension's compiled kernels load from them and cache outside the extension's folder. (Blender
+    puts the wheels' folder first on sys.path; the bpy module appends it after this venv, which has
+    numba too, so the child moves it first.)"""
+    names = zipfile.ZipFile(extension_zip).namelist()
+    assert any(n.startswith("wheels/numba-") and "cp311" in n for n in names)
+    env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user"),
+           "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")}
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
+        import importlib, sys, bpy
+        bpy.ops.extensions.package_install_files(filepath={str(extension_zip)!r}, repo="user_default",
+                                                 enable_on_install=True)
+        sys.path.sort(key=lambda p: ".local" not in p)
+        render = importlib.import_module("bl_ext.user_default.splatwright.core.render")
+        import numba
+        print(render.backend_status())
+        print(numba.__file__)
+    """)], capture_output=True, text=True, env=env, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    status, numba_file = done.stdout.strip().splitlines()[-2:]
+    assert status == "compiled"
+    assert str(tmp_path / "user") in numba_file and ".local" in numba_file      # the bundled wheel
+    assert list((tmp_path / "cache").rglob("render_kernels.*.nbi"))

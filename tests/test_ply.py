@@ -550,3 +550,23 @@ def test_struct_packed_reference_file(tmp_path):
     assert cloud.rotations.tolist() == [[59, 60, 61, 62]]
     ply.write(tmp_path / "again.ply", cloud)
     assert (tmp_path / "again.ply").read_bytes() == path.read_bytes()
+
+
+def test_compiled_and_numpy_fills_write_the_same_bytes(tmp_path, monkeypatch):
+    """The compiled record fill (where numba loads) and the NumPy one give byte-identical files,
+    with normals and extras, and both count non-finite values the same way."""
+    from splatwright.core import jit
+    cloud = random_cloud(3000, sh_degree=2, seed=41)
+    cloud.extras.update(nx=np.linspace(0, 1, 3000, dtype=np.float32), label=np.arange(3000, dtype=np.int32))
+    bad = cloud.copy()
+    bad.sh[7, 3, 1] = np.nan
+    ply.write(tmp_path / "fast.ply", cloud)
+    assert jit.status("io.ply_kernels") == "compiled"
+    with pytest.raises(SplatFileError, match="sh"):
+        ply.write(tmp_path / "bad_fast.ply", bad)
+    monkeypatch.setattr(ply.jit, "load", lambda *args, **kwargs: None)
+    ply.write(tmp_path / "slow.ply", cloud)
+    with pytest.raises(SplatFileError, match="sh"):
+        ply.write(tmp_path / "bad_slow.ply", bad)
+    assert (tmp_path / "fast.ply").read_bytes() == (tmp_path / "slow.ply").read_bytes()
+    assert not (tmp_path / "bad_fast.ply").exists() and not (tmp_path / "bad_slow.ply").exists()

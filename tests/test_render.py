@@ -1,5 +1,10 @@
-"""The fast renderer against the float64 brute-force reference (tests/reference_render.py), the
-hard cases of the design notes, and image writing."""
+"""The fast renderer, both its compiled kernels and its NumPy path, against the float64 brute-force
+reference (tests/reference_render.py), the hard cases of the design notes, and image writing."""
+
+import os
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
@@ -8,13 +13,19 @@ from reference_render import reference_render
 
 from splatwright.core import SplatCloud
 from splatwright.core.camera import Camera
-from splatwright.core.render import render
+from splatwright.core.render import backend_status, render
 from splatwright.core.scenes import seed_cube
 from splatwright.io import SplatFileError, write_splats
 from splatwright.io.exr import read_exr
 from splatwright.io.image import write_image
 
 STEP = 1.0 / 255.0
+
+
+@pytest.fixture(params=["compiled", "numpy"])
+def backend(request):
+    """Each test taking it runs on the compiled kernels and on the NumPy path."""
+    return request.param
 
 
 def scene(n=300, seed=0, center=(0.0, 0.0, 3.0), spread=0.7, sh_degree=3, log_scale=(-4.0, -1.5)):
@@ -38,6 +49,7 @@ def assert_matches_reference(cloud, camera, color_tol=STEP, background=(0.0, 0.0
     got = render(cloud, camera, background=background, return_counts=True, **options)
     ref = reference_render(cloud, camera, background=background, mode=mode,
                            t_min=options.get("t_min", 1e-4))
+    assert got.stats["backend"] == options.get("backend", "compiled")
     for name in ("color", "alpha", "depth"):
         assert np.isfinite(getattr(got, name)).all(), f"non-finite {name}"
     assert got.color.shape == (camera.height, camera.width, 3) and got.color.dtype == np.float32
@@ -56,19 +68,19 @@ def assert_matches_reference(cloud, camera, color_tol=STEP, background=(0.0, 0.0
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_random_sh3_scenes_match_the_float64_reference(mode, make_camera, seed):
-    got, ref = assert_matches_reference(scene(seed=seed), make_camera(), mode=mode, background=(0.2, 0.5, 0.9))
+def test_random_sh3_scenes_match_the_float64_reference(mode, make_camera, seed, backend):
+    got, ref = assert_matches_reference(scene(seed=seed), make_camera(), mode=mode, background=(0.2, 0.5, 0.9), backend=backend)
     assert ref["alpha"].max() > 0.9 and (ref["counts"] > 3).any()    # a scene with real overlap
 
 
 @pytest.mark.parametrize("options", [{"tile_size": 8}, {"tile_size": 7, "wave": 3}, {"tile_size": 1},
                                      {"tile_size": 32, "wave": 1000}, {"threads": 1}])
-def test_speed_options_do_not_change_the_image(options):
-    assert_matches_reference(scene(seed=2), perspective(), **options)
+def test_speed_options_do_not_change_the_image(options, backend):
+    assert_matches_reference(scene(seed=2), perspective(), **options, backend=backend)
 
 
-def test_float64_precision_agrees_to_round_off():
-    got, ref = assert_matches_reference(scene(seed=3), perspective(), precision="float64")
+def test_float64_precision_agrees_to_round_off(backend):
+    got, ref = assert_matches_reference(scene(seed=3), perspective(), precision="float64", backend=backend)
     assert np.abs(got.color - ref["color"]).max() < 1e-6
 
 
@@ -84,21 +96,21 @@ def opaque_pile(n, seed, spread, log_scales):
     return pile
 
 
-def test_opaque_pile_stops_at_the_transmittance_limit_and_clamps_alpha():
+def test_opaque_pile_stops_at_the_transmittance_limit_and_clamps_alpha(backend):
     """Many opaque splats (logit +1e4: alpha clamps at 0.99) stacked in depth, so most pixels stop
     before T < 1e-4, and the background never shows through."""
     cloud = opaque_pile(200, seed=5, spread=0.15, log_scales=(-3, -1.5))
-    got, ref = assert_matches_reference(cloud, perspective(), background=(1.0, 1.0, 1.0))
+    got, ref = assert_matches_reference(cloud, perspective(), background=(1.0, 1.0, 1.0), backend=backend)
     stopped = reference_render(cloud, perspective(), t_min=0.0)["counts"] > ref["counts"]
     assert stopped.sum() > 100
 
 
-def test_two_threads_and_one_thread_give_identical_images_on_a_large_cloud():
+def test_two_threads_and_one_thread_give_identical_images_on_a_large_cloud(backend):
     """More than one projection and binning chunk: the parallel paths must not change a bit."""
     cloud = scene(n=70_000, seed=4, spread=0.8, log_scale=(-6, -3.5), sh_degree=1)   # > 1 chunk
     cam = perspective(96, 64)
-    a = render(cloud, cam, return_counts=True, threads=2)
-    b = render(cloud, cam, return_counts=True, threads=1)
+    a = render(cloud, cam, return_counts=True, threads=2, backend=backend)
+    b = render(cloud, cam, return_counts=True, threads=1, backend=backend)
     for name in ("color", "alpha", "depth", "counts"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     pixels = np.random.default_rng(0).integers(0, [96, 64], (300, 2))
@@ -109,7 +121,7 @@ def test_two_threads_and_one_thread_give_identical_images_on_a_large_cloud():
 
 # hard cases --------------------------------------------------------------------------------------
 
-def test_near_plane_behind_on_and_across():
+def test_near_plane_behind_on_and_across(backend):
     cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=60, width=48, height=40, near=0.25)
     z = np.array([-1.0, 0.1, 0.25, 0.25 + 2.0**-20, 0.26, 0.3, 0.5, 1.0])     # float32-exact
     n = len(z)
@@ -118,20 +130,20 @@ def test_near_plane_behind_on_and_across():
         rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
         scales=np.column_stack([np.full(n, 0.3), np.full(n, 0.05), np.full(n, 0.4)]),   # reach across z = 0.2
         opacities=np.full(n, 0.6), colors=np.linspace(0, 1, 3 * n).reshape(n, 3))
-    got, ref = assert_matches_reference(cloud, cam)
+    got, ref = assert_matches_reference(cloud, cam, backend=backend)
     assert got.stats["visible"] == 5                     # z <= near is culled, as in the reference
 
 
-def test_scales_from_1e_minus_7_to_1e4_in_one_cloud():
+def test_scales_from_1e_minus_7_to_1e4_in_one_cloud(backend):
     cloud = scene(n=60, seed=6)
     exps = np.linspace(np.log(1e-7), np.log(1e4), 60)
     cloud.log_scales[:] = (exps[:, None] + np.array([0.0, -0.5, 0.3])).astype(np.float32)
     cloud.opacity_logits[:] = np.linspace(-3, 3, 60)
-    assert_matches_reference(cloud, perspective(), mode="classic")
-    assert_matches_reference(cloud, perspective(), mode="antialiased")
+    assert_matches_reference(cloud, perspective(), mode="classic", backend=backend)
+    assert_matches_reference(cloud, perspective(), mode="antialiased", backend=backend)
 
 
-def test_needles_and_pancakes():
+def test_needles_and_pancakes(backend):
     rng = np.random.default_rng(8)
     cloud = scene(n=150, seed=8)
     thin = rng.integers(0, 3, 150)
@@ -140,10 +152,10 @@ def test_needles_and_pancakes():
     scales[:75] = 1e-5
     scales[np.arange(75), thin[:75]] = 0.3                 # needles
     cloud.log_scales[:] = np.log(scales)
-    assert_matches_reference(cloud, perspective())
+    assert_matches_reference(cloud, perspective(), backend=backend)
 
 
-def test_far_from_origin_renders_like_the_same_scene_at_the_origin():
+def test_far_from_origin_renders_like_the_same_scene_at_the_origin(backend):
     base = scene(n=200, seed=9, center=(0, 0, 0), spread=0.5)
     grid = np.round(base.positions * 16) / 16             # exactly representable at 1e6 too
     offset = np.array([1e6, -1e6, 5e5])
@@ -153,13 +165,13 @@ def test_far_from_origin_renders_like_the_same_scene_at_the_origin():
     eye, target = np.array([1.8, 1.2, 1.5]), np.zeros(3)
     cam_far = Camera.look_at(eye + offset, target + offset, fov_deg=60, width=64, height=48)
     cam_near = Camera.look_at(eye, target, fov_deg=60, width=64, height=48)
-    got = render(far, cam_far)
+    got = render(far, cam_far, backend=backend)
     ref = reference_render(near, cam_near)
     assert np.abs(got.color - ref["color"]).max() <= STEP
     assert ref["alpha"].max() > 0.5
 
 
-def test_identical_depths_sort_by_index():
+def test_identical_depths_sort_by_index(backend):
     """Overlapping splats at one depth: the earlier index is in front, as with a stable sort."""
     n = 30
     rng = np.random.default_rng(10)
@@ -167,33 +179,33 @@ def test_identical_depths_sort_by_index():
     cloud = SplatCloud.from_activated(pos, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 0.15),
                                       np.full(n, 0.9), colors=rng.uniform(0, 1, (n, 3)))
     cam = Camera.look_at_ortho((0, 0, 0), (0, 0, 1), ortho_scale=1.0, width=40, height=40)
-    got, _ = assert_matches_reference(cloud, cam)
+    got, _ = assert_matches_reference(cloud, cam, backend=backend)
     flipped = cloud[np.arange(n)[::-1]]
-    got_flipped, _ = assert_matches_reference(flipped, cam)
+    got_flipped, _ = assert_matches_reference(flipped, cam, backend=backend)
     assert np.abs(got.color - got_flipped.color).max() > 0.1      # order matters, and is followed
 
 
 @pytest.mark.parametrize("width, height, fov", [(1, 1, 60.0), (1, 7, 60.0), (64, 48, 5.0), (64, 48, 160.0)])
-def test_tiny_images_and_extreme_fields_of_view(width, height, fov):
+def test_tiny_images_and_extreme_fields_of_view(width, height, fov, backend):
     cloud = scene(seed=11, spread=0.3 if fov < 10 else 0.7)
-    assert_matches_reference(cloud, perspective(width, height, fov))
+    assert_matches_reference(cloud, perspective(width, height, fov), backend=backend)
 
 
-def test_off_centre_principal_point():
+def test_off_centre_principal_point(backend):
     cam = perspective()
     shifted = cam.with_(cx=cam.cx + 13.5, cy=cam.cy - 7.25, fy=cam.fy * 1.3)
-    assert_matches_reference(scene(seed=12), shifted)
+    assert_matches_reference(scene(seed=12), shifted, backend=backend)
 
 
-def test_empty_cloud_and_nothing_visible():
+def test_empty_cloud_and_nothing_visible(backend):
     cam = perspective()
     for cloud in (SplatCloud.empty(3), scene(seed=13, center=(0, 0, 30)).replace(opacity_logits=np.full(300, -20))):
-        got = render(cloud, cam, background=(0.1, 0.2, 0.3), return_counts=True)
+        got = render(cloud, cam, background=(0.1, 0.2, 0.3), return_counts=True, backend=backend)
         np.testing.assert_array_equal(got.color, np.broadcast_to(np.float32([0.1, 0.2, 0.3]), (48, 64, 3)))
         assert not got.alpha.any() and not got.depth.any() and not got.counts.any()
 
 
-def test_non_finite_splats_are_skipped_and_counted():
+def test_non_finite_splats_are_skipped_and_counted(backend):
     cloud = scene(seed=14)
     bad = cloud.copy()
     bad.positions[3, 0] = np.nan
@@ -201,33 +213,33 @@ def test_non_finite_splats_are_skipped_and_counted():
     bad.log_scales[7, 2] = np.inf
     bad.opacity_logits[9] = np.nan
     bad.sh[11, 4, 1] = -np.inf
-    got = render(bad, perspective())
-    clean = render(cloud[np.setdiff1d(np.arange(len(cloud)), [3, 5, 7, 9, 11])], perspective())
+    got = render(bad, perspective(), backend=backend)
+    clean = render(cloud[np.setdiff1d(np.arange(len(cloud)), [3, 5, 7, 9, 11])], perspective(), backend=backend)
     assert got.stats["skipped_nonfinite"] == 5
     np.testing.assert_array_equal(got.color, clean.color)
 
 
-def test_extreme_logits_and_zero_quaternions():
+def test_extreme_logits_and_zero_quaternions(backend):
     cloud = scene(seed=15)
     cloud.opacity_logits[::3] = 1e4
     cloud.opacity_logits[1::3] = -1e4
     cloud.rotations[::4] = 0.0
     with np.errstate(over="raise", invalid="raise", divide="raise"):
-        got = render(cloud, perspective())
+        got = render(cloud, perspective(), backend=backend)
     assert np.isfinite(got.color).all()
-    assert_matches_reference(cloud, perspective())
+    assert_matches_reference(cloud, perspective(), backend=backend)
 
 
-def test_no_transmittance_stop_counts_every_footprint_pixel():
+def test_no_transmittance_stop_counts_every_footprint_pixel(backend):
     cloud = scene(seed=16)
-    got, ref = assert_matches_reference(cloud, perspective(), t_min=0.0)
+    got, ref = assert_matches_reference(cloud, perspective(), t_min=0.0, backend=backend)
     assert got.counts.sum() == ref["counts"].sum()
 
 
-def test_three_sigma_cut_only_drops_faint_tails():
+def test_three_sigma_cut_only_drops_faint_tails(backend):
     cloud = scene(seed=17)
     ref = reference_render(cloud, perspective())
-    cut = render(cloud, perspective(), max_sigma=3.0)
+    cut = render(cloud, perspective(), max_sigma=3.0, backend=backend)
     err = np.abs(cut.color - ref["color"]).max()
     assert 0 < err < 0.05
 
@@ -266,19 +278,19 @@ def assert_weights_match_reference(cloud, camera, atol=2e-6, **options):
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
-def test_max_weights_match_the_float64_reference(mode, make_camera):
-    got, want = assert_weights_match_reference(scene(seed=20), make_camera(), mode=mode)
+def test_max_weights_match_the_float64_reference(mode, make_camera, backend):
+    got, want = assert_weights_match_reference(scene(seed=20), make_camera(), mode=mode, backend=backend)
     assert (want > 0.5).any() and (want > 0).sum() > 100 and (want == 0).any()
 
 
 @pytest.mark.parametrize("options", [{"tile_size": 7, "wave": 3}, {"tile_size": 1}, {"threads": 1},
                                      {"precision": "float64"}, {"t_min": 0.0}])
-def test_max_weights_do_not_depend_on_speed_options(options):
+def test_max_weights_do_not_depend_on_speed_options(options, backend):
     atol = 1e-7 if options.get("precision") == "float64" else 2e-6     # float64: float32 output rounding
-    assert_weights_match_reference(scene(seed=21), perspective(61, 45), atol=atol, **options)
+    assert_weights_match_reference(scene(seed=21), perspective(61, 45), atol=atol, **options, backend=backend)
 
 
-def test_max_weights_follow_the_stop_rule_and_skip_hidden_faint_and_broken_splats():
+def test_max_weights_follow_the_stop_rule_and_skip_hidden_faint_and_broken_splats(backend):
     """A pile of splats, half clamped at alpha 0.99, in front of three broad layers of opacity 0.98
     filling the view: every pixel stops before the third layer (0.02^3 < 1e-4), so it and the
     splats behind it get no weight. Then one splat too faint for 1/255, one behind the camera, one
@@ -293,20 +305,20 @@ def test_max_weights_follow_the_stop_rule_and_skip_hidden_faint_and_broken_splat
     cloud = SplatCloud.concatenate([pile, back])
     cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=30, width=40, height=36)
     with np.errstate(invalid="ignore"):
-        got, want = assert_weights_match_reference(cloud, cam)
+        got, want = assert_weights_match_reference(cloud, cam, backend=backend)
         unstopped = reference_render(cloud, cam, t_min=0.0)["max_weight"]
     assert (want[:n + 2] > 0).all() and (want[n + 2:] == 0).all()
     assert (unstopped[n + 2:n + 5] > 0).all()           # seen but for the stop rule
     assert not got[n + 2:].any()
 
 
-def test_max_weights_of_an_empty_or_unseen_cloud_are_zero():
+def test_max_weights_of_an_empty_or_unseen_cloud_are_zero(backend):
     for cloud in (SplatCloud.empty(3), scene(seed=23, center=(0, 0, 30))):      # behind the camera
-        got = render(cloud, perspective(), return_weights=True)
+        got = render(cloud, perspective(), return_weights=True, backend=backend)
         assert got.max_weight.shape == (len(cloud),) and not got.max_weight.any()
 
 
-def test_max_weights_count_only_pixels_inside_the_image():
+def test_max_weights_count_only_pixels_inside_the_image(backend):
     """Splats centred just beyond the right and bottom edges of an image that is not a whole number
     of tiles: their peak lies in the last tiles' pixels outside the image, which must not count."""
     cam = Camera.look_at_ortho((0, 0, 0), (0, 0, 1), up=(0, -1, 0), ortho_scale=2.0, width=61, height=45)
@@ -316,8 +328,92 @@ def test_max_weights_count_only_pixels_inside_the_image():
                                       np.full(2, 0.9), colors=np.full((2, 3), 0.5))
     pixels, _ = cam.project(cloud.positions)
     assert pixels[0, 0] > 61 and pixels[1, 1] > 45                   # both centres outside
-    got, want = assert_weights_match_reference(cloud, cam)
+    got, want = assert_weights_match_reference(cloud, cam, backend=backend)
     assert (want > 0).all() and (want < 0.5 * 0.9).all()             # well below the peak alpha
+
+
+# the compiled kernels, the fallback and limits ---------------------------------------------------
+
+def test_compiled_kernels_load_here_and_agree_with_the_numpy_path_on_a_large_scene():
+    """numba is a dependency of the project, so the compiled path must be the one that runs; on a
+    large anisotropic SH-3 scene both paths match the reference at sampled pixels."""
+    assert backend_status() == "compiled"
+    cloud = scene(n=40_000, seed=30, spread=0.8, log_scale=(-5.5, -3))
+    cam = perspective(160, 120)
+    fast, slow = render(cloud, cam, return_counts=True), render(cloud, cam, return_counts=True, backend="numpy")
+    assert fast.stats["backend"] == "compiled" and slow.stats["backend"] == "numpy"
+    assert fast.stats["entries"] == slow.stats["entries"]              # the same tile lists
+    assert np.abs(fast.color - slow.color).max() < 0.5 * STEP
+    assert (fast.counts != slow.counts).sum() <= 2
+    pixels = np.random.default_rng(1).integers(0, [160, 120], (400, 2))
+    ref = reference_render(cloud, cam, pixels=pixels)
+    assert np.abs(fast.color[pixels[:, 1], pixels[:, 0]] - ref["color"]).max() <= STEP
+
+
+def run_python(code, **env):
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, **env})
+
+
+def test_without_numba_the_numpy_path_renders_and_says_why():
+    """As in a Blender without the bundled wheels: numba cannot be imported, rendering still works."""
+    done = run_python("""
+        import sys
+
+        class NoNumba:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in ("numba", "llvmlite"):
+                    raise ImportError(f"{name} is blocked in this test")
+        sys.meta_path.insert(0, NoNumba())
+
+        from splatwright.core.render import backend_status, render
+        from splatwright.core.camera import Camera
+        from splatwright.core.scenes import seed_cube
+        result = render(seed_cube(), Camera.look_at((1.8, 1.2, 4.5), (0, 0, 3), width=32, height=24))
+        print(result.stats["backend"], result.alpha.max() > 0.5, backend_status())
+        try:
+            render(seed_cube(), Camera.look_at((1.8, 1.2, 4.5), (0, 0, 3), width=8, height=8), backend="compiled")
+        except RuntimeError as exc:
+            print("refused:", exc)
+    """)
+    assert done.returncode == 0, done.stderr
+    first, second = done.stdout.splitlines()
+    assert first.startswith("numpy True unavailable (ImportError") and "blocked" in first
+    assert second.startswith("refused: compiled render kernels are not available")
+
+
+def test_kernels_can_be_turned_off_and_are_cached_in_the_user_cache_folder(monkeypatch, tmp_path):
+    off = run_python("""
+        from splatwright.core.render import render, backend_status
+        from splatwright.core.camera import Camera
+        from splatwright.core.scenes import seed_cube
+        print(render(seed_cube(2), Camera.look_at((0, 0, -3), (0, 0, 0), width=8, height=8)).stats["backend"],
+              backend_status())
+    """, SPLATWRIGHT_JIT="0")
+    assert off.returncode == 0 and off.stdout.split()[0] == "numpy" and "SPLATWRIGHT_JIT=0" in off.stdout, off.stderr
+    from splatwright.core import jit
+    assert backend_status() == "compiled"
+    cached = list(jit.cache_dir().rglob("render_kernels.*.nbi"))
+    assert cached and all(jit.cache_dir() in path.parents for path in cached)
+    monkeypatch.setenv("SPLATWRIGHT_CACHE_DIR", str(tmp_path))
+    assert jit.cache_dir() == tmp_path
+
+
+def test_an_image_too_large_for_memory_is_refused_before_anything_is_allocated(backend):
+    cam = Camera.look_at((0, 0, 0), (0, 0, 1), width=40000, height=40000)
+    with pytest.raises(ValueError, match=r"40000x40000 render needs \d+\.\d GiB .* in pieces"):
+        render(scene(n=10), cam, backend=backend)
+
+
+def test_sub_pixel_splats_cost_rows_of_a_tile_not_whole_tiles():
+    """Tiny splats (a fraction of a pixel, widened by the 0.3 px^2 low-pass to about 4 px): the
+    compiled compositor evaluates only the tile rows their boxes cross."""
+    cloud = scene(n=20_000, seed=31, spread=0.8, log_scale=(-9, -8))
+    cam = perspective(128, 96)
+    fast, slow = render(cloud, cam), render(cloud, cam, backend="numpy")
+    tile_pixels = 64 * fast.stats["entries"]
+    assert slow.stats["evaluated"] >= tile_pixels
+    assert fast.stats["evaluated"] < 0.6 * tile_pixels
 
 
 # images -----------------------------------------------------------------------------------------
@@ -395,6 +491,40 @@ def test_cli_render_frames_the_cloud_and_follows_an_explicit_camera(tmp_path, ca
     ref = reference_render(cloud, perspective(), background=(0.5, 0.5, 0.5))
     assert np.abs(np.stack([exr["R"], exr["G"], exr["B"]], -1) - ref["color"]).max() <= STEP
     np.testing.assert_allclose(exr["A"], ref["alpha"], atol=STEP)
+
+
+def test_the_near_plane_does_not_depend_on_where_the_camera_looks(tmp_path):
+    """Splats 0.3 in front of the eye, behind the default near plane of 0.2 only in front of it:
+    looking at a point 1 or 100 away along the same ray gives the same image, in Python and in the
+    command line, and --near moves the plane."""
+    from PIL import Image
+
+    from splatwright.cli import main
+    cloud = SplatCloud.from_activated([[0, 0, 0.3], [0.05, 0, 0.15]], np.tile([1.0, 0, 0, 0], (2, 1)),
+                                      np.full((2, 3), 0.02), np.full(2, 0.9), colors=[[1, 0, 0], [0, 1, 0]])
+    write_splats(tmp_path / "c.ply", cloud)
+    images = {}
+    for far in (1, 100):
+        cam = Camera.look_at((0, 0, 0), (0, 0, far), width=32, height=24)
+        images[far] = render(cloud, cam).color
+        out = tmp_path / f"{far}.png"
+        assert main(["render", str(tmp_path / "c.ply"), "-o", str(out), "--width", "32", "--height", "24",
+                     "--camera-pos", "0,0,0", "--look-at", f"0,0,{far}"]) == 0
+        images[f"cli{far}"] = np.asarray(Image.open(out))
+    np.testing.assert_array_equal(images[1], images[100])
+    np.testing.assert_array_equal(images["cli1"], images["cli100"])
+    assert images[1][..., 0].max() > 0.5 and images[1][..., 1].max() == 0       # the 0.15 splat is culled
+    assert main(["render", str(tmp_path / "c.ply"), "-o", str(tmp_path / "n.png"), "--width", "32", "--height",
+                 "24", "--camera-pos", "0,0,0", "--look-at", "0,0,1", "--near", "0.1"]) == 0
+    assert np.asarray(Image.open(tmp_path / "n.png"))[..., 1].max() > 100
+
+
+def test_framing_a_tiny_cloud_keeps_it_beyond_the_near_plane():
+    from splatwright.core.camera import frame_points
+    cloud = scene(n=50, seed=32, center=(5, 0, 0), spread=0.01)
+    for cam in (frame_points(cloud.positions, 40, 30), frame_points(cloud.positions, 40, 30, ortho_scale=0)):
+        assert cam.near == 0.2
+        assert render(cloud, cam).stats["visible"] == 50
 
 
 def test_cli_render_reports_bad_input(tmp_path, capsys):

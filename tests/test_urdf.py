@@ -276,12 +276,14 @@ def test_read_urdf_file(tmp_path):
 
 
 @pytest.mark.parametrize("change, message", [
-    (('type="continuous"', 'type="floating"'), "joint 'spin' has type 'floating'"),
-    (('<limit lower="0" upper="0.4" effort="1" velocity="1"/>', ""), "joint 'extend' \\(prismatic\\) has no <limit>"),
+    (('type="continuous"', 'type="hinge"'), "joint 'spin' has type 'hinge'"),
+    (('<limit lower="0" upper="0.4" effort="1" velocity="1"/>', '<limit lower="0" upper="x"/>'),
+     "joint 'extend' limit upper: 'x' is not 1 numbers"),
     (('<child link="tool"/>', '<child link="toool"/>'), "child link 'toool' is not declared"),
     (('xyz="0.3 0 0"', 'xyz="0.3 0"'), "joint 'extend' origin xyz: '0.3 0' is not 3"),
     (('rpy="0.1 -0.2 0.3"', 'rpy="0.1 nan 0.3"'), "elbow' origin rpy"),
-    (('lower="-1.5" upper="2.0"', 'lower="2.5" upper="2.0"'), "limit lower 2.5 is above upper 2.0"),
+    (('<mesh filename="package://x/shoulder.stl"/>', '<mesh filename="package://x/shoulder.stl"/><box size="1"/>'),
+     None),
     (('<axis xyz="0 1 0"/>', '<axis xyz="0 0 0"/>'), "joint 'elbow' has a zero axis"),
     (('<link name="tool"/>', '<link name="tool"/><link name="orphan"/>'), "exactly one root link"),
     (('</robot>', '<joint name="spin" type="fixed"><parent link="tool"/><child link="world"/></joint></robot>'),
@@ -291,5 +293,178 @@ def test_read_urdf_file(tmp_path):
     (('</robot>', ''), "not valid XML"),
 ])
 def test_urdf_errors_name_the_problem(change, message):
+    if message is None:                          # visuals are not the kinematic reader's business
+        parse_urdf(URDF.replace(*change), source="arm.urdf")
+        return
     with pytest.raises(SplatFileError, match=message):
         parse_urdf(URDF.replace(*change), source="arm.urdf")
+
+
+def test_a_missing_limit_is_no_limit_with_a_warning():
+    with pytest.warns(UserWarning, match="joint 'extend' \\(prismatic\\) has no <limit>"):
+        tree = parse_urdf(URDF.replace('<limit lower="0" upper="0.4" effort="1" velocity="1"/>', ""))
+    assert tree.upper[tree.names.index("slide")] == np.inf
+
+
+# mimic, floating and planar joints; leniency; hard inputs ------------------------------------------
+
+MIMIC_URDF = """
+  <?xml version="1.0"?>
+<robot name="gripper">
+  <link name="base"/><link name="arm"/><link name="left"/><link name="right"/><link name="cam"/>
+  <joint name="shoulder" type="revolute">
+    <parent link="base"/><child link="arm"/><origin xyz="0 0 0.3" rpy="0 0.2 0"/><axis xyz="0 1 0"/>
+    <limit lower="1.2" upper="-1.2"/>
+  </joint>
+  <joint name="left_slide" type="prismatic">
+    <parent link="arm"/><child link="left"/><origin xyz="0.1 0.02 0"/><axis xyz="0 1 0"/>
+    <limit lower="0" upper="0.04"/>
+  </joint>
+  <joint name="right_slide" type="prismatic">
+    <parent link="arm"/><child link="right"/><origin xyz="0.1 -0.02 0"/><axis xyz="0 -1 0"/>
+    <limit lower="0" upper="0.04"/><mimic joint="left_slide" multiplier="0.5" offset="0.01"/>
+  </joint>
+  <joint name="cam_tilt" type="revolute">
+    <parent link="right"/><child link="cam"/><axis xyz="1 0 0"/><limit lower="-1" upper="1"/>
+    <mimic joint="right_slide" multiplier="10"/>
+  </joint>
+</robot>
+"""
+
+
+def test_mimic_joints_follow_their_joint_in_dof_pack_and_fk():
+    with pytest.warns(UserWarning, match="limit lower 1.2 is above upper -1.2; swapped"):
+        tree = parse_urdf(MIMIC_URDF)                    # blank line before <?xml, swapped limits
+    i = {name: k for k, name in enumerate(tree.names)}
+    assert tree.dof == 2 and tree.dof_names == ["shoulder", "left_slide"]
+    assert (tree.lower[i["arm"]], tree.upper[i["arm"]]) == (-1.2, 1.2)
+    q = tree.pack({"shoulder": 0.4, "left_slide": 0.03})
+    with pytest.raises(KinematicsError, match="'right_slide' mimics 'left_slide': set that joint instead"):
+        tree.pack({"right_slide": 0.01})
+    world = tree.forward_kinematics(q)
+    arm = hom(rot_y(0.2), (0, 0, 0.3)) @ hom(rot_y(0.4))
+    right_value = 0.5 * 0.03 + 0.01
+    right = arm @ hom(t=(0.1, -0.02, 0)) @ hom(t=(0, -right_value, 0))
+    cam = right @ hom(rot_x(10 * right_value))          # a mimic of a mimic: 10 * (0.5 q + 0.01)
+    np.testing.assert_allclose(world[i["right"]], right, atol=1e-15)
+    np.testing.assert_allclose(world[i["cam"]], cam, atol=1e-15)
+    np.testing.assert_allclose(tree.joint_values(q)[[i["left"], i["right"], i["cam"]]],
+                               [0.03, right_value, 10 * right_value], atol=1e-15)
+
+
+@pytest.mark.filterwarnings("ignore:.*swapped")
+def test_mimic_errors_are_named():
+    with pytest.raises(SplatFileError, match="mimics 'nowhere', which is not a joint"):
+        parse_urdf(MIMIC_URDF.replace('mimic joint="left_slide"', 'mimic joint="nowhere"'))
+    loop = MIMIC_URDF.replace('<limit lower="0" upper="0.04"/>\n  </joint>',
+                              '<limit lower="0" upper="0.04"/><mimic joint="right_slide"/>\n  </joint>', 1)
+    with pytest.raises(SplatFileError, match="cycle of mimic joints"):
+        parse_urdf(loop)
+    with pytest.raises(SplatFileError, match="mimic multiplier"):
+        parse_urdf(MIMIC_URDF.replace('multiplier="0.5"', 'multiplier="nan"'))
+
+
+FREE_URDF = """<robot name="free">
+  <link name="world"/><link name="body"/><link name="cart"/><link name="head"/>
+  <joint name="float" type="floating"><parent link="world"/><child link="body"/>
+    <origin xyz="1 0 0" rpy="0 0 0.5"/></joint>
+  <joint name="table" type="planar"><parent link="body"/><child link="cart"/>
+    <origin xyz="0 0 0.2"/><axis xyz="0 0 1"/></joint>
+  <joint name="neck" type="spherical"><parent link="cart"/><child link="head"/><origin xyz="0 0 0.1"/></joint>
+</robot>"""
+
+
+def test_floating_planar_and_spherical_joints_match_hand_products():
+    tree = parse_urdf(FREE_URDF)
+    assert tree.dof == 12 and tree.joint_types[1:] == ("floating", "planar", "ball")
+    assert tree.dof_names[:9] == ["float.x", "float.y", "float.z", "float.rx", "float.ry", "float.rz",
+                                  "table.a", "table.b", "table.theta"]
+    t, axis, angle = np.array([0.3, -0.2, 0.5]), np.array([1.0, 2.0, 2.0]) / 3, 0.9
+    neck = np.array([0.2, -0.1, 0.3])
+    q = tree.pack({"float": np.concatenate([t, axis * angle]), "table": [0.4, -0.7, 1.1], "neck": neck})
+    body = hom(rot_z(0.5), (1, 0, 0)) @ hom(rodrigues(axis, angle), t)
+    cart = body @ hom(t=(0, 0, 0.2)) @ hom(rot_z(1.1), (0.4, -0.7, 0))
+    head = cart @ hom(t=(0, 0, 0.1)) @ hom(rodrigues(neck, np.linalg.norm(neck)))
+    np.testing.assert_allclose(tree.forward_kinematics(q)[1:], np.stack([body, cart, head]), atol=1e-15)
+    # the floating joint also takes x, y, z and a quaternion, or a rigid 4x4 matrix
+    quat = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
+    np.testing.assert_allclose(tree.pack({"float": np.concatenate([t, quat])})[:6], q[:6], atol=1e-15)
+    np.testing.assert_allclose(tree.pack({"float": hom(rodrigues(axis, angle), t)})[:6], q[:6], atol=1e-15)
+    with pytest.raises(KinematicsError, match="not a rigid transform"):
+        tree.pack({"float": np.diag([2.0, 1, 1, 1])})
+    with pytest.raises(KinematicsError, match="takes 3 values"):
+        tree.pack({"table": [1.0, 2.0]})
+
+
+def test_non_finite_values_and_bases_are_refused():
+    tree, _ = small_tree()
+    with pytest.raises(KinematicsError, match="joint 'arm': value nan is not finite"):
+        tree.pack({"arm": np.nan})
+    with pytest.raises(KinematicsError, match="base matrix has non-finite values"):
+        tree.forward_kinematics(tree.zero(), base=np.full((4, 4), np.nan))
+    with pytest.raises(KinematicsError, match="base has shape"):
+        tree.forward_kinematics(tree.zero(), base=np.eye(3))
+    with pytest.raises(KinematicsError, match="not affine"):
+        tree.forward_kinematics(tree.zero(), base=np.ones((4, 4)))
+
+
+def test_compiled_and_numpy_forward_kinematics_agree(monkeypatch):
+    from splatwright.core import kinematics
+    tree = parse_urdf(FREE_URDF.replace('<link name="head"/>', '<link name="head"/><link name="tip"/>').replace(
+        "</robot>", '<joint name="tip" type="revolute"><parent link="head"/><child link="tip"/><axis xyz="0 1 1"/>'
+                    '<origin xyz="0.1 0 0"/><limit lower="-1" upper="1"/></joint></robot>'))
+    q = np.random.default_rng(4).normal(size=(3000, tree.dof))      # above the two-thread batch size
+    base = hom(rot_x(0.3), (1, 2, 3))
+    compiled = tree.forward_kinematics(q, base=base)
+    single = tree.forward_kinematics(q[7], base=base)
+    monkeypatch.setattr(kinematics, "_fk_kernel", None)
+    numpy_path = tree.forward_kinematics(q, base=base)
+    np.testing.assert_allclose(compiled, numpy_path, atol=1e-14)
+    np.testing.assert_allclose(single, numpy_path[7], atol=1e-14)
+
+
+def test_urdf_reading_is_linear_in_links():
+    # a 20,000-link chain (reading was quadratic: minutes); its tip is the sum of the offsets
+    n = 20_000
+    links = "".join(f'<link name="l{k}"/>' for k in range(n))
+    joints = "".join(f'<joint name="j{k}" type="revolute"><parent link="l{k}"/><child link="l{k + 1}"/>'
+                     f'<origin xyz="0 0 0.001"/><axis xyz="0 1 0"/><limit lower="-1" upper="1"/></joint>'
+                     for k in range(n - 1))
+    tree = parse_urdf(f"<robot name='chain'>{links}{joints}</robot>")
+    assert len(tree) == n and tree.dof == n - 1 and len(tree._levels) == n
+    tip = tree.forward_kinematics(np.full(n - 1, 1e-4))[-1]
+    expect = sum(0.001 * rot_y(1e-4 * k)[:, 2] for k in range(n - 1))
+    np.testing.assert_allclose(tip[:3, 3], expect, rtol=1e-9)
+
+
+def test_forward_kinematics_matches_yourdfpy(tmp_path):
+    yourdfpy = pytest.importorskip("yourdfpy")
+    rng = np.random.default_rng(5)
+    # a random tree of revolute, continuous, prismatic, fixed and mimic joints, written as URDF
+    n, parts, kinds, kinds_of = 30, [], ["revolute", "continuous", "prismatic", "fixed"], {}
+    for k in range(1, n):
+        kind = kinds[rng.integers(4)]
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)                 # (yourdfpy takes a prismatic axis as written)
+        mimic = f'<mimic joint="j{k - 1}" multiplier="{rng.uniform(-2, 2):.6f}" offset="{rng.uniform(-.3, .3):.6f}"/>' \
+            if k > 1 and kind != "fixed" and kinds_of.get(k - 1) in ("revolute", "prismatic", "continuous") \
+            and rng.uniform() < 0.3 else ""             # (yourdfpy follows one mimic, not chains of them)
+        kinds_of[k] = "mimic" if mimic else kind
+        parts.append(f'<joint name="j{k}" type="{kind}"><parent link="l{rng.integers(k)}"/><child link="l{k}"/>'
+                     f'<origin xyz="{" ".join(f"{v:.6f}" for v in rng.normal(0, .3, 3))}" '
+                     f'rpy="{" ".join(f"{v:.6f}" for v in rng.uniform(-3, 3, 3))}"/>'
+                     f'<axis xyz="{" ".join(f"{v:.17g}" for v in axis)}"/><limit lower="-3" upper="3"/>{mimic}</joint>')
+    links = "".join(f"<link name='l{k}'/>" for k in range(n))
+    text = f'<robot name="r">{links}{"".join(parts)}</robot>'
+    path = tmp_path / "random.urdf"
+    path.write_text(text)
+    ours = read_urdf(path)
+    theirs = yourdfpy.URDF.load(str(path), build_scene_graph=True, load_meshes=False)
+    assert ours.dof == len(theirs.actuated_joint_names)
+    for _ in range(5):
+        q = rng.uniform(-2, 2, ours.dof)
+        theirs.update_cfg(dict(zip(theirs.actuated_joint_names, q)))
+        world = ours.forward_kinematics(ours.pack(dict(zip(theirs.actuated_joint_names, q))))
+        for k, name in enumerate(ours.names):
+            np.testing.assert_allclose(world[k], theirs.get_transform(name, "l0"), atol=1e-12, err_msg=name)
+

@@ -1,0 +1,136 @@
+"""Compiled kernels with numba, when it can be had; the callers keep a NumPy path for when not.
+
+numba is imported only when a kernel module is first asked for, never by `import splatwright`,
+and every way it can fail to load (not installed, built for another NumPy, a broken LLVM) leaves
+`load()` returning None with the reason in `status()`, so NumPy does the work instead.
+
+Compiled code is cached on disk, so only the first use on a machine pays for compiling (a few
+seconds). The cache lives in the user's cache folder, not beside the sources: an installed Blender
+extension or a site-packages folder may not be writable. SPLATWRIGHT_CACHE_DIR overrides the folder;
+SPLATWRIGHT_JIT=0 turns compiled kernels off.
+"""
+
+import importlib
+import os
+import sys
+import threading
+from pathlib import Path
+
+_lock = threading.Lock()
+_modules = {}       # kernel module name -> module or None
+_reasons = {}       # kernel module name -> why it is not available
+
+
+def enabled():
+    """False when SPLATWRIGHT_JIT is set to 0 / false / no / off."""
+    return os.environ.get("SPLATWRIGHT_JIT", "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def cache_dir():
+    """Where compiled kernels are kept: SPLATWRIGHT_CACHE_DIR, else the platform's user cache folder."""
+    if os.environ.get("SPLATWRIGHT_CACHE_DIR"):
+        return Path(os.environ["SPLATWRIGHT_CACHE_DIR"])
+    if sys.platform == "win32":
+        base = Path(os.environ.get("LOCALAPPDATA") or Path.home() / "AppData" / "Local")
+    elif sys.platform == "darwin":
+        base = Path.home() / "Library" / "Caches"
+    else:
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "splatwright" / "numba"
+
+
+def load(name, check=None):
+    """The compiled kernel module `splatwright.<name>` (e.g. "core.render_kernels"; it imports
+    numba), or None when numba cannot be loaded or kernels are turned off. Imported once per process; `check(module)`, if
+    given, then runs the kernels once (compiling them, or loading them from the cache) and must
+    return without an error for the module to be used."""
+    if not enabled():
+        return None
+    with _lock:
+        if name not in _modules:
+            try:
+                _install_cache_locator()
+                module = importlib.import_module(f"{__package__.rpartition('.')[0]}.{name}")
+                if check is not None:
+                    check(module)
+                _modules[name] = module
+            except Exception as exc:        # any failure to load or compile means: use NumPy
+                _modules[name], _reasons[name] = None, f"{type(exc).__name__}: {exc}"
+        return _modules[name]
+
+
+def compiled(module_name, names):
+    """The functions `names` of the loaded module `module_name` compiled in order with njit, each
+    rebound in its module (a later one may call an earlier one: numba resolves it as a global), and
+    the last returned; None when numba cannot be loaded or kernels are turned off. For kernels that
+    live beside their NumPy path; compiled once per process, on first use."""
+    if not enabled():
+        return None
+    key = f"{module_name}:{names[-1]}"
+    if key in _modules:                  # the hot path (forward kinematics of one configuration)
+        return _modules[key]
+    with _lock:
+        if key not in _modules:
+            try:
+                _install_cache_locator()
+                module = sys.modules[module_name]
+                for name in names:
+                    function = getattr(module, name)
+                    if not hasattr(function, "py_func"):        # not compiled by an earlier kernel
+                        setattr(module, name, njit(function))
+                _modules[key] = getattr(module, names[-1])
+            except Exception as exc:        # any failure to load or compile means: use NumPy
+                _modules[key], _reasons[key] = None, f"{type(exc).__name__}: {exc}"
+        return _modules[key]
+
+
+def status(name):
+    """'compiled', 'not loaded yet', or why the NumPy path is used."""
+    if not enabled():
+        return "off (SPLATWRIGHT_JIT=0)"
+    if name not in _modules:
+        return "not loaded yet"
+    return "compiled" if _modules[name] is not None else f"unavailable ({_reasons[name]})"
+
+
+def njit(fn):
+    """numba.njit for our kernels: no GIL (they run on core.parallel's threads), cached on disk."""
+    import numba
+    try:
+        return numba.njit(nogil=True, cache=True, error_model="numpy")(fn)
+    except RuntimeError:                # no writable cache folder anywhere: compile in every process
+        return numba.njit(nogil=True, error_model="numpy")(fn)
+
+
+_installed = False
+
+
+def _install_cache_locator():
+    """Put our cache folder first in numba's list of cache locations, for this package's files
+    only (other numba users in the same process, say in Blender, keep numba's own choice)."""
+    global _installed
+    if _installed:
+        return
+    from numba.core import caching
+
+    impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
+    package_dir = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = cache_dir()
+
+    class SplatwrightCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
+        def __init__(self, py_func, py_file):
+            self._py_file = py_file
+            self._lineno = py_func.__code__.co_firstlineno
+            self._cache_path = str(root / self.get_suitable_cache_subpath(py_file))
+
+        def get_cache_path(self):
+            return self._cache_path
+
+        @classmethod
+        def from_function(cls, py_func, py_file):
+            if not os.path.abspath(py_file).startswith(package_dir + os.sep):
+                return None
+            return super().from_function(py_func, py_file)     # None when the folder is not writable
+
+    impl._locator_classes.insert(0, SplatwrightCacheLocator)
+    _installed = True

@@ -1,0 +1,418 @@
+"""Compiled projection, tile binning and compositing for core.render (numba; loaded by core.jit).
+
+The same rules as the NumPy path in core/render.py, which stays the readable reference and the
+fallback: these loops compute, per splat or per tile, what it computes with whole-array operations.
+What the loops buy besides speed:
+- compositing walks each tile's entries front to back over the tile's pixel state, but evaluates
+  only the tile rows that an entry's alpha >= 1/255 ellipse (its box) crosses, so a sub-pixel splat
+  costs a row or two of its tile, not all of it, and a tile stops within a few entries of its last
+  pixel stopping;
+- the image is written straight from each tile, with no per-tile accumulators (memory is the
+  image, the projected splats and the tile lists).
+Each kernel runs on one thread over a range of splats or tiles; core.render spreads the ranges
+over the cores (the kernels release the GIL).
+"""
+
+import math
+
+import numpy as np
+
+from .jit import njit
+from .sh import C0, C1, C2, C3
+
+ALPHA_MIN = 1.0 / 255.0
+LOG_ALPHA_MIN = math.log(ALPHA_MIN)
+LOG_ALPHA_MAX = math.log(0.99)
+LOW_PASS = 0.3
+AA_MIN_RATIO = 0.000025
+# exp(r) for |r| <= ln(2)/2: Taylor terms to r^7 (relative error below 6e-9); ln 2 in two parts,
+# the first exact in float32, so that x - n ln2 loses nothing
+LN2_HI = 0.693145751953125
+LN2_LO = math.log(2.0) - LN2_HI
+EXP_TERMS = (1.0, 1.0, 1.0 / 2, 1.0 / 6, 1.0 / 24, 1.0 / 120, 1.0 / 720, 1.0 / 5040)
+
+
+# projection ---------------------------------------------------------------------------------------
+
+@njit
+def project_range(positions, rotations, log_scales, logits, sh, lo, hi, center, rot, intrinsics, size,
+                  clip, ortho, antialiased, max_r2, rec64, rec32, index, depth, r2_out, bbox):
+    """Cull and project splats lo..hi-1, writing the visible ones (in input order) to rows lo.. of
+    the outputs. Returns (visible count, skipped for non-finite values).
+
+    intrinsics: fx, fy, cx, cy; size: width, height; clip: near, far, then the tangent clamp
+    x/z in [clip[2], clip[3]], y/z in [clip[4], clip[5]]. rec64/rec32 are two views of the
+    same (n, 8) float64 records (u, v, conic a, b, c | float32 log o, r, g, b, z, 1)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    width, height = size[0], size[1]
+    near, far = clip[0], clip[1]
+    k = sh.shape[1]
+    out = lo
+    skipped = 0
+    m0 = np.empty(3)
+    m1 = np.empty(3)
+    rs = np.empty((3, 3))
+    for i in range(lo, hi):
+        finite = True
+        for j in range(3):
+            finite &= np.isfinite(positions[i, j]) and np.isfinite(log_scales[i, j])
+        for j in range(4):
+            finite &= np.isfinite(rotations[i, j])
+        finite &= np.isfinite(logits[i])
+        for j in range(k):
+            for ch in range(3):
+                finite &= np.isfinite(sh[i, j, ch])
+        if not finite:
+            skipped += 1
+            continue
+        # camera space, relative to the eye in float64
+        px = positions[i, 0] - center[0]
+        py = positions[i, 1] - center[1]
+        pz = positions[i, 2] - center[2]
+        x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz
+        y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz
+        z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz
+        logit = np.float64(logits[i])
+        opacity = 1.0 / (1.0 + math.exp(-logit)) if logit >= 0 else math.exp(logit) / (1.0 + math.exp(logit))
+        if not (z > near and z <= far and opacity >= ALPHA_MIN):
+            continue
+        if ortho:
+            u, v = fx * x + cx, fy * y + cy
+            for j in range(3):
+                m0[j] = fx * rot[0, j]
+                m1[j] = fy * rot[1, j]
+        else:
+            tx, ty = x / z, y / z
+            u, v = fx * tx + cx, fy * ty + cy
+            tx = min(max(tx, clip[2]), clip[3])
+            ty = min(max(ty, clip[4]), clip[5])
+            for j in range(3):
+                m0[j] = fx / z * (rot[0, j] - tx * rot[2, j])
+                m1[j] = fy / z * (rot[1, j] - ty * rot[2, j])
+        # R S from the normalised quaternion (zero or non-finite norms: the identity)
+        qw, qx, qy, qz = (np.float64(rotations[i, 0]), np.float64(rotations[i, 1]),
+                          np.float64(rotations[i, 2]), np.float64(rotations[i, 3]))
+        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if np.isfinite(norm) and norm > 1e-30:
+            qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        else:
+            qw, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
+        s0 = math.exp(np.float64(log_scales[i, 0]))
+        s1 = math.exp(np.float64(log_scales[i, 1]))
+        s2 = math.exp(np.float64(log_scales[i, 2]))
+        rs[0, 0] = (1 - 2 * (qy * qy + qz * qz)) * s0
+        rs[0, 1] = 2 * (qx * qy - qw * qz) * s1
+        rs[0, 2] = 2 * (qx * qz + qw * qy) * s2
+        rs[1, 0] = 2 * (qx * qy + qw * qz) * s0
+        rs[1, 1] = (1 - 2 * (qx * qx + qz * qz)) * s1
+        rs[1, 2] = 2 * (qy * qz - qw * qx) * s2
+        rs[2, 0] = 2 * (qx * qz - qw * qy) * s0
+        rs[2, 1] = 2 * (qy * qz + qw * qx) * s1
+        rs[2, 2] = (1 - 2 * (qx * qx + qy * qy)) * s2
+        # Sigma2D = V V^T, V = (J W) (R S): rows v0, v1
+        v00 = m0[0] * rs[0, 0] + m0[1] * rs[1, 0] + m0[2] * rs[2, 0]
+        v01 = m0[0] * rs[0, 1] + m0[1] * rs[1, 1] + m0[2] * rs[2, 1]
+        v02 = m0[0] * rs[0, 2] + m0[1] * rs[1, 2] + m0[2] * rs[2, 2]
+        v10 = m1[0] * rs[0, 0] + m1[1] * rs[1, 0] + m1[2] * rs[2, 0]
+        v11 = m1[0] * rs[0, 1] + m1[1] * rs[1, 1] + m1[2] * rs[2, 1]
+        v12 = m1[0] * rs[0, 2] + m1[1] * rs[1, 2] + m1[2] * rs[2, 2]
+        a = v00 * v00 + v01 * v01 + v02 * v02
+        b = v00 * v10 + v01 * v11 + v02 * v12
+        c = v10 * v10 + v11 * v11 + v12 * v12
+        c0 = v01 * v12 - v02 * v11
+        c1 = v02 * v10 - v00 * v12
+        c2 = v00 * v11 - v01 * v10
+        det0 = c0 * c0 + c1 * c1 + c2 * c2
+        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
+        if antialiased:
+            opacity = opacity * math.sqrt(max(AA_MIN_RATIO, det0 / det))
+        r2 = 2.0 * math.log(max(255.0 * opacity, 1e-300))
+        r2 = min(r2, max_r2)
+        a += LOW_PASS
+        c += LOW_PASS
+        if not (np.isfinite(det) and np.isfinite(u) and np.isfinite(v)):
+            skipped += 1
+            continue
+        half_x, half_y = math.sqrt(r2 * a), math.sqrt(r2 * c)
+        x0 = max(math.ceil(min(max(u - half_x - 0.5, -1.0), width)), 0.0)
+        y0 = max(math.ceil(min(max(v - half_y - 0.5, -1.0), height)), 0.0)
+        x1 = min(math.floor(min(max(u + half_x - 0.5, -1.0), width)), width - 1.0)
+        y1 = min(math.floor(min(max(v + half_y - 0.5, -1.0), height)), height - 1.0)
+        if not (r2 > 0 and x0 <= x1 and y0 <= y1):
+            continue
+        # view-dependent colour, float64
+        if ortho:
+            dx, dy, dz = rot[2, 0], rot[2, 1], rot[2, 2]
+        else:
+            dx, dy, dz = px, py, pz
+        dn = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if dn > 0:
+            dx, dy, dz = dx / dn, dy / dn, dz / dn
+        for ch in range(3):
+            col = 0.5 + C0 * sh[i, 0, ch]
+            if k > 1:
+                col += C1 * (-dy * sh[i, 1, ch] + dz * sh[i, 2, ch] - dx * sh[i, 3, ch])
+            if k > 4:
+                xx, yy, zz = dx * dx, dy * dy, dz * dz
+                col += (C2[0] * dx * dy * sh[i, 4, ch] + C2[1] * dy * dz * sh[i, 5, ch]
+                        + C2[2] * (2 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * dx * dz * sh[i, 7, ch]
+                        + C2[4] * (xx - yy) * sh[i, 8, ch])
+                if k > 9:
+                    col += (C3[0] * dy * (3 * xx - yy) * sh[i, 9, ch] + C3[1] * dx * dy * dz * sh[i, 10, ch]
+                            + C3[2] * dy * (4 * zz - xx - yy) * sh[i, 11, ch]
+                            + C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, ch]
+                            + C3[4] * dx * (4 * zz - xx - yy) * sh[i, 13, ch]
+                            + C3[5] * dz * (xx - yy) * sh[i, 14, ch] + C3[6] * dx * (xx - 3 * yy) * sh[i, 15, ch])
+            rec32[out, 11 + ch] = max(0.0, col)
+        rec64[out, 0], rec64[out, 1] = u, v
+        rec64[out, 2], rec64[out, 3], rec64[out, 4] = c / det, -b / det, a / det
+        rec32[out, 10] = math.log(opacity)
+        rec32[out, 14] = z
+        rec32[out, 15] = 1.0
+        index[out] = i
+        depth[out] = z
+        r2_out[out] = r2
+        bbox[out, 0], bbox[out, 1], bbox[out, 2], bbox[out, 3] = x0, y0, x1, y1
+        out += 1
+    return out - lo, skipped
+
+
+# tile binning -------------------------------------------------------------------------------------
+
+@njit
+def _tile_columns(rec64, r2, bbox, s, row, ts):
+    """First and last tile column of tile row `row` that splat s's ellipse reaches (as
+    core.render._row_extent: the ellipse's extreme x over the row's band of pixel-centre rows)."""
+    x0, y0, x1, y1 = bbox[s, 0], bbox[s, 1], bbox[s, 2], bbox[s, 3]
+    if y1 // ts == y0 // ts or x1 // ts == x0 // ts:    # one tile high or wide: the whole box
+        return x0 // ts, x1 // ts
+    u, v, a, b, c = rec64[s, 0], rec64[s, 1], rec64[s, 2], rec64[s, 3], rec64[s, 4]
+    rr = r2[s]
+    det = a * c - b * b
+    sxx = c / det
+    half_x = math.sqrt(rr * sxx)
+    peak = math.sqrt(rr / sxx) * (-b / det)
+    lo = max(row * ts, y0) + 0.5 - v
+    hi = min(row * ts + ts - 1, y1) + 0.5 - v
+    if lo <= peak <= hi:
+        right = half_x
+    else:
+        dy = min(max(peak, lo), hi)
+        right = (-b * dy + math.sqrt(max(a * rr - det * dy * dy, 0.0))) / a
+    if lo <= -peak <= hi:
+        left = -half_x
+    else:
+        dy = min(max(-peak, lo), hi)
+        left = (-b * dy - math.sqrt(max(a * rr - det * dy * dy, 0.0))) / a
+    first = max(np.int64(math.ceil(u + left - 0.5)), x0)
+    last = min(np.int64(math.floor(u + right - 0.5)), x1)
+    if last < first:
+        return first // ts, first // ts - 1
+    return first // ts, last // ts
+
+
+@njit
+def count_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, counts):
+    """counts[tile] += the number of splats lo..hi-1 whose ellipse reaches that tile."""
+    for s in range(lo, hi):
+        for row in range(bbox[s, 1] // ts, bbox[s, 3] // ts + 1):
+            c0, c1 = _tile_columns(rec64, r2, bbox, s, row, ts)
+            for col in range(c0, c1 + 1):
+                counts[row * tiles_x + col] += 1
+
+
+@njit
+def fill_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, number, cursor, entry_splat):
+    """Entries of splats lo..hi-1 (in this order, so front to back), as number[splat], at
+    cursor[tile], which advances."""
+    for s in range(lo, hi):
+        for row in range(bbox[s, 1] // ts, bbox[s, 3] // ts + 1):
+            c0, c1 = _tile_columns(rec64, r2, bbox, s, row, ts)
+            for col in range(c0, c1 + 1):
+                tile = row * tiles_x + col
+                entry_splat[cursor[tile]] = number[s]
+                cursor[tile] += 1
+
+
+@njit
+def gather(rows, records, bbox, lo, hi, records_out, bbox_out):
+    """Rows lo..hi-1 of the outputs from rows[lo..hi-1] of records and bbox."""
+    for j in range(lo, hi):
+        r = rows[j]
+        for c in range(8):
+            records_out[j, c] = records[r, c]
+        for c in range(4):
+            bbox_out[j, c] = bbox[r, c]
+
+
+# compositing --------------------------------------------------------------------------------------
+
+def exp_constants(dtype):
+    """Constants of the compositor in its working precision (scalars read from an array of that
+    dtype keep the pixel loop in it): the Taylor terms 1/2! .. 1/7!, the limits log(1/255),
+    log(0.99) and -6 of the alpha exponent, then 1/ln2, ln2 (two parts), 2^-8, 2^-4, 2^-2, 2^-1."""
+    return np.array([*EXP_TERMS[2:], LOG_ALPHA_MIN, LOG_ALPHA_MAX, -6.0, 1 / math.log(2), LN2_HI, LN2_LO,
+                     2.0 ** -8, 2.0 ** -4, 2.0 ** -2, 2.0 ** -1], dtype=dtype)
+
+
+# The compositor keeps a tile's pixel state in one flat array, one channel of MAX_PIXELS values
+# after another, and indexes it with unsigned integers: constant channel offsets and no negative
+# index wrap-around are what let the compiler prove the channels apart and vectorise the pixel loop.
+# (A channel is MAX_PIXELS values and one cache line more: at a power-of-two stride every channel
+# of a pixel would fall in the same cache set.)
+MAX_PIXELS = 64 * 64
+STRIDE = MAX_PIXELS + 16
+CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "ex", "ey", "exx", "exy", "eyy", "peak",
+            "layer_depth", "layer_keep", "layer_t")
+R_, G_, B_, Z_, W_, N_, EX, EY, EXX, EXY, EYY, PK, LD, LK, LT = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
+ALIVE_CHECK = 8             # entries between checks for a tile whose every pixel has stopped
+LANES = 8                   # pixels per step of the inner loop (a fixed count, so it becomes one
+                            # vector operation); tile rows are padded to a multiple of it
+
+
+@njit
+def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x, width, height,
+                    t_min, k, color, weight, depth, counts, peaks, layer_depth, layer_keep, layer_t):
+    """Composite every tile in `tiles` front to back and write its pixels into the image arrays
+    color (H,W,3), weight (H,W) = sum of T alpha, depth (H,W) = sum of T alpha z; counts (H,W)
+    and peaks (entries,) = each entry's largest T alpha are written when they are not empty.
+    With a layer (layer_t not empty), a pixel meets it before the first entry whose z is not in
+    front of layer_depth: T *= layer_keep (1 - its alpha), and layer_t gets the T it met it with (the
+    T a stopped pixel stopped with; what is left for one that never met it).
+    `k` holds exp_constants in the precision of the per-pixel work. Returns the number of
+    splat-pixel pairs evaluated.
+
+    Each entry is evaluated on the whole rows of the tile that its ellipse's box crosses. The
+    exponent is a quadratic in the pixel's offset from the tile centre, expanded in float64 per
+    entry (as the NumPy path does), and exp is a polynomial: the pixel loop has no branches."""
+    typ = k.dtype.type
+    e2, e3, e4, e5, e6, e7 = k[0], k[1], k[2], k[3], k[4], k[5]
+    log_min, log_max, floor = k[6], k[7], k[8]
+    inv_ln2, ln2_hi, ln2_lo, p8, p4, p2, p1 = k[9], k[10], k[11], k[12], k[13], k[14], k[15]
+    one, zero, half, tmin = typ(1.0), typ(0.0), typ(0.5), typ(t_min)
+    two, four, eight = typ(2.0), typ(4.0), typ(8.0)
+    row_len = -(-ts // LANES) * LANES          # a tile row, padded
+    pixels = ts * row_len
+    st = np.zeros(len(CHANNELS) * STRIDE, k.dtype)
+    centre = ts / 2.0
+    for p in range(pixels):
+        ex, ey = typ(p % row_len + 0.5 - centre), typ(p // row_len + 0.5 - centre)
+        up = np.uint64(p)
+        st[up + EX], st[up + EY], st[up + EXX], st[up + EXY], st[up + EYY] = ex, ey, ex * ex, ex * ey, ey * ey
+    want_counts = counts.size > 0
+    want_peaks = peaks.size > 0
+    use_layer = layer_t.size > 0
+    far = typ(np.inf)
+    evaluated = 0
+    for t in tiles:
+        tx0, ty0 = (t % tiles_x) * ts, (t // tiles_x) * ts
+        tw, th = min(ts, width - tx0), min(ts, height - ty0)
+        for p in range(pixels):
+            up = np.uint64(p)
+            inside = p % row_len < tw and p // row_len < th
+            st[up] = one if inside else zero
+            st[up + R_], st[up + G_], st[up + B_], st[up + Z_], st[up + W_], st[up + N_] = 0, 0, 0, 0, 0, 0
+        near = far                              # the nearest layer depth a pixel still waits for
+        if use_layer:
+            for p in range(pixels):
+                up = np.uint64(p)
+                col, row = p % row_len, p // row_len
+                inside = col < tw and row < th
+                st[up + LD] = typ(layer_depth[ty0 + row, tx0 + col]) if inside else far
+                st[up + LK] = typ(layer_keep[ty0 + row, tx0 + col]) if inside else one
+                st[up + LT] = -one                 # still waiting
+                near = min(near, st[up + LD])
+        cx, cy = tx0 + centre, ty0 + centre
+        first, last = offsets[t], offsets[t + 1]
+        for e in range(first, last):
+            if t_min > 0 and (e - first) % ALIVE_CHECK == ALIVE_CHECK - 1:
+                alive = np.int32(0)
+                for p in range(pixels):
+                    alive += np.int32(st[np.uint64(p)] > zero)
+                if alive == 0:
+                    break
+            s = entry_splat[e]
+            row0 = max(bbox[s, 1], ty0) - ty0
+            row1 = min(bbox[s, 3], ty0 + th - 1) - ty0
+            if row1 < row0:
+                continue
+            # power = log o - q / 2, q = (d + e)^T Q (d + e), d = tile centre - mean, e = pixel offset
+            a, b, c = rec64[s, 2], rec64[s, 3], rec64[s, 4]
+            dx, dy = cx - rec64[s, 0], cy - rec64[s, 1]
+            gx, gy = a * dx + b * dy, b * dx + c * dy
+            k0 = typ(rec32[s, 10] - 0.5 * (gx * dx + gy * dy))
+            kx, ky, kxx, kxy, kyy = typ(-gx), typ(-gy), typ(-0.5 * a), typ(-b), typ(-0.5 * c)
+            cr, cg, cb, cz = typ(rec32[s, 11]), typ(rec32[s, 12]), typ(rec32[s, 13]), typ(rec32[s, 14])
+            if use_layer and cz >= near:         # some pixels meet the layer before this entry
+                near = far
+                for p in range(pixels):
+                    up = np.uint64(p)
+                    if st[up + LT] < zero:
+                        if cz >= st[up + LD]:
+                            st[up + LT] = st[up] if st[up] >= tmin else one - st[up + W_]
+                            st[up] *= st[up + LK]
+                        else:
+                            near = min(near, st[up + LD])
+            start = np.uint64(row0 * row_len)
+            n = (row1 - row0 + 1) * row_len
+            evaluated += (row1 - row0 + 1) * tw
+            for step in range(0, n, LANES):
+                for i in range(LANES):
+                    p = start + np.uint64(step + i)
+                    power = (k0 + kx * st[p + EX] + ky * st[p + EY]
+                             + kxx * st[p + EXX] + kxy * st[p + EXY] + kyy * st[p + EYY])
+                    # alpha = exp(power), at most 0.99: power = -m ln2 + r, exp(r) a polynomial, and
+                    # 2^-m (m in 0..9) from m's bits, found by comparisons
+                    x = min(max(power, floor), log_max)
+                    m = -np.floor(x * inv_ln2 + half)
+                    r = (x + m * ln2_hi) + m * ln2_lo
+                    alpha = one + r * (one + r * (e2 + r * (e3 + r * (e4 + r * (e5 + r * (e6 + r * e7))))))
+                    alpha *= p8 if m >= eight else one
+                    m -= eight if m >= eight else zero
+                    alpha *= p4 if m >= four else one
+                    m -= four if m >= four else zero
+                    alpha *= p2 if m >= two else one
+                    m -= two if m >= two else zero
+                    alpha *= p1 if m >= one else one
+                    alpha = alpha if power >= log_min else zero
+                    t_before = st[p]
+                    t_after = t_before * (one - alpha)
+                    ok = t_after >= tmin
+                    w = t_before * alpha if ok else zero
+                    st[p] = t_after if ok else zero
+                    st[p + R_] += w * cr
+                    st[p + G_] += w * cg
+                    st[p + B_] += w * cb
+                    st[p + Z_] += w * cz
+                    st[p + W_] += w
+                    st[p + N_] += one if w > zero else zero
+                    st[p + PK] = w
+            if want_peaks:
+                peak = zero
+                for i in range(n):
+                    peak = max(peak, st[start + np.uint64(i) + PK])
+                peaks[e] = peak
+        for row in range(th):
+            for col in range(tw):
+                p = np.uint64(row * row_len + col)
+                y, x = ty0 + row, tx0 + col
+                color[y, x, 0] = st[p + R_]
+                color[y, x, 1] = st[p + G_]
+                color[y, x, 2] = st[p + B_]
+                weight[y, x] = st[p + W_]
+                depth[y, x] = st[p + Z_]
+                if want_counts:
+                    counts[y, x] = np.int32(st[p + N_])
+                if use_layer:
+                    met = st[p + LT]
+                    layer_t[y, x] = met if met >= zero else (st[p] if st[p] >= tmin else one - st[p + W_])
+    return evaluated
+
+
+@njit
+def peak_per_splat(entry_splat, peaks, best):
+    """best[splat] = the largest peak of its entries."""
+    for e in range(len(entry_splat)):
+        s = entry_splat[e]
+        if peaks[e] > best[s]:
+            best[s] = peaks[e]

@@ -1,0 +1,110 @@
+"""Triangle meshes from any common file: OBJ (with MTL) by io.mesh, everything else trimesh reads
+(STL, Collada .dae, glTF/GLB, OFF, PLY meshes, ...) through trimesh.
+
+`read_mesh_file(path) -> core.mesh.Mesh`, in the file's own units and axes. A Collada scene is
+flattened with its node transforms (and its `<unit>` scale, as trimesh applies it). Colours follow
+the rules of io.mesh: material colours are scene-linear as stored, vertex colours and texture
+images are sRGB-encoded. trimesh is needed only for the formats other than OBJ; without it they
+are refused with a SplatFileError saying so.
+"""
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..core import color
+from ..core.mesh import Material, Mesh
+from ..core.robot import join_meshes
+from .common import SplatFileError
+from .mesh import read_mesh
+
+OWN_FORMATS = (".obj",)
+
+
+def read_mesh_file(path):
+    """Read a triangle mesh file of any format trimesh knows (OBJ natively) into a core.mesh.Mesh."""
+    path = Path(path)
+    if not path.is_file():
+        raise SplatFileError(path, "no such file")
+    if path.suffix.lower() in OWN_FORMATS:
+        return read_mesh(path)
+    try:
+        import trimesh
+    except ImportError:
+        raise SplatFileError(path, f"reading '{path.suffix}' meshes needs the trimesh package "
+                                   "(pip install trimesh pycollada)") from None
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")          # trimesh's own chatter about optional extras
+            scene = trimesh.load(str(path), force="scene", process=False)
+    except Exception as exc:                          # trimesh raises many kinds; name the file
+        raise SplatFileError(path, f"cannot read the mesh: {type(exc).__name__}: {exc}") from None
+    parts = [_part(geometry) for geometry in _flattened(scene)]
+    parts = [p for p in parts if p is not None]
+    if not parts:
+        raise SplatFileError(path, "no triangles")
+    mesh = join_meshes(parts)
+    if not np.isfinite(mesh.vertices).all():
+        bad = int((~np.isfinite(mesh.vertices).all(axis=1)).sum())
+        raise SplatFileError(path, f"{bad} vertices are NaN or infinite")
+    return mesh
+
+
+def _flattened(scene):
+    """Every triangle geometry of a trimesh Scene, moved by its node's transform."""
+    out = []
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geometry = scene.geometry[name]
+        if hasattr(geometry, "faces") and len(geometry.faces):
+            geometry = geometry.copy()
+            geometry.apply_transform(transform)
+            out.append(geometry)
+    return out
+
+
+def _part(geometry):
+    """One trimesh.Trimesh as a Mesh with its material, UVs or vertex colours."""
+    vertices = np.asarray(geometry.vertices, np.float64)
+    faces = np.asarray(geometry.faces, np.int64)
+    if not len(faces):
+        return None
+    visual = getattr(geometry, "visual", None)
+    kind = getattr(visual, "kind", None)
+    if kind == "texture" and getattr(visual, "material", None) is not None:
+        material = _material(visual.material)
+        uv = getattr(visual, "uv", None)
+        corner_uvs = None if uv is None or len(uv) != len(vertices) else np.asarray(uv, np.float64)[faces]
+        return Mesh(vertices, faces, corner_uvs, np.zeros(len(faces), np.int64), [material])
+    if kind == "vertex":
+        rgb = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255.0
+        return Mesh(vertices, faces, corner_colors=color.srgb_to_linear(rgb),
+                    materials=[Material(base_color=(1, 1, 1))])
+    if kind == "face":
+        rgb = np.asarray(visual.face_colors, np.float64)[:, :3] / 255.0
+        corner = np.repeat(color.srgb_to_linear(rgb)[:, None], 3, axis=1)
+        return Mesh(vertices, faces, corner_colors=corner, materials=[Material(base_color=(1, 1, 1))])
+    return Mesh(vertices, faces, materials=[Material(name="default")])
+
+
+def _material(material):
+    """A trimesh material (PBR or simple) as a core Material: base colour and texture."""
+    base = getattr(material, "baseColorFactor", None)
+    if base is None:
+        base = getattr(material, "diffuse", None)
+    image = getattr(material, "baseColorTexture", None)
+    if image is None:
+        image = getattr(material, "image", None)
+    rgb = (0.8, 0.8, 0.8) if base is None else tuple(np.asarray(base, np.float64)[:3] / 255.0)
+    texture = None if image is None else np.asarray(image.convert("RGB"))
+    return Material(base_color=rgb, texture=texture, name=str(getattr(material, "name", "") or "material"))
+
+
+def has_own_colours(mesh):
+    """True when a mesh carries colours of its own (a textured or coloured material, vertex
+    colours), False when its materials are all the default grey."""
+    if mesh.corner_colors is not None:
+        return True
+    default = Material()
+    return any(m.texture is not None or tuple(m.base_color) != default.base_color for m in mesh.materials)
