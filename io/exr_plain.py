@@ -106,8 +106,12 @@ def _scanlines(path, data, raw, offsets, channel_list, width, height, y0, part_p
     ys = data[starts[:, None] + np.arange(8)].view("<i4").astype(np.int64)     # (y, size) of each chunk
     if (ys[:, 1] != line).any() or not np.array_equal(np.sort(ys[:, 0] - y0), np.arange(height)):
         raise SplatFileError(path, "EXR chunks do not hold one uncompressed scanline each")
-    rows = data[(starts + 8)[:, None] + np.arange(line)]          # (chunks, line) bytes
-    image = np.empty_like(rows)
+    first, step = starts[0] + 8, np.diff(starts)
+    if len(step) and (step == step[0]).all() and step[0] >= line:    # evenly spaced chunks: one strided view
+        rows = np.lib.stride_tricks.as_strided(data[first:], (height, line), (int(step[0]), 1), writeable=False)
+    else:
+        rows = np.stack([data[s + 8:s + 8 + line] for s in starts])  # (chunks, line) bytes, chunk by chunk
+    image = np.empty((height, line), np.uint8)
     image[ys[:, 0] - y0] = rows
     out, col = {}, 0
     for name, dtype in channel_list:

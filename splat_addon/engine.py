@@ -113,7 +113,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")
         image = self._image(cloud, cam, background, layer)
-        passes = splat_passes(image, layer, meshes)
+        passes = splat_passes(image, layer, meshes) if getattr(depsgraph.view_layer, SPLAT_PASSES, False) else {}
         world = None if meshes is None else meshes.world()
         if world is not None:               # the world rendered apart: behind everything, per pixel
             image.color += (1.0 - image.alpha)[..., None] * world

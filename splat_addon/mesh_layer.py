@@ -116,11 +116,13 @@ class MeshLayer:
         display(meshes + world) - (1 - alpha) display(world)."""
         alpha = self.alpha
         if self.environment is not None:
-            color = linear_to_srgb(self.rgba[..., :3] + self.environment, np.float32) \
-                - (1.0 - alpha)[..., None] * self.world()
-            return Layer(np.maximum(color, 0.0), alpha, self.depth)
+            color = linear_to_srgb(self.rgba[..., :3] + self.environment, np.float32)
+            color -= (1.0 - alpha)[..., None] * self.world()
+            return Layer(np.maximum(color, 0.0, out=color), alpha, self.depth)
         straight = self.rgba[..., :3] / np.where(alpha > 0, alpha, np.float32(1))[..., None]
-        return Layer(linear_to_srgb(straight, np.float32) * alpha[..., None], alpha, self.depth)
+        color = linear_to_srgb(straight, np.float32)
+        color *= alpha[..., None]
+        return Layer(color, alpha, self.depth)
 
 
 def has_geometry(depsgraph):
