@@ -199,7 +199,8 @@ class Demo:
         render.resolution_x, render.resolution_y = RENDER_SIZE
         render.resolution_percentage = 100
         scene.view_settings.view_transform = "Standard"     # PNG colours as 3DGS viewers show them
-        self.bpy.context.view_layer.use_pass_z = True       # the EXR gets the depth pass too
+        self.bpy.context.view_layer.use_pass_z = True       # the EXR gets the depth pass too,
+        self.bpy.context.view_layer.splatwright_use_pass_splats = True      # and the splats and meshes apart
         self._meshes_for_render(scene)
         folder = self.out / "render"
         folder.mkdir(exist_ok=True)

@@ -6,9 +6,9 @@ Cases, each timed alternately with the baseline (the same splats rendered alone)
 
 - the renderer with the layer (opaque meshes, translucent meshes at alpha 0.5, meshes out of view);
 - the SPLATWRIGHT engine's own work per frame besides Cycles itself: reading the mesh layer's
-  uncompressed EXR, turning it into the layer, the layer render and the Combined, Depth, Splats and
-  Meshes passes, against its splat-only frame (the render, Combined and Depth); this case imports
-  the extension's engine module, so it needs bpy.
+  uncompressed EXR, turning it into the layer, the layer render and the Combined and Depth passes
+  (and, optional, the Splats and Meshes passes), against its splat-only frame (the render, Combined
+  and Depth); these cases import the extension's engine module, so they need bpy.
 
 Errors are max abs differences, in 1/255 steps of display sRGB, against the float64 brute-force
 reference (tests/reference_render.py) given the same layer, at a random sample of pixels.
@@ -86,8 +86,8 @@ def mesh_exr(layer, folder):
 
 
 def engine_side(cloud, camera, layer, folder):
-    """The SPLATWRIGHT engine's per-frame work with meshes and without, as two callables (None
-    without bpy)."""
+    """The SPLATWRIGHT engine's per-frame work without meshes, with them, and with them and the
+    Splats and Meshes passes, as callables (None without bpy)."""
     try:
         from splatwright.io.exr_plain import read_plain_exr
         from splatwright.splat_addon import engine, mesh_layer as meshes_module
@@ -100,15 +100,18 @@ def engine_side(cloud, camera, layer, folder):
         engine.to_scene_linear(image.color, np.ones_like(image.alpha))
         engine.composite_depth(image, None)
 
-    def composited():
-        got = meshes_module._layer_from_channels(read_plain_exr(path), "ViewLayer", camera.width, camera.height,
-                                                 False, 0.0)
-        surface = got.as_layer()
-        image = render(cloud, camera, background=None, layer=surface)
-        engine.splat_passes(image, surface, got)
-        engine.to_scene_linear(image.color, np.ones_like(image.alpha))
-        engine.composite_depth(image, surface)
-    return splats_only, composited
+    def composited(passes):
+        def run():
+            got = meshes_module._layer_from_channels(read_plain_exr(path), "ViewLayer", camera.width,
+                                                     camera.height, False, 0.0)
+            surface = got.as_layer()
+            image = render(cloud, camera, background=None, layer=surface)
+            if passes:
+                engine.splat_passes(image, surface, got)
+            engine.to_scene_linear(image.color, np.ones_like(image.alpha))
+            engine.composite_depth(image, surface)
+        return run
+    return splats_only, composited(False), composited(True)
 
 
 def run(quick=False):
@@ -129,11 +132,12 @@ def run(quick=False):
     with tempfile.TemporaryDirectory() as folder:
         opaque = layers(camera)["opaque meshes through the cloud"]
         engine = engine_side(cloud, camera, opaque, folder)
-        if engine is not None:
-            base, ours = paired(*engine, repeat)
-            rows.append(Row(TOPIC, "engine: EXR read, layer, composite, passes", ours, base,
-                            extra={"splats": len(cloud), "size": f"{camera.width}x{camera.height}",
-                                   "added": f"{ours.median / base.median - 1:+.1%}"}))
+        for case, composited in () if engine is None else (
+                ("engine: EXR read, layer, composite, Combined, Depth", engine[1]),
+                ("engine: the same and the Splats and Meshes passes", engine[2])):
+            base, ours = paired(engine[0], composited, repeat)
+            rows.append(Row(TOPIC, case, ours, base, extra={"splats": len(cloud), "size": f"{camera.width}x{camera.height}",
+                                                            "added": f"{ours.median / base.median - 1:+.1%}"}))
     return rows
 
 

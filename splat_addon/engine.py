@@ -287,7 +287,7 @@ def register():
         description="What renders everything that is not a splat (meshes, curves, volumes, the world); "
                     "the splats are composited with it in depth order"))
     setattr(bpy.types.ViewLayer, SPLAT_PASSES, bpy.props.BoolProperty(
-        name="Splats and Meshes Passes", default=True,
+        name="Splats and Meshes Passes", default=False,
         description="Also write the splats alone (with their alpha) and the meshes alone as passes, so a "
                     "compositor can redo the mix"))
     for panel in _generic_panels():

@@ -71,6 +71,7 @@ class Worker(BlenderWorker):
         scene.cycles.device = "CPU"
         scene.splatwright_mesh_engine = "CYCLES"
         bpy.context.view_layer.use_pass_z = True
+        bpy.context.view_layer.splatwright_use_pass_splats = True
         bpy.context.view_layer.update()
         return splats
 
