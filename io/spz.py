@@ -56,23 +56,29 @@ DEFLATE_MAX_RATIO = 1032
 ZSTD_BLOCK_HEADER, ZSTD_MAX_BLOCK = 3, 128 << 10
 
 
-# the RUB <-> RDF flip: y and z negate --------------------------------------------------------------
+# axis flips: two axes reversed (a half turn), exact since only signs change --------------------------
 
-def _flip_signs():
-    """Sign of each SH basis function under (x, y, z) -> (x, -y, -z), from the basis itself."""
+def sh_signs(signs):
+    """Sign of each SH basis function (degrees 0..3) under (x, y, z) -> signs * (x, y, z)."""
     d = np.array([[0.267, 0.535, 0.802]])
-    return np.sign(shmod.basis(d * [1, -1, -1], 3)[0] / shmod.basis(d, 3)[0]).astype(np.float32)
+    return np.sign(shmod.basis(d * signs, 3)[0] / shmod.basis(d, 3)[0]).astype(np.float32)
 
 
-SH_FLIP = _flip_signs()
+SH_FLIP = sh_signs([1, -1, -1])
+
+
+def flip_axes(cloud, signs):
+    """The cloud seen in axes reversed by `signs` (two of them -1: a half turn about the third):
+    positions and each quaternion's vector part take the signs, SH their basis functions' parity."""
+    signs = np.float32(signs)
+    k = cloud.sh.shape[1]
+    return cloud.replace(positions=cloud.positions * signs, rotations=cloud.rotations * np.concatenate([[1], signs]),
+                         sh=cloud.sh * sh_signs(signs)[None, :k, None])
 
 
 def flip_yz(cloud):
-    """The cloud seen in axes with y and z reversed (RDF <-> RUB); exact, it only changes signs."""
-    k = cloud.sh.shape[1]
-    return cloud.replace(positions=cloud.positions * np.float32([1, -1, -1]),
-                         rotations=cloud.rotations * np.float32([1, 1, -1, -1]),
-                         sh=cloud.sh * SH_FLIP[None, :k, None])
+    """The cloud seen in axes with y and z reversed (RDF <-> RUB)."""
+    return flip_axes(cloud, [1, -1, -1])
 
 
 # reading ------------------------------------------------------------------------------------------
