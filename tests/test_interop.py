@@ -8,8 +8,9 @@ Further rows sit with their formats below.
 
 import numpy as np
 import pytest
-from interop import (cloud_from_arrays, load_arrays, load_json, node, ply_arrays, python, save_arrays,
-                     save_json)
+from helpers import random_cloud
+from interop import (cloud_from_arrays, load_arrays, load_json, matched, node, ply_arrays, python, save_arrays,
+                     save_json, splat_transform)
 from test_spz_splat import check_spz_error, in_range_cloud
 
 from splatwright.core import SplatCloud
@@ -83,3 +84,165 @@ def test_spz_gsply_both_ways(tmp_path, version, degree):
     check_spz_error(got, cloud, sh=False)
     if degree:       # 8-bit SH: half a step of 1/128
         assert np.abs(got.sh[:, 1:] - cloud.sh[:, 1:]).max() <= 0.5 / 128 + 1e-6
+
+
+# the same file decoded by them and by us ---------------------------------------------------------------
+
+def assert_same_splats(got, want, position=1e-6, scale=1e-5, opacity=1e-4, sh=1e-5, angle_deg=0.01):
+    """Two decodings of one file: equal up to float32 round-off (the tolerances, absolute; opacity
+    1e-4 for the ends, which tools clamp differently: 0, 1e-7, sigmoid(-10))."""
+    assert len(got) == len(want) and got.sh_degree == want.sh_degree
+    np.testing.assert_allclose(got.positions, want.positions, rtol=1e-6, atol=position)
+    np.testing.assert_allclose(got.log_scales, want.log_scales, atol=scale)
+    np.testing.assert_allclose(got.opacities, want.opacities, atol=opacity)
+    np.testing.assert_allclose(got.sh, want.sh, atol=sh)
+    cos = np.abs((got.unit_rotations * want.unit_rotations).sum(axis=1))
+    assert np.degrees(2 * np.arccos(np.clip(cos, 0, 1))).max() <= angle_deg
+
+
+def assert_same_covariances(got, want, rtol=1e-5):
+    """The same Gaussians: R S^2 R^T agrees (a quaternion times a half turn about a scale axis is
+    another quaternion for the same ellipsoid, which is how tools differ in turning axes)."""
+    g, w = got.covariances().astype(np.float64), want.covariances().astype(np.float64)
+    size = np.abs(w).max(axis=(1, 2), keepdims=True)
+    assert (np.abs(g - w) <= rtol * size).all()
+
+
+def transform_ply(tmp_path, source, name):
+    """splat-transform's own decoding of `source`, as the PLY it writes, read back."""
+    splat_transform(source, tmp_path / name)
+    return read_splats(tmp_path / name, nonfinite="keep")
+
+
+# PLY -----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_ply_splat_transform_and_gsply_both_ways(tmp_path, degree):
+    cloud = random_cloud(200, sh_degree=degree, seed=degree)
+    write_splats(tmp_path / "ours.ply", cloud)
+    back = transform_ply(tmp_path, tmp_path / "ours.ply", "theirs.ply")       # they read ours, write theirs
+    for got in (back, read_splats(tmp_path / "theirs.ply")):
+        np.testing.assert_array_equal(got.positions, cloud.positions)
+        np.testing.assert_array_equal(got.sh, cloud.sh)
+        np.testing.assert_array_equal(got.rotations, cloud.rotations)
+        np.testing.assert_array_equal(got.log_scales, cloud.log_scales)
+        np.testing.assert_array_equal(got.opacity_logits, cloud.opacity_logits)
+    python("gsply", "gsply_tool.py", "read-ply", tmp_path / "ours.ply", tmp_path / "g.npz")
+    got = cloud_from_arrays(load_arrays(tmp_path / "g.npz"))
+    np.testing.assert_array_equal(got.positions, cloud.positions)
+    np.testing.assert_array_equal(got.sh, cloud.sh)
+
+
+# compressed PLY ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_compressed_ply_both_ways(tmp_path, degree):
+    cloud = random_cloud(600, sh_degree=degree, seed=20 + degree)
+    cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -3.9, 3.9)
+    write_splats(tmp_path / "src.ply", cloud)
+    write_splats(tmp_path / "ours.compressed.ply", cloud)
+    ours = read_splats(tmp_path / "ours.compressed.ply")
+    assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.compressed.ply", "a.ply"), ours)
+    python("gsply", "gsply_tool.py", "read-ply", tmp_path / "ours.compressed.ply", tmp_path / "g.npz")
+    assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
+    # theirs: splat-transform (Morton order) and gsply, read by us, against their own decoding
+    splat_transform(tmp_path / "src.ply", tmp_path / "st.compressed.ply")
+    assert_same_splats(read_splats(tmp_path / "st.compressed.ply"),
+                       transform_ply(tmp_path, tmp_path / "st.compressed.ply", "b.ply"))
+    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
+    python("gsply", "gsply_tool.py", "write-compressed", tmp_path / "cloud.npz", tmp_path / "gs.compressed.ply")
+    python("gsply", "gsply_tool.py", "read-ply", tmp_path / "gs.compressed.ply", tmp_path / "gs.npz")
+    assert_same_splats(read_splats(tmp_path / "gs.compressed.ply"), cloud_from_arrays(load_arrays(tmp_path / "gs.npz")))
+    # and what they wrote is the input within the format's quantisation
+    check_compressed_error(matched(read_splats(tmp_path / "st.compressed.ply"), cloud), cloud)
+
+
+def check_compressed_error(got, want):
+    """Bounds of the compressed layout: 10-11 bits of each chunk's range (at most the cloud's),
+    8 bits of colour range and opacity, SH bytes of 1/32."""
+    span = lambda a: a.max(axis=0) - a.min(axis=0)                     # noqa: E731
+    assert (np.abs(got.positions - want.positions) <= span(want.positions) / 2046 + 1e-6).all()
+    assert (np.abs(got.log_scales - want.log_scales) <= span(want.log_scales) / 2046 + 1e-5).all()
+    assert np.abs(got.opacities - want.opacities).max() <= 0.5 / 255 + 1e-6
+    if want.sh_degree:
+        assert np.abs(got.sh[:, 1:] - want.sh[:, 1:]).max() <= 1 / 32 + 1e-6
+
+
+# SOG -----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_sog_both_ways(tmp_path, degree):
+    cloud = random_cloud(500, sh_degree=degree, seed=30 + degree)
+    write_splats(tmp_path / "src.ply", cloud)
+    write_splats(tmp_path / "ours.sog", cloud)
+    (tmp_path / "loose").mkdir()
+    write_splats(tmp_path / "loose" / "meta.json", cloud)
+    ours = read_splats(tmp_path / "ours.sog")
+    assert_same_splats(read_splats(tmp_path / "loose" / "meta.json"), ours, position=0, scale=0, opacity=0, sh=0)
+    for source in (tmp_path / "ours.sog", tmp_path / "loose" / "meta.json"):
+        assert_same_splats(transform_ply(tmp_path, source, "a.ply"), ours)
+    python("gsply", "gsply_tool.py", "read-sog", tmp_path / "ours.sog", tmp_path / "g.npz")
+    assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
+    splat_transform("-g", "cpu", tmp_path / "src.ply", tmp_path / "theirs.sog")
+    theirs = read_splats(tmp_path / "theirs.sog")
+    assert_same_splats(theirs, transform_ply(tmp_path, tmp_path / "theirs.sog", "b.ply"))
+    # what they wrote is the input within SOG's quantisation; colours go through codebooks they
+    # choose (256 entries, a 256-entry SH palette for 500 splats): the DC colour is compared typically
+    got = matched(theirs, cloud)
+    assert_same_splats(got.with_sh_degree(0).replace(sh=cloud.sh[:, :1]), cloud.with_sh_degree(0), position=2e-4,
+                       scale=0.1, opacity=1 / 255, sh=0, angle_deg=2)
+    assert np.percentile(np.abs(got.sh[:, 0] - cloud.sh[:, 0]), 95) <= 0.02
+
+
+# glTF ----------------------------------------------------------------------------------------------
+
+GLTF_SH_SIGNS = np.float32([1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1])   # parity under x, y -> -x, -y
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+@pytest.mark.parametrize("ext", [".glb", ".gltf"])
+def test_gltf_both_ways(tmp_path, degree, ext):
+    cloud = random_cloud(200, sh_degree=degree, seed=40 + degree)
+    write_splats(tmp_path / f"ours{ext}", cloud)
+    node("gltf_read.mjs", tmp_path / f"ours{ext}", tmp_path / "read.json")
+    read = load_json(tmp_path / "read.json")
+    assert read["extension"]["kernel"] == "ellipse" and "KHR_gaussian_splatting" in read["extensionsUsed"]
+    attributes = read["primitives"][0]
+    unit = cloud.unit_rotations
+    np.testing.assert_array_equal(np.float32(attributes["POSITION"]), cloud.positions * np.float32([-1, -1, 1]))
+    np.testing.assert_allclose(attributes["KHR_gaussian_splatting:ROTATION"], unit[:, [1, 2, 3, 0]] * [-1, -1, 1, 1],
+                               atol=1e-6)
+    np.testing.assert_allclose(attributes["KHR_gaussian_splatting:SCALE"], cloud.scales, rtol=1e-6)
+    np.testing.assert_allclose(np.reshape(attributes["KHR_gaussian_splatting:OPACITY"], -1), cloud.opacities, atol=1e-7)
+    for d in range(4):
+        for c in range(2 * d + 1):
+            name = f"KHR_gaussian_splatting:SH_DEGREE_{d}_COEF_{c}"
+            assert (name in attributes) == (d <= degree)
+            if d <= degree:
+                np.testing.assert_array_equal(np.float32(attributes[name]), cloud.sh[:, d * d + c] * GLTF_SH_SIGNS[d * d + c])
+    # theirs (splat-transform's .glb) against their own decoding of the PLY they read
+    write_splats(tmp_path / "src.ply", cloud)
+    splat_transform(tmp_path / "src.ply", tmp_path / "theirs.glb")
+    theirs = read_splats(tmp_path / "theirs.glb")
+    assert_same_splats(theirs.replace(rotations=cloud.rotations), cloud, position=0, scale=1e-6, opacity=1e-6, sh=0)
+    assert_same_covariances(theirs, cloud)
+
+
+# .splat --------------------------------------------------------------------------------------------
+
+def test_splat_both_ways(tmp_path):
+    cloud = random_cloud(300, sh_degree=0, seed=50)
+    cloud.sh[:, 0] = np.clip(cloud.sh[:, 0], -1.7, 1.7)
+    write_splats(tmp_path / "src.ply", cloud)
+    python("ply2splat", "ply2splat_tool.py", tmp_path / "src.ply", tmp_path / "theirs.splat")
+    theirs = read_splats(tmp_path / "theirs.splat")
+    np.testing.assert_array_equal(theirs.positions, cloud.positions)
+    np.testing.assert_allclose(theirs.scales, cloud.scales, rtol=1e-6)
+    # ply2splat truncates colour and opacity to bytes (where we round): within one step
+    assert np.abs(theirs.opacities - cloud.opacities).max() <= 1 / 255 + 1e-6
+    assert np.abs(theirs.sh[:, 0] - cloud.sh[:, 0]).max() <= 1 / 255 / 0.28209479 + 1e-5
+    cos = np.abs((theirs.unit_rotations * cloud.unit_rotations).sum(axis=1))
+    assert np.degrees(2 * np.arccos(np.clip(cos, 0, 1))).max() <= 2.0
+    write_splats(tmp_path / "ours.splat", cloud)
+    assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.splat", "a.ply"), read_splats(tmp_path / "ours.splat"),
+                       angle_deg=1.0)
