@@ -106,8 +106,9 @@ def node(driver, *args):
 
 
 def python(tool, driver, *args):
-    """Run one of our Python drivers (tests/interop/*.py) in a tool's own environment."""
-    return run([python_tool(tool), DRIVERS / driver, *args])
+    """Run one of our Python drivers (tests/interop/*.py), or `-m module`, in a tool's own environment."""
+    script = [driver] if driver == "-m" else [DRIVERS / driver]
+    return run([python_tool(tool), *script, *args])
 
 
 # the arrays the drivers exchange: the model's fields, in the tool's own conventions ------------------

@@ -14,7 +14,7 @@ from interop import (cloud_from_arrays, load_arrays, load_json, matched, node, p
 from test_spz_splat import check_spz_error, in_range_cloud
 
 from splatwright.core import SplatCloud
-from splatwright.io import read_splats, spz, write_splats
+from splatwright.io import read_splats, spz, usd, write_splats
 
 pytestmark = pytest.mark.slow
 DEGREES = [0, 1, 2, 3]
@@ -246,3 +246,36 @@ def test_splat_both_ways(tmp_path):
     write_splats(tmp_path / "ours.splat", cloud)
     assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.splat", "a.ply"), read_splats(tmp_path / "ours.splat"),
                        angle_deg=1.0)
+
+
+# OpenUSD -------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_usd_nvidia_converter_and_openusd_schema(tmp_path, degree):
+    """NVIDIA's usd-convert-gsplat turns our PLY into OpenUSD: we read the PLY's values back. OpenUSD's
+    own schema (in that environment, its own usd-core) reads our file: the values NVIDIA's converter
+    writes for the same PLY, with the same metadata, and a transform standing the capture upright."""
+    cloud = random_cloud(40, sh_degree=degree, seed=60 + degree)
+    write_splats(tmp_path / "src.ply", cloud)
+    python("nvidia", "-m", "usd_convert_gsplat", "-i", tmp_path / "src.ply", "-o", tmp_path / "nvidia.usda")
+    theirs = read_splats(tmp_path / "nvidia.usda")                       # no upright transform: capture values
+    np.testing.assert_array_equal(theirs.positions, cloud.positions)
+    np.testing.assert_allclose(theirs.sh, cloud.sh, atol=0)
+    np.testing.assert_allclose(theirs.log_scales, cloud.log_scales, atol=2e-6)
+    np.testing.assert_allclose(theirs.opacities, cloud.opacities, atol=1e-6)
+    assert_same_covariances(theirs, cloud)
+    # the same file taken in the stage's own axes comes back turned (what the file shows in a viewer)
+    turned = usd.read(tmp_path / "nvidia.usda", unmarked="stage")
+    np.testing.assert_array_equal(turned.positions, cloud.positions * np.float32([1, -1, -1]))
+
+    write_splats(tmp_path / "ours.usda", cloud)
+    python("nvidia", "openusd_read.py", tmp_path / "ours.usda", tmp_path / "ours.npz")
+    python("nvidia", "openusd_read.py", tmp_path / "nvidia.usda", tmp_path / "nvidia.npz")
+    ours, nvidia = load_arrays(tmp_path / "ours.npz"), load_arrays(tmp_path / "nvidia.npz")
+    for name in ("positions", "sh", "degree", "element_size", "interpolation", "up_axis"):
+        np.testing.assert_array_equal(ours[name], nvidia[name], err_msg=name)
+    for name in ("orientations_xyzw", "scales", "opacities"):
+        np.testing.assert_allclose(ours[name], nvidia[name], rtol=2e-7, atol=1e-7, err_msg=name)
+    assert int(ours["element_size"]) == (degree + 1) ** 2 and str(ours["interpolation"]) == "vertex"
+    np.testing.assert_array_equal(ours["to_world"], np.diag([1.0, -1.0, -1.0, 1.0]))
+    np.testing.assert_array_equal(nvidia["to_world"], np.eye(4))

@@ -97,7 +97,7 @@ def test_foreign_file_round_trips_within_one_ulp(tmp_path):
     splat.CreateRadianceSphericalHarmonicsCoefficientsAttr(Vt.Vec3fArray.FromNumpy(coeffs))
     stage.GetRootLayer().Save()
     out = tmp_path / "out.usda"
-    usd.write(out, usd.read(src, axes="RUB"), axes="RUB", exact=False)
+    usd.write(out, usd.read(src, axes="RUB", unmarked="stage"), axes="RUB", exact=False)
     got = attr_values(out)
     np.testing.assert_array_equal(got["positions"], positions)
     np.testing.assert_array_equal(got["orientations"], quats)
@@ -105,7 +105,7 @@ def test_foreign_file_round_trips_within_one_ulp(tmp_path):
     assert ulps(got["scales"], scales).max() <= 1
     assert ulps(got["opacities"], opacities).max() <= 1
     # an edited cloud no longer matches what was read: its values come from the model, not the file
-    edited = usd.read(src, axes="RUB")
+    edited = usd.read(src, axes="RUB", unmarked="stage")
     edited.log_scales[0] += 1
     usd.write(out, edited, axes="RUB")
     np.testing.assert_allclose(attr_values(out)["scales"][0], scales[0] * np.e, rtol=1e-6)
@@ -154,23 +154,26 @@ def test_plain_pxr_sees_every_attribute_as_the_schema_defines_it(tmp_path):
     assert degree.GetVariability() == Sdf.VariabilityUniform and degree.Get() == 3
     for name in ("positionsh", "orientationsh", "scalesh", "opacitiesh"):
         assert not prim.GetAttribute(name).HasAuthoredValue()
-    # meaning: Y-up (RUB) positions, w-first Gf.Quatf, linear scales and opacities, particle-major SH
-    flip = np.array([1, -1, -1], np.float32)
-    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("positions").Get()), cloud.positions * flip)
+    # meaning, as the reference converters write it: the PLY's coordinates, normalised w-first
+    # Gf.Quatf, linear scales and opacities, particle-major SH with primvar metadata
+    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("positions").Get()), cloud.positions)
     quats = prim.GetAttribute("orientations").Get()
+    unit = cloud.rotations / np.linalg.norm(cloud.rotations.astype(np.float64), axis=1, keepdims=True)
     for i in (0, 17, 39):
         q = quats[i]
-        assert q.GetReal() == cloud.rotations[i, 0]
-        assert tuple(q.GetImaginary()) == tuple(cloud.rotations[i, 1:] * flip)
+        np.testing.assert_allclose([q.GetReal(), *q.GetImaginary()], unit[i], atol=1e-7)
     np.testing.assert_array_equal(np.asarray(prim.GetAttribute("scales").Get()),
                                   np.exp(cloud.log_scales.astype(np.float64)).astype(np.float32))
     sigmoid64 = 1 / (1 + np.exp(-cloud.opacity_logits.astype(np.float64)))
     np.testing.assert_array_equal(np.asarray(prim.GetAttribute("opacities").Get()), sigmoid64.astype(np.float32))
-    coeffs = np.asarray(prim.GetAttribute("radiance:sphericalHarmonicsCoefficients").Get()).reshape(n, k, 3)
-    np.testing.assert_array_equal(coeffs, cloud.sh * FLIP_SIGNS[None, :, None])
-    # the colour a viewer computes in the stage's frame equals the model's colour in its own
-    d = np.random.default_rng(0).normal(size=(n, 3))
-    np.testing.assert_allclose(shmod.colors(coeffs, d * flip), shmod.colors(cloud.sh, d), atol=1e-6)
+    sh_attr = prim.GetAttribute("radiance:sphericalHarmonicsCoefficients")
+    np.testing.assert_array_equal(np.asarray(sh_attr.Get()).reshape(n, k, 3), cloud.sh)
+    assert sh_attr.GetMetadata("interpolation") == "vertex" and sh_attr.GetMetadata("elementSize") == k
+    # a transform stands the y-down capture upright in the Y-up stage: a half turn about X
+    assert list(prim.GetAttribute("xformOpOrder").Get()) == ["xformOp:transform:upright"]
+    world = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    np.testing.assert_array_equal(world, np.diag([1.0, -1.0, -1.0, 1.0]))
+    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("splatwright:rotations").Get()), cloud.rotations)
     # the exact logits and log scales are custom attributes in our own namespace
     for name, values in (("splatwright:opacityLogits", cloud.opacity_logits),
                          ("splatwright:logScales", cloud.log_scales)):
@@ -276,7 +279,7 @@ def test_transforms_units_and_up_axis_are_applied(tmp_path):
     stage.GetRootLayer().Save()
 
     with pytest.warns(SplatFileWarning) as caught:
-        prims = usd.read_stage(path)
+        prims = usd.read_stage(path, unmarked="stage")      # the values are Z-up stage geometry
     text = " ".join(str(w.message) for w in caught)
     assert "Mesh x1 (/World/Ground)" in text and "Points x1 (/World/Cloud)" in text
     assert "/World/B: its transform stretches unevenly" in text and "/World/A: its" not in text
@@ -298,7 +301,7 @@ def test_transforms_units_and_up_axis_are_applied(tmp_path):
                                atol=2e-5)
     # read() concatenates both prims (the lower SH degree zero-padded)
     with pytest.warns(SplatFileWarning):
-        everything = usd.read(path)
+        everything = usd.read(path, unmarked="stage")
     assert len(everything) == 40 and everything.sh_degree == 2
     np.testing.assert_array_equal(everything.positions[25:], prims[1].cloud.positions)
 
@@ -311,7 +314,7 @@ def test_axes_and_units_can_be_kept(tmp_path):
     _define_splats(stage, "/S", cloud)
     stage.GetRootLayer().Save()
     with pytest.warns(SplatFileWarning, match="metersPerUnit is not authored; USD's fallback of 0.01"):
-        scaled = usd.read(path, axes="RUB")
+        scaled = usd.read(path, axes="RUB", unmarked="stage")
     np.testing.assert_allclose(scaled.positions[:, 1], cloud.positions[:, 2] * 0.01, rtol=1e-6)
     kept = usd.read(path, axes=None, meters_per_unit=None)
     np.testing.assert_array_equal(kept.positions, cloud.positions)
@@ -377,7 +380,7 @@ def test_schema_length_rules(tmp_path):
     splat.CreateScaleshAttr(Vt.Vec3hArray.FromNumpy(np.full((6, 3), 0.5, np.float16)))
     stage.GetRootLayer().Save()
     with pytest.warns(SplatFileWarning) as caught:
-        got = usd.read(path, axes="RUB")
+        got = usd.read(path, axes="RUB", unmarked="stage")
     text = str(caught[0].message)
     assert "orientations has 9 entries for 6 particles; truncated" in text
     assert "scales has 1 entries for 6 particles; ignored" in text
@@ -437,7 +440,7 @@ def test_unchanging_attributes_are_authored_once(tmp_path):
     stage = Usd.Stage.Open(str(path))
     prim = stage.GetPrimAtPath("/Splats")
     sampled = {a.GetName() for a in prim.GetAttributes() if a.GetTimeSamples()}
-    assert sampled == {"positions", "orientations", "extent", usd.SH_COEFFS}
+    assert sampled == {"positions", "orientations", "extent", usd.SH_COEFFS, usd.RAW_ROTATIONS}
     assert prim.GetAttribute("opacities").HasAuthoredValue()           # the one default value
     assert prim.GetAttribute(usd.SH_COEFFS).GetTimeSamples() == [10, 11, 12, 13]
     for (t, got), want in zip(usd.read_frames(path), frames):
