@@ -624,3 +624,90 @@ def test_convert_every_pair_and_info_every_format(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "src.ply"), str(tmp_path / "x.ply"), "--half"]) == 2
     assert "--half needs an OpenUSD output" in capsys.readouterr().err
     assert not (tmp_path / "x.ply").exists()
+
+
+# layouts, prims without the upright transform, Blender's point clouds ------------------------------
+
+@pytest.mark.parametrize("layout", ["upright", "y-up", "as-is"])
+def test_layouts_show_the_same_splats_or_say_how_they_differ(tmp_path, layout):
+    """World space as OpenUSD computes it: upright and y-up show the capture Y-up (its -y up); as-is
+    shows the PLY's values themselves. Each reads back as the cloud."""
+    cloud = random_cloud(30, sh_degree=2, seed=5)
+    path = tmp_path / f"{layout}.usda"
+    usd.write(path, cloud, layout=layout)
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/Splats")
+    world = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())).T
+    local = np.asarray(prim.GetAttribute("positions").Get(), np.float64)
+    shown = local @ world[:3, :3].T + world[:3, 3]
+    flip = np.array([1, -1, -1])
+    expected = cloud.positions * (1 if layout == "as-is" else flip)
+    np.testing.assert_array_equal(shown, expected)
+    unmarked = "capture" if layout != "y-up" else "stage"       # y-up values are stage geometry
+    assert_same(usd.read(path, unmarked=unmarked), cloud)
+
+
+def test_unmarked_prims_are_capture_coordinates_or_stage_geometry(tmp_path):
+    """A prim as NVIDIA's converter writes it (PLY values, no transform, Y-up stage): by default its
+    values come back as they are; unmarked="stage" takes them as Y-up geometry (flipped to RDF)."""
+    cloud = random_cloud(12, sh_degree=1, seed=6)
+    cloud.rotations /= np.linalg.norm(cloud.rotations, axis=1, keepdims=True)
+    path = tmp_path / "plain.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    _define_splats(stage, "/P", cloud)
+    stage.GetRootLayer().Save()
+    got = usd.read(path)
+    np.testing.assert_array_equal(got.positions, cloud.positions)
+    np.testing.assert_array_equal(got.sh, cloud.sh)
+    staged = usd.read(path, unmarked="stage")
+    np.testing.assert_array_equal(staged.positions, cloud.positions * np.float32([1, -1, -1]))
+    np.testing.assert_array_equal(staged.sh, cloud.sh * FLIP_SIGNS[None, :4, None])
+    with pytest.raises(ValueError, match="unmarked must be one of"):
+        usd.read(path, unmarked="sideways")
+
+
+def blender_points(path, cloud, quat_type="float4"):
+    """UsdGeomPoints as Blender 5.3's USD export writes splat point clouds (Z-up stage, object space
+    positions, `rotation` w,x,y,z, linear `scale`, `radiance:base` = DC rgb + opacity,
+    `radiance:sh_0..14` the higher coefficients in 3DGS order), authored with plain pxr."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    points = UsdGeom.Points.Define(stage, "/root/Splats")
+    points.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(cloud.positions))
+    api = UsdGeom.PrimvarsAPI(points)
+    if quat_type == "float4":
+        api.CreatePrimvar("rotation", Sdf.ValueTypeNames.Float4Array, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(cloud.rotations)))
+    else:
+        api.CreatePrimvar("rotation", Sdf.ValueTypeNames.QuatfArray, UsdGeom.Tokens.vertex).Set(
+            Vt.QuatfArray.FromNumpy(np.ascontiguousarray(cloud.rotations[:, [1, 2, 3, 0]])))
+    api.CreatePrimvar("scale", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec3fArray.FromNumpy(cloud.scales.astype(np.float32)))
+    base = np.column_stack([cloud.sh[:, 0], cloud.opacities]).astype(np.float32)
+    api.CreatePrimvar("radiance:base", Sdf.ValueTypeNames.Float4Array, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec4fArray.FromNumpy(base))
+    for i in range(cloud.sh.shape[1] - 1):
+        api.CreatePrimvar(f"radiance:sh_{i}", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cloud.sh[:, i + 1])))
+    stage.GetRootLayer().Save()
+
+
+@pytest.mark.parametrize("quat_type", ["float4", "quatf"])
+def test_blender_splat_point_clouds(tmp_path, quat_type):
+    cloud = random_cloud(20, sh_degree=3, seed=12)
+    path = tmp_path / "blender.usda"
+    blender_points(path, cloud, quat_type)
+    prims = usd.read_stage(path, axes=None)                 # the stage's own (Blender's Z-up) axes
+    assert prims[0].source == "Points (Blender splat primvars)"
+    got = prims[0].cloud
+    np.testing.assert_array_equal(got.positions, cloud.positions)
+    np.testing.assert_array_equal(got.rotations, cloud.rotations)
+    np.testing.assert_allclose(got.log_scales, cloud.log_scales, atol=1e-6)
+    np.testing.assert_allclose(got.opacities, cloud.opacities, atol=1e-6)
+    np.testing.assert_array_equal(got.sh, cloud.sh)
+    # in the model's axes: Z-up turned to Y-up, then to 3DGS's y down (x, y, z) -> (x, -z, y)
+    rdf = usd.read(path)
+    np.testing.assert_allclose(rdf.positions, cloud.positions[:, [0, 2, 1]] * [1, -1, 1], atol=1e-6)
