@@ -711,3 +711,20 @@ def test_blender_splat_point_clouds(tmp_path, quat_type):
     # in the model's axes: Z-up turned to Y-up, then to 3DGS's y down (x, y, z) -> (x, -z, y)
     rdf = usd.read(path)
     np.testing.assert_allclose(rdf.positions, cloud.positions[:, [0, 2, 1]] * [1, -1, 1], atol=1e-6)
+
+
+def test_convert_axes_and_usd_input_options(tmp_path, capsys):
+    from splatwright.cli import main
+    cloud = random_cloud(20, sh_degree=1, seed=13)
+    write_splats(tmp_path / "in.ply", cloud)
+    for layout in ("upright", "y-up", "as-is"):
+        assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / f"{layout}.usda"), "--axes", layout]) == 0
+    positions = {layout: attr_values(tmp_path / f"{layout}.usda")["positions"] for layout in ("upright", "y-up", "as-is")}
+    np.testing.assert_array_equal(positions["upright"], cloud.positions)
+    np.testing.assert_array_equal(positions["as-is"], cloud.positions)
+    np.testing.assert_array_equal(positions["y-up"], cloud.positions * np.float32([1, -1, -1]))
+    assert main(["convert", str(tmp_path / "y-up.usda"), str(tmp_path / "back.ply"), "--usd-input", "stage"]) == 0
+    np.testing.assert_array_equal(read_splats(tmp_path / "back.ply").positions, cloud.positions)
+    assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--axes", "y-up"]) == 2
+    assert "--axes needs an OpenUSD output" in capsys.readouterr().err
+    assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / "x.glb"), "--usd-input", "stage"]) == 2
