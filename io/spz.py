@@ -353,30 +353,39 @@ def _encode_rotations(q_wxyz, version):
 
 
 def _round_half_away32(t):
-    """round_half_away for float32 arrays without leaving float32: np.rint, with exact .5 ties moved
-    away from zero (t + 0.5 is exact there)."""
+    """round_half_away for float32 arrays, in place and without leaving float32: np.rint, then exact
+    .5 ties (rounded to even) moved away from zero (t + 0.5 is exact there)."""
     r = np.rint(t)
-    tie = np.abs(t - r) == np.float32(0.5)
+    d = np.subtract(t, r)
+    tie = np.abs(d, out=d) == np.float32(0.5)
     if tie.any():
         r[tie] = t[tie] + np.copysign(np.float32(0.5), t[tie])
     return r
 
 
-def _quantize_sh(sh, signs, sh1_bits, rest_bits):
+def _sh_buckets(k, sh1_bits, rest_bits):
+    """(half bucket to add, mask rounding down to a bucket) per higher coefficient, int16 (k-1, 1)."""
+    bits = np.full(k - 1, rest_bits)
+    bits[:3] = sh1_bits
+    size = (1 << (8 - bits)).astype(np.int16)[:, None]
+    return size // 2, ~(size - 1)
+
+
+def _quantize_sh(sh, signs, buckets):
     """u8 SH bytes (N, K-1, 3) of sh * signs: round(x * 128) + 128, then to the centre of a bucket of
     2^(8-bits) steps (degree 1: sh1_bits, above: rest_bits), clamped; and how many fell outside
     [-1, 1]. float32 and int16 throughout (x * 128 is exact in float32)."""
-    t = sh * (signs * np.float32(128))
-    q = np.clip(_round_half_away32(t), -1024, 1024).astype(np.int16) + np.int16(128)
-    outside = int(np.count_nonzero((q < 0) | (q > 255)))
-    for part, bits in ((q[:, :3], sh1_bits), (q[:, 3:], rest_bits)):
-        b = np.int16(1 << (8 - bits))
-        part += b // 2
-        part &= ~(b - 1)                  # down to a multiple of b (two's complement: floor for negatives)
-    return np.clip(q, 0, 255).astype(np.uint8), outside
+    r = _round_half_away32(sh * (signs * np.float32(128)))
+    q = np.clip(r, -1024, 1024, out=r).astype(np.int16)
+    q += np.int16(128)
+    outside = int(np.count_nonzero(q.view(np.uint16) > 255))      # negatives wrap above 255
+    half, mask = buckets
+    q += half
+    q &= mask                             # down to a multiple of the bucket (floor for negatives too)
+    return np.clip(q, 0, 255, out=q).astype(np.uint8), outside
 
 
-CHUNK = 1 << 15     # splats quantised together: their temporaries stay in cache
+CHUNK = 1 << 13     # splats quantised together: their temporaries stay in cache
 
 
 class _Packer:
@@ -385,7 +394,6 @@ class _Packer:
 
     def __init__(self, cloud, version, bits, sh1_bits, rest_bits, flip, prefix=0):
         self.cloud, self.version, self.bits = cloud, version, bits
-        self.sh1_bits, self.rest_bits = sh1_bits, rest_bits
         n, k = len(cloud), cloud.sh.shape[1]
         self.sizes = _block_sizes(n, k - 1, version)
         self.offsets = np.cumsum([prefix] + [size for _, size in self.sizes])     # prefix: room for a header
@@ -395,6 +403,7 @@ class _Packer:
         self.position_sign = np.float32([1, -1, -1]) if flip else np.ones(3, np.float32)
         self.rotation_sign = np.float32([1, 1, -1, -1]) if flip else np.ones(4, np.float32)
         self.sh_sign = SH_FLIP[1:k, None] if flip else np.ones((k - 1, 1), np.float32)
+        self.buckets = _sh_buckets(k, sh1_bits, rest_bits)
         self.clamped = []
 
     def pack(self, a, b):
@@ -418,8 +427,7 @@ class _Packer:
         width = 4 if self.version >= 3 else 3
         blocks["rotations"][width * a:width * b] = rotations.view(np.uint8).reshape(-1)
         if cloud.sh.shape[1] > 1:
-            sh, out["SH coefficients"] = _quantize_sh(cloud.sh[a:b, 1:], self.sh_sign, self.sh1_bits,
-                                                      self.rest_bits)
+            sh, out["SH coefficients"] = _quantize_sh(cloud.sh[a:b, 1:], self.sh_sign, self.buckets)
             rest = 3 * (cloud.sh.shape[1] - 1)
             blocks["sh"][rest * a:rest * b] = sh.reshape(-1)
         self.clamped.append(out)

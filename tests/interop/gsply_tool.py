@@ -3,7 +3,8 @@
     python gsply_tool.py write-spz in.npz out.spz VERSION
     python gsply_tool.py write-compressed in.npz out.compressed.ply
     python gsply_tool.py read-spz|read-ply|read-sog in out.npz
-    python gsply_tool.py time-spz in.npz out.spz REPEAT      (prints the median write seconds)
+    python gsply_tool.py time-spz in.npz out.spz REPEAT [VERSION]   (the median of REPEAT writes
+                                                                     after one untimed, in seconds)
 """
 
 import statistics
@@ -37,7 +38,7 @@ elif verb == "time-spz":
     data, times = data_from(args[0]), []
     for _ in range(int(args[2]) + 1):
         start = time.perf_counter()
-        spz.write_spz(args[1], data, version=3)
+        spz.write_spz(args[1], data, version=int(args[3]) if len(args) > 3 else 3)
         times.append(time.perf_counter() - start)
     print(statistics.median(times[1:]))
 elif verb == "read-spz":
