@@ -12,8 +12,10 @@ Reading (`read`, `read_stage`, `read_frames`)
   layout Adobe's USD file-format plugins write for splats, recognised by `primvars:rot`,
   `primvars:widths1` and `primvars:widths2`: `points`; `widths`/`primvars:widths1`/`widths2` are
   2 sigma per axis; `primvars:rot` quatf; `primvars:displayOpacity` linear; `primvars:displayColor`
-  the DC colour clamped to [0,1]; `primvars:fRest0..` channel-major like PLY's f_rest. Other prims
-  are skipped with a SplatFileWarning listing them.
+  the DC colour clamped to [0,1]; `primvars:fRest0..` channel-major like PLY's f_rest; and
+  UsdGeomPoints as Blender's USD export writes splat point clouds, recognised by `primvars:rotation`
+  and `primvars:scale` (see _blender_cloud). Other prims are skipped with a SplatFileWarning
+  listing them.
 - Float attributes are preferred to their half twins, as the schema asks. Per the schema, an array
   too long is truncated to the particle count and one too short is ignored (orientation identity,
   scale 1, opacity 1, SH a grey DC); each such repair is reported in a warning.
@@ -21,15 +23,25 @@ Reading (`read`, `read_stage`, `read_frames`)
   the flip from USD's Y-up (RUB) to the model's 3DGS axes (RDF: y down, z forward), so clouds come
   out in the model's axes and metres. axes="RUB" keeps Y-up, axes=None the stage's own axes;
   meters_per_unit=None keeps its units. USD's fallbacks apply to unauthored metadata: Y up, 0.01 m
-  per unit (a warning says so).
+  per unit (a warning says so). Our files' prims carry UPRIGHT_OP, so this gives their values back.
+- A ParticleField3DGaussianSplat without UPRIGHT_OP (NVIDIA's and OpenUSD's converters copy the PLY's
+  coordinates into a Y-up stage unchanged: shown as stored, the capture is upside down) is, with
+  unmarked="capture" (the default), taken as capture coordinates: units apply, no axis change, so
+  the PLY's values come back. unmarked="stage" reads it in the stage's axes like any geometry.
   A transform that is not a rotation times a uniform scale is exact for positions and covariances
   (re-diagonalised into rotation and scales) but not for SH colours; its anisotropy is reported.
-- Our own files also carry `splatwright:opacityLogits` and `splatwright:logScales` (float32 as the
-  model stores them), used when they still agree with `opacities`/`scales`, so PLY -> USD -> PLY is
-  exact; and a cloud read from USD and written back unchanged reproduces the file's linear values.
+- Our own files also carry `splatwright:opacityLogits`, `splatwright:logScales` and
+  `splatwright:rotations` (float32 as the model stores them), used when they still agree with
+  `opacities`/`scales`/`orientations`, so PLY -> USD -> PLY is exact; and a cloud read from USD and
+  written back unchanged reproduces the file's linear values.
 
-Writing (`write`, `write_stage`, `write_frames`): Y-up, metersPerUnit 1 (the model's RDF axes
-flipped to RUB unless axes="RUB"), one prim per cloud (default /Splats); a sequence of same-count
+Writing (`write`, `write_stage`, `write_frames`): a Y-up, metersPerUnit 1 stage holding the values
+as the reference converters (OpenUSD's hdParticleField example, NVIDIA's usd-convert-gsplat) write
+them: the capture's PLY coordinates, normalised quaternions, SH with primvar metadata (elementSize
+(d+1)^2, vertex interpolation); the prim's UPRIGHT_OP, a half turn about X, stands the y-down
+capture upright in the stage (layout="upright"). layout="y-up" turns the values themselves instead
+(no transform), layout="as-is" writes neither (as NVIDIA's converter). One prim per cloud (default
+/Splats); a sequence of same-count
 clouds (any iterable, consumed one at a time) becomes time samples on one prim, where an attribute
 that never changes is authored once as its default value. half=True stores orientations, scales, opacities and SH
 as half floats (about half the size; positions stay float32 unless half_positions=True). Extras
@@ -42,6 +54,7 @@ import ctypes
 import itertools
 import math
 import os
+import struct
 import tempfile
 import warnings
 import weakref
@@ -145,6 +158,8 @@ def _open(path):
     if expected and not any(head.startswith(m) for m in expected):
         names = " or ".join(repr(m.decode("latin-1")) for m in expected)
         raise SplatFileError(path, f"not a {os.path.splitext(path)[1]} file (it does not start with {names})")
+    if head.startswith(b"PXR-USDC"):
+        _check_crate(path)
     layer = Sdf.Layer.Find(os.path.abspath(path))
     if layer is not None:             # a layer still cached from an earlier open may be stale
         layer.Reload(True)
@@ -155,6 +170,34 @@ def _open(path):
     if stage is None:
         raise SplatFileError(path, "OpenUSD cannot open it")
     return stage
+
+
+CRATE_EXPANSION = 256      # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
+
+
+def _check_crate(path):
+    """Refuse a .usdc whose table of contents or section counts the file cannot hold, before
+    OpenUSD's crate reader sizes arrays by them (a flipped bit in a count makes it allocate
+    gigabytes). Every crate section starts with a u64 element count."""
+    with open(path, "rb") as f:
+        data = f.read()
+    size = len(data)
+    try:
+        toc = struct.unpack_from("<q", data, 16)[0]
+        sections = struct.unpack_from("<Q", data, toc)[0] if 0 < toc <= size - 8 else None
+        if sections is None or sections > (size - toc - 8) // 32:
+            raise SplatFileError(path, "crate table of contents lies outside the file (truncated or corrupt?)")
+        for i in range(sections):
+            name, start, length = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
+            name = name.rstrip(b"\0").decode("latin-1")
+            if start < 0 or length < 8 or start + length > size:
+                raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
+            count = struct.unpack_from("<Q", data, start)[0]
+            if count > CRATE_EXPANSION * length:
+                raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
+                                           "(corrupt?)")
+    except struct.error:
+        raise SplatFileError(path, "crate header or table of contents is truncated") from None
 
 
 def _tf_message(exc):

@@ -521,7 +521,7 @@ def test_bad_files_raise_clear_errors(tmp_path):
     usd.write(good, random_cloud(500, 3))
     cut = tmp_path / "cut.usdc"
     cut.write_bytes(good.read_bytes()[:5000])
-    with pytest.raises(SplatFileError, match="cut.usdc: OpenUSD cannot open it"):
+    with pytest.raises(SplatFileError, match="cut.usdc: (OpenUSD cannot open it|crate table of contents lies outside)"):
         usd.read(cut)
     wrong = tmp_path / "wrong.usdc"
     wrong.write_text("#usda 1.0\n")
@@ -728,3 +728,21 @@ def test_convert_axes_and_usd_input_options(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--axes", "y-up"]) == 2
     assert "--axes needs an OpenUSD output" in capsys.readouterr().err
     assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / "x.glb"), "--usd-input", "stage"]) == 2
+
+
+def test_crate_counts_the_file_cannot_hold_are_refused_before_openusd_reads_them(tmp_path):
+    """A flipped bit in a crate section's element count makes OpenUSD's reader size arrays by it
+    (gigabytes, minutes): refused from the table of contents first."""
+    import struct
+    path = tmp_path / "ok.usdc"
+    usd.write(path, random_cloud(20, sh_degree=1, seed=6))
+    data = bytearray(path.read_bytes())
+    toc = struct.unpack_from("<q", data, 16)[0]
+    for i in range(struct.unpack_from("<Q", data, toc)[0]):
+        name, start, _ = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
+        if name.rstrip(b"\0") == b"SPECS":
+            struct.pack_into("<Q", data, start, 1 << 29)
+    bad = tmp_path / "specs.usdc"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(SplatFileError, match="crate section 'SPECS' claims 536870912 entries"):
+        read_splats(bad)
