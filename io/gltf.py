@@ -175,8 +175,10 @@ def _node_matrices(path, doc):
     nodes = _list(path, doc, "nodes")
     scenes = _list(path, doc, "scenes")
     if scenes:
-        scene = scenes[doc.get("scene", 0) if isinstance(doc.get("scene", 0), int) else 0]
-        roots = scene.get("nodes", [])
+        index = doc.get("scene", 0)
+        if not isinstance(index, int) or not 0 <= index < len(scenes):
+            raise SplatFileError(path, f"scene {index!r} does not exist")
+        roots = scenes[index].get("nodes", [])
     else:
         children = {c for n in nodes for c in n.get("children", [])}
         roots = [i for i in range(len(nodes)) if i not in children]
@@ -275,6 +277,16 @@ def read(path, nonfinite="raise"):
     """Every KHR_gaussian_splatting primitive of the default scene (node transforms applied),
     concatenated into one SplatCloud in the model's axes."""
     check_nonfinite_policy(nonfinite)
+    try:
+        return _read(path, nonfinite)
+    except SplatFileError:
+        raise
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+        # JSON of the wrong shape somewhere (a string where an object belongs, a short matrix, ...)
+        raise SplatFileError(path, f"malformed glTF document ({type(exc).__name__}: {exc})") from None
+
+
+def _read(path, nonfinite):
     doc, buffers = _load_document(path)
     unknown = [e for e in doc.get("extensionsRequired", []) if e != EXTENSION]
     if unknown:

@@ -311,3 +311,23 @@ def test_sog_policy_errors_and_damage(tmp_path):
     (tmp_path / "loose" / "quats.webp").unlink()
     with pytest.raises(SplatFileError, match="cannot read quats.webp"):
         read_splats(meta)
+
+
+def test_gltf_documents_of_the_wrong_shape(tmp_path):
+    import base64
+    doc, binary = gltf.encode(random_cloud(5, sh_degree=1))
+    doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(binary).decode()
+    cases = {"matrix": (lambda d: d["nodes"][0].update(matrix=[1, 2]), "malformed glTF document"),
+             "scene": (lambda d: d.update(scene=5), "scene 5 does not exist"),
+             "attributes": (lambda d: d["meshes"][0]["primitives"][0].update(attributes="x"), "no POSITION"),
+             "extension": (lambda d: d["meshes"][0]["primitives"][0]["extensions"].update(KHR_gaussian_splatting=3),
+                           "malformed glTF document"),
+             "accessor": (lambda d: d["accessors"][0].update(count=10 ** 12), "run past the end"),
+             "no_splats": (lambda d: d["meshes"][0]["primitives"][0].pop("extensions"), "no KHR_gaussian_splatting primitive")}
+    for label, (mutate, message) in cases.items():
+        broken = json.loads(json.dumps(doc))
+        mutate(broken)
+        path = tmp_path / f"{label}.gltf"
+        path.write_text(json.dumps(broken))
+        with pytest.raises(SplatFileError, match=message):
+            read_splats(path)
