@@ -64,6 +64,9 @@ def attribute_errors(got, want):
     }
 
 
+VERSIONS_AGAINST_GSPLY = (3, 4)
+
+
 def gsply_rows(cloud, tmp, repeat):
     """SPZ v3 and v4 writes of `cloud`: ours against gsply's, alternately in one loop; [] (with a
     note) when gsply cannot be installed."""
@@ -77,7 +80,7 @@ def gsply_rows(cloud, tmp, repeat):
     driver = Path(__file__).resolve().parent.parent / "tests" / "interop" / "gsply_tool.py"
     nbytes = sum(getattr(cloud, name).nbytes for name in FIELDS)
     rows = []
-    for version in (3, 4):
+    for version in VERSIONS_AGAINST_GSPLY:
         ours, theirs = [], []
         write = fresh_file(tmp / "ours.spz", lambda p: spz.write(p, cloud, version=version))
         write()

@@ -56,7 +56,7 @@ SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}    # higher-order coefficients per ch
 GZIP_LEVEL, ZSTD_LEVEL = 6, 12                 # what Niantic's writer uses (v4 output is byte-identical)
 GZIP_CHUNK = 1 << 20                           # deflated independently, in parallel, like pigz
 GZIP_OS = 3                                    # the OS byte zlib writes on Unix
-ISAL_LEVEL = 2                                 # ISA-L's default: about zlib 6's size, many times its speed
+ISAL_LEVEL = 1                                 # ISA-L level 1: about zlib 6's size, many times its speed
 # The most a compressed byte can expand to: deflate reaches at most 1032:1; a zstd block (a 3-byte
 # header at least) holds at most 128 KiB. A header claiming more splats than that is lying.
 DEFLATE_MAX_RATIO = 1032
@@ -364,10 +364,11 @@ def _round_half_away32(t):
 
 
 def _sh_buckets(k, sh1_bits, rest_bits):
-    """(half bucket to add, mask rounding down to a bucket) per higher coefficient, int16 (k-1, 1)."""
+    """(half bucket to add, mask rounding down to a bucket) per higher coefficient and channel, int16
+    ((k-1) * 3,): flat, so NumPy's inner loops run along whole rows rather than triples."""
     bits = np.full(k - 1, rest_bits)
     bits[:3] = sh1_bits
-    size = (1 << (8 - bits)).astype(np.int16)[:, None]
+    size = np.repeat((1 << (8 - bits)).astype(np.int16), 3)
     return size // 2, ~(size - 1)
 
 
@@ -375,14 +376,15 @@ def _quantize_sh(sh, signs, buckets):
     """u8 SH bytes (N, K-1, 3) of sh * signs: round(x * 128) + 128, then to the centre of a bucket of
     2^(8-bits) steps (degree 1: sh1_bits, above: rest_bits), clamped; and how many fell outside
     [-1, 1]. float32 and int16 throughout (x * 128 is exact in float32)."""
-    r = _round_half_away32(sh * (signs * np.float32(128)))
+    n = len(sh)
+    r = _round_half_away32(sh.reshape(n, -1) * np.repeat(signs.reshape(-1) * np.float32(128), 3))
     q = np.clip(r, -1024, 1024, out=r).astype(np.int16)
     q += np.int16(128)
     outside = int(np.count_nonzero(q.view(np.uint16) > 255))      # negatives wrap above 255
     half, mask = buckets
     q += half
     q &= mask                             # down to a multiple of the bucket (floor for negatives too)
-    return np.clip(q, 0, 255, out=q).astype(np.uint8), outside
+    return np.clip(q, 0, 255, out=q).astype(np.uint8).reshape(sh.shape), outside
 
 
 CHUNK = 1 << 13     # splats quantised together: their temporaries stay in cache
