@@ -212,19 +212,20 @@ def read(path, nonfinite="raise"):
 # writing ------------------------------------------------------------------------------------------
 
 def kmeans_1d(values, k=CODEBOOK, iterations=12):
-    """(centroids (k,) float32 ascending, labels) of 1-D k-means, started at quantiles."""
-    v = np.asarray(values, np.float64).reshape(-1)
+    """(centroids (k,) float32 ascending, labels) of 1-D k-means, started at quantiles. On sorted
+    values each cluster is a run, so an iteration is k binary searches and prefix-sum differences."""
+    v = np.sort(np.asarray(values, np.float64).reshape(-1))
     centroids = np.unique(np.quantile(v, (np.arange(k) + 0.5) / k)) if len(v) else np.zeros(1)
+    prefix = np.concatenate([[0.0], np.cumsum(v)])
     for _ in range(iterations):
-        labels = _nearest_1d(v, centroids)
-        sums = np.bincount(labels, v, len(centroids))
-        counts = np.bincount(labels, minlength=len(centroids))
-        moved = np.where(counts > 0, sums / np.maximum(counts, 1), centroids)
+        edges = np.concatenate([[0], np.searchsorted(v, (centroids[1:] + centroids[:-1]) / 2), [len(v)]])
+        counts = np.diff(edges)
+        moved = np.where(counts > 0, (prefix[edges[1:]] - prefix[edges[:-1]]) / np.maximum(counts, 1), centroids)
         if np.array_equal(moved, centroids):
             break
         centroids = np.sort(moved)
     centroids = np.pad(centroids, (0, k - len(centroids)), mode="edge").astype(np.float32)
-    return centroids, _nearest_1d(v, centroids.astype(np.float64))
+    return centroids, _nearest_1d(np.asarray(values, np.float64).reshape(-1), centroids.astype(np.float64))
 
 
 def _nearest_1d(v, centroids):
@@ -253,9 +254,8 @@ def palette(vectors, size):
         bounds = np.unique(np.concatenate([bounds, (starts + stops) // 2]))
     labels = np.empty(n, np.int64)
     labels[order] = np.repeat(np.arange(len(bounds) - 1), np.diff(bounds))
-    sums = np.zeros((len(bounds) - 1, vectors.shape[1]))
-    np.add.at(sums, labels, vectors)
-    return (sums / np.bincount(labels)[:, None]).astype(np.float32), labels
+    sums = np.add.reduceat(vectors[order].astype(np.float64), bounds[:-1], axis=0)
+    return (sums / np.diff(bounds)[:, None]).astype(np.float32), labels
 
 
 def _grid(n):
