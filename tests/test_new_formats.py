@@ -12,7 +12,6 @@ import pytest
 from helpers import random_cloud
 from test_io_fuzz import check_splat_read, damaged, outcome, write_case
 
-from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
 from splatwright.io import SplatFileError, SplatFileWarning, compressed_ply, format_of, gltf, read_splats, sog, write_splats
 
