@@ -244,8 +244,14 @@ def stage_matrix(stage, axes="RDF", meters_per_unit=1.0, notes=None):
 
 
 def _world_matrix(prim, time):
-    """The prim's local-to-world transform as a 4x4 acting on column vectors."""
-    return np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64).T
+    """The prim's local-to-world transform as a 4x4 acting on column vectors. Its own ops are read
+    with GetLocalTransformation: a pxr without the splat schema (Blender's) does not count the prim
+    as Xformable, and ComputeLocalToWorldTransform would skip them."""
+    xformable = UsdGeom.Xformable(prim)
+    local = np.array(xformable.GetLocalTransformation(time), dtype=np.float64).T
+    if xformable.GetResetXformStack():
+        return local
+    return np.array(UsdGeom.XformCache(time).GetParentToWorldTransform(prim), dtype=np.float64).T @ local
 
 
 # reading values -----------------------------------------------------------------------------------

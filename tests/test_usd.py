@@ -746,3 +746,16 @@ def test_crate_counts_the_file_cannot_hold_are_refused_before_openusd_reads_them
     bad.write_bytes(bytes(data))
     with pytest.raises(SplatFileError, match="crate section 'SPECS' claims 536870912 entries"):
         read_splats(bad)
+
+
+def test_upright_transform_counts_where_pxr_does_not_know_the_schema(tmp_path):
+    """Blender's bundled pxr has no ParticleField3DGaussianSplat: it does not count such prims as
+    Xformable, so their own ops must be read directly (here a prim of a type no pxr knows)."""
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set((1, 2, 3))
+    prim = stage.DefinePrim("/World/S", "SplatTypeUnknownHere")
+    usd._upright_op(prim)
+    assert not UsdGeom.Xformable(prim)                 # as in a pxr without the schema
+    expected = np.diag([1.0, -1.0, -1.0, 1.0])
+    expected[:3, 3] = (1, 2, 3)
+    np.testing.assert_array_equal(usd._world_matrix(prim, Usd.TimeCode.Default()), expected)
