@@ -43,7 +43,8 @@ def _parse_vec(text):
 # info ---------------------------------------------------------------------------------------------
 
 def _add_info(p):
-    p.add_argument("file", help="a splat file (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat)")
+    p.add_argument("file", help="a splat file (.ply, .compressed.ply, .usd/.usda/.usdc/.usdz, .spz, .splat, "
+                                ".sog or meta.json, .glb/.gltf)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -91,6 +92,13 @@ def _add_convert(p):
     p.add_argument("--spz-version", type=int, choices=(2, 3, 4), help="SPZ version to write (default 3)")
     p.add_argument("--half", action="store_true",
                    help="OpenUSD output: orientations, scales, opacities and SH as half floats")
+    p.add_argument("--axes", choices=("upright", "y-up", "as-is"),
+                   help="OpenUSD output: the capture's coordinates under a transform standing them upright "
+                        "(default), values turned Y-up with no transform, or the coordinates as they are "
+                        "(as NVIDIA's converter writes: upside down in Y-up viewers)")
+    p.add_argument("--usd-input", choices=("capture", "stage"),
+                   help="OpenUSD input: take splat prims without our upright transform as capture (PLY) "
+                        "coordinates (default, right for NVIDIA's and OpenUSD's converters) or in the stage's axes")
     p.add_argument("--prune-opacity", type=float, metavar="T", help="drop splats whose opacity is below T (0..1)")
     p.add_argument("--prune-invisible", type=float, nargs="?", const=0.0, metavar="W",
                    help="drop splats that add nothing to any pixel of the views around the cloud (with W: "
@@ -116,7 +124,21 @@ def _write_options(args):
         if fmt != "usd":
             raise SplatFileError(args.output, "--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
         options["half"] = True
+    if args.axes is not None:
+        if fmt != "usd":
+            raise SplatFileError(args.output, "--axes needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
+        options["layout"] = args.axes
     return options
+
+
+def _read_options(args):
+    """Format-specific read options from the convert flags."""
+    from .io import SplatFileError, format_of
+    if args.usd_input is None:
+        return {}
+    if format_of(args.input) != "usd":
+        raise SplatFileError(args.input, "--usd-input needs an OpenUSD input (.usd, .usda, .usdc, .usdz)")
+    return {"unmarked": args.usd_input}
 
 
 def _run_convert(args):
@@ -124,7 +146,7 @@ def _run_convert(args):
     options = _write_options(args)
     if args.views < 1 or args.view_size < 1:
         raise SystemExit("splatwright convert: error: --views and --view-size must be >= 1")
-    cloud = read_splats(args.input)
+    cloud = read_splats(args.input, **_read_options(args))
     stages = _economy_stages(args, cloud, options)
     if stages:
         _write_stages(args, cloud, stages)

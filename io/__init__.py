@@ -9,22 +9,30 @@ from .common import SplatFileError, SplatFileWarning
 # extension -> module in this package exposing read(path) -> SplatCloud and write(path, cloud, **options)
 FORMATS = {
     ".ply": "ply",
+    ".compressed.ply": "compressed_ply",
     ".usd": "usd",
     ".usda": "usd",
     ".usdc": "usd",
     ".usdz": "usd",
     ".spz": "spz",
     ".splat": "splat",
+    ".sog": "sog",
+    "meta.json": "sog",
+    ".glb": "gltf",
+    ".gltf": "gltf",
 }
 
 
 def format_of(path):
-    """The format module name for a path, or SplatFileError naming the unknown extension."""
-    ext = Path(path).suffix.lower()
-    if ext not in FORMATS:
-        known = ", ".join(sorted(FORMATS))
-        raise SplatFileError(path, f"unknown splat file extension '{ext}' (known: {known})")
-    return FORMATS[ext]
+    """The format module name for a path (the longest known ending of its name wins, so
+    x.compressed.ply is compressed PLY; a bare ".ply" is no name), or SplatFileError naming the
+    unknown extension."""
+    name = Path(path).name.lower()
+    for ending in sorted(FORMATS, key=len, reverse=True):
+        if name.endswith(ending) and (len(name) > len(ending) or not ending.startswith(".")):
+            return FORMATS[ending]
+    known = ", ".join(sorted(FORMATS))
+    raise SplatFileError(path, f"unknown splat file extension '{Path(path).suffix.lower()}' (known: {known})")
 
 
 def _module(path):

@@ -361,13 +361,17 @@ def _sh_count(path, names):
 
 
 def read(path, nonfinite="raise"):
-    """Read a 3DGS PLY into a SplatCloud.
+    """Read a 3DGS PLY (or a PlayCanvas compressed PLY, see compressed_ply) into a SplatCloud.
 
     Binary data is read a cache-sized chunk at a time on every core and each chunk is reordered
     into the cloud's arrays (and checked for non-finite values) before the next is read.
     """
     check_nonfinite_policy(nonfinite)
+    from . import compressed_ply
     try:
+        with open(path, "rb") as f:
+            if compressed_ply.is_compressed(_read_header(path, f)[1]):
+                return compressed_ply.read(path, nonfinite)
         convert = _load(path)
     except OSError as exc:
         raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None

@@ -12,8 +12,10 @@ Reading (`read`, `read_stage`, `read_frames`)
   layout Adobe's USD file-format plugins write for splats, recognised by `primvars:rot`,
   `primvars:widths1` and `primvars:widths2`: `points`; `widths`/`primvars:widths1`/`widths2` are
   2 sigma per axis; `primvars:rot` quatf; `primvars:displayOpacity` linear; `primvars:displayColor`
-  the DC colour clamped to [0,1]; `primvars:fRest0..` channel-major like PLY's f_rest. Other prims
-  are skipped with a SplatFileWarning listing them.
+  the DC colour clamped to [0,1]; `primvars:fRest0..` channel-major like PLY's f_rest; and
+  UsdGeomPoints as Blender's USD export writes splat point clouds, recognised by `primvars:rotation`
+  and `primvars:scale` (see _blender_cloud). Other prims are skipped with a SplatFileWarning
+  listing them.
 - Float attributes are preferred to their half twins, as the schema asks. Per the schema, an array
   too long is truncated to the particle count and one too short is ignored (orientation identity,
   scale 1, opacity 1, SH a grey DC); each such repair is reported in a warning.
@@ -21,15 +23,25 @@ Reading (`read`, `read_stage`, `read_frames`)
   the flip from USD's Y-up (RUB) to the model's 3DGS axes (RDF: y down, z forward), so clouds come
   out in the model's axes and metres. axes="RUB" keeps Y-up, axes=None the stage's own axes;
   meters_per_unit=None keeps its units. USD's fallbacks apply to unauthored metadata: Y up, 0.01 m
-  per unit (a warning says so).
+  per unit (a warning says so). Our files' prims carry UPRIGHT_OP, so this gives their values back.
+- A ParticleField3DGaussianSplat without UPRIGHT_OP (NVIDIA's and OpenUSD's converters copy the PLY's
+  coordinates into a Y-up stage unchanged: shown as stored, the capture is upside down) is, with
+  unmarked="capture" (the default), taken as capture coordinates: units apply, no axis change, so
+  the PLY's values come back. unmarked="stage" reads it in the stage's axes like any geometry.
   A transform that is not a rotation times a uniform scale is exact for positions and covariances
   (re-diagonalised into rotation and scales) but not for SH colours; its anisotropy is reported.
-- Our own files also carry `splatwright:opacityLogits` and `splatwright:logScales` (float32 as the
-  model stores them), used when they still agree with `opacities`/`scales`, so PLY -> USD -> PLY is
-  exact; and a cloud read from USD and written back unchanged reproduces the file's linear values.
+- Our own files also carry `splatwright:opacityLogits`, `splatwright:logScales` and
+  `splatwright:rotations` (float32 as the model stores them), used when they still agree with
+  `opacities`/`scales`/`orientations`, so PLY -> USD -> PLY is exact; and a cloud read from USD and
+  written back unchanged reproduces the file's linear values.
 
-Writing (`write`, `write_stage`, `write_frames`): Y-up, metersPerUnit 1 (the model's RDF axes
-flipped to RUB unless axes="RUB"), one prim per cloud (default /Splats); a sequence of same-count
+Writing (`write`, `write_stage`, `write_frames`): a Y-up, metersPerUnit 1 stage holding the values
+as the reference converters (OpenUSD's hdParticleField example, NVIDIA's usd-convert-gsplat) write
+them: the capture's PLY coordinates, normalised quaternions, SH with primvar metadata (elementSize
+(d+1)^2, vertex interpolation); the prim's UPRIGHT_OP, a half turn about X, stands the y-down
+capture upright in the stage (layout="upright"). layout="y-up" turns the values themselves instead
+(no transform), layout="as-is" writes neither (as NVIDIA's converter). One prim per cloud (default
+/Splats); a sequence of same-count
 clouds (any iterable, consumed one at a time) becomes time samples on one prim, where an attribute
 that never changes is authored once as its default value. half=True stores orientations, scales, opacities and SH
 as half floats (about half the size; positions stay float32 unless half_positions=True). Extras
@@ -42,6 +54,7 @@ import ctypes
 import itertools
 import math
 import os
+import struct
 import tempfile
 import warnings
 import weakref
@@ -57,7 +70,7 @@ from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, a
 from .spz import SH_FLIP, flip_yz
 
 try:
-    from pxr import Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt
 except ImportError:                                    # reported when a USD file is used
     Usd = None
 try:
@@ -70,6 +83,11 @@ SH_DEGREE = "radiance:sphericalHarmonicsDegree"
 SH_COEFFS = "radiance:sphericalHarmonicsCoefficients"
 LOGITS = "splatwright:opacityLogits"
 LOG_SCALES = "splatwright:logScales"
+RAW_ROTATIONS = "splatwright:rotations"           # w, x, y, z as the model holds them (any norm)
+UPRIGHT_OP = "xformOp:transform:upright"          # capture (y down, z forward) -> the Y-up stage
+UPRIGHT = np.diag([1.0, -1.0, -1.0, 1.0])         # a half turn about X, exact in a matrix op
+LAYOUTS = ("upright", "y-up", "as-is")
+UNMARKED = ("capture", "stage")
 ANISOTROPY_TOLERANCE = 1e-6        # below this a transform counts as rotation * uniform scale
 
 # schema attribute -> (Sdf type name, uniform?, schema creator method)
@@ -87,7 +105,7 @@ SCHEMA = {
     SH_COEFFS + "h": ("half3[]", False, "CreateRadianceSphericalHarmonicsCoefficientshAttr"),
     "extent": ("float3[]", False, "CreateExtentAttr"),
 }
-CUSTOM = {LOGITS: "float[]", LOG_SCALES: "float3[]"}
+CUSTOM = {LOGITS: "float[]", LOG_SCALES: "float3[]", RAW_ROTATIONS: "float4[]"}
 
 # NumPy dtype of an extra -> Sdf scalar type of its primvar (narrow ints widen to int, restored on read)
 EXTRA_TYPES = {"float32": "float", "float64": "double", "float16": "half", "int32": "int",
@@ -96,6 +114,9 @@ EXTRA_TYPES = {"float32": "float", "float64": "double", "float16": "half", "int3
 DTYPE_KEY = "splatwright:dtype"
 NARROW_INTS = {name for name, sdf in EXTRA_TYPES.items() if sdf == "int" and name != "int32"}
 ADOBE_PRIMVARS = {"rot", "widths1", "widths2", "displayColor", "displayOpacity", "clipping"}
+BLENDER_BASE = "radiance:base"                    # Blender's point-cloud splats: DC rgb + opacity
+BLENDER_PRIMVARS = {"rotation", "scale", BLENDER_BASE, "displayColor", "displayOpacity"} | \
+    {f"radiance:sh_{i}" for i in range(15)}
 
 # Linear values read from a file, kept per cloud object so that writing an unchanged cloud back
 # reproduces them bit for bit (the model stores logs and logits, which float32 cannot invert exactly).
@@ -137,6 +158,8 @@ def _open(path):
     if expected and not any(head.startswith(m) for m in expected):
         names = " or ".join(repr(m.decode("latin-1")) for m in expected)
         raise SplatFileError(path, f"not a {os.path.splitext(path)[1]} file (it does not start with {names})")
+    if head.startswith(b"PXR-USDC"):
+        _check_crate(path)
     layer = Sdf.Layer.Find(os.path.abspath(path))
     if layer is not None:             # a layer still cached from an earlier open may be stale
         layer.Reload(True)
@@ -147,6 +170,34 @@ def _open(path):
     if stage is None:
         raise SplatFileError(path, "OpenUSD cannot open it")
     return stage
+
+
+CRATE_EXPANSION = 256      # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
+
+
+def _check_crate(path):
+    """Refuse a .usdc whose table of contents or section counts the file cannot hold, before
+    OpenUSD's crate reader sizes arrays by them (a flipped bit in a count makes it allocate
+    gigabytes). Every crate section starts with a u64 element count."""
+    with open(path, "rb") as f:
+        data = f.read()
+    size = len(data)
+    try:
+        toc = struct.unpack_from("<q", data, 16)[0]
+        sections = struct.unpack_from("<Q", data, toc)[0] if 0 < toc <= size - 8 else None
+        if sections is None or sections > (size - toc - 8) // 32:
+            raise SplatFileError(path, "crate table of contents lies outside the file (truncated or corrupt?)")
+        for i in range(sections):
+            name, start, length = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
+            name = name.rstrip(b"\0").decode("latin-1")
+            if start < 0 or length < 8 or start + length > size:
+                raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
+            count = struct.unpack_from("<Q", data, start)[0]
+            if count > CRATE_EXPANSION * length:
+                raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
+                                           "(corrupt?)")
+    except struct.error:
+        raise SplatFileError(path, "crate header or table of contents is truncated") from None
 
 
 def _tf_message(exc):
@@ -193,8 +244,14 @@ def stage_matrix(stage, axes="RDF", meters_per_unit=1.0, notes=None):
 
 
 def _world_matrix(prim, time):
-    """The prim's local-to-world transform as a 4x4 acting on column vectors."""
-    return np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), dtype=np.float64).T
+    """The prim's local-to-world transform as a 4x4 acting on column vectors. Its own ops are read
+    with GetLocalTransformation: a pxr without the splat schema (Blender's) does not count the prim
+    as Xformable, and ComputeLocalToWorldTransform would skip them."""
+    xformable = UsdGeom.Xformable(prim)
+    local = np.array(xformable.GetLocalTransformation(time), dtype=np.float64).T
+    if xformable.GetResetXformStack():
+        return local
+    return np.array(UsdGeom.XformCache(time).GetParentToWorldTransform(prim), dtype=np.float64).T @ local
 
 
 # reading values -----------------------------------------------------------------------------------
@@ -327,12 +384,36 @@ def _gaussian_cloud(prim, time, notes):
     stored_logs = _fit(_value(prim, LOG_SCALES, time, (3,)), n, (3,), LOG_SCALES, "-", []) \
         if scales is not None else None
     rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1)) if quats is None else quats[:, [3, 0, 1, 2]]
+    if quats is not None:
+        rotations = _rotations_from(rotations, _fit(_value(prim, RAW_ROTATIONS, time, (4,)), n, (4,),
+                                                    RAW_ROTATIONS, "-", []), notes)
     opacities = np.ones(n, np.float32) if opacities is None else _valid_opacities(opacities, notes)
     scales = np.ones((n, 3), np.float32) if scales is None else scales
     logits = _logits_from(opacities, stored_logits, notes)
     log_scales = _log_scales_from(scales, stored_logs, notes)
     cloud = SplatCloud(positions, rotations, log_scales, logits, sh, _extras(prim, time, n, set(), notes))
     return cloud, opacities, np.abs(scales)
+
+
+def _rotations_from(orientations, stored, notes):
+    """The stored raw quaternions where they still normalise to the schema's orientations (up to
+    float32 round-off, either sign), else the orientations."""
+    if stored is None:
+        return orientations
+    unit = _unit_quaternions(stored)
+    ok = (np.abs(unit - orientations).max(axis=1) <= 1e-6) | (np.abs(unit + orientations).max(axis=1) <= 1e-6)
+    if not ok.all():
+        notes.append(f"{RAW_ROTATIONS}: {int((~ok).sum())} entries no longer match the orientations; re-derived")
+    return np.where(ok[:, None], stored, orientations).astype(np.float32)
+
+
+def _unit_quaternions(q):
+    """float32 unit quaternions; ones already unit to float32 round-off are kept as they are, so a
+    file's normalised values come back unchanged."""
+    q = np.asarray(q, np.float32)
+    norm = np.linalg.norm(q.astype(np.float64), axis=-1, keepdims=True)
+    unit = geometry.normalize_quaternions(q).astype(np.float32)
+    return np.where(np.abs(norm - 1) <= 2.5e-7, q, unit)
 
 
 def _sh_degree(prim):
@@ -349,6 +430,49 @@ def _sh_degree(prim):
 def _is_adobe_splat(prim):
     pv = UsdGeom.PrimvarsAPI(prim)
     return prim.IsA(UsdGeom.Points) and all(pv.HasPrimvar(n) for n in ("rot", "widths1", "widths2"))
+
+
+def _is_blender_splat(prim):
+    pv = UsdGeom.PrimvarsAPI(prim)
+    return prim.IsA(UsdGeom.Points) and pv.HasPrimvar("rotation") and pv.HasPrimvar("scale")
+
+
+def _blender_cloud(prim, time, notes):
+    """UsdGeomPoints as Blender's USD export writes splat point clouds: `points`, primvars `rotation`
+    (w, x, y, z; a quatf[] is read by its own order), `scale` linear, `radiance:base` (DC rgb and
+    the activated opacity) and `radiance:sh_0..14` (the higher coefficients in 3DGS order)."""
+    positions = _value(prim, "points", time, (3,))
+    positions = np.zeros((0, 3), np.float32) if positions is None else positions.astype(np.float32)
+    n = len(positions)
+    rotation = UsdGeom.PrimvarsAPI(prim).GetPrimvar("rotation")
+    quats = _fit(_primvar(prim, "rotation", time, (4,)), n, (4,), "primvars:rotation", "identity", notes)
+    if quats is None:
+        rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
+    elif rotation.GetTypeName().type.typeName.startswith("VtArray<GfQuat"):
+        rotations = quats[:, [3, 0, 1, 2]].astype(np.float32)          # Vt quaternions are x, y, z, w in memory
+    else:
+        rotations = quats.astype(np.float32)
+    scales = _fit(_primvar(prim, "scale", time, (3,)), n, (3,), "primvars:scale", "1", notes)
+    scales = np.ones((n, 3), np.float32) if scales is None else scales.astype(np.float32)
+    base = _fit(_primvar(prim, BLENDER_BASE, time, (4,)), n, (4,), f"primvars:{BLENDER_BASE}", "displayColor", notes)
+    if base is not None:
+        dc, opacities = base[:, :3].astype(np.float32), base[:, 3].astype(np.float32)
+    else:
+        colors = _fit(_primvar(prim, "displayColor", time, (3,)), n, (3,), "primvars:displayColor", "grey", [])
+        dc = np.zeros((n, 3), np.float32) if colors is None else shmod.rgb_to_dc(colors).astype(np.float32)
+        opacities = _fit(_primvar(prim, "displayOpacity", time), n, (), "primvars:displayOpacity", "1", [])
+        opacities = np.ones(n, np.float32) if opacities is None else opacities.astype(np.float32)
+    rest = []
+    while len(rest) < 15 and (value := _primvar(prim, f"radiance:sh_{len(rest)}", time, (3,))) is not None:
+        rest.append(value.astype(np.float32))
+    if len(rest) not in (0, 3, 8, 15) or any(len(v) != n for v in rest):
+        notes.append(f"{len(rest)} radiance:sh_* primvars (or wrong lengths); view-dependent colour dropped")
+        rest = []
+    sh = np.concatenate([dc[:, None, :]] + [v[:, None, :] for v in rest], axis=1)
+    cloud = SplatCloud(positions, rotations, _log_scales_from(scales, None, notes),
+                       _logits_from(_valid_opacities(opacities, notes), None, notes), sh,
+                       _extras(prim, time, n, BLENDER_PRIMVARS, notes))
+    return cloud, opacities, np.abs(scales)
 
 
 def _primvar(prim, name, time, shape=()):
@@ -435,12 +559,25 @@ def _narrowed(values, dtype, name, notes):
     return values
 
 
-def _read_prim(prim, time, stage_m, notes):
-    """SplatPrim for a splat prim, or None for any other prim."""
+def _is_upright(prim):
+    """Whether the prim stands a capture upright with our transform op."""
+    order = prim.GetAttribute("xformOpOrder").Get() if prim.GetAttribute("xformOpOrder") else None
+    return order is not None and UPRIGHT_OP in order
+
+
+def _read_prim(prim, time, matrices, notes):
+    """SplatPrim for a splat prim, or None for any other prim. matrices: (stage, capture) 4x4s taking
+    world space to the target axes and units: stage-axes geometry, and the captures of prims that
+    carry no upright transform (unmarked="capture")."""
+    stage_m, capture_m = matrices
     if prim.GetTypeName() == TYPE_NAME:
         source, reader = TYPE_NAME, _gaussian_cloud
+        if not _is_upright(prim):
+            stage_m = capture_m
     elif _is_adobe_splat(prim):
         source, reader = "Points (Adobe 3DGS primvars)", _adobe_cloud
+    elif _is_blender_splat(prim):
+        source, reader = "Points (Blender splat primvars)", _blender_cloud
     else:
         return None
     prim_notes = []
@@ -466,11 +603,18 @@ def _read_prim(prim, time, stage_m, notes):
     return SplatPrim(str(prim.GetPath()), cloud, source, to_world, anisotropy, prim_notes)
 
 
-def _splat_prims(stage, time, axes, meters_per_unit, notes):
+def _splat_prims(stage, time, axes, meters_per_unit, notes, unmarked="capture"):
+    if unmarked not in UNMARKED:
+        raise ValueError(f"unmarked must be one of {UNMARKED}, got {unmarked!r}")
     stage_m = stage_matrix(stage, axes, meters_per_unit, notes)
+    capture_m = stage_m
+    if unmarked == "capture":       # values are capture coordinates already: only units (and RUB) apply
+        capture_m = stage_matrix(stage, None, meters_per_unit, [])
+        if axes == "RUB":
+            capture_m = FLIP @ capture_m
     found, skipped = [], {}
     for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
-        got = _read_prim(prim, time, stage_m, notes)
+        got = _read_prim(prim, time, (stage_m, capture_m), notes)
         if got is not None:
             found.append(got)
         elif prim.IsA(UsdGeom.Gprim) or prim.GetTypeName().startswith("ParticleField"):
@@ -489,26 +633,31 @@ def _warn(path, notes):
 
 # public reading -----------------------------------------------------------------------------------
 
-def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise"):
+def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
     """Every splat prim of a stage as a SplatPrim (path, world-space cloud, transform, notes).
 
     time: a time code (default: the earliest sample, or the default value of unanimated files).
+    unmarked: how to take a ParticleField3DGaussianSplat without our upright transform (NVIDIA's
+    and OpenUSD's converters copy PLY coordinates into a Y-up stage unchanged): "capture" takes its
+    values as capture (3DGS PLY) coordinates, giving back the PLY's values; "stage" takes them in the
+    stage's own axes like any geometry (for files authored truly Y-up).
     """
-    return _read_stage(_open(path), path, time, axes, meters_per_unit, nonfinite)
+    return _read_stage(_open(path), path, time, axes, meters_per_unit, nonfinite, unmarked)
 
 
-def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite):
+def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="capture"):
     notes = []
-    prims = _splat_prims(stage, _time(stage, time), axes, meters_per_unit, notes)
+    prims = _splat_prims(stage, _time(stage, time), axes, meters_per_unit, notes, unmarked)
     for p in prims:
         p.cloud = apply_nonfinite_policy(f"{path}:{p.path}", p.cloud, nonfinite, "read")
     _warn(path, notes)
     return prims
 
 
-def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise"):
-    """All splat prims of the stage, in world space, concatenated into one SplatCloud."""
-    prims = read_stage(path, time, axes, meters_per_unit, nonfinite)
+def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
+    """All splat prims of the stage, in world space, concatenated into one SplatCloud (unmarked: see
+    read_stage)."""
+    prims = read_stage(path, time, axes, meters_per_unit, nonfinite, unmarked)
     if not prims:
         raise SplatFileError(path, f"no {TYPE_NAME} prims (nor UsdGeomPoints with 3DGS primvars) on the stage")
     if len(prims) == 1:
@@ -533,7 +682,7 @@ def _time_codes(stage, path, prim_path):
             raise SplatFileError(path, f"no prim at {prim_path}")
     else:
         prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
-                 if p.GetTypeName() == TYPE_NAME or _is_adobe_splat(p)]
+                 if p.GetTypeName() == TYPE_NAME or _is_adobe_splat(p) or _is_blender_splat(p)]
     times = set()
     for prim in prims:
         for attr in prim.GetAttributes():        # transform ops included: a moving prim is animated too
@@ -541,13 +690,13 @@ def _time_codes(stage, path, prim_path):
     return sorted(times)
 
 
-def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise"):
+def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
     """[(time code, cloud)] for every time sample of the stage's splat prims (concatenated per time),
     or of the one at prim_path; one (None, cloud) entry for an unanimated file."""
     stage = _open(path)
     frames = []
     for t in _time_codes(stage, path, prim_path) or [None]:
-        prims = _read_stage(stage, path, t, axes, meters_per_unit, nonfinite)
+        prims = _read_stage(stage, path, t, axes, meters_per_unit, nonfinite, unmarked)
         if prim_path:
             prims = [p for p in prims if p.path == prim_path]
         if not prims:
@@ -673,6 +822,7 @@ class _WriteOptions:
     exact: bool = True
     axes: str = "RDF"
     nonfinite: str = "raise"
+    layout: str = "upright"
 
 
 def _frame_values(path, cloud, options):
@@ -680,10 +830,11 @@ def _frame_values(path, cloud, options):
     half, half_positions, exact, axes = options.half, options.half_positions, options.exact, options.axes
     n, k = len(cloud), cloud.sh.shape[1]
     opacities, scales = _linear_values(cloud)
-    # The stage is Y-up (RUB): RDF clouds flip y and z, folded into the copies Vt needs anyway.
-    flip = axes == "RDF"
+    # The values are the capture's (3DGS PLY) coordinates, as the reference converters write them,
+    # unless the layout asks for them flipped into the Y-up stage (folded into the copies Vt needs).
+    flip = axes == "RDF" and options.layout == "y-up"
     positions = cloud.positions * np.float32([1, -1, -1]) if flip else np.ascontiguousarray(cloud.positions)
-    xyzw = cloud.rotations[:, [1, 2, 3, 0]]                                  # Vt's memory order
+    xyzw = _unit_quaternions(cloud.rotations)[:, [1, 2, 3, 0]]                # Vt's memory order
     xyzw = xyzw * np.float32([1, -1, -1, 1]) if flip else xyzw
     signs = np.repeat(SH_FLIP[:k], 3) if flip else np.ones(3 * k, np.float32)
     flat = cloud.sh.reshape(n, 3 * k)                                       # (N, K*3): fast broadcast
@@ -711,6 +862,8 @@ def _frame_values(path, cloud, options):
     if exact and not half:
         values[LOGITS] = _vt(Vt.FloatArray, cloud.opacity_logits)
         values[LOG_SCALES] = _vt(Vt.Vec3fArray, np.ascontiguousarray(cloud.log_scales))
+        raw = cloud.rotations * np.float32([1, 1, -1, -1]) if flip else cloud.rotations
+        values[RAW_ROTATIONS] = _vt(Vt.Vec4fArray, np.ascontiguousarray(raw))
     box = alpha_extent(positions, xyzw[:, [3, 0, 1, 2]], scales, opacities)
     if box is not None:
         values["extent"] = _vt(Vt.Vec3fArray, box)
@@ -766,11 +919,14 @@ VT_ARRAYS = {"float32": "FloatArray", "float64": "DoubleArray", "float16": "Half
 def _author_prim(path, stage, prim_path, frames, times, options):
     """Author one prim from its frames (a cloud, or clouds one per time code), consumed one at a
     time so only the stage holds them; returns the time codes used ([] for a static prim)."""
-    prim, samples, codes = None, {}, []
+    prim, samples, codes, shape = None, {}, [], None
     for cloud, code in _checked_frames(path, prim_path, frames, times, options):
+        shape = (len(cloud), cloud.sh.shape[1])
         if prim is None:                     # the first frame sets the prim up
             prim = _define_splat_prim(stage, prim_path)
             _attribute(prim, SH_DEGREE).Set(cloud.sh_degree)
+            if options.layout == "upright" and options.axes == "RDF":
+                _upright_op(prim)
             extras = _extra_primvars(path, prim, cloud)
         values = {**_frame_values(path, cloud, options), **_extra_values(cloud, extras)}
         for name, value in values.items():
@@ -781,7 +937,21 @@ def _author_prim(path, stage, prim_path, frames, times, options):
         del cloud, values                    # let this frame go before the next one is made
     for attr in samples.values():
         attr.finish()
+    for name in (SH_COEFFS, SH_COEFFS + "h"):   # one particle's coefficients per element, as primvars say
+        if name in samples:
+            primvar = UsdGeom.Primvar(samples[name].attr)
+            primvar.SetInterpolation(UsdGeom.Tokens.vertex)
+            primvar.SetElementSize(shape[1])
     return [c.GetValue() for c in codes if not c.IsDefault()]
+
+
+def _upright_op(prim):
+    """The transform standing a capture (y down, z forward) upright in the Y-up stage: a half turn
+    about X, authored as an exact matrix op named for what it does."""
+    op = prim.CreateAttribute(UPRIGHT_OP, Sdf.ValueTypeNames.Matrix4d, False)
+    op.Set(Gf.Matrix4d(*UPRIGHT.T.reshape(-1).tolist()))
+    prim.CreateAttribute("xformOpOrder", Sdf.ValueTypeNames.TokenArray, False,
+                         Sdf.VariabilityUniform).Set([UPRIGHT_OP])
 
 
 def _extra_values(cloud, extras):
@@ -851,7 +1021,7 @@ def _checked_frames(path, prim_path, frames, times, options):
 
 
 def write_stage(path, prims, times=None, half=False, half_positions=False, exact=True, axes="RDF",
-                nonfinite="raise", fps=None):
+                nonfinite="raise", fps=None, layout="upright"):
     """Write {prim path: cloud, or clouds one per time code} as a Y-up, metre stage.
 
     The clouds of an animated prim may come from any iterable (a generator, say): each is authored
@@ -862,13 +1032,19 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
     fps: time codes per second for players (OpenUSD assumes 24 when the stage does not say).
     half: orientations, scales, opacities and SH as half floats; half_positions: positions too.
     exact: also store the model's float32 logits and log scales, so reading back is exact.
-    axes: "RDF" (the model's convention; flipped to the stage's Y-up) or "RUB" (written as is).
+    axes: "RDF" (the model's convention) or "RUB" (clouds already in Y-up axes: written as they are).
+    layout, for RDF clouds: "upright" (the capture's coordinates, as the reference converters write
+    them, under a prim transform standing them upright in the Y-up stage), "y-up" (values flipped
+    into the Y-up stage, no transform: for viewers that ignore prim transforms) or "as-is" (the
+    capture's coordinates and no transform, as NVIDIA's converter writes: upside down in Y-up viewers).
     """
     _require_pxr(path)
     if axes not in ("RDF", "RUB"):
         raise ValueError(f"axes must be 'RDF' or 'RUB', got {axes!r}")
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     check_nonfinite_policy(nonfinite)
-    options = _WriteOptions(half, half_positions, exact, axes, nonfinite)
+    options = _WriteOptions(half, half_positions, exact, axes, nonfinite, layout)
     path = os.fspath(path)
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps}")
@@ -915,11 +1091,11 @@ def _save_stage(path, layer_path, prims, times, options, fps):
 
 
 def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",
-          nonfinite="raise"):
-    """Write one cloud as one ParticleField3DGaussianSplat prim."""
+          nonfinite="raise", layout="upright"):
+    """Write one cloud as one ParticleField3DGaussianSplat prim (options as write_stage's)."""
     if not isinstance(cloud, SplatCloud):
         raise TypeError(f"write takes one SplatCloud, got {type(cloud).__name__}; write_frames takes a sequence")
-    write_stage(path, {prim_path: cloud}, None, half, half_positions, exact, axes, nonfinite)
+    write_stage(path, {prim_path: cloud}, None, half, half_positions, exact, axes, nonfinite, layout=layout)
 
 
 def write_frames(path, clouds, times=None, prim_path="/Splats", **options):

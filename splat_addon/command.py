@@ -1,6 +1,6 @@
 """`blender -b scene.blend --command splatwright VERB ...`: batch export, render and mesh conversion.
 
-    export OUT [--frames A-B[:STEP]] [--format usd|ply|spz|splat] [--objects NAMES]
+    export OUT [--frames A-B[:STEP]] [--format FORMAT] [--objects NAMES]
     render [OUT] [--frames A-B[:STEP]] [--objects NAMES] [--meshes cycles|eevee|workbench|none]
     from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed]
     collide A B [--frames A-B[:STEP]] [--sigma K] [--ignore-bones NAMES] [--json OUT]
@@ -25,7 +25,8 @@ from ..io.common import atomic_write
 from . import animation, collide, data, engine, from_mesh, mesh_layer, operators
 
 COMMAND = "splatwright"
-FORMAT_EXTENSIONS = {"usd": ".usdc", "ply": ".ply", "spz": ".spz", "splat": ".splat"}
+FORMAT_EXTENSIONS = {"usd": ".usdc", "ply": ".ply", "compressed_ply": ".compressed.ply", "spz": ".spz",
+                     "splat": ".splat", "sog": ".sog", "gltf": ".glb"}
 # render OUT's extension -> image formats that write it (the first is chosen if none is set)
 IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), ".jpg": ("JPEG",),
                  ".jpeg": ("JPEG",), ".tif": ("TIFF",), ".tiff": ("TIFF",)}

@@ -15,6 +15,7 @@ from . import data, display
 
 FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)
 EXTENSIONS = ";".join(FORMATS)
+MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat)"
 DISPLAY_BUDGET = 1_000_000      # splats drawn per object before the display thins itself out
 
 # 3DGS captures come out of COLMAP/OpenCV: the scene's up is -Y and cameras look along +Z. These
@@ -436,11 +437,11 @@ class SPLAT_FH_files(bpy.types.FileHandler):
 
 
 def menu_import(self, context):
-    self.layout.operator(SPLAT_OT_import_file.bl_idname, text="Gaussian Splats (.ply, .usd, .spz, .splat)")
+    self.layout.operator(SPLAT_OT_import_file.bl_idname, text=MENU_LABEL)
 
 
 def menu_export(self, context):
-    self.layout.operator(SPLAT_OT_export_file.bl_idname, text="Gaussian Splats (.ply, .usd, .spz, .splat)")
+    self.layout.operator(SPLAT_OT_export_file.bl_idname, text=MENU_LABEL)
     self.layout.operator("splat.export_animation", text="Gaussian Splat Animation (.usd, .ply ####)")
 
 

@@ -270,7 +270,7 @@ def test_animation_without_hashes_uses_the_scene_range(blender):
 
 
 def test_animation_usd_has_one_time_sample_per_frame(blender):
-    """Read with pxr directly: Y-up stage, time codes = frames, positions = Blender's (x, z, -y)."""
+    """Read with pxr directly: Y-up stage, time codes = frames, world positions = Blender's (x, z, -y)."""
     from pxr import Usd, UsdGeom
     res = blender.step("animation")
     assert res["usd"]["result"] == ["FINISHED"]
@@ -285,7 +285,8 @@ def test_animation_usd_has_one_time_sample_per_frame(blender):
     source = read(blender.work / "cloud.ply")
     blender_to_usd = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
     for frame in range(1, 5):
-        got = np.array(positions.Get(frame), dtype=np.float64)
+        world = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(frame)).T     # stands the values up
+        got = np.array(positions.Get(frame), dtype=np.float64) @ world[:3, :3].T + world[:3, 3]
         np.testing.assert_allclose(got, _moved(source, res["matrices"][str(frame)], blender_to_usd), atol=2e-5)
     # the uniform scale keyed at frame 4 scales every sigma
     scales = np.sort(np.array(prim.GetAttribute("scales").Get(4), dtype=np.float64), axis=1)

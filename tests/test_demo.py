@@ -398,7 +398,7 @@ def test_demo_png_and_exr_frames_show_the_posed_arm(demo):
 @pytest.mark.blender
 @pytest.mark.slow
 def test_demo_exports_read_back_consistently(demo):
-    from pxr import Usd
+    from pxr import Usd, UsdGeom
     from splatwright import demo as demo_module
     out, _, summary = demo
     arm, env = demo_module.ARM_SPLATS, demo_module.ENVIRONMENT_SPLATS
@@ -424,8 +424,10 @@ def test_demo_exports_read_back_consistently(demo):
     assert positions.GetTimeSamples() == list(range(1, 25))
     at_12 = np.asarray(positions.Get(12), np.float64)
     assert at_12.shape == (arm, 3)
-    # the model's axes (3DGS, y down) -> OpenUSD's Y-up: y and z flip
-    np.testing.assert_allclose(at_12, frames[12].positions * [1, -1, -1], atol=1e-6)
+    # the file holds the model's (3DGS, y down) values under a transform standing them up in
+    # OpenUSD's Y-up world: there y and z flip
+    world = np.array(UsdGeom.Xformable(prims[0]).ComputeLocalToWorldTransform(12)).T
+    np.testing.assert_allclose(at_12 @ world[:3, :3].T + world[:3, 3], frames[12].positions * [1, -1, -1], atol=1e-6)
 
 
 @pytest.mark.blender

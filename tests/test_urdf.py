@@ -417,7 +417,7 @@ def test_compiled_and_numpy_forward_kinematics_agree(monkeypatch):
     base = hom(rot_x(0.3), (1, 2, 3))
     compiled = tree.forward_kinematics(q, base=base)
     single = tree.forward_kinematics(q[7], base=base)
-    monkeypatch.setattr(kinematics, "_fk_kernel", None)
+    monkeypatch.setattr(kinematics, "_fk_kernel", lambda: None)
     numpy_path = tree.forward_kinematics(q, base=base)
     np.testing.assert_allclose(compiled, numpy_path, atol=1e-14)
     np.testing.assert_allclose(single, numpy_path[7], atol=1e-14)

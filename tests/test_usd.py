@@ -97,7 +97,7 @@ def test_foreign_file_round_trips_within_one_ulp(tmp_path):
     splat.CreateRadianceSphericalHarmonicsCoefficientsAttr(Vt.Vec3fArray.FromNumpy(coeffs))
     stage.GetRootLayer().Save()
     out = tmp_path / "out.usda"
-    usd.write(out, usd.read(src, axes="RUB"), axes="RUB", exact=False)
+    usd.write(out, usd.read(src, axes="RUB", unmarked="stage"), axes="RUB", exact=False)
     got = attr_values(out)
     np.testing.assert_array_equal(got["positions"], positions)
     np.testing.assert_array_equal(got["orientations"], quats)
@@ -105,7 +105,7 @@ def test_foreign_file_round_trips_within_one_ulp(tmp_path):
     assert ulps(got["scales"], scales).max() <= 1
     assert ulps(got["opacities"], opacities).max() <= 1
     # an edited cloud no longer matches what was read: its values come from the model, not the file
-    edited = usd.read(src, axes="RUB")
+    edited = usd.read(src, axes="RUB", unmarked="stage")
     edited.log_scales[0] += 1
     usd.write(out, edited, axes="RUB")
     np.testing.assert_allclose(attr_values(out)["scales"][0], scales[0] * np.e, rtol=1e-6)
@@ -154,23 +154,26 @@ def test_plain_pxr_sees_every_attribute_as_the_schema_defines_it(tmp_path):
     assert degree.GetVariability() == Sdf.VariabilityUniform and degree.Get() == 3
     for name in ("positionsh", "orientationsh", "scalesh", "opacitiesh"):
         assert not prim.GetAttribute(name).HasAuthoredValue()
-    # meaning: Y-up (RUB) positions, w-first Gf.Quatf, linear scales and opacities, particle-major SH
-    flip = np.array([1, -1, -1], np.float32)
-    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("positions").Get()), cloud.positions * flip)
+    # meaning, as the reference converters write it: the PLY's coordinates, normalised w-first
+    # Gf.Quatf, linear scales and opacities, particle-major SH with primvar metadata
+    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("positions").Get()), cloud.positions)
     quats = prim.GetAttribute("orientations").Get()
+    unit = cloud.rotations / np.linalg.norm(cloud.rotations.astype(np.float64), axis=1, keepdims=True)
     for i in (0, 17, 39):
         q = quats[i]
-        assert q.GetReal() == cloud.rotations[i, 0]
-        assert tuple(q.GetImaginary()) == tuple(cloud.rotations[i, 1:] * flip)
+        np.testing.assert_allclose([q.GetReal(), *q.GetImaginary()], unit[i], atol=1e-7)
     np.testing.assert_array_equal(np.asarray(prim.GetAttribute("scales").Get()),
                                   np.exp(cloud.log_scales.astype(np.float64)).astype(np.float32))
     sigmoid64 = 1 / (1 + np.exp(-cloud.opacity_logits.astype(np.float64)))
     np.testing.assert_array_equal(np.asarray(prim.GetAttribute("opacities").Get()), sigmoid64.astype(np.float32))
-    coeffs = np.asarray(prim.GetAttribute("radiance:sphericalHarmonicsCoefficients").Get()).reshape(n, k, 3)
-    np.testing.assert_array_equal(coeffs, cloud.sh * FLIP_SIGNS[None, :, None])
-    # the colour a viewer computes in the stage's frame equals the model's colour in its own
-    d = np.random.default_rng(0).normal(size=(n, 3))
-    np.testing.assert_allclose(shmod.colors(coeffs, d * flip), shmod.colors(cloud.sh, d), atol=1e-6)
+    sh_attr = prim.GetAttribute("radiance:sphericalHarmonicsCoefficients")
+    np.testing.assert_array_equal(np.asarray(sh_attr.Get()).reshape(n, k, 3), cloud.sh)
+    assert sh_attr.GetMetadata("interpolation") == "vertex" and sh_attr.GetMetadata("elementSize") == k
+    # a transform stands the y-down capture upright in the Y-up stage: a half turn about X
+    assert list(prim.GetAttribute("xformOpOrder").Get()) == ["xformOp:transform:upright"]
+    world = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    np.testing.assert_array_equal(world, np.diag([1.0, -1.0, -1.0, 1.0]))
+    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("splatwright:rotations").Get()), cloud.rotations)
     # the exact logits and log scales are custom attributes in our own namespace
     for name, values in (("splatwright:opacityLogits", cloud.opacity_logits),
                          ("splatwright:logScales", cloud.log_scales)):
@@ -276,7 +279,7 @@ def test_transforms_units_and_up_axis_are_applied(tmp_path):
     stage.GetRootLayer().Save()
 
     with pytest.warns(SplatFileWarning) as caught:
-        prims = usd.read_stage(path)
+        prims = usd.read_stage(path, unmarked="stage")      # the values are Z-up stage geometry
     text = " ".join(str(w.message) for w in caught)
     assert "Mesh x1 (/World/Ground)" in text and "Points x1 (/World/Cloud)" in text
     assert "/World/B: its transform stretches unevenly" in text and "/World/A: its" not in text
@@ -298,7 +301,7 @@ def test_transforms_units_and_up_axis_are_applied(tmp_path):
                                atol=2e-5)
     # read() concatenates both prims (the lower SH degree zero-padded)
     with pytest.warns(SplatFileWarning):
-        everything = usd.read(path)
+        everything = usd.read(path, unmarked="stage")
     assert len(everything) == 40 and everything.sh_degree == 2
     np.testing.assert_array_equal(everything.positions[25:], prims[1].cloud.positions)
 
@@ -311,7 +314,7 @@ def test_axes_and_units_can_be_kept(tmp_path):
     _define_splats(stage, "/S", cloud)
     stage.GetRootLayer().Save()
     with pytest.warns(SplatFileWarning, match="metersPerUnit is not authored; USD's fallback of 0.01"):
-        scaled = usd.read(path, axes="RUB")
+        scaled = usd.read(path, axes="RUB", unmarked="stage")
     np.testing.assert_allclose(scaled.positions[:, 1], cloud.positions[:, 2] * 0.01, rtol=1e-6)
     kept = usd.read(path, axes=None, meters_per_unit=None)
     np.testing.assert_array_equal(kept.positions, cloud.positions)
@@ -377,7 +380,7 @@ def test_schema_length_rules(tmp_path):
     splat.CreateScaleshAttr(Vt.Vec3hArray.FromNumpy(np.full((6, 3), 0.5, np.float16)))
     stage.GetRootLayer().Save()
     with pytest.warns(SplatFileWarning) as caught:
-        got = usd.read(path, axes="RUB")
+        got = usd.read(path, axes="RUB", unmarked="stage")
     text = str(caught[0].message)
     assert "orientations has 9 entries for 6 particles; truncated" in text
     assert "scales has 1 entries for 6 particles; ignored" in text
@@ -437,7 +440,7 @@ def test_unchanging_attributes_are_authored_once(tmp_path):
     stage = Usd.Stage.Open(str(path))
     prim = stage.GetPrimAtPath("/Splats")
     sampled = {a.GetName() for a in prim.GetAttributes() if a.GetTimeSamples()}
-    assert sampled == {"positions", "orientations", "extent", usd.SH_COEFFS}
+    assert sampled == {"positions", "orientations", "extent", usd.SH_COEFFS, usd.RAW_ROTATIONS}
     assert prim.GetAttribute("opacities").HasAuthoredValue()           # the one default value
     assert prim.GetAttribute(usd.SH_COEFFS).GetTimeSamples() == [10, 11, 12, 13]
     for (t, got), want in zip(usd.read_frames(path), frames):
@@ -518,7 +521,7 @@ def test_bad_files_raise_clear_errors(tmp_path):
     usd.write(good, random_cloud(500, 3))
     cut = tmp_path / "cut.usdc"
     cut.write_bytes(good.read_bytes()[:5000])
-    with pytest.raises(SplatFileError, match="cut.usdc: OpenUSD cannot open it"):
+    with pytest.raises(SplatFileError, match="cut.usdc: (OpenUSD cannot open it|crate table of contents lies outside)"):
         usd.read(cut)
     wrong = tmp_path / "wrong.usdc"
     wrong.write_text("#usda 1.0\n")
@@ -621,3 +624,138 @@ def test_convert_every_pair_and_info_every_format(tmp_path, capsys):
     assert main(["convert", str(tmp_path / "src.ply"), str(tmp_path / "x.ply"), "--half"]) == 2
     assert "--half needs an OpenUSD output" in capsys.readouterr().err
     assert not (tmp_path / "x.ply").exists()
+
+
+# layouts, prims without the upright transform, Blender's point clouds ------------------------------
+
+@pytest.mark.parametrize("layout", ["upright", "y-up", "as-is"])
+def test_layouts_show_the_same_splats_or_say_how_they_differ(tmp_path, layout):
+    """World space as OpenUSD computes it: upright and y-up show the capture Y-up (its -y up); as-is
+    shows the PLY's values themselves. Each reads back as the cloud."""
+    cloud = random_cloud(30, sh_degree=2, seed=5)
+    path = tmp_path / f"{layout}.usda"
+    usd.write(path, cloud, layout=layout)
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/Splats")
+    world = np.array(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())).T
+    local = np.asarray(prim.GetAttribute("positions").Get(), np.float64)
+    shown = local @ world[:3, :3].T + world[:3, 3]
+    flip = np.array([1, -1, -1])
+    expected = cloud.positions * (1 if layout == "as-is" else flip)
+    np.testing.assert_array_equal(shown, expected)
+    unmarked = "capture" if layout != "y-up" else "stage"       # y-up values are stage geometry
+    assert_same(usd.read(path, unmarked=unmarked), cloud)
+
+
+def test_unmarked_prims_are_capture_coordinates_or_stage_geometry(tmp_path):
+    """A prim as NVIDIA's converter writes it (PLY values, no transform, Y-up stage): by default its
+    values come back as they are; unmarked="stage" takes them as Y-up geometry (flipped to RDF)."""
+    cloud = random_cloud(12, sh_degree=1, seed=6)
+    cloud.rotations /= np.linalg.norm(cloud.rotations, axis=1, keepdims=True)
+    path = tmp_path / "plain.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    _define_splats(stage, "/P", cloud)
+    stage.GetRootLayer().Save()
+    got = usd.read(path)
+    np.testing.assert_array_equal(got.positions, cloud.positions)
+    np.testing.assert_array_equal(got.sh, cloud.sh)
+    staged = usd.read(path, unmarked="stage")
+    np.testing.assert_array_equal(staged.positions, cloud.positions * np.float32([1, -1, -1]))
+    np.testing.assert_array_equal(staged.sh, cloud.sh * FLIP_SIGNS[None, :4, None])
+    with pytest.raises(ValueError, match="unmarked must be one of"):
+        usd.read(path, unmarked="sideways")
+
+
+def blender_points(path, cloud, quat_type="float4"):
+    """UsdGeomPoints as Blender 5.3's USD export writes splat point clouds (Z-up stage, object space
+    positions, `rotation` w,x,y,z, linear `scale`, `radiance:base` = DC rgb + opacity,
+    `radiance:sh_0..14` the higher coefficients in 3DGS order), authored with plain pxr."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    points = UsdGeom.Points.Define(stage, "/root/Splats")
+    points.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(cloud.positions))
+    api = UsdGeom.PrimvarsAPI(points)
+    if quat_type == "float4":
+        api.CreatePrimvar("rotation", Sdf.ValueTypeNames.Float4Array, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(cloud.rotations)))
+    else:
+        api.CreatePrimvar("rotation", Sdf.ValueTypeNames.QuatfArray, UsdGeom.Tokens.vertex).Set(
+            Vt.QuatfArray.FromNumpy(np.ascontiguousarray(cloud.rotations[:, [1, 2, 3, 0]])))
+    api.CreatePrimvar("scale", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec3fArray.FromNumpy(cloud.scales.astype(np.float32)))
+    base = np.column_stack([cloud.sh[:, 0], cloud.opacities]).astype(np.float32)
+    api.CreatePrimvar("radiance:base", Sdf.ValueTypeNames.Float4Array, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec4fArray.FromNumpy(base))
+    for i in range(cloud.sh.shape[1] - 1):
+        api.CreatePrimvar(f"radiance:sh_{i}", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cloud.sh[:, i + 1])))
+    stage.GetRootLayer().Save()
+
+
+@pytest.mark.parametrize("quat_type", ["float4", "quatf"])
+def test_blender_splat_point_clouds(tmp_path, quat_type):
+    cloud = random_cloud(20, sh_degree=3, seed=12)
+    path = tmp_path / "blender.usda"
+    blender_points(path, cloud, quat_type)
+    prims = usd.read_stage(path, axes=None)                 # the stage's own (Blender's Z-up) axes
+    assert prims[0].source == "Points (Blender splat primvars)"
+    got = prims[0].cloud
+    np.testing.assert_array_equal(got.positions, cloud.positions)
+    np.testing.assert_array_equal(got.rotations, cloud.rotations)
+    np.testing.assert_allclose(got.log_scales, cloud.log_scales, atol=1e-6)
+    np.testing.assert_allclose(got.opacities, cloud.opacities, atol=1e-6)
+    np.testing.assert_array_equal(got.sh, cloud.sh)
+    # in the model's axes: Z-up turned to Y-up, then to 3DGS's y down (x, y, z) -> (x, -z, y)
+    rdf = usd.read(path)
+    np.testing.assert_allclose(rdf.positions, cloud.positions[:, [0, 2, 1]] * [1, -1, 1], atol=1e-6)
+
+
+def test_convert_axes_and_usd_input_options(tmp_path, capsys):
+    from splatwright.cli import main
+    cloud = random_cloud(20, sh_degree=1, seed=13)
+    write_splats(tmp_path / "in.ply", cloud)
+    for layout in ("upright", "y-up", "as-is"):
+        assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / f"{layout}.usda"), "--axes", layout]) == 0
+    positions = {layout: attr_values(tmp_path / f"{layout}.usda")["positions"] for layout in ("upright", "y-up", "as-is")}
+    np.testing.assert_array_equal(positions["upright"], cloud.positions)
+    np.testing.assert_array_equal(positions["as-is"], cloud.positions)
+    np.testing.assert_array_equal(positions["y-up"], cloud.positions * np.float32([1, -1, -1]))
+    assert main(["convert", str(tmp_path / "y-up.usda"), str(tmp_path / "back.ply"), "--usd-input", "stage"]) == 0
+    np.testing.assert_array_equal(read_splats(tmp_path / "back.ply").positions, cloud.positions)
+    assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / "x.ply"), "--axes", "y-up"]) == 2
+    assert "--axes needs an OpenUSD output" in capsys.readouterr().err
+    assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / "x.glb"), "--usd-input", "stage"]) == 2
+
+
+def test_crate_counts_the_file_cannot_hold_are_refused_before_openusd_reads_them(tmp_path):
+    """A flipped bit in a crate section's element count makes OpenUSD's reader size arrays by it
+    (gigabytes, minutes): refused from the table of contents first."""
+    import struct
+    path = tmp_path / "ok.usdc"
+    usd.write(path, random_cloud(20, sh_degree=1, seed=6))
+    data = bytearray(path.read_bytes())
+    toc = struct.unpack_from("<q", data, 16)[0]
+    for i in range(struct.unpack_from("<Q", data, toc)[0]):
+        name, start, _ = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
+        if name.rstrip(b"\0") == b"SPECS":
+            struct.pack_into("<Q", data, start, 1 << 29)
+    bad = tmp_path / "specs.usdc"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(SplatFileError, match="crate section 'SPECS' claims 536870912 entries"):
+        read_splats(bad)
+
+
+def test_upright_transform_counts_where_pxr_does_not_know_the_schema(tmp_path):
+    """Blender's bundled pxr has no ParticleField3DGaussianSplat: it does not count such prims as
+    Xformable, so their own ops must be read directly (here a prim of a type no pxr knows)."""
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set((1, 2, 3))
+    prim = stage.DefinePrim("/World/S", "SplatTypeUnknownHere")
+    usd._upright_op(prim)
+    assert not UsdGeom.Xformable(prim)                 # as in a pxr without the schema
+    expected = np.diag([1.0, -1.0, -1.0, 1.0])
+    expected[:3, 3] = (1, 2, 3)
+    np.testing.assert_array_equal(usd._world_matrix(prim, Usd.TimeCode.Default()), expected)

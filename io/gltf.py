@@ -1,0 +1,383 @@
+"""glTF 2.0 with KHR_gaussian_splatting (`.glb`, and `.gltf` with its buffer beside it).
+
+A splat cloud is a POINTS primitive (mode 0) whose extension object names the kernel ("ellipse")
+and colour space ("srgb_rec709_display"), with the attributes
+    POSITION                                   VEC3 float
+    KHR_gaussian_splatting:ROTATION            VEC4 unit quaternion x, y, z, w (float, or
+                                               normalised byte/short)
+    KHR_gaussian_splatting:SCALE               VEC3 linear standard deviations
+    KHR_gaussian_splatting:OPACITY             SCALAR linear opacity in [0, 1]
+    KHR_gaussian_splatting:SH_DEGREE_l_COEF_n  VEC3 float, the raw 3DGS coefficients; degree 0 is
+                                               required, degree l needs all 2l+1 and every lower degree
+    COLOR_0                                    optional VEC4 fallback colour for point renderers
+Axes: glTF is +Y up with +Z to the front and +X to the left (LUF); the model's 3DGS axes (RDF) are a
+half turn about Z from it, so x and y change sign (positions, quaternion x and y, SH by parity), as
+PlayCanvas does. Node transforms above a splat primitive are applied on reading.
+
+The writer stores float32 values: quaternions normalised, scales and opacities activated (exp and
+sigmoid, so reading back is exact to float32 round-off, about 1e-7 relative). Extras are not stored.
+"""
+
+import base64
+import json
+import struct
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..core import SplatCloud
+from ..core import sh as shmod
+from ..core.splats import logit, sigmoid
+from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
+                     log_scales_from_linear)
+from .spz import flip_axes
+
+EXTENSION = "KHR_gaussian_splatting"
+ROTATION, SCALE, OPACITY = (f"{EXTENSION}:{name}" for name in ("ROTATION", "SCALE", "OPACITY"))
+GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
+LUF = [-1, -1, 1]                       # the half turn about Z between RDF and glTF's axes
+COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
+WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+MAX_BYTES = 1 << 34                     # a buffer claiming more than this is refused before reading
+
+
+def sh_name(degree, coefficient):
+    return f"{EXTENSION}:SH_DEGREE_{degree}_COEF_{coefficient}"
+
+
+# reading ------------------------------------------------------------------------------------------
+
+def _load_document(path):
+    """(glTF JSON, list of buffers as bytes) from a .glb or .gltf file."""
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
+    binary = None
+    if raw[:4] == b"glTF":
+        doc, binary = _split_glb(path, raw)
+    else:
+        try:
+            doc = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise SplatFileError(path, f"not a glTF file (neither GLB nor JSON: {exc})") from None
+    if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "")).split(".")[0] != "2":
+        raise SplatFileError(path, "not a glTF 2.0 document (asset.version must be 2.x)")
+    buffers = []
+    for i, buffer in enumerate(_list(path, doc, "buffers")):
+        buffers.append(_buffer(path, i, buffer, binary))
+    return doc, buffers
+
+
+def _split_glb(path, raw):
+    if len(raw) < 20:
+        raise SplatFileError(path, f"truncated: {len(raw)} bytes, a GLB header and JSON chunk need 20")
+    magic, version, length = struct.unpack_from("<III", raw)
+    if version != 2:
+        raise SplatFileError(path, f"GLB version {version}; only glTF 2 is read")
+    if length != len(raw):
+        raise SplatFileError(path, f"GLB header says {length} bytes, the file has {len(raw)} (truncated?)")
+    chunks, at = [], 12
+    while at + 8 <= len(raw):
+        size, kind = struct.unpack_from("<II", raw, at)
+        if at + 8 + size > len(raw):
+            raise SplatFileError(path, f"truncated: a GLB chunk of {size} bytes runs past the end of the file")
+        chunks.append((kind, raw[at + 8:at + 8 + size]))
+        at += 8 + size
+    if not chunks or chunks[0][0] != JSON_CHUNK:
+        raise SplatFileError(path, "GLB has no JSON chunk first")
+    try:
+        doc = json.loads(chunks[0][1].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise SplatFileError(path, f"GLB JSON chunk is not valid JSON: {exc}") from None
+    binary = chunks[1][1] if len(chunks) > 1 and chunks[1][0] == BIN_CHUNK else None
+    return doc, binary
+
+
+def _list(path, doc, key):
+    value = doc.get(key, [])
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise SplatFileError(path, f"glTF '{key}' must be a list of objects")
+    return value
+
+
+def _buffer(path, index, buffer, binary):
+    length = buffer.get("byteLength")
+    if not isinstance(length, int) or not 0 <= length <= MAX_BYTES:
+        raise SplatFileError(path, f"buffer {index} has byteLength {length!r}")
+    uri = buffer.get("uri")
+    if uri is None:
+        if binary is None:
+            raise SplatFileError(path, f"buffer {index} has no uri and the file has no GLB binary chunk")
+        data = binary
+    elif isinstance(uri, str) and uri.startswith("data:"):
+        try:
+            data = base64.b64decode(uri.split(",", 1)[1], validate=True)
+        except (IndexError, ValueError):
+            raise SplatFileError(path, f"buffer {index} has a malformed data URI") from None
+    elif isinstance(uri, str):
+        from urllib.parse import unquote
+        target = Path(path).parent / unquote(uri)
+        try:
+            data = target.read_bytes()
+        except OSError as exc:
+            raise SplatFileError(path, f"buffer {index} file '{uri}' cannot be read: {exc.strerror or exc}") from None
+    else:
+        raise SplatFileError(path, f"buffer {index} uri must be a string")
+    if len(data) < length:
+        raise SplatFileError(path, f"truncated: buffer {index} holds {len(data)} of its {length} bytes")
+    return data
+
+
+def _accessor(path, doc, buffers, index, name):
+    """Accessor `index` as float64 (count, width), normalised integers mapped to [0,1] / [-1,1]."""
+    accessors = _list(path, doc, "accessors")
+    if not isinstance(index, int) or not 0 <= index < len(accessors):
+        raise SplatFileError(path, f"attribute {name} names accessor {index!r}, which does not exist")
+    acc = accessors[index]
+    if "sparse" in acc:
+        raise SplatFileError(path, f"attribute {name}: sparse accessors are not read")
+    kind, width = COMPONENTS.get(acc.get("componentType")), WIDTH.get(acc.get("type"))
+    count = acc.get("count")
+    if kind is None or width is None or not isinstance(count, int) or count < 0:
+        raise SplatFileError(path, f"attribute {name}: accessor {index} has componentType "
+                                   f"{acc.get('componentType')!r}, type {acc.get('type')!r}, count {count!r}")
+    dtype = np.dtype(kind)
+    if "bufferView" not in acc:
+        return np.zeros((count, width))
+    views = _list(path, doc, "bufferViews")
+    view_index = acc["bufferView"]
+    if not isinstance(view_index, int) or not 0 <= view_index < len(views):
+        raise SplatFileError(path, f"attribute {name}: bufferView {view_index!r} does not exist")
+    view = views[view_index]
+    buffer_index = view.get("buffer")
+    if not isinstance(buffer_index, int) or not 0 <= buffer_index < len(buffers):
+        raise SplatFileError(path, f"attribute {name}: buffer {buffer_index!r} does not exist")
+    data = buffers[buffer_index]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    stride = view.get("byteStride") or dtype.itemsize * width
+    need = start + (stride * (count - 1) + dtype.itemsize * width if count else 0)
+    view_end = view.get("byteOffset", 0) + view.get("byteLength", 0)
+    if need > min(len(data), view_end) or start < 0:
+        raise SplatFileError(path, f"attribute {name}: {count} elements from byte {start} run past the end of "
+                                   f"their buffer view or buffer (truncated or corrupt?)")
+    values = np.ndarray((count, width), dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize))
+    values = values.astype(np.float64)
+    if acc.get("normalized") and dtype.kind in "iu":
+        top = float(np.iinfo(dtype).max)
+        values = np.maximum(values / top, -1.0) if dtype.kind == "i" else values / top
+    return values
+
+
+def _node_matrices(path, doc):
+    """{node index: 4x4 world matrix} for every node reachable from the scene (all roots when none)."""
+    nodes = _list(path, doc, "nodes")
+    scenes = _list(path, doc, "scenes")
+    if scenes:
+        index = doc.get("scene", 0)
+        if not isinstance(index, int) or not 0 <= index < len(scenes):
+            raise SplatFileError(path, f"scene {index!r} does not exist")
+        roots = scenes[index].get("nodes", [])
+    else:
+        children = {c for n in nodes for c in n.get("children", [])}
+        roots = [i for i in range(len(nodes)) if i not in children]
+    out, stack = {}, [(r, np.eye(4)) for r in roots]
+    while stack:
+        index, parent = stack.pop()
+        if not isinstance(index, int) or not 0 <= index < len(nodes) or index in out:
+            raise SplatFileError(path, f"node {index!r} does not exist or is reached twice")
+        out[index] = parent @ _local_matrix(nodes[index])
+        stack += [(c, out[index]) for c in nodes[index].get("children", [])]
+    return out
+
+
+def _local_matrix(node):
+    if "matrix" in node:
+        return np.array(node["matrix"], float).reshape(4, 4).T        # column-major
+    t = np.eye(4)
+    t[:3, 3] = node.get("translation", [0, 0, 0])
+    x, y, z, w = node.get("rotation", [0, 0, 0, 1])
+    from ..core.geometry import quaternions_to_matrices
+    r = np.eye(4)
+    r[:3, :3] = quaternions_to_matrices(np.array([[w, x, y, z]], float))[0]
+    s = np.diag([*node.get("scale", [1, 1, 1]), 1.0])
+    return t @ r @ s
+
+
+def _primitive_cloud(path, doc, buffers, primitive, notes):
+    attributes = primitive.get("attributes", {})
+    if primitive.get("mode", 4) != 0:
+        raise SplatFileError(path, f"a {EXTENSION} primitive has mode {primitive.get('mode', 4)}; it must be "
+                                   "POINTS (0)")
+    ext = primitive["extensions"][EXTENSION]
+    if ext.get("kernel", "ellipse") != "ellipse":
+        notes.append(f"kernel '{ext.get('kernel')}' read as the 3DGS ellipse")
+    if ext.get("colorSpace", "srgb_rec709_display") != "srgb_rec709_display":
+        notes.append(f"colorSpace '{ext.get('colorSpace')}': SH values kept as they are (the model's are display sRGB)")
+    def get(name, width):
+        values = _accessor(path, doc, buffers, attributes[name], name)
+        if width is not None and values.shape[1] != width:
+            raise SplatFileError(path, f"attribute {name} has {values.shape[1]} components, expected {width}")
+        return values
+
+    if "POSITION" not in attributes:
+        raise SplatFileError(path, f"a {EXTENSION} primitive has no POSITION attribute")
+    positions = get("POSITION", 3)
+    n = len(positions)
+    missing = [name for name in (ROTATION, SCALE) if name not in attributes]
+    if missing:
+        raise SplatFileError(path, f"a {EXTENSION} primitive lacks the required attributes {missing}")
+    xyzw = get(ROTATION, 4)
+    scales = get(SCALE, 3)
+    if OPACITY in attributes:
+        opacities = get(OPACITY, 1)[:, 0]
+    elif "COLOR_0" in attributes and get("COLOR_0", None).shape[1] == 4:
+        notes.append(f"no {OPACITY}: opacity taken from COLOR_0's alpha")
+        opacities = get("COLOR_0", 4)[:, 3]
+    else:
+        raise SplatFileError(path, f"a {EXTENSION} primitive lacks {OPACITY}")
+    sh = _sh(path, attributes, get, n, notes)
+    for name, values in (("rotations", xyzw), ("scales", scales), ("opacities", opacities[:, None]), ("SH", sh)):
+        if len(values) != n:
+            raise SplatFileError(path, f"{name} has {len(values)} entries for {n} positions")
+    bad = np.isfinite(opacities) & ((opacities < 0) | (opacities > 1))
+    if bad.any():
+        notes.append(f"{int(bad.sum())} opacities outside [0, 1] clamped")
+        opacities = np.clip(opacities, 0, 1)
+    with np.errstate(invalid="ignore"):
+        logits = np.where(np.isfinite(opacities), logit(opacities), opacities)
+    return SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], log_scales_from_linear(scales, notes), logits, sh)
+
+
+def _sh(path, attributes, get, n, notes):
+    """(n, K, 3) SH from the SH_DEGREE_l_COEF_n attributes (DC from COLOR_0 when absent)."""
+    if sh_name(0, 0) in attributes:
+        coefficients = [get(sh_name(0, 0), 3)]
+    elif "COLOR_0" in attributes:
+        notes.append(f"no {sh_name(0, 0)}: DC colour taken from COLOR_0")
+        coefficients = [shmod.rgb_to_dc(get("COLOR_0", None)[:, :3])]
+    else:
+        raise SplatFileError(path, f"a {EXTENSION} primitive lacks {sh_name(0, 0)}")
+    for degree in range(1, 4):
+        present = [sh_name(degree, c) in attributes for c in range(2 * degree + 1)]
+        if not any(present):
+            break
+        if not all(present):
+            raise SplatFileError(path, f"SH degree {degree} has {sum(present)} of its {2 * degree + 1} coefficients")
+        coefficients += [get(sh_name(degree, c), 3) for c in range(2 * degree + 1)]
+    if sh_name(4, 0) in attributes:
+        notes.append("SH above degree 3 dropped")
+    if any(len(c) != n for c in coefficients):
+        raise SplatFileError(path, f"SH attributes do not hold one entry per each of the {n} splats")
+    return np.stack(coefficients, axis=1)
+
+
+def read(path, nonfinite="raise"):
+    """Every KHR_gaussian_splatting primitive of the default scene (node transforms applied),
+    concatenated into one SplatCloud in the model's axes."""
+    check_nonfinite_policy(nonfinite)
+    try:
+        return _read(path, nonfinite)
+    except SplatFileError:
+        raise
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+        # JSON of the wrong shape somewhere (a string where an object belongs, a short matrix, ...)
+        raise SplatFileError(path, f"malformed glTF document ({type(exc).__name__}: {exc})") from None
+
+
+def _read(path, nonfinite):
+    doc, buffers = _load_document(path)
+    unknown = [e for e in doc.get("extensionsRequired", []) if e != EXTENSION]
+    if unknown:
+        raise SplatFileError(path, f"the file requires glTF extensions this reader does not know: {unknown}")
+    meshes, notes, clouds = _list(path, doc, "meshes"), [], []
+    for node, matrix in sorted(_node_matrices(path, doc).items()):
+        mesh = _list(path, doc, "nodes")[node].get("mesh")
+        if mesh is None:
+            continue
+        if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
+            raise SplatFileError(path, f"node {node} names mesh {mesh!r}, which does not exist")
+        for primitive in meshes[mesh].get("primitives", []):
+            if EXTENSION not in primitive.get("extensions", {}):
+                continue
+            with np.errstate(invalid="ignore", over="ignore"):
+                cloud = flip_axes(_primitive_cloud(path, doc, buffers, primitive, notes), LUF)
+                if not np.array_equal(matrix, np.eye(4)):
+                    try:
+                        cloud = cloud.transformed(np.diag(LUF + [1]) @ matrix @ np.diag(LUF + [1]))
+                    except ValueError as exc:
+                        raise SplatFileError(path, f"node {node} transform cannot be applied: {exc}") from None
+            clouds.append(cloud)
+    if not clouds:
+        raise SplatFileError(path, f"no {EXTENSION} primitive in the file's scene")
+    if notes:
+        warnings.warn(f"{path}: " + "; ".join(dict.fromkeys(notes)), SplatFileWarning, stacklevel=2)
+    cloud = clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
+    return apply_nonfinite_policy(path, cloud, nonfinite, "read")
+
+
+# writing ------------------------------------------------------------------------------------------
+
+def encode(cloud, generator="Splatwright"):
+    """(glTF JSON dict, binary buffer) for a cloud (model axes in, glTF's out)."""
+    cloud = flip_axes(cloud, LUF)
+    n = len(cloud)
+    q = cloud.unit_rotations[:, [1, 2, 3, 0]]
+    with np.errstate(over="ignore"):
+        scales = np.exp(cloud.log_scales.astype(np.float64))
+    opacities = sigmoid(cloud.opacity_logits)
+    rgba = np.concatenate([shmod.dc_to_rgb(cloud.sh[:, 0]), opacities[:, None]], axis=1)
+    arrays = [("POSITION", cloud.positions, "VEC3"), (ROTATION, q, "VEC4"), (SCALE, scales, "VEC3"),
+              (OPACITY, opacities, "SCALAR")]
+    arrays += [(sh_name(d, c), cloud.sh[:, d * d + c], "VEC3") for d in range(cloud.sh_degree + 1)
+               for c in range(2 * d + 1)]
+    arrays.append(("COLOR_0", np.clip(np.rint(rgba * 255), 0, 255).astype(np.uint8), "VEC4"))
+    blobs, views, accessors, attributes, at = [], [], [], {}, 0
+    for name, values, kind in arrays:
+        values = np.ascontiguousarray(values, np.uint8 if values.dtype == np.uint8 else "<f4")
+        blob = values.tobytes()
+        views.append({"buffer": 0, "byteOffset": at, "byteLength": len(blob), "target": 34962})
+        accessor = {"bufferView": len(views) - 1, "componentType": 5121 if values.dtype == np.uint8 else 5126,
+                    "count": n, "type": kind}
+        if name == "COLOR_0":
+            accessor["normalized"] = True
+        if name == "POSITION" and n:
+            accessor["min"] = values.min(axis=0).tolist()
+            accessor["max"] = values.max(axis=0).tolist()
+        accessors.append(accessor)
+        attributes[name] = len(accessors) - 1
+        blobs.append(blob + bytes(-len(blob) % 4))
+        at += len(blobs[-1])
+    doc = {"asset": {"version": "2.0", "generator": generator}, "extensionsUsed": [EXTENSION],
+           "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "Splats"}],
+           "meshes": [{"primitives": [{"mode": 0, "attributes": attributes, "extensions": {EXTENSION: {
+               "kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective",
+               "sortingMethod": "cameraDistance"}}}]}],
+           "buffers": [{"byteLength": at}], "bufferViews": views, "accessors": accessors}
+    return doc, b"".join(blobs)
+
+
+def write(path, cloud, nonfinite="raise"):
+    """Write a .glb (one file) or a .gltf with its buffer in `<name>.bin` beside it."""
+    cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
+    if cloud.extras:
+        warnings.warn(f"{path}: glTF splats carry no extras; {sorted(cloud.extras)} not written",
+                      SplatFileWarning, stacklevel=2)
+    doc, binary = encode(cloud)
+    if str(path).lower().endswith(".gltf"):
+        bin_path = Path(path).with_suffix(".bin")
+        doc["buffers"][0]["uri"] = bin_path.name
+        with atomic_write(bin_path) as f:
+            f.write(binary)
+        with atomic_write(path) as f:
+            f.write(json.dumps(doc, indent=1).encode("utf-8"))
+        return
+    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    total = 12 + 8 + len(text) + 8 + len(binary)
+    with atomic_write(path) as f:
+        f.write(struct.pack("<III", GLB_MAGIC, 2, total))
+        f.write(struct.pack("<II", len(text), JSON_CHUNK) + text)
+        f.write(struct.pack("<II", len(binary), BIN_CHUNK) + binary)
+
