@@ -6,11 +6,17 @@ version's bpy-only Python, with BLENDER_USER_RESOURCES pointing at a fresh folde
 extension zip there as a user does, runs its steps and writes results.json. Every test of the module
 runs once per version (its id ends in the version, e.g. [4.2]); a version whose Python this machine
 lacks is skipped with one line that says so.
+
+The workers do not wait for their tests: when collection ends, every (worker, version) the selected
+tests need starts in a background pool (two at a time on two cores; SPLATWRIGHT_BLENDER_JOBS sets
+it), and the tests with Blender workers are moved after the others, which run meanwhile.
 """
 
+import inspect
 import json
 import os
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -61,13 +67,86 @@ def run_worker(worker, work, zip_path, version=blender_envs.PRIMARY):
     return Session(work, json.loads(results_file.read_text()), log, version)
 
 
+# every worker the collected tests need, run in the background --------------------------------------
+
+_WORKERS = {}        # test file -> (worker module, write_inputs)
+_POOL = None
+
+
 def blender_fixture(worker, write_inputs=None):
     """The module-scoped fixture `blender` of a test module: one Session per Blender version, its
-    worker module run on a fresh folder that `write_inputs(folder)` (if given) filled first."""
+    worker module run on a fresh folder that `write_inputs(folder)` (if given) filled first. The
+    workers themselves start when collection ends (see WorkerPool); the fixture waits for its own."""
+    _WORKERS[Path(inspect.stack()[1].filename).resolve()] = (worker, write_inputs)
+
     @pytest.fixture(scope="module", params=list(blender_envs.VERSIONS))
-    def blender(request, tmp_path_factory, extension_zip):
-        work = tmp_path_factory.mktemp(f"{worker.rsplit('.', 1)[-1]}_{request.param}")
-        if write_inputs is not None:
-            write_inputs(work)
-        return run_worker(worker, work, extension_zip, request.param)
+    def blender(request):
+        return _POOL.session(worker, request.param)
     return blender
+
+
+class WorkerPool:
+    """Runs the Blender workers of the collected tests, `width` at a time, while the tests that need no
+    Blender run: each worker is a separate process that mostly waits for Blender, so the machine's
+    cores stay busy. Sessions are handed out in the order the tests ask for them."""
+
+    def __init__(self, jobs, base, zip_path, width):
+        self.executor = ThreadPoolExecutor(max(1, width))
+        self.futures = {}
+        for worker, version, write_inputs in jobs:
+            work = base / f"{worker.rsplit('.', 1)[-1]}_{version}"
+            work.mkdir(parents=True)
+            if write_inputs is not None:
+                write_inputs(work)
+            self.futures[worker, version] = self.executor.submit(_run_or_reason, worker, work, zip_path, version)
+
+    def session(self, worker, version):
+        outcome = self.futures[worker, version].result()
+        if isinstance(outcome, Session):
+            return outcome
+        kind, message = outcome
+        (pytest.skip if kind == "skip" else pytest.fail)(message)
+
+    def close(self):
+        self.executor.shutdown(wait=False, cancel_futures=True)
+
+
+def _run_or_reason(worker, work, zip_path, version):
+    """run_worker in a pool thread: its Session, or ("skip" | "fail", why) for the tests to report."""
+    try:
+        return run_worker(worker, work, zip_path, version)
+    except pytest.skip.Exception as exc:
+        return "skip", str(exc)
+    except BaseException as exc:           # noqa: BLE001 - reported by every test of that session
+        return "fail", f"{type(exc).__name__}: {exc}"
+
+
+def blender_last(items):
+    """Tests with a Blender worker after the others, so those run while the workers do."""
+    items.sort(key=lambda item: Path(str(item.fspath)).resolve() in _WORKERS)
+
+
+def start_workers(config, items):
+    """Start every (worker, version) the selected tests use, in the order they will ask for them."""
+    global _POOL
+    jobs = []
+    for item in items:
+        entry = _WORKERS.get(Path(str(item.fspath)).resolve())
+        callspec = getattr(item, "callspec", None)
+        if entry is None or callspec is None or "blender" not in callspec.params:
+            continue
+        job = (entry[0], callspec.params["blender"], entry[1])
+        if job[:2] not in [j[:2] for j in jobs]:
+            jobs.append(job)
+    if not jobs:
+        return
+    from helpers import build_extension_zip
+    base = config._tmp_path_factory.mktemp("blender")          # pytest's own temporary folder
+    zip_path = build_extension_zip(base)
+    width = int(os.environ.get("SPLATWRIGHT_BLENDER_JOBS", min(2, os.cpu_count() or 1)))
+    _POOL = WorkerPool(jobs, base, zip_path, width)
+
+
+def stop_workers():
+    if _POOL is not None:
+        _POOL.close()

@@ -1,8 +1,22 @@
 """Shared fixtures."""
 
+import blender_session
 import numpy as np
 import pytest
 from helpers import build_extension_zip, random_cloud
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(session, config, items):
+    blender_session.blender_last(items)
+
+
+def pytest_collection_finish(session):
+    blender_session.start_workers(session.config, session.items)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    blender_session.stop_workers()
 
 
 @pytest.fixture
