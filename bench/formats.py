@@ -26,11 +26,25 @@ from splatwright.core.splats import FIELDS  # noqa: E402
 
 morton = lambda cloud: compressed_ply.morton_order(cloud.positions)       # noqa: E731
 
+
+def without_pxr(function):
+    """`function` run as where OpenUSD's Python module is missing (Blender 4.2): text layers."""
+    def run(*args):
+        saved, usd.Usd = usd.Usd, None
+        try:
+            return function(*args)
+        finally:
+            usd.Usd = saved
+    return run
+
+
 # name -> (file suffix, write(path, cloud), read(path), share of the full splat count, the order the
 # file holds the splats in, or None for the cloud's own)
 FORMATS = {
     "USD float (.usdc)": (".usdc", usd.write, usd.read, 1, None),
     "USD half (.usdc)": (".usdc", lambda p, c: usd.write(p, c, half=True), usd.read, 1, None),
+    # text formats every number in Python's shortest round-trip decimals: a tenth of the splats
+    "USD text without pxr (.usda)": (".usda", without_pxr(usd.write), without_pxr(usd.read), 10, None),
     # the lossy web formats compress slowly (gzip 6 / zstd 12, as Niantic's writer; SOG's k-means
     # and WebP): a fifth of the splats measures the same per-splat speed ratio and the same errors
     "SPZ v2": (".spz", lambda p, c: spz.write(p, c, version=2), spz.read, 5, None),

@@ -54,6 +54,7 @@ import ctypes
 import itertools
 import math
 import os
+import re
 import struct
 import tempfile
 import warnings
@@ -67,11 +68,12 @@ from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_path, check_nonfinite_policy,
                      log_scales_from_linear)
+from . import usda
 from .spz import SH_FLIP, flip_yz
 
 try:
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt
-except ImportError:                                    # reported when a USD file is used
+except ImportError:             # text layers only, through usda (Blender 4.2 bundles no pxr)
     Usd = None
 try:
     from pxr import UsdVol
@@ -88,6 +90,7 @@ UPRIGHT_OP = "xformOp:transform:upright"          # capture (y down, z forward) 
 UPRIGHT = np.diag([1.0, -1.0, -1.0, 1.0])         # a half turn about X, exact in a matrix op
 LAYOUTS = ("upright", "y-up", "as-is")
 UNMARKED = ("capture", "stage")
+PRIM_PATH = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
 ANISOTROPY_TOLERANCE = 1e-6        # below this a transform counts as rotation * uniform scale
 
 # schema attribute -> (Sdf type name, uniform?, schema creator method)
@@ -141,13 +144,15 @@ MAGIC = {".usdc": (b"PXR-USDC",), ".usdz": (b"PK\x03\x04",), ".usda": (b"#usda",
          ".usd": (b"PXR-USDC", b"#usda")}
 
 
-def _require_pxr(path):
-    if Usd is None:
-        raise SplatFileError(path, "OpenUSD files need the pxr module (pip install usd-core)")
+def _require_pxr_for(path):
+    """A SplatFileError for a binary layer when pxr is missing: only text layers are ours to write."""
+    if Usd is None and os.fspath(path).lower().endswith(".usdc"):
+        raise SplatFileError(path, "binary OpenUSD (.usdc) needs OpenUSD's Python module (pxr), which this "
+                                   "Python lacks (Blender 4.4 and later bundle it); write .usda, .usd or .usdz")
 
 
 def _open(path):
-    _require_pxr(path)
+    """The stage (a usda.Layer where pxr is missing) of a file whose header matches its extension."""
     path = os.fspath(path)
     try:
         with open(path, "rb") as f:
@@ -158,6 +163,8 @@ def _open(path):
     if expected and not any(head.startswith(m) for m in expected):
         names = " or ".join(repr(m.decode("latin-1")) for m in expected)
         raise SplatFileError(path, f"not a {os.path.splitext(path)[1]} file (it does not start with {names})")
+    if Usd is None:
+        return usda.read_layer(path)
     if head.startswith(b"PXR-USDC"):
         _check_crate(path)
     layer = Sdf.Layer.Find(os.path.abspath(path))
@@ -210,7 +217,27 @@ def _tf_message(exc):
 
 
 def _time(stage, time):
+    if Usd is None:
+        return None if time is None else float(time)
     return Usd.TimeCode.EarliestTime() if time is None else Usd.TimeCode(float(time))
+
+
+def _primvars(prim):
+    return usda.PrimvarsAPI(prim) if Usd is None else UsdGeom.PrimvarsAPI(prim)
+
+
+def _traverse(stage):
+    return stage.traverse() if Usd is None else stage.Traverse(Usd.TraverseInstanceProxies())
+
+
+def _is_points(prim):
+    return prim.GetTypeName() == "Points" if Usd is None else prim.IsA(UsdGeom.Points)
+
+
+def _is_geometry(prim):
+    if Usd is None:
+        return prim.GetTypeName() not in ("", "Xform", "Scope")
+    return prim.IsA(UsdGeom.Gprim)
 
 
 # stage units and axes ----------------------------------------------------------------------------
@@ -232,21 +259,37 @@ def stage_matrix(stage, axes="RDF", meters_per_unit=1.0, notes=None):
     notes = [] if notes is None else notes
     m = np.eye(4)
     if axes is not None:
-        if str(UsdGeom.GetStageUpAxis(stage)) == "Z":
+        if _stage_metadata(stage, "upAxis", "Y") == "Z":
             m[:3, :3] = Z_UP_TO_Y_UP
         if axes == "RDF":
             m[:3, :3] = RUB_TO_RDF @ m[:3, :3]
     if meters_per_unit is not None:
-        if not stage.HasAuthoredMetadata("metersPerUnit"):
+        units = _stage_metadata(stage, "metersPerUnit", None)
+        if units is None:
             notes.append("metersPerUnit is not authored; USD's fallback of 0.01 (centimetres) applies")
-        m[:3, :3] *= UsdGeom.GetStageMetersPerUnit(stage) / float(meters_per_unit)
+        m[:3, :3] *= (0.01 if units is None else units) / float(meters_per_unit)
     return m
+
+
+def _stage_metadata(stage, key, fallback):
+    """Layer metadata `key` (upAxis as "Y"/"Z", metersPerUnit as a float), or fallback if unauthored."""
+    if Usd is None:
+        value = stage.metadata.get(key)
+    elif not stage.HasAuthoredMetadata(key):
+        value = None
+    else:
+        value = UsdGeom.GetStageUpAxis(stage) if key == "upAxis" else UsdGeom.GetStageMetersPerUnit(stage)
+    if value is None:
+        return fallback
+    return str(value) if key == "upAxis" else float(value)
 
 
 def _world_matrix(prim, time):
     """The prim's local-to-world transform as a 4x4 acting on column vectors. Its own ops are read
     with GetLocalTransformation: a pxr without the splat schema (Blender's) does not count the prim
     as Xformable, and ComputeLocalToWorldTransform would skip them."""
+    if Usd is None:
+        return prim.world_matrix(time)
     xformable = UsdGeom.Xformable(prim)
     local = np.array(xformable.GetLocalTransformation(time), dtype=np.float64).T
     if xformable.GetResetXformStack():
@@ -428,13 +471,13 @@ def _sh_degree(prim):
 
 
 def _is_adobe_splat(prim):
-    pv = UsdGeom.PrimvarsAPI(prim)
-    return prim.IsA(UsdGeom.Points) and all(pv.HasPrimvar(n) for n in ("rot", "widths1", "widths2"))
+    pv = _primvars(prim)
+    return _is_points(prim) and all(pv.HasPrimvar(n) for n in ("rot", "widths1", "widths2"))
 
 
 def _is_blender_splat(prim):
-    pv = UsdGeom.PrimvarsAPI(prim)
-    return prim.IsA(UsdGeom.Points) and pv.HasPrimvar("rotation") and pv.HasPrimvar("scale")
+    pv = _primvars(prim)
+    return _is_points(prim) and pv.HasPrimvar("rotation") and pv.HasPrimvar("scale")
 
 
 def _blender_cloud(prim, time, notes):
@@ -444,11 +487,11 @@ def _blender_cloud(prim, time, notes):
     positions = _value(prim, "points", time, (3,))
     positions = np.zeros((0, 3), np.float32) if positions is None else positions.astype(np.float32)
     n = len(positions)
-    rotation = UsdGeom.PrimvarsAPI(prim).GetPrimvar("rotation")
+    rotation = _primvars(prim).GetPrimvar("rotation")
     quats = _fit(_primvar(prim, "rotation", time, (4,)), n, (4,), "primvars:rotation", "identity", notes)
     if quats is None:
         rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
-    elif rotation.GetTypeName().type.typeName.startswith("VtArray<GfQuat"):
+    elif usda.is_quaternion(rotation.GetTypeName()):
         rotations = quats[:, [3, 0, 1, 2]].astype(np.float32)          # Vt quaternions are x, y, z, w in memory
     else:
         rotations = quats.astype(np.float32)
@@ -476,7 +519,7 @@ def _blender_cloud(prim, time, notes):
 
 
 def _primvar(prim, name, time, shape=()):
-    pv = UsdGeom.PrimvarsAPI(prim).GetPrimvar(name)
+    pv = _primvars(prim).GetPrimvar(name)
     if not pv or not pv.HasAuthoredValue():
         return None
     value = pv.ComputeFlattened(time)
@@ -527,11 +570,11 @@ def _adobe_rest(prim, time, n, notes):
 def _extras(prim, time, n, taken, notes):
     """Per-particle primvars (vertex/varying, length n * elementSize) as extras."""
     extras = {}
-    for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithAuthoredValues():
+    for pv in _primvars(prim).GetPrimvarsWithAuthoredValues():
         name = pv.GetPrimvarName()
         if name in taken or name in ("displayColor", "displayOpacity"):
             continue
-        if pv.GetInterpolation() not in (UsdGeom.Tokens.vertex, UsdGeom.Tokens.varying):
+        if pv.GetInterpolation() not in ("vertex", "varying"):
             continue
         value = pv.ComputeFlattened(time)
         if value is None:
@@ -613,11 +656,11 @@ def _splat_prims(stage, time, axes, meters_per_unit, notes, unmarked="capture"):
         if axes == "RUB":
             capture_m = FLIP @ capture_m
     found, skipped = [], {}
-    for prim in stage.Traverse(Usd.TraverseInstanceProxies()):
+    for prim in _traverse(stage):
         got = _read_prim(prim, time, (stage_m, capture_m), notes)
         if got is not None:
             found.append(got)
-        elif prim.IsA(UsdGeom.Gprim) or prim.GetTypeName().startswith("ParticleField"):
+        elif _is_geometry(prim) or prim.GetTypeName().startswith("ParticleField"):
             skipped.setdefault(str(prim.GetTypeName()), []).append(str(prim.GetPath()))
     if skipped:
         listed = "; ".join(f"{t} x{len(p)} ({', '.join(p[:3])}{', ...' if len(p) > 3 else ''})"
@@ -681,7 +724,7 @@ def _time_codes(stage, path, prim_path):
         if not prims[0]:
             raise SplatFileError(path, f"no prim at {prim_path}")
     else:
-        prims = [p for p in stage.Traverse(Usd.TraverseInstanceProxies())
+        prims = [p for p in _traverse(stage)
                  if p.GetTypeName() == TYPE_NAME or _is_adobe_splat(p) or _is_blender_splat(p)]
     times = set()
     for prim in prims:
@@ -795,10 +838,20 @@ def _vt_filled(cls, length, shape, dtype, fill):
     return out
 
 
-def _vt(cls, values):
-    """A Vt array holding a copy of `values`."""
+def _filled(kind, shape, dtype, fill):
+    """An array of Vt type `kind` ("Vec3fArray" ...) filled by fill(ndarray): a Vt array, or a NumPy
+    one where pxr is missing (the text layer formats NumPy arrays itself)."""
+    if Usd is None:
+        out = np.empty(shape, dtype)
+        fill(out)
+        return out
+    return _vt_filled(getattr(Vt, kind), shape[0], shape, dtype, fill)
+
+
+def _vt(kind, values):
+    """An array of Vt type `kind` holding a copy of `values`."""
     values = np.asarray(values)
-    return _vt_filled(cls, len(values), values.shape, values.dtype, lambda out: np.copyto(out, values))
+    return _filled(kind, values.shape, values.dtype, lambda out: np.copyto(out, values))
 
 
 def _half(path, name, values):
@@ -842,31 +895,31 @@ def _frame_values(path, cloud, options):
         _check_half_range(path, "SH", flat)
         xyzw, scales, opacities = (_half(path, name, v) for name, v in
                                    (("rotation", xyzw), ("scale", scales), ("opacity", opacities)))
-        values = {"orientationsh": _vt(Vt.QuathArray, xyzw),
-                  "scalesh": _vt(Vt.Vec3hArray, scales),
-                  "opacitiesh": _vt(Vt.HalfArray, opacities),
-                  SH_COEFFS + "h": _vt_filled(Vt.Vec3hArray, n * k, (n * k, 3), np.float16,
+        values = {"orientationsh": _vt("QuathArray", xyzw),
+                  "scalesh": _vt("Vec3hArray", scales),
+                  "opacitiesh": _vt("HalfArray", opacities),
+                  SH_COEFFS + "h": _filled("Vec3hArray", (n * k, 3), np.float16,
                                               lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k),
                                                                       casting="same_kind"))}
     else:
-        values = {"orientations": _vt(Vt.QuatfArray, xyzw),
-                  "scales": _vt(Vt.Vec3fArray, scales),
-                  "opacities": _vt(Vt.FloatArray, opacities),
-                  SH_COEFFS: _vt_filled(Vt.Vec3fArray, n * k, (n * k, 3), np.float32,
+        values = {"orientations": _vt("QuatfArray", xyzw),
+                  "scales": _vt("Vec3fArray", scales),
+                  "opacities": _vt("FloatArray", opacities),
+                  SH_COEFFS: _filled("Vec3fArray", (n * k, 3), np.float32,
                                         lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k)))}
     if half_positions:
         positions = _half(path, "position", positions)
-        values["positionsh"] = _vt(Vt.Vec3hArray, positions)
+        values["positionsh"] = _vt("Vec3hArray", positions)
     else:
-        values["positions"] = _vt(Vt.Vec3fArray, positions)
+        values["positions"] = _vt("Vec3fArray", positions)
     if exact and not half:
-        values[LOGITS] = _vt(Vt.FloatArray, cloud.opacity_logits)
-        values[LOG_SCALES] = _vt(Vt.Vec3fArray, np.ascontiguousarray(cloud.log_scales))
+        values[LOGITS] = _vt("FloatArray", cloud.opacity_logits)
+        values[LOG_SCALES] = _vt("Vec3fArray", np.ascontiguousarray(cloud.log_scales))
         raw = cloud.rotations * np.float32([1, 1, -1, -1]) if flip else cloud.rotations
-        values[RAW_ROTATIONS] = _vt(Vt.Vec4fArray, np.ascontiguousarray(raw))
+        values[RAW_ROTATIONS] = _vt("Vec4fArray", np.ascontiguousarray(raw))
     box = alpha_extent(positions, xyzw[:, [3, 0, 1, 2]], scales, opacities)
     if box is not None:
-        values["extent"] = _vt(Vt.Vec3fArray, box)
+        values["extent"] = _vt("Vec3fArray", box)
     return values
 
 
@@ -875,6 +928,8 @@ def _schema_class():
 
 
 def _define_splat_prim(stage, prim_path):
+    if Usd is None:
+        return stage.define(prim_path, TYPE_NAME)
     schema = _schema_class()
     if schema is not None:
         return schema.Define(stage, prim_path).GetPrim()
@@ -883,6 +938,9 @@ def _define_splat_prim(stage, prim_path):
 
 def _attribute(prim, name):
     """The attribute `name`, created through the schema class when pxr has it, else by name."""
+    if Usd is None:
+        type_name, uniform = (CUSTOM[name], False) if name in CUSTOM else SCHEMA[name][:2]
+        return prim.attribute(name, type_name, uniform, custom=name in CUSTOM)
     if name in CUSTOM:
         return prim.CreateAttribute(name, Sdf.ValueTypeNames.Find(CUSTOM[name]), True)
     type_name, uniform, creator = SCHEMA[name]
@@ -895,20 +953,34 @@ def _attribute(prim, name):
 
 def _extra_primvars(path, prim, cloud):
     """[(attribute, extra name, widen to int32?)] authoring each extra as a vertex primvar."""
-    api = UsdGeom.PrimvarsAPI(prim)
     out = []
     for key, values in cloud.extras.items():
         type_name = EXTRA_TYPES.get(values.dtype.name)
-        if type_name is None or not Sdf.Path.IsValidNamespacedIdentifier(key):
+        if type_name is None or not usda.VALID_NAMESPACED.fullmatch(key):
             raise SplatFileError(path, f"extra '{key}' ({values.dtype}) cannot be a USD primvar: it needs a "
                                        f"valid identifier and one of the dtypes {sorted(EXTRA_TYPES)}")
         size = int(np.prod(values.shape[1:])) if values.ndim > 1 else -1
-        pv = api.CreatePrimvar(key, Sdf.ValueTypeNames.Find(type_name + "[]"), UsdGeom.Tokens.vertex, size)
+        attr = _vertex_primvar(prim, key, type_name + "[]", size)
         widen = type_name == "int" and values.dtype != np.int32
-        if widen:
-            pv.GetAttr().SetCustomDataByKey(DTYPE_KEY, values.dtype.name)
-        out.append((pv.GetAttr(), key, widen))
+        if widen and Usd is None:
+            attr.metadata["customData"] = {"splatwright": {"dtype": values.dtype.name}}   # DTYPE_KEY nested
+        elif widen:
+            attr.SetCustomDataByKey(DTYPE_KEY, values.dtype.name)
+        out.append((attr, key, widen))
     return out
+
+
+def _vertex_primvar(prim, name, type_name, element_size):
+    """The attribute of a new vertex-interpolated primvar (element_size -1: left unauthored)."""
+    if Usd is None:
+        attr = prim.attribute(f"primvars:{name}", type_name)
+        attr.metadata["interpolation"] = "vertex"
+        if element_size > 0:
+            attr.metadata["elementSize"] = element_size
+        return attr
+    pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(name, Sdf.ValueTypeNames.Find(type_name), UsdGeom.Tokens.vertex,
+                                                 element_size)
+    return pv.GetAttr()
 
 
 VT_ARRAYS = {"float32": "FloatArray", "float64": "DoubleArray", "float16": "HalfArray", "int32": "IntArray",
@@ -939,15 +1011,22 @@ def _author_prim(path, stage, prim_path, frames, times, options):
         attr.finish()
     for name in (SH_COEFFS, SH_COEFFS + "h"):   # one particle's coefficients per element, as primvars say
         if name in samples:
-            primvar = UsdGeom.Primvar(samples[name].attr)
-            primvar.SetInterpolation(UsdGeom.Tokens.vertex)
-            primvar.SetElementSize(shape[1])
-    return [c.GetValue() for c in codes if not c.IsDefault()]
+            attr = samples[name].attr
+            if Usd is None:
+                attr.metadata.update(interpolation="vertex", elementSize=shape[1])
+            else:
+                UsdGeom.Primvar(attr).SetInterpolation(UsdGeom.Tokens.vertex)
+                UsdGeom.Primvar(attr).SetElementSize(shape[1])
+    return [c for c in codes if c is not None]
 
 
 def _upright_op(prim):
     """The transform standing a capture (y down, z forward) upright in the Y-up stage: a half turn
     about X, authored as an exact matrix op named for what it does."""
+    if Usd is None:
+        prim.attribute(UPRIGHT_OP, "matrix4d").Set(UPRIGHT.T.copy())
+        prim.attribute("xformOpOrder", "token[]", uniform=True).Set([UPRIGHT_OP])
+        return
     op = prim.CreateAttribute(UPRIGHT_OP, Sdf.ValueTypeNames.Matrix4d, False)
     op.Set(Gf.Matrix4d(*UPRIGHT.T.reshape(-1).tolist()))
     prim.CreateAttribute("xformOpOrder", Sdf.ValueTypeNames.TokenArray, False,
@@ -960,7 +1039,7 @@ def _extra_values(cloud, extras):
     for attr, key, widen in extras:
         flat = np.ascontiguousarray(cloud.extras[key].reshape(-1))
         flat = flat.astype(np.int32) if widen else flat
-        values[attr.GetName()] = _vt(getattr(Vt, VT_ARRAYS[flat.dtype.name]), flat)
+        values[attr.GetName()] = _vt(VT_ARRAYS[flat.dtype.name], flat)
     return values
 
 
@@ -980,8 +1059,15 @@ class _Samples:
                 return
             self.held = False                # the first change: the frames so far get samples
             for earlier in self.waiting:
-                self.attr.Set(self.first, earlier)
-        self.attr.Set(value, code)
+                self.set(self.first, earlier)
+        self.set(value, code)
+
+    def set(self, value, code):
+        """Author `value` at time code `code` (None: the default value)."""
+        if code is None:
+            self.attr.Set(value)
+        else:
+            self.attr.Set(value, code if Usd is None else Usd.TimeCode(code))
 
     def finish(self):
         if self.held:
@@ -997,13 +1083,13 @@ def _checked_frames(path, prim_path, frames, times, options):
     """(cloud, time code) pairs, each cloud checked as it comes: the same splat count, SH degree and
     extras in every frame, one time code per cloud, the non-finite policy applied."""
     if isinstance(frames, SplatCloud):
-        frames, codes = [frames], iter([Usd.TimeCode.Default()])
+        frames, codes = [frames], iter([None])                     # None: the default value
     else:
-        codes = (Usd.TimeCode(float(t)) for t in (itertools.count() if times is None else times))
+        codes = (float(t) for t in (itertools.count() if times is None else times))
     shape, count = None, 0
     for cloud in frames:
-        code = next(codes, None)
-        if code is None:
+        code = next(codes, "none left")
+        if code == "none left":
             raise SplatFileError(path, f"{prim_path}: more clouds than time codes ({count})")
         cloud = apply_nonfinite_policy(f"{path}:{prim_path}", cloud, options.nonfinite, "write")
         this = (len(cloud), cloud.sh_degree, tuple(sorted(cloud.extras)))
@@ -1016,7 +1102,7 @@ def _checked_frames(path, prim_path, frames, times, options):
         del cloud
     if count == 0:
         raise SplatFileError(path, f"{prim_path}: no clouds to write")
-    if times is not None and next(codes, None) is not None:
+    if times is not None and next(codes, "none left") != "none left":
         raise SplatFileError(path, f"{prim_path}: more time codes than clouds ({count})")
 
 
@@ -1038,7 +1124,7 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
     into the Y-up stage, no transform: for viewers that ignore prim transforms) or "as-is" (the
     capture's coordinates and no transform, as NVIDIA's converter writes: upside down in Y-up viewers).
     """
-    _require_pxr(path)
+    _require_pxr_for(path)
     if axes not in ("RDF", "RUB"):
         raise ValueError(f"axes must be 'RDF' or 'RUB', got {axes!r}")
     if layout not in LAYOUTS:
@@ -1051,13 +1137,14 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
     if not prims:
         raise SplatFileError(path, "no prims to write")
     for prim_path in prims:
-        if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsoluteRootOrPrimPath() \
-                or prim_path == "/":
+        if not PRIM_PATH.fullmatch(prim_path):
             raise SplatFileError(path, f"'{prim_path}' is not an absolute prim path")
     if times is not None:
         times = list(times)
     with atomic_path(path) as tmp:
-        if path.lower().endswith(".usdz"):
+        if Usd is None:
+            _save_text_layer(path, str(tmp), prims, times, options, fps)
+        elif path.lower().endswith(".usdz"):
             with tempfile.TemporaryDirectory(dir=os.path.dirname(os.path.abspath(path))) as folder:
                 layer_path = os.path.join(folder, os.path.splitext(os.path.basename(path))[0] + ".usdc")
                 _save_stage(path, layer_path, prims, times, options, fps)
@@ -1088,6 +1175,21 @@ def _save_stage(path, layer_path, prims, times, options, fps):
         stage.SetFramesPerSecond(float(fps))
     if not layer.Save():
         raise SplatFileError(path, "OpenUSD could not save the layer")
+
+
+def _save_text_layer(path, layer_path, prims, times, options, fps):
+    """_save_stage without pxr: the same prims and metadata in a text layer (a .usdz of one)."""
+    layer = usda.Layer(layer_path)
+    layer.metadata.update(upAxis="Y", metersPerUnit=1.0)
+    all_times = []
+    for prim_path, frames in prims.items():
+        all_times += _author_prim(path, layer, prim_path, frames, times, options)
+    layer.metadata["defaultPrim"] = next(iter(prims)).split("/")[1]
+    if all_times:
+        layer.metadata.update(startTimeCode=float(min(all_times)), endTimeCode=float(max(all_times)))
+    if fps is not None:
+        layer.metadata.update(timeCodesPerSecond=float(fps), framesPerSecond=float(fps))
+    layer.save(layer_path, os.path.splitext(os.path.basename(path))[0] + ".usda")
 
 
 def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",

@@ -113,7 +113,7 @@ class SPLAT_OT_export_animation(bpy.types.Operator, ExportHelper):
     bl_label = "Export Splat Animation"
     bl_options = {"REGISTER", "PRESET"}
 
-    filename_ext = ".usdc"
+    filename_ext = ".usd"          # binary with OpenUSD's module, text where Blender lacks it (4.2)
     check_extension = None
     filter_glob: StringProperty(default=operators.FILTER_GLOB, options={"HIDDEN"})
     selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",

@@ -25,7 +25,7 @@ from ..io.common import atomic_write
 from . import animation, collide, data, engine, from_mesh, mesh_layer, operators
 
 COMMAND = "splatwright"
-FORMAT_EXTENSIONS = {"usd": ".usdc", "ply": ".ply", "compressed_ply": ".compressed.ply", "spz": ".spz",
+FORMAT_EXTENSIONS = {"usd": ".usd", "ply": ".ply", "compressed_ply": ".compressed.ply", "spz": ".spz",
                      "splat": ".splat", "sog": ".sog", "gltf": ".glb"}
 # render OUT's extension -> image formats that write it (the first is chosen if none is set)
 IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), ".jpg": ("JPEG",),

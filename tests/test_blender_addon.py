@@ -39,7 +39,7 @@ def _write_inputs(work):
     write_splats(work / "a.ply", a)
     write_splats(work / "b.ply", _random_cloud(120, 1, 1))
     fmt = _random_cloud(*FORMAT_CLOUD)
-    for name in ("fmt.usdc", "fmt.spz", "fmt.splat"):
+    for name in ("fmt.usda", "fmt.spz", "fmt.splat"):
         write_splats(work / name, fmt)
     scene = _random_cloud(250, 3, 3, spread=0.5)
     scene.log_scales[:] = np.random.default_rng(4).uniform(-3.2, -1.8, scene.log_scales.shape)
@@ -108,7 +108,7 @@ def test_ply_import_export_is_lossless(blender):
     assert (blender.out / "a_roundtrip.ply").read_bytes() == (blender.work / "a.ply").read_bytes()
 
 
-@pytest.mark.parametrize("name", ["fmt.usdc", "fmt.spz", "fmt.splat"])
+@pytest.mark.parametrize("name", ["fmt.usda", "fmt.spz", "fmt.splat"])
 def test_each_format_imports_and_exports(blender, name):
     res = blender.step("formats")
     assert res[name]["export"]["error"] is None
@@ -125,13 +125,14 @@ def test_each_format_imports_and_exports(blender, name):
         assert value <= max(2 * first[key], 1e-6), (key, value, first[key])
 
 
-def test_openusd_written_by_blenders_own_pxr_reads_in_usd_core_as_the_schema(blender):
-    """The extension authors through Blender's bundled pxr, whose UsdVol lacks the splat schema class;
-    usd-core (this process) must still see a ParticleField3DGaussianSplat with the values written."""
+def test_openusd_written_in_blender_reads_in_usd_core_as_the_schema(blender):
+    """The extension authors through Blender's bundled pxr, whose UsdVol lacks the splat schema class,
+    or, in a Blender without pxr (4.2), as a text layer of its own; usd-core (this process) must see
+    a ParticleField3DGaussianSplat with the values written either way."""
     from pxr import Usd, UsdVol
     res = blender.step("formats")
-    assert res["fmt.usdc"]["export"]["error"] is None
-    stage = Usd.Stage.Open(str(blender.out / "re_fmt.usdc"))
+    assert res["fmt.usda"]["export"]["error"] is None
+    stage = Usd.Stage.Open(str(blender.out / "re_fmt.usda"))
     prims = [p for p in stage.Traverse() if p.GetTypeName() == "ParticleField3DGaussianSplat"]
     assert len(prims) == 1
     field = UsdVol.ParticleField3DGaussianSplat(prims[0])

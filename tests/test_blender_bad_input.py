@@ -106,7 +106,7 @@ def test_a_zero_scale_object_renders_as_nothing(blender):
     ("export", ["nan_values_export.ply", "3 of 40 splats have non-finite values", "positions in 1",
                 "opacity_logits in 1", "sh in 1"]),
     ("anim_ply", ["nan_values_anim_ply_0001.ply", "non-finite"]),
-    ("anim_usd", ["nan_values_anim_usd.usdc", "non-finite"]),
+    ("anim_usd", ["nan_values_anim_usd.usd", "non-finite"]),
     ("collide", ["frame 1", "2 splats of 'nan_values'", "NaN"]),
     ("bind", ["'nan_values'", "1 splat centres are NaN"]),
 ])
@@ -135,7 +135,7 @@ def test_an_empty_splat_object_is_a_valid_empty_cloud(blender):
         assert d[f"empty {operation}"]["result"] == ["FINISHED"], (operation, d[f"empty {operation}"])
     assert len(read(blender.out / "empty_export.ply")) == 0
     assert [len(read(blender.out / f"empty_anim_ply_000{f}.ply")) for f in (1, 2)] == [0, 0]
-    assert len(read(blender.out / "empty_anim_usd.usdc")) == 0
+    assert len(read(blender.out / "empty_anim_usd.usd")) == 0
     assert np.all(read_exr(blender.out / "empty_render.exr")["A"] == 0)
     joined = d["empty join_good_into"]
     assert joined["result"] == ["FINISHED"] and joined["count"] == N and "good" not in joined["objects"]
@@ -225,8 +225,22 @@ def test_a_sequence_that_fails_at_a_frame_changes_no_file(blender):
     assert (blender.out / "seq" / "shot_0001.ply").read_bytes() == b"old frame 1"
 
 
-@pytest.mark.parametrize("name", ["export ro.ply", "export ro.usdc", "export ro.spz", "export ro.splat",
-                                  "animation ro_####.ply", "animation ro.usdc"])
+def test_binary_openusd_needs_blenders_pxr_and_says_so(blender):
+    """Blender 4.2 bundles no OpenUSD module: .usd, .usda and .usdz are written as text layers there,
+    and .usdc is refused by name; from 4.4 on Blender's own pxr writes it."""
+    files = blender.step("files")
+    case = files["export binary usd"]
+    if files["has pxr"]:
+        assert case["result"] == ["FINISHED"] and case["written"], case
+        assert (blender.out / "binary.usdc").read_bytes().startswith(b"PXR-USDC")
+    else:
+        assert blender.version_tuple < (4, 4)
+        assert_refused(case, "binary.usdc", "pxr", "write .usda, .usd or .usdz")
+        assert not case["written"]
+
+
+@pytest.mark.parametrize("name", ["export ro.ply", "export ro.usd", "export ro.spz", "export ro.splat",
+                                  "animation ro_####.ply", "animation ro.usd"])
 def test_a_read_only_folder_is_refused(blender, name):
     assert_refused(blender.step("read_only")[name], blender.step("read_only")["folder"], "ermission denied")
 

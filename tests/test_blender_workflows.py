@@ -274,7 +274,7 @@ def test_animation_usd_has_one_time_sample_per_frame(blender):
     from pxr import Usd, UsdGeom
     res = blender.step("animation")
     assert res["usd"]["result"] == ["FINISHED"]
-    stage = Usd.Stage.Open(str(blender.out / "anim.usdc"))
+    stage = Usd.Stage.Open(str(blender.out / "anim.usd"))
     assert UsdGeom.GetStageUpAxis(stage) == "Y"
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1.0, 4.0)
     assert stage.GetTimeCodesPerSecond() == pytest.approx(30 / 1.001, rel=1e-6)   # the scene's rate
@@ -351,7 +351,7 @@ def test_cli_export_usd_with_format_and_objects(blender):
     from pxr import Usd
     run = _outcome(blender, "export usd")
     assert run["code"] == 0, run["stderr"]
-    stage = Usd.Stage.Open(str(blender.out / "cli" / "anim.usdc"))
+    stage = Usd.Stage.Open(str(blender.out / "cli" / "anim.usd"))
     prim = stage.GetPrimAtPath("/Splats")
     assert prim.GetAttribute("positions").GetTimeSamples() == [2.0, 3.0, 4.0]
 

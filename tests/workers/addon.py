@@ -112,7 +112,7 @@ class Worker(BlenderWorker):
 
     def formats(self):
         done = {}
-        for name in ("fmt.usdc", "fmt.spz", "fmt.splat"):
+        for name in ("fmt.usda", "fmt.spz", "fmt.splat"):
             obj = self.import_file(name)
             self.select([obj])
             done[name] = {"export": self.export("re_" + name, selected_only=True),

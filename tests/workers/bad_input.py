@@ -3,6 +3,7 @@ workers/base.py)."""
 
 import contextlib
 import hashlib
+import importlib.util
 import io
 import os
 from pathlib import Path
@@ -175,7 +176,7 @@ class Worker(BlenderWorker):
             res["count"] = len(target.data.vertices) if target.name in bpy.data.objects else None
             res["objects"] = sorted(o.name for o in bpy.context.scene.objects)
         elif operation.startswith("anim"):
-            path = f"{name}_####.ply" if operation == "anim_ply" else f"{name}.usdc"
+            path = f"{name}_####.ply" if operation == "anim_ply" else f"{name}.usd"
             self.select([obj])
             res = self.attempt(ops.export_animation, filepath=str(self.out / path), selected_only=True,
                                use_scene_range=False, frame_start=1, frame_end=2)
@@ -209,7 +210,7 @@ class Worker(BlenderWorker):
             selection = [obj] if obj is not None else []
             runs = {
                 "export": (ops.export_file, dict(filepath=str(self.out / f"wrong_{kind}.ply"), selected_only=True)),
-                "anim": (ops.export_animation, dict(filepath=str(self.out / f"wrong_{kind}.usdc"),
+                "anim": (ops.export_animation, dict(filepath=str(self.out / f"wrong_{kind}.usd"),
                                                     selected_only=True, use_scene_range=False, frame_end=2)),
                 "apply": (ops.apply_transform, {}),
                 "join": (ops.join, {}),
@@ -277,6 +278,11 @@ class Worker(BlenderWorker):
         cases["precious kept"] = (self.out / "precious.ply").read_bytes() == b"precious"
         cases["export NaN dropped"] = self.call(ops.export_file, filepath=str(self.out / "dropped.ply"),
                                                 selected_only=True, drop_invalid=True)
+        self.select([good])
+        cases["export binary usd"] = self.attempt(ops.export_file, filepath=str(self.out / "binary.usdc"),
+                                                  selected_only=True)
+        cases["export binary usd"]["written"] = (self.out / "binary.usdc").exists()
+        cases["has pxr"] = importlib.util.find_spec("pxr") is not None
         return cases
 
     def animation_files(self):
@@ -296,7 +302,7 @@ class Worker(BlenderWorker):
         cases["nan at frame 2"] = self.attempt(ops.export_animation, filepath=str(seq / "shot_####.ply"), **kw)
         cases["nan at frame 2 files"] = sorted(p.name for p in seq.iterdir())
         cases["old frame kept"] = (seq / "shot_0001.ply").read_bytes() == b"old frame 1"
-        cases["nan at frame 2 usd"] = self.attempt(ops.export_animation, filepath=str(seq / "shot.usdc"), **kw)
+        cases["nan at frame 2 usd"] = self.attempt(ops.export_animation, filepath=str(seq / "shot.usd"), **kw)
         obj.animation_data_clear()
         obj.location = (0.0, 0.0, 0.0)
         (seq / "shot_0002.ply").mkdir()
@@ -313,9 +319,9 @@ class Worker(BlenderWorker):
         self.setup_render("unused")
         self.bpy.context.scene.frame_end = 2
         cases = {"folder": str(folder)}
-        for name in ("ro.ply", "ro.usdc", "ro.spz", "ro.splat"):
+        for name in ("ro.ply", "ro.usd", "ro.spz", "ro.splat"):
             cases[f"export {name}"] = self.attempt(ops.export_file, filepath=str(folder / name))
-        for name in ("ro_####.ply", "ro.usdc"):
+        for name in ("ro_####.ply", "ro.usd"):
             cases[f"animation {name}"] = self.attempt(ops.export_animation, filepath=str(folder / name))
         for name, argv in (("export", ["export", str(folder / "ro_####.ply")]),
                            ("render", ["render", str(folder / "ro_####.png"), "--frames", "1"]),

@@ -377,7 +377,7 @@ class Worker(BlenderWorker):
         scene.frame_start, scene.frame_end, scene.frame_step = 1, 3, 2
         res["plain"] = self.call(exp, filepath=str(self.out / "plain" / "anim.ply"))
         scene.render.fps, scene.render.fps_base = 30, 1.001          # NTSC 29.97
-        res["usd"] = self.call(exp, filepath=str(self.out / "anim.usdc"), use_scene_range=False,
+        res["usd"] = self.call(exp, filepath=str(self.out / "anim.usd"), use_scene_range=False,
                                frame_start=1, frame_end=4)
         scene.render.fps, scene.render.fps_base = 24, 1.0
         res["usd_selected"] = self.call(exp, filepath=str(self.out / "anim_sel.usda"), use_scene_range=False,
