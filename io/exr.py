@@ -21,7 +21,7 @@ def _openexr(path):
     try:
         import OpenEXR
     except ImportError:
-        raise SplatFileError(path, "EXR needs the OpenEXR package (pip install OpenEXR)") from None
+        raise SplatFileError(path, "EXR needs the OpenEXR package, which this Python lacks") from None
     return OpenEXR
 
 

@@ -1,4 +1,4 @@
-"""Writing rendered images: 8-bit PNG (via Pillow) or float EXR with R, G, B, A and Z.
+"""Writing rendered images: 8-bit PNG or float EXR with R, G, B, A and Z.
 
     write_image("frame.png", result)     # a core.render.RenderResult
     write_image("frame.exr", {"color": rgb, "alpha": a, "depth": z})
@@ -11,6 +11,8 @@ background is opaque: PNG gets RGB only, EXR gets the colour and its coverage as
 whole or not at all.
 """
 
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -87,7 +89,6 @@ def _array(path, name, values):
 
 
 def _write_png(path, color, alpha, premultiplied):
-    from PIL import Image
     if alpha is not None and alpha.shape != color.shape[:2]:
         raise SplatFileError(path, f"alpha has shape {alpha.shape}, colour {color.shape[:2]}")
     # RGBA only when alpha matters: a transparent render, or an image given with partial alpha.
@@ -97,6 +98,21 @@ def _write_png(path, color, alpha, premultiplied):
         color = np.where(alpha[..., None] > 0, color / safe[..., None], 0.0)
     planes = [color] + ([alpha[..., None]] if with_alpha else [])
     pixels = np.round(np.clip(np.concatenate(planes, axis=2), 0.0, 1.0) * 255.0).astype(np.uint8)
-    picture = Image.fromarray(pixels, "RGBA" if with_alpha else "RGB")
     with atomic_write(path) as f:
-        picture.save(f, format="PNG")
+        f.write(png_bytes(pixels))
+
+
+def png_bytes(pixels):
+    """An 8-bit RGB or RGBA PNG of (H, W, 3|4) uint8 pixels, with the standard library alone (Blender's
+    Python has no Pillow): every row filter 0 (none), the rows zlib-compressed."""
+    h, w, channels = pixels.shape
+    rows = np.zeros((h, 1 + w * channels), np.uint8)
+    rows[:, 1:] = pixels.reshape(h, w * channels)
+    color_type = {3: 2, 4: 6}[channels]
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + \
+        chunk(b"IEND", b"")

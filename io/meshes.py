@@ -32,8 +32,8 @@ def read_mesh_file(path):
     try:
         import trimesh
     except ImportError:
-        raise SplatFileError(path, f"reading '{path.suffix}' meshes needs the trimesh package "
-                                   "(pip install trimesh pycollada)") from None
+        raise SplatFileError(path, f"reading '{path.suffix}' meshes needs the trimesh and pycollada "
+                                   "packages, which this Python lacks") from None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")          # trimesh's own chatter about optional extras

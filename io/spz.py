@@ -156,8 +156,8 @@ def _zstd(path):
     try:
         import zstandard
     except ImportError:
-        raise SplatFileError(path, "SPZ version 4 is zstd-compressed and needs the zstandard package "
-                                   "(pip install zstandard)") from None
+        raise SplatFileError(path, "SPZ version 4 is zstd-compressed and needs the zstandard package, "
+                                   "which this Python lacks") from None
     return zstandard
 
 

@@ -457,6 +457,17 @@ def test_straight_alpha_arrays_are_premultiplied_in_exr_and_kept_in_png(tmp_path
     np.testing.assert_allclose(exr["A"], rgba[..., 3], rtol=1e-6)
 
 
+def test_png_is_written_without_pillow(tmp_path, monkeypatch):
+    """Blender's Python has no Pillow: the PNG writer needs only the standard library."""
+    from PIL import Image                               # the reference reader, taken before it is hidden
+    rgb = np.random.default_rng(3).integers(0, 256, (3, 300, 3)) / 255
+    monkeypatch.setitem(sys.modules, "PIL", None)
+    monkeypatch.setitem(sys.modules, "PIL.Image", None)
+    write_image(tmp_path / "n.png", rgb)
+    monkeypatch.undo()
+    np.testing.assert_array_equal(np.asarray(Image.open(tmp_path / "n.png")), np.round(rgb * 255).astype(np.uint8))
+
+
 def test_bad_images_are_refused_and_leave_no_file(tmp_path):
     with pytest.raises(SplatFileError, match="NaN"):
         write_image(tmp_path / "x.png", np.full((4, 4, 3), np.nan))
