@@ -372,7 +372,7 @@ def demo_rig_rows(quick):
     cpu = lambda fn: min(_cpu_seconds(fn) for _ in range(2 if quick else 3))
     old = cpu(lambda: before.ellipsoid_contacts(arm, old_index, k=3.0))
     rows = []
-    for label, kernel in (("compiled", collision._contact_kernel), ("NumPy", None)):
+    for label, kernel in (("compiled", collision._contact_kernel), ("NumPy", lambda: None)):
         saved, collision._contact_kernel = collision._contact_kernel, kernel
         try:
             ours = cpu(lambda: col.ellipsoid_contacts(arm, index, k=3.0))
