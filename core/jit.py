@@ -7,7 +7,7 @@ and every way it can fail to load (not installed, built for another NumPy, a bro
 Compiled code is cached on disk, so only the first use on a machine pays for compiling (a few
 seconds). The cache lives in the user's cache folder, not beside the sources: an installed Blender
 extension or a site-packages folder may not be writable. SPLATWRIGHT_CACHE_DIR overrides the folder;
-SPLATWRIGHT_JIT=0 turns compiled kernels off.
+SPLATWRIGHT_JIT=0 turns compiled kernels off (read when a kernel is first needed).
 """
 
 import importlib
@@ -64,11 +64,11 @@ def compiled(module_name, names):
     rebound in its module (a later one may call an earlier one: numba resolves it as a global), and
     the last returned; None when numba cannot be loaded or kernels are turned off. For kernels that
     live beside their NumPy path; compiled once per process, on first use."""
+    key = f"{module_name}:{names[-1]}"
+    if key in _modules:                  # the hot path (forward kinematics of one configuration):
+        return _modules[key]             # no environment lookup once a kernel is in use
     if not enabled():
         return None
-    key = f"{module_name}:{names[-1]}"
-    if key in _modules:                  # the hot path (forward kinematics of one configuration)
-        return _modules[key]
     with _lock:
         if key not in _modules:
             try:
