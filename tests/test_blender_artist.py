@@ -76,6 +76,22 @@ def test_panel_polls_only_for_splat_objects(blender):
         assert polls["native_stats"] == [30, 2, 4 * 30 * (3 + 4 + 3 + 1 + 3 * 9)]
 
 
+def test_panel_draws_the_numbers_display_settings_and_existing_operators(blender):
+    res = blender.step("panel_draw")
+    labels = res["labels"]
+    assert labels[0] == "123 splats, SH degree 1 (splat mesh)"
+    assert labels[1] == f"Memory: {4 * 123 * (3 + 4 + 3 + 1 + 12) / 1024:.1f} KiB"
+    from splatwright.io import ply
+    assert f"    PLY: {ply.file_size(123, 1) / 1024:.1f} KiB" in labels
+    assert f"    .splat: {123 * 32 / 1024:.1f} KiB" in labels
+    props = [c for c in res["checks"] if c[0] == "prop"]
+    assert [c[1] for c in props] == ["Radius Scale", "Min Opacity", "Display Ratio"]
+    assert all(ok for _, _, ok in res["checks"]), res["checks"]
+    operators = {c[1] for c in res["checks"] if c[0] != "prop"}
+    assert operators == {"splat.export_file", "splat.export_animation", "splat.apply_transform", "splat.join",
+                         "splat.convert_form", "splat.bind_armature", "splat.check_collisions"}
+
+
 def test_panel_numbers_are_the_written_files(blender):
     res = blender.step("panel_numbers")
     count, degree, _ = PANEL_CLOUD

@@ -14,8 +14,56 @@ SCALED_BONE = 3                       # scaled by 1.001 in the last pose
 PREFERRED = dict(export_format="spz", sh_degree="2", spz_version="2", use_half=True)
 
 
+class Recorder:
+    """A stand-in for a panel's UILayout that records the calls made on it."""
+
+    def __init__(self, calls=None):
+        self.calls = [] if calls is None else calls
+
+    def _record(self, kind, *args, **kw):
+        self.calls.append((kind, args, kw))
+
+    def box(self):
+        return Recorder(self.calls)
+
+    def column(self, **kw):
+        return Recorder(self.calls)
+
+    def label(self, **kw):
+        self._record("label", **kw)
+
+    def prop(self, owner, prop, **kw):
+        self._record("prop", owner, prop, **kw)
+
+    def operator(self, idname, **kw):
+        settings = {}
+        self._record("operator", idname, **kw, _set=settings)
+        return _Settings(settings)
+
+    def operator_menu_enum(self, idname, prop, **kw):
+        self._record("operator_menu_enum", idname, prop, **kw)
+
+
+class _Settings:
+    """What a panel sets on an operator button, recorded."""
+
+    def __init__(self, settings):
+        object.__setattr__(self, "settings", settings)
+
+    def __setattr__(self, name, value):
+        self.settings[name] = value
+
+
+def _resolves(owner, prop):
+    try:
+        owner.path_resolve(prop)
+        return True
+    except ValueError:
+        return False
+
+
 class Worker(BlenderWorker):
-    steps = ("install", "panel_numbers", "export_options", "animation_options", "command_options",
+    steps = ("install", "panel_draw", "panel_numbers", "export_options", "animation_options", "command_options",
              "preferences_defaults", "collide_job", "from_mesh_job", "armature_matrices")
     keep_objects = ("Cube", "Camera", "Light")
     orphan_kinds = ("meshes", "armatures", "actions")
@@ -79,6 +127,29 @@ class Worker(BlenderWorker):
                                                                               bpy.types.SPLAT_PT_view3d)],
                 "preferences": type(prefs).__name__, "preferences_idname": type(prefs).bl_idname,
                 "defaults": {name: getattr(prefs, name) for name in PREFERRED}, "polls": polls}
+
+    def panel_draw(self):
+        """The panel's draw() on a recording layout: every label it shows, and whether every property
+        and operator it names exists (Blender would draw an error or nothing for a wrong one)."""
+        bpy = self.bpy
+        obj = self.import_cloud("draw.ply", 123, 1, 3)
+        bpy.context.view_layer.objects.active = obj
+        layout = Recorder()
+        panel = bpy.types.SPLAT_PT_view3d
+        panel.draw(type("Drawn", (), {"layout": layout})(), bpy.context)
+        checks = []
+        for kind, args, kw in layout.calls:
+            if kind == "prop":
+                owner, prop = args[:2]
+                checks.append([kind, kw.get("text"), _resolves(owner, prop)])
+            elif kind in ("operator", "operator_menu_enum"):
+                module, name = args[0].split(".")
+                op = getattr(getattr(bpy.ops, module), name)
+                props = op.get_rna_type().properties.keys()
+                set_props = [key for key in kw.get("_set", {})]
+                ok = (kind != "operator_menu_enum" or args[1] in props) and all(k in props for k in set_props)
+                checks.append([kind, args[0], ok])
+        return {"labels": [kw.get("text") for kind, _, kw in layout.calls if kind == "label"], "checks": checks}
 
     def panel_numbers(self):
         """The panel's numbers for an imported cloud, and files written from the same object."""
