@@ -1,8 +1,13 @@
 """What every format shares: the error type and the write-then-rename rule."""
 
 import contextlib
+import contextvars
+import errno
+import itertools
 import os
-import tempfile
+import re
+import stat
+import time
 import warnings
 from pathlib import Path
 
@@ -89,43 +94,188 @@ def log_scales_from_linear(scales, notes):
 
 @contextlib.contextmanager
 def atomic_write(path, mode="wb"):
-    """Yield a temporary file beside `path`; rename it over `path` only if the block succeeds.
-
-    A failed or interrupted write leaves neither a partial file nor a stray temporary behind, and
-    whatever was at `path` before is untouched.
-    """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
+    """Yield an open file to write `path`'s new contents into; `path` gets them only when the block
+    succeeds. See _partial for the rule: what a failure or a kill leaves, permissions, symlinks,
+    fsync, and the SplatFileError every OS failure becomes."""
+    with _partial(path) as (fd, _):
         with os.fdopen(fd, mode) as f:
             yield f
-        _publish(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+            f.flush()
+            os.fsync(f.fileno())
 
 
 @contextlib.contextmanager
 def atomic_path(path):
-    """Like atomic_write, for libraries that insist on writing a file by name themselves.
-
-    Yields a temporary path with the same extension (so extension-sniffing writers pick the right
-    format) and renames it over `path` when the block succeeds.
-    """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent or ".")
-    os.close(fd)
-    try:
+    """Like atomic_write, for libraries that insist on writing a file by name themselves (pxr,
+    OpenEXR). The name yielded does not end in `path`'s extension: tell the library the format."""
+    with _partial(path) as (fd, tmp):
+        os.close(fd)
         yield tmp
-        _publish(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+        fd = os.open(tmp, os.O_RDWR if os.name == "nt" else os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+PARTIAL_TAG = ".splatwright-partial-"
+STALE_AFTER = 24 * 3600     # seconds: a partial this old is swept whoever wrote it
+_PARTIAL_NAME = re.compile(re.escape(PARTIAL_TAG) + r"(\d+)")
+
+
+@contextlib.contextmanager
+def _partial(path):
+    """The write rule every writer follows. Yields (open fd, name) of a partial file
+    `<target>.splatwright-partial-<pid>` beside the target, then fsyncs it (the caller's part),
+    gives it the target's permissions (those of the file it replaces, else what a plain open()
+    makes under the umask), renames it over the target and fsyncs the folder where the system
+    allows. Any failure removes the partial and leaves the target as it was; a kill leaves at most
+    the partial, which the next write into that folder sweeps (_sweep_partials). A symlink at
+    `path` is written through: its target is replaced and the link stays (a dangling link gets its
+    target created). Every OSError, from the writer's own writes too, becomes a SplatFileError
+    naming `path` and the problem (disk full, no permission, no such folder, ...)."""
+    target = _write_target(path)
+    _sweep_partials(target.parent)
+    try:
+        fd, tmp = _create_partial(target)
+    except OSError as exc:
+        raise SplatFileError(path, _write_problem(exc, target)) from None
+    try:
+        yield fd, tmp
+        os.chmod(tmp, _mode_for(target))
+        group = _together.get()
+        if group is not None:
+            group.append((path, tmp, target))
+            return
+        os.replace(tmp, target)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise SplatFileError(path, _write_problem(exc, target)) from exc
         raise
+    _fsync_folder(target.parent)
 
 
-def _publish(tmp, path):
-    # mkstemp makes 0600 files; give the result the permissions a plain open() would have.
-    os.chmod(tmp, 0o666 & ~_UMASK)
-    os.replace(tmp, path)
+_together = contextvars.ContextVar("splatwright_publish_together", default=None)
+
+
+@contextlib.contextmanager
+def publish_together():
+    """Hold back the renames of every atomic write in the block until it ends: the files appear
+    together when the block succeeds (one after another, each whole), and none does when it fails
+    (every partial is removed)."""
+    group = []
+    token = _together.set(group)
+    try:
+        yield
+        _together.reset(token)
+        token = None
+        while group:
+            path, tmp, target = group[0]
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise SplatFileError(path, _write_problem(exc, target)) from exc
+            group.pop(0)
+            _fsync_folder(target.parent)
+    finally:
+        if token is not None:
+            _together.reset(token)
+        for _, tmp, _ in group:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+
+def _write_target(path):
+    """The file a write to `path` replaces (through symlinks), or a SplatFileError when there is
+    none to write: a folder, a device or pipe, a symlink loop, or a folder that does not exist."""
+    path = Path(path)
+    target = Path(os.path.realpath(path))
+    if target.is_symlink():
+        raise SplatFileError(path, "is a symbolic link that loops; nothing to write to")
+    if target.is_dir():
+        raise SplatFileError(path, "is a folder, not a file")
+    if target.exists() and not target.is_file():
+        raise SplatFileError(path, "is not a regular file (a device or a pipe?); write to a file")
+    if not target.parent.is_dir():
+        raise SplatFileError(path, f"cannot write: the folder {target.parent} does not exist")
+    return target
+
+
+def _create_partial(target):
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    base = f"{target}{PARTIAL_TAG}{os.getpid()}"
+    for n in itertools.count():
+        tmp = base if n == 0 else f"{base}-{n}"      # another thread writing the same target
+        try:
+            return os.open(tmp, flags, 0o600), tmp
+        except FileExistsError:
+            continue
+
+
+def _sweep_partials(folder):
+    """Remove the partials a killed write left in `folder`: those whose process is gone (on this
+    machine; where that cannot be told, Windows, only by age) and any older than STALE_AFTER."""
+    try:
+        entries = [e for e in os.scandir(folder) if PARTIAL_TAG in e.name]
+    except OSError:
+        return
+    now = time.time()
+    for entry in entries:
+        match = _PARTIAL_NAME.search(entry.name)
+        with contextlib.suppress(OSError):          # gone already, or not ours to remove
+            if match and entry.is_file(follow_symlinks=False) and (
+                    not _process_alive(int(match.group(1)))
+                    or now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER):
+                os.unlink(entry.path)
+
+
+def _process_alive(pid):
+    if os.name == "nt" or pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:                                 # alive, another user's
+        return True
+    return True
+
+
+def _mode_for(target):
+    try:
+        return stat.S_IMODE(os.stat(target).st_mode)
+    except FileNotFoundError:
+        return 0o666 & ~_UMASK
+
+
+def _fsync_folder(folder):
+    """Make the rename itself durable; folders cannot be opened on Windows, and some file systems
+    refuse to sync one (nothing more to do there)."""
+    if os.name == "nt":
+        return
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+_WRITE_PROBLEMS = {
+    errno.ENOSPC: "no space left on the disk",
+    getattr(errno, "EDQUOT", -1): "disk quota exceeded",
+    errno.EROFS: "the folder {folder} is on a read-only file system",
+    errno.EACCES: "no permission to write in the folder {folder}",
+    errno.EPERM: "no permission to write in the folder {folder}",
+    errno.ENOENT: "the folder {folder} does not exist",
+    errno.EISDIR: "is a folder, not a file",
+}
+
+
+def _write_problem(exc, target):
+    problem = _WRITE_PROBLEMS.get(exc.errno)
+    if problem is None:
+        return f"cannot write: {exc.strerror or exc}"
+    return ("" if problem.startswith("is ") else "cannot write: ") + problem.format(folder=target.parent)
