@@ -17,9 +17,6 @@ from ..core.splats import FIELDS as CORE_FIELDS
 
 NONFINITE_POLICIES = ("raise", "keep", "drop")
 
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
 
 class SplatFileError(ValueError):
     """A splat file that cannot be read or written; the message names the file and the problem."""
@@ -127,8 +124,8 @@ _PARTIAL_NAME = re.compile(re.escape(PARTIAL_TAG) + r"(\d+)")
 def _partial(path):
     """The write rule every writer follows. Yields (open fd, name) of a partial file
     `<target>.splatwright-partial-<pid>` beside the target, then fsyncs it (the caller's part),
-    gives it the target's permissions (those of the file it replaces, else what a plain open()
-    makes under the umask), renames it over the target and fsyncs the folder where the system
+    gives it the target's permissions (those of the file it replaces; a new file gets what a plain
+    open() makes under the umask), renames it over the target and fsyncs the folder where the system
     allows. Any failure removes the partial and leaves the target as it was; a kill leaves at most
     the partial, which the next write into that folder sweeps (_sweep_partials). A symlink at
     `path` is written through: its target is replaced and the link stays (a dangling link gets its
@@ -136,13 +133,15 @@ def _partial(path):
     naming `path` and the problem (disk full, no permission, no such folder, ...)."""
     target = _write_target(path)
     _sweep_partials(target.parent)
+    mode = _existing_mode(target)
     try:
-        fd, tmp = _create_partial(target)
+        fd, tmp = _create_partial(target, 0o666 if mode is None else mode | 0o600)   # the writer may reopen it
     except OSError as exc:
         raise SplatFileError(path, _write_problem(exc, target)) from None
     try:
         yield fd, tmp
-        os.chmod(tmp, _mode_for(target))
+        if mode is not None:            # exactly the replaced file's, whatever the umask
+            os.chmod(tmp, mode)
         group = _together.get()
         if group is not None:
             group.append((path, tmp, target))
@@ -203,13 +202,14 @@ def _write_target(path):
     return target
 
 
-def _create_partial(target):
+def _create_partial(target, mode):
+    """A new partial file for `target`, made with `mode` under the umask as open() makes files."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     base = f"{target}{PARTIAL_TAG}{os.getpid()}"
     for n in itertools.count():
         tmp = base if n == 0 else f"{base}-{n}"      # another thread writing the same target
         try:
-            return os.open(tmp, flags, 0o600), tmp
+            return os.open(tmp, flags, mode), tmp
         except FileExistsError:
             continue
 
@@ -243,11 +243,11 @@ def _process_alive(pid):
     return True
 
 
-def _mode_for(target):
+def _existing_mode(target):
     try:
         return stat.S_IMODE(os.stat(target).st_mode)
     except FileNotFoundError:
-        return 0o666 & ~_UMASK
+        return None
 
 
 def _fsync_folder(folder):
@@ -263,19 +263,18 @@ def _fsync_folder(folder):
             os.close(fd)
 
 
-_WRITE_PROBLEMS = {
-    errno.ENOSPC: "no space left on the disk",
-    getattr(errno, "EDQUOT", -1): "disk quota exceeded",
+_WRITE_HINTS = {
+    errno.ENOSPC: "the disk is full",
+    getattr(errno, "EDQUOT", -1): "the disk quota is used up",
     errno.EROFS: "the folder {folder} is on a read-only file system",
     errno.EACCES: "no permission to write in the folder {folder}",
     errno.EPERM: "no permission to write in the folder {folder}",
     errno.ENOENT: "the folder {folder} does not exist",
-    errno.EISDIR: "is a folder, not a file",
 }
 
 
 def _write_problem(exc, target):
-    problem = _WRITE_PROBLEMS.get(exc.errno)
-    if problem is None:
-        return f"cannot write: {exc.strerror or exc}"
-    return ("" if problem.startswith("is ") else "cannot write: ") + problem.format(folder=target.parent)
+    if exc.errno == errno.EISDIR:
+        return "is a folder, not a file"
+    hint = _WRITE_HINTS.get(exc.errno)
+    return f"cannot write: {exc.strerror or exc}" + (f" ({hint.format(folder=target.parent)})" if hint else "")
