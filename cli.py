@@ -42,8 +42,13 @@ def _parse_vec(text):
 
 
 class OptionError(ValueError):
-    """An option whose value is out of its range, or that contradicts another (exit status 1, as
-    for a bad file; argparse's usage errors exit with 2)."""
+    """An option whose value is out of its range or makes no camera (exit status 1, as for a bad
+    file)."""
+
+
+class UsageError(Exception):
+    """An option the files given cannot use, e.g. --half for a PLY output (exit status 2, as
+    argparse's own usage errors)."""
 
 
 def _three(ok):
@@ -153,31 +158,31 @@ def _add_convert(p):
 
 def _write_options(args):
     """Format-specific write options from the convert flags, refusing flags the output cannot use."""
-    from .io import SplatFileError, format_of
+    from .io import format_of
     fmt = format_of(args.output)
     options = {}
     if args.spz_version is not None:
         if fmt != "spz":
-            raise SplatFileError(args.output, "--spz-version needs a .spz output")
+            raise UsageError(f"--spz-version needs a .spz output, not {args.output}")
         options["version"] = args.spz_version
     if args.half:
         if fmt != "usd":
-            raise SplatFileError(args.output, "--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
+            raise UsageError(f"--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz), not {args.output}")
         options["half"] = True
     if args.axes is not None:
         if fmt != "usd":
-            raise SplatFileError(args.output, "--axes needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
+            raise UsageError(f"--axes needs an OpenUSD output (.usd, .usda, .usdc, .usdz), not {args.output}")
         options["layout"] = args.axes
     return options
 
 
 def _read_options(args):
     """Format-specific read options from the convert flags."""
-    from .io import SplatFileError, format_of
+    from .io import format_of
     if args.usd_input is None:
         return {}
     if format_of(args.input) != "usd":
-        raise SplatFileError(args.input, "--usd-input needs an OpenUSD input (.usd, .usda, .usdc, .usdz)")
+        raise UsageError(f"--usd-input needs an OpenUSD input (.usd, .usda, .usdc, .usdz), not {args.input}")
     return {"unmarked": args.usd_input}
 
 
@@ -441,8 +446,9 @@ def build_parser():
 
 def main(argv=None):
     """Run one verb. Exit status: 0 done; 1 a file or value error (a file that cannot be read or
-    written, an option out of range); 2 a usage error (argparse: an unknown option, a missing
-    argument, text where a number belongs). The message names the file or option either way."""
+    written, an option out of range); 2 a usage error (argparse's: an unknown option, a missing
+    argument, text where a number belongs; ours: an option the files given cannot use). The
+    message names the file or option either way."""
     args = build_parser().parse_args(argv)
     from .core import SplatValidationError
     from .io import SplatFileError
@@ -452,6 +458,9 @@ def main(argv=None):
     except (SplatFileError, SplatValidationError, OptionError) as exc:
         print(f"splatwright {args.verb}: error: {exc}", file=sys.stderr)
         return 1
+    except UsageError as exc:
+        print(f"splatwright {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -148,8 +148,7 @@ def _partial(path):
             return
         os.replace(tmp, target)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        _remove_partial(tmp)
         if isinstance(exc, OSError):
             raise SplatFileError(path, _write_problem(exc, target)) from exc
         raise
@@ -164,6 +163,9 @@ def publish_together():
     """Hold back the renames of every atomic write in the block until it ends: the files appear
     together when the block succeeds (one after another, each whole), and none does when it fails
     (every partial is removed)."""
+    if _together.get() is not None:                 # inside another group: its renames decide
+        yield
+        return
     group = []
     token = _together.set(group)
     try:
@@ -182,8 +184,7 @@ def publish_together():
         if token is not None:
             _together.reset(token)
         for _, tmp, _ in group:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
+            _remove_partial(tmp)
 
 
 def _write_target(path):
@@ -212,6 +213,19 @@ def _create_partial(target, mode):
             return os.open(tmp, flags, mode), tmp
         except FileExistsError:
             continue
+
+
+def _remove_partial(tmp):
+    """Remove a partial and whatever its writer made from its name (a .usdz's layer, pxr's own
+    `<name>.XXXXXX` temporary when its save fails)."""
+    folder, name = os.path.split(tmp)
+    with contextlib.suppress(OSError):
+        os.unlink(tmp)
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(folder or "."):
+            if entry.name.startswith(name + ".") and entry.is_file(follow_symlinks=False):
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
 
 
 def _sweep_partials(folder):

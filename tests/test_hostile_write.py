@@ -332,3 +332,69 @@ def test_kill_mid_write_leaves_the_old_file_and_a_partial_the_next_write_sweeps(
     assert partials(path.parent) == [partial.name] and partial.stat().st_size > 0
     write(kind, path, n=40)
     assert os.listdir(path.parent) == [path.name] and count(kind, path) == 40
+
+
+# groups of files: all or none -----------------------------------------------------------------------
+
+def fail_on_fsync(monkeypatch, call):
+    calls = []
+    fsync = os.fsync
+
+    def maybe_fail(fd):
+        calls.append(fd)
+        if len(calls) == call:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        fsync(fd)
+    monkeypatch.setattr(os, "fsync", maybe_fail)
+
+
+def test_publish_together_makes_a_group_appear_whole_or_not_at_all(tmp_path, monkeypatch):
+    names = [tmp_path / f"frame_{i}.ply" for i in range(3)]
+    write("ply", names[1], n=5)
+    before = names[1].read_bytes()
+    fail_on_fsync(monkeypatch, 3)                        # the third file's data does not reach the disk
+    with pytest.raises(SplatFileError, match="No space left") as exc, common.publish_together():
+        for path in names:
+            write("ply", path, n=40)
+            assert not (tmp_path / "frame_0.ply").exists()  # held back until the group is whole
+    assert exc.value.path == str(names[2])
+    assert os.listdir(tmp_path) == [names[1].name] and names[1].read_bytes() == before
+    monkeypatch.undo()
+    with common.publish_together():
+        for path in names:
+            with common.publish_together():              # an inner group joins the outer one
+                write("ply", path, n=40)
+            assert not names[0].exists()
+    assert sorted(os.listdir(tmp_path)) == [p.name for p in names] and count("ply", names[2]) == 40
+
+
+@pytest.mark.parametrize("kind, files", [("gltf", ["out.bin", "out.gltf"]), ("sog", ["meta.json"])])
+def test_multi_file_formats_keep_the_old_set_when_one_file_fails(tmp_path, monkeypatch, kind, files):
+    path = tmp_path / ("out.gltf" if kind == "gltf" else "meta.json")
+    write_splats(path, random_cloud(10, sh_degree=1, seed=1))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert set(files) <= set(before)
+    fail_on_fsync(monkeypatch, len(before))              # the last file of the new set fails
+    with pytest.raises(SplatFileError, match="No space left") as exc:
+        write_splats(path, random_cloud(40, sh_degree=1))
+    assert exc.value.path == str(path)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_openusd_failing_to_save_is_a_splat_file_error_and_leaves_nothing(tmp_path, monkeypatch, capfd):
+    """pxr's own temporary (`<partial>.XXXXXX`) goes with the partial; nothing is printed."""
+    from splatwright.io import usd
+    author = usd._author_stage
+
+    def blocked(path, layer_path, *args):
+        os.mkdir(layer_path + ".in_the_way")             # pxr saves, then cannot rename onto a folder
+        try:
+            author(path, layer_path + ".in_the_way", *args)
+        finally:
+            os.rmdir(layer_path + ".in_the_way")
+    monkeypatch.setattr(usd, "_author_stage", blocked)
+    path = tmp_path / "out.usdc"
+    with pytest.raises(SplatFileError, match="OpenUSD could not write it: .*Is a directory") as exc:
+        write("usdc", path)
+    assert exc.value.path == str(path) and os.listdir(tmp_path) == []
+    assert capfd.readouterr().err == ""
