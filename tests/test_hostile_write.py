@@ -68,14 +68,24 @@ def test_partial_is_named_for_its_target_and_nothing_else_appears(tmp_path, kind
     seen = []
     replace = os.replace
 
+    fsync = os.fsync
+    synced = []
+
     def watch(src, dst):
         seen.append((Path(src).name, Path(dst).name, sorted(os.listdir(tmp_path))))
+        synced.append("rename")
         replace(src, dst)
+
+    def record(fd):
+        synced.append("folder" if stat.S_ISDIR(os.fstat(fd).st_mode) else os.fstat(fd).st_size)
+        fsync(fd)
     monkeypatch.setattr(os, "replace", watch)
+    monkeypatch.setattr(os, "fsync", record)
     write(kind, path)
     partial = f"{path.name}.splatwright-partial-{os.getpid()}"
     assert seen == [(partial, path.name, [partial])]     # no tmpXXXX folder, no second file
     assert os.listdir(tmp_path) == [path.name] and count(kind, path) == 60
+    assert synced == [path.stat().st_size, "rename", "folder"]   # the whole file, then the rename
 
 
 # failures: the old file stays, no partial is left, the error names the file ----------------------
