@@ -91,9 +91,19 @@ def log_scales_from_linear(scales, notes):
 
 @contextlib.contextmanager
 def atomic_write(path, mode="wb"):
-    """Yield an open file to write `path`'s new contents into; `path` gets them only when the block
-    succeeds. See _partial for the rule: what a failure or a kill leaves, permissions, symlinks,
-    fsync, and the SplatFileError every OS failure becomes."""
+    """Yield an open file for `path`'s new contents; `path` gets them only if the block succeeds.
+
+    The file is a partial, `<path>.splatwright-partial-<pid>` beside the target (never a name with
+    the target's extension, never a temporary folder). On success it is fsynced, given the
+    permissions of the file it replaces (a new file gets what open() makes under the umask),
+    renamed over the target, and the folder fsynced (not on Windows). A symlink at `path` is
+    written through: the file it points to is replaced and the link stays; a dangling link gets
+    its target made. Any failure removes the partial and leaves the target as it was, and every
+    OSError, the block's own writes included, becomes a SplatFileError naming `path` (disk full,
+    no permission, missing folder, a folder in the way). A killed process leaves the target whole
+    and at most its partial, which the next write into that folder removes (_sweep_partials).
+    Inside publish_together() the rename waits for the end of the group.
+    """
     with _partial(path) as (fd, _):
         with os.fdopen(fd, mode) as f:
             yield f
@@ -122,15 +132,8 @@ _PARTIAL_NAME = re.compile(re.escape(PARTIAL_TAG) + r"(\d+)")
 
 @contextlib.contextmanager
 def _partial(path):
-    """The write rule every writer follows. Yields (open fd, name) of a partial file
-    `<target>.splatwright-partial-<pid>` beside the target, then fsyncs it (the caller's part),
-    gives it the target's permissions (those of the file it replaces; a new file gets what a plain
-    open() makes under the umask), renames it over the target and fsyncs the folder where the system
-    allows. Any failure removes the partial and leaves the target as it was; a kill leaves at most
-    the partial, which the next write into that folder sweeps (_sweep_partials). A symlink at
-    `path` is written through: its target is replaced and the link stays (a dangling link gets its
-    target created). Every OSError, from the writer's own writes too, becomes a SplatFileError
-    naming `path` and the problem (disk full, no permission, no such folder, ...)."""
+    """atomic_write's rule, for both helpers: yields (open fd, name) of a new partial file, then
+    (once the caller has fsynced it) publishes it or, on any failure, removes it."""
     target = _write_target(path)
     _sweep_partials(target.parent)
     mode = _existing_mode(target)
