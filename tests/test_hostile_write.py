@@ -269,6 +269,7 @@ def test_sweep_removes_partials_of_dead_processes_and_old_ones(tmp_path):
     dead, alive, now = dead_pid(), os.getpid(), time.time()
     files = {f"a.ply.splatwright-partial-{dead}": True,                 # its writer is gone
              f"b.usdz.splatwright-partial-{dead}-2.layer": True,
+             f"b.usdc.splatwright-partial-{dead}.pgbJio": True,         # pxr's own temporary, killed in Save
              f"c.ply.splatwright-partial-{alive}": False,               # being written now
              f"d.ply.splatwright-partial-{alive}-1": True,              # alive, but a day old
              "e.splatwright-partial-notes.txt": False,                  # no pid: not ours
