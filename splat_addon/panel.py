@@ -48,6 +48,31 @@ def human_bytes(n):
         n /= 1024
 
 
+def draw_stats(box, obj, stats):
+    col = box.column(align=True)
+    form = "Blender point cloud" if data.splat_form(obj) == data.NATIVE_FORM else "splat mesh"
+    col.label(text=f"{stats.count:,} splats, SH degree {stats.sh_degree} ({form})")
+    col.label(text=f"Memory: {human_bytes(stats.memory)}")
+    col.label(text="File size:")
+    for fmt, size in stats.sizes.items():
+        label, note = SIZE_LABELS[fmt]
+        if fmt == "spz":
+            label = f"SPZ v{stats.spz_version}"
+        elif fmt == "usd" and stats.half:
+            label = "OpenUSD (half)"
+        col.label(text=f"    {label}: {human_bytes(size)}" + (f"  {note}" if note else ""))
+
+
+def draw_operators(col):
+    col.operator("splat.export_file", text="Export Selected", icon="EXPORT").selected_only = True
+    col.operator("splat.export_animation", text="Export Animation", icon="RENDER_ANIMATION").selected_only = True
+    col.operator("splat.apply_transform", icon="OBJECT_ORIGIN")
+    col.operator("splat.join", icon="SELECT_EXTEND")
+    col.operator_menu_enum("splat.convert_form", "form", icon="OUTLINER_OB_POINTCLOUD")
+    col.operator("splat.bind_armature", icon="ARMATURE_DATA")
+    col.operator("splat.check_collisions", icon="MOD_PHYSICS")
+
+
 class _SplatsPanel:
     bl_label = "Splats"
 
@@ -62,7 +87,7 @@ class _SplatsPanel:
         except data.SplatObjectError as exc:
             layout.label(text=str(exc), icon="ERROR")
             return
-        self._draw_stats(layout.box(), obj, stats)
+        draw_stats(layout.box(), obj, stats)
         mod = obj.modifiers.get(display.MODIFIER_NAME) if obj.type == "MESH" else None
         if mod is not None and mod.node_group is not None:
             col = layout.column(align=True)
@@ -70,32 +95,7 @@ class _SplatsPanel:
             for name in DISPLAY_INPUTS:
                 owner, prop = display.input_property(mod, name)
                 col.prop(owner, prop, text=name)
-        self._draw_operators(layout.column(align=True))
-
-    @staticmethod
-    def _draw_stats(box, obj, stats):
-        col = box.column(align=True)
-        form = "Blender point cloud" if data.splat_form(obj) == data.NATIVE_FORM else "splat mesh"
-        col.label(text=f"{stats.count:,} splats, SH degree {stats.sh_degree} ({form})")
-        col.label(text=f"Memory: {human_bytes(stats.memory)}")
-        col.label(text="File size:")
-        for fmt, size in stats.sizes.items():
-            label, note = SIZE_LABELS[fmt]
-            if fmt == "spz":
-                label = f"SPZ v{stats.spz_version}"
-            elif fmt == "usd" and stats.half:
-                label = "OpenUSD (half)"
-            col.label(text=f"    {label}: {human_bytes(size)}" + (f"  {note}" if note else ""))
-
-    @staticmethod
-    def _draw_operators(col):
-        col.operator("splat.export_file", text="Export Selected", icon="EXPORT").selected_only = True
-        col.operator("splat.export_animation", text="Export Animation", icon="RENDER_ANIMATION").selected_only = True
-        col.operator("splat.apply_transform", icon="OBJECT_ORIGIN")
-        col.operator("splat.join", icon="SELECT_EXTEND")
-        col.operator_menu_enum("splat.convert_form", "form", icon="OUTLINER_OB_POINTCLOUD")
-        col.operator("splat.bind_armature", icon="ARMATURE_DATA")
-        col.operator("splat.check_collisions", icon="MOD_PHYSICS")
+        draw_operators(layout.column(align=True))
 
 
 class SPLAT_PT_object(_SplatsPanel, bpy.types.Panel):

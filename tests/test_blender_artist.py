@@ -6,7 +6,6 @@ detection on pose matrices of a real armature against a float64 reference.
 """
 
 import gzip
-import json
 import struct
 import warnings
 
@@ -14,7 +13,6 @@ import numpy as np
 import pytest
 from blender_session import MODULE, blender_fixture
 from helpers import covariances, random_cloud
-from splatwright.core import geometry
 from splatwright.core.skinning import RIGID_TOLERANCE, Binding, BonePose, skin
 from splatwright.io import read_splats
 from workers.artist import CHAIN, OPTIONS_CLOUD, PANEL_CLOUD, POSES, PREFERRED, SCALED_BONE
