@@ -143,8 +143,11 @@ def main(argv=None):
             continue
         old = _old_sections(report).get(topic)
         if args.only and old is not None:
-            stamp = f"_{time.perf_counter() - t0:.0f} s for {', '.join(args.only)}, measured {time.strftime('%Y-%m-%d %H:%M')}._"
-            sections.append(merge_rows(old, rows).rstrip() + "\n\n" + stamp + "\n")
+            parts = ", ".join(args.only)
+            stamp = f"_{time.perf_counter() - t0:.0f} s for {parts}, measured {time.strftime('%Y-%m-%d %H:%M')}._"
+            kept = "\n\n".join(p for p in merge_rows(old, rows).rstrip().split("\n\n")
+                                if not (p.startswith("_") and f" s for {parts}, measured" in p))
+            sections.append(kept + "\n\n" + stamp + "\n")
             continue
         png = plot(topic, rows, report.parent)
         section = f"## {topic}\n\n{table(rows)}\n"
