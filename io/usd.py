@@ -272,16 +272,29 @@ def stage_matrix(stage, axes="RDF", meters_per_unit=1.0, notes=None):
 
 
 def _stage_metadata(stage, key, fallback):
-    """Layer metadata `key` (upAxis as "Y"/"Z", metersPerUnit as a float), or fallback if unauthored."""
+    """Layer metadata `key` (upAxis as "Y"/"Z", metersPerUnit as a positive float), or fallback if
+    unauthored; any other value is a SplatFileError naming it (read raw: pxr's own accessors take an
+    upAxis of "X" for Y)."""
     if Usd is None:
         value = stage.metadata.get(key)
     elif not stage.HasAuthoredMetadata(key):
         value = None
     else:
-        value = UsdGeom.GetStageUpAxis(stage) if key == "upAxis" else UsdGeom.GetStageMetersPerUnit(stage)
+        value = stage.GetMetadata(key)
     if value is None:
         return fallback
-    return str(value) if key == "upAxis" else float(value)
+    path = stage.GetRootLayer().identifier
+    if key == "upAxis":
+        if str(value) not in ("Y", "Z"):
+            raise SplatFileError(path, f"upAxis {str(value)!r}: an OpenUSD stage is Y-up or Z-up")
+        return str(value)
+    try:
+        units = float(value)
+    except (TypeError, ValueError):
+        units = math.nan
+    if not (math.isfinite(units) and units > 0):
+        raise SplatFileError(path, f"metersPerUnit {value!r}: it must be a positive, finite number of metres")
+    return units
 
 
 def _world_matrix(prim, time):
@@ -608,6 +621,25 @@ def _is_upright(prim):
     return order is not None and UPRIGHT_OP in order
 
 
+def _nonfinite_ops(prim, time):
+    """Names of the prim's own transform ops whose values hold NaN or Inf."""
+    order = prim.GetAttribute("xformOpOrder")
+    names = [str(n).removeprefix("!invert!") for n in (order.Get() or [])] if order else []
+    bad = []
+    for name in names:
+        attr = prim.GetAttribute(name)
+        value = attr.Get(time) if attr else None
+        if hasattr(value, "GetImaginary"):          # a Gf quaternion
+            value = [value.GetReal(), *value.GetImaginary()]
+        try:
+            numbers = np.asarray(value, np.float64)
+        except (TypeError, ValueError):
+            continue
+        if not np.isfinite(numbers).all():
+            bad.append(name)
+    return bad
+
+
 def _read_prim(prim, time, matrices, notes):
     """SplatPrim for a splat prim, or None for any other prim. matrices: (stage, capture) 4x4s taking
     world space to the target axes and units: stage-axes geometry, and the captures of prims that
@@ -626,6 +658,10 @@ def _read_prim(prim, time, matrices, notes):
     prim_notes = []
     cloud, opacities, scales = reader(prim, time, prim_notes)
     to_world = stage_m @ _world_matrix(prim, time)
+    if not np.isfinite(to_world).all():
+        ops = _nonfinite_ops(prim, time)
+        where = f"its transform ops {', '.join(ops)} hold" if ops else "a parent prim's transform holds"
+        raise SplatFileError(_file(prim), f"{prim.GetPath()}: {where} NaN or Inf")
     anisotropy = 0.0
     if np.array_equal(to_world, np.eye(4)) or np.array_equal(to_world, FLIP):
         cloud = cloud if to_world[1, 1] == 1 else flip_yz(cloud)       # exact: only signs change

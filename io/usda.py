@@ -195,6 +195,8 @@ def _op_matrix(path, prim_path, name, value):
     kind = name.split(":")[1] if name.count(":") >= 1 else ""
     m = np.eye(4)
     value = np.asarray(value, np.float64)
+    if not np.isfinite(value).all():            # a NaN quaternion would normalise to the identity
+        raise SplatFileError(path, f"{prim_path}: its transform ops {name} hold NaN or Inf")
     if kind == "transform":
         return value.reshape(4, 4).T                # USD matrices act on row vectors
     if kind == "translate":
