@@ -69,6 +69,7 @@ from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_path, check_nonfinite_policy,
                      log_scales_from_linear)
 from . import usda
+from .policy import inside_package, outside_message, within
 from .spz import SH_FLIP, flip_yz
 
 try:
@@ -151,8 +152,9 @@ def _require_pxr_for(path):
                                    "Python lacks (Blender 4.4 and later bundle it); write .usda, .usd or .usdz")
 
 
-def _open(path):
-    """The stage (a usda.Layer where pxr is missing) of a file whose header matches its extension."""
+def _open(path, allow_outside=False):
+    """The stage (a usda.Layer where pxr is missing) of a file whose header matches its extension;
+    its sublayers, references and payloads must lie in its package or folder (see _composed_layers)."""
     path = os.fspath(path)
     try:
         with open(path, "rb") as f:
@@ -165,18 +167,70 @@ def _open(path):
         raise SplatFileError(path, f"not a {os.path.splitext(path)[1]} file (it does not start with {names})")
     if Usd is None:
         return usda.read_layer(path)
-    if head.startswith(b"PXR-USDC"):
-        _check_crate(path)
-    layer = Sdf.Layer.Find(os.path.abspath(path))
-    if layer is not None:             # a layer still cached from an earlier open may be stale
-        layer.Reload(True)
     try:
-        stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+        layers = _composed_layers(path, allow_outside)      # held open until the stage uses them
+        stage = Usd.Stage.Open(layers[0], Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
         raise SplatFileError(path, f"OpenUSD cannot open it (truncated or corrupt?): {_tf_message(exc)}") from None
     if stage is None:
         raise SplatFileError(path, "OpenUSD cannot open it")
     return stage
+
+
+def _layer(path, identifier):
+    """The Sdf layer at `identifier` (a file, or "pkg.usdz[inner]"), re-read if an earlier open left it
+    cached (it may be stale); crate files are checked before OpenUSD parses them. None if missing."""
+    outer = identifier.split("[", 1)[0]
+    if os.path.isfile(outer) and "[" not in identifier:
+        with open(outer, "rb") as f:
+            if f.read(8) == b"PXR-USDC":
+                _check_crate(outer)
+    layer = Sdf.Layer.Find(identifier)
+    if layer is not None:
+        layer.Reload(True)
+        return layer
+    return Sdf.Layer.FindOrOpen(identifier)
+
+
+def _composed_layers(path, allow_outside):
+    """The root layer and every layer it composes (sublayers, references, payloads, recursively),
+    each opened with Sdf before the stage is: OpenUSD would read any path a layer names (/etc/...,
+    ../../, a URL) and only warn about missing ones. A layer outside the stage's package (.usdz) or
+    folder is refused unless allow_outside, with the same message whether it exists or not; a
+    missing one is a SplatFileError either way."""
+    root = os.path.abspath(path)
+    package = root if root.lower().endswith(".usdz") else None
+    where = "the stage's package" if package else "the stage's folder"
+    first = _layer(path, root)
+    if first is None:
+        raise SplatFileError(path, "OpenUSD cannot open it")
+    layers, todo, seen = [first], [first], {first.identifier}
+    while todo:
+        layer = todo.pop()
+        named_by = "" if layer is first else f"layer {layer.identifier} "
+        for asset in layer.GetCompositionAssetDependencies():
+            resolved = layer.ComputeAbsolutePath(asset)
+            if not os.path.isabs(resolved.split("[", 1)[0]):          # a search path: anchored as the resolver does first
+                resolved = layer.ComputeAbsolutePath("./" + asset)
+            ok = inside_package(package, resolved) if package else within(os.path.dirname(root),
+                                                                           resolved.split("[", 1)[0])
+            if not ok and not allow_outside:
+                raise SplatFileError(path, f"{named_by}refers to a layer: {outside_message(asset, where)} "
+                                           "(read with allow_outside=True to allow it)")
+            if resolved in seen:
+                continue
+            try:
+                found = _layer(path, resolved)
+            except Tf.ErrorException:
+                found = None
+            if found is None:
+                raise SplatFileError(path, f"{named_by}refers to the layer '{asset}', which cannot be opened "
+                                           "(missing, or not an OpenUSD layer)")
+            seen.add(found.identifier)
+            seen.add(resolved)
+            layers.append(found)
+            todo.append(found)
+    return layers
 
 
 CRATE_EXPANSION = 256      # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
@@ -712,7 +766,8 @@ def _warn(path, notes):
 
 # public reading -----------------------------------------------------------------------------------
 
-def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
+def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
+               allow_outside=False):
     """Every splat prim of a stage as a SplatPrim (path, world-space cloud, transform, notes).
 
     time: a time code (default: the earliest sample, or the default value of unanimated files).
@@ -720,8 +775,10 @@ def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="rais
     and OpenUSD's converters copy PLY coordinates into a Y-up stage unchanged): "capture" takes its
     values as capture (3DGS PLY) coordinates, giving back the PLY's values; "stage" takes them in the
     stage's own axes like any geometry (for files authored truly Y-up).
+    allow_outside: also compose sublayers, references and payloads from outside the stage's package
+    (.usdz) or folder; by default they are refused, and missing ones are an error either way.
     """
-    return _read_stage(_open(path), path, time, axes, meters_per_unit, nonfinite, unmarked)
+    return _read_stage(_open(path, allow_outside), path, time, axes, meters_per_unit, nonfinite, unmarked)
 
 
 def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="capture"):
@@ -733,10 +790,11 @@ def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="c
     return prims
 
 
-def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
-    """All splat prims of the stage, in world space, concatenated into one SplatCloud (unmarked: see
-    read_stage)."""
-    prims = read_stage(path, time, axes, meters_per_unit, nonfinite, unmarked)
+def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
+         allow_outside=False):
+    """All splat prims of the stage, in world space, concatenated into one SplatCloud (unmarked and
+    allow_outside: see read_stage)."""
+    prims = read_stage(path, time, axes, meters_per_unit, nonfinite, unmarked, allow_outside)
     if not prims:
         raise SplatFileError(path, f"no {TYPE_NAME} prims (nor UsdGeomPoints with 3DGS primvars) on the stage")
     if len(prims) == 1:
@@ -749,9 +807,9 @@ def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", un
     return cloud
 
 
-def time_codes(path, prim_path=None):
+def time_codes(path, prim_path=None, allow_outside=False):
     """Sorted time codes at which the splat prims (or one of them) have samples; [] if unanimated."""
-    return _time_codes(_open(path), path, prim_path)
+    return _time_codes(_open(path, allow_outside), path, prim_path)
 
 
 def _time_codes(stage, path, prim_path):
@@ -769,10 +827,11 @@ def _time_codes(stage, path, prim_path):
     return sorted(times)
 
 
-def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
+def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
+                allow_outside=False):
     """[(time code, cloud)] for every time sample of the stage's splat prims (concatenated per time),
     or of the one at prim_path; one (None, cloud) entry for an unanimated file."""
-    stage = _open(path)
+    stage = _open(path, allow_outside)
     frames = []
     for t in _time_codes(stage, path, prim_path) or [None]:
         prims = _read_stage(stage, path, t, axes, meters_per_unit, nonfinite, unmarked)

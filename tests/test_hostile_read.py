@@ -10,7 +10,9 @@ is not finite, or overflows once activated, goes through the non-finite policy i
 import json
 import math
 import re
+import struct
 import warnings
+import zlib
 
 import numpy as np
 import pytest
@@ -19,7 +21,8 @@ from test_io_fuzz import SMALL_PEAK, outcome, peak_bytes, ply_ascii
 
 from splatwright.cli import main
 from splatwright.core.splats import MAX_LOG_SCALE, MAX_MAGNITUDE
-from splatwright.io import SplatFileError, SplatFileWarning, ply, read_splats, splat, usd, write_splats
+from splatwright.io import SplatFileError, SplatFileWarning, image, mesh, read_splats, splat, usd, write_splats
+from splatwright.io.policy import MAX_IMAGE_PIXELS
 
 
 @pytest.fixture(params=["pxr", "text"])
@@ -198,3 +201,175 @@ def test_usd_non_finite_orient_op_is_refused_by_name(tmp_path, usd_reader, value
                                                                '"xformOp:transform:upright"]'))
     with pytest.raises(SplatFileError, match=r"orient.usda: /Splats: its transform ops xformOp:orient hold NaN or Inf"):
         usd.read(tmp_path / "orient.usda")
+
+
+# 1. files are read only from where the user pointed ----------------------------------------------
+
+TRIANGLE = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nusemtl a\nf 1/1 2/2 3/3\n"
+
+
+def model_folder(tmp_path):
+    """tmp_path/secret/ holds a real MTL and texture outside the model's folder tmp_path/model/."""
+    secret, model = tmp_path / "secret", tmp_path / "model"
+    secret.mkdir()
+    model.mkdir()
+    (secret / "s.mtl").write_text("newmtl a\nKd 0.9 0.9 0.9\n")
+    image.write_image(secret / "s.png", np.full((2, 2, 3), 0.25))
+    return model, secret
+
+
+def read_with_warnings(path):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = mesh.read_mesh(path)
+    return result, " | ".join(str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize("kind", ["absolute", "parent", "cwd", "symlink"])
+def test_mtllib_outside_the_model_folder_is_refused_without_saying_if_it_exists(tmp_path, monkeypatch, kind):
+    model, secret = model_folder(tmp_path)
+    monkeypatch.chdir(secret)                         # "s.mtl" exists relative to the working directory
+    (model / "link.mtl").symlink_to(secret / "s.mtl")
+    names = {"absolute": (str(secret / "s.mtl"), str(secret / "gone.mtl")), "parent": ("../secret/s.mtl", "../secret/gone.mtl"),
+             "cwd": ("s.mtl", "gone.mtl"), "symlink": ("link.mtl", "link.mtl")}[kind]
+    messages = []
+    for name in names:
+        (model / "m.obj").write_text(f"mtllib {name}\n" + TRIANGLE)
+        got, said = read_with_warnings(model / "m.obj")
+        assert got.materials[0].base_color != (0.9, 0.9, 0.9)       # the outside file was not read
+        messages.append(said.replace(name, "NAME"))
+    if kind == "cwd":         # relative to the model's folder it is simply missing
+        assert all("material library 'NAME' not found" in m for m in messages)
+    else:
+        assert "is outside the model's folder; only files in it and below are read" in messages[0]
+        assert messages[0] == messages[1]             # same text whether the outside file exists or not
+
+
+def test_textures_outside_the_model_folder_are_refused(tmp_path):
+    model, secret = model_folder(tmp_path)
+    (model / "m.obj").write_text("mtllib m.mtl\n" + TRIANGLE)
+    said = []
+    for name in (str(secret / "s.png"), str(secret / "none.png"), "../secret/s.png", "../secret/none.png",
+                 "/etc/passwd", "/etc/nothing-here"):
+        (model / "m.mtl").write_text(f"newmtl a\nKd 0.1 0.2 0.3\nmap_Kd {name}\n")
+        got, message = read_with_warnings(model / "m.obj")
+        assert got.materials[0].texture is None
+        said.append(message.replace(name, "NAME"))
+    assert said[0] == said[1] == said[2] == said[3] == said[4] == said[5]
+    assert "texture of material 'a' 'NAME' is outside the model's folder" in said[0]
+    # a texture in the folder (or a subfolder, or beside the MTL when the path was absolute) still reads
+    (model / "tex").mkdir()
+    image.write_image(model / "tex" / "t.png", np.full((2, 2, 3), 0.5))
+    image.write_image(model / "s.png", np.full((3, 3, 3), 0.5))
+    for name, shape in (("tex/t.png", (2, 2, 3)), ("./tex/../tex/t.png", (2, 2, 3)), (str(secret / "s.png"), (3, 3, 3))):
+        (model / "m.mtl").write_text(f"newmtl a\nmap_Kd {name}\n")
+        got, message = read_with_warnings(model / "m.obj")
+        assert got.materials[0].texture.shape == shape, name
+    assert "read 's.png' beside the MTL instead" in message
+
+
+def stage_with(tmp_path, arcs):
+    """model/stage.usda composing `arcs` ("sub" | "ref" | "payload", asset path); a splat layer
+    sits at model/in.usdc and tmp_path/out.usdc."""
+    model = tmp_path / "model"
+    model.mkdir(exist_ok=True)
+    usd.write(model / "in.usdc", random_cloud(5, sh_degree=0, seed=1))
+    usd.write(tmp_path / "out.usdc", random_cloud(7, sh_degree=0, seed=2))
+    subs = [a for kind, a in arcs if kind == "sub"]
+    head = "#usda 1.0\n(\n    metersPerUnit = 1\n    upAxis = \"Y\"\n"
+    head += f"    subLayers = [{', '.join(f'@{a}@' for a in subs)}]\n)\n" if subs else ")\n"
+    for i, (kind, asset) in enumerate(a for a in arcs if a[0] != "sub"):
+        head += f'def "P{i}" (\n    prepend {"references" if kind == "ref" else "payload"} = @{asset}@\n)\n{{\n}}\n'
+    (model / "stage.usda").write_text(head)
+    return model / "stage.usda"
+
+
+@pytest.mark.parametrize("kind", ["sub", "ref", "payload"])
+def test_usd_composes_only_from_the_stage_folder(tmp_path, kind, capfd):
+    inside_ok = stage_with(tmp_path, [(kind, "./in.usdc")])
+    assert len(usd.read(inside_ok)) == 5
+    messages = []
+    for asset in ("../out.usdc", str(tmp_path / "out.usdc"), "../missing.usdc", "/etc/passwd", "/etc/nothing-here"):
+        path = stage_with(tmp_path, [(kind, asset)])
+        with pytest.raises(SplatFileError, match="stage.usda: refers to a layer: .* is outside the stage's folder") as exc:
+            usd.read(path)
+        messages.append(str(exc.value).replace(asset, "NAME"))
+    assert len(set(messages)) == 1                    # existing or not, outside is all it says
+    # allowed explicitly, the outside layer is read; a missing one is an error, not a warning
+    assert len(usd.read(stage_with(tmp_path, [(kind, "../out.usdc")]), allow_outside=True)) == 7
+    for asset, allow in (("./gone.usda", False), ("../gone.usda", True)):
+        with pytest.raises(SplatFileError, match="stage.usda: refers to the layer '.*gone.usda', which cannot be opened"):
+            usd.read(stage_with(tmp_path, [(kind, asset)]), allow_outside=allow)
+    assert "Could not" not in capfd.readouterr().err       # OpenUSD never got to warn about it
+
+
+def test_usd_layers_composed_by_composed_layers_are_checked_too(tmp_path):
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "deep").mkdir()
+    usd.write(tmp_path / "out.usdc", random_cloud(7, sh_degree=0, seed=2))
+    (model / "deep" / "mid.usda").write_text('#usda 1.0\n(\n    subLayers = [@../../out.usdc@]\n)\n')
+    (model / "stage.usda").write_text('#usda 1.0\n(\n    subLayers = [@deep/mid.usda@]\n)\n')
+    with pytest.raises(SplatFileError, match=r"stage.usda: layer .*mid.usda refers to a layer: '../../out.usdc' is outside"):
+        usd.read(model / "stage.usda")
+
+
+def test_usdz_composes_only_from_its_own_package(tmp_path):
+    from pxr import UsdUtils
+    model = tmp_path / "model"
+    model.mkdir()
+    usd.write(model / "in.usdc", random_cloud(5, sh_degree=0, seed=1))
+    (model / "root.usda").write_text('#usda 1.0\n(\n    subLayers = [@./in.usdc@]\n)\n')
+    assert UsdUtils.CreateNewUsdzPackage(str(model / "root.usda"), str(model / "inside.usdz"))
+    assert len(usd.read(model / "inside.usdz")) == 5
+    # a package whose layer names a file beside the package (not in it) is refused
+    import zipfile
+    with zipfile.ZipFile(model / "beside.usdz", "w", zipfile.ZIP_STORED) as z:
+        z.writestr("root.usda", '#usda 1.0\n(\n    subLayers = [@../in.usdc@]\n)\n')
+    with pytest.raises(SplatFileError, match="beside.usdz: refers to a layer: '../in.usdc' is outside the stage's package"):
+        usd.read(model / "beside.usdz")
+
+
+def test_usd_text_reader_refuses_composition_by_name(tmp_path, monkeypatch):
+    for kind in ("sub", "ref", "payload"):
+        path = stage_with(tmp_path, [(kind, "./in.usdc")])
+        monkeypatch.setattr(usd, "Usd", None)
+        with pytest.raises(SplatFileError, match=r"stage.usda: .*uses composition \((subLayers|references|payload)\)"):
+            usd.read(path)
+        monkeypatch.undo()
+
+
+# 2. images beyond the size limit are refused from their header ------------------------------------
+
+def png_header_only(width, height):
+    """A PNG whose IHDR (with a valid CRC) claims width x height; the pixels are not there."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    chunk = lambda kind, data: struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b"")
+
+
+def jpeg_header_only(width, height):
+    """A baseline JPEG start (SOI, SOF0 claiming width x height, 3 components) with no scan data."""
+    sof = struct.pack(">BHHB", 8, height, width, 3) + b"\x01\x11\x00\x02\x11\x00\x03\x11\x00"
+    return b"\xff\xd8" + b"\xff\xc0" + struct.pack(">H", len(sof) + 2) + sof + b"\xff\xd9"
+
+
+@pytest.mark.parametrize("make, ext", [(png_header_only, ".png"), (jpeg_header_only, ".jpg")])
+def test_a_12000_pixel_texture_is_refused_before_decoding(tmp_path, make, ext):
+    from PIL import Image
+    path = tmp_path / f"huge{ext}"
+    path.write_bytes(make(12000, 12000))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        with Image.open(path) as img:                # the independent reading of the header
+            assert img.size == (12000, 12000)
+    assert peak_bytes(lambda: outcome(mesh.load_image, path)) < SMALL_PEAK
+    with pytest.raises(SplatFileError, match=rf"huge{ext}: image of 12000 x 12000 pixels, more than the 67108864 "
+                                             r"\(8192 x 8192\) textures may have"):
+        mesh.load_image(path)
+    # the largest allowed texture still reads (8192 x 8192 would decode 192 MiB: its neighbour, small)
+    ok = tmp_path / f"ok{ext}"
+    assert MAX_IMAGE_PIXELS == 8192 * 8192
+    image.write_image(tmp_path / "ok.png", np.zeros((4, 3, 3)))
+    assert mesh.load_image(tmp_path / "ok.png").shape == (4, 3, 3)
+    del ok
