@@ -12,12 +12,15 @@ FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 # similarity; the covariance error that allows (about twice this, relative) is float32 round-off.
 SIMILARITY_TOLERANCE = 1e-6
 
-# Values that overflow once used count as non-finite: a position, quaternion or SH component beyond
-# MAX_MAGNITUDE squares (and sums three squares) past float32's largest number, and a log-scale
-# beyond MAX_LOG_SCALE gives a variance exp(2 log_scale) past it (exp(1e30) is inf outright).
+# Values that overflow once used count as non-finite: a position coordinate beyond MAX_MAGNITUDE
+# squares (and sums three squares, as distances and depths do) past float32's largest number, and a
+# log-scale beyond MAX_LOG_SCALE has a linear scale exp(log_scale) past it (what OpenUSD, .splat and
+# glTF store; exp(1e30) is inf outright). Quaternions are normalised in float64 (any float32 norm is
+# fine), logits go through a sigmoid and SH enter colours linearly: those fields are refused only for
+# NaN and Inf.
 MAX_MAGNITUDE = float(np.sqrt(np.finfo(np.float32).max / 3.0))     # about 1.06e19
-MAX_LOG_SCALE = float(np.log(MAX_MAGNITUDE))                        # about 43.8
-UNBOUNDED_FIELDS = ("opacity_logits",)                              # sigmoid never overflows
+MAX_LOG_SCALE = 88.72                                               # exp: 3.39e38, float32's largest is 3.40e38
+BOUNDED_FIELDS = ("positions",)
 
 
 def bad_rows(name, values):
@@ -30,7 +33,7 @@ def bad_rows(name, values):
     with np.errstate(invalid="ignore"):
         if name == "log_scales":
             ok = (flat <= MAX_LOG_SCALE) & (flat > -np.inf)          # NaN fails both; -inf is a zero scale
-        elif name in FIELDS and name not in UNBOUNDED_FIELDS:
+        elif name in BOUNDED_FIELDS:
             ok = np.abs(flat) <= MAX_MAGNITUDE
         else:
             ok = np.isfinite(flat)

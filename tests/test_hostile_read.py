@@ -11,6 +11,7 @@ import json
 import math
 import re
 import struct
+import time
 import warnings
 import zlib
 
@@ -21,8 +22,8 @@ from test_io_fuzz import SMALL_PEAK, outcome, peak_bytes, ply_ascii
 
 from splatwright.cli import main
 from splatwright.core.splats import MAX_LOG_SCALE, MAX_MAGNITUDE
-from splatwright.io import SplatFileError, SplatFileWarning, image, mesh, read_splats, splat, usd, write_splats
-from splatwright.io.policy import MAX_IMAGE_PIXELS
+from splatwright.io import SplatFileError, SplatFileWarning, image, mesh, read_splats, splat, spz, usd, write_splats
+from splatwright.io.policy import MAX_IMAGE_PIXELS, SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR
 
 
 @pytest.fixture(params=["pxr", "text"])
@@ -52,7 +53,8 @@ def test_limits_are_where_float32_overflows():
         with np.errstate(over="ignore"):
             return np.float32(v @ v)
     assert np.isfinite(squares(MAX_MAGNITUDE)) and not np.isfinite(squares(MAX_MAGNITUDE * 1.01))
-    assert np.isfinite(squares(np.exp(MAX_LOG_SCALE))) and not np.isfinite(squares(np.exp(MAX_LOG_SCALE + 0.01)))
+    with np.errstate(over="ignore"):
+        assert np.isfinite(np.float32(np.exp(MAX_LOG_SCALE))) and not np.isfinite(np.float32(np.exp(MAX_LOG_SCALE + 0.01)))
 
 
 def planted(n=12):
@@ -61,7 +63,7 @@ def planted(n=12):
     cloud.extras = {"weight": np.linspace(0, 1, n).astype(np.float32), "label": np.arange(n, dtype=np.int32)}
     cloud.log_scales[1, 0] = 1e30                # exp() is inf
     cloud.positions[3, 2] = 3e38                 # finite float32, its square is not
-    cloud.rotations[5, 1] = -2e19
+    cloud.rotations[5, 1] = -np.inf
     cloud.extras["weight"][7] = np.inf
     cloud.extras["weight"][8] = np.nan
     return cloud, {"log_scales": [1], "positions": [3], "rotations": [5], "extra 'weight'": [7, 8]}
@@ -69,8 +71,9 @@ def planted(n=12):
 
 def test_ply_refuses_overflowing_and_extra_values_then_drops_exactly_them(tmp_path):
     cloud, bad = planted()
-    write_splats(tmp_path / "bad.ply", cloud)            # the writer keeps them (they are finite floats or
-    path = tmp_path / "bad.ply"                          # NaN/Inf in an extra); reading refuses them
+    with pytest.warns(SplatFileWarning, match="kept"):
+        write_splats(tmp_path / "bad.ply", cloud, nonfinite="keep")
+    path = tmp_path / "bad.ply"
     with pytest.raises(SplatFileError, match=r"bad.ply: 5 of 12 splats .*positions in 1, rotations in 1, "
                                              r"log_scales in 1, extra 'weight' in 2"):
         read_splats(path)
@@ -102,7 +105,7 @@ def test_splat_format_refuses_scales_and_positions_that_overflow(tmp_path):
     splat.write(tmp_path / "ok.splat", cloud)
     data = bytearray((tmp_path / "ok.splat").read_bytes())
     records = np.frombuffer(data, np.float32).reshape(6, 8)
-    records[2, 3] = 3e38              # a linear scale: its log is 88.6, its square inf
+    records[2, 3] = np.inf            # a linear scale
     records[4, 0] = -3e38             # a position
     (tmp_path / "bad.splat").write_bytes(bytes(data))
     with pytest.raises(SplatFileError, match=r"bad.splat: 2 of 6 splats .*positions in 1.*log_scales in 1"):
@@ -129,7 +132,8 @@ def test_usd_primvars_and_positions_go_through_the_policy(tmp_path, usd_reader):
 
 def test_info_json_is_strict_json_for_hostile_values(tmp_path, capsys):
     cloud, _ = planted()
-    write_splats(tmp_path / "bad.ply", cloud)
+    with pytest.warns(SplatFileWarning, match="kept"):
+        write_splats(tmp_path / "bad.ply", cloud, nonfinite="keep")
     assert main(["info", str(tmp_path / "bad.ply"), "--json"]) == 0
 
     def refuse(token):
@@ -373,3 +377,100 @@ def test_a_12000_pixel_texture_is_refused_before_decoding(tmp_path, make, ext):
     image.write_image(tmp_path / "ok.png", np.zeros((4, 3, 3)))
     assert mesh.load_image(tmp_path / "ok.png").shape == (4, 3, 3)
     del ok
+
+
+# 3. SPZ decompression bombs ----------------------------------------------------------------------
+
+def gzip_of_zeros(head, zero_bytes):
+    """A gzip stream of `head` then `zero_bytes` zeros, made without holding or compressing them: one
+    fully flushed deflate block of 1 MiB of zeros, repeated (the trailer's CRC does not matter here)."""
+    c = zlib.compressobj(9, zlib.DEFLATED, 31)
+    start = c.compress(head) + c.flush(zlib.Z_FULL_FLUSH)
+    block = c.compress(bytes(1 << 20)) + c.flush(zlib.Z_FULL_FLUSH)
+    return start + block * (zero_bytes >> 20) + c.flush()
+
+
+def spz_v3_head(count, degree=0):
+    return spz.HEADER.pack(spz.MAGIC, 3, count, degree, 12, 0, 0)
+
+
+def test_spz_header_claims_beyond_the_stated_limits(tmp_path):
+    assert (SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR) == (4 << 30, 64, 64 << 20)
+    # 7.5 MB of real deflated zeros (about 7.7 GB inflated) under a header claiming 2^28 splats (5.4 GB
+    # at SH degree 0: within deflate's 1032:1, so the old check let it inflate)
+    bomb = tmp_path / "bomb.spz"
+    bomb.write_bytes(gzip_of_zeros(spz_v3_head(spz.MAX_POINTS), 7500 << 20))
+    assert 7.4e6 < bomb.stat().st_size < 7.9e6
+    # 326 KB inflating to 16.7M valid splats (zeros decode to splats) - 1030:1
+    dense = tmp_path / "dense.spz"
+    dense.write_bytes(gzip_of_zeros(spz_v3_head(1 << 24), 20 << 24))
+    assert 320e3 < dense.stat().st_size < 335e3
+    # the same 7.5 MB claiming 150M splats (3 GB: under the absolute limit, 386x the file)
+    under = tmp_path / "under.spz"
+    under.write_bytes(gzip_of_zeros(spz_v3_head(150_000_000), 7500 << 20))
+    ratio = "in a {size}-byte file: more than 64x its size, which no SPZ compresses to"
+    cases = ((bomb, spz.MAX_POINTS, "more than the 4 GiB this reader decompresses"),
+             (under, 150_000_000, ratio), (dense, 1 << 24, ratio))
+    for path, count, problem in cases:
+        started = time.perf_counter()
+        assert peak_bytes(lambda: outcome(read_splats, path)) < SMALL_PEAK
+        assert time.perf_counter() - started < 2.0            # refused from the header: nothing inflated
+        problem = problem.format(size=path.stat().st_size)
+        with pytest.raises(SplatFileError, match=re.escape(f"{path.name}: header claims {count} splats "
+                                                           f"({20 * count} data bytes)") + r",? " + re.escape(problem)):
+            read_splats(path)
+
+
+def test_spz_within_the_limits_still_reads_and_streams(tmp_path):
+    # 3.3M zero splats (64 MiB, the floor) from 65 KB: allowed, and decoded to the exact splat zeros make
+    n = (64 << 20) // 20
+    path = tmp_path / "floor.spz"
+    path.write_bytes(gzip_of_zeros(spz_v3_head(n), 64 << 20)[:-8] + struct.pack("<II", 0, 0))
+    cloud = None
+    with pytest.raises(SplatFileError, match="corrupt gzip stream"):        # the CRC we did not compute
+        read_splats(path)
+    # a real, honest file: compressed about 2x, read back as written
+    honest = random_cloud(2000, sh_degree=2, seed=9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SplatFileWarning)
+        spz.write(tmp_path / "honest.spz", honest)
+        cloud = read_splats(tmp_path / "honest.spz")
+    assert len(cloud) == 2000
+    assert np.abs(cloud.positions - honest.positions).max() <= 0.5 / 4096 + 1e-6
+
+
+def test_spz_inflates_a_piece_at_a_time(tmp_path, monkeypatch):
+    """A stream that runs past what its header claims stops one piece past the claim, not at its end."""
+    monkeypatch.setattr(spz, "STREAM_PIECE", 1 << 16)
+    head = spz_v3_head(100)
+    data = gzip_of_zeros(head, 8 << 20)                # 2000 bytes claimed, 8 MiB there
+    d = zlib.decompressobj(31)
+    assert d.decompress(data, spz.HEADER.size) == head
+    out = spz._inflate(d, 2000 + spz.EXTENSION_ROOM + 1)
+    assert len(out) == 2000 + spz.EXTENSION_ROOM + 1 and not d.eof
+    (tmp_path / "long.spz").write_bytes(data)
+    assert peak_bytes(lambda: outcome(read_splats, tmp_path / "long.spz")) < 4 << 20
+    with pytest.raises(SplatFileError, match="long.spz: 8388608 bytes beyond the data the header describes|"
+                                             r"long.spz: \d+ bytes beyond the data"):
+        read_splats(tmp_path / "long.spz")
+
+
+def test_spz_v4_claims_beyond_the_ratio_are_refused_before_any_frame_is_read(tmp_path):
+    zstandard = pytest.importorskip("zstandard")
+    n = 5 << 20                                              # 100 MiB of degree-0 data
+    sizes = [size for _, size in spz._block_sizes(n, 0, 4) if size]
+    frames = []
+    for size in sizes:
+        c = zstandard.ZstdCompressor(level=1).compressobj()
+        frames.append(b"".join(c.compress(bytes(1 << 20)) for _ in range(size >> 20))
+                      + c.compress(bytes(size & ((1 << 20) - 1))) + c.flush())
+    toc = spz.V4_HEADER.size
+    table = b"".join(struct.pack("<QQ", len(f), size) for f, size in zip(frames, sizes))
+    data = spz.V4_HEADER.pack(spz.MAGIC, 4, n, 0, 12, 0, len(frames), toc) + table + b"".join(frames)
+    path = tmp_path / "zbomb.spz"
+    path.write_bytes(data)
+    assert len(data) < 50_000
+    assert peak_bytes(lambda: outcome(read_splats, path)) < SMALL_PEAK
+    with pytest.raises(SplatFileError, match=rf"zbomb.spz: header claims {n} splats \({20 * n} data bytes\) "
+                                             rf"in a {len(data)}-byte file: more than 64x"):
+        read_splats(path)
