@@ -52,6 +52,7 @@ generic API, giving the same file.
 
 import ctypes
 import itertools
+import contextlib
 import math
 import os
 import re
@@ -74,8 +75,10 @@ from .spz import SH_FLIP, flip_yz
 
 try:
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt
+    PXR_ERRORS = (Tf.ErrorException,)
 except ImportError:             # text layers only, through usda (Blender 4.2 bundles no pxr)
     Usd = None
+    PXR_ERRORS = ()
 try:
     from pxr import UsdVol
 except ImportError:
@@ -188,8 +191,33 @@ def _layer(path, identifier):
     layer = Sdf.Layer.Find(identifier)
     if layer is not None:
         layer.Reload(True)
-        return layer
-    return Sdf.Layer.FindOrOpen(identifier)
+    else:
+        layer = Sdf.Layer.FindOrOpen(identifier)
+    if layer is not None:
+        _check_children(path, layer)
+    return layer
+
+
+def _check_children(path, layer):
+    """Every prim and property a prim spec lists as its children must exist: OpenUSD composes a
+    stage by those lists and aborts the process ("Dereferenced an invalid SdfPrimSpec") on a name
+    without a spec, which one damaged token index in a crate file makes."""
+    where = "" if layer.identifier == os.path.abspath(path) else f"layer {layer.identifier}: "
+    todo = [layer.pseudoRoot]
+    while todo:
+        prim = todo.pop()
+        for name in prim.GetInfo("primChildren") if prim.HasInfo("primChildren") else []:
+            child = layer.GetPrimAtPath(prim.path.AppendChild(name)) if Sdf.Path.IsValidIdentifier(name) else None
+            if child is None:
+                raise SplatFileError(path, f"{where}prim {prim.path} lists a child {name!r} that the "
+                                           "layer does not hold (corrupt?)")
+            todo.append(child)
+        for name in prim.GetInfo("properties") if prim.HasInfo("properties") else []:
+            ok = Sdf.Path.IsValidNamespacedIdentifier(name) and \
+                layer.GetPropertyAtPath(prim.path.AppendProperty(name)) is not None
+            if not ok:
+                raise SplatFileError(path, f"{where}prim {prim.path} lists a property {name!r} that "
+                                           "the layer does not hold (corrupt?)")
 
 
 def _composed_layers(path, allow_outside):
@@ -234,31 +262,185 @@ def _composed_layers(path, allow_outside):
 
 
 CRATE_EXPANSION = 256      # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
+CRATE_INT_EXPANSION = 1024     # compressed integers: 2 code bits per int, then LZ4 (255:1)
+# Non-inlined value types that start with a u64 count, and the fewest bytes each element takes:
+# Dictionary (string index + value offset), PathVector, TokenVector, VariantSelectionMap,
+# DoubleVector, LayerOffsetVector, StringVector (crateDataTypes.h).
+CRATE_COUNTED = {31: 12, 40: 4, 41: 4, 45: 8, 48: 8, 49: 16, 50: 4}
+# Bytes per element of uncompressed arrays by crate type (bool .. Vec4i, TimeCode); others take >= 1.
+CRATE_ELEMENT = {1: 1, 2: 1, 3: 4, 4: 4, 5: 8, 6: 8, 7: 2, 8: 4, 9: 8, 10: 4, 11: 4, 12: 4, 13: 32, 14: 72,
+                 15: 128, 16: 32, 17: 16, 18: 8, 19: 16, 20: 8, 21: 4, 22: 8, 23: 24, 24: 12, 25: 6, 26: 12,
+                 27: 32, 28: 16, 29: 8, 30: 16, 56: 8}
+
+
+class _CrateError(Exception):
+    pass
 
 
 def _check_crate(path):
-    """Refuse a .usdc whose table of contents or section counts the file cannot hold, before
-    OpenUSD's crate reader sizes arrays by them (a flipped bit in a count makes it allocate
-    gigabytes). Every crate section starts with a u64 element count."""
-    with open(path, "rb") as f:
-        data = f.read()
-    size = len(data)
+    """Refuse a .usdc whose structure the file cannot hold, before OpenUSD's crate reader sizes
+    buffers by it: the table of contents and every section's counts and compressed sizes, and the
+    element count of every array, vector and dictionary the FIELDS section points to (a flipped bit
+    in one makes OpenUSD allocate gigabytes, read past the file, or abort the process)."""
+    import mmap
     try:
-        toc = struct.unpack_from("<q", data, 16)[0]
-        sections = struct.unpack_from("<Q", data, toc)[0] if 0 < toc <= size - 8 else None
-        if sections is None or sections > (size - toc - 8) // 32:
-            raise SplatFileError(path, "crate table of contents lies outside the file (truncated or corrupt?)")
-        for i in range(sections):
-            name, start, length = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
-            name = name.rstrip(b"\0").decode("latin-1")
-            if start < 0 or length < 8 or start + length > size:
-                raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
-            count = struct.unpack_from("<Q", data, start)[0]
-            if count > CRATE_EXPANSION * length:
-                raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
-                                           "(corrupt?)")
+        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+            _check_crate_bytes(path, data)
     except struct.error:
         raise SplatFileError(path, "crate header or table of contents is truncated") from None
+    except (_CrateError, ValueError, IndexError) as exc:
+        raise SplatFileError(path, f"crate file is corrupt: {exc}") from None
+
+
+def _check_crate_bytes(path, data):
+    size = len(data)
+    major, minor, patch = data[8], data[9], data[10]
+    toc = struct.unpack_from("<q", data, 16)[0]
+    sections = struct.unpack_from("<Q", data, toc)[0] if 88 <= toc <= size - 8 else None
+    if sections is None or sections > (size - toc - 8) // 32:
+        raise SplatFileError(path, "crate table of contents lies outside the file (truncated or corrupt?)")
+    found = {}
+    for i in range(sections):
+        name, start, length = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
+        name = name.split(b"\0", 1)[0].decode("latin-1")
+        if start < 0 or length < 8 or start + length > size:
+            raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
+        count = struct.unpack_from("<Q", data, start)[0]
+        if count > CRATE_EXPANSION * length:
+            raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
+                                       "(corrupt?)")
+        found[name] = (start, length, count)
+    if (major, minor) < (0, 4):         # before 0.4.0 sections were not compressed: counts checked above
+        return
+    sizes = {"TOKENS": 2, "FIELDS": 0, "FIELDSETS": 1, "PATHS": 0, "SPECS": 3}
+    for name, (start, length, count) in found.items():
+        end, at = start + length, start + 8
+        if name == "TOKENS":
+            raw, packed = struct.unpack_from("<QQ", data, at)
+            if at + 16 + packed > end or raw > 255 * packed + 16 or count > raw:
+                raise _CrateError(f"TOKENS claims {count} tokens in {raw} bytes packed in {packed}, "
+                                  f"in a {length}-byte section")
+        elif name == "PATHS":
+            encoded = struct.unpack_from("<Q", data, at)[0]
+            if encoded > CRATE_INT_EXPANSION * length:
+                raise _CrateError(f"PATHS claims {encoded} encoded paths in {length} bytes")
+            _skip_packed(data, at + 8, end, 3, name)
+        elif name == "FIELDS":
+            at = _skip_packed(data, at, end, 1, name)
+            packed = struct.unpack_from("<Q", data, at)[0]
+            if at + 8 + packed > end:
+                raise _CrateError(f"FIELDS value representations ({packed} bytes) run past the section")
+            reps = _fast_decompress(data[at + 8:at + 8 + packed], 8 * count)
+            if len(reps) != 8 * count:
+                raise _CrateError(f"FIELDS holds {len(reps) // 8} value representations, not {count}")
+            _check_values(data, reps, toc, (major, minor) >= (0, 7))
+        elif name in sizes:
+            _skip_packed(data, at, end, sizes[name], name)
+
+
+def _skip_packed(data, at, end, blocks, name):
+    """The offset after `blocks` compressed blocks (u64 size + bytes) that must end by `end`."""
+    for _ in range(blocks):
+        packed = struct.unpack_from("<Q", data, at)[0]
+        at += 8 + packed
+        if at > end:
+            raise _CrateError(f"a compressed block of {name} ({packed} bytes) runs past the section")
+    return at
+
+
+def _check_values(data, reps, data_end, wide_counts):
+    """Every non-inlined array, vector and dictionary must hold its count in the bytes before the TOC."""
+    values = np.frombuffer(reps, "<u8")
+    outside = (values >> 62) & 1 == 0                       # not inlined: the payload is a file offset
+    offsets = values & ((1 << 48) - 1)
+    kinds = (values >> 48) & 0xFF
+    arrays = (values >> 63) == 1
+    counted = outside & (arrays | np.isin(kinds, list(CRATE_COUNTED)))
+    for value, offset, kind, is_array in zip(values[counted].tolist(), offsets[counted].tolist(),
+                                             kinds[counted].tolist(), arrays[counted].tolist()):
+        width = 8 if wide_counts or not is_array else 4
+        if offset == 0 and is_array:                         # an empty array
+            continue
+        if offset < 88 or offset + width > data_end:
+            raise _CrateError(f"a value of type {kind} lies outside the data (offset {offset})")
+        count = struct.unpack_from("<Q" if width == 8 else "<I", data, offset)[0]
+        room = data_end - offset - width
+        if is_array and (value >> 61) & 1:                   # compressed: integers, or a lookup table
+            fits = count <= CRATE_INT_EXPANSION * room + 16
+        else:
+            fits = count * (CRATE_ELEMENT.get(kind, 1) if is_array else CRATE_COUNTED[kind]) <= room
+        if not fits:
+            raise _CrateError(f"{'an array' if is_array else 'a value'} of type {kind} at byte {offset} claims "
+                              f"{count} elements, more than the {room} bytes after it can hold")
+
+
+def _fast_decompress(src, limit):
+    """OpenUSD's TfFastCompression: a chunk count byte (0: one LZ4 block), then sized LZ4 blocks."""
+    if not len(src):
+        raise _CrateError("an empty compressed block")
+    chunks = src[0]
+    if chunks == 0:
+        return _lz4_block(src[1:], limit)
+    out, at = bytearray(), 1
+    for _ in range(chunks):
+        size = struct.unpack_from("<i", src, at)[0]
+        if size < 0 or at + 4 + size > len(src):
+            raise _CrateError("a compressed chunk runs past its block")
+        out += _lz4_block(src[at + 4:at + 4 + size], limit - len(out))
+        at += 4 + size
+    return bytes(out)
+
+
+def _lz4_block(src, limit):
+    """One LZ4 block, refusing to produce more than `limit` bytes (only small sections are decoded)."""
+    out, i, n = bytearray(), 0, len(src)
+    while i < n:
+        token = src[i]
+        i += 1
+        literals, i = _lz4_length(src, i, token >> 4)
+        if len(out) + literals > limit or i + literals > n:
+            raise _CrateError("compressed data expands past its stated size")
+        out += src[i:i + literals]
+        i += literals
+        if i >= n:
+            break
+        offset = src[i] | src[i + 1] << 8
+        match, i = _lz4_length(src, i + 2, token & 15)
+        match += 4
+        if not 0 < offset <= len(out) or len(out) + match > limit:
+            raise _CrateError("compressed data refers outside itself")
+        start = len(out) - offset
+        while match > 0:                                     # overlapping copies repeat the pattern
+            piece = out[start:start + min(match, offset)]
+            out += piece
+            start += len(piece)
+            match -= len(piece)
+    return bytes(out)
+
+
+def _lz4_length(src, i, length):
+    if length == 15:
+        while True:
+            more = src[i]
+            i += 1
+            length += more
+            if more != 255:
+                break
+    return length, i
+
+
+@contextlib.contextmanager
+def _pxr_errors(path):
+    """OpenUSD parses a layer lazily: a damaged one can fail while prims and values are read, not only
+    when it is opened. Its errors (and undecodable strings it hands back) become a SplatFileError
+    naming the file."""
+    try:
+        yield
+    except PXR_ERRORS as exc:
+        raise SplatFileError(path, f"OpenUSD cannot read it (truncated or corrupt?): {_tf_message(exc)}") from None
+    except UnicodeDecodeError:
+        raise SplatFileError(path, "OpenUSD cannot read it: it holds names or strings that are not UTF-8 "
+                                   "(corrupt?)") from None
 
 
 def _tf_message(exc):
@@ -778,7 +960,8 @@ def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="rais
     allow_outside: also compose sublayers, references and payloads from outside the stage's package
     (.usdz) or folder; by default they are refused, and missing ones are an error either way.
     """
-    return _read_stage(_open(path, allow_outside), path, time, axes, meters_per_unit, nonfinite, unmarked)
+    with _pxr_errors(path):
+        return _read_stage(_open(path, allow_outside), path, time, axes, meters_per_unit, nonfinite, unmarked)
 
 
 def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="capture"):
@@ -809,7 +992,8 @@ def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", un
 
 def time_codes(path, prim_path=None, allow_outside=False):
     """Sorted time codes at which the splat prims (or one of them) have samples; [] if unanimated."""
-    return _time_codes(_open(path, allow_outside), path, prim_path)
+    with _pxr_errors(path):
+        return _time_codes(_open(path, allow_outside), path, prim_path)
 
 
 def _time_codes(stage, path, prim_path):
@@ -831,7 +1015,11 @@ def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite
                 allow_outside=False):
     """[(time code, cloud)] for every time sample of the stage's splat prims (concatenated per time),
     or of the one at prim_path; one (None, cloud) entry for an unanimated file."""
-    stage = _open(path, allow_outside)
+    with _pxr_errors(path):
+        return _read_frames(_open(path, allow_outside), path, prim_path, axes, meters_per_unit, nonfinite, unmarked)
+
+
+def _read_frames(stage, path, prim_path, axes, meters_per_unit, nonfinite, unmarked):
     frames = []
     for t in _time_codes(stage, path, prim_path) or [None]:
         prims = _read_stage(stage, path, t, axes, meters_per_unit, nonfinite, unmarked)

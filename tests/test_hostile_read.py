@@ -474,3 +474,97 @@ def test_spz_v4_claims_beyond_the_ratio_are_refused_before_any_frame_is_read(tmp
     with pytest.raises(SplatFileError, match=rf"zbomb.spz: header claims {n} splats \({20 * n} data bytes\) "
                                              rf"in a {len(data)}-byte file: more than 64x"):
         read_splats(path)
+
+
+# 4. damaged crate (.usdc) files ------------------------------------------------------------------
+
+CRATE_SWEEP = r"""
+import json, resource, struct, sys, warnings
+from pathlib import Path
+resource.setrlimit(resource.RLIMIT_AS, (6 << 30, 6 << 30))    # an allocation of gigabytes fails loudly
+from splatwright.io import SplatFileError, SplatFileWarning, usd
+folder = Path(sys.argv[1])
+valid = (folder / "valid.usdc").read_bytes()
+outcomes = {}
+for case in json.loads(sys.argv[2]):
+    offset, value, width = case
+    bad = bytearray(valid)
+    bad[offset:offset + width] = value.to_bytes(8, "little")[:width]
+    path = folder / f"bad_{offset}_{value}_{width}.usdc"
+    path.write_bytes(bytes(bad))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SplatFileWarning)
+            usd.read(path, nonfinite="keep")
+        outcomes[path.name] = "read"
+    except SplatFileError as exc:
+        outcomes[path.name] = "error" if path.name in str(exc) else f"unnamed: {exc}"
+    except Exception as exc:
+        outcomes[path.name] = f"{type(exc).__name__}: {exc}"[:300]
+print(json.dumps(outcomes))
+"""
+
+
+def crate_6k(tmp_path):
+    """A 6.5 KB .usdc of 42 splats (SH degree 1) and its positions' offset (found by their bytes)."""
+    cloud = random_cloud(42, sh_degree=1, seed=6)
+    usd.write(tmp_path / "valid.usdc", cloud)
+    data = (tmp_path / "valid.usdc").read_bytes()
+    at = data.find(cloud.positions.astype("<f4").tobytes())
+    assert 6_400 < len(data) < 6_700 and at > 0
+    assert struct.unpack_from("<Q", data, at - 8)[0] == 42              # the array's element count
+    return data, at - 8
+
+
+def test_a_crate_array_count_of_2_28_is_refused_before_openusd_allocates(tmp_path):
+    data, count_at = crate_6k(tmp_path)
+    bad = bytearray(data)
+    struct.pack_into("<Q", bad, count_at, 1 << 28)                        # 3.2 GB of point3f
+    (tmp_path / "count.usdc").write_bytes(bytes(bad))
+    started = time.perf_counter()
+    assert peak_bytes(lambda: outcome(read_splats, tmp_path / "count.usdc")) < SMALL_PEAK
+    assert time.perf_counter() - started < 1.0
+    with pytest.raises(SplatFileError, match=r"count.usdc: crate file is corrupt: an array of type 24 at byte "
+                                             rf"{count_at} claims 268435456 elements, more than the \d+ bytes"):
+        read_splats(tmp_path / "count.usdc")
+
+
+def test_damaged_crate_words_give_a_named_error_or_a_read_never_a_crash(tmp_path):
+    """Words of the 6.5 KB file overwritten with huge counts, in a child process (OpenUSD aborts the
+    whole process on some damage: "Dereferenced an invalid SdfPrimSpec")."""
+    import subprocess
+    import sys
+    data, count_at = crate_6k(tmp_path)
+    toc = struct.unpack_from("<q", data, 16)[0]
+    cases = [(at, 1 << 28, 8) for at in range(16, len(data) - 8, 136)]
+    cases += [(at, 0xFFFFFFFF, 4) for at in range(92, len(data) - 4, 400)]
+    cases += [(85, 1 << 28, 8),                 # the pseudo-root's child list grows to 16 names: an abort before
+              (count_at, 1 << 28, 8), (toc, 1 << 20, 8), (toc + 8 + 16, 1 << 40, 8)]
+    started = time.perf_counter()
+    run = subprocess.run([sys.executable, "-c", CRATE_SWEEP, str(tmp_path), json.dumps(cases)],
+                         capture_output=True, encoding="utf-8", errors="replace", timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    outcomes = json.loads(run.stdout.strip().splitlines()[-1])
+    assert len(outcomes) == len(cases)
+    wrong = {name: what for name, what in outcomes.items() if what not in ("error", "read")}
+    assert not wrong, wrong
+    assert list(outcomes.values()).count("error") > 10
+    for offset in (85, count_at, toc, toc + 24):
+        assert outcomes[f"bad_{offset}_{cases[-4 + [85, count_at, toc, toc + 24].index(offset)][1]}_8.usdc"] == "error"
+    assert time.perf_counter() - started < 60
+
+
+def test_openusd_errors_while_reading_values_become_named_errors(tmp_path, monkeypatch):
+    """pxr parses lazily: an error raised after the stage opened is a SplatFileError too."""
+    from pxr import Tf
+    usd.write(tmp_path / "ok.usdc", random_cloud(3, sh_degree=0))
+
+    def failing(*args, **kwargs):
+        raise Tf.ErrorException("Error in 'CrateFile::_UnpackValue' at line 1 in file crateFile.cpp : "
+                                "'Corrupt asset: exception thrown unpacking a value'")
+    monkeypatch.setattr(usd, "_world_matrix", failing)
+    with pytest.raises(SplatFileError, match=r"ok.usdc: OpenUSD cannot read it \(truncated or corrupt\?\): "
+                                             "'Corrupt asset: exception thrown unpacking a value'"):
+        read_splats(tmp_path / "ok.usdc")
+    with pytest.raises(SplatFileError, match="ok.usdc: OpenUSD cannot read it"):
+        usd.read_frames(tmp_path / "ok.usdc")
