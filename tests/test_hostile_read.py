@@ -249,9 +249,13 @@ def test_mtllib_outside_the_model_folder_is_refused_without_saying_if_it_exists(
         assert messages[0] == messages[1]             # same text whether the outside file exists or not
 
 
-def test_textures_outside_the_model_folder_are_refused(tmp_path):
+def test_textures_outside_the_model_folder_are_refused(tmp_path, monkeypatch):
     model, secret = model_folder(tmp_path)
     (model / "m.obj").write_text("mtllib m.mtl\n" + TRIANGLE)
+    monkeypatch.chdir(secret)                         # "s.png" exists relative to the working directory only
+    (model / "m.mtl").write_text("newmtl a\nKd 0.1 0.2 0.3\nmap_Kd s.png\n")
+    got, message = read_with_warnings(model / "m.obj")
+    assert got.materials[0].texture is None and "texture 's.png' of material 'a' not found" in message
     said = []
     for name in (str(secret / "s.png"), str(secret / "none.png"), "../secret/s.png", "../secret/none.png",
                  "/etc/passwd", "/etc/nothing-here"):
