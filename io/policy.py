@@ -16,6 +16,9 @@ from pathlib import Path, PurePosixPath
 # A texture bigger than this is refused from its header, before decoding: 8192 x 8192 RGBA8 is
 # 256 MiB; the largest textures of captured or sold models are 8K (16K would be 4 GiB decoded).
 MAX_IMAGE_PIXELS = 8192 * 8192
+# A text layer the NumPy reader parses (OpenUSD without pxr) may hold at most this many bytes: about
+# 100M numbers, which take it half a minute and several GiB.
+MAX_TEXT_LAYER_BYTES = 1 << 30
 # An SPZ payload may decompress to at most this many bytes (about 66M splats of SH degree 3, 214M
 # of degree 0), and to at most SPZ_MAX_RATIO times its compressed size once past SPZ_RATIO_FLOOR:
 # real SPZ payloads (quantised positions, colours, rotations) deflate 1.2-3x, never 64x.

@@ -23,7 +23,7 @@ from test_io_fuzz import SMALL_PEAK, outcome, peak_bytes, ply_ascii
 from splatwright.cli import main
 from splatwright.core.splats import MAX_LOG_SCALE, MAX_MAGNITUDE
 from splatwright.io import SplatFileError, SplatFileWarning, image, mesh, read_splats, splat, spz, usd, write_splats
-from splatwright.io.policy import MAX_IMAGE_PIXELS, SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR
+from splatwright.io.policy import MAX_IMAGE_PIXELS, MAX_TEXT_LAYER_BYTES, SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR
 
 
 @pytest.fixture(params=["pxr", "text"])
@@ -572,3 +572,26 @@ def test_openusd_errors_while_reading_values_become_named_errors(tmp_path, monke
         read_splats(tmp_path / "ok.usdc")
     with pytest.raises(SplatFileError, match="ok.usdc: OpenUSD cannot read it"):
         usd.read_frames(tmp_path / "ok.usdc")
+
+
+def test_text_stages_beyond_the_stated_size_are_refused_before_parsing(tmp_path, monkeypatch):
+    """Without pxr, OpenUSD text is parsed by NumPy: 1 GiB at most, and usdz roots must be stored."""
+    monkeypatch.setattr(usd, "Usd", None)
+    assert MAX_TEXT_LAYER_BYTES == 1 << 30
+    big = tmp_path / "big.usda"
+    with open(big, "wb") as f:                       # sparse: 1 GiB + 1 byte, nothing really written
+        f.write(b"#usda 1.0\n")
+        f.truncate((1 << 30) + 1)
+    started = time.perf_counter()
+    assert peak_bytes(lambda: outcome(usd.read, big)) < SMALL_PEAK
+    assert time.perf_counter() - started < 1.0
+    with pytest.raises(SplatFileError, match=r"big.usda: a 1073741825-byte text layer, more than the 1024 MiB"):
+        usd.read(big)
+    # a usdz whose root layer is deflated (a zip bomb shape; usdz stores its files) is refused unread
+    import zipfile
+    with zipfile.ZipFile(tmp_path / "bomb.usdz", "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("root.usda", "#usda 1.0\n" + " " * (64 << 20))
+    assert (tmp_path / "bomb.usdz").stat().st_size < 1 << 20
+    assert peak_bytes(lambda: outcome(usd.read, tmp_path / "bomb.usdz")) < 16 << 20
+    with pytest.raises(SplatFileError, match="bomb.usdz: the .usdz package's 'root.usda' is compressed"):
+        usd.read(tmp_path / "bomb.usdz")
