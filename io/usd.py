@@ -183,11 +183,7 @@ def _open(path, allow_outside=False):
 def _layer(path, identifier):
     """The Sdf layer at `identifier` (a file, or "pkg.usdz[inner]"), re-read if an earlier open left it
     cached (it may be stale); crate files are checked before OpenUSD parses them. None if missing."""
-    outer = identifier.split("[", 1)[0]
-    if os.path.isfile(outer) and "[" not in identifier:
-        with open(outer, "rb") as f:
-            if f.read(8) == b"PXR-USDC":
-                _check_crate(outer)
+    _check_crate(path, identifier)
     layer = Sdf.Layer.Find(identifier)
     if layer is not None:
         layer.Reload(True)
@@ -277,19 +273,48 @@ class _CrateError(Exception):
     pass
 
 
-def _check_crate(path):
+def _check_crate(path, identifier=None):
     """Refuse a .usdc whose structure the file cannot hold, before OpenUSD's crate reader sizes
     buffers by it: the table of contents and every section's counts and compressed sizes, and the
     element count of every array, vector and dictionary the FIELDS section points to (a flipped bit
-    in one makes OpenUSD allocate gigabytes, read past the file, or abort the process)."""
+    in one makes OpenUSD allocate gigabytes, read past the file, or abort the process). The layer
+    may sit in a .usdz ("pkg.usdz[inner]", or the package itself for its first file)."""
     import mmap
+    import zipfile
+    identifier = os.path.abspath(path) if identifier is None else identifier
+    outer, _, inner = identifier.partition("[")
+    if not os.path.isfile(outer):
+        return
     try:
-        with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        with open(outer, "rb") as f:
+            # not closed explicitly: views of it may live on in a traceback; freed with the last one
+            data = memoryview(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)) if os.fstat(f.fileno()).st_size \
+                else memoryview(b"")
+        if bytes(data[:4]) == b"PK\x03\x04":
+            data = _packaged(data, outer, inner.rstrip("]"))
+        if data is not None and bytes(data[:8]) == b"PXR-USDC":
             _check_crate_bytes(path, data)
-    except struct.error:
+    except (struct.error, zipfile.BadZipFile):
         raise SplatFileError(path, "crate header or table of contents is truncated") from None
     except (_CrateError, ValueError, IndexError) as exc:
         raise SplatFileError(path, f"crate file is corrupt: {exc}") from None
+
+
+def _packaged(view, outer, inner):
+    """The bytes of file `inner` (default: the first) of the zip `outer`, if stored uncompressed
+    (OpenUSD reads no other kind), else None."""
+    import zipfile
+    with zipfile.ZipFile(outer) as z:
+        infos = z.infolist()
+        match = [i for i in infos if i.filename == inner] if inner else infos[:1]
+        if not match or match[0].compress_type != zipfile.ZIP_STORED:
+            return None
+        info = match[0]
+    name_length, extra_length = struct.unpack_from("<HH", view, info.header_offset + 26)
+    start = info.header_offset + 30 + name_length + extra_length
+    if start + info.file_size > len(view):
+        raise _CrateError(f"packaged file {info.filename!r} runs past the package")
+    return view[start:start + info.file_size]
 
 
 def _check_crate_bytes(path, data):

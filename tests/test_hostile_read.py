@@ -531,6 +531,17 @@ def test_a_crate_array_count_of_2_28_is_refused_before_openusd_allocates(tmp_pat
     with pytest.raises(SplatFileError, match=r"count.usdc: crate file is corrupt: an array of type 24 at byte "
                                              rf"{count_at} claims 268435456 elements, more than the \d+ bytes"):
         read_splats(tmp_path / "count.usdc")
+    # the same crate layer inside a .usdz package (stored, as usdz requires)
+    cloud = random_cloud(42, sh_degree=1, seed=6)
+    usd.write(tmp_path / "packed.usdz", cloud)
+    packed = bytearray((tmp_path / "packed.usdz").read_bytes())
+    at = packed.find(cloud.positions.astype("<f4").tobytes()) - 8
+    assert struct.unpack_from("<Q", packed, at)[0] == 42
+    struct.pack_into("<Q", packed, at, 1 << 28)
+    (tmp_path / "packed.usdz").write_bytes(bytes(packed))
+    with pytest.raises(SplatFileError, match=r"packed.usdz: crate file is corrupt: an array of type 24 .* claims "
+                                             "268435456 elements"):
+        read_splats(tmp_path / "packed.usdz")
 
 
 def test_damaged_crate_words_give_a_named_error_or_a_read_never_a_crash(tmp_path):
