@@ -8,6 +8,9 @@ converted to linear here), `map_Kd` images are sRGB-encoded 8/16-bit images read
 
 Malformed lines raise SplatFileError naming the file and line. A missing MTL file or texture
 image is reported with a warning and the material falls back to its `Kd` (or the default grey).
+MTL files and textures are read only from the OBJ's folder and below (io.policy: absolute paths,
+`../` escapes and working-directory names are refused with a warning that does not say whether the
+file exists), and a texture beyond policy.MAX_IMAGE_PIXELS is refused from its header.
 """
 
 import warnings
