@@ -194,6 +194,18 @@ def _layer(path, identifier):
     return layer
 
 
+def _names(path, spec, key, where=""):
+    """The list of names a spec's field `key` holds ([] if unauthored); a damaged crate file can make
+    it any other type, which is a SplatFileError."""
+    if not spec.HasInfo(key):
+        return []
+    names = spec.GetInfo(key)
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise SplatFileError(path, f"{where}{spec.path}: its {key} hold a {type(names).__name__}, "
+                                   "not a list of names (corrupt?)")
+    return names
+
+
 def _check_children(path, layer):
     """Every prim and property a prim spec lists as its children must exist: OpenUSD composes a
     stage by those lists and aborts the process ("Dereferenced an invalid SdfPrimSpec") on a name
@@ -202,13 +214,13 @@ def _check_children(path, layer):
     todo = [layer.pseudoRoot]
     while todo:
         prim = todo.pop()
-        for name in prim.GetInfo("primChildren") if prim.HasInfo("primChildren") else []:
+        for name in _names(path, prim, "primChildren", where):
             child = layer.GetPrimAtPath(prim.path.AppendChild(name)) if Sdf.Path.IsValidIdentifier(name) else None
             if child is None:
                 raise SplatFileError(path, f"{where}prim {prim.path} lists a child {name!r} that the "
                                            "layer does not hold (corrupt?)")
             todo.append(child)
-        for name in prim.GetInfo("properties") if prim.HasInfo("properties") else []:
+        for name in _names(path, prim, "properties", where):
             ok = Sdf.Path.IsValidNamespacedIdentifier(name) and \
                 layer.GetPropertyAtPath(prim.path.AppendProperty(name)) is not None
             if not ok:
@@ -876,16 +888,28 @@ def _narrowed(values, dtype, name, notes):
     return values
 
 
+def _op_order(prim):
+    """The prim's xformOpOrder as a list of op names ([] if unauthored), or a SplatFileError when it
+    holds anything else (a damaged crate file can point it at any value)."""
+    attr = prim.GetAttribute("xformOpOrder")
+    order = attr.Get() if attr else None
+    if order is None:
+        return []
+    names = list(order) if not isinstance(order, str) and hasattr(order, "__iter__") else None
+    if names is None or not all(isinstance(n, str) for n in names):
+        raise SplatFileError(_file(prim), f"{prim.GetPath()}: xformOpOrder holds a {type(order).__name__}, "
+                                          "not a list of transform op names")
+    return names
+
+
 def _is_upright(prim):
     """Whether the prim stands a capture upright with our transform op."""
-    order = prim.GetAttribute("xformOpOrder").Get() if prim.GetAttribute("xformOpOrder") else None
-    return order is not None and UPRIGHT_OP in order
+    return UPRIGHT_OP in _op_order(prim)
 
 
 def _nonfinite_ops(prim, time):
     """Names of the prim's own transform ops whose values hold NaN or Inf."""
-    order = prim.GetAttribute("xformOpOrder")
-    names = [str(n).removeprefix("!invert!") for n in (order.Get() or [])] if order else []
+    names = [n.removeprefix("!invert!") for n in _op_order(prim)]
     bad = []
     for name in names:
         attr = prim.GetAttribute(name)

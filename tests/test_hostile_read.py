@@ -488,13 +488,12 @@ from pathlib import Path
 resource.setrlimit(resource.RLIMIT_AS, (6 << 30, 6 << 30))    # an allocation of gigabytes fails loudly
 from splatwright.io import SplatFileError, SplatFileWarning, usd
 folder = Path(sys.argv[1])
-valid = (folder / "valid.usdc").read_bytes()
 outcomes = {}
 for case in json.loads(sys.argv[2]):
-    offset, value, width = case
-    bad = bytearray(valid)
+    source, offset, value, width = case
+    bad = bytearray((folder / source).read_bytes())
     bad[offset:offset + width] = value.to_bytes(8, "little")[:width]
-    path = folder / f"bad_{offset}_{value}_{width}.usdc"
+    path = folder / f"bad_{source[:-5]}_{offset}_{value}_{width}.usdc"
     path.write_bytes(bytes(bad))
     try:
         with warnings.catch_warnings():
@@ -551,10 +550,18 @@ def test_damaged_crate_words_give_a_named_error_or_a_read_never_a_crash(tmp_path
     import sys
     data, count_at = crate_6k(tmp_path)
     toc = struct.unpack_from("<q", data, 16)[0]
-    cases = [(at, 1 << 28, 8) for at in range(16, len(data) - 8, 136)]
-    cases += [(at, 0xFFFFFFFF, 4) for at in range(92, len(data) - 4, 400)]
-    cases += [(85, 1 << 28, 8),                 # the pseudo-root's child list grows to 16 names: an abort before
-              (count_at, 1 << 28, 8), (toc, 1 << 20, 8), (toc + 8 + 16, 1 << 40, 8)]
+    cloud = random_cloud(20, sh_degree=1, seed=6)                       # and an animated file: time samples
+    usd.write_frames(tmp_path / "anim.usdc", [cloud, cloud.replace(positions=cloud.positions + 1,
+                                                                    opacity_logits=cloud.opacity_logits * 2)])
+    anim = (tmp_path / "anim.usdc").read_bytes()
+    special = [(85, 1 << 28, 8),                # the pseudo-root's child list grows to 16 names: an abort before
+               (count_at, 1 << 28, 8), (toc, 1 << 20, 8), (toc + 24, 1 << 40, 8)]
+    cases = [("valid.usdc", *case) for case in special]
+    # fields pointed at values of another type: xformOpOrder a Variability, primChildren a float (TypeErrors before)
+    cases += [("anim.usdc", 3733, 1 << 28, 8), ("anim.usdc", 3908, 1 << 28, 8)]
+    cases += [("valid.usdc", at, 1 << 28, 8) for at in range(16, len(data) - 8, 136)]
+    cases += [("valid.usdc", at, 0xFFFFFFFF, 4) for at in range(92, len(data) - 4, 400)]
+    cases += [("anim.usdc", at, 1 << 28, 8) for at in range(40, len(anim) - 8, 200)]
     started = time.perf_counter()
     run = subprocess.run([sys.executable, "-c", CRATE_SWEEP, str(tmp_path), json.dumps(cases)],
                          capture_output=True, encoding="utf-8", errors="replace", timeout=120)
@@ -564,8 +571,8 @@ def test_damaged_crate_words_give_a_named_error_or_a_read_never_a_crash(tmp_path
     wrong = {name: what for name, what in outcomes.items() if what not in ("error", "read")}
     assert not wrong, wrong
     assert list(outcomes.values()).count("error") > 10
-    for offset in (85, count_at, toc, toc + 24):
-        assert outcomes[f"bad_{offset}_{cases[-4 + [85, count_at, toc, toc + 24].index(offset)][1]}_8.usdc"] == "error"
+    for offset, value, width in special:
+        assert outcomes[f"bad_valid_{offset}_{value}_{width}.usdc"] == "error"
     assert time.perf_counter() - started < 60
 
 
