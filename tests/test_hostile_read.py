@@ -145,7 +145,7 @@ def test_info_json_is_strict_json_for_hostile_values(tmp_path, capsys):
     assert info["scale"]["max"] == pytest.approx(np.exp(cloud.log_scales[finite].astype(np.float64)).max(), rel=1e-12)
 
 
-# ASCII PLY rows, extras named like our fields, OpenUSD stage metadata and transforms -----------------------------------------------------------------------------
+# ASCII PLY rows, extras named like our fields, OpenUSD stage metadata and transforms ----------
 
 def test_ascii_ply_blank_line_among_rows(tmp_path):
     data, _ = ply_ascii(rows=3)
