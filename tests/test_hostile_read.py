@@ -322,6 +322,18 @@ def test_usd_layers_composed_by_composed_layers_are_checked_too(tmp_path):
         usd.read(model / "stage.usda")
 
 
+def test_usd_references_inside_variants_are_checked_too(tmp_path):
+    model = tmp_path / "model"
+    model.mkdir()
+    usd.write(tmp_path / "out.usdc", random_cloud(7, sh_degree=0, seed=2))
+    (model / "v.usda").write_text('#usda 1.0\n(\n    metersPerUnit = 1\n)\ndef "W" (\n    variants = { string look = "far" }\n'
+                                  '    prepend variantSets = "look"\n)\n{\n    variantSet "look" = {\n        "far" (\n'
+                                  '            prepend references = @../out.usdc@\n        ) {\n        }\n    }\n}\n')
+    with pytest.raises(SplatFileError, match="v.usda: refers to a layer: '../out.usdc' is outside the stage's folder"):
+        usd.read(model / "v.usda")
+    assert len(usd.read(model / "v.usda", allow_outside=True)) == 7        # the variant does select it
+
+
 def test_usdz_composes_only_from_its_own_package(tmp_path):
     from pxr import UsdUtils
     model = tmp_path / "model"
