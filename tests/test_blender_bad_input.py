@@ -186,7 +186,7 @@ def test_wrong_objects_are_refused_or_hidden(blender, kind):
     ("import damaged.usdc", ["damaged.usdc"]),
     ("import nothing", ["no file to import"]),
     ("export missing folder", ["nowhere", "x.ply"]),
-    ("export a folder", ["folder.ply", "directory"]),
+    ("export a folder", ["folder.ply", "is a folder"]),
     ("export no extension", ["noext", "unknown splat file extension"]),
     ("export NaN over a file", ["precious.ply", "non-finite"]),
 ])
