@@ -175,9 +175,12 @@ class Worker(BlenderWorker):
         scene.frame_set(1)
         res["frame"] = scene.frame_current
         res["report"] = json.loads(obj["splatwright_cleanup_report"])
-        self.save("visibility", positions=self.world_cloud(obj, edits=False).positions,
+        unedited = self.world_cloud(obj, edits=False)
+        self.save("visibility", positions=unedited.positions, rotations=unedited.rotations,
+                  log_scales=unedited.log_scales, opacity_logits=unedited.opacity_logits, sh=unedited.sh,
                   kept=self.world_cloud(obj).positions, weights=weights, cameras=np.stack(cams),
-                  lens=cam.data.lens, sensor=cam.data.sensor_width)
+                  lens=cam.data.lens, sensor=[cam.data.sensor_width, cam.data.sensor_height],
+                  clip=[cam.data.clip_start, cam.data.clip_end])
         return res
 
     def cleanup_refusals(self):
