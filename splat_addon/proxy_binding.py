@@ -31,8 +31,9 @@ def proxy_rig(proxy):
     """(armature object, preserve volume) of a proxy mesh: its Armature modifier, else its armature
     parent; RiggingError naming what is missing."""
     if proxy.type != "MESH" or data.is_splat_object(proxy):
-        raise rigging.RiggingError(f"'{proxy.name}' is {'a splat object' if data.is_splat_object(proxy) else proxy.type.lower()}, "
-                                   "not a rigged mesh: the proxy must be a mesh skinned to an armature")
+        kind = "a splat object" if data.is_splat_object(proxy) else proxy.type.lower()
+        raise rigging.RiggingError(f"'{proxy.name}' is {kind}, not a rigged mesh: the proxy must be a mesh "
+                                   "skinned to an armature")
     if not len(proxy.data.polygons):
         raise rigging.RiggingError(f"the proxy mesh '{proxy.name}' has no faces")
     mod = next((m for m in proxy.modifiers if m.type == "ARMATURE" and m.object is not None

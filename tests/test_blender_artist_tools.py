@@ -5,7 +5,6 @@ crop, the box's own inequality, the SH colour formula for grading, and, for the 
 float64 brute-force nearest point, Blender's own posed proxy mesh and linear blend skinning by the
 bone matrices Blender reports."""
 
-import json
 import math
 
 import numpy as np

@@ -191,7 +191,8 @@ class Worker(BlenderWorker):
         plain = self.mesh_object("Plain", [(0, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)])
         res = {}
         bpy.context.scene.camera = None
-        cases = {"camera_volume": ([obj, bpy.data.objects["Camera"]], bpy.data.objects["Camera"], bpy.ops.splat.crop, {}),
+        camera = bpy.data.objects["Camera"]
+        cases = {"camera_volume": ([obj, camera], camera, bpy.ops.splat.crop, {}),
                  "faceless_volume": ([obj, flat], flat, bpy.ops.splat.crop, {}),
                  "missing_volume": ([obj], obj, bpy.ops.splat.crop, {"volume": "Nowhere"}),
                  "not_splats": ([plain], plain, bpy.ops.splat.grade, {"exposure": 1.0}),
@@ -264,8 +265,9 @@ class Worker(BlenderWorker):
         evaluated.to_mesh_clear()
         world = np.array(evaluated.matrix_world)
         arm_world = np.array(arm.matrix_world)
-        deform = np.stack([arm_world @ np.array(arm.pose.bones[b].matrix) @ np.linalg.inv(np.array(arm.data.bones[b].matrix_local))
-                           @ np.linalg.inv(arm_world) for b in ("Lower", "Upper")])
+        deform = np.stack([arm_world @ np.array(arm.pose.bones[b].matrix)
+                           @ np.linalg.inv(np.array(arm.data.bones[b].matrix_local)) @ np.linalg.inv(arm_world)
+                           for b in ("Lower", "Upper")])
         self.save("proxy_bind", rest=positions, proxy_rest=verts + np.array(arm.location), triangles=faces,
                   vertex_weights=weights, proxy_posed=co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3],
                   bound=bound, deform=deform, **{f"posed_{f}": p for f, p in posed.items()})
