@@ -50,13 +50,13 @@ pxr, e.g. one bundled with Blender) the same prim and attributes are authored by
 generic API, giving the same file.
 """
 
+import contextlib
 import ctypes
 import itertools
 import math
 import os
 import re
 import struct
-import tempfile
 import warnings
 import weakref
 from dataclasses import dataclass, field
@@ -1143,19 +1143,30 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
         times = list(times)
     with atomic_path(path) as tmp:
         if Usd is None:
-            _save_text_layer(path, str(tmp), prims, times, options, fps)
+            _save_text_layer(path, tmp, prims, times, options, fps)
         elif path.lower().endswith(".usdz"):
-            with tempfile.TemporaryDirectory(dir=os.path.dirname(os.path.abspath(path))) as folder:
-                layer_path = os.path.join(folder, os.path.splitext(os.path.basename(path))[0] + ".usdc")
-                _save_stage(path, layer_path, prims, times, options, fps)
-                if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(layer_path), str(tmp)):
-                    raise SplatFileError(path, "OpenUSD could not package the .usdz")
+            layer_path = tmp + ".layer"                 # a partial too: swept with it after a kill
+            try:
+                _save_stage(path, layer_path, "usdc", prims, times, options, fps)
+                usda.write_usdz(tmp, os.path.splitext(os.path.basename(path))[0] + ".usdc", layer_path)
+            finally:
+                with contextlib.suppress(OSError):
+                    os.remove(layer_path)
         else:
-            _save_stage(path, str(tmp), prims, times, options, fps)
+            _save_stage(path, tmp, os.path.splitext(path)[1][1:].lower(), prims, times, options, fps)
 
 
-def _save_stage(path, layer_path, prims, times, options, fps):
-    layer = Sdf.Layer.CreateNew(layer_path)
+def _save_stage(path, layer_path, file_format, prims, times, options, fps):
+    """Author the prims in a new layer of `file_format` ("usda", "usdc", "usd") saved at layer_path
+    (a partial, so the format is named rather than taken from its extension)."""
+    try:
+        _author_stage(path, layer_path, file_format, prims, times, options, fps)
+    except Tf.ErrorException as exc:
+        raise SplatFileError(path, f"OpenUSD could not write it: {_tf_message(exc)}") from None
+
+
+def _author_stage(path, layer_path, file_format, prims, times, options, fps):
+    layer = Sdf.Layer.New(Sdf.FileFormat.FindByExtension(file_format), layer_path)
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -1189,7 +1200,7 @@ def _save_text_layer(path, layer_path, prims, times, options, fps):
         layer.metadata.update(startTimeCode=float(min(all_times)), endTimeCode=float(max(all_times)))
     if fps is not None:
         layer.metadata.update(timeCodesPerSecond=float(fps), framesPerSecond=float(fps))
-    layer.save(layer_path, os.path.splitext(os.path.basename(path))[0] + ".usda")
+    layer.save(layer_path, os.path.splitext(os.path.basename(path))[0] + ".usda", usdz=path.lower().endswith(".usdz"))
 
 
 def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",

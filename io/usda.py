@@ -18,6 +18,7 @@ writes them w first.
 import io as _io
 import os
 import re
+import shutil
 import warnings
 import zipfile
 from dataclasses import dataclass, field
@@ -264,13 +265,13 @@ class Layer:
             stack.extend(reversed(prim.children))
 
     # writing
-    def save(self, path, package_name=None):
-        """Write the layer to `path`: text for .usda/.usd, for .usdz a package of it named
-        package_name (default: the stem of `path` + .usda)."""
+    def save(self, path, package_name=None, usdz=None):
+        """Write the layer to `path`: text, or with usdz (default: `path` ends in .usdz) a package
+        of it named package_name (default: the stem of `path` + .usda)."""
         text = self.text()
-        if path.lower().endswith(".usdz"):
+        if path.lower().endswith(".usdz") if usdz is None else usdz:
             name = package_name or os.path.splitext(os.path.basename(path))[0] + ".usda"
-            _write_usdz(path, name, text.encode())
+            write_usdz(path, name, text.encode())
         else:
             with open(path, "w", encoding="utf-8", newline="\n") as f:
                 f.write(text)
@@ -382,15 +383,23 @@ def value_text(value, type_name):
 USDZ_ALIGN = 64
 
 
-def _write_usdz(path, name, data):
-    """A .usdz: the layer stored uncompressed, its data starting on a 64-byte boundary (the
-    package format's rule, so readers can map it in place)."""
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+def write_usdz(path, name, layer):
+    """A .usdz of one layer (bytes, or the name of a file holding them) named `name` inside: stored
+    uncompressed, its data starting on a 64-byte boundary (the package format's rule, so readers
+    can map it in place). A file is copied in chunks, never held in memory whole."""
+    size = len(layer) if isinstance(layer, bytes) else os.path.getsize(layer)
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
         info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+        info.file_size = size
         header = 30 + len(name.encode())
         pad = -(header + 4) % USDZ_ALIGN
         info.extra = b"\x86\x19" + pad.to_bytes(2, "little") + b"\0" * pad   # a private padding field
-        z.writestr(info, data)
+        with z.open(info, "w") as out:
+            if isinstance(layer, bytes):
+                out.write(layer)
+            else:
+                with open(layer, "rb") as f:
+                    shutil.copyfileobj(f, out, 1 << 20)
 
 
 # reading ------------------------------------------------------------------------------------------
