@@ -149,7 +149,7 @@ def change_report(context, obj, measure=True):
     before = data.evaluated_cloud(obj, depsgraph, edits=False)
     after = data.evaluated_cloud(obj, depsgraph)
     report = economy.change_report(before, after, views=None if measure else [])
-    obj[REPORT] = json.dumps({k: (None if v == float("inf") else v) for k, v in report.items()})
+    obj[REPORT] = json.dumps(report)           # an unchanged image's PSNR is written Infinity
     return report
 
 
