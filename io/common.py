@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.splats import FIELDS as CORE_FIELDS
 
 NONFINITE_POLICIES = ("raise", "keep", "drop")
 
@@ -47,13 +46,9 @@ def check_nonfinite_policy(policy):
 
 
 def nonfinite_counts(cloud):
-    """{field: splats with a NaN/Inf in that field}, only the fields that have some."""
-    counts = {}
-    for name in CORE_FIELDS:
-        values = getattr(cloud, name)
-        if not np.isfinite(values).all():
-            counts[name] = int((~np.isfinite(values.reshape(len(values), -1)).all(axis=1)).sum())
-    return counts
+    """{field: splats with NaN/Inf, or values that overflow when activated, in that field (float
+    extras included)}, only the fields that have some (SplatCloud.bad_counts)."""
+    return cloud.bad_counts()
 
 
 def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
@@ -66,7 +61,8 @@ def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
         return cloud
     bad = ~cloud.finite_mask()
     detail = ", ".join(f"{name} in {c}" for name, c in counts.items())
-    what = f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf or beyond float32): {detail}"
+    what = (f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf, beyond float32, or "
+            f"overflowing float32 once activated): {detail}")
     if policy == "raise":
         raise SplatFileError(path, f"{what}; {verb} with nonfinite='keep' or 'drop' to go on anyway")
     warnings.warn(f"{path}: {what}; {'kept' if policy == 'keep' else 'dropped'}", SplatFileWarning, stacklevel=3)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .common import SplatFileError
+from .policy import MAX_TEXT_LAYER_BYTES
 
 HEADER = "#usda 1.0"
 COMPOSITION = ("subLayers", "references", "payload", "inherits", "specializes", "variantSets", "variants")
@@ -196,6 +197,8 @@ def _op_matrix(path, prim_path, name, value):
     kind = name.split(":")[1] if name.count(":") >= 1 else ""
     m = np.eye(4)
     value = np.asarray(value, np.float64)
+    if not np.isfinite(value).all():            # a NaN quaternion would normalise to the identity
+        raise SplatFileError(path, f"{prim_path}: its transform ops {name} hold NaN or Inf")
     if kind == "transform":
         return value.reshape(4, 4).T                # USD matrices act on row vectors
     if kind == "translate":
@@ -405,8 +408,10 @@ def write_usdz(path, name, layer):
 # reading ------------------------------------------------------------------------------------------
 
 def read_layer(path):
-    """The Layer in a .usda/.usd text file or a .usdz package whose first file is text."""
+    """The Layer in a .usda/.usd text file or a .usdz package whose first file is text. A layer of
+    more than policy.MAX_TEXT_LAYER_BYTES is refused before it is read."""
     with open(path, "rb") as f:
+        _check_text_size(path, os.fstat(f.fileno()).st_size)
         data = f.read()
     if data.startswith(b"PK\x03\x04"):
         data = _usdz_root(path, data)
@@ -425,6 +430,12 @@ def read_layer(path):
     return layer
 
 
+def _check_text_size(path, size):
+    if size > MAX_TEXT_LAYER_BYTES:
+        raise SplatFileError(path, f"a {size}-byte text layer, more than the {MAX_TEXT_LAYER_BYTES >> 20} MiB "
+                                   "this reader parses without OpenUSD (write .usdc with pxr for bigger stages)")
+
+
 def _usdz_root(path, data):
     try:
         with zipfile.ZipFile(_io.BytesIO(data)) as z:
@@ -433,6 +444,10 @@ def _usdz_root(path, data):
                 raise SplatFileError(path, "the .usdz package is empty")
             if not names[0].lower().endswith((".usda", ".usd", ".usdc")):
                 raise SplatFileError(path, f"the .usdz package's first file {names[0]!r} is not an OpenUSD layer")
+            info = z.getinfo(names[0])
+            if info.compress_type != zipfile.ZIP_STORED:          # the usdz rule; also no zip bomb
+                raise SplatFileError(path, f"the .usdz package's {names[0]!r} is compressed; usdz files are stored")
+            _check_text_size(path, info.file_size)
             return z.read(names[0])
     except (zipfile.BadZipFile, EOFError, OSError) as exc:
         raise SplatFileError(path, f"the .usdz package is damaged: {exc}") from None
