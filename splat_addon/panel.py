@@ -10,9 +10,12 @@ from typing import NamedTuple
 
 import bpy
 
+import json
+
+from ..core.economy import describe_change
 from ..core.splats import memory_bytes
 from ..io import file_sizes
-from . import data, display, preferences
+from . import cleanup, data, display, preferences
 
 DISPLAY_INPUTS = ("Radius Scale", "Min Opacity", "Display Ratio")
 # format -> (label, how the number relates to the file)
@@ -70,7 +73,22 @@ def draw_operators(col):
     col.operator("splat.join", icon="SELECT_EXTEND")
     col.operator_menu_enum("splat.convert_form", "form", icon="OUTLINER_OB_POINTCLOUD")
     col.operator("splat.bind_armature", icon="ARMATURE_DATA")
+    col.operator("splat.bind_proxy", icon="MOD_MESHDEFORM")
     col.operator("splat.check_collisions", icon="MOD_PHYSICS")
+
+
+def draw_cleanup(box, obj):
+    """The clean-up and grading settings the object carries (applied on export and render), the last
+    change's report, and the operators that set them."""
+    col = box.column(align=True)
+    settings = cleanup.settings_of(obj)
+    col.label(text="Clean-up: " + (", ".join(sorted(settings)) if settings else "none"))
+    report = obj.get(cleanup.REPORT)
+    if report:
+        col.label(text="Last: " + describe_change(json.loads(report)))
+    for idname, icon in (("splat.crop", "MOD_BOOLEAN"), ("splat.prune", "TRASH"), ("splat.grade", "COLOR"),
+                         ("splat.reduce_sh", "SPHERE"), ("splat.clear_cleanup", "LOOP_BACK")):
+        col.operator(idname, icon=icon)
 
 
 class _SplatsPanel:
@@ -95,6 +113,7 @@ class _SplatsPanel:
             for name in DISPLAY_INPUTS:
                 owner, prop = display.input_property(mod, name)
                 col.prop(owner, prop, text=name)
+        draw_cleanup(layout.box(), obj)
         draw_operators(layout.column(align=True))
 
 

@@ -87,7 +87,10 @@ def test_panel_draws_the_numbers_display_settings_and_existing_operators(blender
     assert all(ok for _, _, ok in res["checks"]), res["checks"]
     operators = {c[1] for c in res["checks"] if c[0] != "prop"}
     assert operators == {"splat.export_file", "splat.export_animation", "splat.apply_transform", "splat.join",
-                         "splat.convert_form", "splat.bind_armature", "splat.check_collisions"}
+                         "splat.convert_form", "splat.bind_armature", "splat.check_collisions",
+                         "splat.bind_proxy", "splat.crop", "splat.prune", "splat.grade", "splat.reduce_sh",
+                         "splat.clear_cleanup"}
+    assert "Clean-up: none" in labels
 
 
 def test_panel_numbers_are_the_written_files(blender):
