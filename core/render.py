@@ -625,14 +625,18 @@ def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
     bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
     chunks = list(range(len(bounds) - 1))
     rec64 = proj.records
+    rows = proj.bbox[:, 3] // ts - proj.bbox[:, 1] // ts + 1            # tile rows of each splat
+    first_row = np.zeros(n + 1, np.int64)
+    np.cumsum(rows, out=first_row[1:])
+    spans = np.empty((int(first_row[-1]), 2), np.int32)                # tile columns per splat and row
     counts = np.zeros((len(chunks), n_tiles), np.int64)
     pool.map(lambda k: kernels.count_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
-                                           counts[k]), chunks)
+                                           first_row, spans, counts[k]), chunks)
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     np.cumsum(counts.sum(axis=0), out=offsets[1:])
     cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts       # where each chunk's run begins
     entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
-    pool.map(lambda k: kernels.fill_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
+    pool.map(lambda k: kernels.fill_tiles(proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x, first_row, spans,
                                           number, cursor[k], entry_splat), chunks)
     return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
 

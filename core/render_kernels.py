@@ -179,66 +179,64 @@ def project_range(positions, rotations, log_scales, logits, sh, lo, hi, center, 
 # tile binning -------------------------------------------------------------------------------------
 
 @njit
-def _span(a, b, c, r2, lo, hi):
-    """(first, last) of x over the ellipse a x^2 + 2 b x y + c y^2 <= r2 (offsets from its centre)
-    within the band lo <= y <= hi (as core.render._row_extent: the right edge x(y) is concave with
-    its maximum at the ellipse's rightmost point, so over the band it peaks there or at the band end
-    nearest to it; the left edge mirrors this). Swap a and c for the range of y over a band of x."""
-    det = a * c - b * b
-    sxx = c / det                                       # the covariance's x variance
-    half = math.sqrt(r2 * sxx)
-    peak = math.sqrt(r2 / sxx) * (-b / det)             # y of the rightmost point (leftmost: -peak)
-    if lo <= peak <= hi:
-        right = half
-    else:
-        y = min(max(peak, lo), hi)
-        right = (-b * y + math.sqrt(max(a * r2 - det * y * y, 0.0))) / a
-    if lo <= -peak <= hi:
-        left = -half
-    else:
-        y = min(max(-peak, lo), hi)
-        left = (-b * y - math.sqrt(max(a * r2 - det * y * y, 0.0))) / a
-    return left, right
+def count_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, first_row, spans, counts):
+    """counts[tile] += the number of splats lo..hi-1 whose ellipse reaches that tile; each splat's
+    first and last tile column in each of its tile rows go to spans[first_row[s] + row], for
+    fill_tiles.
 
-
-@njit
-def _tile_columns(rec64, r2, bbox, s, row, ts):
-    """First and last tile column of tile row `row` that splat s's ellipse reaches (the ellipse's
-    extreme x over the row's band of pixel-centre rows)."""
-    x0, y0, x1, y1 = bbox[s, 0], bbox[s, 1], bbox[s, 2], bbox[s, 3]
-    if y1 // ts == y0 // ts or x1 // ts == x0 // ts:    # one tile high or wide: the whole box
-        return x0 // ts, x1 // ts
-    u, v = rec64[s, 0], rec64[s, 1]
-    left, right = _span(rec64[s, 2], rec64[s, 3], rec64[s, 4], r2[s],
-                        max(row * ts, y0) + 0.5 - v, min(row * ts + ts - 1, y1) + 0.5 - v)
-    first = max(np.int64(math.ceil(u + left - 0.5)), x0)
-    last = min(np.int64(math.floor(u + right - 0.5)), x1)
-    if last < first:
-        return first // ts, first // ts - 1
-    return first // ts, last // ts
-
-
-@njit
-def count_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, counts):
-    """counts[tile] += the number of splats lo..hi-1 whose ellipse reaches that tile."""
+    Within a tile row (its band of pixel-centre rows, cut to the box) the ellipse reaches from its
+    smallest to its largest x there (as core.render._row_extent): the right edge x(dy) is concave
+    with its maximum at the ellipse's rightmost point, so over the band it peaks there or at the
+    band end nearest to it; the left edge mirrors this. A box one tile high or wide meets every
+    tile it covers."""
     for s in range(lo, hi):
-        for row in range(bbox[s, 1] // ts, bbox[s, 3] // ts + 1):
-            c0, c1 = _tile_columns(rec64, r2, bbox, s, row, ts)
+        at = first_row[s]
+        x0, y0, x1, y1 = bbox[s, 0], bbox[s, 1], bbox[s, 2], bbox[s, 3]
+        whole = y1 // ts == y0 // ts or x1 // ts == x0 // ts
+        u, v, a, b, c = rec64[s, 0], rec64[s, 1], rec64[s, 2], rec64[s, 3], rec64[s, 4]
+        rr = r2[s]
+        det = a * c - b * b
+        sxx = c / det                                       # the covariance's x variance
+        half = math.sqrt(rr * sxx)
+        peak = math.sqrt(rr / sxx) * (-b / det)             # dy of the rightmost point (leftmost: -peak)
+        inv_a, ar = 1.0 / a, a * rr
+        for row in range(y0 // ts, y1 // ts + 1):
+            if whole:
+                c0, c1 = x0 // ts, x1 // ts
+            else:
+                lo_dy = max(row * ts, y0) + 0.5 - v
+                hi_dy = min(row * ts + ts - 1, y1) + 0.5 - v
+                if lo_dy <= peak <= hi_dy:
+                    right = half
+                else:
+                    dy = min(max(peak, lo_dy), hi_dy)
+                    right = (-b * dy + math.sqrt(max(ar - det * dy * dy, 0.0))) * inv_a
+                if lo_dy <= -peak <= hi_dy:
+                    left = -half
+                else:
+                    dy = min(max(-peak, lo_dy), hi_dy)
+                    left = (-b * dy - math.sqrt(max(ar - det * dy * dy, 0.0))) * inv_a
+                first = max(np.int64(math.ceil(u + left - 0.5)), x0)
+                last = min(np.int64(math.floor(u + right - 0.5)), x1)
+                c0, c1 = first // ts, (last // ts if last >= first else first // ts - 1)
+            spans[at, 0], spans[at, 1] = c0, c1
+            at += 1
             for col in range(c0, c1 + 1):
                 counts[row * tiles_x + col] += 1
 
 
 @njit
-def fill_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, number, cursor, entry_splat):
+def fill_tiles(bbox, lo, hi, ts, tiles_x, first_row, spans, number, cursor, entry_splat):
     """Entries of splats lo..hi-1 (in this order, so front to back), as number[splat], at
-    cursor[tile], which advances."""
+    cursor[tile], which advances; the tiles from count_tiles' spans."""
     for s in range(lo, hi):
+        at = first_row[s]
         for row in range(bbox[s, 1] // ts, bbox[s, 3] // ts + 1):
-            c0, c1 = _tile_columns(rec64, r2, bbox, s, row, ts)
-            for col in range(c0, c1 + 1):
+            for col in range(spans[at, 0], spans[at, 1] + 1):
                 tile = row * tiles_x + col
                 entry_splat[cursor[tile]] = number[s]
                 cursor[tile] += 1
+            at += 1
 
 
 @njit
