@@ -586,7 +586,7 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool):
               for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")]
     records = _records(n)
     index, depth = np.empty(n, np.int64), np.empty(n, np.float32)
-    r2, bbox = np.empty(n), np.empty((n, 4), np.int64)
+    r2, bbox = np.empty(n), np.empty((n, 4), np.int32)
     w, h = camera.width, camera.height
     mx, my = (FRUSTUM_MARGIN - 1) / 2 * w, (FRUSTUM_MARGIN - 1) / 2 * h
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
@@ -607,7 +607,7 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool):
     # float32 depth keys, ties in index order (see project())
     rows = rows[_stable_argsort(depth[rows].view(np.uint32), 1 << 32)]
     m = len(rows)
-    proj = Projected(np.empty(m, np.int64), _records(m), np.empty(m), np.empty((m, 4), np.int64),
+    proj = Projected(np.empty(m, np.int64), _records(m), np.empty(m), np.empty((m, 4), np.int32),
                      sum(skipped for _, _, skipped in parts))
     bounds = np.linspace(0, m, pool.threads + 1).astype(np.int64)
     pool.map(lambda k: kernels.gather(rows, bounds[k], bounds[k + 1], records, bbox, r2, index, proj.records,
@@ -690,7 +690,7 @@ class _CompiledCompositor:
     def _records(self):
         """The records and boxes in the order the entries number them."""
         proj, n = self.proj, len(self.proj)
-        records, bbox = _records(n), np.empty((n, 4), np.int64)
+        records, bbox = _records(n), np.empty((n, 4), np.int32)
         empty, empty_index = np.zeros(0), np.zeros(0, np.int64)         # r2 and index stay behind
         bounds = np.linspace(0, n, self.pool.threads + 1).astype(np.int64)
         self.pool.map(lambda k: self.kernels.gather(self.order, bounds[k], bounds[k + 1], proj.records, proj.bbox,
