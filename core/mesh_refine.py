@@ -117,7 +117,26 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
                      uniform=False):
     """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable).
     With `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes
-    are calibrated for the views."""
+    are calibrated for the views. progress(done, total, label) after each round."""
+    return drain(refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform),
+                 progress)
+
+
+def drain(steps, progress=None):
+    """Run a generator of (done, total, label) steps to its end, passing each to `progress`;
+    returns the generator's return value."""
+    while True:
+        try:
+            step = next(steps)
+        except StopIteration as stop:
+            return stop.value
+        if progress:
+            progress(*step)
+
+
+def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False):
+    """refine_to_target one round at a time: a generator yielding (round, MAX_ROUNDS, label) after
+    each round and returning the cloud, so a caller can stop between rounds (close() it)."""
     cameras = list(views) if views is not None else default_views(surface, view_size)
     if not cameras:
         raise ValueError("need at least one view")
@@ -141,8 +160,7 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
         psnr, err, px, dilation, overall = v.measure(cloud)
         if best is None or psnr > best[0]:
             best = (psnr, cloud, inset, overall)
-        if progress:
-            progress(round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB")
+        yield round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
         if psnr >= target:
             if previous is not None:
                 best = _trim(v, make, previous[2], density, inset, target, best)
@@ -176,8 +194,7 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
         previous = (new > density * 1.01, local, density)
         density = new
     psnr, cloud, inset, overall = best
-    if progress:
-        progress(MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB")
+    yield MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
     if isinstance(info, dict):
         info.update(psnr=psnr, psnr_all_views=overall, inset_pixels=inset, views=len(cameras))
         if not uniform:

@@ -26,11 +26,18 @@ EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
 
 
-def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
-                   corner_colors=None, max_splats=None, target_psnr=None, progress=None,
-                   overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
-                   render_mode="classic", info=None):
-    """Convert a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
+def mesh_to_splats(vertices, faces, *, progress=None, **options):
+    """Convert a triangle mesh to a SplatCloud of flat Gaussians: mesh_to_splats_steps run to its
+    end, each step passed to `progress(done, total, label)`. The options are mesh_to_splats_steps'."""
+    from .mesh_refine import drain
+    return drain(mesh_to_splats_steps(vertices, faces, **options), progress)
+
+
+def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
+                         corner_colors=None, max_splats=None, target_psnr=None,
+                         overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
+                         render_mode="classic", info=None):
+    """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
     `materials` (a list of core.mesh.Material); corner_colors (F,3,3) or (V,3), scene-linear.
@@ -44,7 +51,8 @@ def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, mat
     as a cap. With neither, the target is DEFAULT_TARGET_PSNR.
     Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
-    `progress(done, total, label)` is called as work proceeds; `info`, if a dict, receives
+    It yields (done, total, label) as work proceeds (a target PSNR: after each refinement round, so
+    a caller may stop between rounds) and returns the cloud; `info`, if a dict, receives
     "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
     (the worst view), "psnr_all_views", "inset_pixels", "views" and (target mode) "reached".
 
@@ -64,14 +72,13 @@ def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, mat
     style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
     if target_psnr is None and max_splats is not None and views is None:
         cloud = build_splats(surface, _uniform_density(surface, int(max_splats)), **style)
-        if progress:
-            progress(1, 1, "mesh2splats")
+        yield 1, 1, "mesh2splats"
     else:
-        from .mesh_refine import refine_to_target
+        from .mesh_refine import refine_rounds
         budget_only = target_psnr is None and max_splats is not None
         target = DEFAULT_TARGET_PSNR if target_psnr is None else float(target_psnr)
-        cloud = refine_to_target(surface, np.inf if budget_only else target, max_splats, views, view_size,
-                                 render_mode, progress, info, style, uniform=budget_only)
+        cloud = yield from refine_rounds(surface, np.inf if budget_only else target, max_splats, views, view_size,
+                                         render_mode, info, style, uniform=budget_only)
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud

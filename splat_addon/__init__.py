@@ -8,9 +8,10 @@ from . import bundled
 bundled.expose("pxr")      # before any io module imports it
 
 from . import animation, apply_guard, collide, command, engine, from_mesh, operators, rigging  # noqa: E402
+from . import panel, preferences  # noqa: E402
 
 CLASSES = (operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + rigging.CLASSES + collide.CLASSES
-           + engine.CLASSES)
+           + engine.CLASSES + preferences.CLASSES + panel.CLASSES)
 MENUS = operators.MENUS + from_mesh.MENUS + rigging.MENUS + collide.MENUS
 
 

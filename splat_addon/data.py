@@ -114,6 +114,17 @@ def splat_count(geometry):
     return len(geometry.vertices) if isinstance(geometry, bpy.types.Mesh) else len(geometry.points)
 
 
+def sh_degree(obj):
+    """The SH degree of a splat object's own splats, from its attribute names (nothing is read);
+    SplatObjectError when they do not form a full degree."""
+    geometry = obj.data
+    if splat_form(obj) == NATIVE_FORM:
+        count = _sh_count(geometry, NATIVE_SH_PREFIX, 1, obj.name)
+    else:
+        count = _sh_count(geometry, SH_PREFIX, 0, obj.name)
+    return shmod.degree_of(count)
+
+
 def native_supported():
     """Whether this Blender can make point clouds holding points from Python: resize() (5.2 and
     later), or converting a mesh (4.5 and later)."""

@@ -434,3 +434,30 @@ def test_budget_with_views_keeps_the_count_and_calibrates_silhouettes():
     np.testing.assert_array_equal(cloud.extras["barycentric"], plain.extras["barycentric"])
     error = lambda c: np.mean([np.mean((render(c, cam).color - render_mesh(surface, cam).color) ** 2) for cam in views])
     assert error(cloud) < error(plain)
+
+
+def test_steps_are_the_refinement_rounds_and_stop_when_closed():
+    """mesh_to_splats_steps yields after every round (a caller may stop between rounds) and returns
+    what mesh_to_splats returns; closed part-way it ends at once."""
+    from splatwright.core.mesh_to_splats import mesh_to_splats_steps
+    v, f, _ = uv_sphere(24, 12)
+    options = dict(face_materials=np.zeros(len(f), int), materials=[Material(base_color=(0.7, 0.2, 0.1))],
+                   target_psnr=33.0, view_size=64)
+    seen = []
+    whole = mesh_to_splats(v, f, progress=lambda *step: seen.append(step), **options)
+    steps = mesh_to_splats_steps(v, f, **options)
+    stepped = []
+    while True:
+        try:
+            stepped.append(next(steps))
+        except StopIteration as stop:
+            cloud = stop.value
+            break
+    assert stepped == seen and len(seen) >= 3
+    assert [done for done, _, _ in seen[:-1]] == list(range(1, len(seen)))      # one step per round
+    np.testing.assert_array_equal(cloud.positions, whole.positions)
+    steps = mesh_to_splats_steps(v, f, **options)
+    next(steps)
+    steps.close()
+    with pytest.raises(StopIteration):
+        next(steps)
