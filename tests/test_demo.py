@@ -131,7 +131,9 @@ def test_contributions_follow_the_stop_rule():
     want = brute_contributions(stack, cam)
     got = economy.contributions(stack, [cam])
     assert (want[:2] > 0).all() and (want[2:] == 0).all()
-    np.testing.assert_allclose(got, want, atol=2e-7)
+    # the second splat's weight is T * alpha with T = 1 - 0.98 g: the compiled compositor's exp (4e-7
+    # relative) comes out 20x larger in T, as any rounding of alpha near 1 does
+    np.testing.assert_allclose(got, want, atol=1e-6)
     np.testing.assert_array_equal(got > 0, want > 0)
 
 

@@ -1,7 +1,6 @@
 """The Blender side of tests/test_blender_artist_tools.py: clean-up, grading and binding captured
 splats through a proxy mesh (run in each Blender of the version matrix; see workers/base.py)."""
 
-import contextlib
 import json
 import math
 
@@ -272,15 +271,6 @@ class Worker(BlenderWorker):
                   vertex_weights=weights, proxy_posed=co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3],
                   bound=bound, deform=deform, **{f"posed_{f}": p for f, p in posed.items()})
         return res
-
-    def group_matrix(self, obj, names):
-        out = np.zeros((len(obj.data.vertices), len(names)))
-        for j, name in enumerate(names):
-            group = obj.vertex_groups.get(name)
-            for i in range(len(out)) if group is not None else ():
-                with contextlib.suppress(RuntimeError):      # not in the group
-                    out[i, j] = group.weight(i)
-        return out
 
     def inventory(self):
         bpy = self.bpy

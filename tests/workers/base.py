@@ -9,6 +9,7 @@ top, and bpy and the installed extension (self.module(...)) inside their steps, 
 every Blender of the version matrix, whose Python has neither pytest nor splatwright.
 """
 
+import contextlib
 import importlib
 import json
 import sys
@@ -116,6 +117,16 @@ class BlenderWorker:
         settings.file_format = file_format
         for name, value in values.items():
             setattr(settings, name, value)
+
+    def group_matrix(self, obj, names):
+        """(V, len(names)) weights read one vertex at a time through VertexGroup.weight."""
+        out = np.zeros((len(obj.data.vertices), len(names)))
+        for j, name in enumerate(names):
+            group = obj.vertex_groups.get(name)
+            for i in range(len(out)) if group is not None else ():
+                with contextlib.suppress(RuntimeError):      # not in the group
+                    out[i, j] = group.weight(i)
+        return out
 
     def save(self, name, **arrays):
         np.savez(self.out / f"{name}.npz", **arrays)

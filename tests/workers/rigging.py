@@ -75,16 +75,6 @@ class Worker(BlenderWorker):
         obj, _ = data.new_splat_object(core.SplatCloud(**arrays), name, self.bpy.context.scene.collection, matrix)
         return obj
 
-    def group_matrix(self, obj, names):
-        """(V, len(names)) weights read one vertex at a time through VertexGroup.weight."""
-        out = np.zeros((len(obj.data.vertices), len(names)))
-        for j, name in enumerate(names):
-            group = obj.vertex_groups.get(name)
-            for i in range(len(out)) if group is not None else ():
-                with contextlib.suppress(RuntimeError):      # not in the group
-                    out[i, j] = group.weight(i)
-        return out
-
     def blender_positions(self, obj):
         """The evaluated mesh's vertices (object space) with the display modifier off."""
         depsgraph = self.bpy.context.evaluated_depsgraph_get()
