@@ -440,6 +440,24 @@ def _row_alive(st, row, row_len):
 
 
 @njit
+def finish_rows(color, weight, depth_sum, bg, lo, hi, alpha, depth):
+    """Rows lo..hi-1 of core.render._finish without a layer, with NumPy's float32 roundings:
+    alpha = weight clipped to [0, 1]; colour += (1 - alpha) bg unless bg is empty; depth =
+    depth_sum / weight where weight > 0, else 0."""
+    use_bg = bg.size == 3
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for y in range(lo, hi):
+        for x in range(weight.shape[1]):
+            w = weight[y, x]
+            a = min(max(w, zero), one)
+            alpha[y, x] = a
+            if use_bg:
+                for ch in range(3):
+                    color[y, x, ch] += (one - a) * bg[ch]
+            depth[y, x] = depth_sum[y, x] / w if w > zero else zero
+
+
+@njit
 def peak_per_splat(entry_splat, peaks, best):
     """best[splat] = the largest peak of its entries."""
     for e in range(len(entry_splat)):
