@@ -20,8 +20,9 @@ How it runs fast without a loop per splat or per pixel:
 - batches run on a thread pool: NumPy and BLAS release the GIL for the heavy calls.
 
 That NumPy path is the readable reference and the fallback. Where numba loads (core.jit), the same
-three stages run as compiled loops (core/render_kernels.py), which also skip the pixel rows of a
-tile that a splat's ellipse does not cross and write the image without per-tile accumulators.
+three stages, and the final alpha, depth and background of a render without a layer, run as
+compiled loops (core/render_kernels.py), which also skip the pixel rows of a tile that a splat's
+ellipse does not cross and write the image without per-tile accumulators.
 `render(..., backend=...)` picks one; both are tested against the float64 reference.
 
 A Layer (a surface rendered by something else: per pixel a colour, an alpha and a camera depth)
