@@ -13,6 +13,7 @@ reference of tests/reference_render.py at a random sample of pixels. A pair is a
 with alpha >= 1/255 (the footprint: blended pairs when the transmittance stop is off).
 
     python bench/render.py [--quick]
+    ./run bench render --only big-scene     only the 1M-splat 1080p rows, merged into the report
 """
 
 import math
@@ -298,6 +299,10 @@ def memory(quick):
                             {"peak_GiB": f"{int(peak) / 2**30:.2f}", "target": "peak < 4x the file",
                              "read_peak_GiB": f"{int(read_peak) / 2**30:.2f}", "outcome": outcome[:90]}))
     return rows
+
+
+# rows that `./run bench render --only NAME` runs alone (merged into the report's section)
+PARTS = {"big-scene": big_scene}
 
 
 if __name__ == "__main__":

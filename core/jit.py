@@ -107,6 +107,29 @@ def njit(fn=None, *, contract=False):
         return numba.njit(**options)(fn)
 
 
+def prefetcher():
+    """prefetch(array, i) for kernels: asks the CPU to start loading the cache line of array[i]
+    (a C-contiguous array, i a flat index) without waiting for it, so a miss overlaps other work."""
+    from llvmlite import ir
+    from numba.core import cgutils, types
+    from numba.extending import intrinsic
+
+    @intrinsic
+    def prefetch(typingctx, array, i):
+        def codegen(context, builder, signature, args):
+            base = context.make_array(signature.args[0])(context, builder, args[0]).data
+            i64 = context.cast(builder, args[1], signature.args[1], types.int64)
+            byte_ptr, int32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+            fn = cgutils.get_or_insert_function(
+                builder.module, ir.FunctionType(ir.VoidType(), [byte_ptr, int32, int32, int32]), "llvm.prefetch.p0i8")
+            # a read, kept in every cache level, of data
+            builder.call(fn, [builder.bitcast(builder.gep(base, [i64]), byte_ptr), int32(0), int32(3), int32(1)])
+            return context.get_dummy_value()
+        return types.void(array, i), codegen
+
+    return prefetch
+
+
 _installed = False
 
 

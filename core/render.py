@@ -20,8 +20,9 @@ How it runs fast without a loop per splat or per pixel:
 - batches run on a thread pool: NumPy and BLAS release the GIL for the heavy calls.
 
 That NumPy path is the readable reference and the fallback. Where numba loads (core.jit), the same
-three stages run as compiled loops (core/render_kernels.py), which also skip the pixel rows of a
-tile that a splat's ellipse does not cross and write the image without per-tile accumulators.
+three stages, and the final alpha, depth and background of a render without a layer, run as
+compiled loops (core/render_kernels.py), which also skip the pixel rows of a tile that a splat's
+ellipse does not cross and write the image without per-tile accumulators.
 `render(..., backend=...)` picks one; both are tested against the float64 reference.
 
 A Layer (a surface rendered by something else: per pixel a colour, an alpha and a camera depth)
@@ -229,8 +230,8 @@ def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_
             compositor = _CompiledCompositor(kernels, proj, bins, order, camera, dtype, t_min, pool,
                                              return_counts, return_weights, layer)
         images = compositor.images(progress)
-    layer_t = None if layer is None else compositor.layer_transmittance(images[1])
-    result = _finish(*images, bg, background, proj, bins, cloud, layer, layer_t)
+        layer_t = None if layer is None else compositor.layer_transmittance(images[1])
+        result = _finish(*images, bg, background, proj, bins, cloud, layer, layer_t, kernels, pool)
     result.stats["evaluated"] = compositor.evaluated
     result.stats["backend"] = "numpy" if kernels is None else "compiled"
     result.max_weight = compositor.max_weight(len(cloud)) if return_weights else None
@@ -909,18 +910,27 @@ class _Compositor:
         return out
 
 
-def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud, layer=None, layer_t=None):
+def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud, layer=None, layer_t=None,
+            kernels=None, pool=None):
     """Image sums (colour and depth weighted by T alpha, and the weight) -> the result; with a layer,
-    its colour at the T each pixel reached it with (layer_t) goes in, before the background."""
-    alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
-    color = np.ascontiguousarray(color, dtype=np.float32)
-    if layer is not None:
-        color += layer_t[..., None] * layer.color
-        alpha = np.clip(alpha + layer_t * layer.alpha, 0.0, 1.0)
-    if bg is not None:
-        color += (1.0 - alpha)[..., None] * bg.astype(np.float32)
-    depth = np.zeros_like(alpha)
-    np.divide(depth_sum, weight, out=depth, where=weight > 0)
+    its colour at the T each pixel reached it with (layer_t) goes in, before the background.
+    Without a layer, the compiled kernels (when given) do it on every core of `pool`."""
+    if kernels is not None and layer is None:
+        alpha, depth = np.empty_like(weight), np.empty_like(weight)
+        bounds = np.linspace(0, len(weight), pool.threads + 1).astype(np.int64)
+        bg32 = np.zeros(0, np.float32) if bg is None else bg.astype(np.float32)
+        pool.map(lambda k: kernels.finish_rows(color, weight, depth_sum, bg32, bounds[k], bounds[k + 1], alpha, depth),
+                 list(range(pool.threads)))
+    else:
+        alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
+        color = np.ascontiguousarray(color, dtype=np.float32)
+        if layer is not None:
+            color += layer_t[..., None] * layer.color
+            alpha = np.clip(alpha + layer_t * layer.alpha, 0.0, 1.0)
+        if bg is not None:
+            color += (1.0 - alpha)[..., None] * bg.astype(np.float32)
+        depth = np.zeros_like(alpha)
+        np.divide(depth_sum, weight, out=depth, where=weight > 0)
     stats = {"input": len(cloud), "skipped_nonfinite": proj.skipped_nonfinite, "visible": len(proj),
              "entries": len(bins.entry_splat)}
     return RenderResult(

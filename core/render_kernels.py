@@ -17,9 +17,10 @@ import math
 
 import numpy as np
 
-from .jit import njit
+from .jit import njit, prefetcher
 from .sh import C0, C1, C2, C3
 
+prefetch = prefetcher()     # random reads (records by entry, rows by index) start a few items early
 ALPHA_MIN = 1.0 / 255.0
 LOG_ALPHA_MIN = math.log(ALPHA_MIN)
 LOG_ALPHA_MAX = math.log(0.99)
@@ -239,12 +240,21 @@ def fill_tiles(bbox, lo, hi, ts, tiles_x, first_row, spans, number, cursor, entr
             at += 1
 
 
+GATHER_AHEAD = 16           # rows ahead whose source gather() starts loading
+
+
 @njit
 def gather(rows, lo, hi, records, bbox, r2, index, records_out, bbox_out, r2_out, index_out):
     """Rows lo..hi-1 of the outputs from rows[lo..hi-1] of records and bbox, and of r2 and index
     unless their outputs are empty."""
     rest = len(r2_out) > 0
     for j in range(lo, hi):
+        ahead = rows[min(j + GATHER_AHEAD, hi - 1)]
+        prefetch(records, ahead * 8)
+        prefetch(bbox, ahead * 4)
+        if rest:
+            prefetch(r2, ahead)
+            prefetch(index, ahead)
         r = rows[j]
         for c in range(8):
             records_out[j, c] = records[r, c]
@@ -273,6 +283,7 @@ MAX_PIXELS = 64 * 64
 STRIDE = MAX_PIXELS + 16
 CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t")
 R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
+PREFETCH = 8                # entries ahead whose record and box the compositor starts loading
 ALIVE_CHECK = 8             # entries between checks for the tile rows whose every pixel has stopped
 LANES = 8                   # pixels per step of the inner loop (a fixed count, so it becomes one
                             # vector operation); tile rows are padded to a multiple of it
@@ -339,6 +350,10 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                     bottom -= 1
                 if top > bottom:
                     break
+            # the record and box of an entry a few ahead start loading: their misses overlap this one's work
+            ahead = entry_splat[min(e + PREFETCH, last - 1)]
+            prefetch(rec32, ahead * 16)
+            prefetch(bbox, ahead * 4)
             s = entry_splat[e]
             row0 = max(bbox[s, 1] - ty0, top)
             row1 = min(bbox[s, 3] - ty0, bottom)
@@ -422,6 +437,24 @@ def _row_alive(st, row, row_len):
     for i in range(row * row_len, (row + 1) * row_len):
         alive |= st[np.uint64(i)] > 0
     return alive
+
+
+@njit
+def finish_rows(color, weight, depth_sum, bg, lo, hi, alpha, depth):
+    """Rows lo..hi-1 of core.render._finish without a layer, with NumPy's float32 roundings:
+    alpha = weight clipped to [0, 1]; colour += (1 - alpha) bg unless bg is empty; depth =
+    depth_sum / weight where weight > 0, else 0."""
+    use_bg = bg.size == 3
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for y in range(lo, hi):
+        for x in range(weight.shape[1]):
+            w = weight[y, x]
+            a = min(max(w, zero), one)
+            alpha[y, x] = a
+            if use_bg:
+                for ch in range(3):
+                    color[y, x, ch] += (one - a) * bg[ch]
+            depth[y, x] = depth_sum[y, x] / w if w > zero else zero
 
 
 @njit
