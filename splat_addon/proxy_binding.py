@@ -71,12 +71,11 @@ def binding_strength(distance, far, falloff_start, max_distance):
         raise rigging.RiggingError(f"Far Splats must be one of {', '.join(FAR_MODES)}, got '{far}'")
     if far == "FOLLOW":
         return None
-    if far == "STAY":
-        falloff_start = max_distance
-    elif not 0.0 <= falloff_start <= max_distance:
-        raise rigging.RiggingError(f"Falloff Start ({falloff_start:g}) must lie between 0 and Max Distance "
-                                   f"({max_distance:g})")
-    return core_proxy.falloff_strength(distance, falloff_start, max_distance)
+    if falloff_start < 0.0:
+        raise rigging.RiggingError(f"Falloff Start must not be negative, got {falloff_start:g}")
+    # Stay, or a falloff starting at or beyond Max Distance: a hard cut there
+    start = max_distance if far == "STAY" else min(falloff_start, max_distance)
+    return core_proxy.falloff_strength(distance, start, max_distance)
 
 
 def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
@@ -100,7 +99,7 @@ def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="
     plan.strength = strength
     partial = 0 if strength is None else int(((strength > 0) & (strength < 1)).sum())
     report = {"far": int((closest.distance > max_distance).sum()), "max_distance": max_distance,
-              "falloff_start": max_distance if far == "STAY" else falloff_start, "partial": partial,
+              "falloff_start": max_distance if far == "STAY" else min(falloff_start, max_distance), "partial": partial,
               "far_kept_still": far != "FOLLOW", "farthest": float(closest.distance.max()),
               "mean_distance": float(closest.distance.mean())}
     return plan, report
@@ -136,7 +135,8 @@ class SPLAT_OT_bind_proxy(bpy.types.Operator):
                           description="Mesh skinned to an armature (empty: the active object)")
     falloff_start: FloatProperty(name="Falloff Start", default=DEFAULT_FALLOFF_START, min=0.0, unit="LENGTH",
                                  description="Splats nearer than this to the proxy's surface follow it fully; "
-                                             "farther ones fade (smoothstep) until Max Distance")
+                                             "farther ones fade (smoothstep) until Max Distance (at or beyond "
+                                             "it: a hard cut there)")
     max_distance: FloatProperty(name="Max Distance", default=DEFAULT_MAX_DISTANCE, min=0.0, unit="LENGTH",
                                 description="Splats farther than this from the proxy's surface are reported "
                                             "and, unless Far Splats follow, stay still")
