@@ -65,23 +65,23 @@ def proxy_surface(proxy, bones):
     return vertices @ matrix[:3, :3].T + matrix[:3, 3], triangles, weights
 
 
-def binding_strength(distance, far, falloff_start, max_distance):
-    """(N,) binding strengths for distances to the proxy (None for FOLLOW: every splat binds fully)."""
+def falloff_range(far, falloff_start, max_distance):
+    """Where the binding strength starts to fall (it reaches 0 at `max_distance`), or None when every
+    splat binds fully (Far Splats: Follow); Stay, or a start at or beyond the end, cut hard there."""
     if far not in FAR_MODES:
         raise rigging.RiggingError(f"Far Splats must be one of {', '.join(FAR_MODES)}, got '{far}'")
-    if far == "FOLLOW":
-        return None
     if falloff_start < 0.0:
         raise rigging.RiggingError(f"Falloff Start must not be negative, got {falloff_start:g}")
-    # Stay, or a falloff starting at or beyond Max Distance: a hard cut there
-    start = max_distance if far == "STAY" else min(falloff_start, max_distance)
-    return core_proxy.falloff_strength(distance, start, max_distance)
+    if far == "FOLLOW":
+        return None
+    return max_distance if far == "STAY" else min(falloff_start, max_distance)
 
 
 def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
                        max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT,
                        falloff_start=DEFAULT_FALLOFF_START):
     """(BindPlan, far report) binding splat object `obj` through `proxy` (nothing changes)."""
+    start = falloff_range(far, falloff_start, max_distance)
     bones = rigging.deform_bones(arm)
     if not bones:
         raise rigging.RiggingError(f"armature '{arm.name}' has no deforming bones")
@@ -94,14 +94,13 @@ def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="
         raise rigging.RiggingError(f"'{obj.name}': splat centres are NaN or infinite in world space")
     closest = core_proxy.closest_points(centres, vertices, triangles)
     dense = core_proxy.surface_weights(closest, triangles, vertex_weights)
-    strength = binding_strength(closest.distance, far, falloff_start, max_distance)
+    strength = None if start is None else core_proxy.falloff_strength(closest.distance, start, max_distance)
     plan = rigging.plan_from_weights(obj, bones, dense, f"proxy '{proxy.name}'", max_influences, min_weight)
     plan.strength = strength
     partial = 0 if strength is None else int(((strength > 0) & (strength < 1)).sum())
     report = {"far": int((closest.distance > max_distance).sum()), "max_distance": max_distance,
-              "falloff_start": max_distance if far == "STAY" else min(falloff_start, max_distance), "partial": partial,
-              "far_kept_still": far != "FOLLOW", "farthest": float(closest.distance.max()),
-              "mean_distance": float(closest.distance.mean())}
+              "falloff_start": start, "partial": partial, "far_kept_still": start is not None,
+              "farthest": float(closest.distance.max()), "mean_distance": float(closest.distance.mean())}
     return plan, report
 
 
