@@ -9,6 +9,10 @@ its nearest point (chunks of points at a time, a two-level bounding-volume searc
 
 `surface_weights` interpolates per-vertex weights (a rigged mesh's vertex groups) barycentrically
 at those points: exactly how a point glued to the surface deforms under linear blend skinning.
+
+`falloff_strength` fades a binding with the distance to the surface: 1 up to `start`, 0 from `end`
+on, a smoothstep between (s = (d - start) / (end - start), strength = 1 - s^2 (3 - 2 s)), so the
+strength and its slope are continuous at both ends.
 """
 
 from dataclasses import dataclass
@@ -162,3 +166,15 @@ def surface_weights(closest, triangles, vertex_weights):
     corners = np.asarray(triangles, np.int64).reshape(-1, 3)[closest.triangle]          # (N,3)
     weights = np.asarray(vertex_weights, np.float64)
     return np.einsum("nk,nkb->nb", closest.barycentric, weights[corners])
+
+
+def falloff_strength(distance, start, end):
+    """(N,) float64 binding strengths for distances to the surface: 1 at or below `start`, 0 beyond
+    `end`, a smoothstep between; a hard cut at `end` when start == end."""
+    if not 0.0 <= start <= end:
+        raise ProxyError(f"the falloff must start ({start:g}) at or after 0 and at or before its end ({end:g})")
+    distance = np.asarray(distance, np.float64)
+    if end == start:
+        return (distance <= end).astype(np.float64)
+    s = np.clip((distance - start) / (end - start), 0.0, 1.0)
+    return 1.0 - s * s * (3.0 - 2.0 * s)

@@ -18,6 +18,15 @@ blend linearly about the splat centre, and the covariance goes through rotation 
 The SH coefficients of every splat turn with the same rotation (sh.rotate, batched Wigner-D), and
 splats bound to a single bone (rigid binding, as for robot links) move exactly by that bone:
 mu' = T mu, Sigma' = R Sigma R^T.
+
+Binding strength (the Armature modifier's vertex-group mask): a splat of strength m in [0, 1] moves
+as Blender moves a masked vertex, mu' = (1 - m) mu + m mu_posed, in both modes. Its covariance and SH
+turn by the blend of the bones' map with the identity: under LBS the identity joins as one more
+influence of weight 1 - m (the bones sharing m), which is exactly the map that moves the centre;
+under DQS the bones' unit rotation is blended with the identity quaternion, weights m and 1 - m
+(on the same side, then normalised), and their scale matrix with I the same way. (Blender's DQS
+centre is a linear blend of two positions, not a dual-quaternion blend with the identity, so under
+DQS that turn is the consistent choice, not one map moving both.)
 """
 
 from dataclasses import dataclass, field
@@ -343,16 +352,21 @@ def _exact_weights(w):
 
 # per-chunk skinning: p (3, n) float64, idx and w (k, n) -------------------------------------------
 
-def _lbs_chunk(p, idx, w, bones, want_linear):
-    """Centres, and (if wanted) the rotation and the covariance map of each splat under LBS."""
+def _lbs_chunk(p, idx, w, m, bones, want_linear):
+    """Centres, and (if wanted) the rotation and the covariance map of each splat under LBS; `m` (n,)
+    binding strengths or None (all 1)."""
     w, bound = _exact_weights(w)
     blended = _blend(bones["affine"], idx, w)
     blended[:, ~bound] = _IDENTITY12                         # unbound splats stay where they are
+    if m is not None:                                        # the identity as an influence of weight 1 - m
+        blended = m * blended + (1.0 - m) * _IDENTITY12
     centres = _apply(blended, p)
     if not want_linear:
         return centres, None
     linear_part = _matrices(blended[_LINEAR])
     multi = w[0] != 1.0                                      # kept influences come first
+    if m is not None:
+        multi |= m != 1.0
     if multi.all():
         rotation = geometry.polar_rotation(linear_part, _POLAR_TOLERANCE)
         sign = np.where(geometry.determinants(rotation) < 0, -1.0, 1.0)[:, None, None]
@@ -368,12 +382,15 @@ def _lbs_chunk(p, idx, w, bones, want_linear):
     if bones["scales"].any():
         scaled = (bones["scales"][idx] & (w > 0)).any(axis=0)
         stretch = _blend(bones["stretch"], idx[:, scaled], w[:, scaled])
+        if m is not None:
+            stretch = m[scaled] * stretch + (1.0 - m[scaled]) * np.eye(3).reshape(9, 1)
         linear["stretched"], linear["stretch"] = scaled, _matrices(stretch)
     return centres, linear
 
 
-def _dqs_chunk(p, idx, w, bones, want_linear):
-    """Centres, and (if wanted) the rotation and the covariance map of each splat under DQS."""
+def _dqs_chunk(p, idx, w, m, bones, want_linear):
+    """Centres, and (if wanted) the rotation and the covariance map of each splat under DQS; `m` (n,)
+    binding strengths or None (all 1)."""
     w, _ = _exact_weights(w)
     n = p.shape[1]
     real, dual = np.zeros((4, n)), np.zeros((4, n))
@@ -401,8 +418,17 @@ def _dqs_chunk(p, idx, w, bones, want_linear):
     unit = real / np.sqrt(norm2)
     conj = real * np.array([[1.0], [-1.0], [-1.0], [-1.0]])
     centres = _qrotate(unit, p) + 2.0 * _qmul(dual, conj)[1:] / norm2
+    if m is not None:                                       # Blender: co + m (posed - co)
+        centres = p + m * (centres - p)
     if not want_linear:
         return centres, None
+    if m is not None:                                       # nlerp from the identity, on unit's side
+        unit = m * unit
+        unit[0] += np.where(unit[0] < 0, m - 1.0, 1.0 - m)
+        unit /= np.linalg.norm(unit, axis=0)
+        if any_scaled:
+            scale_sum *= m
+            scale_weight *= m
     linear = {"rotation": geometry.quaternions_to_matrices(unit.T), "quat": unit}
     if any_scaled:
         stretched = scale_weight > 0
@@ -435,10 +461,25 @@ def _covariance_chunk(rotations, log_scales, linear, lbs_stretch):
 _MODES = {"lbs": _lbs_chunk, "dqs": _dqs_chunk}
 
 
-def _chunk_inputs(positions, binding, a, b):
-    """Splats a..b component-first: positions (3, n) float64, indices and weights (k, n)."""
+def _chunk_inputs(positions, binding, strength, a, b):
+    """Splats a..b component-first: positions (3, n) float64, indices and weights (k, n), strengths
+    (n,) float64 or None."""
     return (np.ascontiguousarray(positions[a:b].T, dtype=np.float64),
-            np.ascontiguousarray(binding.indices[a:b].T), np.ascontiguousarray(binding.weights[a:b].T))
+            np.ascontiguousarray(binding.indices[a:b].T), np.ascontiguousarray(binding.weights[a:b].T),
+            None if strength is None else strength[a:b])
+
+
+def _check_strength(strength, n):
+    """(n,) float64 binding strengths in [0, 1], or None when all are 1 (or none are given)."""
+    if strength is None:
+        return None
+    strength = np.asarray(strength, np.float64).reshape(-1)
+    if len(strength) != n:
+        raise SkinningError(f"{len(strength)} binding strengths for {n} splats")
+    bad = ~np.isfinite(strength) | (strength < 0) | (strength > 1)
+    if bad.any():
+        raise SkinningError(f"binding strengths must lie in 0..1; {int(bad.sum())} splats do not")
+    return None if (strength == 1.0).all() else strength
 
 
 def _check_call(arrays, binding, pose, mode, lbs_stretch="bones"):
@@ -460,31 +501,34 @@ def _check_call(arrays, binding, pose, mode, lbs_stretch="bones"):
 
 # public API ---------------------------------------------------------------------------------------
 
-def skin_centres(positions, binding, pose, mode="lbs"):
+def skin_centres(positions, binding, pose, mode="lbs", strength=None):
     """Posed centres (N,3) float64 only: the fastest path, and exactly what Blender's Armature
-    modifier does to vertices (`mode="dqs"` is its Preserve Volume). `pose` is a BonePose or
-    (B,4,4) deform matrices."""
+    modifier does to vertices (`mode="dqs"` is its Preserve Volume; `strength` (N,) in 0..1 its
+    vertex-group mask). `pose` is a BonePose or (B,4,4) deform matrices."""
     positions = np.asarray(positions)
     pose = _check_call({"positions": positions}, binding, pose, mode)
+    strength = _check_strength(strength, len(positions))
     out = np.empty((len(positions), 3))
     chunk_fn, bones = _MODES[mode], pose.derived
 
     def work(a, b):
-        out[a:b] = chunk_fn(*_chunk_inputs(positions, binding, a, b), bones, False)[0].T
+        out[a:b] = chunk_fn(*_chunk_inputs(positions, binding, strength, a, b), bones, False)[0].T
 
     in_chunks(len(positions), work, _CHUNK)
     return out
 
 
-def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretch="bones"):
+def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretch="bones", strength=None):
     """The posed cloud: centres moved, covariances turned (and stretched where bones scale), SH
     rotated. `covariances=False` moves centres only (as mesh-based add-ons do), `sh=False` keeps
-    the SH as they are. Opacities and extras are carried over unchanged."""
+    the SH as they are; `strength` (N,) in 0..1 fades each splat's binding (see the module's
+    docstring). Opacities and extras are carried over unchanged."""
     finite = {"positions": cloud.positions}
     if covariances:
         finite.update(rotations=cloud.rotations, log_scales=cloud.log_scales)
     pose = _check_call(finite, binding, pose, mode, lbs_stretch)
     n = len(cloud)
+    strength = _check_strength(strength, n)
     positions = np.empty((n, 3), np.float32)
     rotations, log_scales = (np.empty((n, 4), np.float32), np.empty((n, 3), np.float32)) if covariances \
         else (cloud.rotations, cloud.log_scales)
@@ -492,7 +536,7 @@ def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretc
     chunk_fn, bones = _MODES[mode], pose.derived
 
     def work(a, b):
-        centres, linear = chunk_fn(*_chunk_inputs(cloud.positions, binding, a, b), bones,
+        centres, linear = chunk_fn(*_chunk_inputs(cloud.positions, binding, strength, a, b), bones,
                                    covariances or turn is not None)
         positions[a:b] = centres.T
         if covariances:

@@ -6,10 +6,14 @@ under linear blend skinning, and then is bound like any splat object (rigging.wr
 groups or weight attributes, an Armature modifier or property, the posing deformer), so it exports,
 animates and renders as other bound splats.
 
-Splats farther from the surface than `max_distance` (the captured floor, walls, floaters) are
-reported, and by default left unbound: they stay where they are while the subject moves. Weights are
-normalised per splat (as Blender's Armature modifier does), so there is no partial influence to fade
-by distance: the cut at `max_distance` is hard.
+The binding fades with the distance d to the proxy's surface, so the captured floor, walls and
+floaters stay where they are while the subject moves: each splat gets a binding strength, 1 up to
+`falloff_start`, 0 beyond `max_distance`, a smoothstep between (core.proxy.falloff_strength). The
+strength is the Armature modifier's vertex-group mask (rigging.MASK_GROUP), which Blender's viewport
+and our posing both read: a splat moves to (1 - strength) rest + strength posed. Far Splats "Stay"
+cuts hard at `max_distance` (strength 1 or 0), "Follow" binds every splat fully (no mask). Splats
+beyond `max_distance` are reported. Every splat keeps the weights of its nearest surface point, so
+painting the mask later brings it along.
 
 The proxy is read at rest: its own mesh (modifiers not applied) in world space, as the splats are.
 """
@@ -25,6 +29,8 @@ from .cleanup import mesh_triangles
 from .operators import EXPECTED_ERRORS
 
 DEFAULT_MAX_DISTANCE = 0.1
+DEFAULT_FALLOFF_START = 0.05
+FAR_MODES = ("FADE", "STAY", "FOLLOW")
 
 
 def proxy_rig(proxy):
@@ -59,9 +65,23 @@ def proxy_surface(proxy, bones):
     return vertices @ matrix[:3, :3].T + matrix[:3, 3], triangles, weights
 
 
-def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="STAY",
-                       max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT):
+def falloff_range(far, falloff_start, max_distance):
+    """Where the binding strength starts to fall (it reaches 0 at `max_distance`), or None when every
+    splat binds fully (Far Splats: Follow); Stay, or a start at or beyond the end, cut hard there."""
+    if far not in FAR_MODES:
+        raise rigging.RiggingError(f"Far Splats must be one of {', '.join(FAR_MODES)}, got '{far}'")
+    if falloff_start < 0.0:
+        raise rigging.RiggingError(f"Falloff Start must not be negative, got {falloff_start:g}")
+    if far == "FOLLOW":
+        return None
+    return max_distance if far == "STAY" else min(falloff_start, max_distance)
+
+
+def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
+                       max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT,
+                       falloff_start=DEFAULT_FALLOFF_START):
     """(BindPlan, far report) binding splat object `obj` through `proxy` (nothing changes)."""
+    start = falloff_range(far, falloff_start, max_distance)
     bones = rigging.deform_bones(arm)
     if not bones:
         raise rigging.RiggingError(f"armature '{arm.name}' has no deforming bones")
@@ -74,17 +94,19 @@ def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="
         raise rigging.RiggingError(f"'{obj.name}': splat centres are NaN or infinite in world space")
     closest = core_proxy.closest_points(centres, vertices, triangles)
     dense = core_proxy.surface_weights(closest, triangles, vertex_weights)
-    is_far = closest.distance > max_distance
-    if far == "STAY":
-        dense[is_far] = 0.0
+    strength = None if start is None else core_proxy.falloff_strength(closest.distance, start, max_distance)
     plan = rigging.plan_from_weights(obj, bones, dense, f"proxy '{proxy.name}'", max_influences, min_weight)
-    report = {"far": int(is_far.sum()), "max_distance": max_distance, "far_kept_still": far == "STAY",
+    plan.strength = strength
+    partial = 0 if strength is None else int(((strength > 0) & (strength < 1)).sum())
+    report = {"far": int((closest.distance > max_distance).sum()), "max_distance": max_distance,
+              "falloff_start": start, "partial": partial, "far_kept_still": start is not None,
               "farthest": float(closest.distance.max()), "mean_distance": float(closest.distance.mean())}
     return plan, report
 
 
-def bind_proxy(objects, proxy, max_distance=DEFAULT_MAX_DISTANCE, far="STAY",
-               max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT):
+def bind_proxy(objects, proxy, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
+               max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT,
+               falloff_start=DEFAULT_FALLOFF_START):
     """Bind the splat objects among `objects` to the armature of `proxy` through its surface; returns
     [(BindPlan, far report)]. Every binding is computed before anything changes."""
     arm, preserve_volume = proxy_rig(proxy)
@@ -94,7 +116,8 @@ def bind_proxy(objects, proxy, max_distance=DEFAULT_MAX_DISTANCE, far="STAY",
         raise rigging.RiggingError("no splat objects to bind" + (f"; {listed} are not splat objects" if listed else ""))
     if max_influences < 1:
         raise rigging.RiggingError(f"max_influences must be at least 1, got {max_influences}")
-    results = [plan_proxy_binding(o, proxy, arm, max_distance, far, max_influences, min_weight) for o in targets]
+    results = [plan_proxy_binding(o, proxy, arm, max_distance, far, max_influences, min_weight, falloff_start)
+               for o in targets]
     rigging.write_plans([plan for plan, _ in results], arm, preserve_volume)
     return results
 
@@ -109,12 +132,18 @@ class SPLAT_OT_bind_proxy(bpy.types.Operator):
 
     proxy: StringProperty(name="Proxy", default="",
                           description="Mesh skinned to an armature (empty: the active object)")
+    falloff_start: FloatProperty(name="Falloff Start", default=DEFAULT_FALLOFF_START, min=0.0, unit="LENGTH",
+                                 description="Splats nearer than this to the proxy's surface follow it fully; "
+                                             "farther ones fade (smoothstep) until Max Distance (at or beyond "
+                                             "it: a hard cut there)")
     max_distance: FloatProperty(name="Max Distance", default=DEFAULT_MAX_DISTANCE, min=0.0, unit="LENGTH",
                                 description="Splats farther than this from the proxy's surface are reported "
-                                            "(and, unless Far Splats follow, stay unbound)")
-    far: EnumProperty(name="Far Splats", default="STAY", items=(
-        ("STAY", "Stay", "Leave splats far from the proxy unbound: they stay still (background, floaters)"),
-        ("FOLLOW", "Follow", "Bind them to their nearest surface point all the same")))
+                                            "and, unless Far Splats follow, stay still")
+    far: EnumProperty(name="Far Splats", default="FADE", items=(
+        ("FADE", "Fade", "Binding strength fades from 1 at Falloff Start to 0 at Max Distance: the "
+                         "Armature modifier's mask group " + rigging.MASK_GROUP),
+        ("STAY", "Stay", "Splats beyond Max Distance stay still, nearer ones follow fully (a hard cut)"),
+        ("FOLLOW", "Follow", "Every splat follows its nearest surface point fully, however far")))
     max_influences: IntProperty(name="Max Influences", default=rigging.DEFAULT_INFLUENCES, min=1, max=32)
     min_weight: FloatProperty(name="Min Weight", default=rigging.DEFAULT_MIN_WEIGHT, min=0.0, max=0.5,
                               description="Drop bones below this share of a splat's weight")
@@ -130,15 +159,16 @@ class SPLAT_OT_bind_proxy(bpy.types.Operator):
                 raise rigging.RiggingError(f"no object named '{self.proxy}'" if self.proxy else
                                            "no proxy: make the rigged mesh the active object, or name it")
             results = bind_proxy(context.selected_objects, proxy, self.max_distance, self.far,
-                                 self.max_influences, self.min_weight)
+                                 self.max_influences, self.min_weight, self.falloff_start)
         except (rigging.RiggingError, core_proxy.ProxyError, SkinningError, *EXPECTED_ERRORS) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         for plan, far in results:
             r = plan.report
-            still = "left unbound" if far["far_kept_still"] else "bound all the same"
+            still = "kept still" if far["far_kept_still"] else "bound all the same"
+            fading = f", {far['partial']} of them partly (fading with distance)" if far["partial"] else ""
             self.report({"INFO"}, f"'{plan.obj.name}': {r['splats'] - r['unbound']} of {r['splats']} splats bound "
-                                  f"through '{proxy.name}', up to {r['max_influences']} bones each")
+                                  f"through '{proxy.name}', up to {r['max_influences']} bones each{fading}")
             if far["far"]:
                 self.report({"WARNING"}, f"'{plan.obj.name}': {far['far']} splats are farther than "
                                          f"{far['max_distance']:g} from the proxy (farthest {far['farthest']:.3g}), "

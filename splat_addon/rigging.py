@@ -18,8 +18,12 @@ normalised (Blender divides by the total anyway).
 Posing (`poser`, listed in data.POSERS): Blender's Armature modifier moves the vertices only,
 so the deformer re-reads the splats from the original mesh, reads the weights from the vertex groups
 and skins centres, covariances and SH with the core (linear blend, or dual quaternions with the
-modifier's Preserve Volume), in armature space as Blender does. Only vertex-group weights are used:
-bone envelopes, the modifier's own vertex-group mask, B-Bone curves and multi-modifier mixing are not.
+modifier's Preserve Volume), in armature space as Blender does. The modifier's vertex-group mask
+(`vertex_group`, `invert_vertex_group`) is a per-splat binding strength m, read as Blender reads it: a
+splat moves to (1 - m) rest + m posed, its covariance and SH turn by the bones' map blended with the
+identity (core.skinning), and a splat outside the group stays still. Native splats hold that strength
+as the FLOAT attribute named like MASK_GROUP. Bone envelopes, B-Bone curves and multi-modifier mixing
+are not used.
 
 Vertex-group weights cannot be read through foreach_get. They are read in one pass per mesh by a
 temporary object evaluating a tiny geometry-nodes group (Mesh to Points turns every vertex group into
@@ -50,6 +54,8 @@ TEMP_ATTRIBUTE = "splatwright_weight_in"        # holds one bone's weights while
 WEIGHT_PREFIX = "splat_weight:"                  # native splats: one FLOAT point attribute per bone
 ARMATURE_PROPERTY = "splatwright_armature"         # native splats: the armature object binding them
 PRESERVE_VOLUME_PROPERTY = "splatwright_preserve_volume"
+MASK_GROUP = "splatwright_bind_strength"          # binding strength: the modifier's mask group (mesh),
+                                                 # a FLOAT attribute of that name (native splats)
 DEFAULT_INFLUENCES = 4
 DEFAULT_FALLOFF = 4.0
 DEFAULT_MIN_WEIGHT = 0.01
@@ -83,6 +89,19 @@ def rig_of(obj, depsgraph=None):
     if not isinstance(arm, bpy.types.Object) or arm.type != "ARMATURE":
         return None
     return arm, bool(obj.get(PRESERVE_VOLUME_PROPERTY, False))
+
+
+def binding_mask(obj, depsgraph=None):
+    """(group name, inverted) of the binding-strength mask of a bound splat object, or None when every
+    splat binds fully: the Armature modifier's vertex-group mask when that group exists (Blender
+    ignores a mask naming no group), the MASK_GROUP attribute of native splats."""
+    if obj.type == "MESH":
+        mod = armature_modifier(obj, depsgraph)
+        if mod is None or not mod.vertex_group or obj.vertex_groups.get(mod.vertex_group) is None:
+            return None
+        return mod.vertex_group, bool(mod.invert_vertex_group)
+    attr = obj.data.attributes.get(MASK_GROUP)
+    return (MASK_GROUP, False) if attr is not None and attr.data_type == "FLOAT" else None
 
 
 def weight_names(obj):
@@ -202,8 +221,9 @@ def binding_from_groups(columns, bone_of_column, count):
     return Binding.from_weights(indices, weights, tolerance=0.0)
 
 
-# cached bindings: mesh session_uid -> ((groups, vertex count, bones), Binding)
+# cached bindings: mesh session_uid -> ((groups, vertex count, bones), Binding); strengths likewise
 _CACHE = {}
+_STRENGTHS = {}
 
 
 def splat_binding(obj, bones):
@@ -225,12 +245,42 @@ def splat_binding(obj, bones):
     return binding
 
 
-def forget_weights(mesh=None):
-    """Drop the cached weights of `mesh` (all meshes when None)."""
-    if mesh is None:
-        _CACHE.clear()
+def splat_strength(obj, mask):
+    """(N,) float64 binding strengths of splat object `obj` under `mask` (a binding_mask), or None
+    when there is no mask; cached like the weights."""
+    if mask is None:
+        return None
+    geometry = obj.data
+    count = data.splat_count(geometry)
+    state = (tuple(weight_names(obj)), count, mask)
+    cached = _STRENGTHS.get(geometry.session_uid)
+    if cached is not None and cached[0] == state:
+        return cached[1]
+    if obj.type == "MESH":
+        if not can_read_groups():
+            raise data.SplatObjectError(f"'{obj.name}': its binding strengths changed and cannot be re-read "
+                                        "during this render; render again")
+        weights = read_vertex_groups(geometry, [mask[0]])[0]
     else:
-        _CACHE.pop(mesh.session_uid, None)
+        weights = np.empty(count, np.float32)
+        geometry.attributes[mask[0]].data.foreach_get("value", weights)
+    strength = np.clip(weights.astype(np.float64), 0.0, 1.0)      # Blender clamps group weights too
+    strength = 1.0 - strength if mask[1] else strength
+    _STRENGTHS[geometry.session_uid] = (state, strength)
+    return strength
+
+
+def forget_weights(mesh=None):
+    """Drop the cached weights and strengths of `mesh` (all meshes when None)."""
+    for cache in (_CACHE, _STRENGTHS):
+        if mesh is None:
+            cache.clear()
+        else:
+            cache.pop(mesh.session_uid, None)
+
+
+def is_cached(geometry):
+    return geometry.session_uid in _CACHE or geometry.session_uid in _STRENGTHS
 
 
 # posing -----------------------------------------------------------------------------------------------
@@ -246,11 +296,13 @@ def poser(obj, depsgraph):
     if not bones or not set(bones) & set(weight_names(obj)):
         return None
 
+    mask = binding_mask(obj, depsgraph)
+
     def pose(cloud):
         binding = splat_binding(obj, bones)
         to_arm = to_armature_space(obj, arm, depsgraph)
         posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones),
-                     mode="dqs" if preserve_volume else "lbs")
+                     mode="dqs" if preserve_volume else "lbs", strength=splat_strength(obj, mask))
         return data.transform_cloud(posed, np.linalg.inv(to_arm))
     return pose
 
@@ -340,12 +392,14 @@ def source_weights(obj, bones, warn):
 
 @dataclass
 class BindPlan:
-    """The weights one splat object gets: (N, B) dense weights over `bones` after pruning."""
+    """The weights one splat object gets: (N, B) dense weights over `bones` after pruning, and
+    (N,) binding strengths in 0..1 (the mask MASK_GROUP; None: every splat binds fully)."""
     obj: object
     bones: list
     weights: np.ndarray
     source: str          # where the weights came from, for the report
     report: dict
+    strength: np.ndarray = None
 
 
 def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, falloff=DEFAULT_FALLOFF,
@@ -425,10 +479,26 @@ def write_vertex_groups(obj, bones, weights):
         group.name = name
 
 
-def attach(obj, arm, preserve_volume=False):
+def write_strength(obj, strength):
+    """Store (N,) binding strengths as `obj`'s MASK_GROUP (a vertex group, or a FLOAT attribute of
+    native splats), or remove it when `strength` is None (every splat binds fully)."""
+    if strength is not None:
+        if obj.type == "MESH":
+            write_vertex_groups(obj, [MASK_GROUP], np.asarray(strength)[:, None])
+        else:
+            data.set_attribute(obj.data, MASK_GROUP, "FLOAT", np.asarray(strength, np.float32))
+    elif obj.type == "MESH":
+        if obj.vertex_groups.get(MASK_GROUP) is not None:
+            obj.vertex_groups.remove(obj.vertex_groups[MASK_GROUP])
+    elif MASK_GROUP in obj.data.attributes:
+        obj.data.attributes.remove(obj.data.attributes[MASK_GROUP])
+
+
+def attach(obj, arm, preserve_volume=False, masked=False):
     """Parent `obj` to `arm` (keeping where it is) and let `arm` pose it: an Armature modifier first in
     the stack of a splat mesh, so the viewport display draws the posed splats; the armature
-    properties on native splats."""
+    properties on native splats. `masked`: the modifier's mask is MASK_GROUP (else a mask of ours
+    is cleared; one the artist set is kept)."""
     if obj.type == "MESH":
         mod = next((m for m in obj.modifiers if m.type == "ARMATURE"), None) or \
             obj.modifiers.new("Armature", "ARMATURE")
@@ -436,6 +506,10 @@ def attach(obj, arm, preserve_volume=False):
         mod.use_vertex_groups, mod.use_bone_envelopes = True, False
         mod.use_deform_preserve_volume = preserve_volume
         mod.show_in_editmode = False             # Edit Mode edits the rest pose (see data.own_cloud)
+        if masked:
+            mod.vertex_group, mod.invert_vertex_group = MASK_GROUP, False
+        elif mod.vertex_group == MASK_GROUP:
+            mod.vertex_group = ""
         obj.modifiers.move(list(obj.modifiers).index(mod), 0)
     else:
         data.keep_rest_pose(obj)
@@ -513,7 +587,8 @@ def write_plans(plans, armature, preserve_volume=False):
     try:
         for plan in plans:
             write_weights(plan.obj, plan.bones, plan.weights)
-            attach(plan.obj, armature, preserve_volume)
+            write_strength(plan.obj, plan.strength)
+            attach(plan.obj, armature, preserve_volume, plan.strength is not None)
     except BaseException:
         for plan, snap in zip(plans, snapshots):
             _restore(plan.obj, snap)
@@ -594,7 +669,7 @@ def _on_depsgraph_update(scene, depsgraph):
         owner = update.id.original
         geometry = owner if isinstance(owner, GEOMETRY_TYPES) else \
             owner.data if isinstance(owner, bpy.types.Object) and update.is_updated_geometry else None
-        if isinstance(geometry, GEOMETRY_TYPES) and geometry.session_uid in _CACHE:
+        if isinstance(geometry, GEOMETRY_TYPES) and is_cached(geometry):
             forget_weights(geometry)
             dropped = True
     if dropped and not bpy.app.background and not bpy.app.timers.is_registered(_refill):
@@ -649,6 +724,7 @@ def _refill():
         if rig is not None:
             try:
                 splat_binding(obj, deform_bones(rig[0]))
+                splat_strength(obj, binding_mask(obj))
             except (SkinningError, *EXPECTED_ERRORS):
                 pass          # reported when the splats are next posed
     return None

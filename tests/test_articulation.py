@@ -89,7 +89,9 @@ def blender_dquat(basemat, mat):
             "scale_weight": scale_weight}
 
 
-def blender_dqs(p, bones, weights, dqs):
+def blender_dqs(p, bones, weights, dqs, parts=False):
+    """Posed p and the linear map; with `parts`, the normalised blended quaternion and 3x3 scale
+    matrix instead of the map."""
     s = {"quat": np.zeros(4), "trans": np.zeros(4), "scale": np.zeros((4, 4)), "scale_weight": 0.0}
     contrib = 0.0
     for b, w in zip(bones, weights):
@@ -109,7 +111,7 @@ def blender_dqs(p, bones, weights, dqs):
             s["scale_weight"] += w
         contrib += w
     if contrib <= 1e-4:
-        return p, np.eye(3)
+        return (p, np.array([1.0, 0, 0, 0]), np.eye(3)) if parts else (p, np.eye(3))
     s["quat"], s["trans"] = s["quat"] / contrib, s["trans"] / contrib  # normalize_dq
     scale = np.eye(4)
     if s["scale_weight"]:
@@ -121,6 +123,8 @@ def blender_dqs(p, bones, weights, dqs):
                     [2 * (x * z - w * y), 2 * (y * z + w * x), w * w + z * z - x * x - y * y]])
     t = 2 * q_mul(s["trans"], s["quat"] * [1, -1, -1, -1])[1:]
     out = (rot @ (scale @ np.append(p, 1))[:3] + t) / len2
+    if parts:
+        return out, s["quat"] / np.sqrt(len2), scale[:3, :3]
     return out, rot @ scale[:3, :3] / len2
 
 
@@ -321,6 +325,72 @@ def test_matches_blender_armature_modifier_per_splat(mode):
     assert rel(centres, expect) < 1e-6
     assert rel(posed.positions, expect) < 1e-6
     assert cov_rel(cloud_covariances(posed), maps @ cloud_covariances(cloud) @ maps.transpose(0, 2, 1)) < 1e-5
+
+
+def quat_matrix(q):
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_binding_strength_blends_with_the_rest_as_blenders_modifier_mask(mode):
+    """Strength m: centre (1 - m) rest + m posed (armature_deform.cc's armature_weight); covariance and
+    SH turned by the bones' map blended with the identity (LBS: an identity influence of weight
+    1 - m; DQS: the unit rotation nlerped from the identity, the scale matrix lerped from I)."""
+    rng = np.random.default_rng(18)
+    rest, pose = random_armature(rng)
+    deform = pose @ np.linalg.inv(rest)
+    dqs = [blender_dquat(rest[b], deform[b]) for b in range(len(rest))]
+    n = 300
+    cloud = cloud_at(rng.normal(size=(n, 3)), rng)
+    idx = np.stack([rng.choice(len(rest), 3, replace=False) for _ in range(n)])
+    w = rng.uniform(0, 1, (n, 3)) * (rng.uniform(size=(n, 3)) > 0.2)
+    w[:10] = [1.0, 0.0, 0.0]                                                # single bone
+    strength = rng.uniform(0, 1, n)
+    strength[::7], strength[::11] = 0.0, 1.0
+    binding = Binding.from_weights(idx, w, tolerance=0.0)
+    bones = BonePose.from_blender(rest, pose)
+    posed = skin(cloud, binding, bones, mode, strength=strength)
+    centres = skin_centres(cloud.positions, binding, bones, mode, strength=strength)
+    expect, maps, turns = [], [], []
+    for i in range(n):
+        p, m = cloud.positions[i].astype(np.float64), strength[i]
+        if mode == "lbs":
+            c, lin = blender_lbs(p, idx[i], w[i], deform)
+            total = w[i].sum()
+            stretch = sum(wk * svd_polar(deform[b][:3, :3])[1] for b, wk in zip(idx[i], w[i])) / total \
+                if total > 1e-4 else np.eye(3)                              # unbound: stays
+            turn = svd_polar(m * lin + (1 - m) * np.eye(3))[0]
+            mapped = turn @ (m * stretch + (1 - m) * np.eye(3))
+        else:
+            c, q, scale = blender_dqs(p, idx[i], w[i], dqs, parts=True)
+            q = m * q + (1 - m) * np.array([np.sign(q[0]) or 1.0, 0, 0, 0])
+            turn = quat_matrix(q)
+            mapped = turn @ (m * scale + (1 - m) * np.eye(3))
+        expect.append(p + m * (c - p))
+        maps.append(mapped)
+        turns.append(turn)
+    expect, maps, turns = np.array(expect), np.array(maps), np.array(turns)
+    assert rel(centres, expect) < 1e-6
+    assert rel(posed.positions, expect) < 1e-6
+    still = strength == 0.0
+    np.testing.assert_array_equal(posed.positions[still], cloud.positions[still])
+    assert np.abs(posed.positions[~still] - cloud.positions[~still]).max() > 0.5
+    assert cov_rel(cloud_covariances(posed), maps @ cloud_covariances(cloud) @ maps.transpose(0, 2, 1)) < 1e-5
+    np.testing.assert_allclose(posed.sh, shmod.rotate(cloud.sh.astype(np.float64), turns), atol=2e-5)
+    full = skin(cloud, binding, bones, mode)              # strength 1 everywhere: the plain binding
+    np.testing.assert_array_equal(skin(cloud, binding, bones, mode, strength=np.ones(n)).positions, full.positions)
+
+
+def test_bad_binding_strengths_are_refused():
+    cloud = random_cloud(5, seed=3)
+    binding = Binding.rigid(np.zeros(5, int))
+    for bad, words in ((np.ones(4), "4 binding strengths for 5 splats"), ([0, 0.5, 1, 1.5, 1], "0..1"),
+                       ([0, np.nan, 1, 1, 1], "0..1")):
+        with pytest.raises(SkinningError, match=words):
+            skin(cloud, binding, [np.eye(4)], strength=bad)
 
 
 # exactness, hard cases ----------------------------------------------------------------------------

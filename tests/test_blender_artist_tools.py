@@ -2,8 +2,9 @@
 the version matrix (the worker is tests/workers/artist_tools.py). The edits are judged against the
 unedited splats Blender shows, with independent references computed here: ray parity for the mesh
 crop, the box's own inequality, the SH colour formula for grading, and, for the proxy binding, a
-float64 brute-force nearest point, Blender's own posed proxy mesh and linear blend skinning by the
-bone matrices Blender reports."""
+float64 brute-force nearest point, Blender's own posed proxy mesh, linear blend skinning by the
+bone matrices Blender reports and, for the distance falloff, Blender's Armature modifier posing a
+plain mesh of the same points with the same vertex groups and mask."""
 
 import math
 
@@ -16,7 +17,7 @@ from splatwright.core.economy import contributions
 from splatwright.core.splats import SplatCloud
 from test_cleanup import parity_inside
 from test_proxy import ericson
-from workers.artist_tools import FAR, GRADE, NEAR
+from workers.artist_tools import (FADE_SPAN, FALLOFF_START, FAR, GRADE, MAX_DISTANCE, NEAR, tube_mesh)
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
@@ -178,8 +179,7 @@ def test_splats_take_the_weights_of_the_nearest_surface_point(proxy_case):
     far = dist > 0.1
     assert far.sum() == FAR and not far[:NEAR].any()
     expected = np.einsum("nk,nkb->nb", bary, d["vertex_weights"][d["triangles"][tri]])
-    expected[far] = 0.0
-    np.testing.assert_allclose(d["bound"], expected, atol=2e-6)
+    np.testing.assert_allclose(d["bound"], expected, atol=2e-6)          # far ones too: their mask is 0
     assert ((d["bound"] > 0).sum(axis=1) == 2).sum() > 50            # splats where the bones blend
 
 
@@ -212,6 +212,52 @@ def test_far_splats_are_reported(proxy_case):
     assert far["far"] == FAR and far["far_kept_still"]
     assert far["farthest"] == pytest.approx(dist.max(), abs=1e-6)
     assert far["mean_distance"] == pytest.approx(dist.mean(), abs=1e-6)
+
+
+# distance falloff ------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def falloff_case(blender):
+    res = blender.step("proxy_falloff")
+    d = blender.npz("proxy_falloff")
+    verts, faces = tube_mesh()
+    _, _, dist = reference_nearest(d["rest"], verts + np.array([0.2, 0.1, 0.0]), faces)
+    return res, d, dist
+
+
+def smoothstep_falloff(dist):
+    s = np.clip((dist - FALLOFF_START) / (MAX_DISTANCE - FALLOFF_START), 0.0, 1.0)
+    return 1.0 - 3.0 * s ** 2 + 2.0 * s ** 3
+
+
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_falloff_is_the_armature_modifiers_mask_group(falloff_case, mode):
+    res, d, dist = falloff_case
+    assert res[f"bind_{mode}"]["result"] == ["FINISHED"], res[f"bind_{mode}"]
+    assert res[f"modifier_{mode}"] == ["ARMATURE", "splatwright_bind_strength", False, mode == "dqs"]
+    np.testing.assert_allclose(d[f"strength_{mode}"], smoothstep_falloff(dist), atol=2e-6)
+    near, far = dist <= FALLOFF_START, dist > MAX_DISTANCE
+    fading = ~near & ~far
+    assert near.sum() > 40 and far.sum() > 40 and fading.sum() > 80, (near.sum(), fading.sum(), far.sum())
+    assert dist.max() > FADE_SPAN - 0.01
+
+
+@pytest.mark.parametrize("form", ["MESH", "NATIVE"])
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_fading_splats_move_as_blenders_masked_modifier_moves_vertices(falloff_case, mode, form):
+    res, d, dist = falloff_case
+    if f"posed_{form}_{mode}" not in d:
+        pytest.skip("this Blender makes no native splats from Python")
+    posed = d[f"posed_{form}_{mode}"].astype(np.float64)
+    rest, full = d["rest"], d[f"blender_full_{mode}"]
+    # Blender's own Armature modifier on a plain mesh of the same points, groups and mask
+    np.testing.assert_allclose(posed, d[f"blender_masked_{mode}"], atol=1e-5)
+    near, far = dist <= FALLOFF_START, dist > MAX_DISTANCE
+    assert np.linalg.norm(full - rest, axis=1).min() > 0.01                    # the pose moves every one
+    np.testing.assert_allclose(posed[near], full[near], atol=1e-5)              # near ones follow fully
+    np.testing.assert_allclose(posed[far], rest[far], atol=1e-6)                # far ones stay
+    fraction = smoothstep_falloff(dist)[:, None]                                # between: by the falloff
+    np.testing.assert_allclose(posed, rest + fraction * (full - rest), atol=1e-5)
 
 
 def test_bad_proxy_input_is_refused_and_changes_nothing(blender):

@@ -78,6 +78,15 @@ def test_weights_edited_after_posing_are_followed(blender):
 
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_the_modifiers_vertex_group_mask_is_followed(blender, mode):
+    """A mask group painted by hand and inverted: Blender blends each vertex between rest and posed by it."""
+    d = blender.npz("skinning")
+    theirs = d[f"masked_{mode}_blender"]
+    np.testing.assert_allclose(d[f"masked_{mode}_positions"], theirs, rtol=0, atol=1e-5 * np.abs(theirs).max())
+    assert np.abs(theirs - d["repainted_positions"]).max() > 1e-2         # the mask changes the pose
+
+
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
 def test_rigidly_bound_splats_turn_and_stretch_with_their_bone(blender, mode):
     """A splat in one group moves by that bone's deform matrix D (object space) exactly: its
     covariance becomes L Sigma L^T, L the linear part of D, whatever D's scale."""

@@ -79,3 +79,14 @@ def test_bad_meshes_are_refused():
         proxy.closest_points(np.zeros((2, 3)), np.zeros((3, 3)), [[0, 1, 5]])
     with pytest.raises(proxy.ProxyError, match="NaN"):
         proxy.closest_points([[np.nan, 0, 0]], np.eye(3), [[0, 1, 2]])
+
+
+def test_falloff_is_a_smoothstep_from_start_to_end():
+    d = np.array([0.0, 0.04, 0.05, 0.07, 0.1, 0.13, 0.4])
+    s = np.clip((d - 0.04) / 0.06, 0, 1)
+    np.testing.assert_allclose(proxy.falloff_strength(d, 0.04, 0.1), 1 - 3 * s ** 2 + 2 * s ** 3, atol=1e-15)
+    assert proxy.falloff_strength(0.07, 0.04, 0.1) == pytest.approx(0.5)          # halfway, by symmetry
+    np.testing.assert_array_equal(proxy.falloff_strength(d, 0.1, 0.1), d <= 0.1)  # start == end: a hard cut
+    for start, end in ((0.2, 0.1), (-0.1, 0.1)):
+        with pytest.raises(proxy.ProxyError, match="falloff must start"):
+            proxy.falloff_strength(d, start, end)

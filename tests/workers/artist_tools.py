@@ -13,6 +13,9 @@ BOX = dict(location=(0.2, -0.1, 0.1), rotation_euler=(0.3, 0.2, 0.5), scale=(1.0
 GRADE = dict(exposure=0.4, saturation=0.6, hue=0.5, white=(1.0, 0.9, 0.7))
 TUBE = dict(radius=0.3, height=2.0, rings=13, segments=16)
 NEAR, FAR = 300, 20          # capture splats around the proxy's surface, and farther away
+FADING = 240                 # capture splats at distances 0..FADE_SPAN from the tube, to test the falloff
+FALLOFF_START, MAX_DISTANCE, FADE_SPAN = 0.04, 0.1, 0.14
+POSE = (("Upper", (0.87, 0.0, 0.0)), ("Lower", (0.0, 0.26, 0.0)))      # Upper 50 degrees about x, Lower 15 about y
 
 
 def tube_mesh():
@@ -46,9 +49,18 @@ def capture_positions(seed=11):
     return np.concatenate([near, far])
 
 
+def fading_positions(seed=13):
+    """Splats outside the tube at radial gaps spread evenly over 0..FADE_SPAN: some within the falloff
+    start, some fading, some beyond the max distance."""
+    rng = np.random.default_rng(seed)
+    angle, z = rng.uniform(0, 2 * np.pi, FADING), rng.uniform(0.05, 1.95, FADING)
+    radius = TUBE["radius"] + np.linspace(0.0, FADE_SPAN, FADING)
+    return np.stack([radius * np.cos(angle), radius * np.sin(angle), z], -1)
+
+
 class Worker(BlenderWorker):
     steps = ("install", "cleanup_mesh", "cleanup_native", "visibility", "cleanup_refusals", "proxy_bind",
-             "proxy_refusals")
+             "proxy_falloff", "proxy_refusals")
 
     def splat_object(self, name, cloud, form=None):
         data = self.module("splat_addon.data")
@@ -205,9 +217,9 @@ class Worker(BlenderWorker):
             res[name]["unchanged"] = self.inventory() == before and "splatwright_cleanup" not in obj
         return res
 
-    def proxy_bind(self):
+    def rigged_tube(self):
+        """(armature, proxy): a two-bone armature and the tube skinned to it (Armature modifier)."""
         bpy = self.bpy
-        data = self.module("splat_addon.data")
         arm = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
         bpy.context.scene.collection.objects.link(arm)
         arm.location = (0.2, 0.1, 0.0)
@@ -229,6 +241,28 @@ class Worker(BlenderWorker):
         proxy.modifiers.new("Armature", "ARMATURE").object = arm
         proxy.parent = arm
         proxy.matrix_parent_inverse = arm.matrix_world.inverted()
+        return arm, proxy
+
+    def pose_rig(self, arm):
+        for name, euler in POSE:
+            pb = arm.pose.bones[name]
+            pb.rotation_mode = "XYZ"
+            pb.rotation_euler = euler
+        self.bpy.context.view_layer.update()
+
+    def capture_cloud(self, positions, seed=12):
+        n = len(positions)
+        rng = np.random.default_rng(seed)
+        return self.module("core").SplatCloud(positions=positions, rotations=rng.normal(size=(n, 4)),
+                                              log_scales=rng.uniform(-4, -3, (n, 3)),
+                                              opacity_logits=rng.normal(1, 1, n), sh=rng.normal(0, 0.2, (n, 4, 3)))
+
+    def proxy_bind(self):
+        bpy = self.bpy
+        data = self.module("splat_addon.data")
+        arm, proxy = self.rigged_tube()
+        verts, faces = tube_mesh()
+        weights = tube_weights(verts)
         rng = np.random.default_rng(12)
         n = NEAR + FAR
         core = self.module("core")
@@ -241,20 +275,15 @@ class Worker(BlenderWorker):
         bpy.context.view_layer.update()
         res = {}
         self.select([objects["MESH"], proxy], active=proxy)
-        res["bind"] = self.call(bpy.ops.splat.bind_proxy, max_distance=0.1, min_weight=0.0)
+        res["bind"] = self.call(bpy.ops.splat.bind_proxy, max_distance=0.1, far="STAY", min_weight=0.0)
         if "NATIVE" in objects:
-            results = self.module("splat_addon.proxy_binding").bind_proxy([objects["NATIVE"]], proxy, 0.1,
+            results = self.module("splat_addon.proxy_binding").bind_proxy([objects["NATIVE"]], proxy, 0.1, "STAY",
                                                                           min_weight=0.0)
             res["native_far"] = results[0][1]
         res["modifiers"] = [m.type for m in objects["MESH"].modifiers]
         res["parent"] = objects["MESH"].parent.name if objects["MESH"].parent else None
         bound = self.group_matrix(objects["MESH"], ["Lower", "Upper"])
-        # pose: Upper turns 50 degrees about x, Lower 15 about y
-        for name, euler in (("Upper", (0.87, 0.0, 0.0)), ("Lower", (0.0, 0.26, 0.0))):
-            pb = arm.pose.bones[name]
-            pb.rotation_mode = "XYZ"
-            pb.rotation_euler = euler
-        bpy.context.view_layer.update()
+        self.pose_rig(arm)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         posed = {form: data.evaluated_cloud(obj, depsgraph).positions for form, obj in objects.items()}
         evaluated = proxy.evaluated_get(depsgraph)
@@ -271,6 +300,76 @@ class Worker(BlenderWorker):
                   vertex_weights=weights, proxy_posed=co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3],
                   bound=bound, deform=deform, **{f"posed_{f}": p for f, p in posed.items()})
         return res
+
+    def proxy_falloff(self):
+        """Splats at spread distances bound with the falloff, by linear blend (proxy as it is) and by dual
+        quaternions (the proxy's modifier preserving volume); Blender's own Armature modifier poses a
+        plain mesh of the same points with the same groups and modifier, with the mask and without."""
+        bpy = self.bpy
+        data = self.module("splat_addon.data")
+        rigging = self.module("splat_addon.rigging")
+        arm, proxy = self.rigged_tube()
+        positions = fading_positions() + np.array(arm.location)
+        cloud = self.capture_cloud(positions, seed=14)
+        forms = ["MESH"] + (["NATIVE"] if data.native_supported() else [])
+        res, arrays = {}, {"rest": positions}
+        for mode in ("lbs", "dqs"):
+            proxy.modifiers["Armature"].use_deform_preserve_volume = mode == "dqs"
+            objects = {form: self.splat_object(f"Fading{form}{mode}", cloud, form) for form in forms}
+            bpy.context.view_layer.update()
+            self.select([objects["MESH"], proxy], active=proxy)
+            res[f"bind_{mode}"] = self.call(bpy.ops.splat.bind_proxy, falloff_start=FALLOFF_START,
+                                            max_distance=MAX_DISTANCE, min_weight=0.0)
+            if "NATIVE" in objects:
+                self.select([objects["NATIVE"], proxy], active=proxy)
+                self.call(bpy.ops.splat.bind_proxy, falloff_start=FALLOFF_START, max_distance=MAX_DISTANCE,
+                          min_weight=0.0)
+            mesh_obj = objects["MESH"]
+            mod = mesh_obj.modifiers[0]
+            res[f"modifier_{mode}"] = [mod.type, mod.vertex_group, mod.invert_vertex_group,
+                                       mod.use_deform_preserve_volume]
+            groups = self.group_matrix(mesh_obj, ["Lower", "Upper", rigging.MASK_GROUP])
+            arrays[f"bound_{mode}"], arrays[f"strength_{mode}"] = groups[:, :2], groups[:, 2]
+            plain = {masked: self.plain_twin(mesh_obj, groups, arm, masked) for masked in (True, False)}
+            self.pose_rig(arm)
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            for form, obj in objects.items():
+                arrays[f"posed_{form}_{mode}"] = data.evaluated_cloud(obj, depsgraph).positions
+            for masked, obj in plain.items():
+                arrays[f"blender_{'masked' if masked else 'full'}_{mode}"] = self.evaluated_world(obj, depsgraph)
+            for pb in arm.pose.bones:               # back to rest for the next binding
+                pb.rotation_euler = (0.0, 0.0, 0.0)
+            bpy.context.view_layer.update()
+        self.save("proxy_falloff", **arrays)
+        return res
+
+    def plain_twin(self, splats, groups, arm, masked):
+        """A plain mesh of the splat centres of `splats` with its transform, its groups' weights (N, 3:
+        Lower, Upper, mask) and a copy of its Armature modifier (mask left out unless `masked`)."""
+        rigging = self.module("splat_addon.rigging")
+        centres = self.module("splat_addon.data").object_cloud(splats).positions
+        obj = self.mesh_object(f"Plain{splats.name}{masked}", centres, [])
+        for j, name in enumerate(["Lower", "Upper", rigging.MASK_GROUP]):
+            group = obj.vertex_groups.new(name=name)
+            for i in np.flatnonzero(groups[:, j] > 0):
+                group.add([int(i)], float(groups[i, j]), "REPLACE")
+        source = splats.modifiers[0]
+        mod = obj.modifiers.new("Armature", "ARMATURE")
+        mod.object, mod.use_deform_preserve_volume = arm, source.use_deform_preserve_volume
+        if masked:
+            mod.vertex_group = source.vertex_group
+        obj.parent, obj.matrix_parent_inverse = splats.parent, splats.matrix_parent_inverse.copy()
+        obj.matrix_world = splats.matrix_world.copy()
+        return obj
+
+    def evaluated_world(self, obj, depsgraph):
+        evaluated = obj.evaluated_get(depsgraph)
+        mesh = evaluated.to_mesh()
+        co = np.empty(len(mesh.vertices) * 3)
+        mesh.vertices.foreach_get("co", co)
+        evaluated.to_mesh_clear()
+        world = np.array(evaluated.matrix_world)
+        return co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3]
 
     def inventory(self):
         bpy = self.bpy

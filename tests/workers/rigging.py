@@ -201,6 +201,17 @@ class Worker(BlenderWorker):
         arrays_out["repainted_positions"] = data.evaluated_cloud(obj, depsgraph, np.eye(4)).positions
         shown.show_viewport = False
         arrays_out["repainted_blender"] = self.blender_positions(obj)
+        # a mask painted by hand and inverted on the modifier: every fifth splat is outside the group
+        fade = obj.vertex_groups.new(name="Fade")
+        for v, w in enumerate(np.random.default_rng(5).uniform(0, 1, RIG_SPLATS)):
+            if v % 5:
+                fade.add([v], float(w), "REPLACE")
+        mod.vertex_group, mod.invert_vertex_group = "Fade", True
+        for mode, volume in (("lbs", False), ("dqs", True)):
+            mod.use_deform_preserve_volume = volume
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            arrays_out[f"masked_{mode}_positions"] = data.evaluated_cloud(obj, depsgraph, np.eye(4)).positions
+            arrays_out[f"masked_{mode}_blender"] = self.blender_positions(obj)
         self.save("skinning", rest_positions=arrays["positions"], rest_rotations=arrays["rotations"],
                   rest_log_scales=arrays["log_scales"], deform=deform, bones=np.array(names),
                   weights=weights, **arrays_out)
