@@ -24,24 +24,28 @@ from .splats import SplatCloud, logit
 DEFAULT_TARGET_PSNR = 36.0
 EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
+SPREAD_GAIN = 1.3       # widened splats keep this much more opacity than their share (coverage closed)
 
 
 def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
                    corner_colors=None, max_splats=None, target_psnr=None, progress=None,
                    overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
-                   render_mode="classic", info=None):
+                   view_distances=None, view_count=None, render_mode="classic", calibrate=True, info=None):
     """Convert a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
     `materials` (a list of core.mesh.Material); corner_colors (F,3,3) or (V,3), scene-linear.
     core/mesh.py states the colour space of every input.
 
-    Size: `max_splats` alone is a budget (exactly that many splats, spread by area); given
-    `views` too, the silhouettes of closed parts are also calibrated for those cameras.
+    Size: `max_splats` alone is a budget (exactly that many splats, spread by area), with the
+    silhouettes of solid parts calibrated for the views (`calibrate=False` skips that: no renders).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
-    the mesh rendered by core.mesh_render in every one of `views` (default: eight cameras around
-    the mesh at `view_size` pixels, black background; see core/mesh_refine.py), with `max_splats`
-    as a cap. With neither, the target is DEFAULT_TARGET_PSNR.
+    the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
+    With neither, the target is DEFAULT_TARGET_PSNR.
+    Views (where quality is measured): `views`, a list of core Cameras (a scene camera along its
+    path, say), or by default `view_count` cameras (4) at each of `view_distances` (0.5, 1, 3:
+    multiples of the distance that frames the whole mesh) around it, `view_size` pixels square,
+    black background; see core/mesh_refine.py.
     Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
     `progress(done, total, label)` is called as work proceeds; `info`, if a dict, receives
@@ -62,16 +66,18 @@ def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, mat
     if max_splats is not None and int(max_splats) < 1:
         raise ValueError(f"max_splats must be at least 1, got {max_splats}")
     style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
-    if target_psnr is None and max_splats is not None and views is None:
+    if target_psnr is None and max_splats is not None and not calibrate:
         cloud = build_splats(surface, _uniform_density(surface, int(max_splats)), **style)
         if progress:
             progress(1, 1, "mesh2splats")
     else:
-        from .mesh_refine import refine_to_target
+        from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_to_target
         budget_only = target_psnr is None and max_splats is not None
         target = DEFAULT_TARGET_PSNR if target_psnr is None else float(target_psnr)
         cloud = refine_to_target(surface, np.inf if budget_only else target, max_splats, views, view_size,
-                                 render_mode, progress, info, style, uniform=budget_only)
+                                 render_mode, progress, info, style, uniform=budget_only,
+                                 view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
+                                 view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count))
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud
@@ -82,9 +88,13 @@ def _uniform_density(surface, count):
 
 
 def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
-                 offset=None):
+                 offset=None, spread=1.0):
     """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
-    `offset` (world units, default 0) along its unit normal."""
+    `offset` (world units, default 0) along its unit normal.
+
+    `spread` >= 1 makes the splats look like `spread` times fewer: discs sqrt(spread) times wider,
+    their opacity divided by spread / SPREAD_GAIN (at most `opacity`), so that more splats can
+    always render like fewer (the silhouettes' fattening grows with the splats stacked there)."""
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
         expected *= max_splats / expected.sum()
@@ -92,7 +102,9 @@ def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, se
                                np.random.default_rng(seed))
     offset = np.zeros(len(counts)) if offset is None else np.asarray(offset, np.float64)
     tri, bary = bisection_samples(surface, counts)
-    return _cloud(surface, tri, bary, density[tri], offset[tri], _face_rotations(surface)[tri],
+    spread = max(float(spread), 1.0)
+    opacity = min(opacity, opacity * SPREAD_GAIN / spread) if spread > 1 else opacity
+    return _cloud(surface, tri, bary, density[tri] / spread, offset[tri], _face_rotations(surface)[tri],
                   overlap, opacity, thickness)
 
 
