@@ -25,7 +25,7 @@ import numpy as np
 
 from .camera import Camera
 from .mesh_render import render_mesh
-from .mesh_to_splats import build_splats
+from .mesh_to_splats import WALL_INSET, budget_density, build_splats, thin_wall_density
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import render
@@ -197,14 +197,24 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
     outward = surface.outward_signs()
     v = _Views(surface, cameras, render_mode, outward != 0)
     area = surface.area
-    cap = np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0)
     density = np.where(surface.valid, 1.0 / (START_SPACING * v.pixel) ** 2, 0.0)
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
+    walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
+    cap = np.maximum(np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0), walls)
+    density = np.maximum(density, walls)
+    if uniform:
+        density = budget_density(np.where(surface.valid, 1.0, 0.0), walls, area, max_splats)
     elif max_splats is not None:
         density = _fit_budget(density, area, max_splats)
-    make = lambda dens, inset, spread=1.0: build_splats(surface, dens, offset=-inset * v.pixel * outward,
-                                                        max_splats=max_splats, spread=spread, **style)
+
+    def make(dens, inset, spread=1.0):
+        # Spread no wider than thin walls allow.
+        widest = np.divide(dens, walls, out=np.full(len(dens), np.inf), where=walls > 0)
+        shift = np.minimum(inset * v.pixel, WALL_INSET * wall)
+        return build_splats(surface, dens, offset=-shift * outward, max_splats=max_splats,
+                            spread=np.minimum(spread, np.maximum(widest, 1.0)), **style)
+
     inset_search = _Inset(v, make)
     mse_target = 10 ** (-target / 10)
     best, previous, rounds = None, None, 0
@@ -242,7 +252,7 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
             saturated |= grew & (local > 0.8 * before)
         grow = np.clip(local / (AIM * mse_target), 1.0, MAX_GROWTH)
         grow[saturated] = 1.0
-        new = _grade(surface, np.minimum(density * grow, cap))
+        new = np.maximum(_grade(surface, np.minimum(density * grow, cap)), walls)
         if max_splats is not None:
             new = _fit_budget(new, area, max_splats)
         if np.allclose(new, density, rtol=1e-3):
@@ -297,6 +307,20 @@ def _calibrate_budget(v, make, density, solid, max_splats):
             break
         best = (inset, cloud, m, spread)
     return best
+
+
+def summary(info):
+    """One sentence about the quality a conversion reached, from its `info` ("" without views):
+    the worst view's PSNR, which view that is and, for a missed target, why."""
+    if "psnr" not in info:
+        return ""
+    where = f"view {info['worst_view'] + 1} of {info['views']}"
+    if info.get("worst_view_distance") is not None:
+        where += f", at {info['worst_view_distance']:g}x the framing distance"
+    text = f"{info['psnr']:.1f} dB PSNR in the worst view ({where})"
+    if info.get("reached") is False:
+        text = f"target {info['target_psnr']:g} dB not reached: {text}; {info['limit']}"
+    return text
 
 
 def _why(m, stop, max_splats):

@@ -31,9 +31,11 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
+from ..core.camera import Camera
 from ..core.mesh import Material
+from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
 from ..core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats
-from . import data, display
+from . import camera, data, display
 from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS, _Progress
 
 SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
@@ -264,8 +266,10 @@ def source_record(obj, evaluated_vertices, rest):
 
 
 def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, progress=None, warn=print,
-                   rest=False):
-    """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it."""
+                   rest=False, views=None, info=None, **view_options):
+    """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it.
+    `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
+    view_count of mesh_to_splats) say where quality is measured; `info` receives mesh_to_splats'."""
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
@@ -276,7 +280,8 @@ def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, progres
             warnings.simplefilter("always")
             try:
                 cloud = mesh_to_splats(triangles.vertices, triangles.faces, max_splats=max_splats,
-                                       target_psnr=target_psnr, progress=progress, **appearance)
+                                       target_psnr=target_psnr, progress=progress, views=views, info=info,
+                                       **view_options, **appearance)
             except ValueError as exc:
                 raise MeshConversionError(f"'{obj.name}': {exc}") from exc
         for w in caught:
@@ -301,11 +306,44 @@ def mesh_objects(objects):
     return meshes
 
 
+def camera_path_views(scene, objects, count, size):
+    """{object: [core Camera]}: the scene camera at `count` frames spread evenly over the scene's
+    frame range (its animation path), each in the object's own space, `size` pixels wide (the
+    render's aspect). The current frame is restored."""
+    cam = scene.camera
+    if cam is None:
+        raise MeshConversionError("the scene has no camera to measure the splats' quality from")
+    render = scene.render
+    width = max(1, int(size))
+    height = max(1, round(width * render.resolution_y * render.pixel_aspect_y /
+                          max(render.resolution_x * render.pixel_aspect_x, 1e-9)))
+    frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, max(int(count), 1))).astype(int))
+    current, subframe = scene.frame_current, scene.frame_subframe
+    views = {obj: [] for obj in objects}
+    try:
+        for frame in frames:
+            scene.frame_set(int(frame))
+            world = np.array(cam.matrix_world, dtype=np.float64)
+            for obj in objects:
+                matrix = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ world
+                try:
+                    views[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
+                                                          clip_end=cam.data.clip_end,
+                                                          **camera.lens_settings(cam.data, render)))
+                except ValueError as exc:
+                    raise MeshConversionError(f"camera '{cam.name}' at frame {frame}: {exc}") from exc
+    finally:
+        scene.frame_set(current, subframe=subframe)
+    return views
+
+
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True,
-                    progress=None, warn=print):
+                    progress=None, warn=print, views=None, infos=None, **view_options):
     """[(source object, cloud, record)] for mesh objects; nothing in the scene changes.
 
-    progress(done, total, label) sees the whole selection as one task of len(objects) units."""
+    progress(done, total, label) sees the whole selection as one task of len(objects) units.
+    `views` maps objects to their cameras (see camera_path_views); `infos`, a list, receives
+    each object's mesh_to_splats info."""
     results = []
     with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
         depsgraph = context.evaluated_depsgraph_get()
@@ -313,9 +351,13 @@ def convert_objects(context, objects, *, max_splats=None, target_psnr=None, use_
             def step(done, total, label="", i=i):
                 if progress:
                     progress(i + (done / total if total else 1.0), len(objects), f"{obj.name}: {label}")
+            info = {}
             cloud, record = convert_object(obj, depsgraph, max_splats=max_splats, target_psnr=target_psnr,
-                                           progress=step, warn=warn, rest=use_rest_pose)
+                                           progress=step, warn=warn, rest=use_rest_pose, info=info,
+                                           views=None if views is None else views[obj], **view_options)
             results.append((obj, cloud, record))
+            if infos is not None:
+                infos.append(info)
     return results
 
 
@@ -349,6 +391,12 @@ def from_mesh(context, objects, **options):
     return create_splat_objects(context, convert_objects(context, mesh_objects(objects), **options))
 
 
+def view_distances(near, far):
+    """The view distances for a near..far range: near, the whole-mesh framing (1) if inside, far."""
+    near, far = sorted((float(near), float(far)))
+    return tuple(sorted({near, far} | ({1.0} if near < 1.0 < far else set())))
+
+
 def sizing(mode, max_splats, target_psnr):
     """(max_splats, target_psnr) for mesh_to_splats: a budget, or a target PSNR capped by max_splats."""
     if mode == "BUDGET":
@@ -376,21 +424,42 @@ class SPLAT_OT_from_mesh(bpy.types.Operator):
     use_rest_pose: BoolProperty(name="Rest Pose", default=True,
                                 description="Convert meshes deformed by an armature in its rest position "
                                             "(the pose a binding to that armature starts from)")
+    view_source: EnumProperty(name="Measure From", default="AROUND", items=(
+        ("AROUND", "Around", "Views all around each mesh at the near, whole and far distances"),
+        ("CAMERA", "Scene Camera", "The scene camera along its animation: View Count frames spread over "
+                                   "the scene's frame range")))
+    view_near: FloatProperty(name="Near", default=VIEW_DISTANCES[0], min=0.05, max=100.0,
+                             description="Closest view distance, a multiple of the one that frames the whole mesh")
+    view_far: FloatProperty(name="Far", default=VIEW_DISTANCES[-1], min=0.05, max=100.0,
+                            description="Farthest view distance, a multiple of the one that frames the whole mesh")
+    view_count: IntProperty(name="View Count", default=VIEWS_PER_DISTANCE, min=1, max=64,
+                            description="Views at each distance (Around), or frames of the camera path")
+    view_size: IntProperty(name="View Size", default=256, min=16, max=2048,
+                           description="Pixels across each view quality is measured in")
 
     @classmethod
     def poll(cls, context):
         return context.mode == "OBJECT"
 
+    def view_options(self, context, objects):
+        """Keyword arguments of convert_objects saying where quality is measured."""
+        if self.view_source == "CAMERA":
+            return {"views": camera_path_views(context.scene, objects, self.view_count, self.view_size)}
+        return {"view_distances": view_distances(self.view_near, self.view_far),
+                "view_count": self.view_count, "view_size": self.view_size}
+
     def execute(self, context):
         max_splats, target_psnr = sizing(self.mode, self.max_splats, self.target_psnr)
         progress = _Progress(context, len(context.selected_objects))
+        infos = []
         try:
             objects = mesh_objects(context.selected_objects)
             skipped = [o.name for o in context.selected_objects if o not in objects]
             results = convert_objects(context, objects, max_splats=max_splats, target_psnr=target_psnr,
                                       use_rest_pose=self.use_rest_pose,
                                       progress=lambda done, total, label: progress.update(done),
-                                      warn=lambda message: self.report({"WARNING"}, message))
+                                      warn=lambda message: self.report({"WARNING"}, message), infos=infos,
+                                      **self.view_options(context, objects))
             created = create_splat_objects(context, results)
         except (MeshConversionError, *EXPECTED_ERRORS) as exc:
             self.report({"ERROR"}, str(exc))
@@ -404,6 +473,10 @@ class SPLAT_OT_from_mesh(bpy.types.Operator):
         for obj in created:
             obj.select_set(True)
         context.view_layer.objects.active = created[-1]
+        for (source, cloud, _), info in zip(results, infos):
+            missed = info.get("reached") is False
+            self.report({"WARNING"} if missed else {"INFO"},
+                        f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else ""))
         total = sum(len(cloud) for _, cloud, _ in results)
         self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
         return {"FINISHED"}
