@@ -1,21 +1,24 @@
-"""Target-PSNR sizing for mesh_to_splats: spend splats where the render error says they are needed.
+"""Sizing for mesh_to_splats from renders: spend splats where the render error says they are needed.
 
-The mesh is rendered once from eight views around it by the reference rasteriser
-(core.mesh_render, black background). The converter then starts coarse (one splat per
-START_SPACING^2 pixels of the finest view of each face) and repeats: build splats, render them with
-core.render from the same views, compare, attribute every pixel's squared error to the face seen
-there (background pixels to the nearest face), and multiply the density of faces whose local error
-is above the target by how far above it they are (at most MAX_GROWTH a round and MAX_PER_PIXEL
-splats per pixel), until the worst of the views reaches the target (every view, so the result
-holds from directions in between too). A face that got denser without its error dropping is left
-alone from then on: more splats cannot fix what the renderer's low-pass filter blurs. Flat
-single-colour regions therefore stay coarse. Once reached, two bisection steps between the last
-two densities look for a smaller cloud that still reaches the target.
+The mesh is rendered once from the views (the user's cameras, or by default four around it at each
+of 0.5, 1 and 3 times the distance that frames it) by the reference rasteriser (core.mesh_render,
+black background). Target mode then starts coarse (one splat per START_SPACING^2 pixels of the
+finest view of each face) and repeats: build splats, render them with core.render from the same
+views, compare, attribute every pixel's squared error to the face seen there (background pixels to
+the nearest face), and multiply the density of faces whose local error is above the target by how
+far above it they are (at most MAX_GROWTH a round and MAX_PER_PIXEL splats per pixel), until the
+worst of the views reaches the target. A face that got denser without its error dropping is left
+alone until the silhouettes are calibrated again: more splats cannot fix what the renderer's
+low-pass filter blurs. Once reached, two bisection steps between the last two densities look for a
+smaller cloud that still reaches it; when not, the result says which view is worst and why.
 
 Silhouettes: an opaque surface of Gaussians renders about one pixel fatter than the mesh, because
 the renderer's 0.3 px^2 low-pass spreads every splat seen edge-on and many such splats stack along
-a silhouette. Closed, consistently wound parts are therefore moved inwards along the normal by
-about a pixel of the views, calibrated from the coverage excess measured along the silhouettes.
+a silhouette. Solid parts are therefore moved inwards along the normal by the shift (in pixels of
+each face's finest view) that maximises the worst view's PSNR, found by golden-section search and
+searched again whenever the cloud has grown RECALIBRATE_GROWTH times. A budget (uniform mode) also
+tries rendering like SPREADS times fewer splats (wider, fainter discs), since the fattening grows
+with the splats stacked: a larger budget can always look like a smaller one.
 """
 
 import math

@@ -9,7 +9,7 @@ from splatwright.core.camera import Camera
 from splatwright.core.mesh import Material, Surface
 from splatwright.core.mesh_refine import default_views
 from splatwright.core.mesh_render import render_mesh
-from splatwright.core.mesh_to_splats import mesh_to_splats
+from splatwright.core.mesh_to_splats import WALL_SIGMAS, build_splats, mesh_to_splats
 from splatwright.core.metrics import psnr
 from splatwright.core.render import render
 
@@ -488,3 +488,50 @@ def test_a_missed_target_says_what_was_reached_where_and_why():
     assert info["worst_view"] == int(np.argmin(measured)) and info["psnr"] == pytest.approx(min(measured))
     assert info["worst_view_distance"] == (0.5, 1.0, 3.0)[info["worst_view"]]
     assert "max_splats=400" in info["limit"]
+
+
+def thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=32):
+    """A closed cup: outer wall, rim, inner wall and floor `wall` thick; material 0 (orange)
+    outside, 1 (blue) inside."""
+    inner = radius - wall
+    angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = lambda r, y: np.column_stack([r * np.cos(angle), np.full(n, y), -r * np.sin(angle)])
+    v = np.concatenate([ring(radius, 0), ring(radius, height), ring(inner, height), ring(inner, wall),
+                        [[0, 0, 0]], [[0, wall, 0]]])
+    k, k1 = np.arange(n), (np.arange(n) + 1) % n
+    band = lambda a, b: np.concatenate([np.stack([a + k, a + k1, b + k1], 1), np.stack([a + k, b + k1, b + k], 1)])
+    f = np.concatenate([band(0, n), band(n, 2 * n), band(2 * n, 3 * n),
+                        np.stack([np.full(n, 4 * n + 1), 3 * n + k, 3 * n + k1], 1),
+                        np.stack([np.full(n, 4 * n), k1, k], 1)])
+    fm = np.concatenate([np.zeros(4 * n), np.ones(3 * n), np.zeros(n)]).astype(int)
+    mats = [Material(base_color=(0.8, 0.15, 0.05)), Material(base_color=(0.05, 0.2, 0.9))]
+    return v, f, fm, mats
+
+
+def test_thin_walls_do_not_show_the_other_side():
+    v, f, fm, mats = thin_walled_cup()
+    surface = Surface(v, f, None, fm, mats)
+    assert (surface.outward_signs() == 1).all()
+    # Close-ups of the outside from below and above, where the inside is right behind the wall.
+    cams = [Camera.look_at((r * np.cos(a), y, r * np.sin(a)), (0, 0.02, 0), fov_deg=40, width=64, height=64,
+                           near=0.001) for a in (0.3, 2.0, 4.1) for r, y in ((0.045, -0.02), (0.05, 0.06))]
+    refs = [render_mesh(surface, cam, supersample=3) for cam in cams]
+    outer = [(ref.alpha == 1) & (fm[np.maximum(ref.face[1::3, 1::3], 0)] == 0) for ref in refs]
+    assert all(o.sum() > 1000 for o in outer)
+
+    def leak(cloud):
+        """Fraction of the outside's pixels tinted by the inside's blue, and their PSNR."""
+        colors = [render(cloud, cam).color for cam in cams]
+        blue = np.concatenate([(c[..., 2] - ref.color[..., 2])[o] for c, ref, o in zip(colors, refs, outer)])
+        error = np.concatenate([((c - ref.color) ** 2)[o] for c, ref, o in zip(colors, refs, outer)])
+        return (blue > 0.05).mean(), -10 * np.log10(error.mean())
+
+    cloud = mesh_to_splats(v, f, face_materials=fm, materials=mats, max_splats=20_000, calibrate=False)
+    # Splats as wide as 2500 spread evenly would be (sigma 0.35 of the wall): the inside shows.
+    even = build_splats(surface, np.full(len(f), 2500 / surface.area.sum()))
+    wall_sigma = np.exp(cloud.log_scales[:, :2].astype(np.float64)).max(axis=1)
+    assert np.percentile(wall_sigma, 99) <= 0.005 / WALL_SIGMAS * 1.05
+    tinted, clean_db = leak(cloud)
+    tinted_even, even_db = leak(even)
+    assert tinted < 0.005 and tinted_even > 0.02, (tinted, tinted_even)
+    assert clean_db > even_db + 6, (clean_db, even_db)
