@@ -28,7 +28,7 @@ import numpy as np
 
 from .camera import Camera
 from .mesh_render import render_mesh
-from .mesh_to_splats import WALL_INSET, budget_density, build_splats, thin_wall_density
+from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, build_splats, thin_wall_density
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import render
@@ -204,7 +204,9 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
     walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
-    cap = np.maximum(np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0), walls)
+    cap = np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0)
+    walls = np.minimum(walls, WALL_BOOST * cap)
+    cap = np.maximum(cap, walls)
     density = np.maximum(density, walls)
     if uniform:
         density = budget_density(np.where(surface.valid, 1.0, 0.0), walls, area, max_splats)
@@ -300,13 +302,20 @@ def _calibrate_budget(v, make, density, solid, max_splats):
     """(inset, cloud, Measured, spread) for an even budget: the silhouette shift, and how many times
     fewer splats the budget should look like (SPREADS; wider, fainter discs), whichever renders
     best. Stacked edge-on splats fatten silhouettes more the more there are, so without this a
-    larger budget could look worse than a smaller one; with it, it can always look like one."""
-    best = None
-    for spread in SPREADS:
-        if spread > 1 and max_splats / spread < MIN_SPREAD_SPLATS:
+    larger budget could look worse than a smaller one; with it, it can always look like one.
+    Wider splats stack less, so each spread searches the shift below the last one's."""
+    inset, cloud, m = _calibrate_inset(v, make, density, solid)
+    best = (inset, cloud, m, 1.0)
+    for spread in SPREADS[1:]:
+        if max_splats / spread < MIN_SPREAD_SPLATS:
             break
-        inset, cloud, m = _calibrate_inset(v, make, density, solid, spread, evaluations=INSET_SEARCH - 2)
-        if best is not None and m.psnr <= best[2].psnr:
+        shaped = lambda dens, x, spread=spread: make(dens, x, spread)
+        if solid:
+            inset, cloud, m = _Inset(v, shaped).search(density, 0.3 * best[0], best[0] + 0.3, 3)
+        else:
+            cloud = shaped(density, 0.0)
+            inset, m = 0.0, v.measure(cloud)
+        if m.psnr <= best[2].psnr:
             break
         best = (inset, cloud, m, spread)
     return best

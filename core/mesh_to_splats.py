@@ -25,6 +25,7 @@ DEFAULT_TARGET_PSNR = 36.0
 EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
 WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
+WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
 WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
 SPREAD_GAIN = 1.3       # widened splats keep this much more opacity than their share (coverage closed)
 
@@ -92,17 +93,18 @@ def _uniform_density(surface, count):
 
 
 def budget_density(density, floor, area, count):
-    """`density` scaled to spend `count` splats, with faces kept at or above `floor` (thin walls)
-    as long as the budget allows: max(k density, floor) with k found by bisection."""
+    """`density` scaled to spend `count` splats, with faces raised towards `floor` (thin walls):
+    max(k density, min(floor, WALL_BOOST k density)), k found by bisection. A face is raised at
+    most WALL_BOOST times, so a small budget still covers the rest of the surface."""
+    spend = lambda k: np.maximum(k * density, np.minimum(floor, WALL_BOOST * k * density))
+    hi = count / (density * area).sum()
     if not (floor > 0).any():
-        return density * (count / (density * area).sum())
-    if (floor * area).sum() >= count:
-        return floor * (count / (floor * area).sum())
-    lo, hi = 0.0, count / (density * area).sum()
-    for _ in range(40):
+        return density * hi
+    lo = 0.0
+    for _ in range(50):
         k = (lo + hi) / 2
-        lo, hi = (k, hi) if (np.maximum(k * density, floor) * area).sum() < count else (lo, k)
-    return np.maximum(lo * density, floor)
+        lo, hi = (k, hi) if (spend(k) * area).sum() < count else (lo, k)
+    return spend(hi)
 
 
 def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
