@@ -53,12 +53,13 @@ def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, mat
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
     `progress(done, total, label)` is called as work proceeds; `info`, if a dict, receives
     "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
-    (the worst view), "psnr_all_views", "inset_pixels", "views" and (target mode) "reached".
+    (the worst view), "psnr_views", "worst_view", "worst_view_distance", "psnr_all_views",
+    "inset_pixels", "views", "spread" (budgets) and (target mode) "reached" and "limit" (why not).
 
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
     source_triangle, k]] + normal_offset * (unit normal of the face's winding). The offset is 0
-    without views; with views, closed surfaces are pulled in by about a pixel of the views.
+    without calibration; with it, solid parts are pulled in by about a pixel of the views.
     Degenerate faces (zero area, non-finite vertices) get no splats; ValueError for malformed
     arrays or a mesh without any face of positive area.
     """
@@ -394,12 +395,19 @@ def _nearest_behind(points, normals, order, lo, hi, reach, best, chunk=1 << 20):
     while start < len(points):
         stop = max(int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk, "right")), start + 1)
         n = counts[start:stop]
-        i = np.repeat(np.arange(start, stop), n)
-        j = order[np.repeat(lo[start:stop], n) + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))]
-        d = points[j] - points[i]
-        depth = -np.einsum("ij,ij->i", d, normals[i])
-        lateral2 = np.einsum("ij,ij->i", d, d) - depth**2
-        facing = np.einsum("ij,ij->i", normals[i], normals[j]) < -0.3
-        ok = facing & (depth > 0) & (depth < reach) & (lateral2 <= depth**2)
-        np.minimum.at(best, i[ok], depth[ok])
+        total = int(n.sum())
+        if total:
+            first = np.cumsum(n) - n
+            i = np.repeat(np.arange(start, stop), n)
+            j = order[np.repeat(lo[start:stop], n) + (np.arange(total) - np.repeat(first, n))]
+            d = points[j] - points[i]
+            depth = -np.einsum("ij,ij->i", d, normals[i])
+            lateral2 = np.einsum("ij,ij->i", d, d) - depth**2
+            facing = np.einsum("ij,ij->i", normals[i], normals[j]) < -0.3
+            ok = facing & (depth > 0) & (depth < reach) & (lateral2 <= depth**2)
+            # Candidates come grouped by point, so a segmented minimum replaces a scatter.
+            has = n > 0
+            nearest = np.minimum.reduceat(np.where(ok, depth, np.inf), first[has])
+            rows = np.arange(start, stop)[has]
+            best[rows] = np.minimum(best[rows], nearest)
         start = stop
