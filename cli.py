@@ -5,6 +5,7 @@ To add a verb, write `_add_<verb>(parser)` and `_run_<verb>(args)` and list them
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
@@ -38,6 +39,50 @@ def _parse_vec(text):
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
     return np.array(values)
+
+
+class OptionError(ValueError):
+    """An option whose value is out of its range or makes no camera (exit status 1, as for a bad
+    file)."""
+
+
+class UsageError(Exception):
+    """An option the files given cannot use, e.g. --half for a PLY output (exit status 2, as
+    argparse's own usage errors)."""
+
+
+def _three(ok):
+    return lambda v: len(v) == 3 and bool(np.isfinite(v).all()) and ok(v)
+
+
+# dest: (what the value must be, test). Checked after parsing for every verb with that option; NaN
+# fails every comparison, so it is refused everywhere.
+RANGES = {
+    "width": ("a whole number >= 1", lambda v: v >= 1),
+    "height": ("a whole number >= 1", lambda v: v >= 1),
+    "fov": ("a horizontal field of view in degrees, between 0 and 180 (both excluded)", lambda v: 0 < v < 180),
+    "ortho_scale": ("a width in world units, finite and > 0", lambda v: 0 < v < math.inf),
+    "near": ("a distance, finite and > 0", lambda v: 0 < v < math.inf),
+    "camera_pos": ("3 finite numbers x,y,z", _three(lambda v: True)),
+    "look_at": ("3 finite numbers x,y,z", _three(lambda v: True)),
+    "up": ("3 finite numbers x,y,z, not all zero", _three(lambda v: bool(np.any(v)))),
+    "background": ("3 numbers r,g,b from 0 to 1, or 'none'", _three(lambda v: bool(((0 <= v) & (v <= 1)).all()))),
+    "prune_opacity": ("an opacity from 0 to 1", lambda v: 0 <= v <= 1),
+    "prune_invisible": ("a blending weight from 0 up to (not including) 1", lambda v: 0 <= v < 1),
+    "views": ("a whole number from 1 to 1000", lambda v: 1 <= v <= 1000),
+    "view_size": ("a whole number of pixels from 1 to 4096", lambda v: 1 <= v <= 4096),
+    "max_splats": ("a whole number from 1 to 2147483647", lambda v: 1 <= v <= 2**31 - 1),
+    "target_psnr": ("a PSNR in dB, finite and > 0", lambda v: 0 < v < math.inf),
+}
+
+
+def check_ranges(args):
+    """Refuse (OptionError naming the option) any numeric option outside its range."""
+    for dest, (what, ok) in RANGES.items():
+        value = getattr(args, dest, None)
+        if value is not None and not ok(value):
+            shown = ",".join(f"{x:g}" for x in value) if isinstance(value, np.ndarray) else f"{value:g}"
+            raise OptionError(f"--{dest.replace('_', '-')} must be {what}, got {shown}")
 
 
 # info ---------------------------------------------------------------------------------------------
@@ -113,39 +158,37 @@ def _add_convert(p):
 
 def _write_options(args):
     """Format-specific write options from the convert flags, refusing flags the output cannot use."""
-    from .io import SplatFileError, format_of
+    from .io import format_of
     fmt = format_of(args.output)
     options = {}
     if args.spz_version is not None:
         if fmt != "spz":
-            raise SplatFileError(args.output, "--spz-version needs a .spz output")
+            raise UsageError(f"--spz-version needs a .spz output, not {args.output}")
         options["version"] = args.spz_version
     if args.half:
         if fmt != "usd":
-            raise SplatFileError(args.output, "--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
+            raise UsageError(f"--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz), not {args.output}")
         options["half"] = True
     if args.axes is not None:
         if fmt != "usd":
-            raise SplatFileError(args.output, "--axes needs an OpenUSD output (.usd, .usda, .usdc, .usdz)")
+            raise UsageError(f"--axes needs an OpenUSD output (.usd, .usda, .usdc, .usdz), not {args.output}")
         options["layout"] = args.axes
     return options
 
 
 def _read_options(args):
     """Format-specific read options from the convert flags."""
-    from .io import SplatFileError, format_of
+    from .io import format_of
     if args.usd_input is None:
         return {}
     if format_of(args.input) != "usd":
-        raise SplatFileError(args.input, "--usd-input needs an OpenUSD input (.usd, .usda, .usdc, .usdz)")
+        raise UsageError(f"--usd-input needs an OpenUSD input (.usd, .usda, .usdc, .usdz), not {args.input}")
     return {"unmarked": args.usd_input}
 
 
 def _run_convert(args):
     from .io import read_splats, write_splats
     options = _write_options(args)
-    if args.views < 1 or args.view_size < 1:
-        raise SystemExit("splatwright convert: error: --views and --view-size must be >= 1")
     cloud = read_splats(args.input, **_read_options(args))
     stages = _economy_stages(args, cloud, options)
     if stages:
@@ -174,7 +217,7 @@ def _economy_stages(args, cloud, options):
             weight = f" (weight <= {args.prune_invisible:g})" if args.prune_invisible else ""
             stages.append((f"prune invisible{weight}", cloud, plain))
     except ValueError as exc:
-        raise SystemExit(f"splatwright convert: error: {exc}") from None
+        raise OptionError(str(exc)) from None
     if args.sh_degree is not None and args.sh_degree != cloud.sh_degree:
         stages.append((f"SH degree {cloud.sh_degree} -> {args.sh_degree}", cloud.with_sh_degree(args.sh_degree), plain))
     if args.half:
@@ -248,25 +291,30 @@ def _add_render(p):
 
 def _run_render(args):
     from .core import economy
-    from .core.camera import frame_points
-    from .core.render import render
+    from .core.camera import Camera, frame_points
+    from .core.render import check_image_memory, render
     from .io import read_splats
     from .io.image import write_image
-    for name in ("camera_pos", "look_at", "up", "background"):
-        value = getattr(args, name)
-        if value is not None and len(value) != 3:
-            raise SystemExit(f"splatwright render: error: --{name.replace('_', '-')} needs 3 numbers")
-    if args.width < 1 or args.height < 1:
-        raise SystemExit("splatwright render: error: --width and --height must be >= 1")
+    try:                                        # before the file is read and anything allocated
+        check_image_memory(Camera(args.width, args.height, 1.0, 1.0, 0.0, 0.0))
+    except ValueError as exc:
+        raise OptionError(f"--width, --height: {exc}") from None
     cloud = read_splats(args.input)
     try:
         camera = frame_points(economy.cloud_points(cloud), args.width, args.height, args.fov,
                               ortho_scale=args.ortho_scale, eye=args.camera_pos, target=args.look_at, up=args.up,
                               near=args.near)
     except ValueError as exc:
-        raise SystemExit(f"splatwright render: error: {exc}") from None
+        raise OptionError(f"--camera-pos, --look-at: {exc}") from None
+    up = args.up / np.linalg.norm(args.up)
+    if np.linalg.norm(np.cross(camera.forward, up)) < 1e-6:
+        raise OptionError(f"--up ({','.join(f'{x:g}' for x in args.up)}) is parallel to the view direction; "
+                          "give an up that is not")
     start = time.perf_counter()
-    result = render(cloud, camera, background=args.background, mode=args.mode, progress=Progress())
+    try:
+        result = render(cloud, camera, background=args.background, mode=args.mode, progress=Progress())
+    except ValueError as exc:                   # its memory check again, for the kernels it will use
+        raise OptionError(str(exc)) from None
     write_image(args.output, result)
     skipped = result.stats["skipped_nonfinite"]
     print(f"rendered {result.stats['visible']} of {len(cloud)} splats at {args.width}x{args.height} in "
@@ -352,14 +400,16 @@ def _run_urdf2splats(args):
     from .io import SplatFileError, write_splats
     from .io.urdf import read_robot
     start = time.perf_counter()
-    if args.max_splats is not None and args.max_splats < 1:
-        raise SystemExit("splatwright urdf2splats: error: --max-splats must be >= 1")
     values = {}
     for item in args.joint:
         name, sep, text = item.partition("=")
-        if not sep:
-            raise SystemExit(f"splatwright urdf2splats: error: --joint expects NAME=VALUE, got '{item}'")
-        values[name] = _parse_vec(text)
+        try:
+            values[name] = _parse_vec(text)
+        except argparse.ArgumentTypeError:
+            values[name] = None
+        if not sep or values[name] is None or not np.isfinite(values[name]).all():
+            raise OptionError(f"--joint expects NAME=VALUE with finite numbers (comma-separated for several), "
+                              f"got '{item}'")
     info = {}
     robot = read_robot(args.urdf, args.package_path, max_splats=args.max_splats, target_psnr=args.target_psnr,
                        progress=Progress(), info=info)
@@ -408,12 +458,20 @@ def build_parser():
 
 
 def main(argv=None):
+    """Run one verb. Exit status: 0 done; 1 a file or value error (a file that cannot be read or
+    written, an option out of range); 2 a usage error (argparse's: an unknown option, a missing
+    argument, text where a number belongs; ours: an option the files given cannot use). The
+    message names the file or option either way."""
     args = build_parser().parse_args(argv)
     from .core import SplatValidationError
     from .io import SplatFileError
     try:
+        check_ranges(args)
         return args.run(args)
-    except (SplatFileError, SplatValidationError) as exc:
+    except (SplatFileError, SplatValidationError, OptionError) as exc:
+        print(f"splatwright {args.verb}: error: {exc}", file=sys.stderr)
+        return 1
+    except UsageError as exc:
         print(f"splatwright {args.verb}: error: {exc}", file=sys.stderr)
         return 2
 

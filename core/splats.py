@@ -12,6 +12,33 @@ FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 # similarity; the covariance error that allows (about twice this, relative) is float32 round-off.
 SIMILARITY_TOLERANCE = 1e-6
 
+# Values that overflow once used count as non-finite: a position coordinate beyond MAX_MAGNITUDE
+# squares (and sums three squares, as distances and depths do) past float32's largest number, and a
+# log-scale beyond MAX_LOG_SCALE has a linear scale exp(log_scale) past it (what OpenUSD, .splat and
+# glTF store; exp(1e30) is inf outright). Quaternions are normalised in float64 (any float32 norm is
+# fine), logits go through a sigmoid and SH enter colours linearly: those fields are refused only for
+# NaN and Inf.
+MAX_MAGNITUDE = float(np.sqrt(np.finfo(np.float32).max / 3.0))     # about 1.06e19
+MAX_LOG_SCALE = 88.72                                               # exp: 3.39e38, float32's largest is 3.40e38
+BOUNDED_FIELDS = ("positions",)
+
+
+def bad_rows(name, values):
+    """(N,) True where a splat's values of field `name` (or of a float extra) are NaN, infinite, or
+    overflow float32 once activated (see MAX_MAGNITUDE and MAX_LOG_SCALE). Integer extras are never bad."""
+    values = np.asarray(values)
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))     # also for N = 0
+    if values.dtype.kind not in "fc":
+        return np.zeros(len(values), bool)
+    with np.errstate(invalid="ignore"):
+        if name == "log_scales":
+            ok = (flat <= MAX_LOG_SCALE) & (flat > -np.inf)          # NaN fails both; -inf is a zero scale
+        elif name in BOUNDED_FIELDS:
+            ok = np.abs(flat) <= MAX_MAGNITUDE
+        else:
+            ok = np.isfinite(flat)
+    return ~ok.all(axis=1) if flat.shape[1] else np.zeros(len(values), bool)
+
 
 class SplatValidationError(ValueError):
     """A cloud whose arrays are malformed or hold values no renderer can use."""
@@ -119,7 +146,8 @@ class SplatCloud:
 
     @property
     def scales(self):
-        return np.exp(self.log_scales.astype(np.float64))
+        with np.errstate(over="ignore"):          # a log-scale beyond 709 is an infinite sigma: finite_mask says so
+            return np.exp(self.log_scales.astype(np.float64))
 
     @property
     def opacities(self):
@@ -209,14 +237,25 @@ class SplatCloud:
         if wrong:
             raise SplatValidationError("malformed splat cloud: " + "; ".join(wrong))
 
+    def checked_arrays(self):
+        """{name: array} of every field and float extra the non-finite rule covers; extras are
+        named "extra 'name'"."""
+        arrays = {name: getattr(self, name) for name in FIELDS}
+        arrays.update({f"extra '{k}'": v for k, v in self.extras.items() if v.dtype.kind in "fc"})
+        return arrays
+
+    def bad_counts(self):
+        """{field: splats with NaN/Inf or overflowing values in it}, only the fields that have some."""
+        counts = {}
+        for name, values in self.checked_arrays().items():
+            bad = int(bad_rows(name, values).sum())
+            if bad:
+                counts[name] = bad
+        return counts
+
     def problems(self):
         """Human-readable list of value problems (empty when the cloud is usable)."""
-        found = []
-        for name in FIELDS:
-            values = getattr(self, name)
-            bad = ~np.isfinite(values).reshape(len(values), -1).all(axis=1) if len(values) else np.zeros(0, bool)
-            if bad.any():
-                found.append(f"{int(bad.sum())} splats with non-finite {name}")
+        found = [f"{count} splats with non-finite {name}" for name, count in self.bad_counts().items()]
         qn = np.linalg.norm(self.rotations.astype(np.float64), axis=1)
         zero = np.isfinite(qn) & (qn < 1e-12)
         if zero.any():
@@ -231,9 +270,9 @@ class SplatCloud:
         return self
 
     def finite_mask(self):
-        """True for splats whose every stored value is finite."""
+        """True for splats whose every stored value (float extras included) is finite and stays
+        finite when activated (see bad_rows)."""
         ok = np.ones(len(self), bool)
-        for name in FIELDS:
-            values = getattr(self, name)
-            ok &= np.isfinite(values).reshape(len(self), int(np.prod(values.shape[1:]))).all(axis=1)   # also for N = 0
+        for name, values in self.checked_arrays().items():
+            ok &= ~bad_rows(name, values)
         return ok

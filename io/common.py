@@ -1,19 +1,20 @@
 """What every format shares: the error type and the write-then-rename rule."""
 
 import contextlib
+import contextvars
+import errno
+import itertools
 import os
-import tempfile
+import re
+import stat
+import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ..core.splats import FIELDS as CORE_FIELDS
 
 NONFINITE_POLICIES = ("raise", "keep", "drop")
-
-_UMASK = os.umask(0)
-os.umask(_UMASK)
 
 
 class SplatFileError(ValueError):
@@ -45,13 +46,9 @@ def check_nonfinite_policy(policy):
 
 
 def nonfinite_counts(cloud):
-    """{field: splats with a NaN/Inf in that field}, only the fields that have some."""
-    counts = {}
-    for name in CORE_FIELDS:
-        values = getattr(cloud, name)
-        if not np.isfinite(values).all():
-            counts[name] = int((~np.isfinite(values.reshape(len(values), -1)).all(axis=1)).sum())
-    return counts
+    """{field: splats with NaN/Inf, or values that overflow when activated, in that field (float
+    extras included)}, only the fields that have some (SplatCloud.bad_counts)."""
+    return cloud.bad_counts()
 
 
 def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
@@ -64,7 +61,8 @@ def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
         return cloud
     bad = ~cloud.finite_mask()
     detail = ", ".join(f"{name} in {c}" for name, c in counts.items())
-    what = f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf or beyond float32): {detail}"
+    what = (f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf, beyond float32, or "
+            f"overflowing float32 once activated): {detail}")
     if policy == "raise":
         raise SplatFileError(path, f"{what}; {verb} with nonfinite='keep' or 'drop' to go on anyway")
     warnings.warn(f"{path}: {what}; {'kept' if policy == 'keep' else 'dropped'}", SplatFileWarning, stacklevel=3)
@@ -89,43 +87,207 @@ def log_scales_from_linear(scales, notes):
 
 @contextlib.contextmanager
 def atomic_write(path, mode="wb"):
-    """Yield a temporary file beside `path`; rename it over `path` only if the block succeeds.
+    """Yield an open file for `path`'s new contents; `path` gets them only if the block succeeds.
 
-    A failed or interrupted write leaves neither a partial file nor a stray temporary behind, and
-    whatever was at `path` before is untouched.
+    The file is a partial, `<path>.splatwright-partial-<pid>` beside the target (never a name with
+    the target's extension, never a temporary folder). On success it is fsynced, given the
+    permissions of the file it replaces (a new file gets what open() makes under the umask),
+    renamed over the target, and the folder fsynced (not on Windows). A symlink at `path` is
+    written through: the file it points to is replaced and the link stays; a dangling link gets
+    its target made. Any failure removes the partial and leaves the target as it was, and every
+    OSError, the block's own writes included, becomes a SplatFileError naming `path` (disk full,
+    no permission, missing folder, a folder in the way). A killed process leaves the target whole
+    and at most its partial, which the next write into that folder removes (_sweep_partials).
+    Inside publish_together() the rename waits for the end of the group.
     """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
+    with _partial(path) as (fd, _):
         with os.fdopen(fd, mode) as f:
             yield f
-        _publish(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+            f.flush()
+            os.fsync(f.fileno())
 
 
 @contextlib.contextmanager
 def atomic_path(path):
-    """Like atomic_write, for libraries that insist on writing a file by name themselves.
-
-    Yields a temporary path with the same extension (so extension-sniffing writers pick the right
-    format) and renames it over `path` when the block succeeds.
-    """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent or ".")
-    os.close(fd)
-    try:
+    """Like atomic_write, for libraries that insist on writing a file by name themselves (pxr,
+    OpenEXR). The name yielded does not end in `path`'s extension: tell the library the format."""
+    with _partial(path) as (fd, tmp):
+        os.close(fd)
         yield tmp
-        _publish(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+        fd = os.open(tmp, os.O_RDWR if os.name == "nt" else os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+PARTIAL_TAG = ".splatwright-partial-"
+STALE_AFTER = 24 * 3600     # seconds: a partial this old is swept whoever wrote it
+_PARTIAL_NAME = re.compile(re.escape(PARTIAL_TAG) + r"(\d+)")
+
+
+@contextlib.contextmanager
+def _partial(path):
+    """atomic_write's rule, for both helpers: yields (open fd, name) of a new partial file, then
+    (once the caller has fsynced it) publishes it or, on any failure, removes it."""
+    target = _write_target(path)
+    _sweep_partials(target.parent)
+    mode = _existing_mode(target)
+    try:
+        fd, tmp = _create_partial(target, 0o666 if mode is None else mode | 0o600)   # the writer may reopen it
+    except OSError as exc:
+        raise SplatFileError(path, _write_problem(exc, target)) from None
+    try:
+        yield fd, tmp
+        if mode is not None:            # exactly the replaced file's, whatever the umask
+            os.chmod(tmp, mode)
+        group = _together.get()
+        if group is not None:
+            group.append((path, tmp, target))
+            return
+        os.replace(tmp, target)
+    except BaseException as exc:
+        _remove_partial(tmp)
+        if isinstance(exc, OSError):
+            raise SplatFileError(path, _write_problem(exc, target)) from exc
         raise
+    _fsync_folder(target.parent)
 
 
-def _publish(tmp, path):
-    # mkstemp makes 0600 files; give the result the permissions a plain open() would have.
-    os.chmod(tmp, 0o666 & ~_UMASK)
-    os.replace(tmp, path)
+_together = contextvars.ContextVar("splatwright_publish_together", default=None)
+
+
+@contextlib.contextmanager
+def publish_together():
+    """Hold back the renames of every atomic write in the block until it ends: the files appear
+    together when the block succeeds (one after another, each whole), and none does when it fails
+    (every partial is removed)."""
+    if _together.get() is not None:                 # inside another group: its renames decide
+        yield
+        return
+    group = []
+    token = _together.set(group)
+    try:
+        yield
+        _together.reset(token)
+        token = None
+        while group:
+            path, tmp, target = group[0]
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise SplatFileError(path, _write_problem(exc, target)) from exc
+            group.pop(0)
+            _fsync_folder(target.parent)
+    finally:
+        if token is not None:
+            _together.reset(token)
+        for _, tmp, _ in group:
+            _remove_partial(tmp)
+
+
+def _write_target(path):
+    """The file a write to `path` replaces (through symlinks), or a SplatFileError when there is
+    none to write: a folder, a device or pipe, a symlink loop, or a folder that does not exist."""
+    path = Path(path)
+    target = Path(os.path.realpath(path))
+    if target.is_symlink():
+        raise SplatFileError(path, "is a symbolic link that loops; nothing to write to")
+    if target.is_dir():
+        raise SplatFileError(path, "is a folder, not a file")
+    if target.exists() and not target.is_file():
+        raise SplatFileError(path, "is not a regular file (a device or a pipe?); write to a file")
+    if not target.parent.is_dir():
+        raise SplatFileError(path, f"cannot write: the folder {target.parent} does not exist")
+    return target
+
+
+def _create_partial(target, mode):
+    """A new partial file for `target`, made with `mode` under the umask as open() makes files."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    base = f"{target}{PARTIAL_TAG}{os.getpid()}"
+    for n in itertools.count():
+        tmp = base if n == 0 else f"{base}-{n}"      # another thread writing the same target
+        try:
+            return os.open(tmp, flags, mode), tmp
+        except FileExistsError:
+            continue
+
+
+def _remove_partial(tmp):
+    """Remove a partial and whatever its writer made from its name (a .usdz's layer, pxr's own
+    `<name>.XXXXXX` temporary when its save fails)."""
+    folder, name = os.path.split(tmp)
+    with contextlib.suppress(OSError):
+        os.unlink(tmp)
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(folder or "."):
+            if entry.name.startswith(name + ".") and entry.is_file(follow_symlinks=False):
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
+
+
+def _sweep_partials(folder):
+    """Remove the partials a killed write left in `folder`: those whose process is gone (on this
+    machine; where that cannot be told, Windows, only by age) and any older than STALE_AFTER."""
+    try:
+        entries = [e for e in os.scandir(folder) if PARTIAL_TAG in e.name]
+    except OSError:
+        return
+    now = time.time()
+    for entry in entries:
+        match = _PARTIAL_NAME.search(entry.name)
+        with contextlib.suppress(OSError):          # gone already, or not ours to remove
+            if match and entry.is_file(follow_symlinks=False) and (
+                    not _process_alive(int(match.group(1)))
+                    or now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER):
+                os.unlink(entry.path)
+
+
+def _process_alive(pid):
+    if os.name == "nt" or pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:                                 # alive, another user's
+        return True
+    return True
+
+
+def _existing_mode(target):
+    try:
+        return stat.S_IMODE(os.stat(target).st_mode)
+    except FileNotFoundError:
+        return None
+
+
+def _fsync_folder(folder):
+    """Make the rename itself durable; folders cannot be opened on Windows, and some file systems
+    refuse to sync one (nothing more to do there)."""
+    if os.name == "nt":
+        return
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+_WRITE_HINTS = {
+    errno.ENOSPC: "the disk is full",
+    getattr(errno, "EDQUOT", -1): "the disk quota is used up",
+    errno.EROFS: "the folder {folder} is on a read-only file system",
+    errno.EACCES: "no permission to write in the folder {folder}",
+    errno.EPERM: "no permission to write in the folder {folder}",
+    errno.ENOENT: "the folder {folder} does not exist",
+}
+
+
+def _write_problem(exc, target):
+    if exc.errno == errno.EISDIR:
+        return "is a folder, not a file"
+    hint = _WRITE_HINTS.get(exc.errno)
+    return f"cannot write: {exc.strerror or exc}" + (f" ({hint.format(folder=target.parent)})" if hint else "")

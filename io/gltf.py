@@ -30,7 +30,7 @@ from ..core import SplatCloud
 from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
-                     log_scales_from_linear)
+                     log_scales_from_linear, publish_together)
 from .spz import flip_axes
 
 EXTENSION = "KHR_gaussian_splatting"
@@ -368,10 +368,11 @@ def write(path, cloud, nonfinite="raise"):
     if str(path).lower().endswith(".gltf"):
         bin_path = Path(path).with_suffix(".bin")
         doc["buffers"][0]["uri"] = bin_path.name
-        with atomic_write(bin_path) as f:
-            f.write(binary)
-        with atomic_write(path) as f:
-            f.write(json.dumps(doc, indent=1).encode("utf-8"))
+        with publish_together():                      # both files, or neither
+            with atomic_write(bin_path) as f:
+                f.write(binary)
+            with atomic_write(path) as f:
+                f.write(json.dumps(doc, indent=1).encode("utf-8"))
         return
     text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
     text += b" " * (-len(text) % 4)

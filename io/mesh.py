@@ -8,6 +8,9 @@ converted to linear here), `map_Kd` images are sRGB-encoded 8/16-bit images read
 
 Malformed lines raise SplatFileError naming the file and line. A missing MTL file or texture
 image is reported with a warning and the material falls back to its `Kd` (or the default grey).
+MTL files and textures are read only from the OBJ's folder and below (io.policy: absolute paths,
+`../` escapes and working-directory names are refused with a warning that does not say whether the
+file exists), and a texture beyond policy.MAX_IMAGE_PIXELS is refused from its header.
 """
 
 import warnings
@@ -18,6 +21,9 @@ import numpy as np
 from ..core import color
 from ..core.mesh import Material, Mesh
 from .common import SplatFileError, read_text
+from .policy import MAX_IMAGE_PIXELS, inside, outside_message
+
+THE_FOLDER = "the model's folder"
 
 # map_* options and how many numbers each takes (at most; -o/-s/-t take one to three).
 _MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
@@ -92,12 +98,17 @@ class _ObjReader:
         return self.material_index[name]
 
     def _library(self, names):
+        folder = self.path.parent
         candidates = [names] + names.split()
-        found = next((self.path.parent / n for n in candidates if (self.path.parent / n).is_file()), None)
+        allowed = [inside(folder, folder, n) for n in candidates]
+        found = next((p for p in allowed if p is not None and p.is_file()), None)
         if found is None:
-            warnings.warn(f"{self.path}: material library '{names}' not found; using default colours")
+            refused = [n for n, p in zip(candidates, allowed) if p is None]
+            why = (f"material library {outside_message(refused[0], THE_FOLDER)}" if refused
+                   else f"material library '{names}' not found")
+            warnings.warn(f"{self.path}: {why}; using default colours")
             return
-        self.library.update(read_mtl(found))
+        self.library.update(read_mtl(found, root=folder))
         # Materials used before their library was named pick up its definitions.
         for name, i in self.material_index.items():
             if name in self.library:
@@ -166,9 +177,11 @@ def _index(text, count, what):
     return resolved
 
 
-def read_mtl(path):
-    """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image."""
+def read_mtl(path, root=None):
+    """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image. Textures
+    are read only from the folder `root` (default: the MTL's own) and below."""
     path = Path(path)
+    root = path.parent if root is None else Path(root)
     materials, current = {}, None
     for number, line in enumerate(read_text(path).splitlines(), 1):
         parts = line.split("#", 1)[0].split()
@@ -185,13 +198,13 @@ def read_mtl(path):
                 values = _finite(parts[1:4])
                 current.base_color = tuple(values + [values[-1]] * (3 - len(values)))
             elif key == "map_kd":
-                _texture(current, parts[1:], path)
+                _texture(current, parts[1:], path, root)
         except (ValueError, IndexError) as exc:
             raise SplatFileError(path, f"line {number}: {exc}: '{line.strip()[:80]}'") from None
     return materials
 
 
-def _texture(material, args, mtl_path):
+def _texture(material, args, mtl_path, root):
     options, i = {}, 0
     while i < len(args) and args[i].lower() in _MAP_OPTIONS:
         name, most = args[i].lower(), _MAP_OPTIONS[args[i].lower()]
@@ -204,10 +217,8 @@ def _texture(material, args, mtl_path):
         options[name] = values
     if i >= len(args):
         raise ValueError("map_Kd without a file name")
-    image_path = _find_image(" ".join(args[i:]), mtl_path.parent)
+    image_path = _find_image(mtl_path, material, " ".join(args[i:]), root)
     if image_path is None:
-        warnings.warn(f"{mtl_path}: texture '{' '.join(args[i:])}' of material '{material.name}' not found; "
-                      f"using its Kd colour")
         return
     material.texture = load_image(image_path)
     material.texture_srgb = True
@@ -221,25 +232,52 @@ def _pair(values, default):
 
 
 def load_image(path):
-    """An image file as a uint8/uint16 array (H,W,3), row 0 at the top."""
+    """An image file as a uint8/uint16 array (H,W,3), row 0 at the top. An image of more than
+    policy.MAX_IMAGE_PIXELS is refused from its header, before any pixel is decoded."""
     from PIL import Image
     try:
-        with Image.open(path) as img:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)      # our limit is lower
+            img = Image.open(path)             # reads the header only; pixels are decoded on use
+        with img:
+            width, height = img.size
+            if width * height > MAX_IMAGE_PIXELS:
+                raise SplatFileError(path, f"image of {width} x {height} pixels, more than the "
+                                           f"{MAX_IMAGE_PIXELS} ({_side(MAX_IMAGE_PIXELS)}) textures may have")
             if img.mode in ("I;16", "I;16B", "I;16L", "I"):
                 a = np.asarray(img, dtype=np.uint32)
                 return np.repeat(np.clip(a, 0, 65535).astype(np.uint16)[:, :, None], 3, axis=2)
             return np.asarray(img.convert("RGB"))
     except (OSError, ValueError, EOFError, SyntaxError, Image.DecompressionBombError) as exc:
+        if isinstance(exc, SplatFileError):
+            raise
         # Pillow reports a corrupt or hostile file (a header claiming 10^10 pixels) in all of these.
         raise SplatFileError(path, f"cannot read image: {exc}") from None
 
 
-def _find_image(name, folder):
+def _side(pixels):
+    side = int(round(pixels ** 0.5))
+    return f"{side} x {side}" if side * side == pixels else f"{pixels} pixels"
+
+
+def _find_image(mtl_path, material, name, root):
+    """The texture `name` names (relative to the MTL's folder), or the file of that name beside the
+    MTL (exporters write absolute paths of the machine they ran on); only inside `root`. Refusals
+    and misses are warned about, and the material keeps its Kd colour."""
     name = name.strip().strip('"').replace("\\", "/")
-    for candidate in (Path(name), folder / name, folder / Path(name).name):
-        if candidate.is_file():
-            return candidate
-    return None
+    folder = mtl_path.parent
+    named = inside(root, folder, name)
+    if named is not None and named.is_file():
+        return named
+    beside = inside(root, folder, Path(name).name)
+    use = beside if beside is not None and beside.is_file() else None
+    if named is None:
+        instead = f"; read '{Path(name).name}' beside the MTL instead" if use else "; using its Kd colour"
+        warnings.warn(f"{mtl_path}: texture of material '{material.name}' {outside_message(name, THE_FOLDER)}"
+                      f"{instead}")
+    elif use is None:
+        warnings.warn(f"{mtl_path}: texture '{name}' of material '{material.name}' not found; using its Kd colour")
+    return use
 
 
 def _is_number(text):

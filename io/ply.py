@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core import SplatCloud
-from ..core.splats import FIELDS as CORE_FIELDS
+from ..core.splats import bad_rows
 from ..core import jit, sh as shmod
 from ..core.parallel import WORKERS, in_chunks
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
@@ -41,6 +41,8 @@ TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": 
 FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
 
 NORMALS = ("nx", "ny", "nz")
+_BLANK_LINE = re.compile(r"(?:^|\n)[ \t\r]*(?=\n|$)")
+CORE = "layout columns"     # the record field holding the layout: whitespace, so no PLY property can clash
 REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
             "rot_0", "rot_1", "rot_2", "rot_3")
 MAX_HEADER = 1 << 20
@@ -175,6 +177,11 @@ def _read_ascii(path, elements, index, header_len):
         raise SplatFileError(path, "ASCII PLY data holds non-ASCII bytes") from None
     while lines and not lines[-1].strip():
         lines.pop()
+    blank = _BLANK_LINE.search("\n".join(lines)) if lines else None
+    if blank:      # np.loadtxt would skip it and shift every row after it
+        row = blank.string.count("\n", 0, blank.end()) + 1
+        raise SplatFileError(path, f"data line {row} (counted after the header) is blank; "
+                                   "ASCII PLY has one element per line")
     vertex = elements[index]
     start = sum(e.count for e in elements[:index])
     expected = sum(e.count for e in elements)
@@ -259,25 +266,22 @@ def _chunks(rows):
 
 
 def _nonfinite_rows(arrays, rows):
-    """{field: splats among `rows` with a NaN/Inf in that field}, only fields that have some."""
+    """{field: splats among `rows` that the non-finite rule refuses in that field (core.splats.bad_rows)},
+    only fields that have some."""
     found = {}
     for name, a in arrays.items():
-        block = a[rows]
-        if not np.isfinite(block).all():
-            found[name] = int((~np.isfinite(block.reshape(len(block), -1)).all(axis=1)).sum())
+        bad = int(bad_rows(name, a[rows]).sum())
+        if bad:
+            found[name] = bad
     return found
 
 
-def _merge(tallies):
+def _merge(tallies, order):
     total = {}
     for tally in tallies:
         for name, count in tally.items():
             total[name] = total.get(name, 0) + count
-    return {name: total[name] for name in CORE_FIELDS if name in total}
-
-
-def _core_arrays(cloud):
-    return {name: getattr(cloud, name) for name in CORE_FIELDS}
+    return {name: total[name] for name in order if name in total}
 
 
 def _block(records, names):
@@ -321,6 +325,7 @@ class _Converter:
         # Normals belong to the layout, so they are float32 like its other fields; extras keep their dtype.
         self.extras = {p: np.empty(n, np.float32 if p in NORMALS else dtype[p].newbyteorder("="))
                        for p in dtype.names if p not in layout}
+        self._float_extras = {f"extra '{p}'": a for p, a in self.extras.items() if a.dtype.kind == "f"}
         self.tallies = []
 
     def convert(self, records, rows):
@@ -338,7 +343,7 @@ class _Converter:
         with np.errstate(over="ignore"):
             for name, values in self.extras.items():
                 values[rows] = records[name]
-        self.tallies.append(_nonfinite_rows(out, rows))
+        self.tallies.append(_nonfinite_rows({**out, **self._float_extras}, rows))
 
     def cloud(self):
         extras = dict(self.extras)
@@ -378,7 +383,8 @@ def read(path, nonfinite="raise"):
     if convert.flat:
         warnings.warn(f"{path}: 2DGS file (scale_0, scale_1 only); third axis set flat "
                       f"(sigma {FLAT_SIGMA:g}, log-scale {FLAT_LOG_SCALE:.4f})", SplatFileWarning, stacklevel=2)
-    return apply_nonfinite_policy(path, convert.cloud(), nonfinite, "read", _merge(convert.tallies))
+    cloud = convert.cloud()
+    return apply_nonfinite_policy(path, cloud, nonfinite, "read", _merge(convert.tallies, cloud.checked_arrays()))
 
 
 def _load(path):
@@ -419,7 +425,7 @@ def write(path, cloud, nonfinite="raise"):
         cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     names = layout_names(cloud.sh_degree)
     extras = _extra_columns(path, cloud, set(names))
-    dtype = np.dtype([("core", "<f4", (len(names),))] + [(name, a.dtype.newbyteorder("<")) for name, a in extras])
+    dtype = np.dtype([(CORE, "<f4", (len(names),))] + [(name, a.dtype.newbyteorder("<")) for name, a in extras])
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(cloud)}"]
     header += [f"property float {name}" for name in names]
     header += [f"property {TYPE_NAMES[a.dtype.str[1:]]} {name}" for name, a in extras]
@@ -437,11 +443,11 @@ def write(path, cloud, nonfinite="raise"):
                 for chunk in _chunks(rows):
                     part = buffer[:chunk.stop - chunk.start]
                     if not fill(part, chunk):                  # tally the non-finite values (rarely)
-                        tallies.append(_nonfinite_rows(_core_arrays(cloud), chunk))
+                        tallies.append(_nonfinite_rows(cloud.checked_arrays(), chunk))
                     _write_at(f.fileno(), part, len(header) + chunk.start * dtype.itemsize)
             _in_parallel(len(cloud), fill_and_write)
             if nonfinite == "raise":
-                apply_nonfinite_policy(path, cloud, "raise", "write", _merge(tallies))
+                apply_nonfinite_policy(path, cloud, "raise", "write", _merge(tallies, cloud.checked_arrays()))
     except OSError as exc:
         raise SplatFileError(path, f"cannot write: {exc.strerror or exc}") from exc
 
@@ -467,16 +473,16 @@ class _Filler:
 
     def __call__(self, part, rows):
         if self.kernels is not None:
-            finite = self.kernels.fill_rows(*self.arrays, rows.start, part["core"])
+            finite = self.kernels.fill_rows(*self.arrays, rows.start, part[CORE])
             for name, values in self.extras:
                 part[name] = values[rows]
             return finite
         self._fill(part, rows)
-        return np.isfinite(part["core"]).all()
+        return np.isfinite(part[CORE]).all()
 
     def _fill(self, part, rows):
         """The NumPy path: one block of columns at a time."""
-        cloud, core, m = self.cloud, part["core"], self.m
+        cloud, core, m = self.cloud, part[CORE], self.m
         core[:, 0:3] = cloud.positions[rows]
         for i, normal in enumerate(self.normals):
             core[:, 3 + i] = 0.0 if normal is None else normal[rows]
@@ -493,7 +499,7 @@ def _check_kernels(kernels):
     """The compiled fill against the NumPy one on a small cloud (compiling it, or loading the cache)."""
     from ..core.scenes import seed_cube
     cloud = seed_cube(2)
-    dtype = np.dtype([("core", "<f4", (len(layout_names(cloud.sh_degree)),))])
+    dtype = np.dtype([(CORE, "<f4", (len(layout_names(cloud.sh_degree)),))])
     fast, slow = _Filler(cloud, [], kernels), _Filler(cloud, [])
     got, want = np.empty(len(cloud), dtype), np.empty(len(cloud), dtype)
     if not (fast(got, slice(0, len(cloud))) and slow(want, slice(0, len(cloud))) and np.array_equal(got, want)):

@@ -31,7 +31,8 @@ import numpy as np
 
 from ..core import SplatCloud
 from ..core.splats import logit, sigmoid
-from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
+from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
+                     publish_together)
 from .compressed_ply import morton_order
 
 FILES = {"means": ["means_l.webp", "means_u.webp"], "scales": ["scales.webp"], "quats": ["quats.webp"],
@@ -344,12 +345,13 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     files = encode(path, cloud)
     if str(path).lower().endswith("meta.json"):
         folder = Path(path).parent
-        for name, data in files.items():
-            if name != "meta.json":
-                with atomic_write(folder / name) as f:
-                    f.write(data)
-        with atomic_write(path) as f:              # last: the images it names are in place
-            f.write(files["meta.json"])
+        with publish_together():                    # meta.json and its images, or none of them
+            for name, data in files.items():
+                if name != "meta.json":
+                    with atomic_write(folder / name) as f:
+                        f.write(data)
+            with atomic_write(path) as f:          # renamed last: the images it names are in place
+                f.write(files["meta.json"])
         return
     with atomic_write(path) as f, zipfile.ZipFile(f, "w", zipfile.ZIP_STORED) as bundle:
         for name in ["meta.json"] + [name for name in files if name != "meta.json"]:

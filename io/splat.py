@@ -74,4 +74,4 @@ def write(path, cloud, nonfinite="raise"):
                       "view-dependent colour dropped", SplatFileWarning, stacklevel=2)
     rec = encode(cloud)
     with atomic_write(path) as f:
-        rec.tofile(f)
+        f.write(np.ascontiguousarray(rec).data)     # not tofile: it loses a full disk's error on small writes

@@ -42,6 +42,7 @@ from ..core import sh as shmod
 from ..core.parallel import in_chunks, map_threads
 from ..core.splats import logit
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write
+from .policy import SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR, STREAM_PIECE
 
 MAGIC = 0x5053474E
 VERSIONS = (2, 3, 4)
@@ -61,6 +62,7 @@ ISAL_LEVEL = 1                                 # ISA-L level 1: about zlib 6's s
 # header at least) holds at most 128 KiB. A header claiming more splats than that is lying.
 DEFLATE_MAX_RATIO = 1032
 ZSTD_BLOCK_HEADER, ZSTD_MAX_BLOCK = 3, 128 << 10
+EXTENSION_ROOM = 1 << 16                       # bytes of extension records a v2/v3 payload may carry
 
 
 # axis flips: two axes reversed (a half turn), exact since only signs change --------------------------
@@ -109,9 +111,22 @@ def _check_header(path, magic, version, n, degree, bits):
         raise SplatFileError(path, f"{bits} fractional bits in the header; a 24-bit position allows at most 23")
 
 
+def _check_claim(path, n, need, file_size):
+    """Refuse a header whose splats need more bytes than the stated limits allow (policy.SPZ_*): past
+    SPZ_MAX_BYTES, or past SPZ_MAX_RATIO times the compressed file once beyond SPZ_RATIO_FLOOR."""
+    if need > SPZ_MAX_BYTES:
+        raise SplatFileError(path, f"header claims {n} splats ({need} data bytes), more than the "
+                                   f"{SPZ_MAX_BYTES >> 30} GiB this reader decompresses")
+    if need > max(SPZ_RATIO_FLOOR, SPZ_MAX_RATIO * file_size):
+        raise SplatFileError(path, f"header claims {n} splats ({need} data bytes) in a {file_size}-byte file: "
+                                   f"more than {SPZ_MAX_RATIO}x its size, which no SPZ compresses to "
+                                   "(a decompression bomb, or a corrupt count)")
+
+
 def _gunzip_legacy(path, raw):
-    """(header fields, payload after the header) of a v2/v3 gzip file, decompressing no more than
-    the header says the file holds (plus extension records)."""
+    """(header fields, payload after the header) of a v2/v3 gzip file. The header's claim is checked
+    first (_check_claim), then the stream is inflated a piece at a time, stopping as soon as it
+    exceeds what the header says the file holds (plus extension records)."""
     if not raw.startswith(b"\x1f\x8b"):
         raise SplatFileError(path, "not an SPZ file (neither gzip nor an NGSP v4 header)")
     d = zlib.decompressobj(31)
@@ -127,12 +142,26 @@ def _gunzip_legacy(path, raw):
         if need > DEFLATE_MAX_RATIO * len(raw):
             raise SplatFileError(path, f"header claims {n} splats ({need} data bytes), more than a "
                                        f"{len(raw)}-byte gzip file can hold (truncated or corrupt?)")
-        body = d.decompress(d.unconsumed_tail, need + (1 << 16) + 1)
+        _check_claim(path, n, need, len(raw))
+        body = _inflate(d, need + EXTENSION_ROOM + 1)
     except zlib.error as exc:
         raise SplatFileError(path, f"corrupt gzip stream: {exc}") from None
-    if not d.eof and len(body) <= need + (1 << 16):
+    if not d.eof and len(body) <= need + EXTENSION_ROOM:
         raise SplatFileError(path, f"truncated: the gzip stream ends early ({len(body)} of {need} data bytes)")
-    return (version, n, degree, bits, flags), body
+    return (version, n, degree, bits, flags), memoryview(body)
+
+
+def _inflate(d, limit):
+    """At most `limit` bytes from the decompressobj `d`, inflated STREAM_PIECE at a time: memory grows
+    only with the data that is really there."""
+    out, data = bytearray(), d.unconsumed_tail
+    while not d.eof and len(out) < limit:
+        piece = d.decompress(data, min(STREAM_PIECE, limit - len(out)))
+        data = d.unconsumed_tail
+        if not piece and not data:
+            break
+        out += piece
+    return out
 
 
 def _split_legacy(path, fields, body):
@@ -179,6 +208,7 @@ def _split_v4(path, raw):
         raise SplatFileError(path, f"bad v4 table of contents ({streams} streams at byte {toc} of {len(raw)}; "
                                    f"{len(listed)} expected for SH degree {degree})")
     table = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
+    _check_claim(path, n, sum(size for _, size in listed), len(raw))
     decompressor = _zstd(path).ZstdDecompressor()
     blocks = {"extensions": raw[V4_HEADER.size:toc], "sh": b""}
     at = toc + 16 * streams
@@ -198,14 +228,22 @@ def _split_v4(path, raw):
 
 
 def _unzstd(path, name, decompressor, frame, size):
-    """One zstd frame that must hold `size` bytes. The frame's own content size is checked first:
-    zstandard allocates whatever a frame declares, whatever max_output_size says."""
+    """One zstd frame that must hold `size` bytes. The frame's own content size is checked first
+    (zstandard's one-shot decompress allocates whatever a frame declares), then the frame is read
+    through a stream reader STREAM_PIECE at a time, stopping one byte past `size`."""
     zstandard = _zstd(path)
     try:
         declared = zstandard.frame_content_size(frame)
         if declared not in (-1, size):
             raise SplatFileError(path, f"v4 {name} stream declares {declared} bytes, the header's splats need {size}")
-        return decompressor.decompress(frame, max_output_size=max(size, 1))   # 0 would mean no limit
+        out = bytearray()
+        with decompressor.stream_reader(frame) as reader:
+            while len(out) <= size:
+                piece = reader.read(min(STREAM_PIECE, size + 1 - len(out)))
+                if not piece:
+                    break
+                out += piece
+        return out
     except zstandard.ZstdError as exc:
         raise SplatFileError(path, f"corrupt zstd {name} stream: {exc}") from None
 

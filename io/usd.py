@@ -50,13 +50,14 @@ pxr, e.g. one bundled with Blender) the same prim and attributes are authored by
 generic API, giving the same file.
 """
 
+import contextlib
 import ctypes
 import itertools
+import contextlib
 import math
 import os
 import re
 import struct
-import tempfile
 import warnings
 import weakref
 from dataclasses import dataclass, field
@@ -69,12 +70,15 @@ from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_path, check_nonfinite_policy,
                      log_scales_from_linear)
 from . import usda
+from .policy import inside_package, outside_message, within
 from .spz import SH_FLIP, flip_yz
 
 try:
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt
+    PXR_ERRORS = (Tf.ErrorException,)
 except ImportError:             # text layers only, through usda (Blender 4.2 bundles no pxr)
     Usd = None
+    PXR_ERRORS = ()
 try:
     from pxr import UsdVol
 except ImportError:
@@ -151,8 +155,9 @@ def _require_pxr_for(path):
                                    "Python lacks (Blender 4.4 and later bundle it); write .usda, .usd or .usdz")
 
 
-def _open(path):
-    """The stage (a usda.Layer where pxr is missing) of a file whose header matches its extension."""
+def _open(path, allow_outside=False):
+    """The stage (a usda.Layer where pxr is missing) of a file whose header matches its extension;
+    its sublayers, references and payloads must lie in its package or folder (see _composed_layers)."""
     path = os.fspath(path)
     try:
         with open(path, "rb") as f:
@@ -165,13 +170,9 @@ def _open(path):
         raise SplatFileError(path, f"not a {os.path.splitext(path)[1]} file (it does not start with {names})")
     if Usd is None:
         return usda.read_layer(path)
-    if head.startswith(b"PXR-USDC"):
-        _check_crate(path)
-    layer = Sdf.Layer.Find(os.path.abspath(path))
-    if layer is not None:             # a layer still cached from an earlier open may be stale
-        layer.Reload(True)
     try:
-        stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+        layers = _composed_layers(path, allow_outside)      # held open until the stage uses them
+        stage = Usd.Stage.Open(layers[0], Usd.Stage.LoadAll)
     except Tf.ErrorException as exc:
         raise SplatFileError(path, f"OpenUSD cannot open it (truncated or corrupt?): {_tf_message(exc)}") from None
     if stage is None:
@@ -179,32 +180,304 @@ def _open(path):
     return stage
 
 
+def _layer(path, identifier):
+    """The Sdf layer at `identifier` (a file, or "pkg.usdz[inner]"), re-read if an earlier open left it
+    cached (it may be stale); crate files are checked before OpenUSD parses them. None if missing."""
+    _check_crate(path, identifier)
+    layer = Sdf.Layer.Find(identifier)
+    if layer is not None:
+        layer.Reload(True)
+    else:
+        layer = Sdf.Layer.FindOrOpen(identifier)
+    if layer is not None:
+        _check_children(path, layer)
+    return layer
+
+
+def _names(path, spec, key, where=""):
+    """The list of names a spec's field `key` holds ([] if unauthored); a damaged crate file can make
+    it any other type, which is a SplatFileError."""
+    if not spec.HasInfo(key):
+        return []
+    names = spec.GetInfo(key)
+    if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise SplatFileError(path, f"{where}{spec.path}: its {key} hold a {type(names).__name__}, "
+                                   "not a list of names (corrupt?)")
+    return names
+
+
+def _check_children(path, layer):
+    """Every prim and property a prim spec lists as its children must exist: OpenUSD composes a
+    stage by those lists and aborts the process ("Dereferenced an invalid SdfPrimSpec") on a name
+    without a spec, which one damaged token index in a crate file makes."""
+    where = "" if layer.identifier == os.path.abspath(path) else f"layer {layer.identifier}: "
+    todo = [layer.pseudoRoot]
+    while todo:
+        prim = todo.pop()
+        for name in _names(path, prim, "primChildren", where):
+            child = layer.GetPrimAtPath(prim.path.AppendChild(name)) if Sdf.Path.IsValidIdentifier(name) else None
+            if child is None:
+                raise SplatFileError(path, f"{where}prim {prim.path} lists a child {name!r} that the "
+                                           "layer does not hold (corrupt?)")
+            todo.append(child)
+        for name in _names(path, prim, "properties", where):
+            ok = Sdf.Path.IsValidNamespacedIdentifier(name) and \
+                layer.GetPropertyAtPath(prim.path.AppendProperty(name)) is not None
+            if not ok:
+                raise SplatFileError(path, f"{where}prim {prim.path} lists a property {name!r} that "
+                                           "the layer does not hold (corrupt?)")
+
+
+def _composed_layers(path, allow_outside):
+    """The root layer and every layer it composes (sublayers, references, payloads, recursively),
+    each opened with Sdf before the stage is: OpenUSD would read any path a layer names (/etc/...,
+    ../../, a URL) and only warn about missing ones. A layer outside the stage's package (.usdz) or
+    folder is refused unless allow_outside, with the same message whether it exists or not; a
+    missing one is a SplatFileError either way."""
+    root = os.path.abspath(path)
+    package = root if root.lower().endswith(".usdz") else None
+    where = "the stage's package" if package else "the stage's folder"
+    first = _layer(path, root)
+    if first is None:
+        raise SplatFileError(path, "OpenUSD cannot open it")
+    layers, todo, seen = [first], [first], {first.identifier}
+    while todo:
+        layer = todo.pop()
+        named_by = "" if layer is first else f"layer {layer.identifier} "
+        for asset in layer.GetCompositionAssetDependencies():
+            resolved = layer.ComputeAbsolutePath(asset)
+            if not os.path.isabs(resolved.split("[", 1)[0]):          # a search path: anchored as the resolver does first
+                resolved = layer.ComputeAbsolutePath("./" + asset)
+            ok = inside_package(package, resolved) if package else within(os.path.dirname(root),
+                                                                           resolved.split("[", 1)[0])
+            if not ok and not allow_outside:
+                raise SplatFileError(path, f"{named_by}refers to a layer: {outside_message(asset, where)} "
+                                           "(read with allow_outside=True to allow it)")
+            if resolved in seen:
+                continue
+            try:
+                found = _layer(path, resolved)
+            except Tf.ErrorException:
+                found = None
+            if found is None:
+                raise SplatFileError(path, f"{named_by}refers to the layer '{asset}', which cannot be opened "
+                                           "(missing, or not an OpenUSD layer)")
+            seen.add(found.identifier)
+            seen.add(resolved)
+            layers.append(found)
+            todo.append(found)
+    return layers
+
+
 CRATE_EXPANSION = 256      # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
+CRATE_INT_EXPANSION = 1024     # compressed integers: 2 code bits per int, then LZ4 (255:1)
+# Non-inlined value types that start with a u64 count, and the fewest bytes each element takes:
+# Dictionary (string index + value offset), PathVector, TokenVector, VariantSelectionMap,
+# DoubleVector, LayerOffsetVector, StringVector (crateDataTypes.h).
+CRATE_COUNTED = {31: 12, 40: 4, 41: 4, 45: 8, 48: 8, 49: 16, 50: 4}
+# Bytes per element of uncompressed arrays by crate type (bool .. Vec4i, TimeCode); others take >= 1.
+CRATE_ELEMENT = {1: 1, 2: 1, 3: 4, 4: 4, 5: 8, 6: 8, 7: 2, 8: 4, 9: 8, 10: 4, 11: 4, 12: 4, 13: 32, 14: 72,
+                 15: 128, 16: 32, 17: 16, 18: 8, 19: 16, 20: 8, 21: 4, 22: 8, 23: 24, 24: 12, 25: 6, 26: 12,
+                 27: 32, 28: 16, 29: 8, 30: 16, 56: 8}
 
 
-def _check_crate(path):
-    """Refuse a .usdc whose table of contents or section counts the file cannot hold, before
-    OpenUSD's crate reader sizes arrays by them (a flipped bit in a count makes it allocate
-    gigabytes). Every crate section starts with a u64 element count."""
-    with open(path, "rb") as f:
-        data = f.read()
-    size = len(data)
+class _CrateError(Exception):
+    pass
+
+
+def _check_crate(path, identifier=None):
+    """Refuse a .usdc whose structure the file cannot hold, before OpenUSD's crate reader sizes
+    buffers by it: the table of contents and every section's counts and compressed sizes, and the
+    element count of every array, vector and dictionary the FIELDS section points to (a flipped bit
+    in one makes OpenUSD allocate gigabytes, read past the file, or abort the process). The layer
+    may sit in a .usdz ("pkg.usdz[inner]", or the package itself for its first file)."""
+    import mmap
+    import zipfile
+    identifier = os.path.abspath(path) if identifier is None else identifier
+    outer, _, inner = identifier.partition("[")
+    if not os.path.isfile(outer):
+        return
     try:
-        toc = struct.unpack_from("<q", data, 16)[0]
-        sections = struct.unpack_from("<Q", data, toc)[0] if 0 < toc <= size - 8 else None
-        if sections is None or sections > (size - toc - 8) // 32:
-            raise SplatFileError(path, "crate table of contents lies outside the file (truncated or corrupt?)")
-        for i in range(sections):
-            name, start, length = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
-            name = name.rstrip(b"\0").decode("latin-1")
-            if start < 0 or length < 8 or start + length > size:
-                raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
-            count = struct.unpack_from("<Q", data, start)[0]
-            if count > CRATE_EXPANSION * length:
-                raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
-                                           "(corrupt?)")
-    except struct.error:
+        with open(outer, "rb") as f:
+            # not closed explicitly: views of it may live on in a traceback; freed with the last one
+            data = memoryview(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)) if os.fstat(f.fileno()).st_size \
+                else memoryview(b"")
+        if bytes(data[:4]) == b"PK\x03\x04":
+            data = _packaged(data, outer, inner.rstrip("]"))
+        if data is not None and bytes(data[:8]) == b"PXR-USDC":
+            _check_crate_bytes(path, data)
+    except (struct.error, zipfile.BadZipFile):
         raise SplatFileError(path, "crate header or table of contents is truncated") from None
+    except (_CrateError, ValueError, IndexError) as exc:
+        raise SplatFileError(path, f"crate file is corrupt: {exc}") from None
+
+
+def _packaged(view, outer, inner):
+    """The bytes of file `inner` (default: the first) of the zip `outer`, if stored uncompressed
+    (OpenUSD reads no other kind), else None."""
+    import zipfile
+    with zipfile.ZipFile(outer) as z:
+        infos = z.infolist()
+        match = [i for i in infos if i.filename == inner] if inner else infos[:1]
+        if not match or match[0].compress_type != zipfile.ZIP_STORED:
+            return None
+        info = match[0]
+    name_length, extra_length = struct.unpack_from("<HH", view, info.header_offset + 26)
+    start = info.header_offset + 30 + name_length + extra_length
+    if start + info.file_size > len(view):
+        raise _CrateError(f"packaged file {info.filename!r} runs past the package")
+    return view[start:start + info.file_size]
+
+
+def _check_crate_bytes(path, data):
+    size = len(data)
+    major, minor, patch = data[8], data[9], data[10]
+    toc = struct.unpack_from("<q", data, 16)[0]
+    sections = struct.unpack_from("<Q", data, toc)[0] if 88 <= toc <= size - 8 else None
+    if sections is None or sections > (size - toc - 8) // 32:
+        raise SplatFileError(path, "crate table of contents lies outside the file (truncated or corrupt?)")
+    found = {}
+    for i in range(sections):
+        name, start, length = struct.unpack_from("<16sqq", data, toc + 8 + 32 * i)
+        name = name.split(b"\0", 1)[0].decode("latin-1")
+        if start < 0 or length < 8 or start + length > size:
+            raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
+        count = struct.unpack_from("<Q", data, start)[0]
+        if count > CRATE_EXPANSION * length:
+            raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
+                                       "(corrupt?)")
+        found[name] = (start, length, count)
+    if (major, minor) < (0, 4):         # before 0.4.0 sections were not compressed: counts checked above
+        return
+    sizes = {"TOKENS": 2, "FIELDS": 0, "FIELDSETS": 1, "PATHS": 0, "SPECS": 3}
+    for name, (start, length, count) in found.items():
+        end, at = start + length, start + 8
+        if name == "TOKENS":
+            raw, packed = struct.unpack_from("<QQ", data, at)
+            if at + 16 + packed > end or raw > 255 * packed + 16 or count > raw:
+                raise _CrateError(f"TOKENS claims {count} tokens in {raw} bytes packed in {packed}, "
+                                  f"in a {length}-byte section")
+        elif name == "PATHS":
+            encoded = struct.unpack_from("<Q", data, at)[0]
+            if encoded > CRATE_INT_EXPANSION * length:
+                raise _CrateError(f"PATHS claims {encoded} encoded paths in {length} bytes")
+            _skip_packed(data, at + 8, end, 3, name)
+        elif name == "FIELDS":
+            at = _skip_packed(data, at, end, 1, name)
+            packed = struct.unpack_from("<Q", data, at)[0]
+            if at + 8 + packed > end:
+                raise _CrateError(f"FIELDS value representations ({packed} bytes) run past the section")
+            reps = _fast_decompress(data[at + 8:at + 8 + packed], 8 * count)
+            if len(reps) != 8 * count:
+                raise _CrateError(f"FIELDS holds {len(reps) // 8} value representations, not {count}")
+            _check_values(data, reps, toc, (major, minor) >= (0, 7))
+        elif name in sizes:
+            _skip_packed(data, at, end, sizes[name], name)
+
+
+def _skip_packed(data, at, end, blocks, name):
+    """The offset after `blocks` compressed blocks (u64 size + bytes) that must end by `end`."""
+    for _ in range(blocks):
+        packed = struct.unpack_from("<Q", data, at)[0]
+        at += 8 + packed
+        if at > end:
+            raise _CrateError(f"a compressed block of {name} ({packed} bytes) runs past the section")
+    return at
+
+
+def _check_values(data, reps, data_end, wide_counts):
+    """Every non-inlined array, vector and dictionary must hold its count in the bytes before the TOC."""
+    values = np.frombuffer(reps, "<u8")
+    outside = (values >> 62) & 1 == 0                       # not inlined: the payload is a file offset
+    offsets = values & ((1 << 48) - 1)
+    kinds = (values >> 48) & 0xFF
+    arrays = (values >> 63) == 1
+    counted = outside & (arrays | np.isin(kinds, list(CRATE_COUNTED)))
+    for value, offset, kind, is_array in zip(values[counted].tolist(), offsets[counted].tolist(),
+                                             kinds[counted].tolist(), arrays[counted].tolist()):
+        width = 8 if wide_counts or not is_array else 4
+        if offset == 0 and is_array:                         # an empty array
+            continue
+        if offset < 88 or offset + width > data_end:
+            raise _CrateError(f"a value of type {kind} lies outside the data (offset {offset})")
+        count = struct.unpack_from("<Q" if width == 8 else "<I", data, offset)[0]
+        room = data_end - offset - width
+        if is_array and (value >> 61) & 1:                   # compressed: integers, or a lookup table
+            fits = count <= CRATE_INT_EXPANSION * room + 16
+        else:
+            fits = count * (CRATE_ELEMENT.get(kind, 1) if is_array else CRATE_COUNTED[kind]) <= room
+        if not fits:
+            raise _CrateError(f"{'an array' if is_array else 'a value'} of type {kind} at byte {offset} claims "
+                              f"{count} elements, more than the {room} bytes after it can hold")
+
+
+def _fast_decompress(src, limit):
+    """OpenUSD's TfFastCompression: a chunk count byte (0: one LZ4 block), then sized LZ4 blocks."""
+    if not len(src):
+        raise _CrateError("an empty compressed block")
+    chunks = src[0]
+    if chunks == 0:
+        return _lz4_block(src[1:], limit)
+    out, at = bytearray(), 1
+    for _ in range(chunks):
+        size = struct.unpack_from("<i", src, at)[0]
+        if size < 0 or at + 4 + size > len(src):
+            raise _CrateError("a compressed chunk runs past its block")
+        out += _lz4_block(src[at + 4:at + 4 + size], limit - len(out))
+        at += 4 + size
+    return bytes(out)
+
+
+def _lz4_block(src, limit):
+    """One LZ4 block, refusing to produce more than `limit` bytes (only small sections are decoded)."""
+    out, i, n = bytearray(), 0, len(src)
+    while i < n:
+        token = src[i]
+        i += 1
+        literals, i = _lz4_length(src, i, token >> 4)
+        if len(out) + literals > limit or i + literals > n:
+            raise _CrateError("compressed data expands past its stated size")
+        out += src[i:i + literals]
+        i += literals
+        if i >= n:
+            break
+        offset = src[i] | src[i + 1] << 8
+        match, i = _lz4_length(src, i + 2, token & 15)
+        match += 4
+        if not 0 < offset <= len(out) or len(out) + match > limit:
+            raise _CrateError("compressed data refers outside itself")
+        start = len(out) - offset
+        while match > 0:                                     # overlapping copies repeat the pattern
+            piece = out[start:start + min(match, offset)]
+            out += piece
+            start += len(piece)
+            match -= len(piece)
+    return bytes(out)
+
+
+def _lz4_length(src, i, length):
+    if length == 15:
+        while True:
+            more = src[i]
+            i += 1
+            length += more
+            if more != 255:
+                break
+    return length, i
+
+
+@contextlib.contextmanager
+def _pxr_errors(path):
+    """OpenUSD parses a layer lazily: a damaged one can fail while prims and values are read, not only
+    when it is opened. Its errors (and undecodable strings it hands back) become a SplatFileError
+    naming the file."""
+    try:
+        yield
+    except PXR_ERRORS as exc:
+        raise SplatFileError(path, f"OpenUSD cannot read it (truncated or corrupt?): {_tf_message(exc)}") from None
+    except UnicodeDecodeError:
+        raise SplatFileError(path, "OpenUSD cannot read it: it holds names or strings that are not UTF-8 "
+                                   "(corrupt?)") from None
 
 
 def _tf_message(exc):
@@ -272,16 +545,29 @@ def stage_matrix(stage, axes="RDF", meters_per_unit=1.0, notes=None):
 
 
 def _stage_metadata(stage, key, fallback):
-    """Layer metadata `key` (upAxis as "Y"/"Z", metersPerUnit as a float), or fallback if unauthored."""
+    """Layer metadata `key` (upAxis as "Y"/"Z", metersPerUnit as a positive float), or fallback if
+    unauthored; any other value is a SplatFileError naming it (read raw: pxr's own accessors take an
+    upAxis of "X" for Y)."""
     if Usd is None:
         value = stage.metadata.get(key)
     elif not stage.HasAuthoredMetadata(key):
         value = None
     else:
-        value = UsdGeom.GetStageUpAxis(stage) if key == "upAxis" else UsdGeom.GetStageMetersPerUnit(stage)
+        value = stage.GetMetadata(key)
     if value is None:
         return fallback
-    return str(value) if key == "upAxis" else float(value)
+    path = stage.GetRootLayer().identifier
+    if key == "upAxis":
+        if str(value) not in ("Y", "Z"):
+            raise SplatFileError(path, f"upAxis {str(value)!r}: an OpenUSD stage is Y-up or Z-up")
+        return str(value)
+    try:
+        units = float(value)
+    except (TypeError, ValueError):
+        units = math.nan
+    if not (math.isfinite(units) and units > 0):
+        raise SplatFileError(path, f"metersPerUnit {value!r}: it must be a positive, finite number of metres")
+    return units
 
 
 def _world_matrix(prim, time):
@@ -602,10 +888,41 @@ def _narrowed(values, dtype, name, notes):
     return values
 
 
+def _op_order(prim):
+    """The prim's xformOpOrder as a list of op names ([] if unauthored), or a SplatFileError when it
+    holds anything else (a damaged crate file can point it at any value)."""
+    attr = prim.GetAttribute("xformOpOrder")
+    order = attr.Get() if attr else None
+    if order is None:
+        return []
+    names = list(order) if not isinstance(order, str) and hasattr(order, "__iter__") else None
+    if names is None or not all(isinstance(n, str) for n in names):
+        raise SplatFileError(_file(prim), f"{prim.GetPath()}: xformOpOrder holds a {type(order).__name__}, "
+                                          "not a list of transform op names")
+    return names
+
+
 def _is_upright(prim):
     """Whether the prim stands a capture upright with our transform op."""
-    order = prim.GetAttribute("xformOpOrder").Get() if prim.GetAttribute("xformOpOrder") else None
-    return order is not None and UPRIGHT_OP in order
+    return UPRIGHT_OP in _op_order(prim)
+
+
+def _nonfinite_ops(prim, time):
+    """Names of the prim's own transform ops whose values hold NaN or Inf."""
+    names = [n.removeprefix("!invert!") for n in _op_order(prim)]
+    bad = []
+    for name in names:
+        attr = prim.GetAttribute(name)
+        value = attr.Get(time) if attr else None
+        if hasattr(value, "GetImaginary"):          # a Gf quaternion
+            value = [value.GetReal(), *value.GetImaginary()]
+        try:
+            numbers = np.asarray(value, np.float64)
+        except (TypeError, ValueError):
+            continue
+        if not np.isfinite(numbers).all():
+            bad.append(name)
+    return bad
 
 
 def _read_prim(prim, time, matrices, notes):
@@ -626,6 +943,10 @@ def _read_prim(prim, time, matrices, notes):
     prim_notes = []
     cloud, opacities, scales = reader(prim, time, prim_notes)
     to_world = stage_m @ _world_matrix(prim, time)
+    if not np.isfinite(to_world).all():
+        ops = _nonfinite_ops(prim, time)
+        where = f"its transform ops {', '.join(ops)} hold" if ops else "a parent prim's transform holds"
+        raise SplatFileError(_file(prim), f"{prim.GetPath()}: {where} NaN or Inf")
     anisotropy = 0.0
     if np.array_equal(to_world, np.eye(4)) or np.array_equal(to_world, FLIP):
         cloud = cloud if to_world[1, 1] == 1 else flip_yz(cloud)       # exact: only signs change
@@ -676,7 +997,8 @@ def _warn(path, notes):
 
 # public reading -----------------------------------------------------------------------------------
 
-def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
+def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
+               allow_outside=False):
     """Every splat prim of a stage as a SplatPrim (path, world-space cloud, transform, notes).
 
     time: a time code (default: the earliest sample, or the default value of unanimated files).
@@ -684,8 +1006,11 @@ def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="rais
     and OpenUSD's converters copy PLY coordinates into a Y-up stage unchanged): "capture" takes its
     values as capture (3DGS PLY) coordinates, giving back the PLY's values; "stage" takes them in the
     stage's own axes like any geometry (for files authored truly Y-up).
+    allow_outside: also compose sublayers, references and payloads from outside the stage's package
+    (.usdz) or folder; by default they are refused, and missing ones are an error either way.
     """
-    return _read_stage(_open(path), path, time, axes, meters_per_unit, nonfinite, unmarked)
+    with _pxr_errors(path):
+        return _read_stage(_open(path, allow_outside), path, time, axes, meters_per_unit, nonfinite, unmarked)
 
 
 def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="capture"):
@@ -697,10 +1022,11 @@ def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="c
     return prims
 
 
-def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
-    """All splat prims of the stage, in world space, concatenated into one SplatCloud (unmarked: see
-    read_stage)."""
-    prims = read_stage(path, time, axes, meters_per_unit, nonfinite, unmarked)
+def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
+         allow_outside=False):
+    """All splat prims of the stage, in world space, concatenated into one SplatCloud (unmarked and
+    allow_outside: see read_stage)."""
+    prims = read_stage(path, time, axes, meters_per_unit, nonfinite, unmarked, allow_outside)
     if not prims:
         raise SplatFileError(path, f"no {TYPE_NAME} prims (nor UsdGeomPoints with 3DGS primvars) on the stage")
     if len(prims) == 1:
@@ -713,9 +1039,10 @@ def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", un
     return cloud
 
 
-def time_codes(path, prim_path=None):
+def time_codes(path, prim_path=None, allow_outside=False):
     """Sorted time codes at which the splat prims (or one of them) have samples; [] if unanimated."""
-    return _time_codes(_open(path), path, prim_path)
+    with _pxr_errors(path):
+        return _time_codes(_open(path, allow_outside), path, prim_path)
 
 
 def _time_codes(stage, path, prim_path):
@@ -733,10 +1060,15 @@ def _time_codes(stage, path, prim_path):
     return sorted(times)
 
 
-def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture"):
+def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
+                allow_outside=False):
     """[(time code, cloud)] for every time sample of the stage's splat prims (concatenated per time),
     or of the one at prim_path; one (None, cloud) entry for an unanimated file."""
-    stage = _open(path)
+    with _pxr_errors(path):
+        return _read_frames(_open(path, allow_outside), path, prim_path, axes, meters_per_unit, nonfinite, unmarked)
+
+
+def _read_frames(stage, path, prim_path, axes, meters_per_unit, nonfinite, unmarked):
     frames = []
     for t in _time_codes(stage, path, prim_path) or [None]:
         prims = _read_stage(stage, path, t, axes, meters_per_unit, nonfinite, unmarked)
@@ -1143,19 +1475,30 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
         times = list(times)
     with atomic_path(path) as tmp:
         if Usd is None:
-            _save_text_layer(path, str(tmp), prims, times, options, fps)
+            _save_text_layer(path, tmp, prims, times, options, fps)
         elif path.lower().endswith(".usdz"):
-            with tempfile.TemporaryDirectory(dir=os.path.dirname(os.path.abspath(path))) as folder:
-                layer_path = os.path.join(folder, os.path.splitext(os.path.basename(path))[0] + ".usdc")
-                _save_stage(path, layer_path, prims, times, options, fps)
-                if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(layer_path), str(tmp)):
-                    raise SplatFileError(path, "OpenUSD could not package the .usdz")
+            layer_path = tmp + ".layer"                 # a partial too: swept with it after a kill
+            try:
+                _save_stage(path, layer_path, "usdc", prims, times, options, fps)
+                usda.write_usdz(tmp, os.path.splitext(os.path.basename(path))[0] + ".usdc", layer_path)
+            finally:
+                with contextlib.suppress(OSError):
+                    os.remove(layer_path)
         else:
-            _save_stage(path, str(tmp), prims, times, options, fps)
+            _save_stage(path, tmp, os.path.splitext(path)[1][1:].lower(), prims, times, options, fps)
 
 
-def _save_stage(path, layer_path, prims, times, options, fps):
-    layer = Sdf.Layer.CreateNew(layer_path)
+def _save_stage(path, layer_path, file_format, prims, times, options, fps):
+    """Author the prims in a new layer of `file_format` ("usda", "usdc", "usd") saved at layer_path
+    (a partial, so the format is named rather than taken from its extension)."""
+    try:
+        _author_stage(path, layer_path, file_format, prims, times, options, fps)
+    except Tf.ErrorException as exc:
+        raise SplatFileError(path, f"OpenUSD could not write it: {_tf_message(exc)}") from None
+
+
+def _author_stage(path, layer_path, file_format, prims, times, options, fps):
+    layer = Sdf.Layer.New(Sdf.FileFormat.FindByExtension(file_format), layer_path)
     stage = Usd.Stage.Open(layer)
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -1189,7 +1532,7 @@ def _save_text_layer(path, layer_path, prims, times, options, fps):
         layer.metadata.update(startTimeCode=float(min(all_times)), endTimeCode=float(max(all_times)))
     if fps is not None:
         layer.metadata.update(timeCodesPerSecond=float(fps), framesPerSecond=float(fps))
-    layer.save(layer_path, os.path.splitext(os.path.basename(path))[0] + ".usda")
+    layer.save(layer_path, os.path.splitext(os.path.basename(path))[0] + ".usda", usdz=path.lower().endswith(".usdz"))
 
 
 def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",

@@ -18,6 +18,7 @@ writes them w first.
 import io as _io
 import os
 import re
+import shutil
 import warnings
 import zipfile
 from dataclasses import dataclass, field
@@ -25,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .common import SplatFileError
+from .policy import MAX_TEXT_LAYER_BYTES
 
 HEADER = "#usda 1.0"
 COMPOSITION = ("subLayers", "references", "payload", "inherits", "specializes", "variantSets", "variants")
@@ -195,6 +197,8 @@ def _op_matrix(path, prim_path, name, value):
     kind = name.split(":")[1] if name.count(":") >= 1 else ""
     m = np.eye(4)
     value = np.asarray(value, np.float64)
+    if not np.isfinite(value).all():            # a NaN quaternion would normalise to the identity
+        raise SplatFileError(path, f"{prim_path}: its transform ops {name} hold NaN or Inf")
     if kind == "transform":
         return value.reshape(4, 4).T                # USD matrices act on row vectors
     if kind == "translate":
@@ -264,13 +268,13 @@ class Layer:
             stack.extend(reversed(prim.children))
 
     # writing
-    def save(self, path, package_name=None):
-        """Write the layer to `path`: text for .usda/.usd, for .usdz a package of it named
-        package_name (default: the stem of `path` + .usda)."""
+    def save(self, path, package_name=None, usdz=None):
+        """Write the layer to `path`: text, or with usdz (default: `path` ends in .usdz) a package
+        of it named package_name (default: the stem of `path` + .usda)."""
         text = self.text()
-        if path.lower().endswith(".usdz"):
+        if path.lower().endswith(".usdz") if usdz is None else usdz:
             name = package_name or os.path.splitext(os.path.basename(path))[0] + ".usda"
-            _write_usdz(path, name, text.encode())
+            write_usdz(path, name, text.encode())
         else:
             with open(path, "w", encoding="utf-8", newline="\n") as f:
                 f.write(text)
@@ -382,22 +386,32 @@ def value_text(value, type_name):
 USDZ_ALIGN = 64
 
 
-def _write_usdz(path, name, data):
-    """A .usdz: the layer stored uncompressed, its data starting on a 64-byte boundary (the
-    package format's rule, so readers can map it in place)."""
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as z:
+def write_usdz(path, name, layer):
+    """A .usdz of one layer (bytes, or the name of a file holding them) named `name` inside: stored
+    uncompressed, its data starting on a 64-byte boundary (the package format's rule, so readers
+    can map it in place). A file is copied in chunks, never held in memory whole."""
+    size = len(layer) if isinstance(layer, bytes) else os.path.getsize(layer)
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED, allowZip64=True) as z:
         info = zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0))
+        info.file_size = size
         header = 30 + len(name.encode())
         pad = -(header + 4) % USDZ_ALIGN
         info.extra = b"\x86\x19" + pad.to_bytes(2, "little") + b"\0" * pad   # a private padding field
-        z.writestr(info, data)
+        with z.open(info, "w") as out:
+            if isinstance(layer, bytes):
+                out.write(layer)
+            else:
+                with open(layer, "rb") as f:
+                    shutil.copyfileobj(f, out, 1 << 20)
 
 
 # reading ------------------------------------------------------------------------------------------
 
 def read_layer(path):
-    """The Layer in a .usda/.usd text file or a .usdz package whose first file is text."""
+    """The Layer in a .usda/.usd text file or a .usdz package whose first file is text. A layer of
+    more than policy.MAX_TEXT_LAYER_BYTES is refused before it is read."""
     with open(path, "rb") as f:
+        _check_text_size(path, os.fstat(f.fileno()).st_size)
         data = f.read()
     if data.startswith(b"PK\x03\x04"):
         data = _usdz_root(path, data)
@@ -416,6 +430,12 @@ def read_layer(path):
     return layer
 
 
+def _check_text_size(path, size):
+    if size > MAX_TEXT_LAYER_BYTES:
+        raise SplatFileError(path, f"a {size}-byte text layer, more than the {MAX_TEXT_LAYER_BYTES >> 20} MiB "
+                                   "this reader parses without OpenUSD (write .usdc with pxr for bigger stages)")
+
+
 def _usdz_root(path, data):
     try:
         with zipfile.ZipFile(_io.BytesIO(data)) as z:
@@ -424,6 +444,10 @@ def _usdz_root(path, data):
                 raise SplatFileError(path, "the .usdz package is empty")
             if not names[0].lower().endswith((".usda", ".usd", ".usdc")):
                 raise SplatFileError(path, f"the .usdz package's first file {names[0]!r} is not an OpenUSD layer")
+            info = z.getinfo(names[0])
+            if info.compress_type != zipfile.ZIP_STORED:          # the usdz rule; also no zip bomb
+                raise SplatFileError(path, f"the .usdz package's {names[0]!r} is compressed; usdz files are stored")
+            _check_text_size(path, info.file_size)
             return z.read(names[0])
     except (zipfile.BadZipFile, EOFError, OSError) as exc:
         raise SplatFileError(path, f"the .usdz package is damaged: {exc}") from None

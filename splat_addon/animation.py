@@ -8,7 +8,6 @@ depends on the range exported, so render-farm jobs can split a range and write t
 Every frame goes through the same evaluated-cloud path as a single export (operators.scene_cloud).
 """
 
-import contextlib
 import re
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from bpy.props import BoolProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, orientation_helper
 
 from ..io import SplatFileError, format_of, write_splats
-from ..io.common import atomic_path
+from ..io.common import publish_together
 from . import data, operators
 
 HASHES = re.compile(r"#+")
@@ -93,12 +92,9 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
         blocked = next((out for out in written if out.is_dir()), None)
         if blocked is not None:              # found before any frame is written, not when renaming
             raise SplatFileError(blocked, "a folder of that name is in the way")
-        with contextlib.ExitStack() as renames:     # each frame lands on its name once all are written
+        with publish_together():             # each frame lands on its name once all are written
             for out, cloud in zip(written, clouds()):
-                try:
-                    write_splats(renames.enter_context(atomic_path(out)), cloud)
-                except SplatFileError as exc:            # name the frame's file, not its temporary
-                    raise SplatFileError(out, exc.problem) from None
+                write_splats(out, cloud)
         return written
     finally:
         scene.frame_set(current, subframe=subframe)

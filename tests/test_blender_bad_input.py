@@ -27,6 +27,13 @@ def _write_inputs(work):
     full = (work / "cloud.ply").read_bytes()
     (work / "truncated.ply").write_bytes(full[: len(full) * 2 // 3])
     (work / "cloud.xyz").write_bytes(full)
+    import struct
+    cloud = random_cloud(N, sh_degree=1)
+    write_splats(work / "damaged.usdc", cloud)                 # written by usd-core's pxr, outside Blender
+    crate = bytearray((work / "damaged.usdc").read_bytes())
+    at = crate.find(cloud.positions.astype("<f4").tobytes()) - 8
+    struct.pack_into("<Q", crate, at, 1 << 28)                  # the positions' count: 3.2 GB to OpenUSD
+    (work / "damaged.usdc").write_bytes(bytes(crate))
     for folder in ("folder.ply", "folder.blend", "read_only"):
         (work / folder).mkdir()
     (work / "read_only").chmod(0o555)
@@ -176,9 +183,10 @@ def test_wrong_objects_are_refused_or_hidden(blender, kind):
     ("import missing.ply", ["missing.ply", "no such file"]),
     ("import cloud.xyz", ["cloud.xyz", "unknown splat file extension"]),
     ("import folder.ply", ["folder.ply"]),
+    ("import damaged.usdc", ["damaged.usdc"]),
     ("import nothing", ["no file to import"]),
     ("export missing folder", ["nowhere", "x.ply"]),
-    ("export a folder", ["folder.ply", "directory"]),
+    ("export a folder", ["folder.ply", "is a folder"]),
     ("export no extension", ["noext", "unknown splat file extension"]),
     ("export NaN over a file", ["precious.ply", "non-finite"]),
 ])

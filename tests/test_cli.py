@@ -129,3 +129,108 @@ def test_bad_arguments_exit_non_zero(capsys, scene):
         main(["convert", str(path), "x.ply", "--sh-degree", "4"])
     assert exc.value.code != 0
     assert "--sh-degree" in capsys.readouterr().err
+
+
+# exit status: 1 for a bad file or value, 2 for bad usage; never a traceback ------------------------
+
+OUT_OF_RANGE = [
+    ("render", ["--fov", "0"], "--fov must be a horizontal field of view in degrees, between 0 and 180"),
+    ("render", ["--fov", "180"], "--fov must be"),
+    ("render", ["--fov", "nan"], "--fov must be"),
+    ("render", ["--background", "nan,0,0"], "--background must be 3 numbers r,g,b from 0 to 1, or 'none', got nan,0,0"),
+    ("render", ["--background", "2,2,2"], "--background must be 3 numbers r,g,b from 0 to 1"),
+    ("render", ["--background", "0.5,0.5"], "--background must be 3 numbers"),
+    ("render", ["--ortho-scale", "0"], "--ortho-scale must be a width in world units, finite and > 0, got 0"),
+    ("render", ["--ortho-scale", "inf"], "--ortho-scale must be"),
+    ("render", ["--up", "0,0,0"], "--up must be 3 finite numbers x,y,z, not all zero"),
+    ("render", ["--camera-pos", "0,0,inf"], "--camera-pos must be 3 finite numbers"),
+    ("render", ["--look-at", "1,2"], "--look-at must be 3 finite numbers"),
+    ("render", ["--near", "0"], "--near must be a distance, finite and > 0"),
+    ("render", ["--near", "-1"], "--near must be"),
+    ("render", ["--width", "0"], "--width must be a whole number >= 1"),
+    ("render", ["--height", "-3"], "--height must be a whole number >= 1"),
+    ("render", ["--camera-pos", "0,0,5", "--look-at", "0,0,0", "--up", "0,0,2"],
+     "--up (0,0,2) is parallel to the view direction"),
+    ("render", ["--camera-pos", "1,1,1", "--look-at", "1,1,1"], "--camera-pos, --look-at: invalid camera: eye and target"),
+    ("convert", ["--prune-invisible", "-1"], "--prune-invisible must be a blending weight from 0 up to (not including) 1"),
+    ("convert", ["--prune-invisible", "nan"], "--prune-invisible must be"),
+    ("convert", ["--prune-opacity", "1.5"], "--prune-opacity must be an opacity from 0 to 1"),
+    ("convert", ["--prune-invisible", "--views", "0"], "--views must be a whole number from 1 to 1000"),
+    ("convert", ["--prune-invisible", "--view-size", "100000"], "--view-size must be a whole number of pixels"),
+    ("mesh2splats", ["--target-psnr", "-5"], "--target-psnr must be a PSNR in dB, finite and > 0, got -5"),
+    ("mesh2splats", ["--target-psnr", "inf"], "--target-psnr must be"),
+    ("mesh2splats", ["--target-psnr", "nan"], "--target-psnr must be"),
+    ("mesh2splats", ["--max-splats", "0"], "--max-splats must be a whole number from 1 to 2147483647"),
+    ("mesh2splats", ["--view-size", "0"], "--view-size must be"),
+    ("urdf2splats", ["--target-psnr", "-5"], "--target-psnr must be"),
+    ("urdf2splats", ["--max-splats", "-1"], "--max-splats must be"),
+    ("urdf2splats", ["--joint", "elbow=nan"], "--joint expects NAME=VALUE with finite numbers"),
+    ("urdf2splats", ["--joint", "elbow"], "--joint expects NAME=VALUE"),
+]
+
+
+def verb_argv(verb, scene_path, out):
+    return {"render": ["render", scene_path, "-o", out],
+            "convert": ["convert", scene_path, out],
+            "mesh2splats": ["mesh2splats", scene_path.with_suffix(".obj"), out],
+            "urdf2splats": ["urdf2splats", scene_path.with_suffix(".urdf"), out]}[verb]
+
+
+@pytest.mark.parametrize("verb, options, message", OUT_OF_RANGE)
+def test_out_of_range_options_exit_1_naming_the_option(capsys, scene, tmp_path, verb, options, message):
+    path, _ = scene
+    out = tmp_path / ("o.png" if verb == "render" else "o.ply")
+    code, _, err = run(capsys, *verb_argv(verb, path, out), *options)
+    assert code == 1 and err == f"splatwright {verb}: error: {err.split('error: ', 1)[1]}"
+    assert message in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_an_image_too_big_for_memory_is_refused_before_the_file_is_read(capsys, tmp_path, monkeypatch):
+    from splatwright.core import render
+    monkeypatch.setattr(render, "physical_memory", lambda: 16 * 2**30)
+    code, _, err = run(capsys, "render", tmp_path / "never_read.ply", "-o", tmp_path / "o.png",
+                       "--width", 40000, "--height", 40000)
+    assert code == 1 and "--width, --height: a 40000x40000 render needs" in err
+    assert "more than this machine's 16.0 GiB" in err and "never_read" not in err
+
+
+def test_file_errors_exit_1(capsys, scene, tmp_path):
+    path, _ = scene
+    code, _, err = run(capsys, "info", tmp_path / "missing.ply")
+    assert code == 1 and "no such file" in err
+    (tmp_path / "taken.ply").mkdir()
+    code, _, err = run(capsys, "convert", path, tmp_path / "taken.ply")
+    assert code == 1 and f"{tmp_path / 'taken.ply'}: is a folder, not a file" in err
+    code, _, err = run(capsys, "render", path, "-o", tmp_path / "nowhere" / "o.png", "--width", 8, "--height", 8)
+    assert code == 1 and f"the folder {tmp_path / 'nowhere'} does not exist" in err
+
+
+@pytest.mark.parametrize("argv", [["render", "x.ply", "-o", "o.png", "--fov", "abc"],
+                                  ["render", "x.ply", "-o", "o.png", "--width", "1.5"],
+                                  ["convert", "x.ply"],
+                                  ["convert", "x.ply", "y.ply", "--bogus"]])
+def test_usage_errors_exit_2(capsys, argv):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2 and "usage: splatwright" in capsys.readouterr().err
+
+
+def test_the_installed_command_prints_one_line_and_no_traceback(scene, tmp_path):
+    """Through the real entry point (python -m splatwright), as a user runs it."""
+    import subprocess
+    import sys
+    path, _ = scene
+    for options, code, message in ((["--fov", "0"], 1, "--fov must be"), (["--fov", "x"], 2, "invalid float value")):
+        done = subprocess.run([sys.executable, "-m", "splatwright", "render", str(path), "-o", str(tmp_path / "o.png"),
+                               *options], capture_output=True, text=True, cwd=tmp_path)
+        assert done.returncode == code and message in done.stderr and "Traceback" not in done.stderr
+
+
+def test_options_in_range_still_render(capsys, scene, tmp_path):
+    path, _ = scene
+    out = tmp_path / "o.png"
+    code, stdout, err = run(capsys, "render", path, "-o", out, "--width", 16, "--height", 12, "--fov", 179,
+                            "--background", "none", "--up", "0,-1,0", "--near", "0.01")
+    assert code == 0, err
+    assert "at 16x12" in stdout and out.read_bytes()[16:24] == (16).to_bytes(4, "big") + (12).to_bytes(4, "big")

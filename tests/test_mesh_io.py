@@ -175,7 +175,7 @@ def test_cli_mesh2splats_target_and_errors(cube, tmp_path, capsys):
     assert "error lies" in said
     bad = tmp_path / "flat.obj"
     bad.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
-    assert main(["mesh2splats", str(bad), str(out), "--max-splats", "10"]) == 2
+    assert main(["mesh2splats", str(bad), str(out), "--max-splats", "10"]) == 1
     assert "no face with positive area" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["mesh2splats", str(path), str(out), "--max-splats", "10", "--target-psnr", "30"])

@@ -540,8 +540,8 @@ def test_framing_a_tiny_cloud_keeps_it_beyond_the_near_plane():
 
 def test_cli_render_reports_bad_input(tmp_path, capsys):
     from splatwright.cli import main
-    assert main(["render", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "x.png")]) == 2
+    assert main(["render", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "x.png")]) == 1
     assert "no such file" in capsys.readouterr().err
     write_splats(tmp_path / "c.ply", seed_cube(2))
-    with pytest.raises(SystemExit, match="camera-pos"):
-        main(["render", str(tmp_path / "c.ply"), "-o", str(tmp_path / "x.png"), "--camera-pos", "1,2"])
+    assert main(["render", str(tmp_path / "c.ply"), "-o", str(tmp_path / "x.png"), "--camera-pos", "1,2"]) == 1
+    assert "--camera-pos must be 3 finite numbers x,y,z, got 1,2" in capsys.readouterr().err

@@ -256,7 +256,7 @@ class Worker(BlenderWorker):
         """Import and export against bad paths and files; an empty file is a valid empty cloud."""
         ops = self.bpy.ops.splat
         cases = {}
-        for name in ("empty.ply", "truncated.ply", "missing.ply", "cloud.xyz", "folder.ply"):
+        for name in ("empty.ply", "truncated.ply", "missing.ply", "cloud.xyz", "folder.ply", "damaged.usdc"):
             cases[f"import {name}"] = self.attempt(ops.import_file, filepath=str(self.work / name))
         cases["import nothing"] = self.attempt(ops.import_file, filepath="")
         self.clear_scene()
