@@ -36,9 +36,7 @@ from common import Row, Timing, print_rows, timeit  # noqa: E402
 from splatwright.core import SplatCloud  # noqa: E402
 from splatwright.core import metrics  # noqa: E402
 from splatwright.core.camera import Camera, opengl_camera_to_world  # noqa: E402
-from splatwright.core.mesh import Material, Mesh, Surface  # noqa: E402
-from splatwright.core.mesh_refine import default_views  # noqa: E402
-from splatwright.core.mesh_render import render_mesh  # noqa: E402
+from splatwright.core.mesh import Material, Mesh  # noqa: E402
 from splatwright.core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
@@ -353,7 +351,6 @@ def speed_rows(quick, sphere_mesh, cameras, references):
     """100k triangles -> 1M splats, ours against the per-triangle loop, with the PSNR each buys."""
     segments, rings = (100, 50) if quick else (318, 158)
     v, f, uv = uv_sphere(segments, rings)
-    from splatwright.core.mesh import Material, Mesh
     big = Mesh(v, f, uv, None, [Material(texture=sphere_texture())])
     splats = 10 * len(f)
     big.materials[0].linear_texture()                 # decode once, outside the timing
