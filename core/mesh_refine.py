@@ -16,7 +16,8 @@ Silhouettes: an opaque surface of Gaussians renders about one pixel fatter than 
 the renderer's 0.3 px^2 low-pass spreads every splat seen edge-on and many such splats stack along
 a silhouette. Solid parts are therefore moved inwards along the normal by the shift (in pixels of
 each face's finest view) that maximises the worst view's PSNR, found by golden-section search and
-searched again whenever the cloud has grown RECALIBRATE_GROWTH times. A budget (uniform mode) also
+searched again whenever the cloud has doubled or a round rendered worse (smaller splats want another
+shift; without this, refinement stalled with more splats rendering worse). A budget (uniform mode) also
 tries rendering like SPREADS times fewer splats (wider, fainter discs), since the fattening grows
 with the splats stacked: a larger budget can always look like a smaller one.
 """
@@ -43,7 +44,7 @@ MAX_PER_PIXEL = 2.0       # density cap, splats per pixel of the finest view
 MAX_ROUNDS = 12
 MAX_GROWTH = 2.5
 INSET_SEARCH = 6          # evaluations of the golden-section search for the silhouette shift
-RECALIBRATE_GROWTH = 3.0  # search the shift again once the cloud has grown this much
+RECALIBRATE_GROWTH = 2.0  # search the shift again once the cloud has grown this much (or got worse)
 AIM = 0.7                 # faces aim at this fraction of the target MSE (not all of them can)
 SPREADS = (1.0, 4.0, 16.0, 64.0)   # a budget may render like this many times fewer splats
 MIN_SPREAD_SPLATS = 2000  # ... but never like fewer than this many
@@ -235,9 +236,11 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
         if round_:
             cloud = make(density, inset)
             m = v.measure(cloud)
-            if outward.any() and len(cloud) > RECALIBRATE_GROWTH * calibrated_at:
-                # More splats stack more along the silhouettes: search the shift again near the last.
-                inset, cloud, m = inset_search.search(density, 0.5 * inset, 1.5 * inset + 0.5, 4)
+            grown = len(cloud) > RECALIBRATE_GROWTH * calibrated_at
+            if outward.any() and (grown or m.psnr < best[0]):
+                # Smaller splats want another shift (and more stack along the silhouettes): search
+                # it again, below the last one as well.
+                inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 4)
                 calibrated_at, saturated[:] = len(cloud), False
         if best is None or m.psnr > best[0]:
             best = (m.psnr, cloud, inset, m)
@@ -267,7 +270,8 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
         previous = (new > density * 1.01, local, density)
         density = new
     else:
-        stop = "rounds"
+        at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
+        stop = "max_splats" if at_cap else "rounds"
     psnr, cloud, inset, m = best
     if progress:
         progress(MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB")
