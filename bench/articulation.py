@@ -201,6 +201,36 @@ def skinning_rows(n, repeat, scaled=False):
     return rows
 
 
+def blender_float32_rows(n, repeat):
+    """One LBS frame posed by Blender-like matrices (rest and pose stored as float32, as Blender's
+    bone.matrix_local and pose_bone.matrix are; turning bones only) against DQS of the same frame in
+    the same run, and the same frame with the tolerance before (1e-9, below float32's rounding: every
+    turned bone took the per-splat stretch path). Errors against the float64 baseline."""
+    from splatwright.core import skinning
+    cloud, binding, exact_pose = workload(n)
+    pose = BonePose.from_blender(exact_pose.rest.astype(np.float32), (exact_pose.deform @ exact_pose.rest).astype(np.float32))
+    _, stretch = geometry.polar_decomposition(pose.deform[:, :3, :3])
+    noise = np.abs(stretch - np.eye(3)).max() / np.finfo(np.float32).eps
+    lbs = lambda: skin(cloud, binding, pose, "lbs")  # noqa: E731
+    dqs = lambda: skin(cloud, binding, pose, "dqs")  # noqa: E731
+    dqs_t, lbs_t = paired(dqs, lbs, repeat, clock=time.process_time)
+    rng = np.random.default_rng(5)
+    err = errors(cloud, lbs(), baseline_cloud(cloud, baseline_lbs, binding, pose, "all"), "all", rng)
+    label = f"{n:,} splats, degree 3, 4 influences, 20 bones turning, Blender float32 matrices"
+    rows = [Row(TOPIC, f"LBS centres + covariances + SH, {label} (vs DQS, CPU s)", lbs_t, dqs_t, error=err,
+                extra={"baseline": "DQS of the same frame, same run (CPU s)", "target": "within 1.5x of DQS (speed-up >= 0.67)",
+                       "stretch_eps": f"{noise:.2g} (rigid below {skinning.RIGID_TOLERANCE / np.finfo(np.float32).eps:g})"})]
+    saved, skinning.RIGID_TOLERANCE = skinning.RIGID_TOLERANCE, 1e-9
+    try:
+        strict = BonePose.from_blender(pose.rest, pose.deform @ pose.rest)
+        before_t = timeit(lambda: skin(cloud, binding, strict, "lbs"), repeat=max(1, repeat // 2), clock=time.process_time)
+    finally:
+        skinning.RIGID_TOLERANCE = saved
+    rows.append(Row(TOPIC, f"LBS centres + covariances + SH, {label}, rigid tolerance 1e-9 (before; vs DQS, CPU s)",
+                    before_t, dqs_t, extra={"baseline": "DQS of the same frame, same run (CPU s)"}))
+    return rows
+
+
 # forward kinematics -------------------------------------------------------------------------------
 
 def random_tree(n=50, seed=2):
@@ -398,7 +428,11 @@ def run(quick=False):
     n = 100_000 if quick else 1_000_000
     repeat = 3 if quick else 5
     return (fk_rows(repeat) + panda_fk_rows(repeat) + urdf_rows(quick) + skinning_rows(n, repeat)
-            + skinning_rows(n, repeat, scaled=True) + cylinder_rows(quick))
+            + skinning_rows(n, repeat, scaled=True) + blender_float32_rows(n, repeat) + cylinder_rows(quick))
+
+
+# rows that `./run bench articulation --only NAME` runs alone (merged into the report's section)
+PARTS = {"blender-float32": lambda quick: blender_float32_rows(100_000 if quick else 1_000_000, 3 if quick else 5)}
 
 
 if __name__ == "__main__":

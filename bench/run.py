@@ -4,6 +4,9 @@
     ./run bench --quick    smaller inputs, for a smoke test
     ./run bench render ply only these topics (their sections of an existing report are replaced,
                            the others kept)
+    ./run bench articulation --only blender-float32
+                           only these parts of a topic (its PARTS): their rows replace the rows of the
+                           same case in the topic's section, the other rows are kept
 """
 
 import argparse
@@ -73,14 +76,44 @@ def plot(topic, rows, out_dir):
     return name
 
 
-def _merge_with_existing(report, sections):
-    """Keep the existing report's sections for topics not run this time, in topic order."""
-    fresh = {sec.split("\n", 1)[0][3:].strip(): sec for sec in sections}
+def _table_rows(markdown):
+    """(column names, [{column: cell}]) of the first table in a report section."""
+    lines = [line for line in markdown.splitlines() if line.startswith("|")]
+    if len(lines) < 2:
+        return [], []
+    cells = lambda line: [c.strip() for c in line.strip().strip("|").split(" | ")]  # noqa: E731
+    head = cells(lines[0])
+    return head, [dict(zip(head, cells(line))) for line in lines[2:]]
+
+
+def merge_rows(old_section, rows):
+    """The section `old_section` with `rows` in it: each replaces the row of the same case, or is
+    added; columns the old table lacks are added at its end."""
+    old_head, old_rows = _table_rows(old_section)
+    new_head, new_rows = _table_rows(table(rows))
+    head = old_head + [c for c in new_head if c not in old_head]
+    fresh = {r["case"]: r for r in new_rows}
+    merged = [fresh.pop(r["case"], r) for r in old_rows] + list(fresh.values())
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r.get(c, "") for c in head) + " |" for r in merged]
+    start = old_section.index("|") if "|" in old_section else len(old_section)
+    end = old_section.find("\n\n", start)
+    end = len(old_section) if end < 0 else end
+    return old_section[:start] + "\n".join(lines) + old_section[end:]
+
+
+def _old_sections(report):
     old = {}
     if report.exists():
         for part in report.read_text().split("\n## ")[1:]:
             old[part.split("\n", 1)[0].strip()] = "## " + part.rstrip() + "\n"
-    merged = {**old, **fresh}
+    return old
+
+
+def _merge_with_existing(report, sections):
+    """Keep the existing report's sections for topics not run this time, in topic order."""
+    fresh = {sec.split("\n", 1)[0][3:].strip(): sec for sec in sections}
+    merged = {**_old_sections(report), **fresh}
     return [merged[t] for t in sorted(merged)]
 
 
@@ -89,6 +122,8 @@ def main(argv=None):
     parser.add_argument("topics", nargs="*", help=f"default: all of {', '.join(topics())}")
     parser.add_argument("--quick", action="store_true", help="smaller inputs (smoke test)")
     parser.add_argument("--report", default=str(HERE / "REPORT.md"))
+    parser.add_argument("--only", action="append", metavar="PART",
+                        help="run only this part of the topic (a key of its PARTS); rows merged into its section")
     args = parser.parse_args(argv)
     report = Path(args.report)
     report.parent.mkdir(parents=True, exist_ok=True)
@@ -97,10 +132,22 @@ def main(argv=None):
         print(f"== {topic}", flush=True)
         t0 = time.perf_counter()
         try:
-            rows = importlib.import_module(topic).run(quick=args.quick)
+            module = importlib.import_module(topic)
+            if args.only:
+                rows = [row for part in args.only for row in module.PARTS[part](args.quick)]
+            else:
+                rows = module.run(quick=args.quick)
         except Exception:
             traceback.print_exc()
             failed.append(topic)
+            continue
+        old = _old_sections(report).get(topic)
+        if args.only and old is not None:
+            parts = ", ".join(args.only)
+            stamp = f"_{time.perf_counter() - t0:.0f} s for {parts}, measured {time.strftime('%Y-%m-%d %H:%M')}._"
+            kept = "\n\n".join(p for p in merge_rows(old, rows).rstrip().split("\n\n")
+                                if not (p.startswith("_") and f" s for {parts}, measured" in p))
+            sections.append(kept + "\n\n" + stamp + "\n")
             continue
         png = plot(topic, rows, report.parent)
         section = f"## {topic}\n\n{table(rows)}\n"

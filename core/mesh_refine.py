@@ -190,10 +190,31 @@ class _Inset:
 
 
 def refine_to_target(surface, target, max_splats, views, view_size, render_mode, progress, info, style,
-                     uniform=False, view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE):
+                     uniform=False, **view_options):
     """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable).
     With `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes
-    are calibrated for the views."""
+    are calibrated for the views. progress(done, total, label) after each round."""
+    return drain(refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform,
+                               **view_options), progress)
+
+
+def drain(steps, progress=None):
+    """Run a generator of (done, total, label) steps to its end, passing each to `progress`;
+    returns the generator's return value."""
+    while True:
+        try:
+            step = next(steps)
+        except StopIteration as stop:
+            return stop.value
+        if progress:
+            progress(*step)
+
+
+def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
+                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE):
+    """refine_to_target one round at a time: a generator yielding (round, MAX_ROUNDS, label) after
+    the calibration and each round and returning the cloud, so a caller can stop between rounds
+    (close() it)."""
     cameras = list(views) if views is not None else default_views(surface, view_size, view_count,
                                                                   distances=view_distances)
     if not cameras:
@@ -231,6 +252,7 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
     else:
         inset, cloud, m = _calibrate_inset(v, make, density, outward.any())
     calibrated_at = len(cloud)
+    yield 0, MAX_ROUNDS, f"mesh2splats: silhouettes calibrated, {m.psnr:.1f} dB"
     for round_ in range(MAX_ROUNDS):
         rounds = round_ + 1
         if round_:
@@ -244,8 +266,7 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
                 calibrated_at, saturated[:] = len(cloud), False
         if best is None or m.psnr > best[0]:
             best = (m.psnr, cloud, inset, m)
-        if progress:
-            progress(round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {m.psnr:.1f} dB")
+        yield round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {m.psnr:.1f} dB"
         if m.psnr >= target:
             if previous is not None:
                 best = _trim(v, make, previous[2], density, inset, target, best)
@@ -273,8 +294,7 @@ def refine_to_target(surface, target, max_splats, views, view_size, render_mode,
         at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
         stop = "max_splats" if at_cap else "rounds"
     psnr, cloud, inset, m = best
-    if progress:
-        progress(MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB")
+    yield MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
     if isinstance(info, dict):
         worst = m.worst
         distance = view_distances[worst % len(view_distances)] if views is None else None

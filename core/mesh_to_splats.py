@@ -30,11 +30,18 @@ WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wa
 SPREAD_GAIN = 1.3       # widened splats keep this much more opacity than their share (coverage closed)
 
 
-def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
-                   corner_colors=None, max_splats=None, target_psnr=None, progress=None,
-                   overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
-                   view_distances=None, view_count=None, render_mode="classic", calibrate=True, info=None):
-    """Convert a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
+def mesh_to_splats(vertices, faces, *, progress=None, **options):
+    """Convert a triangle mesh to a SplatCloud of flat Gaussians: mesh_to_splats_steps run to its
+    end, each step passed to `progress(done, total, label)`. The options are mesh_to_splats_steps'."""
+    from .mesh_refine import drain
+    return drain(mesh_to_splats_steps(vertices, faces, **options), progress)
+
+
+def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
+                         corner_colors=None, max_splats=None, target_psnr=None,
+                         overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
+                         view_distances=None, view_count=None, render_mode="classic", calibrate=True, info=None):
+    """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
     `materials` (a list of core.mesh.Material); corner_colors (F,3,3) or (V,3), scene-linear.
@@ -51,7 +58,8 @@ def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, mat
     black background; see core/mesh_refine.py.
     Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
-    `progress(done, total, label)` is called as work proceeds; `info`, if a dict, receives
+    It yields (done, total, label) as work proceeds (with renders: after each calibration or
+    refinement round, so a caller may stop between rounds) and returns the cloud; `info`, if a dict, receives
     "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
     (the worst view), "psnr_views", "worst_view", "worst_view_distance", "psnr_all_views",
     "inset_pixels", "views", "spread" (budgets) and (target mode) "reached" and "limit" (why not).
@@ -74,16 +82,16 @@ def mesh_to_splats(vertices, faces, *, corner_uvs=None, face_materials=None, mat
         density = _uniform_density(surface, int(max_splats))
         cloud = build_splats(surface, budget_density(density, thin_wall_density(surface, density, overlap)[0],
                                                      surface.area, int(max_splats)), **style)
-        if progress:
-            progress(1, 1, "mesh2splats")
+        yield 1, 1, "mesh2splats"
     else:
-        from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_to_target
+        from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds
         budget_only = target_psnr is None and max_splats is not None
         target = DEFAULT_TARGET_PSNR if target_psnr is None else float(target_psnr)
-        cloud = refine_to_target(surface, np.inf if budget_only else target, max_splats, views, view_size,
-                                 render_mode, progress, info, style, uniform=budget_only,
-                                 view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
-                                 view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count))
+        cloud = yield from refine_rounds(
+            surface, np.inf if budget_only else target, max_splats, views, view_size, render_mode, info, style,
+            uniform=budget_only,
+            view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
+            view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count))
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud

@@ -40,6 +40,12 @@ def bad_rows(name, values):
     return ~ok.all(axis=1) if flat.shape[1] else np.zeros(len(values), bool)
 
 
+def memory_bytes(count, sh_degree):
+    """Bytes the float32 fields of a cloud of `count` splats of `sh_degree` hold (extras aside): what
+    one copy of the splats takes in memory, in the model or as Blender's attributes of either form."""
+    return 4 * count * (3 + 4 + 3 + 1 + 3 * (sh_degree + 1) ** 2)
+
+
 class SplatValidationError(ValueError):
     """A cloud whose arrays are malformed or hold values no renderer can use."""
 

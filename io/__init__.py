@@ -23,6 +23,12 @@ FORMATS = {
 }
 
 
+# format module -> the extension a writer's file gets when only the format is named (OpenUSD: .usd,
+# binary where OpenUSD's module is present, text where it is not)
+DEFAULT_EXTENSIONS = {"ply": ".ply", "spz": ".spz", "splat": ".splat", "usd": ".usd",
+                      "compressed_ply": ".compressed.ply", "sog": ".sog", "gltf": ".glb"}
+
+
 def format_of(path):
     """The format module name for a path (the longest known ending of its name wins, so
     x.compressed.ply is compressed PLY; a bare ".ply" is no name), or SplatFileError naming the
@@ -33,6 +39,15 @@ def format_of(path):
             return FORMATS[ending]
     known = ", ".join(sorted(FORMATS))
     raise SplatFileError(path, f"unknown splat file extension '{Path(path).suffix.lower()}' (known: {known})")
+
+
+def file_sizes(count, sh_degree, spz_version=3, half=False):
+    """{format: bytes} a file of `count` splats of `sh_degree` takes, by each writer's own layout:
+    "ply" and "splat" exactly (without extras), "spz" before compression (the file is smaller),
+    "usd" the arrays a crate file holds (see usd.data_size)."""
+    from . import ply, splat, spz, usd
+    return {"ply": ply.file_size(count, sh_degree), "spz": spz.uncompressed_size(count, sh_degree, spz_version),
+            "splat": splat.file_size(count, sh_degree), "usd": usd.data_size(count, sh_degree, half)}
 
 
 def _module(path):
@@ -54,4 +69,4 @@ def write_splats(path, cloud, **options):
     return _module(path).write(path, cloud, **options)
 
 
-__all__ = ["FORMATS", "SplatFileError", "SplatFileWarning", "format_of", "read_splats", "write_splats"]
+__all__ = ["DEFAULT_EXTENSIONS", "FORMATS", "SplatFileError", "SplatFileWarning", "file_sizes", "format_of", "read_splats", "write_splats"]

@@ -425,11 +425,7 @@ def write(path, cloud, nonfinite="raise"):
         cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     names = layout_names(cloud.sh_degree)
     extras = _extra_columns(path, cloud, set(names))
-    dtype = np.dtype([(CORE, "<f4", (len(names),))] + [(name, a.dtype.newbyteorder("<")) for name, a in extras])
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(cloud)}"]
-    header += [f"property float {name}" for name in names]
-    header += [f"property {TYPE_NAMES[a.dtype.str[1:]]} {name}" for name, a in extras]
-    header = ("\n".join(header) + "\nend_header\n").encode("ascii")
+    dtype, header = _layout(len(cloud), names, [(name, a.dtype) for name, a in extras])
     fill = _Filler(cloud, extras, jit.load("io.ply_kernels", check=_check_kernels))
     tallies = []
     try:
@@ -450,6 +446,22 @@ def write(path, cloud, nonfinite="raise"):
                 apply_nonfinite_policy(path, cloud, "raise", "write", _merge(tallies, cloud.checked_arrays()))
     except OSError as exc:
         raise SplatFileError(path, f"cannot write: {exc.strerror or exc}") from exc
+
+
+def _layout(count, names, extras):
+    """(vertex record dtype, header bytes) of a file of `count` splats with the float32 layout
+    properties `names` and (name, dtype) extras after them."""
+    dtype = np.dtype([(CORE, "<f4", (len(names),))] + [(name, dt.newbyteorder("<")) for name, dt in extras])
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {count}"]
+    header += [f"property float {name}" for name in names]
+    header += [f"property {TYPE_NAMES[np.dtype(dt).str[1:]]} {name}" for name, dt in extras]
+    return dtype, ("\n".join(header) + "\nend_header\n").encode("ascii")
+
+
+def file_size(count, sh_degree):
+    """Bytes of the file write() makes for `count` splats of `sh_degree` without extras."""
+    dtype, header = _layout(count, layout_names(sh_degree), [])
+    return len(header) + count * dtype.itemsize
 
 
 class _Filler:

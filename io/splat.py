@@ -23,6 +23,11 @@ RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4
 assert RECORD.itemsize == 32
 
 
+def file_size(count, sh_degree=0):
+    """Bytes of the file write() makes: one record per splat, whatever the SH degree (DC only)."""
+    return count * RECORD.itemsize
+
+
 def to_u8(values):
     """Round to nearest and clamp to 0..255 (NaN -> 0)."""
     return np.clip(np.rint(np.nan_to_num(values, nan=0.0)), 0, 255).astype(np.uint8)

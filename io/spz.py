@@ -98,6 +98,14 @@ def _block_sizes(n, dim, version):
             ("rotations", (4 if version >= 3 else 3) * n), ("sh", 3 * dim * n)]
 
 
+def uncompressed_size(count, sh_degree, version=3):
+    """Bytes of the data write() compresses for `count` splats of `sh_degree`: the header and the
+    attribute blocks (v2/v3: one gzip stream of both), or the blocks (v4: each a zstd stream, after a
+    32-byte header and 16 bytes of contents per stream). The file is smaller by what compression saves."""
+    blocks = sum(size for _, size in _block_sizes(count, SH_DIMS[sh_degree], version))
+    return blocks + (HEADER.size if version < 4 else 0)
+
+
 def _check_header(path, magic, version, n, degree, bits):
     if magic != MAGIC:
         raise SplatFileError(path, f"not an SPZ file (magic 0x{magic:08X}, expected 0x{MAGIC:08X})")

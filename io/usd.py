@@ -1255,6 +1255,19 @@ def _frame_values(path, cloud, options):
     return values
 
 
+def data_size(count, sh_degree, half=False, exact=True):
+    """Bytes of the arrays write() authors for `count` splats of `sh_degree` (the attributes of
+    _frame_values: positions, orientations, scales, opacities and SH, half floats with `half`, and
+    with `exact` the model's own logits, log scales and rotations; the extent). A crate file holds
+    them raw plus about a kilobyte of structure (less where OpenUSD compresses constant arrays); a
+    text layer takes about 10 bytes per number instead of 4."""
+    k = (sh_degree + 1) ** 2
+    width = 2 if half else 4
+    numbers = 4 + 3 + 1 + 3 * k                       # orientation, scale, opacity, SH
+    raw = 1 + 3 + 4 if exact and not half else 0      # logits, log scales, raw rotations (float32)
+    return count * (3 * 4 + numbers * width + raw * 4) + 2 * 3 * 4
+
+
 def _schema_class():
     return getattr(UsdVol, TYPE_NAME, None) if UsdVol is not None else None
 

@@ -7,10 +7,11 @@ from . import bundled
 
 bundled.expose("pxr")      # before any io module imports it
 
-from . import animation, apply_guard, collide, command, engine, from_mesh, operators, rigging  # noqa: E402
+from . import animation, apply_guard, cleanup, collide, command, engine, from_mesh, operators, proxy_binding, rigging  # noqa: E402,I001
+from . import panel, preferences  # noqa: E402
 
 CLASSES = (operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + rigging.CLASSES + collide.CLASSES
-           + engine.CLASSES)
+           + engine.CLASSES + cleanup.CLASSES + proxy_binding.CLASSES + preferences.CLASSES + panel.CLASSES)
 MENUS = operators.MENUS + from_mesh.MENUS + rigging.MENUS + collide.MENUS
 
 
@@ -21,6 +22,7 @@ def register():
         menu.append(draw)
     engine.register()
     rigging.register()
+    cleanup.register()
     apply_guard.register()
     command.register()
 
@@ -28,6 +30,7 @@ def register():
 def unregister():
     command.unregister()
     apply_guard.unregister()
+    cleanup.unregister()
     rigging.unregister()
     engine.unregister()
     for menu, draw in MENUS:

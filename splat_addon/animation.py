@@ -18,6 +18,7 @@ from bpy_extras.io_utils import ExportHelper, orientation_helper
 from ..io import SplatFileError, format_of, write_splats
 from ..io.common import publish_together
 from . import data, operators
+from .export_options import ExportOptionProperties, ExportOptions
 
 HASHES = re.compile(r"#+")
 DEFAULT_PADDING = 4                 # Blender's own default, ####
@@ -50,13 +51,16 @@ def frame_range(start, end, step=1):
     return list(range(start, end + 1, step))
 
 
-def export_animation(context, objects, path, frames, conversion=None, progress=None):
+def export_animation(context, objects, path, frames, conversion=None, progress=None, options=None):
     """Write `objects` (splat objects) at each of `frames` to `path`; returns the files written.
     All or nothing: a frame that fails leaves every file of the sequence as it was.
 
     conversion: the Blender -> file axis matrix (default: operators.export_conversion()).
     progress(done, total, message) is called after each frame. The scene's frame is restored.
+    options: an ExportOptions (SH degree, SPZ version, half floats, pruning); pruning keeps the same
+    splats in every frame: those at least that opaque at the first frame.
     """
+    options = ExportOptions() if options is None else options
     path = Path(path)
     frames = list(frames)
     if not frames:
@@ -70,12 +74,18 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
 
     def clouds():
         """Each frame's cloud, evaluated when the writer asks for it: one frame in memory at a time."""
+        kept = None
         for i, frame in enumerate(frames):
             scene.frame_set(frame)
             try:
                 cloud = operators.scene_cloud(context, objects, conversion)
             except data.SplatObjectError as exc:
                 raise data.SplatObjectError(f"frame {frame}: {exc}") from None
+            kept = options.kept(cloud) if i == 0 else kept
+            if kept is not None and len(kept) != len(cloud):
+                raise SplatFileError(path, f"frame {frame} has {len(cloud)} splats, the first frame {len(kept)}: "
+                                           "pruning keeps the first frame's splats in every frame")
+            cloud = options.reduce(cloud, kept)
             count = len(cloud)
             yield cloud
             del cloud                        # before the next frame is evaluated
@@ -86,7 +96,8 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
     try:
         if single:
             from ..io import usd
-            usd.write_frames(path, clouds(), times=frames, fps=scene.render.fps / scene.render.fps_base)
+            usd.write_frames(path, clouds(), times=frames, fps=scene.render.fps / scene.render.fps_base,
+                             **options.writer_options(path))
             return [path]
         written = [frame_path(path, frame) for frame in frames]
         blocked = next((out for out in written if out.is_dir()), None)
@@ -94,14 +105,14 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
             raise SplatFileError(blocked, "a folder of that name is in the way")
         with publish_together():             # each frame lands on its name once all are written
             for out, cloud in zip(written, clouds()):
-                write_splats(out, cloud)
+                write_splats(out, cloud, **options.writer_options(out))
         return written
     finally:
         scene.frame_set(current, subframe=subframe)
 
 
 @orientation_helper(axis_forward=operators.FILE_FORWARD, axis_up=operators.FILE_UP)
-class SPLAT_OT_export_animation(bpy.types.Operator, ExportHelper):
+class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, ExportHelper):
     """Export splat objects over a frame range: one animated OpenUSD file, or one file per frame
     (name_####.ply) for other formats"""
 
@@ -134,7 +145,8 @@ class SPLAT_OT_export_animation(bpy.types.Operator, ExportHelper):
             try:
                 written = export_animation(context, objects, path, frames,
                                            operators.export_conversion(self.axis_forward, self.axis_up),
-                                           progress=lambda done, total, message: progress.update(done))
+                                           progress=lambda done, total, message: progress.update(done),
+                                           options=self.export_options(context))
             finally:
                 progress.end()
         except operators.EXPECTED_ERRORS as exc:

@@ -21,7 +21,8 @@ from ..core.collision import CollisionInputError, EnvironmentIndex, ellipsoid_co
 from ..core.skinning import SkinningError
 from . import data, rigging
 from .animation import frame_range
-from .operators import EXPECTED_ERRORS, _Progress
+from .modal import JobOperator
+from .operators import EXPECTED_ERRORS
 
 CONTACT_ATTRIBUTE = "splat_contact"
 DEFAULT_SIGMA = 3.0
@@ -167,62 +168,109 @@ class _Environment:
         return self.index
 
 
+class CollisionJob:
+    """A collision check a frame at a time, for a modal operator (Esc between frames) and for batch
+    use alike. step() checks the next frame and returns False once all are checked; finish() puts the
+    scene's frame back, writes `splat_contact` (with `write_attribute`) and returns the
+    CollisionReport; cancel() puts the frame back and writes nothing, leaving the scene as it was.
+    `done` / `total` / `label` say how far it is."""
+
+    def __init__(self, context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity=DEFAULT_MIN_OPACITY,
+                 ignore_bones=(), write_attribute=True):
+        frames = list(frames)
+        if not frames:
+            raise CollisionSetupError("no frames to check")
+        if not 0 < k < np.inf:
+            raise CollisionSetupError(f"the sigma multiple must be positive and finite, got {k}")
+        if not 0 <= min_opacity <= 1:
+            raise CollisionSetupError(f"the minimum opacity must be between 0 and 1, got {min_opacity}")
+        self.ignore = set(ignore_bones)
+        (self.bones_a, self.labels_a), (self.bones_b, self.labels_b) = _labels(obj_a), _labels(obj_b)
+        unknown = self.ignore - set(self.bones_a) - set(self.bones_b)
+        if unknown:
+            raise CollisionSetupError(f"no bones named {', '.join(sorted(unknown))} bind '{obj_a.name}' or '{obj_b.name}'")
+        self.context, self.obj_a, self.obj_b, self.frames = context, obj_a, obj_b, frames
+        self.k, self.min_opacity, self.write_attribute = float(k), min_opacity, write_attribute
+        self.hits_a, self.hits_b = np.zeros(data.splat_count(obj_a.data)), np.zeros(data.splat_count(obj_b.data))
+        self.traced = [True, True]      # whether every frame's contacts map back onto each object's splats
+        scene = context.scene
+        self.restore = (scene.frame_current, scene.frame_subframe)
+        self.environment, self.results = _Environment(), []
+        self.total, self.done, self.label = len(frames), 0, ""
+
+    def step(self):
+        """Check the next frame; False when every frame is checked."""
+        if self.done == self.total:
+            return False
+        frame = self.frames[self.done]
+        found = self._check(frame)
+        self.results.append(found)
+        self.done += 1
+        self.label = f"frame {frame}: {found.pairs} splat pairs in contact"
+        return self.done < self.total
+
+    def _check(self, frame):
+        context, obj_a, obj_b = self.context, self.obj_a, self.obj_b
+        context.scene.frame_set(frame)
+        depsgraph = context.evaluated_depsgraph_get()
+        cloud_a, cloud_b = data.evaluated_cloud(obj_a, depsgraph), data.evaluated_cloud(obj_b, depsgraph)
+        _check_finite(frame, (obj_a, cloud_a), (obj_b, cloud_b))
+        shown_a = self.labels_a if self.labels_a is not None else np.full(len(cloud_a), -1)
+        shown_b = self.labels_b if self.labels_b is not None else np.full(len(cloud_b), -1)
+        keep_a = _kept(cloud_a, self.bones_a, shown_a, self.ignore, self.min_opacity)
+        keep_b = _kept(cloud_b, self.bones_b, shown_b, self.ignore, self.min_opacity)
+        if not (len(keep_a) and len(keep_b)):
+            return FrameContacts(frame)
+        contacts = ellipsoid_contacts(cloud_a[keep_a], self.environment.get(cloud_b[keep_b]), k=self.k)
+        touched_a, touched_b = keep_a[np.unique(contacts.robot)], keep_b[np.unique(contacts.env)]
+        for side, (hits, touched, cloud) in enumerate(((self.hits_a, touched_a, cloud_a),
+                                                        (self.hits_b, touched_b, cloud_b))):
+            own = _own_splats(touched, len(hits), len(cloud))
+            if own is None:
+                self.traced[side] = False
+            else:
+                hits[own] += 1
+        return FrameContacts(frame, len(contacts), len(touched_a), len(touched_b),
+                             _per_bone(self.bones_a, shown_a[touched_a]), _per_bone(self.bones_b, shown_b[touched_b]),
+                             float(contacts.sigma.min(initial=np.inf)))
+
+    def _restore_frame(self):
+        current, subframe = self.restore
+        self.context.scene.frame_set(current, subframe=subframe)
+
+    def cancel(self):
+        """Stop: the scene's frame goes back, nothing is written."""
+        self._restore_frame()
+
+    def finish(self):
+        """The report of the frames checked; the frame goes back and `splat_contact` is written."""
+        self._restore_frame()
+        checked = max(len(self.results), 1)
+        report = CollisionReport(self.obj_a.name, self.obj_b.name, self.k, self.results,
+                                 self.hits_a / checked, self.hits_b / checked)
+        if self.write_attribute:
+            for obj, values, ok in ((self.obj_a, report.contact_a, self.traced[0]),
+                                    (self.obj_b, report.contact_b, self.traced[1])):
+                if ok:
+                    write_contact(obj, values)
+        return report
+
+
 def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity=DEFAULT_MIN_OPACITY,
                      ignore_bones=(), write_attribute=True, progress=None):
     """Test splat objects `obj_a` and `obj_b` for contact at each of `frames`; returns a
     CollisionReport and (with `write_attribute`) writes `splat_contact` on both. The scene's frame
     is restored. progress(done, total, FrameContacts) is called after each frame."""
-    frames = list(frames)
-    if not frames:
-        raise CollisionSetupError("no frames to check")
-    if not 0 < k < np.inf:
-        raise CollisionSetupError(f"the sigma multiple must be positive and finite, got {k}")
-    if not 0 <= min_opacity <= 1:
-        raise CollisionSetupError(f"the minimum opacity must be between 0 and 1, got {min_opacity}")
-    ignore = set(ignore_bones)
-    (bones_a, labels_a), (bones_b, labels_b) = _labels(obj_a), _labels(obj_b)
-    unknown = ignore - set(bones_a) - set(bones_b)
-    if unknown:
-        raise CollisionSetupError(f"no bones named {', '.join(sorted(unknown))} bind '{obj_a.name}' or '{obj_b.name}'")
-    hits_a, hits_b = np.zeros(data.splat_count(obj_a.data)), np.zeros(data.splat_count(obj_b.data))
-    traced = [True, True]           # whether every frame's contacts map back onto each object's splats
-    scene = context.scene
-    current, subframe = scene.frame_current, scene.frame_subframe
-    environment, results = _Environment(), []
+    job = CollisionJob(context, obj_a, obj_b, frames, k, min_opacity, ignore_bones, write_attribute)
     try:
-        for i, frame in enumerate(frames):
-            scene.frame_set(frame)
-            depsgraph = context.evaluated_depsgraph_get()
-            cloud_a, cloud_b = data.evaluated_cloud(obj_a, depsgraph), data.evaluated_cloud(obj_b, depsgraph)
-            _check_finite(frame, (obj_a, cloud_a), (obj_b, cloud_b))
-            shown_a = labels_a if labels_a is not None else np.full(len(cloud_a), -1)
-            shown_b = labels_b if labels_b is not None else np.full(len(cloud_b), -1)
-            keep_a = _kept(cloud_a, bones_a, shown_a, ignore, min_opacity)
-            keep_b = _kept(cloud_b, bones_b, shown_b, ignore, min_opacity)
-            found = FrameContacts(frame)
-            if len(keep_a) and len(keep_b):
-                contacts = ellipsoid_contacts(cloud_a[keep_a], environment.get(cloud_b[keep_b]), k=k)
-                touched_a, touched_b = keep_a[np.unique(contacts.robot)], keep_b[np.unique(contacts.env)]
-                for side, (hits, touched, cloud) in enumerate(((hits_a, touched_a, cloud_a), (hits_b, touched_b, cloud_b))):
-                    own = _own_splats(touched, len(hits), len(cloud))
-                    if own is None:
-                        traced[side] = False
-                    else:
-                        hits[own] += 1
-                found = FrameContacts(frame, len(contacts), len(touched_a), len(touched_b),
-                                      _per_bone(bones_a, shown_a[touched_a]), _per_bone(bones_b, shown_b[touched_b]),
-                                      float(contacts.sigma.min(initial=np.inf)))
-            results.append(found)
+        while job.done < job.total:
+            job.step()
             if progress:
-                progress(i + 1, len(frames), found)
-    finally:
-        scene.frame_set(current, subframe=subframe)
-    report = CollisionReport(obj_a.name, obj_b.name, float(k), results, hits_a / len(frames), hits_b / len(frames))
-    if write_attribute:
-        for obj, values, ok in ((obj_a, report.contact_a, traced[0]), (obj_b, report.contact_b, traced[1])):
-            if ok:
-                write_contact(obj, values)
-    return report
+                progress(job.done, job.total, job.results[-1])
+    except BaseException:
+        job.cancel()
+        raise
+    return job.finish()
 
 
 def write_contact(obj, values):
@@ -231,13 +279,15 @@ def write_contact(obj, values):
 
 # the operator ---------------------------------------------------------------------------------------
 
-class SPLAT_OT_check_collisions(bpy.types.Operator):
+class SPLAT_OT_check_collisions(JobOperator, bpy.types.Operator):
     """Find the frames and bones at which two splat objects touch (exact k-sigma ellipsoid test) and
-    store each splat's share of frames in contact in its 'splat_contact' attribute"""
+    store each splat's share of frames in contact in its 'splat_contact' attribute (from the interface a
+    frame at a time: Esc cancels and changes nothing)"""
 
     bl_idname = "splat.check_collisions"
     bl_label = "Check Splat Collisions"
     bl_options = {"REGISTER", "UNDO"}
+    job_errors = (CollisionSetupError, CollisionInputError, SkinningError, *EXPECTED_ERRORS)
 
     object_a: StringProperty(name="Object A", default="",
                              description="A splat object, e.g. a rigged avatar (empty: the active object)")
@@ -259,23 +309,16 @@ class SPLAT_OT_check_collisions(bpy.types.Operator):
     def poll(cls, context):
         return context.mode == "OBJECT"
 
-    def execute(self, context):
+    def make_job(self, context):
         scene = context.scene
-        try:
-            obj_a, obj_b = splat_objects_pair(scene, self.object_a, self.object_b, context)
-            start, end, step = (scene.frame_start, scene.frame_end, scene.frame_step) if self.use_scene_range \
-                else (self.frame_start, self.frame_end, self.frame_step)
-            frames = frame_range(start, end, step)
-            ignore = [n.strip() for n in self.ignore_bones.split(",") if n.strip()]
-            progress = _Progress(context, len(frames))
-            try:
-                report = check_collisions(context, obj_a, obj_b, frames, self.sigma, self.min_opacity, ignore,
-                                          progress=lambda done, total, found: progress.update(done))
-            finally:
-                progress.end()
-        except (CollisionSetupError, CollisionInputError, SkinningError, *EXPECTED_ERRORS) as exc:
-            self.report({"ERROR"}, str(exc))
-            return {"CANCELLED"}
+        obj_a, obj_b = splat_objects_pair(scene, self.object_a, self.object_b, context)
+        start, end, step = (scene.frame_start, scene.frame_end, scene.frame_step) if self.use_scene_range \
+            else (self.frame_start, self.frame_end, self.frame_step)
+        ignore = [n.strip() for n in self.ignore_bones.split(",") if n.strip()]
+        return CollisionJob(context, obj_a, obj_b, frame_range(start, end, step), self.sigma, self.min_opacity, ignore)
+
+    def finish(self, context, job):
+        report = job.finish()
         self.report({"INFO"}, report.summary())
         return {"FINISHED"}
 

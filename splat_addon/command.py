@@ -1,6 +1,7 @@
 """`blender -b scene.blend --command splatwright VERB ...`: batch export, render and mesh conversion.
 
-    export OUT [--frames A-B[:STEP]] [--format FORMAT] [--objects NAMES]
+    export OUT [--frames A-B[:STEP]] [--format FORMAT] [--objects NAMES] [--sh-degree N]
+               [--spz-version 2|3|4] [--half] [--prune-opacity T]
     render [OUT] [--frames A-B[:STEP]] [--objects NAMES] [--meshes cycles|eevee|workbench|none]
     from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed]
     collide A B [--frames A-B[:STEP]] [--sigma K] [--ignore-bones NAMES] [--json OUT]
@@ -20,13 +21,13 @@ from pathlib import Path
 
 import bpy
 
-from ..io import FORMATS, format_of, write_splats
+from ..io import DEFAULT_EXTENSIONS, FORMATS, format_of, write_splats
 from ..io.common import atomic_write
-from . import animation, collide, data, engine, from_mesh, mesh_layer, operators
+from . import animation, collide, data, engine, from_mesh, mesh_layer, operators, preferences
+from .export_options import ExportOptions
 
 COMMAND = "splatwright"
-FORMAT_EXTENSIONS = {"usd": ".usd", "ply": ".ply", "compressed_ply": ".compressed.ply", "spz": ".spz",
-                     "splat": ".splat", "sog": ".sog", "gltf": ".glb"}
+FORMAT_EXTENSIONS = DEFAULT_EXTENSIONS
 # render OUT's extension -> image formats that write it (the first is chosen if none is set)
 IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), ".jpg": ("JPEG",),
                  ".jpeg": ("JPEG",), ".tif": ("TIFF",), ".tiff": ("TIFF",)}
@@ -76,6 +77,13 @@ def parser():
     p.add_argument("--objects", help=objects_help)
     p.add_argument("--axis-forward", choices=("X", "Y", "Z", "-X", "-Y", "-Z"), help="file forward axis")
     p.add_argument("--axis-up", choices=("X", "Y", "Z", "-X", "-Y", "-Z"), help="file up axis")
+    p.add_argument("--sh-degree", type=int, choices=range(4),
+                   help="reduce the SH to this degree (default: the preferences', else as the splats have it)")
+    p.add_argument("--spz-version", type=int, choices=(2, 3, 4), help="SPZ version (default: the preferences', 3)")
+    p.add_argument("--half", action=argparse.BooleanOptionalAction, default=None,
+                   help="OpenUSD: half floats for orientations, scales, opacities and SH (default: the preferences')")
+    p.add_argument("--prune-opacity", type=float, metavar="T", default=0.0,
+                   help="leave out splats whose opacity is below T at the first frame (0..1; default 0: none)")
 
     p = verbs.add_parser("render", help="render frames with the Splatwright engine")
     p.add_argument("output", nargs="?", help="output path pattern as in Output Properties (default: the scene's); "
@@ -171,9 +179,12 @@ def splat_objects(text, context):
 
 
 def output_path(text, fmt):
-    """OUT as an absolute path ('//' is the .blend's folder) whose extension names the format."""
+    """OUT as an absolute path ('//' is the .blend's folder) whose extension names the format; OUT
+    without an extension gets that of `fmt`, or of the preferences' export format."""
     path = Path(bpy.path.abspath(text))
     known = FORMATS.get(path.suffix.lower())
+    if fmt is None and known is None and not path.suffix:
+        fmt = preferences.current().export_format
     if fmt is None:
         format_of(path)                      # SplatFileError naming an unknown extension
         return path
@@ -192,10 +203,30 @@ def run_export(args, context):
     frames = parse_frames(args.frames, scene)
     objects = splat_objects(args.objects, context)
     conversion = operators.export_conversion(args.axis_forward, args.axis_up)
+    options = export_options(args, path)
     _say(f"export {len(objects)} object(s), frames {frames[0]}-{frames[-1]} ({len(frames)}) to {path}")
     written = animation.export_animation(context, objects, path, frames, conversion,
-                                         progress=lambda done, total, message: _say(f"[{done}/{total}] {message}"))
+                                         progress=lambda done, total, message: _say(f"[{done}/{total}] {message}"),
+                                         options=options)
     _say(f"done: {len(written)} file(s) written")
+
+
+def export_options(args, path):
+    """ExportOptions from the export flags, the preferences' where a flag is not given; a flag the
+    output's format cannot use is refused."""
+    fmt = format_of(path)
+    if args.spz_version is not None and fmt != "spz":
+        raise CommandError(f"--spz-version needs an SPZ output, not {path.name}")
+    if args.half and fmt != "usd":
+        raise CommandError(f"--half needs an OpenUSD output, not {path.name}")
+    prefs = preferences.current()
+    try:
+        return ExportOptions(args.sh_degree if args.sh_degree is not None else
+                             (None if prefs.sh_degree == "KEEP" else int(prefs.sh_degree)),
+                             args.spz_version if args.spz_version is not None else int(prefs.spz_version),
+                             prefs.use_half if args.half is None else args.half, args.prune_opacity)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
 
 
 @contextlib.contextmanager

@@ -114,6 +114,17 @@ def splat_count(geometry):
     return len(geometry.vertices) if isinstance(geometry, bpy.types.Mesh) else len(geometry.points)
 
 
+def sh_degree(obj):
+    """The SH degree of a splat object's own splats, from its attribute names (nothing is read);
+    SplatObjectError when they do not form a full degree."""
+    geometry = obj.data
+    if splat_form(obj) == NATIVE_FORM:
+        count = _sh_count(geometry, NATIVE_SH_PREFIX, 1, obj.name)
+    else:
+        count = _sh_count(geometry, SH_PREFIX, 0, obj.name)
+    return shmod.degree_of(count)
+
+
 def native_supported():
     """Whether this Blender can make point clouds holding points from Python: resize() (5.2 and
     later), or converting a mesh (4.5 and later)."""
@@ -626,13 +637,20 @@ POSERS = []
 OWN_MODIFIERS = ("Splatwright Display",)
 
 
-def evaluated_cloud(obj, depsgraph, matrix=None):
-    """The cloud `obj` shows at the depsgraph's frame, then `matrix` applied (default: the evaluated
-    world matrix). Export, animation export, collisions and the render engine all read splat objects
-    through this one function."""
+# Edit hooks: callables (obj, depsgraph, cloud) -> cloud, applied in turn to what the object shows
+# (object space) before it is placed: clean-up and grading kept as settings on the object (cleanup.py).
+EDITS = []
+
+
+def evaluated_cloud(obj, depsgraph, matrix=None, edits=True):
+    """The cloud `obj` shows at the depsgraph's frame, its edits applied (see EDITS; `edits=False`
+    leaves them out), then `matrix` (default: the evaluated world matrix). Export, animation export,
+    collisions and the render engine all read splat objects through this one function."""
     obj = obj.original
     pose = next((p for p in (poser(obj, depsgraph) for poser in POSERS) if p is not None), None)
     cloud = pose(own_cloud(obj, depsgraph)) if pose is not None else modified_cloud(obj, depsgraph)
+    for edit in EDITS if edits else ():
+        cloud = edit(obj, depsgraph, cloud)
     return _transformed(obj, cloud, world_matrix(obj, depsgraph) if matrix is None else matrix)
 
 

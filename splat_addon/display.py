@@ -166,6 +166,16 @@ def add_display(obj, display_ratio=1.0):
     return mod
 
 
+def input_property(mod, name):
+    """(owner, property name) of the display modifier's input `name`, for layout.prop(): a struct's
+    `value` from Blender 5.2, the modifier's ID property before (see set_input)."""
+    identifier = next(item.identifier for item in mod.node_group.interface.items_tree
+                      if getattr(item, "name", None) == name and item.in_out == "INPUT")
+    if "properties" in mod.bl_rna.properties:
+        return getattr(mod.properties.inputs, identifier), "value"
+    return mod, f'["{identifier}"]'
+
+
 def set_input(mod, name, value):
     """Set one of the display modifier's inputs by its name. Up to Blender 5.1 the values are ID
     properties of the modifier; from 5.2 each is a struct under `properties.inputs` with a `value`."""

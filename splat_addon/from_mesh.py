@@ -33,10 +33,11 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
 from ..core.camera import Camera
 from ..core.mesh import Material
-from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
-from ..core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats
+from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
+from ..core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from . import camera, data, display
-from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS, _Progress
+from .modal import JobOperator
+from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
 
 SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
 SUFFIX = "_splats"
@@ -265,32 +266,55 @@ def source_record(obj, evaluated_vertices, rest):
             "original_vertices": len(obj.data.vertices), "rest_pose": bool(rest)}
 
 
-def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, progress=None, warn=print,
-                   rest=False, views=None, info=None, **view_options):
-    """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it.
-    `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
-    view_count of mesh_to_splats) say where quality is measured; `info` receives mesh_to_splats'."""
+def read_object(obj, depsgraph, warn=print, rest=False):
+    """(Triangles, mesh_to_splats appearance keywords, source record) of one mesh object as
+    `depsgraph` evaluates it: NumPy copies, so nothing of Blender's is held afterwards."""
     evaluated = obj.evaluated_get(depsgraph)
     mesh = evaluated.to_mesh()
     try:
         if len(mesh.polygons) == 0:
             raise MeshConversionError(f"'{obj.name}' has no faces to convert ({len(mesh.vertices)} vertices)")
         triangles, appearance = mesh_inputs(evaluated, mesh, warn)
-        with warnings.catch_warnings(record=True) as caught:
+        return triangles, appearance, source_record(obj, len(triangles.vertices), rest)
+    finally:
+        evaluated.to_mesh_clear()
+
+
+def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, warn=print,
+                 views=None, info=None, **view_options):
+    """A generator converting one object's read mesh (read_object): yields (done, total, label) as
+    mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record).
+    `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
+    view_count of mesh_to_splats) say where quality is measured; `info` receives mesh_to_splats'."""
+    steps = mesh_to_splats_steps(triangles.vertices, triangles.faces, max_splats=max_splats,
+                                 target_psnr=target_psnr, views=views, info=info, **view_options, **appearance)
+    while True:
+        with warnings.catch_warnings(record=True) as caught:       # per step: nothing held across yields
             warnings.simplefilter("always")
             try:
-                cloud = mesh_to_splats(triangles.vertices, triangles.faces, max_splats=max_splats,
-                                       target_psnr=target_psnr, progress=progress, views=views, info=info,
-                                       **view_options, **appearance)
+                step = next(steps)
+            except StopIteration as stop:
+                cloud = stop.value
+                step = None
             except ValueError as exc:
                 raise MeshConversionError(f"'{obj.name}': {exc}") from exc
         for w in caught:
             warn(f"'{obj.name}': {w.message}")
-        tri = cloud.extras["source_triangle"]
-        cloud.extras["source_vertices"] = triangles.faces[tri].astype(np.int32)
-        return cloud, source_record(obj, len(triangles.vertices), rest)
-    finally:
-        evaluated.to_mesh_clear()
+        if step is None:
+            break
+        yield step
+    tri = cloud.extras["source_triangle"]
+    cloud.extras["source_vertices"] = triangles.faces[tri].astype(np.int32)
+    return cloud, record
+
+
+def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, progress=None, warn=print,
+                   rest=False, **view_options):
+    """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it;
+    `view_options` as object_steps takes them."""
+    read = read_object(obj, depsgraph, warn, rest)
+    return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, warn=warn,
+                              **view_options), progress)
 
 
 def mesh_objects(objects):
@@ -337,27 +361,72 @@ def camera_path_views(scene, objects, count, size):
     return views
 
 
+class ConversionJob:
+    """Mesh objects converted a step at a time, for a modal operator (Esc between steps) and for
+    batch use alike. The meshes are read when the job is made (in their armatures' rest position
+    with `use_rest_pose`); the steps then touch no Blender data, so a job stopped part-way
+    (cancel()) leaves the scene as it was. step() does one step (a refinement round of one object
+    with a target PSNR, a whole object with a budget) and returns False once every object is
+    converted; `results` then holds [(source object, cloud, record)], which create() links into
+    the scene. `done` / `total` / `label` say how far it is (objects as units)."""
+
+    def __init__(self, context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True, warn=print,
+                 views=None, **view_options):
+        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, warn=warn, **view_options)
+        self.views = views                 # {object: [core Camera]} or None (views around each mesh)
+        self.infos = []                    # mesh_to_splats' info of each object, as results fill
+        with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
+            depsgraph = context.evaluated_depsgraph_get()
+            self.inputs = [(obj, *read_object(obj, depsgraph, warn, use_rest_pose)) for obj in objects]
+        self.results, self.total, self.done, self.label = [], len(objects), 0.0, ""
+        self._steps = None
+
+    def step(self):
+        """One step; False when there is nothing left to do."""
+        index = len(self.results)
+        if index == len(self.inputs):
+            return False
+        obj = self.inputs[index][0]
+        if self._steps is None:
+            self.infos = self.infos[:index] + [{}]
+            views = None if self.views is None else self.views[obj]
+            self._steps = object_steps(*self.inputs[index], **self.options, views=views, info=self.infos[index])
+        try:
+            done, total, label = next(self._steps)
+        except StopIteration as stop:
+            self.results.append((obj, *stop.value))
+            self._steps = None
+            self.done = float(len(self.results))
+            return len(self.results) < len(self.inputs)
+        self.done, self.label = index + (done / total if total else 1.0), f"{obj.name}: {label}"
+        return True
+
+    def run(self, progress=None):
+        """Every step; progress(done, total, label) after each. Returns the results."""
+        while self.step():
+            if progress:
+                progress(self.done, self.total, self.label)
+        return self.results
+
+    def cancel(self):
+        """Stop: the steps under way are dropped, nothing was or will be added to the scene."""
+        if self._steps is not None:
+            self._steps.close()
+        self._steps, self.inputs = None, self.inputs[:len(self.results)]
+
+
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True,
-                    progress=None, warn=print, views=None, infos=None, **view_options):
+                    progress=None, warn=print, infos=None, **view_options):
     """[(source object, cloud, record)] for mesh objects; nothing in the scene changes.
 
     progress(done, total, label) sees the whole selection as one task of len(objects) units.
-    `views` maps objects to their cameras (see camera_path_views); `infos`, a list, receives
-    each object's mesh_to_splats info."""
-    results = []
-    with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
-        depsgraph = context.evaluated_depsgraph_get()
-        for i, obj in enumerate(objects):
-            def step(done, total, label="", i=i):
-                if progress:
-                    progress(i + (done / total if total else 1.0), len(objects), f"{obj.name}: {label}")
-            info = {}
-            cloud, record = convert_object(obj, depsgraph, max_splats=max_splats, target_psnr=target_psnr,
-                                           progress=step, warn=warn, rest=use_rest_pose, info=info,
-                                           views=None if views is None else views[obj], **view_options)
-            results.append((obj, cloud, record))
-            if infos is not None:
-                infos.append(info)
+    `view_options`: views (camera_path_views' mapping) or view_size, view_distances, view_count;
+    `infos`, a list, receives each object's mesh_to_splats info."""
+    job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
+                        use_rest_pose=use_rest_pose, warn=warn, **view_options)
+    results = job.run(progress)
+    if infos is not None:
+        infos.extend(job.infos)
     return results
 
 
@@ -406,12 +475,15 @@ def sizing(mode, max_splats, target_psnr):
 
 # the operator ----------------------------------------------------------------------------------------
 
-class SPLAT_OT_from_mesh(bpy.types.Operator):
-    """Convert the selected mesh objects (modifiers applied) to splat objects placed like them"""
+class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
+    """Convert the selected mesh objects (modifiers applied) to splat objects placed like them
+    (from the interface a step at a time: Esc cancels and changes nothing)"""
 
     bl_idname = "splat.from_mesh"
     bl_label = "Mesh to Splats"
     bl_options = {"REGISTER", "UNDO"}
+    job_errors = (MeshConversionError, *EXPECTED_ERRORS)
+    _skipped = ()
 
     mode: EnumProperty(name="Size By", default="BUDGET", items=(
         ("BUDGET", "Splat Budget", "Exactly Max Splats splats per object, spread evenly over the surface"),
@@ -441,43 +513,39 @@ class SPLAT_OT_from_mesh(bpy.types.Operator):
     def poll(cls, context):
         return context.mode == "OBJECT"
 
+    def make_job(self, context):
+        max_splats, target_psnr = sizing(self.mode, self.max_splats, self.target_psnr)
+        objects = mesh_objects(context.selected_objects)
+        self._skipped = [o.name for o in context.selected_objects if o not in objects]
+        return ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
+                             use_rest_pose=self.use_rest_pose, warn=lambda message: self.report({"WARNING"}, message),
+                             **self.view_options(context, objects))
+
     def view_options(self, context, objects):
-        """Keyword arguments of convert_objects saying where quality is measured."""
+        """Keyword arguments of ConversionJob saying where quality is measured."""
         if self.view_source == "CAMERA":
             return {"views": camera_path_views(context.scene, objects, self.view_count, self.view_size)}
         return {"view_distances": view_distances(self.view_near, self.view_far),
                 "view_count": self.view_count, "view_size": self.view_size}
 
-    def execute(self, context):
-        max_splats, target_psnr = sizing(self.mode, self.max_splats, self.target_psnr)
-        progress = _Progress(context, len(context.selected_objects))
-        infos = []
+    def finish(self, context, job):
         try:
-            objects = mesh_objects(context.selected_objects)
-            skipped = [o.name for o in context.selected_objects if o not in objects]
-            results = convert_objects(context, objects, max_splats=max_splats, target_psnr=target_psnr,
-                                      use_rest_pose=self.use_rest_pose,
-                                      progress=lambda done, total, label: progress.update(done),
-                                      warn=lambda message: self.report({"WARNING"}, message), infos=infos,
-                                      **self.view_options(context, objects))
-            created = create_splat_objects(context, results)
-        except (MeshConversionError, *EXPECTED_ERRORS) as exc:
+            created = create_splat_objects(context, job.results)
+        except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
-        finally:
-            progress.end()
-        if skipped:
-            self.report({"WARNING"}, f"not meshes, skipped: {', '.join(skipped)}")
+        if self._skipped:
+            self.report({"WARNING"}, f"not meshes, skipped: {', '.join(self._skipped)}")
         for obj in context.view_layer.objects:
             obj.select_set(False)
         for obj in created:
             obj.select_set(True)
         context.view_layer.objects.active = created[-1]
-        for (source, cloud, _), info in zip(results, infos):
+        for (source, cloud, _), info in zip(job.results, job.infos):
             missed = info.get("reached") is False
             self.report({"WARNING"} if missed else {"INFO"},
                         f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else ""))
-        total = sum(len(cloud) for _, cloud, _ in results)
+        total = sum(len(cloud) for _, cloud, _ in job.results)
         self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
         return {"FINISHED"}
 

@@ -12,6 +12,7 @@ from ..core import SplatCloud, SplatValidationError
 from ..io import FORMATS, SplatFileError, read_splats, write_splats
 from ..io.common import nonfinite_counts
 from . import data, display
+from .export_options import ExportOptionProperties
 
 FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)
 EXTENSIONS = ";".join(FORMATS)
@@ -189,7 +190,7 @@ def scene_cloud(context, objects, conversion, keep_source=False):
 
 
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
-class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
+class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHelper):
     """Export splat objects (with their transforms applied) to PLY, OpenUSD, SPZ or .splat"""
 
     bl_idname = "splat.export_file"
@@ -213,13 +214,17 @@ class SPLAT_OT_export_file(bpy.types.Operator, ExportHelper):
             cloud = scene_cloud(context, objects, export_conversion(self.axis_forward, self.axis_up))
             progress.update(1)
             cloud = finite_for_export(path, cloud, self.drop_invalid, self.report)
-            write_splats(path, cloud)
+            options = self.export_options(context)
+            written = options.reduce(cloud)
+            write_splats(path, written, **options.writer_options(path))
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         finally:
             progress.end()
-        self.report({"INFO"}, f"wrote {len(cloud)} splats from {len(objects)} object(s) to {path}")
+        pruned = f" ({len(cloud) - len(written)} fainter than {options.prune_opacity:g} left out)" \
+            if len(written) < len(cloud) else ""
+        self.report({"INFO"}, f"wrote {len(written)} splats{pruned} from {len(objects)} object(s) to {path}")
         return {"FINISHED"}
 
 

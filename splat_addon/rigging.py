@@ -374,6 +374,12 @@ def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, f
         tails = np.array([arm.data.bones[n].tail_local for n in bones], np.float64)
         dense = bone_weights(centres, heads, tails, falloff)
         source, tolerance = "bones", min_weight
+    return plan_from_weights(obj, bones, dense, source, max_influences, tolerance)
+
+
+def plan_from_weights(obj, bones, dense, source, max_influences, tolerance):
+    """The BindPlan of (N, B) `dense` weights over `bones`, pruned below `tolerance` of each splat's
+    total and to `max_influences`."""
     binding = Binding.from_dense(dense, max_influences=max_influences, tolerance=tolerance)
     pruned = np.zeros_like(dense, dtype=np.float32)
     rows, slots = np.nonzero(binding.weights > 0)        # unused slots pad with bone 0: skip them
@@ -496,6 +502,13 @@ def bind_armature(objects, armature, max_influences=DEFAULT_INFLUENCES, use_sour
         listed = ", ".join(f"'{o.name}' ({o.type.lower()})" for o in objects if o != armature)
         raise RiggingError("no splat objects to bind" + (f"; {listed} are not splat objects" if listed else ""))
     plans = [plan_binding(o, armature, max_influences, use_source, falloff, min_weight, warn) for o in targets]
+    write_plans(plans, armature, preserve_volume)
+    return plans
+
+
+def write_plans(plans, armature, preserve_volume=False):
+    """Store each BindPlan's weights on its object and attach it to `armature`; a failure undoes
+    what was done to every object."""
     snapshots = [_snapshot(plan.obj) for plan in plans]
     try:
         for plan in plans:
@@ -508,7 +521,6 @@ def bind_armature(objects, armature, max_influences=DEFAULT_INFLUENCES, use_sour
     finally:
         for plan in plans:
             forget_weights(plan.obj.data)
-    return plans
 
 
 # the operator ---------------------------------------------------------------------------------------
@@ -561,6 +573,7 @@ class SPLAT_OT_bind_armature(bpy.types.Operator):
 
 def menu_parent(self, context):
     self.layout.operator(SPLAT_OT_bind_armature.bl_idname, text="Splats to Armature (Bone Weights)")
+    self.layout.operator("splat.bind_proxy", text="Splats to Armature (Through Proxy Mesh)")    # proxy_binding
 
 
 CLASSES = (SPLAT_OT_bind_armature,)

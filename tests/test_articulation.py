@@ -520,3 +520,61 @@ def test_zero_scales_skin_as_points(mode):
     with pytest.raises(SkinningError, match="non-finite log_scales"):
         skin(cloud.replace(log_scales=np.where(np.isneginf(cloud.log_scales), np.inf, cloud.log_scales)),
              Binding.rigid(np.arange(40) % 2), deform)
+
+
+# rigid bones at float32 precision ------------------------------------------------------------------
+
+def _float32_chain(rng, depth):
+    """A Blender-like pose: a chain of turned bones whose armature-space matrices are products
+    rounded to float32 at every level, as Blender computes pose_bone.matrix; rest likewise."""
+    rest, pose = np.eye(4, dtype=np.float32), np.eye(4, dtype=np.float32)
+    for _ in range(depth):
+        axis = rng.normal(size=3)
+        offset = hom(rodrigues(axis, rng.uniform(-3, 3)), rng.normal(0, 0.5, 3)).astype(np.float32)
+        turn = hom(rodrigues(rng.normal(size=3), rng.uniform(-3, 3))).astype(np.float32)
+        rest = (rest @ offset).astype(np.float32)
+        pose = (pose @ offset @ turn).astype(np.float32)
+    return rest.astype(np.float64), pose.astype(np.float64)
+
+
+def test_float32_rounded_turns_are_rigid_and_a_thousandth_of_scale_is_not():
+    from splatwright.core.skinning import RIGID_TOLERANCE
+    rng = np.random.default_rng(3)
+    chains = [_float32_chain(rng, depth) for depth in (1, 4, 8, 12) for _ in range(25)]
+    rest, pose = (np.stack(m) for m in zip(*chains))
+    stretch = np.abs(svd_polar_batch(pose @ np.linalg.inv(rest)) - np.eye(3)).max(axis=(1, 2))
+    assert stretch.max() > 1e-9                             # the rounding the old tolerance took for scale
+    assert not BonePose.from_blender(rest, pose).derived["scales"].any()
+    for scale in (np.diag([1.001, 1.001, 1.001, 1.0]), np.diag([1.0, 1.001, 1.0, 1.0]), np.diag([0.999, 1, 1, 1.0])):
+        scaled = pose.copy()
+        scaled[::7] = scaled[::7] @ scale
+        flags = BonePose.from_blender(rest, scaled).derived["scales"]
+        assert np.array_equal(flags, np.arange(len(pose)) % 7 == 0)
+    assert stretch.max() < RIGID_TOLERANCE < 1e-3 / 100      # rounding below it, a scale of 1.001 far above
+
+
+def svd_polar_batch(m):
+    u, s, vt = np.linalg.svd(m[:, :3, :3])
+    return np.einsum("bji,bj,bjk->bik", vt, s, vt)
+
+
+def test_skinning_with_float32_turns_stays_within_float32_of_float64():
+    """LBS with every bone's exact stretch (float64, SVD) against ours, which drops the rounding."""
+    rng = np.random.default_rng(4)
+    rest, pose = (np.stack(m) for m in zip(*[_float32_chain(rng, d) for d in (2, 5, 9, 12) * 3]))
+    deform = pose @ np.linalg.inv(rest)
+    cloud = random_cloud(2000, sh_degree=1, seed=5)
+    binding = Binding.from_weights(np.stack([rng.choice(len(pose), 3, replace=False) for _ in range(len(cloud))]),
+                                   rng.uniform(0.1, 1.0, (len(cloud), 3)))
+    ours = skin(cloud, binding, BonePose.from_blender(rest, pose), "lbs")
+    w = binding.weights.astype(np.float64)
+    w /= w.sum(axis=1, keepdims=True)
+    blended = np.einsum("nk,nkij->nij", w, deform[binding.indices][:, :, :3, :3])
+    s_blend = np.einsum("nk,nkij->nij", w, svd_polar_batch(deform)[binding.indices])
+    m = np.stack([svd_polar(b)[0] for b in blended]) @ s_blend
+    ref = m @ cloud_covariances(cloud) @ np.swapaxes(m, 1, 2)
+    mine = cloud_covariances(ours)
+    rel = (np.abs(mine - ref).max(axis=(1, 2)) / np.abs(ref).max(axis=(1, 2))).max()
+    dropped = np.abs(svd_polar_batch(deform) - np.eye(3)).max()
+    assert rel <= 2 * dropped + 4 * np.finfo(np.float32).eps
+    assert rel < 2e-6

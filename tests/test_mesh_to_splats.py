@@ -535,3 +535,31 @@ def test_thin_walls_do_not_show_the_other_side():
     tinted_even, even_db = leak(even)
     assert tinted < 0.005 and tinted_even > 0.02, (tinted, tinted_even)
     assert clean_db > even_db + 6, (clean_db, even_db)
+
+
+def test_steps_are_the_refinement_rounds_and_stop_when_closed():
+    """mesh_to_splats_steps yields after every round (a caller may stop between rounds) and returns
+    what mesh_to_splats returns; closed part-way it ends at once."""
+    from splatwright.core.mesh_to_splats import mesh_to_splats_steps
+    v, f, _ = uv_sphere(24, 12)
+    options = dict(face_materials=np.zeros(len(f), int), materials=[Material(base_color=(0.7, 0.2, 0.1))],
+                   target_psnr=33.0, view_size=64)
+    seen = []
+    whole = mesh_to_splats(v, f, progress=lambda *step: seen.append(step), **options)
+    steps = mesh_to_splats_steps(v, f, **options)
+    stepped = []
+    while True:
+        try:
+            stepped.append(next(steps))
+        except StopIteration as stop:
+            cloud = stop.value
+            break
+    assert stepped == seen and len(seen) >= 3
+    # one step after the silhouette calibration (0), then one per round
+    assert [done for done, _, _ in seen[:-1]] == list(range(len(seen) - 1))
+    np.testing.assert_array_equal(cloud.positions, whole.positions)
+    steps = mesh_to_splats_steps(v, f, **options)
+    next(steps)
+    steps.close()
+    with pytest.raises(StopIteration):
+        next(steps)
