@@ -93,13 +93,18 @@ def status(name):
     return "compiled" if _modules[name] is not None else f"unavailable ({_reasons[name]})"
 
 
-def njit(fn):
-    """numba.njit for our kernels: no GIL (they run on core.parallel's threads), cached on disk."""
+def njit(fn=None, *, contract=False):
+    """numba.njit for our kernels: no GIL (they run on core.parallel's threads), cached on disk.
+    contract=True lets the compiler fuse a * b + c into one FMA instruction (a rounding less, so
+    results may differ from NumPy's in the last bit): `@njit(contract=True)`."""
+    if fn is None:
+        return lambda f: njit(f, contract=contract)
     import numba
+    options = {"nogil": True, "error_model": "numpy", **({"fastmath": {"contract"}} if contract else {})}
     try:
-        return numba.njit(nogil=True, cache=True, error_model="numpy")(fn)
+        return numba.njit(cache=True, **options)(fn)
     except RuntimeError:                # no writable cache folder anywhere: compile in every process
-        return numba.njit(nogil=True, error_model="numpy")(fn)
+        return numba.njit(**options)(fn)
 
 
 _installed = False

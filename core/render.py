@@ -150,8 +150,11 @@ class Projected:
 
 
 def _records(n):
-    """Room for n records plus the padding record."""
-    rec = np.zeros((n + 1, 8))
+    """Room for n records plus the padding record, each record on one cache line (64-byte aligned:
+    NumPy's large arrays start 16 bytes past a page, which would put every record across two)."""
+    raw = np.zeros((n + 2) * 64, np.uint8)
+    start = -raw.ctypes.data % 64
+    rec = raw[start:start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
     _floats(rec[n:])[:, 0] = -1e30          # padding: exp(-1e30) = 0
     return rec
 
@@ -583,7 +586,7 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool):
               for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")]
     records = _records(n)
     index, depth = np.empty(n, np.int64), np.empty(n, np.float32)
-    r2, bbox = np.empty(n), np.empty((n, 4), np.int64)
+    r2, bbox = np.empty(n), np.empty((n, 4), np.int32)
     w, h = camera.width, camera.height
     mx, my = (FRUSTUM_MARGIN - 1) / 2 * w, (FRUSTUM_MARGIN - 1) / 2 * h
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
@@ -603,9 +606,13 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool):
     rows = np.concatenate([np.arange(lo, lo + count) for lo, count, _ in parts] or [np.zeros(0, np.int64)])
     # float32 depth keys, ties in index order (see project())
     rows = rows[_stable_argsort(depth[rows].view(np.uint32), 1 << 32)]
-    out = _records(len(rows))
-    np.take(records, rows, axis=0, out=out[:-1])
-    return Projected(index[rows], out, r2[rows], bbox[rows], sum(skipped for _, _, skipped in parts))
+    m = len(rows)
+    proj = Projected(np.empty(m, np.int64), _records(m), np.empty(m), np.empty((m, 4), np.int32),
+                     sum(skipped for _, _, skipped in parts))
+    bounds = np.linspace(0, m, pool.threads + 1).astype(np.int64)
+    pool.map(lambda k: kernels.gather(rows, bounds[k], bounds[k + 1], records, bbox, r2, index, proj.records,
+                                      proj.bbox, proj.r2, proj.index), list(range(pool.threads)))
+    return proj
 
 
 def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
@@ -618,14 +625,18 @@ def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
     bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
     chunks = list(range(len(bounds) - 1))
     rec64 = proj.records
+    rows = proj.bbox[:, 3] // ts - proj.bbox[:, 1] // ts + 1            # tile rows of each splat
+    first_row = np.zeros(n + 1, np.int64)
+    np.cumsum(rows, out=first_row[1:])
+    spans = np.empty((int(first_row[-1]), 2), np.int32)                # tile columns per splat and row
     counts = np.zeros((len(chunks), n_tiles), np.int64)
     pool.map(lambda k: kernels.count_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
-                                           counts[k]), chunks)
+                                           first_row, spans, counts[k]), chunks)
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     np.cumsum(counts.sum(axis=0), out=offsets[1:])
     cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts       # where each chunk's run begins
     entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
-    pool.map(lambda k: kernels.fill_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
+    pool.map(lambda k: kernels.fill_tiles(proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x, first_row, spans,
                                           number, cursor[k], entry_splat), chunks)
     return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
 
@@ -679,10 +690,12 @@ class _CompiledCompositor:
     def _records(self):
         """The records and boxes in the order the entries number them."""
         proj, n = self.proj, len(self.proj)
-        records, bbox = _records(n), np.empty((n, 4), np.int64)
+        records, bbox = _records(n), np.empty((n, 4), np.int32)
+        empty, empty_index = np.zeros(0), np.zeros(0, np.int64)         # r2 and index stay behind
         bounds = np.linspace(0, n, self.pool.threads + 1).astype(np.int64)
-        self.pool.map(lambda k: self.kernels.gather(self.order, proj.records, proj.bbox, bounds[k], bounds[k + 1],
-                                                    records, bbox), list(range(self.pool.threads)))
+        self.pool.map(lambda k: self.kernels.gather(self.order, bounds[k], bounds[k + 1], proj.records, proj.bbox,
+                                                    empty, empty_index, records, bbox, empty, empty_index),
+                      list(range(self.pool.threads)))
         return records, bbox
 
     def images(self, progress=None):

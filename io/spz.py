@@ -17,10 +17,12 @@ table-of-contents offset), extension records up to that offset, a table of (comp
 sizes, then one zstd frame per non-empty attribute block in the order above (five at SH degree 0).
 
 Writing follows Niantic's writer to the bit: its float32 arithmetic, rounding half away from zero
-(C's round), its smallest-three packing, gzip level 6 / zstd level 12. v4 files are byte-identical
-to the reference's; v2/v3 files too up to 1 MiB of data, beyond which the same payload is deflated
-in 1 MiB pieces on every core (by ISA-L when the isal package is there: about 6x zlib's speed,
-files ~1% larger) - one valid gzip stream, not the same bytes.
+(C's round), its smallest-three packing, gzip level 6 / zstd level 12. Files up to 1 MiB of data are
+byte-identical to the reference's. Beyond, v2/v3 payloads are deflated in 1 MiB pieces on every core
+(by ISA-L when the isal package is there: about 6x zlib's speed, files ~1% larger) - one valid gzip
+stream, not the same bytes - and v4 blocks are compressed at zstd level 1 (ZSTD_FAST_LEVEL), in
+parallel: on 1M SH-3 splats level 12 takes ~20x longer for a file no smaller (quantised SH bytes are
+nearly incompressible noise to zstd's longer searches), and both are smaller than gsply's.
 
 Axes: SPZ is RUB (x right, y up, z back), the model (like 3DGS PLY) is RDF. Reading and writing
 flip y and z: positions negate, quaternions (w, x, -y, -z), and each SH coefficient by its parity
@@ -55,6 +57,7 @@ SH_QUANTIZATION_EXT = 0xADBE0001
 MAX_POINTS = 1 << 28
 SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}    # higher-order coefficients per channel
 GZIP_LEVEL, ZSTD_LEVEL = 6, 12                 # what Niantic's writer uses (v4 output is byte-identical)
+ZSTD_FAST_LEVEL = 1                            # v4 blocks beyond GZIP_CHUNK of data (see the module's notes)
 GZIP_CHUNK = 1 << 20                           # deflated independently, in parallel, like pigz
 GZIP_OS = 3                                    # the OS byte zlib writes on Unix
 ISAL_LEVEL = 1                                 # ISA-L level 1: about zlib 6's size, many times its speed
@@ -498,7 +501,8 @@ def _outside(x):
 def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=False,
            axes="RDF", level=None, notes=None):
     """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); level: gzip (v2/v3) or
-    zstd (v4) compression level, by default the reference writer's."""
+    zstd (v4) compression level, by default the reference writer's up to 1 MiB of data (the same
+    bytes as Niantic's) and a faster one beyond (see the module's notes)."""
     notes = [] if notes is None else notes
     if version not in VERSIONS:
         raise ValueError(f"SPZ version must be one of {VERSIONS}, got {version}")
@@ -517,8 +521,9 @@ def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, a
     prefix = 0 if version == 4 else HEADER.size
     payload = _Packer(cloud, version, bits, sh1_bits, sh_rest_bits, axes == "RDF", prefix).run(notes)
     if version == 4:
-        return _pack_v4(n, degree, bits, flags, payload, _block_sizes(n, SH_DIMS[degree], 4),
-                        ZSTD_LEVEL if level is None else level)
+        if level is None:
+            level = ZSTD_LEVEL if len(payload) <= GZIP_CHUNK else ZSTD_FAST_LEVEL
+        return _pack_v4(n, degree, bits, flags, payload, _block_sizes(n, SH_DIMS[degree], 4), level)
     payload[:prefix] = HEADER.pack(MAGIC, version, n, degree, bits, flags, 0)
     return _gzip(payload, level)
 
@@ -558,8 +563,8 @@ def _gzip(data, level=None):
 
 def _pack_v4(n, degree, bits, flags, payload, sizes, level):
     """The NGSP container: header, table of contents, one zstd frame per non-empty block (the
-    reference skips empty ones: five streams at SH degree 0), compressed in parallel: byte-identical
-    to the reference's."""
+    reference skips empty ones: five streams at SH degree 0), compressed in parallel: at the
+    reference's level, byte-identical to the reference's."""
     zstd = _zstd("SPZ v4")
     view, at, blocks = memoryview(payload), 0, []
     for _, size in sizes:

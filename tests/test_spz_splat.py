@@ -150,6 +150,35 @@ def test_gzip_made_of_independent_chunks_is_one_valid_member(tmp_path, monkeypat
     check_spz_error(spz.read(tmp_path / "chunks.spz"), cloud)
 
 
+def test_large_v4_uses_the_fast_level_and_decodes_the_same(tmp_path, monkeypatch):
+    """Beyond GZIP_CHUNK of data v4 blocks are zstd level 1 frames: other bytes than level 12's,
+    the same payload once decompressed (zstandard's own decoder) and the same splats read back."""
+    zstandard = pytest.importorskip("zstandard")
+    cloud = in_range_cloud(2000, seed=6)
+    spz.write(tmp_path / "reference.spz", cloud, version=4)              # 130 kB of data: level 12
+    monkeypatch.setattr(spz, "GZIP_CHUNK", 4096)
+    spz.write(tmp_path / "fast.spz", cloud, version=4)
+    spz.write(tmp_path / "level12.spz", cloud, version=4, level=12)
+    reference, fast = (tmp_path / "reference.spz").read_bytes(), (tmp_path / "fast.spz").read_bytes()
+    assert (tmp_path / "level12.spz").read_bytes() == reference and fast != reference
+
+    def frames(data):
+        count, toc = data[15], struct.unpack_from("<I", data, 16)[0]
+        sizes = np.frombuffer(data[toc:toc + 16 * count], "<u8").reshape(-1, 2)
+        at, out = toc + 16 * count, []
+        for packed, _ in sizes:
+            out.append(data[at:at + int(packed)])
+            at += int(packed)
+        return out
+
+    for mine, theirs in zip(frames(fast), frames(reference), strict=True):
+        assert zstandard.get_frame_parameters(mine).content_size == len(zstandard.decompress(theirs))
+        assert zstandard.decompress(mine) == zstandard.decompress(theirs)
+    got, want = spz.read(tmp_path / "fast.spz"), spz.read(tmp_path / "reference.spz")
+    for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+
+
 def test_hard_cases_are_clamped_and_reported(tmp_path):
     cloud = random_cloud(64, sh_degree=2, seed=9)
     cloud.log_scales[:, 0] = np.log(np.geomspace(1e-7, 1e4, 64))
