@@ -325,6 +325,16 @@ def _run_render(args):
 
 # mesh2splats --------------------------------------------------------------------------------------
 
+def _float_list(text):
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+    if not values or min(values) <= 0:
+        raise argparse.ArgumentTypeError(f"expected positive numbers, got {text!r}")
+    return values
+
+
 def _add_mesh2splats(p):
     from .core.mesh_to_splats import DEFAULT_TARGET_PSNR
     p.add_argument("mesh", help="a triangle mesh (.obj with its .mtl and textures; .stl, .dae, .glb, ... "
@@ -336,11 +346,16 @@ def _add_mesh2splats(p):
                       help=f"refine until renders from every view reach this PSNR against the mesh's "
                            f"(default {DEFAULT_TARGET_PSNR:g})")
     p.add_argument("--view-size", type=int, default=256, help="pixels per side of the views PSNR is measured in")
+    p.add_argument("--view-distances", type=_float_list, default=None, metavar="D,D,...",
+                   help="distances of the views, multiples of the one that frames the whole mesh "
+                        "(default 0.5,1,3: close-up, whole, distant)")
+    p.add_argument("--view-count", type=int, default=None, metavar="N", help="views at each distance (default 4)")
     p.add_argument("--mode", choices=("classic", "antialiased"), default="classic",
                    help="the render mode the splats are sized for")
 
 
 def _run_mesh2splats(args):
+    from .core.mesh_refine import summary
     from .core.mesh_to_splats import mesh_to_splats
     from .io import SplatFileError, write_splats
     from .io.meshes import read_mesh_file
@@ -350,16 +365,14 @@ def _run_mesh2splats(args):
     try:
         cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(),
                                max_splats=args.max_splats, target_psnr=args.target_psnr,
-                               view_size=args.view_size, render_mode=args.mode, progress=Progress(), info=info)
+                               view_size=args.view_size, view_distances=args.view_distances,
+                               view_count=args.view_count, render_mode=args.mode, progress=Progress(), info=info)
     except ValueError as exc:
         raise SplatFileError(args.mesh, str(exc)) from None
     write_splats(args.output, cloud)
     skipped = info.get("repaired")
-    quality = ""
-    if "psnr" in info:
-        quality = f", {info['psnr']:.1f} dB PSNR in the worst of {info['views']} views"
-    if info.get("reached") is False:
-        quality += f" (target {info['target_psnr']:g} dB not reached)"
+    quality = summary(info)
+    quality = f", {quality}" if quality else ""
     print(f"wrote {len(cloud)} splats from {len(mesh.faces)} faces{quality} to {args.output} in "
           f"{time.perf_counter() - start:.1f} s" + (f" (skipped or repaired: {skipped})" if skipped else ""))
     return 0

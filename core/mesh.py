@@ -295,8 +295,10 @@ class Surface:
         """Per face +1 or -1 so that sign * normal points out of the solid, 0 where there is no solid.
 
         Computed per connected part (vertices welded by position): a part is a solid when it is
-        closed (every edge shared by exactly two faces) and consistently wound (each edge used once
-        in each direction); the sign of its enclosed volume then tells outward from inward.
+        consistently wound (no edge used twice in one direction or by more than two faces) and
+        encloses a clear volume: closed, or open like a head with eye holes, whose signed volume
+        around its centre is at least OPEN_VOLUME times its area^1.5 (a sphere has 0.094, a
+        hemisphere 0.067, a flat sheet 0). The sign of that volume tells outward from inward.
         """
         faces = self.welded_faces()
         part = _connected_parts(faces, len(self.vertices))
@@ -307,16 +309,24 @@ class Surface:
         _, inverse, counts = np.unique(np.minimum(a, b) * n_vertices + np.maximum(a, b),
                                        return_inverse=True, return_counts=True)
         once = dcount[np.searchsorted(directed, a * n_vertices + b)] == 1
-        # Closed and consistently wound: each edge has exactly two uses, one in each direction.
-        good_edge = (counts[inverse] == 2) & once & np.isin(b * n_vertices + a, directed) & (a != b)
+        reverse = np.isin(b * n_vertices + a, directed)
+        # Consistently wound: each edge used at most twice, once in each direction.
+        wound = (counts[inverse] <= 2) & once & (a != b)
+        closed = wound & (counts[inverse] == 2) & reverse
         n_parts = part.max() + 1 if len(part) else 0
-        solid = np.bincount(edge_part, weights=~good_edge, minlength=n_parts) == 0
+        consistent = np.bincount(edge_part, weights=~wound, minlength=n_parts) == 0
+        watertight = np.bincount(edge_part, weights=~closed, minlength=n_parts) == 0
         corners = self.vertices[self.faces]
-        center = corners.reshape(-1, 3).mean(axis=0) if len(corners) else np.zeros(3)
-        c = np.where(np.isfinite(corners), corners - center, 0.0)
-        volume = np.bincount(part, weights=np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])),
+        finite = np.isfinite(corners).all(axis=(1, 2))
+        count = np.maximum(np.bincount(part, weights=finite, minlength=n_parts), 1)
+        centers = np.stack([np.bincount(part, weights=np.where(finite, corners[:, :, k].mean(axis=1), 0.0),
+                                        minlength=n_parts) for k in range(3)], axis=1) / count[:, None]
+        c = np.where(np.isfinite(corners), corners - centers[part][:, None, :], 0.0)
+        volume = np.bincount(part, weights=np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])) / 6,
                              minlength=n_parts)
-        sign = np.where(solid & (volume != 0), np.sign(volume), 0.0)
+        area = np.bincount(part, weights=np.where(self.valid, self.area, 0.0), minlength=n_parts)
+        enclosing = watertight | (consistent & (np.abs(volume) >= OPEN_VOLUME * area**1.5))
+        sign = np.where(enclosing & (volume != 0), np.sign(volume), 0.0)
         return sign[part] * self.valid
 
     def rim_colors(self, tri):
@@ -336,6 +346,9 @@ def shade(base_linear, rim_linear, has_rim, cos_view):
 def to_display(linear):
     """Scene-linear -> display sRGB as an emission shader shows it under the 'Standard' view."""
     return color.linear_to_srgb(np.clip(linear, 0.0, 1.0))
+
+
+OPEN_VOLUME = 0.03      # enclosed volume / area^1.5 above which an open part counts as a solid
 
 
 def _weld_keys(vertices, tolerance=1e-9):

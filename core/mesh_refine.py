@@ -1,64 +1,104 @@
-"""Target-PSNR sizing for mesh_to_splats: spend splats where the render error says they are needed.
+"""Sizing for mesh_to_splats from renders: spend splats where the render error says they are needed.
 
-The mesh is rendered once from eight views around it by the reference rasteriser
-(core.mesh_render, black background). The converter then starts coarse (one splat per
-START_SPACING^2 pixels of the finest view of each face) and repeats: build splats, render them with
-core.render from the same views, compare, attribute every pixel's squared error to the face seen
-there (background pixels to the nearest face), and multiply the density of faces whose local error
-is above the target by how far above it they are (at most MAX_GROWTH a round and MAX_PER_PIXEL
-splats per pixel), until the worst of the views reaches the target (every view, so the result
-holds from directions in between too). A face that got denser without its error dropping is left
-alone from then on: more splats cannot fix what the renderer's low-pass filter blurs. Flat
-single-colour regions therefore stay coarse. Once reached, two bisection steps between the last
-two densities look for a smaller cloud that still reaches the target.
+The mesh is rendered once from the views (the user's cameras, or by default four around it at each
+of 0.5, 1 and 3 times the distance that frames it) by the reference rasteriser (core.mesh_render,
+black background). Target mode then starts coarse (one splat per START_SPACING^2 pixels of the
+finest view of each face) and repeats: build splats, render them with core.render from the same
+views, compare, attribute every pixel's squared error to the face seen there (background pixels to
+the nearest face), and multiply the density of faces whose local error is above the target by how
+far above it they are (at most MAX_GROWTH a round and MAX_PER_PIXEL splats per pixel), until the
+worst of the views reaches the target. A face that got denser without its error dropping is left
+alone until the silhouettes are calibrated again: more splats cannot fix what the renderer's
+low-pass filter blurs. Once reached, two bisection steps between the last two densities look for a
+smaller cloud that still reaches it; when not, the result says which view is worst and why.
 
 Silhouettes: an opaque surface of Gaussians renders about one pixel fatter than the mesh, because
 the renderer's 0.3 px^2 low-pass spreads every splat seen edge-on and many such splats stack along
-a silhouette. Closed, consistently wound parts are therefore moved inwards along the normal by
-about a pixel of the views, calibrated from the coverage excess measured along the silhouettes.
+a silhouette. Solid parts are therefore moved inwards along the normal by the shift (in pixels of
+each face's finest view) that maximises the worst view's PSNR, found by golden-section search and
+searched again whenever the cloud has doubled or a round rendered worse (smaller splats want another
+shift; without this, refinement stalled with more splats rendering worse). A budget (uniform mode) also
+tries rendering like SPREADS times fewer splats (wider, fainter discs), since the fattening grows
+with the splats stacked: a larger budget can always look like a smaller one.
 """
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from .camera import Camera
 from .mesh_render import render_mesh
-from .mesh_to_splats import build_splats
+from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, build_splats, thin_wall_density
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import render
 
-VIEW_COUNT = 8
+VIEW_DISTANCES = (0.5, 1.0, 3.0)   # default view distances, multiples of the one that frames the mesh
+VIEWS_PER_DISTANCE = 4
 VIEW_FOV = 40.0
 SUPERSAMPLE = 3
 BACKGROUND = (0.0, 0.0, 0.0)
-START_SPACING = 4.0       # pixels between splats at the start
+START_SPACING = 8.0       # pixels of the finest view between splats at the start
 MAX_PER_PIXEL = 2.0       # density cap, splats per pixel of the finest view
-MAX_ROUNDS = 10
+MAX_ROUNDS = 12
 MAX_GROWTH = 2.5
-INSET_AIM = 0.15          # pixels of silhouette dilation to leave (best on held-out views)
-INSET_TOLERANCE = 0.1     # ... give or take this much
-INSET_SHIFTS = 4          # at most this many silhouette recalibrations
+INSET_SEARCH = 6          # evaluations of the golden-section search for the silhouette shift
+RECALIBRATE_GROWTH = 2.0  # search the shift again once the cloud has grown this much (or got worse)
 AIM = 0.7                 # faces aim at this fraction of the target MSE (not all of them can)
+SPREADS = (1.0, 4.0, 16.0, 64.0)   # a budget may render like this many times fewer splats
+MIN_SPREAD_SPLATS = 2000  # ... but never like fewer than this many
+EDGE_BAND = 2             # pixels either side of a silhouette that count as silhouette error
 
 
-def default_views(surface, size=256, count=VIEW_COUNT, fov_deg=VIEW_FOV):
-    """`count` square cameras evenly around the mesh's bounding sphere, framing all of it."""
+def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV, distances=VIEW_DISTANCES):
+    """`count` square cameras at each of `distances` around the mesh's bounding sphere.
+
+    A distance of 1 frames the whole mesh (its bounding sphere fills the field of view with 10%
+    to spare); 0.5 is a close-up, 3 a distant view. The directions of all views together follow
+    one Fibonacci spiral, dealt out in turn to the distances, so every distance sees the mesh
+    from all around and no two views look along the same line."""
+    distances = [float(d) for d in distances]
+    if not distances or min(distances) <= 0 or not all(math.isfinite(d) for d in distances):
+        raise ValueError(f"view distances must be positive numbers, got {distances}")
+    if int(count) < 1:
+        raise ValueError(f"need at least one view per distance, got {count}")
     pts = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     center = (lo + hi) / 2
     radius = max(float(np.linalg.norm(pts - center, axis=1).max()), 1e-30)
-    distance = 1.1 * radius / math.sin(math.radians(fov_deg) / 2)
+    framing = 1.1 * radius / math.sin(math.radians(fov_deg) / 2)
+    total = int(count) * len(distances)
     # A Fibonacci spiral, turned so no view looks straight along a coordinate axis.
-    k = np.arange(count) + 0.5
-    z = 1 - 2 * k / count
+    k = np.arange(total) + 0.5
+    z = 1 - 2 * k / total
     phi = k * math.pi * (3 - math.sqrt(5)) + 0.4
     ring = np.sqrt(1 - z * z)
     dirs = np.column_stack([ring * np.cos(phi), z * 0.9 + 0.1 * np.sin(phi), ring * np.sin(phi)])
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    return [Camera.look_at(center + distance * d, center, fov_deg=fov_deg, width=size, height=size,
-                           near=max(distance - 1.5 * radius, distance * 1e-6)) for d in dirs]
+    views = []
+    for i, d in enumerate(dirs):
+        distance = framing * distances[i % len(distances)]
+        views.append(Camera.look_at(center + distance * d, center, fov_deg=fov_deg, width=size, height=size,
+                                    near=max(distance - 1.5 * radius, distance * 1e-3)))
+    return views
+
+
+@dataclass
+class Measured:
+    """One comparison of a cloud with the mesh over all views."""
+
+    psnr: float            # of the worst view
+    err: np.ndarray        # per-face squared-error sums
+    px: np.ndarray         # per-face pixel counts
+    dilation: float        # pixels the silhouettes of solid parts lie outside the mesh's, on average
+    overall: float         # PSNR over all views together
+    views: list            # PSNR per view
+    edge_share: list       # per view, the fraction of its squared error within EDGE_BAND of a silhouette
+
+    @property
+    def worst(self):
+        return int(np.argmin(self.views))
 
 
 class _Views:
@@ -75,6 +115,7 @@ class _Views:
         pixel_owners = [o[centre::SUPERSAMPLE, centre::SUPERSAMPLE] for o in self.owners]
         self.solid = [(o >= 0) & solid[np.maximum(o, 0)] for o in pixel_owners]
         self.outline = sum(_edge_length(ref.alpha, mask) for ref, mask in zip(self.refs, self.solid))
+        self.edges = [_edge_band(ref.alpha, EDGE_BAND) for ref in self.refs]
 
     def _pixel_sizes(self):
         """World size of one pixel at each face in the finest view that sees it."""
@@ -92,34 +133,69 @@ class _Views:
         return size
 
     def measure(self, cloud):
-        """(PSNR of the worst view, per-face squared-error sums, per-face pixel counts, how many
-        pixels the silhouettes of solid parts lie outside the mesh's on average, PSNR over all
-        views together)."""
         n = len(self.surface.faces)
-        err_sum, px_sum, mses = np.zeros(n), np.zeros(n), []
+        err_sum, px_sum, mses, shares = np.zeros(n), np.zeros(n), [], []
         excess = 0.0
         # Small views: one whole render per core beats sharing each render between the cores.
         results = map_threads(lambda cam: render(cloud, cam, background=BACKGROUND, mode=self.mode, threads=1),
                               self.cameras)
-        for result, ref, owner, solid in zip(results, self.refs, self.owners, self.solid):
+        for result, ref, owner, solid, edge in zip(results, self.refs, self.owners, self.solid, self.edges):
             excess += float((result.alpha - ref.alpha)[solid].sum())
             err = ((result.color.astype(np.float64) - ref.color) ** 2).mean(axis=2)
             mses.append(err.mean())
+            shares.append(float(err[edge].sum() / max(err.sum(), 1e-300)))
             sub = np.repeat(np.repeat(err, SUPERSAMPLE, 0), SUPERSAMPLE, 1) / SUPERSAMPLE**2
             mine = owner >= 0
             err_sum += np.bincount(owner[mine], weights=sub[mine], minlength=n)
             px_sum += np.bincount(owner[mine], minlength=n) / SUPERSAMPLE**2
         dilation = excess / self.outline if self.outline > 0 else 0.0
-        return psnr_from_mse(max(mses)), err_sum, px_sum, dilation, psnr_from_mse(np.mean(mses))
+        return Measured(psnr_from_mse(max(mses)), err_sum, px_sum, dilation, psnr_from_mse(np.mean(mses)),
+                        [psnr_from_mse(m) for m in mses], shares)
+
+
+class _Inset:
+    """The silhouette shift (pixels of the finest view along the inward normal of solid parts)
+    that maximises the worst view's PSNR for a density, found by golden-section search.
+
+    An opaque surface of flat Gaussians renders its silhouette fat by a fixed number of pixels
+    (the renderer's 0.3 px^2 low-pass, summed over the splats seen edge-on; more splats stack
+    more), so the best shift in world units grows with the pixel size and the splat count: views
+    at several distances each want their own, and the search finds the best compromise."""
+
+    def __init__(self, views, make):
+        self.views, self.make = views, make
+
+    def search(self, density, lo, hi, evaluations=INSET_SEARCH):
+        """(inset, cloud, Measured) of the best shift in [lo, hi]."""
+        tried = {}
+
+        def worst(x):
+            if x not in tried:
+                cloud = self.make(density, x)
+                tried[x] = (cloud, self.views.measure(cloud))
+            return tried[x][1].psnr
+
+        ratio = (math.sqrt(5) - 1) / 2
+        a, b = lo, hi
+        c, d = b - ratio * (b - a), a + ratio * (b - a)
+        for _ in range(max(evaluations - 1, 1)):
+            if worst(c) >= worst(d):
+                b, d = d, c
+                c = b - ratio * (b - a)
+            else:
+                a, c = c, d
+                d = a + ratio * (b - a)
+        best = max(tried, key=lambda x: tried[x][1].psnr)
+        return (best, *tried[best])
 
 
 def refine_to_target(surface, target, max_splats, views, view_size, render_mode, progress, info, style,
-                     uniform=False):
+                     uniform=False, **view_options):
     """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable).
     With `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes
     are calibrated for the views. progress(done, total, label) after each round."""
-    return drain(refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform),
-                 progress)
+    return drain(refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform,
+                               **view_options), progress)
 
 
 def drain(steps, progress=None):
@@ -134,72 +210,170 @@ def drain(steps, progress=None):
             progress(*step)
 
 
-def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False):
+def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
+                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE):
     """refine_to_target one round at a time: a generator yielding (round, MAX_ROUNDS, label) after
-    each round and returning the cloud, so a caller can stop between rounds (close() it)."""
-    cameras = list(views) if views is not None else default_views(surface, view_size)
+    the calibration and each round and returning the cloud, so a caller can stop between rounds
+    (close() it)."""
+    cameras = list(views) if views is not None else default_views(surface, view_size, view_count,
+                                                                  distances=view_distances)
     if not cameras:
         raise ValueError("need at least one view")
     outward = surface.outward_signs()
     v = _Views(surface, cameras, render_mode, outward != 0)
     area = surface.area
-    cap = np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0)
     density = np.where(surface.valid, 1.0 / (START_SPACING * v.pixel) ** 2, 0.0)
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
+    walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
+    cap = np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0)
+    walls = np.minimum(walls, WALL_BOOST * cap)
+    cap = np.maximum(cap, walls)
+    density = np.maximum(density, walls)
+    if uniform:
+        density = budget_density(np.where(surface.valid, 1.0, 0.0), walls, area, max_splats)
     elif max_splats is not None:
         density = _fit_budget(density, area, max_splats)
-    make = lambda dens, inset: build_splats(surface, dens, offset=-inset * v.pixel * outward,
-                                            max_splats=max_splats, **style)
+
+    def make(dens, inset, spread=1.0):
+        # Spread no wider than thin walls allow.
+        widest = np.divide(dens, walls, out=np.full(len(dens), np.inf), where=walls > 0)
+        shift = np.minimum(inset * v.pixel, WALL_INSET * wall)
+        return build_splats(surface, dens, offset=-shift * outward, max_splats=max_splats,
+                            spread=np.minimum(spread, np.maximum(widest, 1.0)), **style)
+
+    inset_search = _Inset(v, make)
     mse_target = 10 ** (-target / 10)
-    best, previous, inset = None, None, 0.0
-    shifts_left, undo = (INSET_SHIFTS if outward.any() else 0), None
+    best, previous, rounds = None, None, 0
     saturated = np.zeros(len(area), bool)
+    stop = "no more splats help"
+    if uniform:
+        inset, cloud, m, spread = _calibrate_budget(v, make, density, outward.any(), max_splats)
+    else:
+        inset, cloud, m = _calibrate_inset(v, make, density, outward.any())
+    calibrated_at = len(cloud)
+    yield 0, MAX_ROUNDS, f"mesh2splats: silhouettes calibrated, {m.psnr:.1f} dB"
     for round_ in range(MAX_ROUNDS):
-        cloud = make(density, inset)
-        psnr, err, px, dilation, overall = v.measure(cloud)
-        if best is None or psnr > best[0]:
-            best = (psnr, cloud, inset, overall)
-        yield round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
-        if psnr >= target:
+        rounds = round_ + 1
+        if round_:
+            cloud = make(density, inset)
+            m = v.measure(cloud)
+            grown = len(cloud) > RECALIBRATE_GROWTH * calibrated_at
+            if outward.any() and (grown or m.psnr < best[0]):
+                # Smaller splats want another shift (and more stack along the silhouettes): search
+                # it again, below the last one as well.
+                inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 4)
+                calibrated_at, saturated[:] = len(cloud), False
+        if best is None or m.psnr > best[0]:
+            best = (m.psnr, cloud, inset, m)
+        yield round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {m.psnr:.1f} dB"
+        if m.psnr >= target:
             if previous is not None:
                 best = _trim(v, make, previous[2], density, inset, target, best)
+            stop = "reached"
             break
-        # Calibrate the silhouette shift first: while it is off, silhouette errors would be
-        # blamed on the faces there, so the density waits for it. (Driving the dilation all the
-        # way to zero overshoots: a slightly soft edge outside the mesh's costs less than one
-        # inside it; INSET_AIM was the best on views the calibration did not see.)
-        if shifts_left:
-            if undo is not None and psnr < undo[0]:          # the last shift made things worse
-                inset, shifts_left, undo = undo[1], 0, None
-                continue
-            undo = None
-            if abs(dilation - INSET_AIM) > INSET_TOLERANCE:
-                undo, inset = (psnr, inset), max(inset + dilation - INSET_AIM, 0.0)
-                shifts_left -= 1
-                continue
         if uniform:
+            stop = "budget"
             break
-        local = _smoothed_error_density(surface, err, px)
+        local = _smoothed_error_density(surface, m.err, m.px)
         if previous is not None:
             grew, before, _ = previous
             saturated |= grew & (local > 0.8 * before)
         grow = np.clip(local / (AIM * mse_target), 1.0, MAX_GROWTH)
         grow[saturated] = 1.0
-        new = _grade(surface, np.minimum(density * grow, cap))
+        new = np.maximum(_grade(surface, np.minimum(density * grow, cap)), walls)
         if max_splats is not None:
             new = _fit_budget(new, area, max_splats)
         if np.allclose(new, density, rtol=1e-3):
+            at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
+            stop = "max_splats" if at_cap else "no more splats help"
             break
         previous = (new > density * 1.01, local, density)
         density = new
-    psnr, cloud, inset, overall = best
+    else:
+        at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
+        stop = "max_splats" if at_cap else "rounds"
+    psnr, cloud, inset, m = best
     yield MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
     if isinstance(info, dict):
-        info.update(psnr=psnr, psnr_all_views=overall, inset_pixels=inset, views=len(cameras))
+        worst = m.worst
+        distance = view_distances[worst % len(view_distances)] if views is None else None
+        info.update(psnr=psnr, psnr_all_views=m.overall, psnr_views=list(m.views), worst_view=worst,
+                    worst_view_distance=distance, worst_view_edge_share=m.edge_share[worst],
+                    inset_pixels=inset, views=len(cameras), rounds=rounds)
+        if uniform:
+            info.update(spread=spread)
         if not uniform:
-            info.update(target_psnr=target, reached=psnr >= target)
+            reached = psnr >= target
+            info.update(target_psnr=target, reached=reached,
+                        limit=None if reached else _why(m, stop, max_splats))
     return cloud
+
+
+def _calibrate_inset(v, make, density, solid, spread=1.0, evaluations=INSET_SEARCH):
+    """(inset, cloud, Measured) with the best silhouette shift for this density (0 without solids)."""
+    shaped = lambda dens, inset: make(dens, inset, spread)
+    first = v.measure(shaped(density, 0.0))
+    if not solid:
+        return 0.0, shaped(density, 0.0), first
+    inset, cloud, m = _Inset(v, shaped).search(density, 0.0, max(4.0 * first.dilation, 2.0), evaluations)
+    if first.psnr > m.psnr:
+        return 0.0, shaped(density, 0.0), first
+    return inset, cloud, m
+
+
+def _calibrate_budget(v, make, density, solid, max_splats):
+    """(inset, cloud, Measured, spread) for an even budget: the silhouette shift, and how many times
+    fewer splats the budget should look like (SPREADS; wider, fainter discs), whichever renders
+    best. Stacked edge-on splats fatten silhouettes more the more there are, so without this a
+    larger budget could look worse than a smaller one; with it, it can always look like one.
+    Wider splats stack less, so each spread searches the shift below the last one's."""
+    inset, cloud, m = _calibrate_inset(v, make, density, solid)
+    best = (inset, cloud, m, 1.0)
+    for spread in SPREADS[1:]:
+        if max_splats / spread < MIN_SPREAD_SPLATS:
+            break
+        shaped = lambda dens, x, spread=spread: make(dens, x, spread)
+        if solid:
+            inset, cloud, m = _Inset(v, shaped).search(density, 0.3 * best[0], best[0] + 0.3, 3)
+        else:
+            cloud = shaped(density, 0.0)
+            inset, m = 0.0, v.measure(cloud)
+        if m.psnr <= best[2].psnr:
+            break
+        best = (inset, cloud, m, spread)
+    return best
+
+
+def summary(info):
+    """One sentence about the quality a conversion reached, from its `info` ("" without views):
+    the worst view's PSNR, which view that is and, for a missed target, why."""
+    if "psnr" not in info:
+        return ""
+    where = f"view {info['worst_view'] + 1} of {info['views']}"
+    if info.get("worst_view_distance") is not None:
+        where += f", at {info['worst_view_distance']:g}x the framing distance"
+    text = f"{info['psnr']:.1f} dB PSNR in the worst view ({where})"
+    if info.get("reached") is False:
+        text = f"target {info['target_psnr']:g} dB not reached: {text}; {info['limit']}"
+    return text
+
+
+def _why(m, stop, max_splats):
+    """Why the worst view missed the target, in words."""
+    share = m.edge_share[m.worst]
+    if stop == "max_splats":
+        cause = f"the splat cap (max_splats={max_splats}) was reached"
+    elif stop == "rounds":
+        cause = f"refinement ran out of rounds ({MAX_ROUNDS})"
+    else:
+        cause = "more splats no longer lowered the error"
+    where = (f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes (edge-on splats "
+             f"render outlines about a pixel fat in classic 3DGS rendering; one cloud cannot match the "
+             f"outline at every distance)") if share >= 0.5 else \
+        f"{1 - share:.0%} of its error lies inside the surface (texture detail finer than the splats or the " \
+        f"renderer's 0.3 px^2 low-pass)"
+    return f"{cause}; {where}"
 
 
 def _trim(v, make, low, high, inset, target, best, steps=2):
@@ -209,8 +383,8 @@ def _trim(v, make, low, high, inset, target, best, steps=2):
         mid = np.sqrt(low * high)
         cloud = make(mid, inset)
         measured = v.measure(cloud)
-        if measured[0] >= target:
-            best, high = (measured[0], cloud, inset, measured[4]), mid
+        if measured.psnr >= target:
+            best, high = (measured.psnr, cloud, inset, measured), mid
         else:
             low = mid
     return best
@@ -266,3 +440,15 @@ def _dilate_labels(labels, steps):
             grown[take] = moved[take]
         out = grown
     return out
+
+
+def _edge_band(alpha, width):
+    """Pixels within `width` of a coverage edge of `alpha` (where it is neither all 0 nor all 1 nearby)."""
+    a = np.asarray(alpha, np.float64)
+    lo, hi = a.copy(), a.copy()
+    for _ in range(width):
+        for axis in (0, 1):
+            for shift in (1, -1):
+                lo = np.minimum(lo, np.roll(lo, shift, axis=axis))
+                hi = np.maximum(hi, np.roll(hi, shift, axis=axis))
+    return (hi - lo) > 0.02

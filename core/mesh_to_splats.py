@@ -24,6 +24,10 @@ from .splats import SplatCloud, logit
 DEFAULT_TARGET_PSNR = 36.0
 EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
+WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
+WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
+WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
+SPREAD_GAIN = 1.3       # widened splats keep this much more opacity than their share (coverage closed)
 
 
 def mesh_to_splats(vertices, faces, *, progress=None, **options):
@@ -36,30 +40,34 @@ def mesh_to_splats(vertices, faces, *, progress=None, **options):
 def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
                          corner_colors=None, max_splats=None, target_psnr=None,
                          overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
-                         render_mode="classic", info=None):
+                         view_distances=None, view_count=None, render_mode="classic", calibrate=True, info=None):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
     `materials` (a list of core.mesh.Material); corner_colors (F,3,3) or (V,3), scene-linear.
     core/mesh.py states the colour space of every input.
 
-    Size: `max_splats` alone is a budget (exactly that many splats, spread by area); given
-    `views` too, the silhouettes of closed parts are also calibrated for those cameras.
+    Size: `max_splats` alone is a budget (exactly that many splats, spread by area), with the
+    silhouettes of solid parts calibrated for the views (`calibrate=False` skips that: no renders).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
-    the mesh rendered by core.mesh_render in every one of `views` (default: eight cameras around
-    the mesh at `view_size` pixels, black background; see core/mesh_refine.py), with `max_splats`
-    as a cap. With neither, the target is DEFAULT_TARGET_PSNR.
+    the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
+    With neither, the target is DEFAULT_TARGET_PSNR.
+    Views (where quality is measured): `views`, a list of core Cameras (a scene camera along its
+    path, say), or by default `view_count` cameras (4) at each of `view_distances` (0.5, 1, 3:
+    multiples of the distance that frames the whole mesh) around it, `view_size` pixels square,
+    black background; see core/mesh_refine.py.
     Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
-    It yields (done, total, label) as work proceeds (a target PSNR: after each refinement round, so
-    a caller may stop between rounds) and returns the cloud; `info`, if a dict, receives
+    It yields (done, total, label) as work proceeds (with renders: after each calibration or
+    refinement round, so a caller may stop between rounds) and returns the cloud; `info`, if a dict, receives
     "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
-    (the worst view), "psnr_all_views", "inset_pixels", "views" and (target mode) "reached".
+    (the worst view), "psnr_views", "worst_view", "worst_view_distance", "psnr_all_views",
+    "inset_pixels", "views", "spread" (budgets) and (target mode) "reached" and "limit" (why not).
 
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
     source_triangle, k]] + normal_offset * (unit normal of the face's winding). The offset is 0
-    without views; with views, closed surfaces are pulled in by about a pixel of the views.
+    without calibration; with it, solid parts are pulled in by about a pixel of the views.
     Degenerate faces (zero area, non-finite vertices) get no splats; ValueError for malformed
     arrays or a mesh without any face of positive area.
     """
@@ -70,15 +78,20 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     if max_splats is not None and int(max_splats) < 1:
         raise ValueError(f"max_splats must be at least 1, got {max_splats}")
     style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
-    if target_psnr is None and max_splats is not None and views is None:
-        cloud = build_splats(surface, _uniform_density(surface, int(max_splats)), **style)
+    if target_psnr is None and max_splats is not None and not calibrate:
+        density = _uniform_density(surface, int(max_splats))
+        cloud = build_splats(surface, budget_density(density, thin_wall_density(surface, density, overlap)[0],
+                                                     surface.area, int(max_splats)), **style)
         yield 1, 1, "mesh2splats"
     else:
-        from .mesh_refine import refine_rounds
+        from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds
         budget_only = target_psnr is None and max_splats is not None
         target = DEFAULT_TARGET_PSNR if target_psnr is None else float(target_psnr)
-        cloud = yield from refine_rounds(surface, np.inf if budget_only else target, max_splats, views, view_size,
-                                         render_mode, info, style, uniform=budget_only)
+        cloud = yield from refine_rounds(
+            surface, np.inf if budget_only else target, max_splats, views, view_size, render_mode, info, style,
+            uniform=budget_only,
+            view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
+            view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count))
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud
@@ -88,10 +101,29 @@ def _uniform_density(surface, count):
     return np.where(surface.valid, count / surface.area.sum(), 0.0)
 
 
+def budget_density(density, floor, area, count):
+    """`density` scaled to spend `count` splats, with faces raised towards `floor` (thin walls):
+    max(k density, min(floor, WALL_BOOST k density)), k found by bisection. A face is raised at
+    most WALL_BOOST times, so a small budget still covers the rest of the surface."""
+    spend = lambda k: np.maximum(k * density, np.minimum(floor, WALL_BOOST * k * density))
+    hi = count / (density * area).sum()
+    if not (floor > 0).any():
+        return density * hi
+    lo = 0.0
+    for _ in range(50):
+        k = (lo + hi) / 2
+        lo, hi = (k, hi) if (spend(k) * area).sum() < count else (lo, k)
+    return spend(hi)
+
+
 def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
-                 offset=None):
+                 offset=None, spread=1.0):
     """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
-    `offset` (world units, default 0) along its unit normal."""
+    `offset` (world units, default 0) along its unit normal.
+
+    `spread` >= 1 (one number, or one per face) makes the splats look like `spread` times fewer: discs sqrt(spread) times wider,
+    their opacity divided by spread / SPREAD_GAIN (at most `opacity`), so that more splats can
+    always render like fewer (the silhouettes' fattening grows with the splats stacked there)."""
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
         expected *= max_splats / expected.sum()
@@ -99,7 +131,9 @@ def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, se
                                np.random.default_rng(seed))
     offset = np.zeros(len(counts)) if offset is None else np.asarray(offset, np.float64)
     tri, bary = bisection_samples(surface, counts)
-    return _cloud(surface, tri, bary, density[tri], offset[tri], _face_rotations(surface)[tri],
+    spread = np.maximum(np.broadcast_to(np.asarray(spread, np.float64), counts.shape)[tri], 1.0)
+    opacity = np.where(spread > 1, np.minimum(opacity, opacity * SPREAD_GAIN / spread), opacity)
+    return _cloud(surface, tri, bary, density[tri] / spread, offset[tri], _face_rotations(surface)[tri],
                   overlap, opacity, thickness)
 
 
@@ -211,7 +245,7 @@ def _cloud(surface, tri, bary, density, shift, rotations, overlap, opacity, thic
         sh = shmod.rgb_to_dc(to_display(linear))[:, None, :]
     with np.errstate(divide="ignore"):
         log_scales = np.log(scales)
-    return SplatCloud(positions, rotations, log_scales, np.full(n, logit(opacity)), sh,
+    return SplatCloud(positions, rotations, log_scales, np.broadcast_to(logit(opacity), (n,)).astype(np.float32), sh,
                       extras={"source_triangle": tri.astype(np.int32), "barycentric": bary.astype(np.float32),
                               "normal_offset": shift.astype(np.float32)})
 
@@ -301,3 +335,87 @@ def _rim_sh(surface, tri, base_linear, chunk=1 << 15):
         sh[sel] = lam[:, band, :] * shmod.basis(surface.normal[tri[sel]], 2)[:, :, None]
         sh[sel, 0] -= 0.5 / shmod.C0                    # rgb = 0.5 + sum Y sh
     return sh
+
+
+# thin walls -------------------------------------------------------------------------------------
+
+def thin_wall_density(surface, density, overlap):
+    """(density floor, wall thickness) per face: the density below which its splats would be wider
+    than 1/WALL_SIGMAS of the wall behind it (0 where the wall is thicker than the splats of
+    `density` could matter), and that wall's thickness (inf where none is that thin).
+
+    3DGS renderers sort whole splats by the depth of their centres, so where a splat is wide
+    next to the wall's thickness, a splat of the far side gets sorted in front of the near side's
+    at oblique views and its colour shows through (the inside of a cup through its wall): on a
+    5 mm wall, 14% of the outside pixels of a close-up at sigma = 0.65 wall, under 1% at 0.11."""
+    finest = density[density > 0].min() if (density > 0).any() else 0.0
+    none = (np.zeros_like(density), np.full(len(density), np.inf))
+    if not finest:
+        return none
+    v = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
+    size = float(np.max(v.max(axis=0) - v.min(axis=0)))
+    thickness = wall_thickness(surface, min(WALL_SIGMAS * overlap / np.sqrt(finest), size / 4))
+    with np.errstate(divide="ignore"):
+        return np.where(np.isfinite(thickness), (WALL_SIGMAS * overlap / thickness) ** 2, 0.0), thickness
+
+
+def wall_thickness(surface, reach, max_points=60_000):
+    """Per face, the thickness of the solid behind it where that is below `reach` (inf elsewhere):
+    the distance along the face's inward normal to the nearest surface of the same solid that
+    faces the other way (the far side of a cup's wall, say). Non-solid faces get inf.
+
+    Points are spread over the surface (about reach/2 apart, at most `max_points`) and paired with
+    the points within `reach` through a grid of cells `reach` wide; a pair counts when the other
+    point lies behind this one within a 45-degree cone and its face points the other way."""
+    outward = surface.outward_signs()
+    thickness = np.full(len(surface.faces), np.inf)
+    solid = (outward != 0) & surface.valid
+    if not solid.any() or not reach > 0:
+        return thickness
+    spacing = max(reach / 2, float(np.sqrt(surface.area[solid].sum() / max_points)))
+    counts = np.where(solid, np.ceil(surface.area / spacing**2 - 1e-9), 0).astype(np.int64)
+    tri, bary = bisection_samples(surface, counts)
+    points = surface.points(tri, bary)
+    normals = surface.normal[tri] * outward[tri, None]
+    cell = np.floor((points - points.min(axis=0)) / reach).astype(np.int64)
+    dims = cell.max(axis=0) + 3
+    key = ((cell[:, 0] + 1) * dims[1] + cell[:, 1] + 1) * dims[2] + cell[:, 2] + 1
+    order = np.argsort(key, kind="stable")
+    sorted_keys = key[order]
+    best = np.full(len(points), np.inf)
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dz in (-1, 0, 1):
+                near = key + (dx * dims[1] + dy) * dims[2] + dz
+                lo = np.searchsorted(sorted_keys, near, "left")
+                hi = np.searchsorted(sorted_keys, near, "right")
+                _nearest_behind(points, normals, order, lo, hi, reach, best)
+    np.minimum.at(thickness, tri, best)
+    return thickness
+
+
+def _nearest_behind(points, normals, order, lo, hi, reach, best, chunk=1 << 20):
+    """For every point i and the candidates order[lo[i]:hi[i]], lower best[i] to the distance of a
+    candidate behind i (inward, within 45 degrees) whose normal faces the other way."""
+    counts = hi - lo
+    ends = np.cumsum(counts)
+    start = 0
+    while start < len(points):
+        stop = max(int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk, "right")), start + 1)
+        n = counts[start:stop]
+        total = int(n.sum())
+        if total:
+            first = np.cumsum(n) - n
+            i = np.repeat(np.arange(start, stop), n)
+            j = order[np.repeat(lo[start:stop], n) + (np.arange(total) - np.repeat(first, n))]
+            d = points[j] - points[i]
+            depth = -np.einsum("ij,ij->i", d, normals[i])
+            lateral2 = np.einsum("ij,ij->i", d, d) - depth**2
+            facing = np.einsum("ij,ij->i", normals[i], normals[j]) < -0.3
+            ok = facing & (depth > 0) & (depth < reach) & (lateral2 <= depth**2)
+            # Candidates come grouped by point, so a segmented minimum replaces a scatter.
+            has = n > 0
+            nearest = np.minimum.reduceat(np.where(ok, depth, np.inf), first[has])
+            rows = np.arange(start, stop)[has]
+            best[rows] = np.minimum(best[rows], nearest)
+        start = stop

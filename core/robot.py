@@ -60,6 +60,8 @@ def splat_robot(tree, parts, max_splats=DEFAULT_SPLATS, target_psnr=None, name="
                            mesh.materials, mesh.corner_colors))
         face_links.append(np.full(len(mesh.faces), link, np.int32))
     whole = join_meshes(meshes)
+    # A budget stays on the surfaces (no silhouette calibration) unless asked: contacts use the splats.
+    options.setdefault("calibrate", False)
     cloud = mesh_to_splats(whole.vertices, whole.faces, **whole.appearance(), max_splats=max_splats,
                            target_psnr=target_psnr, **options)
     links = np.concatenate(face_links)[cloud.extras["source_triangle"]]

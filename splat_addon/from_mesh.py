@@ -31,10 +31,11 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
+from ..core.camera import Camera
 from ..core.mesh import Material
-from ..core.mesh_refine import drain
+from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
 from ..core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats_steps
-from . import data, display
+from . import camera, data, display
 from .modal import JobOperator
 from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
 
@@ -279,11 +280,14 @@ def read_object(obj, depsgraph, warn=print, rest=False):
         evaluated.to_mesh_clear()
 
 
-def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, warn=print):
+def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, warn=print,
+                 views=None, info=None, **view_options):
     """A generator converting one object's read mesh (read_object): yields (done, total, label) as
-    mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record)."""
+    mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record).
+    `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
+    view_count of mesh_to_splats) say where quality is measured; `info` receives mesh_to_splats'."""
     steps = mesh_to_splats_steps(triangles.vertices, triangles.faces, max_splats=max_splats,
-                                 target_psnr=target_psnr, **appearance)
+                                 target_psnr=target_psnr, views=views, info=info, **view_options, **appearance)
     while True:
         with warnings.catch_warnings(record=True) as caught:       # per step: nothing held across yields
             warnings.simplefilter("always")
@@ -305,10 +309,12 @@ def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_
 
 
 def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, progress=None, warn=print,
-                   rest=False):
-    """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it."""
+                   rest=False, **view_options):
+    """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it;
+    `view_options` as object_steps takes them."""
     read = read_object(obj, depsgraph, warn, rest)
-    return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, warn=warn), progress)
+    return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, warn=warn,
+                              **view_options), progress)
 
 
 def mesh_objects(objects):
@@ -324,6 +330,37 @@ def mesh_objects(objects):
     return meshes
 
 
+def camera_path_views(scene, objects, count, size):
+    """{object: [core Camera]}: the scene camera at `count` frames spread evenly over the scene's
+    frame range (its animation path), each in the object's own space, `size` pixels wide (the
+    render's aspect). The current frame is restored."""
+    cam = scene.camera
+    if cam is None:
+        raise MeshConversionError("the scene has no camera to measure the splats' quality from")
+    render = scene.render
+    width = max(1, int(size))
+    height = max(1, round(width * render.resolution_y * render.pixel_aspect_y /
+                          max(render.resolution_x * render.pixel_aspect_x, 1e-9)))
+    frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, max(int(count), 1))).astype(int))
+    current, subframe = scene.frame_current, scene.frame_subframe
+    views = {obj: [] for obj in objects}
+    try:
+        for frame in frames:
+            scene.frame_set(int(frame))
+            world = np.array(cam.matrix_world, dtype=np.float64)
+            for obj in objects:
+                matrix = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ world
+                try:
+                    views[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
+                                                          clip_end=cam.data.clip_end,
+                                                          **camera.lens_settings(cam.data, render)))
+                except ValueError as exc:
+                    raise MeshConversionError(f"camera '{cam.name}' at frame {frame}: {exc}") from exc
+    finally:
+        scene.frame_set(current, subframe=subframe)
+    return views
+
+
 class ConversionJob:
     """Mesh objects converted a step at a time, for a modal operator (Esc between steps) and for
     batch use alike. The meshes are read when the job is made (in their armatures' rest position
@@ -333,8 +370,11 @@ class ConversionJob:
     converted; `results` then holds [(source object, cloud, record)], which create() links into
     the scene. `done` / `total` / `label` say how far it is (objects as units)."""
 
-    def __init__(self, context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True, warn=print):
-        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, warn=warn)
+    def __init__(self, context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True, warn=print,
+                 views=None, **view_options):
+        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, warn=warn, **view_options)
+        self.views = views                 # {object: [core Camera]} or None (views around each mesh)
+        self.infos = []                    # mesh_to_splats' info of each object, as results fill
         with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
             depsgraph = context.evaluated_depsgraph_get()
             self.inputs = [(obj, *read_object(obj, depsgraph, warn, use_rest_pose)) for obj in objects]
@@ -348,7 +388,9 @@ class ConversionJob:
             return False
         obj = self.inputs[index][0]
         if self._steps is None:
-            self._steps = object_steps(*self.inputs[index], **self.options)
+            self.infos = self.infos[:index] + [{}]
+            views = None if self.views is None else self.views[obj]
+            self._steps = object_steps(*self.inputs[index], **self.options, views=views, info=self.infos[index])
         try:
             done, total, label = next(self._steps)
         except StopIteration as stop:
@@ -374,13 +416,18 @@ class ConversionJob:
 
 
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True,
-                    progress=None, warn=print):
+                    progress=None, warn=print, infos=None, **view_options):
     """[(source object, cloud, record)] for mesh objects; nothing in the scene changes.
 
-    progress(done, total, label) sees the whole selection as one task of len(objects) units."""
+    progress(done, total, label) sees the whole selection as one task of len(objects) units.
+    `view_options`: views (camera_path_views' mapping) or view_size, view_distances, view_count;
+    `infos`, a list, receives each object's mesh_to_splats info."""
     job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
-                        use_rest_pose=use_rest_pose, warn=warn)
-    return job.run(progress)
+                        use_rest_pose=use_rest_pose, warn=warn, **view_options)
+    results = job.run(progress)
+    if infos is not None:
+        infos.extend(job.infos)
+    return results
 
 
 def create_splat_objects(context, results):
@@ -413,6 +460,12 @@ def from_mesh(context, objects, **options):
     return create_splat_objects(context, convert_objects(context, mesh_objects(objects), **options))
 
 
+def view_distances(near, far):
+    """The view distances for a near..far range: near, the whole-mesh framing (1) if inside, far."""
+    near, far = sorted((float(near), float(far)))
+    return tuple(sorted({near, far} | ({1.0} if near < 1.0 < far else set())))
+
+
 def sizing(mode, max_splats, target_psnr):
     """(max_splats, target_psnr) for mesh_to_splats: a budget, or a target PSNR capped by max_splats."""
     if mode == "BUDGET":
@@ -443,6 +496,18 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     use_rest_pose: BoolProperty(name="Rest Pose", default=True,
                                 description="Convert meshes deformed by an armature in its rest position "
                                             "(the pose a binding to that armature starts from)")
+    view_source: EnumProperty(name="Measure From", default="AROUND", items=(
+        ("AROUND", "Around", "Views all around each mesh at the near, whole and far distances"),
+        ("CAMERA", "Scene Camera", "The scene camera along its animation: View Count frames spread over "
+                                   "the scene's frame range")))
+    view_near: FloatProperty(name="Near", default=VIEW_DISTANCES[0], min=0.05, max=100.0,
+                             description="Closest view distance, a multiple of the one that frames the whole mesh")
+    view_far: FloatProperty(name="Far", default=VIEW_DISTANCES[-1], min=0.05, max=100.0,
+                            description="Farthest view distance, a multiple of the one that frames the whole mesh")
+    view_count: IntProperty(name="View Count", default=VIEWS_PER_DISTANCE, min=1, max=64,
+                            description="Views at each distance (Around), or frames of the camera path")
+    view_size: IntProperty(name="View Size", default=256, min=16, max=2048,
+                           description="Pixels across each view quality is measured in")
 
     @classmethod
     def poll(cls, context):
@@ -453,7 +518,15 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         objects = mesh_objects(context.selected_objects)
         self._skipped = [o.name for o in context.selected_objects if o not in objects]
         return ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
-                             use_rest_pose=self.use_rest_pose, warn=lambda message: self.report({"WARNING"}, message))
+                             use_rest_pose=self.use_rest_pose, warn=lambda message: self.report({"WARNING"}, message),
+                             **self.view_options(context, objects))
+
+    def view_options(self, context, objects):
+        """Keyword arguments of ConversionJob saying where quality is measured."""
+        if self.view_source == "CAMERA":
+            return {"views": camera_path_views(context.scene, objects, self.view_count, self.view_size)}
+        return {"view_distances": view_distances(self.view_near, self.view_far),
+                "view_count": self.view_count, "view_size": self.view_size}
 
     def finish(self, context, job):
         try:
@@ -468,6 +541,10 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         for obj in created:
             obj.select_set(True)
         context.view_layer.objects.active = created[-1]
+        for (source, cloud, _), info in zip(job.results, job.infos):
+            missed = info.get("reached") is False
+            self.report({"WARNING"} if missed else {"INFO"},
+                        f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else ""))
         total = sum(len(cloud) for _, cloud, _ in job.results)
         self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
         return {"FINISHED"}

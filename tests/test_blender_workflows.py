@@ -189,6 +189,11 @@ def test_from_mesh_target_psnr(blender):
     res = blender.step("target_psnr")
     assert res["result"] == ["FINISHED"], res["error"]
     assert 0 < res["count"] <= 4000
+    # The scene camera's path at frames 1 and 10, seen from the object moved to x = 0.5.
+    np.testing.assert_allclose(res["path_centres"], [[-0.5, -4.0, 1.0], [1.5, -4.0, 1.0]], atol=1e-5)
+    assert res["frame_after"] == 4 and all(w == 32 for w, _ in res["path_sizes"])
+    # A target it cannot reach still converts (a warning says what was reached and why).
+    assert res["missed"]["result"] == ["FINISHED"] and 0 < res["missed"]["count"] <= 300
 
 
 # the demo rig --------------------------------------------------------------------------------------

@@ -155,10 +155,10 @@ def test_wrong_extension_and_missing_file(tmp_path):
 def test_cli_mesh2splats_budget(cube, tmp_path, capsys):
     path, _ = cube
     out = tmp_path / "cube.ply"
-    assert main(["mesh2splats", str(path), str(out), "--max-splats", "2000"]) == 0
+    assert main(["mesh2splats", str(path), str(out), "--max-splats", "2000", "--view-size", "32"]) == 0
     cloud = read_splats(out)
     assert len(cloud) == 2000 and not cloud.problems()
-    assert "wrote 2000 splats from 12 faces" in capsys.readouterr().out
+    assert "wrote 2000 splats from 12 faces, " in capsys.readouterr().out
 
 
 def test_cli_mesh2splats_target_and_errors(cube, tmp_path, capsys):
@@ -166,8 +166,13 @@ def test_cli_mesh2splats_target_and_errors(cube, tmp_path, capsys):
     out = tmp_path / "cube.splat"
     assert main(["mesh2splats", str(path), str(out), "--target-psnr", "25", "--view-size", "48"]) == 0
     captured = capsys.readouterr()
-    assert "dB PSNR in the worst of 8 views" in captured.out
+    assert "dB PSNR in the worst view (view " in captured.out and " of 12, at " in captured.out
     assert len(read_splats(out)) > 0
+    assert main(["mesh2splats", str(path), str(out), "--target-psnr", "70", "--view-size", "24",
+                 "--view-distances", "1", "--view-count", "2"]) == 0
+    said = capsys.readouterr().out
+    assert "target 70 dB not reached: " in said and " of 2, at 1x the framing distance); " in said
+    assert "error lies" in said
     bad = tmp_path / "flat.obj"
     bad.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
     assert main(["mesh2splats", str(bad), str(out), "--max-splats", "10"]) == 1

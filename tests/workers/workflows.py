@@ -339,7 +339,26 @@ class Worker(BlenderWorker):
             return node.outputs["Color"]
         obj.data.materials.append(self.material("quality", link=texture))
         op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000)
-        return {**op, "count": len(created[0].data.vertices) if created else None}
+        res = {**op, "count": len(created[0].data.vertices) if created else None}
+        # Quality measured along the scene camera's path (frames 1 and 10), in the object's space.
+        bpy, scene = self.bpy, self.bpy.context.scene
+        obj.location = (0.5, 0.0, 0.0)
+        cam = bpy.data.objects.new("quality_cam", bpy.data.cameras.new("quality_cam"))
+        scene.collection.objects.link(cam)
+        scene.camera, scene.frame_start, scene.frame_end = cam, 1, 10
+        cam.rotation_euler = (1.2, 0.0, 0.0)
+        for frame, x in ((1, 0.0), (10, 2.0)):
+            cam.location = (x, -4.0, 1.0)
+            cam.keyframe_insert("location", frame=frame)
+        scene.frame_set(4)
+        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32)[obj]
+        res["path_centres"] = [list(map(float, v.center)) for v in views]
+        res["path_sizes"] = [[v.width, v.height] for v in views]
+        res["frame_after"] = scene.frame_current
+        missed, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
+                                       view_source="CAMERA", view_count=2, view_size=32)
+        res["missed"] = {**missed, "count": len(created[0].data.vertices) if created else None}
+        return res
 
     def animated_splats(self, name="moving"):
         """A splat object imported with identity axes, keyed at frames 1 and 4."""
