@@ -389,7 +389,8 @@ def bent_cylinder_images(mode, max_splats, size, around=96, along=128):
     pose = bend_pose()
     bent = skin_centres(vertices, joint_binding(vertices[:, 1]), pose, mode)
     style = dict(corner_colors=colors, face_materials=np.zeros(len(faces), int),
-                 materials=[Material(base_color=(1, 1, 1), rim_color=(0.05, 0.05, 0.05))], max_splats=max_splats)
+                 materials=[Material(base_color=(1, 1, 1), rim_color=(0.05, 0.05, 0.05))], max_splats=max_splats,
+                 calibrate=False)     # splats on the surface: skinning is measured, not silhouette calibration
     rest_cloud = mesh_to_splats(vertices, faces, **style)
     direct = mesh_to_splats(bent, faces, **style)
     resampled = mesh_to_splats(bent, faces, seed=1, **style)
