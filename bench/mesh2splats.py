@@ -39,6 +39,7 @@ from splatwright.core.camera import Camera, opengl_camera_to_world  # noqa: E402
 from splatwright.core.mesh import Material, Mesh  # noqa: E402
 from splatwright.core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
+from splatwright.core.scenes import thin_walled_cup  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
 
 TOPIC = "mesh2splats"
@@ -95,22 +96,6 @@ def write_obj(folder, name, v, f, uv, texture, face_materials=None, flat_kd=(0.6
     path = folder / f"{name}.obj"
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-def thin_walled_cup(radius=0.04, height=0.09, wall=0.005, n=64):
-    """A closed cup with a `wall`-thick wall and floor: orange outside, blue inside."""
-    inner = radius - wall
-    angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    ring = lambda r, y: np.column_stack([r * np.cos(angle), np.full(n, y), -r * np.sin(angle)])
-    v = np.concatenate([ring(radius, 0), ring(radius, height), ring(inner, height), ring(inner, wall),
-                        [[0, 0, 0]], [[0, wall, 0]]])
-    k, k1 = np.arange(n), (np.arange(n) + 1) % n
-    band = lambda a, b: np.concatenate([np.stack([a + k, a + k1, b + k1], 1), np.stack([a + k, b + k1, b + k], 1)])
-    f = np.concatenate([band(0, n), band(n, 2 * n), band(2 * n, 3 * n),
-                        np.stack([np.full(n, 4 * n + 1), 3 * n + k, 3 * n + k1], 1),
-                        np.stack([np.full(n, 4 * n), k1, k], 1)])
-    fm = np.concatenate([np.zeros(4 * n), np.ones(3 * n), np.zeros(n)]).astype(int)
-    return Mesh(v, f, None, fm, [Material(base_color=(0.8, 0.15, 0.05)), Material(base_color=(0.05, 0.2, 0.9))])
 
 
 def large_plane(size=10.0, n=40):

@@ -4,7 +4,7 @@ rasteriser against brute-force ray casting, and the target-PSNR mode."""
 import numpy as np
 import pytest
 
-from splatwright.core import sh
+from splatwright.core import scenes, sh
 from splatwright.core.camera import Camera
 from splatwright.core.mesh import Material, Surface
 from splatwright.core.mesh_refine import default_views
@@ -490,22 +490,9 @@ def test_a_missed_target_says_what_was_reached_where_and_why():
     assert "max_splats=400" in info["limit"]
 
 
-def thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=32):
-    """A closed cup: outer wall, rim, inner wall and floor `wall` thick; material 0 (orange)
-    outside, 1 (blue) inside."""
-    inner = radius - wall
-    angle = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    ring = lambda r, y: np.column_stack([r * np.cos(angle), np.full(n, y), -r * np.sin(angle)])
-    v = np.concatenate([ring(radius, 0), ring(radius, height), ring(inner, height), ring(inner, wall),
-                        [[0, 0, 0]], [[0, wall, 0]]])
-    k, k1 = np.arange(n), (np.arange(n) + 1) % n
-    band = lambda a, b: np.concatenate([np.stack([a + k, a + k1, b + k1], 1), np.stack([a + k, b + k1, b + k], 1)])
-    f = np.concatenate([band(0, n), band(n, 2 * n), band(2 * n, 3 * n),
-                        np.stack([np.full(n, 4 * n + 1), 3 * n + k, 3 * n + k1], 1),
-                        np.stack([np.full(n, 4 * n), k1, k], 1)])
-    fm = np.concatenate([np.zeros(4 * n), np.ones(3 * n), np.zeros(n)]).astype(int)
-    mats = [Material(base_color=(0.8, 0.15, 0.05)), Material(base_color=(0.05, 0.2, 0.9))]
-    return v, f, fm, mats
+def thin_walled_cup():
+    cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=32)
+    return cup.vertices, cup.faces, cup.face_materials, cup.materials
 
 
 def test_thin_walls_do_not_show_the_other_side():
