@@ -291,17 +291,24 @@ def random_armature(rng, n_bones=5):
     return rest, pose
 
 
-@pytest.mark.parametrize("mode", ["lbs", "dqs"])
-def test_matches_blender_armature_modifier_per_splat(mode):
-    rng = np.random.default_rng(8)
+def random_skinning_case(seed, n=300):
+    """A random armature posed, Blender's dual quaternions of its bones, and n splats bound to three
+    bones each with random weights (some zero, the first ten on one bone); the rng goes on from there."""
+    rng = np.random.default_rng(seed)
     rest, pose = random_armature(rng)
     deform = pose @ np.linalg.inv(rest)
     dqs = [blender_dquat(rest[b], deform[b]) for b in range(len(rest))]
-    n = 300
     cloud = cloud_at(rng.normal(size=(n, 3)), rng)
     idx = np.stack([rng.choice(len(rest), 3, replace=False) for _ in range(n)])
     w = rng.uniform(0, 1, (n, 3)) * (rng.uniform(size=(n, 3)) > 0.2)       # some zeros
     w[:10] = [1.0, 0.0, 0.0]                                                # single bone
+    return rng, rest, pose, deform, dqs, cloud, idx, w
+
+
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_matches_blender_armature_modifier_per_splat(mode):
+    rng, rest, pose, deform, dqs, cloud, idx, w = random_skinning_case(8)
+    n = len(cloud)
     w[10:15] = [3e-5, 2e-5, 0.0]                                            # unbound
     w[15:25] *= 7.0                                                         # totals above one
     binding = Binding.from_weights(idx, w, tolerance=0.0)
@@ -339,15 +346,8 @@ def test_binding_strength_blends_with_the_rest_as_blenders_modifier_mask(mode):
     """Strength m: centre (1 - m) rest + m posed (armature_deform.cc's armature_weight); covariance and
     SH turned by the bones' map blended with the identity (LBS: an identity influence of weight
     1 - m; DQS: the unit rotation nlerped from the identity, the scale matrix lerped from I)."""
-    rng = np.random.default_rng(18)
-    rest, pose = random_armature(rng)
-    deform = pose @ np.linalg.inv(rest)
-    dqs = [blender_dquat(rest[b], deform[b]) for b in range(len(rest))]
-    n = 300
-    cloud = cloud_at(rng.normal(size=(n, 3)), rng)
-    idx = np.stack([rng.choice(len(rest), 3, replace=False) for _ in range(n)])
-    w = rng.uniform(0, 1, (n, 3)) * (rng.uniform(size=(n, 3)) > 0.2)
-    w[:10] = [1.0, 0.0, 0.0]                                                # single bone
+    rng, rest, pose, deform, dqs, cloud, idx, w = random_skinning_case(18)
+    n = len(cloud)
     strength = rng.uniform(0, 1, n)
     strength[::7], strength[::11] = 0.0, 1.0
     binding = Binding.from_weights(idx, w, tolerance=0.0)

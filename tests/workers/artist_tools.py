@@ -219,17 +219,7 @@ class Worker(BlenderWorker):
 
     def rigged_tube(self):
         """(armature, proxy): a two-bone armature and the tube skinned to it (Armature modifier)."""
-        bpy = self.bpy
-        arm = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
-        bpy.context.scene.collection.objects.link(arm)
-        arm.location = (0.2, 0.1, 0.0)
-        self.select([arm])
-        bpy.ops.object.mode_set(mode="EDIT")
-        lower = arm.data.edit_bones.new("Lower")
-        lower.head, lower.tail = (0, 0, 0), (0, 0, 1)
-        upper = arm.data.edit_bones.new("Upper")
-        upper.head, upper.tail, upper.parent, upper.use_connect = (0, 0, 1), (0, 0, 2), lower, True
-        bpy.ops.object.mode_set(mode="OBJECT")
+        arm = self.two_bone_armature("Rig", location=(0.2, 0.1, 0.0))
         verts, faces = tube_mesh()
         proxy = self.mesh_object("Proxy", verts, faces)
         proxy.location = arm.location

@@ -118,6 +118,22 @@ class BlenderWorker:
         for name, value in values.items():
             setattr(settings, name, value)
 
+    def two_bone_armature(self, name, location=(0.0, 0.0, 0.0)):
+        """An armature object `name` at `location` in the scene: bone Lower from (0,0,0) to (0,0,1),
+        Upper connected above it to (0,0,2)."""
+        bpy = self.bpy
+        arm = bpy.data.objects.new(name, bpy.data.armatures.new(name))
+        bpy.context.scene.collection.objects.link(arm)
+        arm.location = location
+        self.select([arm])
+        bpy.ops.object.mode_set(mode="EDIT")
+        lower = arm.data.edit_bones.new("Lower")
+        lower.head, lower.tail = (0, 0, 0), (0, 0, 1)
+        upper = arm.data.edit_bones.new("Upper")
+        upper.head, upper.tail, upper.parent, upper.use_connect = (0, 0, 1), (0, 0, 2), lower, True
+        bpy.ops.object.mode_set(mode="OBJECT")
+        return arm
+
     def group_matrix(self, obj, names):
         """(V, len(names)) weights read one vertex at a time through VertexGroup.weight."""
         out = np.zeros((len(obj.data.vertices), len(names)))

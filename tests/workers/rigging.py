@@ -341,15 +341,7 @@ class Worker(BlenderWorker):
         scene = bpy.context.scene
         data = self.module("splat_addon.data")
         collide = self.module("splat_addon.collide")
-        arm = bpy.data.objects.new("Pole", bpy.data.armatures.new("Pole"))
-        scene.collection.objects.link(arm)
-        self.select([arm])
-        bpy.ops.object.mode_set(mode="EDIT")
-        lower = arm.data.edit_bones.new("Lower")
-        lower.head, lower.tail = (0, 0, 0), (0, 0, 1)
-        upper = arm.data.edit_bones.new("Upper")
-        upper.head, upper.tail, upper.parent, upper.use_connect = (0, 0, 1), (0, 0, 2), lower, True
-        bpy.ops.object.mode_set(mode="OBJECT")
+        arm = self.two_bone_armature("Pole")
         rng = np.random.default_rng(11)
         n_a, n_b = 60, 50
         pole = dict(positions=np.column_stack([rng.normal(0, 0.08, (n_a, 2)), rng.uniform(0, 2, n_a)]),
