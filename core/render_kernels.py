@@ -281,8 +281,8 @@ def exp_constants(dtype):
 # of a pixel would fall in the same cache set.)
 MAX_PIXELS = 64 * 64
 STRIDE = MAX_PIXELS + 16
-CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t")
-R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
+CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t", "x_offset")
+R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT, EX = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
 PREFETCH = 8                # entries ahead whose record and box the compositor starts loading
 ALIVE_CHECK = 8             # entries between checks for the tile rows whose every pixel has stopped
 LANES = 8                   # pixels per step of the inner loop (a fixed count, so it becomes one
@@ -315,7 +315,8 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     pixels = ts * row_len
     st = np.zeros(len(CHANNELS) * STRIDE, k.dtype)
     centre = ts / 2.0
-    offset = typ(0.5 - centre)
+    for p in range(pixels):                     # each pixel's x offset from the tile centre
+        st[np.uint64(p) + EX] = typ(p % row_len + 0.5 - centre)
     want_counts = counts.size > 0
     want_peaks = peaks.size > 0
     use_layer = layer_t.size > 0
@@ -386,7 +387,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                 for step in range(0, row_len, LANES):
                     for i in range(LANES):
                         p = start + np.uint64(step + i)
-                        ex = typ(step + i) + offset         # the pixel's x offset from the tile centre
+                        ex = st[p + EX]
                         power = k_row + ex * (kx_row + kxx * ex)
                         # alpha = exp(power) at most 0.99, as p(x / 16)^16
                         x = min(max(power, floor), log_max) * sixteenth

@@ -13,6 +13,7 @@ import contextlib
 import importlib
 import json
 import sys
+import time
 import traceback
 from pathlib import Path
 
@@ -47,15 +48,18 @@ class BlenderWorker:
         self.bpy, self.work, self.zip = bpy, Path(work), zip_path
         self.out = self.work / "out"
         self.out.mkdir(exist_ok=True)
-        self.results = {}
+        self.results, self.seconds = {}, {}
 
     def run(self):
         for name in self.steps:
             self.clear_scene()
+            start = time.perf_counter()
             try:
                 self.results[name] = getattr(self, name)() or {}
             except Exception:
                 self.results[name] = {"worker_error": traceback.format_exc()}
+            self.seconds[name] = round(time.perf_counter() - start, 2)
+        self.results["_seconds"] = self.seconds         # where a worker's time goes
         (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
 
     def clear_scene(self):
