@@ -109,6 +109,9 @@ class _Views:
         self.refs = map_threads(lambda cam: render_mesh(surface, cam, background=BACKGROUND,
                                                         supersample=SUPERSAMPLE), cameras)
         self.owners = [_dilate_labels(ref.face, 2 * SUPERSAMPLE) for ref in self.refs]
+        self.shares = [_face_shares(owner, len(surface.faces)) for owner in self.owners]
+        self.face_pixels = sum(np.bincount(face, weights=share, minlength=len(surface.faces))
+                               for _, face, share in self.shares)
         self.pixel = self._pixel_sizes()
         # Pixels around the silhouettes of solid parts, and the silhouette length there (pixels).
         centre = SUPERSAMPLE // 2
@@ -134,22 +137,20 @@ class _Views:
 
     def measure(self, cloud):
         n = len(self.surface.faces)
-        err_sum, px_sum, mses, shares = np.zeros(n), np.zeros(n), [], []
+        err_sum, mses, shares = np.zeros(n), [], []
         excess = 0.0
         # Small views: one whole render per core beats sharing each render between the cores.
         results = map_threads(lambda cam: render(cloud, cam, background=BACKGROUND, mode=self.mode, threads=1),
                               self.cameras)
-        for result, ref, owner, solid, edge in zip(results, self.refs, self.owners, self.solid, self.edges):
+        for result, ref, (pixel, face, share), solid, edge in zip(results, self.refs, self.shares, self.solid,
+                                                                  self.edges):
             excess += float((result.alpha - ref.alpha)[solid].sum())
             err = ((result.color.astype(np.float64) - ref.color) ** 2).mean(axis=2)
             mses.append(err.mean())
             shares.append(float(err[edge].sum() / max(err.sum(), 1e-300)))
-            sub = np.repeat(np.repeat(err, SUPERSAMPLE, 0), SUPERSAMPLE, 1) / SUPERSAMPLE**2
-            mine = owner >= 0
-            err_sum += np.bincount(owner[mine], weights=sub[mine], minlength=n)
-            px_sum += np.bincount(owner[mine], minlength=n) / SUPERSAMPLE**2
+            err_sum += np.bincount(face, weights=err.ravel()[pixel] * share, minlength=n)
         dilation = excess / self.outline if self.outline > 0 else 0.0
-        return Measured(psnr_from_mse(max(mses)), err_sum, px_sum, dilation, psnr_from_mse(np.mean(mses)),
+        return Measured(psnr_from_mse(max(mses)), err_sum, self.face_pixels, dilation, psnr_from_mse(np.mean(mses)),
                         [psnr_from_mse(m) for m in mses], shares)
 
 
@@ -393,6 +394,18 @@ def _trim(v, make, low, high, inset, target, best, steps=2):
 def _fit_budget(density, area, max_splats):
     total = (density * area).sum()
     return density * (max_splats / total) if total > max_splats else density
+
+
+def _face_shares(owner, n_faces):
+    """(pixel, face, share): each pixel's flat index, a face seen in its SUPERSAMPLE^2 samples of
+    `owner` (labels, -1 for none), and the fraction of those samples that face owns; one row per
+    pair. A pixel's error goes to its faces in these shares."""
+    s = SUPERSAMPLE
+    rows, cols = np.indices(owner.shape)
+    pixel = (rows // s) * (owner.shape[1] // s) + cols // s
+    mine = owner >= 0
+    pairs, counts = np.unique(pixel[mine].astype(np.int64) * n_faces + owner[mine], return_counts=True)
+    return pairs // n_faces, pairs % n_faces, counts / s**2
 
 
 def _smoothed_error_density(surface, err, px):
