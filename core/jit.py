@@ -6,10 +6,12 @@ and every way it can fail to load (not installed, built for another NumPy, a bro
 
 Compiled code is cached on disk, so only the first use on a machine pays for compiling (a few
 seconds). The cache lives in the user's cache folder, not beside the sources: an installed Blender
-extension or a site-packages folder may not be writable. SPLATWRIGHT_CACHE_DIR overrides the folder;
+extension or a site-packages folder may not be writable. It is found by the source's content, not
+its place on disk, so a reinstalled extension loads its kernels instead of compiling them again. SPLATWRIGHT_CACHE_DIR overrides the folder;
 SPLATWRIGHT_JIT=0 turns compiled kernels off (read when a kernel is first needed).
 """
 
+import hashlib
 import importlib
 import os
 import sys
@@ -153,6 +155,15 @@ def _install_cache_locator():
 
         def get_cache_path(self):
             return self._cache_path
+
+        @classmethod
+        def get_suitable_cache_subpath(cls, py_file):
+            # The folder's name and a hash of the file's source, not of where it lies: an extension
+            # installed again (a new folder each time in some setups) finds its kernels compiled, and
+            # two versions of the package never overwrite each other's.
+            with open(py_file, "rb") as f:
+                digest = hashlib.sha1(f.read()).hexdigest()
+            return f"{os.path.basename(os.path.dirname(os.path.abspath(py_file)))}_{digest}"
 
         @classmethod
         def from_function(cls, py_func, py_file):
