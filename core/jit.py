@@ -151,19 +151,10 @@ def _install_cache_locator():
         def __init__(self, py_func, py_file):
             self._py_file = py_file
             self._lineno = py_func.__code__.co_firstlineno
-            self._cache_path = str(root / self.get_suitable_cache_subpath(py_file))
+            self._cache_path = str(root / _cache_subpath(py_func.__module__, py_file))
 
         def get_cache_path(self):
             return self._cache_path
-
-        @classmethod
-        def get_suitable_cache_subpath(cls, py_file):
-            # The folder's name and a hash of the file's source, not of where it lies: an extension
-            # installed again (a new folder each time in some setups) finds its kernels compiled, and
-            # two versions of the package never overwrite each other's.
-            with open(py_file, "rb") as f:
-                digest = hashlib.sha1(f.read()).hexdigest()
-            return f"{os.path.basename(os.path.dirname(os.path.abspath(py_file)))}_{digest}"
 
         @classmethod
         def from_function(cls, py_func, py_file):
@@ -173,3 +164,13 @@ def _install_cache_locator():
 
     impl._locator_classes.insert(0, SplatwrightCacheLocator)
     _installed = True
+
+
+def _cache_subpath(module, py_file):
+    """The cache folder of a module's kernels: its folder's name and a hash of its name and source,
+    not of where it lies, so an extension installed again (a new folder each time in some setups)
+    finds its kernels compiled, two versions of the package never overwrite each other's, and the
+    same file imported under another name (pip's splatwright, Blender's bl_ext...) keeps its own."""
+    with open(py_file, "rb") as f:
+        digest = hashlib.sha1(module.encode() + b"\0" + f.read()).hexdigest()
+    return f"{os.path.basename(os.path.dirname(os.path.abspath(py_file)))}_{digest}"

@@ -107,6 +107,7 @@ def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_p
                "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")}
         done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
             import importlib, sys, bpy
+            import numpy as np
             bpy.ops.extensions.package_install_files(filepath={str(extension_zip)!r}, repo="user_default",
                                                      enable_on_install=True)
             sys.path.sort(key=lambda p: ".local" not in p)
@@ -115,7 +116,10 @@ def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_p
             print(render.backend_status())          # loads the kernels (from the cache, if there)
             print(numba.__file__)
             kernels = importlib.import_module("bl_ext.user_default.splatwright.core.render_kernels")
-            print(sum(len(f.stats.cache_misses) for f in vars(kernels).values() if hasattr(f, "stats")))
+            geometry = importlib.import_module("bl_ext.user_default.splatwright.core.geometry")
+            geometry.polar_rotation(np.eye(3)[None])
+            kernels = [*vars(kernels).values(), geometry._polar_loop]
+            print(sum(len(f.stats.cache_misses) for f in kernels if hasattr(f, "stats")))
         """)], capture_output=True, text=True, env=env, timeout=600)
         assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
         status, numba_file, misses = done.stdout.strip().splitlines()[-3:]
@@ -124,3 +128,14 @@ def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_p
         compiled.append(int(misses))
     assert list((tmp_path / "cache").rglob("render_kernels.*.nbi"))
     assert compiled[0] > 0 and compiled[1] == 0             # compiled by the first install only
+    # the same source imported as splatwright (pip) has kernels of its own beside the extension's
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent("""
+        import numpy as np
+        from splatwright.core import geometry
+        r = geometry.polar_rotation(np.diag([2.0, 1.0, -1.0])[None])
+        print(np.abs(r[0] - np.diag([1.0, 1.0, -1.0])).max(), len(geometry._polar_loop.stats.cache_misses))
+    """)], capture_output=True, text=True, env={**os.environ, "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")},
+        timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    error, misses = done.stdout.split()
+    assert float(error) < 1e-12 and int(misses) == 1
