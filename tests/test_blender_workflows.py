@@ -453,7 +453,7 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
     np.testing.assert_array_equal(cloud.extras["normal_offset"], 0.0)
     blend = _outcome(blender, "from-mesh blend")
     assert blend["code"] == 0 and (blender.out / "cli" / "grid.blend").stat().st_size > 1000
-    assert blend["renders"]["mesh"] > 0 and blend["renders"]["splats"] > 0      # calibrated by default
+    assert res["calibrate_default"] is True                # as the operator's (test_from_mesh_calibrates_...)
 
 
 def test_command_survives_re_registration(blender):

@@ -374,7 +374,8 @@ class Worker(BlenderWorker):
             node.image = img
             return node.outputs["Color"]
         obj.data.materials.append(self.material("quality", link=texture))
-        op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000)
+        op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000, view_count=2,
+                                   view_size=64)
         res = {**op, "count": len(created[0].data.vertices) if created else None}
         # Quality measured along the scene camera's path (frames 1 and 10), in the object's space.
         bpy, scene = self.bpy, self.bpy.context.scene
@@ -494,7 +495,8 @@ class Worker(BlenderWorker):
             "render exr": ["render", str(d / "deep_####.exr"), "--frames", "3"],
             "from-mesh ply": ["from-mesh", str(d / "grid.ply"), "--objects", "Grid", "--max-splats", "250",
                               "--no-calibrate"],
-            "from-mesh blend": ["from-mesh", str(d / "grid.blend"), "--objects", "Grid", "--max-splats", "100"],
+            "from-mesh blend": ["from-mesh", str(d / "grid.blend"), "--objects", "Grid", "--max-splats", "100",
+                                "--no-calibrate"],
             "from-mesh camera": ["from-mesh", str(d / "cam.ply"), "--objects", "Camera"],
             "from-mesh unknown": ["from-mesh", str(d / "cam.ply"), "--objects", "Nope"],
             "from-mesh bad extension": ["from-mesh", str(d / "grid.xyz"), "--objects", "Grid"],
@@ -509,6 +511,8 @@ class Worker(BlenderWorker):
                 code = execute(argv)
             outcomes[name] = {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue(),
                               "new_objects": len(bpy.data.objects) - before, "renders": dict(renders)}
+        res["calibrate_default"] = self.module("splat_addon.command").parser().parse_args(
+            ["from-mesh", str(d / "x.ply")]).calibrate
         res["after"] = {"frame": scene.frame_current, "engine": render.engine, "filepath": render.filepath,
                         "hidden": [o.name for o in scene.objects if o.hide_render],
                         "format": render.image_settings.file_format}
@@ -530,9 +534,8 @@ class Worker(BlenderWorker):
 
     def reregister(self):
         import addon_utils
-        for _ in range(2):
-            addon_utils.disable(MODULE, default_set=True)
-            addon_utils.enable(MODULE, default_set=True)
+        addon_utils.disable(MODULE, default_set=True)         # each enable unpacks the bundled wheels again
+        addon_utils.enable(MODULE, default_set=True)
         command = self.module("splat_addon.command")
         on = command._handle is not None
         addon_utils.disable(MODULE, default_set=True)
