@@ -352,6 +352,10 @@ def _add_mesh2splats(p):
     p.add_argument("--view-count", type=int, default=None, metavar="N", help="views at each distance (default 4)")
     p.add_argument("--mode", choices=("classic", "antialiased"), default="classic",
                    help="the render mode the splats are sized for")
+    p.add_argument("--calibrate", action=argparse.BooleanOptionalAction, default=True,
+                   help="with --max-splats: calibrate the silhouettes against renders of the mesh and the splats "
+                        "from the views (default; seconds per 100k splats); --no-calibrate renders nothing and "
+                        "keeps the splats on the surface")
 
 
 def _run_mesh2splats(args):
@@ -359,6 +363,8 @@ def _run_mesh2splats(args):
     from .core.mesh_to_splats import mesh_to_splats
     from .io import SplatFileError, write_splats
     from .io.meshes import read_mesh_file
+    if not args.calibrate and args.max_splats is None:
+        raise OptionError("--no-calibrate applies to a --max-splats budget; a target PSNR always calibrates")
     start = time.perf_counter()
     mesh = read_mesh_file(args.mesh)
     info = {}
@@ -366,7 +372,8 @@ def _run_mesh2splats(args):
         cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(),
                                max_splats=args.max_splats, target_psnr=args.target_psnr,
                                view_size=args.view_size, view_distances=args.view_distances,
-                               view_count=args.view_count, render_mode=args.mode, progress=Progress(), info=info)
+                               view_count=args.view_count, render_mode=args.mode, calibrate=args.calibrate,
+                               progress=Progress(), info=info)
     except ValueError as exc:
         raise SplatFileError(args.mesh, str(exc)) from None
     write_splats(args.output, cloud)

@@ -6,10 +6,12 @@ and every way it can fail to load (not installed, built for another NumPy, a bro
 
 Compiled code is cached on disk, so only the first use on a machine pays for compiling (a few
 seconds). The cache lives in the user's cache folder, not beside the sources: an installed Blender
-extension or a site-packages folder may not be writable. SPLATWRIGHT_CACHE_DIR overrides the folder;
+extension or a site-packages folder may not be writable. It is found by the source's content, not
+its place on disk, so a reinstalled extension loads its kernels instead of compiling them again. SPLATWRIGHT_CACHE_DIR overrides the folder;
 SPLATWRIGHT_JIT=0 turns compiled kernels off (read when a kernel is first needed).
 """
 
+import hashlib
 import importlib
 import os
 import sys
@@ -149,7 +151,7 @@ def _install_cache_locator():
         def __init__(self, py_func, py_file):
             self._py_file = py_file
             self._lineno = py_func.__code__.co_firstlineno
-            self._cache_path = str(root / self.get_suitable_cache_subpath(py_file))
+            self._cache_path = str(root / _cache_subpath(py_func.__module__, py_file))
 
         def get_cache_path(self):
             return self._cache_path
@@ -162,3 +164,13 @@ def _install_cache_locator():
 
     impl._locator_classes.insert(0, SplatwrightCacheLocator)
     _installed = True
+
+
+def _cache_subpath(module, py_file):
+    """The cache folder of a module's kernels: its folder's name and a hash of its name and source,
+    not of where it lies, so an extension installed again (a new folder each time in some setups)
+    finds its kernels compiled, two versions of the package never overwrite each other's, and the
+    same file imported under another name (pip's splatwright, Blender's bl_ext...) keeps its own."""
+    with open(py_file, "rb") as f:
+        digest = hashlib.sha1(module.encode() + b"\0" + f.read()).hexdigest()
+    return f"{os.path.basename(os.path.dirname(os.path.abspath(py_file)))}_{digest}"

@@ -101,6 +101,9 @@ def parser():
     p.add_argument("--max-splats", type=int, help=f"splats per object (default {from_mesh.DEFAULT_BUDGET}); "
                                                   "with --target-psnr, the most per object")
     p.add_argument("--target-psnr", type=float, help="refine until renders reach this PSNR (dB)")
+    p.add_argument("--calibrate", action=argparse.BooleanOptionalAction, default=True,
+                   help="a budget: calibrate the silhouettes against renders of the mesh and the splats (default; "
+                        "a few seconds per object); --no-calibrate renders nothing and keeps the splats on the surface")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
 
@@ -319,9 +322,12 @@ def run_from_mesh(args, context):
         budget = from_mesh.DEFAULT_BUDGET
     if args.target_psnr is not None and not 0 < args.target_psnr < float("inf"):
         raise CommandError(f"--target-psnr must be a positive number of dB, got {args.target_psnr}")
+    if not args.calibrate and args.target_psnr is not None:
+        raise CommandError("--no-calibrate applies to a splat budget; --target-psnr always calibrates")
     _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}")
     results = from_mesh.convert_objects(
-        context, objects, max_splats=budget, target_psnr=args.target_psnr, use_rest_pose=not args.posed,
+        context, objects, max_splats=budget, target_psnr=args.target_psnr, calibrate=args.calibrate,
+        use_rest_pose=not args.posed,
         progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
     created = from_mesh.create_splat_objects(context, results)
     for obj in created:

@@ -211,11 +211,12 @@ def _environment_mesh(collection):
     return _mesh_object("Demo Environment", [floor, box], collection)
 
 
-def build_demo_rig(scene, environment_splats=20_000):
+def build_demo_rig(scene, environment_splats=20_000, calibrate=True):
     """Build the demo rig into `scene` (its own collection); returns a DemoRig.
 
     environment_splats: the splat budget of the environment made from its mesh with from_mesh
-    (0 or None: the mesh only). The scene's frame range becomes 1-24; frame 1 is current.
+    (0 or None: the mesh only), its silhouettes calibrated unless `calibrate` is False. The scene's
+    frame range becomes 1-24; frame 1 is current.
     """
     collection = bpy.data.collections.new("Splatwright Demo")
     scene.collection.children.link(collection)
@@ -233,7 +234,8 @@ def build_demo_rig(scene, environment_splats=20_000):
     environment = None
     if environment_splats:
         from . import from_mesh
-        results = from_mesh.convert_objects(bpy.context, [env_mesh], max_splats=environment_splats)
+        results = from_mesh.convert_objects(bpy.context, [env_mesh], max_splats=environment_splats,
+                                            calibrate=calibrate)
         environment = from_mesh.create_splat_objects(bpy.context, results)[0]
         env_mesh.hide_render = True
     scene.frame_set(FRAMES[0])

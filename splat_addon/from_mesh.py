@@ -42,6 +42,10 @@ from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
 SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
 SUFFIX = "_splats"
 DEFAULT_BUDGET = 200_000
+CALIBRATE_TOOLTIP = ("Splat Budget: render the mesh and the splats from the views and pull solid parts in by "
+                     "about a pixel, so the splats' outlines match the mesh's instead of rendering a pixel fatter "
+                     "(a few seconds per object, for a closer look from those views). Off: no renders, the "
+                     "splats stay on the surface (Target PSNR always calibrates)")
 
 
 class MeshConversionError(ValueError):
@@ -280,14 +284,16 @@ def read_object(obj, depsgraph, warn=print, rest=False):
         evaluated.to_mesh_clear()
 
 
-def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, warn=print,
-                 views=None, info=None, **view_options):
+def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, calibrate=True,
+                 warn=print, views=None, info=None, **view_options):
     """A generator converting one object's read mesh (read_object): yields (done, total, label) as
     mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record).
     `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
-    view_count of mesh_to_splats) say where quality is measured; `info` receives mesh_to_splats'."""
+    view_count of mesh_to_splats) say where quality is measured; `calibrate` (a budget only: the
+    silhouettes calibrated against renders from those views) and `info` as mesh_to_splats takes them."""
     steps = mesh_to_splats_steps(triangles.vertices, triangles.faces, max_splats=max_splats,
-                                 target_psnr=target_psnr, views=views, info=info, **view_options, **appearance)
+                                 target_psnr=target_psnr, calibrate=calibrate, views=views, info=info,
+                                 **view_options, **appearance)
     while True:
         with warnings.catch_warnings(record=True) as caught:       # per step: nothing held across yields
             warnings.simplefilter("always")
@@ -308,13 +314,13 @@ def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_
     return cloud, record
 
 
-def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, progress=None, warn=print,
-                   rest=False, **view_options):
+def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, calibrate=True, progress=None,
+                   warn=print, rest=False, **view_options):
     """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it;
-    `view_options` as object_steps takes them."""
+    `calibrate` and `view_options` as object_steps takes them."""
     read = read_object(obj, depsgraph, warn, rest)
-    return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, warn=warn,
-                              **view_options), progress)
+    return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
+                              warn=warn, **view_options), progress)
 
 
 def mesh_objects(objects):
@@ -368,11 +374,13 @@ class ConversionJob:
     (cancel()) leaves the scene as it was. step() does one step (a refinement round of one object
     with a target PSNR, a whole object with a budget) and returns False once every object is
     converted; `results` then holds [(source object, cloud, record)], which create() links into
-    the scene. `done` / `total` / `label` say how far it is (objects as units)."""
+    the scene. `done` / `total` / `label` say how far it is (objects as units). `calibrate=False`
+    makes a budget conversion render nothing (see object_steps)."""
 
-    def __init__(self, context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True, warn=print,
-                 views=None, **view_options):
-        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, warn=warn, **view_options)
+    def __init__(self, context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
+                 warn=print, views=None, **view_options):
+        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate, warn=warn,
+                            **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
         self.infos = []                    # mesh_to_splats' info of each object, as results fill
         with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
@@ -415,14 +423,15 @@ class ConversionJob:
         self._steps, self.inputs = None, self.inputs[:len(self.results)]
 
 
-def convert_objects(context, objects, *, max_splats=None, target_psnr=None, use_rest_pose=True,
+def convert_objects(context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
                     progress=None, warn=print, infos=None, **view_options):
     """[(source object, cloud, record)] for mesh objects; nothing in the scene changes.
 
     progress(done, total, label) sees the whole selection as one task of len(objects) units.
+    `calibrate`: a budget's silhouettes calibrated against renders (object_steps);
     `view_options`: views (camera_path_views' mapping) or view_size, view_distances, view_count;
     `infos`, a list, receives each object's mesh_to_splats info."""
-    job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
+    job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
                         use_rest_pose=use_rest_pose, warn=warn, **view_options)
     results = job.run(progress)
     if infos is not None:
@@ -493,6 +502,7 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                             description="Splats per object (the count, or the cap with a target PSNR)")
     target_psnr: FloatProperty(name="Target PSNR", default=DEFAULT_TARGET_PSNR, min=10.0, max=80.0,
                                subtype="NONE", unit="NONE", description="Render quality to reach, in dB")
+    calibrate: BoolProperty(name="Calibrate Silhouettes", default=True, description=CALIBRATE_TOOLTIP)
     use_rest_pose: BoolProperty(name="Rest Pose", default=True,
                                 description="Convert meshes deformed by an armature in its rest position "
                                             "(the pose a binding to that armature starts from)")
@@ -518,7 +528,7 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         objects = mesh_objects(context.selected_objects)
         self._skipped = [o.name for o in context.selected_objects if o not in objects]
         return ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
-                             use_rest_pose=self.use_rest_pose, warn=lambda message: self.report({"WARNING"}, message),
+                             calibrate=self.calibrate, use_rest_pose=self.use_rest_pose, warn=lambda message: self.report({"WARNING"}, message),
                              **self.view_options(context, objects))
 
     def view_options(self, context, objects):

@@ -9,7 +9,8 @@ lacks is skipped with one line that says so.
 
 The workers do not wait for their tests: when collection ends, every (worker, version) the selected
 tests need starts in a background pool (two at a time on two cores; SPLATWRIGHT_BLENDER_JOBS sets
-it), and the tests with Blender workers are moved after the others, which run meanwhile.
+it; versions of different Pythons in turn, see _pythons_in_turn), and the tests with Blender workers
+are moved after the others, which run meanwhile.
 """
 
 import inspect
@@ -140,11 +141,25 @@ def start_workers(config, items):
             jobs.append(job)
     if not jobs:
         return
+    jobs = _pythons_in_turn(jobs)
     from helpers import build_extension_zip
     base = config._tmp_path_factory.mktemp("blender")          # pytest's own temporary folder
     zip_path = build_extension_zip(base)
     width = int(os.environ.get("SPLATWRIGHT_BLENDER_JOBS", min(2, os.cpu_count() or 1)))
     _POOL = WorkerPool(jobs, base, zip_path, width)
+
+
+def _pythons_in_turn(jobs):
+    """The jobs with versions of different Pythons taking turns, so that the workers running at once
+    seldom compile the same kernels for the same Python: the first worker of each Python fills the
+    kernel cache the later ones load (core/jit.py), instead of two compiling side by side."""
+    queues = {}
+    for job in jobs:
+        queues.setdefault(blender_envs.VERSIONS[job[1]][0], []).append(job)
+    turns = []
+    while any(queues.values()):
+        turns += [queue.pop(0) for queue in queues.values() if queue]
+    return turns
 
 
 def stop_workers():

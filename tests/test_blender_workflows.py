@@ -196,6 +196,21 @@ def test_from_mesh_target_psnr(blender):
     assert res["missed"]["result"] == ["FINISHED"] and 0 < res["missed"]["count"] <= 300
 
 
+def test_from_mesh_calibrates_silhouettes_only_when_asked(blender):
+    """Calibrate Silhouettes (on by default) renders the mesh and the splats; off, nothing is rendered
+    and every splat lies on its triangle (Blender's own loop triangles), the budget spent either way."""
+    res = blender.step("calibration")
+    assert res["default"] is True
+    off, on = res["off"], res["on"]
+    assert off["result"] == on["result"] == ["FINISHED"], (off["error"], on["error"])
+    assert off["count"] == on["count"] == 1500
+    assert off["renders"] == {"mesh": 0, "splats": 0}
+    assert on["renders"]["mesh"] > 0 and on["renders"]["splats"] > 0
+    d = blender.npz("calibration_off")
+    np.testing.assert_array_equal(d["splat_extra_normal_offset"], 0.0)
+    np.testing.assert_allclose(d["position"], surface_points(d), atol=1e-5)
+
+
 # the demo rig --------------------------------------------------------------------------------------
 
 def test_demo_rig_structure(blender):
@@ -383,6 +398,7 @@ def test_cli_export_axes(blender):
     ("from-mesh camera", 1, ["not mesh objects", "'Camera' (CAMERA)"]),
     ("from-mesh unknown", 1, ["no object named 'Nope'"]),
     ("from-mesh bad extension", 1, ["grid.xyz", "unknown splat file extension"]),
+    ("from-mesh target uncalibrated", 1, ["--no-calibrate", "--target-psnr"]),
     ("render panoramic", 1, ["PANO"]),
     ("render no camera", 1, ["no camera"]),
 ])
@@ -433,8 +449,11 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
     world = local @ np.array(res["grid_matrix"])[:3, :3].T + np.array(res["grid_matrix"])[:3, 3]
     expected = world @ np.linalg.inv(DEFAULT_AXES)[:3, :3].T
     np.testing.assert_allclose(cloud.positions, expected, atol=2e-5)
+    assert run["renders"] == {"mesh": 0, "splats": 0}                 # --no-calibrate
+    np.testing.assert_array_equal(cloud.extras["normal_offset"], 0.0)
     blend = _outcome(blender, "from-mesh blend")
     assert blend["code"] == 0 and (blender.out / "cli" / "grid.blend").stat().st_size > 1000
+    assert res["calibrate_default"] is True                # as the operator's (test_from_mesh_calibrates_...)
 
 
 def test_command_survives_re_registration(blender):

@@ -35,23 +35,20 @@ def torus(r_major=1.0, r_minor=0.35, nu=24, nv=12):
 
 
 def parity_inside(point, verts, faces, direction=(0.5773, 0.5774, 0.5775)):
-    """Ray parity, one point, one triangle at a time (Moller-Trumbore), in float64."""
+    """Ray parity for one point, crossing each triangle by Moller-Trumbore, in float64."""
     d = np.array(direction)
-    hits = 0
-    for f in faces:
-        a, b, c = verts[f]
-        e1, e2 = b - a, c - a
-        p = np.cross(d, e2)
-        det = e1 @ p
-        if abs(det) < 1e-14:
-            continue
-        s = point - a
-        u = s @ p / det
-        q = np.cross(s, e1)
-        v = d @ q / det
-        t = e2 @ q / det
-        hits += u >= 0 and v >= 0 and u + v <= 1 and t > 0
-    return hits % 2 == 1
+    a, b, c = (np.asarray(verts, np.float64)[faces[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    s = point - a
+    q = np.cross(s, e1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.einsum("ij,ij->i", s, p) / det
+        v = q @ d / det
+        t = np.einsum("ij,ij->i", e2, q) / det
+    hits = (np.abs(det) >= 1e-14) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    return hits.sum() % 2 == 1
 
 
 # crop -----------------------------------------------------------------------------------------------

@@ -82,7 +82,7 @@ def test_obj_geometry_uvs_and_materials(cube):
 def test_obj_colours_reach_the_splats(cube):
     path, tex = cube
     mesh = read_mesh(path)
-    cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), max_splats=3000)
+    cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), max_splats=3000, calibrate=False)
     tri = cloud.extras["source_triangle"]
     rgb = 0.5 + 0.28209479177387814 * cloud.sh[:, 0].astype(np.float64)
     painted = mesh.face_materials[tri] == 0
@@ -152,13 +152,43 @@ def test_wrong_extension_and_missing_file(tmp_path):
         read_mesh(tmp_path / "x.stl")
 
 
-def test_cli_mesh2splats_budget(cube, tmp_path, capsys):
+def counted_renders(monkeypatch):
+    """The names of the renders (of the mesh, of splats) mesh conversion makes from now on."""
+    from splatwright.core import mesh_refine
+    made = []
+    for name in ("render", "render_mesh"):
+        original = getattr(mesh_refine, name)
+        monkeypatch.setattr(mesh_refine, name, lambda *a, _f=original, _n=name, **k: made.append(_n) or _f(*a, **k))
+    return made
+
+
+def test_cli_mesh2splats_budget(cube, tmp_path, capsys, monkeypatch):
     path, _ = cube
     out = tmp_path / "cube.ply"
+    renders = counted_renders(monkeypatch)
     assert main(["mesh2splats", str(path), str(out), "--max-splats", "2000", "--view-size", "32"]) == 0
     cloud = read_splats(out)
     assert len(cloud) == 2000 and not cloud.problems()
     assert "wrote 2000 splats from 12 faces, " in capsys.readouterr().out
+    assert {"render", "render_mesh"} <= set(renders)          # silhouettes calibrated by default
+
+
+def test_cli_mesh2splats_budget_without_calibration_renders_nothing(cube, tmp_path, capsys, monkeypatch):
+    """--no-calibrate: no render at all, and every splat on its triangle of the file's mesh."""
+    path, _ = cube
+    out = tmp_path / "cube.ply"
+    renders = counted_renders(monkeypatch)
+    assert main(["mesh2splats", str(path), str(out), "--max-splats", "2000", "--no-calibrate"]) == 0
+    assert renders == []
+    said = capsys.readouterr().out
+    assert "wrote 2000 splats from 12 faces to " in said and "dB" not in said
+    cloud, mesh = read_splats(out), read_mesh(path)
+    corners = mesh.vertices[mesh.faces[cloud.extras["source_triangle"]]]
+    bary = np.column_stack([cloud.extras[f"barycentric_{i}"] for i in range(3)]).astype(np.float64)
+    np.testing.assert_allclose(cloud.positions, np.einsum("nk,nkc->nc", bary, corners), atol=1e-6)
+    np.testing.assert_array_equal(cloud.extras["normal_offset"], 0.0)
+    assert main(["mesh2splats", str(path), str(out), "--target-psnr", "30", "--no-calibrate"]) == 1
+    assert "--no-calibrate applies to a --max-splats budget" in capsys.readouterr().err
 
 
 def test_cli_mesh2splats_target_and_errors(cube, tmp_path, capsys):

@@ -95,25 +95,47 @@ def test_console_script_and_python_dash_m(tmp_path):
 
 def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_path):
     """Blender installs the numba/llvmlite wheels the manifest bundles for its Python; the installed
-    extension's compiled kernels load from them and cache outside the extension's folder. (Blender
-    puts the wheels' folder first on sys.path; the bpy module appends it after this venv, which has
-    numba too, so the child moves it first.)"""
+    extension's compiled kernels load from them and cache outside the extension's folder, where the
+    same extension installed into another folder finds them compiled. (Blender puts the wheels' folder
+    first on sys.path; the bpy module appends it after this venv, which has numba too, so the child
+    moves it first.)"""
     names = zipfile.ZipFile(extension_zip).namelist()
     assert any(n.startswith("wheels/numba-") and "cp311" in n for n in names)
-    env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / "user"),
-           "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")}
-    done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
-        import importlib, sys, bpy
-        bpy.ops.extensions.package_install_files(filepath={str(extension_zip)!r}, repo="user_default",
-                                                 enable_on_install=True)
-        sys.path.sort(key=lambda p: ".local" not in p)
-        render = importlib.import_module("bl_ext.user_default.splatwright.core.render")
-        import numba
-        print(render.backend_status())
-        print(numba.__file__)
-    """)], capture_output=True, text=True, env=env, timeout=600)
-    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
-    status, numba_file = done.stdout.strip().splitlines()[-2:]
-    assert status == "compiled"
-    assert str(tmp_path / "user") in numba_file and ".local" in numba_file      # the bundled wheel
+    compiled = []
+    for user in ("user", "user_again"):
+        env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / user),
+               "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")}
+        done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
+            import importlib, sys, bpy
+            import numpy as np
+            bpy.ops.extensions.package_install_files(filepath={str(extension_zip)!r}, repo="user_default",
+                                                     enable_on_install=True)
+            sys.path.sort(key=lambda p: ".local" not in p)
+            render = importlib.import_module("bl_ext.user_default.splatwright.core.render")
+            import numba
+            print(render.backend_status())          # loads the kernels (from the cache, if there)
+            print(numba.__file__)
+            kernels = importlib.import_module("bl_ext.user_default.splatwright.core.render_kernels")
+            geometry = importlib.import_module("bl_ext.user_default.splatwright.core.geometry")
+            geometry.polar_rotation(np.eye(3)[None])
+            kernels = [*vars(kernels).values(), geometry._polar_loop]
+            print(sum(len(f.stats.cache_misses) for f in kernels if hasattr(f, "stats")))
+        """)], capture_output=True, text=True, env=env, timeout=600)
+        assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+        status, numba_file, misses = done.stdout.strip().splitlines()[-3:]
+        assert status == "compiled"
+        assert str(tmp_path / user) in numba_file and ".local" in numba_file      # the bundled wheel
+        compiled.append(int(misses))
     assert list((tmp_path / "cache").rglob("render_kernels.*.nbi"))
+    assert compiled[0] > 0 and compiled[1] == 0             # compiled by the first install only
+    # the same source imported as splatwright (pip) has kernels of its own beside the extension's
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent("""
+        import numpy as np
+        from splatwright.core import geometry
+        r = geometry.polar_rotation(np.diag([2.0, 1.0, -1.0])[None])
+        print(np.abs(r[0] - np.diag([1.0, 1.0, -1.0])).max(), len(geometry._polar_loop.stats.cache_misses))
+    """)], capture_output=True, text=True, env={**os.environ, "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")},
+        timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    error, misses = done.stdout.split()
+    assert float(error) < 1e-12 and int(misses) == 1

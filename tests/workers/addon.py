@@ -375,9 +375,8 @@ class Worker(BlenderWorker):
     def reregister(self):
         import addon_utils
         bpy = self.bpy
-        for _ in range(2):
-            addon_utils.disable(MODULE, default_set=True)
-            addon_utils.enable(MODULE, default_set=True)
+        addon_utils.disable(MODULE, default_set=True)         # each enable unpacks the bundled wheels again
+        addon_utils.enable(MODULE, default_set=True)
         enabled = {"menus": self.added_menus(), "engine_panels": self.engine_panels(),
                    "operators": hasattr(bpy.types, "SPLAT_OT_import_file")}
         addon_utils.disable(MODULE, default_set=True)

@@ -278,16 +278,18 @@ class Worker(BlenderWorker):
         mod = sphere.modifiers.new("Armature", "ARMATURE")
         mod.object = arm
         before = self.scene_state()
-        job = from_mesh.ConversionJob(bpy.context, [sphere], target_psnr=45.0, max_splats=30000)
+        # One small view: the steps, not the quality they reach, are checked here.
+        views = dict(view_size=32, view_count=1, view_distances=(1.0,))
+        job = from_mesh.ConversionJob(bpy.context, [sphere], target_psnr=45.0, max_splats=3000, **views)
         during = self.scene_state()
         steps = [job.step() for _ in range(2)]
         label, done = job.label, job.done
         job.cancel()
         after = self.scene_state()
-        full = from_mesh.ConversionJob(bpy.context, [sphere], target_psnr=30.0, max_splats=30000)
+        full = from_mesh.ConversionJob(bpy.context, [sphere], target_psnr=30.0, max_splats=3000, **views)
         progress = []
         results = full.run(lambda d, t, label: progress.append(d))
-        direct = from_mesh.convert_objects(bpy.context, [sphere], target_psnr=30.0, max_splats=30000)
+        direct = from_mesh.convert_objects(bpy.context, [sphere], target_psnr=30.0, max_splats=3000, **views)
         self.save("from_mesh_job", stepped=results[0][1].positions, direct=direct[0][1].positions)
         return {"before": before, "during": during, "after": after, "steps": steps, "label": label, "done": done,
                 "progress": progress, "count": len(results[0][1])}

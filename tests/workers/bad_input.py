@@ -326,9 +326,9 @@ class Worker(BlenderWorker):
         for name, argv in (("export", ["export", str(folder / "ro_####.ply")]),
                            ("render", ["render", str(folder / "ro_####.png"), "--frames", "1"]),
                            ("from-mesh", ["from-mesh", str(folder / "ro.ply"), "--objects", "Grid",
-                                          "--max-splats", "20"]),
+                                          "--max-splats", "20", "--no-calibrate"]),
                            ("from-mesh blend", ["from-mesh", str(folder / "ro.blend"), "--objects", "Grid",
-                                                "--max-splats", "20"])):
+                                                "--max-splats", "20", "--no-calibrate"])):
             cases[f"cli {name}"] = self.run_cli(argv)
         self.splat("other", self.random_cloud(N, sh_degree=1, seed=5))
         cases["cli collide json"] = self.run_cli(["collide", "splats", "other", "--frames", "1",
@@ -362,7 +362,8 @@ class Worker(BlenderWorker):
         self.clear_scene()
         grid = self.mesh("Skin", [(x, 0, z) for z in (-1, 0, 1) for x in (-0.5, 0.5)], [(0, 1, 3, 2), (2, 3, 5, 4)])
         grid.vertex_groups.new(name="NotABone").add(list(range(6)), 1.0, "REPLACE")
-        made = self.module("splat_addon.from_mesh").from_mesh(bpy.context, [grid], max_splats=60)[0]
+        made = self.module("splat_addon.from_mesh").from_mesh(bpy.context, [grid], max_splats=60,
+                                                                     calibrate=False)[0]
         arm = self.armature("Rig", (("Lower", (0, 0, -1), (0, 0, 0), True), ("Upper", (0, 0, 0), (0, 0, 1), True)))
         warnings = []
         plans = rigging.bind_armature([made], arm, warn=warnings.append)

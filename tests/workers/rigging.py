@@ -132,9 +132,10 @@ class Worker(BlenderWorker):
     def demo(self, environment_splats=0, body_splats=3000):
         """The demo rig and its arm converted to splats in the rest pose (selected, the armature active)."""
         bpy = self.bpy
-        rig = self.module("splat_addon.demo_rig").build_demo_rig(bpy.context.scene, environment_splats)
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(bpy.context.scene, environment_splats,
+                                                                    calibrate=False)
         self.select([rig.body])
-        bpy.ops.splat.from_mesh(max_splats=body_splats)
+        bpy.ops.splat.from_mesh(max_splats=body_splats, calibrate=False)
         splats = bpy.context.active_object
         self.select([splats, rig.armature], active=rig.armature)
         return rig, splats
@@ -233,14 +234,14 @@ class Worker(BlenderWorker):
                   source_vertices=extras["source_vertices"], barycentric=extras["barycentric"])
         # the active armature, one influence
         self.select([rig.body])
-        bpy.ops.splat.from_mesh(max_splats=3000)
+        bpy.ops.splat.from_mesh(max_splats=3000, calibrate=False)
         single = bpy.context.active_object
         self.select([single, rig.armature], active=rig.armature)
         res["single"] = self.call(bpy.ops.splat.bind_armature, max_influences=1)
         self.save("transfer_single", weights=self.group_matrix(single, names))
         # a source mesh that is gone: weights from the bones, with a warning
         self.select([rig.body])
-        bpy.ops.splat.from_mesh(max_splats=200)
+        bpy.ops.splat.from_mesh(max_splats=200, calibrate=False)
         orphan = bpy.context.active_object
         rig.body.name = "Renamed Arm"
         warnings = []
@@ -281,7 +282,8 @@ class Worker(BlenderWorker):
         res = {"bind": self.call(bpy.ops.splat.bind_armature)}
         rest = data.evaluated_cloud(splats, bpy.context.evaluated_depsgraph_get())
         scene.frame_set(BENT_FRAME)
-        reference = from_mesh.convert_objects(bpy.context, [rig.body], max_splats=8000, use_rest_pose=False)[0][1]
+        reference = from_mesh.convert_objects(bpy.context, [rig.body], max_splats=8000, calibrate=False,
+                                               use_rest_pose=False)[0][1]
         depsgraph = bpy.context.evaluated_depsgraph_get()
         ours = data.evaluated_cloud(splats, depsgraph)
         reference = data.transform_cloud(reference, data.world_matrix(rig.body, depsgraph))

@@ -40,8 +40,8 @@ def skewed_uv(p):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "textured", "colors", "errors", "demo_rig", "rest_pose", "target_psnr", "animation",
-             "frame_names", "cli", "reregister")
+    steps = ("install", "textured", "colors", "errors", "calibration", "demo_rig", "rest_pose", "target_psnr",
+             "animation", "frame_names", "cli", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
 
@@ -127,7 +127,9 @@ class Worker(BlenderWorker):
         return arrays
 
     def convert(self, objects, **kw):
-        """Run from_mesh on `objects`; returns (result, the new active object or None)."""
+        """Run from_mesh on `objects` (without silhouette calibration unless asked: these steps check
+        what lands where, not how it renders); returns (result, the new active object or None)."""
+        kw.setdefault("calibrate", False)
         self.select(objects)
         before = set(self.bpy.data.objects)
         res = self.call(self.bpy.ops.splat.from_mesh, **kw)
@@ -277,10 +279,44 @@ class Worker(BlenderWorker):
         cases["good and camera"] = {**res, "created": [o.name for o in created]}
         return cases
 
+    @contextlib.contextmanager
+    def counted_renders(self):
+        """{"mesh": renders of the mesh, "splats": renders of splats} that mesh conversion makes inside."""
+        refine = self.module("core.mesh_refine")
+        counts = {"mesh": 0, "splats": 0}
+        originals = refine.render_mesh, refine.render
+
+        def counting(key, function):
+            def counted(*args, **kwargs):
+                counts[key] += 1
+                return function(*args, **kwargs)
+            return counted
+        refine.render_mesh, refine.render = counting("mesh", originals[0]), counting("splats", originals[1])
+        try:
+            yield counts
+        finally:
+            refine.render_mesh, refine.render = originals
+
+    def calibration(self):
+        """Mesh to Splats on a solid sphere with Calibrate Silhouettes off (no renders) and on (one small
+        view, to keep it short)."""
+        bpy = self.bpy
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=0.8)
+        sphere = bpy.context.active_object
+        res = {}
+        for key, calibrate in (("off", False), ("on", True)):
+            with self.counted_renders() as renders:
+                op, created = self.convert([sphere], max_splats=1500, calibrate=calibrate, view_near=1.0,
+                                           view_far=1.0, view_count=1, view_size=48)
+            res[key] = {**op, "renders": dict(renders), "count": len(created[0].data.vertices)}
+            self.save(f"calibration_{key}", **self.source_dump(sphere), **self.splat_dump(created[0]))
+        res["default"] = bpy.ops.splat.from_mesh.get_rna_type().properties["calibrate"].default
+        return res
+
     def demo_rig(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=3000)
+        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=3000, calibrate=False)
         body, arm = rig.body, rig.armature
         mesh = body.data
         weights = np.zeros((len(mesh.vertices), len(arm.data.bones)))
@@ -338,7 +374,8 @@ class Worker(BlenderWorker):
             node.image = img
             return node.outputs["Color"]
         obj.data.materials.append(self.material("quality", link=texture))
-        op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000)
+        op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000, view_count=2,
+                                   view_size=64)
         res = {**op, "count": len(created[0].data.vertices) if created else None}
         # Quality measured along the scene camera's path (frames 1 and 10), in the object's space.
         bpy, scene = self.bpy, self.bpy.context.scene
@@ -456,20 +493,26 @@ class Worker(BlenderWorker):
             "render unknown object": ["render", str(d / "none_"), "--frames", "4", "--objects", "moving_missing"],
             "render no hash": ["render", str(d / "plain_"), "--frames", "4"],
             "render exr": ["render", str(d / "deep_####.exr"), "--frames", "3"],
-            "from-mesh ply": ["from-mesh", str(d / "grid.ply"), "--objects", "Grid", "--max-splats", "250"],
-            "from-mesh blend": ["from-mesh", str(d / "grid.blend"), "--objects", "Grid", "--max-splats", "100"],
+            "from-mesh ply": ["from-mesh", str(d / "grid.ply"), "--objects", "Grid", "--max-splats", "250",
+                              "--no-calibrate"],
+            "from-mesh blend": ["from-mesh", str(d / "grid.blend"), "--objects", "Grid", "--max-splats", "100",
+                                "--no-calibrate"],
             "from-mesh camera": ["from-mesh", str(d / "cam.ply"), "--objects", "Camera"],
             "from-mesh unknown": ["from-mesh", str(d / "cam.ply"), "--objects", "Nope"],
             "from-mesh bad extension": ["from-mesh", str(d / "grid.xyz"), "--objects", "Grid"],
+            "from-mesh target uncalibrated": ["from-mesh", str(d / "t.ply"), "--objects", "Grid", "--target-psnr", "20",
+                                              "--no-calibrate"],
         }
         outcomes = {}
         for name, argv in runs.items():
             out, err = io.StringIO(), io.StringIO()
             before = len(bpy.data.objects)
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), self.counted_renders() as renders:
                 code = execute(argv)
             outcomes[name] = {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue(),
-                              "new_objects": len(bpy.data.objects) - before}
+                              "new_objects": len(bpy.data.objects) - before, "renders": dict(renders)}
+        res["calibrate_default"] = self.module("splat_addon.command").parser().parse_args(
+            ["from-mesh", str(d / "x.ply")]).calibrate
         res["after"] = {"frame": scene.frame_current, "engine": render.engine, "filepath": render.filepath,
                         "hidden": [o.name for o in scene.objects if o.hide_render],
                         "format": render.image_settings.file_format}
@@ -491,9 +534,8 @@ class Worker(BlenderWorker):
 
     def reregister(self):
         import addon_utils
-        for _ in range(2):
-            addon_utils.disable(MODULE, default_set=True)
-            addon_utils.enable(MODULE, default_set=True)
+        addon_utils.disable(MODULE, default_set=True)         # each enable unpacks the bundled wheels again
+        addon_utils.enable(MODULE, default_set=True)
         command = self.module("splat_addon.command")
         on = command._handle is not None
         addon_utils.disable(MODULE, default_set=True)
