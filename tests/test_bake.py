@@ -49,7 +49,7 @@ def test_isolated_splats_get_their_coefficients_back(backend):
 
 
 def test_a_dense_cloud_matches_held_out_views_and_keeps_unseen_splats():
-    """400 overlapping splats: after 40 iterations held-out views match to > 45 dB; a splat no view
+    """400 overlapping splats, a little damping: after 40 iterations held-out views match to > 45 dB; a splat no view
     sees keeps its SH (damping), and the fit raises the degree when asked (zero-padded start)."""
     cloud = known_cloud(400, seed=4, spread=0.8, log_scale=(-3.2, -2.2), opacity=(0.3, 0.8))
     hidden = cloud[:1].replace(opacity_logits=np.float32([-8.0]))                       # too faint to show
@@ -59,7 +59,7 @@ def test_a_dense_cloud_matches_held_out_views_and_keeps_unseen_splats():
     cams, held_out = cameras_around(48, seed=6), cameras_around(6, seed=7)
     steps, info = [], {}
     fit = bake_sh(start, cams, [render(truth, c).color for c in cams], degree=2, iterations=40, info=info,
-                  progress=lambda *step: steps.append(step))
+                  damping=1e-3, band_damping=0.0, progress=lambda *step: steps.append(step))
     assert fit.sh.shape == (401, 9, 3)
     assert steps[-1] == (41, 41, "bake") and len(info["psnr"]) == 41
     assert all(b >= a - 1e-6 for a, b in zip(info["psnr"], info["psnr"][1:]))     # CG never loses ground
