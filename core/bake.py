@@ -51,17 +51,21 @@ def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
 
 
 def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITERATIONS, damping=DEFAULT_DAMPING,
-                  band_damping=DEFAULT_BAND_DAMPING, background=(0.0, 0.0, 0.0), mode="classic", tolerance=1e-6, info=None, backend="auto",
-                  threads=None):
+                  band_damping=DEFAULT_BAND_DAMPING, prior="views", background=(0.0, 0.0, 0.0), mode="classic",
+                  tolerance=1e-6, info=None, backend="auto", threads=None):
     """A generator fitting the SH of `cloud` to `images` seen through `cameras`; yields (done,
     total, label) after the setup and each iteration and returns the cloud with the fitted SH
     (float32, `degree`, default the cloud's own).
 
     images: one (H,W,3) display-sRGB image per camera, of its size, rendered over `background`.
-    damping: the Tikhonov weight towards the cloud's own SH (padded with zeros to `degree`), relative
-    to the median splat's diagonal; band l's weight is that times 1 + band_damping l (l + 1) (the
-    sphere's Laplacian: sharp view-dependence must be asked for by many views). Stops after `iterations` or once the normal residual fell
-    below `tolerance` times its start. `info`, if a dict, receives "psnr" (per iteration, the
+    prior: where the fit starts and what it is damped towards: "views", each seen splat's mean
+    colour over the pixels it blends into (weighted by its weights, every view together, pixels
+    taken straight: a view-independent colour), the others keeping the cloud's SH; "cloud", the cloud's own SH. Both
+    are padded with zeros to `degree`.
+    damping: the Tikhonov weight towards the prior, relative to the median splat's diagonal; band
+    l's weight is that times 1 + band_damping l (l + 1) (the sphere's Laplacian: sharp
+    view-dependence must be asked for by many views). Stops after `iterations` or once the normal
+    residual fell below `tolerance` times its start. `info`, if a dict, receives "psnr" (per iteration, the
     linear model's PSNR over all views, the first entry before fitting), "iterations" and "seen"
     (splats some view gives weight).
     """
@@ -75,13 +79,19 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     x0 = shmod.truncate(cloud.sh.astype(np.float64), degree)
     total = iterations + 1
 
-    # setup: the residual of the start, the gathered right-hand side and the preconditioner
+    # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side
     diag = np.zeros((len(cloud), k))
+    for view in views:
+        diag += view.measure(cloud, bg, opts)
+    seen = diag[:, 0] > 0
+    if prior == "views":
+        x0 = _seen_colours(cloud, views, x0, seen, opts)
+    elif prior != "cloud":
+        raise ValueError(f"prior must be 'views' or 'cloud', got {prior!r}")
     rhs = np.zeros_like(x0)
     for view in views:
-        diag += view.setup(cloud, x0, bg, opts)
+        view.start(cloud, x0, opts)
         rhs += view.gather_back(cloud, view.residual, opts)
-    seen = diag[:, 0] > 0
     band = np.floor(np.sqrt(np.arange(k)))
     lam = damping * (np.median(diag[seen, 0]) if seen.any() else 1.0) * (1.0 + band_damping * band * (band + 1))
     lam = lam[None, :, None]
@@ -123,6 +133,21 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     return cloud.replace(sh=(x0 + delta).astype(np.float32))
 
 
+def _seen_colours(cloud, views, x0, seen, opts):
+    """x0 with each seen splat's SH replaced by its mean colour over the pixels it blends into:
+    sum_i w_i pixel_i / sum_i w_i alpha_i over every view (pixels are premultiplied by their alpha,
+    so a lone splat gets its own colour back)."""
+    sums = np.zeros((len(cloud), 4))
+    for view in views:
+        both = np.concatenate([view.target, view.alpha], axis=2)
+        sums += render(cloud, view.camera, background=None, gather=both, **opts).gathered
+    seen = seen & (sums[:, 3] > 0)
+    out = x0.copy()
+    out[seen] = 0.0
+    out[seen, 0] = shmod.rgb_to_dc(sums[seen, :3] / sums[seen, 3:])
+    return out
+
+
 def _checked_image(image, camera, i):
     a = np.asarray(image, np.float32)
     if a.shape != (camera.height, camera.width, 3):
@@ -154,21 +179,24 @@ class _View:
         """(N, 3) colours sum_k Y_k x_k of coefficients x (N, K, 3), unclamped."""
         return np.einsum("nk,nkc->nc", self.basis, x)
 
-    def setup(self, cloud, x0, bg, opts):
-        """The residual image of the starting SH (target less background and model) and this view's
-        share of the preconditioner (N, K)."""
+    def measure(self, cloud, bg, opts):
+        """The basis, the splats' coverage (sum of weights), the target (image less background) and
+        this view's share of the preconditioner (N, K)."""
         cam = self.camera
         directions = (np.broadcast_to(cam.forward, cloud.positions.shape) if cam.is_orthographic
                       else cloud.positions.astype(np.float64) - cam.center)     # as core.render sees them
         self.basis = shmod.basis(directions, self.degree, np.float32)
-        shift, colors = self._shifted(0.5 + self.colors(x0))
-        out = render(cloud.replace(sh=colors), self.camera, background=None, return_weights=True,
-                     gather=np.ones(self.image.shape[:2]), **opts)
-        alpha = out.alpha[..., None]
-        model = out.color - shift * alpha
-        self.residual = (self.image - (1.0 - alpha) * bg.astype(np.float32) - model).astype(np.float32)
+        out = render(cloud, self.camera, background=None, return_weights=True, gather=np.ones(self.image.shape[:2]),
+                     **opts)
+        self.alpha = out.alpha[..., None]
+        self.target = (self.image - (1.0 - self.alpha) * bg.astype(np.float32)).astype(np.float32)
         footprint = out.gathered[:, 0] * out.max_weight
         return footprint[:, None] * np.square(self.basis, dtype=np.float64)
+
+    def start(self, cloud, x0, opts):
+        """The residual image of the starting SH x0."""
+        model = self.color_image(cloud, 0.5 + self.colors(x0), opts)
+        self.residual = (self.target - model).astype(np.float32)
 
     def color_image(self, cloud, colors, opts):
         """A x: the image of per-splat colours (N, 3), no background, unclamped."""

@@ -71,6 +71,24 @@ def test_a_dense_cloud_matches_held_out_views_and_keeps_unseen_splats():
     np.testing.assert_array_equal(fit.opacity_logits, start.opacity_logits)
 
 
+def test_the_prior_is_each_splats_own_colour_where_splats_lie_apart():
+    """No iteration: the start is each seen splat's weighted mean of the straight pixel colours, its
+    own colour for a splat alone in its pixels (few overlap here), over a coloured background too."""
+    cloud = known_cloud(8, seed=13, spread=1.0, log_scale=(-4.0, -3.8), opacity=(0.5, 0.9), degree=0)
+    cams, bg = cameras_around(24, seed=14, size=160), (0.3, 0.1, 0.6)
+    info = {}
+    start = scrambled(cloud, 15).with_sh_degree(1)
+    fit = bake_sh(start, cams, [render(cloud, c, background=bg).color for c in cams], background=bg,
+                  iterations=0, info=info)
+    assert info["iterations"] == 0 and len(info["psnr"]) == 1
+    error = np.abs(shmod.dc_to_rgb(fit.sh[:, 0]) - shmod.dc_to_rgb(cloud.sh[:, 0])).max(axis=1)
+    assert np.median(error) < 2e-3 and error.max() < 0.05
+    assert not fit.sh[:, 1:].any()
+    prior_cloud = bake_sh(start, cams, [render(cloud, c, background=bg).color for c in cams], background=bg,
+                          iterations=0, prior="cloud")
+    np.testing.assert_array_equal(prior_cloud.sh, start.sh)
+
+
 def test_a_background_is_taken_off_before_fitting():
     cloud = known_cloud(60, seed=8, spread=1.0, log_scale=(-3.6, -3.2), opacity=(0.5, 0.9), degree=0)
     cams, bg = cameras_around(12, seed=9), (0.2, 0.9, 0.4)
@@ -88,3 +106,5 @@ def test_bad_input_is_refused():
         bake_sh(cloud, cams, [np.zeros((48, 48, 3)), np.zeros((40, 48, 3))])
     with pytest.raises(ValueError, match="non-finite"):
         bake_sh(cloud, cams, [np.zeros((48, 48, 3)), np.full((48, 48, 3), np.nan)])
+    with pytest.raises(ValueError, match="prior"):
+        bake_sh(cloud, cams, [np.zeros((48, 48, 3))] * 2, prior="mean")
