@@ -7,9 +7,10 @@ geometry fixed a render is affine in x: pixel i of view v is
 
 w_ij = T alpha the blending weights, d_jv the direction from view v's eye to splat j (the clamp of
 colours at 0 is ignored while fitting). bake_sh solves the least-squares problem over all views,
-damped towards the starting SH (Tikhonov: splats that few views see keep their colours), by
+damped towards a prior (Tikhonov: splats that few views see keep it), by
 conjugate gradients on the normal equations (A^T A + lambda I) x = A^T b, the three colour channels
-side by side. Each step is one render and one gather per view:
+side by side. The prior (start and damping target) is by default each splat's mean lit colour over
+the images, so what the views leave undetermined falls back to the local colour. Each step is one render and one gather per view:
 - A p is a render of the colour field Y p (a degree-0 cloud with those colours, shifted to be
   non-negative so nothing is clamped, the shift taken off again through the alpha);
 - A^T r is the residual image gathered through the weights (core.render's `gather`), times Y per
@@ -25,7 +26,8 @@ from . import sh as shmod
 from .metrics import psnr_from_mse
 from .render import render
 
-# Measured on Suzanne lit by Cycles (bench/bake.py's scene, 20k splats, 48 views of 128 px), held-out
+# Measured on Suzanne lit by Cycles (bench/bake.py's scene, roughness 0.35, 20k splats, 48 views of 128 px,
+# damped towards the Base Color; towards the views' mean colours, 0.1 and 30 gave 25.3 / 27.8 / 32.1), held-out
 # dB at 0.5x / 1x / 3x: damping 1e-3 and no band damping 22.1 / 26.4 / 31.7 (over-fitted: 31 dB on the
 # views fitted); 1e-2 and 10: 23.6 / 27.6 / 32.4; 0.1 and 30: 25.3 / 27.7 / 31.9; 0.5 and 30: 25.0 /
 # 27.1 / 31.2. Overlapping splats leave alternating colours that no view fitted sees undetermined.
@@ -69,6 +71,8 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     linear model's PSNR over all views, the first entry before fitting), "iterations" and "seen"
     (splats some view gives weight).
     """
+    if prior not in ("views", "cloud"):
+        raise ValueError(f"prior must be 'views' or 'cloud', got {prior!r}")
     if len(cameras) != len(images) or not len(cameras):
         raise ValueError(f"need one image per camera, got {len(cameras)} cameras and {len(images)} images")
     degree = shmod.degree_of(cloud.sh.shape[1]) if degree is None else int(degree)
@@ -77,21 +81,20 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     opts = dict(mode=mode, backend=backend, threads=threads)
     views = [_View(cam, _checked_image(img, cam, i), degree) for i, (cam, img) in enumerate(zip(cameras, images))]
     x0 = shmod.truncate(cloud.sh.astype(np.float64), degree)
+    shape = cloud.replace(sh=np.zeros((len(cloud), 1, 3), np.float32))     # the geometry: colours are set per render
     total = iterations + 1
 
     # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side
     diag = np.zeros((len(cloud), k))
     for view in views:
-        diag += view.measure(cloud, bg, opts)
+        diag += view.measure(shape, bg, opts)
     seen = diag[:, 0] > 0
     if prior == "views":
-        x0 = _seen_colours(cloud, views, x0, seen, opts)
-    elif prior != "cloud":
-        raise ValueError(f"prior must be 'views' or 'cloud', got {prior!r}")
+        x0 = _seen_colours(shape, views, x0, seen, opts)
     rhs = np.zeros_like(x0)
     for view in views:
-        view.start(cloud, x0, opts)
-        rhs += view.gather_back(cloud, view.residual, opts)
+        view.start(shape, x0, opts)
+        rhs += view.gather_back(shape, view.residual, opts)
     band = np.floor(np.sqrt(np.arange(k)))
     lam = damping * (np.median(diag[seen, 0]) if seen.any() else 1.0) * (1.0 + band_damping * band * (band + 1))
     lam = lam[None, :, None]
@@ -112,9 +115,9 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
         ap = lam * p
         images_p = []
         for view in views:
-            q = view.color_image(cloud, view.colors(p), opts)
+            q = view.color_image(shape, view.colors(p), opts)
             images_p.append(q)
-            ap += view.gather_back(cloud, q, opts)
+            ap += view.gather_back(shape, q, opts)
         curvature = _dot(p, ap)
         step = np.where(curvature > 0, rz / np.where(curvature > 0, curvature, 1.0), 0.0)
         delta += step * p
