@@ -43,7 +43,7 @@ def test_isolated_splats_get_their_coefficients_back(backend):
     cams = cameras_around(40, seed=2)
     info = {}
     fit = bake_sh(scrambled(cloud, 3), cams, [render(cloud, c).color for c in cams], iterations=60, damping=0.0,
-                  info=info, backend=backend)
+                  prior="cloud", info=info, backend=backend)
     assert info["seen"] == len(cloud) and info["psnr"][0] < 30 and info["psnr"][-1] > 70
     np.testing.assert_allclose(fit.sh, cloud.sh, atol=2e-3)
 
