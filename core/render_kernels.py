@@ -281,12 +281,12 @@ def exp_constants(dtype):
 # of a pixel would fall in the same cache set.)
 MAX_PIXELS = 64 * 64
 STRIDE = MAX_PIXELS + 16
-CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t", "x_offset")
-R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT, EX = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
+CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t", "x_offset", "y_offset")
+R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT, EX, EY = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
 PREFETCH = 8                # entries ahead whose record and box the compositor starts loading
 ALIVE_CHECK = 8             # entries between checks for the tile rows whose every pixel has stopped
-LANES = 8                   # pixels per step of the inner loop (a fixed count, so it becomes one
-                            # vector operation); tile rows are padded to a multiple of it
+LANES = 8                   # tile rows are padded to a multiple of this many pixels (a vector of
+                            # float32), so an entry's rows are whole vectors
 
 
 @njit(contract=True)
@@ -307,9 +307,12 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     Each entry is evaluated on the whole tile rows that its box crosses, less the rows at the
     tile's top and bottom whose pixels have all stopped. (Cutting the rows to the ellipse within
     the tile's columns saves 12% of the pixels and costs more than that, measured.)
-    The exponent is a quadratic in the pixel's offset from the tile centre, reduced per row in
-    float64 to b + c ex + d ex^2, and alpha = exp(x) = p(x / 16)^16 with p a Taylor polynomial
-    (x in [-6, 0], relative error below 1e-6): the pixel loop has no branches."""
+    The exponent is a quadratic in the pixel's offset (ex, ey) from the tile centre, its
+    coefficients reduced in float64 per entry and the offsets read from the tile state, so the
+    entry's rows are one branch-free loop over contiguous pixels (one loop per row, with the row's
+    terms in float64, was 20% slower; the float32 exponent is within a few units in the last place,
+    measured). alpha = exp(x) = p(x / 16)^16 with p a Taylor polynomial (x in [-6, 0], relative
+    error below 1e-6; Estrin's scheme instead of Horner's was slower)."""
     typ = k.dtype.type
     e2, e3, e4, e5, e6, e7 = k[0], k[1], k[2], k[3], k[4], k[5]
     log_min, log_max, floor, sixteenth = k[6], k[7], k[8], k[9]
@@ -320,6 +323,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     centre = ts / 2.0
     for p in range(pixels):                     # each pixel's x offset from the tile centre
         st[np.uint64(p) + EX] = typ(p % row_len + 0.5 - centre)
+        st[np.uint64(p) + EY] = typ(p // row_len + 0.5 - centre)
     want_counts = counts.size > 0
     want_peaks = peaks.size > 0
     use_layer = layer_t.size > 0
@@ -387,39 +391,35 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
             dx, dy = cx - u, cy - v
             gx, gy = a * dx + b * dy, b * dx + c * dy
             k0 = rec32[s, 10] - 0.5 * (gx * dx + gy * dy)
-            kxx = typ(-0.5 * a)
             cr, cg, cb = typ(rec32[s, 11]), typ(rec32[s, 12]), typ(rec32[s, 13])
             evaluated += (row1 - row0 + 1) * tw
-            for row in range(row0, row1 + 1):
-                ey = row + 0.5 - centre
-                k_row = typ(k0 - ey * (gy + 0.5 * c * ey))      # power = k_row + kx_row ex + kxx ex^2
-                kx_row = typ(-gx - b * ey)
-                start = np.uint64(row * row_len)
-                for step in range(0, row_len, LANES):
-                    for i in range(LANES):
-                        p = start + np.uint64(step + i)
-                        ex = st[p + EX]
-                        power = k_row + ex * (kx_row + kxx * ex)
-                        # alpha = exp(power) at most 0.99, as p(x / 16)^16
-                        x = min(max(power, floor), log_max) * sixteenth
-                        alpha = one + x * (one + x * (e2 + x * (e3 + x * (e4 + x * (e5 + x * (e6 + x * e7))))))
-                        alpha *= alpha
-                        alpha *= alpha
-                        alpha *= alpha
-                        alpha *= alpha
-                        alpha = alpha if power >= log_min else zero
-                        t_before = st[p]
-                        t_after = t_before * (one - alpha)
-                        ok = t_after >= tmin
-                        w = t_before * alpha if ok else zero
-                        st[p] = t_after if ok else zero
-                        st[p + R_] += w * cr
-                        st[p + G_] += w * cg
-                        st[p + B_] += w * cb
-                        st[p + Z_] += w * cz
-                        st[p + W_] += w
-                        st[p + N_] += one if w > zero else zero
-                        st[p + PK] = w
+            # power = k0 + kx ex + ky ey + kxx ex^2 + kxy ex ey + kyy ey^2, over the rows as one run of pixels
+            k0f, kx, ky = typ(k0), typ(-gx), typ(-gy)
+            kxx, kxy, kyy = typ(-0.5 * a), typ(-b), typ(-0.5 * c)
+            for i in range(row0 * row_len, (row1 + 1) * row_len):
+                p = np.uint64(i)
+                ex, ey = st[p + EX], st[p + EY]
+                power = k0f + ex * (kx + kxx * ex) + ey * (ky + kyy * ey + kxy * ex)
+                # alpha = exp(power) at most 0.99, as p(x / 16)^16
+                x = min(max(power, floor), log_max) * sixteenth
+                alpha = one + x * (one + x * (e2 + x * (e3 + x * (e4 + x * (e5 + x * (e6 + x * e7))))))
+                alpha *= alpha
+                alpha *= alpha
+                alpha *= alpha
+                alpha *= alpha
+                alpha = alpha if power >= log_min else zero
+                t_before = st[p]
+                t_after = t_before * (one - alpha)
+                ok = t_after >= tmin
+                w = t_before * alpha if ok else zero
+                st[p] = t_after if ok else zero
+                st[p + R_] += w * cr
+                st[p + G_] += w * cg
+                st[p + B_] += w * cb
+                st[p + Z_] += w * cz
+                st[p + W_] += w
+                st[p + N_] += one if w > zero else zero
+                st[p + PK] = w
             if want_peaks:
                 peak = zero
                 for i in range(row0 * row_len, (row1 + 1) * row_len):
