@@ -367,8 +367,9 @@ def camera_path_views(scene, objects, count, size):
 class ConversionJob:
     """Mesh objects converted a step at a time, for a modal operator (Esc between steps) and for
     batch use alike. The meshes are read when the job is made (in their armatures' rest position
-    with `use_rest_pose`); the steps then touch no Blender data, so a job stopped part-way
-    (cancel()) leaves the scene as it was. step() does one step (a refinement round of one object
+    with `use_rest_pose`); the steps then touch no Blender data (a baked look's Cycles views each
+    undo what they set up within their step), so a job stopped part-way (cancel()) leaves the scene
+    as it was. step() does one step (a refinement round of one object
     with a target PSNR, a whole object with a budget) and returns False once every object is
     converted; `results` then holds [(source object, cloud, record)], which create() links into
     the scene. `done` / `total` / `label` say how far it is (objects as units)."""
