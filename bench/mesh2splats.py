@@ -167,9 +167,9 @@ def held_out_cameras(mesh, size, per_distance=3, distances=DISTANCES, seed=5, fl
 
 # Cycles ----------------------------------------------------------------------------------------
 
-def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES):
+def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
     """Render the mesh with Blender Cycles from every camera in one subprocess; returns ([display
-    sRGB images], seconds)."""
+    sRGB images], seconds). Unlit (emission) unless `lit`: then see _lit_scene."""
     from PIL import Image
     spec = folder / "cycles_spec.npz"
     textures, materials = [], mesh.materials or [Material()]
@@ -188,13 +188,15 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES):
              base_colors=np.array([m.base_color for m in materials]), textures=np.array(textures),
              camera_to_world=np.array([opengl_camera_to_world(c.world_to_camera) for c in cameras]),
              fov=np.array([c.fov_x_deg for c in cameras]), width=cameras[0].width, height=cameras[0].height,
-             samples=samples, out=str(folder / "cycles_"))
+             samples=samples, lit=lit, out=str(folder / "cycles_"))
     start = time.perf_counter()
     subprocess.run([sys.executable, __file__, "--cycles", str(spec)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     seconds = time.perf_counter() - start
-    images = [np.asarray(Image.open(folder / f"cycles_{i}.png").convert("RGB"), np.float64) / 255.0
-              for i in range(len(cameras))]
+    images = []
+    for i in range(len(cameras)):
+        rgba = np.asarray(Image.open(folder / f"cycles_{i}.png").convert("RGBA"), np.float64) / 255.0
+        images.append(rgba[..., :3] * rgba[..., 3:])        # over black (unlit: alpha is 1)
     return images, seconds
 
 
@@ -214,16 +216,21 @@ def _cycles_main(spec_path):
         material.use_nodes = True
         nodes, links = material.node_tree.nodes, material.node_tree.links
         nodes.clear()
-        emission = nodes.new("ShaderNodeEmission")
-        emission.inputs["Strength"].default_value = 1.0
-        emission.inputs["Color"].default_value = (*base, 1.0)            # scene-linear, as Kd
+        if d["lit"]:
+            shader = nodes.new("ShaderNodeBsdfPrincipled")
+            colour_input = shader.inputs["Base Color"]
+        else:
+            shader = nodes.new("ShaderNodeEmission")
+            shader.inputs["Strength"].default_value = 1.0
+            colour_input = shader.inputs["Color"]
+        colour_input.default_value = (*base, 1.0)                       # scene-linear, as Kd
         if str(texture):
             image = nodes.new("ShaderNodeTexImage")
             image.image = bpy.data.images.load(str(texture))
             image.image.colorspace_settings.name = "sRGB"
             image.interpolation = "Linear"
-            links.new(image.outputs["Color"], emission.inputs["Color"])
-        links.new(emission.outputs["Emission"], nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
+            links.new(image.outputs["Color"], colour_input)
+        links.new(shader.outputs[0], nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
         mesh.materials.append(material)
     obj = bpy.data.objects.new("mesh", mesh)
     scene.collection.objects.link(obj)
@@ -252,6 +259,8 @@ def _cycles_main(spec_path):
     render_settings.image_settings.file_format = "PNG"
     render_settings.image_settings.color_mode = "RGB"
     render_settings.image_settings.color_depth = "8"
+    if d["lit"]:
+        _lit_scene(scene, obj, world)
     for i, (matrix, fov) in enumerate(zip(d["camera_to_world"], d["fov"])):
         cam_data.angle = math.radians(float(fov))
         distance = float(np.linalg.norm(matrix[:3, 3] - np.asarray(obj.location)))
@@ -260,6 +269,32 @@ def _cycles_main(spec_path):
         cam.matrix_world = mathutils.Matrix(matrix.tolist())
         render_settings.filepath = f"{d['out']}{i}.png"
         bpy.ops.render.render(write_still=True)
+
+
+def _lit_scene(scene, obj, world):
+    """The lit variant: Principled BSDF materials (Blender's defaults: speculars), a sun and a large
+    area light beside the mesh, a dim grey world for ambient light and two diffuse/glossy bounces,
+    the world transparent to the camera (so images come over black, as splats render), denoised."""
+    import bpy
+    import mathutils
+    co = np.array([v.co[:] for v in obj.data.vertices])
+    centre = (co.min(axis=0) + co.max(axis=0)) / 2
+    size = max(float(np.abs(co - centre).max()), 1e-3)
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.08, 0.08, 0.1, 1)
+    sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
+    sun.data.energy = 2.5
+    sun.rotation_euler = (math.radians(40), math.radians(-25), math.radians(30))
+    area = bpy.data.objects.new("area", bpy.data.lights.new("area", "AREA"))
+    area.data.energy = 60.0 * size * size
+    area.data.size = 1.5 * size
+    area.location = tuple(centre + size * np.array([3, -2.5, 2]))
+    area.rotation_euler = mathutils.Vector((-3, 2.5, -2)).to_track_quat("-Z", "Y").to_euler()
+    for light in (sun, area):
+        scene.collection.objects.link(light)
+    scene.cycles.max_bounces = 2
+    scene.cycles.use_denoising = True
+    scene.render.film_transparent = True
+    scene.render.image_settings.color_mode = "RGBA"
 
 
 def _primitives_main(out_path):

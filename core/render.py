@@ -74,6 +74,11 @@ class RenderResult:
         off-image, too faint for 1/255, hidden behind pixels that stopped, or non-finite).
     background: the background colour used, or None for a transparent render.
     stats: counts of splats and work (input, skipped_nonfinite, visible, entries, evaluated).
+    gathered: (N, C) float64 when rendered with gather=image (H,W,C), else None: for every input
+        splat, sum over pixels i of w_i image_i, w_i its blending weight T alpha at pixel i (0 rows
+        for splats that reach no pixel). This is the adjoint of rendering a colour field: the image
+        is linear in the splats' colours c_j, pixel_i = sum_j w_ij c_j (+ T_i background), so
+        <render(c), r> = <c, gathered(r)>, what a least-squares fit of colours needs.
     layer_transmittance: (H,W) float32 when rendered with a layer, else None: T where the pixel
         reached the layer (what the layer's colour was multiplied by). With a layer, `color` and
         `alpha` include it; the splats' own part is color - layer_transmittance * layer.color
@@ -85,6 +90,7 @@ class RenderResult:
     depth: np.ndarray
     counts: np.ndarray | None = None
     max_weight: np.ndarray | None = None
+    gathered: np.ndarray | None = None
     background: tuple | None = (0.0, 0.0, 0.0)
     stats: dict = field(default_factory=dict)
     layer_transmittance: np.ndarray | None = None
@@ -167,7 +173,7 @@ def _floats(records):
 
 def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_counts=False, *,
            return_weights=False, tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
-           threads=None, progress=None, backend="auto", layer=None):
+           threads=None, progress=None, backend="auto", layer=None, gather=None):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
@@ -182,6 +188,8 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
     NumPy), "compiled" (an error if they cannot load) or "numpy". progress(done_tiles,
     total_tiles, label) is called from the calling thread as tiles finish.
     layer: a Layer composited with the splats in depth order (see Layer), or None.
+    gather: an (H,W) or (H,W,C) image to gather through the blending weights into
+        result.gathered (see RenderResult), or None.
 
     Splats with non-finite values are skipped and counted in stats["skipped_nonfinite"];
     stats["backend"] says which path ran. An image whose buffers would not fit in this machine's
@@ -205,16 +213,29 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
     if bg is not None and (bg.shape != (3,) or not np.isfinite(bg).all()):
         raise ValueError(f"background must be three finite numbers (r, g, b), got {background!r}")
     layer = None if layer is None else layer.checked(camera)
+    gather = None if gather is None else _checked_gather(gather, camera)
     kernels = None if backend == "numpy" else jit.load(KERNELS, check=_check_kernels)
     if kernels is None and backend == "compiled":
         raise RuntimeError(f"compiled render kernels are not available: {jit.status(KERNELS)}")
     check_image_memory(camera, int(tile_size), return_counts, compiled=kernels is not None)
     return _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, int(tile_size),
-                   int(wave), t_min, max_sigma, PRECISIONS[precision], threads, progress, layer)
+                   int(wave), t_min, max_sigma, PRECISIONS[precision], threads, progress, layer, gather)
+
+
+def _checked_gather(image, camera):
+    """The gather image as finite float32 (H, W, C), or ValueError naming the problem."""
+    a = np.asarray(image, dtype=np.float32)
+    a = a[..., None] if a.ndim == 2 else a
+    if a.ndim != 3 or a.shape[:2] != (camera.height, camera.width) or a.shape[2] < 1:
+        raise ValueError(f"gather image has shape {np.shape(image)}, expected ({camera.height}, {camera.width}) "
+                         "or (height, width, channels)")
+    if not np.isfinite(a).all():
+        raise ValueError("gather image holds non-finite values")
+    return np.ascontiguousarray(a)
 
 
 def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, tile_size, wave,
-            t_min, max_sigma, dtype, threads, progress, layer=None):
+            t_min, max_sigma, dtype, threads, progress, layer=None, gather=None):
     """The checked render() by the compiled kernels, or by NumPy when kernels is None."""
     with _pool(threads) as pool:
         if kernels is None:
@@ -222,19 +243,20 @@ def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_
             bins = bin_tiles(proj, camera, tile_size, pool=pool)
             crossing = None if layer is None else _LayerCrossing(layer, bins, dtype)
             compositor = _Compositor(proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights,
-                                     crossing)
+                                     crossing, gather)
         else:
             proj, spare = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool)
             order, number = _by_first_tile(proj, camera, tile_size)
             bins = _bin_compiled(kernels, proj, camera, tile_size, pool, number)
             compositor = _CompiledCompositor(kernels, proj, bins, order, camera, dtype, t_min, pool,
-                                             return_counts, return_weights, layer, spare)
+                                             return_counts, return_weights, layer, spare, gather)
         images = compositor.images(progress)
         layer_t = None if layer is None else compositor.layer_transmittance(images[1])
         result = _finish(*images, bg, background, proj, bins, cloud, layer, layer_t, kernels, pool)
     result.stats["evaluated"] = compositor.evaluated
     result.stats["backend"] = "numpy" if kernels is None else "compiled"
     result.max_weight = compositor.max_weight(len(cloud)) if return_weights else None
+    result.gathered = None if gather is None else compositor.gathered(len(cloud))
     return result
 
 
@@ -248,11 +270,13 @@ def _check_kernels(kernels):
     cloud = SplatCloud(rng.normal(0, 0.3, (n, 3)) + [0, 0, 3], rng.normal(size=(n, 4)),
                        rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 16, 3)))
     camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20)
+    gather = rng.normal(size=(camera.height, camera.width, 2)).astype(np.float32)
     for mode in MODES:
         args = (cloud, camera, np.zeros(3), (0, 0, 0), mode, True, True, 8, 32, T_MIN, None, np.float32, 1, None)
         for layer in (None, _check_layer(camera)):
-            got, want = _render(kernels, *args, layer), _render(None, *args, layer)
-            if np.abs(got.color - want.color).max() > 1e-3 or np.abs(got.max_weight - want.max_weight).max() > 1e-3:
+            got, want = _render(kernels, *args, layer, gather), _render(None, *args, layer, gather)
+            if (np.abs(got.color - want.color).max() > 1e-3 or np.abs(got.max_weight - want.max_weight).max() > 1e-3
+                    or np.abs(got.gathered - want.gathered).max() > 1e-3):
                 raise RuntimeError("the compiled render kernels disagree with the NumPy path on a test scene")
 
 
@@ -668,7 +692,7 @@ class _CompiledCompositor:
     RUNS_PER_THREAD = 16
 
     def __init__(self, kernels, proj, bins, order, camera, dtype, t_min, pool, want_counts, want_weights,
-                 layer=None, spare=None):
+                 layer=None, spare=None, gather=None):
         self.kernels, self.proj, self.bins, self.order, self.camera = kernels, proj, bins, order, camera
         self.spare = spare          # (records, bbox) at least as long as proj's, free to overwrite
         self.dtype, self.t_min, self.pool = dtype, float(t_min), pool
@@ -677,6 +701,10 @@ class _CompiledCompositor:
         self.weight, self.depth_sum = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
         self.counts = np.empty((h, w), np.int32) if want_counts else np.zeros((0, 0), np.int32)
         self.peaks = np.zeros(len(bins.entry_splat), np.float32) if want_weights else np.zeros(0, np.float32)
+        # the gather image and each entry's sum of weight x image (written by the kernel)
+        self.gather_image = np.zeros((0, 0, 0), np.float32) if gather is None else gather
+        self.entry_sums = np.zeros((0 if gather is None else len(bins.entry_splat),
+                                    0 if gather is None else gather.shape[2]))
         # the layer's depth and 1 - alpha, and T where each pixel reached it (written by the kernel)
         empty = np.zeros((0, 0), np.float32)
         self.layer_depth = empty if layer is None else layer.depth
@@ -721,7 +749,7 @@ class _CompiledCompositor:
                 np.arange(*span), bins.offsets, bins.entry_splat, records, rec32, bbox, ts, bins.tiles_x,
                 cam.width, cam.height, self.t_min, k,
                 self.color, self.weight, self.depth_sum, self.counts, self.peaks,
-                self.layer_depth, self.layer_keep, self.layer_t)
+                self.layer_depth, self.layer_keep, self.layer_t, self.gather_image, self.entry_sums)
 
         done = 0
         for (lo, hi), evaluated in self.pool.imap(run, self._runs()):
@@ -739,6 +767,14 @@ class _CompiledCompositor:
         out[self.proj.index[self.order]] = best
         return out
 
+    def gathered(self, n_cloud):
+        """(n_cloud, C) float64: the gather image's weighted sum of every input splat."""
+        sums = np.zeros((len(self.proj), self.entry_sums.shape[1]))
+        self.kernels.sum_per_splat(self.bins.entry_splat, self.entry_sums, sums)
+        out = np.zeros((n_cloud, sums.shape[1]))
+        out[self.proj.index[self.order]] = sums
+        return out
+
 
 # compositing ----------------------------------------------------------------------------------
 
@@ -746,7 +782,7 @@ class _Compositor:
     """Front-to-back compositing of every tile, in waves of at most `wave` entries per tile."""
 
     def __init__(self, proj, bins, camera, dtype, wave, t_min, pool, want_counts=False, want_weights=False,
-                 crossing=None):
+                 crossing=None, gather=None):
         self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
         self.crossing = crossing
         self.width, self.height = camera.width, camera.height
@@ -764,6 +800,9 @@ class _Compositor:
         # largest weight of each (renumbered) splat; the last slot takes the padding entries
         self.best = np.zeros(len(proj) + 1, np.float32) if want_weights else None
         self.best_lock = threading.Lock()
+        # the gather image in tile layout, and each (renumbered) splat's sum of weight x image
+        self.gather_tiles = None if gather is None else _tiled(gather, bins, 0.0).astype(dtype)
+        self.sums = None if gather is None else np.zeros((len(proj) + 1, gather.shape[2]))
         self.evaluated = 0
 
     @staticmethod
@@ -793,6 +832,12 @@ class _Compositor:
         """(n_cloud,) float32: the largest weight of every input splat, 0 for those not projected."""
         out = np.zeros(n_cloud, np.float32)
         out[self.proj.index[self.order]] = self.best[:-1]
+        return out
+
+    def gathered(self, n_cloud):
+        """(n_cloud, C) float64: the gather image's weighted sum of every input splat."""
+        out = np.zeros((n_cloud, self.sums.shape[1]))
+        out[self.proj.index[self.order]] = self.sums[:-1]
         return out
 
     def images(self, progress=None):
@@ -885,6 +930,8 @@ class _Compositor:
             self.counts[tiles] += np.count_nonzero(weight, axis=0).astype(np.int32)
         if self.best is not None:
             self._keep_best(splat, weight)
+        if self.sums is not None:
+            self._gather(tiles, splat, weight)
         last = trans[-1]
         last *= ~crossed
         self.trans[tiles] = last
@@ -897,6 +944,13 @@ class _Compositor:
         hit = np.flatnonzero(peak)
         with self.best_lock:                         # batches run in parallel threads
             np.maximum.at(self.best, splat[hit], peak[hit].astype(np.float32))
+
+    def _gather(self, tiles, splat, weight):
+        """Add each entry's sum over its tile's pixels of weight x gather image to its splat."""
+        per_entry = np.matmul(weight.transpose(1, 0, 2), self.gather_tiles[tiles])   # (g, depth, C)
+        per_entry = per_entry.transpose(1, 0, 2).reshape(len(splat), -1)            # slot-major, like splat
+        with self.best_lock:
+            np.add.at(self.sums, splat, per_entry.astype(np.float64))
 
     def _exponent(self, rec, tiles):
         """log(o) - q/2 at every pixel of every entry (records `rec`, slot-major over `tiles`).
@@ -954,26 +1008,27 @@ def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud,
     )
 
 
+def _tiled(a, bins, fill):
+    """(H, W, ...) image -> (tiles, pixels, ...), pixels beyond the image edge set to `fill`."""
+    ts, rest = bins.tile_size, a.shape[2:]
+    padded = np.full((bins.tiles_y * ts, bins.tiles_x * ts, *rest), fill, dtype=np.float64)
+    padded[:a.shape[0], :a.shape[1]] = a
+    return padded.reshape(bins.tiles_y, ts, bins.tiles_x, ts, *rest).swapaxes(1, 2).reshape(
+        bins.n_tiles, ts * ts, *rest)
+
+
 class _LayerCrossing:
     """Where each pixel meets the Layer, in tile layout (tiles, pixels): the layer's depth and
     1 - alpha, whether the pixel still waits for it, and the T it was reached with."""
 
     def __init__(self, layer, bins, dtype):
         self.layer = layer
-        self.depth = self._tiled(layer.depth, bins, np.inf).astype(dtype)
-        self.keep = self._tiled(1.0 - layer.alpha, bins, 1.0).astype(dtype)
+        self.depth = _tiled(layer.depth, bins, np.inf).astype(dtype)
+        self.keep = _tiled(1.0 - layer.alpha, bins, 1.0).astype(dtype)
         self.pending = np.ones(self.depth.shape, bool)
         self.t = np.zeros(self.depth.shape, dtype)
         # the nearest layer depth of each tile: a wave whose splats all lie in front skips the test
         self.nearest = self.depth.min(axis=1)
-
-    @staticmethod
-    def _tiled(a, bins, fill):
-        """(H, W) image -> (tiles, pixels), pixels beyond the image edge set to `fill`."""
-        ts = bins.tile_size
-        padded = np.full((bins.tiles_y * ts, bins.tiles_x * ts), fill, dtype=np.float64)
-        padded[:a.shape[0], :a.shape[1]] = a
-        return padded.reshape(bins.tiles_y, ts, bins.tiles_x, ts).swapaxes(1, 2).reshape(bins.n_tiles, ts * ts)
 
     def enter(self, tiles, z, alpha, keep):
         """Put the layer into a wave: `z` (depth * g,) are the entries' camera depths, slot-major;

@@ -291,13 +291,16 @@ LANES = 8                   # tile rows are padded to a multiple of this many pi
 
 @njit(contract=True)
 def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x, width, height,
-                    t_min, k, color, weight, depth, counts, peaks, layer_depth, layer_keep, layer_t):
+                    t_min, k, color, weight, depth, counts, peaks, layer_depth, layer_keep, layer_t,
+                    gather_image, entry_sums):
     """Composite every tile in `tiles` front to back and write its pixels into the image arrays
     color (H,W,3), weight (H,W) = sum of T alpha, depth (H,W) = sum of T alpha z; counts (H,W)
     and peaks (entries,) = each entry's largest T alpha are written when they are not empty.
     With a layer (layer_t not empty), a pixel meets it before the first entry whose z is not in
     front of layer_depth: T *= layer_keep (1 - its alpha), and layer_t gets the T it met it with (the
     T a stopped pixel stopped with; what is left for one that never met it).
+    With a gather image (H,W,C) (entry_sums not empty), entry_sums (entries, C) gets each entry's
+    sum over its pixels of T alpha x the image (float64, outside the pixel loop).
     `k` holds exp_constants in the precision of the per-pixel work. Returns the number of
     splat-pixel pairs evaluated.
 
@@ -324,6 +327,9 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     want_counts = counts.size > 0
     want_peaks = peaks.size > 0
     use_layer = layer_t.size > 0
+    want_gather = entry_sums.size > 0
+    n_gather = gather_image.shape[2]
+    tile_image = np.zeros((pixels, n_gather))    # the tile's gather image, 0 beyond the image edge
     far = typ(np.inf)
     evaluated = 0
     for t in tiles:
@@ -344,6 +350,11 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                 st[up + LK] = typ(layer_keep[ty0 + row, tx0 + col]) if inside else one
                 st[up + LT] = -one                 # still waiting
                 near = min(near, st[up + LD])
+        if want_gather:
+            for row in range(th):
+                for col in range(tw):
+                    for ch in range(n_gather):
+                        tile_image[row * row_len + col, ch] = gather_image[ty0 + row, tx0 + col, ch]
         cx, cy = tx0 + centre, ty0 + centre
         first, last = offsets[t], offsets[t + 1]
         top, bottom = 0, th - 1                 # the rows with pixels still going
@@ -414,6 +425,8 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                 for i in range(row0 * row_len, (row1 + 1) * row_len):
                     peak = max(peak, st[np.uint64(i) + PK])
                 peaks[e] = peak
+            if want_gather:
+                _gather_entry(st, tile_image, row0, row1, tw, row_len, entry_sums, e)
         for row in range(th):
             for col in range(tw):
                 p = np.uint64(row * row_len + col)
@@ -429,6 +442,18 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                     met = st[p + LT]
                     layer_t[y, x] = met if met >= zero else (st[p] if st[p] >= tmin else one - st[p + W_])
     return evaluated
+
+
+@njit
+def _gather_entry(st, tile_image, row0, row1, tw, row_len, entry_sums, e):
+    """entry_sums[e] = sum over the entry's pixels (rows row0..row1, weights in the peak channel)
+    of weight x the tile's gather image."""
+    for row in range(row0, row1 + 1):
+        for col in range(tw):
+            p = row * row_len + col
+            w = np.float64(st[np.uint64(p) + PK])
+            for ch in range(tile_image.shape[1]):
+                entry_sums[e, ch] += w * tile_image[p, ch]
 
 
 @njit
@@ -456,6 +481,15 @@ def finish_rows(color, weight, depth_sum, bg, lo, hi, alpha, depth):
                 for ch in range(3):
                     color[y, x, ch] += (one - a) * bg[ch]
             depth[y, x] = depth_sum[y, x] / w if w > zero else zero
+
+
+@njit
+def sum_per_splat(entry_splat, entry_sums, sums):
+    """sums[splat] += the sums of its entries."""
+    for e in range(len(entry_splat)):
+        s = entry_splat[e]
+        for ch in range(entry_sums.shape[1]):
+            sums[s, ch] += entry_sums[e, ch]
 
 
 @njit

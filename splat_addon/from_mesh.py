@@ -34,12 +34,15 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from ..core.camera import Camera
 from ..core.mesh import Material
 from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
+from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
 from ..core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from . import camera, data, display
 from .modal import JobOperator
 from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
 
 SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
+BAKE_SAMPLES = 16                  # Cycles samples per baked view (denoised)
+BAKE_DEGREE = 2
 SUFFIX = "_splats"
 DEFAULT_BUDGET = 200_000
 CALIBRATE_TOOLTIP = ("Splat Budget: render the mesh and the splats from the views and pull solid parts in by "
@@ -370,24 +373,42 @@ def camera_path_views(scene, objects, count, size):
 class ConversionJob:
     """Mesh objects converted a step at a time, for a modal operator (Esc between steps) and for
     batch use alike. The meshes are read when the job is made (in their armatures' rest position
-    with `use_rest_pose`); the steps then touch no Blender data, so a job stopped part-way
-    (cancel()) leaves the scene as it was. step() does one step (a refinement round of one object
+    with `use_rest_pose`); the steps then touch no Blender data (a baked look's Cycles views each
+    undo what they set up within their step), so a job stopped part-way (cancel()) leaves the scene
+    as it was. step() does one step (a refinement round of one object
     with a target PSNR, a whole object with a budget) and returns False once every object is
     converted; `results` then holds [(source object, cloud, record)], which create() links into
     the scene. `done` / `total` / `label` say how far it is (objects as units). `calibrate=False`
     makes a budget conversion render nothing (see object_steps)."""
 
     def __init__(self, context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
-                 warn=print, views=None, **view_options):
+                 warn=print, views=None, bake=None, **view_options):
         self.options = dict(max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate, warn=warn,
                             **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
+        self.bake = bake                   # bake.bake_steps' options (the Rendered look), or None
+        self.scene, self.use_rest_pose = context.scene, use_rest_pose
         self.infos = []                    # mesh_to_splats' info of each object, as results fill
         with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
             depsgraph = context.evaluated_depsgraph_get()
             self.inputs = [(obj, *read_object(obj, depsgraph, warn, use_rest_pose)) for obj in objects]
         self.results, self.total, self.done, self.label = [], len(objects), 0.0, ""
         self._steps = None
+
+    def _object_steps(self, index, views):
+        """Convert one object, then (with `bake`) bake its look: half the object's progress each."""
+        obj, triangles = self.inputs[index][:2]
+        info = self.infos[index]
+        steps = object_steps(*self.inputs[index], **self.options, views=views, info=info)
+        share = 1.0 if self.bake is None else 0.5
+        cloud, record = yield from _scaled(steps, 0.0, share)
+        if self.bake is not None:
+            from .bake import bake_steps
+            baking = bake_steps(self.scene, obj, cloud, triangles.vertices, info=info.setdefault("bake", {}),
+                                **self.bake)
+            with rest_pose([obj]) if self.use_rest_pose else contextlib.nullcontext():
+                cloud = yield from _scaled(baking, 0.5, 0.5)
+        return cloud, record
 
     def step(self):
         """One step; False when there is nothing left to do."""
@@ -398,7 +419,7 @@ class ConversionJob:
         if self._steps is None:
             self.infos = self.infos[:index] + [{}]
             views = None if self.views is None else self.views[obj]
-            self._steps = object_steps(*self.inputs[index], **self.options, views=views, info=self.infos[index])
+            self._steps = self._object_steps(index, views)
         try:
             done, total, label = next(self._steps)
         except StopIteration as stop:
@@ -421,6 +442,17 @@ class ConversionJob:
         if self._steps is not None:
             self._steps.close()
         self._steps, self.inputs = None, self.inputs[:len(self.results)]
+
+
+def _scaled(steps, start, share):
+    """The steps of a generator with its (done, total) as a fraction start + share * done / total of 1;
+    returns its value."""
+    while True:
+        try:
+            done, total, label = next(steps)
+        except StopIteration as stop:
+            return stop.value
+        yield start + share * (done / total if total else 1.0), 1.0, label
 
 
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
@@ -518,6 +550,18 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                             description="Views at each distance (Around), or frames of the camera path")
     view_size: IntProperty(name="View Size", default=256, min=16, max=2048,
                            description="Pixels across each view quality is measured in")
+    appearance: EnumProperty(name="Appearance", default="BASE_COLOR", items=(
+        ("BASE_COLOR", "Base Color", "The surface's Base Color (texture, colour attribute), unlit"),
+        ("RENDERED", "Rendered (Cycles)", "The look Cycles renders in this scene (its lights, world and "
+                                          "shadows, shading and speculars), baked into the splats' colours "
+                                          "from Cycles views around each mesh")))
+    bake_views: IntProperty(name="Bake Views", default=BAKE_VIEWS, min=1, max=256,
+                            description="Cycles views at each distance (Near, 1, Far) baked from (Rendered)")
+    bake_samples: IntProperty(name="Bake Samples", default=BAKE_SAMPLES, min=1, max=4096,
+                              description="Cycles samples per baked view, denoised (Rendered)")
+    bake_degree: IntProperty(name="Bake SH Degree", default=BAKE_DEGREE, min=0, max=3,
+                             description="Spherical-harmonics degree of the baked colours: 0 view-independent, "
+                                         "higher for speculars (Rendered)")
 
     @classmethod
     def poll(cls, context):
@@ -528,8 +572,16 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         objects = mesh_objects(context.selected_objects)
         self._skipped = [o.name for o in context.selected_objects if o not in objects]
         return ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
-                             calibrate=self.calibrate, use_rest_pose=self.use_rest_pose, warn=lambda message: self.report({"WARNING"}, message),
-                             **self.view_options(context, objects))
+                             calibrate=self.calibrate, use_rest_pose=self.use_rest_pose,
+                             warn=lambda message: self.report({"WARNING"}, message),
+                             bake=self.bake_options(), **self.view_options(context, objects))
+
+    def bake_options(self):
+        """bake.bake_steps' options for the Rendered look, None for Base Color."""
+        if self.appearance != "RENDERED":
+            return None
+        return dict(samples=self.bake_samples, count=self.bake_views, size=self.view_size,
+                    distances=view_distances(self.view_near, self.view_far), degree=self.bake_degree)
 
     def view_options(self, context, objects):
         """Keyword arguments of ConversionJob saying where quality is measured."""
@@ -553,8 +605,10 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         context.view_layer.objects.active = created[-1]
         for (source, cloud, _), info in zip(job.results, job.infos):
             missed = info.get("reached") is False
+            baked = info.get("bake", {}).get("psnr")
             self.report({"WARNING"} if missed else {"INFO"},
-                        f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else ""))
+                        f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else "")
+                        + (f", baked from Cycles views to {baked[-1]:.1f} dB" if baked else ""))
         total = sum(len(cloud) for _, cloud, _ in job.results)
         self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
         return {"FINISHED"}

@@ -16,7 +16,7 @@ ALPHA_MIN, ALPHA_MAX, T_MIN, LOW_PASS = 1.0 / 255.0, 0.99, 1e-4, 0.3
 
 
 def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN,
-                     layer=None):
+                     layer=None, gather=None):
     """Returns a dict with color (.., 3), alpha, depth and counts, float64 (counts int), and
     max_weight (N,): each splat's largest blending weight T * alpha over the pixels, 0 if none.
 
@@ -26,6 +26,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     pixel just before the first splat whose depth is not in front of it (or after the last); the
     result then also holds layer_t, the T it was composited with. A list of such surfaces (each
     behind the one before it wherever both are present) gives layer_t as a list.
+    gather: optional (.., C) image; the result then holds gathered (N, C), each splat's sum over
+    the pixels of its weight T * alpha times the image.
     """
     if pixels is None:
         rows, cols = np.mgrid[0:camera.height, 0:camera.width]
@@ -42,6 +44,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     counts = np.zeros(m, dtype=np.int64)
     done = np.zeros(m, bool)
     max_weight = np.zeros(len(cloud))
+    image = None if gather is None else np.asarray(gather, np.float64).reshape(m, -1)
+    gathered = None if gather is None else np.zeros((len(cloud), image.shape[1]))
     surfaces = [] if layer is None else [layer] if isinstance(layer, tuple) else list(layer)
     surfaces = [[np.asarray(a, np.float64).reshape(m, -1) for a in s] for s in surfaces]
     waiting, layer_t = [np.ones(m, bool) for _ in surfaces], [np.zeros(m) for _ in surfaces]
@@ -77,6 +81,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
             depth_sum += w * splats["z"][start + k]
             counts += use
             max_weight[splats["index"][start + k]] = w.max(initial=0.0)
+            if image is not None:
+                gathered[splats["index"][start + k]] = w @ image
             trans = np.where(use, test, trans)
 
     for j in range(len(surfaces)):
@@ -95,6 +101,8 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     if pixels is None:
         out = {k: v.reshape((camera.height, camera.width) + v.shape[1:]) for k, v in out.items()}
     out["max_weight"] = max_weight
+    if gathered is not None:
+        out["gathered"] = gathered
     return out
 
 

@@ -66,6 +66,41 @@ def corner_values(d, per_loop):
                      per_loop[d["tri_loops"][tri]].astype(np.float64))
 
 
+# the Rendered look ----------------------------------------------------------------------------------------
+
+def test_from_mesh_bakes_the_look_cycles_renders_and_leaves_the_scene_as_it_was(blender):
+    """The Rendered appearance: geometry exactly as Base Color makes it, nothing left in the scene
+    but the new splat object (no camera, image or changed setting), and at a view no bake used, the
+    splats look like Cycles' own render of the lit ball far better than Base Color splats do."""
+    from splatwright.core import SplatCloud
+    from splatwright.core.camera import Camera
+    from splatwright.core.metrics import psnr
+    from splatwright.core.render import render
+    res = blender.step("baked_look")
+    assert res["base"]["result"] == res["baked"]["result"] == ["FINISHED"], res
+    added = sorted(set(res["after"]["data"]["objects"]) - set(res["before"]["data"]["objects"]))
+    assert added == res["new"] and len(added) == 1
+    for kind in ("cameras", "images", "materials", "lights"):
+        assert res["after"]["data"][kind] == res["before"]["data"][kind], kind
+    assert res["after"]["settings"] == res["before"]["settings"]
+    assert {k: v for k, v in res["after"]["flags"].items() if k in res["before"]["flags"]} == res["before"]["flags"]
+    clouds = {}
+    for name in ("base", "baked"):
+        d = blender.npz(f"baked_look_{name}")
+        cloud = SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"])
+        clouds[name] = cloud.transformed(d["matrix"])
+    base, baked = blender.npz("baked_look_base"), blender.npz("baked_look_baked")
+    for field in ("positions", "rotations", "log_scales", "opacity_logits", "matrix"):
+        np.testing.assert_array_equal(base[field], baked[field])
+    assert clouds["base"].sh_degree == 0 and clouds["baked"].sh_degree == 1
+    view = blender.npz("baked_look_view")
+    camera = Camera(48, 48, float(view["fx"]), float(view["fx"]), 24.0, 24.0, view["world_to_camera"])
+    reference = view["image"]
+    assert reference.max() > 0.2 and (reference == 0).mean() > 0.3        # a lit ball over black, floor unseen
+    got = {name: psnr(render(cloud, camera).color, reference) for name, cloud in clouds.items()}
+    assert got["baked"] > 22 and got["baked"] > got["base"] + 6, got
+
+
 # install -------------------------------------------------------------------------------------------
 
 def test_install_registers_operators_command_and_menu(blender):

@@ -332,6 +332,48 @@ def test_max_weights_count_only_pixels_inside_the_image(backend):
     assert (want > 0).all() and (want < 0.5 * 0.9).all()             # well below the peak alpha
 
 
+# gathering an image through the blending weights ----------------------------------------------------
+
+@pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
+@pytest.mark.parametrize("options", [{}, {"tile_size": 7, "threads": 1}, {"precision": "float64", "t_min": 0.0}])
+def test_gathered_sums_match_the_float64_reference(make_camera, options, backend):
+    """Each splat's sum over pixels of T alpha x image, for a 4-channel image on a camera whose size
+    is no whole number of tiles; the image is unchanged by asking for it."""
+    cloud, camera = scene(seed=24), make_camera(61, 45)
+    image = np.random.default_rng(24).normal(size=(camera.height, camera.width, 4))
+    got = render(cloud, camera, gather=image, backend=backend, **options)
+    ref = reference_render(cloud, camera, t_min=options.get("t_min", 1e-4), gather=image)
+    assert got.gathered.shape == (len(cloud), 4) and got.gathered.dtype == np.float64
+    scale = np.abs(ref["gathered"]).max()
+    assert scale > 1 and (ref["gathered"] == 0).any()
+    np.testing.assert_allclose(got.gathered, ref["gathered"], rtol=0, atol=2e-5 * scale)
+    np.testing.assert_array_equal(got.color, render(cloud, camera, backend=backend, **options).color)
+    assert render(cloud, camera, backend=backend).gathered is None
+
+
+def test_gathering_is_the_adjoint_of_rendering_colours(backend):
+    """<A x, r> = <x, A^T r>: A renders per-splat colours x (SH degree 0, no background), A^T
+    gathers an image r; single-channel images gather into one column."""
+    rng = np.random.default_rng(25)
+    base, camera = scene(seed=25, sh_degree=0), perspective()
+    x = rng.uniform(0, 1, (len(base), 3))
+    cloud = base.replace(sh=((x - 0.5) / 0.28209479177387814)[:, None, :].astype(np.float32))
+    r = rng.normal(size=(camera.height, camera.width, 3))
+    image = render(cloud, camera, background=None, gather=r, backend=backend)
+    x32 = 0.5 + 0.28209479177387814 * cloud.sh[:, 0].astype(np.float64)       # the colours as stored
+    lhs, rhs = np.vdot(image.color, r), np.vdot(x32, image.gathered)
+    assert abs(lhs) > 10 and abs(lhs - rhs) <= 1e-5 * np.abs(image.color * r).sum()
+    mono = render(cloud, camera, gather=r[..., 1], backend=backend).gathered
+    np.testing.assert_allclose(mono[:, 0], image.gathered[:, 1], rtol=0, atol=1e-6 * np.abs(mono).max())
+
+
+def test_bad_gather_images_are_refused(backend):
+    camera = perspective()
+    for bad, word in ((np.zeros((10, 10)), "shape"), (np.full((48, 64, 3), np.nan), "non-finite")):
+        with pytest.raises(ValueError, match=word):
+            render(scene(n=10), camera, gather=bad, backend=backend)
+
+
 # the compiled kernels, the fallback and limits ---------------------------------------------------
 
 def test_compiled_kernels_load_here_and_agree_with_the_numpy_path_on_a_large_scene():

@@ -41,6 +41,7 @@ def skewed_uv(p):
 
 class Worker(BlenderWorker):
     steps = ("install", "textured", "colors", "errors", "calibration", "demo_rig", "rest_pose", "target_psnr",
+             "baked_look",
              "animation", "frame_names", "cli", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
@@ -396,6 +397,48 @@ class Worker(BlenderWorker):
                                        view_source="CAMERA", view_count=2, view_size=32)
         res["missed"] = {**missed, "count": len(created[0].data.vertices) if created else None}
         return res
+
+    def baked_look(self):
+        """A red ball, moved, turned and scaled, above a floor that shadows nothing but must not be
+        seen, lit by the startup scene's light: converted with Base Color and with the Rendered look;
+        the scene's data and settings before and after, both clouds, and a held-out Cycles view."""
+        bpy, scene = self.bpy, self.bpy.context.scene
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=1.0)
+        ball = bpy.context.active_object
+        ball.location, ball.rotation_euler, ball.scale = (0.5, -0.3, 1.2), (0.3, 0.2, 0.9), (1.0, 1.0, 1.3)
+        ball.data.materials.append(self.material("ball", (0.8, 0.1, 0.05)))
+        bpy.ops.mesh.primitive_plane_add(size=8.0)
+        floor = bpy.context.active_object
+
+        def state():
+            render = scene.render
+            return {"data": {k: sorted(x.name for x in getattr(bpy.data, k))
+                             for k in ("objects", "cameras", "images", "meshes", "materials", "lights")},
+                    "settings": [render.engine, render.resolution_x, render.resolution_y, render.film_transparent,
+                                 render.filepath, render.image_settings.file_format, getattr(scene.camera, "name", None),
+                                 render.use_compositing],
+                    "flags": {o.name: [o.visible_camera, o.hide_render] for o in scene.objects}}
+
+        data = self.module("splat_addon.data")
+        options = dict(max_splats=600, view_size=32, use_rest_pose=False)
+        base_op, base = self.convert([ball], **options)
+        before = state()
+        baked_op, baked = self.convert([ball], appearance="RENDERED", bake_views=3, bake_samples=4, bake_degree=1,
+                                       **options)
+        after = state()
+        for name, objs in (("base", base), ("baked", baked)):
+            cloud = data.object_cloud(objs[0])
+            self.save(f"baked_look_{name}", positions=cloud.positions, rotations=cloud.rotations,
+                      log_scales=cloud.log_scales, opacity_logits=cloud.opacity_logits, sh=cloud.sh,
+                      matrix=np.array(objs[0].matrix_world))
+            objs[0].hide_render = True
+        camera = self.module("core.camera").Camera.look_at((3.5, -4.0, 3.0), (0.5, -0.3, 1.2), up=(0, 0, -1),
+                                                           fov_deg=35, width=48, height=48)
+        reference = self.module("splat_addon.bake").render_view(scene, ball, camera, 32,
+                                                                str(self.out / "baked_look_view.png"))
+        self.save("baked_look_view", image=reference, world_to_camera=camera.world_to_camera, fx=camera.fx)
+        return {"base": base_op, "baked": baked_op, "before": before, "after": after,
+                "new": [o.name for o in baked], "floor": floor.name}
 
     def animated_splats(self, name="moving"):
         """A splat object imported with identity axes, keyed at frames 1 and 4."""

@@ -1,0 +1,83 @@
+"""Appearance baking: Mesh to Splats with the look Cycles gives the mesh in a lit scene, against
+Base Color only, at held-out views.
+
+The scene: bench/mesh2splats.py's meshes with Principled BSDF materials (their base colours and
+textures, Blender's default roughness 0.5), a sun and an area light, a dim world and two bounces, rendered by Blender
+Cycles on the CPU (headless bpy in a subprocess, 'Standard' view transform, denoised, the world
+transparent to the camera so images come over black). References: 64 samples at mesh2splats' nine
+held-out views (three each at 0.5x, 1x, 3x the framing distance). Bake inputs: 16 samples at
+core.bake.bake_views' 48 views (16 per distance), none of them held out. Splats: a calibrated budget
+conversion; baking fits SH of degree 2 (geometry and opacity kept) by core.bake.bake_sh.
+Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
+reference renders and of the fit.
+
+    python bench/bake.py [--quick]
+"""
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from common import Row, Timing, print_rows  # noqa: E402
+from mesh2splats import (DISTANCES, blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
+                         held_out_cameras, sphere_texture, uv_sphere, write_obj)
+
+from splatwright.core.bake import bake_sh, bake_views  # noqa: E402
+from splatwright.io.mesh import read_mesh  # noqa: E402
+
+TOPIC = "bake"
+REFERENCE_SAMPLES = 64
+BAKE_SAMPLES = 16
+DEGREE = 2
+
+
+def bench_meshes(folder, quick):
+    sphere = uv_sphere(48, 24) if quick else uv_sphere(96, 48)
+    meshes = {"textured sphere": read_mesh(write_obj(folder, "sphere", *sphere, sphere_texture()))}
+    primitives = blender_primitives(folder)
+    meshes.update({k: v for k, v in primitives.items() if "Suzanne" in k} if quick else primitives)
+    return meshes
+
+
+def mesh_rows(name, mesh, size, budget, folder, iterations):
+    held = held_out_cameras(mesh, size)
+    references, _ = cycles_render(mesh, [cam for _, cam in held], folder, samples=REFERENCE_SAMPLES, lit=True)
+    cloud = convert(mesh, max_splats=budget, view_size=size)
+    views = bake_views(mesh.vertices, size)
+    images, render_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
+    info = {}
+    start = time.perf_counter()
+    baked = bake_sh(cloud, views, images, degree=DEGREE, iterations=iterations, info=info)
+    bake_s = time.perf_counter() - start
+    base = by_distance(cloud, held, references)
+    after = by_distance(baked, held, references)
+    worst = lambda e: min(e[f"dB {d:g}x"] for d in DISTANCES)  # noqa: E731
+    common = {"splats": len(cloud), "faces": len(mesh.faces)}
+    return [Row(TOPIC, f"{name}: Base Color only", Timing(0.0, 0.0, 1), error={**base, "worst dB": worst(base)},
+                extra=common),
+            Row(TOPIC, f"{name}: baked from Cycles (SH {DEGREE})", Timing(render_s + bake_s, 0.0, 1),
+                error={**after, "worst dB": worst(after)},
+                extra={**common, "views": len(views), "Cycles s": f"{render_s:.1f}", "fit s": f"{bake_s:.1f}",
+                       "iterations": info["iterations"], "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}"})]
+
+
+def run(quick=False):
+    size, budget, iterations = (128, 20_000, 20) if quick else (256, 60_000, 20)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        for name, mesh in bench_meshes(folder, quick).items():
+            part = mesh_rows(name, mesh, size, budget, folder, iterations)
+            print_rows(part)
+            rows += part
+    return rows
+
+
+if __name__ == "__main__":
+    print_rows(run(quick="--quick" in sys.argv))

@@ -1,0 +1,219 @@
+"""Appearance baking: the SH colours with which fixed splats reproduce a set of reference images.
+
+Positions, shapes and opacities stay as they are; only the SH coefficients x are fitted. With the
+geometry fixed a render is affine in x: pixel i of view v is
+
+    sum_j w_ij (0.5 + sum_k Y_k(d_jv) x_jk) + T_i background,
+
+w_ij = T alpha the blending weights, d_jv the direction from view v's eye to splat j (the clamp of
+colours at 0 is ignored while fitting). bake_sh solves the least-squares problem over all views,
+damped towards a prior (Tikhonov: splats that few views see keep it), by
+conjugate gradients on the normal equations (A^T A + lambda I) x = A^T b, the three colour channels
+side by side. The prior (start and damping target) is by default each splat's mean lit colour over
+the images, so what the views leave undetermined falls back to the local colour. Each step is one render and one gather per view:
+- A p is a render of the colour field Y p (a degree-0 cloud with those colours, shifted to be
+  non-negative so nothing is clamped, the shift taken off again through the alpha);
+- A^T r is the residual image gathered through the weights (core.render's `gather`), times Y per
+  splat.
+The preconditioner is a Jacobi estimate: sum over views of Y_k^2 x (sum of weights) x (largest
+weight), an upper bound of A^T A's diagonal sum_i w_ij^2 Y_k^2 that follows it closely for splats
+of one footprint.
+"""
+
+import numpy as np
+
+from . import sh as shmod
+from .metrics import psnr_from_mse
+from .render import render
+
+# Measured on Suzanne lit by Cycles (bench/bake.py's scene, roughness 0.35, 20k splats, 48 views of 128 px,
+# damped towards the Base Color; towards the views' mean colours, 0.1 and 30 gave 25.3 / 27.8 / 32.1), held-out
+# dB at 0.5x / 1x / 3x: damping 1e-3 and no band damping 22.1 / 26.4 / 31.7 (over-fitted: 31 dB on the
+# views fitted); 1e-2 and 10: 23.6 / 27.6 / 32.4; 0.1 and 30: 25.3 / 27.7 / 31.9; 0.5 and 30: 25.0 /
+# 27.1 / 31.2. Overlapping splats leave alternating colours that no view fitted sees undetermined.
+DEFAULT_ITERATIONS = 20
+DEFAULT_DAMPING = 0.1       # lambda, as a fraction of the median splat's DC diagonal
+DEFAULT_BAND_DAMPING = 30.0  # band l's lambda is (1 + this l (l + 1)) times band 0's
+VIEWS_PER_DISTANCE = 16     # reference views at each distance of core.mesh_refine's view placement
+
+
+def bake_views(vertices, size=256, count=VIEWS_PER_DISTANCE, distances=None):
+    """Reference cameras around a mesh for baking: core.mesh_refine's views (a Fibonacci spiral
+    at 0.5x, 1x and 3x the distance framing the mesh, or `distances`), `count` per distance."""
+    from types import SimpleNamespace
+    from .mesh_refine import VIEW_DISTANCES, default_views
+    return default_views(SimpleNamespace(vertices=np.asarray(vertices, np.float64)), size, count,
+                         distances=VIEW_DISTANCES if distances is None else distances)
+
+
+def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
+    """bake_sh_steps run to its end, each step passed to `progress(done, total, label)`."""
+    from .mesh_refine import drain
+    return drain(bake_sh_steps(cloud, cameras, images, degree, **options), progress)
+
+
+def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITERATIONS, damping=DEFAULT_DAMPING,
+                  band_damping=DEFAULT_BAND_DAMPING, prior="views", background=(0.0, 0.0, 0.0), mode="classic",
+                  tolerance=1e-6, info=None, backend="auto", threads=None):
+    """A generator fitting the SH of `cloud` to `images` seen through `cameras`; yields (done,
+    total, label) after the setup and each iteration and returns the cloud with the fitted SH
+    (float32, `degree`, default the cloud's own).
+
+    images: one (H,W,3) display-sRGB image per camera, of its size, rendered over `background`.
+    prior: where the fit starts and what it is damped towards: "views", each seen splat's mean
+    colour over the pixels it blends into (weighted by its weights, every view together, pixels
+    taken straight: a view-independent colour), the others keeping the cloud's SH; "cloud", the cloud's own SH. Both
+    are padded with zeros to `degree`.
+    damping: the Tikhonov weight towards the prior, relative to the median splat's diagonal; band
+    l's weight is that times 1 + band_damping l (l + 1) (the sphere's Laplacian: sharp
+    view-dependence must be asked for by many views). Stops after `iterations` or once the normal
+    residual fell below `tolerance` times its start. `info`, if a dict, receives "psnr" (per iteration, the
+    linear model's PSNR over all views, the first entry before fitting), "iterations" and "seen"
+    (splats some view gives weight).
+    """
+    if prior not in ("views", "cloud"):
+        raise ValueError(f"prior must be 'views' or 'cloud', got {prior!r}")
+    if len(cameras) != len(images) or not len(cameras):
+        raise ValueError(f"need one image per camera, got {len(cameras)} cameras and {len(images)} images")
+    degree = shmod.degree_of(cloud.sh.shape[1]) if degree is None else int(degree)
+    k = shmod.num_coeffs(degree)
+    bg = np.asarray(background, np.float64).reshape(3)
+    opts = dict(mode=mode, backend=backend, threads=threads)
+    views = [_View(cam, _checked_image(img, cam, i), degree) for i, (cam, img) in enumerate(zip(cameras, images))]
+    x0 = shmod.truncate(cloud.sh.astype(np.float64), degree)
+    shape = cloud.replace(sh=np.zeros((len(cloud), 1, 3), np.float32))     # the geometry: colours are set per render
+    total = iterations + 1
+
+    # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side
+    diag = np.zeros((len(cloud), k))
+    for view in views:
+        diag += view.measure(shape, bg, opts)
+    seen = diag[:, 0] > 0
+    if prior == "views":
+        x0 = _seen_colours(shape, views, x0, seen, opts)
+    rhs = np.zeros_like(x0)
+    for view in views:
+        view.start(shape, x0, opts)
+        rhs += view.gather_back(shape, view.residual, opts)
+    band = np.floor(np.sqrt(np.arange(k)))
+    lam = damping * (np.median(diag[seen, 0]) if seen.any() else 1.0) * (1.0 + band_damping * band * (band + 1))
+    lam = lam[None, :, None]
+    precond = 1.0 / (diag[:, :, None] + lam)
+    history = [_psnr(views)]
+    yield 1, total, "bake"
+
+    delta = np.zeros_like(x0)
+    g = rhs                                     # the normal equations' residual
+    z = g * precond
+    p = z.copy()
+    rz = _dot(g, z)
+    start = np.sqrt(_dot(g, g))
+    done = 0
+    for it in range(iterations):
+        if (np.sqrt(_dot(g, g)) <= tolerance * np.maximum(start, 1e-300)).all():
+            break
+        ap = lam * p
+        images_p = []
+        for view in views:
+            q = view.color_image(shape, view.colors(p), opts)
+            images_p.append(q)
+            ap += view.gather_back(shape, q, opts)
+        curvature = _dot(p, ap)
+        step = np.where(curvature > 0, rz / np.where(curvature > 0, curvature, 1.0), 0.0)
+        delta += step * p
+        g -= step * ap
+        for view, q in zip(views, images_p):
+            view.residual -= (step * q).astype(np.float32)
+        history.append(_psnr(views))
+        z = g * precond
+        rz_new = _dot(g, z)
+        p = z + np.where(rz > 0, rz_new / np.where(rz > 0, rz, 1.0), 0.0) * p
+        rz = rz_new
+        done = it + 1
+        yield it + 2, total, "bake"
+    if isinstance(info, dict):
+        info.update(psnr=history, iterations=done, seen=int(seen.sum()))
+    return cloud.replace(sh=(x0 + delta).astype(np.float32))
+
+
+def _seen_colours(cloud, views, x0, seen, opts):
+    """x0 with each seen splat's SH replaced by its mean colour over the pixels it blends into:
+    sum_i w_i pixel_i / sum_i w_i alpha_i over every view (pixels are premultiplied by their alpha,
+    so a lone splat gets its own colour back)."""
+    sums = np.zeros((len(cloud), 4))
+    for view in views:
+        both = np.concatenate([view.target, view.alpha], axis=2)
+        sums += render(cloud, view.camera, background=None, gather=both, **opts).gathered
+    seen = seen & (sums[:, 3] > 0)
+    out = x0.copy()
+    out[seen] = 0.0
+    out[seen, 0] = shmod.rgb_to_dc(sums[seen, :3] / sums[seen, 3:])
+    return out
+
+
+def _checked_image(image, camera, i):
+    a = np.asarray(image, np.float32)
+    if a.shape != (camera.height, camera.width, 3):
+        raise ValueError(f"image {i} has shape {a.shape}, expected ({camera.height}, {camera.width}, 3)")
+    if not np.isfinite(a).all():
+        raise ValueError(f"image {i} holds non-finite values")
+    return a
+
+
+def _dot(a, b):
+    """Per-channel inner products of (N, K, 3) arrays: (3,)."""
+    return np.einsum("nkc,nkc->c", a, b)
+
+
+def _psnr(views):
+    sq = sum(float(np.square(v.residual, dtype=np.float64).sum()) for v in views)
+    return psnr_from_mse(sq / sum(v.residual.size for v in views))
+
+
+class _View:
+    """One reference view: its camera, the SH basis at its directions to the splats (float32) and
+    the residual image of the fit so far."""
+
+    def __init__(self, camera, image, degree):
+        self.camera, self.image, self.degree = camera, image, degree
+        self.residual = self.basis = None
+
+    def colors(self, x):
+        """(N, 3) colours sum_k Y_k x_k of coefficients x (N, K, 3), unclamped."""
+        return np.einsum("nk,nkc->nc", self.basis, x)
+
+    def measure(self, cloud, bg, opts):
+        """The basis, the splats' coverage (sum of weights), the target (image less background) and
+        this view's share of the preconditioner (N, K)."""
+        cam = self.camera
+        directions = (np.broadcast_to(cam.forward, cloud.positions.shape) if cam.is_orthographic
+                      else cloud.positions.astype(np.float64) - cam.center)     # as core.render sees them
+        self.basis = shmod.basis(directions, self.degree, np.float32)
+        out = render(cloud, self.camera, background=None, return_weights=True, gather=np.ones(self.image.shape[:2]),
+                     **opts)
+        self.alpha = out.alpha[..., None]
+        self.target = (self.image - (1.0 - self.alpha) * bg.astype(np.float32)).astype(np.float32)
+        footprint = out.gathered[:, 0] * out.max_weight
+        return footprint[:, None] * np.square(self.basis, dtype=np.float64)
+
+    def start(self, cloud, x0, opts):
+        """The residual image of the starting SH x0."""
+        model = self.color_image(cloud, 0.5 + self.colors(x0), opts)
+        self.residual = (self.target - model).astype(np.float32)
+
+    def color_image(self, cloud, colors, opts):
+        """A x: the image of per-splat colours (N, 3), no background, unclamped."""
+        shift, sh = self._shifted(colors)
+        out = render(cloud.replace(sh=sh), self.camera, background=None, **opts)
+        return out.color - shift * out.alpha[..., None]
+
+    def gather_back(self, cloud, image, opts):
+        """A^T image: the image gathered through the weights, times the basis: (N, K, 3)."""
+        gathered = render(cloud, self.camera, background=None, gather=image, **opts).gathered
+        return self.basis[:, :, None] * gathered[:, None, :]
+
+    @staticmethod
+    def _shifted(colors):
+        """A shift s >= 0 and degree-0 SH showing colors + s (never below 0, so never clamped)."""
+        shift = float(max(0.0, -colors.min())) if colors.size else 0.0
+        return shift, shmod.rgb_to_dc(colors + shift)[:, None, :].astype(np.float32)
