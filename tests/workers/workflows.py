@@ -420,7 +420,7 @@ class Worker(BlenderWorker):
                     "flags": {o.name: [o.visible_camera, o.hide_render] for o in scene.objects}}
 
         data = self.module("splat_addon.data")
-        options = dict(max_splats=600, view_size=32, use_rest_pose=False)
+        options = dict(max_splats=600, view_size=32, use_rest_pose=False, calibrate=True)   # it measures the look
         base_op, base = self.convert([ball], **options)
         before = state()
         baked_op, baked = self.convert([ball], appearance="RENDERED", bake_views=3, bake_samples=4, bake_degree=1,
