@@ -9,7 +9,9 @@ the nearest face), and multiply the density of faces whose local error is above 
 far above it they are (at most MAX_GROWTH a round and MAX_PER_PIXEL splats per pixel), until the
 worst of the views reaches the target. A face that got denser without its error dropping is left
 alone until the silhouettes are calibrated again: more splats cannot fix what the renderer's
-low-pass filter blurs. Once reached, two bisection steps between the last two densities look for a
+low-pass filter blurs. After PATIENCE rounds in a row that rendered no better than the best so far
+(each with its shift searched again), refinement stops: the splats stacked edge-on along denser
+outlines fatten them more than the extra splats gain. Once reached, two bisection steps between the last two densities look for a
 smaller cloud that still reaches it; when not, the result says which view is worst and why.
 
 Silhouettes: an opaque surface of Gaussians renders about one pixel fatter than the mesh, because
@@ -17,7 +19,8 @@ the renderer's 0.3 px^2 low-pass spreads every splat seen edge-on and many such 
 a silhouette. Solid parts are therefore moved inwards along the normal by the shift (in pixels of
 each face's finest view) that maximises the worst view's PSNR, found by golden-section search and
 searched again whenever the cloud has doubled or a round rendered worse (smaller splats want another
-shift; without this, refinement stalled with more splats rendering worse). A budget (uniform mode) also
+shift; without this, refinement stalled with more splats rendering worse). Splats of one
+density are built once: a search moves only their positions. A budget (uniform mode) also
 tries rendering like SPREADS times fewer splats (wider, fainter discs), since the fattening grows
 with the splats stacked: a larger budget can always look like a smaller one.
 """
@@ -29,7 +32,7 @@ import numpy as np
 
 from .camera import Camera
 from .mesh_render import render_mesh
-from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, build_splats, thin_wall_density
+from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import render
@@ -45,6 +48,7 @@ MAX_ROUNDS = 12
 MAX_GROWTH = 2.5
 INSET_SEARCH = 6          # evaluations of the golden-section search for the silhouette shift
 RECALIBRATE_GROWTH = 2.0  # search the shift again once the cloud has grown this much (or got worse)
+PATIENCE = 2              # stop after this many rounds in a row that rendered no better than the best
 AIM = 0.7                 # faces aim at this fraction of the target MSE (not all of them can)
 SPREADS = (1.0, 4.0, 16.0, 64.0)   # a budget may render like this many times fewer splats
 MIN_SPREAD_SPLATS = 2000  # ... but never like fewer than this many
@@ -166,9 +170,10 @@ class _Inset:
     def __init__(self, views, make):
         self.views, self.make = views, make
 
-    def search(self, density, lo, hi, evaluations=INSET_SEARCH):
-        """(inset, cloud, Measured) of the best shift in [lo, hi]."""
-        tried = {}
+    def search(self, density, lo, hi, evaluations=INSET_SEARCH, known=None):
+        """(inset, cloud, Measured) of the best shift in [lo, hi], or `known` (an (inset, cloud,
+        Measured) measured before for this density) if none renders better."""
+        tried = {} if known is None else {known[0]: known[1:]}
 
         def worst(x):
             if x not in tried:
@@ -236,16 +241,23 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     elif max_splats is not None:
         density = _fit_budget(density, area, max_splats)
 
+    built = []     # recent (density, spread, Unplaced): a shift search rebuilds only the positions
+
     def make(dens, inset, spread=1.0):
         # Spread no wider than thin walls allow.
         widest = np.divide(dens, walls, out=np.full(len(dens), np.inf), where=walls > 0)
+        spread = np.minimum(spread, np.maximum(widest, 1.0))
         shift = np.minimum(inset * v.pixel, WALL_INSET * wall)
-        return build_splats(surface, dens, offset=-shift * outward, max_splats=max_splats,
-                            spread=np.minimum(spread, np.maximum(widest, 1.0)), **style)
+        for d, s, unplaced in built:
+            if np.array_equal(d, dens) and np.array_equal(s, spread):
+                return unplaced.placed(-shift * outward)
+        unplaced = unplaced_splats(surface, dens, max_splats=max_splats, spread=spread, **style)
+        built[:] = [(dens.copy(), spread, unplaced)] + built[:1]
+        return unplaced.placed(-shift * outward)
 
     inset_search = _Inset(v, make)
     mse_target = 10 ** (-target / 10)
-    best, previous, rounds = None, None, 0
+    best, previous, rounds, stale = None, None, 0, 0
     saturated = np.zeros(len(area), bool)
     stop = "no more splats help"
     if uniform:
@@ -263,9 +275,10 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
             if outward.any() and (grown or m.psnr < best[0]):
                 # Smaller splats want another shift (and more stack along the silhouettes): search
                 # it again, below the last one as well.
-                inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 4)
+                inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 4, (inset, cloud, m))
                 calibrated_at, saturated[:] = len(cloud), False
-        if best is None or m.psnr > best[0]:
+        stale = 0 if best is None or m.psnr > best[0] else stale + 1
+        if not stale:
             best = (m.psnr, cloud, inset, m)
         yield round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {m.psnr:.1f} dB"
         if m.psnr >= target:
@@ -275,6 +288,12 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
             break
         if uniform:
             stop = "budget"
+            break
+        at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
+        if stale >= PATIENCE:
+            # Denser clouds kept rendering worse, each with its shift searched again: more splats
+            # no longer help (their stacked edge-on splats fatten the outlines more).
+            stop = "max_splats" if at_cap else "no more splats help"
             break
         local = _smoothed_error_density(surface, m.err, m.px)
         if previous is not None:
@@ -286,7 +305,6 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         if max_splats is not None:
             new = _fit_budget(new, area, max_splats)
         if np.allclose(new, density, rtol=1e-3):
-            at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
             stop = "max_splats" if at_cap else "no more splats help"
             break
         previous = (new > density * 1.01, local, density)

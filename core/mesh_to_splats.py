@@ -15,6 +15,8 @@ Sizing: a budget (`max_splats`) spreads one density over the whole surface; a ta
 core/mesh_refine.py choose the density per face from the render error against the mesh.
 """
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from . import geometry, sh as shmod
@@ -124,17 +126,42 @@ def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, se
     `spread` >= 1 (one number, or one per face) makes the splats look like `spread` times fewer: discs sqrt(spread) times wider,
     their opacity divided by spread / SPREAD_GAIN (at most `opacity`), so that more splats can
     always render like fewer (the silhouettes' fattening grows with the splats stacked there)."""
+    unplaced = unplaced_splats(surface, density, overlap, opacity, thickness, seed, max_splats, spread)
+    return unplaced.placed(np.zeros(len(surface.faces)) if offset is None else offset)
+
+
+@dataclass
+class Unplaced:
+    """Splats of one density before their shift along the normal: everything but the positions
+    (colours, shapes, sample points) is independent of the shift, so a search over shifts builds
+    them once. `points` (N,3) float64 on the surface, `normal` (N,3) their faces' unit normals."""
+
+    cloud: SplatCloud
+    points: np.ndarray
+    normal: np.ndarray
+    tri: np.ndarray
+
+    def placed(self, offset):
+        """The splats moved by their face's `offset` (F,) along its normal."""
+        shift = np.asarray(offset, np.float64)[self.tri]
+        extras = dict(self.cloud.extras, normal_offset=shift.astype(np.float32))
+        return self.cloud.replace(positions=self.points + shift[:, None] * self.normal, extras=extras)
+
+
+def unplaced_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
+                    spread=1.0):
+    """build_splats without the shift: an Unplaced."""
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
         expected *= max_splats / expected.sum()
     counts = systematic_counts(expected, morton_order(surface.origin + (surface.edge1 + surface.edge2) / 3),
                                np.random.default_rng(seed))
-    offset = np.zeros(len(counts)) if offset is None else np.asarray(offset, np.float64)
     tri, bary = bisection_samples(surface, counts)
     spread = np.maximum(np.broadcast_to(np.asarray(spread, np.float64), counts.shape)[tri], 1.0)
     opacity = np.where(spread > 1, np.minimum(opacity, opacity * SPREAD_GAIN / spread), opacity)
-    return _cloud(surface, tri, bary, density[tri] / spread, offset[tri], _face_rotations(surface)[tri],
-                  overlap, opacity, thickness)
+    cloud = _cloud(surface, tri, bary, density[tri] / spread, _face_rotations(surface)[tri], overlap, opacity,
+                   thickness)
+    return Unplaced(cloud, surface.points(tri, bary), surface.normal[tri], tri)
 
 
 # counts per face ---------------------------------------------------------------------------------
@@ -231,10 +258,10 @@ def _bisect(tri, n, corners, gram):
 
 # splats ------------------------------------------------------------------------------------------
 
-def _cloud(surface, tri, bary, density, shift, rotations, overlap, opacity, thickness):
-    """Flat discs at the sample points: in-plane sigma overlap/sqrt(density), normal axis thin."""
+def _cloud(surface, tri, bary, density, rotations, overlap, opacity, thickness):
+    """Flat discs at the sample points (no shift): in-plane sigma overlap/sqrt(density), normal axis thin."""
     n = len(tri)
-    positions = surface.points(tri, bary) + shift[:, None] * surface.normal[tri]
+    positions = surface.points(tri, bary)
     sigma = overlap / np.sqrt(density)
     rotations, in_plane = _outline_frames(surface, tri, bary, sigma, rotations)
     scales = np.column_stack([in_plane, thickness * sigma])
@@ -247,7 +274,7 @@ def _cloud(surface, tri, bary, density, shift, rotations, overlap, opacity, thic
         log_scales = np.log(scales)
     return SplatCloud(positions, rotations, log_scales, np.broadcast_to(logit(opacity), (n,)).astype(np.float32), sh,
                       extras={"source_triangle": tri.astype(np.int32), "barycentric": bary.astype(np.float32),
-                              "normal_offset": shift.astype(np.float32)})
+                              "normal_offset": np.zeros(n, np.float32)})
 
 
 def _outline_frames(surface, tri, bary, sigma, rotations):
