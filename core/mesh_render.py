@@ -158,19 +158,27 @@ def _screen_boxes(surface, cam, v):
 
 def _keep_nearest(cam, e, local, depths, faces, pix, zbuf, fbuf, bbuf):
     """Of the candidates (edge functions e (M,3) of face faces[local] at pixel pix), keep each
-    pixel's nearest hit in the buffers."""
+    pixel's nearest hit in the buffers (ties to the lower face index)."""
     total = e.sum(axis=1)
-    inside = (total != 0) & (((e >= 0).all(axis=1)) | ((e <= 0).all(axis=1)))
+    lowest = np.minimum(np.minimum(e[:, 0], e[:, 1]), e[:, 2])
+    highest = np.maximum(np.maximum(e[:, 0], e[:, 1]), e[:, 2])
+    inside = np.flatnonzero((total != 0) & ((lowest >= 0) | (highest <= 0)))
     local, pix = local[inside], pix[inside]
     bary = e[inside] / total[inside, None]
     z = np.einsum("ik,ik->i", bary, depths[local])
-    keep = (z > cam.near) & (z <= cam.far)
-    pix, z, bary, tri = pix[keep], z[keep], bary[keep], faces[local[keep]]
-    order = np.lexsort((tri, z, pix))            # nearest first per pixel; ties by face index
-    pix, z, bary, tri = pix[order], z[order], bary[order], tri[order]
-    first = np.ones(len(pix), bool)
-    first[1:] = pix[1:] != pix[:-1]
-    pix, z, bary, tri = pix[first], z[first], bary[first], tri[first]
+    keep = np.flatnonzero((z > cam.near) & (z <= cam.far))
+    # One sort by pixel, then the nearest (and of equals the lowest face) per run of a pixel: a
+    # face has at most one candidate per pixel, so exactly one row per pixel is left.
+    order = keep[np.argsort(pix[keep])]
+    pix, z, tri = pix[order], z[order], faces[local[order]]
+    if not len(pix):
+        return
+    starts = np.flatnonzero(np.concatenate([[True], pix[1:] != pix[:-1]]))
+    run = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, len(pix))))
+    nearest = z == np.minimum.reduceat(z, starts)[run]
+    lowest_face = np.minimum.reduceat(np.where(nearest, tri, np.iinfo(np.int64).max), starts)[run]
+    first = np.flatnonzero(nearest & (tri == lowest_face))
+    pix, z, tri, rows = pix[first], z[first], tri[first], order[first]
     closer = (z < zbuf[pix]) | ((z == zbuf[pix]) & (tri < fbuf[pix]))
-    pix = pix[closer]
-    zbuf[pix], fbuf[pix], bbuf[pix] = z[closer], tri[closer], bary[closer]
+    pix, rows = pix[closer], rows[closer]
+    zbuf[pix], fbuf[pix], bbuf[pix] = z[closer], tri[closer], bary[rows]
