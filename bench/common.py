@@ -52,10 +52,11 @@ class Row:
         return None if self.baseline is None else self.baseline.median / self.timing.median
 
 
-def paired(baseline, ours, repeat=5, clock=time.perf_counter):
+def paired(baseline, ours, repeat=5, clock=time.perf_counter, warmup=True):
     """(baseline Timing, our Timing) from runs that alternate, so both meet the same load on a shared
-    machine; one untimed warm-up each."""
-    pairs = [(timeit(baseline, 1, int(i == 0), clock), timeit(ours, 1, int(i == 0), clock)) for i in range(repeat)]
+    machine; one untimed warm-up each (unless not `warmup`: for long runs whose code is warm)."""
+    pairs = [(timeit(baseline, 1, int(i == 0 and warmup), clock), timeit(ours, 1, int(i == 0 and warmup), clock))
+             for i in range(repeat)]
     return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
 
 

@@ -31,7 +31,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from common import Row, Timing, print_rows, timeit  # noqa: E402
+from common import Row, Timing, paired, print_rows, timeit  # noqa: E402
 
 from splatwright.core import SplatCloud  # noqa: E402
 from splatwright.core import metrics  # noqa: E402
@@ -405,7 +405,52 @@ def by_distance(cloud, cams, references):
     return out
 
 
-def mesh_rows(name, mesh, size, budgets, folder):
+# the default conversion against the converter before its speed-up ----------------------------------
+
+SPEED_BEFORE = "b588814"     # the last commit before the default conversion was made faster
+SPEED_MESHES = ("textured sphere", "Blender Suzanne")
+
+
+def converter_before():
+    """mesh_to_splats as of SPEED_BEFORE (with its refinement and mesh rasteriser), beside today's."""
+    from _before import module_before
+    old = dict(commit=SPEED_BEFORE, suffix="speed_before")
+    module_before("core/mesh_render.py", **old)
+    steps = module_before("core/mesh_to_splats.py", {"from .mesh_refine import": "from ._mesh_refine_speed_before import"},
+                          **old)
+    module_before("core/mesh_refine.py", {"from .mesh_render import": "from ._mesh_render_speed_before import",
+                                          "from .mesh_to_splats import": "from ._mesh_to_splats_speed_before import"},
+                  **old)
+    return steps.mesh_to_splats
+
+
+def speed_before_row(name, mesh, size, cams, references, quick):
+    """CPU seconds of the default conversion, today's against SPEED_BEFORE's in alternating runs,
+    with the worst own-view and held-out PSNR each reaches."""
+    before = converter_before()
+    runs = {}
+
+    def conversion(fn, key):
+        def run():
+            info = {}
+            cloud = fn(mesh.vertices, mesh.faces, **mesh.appearance(), view_size=size, info=info)
+            runs[key] = (cloud, info)
+        return run
+
+    base, ours = paired(conversion(before, "before"), conversion(mesh_to_splats, "ours"), 1 if quick else 3,
+                        time.process_time, warmup=False)
+    error = {}
+    for key, prefix in (("ours", ""), ("before", "before ")):
+        cloud, info = runs[key]
+        held = by_distance(cloud, cams, references)
+        error[f"{prefix}own worst dB"] = info["psnr"]
+        error[f"{prefix}held-out worst dB"] = min(held[f"dB {d:g}x"] for d in DISTANCES)
+    return Row(TOPIC, f"{name}: default conversion, CPU s, against {SPEED_BEFORE} (before the speed-up)", ours,
+               base, error=error, extra={"faces": len(mesh.faces), "splats": len(runs["ours"][0]),
+                                         "splats before": len(runs["before"][0])})
+
+
+def mesh_rows(name, mesh, size, budgets, folder, quick=False):
     cams = held_out_cameras(mesh, size, floor="plane" in name)
     references, cycles_s = cycles_render(mesh, [cam for _, cam in cams], folder)
     rows, curve = [], {"calibrated": [], "before": []}
@@ -419,6 +464,8 @@ def mesh_rows(name, mesh, size, budgets, folder):
                            "reached": info["reached"],
                            "worst own view": f"{info['worst_view_distance']:g}x, "
                                              f"{info['worst_view_edge_share']:.0%} on silhouettes"}))
+    if name in SPEED_MESHES:
+        rows.append(speed_before_row(name, mesh, size, cams, references, quick))
     for n in budgets:
         info = {}
         start = time.perf_counter()
@@ -449,7 +496,7 @@ def run(quick=False):
             meshes = {k: meshes[k] for k in list(meshes)[:3]}
         first = None
         for name, mesh in meshes.items():
-            mesh_rows_, curves[name], held = mesh_rows(name, mesh, size, budgets, folder)
+            mesh_rows_, curves[name], held = mesh_rows(name, mesh, size, budgets, folder, quick)
             rows += mesh_rows_
             first = first or (mesh, held)
             print_rows(mesh_rows_)
