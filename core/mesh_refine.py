@@ -275,7 +275,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
             if outward.any() and (grown or m.psnr < best[0]):
                 # Smaller splats want another shift (and more stack along the silhouettes): search
                 # it again, below the last one as well.
-                inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 4, (inset, cloud, m))
+                inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 3, (inset, cloud, m))
                 calibrated_at, saturated[:] = len(cloud), False
         stale = 0 if best is None or m.psnr > best[0] else stale + 1
         if not stale:
