@@ -94,21 +94,47 @@ def rasterize(surface, cam):
     depths = v[faces, :, 2]
     rows_face = np.repeat(np.arange(len(faces)), y1 - y0)
     rows_y = y0[rows_face] + _ramp(y1 - y0)
-    widths = (x1 - x0)[rows_face]
+    # Along a row only x changes: e = a x + (b y + c), the bracket once per row.
+    brackets = b[rows_face] * rows_y[:, None] + c[rows_face]
+    starts, widths = _row_spans(a[rows_face], brackets, x0[rows_face], x1[rows_face])
     ends = np.cumsum(widths)
     start = 0
     while start < len(rows_face):
         stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + CANDIDATES_PER_CHUNK, "right"))
         stop = max(stop, start + 1)
         rf, ry, rw = rows_face[start:stop], rows_y[start:stop], widths[start:stop]
-        # Along a row only x changes: e = a x + (b y + c), the bracket once per row.
-        px = np.repeat(x0[rf], rw) + _ramp(rw)
+        px = np.repeat(starts[start:stop], rw) + _ramp(rw)
         e = np.repeat(a[rf], rw, axis=0) * px[:, None]
-        e += np.repeat(b[rf] * ry[:, None] + c[rf], rw, axis=0)
+        e += np.repeat(brackets[start:stop], rw, axis=0)
         _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), zbuf, fbuf, bbuf)
         start = stop
     depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
     return fbuf.reshape(h, w), bbuf.reshape(h, w, 3), depth.reshape(h, w)
+
+
+def _row_spans(a, bracket, x0, x1, margin=1.0):
+    """(first x, count) per row of the pixels of [x0, x1) that can lie inside the face: where its
+    three edge functions a x + bracket (a, bracket (R,3)) can share a sign, widened by `margin`
+    pixels against round-off (the exact test comes later). Keeps a face's candidates near its own
+    area rather than its bounding box's, about half of it."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = -bracket / a                       # where each edge function changes sign
+    rising, falling = a > 0, a < 0
+    inf = np.inf
+    # All >= 0: x above the roots of rising edges and below those of falling ones; all <= 0: reversed.
+    lo_pos = np.where(rising, root, -inf).max(axis=1)
+    hi_pos = np.where(falling, root, inf).min(axis=1)
+    lo_neg = np.where(falling, root, -inf).max(axis=1)
+    hi_neg = np.where(rising, root, inf).min(axis=1)
+    pos, neg = lo_pos <= hi_pos + 2 * margin, lo_neg <= hi_neg + 2 * margin
+    lo = np.minimum(np.where(pos, lo_pos, inf), np.where(neg, lo_neg, inf))
+    hi = np.maximum(np.where(pos, hi_pos, -inf), np.where(neg, hi_neg, -inf))
+    # Rows with an edge function constant along x (a == 0) keep their box: no root to trust.
+    flat = ~(rising | falling).all(axis=1) | ~np.isfinite(root).all(axis=1)
+    first = np.where(flat, x0, np.clip(np.ceil(np.nan_to_num(lo - margin, nan=-inf, neginf=-1e18)), x0, x1))
+    last = np.where(flat, x1, np.clip(np.floor(np.nan_to_num(hi + margin, nan=inf, posinf=1e18)) + 1, x0, x1))
+    first = first.astype(np.int64)
+    return first, np.maximum(last.astype(np.int64) - first, 0)
 
 
 def _edge_functions(v, cam):
