@@ -95,8 +95,11 @@ def sample_texture(texture, uv):
     x0 = x0.astype(np.int64) % w
     y0 = y0.astype(np.int64) % h
     x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-    top = texture[y0, x0] * (1 - fx) + texture[y0, x1] * fx
-    bottom = texture[y1, x0] * (1 - fx) + texture[y1, x1] * fx
+    texels = texture.reshape(h * w, -1)           # flat lookups: much faster than 2D fancy indexing
+    row0, row1 = y0 * w, y1 * w
+    gx = 1 - fx
+    top = texels.take(row0 + x0, axis=0) * gx + texels.take(row0 + x1, axis=0) * fx
+    bottom = texels.take(row1 + x0, axis=0) * gx + texels.take(row1 + x1, axis=0) * fx
     return top * (1 - fy) + bottom * fy
 
 
