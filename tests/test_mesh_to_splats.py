@@ -490,6 +490,30 @@ def test_a_missed_target_says_what_was_reached_where_and_why():
     assert "max_splats=400" in info["limit"]
 
 
+def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_best():
+    """More splats fatten the outlines: once PATIENCE rounds in a row render worse than the best
+    (each with its shift searched again), refinement stops and the best round's cloud comes back,
+    its PSNR what the views measure."""
+    from splatwright.core.mesh_refine import MAX_ROUNDS, PATIENCE
+    v, f, _ = uv_sphere(16, 8)
+    info, rounds = {}, []
+
+    def progress(done, total, label):
+        if 0 < done < total:
+            rounds.append((int(label.split()[1]), float(label.split()[3])))
+
+    cloud = mesh_to_splats(v, f, target_psnr=60, view_size=48, view_count=1, info=info, progress=progress)
+    best = max(range(len(rounds)), key=lambda k: rounds[k][1])
+    assert len(rounds) == info["rounds"] < MAX_ROUNDS
+    assert len(rounds) - 1 - best == PATIENCE and all(p <= rounds[best][1] for _, p in rounds[best + 1:])
+    assert len(cloud) == rounds[best][0] < max(n for n, _ in rounds)
+    surface = Surface(v, f)
+    measured = min(psnr(render(cloud, cam).color, render_mesh(surface, cam).color)
+                   for cam in default_views(surface, 48, 1))
+    assert info["psnr"] == pytest.approx(measured) and abs(measured - rounds[best][1]) <= 0.05
+    assert "more splats no longer lowered the error" in info["limit"]
+
+
 def thin_walled_cup():
     cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=32)
     return cup.vertices, cup.faces, cup.face_materials, cup.materials
