@@ -547,8 +547,10 @@ def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
     d = blender.npz("baked_look_baked")
     operator = SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"])
     operator = operator.transformed(d["matrix"])
-    np.testing.assert_allclose(clouds["baked"].positions, operator.positions, atol=1e-5)
-    np.testing.assert_allclose(clouds["baked"].sh, operator.sh, atol=1e-4)
+    nearest = np.linalg.norm(clouds["baked"].positions[:, None] - operator.positions[None], axis=2).argmin(axis=1)
+    assert len(set(nearest)) == len(operator)                          # the same splats, in the file's order
+    np.testing.assert_allclose(clouds["baked"].positions, operator.positions[nearest], atol=1e-5)
+    np.testing.assert_allclose(clouds["baked"].sh, operator.sh[nearest], atol=1e-4)
 
 
 def test_command_survives_re_registration(blender):
