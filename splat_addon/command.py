@@ -83,6 +83,7 @@ def parser():
     top = _Parser(prog=f"blender -b FILE.blend --command {COMMAND}",
                   description="Export, render or convert splats in a .blend file, without a window.")
     verbs = top.add_subparsers(dest="verb", required=True, parser_class=_Parser)
+    top.verb_parsers = verbs.choices            # name -> the verb's parser, for parse()'s own checks
     frames_help = "frames A-B, A-B:STEP or A (default: the scene's frame range and step)"
     objects_help = "comma-separated object names (default: every visible splat object)"
     distances = ", ".join(f"{d:g}" for d in from_mesh.VIEW_DISTANCES)
@@ -161,7 +162,8 @@ def parse(argv):
     if args.verb == "from-mesh" and args.appearance != "rendered":
         unused = [flag for flag in BAKE_FLAGS if getattr(args, flag[2:].replace("-", "_")) is not None]
         if unused:
-            top.error(f"from-mesh {', '.join(unused)}: only with --appearance rendered (base-color bakes nothing)")
+            top.verb_parsers[args.verb].error(
+                f"{', '.join(unused)}: only with --appearance rendered (base-color bakes nothing)")
     return args
 
 

@@ -533,6 +533,18 @@ def sizing(mode, max_splats, target_psnr):
 
 # the operator ----------------------------------------------------------------------------------------
 
+def shown_options(mode, view_source, appearance):
+    """The operator's options its panel shows for these choices, in groups (size, views, look): a
+    Target PSNR only when sizing by it, Calibrate Silhouettes only with a budget (a target always
+    calibrates), Near and Far where views are placed around the mesh (measuring Around, or baking),
+    the bake options only for the Rendered look."""
+    size = ["mode", "max_splats", "target_psnr" if mode == "QUALITY" else "calibrate", "use_rest_pose"]
+    around = view_source == "AROUND" or appearance == "RENDERED"
+    views = ["view_source", *(("view_near", "view_far") if around else ()), "view_count", "view_size"]
+    look = ["appearance", *(("bake_views", "bake_samples", "bake_degree") if appearance == "RENDERED" else ())]
+    return [size, views, look]
+
+
 class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     """Convert the selected mesh objects (modifiers applied) to splat objects placed like them
     (from the interface a step at a time: Esc cancels and changes nothing)"""
@@ -583,6 +595,18 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         return context.mode == "OBJECT"
+
+    def draw(self, context):
+        """The redo panel in groups, each option only where the choices above it use it."""
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        for i, names in enumerate(shown_options(self.mode, self.view_source, self.appearance)):
+            if i:
+                layout.separator()
+            col = layout.column(align=True)
+            for name in names:
+                col.prop(self, name)
 
     def make_job(self, context):
         max_splats, target_psnr = sizing(self.mode, self.max_splats, self.target_psnr)

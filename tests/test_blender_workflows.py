@@ -106,6 +106,31 @@ def held_out_psnr(blender, view, clouds):
     return {name: psnr(render(cloud, camera).color, reference) for name, cloud in clouds.items()}
 
 
+def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blender):
+    """The operator's draw(): every option in some panel, each only where the choices above it use it,
+    and the bake options' numbers those the command's help gives (test_cli_from_mesh_help_...)."""
+    res = blender.step("from_mesh_panel")
+    shown = res["shown"]
+    assert set().union(*shown.values()) - {"|"} == set(res["properties"])        # no option is lost
+    bake = ["bake_views", "bake_samples", "bake_degree"]
+    for key, names in shown.items():
+        mode, source, look = key.split("/")
+        assert [n for n in names if n in bake] == (bake if look == "RENDERED" else []), key
+        assert ("target_psnr" in names, "calibrate" in names) == (mode == "QUALITY", mode == "BUDGET"), key
+        assert ("view_near" in names) == ("view_far" in names) == (source == "AROUND" or look == "RENDERED"), key
+        assert len(names) == len(set(names)) + 1 and names.count("|") == 2, key    # three groups, each option once
+    assert shown["BUDGET/CAMERA/RENDERED"] == [
+        "mode", "max_splats", "calibrate", "use_rest_pose", "|",
+        "view_source", "view_near", "view_far", "view_count", "view_size", "|",
+        "appearance", "bake_views", "bake_samples", "bake_degree"]
+    assert shown["QUALITY/CAMERA/BASE_COLOR"] == [
+        "mode", "max_splats", "target_psnr", "use_rest_pose", "|", "view_source", "view_count", "view_size", "|",
+        "appearance"]
+    assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
+    assert res["numbers"] == {"bake_views": [16, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [2, 0, 3],
+                              "view_size": [256, 16, 2048]}
+
+
 # install -------------------------------------------------------------------------------------------
 
 def test_install_registers_operators_command_and_menu(blender):

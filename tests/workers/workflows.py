@@ -42,7 +42,7 @@ def skewed_uv(p):
 
 class Worker(BlenderWorker):
     steps = ("install", "textured", "colors", "errors", "calibration", "demo_rig", "rest_pose", "target_psnr",
-             "baked_look",
+             "from_mesh_panel", "baked_look",
              "animation", "frame_names", "cli", "cli_bake", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
@@ -430,6 +430,38 @@ class Worker(BlenderWorker):
                              render.filepath, render.image_settings.file_format, getattr(scene.camera, "name", None),
                              render.use_compositing, scene.cycles.samples],
                 "flags": {o.name: [o.visible_camera, o.hide_render] for o in scene.objects}}
+
+    def from_mesh_panel(self):
+        """What Mesh to Splats' draw() puts in its panel for each choice of Size By, Measure From and
+        Appearance (drawn into a layout that records, as drawing needs a window), and the numbers of
+        the options the command mirrors."""
+        import itertools
+        from types import SimpleNamespace
+
+        class Layout:
+            def __init__(self):
+                self.shown = []
+
+            def column(self, **_):
+                return self
+
+            def separator(self, **_):
+                self.shown.append("|")
+
+            def prop(self, owner, name, **_):
+                self.shown.append(name)
+        bpy = self.bpy
+        props = bpy.ops.splat.from_mesh.get_rna_type().properties
+        shown = {}
+        for mode, source, look in itertools.product(("BUDGET", "QUALITY"), ("AROUND", "CAMERA"),
+                                                    ("BASE_COLOR", "RENDERED")):
+            fake = SimpleNamespace(layout=Layout(), mode=mode, view_source=source, appearance=look)
+            bpy.types.SPLAT_OT_from_mesh.draw(fake, bpy.context)
+            shown[f"{mode}/{source}/{look}"] = fake.layout.shown
+        return {"shown": shown, "properties": [p.identifier for p in props if p.identifier != "rna_type"],
+                "appearances": [item.identifier for item in props["appearance"].enum_items],
+                "numbers": {name: [props[name].default, props[name].hard_min, props[name].hard_max]
+                            for name in ("bake_views", "bake_samples", "bake_degree", "view_size")}}
 
     def baked_look(self):
         """The lit ball converted with Base Color and with the Rendered look; the scene's data and
