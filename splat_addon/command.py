@@ -124,7 +124,7 @@ def parser():
                         "a few seconds per object); --no-calibrate renders nothing and keeps the splats on the surface")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
-    p.add_argument("--view-size", type=_whole_number(*from_mesh.VIEW_SIZES), metavar="PX",
+    p.add_argument("--view-size", type=_whole_number(*from_mesh.VIEW_SIZES), metavar="PX", default=from_mesh.VIEW_SIZE,
                    help=f"pixels across each view that quality is measured in and the look baked from "
                         f"({from_mesh.VIEW_SIZES[0]}-{from_mesh.VIEW_SIZES[1]}; default {from_mesh.VIEW_SIZE})")
     p.add_argument("--appearance", choices=APPEARANCES, default="base-color",
@@ -373,10 +373,9 @@ def run_from_mesh(args, context):
     _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}"
          + (", baking the look Cycles renders" if args.appearance == "rendered" else ""))
     infos = []
-    view_size = {} if args.view_size is None else {"view_size": args.view_size}
     results = from_mesh.convert_objects(
         context, objects, max_splats=budget, target_psnr=args.target_psnr, calibrate=args.calibrate,
-        use_rest_pose=not args.posed, bake=bake_options(args), infos=infos, **view_size,
+        use_rest_pose=not args.posed, bake=bake_options(args), infos=infos, view_size=args.view_size,
         progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
     created = from_mesh.create_splat_objects(context, results)
     for obj, info in zip(created, infos):
@@ -398,9 +397,8 @@ def bake_options(args):
     if args.appearance != "rendered":
         return None
     given = {key: value for key, value in (("views", args.bake_views), ("samples", args.bake_samples),
-                                           ("degree", args.bake_degree), ("size", args.view_size))
-             if value is not None}
-    return from_mesh.bake_options(**given)
+                                           ("degree", args.bake_degree)) if value is not None}
+    return from_mesh.bake_options(size=args.view_size, **given)
 
 
 def run_collide(args, context):

@@ -389,6 +389,8 @@ class ConversionJob:
                             **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
         self.bake = bake                   # bake.bake_steps' options (the Rendered look), or None
+        if bake is not None and not hasattr(context.scene, "cycles"):
+            raise MeshConversionError("the Rendered look is rendered by Cycles, whose add-on is not enabled")
         self.scene, self.use_rest_pose = context.scene, use_rest_pose
         self.infos = []                    # mesh_to_splats' info of each object, as results fill
         with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
@@ -469,7 +471,11 @@ def convert_objects(context, objects, *, max_splats=None, target_psnr=None, cali
     `infos`, a list, receives each object's mesh_to_splats info (with "bake" when baked)."""
     job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
                         use_rest_pose=use_rest_pose, warn=warn, bake=bake, **view_options)
-    results = job.run(progress)
+    try:
+        results = job.run(progress)
+    except BaseException:
+        job.cancel()           # the steps under way clean up now (a bake's folder of views)
+        raise
     if infos is not None:
         infos.extend(job.infos)
     return results
