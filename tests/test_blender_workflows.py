@@ -548,6 +548,8 @@ def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
     assert base["code"] == baked["code"] == 0, (base["stderr"], baked["stderr"])
     views = [line for line in baked["stdout"].splitlines() if "bake: Cycles view" in line]
     assert len(views) == 9 and views[-1].endswith("ball: bake: Cycles view 9/9")     # 3 at each of 3 distances
+    fitting = [line.rsplit(" ", 1)[1].split("/") for line in baked["stdout"].splitlines() if "fitting colours" in line]
+    assert [int(i) for i, _ in fitting] == list(range(1, len(fitting) + 1)) and len(fitting) > 5
     done = [float(line.split("[")[1].split("/")[0]) for line in baked["stdout"].splitlines() if "] " in line]
     assert done == sorted(done) and done[-1] <= 1.0
     assert "ball_splats.001: 600 splats, baked from Cycles views to" in baked["stdout"]
