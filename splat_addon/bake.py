@@ -46,11 +46,11 @@ def bake_steps(scene, obj, cloud, vertices, *, samples=16, count=VIEWS_PER_DISTA
     fit = bake_sh_steps(cloud.transformed(world), cameras, images, degree, iterations=iterations, info=info)
     while True:
         try:
-            done, _, _ = next(fit)
+            done, steps, _ = next(fit)
         except StopIteration as stop:
             fitted = stop.value
             break
-        yield len(cameras) + done, total, "bake: fitting colours"
+        yield len(cameras) + done, total, f"bake: fitting colours {done}/{steps}"
     rotation = geometry.polar_rotation(world[:3, :3])
     return cloud.replace(sh=shmod.rotate(fitted.sh, rotation.T).astype(np.float32))
 

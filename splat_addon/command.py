@@ -3,7 +3,8 @@
     export OUT [--frames A-B[:STEP]] [--format FORMAT] [--objects NAMES] [--sh-degree N]
                [--spz-version 2|3|4] [--half] [--prune-opacity T]
     render [OUT] [--frames A-B[:STEP]] [--objects NAMES] [--meshes cycles|eevee|workbench|none]
-    from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed]
+    from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed] [--view-size PX]
+                  [--appearance base-color|rendered [--bake-views N] [--bake-samples N] [--bake-degree D]]
     collide A B [--frames A-B[:STEP]] [--sigma K] [--ignore-bones NAMES] [--json OUT]
 
 Progress goes to stdout, one line per step; a failure prints "splatwright: error: ..." to stderr and
@@ -31,6 +32,8 @@ FORMAT_EXTENSIONS = DEFAULT_EXTENSIONS
 # render OUT's extension -> image formats that write it (the first is chosen if none is set)
 IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), ".jpg": ("JPEG",),
                  ".jpeg": ("JPEG",), ".tif": ("TIFF",), ".tiff": ("TIFF",)}
+APPEARANCES = ("base-color", "rendered")             # from-mesh --appearance: the operator's Appearance
+BAKE_FLAGS = ("--bake-views", "--bake-samples", "--bake-degree")
 FRAMES = re.compile(r"^\s*(-?\d+)\s*(?:-\s*(-?\d+))?\s*(?::\s*(\d+))?\s*$")
 
 _handle = None
@@ -63,12 +66,27 @@ def _say(message):
     print(f"{COMMAND}: {message}", flush=True)
 
 
+def _whole_number(low, high):
+    """An argparse type: a whole number from `low` to `high`; anything else is a usage error naming the option."""
+    def whole(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number, got '{text}'") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be from {low} to {high}, got {value}")
+        return value
+    return whole
+
+
 def parser():
     top = _Parser(prog=f"blender -b FILE.blend --command {COMMAND}",
                   description="Export, render or convert splats in a .blend file, without a window.")
     verbs = top.add_subparsers(dest="verb", required=True, parser_class=_Parser)
+    top.verb_parsers = verbs.choices            # name -> the verb's parser, for parse()'s own checks
     frames_help = "frames A-B, A-B:STEP or A (default: the scene's frame range and step)"
     objects_help = "comma-separated object names (default: every visible splat object)"
+    distances = ", ".join(f"{d:g}" for d in from_mesh.VIEW_DISTANCES)
 
     p = verbs.add_parser("export", help="write splat objects over a frame range (animated USD or numbered files)")
     p.add_argument("output", help="file, or sequence pattern: shot.usdc, shot_####.ply (see README)")
@@ -106,6 +124,22 @@ def parser():
                         "a few seconds per object); --no-calibrate renders nothing and keeps the splats on the surface")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
+    p.add_argument("--view-size", type=_whole_number(*from_mesh.VIEW_SIZES), metavar="PX", default=from_mesh.VIEW_SIZE,
+                   help=f"pixels across each view that quality is measured in and the look baked from "
+                        f"({from_mesh.VIEW_SIZES[0]}-{from_mesh.VIEW_SIZES[1]}; default {from_mesh.VIEW_SIZE})")
+    p.add_argument("--appearance", choices=APPEARANCES, default="base-color",
+                   help="base-color: the surface's Base Color, unlit (default); rendered: the look Cycles renders "
+                        "in this scene (lights, world, shadows, speculars) baked into the splats' SH from Cycles "
+                        "views around each mesh")
+    p.add_argument("--bake-views", type=_whole_number(1, from_mesh.MAX_BAKE_VIEWS), metavar="N",
+                   help=f"rendered: Cycles views to bake from at each view distance ({distances} times the "
+                        f"one framing the mesh) (1-{from_mesh.MAX_BAKE_VIEWS}; default {from_mesh.BAKE_VIEWS})")
+    p.add_argument("--bake-samples", type=_whole_number(1, from_mesh.MAX_BAKE_SAMPLES), metavar="N",
+                   help=f"rendered: Cycles samples per view, denoised "
+                        f"(1-{from_mesh.MAX_BAKE_SAMPLES}; default {from_mesh.BAKE_SAMPLES})")
+    p.add_argument("--bake-degree", type=int, choices=range(from_mesh.MAX_BAKE_DEGREE + 1), metavar="D",
+                   help=f"rendered: SH degree of the baked colours, 0 view-independent, higher for speculars "
+                        f"(0-{from_mesh.MAX_BAKE_DEGREE}; default {from_mesh.BAKE_DEGREE})")
 
     p = verbs.add_parser("collide", help="check two splat objects for contact over a frame range")
     p.add_argument("object_a", help="a splat object (e.g. a rigged avatar)")
@@ -121,10 +155,22 @@ def parser():
     return top
 
 
+def parse(argv):
+    """The parsed command line; a malformed one prints the usage and an error and raises _Exit(2)."""
+    top = parser()
+    args = top.parse_args(list(argv))
+    if args.verb == "from-mesh" and args.appearance != "rendered":
+        unused = [flag for flag in BAKE_FLAGS if getattr(args, flag[2:].replace("-", "_")) is not None]
+        if unused:
+            top.verb_parsers[args.verb].error(
+                f"{', '.join(unused)}: only with --appearance rendered (base-color bakes nothing)")
+    return args
+
+
 def execute(argv):
     """The command handler: run one verb; returns the exit code."""
     try:
-        args = parser().parse_args(list(argv))
+        args = parse(argv)
     except _Exit as done:
         return done.code
     runs = {"export": run_export, "render": run_render, "from-mesh": run_from_mesh, "collide": run_collide}
@@ -324,14 +370,16 @@ def run_from_mesh(args, context):
         raise CommandError(f"--target-psnr must be a positive number of dB, got {args.target_psnr}")
     if not args.calibrate and args.target_psnr is not None:
         raise CommandError("--no-calibrate applies to a splat budget; --target-psnr always calibrates")
-    _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}")
+    _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}"
+         + (", baking the look Cycles renders" if args.appearance == "rendered" else ""))
+    infos = []
     results = from_mesh.convert_objects(
         context, objects, max_splats=budget, target_psnr=args.target_psnr, calibrate=args.calibrate,
-        use_rest_pose=not args.posed,
+        use_rest_pose=not args.posed, bake=bake_options(args), infos=infos, view_size=args.view_size,
         progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
     created = from_mesh.create_splat_objects(context, results)
-    for obj in created:
-        _say(f"{obj.name}: {data.splat_count(obj.data)} splats")
+    for obj, info in zip(created, infos):
+        _say(f"{obj.name}: {data.splat_count(obj.data)} splats{from_mesh.baked_summary(info)}")
     try:
         if is_blend:
             bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
@@ -341,6 +389,16 @@ def run_from_mesh(args, context):
         from_mesh.remove_objects(created)          # a session that goes on keeps the scene it had
         raise
     _say(f"done: wrote {out}")
+
+
+def bake_options(args):
+    """from_mesh.bake_options from the from-mesh flags (the operator's defaults where one is not given),
+    None for the Base Color look."""
+    if args.appearance != "rendered":
+        return None
+    given = {key: value for key, value in (("views", args.bake_views), ("samples", args.bake_samples),
+                                           ("degree", args.bake_degree)) if value is not None}
+    return from_mesh.bake_options(size=args.view_size, **given)
 
 
 def run_collide(args, context):

@@ -43,6 +43,8 @@ from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
 SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
 BAKE_SAMPLES = 16                  # Cycles samples per baked view (denoised)
 BAKE_DEGREE = 2
+MAX_BAKE_VIEWS, MAX_BAKE_SAMPLES, MAX_BAKE_DEGREE = 256, 4096, 3
+VIEW_SIZE, VIEW_SIZES = 256, (16, 2048)     # pixels across a view quality is measured in / baked from
 SUFFIX = "_splats"
 DEFAULT_BUDGET = 200_000
 CALIBRATE_TOOLTIP = ("Splat Budget: render the mesh and the splats from the views and pull solid parts in by "
@@ -387,6 +389,8 @@ class ConversionJob:
                             **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
         self.bake = bake                   # bake.bake_steps' options (the Rendered look), or None
+        if bake is not None and not hasattr(context.scene, "cycles"):
+            raise MeshConversionError("the Rendered look is rendered by Cycles, whose add-on is not enabled")
         self.scene, self.use_rest_pose = context.scene, use_rest_pose
         self.infos = []                    # mesh_to_splats' info of each object, as results fill
         with rest_pose(objects) if use_rest_pose else contextlib.nullcontext():
@@ -456,16 +460,22 @@ def _scaled(steps, start, share):
 
 
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
-                    progress=None, warn=print, infos=None, **view_options):
+                    progress=None, warn=print, infos=None, bake=None, **view_options):
     """[(source object, cloud, record)] for mesh objects; nothing in the scene changes.
 
-    progress(done, total, label) sees the whole selection as one task of len(objects) units.
+    progress(done, total, label) sees the whole selection as one task of len(objects) units (a
+    baked look adds a step per Cycles view and per fitting iteration).
     `calibrate`: a budget's silhouettes calibrated against renders (object_steps);
+    `bake`: bake_options() for the Rendered look, None for the Base Color;
     `view_options`: views (camera_path_views' mapping) or view_size, view_distances, view_count;
-    `infos`, a list, receives each object's mesh_to_splats info."""
+    `infos`, a list, receives each object's mesh_to_splats info (with "bake" when baked)."""
     job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
-                        use_rest_pose=use_rest_pose, warn=warn, **view_options)
-    results = job.run(progress)
+                        use_rest_pose=use_rest_pose, warn=warn, bake=bake, **view_options)
+    try:
+        results = job.run(progress)
+    except BaseException:
+        job.cancel()           # the steps under way clean up now (a bake's folder of views)
+        raise
     if infos is not None:
         infos.extend(job.infos)
     return results
@@ -507,6 +517,19 @@ def view_distances(near, far):
     return tuple(sorted({near, far} | ({1.0} if near < 1.0 < far else set())))
 
 
+def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, size=VIEW_SIZE, distances=None):
+    """bake.bake_steps' options for the Rendered look: `views` Cycles views of `samples` samples at
+    each view distance (`distances`, default core.mesh_refine's), `size` pixels across, fitted to SH
+    of `degree`."""
+    return dict(samples=samples, count=views, size=size, distances=distances, degree=degree)
+
+
+def baked_summary(info):
+    """What a report adds for a baked object (its info): the PSNR reached on the Cycles views."""
+    baked = info.get("bake", {}).get("psnr")
+    return f", baked from Cycles views to {baked[-1]:.1f} dB" if baked else ""
+
+
 def sizing(mode, max_splats, target_psnr):
     """(max_splats, target_psnr) for mesh_to_splats: a budget, or a target PSNR capped by max_splats."""
     if mode == "BUDGET":
@@ -515,6 +538,18 @@ def sizing(mode, max_splats, target_psnr):
 
 
 # the operator ----------------------------------------------------------------------------------------
+
+def shown_options(mode, view_source, appearance):
+    """The operator's options its panel shows for these choices, in groups (size, views, look): a
+    Target PSNR only when sizing by it, Calibrate Silhouettes only with a budget (a target always
+    calibrates), Near and Far where views are placed around the mesh (measuring Around, or baking),
+    the bake options only for the Rendered look."""
+    size = ["mode", "max_splats", "target_psnr" if mode == "QUALITY" else "calibrate", "use_rest_pose"]
+    around = view_source == "AROUND" or appearance == "RENDERED"
+    views = ["view_source", *(("view_near", "view_far") if around else ()), "view_count", "view_size"]
+    look = ["appearance", *(("bake_views", "bake_samples", "bake_degree") if appearance == "RENDERED" else ())]
+    return [size, views, look]
+
 
 class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     """Convert the selected mesh objects (modifiers applied) to splat objects placed like them
@@ -548,24 +583,36 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                             description="Farthest view distance, a multiple of the one that frames the whole mesh")
     view_count: IntProperty(name="View Count", default=VIEWS_PER_DISTANCE, min=1, max=64,
                             description="Views at each distance (Around), or frames of the camera path")
-    view_size: IntProperty(name="View Size", default=256, min=16, max=2048,
+    view_size: IntProperty(name="View Size", default=VIEW_SIZE, min=VIEW_SIZES[0], max=VIEW_SIZES[1],
                            description="Pixels across each view quality is measured in")
     appearance: EnumProperty(name="Appearance", default="BASE_COLOR", items=(
         ("BASE_COLOR", "Base Color", "The surface's Base Color (texture, colour attribute), unlit"),
         ("RENDERED", "Rendered (Cycles)", "The look Cycles renders in this scene (its lights, world and "
                                           "shadows, shading and speculars), baked into the splats' colours "
                                           "from Cycles views around each mesh")))
-    bake_views: IntProperty(name="Bake Views", default=BAKE_VIEWS, min=1, max=256,
+    bake_views: IntProperty(name="Bake Views", default=BAKE_VIEWS, min=1, max=MAX_BAKE_VIEWS,
                             description="Cycles views at each distance (Near, 1, Far) baked from (Rendered)")
-    bake_samples: IntProperty(name="Bake Samples", default=BAKE_SAMPLES, min=1, max=4096,
+    bake_samples: IntProperty(name="Bake Samples", default=BAKE_SAMPLES, min=1, max=MAX_BAKE_SAMPLES,
                               description="Cycles samples per baked view, denoised (Rendered)")
-    bake_degree: IntProperty(name="Bake SH Degree", default=BAKE_DEGREE, min=0, max=3,
+    bake_degree: IntProperty(name="Bake SH Degree", default=BAKE_DEGREE, min=0, max=MAX_BAKE_DEGREE,
                              description="Spherical-harmonics degree of the baked colours: 0 view-independent, "
                                          "higher for speculars (Rendered)")
 
     @classmethod
     def poll(cls, context):
         return context.mode == "OBJECT"
+
+    def draw(self, context):
+        """The redo panel in groups, each option only where the choices above it use it."""
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        for i, names in enumerate(shown_options(self.mode, self.view_source, self.appearance)):
+            if i:
+                layout.separator()
+            col = layout.column(align=True)
+            for name in names:
+                col.prop(self, name)
 
     def make_job(self, context):
         max_splats, target_psnr = sizing(self.mode, self.max_splats, self.target_psnr)
@@ -580,8 +627,8 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         """bake.bake_steps' options for the Rendered look, None for Base Color."""
         if self.appearance != "RENDERED":
             return None
-        return dict(samples=self.bake_samples, count=self.bake_views, size=self.view_size,
-                    distances=view_distances(self.view_near, self.view_far), degree=self.bake_degree)
+        return bake_options(self.bake_samples, self.bake_views, self.bake_degree, self.view_size,
+                            view_distances(self.view_near, self.view_far))
 
     def view_options(self, context, objects):
         """Keyword arguments of ConversionJob saying where quality is measured."""
@@ -605,10 +652,9 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         context.view_layer.objects.active = created[-1]
         for (source, cloud, _), info in zip(job.results, job.infos):
             missed = info.get("reached") is False
-            baked = info.get("bake", {}).get("psnr")
             self.report({"WARNING"} if missed else {"INFO"},
                         f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else "")
-                        + (f", baked from Cycles views to {baked[-1]:.1f} dB" if baked else ""))
+                        + baked_summary(info))
         total = sum(len(cloud) for _, cloud, _ in job.results)
         self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
         return {"FINISHED"}

@@ -73,9 +73,6 @@ def test_from_mesh_bakes_the_look_cycles_renders_and_leaves_the_scene_as_it_was(
     but the new splat object (no camera, image or changed setting), and at a view no bake used, the
     splats look like Cycles' own render of the lit ball far better than Base Color splats do."""
     from splatwright.core import SplatCloud
-    from splatwright.core.camera import Camera
-    from splatwright.core.metrics import psnr
-    from splatwright.core.render import render
     res = blender.step("baked_look")
     assert res["base"]["result"] == res["baked"]["result"] == ["FINISHED"], res
     added = sorted(set(res["after"]["data"]["objects"]) - set(res["before"]["data"]["objects"]))
@@ -93,12 +90,45 @@ def test_from_mesh_bakes_the_look_cycles_renders_and_leaves_the_scene_as_it_was(
     for field in ("positions", "rotations", "log_scales", "opacity_logits", "matrix"):
         np.testing.assert_array_equal(base[field], baked[field])
     assert clouds["base"].sh_degree == 0 and clouds["baked"].sh_degree == 1
-    view = blender.npz("baked_look_view")
-    camera = Camera(48, 48, float(view["fx"]), float(view["fx"]), 24.0, 24.0, view["world_to_camera"])
-    reference = view["image"]
-    assert reference.max() > 0.2 and (reference == 0).mean() > 0.3        # a lit ball over black, floor unseen
-    got = {name: psnr(render(cloud, camera).color, reference) for name, cloud in clouds.items()}
+    got = held_out_psnr(blender, "baked_look_view", clouds)
     assert got["baked"] > 22 and got["baked"] > got["base"] + 6, got
+
+
+def held_out_psnr(blender, view, clouds):
+    """{name: PSNR of the cloud's render against Cycles' render of the lit ball at the held-out view}."""
+    from splatwright.core.camera import Camera
+    from splatwright.core.metrics import psnr
+    from splatwright.core.render import render
+    d = blender.npz(view)
+    camera = Camera(48, 48, float(d["fx"]), float(d["fx"]), 24.0, 24.0, d["world_to_camera"])
+    reference = d["image"]
+    assert reference.max() > 0.2 and (reference == 0).mean() > 0.3        # a lit ball over black, floor unseen
+    return {name: psnr(render(cloud, camera).color, reference) for name, cloud in clouds.items()}
+
+
+def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blender):
+    """The operator's draw(): every option in some panel, each only where the choices above it use it,
+    and the bake options' numbers those the command's help gives (test_cli_from_mesh_help_...)."""
+    res = blender.step("from_mesh_panel")
+    shown = res["shown"]
+    assert set().union(*shown.values()) - {"|"} == set(res["properties"])        # no option is lost
+    bake = ["bake_views", "bake_samples", "bake_degree"]
+    for key, names in shown.items():
+        mode, source, look = key.split("/")
+        assert [n for n in names if n in bake] == (bake if look == "RENDERED" else []), key
+        assert ("target_psnr" in names, "calibrate" in names) == (mode == "QUALITY", mode == "BUDGET"), key
+        assert ("view_near" in names) == ("view_far" in names) == (source == "AROUND" or look == "RENDERED"), key
+        assert len(names) == len(set(names)) + 1 and names.count("|") == 2, key    # three groups, each option once
+    assert shown["BUDGET/CAMERA/RENDERED"] == [
+        "mode", "max_splats", "calibrate", "use_rest_pose", "|",
+        "view_source", "view_near", "view_far", "view_count", "view_size", "|",
+        "appearance", "bake_views", "bake_samples", "bake_degree"]
+    assert shown["QUALITY/CAMERA/BASE_COLOR"] == [
+        "mode", "max_splats", "target_psnr", "use_rest_pose", "|", "view_source", "view_count", "view_size", "|",
+        "appearance"]
+    assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
+    assert res["numbers"] == {"bake_views": [16, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [2, 0, 3],
+                              "view_size": [256, 16, 2048]}
 
 
 # install -------------------------------------------------------------------------------------------
@@ -434,6 +464,12 @@ def test_cli_export_axes(blender):
     ("from-mesh unknown", 1, ["no object named 'Nope'"]),
     ("from-mesh bad extension", 1, ["grid.xyz", "unknown splat file extension"]),
     ("from-mesh target uncalibrated", 1, ["--no-calibrate", "--target-psnr"]),
+    ("from-mesh bake views 0", 2, ["argument --bake-views", "from 1 to 256, got 0"]),
+    ("from-mesh bake samples 2.5", 2, ["argument --bake-samples", "whole number", "'2.5'"]),
+    ("from-mesh bake degree 5", 2, ["argument --bake-degree", "invalid choice: 5"]),
+    ("from-mesh appearance shiny", 2, ["argument --appearance", "'shiny'", "base-color", "rendered"]),
+    ("from-mesh bake unlit", 2, ["--bake-samples", "only with --appearance rendered"]),
+    ("from-mesh view size 8", 2, ["argument --view-size", "from 16 to 2048, got 8"]),
     ("render panoramic", 1, ["PANO"]),
     ("render no camera", 1, ["no camera"]),
 ])
@@ -489,6 +525,59 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
     blend = _outcome(blender, "from-mesh blend")
     assert blend["code"] == 0 and (blender.out / "cli" / "grid.blend").stat().st_size > 1000
     assert res["calibrate_default"] is True                # as the operator's (test_from_mesh_calibrates_...)
+
+
+def test_cli_from_mesh_help_lists_the_bake_options(blender):
+    run = _outcome(blender, "from-mesh help")
+    assert run["code"] == 0 and run["stderr"] == ""
+    text = " ".join(run["stdout"].split())                    # argparse wraps the help
+    for words in ("--appearance {base-color,rendered}", "--bake-views N", "(1-256; default 16)", "--bake-samples N",
+                  "(1-4096; default 16)", "--bake-degree D", "(0-3; default 2)", "--view-size PX",
+                  "(16-2048; default 256)"):
+        assert words in text, words
+
+
+def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
+    """`from-mesh --appearance rendered`: a progress line per Cycles view, the splats' geometry that of
+    the base-colour run with SH of the asked degree, nothing left behind but the output file and the
+    new splat object, and at a view no bake used the splats look like Cycles' own render of the lit
+    ball far better than the base-colour run's."""
+    from splatwright.core import SplatCloud
+    res = blender.step("cli_bake")
+    base, baked = res["base"], res["baked"]
+    assert base["code"] == baked["code"] == 0, (base["stderr"], baked["stderr"])
+    views = [line for line in baked["stdout"].splitlines() if "bake: Cycles view" in line]
+    assert len(views) == 9 and views[-1].endswith("ball: bake: Cycles view 9/9")     # 3 at each of 3 distances
+    fitting = [line.rsplit(" ", 1)[1].split("/") for line in baked["stdout"].splitlines() if "fitting colours" in line]
+    assert [int(i) for i, _ in fitting] == list(range(1, len(fitting) + 1)) and len(fitting) > 5
+    done = [float(line.split("[")[1].split("/")[0]) for line in baked["stdout"].splitlines() if "] " in line]
+    assert done == sorted(done) and done[-1] <= 1.0
+    assert "ball_splats.001: 600 splats, baked from Cycles views to" in baked["stdout"]
+    assert "Cycles" not in base["stdout"] and baked["renders"]["mesh"] > 0        # both calibrated (the default)
+    # the scene and the files as they were, but the new splat object and the output file
+    before, after = res["before"], res["after"]
+    assert sorted(set(after["data"]["objects"]) - set(before["data"]["objects"])) == ["ball_splats.001"]
+    for kind in ("cameras", "images", "materials", "lights"):
+        assert after["data"][kind] == before["data"][kind], kind
+    assert after["settings"] == before["settings"]
+    assert {k: v for k, v in after["flags"].items() if k in before["flags"]} == before["flags"]
+    assert res["files_before"] == {"out": ["base.ply"], "temp": []}
+    assert res["files_after"] == {"out": ["baked.ply", "base.ply"], "temp": []}       # its views' folder removed
+    files = {name: read(blender.out / "cli_bake" / f"{name}.ply") for name in ("base", "baked")}
+    np.testing.assert_array_equal(files["baked"].positions, files["base"].positions)
+    np.testing.assert_array_equal(files["baked"].log_scales, files["base"].log_scales)
+    assert files["base"].sh_degree == 0 and files["baked"].sh_degree == 1
+    clouds = {name: cloud.transformed(DEFAULT_AXES) for name, cloud in files.items()}    # file -> Blender axes
+    got = held_out_psnr(blender, "cli_bake_view", clouds)
+    assert got["baked"] > 22 and got["baked"] > got["base"] + 6, got
+    # the flags mean what the operator's options do: its bake of the same ball with the same settings
+    d = blender.npz("baked_look_baked")
+    operator = SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"])
+    operator = operator.transformed(d["matrix"])
+    nearest = np.linalg.norm(clouds["baked"].positions[:, None] - operator.positions[None], axis=2).argmin(axis=1)
+    assert len(set(nearest)) == len(operator)                          # the same splats, in the file's order
+    np.testing.assert_allclose(clouds["baked"].positions, operator.positions[nearest], atol=1e-5)
+    np.testing.assert_allclose(clouds["baked"].sh, operator.sh[nearest], atol=1e-4)
 
 
 def test_command_survives_re_registration(blender):

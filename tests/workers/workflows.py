@@ -16,6 +16,7 @@ TEXTURE_SIZE = (7, 5)          # width, height: small, so every splat sees texel
 PLANE_TRANSFORM = dict(location=(1.0, -2.0, 0.5), rotation_euler=(0.4, -0.3, 0.9), scale=(2.0, 0.5, 1.5))
 BUDGETS = (400, 37)
 MATERIAL_COLORS = ((0.8, 0.1, 0.05), (0.02, 0.6, 0.1), (0.1, 0.2, 0.9))
+BALL_PLACE = ((0.5, -0.3, 1.2), (0.3, 0.2, 0.9), (1.0, 1.0, 1.3))       # location, rotation, scale
 ANIM = {1: dict(location=(0.0, 0.0, 0.0), rotation_euler=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)),
         4: dict(location=(0.5, -1.0, 2.0), rotation_euler=(0.3, 0.0, 1.1), scale=(1.5, 1.5, 1.5))}
 
@@ -41,8 +42,8 @@ def skewed_uv(p):
 
 class Worker(BlenderWorker):
     steps = ("install", "textured", "colors", "errors", "calibration", "demo_rig", "rest_pose", "target_psnr",
-             "baked_look",
-             "animation", "frame_names", "cli", "reregister")
+             "from_mesh_panel", "baked_look",
+             "animation", "frame_names", "cli", "cli_bake", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
 
@@ -398,45 +399,88 @@ class Worker(BlenderWorker):
         res["missed"] = {**missed, "count": len(created[0].data.vertices) if created else None}
         return res
 
-    def baked_look(self):
-        """A red ball, moved, turned and scaled, above a floor that shadows nothing but must not be
-        seen, lit by the startup scene's light: converted with Base Color and with the Rendered look;
-        the scene's data and settings before and after, both clouds, and a held-out Cycles view."""
-        bpy, scene = self.bpy, self.bpy.context.scene
+    def lit_ball(self):
+        """A red ball "ball", moved, turned and scaled, above a floor that shadows nothing but must not
+        be seen, lit by the startup scene's light; returns (ball, floor)."""
+        bpy = self.bpy
         bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=1.0)
         ball = bpy.context.active_object
-        ball.location, ball.rotation_euler, ball.scale = (0.5, -0.3, 1.2), (0.3, 0.2, 0.9), (1.0, 1.0, 1.3)
+        ball.name = "ball"
+        ball.location, ball.rotation_euler, ball.scale = BALL_PLACE
         ball.data.materials.append(self.material("ball", (0.8, 0.1, 0.05)))
         bpy.ops.mesh.primitive_plane_add(size=8.0)
-        floor = bpy.context.active_object
+        return ball, bpy.context.active_object
 
-        def state():
-            render = scene.render
-            return {"data": {k: sorted(x.name for x in getattr(bpy.data, k))
-                             for k in ("objects", "cameras", "images", "meshes", "materials", "lights")},
-                    "settings": [render.engine, render.resolution_x, render.resolution_y, render.film_transparent,
-                                 render.filepath, render.image_settings.file_format, getattr(scene.camera, "name", None),
-                                 render.use_compositing],
-                    "flags": {o.name: [o.visible_camera, o.hide_render] for o in scene.objects}}
+    def held_out_view(self, ball, name):
+        """Cycles' render of the ball (splat_addon.bake.render_view) from a view no bake uses, saved as
+        `name` with its camera."""
+        camera = self.module("core.camera").Camera.look_at((3.5, -4.0, 3.0), BALL_PLACE[0], up=(0, 0, -1),
+                                                           fov_deg=35, width=48, height=48)
+        reference = self.module("splat_addon.bake").render_view(self.bpy.context.scene, ball, camera, 32,
+                                                                str(self.out / f"{name}.png"))
+        self.save(name, image=reference, world_to_camera=camera.world_to_camera, fx=camera.fx)
 
+    def scene_state(self):
+        """The data, render settings and visibility flags a bake must leave as they were."""
+        bpy, scene = self.bpy, self.bpy.context.scene
+        render = scene.render
+        return {"data": {k: sorted(x.name for x in getattr(bpy.data, k))
+                         for k in ("objects", "cameras", "images", "meshes", "materials", "lights")},
+                "settings": [render.engine, render.resolution_x, render.resolution_y, render.film_transparent,
+                             render.filepath, render.image_settings.file_format, getattr(scene.camera, "name", None),
+                             render.use_compositing, scene.cycles.samples],
+                "flags": {o.name: [o.visible_camera, o.hide_render] for o in scene.objects}}
+
+    def from_mesh_panel(self):
+        """What Mesh to Splats' draw() puts in its panel for each choice of Size By, Measure From and
+        Appearance (drawn into a layout that records, as drawing needs a window), and the numbers of
+        the options the command mirrors."""
+        import itertools
+        from types import SimpleNamespace
+
+        class Layout:
+            def __init__(self):
+                self.shown = []
+
+            def column(self, **_):
+                return self
+
+            def separator(self, **_):
+                self.shown.append("|")
+
+            def prop(self, owner, name, **_):
+                self.shown.append(name)
+        bpy = self.bpy
+        props = bpy.ops.splat.from_mesh.get_rna_type().properties
+        shown = {}
+        for mode, source, look in itertools.product(("BUDGET", "QUALITY"), ("AROUND", "CAMERA"),
+                                                    ("BASE_COLOR", "RENDERED")):
+            fake = SimpleNamespace(layout=Layout(), mode=mode, view_source=source, appearance=look)
+            bpy.types.SPLAT_OT_from_mesh.draw(fake, bpy.context)
+            shown[f"{mode}/{source}/{look}"] = fake.layout.shown
+        return {"shown": shown, "properties": [p.identifier for p in props if p.identifier != "rna_type"],
+                "appearances": [item.identifier for item in props["appearance"].enum_items],
+                "numbers": {name: [props[name].default, props[name].hard_min, props[name].hard_max]
+                            for name in ("bake_views", "bake_samples", "bake_degree", "view_size")}}
+
+    def baked_look(self):
+        """The lit ball converted with Base Color and with the Rendered look; the scene's data and
+        settings before and after, both clouds, and a held-out Cycles view."""
+        ball, floor = self.lit_ball()
         data = self.module("splat_addon.data")
         options = dict(max_splats=600, view_size=32, use_rest_pose=False, calibrate=True)   # it measures the look
         base_op, base = self.convert([ball], **options)
-        before = state()
+        before = self.scene_state()
         baked_op, baked = self.convert([ball], appearance="RENDERED", bake_views=3, bake_samples=4, bake_degree=1,
                                        **options)
-        after = state()
+        after = self.scene_state()
         for name, objs in (("base", base), ("baked", baked)):
             cloud = data.object_cloud(objs[0])
             self.save(f"baked_look_{name}", positions=cloud.positions, rotations=cloud.rotations,
                       log_scales=cloud.log_scales, opacity_logits=cloud.opacity_logits, sh=cloud.sh,
                       matrix=np.array(objs[0].matrix_world))
             objs[0].hide_render = True
-        camera = self.module("core.camera").Camera.look_at((3.5, -4.0, 3.0), (0.5, -0.3, 1.2), up=(0, 0, -1),
-                                                           fov_deg=35, width=48, height=48)
-        reference = self.module("splat_addon.bake").render_view(scene, ball, camera, 32,
-                                                                str(self.out / "baked_look_view.png"))
-        self.save("baked_look_view", image=reference, world_to_camera=camera.world_to_camera, fx=camera.fx)
+        self.held_out_view(ball, "baked_look_view")
         return {"base": base_op, "baked": baked_op, "before": before, "after": after,
                 "new": [o.name for o in baked], "floor": floor.name}
 
@@ -545,15 +589,18 @@ class Worker(BlenderWorker):
             "from-mesh bad extension": ["from-mesh", str(d / "grid.xyz"), "--objects", "Grid"],
             "from-mesh target uncalibrated": ["from-mesh", str(d / "t.ply"), "--objects", "Grid", "--target-psnr", "20",
                                               "--no-calibrate"],
+            "from-mesh bake views 0": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--appearance", "rendered",
+                                       "--bake-views", "0"],
+            "from-mesh bake samples 2.5": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--appearance",
+                                           "rendered", "--bake-samples", "2.5"],
+            "from-mesh bake degree 5": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--appearance", "rendered",
+                                        "--bake-degree", "5"],
+            "from-mesh appearance shiny": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--appearance", "shiny"],
+            "from-mesh bake unlit": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--bake-samples", "8"],
+            "from-mesh view size 8": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--view-size", "8"],
+            "from-mesh help": ["from-mesh", "--help"],
         }
-        outcomes = {}
-        for name, argv in runs.items():
-            out, err = io.StringIO(), io.StringIO()
-            before = len(bpy.data.objects)
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), self.counted_renders() as renders:
-                code = execute(argv)
-            outcomes[name] = {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue(),
-                              "new_objects": len(bpy.data.objects) - before, "renders": dict(renders)}
+        outcomes = {name: self.run_command(argv) for name, argv in runs.items()}
         res["calibrate_default"] = self.module("splat_addon.command").parser().parse_args(
             ["from-mesh", str(d / "x.ply")]).calibrate
         res["after"] = {"frame": scene.frame_current, "engine": render.engine, "filepath": render.filepath,
@@ -573,6 +620,42 @@ class Worker(BlenderWorker):
         scene.camera = cam
         res["outcomes"] = outcomes
         res["files"] = sorted(p.name for p in d.iterdir())
+        return res
+
+    def run_command(self, argv):
+        """The command run on `argv`: its exit code, stdout, stderr, the objects it added and the
+        renders mesh conversion made."""
+        bpy = self.bpy
+        out, err = io.StringIO(), io.StringIO()
+        before = len(bpy.data.objects)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), self.counted_renders() as renders:
+            code = self.module("splat_addon.command").execute(argv)
+        return {"code": code, "stdout": out.getvalue(), "stderr": err.getvalue(),
+                "new_objects": len(bpy.data.objects) - before, "renders": dict(renders)}
+
+    def cli_bake(self):
+        """The lit ball converted by the command to splat files with the Base Color and with the
+        Rendered look; the scene, the output folder and the temporary folder's bake folders before and
+        after the baked run, and a held-out Cycles view."""
+        import tempfile
+        ball, _ = self.lit_ball()
+        d, temp = self.out / "cli_bake", self.work / "cli_bake_temp"      # a temporary folder of its own
+        d.mkdir()
+        temp.mkdir()
+
+        def files():
+            return {"out": sorted(p.name for p in d.iterdir()), "temp": sorted(p.name for p in temp.iterdir())}
+        common = ["--objects", "ball", "--max-splats", "600", "--view-size", "32"]
+        res = {"base": self.run_command(["from-mesh", str(d / "base.ply"), *common])}
+        res["before"], res["files_before"] = self.scene_state(), files()
+        tempfile.tempdir = str(temp)
+        try:
+            res["baked"] = self.run_command(["from-mesh", str(d / "baked.ply"), *common, "--appearance", "rendered",
+                                             "--bake-views", "3", "--bake-samples", "4", "--bake-degree", "1"])
+        finally:
+            tempfile.tempdir = None
+        res["after"], res["files_after"] = self.scene_state(), files()
+        self.held_out_view(ball, "cli_bake_view")
         return res
 
     def reregister(self):
