@@ -21,6 +21,7 @@ import numpy as np
 
 from . import geometry, sh as shmod
 from .mesh import Surface, shade, to_display
+from .parallel import WORKERS, map_threads
 from .splats import SplatCloud, logit
 
 DEFAULT_TARGET_PSNR = 36.0
@@ -409,14 +410,18 @@ def wall_thickness(surface, reach, max_points=60_000):
     key = ((cell[:, 0] + 1) * dims[1] + cell[:, 1] + 1) * dims[2] + cell[:, 2] + 1
     order = np.argsort(key, kind="stable")
     sorted_keys = key[order]
-    best = np.full(len(points), np.inf)
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dz in (-1, 0, 1):
-                near = key + (dx * dims[1] + dy) * dims[2] + dz
-                lo = np.searchsorted(sorted_keys, near, "left")
-                hi = np.searchsorted(sorted_keys, near, "right")
-                _nearest_behind(points, normals, order, lo, hi, reach, best)
+    def nearest_in(cells):
+        best = np.full(len(points), np.inf)
+        for dx, dy, dz in cells:
+            near = key + (dx * dims[1] + dy) * dims[2] + dz
+            lo = np.searchsorted(sorted_keys, near, "left")
+            hi = np.searchsorted(sorted_keys, near, "right")
+            _nearest_behind(points, normals, order, lo, hi, reach, best)
+        return best
+
+    # The 27 neighbouring cells dealt out to the cores, each with its own minima, merged after.
+    cells = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    best = np.minimum.reduce(map_threads(nearest_in, [cells[k::WORKERS] for k in range(min(WORKERS, len(cells)))]))
     np.minimum.at(thickness, tri, best)
     return thickness
 
