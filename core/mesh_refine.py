@@ -110,10 +110,12 @@ class _Views:
 
     def __init__(self, surface, cameras, render_mode, solid):
         self.surface, self.cameras, self.mode = surface, cameras, render_mode
-        self.refs = map_threads(lambda cam: render_mesh(surface, cam, background=BACKGROUND,
-                                                        supersample=SUPERSAMPLE), cameras)
-        self.owners = [_dilate_labels(ref.face, 2 * SUPERSAMPLE) for ref in self.refs]
-        self.shares = [_face_shares(owner, len(surface.faces)) for owner in self.owners]
+        def reference(cam):
+            ref = render_mesh(surface, cam, background=BACKGROUND, supersample=SUPERSAMPLE)
+            owner = _dilate_labels(ref.face, 2 * SUPERSAMPLE)
+            return ref, owner, _face_shares(owner, len(surface.faces))
+
+        self.refs, self.owners, self.shares = (list(x) for x in zip(*map_threads(reference, cameras)))
         self.face_pixels = sum(np.bincount(face, weights=share, minlength=len(surface.faces))
                                for _, face, share in self.shares)
         self.pixel = self._pixel_sizes()
@@ -130,7 +132,7 @@ class _Views:
         center = s.origin + (s.edge1 + s.edge2) / 3
         size = np.full(len(s.faces), np.inf)
         for cam, ref in zip(self.cameras, self.refs):
-            seen = np.unique(ref.face[ref.face >= 0])
+            seen = np.flatnonzero(np.bincount(ref.face[ref.face >= 0], minlength=len(s.faces)))
             depth = cam.to_camera(center[seen])[:, 2]
             px = np.full(len(seen), 1.0 / cam.fx) if cam.is_orthographic else depth / cam.fx
             size[seen] = np.minimum(size[seen], px)
