@@ -416,8 +416,8 @@ def converter_before():
     from _before import module_before
     old = dict(commit=SPEED_BEFORE, suffix="speed_before")
     module_before("core/mesh_render.py", **old)
-    steps = module_before("core/mesh_to_splats.py", {"from .mesh_refine import": "from ._mesh_refine_speed_before import"},
-                          **old)
+    steps = module_before("core/mesh_to_splats.py",
+                          {"from .mesh_refine import": "from ._mesh_refine_speed_before import"}, **old)
     module_before("core/mesh_refine.py", {"from .mesh_render import": "from ._mesh_render_speed_before import",
                                           "from .mesh_to_splats import": "from ._mesh_to_splats_speed_before import"},
                   **old)

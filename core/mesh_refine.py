@@ -11,8 +11,9 @@ worst of the views reaches the target. A face that got denser without its error 
 alone until the silhouettes are calibrated again: more splats cannot fix what the renderer's
 low-pass filter blurs. After PATIENCE rounds in a row that rendered no better than the best so far
 (each with its shift searched again), refinement stops: the splats stacked edge-on along denser
-outlines fatten them more than the extra splats gain. Once reached, two bisection steps between the last two densities look for a
-smaller cloud that still reaches it; when not, the result says which view is worst and why.
+outlines fatten them more than the extra splats gain. Once reached, two bisection steps between
+the last two densities look for a smaller cloud that still reaches it; when not, the result says
+which view is worst and why.
 
 Silhouettes: an opaque surface of Gaussians renders about one pixel fatter than the mesh, because
 the renderer's 0.3 px^2 low-pass spreads every splat seen edge-on and many such splats stack along
