@@ -978,13 +978,16 @@ def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud,
             kernels=None, pool=None):
     """Image sums (colour and depth weighted by T alpha, and the weight) -> the result; with a layer,
     its colour at the T each pixel reached it with (layer_t) goes in, before the background.
-    Without a layer, the compiled kernels (when given) do it on every core of `pool`."""
-    if kernels is not None and layer is None:
+    The compiled kernels (when given) do it on every core of `pool`."""
+    if kernels is not None:
         alpha, depth = np.empty_like(weight), np.empty_like(weight)
         bounds = np.linspace(0, len(weight), pool.threads + 1).astype(np.int64)
         bg32 = np.zeros(0, np.float32) if bg is None else bg.astype(np.float32)
-        pool.map(lambda k: kernels.finish_rows(color, weight, depth_sum, bg32, bounds[k], bounds[k + 1], alpha, depth),
-                 list(range(pool.threads)))
+        none = np.zeros((0, 0), np.float32)
+        layer_arrays = (none, np.zeros((0, 0, 3), np.float32), none) if layer is None else \
+            (layer_t, layer.color, layer.alpha)
+        pool.map(lambda k: kernels.finish_rows(color, weight, depth_sum, bg32, bounds[k], bounds[k + 1], alpha, depth,
+                                               *layer_arrays), list(range(pool.threads)))
     else:
         alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
         color = np.ascontiguousarray(color, dtype=np.float32)

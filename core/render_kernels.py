@@ -466,16 +466,23 @@ def _row_alive(st, row, row_len):
 
 
 @njit
-def finish_rows(color, weight, depth_sum, bg, lo, hi, alpha, depth):
-    """Rows lo..hi-1 of core.render._finish without a layer, with NumPy's float32 roundings:
-    alpha = weight clipped to [0, 1]; colour += (1 - alpha) bg unless bg is empty; depth =
-    depth_sum / weight where weight > 0, else 0."""
+def finish_rows(color, weight, depth_sum, bg, lo, hi, alpha, depth, layer_t, layer_color, layer_alpha):
+    """Rows lo..hi-1 of core.render._finish, with NumPy's float32 roundings: alpha = weight clipped
+    to [0, 1]; with a layer (layer_t not empty) colour += layer_t layer_color and alpha = clip(alpha
+    + layer_t layer_alpha); colour += (1 - alpha) bg unless bg is empty; depth = depth_sum / weight
+    where weight > 0, else 0."""
     use_bg = bg.size == 3
+    use_layer = layer_t.size > 0
     zero, one = np.float32(0.0), np.float32(1.0)
     for y in range(lo, hi):
         for x in range(weight.shape[1]):
             w = weight[y, x]
             a = min(max(w, zero), one)
+            if use_layer:
+                t = layer_t[y, x]
+                for ch in range(3):
+                    color[y, x, ch] += t * layer_color[y, x, ch]
+                a = min(max(a + t * layer_alpha[y, x], zero), one)
             alpha[y, x] = a
             if use_bg:
                 for ch in range(3):
