@@ -321,7 +321,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     pixels = ts * row_len
     st = np.zeros(len(CHANNELS) * STRIDE, k.dtype)
     centre = ts / 2.0
-    for p in range(pixels):                     # each pixel's x offset from the tile centre
+    for p in range(pixels):                     # each pixel's x and y offsets from the tile centre
         st[np.uint64(p) + EX] = typ(p % row_len + 0.5 - centre)
         st[np.uint64(p) + EY] = typ(p // row_len + 0.5 - centre)
     want_counts = counts.size > 0

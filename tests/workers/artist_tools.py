@@ -276,18 +276,12 @@ class Worker(BlenderWorker):
         self.pose_rig(arm)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         posed = {form: data.evaluated_cloud(obj, depsgraph).positions for form, obj in objects.items()}
-        evaluated = proxy.evaluated_get(depsgraph)
-        mesh = evaluated.to_mesh()
-        co = np.empty(len(mesh.vertices) * 3)
-        mesh.vertices.foreach_get("co", co)
-        evaluated.to_mesh_clear()
-        world = np.array(evaluated.matrix_world)
         arm_world = np.array(arm.matrix_world)
         deform = np.stack([arm_world @ np.array(arm.pose.bones[b].matrix)
                            @ np.linalg.inv(np.array(arm.data.bones[b].matrix_local)) @ np.linalg.inv(arm_world)
                            for b in ("Lower", "Upper")])
         self.save("proxy_bind", rest=positions, proxy_rest=verts + np.array(arm.location), triangles=faces,
-                  vertex_weights=weights, proxy_posed=co.reshape(-1, 3) @ world[:3, :3].T + world[:3, 3],
+                  vertex_weights=weights, proxy_posed=self.evaluated_world(proxy, depsgraph),
                   bound=bound, deform=deform, **{f"posed_{f}": p for f, p in posed.items()})
         return res
 
