@@ -16,6 +16,7 @@ are moved after the others, which run meanwhile.
 import inspect
 import json
 import os
+import shutil
 import subprocess
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -62,6 +63,9 @@ def run_worker(worker, work, zip_path, version=blender_envs.PRIMARY):
     proc = subprocess.run([python, "-m", worker, str(work), str(zip_path)], cwd=work, env=env,
                           capture_output=True, text=True, timeout=900)
     log = f"Blender {version}, exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
+    # The installed extension (its bundled compiler wheels unpacked) is about 300 MB a worker, and
+    # the tests read only results.json and out/: 36 of them would fill a small CI disk.
+    shutil.rmtree(work / "user", ignore_errors=True)
     results_file = work / "results.json"
     if not results_file.exists():
         pytest.fail(f"Blender worker wrote no results:\n{log}")
