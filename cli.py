@@ -284,7 +284,9 @@ def _add_render(p):
                    default=np.zeros(3),
                    help="r,g,b display sRGB in [0,1]; 'none' for a transparent image")
     p.add_argument("--ortho-scale", type=float, help="orthographic camera showing this width in world units")
-    p.add_argument("--mode", choices=("classic", "antialiased"), default="classic")
+    p.add_argument("--mode", choices=("classic", "antialiased"), default=None,
+                   help="render mode (default: the one the splats were made for: antialiased where the file "
+                        "says so, classic otherwise)")
     p.add_argument("--near", type=float, default=0.2,
                    help="near clip distance (default 0.2, as the 3DGS reference; the same wherever the camera looks)")
 
@@ -336,7 +338,7 @@ def _float_list(text):
 
 
 def _add_mesh2splats(p):
-    from .core.mesh_to_splats import DEFAULT_TARGET_PSNR
+    from .core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR
     p.add_argument("mesh", help="a triangle mesh (.obj with its .mtl and textures; .stl, .dae, .glb, ... "
                                 "through trimesh)")
     p.add_argument("output", help="the splat file to write (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat)")
@@ -350,8 +352,10 @@ def _add_mesh2splats(p):
                    help="distances of the views, multiples of the one that frames the whole mesh "
                         "(default 0.5,1,3: close-up, whole, distant)")
     p.add_argument("--view-count", type=int, default=None, metavar="N", help="views at each distance (default 4)")
-    p.add_argument("--mode", choices=("classic", "antialiased"), default="classic",
-                   help="the render mode the splats are sized for")
+    p.add_argument("--mode", choices=("classic", "antialiased"), default=DEFAULT_RENDER_MODE,
+                   help="the render mode the splats are made for, which the file records (SPZ's flag, a PLY "
+                        f"header comment); default {DEFAULT_RENDER_MODE}, what every viewer renders; antialiased "
+                        "keeps silhouettes right at every distance")
     p.add_argument("--calibrate", action=argparse.BooleanOptionalAction, default=True,
                    help="with --max-splats: calibrate the silhouettes against renders of the mesh and the splats "
                         "from the views (default; seconds per 100k splats); --no-calibrate renders nothing and "

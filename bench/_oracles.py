@@ -4,6 +4,7 @@ part of the project's dependencies) and run in a subprocess: arrays go in and ou
 
     python = oracle_python()                  # bench/.oracles/bin/python, installing it if needed
     panda = panda_urdf()                      # pybullet_data's franka_panda/panda.urdf
+    data = pybullet_data()                    # the folder of pybullet's data (meshes, textures)
     out = run_oracle("pinocchio_fk", urdf=..., q=...)     # a task of bench/_oracle_tasks.py
 """
 
@@ -46,8 +47,13 @@ def run_oracle(task, **inputs):
             return {k: out[k] for k in out.files}
 
 
-def panda_urdf():
-    """The Franka Panda URDF that pybullet ships (pybullet_data), with its meshes beside it."""
+def pybullet_data():
+    """The folder of pybullet's data (robots, meshes and their textures), as pybullet ships it."""
     path = subprocess.run([str(oracle_python()), "-c", "import pybullet_data; print(pybullet_data.getDataPath())"],
                           check=True, capture_output=True, text=True).stdout.strip()
-    return Path(path) / "franka_panda" / "panda.urdf"
+    return Path(path)
+
+
+def panda_urdf():
+    """The Franka Panda URDF that pybullet ships (pybullet_data), with its meshes beside it."""
+    return pybullet_data() / "franka_panda" / "panda.urdf"

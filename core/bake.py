@@ -53,7 +53,7 @@ def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
 
 
 def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITERATIONS, damping=DEFAULT_DAMPING,
-                  band_damping=DEFAULT_BAND_DAMPING, prior="views", background=(0.0, 0.0, 0.0), mode="classic",
+                  band_damping=DEFAULT_BAND_DAMPING, prior="views", background=(0.0, 0.0, 0.0), mode=None,
                   tolerance=1e-6, info=None, backend="auto", threads=None):
     """A generator fitting the SH of `cloud` to `images` seen through `cameras`; yields (done,
     total, label) after the setup and each iteration and returns the cloud with the fitted SH

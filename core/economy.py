@@ -38,12 +38,12 @@ def opacity_mask(cloud, threshold):
     return cloud.opacities >= threshold
 
 
-def visible_mask(cloud, views, min_weight=0.0, mode="classic", threads=None):
+def visible_mask(cloud, views, min_weight=0.0, mode=None, threads=None):
     """Splats whose blending weight T * alpha exceeds `min_weight` at some pixel of some view."""
     return contributions(cloud, views, mode=mode, threads=threads) > min_weight
 
 
-def contributions(cloud, views, mode="classic", tile_size=8, threads=None):
+def contributions(cloud, views, mode=None, tile_size=8, threads=None):
     """(N,) float32: each splat's largest blending weight T * alpha over every pixel of every view,
     0 for splats that reach no pixel (culled, off-image, too faint or hidden behind others).
 
@@ -90,7 +90,7 @@ def cloud_points(cloud):
     return cloud.positions[keep]
 
 
-def render_views(cloud, views, mode="classic"):
+def render_views(cloud, views, mode=None):
     """Transparent renders of `cloud`: one (H, W, 4) float32 RGBA image per view, colour
     premultiplied and clipped to [0, 1]."""
     images = []
@@ -112,7 +112,7 @@ class ImageError:
         return f"PSNR {self.psnr:.2f} dB, max abs {self.max_abs:.4f}"
 
 
-def image_error(before, after, views, mode="classic"):
+def image_error(before, after, views, mode=None):
     """The render error of cloud `after` against `before` from `views`. Either may also be the
     images `render_views` made of it from the same views (render the original once, compare many)."""
     views = list(views)

@@ -328,7 +328,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         if not uniform:
             reached = psnr >= target
             info.update(target_psnr=target, reached=reached,
-                        limit=None if reached else _why(m, stop, max_splats))
+                        limit=None if reached else _why(m, stop, max_splats, render_mode))
     return cloud
 
 
@@ -381,7 +381,7 @@ def summary(info):
     return text
 
 
-def _why(m, stop, max_splats):
+def _why(m, stop, max_splats, render_mode="classic"):
     """Why the worst view missed the target, in words."""
     share = m.edge_share[m.worst]
     if stop == "max_splats":
@@ -390,9 +390,10 @@ def _why(m, stop, max_splats):
         cause = f"refinement ran out of rounds ({MAX_ROUNDS})"
     else:
         cause = "more splats no longer lowered the error"
-    where = (f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes (edge-on splats "
-             f"render outlines about a pixel fat in classic 3DGS rendering; one cloud cannot match the "
-             f"outline at every distance)") if share >= 0.5 else \
+    outline = ("edge-on splats render outlines about a pixel fat in classic 3DGS rendering; one cloud cannot "
+               "match the outline at every distance: antialiased mode can" if render_mode == "classic" else
+               "a splat's Gaussian edge is softer than the mesh's pixel-filtered one; larger views make it thinner")
+    where = (f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes ({outline})") if share >= 0.5 else \
         f"{1 - share:.0%} of its error lies inside the surface (texture detail finer than the splats or the " \
         f"renderer's 0.3 px^2 low-pass)"
     return f"{cause}; {where}"

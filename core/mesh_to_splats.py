@@ -25,6 +25,9 @@ from .parallel import WORKERS, map_threads
 from .splats import SplatCloud, logit
 
 DEFAULT_TARGET_PSNR = 36.0
+# The rendering splats are made for by default: classic, what every viewer renders. Antialiased
+# outlines hold at every distance, but flat splats seen edge-on fade (see the design notes).
+DEFAULT_RENDER_MODE = "classic"
 EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
 WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
@@ -43,7 +46,7 @@ def mesh_to_splats(vertices, faces, *, progress=None, **options):
 def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
                          corner_colors=None, max_splats=None, target_psnr=None,
                          overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
-                         view_distances=None, view_count=None, render_mode="classic", calibrate=True, info=None):
+                         view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True, info=None):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
@@ -54,6 +57,8 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     silhouettes of solid parts calibrated for the views (`calibrate=False` skips that: no renders).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
     the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
+    `render_mode` is also the mode the cloud is made for (its `antialiased` flag): "classic" (the
+    default) is what every viewer renders, "antialiased" gives right silhouettes at every distance.
     With neither, the target is DEFAULT_TARGET_PSNR.
     Views (where quality is measured): `views`, a list of core Cameras (a scene camera along its
     path, say), or by default `view_count` cameras (4) at each of `view_distances` (0.5, 1, 3:
@@ -97,7 +102,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
             view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count))
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
-    return cloud
+    return cloud.replace(antialiased=render_mode == "antialiased")
 
 
 def _uniform_density(surface, count):

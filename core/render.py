@@ -171,14 +171,15 @@ def _floats(records):
     return records[:, 5:].view(np.float32)
 
 
-def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_counts=False, *,
+def render(cloud, camera, background=(0.0, 0.0, 0.0), mode=None, return_counts=False, *,
            return_weights=False, tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
            threads=None, progress=None, backend="auto", layer=None, gather=None):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
     mode: "classic" (the reference rasteriser) or "antialiased" (opacity compensated for the
-        0.3 px^2 low-pass, as in Mip-Splatting / gsplat's antialiased mode).
+        0.3 px^2 low-pass, as in Mip-Splatting / gsplat's antialiased mode); None, the mode the
+        cloud was made for (cloud.antialiased).
     return_counts, return_weights: also give result.counts, result.max_weight.
     Speed options (the defaults give the exact image): tile_size in pixels; wave, entries per tile
     composited between checks for finished tiles (NumPy path only); t_min, the transmittance stop
@@ -195,6 +196,8 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", return_cou
     stats["backend"] says which path ran. An image whose buffers would not fit in this machine's
     memory is refused (ValueError) before anything is allocated.
     """
+    if mode is None:
+        mode = "antialiased" if cloud.antialiased else "classic"
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if precision not in PRECISIONS:

@@ -548,4 +548,5 @@ def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretc
 
     in_chunks(n, work, _CHUNK)
     new_sh = shmod.rotate(cloud.sh, turn) if turn is not None else cloud.sh
-    return SplatCloud(positions, rotations, log_scales, cloud.opacity_logits, new_sh, dict(cloud.extras))
+    return SplatCloud(positions, rotations, log_scales, cloud.opacity_logits, new_sh, dict(cloud.extras),
+                      antialiased=cloud.antialiased)

@@ -70,7 +70,9 @@ class SplatCloud:
     positions (N,3), rotations (N,4) w,x,y,z as stored, log_scales (N,3), opacity_logits (N,),
     sh (N,K,3) with K=(d+1)^2 and sh[:,0] the DC term. `extras` holds any other per-splat arrays
     (first axis N) that a file carried or a tool attached, e.g. PLY normals or the source triangle
-    of a converted mesh; selection and concatenation keep them aligned.
+    of a converted mesh; selection and concatenation keep them aligned. `antialiased` says the splats
+    were made to be rendered with opacity compensation (Mip-Splatting's 2D filter, core.render's
+    "antialiased" mode, SPZ's flag), which is then the mode they render in by default.
     """
 
     positions: np.ndarray
@@ -79,11 +81,13 @@ class SplatCloud:
     opacity_logits: np.ndarray
     sh: np.ndarray
     extras: dict = field(default_factory=dict)
+    antialiased: bool = False
 
     def __post_init__(self):
         for name in FIELDS:
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.float32))
         self.extras = {k: np.asarray(v) for k, v in self.extras.items()}
+        self.antialiased = bool(self.antialiased)
         self._check_shapes()
 
     # construction ---------------------------------------------------------------------------
@@ -107,16 +111,22 @@ class SplatCloud:
     @classmethod
     def concatenate(cls, clouds):
         """One cloud from many; lower SH degrees are zero-padded (same colours), extras kept where
-        every cloud has them."""
+        every cloud has them. Clouds made for different render modes cannot share one (ValueError):
+        either mode would render some of them wrongly."""
         clouds = list(clouds)
         if not clouds:
             return cls.empty()
+        modes = {c.antialiased for c in clouds}
+        if len(modes) > 1:
+            raise ValueError("cannot join splats made for antialiased rendering with splats made for classic "
+                             "rendering; convert one of them again in the other mode")
         degree = max(c.sh_degree for c in clouds)
         clouds = [c.with_sh_degree(degree) for c in clouds]
         common = set.intersection(*(set(c.extras) for c in clouds))
         return cls(
             *(np.concatenate([getattr(c, name) for c in clouds]) for name in FIELDS),
             extras={k: np.concatenate([c.extras[k] for c in clouds]) for k in sorted(common)},
+            antialiased=modes.pop(),
         )
 
     # basic protocol ------------------------------------------------------------------------
@@ -129,20 +139,21 @@ class SplatCloud:
         if isinstance(index, (int, np.integer)):
             index = [index]
         return SplatCloud(*(getattr(self, name)[index] for name in FIELDS),
-                          extras={k: v[index] for k, v in self.extras.items()})
+                          extras={k: v[index] for k, v in self.extras.items()}, antialiased=self.antialiased)
 
     select = __getitem__
 
     def copy(self):
         return SplatCloud(*(getattr(self, name).copy() for name in FIELDS),
-                          extras={k: v.copy() for k, v in self.extras.items()})
+                          extras={k: v.copy() for k, v in self.extras.items()}, antialiased=self.antialiased)
 
     def replace(self, **changes):
         """A new cloud with some fields replaced (arrays are shared, not copied)."""
         return replace(self, **changes)
 
     def __repr__(self):
-        return f"SplatCloud(n={len(self)}, sh_degree={self.sh_degree}, extras={sorted(self.extras)})"
+        mode = ", antialiased" if self.antialiased else ""
+        return f"SplatCloud(n={len(self)}, sh_degree={self.sh_degree}, extras={sorted(self.extras)}{mode})"
 
     # activated views ---------------------------------------------------------------------------
 

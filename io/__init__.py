@@ -2,6 +2,7 @@
 of Splatwright reads and writes through them."""
 
 import importlib
+import warnings
 from pathlib import Path
 
 from .common import SplatFileError, SplatFileWarning
@@ -64,9 +65,19 @@ def read_splats(path, **options):
     return _module(path).read(path, **options)
 
 
+# formats that record whether splats were made for antialiased rendering (SPZ's flag, a PLY comment)
+RECORDS_ANTIALIASED = {"ply", "spz"}
+
+
 def write_splats(path, cloud, **options):
-    """Write a SplatCloud in the format its extension names; the file appears whole or not at all."""
+    """Write a SplatCloud in the format its extension names; the file appears whole or not at all.
+    A cloud made for antialiased rendering written where the format cannot say so gets a warning:
+    readers of that file will render it classic, with fatter outlines."""
+    if cloud.antialiased and format_of(path) not in RECORDS_ANTIALIASED:
+        warnings.warn(f"{path}: this format cannot record that the splats were made for antialiased rendering; "
+                      "readers will render them classic (outlines about a pixel wider); PLY and SPZ record it",
+                      SplatFileWarning, stacklevel=2)
     return _module(path).write(path, cloud, **options)
 
 
-__all__ = ["DEFAULT_EXTENSIONS", "FORMATS", "SplatFileError", "SplatFileWarning", "file_sizes", "format_of", "read_splats", "write_splats"]
+__all__ = ["DEFAULT_EXTENSIONS", "FORMATS", "RECORDS_ANTIALIASED", "SplatFileError", "SplatFileWarning", "file_sizes", "format_of", "read_splats", "write_splats"]

@@ -131,7 +131,7 @@ def read(path, nonfinite="raise"):
     check_nonfinite_policy(nonfinite)
     try:
         with open(path, "rb") as f:
-            fmt, elements, start = _read_header(path, f)
+            fmt, elements, start, _ = _read_header(path, f)
             if fmt != "binary_little_endian":
                 raise SplatFileError(path, f"compressed PLY must be binary_little_endian, not {fmt}")
             chunk_dtype, vertex_dtype, sh_dtype, chunks, n = _layout(path, elements)

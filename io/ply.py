@@ -41,6 +41,7 @@ TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": 
 FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
 
 NORMALS = ("nx", "ny", "nz")
+ANTIALIASED_COMMENT = "antialiased"     # the header comment's first word for splats made for that mode
 _BLANK_LINE = re.compile(r"(?:^|\n)[ \t\r]*(?=\n|$)")
 CORE = "layout columns"     # the record field holding the layout: whitespace, so no PLY property can clash
 REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
@@ -75,7 +76,8 @@ class Element:
 
 
 def _read_header(path, f):
-    """(format, elements, header length in bytes) from an open file."""
+    """(format, elements, header length in bytes, antialiased) from an open file; antialiased: a
+    'comment antialiased' line says the splats were made for antialiased rendering (see _layout)."""
     head = f.read(MAX_HEADER)
     if not re.match(rb"ply[ \t]*\r?\n", head):
         raise SplatFileError(path, "not a PLY file (it does not start with a 'ply' line)")
@@ -86,9 +88,11 @@ def _read_header(path, f):
         lines = head[:end.start()].decode("ascii").splitlines()[1:]
     except UnicodeDecodeError:
         raise SplatFileError(path, "PLY header is not ASCII text") from None
-    fmt, elements = None, []
+    fmt, elements, antialiased = None, [], False
     for number, line in enumerate(lines, start=2):
         words = line.split()
+        if words[:2] == ["comment", ANTIALIASED_COMMENT]:
+            antialiased = True
         if not words or words[0] in ("comment", "obj_info"):
             continue
         where = f"PLY header line {number} '{line.strip()}'"
@@ -114,7 +118,7 @@ def _read_header(path, f):
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
             raise SplatFileError(path, f"{element.name} element repeats properties {dupes}")
-    return fmt, elements, end.end()
+    return fmt, elements, end.end(), antialiased
 
 
 def _parse_property(path, where, words):
@@ -309,7 +313,8 @@ class _Converter:
     """Fills the cloud's (contiguous) arrays from vertex records, one chunk of rows at a time, so
     each chunk is reordered and checked while it is still in cache."""
 
-    def __init__(self, path, dtype, n):
+    def __init__(self, path, dtype, n, antialiased=False):
+        self.antialiased = antialiased
         names = set(dtype.names)
         missing = [p for p in REQUIRED if p not in names]
         if missing:
@@ -350,7 +355,7 @@ class _Converter:
         if all(p in extras for p in NORMALS) and not any(extras[p].any() for p in NORMALS):
             for p in NORMALS:          # all zero: the reference writer's placeholder, nothing to keep
                 del extras[p]
-        return SplatCloud(**self.arrays, extras=extras)
+        return SplatCloud(**self.arrays, extras=extras, antialiased=self.antialiased)
 
 
 def _sh_count(path, names):
@@ -390,16 +395,16 @@ def read(path, nonfinite="raise"):
 def _load(path):
     """A _Converter holding every vertex of the file."""
     with open(path, "rb") as f:
-        fmt, elements, header_len = _read_header(path, f)
+        fmt, elements, header_len, antialiased = _read_header(path, f)
     index, vertex = _vertex_element(path, elements)
     n = vertex.count
     if fmt == "ascii":
         records = _read_ascii(path, elements, index, header_len)
-        convert = _Converter(path, records.dtype, n)
+        convert = _Converter(path, records.dtype, n, antialiased)
         _in_parallel(n, lambda rows: [convert.convert(records[c], c) for c in _chunks(rows)])
         return convert
     dtype, start = _binary_layout(path, fmt, elements, index, header_len)
-    convert = _Converter(path, dtype, n)     # checks the properties before any data is read
+    convert = _Converter(path, dtype, n, antialiased)     # checks the properties before any data is read
 
     def load(rows):
         buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)
@@ -425,7 +430,7 @@ def write(path, cloud, nonfinite="raise"):
         cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     names = layout_names(cloud.sh_degree)
     extras = _extra_columns(path, cloud, set(names))
-    dtype, header = _layout(len(cloud), names, [(name, a.dtype) for name, a in extras])
+    dtype, header = _layout(len(cloud), names, [(name, a.dtype) for name, a in extras], cloud.antialiased)
     fill = _Filler(cloud, extras, jit.load("io.ply_kernels", check=_check_kernels))
     tallies = []
     try:
@@ -448,11 +453,14 @@ def write(path, cloud, nonfinite="raise"):
         raise SplatFileError(path, f"cannot write: {exc.strerror or exc}") from exc
 
 
-def _layout(count, names, extras):
+def _layout(count, names, extras, antialiased=False):
     """(vertex record dtype, header bytes) of a file of `count` splats with the float32 layout
-    properties `names` and (name, dtype) extras after them."""
+    properties `names` and (name, dtype) extras after them. PLY has no field for the render mode the
+    splats were made for: a comment line carries it, which other readers skip."""
     dtype = np.dtype([(CORE, "<f4", (len(names),))] + [(name, dt.newbyteorder("<")) for name, dt in extras])
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {count}"]
+    header = ["ply", "format binary_little_endian 1.0"]
+    header += [f"comment {ANTIALIASED_COMMENT} (made for opacity-compensated rendering)"] if antialiased else []
+    header += [f"element vertex {count}"]
     header += [f"property float {name}" for name in names]
     header += [f"property {TYPE_NAMES[np.dtype(dt).str[1:]]} {name}" for name, dt in extras]
     return dtype, ("\n".join(header) + "\nend_header\n").encode("ascii")

@@ -323,7 +323,7 @@ def decode(path, raw, axes="RDF"):
         u = np.frombuffer(blocks["sh"], np.uint8).reshape(n, dim, 3)[:, :15].astype(np.float32)
         sh[:, 1:] = (u - 128) / 128 if (lo, hi) == (-1.0, 1.0) else lo + u / np.float32(255) * np.float32(hi - lo)
     cloud = SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], scales / np.float32(16) - np.float32(10),
-                       logit(alphas), sh)
+                       logit(alphas), sh, antialiased=bool(flags & FLAG_ANTIALIASED))
     if axes == "RDF":
         cloud = flip_yz(cloud)
     elif axes is not None:
@@ -498,11 +498,12 @@ def _outside(x):
     return int(((x <= -0.5) | (x >= 255.5)).sum())     # what rounds outside 0..255
 
 
-def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=False,
+def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
            axes="RDF", level=None, notes=None):
     """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); level: gzip (v2/v3) or
     zstd (v4) compression level, by default the reference writer's up to 1 MiB of data (the same
-    bytes as Niantic's) and a faster one beyond (see the module's notes)."""
+    bytes as Niantic's) and a faster one beyond (see the module's notes); the antialiased flag is
+    the cloud's unless `antialiased` says otherwise."""
     notes = [] if notes is None else notes
     if version not in VERSIONS:
         raise ValueError(f"SPZ version must be one of {VERSIONS}, got {version}")
@@ -517,7 +518,7 @@ def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, a
         raise ValueError(f"positions up to {reach:g} do not fit SPZ's 24-bit fixed point with {bits} fractional bits")
     if fractional_bits is None and bits < 12:
         notes.append(f"positions reach {reach:g}; stored with {bits} fractional bits (resolution {2.0 ** -bits:g})")
-    flags = FLAG_ANTIALIASED if antialiased else 0
+    flags = FLAG_ANTIALIASED if (cloud.antialiased if antialiased is None else antialiased) else 0
     prefix = 0 if version == 4 else HEADER.size
     payload = _Packer(cloud, version, bits, sh1_bits, sh_rest_bits, axes == "RDF", prefix).run(notes)
     if version == 4:
@@ -577,7 +578,7 @@ def _pack_v4(n, degree, bits, flags, payload, sizes, level):
     return b"".join([header, toc, *frames])
 
 
-def write(path, cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=False,
+def write(path, cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
           axes="RDF", level=None, nonfinite="raise"):
     """Write an SPZ file (default version 3, gzip). Version 4 needs the zstandard package."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")

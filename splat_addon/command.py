@@ -122,6 +122,10 @@ def parser():
     p.add_argument("--calibrate", action=argparse.BooleanOptionalAction, default=True,
                    help="a budget: calibrate the silhouettes against renders of the mesh and the splats (default; "
                         "a few seconds per object); --no-calibrate renders nothing and keeps the splats on the surface")
+    p.add_argument("--mode", choices=("classic", "antialiased"), default=from_mesh.DEFAULT_RENDER_MODE,
+                   help="the rendering the splats are made for, kept on the objects and in PLY and SPZ files "
+                        f"(default {from_mesh.DEFAULT_RENDER_MODE}, what every viewer renders; antialiased keeps "
+                        "outlines right at every distance)")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
     p.add_argument("--view-size", type=_whole_number(*from_mesh.VIEW_SIZES), metavar="PX", default=from_mesh.VIEW_SIZE,
@@ -375,7 +379,8 @@ def run_from_mesh(args, context):
     infos = []
     results = from_mesh.convert_objects(
         context, objects, max_splats=budget, target_psnr=args.target_psnr, calibrate=args.calibrate,
-        use_rest_pose=not args.posed, bake=bake_options(args), infos=infos, view_size=args.view_size,
+        use_rest_pose=not args.posed, render_mode=args.mode, bake=bake_options(args), infos=infos,
+        view_size=args.view_size,
         progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
     created = from_mesh.create_splat_objects(context, results)
     for obj, info in zip(created, infos):

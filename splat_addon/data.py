@@ -36,7 +36,9 @@ bound to an armature are posed by the POSERS from the object's own splats instea
 Everything moves through foreach_get/foreach_set on float32/int32 buffers: no per-splat Python.
 """
 
+import contextlib
 import json
+import warnings
 from typing import NamedTuple
 
 import bpy
@@ -48,6 +50,7 @@ from ..core.splats import logit, sigmoid
 MARKER = "splatwright"
 LAYOUT_VERSION = 1
 EXTRAS_SPEC = "splatwright_extras"     # datablock property: JSON {name: [dtype, columns, ndim]}
+ANTIALIASED = "splatwright_antialiased"  # datablock property: the splats were made for antialiased rendering
 # Extras that tie splats made from a mesh to its triangles (rigging reads them): bookkeeping of this
 # Blender file, not scene content, so exports leave them out.
 SOURCE_EXTRAS = ("source_triangle", "barycentric", "source_vertices")
@@ -77,6 +80,21 @@ _TYPES = {
     "INT": ("value", 1, np.int32),
     "BOOLEAN": ("value", 1, bool),
 }
+
+
+class SplatModeWarning(UserWarning):
+    """Splats made for antialiased rendering shown or written classic beside classic ones."""
+
+
+@contextlib.contextmanager
+def reported_warnings(report):
+    """Python warnings raised inside (a format's notes, mixed render modes) passed on to `report`, an
+    operator's or render engine's, as Blender warnings."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield
+    for w in caught:
+        report({"WARNING"}, str(w.message))
 
 
 class SplatObjectError(ValueError):
@@ -396,7 +414,17 @@ def geometry_cloud(geometry, owner=None, form=None, spec_owner=None):
         if form == MESH_FORM and not is_splat_mesh(geometry):
             raise SplatObjectError(f"'{owner}' is not a splat cloud (mesh without the '{MARKER}' marker)")
     read = _read_mesh_form if form == MESH_FORM else _read_native_form
-    return SplatCloud(**read(geometry, owner), extras=_read_extras(geometry, owner, spec_owner or geometry))
+    spec_owner = spec_owner or geometry
+    return SplatCloud(**read(geometry, owner), extras=_read_extras(geometry, owner, spec_owner),
+                      antialiased=bool(spec_owner.get(ANTIALIASED, False)))
+
+
+def _keep_mode(geometry, cloud):
+    """Record on the datablock the render mode the splats were made for (see SplatCloud.antialiased)."""
+    if cloud.antialiased:
+        geometry[ANTIALIASED] = True
+    elif ANTIALIASED in geometry:
+        del geometry[ANTIALIASED]
 
 
 def mesh_to_cloud(mesh, owner=None):
@@ -411,6 +439,7 @@ def cloud_to_mesh(cloud, name):
         mesh.vertices.add(len(cloud))
         _write_mesh_form(mesh, cloud)
         skipped = _write_extras(mesh, cloud.extras)
+        _keep_mode(mesh, cloud)
         mesh[MARKER] = LAYOUT_VERSION
         mesh.update()
     except BaseException:
@@ -426,6 +455,7 @@ def cloud_to_pointcloud(cloud, name):
     try:
         _write_native_form(pointcloud, cloud)
         skipped = _write_extras(pointcloud, cloud.extras)
+        _keep_mode(pointcloud, cloud)
         _mark_gaussian(pointcloud)
         _changed(pointcloud)
     except BaseException:
@@ -495,6 +525,7 @@ def update_splats(obj, cloud):
         kind = _extra_kind(values)
         if name in spec and kind is not None:
             _write_extra(geometry, name, values, kind)
+    _keep_mode(geometry, cloud)
     _changed(geometry)
 
 
@@ -754,14 +785,23 @@ def splat_instances(depsgraph):
 
 def instances_cloud(depsgraph, instances, conversion=np.eye(4)):
     """One cloud of every (object, matrix) of `instances`, `conversion` @ matrix applied to each; each
-    object is evaluated once however many instances it has."""
+    object is evaluated once however many instances it has. Splats made for antialiased rendering
+    beside classic ones join them as classic (one render shows one mode), with a SplatModeWarning
+    naming the objects."""
     own = {}
     clouds = []
     for obj, matrix in instances:
         if obj.name not in own:
             own[obj.name] = evaluated_cloud(obj, depsgraph, np.eye(4))
         clouds.append(_transformed(obj, own[obj.name], conversion @ matrix))
-    return clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
+    if len(clouds) == 1:
+        return clouds[0]
+    made_antialiased = sorted({obj.name for obj, _ in instances if own[obj.name].antialiased})
+    if made_antialiased and len(made_antialiased) < len(own):
+        warnings.warn(f"{', '.join(made_antialiased)}: made for antialiased rendering, shown classic beside "
+                      "splats made for classic rendering (outlines about a pixel wider)", SplatModeWarning, stacklevel=2)
+        clouds = [c.replace(antialiased=False) for c in clouds]
+    return SplatCloud.concatenate(clouds)
 
 
 def _armature_pose(obj, depsgraph):

@@ -106,7 +106,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         cam_obj = scene.camera.evaluated_get(depsgraph)
         origin = np.array(cam_obj.matrix_world.translation, dtype=np.float64)
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
-        cloud = scene_splats(depsgraph, origin)
+        with data.reported_warnings(self.report):
+            cloud = scene_splats(depsgraph, origin)
         transparent = scene.render.film_transparent
         meshes = self._mesh_layer(depsgraph, width, height)
         layer = None if meshes is None else meshes.as_layer()

@@ -35,7 +35,7 @@ from ..core.camera import Camera
 from ..core.mesh import Material
 from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
 from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
-from ..core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats_steps
+from ..core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from . import camera, data, display
 from .modal import JobOperator
 from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
@@ -290,15 +290,16 @@ def read_object(obj, depsgraph, warn=print, rest=False):
 
 
 def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, calibrate=True,
-                 warn=print, views=None, info=None, **view_options):
+                 render_mode=DEFAULT_RENDER_MODE, warn=print, views=None, info=None, **view_options):
     """A generator converting one object's read mesh (read_object): yields (done, total, label) as
     mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record).
     `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
     view_count of mesh_to_splats) say where quality is measured; `calibrate` (a budget only: the
-    silhouettes calibrated against renders from those views) and `info` as mesh_to_splats takes them."""
+    silhouettes calibrated against renders from those views), `render_mode` (what the splats are made
+    for) and `info` as mesh_to_splats takes them."""
     steps = mesh_to_splats_steps(triangles.vertices, triangles.faces, max_splats=max_splats,
-                                 target_psnr=target_psnr, calibrate=calibrate, views=views, info=info,
-                                 **view_options, **appearance)
+                                 target_psnr=target_psnr, calibrate=calibrate, render_mode=render_mode, views=views,
+                                 info=info, **view_options, **appearance)
     while True:
         with warnings.catch_warnings(record=True) as caught:       # per step: nothing held across yields
             warnings.simplefilter("always")
@@ -319,13 +320,14 @@ def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_
     return cloud, record
 
 
-def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, calibrate=True, progress=None,
-                   warn=print, rest=False, **view_options):
+def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, calibrate=True,
+                   render_mode=DEFAULT_RENDER_MODE,
+                   progress=None, warn=print, rest=False, **view_options):
     """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it;
-    `calibrate` and `view_options` as object_steps takes them."""
+    `calibrate`, `render_mode` and `view_options` as object_steps takes them."""
     read = read_object(obj, depsgraph, warn, rest)
     return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
-                              warn=warn, **view_options), progress)
+                              render_mode=render_mode, warn=warn, **view_options), progress)
 
 
 def mesh_objects(objects):
@@ -384,9 +386,9 @@ class ConversionJob:
     makes a budget conversion render nothing (see object_steps)."""
 
     def __init__(self, context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
-                 warn=print, views=None, bake=None, **view_options):
-        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate, warn=warn,
-                            **view_options)
+                 render_mode=DEFAULT_RENDER_MODE, warn=print, views=None, bake=None, **view_options):
+        self.options = dict(max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
+                            render_mode=render_mode, warn=warn, **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
         self.bake = bake                   # bake.bake_steps' options (the Rendered look), or None
         if bake is not None and not hasattr(context.scene, "cycles"):
@@ -460,17 +462,19 @@ def _scaled(steps, start, share):
 
 
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
-                    progress=None, warn=print, infos=None, bake=None, **view_options):
+                    render_mode=DEFAULT_RENDER_MODE, progress=None, warn=print, infos=None, bake=None,
+                    **view_options):
     """[(source object, cloud, record)] for mesh objects; nothing in the scene changes.
 
     progress(done, total, label) sees the whole selection as one task of len(objects) units (a
     baked look adds a step per Cycles view and per fitting iteration).
     `calibrate`: a budget's silhouettes calibrated against renders (object_steps);
+    `render_mode`: "classic" or "antialiased", the rendering the splats are made for (and keep);
     `bake`: bake_options() for the Rendered look, None for the Base Color;
     `view_options`: views (camera_path_views' mapping) or view_size, view_distances, view_count;
     `infos`, a list, receives each object's mesh_to_splats info (with "bake" when baked)."""
     job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
-                        use_rest_pose=use_rest_pose, warn=warn, bake=bake, **view_options)
+                        use_rest_pose=use_rest_pose, render_mode=render_mode, warn=warn, bake=bake, **view_options)
     try:
         results = job.run(progress)
     except BaseException:
@@ -547,7 +551,7 @@ def shown_options(mode, view_source, appearance):
     size = ["mode", "max_splats", "target_psnr" if mode == "QUALITY" else "calibrate", "use_rest_pose"]
     around = view_source == "AROUND" or appearance == "RENDERED"
     views = ["view_source", *(("view_near", "view_far") if around else ()), "view_count", "view_size"]
-    look = ["appearance", *(("bake_views", "bake_samples", "bake_degree") if appearance == "RENDERED" else ())]
+    look = ["made_for", "appearance", *(("bake_views", "bake_samples", "bake_degree") if appearance == "RENDERED" else ())]
     return [size, views, look]
 
 
@@ -585,6 +589,14 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                             description="Views at each distance (Around), or frames of the camera path")
     view_size: IntProperty(name="View Size", default=VIEW_SIZE, min=VIEW_SIZES[0], max=VIEW_SIZES[1],
                            description="Pixels across each view quality is measured in")
+    made_for: EnumProperty(name="Made For", default=DEFAULT_RENDER_MODE.upper(), items=(
+        ("CLASSIC", "Classic Rendering", "Splats sized for classic 3DGS rendering, which every viewer does: "
+                                         "outlines right at the views' distances only"),
+        ("ANTIALIASED", "Antialiased Rendering", "Splats sized for antialiased (opacity-compensated, "
+                                                 "Mip-Splatting) rendering: outlines right at every distance in "
+                                                 "Splatwright's renders and in viewers that read SPZ's flag "
+                                                 "(classic viewers draw them about a pixel fatter); flat splats "
+                                                 "seen edge-on fade, so thin walls can show their far side")))
     appearance: EnumProperty(name="Appearance", default="BASE_COLOR", items=(
         ("BASE_COLOR", "Base Color", "The surface's Base Color (texture, colour attribute), unlit"),
         ("RENDERED", "Rendered (Cycles)", "The look Cycles renders in this scene (its lights, world and "
@@ -620,6 +632,7 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         self._skipped = [o.name for o in context.selected_objects if o not in objects]
         return ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
                              calibrate=self.calibrate, use_rest_pose=self.use_rest_pose,
+                             render_mode=self.made_for.lower(),
                              warn=lambda message: self.report({"WARNING"}, message),
                              bake=self.bake_options(), **self.view_options(context, objects))
 

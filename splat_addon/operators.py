@@ -1,6 +1,5 @@
 """Import / export operators, usable from Python in background mode (execute never needs a UI)."""
 
-import warnings
 from pathlib import Path
 
 import bpy
@@ -54,12 +53,8 @@ def read_cloud(path, drop_invalid, report):
     """Read a splat file, passing the format's warnings on as Blender warnings. Splats with NaN/Inf
     cannot be drawn or rendered: with `drop_invalid` they are dropped (and counted in a warning),
     otherwise the file is refused."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        cloud = read_splats(path, nonfinite="drop" if drop_invalid else "raise")
-    for w in caught:
-        report({"WARNING"}, str(w.message))
-    return cloud
+    with data.reported_warnings(report):
+        return read_splats(path, nonfinite="drop" if drop_invalid else "raise")
 
 
 def finite_for_export(path, cloud, drop_invalid, report):
@@ -211,12 +206,13 @@ class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHel
         progress = _Progress(context, 2)
         try:
             objects = export_objects(context, self.selected_only)
-            cloud = scene_cloud(context, objects, export_conversion(self.axis_forward, self.axis_up))
-            progress.update(1)
-            cloud = finite_for_export(path, cloud, self.drop_invalid, self.report)
-            options = self.export_options(context)
-            written = options.reduce(cloud)
-            write_splats(path, written, **options.writer_options(path))
+            with data.reported_warnings(self.report):
+                cloud = scene_cloud(context, objects, export_conversion(self.axis_forward, self.axis_up))
+                progress.update(1)
+                cloud = finite_for_export(path, cloud, self.drop_invalid, self.report)
+                options = self.export_options(context)
+                written = options.reduce(cloud)
+                write_splats(path, written, **options.writer_options(path))
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

@@ -45,6 +45,7 @@ def _write_inputs(work):
     scene.log_scales[:] = np.random.default_rng(4).uniform(-3.2, -1.8, scene.log_scales.shape)
     scene.opacity_logits[:] = np.random.default_rng(5).normal(1.0, 1.5, len(scene))
     write_splats(work / "scene.ply", scene)
+    write_splats(work / "scene_aa.ply", scene.replace(antialiased=True))
     np.save(work / "scene_positions.npy", scene.positions.astype(np.float64))
     (work / "garbage.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\n" + bytes(200))
     full = (work / "a.ply").read_bytes()
@@ -348,6 +349,24 @@ def test_view_transform_is_applied_to_the_linear_result(blender):
     blender.step("render")
     standard, agx = _png(blender.out / "render_persp.png"), _png(blender.out / "render_persp_agx.png")
     assert np.abs(standard - agx).max() > 0.05      # AgX tone-maps; the exact match needs Standard
+
+
+def test_splats_made_for_antialiased_rendering_render_and_export_so(blender):
+    from splatwright.core import SplatCloud
+    from splatwright.io import spz
+    res = blender.step("render_antialiased")
+    made = read(blender.work / "scene_aa.ply")
+    assert made.antialiased and res["marked"] and not res["export"]["error"]
+    image = _core_image(made, res["alone"], transparent=False)             # its own mode by default
+    classic = _core_image(made.replace(antialiased=False), res["alone"], transparent=False)
+    png = _png(blender.out / "render_aa.png")
+    assert np.abs(png - np.clip(image.color, 0, 1)).max() <= 1 / 255
+    assert np.abs(png - np.clip(classic.color, 0, 1)).max() > 4 / 255      # the modes differ here
+    assert spz.read(blender.out / "aa.spz").antialiased
+    both = SplatCloud.concatenate([made.replace(antialiased=False), read(blender.work / "b.ply")])
+    mixed = _core_image(both, res["mixed"], transparent=False)
+    assert np.abs(_png(blender.out / "render_aa_mixed.png") - np.clip(mixed.color, 0, 1)).max() <= 1 / 255
+    assert not res["mixed_export"]["error"] and not spz.read(blender.out / "mixed.spz").antialiased
 
 
 def test_render_near_clip_removes_splats(blender):

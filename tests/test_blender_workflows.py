@@ -122,10 +122,10 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
     assert shown["BUDGET/CAMERA/RENDERED"] == [
         "mode", "max_splats", "calibrate", "use_rest_pose", "|",
         "view_source", "view_near", "view_far", "view_count", "view_size", "|",
-        "appearance", "bake_views", "bake_samples", "bake_degree"]
+        "made_for", "appearance", "bake_views", "bake_samples", "bake_degree"]
     assert shown["QUALITY/CAMERA/BASE_COLOR"] == [
         "mode", "max_splats", "target_psnr", "use_rest_pose", "|", "view_source", "view_count", "view_size", "|",
-        "appearance"]
+        "made_for", "appearance"]
     assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
     assert res["numbers"] == {"bake_views": [16, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [2, 0, 3],
                               "view_size": [256, 16, 2048]}
@@ -265,10 +265,14 @@ def test_from_mesh_calibrates_silhouettes_only_when_asked(blender):
     """Calibrate Silhouettes (on by default) renders the mesh and the splats; off, nothing is rendered
     and every splat lies on its triangle (Blender's own loop triangles), the budget spent either way."""
     res = blender.step("calibration")
-    assert res["default"] is True
-    off, on = res["off"], res["on"]
-    assert off["result"] == on["result"] == ["FINISHED"], (off["error"], on["error"])
-    assert off["count"] == on["count"] == 1500
+    assert res["default"] is True and res["made_for"] == "CLASSIC"
+    off, on, antialiased = res["off"], res["on"], res["antialiased"]
+    assert off["result"] == on["result"] == antialiased["result"] == ["FINISHED"], (off["error"], on["error"])
+    assert off["count"] == on["count"] == antialiased["count"] == 1500
+    assert (off["antialiased"], on["antialiased"], antialiased["antialiased"]) == (False, False, True)
+    # calibrated for the other mode, the splats sit elsewhere: antialiased outlines need no pull inwards
+    a, c = blender.npz("calibration_antialiased"), blender.npz("calibration_on")
+    assert not np.allclose(a["splat_extra_normal_offset"], c["splat_extra_normal_offset"])
     assert off["renders"] == {"mesh": 0, "splats": 0}
     assert on["renders"]["mesh"] > 0 and on["renders"]["splats"] > 0
     d = blender.npz("calibration_off")
@@ -525,13 +529,17 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
     blend = _outcome(blender, "from-mesh blend")
     assert blend["code"] == 0 and (blender.out / "cli" / "grid.blend").stat().st_size > 1000
     assert res["calibrate_default"] is True                # as the operator's (test_from_mesh_calibrates_...)
+    assert not cloud.antialiased                           # classic by default, as the operator's
+    made = _outcome(blender, "from-mesh antialiased")
+    assert made["code"] == 0, made["stderr"]
+    assert read(blender.out / "cli" / "grid_aa.spz").antialiased      # SPZ's flag, from --mode
 
 
 def test_cli_from_mesh_help_lists_the_bake_options(blender):
     run = _outcome(blender, "from-mesh help")
     assert run["code"] == 0 and run["stderr"] == ""
     text = " ".join(run["stdout"].split())                    # argparse wraps the help
-    for words in ("--appearance {base-color,rendered}", "--bake-views N", "(1-256; default 16)", "--bake-samples N",
+    for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}", "--bake-views N", "(1-256; default 16)", "--bake-samples N",
                   "(1-4096; default 16)", "--bake-degree D", "(0-3; default 2)", "--view-size PX",
                   "(16-2048; default 256)"):
         assert words in text, words

@@ -173,6 +173,21 @@ def test_cli_mesh2splats_budget(cube, tmp_path, capsys, monkeypatch):
     assert {"render", "render_mesh"} <= set(renders)          # silhouettes calibrated by default
 
 
+def test_cli_splats_made_for_antialiased_rendering_say_so_and_render_so(cube, tmp_path):
+    path, _ = cube
+    out = tmp_path / "cube.spz"
+    assert main(["mesh2splats", str(path), str(out), "--max-splats", "3000", "--view-size", "32",
+                 "--mode", "antialiased"]) == 0
+    assert read_splats(out).antialiased
+    images = {}
+    for mode in ([], ["--mode", "antialiased"], ["--mode", "classic"]):
+        png = tmp_path / f"{len(images)}.png"
+        assert main(["render", str(out), "-o", str(png), "--width", "48", "--height", "48", *mode]) == 0
+        images[tuple(mode[1:])] = np.asarray(Image.open(png), np.int16)
+    assert np.array_equal(images[()], images[("antialiased",)])            # its own mode by default
+    assert np.abs(images[()] - images[("classic",)]).max() > 8
+
+
 def test_cli_mesh2splats_budget_without_calibration_renders_nothing(cube, tmp_path, capsys, monkeypatch):
     """--no-calibrate: no render at all, and every splat on its triangle of the file's mesh."""
     path, _ = cube

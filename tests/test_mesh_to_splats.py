@@ -86,11 +86,14 @@ def test_faces_smaller_than_a_splat_are_covered_evenly():
     assert ((per_cell - 20) ** 2 / 20).mean() < 0.5
 
 
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("jitter, aspect, least", [(0.3, 1, 0.99), (0.0, 8, 0.94)])
-def test_plane_renders_closed_inside(jitter, aspect, least):
+def test_plane_renders_closed_inside(jitter, aspect, least, mode):
     v, f = grid_plane(12, jitter=jitter)
     v[:, 1] /= aspect                                 # aspect > 1: sliver triangles
-    cloud = mesh_to_splats(v, f, max_splats=6000 // aspect, calibrate=False)
+    cloud = mesh_to_splats(v, f, max_splats=6000 // aspect, calibrate=False, render_mode=mode)
+    if mode == "antialiased":      # splats about a pixel across keep ~half their opacity there: ~1% less cover
+        least -= 0.01
     # An orthographic view from above filling its height with the plane.
     cam = Camera.look_at_ortho((0.5, 0.5 / aspect, 2.0), (0.5, 0.5 / aspect, 0.0), ortho_scale=1.0 / aspect,
                                width=96, height=96)
@@ -426,6 +429,21 @@ def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
     np.testing.assert_allclose(cloud.positions, moved, atol=1e-6)
 
 
+def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_classic_ones_cannot():
+    v, f, _ = uv_sphere(24, 12)
+    materials = [Material(base_color=(0.8, 0.3, 0.1))]
+    options = dict(materials=materials, target_psnr=30.0, view_size=96, view_distances=(0.5, 1.0, 3.0), view_count=2)
+    classic, antialiased = {}, {}
+    assert not mesh_to_splats(v, f, render_mode="classic", info=classic, **options).antialiased
+    cloud = mesh_to_splats(v, f, render_mode="antialiased", info=antialiased, **options)
+    assert not classic["reached"] and "antialiased mode can" in classic["limit"]
+    assert cloud.antialiased and antialiased["reached"]
+    surface = Surface(v, f, materials=materials)
+    for cam in default_views(surface, 96, 2, distances=(0.5, 1.0, 3.0)):   # rendered in its own mode by default
+        assert psnr(render(cloud, cam).color, render_mesh(surface, cam, supersample=3).color) >= 30.0
+    assert not mesh_to_splats(v, f, max_splats=500, calibrate=False).antialiased        # classic by default
+
+
 def test_budget_with_views_keeps_the_count_and_calibrates_silhouettes():
     v, f, uv = uv_sphere(24, 12)
     surface = Surface(v, f)
@@ -452,7 +470,8 @@ def held_out_views(surface, size, distances=(0.5, 1.0, 3.0), seed=11):
                            near=0.01 * framing) for d, u in zip(distances, dirs)]
 
 
-def test_budget_never_renders_worse_with_more_splats():
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_budget_never_renders_worse_with_more_splats(mode):
     v, f, uv = uv_sphere(24, 12)
     j, i = np.meshgrid(np.arange(64), np.arange(64))
     tex = np.stack([0.5 + 0.4 * np.sin(2 * np.pi * j / 16), 0.5 + 0.4 * np.cos(2 * np.pi * i / 16),
@@ -465,15 +484,18 @@ def test_budget_never_renders_worse_with_more_splats():
     for budget in (2_000, 8_000, 32_000):
         info = {}
         cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=budget, view_size=64,
-                               view_count=2, info=info)
+                               view_count=2, info=info, render_mode=mode)
         assert len(cloud) == budget
         worst.append(min(psnr(render(cloud, cam).color, ref) for cam, ref in zip(cams, refs)))
         spreads.append(info["spread"])
     # Without the calibration (no silhouette shift, no spread), the silhouettes render fat.
-    plain = [min(psnr(render(mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=b, calibrate=False),
-                             cam).color, ref) for cam, ref in zip(cams, refs)) for b in (2_000, 32_000)]
+    plain = [min(psnr(render(mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=b, calibrate=False,
+                                            render_mode=mode), cam).color, ref)
+                 for cam, ref in zip(cams, refs)) for b in (2_000, 32_000)]
     assert all(b >= a - 0.2 for a, b in zip(worst, worst[1:])), worst
-    assert worst[-1] > plain[1] + 3 and spreads[-1] > 1       # the largest budget looks like fewer
+    assert worst[-1] > plain[1] + 3
+    # classic: the largest budget renders like fewer, wider splats; antialiased outlines need no spread
+    assert (spreads[-1] > 1) == (mode == "classic"), spreads
 
 
 def test_a_missed_target_says_what_was_reached_where_and_why():

@@ -169,6 +169,34 @@ def test_plyfile_reads_our_file_in_the_reference_layout(tmp_path):
         np.testing.assert_array_equal(vertex[key], cloud.extras[key])
 
 
+def test_antialiased_splats_say_so_in_a_comment_other_readers_skip(tmp_path):
+    cloud = cloud_with_extras(50, 1).replace(antialiased=True)
+    write_splats(tmp_path / "aa.ply", cloud)
+    data = plyfile.PlyData.read(str(tmp_path / "aa.ply"))
+    assert [c.split()[0] for c in data.comments] == ["antialiased"]
+    assert_fields(cloud, expected_fields({n: data["vertex"][n] for n in data["vertex"].data.dtype.names}))
+    assert read_splats(tmp_path / "aa.ply").antialiased
+    write_splats(tmp_path / "classic.ply", cloud.replace(antialiased=False))
+    assert plyfile.PlyData.read(str(tmp_path / "classic.ply")).comments == []
+    assert not read_splats(tmp_path / "classic.ply").antialiased
+    other = plyfile.PlyData([data["vertex"]], text=True, comments=["antialiased, written by another tool"])
+    other.write(str(tmp_path / "other.ply"))                  # ASCII, the word with a comma: not ours
+    assert not read_splats(tmp_path / "other.ply").antialiased
+    plyfile.PlyData([data["vertex"]], text=True, comments=["antialiased"]).write(str(tmp_path / "text.ply"))
+    assert read_splats(tmp_path / "text.ply").antialiased
+
+
+def test_formats_that_cannot_record_antialiased_splats_warn(tmp_path):
+    cloud = random_cloud(20, sh_degree=0).replace(antialiased=True)
+    for name in ("x.splat", "x.usda"):
+        with pytest.warns(SplatFileWarning, match="cannot record that the splats were made for antialiased"):
+            write_splats(tmp_path / name, cloud)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_splats(tmp_path / "x.spz", cloud)
+        write_splats(tmp_path / "y.splat", cloud.replace(antialiased=False))
+
+
 def test_cloud_without_normals_gets_zero_normals_and_reads_back_without_them(tmp_path):
     cloud = random_cloud(50, sh_degree=1)
     path = tmp_path / "c.ply"

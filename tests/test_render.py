@@ -73,6 +73,16 @@ def test_random_sh3_scenes_match_the_float64_reference(mode, make_camera, seed, 
     assert ref["alpha"].max() > 0.9 and (ref["counts"] > 3).any()    # a scene with real overlap
 
 
+def test_splats_render_by_default_in_the_mode_they_were_made_for(backend):
+    made = scene(seed=3).replace(antialiased=True)
+    by_default = render(made, perspective(), backend=backend).color
+    ref = reference_render(made, perspective(), mode="antialiased")["color"]
+    assert np.abs(by_default - ref).max() <= STEP
+    classic = render(made, perspective(), mode="classic", backend=backend).color
+    assert np.abs(classic - reference_render(made, perspective(), mode="classic")["color"]).max() <= STEP
+    assert np.abs(classic - by_default).max() > 10 * STEP          # the two modes differ on this scene
+
+
 @pytest.mark.parametrize("options", [{"tile_size": 8}, {"tile_size": 7, "wave": 3}, {"tile_size": 1},
                                      {"tile_size": 32, "wave": 1000}, {"threads": 1}])
 def test_speed_options_do_not_change_the_image(options, backend):

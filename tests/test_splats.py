@@ -90,3 +90,14 @@ def test_seed_cube_matches_its_definition():
 def test_dc_colour_round_trip():
     rgb = np.random.default_rng(0).uniform(size=(10, 3))
     np.testing.assert_allclose(sh.dc_to_rgb(sh.rgb_to_dc(rgb)), rgb, atol=1e-12)
+
+
+def test_the_render_mode_splats_were_made_for_travels_with_them():
+    made = random_cloud(30, sh_degree=1).replace(antialiased=True)
+    turn = np.diag([1.0, -1.0, -1.0, 1.0])
+    kept = [made[::2], made.copy(), made.transformed(turn), made.with_sh_degree(0),
+            SplatCloud.concatenate([made, made[:3]])]
+    assert all(c.antialiased for c in kept) and "antialiased" in repr(made)
+    assert not SplatCloud.concatenate([random_cloud(4), random_cloud(5)]).antialiased
+    with pytest.raises(ValueError, match="antialiased rendering with splats made for classic"):
+        SplatCloud.concatenate([made, random_cloud(4, sh_degree=1)])

@@ -109,6 +109,25 @@ def test_writes_the_hand_built_bytes(tmp_path):
     assert gzip.decompress(path.read_bytes()) == raw
 
 
+def test_antialiased_flag_is_header_bit_0_both_ways(tmp_path):
+    """The SPZ header's flags byte (offset 14): bit 0 says the splats were made for antialiased
+    rendering; reading sets the cloud's flag, writing takes it from the cloud unless told."""
+    raw, cloud = hand_built_v3()
+    flagged = raw[:14] + bytes([1]) + raw[15:]
+    (tmp_path / "aa.spz").write_bytes(gzip.compress(flagged))
+    assert spz.read(tmp_path / "aa.spz").antialiased and not spz.read(write_raw(tmp_path, raw)).antialiased
+    cloud = cloud.replace(opacity_logits=np.float32([20.0, np.log(0.25)]))
+    for made_for, told, bit in [(True, None, 1), (False, None, 0), (True, False, 0), (False, True, 1)]:
+        spz.write(tmp_path / "out.spz", cloud.replace(antialiased=made_for), version=3, antialiased=told)
+        written = gzip.decompress((tmp_path / "out.spz").read_bytes())
+        assert written[14] == bit and written[:14] + written[15:] == raw[:14] + raw[15:]
+
+
+def write_raw(folder, raw):
+    (folder / "plain.spz").write_bytes(gzip.compress(raw))
+    return folder / "plain.spz"
+
+
 def test_v2_rotations_keep_xyz_with_positive_w(tmp_path):
     cloud = in_range_cloud(300, degree=1, seed=4)
     path = tmp_path / "v2.spz"

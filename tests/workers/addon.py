@@ -36,7 +36,7 @@ class Worker(BlenderWorker):
     """Every Blender-side step; each records into self.results[step] (or the traceback on failure)."""
 
     steps = ("install", "import_ply", "formats", "export_axes", "edits", "join", "selected_only", "bad_inputs",
-             "wrong_objects", "display", "render", "render_edges", "animation", "reregister")
+             "wrong_objects", "display", "render", "render_antialiased", "render_edges", "animation", "reregister")
     keep_objects = ("Cube", "Camera", "Light")     # the startup scene; every step adds only splat meshes
     orphan_kinds = ("meshes",)
     inventory_kinds = ("objects", "meshes", "materials", "node_groups", "cameras", "collections")
@@ -315,6 +315,20 @@ class Worker(BlenderWorker):
         scene.render.filepath = str(self.out / "render_persp_agx.png")
         bpy.ops.render.render(write_still=True)
         res["hidden_render"] = obj.hide_render
+        return res
+
+    def render_antialiased(self):
+        """Splats made for antialiased rendering (a PLY that says so): the object keeps the mark, the
+        engine renders them so, export writes it; beside classic splats both render classic."""
+        bpy = self.bpy
+        obj = self.import_file("scene_aa.ply", axis_forward="Y", axis_up="Z")
+        res = {"marked": bool(obj.data.get("splatwright_antialiased", False))}
+        scene, cam = self.setup_render(RENDER_CASES["persp"])
+        res["alone"] = self.render_png(scene, cam, "render_aa")
+        res["export"] = self.export("aa.spz", axis_forward="Y", axis_up="Z")
+        self.import_file("b.ply", axis_forward="Y", axis_up="Z")
+        res["mixed"] = self.render_png(scene, cam, "render_aa_mixed")
+        res["mixed_export"] = self.export("mixed.spz", axis_forward="Y", axis_up="Z")
         return res
 
     def render_edges(self):

@@ -306,13 +306,17 @@ class Worker(BlenderWorker):
         bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, radius=0.8)
         sphere = bpy.context.active_object
         res = {}
-        for key, calibrate in (("off", False), ("on", True)):
+        data = self.module("splat_addon.data")
+        for key, calibrate, made_for in (("off", False, "CLASSIC"), ("on", True, "CLASSIC"),
+                                         ("antialiased", True, "ANTIALIASED")):
             with self.counted_renders() as renders:
                 op, created = self.convert([sphere], max_splats=1500, calibrate=calibrate, view_near=1.0,
-                                           view_far=1.0, view_count=1, view_size=48)
-            res[key] = {**op, "renders": dict(renders), "count": len(created[0].data.vertices)}
+                                           view_far=1.0, view_count=1, view_size=48, made_for=made_for)
+            res[key] = {**op, "renders": dict(renders), "count": len(created[0].data.vertices),
+                        "antialiased": data.object_cloud(created[0]).antialiased}
             self.save(f"calibration_{key}", **self.source_dump(sphere), **self.splat_dump(created[0]))
-        res["default"] = bpy.ops.splat.from_mesh.get_rna_type().properties["calibrate"].default
+        props = bpy.ops.splat.from_mesh.get_rna_type().properties
+        res["default"], res["made_for"] = props["calibrate"].default, props["made_for"].default
         return res
 
     def demo_rig(self):
@@ -584,6 +588,8 @@ class Worker(BlenderWorker):
                               "--no-calibrate"],
             "from-mesh blend": ["from-mesh", str(d / "grid.blend"), "--objects", "Grid", "--max-splats", "100",
                                 "--no-calibrate"],
+            "from-mesh antialiased": ["from-mesh", str(d / "grid_aa.spz"), "--objects", "Grid", "--max-splats", "100",
+                                      "--no-calibrate", "--mode", "antialiased"],
             "from-mesh camera": ["from-mesh", str(d / "cam.ply"), "--objects", "Camera"],
             "from-mesh unknown": ["from-mesh", str(d / "cam.ply"), "--objects", "Nope"],
             "from-mesh bad extension": ["from-mesh", str(d / "grid.xyz"), "--objects", "Grid"],
