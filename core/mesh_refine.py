@@ -393,9 +393,9 @@ def _why(m, stop, max_splats, render_mode="classic"):
     outline = ("edge-on splats render outlines about a pixel fat in classic 3DGS rendering; one cloud cannot "
                "match the outline at every distance: antialiased mode can" if render_mode == "classic" else
                "a splat's Gaussian edge is softer than the mesh's pixel-filtered one; larger views make it thinner")
-    where = (f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes ({outline})") if share >= 0.5 else \
-        f"{1 - share:.0%} of its error lies inside the surface (texture detail finer than the splats or the " \
-        f"renderer's 0.3 px^2 low-pass)"
+    where = f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes ({outline})" \
+        if share >= 0.5 else f"{1 - share:.0%} of its error lies inside the surface (texture detail finer than " \
+                             f"the splats or the renderer's 0.3 px^2 low-pass)"
     return f"{cause}; {where}"
 
 

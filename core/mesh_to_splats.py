@@ -46,7 +46,8 @@ def mesh_to_splats(vertices, faces, *, progress=None, **options):
 def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
                          corner_colors=None, max_splats=None, target_psnr=None,
                          overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
-                         view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True, info=None):
+                         view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True,
+                         info=None):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into

@@ -80,4 +80,5 @@ def write_splats(path, cloud, **options):
     return _module(path).write(path, cloud, **options)
 
 
-__all__ = ["DEFAULT_EXTENSIONS", "FORMATS", "RECORDS_ANTIALIASED", "SplatFileError", "SplatFileWarning", "file_sizes", "format_of", "read_splats", "write_splats"]
+__all__ = ["DEFAULT_EXTENSIONS", "FORMATS", "RECORDS_ANTIALIASED", "SplatFileError", "SplatFileWarning", "file_sizes",
+           "format_of", "read_splats", "write_splats"]

@@ -799,7 +799,8 @@ def instances_cloud(depsgraph, instances, conversion=np.eye(4)):
     made_antialiased = sorted({obj.name for obj, _ in instances if own[obj.name].antialiased})
     if made_antialiased and len(made_antialiased) < len(own):
         warnings.warn(f"{', '.join(made_antialiased)}: made for antialiased rendering, shown classic beside "
-                      "splats made for classic rendering (outlines about a pixel wider)", SplatModeWarning, stacklevel=2)
+                      "splats made for classic rendering (outlines about a pixel wider)", SplatModeWarning,
+                      stacklevel=2)
         clouds = [c.replace(antialiased=False) for c in clouds]
     return SplatCloud.concatenate(clouds)
 

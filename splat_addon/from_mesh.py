@@ -551,7 +551,8 @@ def shown_options(mode, view_source, appearance):
     size = ["mode", "max_splats", "target_psnr" if mode == "QUALITY" else "calibrate", "use_rest_pose"]
     around = view_source == "AROUND" or appearance == "RENDERED"
     views = ["view_source", *(("view_near", "view_far") if around else ()), "view_count", "view_size"]
-    look = ["made_for", "appearance", *(("bake_views", "bake_samples", "bake_degree") if appearance == "RENDERED" else ())]
+    bake = ("bake_views", "bake_samples", "bake_degree") if appearance == "RENDERED" else ()
+    look = ["made_for", "appearance", *bake]
     return [size, views, look]
 
 

@@ -539,7 +539,8 @@ def test_cli_from_mesh_help_lists_the_bake_options(blender):
     run = _outcome(blender, "from-mesh help")
     assert run["code"] == 0 and run["stderr"] == ""
     text = " ".join(run["stdout"].split())                    # argparse wraps the help
-    for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}", "--bake-views N", "(1-256; default 16)", "--bake-samples N",
+    for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}",
+                  "--bake-views N", "(1-256; default 16)", "--bake-samples N",
                   "(1-4096; default 16)", "--bake-degree D", "(0-3; default 2)", "--view-size PX",
                   "(16-2048; default 256)"):
         assert words in text, words
