@@ -3,20 +3,22 @@ splat count and conversion time, per mesh.
 
 Meshes: our own (a textured UV sphere, a thin-walled cup with different colours outside and
 inside, a large textured plane seen down to floor level), Blender primitives (Suzanne, a torus;
-made by bpy in a subprocess) and pybullet's data meshes (duck.obj with its texture, bunny.obj)
-when the pybullet_data package is importable. The independent reference is Blender Cycles
-(headless bpy in a subprocess): emission-only materials so the image is unlit, the 'Standard'
-view transform so pixels are sRGB-encoded emission, CPU, black world. Held-out views: three per
-distance, at 0.5x, 1x and 3x the distance that frames the mesh, from random directions (fixed
-seed; the plane's from 2 to 50 degrees above it), none among the converter's own. Our splats are
-rendered by core.render in classic mode. Errors: PSNR over the views of each distance together,
-and the mean SSIM of all nine.
+made by bpy in a subprocess) and pybullet's data meshes (duck.obj with its texture, bunny.obj, the
+Franka Panda's hand with five materials; pybullet is installed once in bench/.oracles, see
+_oracles.py). The independent reference is Cycles (headless bpy in a subprocess): emission-only
+materials so the image is unlit, the 'Standard' view transform so pixels are sRGB-encoded
+emission, CPU, black world. Held-out views: three per distance, at 0.5x, 1x and 3x the distance
+that frames the mesh, from random directions (fixed seed; the plane's from 2 to 50 degrees above
+it), none among the converter's own. Our splats are rendered by core.render in the mode they were
+made for (the converter's default, classic, unless the row says otherwise). Errors: PSNR over the
+views of each distance together, and the mean SSIM of all nine.
 
-Rows per mesh: the default conversion (target 36 dB), budgets with their calibration, and the same
-budgets without it (as budgets were converted before: more splats rendered worse). Speed: a
-100k-triangle textured sphere to 1M splats (uncalibrated budget) against a per-triangle Python loop,
-and for the sphere and Suzanne the default conversion's CPU seconds against the converter as of
-SPEED_BEFORE (alternating runs), with the PSNR each reaches.
+Rows per mesh: the default conversion (target 36 dB), the same made for antialiased rendering,
+budgets with their calibration, the same budgets without it (as budgets were converted before:
+more splats rendered worse) and made for antialiased rendering. Speed: a 100k-triangle textured sphere to 1M splats
+(uncalibrated budget) against a per-triangle Python loop, and for the sphere and Suzanne the
+classic conversion's CPU seconds against the converter as of SPEED_BEFORE (alternating runs), with
+the PSNR each reaches.
 
     python bench/mesh2splats.py [--quick]
 """
@@ -33,13 +35,14 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+from _oracles import pybullet_data  # noqa: E402
 from common import Row, Timing, paired, print_rows, timeit  # noqa: E402
 
 from splatwright.core import SplatCloud  # noqa: E402
 from splatwright.core import metrics  # noqa: E402
 from splatwright.core.camera import Camera, opengl_camera_to_world  # noqa: E402
 from splatwright.core.mesh import Material, Mesh  # noqa: E402
-from splatwright.core.mesh_to_splats import DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
+from splatwright.core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
 from splatwright.core.scenes import thin_walled_cup  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
@@ -124,13 +127,14 @@ def blender_primitives(folder):
 
 
 def pybullet_meshes():
-    """pybullet_data's duck (textured) and bunny, or a note saying why there are none."""
+    """pybullet_data's duck (textured), bunny and Franka hand (multi-material), or a note saying why
+    there are none."""
     try:
-        import pybullet_data
-    except ImportError:
-        return {}, "pybullet_data is not installed (pip install pybullet): its meshes were not measured"
-    root = Path(pybullet_data.getDataPath())
-    return {"pybullet duck": read_mesh(root / "duck.obj"), "pybullet bunny": read_mesh(root / "bunny.obj")}, ""
+        root = pybullet_data()
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return {}, f"pybullet's data could not be installed ({exc}): its meshes were not measured"
+    return {"pybullet duck": read_mesh(root / "duck.obj"), "pybullet bunny": read_mesh(root / "bunny.obj"),
+            "pybullet robot hand (5 materials)": read_mesh(root / "franka_panda/meshes/visual/hand.obj")}, ""
 
 
 def bench_meshes(folder, quick):
@@ -409,6 +413,7 @@ def by_distance(cloud, cams, references):
 
 # the default conversion against the converter before its speed-up ----------------------------------
 
+OTHER_MODE = "antialiased" if DEFAULT_RENDER_MODE == "classic" else "classic"
 SPEED_BEFORE = "b588814"     # the last commit before the default conversion was made faster
 SPEED_MESHES = ("textured sphere", "Blender Suzanne")
 
@@ -427,19 +432,21 @@ def converter_before():
 
 
 def speed_before_row(name, mesh, size, cams, references, quick):
-    """CPU seconds of the default conversion, today's against SPEED_BEFORE's in alternating runs,
-    with the worst own-view and held-out PSNR each reaches."""
+    """CPU seconds of the default target conversion made for classic rendering (SPEED_BEFORE's only
+    mode), today's against SPEED_BEFORE's in alternating runs, with the worst own-view and held-out
+    PSNR each reaches."""
     before = converter_before()
     runs = {}
 
-    def conversion(fn, key):
+    def conversion(fn, key, **mode):
         def run():
             info = {}
-            cloud = fn(mesh.vertices, mesh.faces, **mesh.appearance(), view_size=size, info=info)
+            cloud = fn(mesh.vertices, mesh.faces, **mesh.appearance(), view_size=size, info=info, **mode)
             runs[key] = (cloud, info)
         return run
 
-    base, ours = paired(conversion(before, "before"), conversion(mesh_to_splats, "ours"), 1 if quick else 3,
+    base, ours = paired(conversion(before, "before"), conversion(mesh_to_splats, "ours", render_mode="classic"),
+                        1 if quick else 3,
                         time.process_time, warmup=False)
     error = {}
     for key, prefix in (("ours", ""), ("before", "before ")):
@@ -447,7 +454,7 @@ def speed_before_row(name, mesh, size, cams, references, quick):
         held = by_distance(cloud, cams, references)
         error[f"{prefix}own worst dB"] = info["psnr"]
         error[f"{prefix}held-out worst dB"] = min(held[f"dB {d:g}x"] for d in DISTANCES)
-    return Row(TOPIC, f"{name}: default conversion, CPU s, against {SPEED_BEFORE} (before the speed-up)", ours,
+    return Row(TOPIC, f"{name}: classic conversion, CPU s, against {SPEED_BEFORE} (before the speed-up)", ours,
                base, error=error, extra={"faces": len(mesh.faces), "splats": len(runs["ours"][0]),
                                          "splats before": len(runs["before"][0])})
 
@@ -455,13 +462,24 @@ def speed_before_row(name, mesh, size, cams, references, quick):
 def mesh_rows(name, mesh, size, budgets, folder, quick=False):
     cams = held_out_cameras(mesh, size, floor="plane" in name)
     references, cycles_s = cycles_render(mesh, [cam for _, cam in cams], folder)
-    rows, curve = [], {"calibrated": [], "before": []}
+    rows, curve = [], {"calibrated": [], "before": [], OTHER_MODE: []}
     info = {}
     start = time.perf_counter()
     cloud = convert(mesh, view_size=size, info=info)
     seconds = time.perf_counter() - start
-    rows.append(Row(TOPIC, f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB)", Timing(seconds, 0.0, 1),
+    rows.append(Row(TOPIC, f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB, {DEFAULT_RENDER_MODE})",
+                    Timing(seconds, 0.0, 1),
                     error=by_distance(cloud, cams, references),
+                    extra={"faces": len(mesh.faces), "splats": len(cloud), "own worst dB": f"{info['psnr']:.1f}",
+                           "reached": info["reached"],
+                           "worst own view": f"{info['worst_view_distance']:g}x, "
+                                             f"{info['worst_view_edge_share']:.0%} on silhouettes"}))
+    info = {}
+    start = time.perf_counter()
+    cloud = convert(mesh, view_size=size, info=info, render_mode=OTHER_MODE)
+    seconds = time.perf_counter() - start
+    rows.append(Row(TOPIC, f"{name}: default, made for {OTHER_MODE} rendering", Timing(seconds, 0.0, 1),
+                    error=by_distance(cloud, cams, references),        # rendered in its own mode
                     extra={"faces": len(mesh.faces), "splats": len(cloud), "own worst dB": f"{info['psnr']:.1f}",
                            "reached": info["reached"],
                            "worst own view": f"{info['worst_view_distance']:g}x, "
@@ -484,6 +502,15 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
         curve["before"].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
         rows.append(Row(TOPIC, f"{name}: budget {n}, uncalibrated (as before)", Timing(seconds, 0.0, 1),
                         error=error, extra={"splats": n}))
+        info = {}
+        start = time.perf_counter()
+        cloud = convert(mesh, max_splats=n, view_size=size, info=info, render_mode=OTHER_MODE)
+        seconds = time.perf_counter() - start
+        error = by_distance(cloud, cams, references)
+        curve[OTHER_MODE].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
+        rows.append(Row(TOPIC, f"{name}: budget {n}, made for {OTHER_MODE} rendering", Timing(seconds, 0.0, 1),
+                        error=error, extra={"splats": n, "spread": f"{info['spread']:g}",
+                                            "inset px": f"{info['inset_pixels']:.2f}"}))
     return rows, curve, (cams, references, cycles_s)
 
 
@@ -517,11 +544,12 @@ def _plot(curves, path):
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for k, (name, curve) in enumerate(curves.items()):
         colour = f"C{k}"
-        for kind, style in (("calibrated", "o-"), ("before", "x:")):
+        for kind, style, note in (("calibrated", "o-", ""), ("before", "x:", " (uncalibrated)"),
+                                  (OTHER_MODE, "s--", f" ({OTHER_MODE})")):
             pts = sorted(curve[kind])
             if pts:
                 n, p = zip(*pts)
-                ax.plot(n, p, style, color=colour, label=f"{name}" + (" (uncalibrated)" if kind == "before" else ""))
+                ax.plot(n, p, style, color=colour, label=name + note)
     ax.set_xscale("log")
     ax.set_xlabel("splats (budget)")
     ax.set_ylabel("worst distance's PSNR vs Cycles (dB)")
