@@ -541,7 +541,7 @@ def _plot(curves, path):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(10, 5))
     for k, (name, curve) in enumerate(curves.items()):
         colour = f"C{k}"
         for kind, style, note in (("calibrated", "o-", ""), ("before", "x:", " (uncalibrated)"),
@@ -555,7 +555,7 @@ def _plot(curves, path):
     ax.set_ylabel("worst distance's PSNR vs Cycles (dB)")
     ax.grid(True, alpha=0.3)
     ax.axhline(DEFAULT_TARGET_PSNR, color="gray", lw=0.8)
-    ax.legend(fontsize=6)
+    ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5))     # beside the curves, not on them
     fig.suptitle("mesh2splats: budget against PSNR at 0.5x, 1x, 3x held-out views")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
