@@ -416,7 +416,12 @@ def geometry_cloud(geometry, owner=None, form=None, spec_owner=None):
     read = _read_mesh_form if form == MESH_FORM else _read_native_form
     spec_owner = spec_owner or geometry
     return SplatCloud(**read(geometry, owner), extras=_read_extras(geometry, owner, spec_owner),
-                      antialiased=bool(spec_owner.get(ANTIALIASED, False)))
+                      antialiased=made_antialiased(spec_owner))
+
+
+def made_antialiased(geometry):
+    """Whether a splat datablock's splats were made for antialiased rendering."""
+    return bool(geometry.get(ANTIALIASED, False))
 
 
 def _keep_mode(geometry, cloud):

@@ -334,6 +334,11 @@ def _join_problem(target, others):
         return "select the splat objects to join into the active one"
     if not any(data.splat_count(o.data) for o in others):      # Blender's Join would cancel
         return f"nothing to join: the selected splat objects hold no splats ({', '.join(o.name for o in others)})"
+    antialiased = data.made_antialiased(target.data)
+    other_mode = [o.name for o in others if data.made_antialiased(o.data) != antialiased]
+    if other_mode:
+        return (f"{', '.join(other_mode)}: made for {'classic' if antialiased else 'antialiased'} rendering, "
+                f"'{target.name}' for {'antialiased' if antialiased else 'classic'}; one object renders one way")
     matrix = np.array(target.matrix_world, dtype=np.float64)
     if not np.isfinite(matrix).all():
         return f"'{target.name}' has a transform holding NaN or Inf: splats cannot be joined into it"

@@ -367,6 +367,8 @@ def test_splats_made_for_antialiased_rendering_render_and_export_so(blender):
     mixed = _core_image(both, res["mixed"], transparent=False)
     assert np.abs(_png(blender.out / "render_aa_mixed.png") - np.clip(mixed.color, 0, 1)).max() <= 1 / 255
     assert not res["mixed_export"]["error"] and not spz.read(blender.out / "mixed.spz").antialiased
+    assert "made for classic rendering" in res["join"]["error"] and res["join"]["result"] == ["CANCELLED"]
+    assert len(res["after_join"]) == 2                                  # nothing joined, nothing lost
 
 
 def test_render_near_clip_removes_splats(blender):

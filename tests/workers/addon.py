@@ -326,9 +326,12 @@ class Worker(BlenderWorker):
         scene, cam = self.setup_render(RENDER_CASES["persp"])
         res["alone"] = self.render_png(scene, cam, "render_aa")
         res["export"] = self.export("aa.spz", axis_forward="Y", axis_up="Z")
-        self.import_file("b.ply", axis_forward="Y", axis_up="Z")
+        other = self.import_file("b.ply", axis_forward="Y", axis_up="Z")
         res["mixed"] = self.render_png(scene, cam, "render_aa_mixed")
         res["mixed_export"] = self.export("mixed.spz", axis_forward="Y", axis_up="Z")
+        self.select([obj, other], active=obj)
+        res["join"] = self.call(bpy.ops.splat.join)
+        res["after_join"] = sorted(o.name for o in bpy.data.objects if o.type == "MESH" and o.name != "Cube")
         return res
 
     def render_edges(self):
