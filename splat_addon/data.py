@@ -801,9 +801,9 @@ def instances_cloud(depsgraph, instances, conversion=np.eye(4)):
         clouds.append(_transformed(obj, own[obj.name], conversion @ matrix))
     if len(clouds) == 1:
         return clouds[0]
-    made_antialiased = sorted({obj.name for obj, _ in instances if own[obj.name].antialiased})
-    if made_antialiased and len(made_antialiased) < len(own):
-        warnings.warn(f"{', '.join(made_antialiased)}: made for antialiased rendering, shown classic beside "
+    marked = sorted(name for name, cloud in own.items() if cloud.antialiased)
+    if marked and len(marked) < len(own):
+        warnings.warn(f"{', '.join(marked)}: made for antialiased rendering, shown classic beside "
                       "splats made for classic rendering (outlines about a pixel wider)", SplatModeWarning,
                       stacklevel=2)
         clouds = [c.replace(antialiased=False) for c in clouds]

@@ -321,8 +321,7 @@ def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_
 
 
 def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, calibrate=True,
-                   render_mode=DEFAULT_RENDER_MODE,
-                   progress=None, warn=print, rest=False, **view_options):
+                   render_mode=DEFAULT_RENDER_MODE, progress=None, warn=print, rest=False, **view_options):
     """(SplatCloud in object space, source record) for one mesh object as `depsgraph` evaluates it;
     `calibrate`, `render_mode` and `view_options` as object_steps takes them."""
     read = read_object(obj, depsgraph, warn, rest)
