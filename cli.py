@@ -102,6 +102,7 @@ def summarize(cloud):
     return {
         "count": len(cloud),
         "sh_degree": cloud.sh_degree,
+        "made_for": "antialiased rendering" if cloud.antialiased else "classic rendering",
         "bbox_min": pos.min(axis=0).tolist() if len(pos) else None,
         "bbox_max": pos.max(axis=0).tolist() if len(pos) else None,
         "opacity": stats(cloud.opacities[finite]),

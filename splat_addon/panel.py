@@ -55,6 +55,8 @@ def draw_stats(box, obj, stats):
     col = box.column(align=True)
     form = "Blender point cloud" if data.splat_form(obj) == data.NATIVE_FORM else "splat mesh"
     col.label(text=f"{stats.count:,} splats, SH degree {stats.sh_degree} ({form})")
+    if data.made_antialiased(obj.data):
+        col.label(text="Made for antialiased rendering")
     col.label(text=f"Memory: {human_bytes(stats.memory)}")
     col.label(text="File size:")
     for fmt, size in stats.sizes.items():

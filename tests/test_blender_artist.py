@@ -79,6 +79,7 @@ def test_panel_draws_the_numbers_display_settings_and_existing_operators(blender
     labels = res["labels"]
     assert labels[0] == "123 splats, SH degree 1 (splat mesh)"
     assert labels[1] == f"Memory: {4 * 123 * (3 + 4 + 3 + 1 + 12) / 1024:.1f} KiB"
+    assert res["marked_labels"] == labels[:1] + ["Made for antialiased rendering"] + labels[1:]
     from splatwright.io import ply
     assert f"    PLY: {ply.file_size(123, 1) / 1024:.1f} KiB" in labels
     assert f"    .splat: {123 * 32 / 1024:.1f} KiB" in labels

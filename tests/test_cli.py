@@ -39,7 +39,10 @@ def test_info_json_matches_the_cloud_written(capsys, scene):
     largest_sigma = np.exp(cloud.log_scales.astype(np.float64)).max(axis=1)
     assert info["scale"]["median"] == pytest.approx(np.median(largest_sigma), rel=1e-12)
     assert info["non_finite_splats"] == 0 and info["problems"] == [] and info["warnings"] == []
-    assert info["extras"] == ["segment"]
+    assert info["extras"] == ["segment"] and info["made_for"] == "classic rendering"
+    ply.write(path, cloud.replace(antialiased=True))
+    code, out, err = run(capsys, "info", path, "--json")
+    assert json.loads(out)["made_for"] == "antialiased rendering"
 
 
 def test_info_text_names_every_field(capsys, scene):

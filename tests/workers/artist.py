@@ -149,7 +149,11 @@ class Worker(BlenderWorker):
                 set_props = [key for key in kw.get("_set", {})]
                 ok = (kind != "operator_menu_enum" or args[1] in props) and all(k in props for k in set_props)
                 checks.append([kind, args[0], ok])
-        return {"labels": [kw.get("text") for kind, _, kw in layout.calls if kind == "label"], "checks": checks}
+        labels = lambda calls: [kw.get("text") for kind, _, kw in calls if kind == "label"]  # noqa: E731
+        obj.data[self.module("splat_addon.data").ANTIALIASED] = True       # as splats made for that mode
+        marked = Recorder()
+        panel.draw(type("Drawn", (), {"layout": marked})(), bpy.context)
+        return {"labels": labels(layout.calls), "checks": checks, "marked_labels": labels(marked.calls)}
 
     def panel_numbers(self):
         """The panel's numbers for an imported cloud, and files written from the same object."""
