@@ -65,8 +65,9 @@ def read_splats(path, **options):
     return _module(path).read(path, **options)
 
 
-# formats that record whether splats were made for antialiased rendering (SPZ's flag, a PLY comment)
-RECORDS_ANTIALIASED = {"ply", "spz"}
+# formats that record whether splats were made for antialiased rendering (SPZ's flag, a PLY comment,
+# a custom OpenUSD attribute)
+RECORDS_ANTIALIASED = {"ply", "spz", "usd"}
 
 
 def write_splats(path, cloud, **options):
@@ -75,7 +76,8 @@ def write_splats(path, cloud, **options):
     readers of that file will render it classic, with fatter outlines."""
     if cloud.antialiased and format_of(path) not in RECORDS_ANTIALIASED:
         warnings.warn(f"{path}: this format cannot record that the splats were made for antialiased rendering; "
-                      "readers will render them classic (outlines about a pixel wider); PLY and SPZ record it",
+                      "readers will render them classic (outlines about a pixel wider); PLY, SPZ and OpenUSD "
+                      "record it",
                       SplatFileWarning, stacklevel=2)
     return _module(path).write(path, cloud, **options)
 

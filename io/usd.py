@@ -33,7 +33,8 @@ Reading (`read`, `read_stage`, `read_frames`)
 - Our own files also carry `splatwright:opacityLogits`, `splatwright:logScales` and
   `splatwright:rotations` (float32 as the model stores them), used when they still agree with
   `opacities`/`scales`/`orientations`, so PLY -> USD -> PLY is exact; and a cloud read from USD and
-  written back unchanged reproduces the file's linear values.
+  written back unchanged reproduces the file's linear values. `splatwright:antialiased` (true)
+  marks splats made for antialiased rendering (SplatCloud.antialiased).
 
 Writing (`write`, `write_stage`, `write_frames`): a Y-up, metersPerUnit 1 stage holding the values
 as the reference converters (OpenUSD's hdParticleField example, NVIDIA's usd-convert-gsplat) write
@@ -90,6 +91,7 @@ SH_COEFFS = "radiance:sphericalHarmonicsCoefficients"
 LOGITS = "splatwright:opacityLogits"
 LOG_SCALES = "splatwright:logScales"
 RAW_ROTATIONS = "splatwright:rotations"           # w, x, y, z as the model holds them (any norm)
+ANTIALIASED = "splatwright:antialiased"           # authored (true) for splats made for antialiased rendering
 UPRIGHT_OP = "xformOp:transform:upright"          # capture (y down, z forward) -> the Y-up stage
 UPRIGHT = np.diag([1.0, -1.0, -1.0, 1.0])         # a half turn about X, exact in a matrix op
 LAYOUTS = ("upright", "y-up", "as-is")
@@ -112,7 +114,7 @@ SCHEMA = {
     SH_COEFFS + "h": ("half3[]", False, "CreateRadianceSphericalHarmonicsCoefficientshAttr"),
     "extent": ("float3[]", False, "CreateExtentAttr"),
 }
-CUSTOM = {LOGITS: "float[]", LOG_SCALES: "float3[]", RAW_ROTATIONS: "float4[]"}
+CUSTOM = {LOGITS: "float[]", LOG_SCALES: "float3[]", RAW_ROTATIONS: "float4[]", ANTIALIASED: "bool"}
 
 # NumPy dtype of an extra -> Sdf scalar type of its primvar (narrow ints widen to int, restored on read)
 EXTRA_TYPES = {"float32": "float", "float64": "double", "float16": "half", "int32": "int",
@@ -720,7 +722,9 @@ def _gaussian_cloud(prim, time, notes):
     scales = np.ones((n, 3), np.float32) if scales is None else scales
     logits = _logits_from(opacities, stored_logits, notes)
     log_scales = _log_scales_from(scales, stored_logs, notes)
-    cloud = SplatCloud(positions, rotations, log_scales, logits, sh, _extras(prim, time, n, set(), notes))
+    marked = prim.GetAttribute(ANTIALIASED)
+    cloud = SplatCloud(positions, rotations, log_scales, logits, sh, _extras(prim, time, n, set(), notes),
+                       antialiased=bool(marked and marked.HasAuthoredValue() and marked.Get()))
     return cloud, opacities, np.abs(scales)
 
 
@@ -1342,6 +1346,8 @@ def _author_prim(path, stage, prim_path, frames, times, options):
         if prim is None:                     # the first frame sets the prim up
             prim = _define_splat_prim(stage, prim_path)
             _attribute(prim, SH_DEGREE).Set(cloud.sh_degree)
+            if cloud.antialiased:
+                _attribute(prim, ANTIALIASED).Set(True)
             if options.layout == "upright" and options.axes == "RDF":
                 _upright_op(prim)
             extras = _extra_primvars(path, prim, cloud)

@@ -123,7 +123,7 @@ def parser():
                    help="a budget: calibrate the silhouettes against renders of the mesh and the splats (default; "
                         "a few seconds per object); --no-calibrate renders nothing and keeps the splats on the surface")
     p.add_argument("--mode", choices=("classic", "antialiased"), default=from_mesh.DEFAULT_RENDER_MODE,
-                   help="the rendering the splats are made for, kept on the objects and in PLY and SPZ files "
+                   help="the rendering the splats are made for, kept on the objects and in PLY, SPZ and OpenUSD files "
                         f"(default {from_mesh.DEFAULT_RENDER_MODE}, what every viewer renders; antialiased keeps "
                         "outlines right at every distance)")
     p.add_argument("--posed", action="store_true",

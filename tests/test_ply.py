@@ -188,7 +188,7 @@ def test_antialiased_splats_say_so_in_a_comment_other_readers_skip(tmp_path):
 
 def test_formats_that_cannot_record_antialiased_splats_warn(tmp_path):
     cloud = random_cloud(20, sh_degree=0).replace(antialiased=True)
-    for name in ("x.splat", "x.usda"):
+    for name in ("x.splat", "x.glb"):
         with pytest.warns(SplatFileWarning, match="cannot record that the splats were made for antialiased"):
             write_splats(tmp_path / name, cloud)
     with warnings.catch_warnings():

@@ -38,6 +38,7 @@ CASES = {
     "exact": lambda p: usd.write(p, extras_cloud()),
     "half": lambda p: usd.write(p, random_cloud(30, 2, seed=2), half=True, half_positions=True),
     "y-up": lambda p: usd.write(p, random_cloud(30, 1, seed=3), layout="y-up", exact=False),
+    "antialiased": lambda p: usd.write(p, random_cloud(12, 2, seed=7).replace(antialiased=True)),
     "frames": lambda p: usd.write_frames(p, (moved(extras_cloud(), k) for k in range(3)), times=[1, 2, 5], fps=30),
     "stage": lambda p: usd.write_stage(p, {"/World/A": random_cloud(9, 0, seed=4),
                                            "/World/B": [random_cloud(7, 3, seed=5), random_cloud(7, 3, seed=6)]},
@@ -125,6 +126,7 @@ def _assert_same_reading(a, b, exact=True):
     for (_, x), (_, y) in zip(frames_a, frames_b):
         for field in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
             check(getattr(x, field), getattr(y, field))
+        assert x.antialiased == y.antialiased
         assert x.extras.keys() == y.extras.keys()
         for key in x.extras:
             assert x.extras[key].dtype == y.extras[key].dtype
@@ -141,6 +143,22 @@ def test_text_reader_reads_what_pxr_writes_as_pxr_does(tmp_path, monkeypatch, ca
     want = _read_everything(path)
     monkeypatch.setattr(usd, "Usd", None)
     _assert_same_reading(want, _read_everything(path))
+
+
+def test_splats_made_for_antialiased_rendering_are_marked_as_pxr_reads_it(tmp_path, monkeypatch):
+    for writer in ("pxr", "text"):
+        if writer == "text":
+            monkeypatch.setattr(usd, "Usd", None)
+        CASES["antialiased"](tmp_path / f"{writer}.usda")
+        monkeypatch.undo()
+        stage = Usd.Stage.Open(str(tmp_path / f"{writer}.usda"))
+        attr = stage.GetPrimAtPath("/Splats").GetAttribute("splatwright:antialiased")
+        assert attr.IsCustom() and attr.Get() is True
+        assert usd.read(tmp_path / f"{writer}.usda").antialiased
+    usd.write(tmp_path / "classic.usda", random_cloud(12, 2, seed=7))
+    stage = Usd.Stage.Open(str(tmp_path / "classic.usda"))
+    assert not stage.GetPrimAtPath("/Splats").GetAttribute("splatwright:antialiased")
+    assert not usd.read(tmp_path / "classic.usda").antialiased
 
 
 def test_transform_ops_units_and_up_axis_read_as_pxr_reads_them(tmp_path, monkeypatch):
