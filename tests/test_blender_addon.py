@@ -363,6 +363,7 @@ def test_splats_made_for_antialiased_rendering_render_and_export_so(blender):
     assert np.abs(png - np.clip(image.color, 0, 1)).max() <= 1 / 255
     assert np.abs(png - np.clip(classic.color, 0, 1)).max() > 4 / 255      # the modes differ here
     assert spz.read(blender.out / "aa.spz").antialiased
+    assert not res["export_usd"]["error"] and read(blender.out / "aa.usd").antialiased
     both = SplatCloud.concatenate([made.replace(antialiased=False), read(blender.work / "b.ply")])
     mixed = _core_image(both, res["mixed"], transparent=False)
     assert np.abs(_png(blender.out / "render_aa_mixed.png") - np.clip(mixed.color, 0, 1)).max() <= 1 / 255

@@ -326,6 +326,7 @@ class Worker(BlenderWorker):
         scene, cam = self.setup_render(RENDER_CASES["persp"])
         res["alone"] = self.render_png(scene, cam, "render_aa")
         res["export"] = self.export("aa.spz", axis_forward="Y", axis_up="Z")
+        res["export_usd"] = self.export("aa.usd", axis_forward="Y", axis_up="Z")      # text on 4.2, crate after
         other = self.import_file("b.ply", axis_forward="Y", axis_up="Z")
         res["mixed"] = self.render_png(scene, cam, "render_aa_mixed")
         res["mixed_export"] = self.export("mixed.spz", axis_forward="Y", axis_up="Z")
