@@ -35,7 +35,6 @@ import numpy as np
 
 from . import geometry, sh as shmod
 from .parallel import in_chunks
-from .splats import SplatCloud
 
 # Blender leaves a vertex in place when the total of its weights is not above this.
 MIN_TOTAL_WEIGHT = 1e-4
@@ -548,5 +547,5 @@ def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretc
 
     in_chunks(n, work, _CHUNK)
     new_sh = shmod.rotate(cloud.sh, turn) if turn is not None else cloud.sh
-    return SplatCloud(positions, rotations, log_scales, cloud.opacity_logits, new_sh, dict(cloud.extras),
-                      antialiased=cloud.antialiased)
+    return cloud.replace(positions=positions, rotations=rotations, log_scales=log_scales, sh=new_sh,
+                         extras=dict(cloud.extras))

@@ -138,17 +138,18 @@ class SplatCloud:
         """Select splats by boolean mask, integer indices or slice."""
         if isinstance(index, (int, np.integer)):
             index = [index]
-        return SplatCloud(*(getattr(self, name)[index] for name in FIELDS),
-                          extras={k: v[index] for k, v in self.extras.items()}, antialiased=self.antialiased)
+        return self.replace(**{name: getattr(self, name)[index] for name in FIELDS},
+                            extras={k: v[index] for k, v in self.extras.items()})
 
     select = __getitem__
 
     def copy(self):
-        return SplatCloud(*(getattr(self, name).copy() for name in FIELDS),
-                          extras={k: v.copy() for k, v in self.extras.items()}, antialiased=self.antialiased)
+        return self.replace(**{name: getattr(self, name).copy() for name in FIELDS},
+                            extras={k: v.copy() for k, v in self.extras.items()})
 
     def replace(self, **changes):
-        """A new cloud with some fields replaced (arrays are shared, not copied)."""
+        """A new cloud with some fields replaced (arrays are shared, not copied); what is not replaced,
+        such as the render mode the splats were made for, carries over."""
         return replace(self, **changes)
 
     def __repr__(self):
