@@ -2,15 +2,17 @@
 
 The mesh is rendered once from the views (the user's cameras, or by default four around it at each
 of 0.5, 1 and 3 times the distance that frames it) by the reference rasteriser (core.mesh_render,
-black background). Target mode then starts coarse (one splat per START_SPACING^2 pixels of the
-finest view of each face) and repeats: build splats, render them with core.render from the same
-views, compare, attribute every pixel's squared error to the face seen there (background pixels to
-the nearest face), and multiply the density of faces whose local error is above the target by how
-far above it they are (at most MAX_GROWTH a round and MAX_PER_PIXEL splats per pixel), until the
-worst of the views reaches the target. A face that got denser without its error dropping is left
-alone until the silhouettes are calibrated again: more splats cannot fix what the renderer's
-low-pass filter blurs. After PATIENCE rounds in a row that rendered no better than the best so far
-(each with its shift searched again), refinement stops: the splats stacked edge-on along denser
+black background). A face's pixel is that of the finest view whose frustum holds it, seen there
+or not, so that views from other directions at the same distances are served as well as these.
+Target mode then starts coarse (one splat per START_SPACING^2 pixels of each face) and repeats:
+build splats, render them with core.render from the same views, compare, attribute every pixel's
+squared error to the face seen there (background pixels to the nearest face), and multiply the
+density of faces whose local error is above the target by how far above it they are (at most
+MAX_GROWTH a round and MAX_PER_PIXEL splats per pixel), until the worst of the views reaches the
+target. A face that got denser without its error dropping is left alone until the silhouettes are
+calibrated again: more splats cannot fix what the renderer's low-pass filter blurs. After
+PATIENCE rounds in a row that rendered no better than the best so far (each with its shift
+searched again), refinement stops: the splats stacked edge-on along denser
 outlines fatten them more than the extra splats gain. Once reached, two bisection steps between
 the last two densities look for a smaller cloud that still reaches it; when not, the result says
 which view is worst and why.
@@ -128,17 +130,20 @@ class _Views:
         self.edges = [_edge_band(ref.alpha, EDGE_BAND) for ref in self.refs]
 
     def _pixel_sizes(self):
-        """World size of one pixel at each face in the finest view that sees it."""
+        """World size of one pixel at each face in the finest view whose frustum holds it, whether
+        that view sees the face or not: a view from elsewhere at the same distance may see it as
+        close, so sizes (densities, silhouette shifts) in these pixels carry over to such views."""
         s = self.surface
         center = s.origin + (s.edge1 + s.edge2) / 3
         size = np.full(len(s.faces), np.inf)
         for cam, ref in zip(self.cameras, self.refs):
-            seen = np.flatnonzero(np.bincount(ref.face[ref.face >= 0], minlength=len(s.faces)))
-            depth = cam.to_camera(center[seen])[:, 2]
-            px = np.full(len(seen), 1.0 / cam.fx) if cam.is_orthographic else depth / cam.fx
-            size[seen] = np.minimum(size[seen], px)
+            xy, depth = cam.project(center)
+            framed = (depth > 0) & (xy >= 0).all(axis=1) & (xy[:, 0] <= cam.width) & (xy[:, 1] <= cam.height)
+            framed[ref.face[ref.face >= 0]] = True      # seen, if only in part
+            px = np.full(len(center), 1.0 / cam.fx) if cam.is_orthographic else np.maximum(depth, cam.near) / cam.fx
+            size = np.where(framed, np.minimum(size, px), size)
         finite = np.isfinite(size)
-        # Faces no view sees keep the coarsest density a seen face could have.
+        # Faces no view frames keep the coarsest density a framed face could have.
         size[~finite] = size[finite].max() if finite.any() else 1.0
         return size
 

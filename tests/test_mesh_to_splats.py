@@ -536,6 +536,26 @@ def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_bes
     assert "more splats no longer lowered the error" in info["limit"]
 
 
+def test_a_face_is_sized_by_the_finest_view_that_frames_it_seen_or_not():
+    """Views from elsewhere at the same distance see the far side as close as these see the near
+    side: a face's pixel is depth / focal length in the finest view whose frustum holds it, hidden
+    or not, and faces outside every frustum get the coarsest pixel of the framed ones."""
+    from splatwright.core.mesh_refine import _Views
+    v, f, _ = uv_sphere(24, 12)
+    v = np.concatenate([v, v + (40.0, 0, 0)])                  # a second sphere, out of every view
+    f = np.concatenate([f, f + len(v) // 2])
+    surface = Surface(v, f)
+    cams = [Camera.look_at((0, 0, z), (0, 0, 0), fov_deg=40, width=32, height=32) for z in (4.0, 8.0)]
+    views = _Views(surface, cams, "classic", surface.outward_signs() != 0)
+    centre = v[f].mean(axis=1)
+    near = (4.0 - centre[:, 2]) / cams[0].fx                   # the closer view frames the whole sphere
+    first = np.arange(len(f)) < len(f) // 2
+    hidden = first & (centre[:, 2] < -0.5)
+    assert hidden.sum() > 50
+    np.testing.assert_allclose(views.pixel[first], near[first], rtol=1e-12)
+    np.testing.assert_allclose(views.pixel[~first], near[first].max(), rtol=1e-12)
+
+
 def thin_walled_cup():
     cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=32)
     return cup.vertices, cup.faces, cup.face_materials, cup.materials
