@@ -536,6 +536,23 @@ def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_bes
     assert "more splats no longer lowered the error" in info["limit"]
 
 
+def test_wall_thickness_of_faces_finer_than_its_points():
+    """Faces much smaller than the points' spacing share points: every face of a finely cut 5 mm
+    cup still gets its wall, not the rim's (40 mm of solid below it, past the reach), and a sphere
+    none."""
+    from splatwright.core.mesh_to_splats import wall_thickness
+    cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=512)
+    surface = Surface(cup.vertices, cup.faces)
+    n = 512
+    thickness = wall_thickness(surface, 0.02)
+    assert surface.area.max() < (0.02 / 2) ** 2 / 10          # ten faces or more per point
+    sides = np.r_[0:2 * n, 4 * n:8 * n]                         # outer and inner walls, floor, bottom
+    np.testing.assert_allclose(thickness[sides], 0.005, rtol=0.1)
+    assert np.isinf(thickness[2 * n:4 * n]).all()
+    v, f, _ = uv_sphere(96, 48)
+    assert np.isinf(wall_thickness(Surface(v, f), 0.5)).all()
+
+
 def test_a_face_is_sized_by_the_finest_view_that_frames_it_seen_or_not():
     """Views from elsewhere at the same distance see the far side as close as these see the near
     side: a face's pixel is depth / focal length in the finest view whose frustum holds it, hidden
