@@ -6,16 +6,25 @@ perspective-correct and faces crossing the near plane need no clipping). The z-b
 nearest hit per pixel, chunk by chunk of face rows, and the hit's surface colour is looked up once
 per pixel. Supersampling s x s averages scene-linear colour, as a path tracer's pixel filter does.
 Faces are two-sided (an emission shader shows both sides).
+
+That NumPy path is the readable reference and the fallback. Where numba loads (core.jit), the same
+per-candidate arithmetic runs as compiled loops (core/mesh_render_kernels.py) over every core's
+share of the pixel rows, with no candidate lists; it gives the same buffers bit for bit.
+`rasterize(..., backend=...)` picks one.
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from . import color
+from . import color, jit
 from .mesh import Surface, shade, to_display
+from .parallel import WORKERS, map_threads
 
 CANDIDATES_PER_CHUNK = 1 << 21
+BACKENDS = ("auto", "compiled", "numpy")
+KERNELS = "core.mesh_render_kernels"     # the compiled module, loaded by core.jit
+THREADED_PIXELS = 1 << 16                 # smaller images are drawn on the calling thread
 
 
 @dataclass
@@ -31,12 +40,13 @@ class MeshRender:
     samples: int
 
 
-def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, **appearance):
+def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, backend="auto", **appearance):
     """Render a mesh through a core Camera. `surface` is a core.mesh.Surface, a Mesh, or vertices
     (V,3) with `faces=` and the other appearance arguments of mesh_to_splats.
 
     Each pixel averages its supersample x supersample samples in linear light (a box filter,
     which matches Blender Cycles' default pixel filter to within 0.05 px of edge position).
+    backend: the rasteriser's, as for rasterize().
     """
     surface = _as_surface(surface, appearance)
     s = int(supersample)
@@ -44,7 +54,7 @@ def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, **ap
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     cam = camera.with_(width=camera.width * s, height=camera.height * s, fx=camera.fx * s, fy=camera.fy * s,
                        cx=camera.cx * s, cy=camera.cy * s)
-    face, bary, depth = rasterize(surface, cam)
+    face, bary, depth = rasterize(surface, cam, backend=backend)
     hit = face >= 0
     bg_linear = color.srgb_to_linear(np.asarray(background, np.float64).reshape(3))
     linear = np.empty(face.shape + (3,))
@@ -82,8 +92,47 @@ def _rays(cam, px, py):
     return np.column_stack([(px + 0.5 - cam.cx) / cam.fx, (py + 0.5 - cam.cy) / cam.fy, np.ones(len(px))])
 
 
-def rasterize(surface, cam):
-    """Nearest face per pixel: (face (H,W) int64, -1 where none; bary (H,W,3); depth (H,W))."""
+def rasterize(surface, cam, backend="auto"):
+    """Nearest face per pixel: (face (H,W) int64, -1 where none; bary (H,W,3); depth (H,W)).
+    Of faces at the same depth, the lowest index wins.
+
+    backend: "auto" (or None: the compiled kernel where numba loads, else NumPy), "compiled"
+    (an error if it cannot load) or "numpy". Both give the same buffers."""
+    backend = "auto" if backend is None else backend
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    kernels = None if backend == "numpy" else jit.load(KERNELS, check=_check_kernels)
+    if kernels is None and backend == "compiled":
+        raise RuntimeError(f"compiled mesh rasteriser is not available: {jit.status(KERNELS)}")
+    return _rasterize(kernels, surface, cam)
+
+
+def backend_status():
+    """'compiled' when the compiled kernel loads here (loading it), else why NumPy is used."""
+    jit.load(KERNELS, check=_check_kernels)
+    return jit.status(KERNELS)
+
+
+def _check_kernels(kernels):
+    """Run the compiled kernel once on a small scene (compiling it, or loading it from the cache)
+    and compare with the NumPy path: a broken build falls back to NumPy, not a wrong image."""
+    from .camera import Camera
+    rng = np.random.default_rng(0)
+    n = 24
+    vertices = np.concatenate([rng.normal(0, 0.6, (n, 3)) + [0, 0, 3],
+                               [[-3, 0.5, 1.0], [3, 0.6, 1.0], [0, 0.7, 9.0]]])    # through the near plane
+    faces = rng.integers(0, n, (40, 3))
+    faces = np.concatenate([faces, [[n, n + 1, n + 2]], faces[1:2]])    # and a twin of a seen face
+    surface = Surface(vertices, faces)
+    for camera in (Camera.look_at((0.3, -0.4, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20, near=0.5),
+                   Camera.look_at_ortho((0.3, -0.4, 0.0), (0, 0, 3), ortho_scale=2.5, width=24, height=20)):
+        got, want = _rasterize(kernels, surface, camera), _rasterize(None, surface, camera)
+        if not all(np.array_equal(g, w) for g, w in zip(got, want)):
+            raise RuntimeError("the compiled mesh rasteriser disagrees with the NumPy path on a test scene")
+
+
+def _rasterize(kernels, surface, cam):
+    """rasterize() by the compiled kernels, or by NumPy when kernels is None."""
     h, w = cam.height, cam.width
     zbuf = np.full(h * w, np.inf)
     fbuf = np.full(h * w, -1, np.int64)
@@ -91,7 +140,22 @@ def rasterize(surface, cam):
     v = cam.to_camera(surface.vertices)[surface.faces]                  # (F,3,3) camera space
     faces, x0, x1, y0, y1 = _screen_boxes(surface, cam, v)
     a, b, c = _edge_functions(v[faces], cam)
-    depths = v[faces, :, 2]
+    depths = np.ascontiguousarray(v[faces, :, 2])
+    if kernels is not None:
+        # Row y goes to call y % n: the rows of a face, and so the work, are dealt out evenly.
+        n = min(WORKERS, h) if h * w >= THREADED_PIXELS else 1
+        map_threads(lambda first: kernels.rasterize_rows(
+            a, b, c, depths, faces, x0, x1, y0, y1, float(cam.near), float(cam.far), w, first, n,
+            zbuf, fbuf, bbuf), range(n))
+    else:
+        _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bbuf)
+    depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
+    return fbuf.reshape(h, w), bbuf.reshape(h, w, 3), depth.reshape(h, w)
+
+
+def _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bbuf):
+    """Draw the faces (edge functions, corner depths, boxes) into the flat buffers."""
+    w = cam.width
     rows_face = np.repeat(np.arange(len(faces)), y1 - y0)
     rows_y = y0[rows_face] + _ramp(y1 - y0)
     # Along a row only x changes: e = a x + (b y + c), the bracket once per row.
@@ -108,8 +172,6 @@ def rasterize(surface, cam):
         e += np.repeat(brackets[start:stop], rw, axis=0)
         _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), zbuf, fbuf, bbuf)
         start = stop
-    depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
-    return fbuf.reshape(h, w), bbuf.reshape(h, w, 3), depth.reshape(h, w)
 
 
 def _row_spans(a, bracket, x0, x1, margin=1.0):
@@ -184,14 +246,17 @@ def _screen_boxes(surface, cam, v):
 
 def _keep_nearest(cam, e, local, depths, faces, pix, zbuf, fbuf, bbuf):
     """Of the candidates (edge functions e (M,3) of face faces[local] at pixel pix), keep each
-    pixel's nearest hit in the buffers (ties to the lower face index)."""
-    total = e.sum(axis=1)
+    pixel's nearest hit in the buffers (ties to the lower face index). The sums are written out
+    term by term, not left to sum or einsum (whose order of adding varies): the compiled kernel
+    adds in this order too, so both give the same bits."""
+    total = e[:, 0] + e[:, 1] + e[:, 2]
     lowest = np.minimum(np.minimum(e[:, 0], e[:, 1]), e[:, 2])
     highest = np.maximum(np.maximum(e[:, 0], e[:, 1]), e[:, 2])
     inside = np.flatnonzero((total != 0) & ((lowest >= 0) | (highest <= 0)))
     local, pix = local[inside], pix[inside]
     bary = e[inside] / total[inside, None]
-    z = np.einsum("ik,ik->i", bary, depths[local])
+    d = depths[local]
+    z = bary[:, 0] * d[:, 0] + bary[:, 1] * d[:, 1] + bary[:, 2] * d[:, 2]
     keep = np.flatnonzero((z > cam.near) & (z <= cam.far))
     # One sort by pixel, then the nearest (and of equals the lowest face) per run of a pixel: a
     # face has at most one candidate per pixel, so exactly one row per pixel is left.

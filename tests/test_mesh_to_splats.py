@@ -1,14 +1,17 @@
 """Mesh to splats: sampling statistics, coverage, colours, frames, extras, hard cases, the mesh
-rasteriser against brute-force ray casting, and the target-PSNR mode."""
+rasteriser against brute-force ray casting (and its compiled path against its NumPy one), and the
+target-PSNR mode."""
+
+import importlib.util
 
 import numpy as np
 import pytest
 
-from splatwright.core import scenes, sh
+from splatwright.core import jit, mesh_render, scenes, sh
 from splatwright.core.camera import Camera
 from splatwright.core.mesh import Material, Surface
 from splatwright.core.mesh_refine import default_views
-from splatwright.core.mesh_render import render_mesh
+from splatwright.core.mesh_render import rasterize, render_mesh
 from splatwright.core.mesh_to_splats import WALL_SIGMAS, build_splats, mesh_to_splats
 from splatwright.core.metrics import psnr
 from splatwright.core.render import render
@@ -392,6 +395,119 @@ def test_rasteriser_supersampling_averages_linear_light():
     np.testing.assert_allclose(got.color[:, 4], srgb(0.5), atol=1e-6)
     np.testing.assert_allclose(got.alpha[:, 5:], 1.0)
     np.testing.assert_allclose(got.alpha[:, :4], 0.0)
+
+
+needs_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None or not jit.enabled(),
+                                 reason="numba is not installed, or compiled kernels are turned off")
+
+
+def assert_backends_agree(surface, cam):
+    """The compiled rasteriser (which must load: backend="compiled" raises otherwise) gives the
+    NumPy path's buffers bit for bit; returns them."""
+    want = rasterize(surface, cam, backend="numpy")
+    got = rasterize(surface, cam, backend="compiled")
+    for name, g, w in zip(("face", "bary", "depth"), got, want):
+        assert g.dtype == w.dtype and g.shape == w.shape, name
+        np.testing.assert_array_equal(g, w, err_msg=name)
+    return want
+
+
+def tilted(v, seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return v @ q.T
+
+
+@needs_numba
+def test_compiled_rasteriser_loads_and_is_the_default():
+    assert mesh_render.backend_status() == "compiled"
+    v, f, uv = uv_sphere(24, 12)
+    surface = Surface(v, f, uv)
+    cam = Camera.look_at((0.5, 0.8, 3.0), (0, 0, 0), fov_deg=50, width=48, height=40)
+    for default in (rasterize(surface, cam), rasterize(surface, cam, backend=None)):
+        for g, w in zip(default, rasterize(surface, cam, backend="compiled")):
+            np.testing.assert_array_equal(g, w)
+    with pytest.raises(ValueError, match="backend"):
+        rasterize(surface, cam, backend="gpu")
+
+
+@needs_numba
+@pytest.mark.parametrize("workers", [1, 2, 3])
+@pytest.mark.parametrize("ortho", [False, True])
+def test_compiled_rasteriser_matches_numpy_on_unstructured_meshes(ortho, workers, monkeypatch):
+    """A sphere and a jittered, tilted grid through it, large enough to be split over threads
+    (row y drawn by call y % workers)."""
+    monkeypatch.setattr(mesh_render, "WORKERS", workers)
+    sv, sf, _ = uv_sphere(48, 24)
+    gv, gf = grid_plane(20, jitter=0.35, seed=3, size=2.4)
+    v = np.concatenate([sv * [1.0, 0.8, 1.1], tilted(gv - [1.2, 1.2, 0.0], seed=4)])
+    surface = Surface(v, np.concatenate([sf, gf + len(sv)]))
+    if ortho:
+        cam = Camera.look_at_ortho((0.7, 1.1, 3.0), (0, 0, 0), ortho_scale=2.6, width=320, height=256)
+    else:
+        cam = Camera.look_at((0.7, 1.1, 3.0), (0, 0, 0), fov_deg=45, width=320, height=256)
+    assert cam.width * cam.height >= mesh_render.THREADED_PIXELS
+    face, _, _ = assert_backends_agree(surface, cam)
+    assert (face >= len(sf)).any() and (face >= 0).mean() > 0.3
+
+
+@needs_numba
+def test_compiled_rasteriser_matches_numpy_where_the_near_plane_cuts_faces():
+    v, f, _ = uv_sphere(32, 16)
+    surface = Surface(v, f)
+    for near in (0.3, 0.6, 0.95):       # from just in front of the sphere to deep into it
+        cam = Camera.look_at((0.2, 0.3, 1.4), (0, 0, 0), fov_deg=70, width=96, height=80, near=near)
+        face, _, depth = assert_backends_agree(surface, cam)
+        hit = face >= 0
+        assert hit.any() and (depth[hit] > near).all()
+    # Far plane through the sphere too.
+    cam = Camera.look_at((0.2, 0.3, 2.5), (0, 0, 0), fov_deg=50, width=96, height=80, far=2.4)
+    assert_backends_agree(surface, cam)
+
+
+@needs_numba
+@pytest.mark.parametrize("ortho", [False, True])
+def test_compiled_rasteriser_matches_numpy_on_edge_on_faces_and_pixel_centre_edges(ortho):
+    """A grid seen exactly edge-on (its plane holds the eye, or the view direction), and a quad
+    whose diagonal and sides run through pixel centres."""
+    gv, gf = grid_plane(6, jitter=0.2, seed=1)
+    quad = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    v = np.concatenate([gv - [0.5, 0.5, 0.0], quad * [1, 1, 0] + [0, 0, 0.3]])
+    v[:len(gv)] = v[:len(gv)][:, [0, 2, 1]]                 # the grid in the plane y = 0
+    f = np.concatenate([gf, [[0, 1, 2], [0, 2, 3]] + np.array(len(gv))])
+    surface = Surface(v, f)
+    if ortho:       # 16 px over 2 units, offset half a pixel: pixel centres at x, y = i / 8 - 0.875
+        cam = Camera.look_at_ortho((1 / 16, 1 / 16, 3.0), (1 / 16, 1 / 16, 0.0), ortho_scale=2.0, width=16, height=16)
+    else:
+        cam = Camera.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov_deg=40, width=17, height=17)
+    face, _, _ = assert_backends_agree(surface, cam)
+    assert (face >= len(gf)).any()
+
+
+@needs_numba
+def test_compiled_rasteriser_breaks_depth_ties_to_the_lower_face():
+    sv, sf, _ = uv_sphere(16, 8)
+    gv, gf = grid_plane(4, jitter=0.3, seed=2)
+    v = np.concatenate([sv, tilted(gv - 0.5, seed=5)])
+    f = np.concatenate([sf, gf + len(sv)])
+    twins = np.concatenate([f[::-1], f[::-1]])              # every face twice, the copies later
+    surface = Surface(v, twins)
+    for cam in (Camera.look_at((0.4, 0.9, 3.0), (0, 0, 0), fov_deg=50, width=64, height=48),
+                Camera.look_at_ortho((0.4, 0.9, 3.0), (0, 0, 0), ortho_scale=2.5, width=64, height=48)):
+        face, _, _ = assert_backends_agree(surface, cam)
+        hit = face >= 0
+        assert hit.any() and (face[hit] < len(f)).all()
+
+
+@needs_numba
+def test_render_mesh_is_the_same_image_on_both_rasterisers():
+    tex, _ = affine_texture()
+    v, f, uv = uv_sphere(24, 12)
+    surface = Surface(v, f, uv, materials=[Material(texture=tex, texture_srgb=False)])
+    cam = Camera.look_at((0.5, 0.8, 3.0), (0, 0, 0), fov_deg=45, width=40, height=32)
+    want = render_mesh(surface, cam, supersample=3, backend="numpy")
+    got = render_mesh(surface, cam, supersample=3, backend="compiled")
+    for name in ("color", "alpha", "depth", "face"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
 
 
 # target PSNR -----------------------------------------------------------------------------------
