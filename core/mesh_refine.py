@@ -3,7 +3,9 @@
 The mesh is rendered once from the views (the user's cameras, or by default four around it at each
 of 0.5, 1 and 3 times the distance that frames it) by the reference rasteriser (core.mesh_render,
 black background). A face's pixel is that of the finest view whose frustum holds it, seen there
-or not, so that views from other directions at the same distances are served as well as these.
+or not, so that views from other directions at the same distances are served as well as these;
+made for antialiased rendering with the default views, that of the nearest view from anywhere at
+their nearest distance (antialiased outlines are as sharp as the finest pixel that sees them).
 Target mode then starts coarse (one splat per START_SPACING^2 pixels of each face) and repeats:
 build splats, render them with core.render from the same views, compare, attribute every pixel's
 squared error to the face seen there (background pixels to the nearest face), and multiply the
@@ -89,6 +91,17 @@ def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV,
         views.append(Camera.look_at(center + distance * d, center, fov_deg=fov_deg, width=size, height=size,
                                     near=max(distance - 1.5 * radius, distance * 1e-3)))
     return views
+
+
+def _pixel_all_around(surface, cameras):
+    """World size of one pixel at each face in the closest view that views around the mesh stand
+    for: a camera at the smallest of their distances from its centre, from any direction."""
+    pts = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
+    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
+    nearest = min(float(np.linalg.norm(cam.center - centre)) for cam in cameras)
+    face_centre = surface.origin + (surface.edge1 + surface.edge2) / 3
+    depth = nearest - np.linalg.norm(face_centre - centre, axis=1)
+    return np.array([np.maximum(depth, cam.near) / cam.fx for cam in cameras]).min(axis=0)
 
 
 @dataclass
@@ -235,6 +248,10 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         raise ValueError("need at least one view")
     outward = surface.outward_signs()
     v = _Views(surface, cameras, render_mode, outward != 0)
+    if views is None and render_mode == "antialiased":
+        # Antialiased outlines are as sharp as the finest pixel that sees them, and a view from
+        # elsewhere at the nearest distance may come closer to a face than any of these: size for it.
+        v.pixel = np.minimum(v.pixel, _pixel_all_around(surface, cameras))
     area = surface.area
     density = np.where(surface.valid, 1.0 / (START_SPACING * v.pixel) ** 2, 0.0)
     if uniform:

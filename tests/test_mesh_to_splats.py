@@ -689,6 +689,22 @@ def test_a_face_is_sized_by_the_finest_view_that_frames_it_seen_or_not():
     np.testing.assert_allclose(views.pixel[~first], near[first].max(), rtol=1e-12)
 
 
+def test_antialiased_default_views_size_faces_for_the_nearest_view_from_anywhere():
+    """The default views stand for views from every direction at their distances: made for
+    antialiased rendering, a face is sized for the nearest such view (closed form for a sphere
+    centred on the views' target), seen or framed by these twelve or not."""
+    from splatwright.core.mesh_refine import _pixel_all_around, _Views
+    v, f, _ = uv_sphere(24, 12)
+    surface = Surface(v, f)
+    cams = default_views(surface, 64)
+    nearest = min(np.linalg.norm(cam.center) for cam in cams)
+    face_centre = v[f].mean(axis=1)
+    want = (nearest - np.linalg.norm(face_centre, axis=1)) / cams[0].fx
+    np.testing.assert_allclose(_pixel_all_around(surface, cams), want, rtol=1e-12)
+    # Finer than the twelve views frame most faces.
+    assert (want < _Views(surface, cams, "classic", np.zeros(len(f), bool)).pixel).mean() > 0.5
+
+
 def thin_walled_cup():
     cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=32)
     return cup.vertices, cup.faces, cup.face_materials, cup.materials
