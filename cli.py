@@ -355,8 +355,8 @@ def _add_mesh2splats(p):
     p.add_argument("--view-count", type=int, default=None, metavar="N", help="views at each distance (default 4)")
     p.add_argument("--mode", choices=("classic", "antialiased"), default=DEFAULT_RENDER_MODE,
                    help="the render mode the splats are made for, which the file records (SPZ's flag, a PLY "
-                        f"header comment, an OpenUSD attribute); default {DEFAULT_RENDER_MODE}, what every viewer "
-                        "renders; antialiased keeps silhouettes right at every distance")
+                        f"header comment, an OpenUSD attribute); default {DEFAULT_RENDER_MODE}: antialiased keeps "
+                        "silhouettes right at every distance, classic is for viewers that cannot render antialiased")
     p.add_argument("--calibrate", action=argparse.BooleanOptionalAction, default=True,
                    help="with --max-splats: calibrate the silhouettes against renders of the mesh and the splats "
                         "from the views (default; seconds per 100k splats); --no-calibrate renders nothing and "

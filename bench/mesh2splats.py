@@ -327,7 +327,7 @@ def versus(images, references):
     return {"psnr_db": float(10 * np.log10(1 / mse)), "ssim": float(ssim)}
 
 
-def splat_error(cloud, cameras, references, mode="classic"):
+def splat_error(cloud, cameras, references, mode=None):
     return versus([render(cloud, cam, mode=mode).color for cam in cameras], references)
 
 

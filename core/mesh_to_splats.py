@@ -25,9 +25,10 @@ from .parallel import WORKERS, map_threads
 from .splats import SplatCloud, logit
 
 DEFAULT_TARGET_PSNR = 36.0
-# The rendering splats are made for by default: classic, what every viewer renders. Antialiased
-# outlines hold at every distance, but flat splats seen edge-on fade (see the design notes).
-DEFAULT_RENDER_MODE = "classic"
+# The rendering splats are made for by default: antialiased, whose outlines hold at every distance
+# (classic outlines fatten by pixels, so no one cloud suits near and far views); "classic" for
+# viewers that cannot render antialiased (see the design notes).
+DEFAULT_RENDER_MODE = "antialiased"
 EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
 WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
@@ -58,8 +59,9 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     silhouettes of solid parts calibrated for the views (`calibrate=False` skips that: no renders).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
     the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
-    `render_mode` is also the mode the cloud is made for (its `antialiased` flag): "classic" (the
-    default) is what every viewer renders, "antialiased" gives right silhouettes at every distance.
+    `render_mode` is also the mode the cloud is made for (its `antialiased` flag): "antialiased"
+    (the default) gives right silhouettes at every distance, "classic" is for viewers that cannot
+    render antialiased.
     With neither, the target is DEFAULT_TARGET_PSNR.
     Views (where quality is measured): `views`, a list of core Cameras (a scene camera along its
     path, say), or by default `view_count` cameras (4) at each of `view_distances` (0.5, 1, 3:

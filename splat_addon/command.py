@@ -124,8 +124,8 @@ def parser():
                         "a few seconds per object); --no-calibrate renders nothing and keeps the splats on the surface")
     p.add_argument("--mode", choices=("classic", "antialiased"), default=from_mesh.DEFAULT_RENDER_MODE,
                    help="the rendering the splats are made for, kept on the objects and in PLY, SPZ and OpenUSD files "
-                        f"(default {from_mesh.DEFAULT_RENDER_MODE}, what every viewer renders; antialiased keeps "
-                        "outlines right at every distance)")
+                        f"(default {from_mesh.DEFAULT_RENDER_MODE}: antialiased keeps outlines right at every "
+                        "distance, classic is for viewers that cannot render antialiased)")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
     p.add_argument("--view-size", type=_whole_number(*from_mesh.VIEW_SIZES), metavar="PX", default=from_mesh.VIEW_SIZE,

@@ -590,13 +590,12 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     view_size: IntProperty(name="View Size", default=VIEW_SIZE, min=VIEW_SIZES[0], max=VIEW_SIZES[1],
                            description="Pixels across each view quality is measured in")
     made_for: EnumProperty(name="Made For", default=DEFAULT_RENDER_MODE.upper(), items=(
-        ("CLASSIC", "Classic Rendering", "Splats sized for classic 3DGS rendering, which every viewer does: "
-                                         "outlines right at the views' distances only"),
         ("ANTIALIASED", "Antialiased Rendering", "Splats sized for antialiased (opacity-compensated, "
                                                  "Mip-Splatting) rendering: outlines right at every distance in "
                                                  "Splatwright's renders and in viewers that read SPZ's flag "
-                                                 "(classic viewers draw them about a pixel fatter); flat splats "
-                                                 "seen edge-on fade, so thin walls can show their far side")))
+                                                 "(classic viewers draw them about a pixel fatter)"),
+        ("CLASSIC", "Classic Rendering", "Splats sized for classic 3DGS rendering, for viewers that cannot "
+                                         "render antialiased: outlines right at the views' distances only")))
     appearance: EnumProperty(name="Appearance", default="BASE_COLOR", items=(
         ("BASE_COLOR", "Base Color", "The surface's Base Color (texture, colour attribute), unlit"),
         ("RENDERED", "Rendered (Cycles)", "The look Cycles renders in this scene (its lights, world and "

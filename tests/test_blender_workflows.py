@@ -265,7 +265,7 @@ def test_from_mesh_calibrates_silhouettes_only_when_asked(blender):
     """Calibrate Silhouettes (on by default) renders the mesh and the splats; off, nothing is rendered
     and every splat lies on its triangle (Blender's own loop triangles), the budget spent either way."""
     res = blender.step("calibration")
-    assert res["default"] is True and res["made_for"] == "CLASSIC"
+    assert res["default"] is True and res["made_for"] == "ANTIALIASED"
     off, on, antialiased = res["off"], res["on"], res["antialiased"]
     assert off["result"] == on["result"] == antialiased["result"] == ["FINISHED"], (off["error"], on["error"])
     assert off["count"] == on["count"] == antialiased["count"] == 1500
@@ -529,10 +529,10 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
     blend = _outcome(blender, "from-mesh blend")
     assert blend["code"] == 0 and (blender.out / "cli" / "grid.blend").stat().st_size > 1000
     assert res["calibrate_default"] is True                # as the operator's (test_from_mesh_calibrates_...)
-    assert not cloud.antialiased                           # classic by default, as the operator's
-    made = _outcome(blender, "from-mesh antialiased")
+    assert cloud.antialiased                               # antialiased by default, as the operator's
+    made = _outcome(blender, "from-mesh classic")
     assert made["code"] == 0, made["stderr"]
-    assert read(blender.out / "cli" / "grid_aa.spz").antialiased      # SPZ's flag, from --mode
+    assert not read(blender.out / "cli" / "grid_classic.spz").antialiased      # SPZ's flag, from --mode
 
 
 def test_cli_from_mesh_help_lists_the_bake_options(blender):

@@ -557,7 +557,7 @@ def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_
     surface = Surface(v, f, materials=materials)
     for cam in default_views(surface, 96, 2, distances=(0.5, 1.0, 3.0)):   # rendered in its own mode by default
         assert psnr(render(cloud, cam).color, render_mesh(surface, cam, supersample=3).color) >= 30.0
-    assert not mesh_to_splats(v, f, max_splats=500, calibrate=False).antialiased        # classic by default
+    assert mesh_to_splats(v, f, max_splats=500, calibrate=False).antialiased        # antialiased by default
 
 
 def test_budget_with_views_keeps_the_count_and_calibrates_silhouettes():
@@ -728,7 +728,8 @@ def test_thin_walls_do_not_show_the_other_side():
         error = np.concatenate([((c - ref.color) ** 2)[o] for c, ref, o in zip(colors, refs, outer)])
         return (blue > 0.05).mean(), -10 * np.log10(error.mean())
 
-    cloud = mesh_to_splats(v, f, face_materials=fm, materials=mats, max_splats=20_000, calibrate=False)
+    cloud = mesh_to_splats(v, f, face_materials=fm, materials=mats, max_splats=20_000, calibrate=False,
+                           render_mode="classic")
     # Splats as wide as 2500 spread evenly would be (sigma 0.35 of the wall): the inside shows.
     even = build_splats(surface, np.full(len(f), 2500 / surface.area.sum()))
     wall_sigma = np.exp(cloud.log_scales[:, :2].astype(np.float64)).max(axis=1)
@@ -736,6 +737,14 @@ def test_thin_walls_do_not_show_the_other_side():
     tinted, clean_db = leak(cloud)
     tinted_even, even_db = leak(even)
     assert tinted < 0.005 and tinted_even > 0.02, (tinted, tinted_even)
+    assert clean_db > even_db + 6, (clean_db, even_db)
+    # Made for antialiased rendering (the default), the discs narrowed along the wall's creases fade
+    # at these grazing 64-pixel views, and the inside shows along the bottom edge and the rim: the
+    # wall's floor still keeps it to a few percent of the pixels, against 9% spread evenly.
+    cloud = mesh_to_splats(v, f, face_materials=fm, materials=mats, max_splats=20_000, calibrate=False)
+    tinted, clean_db = leak(cloud)
+    tinted_even, even_db = leak(even.replace(antialiased=True))
+    assert cloud.antialiased and tinted < 0.03 and tinted_even > 0.08, (tinted, tinted_even)
     assert clean_db > even_db + 6, (clean_db, even_db)
 
 
