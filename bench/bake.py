@@ -7,8 +7,8 @@ Cycles on the CPU (headless bpy in a subprocess, 'Standard' view transform, deno
 transparent to the camera so images come over black). References: 64 samples at mesh2splats' nine
 held-out views (three each at 0.5x, 1x, 3x the framing distance). Bake inputs: 16 samples at
 core.bake.bake_views' 48 views (16 per distance), none of them held out. Splats: a calibrated budget
-conversion; baking fits SH of degree 2 (geometry and opacity kept) by core.bake.bake_sh.
-Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
+conversion made for classic rendering; baking fits SH of degree 2 (geometry and opacity kept) by
+core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
 reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
 so), from the same Cycles views.
 
@@ -49,7 +49,7 @@ def bench_meshes(folder, quick):
 def mesh_rows(name, mesh, size, budget, folder, iterations):
     held = held_out_cameras(mesh, size)
     references, _ = cycles_render(mesh, [cam for _, cam in held], folder, samples=REFERENCE_SAMPLES, lit=True)
-    cloud = convert(mesh, max_splats=budget, view_size=size)
+    cloud = convert(mesh, max_splats=budget, view_size=size, render_mode="classic")
     views = bake_views(mesh.vertices, size)
     images, render_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
     base = by_distance(cloud, held, references)
