@@ -14,10 +14,10 @@ MAX_GROWTH a round and MAX_PER_PIXEL splats per pixel), until the worst of the v
 target. A face that got denser without its error dropping is left alone until the silhouettes are
 calibrated again: more splats cannot fix what the renderer's low-pass filter blurs. After
 PATIENCE rounds in a row that rendered no better than the best so far (each with its shift
-searched again), refinement stops: the splats stacked edge-on along denser
-outlines fatten them more than the extra splats gain. Once reached, two bisection steps between
-the last two densities look for a smaller cloud that still reaches it; when not, the result says
-which view is worst and why.
+searched again), refinement stops: the splats stacked edge-on along denser outlines fatten them
+more than the extra splats gain. Once reached, two bisection steps between the last two densities
+look for a smaller cloud that still reaches it; when not, the result says which view is worst and
+why.
 
 Silhouettes: an opaque surface of Gaussians renders about one pixel fatter than the mesh, because
 the renderer's 0.3 px^2 low-pass spreads every splat seen edge-on and many such splats stack along
@@ -72,10 +72,7 @@ def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV,
         raise ValueError(f"view distances must be positive numbers, got {distances}")
     if int(count) < 1:
         raise ValueError(f"need at least one view per distance, got {count}")
-    pts = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    center = (lo + hi) / 2
-    radius = max(float(np.linalg.norm(pts - center, axis=1).max()), 1e-30)
+    center, radius = _bounding_sphere(surface)
     framing = 1.1 * radius / math.sin(math.radians(fov_deg) / 2)
     total = int(count) * len(distances)
     # A Fibonacci spiral, turned so no view looks straight along a coordinate axis.
@@ -93,11 +90,18 @@ def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV,
     return views
 
 
+def _bounding_sphere(surface):
+    """(centre, radius): the centre of the finite vertices' box, which the default views look at,
+    and the largest distance of a vertex from it."""
+    pts = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
+    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
+    return centre, max(float(np.linalg.norm(pts - centre, axis=1).max()), 1e-30)
+
+
 def _pixel_all_around(surface, cameras):
     """World size of one pixel at each face in the closest view that views around the mesh stand
     for: a camera at the smallest of their distances from its centre, from any direction."""
-    pts = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
-    centre = (pts.min(axis=0) + pts.max(axis=0)) / 2
+    centre, _ = _bounding_sphere(surface)
     nearest = min(float(np.linalg.norm(cam.center - centre)) for cam in cameras)
     face_centre = surface.origin + (surface.edge1 + surface.edge2) / 3
     depth = nearest - np.linalg.norm(face_centre - centre, axis=1)
