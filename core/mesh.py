@@ -272,6 +272,19 @@ class Surface:
             self._cache["welded"] = weld.reshape(-1)[self.faces]
         return self._cache["welded"]
 
+    def edge_neighbours(self):
+        """(f, g): every pair of faces sharing an edge (vertices welded by position), both ways round."""
+        if "neighbours" not in self._cache:
+            faces = self.welded_faces()
+            n = np.int64(len(self.vertices))
+            a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
+            edge = np.minimum(a, b) * n + np.maximum(a, b)
+            order = np.argsort(edge, kind="stable")
+            twin = np.flatnonzero(edge[order][1:] == edge[order][:-1])
+            f, g = order[twin] // 3, order[twin + 1] // 3
+            self._cache["neighbours"] = np.concatenate([f, g]), np.concatenate([g, f])
+        return self._cache["neighbours"]
+
     def sharp_edges(self, angle_deg=25.0):
         """(F,3) bool: edge k of a face (opposite corner k) is an outline edge: on the boundary,
         shared by more than two faces, or a crease whose faces turn by more than `angle_deg`."""

@@ -448,16 +448,10 @@ def _spread_to_unsampled(surface, thickness, unsampled, outward):
     """Give each face in `unsampled` the thickness of the faces it shares an edge with, across
     edges that do not turn by more than 60 degrees (the wall behind a rim is not the rim's), ring
     after ring; of several, the thinnest, the safe guess (smaller splats, smaller shifts)."""
-    faces = surface.welded_faces()
-    n_vertices = np.int64(faces.max() + 1)
-    a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
-    edge = np.minimum(a, b) * n_vertices + np.maximum(a, b)
-    order = np.argsort(edge, kind="stable")
-    twin = np.flatnonzero(edge[order][1:] == edge[order][:-1])
-    f, g = order[twin] // 3, order[twin + 1] // 3
+    f, g = surface.edge_neighbours()
     normal = surface.normal * outward[:, None]
     smooth = np.einsum("ij,ij->i", normal[f], normal[g]) > 0.5
-    f, g = np.concatenate([f[smooth], g[smooth]]), np.concatenate([g[smooth], f[smooth]])
+    f, g = f[smooth], g[smooth]
     known = ~unsampled
     while True:
         step = known[g] & ~known[f]
