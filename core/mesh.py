@@ -224,6 +224,11 @@ class Surface:
     def view_dependent(self):
         return any(m.view_dependent for m in self.materials)
 
+    @property
+    def centroids(self):
+        """(F,3) the faces' centroids."""
+        return self.origin + (self.edge1 + self.edge2) / 3
+
     def points(self, tri, bary):
         """World positions (n,3) float64 of barycentric points (n,3) on faces tri (n,)."""
         return self.origin[tri] + bary[:, 1:2] * self.edge1[tri] + bary[:, 2:3] * self.edge2[tri]

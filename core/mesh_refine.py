@@ -103,8 +103,7 @@ def _pixel_all_around(surface, cameras):
     for: a camera at the smallest of their distances from its centre, from any direction."""
     centre, _ = _bounding_sphere(surface)
     nearest = min(float(np.linalg.norm(cam.center - centre)) for cam in cameras)
-    face_centre = surface.origin + (surface.edge1 + surface.edge2) / 3
-    depth = nearest - np.linalg.norm(face_centre - centre, axis=1)
+    depth = nearest - np.linalg.norm(surface.centroids - centre, axis=1)
     return np.array([np.maximum(depth, cam.near) / cam.fx for cam in cameras]).min(axis=0)
 
 
@@ -151,7 +150,7 @@ class _Views:
         that view sees the face or not: a view from elsewhere at the same distance may see it as
         close, so sizes (densities, silhouette shifts) in these pixels carry over to such views."""
         s = self.surface
-        center = s.origin + (s.edge1 + s.edge2) / 3
+        center = s.centroids
         size = np.full(len(s.faces), np.inf)
         for cam, ref in zip(self.cameras, self.refs):
             xy, depth = cam.project(center)

@@ -163,8 +163,7 @@ def unplaced_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01,
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
         expected *= max_splats / expected.sum()
-    counts = systematic_counts(expected, morton_order(surface.origin + (surface.edge1 + surface.edge2) / 3),
-                               np.random.default_rng(seed))
+    counts = systematic_counts(expected, morton_order(surface.centroids), np.random.default_rng(seed))
     tri, bary = bisection_samples(surface, counts)
     spread = np.maximum(np.broadcast_to(np.asarray(spread, np.float64), counts.shape)[tri], 1.0)
     opacity = np.where(spread > 1, np.minimum(opacity, opacity * SPREAD_GAIN / spread), opacity)
@@ -414,8 +413,7 @@ def wall_thickness(surface, reach, max_points=60_000):
     spacing = max(reach / 2, float(np.sqrt(surface.area[solid].sum() / max_points)))
     expected = np.where(solid, surface.area / spacing**2, 0.0)
     tri, bary = bisection_samples(surface, np.ceil(expected - 1e-9).astype(np.int64))
-    centroid = surface.origin + (surface.edge1 + surface.edge2) / 3
-    asking = systematic_counts(expected, morton_order(centroid), np.random.default_rng(0))
+    asking = systematic_counts(expected, morton_order(surface.centroids), np.random.default_rng(0))
     ask_tri, ask_bary = bisection_samples(surface, asking)
     points, normals = surface.points(tri, bary), surface.normal[tri] * outward[tri, None]
     queries, query_normals = surface.points(ask_tri, ask_bary), surface.normal[ask_tri] * outward[ask_tri, None]
