@@ -127,7 +127,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
         "mode", "max_splats", "target_psnr", "use_rest_pose", "|", "view_source", "view_count", "view_size", "|",
         "made_for", "appearance"]
     assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
-    assert res["numbers"] == {"bake_views": [16, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [2, 0, 3],
+    assert res["numbers"] == {"bake_views": [32, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [2, 0, 3],
                               "view_size": [256, 16, 2048]}
 
 
@@ -540,7 +540,7 @@ def test_cli_from_mesh_help_lists_the_bake_options(blender):
     assert run["code"] == 0 and run["stderr"] == ""
     text = " ".join(run["stdout"].split())                    # argparse wraps the help
     for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}",
-                  "--bake-views N", "(1-256; default 16)", "--bake-samples N",
+                  "--bake-views N", "(1-256; default 32)", "--bake-samples N",
                   "(1-4096; default 16)", "--bake-degree D", "(0-3; default 2)", "--view-size PX",
                   "(16-2048; default 256)"):
         assert words in text, words
