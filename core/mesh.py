@@ -316,28 +316,34 @@ class Surface:
         """Per face +1 or -1 so that sign * normal points out of the solid, 0 where there is no solid.
 
         Computed per connected part (vertices welded by position): a part is a solid when it is
-        consistently wound (no edge used twice in one direction or by more than two faces) and
-        encloses a clear volume: closed, or open like a head with eye holes, whose signed volume
-        around its centre is at least OPEN_VOLUME times its area^1.5 (a sphere has 0.094, a
-        hemisphere 0.067, a flat sheet 0). The sign of that volume tells outward from inward.
+        consistently wound (each edge used at most twice, once in each direction; at most
+        NON_MANIFOLD_SHARE of its edges used more often) and encloses a clear volume: closed, or
+        open like a head with eye holes, whose signed volume around its centre is at least
+        OPEN_VOLUME times its area^1.5 (a sphere has 0.094, a hemisphere 0.067, a flat sheet 0).
+        The sign of that volume tells outward from inward. Faces wound against most of their
+        neighbours (`_misoriented`) count turned round, and get the opposite sign.
         """
-        faces = self.welded_faces()
+        if "outward" not in self._cache:
+            signs = self._outward_signs()
+            signs.flags.writeable = False
+            self._cache["outward"] = signs
+        return self._cache["outward"]
+
+    def _outward_signs(self):
+        flipped = _misoriented(self.welded_faces())
+        faces = np.where(flipped[:, None], self.welded_faces()[:, ::-1], self.welded_faces())
         part = _connected_parts(faces, len(self.vertices))
-        n_vertices = np.int64(len(self.vertices))
-        a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
-        edge_part = np.repeat(part, 3)
-        directed, dcount = np.unique(a * n_vertices + b, return_counts=True)
-        _, inverse, counts = np.unique(np.minimum(a, b) * n_vertices + np.maximum(a, b),
-                                       return_inverse=True, return_counts=True)
-        once = dcount[np.searchsorted(directed, a * n_vertices + b)] == 1
-        reverse = np.isin(b * n_vertices + a, directed)
-        # Consistently wound: each edge used at most twice, once in each direction.
-        wound = (counts[inverse] <= 2) & once & (a != b)
-        closed = wound & (counts[inverse] == 2) & reverse
         n_parts = part.max() + 1 if len(part) else 0
-        consistent = np.bincount(edge_part, weights=~wound, minlength=n_parts) == 0
-        watertight = np.bincount(edge_part, weights=~closed, minlength=n_parts) == 0
-        corners = self.vertices[self.faces]
+        a, b, uses, same_way = _edge_uses(faces)
+        edge_part = np.repeat(part, 3)
+        manifold = uses <= 2
+        wound = ~manifold | (~same_way & (a != b))
+        closed = manifold & wound & (uses == 2)
+        per_part = lambda mask: np.bincount(edge_part, weights=mask, minlength=n_parts)  # noqa: E731
+        edges = np.bincount(edge_part, minlength=n_parts)
+        consistent = (per_part(~wound) == 0) & (per_part(~manifold) <= NON_MANIFOLD_SHARE * edges)
+        watertight = per_part(~closed) == 0
+        corners = self.vertices[np.where(flipped[:, None], self.faces[:, ::-1], self.faces)]
         finite = np.isfinite(corners).all(axis=(1, 2))
         count = np.maximum(np.bincount(part, weights=finite, minlength=n_parts), 1)
         centers = np.stack([np.bincount(part, weights=np.where(finite, corners[:, :, k].mean(axis=1), 0.0),
@@ -346,9 +352,9 @@ class Surface:
         volume = np.bincount(part, weights=np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])) / 6,
                              minlength=n_parts)
         area = np.bincount(part, weights=np.where(self.valid, self.area, 0.0), minlength=n_parts)
-        enclosing = watertight | (consistent & (np.abs(volume) >= OPEN_VOLUME * area**1.5))
+        enclosing = (watertight | (np.abs(volume) >= OPEN_VOLUME * area**1.5)) & consistent
         sign = np.where(enclosing & (volume != 0), np.sign(volume), 0.0)
-        return sign[part] * self.valid
+        return sign[part] * self.valid * np.where(flipped, -1.0, 1.0)
 
     def rim_colors(self, tri):
         """Per-point rim colour (n,3) and a mask of points whose material has one."""
@@ -370,6 +376,34 @@ def to_display(linear):
 
 
 OPEN_VOLUME = 0.03      # enclosed volume / area^1.5 above which an open part counts as a solid
+NON_MANIFOLD_SHARE = 0.01   # a solid's edges may be shared by more than two faces up to this share (fins, seams)
+REWIND_PASSES = 8       # _misoriented's passes: a patch of wrongly wound faces turns a ring per pass
+
+
+def _edge_uses(faces):
+    """Per face edge (corner k to k+1, flattened): its two vertices, how many faces use the edge
+    (either way), and whether another face runs it the same way."""
+    n = np.int64(faces.max() + 1 if faces.size else 0)
+    a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
+    directed, dcount = np.unique(a * n + b, return_counts=True)
+    _, inverse, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True, return_counts=True)
+    return a, b, counts[inverse], dcount[np.searchsorted(directed, a * n + b)] > 1
+
+
+def _misoriented(faces):
+    """(F,) bool: faces wound against more of their neighbours (across edges two faces share) than
+    along with them, as exported meshes have a few. Turned round a ring at a time, so a small
+    patch of them turns whole; two large halves wound against each other stay as they are."""
+    flipped = np.zeros(len(faces), bool)
+    for _ in range(REWIND_PASSES):
+        _, _, uses, same_way = _edge_uses(np.where(flipped[:, None], faces[:, ::-1], faces))
+        pair = (uses == 2).reshape(-1, 3)
+        against = (pair & same_way.reshape(-1, 3)).sum(axis=1)
+        wrong = against > pair.sum(axis=1) - against
+        if not wrong.any():
+            break
+        flipped ^= wrong
+    return flipped
 
 
 def _weld_keys(vertices, tolerance=1e-9):

@@ -320,9 +320,31 @@ def test_solids_know_outside_from_inside():
     bowl = v[f].mean(axis=1)[:, 1] < 0.1
     np.testing.assert_array_equal(Surface(v, f[bowl]).outward_signs(), np.sign(normal_out[bowl]))
     assert not Surface(*grid_plane(4)).outward_signs().any()
+
+
+def test_a_solid_with_a_few_faces_wound_the_wrong_way_or_a_fin_stays_a_solid():
+    v, f, _ = uv_sphere()
+    centre_out = v[f].mean(axis=1)
+
+    def outward(faces):       # the closed form: the sign turning each face's winding normal outward
+        n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+        return np.sign(np.einsum("ij,ij->i", n, centre_out))
+
+    a, b = f[5, 0], f[5, 1]
+    shares_edge = [g for g in range(len(f)) if g != 5 and {a, b} <= set(f[g])]
     flipped = f.copy()
-    flipped[5] = flipped[5, ::-1]
-    assert not Surface(v, flipped).outward_signs().any()            # inconsistent winding
+    for g in [5, *shares_edge, 40]:                                   # a patch of two, and one alone
+        flipped[g] = flipped[g, ::-1]
+    np.testing.assert_array_equal(Surface(v, flipped).outward_signs(), outward(flipped))
+    # A fin on one edge (an edge of three faces) is one non-manifold edge among hundreds.
+    fin_v = np.vstack([v, v[a] + 0.3 * (v[a] - v[f[5, 2]])])
+    fin_f = np.vstack([f, [a, b, len(v)]])
+    np.testing.assert_array_equal(Surface(fin_v, fin_f).outward_signs()[:-1], outward(f))
+    # Two halves wound against each other: no majority to turn round, so no solid.
+    halves = f.copy()
+    top = centre_out[:, 1] > 0
+    halves[top] = halves[top, ::-1]
+    assert not Surface(v, halves).outward_signs().any()
 
 
 # the mesh rasteriser -------------------------------------------------------------------------------
