@@ -330,8 +330,9 @@ class Surface:
         return self._cache["outward"]
 
     def _outward_signs(self):
-        flipped = _misoriented(self.welded_faces())
-        faces = np.where(flipped[:, None], self.welded_faces()[:, ::-1], self.welded_faces())
+        welded = self.welded_faces()
+        flipped = _misoriented(welded)
+        faces = np.where(flipped[:, None], welded[:, ::-1], welded)
         part = _connected_parts(faces, len(self.vertices))
         n_parts = part.max() + 1 if len(part) else 0
         a, b, uses, same_way = _edge_uses(faces)
