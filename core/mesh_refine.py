@@ -253,16 +253,17 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         raise ValueError("need at least one view")
     outward = surface.outward_signs()
     v = _Views(surface, cameras, render_mode, outward != 0)
+    pixel = v.pixel
     if views is None and render_mode == "antialiased":
         # Antialiased outlines are as sharp as the finest pixel that sees them, and a view from
         # elsewhere at the nearest distance may come closer to a face than any of these: size for it.
-        v.pixel = np.minimum(v.pixel, _pixel_all_around(surface, cameras))
+        pixel = np.minimum(pixel, _pixel_all_around(surface, cameras))
     area = surface.area
-    density = np.where(surface.valid, 1.0 / (START_SPACING * v.pixel) ** 2, 0.0)
+    density = np.where(surface.valid, 1.0 / (START_SPACING * pixel) ** 2, 0.0)
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
     walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
-    cap = np.where(surface.valid, MAX_PER_PIXEL / v.pixel**2, 0.0)
+    cap = np.where(surface.valid, MAX_PER_PIXEL / pixel**2, 0.0)
     walls = np.minimum(walls, WALL_BOOST * cap)
     cap = np.maximum(cap, walls)
     density = np.maximum(density, walls)
@@ -277,7 +278,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         # Spread no wider than thin walls allow.
         widest = np.divide(dens, walls, out=np.full(len(dens), np.inf), where=walls > 0)
         spread = np.minimum(spread, np.maximum(widest, 1.0))
-        shift = np.minimum(inset * v.pixel, WALL_INSET * wall)
+        shift = np.minimum(inset * pixel, WALL_INSET * wall)
         for d, s, unplaced in built:
             if np.array_equal(d, dens) and np.array_equal(s, spread):
                 return unplaced.placed(-shift * outward)
