@@ -25,6 +25,7 @@ CANDIDATES_PER_CHUNK = 1 << 21
 BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.mesh_render_kernels"     # the compiled module, loaded by core.jit
 THREADED_PIXELS = 1 << 16                 # smaller images are drawn on the calling thread
+CYCLES_FILTER_WIDTH = 1.5                 # Cycles' default pixel filter: Blackman-Harris, 1.5 px
 
 
 @dataclass
@@ -40,20 +41,24 @@ class MeshRender:
     samples: int
 
 
-def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, backend="auto", **appearance):
+def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, pixel_filter="blackman-harris",
+                filter_width=CYCLES_FILTER_WIDTH, backend="auto", **appearance):
     """Render a mesh through a core Camera. `surface` is a core.mesh.Surface, a Mesh, or vertices
     (V,3) with `faces=` and the other appearance arguments of mesh_to_splats.
 
-    Each pixel averages its supersample x supersample samples in linear light (a box filter,
-    which matches Blender Cycles' default pixel filter to within 0.05 px of edge position).
+    Each pixel weighs the supersample x supersample samples around it in linear light by its pixel
+    filter: by default Blender Cycles' own (Blackman-Harris, `filter_width` in Cycles' units, so its
+    window spans 2 x filter_width pixels and reaches into the neighbours), or "box" (the pixel's
+    own samples, equally). Samples past the frame's edge are rendered, as Cycles' rays reach there.
     backend: the rasteriser's, as for rasterize().
     """
     surface = _as_surface(surface, appearance)
     s = int(supersample)
     if s < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
-    cam = camera.with_(width=camera.width * s, height=camera.height * s, fx=camera.fx * s, fy=camera.fy * s,
-                       cx=camera.cx * s, cy=camera.cy * s)
+    taps, margin = filter_taps(pixel_filter, filter_width, s)
+    cam = camera.with_(width=camera.width * s + 2 * margin, height=camera.height * s + 2 * margin,
+                       fx=camera.fx * s, fy=camera.fy * s, cx=camera.cx * s + margin, cy=camera.cy * s + margin)
     face, bary, depth = rasterize(surface, cam, backend=backend)
     hit = face >= 0
     bg_linear = color.srgb_to_linear(np.asarray(background, np.float64).reshape(3))
@@ -61,11 +66,42 @@ def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, b
     linear[...] = bg_linear
     linear[hit] = _shade_hits(surface, cam, face[hit], bary[hit], np.flatnonzero(hit.ravel()))
     h, w = camera.height, camera.width
-    block = lambda a: a.reshape(h, s, w, s, *a.shape[2:]).mean(axis=(1, 3))  # noqa: E731
-    covered = block(hit.astype(np.float64))
-    mean_depth = np.where(covered > 0, block(np.where(hit, depth, 0.0)) / np.maximum(covered, 1e-300), 0.0)
-    return MeshRender(to_display(block(linear)).astype(np.float32), covered.astype(np.float32),
-                      mean_depth.astype(np.float32), face, s)
+    filtered = lambda a: _filter_axis(_filter_axis(a, taps, s, h, 0), taps, s, w, 1)  # noqa: E731
+    covered = filtered(hit.astype(np.float64))
+    mean_depth = np.where(covered > 0, filtered(np.where(hit, depth, 0.0)) / np.maximum(covered, 1e-300), 0.0)
+    inside = slice(margin, margin + h * s), slice(margin, margin + w * s)
+    return MeshRender(to_display(filtered(linear)).astype(np.float32), covered.astype(np.float32),
+                      mean_depth.astype(np.float32), face[inside], s)
+
+
+def filter_taps(pixel_filter, width, samples):
+    """(weights, margin) of a pixel filter on a grid of `samples` per pixel side: weights of the
+    samples from `margin` before a pixel's own to `margin` after them, summing to 1."""
+    if pixel_filter == "box":
+        return np.full(samples, 1.0 / samples), 0
+    if pixel_filter != "blackman-harris":
+        raise ValueError(f"pixel_filter must be 'blackman-harris' or 'box', got {pixel_filter!r}")
+    if not width > 0:
+        raise ValueError(f"filter_width must be positive, got {width}")
+    radius = float(width)                        # Cycles doubles the width of this window
+    margin = int(np.ceil(radius * samples))
+    offset = (np.arange(-margin, samples + margin) + 0.5) / samples - 0.5    # from the pixel centre
+    phase = 2 * np.pi * (np.clip(offset / radius, -1, 1) + 1) / 2
+    weights = 0.35875 - 0.48829 * np.cos(phase) + 0.14128 * np.cos(2 * phase) - 0.01168 * np.cos(3 * phase)
+    weights[np.abs(offset) >= radius] = 0.0
+    if weights.sum() <= 0:                       # a window narrower than the samples: the nearest
+        weights[np.argmin(np.abs(offset))] = 1.0
+    return weights / weights.sum(), margin
+
+
+def _filter_axis(a, taps, samples, pixels, axis):
+    """`pixels` filtered values along `axis` of a sample grid: tap k reads every samples-th sample
+    from k on (the margin included), so pixel i weighs samples i*samples + k."""
+    out = 0.0
+    for k, weight in enumerate(taps):
+        if weight:
+            out = out + weight * np.take(a, np.arange(k, k + pixels * samples, samples), axis=axis)
+    return out
 
 
 def _as_surface(surface, appearance):

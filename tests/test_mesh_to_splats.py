@@ -398,7 +398,7 @@ def test_rasteriser_matches_ray_casting(ortho):
         return srgb(coeff[0] + at[0] * coeff[1] + at[1] * coeff[2])
 
     hit, color, depth = ray_cast(cam, v[f], colour)
-    got = render_mesh(surface, cam, supersample=1, background=(0.0, 0.0, 0.0))
+    got = render_mesh(surface, cam, supersample=1, pixel_filter="box", background=(0.0, 0.0, 0.0))
     assert 200 < hit.sum() < hit.size
     np.testing.assert_array_equal(got.face >= 0, hit)
     np.testing.assert_allclose(got.color[hit], color[hit], atol=1e-5)
@@ -411,12 +411,42 @@ def test_rasteriser_supersampling_averages_linear_light():
     f = np.array([[0, 1, 2], [0, 2, 3]])
     cam = Camera.look_at_ortho((0.1, 0, 3), (0.1, 0, 0), ortho_scale=2.0, width=10, height=4)
     got = render_mesh(v, cam, faces=f, materials=[Material(base_color=(1, 1, 1))], supersample=4,
-                      background=(0, 0, 0))
+                      pixel_filter="box", background=(0, 0, 0))
     # The edge x = 0 falls at pixel 4.5: that column is half covered, averaged in linear light.
     np.testing.assert_allclose(got.alpha[:, 4], 0.5)
     np.testing.assert_allclose(got.color[:, 4], srgb(0.5), atol=1e-6)
     np.testing.assert_allclose(got.alpha[:, 5:], 1.0)
     np.testing.assert_allclose(got.alpha[:, :4], 0.0)
+
+
+def blackman_harris_cdf(t, width=1.5):
+    """The share of Cycles' Blackman-Harris pixel filter (its window 2 x width pixels wide) left of
+    t pixels from the pixel centre: the window's integral in closed form."""
+    span = 2 * width
+    u = np.clip(np.asarray(t, np.float64) / span + 0.5, 0.0, 1.0)
+    a = (0.35875, 0.48829, 0.14128, 0.01168)
+    integral = a[0] * u - a[1] * np.sin(2 * np.pi * u) / (2 * np.pi) + a[2] * np.sin(4 * np.pi * u) / (4 * np.pi) \
+        - a[3] * np.sin(6 * np.pi * u) / (6 * np.pi)
+    return integral / a[0]
+
+
+@pytest.mark.parametrize("edge", [0.0, 0.3, -0.45])
+def test_rasteriser_default_pixel_filter_is_cycles_blackman_harris(edge):
+    """A half-plane x > edge seen straight on, one unit per pixel: each pixel's coverage is the
+    filter's share right of the edge, reaching 1.5 px into the neighbours (Cycles' default)."""
+    v = np.array([[edge, -50, 0], [50, -50, 0], [50, 50, 0], [edge, 50, 0]], float)
+    cam = Camera.look_at_ortho((0, 0, 3), (0, 0, 0), ortho_scale=12.0, width=12, height=4)
+    s = 20
+    # Samples 1/s apart place the edge to half a sample: at most half a sample's weight, the
+    # window's peak (1 / (0.35875 x 3) per pixel) over s, off the integral.
+    atol = 0.5 / (0.35875 * 3) / s
+    centres = np.arange(12) + 0.5 - 6
+    for width in (1.5, 3.0):
+        got = render_mesh(v, cam, faces=[[0, 1, 2], [0, 2, 3]], materials=[Material(base_color=(1, 1, 1))],
+                          supersample=s, filter_width=width, background=(0, 0, 0))
+        want = 1 - blackman_harris_cdf(edge - centres, width)
+        np.testing.assert_allclose(got.alpha, np.broadcast_to(want, (4, 12)), atol=atol * 1.5 / width)
+    np.testing.assert_allclose(got.color[..., 0], srgb(got.alpha), atol=1e-6)     # linear light, filtered
 
 
 needs_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None or not jit.enabled(),
@@ -570,7 +600,7 @@ def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
 def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_classic_ones_cannot():
     v, f, _ = uv_sphere(24, 12)
     materials = [Material(base_color=(0.8, 0.3, 0.1))]
-    options = dict(materials=materials, target_psnr=30.0, view_size=96, view_distances=(0.5, 1.0, 3.0), view_count=2)
+    options = dict(materials=materials, target_psnr=33.0, view_size=96, view_distances=(0.5, 1.0, 3.0), view_count=2)
     classic, antialiased = {}, {}
     assert not mesh_to_splats(v, f, render_mode="classic", info=classic, **options).antialiased
     cloud = mesh_to_splats(v, f, render_mode="antialiased", info=antialiased, **options)
@@ -578,7 +608,7 @@ def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_
     assert cloud.antialiased and antialiased["reached"]
     surface = Surface(v, f, materials=materials)
     for cam in default_views(surface, 96, 2, distances=(0.5, 1.0, 3.0)):   # rendered in its own mode by default
-        assert psnr(render(cloud, cam).color, render_mesh(surface, cam, supersample=3).color) >= 30.0
+        assert psnr(render(cloud, cam).color, render_mesh(surface, cam, supersample=3).color) >= 33.0
     assert mesh_to_splats(v, f, max_splats=500, calibrate=False).antialiased        # antialiased by default
 
 
@@ -739,7 +769,8 @@ def test_thin_walls_do_not_show_the_other_side():
     # Close-ups of the outside from below and above, where the inside is right behind the wall.
     cams = [Camera.look_at((r * np.cos(a), y, r * np.sin(a)), (0, 0.02, 0), fov_deg=40, width=64, height=64,
                            near=0.001) for a in (0.3, 2.0, 4.1) for r, y in ((0.045, -0.02), (0.05, 0.06))]
-    refs = [render_mesh(surface, cam, supersample=3) for cam in cams]
+    # Box-filtered: the leak is judged pixel by pixel, each pixel by its own samples alone.
+    refs = [render_mesh(surface, cam, supersample=3, pixel_filter="box") for cam in cams]
     outer = [(ref.alpha == 1) & (fm[np.maximum(ref.face[1::3, 1::3], 0)] == 0) for ref in refs]
     assert all(o.sum() > 1000 for o in outer)
 

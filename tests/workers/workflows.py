@@ -17,11 +17,24 @@ PLANE_TRANSFORM = dict(location=(1.0, -2.0, 0.5), rotation_euler=(0.4, -0.3, 0.9
 BUDGETS = (400, 37)
 MATERIAL_COLORS = ((0.8, 0.1, 0.05), (0.02, 0.6, 0.1), (0.1, 0.2, 0.9))
 BALL_PLACE = ((0.5, -0.3, 1.2), (0.3, 0.2, 0.9), (1.0, 1.0, 1.3))       # location, rotation, scale
+EDGE_VIEW = (64, 7.0)      # pixels square, and the angle (degrees) of the edge Cycles' pixel filter is measured on
 ANIM = {1: dict(location=(0.0, 0.0, 0.0), rotation_euler=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)),
         4: dict(location=(0.5, -1.0, 2.0), rotation_euler=(0.3, 0.0, 1.1), scale=(1.5, 1.5, 1.5))}
 
 
 # the worker (a separate Python process with bpy) -----------------------------------------------------
+
+@contextlib.contextmanager
+def render_format(render, file_format, depth):
+    """The render's image file format and colour depth for a while, put back after."""
+    settings = render.image_settings
+    before = settings.file_format, settings.color_depth
+    settings.file_format, settings.color_depth = file_format, depth
+    try:
+        yield
+    finally:
+        settings.file_format, settings.color_depth = before
+
 
 def srgb_bytes(rng, shape):
     return rng.integers(0, 256, shape) / 255.0
@@ -42,7 +55,7 @@ def skewed_uv(p):
 
 class Worker(BlenderWorker):
     steps = ("install", "textured", "colors", "errors", "calibration", "demo_rig", "rest_pose", "target_psnr",
-             "from_mesh_panel", "baked_look",
+             "pixel_filter", "from_mesh_panel", "baked_look",
              "animation", "frame_names", "cli", "cli_bake", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
@@ -402,6 +415,52 @@ class Worker(BlenderWorker):
                                        view_source="CAMERA", view_count=2, view_size=32)
         res["missed"] = {**missed, "count": len(created[0].data.vertices) if created else None}
         return res
+
+    def pixel_filter(self):
+        """Cycles' default render of a white emission half-plane whose edge runs through the view's
+        centre EDGE_VIEW[1] degrees off vertical, one unit per pixel, seen straight on (the rows of
+        the image top first): the edge's profile is Cycles' pixel filter."""
+        import math
+        bpy, scene = self.bpy, self.bpy.context.scene
+        size, angle = EDGE_VIEW[0], math.radians(EDGE_VIEW[1])
+        along, across, far = np.array([math.sin(angle), math.cos(angle)]), np.array([math.cos(angle), -math.sin(angle)]), 1e3
+        corners = [(*(far * a), 0.0) for a in (-along, along, along + across, across - along)]
+        mesh = bpy.data.meshes.new("edge")
+        mesh.from_pydata(corners, [], [(0, 1, 2, 3)])
+        material = bpy.data.materials.new("edge")
+        material.use_nodes = True
+        nodes = material.node_tree.nodes
+        nodes.clear()
+        emission = nodes.new("ShaderNodeEmission")
+        emission.inputs["Color"].default_value = (1, 1, 1, 1)
+        material.node_tree.links.new(emission.outputs[0], nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
+        mesh.materials.append(material)
+        scene.collection.objects.link(bpy.data.objects.new("edge", mesh))
+        camera = bpy.data.objects.new("edge_cam", bpy.data.cameras.new("edge_cam"))
+        camera.data.type, camera.data.ortho_scale, camera.location = "ORTHO", float(size), (0.0, 0.0, 10.0)
+        scene.collection.objects.link(camera)
+        world = bpy.data.worlds.new("black")
+        world.use_nodes = True
+        world.node_tree.nodes["Background"].inputs["Color"].default_value = (0, 0, 0, 1)
+        render, cycles = scene.render, scene.cycles
+        before = (scene.camera, scene.world, render.engine, render.resolution_x, render.resolution_y,
+                  render.resolution_percentage, render.filepath, cycles.samples, cycles.use_adaptive_sampling)
+        try:
+            scene.camera, scene.world, render.engine = camera, world, "CYCLES"
+            render.resolution_x = render.resolution_y = size
+            render.resolution_percentage = 100
+            cycles.device, cycles.samples, cycles.use_adaptive_sampling = "CPU", 1024, False
+            render.filepath = str(self.out / "edge.exr")
+            with render_format(render, "OPEN_EXR", "32"):
+                bpy.ops.render.render(write_still=True)
+            image = bpy.data.images.load(render.filepath)
+            pixels = np.array(image.pixels[:], np.float64).reshape(size, size, image.channels)[::-1, :, 0]
+            bpy.data.images.remove(image)
+        finally:
+            (scene.camera, scene.world, render.engine, render.resolution_x, render.resolution_y,
+             render.resolution_percentage, render.filepath, cycles.samples, cycles.use_adaptive_sampling) = before
+        self.save("pixel_filter", pixels=pixels)
+        return {"filter_type": getattr(cycles, "pixel_filter_type", None), "filter_width": cycles.filter_width}
 
     def lit_ball(self):
         """A red ball "ball", moved, turned and scaled, above a floor that shadows nothing but must not
