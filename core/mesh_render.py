@@ -4,8 +4,9 @@ Every (face, pixel) pair inside a face's screen bounding box is a candidate; the
 intersected with the face exactly (3D edge functions against the ray, so barycentrics are
 perspective-correct and faces crossing the near plane need no clipping). The z-buffer keeps the
 nearest hit per pixel, chunk by chunk of face rows, and the hit's surface colour is looked up once
-per pixel. Supersampling s x s averages scene-linear colour, as a path tracer's pixel filter does.
-Faces are two-sided (an emission shader shows both sides).
+per pixel. Pixels weigh s x s samples each, and those around them, in scene-linear colour by Cycles'
+default pixel filter (a path tracer's pixel filter; a box filter on request). Faces are two-sided
+(an emission shader shows both sides).
 
 That NumPy path is the readable reference and the fallback. Where numba loads (core.jit), the same
 per-candidate arithmetic runs as compiled loops (core/mesh_render_kernels.py) over every core's
