@@ -7,7 +7,7 @@ Cycles on the CPU (headless bpy in a subprocess, 'Standard' view transform, deno
 transparent to the camera so images come over black). References: 64 samples at mesh2splats' nine
 held-out views (three each at 0.5x, 1x, 3x the framing distance). Bake inputs: 16 samples at
 core.bake.bake_views' 96 views (32 per distance), none of them held out. Splats: a calibrated budget
-conversion made for classic rendering; baking fits SH of degree 2 (geometry and opacity kept) by
+conversion made for classic rendering; baking fits SH of degree 3 (geometry and opacity kept) by
 core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
 reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
 so), from the same Cycles views.
@@ -35,7 +35,7 @@ from splatwright.io.mesh import read_mesh  # noqa: E402
 TOPIC = "bake"
 REFERENCE_SAMPLES = 64
 BAKE_SAMPLES = 16
-DEGREE = 2
+DEGREE = 3
 
 
 def bench_meshes(folder, quick):

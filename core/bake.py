@@ -31,9 +31,13 @@ from .render import render
 # dB at 0.5x / 1x / 3x: damping 1e-3 and no band damping 22.1 / 26.4 / 31.7 (over-fitted: 31 dB on the
 # views fitted); 1e-2 and 10: 23.6 / 27.6 / 32.4; 0.1 and 30: 25.3 / 27.7 / 31.9; 0.5 and 30: 25.0 /
 # 27.1 / 31.2. Overlapping splats leave alternating colours that no view fitted sees undetermined.
+# With 96 views (bench/bake.py's quick scene, 20k splats made for antialiased rendering), less damping pays:
+# SH 2 at 0.1 and 30: the sphere 32.8 / 24.6 / 35.1, Suzanne 29.7 / 30.8 / 38.8; SH 3 at 0.03 and 10: 36.4 /
+# 25.2 / 35.8 and 30.2 / 31.3 / 39.8; SH 3 at 0.01 and 3: 35.5 / 25.4 / 36.3 and 29.6 / 31.0 / 40.0; SH 2 at
+# 0.01 and 3, the sphere 34.8 / 25.1 / 35.8; SH 3 at 0.003 and 1 over-fits (the sphere's 0.5x 32.8).
 DEFAULT_ITERATIONS = 20
-DEFAULT_DAMPING = 0.1       # lambda, as a fraction of the median splat's DC diagonal
-DEFAULT_BAND_DAMPING = 30.0  # band l's lambda is (1 + this l (l + 1)) times band 0's
+DEFAULT_DAMPING = 0.03      # lambda, as a fraction of the median splat's DC diagonal
+DEFAULT_BAND_DAMPING = 10.0  # band l's lambda is (1 + this l (l + 1)) times band 0's
 # 32 views per distance against 16, bench/bake.py's quick scene (20k splats made for antialiased rendering),
 # held-out dB at 0.5x / 1x / 3x: Suzanne (100k) 31.5, 34.4, 31.6 / 33.3, 29.3, 33.0 -> 33.7, 36.0, 34.8 / 34.3,
 # 29.7, 32.2 (3x unchanged); the sphere 28.2, 38.6, 30.1 -> 29.8, 40.1, 33.6 at 0.5x, 1x and 3x unchanged.

@@ -42,7 +42,7 @@ from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
 
 SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
 BAKE_SAMPLES = 16                  # Cycles samples per baked view (denoised)
-BAKE_DEGREE = 2
+BAKE_DEGREE = 3
 MAX_BAKE_VIEWS, MAX_BAKE_SAMPLES, MAX_BAKE_DEGREE = 256, 4096, 3
 VIEW_SIZE, VIEW_SIZES = 256, (16, 2048)     # pixels across a view quality is measured in / baked from
 SUFFIX = "_splats"

@@ -127,7 +127,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
         "mode", "max_splats", "target_psnr", "use_rest_pose", "|", "view_source", "view_count", "view_size", "|",
         "made_for", "appearance"]
     assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
-    assert res["numbers"] == {"bake_views": [32, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [2, 0, 3],
+    assert res["numbers"] == {"bake_views": [32, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [3, 0, 3],
                               "view_size": [256, 16, 2048]}
 
 
