@@ -564,7 +564,7 @@ def test_cli_from_mesh_help_lists_the_bake_options(blender):
     text = " ".join(run["stdout"].split())                    # argparse wraps the help
     for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}",
                   "--bake-views N", "(1-256; default 32)", "--bake-samples N",
-                  "(1-4096; default 16)", "--bake-degree D", "(0-3; default 2)", "--view-size PX",
+                  "(1-4096; default 16)", "--bake-degree D", "(0-3; default 3)", "--view-size PX",
                   "(16-2048; default 256)"):
         assert words in text, words
 
