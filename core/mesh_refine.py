@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import Camera
-from .mesh_render import render_mesh
+from .mesh_render import CYCLES_FILTER_WIDTH, render_mesh
 from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .metrics import psnr_from_mse
 from .parallel import map_threads
@@ -48,6 +48,7 @@ VIEW_DISTANCES = (0.5, 1.0, 3.0)   # default view distances, multiples of the on
 VIEWS_PER_DISTANCE = 4
 VIEW_FOV = 40.0
 SUPERSAMPLE = 3
+PIXEL_FILTER = ("blackman-harris", CYCLES_FILTER_WIDTH)   # the reference's (kind, width): Cycles' default
 BACKGROUND = (0.0, 0.0, 0.0)
 START_SPACING = 8.0       # pixels of the finest view between splats at the start
 MAX_PER_PIXEL = 2.0       # density cap, splats per pixel of the finest view
@@ -131,10 +132,13 @@ class Measured:
 class _Views:
     """Reference renders of the mesh and the per-face bookkeeping that maps errors back to faces."""
 
-    def __init__(self, surface, cameras, render_mode, solid):
+    def __init__(self, surface, cameras, render_mode, solid, pixel_filter=PIXEL_FILTER):
         self.surface, self.cameras, self.mode = surface, cameras, render_mode
+        kind, width = pixel_filter
+
         def reference(cam):
-            ref = render_mesh(surface, cam, background=BACKGROUND, supersample=SUPERSAMPLE)
+            ref = render_mesh(surface, cam, background=BACKGROUND, supersample=SUPERSAMPLE, pixel_filter=kind,
+                              filter_width=width)
             owner = _dilate_labels(ref.face, 2 * SUPERSAMPLE)
             return ref, owner, _face_shares(owner, len(surface.faces))
 
@@ -245,7 +249,7 @@ def drain(steps, progress=None):
 
 
 def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
-                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE):
+                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE, pixel_filter=PIXEL_FILTER):
     """refine_to_target one round at a time: a generator yielding (round, MAX_ROUNDS, label) after
     the calibration and each round and returning the cloud, so a caller can stop between rounds
     (close() it)."""
@@ -254,7 +258,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     if not cameras:
         raise ValueError("need at least one view")
     outward = surface.outward_signs()
-    v = _Views(surface, cameras, render_mode, outward != 0)
+    v = _Views(surface, cameras, render_mode, outward != 0, pixel_filter)
     pixel = v.pixel
     if views is None and render_mode == "antialiased":
         # Antialiased outlines are as sharp as the finest pixel that sees them, and a view from

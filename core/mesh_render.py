@@ -47,10 +47,10 @@ def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, p
     """Render a mesh through a core Camera. `surface` is a core.mesh.Surface, a Mesh, or vertices
     (V,3) with `faces=` and the other appearance arguments of mesh_to_splats.
 
-    Each pixel weighs the supersample x supersample samples around it in linear light by its pixel
-    filter: by default Blender Cycles' own (Blackman-Harris, `filter_width` in Cycles' units, so its
-    window spans 2 x filter_width pixels and reaches into the neighbours), or "box" (the pixel's
-    own samples, equally). Samples past the frame's edge are rendered, as Cycles' rays reach there.
+    Each pixel weighs the supersample x supersample samples around it in linear light by a pixel
+    filter of Cycles (`pixel_filter`, `filter_width` in Cycles' units; see filter_taps), by default
+    Cycles' default, Blackman-Harris 1.5 px, which reaches 1.5 px into the neighbours ("box": the
+    pixel's own samples, equally). Samples past the frame's edge are rendered, as Cycles' rays reach.
     backend: the rasteriser's, as for rasterize().
     """
     surface = _as_surface(surface, appearance)
@@ -75,20 +75,30 @@ def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, p
                       mean_depth.astype(np.float32), face[inside], s)
 
 
+PIXEL_FILTERS = ("blackman-harris", "gaussian", "box")     # Cycles' three
+
+
 def filter_taps(pixel_filter, width, samples):
-    """(weights, margin) of a pixel filter on a grid of `samples` per pixel side: weights of the
-    samples from `margin` before a pixel's own to `margin` after them, summing to 1."""
+    """(weights, margin) of one of Cycles' pixel filters on a grid of `samples` per pixel side:
+    weights of the samples from `margin` before a pixel's own to `margin` after them, summing to 1.
+
+    As Cycles draws them (measured on a slanted edge it rendered): Blackman-Harris over 2 x `width`
+    pixels, a Gaussian of standard deviation width / 4 cut at 1.5 x width, and a box of one pixel
+    whatever the width."""
+    if pixel_filter not in PIXEL_FILTERS:
+        raise ValueError(f"pixel_filter must be one of {PIXEL_FILTERS}, got {pixel_filter!r}")
     if pixel_filter == "box":
         return np.full(samples, 1.0 / samples), 0
-    if pixel_filter != "blackman-harris":
-        raise ValueError(f"pixel_filter must be 'blackman-harris' or 'box', got {pixel_filter!r}")
     if not width > 0:
         raise ValueError(f"filter_width must be positive, got {width}")
-    radius = float(width)                        # Cycles doubles the width of this window
+    radius = float(width) * (1.0 if pixel_filter == "blackman-harris" else 1.5)
     margin = int(np.ceil(radius * samples))
     offset = (np.arange(-margin, samples + margin) + 0.5) / samples - 0.5    # from the pixel centre
-    phase = 2 * np.pi * (np.clip(offset / radius, -1, 1) + 1) / 2
-    weights = 0.35875 - 0.48829 * np.cos(phase) + 0.14128 * np.cos(2 * phase) - 0.01168 * np.cos(3 * phase)
+    if pixel_filter == "gaussian":
+        weights = np.exp(-0.5 * (offset / (width / 4)) ** 2)
+    else:
+        phase = 2 * np.pi * (np.clip(offset / radius, -1, 1) + 1) / 2
+        weights = 0.35875 - 0.48829 * np.cos(phase) + 0.14128 * np.cos(2 * phase) - 0.01168 * np.cos(3 * phase)
     weights[np.abs(offset) >= radius] = 0.0
     if weights.sum() <= 0:                       # a window narrower than the samples: the nearest
         weights[np.argmin(np.abs(offset))] = 1.0

@@ -21,6 +21,7 @@ import numpy as np
 
 from . import geometry, sh as shmod
 from .mesh import Surface, shade, to_display
+from .mesh_render import CYCLES_FILTER_WIDTH, filter_taps
 from .parallel import WORKERS, map_threads
 from .splats import SplatCloud, logit
 
@@ -48,7 +49,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
                          corner_colors=None, max_splats=None, target_psnr=None,
                          overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
                          view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True,
-                         info=None):
+                         pixel_filter="blackman-harris", filter_width=CYCLES_FILTER_WIDTH, info=None):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
@@ -66,7 +67,9 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     Views (where quality is measured): `views`, a list of core Cameras (a scene camera along its
     path, say), or by default `view_count` cameras (4) at each of `view_distances` (0.5, 1, 3:
     multiples of the distance that frames the whole mesh) around it, `view_size` pixels square,
-    black background; see core/mesh_refine.py.
+    black background; see core/mesh_refine.py. The mesh is rendered there with the pixel filter
+    Cycles would use (`pixel_filter`, `filter_width`: Cycles' Film settings, its default by default;
+    see core.mesh_render.filter_taps).
     Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
     It yields (done, total, label) as work proceeds (with renders: after each calibration or
@@ -88,6 +91,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
                          f"{len(surface.vertices)} vertices)")
     if max_splats is not None and int(max_splats) < 1:
         raise ValueError(f"max_splats must be at least 1, got {max_splats}")
+    filter_taps(pixel_filter, filter_width, 1)                  # a ValueError for an unknown filter
     style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
     if target_psnr is None and max_splats is not None and not calibrate:
         density = _uniform_density(surface, int(max_splats))
@@ -102,7 +106,8 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
             surface, np.inf if budget_only else target, max_splats, views, view_size, render_mode, info, style,
             uniform=budget_only,
             view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
-            view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count))
+            view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count),
+            pixel_filter=(pixel_filter, filter_width))
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud.replace(antialiased=render_mode == "antialiased")

@@ -35,6 +35,7 @@ from ..core.camera import Camera
 from ..core.mesh import Material
 from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
 from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
+from ..core.mesh_render import CYCLES_FILTER_WIDTH
 from ..core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from . import camera, data, display
 from .modal import JobOperator
@@ -294,7 +295,8 @@ def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_
     """A generator converting one object's read mesh (read_object): yields (done, total, label) as
     mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record).
     `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
-    view_count of mesh_to_splats) say where quality is measured; `calibrate` (a budget only: the
+    view_count of mesh_to_splats) say where quality is measured, and pixel_filter and filter_width
+    with what pixel filter (ConversionJob passes the scene's); `calibrate` (a budget only: the
     silhouettes calibrated against renders from those views), `render_mode` (what the splats are made
     for) and `info` as mesh_to_splats takes them."""
     steps = mesh_to_splats_steps(triangles.vertices, triangles.faces, max_splats=max_splats,
@@ -327,6 +329,18 @@ def convert_object(obj, depsgraph, *, max_splats=None, target_psnr=None, calibra
     read = read_object(obj, depsgraph, warn, rest)
     return drain(object_steps(obj, *read, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
                               render_mode=render_mode, warn=warn, **view_options), progress)
+
+
+CYCLES_PIXEL_FILTERS = {"BLACKMAN_HARRIS": "blackman-harris", "GAUSSIAN": "gaussian", "BOX": "box"}
+
+
+def scene_pixel_filter(scene):
+    """mesh_to_splats' pixel_filter and filter_width for the filter Cycles renders `scene` with (Film >
+    Pixel Filter), so quality is measured against the edges the user's renders have; Cycles'
+    defaults where its add-on is off."""
+    cycles = getattr(scene, "cycles", None)
+    return {"pixel_filter": CYCLES_PIXEL_FILTERS.get(getattr(cycles, "pixel_filter_type", ""), "blackman-harris"),
+            "filter_width": float(getattr(cycles, "filter_width", CYCLES_FILTER_WIDTH))}
 
 
 def mesh_objects(objects):
@@ -387,7 +401,7 @@ class ConversionJob:
     def __init__(self, context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
                  render_mode=DEFAULT_RENDER_MODE, warn=print, views=None, bake=None, **view_options):
         self.options = dict(max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
-                            render_mode=render_mode, warn=warn, **view_options)
+                            render_mode=render_mode, warn=warn, **scene_pixel_filter(context.scene), **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
         self.bake = bake                   # bake.bake_steps' options (the Rendered look), or None
         if bake is not None and not hasattr(context.scene, "cycles"):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import linear_to_srgb, random_cloud, read, srgb_to_linear
-from workers.workflows import BUDGETS, C0, DEFAULT_AXES, EDGE_VIEW, MATERIAL_COLORS, grid_vertices
+from workers.workflows import BUDGETS, C0, DEFAULT_AXES, EDGE_VIEW, MATERIAL_COLORS, PIXEL_FILTERS, grid_vertices
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version
 
@@ -262,26 +262,36 @@ def test_from_mesh_target_psnr(blender):
 
 
 def test_the_mesh_reference_filters_pixels_as_cycles_does(blender):
-    """Mesh to Splats measures its quality against core.mesh_render: its default pixel filter must
-    be the one Cycles renders with, or the converter chases an edge profile users never see."""
+    """Mesh to Splats measures its quality against core.mesh_render: its pixel filter must be the one
+    Cycles renders the scene with, or the converter chases an edge profile users never see. Each of
+    Cycles' filters, against Cycles' own render of a slanted edge, and Mesh to Splats takes the
+    scene's."""
     import math
     from splatwright.core.camera import Camera
     from splatwright.core.mesh import Material
     from splatwright.core.mesh_render import render_mesh
     res = blender.step("pixel_filter")
-    assert res["filter_type"] in (None, "BLACKMAN_HARRIS") and res["filter_width"] == 1.5
-    cycles = blender.npz("pixel_filter")["pixels"]
+    assert res["default"] == ["BLACKMAN_HARRIS", 1.5]
+    images = blender.npz("pixel_filter")
     size, angle = EDGE_VIEW[0], math.radians(EDGE_VIEW[1])
     along, across, far = np.array([math.sin(angle), math.cos(angle), 0]), np.array([math.cos(angle), -math.sin(angle), 0]), 1e3
     plane = far * np.array([-along, along, along + across, across - along])
     camera = Camera.look_at_ortho((0, 0, 10), (0, 0, 0), ortho_scale=float(size), width=size, height=size)
     ours = lambda **kw: render_mesh(plane, camera, faces=[[0, 1, 2], [0, 2, 3]],  # noqa: E731
-                                    materials=[Material(base_color=(1, 1, 1))], supersample=8, **kw).alpha
-    edge = (cycles > 0.002) & (cycles < 0.998)
-    rms = lambda image: float(np.sqrt(np.mean((image - cycles)[edge] ** 2)))  # noqa: E731
-    assert edge.sum() > 3 * size                  # the edge crosses the view, a few pixels wide
-    assert rms(ours()) < 0.01                     # 1024 samples: about 0.005 of noise on the edge
-    assert rms(ours(pixel_filter="box")) > 0.03   # a box filter is not it
+                                    materials=[Material(base_color=(1, 1, 1))], supersample=16, **kw).alpha
+    kinds = {"BLACKMAN_HARRIS": "blackman-harris", "GAUSSIAN": "gaussian", "BOX": "box"}
+    for kind, width in PIXEL_FILTERS:
+        name = f"{kind}_{width}"
+        assert res[name] == {"pixel_filter": kinds[kind], "filter_width": width}
+        cycles = images[name]
+        edge = (cycles > 0.002) & (cycles < 0.998)
+        rms = lambda image: float(np.sqrt(np.mean((image - cycles)[edge] ** 2)))  # noqa: E731
+        assert edge.sum() >= size                                 # the edge crosses every row
+        error = rms(ours(**res[name]))
+        assert error < 0.008, name                                # 1024 samples, not denoised
+        # and another filter is far off: a box for Cycles' default, the default for the others
+        wrong = ours(pixel_filter="box") if kind == "BLACKMAN_HARRIS" else ours()
+        assert rms(wrong) > 2.5 * error, name
 
 
 def test_from_mesh_calibrates_silhouettes_only_when_asked(blender):

@@ -3,6 +3,7 @@ rasteriser against brute-force ray casting (and its compiled path against its Nu
 target-PSNR mode."""
 
 import importlib.util
+import math
 
 import numpy as np
 import pytest
@@ -431,22 +432,37 @@ def blackman_harris_cdf(t, width=1.5):
 
 
 @pytest.mark.parametrize("edge", [0.0, 0.3, -0.45])
-def test_rasteriser_default_pixel_filter_is_cycles_blackman_harris(edge):
-    """A half-plane x > edge seen straight on, one unit per pixel: each pixel's coverage is the
-    filter's share right of the edge, reaching 1.5 px into the neighbours (Cycles' default)."""
+def test_rasteriser_pixel_filters_are_cycles_own(edge):
+    """A half-plane x > edge seen straight on, one unit per pixel: each pixel's coverage is its
+    filter's share right of the edge. Blackman-Harris (Cycles' default, reaching 1.5 px into the
+    neighbours) against the closed form of its integral, Cycles' Gaussian (sigma = width / 4)
+    against the normal distribution, and a box of one pixel whatever its width, as Cycles draws it."""
+    ndtr = np.vectorize(lambda x: 0.5 * (1 + math.erf(x / math.sqrt(2))))      # the normal distribution
     v = np.array([[edge, -50, 0], [50, -50, 0], [50, 50, 0], [edge, 50, 0]], float)
     cam = Camera.look_at_ortho((0, 0, 3), (0, 0, 0), ortho_scale=12.0, width=12, height=4)
     s = 20
     # Samples 1/s apart place the edge to half a sample: at most half a sample's weight, the
-    # window's peak (1 / (0.35875 x 3) per pixel) over s, off the integral.
-    atol = 0.5 / (0.35875 * 3) / s
+    # window's peak over s, off the integral.
+    bh_peak = lambda width: 1 / (0.35875 * 2 * width)                            # noqa: E731
+    gauss_peak = lambda width: 1 / (np.sqrt(2 * np.pi) * width / 4)               # noqa: E731
     centres = np.arange(12) + 0.5 - 6
-    for width in (1.5, 3.0):
+    cases = [("blackman-harris", 1.5, 1 - blackman_harris_cdf(edge - centres, 1.5), bh_peak(1.5)),
+             ("blackman-harris", 3.0, 1 - blackman_harris_cdf(edge - centres, 3.0), bh_peak(3.0)),
+             ("gaussian", 1.5, ndtr((centres - edge) / (1.5 / 4)), gauss_peak(1.5)),
+             ("gaussian", 2.5, ndtr((centres - edge) / (2.5 / 4)), gauss_peak(2.5)),
+             ("box", 1.5, np.clip(centres + 0.5 - edge, 0, 1), 1.0)]
+    for kind, width, want, peak in cases:
         got = render_mesh(v, cam, faces=[[0, 1, 2], [0, 2, 3]], materials=[Material(base_color=(1, 1, 1))],
-                          supersample=s, filter_width=width, background=(0, 0, 0))
-        want = 1 - blackman_harris_cdf(edge - centres, width)
-        np.testing.assert_allclose(got.alpha, np.broadcast_to(want, (4, 12)), atol=atol * 1.5 / width)
-    np.testing.assert_allclose(got.color[..., 0], srgb(got.alpha), atol=1e-6)     # linear light, filtered
+                          supersample=s, pixel_filter=kind, filter_width=width, background=(0, 0, 0))
+        np.testing.assert_allclose(got.alpha, np.broadcast_to(want, (4, 12)), atol=0.5 * peak / s + 1e-9,
+                                   err_msg=f"{kind} {width}")
+        np.testing.assert_allclose(got.color[..., 0], srgb(got.alpha), atol=1e-6)     # linear light, filtered
+    with pytest.raises(ValueError, match="pixel_filter"):
+        render_mesh(v, cam, faces=[[0, 1, 2], [0, 2, 3]], pixel_filter="mitchell")
+    with pytest.raises(ValueError, match="pixel_filter"):
+        mesh_to_splats(v, np.array([[0, 1, 2], [0, 2, 3]]), max_splats=10, calibrate=False, pixel_filter="lanczos")
+    with pytest.raises(ValueError, match="filter_width"):
+        mesh_to_splats(v, np.array([[0, 1, 2], [0, 2, 3]]), max_splats=10, filter_width=0.0)
 
 
 needs_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None or not jit.enabled(),

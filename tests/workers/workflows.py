@@ -18,6 +18,7 @@ BUDGETS = (400, 37)
 MATERIAL_COLORS = ((0.8, 0.1, 0.05), (0.02, 0.6, 0.1), (0.1, 0.2, 0.9))
 BALL_PLACE = ((0.5, -0.3, 1.2), (0.3, 0.2, 0.9), (1.0, 1.0, 1.3))       # location, rotation, scale
 EDGE_VIEW = (64, 7.0)      # pixels square, and the angle (degrees) of the edge Cycles' pixel filter is measured on
+PIXEL_FILTERS = (("BLACKMAN_HARRIS", 1.5), ("GAUSSIAN", 2.5), ("BOX", 1.5))   # Cycles' Film settings measured
 ANIM = {1: dict(location=(0.0, 0.0, 0.0), rotation_euler=(0.0, 0.0, 0.0), scale=(1.0, 1.0, 1.0)),
         4: dict(location=(0.5, -1.0, 2.0), rotation_euler=(0.3, 0.0, 1.1), scale=(1.5, 1.5, 1.5))}
 
@@ -417,9 +418,10 @@ class Worker(BlenderWorker):
         return res
 
     def pixel_filter(self):
-        """Cycles' default render of a white emission half-plane whose edge runs through the view's
-        centre EDGE_VIEW[1] degrees off vertical, one unit per pixel, seen straight on (the rows of
-        the image top first): the edge's profile is Cycles' pixel filter."""
+        """Cycles' renders, under each of PIXEL_FILTERS' Film settings, of a white emission half-plane
+        whose edge runs through the view's centre EDGE_VIEW[1] degrees off vertical, one unit per
+        pixel, seen straight on (the rows of each image top first): the edge's profile is the pixel
+        filter. Also what Mesh to Splats takes from the scene under each setting."""
         import math
         bpy, scene = self.bpy, self.bpy.context.scene
         size, angle = EDGE_VIEW[0], math.radians(EDGE_VIEW[1])
@@ -443,24 +445,35 @@ class Worker(BlenderWorker):
         world.use_nodes = True
         world.node_tree.nodes["Background"].inputs["Color"].default_value = (0, 0, 0, 1)
         render, cycles = scene.render, scene.cycles
-        before = (scene.camera, scene.world, render.engine, render.resolution_x, render.resolution_y,
-                  render.resolution_percentage, render.filepath, cycles.samples, cycles.use_adaptive_sampling)
+        res = {"default": [cycles.pixel_filter_type, cycles.filter_width]}
+        scene_filter = self.module("splat_addon.from_mesh").scene_pixel_filter
+        names = ("camera", "world", "engine", "resolution_x", "resolution_y", "resolution_percentage", "filepath")
+        cycles_names = ("samples", "use_adaptive_sampling", "use_denoising", "pixel_filter_type", "filter_width")
+        before = [getattr(scene if n in ("camera", "world") else render, n) for n in names]
+        cycles_before = [getattr(cycles, n) for n in cycles_names]
+        images = {}
         try:
             scene.camera, scene.world, render.engine = camera, world, "CYCLES"
             render.resolution_x = render.resolution_y = size
             render.resolution_percentage = 100
-            cycles.device, cycles.samples, cycles.use_adaptive_sampling = "CPU", 1024, False
+            cycles.device, cycles.samples, cycles.use_adaptive_sampling, cycles.use_denoising = "CPU", 1024, False, False
             render.filepath = str(self.out / "edge.exr")
-            with render_format(render, "OPEN_EXR", "32"):
-                bpy.ops.render.render(write_still=True)
-            image = bpy.data.images.load(render.filepath)
-            pixels = np.array(image.pixels[:], np.float64).reshape(size, size, image.channels)[::-1, :, 0]
-            bpy.data.images.remove(image)
+            for kind, width in PIXEL_FILTERS:
+                cycles.pixel_filter_type, cycles.filter_width = kind, width
+                with render_format(render, "OPEN_EXR", "32"):
+                    bpy.ops.render.render(write_still=True)
+                image = bpy.data.images.load(render.filepath)
+                images[f"{kind}_{width}"] = np.array(image.pixels[:], np.float64).reshape(
+                    size, size, image.channels)[::-1, :, 0]
+                bpy.data.images.remove(image)
+                res[f"{kind}_{width}"] = scene_filter(scene)
         finally:
-            (scene.camera, scene.world, render.engine, render.resolution_x, render.resolution_y,
-             render.resolution_percentage, render.filepath, cycles.samples, cycles.use_adaptive_sampling) = before
-        self.save("pixel_filter", pixels=pixels)
-        return {"filter_type": getattr(cycles, "pixel_filter_type", None), "filter_width": cycles.filter_width}
+            for n, value in zip(names, before):
+                setattr(scene if n in ("camera", "world") else render, n, value)
+            for n, value in zip(cycles_names, cycles_before):
+                setattr(cycles, n, value)
+        self.save("pixel_filter", **images)
+        return res
 
     def lit_ball(self):
         """A red ball "ball", moved, turned and scaled, above a floor that shadows nothing but must not
