@@ -3,10 +3,11 @@
 The mesh is rendered once from the views (the user's cameras, or by default four around it at each
 of 0.5, 1 and 3 times the distance that frames it) by the reference rasteriser (core.mesh_render,
 black background, Cycles' default pixel filter: a box filter's sharper outlines are 34-36 dB from
-Cycles' own on the bench's bunny and hand, so refinement chased edges no user sees). A face's pixel is that of the finest view whose frustum holds it, seen there
-or not, so that views from other directions at the same distances are served as well as these;
-made for antialiased rendering with the default views, that of the nearest view from anywhere at
-their nearest distance (antialiased outlines are as sharp as the finest pixel that sees them).
+Cycles' own on the bench's bunny and hand, so refinement chased edges no user sees). A face's pixel
+is that of the finest view whose frustum holds it, seen there or not, so that views from other
+directions at the same distances are served as well as these; made for antialiased rendering with
+the default views, that of the nearest view from anywhere at their nearest distance (antialiased
+outlines are as sharp as the finest pixel that sees them).
 Target mode then starts coarse (one splat per START_SPACING^2 pixels of each face) and repeats:
 build splats, render them with core.render from the same views, compare, attribute every pixel's
 squared error to the face seen there (background pixels to the nearest face), and multiply the
@@ -38,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import Camera
-from .mesh_render import CYCLES_FILTER_WIDTH, render_mesh
+from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, render_mesh
 from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .metrics import psnr_from_mse
 from .parallel import map_threads
@@ -48,7 +49,7 @@ VIEW_DISTANCES = (0.5, 1.0, 3.0)   # default view distances, multiples of the on
 VIEWS_PER_DISTANCE = 4
 VIEW_FOV = 40.0
 SUPERSAMPLE = 3
-PIXEL_FILTER = ("blackman-harris", CYCLES_FILTER_WIDTH)   # the reference's (kind, width): Cycles' default
+PIXEL_FILTER = (DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH)   # the reference's (kind, width): Cycles' default
 BACKGROUND = (0.0, 0.0, 0.0)
 START_SPACING = 8.0       # pixels of the finest view between splats at the start
 MAX_PER_PIXEL = 2.0       # density cap, splats per pixel of the finest view

@@ -26,7 +26,7 @@ CANDIDATES_PER_CHUNK = 1 << 21
 BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.mesh_render_kernels"     # the compiled module, loaded by core.jit
 THREADED_PIXELS = 1 << 16                 # smaller images are drawn on the calling thread
-CYCLES_FILTER_WIDTH = 1.5                 # Cycles' default pixel filter: Blackman-Harris, 1.5 px
+DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH = "blackman-harris", 1.5   # Cycles' default pixel filter
 
 
 @dataclass
@@ -42,7 +42,7 @@ class MeshRender:
     samples: int
 
 
-def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, pixel_filter="blackman-harris",
+def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, pixel_filter=DEFAULT_PIXEL_FILTER,
                 filter_width=CYCLES_FILTER_WIDTH, backend="auto", **appearance):
     """Render a mesh through a core Camera. `surface` is a core.mesh.Surface, a Mesh, or vertices
     (V,3) with `faces=` and the other appearance arguments of mesh_to_splats.

@@ -21,7 +21,7 @@ import numpy as np
 
 from . import geometry, sh as shmod
 from .mesh import Surface, shade, to_display
-from .mesh_render import CYCLES_FILTER_WIDTH, filter_taps
+from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .parallel import WORKERS, map_threads
 from .splats import SplatCloud, logit
 
@@ -49,7 +49,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
                          corner_colors=None, max_splats=None, target_psnr=None,
                          overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
                          view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True,
-                         pixel_filter="blackman-harris", filter_width=CYCLES_FILTER_WIDTH, info=None):
+                         pixel_filter=DEFAULT_PIXEL_FILTER, filter_width=CYCLES_FILTER_WIDTH, info=None):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into

@@ -35,7 +35,7 @@ from ..core.camera import Camera
 from ..core.mesh import Material
 from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
 from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
-from ..core.mesh_render import CYCLES_FILTER_WIDTH
+from ..core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
 from ..core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from . import camera, data, display
 from .modal import JobOperator
@@ -339,7 +339,7 @@ def scene_pixel_filter(scene):
     Pixel Filter), so quality is measured against the edges the user's renders have; Cycles'
     defaults where its add-on is off."""
     cycles = getattr(scene, "cycles", None)
-    return {"pixel_filter": CYCLES_PIXEL_FILTERS.get(getattr(cycles, "pixel_filter_type", ""), "blackman-harris"),
+    return {"pixel_filter": CYCLES_PIXEL_FILTERS.get(getattr(cycles, "pixel_filter_type", ""), DEFAULT_PIXEL_FILTER),
             "filter_width": float(getattr(cycles, "filter_width", CYCLES_FILTER_WIDTH))}
 
 
