@@ -25,18 +25,6 @@ ANIM = {1: dict(location=(0.0, 0.0, 0.0), rotation_euler=(0.0, 0.0, 0.0), scale=
 
 # the worker (a separate Python process with bpy) -----------------------------------------------------
 
-@contextlib.contextmanager
-def render_format(render, file_format, depth):
-    """The render's image file format and colour depth for a while, put back after."""
-    settings = render.image_settings
-    before = settings.file_format, settings.color_depth
-    settings.file_format, settings.color_depth = file_format, depth
-    try:
-        yield
-    finally:
-        settings.file_format, settings.color_depth = before
-
-
 def srgb_bytes(rng, shape):
     return rng.integers(0, 256, shape) / 255.0
 
@@ -451,6 +439,7 @@ class Worker(BlenderWorker):
         cycles_names = ("samples", "use_adaptive_sampling", "use_denoising", "pixel_filter_type", "filter_width")
         before = [getattr(scene if n in ("camera", "world") else render, n) for n in names]
         cycles_before = [getattr(cycles, n) for n in cycles_names]
+        format_before = render.image_settings.file_format, render.image_settings.color_depth
         images = {}
         try:
             scene.camera, scene.world, render.engine = camera, world, "CYCLES"
@@ -458,10 +447,10 @@ class Worker(BlenderWorker):
             render.resolution_percentage = 100
             cycles.device, cycles.samples, cycles.use_adaptive_sampling, cycles.use_denoising = "CPU", 1024, False, False
             render.filepath = str(self.out / "edge.exr")
+            self.image_format(render.image_settings, "OPEN_EXR", color_depth="32")
             for kind, width in PIXEL_FILTERS:
                 cycles.pixel_filter_type, cycles.filter_width = kind, width
-                with render_format(render, "OPEN_EXR", "32"):
-                    bpy.ops.render.render(write_still=True)
+                bpy.ops.render.render(write_still=True)
                 image = bpy.data.images.load(render.filepath)
                 images[f"{kind}_{width}"] = np.array(image.pixels[:], np.float64).reshape(
                     size, size, image.channels)[::-1, :, 0]
@@ -472,6 +461,7 @@ class Worker(BlenderWorker):
                 setattr(scene if n in ("camera", "world") else render, n, value)
             for n, value in zip(cycles_names, cycles_before):
                 setattr(cycles, n, value)
+            self.image_format(render.image_settings, format_before[0], color_depth=format_before[1])
         self.save("pixel_filter", **images)
         return res
 
