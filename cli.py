@@ -73,6 +73,7 @@ RANGES = {
     "view_size": ("a whole number of pixels from 1 to 4096", lambda v: 1 <= v <= 4096),
     "max_splats": ("a whole number from 1 to 2147483647", lambda v: 1 <= v <= 2**31 - 1),
     "target_psnr": ("a PSNR in dB, finite and > 0", lambda v: 0 < v < math.inf),
+    "filter_width": ("a width in pixels, finite and > 0", lambda v: 0 < v < math.inf),
 }
 
 
@@ -339,6 +340,7 @@ def _float_list(text):
 
 
 def _add_mesh2splats(p):
+    from .core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, PIXEL_FILTERS
     from .core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR
     p.add_argument("mesh", help="a triangle mesh (.obj with its .mtl and textures; .stl, .dae, .glb, ... "
                                 "through trimesh)")
@@ -361,6 +363,12 @@ def _add_mesh2splats(p):
                    help="with --max-splats: calibrate the silhouettes against renders of the mesh and the splats "
                         "from the views (default; seconds per 100k splats); --no-calibrate renders nothing and "
                         "keeps the splats on the surface")
+    p.add_argument("--pixel-filter", choices=PIXEL_FILTERS, default=DEFAULT_PIXEL_FILTER,
+                   help="the pixel filter of the renders the splats should match, as Cycles' Film settings name it "
+                        f"(default {DEFAULT_PIXEL_FILTER}, Cycles' default)")
+    p.add_argument("--filter-width", type=float, default=CYCLES_FILTER_WIDTH, metavar="PX",
+                   help=f"the filter's width in pixels, as Cycles' Film settings give it (default "
+                        f"{CYCLES_FILTER_WIDTH:g}; the box filter is one pixel whatever the width)")
 
 
 def _run_mesh2splats(args):
@@ -378,6 +386,7 @@ def _run_mesh2splats(args):
                                max_splats=args.max_splats, target_psnr=args.target_psnr,
                                view_size=args.view_size, view_distances=args.view_distances,
                                view_count=args.view_count, render_mode=args.mode, calibrate=args.calibrate,
+                               pixel_filter=args.pixel_filter, filter_width=args.filter_width,
                                progress=Progress(), info=info)
     except ValueError as exc:
         raise SplatFileError(args.mesh, str(exc)) from None

@@ -165,6 +165,7 @@ OUT_OF_RANGE = [
     ("mesh2splats", ["--target-psnr", "nan"], "--target-psnr must be"),
     ("mesh2splats", ["--max-splats", "0"], "--max-splats must be a whole number from 1 to 2147483647"),
     ("mesh2splats", ["--view-size", "0"], "--view-size must be"),
+    ("mesh2splats", ["--filter-width", "0"], "--filter-width must be a width in pixels, finite and > 0, got 0"),
     ("urdf2splats", ["--target-psnr", "-5"], "--target-psnr must be"),
     ("urdf2splats", ["--max-splats", "-1"], "--max-splats must be"),
     ("urdf2splats", ["--joint", "elbow=nan"], "--joint expects NAME=VALUE with finite numbers"),

@@ -5,6 +5,7 @@ import pytest
 from PIL import Image
 
 from splatwright.cli import main
+from splatwright.core import mesh_refine
 from splatwright.core.mesh_to_splats import mesh_to_splats
 from splatwright.io import SplatFileError, read_splats
 from splatwright.io.mesh import read_mesh
@@ -154,7 +155,6 @@ def test_wrong_extension_and_missing_file(tmp_path):
 
 def counted_renders(monkeypatch):
     """The names of the renders (of the mesh, of splats) mesh conversion makes from now on."""
-    from splatwright.core import mesh_refine
     made = []
     for name in ("render", "render_mesh"):
         original = getattr(mesh_refine, name)
@@ -171,6 +171,21 @@ def test_cli_mesh2splats_budget(cube, tmp_path, capsys, monkeypatch):
     assert len(cloud) == 2000 and not cloud.problems()
     assert "wrote 2000 splats from 12 faces, " in capsys.readouterr().out
     assert {"render", "render_mesh"} <= set(renders)          # silhouettes calibrated by default
+
+
+@pytest.mark.parametrize("options, expected", [([], ("blackman-harris", 1.5)),
+                                              (["--pixel-filter", "gaussian", "--filter-width", "2.5"], ("gaussian", 2.5))])
+def test_cli_mesh2splats_measures_against_the_pixel_filter_asked_for(cube, tmp_path, monkeypatch, options, expected):
+    """The mesh is rendered with the filter of Cycles' Film settings the command names (its default:
+    Cycles' own)."""
+    filters = []
+    original = mesh_refine.render_mesh
+    monkeypatch.setattr(mesh_refine, "render_mesh", lambda *a, **k: filters.append((k["pixel_filter"], k["filter_width"]))
+                        or original(*a, **k))
+    path, _ = cube
+    assert main(["mesh2splats", str(path), str(tmp_path / "cube.ply"), "--max-splats", "2000", "--view-size", "16",
+                 *options]) == 0
+    assert filters and set(filters) == {expected}
 
 
 def test_cli_splats_made_for_antialiased_rendering_say_so_and_render_so(cube, tmp_path):
