@@ -494,7 +494,7 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
         error = by_distance(cloud, cams, references)
         curve["calibrated"].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
         rows.append(Row(TOPIC, f"{name}: budget {n}", Timing(seconds, 0.0, 1), error=error,
-                        extra={"splats": n, "spread": f"{info['spread']:g}", "inset px": f"{info['inset_pixels']:.2f}"}))
+                        extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"}))
         start = time.perf_counter()
         cloud = convert(mesh, max_splats=n, calibrate=False)
         seconds = time.perf_counter() - start
@@ -509,8 +509,7 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
         error = by_distance(cloud, cams, references)
         curve[OTHER_MODE].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
         rows.append(Row(TOPIC, f"{name}: budget {n}, made for {OTHER_MODE} rendering", Timing(seconds, 0.0, 1),
-                        error=error, extra={"splats": n, "spread": f"{info['spread']:g}",
-                                            "inset px": f"{info['inset_pixels']:.2f}"}))
+                        error=error, extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"}))
     return rows, curve, (cams, references, cycles_s)
 
 

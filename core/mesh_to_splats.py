@@ -35,7 +35,6 @@ MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
 WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
 WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
 WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
-SPREAD_GAIN = 1.3       # widened splats keep this much more opacity than their share (coverage closed)
 
 
 def mesh_to_splats(vertices, faces, *, progress=None, **options):
@@ -56,8 +55,9 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     `materials` (a list of core.mesh.Material); corner_colors (F,3,3) or (V,3), scene-linear.
     core/mesh.py states the colour space of every input.
 
-    Size: `max_splats` alone is a budget (exactly that many splats, spread by area), with the
-    silhouettes of solid parts calibrated for the views (`calibrate=False` skips that: no renders).
+    Size: `max_splats` alone is a budget (splats spread by area), with the silhouettes of solid
+    parts calibrated for the views, and half as many splats, or a quarter..., when they render
+    better there (`calibrate=False` skips that: no renders, exactly `max_splats` splats).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
     the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
     `render_mode` is also the mode the cloud is made for (its `antialiased` flag): "antialiased"
@@ -76,7 +76,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     refinement round, so a caller may stop between rounds) and returns the cloud; `info`, if a dict, receives
     "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
     (the worst view), "psnr_views", "worst_view", "worst_view_distance", "psnr_all_views",
-    "inset_pixels", "views", "spread" (budgets) and (target mode) "reached" and "limit" (why not).
+    "inset_pixels", "views", "budget" (budgets: `max_splats`) and (target mode) "reached" and "limit" (why not).
 
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
@@ -133,14 +133,10 @@ def budget_density(density, floor, area, count):
 
 
 def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
-                 offset=None, spread=1.0):
+                 offset=None):
     """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
-    `offset` (world units, default 0) along its unit normal.
-
-    `spread` >= 1 (one number, or one per face) makes the splats look like `spread` times fewer: discs sqrt(spread) times wider,
-    their opacity divided by spread / SPREAD_GAIN (at most `opacity`), so that more splats can
-    always render like fewer (the silhouettes' fattening grows with the splats stacked there)."""
-    unplaced = unplaced_splats(surface, density, overlap, opacity, thickness, seed, max_splats, spread)
+    `offset` (world units, default 0) along its unit normal."""
+    unplaced = unplaced_splats(surface, density, overlap, opacity, thickness, seed, max_splats)
     return unplaced.placed(np.zeros(len(surface.faces)) if offset is None else offset)
 
 
@@ -162,18 +158,14 @@ class Unplaced:
         return self.cloud.replace(positions=self.points + shift[:, None] * self.normal, extras=extras)
 
 
-def unplaced_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
-                    spread=1.0):
+def unplaced_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None):
     """build_splats without the shift: an Unplaced."""
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
         expected *= max_splats / expected.sum()
     counts = systematic_counts(expected, morton_order(surface.centroids), np.random.default_rng(seed))
     tri, bary = bisection_samples(surface, counts)
-    spread = np.maximum(np.broadcast_to(np.asarray(spread, np.float64), counts.shape)[tri], 1.0)
-    opacity = np.where(spread > 1, np.minimum(opacity, opacity * SPREAD_GAIN / spread), opacity)
-    cloud = _cloud(surface, tri, bary, density[tri] / spread, _face_rotations(surface)[tri], overlap, opacity,
-                   thickness)
+    cloud = _cloud(surface, tri, bary, density[tri], _face_rotations(surface)[tri], overlap, opacity, thickness)
     return Unplaced(cloud, surface.points(tri, bary), surface.normal[tri], tri)
 
 

@@ -580,11 +580,12 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     _skipped = ()
 
     mode: EnumProperty(name="Size By", default="BUDGET", items=(
-        ("BUDGET", "Splat Budget", "Exactly Max Splats splats per object, spread evenly over the surface"),
+        ("BUDGET", "Splat Budget", "At most Max Splats splats per object, spread evenly over the surface "
+                                    "(fewer when more render worse from the views)"),
         ("QUALITY", "Target PSNR", "Refine until renders of the splats reach Target PSNR against the "
                                    "mesh, with at most Max Splats splats per object")))
     max_splats: IntProperty(name="Max Splats", default=DEFAULT_BUDGET, min=1,
-                            description="Splats per object (the count, or the cap with a target PSNR)")
+                            description="Splats per object (the budget, or the cap with a target PSNR)")
     target_psnr: FloatProperty(name="Target PSNR", default=DEFAULT_TARGET_PSNR, min=10.0, max=80.0,
                                subtype="NONE", unit="NONE", description="Render quality to reach, in dB")
     calibrate: BoolProperty(name="Calibrate Silhouettes", default=True, description=CALIBRATE_TOOLTIP)
