@@ -7,20 +7,26 @@ and every way it can fail to load (not installed, built for another NumPy, a bro
 Compiled code is cached on disk, so only the first use on a machine pays for compiling (a few
 seconds). The cache lives in the user's cache folder, not beside the sources: an installed Blender
 extension or a site-packages folder may not be writable. It is found by the source's content, not
-its place on disk, so a reinstalled extension loads its kernels instead of compiling them again. SPLATWRIGHT_CACHE_DIR overrides the folder;
+its place on disk, so a reinstalled extension loads its kernels instead of compiling them again.
+Every version of a kernel file gets a folder of its own, so folders no process has used for
+STALE_DAYS are removed when kernels are first loaded (an upgraded extension would otherwise leave
+its old kernels behind for good). SPLATWRIGHT_CACHE_DIR overrides the folder;
 SPLATWRIGHT_JIT=0 turns compiled kernels off (read when a kernel is first needed).
 """
 
 import hashlib
 import importlib
 import os
+import shutil
 import sys
 import threading
+import time
 from pathlib import Path
 
 _lock = threading.Lock()
 _modules = {}       # kernel module name -> module or None
 _reasons = {}       # kernel module name -> why it is not available
+STALE_DAYS = 30     # a kernel folder unused this long is removed
 
 
 def enabled():
@@ -144,26 +150,49 @@ def _install_cache_locator():
     from numba.core import caching
 
     impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
-    package_dir = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    package = __package__.rpartition(".")[0]       # "splatwright", or the name Blender imports it by
     root = cache_dir()
+    prune_stale(root)
 
     class SplatwrightCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         def __init__(self, py_func, py_file):
             self._py_file = py_file
             self._lineno = py_func.__code__.co_firstlineno
             self._cache_path = str(root / _cache_subpath(py_func.__module__, py_file))
+            try:
+                os.utime(self._cache_path)          # in use: not stale
+            except OSError:
+                pass
 
         def get_cache_path(self):
             return self._cache_path
 
         @classmethod
         def from_function(cls, py_func, py_file):
-            if not os.path.abspath(py_file).startswith(package_dir + os.sep):
+            # Our modules only, by name: a library installed in a virtual environment inside the
+            # project's folder keeps numba's own choice.
+            if not py_func.__module__.startswith(package + "."):
                 return None
             return super().from_function(py_func, py_file)     # None when the folder is not writable
 
     impl._locator_classes.insert(0, SplatwrightCacheLocator)
     _installed = True
+
+
+def prune_stale(root, days=STALE_DAYS):
+    """Remove the kernel folders in `root` that no process has used for `days` (their time stamp,
+    touched on every use); errors (another process removing or using one) are ignored."""
+    cutoff = time.time() - days * 86400
+    try:
+        folders = [p for p in Path(root).iterdir() if p.is_dir()]
+    except OSError:
+        return
+    for folder in folders:
+        try:
+            if folder.stat().st_mtime < cutoff:
+                shutil.rmtree(folder)
+        except OSError:
+            pass
 
 
 def _cache_subpath(module, py_file):

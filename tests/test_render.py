@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 
 import numpy as np
 import pytest
@@ -449,6 +450,53 @@ def test_kernels_can_be_turned_off_and_are_cached_in_the_user_cache_folder(monke
     assert cached and all(jit.cache_dir() in path.parents for path in cached)
     monkeypatch.setenv("SPLATWRIGHT_CACHE_DIR", str(tmp_path))
     assert jit.cache_dir() == tmp_path
+
+
+def test_kernel_folders_unused_for_a_month_are_removed_and_in_use_ones_kept(tmp_path):
+    """An upgrade compiles its kernels into new folders (one per source version): the old ones go
+    once no process has used them for STALE_DAYS; a folder in use is touched and stays."""
+    from splatwright.core import jit
+    day = 86400
+    for name, age in (("core_old", jit.STALE_DAYS + 1), ("core_recent", jit.STALE_DAYS - 1), ("io_new", 0)):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "kernels.f-1.py311.nbi").write_bytes(b"x")
+        os.utime(folder, (time.time() - age * day,) * 2)
+    jit.prune_stale(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["core_recent", "io_new"]
+    # Loading kernels touches their folder, so a month of use never ages it out.
+    draw = """
+        from splatwright.core.render import render
+        from splatwright.core.camera import Camera
+        from splatwright.core.scenes import seed_cube
+        render(seed_cube(2), Camera.look_at((0, 0, -3), (0, 0, 0), width=8, height=8))
+    """
+    fresh = tmp_path / "fresh"
+    assert run_python(draw, SPLATWRIGHT_CACHE_DIR=str(fresh)).returncode == 0
+    (folder,) = [p for p in fresh.iterdir() if list(p.glob("render_kernels.*.nbi"))]
+    ten_days_ago = time.time() - 10 * day
+    os.utime(folder, (ten_days_ago, ten_days_ago))
+    assert run_python(draw, SPLATWRIGHT_CACHE_DIR=str(fresh)).returncode == 0
+    assert folder.stat().st_mtime > time.time() - day
+
+
+def test_only_our_own_kernels_are_cached_in_our_folder():
+    """numba functions of other packages (a peer library in a virtual environment inside the
+    project's folder, say) keep numba's own cache place."""
+    from numba.core import caching
+
+    from splatwright.core import jit
+    jit._install_cache_locator()
+    impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
+    locator = impl._locator_classes[0]
+    here = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(jit.__file__))), ".venv", "peer.py")
+
+    def function(module):
+        f = lambda: None  # noqa: E731
+        f.__module__ = module
+        return f
+    assert locator.from_function(function("gsply.formats"), here) is None
+    assert locator.from_function(function("splatwright.core.render_kernels"), jit.__file__) is not None
 
 
 def test_an_image_too_large_for_memory_is_refused_before_anything_is_allocated(backend):
