@@ -280,10 +280,7 @@ class Surface:
     def edge_neighbours(self):
         """(f, g): every pair of faces sharing an edge (vertices welded by position), both ways round."""
         if "neighbours" not in self._cache:
-            faces = self.welded_faces()
-            n = np.int64(len(self.vertices))
-            a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
-            edge = np.minimum(a, b) * n + np.maximum(a, b)
+            _, _, edge = _edge_keys(self.welded_faces())
             order = np.argsort(edge, kind="stable")
             twin = np.flatnonzero(edge[order][1:] == edge[order][:-1])
             f, g = order[twin] // 3, order[twin + 1] // 3
@@ -299,10 +296,9 @@ class Surface:
         return self._cache[key]
 
     def _sharp_edges(self, angle_deg):
-        welded = self.welded_faces()
-        a, b = welded[:, [1, 2, 0]], welded[:, [2, 0, 1]]
-        n = np.int64(len(self.vertices))
-        _, inverse = np.unique((np.minimum(a, b) * n + np.maximum(a, b)).ravel(), return_inverse=True)
+        # Edge k opposite corner k is the edge from corner k + 1 to k + 2.
+        _, _, key = _edge_keys(self.welded_faces()[:, [1, 2, 0]])
+        _, inverse = np.unique(key, return_inverse=True)
         uses = np.bincount(inverse, weights=np.repeat(self.valid, 3))
         normals = np.where(self.valid[:, None], self.normal, 0.0)
         total = np.zeros((len(uses), 3))
@@ -381,13 +377,21 @@ NON_MANIFOLD_SHARE = 0.01   # a solid's edges may be shared by more than two fac
 REWIND_PASSES = 8       # _misoriented's passes: a patch of wrongly wound faces turns a ring per pass
 
 
+def _edge_keys(faces):
+    """Per face edge (corner k to k + 1, flattened): its two vertices and a key naming the edge
+    whichever way it is run (the same for every face that shares it)."""
+    n = np.int64(faces.max() + 1 if faces.size else 0)
+    a, b = faces.ravel().astype(np.int64), faces[:, [1, 2, 0]].ravel().astype(np.int64)
+    return a, b, np.minimum(a, b) * n + np.maximum(a, b)
+
+
 def _edge_uses(faces):
     """Per face edge (corner k to k+1, flattened): its two vertices, how many faces use the edge
     (either way), and whether another face runs it the same way."""
+    a, b, key = _edge_keys(faces)
     n = np.int64(faces.max() + 1 if faces.size else 0)
-    a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
     directed, dcount = np.unique(a * n + b, return_counts=True)
-    _, inverse, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True, return_counts=True)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     return a, b, counts[inverse], dcount[np.searchsorted(directed, a * n + b)] > 1
 
 
