@@ -298,13 +298,14 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     best, previous, rounds, stale = None, None, 0, 0
     saturated = np.zeros(len(area), bool)
     stop = "no more splats help"
-    if uniform:
-        inset, cloud, m, density = _calibrate_budget(v, make, even, outward.any(), max_splats)
+    if uniform:         # a budget: calibrated, no rounds
+        inset, cloud, m, density = yield from _calibrate_budget(v, make, even, outward.any(), max_splats)
+        best, rounds, stop = (m.psnr, cloud, inset, m), 1, "budget"
     else:
         inset, cloud, m = _calibrate_inset(v, make, density, outward.any())
+        yield 0, MAX_ROUNDS, f"mesh2splats: silhouettes calibrated, {m.psnr:.1f} dB"
     calibrated_at = len(cloud)
-    yield 0, MAX_ROUNDS, f"mesh2splats: silhouettes calibrated, {m.psnr:.1f} dB"
-    for round_ in range(MAX_ROUNDS):
+    for round_ in range(0 if uniform else MAX_ROUNDS):
         rounds = round_ + 1
         if round_:
             cloud = make(density, inset)
@@ -321,9 +322,6 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         yield round_ + 1, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {m.psnr:.1f} dB"
         if m.psnr >= target:
             stop = "reached"
-            break
-        if uniform:
-            stop = "budget"
             break
         at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
         if stale >= PATIENCE:
@@ -350,8 +348,9 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
         previous = (new > density * 1.01, local)
         density = new
     else:
-        at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
-        stop = "max_splats" if at_cap else "rounds"
+        if not uniform:
+            at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
+            stop = "max_splats" if at_cap else "rounds"
     psnr, cloud, inset, m = best
     yield MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
     if isinstance(info, dict):
@@ -381,19 +380,24 @@ def _calibrate_inset(v, make, density, solid, evaluations=INSET_SEARCH):
 
 
 def _calibrate_budget(v, make, even, solid, max_splats):
-    """(inset, cloud, Measured, density) for a budget spread evenly (`even(count)`, a density): the
-    best of max_splats, half as many, a quarter, ... (down to MIN_BUDGET_SPLATS), each with its
-    silhouette shift calibrated (stacked edge-on splats fatten silhouettes more the more there
-    are). Each halving costs half the renders of the one before, so all are tried: the worst
-    view's PSNR against the count is not smooth, and a budget then renders at least as well as
-    any budget a power of two smaller."""
-    best, count = None, max_splats
-    while best is None or count >= MIN_BUDGET_SPLATS:
+    """A generator yielding (done, total, label) after each count it tries and returning (inset,
+    cloud, Measured, density) for a budget spread evenly (`even(count)`, a density): the best of
+    max_splats, half as many, a quarter, ... (down to MIN_BUDGET_SPLATS), each with its silhouette
+    shift calibrated (stacked edge-on splats fatten silhouettes more the more there are). Each
+    halving costs half the renders of the one before, so all are tried: the worst view's PSNR
+    against the count is not smooth, and a budget then renders at least as well as any budget a
+    power of two smaller."""
+    counts = [max_splats]
+    while counts[-1] / 2 >= MIN_BUDGET_SPLATS:
+        counts.append(counts[-1] / 2)
+    best = None
+    for done, count in enumerate(counts, 1):
         density = even(count)
         tried = (*_calibrate_inset(v, make, density, solid), density)
         if best is None or tried[2].psnr > best[2].psnr:
             best = tried
-        count /= 2
+        # The last step is the conversion's end (refine_rounds' MAX_ROUNDS of MAX_ROUNDS).
+        yield done, len(counts) + 1, f"mesh2splats: {round(count)} splats, {tried[2].psnr:.1f} dB"
     return best
 
 

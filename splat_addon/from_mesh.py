@@ -393,7 +393,7 @@ class ConversionJob:
     with `use_rest_pose`); the steps then touch no Blender data (a baked look's Cycles views each
     undo what they set up within their step), so a job stopped part-way (cancel()) leaves the scene
     as it was. step() does one step (a refinement round of one object
-    with a target PSNR, a whole object with a budget) and returns False once every object is
+    with a target PSNR, a splat count a budget tries) and returns False once every object is
     converted; `results` then holds [(source object, cloud, record)], which create() links into
     the scene. `done` / `total` / `label` say how far it is (objects as units). `calibrate=False`
     makes a budget conversion render nothing (see object_steps)."""

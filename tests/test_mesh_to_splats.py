@@ -849,3 +849,24 @@ def test_steps_are_the_refinement_rounds_and_stop_when_closed():
     steps.close()
     with pytest.raises(StopIteration):
         next(steps)
+
+
+def test_a_budget_steps_through_the_counts_it_tries():
+    """A budget yields after each count it tries (the budget, half, a quarter, ... down to 2,000),
+    its progress never going back, and keeps the one its views rate best."""
+    from splatwright.core.mesh_to_splats import mesh_to_splats_steps
+    v, f, _ = uv_sphere(24, 12)
+    steps = mesh_to_splats_steps(v, f, max_splats=9000, view_size=48, view_count=2)
+    seen = []
+    while True:
+        try:
+            seen.append(next(steps))
+        except StopIteration as stop:
+            cloud = stop.value
+            break
+    fractions = [done / total for done, total, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    tried = [label for _, _, label in seen[:-1]]
+    assert [t.split(": ")[1].split(" splats")[0] for t in tried] == ["9000", "4500", "2250"]
+    rated = {int(t.split(": ")[1].split(" splats")[0]): float(t.split(", ")[1].split(" dB")[0]) for t in tried}
+    assert len(cloud) in rated and rated[len(cloud)] == max(rated.values())
