@@ -854,16 +854,12 @@ def test_steps_are_the_refinement_rounds_and_stop_when_closed():
 def test_a_budget_steps_through_the_counts_it_tries():
     """A budget yields after each count it tries (the budget, half, a quarter, ... down to 2,000),
     its progress never going back, and keeps the one its views rate best."""
+    from splatwright.core.mesh_refine import drain
     from splatwright.core.mesh_to_splats import mesh_to_splats_steps
     v, f, _ = uv_sphere(24, 12)
-    steps = mesh_to_splats_steps(v, f, max_splats=9000, view_size=48, view_count=2)
     seen = []
-    while True:
-        try:
-            seen.append(next(steps))
-        except StopIteration as stop:
-            cloud = stop.value
-            break
+    cloud = drain(mesh_to_splats_steps(v, f, max_splats=9000, view_size=48, view_count=2),
+                  lambda *step: seen.append(step))
     fractions = [done / total for done, total, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     tried = [label for _, _, label in seen[:-1]]
