@@ -300,7 +300,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     stop = "no more splats help"
     if uniform:         # a budget: calibrated, no rounds
         inset, cloud, m, density = yield from _calibrate_budget(v, make, even, outward.any(), max_splats)
-        best, rounds, stop = (m.psnr, cloud, inset, m), 1, "budget"
+        best, rounds = (m.psnr, cloud, inset, m), 1
     else:
         inset, cloud, m = _calibrate_inset(v, make, density, outward.any())
         yield 0, MAX_ROUNDS, f"mesh2splats: silhouettes calibrated, {m.psnr:.1f} dB"

@@ -73,10 +73,11 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     Look: `overlap` (in-plane sigma times the square root of the density; 0.8 closes the
     surface), `opacity`, `thickness` (normal sigma / in-plane sigma), `seed` (the sampling offset).
     It yields (done, total, label) as work proceeds (with renders: after each count a budget
-    tries, or the calibration and each refinement round, so a caller may stop between them) and returns the cloud; `info`, if a dict, receives
-    "splats", "repaired" (what was skipped or repaired, with counts) and, with views, "psnr"
-    (the worst view), "psnr_views", "worst_view", "worst_view_distance", "psnr_all_views",
-    "inset_pixels", "views", "budget" (budgets: `max_splats`) and (target mode) "reached" and "limit" (why not).
+    tries, or the calibration and each refinement round, so a caller may stop between them) and
+    returns the cloud; `info`, if a dict, receives "splats", "repaired" (what was skipped or
+    repaired, with counts) and, with views, "psnr" (the worst view), "psnr_views", "worst_view",
+    "worst_view_distance", "psnr_all_views", "inset_pixels", "views", "budget" (budgets:
+    `max_splats`) and (target mode) "reached" and "limit" (why not).
 
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
