@@ -252,7 +252,8 @@ def drain(steps, progress=None):
 
 
 def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
-                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE, pixel_filter=PIXEL_FILTER):
+                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE, pixel_filter=PIXEL_FILTER,
+                  try_fewer=True):
     """refine_to_target one round at a time: a generator yielding (round, MAX_ROUNDS, label) after
     the calibration and each round and returning the cloud, so a caller can stop between rounds
     (close() it)."""
@@ -299,7 +300,8 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     saturated = np.zeros(len(area), bool)
     stop = "no more splats help"
     if uniform:         # a budget: calibrated, no rounds
-        inset, cloud, m, density = yield from _calibrate_budget(v, make, even, outward.any(), max_splats)
+        fewest = MIN_BUDGET_SPLATS if try_fewer else max_splats
+        inset, cloud, m, density = yield from _calibrate_budget(v, make, even, outward.any(), max_splats, fewest)
         best, rounds = (m.psnr, cloud, inset, m), 1
     else:
         inset, cloud, m = _calibrate_inset(v, make, density, outward.any())
@@ -379,16 +381,16 @@ def _calibrate_inset(v, make, density, solid, evaluations=INSET_SEARCH):
     return inset, cloud, m
 
 
-def _calibrate_budget(v, make, even, solid, max_splats):
+def _calibrate_budget(v, make, even, solid, max_splats, fewest=MIN_BUDGET_SPLATS):
     """A generator yielding (done, total, label) after each count it tries and returning (inset,
     cloud, Measured, density) for a budget spread evenly (`even(count)`, a density): the best of
-    max_splats, half as many, a quarter, ... (down to MIN_BUDGET_SPLATS), each with its silhouette
+    max_splats, half as many, a quarter, ... (down to `fewest`), each with its silhouette
     shift calibrated (stacked edge-on splats fatten silhouettes more the more there are). Each
     halving costs half the renders of the one before, so all are tried: the worst view's PSNR
     against the count is not smooth, and a budget then renders at least as well as any budget a
     power of two smaller."""
     counts = [max_splats]
-    while counts[-1] / 2 >= MIN_BUDGET_SPLATS:
+    while counts[-1] / 2 >= fewest:
         counts.append(counts[-1] / 2)
     best = None
     for done, count in enumerate(counts, 1):

@@ -48,7 +48,8 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
                          corner_colors=None, max_splats=None, target_psnr=None,
                          overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
                          view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True,
-                         pixel_filter=DEFAULT_PIXEL_FILTER, filter_width=CYCLES_FILTER_WIDTH, info=None):
+                         try_fewer=True, pixel_filter=DEFAULT_PIXEL_FILTER, filter_width=CYCLES_FILTER_WIDTH,
+                         info=None):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
@@ -57,7 +58,8 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
 
     Size: `max_splats` alone is a budget (splats spread by area), with the silhouettes of solid
     parts calibrated for the views, and half as many splats, or a quarter..., when they render
-    better there (`calibrate=False` skips that: no renders, exactly `max_splats` splats).
+    better there (`try_fewer=False` keeps `max_splats`, for splats whose colours a later step such
+    as baking the lit look refits; `calibrate=False` skips renders altogether).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
     the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
     `render_mode` is also the mode the cloud is made for (its `antialiased` flag): "antialiased"
@@ -108,7 +110,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
             uniform=budget_only,
             view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
             view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count),
-            pixel_filter=(pixel_filter, filter_width))
+            pixel_filter=(pixel_filter, filter_width), try_fewer=try_fewer)
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud.replace(antialiased=render_mode == "antialiased")

@@ -291,16 +291,19 @@ def read_object(obj, depsgraph, warn=print, rest=False):
 
 
 def object_steps(obj, triangles, appearance, record, *, max_splats=None, target_psnr=None, calibrate=True,
-                 render_mode=DEFAULT_RENDER_MODE, warn=print, views=None, info=None, **view_options):
+                 try_fewer=True, render_mode=DEFAULT_RENDER_MODE, warn=print, views=None, info=None,
+                 **view_options):
     """A generator converting one object's read mesh (read_object): yields (done, total, label) as
     mesh_to_splats_steps does (a target PSNR: a step per refinement round) and returns (cloud, record).
     `views` (core Cameras in the object's space) or `view_options` (view_size, view_distances,
     view_count of mesh_to_splats) say where quality is measured, and pixel_filter and filter_width
-    with what pixel filter (ConversionJob passes the scene's); `calibrate` (a budget only: the
-    silhouettes calibrated against renders from those views), `render_mode` (what the splats are made
-    for) and `info` as mesh_to_splats takes them."""
+    with what pixel filter (ConversionJob passes the scene's); `calibrate` and `try_fewer` (a budget
+    only: the silhouettes calibrated against renders from those views, and fewer splats kept where
+    they render better there), `render_mode` (what the splats are made for) and `info` as
+    mesh_to_splats takes them."""
     steps = mesh_to_splats_steps(triangles.vertices, triangles.faces, max_splats=max_splats,
-                                 target_psnr=target_psnr, calibrate=calibrate, render_mode=render_mode, views=views,
+                                 target_psnr=target_psnr, calibrate=calibrate, try_fewer=try_fewer,
+                                 render_mode=render_mode, views=views,
                                  info=info, **view_options, **appearance)
     while True:
         with warnings.catch_warnings(record=True) as caught:       # per step: nothing held across yields
@@ -400,8 +403,10 @@ class ConversionJob:
 
     def __init__(self, context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
                  render_mode=DEFAULT_RENDER_MODE, warn=print, views=None, bake=None, **view_options):
+        # Splats whose look is baked keep the whole budget: fewer render the Base Color better, not the lit look.
         self.options = dict(max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
-                            render_mode=render_mode, warn=warn, **scene_pixel_filter(context.scene), **view_options)
+                            render_mode=render_mode, warn=warn, try_fewer=bake is None,
+                            **scene_pixel_filter(context.scene), **view_options)
         self.views = views                 # {object: [core Camera]} or None (views around each mesh)
         self.bake = bake                   # bake.bake_steps' options (the Rendered look), or None
         if bake is not None and not hasattr(context.scene, "cycles"):

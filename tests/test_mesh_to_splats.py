@@ -686,6 +686,9 @@ def test_budget_never_renders_worse_with_more_splats(mode):
     if mode == "classic":        # edge-on splats fatten classic outlines: the largest budget keeps fewer
         assert counts[-1] < 32_000, counts
         assert f"{counts[-1]} of the 32000 splats budgeted: more rendered worse" in summary(info)
+        kept = mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=32_000, view_size=64, view_count=2,
+                              render_mode=mode, try_fewer=False, info=info)
+        assert len(kept) == 32_000 and info["inset_pixels"] > 0     # the whole budget, still calibrated
 
 
 def test_a_missed_target_says_what_was_reached_where_and_why():
