@@ -301,7 +301,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     stop = "no more splats help"
     if uniform:         # a budget: calibrated, no rounds
         fewest = MIN_BUDGET_SPLATS if try_fewer else max_splats
-        inset, cloud, m, density = yield from _calibrate_budget(v, make, even, outward.any(), max_splats, fewest)
+        inset, cloud, m = yield from _calibrate_budget(v, make, even, outward.any(), max_splats, fewest)
         best, rounds = (m.psnr, cloud, inset, m), 1
     else:
         inset, cloud, m = _calibrate_inset(v, make, density, outward.any())
@@ -383,7 +383,7 @@ def _calibrate_inset(v, make, density, solid, evaluations=INSET_SEARCH):
 
 def _calibrate_budget(v, make, even, solid, max_splats, fewest=MIN_BUDGET_SPLATS):
     """A generator yielding (done, total, label) after each count it tries and returning (inset,
-    cloud, Measured, density) for a budget spread evenly (`even(count)`, a density): the best of
+    cloud, Measured) for a budget spread evenly (`even(count)`, a density): the best of
     max_splats, half as many, a quarter, ... (down to `fewest`), each with its silhouette
     shift calibrated (stacked edge-on splats fatten silhouettes more the more there are). Each
     halving costs half the renders of the one before, so all are tried: the worst view's PSNR
@@ -394,8 +394,7 @@ def _calibrate_budget(v, make, even, solid, max_splats, fewest=MIN_BUDGET_SPLATS
         counts.append(counts[-1] / 2)
     best = None
     for done, count in enumerate(counts, 1):
-        density = even(count)
-        tried = (*_calibrate_inset(v, make, density, solid), density)
+        tried = _calibrate_inset(v, make, even(count), solid)
         if best is None or tried[2].psnr > best[2].psnr:
             best = tried
         # The last step is the conversion's end (refine_rounds' MAX_ROUNDS of MAX_ROUNDS).
