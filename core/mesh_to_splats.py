@@ -35,6 +35,9 @@ MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
 WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
 WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
 WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
+OPAQUE = 0.99           # the opacity of splats on open surfaces and walls hiding another colour
+SOLID_OPACITY = 0.8     # ... and on solid parts, whose outlines it thins (see the design notes)
+SEE_THROUGH = 0.5       # a wall's far side differing by more than this (display) keeps OPAQUE
 
 
 def mesh_to_splats(vertices, faces, *, progress=None, **options):
@@ -46,7 +49,7 @@ def mesh_to_splats(vertices, faces, *, progress=None, **options):
 
 def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
                          corner_colors=None, max_splats=None, target_psnr=None,
-                         overlap=0.8, opacity=0.99, thickness=0.01, seed=0, views=None, view_size=256,
+                         overlap=0.8, opacity=None, thickness=0.01, seed=0, views=None, view_size=256,
                          view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True,
                          try_fewer=True, pixel_filter=DEFAULT_PIXEL_FILTER, filter_width=CYCLES_FILTER_WIDTH,
                          info=None):
@@ -98,6 +101,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
     if target_psnr is None and max_splats is not None and not calibrate:
         density = _uniform_density(surface, int(max_splats))
+        style["opacity"] = face_opacities(surface, opacity)
         cloud = build_splats(surface, budget_density(density, thin_wall_density(surface, density, overlap)[0],
                                                      surface.area, int(max_splats)), **style)
         yield 1, 1, "mesh2splats"
@@ -135,7 +139,7 @@ def budget_density(density, floor, area, count):
     return spend(hi)
 
 
-def build_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None,
+def build_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None,
                  offset=None):
     """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
     `offset` (world units, default 0) along its unit normal."""
@@ -161,13 +165,15 @@ class Unplaced:
         return self.cloud.replace(positions=self.points + shift[:, None] * self.normal, extras=extras)
 
 
-def unplaced_splats(surface, density, overlap=0.8, opacity=0.99, thickness=0.01, seed=0, max_splats=None):
+def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None):
     """build_splats without the shift: an Unplaced."""
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
         expected *= max_splats / expected.sum()
     counts = systematic_counts(expected, morton_order(surface.centroids), np.random.default_rng(seed))
     tri, bary = bisection_samples(surface, counts)
+    opacity = np.asarray(opacity, np.float64)
+    opacity = opacity[tri] if opacity.ndim else opacity         # per face, or one for all
     cloud = _cloud(surface, tri, bary, density[tri], _face_rotations(surface)[tri], overlap, opacity, thickness)
     return Unplaced(cloud, surface.points(tri, bary), surface.normal[tri], tri)
 
@@ -387,29 +393,51 @@ def thin_wall_density(surface, density, overlap):
     none = (np.zeros_like(density), np.full(len(density), np.inf))
     if not finest:
         return none
-    v = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
-    size = float(np.max(v.max(axis=0) - v.min(axis=0)))
-    thickness = wall_thickness(surface, min(WALL_SIGMAS * overlap / np.sqrt(finest), size / 4))
+    thickness, _ = wall_thickness(surface, min(WALL_SIGMAS * overlap / np.sqrt(finest), _size(surface) / 4))
     with np.errstate(divide="ignore"):
         return np.where(np.isfinite(thickness), (WALL_SIGMAS * overlap / thickness) ** 2, 0.0), thickness
 
 
+def face_opacities(surface, opacity=None):
+    """Per face, the opacity of its splats: `opacity` if given; else SOLID_OPACITY on solid parts
+    (it thins their outlines: see the design notes), except walls whose far side, within a
+    quarter of the mesh's size, differs in colour by more than SEE_THROUGH, and OPAQUE on those
+    and on open surfaces, which have nothing behind them to cover for them."""
+    if opacity is not None:
+        return np.full(len(surface.faces), float(opacity))
+    _, contrast = wall_thickness(surface, _size(surface) / 4)
+    opaque = (surface.outward_signs() == 0) | (contrast > SEE_THROUGH)
+    # and the faces along them (a cup's rim between its two colours, seen edge-on from above)
+    f, g = surface.edge_neighbours()
+    opaque[f[opaque[g]]] = True
+    return np.where(opaque, OPAQUE, SOLID_OPACITY)
+
+
+def _size(surface):
+    """The largest extent of the mesh's finite vertices."""
+    v = surface.vertices[np.isfinite(surface.vertices).all(axis=1)]
+    return float(np.max(v.max(axis=0) - v.min(axis=0)))
+
+
 def wall_thickness(surface, reach, max_points=60_000):
-    """Per face, the thickness of the solid behind it where that is below `reach` (inf elsewhere):
-    the distance along the face's inward normal to the nearest surface of the same solid that
-    faces the other way (the far side of a cup's wall, say). Non-solid faces get inf.
+    """Per face, (thickness, contrast) of the solid behind it where that is thinner than `reach`
+    (inf and 0 elsewhere): the distance along the face's inward normal to the nearest surface of
+    the same solid that faces the other way (the far side of a cup's wall, say), and how far that
+    side's display colour is from the face's (the largest channel difference, 0 to 1): what a
+    wall would let show through. Non-solid faces get inf and 0.
 
     Points are spread over the surface (about reach/2 apart, at most `max_points`, and one or more
     in every face) and paired with the points within `reach` through a grid of cells `reach` wide;
-    a pair counts when the other point lies behind this one within a 45-degree cone and its face
-    points the other way. Only about one point per reach/2 squared asks: faces smaller than that
+    a pair counts when this point's inward ray meets the other point's face, and that face points
+    the other way. Only about one point per reach/2 squared asks: faces smaller than that
     share one, as splats do (one each made a finely cut sphere pair 9k points with thousands of
-    candidates each), and take the thinnest wall found on the faces around them."""
+    candidates each), and take the thinnest wall (and the largest contrast) found on the faces
+    around them."""
     outward = surface.outward_signs()
-    thickness = np.full(len(surface.faces), np.inf)
+    thickness, contrast = np.full(len(surface.faces), np.inf), np.zeros(len(surface.faces))
     solid = (outward != 0) & surface.valid
     if not solid.any() or not reach > 0:
-        return thickness
+        return thickness, contrast
     spacing = max(reach / 2, float(np.sqrt(surface.area[solid].sum() / max_points)))
     expected = np.where(solid, surface.area / spacing**2, 0.0)
     tri, bary = bisection_samples(surface, np.ceil(expected - 1e-9).astype(np.int64))
@@ -427,25 +455,36 @@ def wall_thickness(surface, reach, max_points=60_000):
     sorted_keys = key[order]
 
     def nearest_in(cells):
-        best = np.full(len(queries), np.inf)
+        best, nearest = np.full(len(queries), np.inf), np.zeros(len(queries), np.int64)
         for dx, dy, dz in cells:
             near = query_key + (dx * dims[1] + dy) * dims[2] + dz
             lo = np.searchsorted(sorted_keys, near, "left")
             hi = np.searchsorted(sorted_keys, near, "right")
-            _nearest_behind(queries, query_normals, points, normals, order, lo, hi, reach, best)
-        return best
+            _nearest_behind(surface, queries, query_normals, points, normals, tri, order, lo, hi, reach, best, nearest)
+        return best, nearest
 
     # The 27 neighbouring cells dealt out to the cores, each with its own minima, merged after.
     cells = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
-    best = np.minimum.reduce(map_threads(nearest_in, [cells[k::WORKERS] for k in range(min(WORKERS, len(cells)))]))
+    found = map_threads(nearest_in, [cells[k::WORKERS] for k in range(min(WORKERS, len(cells)))])
+    depths = np.stack([b for b, _ in found])
+    pick = np.argmin(depths, axis=0)
+    best = depths[pick, np.arange(len(queries))]
+    far = np.stack([n for _, n in found])[pick, np.arange(len(queries))]
+    walled = np.flatnonzero(np.isfinite(best))
+    colours = lambda t, b: to_display(surface.linear_colors(t, b))  # noqa: E731
+    differs = np.abs(colours(ask_tri[walled], ask_bary[walled]) - colours(tri[far[walled]], bary[far[walled]])).max(axis=1)
     np.minimum.at(thickness, ask_tri, best)
-    return _spread_to_unsampled(surface, thickness, solid & (asking == 0), outward)
+    np.maximum.at(contrast, ask_tri[walled], differs)
+    unsampled = solid & (asking == 0)
+    return (_spread_to_unsampled(surface, thickness, unsampled, outward),
+            -_spread_to_unsampled(surface, -contrast, unsampled, outward))
 
 
 def _spread_to_unsampled(surface, thickness, unsampled, outward):
     """Give each face in `unsampled` the thickness of the faces it shares an edge with, across
     edges that do not turn by more than 60 degrees (the wall behind a rim is not the rim's), ring
-    after ring; of several, the thinnest, the safe guess (smaller splats, smaller shifts)."""
+    after ring; of several, the thinnest, the safe guess (smaller splats, smaller shifts).
+    (Spreading -contrast spreads the largest contrast.)"""
     f, g = surface.edge_neighbours()
     normal = surface.normal * outward[:, None]
     smooth = np.einsum("ij,ij->i", normal[f], normal[g]) > 0.5
@@ -462,9 +501,11 @@ def _spread_to_unsampled(surface, thickness, unsampled, outward):
         known[fresh] = True
 
 
-def _nearest_behind(queries, query_normals, points, normals, order, lo, hi, reach, best, chunk=1 << 20):
-    """For every query i and the candidate points order[lo[i]:hi[i]], lower best[i] to the distance
-    of a candidate behind i (inward, within 45 degrees) whose normal faces the other way."""
+def _nearest_behind(surface, queries, query_normals, points, normals, tri, order, lo, hi, reach, best, nearest,
+                    chunk=1 << 20):
+    """For every query i and the candidate points order[lo[i]:hi[i]] (on faces tri), lower best[i]
+    to the depth at which i's inward ray meets a candidate's face facing the other way, and set
+    nearest[i] to that candidate."""
     counts = hi - lo
     ends = np.cumsum(counts)
     start = 0
@@ -476,14 +517,33 @@ def _nearest_behind(queries, query_normals, points, normals, order, lo, hi, reac
             first = np.cumsum(n) - n
             i = np.repeat(np.arange(start, stop), n)
             j = order[np.repeat(lo[start:stop], n) + (np.arange(total) - np.repeat(first, n))]
-            d = points[j] - queries[i]
-            depth = -np.einsum("ij,ij->i", d, query_normals[i])
-            lateral2 = np.einsum("ij,ij->i", d, d) - depth**2
-            facing = np.einsum("ij,ij->i", query_normals[i], normals[j]) < -0.3
-            ok = facing & (depth > 0) & (depth < reach) & (lateral2 <= depth**2)
-            # Candidates come grouped by point, so a segmented minimum replaces a scatter.
+            # The inward ray from query i meets candidate j's face at depth t: the far side is
+            # found however thin the wall is next to the points' spacing (a long sliver's few
+            # points stand for all of it).
+            d, n_i, n_j = points[j] - queries[i], query_normals[i], normals[j]
+            facing = -np.einsum("ij,ij->i", n_i, n_j)
+            t = np.einsum("ij,ij->i", d, n_j) / np.where(facing > 0.3, facing, 1.0)
+            hit = (facing > 0.3) & (t > 0) & (t < reach) & _inside(surface, tri[j], queries[i] - t[:, None] * n_i)
+            depth = np.where(hit, t, np.inf)
+            # Candidates come grouped by point, so segmented minima replace a scatter: the least
+            # depth, then the first candidate that has it.
             has = n > 0
-            nearest = np.minimum.reduceat(np.where(ok, depth, np.inf), first[has])
+            least = np.minimum.reduceat(depth, first[has])
+            at_least = (depth == np.repeat(least, n[has])) & np.isfinite(depth)
+            which = np.minimum.reduceat(np.where(at_least, np.arange(total), total), first[has])
             rows = np.arange(start, stop)[has]
-            best[rows] = np.minimum(best[rows], nearest)
+            closer = least < best[rows]
+            best[rows[closer]] = least[closer]
+            nearest[rows[closer]] = j[which[closer]]
         start = stop
+
+
+def _inside(surface, tri, x, slack=1e-6):
+    """Whether points x (N,3), in the planes of faces tri, lie inside them (barycentric test)."""
+    e1, e2, w = surface.edge1[tri], surface.edge2[tri], x - surface.origin[tri]
+    d11, d12, d22 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    w1, w2 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
+    den = d11 * d22 - d12**2
+    den = np.where(den > 0, den, np.inf)
+    u, v = (d22 * w1 - d12 * w2) / den, (d11 * w2 - d12 * w1) / den
+    return (u >= -slack) & (v >= -slack) & (u + v <= 1 + slack)

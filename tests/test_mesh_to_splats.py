@@ -10,10 +10,10 @@ import pytest
 
 from splatwright.core import jit, mesh_render, scenes, sh
 from splatwright.core.camera import Camera
-from splatwright.core.mesh import Material, Surface
+from splatwright.core.mesh import Material, Mesh, Surface
 from splatwright.core.mesh_refine import default_views, summary
 from splatwright.core.mesh_render import rasterize, render_mesh
-from splatwright.core.mesh_to_splats import WALL_SIGMAS, build_splats, mesh_to_splats
+from splatwright.core.mesh_to_splats import SOLID_OPACITY, WALL_SIGMAS, build_splats, mesh_to_splats
 from splatwright.core.metrics import psnr
 from splatwright.core.render import render
 
@@ -119,7 +119,41 @@ def test_frames_are_flat_discs_along_the_face_normal():
     np.testing.assert_allclose(np.sqrt(vals[:, 1]), np.sqrt(vals[:, 2]), rtol=1e-5)
     np.testing.assert_allclose(np.sqrt(vals[:, 0] / vals[:, 2]), 0.01, rtol=1e-4)
     assert cloud.sh_degree == 0
-    np.testing.assert_allclose(cloud.opacities, 0.99, rtol=1e-6)
+    np.testing.assert_allclose(cloud.opacities, SOLID_OPACITY, rtol=1e-6)     # a closed solid
+
+
+def test_splats_are_opaque_where_nothing_behind_covers_for_them():
+    """Solid parts get SOLID_OPACITY; an open sheet, a wall hiding another colour (the cup's orange
+    outside over its blue inside) and the faces along it (the rim) OPAQUE; the same cup in one
+    colour is solid throughout; an opacity asked for is given everywhere."""
+    from splatwright.core.mesh_to_splats import OPAQUE
+
+    def opacity_of(m, **kw):
+        return mesh_to_splats(m.vertices, m.faces, **m.appearance(), max_splats=4000, calibrate=False, **kw).opacities
+
+    sheet = mesh_to_splats([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], max_splats=500,
+                           calibrate=False)
+    np.testing.assert_allclose(sheet.opacities, OPAQUE, rtol=1e-6)
+    cup = scenes.thin_walled_cup()
+    np.testing.assert_allclose(opacity_of(cup), OPAQUE, rtol=1e-6)
+    one_colour = Mesh(cup.vertices, cup.faces, None, cup.face_materials, [cup.materials[0]] * 2)
+    np.testing.assert_allclose(opacity_of(one_colour), SOLID_OPACITY, rtol=1e-6)
+    np.testing.assert_allclose(opacity_of(cup, opacity=0.5), 0.5, rtol=1e-6)
+
+
+def test_wall_contrast_is_the_far_sides_colour_difference():
+    """wall_thickness' contrast: on the cup's walls the largest display channel difference of
+    orange and blue; none where the far side is past the reach."""
+    from splatwright.core.mesh import to_display
+    from splatwright.core.mesh_to_splats import wall_thickness
+    cup = scenes.thin_walled_cup()
+    surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, cup.materials)
+    thickness, contrast = wall_thickness(surface, 0.02)
+    colours = to_display(np.array([m.base_color for m in cup.materials], np.float64))
+    walls = np.isfinite(thickness)
+    assert walls.mean() > 0.7
+    np.testing.assert_allclose(contrast[walls], np.abs(colours[0] - colours[1]).max(), rtol=1e-6)
+    assert (contrast[~walls] == 0).all()
 
 
 def test_discs_do_not_reach_past_outline_edges():
@@ -708,8 +742,9 @@ def test_a_missed_target_says_what_was_reached_where_and_why():
 def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_best():
     """More splats fatten the outlines: once PATIENCE rounds in a row render worse than the best
     (each with its shift searched again), refinement stops and the best round's cloud comes back,
-    its PSNR what the views measure."""
+    its PSNR what the views measure. (Opaque splats: their outlines fatten the most.)"""
     from splatwright.core.mesh_refine import MAX_ROUNDS, PATIENCE
+    from splatwright.core.mesh_to_splats import OPAQUE
     v, f, _ = uv_sphere(16, 8)
     info, rounds = {}, []
 
@@ -717,7 +752,8 @@ def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_bes
         if 0 < done < total:
             rounds.append((int(label.split()[1]), float(label.split()[3])))
 
-    cloud = mesh_to_splats(v, f, target_psnr=60, view_size=48, view_count=1, info=info, progress=progress)
+    cloud = mesh_to_splats(v, f, target_psnr=60, view_size=48, view_count=1, info=info, progress=progress,
+                           opacity=OPAQUE)
     best = max(range(len(rounds)), key=lambda k: rounds[k][1])
     assert len(rounds) == info["rounds"] < MAX_ROUNDS
     assert len(rounds) - 1 - best == PATIENCE and all(p <= rounds[best][1] for _, p in rounds[best + 1:])
@@ -737,13 +773,13 @@ def test_wall_thickness_of_faces_finer_than_its_points():
     cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=512)
     surface = Surface(cup.vertices, cup.faces)
     n = 512
-    thickness = wall_thickness(surface, 0.02)
+    thickness, _ = wall_thickness(surface, 0.02)
     assert surface.area.max() < (0.02 / 2) ** 2 / 10          # ten faces or more per point
     sides = np.r_[0:2 * n, 4 * n:8 * n]                         # outer and inner walls, floor, bottom
     np.testing.assert_allclose(thickness[sides], 0.005, rtol=0.1)
     assert np.isinf(thickness[2 * n:4 * n]).all()
     v, f, _ = uv_sphere(96, 48)
-    assert np.isinf(wall_thickness(Surface(v, f), 0.5)).all()
+    assert np.isinf(wall_thickness(Surface(v, f), 0.5)[0]).all()
 
 
 def test_a_face_is_sized_by_the_finest_view_that_frames_it_seen_or_not():
