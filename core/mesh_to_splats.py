@@ -36,7 +36,7 @@ WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thicknes
 WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
 WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
 OPAQUE = 0.99           # the opacity of splats on open surfaces and walls hiding another colour
-SOLID_OPACITY = 0.8     # ... and on solid parts, whose outlines it thins (see the design notes)
+SOLID_OPACITY = 0.75    # ... and on solid parts, whose outlines it thins (see the design notes)
 SEE_THROUGH = 0.5       # a wall's far side differing by more than this (display) keeps OPAQUE
 
 
@@ -520,11 +520,14 @@ def _nearest_behind(surface, queries, query_normals, points, normals, tri, order
             # The inward ray from query i meets candidate j's face at depth t: the far side is
             # found however thin the wall is next to the points' spacing (a long sliver's few
             # points stand for all of it).
-            d, n_i, n_j = points[j] - queries[i], query_normals[i], normals[j]
-            facing = -np.einsum("ij,ij->i", n_i, n_j)
-            t = np.einsum("ij,ij->i", d, n_j) / np.where(facing > 0.3, facing, 1.0)
-            hit = (facing > 0.3) & (t > 0) & (t < reach) & _inside(surface, tri[j], queries[i] - t[:, None] * n_i)
-            depth = np.where(hit, t, np.inf)
+            # Only the pairs facing each other (few) go on to the ray test.
+            facing = -np.einsum("ij,ij->i", query_normals[i], normals[j])
+            pair = np.flatnonzero(facing > 0.3)
+            qi, pj = i[pair], j[pair]
+            t = np.einsum("ij,ij->i", points[pj] - queries[qi], normals[pj]) / facing[pair]
+            hit = (t > 0) & (t < reach) & _inside(surface, tri[pj], queries[qi] - t[:, None] * query_normals[qi])
+            depth = np.full(total, np.inf)
+            depth[pair[hit]] = t[hit]
             # Candidates come grouped by point, so segmented minima replace a scatter: the least
             # depth, then the first candidate that has it.
             has = n > 0
