@@ -274,7 +274,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
     walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
-    style = dict(style, opacity=face_opacities(surface, style["opacity"]))
+    style = dict(style, opacity=face_opacities(surface, style["opacity"], render_mode == "antialiased"))
     cap = np.where(surface.valid, MAX_PER_PIXEL / pixel**2, 0.0)
     walls = np.minimum(walls, WALL_BOOST * cap)
     cap = np.maximum(cap, walls)

@@ -101,7 +101,7 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
     if target_psnr is None and max_splats is not None and not calibrate:
         density = _uniform_density(surface, int(max_splats))
-        style["opacity"] = face_opacities(surface, opacity)
+        style["opacity"] = face_opacities(surface, opacity, render_mode == "antialiased")
         cloud = build_splats(surface, budget_density(density, thin_wall_density(surface, density, overlap)[0],
                                                      surface.area, int(max_splats)), **style)
         yield 1, 1, "mesh2splats"
@@ -398,13 +398,14 @@ def thin_wall_density(surface, density, overlap):
         return np.where(np.isfinite(thickness), (WALL_SIGMAS * overlap / thickness) ** 2, 0.0), thickness
 
 
-def face_opacities(surface, opacity=None):
-    """Per face, the opacity of its splats: `opacity` if given; else SOLID_OPACITY on solid parts
-    (it thins their outlines: see the design notes), except walls whose far side, within a
-    quarter of the mesh's size, differs in colour by more than SEE_THROUGH, and OPAQUE on those
-    and on open surfaces, which have nothing behind them to cover for them."""
-    if opacity is not None:
-        return np.full(len(surface.faces), float(opacity))
+def face_opacities(surface, opacity=None, antialiased=True):
+    """Per face, the opacity of its splats: `opacity` if given; made for antialiased rendering,
+    SOLID_OPACITY on solid parts (it thins their outlines: see the design notes), except walls
+    whose far side, within a quarter of the mesh's size, differs in colour by more than
+    SEE_THROUGH, and OPAQUE on those, on the faces next to them and on open surfaces, which have
+    nothing behind them to cover for them; made for classic rendering, OPAQUE everywhere."""
+    if opacity is not None or not antialiased:
+        return np.full(len(surface.faces), OPAQUE if opacity is None else float(opacity))
     _, contrast = wall_thickness(surface, _size(surface) / 4)
     opaque = (surface.outward_signs() == 0) | (contrast > SEE_THROUGH)
     # and the faces along them (a cup's rim between its two colours, seen edge-on from above)

@@ -125,7 +125,8 @@ def test_frames_are_flat_discs_along_the_face_normal():
 def test_splats_are_opaque_where_nothing_behind_covers_for_them():
     """Solid parts get SOLID_OPACITY; an open sheet, a wall hiding another colour (the cup's orange
     outside over its blue inside) and the faces along it (the rim) OPAQUE; the same cup in one
-    colour is solid throughout; an opacity asked for is given everywhere."""
+    colour is solid throughout (made for classic rendering, opaque); an opacity asked for is given
+    everywhere."""
     from splatwright.core.mesh_to_splats import OPAQUE
 
     def opacity_of(m, **kw):
@@ -139,6 +140,7 @@ def test_splats_are_opaque_where_nothing_behind_covers_for_them():
     one_colour = Mesh(cup.vertices, cup.faces, None, cup.face_materials, [cup.materials[0]] * 2)
     np.testing.assert_allclose(opacity_of(one_colour), SOLID_OPACITY, rtol=1e-6)
     np.testing.assert_allclose(opacity_of(cup, opacity=0.5), 0.5, rtol=1e-6)
+    np.testing.assert_allclose(opacity_of(one_colour, render_mode="classic"), OPAQUE, rtol=1e-6)
 
 
 def test_wall_contrast_is_the_far_sides_colour_difference():
