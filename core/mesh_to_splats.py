@@ -37,7 +37,8 @@ WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many 
 WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
 OPAQUE = 0.99           # the opacity of splats on open surfaces and walls hiding another colour
 SOLID_OPACITY = 0.75    # ... and on solid parts, whose outlines it thins (see the design notes)
-SEE_THROUGH = 0.5       # a wall's far side differing by more than this (display) keeps OPAQUE
+SEE_THROUGH = 0.5       # a wall's far side differing by more than this (display) keeps OPAQUE: a solid
+                        # layer lets a few per cent through, 36 dB's RMS error at this contrast
 
 
 def mesh_to_splats(vertices, faces, *, progress=None, **options):
