@@ -43,8 +43,7 @@ import numpy as np
 
 from .camera import Camera
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, render_mesh
-from .mesh_to_splats import (WALL_BOOST, WALL_INSET, budget_density, face_opacities, thin_wall_density,
-                             unplaced_splats)
+from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import render
@@ -274,7 +273,6 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
     walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
-    style = dict(style, opacity=face_opacities(surface, style["opacity"], render_mode == "antialiased"))
     cap = np.where(surface.valid, MAX_PER_PIXEL / pixel**2, 0.0)
     walls = np.minimum(walls, WALL_BOOST * cap)
     cap = np.maximum(cap, walls)

@@ -99,10 +99,10 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     if max_splats is not None and int(max_splats) < 1:
         raise ValueError(f"max_splats must be at least 1, got {max_splats}")
     filter_taps(pixel_filter, filter_width, 1)                  # a ValueError for an unknown filter
-    style = dict(overlap=overlap, opacity=opacity, thickness=thickness, seed=seed)
+    style = dict(overlap=overlap, opacity=face_opacities(surface, opacity, render_mode == "antialiased"),
+                 thickness=thickness, seed=seed)
     if target_psnr is None and max_splats is not None and not calibrate:
         density = _uniform_density(surface, int(max_splats))
-        style["opacity"] = face_opacities(surface, opacity, render_mode == "antialiased")
         cloud = build_splats(surface, budget_density(density, thin_wall_density(surface, density, overlap)[0],
                                                      surface.area, int(max_splats)), **style)
         yield 1, 1, "mesh2splats"
@@ -521,8 +521,7 @@ def _nearest_behind(surface, queries, query_normals, points, normals, tri, order
             j = order[np.repeat(lo[start:stop], n) + (np.arange(total) - np.repeat(first, n))]
             # The inward ray from query i meets candidate j's face at depth t: the far side is
             # found however thin the wall is next to the points' spacing (a long sliver's few
-            # points stand for all of it).
-            # Only the pairs facing each other (few) go on to the ray test.
+            # points stand for all of it). Only pairs facing each other (few) take the ray test.
             facing = -np.einsum("ij,ij->i", query_normals[i], normals[j])
             pair = np.flatnonzero(facing > 0.3)
             qi, pj = i[pair], j[pair]
