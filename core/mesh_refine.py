@@ -29,7 +29,8 @@ each face's finest view) that maximises the worst view's PSNR, found by golden-s
 searched again whenever the cloud has doubled or a round rendered worse (smaller splats want another
 shift; without this, refinement stalled with more splats rendering worse). Splats of one
 density are built once: a search moves only their positions. A budget (uniform mode) also tries
-half as many splats, a quarter, ... (down to MIN_BUDGET_SPLATS) and keeps what renders best: the
+the smaller counts of one ladder shared by all budgets (2000, 4000, 8000, ...: budget_ladder) and
+keeps what renders best: the
 fattening grows with the splats stacked, so a larger budget could otherwise look worse than a
 smaller one (the torus: 38.4 / 38.7 / 37.8 dB at 10k / 30k / 100k on held-out views). Wider,
 fainter discs standing for fewer splats were tried first and did worse than fewer splats: a scene
@@ -64,7 +65,8 @@ PATIENCE = 1              # stop after this many rounds in a row that rendered n
                           # (on the bench's meshes a second never did, and cost the cup 20 s)
 MIN_GROWTH = 0.05         # stop once a round would add fewer splats than this fraction (below the cap)
 AIM = 0.7                 # faces aim at this fraction of the target MSE (not all of them can)
-MIN_BUDGET_SPLATS = 2000  # a budget tries halving its splats, down to this many
+MIN_BUDGET_SPLATS = 2000  # a budget also tries this many splats, twice as many, ... (budget_ladder)
+RUNG_GAP = 1.25           # ... up to a rung this much below the budget
 EDGE_BAND = 2             # pixels either side of a silhouette that count as silhouette error
 
 
@@ -384,14 +386,12 @@ def _calibrate_inset(v, make, density, solid, evaluations=INSET_SEARCH):
 def _calibrate_budget(v, make, even, solid, max_splats, fewest=MIN_BUDGET_SPLATS):
     """A generator yielding (done, total, label) after each count it tries and returning (inset,
     cloud, Measured) for a budget spread evenly (`even(count)`, a density): the best of
-    max_splats, half as many, a quarter, ... (down to `fewest`), each with its silhouette
-    shift calibrated (stacked edge-on splats fatten silhouettes more the more there are). Each
-    halving costs half the renders of the one before, so all are tried: the worst view's PSNR
-    against the count is not smooth, and a budget then renders at least as well as any budget a
-    power of two smaller."""
-    counts = [max_splats]
-    while counts[-1] / 2 >= fewest:
-        counts.append(counts[-1] / 2)
+    max_splats and the rungs of budget_ladder below it (down to `fewest`), each with its
+    silhouette shift calibrated (stacked edge-on splats fatten silhouettes more the more there
+    are). Each rung costs half the renders of the one above, so all are tried: the worst view's
+    PSNR against the count is not smooth, and a budget then renders at least as well as every
+    rung below it, which every larger budget tries too."""
+    counts = [max_splats] + [rung for rung in budget_ladder(max_splats) if rung >= fewest]
     best = None
     for done, count in enumerate(counts, 1):
         tried = _calibrate_inset(v, make, even(count), solid)
@@ -400,6 +400,19 @@ def _calibrate_budget(v, make, even, solid, max_splats, fewest=MIN_BUDGET_SPLATS
         # The last step is the conversion's end (refine_rounds' MAX_ROUNDS of MAX_ROUNDS).
         yield done, len(counts) + 1, f"mesh2splats: {round(count)} splats, {tried[2].psnr:.1f} dB"
     return best
+
+
+def budget_ladder(budget):
+    """The counts below `budget` that a budget also tries, largest first: MIN_BUDGET_SPLATS times
+    powers of two, the same for every budget, so a larger budget tries every rung a smaller one
+    did (halving each budget instead, 100k never tried the 30k that rendered the torus best).
+    Rungs within RUNG_GAP of the budget are left to the budget itself."""
+    rungs = []
+    rung = MIN_BUDGET_SPLATS
+    while rung * RUNG_GAP <= budget:
+        rungs.append(rung)
+        rung *= 2
+    return rungs[::-1]
 
 
 def summary(info):

@@ -62,8 +62,8 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     core/mesh.py states the colour space of every input.
 
     Size: `max_splats` alone is a budget (splats spread by area), with the silhouettes of solid
-    parts calibrated for the views, and half as many splats, or a quarter..., when they render
-    better there (`try_fewer=False` keeps `max_splats`, for splats whose colours a later step such
+    parts calibrated for the views, and fewer splats (2000, 4000, 8000, ... below it: one ladder
+    for all budgets, core.mesh_refine.budget_ladder) when they render better there (`try_fewer=False` keeps `max_splats`, for splats whose colours a later step such
     as baking the lit look refits; `calibrate=False` skips renders altogether).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
     the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.

@@ -11,7 +11,7 @@ import pytest
 from splatwright.core import jit, mesh_render, scenes, sh
 from splatwright.core.camera import Camera
 from splatwright.core.mesh import Material, Mesh, Surface
-from splatwright.core.mesh_refine import default_views, summary
+from splatwright.core.mesh_refine import budget_ladder, default_views, summary
 from splatwright.core.mesh_render import rasterize, render_mesh
 from splatwright.core.mesh_to_splats import SOLID_OPACITY, WALL_SIGMAS, build_splats, mesh_to_splats
 from splatwright.core.metrics import psnr
@@ -715,10 +715,10 @@ def test_budget_never_renders_worse_with_more_splats(mode):
                  for cam, ref in zip(cams, refs)) for b in (2_000, 32_000)]
     assert all(b >= a - 0.2 for a, b in zip(worst, worst[1:])), worst
     assert worst[-1] > plain[1] + 3
-    # Each budget is the best of itself, half, a quarter, ... on the converter's views: four times the
-    # budget holds the smaller one among its tries, so it renders no worse there.
+    # Each budget is the best of itself and the ladder's rungs below it on the converter's views: these
+    # budgets are rungs themselves, so a larger one tries what a smaller one kept and renders no worse.
     assert own == sorted(own), own
-    assert all(n in (b, b // 2, b // 4, b // 8, b // 16) for n, b in zip(counts, (2_000, 8_000, 32_000)))
+    assert all(n in [b] + budget_ladder(b) for n, b in zip(counts, (2_000, 8_000, 32_000)))
     if mode == "classic":        # edge-on splats fatten classic outlines: the largest budget keeps fewer
         assert counts[-1] < 32_000, counts
         assert f"{counts[-1]} of the 32000 splats budgeted: more rendered worse" in summary(info)
@@ -892,8 +892,18 @@ def test_steps_are_the_refinement_rounds_and_stop_when_closed():
         next(steps)
 
 
+def test_every_budget_tries_the_rungs_a_smaller_budget_tried():
+    assert budget_ladder(100_000) == [64_000, 32_000, 16_000, 8_000, 4_000, 2_000]
+    assert budget_ladder(30_000) == [16_000, 8_000, 4_000, 2_000]
+    assert budget_ladder(2_400) == [] and budget_ladder(2_500) == [2_000]
+    budgets = np.unique(np.geomspace(1_000, 1e6, 200).astype(int))
+    for small, large in zip(budgets, budgets[1:]):
+        assert set(budget_ladder(small)) <= set(budget_ladder(large))
+        assert all(rung <= large / 1.25 for rung in budget_ladder(large))
+
+
 def test_a_budget_steps_through_the_counts_it_tries():
-    """A budget yields after each count it tries (the budget, half, a quarter, ... down to 2,000),
+    """A budget yields after each count it tries (the budget, then the ladder's 4,000 and 2,000),
     its progress never going back, and keeps the one its views rate best."""
     from splatwright.core.mesh_refine import drain
     from splatwright.core.mesh_to_splats import mesh_to_splats_steps
@@ -904,6 +914,6 @@ def test_a_budget_steps_through_the_counts_it_tries():
     fractions = [done / total for done, total, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     tried = [label for _, _, label in seen[:-1]]
-    assert [t.split(": ")[1].split(" splats")[0] for t in tried] == ["9000", "4500", "2250"]
+    assert [t.split(": ")[1].split(" splats")[0] for t in tried] == ["9000", "4000", "2000"]
     rated = {int(t.split(": ")[1].split(" splats")[0]): float(t.split(", ")[1].split(" dB")[0]) for t in tried}
     assert len(cloud) in rated and rated[len(cloud)] == max(rated.values())
