@@ -317,7 +317,8 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
             grown = len(cloud) > RECALIBRATE_GROWTH * calibrated_at
             if outward.any() and (grown or m.psnr < best[0]):
                 # Smaller splats want another shift (and more stack along the silhouettes): search
-                # it again, below the last one as well.
+                # it again, below the last one as well. (With the last shift as the search's first
+                # point, a render fewer, the hand kept 460k splats, not 600k, and fell 0.6 dB at 1x.)
                 inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 3, (inset, cloud, m))
                 calibrated_at, saturated[:] = len(cloud), False
         stale = 0 if best is None or m.psnr > best[0] else stale + 1

@@ -243,9 +243,21 @@ def bisection_samples(surface, counts):
     gram = np.stack([np.einsum("ij,ij->i", surface.edge1, surface.edge1),
                      np.einsum("ij,ij->i", surface.edge1, surface.edge2),
                      np.einsum("ij,ij->i", surface.edge2, surface.edge2)], axis=1)
+    # Faces dealt out to the cores in runs of about equal point counts (NumPy releases the GIL).
+    runs = np.searchsorted(np.cumsum(counts[faces]), np.linspace(0, counts.sum(), WORKERS + 1)[1:-1])
+    parts = map_threads(lambda group: _bisection_leaves(group, counts[group], gram), np.split(faces, runs))
+    tri = np.concatenate([t for t, _ in parts])
+    uv = np.concatenate([uv for _, uv in parts])
+    bary = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv])
+    return tri, np.clip(bary, 0.0, 1.0)
+
+
+def _bisection_leaves(tri, n, gram):
+    """(tri, uv): the leaves of bisecting faces tri into n[i] pieces each, as their centroids'
+    (b1, b2) barycentric coordinates."""
     reference = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    tri, n, corners = faces, counts[faces], np.broadcast_to(reference, (len(faces), 3, 2)).copy()
-    out_tri, out_uv = [], []
+    corners = np.broadcast_to(reference, (len(tri), 3, 2)).copy()
+    out_tri, out_uv = [np.zeros(0, np.int64)], [np.zeros((0, 2))]
     while len(tri):
         leaf = n == 1
         out_tri.append(tri[leaf])
@@ -253,10 +265,7 @@ def bisection_samples(surface, counts):
         tri, n, corners = tri[~leaf], n[~leaf], corners[~leaf]
         if len(tri):
             tri, n, corners = _bisect(tri, n, corners, gram[tri])
-    tri = np.concatenate(out_tri)
-    uv = np.concatenate(out_uv)
-    bary = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv])
-    return tri, np.clip(bary, 0.0, 1.0)
+    return np.concatenate(out_tri), np.concatenate(out_uv)
 
 
 def _longest_edge(corners, gram):
