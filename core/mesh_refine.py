@@ -232,15 +232,6 @@ class _Inset:
         return (best, *tried[best])
 
 
-def refine_to_target(surface, target, max_splats, views, view_size, render_mode, progress, info, style,
-                     uniform=False, **view_options):
-    """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable).
-    With `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes
-    are calibrated for the views. progress(done, total, label) after each round."""
-    return drain(refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform,
-                               **view_options), progress)
-
-
 def drain(steps, progress=None):
     """Run a generator of (done, total, label) steps to its end, passing each to `progress`;
     returns the generator's return value."""
@@ -256,9 +247,11 @@ def drain(steps, progress=None):
 def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
                   view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE, pixel_filter=PIXEL_FILTER,
                   try_fewer=True):
-    """refine_to_target one round at a time: a generator yielding (round, MAX_ROUNDS, label) after
-    the calibration and each round and returning the cloud, so a caller can stop between rounds
-    (close() it)."""
+    """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable), one
+    round at a time: a generator yielding (round, MAX_ROUNDS, label) after the calibration and each
+    round and returning the cloud, so a caller can stop between rounds (close() it). With
+    `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes are
+    calibrated for the views (a budget)."""
     cameras = list(views) if views is not None else default_views(surface, view_size, view_count,
                                                                   distances=view_distances)
     if not cameras:
