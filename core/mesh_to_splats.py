@@ -32,7 +32,9 @@ DEFAULT_TARGET_PSNR = 36.0
 DEFAULT_RENDER_MODE = "antialiased"
 EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
 MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
-WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this
+WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this,
+SAME_WALL_SIGMAS = 4.0  # ... or / this where the far side's display colour is within LEAK_CONTRAST:
+LEAK_CONTRAST = 1 / 64  # no leak of it can show (36 dB's RMS error), but wider discs poke out at rims
 WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
 WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
 OPAQUE = 0.99           # the opacity of splats on open surfaces and walls hiding another colour
@@ -400,20 +402,24 @@ def _rim_sh(surface, tri, base_linear, chunk=1 << 15):
 
 def thin_wall_density(surface, density, overlap):
     """(density floor, wall thickness) per face: the density below which its splats would be wider
-    than 1/WALL_SIGMAS of the wall behind it (0 where the wall is thicker than the splats of
-    `density` could matter), and that wall's thickness (inf where none is that thin).
+    than 1/WALL_SIGMAS of the wall behind it, 1/SAME_WALL_SIGMAS where the far side's colour is
+    within LEAK_CONTRAST of the face's (0 where the wall is thicker than the splats of `density`
+    could matter), and that wall's thickness (inf where none is that thin).
 
     3DGS renderers sort whole splats by the depth of their centres, so where a splat is wide
     next to the wall's thickness, a splat of the far side gets sorted in front of the near side's
     at oblique views and its colour shows through (the inside of a cup through its wall): on a
-    5 mm wall, 14% of the outside pixels of a close-up at sigma = 0.65 wall, under 1% at 0.11."""
+    5 mm wall, 14% of the outside pixels of a close-up at sigma = 0.65 wall, under 1% at 0.11.
+    A far side of the face's own colour cannot show, so such walls only keep discs from poking
+    out past their rims (see the design notes for what each floor measured)."""
     finest = density[density > 0].min() if (density > 0).any() else 0.0
     none = (np.zeros_like(density), np.full(len(density), np.inf))
     if not finest:
         return none
-    thickness, _ = wall_thickness(surface, min(WALL_SIGMAS * overlap / np.sqrt(finest), _size(surface) / 4))
+    thickness, contrast = wall_thickness(surface, min(WALL_SIGMAS * overlap / np.sqrt(finest), _size(surface) / 4))
+    sigmas = np.where(contrast > LEAK_CONTRAST, WALL_SIGMAS, SAME_WALL_SIGMAS)
     with np.errstate(divide="ignore"):
-        return np.where(np.isfinite(thickness), (WALL_SIGMAS * overlap / thickness) ** 2, 0.0), thickness
+        return np.where(np.isfinite(thickness), (sigmas * overlap / thickness) ** 2, 0.0), thickness
 
 
 def face_opacities(surface, opacity=None, antialiased=True):

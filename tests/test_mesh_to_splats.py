@@ -158,6 +158,25 @@ def test_wall_contrast_is_the_far_sides_colour_difference():
     assert (contrast[~walls] == 0).all()
 
 
+def test_a_wall_hiding_its_own_colour_gets_a_lower_density_floor():
+    """thin_wall_density: splats at most 1/WALL_SIGMAS of the wall where the far side would show
+    another colour, 1/SAME_WALL_SIGMAS where it has the face's own."""
+    from splatwright.core.mesh_to_splats import SAME_WALL_SIGMAS, thin_wall_density
+    cup = scenes.thin_walled_cup()
+    coarse = np.full(len(cup.faces), 1e5)                     # splats far wider than the 5 mm wall
+    floors = {}
+    for name, mats in (("two", cup.materials), ("one", [cup.materials[0]] * 2)):
+        surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, mats)
+        floor, thickness = thin_wall_density(surface, coarse, 0.8)
+        walls = np.isfinite(thickness)
+        assert walls.mean() > 0.7 and (floor[~walls] == 0).all()
+        floors[name] = (floor[walls], thickness[walls])
+    for name, sigmas in (("two", WALL_SIGMAS), ("one", SAME_WALL_SIGMAS)):
+        floor, thickness = floors[name]
+        np.testing.assert_allclose(floor, (sigmas * 0.8 / thickness) ** 2, rtol=1e-9)
+    np.testing.assert_allclose(floors["two"][0] / floors["one"][0], (WALL_SIGMAS / SAME_WALL_SIGMAS) ** 2)
+
+
 def test_discs_do_not_reach_past_outline_edges():
     rng = np.random.default_rng(5)
     tris = rng.normal(size=(40, 1, 3)) * 4 + rng.normal(size=(40, 3, 3))   # a soup: every edge is a boundary
