@@ -65,8 +65,9 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
 
     Size: `max_splats` alone is a budget (splats spread by area), with the silhouettes of solid
     parts calibrated for the views, and fewer splats (2000, 4000, 8000, ... below it: one ladder
-    for all budgets, core.mesh_refine.budget_ladder) when they render better there (`try_fewer=False` keeps `max_splats`, for splats whose colours a later step such
-    as baking the lit look refits; `calibrate=False` skips renders altogether).
+    for all budgets, core.mesh_refine.budget_ladder) when they render better there
+    (`try_fewer=False` keeps `max_splats`, for splats whose colours a later step such as baking
+    the lit look refits; `calibrate=False` skips renders altogether).
     `target_psnr` (dB) refines until the splats rendered by core.render in `render_mode` match
     the mesh rendered by core.mesh_render in every one of the views, with `max_splats` as a cap.
     `render_mode` is also the mode the cloud is made for (its `antialiased` flag): "antialiased"
@@ -497,7 +498,8 @@ def wall_thickness(surface, reach, max_points=60_000):
     far = np.stack([n for _, n in found])[pick, np.arange(len(queries))]
     walled = np.flatnonzero(np.isfinite(best))
     colours = lambda t, b: to_display(surface.linear_colors(t, b))  # noqa: E731
-    differs = np.abs(colours(ask_tri[walled], ask_bary[walled]) - colours(tri[far[walled]], bary[far[walled]])).max(axis=1)
+    near_side, far_side = colours(ask_tri[walled], ask_bary[walled]), colours(tri[far[walled]], bary[far[walled]])
+    differs = np.abs(near_side - far_side).max(axis=1)
     np.minimum.at(thickness, ask_tri, best)
     np.maximum.at(contrast, ask_tri[walled], differs)
     unsampled = solid & (asking == 0)
