@@ -31,9 +31,9 @@ shift; without this, refinement stalled with more splats rendering worse). Splat
 density are built once: a search moves only their positions. A budget (uniform mode) also tries
 the smaller counts of one ladder shared by all budgets (2000, 4000, 8000, ...: budget_ladder) and
 keeps what renders best: the fattening grows with the splats stacked, so a larger budget could
-otherwise look worse than a smaller one (the torus: 38.4 / 38.7 / 37.8 dB at 10k / 30k / 100k on held-out views). Wider,
-fainter discs standing for fewer splats were tried first and did worse than fewer splats: a scene
-needs no splats that render it worse.
+otherwise look worse than a smaller one (the torus: 38.4 / 38.7 / 37.8 dB at 10k / 30k / 100k on
+held-out views). Wider, fainter discs standing for fewer splats were tried first and did worse than
+fewer splats: a scene needs no splats that render it worse.
 """
 
 import math
