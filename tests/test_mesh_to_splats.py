@@ -635,12 +635,17 @@ def test_render_mesh_is_the_same_image_on_both_rasterisers():
 
 # target PSNR -----------------------------------------------------------------------------------
 
-def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
-    v, f, uv = uv_sphere(24, 12)
+def _wavy_texture():
+    """A 64x64 sRGB texture of slow colour waves."""
     j, i = np.meshgrid(np.arange(64), np.arange(64))
     tex = np.stack([0.5 + 0.4 * np.sin(2 * np.pi * j / 16), 0.5 + 0.4 * np.cos(2 * np.pi * i / 16),
                     0.5 + 0.3 * np.sin(2 * np.pi * (i + j) / 32)], -1)
-    mats = [Material(texture=(tex * 255).astype(np.uint8)), Material(base_color=(0.2, 0.5, 0.3))]
+    return (tex * 255).astype(np.uint8)
+
+
+def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
+    v, f, uv = uv_sphere(24, 12)
+    mats = [Material(texture=_wavy_texture()), Material(base_color=(0.2, 0.5, 0.3))]
     north = v[f].mean(axis=1)[:, 1] > 0
     fm = np.where(north, 0, 1)                       # textured top, one flat colour below
     info = {}
@@ -666,6 +671,27 @@ def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     moved = on_surface + cloud.extras["normal_offset"][:, None].astype(np.float64) * normal
     np.testing.assert_allclose(cloud.positions, moved, atol=1e-6)
+
+
+def test_the_round_reaching_the_target_is_kept_without_searching_its_shift_again(monkeypatch):
+    """Every round whose cloud grew searches its silhouette shift again here (RECALIBRATE_GROWTH 1),
+    except the round that reaches the target: rendered once and kept as it is."""
+    from splatwright.core import mesh_refine
+    monkeypatch.setattr(mesh_refine, "RECALIBRATE_GROWTH", 1.0)
+    renders = []
+    measure = mesh_refine._Views.measure
+    monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: renders.append(len(cloud)) or
+                        measure(views, cloud))
+    steps = []
+    v, f, uv = uv_sphere(24, 12)
+    info = {}
+    mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=28.0,
+                   view_size=96, view_distances=(1.0,), view_count=8, info=info,
+                   progress=lambda done, total, label: steps.append(len(renders)))
+    per_round = np.diff(steps[1:-1])            # renders between the rounds' steps, from the second round
+    assert info["reached"] and info["rounds"] >= 3
+    assert per_round[-1] == 1                    # the round that reached the target
+    assert (per_round[:-1] == 1 + 3).all()       # the others: their render, and a search of three shifts
 
 
 def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_classic_ones_cannot():
