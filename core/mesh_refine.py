@@ -312,7 +312,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
                 # it again, below the last one as well. (With the last shift as the search's first
                 # point, a render fewer, the hand kept 460k splats, not 600k, and fell 0.6 dB at 1x.)
                 # A round reaching the target is kept as it is (the bunny's search found nothing
-                # better there, in a third of its conversion time).
+                # better there, in a fifth of its conversion time).
                 inset, cloud, m = inset_search.search(density, 0.0, 1.5 * inset + 0.5, 3, (inset, cloud, m))
                 calibrated_at, saturated[:] = len(cloud), False
         stale = 0 if best is None or m.psnr > best[0] else stale + 1
