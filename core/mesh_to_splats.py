@@ -179,15 +179,16 @@ def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.0
     tri, bary = bisection_samples(surface, counts)
     opacity = np.broadcast_to(np.asarray(opacity, np.float64), density.shape)  # per face, or one for all
     rotations = _face_rotations(surface)
+    points = surface.points(tri, bary)
 
     def part(rows):
         t = tri[rows]
-        return _cloud(surface, t, bary[rows], density[t], rotations[t], overlap, opacity[t], thickness)
+        return _cloud(surface, t, bary[rows], points[rows], density[t], rotations[t], overlap, opacity[t], thickness)
 
     # Chunks on every core (NumPy releases the GIL): the hand's 636k splats build in half the time.
     rows = [slice(a, a + BUILD_CHUNK) for a in range(0, max(len(tri), 1), BUILD_CHUNK)]
     cloud = SplatCloud.concatenate(map_threads(part, rows))
-    return Unplaced(cloud, surface.points(tri, bary), surface.normal[tri], tri)
+    return Unplaced(cloud, points, surface.normal[tri], tri)
 
 
 # counts per face ---------------------------------------------------------------------------------
@@ -293,10 +294,10 @@ def _bisect(tri, n, corners, gram):
 
 # splats ------------------------------------------------------------------------------------------
 
-def _cloud(surface, tri, bary, density, rotations, overlap, opacity, thickness):
-    """Flat discs at the sample points (no shift): in-plane sigma overlap/sqrt(density), normal axis thin."""
+def _cloud(surface, tri, bary, positions, density, rotations, overlap, opacity, thickness):
+    """Flat discs at the sample points `positions` (no shift): in-plane sigma overlap/sqrt(density),
+    normal axis thin."""
     n = len(tri)
-    positions = surface.points(tri, bary)
     sigma = overlap / np.sqrt(density)
     rotations, in_plane = _outline_frames(surface, tri, bary, sigma, rotations)
     scales = np.column_stack([in_plane, thickness * sigma])
@@ -326,32 +327,45 @@ def _outline_frames(surface, tri, bary, sigma, rotations):
     if not len(sel):
         return rotations, in_plane
     f, b, s = tri[sel], bary[sel], sigma[sel]
-    t1 = surface.edge1[f] / np.linalg.norm(surface.edge1[f], axis=1, keepdims=True)
-    t2 = np.cross(surface.normal[f], t1)
-    corners = np.zeros((len(f), 3, 2))                  # the face's corners in its own (t1, t2) frame
-    corners[:, 1, 0] = np.linalg.norm(surface.edge1[f], axis=1)
-    corners[:, 2] = np.column_stack([np.einsum("ij,ij->i", surface.edge2[f], t1),
-                                     np.einsum("ij,ij->i", surface.edge2[f], t2)])
-    cov = s[:, None, None] ** 2 * np.eye(2)
+    across, reach = _edge_normals(surface)
+    # The in-plane covariance (xx, xy, yy) in the face's (first edge, normal x first edge) frame.
+    xx, xy, yy = s**2, np.zeros(len(f)), s**2
     for k in range(3):
-        p, q = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
-        length = np.linalg.norm(q - p, axis=1)
-        across = np.column_stack([p[:, 1] - q[:, 1], q[:, 0] - p[:, 0]]) / length[:, None]
-        across *= np.sign(np.einsum("ij,ij->i", across, corners[:, k] - p))[:, None]
-        limit = np.maximum(b[:, k] * 2 * surface.area[f] / length / EDGE_SOFTNESS, MIN_ACROSS * s)
-        spread = np.einsum("ni,nij,nj->n", across, cov, across)
-        keep = np.where(near[sel, k] & (spread > limit**2), limit**2 / spread, 1.0)
-        lever = np.einsum("nij,nj->ni", cov, across)
-        cov -= ((1 - keep) / spread)[:, None, None] * lever[:, :, None] * lever[:, None, :]
-    half_diff, mean = (cov[:, 0, 0] - cov[:, 1, 1]) / 2, (cov[:, 0, 0] + cov[:, 1, 1]) / 2
-    radius = np.hypot(half_diff, cov[:, 0, 1])
-    angle = 0.5 * np.arctan2(2 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
-    major = np.cos(angle)[:, None] * t1 + np.sin(angle)[:, None] * t2
-    minor = np.cross(surface.normal[f], major)
+        ax, ay = across[f, k, 0], across[f, k, 1]
+        limit = np.maximum(b[:, k] * reach[f, k], MIN_ACROSS * s)
+        lx, ly = xx * ax + xy * ay, xy * ax + yy * ay        # the covariance times `across`
+        spread = ax * lx + ay * ly
+        cut = np.where(near[sel, k] & (spread > limit**2), (1 - limit**2 / spread) / spread, 0.0)
+        xx, xy, yy = xx - cut * lx * lx, xy - cut * lx * ly, yy - cut * ly * ly
+    mean, radius = (xx + yy) / 2, np.hypot((xx - yy) / 2, xy)
+    half = 0.25 * np.arctan2(2 * xy, xx - yy)                # half the major axis' angle from the first edge
+    turn = np.column_stack([np.cos(half), np.zeros(len(f)), np.zeros(len(f)), np.sin(half)])
     rotations = rotations.copy()
-    rotations[sel] = geometry.matrices_to_quaternions(np.stack([major, minor, surface.normal[f]], axis=2))
+    rotations[sel] = geometry.multiply_quaternions(rotations[sel], turn)     # turned about the normal
     in_plane[sel] = np.sqrt(np.column_stack([mean + radius, np.maximum(mean - radius, 0.0)]))
     return rotations, in_plane
+
+
+def _edge_normals(surface):
+    """Per face and edge k (opposite corner k), in the face's (first edge, normal x first edge)
+    frame: the unit in-plane normal of the edge pointing into the face (F,3,2), and
+    2 area / (edge length * EDGE_SOFTNESS) (F,3): a point's barycentric coordinate k times this is
+    its distance to the edge over EDGE_SOFTNESS."""
+    length1 = np.linalg.norm(surface.edge1, axis=1)
+    t1 = surface.edge1 / np.where(length1 > 0, length1, 1.0)[:, None]
+    t2 = np.cross(surface.normal, t1)
+    corners = np.zeros((len(surface.faces), 3, 2))
+    corners[:, 1, 0] = length1
+    corners[:, 2] = np.column_stack([np.einsum("ij,ij->i", surface.edge2, t1), np.einsum("ij,ij->i", surface.edge2, t2)])
+    across, reach = np.zeros((len(surface.faces), 3, 2)), np.zeros((len(surface.faces), 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k in range(3):
+            p, q = corners[:, (k + 1) % 3], corners[:, (k + 2) % 3]
+            length = np.linalg.norm(q - p, axis=1)
+            normal = np.column_stack([p[:, 1] - q[:, 1], q[:, 0] - p[:, 0]]) / length[:, None]
+            across[:, k] = normal * np.sign(np.einsum("ij,ij->i", normal, corners[:, k] - p))[:, None]
+            reach[:, k] = 2 * surface.area / length / EDGE_SOFTNESS
+    return across, reach
 
 
 def _face_rotations(surface):

@@ -675,23 +675,54 @@ def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
 
 def test_the_round_reaching_the_target_is_kept_without_searching_its_shift_again(monkeypatch):
     """Every round whose cloud grew searches its silhouette shift again here (RECALIBRATE_GROWTH 1),
-    except the round that reaches the target: rendered once and kept as it is."""
+    except the round that reaches the target: rendered once and kept as it is. A search compares
+    three shifts on the worst views only, then measures the best on all of them."""
     from splatwright.core import mesh_refine
     monkeypatch.setattr(mesh_refine, "RECALIBRATE_GROWTH", 1.0)
-    renders = []
-    measure = mesh_refine._Views.measure
-    monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: renders.append(len(cloud)) or
+    measures, searched = [], []
+    measure, worst_of = mesh_refine._Views.measure, mesh_refine._Views.worst_of
+    monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: measures.append(len(cloud)) or
                         measure(views, cloud))
+    monkeypatch.setattr(mesh_refine._Views, "worst_of", lambda views, cloud, which: searched.append(which) or
+                        worst_of(views, cloud, which))
     steps = []
     v, f, uv = uv_sphere(24, 12)
     info = {}
     mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=28.0,
                    view_size=96, view_distances=(1.0,), view_count=8, info=info,
-                   progress=lambda done, total, label: steps.append(len(renders)))
-    per_round = np.diff(steps[1:-1])            # renders between the rounds' steps, from the second round
+                   progress=lambda done, total, label: steps.append((len(measures), len(searched))))
+    per_round = np.diff(steps[1:-1], axis=0)     # (measures, searches) between rounds, from the second
     assert info["reached"] and info["rounds"] >= 3
-    assert per_round[-1] == 1                    # the round that reached the target
-    assert (per_round[:-1] == 1 + 3).all()       # the others: their render, and a search of three shifts
+    assert per_round[-1].tolist() == [1, 0]      # the round that reached the target
+    assert (per_round[:-1, 1] == 3).all()        # the others: a search of three shifts,
+    assert np.isin(per_round[:-1, 0], [1, 2]).all()   # their render, and the best shift's unless it was theirs
+    assert all(len(which) == 4 for which in searched)    # a third of the 8 views, but at least 4
+
+
+def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_views_pick(monkeypatch):
+    """Silhouette shifts compared on the worst four of twelve views: the same shifts, the same
+    splats and PSNR as searches on all twelve, with fewer views rendered."""
+    from splatwright.core import mesh_refine
+    v, f, uv = uv_sphere(24, 12)
+    measure, worst_of = mesh_refine._Views.measure, mesh_refine._Views.worst_of
+
+    def convert(share):
+        monkeypatch.setattr(mesh_refine, "SEARCH_SHARE", share)
+        rendered, info = [0], {}
+        monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: rendered.__setitem__(
+            0, rendered[0] + len(views.cameras)) or measure(views, cloud))
+        monkeypatch.setattr(mesh_refine._Views, "worst_of", lambda views, cloud, which: rendered.__setitem__(
+            0, rendered[0] + len(which)) or worst_of(views, cloud, which))
+        cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=30.0,
+                               view_size=96, info=info)
+        return cloud, info, rendered[0]
+
+    cloud, info, rendered = convert(mesh_refine.SEARCH_SHARE)
+    every_cloud, every_info, every_rendered = convert(1.0)
+    assert info["views"] == 12 and info["inset_pixels"] > 0
+    assert info["inset_pixels"] == every_info["inset_pixels"] and info["psnr"] == every_info["psnr"]
+    np.testing.assert_array_equal(cloud.positions, every_cloud.positions)
+    assert rendered < 0.8 * every_rendered
 
 
 def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_classic_ones_cannot():
