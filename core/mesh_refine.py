@@ -30,12 +30,11 @@ searched again whenever the cloud has doubled or a round rendered worse, short o
 (smaller splats want another shift; without this, refinement stalled with more splats rendering
 worse). Splats of one density are built once: a search moves only their positions, and compares
 them on the views worst so far (a third of them, at least four), rendering only the best from all.
-A budget
-(uniform mode) also tries the smaller counts of one ladder shared by all budgets (2000, 4000, 8000,
-...: budget_ladder) and keeps what renders best: the fattening grows with the splats stacked, so a
-larger budget could otherwise look worse than a smaller one (the torus: 38.4 / 38.7 / 37.8 dB at
-10k / 30k / 100k on held-out views). Wider, fainter discs standing for fewer splats were tried
-first and did worse than fewer splats: a scene needs no splats that render it worse.
+A budget (uniform mode) also tries the smaller counts of one ladder shared by all budgets (2000,
+4000, 8000, ...: budget_ladder) and keeps what renders best: the fattening grows with the splats
+stacked, so a larger budget could otherwise look worse than a smaller one (the torus: 38.4 / 38.7 /
+37.8 dB at 10k / 30k / 100k on held-out views). Wider, fainter discs standing for fewer splats were
+tried first and did worse than fewer splats: a scene needs no splats that render it worse.
 """
 
 import math
