@@ -15,6 +15,7 @@ the images, so what the views leave undetermined falls back to the local colour.
   non-negative so nothing is clamped, the shift taken off again through the alpha);
 - A^T r is the residual image gathered through the weights (core.render's `gather`), times Y per
   splat.
+Views are small, so each renders on one core, the views spread over the cores.
 The preconditioner is a Jacobi estimate: sum over views of Y_k^2 x (sum of weights) x (largest
 weight), an upper bound of A^T A's diagonal sum_i w_ij^2 Y_k^2 that follows it closely for splats
 of one footprint.
@@ -24,6 +25,7 @@ import numpy as np
 
 from . import sh as shmod
 from .metrics import psnr_from_mse
+from .parallel import map_threads
 from .render import render
 
 # Measured on Suzanne lit by Cycles (bench/bake.py's scene, roughness 0.35, 20k splats, 48 views of 128 px,
@@ -92,16 +94,20 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     total = iterations + 1
 
     # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side
+    # Views are small: each renders faster whole on one core, the views spread over the cores
+    # (bench bake --quick: the sphere's fit in 53 s, not 81), summed in their order.
+    one = dict(opts, threads=1)
+    each = lambda fn: map_threads(fn, views, threads)  # noqa: E731
     diag = np.zeros((len(cloud), k))
-    for view in views:
-        diag += view.measure(shape, bg, opts)
+    for part in each(lambda view: view.measure(shape, bg, one)):
+        diag += part
     seen = diag[:, 0] > 0
     if prior == "views":
-        x0 = _seen_colours(shape, views, x0, seen, opts)
+        x0 = _seen_colours(shape, views, x0, seen, one, threads)
     rhs = np.zeros_like(x0)
-    for view in views:
-        view.start(shape, x0, opts)
-        rhs += view.gather_back(shape, view.residual, opts)
+    for view, gathered in zip(views, each(lambda view: view.start(shape, x0, one) or
+                                          view.gather(shape, view.residual, one))):
+        rhs += view.back(gathered)
     band = np.floor(np.sqrt(np.arange(k)))
     lam = damping * (np.median(diag[seen, 0]) if seen.any() else 1.0) * (1.0 + band_damping * band * (band + 1))
     lam = lam[None, :, None]
@@ -120,11 +126,15 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
         if (np.sqrt(_dot(g, g)) <= tolerance * np.maximum(start, 1e-300)).all():
             break
         ap = lam * p
+
+        def apply(view):
+            q = view.color_image(shape, view.colors(p), one)
+            return q, view.gather(shape, q, one)
+
         images_p = []
-        for view in views:
-            q = view.color_image(shape, view.colors(p), opts)
+        for view, (q, gathered) in zip(views, each(apply)):
             images_p.append(q)
-            ap += view.gather_back(shape, q, opts)
+            ap += view.back(gathered)
         curvature = _dot(p, ap)
         step = np.where(curvature > 0, rz / np.where(curvature > 0, curvature, 1.0), 0.0)
         delta += step * p
@@ -143,14 +153,15 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     return cloud.replace(sh=(x0 + delta).astype(np.float32))
 
 
-def _seen_colours(cloud, views, x0, seen, opts):
+def _seen_colours(cloud, views, x0, seen, opts, threads):
     """x0 with each seen splat's SH replaced by its mean colour over the pixels it blends into:
     sum_i w_i pixel_i / sum_i w_i alpha_i over every view (pixels are premultiplied by their alpha,
     so a lone splat gets its own colour back)."""
     sums = np.zeros((len(cloud), 4))
-    for view in views:
-        both = np.concatenate([view.target, view.alpha], axis=2)
-        sums += render(cloud, view.camera, background=None, gather=both, **opts).gathered
+    gather = lambda view: render(cloud, view.camera, background=None,  # noqa: E731
+                                 gather=np.concatenate([view.target, view.alpha], axis=2), **opts).gathered
+    for part in map_threads(gather, views, threads):
+        sums += part
     seen = seen & (sums[:, 3] > 0)
     out = x0.copy()
     out[seen] = 0.0
@@ -214,9 +225,12 @@ class _View:
         out = render(cloud.replace(sh=sh), self.camera, background=None, **opts)
         return out.color - shift * out.alpha[..., None]
 
-    def gather_back(self, cloud, image, opts):
-        """A^T image: the image gathered through the weights, times the basis: (N, K, 3)."""
-        gathered = render(cloud, self.camera, background=None, gather=image, **opts).gathered
+    def gather(self, cloud, image, opts):
+        """The image gathered through the weights: (N, 3)."""
+        return render(cloud, self.camera, background=None, gather=image, **opts).gathered
+
+    def back(self, gathered):
+        """A^T image from its gather: times the basis, (N, K, 3)."""
         return self.basis[:, :, None] * gathered[:, None, :]
 
     @staticmethod

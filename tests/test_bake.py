@@ -71,6 +71,17 @@ def test_a_dense_cloud_matches_held_out_views_and_keeps_unseen_splats():
     np.testing.assert_array_equal(fit.opacity_logits, start.opacity_logits)
 
 
+def test_views_fitted_on_both_cores_give_the_fit_of_one_core():
+    """The views are rendered on every core and their sums taken in the views' order: the same
+    coefficients, to the bit, as one core rendering them one after another."""
+    cloud = known_cloud(300, seed=14, spread=0.8, log_scale=(-3.2, -2.2), opacity=(0.3, 0.8))
+    cams = cameras_around(12, seed=15)
+    images = [render(cloud, c).color for c in cams]
+    fits = [bake_sh(scrambled(cloud, 16), cams, images, iterations=5, threads=threads) for threads in (1, 2)]
+    np.testing.assert_array_equal(fits[0].sh, fits[1].sh)
+    assert np.abs(fits[0].sh - scrambled(cloud, 16).sh).max() > 0.01          # the fit moved them
+
+
 def test_the_prior_is_each_splats_own_colour_where_splats_lie_apart():
     """No iteration: the start is each seen splat's weighted mean of the straight pixel colours, its
     own colour for a splat alone in its pixels (few overlap here), over a coloured background too."""

@@ -680,11 +680,11 @@ def test_the_round_reaching_the_target_is_kept_without_searching_its_shift_again
     from splatwright.core import mesh_refine
     monkeypatch.setattr(mesh_refine, "RECALIBRATE_GROWTH", 1.0)
     measures, searched = [], []
-    measure, worst_of = mesh_refine._Views.measure, mesh_refine._Views.worst_of
+    measure, psnr_of = mesh_refine._Views.measure, mesh_refine._Views.psnr_of
     monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: measures.append(len(cloud)) or
                         measure(views, cloud))
-    monkeypatch.setattr(mesh_refine._Views, "worst_of", lambda views, cloud, which: searched.append(which) or
-                        worst_of(views, cloud, which))
+    monkeypatch.setattr(mesh_refine._Views, "psnr_of", lambda views, cloud, which: searched.append(which) or
+                        psnr_of(views, cloud, which))
     steps = []
     v, f, uv = uv_sphere(24, 12)
     info = {}
@@ -704,15 +704,15 @@ def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_view
     splats and PSNR as searches on all twelve, with fewer views rendered."""
     from splatwright.core import mesh_refine
     v, f, uv = uv_sphere(24, 12)
-    measure, worst_of = mesh_refine._Views.measure, mesh_refine._Views.worst_of
+    measure, psnr_of = mesh_refine._Views.measure, mesh_refine._Views.psnr_of
 
     def convert(share):
         monkeypatch.setattr(mesh_refine, "SEARCH_SHARE", share)
         rendered, info = [0], {}
         monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: rendered.__setitem__(
             0, rendered[0] + len(views.cameras)) or measure(views, cloud))
-        monkeypatch.setattr(mesh_refine._Views, "worst_of", lambda views, cloud, which: rendered.__setitem__(
-            0, rendered[0] + len(which)) or worst_of(views, cloud, which))
+        monkeypatch.setattr(mesh_refine._Views, "psnr_of", lambda views, cloud, which: rendered.__setitem__(
+            0, rendered[0] + len(which)) or psnr_of(views, cloud, which))
         cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=30.0,
                                view_size=96, info=info)
         return cloud, info, rendered[0]
@@ -723,6 +723,45 @@ def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_view
     assert info["inset_pixels"] == every_info["inset_pixels"] and info["psnr"] == every_info["psnr"]
     np.testing.assert_array_equal(cloud.positions, every_cloud.positions)
     assert rendered < 0.8 * every_rendered
+
+
+def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst():
+    """Four views start worst and gain from larger shifts, eight lose (a classic cloud's far and
+    near outlines): compared on the four alone, the largest shift would win; the others join once
+    the best's measure shows them worse, and the search lands where a search on all views does."""
+    from types import SimpleNamespace
+    from splatwright.core import mesh_refine
+
+    def psnr(view, x):
+        return 20.0 + 5.0 * x if view < 4 else 40.0 - 10.0 * x
+
+    class Views:
+        cameras = [None] * 12
+        search_views = mesh_refine._Views.search_views
+        rendered = 0
+
+        def psnr_of(self, x, which):
+            self.rendered += len(which)
+            return {i: psnr(i, x) for i in which}
+
+        def measure(self, x):
+            self.rendered += 12
+            views = [psnr(i, x) for i in range(12)]
+            return SimpleNamespace(views=views, psnr=min(views))
+
+    def search(share):
+        mesh_refine.SEARCH_SHARE, views = share, Views()
+        try:
+            found = mesh_refine._Inset(views, lambda density, x: x).search(None, 0.0, 4.0, views.measure(0.0), 8)
+        finally:
+            mesh_refine.SEARCH_SHARE = 1 / 3
+        return found, views.rendered
+
+    (x, _, m), rendered = search(1 / 3)
+    (every_x, _, every_m), every_rendered = search(1.0)
+    assert x == every_x and m.psnr == every_m.psnr
+    assert abs(x - 4 / 3) < 0.1 and m.psnr > 26.0            # the true compromise: 20 + 5x = 40 - 10x
+    assert rendered <= 2 * every_rendered     # here all eight joined: at most the search again
 
 
 def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_classic_ones_cannot():
