@@ -30,12 +30,12 @@ searched again whenever the cloud has doubled or a round rendered worse, short o
 (smaller splats want another shift; without this, refinement stalled with more splats rendering
 worse). Splats of one density are built once: a search moves only their positions, and compares
 them on the views worst so far (a third of them, at least four, and any its best shows worse),
-rendering only the best from all.
-A budget (uniform mode) also tries the smaller counts of one ladder shared by all budgets (2000,
-4000, 8000, ...: budget_ladder) and keeps what renders best: the fattening grows with the splats
-stacked, so a larger budget could otherwise look worse than a smaller one (the torus: 38.4 / 38.7 /
-37.8 dB at 10k / 30k / 100k on held-out views). Wider, fainter discs standing for fewer splats were
-tried first and did worse than fewer splats: a scene needs no splats that render it worse.
+rendering only the best from all. A budget (uniform mode) also tries the smaller counts of one
+ladder shared by all budgets (2000, 4000, 8000, ...: budget_ladder) and keeps what renders best: the
+fattening grows with the splats stacked, so a larger budget could otherwise look worse than a
+smaller one (the torus: 38.4 / 38.7 / 37.8 dB at 10k / 30k / 100k on held-out views). Wider, fainter
+discs standing for fewer splats were tried first and did worse than fewer splats: a scene needs no
+splats that render it worse.
 """
 
 import math
@@ -231,10 +231,10 @@ class _Inset:
         (search_views), where the worst view's gains and losses show, and only the best is
         measured on all. Where that shows another view worse than the compared ones (a shift
         that mends the far views' outlines can spoil the close-ups'), the views worse than them
-        join and the search runs again on the renders it has. On the bench's meshes made for
-        antialiased rendering no view had to join: the shifts all views picked, with a third of
-        the renders; made for classic rendering, Suzanne's 20k budget at 128 px shifted its far
-        views' outlines in and its close-ups fell from 28.1 to 24.6 dB before views could join."""
+        join and the search runs again on the renders it has. Every default conversion on the bench
+        picks the shifts all views pick, the hand's searches with a third of the renders; before
+        views could join, the sphere took another shift, and the classic 20k budget of Suzanne at
+        128 px shifted its far views' outlines in and its close-ups fell from 28.1 to 24.6 dB."""
         views, every = set(self.views.search_views(basis)), set(range(len(self.views.cameras)))
         tried = {}          # shift -> [cloud, {view: PSNR}, Measured or None]
         if known is not None:
@@ -268,7 +268,8 @@ class _Inset:
 
     @staticmethod
     def _golden(worst, lo, hi, evaluations):
-        """Golden-section search for the x in [lo, hi] with the largest worst(x), in `evaluations`."""
+        """Evaluate worst(x) along a golden-section search for the x in [lo, hi] with the largest
+        worst(x), `evaluations` times (worst keeps what it rendered)."""
         ratio = (math.sqrt(5) - 1) / 2
         a, b = lo, hi
         c, d = b - ratio * (b - a), a + ratio * (b - a)
