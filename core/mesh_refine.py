@@ -179,12 +179,18 @@ class _Views:
         size[~finite] = size[finite].max() if finite.any() else 1.0
         return size
 
+    def _renders(self, cloud, which):
+        """Renders of `cloud` from the views `which` (indices), each with its per-pixel squared
+        error against the mesh's (channels averaged). Small views: one whole render per core beats
+        sharing each render between the cores."""
+        def one(i):
+            result = render(cloud, self.cameras[i], background=BACKGROUND, mode=self.mode, threads=1)
+            return result, ((result.color.astype(np.float64) - self.refs[i].color) ** 2).mean(axis=2)
+        return map_threads(one, which)
+
     def psnr_of(self, cloud, which):
         """{view: PSNR} of the views `which` (indices)."""
-        results = map_threads(lambda i: render(cloud, self.cameras[i], background=BACKGROUND, mode=self.mode,
-                                               threads=1), which)
-        return {i: psnr_from_mse(((r.color.astype(np.float64) - self.refs[i].color) ** 2).mean())
-                for r, i in zip(results, which)}
+        return {i: psnr_from_mse(err.mean()) for i, (_, err) in zip(which, self._renders(cloud, which))}
 
     def search_views(self, m):
         """The views a shift search compares on: the worst SEARCH_SHARE of them in `m` (at least
@@ -196,13 +202,10 @@ class _Views:
         n = len(self.surface.faces)
         err_sum, mses, shares = np.zeros(n), [], []
         excess = 0.0
-        # Small views: one whole render per core beats sharing each render between the cores.
-        results = map_threads(lambda cam: render(cloud, cam, background=BACKGROUND, mode=self.mode, threads=1),
-                              self.cameras)
-        for result, ref, (pixel, face, share), solid, edge in zip(results, self.refs, self.shares, self.solid,
-                                                                  self.edges):
+        renders = self._renders(cloud, range(len(self.cameras)))
+        for (result, err), ref, (pixel, face, share), solid, edge in zip(renders, self.refs, self.shares, self.solid,
+                                                                         self.edges):
             excess += float((result.alpha - ref.alpha)[solid].sum())
-            err = ((result.color.astype(np.float64) - ref.color) ** 2).mean(axis=2)
             mses.append(err.mean())
             shares.append(float(err[edge].sum() / max(err.sum(), 1e-300)))
             err_sum += np.bincount(face, weights=err.ravel()[pixel] * share, minlength=n)

@@ -725,7 +725,7 @@ def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_view
     assert rendered < 0.8 * every_rendered
 
 
-def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst():
+def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst(monkeypatch):
     """Four views start worst and gain from larger shifts, eight lose (a classic cloud's far and
     near outlines): compared on the four alone, the largest shift would win; the others join once
     the best's measure shows them worse, and the search lands where a search on all views does."""
@@ -750,11 +750,9 @@ def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst():
             return SimpleNamespace(views=views, psnr=min(views))
 
     def search(share):
-        mesh_refine.SEARCH_SHARE, views = share, Views()
-        try:
-            found = mesh_refine._Inset(views, lambda density, x: x).search(None, 0.0, 4.0, views.measure(0.0), 8)
-        finally:
-            mesh_refine.SEARCH_SHARE = 1 / 3
+        monkeypatch.setattr(mesh_refine, "SEARCH_SHARE", share)
+        views = Views()
+        found = mesh_refine._Inset(views, lambda density, x: x).search(None, 0.0, 4.0, views.measure(0.0), 8)
         return found, views.rendered
 
     (x, _, m), rendered = search(1 / 3)
