@@ -11,6 +11,7 @@ Colour spaces (every input is stated here once, and converted once):
   emission shader shows under Blender's 'Standard' view transform.
 """
 
+import functools
 import warnings
 from dataclasses import dataclass, field
 
@@ -74,15 +75,23 @@ def decode_texture(image, srgb=True):
         img = img[:, :, None]
     if img.ndim != 3 or img.shape[2] not in (1, 2, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"texture has shape {img.shape}, expected (H, W, 1..4)")
+    img = img[:, :, :1].repeat(3, axis=2) if img.shape[2] <= 2 else img[:, :, :3]
+    if img.dtype in (np.uint8, np.uint16):          # every value once, then a lookup: 10x faster
+        return np.ascontiguousarray(_decoded_values(img.dtype, srgb)[img])
     if np.issubdtype(img.dtype, np.integer):
         rgb = img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
     else:
         rgb = np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
-    channels = rgb.shape[2]
-    rgb = rgb[:, :, :1].repeat(3, axis=2) if channels <= 2 else rgb[:, :, :3]
     if srgb:
         rgb = color.srgb_to_linear(rgb).astype(np.float32)
     return np.ascontiguousarray(rgb)
+
+
+@functools.cache
+def _decoded_values(dtype, srgb):
+    """decode_texture's value of each value of an unsigned integer `dtype`, by index."""
+    rgb = np.arange(np.iinfo(dtype).max + 1).astype(np.float32) / np.float32(np.iinfo(dtype).max)
+    return color.srgb_to_linear(rgb).astype(np.float32) if srgb else rgb
 
 
 def sample_texture(texture, uv):

@@ -10,7 +10,7 @@ import pytest
 
 from splatwright.core import jit, mesh_render, scenes, sh
 from splatwright.core.camera import Camera
-from splatwright.core.mesh import Material, Mesh, Surface
+from splatwright.core.mesh import Material, Mesh, Surface, decode_texture
 from splatwright.core.mesh_refine import budget_ladder, default_views, summary
 from splatwright.core.mesh_render import rasterize, render_mesh
 from splatwright.core.mesh_to_splats import SOLID_OPACITY, WALL_SIGMAS, build_splats, mesh_to_splats
@@ -240,6 +240,20 @@ def test_colours_follow_a_linear_texture_at_the_sampled_barycentrics():
     at = np.einsum("nk,nkc->nc", bary, uv[tri])
     expected = coeff[0] + at[:, :1] * coeff[1] + at[:, 1:] * coeff[2]
     np.testing.assert_allclose(display_colors(cloud), srgb(expected), atol=2e-5)
+
+
+def test_textures_of_every_integer_depth_decode_to_the_srgb_curve():
+    """8- and 16-bit textures are decoded through a table of every value: each texel must still be
+    the IEC 61966-2-1 curve of value / max (float64, written out here), grey and RGBA alike."""
+    rng = np.random.default_rng(3)
+    curve = lambda c: np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)  # noqa: E731
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535), (np.int32, 2**31 - 1)):
+        image = rng.integers(0, top, (13, 7, 4), dtype=np.int64, endpoint=True).astype(dtype)
+        for channels, want in ((4, image[:, :, :3]), (1, image[:, :, :1].repeat(3, axis=2))):
+            got = decode_texture(image[:, :, :channels])
+            assert got.dtype == np.float32 and got.shape == (13, 7, 3) and got.flags.c_contiguous
+            np.testing.assert_allclose(got, curve(want / top), rtol=1e-6, atol=1e-9)
+            np.testing.assert_allclose(decode_texture(image[:, :, :channels], srgb=False), want / top, rtol=1e-6)
 
 
 def test_srgb_texture_orientation_and_round_trip():
