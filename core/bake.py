@@ -26,7 +26,7 @@ import numpy as np
 from . import sh as shmod
 from .metrics import psnr_from_mse
 from .parallel import map_threads
-from .render import render
+from .render import Shapes, render
 
 # Measured on Suzanne lit by Cycles (bench/bake.py's scene, roughness 0.35, 20k splats, 48 views of 128 px,
 # damped towards the Base Color; towards the views' mean colours, 0.1 and 30 gave 25.3 / 27.8 / 32.1), held-out
@@ -91,6 +91,7 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     views = [_View(cam, _checked_image(img, cam, i), degree) for i, (cam, img) in enumerate(zip(cameras, images))]
     x0 = shmod.truncate(cloud.sh.astype(np.float64), degree)
     shape = cloud.replace(sh=np.zeros((len(cloud), 1, 3), np.float32))     # the geometry: colours are set per render
+    opts["shapes"] = Shapes(shape, threads)     # and its splats' shapes, the same in every render
     total = iterations + 1
 
     # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side

@@ -48,7 +48,7 @@ from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, render_mesh
 from .mesh_to_splats import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .metrics import psnr_from_mse
 from .parallel import map_threads
-from .render import render
+from .render import Shapes, render
 
 VIEW_DISTANCES = (0.5, 1.0, 3.0)   # default view distances, multiples of the one that frames the mesh
 VIEWS_PER_DISTANCE = 4
@@ -151,6 +151,7 @@ class _Views:
             return ref, owner, _face_shares(owner, len(surface.faces))
 
         self.refs, self.owners, self.shares = (list(x) for x in zip(*map_threads(reference, cameras)))
+        self._shapes = []
         self.face_pixels = sum(np.bincount(face, weights=share, minlength=len(surface.faces))
                                for _, face, share in self.shares)
         self.pixel = self._pixel_sizes()
@@ -183,10 +184,19 @@ class _Views:
         """Renders of `cloud` from the views `which` (indices), each with its per-pixel squared
         error against the mesh's (channels averaged). Small views: one whole render per core beats
         sharing each render between the cores."""
+        shapes = self._shapes_of(cloud)
+
         def one(i):
-            result = render(cloud, self.cameras[i], background=BACKGROUND, mode=self.mode, threads=1)
+            result = render(cloud, self.cameras[i], background=BACKGROUND, mode=self.mode, threads=1, shapes=shapes)
             return result, ((result.color.astype(np.float64) - self.refs[i].color) ** 2).mean(axis=2)
         return map_threads(one, which)
+
+    def _shapes_of(self, cloud):
+        """core.render's Shapes of `cloud`, kept for the next renders: the clouds of one density,
+        whatever their shift, share them (a search's, a round's measure and the next search's)."""
+        shapes = next((s for s in self._shapes if s.fits(cloud)), None) or Shapes(cloud)
+        self._shapes = [shapes] + [s for s in self._shapes if s is not shapes][:1]
+        return shapes
 
     def psnr_of(self, cloud, which):
         """{view: PSNR} of the views `which` (indices)."""

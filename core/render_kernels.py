@@ -29,67 +29,30 @@ AA_MIN_RATIO = 0.000025
 # exp(x) for x in [EXP_FLOOR, 0] (alpha >= 1/255 needs x >= -5.55) as p(x/16)^16, p the Taylor terms to
 # r^7 (relative error below 2e-8 for |r| <= 3/8, 4e-7 after the squarings)
 EXP_FLOOR = -6.0
+SHAPE_PIECE = 4096      # splats whose shapes project_range computes at a time (80 B each: stays in cache)
 EXP_TERMS = (1.0, 1.0, 1.0 / 2, 1.0 / 6, 1.0 / 24, 1.0 / 120, 1.0 / 720, 1.0 / 5040)
 
 
 # projection ---------------------------------------------------------------------------------------
 
 @njit
-def project_range(positions, rotations, log_scales, logits, sh, lo, hi, center, rot, intrinsics, size,
-                  clip, ortho, antialiased, max_r2, rec64, rec32, index, depth, r2_out, bbox):
-    """Cull and project splats lo..hi-1, writing the visible ones (in input order) to rows lo.. of
-    the outputs. Returns (visible count, skipped for non-finite values).
-
-    intrinsics: fx, fy, cx, cy; size: width, height; clip: near, far, then the tangent clamp
-    x/z in [clip[2], clip[3]], y/z in [clip[4], clip[5]]. rec64/rec32 are two views of the
-    same (n, 8) float64 records (u, v, conic a, b, c | float32 log o, r, g, b, z, 1)."""
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    width, height = size[0], size[1]
-    near, far = clip[0], clip[1]
-    k = sh.shape[1]
-    out = lo
-    skipped = 0
-    m0 = np.empty(3)
-    m1 = np.empty(3)
-    rs = np.empty((3, 3))
+def shape_range(rotations, log_scales, logits, lo, hi, out, base):
+    """Rows i - base of out (n, 10) for splats i in lo..hi-1: what projecting them needs that no
+    camera changes, in float64. out[:, :9] is R S row by row, the rotation (the normalised
+    quaternion; zero or non-finite norms: the identity) times the scales, out[:, 9] the opacity,
+    NaN where the rotation, scales or logit is not finite."""
     for i in range(lo, hi):
-        finite = True
+        row = i - base
+        finite = np.isfinite(logits[i])
         for j in range(3):
-            finite &= np.isfinite(positions[i, j]) and np.isfinite(log_scales[i, j])
+            finite &= np.isfinite(log_scales[i, j])
         for j in range(4):
             finite &= np.isfinite(rotations[i, j])
-        finite &= np.isfinite(logits[i])
-        for j in range(k):
-            for ch in range(3):
-                finite &= np.isfinite(sh[i, j, ch])
         if not finite:
-            skipped += 1
+            out[row, 9] = np.nan
             continue
-        # camera space, relative to the eye in float64
-        px = positions[i, 0] - center[0]
-        py = positions[i, 1] - center[1]
-        pz = positions[i, 2] - center[2]
-        x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz
-        y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz
-        z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz
         logit = np.float64(logits[i])
-        opacity = 1.0 / (1.0 + math.exp(-logit)) if logit >= 0 else math.exp(logit) / (1.0 + math.exp(logit))
-        if not (z > near and z <= far and opacity >= ALPHA_MIN):
-            continue
-        if ortho:
-            u, v = fx * x + cx, fy * y + cy
-            for j in range(3):
-                m0[j] = fx * rot[0, j]
-                m1[j] = fy * rot[1, j]
-        else:
-            tx, ty = x / z, y / z
-            u, v = fx * tx + cx, fy * ty + cy
-            tx = min(max(tx, clip[2]), clip[3])
-            ty = min(max(ty, clip[4]), clip[5])
-            for j in range(3):
-                m0[j] = fx / z * (rot[0, j] - tx * rot[2, j])
-                m1[j] = fy / z * (rot[1, j] - ty * rot[2, j])
-        # R S from the normalised quaternion (zero or non-finite norms: the identity)
+        out[row, 9] = 1.0 / (1.0 + math.exp(-logit)) if logit >= 0 else math.exp(logit) / (1.0 + math.exp(logit))
         qw, qx, qy, qz = (np.float64(rotations[i, 0]), np.float64(rotations[i, 1]),
                           np.float64(rotations[i, 2]), np.float64(rotations[i, 3]))
         norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
@@ -100,80 +63,141 @@ def project_range(positions, rotations, log_scales, logits, sh, lo, hi, center, 
         s0 = math.exp(np.float64(log_scales[i, 0]))
         s1 = math.exp(np.float64(log_scales[i, 1]))
         s2 = math.exp(np.float64(log_scales[i, 2]))
-        rs[0, 0] = (1 - 2 * (qy * qy + qz * qz)) * s0
-        rs[0, 1] = 2 * (qx * qy - qw * qz) * s1
-        rs[0, 2] = 2 * (qx * qz + qw * qy) * s2
-        rs[1, 0] = 2 * (qx * qy + qw * qz) * s0
-        rs[1, 1] = (1 - 2 * (qx * qx + qz * qz)) * s1
-        rs[1, 2] = 2 * (qy * qz - qw * qx) * s2
-        rs[2, 0] = 2 * (qx * qz - qw * qy) * s0
-        rs[2, 1] = 2 * (qy * qz + qw * qx) * s1
-        rs[2, 2] = (1 - 2 * (qx * qx + qy * qy)) * s2
-        # Sigma2D = V V^T, V = (J W) (R S): rows v0, v1
-        v00 = m0[0] * rs[0, 0] + m0[1] * rs[1, 0] + m0[2] * rs[2, 0]
-        v01 = m0[0] * rs[0, 1] + m0[1] * rs[1, 1] + m0[2] * rs[2, 1]
-        v02 = m0[0] * rs[0, 2] + m0[1] * rs[1, 2] + m0[2] * rs[2, 2]
-        v10 = m1[0] * rs[0, 0] + m1[1] * rs[1, 0] + m1[2] * rs[2, 0]
-        v11 = m1[0] * rs[0, 1] + m1[1] * rs[1, 1] + m1[2] * rs[2, 1]
-        v12 = m1[0] * rs[0, 2] + m1[1] * rs[1, 2] + m1[2] * rs[2, 2]
-        a = v00 * v00 + v01 * v01 + v02 * v02
-        b = v00 * v10 + v01 * v11 + v02 * v12
-        c = v10 * v10 + v11 * v11 + v12 * v12
-        c0 = v01 * v12 - v02 * v11
-        c1 = v02 * v10 - v00 * v12
-        c2 = v00 * v11 - v01 * v10
-        det0 = c0 * c0 + c1 * c1 + c2 * c2
-        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
-        if antialiased:
-            opacity = opacity * math.sqrt(max(AA_MIN_RATIO, det0 / det))
-        r2 = 2.0 * math.log(max(255.0 * opacity, 1e-300))
-        r2 = min(r2, max_r2)
-        a += LOW_PASS
-        c += LOW_PASS
-        if not (np.isfinite(det) and np.isfinite(u) and np.isfinite(v)):
-            skipped += 1
-            continue
-        half_x, half_y = math.sqrt(r2 * a), math.sqrt(r2 * c)
-        x0 = max(math.ceil(min(max(u - half_x - 0.5, -1.0), width)), 0.0)
-        y0 = max(math.ceil(min(max(v - half_y - 0.5, -1.0), height)), 0.0)
-        x1 = min(math.floor(min(max(u + half_x - 0.5, -1.0), width)), width - 1.0)
-        y1 = min(math.floor(min(max(v + half_y - 0.5, -1.0), height)), height - 1.0)
-        if not (r2 > 0 and x0 <= x1 and y0 <= y1):
-            continue
-        # view-dependent colour, float64
-        if ortho:
-            dx, dy, dz = rot[2, 0], rot[2, 1], rot[2, 2]
-        else:
-            dx, dy, dz = px, py, pz
-        dn = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if dn > 0:
-            dx, dy, dz = dx / dn, dy / dn, dz / dn
-        for ch in range(3):
-            col = 0.5 + C0 * sh[i, 0, ch]
-            if k > 1:
-                col += C1 * (-dy * sh[i, 1, ch] + dz * sh[i, 2, ch] - dx * sh[i, 3, ch])
-            if k > 4:
-                xx, yy, zz = dx * dx, dy * dy, dz * dz
-                col += (C2[0] * dx * dy * sh[i, 4, ch] + C2[1] * dy * dz * sh[i, 5, ch]
-                        + C2[2] * (2 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * dx * dz * sh[i, 7, ch]
-                        + C2[4] * (xx - yy) * sh[i, 8, ch])
-                if k > 9:
-                    col += (C3[0] * dy * (3 * xx - yy) * sh[i, 9, ch] + C3[1] * dx * dy * dz * sh[i, 10, ch]
-                            + C3[2] * dy * (4 * zz - xx - yy) * sh[i, 11, ch]
-                            + C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, ch]
-                            + C3[4] * dx * (4 * zz - xx - yy) * sh[i, 13, ch]
-                            + C3[5] * dz * (xx - yy) * sh[i, 14, ch] + C3[6] * dx * (xx - 3 * yy) * sh[i, 15, ch])
-            rec32[out, 11 + ch] = max(0.0, col)
-        rec64[out, 0], rec64[out, 1] = u, v
-        rec64[out, 2], rec64[out, 3], rec64[out, 4] = c / det, -b / det, a / det
-        rec32[out, 10] = math.log(opacity)
-        rec32[out, 14] = z
-        rec32[out, 15] = 1.0
-        index[out] = i
-        depth[out] = z
-        r2_out[out] = r2
-        bbox[out, 0], bbox[out, 1], bbox[out, 2], bbox[out, 3] = x0, y0, x1, y1
-        out += 1
+        out[row, 0] = (1 - 2 * (qy * qy + qz * qz)) * s0
+        out[row, 1] = 2 * (qx * qy - qw * qz) * s1
+        out[row, 2] = 2 * (qx * qz + qw * qy) * s2
+        out[row, 3] = 2 * (qx * qy + qw * qz) * s0
+        out[row, 4] = (1 - 2 * (qx * qx + qz * qz)) * s1
+        out[row, 5] = 2 * (qy * qz - qw * qx) * s2
+        out[row, 6] = 2 * (qx * qz - qw * qy) * s0
+        out[row, 7] = 2 * (qy * qz + qw * qx) * s1
+        out[row, 8] = (1 - 2 * (qx * qx + qy * qy)) * s2
+
+
+@njit
+def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, center, rot, intrinsics, size,
+                  clip, ortho, antialiased, max_r2, rec64, rec32, index, depth, r2_out, bbox):
+    """Cull and project splats lo..hi-1, writing the visible ones (in input order) to rows lo.. of
+    the outputs. Returns (visible count, skipped for non-finite values).
+
+    shapes: shape_range's rows of every splat (index = splat), or an empty (0, 10) array to compute
+    them here a piece at a time. intrinsics: fx, fy, cx, cy; size: width, height; clip: near, far,
+    then the tangent clamp x/z in [clip[2], clip[3]], y/z in [clip[4], clip[5]]. rec64/rec32 are
+    two views of the same (n, 8) float64 records (u, v, conic a, b, c | float32 log o, r, g, b, z, 1)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    width, height = size[0], size[1]
+    near, far = clip[0], clip[1]
+    k = sh.shape[1]
+    out = lo
+    skipped = 0
+    m0 = np.empty(3)
+    m1 = np.empty(3)
+    own = shapes.shape[0] == 0
+    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes
+    for start in range(lo, hi, SHAPE_PIECE):
+        stop = min(start + SHAPE_PIECE, hi)
+        base = start if own else 0
+        if own:
+            shape_range(rotations, log_scales, logits, start, stop, rs, base)
+        for i in range(start, stop):
+            s = i - base
+            opacity = rs[s, 9]
+            finite = np.isfinite(opacity)
+            for j in range(3):
+                finite &= np.isfinite(positions[i, j])
+            for j in range(k):
+                for ch in range(3):
+                    finite &= np.isfinite(sh[i, j, ch])
+            if not finite:
+                skipped += 1
+                continue
+            # camera space, relative to the eye in float64
+            px = positions[i, 0] - center[0]
+            py = positions[i, 1] - center[1]
+            pz = positions[i, 2] - center[2]
+            x = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2] * pz
+            y = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2] * pz
+            z = rot[2, 0] * px + rot[2, 1] * py + rot[2, 2] * pz
+            if not (z > near and z <= far and opacity >= ALPHA_MIN):
+                continue
+            if ortho:
+                u, v = fx * x + cx, fy * y + cy
+                for j in range(3):
+                    m0[j] = fx * rot[0, j]
+                    m1[j] = fy * rot[1, j]
+            else:
+                tx, ty = x / z, y / z
+                u, v = fx * tx + cx, fy * ty + cy
+                tx = min(max(tx, clip[2]), clip[3])
+                ty = min(max(ty, clip[4]), clip[5])
+                for j in range(3):
+                    m0[j] = fx / z * (rot[0, j] - tx * rot[2, j])
+                    m1[j] = fy / z * (rot[1, j] - ty * rot[2, j])
+            # Sigma2D = V V^T, V = (J W) (R S): rows v0, v1
+            v00 = m0[0] * rs[s, 0] + m0[1] * rs[s, 3] + m0[2] * rs[s, 6]
+            v01 = m0[0] * rs[s, 1] + m0[1] * rs[s, 4] + m0[2] * rs[s, 7]
+            v02 = m0[0] * rs[s, 2] + m0[1] * rs[s, 5] + m0[2] * rs[s, 8]
+            v10 = m1[0] * rs[s, 0] + m1[1] * rs[s, 3] + m1[2] * rs[s, 6]
+            v11 = m1[0] * rs[s, 1] + m1[1] * rs[s, 4] + m1[2] * rs[s, 7]
+            v12 = m1[0] * rs[s, 2] + m1[1] * rs[s, 5] + m1[2] * rs[s, 8]
+            a = v00 * v00 + v01 * v01 + v02 * v02
+            b = v00 * v10 + v01 * v11 + v02 * v12
+            c = v10 * v10 + v11 * v11 + v12 * v12
+            c0 = v01 * v12 - v02 * v11
+            c1 = v02 * v10 - v00 * v12
+            c2 = v00 * v11 - v01 * v10
+            det0 = c0 * c0 + c1 * c1 + c2 * c2
+            det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
+            if antialiased:
+                opacity = opacity * math.sqrt(max(AA_MIN_RATIO, det0 / det))
+            r2 = 2.0 * math.log(max(255.0 * opacity, 1e-300))
+            r2 = min(r2, max_r2)
+            a += LOW_PASS
+            c += LOW_PASS
+            if not (np.isfinite(det) and np.isfinite(u) and np.isfinite(v)):
+                skipped += 1
+                continue
+            half_x, half_y = math.sqrt(r2 * a), math.sqrt(r2 * c)
+            x0 = max(math.ceil(min(max(u - half_x - 0.5, -1.0), width)), 0.0)
+            y0 = max(math.ceil(min(max(v - half_y - 0.5, -1.0), height)), 0.0)
+            x1 = min(math.floor(min(max(u + half_x - 0.5, -1.0), width)), width - 1.0)
+            y1 = min(math.floor(min(max(v + half_y - 0.5, -1.0), height)), height - 1.0)
+            if not (r2 > 0 and x0 <= x1 and y0 <= y1):
+                continue
+            # view-dependent colour, float64
+            if ortho:
+                dx, dy, dz = rot[2, 0], rot[2, 1], rot[2, 2]
+            else:
+                dx, dy, dz = px, py, pz
+            dn = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if dn > 0:
+                dx, dy, dz = dx / dn, dy / dn, dz / dn
+            for ch in range(3):
+                col = 0.5 + C0 * sh[i, 0, ch]
+                if k > 1:
+                    col += C1 * (-dy * sh[i, 1, ch] + dz * sh[i, 2, ch] - dx * sh[i, 3, ch])
+                if k > 4:
+                    xx, yy, zz = dx * dx, dy * dy, dz * dz
+                    col += (C2[0] * dx * dy * sh[i, 4, ch] + C2[1] * dy * dz * sh[i, 5, ch]
+                            + C2[2] * (2 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * dx * dz * sh[i, 7, ch]
+                            + C2[4] * (xx - yy) * sh[i, 8, ch])
+                    if k > 9:
+                        col += (C3[0] * dy * (3 * xx - yy) * sh[i, 9, ch] + C3[1] * dx * dy * dz * sh[i, 10, ch]
+                                + C3[2] * dy * (4 * zz - xx - yy) * sh[i, 11, ch]
+                                + C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, ch]
+                                + C3[4] * dx * (4 * zz - xx - yy) * sh[i, 13, ch]
+                                + C3[5] * dz * (xx - yy) * sh[i, 14, ch] + C3[6] * dx * (xx - 3 * yy) * sh[i, 15, ch])
+                rec32[out, 11 + ch] = max(0.0, col)
+            rec64[out, 0], rec64[out, 1] = u, v
+            rec64[out, 2], rec64[out, 3], rec64[out, 4] = c / det, -b / det, a / det
+            rec32[out, 10] = math.log(opacity)
+            rec32[out, 14] = z
+            rec32[out, 15] = 1.0
+            index[out] = i
+            depth[out] = z
+            r2_out[out] = r2
+            bbox[out, 0], bbox[out, 1], bbox[out, 2], bbox[out, 3] = x0, y0, x1, y1
+            out += 1
     return out - lo, skipped
 
 

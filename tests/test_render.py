@@ -14,7 +14,7 @@ from reference_render import reference_render
 
 from splatwright.core import SplatCloud
 from splatwright.core.camera import Camera
-from splatwright.core.render import backend_status, render
+from splatwright.core.render import Shapes, backend_status, render
 from splatwright.core.scenes import seed_cube
 from splatwright.io import SplatFileError, write_splats
 from splatwright.io.exr import read_exr
@@ -230,6 +230,40 @@ def test_non_finite_splats_are_skipped_and_counted(backend):
     np.testing.assert_array_equal(got.color, clean.color)
 
 
+def test_shapes_made_once_render_every_view_and_every_shifted_or_recoloured_copy_as_without_them():
+    """Shapes computed once (as a refinement's measures and a bake's fit do) give each view the
+    image render() gives without them, to the bit, non-finite splats skipped and counted alike, for
+    copies with other positions and colours too."""
+    cloud = scene(n=2000, seed=15)
+    cloud.positions[3, 0] = np.nan
+    cloud.rotations[5] = np.inf
+    cloud.log_scales[7, 2] = np.inf
+    cloud.log_scales[8, 1] = -np.inf
+    cloud.opacity_logits[9] = np.nan
+    cloud.sh[11, 4, 1] = -np.inf
+    cloud.rotations[13] = 0.0                       # a zero quaternion: the identity
+    shapes = Shapes(cloud)
+    shifted = cloud.replace(positions=cloud.positions + np.float32([0.05, -0.02, 0.1]),
+                            sh=np.random.default_rng(2).normal(0, 0.3, cloud.sh.shape).astype(np.float32))
+    for camera in (perspective(), perspective(eye=(0.2, -2.5, 1.0)), orthographic()):
+        for mode in ("classic", "antialiased"):
+            for splats in (cloud, shifted):
+                want = render(splats, camera, mode=mode, return_weights=True, threads=1)
+                got = render(splats, camera, mode=mode, return_weights=True, threads=1, shapes=shapes)
+                for name in ("color", "alpha", "depth", "max_weight"):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+                assert got.stats["skipped_nonfinite"] == want.stats["skipped_nonfinite"] >= 5
+
+
+def test_shapes_of_other_splats_are_refused():
+    cloud = scene(seed=16)
+    shapes = Shapes(cloud)
+    other = cloud.replace(rotations=cloud.rotations.copy())     # equal values, but not the arrays they were made from
+    with pytest.raises(ValueError, match="shapes were made from other splats"):
+        render(other, perspective(), shapes=shapes)
+    render(cloud.replace(positions=cloud.positions + 1), perspective(), shapes=shapes)   # the same shapes, moved
+
+
 def test_extreme_logits_and_zero_quaternions(backend):
     cloud = scene(seed=15)
     cloud.opacity_logits[::3] = 1e4
@@ -419,7 +453,7 @@ def test_without_numba_the_numpy_path_renders_and_says_why():
                     raise ImportError(f"{name} is blocked in this test")
         sys.meta_path.insert(0, NoNumba())
 
-        from splatwright.core.render import backend_status, render
+        from splatwright.core.render import Shapes, backend_status, render
         from splatwright.core.camera import Camera
         from splatwright.core.scenes import seed_cube
         result = render(seed_cube(), Camera.look_at((1.8, 1.2, 4.5), (0, 0, 3), width=32, height=24))
