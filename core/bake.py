@@ -96,7 +96,7 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
 
     # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side
     # Views are small: each renders faster whole on one core, the views spread over the cores
-    # (bench bake --quick: fits in 41-45 s, not 74-91), summed in their order.
+    # (bench bake --quick: fits in 41-45 s, not 74-91; 37-39 s with Shapes), summed in their order.
     one = dict(opts, threads=1)
     each = lambda fn: map_threads(fn, views, threads)  # noqa: E731
     diag = np.zeros((len(cloud), k))
