@@ -93,7 +93,7 @@ def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, 
     m0 = np.empty(3)
     m1 = np.empty(3)
     own = shapes.shape[0] == 0
-    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes
+    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes     # rows of R S and opacity, splat i at row i - base
     for start in range(lo, hi, SHAPE_PIECE):
         stop = min(start + SHAPE_PIECE, hi)
         base = start if own else 0
