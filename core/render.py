@@ -615,10 +615,10 @@ def _stable_argsort(keys, n_keys):
 
 class Shapes:
     """What projecting a cloud's splats needs that no camera changes: each splat's R S (its rotation
-    times its scales) and opacity, in float64. Renders of the same splats from many cameras (a
-    refinement's measures, a bake's fit) pass one to render(): the projection kernel then runs about
-    40% faster (the Franka hand's 497k splats on one core: 33 ms a view instead of 55, plus 18 ms once
-    for these), a whole 256 px render about 10%.
+    times its scales) and opacity, in float64 (80 bytes a splat). Renders of the same splats from
+    many cameras (a refinement's measures, a bake's fit) pass one to render(): the projection
+    kernel then runs about 40% faster (the Franka hand's 497k splats on one core: 33 ms a view
+    instead of 55, plus 18 ms once for these), a whole 256 px render about 10%.
 
     It holds the arrays it was made from, and render() takes it only with a cloud holding those
     very arrays (positions and colours may be others: a shifted or recoloured copy). Arrays changed
