@@ -164,14 +164,16 @@ def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, 
             y1 = min(math.floor(min(max(v + half_y - 0.5, -1.0), height)), height - 1.0)
             if not (r2 > 0 and x0 <= x1 and y0 <= y1):
                 continue
-            # view-dependent colour, float64
-            if ortho:
-                dx, dy, dz = rot[2, 0], rot[2, 1], rot[2, 2]
-            else:
-                dx, dy, dz = px, py, pz
-            dn = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if dn > 0:
-                dx, dy, dz = dx / dn, dy / dn, dz / dn
+            # view-dependent colour, float64 (the direction only where SH have bands beyond the DC)
+            dx, dy, dz = 0.0, 0.0, 0.0
+            if k > 1:
+                if ortho:
+                    dx, dy, dz = rot[2, 0], rot[2, 1], rot[2, 2]
+                else:
+                    dx, dy, dz = px, py, pz
+                dn = math.sqrt(dx * dx + dy * dy + dz * dz)
+                if dn > 0:
+                    dx, dy, dz = dx / dn, dy / dn, dz / dn
             for ch in range(3):
                 col = 0.5 + C0 * sh[i, 0, ch]
                 if k > 1:
