@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry, sh as shmod
+from . import geometry, jit, sh as shmod
 from .mesh import Surface, shade, to_display
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .parallel import WORKERS, map_threads
@@ -42,6 +42,7 @@ SOLID_OPACITY = 0.75    # ... and on solid parts, whose outlines it thins (see t
 SEE_THROUGH = 0.5       # a wall's far side differing by more than this (display) keeps OPAQUE: a solid
                         # layer lets a few per cent through, 36 dB's RMS error at this contrast
 BUILD_CHUNK = 1 << 16   # splats built per task, on every core
+BISECT_CHUNK = 1 << 14  # points placed per task, on every core
 
 
 def mesh_to_splats(vertices, faces, *, progress=None, **options):
@@ -242,24 +243,37 @@ def bisection_samples(surface, counts):
 
     Pieces are tracked as their corners' (b1, b2) barycentric coordinates; a piece holding n > 1
     points is cut across its longest edge (measured in the face's own metric) at the fraction
-    floor(n/2)/n, so both halves keep one point per equal share of area.
+    floor(n/2)/n, so both halves keep one point per equal share of area. The points come face by
+    face, each face's level by level (its halves' first pieces before their second ones), the same
+    on every machine: compiled (_bisect_loop) where numba loads, else by NumPy.
     """
+    counts = np.asarray(counts, np.int64)
     faces = np.flatnonzero(counts > 0)
     gram = np.stack([np.einsum("ij,ij->i", surface.edge1, surface.edge1),
                      np.einsum("ij,ij->i", surface.edge1, surface.edge2),
                      np.einsum("ij,ij->i", surface.edge2, surface.edge2)], axis=1)
-    # Faces dealt out to the cores in runs of about equal point counts (NumPy releases the GIL).
-    runs = np.searchsorted(np.cumsum(counts[faces]), np.linspace(0, counts.sum(), WORKERS + 1)[1:-1])
-    parts = map_threads(lambda group: _bisection_leaves(group, counts[group], gram), np.split(faces, runs))
-    tri = np.concatenate([t for t, _ in parts])
-    uv = np.concatenate([uv for _, uv in parts])
+    # Faces dealt out to the cores in runs of about BISECT_CHUNK points (NumPy releases the GIL).
+    ends = np.cumsum(counts[faces])
+    runs = np.split(np.arange(len(faces)), np.searchsorted(ends, np.arange(BISECT_CHUNK, ends[-1:].sum(), BISECT_CHUNK)))
+    kernel = _bisect_kernel()
+    if kernel is not None:
+        uv = np.empty((int(ends[-1:].sum()), 2))
+        first = ends - counts[faces]
+        map_threads(lambda run: kernel(faces[run], counts[faces[run]], first[run], gram, uv), runs)
+        tri = np.repeat(faces, counts[faces])
+    else:
+        parts = map_threads(lambda run: _bisection_leaves(faces[run], counts[faces[run]], gram), runs)
+        tri = np.concatenate([np.zeros(0, np.int64)] + [t for t, _ in parts])
+        uv = np.concatenate([np.zeros((0, 2))] + [uv for _, uv in parts])
+        face_by_face = np.argsort(tri, kind="stable")
+        tri, uv = tri[face_by_face], uv[face_by_face]
     bary = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv])
     return tri, np.clip(bary, 0.0, 1.0)
 
 
 def _bisection_leaves(tri, n, gram):
     """(tri, uv): the leaves of bisecting faces tri into n[i] pieces each, as their centroids'
-    (b1, b2) barycentric coordinates."""
+    (b1, b2) barycentric coordinates, level by level."""
     reference = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     corners = np.broadcast_to(reference, (len(tri), 3, 2)).copy()
     out_tri, out_uv = [np.zeros(0, np.int64)], [np.zeros((0, 2))]
@@ -271,6 +285,58 @@ def _bisection_leaves(tri, n, gram):
         if len(tri):
             tri, n, corners = _bisect(tri, n, corners, gram[tri])
     return np.concatenate(out_tri), np.concatenate(out_uv)
+
+
+def _bisect_kernel():
+    """The compiled twin of _bisection_leaves (core.jit), or None: NumPy then does the work."""
+    return jit.compiled(__name__, ("_bisect_loop",))
+
+
+def _bisect_loop(faces, counts, first, gram, uv):
+    """_bisection_leaves one face at a time, as scalar loops for numba: the same cuts with the same
+    float64 operations in the same order, the leaves of faces[i] written to uv rows first[i].. in
+    the order bisection_samples gives them."""
+    most = counts.max() if len(counts) else 0
+    pieces, halves = np.empty((most, 3, 2)), np.empty((most, 3, 2))
+    held, held_halves = np.empty(most, np.int64), np.empty(most, np.int64)
+    second = np.empty((most, 3, 2))
+    second_held = np.empty(most, np.int64)
+    for i in range(len(faces)):
+        g0, g1, g2 = gram[faces[i], 0], gram[faces[i], 1], gram[faces[i], 2]
+        pieces[0] = 0.0
+        pieces[0, 1, 0] = pieces[0, 2, 1] = 1.0
+        held[0], count, row = counts[i], 1, first[i]
+        while count:
+            cut = 0
+            for p in range(count):
+                if held[p] == 1:
+                    for axis in range(2):
+                        uv[row, axis] = (pieces[p, 0, axis] + pieces[p, 1, axis] + pieces[p, 2, axis]) / 3
+                    row += 1
+                    continue
+                # the longest edge k (corners k+1, k+2) in the face's metric; as argmax: the first
+                # of equals, or the first NaN
+                k, longest = 0, 0.0
+                for e in range(3):
+                    dx = pieces[p, (e + 2) % 3, 0] - pieces[p, (e + 1) % 3, 0]
+                    dy = pieces[p, (e + 2) % 3, 1] - pieces[p, (e + 1) % 3, 1]
+                    length2 = g0 * dx**2 + 2 * g1 * dx * dy + g2 * dy**2
+                    if e == 0 or (longest == longest and not length2 <= longest):
+                        k, longest = e, length2
+                a, b, c = (k + 1) % 3, (k + 2) % 3, k
+                n1 = held[p] // 2
+                fraction = n1 / held[p]
+                for axis in range(2):
+                    pa, pb = pieces[p, a, axis], pieces[p, b, axis]
+                    middle = pa + fraction * (pb - pa)
+                    halves[cut, 0, axis], halves[cut, 1, axis], halves[cut, 2, axis] = pa, middle, pieces[p, c, axis]
+                    second[cut, 0, axis], second[cut, 1, axis], second[cut, 2, axis] = middle, pb, pieces[p, c, axis]
+                held_halves[cut], second_held[cut] = n1, held[p] - n1
+                cut += 1
+            # the next level: every first half, then every second half
+            pieces[:cut], held[:cut] = halves[:cut], held_halves[:cut]
+            pieces[cut:2 * cut], held[cut:2 * cut] = second[:cut], second_held[:cut]
+            count = 2 * cut
 
 
 def _longest_edge(corners, gram):
@@ -506,11 +572,12 @@ def wall_thickness(surface, reach, max_points=60_000):
 
     # The 27 neighbouring cells dealt out to the cores, each with its own minima, merged after.
     cells = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    # Ties go to the lowest candidate, so the result does not depend on how many cores there are.
     found = map_threads(nearest_in, [cells[k::WORKERS] for k in range(min(WORKERS, len(cells)))])
-    depths = np.stack([b for b, _ in found])
-    pick = np.argmin(depths, axis=0)
+    depths, candidates = np.stack([b for b, _ in found]), np.stack([n for _, n in found])
+    pick = np.lexsort((candidates, depths), axis=0)[0]
     best = depths[pick, np.arange(len(queries))]
-    far = np.stack([n for _, n in found])[pick, np.arange(len(queries))]
+    far = candidates[pick, np.arange(len(queries))]
     walled = np.flatnonzero(np.isfinite(best))
     colours = lambda t, b: to_display(surface.linear_colors(t, b))  # noqa: E731
     near_side, far_side = colours(ask_tri[walled], ask_bary[walled]), colours(tri[far[walled]], bary[far[walled]])
@@ -576,9 +643,12 @@ def _nearest_behind(surface, queries, query_normals, points, normals, tri, order
             at_least = (depth == np.repeat(least, n[has])) & np.isfinite(depth)
             which = np.minimum.reduceat(np.where(at_least, np.arange(total), total), first[has])
             rows = np.arange(start, stop)[has]
-            closer = least < best[rows]
+            hit_at = np.isfinite(least)
+            candidate = np.where(hit_at, j[np.minimum(which, total - 1)], 0)
+            # On a tie, the lowest candidate (the cells' order then does not matter).
+            closer = hit_at & ((least < best[rows]) | ((least == best[rows]) & (candidate < nearest[rows])))
             best[rows[closer]] = least[closer]
-            nearest[rows[closer]] = j[which[closer]]
+            nearest[rows[closer]] = candidate[closer]
         start = stop
 
 

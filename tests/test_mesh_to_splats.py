@@ -90,6 +90,70 @@ def test_faces_smaller_than_a_splat_are_covered_evenly():
     assert ((per_cell - 20) ** 2 / 20).mean() < 0.5
 
 
+def bisection_reference(gram, n):
+    """One face's points for n splats, by plain recursion on lists: its pieces (uv corners) level by
+    level, each halving across its longest edge in the face's metric `gram` (2x2), the first halves
+    of a level before the second ones; and the pieces' areas."""
+    level, points, areas = [(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), n)], [], []
+    while level:
+        firsts, seconds = [], []
+        for corners, held in level:
+            if held == 1:
+                points.append(corners.mean(axis=0))
+                areas.append(0.5 * abs(np.cross(corners[1] - corners[0], corners[2] - corners[0])))
+                continue
+            edges = [corners[(k + 2) % 3] - corners[(k + 1) % 3] for k in range(3)]
+            k = int(np.argmax([e @ gram @ e for e in edges]))
+            a, b, c = corners[(k + 1) % 3], corners[(k + 2) % 3], corners[k]
+            middle = a + (held // 2) / held * (b - a)
+            firsts.append((np.array([a, middle, c]), held // 2))
+            seconds.append((np.array([middle, b, c]), held - held // 2))
+        level = firsts + seconds
+    return np.array(points), np.array(areas)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_points_are_the_centroids_of_an_equal_area_bisection(compiled, monkeypatch):
+    """bisection_samples against a plain recursion, on a jittered grid, a 1000:1 sliver and faces of
+    0, 1, 2, 3 and up to 300 points; the compiled path (where numba loads) and NumPy's alike."""
+    from splatwright.core import mesh_to_splats as m2s
+    if not compiled:
+        monkeypatch.setattr(m2s, "_bisect_kernel", lambda: None)
+    elif m2s._bisect_kernel() is None:
+        pytest.skip("numba is not installed, or compiled kernels are turned off")
+    v, f = grid_plane(4, jitter=0.3, seed=2)
+    v = np.concatenate([v, [[0, 0, 1], [1, 0, 1], [0.5, 0.001, 1]]])
+    f = np.concatenate([f, [[len(v) - 3, len(v) - 2, len(v) - 1]]])
+    surface = Surface(v, f)
+    counts = np.random.default_rng(5).integers(0, 300, len(f))
+    counts[:4] = 0, 1, 2, 3
+    counts[-1] = 250
+    tri, bary = m2s.bisection_samples(surface, counts)
+    np.testing.assert_array_equal(tri, np.repeat(np.arange(len(f)), counts))
+    for face in np.flatnonzero(counts):
+        e1, e2 = surface.edge1[face], surface.edge2[face]
+        gram = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
+        points, areas = bisection_reference(gram, counts[face])
+        np.testing.assert_allclose(bary[tri == face][:, 1:], points, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(areas, 0.5 / counts[face], rtol=1e-9)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None or not jit.enabled(),
+                    reason="numba is not installed, or compiled kernels are turned off")
+def test_compiled_bisection_is_numpys_bit_for_bit(monkeypatch):
+    """Many runs' worth of points in one face, slivers and single points: the compiled twin gives
+    NumPy's points in NumPy's order to the bit."""
+    from splatwright.core import mesh_to_splats as m2s
+    v, f = grid_plane(30, jitter=0.45, seed=4)
+    surface = Surface(tilted(v, seed=1), f)
+    counts = np.random.default_rng(6).integers(0, 40, len(f))
+    counts[7] = 3 * m2s.BISECT_CHUNK + 17
+    compiled = m2s.bisection_samples(surface, counts)
+    monkeypatch.setattr(m2s, "_bisect_kernel", lambda: None)
+    for got, want in zip(compiled, m2s.bisection_samples(surface, counts)):
+        np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("jitter, aspect, least", [(0.3, 1, 0.99), (0.0, 8, 0.94)])
 def test_plane_renders_closed_inside(jitter, aspect, least, mode):
@@ -156,6 +220,28 @@ def test_wall_contrast_is_the_far_sides_colour_difference():
     assert walls.mean() > 0.7
     np.testing.assert_allclose(contrast[walls], np.abs(colours[0] - colours[1]).max(), rtol=1e-6)
     assert (contrast[~walls] == 0).all()
+
+
+def test_splats_and_walls_are_the_same_on_any_number_of_cores(monkeypatch):
+    """Points are dealt out to the cores in the same runs, and wall ties go to the same far side,
+    whatever the cores: one conversion gives the same splats on a laptop and on a farm."""
+    from splatwright.core import mesh_to_splats as m2s, parallel
+    cup = scenes.thin_walled_cup()
+    surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, cup.materials)
+    density = np.full(len(cup.faces), 5 * m2s.BISECT_CHUNK / surface.area.sum())   # several runs
+    made = []
+    for workers in (1, 2, 3):
+        monkeypatch.setattr(parallel, "WORKERS", workers)
+        monkeypatch.setattr(m2s, "WORKERS", workers)
+        made.append((build_splats(surface, density), m2s.wall_thickness(surface, 0.02)))
+    (cloud, walls), others = made[0], made[1:]
+    assert len(cloud) > 4 * m2s.BISECT_CHUNK and np.isfinite(walls[0]).mean() > 0.7
+    for other, other_walls in others:
+        for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(other, name), getattr(cloud, name), err_msg=name)
+        np.testing.assert_array_equal(other.extras["source_triangle"], cloud.extras["source_triangle"])
+        for got, want in zip(other_walls, walls):
+            np.testing.assert_array_equal(got, want)
 
 
 def test_a_wall_hiding_its_own_colour_gets_a_lower_density_floor():
