@@ -30,7 +30,7 @@ searched again whenever the cloud has doubled or a round rendered worse, short o
 (smaller splats want another shift; without this, refinement stalled with more splats rendering
 worse). Splats of one density are built once: a search moves only their positions, and compares
 them on the views worst so far (a third of them, at least four, and any its best shows worse),
-rendering only the best from all. A budget (uniform mode) also tries the smaller counts of one
+rendering only the best from the others. A budget (uniform mode) also tries the smaller counts of one
 ladder shared by all budgets (2000, 4000, 8000, ...: budget_ladder) and keeps what renders best: the
 fattening grows with the splats stacked, so a larger budget could otherwise look worse than a
 smaller one (the torus: 38.4 / 38.7 / 37.8 dB at 10k / 30k / 100k on held-out views). Wider, fainter
@@ -181,15 +181,15 @@ class _Views:
         return size
 
     def _renders(self, cloud, which):
-        """Renders of `cloud` from the views `which` (indices), each with its per-pixel squared
-        error against the mesh's (channels averaged). Small views: one whole render per core beats
-        sharing each render between the cores."""
+        """{view: (alpha, per-pixel squared error against the mesh's, channels averaged)} of `cloud`
+        from the views `which` (indices). Small views: one whole render per core beats sharing each
+        render between the cores."""
         shapes = self._shapes_of(cloud)
 
         def one(i):
             result = render(cloud, self.cameras[i], background=BACKGROUND, mode=self.mode, threads=1, shapes=shapes)
-            return result, ((result.color.astype(np.float64) - self.refs[i].color) ** 2).mean(axis=2)
-        return map_threads(one, which)
+            return result.alpha, ((result.color.astype(np.float64) - self.refs[i].color) ** 2).mean(axis=2)
+        return dict(zip(which, map_threads(one, which)))
 
     def _shapes_of(self, cloud):
         """core.render's Shapes of `cloud`, kept for the next renders: the clouds of one density,
@@ -198,9 +198,13 @@ class _Views:
         self._shapes = [shapes] + [s for s in self._shapes if s is not shapes][:1]
         return shapes
 
-    def psnr_of(self, cloud, which):
-        """{view: PSNR} of the views `which` (indices)."""
-        return {i: psnr_from_mse(err.mean()) for i, (_, err) in zip(which, self._renders(cloud, which))}
+    def psnr_of(self, cloud, which, keep=None):
+        """{view: PSNR} of the views `which` (indices); their renders go into the dict `keep`, if
+        given, for a measure of the same cloud to take."""
+        renders = self._renders(cloud, which)
+        if keep is not None:
+            keep.update(renders)
+        return {i: psnr_from_mse(err.mean()) for i, (_, err) in renders.items()}
 
     def search_views(self, m):
         """The views a shift search compares on: the worst SEARCH_SHARE of them in `m` (at least
@@ -208,14 +212,18 @@ class _Views:
         count = min(len(self.cameras), max(SEARCH_VIEWS, math.ceil(SEARCH_SHARE * len(self.cameras))))
         return [int(i) for i in np.argsort(m.views, kind="stable")[:count]]
 
-    def measure(self, cloud):
+    def measure(self, cloud, rendered=None):
+        """A Measured of `cloud` from every view; `rendered` ({view: render}, as psnr_of keeps them)
+        holds views of this very cloud rendered before."""
         n = len(self.surface.faces)
         err_sum, mses, shares = np.zeros(n), [], []
         excess = 0.0
-        renders = self._renders(cloud, range(len(self.cameras)))
-        for (result, err), ref, (pixel, face, share), solid, edge in zip(renders, self.refs, self.shares, self.solid,
-                                                                         self.edges):
-            excess += float((result.alpha - ref.alpha)[solid].sum())
+        renders = dict(rendered or {})
+        renders.update(self._renders(cloud, [i for i in range(len(self.cameras)) if i not in renders]))
+        for i, (ref, (pixel, face, share), solid, edge) in enumerate(zip(self.refs, self.shares, self.solid,
+                                                                          self.edges)):
+            alpha, err = renders[i]
+            excess += float((alpha - ref.alpha)[solid].sum())
             mses.append(err.mean())
             shares.append(float(err[edge].sum() / max(err.sum(), 1e-300)))
             err_sum += np.bincount(face, weights=err.ravel()[pixel] * share, minlength=n)
@@ -242,7 +250,7 @@ class _Inset:
 
         Shifts are compared on the views that `basis` (a Measured of this density) found worst
         (search_views), where the worst view's gains and losses show, and only the best is
-        measured on all. Where that shows another view worse than the compared ones (a shift
+        measured on all (its compared views' renders kept, not rendered again). Where that shows another view worse than the compared ones (a shift
         that mends the far views' outlines can spoil the close-ups'), the views worse than them
         join and the search runs again on the renders it has. Every default conversion on the bench
         picks the shifts all views pick, the hand's searches with a third of the renders; before
@@ -252,12 +260,16 @@ class _Inset:
         tried = {}          # shift -> [cloud, {view: PSNR}, Measured or None]
         if known is not None:
             tried[known[0]] = [known[1], dict(enumerate(known[2].views)), known[2]]
+        kept = [None, {}]   # the best shift so far and its renders, which its measure takes
 
         def measured(x):
             if tried[x][2] is None:
-                tried[x][2] = self.views.measure(tried[x][0])
+                tried[x][2] = self.views.measure(tried[x][0], kept[1] if kept[0] == x else None)
                 tried[x][1].update(enumerate(tried[x][2].views))
             return tried[x][2]
+
+        def so_far(x):
+            return min(tried[x][1].get(i, math.inf) for i in views)
 
         def worst(x):
             if x not in tried:
@@ -267,7 +279,12 @@ class _Inset:
                 measured(x)
             missing = sorted(views - psnrs.keys())
             if missing:
-                psnrs.update(self.views.psnr_of(tried[x][0], missing))
+                renders = {}
+                psnrs.update(self.views.psnr_of(tried[x][0], missing, renders))
+                if kept[0] == x:
+                    kept[1].update(renders)
+                elif kept[0] is None or so_far(x) > so_far(kept[0]):
+                    kept[:] = [x, renders]
             return min(psnrs[i] for i in views)
 
         while True:

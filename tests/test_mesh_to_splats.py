@@ -781,10 +781,10 @@ def test_the_round_reaching_the_target_is_kept_without_searching_its_shift_again
     monkeypatch.setattr(mesh_refine, "RECALIBRATE_GROWTH", 1.0)
     measures, searched = [], []
     measure, psnr_of = mesh_refine._Views.measure, mesh_refine._Views.psnr_of
-    monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: measures.append(len(cloud)) or
-                        measure(views, cloud))
-    monkeypatch.setattr(mesh_refine._Views, "psnr_of", lambda views, cloud, which: searched.append(which) or
-                        psnr_of(views, cloud, which))
+    monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud, *kept: measures.append(len(cloud)) or
+                        measure(views, cloud, *kept))
+    monkeypatch.setattr(mesh_refine._Views, "psnr_of", lambda views, cloud, which, *keep: searched.append(which) or
+                        psnr_of(views, cloud, which, *keep))
     steps = []
     v, f, uv = uv_sphere(24, 12)
     info = {}
@@ -804,15 +804,13 @@ def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_view
     splats and PSNR as searches on all twelve, with fewer views rendered."""
     from splatwright.core import mesh_refine
     v, f, uv = uv_sphere(24, 12)
-    measure, psnr_of = mesh_refine._Views.measure, mesh_refine._Views.psnr_of
+    renders = mesh_refine._Views._renders
 
     def convert(share):
         monkeypatch.setattr(mesh_refine, "SEARCH_SHARE", share)
         rendered, info = [0], {}
-        monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud: rendered.__setitem__(
-            0, rendered[0] + len(views.cameras)) or measure(views, cloud))
-        monkeypatch.setattr(mesh_refine._Views, "psnr_of", lambda views, cloud, which: rendered.__setitem__(
-            0, rendered[0] + len(which)) or psnr_of(views, cloud, which))
+        monkeypatch.setattr(mesh_refine._Views, "_renders", lambda views, cloud, which: rendered.__setitem__(
+            0, rendered[0] + len(which)) or renders(views, cloud, which))
         cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=30.0,
                                view_size=96, info=info)
         return cloud, info, rendered[0]
@@ -823,6 +821,27 @@ def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_view
     assert info["inset_pixels"] == every_info["inset_pixels"] and info["psnr"] == every_info["psnr"]
     np.testing.assert_array_equal(cloud.positions, every_cloud.positions)
     assert rendered < 0.8 * every_rendered
+
+
+def test_a_measure_takes_the_renders_a_search_kept_and_renders_only_the_others(monkeypatch):
+    """The views a shift search rendered are not rendered again when its best is measured on all:
+    the same Measured as a measure from scratch."""
+    from splatwright.core import mesh_refine
+    v, f, uv = uv_sphere(24, 12)
+    surface = Surface(v, f, uv, None, [Material(texture=_wavy_texture())])
+    views = mesh_refine._Views(surface, default_views(surface, 48), "antialiased", surface.outward_signs() != 0)
+    cloud = build_splats(surface, np.full(len(f), 3000 / surface.area.sum()))
+    kept, rendered = {}, []
+    views.psnr_of(cloud, [1, 5, 6], kept)
+    renders = mesh_refine._Views._renders
+    monkeypatch.setattr(mesh_refine._Views, "_renders", lambda self, cloud, which: rendered.extend(which) or
+                        renders(self, cloud, which))
+    measured = views.measure(cloud, kept)
+    assert rendered == [0, 2, 3, 4, 7, 8, 9, 10, 11]
+    fresh = views.measure(cloud)
+    assert measured.views == fresh.views and measured.edge_share == fresh.edge_share
+    assert measured.dilation == fresh.dilation and 15 < measured.psnr < 40
+    np.testing.assert_array_equal(measured.err, fresh.err)
 
 
 def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst(monkeypatch):
@@ -840,12 +859,14 @@ def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst(monkeypa
         search_views = mesh_refine._Views.search_views
         rendered = 0
 
-        def psnr_of(self, x, which):
+        def psnr_of(self, x, which, keep):
             self.rendered += len(which)
+            keep.update({i: x for i in which})
             return {i: psnr(i, x) for i in which}
 
-        def measure(self, x):
-            self.rendered += 12
+        def measure(self, x, rendered=None):
+            assert all(shift == x for shift in (rendered or {}).values())    # renders of this shift only
+            self.rendered += 12 - len(rendered or {})
             views = [psnr(i, x) for i in range(12)]
             return SimpleNamespace(views=views, psnr=min(views))
 
