@@ -250,9 +250,10 @@ class _Inset:
 
         Shifts are compared on the views that `basis` (a Measured of this density) found worst
         (search_views), where the worst view's gains and losses show, and only the best is
-        measured on all (its compared views' renders kept, not rendered again). Where that shows another view worse than the compared ones (a shift
-        that mends the far views' outlines can spoil the close-ups'), the views worse than them
-        join and the search runs again on the renders it has. Every default conversion on the bench
+        measured on all (its compared views' renders kept, not rendered again). Where that shows
+        another view worse than the compared ones (a shift that mends the far views' outlines can
+        spoil the close-ups'), the views worse than them join and the search runs again on the
+        renders it has. Every default conversion on the bench
         picks the shifts all views pick, the hand's searches with a third of the renders; before
         views could join, the sphere took another shift, and the classic 20k budget of Suzanne at
         128 px shifted its far views' outlines in and its close-ups fell from 28.1 to 24.6 dB."""

@@ -254,10 +254,11 @@ def bisection_samples(surface, counts):
                      np.einsum("ij,ij->i", surface.edge2, surface.edge2)], axis=1)
     # Faces dealt out to the cores in runs of about BISECT_CHUNK points (NumPy releases the GIL).
     ends = np.cumsum(counts[faces])
-    runs = np.split(np.arange(len(faces)), np.searchsorted(ends, np.arange(BISECT_CHUNK, ends[-1:].sum(), BISECT_CHUNK)))
+    total = int(ends[-1]) if len(ends) else 0
+    runs = np.split(np.arange(len(faces)), np.searchsorted(ends, np.arange(BISECT_CHUNK, total, BISECT_CHUNK)))
     kernel = _bisect_kernel()
     if kernel is not None:
-        uv = np.empty((int(ends[-1:].sum()), 2))
+        uv = np.empty((total, 2))
         first = ends - counts[faces]
         map_threads(lambda run: kernel(faces[run], counts[faces[run]], first[run], gram, uv), runs)
         tri = np.repeat(faces, counts[faces])
@@ -297,10 +298,9 @@ def _bisect_loop(faces, counts, first, gram, uv):
     float64 operations in the same order, the leaves of faces[i] written to uv rows first[i].. in
     the order bisection_samples gives them."""
     most = counts.max() if len(counts) else 0
-    pieces, halves = np.empty((most, 3, 2)), np.empty((most, 3, 2))
-    held, held_halves = np.empty(most, np.int64), np.empty(most, np.int64)
-    second = np.empty((most, 3, 2))
-    second_held = np.empty(most, np.int64)
+    pieces, held = np.empty((most, 3, 2)), np.empty(most, np.int64)       # this level's
+    firsts, first_held = np.empty((most, 3, 2)), np.empty(most, np.int64)     # the next level's
+    seconds, second_held = np.empty((most, 3, 2)), np.empty(most, np.int64)
     for i in range(len(faces)):
         g0, g1, g2 = gram[faces[i], 0], gram[faces[i], 1], gram[faces[i], 2]
         pieces[0] = 0.0
@@ -329,13 +329,13 @@ def _bisect_loop(faces, counts, first, gram, uv):
                 for axis in range(2):
                     pa, pb = pieces[p, a, axis], pieces[p, b, axis]
                     middle = pa + fraction * (pb - pa)
-                    halves[cut, 0, axis], halves[cut, 1, axis], halves[cut, 2, axis] = pa, middle, pieces[p, c, axis]
-                    second[cut, 0, axis], second[cut, 1, axis], second[cut, 2, axis] = middle, pb, pieces[p, c, axis]
-                held_halves[cut], second_held[cut] = n1, held[p] - n1
+                    firsts[cut, 0, axis], firsts[cut, 1, axis], firsts[cut, 2, axis] = pa, middle, pieces[p, c, axis]
+                    seconds[cut, 0, axis], seconds[cut, 1, axis], seconds[cut, 2, axis] = middle, pb, pieces[p, c, axis]
+                first_held[cut], second_held[cut] = n1, held[p] - n1
                 cut += 1
             # the next level: every first half, then every second half
-            pieces[:cut], held[:cut] = halves[:cut], held_halves[:cut]
-            pieces[cut:2 * cut], held[cut:2 * cut] = second[:cut], second_held[:cut]
+            pieces[:cut], held[:cut] = firsts[:cut], first_held[:cut]
+            pieces[cut:2 * cut], held[cut:2 * cut] = seconds[:cut], second_held[:cut]
             count = 2 * cut
 
 
