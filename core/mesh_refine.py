@@ -253,10 +253,10 @@ class _Inset:
         measured on all (its compared views' renders kept, not rendered again). Where that shows
         another view worse than the compared ones (a shift that mends the far views' outlines can
         spoil the close-ups'), the views worse than them join and the search runs again on the
-        renders it has. Every default conversion on the bench
-        picks the shifts all views pick, the hand's searches with a third of the renders; before
-        views could join, the sphere took another shift, and the classic 20k budget of Suzanne at
-        128 px shifted its far views' outlines in and its close-ups fell from 28.1 to 24.6 dB."""
+        renders it has. Every default conversion on the bench picks the shifts all views pick, the
+        hand's searches with a third of the renders; before views could join, the sphere took
+        another shift, and the classic 20k budget of Suzanne at 128 px shifted its far views'
+        outlines in and its close-ups fell from 28.1 to 24.6 dB."""
         views, every = set(self.views.search_views(basis)), set(range(len(self.views.cameras)))
         tried = {}          # shift -> [cloud, {view: PSNR}, Measured or None]
         if known is not None:
