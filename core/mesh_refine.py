@@ -213,8 +213,8 @@ class _Views:
         return [int(i) for i in np.argsort(m.views, kind="stable")[:count]]
 
     def measure(self, cloud, rendered=None):
-        """A Measured of `cloud` from every view; `rendered` ({view: render}, as psnr_of keeps them)
-        holds views of this very cloud rendered before."""
+        """A Measured of `cloud` from every view; `rendered` ({view: (alpha, error)}, as psnr_of
+        keeps them) holds views of this very cloud rendered before."""
         n = len(self.surface.faces)
         err_sum, mses, shares = np.zeros(n), [], []
         excess = 0.0
