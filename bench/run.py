@@ -63,7 +63,8 @@ def plot(topic, rows, out_dir):
     fig, ax = plt.subplots(figsize=(6, 4))
     for e, t, s, name in pts:
         ax.errorbar([e], [t], yerr=[s], fmt="o", capsize=3)
-        ax.annotate(name, (e, t), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        # Long labels run off the figure rather than shrink the axes to make room for them.
+        ax.annotate(name, (e, t), fontsize=7, xytext=(3, 3), textcoords="offset points").set_in_layout(False)
     ax.set_xlabel(key)
     ax.set_ylabel("median seconds")
     ax.set_title(f"{topic}: speed against {key}")
