@@ -10,7 +10,9 @@ core.bake.bake_views' 96 views (32 per distance), none of them held out. Splats:
 conversion made for classic rendering; baking fits SH of degree 3 (geometry and opacity kept) by
 core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
 reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
-so), from the same Cycles views.
+so), from the same Cycles views; and once more with the held-out views (rendered as the bake inputs
+are) added as a camera path the user renders from, weighted by core.bake.path_weights: not held
+out there, the row says what a bake along the user's own views gives at them.
 
     python bench/bake.py [--quick]
 """
@@ -29,7 +31,7 @@ from common import Row, Timing, print_rows  # noqa: E402
 from mesh2splats import (DISTANCES, blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
                          held_out_cameras, sphere_texture, uv_sphere, write_obj)
 
-from splatwright.core.bake import bake_sh, bake_views  # noqa: E402
+from splatwright.core.bake import bake_sh, bake_views, path_weights  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
 
 TOPIC = "bake"
@@ -59,15 +61,21 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
     rows = [Row(TOPIC, f"{name}: Base Color only", Timing(0.0, 0.0, 1), error={**base, "worst dB": worst(base)},
                 extra=common)]
     antialiased = convert(mesh, max_splats=budget, view_size=size, render_mode="antialiased", try_fewer=False)
-    for made_for, splats in (("", cloud), (", made for antialiased rendering", antialiased)):
+    path, path_s = cycles_render(mesh, [cam for _, cam in held], folder, samples=BAKE_SAMPLES, lit=True)
+    runs = ((views, images, None, "", cloud, render_s),
+            (views, images, None, ", made for antialiased rendering", antialiased, render_s),
+            (views + [cam for _, cam in held], images + path, path_weights(len(views), len(held)),
+             ", antialiased, the held-out views baked from too as a camera path", antialiased, render_s + path_s))
+    for views_used, images_used, weights, made_for, splats, cycles_s in runs:
         info = {}
         start = time.perf_counter()
-        baked = bake_sh(splats, views, images, degree=DEGREE, iterations=iterations, info=info)
+        baked = bake_sh(splats, views_used, images_used, degree=DEGREE, iterations=iterations, weights=weights,
+                        info=info)
         bake_s = time.perf_counter() - start
         after = by_distance(baked, held, references)          # rendered in the mode it was made for
-        rows.append(Row(TOPIC, f"{name}: baked from Cycles (SH {DEGREE}){made_for}", Timing(render_s + bake_s, 0.0, 1),
+        rows.append(Row(TOPIC, f"{name}: baked from Cycles (SH {DEGREE}){made_for}", Timing(cycles_s + bake_s, 0.0, 1),
                         error={**after, "worst dB": worst(after)},
-                        extra={**common, "views": len(views), "Cycles s": f"{render_s:.1f}", "fit s": f"{bake_s:.1f}",
+                        extra={**common, "views": len(views_used), "Cycles s": f"{cycles_s:.1f}", "fit s": f"{bake_s:.1f}",
                                "iterations": info["iterations"],
                                "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}"}))
     return rows

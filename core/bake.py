@@ -8,7 +8,8 @@ geometry fixed a render is affine in x: pixel i of view v is
 w_ij = T alpha the blending weights, d_jv the direction from view v's eye to splat j (the clamp of
 colours at 0 is ignored while fitting). bake_sh solves the least-squares problem over all views,
 damped towards a prior (Tikhonov: splats that few views see keep it), by
-conjugate gradients on the normal equations (A^T A + lambda I) x = A^T b, the three colour channels
+conjugate gradients on the normal equations (A^T W A + lambda I) x = A^T W b (W: each view's
+weight on its pixels), the three colour channels
 side by side. The prior (start and damping target) is by default each splat's mean lit colour over
 the images, so what the views leave undetermined falls back to the local colour. Each step is one render and one gather per view:
 - A p is a render of the colour field Y p (a degree-0 cloud with those colours, shifted to be
@@ -44,6 +45,14 @@ DEFAULT_BAND_DAMPING = 10.0  # band l's lambda is (1 + this l (l + 1)) times ban
 # held-out dB at 0.5x / 1x / 3x: Suzanne (100k) 31.5, 34.4, 31.6 / 33.3, 29.3, 33.0 -> 33.7, 36.0, 34.8 / 34.3,
 # 29.7, 32.2 (3x unchanged); the sphere 28.2, 38.6, 30.1 -> 29.8, 40.1, 33.6 at 0.5x, 1x and 3x unchanged.
 VIEWS_PER_DISTANCE = 32     # reference views at each distance of core.mesh_refine's view placement
+# A highlight comes out right only close to a view it was fitted to (bench/bake.py's quick scene, the sphere
+# at 1x: views 21 degrees apart 25.6 dB held out, 544 views 9 degrees apart 27.8, four views 5 degrees
+# around each held-out one 32.0): the views a user renders from (a camera path) are fitted too, weighted
+# to count PATH_SHARE times as much as the views around together. With the nine held-out views as the
+# path, their dB at 0.5x / 1x / 3x: share 0 (unweighted, as one of 105) the sphere 45.0 / 28.5 / 36.9,
+# Suzanne 32.0 / 31.4 / 39.8; share 1: 46.8 / 36.8 / 37.3 and 36.7 / 36.2 / 40.5 (all views fitted
+# 35.0 -> 34.6 and 34.6 -> 34.4 dB); share 3, the sphere 47.0 / 40.5 / 38.0 (all views 33.9).
+PATH_SHARE = 1.0
 
 
 def bake_views(vertices, size=256, count=VIEWS_PER_DISTANCE, distances=None):
@@ -55,6 +64,12 @@ def bake_views(vertices, size=256, count=VIEWS_PER_DISTANCE, distances=None):
                          distances=VIEW_DISTANCES if distances is None else distances)
 
 
+def path_weights(around, path, share=PATH_SHARE):
+    """bake_sh's view weights for `around` views around the mesh followed by `path` views a user
+    renders from: 1 each around, the path's together `share` times their total."""
+    return np.concatenate([np.ones(around), np.full(path, share * around / path if path else 0.0)])
+
+
 def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
     """bake_sh_steps run to its end, each step passed to `progress(done, total, label)`."""
     from .mesh_refine import drain
@@ -63,12 +78,14 @@ def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
 
 def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITERATIONS, damping=DEFAULT_DAMPING,
                   band_damping=DEFAULT_BAND_DAMPING, prior="views", background=(0.0, 0.0, 0.0), mode=None,
-                  tolerance=1e-6, info=None, backend="auto", threads=None):
+                  tolerance=1e-6, weights=None, info=None, backend="auto", threads=None):
     """A generator fitting the SH of `cloud` to `images` seen through `cameras`; yields (done,
     total, label) after the setup and each iteration and returns the cloud with the fitted SH
     (float32, `degree`, default the cloud's own).
 
     images: one (H,W,3) display-sRGB image per camera, of its size, rendered over `background`.
+    weights: one weight per view (default all 1): a view's squared errors count that many times
+    (path_weights: the views a user renders from, ahead of the views around).
     prior: where the fit starts and what it is damped towards: "views", each seen splat's mean
     colour over the pixels it blends into (weighted by its weights, every view together, pixels
     taken straight: a view-independent colour), the others keeping the cloud's SH; "cloud", the cloud's own SH. Both
@@ -88,7 +105,9 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     k = shmod.num_coeffs(degree)
     bg = np.asarray(background, np.float64).reshape(3)
     opts = dict(mode=mode, backend=backend, threads=threads)
-    views = [_View(cam, _checked_image(img, cam, i), degree) for i, (cam, img) in enumerate(zip(cameras, images))]
+    weights = _checked_weights(weights, len(cameras))
+    views = [_View(cam, _checked_image(img, cam, i), degree, w)
+             for i, (cam, img, w) in enumerate(zip(cameras, images, weights))]
     x0 = shmod.truncate(cloud.sh.astype(np.float64), degree)
     shape = cloud.replace(sh=np.zeros((len(cloud), 1, 3), np.float32))     # the geometry: colours are set per render
     opts["shapes"] = Shapes(shape, threads)     # and its splats' shapes, the same in every render
@@ -179,6 +198,15 @@ def _checked_image(image, camera, i):
     return a
 
 
+def _checked_weights(weights, count):
+    if weights is None:
+        return np.ones(count)
+    w = np.asarray(weights, np.float64)
+    if w.shape != (count,) or not (np.isfinite(w) & (w >= 0)).all() or not w.any():
+        raise ValueError(f"need {count} finite, non-negative view weights, not all 0; got {weights!r}")
+    return w
+
+
 def _dot(a, b):
     """Per-channel inner products of (N, K, 3) arrays: (3,)."""
     return np.einsum("nkc,nkc->c", a, b)
@@ -190,11 +218,11 @@ def _psnr(views):
 
 
 class _View:
-    """One reference view: its camera, the SH basis at its directions to the splats (float32) and
-    the residual image of the fit so far."""
+    """One reference view: its camera, its weight, the SH basis at its directions to the splats
+    (float32) and the residual image of the fit so far."""
 
-    def __init__(self, camera, image, degree):
-        self.camera, self.image, self.degree = camera, image, degree
+    def __init__(self, camera, image, degree, weight=1.0):
+        self.camera, self.image, self.degree, self.weight = camera, image, degree, float(weight)
         self.residual = self.basis = None
 
     def colors(self, x):
@@ -213,7 +241,7 @@ class _View:
         self.alpha = out.alpha[..., None]
         self.target = (self.image - (1.0 - self.alpha) * bg.astype(np.float32)).astype(np.float32)
         footprint = out.gathered[:, 0] * out.max_weight
-        return footprint[:, None] * np.square(self.basis, dtype=np.float64)
+        return self.weight * footprint[:, None] * np.square(self.basis, dtype=np.float64)
 
     def start(self, cloud, x0, opts):
         """The residual image of the starting SH x0."""
@@ -231,8 +259,8 @@ class _View:
         return render(cloud, self.camera, background=None, gather=image, **opts).gathered
 
     def back(self, gathered):
-        """A^T image from its gather: times the basis, (N, K, 3)."""
-        return self.basis[:, :, None] * gathered[:, None, :]
+        """A^T W image from its gather: times the basis and the view's weight, (N, K, 3)."""
+        return self.weight * self.basis[:, :, None] * gathered[:, None, :]
 
     @staticmethod
     def _shifted(colors):

@@ -279,3 +279,17 @@ def blender_intrinsics(width, height, lens=50.0, sensor_width=36.0, sensor_heigh
         "cy": height / 2 + shift_y * view / ycor,
         "projection": "orthographic" if kind == "ORTHO" else "perspective",
     }
+
+
+def blender_lens(camera, sensor_width=36.0):
+    """The lens settings (blender_intrinsics' keyword arguments) under which a Blender camera of
+    `camera`'s resolution sees as `camera` does: its focal lengths as a lens on a horizontally
+    fitted sensor, its principal point as a shift, unequal fx and fy as a pixel aspect."""
+    width, height = camera.width, camera.height
+    ycor = camera.fx / camera.fy
+    lens = {"sensor_width": sensor_width, "sensor_height": sensor_width, "sensor_fit": "HORIZONTAL",
+            "shift_x": (width / 2 - camera.cx) / width, "shift_y": (camera.cy - height / 2) * ycor / width,
+            "pixel_aspect_x": max(1.0, 1.0 / ycor), "pixel_aspect_y": max(1.0, ycor)}   # Blender's are >= 1
+    if camera.is_orthographic:
+        return {**lens, "type": "ORTHO", "ortho_scale": width / camera.fx, "lens": 50.0}
+    return {**lens, "type": "PERSP", "ortho_scale": None, "lens": camera.fx * sensor_width / width}

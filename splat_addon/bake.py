@@ -21,29 +21,34 @@ import mathutils
 import numpy as np
 
 from ..core import geometry, sh as shmod
-from ..core.bake import DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_views
-from ..core.camera import opengl_camera_to_world
+from ..core.bake import DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_views, path_weights
+from ..core.camera import blender_lens, opengl_camera_to_world
 from . import data
 
 TEMPORARY = "splatwright_bake"
 
 
 def bake_steps(scene, obj, cloud, vertices, *, samples=16, count=VIEWS_PER_DISTANCE, size=256,
-               distances=None, degree=2, iterations=DEFAULT_ITERATIONS, info=None):
+               distances=None, degree=2, iterations=DEFAULT_ITERATIONS, path=(), info=None):
     """A generator baking `obj`'s look into `cloud` (object space, made from the object's evaluated
     `vertices`): yields (done, total, label) per Cycles view and per fitting iteration and returns
-    the cloud with fitted SH of `degree` (geometry unchanged). The fit runs in world space, where
-    the cameras are; the SH are turned back into the object's axes."""
+    the cloud with fitted SH of `degree` (geometry unchanged). `path`: core Cameras (world space)
+    the object will be seen from, baked from beside the views around it and weighted to count as
+    much as those together (core.bake.path_weights: highlights come out right only near views
+    fitted). The fit runs in world space, where the cameras are; the SH are turned back into the
+    object's axes."""
     world = np.array(obj.matrix_world, dtype=np.float64)
     points = np.asarray(vertices, np.float64) @ world[:3, :3].T + world[:3, 3]
-    cameras = bake_views(points, size, count, distances)
+    around = bake_views(points, size, count, distances)
+    cameras = around + list(path)
     total = len(cameras) + iterations + 1
     images = []
     with tempfile.TemporaryDirectory(prefix="splatwright-bake-") as folder:
         for i, cam in enumerate(cameras):
             images.append(render_view(scene, obj, cam, samples, os.path.join(folder, f"view_{i}.png")))
             yield i + 1, total, f"bake: Cycles view {i + 1}/{len(cameras)}"
-    fit = bake_sh_steps(cloud.transformed(world), cameras, images, degree, iterations=iterations, info=info)
+    fit = bake_sh_steps(cloud.transformed(world), cameras, images, degree, iterations=iterations,
+                        weights=path_weights(len(around), len(cameras) - len(around)), info=info)
     while True:
         try:
             done, steps, _ = next(fit)
@@ -63,14 +68,18 @@ def render_view(scene, obj, cam, samples, path):
     image = None
     try:
         scene.collection.objects.link(cam_obj)
-        cam_data.sensor_fit = "HORIZONTAL"
-        cam_data.angle = np.radians(cam.fov_x_deg)
-        cam_data.clip_start, cam_data.clip_end = cam.near, 1e6 * max(cam.near, 1e-6)
+        lens = blender_lens(cam)
+        for name in ("sensor_fit", "sensor_width", "sensor_height", "shift_x", "shift_y", "type", "lens"):
+            setattr(cam_data, name, lens[name])
+        if lens["ortho_scale"] is not None:
+            cam_data.ortho_scale = lens["ortho_scale"]
+        cam_data.clip_start = cam.near
+        cam_data.clip_end = cam.far if np.isfinite(cam.far) else 1e6 * max(cam.near, 1e-6)
         cam_obj.matrix_world = mathutils.Matrix(opengl_camera_to_world(cam.world_to_camera).tolist())   # rows
         others = [o for o in scene.objects if o is not obj and o is not cam_obj]
         hidden = [(o, "hide_render", True) if data.is_splat_object(o) else (o, "visible_camera", False)
                   for o in others]
-        with _changed(_settings(scene, cam_obj, cam, samples, path) + hidden):
+        with _changed(_settings(scene, cam_obj, cam, lens, samples, path) + hidden):
             bpy.ops.render.render(write_still=True, scene=scene.name)
         image = bpy.data.images.load(path, check_existing=False)
         pixels = np.empty(image.size[0] * image.size[1] * image.channels, np.float32)
@@ -86,13 +95,14 @@ def render_view(scene, obj, cam, samples, path):
     return np.ascontiguousarray(rgba[..., :3] * rgba[..., 3:])
 
 
-def _settings(scene, cam_obj, cam, samples, path):
-    """(owner, attribute, value) of every setting a bake view changes."""
+def _settings(scene, cam_obj, cam, lens, samples, path):
+    """(owner, attribute, value) of every setting a bake view changes (`lens`: the camera's blender_lens)."""
     render, image = scene.render, scene.render.image_settings
     return [(scene, "camera", cam_obj), (render, "engine", "CYCLES"), (scene.cycles, "device", "CPU"),
             (scene.cycles, "samples", int(samples)), (scene.cycles, "use_denoising", True),
             (render, "resolution_x", cam.width), (render, "resolution_y", cam.height),
-            (render, "resolution_percentage", 100), (render, "pixel_aspect_x", 1.0), (render, "pixel_aspect_y", 1.0),
+            (render, "resolution_percentage", 100), (render, "pixel_aspect_x", lens["pixel_aspect_x"]),
+            (render, "pixel_aspect_y", lens["pixel_aspect_y"]),
             (render, "use_border", False), (render, "film_transparent", True), (render, "use_compositing", False),
             (render, "use_sequencer", False), (render, "use_multiview", False), (render, "filepath", path),
             (render, "use_file_extension", False), (image, "file_format", "PNG"), (image, "color_mode", "RGBA"),

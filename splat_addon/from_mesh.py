@@ -31,6 +31,7 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
+from ..core import geometry
 from ..core.camera import Camera
 from ..core.mesh import Material
 from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
@@ -359,10 +360,11 @@ def mesh_objects(objects):
     return meshes
 
 
-def camera_path_views(scene, objects, count, size):
+def camera_path_views(scene, objects, count, size, world=False):
     """{object: [core Camera]}: the scene camera at `count` frames spread evenly over the scene's
     frame range (its animation path), each in the object's own space, `size` pixels wide (the
-    render's aspect). The current frame is restored."""
+    render's aspect); with `world`, in world space where the object stands at the current frame
+    (the path as the object sees it, for a bake). The current frame is restored."""
     cam = scene.camera
     if cam is None:
         raise MeshConversionError("the scene has no camera to measure the splats' quality from")
@@ -373,12 +375,16 @@ def camera_path_views(scene, objects, count, size):
     frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, max(int(count), 1))).astype(int))
     current, subframe = scene.frame_current, scene.frame_subframe
     views = {obj: [] for obj in objects}
+    now = {obj: np.array(obj.matrix_world, dtype=np.float64) if world else np.eye(4) for obj in objects}
     try:
         for frame in frames:
             scene.frame_set(int(frame))
-            world = np.array(cam.matrix_world, dtype=np.float64)
+            cam_world = np.array(cam.matrix_world, dtype=np.float64)
             for obj in objects:
-                matrix = np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ world
+                matrix = now[obj] @ np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ cam_world
+                # A non-uniformly scaled object's space shears the camera: its nearest rotation
+                # (views of such an object are approximate in its space).
+                matrix[:3, :3] = geometry.polar_rotation(matrix[:3, :3])
                 try:
                     views[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
                                                           clip_end=cam.data.clip_end,
@@ -428,8 +434,10 @@ class ConversionJob:
         cloud, record = yield from _scaled(steps, 0.0, share)
         if self.bake is not None:
             from .bake import bake_steps
-            baking = bake_steps(self.scene, obj, cloud, triangles.vertices, info=info.setdefault("bake", {}),
-                                **self.bake)
+            options = dict(self.bake)
+            path = (options.pop("paths", None) or {}).get(obj, ())
+            baking = bake_steps(self.scene, obj, cloud, triangles.vertices, path=path,
+                                info=info.setdefault("bake", {}), **options)
             with rest_pose([obj]) if self.use_rest_pose else contextlib.nullcontext():
                 cloud = yield from _scaled(baking, 0.5, 0.5)
         return cloud, record
@@ -539,11 +547,13 @@ def view_distances(near, far):
     return tuple(sorted({near, far} | ({1.0} if near < 1.0 < far else set())))
 
 
-def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, size=VIEW_SIZE, distances=None):
+def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, size=VIEW_SIZE, distances=None,
+                 paths=None):
     """bake.bake_steps' options for the Rendered look: `views` Cycles views of `samples` samples at
     each view distance (`distances`, default core.mesh_refine's), `size` pixels across, fitted to SH
-    of `degree`."""
-    return dict(samples=samples, count=views, size=size, distances=distances, degree=degree)
+    of `degree`; `paths` ({object: [core Camera]} in world space, camera_path_views(world=True)),
+    the views each object is rendered from, baked from too and weighted first."""
+    return dict(samples=samples, count=views, size=size, distances=distances, degree=degree, paths=paths)
 
 
 def baked_summary(info):
@@ -620,7 +630,9 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         ("BASE_COLOR", "Base Color", "The surface's Base Color (texture, colour attribute), unlit"),
         ("RENDERED", "Rendered (Cycles)", "The look Cycles renders in this scene (its lights, world and "
                                           "shadows, shading and speculars), baked into the splats' colours "
-                                          "from Cycles views around each mesh")))
+                                          "from Cycles views around each mesh and, measured from the scene "
+                                          "camera, from its path too (highlights are right near views baked "
+                                          "from)")))
     bake_views: IntProperty(name="Bake Views", default=BAKE_VIEWS, min=1, max=MAX_BAKE_VIEWS,
                             description="Cycles views at each distance (Near, 1, Far) baked from (Rendered)")
     bake_samples: IntProperty(name="Bake Samples", default=BAKE_SAMPLES, min=1, max=MAX_BAKE_SAMPLES,
@@ -653,14 +665,18 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                              calibrate=self.calibrate, use_rest_pose=self.use_rest_pose,
                              render_mode=self.made_for.lower(),
                              warn=lambda message: self.report({"WARNING"}, message),
-                             bake=self.bake_options(), **self.view_options(context, objects))
+                             bake=self.bake_options(context, objects), **self.view_options(context, objects))
 
-    def bake_options(self):
-        """bake.bake_steps' options for the Rendered look, None for Base Color."""
+    def bake_options(self, context, objects):
+        """bake.bake_steps' options for the Rendered look (measured from the scene camera: its
+        path baked from too), None for Base Color."""
         if self.appearance != "RENDERED":
             return None
+        paths = None
+        if self.view_source == "CAMERA":
+            paths = camera_path_views(context.scene, objects, self.view_count, self.view_size, world=True)
         return bake_options(self.bake_samples, self.bake_views, self.bake_degree, self.view_size,
-                            view_distances(self.view_near, self.view_far))
+                            view_distances(self.view_near, self.view_far), paths)
 
     def view_options(self, context, objects):
         """Keyword arguments of ConversionJob saying where quality is measured."""

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from splatwright.core import SplatCloud, sh as shmod
-from splatwright.core.bake import bake_sh
+from splatwright.core.bake import bake_sh, path_weights
 from splatwright.core.camera import Camera
 from splatwright.core.metrics import psnr
 from splatwright.core.render import render
@@ -46,6 +46,25 @@ def test_isolated_splats_get_their_coefficients_back(backend):
                   prior="cloud", info=info, backend=backend)
     assert info["seen"] == len(cloud) and info["psnr"][0] < 30 and info["psnr"][-1] > 70
     np.testing.assert_allclose(fit.sh, cloud.sh, atol=2e-3)
+
+
+def test_weighted_views_give_the_weighted_mean_of_what_they_show():
+    """Every view twice, once showing one cloud and once another with other SH, the second weighted 3:
+    the weighted least squares is (1 x first + 3 x second) / 4, coefficient by coefficient."""
+    first = known_cloud(60, seed=1, spread=1.0, log_scale=(-3.6, -3.2), opacity=(0.5, 0.9))
+    second = first.replace(sh=known_cloud(60, seed=17, spread=1.0, log_scale=(-3.6, -3.2), opacity=(0.5, 0.9)).sh)
+    cams = cameras_around(40, seed=2)
+    images = [render(first, c).color for c in cams] + [render(second, c).color for c in cams]
+    weights = path_weights(40, 40, share=3.0)
+    np.testing.assert_array_equal(weights, [1.0] * 40 + [3.0] * 40)
+    fit = bake_sh(first, cams + cams, images, iterations=60, damping=0.0, prior="cloud", weights=weights)
+    np.testing.assert_allclose(fit.sh, (first.sh + 3.0 * second.sh) / 4.0, atol=2e-3)
+
+
+def test_path_weights_give_the_path_its_share():
+    np.testing.assert_allclose(path_weights(96, 8), [1.0] * 96 + [12.0] * 8)
+    np.testing.assert_allclose(path_weights(96, 8, share=0.5), [1.0] * 96 + [6.0] * 8)
+    np.testing.assert_array_equal(path_weights(5, 0), np.ones(5))
 
 
 def test_a_dense_cloud_matches_held_out_views_and_keeps_unseen_splats():
@@ -117,5 +136,8 @@ def test_bad_input_is_refused():
         bake_sh(cloud, cams, [np.zeros((48, 48, 3)), np.zeros((40, 48, 3))])
     with pytest.raises(ValueError, match="non-finite"):
         bake_sh(cloud, cams, [np.zeros((48, 48, 3)), np.full((48, 48, 3), np.nan)])
+    for weights in ([1.0], [1.0, np.nan], [1.0, -1.0], [0.0, 0.0]):
+        with pytest.raises(ValueError, match="view weights"):
+            bake_sh(cloud, cams, [np.zeros((48, 48, 3))] * 2, weights=weights)
     with pytest.raises(ValueError, match="prior"):
         bake_sh(cloud, cams, [np.zeros((48, 48, 3))] * 2, prior="mean")

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from splatwright.core.camera import (Camera, blender_intrinsics, frame_points, opengl_camera_to_world,
+from splatwright.core.camera import (Camera, blender_intrinsics, blender_lens, frame_points, opengl_camera_to_world,
                                      world_to_camera_from_opengl)
 
 
@@ -102,6 +102,21 @@ def test_blender_intrinsics_closed_forms():
     assert ortho["fx"] == pytest.approx(200) and ortho["projection"] == "orthographic"
     with pytest.raises(ValueError, match="PANO"):
         blender_intrinsics(10, 10, type="PANO")
+
+
+@pytest.mark.parametrize("camera", [
+    Camera(640, 360, 700.0, 700.0, 320.0, 180.0),
+    Camera(300, 500, 420.0, 610.0, 171.5, 262.0),                                        # shifted, non-square pixels
+    Camera(200, 100, 90.0, 45.0, 100.0, 55.0, projection="orthographic"),
+    Camera(200, 100, 30.0, 45.0, 90.0, 50.0, projection="orthographic")])
+def test_blender_lens_gives_the_camera_back(camera):
+    """blender_lens inverts blender_intrinsics: a Blender camera with those settings sees as the camera does."""
+    lens = blender_lens(camera)
+    assert lens["pixel_aspect_x"] >= 1 and lens["pixel_aspect_y"] >= 1
+    k = blender_intrinsics(camera.width, camera.height, **lens)
+    np.testing.assert_allclose([k["fx"], k["fy"], k["cx"], k["cy"]], [camera.fx, camera.fy, camera.cx, camera.cy],
+                               rtol=1e-12)
+    assert k["projection"] == camera.projection
 
 
 def test_frame_points_sees_every_point():

@@ -44,7 +44,7 @@ def skewed_uv(p):
 
 class Worker(BlenderWorker):
     steps = ("install", "textured", "colors", "errors", "calibration", "demo_rig", "rest_pose", "target_psnr",
-             "pixel_filter", "from_mesh_panel", "baked_look",
+             "pixel_filter", "from_mesh_panel", "baked_look", "baked_path",
              "animation", "frame_names", "cli", "cli_bake", "reregister")
 
     # helpers -------------------------------------------------------------------------------------
@@ -549,6 +549,84 @@ class Worker(BlenderWorker):
         self.held_out_view(ball, "baked_look_view")
         return {"base": base_op, "baked": baked_op, "before": before, "after": after,
                 "new": [o.name for o in baked], "floor": floor.name}
+
+    def baked_path(self):
+        """The lit ball (the other objects left out of renders) seen by a scene camera with a shifted
+        lens, 32 x 20 pixels, moving from frame 1 to 2; converted with the Rendered look measured
+        from that camera (its path baked from too) and measured around the ball. Saved: both clouds,
+        Cycles' render through the scene camera itself at frame 1 and render_view's of that frame's
+        path view (core.camera.blender_lens in Blender), with its camera."""
+        bpy, scene = self.bpy, self.bpy.context.scene
+        render, cycles = scene.render, scene.cycles
+        kept = [(scene, n) for n in ("camera", "frame_start", "frame_end", "frame_current")] + [
+            (render, n) for n in ("engine", "resolution_x", "resolution_y", "resolution_percentage", "film_transparent",
+                                  "use_border", "use_compositing", "use_sequencer", "filepath", "use_file_extension")] + [
+            (cycles, n) for n in ("device", "samples", "use_denoising")]
+        before = [(owner, n, getattr(owner, n)) for owner, n in kept]
+        fmt = render.image_settings
+        format_before = (fmt.file_format, fmt.color_depth, fmt.color_mode)
+        objects = {obj: obj.hide_render for obj in bpy.data.objects}
+        try:
+            return self._baked_path(scene)
+        finally:                                   # the steps after this one find the scene as it was
+            for obj in [o for o in bpy.data.objects if o not in objects]:
+                bpy.data.objects.remove(obj)
+            for obj, hidden in objects.items():
+                obj.hide_render = hidden
+            for owner, n, value in before:
+                setattr(owner, n, value)
+            self.image_format(fmt, format_before[0], color_depth=format_before[1], color_mode=format_before[2])
+
+    def _baked_path(self, scene):
+        import mathutils
+        bpy, render = self.bpy, scene.render
+        for obj in scene.objects:
+            if obj.type != "LIGHT":
+                obj.hide_render = True
+        ball, floor = self.lit_ball()
+        cam = bpy.data.objects.new("path_cam", bpy.data.cameras.new("path_cam"))
+        scene.collection.objects.link(cam)
+        cam.data.lens, cam.data.shift_x, cam.data.shift_y = 40.0, 0.12, -0.07
+        scene.camera, scene.frame_start, scene.frame_end = cam, 1, 2
+        render.resolution_x, render.resolution_y, render.resolution_percentage = 64, 40, 100
+        for frame, eye in ((1, (3.0, -4.0, 2.5)), (2, (3.6, -3.4, 2.8))):
+            cam.location = eye
+            cam.rotation_euler = (mathutils.Vector(BALL_PLACE[0]) - mathutils.Vector(eye)).to_track_quat(
+                "-Z", "Y").to_euler()
+            cam.keyframe_insert("location", frame=frame)
+            cam.keyframe_insert("rotation_euler", frame=frame)
+        scene.frame_set(1)
+        from_mesh = self.module("splat_addon.from_mesh")
+        path = from_mesh.camera_path_views(scene, [ball], 2, 32, world=True)[ball]
+        image = self.module("splat_addon.bake").render_view(scene, ball, path[0], 8, str(self.out / "path_view.png"))
+        self.save("baked_path_view", image=image, world_to_camera=path[0].world_to_camera,
+                  intrinsics=[path[0].width, path[0].height, path[0].fx, path[0].fy, path[0].cx, path[0].cy])
+        floor.visible_camera = False
+        render.resolution_x, render.resolution_y = 32, 20
+        render.engine, scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = "CYCLES", "CPU", 8, True
+        render.film_transparent, render.use_border, render.use_compositing, render.use_sequencer = True, False, False, False
+        render.filepath, render.use_file_extension = str(self.out / "scene_camera.png"), False
+        self.image_format(render.image_settings, "PNG", color_depth="8", color_mode="RGBA")
+        bpy.ops.render.render(write_still=True)
+        own = bpy.data.images.load(str(self.out / "scene_camera.png"))
+        rgba = np.array(own.pixels[:], np.float64).reshape(20, 32, 4)[::-1]
+        bpy.data.images.remove(own)
+        self.save("baked_path_scene_camera", image=rgba[..., :3] * rgba[..., 3:])
+        floor.visible_camera = True
+        options = dict(max_splats=600, view_size=32, use_rest_pose=False, calibrate=False, appearance="RENDERED",
+                       bake_views=2, bake_samples=8, bake_degree=3, view_count=2)
+        res = {}
+        for source in ("CAMERA", "AROUND"):
+            op, created = self.convert([ball], view_source=source, **options)
+            if not created:
+                return {source: op}
+            cloud = self.module("splat_addon.data").object_cloud(created[0])
+            self.save(f"baked_path_{source.lower()}", positions=cloud.positions, rotations=cloud.rotations,
+                      log_scales=cloud.log_scales, opacity_logits=cloud.opacity_logits, sh=cloud.sh,
+                      matrix=np.array(created[0].matrix_world))
+            created[0].hide_render = True
+            res[source] = op
+        return res
 
     def animated_splats(self, name="moving"):
         """A splat object imported with identity axes, keyed at frames 1 and 4."""
