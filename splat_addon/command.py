@@ -4,6 +4,7 @@
                [--spz-version 2|3|4] [--half] [--prune-opacity T]
     render [OUT] [--frames A-B[:STEP]] [--objects NAMES] [--meshes cycles|eevee|workbench|none]
     from-mesh OUT [--objects NAMES] [--max-splats N | --target-psnr DB] [--posed] [--view-size PX]
+                  [--measure-from around|camera] [--view-count N] [--view-near X] [--view-far X]
                   [--appearance base-color|rendered [--bake-views N] [--bake-samples N] [--bake-degree D]]
     collide A B [--frames A-B[:STEP]] [--sigma K] [--ignore-bones NAMES] [--json OUT]
 
@@ -33,6 +34,7 @@ FORMAT_EXTENSIONS = DEFAULT_EXTENSIONS
 IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), ".jpg": ("JPEG",),
                  ".jpeg": ("JPEG",), ".tif": ("TIFF",), ".tiff": ("TIFF",)}
 APPEARANCES = ("base-color", "rendered")             # from-mesh --appearance: the operator's Appearance
+MEASURE_FROM = ("around", "camera")                  # from-mesh --measure-from: the operator's Measure From
 BAKE_FLAGS = ("--bake-views", "--bake-samples", "--bake-degree")
 FRAMES = re.compile(r"^\s*(-?\d+)\s*(?:-\s*(-?\d+))?\s*(?::\s*(\d+))?\s*$")
 
@@ -66,17 +68,18 @@ def _say(message):
     print(f"{COMMAND}: {message}", flush=True)
 
 
-def _whole_number(low, high):
-    """An argparse type: a whole number from `low` to `high`; anything else is a usage error naming the option."""
-    def whole(text):
+def _in_range(low, high, parse=int, expected="a whole number"):
+    """An argparse type: `expected` (read by `parse`) from `low` to `high`; anything else is a usage
+    error naming the option."""
+    def checked(text):
         try:
-            value = int(text)
+            value = parse(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got '{text}'") from None
+            raise argparse.ArgumentTypeError(f"expected {expected}, got '{text}'") from None
         if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"must be from {low} to {high}, got {value}")
+            raise argparse.ArgumentTypeError(f"must be from {low:g} to {high:g}, got {text}")
         return value
-    return whole
+    return checked
 
 
 def parser():
@@ -128,17 +131,30 @@ def parser():
                         "distance, classic is for viewers that cannot render antialiased)")
     p.add_argument("--posed", action="store_true",
                    help="convert armature-deformed meshes as posed (default: in the rest position)")
-    p.add_argument("--view-size", type=_whole_number(*from_mesh.VIEW_SIZES), metavar="PX", default=from_mesh.VIEW_SIZE,
+    p.add_argument("--view-size", type=_in_range(*from_mesh.VIEW_SIZES), metavar="PX", default=from_mesh.VIEW_SIZE,
                    help=f"pixels across each view that quality is measured in and the look baked from "
                         f"({from_mesh.VIEW_SIZES[0]}-{from_mesh.VIEW_SIZES[1]}; default {from_mesh.VIEW_SIZE})")
+    p.add_argument("--measure-from", choices=MEASURE_FROM, default="around",
+                   help="where quality is measured: around, views all around each mesh from --view-near to "
+                        "--view-far (default); camera, the scene camera at --view-count frames spread over the "
+                        "frame range (the rendered look is baked from them too)")
+    counts, limits = from_mesh.VIEW_COUNTS, from_mesh.VIEW_DISTANCE_LIMITS
+    p.add_argument("--view-count", type=_in_range(*counts), metavar="N", default=from_mesh.VIEWS_PER_DISTANCE,
+                   help=f"views at each distance (around) or frames of the camera path (camera) "
+                        f"({counts[0]}-{counts[1]}; default {from_mesh.VIEWS_PER_DISTANCE})")
+    for end, default in (("near", from_mesh.VIEW_DISTANCES[0]), ("far", from_mesh.VIEW_DISTANCES[-1])):
+        p.add_argument(f"--view-{end}", type=_in_range(*limits, float, "a number"), metavar="X", default=default,
+                       help=f"the {'closest' if end == 'near' else 'farthest'} view distance around, and baked "
+                            f"from, a multiple of the one framing the mesh ({limits[0]:g}-{limits[1]:g}; "
+                            f"default {default:g})")
     p.add_argument("--appearance", choices=APPEARANCES, default="base-color",
                    help="base-color: the surface's Base Color, unlit (default); rendered: the look Cycles renders "
                         "in this scene (lights, world, shadows, speculars) baked into the splats' SH from Cycles "
                         "views around each mesh")
-    p.add_argument("--bake-views", type=_whole_number(1, from_mesh.MAX_BAKE_VIEWS), metavar="N",
+    p.add_argument("--bake-views", type=_in_range(1, from_mesh.MAX_BAKE_VIEWS), metavar="N",
                    help=f"rendered: Cycles views to bake from at each view distance ({distances} times the "
                         f"one framing the mesh) (1-{from_mesh.MAX_BAKE_VIEWS}; default {from_mesh.BAKE_VIEWS})")
-    p.add_argument("--bake-samples", type=_whole_number(1, from_mesh.MAX_BAKE_SAMPLES), metavar="N",
+    p.add_argument("--bake-samples", type=_in_range(1, from_mesh.MAX_BAKE_SAMPLES), metavar="N",
                    help=f"rendered: Cycles samples per view, denoised "
                         f"(1-{from_mesh.MAX_BAKE_SAMPLES}; default {from_mesh.BAKE_SAMPLES})")
     p.add_argument("--bake-degree", type=int, choices=range(from_mesh.MAX_BAKE_DEGREE + 1), metavar="D",
@@ -377,14 +393,17 @@ def run_from_mesh(args, context):
     _say(f"from-mesh: {len(objects)} object(s): {', '.join(o.name for o in objects)}"
          + (", baking the look Cycles renders" if args.appearance == "rendered" else ""))
     infos = []
+    source = args.measure_from.upper()
+    views = from_mesh.measured_views(scene, objects, source, args.view_count, args.view_size, args.view_near,
+                                     args.view_far)
     results = from_mesh.convert_objects(
         context, objects, max_splats=budget, target_psnr=args.target_psnr, calibrate=args.calibrate,
-        use_rest_pose=not args.posed, render_mode=args.mode, bake=bake_options(args), infos=infos,
-        view_size=args.view_size,
-        progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"))
+        use_rest_pose=not args.posed, render_mode=args.mode, bake=bake_options(args, scene, objects), infos=infos,
+        progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"),
+        **views)
     created = from_mesh.create_splat_objects(context, results)
     for obj, info in zip(created, infos):
-        _say(f"{obj.name}: {data.splat_count(obj.data)} splats{from_mesh.baked_summary(info)}")
+        _say(f"{obj.name}: {from_mesh.conversion_report(data.splat_count(obj.data), info)}")
     try:
         if is_blend:
             bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
@@ -396,14 +415,16 @@ def run_from_mesh(args, context):
     _say(f"done: wrote {out}")
 
 
-def bake_options(args):
+def bake_options(args, scene, objects):
     """from_mesh.bake_options from the from-mesh flags (the operator's defaults where one is not given),
     None for the Base Color look."""
     if args.appearance != "rendered":
         return None
     given = {key: value for key, value in (("views", args.bake_views), ("samples", args.bake_samples),
                                            ("degree", args.bake_degree)) if value is not None}
-    return from_mesh.bake_options(size=args.view_size, **given)
+    paths = from_mesh.baked_paths(scene, objects, args.measure_from.upper(), args.view_count, args.view_size)
+    return from_mesh.bake_options(size=args.view_size, distances=from_mesh.view_distances(args.view_near, args.view_far),
+                                  paths=paths, **given)
 
 
 def run_collide(args, context):

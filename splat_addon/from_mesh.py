@@ -47,6 +47,8 @@ BAKE_SAMPLES = 16                  # Cycles samples per baked view (denoised)
 BAKE_DEGREE = 3
 MAX_BAKE_VIEWS, MAX_BAKE_SAMPLES, MAX_BAKE_DEGREE = 256, 4096, 3
 VIEW_SIZE, VIEW_SIZES = 256, (16, 2048)     # pixels across a view quality is measured in / baked from
+VIEW_COUNTS = (1, 64)                       # views per distance around, or frames of the camera path
+VIEW_DISTANCE_LIMITS = (0.05, 100.0)        # view distances, multiples of the one framing the mesh
 SUFFIX = "_splats"
 DEFAULT_BUDGET = 200_000
 CALIBRATE_TOOLTIP = ("Splat Budget: render the mesh and the splats from the views and pull solid parts in by "
@@ -547,6 +549,21 @@ def view_distances(near, far):
     return tuple(sorted({near, far} | ({1.0} if near < 1.0 < far else set())))
 
 
+def measured_views(scene, objects, source, count, size, near, far):
+    """ConversionJob's keyword arguments saying where quality is measured: from the scene camera
+    along its path (`source` "CAMERA", `count` frames) or from `count` views at each distance of
+    near..far around each mesh ("AROUND"), `size` pixels across."""
+    if source == "CAMERA":
+        return {"views": camera_path_views(scene, objects, count, size)}
+    return {"view_distances": view_distances(near, far), "view_count": count, "view_size": size}
+
+
+def baked_paths(scene, objects, source, count, size):
+    """bake_options' `paths`: measured from the scene camera, its path in world space (baked from
+    too); None around the meshes."""
+    return camera_path_views(scene, objects, count, size, world=True) if source == "CAMERA" else None
+
+
 def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, size=VIEW_SIZE, distances=None,
                  paths=None):
     """bake.bake_steps' options for the Rendered look: `views` Cycles views of `samples` samples at
@@ -554,6 +571,13 @@ def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, siz
     of `degree`; `paths` ({object: [core Camera]} in world space, camera_path_views(world=True)),
     the views each object is rendered from, baked from too and weighted first."""
     return dict(samples=samples, count=views, size=size, distances=distances, degree=degree, paths=paths)
+
+
+def conversion_report(count, info):
+    """What a report says of one converted object: its splat count, the quality reached and where
+    (mesh_refine.summary), and for a baked look its fit."""
+    quality = f", {summary(info)}" if "psnr" in info else ""
+    return f"{count} splats{quality}{baked_summary(info)}"
 
 
 def baked_summary(info):
@@ -611,11 +635,13 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         ("AROUND", "Around", "Views all around each mesh at the near, whole and far distances"),
         ("CAMERA", "Scene Camera", "The scene camera along its animation: View Count frames spread over "
                                    "the scene's frame range")))
-    view_near: FloatProperty(name="Near", default=VIEW_DISTANCES[0], min=0.05, max=100.0,
+    view_near: FloatProperty(name="Near", default=VIEW_DISTANCES[0], min=VIEW_DISTANCE_LIMITS[0],
+                             max=VIEW_DISTANCE_LIMITS[1],
                              description="Closest view distance, a multiple of the one that frames the whole mesh")
-    view_far: FloatProperty(name="Far", default=VIEW_DISTANCES[-1], min=0.05, max=100.0,
+    view_far: FloatProperty(name="Far", default=VIEW_DISTANCES[-1], min=VIEW_DISTANCE_LIMITS[0],
+                            max=VIEW_DISTANCE_LIMITS[1],
                             description="Farthest view distance, a multiple of the one that frames the whole mesh")
-    view_count: IntProperty(name="View Count", default=VIEWS_PER_DISTANCE, min=1, max=64,
+    view_count: IntProperty(name="View Count", default=VIEWS_PER_DISTANCE, min=VIEW_COUNTS[0], max=VIEW_COUNTS[1],
                             description="Views at each distance (Around), or frames of the camera path")
     view_size: IntProperty(name="View Size", default=VIEW_SIZE, min=VIEW_SIZES[0], max=VIEW_SIZES[1],
                            description="Pixels across each view quality is measured in")
@@ -672,18 +698,14 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         path baked from too), None for Base Color."""
         if self.appearance != "RENDERED":
             return None
-        paths = None
-        if self.view_source == "CAMERA":
-            paths = camera_path_views(context.scene, objects, self.view_count, self.view_size, world=True)
+        paths = baked_paths(context.scene, objects, self.view_source, self.view_count, self.view_size)
         return bake_options(self.bake_samples, self.bake_views, self.bake_degree, self.view_size,
                             view_distances(self.view_near, self.view_far), paths)
 
     def view_options(self, context, objects):
         """Keyword arguments of ConversionJob saying where quality is measured."""
-        if self.view_source == "CAMERA":
-            return {"views": camera_path_views(context.scene, objects, self.view_count, self.view_size)}
-        return {"view_distances": view_distances(self.view_near, self.view_far),
-                "view_count": self.view_count, "view_size": self.view_size}
+        return measured_views(context.scene, objects, self.view_source, self.view_count, self.view_size,
+                              self.view_near, self.view_far)
 
     def finish(self, context, job):
         try:
@@ -701,8 +723,7 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         for (source, cloud, _), info in zip(job.results, job.infos):
             missed = info.get("reached") is False
             self.report({"WARNING"} if missed else {"INFO"},
-                        f"'{source.name}': {len(cloud)} splats" + (f", {summary(info)}" if "psnr" in info else "")
-                        + baked_summary(info))
+                        f"'{source.name}': {conversion_report(len(cloud), info)}")
         total = sum(len(cloud) for _, cloud, _ in job.results)
         self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
         return {"FINISHED"}

@@ -534,6 +534,10 @@ def test_cli_export_axes(blender):
     ("from-mesh appearance shiny", 2, ["argument --appearance", "'shiny'", "base-color", "rendered"]),
     ("from-mesh bake unlit", 2, ["--bake-samples", "only with --appearance rendered"]),
     ("from-mesh view size 8", 2, ["argument --view-size", "from 16 to 2048, got 8"]),
+    ("from-mesh view count 0", 2, ["argument --view-count", "from 1 to 64, got 0"]),
+    ("from-mesh view near x", 2, ["argument --view-near", "expected a number, got 'x'"]),
+    ("from-mesh view far 500", 2, ["argument --view-far", "from 0.05 to 100, got 500"]),
+    ("from-mesh measure from sky", 2, ["argument --measure-from", "'sky'", "around", "camera"]),
     ("render panoramic", 1, ["PANO"]),
     ("render no camera", 1, ["no camera"]),
 ])
@@ -595,6 +599,19 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
     assert not read(blender.out / "cli" / "grid_classic.spz").antialiased      # SPZ's flag, from --mode
 
 
+def test_cli_from_mesh_measures_where_it_is_asked(blender):
+    """--measure-from camera: the mesh rendered once per frame of the camera path (two); around, once
+    per view at each distance of --view-near..--view-far (0.7, 1, 2.5: six); each run's line says
+    which view was worst, of how many."""
+    for name, views, where in (("from-mesh from camera", 2, ""), ("from-mesh around", 6, "x the framing distance")):
+        run = _outcome(blender, name)
+        assert run["code"] == 0, run["stderr"]
+        assert run["renders"]["mesh"] == views, (name, run["renders"])
+        line = [text for text in run["stdout"].splitlines() if text.startswith("splatwright: Grid_splats")]
+        assert len(line) == 1 and "100 splats, " in line[0] and f" of {views}" in line[0], run["stdout"]
+        assert where in line[0] and ("x the framing" in line[0]) == bool(where), line
+
+
 def test_cli_from_mesh_help_lists_the_bake_options(blender):
     run = _outcome(blender, "from-mesh help")
     assert run["code"] == 0 and run["stderr"] == ""
@@ -602,7 +619,8 @@ def test_cli_from_mesh_help_lists_the_bake_options(blender):
     for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}",
                   "--bake-views N", "(1-256; default 32)", "--bake-samples N",
                   "(1-4096; default 16)", "--bake-degree D", "(0-3; default 3)", "--view-size PX",
-                  "(16-2048; default 256)"):
+                  "(16-2048; default 256)", "--measure-from {around,camera}", "--view-count N", "(1-64; default 4)",
+                  "--view-near X", "(0.05-100; default 0.5)", "--view-far X", "(0.05-100; default 3)"):
         assert words in text, words
 
 
@@ -621,7 +639,7 @@ def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
     assert [int(i) for i, _ in fitting] == list(range(1, len(fitting) + 1)) and len(fitting) > 5
     done = [float(line.split("[")[1].split("/")[0]) for line in baked["stdout"].splitlines() if "] " in line]
     assert done == sorted(done) and done[-1] <= 1.0
-    assert "ball_splats.001: 600 splats, baked from Cycles views to" in baked["stdout"]
+    assert "ball_splats.001: 600 splats, " in baked["stdout"] and ", baked from Cycles views to" in baked["stdout"]
     assert "Cycles" not in base["stdout"] and baked["renders"]["mesh"] > 0        # both calibrated (the default)
     # the scene and the files as they were, but the new splat object and the output file
     before, after = res["before"], res["after"]

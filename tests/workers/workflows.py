@@ -745,6 +745,14 @@ class Worker(BlenderWorker):
             "from-mesh bake unlit": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--bake-samples", "8"],
             "from-mesh view size 8": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--view-size", "8"],
             "from-mesh help": ["from-mesh", "--help"],
+            "from-mesh from camera": ["from-mesh", str(d / "from_camera.ply"), "--objects", "Grid", "--max-splats",
+                                      "100", "--view-size", "32", "--measure-from", "camera", "--view-count", "2"],
+            "from-mesh around": ["from-mesh", str(d / "around.ply"), "--objects", "Grid", "--max-splats", "100",
+                                 "--view-size", "32", "--view-count", "2", "--view-near", "0.7", "--view-far", "2.5"],
+            "from-mesh view count 0": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--view-count", "0"],
+            "from-mesh view near x": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--view-near", "x"],
+            "from-mesh view far 500": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--view-far", "500"],
+            "from-mesh measure from sky": ["from-mesh", str(d / "x.ply"), "--objects", "Grid", "--measure-from", "sky"],
         }
         outcomes = {name: self.run_command(argv) for name, argv in runs.items()}
         res["calibrate_default"] = self.module("splat_addon.command").parser().parse_args(
