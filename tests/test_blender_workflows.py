@@ -96,21 +96,27 @@ def test_from_mesh_bakes_the_look_cycles_renders_and_leaves_the_scene_as_it_was(
 
 def test_a_bake_measured_from_the_scene_camera_bakes_from_its_path(blender):
     """Measured from the scene camera (the ball rotated and scaled unevenly: its space shears the
-    camera), the Rendered look is baked from its path too: Cycles' render of
-    the path's view (through blender_lens' camera) is Cycles' render through the scene camera itself,
-    and from that view the same splats look like it far better than when baked only from views around."""
+    camera), the Rendered look is baked from its path too. Cycles' render of the path's view (through
+    blender_lens' camera, perspective and orthographic) is Cycles' render through the scene camera
+    itself, and from that view the same splats look like it far better than when baked only from
+    views around."""
     from splatwright.core import SplatCloud
     from splatwright.core.camera import Camera
     from splatwright.core.metrics import psnr
     from splatwright.core.render import render
     res = blender.step("baked_path")
     assert res["CAMERA"]["result"] == res["AROUND"]["result"] == ["FINISHED"], res
-    view = blender.npz("baked_path_view")
+    for kind in ("persp", "ortho"):
+        view = blender.npz(f"baked_path_{kind}")
+        width, height, fx, fy, cx, cy = view["intrinsics"]
+        assert (width, height) == (32, 20) and abs(cx - 16) > 3 and abs(cy - 10) > 1      # a shifted lens
+        assert str(view["projection"]) == ("orthographic" if kind == "ortho" else "perspective")
+        own = view["scene_camera"]
+        assert own.max() > 0.2 and (own == 0).mean() > 0.2
+        assert psnr(view["image"], own) > 40, kind
+    view = blender.npz("baked_path_persp")
     width, height, fx, fy, cx, cy = view["intrinsics"]
-    assert (width, height) == (32, 20) and abs(cx - 16) > 3 and abs(cy - 10) > 1          # a shifted lens
-    own = blender.npz("baked_path_scene_camera")["image"]
-    assert own.max() > 0.2 and (own == 0).mean() > 0.2
-    assert psnr(view["image"], own) > 40
+    own = view["scene_camera"]
     camera = Camera(int(width), int(height), fx, fy, cx, cy, view["world_to_camera"])
     got, clouds = {}, {}
     for source in ("camera", "around"):

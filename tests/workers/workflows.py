@@ -554,8 +554,7 @@ class Worker(BlenderWorker):
         """The lit ball (the other objects left out of renders) seen by a scene camera with a shifted
         lens, 32 x 20 pixels, moving from frame 1 to 2; converted with the Rendered look measured
         from that camera (its path baked from too) and measured around the ball. Saved: both clouds,
-        Cycles' render through the scene camera itself at frame 1 and render_view's of that frame's
-        path view (core.camera.blender_lens in Blender), with its camera."""
+        and lens_pair's images at frame 1 with the camera perspective and orthographic."""
         bpy, scene = self.bpy, self.bpy.context.scene
         render, cycles = scene.render, scene.cycles
         kept = [(scene, n) for n in ("camera", "frame_start", "frame_end", "frame_current")] + [
@@ -596,23 +595,10 @@ class Worker(BlenderWorker):
             cam.keyframe_insert("location", frame=frame)
             cam.keyframe_insert("rotation_euler", frame=frame)
         scene.frame_set(1)
-        from_mesh = self.module("splat_addon.from_mesh")
-        path = from_mesh.camera_path_views(scene, [ball], 2, 32, world=True)[ball]
-        image = self.module("splat_addon.bake").render_view(scene, ball, path[0], 8, str(self.out / "path_view.png"))
-        self.save("baked_path_view", image=image, world_to_camera=path[0].world_to_camera,
-                  intrinsics=[path[0].width, path[0].height, path[0].fx, path[0].fy, path[0].cx, path[0].cy])
-        floor.visible_camera = False
-        render.resolution_x, render.resolution_y = 32, 20
-        render.engine, scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = "CYCLES", "CPU", 8, True
-        render.film_transparent, render.use_border, render.use_compositing, render.use_sequencer = True, False, False, False
-        render.filepath, render.use_file_extension = str(self.out / "scene_camera.png"), False
-        self.image_format(render.image_settings, "PNG", color_depth="8", color_mode="RGBA")
-        bpy.ops.render.render(write_still=True)
-        own = bpy.data.images.load(str(self.out / "scene_camera.png"))
-        rgba = np.array(own.pixels[:], np.float64).reshape(20, 32, 4)[::-1]
-        bpy.data.images.remove(own)
-        self.save("baked_path_scene_camera", image=rgba[..., :3] * rgba[..., 3:])
-        floor.visible_camera = True
+        self.lens_pair(scene, ball, floor, "persp")
+        cam.data.type, cam.data.ortho_scale = "ORTHO", 4.0
+        self.lens_pair(scene, ball, floor, "ortho")
+        cam.data.type = "PERSP"
         options = dict(max_splats=600, view_size=32, use_rest_pose=False, calibrate=False, appearance="RENDERED",
                        bake_views=2, bake_samples=8, bake_degree=3, view_count=2)
         res = {}
@@ -627,6 +613,30 @@ class Worker(BlenderWorker):
             created[0].hide_render = True
             res[source] = op
         return res
+
+    def lens_pair(self, scene, ball, floor, name):
+        """Saved as baked_path_<name>: render_view's Cycles image of the scene camera's first path view
+        (world space, through core.camera.blender_lens) with its camera, and Cycles' render through the
+        scene camera itself at 32 x 20 pixels, the ball alone over black (the floor lights it unseen)."""
+        bpy, render = self.bpy, scene.render
+        path = self.module("splat_addon.from_mesh").camera_path_views(scene, [ball], 2, 32, world=True)[ball]
+        view = path[0]
+        image = self.module("splat_addon.bake").render_view(scene, ball, view, 8, str(self.out / "path_view.png"))
+        floor.visible_camera = False
+        render.resolution_x, render.resolution_y = 32, 20
+        render.engine, scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = "CYCLES", "CPU", 8, True
+        render.film_transparent, render.use_border, render.use_compositing, render.use_sequencer = True, False, False, False
+        render.filepath, render.use_file_extension = str(self.out / "scene_camera.png"), False
+        self.image_format(render.image_settings, "PNG", color_depth="8", color_mode="RGBA")
+        bpy.ops.render.render(write_still=True)
+        own = bpy.data.images.load(str(self.out / "scene_camera.png"))
+        rgba = np.array(own.pixels[:], np.float64).reshape(20, 32, 4)[::-1]
+        bpy.data.images.remove(own)
+        floor.visible_camera = True
+        render.resolution_x, render.resolution_y = 64, 40
+        self.save(f"baked_path_{name}", image=image, scene_camera=rgba[..., :3] * rgba[..., 3:],
+                  world_to_camera=view.world_to_camera, projection=view.projection,
+                  intrinsics=[view.width, view.height, view.fx, view.fy, view.cx, view.cy])
 
     def animated_splats(self, name="moving"):
         """A splat object imported with identity axes, keyed at frames 1 and 4."""
