@@ -385,8 +385,11 @@ def camera_path_views(scene, objects, count, size, world=False):
             for obj in objects:
                 matrix = now[obj] @ np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ cam_world
                 # A non-uniformly scaled object's space shears the camera: its nearest rotation
-                # (views of such an object are approximate in its space).
+                # (views of such an object are approximate in its space). A mirrored object's
+                # mirrors it: the view mirrored left to right sees the same surface.
                 matrix[:3, :3] = geometry.polar_rotation(matrix[:3, :3])
+                if np.linalg.det(matrix[:3, :3]) < 0:
+                    matrix[:3, 0] *= -1.0
                 try:
                     views[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
                                                           clip_end=cam.data.clip_end,

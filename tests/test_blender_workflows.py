@@ -292,6 +292,12 @@ def test_from_mesh_target_psnr(blender):
     assert res["frame_after"] == 4 and all(w == 32 for w, _ in res["path_sizes"])
     # A target it cannot reach still converts (a warning says what was reached and why).
     assert res["missed"]["result"] == ["FINISHED"] and 0 < res["missed"]["count"] <= 300
+    # Mirrored and scaled unevenly, measured from the camera: the views stand where the camera is in
+    # the object's space, and the conversion runs.
+    inverse = np.linalg.inv(np.array(res["mirrored_matrix"]))
+    eyes = np.array([[0.0, -4.0, 1.0, 1.0], [2.0, -4.0, 1.0, 1.0]]) @ inverse.T
+    np.testing.assert_allclose(res["mirrored_centres"], eyes[:, :3], atol=1e-5)
+    assert res["mirrored"]["result"] == ["FINISHED"] and 0 < res["mirrored"]["count"] <= 300, res["mirrored"]
 
 
 def test_the_mesh_reference_filters_pixels_as_cycles_does(blender):

@@ -403,6 +403,15 @@ class Worker(BlenderWorker):
         missed, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
                                        view_source="CAMERA", view_count=2, view_size=32)
         res["missed"] = {**missed, "count": len(created[0].data.vertices) if created else None}
+        # Mirrored, turned and scaled unevenly: its space mirrors and shears the camera.
+        obj.rotation_euler, obj.scale = (0.0, 0.0, 0.3), (-1.0, 2.0, 1.0)
+        bpy.context.view_layer.update()
+        res["mirrored_matrix"] = np.array(obj.matrix_world).tolist()
+        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32)[obj]
+        res["mirrored_centres"] = [list(map(float, v.center)) for v in views]
+        mirrored, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
+                                         view_source="CAMERA", view_count=2, view_size=32)
+        res["mirrored"] = {**mirrored, "count": len(created[0].data.vertices) if created else None}
         return res
 
     def pixel_filter(self):
