@@ -550,6 +550,7 @@ def test_cli_export_axes(blender):
     ("from-mesh view near x", 2, ["argument --view-near", "expected a number, got 'x'"]),
     ("from-mesh view far 500", 2, ["argument --view-far", "from 0.05 to 100, got 500"]),
     ("from-mesh measure from sky", 2, ["argument --measure-from", "'sky'", "around", "camera"]),
+    ("from-mesh from no camera", 1, ["the scene has no camera"]),
     ("render panoramic", 1, ["PANO"]),
     ("render no camera", 1, ["no camera"]),
 ])

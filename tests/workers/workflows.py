@@ -790,6 +790,8 @@ class Worker(BlenderWorker):
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             outcomes["render no camera"] = {"code": execute(["render", str(d / "nocam_"), "--frames", "1"]),
                                             "stderr": err.getvalue()}
+        outcomes["from-mesh from no camera"] = self.run_command(["from-mesh", str(d / "nocam.ply"), "--objects", "Grid",
+                                                                 "--measure-from", "camera"])
         scene.camera = cam
         res["outcomes"] = outcomes
         res["files"] = sorted(p.name for p in d.iterdir())
