@@ -17,9 +17,9 @@ the images, so what the views leave undetermined falls back to the local colour.
 - A^T r is the residual image gathered through the weights (core.render's `gather`), times Y per
   splat.
 Views are small, so each renders on one core, the views spread over the cores.
-The preconditioner is a Jacobi estimate: sum over views of Y_k^2 x (sum of weights) x (largest
-weight), an upper bound of A^T A's diagonal sum_i w_ij^2 Y_k^2 that follows it closely for splats
-of one footprint.
+The preconditioner is a Jacobi estimate: sum over views of the view's weight x Y_k^2 x (sum of
+blending weights) x (largest blending weight), an upper bound of A^T W A's diagonal
+sum_i W_i w_ij^2 Y_k^2 that follows it closely for splats of one footprint.
 """
 
 import numpy as np
