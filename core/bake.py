@@ -51,7 +51,7 @@ VIEWS_PER_DISTANCE = 32     # reference views at each distance of core.mesh_refi
 # to count PATH_SHARE times as much as the views around together. With the nine held-out views as the
 # path, their dB at 0.5x / 1x / 3x: weight 1 each (9 views of 105) the sphere 45.0 / 28.5 / 36.9,
 # Suzanne 33.8 / 32.6 / 39.9; share 1: 46.8 / 36.8 / 37.3 and 36.7 / 36.2 / 40.5 (all views fitted
-# 35.0 -> 34.6 and 34.6 -> 34.4 dB); share 3, the sphere 47.0 / 40.5 / 38.0 (all views 33.9).
+# 35.0 -> 34.6 and 34.6 -> 34.4 dB); share 2.8, the sphere 47.0 / 40.5 / 38.0 (all views 33.9).
 PATH_SHARE = 1.0
 
 
