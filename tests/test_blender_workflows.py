@@ -298,6 +298,13 @@ def test_from_mesh_target_psnr(blender):
     eyes = np.array([[0.0, -4.0, 1.0, 1.0], [2.0, -4.0, 1.0, 1.0]]) @ inverse.T
     np.testing.assert_allclose(res["mirrored_centres"], eyes[:, :3], atol=1e-5)
     assert res["mirrored"]["result"] == ["FINISHED"] and 0 < res["mirrored"]["count"] <= 300, res["mirrored"]
+    # A moving object: each frame's camera where it stood from the object then, moved to where the
+    # object stands now (world=True, a bake's path).
+    now = np.array(res["moving_now"])
+    assert 0.5 < now[0] < 3.5
+    expected = [now + np.array(eye) - np.array([x, 0.0, 0.0]) for eye, x in (((0.0, -4.0, 1.0), 0.5),
+                                                                          ((2.0, -4.0, 1.0), 3.5))]
+    np.testing.assert_allclose(res["moving_world_centres"], expected, atol=1e-5)
 
 
 def test_the_mesh_reference_filters_pixels_as_cycles_does(blender):

@@ -412,6 +412,17 @@ class Worker(BlenderWorker):
         mirrored, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
                                          view_source="CAMERA", view_count=2, view_size=32)
         res["mirrored"] = {**mirrored, "count": len(created[0].data.vertices) if created else None}
+        # Moving from x = 0.5 (frame 1) to 3.5 (frame 10): the path as the object sees it, in world
+        # space where it stands at frame 4 (the views a bake renders).
+        obj.rotation_euler, obj.scale = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+        for frame, x in ((1, 0.5), (10, 3.5)):
+            obj.location = (x, 0.0, 0.0)
+            obj.keyframe_insert("location", frame=frame)
+        scene.frame_set(4)
+        res["moving_now"] = list(obj.matrix_world.translation)
+        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32, world=True)[obj]
+        res["moving_world_centres"] = [list(map(float, v.center)) for v in views]
+        obj.animation_data_clear()
         return res
 
     def pixel_filter(self):
