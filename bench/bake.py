@@ -50,7 +50,8 @@ def bench_meshes(folder, quick):
 
 def mesh_rows(name, mesh, size, budget, folder, iterations):
     held = held_out_cameras(mesh, size)
-    references, _ = cycles_render(mesh, [cam for _, cam in held], folder, samples=REFERENCE_SAMPLES, lit=True)
+    held_cameras = [cam for _, cam in held]
+    references, _ = cycles_render(mesh, held_cameras, folder, samples=REFERENCE_SAMPLES, lit=True)
     # The whole budget, as the add-on keeps it for baking: fewer splats render the Base Color better, not the lit look.
     cloud = convert(mesh, max_splats=budget, view_size=size, render_mode="classic", try_fewer=False)
     views = bake_views(mesh.vertices, size)
@@ -61,10 +62,10 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
     rows = [Row(TOPIC, f"{name}: Base Color only", Timing(0.0, 0.0, 1), error={**base, "worst dB": worst(base)},
                 extra=common)]
     antialiased = convert(mesh, max_splats=budget, view_size=size, render_mode="antialiased", try_fewer=False)
-    path, path_s = cycles_render(mesh, [cam for _, cam in held], folder, samples=BAKE_SAMPLES, lit=True)
+    path, path_s = cycles_render(mesh, held_cameras, folder, samples=BAKE_SAMPLES, lit=True)
     runs = ((views, images, None, "", cloud, render_s),
             (views, images, None, ", made for antialiased rendering", antialiased, render_s),
-            (views + [cam for _, cam in held], images + path, path_weights(len(views), len(held)),
+            (views + held_cameras, images + path, path_weights(len(views), len(held)),
              ", antialiased, the held-out views baked from too as a camera path", antialiased, render_s + path_s))
     for views_used, images_used, weights, made_for, splats, cycles_s in runs:
         info = {}

@@ -72,7 +72,6 @@ def test_from_mesh_bakes_the_look_cycles_renders_and_leaves_the_scene_as_it_was(
     """The Rendered appearance: geometry exactly as Base Color makes it, nothing left in the scene
     but the new splat object (no camera, image or changed setting), and at a view no bake used, the
     splats look like Cycles' own render of the lit ball far better than Base Color splats do."""
-    from splatwright.core import SplatCloud
     res = blender.step("baked_look")
     assert res["base"]["result"] == res["baked"]["result"] == ["FINISHED"], res
     added = sorted(set(res["after"]["data"]["objects"]) - set(res["before"]["data"]["objects"]))
@@ -81,11 +80,7 @@ def test_from_mesh_bakes_the_look_cycles_renders_and_leaves_the_scene_as_it_was(
         assert res["after"]["data"][kind] == res["before"]["data"][kind], kind
     assert res["after"]["settings"] == res["before"]["settings"]
     assert {k: v for k, v in res["after"]["flags"].items() if k in res["before"]["flags"]} == res["before"]["flags"]
-    clouds = {}
-    for name in ("base", "baked"):
-        d = blender.npz(f"baked_look_{name}")
-        cloud = SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"])
-        clouds[name] = cloud.transformed(d["matrix"])
+    clouds = {name: saved_cloud(blender, f"baked_look_{name}") for name in ("base", "baked")}
     base, baked = blender.npz("baked_look_base"), blender.npz("baked_look_baked")
     for field in ("positions", "rotations", "log_scales", "opacity_logits", "matrix"):
         np.testing.assert_array_equal(base[field], baked[field])
@@ -100,7 +95,6 @@ def test_a_bake_measured_from_the_scene_camera_bakes_from_its_path(blender):
     blender_lens' camera, perspective and orthographic) is Cycles' render through the scene camera
     itself, and from that view the same splats look like it far better than when baked only from
     views around."""
-    from splatwright.core import SplatCloud
     from splatwright.core.camera import Camera
     from splatwright.core.metrics import psnr
     from splatwright.core.render import render
@@ -118,13 +112,18 @@ def test_a_bake_measured_from_the_scene_camera_bakes_from_its_path(blender):
     width, height, fx, fy, cx, cy = view["intrinsics"]
     own = view["scene_camera"]
     camera = Camera(int(width), int(height), fx, fy, cx, cy, view["world_to_camera"])
-    got, clouds = {}, {}
-    for source in ("camera", "around"):
-        d = blender.npz(f"baked_path_{source}")
-        clouds[source] = SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"])
-        got[source] = psnr(render(clouds[source].transformed(d["matrix"]), camera).color, own)
+    clouds = {source: saved_cloud(blender, f"baked_path_{source}") for source in ("camera", "around")}
+    got = {source: psnr(render(cloud, camera).color, own) for source, cloud in clouds.items()}
     np.testing.assert_array_equal(clouds["camera"].positions, clouds["around"].positions)    # only the bake differs
     assert got["camera"] > 25 and got["camera"] > got["around"] + 2.5, got       # 26.4-26.7 and 22.8-23.3 dB
+
+
+def saved_cloud(blender, name):
+    """The cloud a worker saved with save_object_cloud, in world space."""
+    from splatwright.core import SplatCloud
+    d = blender.npz(name)
+    return SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"]).transformed(
+        d["matrix"])
 
 
 def held_out_psnr(blender, view, clouds):
@@ -649,7 +648,6 @@ def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
     the base-colour run with SH of the asked degree, nothing left behind but the output file and the
     new splat object, and at a view no bake used the splats look like Cycles' own render of the lit
     ball far better than the base-colour run's."""
-    from splatwright.core import SplatCloud
     res = blender.step("cli_bake")
     base, baked = res["base"], res["baked"]
     assert base["code"] == baked["code"] == 0, (base["stderr"], baked["stderr"])
@@ -678,9 +676,7 @@ def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
     got = held_out_psnr(blender, "cli_bake_view", clouds)
     assert got["baked"] > 22 and got["baked"] > got["base"] + 6, got
     # the flags mean what the operator's options do: its bake of the same ball with the same settings
-    d = blender.npz("baked_look_baked")
-    operator = SplatCloud(d["positions"], d["rotations"], d["log_scales"], d["opacity_logits"], d["sh"])
-    operator = operator.transformed(d["matrix"])
+    operator = saved_cloud(blender, "baked_look_baked")
     nearest = np.linalg.norm(clouds["baked"].positions[:, None] - operator.positions[None], axis=2).argmin(axis=1)
     assert len(set(nearest)) == len(operator)                          # the same splats, in the file's order
     np.testing.assert_allclose(clouds["baked"].positions, operator.positions[nearest], atol=1e-5)

@@ -497,6 +497,12 @@ class Worker(BlenderWorker):
         bpy.ops.mesh.primitive_plane_add(size=8.0)
         return ball, bpy.context.active_object
 
+    def save_object_cloud(self, name, obj):
+        """A splat object's cloud (object space) and its world matrix, saved as `name` (saved_cloud reads it)."""
+        cloud = self.module("splat_addon.data").object_cloud(obj)
+        self.save(name, positions=cloud.positions, rotations=cloud.rotations, log_scales=cloud.log_scales,
+                  opacity_logits=cloud.opacity_logits, sh=cloud.sh, matrix=np.array(obj.matrix_world))
+
     def held_out_view(self, ball, name):
         """Cycles' render of the ball (splat_addon.bake.render_view) from a view no bake uses, saved as
         `name` with its camera."""
@@ -553,7 +559,6 @@ class Worker(BlenderWorker):
         """The lit ball converted with Base Color and with the Rendered look; the scene's data and
         settings before and after, both clouds, and a held-out Cycles view."""
         ball, floor = self.lit_ball()
-        data = self.module("splat_addon.data")
         options = dict(max_splats=600, view_size=32, use_rest_pose=False, calibrate=True)   # it measures the look
         base_op, base = self.convert([ball], **options)
         before = self.scene_state()
@@ -561,10 +566,7 @@ class Worker(BlenderWorker):
                                        **options)
         after = self.scene_state()
         for name, objs in (("base", base), ("baked", baked)):
-            cloud = data.object_cloud(objs[0])
-            self.save(f"baked_look_{name}", positions=cloud.positions, rotations=cloud.rotations,
-                      log_scales=cloud.log_scales, opacity_logits=cloud.opacity_logits, sh=cloud.sh,
-                      matrix=np.array(objs[0].matrix_world))
+            self.save_object_cloud(f"baked_look_{name}", objs[0])
             objs[0].hide_render = True
         self.held_out_view(ball, "baked_look_view")
         return {"base": base_op, "baked": baked_op, "before": before, "after": after,
@@ -626,10 +628,7 @@ class Worker(BlenderWorker):
             op, created = self.convert([ball], view_source=source, **options)
             if not created:
                 return {source: op}
-            cloud = self.module("splat_addon.data").object_cloud(created[0])
-            self.save(f"baked_path_{source.lower()}", positions=cloud.positions, rotations=cloud.rotations,
-                      log_scales=cloud.log_scales, opacity_logits=cloud.opacity_logits, sh=cloud.sh,
-                      matrix=np.array(created[0].matrix_world))
+            self.save_object_cloud(f"baked_path_{source.lower()}", created[0])
             created[0].hide_render = True
             res[source] = op
         return res
