@@ -136,8 +136,8 @@ def parser():
                         f"({from_mesh.VIEW_SIZES[0]}-{from_mesh.VIEW_SIZES[1]}; default {from_mesh.VIEW_SIZE})")
     p.add_argument("--measure-from", choices=MEASURE_FROM, default="around",
                    help="where quality is measured: around, views all around each mesh from --view-near to "
-                        "--view-far (default); camera, the scene camera at --view-count frames spread over the "
-                        "frame range (the rendered look is baked from them too)")
+                        "--view-far (default); camera, the scene camera at up to --view-count frames of the frame "
+                        "range, spread by how much the view changes (the rendered look is baked from them too)")
     counts, limits = from_mesh.VIEW_COUNTS, from_mesh.VIEW_DISTANCE_LIMITS
     p.add_argument("--view-count", type=_in_range(*counts), metavar="N", default=from_mesh.VIEWS_PER_DISTANCE,
                    help=f"views at each distance (around) or frames of the camera path (camera) "

@@ -32,7 +32,7 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
 from ..core import geometry
-from ..core.camera import Camera
+from ..core.camera import Camera, spread_along
 from ..core.mesh import Material
 from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
 from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
@@ -48,6 +48,7 @@ BAKE_DEGREE = 3
 MAX_BAKE_VIEWS, MAX_BAKE_SAMPLES, MAX_BAKE_DEGREE = 256, 4096, 3
 VIEW_SIZE, VIEW_SIZES = 256, (16, 2048)     # pixels across a view quality is measured in / baked from
 VIEW_COUNTS = (1, 64)                       # views per distance around, or frames of the camera path
+PATH_FRAMES_PER_VIEW = 16                   # frames of the camera path looked at per view kept
 VIEW_DISTANCE_LIMITS = (0.05, 100.0)        # view distances, multiples of the one framing the mesh
 SUFFIX = "_splats"
 DEFAULT_BUDGET = 200_000
@@ -363,10 +364,11 @@ def mesh_objects(objects):
 
 
 def camera_path_views(scene, objects, count, size, world=False):
-    """{object: [core Camera]}: the scene camera at `count` frames spread evenly over the scene's
-    frame range (its animation path), each in the object's own space, `size` pixels wide (the
-    render's aspect); with `world`, in world space where the object stands at the current frame
-    (the path as the object sees it, for a bake). The current frame is restored."""
+    """{object: [core Camera]}: the scene camera at up to `count` frames of the scene's frame range
+    (its animation path), spread by how much each object's view changes (core.camera.spread_along,
+    among PATH_FRAMES_PER_VIEW times as many frames looked at), each in the object's own space, `size`
+    pixels wide (the render's aspect); with `world`, in world space where the object stands at the
+    current frame (the path as the object sees it, for a bake). The current frame is restored."""
     cam = scene.camera
     if cam is None:
         raise MeshConversionError("the scene has no camera to measure the splats' quality from")
@@ -374,9 +376,10 @@ def camera_path_views(scene, objects, count, size, world=False):
     width = max(1, int(size))
     height = max(1, round(width * render.resolution_y * render.pixel_aspect_y /
                           max(render.resolution_x * render.pixel_aspect_x, 1e-9)))
-    frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, max(int(count), 1))).astype(int))
+    looked_at = max(int(count), 1) * PATH_FRAMES_PER_VIEW
+    frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, looked_at)).astype(int))
     current, subframe = scene.frame_current, scene.frame_subframe
-    views = {obj: [] for obj in objects}
+    path = {obj: [] for obj in objects}
     now = {obj: np.array(obj.matrix_world, dtype=np.float64) if world else np.eye(4) for obj in objects}
     try:
         for frame in frames:
@@ -391,14 +394,21 @@ def camera_path_views(scene, objects, count, size, world=False):
                 if np.linalg.det(matrix[:3, :3]) < 0:
                     matrix[:3, 0] *= -1.0
                 try:
-                    views[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
-                                                          clip_end=cam.data.clip_end,
-                                                          **camera.lens_settings(cam.data, render)))
+                    path[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
+                                                         clip_end=cam.data.clip_end,
+                                                         **camera.lens_settings(cam.data, render)))
                 except ValueError as exc:
                     raise MeshConversionError(f"camera '{cam.name}' at frame {frame}: {exc}") from exc
     finally:
         scene.frame_set(current, subframe=subframe)
-    return views
+    return {obj: [path[obj][i] for i in spread_along(path[obj], count, _bounds_centre(obj, now[obj]))]
+            for obj in objects}
+
+
+def _bounds_centre(obj, matrix):
+    """The centre of an object's bounding box, through `matrix` from its own space."""
+    corners = np.array([corner[:] for corner in obj.bound_box], dtype=np.float64)
+    return matrix[:3, :3] @ ((corners.min(axis=0) + corners.max(axis=0)) / 2) + matrix[:3, 3]
 
 
 class ConversionJob:
@@ -636,8 +646,8 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                                             "(the pose a binding to that armature starts from)")
     view_source: EnumProperty(name="Measure From", default="AROUND", items=(
         ("AROUND", "Around", "Views all around each mesh at the near, whole and far distances"),
-        ("CAMERA", "Scene Camera", "The scene camera along its animation: View Count frames spread over "
-                                   "the scene's frame range")))
+        ("CAMERA", "Scene Camera", "The scene camera along its animation: View Count frames of the "
+                                   "scene's frame range, spread by how much the view changes")))
     view_near: FloatProperty(name="Near", default=VIEW_DISTANCES[0], min=VIEW_DISTANCE_LIMITS[0],
                              max=VIEW_DISTANCE_LIMITS[1],
                              description="Closest view distance, a multiple of the one that frames the whole mesh")

@@ -304,6 +304,12 @@ def test_from_mesh_target_psnr(blender):
     expected = [now + np.array(eye) - np.array([x, 0.0, 0.0]) for eye, x in (((0.0, -4.0, 1.0), 0.5),
                                                                           ((2.0, -4.0, 1.0), 3.5))]
     np.testing.assert_allclose(res["moving_world_centres"], expected, atol=1e-5)
+    # Still for 20 frames, then a quarter turn: one view where it stands, three along the turn (frames
+    # spread evenly would give two the same, at 0, 0, 31.5 and 90 degrees).
+    centres = np.array(res["turn_centres"])
+    np.testing.assert_allclose(np.linalg.norm(centres, axis=1), 4.0, atol=1e-5)
+    angles = np.degrees(np.arctan2(centres[:, 0], -centres[:, 1]))
+    np.testing.assert_allclose(angles, [0.0, 30.0, 60.0, 90.0], atol=2.3)    # a frame turns 4.5 degrees
 
 
 def test_the_mesh_reference_filters_pixels_as_cycles_does(blender):
@@ -619,10 +625,10 @@ def test_cli_from_mesh_writes_splats_in_world_space(blender):
 
 
 def test_cli_from_mesh_measures_where_it_is_asked(blender):
-    """--measure-from camera: the mesh rendered once per frame of the camera path (two); around, once
-    per view at each distance of --view-near..--view-far (0.7, 1, 2.5: six); each run's line says
-    which view was worst, of how many."""
-    for name, views, where in (("from-mesh from camera", 2, ""), ("from-mesh around", 6, "x the framing distance")):
+    """--measure-from camera: the mesh rendered once per view of the camera path (--view-count 2, but
+    the camera stands still: one); around, once per view at each distance of --view-near..--view-far
+    (0.7, 1, 2.5: six); each run's line says which view was worst, of how many."""
+    for name, views, where in (("from-mesh from camera", 1, ""), ("from-mesh around", 6, "x the framing distance")):
         run = _outcome(blender, name)
         assert run["code"] == 0, run["stderr"]
         assert run["renders"]["mesh"] == views, (name, run["renders"])

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from splatwright.core.camera import (Camera, blender_intrinsics, blender_lens, frame_points, opengl_camera_to_world,
-                                     world_to_camera_from_opengl)
+                                     spread_along, world_to_camera_from_opengl)
 
 
 def rigid(m):
@@ -117,6 +117,48 @@ def test_blender_lens_gives_the_camera_back(camera):
     np.testing.assert_allclose([k["fx"], k["fy"], k["cx"], k["cy"]], [camera.fx, camera.fy, camera.cx, camera.cy],
                                rtol=1e-12)
     assert k["projection"] == camera.projection
+
+
+def orbit(degrees, distance=4.0, fov_deg=40.0):
+    """Cameras on a circle around the origin at these angles (degrees), looking at it."""
+    rad = np.radians(degrees)
+    return [Camera.look_at(distance * np.array([np.cos(a), 0.0, np.sin(a)]), np.zeros(3), fov_deg=fov_deg)
+            for a in rad]
+
+
+def turns(cams):
+    """Degrees between consecutive cameras' directions from the origin."""
+    d = np.array([c.center / np.linalg.norm(c.center) for c in cams])
+    return np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", d[:-1], d[1:]), -1, 1)))
+
+
+def test_spread_along_puts_views_where_the_view_changes():
+    # Still for 50 frames, then a quarter turn over 50: one view where it stands, three along the turn
+    # (each turn counts twice, around the centre and of the forward axis).
+    path = orbit([0.0] * 50 + list(np.linspace(0.0, 90.0, 51)[1:]))
+    picked = spread_along(path, 4, np.zeros(3))
+    np.testing.assert_allclose(turns([path[i] for i in picked]), 30.0, atol=1.8)    # a frame is 1.8 degrees
+    assert picked[0] < 50
+    frames = np.round(np.linspace(0, len(path) - 1, 4)).astype(int)     # by frames: two the same
+    assert turns([path[i] for i in frames]).min() == 0.0
+
+
+def test_spread_along_closed_forms():
+    steady = orbit(np.linspace(0.0, 120.0, 121))                # a steady turn: even in frames
+    np.testing.assert_array_equal(spread_along(steady, 5, np.zeros(3)), [0, 30, 60, 90, 120])
+    still = orbit([10.0] * 20)
+    np.testing.assert_array_equal(spread_along(still, 6, np.zeros(3)), [0])
+    np.testing.assert_array_equal(spread_along(still[:3] + orbit([50.0]), 1, np.zeros(3)), [0])
+    assert len(spread_along([], 4, np.zeros(3))) == 0
+    np.testing.assert_array_equal(spread_along(orbit([0.0, 5.0, 10.0]), 8, np.zeros(3)), [0, 1, 2])
+    # A dolly in from 8 to 1 (no turn): views evenly spaced in the log of the distance, 8, 4, 2, 1.
+    dolly = [Camera.look_at([0.0, 0.0, d], np.zeros(3)) for d in np.geomspace(8.0, 1.0, 301)]
+    picked = spread_along(dolly, 4, np.zeros(3))
+    np.testing.assert_allclose([dolly[i].center[2] for i in picked], [8.0, 4.0, 2.0, 1.0], rtol=0.01)
+    # A zoom from 20 to 80 degrees standing still counts as the log of its focal length ratio.
+    zoom = [Camera.look_at([0.0, 0.0, 3.0], np.zeros(3), fov_deg=f) for f in np.linspace(20.0, 80.0, 200)]
+    fx = np.array([zoom[i].fx for i in spread_along(zoom, 3, np.zeros(3))])
+    np.testing.assert_allclose(np.diff(np.log(fx)), np.log(fx[-1] / fx[0]) / 2, rtol=0.02)
 
 
 def test_frame_points_sees_every_point():

@@ -423,6 +423,22 @@ class Worker(BlenderWorker):
         views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32, world=True)[obj]
         res["moving_world_centres"] = [list(map(float, v.center)) for v in views]
         obj.animation_data_clear()
+        obj.location = (0.5, 0.0, 0.0)
+        # Still for frames 1-20, then a quarter turn around the object (an empty it hangs from) by 40.
+        pivot = bpy.data.objects.new("quality_pivot", None)
+        scene.collection.objects.link(pivot)
+        pivot.location = obj.location
+        cam.animation_data_clear()
+        cam.parent, cam.location, cam.rotation_euler = pivot, (0.0, -4.0, 0.0), (np.pi / 2, 0.0, 0.0)
+        scene.frame_end = 40
+        edit = bpy.context.preferences.edit
+        interpolation, edit.keyframe_new_interpolation_type = edit.keyframe_new_interpolation_type, "LINEAR"
+        for frame, angle in ((1, 0.0), (20, 0.0), (40, np.pi / 2)):
+            pivot.rotation_euler = (0.0, 0.0, angle)
+            pivot.keyframe_insert("rotation_euler", frame=frame)
+        edit.keyframe_new_interpolation_type = interpolation
+        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 4, 32)[obj]
+        res["turn_centres"] = [list(map(float, v.center)) for v in views]
         return res
 
     def pixel_filter(self):
