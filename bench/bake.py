@@ -12,7 +12,11 @@ core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, w
 reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
 so), from the same Cycles views; and once more with the held-out views (rendered as the bake inputs
 are) added as a camera path the user renders from, weighted by core.bake.path_weights: not held
-out there, the row says what a bake along the user's own views gives at them.
+out there, the row says what a bake along the user's own views gives at them. For the sphere, a
+camera path: still at a 1x held-out view for 50 frames, then turning 90 degrees around the mesh over
+50, baked from four of its frames spread evenly, four spread by how much the view changes
+(core.camera.spread_along) and as many as the add-on's bake spacing takes, measured at 13 frames
+along the turn.
 
     python bench/bake.py [--quick]
 """
@@ -29,9 +33,12 @@ sys.path.insert(0, str(HERE))
 
 from common import Row, Timing, print_rows  # noqa: E402
 from mesh2splats import (DISTANCES, blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
-                         held_out_cameras, sphere_texture, uv_sphere, write_obj)
+                         held_out_cameras, sphere_texture, uv_sphere, versus, write_obj)
 
 from splatwright.core.bake import bake_sh, bake_views, path_weights  # noqa: E402
+from splatwright.core.camera import Camera, spread_along  # noqa: E402
+from splatwright.core.kinematics import axis_angle_matrices  # noqa: E402
+from splatwright.core.render import render  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
 
 TOPIC = "bake"
@@ -79,6 +86,49 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
                         extra={**common, "views": len(views_used), "Cycles s": f"{cycles_s:.1f}", "fit s": f"{bake_s:.1f}",
                                "iterations": info["iterations"],
                                "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}"}))
+    if name == "textured sphere":
+        rows += turn_rows(name, mesh, [cam for d, cam in held if d == 1.0][1], antialiased, views, images, render_s,
+                          folder, iterations)
+    return rows
+
+
+def turning_path(mesh, start):
+    """100 cameras: `start` for 50 frames, then turning 90 degrees around the mesh's centre."""
+    v = mesh.vertices
+    centre = (v.min(axis=0) + v.max(axis=0)) / 2
+    eye = start.center - centre
+    axis = np.cross(eye, [0.0, 0.0, 1.0])
+    turns = axis_angle_matrices(axis / np.linalg.norm(axis), [0.0] * 50 + list(np.linspace(0.0, np.pi / 2, 51)[1:]))
+    return centre, [Camera.look_at(centre + turn @ eye, centre, fov_deg=40.0, width=start.width, height=start.height,
+                                   near=start.near) for turn in turns]
+
+
+def turn_rows(name, mesh, start, splats, views, images, views_s, folder, iterations):
+    """Baked from a still-then-turning camera path's frames picked three ways, at frames along the
+    turn; seconds as the other bake rows', the Cycles views around (`views_s`) included."""
+    from splatwright.splat_addon.from_mesh import BAKE_PATH_SPACING
+    centre, path = turning_path(mesh, start)
+    along = list(range(50, 100, 4))
+    references, _ = cycles_render(mesh, [path[i] for i in along], folder, samples=REFERENCE_SAMPLES, lit=True)
+    picks = {"4 frames spread evenly": np.unique(np.round(np.linspace(0, len(path) - 1, 4)).astype(int)),
+             "4 frames spread by view change": spread_along(path, 4, centre),
+             f"frames at most {BAKE_PATH_SPACING} apart by view change (the add-on's bake)":
+                 spread_along(path, 4, centre, BAKE_PATH_SPACING, 64)}
+    rows = []
+    for label, pick in picks.items():
+        cams = [path[i] for i in pick]
+        shots, cycles_s = cycles_render(mesh, cams, folder, samples=BAKE_SAMPLES, lit=True)
+        start_s = time.perf_counter()
+        baked = bake_sh(splats, views + cams, images + shots, degree=DEGREE, iterations=iterations,
+                        weights=path_weights(len(views), len(cams)))
+        bake_s = time.perf_counter() - start_s
+        each = [versus([render(baked, path[i]).color], [ref])["psnr_db"] for i, ref in zip(along, references)]
+        whole = versus([render(baked, path[i]).color for i in along], references)["psnr_db"]
+        rows.append(Row(TOPIC, f"{name}: a camera still, then turning 90 degrees; baked from {label}",
+                        Timing(views_s + cycles_s + bake_s, 0.0, 1),
+                        error={"dB along the turn": whole, "worst dB": min(each)},
+                        extra={"views": len(views) + len(cams), "path views": len(cams),
+                               "Cycles s": f"{views_s + cycles_s:.1f}", "fit s": f"{bake_s:.1f}"}))
     return rows
 
 

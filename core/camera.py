@@ -295,16 +295,31 @@ def blender_lens(camera, sensor_width=36.0):
     return {**lens, "type": "PERSP", "ortho_scale": None, "lens": camera.fx * sensor_width / width}
 
 
-def spread_along(cameras, count, centre):
+def spread_along(cameras, count, centre, spacing=None, most=None):
     """Indices (ascending) of at most `count` cameras of a path, spread evenly by how much the view
     of `centre` changes along it: step by step, the camera's turn around the centre plus the log of
     its distance ratio, the turn of its forward axis and the log of its zoom (radians; a tenfold
-    dolly counts as 2.3). A highlight is right only near a view it was baked from, so views go
-    where the view changes, not where the frames are: a camera standing still for half the path
-    gets one view there, a path that never changes one view."""
+    dolly counts as 2.3, a turn around the centre facing it twice its angle). A highlight is right
+    only near a view it was baked from, so views go where the view changes, not where the frames
+    are: a camera standing still for half the path gets one view there, a path that never changes
+    one view. With `spacing` (radians of that change), more than `count` where the path needs them
+    to keep neighbours within `spacing`, up to `most`."""
     if not len(cameras):
         return np.zeros(0, int)
-    centre = np.asarray(centre, np.float64)
+    along = _path_change(cameras, np.asarray(centre, np.float64))
+    if spacing is not None:
+        needed = int(np.ceil(along[-1] / spacing)) + 1
+        count = max(int(count), min(needed, len(cameras) if most is None else int(most)))
+    if count <= 1 or along[-1] <= 1e-9:
+        return np.zeros(1, int)
+    targets = np.linspace(0.0, along[-1], int(count))
+    after = np.clip(np.searchsorted(along, targets), 1, len(along) - 1)
+    nearest = np.where(targets - along[after - 1] <= along[after] - targets, after - 1, after)
+    return np.unique(nearest)
+
+
+def _path_change(cameras, centre):
+    """spread_along's change of view from the first camera to each, (n,) radians."""
     offset = np.array([cam.center for cam in cameras]) - centre
     distance = np.maximum(np.linalg.norm(offset, axis=1), 1e-12)
     forward = np.array([cam.forward for cam in cameras])
@@ -312,10 +327,4 @@ def spread_along(cameras, count, centre):
     turn = lambda a, b: np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))  # noqa: E731
     steps = (turn(offset[:-1], offset[1:]) + np.abs(np.diff(np.log(distance)))
              + turn(forward[:-1], forward[1:]) + np.abs(np.diff(zoom)))
-    along = np.concatenate([[0.0], np.cumsum(steps)])
-    if count <= 1 or along[-1] <= 1e-9:
-        return np.zeros(1, int)
-    targets = np.linspace(0.0, along[-1], int(count))
-    after = np.clip(np.searchsorted(along, targets), 1, len(along) - 1)
-    nearest = np.where(targets - along[after - 1] <= along[after] - targets, after - 1, after)
-    return np.unique(nearest)
+    return np.concatenate([[0.0], np.cumsum(steps)])

@@ -49,6 +49,11 @@ MAX_BAKE_VIEWS, MAX_BAKE_SAMPLES, MAX_BAKE_DEGREE = 256, 4096, 3
 VIEW_SIZE, VIEW_SIZES = 256, (16, 2048)     # pixels across a view quality is measured in / baked from
 VIEW_COUNTS = (1, 64)                       # views per distance around, or frames of the camera path
 PATH_FRAMES_PER_VIEW = 16                   # frames of the camera path looked at per view kept
+# A bake's path views at most this far apart (core.camera.spread_along's radians: a turn around the
+# object counts twice). bench/bake.py's quick sphere, a 1x camera still for 50 frames then turning 90
+# degrees, dB at 13 frames along the turn (worst): 4 views 35.1 (30.3), 8 (this spacing) 37.2 (33.5), 13 37.3 (32.8).
+BAKE_PATH_SPACING = 0.5
+BAKE_PATH_FRAMES = 256                      # frames of the path a bake looks at, at least (10 s at 25 fps)
 VIEW_DISTANCE_LIMITS = (0.05, 100.0)        # view distances, multiples of the one framing the mesh
 SUFFIX = "_splats"
 DEFAULT_BUDGET = 200_000
@@ -363,12 +368,14 @@ def mesh_objects(objects):
     return meshes
 
 
-def camera_path_views(scene, objects, count, size, world=False):
+def camera_path_views(scene, objects, count, size, world=False, spacing=None):
     """{object: [core Camera]}: the scene camera at up to `count` frames of the scene's frame range
     (its animation path), spread by how much each object's view changes (core.camera.spread_along,
-    among PATH_FRAMES_PER_VIEW times as many frames looked at), each in the object's own space, `size`
-    pixels wide (the render's aspect); with `world`, in world space where the object stands at the
-    current frame (the path as the object sees it, for a bake). The current frame is restored."""
+    among PATH_FRAMES_PER_VIEW times as many frames looked at; with `spacing`, more where the view
+    changes by more than that between them, up to VIEW_COUNTS' most, among BAKE_PATH_FRAMES at
+    least), each in the object's own space, `size` pixels wide (the render's aspect); with `world`,
+    in world space where the object stands at the current frame (the path as the object sees it,
+    for a bake). The current frame is restored."""
     cam = scene.camera
     if cam is None:
         raise MeshConversionError("the scene has no camera to measure the splats' quality from")
@@ -376,7 +383,9 @@ def camera_path_views(scene, objects, count, size, world=False):
     width = max(1, int(size))
     height = max(1, round(width * render.resolution_y * render.pixel_aspect_y /
                           max(render.resolution_x * render.pixel_aspect_x, 1e-9)))
-    looked_at = max(int(count), 1) * PATH_FRAMES_PER_VIEW
+    looked_at = PATH_FRAMES_PER_VIEW * max(int(count), 1)
+    if spacing is not None:
+        looked_at = max(looked_at, BAKE_PATH_FRAMES)
     frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, looked_at)).astype(int))
     current, subframe = scene.frame_current, scene.frame_subframe
     path = {obj: [] for obj in objects}
@@ -401,8 +410,9 @@ def camera_path_views(scene, objects, count, size, world=False):
                     raise MeshConversionError(f"camera '{cam.name}' at frame {frame}: {exc}") from exc
     finally:
         scene.frame_set(current, subframe=subframe)
-    return {obj: [path[obj][i] for i in spread_along(path[obj], count, _bounds_centre(obj, now[obj]))]
-            for obj in objects}
+    spread = lambda obj: spread_along(path[obj], count, _bounds_centre(obj, now[obj]), spacing,  # noqa: E731
+                                      most=VIEW_COUNTS[1])
+    return {obj: [path[obj][i] for i in spread(obj)] for obj in objects}
 
 
 def _bounds_centre(obj, matrix):
@@ -573,8 +583,11 @@ def measured_views(scene, objects, source, count, size, near, far):
 
 def baked_paths(scene, objects, source, count, size):
     """bake_options' `paths`: measured from the scene camera, its path in world space (baked from
-    too); None around the meshes."""
-    return camera_path_views(scene, objects, count, size, world=True) if source == "CAMERA" else None
+    too: `count` views, more where the view changes by more than BAKE_PATH_SPACING between them);
+    None around the meshes."""
+    if source != "CAMERA":
+        return None
+    return camera_path_views(scene, objects, count, size, world=True, spacing=BAKE_PATH_SPACING)
 
 
 def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, size=VIEW_SIZE, distances=None,
@@ -655,7 +668,8 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
                             max=VIEW_DISTANCE_LIMITS[1],
                             description="Farthest view distance, a multiple of the one that frames the whole mesh")
     view_count: IntProperty(name="View Count", default=VIEWS_PER_DISTANCE, min=VIEW_COUNTS[0], max=VIEW_COUNTS[1],
-                            description="Views at each distance (Around), or frames of the camera path")
+                            description="Views at each distance (Around), or frames of the camera path (a Rendered "
+                                        "look bakes from more where the camera moves far)")
     view_size: IntProperty(name="View Size", default=VIEW_SIZE, min=VIEW_SIZES[0], max=VIEW_SIZES[1],
                            description="Pixels across each view quality is measured in")
     made_for: EnumProperty(name="Made For", default=DEFAULT_RENDER_MODE.upper(), items=(

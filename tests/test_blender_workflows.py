@@ -310,6 +310,12 @@ def test_from_mesh_target_psnr(blender):
     np.testing.assert_allclose(np.linalg.norm(centres, axis=1), 4.0, atol=1e-5)
     angles = np.degrees(np.arctan2(centres[:, 0], -centres[:, 1]))
     np.testing.assert_allclose(angles, [0.0, 30.0, 60.0, 90.0], atol=2.3)    # a frame turns 4.5 degrees
+    # A bake's path (View Count 2) takes views enough to keep them 0.5 apart (a quarter turn counts pi):
+    # eight, in world space where the object stands, at most a frame from 90 / 7 degrees apart.
+    baked = np.array(res["baked_turn_centres"]) - [0.5, 0.0, 0.0]
+    turned = np.degrees(np.arctan2(baked[:, 0], -baked[:, 1]))
+    assert len(baked) == 8 and turned[0] == 0.0, turned
+    np.testing.assert_allclose(np.diff(turned[1:]), 90.0 / 7, atol=4.5)
 
 
 def test_the_mesh_reference_filters_pixels_as_cycles_does(blender):

@@ -161,6 +161,16 @@ def test_spread_along_closed_forms():
     np.testing.assert_allclose(np.diff(np.log(fx)), np.log(fx[-1] / fx[0]) / 2, rtol=0.02)
 
 
+def test_spread_along_adds_views_where_the_path_needs_them():
+    # A quarter turn counts pi (around and of the forward axis): views at most 0.5 apart need 8.
+    turn = orbit(np.linspace(0.0, 90.0, 91))
+    picked = spread_along(turn, 2, np.zeros(3), spacing=0.5)
+    np.testing.assert_allclose(turns([turn[i] for i in picked]), 90.0 / 7, atol=1.0)
+    assert len(spread_along(turn, 2, np.zeros(3), spacing=0.5, most=5)) == 5
+    assert len(spread_along(turn, 12, np.zeros(3), spacing=0.5)) == 12          # never fewer than asked
+    assert len(spread_along(orbit([0.0, 45.0]), 2, np.zeros(3), spacing=0.01)) == 2     # only the cameras there are
+
+
 def test_frame_points_sees_every_point():
     rng = np.random.default_rng(3)
     pts = rng.normal(size=(500, 3)) * [3, 1, 0.2] + [100, -5, 7]

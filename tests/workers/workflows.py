@@ -439,6 +439,8 @@ class Worker(BlenderWorker):
         edit.keyframe_new_interpolation_type = interpolation
         views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 4, 32)[obj]
         res["turn_centres"] = [list(map(float, v.center)) for v in views]
+        baked = self.module("splat_addon.from_mesh").baked_paths(scene, [obj], "CAMERA", 2, 32)[obj]
+        res["baked_turn_centres"] = [list(map(float, v.center)) for v in baked]
         return res
 
     def pixel_filter(self):
