@@ -106,14 +106,14 @@ def turning_path(mesh, start):
 def turn_rows(name, mesh, start, splats, views, images, views_s, folder, iterations):
     """Baked from a still-then-turning camera path's frames picked three ways, at frames along the
     turn; seconds as the other bake rows', the Cycles views around (`views_s`) included."""
-    from splatwright.splat_addon.from_mesh import BAKE_PATH_SPACING
+    from splatwright.splat_addon.from_mesh import BAKE_PATH_SPACING, VIEW_COUNTS
     centre, path = turning_path(mesh, start)
     along = list(range(50, 100, 4))
     references, _ = cycles_render(mesh, [path[i] for i in along], folder, samples=REFERENCE_SAMPLES, lit=True)
     picks = {"4 frames spread evenly": np.unique(np.round(np.linspace(0, len(path) - 1, 4)).astype(int)),
              "4 frames spread by view change": spread_along(path, 4, centre),
              f"frames at most {BAKE_PATH_SPACING} apart by view change (the add-on's bake)":
-                 spread_along(path, 4, centre, BAKE_PATH_SPACING, 64)}
+                 spread_along(path, 4, centre, BAKE_PATH_SPACING, VIEW_COUNTS[1])}
     rows = []
     for label, pick in picks.items():
         cams = [path[i] for i in pick]
@@ -122,8 +122,9 @@ def turn_rows(name, mesh, start, splats, views, images, views_s, folder, iterati
         baked = bake_sh(splats, views + cams, images + shots, degree=DEGREE, iterations=iterations,
                         weights=path_weights(len(views), len(cams)))
         bake_s = time.perf_counter() - start_s
-        each = [versus([render(baked, path[i]).color], [ref])["psnr_db"] for i, ref in zip(along, references)]
-        whole = versus([render(baked, path[i]).color for i in along], references)["psnr_db"]
+        seen = [render(baked, path[i]).color for i in along]
+        each = [versus([image], [ref])["psnr_db"] for image, ref in zip(seen, references)]
+        whole = versus(seen, references)["psnr_db"]
         rows.append(Row(TOPIC, f"{name}: a camera still, then turning 90 degrees; baked from {label}",
                         Timing(views_s + cycles_s + bake_s, 0.0, 1),
                         error={"dB along the turn": whole, "worst dB": min(each)},
