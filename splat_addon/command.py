@@ -36,6 +36,7 @@ IMAGE_FORMATS = {".png": ("PNG",), ".exr": ("OPEN_EXR", "OPEN_EXR_MULTILAYER"), 
 APPEARANCES = ("base-color", "rendered")             # from-mesh --appearance: the operator's Appearance
 MEASURE_FROM = ("around", "camera")                  # from-mesh --measure-from: the operator's Measure From
 BAKE_FLAGS = ("--bake-views", "--bake-samples", "--bake-degree")
+PATH_LINE_FRAMES = 64                                # from-mesh --measure-from camera: a progress line per so many frames
 FRAMES = re.compile(r"^\s*(-?\d+)\s*(?:-\s*(-?\d+))?\s*(?::\s*(\d+))?\s*$")
 
 _handle = None
@@ -394,12 +395,14 @@ def run_from_mesh(args, context):
          + (", baking the look Cycles renders" if args.appearance == "rendered" else ""))
     infos = []
     source = args.measure_from.upper()
-    views = from_mesh.measured_views(scene, objects, source, args.view_count, args.view_size, args.view_near,
-                                     args.view_far)
+    baked = args.appearance == "rendered"
+    views, paths = from_mesh.measured_views(scene, objects, source, args.view_count, args.view_size, args.view_near,
+                                            args.view_far, bake=baked, progress=_path_progress)
     results = from_mesh.convert_objects(
         context, objects, max_splats=budget, target_psnr=args.target_psnr, calibrate=args.calibrate,
-        use_rest_pose=not args.posed, render_mode=args.mode, bake=bake_options(args, scene, objects), infos=infos,
-        progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"), warn=lambda m: _say(f"warning: {m}"),
+        use_rest_pose=not args.posed, render_mode=args.mode, bake=bake_options(args, paths) if baked else None,
+        infos=infos, progress=lambda done, total, label: _say(f"[{done:.2f}/{total}] {label}"),
+        warn=lambda m: _say(f"warning: {m}"),
         **views)
     created = from_mesh.create_splat_objects(context, results)
     for obj, info in zip(created, infos):
@@ -415,14 +418,17 @@ def run_from_mesh(args, context):
     _say(f"done: wrote {out}")
 
 
-def bake_options(args, scene, objects):
-    """from_mesh.bake_options from the from-mesh flags (the operator's defaults where one is not given),
-    None for the Base Color look."""
-    if args.appearance != "rendered":
-        return None
+def _path_progress(done, total, label):
+    """A progress line every PATH_LINE_FRAMES frames of a camera path stepped through, and at its end."""
+    if done == total or done % PATH_LINE_FRAMES == 0:
+        _say(f"[{done}/{total}] {label}")
+
+
+def bake_options(args, paths):
+    """from_mesh.bake_options from the from-mesh flags (the operator's defaults where one is not given)
+    and the scene camera's `paths` (measured_views')."""
     given = {key: value for key, value in (("views", args.bake_views), ("samples", args.bake_samples),
                                            ("degree", args.bake_degree)) if value is not None}
-    paths = from_mesh.baked_paths(scene, objects, args.measure_from.upper(), args.view_count, args.view_size)
     return from_mesh.bake_options(size=args.view_size, distances=from_mesh.view_distances(args.view_near, args.view_far),
                                   paths=paths, **given)
 

@@ -368,51 +368,70 @@ def mesh_objects(objects):
     return meshes
 
 
-def camera_path_views(scene, objects, count, size, world=False, spacing=None):
-    """{object: [core Camera]}: the scene camera at up to `count` frames of the scene's frame range
-    (its animation path), spread by how much each object's view changes (core.camera.spread_along,
-    among PATH_FRAMES_PER_VIEW times as many frames looked at; with `spacing`, more where the view
-    changes by more than that between them, up to VIEW_COUNTS' most, among BAKE_PATH_FRAMES at
-    least), each in the object's own space, `size` pixels wide (the render's aspect); with `world`,
-    in world space where the object stands at the current frame (the path as the object sees it,
-    for a bake). The current frame is restored."""
-    cam = scene.camera
-    if cam is None:
-        raise MeshConversionError("the scene has no camera to measure the splats' quality from")
-    render = scene.render
-    width = max(1, int(size))
-    height = max(1, round(width * render.resolution_y * render.pixel_aspect_y /
-                          max(render.resolution_x * render.pixel_aspect_x, 1e-9)))
+class CameraPath:
+    """The scene camera over the scene's frame range as each object sees it, stepped through once
+    (`looked_at` frames spread over the range; the current frame is restored): views() then picks
+    from it without touching the scene. Views are `size` pixels wide, of the render's aspect. A heavy
+    rig can make the walk take seconds: each frame is passed to `progress(done, total, label)`."""
+
+    def __init__(self, scene, objects, size, looked_at, progress=None):
+        cam = scene.camera
+        if cam is None:
+            raise MeshConversionError("the scene has no camera to measure the splats' quality from")
+        render = scene.render
+        self.camera_name = cam.name
+        self.width = max(1, int(size))
+        self.height = max(1, round(self.width * render.resolution_y * render.pixel_aspect_y /
+                                   max(render.resolution_x * render.pixel_aspect_x, 1e-9)))
+        spread = np.linspace(scene.frame_start, scene.frame_end, max(int(looked_at), 1))
+        self.frames = np.unique(np.round(spread).astype(int))
+        self.now = {obj: np.array(obj.matrix_world, dtype=np.float64) for obj in objects}
+        self.relative = {obj: [] for obj in objects}    # the camera in the object's space, per frame
+        self.lenses = []                                # its clip range and lens settings, per frame
+        current, subframe = scene.frame_current, scene.frame_subframe
+        try:
+            for done, frame in enumerate(self.frames, 1):
+                scene.frame_set(int(frame))
+                cam_world = np.array(cam.matrix_world, dtype=np.float64)
+                self.lenses.append(dict(clip_start=cam.data.clip_start, clip_end=cam.data.clip_end,
+                                        **camera.lens_settings(cam.data, render)))
+                for obj in objects:
+                    self.relative[obj].append(np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ cam_world)
+                if progress is not None:
+                    progress(done, len(self.frames), "camera path frames")
+        finally:
+            scene.frame_set(current, subframe=subframe)
+
+    def views(self, obj, count, world=False, spacing=None):
+        """[core Camera]: `count` frames spread by how much the object's view changes
+        (core.camera.spread_along; with `spacing`, more where it changes by more than that between
+        them, up to VIEW_COUNTS' most), in the object's own space, or with `world` in world space
+        where the object stands now (the path as the object sees it, for a bake)."""
+        to_world = self.now[obj] if world else np.eye(4)
+        path = [self._camera(to_world @ relative, lens, frame)
+                for relative, lens, frame in zip(self.relative[obj], self.lenses, self.frames)]
+        return [path[i] for i in spread_along(path, count, _bounds_centre(obj, to_world), spacing,
+                                              most=VIEW_COUNTS[1])]
+
+    def _camera(self, matrix, lens, frame):
+        # A non-uniformly scaled object's space shears the camera: its nearest rotation (views of
+        # such an object are approximate in its space). A mirrored object's mirrors it: the view
+        # mirrored left to right sees the same surface.
+        matrix = matrix.copy()
+        matrix[:3, :3] = geometry.polar_rotation(matrix[:3, :3])
+        if np.linalg.det(matrix[:3, :3]) < 0:
+            matrix[:3, 0] *= -1.0
+        try:
+            return Camera.from_blender(matrix, self.width, self.height, **lens)
+        except ValueError as exc:
+            raise MeshConversionError(f"camera '{self.camera_name}' at frame {int(frame)}: {exc}") from exc
+
+
+def frames_looked_at(count, spacing=None):
+    """How many frames of a camera path to look at for `count` views: PATH_FRAMES_PER_VIEW per view,
+    and at least BAKE_PATH_FRAMES where views are added by `spacing`."""
     looked_at = PATH_FRAMES_PER_VIEW * max(int(count), 1)
-    if spacing is not None:
-        looked_at = max(looked_at, BAKE_PATH_FRAMES)
-    frames = np.unique(np.round(np.linspace(scene.frame_start, scene.frame_end, looked_at)).astype(int))
-    current, subframe = scene.frame_current, scene.frame_subframe
-    path = {obj: [] for obj in objects}
-    now = {obj: np.array(obj.matrix_world, dtype=np.float64) if world else np.eye(4) for obj in objects}
-    try:
-        for frame in frames:
-            scene.frame_set(int(frame))
-            cam_world = np.array(cam.matrix_world, dtype=np.float64)
-            for obj in objects:
-                matrix = now[obj] @ np.linalg.inv(np.array(obj.matrix_world, dtype=np.float64)) @ cam_world
-                # A non-uniformly scaled object's space shears the camera: its nearest rotation
-                # (views of such an object are approximate in its space). A mirrored object's
-                # mirrors it: the view mirrored left to right sees the same surface.
-                matrix[:3, :3] = geometry.polar_rotation(matrix[:3, :3])
-                if np.linalg.det(matrix[:3, :3]) < 0:
-                    matrix[:3, 0] *= -1.0
-                try:
-                    path[obj].append(Camera.from_blender(matrix, width, height, clip_start=cam.data.clip_start,
-                                                         clip_end=cam.data.clip_end,
-                                                         **camera.lens_settings(cam.data, render)))
-                except ValueError as exc:
-                    raise MeshConversionError(f"camera '{cam.name}' at frame {frame}: {exc}") from exc
-    finally:
-        scene.frame_set(current, subframe=subframe)
-    spread = lambda obj: spread_along(path[obj], count, _bounds_centre(obj, now[obj]), spacing,  # noqa: E731
-                                      most=VIEW_COUNTS[1])
-    return {obj: [path[obj][i] for i in spread(obj)] for obj in objects}
+    return looked_at if spacing is None else max(looked_at, BAKE_PATH_FRAMES)
 
 
 def _bounds_centre(obj, matrix):
@@ -522,7 +541,7 @@ def convert_objects(context, objects, *, max_splats=None, target_psnr=None, cali
     `calibrate`: a budget's silhouettes calibrated against renders (object_steps);
     `render_mode`: "classic" or "antialiased", the rendering the splats are made for (and keep);
     `bake`: bake_options() for the Rendered look, None for the Base Color;
-    `view_options`: views (camera_path_views' mapping) or view_size, view_distances, view_count;
+    `view_options`: views (measured_views' mapping) or view_size, view_distances, view_count;
     `infos`, a list, receives each object's mesh_to_splats info (with "bake" when baked)."""
     job = ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr, calibrate=calibrate,
                         use_rest_pose=use_rest_pose, render_mode=render_mode, warn=warn, bake=bake, **view_options)
@@ -572,29 +591,26 @@ def view_distances(near, far):
     return tuple(sorted({near, far} | ({1.0} if near < 1.0 < far else set())))
 
 
-def measured_views(scene, objects, source, count, size, near, far):
-    """ConversionJob's keyword arguments saying where quality is measured: from the scene camera
-    along its path (`source` "CAMERA", `count` frames) or from `count` views at each distance of
-    near..far around each mesh ("AROUND"), `size` pixels across."""
-    if source == "CAMERA":
-        return {"views": camera_path_views(scene, objects, count, size)}
-    return {"view_distances": view_distances(near, far), "view_count": count, "view_size": size}
-
-
-def baked_paths(scene, objects, source, count, size):
-    """bake_options' `paths`: measured from the scene camera, its path in world space (baked from
-    too: `count` views, more where the view changes by more than BAKE_PATH_SPACING between them);
-    None around the meshes."""
+def measured_views(scene, objects, source, count, size, near, far, bake=False, progress=None):
+    """(ConversionJob's keyword arguments saying where quality is measured, bake_options' `paths`).
+    From the scene camera (`source` "CAMERA"), its path stepped through once for both: `count`
+    frames measured in each object's space and, with `bake`, the views baked from too in world
+    space (at least `count`, more where the view changes by more than BAKE_PATH_SPACING between
+    them). Around the meshes ("AROUND"): `count` views at each distance of near..far, no paths.
+    Views are `size` pixels across; `progress` is CameraPath's."""
     if source != "CAMERA":
-        return None
-    return camera_path_views(scene, objects, count, size, world=True, spacing=BAKE_PATH_SPACING)
+        return {"view_distances": view_distances(near, far), "view_count": count, "view_size": size}, None
+    path = CameraPath(scene, objects, size, frames_looked_at(count, BAKE_PATH_SPACING if bake else None), progress)
+    views = {obj: path.views(obj, count) for obj in objects}
+    paths = {obj: path.views(obj, count, world=True, spacing=BAKE_PATH_SPACING) for obj in objects} if bake else None
+    return {"views": views}, paths
 
 
 def bake_options(samples=BAKE_SAMPLES, views=BAKE_VIEWS, degree=BAKE_DEGREE, size=VIEW_SIZE, distances=None,
                  paths=None):
     """bake.bake_steps' options for the Rendered look: `views` Cycles views of `samples` samples at
     each view distance (`distances`, default core.mesh_refine's), `size` pixels across, fitted to SH
-    of `degree`; `paths` ({object: [core Camera]} in world space, camera_path_views(world=True)),
+    of `degree`; `paths` ({object: [core Camera]} in world space, measured_views' paths),
     the views each object is rendered from, baked from too and weighted first."""
     return dict(samples=samples, count=views, size=size, distances=distances, degree=degree, paths=paths)
 
@@ -714,25 +730,15 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         max_splats, target_psnr = sizing(self.mode, self.max_splats, self.target_psnr)
         objects = mesh_objects(context.selected_objects)
         self._skipped = [o.name for o in context.selected_objects if o not in objects]
+        baked = self.appearance == "RENDERED"
+        views, paths = measured_views(context.scene, objects, self.view_source, self.view_count, self.view_size,
+                                      self.view_near, self.view_far, bake=baked, progress=self.setup_progress(context))
+        bake = bake_options(self.bake_samples, self.bake_views, self.bake_degree, self.view_size,
+                            view_distances(self.view_near, self.view_far), paths) if baked else None
         return ConversionJob(context, objects, max_splats=max_splats, target_psnr=target_psnr,
                              calibrate=self.calibrate, use_rest_pose=self.use_rest_pose,
                              render_mode=self.made_for.lower(),
-                             warn=lambda message: self.report({"WARNING"}, message),
-                             bake=self.bake_options(context, objects), **self.view_options(context, objects))
-
-    def bake_options(self, context, objects):
-        """bake.bake_steps' options for the Rendered look (measured from the scene camera: its
-        path baked from too), None for Base Color."""
-        if self.appearance != "RENDERED":
-            return None
-        paths = baked_paths(context.scene, objects, self.view_source, self.view_count, self.view_size)
-        return bake_options(self.bake_samples, self.bake_views, self.bake_degree, self.view_size,
-                            view_distances(self.view_near, self.view_far), paths)
-
-    def view_options(self, context, objects):
-        """Keyword arguments of ConversionJob saying where quality is measured."""
-        return measured_views(context.scene, objects, self.view_source, self.view_count, self.view_size,
-                              self.view_near, self.view_far)
+                             warn=lambda message: self.report({"WARNING"}, message), bake=bake, **views)
 
     def finish(self, context, job):
         try:

@@ -67,13 +67,24 @@ class JobOperator:
         self._end(context)
         return self.finish(context, job)
 
+    @staticmethod
+    def setup_progress(context):
+        """progress(done, total, label) for make_job's own long work (a camera path stepped
+        through), on the progress the job's steps show next."""
+        wm = context.window_manager
+        return lambda done, total, label: wm.progress_update(int(PROGRESS_UNITS * done / max(total, 1)))
+
     def _start(self, context):
         """The job, or None after reporting why it cannot start."""
+        wm = context.window_manager
+        wm.progress_begin(0, PROGRESS_UNITS)
         try:
             return self.make_job(context)
         except self.job_errors as exc:
             self.report({"ERROR"}, str(exc))
             return None
+        finally:
+            wm.progress_end()
 
     def _end(self, context):
         wm = context.window_manager

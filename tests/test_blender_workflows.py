@@ -8,6 +8,8 @@ float64 from those Blender numbers: barycentric surface points, an independent b
 lookup and sRGB curve, object matrices per frame, and OpenUSD read with pxr directly.
 """
 
+import re
+
 import numpy as np
 import pytest
 from blender_session import blender_fixture
@@ -316,6 +318,8 @@ def test_from_mesh_target_psnr(blender):
     turned = np.degrees(np.arctan2(baked[:, 0], -baked[:, 1]))
     assert len(baked) == 8 and turned[0] == 0.0, turned
     np.testing.assert_allclose(np.diff(turned[1:]), 90.0 / 7, atol=4.5)
+    # Measured and baked from the same walk: frames 1-40 each set once, then the current frame again.
+    assert res["bake_frame_sets"] == 40 + 1
 
 
 def test_the_mesh_reference_filters_pixels_as_cycles_does(blender):
@@ -641,6 +645,10 @@ def test_cli_from_mesh_measures_where_it_is_asked(blender):
         line = [text for text in run["stdout"].splitlines() if text.startswith("splatwright: Grid_splats")]
         assert len(line) == 1 and "100 splats, " in line[0] and f" of {views}" in line[0], run["stdout"]
         assert where in line[0] and ("x the framing" in line[0]) == bool(where), line
+        # The camera path's frames stepped through, with progress lines (its end at least).
+        walked = re.findall(r"\[(\d+)/(\d+)\] camera path frames", run["stdout"])
+        assert bool(walked) == (name == "from-mesh from camera"), run["stdout"]
+        assert not walked or walked[-1][0] == walked[-1][1], walked
 
 
 def test_cli_from_mesh_help_lists_the_bake_options(blender):

@@ -140,6 +140,13 @@ class Worker(BlenderWorker):
         created = [o for o in self.bpy.data.objects if o not in before]
         return res, created
 
+    def path_views(self, obj, count, world=False):
+        """The scene camera's `count` path views of `obj`, 32 pixels wide, as Mesh to Splats measures
+        them (in its space) or, with `world`, as a bake renders them (without the views its spacing adds)."""
+        from_mesh = self.module("splat_addon.from_mesh")
+        path = from_mesh.CameraPath(self.bpy.context.scene, [obj], 32, from_mesh.frames_looked_at(count))
+        return path.views(obj, count, world)
+
     # steps ---------------------------------------------------------------------------------------
 
     def install(self):
@@ -396,7 +403,7 @@ class Worker(BlenderWorker):
             cam.location = (x, -4.0, 1.0)
             cam.keyframe_insert("location", frame=frame)
         scene.frame_set(4)
-        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32)[obj]
+        views = self.path_views(obj, 2)
         res["path_centres"] = [list(map(float, v.center)) for v in views]
         res["path_sizes"] = [[v.width, v.height] for v in views]
         res["frame_after"] = scene.frame_current
@@ -407,7 +414,7 @@ class Worker(BlenderWorker):
         obj.rotation_euler, obj.scale = (0.0, 0.0, 0.3), (-1.0, 2.0, 1.0)
         bpy.context.view_layer.update()
         res["mirrored_matrix"] = np.array(obj.matrix_world).tolist()
-        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32)[obj]
+        views = self.path_views(obj, 2)
         res["mirrored_centres"] = [list(map(float, v.center)) for v in views]
         mirrored, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
                                          view_source="CAMERA", view_count=2, view_size=32)
@@ -420,7 +427,7 @@ class Worker(BlenderWorker):
             obj.keyframe_insert("location", frame=frame)
         scene.frame_set(4)
         res["moving_now"] = list(obj.matrix_world.translation)
-        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 2, 32, world=True)[obj]
+        views = self.path_views(obj, 2, world=True)
         res["moving_world_centres"] = [list(map(float, v.center)) for v in views]
         obj.animation_data_clear()
         obj.location = (0.5, 0.0, 0.0)
@@ -437,9 +444,18 @@ class Worker(BlenderWorker):
             pivot.rotation_euler = (0.0, 0.0, angle)
             pivot.keyframe_insert("rotation_euler", frame=frame)
         edit.keyframe_new_interpolation_type = interpolation
-        views = self.module("splat_addon.from_mesh").camera_path_views(scene, [obj], 4, 32)[obj]
+        views = self.path_views(obj, 4)
         res["turn_centres"] = [list(map(float, v.center)) for v in views]
-        baked = self.module("splat_addon.from_mesh").baked_paths(scene, [obj], "CAMERA", 2, 32)[obj]
+        # Measured and baked from one walk along the path: every frame set once, then the current one.
+        frame_sets = []
+        count_frame_sets = lambda scene, *args: frame_sets.append(scene.frame_current)  # noqa: E731
+        bpy.app.handlers.frame_change_pre.append(count_frame_sets)
+        try:
+            baked = self.module("splat_addon.from_mesh").measured_views(scene, [obj], "CAMERA", 2, 32, 0.5, 3.0,
+                                                                       bake=True)[1][obj]
+        finally:
+            bpy.app.handlers.frame_change_pre.remove(count_frame_sets)
+        res["bake_frame_sets"] = len(frame_sets)
         res["baked_turn_centres"] = [list(map(float, v.center)) for v in baked]
         return res
 
@@ -656,7 +672,7 @@ class Worker(BlenderWorker):
         (world space, through core.camera.blender_lens) with its camera, and Cycles' render through the
         scene camera itself at 32 x 20 pixels, the ball alone over black (the floor lights it unseen)."""
         bpy, render = self.bpy, scene.render
-        path = self.module("splat_addon.from_mesh").camera_path_views(scene, [ball], 2, 32, world=True)[ball]
+        path = self.path_views(ball, 2, world=True)
         view = path[0]
         image = self.module("splat_addon.bake").render_view(scene, ball, view, 8, str(self.out / "path_view.png"))
         floor.visible_camera = False
