@@ -53,6 +53,13 @@ VIEWS_PER_DISTANCE = 32     # reference views at each distance of core.mesh_refi
 # Suzanne 33.8 / 32.6 / 39.9; share 1: 46.8 / 36.8 / 37.3 and 36.7 / 36.2 / 40.5 (all views fitted
 # 35.0 -> 34.6 and 34.6 -> 34.4 dB); share 2.8, the sphere 47.0 / 40.5 / 38.0 (all views 33.9).
 PATH_SHARE = 1.0
+# bake_splats: Adam's step sizes, the 3DGS reference's (positions: times the cloud's radius; the
+# view-dependent SH bands' rate ADAM_SH_REST times the DC's), but the opacity's halved.
+ADAM_RATES = {"positions": 1.6e-4, "rotations": 1e-3, "log_scales": 5e-3, "opacity_logits": 2.5e-2, "sh": 2.5e-3}
+ADAM_SH_REST = 1.0 / 20.0
+_FITTED = tuple(ADAM_RATES)
+DEFAULT_STEPS = 1000
+REPORT_EVERY = 10
 
 
 def bake_views(vertices, size=256, count=VIEWS_PER_DISTANCE, distances=None):
@@ -171,6 +178,64 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     if isinstance(info, dict):
         info.update(psnr=history, iterations=done, seen=int(seen.sum()))
     return cloud.replace(sh=(x0 + delta).astype(np.float32))
+
+
+def bake_splats(cloud, cameras, images, *, progress=None, **options):
+    """bake_splats_steps run to its end, each step passed to `progress(done, total, label)`."""
+    from .mesh_refine import drain
+    return drain(bake_splats_steps(cloud, cameras, images, **options), progress)
+
+
+def bake_splats_steps(cloud, cameras, images, *, steps=DEFAULT_STEPS, background=(0.0, 0.0, 0.0), mode=None,
+                      weights=None, seed=0, report_every=REPORT_EVERY, info=None, threads=None):
+    """A generator fitting every parameter of `cloud` (positions, rotations, scales, opacities and
+    SH) to `images` by Adam steps on the squared error of one view at a time (core.render_grad's
+    backward pass); yields (done, total, label) every `report_every` steps and returns the cloud.
+
+    Start from bake_sh's cloud: the steps then refine a look that is already close. Views are
+    drawn at random (`seed`), in proportion to `weights` (default all 1). `info`, if a dict,
+    receives "psnr": the mean squared error of the views drawn, as PSNR, per REPORT_EVERY steps.
+    """
+    from .render_grad import mse_gradients
+    if int(steps) != steps or steps < 0:
+        raise ValueError(f"steps must be a whole number >= 0, got {steps!r}")
+    if len(cameras) != len(images) or not len(cameras):
+        raise ValueError(f"need one image per camera, got {len(cameras)} cameras and {len(images)} images")
+    images = [_checked_image(img, cam, i) for i, (cam, img) in enumerate(zip(cameras, images))]
+    weights = _checked_weights(weights, len(cameras))
+    rng = np.random.default_rng(seed)
+    order = rng.choice(len(cameras), size=steps, p=weights / weights.sum())
+    params = {name: getattr(cloud, name).astype(np.float64) for name in _FITTED}
+    extent = float(np.linalg.norm(params["positions"] - params["positions"].mean(0), axis=1).max(initial=0.0))
+    rates = dict(ADAM_RATES, positions=ADAM_RATES["positions"] * max(extent, 1e-12))
+    # the view-dependent bands step slower (the 3DGS reference's rates)
+    rates["sh"] = rates["sh"] * np.where(np.arange(cloud.sh.shape[1]) == 0, 1.0, ADAM_SH_REST)[None, :, None]
+    adam = {name: (np.zeros_like(v), np.zeros_like(v)) for name, v in params.items()}
+    errors, history = [], []
+    for step, view in enumerate(order, 1):
+        current = cloud.replace(**{name: v.astype(np.float32) for name, v in params.items()})
+        _, mse, grad = mse_gradients(current, cameras[view], images[view], background, mode, threads=threads)
+        errors.append(mse)
+        for name, value in params.items():
+            _adam_step(value, getattr(grad, name), *adam[name], rates[name], step)
+        if step % REPORT_EVERY == 0 or step == steps:
+            history.append(psnr_from_mse(np.mean(errors)))
+            errors = []
+        if step % report_every == 0 or step == steps:
+            yield step, steps, "bake splats"
+    if isinstance(info, dict):
+        info.update(psnr=history)
+    params["rotations"] /= np.linalg.norm(params["rotations"], axis=1, keepdims=True)
+    return cloud.replace(**{name: v.astype(np.float32) for name, v in params.items()})
+
+
+def _adam_step(value, grad, first, second, rate, step, beta1=0.9, beta2=0.999, eps=1e-15):
+    """Adam (Kingma and Ba), in place."""
+    first *= beta1
+    first += (1 - beta1) * grad
+    second *= beta2
+    second += (1 - beta2) * grad * grad
+    value -= rate * (first / (1 - beta1 ** step)) / (np.sqrt(second / (1 - beta2 ** step)) + eps)
 
 
 def _seen_colours(cloud, views, x0, seen, opts, threads):

@@ -21,7 +21,8 @@ import mathutils
 import numpy as np
 
 from ..core import geometry, sh as shmod
-from ..core.bake import DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_views, path_weights
+from ..core.bake import (DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_splats_steps, bake_views,
+                         path_weights)
 from ..core.camera import blender_lens, opengl_camera_to_world
 from . import data
 
@@ -29,35 +30,46 @@ TEMPORARY = "splatwright_bake"
 
 
 def bake_steps(scene, obj, cloud, vertices, *, samples=16, count=VIEWS_PER_DISTANCE, size=256,
-               distances=None, degree=2, iterations=DEFAULT_ITERATIONS, path=(), info=None):
+               distances=None, degree=2, iterations=DEFAULT_ITERATIONS, geometry_steps=0, path=(), info=None):
     """A generator baking `obj`'s look into `cloud` (object space, made from the object's evaluated
-    `vertices`): yields (done, total, label) per Cycles view and per fitting iteration and returns
-    the cloud with fitted SH of `degree` (geometry unchanged). `path`: core Cameras (world space)
-    the object will be seen from, baked from beside the views around it and weighted to count as
-    much as those together (core.bake.path_weights: highlights come out right only near views
-    fitted). The fit runs in world space, where the cameras are; the SH are turned back into the
-    object's axes."""
+    `vertices`): yields (done, total, label) per Cycles view and per fitting iteration or step and
+    returns the cloud with fitted SH of `degree`. `path`: core Cameras (world space) the object will
+    be seen from, baked from beside the views around it and weighted to count as much as those
+    together (core.bake.path_weights: highlights come out right only near views fitted).
+    `geometry_steps`: Adam steps that then fit the splats' positions, shapes and opacities too
+    (core.bake.bake_splats); without them the geometry is kept. The fit runs in world space, where
+    the cameras are; the SH (and fitted splats) are turned back into the object's axes."""
     world = np.array(obj.matrix_world, dtype=np.float64)
     points = np.asarray(vertices, np.float64) @ world[:3, :3].T + world[:3, 3]
     around = bake_views(points, size, count, distances)
     cameras = around + list(path)
-    total = len(cameras) + iterations + 1
+    total = len(cameras) + iterations + 1 + geometry_steps
     images = []
     with tempfile.TemporaryDirectory(prefix="splatwright-bake-") as folder:
         for i, cam in enumerate(cameras):
             images.append(render_view(scene, obj, cam, samples, os.path.join(folder, f"view_{i}.png")))
             yield i + 1, total, f"bake: Cycles view {i + 1}/{len(cameras)}"
-    fit = bake_sh_steps(cloud.transformed(world), cameras, images, degree, iterations=iterations,
-                        weights=path_weights(len(around), len(cameras) - len(around)), info=info)
-    while True:
-        try:
-            done, steps, _ = next(fit)
-        except StopIteration as stop:
-            fitted = stop.value
-            break
-        yield len(cameras) + done, total, f"bake: fitting colours {done}/{steps}"
+    weights = path_weights(len(around), len(cameras) - len(around))
+    fit = bake_sh_steps(cloud.transformed(world), cameras, images, degree, iterations=iterations, weights=weights,
+                        info=info)
+    fitted = yield from _relabelled(fit, len(cameras), total, "fitting colours")
+    if geometry_steps:
+        steps = bake_splats_steps(fitted, cameras, images, steps=geometry_steps, weights=weights, report_every=1,
+                                  info=None if info is None else info.setdefault("geometry", {}))
+        fitted = yield from _relabelled(steps, total - geometry_steps, total, "fitting splats")
+        return fitted.transformed(np.linalg.inv(world))
     rotation = geometry.polar_rotation(world[:3, :3])
     return cloud.replace(sh=shmod.rotate(fitted.sh, rotation.T).astype(np.float32))
+
+
+def _relabelled(steps, offset, total, what):
+    """Pass a core generator's (done, total, label) on as a bake's steps from `offset`; returns its value."""
+    while True:
+        try:
+            done, count, _ = next(steps)
+        except StopIteration as stop:
+            return stop.value
+        yield offset + done, total, f"bake: {what} {done}/{count}"
 
 
 def render_view(scene, obj, cam, samples, path):

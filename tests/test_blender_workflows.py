@@ -146,7 +146,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
     res = blender.step("from_mesh_panel")
     shown = res["shown"]
     assert set().union(*shown.values()) - {"|"} == set(res["properties"])        # no option is lost
-    bake = ["bake_views", "bake_samples", "bake_degree"]
+    bake = ["bake_views", "bake_samples", "bake_degree", "bake_geometry_steps"]
     for key, names in shown.items():
         mode, source, look = key.split("/")
         assert [n for n in names if n in bake] == (bake if look == "RENDERED" else []), key
@@ -156,13 +156,13 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
     assert shown["BUDGET/CAMERA/RENDERED"] == [
         "mode", "max_splats", "calibrate", "use_rest_pose", "|",
         "view_source", "view_near", "view_far", "view_count", "view_size", "|",
-        "made_for", "appearance", "bake_views", "bake_samples", "bake_degree"]
+        "made_for", "appearance", "bake_views", "bake_samples", "bake_degree", "bake_geometry_steps"]
     assert shown["QUALITY/CAMERA/BASE_COLOR"] == [
         "mode", "max_splats", "target_psnr", "use_rest_pose", "|", "view_source", "view_count", "view_size", "|",
         "made_for", "appearance"]
     assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
     assert res["numbers"] == {"bake_views": [32, 1, 256], "bake_samples": [16, 1, 4096], "bake_degree": [3, 0, 3],
-                              "view_size": [256, 16, 2048]}
+                              "bake_geometry_steps": [0, 0, 100_000], "view_size": [256, 16, 2048]}
 
 
 # install -------------------------------------------------------------------------------------------
@@ -657,7 +657,8 @@ def test_cli_from_mesh_help_lists_the_bake_options(blender):
     text = " ".join(run["stdout"].split())                    # argparse wraps the help
     for words in ("--appearance {base-color,rendered}", "--mode {classic,antialiased}",
                   "--bake-views N", "(1-256; default 32)", "--bake-samples N",
-                  "(1-4096; default 16)", "--bake-degree D", "(0-3; default 3)", "--view-size PX",
+                  "(1-4096; default 16)", "--bake-degree D", "(0-3; default 3)", "--bake-geometry-steps N",
+                  "default 0, colours only", "--view-size PX",
                   "(16-2048; default 256)", "--measure-from {around,camera}", "--view-count N", "(1-64; default 4)",
                   "--view-near X", "(0.05-100; default 0.5)", "--view-far X", "(0.05-100; default 3)"):
         assert words in text, words
@@ -688,13 +689,22 @@ def test_cli_from_mesh_bakes_the_look_cycles_renders(blender):
     assert {k: v for k, v in after["flags"].items() if k in before["flags"]} == before["flags"]
     assert res["files_before"] == {"out": ["base.ply"], "temp": []}
     assert res["files_after"] == {"out": ["baked.ply", "base.ply"], "temp": []}       # its views' folder removed
-    files = {name: read(blender.out / "cli_bake" / f"{name}.ply") for name in ("base", "baked")}
+    files = {name: read(blender.out / "cli_bake" / f"{name}.ply") for name in ("base", "baked", "fitted")}
     np.testing.assert_array_equal(files["baked"].positions, files["base"].positions)
     np.testing.assert_array_equal(files["baked"].log_scales, files["base"].log_scales)
     assert files["base"].sh_degree == 0 and files["baked"].sh_degree == 1
     clouds = {name: cloud.transformed(DEFAULT_AXES) for name, cloud in files.items()}    # file -> Blender axes
     got = held_out_psnr(blender, "cli_bake_view", clouds)
     assert got["baked"] > 22 and got["baked"] > got["base"] + 6, got
+    # --bake-geometry-steps: after the colours, the splats themselves fitted, a progress line a step
+    fitted = res["fitted"]
+    assert fitted["code"] == 0, fitted["stderr"]
+    steps = [line.rsplit(" ", 1)[1] for line in fitted["stdout"].splitlines() if "fitting splats" in line]
+    assert steps == [f"{i}/60" for i in range(1, 61)], steps[-3:]
+    assert ", then splats fitted to" in fitted["stdout"]
+    moved = np.linalg.norm(files["fitted"].positions - files["baked"].positions, axis=1)
+    assert 0 < np.median(moved) < 0.05 * np.ptp(files["baked"].positions, axis=0).max()
+    assert got["fitted"] > got["baked"] - 0.1, got            # 60 steps at 32 px: +0.02-0.3 dB
     # the flags mean what the operator's options do: its bake of the same ball with the same settings
     operator = saved_cloud(blender, "baked_look_baked")
     nearest = np.linalg.norm(clouds["baked"].positions[:, None] - operator.positions[None], axis=2).argmin(axis=1)

@@ -587,7 +587,8 @@ class Worker(BlenderWorker):
         return {"shown": shown, "properties": [p.identifier for p in props if p.identifier != "rna_type"],
                 "appearances": [item.identifier for item in props["appearance"].enum_items],
                 "numbers": {name: [props[name].default, props[name].hard_min, props[name].hard_max]
-                            for name in ("bake_views", "bake_samples", "bake_degree", "view_size")}}
+                            for name in ("bake_views", "bake_samples", "bake_degree", "bake_geometry_steps",
+                                         "view_size")}}
 
     def baked_look(self):
         """The lit ball converted with Base Color and with the Rendered look; the scene's data and
@@ -874,6 +875,9 @@ class Worker(BlenderWorker):
         finally:
             tempfile.tempdir = None
         res["after"], res["files_after"] = self.scene_state(), files()
+        res["fitted"] = self.run_command(["from-mesh", str(d / "fitted.ply"), *common, "--appearance", "rendered",
+                                          "--bake-views", "3", "--bake-samples", "4", "--bake-degree", "1",
+                                          "--bake-geometry-steps", "60"])
         self.held_out_view(ball, "cli_bake_view")
         return res
 

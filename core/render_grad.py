@@ -1,0 +1,293 @@
+"""The renderer's backward pass: an image loss's gradient with respect to every splat parameter.
+
+The image is core.render's (the same culling, EWA projection, low-pass, antialiased opacity, alpha
+rule, transmittance stop and depth order), computed tile by tile as dense (pixels, splats) arrays in
+float64, and each tile's backward pass runs through the same arrays while they are at hand. The loss
+is per pixel (the mean squared error against a target image), so a tile's gradient needs nothing
+from other tiles.
+
+Per pixel, with splats k front to back, T_k = prod_{j<k} (1 - alpha_j) and w_k = alpha_k T_k:
+
+    C = sum_k w_k c_k + T_n bg
+    dC/dalpha_k = T_k c_k - (sum_{j>k} w_j c_j + T_n bg) / (1 - alpha_k)
+
+and alpha_k = o_k exp(power_k(u_k, v_k, conic_k)), whose chain through the projection back to the
+positions, quaternions, log scales and opacity logits is written out per splat in _chain.
+Held fixed: which splats pass the alpha and transmittance rules and the 0.99 clamp, and the
+Jacobian's frustum clamp (their gradient is zero where they switch). The SH colour's dependence on
+the view direction reaches the position through a central difference of the basis (float64, a step
+of 1e-6 of the distance: about 1e-10 relative error, far below the other terms' round-off).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import geometry, sh as shmod
+from .parallel import map_threads
+from .render import AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS, PRECISIONS, T_MIN
+from .splats import sigmoid
+
+TILE = 16
+
+
+@dataclass
+class Gradients:
+    """d loss / d parameter, float64, shaped like the cloud's arrays."""
+
+    positions: np.ndarray
+    rotations: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+
+
+def mse_gradients(cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, precision="float32", threads=None):
+    """(image, mean squared error against `target` (H, W, 3), Gradients of that error).
+
+    precision: of the per-pixel work, "float32" (twice as fast) or "float64"; the per-splat
+    projection and chain rule are float64 either way."""
+    dtype = PRECISIONS[precision]
+    mode = mode or ("antialiased" if cloud.antialiased else "classic")
+    target = np.asarray(target, dtype=np.float64)
+    if target.shape != (camera.height, camera.width, 3):
+        raise ValueError(f"target image must be {(camera.height, camera.width, 3)}, got {target.shape}")
+    bg = np.asarray(background, dtype=np.float64).reshape(3)
+    proj = _Projection(cloud, camera, mode)
+    image = np.empty((camera.height, camera.width, 3))
+    image[:] = bg                   # tiles no splat touches
+    scale = 2.0 / image.size
+
+    def tiles(rows):
+        acc = proj.accumulators()
+        for ty, tx, members in rows:
+            y0, x0 = ty * TILE, tx * TILE
+            y1, x1 = min(y0 + TILE, camera.height), min(x0 + TILE, camera.width)
+            ys, xs = np.mgrid[y0:y1, x0:x1]
+            tile = _Tile(proj, members, xs.ravel() + 0.5, ys.ravel() + 0.5, bg, dtype)
+            color = tile.color.reshape(y1 - y0, x1 - x0, 3)
+            image[y0:y1, x0:x1] = color
+            tile.backward(scale * (color - target[y0:y1, x0:x1]).reshape(-1, 3), acc)
+        return acc
+
+    work = proj.tile_lists()
+    parts = map_threads(tiles, [work[i::2] for i in range(2)], threads)
+    acc = {k: sum(p[k] for p in parts) for k in parts[0]}
+    mse = float(np.mean((image - target) ** 2))
+    return image, mse, proj.chain(acc, cloud)
+
+
+class _Projection:
+    """Every visible splat projected as core.render projects it, with what the chain rule needs."""
+
+    def __init__(self, cloud, camera, mode):
+        self.camera, self.mode = camera, mode
+        pos = cloud.positions.astype(np.float64)
+        rel = pos - camera.center
+        cam = rel @ camera.rotation.T
+        z = cam[:, 2]
+        opacity = sigmoid(cloud.opacity_logits.astype(np.float64))
+        finite = np.isfinite(pos).all(1) & np.isfinite(cloud.sh.reshape(len(pos), -1)).all(1)
+        keep = np.flatnonzero(finite & (z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
+        self.index, rel, cam, opacity = keep, rel[keep], cam[keep], opacity[keep]
+        self.cam, self.sigmoid = cam, opacity
+        self.quats = cloud.rotations[keep].astype(np.float64)
+        self.scales = np.exp(cloud.log_scales[keep].astype(np.float64))
+        self.rot = geometry.quaternions_to_matrices(self.quats)
+        self.rs = self.rot * self.scales[:, None, :]
+        self._screen(cam, camera)
+        v0 = np.einsum("nj,njk->nk", self.m0, self.rs)
+        v1 = np.einsum("nj,njk->nk", self.m1, self.rs)
+        a, b, c = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+        det0 = (np.cross(v0, v1) ** 2).sum(1)
+        det = det0 + LOW_PASS * (a + c) + LOW_PASS ** 2
+        self.v0, self.v1, self.abc, self.det0, self.det = v0, v1, (a, b, c), det0, det
+        self.ratio = det0 / det
+        self.aa = mode == "antialiased"
+        o = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, self.ratio)) if self.aa else opacity
+        self.opacity = o
+        self.conic = np.stack([(c + LOW_PASS) / det, -b / det, (a + LOW_PASS) / det], 1)
+        if camera.is_orthographic:
+            directions = np.broadcast_to(camera.forward, rel.shape)
+        else:
+            directions = rel
+        self.degree = shmod.degree_of(cloud.sh.shape[1])
+        self.basis = shmod.basis(directions, self.degree)
+        self.rel, self.sh = rel, cloud.sh[keep].astype(np.float64)
+        raw = 0.5 + np.einsum("nk,nkc->nc", self.basis, self.sh)
+        self.unclamped = raw > 0
+        self.rgb = np.maximum(raw, 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r2 = 2.0 * np.log(np.maximum(255.0 * o, 1e-300))
+            half = np.sqrt(np.maximum(r2, 0)[:, None] * (np.stack([a, c], 1) + LOW_PASS))
+        self.box = np.concatenate([self.uv - half - 0.5, self.uv + half - 0.5], 1)
+        self.visible = (r2 > 0) & np.isfinite(det) & np.isfinite(self.uv).all(1)
+        self.depth_order = np.argsort(z[keep].astype(np.float32), kind="stable")
+
+    def _screen(self, cam, camera):
+        """Pixel means and the rows of J W, as core.render's _screen_rows (frustum clamp included)."""
+        rot = camera.rotation
+        x, y, z = cam.T
+        if camera.is_orthographic:
+            self.uv = np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], 1)
+            self.m0 = np.broadcast_to(camera.fx * rot[0], cam.shape)
+            self.m1 = np.broadcast_to(camera.fy * rot[1], cam.shape)
+            return
+        self.uv = np.stack([camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy], 1)
+        mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
+        tx = np.clip(x / z, (-camera.cx - mx) / camera.fx, (camera.width - camera.cx + mx) / camera.fx)
+        ty = np.clip(y / z, (-camera.cy - my) / camera.fy, (camera.height - camera.cy + my) / camera.fy)
+        self.free = np.stack([tx == x / z, ty == y / z], 1)      # not clamped: tx, ty follow the position
+        self.t = np.stack([tx, ty], 1)
+        self.m0 = (camera.fx / z)[:, None] * (rot[0] - tx[:, None] * rot[2])
+        self.m1 = (camera.fy / z)[:, None] * (rot[1] - ty[:, None] * rot[2])
+
+    def tile_lists(self):
+        """[(tile row, tile column, splats touching it front to back)] for tiles some splat touches."""
+        cam = self.camera
+        nx, ny = -(-cam.width // TILE), -(-cam.height // TILE)
+        order = self.depth_order[self.visible[self.depth_order]]
+        box = self.box[order]
+        lo = np.floor(np.clip(np.ceil(box[:, :2]), 0, None) / TILE).astype(np.int64)
+        hi = np.floor(np.minimum(np.floor(box[:, 2:]), [cam.width - 1, cam.height - 1]) / TILE).astype(np.int64)
+        inside = (hi >= lo).all(1) & (np.floor(box[:, 2:]) >= 0).all(1) \
+            & (np.ceil(box[:, 0]) <= cam.width - 1) & (np.ceil(box[:, 1]) <= cam.height - 1)
+        order, lo, hi = order[inside], lo[inside], hi[inside]
+        span = hi - lo + 1
+        count = span[:, 0] * span[:, 1]
+        owner = np.repeat(np.arange(len(order)), count)
+        k = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
+        tx = lo[owner, 0] + k % span[owner, 0]
+        ty = lo[owner, 1] + k // span[owner, 0]
+        tile = ty * nx + tx
+        by_tile = np.argsort(tile, kind="stable")         # stays front to back within a tile
+        tile, members = tile[by_tile], order[owner[by_tile]]
+        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]]) if len(tile) else np.zeros(0, int)
+        ends = np.r_[starts[1:], len(tile)]
+        return [(tile[s] // nx, tile[s] % nx, members[s:e]) for s, e in zip(starts, ends)]
+
+    def accumulators(self):
+        n = len(self.index)
+        return {"uv": np.zeros((n, 2)), "conic": np.zeros((n, 3)), "opacity": np.zeros(n), "rgb": np.zeros((n, 3))}
+
+    def chain(self, acc, cloud):
+        """Per-splat gradients of the tiles' sums, back to the cloud's parameters."""
+        grad = Gradients(*(np.zeros(getattr(cloud, name).shape) for name in
+                           ("positions", "rotations", "log_scales", "opacity_logits", "sh")))
+        k = self.index
+        g_rgb = acc["rgb"] * self.unclamped
+        grad.sh[k] = self.basis[:, :, None] * g_rgb[:, None, :]
+        g_abc, g_sig = self._opacity_and_conic(acc)
+        g_v0, g_v1 = 2 * g_abc[0][:, None] * self.v0 + g_abc[1][:, None] * self.v1, \
+            2 * g_abc[2][:, None] * self.v1 + g_abc[1][:, None] * self.v0
+        g_rs = self.m0[:, :, None] * g_v0[:, None, :] + self.m1[:, :, None] * g_v1[:, None, :]
+        g_m0, g_m1 = np.einsum("njk,nk->nj", self.rs, g_v0), np.einsum("njk,nk->nj", self.rs, g_v1)
+        grad.log_scales[k] = (g_rs * self.rot).sum(1) * self.scales
+        grad.rotations[k] = _quaternion_gradient(self.quats, g_rs * self.scales[:, None, :])
+        grad.opacity_logits[k] = g_sig * self.sigmoid * (1 - self.sigmoid)
+        grad.positions[k] = self._position_gradient(acc["uv"], g_m0, g_m1) @ self.camera.rotation
+        if self.degree and not self.camera.is_orthographic:
+            grad.positions[k] += self._direction_gradient(g_rgb)
+        return grad
+
+    def _direction_gradient(self, g_rgb):
+        """d loss / d position through the view direction in the SH colour (central differences)."""
+        g_basis = np.einsum("nkc,nc->nk", self.sh, g_rgb)
+        step = 1e-6 * np.linalg.norm(self.rel, axis=1)
+        out = np.empty_like(self.rel)
+        for j in range(3):
+            ahead, behind = self.rel.copy(), self.rel.copy()
+            ahead[:, j] += step
+            behind[:, j] -= step
+            change = shmod.basis(ahead, self.degree) - shmod.basis(behind, self.degree)
+            out[:, j] = (change * g_basis).sum(1) / (2 * step)
+        return out
+
+    def _opacity_and_conic(self, acc):
+        """Gradients of a, b, c (Sigma2D before the low-pass) and of the sigmoid of the logit."""
+        a, b, c = self.abc
+        A, B, C = self.conic.T
+        gA, gB, gC = acc["conic"].T
+        # conic Q = Sigma'^-1 with Sigma' = Sigma2D + low-pass: dL/dSigma' = -Q G Q, G = [[gA, gB/2], [gB/2, gC]]
+        h = gB / 2
+        qg00, qg01, qg10, qg11 = A * gA + B * h, A * h + B * gC, B * gA + C * h, B * h + C * gC
+        ga, gb, gc = -(qg00 * A + qg01 * B), -2 * (qg00 * B + qg01 * C), -(qg10 * B + qg11 * C)
+        g_sig = acc["opacity"]
+        if self.aa:
+            root = np.sqrt(np.maximum(AA_MIN_RATIO, self.ratio))
+            g_ratio = np.where(self.ratio > AA_MIN_RATIO, acc["opacity"] * self.sigmoid / (2 * root), 0.0)
+            g_sig = acc["opacity"] * root
+            det, det0 = self.det, self.det0
+            ga = ga + g_ratio * (c * det - det0 * (c + LOW_PASS)) / det ** 2
+            gc = gc + g_ratio * (a * det - det0 * (a + LOW_PASS)) / det ** 2
+            gb = gb + g_ratio * (-2 * b * (det - det0)) / det ** 2
+        return (ga, gb, gc), g_sig
+
+    def _position_gradient(self, g_uv, g_m0, g_m1):
+        """d loss / d camera-space position, through the pixel mean and the Jacobian rows."""
+        cam, camera = self.cam, self.camera
+        if camera.is_orthographic:
+            return np.stack([camera.fx * g_uv[:, 0], camera.fy * g_uv[:, 1], np.zeros(len(cam))], 1)
+        x, y, z = cam.T
+        r2 = camera.rotation[2]
+        g_t = -np.stack([(g_m0 @ r2) * camera.fx / z, (g_m1 @ r2) * camera.fy / z], 1) * self.free
+        g_t += g_uv * [camera.fx, camera.fy]
+        gz = -((self.m0 * g_m0).sum(1) + (self.m1 * g_m1).sum(1)) / z
+        gz -= (g_t[:, 0] * x + g_t[:, 1] * y) / z ** 2
+        return np.stack([g_t[:, 0] / z, g_t[:, 1] / z, gz], 1)
+
+
+class _Tile:
+    """One tile's pixels against its splats, front to back: the colour, then the backward pass."""
+
+    def __init__(self, proj, members, px, py, bg, dtype):
+        self.proj, self.members, self.bg, self.dtype = proj, members, bg, dtype
+        u, v = proj.uv[members].T
+        A, B, C = proj.conic[members].astype(dtype).T
+        dx, dy = (px[:, None] - u).astype(dtype), (py[:, None] - v).astype(dtype)
+        self.dx, self.dy = dx, dy
+        self.gauss = np.exp(-0.5 * (A * dx * dx + C * dy * dy) - B * dx * dy)
+        raw = proj.opacity[members].astype(dtype) * self.gauss
+        alpha = np.where(raw >= ALPHA_MIN, np.minimum(raw, ALPHA_MAX), 0.0)
+        on = np.cumprod(1 - alpha, axis=1) >= T_MIN        # stop before T would drop below T_MIN
+        self.alpha = np.where(on, alpha, 0.0)
+        self.moving = on & (raw >= ALPHA_MIN) & (raw < ALPHA_MAX)
+        t_after = np.cumprod(1 - self.alpha, axis=1)
+        self.t_before = np.concatenate([np.ones((len(px), 1), dtype), t_after[:, :-1]], 1)
+        self.t_final = t_after[:, -1]
+        self.weight = self.alpha * self.t_before
+        self.rgb = proj.rgb[members].astype(dtype)
+        self.color = self.weight @ self.rgb + self.t_final[:, None] * bg
+
+    def backward(self, g_color, acc):
+        p, m = self.proj, self.members
+        g_color = g_color.astype(self.dtype)
+        acc["rgb"][m] += self.weight.T @ g_color
+        g_weight = g_color @ self.rgb.T
+        behind = np.cumsum((self.weight * g_weight)[:, ::-1], axis=1)[:, ::-1] - self.weight * g_weight
+        behind += (self.t_final * (g_color @ self.bg.astype(self.dtype)))[:, None]
+        g_alpha = np.where(self.moving, self.t_before * g_weight - behind / (1 - self.alpha), 0.0)
+        acc["opacity"][m] += (g_alpha * self.gauss).sum(0)
+        g_power = g_alpha * self.alpha
+        dx, dy = self.dx, self.dy
+        A, B, C = p.conic[m].astype(self.dtype).T
+        acc["conic"][m] += np.stack([-0.5 * (g_power * dx * dx).sum(0), -(g_power * dx * dy).sum(0),
+                                     -0.5 * (g_power * dy * dy).sum(0)], 1)
+        acc["uv"][m] += np.stack([(g_power * (A * dx + B * dy)).sum(0), (g_power * (C * dy + B * dx)).sum(0)], 1)
+
+
+def _quaternion_gradient(q, g_rot):
+    """d loss / d q (w, x, y, z, not necessarily unit) from d loss / d R(q / |q|)."""
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = (q / norm).T
+    g = g_rot.reshape(-1, 9)
+    zero = np.zeros_like(w)
+    parts = [
+        [zero, -2 * z, 2 * y, 2 * z, zero, -2 * x, -2 * y, 2 * x, zero],                      # d R / d w
+        [zero, 2 * y, 2 * z, 2 * y, -4 * x, -2 * w, 2 * z, 2 * w, -4 * x],                    # d R / d x
+        [-4 * y, 2 * x, 2 * w, 2 * x, zero, 2 * z, -2 * w, 2 * z, -4 * y],                    # d R / d y
+        [-4 * z, -2 * w, 2 * x, 2 * w, -4 * z, 2 * y, 2 * x, 2 * y, zero],                    # d R / d z
+    ]
+    g_unit = np.stack([(np.stack(d, 1) * g).sum(1) for d in parts], 1)
+    unit = q / norm
+    return (g_unit - unit * (unit * g_unit).sum(1, keepdims=True)) / norm
