@@ -418,15 +418,10 @@ def _project_chunk(cloud, sl, camera, mode, max_sigma):
         idx, rel, cam, z, opacity = idx[keep], rel[keep], cam[keep], z[keep], opacity[keep]
         rotations, log_scales = rotations[keep], log_scales[keep]
 
-    u, v, m0, m1 = _screen_rows(cam, camera)
-    # Sigma2D = V V^T with V = J W R S (2x3): exactly symmetric and PSD, and det(V V^T) is the
-    # squared cross product of V's rows, free of the cancellation in a c - b^2 for needles.
+    u, v, m0, m1 = screen_rows(cam, camera)
     rs = geometry.quaternions_to_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
     with np.errstate(over="ignore", invalid="ignore"):
-        v0 = np.einsum("nj,njk->nk", m0, rs)
-        v1 = np.einsum("nj,njk->nk", m1, rs)
-        a, b, c = _dot3(v0, v0), _dot3(v0, v1), _dot3(v1, v1)
-        det0 = _dot3(*(_cross3(v0, v1),) * 2)
+        _, _, a, b, c, det0 = screen_covariance(m0, m1, rs)
         det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
         if mode == "antialiased":
             opacity = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, det0 / det))
@@ -478,7 +473,25 @@ def _cross3(p, q):
                      p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]], axis=1)
 
 
-def _screen_rows(cam, camera):
+def screen_covariance(m0, m1, rs):
+    """Sigma2D = V V^T with V = J W R S (2x3, rows m0 rs and m1 rs): V's rows, Sigma2D's entries a, b,
+    c, and its determinant. V V^T is exactly symmetric and PSD, and its determinant is the squared
+    cross product of V's rows, free of the cancellation in a c - b^2 for needles."""
+    v0 = np.einsum("nj,njk->nk", m0, rs)
+    v1 = np.einsum("nj,njk->nk", m1, rs)
+    return v0, v1, _dot3(v0, v0), _dot3(v0, v1), _dot3(v1, v1), _dot3(*(_cross3(v0, v1),) * 2)
+
+
+def clamped_ratios(tx, ty, camera):
+    """x/z and y/z clamped where the Jacobian is taken: the reference clamps them to 1.3 x tan(half
+    fov) around the centre; with an off-centre principal point the same 30% margin is kept beyond
+    each image edge."""
+    mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
+    return (np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx),
+            np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy))
+
+
+def screen_rows(cam, camera):
     """Pixel-space means and the rows of J W (the projection's Jacobian at each camera-space point
     times the world-to-camera rotation), each (n,3)."""
     x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
@@ -488,11 +501,7 @@ def _screen_rows(cam, camera):
         return u, v, np.broadcast_to(camera.fx * rot[0], cam.shape), np.broadcast_to(camera.fy * rot[1], cam.shape)
     tx, ty = x / z, y / z
     u, v = camera.fx * tx + camera.cx, camera.fy * ty + camera.cy
-    # The reference clamps x/z, y/z to 1.3 x tan(half fov) around the centre; with an off-centre
-    # principal point the same 30% margin is kept beyond each image edge.
-    mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
-    tx = np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx)
-    ty = np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy)
+    tx, ty = clamped_ratios(tx, ty, camera)
     # J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]]; each row times W
     fz, gz = camera.fx / z, camera.fy / z
     m0, m1 = np.empty_like(cam), np.empty_like(cam)

@@ -25,7 +25,8 @@ import numpy as np
 
 from . import geometry, sh as shmod
 from .parallel import map_threads
-from .render import AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS, PRECISIONS, T_MIN
+from .render import (AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, PRECISIONS, T_MIN, clamped_ratios, screen_covariance,
+                     screen_rows)
 from .splats import sigmoid
 
 TILE = 16
@@ -96,10 +97,7 @@ class _Projection:
         self.rot = geometry.quaternions_to_matrices(self.quats)
         self.rs = self.rot * self.scales[:, None, :]
         self._screen(cam, camera)
-        v0 = np.einsum("nj,njk->nk", self.m0, self.rs)
-        v1 = np.einsum("nj,njk->nk", self.m1, self.rs)
-        a, b, c = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-        det0 = (np.cross(v0, v1) ** 2).sum(1)
+        v0, v1, a, b, c, det0 = screen_covariance(self.m0, self.m1, self.rs)
         det = det0 + LOW_PASS * (a + c) + LOW_PASS ** 2
         self.v0, self.v1, self.abc, self.det0, self.det = v0, v1, (a, b, c), det0, det
         self.ratio = det0 / det
@@ -125,22 +123,13 @@ class _Projection:
         self.depth_order = np.argsort(z[keep].astype(np.float32), kind="stable")
 
     def _screen(self, cam, camera):
-        """Pixel means and the rows of J W, as core.render's _screen_rows (frustum clamp included)."""
-        rot = camera.rotation
-        x, y, z = cam.T
-        if camera.is_orthographic:
-            self.uv = np.stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy], 1)
-            self.m0 = np.broadcast_to(camera.fx * rot[0], cam.shape)
-            self.m1 = np.broadcast_to(camera.fy * rot[1], cam.shape)
-            return
-        self.uv = np.stack([camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy], 1)
-        mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
-        tx = np.clip(x / z, (-camera.cx - mx) / camera.fx, (camera.width - camera.cx + mx) / camera.fx)
-        ty = np.clip(y / z, (-camera.cy - my) / camera.fy, (camera.height - camera.cy + my) / camera.fy)
-        self.free = np.stack([tx == x / z, ty == y / z], 1)      # not clamped: tx, ty follow the position
-        self.t = np.stack([tx, ty], 1)
-        self.m0 = (camera.fx / z)[:, None] * (rot[0] - tx[:, None] * rot[2])
-        self.m1 = (camera.fy / z)[:, None] * (rot[1] - ty[:, None] * rot[2])
+        """Pixel means and the rows of J W (core.render's), and which x/z, y/z the frustum clamp left
+        free to follow the position."""
+        u, v, self.m0, self.m1 = screen_rows(cam, camera)
+        self.uv = np.stack([u, v], 1)
+        if not camera.is_orthographic:
+            ratios = cam[:, :2] / cam[:, 2:]
+            self.free = np.stack(clamped_ratios(*ratios.T, camera), 1) == ratios
 
     def tile_lists(self):
         """[(tile row, tile column, splats touching it front to back)] for tiles some splat touches."""
