@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import geometry, sh as shmod
-from .parallel import map_threads
+from .parallel import WORKERS, map_threads
 from .render import (AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, PRECISIONS, T_MIN, clamped_ratios, screen_covariance,
                      screen_rows)
 from .splats import sigmoid
@@ -71,8 +71,8 @@ def mse_gradients(cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, 
             tile.backward(scale * (color - target[y0:y1, x0:x1]).reshape(-1, 3), acc)
         return acc
 
-    work = proj.tile_lists()
-    parts = map_threads(tiles, [work[i::2] for i in range(2)], threads)
+    work, share = proj.tile_lists(), max(1, int(threads or WORKERS))
+    parts = map_threads(tiles, [work[i::share] for i in range(share)], threads)
     acc = {k: sum(p[k] for p in parts) for k in parts[0]}
     mse = float(np.mean((image - target) ** 2))
     return image, mse, proj.chain(acc, cloud)
@@ -88,7 +88,8 @@ class _Projection:
         cam = rel @ camera.rotation.T
         z = cam[:, 2]
         opacity = sigmoid(cloud.opacity_logits.astype(np.float64))
-        finite = np.isfinite(pos).all(1) & np.isfinite(cloud.sh.reshape(len(pos), -1)).all(1)
+        finite = np.logical_and.reduce([np.isfinite(getattr(cloud, name).reshape(len(pos), -1)).all(1) for name in
+                                        ("positions", "rotations", "log_scales", "opacity_logits", "sh")])
         keep = np.flatnonzero(finite & (z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
         self.index, rel, cam, opacity = keep, rel[keep], cam[keep], opacity[keep]
         self.cam, self.sigmoid = cam, opacity
@@ -134,7 +135,7 @@ class _Projection:
     def tile_lists(self):
         """[(tile row, tile column, splats touching it front to back)] for tiles some splat touches."""
         cam = self.camera
-        nx, ny = -(-cam.width // TILE), -(-cam.height // TILE)
+        nx = -(-cam.width // TILE)
         order = self.depth_order[self.visible[self.depth_order]]
         box = self.box[order]
         lo = np.floor(np.clip(np.ceil(box[:, :2]), 0, None) / TILE).astype(np.int64)

@@ -94,12 +94,13 @@ def test_splats_the_camera_cannot_see_get_no_gradient():
     cloud.positions[0] = camera.center + 0.01 * camera.forward          # before the near plane
     cloud.positions[1] = [np.nan, 0, 0]
     cloud.positions[2] = camera.center - 3 * camera.forward             # behind the camera
+    cloud.log_scales[3] = np.inf
     target = np.full((camera.height, camera.width, 3), 0.5)
     image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, precision="float64")
-    keep = np.r_[False, False, False, np.ones(len(cloud) - 3, bool)]
+    keep = np.r_[False, False, False, False, np.ones(len(cloud) - 4, bool)]
     assert np.abs(image - reference_render(cloud[keep], camera, BACKGROUND)["color"]).max() < 1e-6
     for name in FIELDS:
-        assert not getattr(grad, name)[:3].any() and np.isfinite(getattr(grad, name)).all()
+        assert not getattr(grad, name)[:4].any() and np.isfinite(getattr(grad, name)).all()
 
 
 def test_a_wrong_target_is_refused():
