@@ -84,7 +84,7 @@ def machine():
 
 def print_rows(rows):
     for r in rows:
-        ratio = f"  x{r.ratio:.1f} vs baseline ({r.baseline})" if r.baseline else ""
+        ratio = f"  x{r.ratio:.3g} vs baseline ({r.baseline})" if r.baseline else ""
         err = "  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.error.items()) \
             if r.error else ""
         ext = "  " + ", ".join(f"{k}={v}" for k, v in r.extra.items()) if r.extra else ""

@@ -43,7 +43,7 @@ def table(rows):
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r.case, fmt(r.timing.median), fmt(r.timing.spread),
-                 fmt(r.baseline.median) if r.baseline else "", f"{r.ratio:.1f}x" if r.ratio else ""]
+                 fmt(r.baseline.median) if r.baseline else "", f"{r.ratio:.3g}x" if r.ratio else ""]
         cells += [fmt(r.error.get(k)) for k in err_keys] + [fmt(r.extra.get(k)) for k in extra_keys]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
