@@ -31,9 +31,9 @@ from splatwright.core.mesh_to_splats import mesh_to_splats  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
 from splatwright.core.render_grad import mse_gradients  # noqa: E402
 from splatwright.core.scenes import thin_walled_cup  # noqa: E402
+from splatwright.core.splats import FIELDS  # noqa: E402
 
 TOPIC = "render_grad"
-FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 
 
 def scene(size, budget):

@@ -27,7 +27,7 @@ from . import geometry, sh as shmod
 from .parallel import WORKERS, map_threads
 from .render import (AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, PRECISIONS, T_MIN, clamped_ratios, screen_covariance,
                      screen_rows)
-from .splats import sigmoid
+from .splats import FIELDS, sigmoid
 
 TILE = 16
 
@@ -82,14 +82,14 @@ class _Projection:
     """Every visible splat projected as core.render projects it, with what the chain rule needs."""
 
     def __init__(self, cloud, camera, mode):
-        self.camera, self.mode = camera, mode
+        self.camera = camera
         pos = cloud.positions.astype(np.float64)
         rel = pos - camera.center
         cam = rel @ camera.rotation.T
         z = cam[:, 2]
         opacity = sigmoid(cloud.opacity_logits.astype(np.float64))
-        finite = np.logical_and.reduce([np.isfinite(getattr(cloud, name).reshape(len(pos), -1)).all(1) for name in
-                                        ("positions", "rotations", "log_scales", "opacity_logits", "sh")])
+        finite = np.logical_and.reduce([np.isfinite(getattr(cloud, name).reshape(len(pos), -1)).all(1)
+                                        for name in FIELDS])
         keep = np.flatnonzero(finite & (z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
         self.index, rel, cam, opacity = keep, rel[keep], cam[keep], opacity[keep]
         self.cam, self.sigmoid = cam, opacity
@@ -162,8 +162,7 @@ class _Projection:
 
     def chain(self, acc, cloud):
         """Per-splat gradients of the tiles' sums, back to the cloud's parameters."""
-        grad = Gradients(*(np.zeros(getattr(cloud, name).shape) for name in
-                           ("positions", "rotations", "log_scales", "opacity_logits", "sh")))
+        grad = Gradients(*(np.zeros(getattr(cloud, name).shape) for name in FIELDS))
         k = self.index
         g_rgb = acc["rgb"] * self.unclamped
         grad.sh[k] = self.basis[:, :, None] * g_rgb[:, None, :]
@@ -269,7 +268,8 @@ class _Tile:
 def _quaternion_gradient(q, g_rot):
     """d loss / d q (w, x, y, z, not necessarily unit) from d loss / d R(q / |q|)."""
     norm = np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = (q / norm).T
+    unit = q / norm
+    w, x, y, z = unit.T
     g = g_rot.reshape(-1, 9)
     zero = np.zeros_like(w)
     parts = [
@@ -279,5 +279,4 @@ def _quaternion_gradient(q, g_rot):
         [-4 * z, -2 * w, 2 * x, 2 * w, -4 * z, 2 * y, 2 * x, 2 * y, zero],                    # d R / d z
     ]
     g_unit = np.stack([(np.stack(d, 1) * g).sum(1) for d in parts], 1)
-    unit = q / norm
     return (g_unit - unit * (unit * g_unit).sum(1, keepdims=True)) / norm

@@ -9,12 +9,12 @@ from splatwright.core.camera import Camera
 from splatwright.core.metrics import psnr
 from splatwright.core.render import render
 from splatwright.core.render_grad import mse_gradients
+from splatwright.core.splats import FIELDS
 
 from helpers import random_cloud
 from reference_render import reference_render
 from test_bake import cameras_around, known_cloud
 
-FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 BACKGROUND = np.array([0.1, 0.2, 0.3])
 
 
