@@ -15,21 +15,25 @@ and alpha_k = o_k exp(power_k(u_k, v_k, conic_k)), whose chain through the proje
 positions, quaternions, log scales and opacity logits is written out per splat in _chain.
 Held fixed: which splats pass the alpha and transmittance rules and the 0.99 clamp, and the
 Jacobian's frustum clamp (their gradient is zero where they switch). The SH colour's dependence on
-the view direction reaches the position through a central difference of the basis (float64, a step
-of 1e-6 of the distance: about 1e-10 relative error, far below the other terms' round-off).
+the view direction reaches the position through the basis' own gradient (core.sh.basis_gradient).
 """
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from . import geometry, sh as shmod
+from . import geometry, jit, sh as shmod
 from .parallel import WORKERS, map_threads
 from .render import (AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, PRECISIONS, T_MIN, clamped_ratios, screen_covariance,
                      screen_rows)
 from .splats import FIELDS, sigmoid
 
 TILE = 16
+KERNELS = "core.render_grad_kernels"     # the compiled tile passes, loaded by core.jit
+BACKENDS = ("auto", "compiled", "numpy")
+# columns of the per-splat sums the tile passes return
+UV, CONIC, OPACITY, RGB = slice(0, 2), slice(2, 5), 5, slice(6, 9)
 
 
 @dataclass
@@ -43,39 +47,98 @@ class Gradients:
     sh: np.ndarray
 
 
-def mse_gradients(cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, precision="float32", threads=None):
+def mse_gradients(cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, precision="float32", threads=None,
+                  backend="auto"):
     """(image, mean squared error against `target` (H, W, 3), Gradients of that error).
 
-    precision: of the per-pixel work, "float32" (twice as fast) or "float64"; the per-splat
-    projection and chain rule are float64 either way."""
+    backend: "compiled" (core/render_grad_kernels.py, float64 throughout), "numpy" (the dense tile
+    arrays below) or "auto" (compiled when numba loads). precision: of the NumPy path's per-pixel
+    work, "float32" (twice as fast) or "float64"; the per-splat projection and chain rule are
+    float64 either way."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     dtype = PRECISIONS[precision]
     mode = mode or ("antialiased" if cloud.antialiased else "classic")
     target = np.asarray(target, dtype=np.float64)
     if target.shape != (camera.height, camera.width, 3):
         raise ValueError(f"target image must be {(camera.height, camera.width, 3)}, got {target.shape}")
+    kernels = None if backend == "numpy" else jit.load(KERNELS, check=_check_kernels)
+    if kernels is None and backend == "compiled":
+        raise RuntimeError(f"compiled backward kernels are not available: {jit.status(KERNELS)}")
     bg = np.asarray(background, dtype=np.float64).reshape(3)
     proj = _Projection(cloud, camera, mode)
     image = np.empty((camera.height, camera.width, 3))
     image[:] = bg                   # tiles no splat touches
-    scale = 2.0 / image.size
-
-    def tiles(rows):
-        acc = proj.accumulators()
-        for ty, tx, members in rows:
-            y0, x0 = ty * TILE, tx * TILE
-            y1, x1 = min(y0 + TILE, camera.height), min(x0 + TILE, camera.width)
-            ys, xs = np.mgrid[y0:y1, x0:x1]
-            tile = _Tile(proj, members, xs.ravel() + 0.5, ys.ravel() + 0.5, bg, dtype)
-            color = tile.color.reshape(y1 - y0, x1 - x0, 3)
-            image[y0:y1, x0:x1] = color
-            tile.backward(scale * (color - target[y0:y1, x0:x1]).reshape(-1, 3), acc)
-        return acc
-
-    work, share = proj.tile_lists(), max(1, int(threads or WORKERS))
-    parts = map_threads(tiles, [work[i::share] for i in range(share)], threads)
-    acc = {k: sum(p[k] for p in parts) for k in parts[0]}
+    tiles = proj.tile_lists()
+    share = max(1, int(threads or WORKERS))
+    jobs = [np.arange(i, len(tiles.ids), share) for i in range(share)]
+    run = _compiled_tiles if kernels is not None else _numpy_tiles
+    parts = map_threads(lambda part: run(kernels, proj, tiles, part, target, bg, dtype, image), jobs, threads)
+    acc = sum(parts)
     mse = float(np.mean((image - target) ** 2))
     return image, mse, proj.chain(acc, cloud)
+
+
+def _numpy_tiles(_, proj, tiles, jobs, target, bg, dtype, image):
+    """Tiles `jobs` by dense (pixels, splats) arrays: their image, and their gradient sums per splat
+    (n, 9: d/du, d/dv, d/d conic a, b, c, d/d opacity, d/d rgb)."""
+    camera = proj.camera
+    acc = np.zeros((len(proj.index), 9))
+    scale = 2.0 / image.size
+    for j in jobs:
+        ty, tx = divmod(int(tiles.ids[j]), tiles.across)
+        y0, x0 = ty * TILE, tx * TILE
+        y1, x1 = min(y0 + TILE, camera.height), min(x0 + TILE, camera.width)
+        ys, xs = np.mgrid[y0:y1, x0:x1]
+        tile = _Tile(proj, tiles.members[tiles.starts[j]:tiles.ends[j]], xs.ravel() + 0.5, ys.ravel() + 0.5, bg,
+                     dtype)
+        color = tile.color.reshape(y1 - y0, x1 - x0, 3)
+        image[y0:y1, x0:x1] = color
+        tile.backward(scale * (color - target[y0:y1, x0:x1]).reshape(-1, 3), acc)
+    return acc
+
+
+def _compiled_tiles(kernels, proj, tiles, jobs, target, bg, _, image):
+    """_numpy_tiles by the compiled kernel (float64)."""
+    acc = np.zeros((len(proj.index), 9))
+    camera = proj.camera
+    kernels.tile_passes(jobs, tiles.ids, tiles.starts, tiles.ends, tiles.members, TILE, camera.width, camera.height,
+                        proj.uv, proj.conic, proj.opacity, proj.box, proj.rgb, target, bg, 2.0 / image.size, image,
+                        acc)
+    return acc
+
+
+def _check_kernels(kernels):
+    """Run the compiled kernel once on a small scene (compiling it, or loading it from the cache)
+    and compare with the NumPy path: a broken build falls back to NumPy, not wrong gradients."""
+    from .camera import Camera
+    from .splats import SplatCloud
+    rng = np.random.default_rng(0)
+    n = 64
+    cloud = SplatCloud(rng.normal(0, 0.3, (n, 3)) + [0, 0, 3], rng.normal(size=(n, 4)),
+                       rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 4, 3)))
+    camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=40, height=20)
+    target = rng.uniform(0, 1, (camera.height, camera.width, 3))
+    for mode in ("classic", "antialiased"):
+        proj = _Projection(cloud, camera, mode)
+        tiles, bg = proj.tile_lists(), np.array([0.1, 0.2, 0.3])
+        jobs = np.arange(len(tiles.ids))
+        images = [np.zeros(target.shape), np.zeros(target.shape)]
+        got = _compiled_tiles(kernels, proj, tiles, jobs, target, bg, None, images[0])
+        want = _numpy_tiles(None, proj, tiles, jobs, target, bg, np.float64, images[1])
+        if not (np.allclose(images[0], images[1], atol=1e-9) and np.allclose(got, want, atol=1e-9 * np.abs(want).max())):
+            raise RuntimeError("the compiled backward kernel disagrees with the NumPy path on a test scene")
+
+
+class TileLists(NamedTuple):
+    """The tiles some splat touches: tile j is ids[j] (row-major, `across` per row), its splats
+    members[starts[j]:ends[j]] (indices into the projection's arrays) front to back."""
+
+    ids: np.ndarray
+    starts: np.ndarray
+    ends: np.ndarray
+    members: np.ndarray
+    across: int
 
 
 class _Projection:
@@ -133,7 +196,7 @@ class _Projection:
             self.free = np.stack(clamped_ratios(*ratios.T, camera), 1) == ratios
 
     def tile_lists(self):
-        """[(tile row, tile column, splats touching it front to back)] for tiles some splat touches."""
+        """The tiles some splat touches (TileLists: their splats front to back)."""
         cam = self.camera
         nx = -(-cam.width // TILE)
         order = self.depth_order[self.visible[self.depth_order]]
@@ -152,19 +215,15 @@ class _Projection:
         tile = ty * nx + tx
         by_tile = np.argsort(tile, kind="stable")         # stays front to back within a tile
         tile, members = tile[by_tile], order[owner[by_tile]]
-        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]]) if len(tile) else np.zeros(0, int)
-        ends = np.r_[starts[1:], len(tile)]
-        return [(tile[s] // nx, tile[s] % nx, members[s:e]) for s, e in zip(starts, ends)]
-
-    def accumulators(self):
-        n = len(self.index)
-        return {"uv": np.zeros((n, 2)), "conic": np.zeros((n, 3)), "opacity": np.zeros(n), "rgb": np.zeros((n, 3))}
+        starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]]) if len(tile) else np.zeros(0, np.int64)
+        ends = np.r_[starts[1:], len(tile)].astype(np.int64)
+        return TileLists(tile[starts], starts, ends, members, nx)
 
     def chain(self, acc, cloud):
         """Per-splat gradients of the tiles' sums, back to the cloud's parameters."""
         grad = Gradients(*(np.zeros(getattr(cloud, name).shape) for name in FIELDS))
         k = self.index
-        g_rgb = acc["rgb"] * self.unclamped
+        g_rgb = acc[:, RGB] * self.unclamped
         grad.sh[k] = self.basis[:, :, None] * g_rgb[:, None, :]
         g_abc, g_sig = self._opacity_and_conic(acc)
         g_v0, g_v1 = 2 * g_abc[0][:, None] * self.v0 + g_abc[1][:, None] * self.v1, \
@@ -174,38 +233,29 @@ class _Projection:
         grad.log_scales[k] = (g_rs * self.rot).sum(1) * self.scales
         grad.rotations[k] = _quaternion_gradient(self.quats, g_rs * self.scales[:, None, :])
         grad.opacity_logits[k] = g_sig * self.sigmoid * (1 - self.sigmoid)
-        grad.positions[k] = self._position_gradient(acc["uv"], g_m0, g_m1) @ self.camera.rotation
+        grad.positions[k] = self._position_gradient(acc[:, UV], g_m0, g_m1) @ self.camera.rotation
         if self.degree and not self.camera.is_orthographic:
             grad.positions[k] += self._direction_gradient(g_rgb)
         return grad
 
     def _direction_gradient(self, g_rgb):
-        """d loss / d position through the view direction in the SH colour (central differences)."""
-        g_basis = np.einsum("nkc,nc->nk", self.sh, g_rgb)
-        step = 1e-6 * np.linalg.norm(self.rel, axis=1)
-        out = np.empty_like(self.rel)
-        for j in range(3):
-            ahead, behind = self.rel.copy(), self.rel.copy()
-            ahead[:, j] += step
-            behind[:, j] -= step
-            change = shmod.basis(ahead, self.degree) - shmod.basis(behind, self.degree)
-            out[:, j] = (change * g_basis).sum(1) / (2 * step)
-        return out
+        """d loss / d position through the view direction in the SH colour."""
+        return shmod.basis_gradient(np.einsum("nkc,nc->nk", self.sh, g_rgb), self.rel)
 
     def _opacity_and_conic(self, acc):
         """Gradients of a, b, c (Sigma2D before the low-pass) and of the sigmoid of the logit."""
         a, b, c = self.abc
         A, B, C = self.conic.T
-        gA, gB, gC = acc["conic"].T
+        gA, gB, gC = acc[:, CONIC].T
         # conic Q = Sigma'^-1 with Sigma' = Sigma2D + low-pass: dL/dSigma' = -Q G Q, G = [[gA, gB/2], [gB/2, gC]]
         h = gB / 2
         qg00, qg01, qg10, qg11 = A * gA + B * h, A * h + B * gC, B * gA + C * h, B * h + C * gC
         ga, gb, gc = -(qg00 * A + qg01 * B), -2 * (qg00 * B + qg01 * C), -(qg10 * B + qg11 * C)
-        g_sig = acc["opacity"]
+        g_sig = acc[:, OPACITY]
         if self.aa:
             root = np.sqrt(np.maximum(AA_MIN_RATIO, self.ratio))
-            g_ratio = np.where(self.ratio > AA_MIN_RATIO, acc["opacity"] * self.sigmoid / (2 * root), 0.0)
-            g_sig = acc["opacity"] * root
+            g_ratio = np.where(self.ratio > AA_MIN_RATIO, acc[:, OPACITY] * self.sigmoid / (2 * root), 0.0)
+            g_sig = acc[:, OPACITY] * root
             det, det0 = self.det, self.det0
             ga = ga + g_ratio * (c * det - det0 * (c + LOW_PASS)) / det ** 2
             gc = gc + g_ratio * (a * det - det0 * (a + LOW_PASS)) / det ** 2
@@ -251,18 +301,18 @@ class _Tile:
     def backward(self, g_color, acc):
         p, m = self.proj, self.members
         g_color = g_color.astype(self.dtype)
-        acc["rgb"][m] += self.weight.T @ g_color
+        acc[m, RGB] += self.weight.T @ g_color
         g_weight = g_color @ self.rgb.T
         behind = np.cumsum((self.weight * g_weight)[:, ::-1], axis=1)[:, ::-1] - self.weight * g_weight
         behind += (self.t_final * (g_color @ self.bg.astype(self.dtype)))[:, None]
         g_alpha = np.where(self.moving, self.t_before * g_weight - behind / (1 - self.alpha), 0.0)
-        acc["opacity"][m] += (g_alpha * self.gauss).sum(0)
+        acc[m, OPACITY] += (g_alpha * self.gauss).sum(0)
         g_power = g_alpha * self.alpha
         dx, dy = self.dx, self.dy
         A, B, C = p.conic[m].astype(self.dtype).T
-        acc["conic"][m] += np.stack([-0.5 * (g_power * dx * dx).sum(0), -(g_power * dx * dy).sum(0),
+        acc[m, CONIC] += np.stack([-0.5 * (g_power * dx * dx).sum(0), -(g_power * dx * dy).sum(0),
                                      -0.5 * (g_power * dy * dy).sum(0)], 1)
-        acc["uv"][m] += np.stack([(g_power * (A * dx + B * dy)).sum(0), (g_power * (C * dy + B * dx)).sum(0)], 1)
+        acc[m, UV] += np.stack([(g_power * (A * dx + B * dy)).sum(0), (g_power * (C * dy + B * dx)).sum(0)], 1)
 
 
 def _quaternion_gradient(q, g_rot):

@@ -70,6 +70,37 @@ def basis(directions, degree, dtype=np.float64):
     return np.stack(out, axis=-1)
 
 
+def basis_gradient(weights, directions):
+    """d/d directions of basis(directions) @ weights per row: weights (N, K), directions (N, 3), not
+    necessarily unit (basis() normalises them, so the polynomials' gradient at the unit direction u
+    is taken through (I - u u^T) / |d|); (N, 3), float64."""
+    w = np.asarray(weights, dtype=np.float64)
+    degree = degree_of(w.shape[-1])
+    d = np.asarray(directions, dtype=np.float64)
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    norm = np.where(norm > 0, norm, 1.0)
+    u = d / norm
+    x, y, z = u[..., 0], u[..., 1], u[..., 2]
+    gx, gy, gz = (np.zeros_like(x) for _ in range(3))
+    if degree >= 1:
+        gx, gy, gz = -C1 * w[..., 3], -C1 * w[..., 1], C1 * w[..., 2]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        a, b, c, e, f = (C2[i] * w[..., 4 + i] for i in range(5))
+        gx = gx + a * y - 2 * c * x + e * z + 2 * f * x
+        gy = gy + a * x + b * z - 2 * c * y - 2 * f * y
+        gz = gz + b * y + 4 * c * z + e * x
+    if degree >= 3:
+        a, b, c, e, f, g, h = (C3[i] * w[..., 9 + i] for i in range(7))
+        gx = gx + 6 * a * x * y + b * y * z - 2 * c * x * y - 6 * e * x * z + f * (4 * zz - 3 * xx - yy) \
+            + 2 * g * x * z + 3 * h * (xx - yy)
+        gy = gy + 3 * a * (xx - yy) + b * x * z + c * (4 * zz - xx - 3 * yy) - 6 * e * y * z - 2 * f * x * y \
+            - 2 * g * y * z - 6 * h * x * y
+        gz = gz + b * x * y + 8 * c * y * z + e * (6 * zz - 3 * xx - 3 * yy) + 8 * f * x * z + g * (xx - yy)
+    grad = np.stack([gx, gy, gz], axis=-1) * np.ones_like(u)        # d/du
+    return (grad - (grad * u).sum(-1, keepdims=True) * u) / norm
+
+
 def evaluate(sh, directions):
     """sum_k Y_k(d) sh_k per splat: (N,K,3) coefficients, (N,3) directions -> (N,3).
 

@@ -1,5 +1,6 @@
-"""The renderer's backward pass (core/render_grad.py) against central differences of the float64
-brute-force reference renderer, and bake_splats fitting geometry to views of a known cloud."""
+"""The renderer's backward pass (core/render_grad.py), compiled and by NumPy, against central
+differences of the float64 brute-force reference renderer, and bake_splats fitting geometry to
+views of a known cloud."""
 
 import numpy as np
 import pytest
@@ -39,16 +40,20 @@ def reference_mse(cloud, camera, target, mode):
     return np.mean((reference_render(cloud, camera, BACKGROUND, mode)["color"] - target) ** 2)
 
 
+BACKENDS = ["compiled", "numpy"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("view", sorted(CAMERAS))
-def test_image_and_gradients_match_the_reference_renderer(mode, view):
+def test_image_and_gradients_match_the_reference_renderer(mode, view, backend):
     """The image is the reference's; each parameter's gradient (its three largest entries and three
     more at random) is the central difference of the reference's squared error, at a step of 1e-4
     or, where that step moves a splat across another's depth or the 1/255 alpha rule (the error
     jumps there), of 1e-5."""
     cloud, camera = overlapping_cloud(degree=3), CAMERAS[view]
     target = np.random.default_rng(5).uniform(0, 1, (camera.height, camera.width, 3))
-    image, mse, grad = mse_gradients(cloud, camera, target, BACKGROUND, mode, precision="float64")
+    image, mse, grad = mse_gradients(cloud, camera, target, BACKGROUND, mode, precision="float64", backend=backend)
     reference = reference_render(cloud, camera, BACKGROUND, mode)["color"]
     assert np.abs(image - reference).max() < 1e-6
     assert mse == pytest.approx(np.mean((reference - target) ** 2), rel=1e-6)
@@ -69,7 +74,8 @@ def central_difference(cloud, name, flat, step, camera, target, mode):
     return (reference_mse(ahead, camera, target, mode) - reference_mse(behind, camera, target, mode)) / taken
 
 
-def test_opaque_stacks_stop_and_clamp_as_the_renderer_does():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_opaque_stacks_stop_and_clamp_as_the_renderer_does(backend):
     """Opaque splats stacked along the view: the transmittance stop and the 0.99 clamp switch some
     of them off; the image still matches and the switched-off splats get no gradient."""
     cloud = overlapping_cloud(degree=0, seed=7)
@@ -79,7 +85,7 @@ def test_opaque_stacks_stop_and_clamp_as_the_renderer_does():
     cloud.log_scales[:] = np.log(np.linspace(0.3, 0.05, len(cloud)))[:, None]   # the far ones inside the near ones
     cloud.opacity_logits[:] = 8.0                      # alpha clamped at 0.99 near each centre
     target = np.zeros((camera.height, camera.width, 3))
-    image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, "classic", precision="float64")
+    image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, "classic", precision="float64", backend=backend)
     reference = reference_render(cloud, camera, BACKGROUND, "classic")
     assert np.abs(image - reference["color"]).max() < 1e-6
     hidden = reference["max_weight"] == 0               # no pixel composites them
@@ -88,7 +94,8 @@ def test_opaque_stacks_stop_and_clamp_as_the_renderer_does():
         assert not getattr(grad, name)[hidden].any()
 
 
-def test_splats_the_camera_cannot_see_get_no_gradient():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_splats_the_camera_cannot_see_get_no_gradient(backend):
     cloud = overlapping_cloud(degree=1)
     camera = CAMERAS["perspective"]
     cloud.positions[0] = camera.center + 0.01 * camera.forward          # before the near plane
@@ -96,7 +103,7 @@ def test_splats_the_camera_cannot_see_get_no_gradient():
     cloud.positions[2] = camera.center - 3 * camera.forward             # behind the camera
     cloud.log_scales[3] = np.inf
     target = np.full((camera.height, camera.width, 3), 0.5)
-    image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, precision="float64")
+    image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, precision="float64", backend=backend)
     keep = np.r_[False, False, False, False, np.ones(len(cloud) - 4, bool)]
     assert np.abs(image - reference_render(cloud[keep], camera, BACKGROUND)["color"]).max() < 1e-6
     for name in FIELDS:
@@ -141,11 +148,24 @@ def test_bake_splats_refuses_mismatched_views():
         bake_splats(cloud, [CAMERAS["perspective"]], [np.zeros((33, 40, 3))], steps=-1)
 
 
+def test_a_wrong_backend_is_refused_and_compiled_needs_numba(monkeypatch):
+    cloud, camera = overlapping_cloud(0), CAMERAS["perspective"]
+    target = np.zeros((camera.height, camera.width, 3))
+    with pytest.raises(ValueError, match="backend must be one of"):
+        mse_gradients(cloud, camera, target, backend="gpu")
+    monkeypatch.setenv("SPLATWRIGHT_JIT", "0")
+    with pytest.raises(RuntimeError, match="SPLATWRIGHT_JIT=0"):
+        mse_gradients(cloud, camera, target, backend="compiled")
+    auto = mse_gradients(cloud, camera, target, precision="float64")            # NumPy then
+    assert np.array_equal(auto[0], mse_gradients(cloud, camera, target, precision="float64", backend="numpy")[0])
+
+
 def test_float32_pixels_give_the_float64_gradients():
+    """The NumPy pass in float32 against the compiled one (float64 throughout)."""
     cloud, camera = overlapping_cloud(degree=2), CAMERAS["perspective"]
     target = np.random.default_rng(5).uniform(0, 1, (camera.height, camera.width, 3))
-    exact = mse_gradients(cloud, camera, target, BACKGROUND, precision="float64")
-    fast = mse_gradients(cloud, camera, target, BACKGROUND, precision="float32")
+    exact = mse_gradients(cloud, camera, target, BACKGROUND, backend="compiled")
+    fast = mse_gradients(cloud, camera, target, BACKGROUND, precision="float32", backend="numpy")
     assert np.abs(fast[0] - exact[0]).max() < 1e-5
     for name in FIELDS:
         g, h = getattr(exact[2], name), getattr(fast[2], name)

@@ -64,6 +64,21 @@ def test_basis_follows_the_reference_constants_and_ordering():
     assert sh.C1 == pytest.approx(np.sqrt(3 / (4 * np.pi)), rel=1e-15)
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_basis_gradient_is_the_central_difference_of_the_basis(degree):
+    """At directions of any length (basis() normalises them), and zero along the direction."""
+    rng = np.random.default_rng(degree)
+    d = rng.normal(size=(40, 3)) * np.geomspace(0.01, 100, 40)[:, None]
+    weights = rng.normal(size=(40, sh.num_coeffs(degree)))
+    got = sh.basis_gradient(weights, d)
+    step = 1e-6 * np.linalg.norm(d, axis=1)
+    for j in range(3):
+        e = np.eye(3)[j] * step[:, None]
+        fd = ((sh.basis(d + e, degree) - sh.basis(d - e, degree)) * weights).sum(1) / (2 * step)
+        np.testing.assert_allclose(got[:, j] * step, fd * step, rtol=0, atol=1e-13)     # relative to 1 / |d|
+    assert np.abs((got * d).sum(1)).max() < 1e-12
+
+
 @pytest.mark.parametrize("degree", [0, 1, 2])
 def test_truncation_keeps_exactly_the_low_bands(rng, degree):
     coeffs = rng.normal(size=(50, 16, 3))
