@@ -11,7 +11,8 @@ conversion made for classic rendering; baking fits SH of degree 3 (geometry and 
 core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
 reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
 so), from the same Cycles views, and those splats fitted further (positions, shapes, opacities and
-SH) by GEOMETRY_STEPS Adam steps through core.render_grad's backward pass (core.bake.bake_splats);
+SH) by GEOMETRY_STEPS Adam steps through core.render_grad's backward pass (core.bake.bake_splats),
+and the same from DENSER times as many Cycles views;
 and once more with the held-out views (rendered as the bake inputs
 are) added as a camera path the user renders from, weighted by core.bake.path_weights: not held
 out there, the row says what a bake along the user's own views gives at them. For the sphere, a
@@ -37,7 +38,7 @@ from common import Row, Timing, print_rows  # noqa: E402
 from mesh2splats import (DISTANCES, blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
                          held_out_cameras, sphere_texture, uv_sphere, versus, write_obj)
 
-from splatwright.core.bake import bake_sh, bake_splats, bake_views, path_weights  # noqa: E402
+from splatwright.core.bake import VIEWS_PER_DISTANCE, bake_sh, bake_splats, bake_views, path_weights  # noqa: E402
 from splatwright.core.camera import Camera, spread_along  # noqa: E402
 from splatwright.core.kinematics import axis_angle_matrices  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
@@ -48,6 +49,7 @@ REFERENCE_SAMPLES = 64
 BAKE_SAMPLES = 16
 DEGREE = 3
 GEOMETRY_STEPS = 1000
+DENSER = 2
 
 
 def bench_meshes(folder, quick):
@@ -91,13 +93,25 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
                                "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}"}))
         if made_for == ", made for antialiased rendering":
             rows.append(geometry_row(name, baked, views, images, held, references, cycles_s + bake_s, common))
+    rows.append(denser_row(name, mesh, size, antialiased, held, references, folder, iterations, common))
     if name == "textured sphere":
         rows += turn_rows(name, mesh, [cam for d, cam in held if d == 1.0][1], antialiased, views, images, render_s,
                           folder, iterations)
     return rows
 
 
-def geometry_row(name, baked, views, images, held, references, before_s, common):
+def denser_row(name, mesh, size, splats, held, references, folder, iterations, common):
+    """The antialiased splats baked from DENSER times the default views per distance, then fitted
+    by GEOMETRY_STEPS steps (the add-on's Bake Views and Bake Geometry Steps)."""
+    views = bake_views(mesh.vertices, size, count=DENSER * VIEWS_PER_DISTANCE)
+    images, cycles_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
+    start = time.perf_counter()
+    baked = bake_sh(splats, views, images, degree=DEGREE, iterations=iterations)
+    return geometry_row(name, baked, views, images, held, references, cycles_s + time.perf_counter() - start,
+                        common, f", from {len(views)} views")
+
+
+def geometry_row(name, baked, views, images, held, references, before_s, common, label=""):
     """The SH bake's splats fitted further by GEOMETRY_STEPS Adam steps (core.bake.bake_splats):
     positions, shapes, opacities and SH, from the same Cycles views."""
     info = {}
@@ -105,7 +119,7 @@ def geometry_row(name, baked, views, images, held, references, before_s, common)
     fitted = bake_splats(baked, views, images, steps=GEOMETRY_STEPS, info=info)
     fit_s = time.perf_counter() - start
     after = by_distance(fitted, held, references)
-    return Row(TOPIC, f"{name}: baked (SH {DEGREE}), antialiased, then {GEOMETRY_STEPS} steps fitting the splats",
+    return Row(TOPIC, f"{name}: baked (SH {DEGREE}), antialiased{label}, then {GEOMETRY_STEPS} steps fitting the splats",
                Timing(before_s + fit_s, 0.0, 1),
                error={**after, "worst dB": min(after[f"dB {d:g}x"] for d in DISTANCES)},
                extra={**common, "views": len(views), "fit s": f"{fit_s:.1f}",
