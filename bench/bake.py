@@ -12,9 +12,8 @@ core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, w
 reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
 so), from the same Cycles views, and those splats fitted further (positions, shapes, opacities and
 SH) by GEOMETRY_STEPS Adam steps through core.render_grad's backward pass (core.bake.bake_splats),
-and the same from DENSER times as many Cycles views;
-and once more with the held-out views (rendered as the bake inputs
-are) added as a camera path the user renders from, weighted by core.bake.path_weights: not held
+then the same from DENSER times as many Cycles views; and once more with the held-out views
+(rendered as the bake inputs are) added as a camera path the user renders from, weighted by core.bake.path_weights: not held
 out there, the row says what a bake along the user's own views gives at them. For the sphere, a
 camera path: still at a 1x held-out view for 50 frames, then turning 90 degrees around the mesh over
 50, baked from four of its frames spread evenly, four spread by how much the view changes

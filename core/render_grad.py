@@ -311,7 +311,7 @@ class _Tile:
         dx, dy = self.dx, self.dy
         A, B, C = p.conic[m].astype(self.dtype).T
         acc[m, CONIC] += np.stack([-0.5 * (g_power * dx * dx).sum(0), -(g_power * dx * dy).sum(0),
-                                     -0.5 * (g_power * dy * dy).sum(0)], 1)
+                                   -0.5 * (g_power * dy * dy).sum(0)], 1)
         acc[m, UV] += np.stack([(g_power * (A * dx + B * dy)).sum(0), (g_power * (C * dy + B * dx)).sum(0)], 1)
 
 

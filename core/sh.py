@@ -97,7 +97,7 @@ def basis_gradient(weights, directions):
         gy = gy + 3 * a * (xx - yy) + b * x * z + c * (4 * zz - xx - 3 * yy) - 6 * e * y * z - 2 * f * x * y \
             - 2 * g * y * z - 6 * h * x * y
         gz = gz + b * x * y + 8 * c * y * z + e * (6 * zz - 3 * xx - 3 * yy) + 8 * f * x * z + g * (xx - yy)
-    grad = np.stack([gx, gy, gz], axis=-1) * np.ones_like(u)        # d/du
+    grad = np.stack([gx, gy, gz], axis=-1)        # d/du
     return (grad - (grad * u).sum(-1, keepdims=True) * u) / norm
 
 
