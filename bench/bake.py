@@ -13,8 +13,8 @@ reference renders and of the fit; baked again on splats made for antialiased ren
 so), from the same Cycles views, and those splats fitted further (positions, shapes, opacities and
 SH) by GEOMETRY_STEPS Adam steps through core.render_grad's backward pass (core.bake.bake_splats),
 then the same from DENSER times as many Cycles views; and once more with the held-out views
-(rendered as the bake inputs are) added as a camera path the user renders from, weighted by core.bake.path_weights: not held
-out there, the row says what a bake along the user's own views gives at them. For the sphere, a
+(rendered as the bake inputs are) added as a camera path the user renders from, weighted by
+core.bake.path_weights: not held out there, the row says what a bake along the user's own views gives at them. For the sphere, a
 camera path: still at a 1x held-out view for 50 frames, then turning 90 degrees around the mesh over
 50, baked from four of its frames spread evenly, four spread by how much the view changes
 (core.camera.spread_along) and as many as the add-on's bake spacing takes, measured at 13 frames
@@ -118,7 +118,8 @@ def geometry_row(name, baked, views, images, held, references, before_s, common,
     fitted = bake_splats(baked, views, images, steps=GEOMETRY_STEPS, info=info)
     fit_s = time.perf_counter() - start
     after = by_distance(fitted, held, references)
-    return Row(TOPIC, f"{name}: baked (SH {DEGREE}), antialiased{label}, then {GEOMETRY_STEPS} steps fitting the splats",
+    return Row(TOPIC, f"{name}: baked (SH {DEGREE}), antialiased{label}, then {GEOMETRY_STEPS} steps fitting "
+                      "the splats",
                Timing(before_s + fit_s, 0.0, 1),
                error={**after, "worst dB": min(after[f"dB {d:g}x"] for d in DISTANCES)},
                extra={**common, "views": len(views), "fit s": f"{fit_s:.1f}",

@@ -126,7 +126,8 @@ def _check_kernels(kernels):
         images = [np.zeros(target.shape), np.zeros(target.shape)]
         got = _compiled_tiles(kernels, proj, tiles, jobs, target, bg, None, images[0])
         want = _numpy_tiles(None, proj, tiles, jobs, target, bg, np.float64, images[1])
-        if not (np.allclose(images[0], images[1], atol=1e-9) and np.allclose(got, want, atol=1e-9 * np.abs(want).max())):
+        if not (np.allclose(images[0], images[1], atol=1e-9)
+                and np.allclose(got, want, atol=1e-9 * np.abs(want).max())):
             raise RuntimeError("the compiled backward kernel disagrees with the NumPy path on a test scene")
 
 

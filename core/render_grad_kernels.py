@@ -51,8 +51,8 @@ def tile_passes(jobs, tiles, starts, ends, members, tile, width, height, uv, con
                 image[y, x, ch] = c
                 grad[p, ch] = scale * (c - target[y, x, ch])
                 behind[p] += t[p] * grad[p, ch] * bg[ch]
-        _backward(starts[job], last, members, x0, y0, tw, th, uv, conic, opacity, floor, box, rgb, t, stop, grad, behind,
-                  acc)
+        _backward(starts[job], last, members, x0, y0, tw, th, uv, conic, opacity, floor, box, rgb, t, stop, grad,
+                  behind, acc)
 
 
 @njit
