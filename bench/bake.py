@@ -2,23 +2,29 @@
 Base Color only, at held-out views.
 
 The scene: bench/mesh2splats.py's meshes with Principled BSDF materials (their base colours and
-textures, Blender's default roughness 0.5), a sun and an area light, a dim world and two bounces, rendered by Blender
-Cycles on the CPU (headless bpy in a subprocess, 'Standard' view transform, denoised, the world
-transparent to the camera so images come over black). References: 64 samples at mesh2splats' nine
-held-out views (three each at 0.5x, 1x, 3x the framing distance). Bake inputs: 16 samples at
-core.bake.bake_views' 96 views (32 per distance), none of them held out. Splats: a calibrated budget
-conversion made for classic rendering; baking fits SH of degree 3 (geometry and opacity kept) by
-core.bake.bake_sh. Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
-reference renders and of the fit; baked again on splats made for antialiased rendering (and rendered
-so), from the same Cycles views, and those splats fitted further (positions, shapes, opacities and
-SH) by GEOMETRY_STEPS Adam steps through core.render_grad's backward pass (core.bake.bake_splats),
-then the same from DENSER times as many Cycles views; and once more with the held-out views
-(rendered as the bake inputs are) added as a camera path the user renders from, weighted by
-core.bake.path_weights: not held out there, the row says what a bake along the user's own views gives at them. For the sphere, a
-camera path: still at a 1x held-out view for 50 frames, then turning 90 degrees around the mesh over
-50, baked from four of its frames spread evenly, four spread by how much the view changes
-(core.camera.spread_along) and as many as the add-on's bake spacing takes, measured at 13 frames
-along the turn.
+textures, Blender's default roughness 0.5), a sun and an area light, a dim world and two bounces,
+rendered by Blender Cycles on the CPU (headless bpy in a subprocess, 'Standard' view transform,
+denoised, the world transparent to the camera so images come over black). References: 64 samples
+at mesh2splats' nine held-out views (three each at 0.5x, 1x, 3x the framing distance). Bake inputs:
+16 samples at core.bake.bake_views' 96 views (32 per distance), none of them held out. Splats: a
+calibrated budget conversion made for classic rendering; baking fits SH of degree 3 (geometry and
+opacity kept) by core.bake.bake_sh.
+
+Rows: Base Color only (the converter's colours), and baked, with the seconds of the Cycles
+reference renders and of the fit; baked again on splats made for antialiased rendering (and
+rendered so), from the same Cycles views, and those splats fitted further (positions, shapes,
+opacities and SH) by GEOMETRY_STEPS Adam steps through core.render_grad's backward pass
+(core.bake.bake_splats); the same two from DENSER times as many Cycles views; and once more with
+the held-out views (rendered as the bake inputs are) added as a camera path the user renders from,
+weighted by core.bake.path_weights: not held out there, the row says what a bake along the user's
+own views gives at them. Each fitted row also gives its worst fitted view, the lowest PSNR among
+the views it was fitted to: where that is low, the look is beyond what the splats can hold even
+where they were shown it.
+
+For the sphere, a camera path: still at a 1x held-out view for 50 frames, then turning 90 degrees
+around the mesh over 50, baked from four of its frames spread evenly, four spread by how much the
+view changes (core.camera.spread_along) and as many as the add-on's bake spacing takes, measured at
+13 frames along the turn.
 
     python bench/bake.py [--quick]
 """
@@ -40,6 +46,7 @@ from mesh2splats import (DISTANCES, blender_primitives, by_distance, convert, cy
 from splatwright.core.bake import VIEWS_PER_DISTANCE, bake_sh, bake_splats, bake_views, path_weights  # noqa: E402
 from splatwright.core.camera import Camera, spread_along  # noqa: E402
 from splatwright.core.kinematics import axis_angle_matrices  # noqa: E402
+from splatwright.core.metrics import psnr_from_mse  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
 
@@ -68,10 +75,9 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
     views = bake_views(mesh.vertices, size)
     images, render_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
     base = by_distance(cloud, held, references)
-    worst = lambda e: min(e[f"dB {d:g}x"] for d in DISTANCES)  # noqa: E731
     common = {"splats": len(cloud), "faces": len(mesh.faces)}
-    rows = [Row(TOPIC, f"{name}: Base Color only", Timing(0.0, 0.0, 1), error={**base, "worst dB": worst(base)},
-                extra=common)]
+    rows = [Row(TOPIC, f"{name}: Base Color only", Timing(0.0, 0.0, 1),
+                error={**base, "worst dB": worst_distance(base)}, extra=common)]
     antialiased = convert(mesh, max_splats=budget, view_size=size, render_mode="antialiased", try_fewer=False)
     path, path_s = cycles_render(mesh, held_cameras, folder, samples=BAKE_SAMPLES, lit=True)
     runs = ((views, images, None, "", cloud, render_s),
@@ -79,35 +85,43 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
             (views + held_cameras, images + path, path_weights(len(views), len(held)),
              ", antialiased, the held-out views baked from too as a camera path", antialiased, render_s + path_s))
     for views_used, images_used, weights, made_for, splats, cycles_s in runs:
-        info = {}
-        start = time.perf_counter()
-        baked = bake_sh(splats, views_used, images_used, degree=DEGREE, iterations=iterations, weights=weights,
-                        info=info)
-        bake_s = time.perf_counter() - start
-        after = by_distance(baked, held, references)          # rendered in the mode it was made for
-        rows.append(Row(TOPIC, f"{name}: baked from Cycles (SH {DEGREE}){made_for}", Timing(cycles_s + bake_s, 0.0, 1),
-                        error={**after, "worst dB": worst(after)},
-                        extra={**common, "views": len(views_used), "Cycles s": f"{cycles_s:.1f}", "fit s": f"{bake_s:.1f}",
-                               "iterations": info["iterations"],
-                               "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}"}))
+        baked, row = sh_row(name, made_for, splats, views_used, images_used, weights, held, references, cycles_s,
+                            iterations, common)
+        rows.append(row)
         if made_for == ", made for antialiased rendering":
-            rows.append(geometry_row(name, baked, views, images, held, references, cycles_s + bake_s, common))
-    rows.append(denser_row(name, mesh, size, antialiased, held, references, folder, iterations, common))
+            rows.append(geometry_row(name, baked, views, images, held, references, row.timing.median, common))
+    rows += denser_rows(name, mesh, size, antialiased, held, references, folder, iterations, common)
     if name == "textured sphere":
         rows += turn_rows(name, mesh, [cam for d, cam in held if d == 1.0][1], antialiased, views, images, render_s,
                           folder, iterations)
     return rows
 
 
-def denser_row(name, mesh, size, splats, held, references, folder, iterations, common):
-    """The antialiased splats baked from DENSER times the default views per distance, then fitted
-    by GEOMETRY_STEPS steps (the add-on's Bake Views and Bake Geometry Steps)."""
+def sh_row(name, made_for, splats, views, images, weights, held, references, cycles_s, iterations, common):
+    """`splats` with SH fitted to the Cycles `images` (core.bake.bake_sh), and its row; the row's
+    seconds are the Cycles views' and the fit's."""
+    info = {}
+    start = time.perf_counter()
+    baked = bake_sh(splats, views, images, degree=DEGREE, iterations=iterations, weights=weights, info=info)
+    bake_s = time.perf_counter() - start
+    after = by_distance(baked, held, references)          # rendered in the mode it was made for
+    return baked, Row(TOPIC, f"{name}: baked from Cycles (SH {DEGREE}){made_for}", Timing(cycles_s + bake_s, 0.0, 1),
+                      error={**after, "worst dB": worst_distance(after)},
+                      extra={**common, "views": len(views), "Cycles s": f"{cycles_s:.1f}", "fit s": f"{bake_s:.1f}",
+                             "iterations": info["iterations"],
+                             "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
+                             "worst fitted view dB": worst_fitted(baked, views, images)})
+
+
+def denser_rows(name, mesh, size, splats, held, references, folder, iterations, common):
+    """The antialiased splats baked from DENSER times the default views per distance (the add-on's
+    Bake Views), then fitted by GEOMETRY_STEPS steps (its Bake Geometry Steps)."""
     views = bake_views(mesh.vertices, size, count=DENSER * VIEWS_PER_DISTANCE)
     images, cycles_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
-    start = time.perf_counter()
-    baked = bake_sh(splats, views, images, degree=DEGREE, iterations=iterations)
-    return geometry_row(name, baked, views, images, held, references, cycles_s + time.perf_counter() - start,
-                        common, f", from {len(views)} views")
+    label = f", antialiased, from {len(views)} views"
+    baked, row = sh_row(name, label, splats, views, images, None, held, references, cycles_s, iterations, common)
+    return [row, geometry_row(name, baked, views, images, held, references, row.timing.median, common,
+                              f", from {len(views)} views")]
 
 
 def geometry_row(name, baked, views, images, held, references, before_s, common, label=""):
@@ -121,9 +135,20 @@ def geometry_row(name, baked, views, images, held, references, before_s, common,
     return Row(TOPIC, f"{name}: baked (SH {DEGREE}), antialiased{label}, then {GEOMETRY_STEPS} steps fitting "
                       "the splats",
                Timing(before_s + fit_s, 0.0, 1),
-               error={**after, "worst dB": min(after[f"dB {d:g}x"] for d in DISTANCES)},
+               error={**after, "worst dB": worst_distance(after)},
                extra={**common, "views": len(views), "fit s": f"{fit_s:.1f}",
-                      "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}"})
+                      "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
+                      "worst fitted view dB": worst_fitted(fitted, views, images)})
+
+
+def worst_distance(error):
+    return min(error[f"dB {d:g}x"] for d in DISTANCES)
+
+
+def worst_fitted(cloud, views, images):
+    """The lowest PSNR among the views the splats were fitted to."""
+    return round(min(psnr_from_mse(np.mean((render(cloud, cam).color - image) ** 2))
+                     for cam, image in zip(views, images)), 1)
 
 
 def turning_path(mesh, start):
