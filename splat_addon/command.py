@@ -164,8 +164,9 @@ def parser():
                         f"(0-{from_mesh.MAX_BAKE_DEGREE}; default {from_mesh.BAKE_DEGREE})")
     p.add_argument("--bake-geometry-steps", type=_in_range(0, from_mesh.MAX_BAKE_GEOMETRY_STEPS), metavar="N",
                    help="rendered: after the colours, steps fitting the splats' positions, shapes and opacities to "
-                        "the Cycles views too (truer look between the views; about 0.2 s a step for 20k splats at "
-                        "256 px, 0.9 s without numba; default 0, colours only)")
+                        "the Cycles views too (truer look between the views where it is shading, though close-ups "
+                        "of glossy facets can lose; about 0.2 s a step for 20k splats at 256 px, 0.9 s without "
+                        "numba; default 0, colours only)")
 
     p = verbs.add_parser("collide", help="check two splat objects for contact over a frame range")
     p.add_argument("object_a", help="a splat object (e.g. a rigged avatar)")

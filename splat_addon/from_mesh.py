@@ -719,8 +719,9 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
     bake_geometry_steps: IntProperty(name="Bake Geometry Steps", default=0, min=0, max=MAX_BAKE_GEOMETRY_STEPS,
                                      description="After the colours, steps fitting the splats' positions, shapes and "
                                                  "opacities to the Cycles views too: a truer look between the "
-                                                 "views, about 0.2 s a step for 20k splats at 256 px, 0.9 s "
-                                                 "without numba (Rendered; 0: colours only)")
+                                                 "views where it is shading (close-ups of glossy facets can lose), "
+                                                 "about 0.2 s a step for 20k splats at 256 px, 0.9 s without numba "
+                                                 "(Rendered; 0: colours only)")
 
     @classmethod
     def poll(cls, context):
