@@ -40,8 +40,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from common import Row, Timing, print_rows  # noqa: E402
-from mesh2splats import (DISTANCES, blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
-                         held_out_cameras, sphere_texture, uv_sphere, versus, write_obj)
+from mesh2splats import (blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
+                         held_out_cameras, sphere_texture, uv_sphere, versus, worst_distance, write_obj)
 
 from splatwright.core.bake import VIEWS_PER_DISTANCE, bake_sh, bake_splats, bake_views, path_weights  # noqa: E402
 from splatwright.core.camera import Camera, spread_along  # noqa: E402
@@ -139,10 +139,6 @@ def geometry_row(name, baked, views, images, held, references, before_s, common,
                extra={**common, "views": len(views), "fit s": f"{fit_s:.1f}",
                       "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
                       "worst fitted view dB": worst_fitted(fitted, views, images)})
-
-
-def worst_distance(error):
-    return min(error[f"dB {d:g}x"] for d in DISTANCES)
 
 
 def worst_fitted(cloud, views, images):

@@ -411,6 +411,11 @@ def by_distance(cloud, cams, references):
     return out
 
 
+def worst_distance(error):
+    """The lowest of by_distance's per-distance dB."""
+    return min(error[f"dB {d:g}x"] for d in DISTANCES)
+
+
 # the default conversion against the converter before its speed-up ----------------------------------
 
 OTHER_MODE = "antialiased" if DEFAULT_RENDER_MODE == "classic" else "classic"
@@ -453,7 +458,7 @@ def speed_before_row(name, mesh, size, cams, references, quick):
         cloud, info = runs[key]
         held = by_distance(cloud, cams, references)
         error[f"{prefix}own worst dB"] = info["psnr"]
-        error[f"{prefix}held-out worst dB"] = min(held[f"dB {d:g}x"] for d in DISTANCES)
+        error[f"{prefix}held-out worst dB"] = worst_distance(held)
     return Row(TOPIC, f"{name}: classic conversion, CPU s, against {SPEED_BEFORE} (before the speed-up)", ours,
                base, error=error, extra={"faces": len(mesh.faces), "splats": len(runs["ours"][0]),
                                          "splats before": len(runs["before"][0])})
@@ -492,14 +497,14 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
         cloud = convert(mesh, max_splats=n, view_size=size, info=info)
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
-        curve["calibrated"].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
+        curve["calibrated"].append((n, worst_distance(error)))
         rows.append(Row(TOPIC, f"{name}: budget {n}", Timing(seconds, 0.0, 1), error=error,
                         extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"}))
         start = time.perf_counter()
         cloud = convert(mesh, max_splats=n, calibrate=False)
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
-        curve["before"].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
+        curve["before"].append((n, worst_distance(error)))
         rows.append(Row(TOPIC, f"{name}: budget {n}, uncalibrated (as before)", Timing(seconds, 0.0, 1),
                         error=error, extra={"splats": n}))
         info = {}
@@ -507,7 +512,7 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
         cloud = convert(mesh, max_splats=n, view_size=size, info=info, render_mode=OTHER_MODE)
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
-        curve[OTHER_MODE].append((n, min(error[f"dB {d:g}x"] for d in DISTANCES)))
+        curve[OTHER_MODE].append((n, worst_distance(error)))
         rows.append(Row(TOPIC, f"{name}: budget {n}, made for {OTHER_MODE} rendering", Timing(seconds, 0.0, 1),
                         error=error, extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"}))
     return rows, curve, (cams, references, cycles_s)
