@@ -24,6 +24,7 @@ from ..core import geometry, sh as shmod
 from ..core.bake import (DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_splats_steps, bake_views,
                          path_weights)
 from ..core.camera import blender_lens, opengl_camera_to_world
+from ..core.mesh_refine import mapped_steps
 from . import data
 
 TEMPORARY = "splatwright_bake"
@@ -64,12 +65,7 @@ def bake_steps(scene, obj, cloud, vertices, *, samples=16, count=VIEWS_PER_DISTA
 
 def _relabelled(steps, offset, total, what):
     """Pass a core generator's (done, total, label) on as a bake's steps from `offset`; returns its value."""
-    while True:
-        try:
-            done, count, _ = next(steps)
-        except StopIteration as stop:
-            return stop.value
-        yield offset + done, total, f"bake: {what} {done}/{count}"
+    return mapped_steps(steps, lambda done, count, _: (offset + done, total, f"bake: {what} {done}/{count}"))
 
 
 def render_view(scene, obj, cam, samples, path):

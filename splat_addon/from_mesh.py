@@ -34,7 +34,7 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from ..core import geometry
 from ..core.camera import Camera, spread_along
 from ..core.mesh import Material
-from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, summary
+from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, mapped_steps, summary
 from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
 from ..core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
 from ..core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
@@ -524,12 +524,8 @@ class ConversionJob:
 def _scaled(steps, start, share):
     """The steps of a generator with its (done, total) as a fraction start + share * done / total of 1;
     returns its value."""
-    while True:
-        try:
-            done, total, label = next(steps)
-        except StopIteration as stop:
-            return stop.value
-        yield start + share * (done / total if total else 1.0), 1.0, label
+    return mapped_steps(steps, lambda done, total, label: (start + share * (done / total if total else 1.0), 1.0,
+                                                           label))
 
 
 def convert_objects(context, objects, *, max_splats=None, target_psnr=None, calibrate=True, use_rest_pose=True,
