@@ -19,7 +19,8 @@ a point cloud with
     position              FLOAT_VECTOR centres
     scale                 FLOAT_VECTOR per-axis standard deviations, linear
     rotation              QUATERNION   w, x, y, z
-    radiance:base         FLOAT_COLOR  SH DC (r, g, b) and the opacity after the sigmoid
+    radiance:base         FLOAT4       SH DC (r, g, b) and the opacity after the sigmoid (Blender 5.3
+                          writes FLOAT4; FLOAT_COLOR, from hand-built clouds of earlier versions, is read)
     radiance:sh_<j>       FLOAT_VECTOR SH coefficient j + 1, 3DGS order
     .splatwright_log_scale, .splatwright_opacity_logit   the exact log-scales and logits, when
                           Splatwright wrote the values: used only while exp and the sigmoid of them
@@ -77,6 +78,7 @@ _TYPES = {
     "FLOAT_VECTOR": ("vector", 3, np.float32),
     "QUATERNION": ("value", 4, np.float32),
     "FLOAT_COLOR": ("color", 4, np.float32),
+    "FLOAT4": ("vector", 4, np.float32),
     "INT": ("value", 1, np.int32),
     "BOOLEAN": ("value", 1, bool),
 }
@@ -221,7 +223,8 @@ def _sh_count(geometry, prefix, offset, owner):
     missing = sorted(set(range(stored)) - present)
     if count not in shmod.VALID_COUNTS or missing:
         raise SplatObjectError(f"'{owner}': SH attributes {prefix}0..{stored - 1} do not form a full degree "
-                               f"(found {count} coefficients, missing {missing or 'none'}; need 1, 4, 9 or 16)")
+                               f"(found {count} coefficients, missing {missing or 'none'}; need one of "
+                               f"{', '.join(map(str, shmod.VALID_COUNTS))})")
     return count
 
 
@@ -265,7 +268,7 @@ def _write_native_form(pointcloud, cloud, prefix=""):
     base = np.empty((len(cloud), 4), np.float32)
     base[:, :3] = cloud.sh[:, 0]
     base[:, 3] = sigmoid(cloud.opacity_logits)
-    _set(pointcloud, prefix + NATIVE_BASE, "FLOAT_COLOR", base)
+    _set(pointcloud, prefix + NATIVE_BASE, base_type(), base)
     sh_prefix = prefix + NATIVE_SH_PREFIX
     by_coefficient = _coefficient_major(cloud.sh)
     for k in range(1, cloud.sh.shape[1]):
@@ -283,7 +286,7 @@ def _read_native_form(pointcloud, owner):
     prefix = REST_PREFIX if is_posed_native(pointcloud) else ""
     count = _sh_count(pointcloud, prefix + NATIVE_SH_PREFIX, 1, owner)
     sh = _read_sh(pointcloud, prefix + NATIVE_SH_PREFIX, 1, owner, count)
-    base = _get(pointcloud, prefix + NATIVE_BASE, ("FLOAT_COLOR", "QUATERNION"), owner)
+    base = _get(pointcloud, prefix + NATIVE_BASE, BASE_TYPES, owner)
     sh[:, 0] = base[:, :3]
     scales = _get(pointcloud, prefix + NATIVE_SCALE, "FLOAT_VECTOR", owner)
     return dict(positions=_get(pointcloud, prefix + "position", "FLOAT_VECTOR", owner),
@@ -310,6 +313,16 @@ def show_posed(obj, posed):
     """Write `posed` (object space) into the native attributes Blender draws; the rest pose stays."""
     _write_native_form(obj.data, posed)
     _changed(obj.data)
+
+
+BASE_TYPES = ("FLOAT4", "FLOAT_COLOR", "QUATERNION")     # what radiance:base may be: four floats
+
+
+def base_type():
+    """The type Blender 5.3's importers give radiance:base (FLOAT4), where this Blender has it; else a
+    colour, the four-float type of earlier versions."""
+    types = bpy.types.Attribute.bl_rna.properties["data_type"].enum_items.keys()
+    return "FLOAT4" if "FLOAT4" in types else "FLOAT_COLOR"
 
 
 def native_log_scales(scales):
