@@ -105,7 +105,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
             raise SplatFileError(blocked, "a folder of that name is in the way")
         with publish_together():             # each frame lands on its name once all are written
             for out, cloud in zip(written, clouds()):
-                write_splats(out, cloud, **options.writer_options(out))
+                write_splats(out, cloud, **options.writer_options(out, cloud))
         return written
     finally:
         scene.frame_set(current, subframe=subframe)

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import bpy
 
+from ..core import sh as shmod
 from ..io import DEFAULT_EXTENSIONS, FORMATS, format_of, write_splats
 from ..io.common import atomic_write
 from . import animation, collide, data, engine, from_mesh, mesh_layer, operators, preferences
@@ -100,7 +101,7 @@ def parser():
     p.add_argument("--objects", help=objects_help)
     p.add_argument("--axis-forward", choices=("X", "Y", "Z", "-X", "-Y", "-Z"), help="file forward axis")
     p.add_argument("--axis-up", choices=("X", "Y", "Z", "-X", "-Y", "-Z"), help="file up axis")
-    p.add_argument("--sh-degree", type=int, choices=range(4),
+    p.add_argument("--sh-degree", type=int, choices=range(shmod.MAX_DEGREE + 1),
                    help="reduce the SH to this degree (default: the preferences', else as the splats have it)")
     p.add_argument("--spz-version", type=int, choices=(2, 3, 4), help="SPZ version (default: the preferences', 3)")
     p.add_argument("--half", action=argparse.BooleanOptionalAction, default=None,

@@ -58,6 +58,11 @@ SOURCE_EXTRAS = ("source_triangle", "barycentric", "source_vertices")
 
 MESH_FORM, NATIVE_FORM = "MESH", "NATIVE"
 
+# Where a splat datablock's values stand (datablock property; see landed_raw): "RAW" when they are a
+# file's own axes placed as they are, as Blender's PLY importer places captures; "UPRIGHT" otherwise.
+LANDING = "splatwright_landing"
+SPZ_POSITION_BITS = 24                 # SPZ stores centres as 24-bit signed fixed point
+
 ROTATION = "splat_rotation"
 LOG_SCALE = "splat_log_scale"
 OPACITY = "splat_opacity_logit"
@@ -306,6 +311,7 @@ def is_posed_native(pointcloud):
 def keep_rest_pose(obj):
     """From now on `obj`'s native attributes show it posed: its own splats move to the rest attributes."""
     if not is_posed_native(obj.data):
+        stamp_landing(obj)
         _write_native_form(obj.data, object_cloud(obj), REST_PREFIX)
 
 
@@ -347,6 +353,44 @@ def _exact_or(pointcloud, name, kind, owner, linear, from_linear):
             if np.array_equal(activated.astype(np.float32), linear):
                 return exact
     return from_linear(linear)
+
+
+# where the values stand -------------------------------------------------------------------------------
+
+def landed_raw(obj):
+    """Whether `obj`'s own splats are a file's axes placed as they are (a capture lying on its side):
+    what Blender's PLY importer makes, while Splatwright's importers and Blender's SPZ importer stand
+    captures upright. Exports write such splats in those axes, so the file comes back as it was.
+
+    Splatwright records the answer on every datablock it makes or changes (LANDING). Blender's
+    importers record nothing: their clouds are told apart by SPZ's fixed-point grid, which the SPZ
+    importer's centres lie on and a PLY's float32 centres (past a handful) do not."""
+    stamp = obj.data.get(LANDING) if obj is not None and obj.data is not None else None
+    if stamp is not None:
+        return stamp == "RAW"
+    if splat_form(obj) != NATIVE_FORM or EXACT_LOG_SCALE in obj.data.attributes:
+        return False
+    return not on_spz_grid(_get(obj.data, "position", "FLOAT_VECTOR", obj.name))
+
+
+def on_spz_grid(positions):
+    """Whether every centre is a multiple of one power of two 2^-k with all of them inside SPZ's 24-bit
+    signed range at that k, as centres an SPZ file held are (k is the file's fractional bits)."""
+    values = np.asarray(positions, dtype=np.float64).ravel()
+    values = values[values != 0]
+    if values.size == 0:
+        return True
+    fraction, exponent = np.frexp(values)               # values = fraction 2^exponent, 0.5 <= |fraction| < 1
+    mantissa = np.abs(fraction * 2.0 ** 53).astype(np.uint64)
+    trailing = np.log2((mantissa & (~mantissa + np.uint64(1))).astype(np.float64))
+    bits_needed = np.maximum(53 - exponent - trailing, 0).max()
+    return bool(np.abs(values).max() * 2.0 ** bits_needed < 2.0 ** (SPZ_POSITION_BITS - 1))
+
+
+def stamp_landing(obj, raw=None):
+    """Record where `obj`'s splats stand before Splatwright changes them (afterwards they no longer
+    look like what an importer made): `raw`, or what landed_raw finds now."""
+    obj.data[LANDING] = "RAW" if (landed_raw(obj) if raw is None else raw) else "UPRIGHT"
 
 
 # extras -----------------------------------------------------------------------------------------------
@@ -530,6 +574,7 @@ def _mark_gaussian(pointcloud):
 def update_splats(obj, cloud):
     """Overwrite a splat object's own values with `cloud` (same splat count, e.g. after a transform)."""
     geometry, form = obj.data, splat_form(obj)
+    stamp_landing(obj)
     if len(cloud) != splat_count(geometry):
         raise SplatObjectError(f"'{obj.name}' has {splat_count(geometry)} splats, the cloud has {len(cloud)}")
     if form == MESH_FORM:

@@ -9,8 +9,12 @@ from bpy.props import FloatProperty
 from bpy_extras.io_utils import ExportHelper
 
 from ..core import economy
+from ..core import sh as shmod
 from ..io import format_of
 from . import preferences
+
+
+SPZ_VERSION_OF_DEGREE_4 = 4       # SPZ versions before 4 hold SH up to degree 3
 
 
 @dataclass(frozen=True)
@@ -21,8 +25,8 @@ class ExportOptions:
     prune_opacity: float = 0.0     # splats whose opacity is below this are left out (0: none)
 
     def __post_init__(self):
-        if self.sh_degree is not None and self.sh_degree not in range(4):
-            raise ValueError(f"SH degree must be 0..3, got {self.sh_degree}")
+        if self.sh_degree is not None and self.sh_degree not in range(shmod.MAX_DEGREE + 1):
+            raise ValueError(f"SH degree must be 0..{shmod.MAX_DEGREE}, got {self.sh_degree}")
         if self.spz_version not in (2, 3, 4):
             raise ValueError(f"SPZ version must be 2, 3 or 4, got {self.spz_version}")
         if not 0.0 <= self.prune_opacity <= 1.0:
@@ -41,11 +45,14 @@ class ExportOptions:
             cloud = cloud.with_sh_degree(self.sh_degree)
         return cloud
 
-    def writer_options(self, path):
-        """Keyword arguments for write_splats of `path`: the options its format takes."""
+    def writer_options(self, path, cloud=None):
+        """Keyword arguments for write_splats of `cloud` to `path`: the options its format takes. SPZ
+        Version is the lowest version written: degree 4, which only v4 holds, is written as v4 (an SH
+        Degree of 3 keeps older readers' versions)."""
         fmt = format_of(path)
         if fmt == "spz":
-            return {"version": self.spz_version}
+            return {"version": max(self.spz_version, SPZ_VERSION_OF_DEGREE_4) if cloud is not None and cloud.sh_degree == 4
+                    else self.spz_version}
         if fmt == "usd":
             return {"half": self.half}
         return {}

@@ -25,6 +25,11 @@ FILE_FORWARD, FILE_UP = "Z", "-Y"
 EXPECTED_ERRORS = (SplatFileError, SplatValidationError, data.SplatObjectError, OSError, ValueError)
 
 
+def upright():
+    """The Blender placement of a file's axes by default (file x, y, z -> Blender x, z, -y)."""
+    return np.array(axis_conversion(from_forward=FILE_FORWARD, from_up=FILE_UP).to_4x4(), dtype=np.float64)
+
+
 def export_conversion(forward=None, up=None):
     """The Blender -> file axis matrix: the given axes, else the default (a 3DGS capture's axes).
     The same for every format: the io layer turns the model's axes into each format's own (OpenUSD
@@ -175,7 +180,11 @@ def scene_cloud(context, objects, conversion, keep_source=False):
     are kept; the from-mesh bookkeeping (data.SOURCE_EXTRAS) only when `keep_source` (the output of a
     conversion, which a pipeline may bind later)."""
     depsgraph = context.evaluated_depsgraph_get()
+    # Splats that landed in a file's own axes (data.landed_raw) stand as if imported upright: written
+    # with the default axes, their world coordinates are the file's, and the file comes back as it was.
     instances = scene_instances(depsgraph, objects)
+    raw = {obj.name for obj in {obj for obj, _ in instances} if data.landed_raw(obj)}
+    instances = [(obj, upright() @ matrix if obj.name in raw else matrix) for obj, matrix in instances]
     if not instances:
         return SplatCloud.empty()
     cloud = data.instances_cloud(depsgraph, instances, np.array(conversion, dtype=np.float64))
@@ -212,7 +221,7 @@ class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHel
                 cloud = finite_for_export(path, cloud, self.drop_invalid, self.report)
                 options = self.export_options(context)
                 written = options.reduce(cloud)
-                write_splats(path, written, **options.writer_options(path))
+                write_splats(path, written, **options.writer_options(path, written))
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -312,6 +321,7 @@ class SPLAT_OT_join(bpy.types.Operator):
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         old = target.data
+        data.stamp_landing(made, data.landed_raw(target))
         target.data = made.data
         bpy.data.objects.remove(made)
         data.remove_geometry(old)
@@ -363,6 +373,7 @@ def convert_form(context, obj, form):
             collection.objects.link(made)
         made.parent, made.matrix_parent_inverse = obj.parent, obj.matrix_parent_inverse.copy()
         made.matrix_world = obj.matrix_world.copy()
+        data.stamp_landing(made, data.landed_raw(obj))
         data.remember_frame(made)
         if form == data.MESH_FORM:
             display.add_display(made, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))

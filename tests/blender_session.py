@@ -78,16 +78,22 @@ _WORKERS = {}        # test file -> (worker module, write_inputs)
 _POOL = None
 
 
-def blender_fixture(worker, write_inputs=None):
-    """The module-scoped fixture `blender` of a test module: one Session per Blender version, its
-    worker module run on a fresh folder that `write_inputs(folder)` (if given) filled first. The
-    workers themselves start when collection ends (see WorkerPool); the fixture waits for its own."""
+def blender_fixture(worker, write_inputs=None, since=None):
+    """The module-scoped fixture `blender` of a test module: one Session per Blender version (from
+    `since`, a version label, when what it tests came with that version), its worker module run on a
+    fresh folder that `write_inputs(folder)` (if given) filled first. The workers themselves start when
+    collection ends (see WorkerPool); the fixture waits for its own."""
     _WORKERS[Path(inspect.stack()[1].filename).resolve()] = (worker, write_inputs)
+    versions = [v for v in blender_envs.VERSIONS if since is None or _label(v) >= _label(since)]
 
-    @pytest.fixture(scope="module", params=list(blender_envs.VERSIONS))
+    @pytest.fixture(scope="module", params=versions)
     def blender(request):
         return _POOL.session(worker, request.param)
     return blender
+
+
+def _label(version):
+    return tuple(int(x) for x in version.split("."))
 
 
 class WorkerPool:

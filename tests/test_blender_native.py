@@ -1,0 +1,187 @@
+"""Blender 5.3's own splat point clouds, made by its PLY and SPZ importers, through Splatwright.
+
+The worker (tests/workers/native.py) opens files with `wm.ply_import` / `wm.spz_import` and passes
+the clouds to Splatwright's export, Apply Splat Transform, Join and render engine. Judged here:
+exports against the source files read by plyfile (an independent PLY reader) and by splatwright.io,
+transformed exports against float64 maps of the source, and each other format against our own writer
+given the source itself. Blender's PLY importer normalises quaternions as float32 q * (1 / |q|): the
+exported rotations are Blender's bit for bit, and the source's to that rounding.
+"""
+
+import numpy as np
+import pytest
+from blender_session import blender_fixture
+from helpers import covariances, format_errors, read
+from workers.native import MOVES
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+PLY_FIELDS = {"positions": ["x", "y", "z"], "log_scales": ["scale_0", "scale_1", "scale_2"],
+              "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"], "opacity_logits": ["opacity"]}
+
+
+def _cloud(n, degree, seed, spread=1.0):
+    from splatwright.core import SplatCloud
+    rng = np.random.default_rng(seed)
+    return SplatCloud(rng.normal(0, spread, (n, 3)), rng.normal(size=(n, 4)) * rng.uniform(0.5, 2, (n, 1)),
+                      rng.uniform(-4, -1.5, (n, 3)), rng.normal(0, 2, n), rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)))
+
+
+def _write_inputs(work):
+    from splatwright.io import write_splats
+    for degree in (3, 4):
+        write_splats(work / f"src{degree}.ply", _cloud(400, degree, degree))
+    write_splats(work / "other.ply", _cloud(100, 3, 7, spread=2.0))
+    write_splats(work / "src.spz", _cloud(300, 3, 8))
+    scene = _cloud(300, 3, 9, spread=0.6)
+    scene.log_scales[:] = np.random.default_rng(10).uniform(-3.2, -2.0, scene.log_scales.shape)
+    write_splats(work / "scene.ply", scene)
+
+
+blender = blender_fixture("workers.native", _write_inputs, since="5.3")
+
+
+def ply_columns(path):
+    """Every vertex property of a PLY, float64, read by plyfile."""
+    from plyfile import PlyData
+    vertex = PlyData.read(str(path))["vertex"]
+    return {p.name: np.asarray(vertex[p.name], np.float64) for p in vertex.properties}
+
+
+def blender_normalised(q):
+    """Quaternions as Blender's PLY importer stores them: float32 q * (1 / sqrt(sum q^2))."""
+    q = np.asarray(q, np.float32)
+    return q * (np.float32(1) / np.sqrt((q * q).sum(axis=1, keepdims=True)))
+
+
+def sigmoid(x):
+    return 1 / (1 + np.exp(-np.asarray(x, np.float64)))
+
+
+def test_blenders_import_is_a_native_splat_cloud(blender):
+    res = blender.step("blender_ply")
+    for degree in (3, 4):
+        assert res[str(degree)]["type"] == "POINTCLOUD" and res[str(degree)]["data_type"] == "GAUSSIAN_SPLAT"
+        assert res[str(degree)]["attributes"]["radiance:base"] == "FLOAT4"
+        assert f"radiance:sh_{(degree + 1) ** 2 - 2}" in res[str(degree)]["attributes"]
+        assert np.array_equal(res[str(degree)]["matrix_world"], np.eye(4))       # left where it landed
+
+
+@pytest.mark.parametrize("degree", [3, 4])
+def test_a_ply_blender_imported_exports_as_the_source_file(blender, degree):
+    res = blender.step("blender_ply")[str(degree)]
+    assert res["exports"][".ply"]["error"] is None
+    source, written = ply_columns(blender.work / f"src{degree}.ply"), ply_columns(blender.out / f"blender{degree}.ply")
+    exact = ["x", "y", "z", *(f"f_dc_{i}" for i in range(3)), *(f"f_rest_{i}" for i in range(3 * (degree + 1) ** 2 - 3))]
+    assert set(exact) <= set(written)
+    for name in exact:
+        np.testing.assert_array_equal(written[name], source[name], err_msg=name)
+    rotations = np.stack([written[f"rot_{i}"] for i in range(4)], axis=1)
+    np.testing.assert_array_equal(rotations, blender.npz(f"blender_rotation{degree}")["rotation"])
+    np.testing.assert_array_equal(rotations, blender_normalised(np.stack([source[f"rot_{i}"] for i in range(4)], 1)))
+    for i in range(3):       # log(float32(exp(s))): float32 round-off of the scale and of its log
+        np.testing.assert_allclose(written[f"scale_{i}"], source[f"scale_{i}"], rtol=0, atol=5e-7)
+    np.testing.assert_allclose(sigmoid(written["opacity"]), sigmoid(source["opacity"]), rtol=0, atol=1.2e-7)
+
+
+@pytest.mark.parametrize("ext", [".spz", ".usd", ".usda", ".splat", ".glb"])
+def test_every_format_writes_a_blender_imported_cloud_as_it_writes_the_source(blender, tmp_path, ext):
+    """Each format's own quantisation and degree limits, applied alike to Blender's cloud and the source."""
+    import warnings
+
+    from splatwright.io import write_splats
+    res = blender.step("blender_ply")
+    for degree in (3, 4):
+        assert res[str(degree)]["exports"][ext]["error"] is None, res[str(degree)]["exports"][ext]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")          # what the format cannot hold, said by both writers
+            write_splats(tmp_path / f"src{degree}{ext}", read(blender.work / f"src{degree}.ply"))
+            ours, theirs = read(tmp_path / f"src{degree}{ext}"), read(blender.out / f"blender{degree}{ext}")
+        assert theirs.sh_degree == ours.sh_degree
+        errors = format_errors(theirs, ours)
+        assert errors["positions"] == 0 and errors["covariance"] < 1e-5, (ext, degree, errors)
+        assert errors["opacity"] < 1e-6 and errors["colour"] < 1e-6, (ext, degree, errors)
+
+
+def _euler(euler):
+    x, y, z = euler
+    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+@pytest.mark.parametrize("move", list(MOVES))
+def test_a_moved_blender_import_exports_in_world_space(blender, move):
+    """World coordinates as the file's (the object landed in the file's axes): centres and covariances
+    under the object's matrix, colours turned with its rotation, opacity kept; Apply Splat Transform
+    then leaves an identity and the same file."""
+    from splatwright.core import sh as shmod
+    res = blender.step("blender_ply_moved")[move]
+    assert res["export"]["error"] is None and res["apply"]["error"] is None
+    turn = _euler(MOVES[move]["rotation_euler"])
+    linear = turn @ np.diag(MOVES[move]["scale"])
+    np.testing.assert_allclose(np.array(res["matrix_world"])[:3, :3], linear, atol=1e-6)
+    source, written = read(blender.work / "src3.ply"), read(blender.out / f"{move}.ply")
+    np.testing.assert_allclose(written.positions, source.positions.astype(np.float64) @ linear.T
+                               + MOVES[move]["location"], rtol=1e-6, atol=1e-6)
+    expected = linear @ covariances(source.rotations, source.log_scales) @ linear.T
+    relative = np.abs(covariances(written.rotations, written.log_scales) - expected).max(axis=(1, 2)) \
+        / np.abs(expected).max(axis=(1, 2))
+    assert relative.max() < 2e-5
+    np.testing.assert_allclose(written.opacities, source.opacities, rtol=0, atol=1.2e-7)
+    directions = np.random.default_rng(1).normal(size=(len(source), 3))
+    np.testing.assert_allclose(shmod.colors(written.sh, directions @ turn.T), shmod.colors(source.sh, directions),
+                               atol=2e-5)
+    assert np.allclose(res["applied_matrix"], np.eye(4)) and res["applied_export"]["error"] is None
+    applied = read(blender.out / f"{move}_applied.ply")
+    errors = format_errors(applied, written)
+    assert errors["positions"] < 1e-5 and errors["covariance"] < 1e-5 and errors["colour"] < 1e-5, errors
+
+
+def test_an_spz_stands_where_blenders_importer_and_ours_place_it(blender):
+    res = blender.step("blender_spz")
+    assert res["import"]["error"] is None
+    world = blender.npz("spz_world")
+    np.testing.assert_allclose(world["blender"], world["ours"], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("ext", [".spz", ".ply"])
+def test_an_spz_blender_imported_exports_as_ours_reads_it(blender, ext):
+    res = blender.step("blender_spz")
+    assert res["blender"]["data_type"] == "GAUSSIAN_SPLAT"
+    assert res["export_" + ext[1:]]["error"] is None
+    source, written = read(blender.work / "src.spz"), read(blender.out / f"spz_blender{ext}")
+    errors = format_errors(written, source)
+    # Blender turned the rotations upright, Splatwright turns them back: float32 round-off, which an SPZ
+    # written again can carry across one step of its 9-bit smallest-three components (~1.4e-3 rad).
+    assert errors["positions"] < 1e-6 and errors["covariance"] < (3e-3 if ext == ".spz" else 1e-5), errors
+    assert errors["opacity"] < 1e-6 and errors["colour"] < 2e-6, errors
+
+
+def test_splatwrights_import_makes_blenders_own_splat_cloud(blender):
+    res = blender.step("ours_native")
+    assert res["error"] is None
+    assert (res["type"], res["data_type"]) == ("POINTCLOUD", "GAUSSIAN_SPLAT")
+    assert res["attributes"]["radiance:base"] == "FLOAT4"
+
+
+def test_blender_imports_join_in_their_file_axes(blender):
+    res = blender.step("join")
+    assert res["join"]["error"] is None and res["export"]["error"] is None
+    first, second = ply_columns(blender.work / "src3.ply"), ply_columns(blender.work / "other.ply")
+    joined = ply_columns(blender.out / "joined.ply")
+    for name in ("x", "y", "z", "f_dc_0", "f_rest_44"):
+        np.testing.assert_array_equal(joined[name], np.concatenate([first[name], second[name]]), err_msg=name)
+
+
+def test_f12_renders_a_blender_imported_cloud_as_the_same_splats_of_ours(blender):
+    from splatwright.io.exr import read_exr
+    res = blender.step("render")
+    assert res["blender"]["error"] is None and res["ours_render"]["error"] is None
+    images = []
+    for name in ("blender", "ours"):
+        channels = read_exr(blender.out / f"render_{name}.exr")
+        images.append(np.stack([channels[c] for c in "RGB"], axis=-1))
+    assert np.abs(images[0] - images[0].mean()).max() > 0.05           # splats are drawn
+    np.testing.assert_allclose(images[0], images[1], rtol=0, atol=2e-6)

@@ -1,0 +1,133 @@
+"""Worker: Blender 5.3's own splat point clouds, as its PLY and SPZ importers make them, through
+Splatwright's export, Apply Transform, Join and render engine (see tests/test_blender_native.py)."""
+
+import numpy as np
+
+from workers.base import BlenderWorker, worker_main
+
+# Object transforms given to a cloud Blender imported: a turn with a uniform scale, and a shear-free
+# stretch along a turned axis (no rotation times uniform scale: covariances re-diagonalised).
+MOVES = {"turned": {"location": (0.5, -2.0, 1.25), "rotation_euler": (0.3, -1.1, 2.0), "scale": (1.5, 1.5, 1.5)},
+         "stretched": {"location": (0.0, 1.0, 0.0), "rotation_euler": (0.0, 0.0, 0.7), "scale": (1.0, 2.0, 0.5)}}
+FORMATS = (".ply", ".spz", ".usd", ".usda", ".splat", ".glb")
+CAMERA = {"location": (0.0, -6.0, 0.0), "rotation_euler": (np.pi / 2, 0.0, 0.0), "lens": 40.0}
+
+
+class NativeWorker(BlenderWorker):
+    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render")
+
+    def __init__(self, work, zip_path):
+        super().__init__(work, zip_path)
+        self.install_extension()
+
+    def blender_import(self, name, importer="ply"):
+        """The object Blender's own importer makes of work/`name`."""
+        bpy = self.bpy
+        before = set(bpy.data.objects)
+        getattr(bpy.ops.wm, f"{importer}_import")(filepath=str(self.work / name))
+        (obj,) = set(bpy.data.objects) - before
+        return obj
+
+    def attributes(self, obj):
+        """What Blender holds: the object's type and its attributes' types, and the rotations as stored."""
+        pointcloud = obj.data
+        rotation = np.empty(len(pointcloud.points) * 4, np.float32)
+        pointcloud.attributes["rotation"].data.foreach_get("value", rotation)
+        return {"type": obj.type, "data_type": getattr(pointcloud, "type", None),
+                "attributes": {a.name: a.data_type for a in pointcloud.attributes},
+                "matrix_world": np.array(obj.matrix_world).tolist()}, rotation.reshape(-1, 4)
+
+    def export(self, name, **kw):
+        return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name), **kw)
+
+    def blender_ply(self):
+        """Degree 3 and 4 PLYs opened by Blender's importer, left where they landed, exported with the
+        default settings to every format."""
+        res = {}
+        for degree in (3, 4):
+            obj = self.blender_import(f"src{degree}.ply")
+            res[degree], rotation = self.attributes(obj)
+            self.save(f"blender_rotation{degree}", rotation=rotation)
+            self.select([obj])
+            res[degree]["exports"] = {ext: self.export(f"blender{degree}{ext}") for ext in FORMATS}
+            self.bpy.data.objects.remove(obj)
+        return res
+
+    def blender_ply_moved(self):
+        """The degree-3 PLY given each object transform, exported; then Apply Splat Transform, exported again."""
+        res = {}
+        for name, move in MOVES.items():
+            obj = self.blender_import("src3.ply")
+            for key, value in move.items():
+                setattr(obj, key, value)
+            self.bpy.context.view_layer.update()
+            self.select([obj])
+            res[name] = {"matrix_world": np.array(obj.matrix_world).tolist(), "export": self.export(f"{name}.ply"),
+                         "apply": self.call(self.bpy.ops.splat.apply_transform)}
+            res[name]["applied_matrix"] = np.array(obj.matrix_world).tolist()
+            res[name]["applied_export"] = self.export(f"{name}_applied.ply")
+            self.bpy.data.objects.remove(obj)
+        return res
+
+    def world_positions(self, obj):
+        position = np.empty(len(obj.data.points) * 3, np.float32)
+        obj.data.attributes["position"].data.foreach_get("vector", position)
+        matrix = np.array(obj.matrix_world, dtype=np.float64)
+        return position.reshape(-1, 3).astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+
+    def blender_spz(self):
+        """An SPZ opened by Blender's importer and by Splatwright's: where each stands in the world, and
+        Blender's exported by Splatwright."""
+        bpy = self.bpy
+        theirs = self.blender_import("src.spz", importer="spz")
+        self.select([theirs])
+        res = {"blender": self.attributes(theirs)[0], "export_spz": self.export("spz_blender.spz"),
+               "export_ply": self.export("spz_blender.ply")}
+        ours = self.call(bpy.ops.splat.import_file, filepath=str(self.work / "src.spz"))
+        self.save("spz_world", blender=self.world_positions(theirs),
+                  ours=self.world_positions(bpy.context.view_layer.objects.active))
+        return {**res, "import": ours}
+
+    def ours_native(self):
+        """Splatwright's import on this Blender: Blender's own splat point cloud."""
+        bpy = self.bpy
+        res = self.call(bpy.ops.splat.import_file, filepath=str(self.work / "src3.ply"))
+        obj = bpy.context.view_layer.objects.active
+        return {**res, "type": obj.type, "data_type": getattr(obj.data, "type", None),
+                "attributes": {a.name: a.data_type for a in obj.data.attributes}}
+
+    def join(self):
+        """Two Blender-imported PLYs joined by Join Splats, exported with the default settings."""
+        first, second = self.blender_import("src3.ply"), self.blender_import("other.ply")
+        self.select([first, second], active=first)
+        res = {"join": self.call(self.bpy.ops.splat.join)}
+        self.select([first])
+        res["export"] = self.export("joined.ply")
+        return res
+
+    def render(self):
+        """F12 with the SPLATWRIGHT engine on a cloud Blender imported, and on the same file imported by
+        Splatwright with a matrix that places it as Blender's importer does (the identity)."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        scene.render.engine = "SPLATWRIGHT"
+        scene.splatwright_mesh_engine = "NONE"
+        scene.view_settings.view_transform = "Standard"
+        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 96, 72, 100
+        for key, value in CAMERA.items():
+            setattr(scene.camera.data if key == "lens" else scene.camera, key, value)
+        self.image_format(scene.render.image_settings, "OPEN_EXR", color_depth="32")
+        res = {}
+        theirs = self.blender_import("scene.ply")
+        scene.render.filepath = str(self.out / "render_blender.exr")
+        res["blender"] = self.call(bpy.ops.render.render, write_still=True)
+        bpy.data.objects.remove(theirs)
+        res["ours"] = self.call(bpy.ops.splat.import_file, filepath=str(self.work / "scene.ply"),
+                                axis_forward="Y", axis_up="Z")
+        scene.render.filepath = str(self.out / "render_ours.exr")
+        res["ours_render"] = self.call(bpy.ops.render.render, write_still=True)
+        return res
+
+
+if __name__ == "__main__":
+    worker_main(NativeWorker)
