@@ -119,13 +119,19 @@ def is_native_splats(pointcloud):
     return pointcloud is not None and all(name in pointcloud.attributes for name in NATIVE_REQUIRED)
 
 
+def is_gaussian_type(pointcloud):
+    """A point cloud Blender 5.3 marks as Gaussian splats (its `type`), whatever attributes it holds."""
+    return getattr(pointcloud, "type", None) == "GAUSSIAN_SPLAT"
+
+
 def splat_form(obj):
-    """MESH_FORM, NATIVE_FORM, or None for an object that holds no splats."""
+    """MESH_FORM, NATIVE_FORM, or None for an object that holds no splats. A point cloud of Blender's
+    Gaussian-splat type is native splats even with an attribute deleted: reading it names what is missing."""
     if obj is None:
         return None
     if obj.type == "MESH" and is_splat_mesh(obj.data):
         return MESH_FORM
-    if obj.type == "POINTCLOUD" and is_native_splats(obj.data):
+    if obj.type == "POINTCLOUD" and (is_native_splats(obj.data) or is_gaussian_type(obj.data)):
         return NATIVE_FORM
     return None
 
@@ -741,6 +747,9 @@ def evaluated_cloud(obj, depsgraph, matrix=None, edits=True):
     leaves them out), then `matrix` (default: the evaluated world matrix). Export, animation export,
     collisions and the render engine all read splat objects through this one function."""
     obj = obj.original
+    cloud = generated_cloud(obj, depsgraph)
+    if cloud is not None:
+        return _transformed(obj, cloud, world_matrix(obj, depsgraph) if matrix is None else matrix)
     pose = next((p for p in (poser(obj, depsgraph) for poser in POSERS) if p is not None), None)
     cloud = pose(own_cloud(obj, depsgraph)) if pose is not None else modified_cloud(obj, depsgraph)
     for edit in EDITS if edits else ():
@@ -839,11 +848,31 @@ def splat_instances(depsgraph):
     for inst in depsgraph.object_instances:          # instance data is only valid during iteration
         evaluated = inst.object
         original = evaluated.original
-        if evaluated.type != original.type or not is_splat_object(original):
-            continue
         instancer = inst.parent.original if inst.is_instance and inst.parent else None
-        found.append(SplatInstance(original, instancer, np.array(inst.matrix_world, dtype=np.float64)))
+        if evaluated.type == original.type and is_splat_object(original):
+            found.append(SplatInstance(original, instancer, np.array(inst.matrix_world, dtype=np.float64)))
+        elif _generated(evaluated, original):
+            found.append(SplatInstance(original, None if instancer == original else instancer,
+                                       np.array(inst.matrix_world, dtype=np.float64)))
     return found
+
+
+def _generated(evaluated, original):
+    """Whether an evaluated point cloud holds Gaussian splats its object's own data does not: splats
+    made by geometry nodes (Blender 5.3's Set Point Cloud Type, say), not a splat mesh's display."""
+    return evaluated.type == "POINTCLOUD" and not is_splat_object(original) and is_native_splats(evaluated.data)
+
+
+def generated_cloud(obj, depsgraph):
+    """The splats geometry nodes make on `obj` (object space), or None where they make none."""
+    evaluated = obj.evaluated_get(depsgraph)
+    if is_splat_object(obj) or not hasattr(evaluated, "evaluated_geometry"):
+        return None
+    geometry = evaluated.evaluated_geometry()          # the point cloud lives as long as this does
+    pointcloud = geometry.pointcloud
+    if pointcloud is None or not is_native_splats(pointcloud):
+        return None
+    return geometry_cloud(pointcloud, obj.name, NATIVE_FORM)
 
 
 def instances_cloud(depsgraph, instances, conversion=np.eye(4)):

@@ -155,8 +155,8 @@ def export_objects(context, selected_only):
             raise data.SplatObjectError("nothing is selected")
     else:
         candidates = [obj for obj in context.view_layer.objects if obj.visible_get()]
-    instancers = {i.instancer.name for i in data.splat_instances(context.evaluated_depsgraph_get()) if i.instancer}
-    chosen = [obj for obj in candidates if data.is_splat_object(obj) or obj.name in instancers]
+    makers = {(i.instancer or i.obj).name for i in data.splat_instances(context.evaluated_depsgraph_get())}
+    chosen = [obj for obj in candidates if data.is_splat_object(obj) or obj.name in makers]
     if not chosen:
         others = ", ".join(f"'{o.name}' ({o.type})" for o in candidates[:5])
         where = "selected" if selected_only else "visible"
@@ -169,9 +169,11 @@ def scene_instances(depsgraph, objects):
     """(splat object, world matrix) pairs `objects` put in the scene at the depsgraph's frame: each
     splat object itself (drawn or not), and every splat instance an object of `objects` makes."""
     names = {obj.name for obj in objects}
-    own = [(obj, data.world_matrix(obj, depsgraph)) for obj in objects if data.is_splat_object(obj)]
-    return own + [(i.obj, i.matrix) for i in data.splat_instances(depsgraph)
-                  if i.instancer is not None and i.instancer.name in names]
+    found = data.splat_instances(depsgraph)
+    generated = {i.obj.name for i in found if i.instancer is None and not data.is_splat_object(i.obj)}
+    own = [(obj, data.world_matrix(obj, depsgraph)) for obj in objects
+           if data.is_splat_object(obj) or obj.name in generated]
+    return own + [(i.obj, i.matrix) for i in found if i.instancer is not None and i.instancer.name in names]
 
 
 def scene_cloud(context, objects, conversion, keep_source=False):

@@ -36,6 +36,19 @@ def _write_inputs(work):
     scene = _cloud(300, 3, 9, spread=0.6)
     scene.log_scales[:] = np.random.default_rng(10).uniform(-3.2, -2.0, scene.log_scales.shape)
     write_splats(work / "scene.ply", scene)
+    np.savez(work / "generated.npz", **_generated_arrays())
+
+
+def _generated_arrays():
+    """A degree-1 cloud as Blender's native attributes (float32), for the geometry-nodes worker step."""
+    rng = np.random.default_rng(11)
+    n = 200
+    q = rng.normal(size=(n, 4))
+    arrays = {"position": rng.normal(0, 0.6, (n, 3)), "scale": np.exp(rng.uniform(-3.2, -2.0, (n, 3))),
+              "rotation": q / np.linalg.norm(q, axis=1, keepdims=True),
+              "radiance:base": np.c_[rng.normal(0, 0.5, (n, 3)), rng.uniform(0.2, 0.95, n)]}
+    arrays.update({f"radiance:sh_{j}": rng.normal(0, 0.2, (n, 3)) for j in range(3)})
+    return {k: v.astype(np.float32) for k, v in arrays.items()}
 
 
 blender = blender_fixture("workers.native", _write_inputs, since="5.3")
@@ -185,3 +198,35 @@ def test_f12_renders_a_blender_imported_cloud_as_the_same_splats_of_ours(blender
         images.append(np.stack([channels[c] for c in "RGB"], axis=-1))
     assert np.abs(images[0] - images[0].mean()).max() > 0.05           # splats are drawn
     np.testing.assert_allclose(images[0], images[1], rtol=0, atol=2e-6)
+
+
+def _images(blender, *names):
+    from splatwright.io.exr import read_exr
+    return [np.stack([read_exr(blender.out / f"render_{name}.exr")[c] for c in "RGB"], axis=-1) for name in names]
+
+
+def test_splats_made_by_geometry_nodes_export_and_render(blender):
+    """Written in the default axes (Blender x, y, z -> file x, -z, y), as any upright splat object."""
+    from splatwright.core import sh as shmod
+    res = blender.step("geometry_nodes")
+    assert all(res[k]["error"] is None for k in ("export", "render", "import", "imported_render")), res
+    arrays, written = _generated_arrays(), read(blender.out / "generated.ply")
+    to_file = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    np.testing.assert_allclose(written.positions, arrays["position"].astype(np.float64) @ to_file.T, atol=1e-7)
+    rs = _quat_matrices(arrays["rotation"]) * arrays["scale"].astype(np.float64)[:, None, :]
+    expected = to_file @ (rs @ rs.transpose(0, 2, 1)) @ to_file.T
+    got = covariances(written.rotations, written.log_scales)
+    assert (np.abs(got - expected).max(axis=(1, 2)) / np.abs(expected).max(axis=(1, 2))).max() < 1e-5
+    np.testing.assert_allclose(written.opacities, arrays["radiance:base"][:, 3], rtol=0, atol=1.2e-7)
+    sh = np.stack([arrays["radiance:base"][:, :3]] + [arrays[f"radiance:sh_{j}"] for j in range(3)], axis=1)
+    directions = np.random.default_rng(2).normal(size=(len(sh), 3))
+    np.testing.assert_allclose(shmod.colors(written.sh, directions @ to_file.T), shmod.colors(sh, directions),
+                               atol=1e-6)
+    generated, imported = _images(blender, "generated", "generated_imported")
+    assert np.abs(generated - generated.mean()).max() > 0.05
+    np.testing.assert_allclose(generated, imported, rtol=0, atol=2e-6)
+
+
+def _quat_matrices(q):
+    from helpers import quat_matrices
+    return quat_matrices(q)

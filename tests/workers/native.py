@@ -14,7 +14,7 @@ CAMERA = {"location": (0.0, -6.0, 0.0), "rotation_euler": (np.pi / 2, 0.0, 0.0),
 
 
 class NativeWorker(BlenderWorker):
-    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render")
+    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render", "geometry_nodes")
 
     def __init__(self, work, zip_path):
         super().__init__(work, zip_path)
@@ -109,14 +109,7 @@ class NativeWorker(BlenderWorker):
         """F12 with the SPLATWRIGHT engine on a cloud Blender imported, and on the same file imported by
         Splatwright with a matrix that places it as Blender's importer does (the identity)."""
         bpy = self.bpy
-        scene = bpy.context.scene
-        scene.render.engine = "SPLATWRIGHT"
-        scene.splatwright_mesh_engine = "NONE"
-        scene.view_settings.view_transform = "Standard"
-        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 96, 72, 100
-        for key, value in CAMERA.items():
-            setattr(scene.camera.data if key == "lens" else scene.camera, key, value)
-        self.image_format(scene.render.image_settings, "OPEN_EXR", color_depth="32")
+        scene = self.setup_render()
         res = {}
         theirs = self.blender_import("scene.ply")
         scene.render.filepath = str(self.out / "render_blender.exr")
@@ -126,6 +119,54 @@ class NativeWorker(BlenderWorker):
                                 axis_forward="Y", axis_up="Z")
         scene.render.filepath = str(self.out / "render_ours.exr")
         res["ours_render"] = self.call(bpy.ops.render.render, write_still=True)
+        return res
+
+    def setup_render(self):
+        """The SPLATWRIGHT engine, splats alone, a fixed camera, float EXR output."""
+        scene = self.bpy.context.scene
+        scene.render.engine = "SPLATWRIGHT"
+        scene.splatwright_mesh_engine = "NONE"
+        scene.view_settings.view_transform = "Standard"
+        scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 96, 72, 100
+        for key, value in CAMERA.items():
+            setattr(scene.camera.data if key == "lens" else scene.camera, key, value)
+        self.image_format(scene.render.image_settings, "OPEN_EXR", color_depth="32")
+        return scene
+
+    def geometry_nodes(self):
+        """Splats made by geometry nodes: a mesh carrying the native attributes, turned into points and
+        given Blender's Gaussian-splat type by its modifier. Exported with the default settings, and
+        rendered beside the same splats imported from that export."""
+        bpy = self.bpy
+        arrays = np.load(self.work / "generated.npz")
+        mesh = bpy.data.meshes.new("generated")
+        mesh.vertices.add(len(arrays["position"]))
+        mesh.vertices.foreach_set("co", arrays["position"].ravel())
+        for name, kind, prop in (("scale", "FLOAT_VECTOR", "vector"), ("rotation", "QUATERNION", "value"),
+                                 ("radiance:base", "FLOAT4", "vector"), ("radiance:sh_0", "FLOAT_VECTOR", "vector"),
+                                 ("radiance:sh_1", "FLOAT_VECTOR", "vector"), ("radiance:sh_2", "FLOAT_VECTOR", "vector")):
+            mesh.attributes.new(name, kind, "POINT").data.foreach_set(prop, arrays[name].ravel())
+        obj = bpy.data.objects.new("generated", mesh)
+        bpy.context.scene.collection.objects.link(obj)
+        tree = bpy.data.node_groups.new("Make Splats", "GeometryNodeTree")
+        tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        given, made = tree.nodes.new("NodeGroupInput"), tree.nodes.new("NodeGroupOutput")
+        points, typed = tree.nodes.new("GeometryNodeMeshToPoints"), tree.nodes.new("GeometryNodePointsSetType")
+        typed.inputs["Type"].default_value = "3D Gaussian Splat"
+        tree.links.new(given.outputs[0], points.inputs["Mesh"])
+        tree.links.new(points.outputs[0], typed.inputs["Points"])
+        tree.links.new(typed.outputs[0], made.inputs[0])
+        obj.modifiers.new("Make Splats", "NODES").node_group = tree
+        self.select([obj])
+        res = {"export": self.export("generated.ply")}
+        scene = self.setup_render()
+        scene.render.filepath = str(self.out / "render_generated.exr")
+        res["render"] = self.call(bpy.ops.render.render, write_still=True)
+        obj.hide_render = True
+        res["import"] = self.call(bpy.ops.splat.import_file, filepath=str(self.out / "generated.ply"))
+        scene.render.filepath = str(self.out / "render_generated_imported.exr")
+        res["imported_render"] = self.call(bpy.ops.render.render, write_still=True)
         return res
 
 
