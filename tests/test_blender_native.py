@@ -37,6 +37,9 @@ def _write_inputs(work):
     scene.log_scales[:] = np.random.default_rng(10).uniform(-3.2, -2.0, scene.log_scales.shape)
     write_splats(work / "scene.ply", scene)
     np.savez(work / "generated.npz", **_generated_arrays())
+    blobs = _cloud(80, 0, 12)
+    blobs.log_scales[:] = np.random.default_rng(13).uniform(-2.5, -1.5, blobs.log_scales.shape)
+    write_splats(work / "collide.ply", blobs)
 
 
 def _generated_arrays():
@@ -230,3 +233,59 @@ def test_splats_made_by_geometry_nodes_export_and_render(blender):
 def _quat_matrices(q):
     from helpers import quat_matrices
     return quat_matrices(q)
+
+
+def test_converted_pruned_and_commanded_exports_keep_the_files_axes(blender):
+    res = blender.step("tools")
+    for key in ("to_mesh", "mesh_export", "to_native", "native_export", "prune", "pruned_export"):
+        assert res[key]["error"] is None, (key, res[key])
+    assert res["mesh_type"] == "MESH" and res["command"] == 0
+    source = ply_columns(blender.work / "src3.ply")
+    for name in ("converted", "reconverted", "command_0001"):
+        written = ply_columns(blender.out / f"{name}.ply")
+        for column in ("x", "y", "z", "f_dc_0", "f_rest_44"):
+            np.testing.assert_array_equal(written[column], source[column], err_msg=f"{name} {column}")
+    kept = sigmoid(source["opacity"]) >= 0.5
+    pruned = ply_columns(blender.out / "pruned.ply")
+    assert 0 < kept.sum() < len(kept)
+    np.testing.assert_array_equal(pruned["x"], source["x"][kept])
+
+
+def test_a_blender_import_bound_to_an_armature_poses_by_its_weights(blender):
+    """At rest the file itself; posed, every centre the weighted blend of its bones' deform matrices
+    (float64 linear blend of the bind's own weights)."""
+    res = blender.step("bind")
+    assert all(res[k]["error"] is None for k in ("bind", "rest_export", "posed_export")), res
+    source = read(blender.work / "src3.ply")
+    np.testing.assert_array_equal(read(blender.out / "bound_rest.ply").positions, source.positions)
+    saved = blender.npz("bind")
+    weights, deform = saved["weights"].astype(np.float64), saved["deform"]
+    assert np.allclose(weights.sum(axis=1), 1, atol=1e-6) and (weights[:, 1] > 0.5).any()
+    rest = np.c_[source.positions.astype(np.float64), np.ones(len(source))]
+    expected = np.einsum("nb,bij,nj->ni", weights, deform, rest)[:, :3]
+    np.testing.assert_allclose(read(blender.out / "bound_posed.ply").positions, expected, atol=2e-5)
+
+
+def _contact_pairs(a, b, k, min_opacity, steps=2001):
+    """For each pair of k-sigma ellipsoids, by brute force over s, min over s in (0, 1) of
+    1 - d^T (A / (1 - s) + B / s)^-1 d (shape matrices A, B = k^2 Sigma, d = m_b - m_a): they meet iff it
+    is >= 0 (Gilitschenski and Hanebeck's criterion); its size tells pairs too close to call."""
+    a, b = a[a.opacities >= min_opacity], b[b.opacities >= min_opacity]
+    shape_a = k * k * covariances(a.rotations, a.log_scales)
+    shape_b = k * k * covariances(b.rotations, b.log_scales)
+    d = b.positions.astype(np.float64)[None] - a.positions.astype(np.float64)[:, None]
+    best = np.full(d.shape[:2], np.inf)
+    for s in np.linspace(0, 1, steps)[1:-1]:
+        combined = shape_a[:, None] / (1 - s) + shape_b[None] / s
+        best = np.minimum(best, 1 - np.einsum("abi,abi->ab", d, np.linalg.solve(combined, d[..., None])[..., 0]))
+    return best
+
+
+def test_collisions_between_blender_imports_match_the_brute_force(blender):
+    res = blender.step("collisions")
+    assert res["op"]["error"] is None
+    k, min_opacity = res["defaults"]["sigma"], res["defaults"]["min_opacity"]
+    best = _contact_pairs(read(blender.work / "other.ply"), read(blender.work / "collide.ply"), k, min_opacity)
+    near = res["near"]["frames"][0]["pairs"]
+    assert (best >= 1e-3).sum() <= near <= (best >= -1e-3).sum() and near > 0
+    assert res["far"]["frames"][0]["pairs"] == 0

@@ -14,7 +14,8 @@ CAMERA = {"location": (0.0, -6.0, 0.0), "rotation_euler": (np.pi / 2, 0.0, 0.0),
 
 
 class NativeWorker(BlenderWorker):
-    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render", "geometry_nodes")
+    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render", "geometry_nodes", "tools", "bind",
+             "collisions")
 
     def __init__(self, work, zip_path):
         super().__init__(work, zip_path)
@@ -167,6 +168,63 @@ class NativeWorker(BlenderWorker):
         res["import"] = self.call(bpy.ops.splat.import_file, filepath=str(self.out / "generated.ply"))
         scene.render.filepath = str(self.out / "render_generated_imported.exr")
         res["imported_render"] = self.call(bpy.ops.render.render, write_still=True)
+        return res
+
+    def tools(self):
+        """Convert Splat Form both ways, Prune and the `blender -b` command's export on a cloud Blender's
+        PLY importer made: each export must still give the file's own axes."""
+        bpy = self.bpy
+        obj = self.blender_import("src3.ply")
+        self.select([obj])
+        res = {"to_mesh": self.call(bpy.ops.splat.convert_form, form="MESH")}
+        res["mesh_type"] = bpy.context.view_layer.objects.active.type
+        res["mesh_export"] = self.export("converted.ply")
+        res["to_native"] = self.call(bpy.ops.splat.convert_form, form="NATIVE")
+        res["native_export"] = self.export("reconverted.ply")
+        res["prune"] = self.call(bpy.ops.splat.prune, by="OPACITY", threshold=0.5, measure=False)
+        res["pruned_export"] = self.export("pruned.ply")
+        self.bpy.data.objects.remove(bpy.context.view_layer.objects.active)
+        self.blender_import("src3.ply")
+        command = self.module("splat_addon.command")
+        res["command"] = command.execute(["export", str(self.out / "command.ply"), "--frames", "1"])
+        return res
+
+    def bind(self):
+        """Bind to Armature on a cloud Blender's PLY importer made, posed: the bind's weights and the
+        bones' deform matrices are saved for the linear-blend reference."""
+        bpy = self.bpy
+        obj = self.blender_import("src3.ply")
+        arm = self.two_bone_armature("Rig")
+        self.select([obj], active=arm)
+        res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2)}
+        res["rest_export"] = self.export("bound_rest.ply")
+        bone = arm.pose.bones["Upper"]
+        bone.rotation_mode = "XYZ"
+        bone.rotation_euler = (0.6, 0.0, 0.2)
+        bpy.context.view_layer.update()
+        self.select([obj])
+        res["posed_export"] = self.export("bound_posed.ply")
+        names = ["Lower", "Upper"]
+        weights = np.zeros((len(obj.data.points), 2), np.float32)
+        for j, name in enumerate(names):
+            obj.data.attributes[f"splat_weight:{name}"].data.foreach_get("value", weights[:, j])
+        deform = np.stack([np.array(arm.matrix_world @ arm.pose.bones[n].matrix @ arm.pose.bones[n].bone.matrix_local.inverted()
+                                    @ arm.matrix_world.inverted()) for n in names])
+        self.save("bind", weights=weights, deform=deform)
+        return res
+
+    def collisions(self):
+        """Two clouds Blender imported, overlapping, then set 100 apart: the exact contact test on both."""
+        bpy = self.bpy
+        collide = self.module("splat_addon.collide")
+        a, b = self.blender_import("other.ply"), self.blender_import("collide.ply")
+        res = {"near": collide.check_collisions(bpy.context, a, b, [1], write_attribute=False).as_dict()}
+        res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=a.name, object_b=b.name,
+                              use_scene_range=False, frame_start=1, frame_end=1)
+        b.location = (100.0, 0.0, 0.0)
+        bpy.context.view_layer.update()
+        res["far"] = collide.check_collisions(bpy.context, a, b, [1], write_attribute=False).as_dict()
+        res["defaults"] = {"sigma": collide.DEFAULT_SIGMA, "min_opacity": collide.DEFAULT_MIN_OPACITY}
         return res
 
 
