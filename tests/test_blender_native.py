@@ -88,7 +88,8 @@ def test_a_ply_blender_imported_exports_as_the_source_file(blender, degree):
     res = blender.step("blender_ply")[str(degree)]
     assert res["exports"][".ply"]["error"] is None
     source, written = ply_columns(blender.work / f"src{degree}.ply"), ply_columns(blender.out / f"blender{degree}.ply")
-    exact = ["x", "y", "z", *(f"f_dc_{i}" for i in range(3)), *(f"f_rest_{i}" for i in range(3 * (degree + 1) ** 2 - 3))]
+    rest = 3 * (degree + 1) ** 2 - 3
+    exact = ["x", "y", "z", *(f"f_dc_{i}" for i in range(3)), *(f"f_rest_{i}" for i in range(rest))]
     assert set(exact) <= set(written)
     for name in exact:
         np.testing.assert_array_equal(written[name], source[name], err_msg=name)

@@ -14,8 +14,8 @@ CAMERA = {"location": (0.0, -6.0, 0.0), "rotation_euler": (np.pi / 2, 0.0, 0.0),
 
 
 class NativeWorker(BlenderWorker):
-    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render", "geometry_nodes", "tools", "bind",
-             "collisions")
+    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render", "geometry_nodes",
+             "tools", "bind", "collisions")
 
     def __init__(self, work, zip_path):
         super().__init__(work, zip_path)
@@ -143,9 +143,9 @@ class NativeWorker(BlenderWorker):
         mesh = bpy.data.meshes.new("generated")
         mesh.vertices.add(len(arrays["position"]))
         mesh.vertices.foreach_set("co", arrays["position"].ravel())
-        for name, kind, prop in (("scale", "FLOAT_VECTOR", "vector"), ("rotation", "QUATERNION", "value"),
-                                 ("radiance:base", "FLOAT4", "vector"), ("radiance:sh_0", "FLOAT_VECTOR", "vector"),
-                                 ("radiance:sh_1", "FLOAT_VECTOR", "vector"), ("radiance:sh_2", "FLOAT_VECTOR", "vector")):
+        kinds = {"scale": ("FLOAT_VECTOR", "vector"), "rotation": ("QUATERNION", "value"),
+                 "radiance:base": ("FLOAT4", "vector"), **{f"radiance:sh_{j}": ("FLOAT_VECTOR", "vector") for j in range(3)}}
+        for name, (kind, prop) in kinds.items():
             mesh.attributes.new(name, kind, "POINT").data.foreach_set(prop, arrays[name].ravel())
         obj = bpy.data.objects.new("generated", mesh)
         bpy.context.scene.collection.objects.link(obj)
@@ -208,8 +208,9 @@ class NativeWorker(BlenderWorker):
         weights = np.zeros((len(obj.data.points), 2), np.float32)
         for j, name in enumerate(names):
             obj.data.attributes[f"splat_weight:{name}"].data.foreach_get("value", weights[:, j])
-        deform = np.stack([np.array(arm.matrix_world @ arm.pose.bones[n].matrix @ arm.pose.bones[n].bone.matrix_local.inverted()
-                                    @ arm.matrix_world.inverted()) for n in names])
+        bones = [arm.pose.bones[n] for n in names]
+        deform = np.stack([np.array(arm.matrix_world @ b.matrix @ b.bone.matrix_local.inverted()
+                                    @ arm.matrix_world.inverted()) for b in bones])
         self.save("bind", weights=weights, deform=deform)
         return res
 
