@@ -144,7 +144,8 @@ class NativeWorker(BlenderWorker):
         mesh.vertices.add(len(arrays["position"]))
         mesh.vertices.foreach_set("co", arrays["position"].ravel())
         kinds = {"scale": ("FLOAT_VECTOR", "vector"), "rotation": ("QUATERNION", "value"),
-                 "radiance:base": ("FLOAT4", "vector"), **{f"radiance:sh_{j}": ("FLOAT_VECTOR", "vector") for j in range(3)}}
+                 "radiance:base": ("FLOAT4", "vector")}
+        kinds.update({f"radiance:sh_{j}": ("FLOAT_VECTOR", "vector") for j in range(3)})
         for name, (kind, prop) in kinds.items():
             mesh.attributes.new(name, kind, "POINT").data.foreach_set(prop, arrays[name].ravel())
         obj = bpy.data.objects.new("generated", mesh)
