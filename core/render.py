@@ -275,7 +275,7 @@ def _check_kernels(kernels):
     rng = np.random.default_rng(0)
     n = 64
     cloud = SplatCloud(rng.normal(0, 0.3, (n, 3)) + [0, 0, 3], rng.normal(size=(n, 4)),
-                       rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 16, 3)))
+                       rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 25, 3)))
     camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20)
     gather = rng.normal(size=(camera.height, camera.width, 2)).astype(np.float32)
     shapes = SimpleNamespace(values=_shape_values(kernels, cloud, _pool(1)))     # Shapes, without loading kernels

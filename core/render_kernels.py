@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from .jit import njit, prefetcher
-from .sh import C0, C1, C2, C3
+from .sh import C0, C1, C2, C3, C4
 
 prefetch = prefetcher()     # random reads (records by entry, rows by index) start a few items early
 ALPHA_MIN = 1.0 / 255.0
@@ -34,6 +34,17 @@ EXP_TERMS = (1.0, 1.0, 1.0 / 2, 1.0 / 6, 1.0 / 24, 1.0 / 120, 1.0 / 720, 1.0 / 5
 
 
 # projection ---------------------------------------------------------------------------------------
+
+@njit
+def band4_color(x, y, z, c):
+    """sum over m of the degree-4 basis function (core.sh._band4) at the unit x, y, z times c[m + 4]."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, yz, xz = x * y, y * z, x * z
+    return (C4[0] * xy * (xx - yy) * c[0] + C4[1] * yz * (3 * xx - yy) * c[1] + C4[2] * xy * (7 * zz - 1) * c[2]
+            + C4[3] * yz * (7 * zz - 3) * c[3] + C4[4] * (zz * (35 * zz - 30) + 3) * c[4]
+            + C4[5] * xz * (7 * zz - 3) * c[5] + C4[6] * (xx - yy) * (7 * zz - 1) * c[6]
+            + C4[7] * xz * (xx - 3 * yy) * c[7] + C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy)) * c[8])
+
 
 @njit
 def shape_range(rotations, log_scales, logits, lo, hi, out, base):
@@ -189,6 +200,8 @@ def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, 
                                 + C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, ch]
                                 + C3[4] * dx * (4 * zz - xx - yy) * sh[i, 13, ch]
                                 + C3[5] * dz * (xx - yy) * sh[i, 14, ch] + C3[6] * dx * (xx - 3 * yy) * sh[i, 15, ch])
+                        if k > 16:
+                            col += band4_color(dx, dy, dz, sh[i, 16:25, ch])
                 rec32[out, 11 + ch] = max(0.0, col)
             rec64[out, 0], rec64[out, 1] = u, v
             rec64[out, 2], rec64[out, 3], rec64[out, 4] = c / det, -b / det, a / det

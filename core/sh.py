@@ -1,4 +1,5 @@
-"""Real spherical harmonics for degrees 0..3, with the constants of the 3DGS reference rasteriser."""
+"""Real spherical harmonics for degrees 0..4: the constants of the 3DGS reference rasteriser for
+degrees 0..3, and band 4 in the ordering and signs that continue them (see C4)."""
 
 import functools
 
@@ -7,8 +8,8 @@ import numpy as np
 from .parallel import in_chunks
 
 C0 = 0.28209479177387814
-MAX_DEGREE = 3
-VALID_COUNTS = (1, 4, 9, 16)
+MAX_DEGREE = 4
+VALID_COUNTS = (1, 4, 9, 16, 25)
 
 
 def num_coeffs(degree):
@@ -18,7 +19,7 @@ def num_coeffs(degree):
 
 
 def degree_of(count):
-    """SH degree from the number of coefficients per channel (1, 4, 9, 16)."""
+    """SH degree from the number of coefficients per channel (1, 4, 9, 16, 25)."""
     if count not in VALID_COUNTS:
         raise ValueError(f"{count} SH coefficients per channel is not (d+1)^2 for d in 0..{MAX_DEGREE}")
     return VALID_COUNTS.index(count)
@@ -46,6 +47,14 @@ C1 = 0.4886025119029199
 C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+# Band 4, m = -4..4, each times its polynomial in basis() (unit x, y, z): the real harmonics with the
+# Condon-Shortley phase (-1)^m that bands 1..3 carry, normalised like them (integral of Y^2 over the
+# sphere is 1). The ordering and signs are gsplat's degree-4 evaluation (sh_coeffs_to_color_fast, from
+# Sloan's "Efficient Spherical Harmonic Evaluation"), whose sign pattern Niantic's SPZ coordinate
+# flips follow too. Closed forms: 3/4 sqrt(35/pi), 3/4 sqrt(35/(2 pi)), 3/4 sqrt(5/pi),
+# 3/4 sqrt(5/(2 pi)), 3/16 sqrt(1/pi), and 3/8 sqrt(5/pi), 3/16 sqrt(35/pi) for m = 2, 4.
+C4 = (2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.6690465435572892, 0.10578554691520431,
+      -0.6690465435572892, 0.47308734787878004, -1.7701307697799304, 0.6258357354491761)
 
 
 def basis(directions, degree, dtype=np.float64):
@@ -67,7 +76,33 @@ def basis(directions, degree, dtype=np.float64):
         out += [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
                 C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy),
                 C3[5] * z * (xx - yy), C3[6] * x * (xx - 3 * yy)]
+    if degree >= 4:
+        out += _band4(x, y, z)
     return np.stack(out, axis=-1)
+
+
+def _band4(x, y, z):
+    """The nine degree-4 basis functions (m = -4..4) at unit x, y, z."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, yz, xz = x * y, y * z, x * z
+    return [C4[0] * xy * (xx - yy), C4[1] * yz * (3 * xx - yy), C4[2] * xy * (7 * zz - 1),
+            C4[3] * yz * (7 * zz - 3), C4[4] * (zz * (35 * zz - 30) + 3), C4[5] * xz * (7 * zz - 3),
+            C4[6] * (xx - yy) * (7 * zz - 1), C4[7] * xz * (xx - 3 * yy),
+            C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy))]
+
+
+def _band4_gradient(w, x, y, z):
+    """d/d(x, y, z) of the band-4 polynomials of _band4 weighted by w[..., 16:25]."""
+    xx, yy, zz = x * x, y * y, z * z
+    a, b, c, e, f, g, h, k, m = (C4[i] * w[..., 16 + i] for i in range(9))
+    seven1, seven3 = 7 * zz - 1, 7 * zz - 3
+    gx = a * y * (3 * xx - yy) + 6 * b * x * y * z + c * y * seven1 + g * z * seven3 + 2 * h * x * seven1 \
+        + 3 * k * z * (xx - yy) + 4 * m * x * (xx - 3 * yy)
+    gy = a * x * (xx - 3 * yy) + 3 * b * z * (xx - yy) + c * x * seven1 + e * z * seven3 - 2 * h * y * seven1 \
+        - 6 * k * x * y * z + 4 * m * y * (yy - 3 * xx)
+    gz = b * y * (3 * xx - yy) + 14 * c * x * y * z + e * y * (21 * zz - 3) + f * z * (140 * zz - 60) \
+        + g * x * (21 * zz - 3) + 14 * h * z * (xx - yy) + k * x * (xx - 3 * yy)
+    return gx, gy, gz
 
 
 def basis_gradient(weights, directions):
@@ -97,6 +132,8 @@ def basis_gradient(weights, directions):
         gy = gy + 3 * a * (xx - yy) + b * x * z + c * (4 * zz - xx - 3 * yy) - 6 * e * y * z - 2 * f * x * y \
             - 2 * g * y * z - 6 * h * x * y
         gz = gz + b * x * y + 8 * c * y * z + e * (6 * zz - 3 * xx - 3 * yy) + 8 * f * x * z + g * (xx - yy)
+    if degree >= 4:
+        gx, gy, gz = (g + g4 for g, g4 in zip((gx, gy, gz), _band4_gradient(w, x, y, z)))
     grad = np.stack([gx, gy, gz], axis=-1)        # d/du
     return (grad - (grad * u).sum(-1, keepdims=True) * u) / norm
 

@@ -4,15 +4,48 @@ Every splat is evaluated at every pixel (or at a given subset of pixels) with th
 the 3DGS reference rasteriser written out literally: full 3x3 / 2x3 matrix products for the EWA
 covariance, an explicit 2x2 inverse, and a sequential front-to-back loop over splats that applies
 the 1/255 skip, the 0.99 clamp and the T < 1e-4 stop pixel by pixel. It shares no code with
-core/render.py; from the core it uses only the quaternion -> matrix and SH evaluation helpers,
-which have tests of their own.
+core/render.py; from the core it uses only the quaternion -> matrix helper, which has tests of its
+own. SH colours are evaluated here with the basis written out from the literal constants (3DGS's
+for degrees 0..3, the Condon-Shortley real harmonics that continue them for degree 4), not core.sh's.
 """
 
 import numpy as np
 
-from splatwright.core import geometry, sh
+from splatwright.core import geometry
 
 ALPHA_MIN, ALPHA_MAX, T_MIN, LOW_PASS = 1.0 / 255.0, 0.99, 1e-4, 0.3
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+SH_C4 = (2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.6690465435572892, 0.10578554691520431,
+         -0.6690465435572892, 0.47308734787878004, -1.7701307697799304, 0.6258357354491761)
+
+
+def sh_basis(directions):
+    """(N, 25) real SH basis, degrees 0..4 in 3DGS order, at the normalised directions, float64."""
+    d = np.asarray(directions, np.float64)
+    x, y, z = (d / np.linalg.norm(d, axis=1, keepdims=True)).T
+    xx, yy, zz = x * x, y * y, z * z
+    return np.stack([
+        np.full_like(x, SH_C0),
+        -SH_C1 * y, SH_C1 * z, -SH_C1 * x,
+        SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * x * z, SH_C2[4] * (xx - yy),
+        SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4 * zz - xx - yy),
+        SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
+        SH_C3[6] * x * (xx - 3 * yy),
+        SH_C4[0] * x * y * (xx - yy), SH_C4[1] * y * z * (3 * xx - yy), SH_C4[2] * x * y * (7 * zz - 1),
+        SH_C4[3] * y * z * (7 * zz - 3), SH_C4[4] * (35 * zz * zz - 30 * zz + 3), SH_C4[5] * x * z * (7 * zz - 3),
+        SH_C4[6] * (xx - yy) * (7 * zz - 1), SH_C4[7] * x * z * (xx - 3 * yy),
+        SH_C4[8] * (xx * xx - 6 * xx * yy + yy * yy)], axis=1)
+
+
+def sh_colors(coeffs, directions):
+    """max(0, 0.5 + sum_k Y_k(d) sh_k) per splat, float64."""
+    k = coeffs.shape[1]
+    return np.maximum(0.0, 0.5 + np.einsum("nk,nkc->nc", sh_basis(directions)[:, :k], coeffs.astype(np.float64)))
 
 
 def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN,
@@ -154,5 +187,5 @@ def _project_all(cloud, camera, mode):
         opacity = opacity * np.sqrt(np.maximum(0.000025, det0 / det))
     conic = np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
                       np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], 1) / det[:, None, None]
-    color = sh.colors(cloud.sh[idx], directions) if n else np.zeros((0, 3))
+    color = sh_colors(cloud.sh[idx], directions) if n else np.zeros((0, 3))
     return {"mean": mean, "conic": conic, "opacity": opacity, "color": color, "z": z, "index": idx}

@@ -210,6 +210,29 @@ def test_two_bone_dual_quaternion_closed_form(a, theta):
     np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, d @ turn), atol=3e-5)
 
 
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_degree_4_colours_turn_with_the_blended_rotation(mode):
+    """SH degree 4 under skinning: the two-bone closed forms above (a turn by phi about z), and
+    every splat on a bone of its own (random rigid turns): each posed colour is the rest colour
+    seen from the direction turned back, at every direction."""
+    a, theta, pivot = 0.3, 1.0, np.array([0.5, 0.2, -0.3])
+    cloud, deform, binding = two_bone_setup(a, theta, pivot)
+    cloud = cloud.replace(sh=random_cloud(len(cloud), sh_degree=4, seed=8).sh)
+    if mode == "lbs":
+        phi = np.arctan2(a * np.sin(theta), 1 - a + a * np.cos(theta))
+    else:
+        phi = 2 * np.arctan2(a * np.sin(theta / 2), 1 - a + a * np.cos(theta / 2))
+    posed = skin(cloud, binding, deform, mode)
+    assert posed.sh_degree == 4
+    d = np.random.default_rng(3).normal(size=(len(cloud), 3))
+    np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, d @ rot_z(phi)), atol=3e-5)
+    rng = np.random.default_rng(4)
+    bones = random_rigid(rng, len(cloud))
+    posed = skin(cloud, Binding.rigid(np.arange(len(cloud))), bones, mode)
+    turned_back = np.einsum("nji,nj->ni", bones[:, :3, :3], d)                  # R^T d per splat
+    np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, turned_back), atol=3e-5)
+
+
 @pytest.mark.parametrize("weights", [(0.5, 0.5), (0.7, 0.3), (0.3, 0.7)])
 def test_dual_quaternion_antipodal_sign_flip(weights):
     # +170 and -170 degrees about z: their quaternions (w >= 0) point into opposite half-spaces,

@@ -51,7 +51,17 @@ def test_image_and_gradients_match_the_reference_renderer(mode, view, backend):
     more at random) is the central difference of the reference's squared error, at a step of 1e-4
     or, where that step moves a splat across another's depth or the 1/255 alpha rule (the error
     jumps there), of 1e-5."""
-    cloud, camera = overlapping_cloud(degree=3), CAMERAS[view]
+    assert_gradients_match_the_reference(overlapping_cloud(degree=3), CAMERAS[view], mode, backend)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_degree_4_images_and_gradients_match_the_reference_renderer(backend):
+    """SH degree 4: its colours, their coefficients' gradients and the positions' gradients through
+    the view direction (the fourth band's basis gradient) against the reference's own basis."""
+    assert_gradients_match_the_reference(overlapping_cloud(degree=4), CAMERAS["perspective"], "classic", backend)
+
+
+def assert_gradients_match_the_reference(cloud, camera, mode, backend):
     target = np.random.default_rng(5).uniform(0, 1, (camera.height, camera.width, 3))
     image, mse, grad = mse_gradients(cloud, camera, target, BACKGROUND, mode, precision="float64", backend=backend)
     reference = reference_render(cloud, camera, BACKGROUND, mode)["color"]

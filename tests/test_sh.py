@@ -41,11 +41,59 @@ def sphere_quadrature(n_theta=12, n_phi=24):
     return dirs, weights
 
 
-def test_basis_is_orthonormal_on_the_sphere():
+@pytest.mark.parametrize("degree", [3, 4])
+def test_basis_is_orthonormal_on_the_sphere(degree):
     dirs, weights = sphere_quadrature()
-    y = sh.basis(dirs, 3)
+    y = sh.basis(dirs, degree)
     gram = y.T @ (y * weights[:, None])
-    np.testing.assert_allclose(gram, np.eye(16), atol=1e-13)
+    np.testing.assert_allclose(gram, np.eye((degree + 1) ** 2), atol=1e-13)
+
+
+def condon_shortley_harmonics(directions, degree):
+    """Real SH from their definition: N_lm P_l^m(cos theta) times sqrt(2) cos(m phi) (m > 0), sqrt(2)
+    sin(|m| phi) (m < 0) or 1, with P_l^m = (-1)^m (1 - x^2)^(m/2) d^m/dx^m P_l(x) (Legendre's
+    polynomials differentiated by NumPy) and N_lm = sqrt((2l+1)/(4 pi) (l-m)!/(l+m)!)."""
+    from math import factorial
+    x, y, z = unit(directions).T
+    theta, phi = np.arccos(np.clip(z, -1, 1)), np.arctan2(y, x)
+    out = []
+    for l in range(degree + 1):
+        for m in range(-l, l + 1):
+            a = abs(m)
+            legendre = np.polynomial.Legendre.basis(l).deriv(a)(np.cos(theta))
+            p = (-1) ** a * np.sin(theta) ** a * legendre
+            norm = np.sqrt((2 * l + 1) / (4 * np.pi) * factorial(l - a) / factorial(l + a))
+            turn = np.sqrt(2) * (np.cos(a * phi) if m > 0 else np.sin(a * phi)) if m else 1.0
+            out.append(norm * p * turn)
+    return np.stack(out, axis=-1)
+
+
+def test_basis_is_the_condon_shortley_real_harmonics_in_every_band(rng):
+    """3DGS's bands 0..3 are the real harmonics with the (-1)^m phase, ordered m = -l..l (sines first);
+    band 4 continues them: the same definition fixes its ordering and signs."""
+    d = rng.normal(size=(200, 3))
+    np.testing.assert_allclose(sh.basis(d, 4), condon_shortley_harmonics(d, 4), rtol=0, atol=1e-13)
+
+
+def test_degree_4_constants_are_the_closed_forms():
+    pi = np.pi
+    closed = [3 / 4 * np.sqrt(35 / pi), -3 / 4 * np.sqrt(35 / (2 * pi)), 3 / 4 * np.sqrt(5 / pi),
+              -3 / 4 * np.sqrt(5 / (2 * pi)), 3 / 16 * np.sqrt(1 / pi), -3 / 4 * np.sqrt(5 / (2 * pi)),
+              3 / 8 * np.sqrt(5 / pi), -3 / 4 * np.sqrt(35 / (2 * pi)), 3 / 16 * np.sqrt(35 / pi)]
+    np.testing.assert_allclose(sh.C4, closed, rtol=1e-15)
+    # gsplat's degree-4 evaluation writes band 4 as recurrences in z and (x + iy)^m; the same
+    # numbers at one direction (its literal constants).
+    x, y, z = unit(np.array([0.3, -0.5, 0.8]))
+    c2, c3, c4 = ((x + 1j * y) ** m for m in (2, 3, 4))
+    want = [0.6258357354491763 * c4.imag, -1.770130769779931 * z * c3.imag,
+            (3.31161143515146 * z * z - 0.47308734787878) * c2.imag,
+            z * (-4.683325804901025 * z * z + 2.007139630671868) * y,
+            1.984313483298443 * z * z * (1.865881662950577 * z * z - 1.119528997770346)
+            - 1.006230589874905 * (0.9461746957575601 * z * z - 0.3153915652525201),
+            z * (-4.683325804901025 * z * z + 2.007139630671868) * x,
+            (3.31161143515146 * z * z - 0.47308734787878) * c2.real, -1.770130769779931 * z * c3.real,
+            0.6258357354491763 * c4.real]
+    np.testing.assert_allclose(sh.basis([[x, y, z]], 4)[0, 16:], want, rtol=1e-13)
 
 
 def test_basis_follows_the_reference_constants_and_ordering():
@@ -64,7 +112,7 @@ def test_basis_follows_the_reference_constants_and_ordering():
     assert sh.C1 == pytest.approx(np.sqrt(3 / (4 * np.pi)), rel=1e-15)
 
 
-@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
 def test_basis_gradient_is_the_central_difference_of_the_basis(degree):
     """At directions of any length (basis() normalises them), and zero along the direction."""
     rng = np.random.default_rng(degree)
@@ -114,13 +162,57 @@ def test_1000_random_rotations_match_brute_force(rng):
         assert np.abs(diff).max() < 1e-12
 
 
-@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
 def test_per_splat_rotations_match_brute_force(rng, degree):
     n = 20000      # more than one chunk, so the threaded path runs
     coeffs = rng.normal(0, 0.5, size=(n, (degree + 1) ** 2, 3))
     rotations = random_rotations(rng, n)
     rotations[::5] *= -1                                   # mirrors among them
     assert_rotates(coeffs, rotations, unit(rng.normal(size=(n, 3))))
+
+
+def brute_force_rotation(rotation, degree, rng):
+    """D with basis(R^T d) = basis(d) D, by least squares over 500 random directions; and the largest
+    residual (zero when every band is closed under the rotation)."""
+    d = unit(rng.normal(size=(500, 3)))
+    before, after = sh.basis(d, degree), sh.basis(d @ rotation, degree)      # rows of d @ R are R^T d
+    fit = np.linalg.lstsq(before, after, rcond=None)[0]
+    return fit, np.abs(before @ fit - after).max()
+
+
+def test_degree_4_rotations_and_mirrors_match_a_brute_force_fit(rng):
+    """rotation_matrix and rotate at degree 4 against a least-squares fit of the basis at R^T d
+    (rotations, mirrors with det -1, the point inversion), one matrix or one per splat."""
+    proper = random_rotations(rng, 12)
+    mirrors = proper[:6] @ np.diag([1.0, -1.0, 1.0])
+    matrices = np.concatenate([proper, mirrors, [-np.eye(3), np.diag([1.0, 1.0, -1.0]), np.eye(3)[[1, 0, 2]]]])
+    coeffs = rng.normal(0, 0.5, size=(len(matrices), 25, 3))
+    per_splat = sh.rotate(coeffs, matrices)
+    for r, c, got in zip(matrices, coeffs, per_splat):
+        fit, residual = brute_force_rotation(r, 4, rng)
+        assert residual < 1e-12                                  # band 4 is closed under R
+        band = slice(16, 25)
+        assert np.abs(fit[band, :16]).max() < 1e-12 and np.abs(fit[:16, band]).max() < 1e-12
+        np.testing.assert_allclose(sh.rotation_matrix(r, 4), fit, atol=1e-12)     # rotate: c' = D c
+        np.testing.assert_allclose(got, fit @ c, atol=1e-12)
+        np.testing.assert_allclose(sh.rotate(c, r), fit @ c, atol=1e-12)
+    # odd bands flip under -I, band 4 does not
+    np.testing.assert_allclose(sh.rotation_matrix(-np.eye(3), 4)[16:, 16:], np.eye(9), atol=1e-14)
+
+
+def test_degree_4_band_turns_with_the_x90_that_spz_tabulates():
+    """Niantic's SPZ converts Y-up and Z-up frames with a table of D_4(Rx(+90 degrees)) in this
+    ordering and these signs: the same matrix (its closed-form entries written out)."""
+    r2, r5, r7, r14, r35 = (np.sqrt(v) for v in (2, 5, 7, 14, 35))
+    want = np.zeros((9, 9))
+    rows = {0: {5: -r14 / 4, 7: r2 / 4}, 1: {1: -0.75, 3: r7 / 4}, 2: {5: -r2 / 4, 7: -r14 / 4},
+            3: {1: r7 / 4, 3: 0.75}, 4: {4: 3 / 8, 6: r5 / 4, 8: r35 / 8}, 5: {0: r14 / 4, 2: r2 / 4},
+            6: {4: r5 / 4, 6: 0.5, 8: -r7 / 4}, 7: {0: -r2 / 4, 2: r14 / 4}, 8: {4: r35 / 8, 6: -r7 / 4, 8: 0.125}}
+    for i, row in rows.items():
+        for j, v in row.items():
+            want[i, j] = v
+    rx90 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    np.testing.assert_allclose(sh.rotation_matrix(rx90, 4)[16:, 16:], want, atol=1e-14)
 
 
 def test_float32_in_float32_out_within_1e5(rng):

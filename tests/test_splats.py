@@ -63,6 +63,21 @@ def test_shape_errors_name_the_field():
         SplatCloud(np.zeros((4, 3)), np.zeros((4, 4)), np.zeros((4, 3)), np.zeros(4), np.zeros((4, 5, 3)))
 
 
+def test_sh_degree_4_is_a_valid_cloud_and_5_is_not():
+    """K = (d+1)^2 for d in 0..4: 25 coefficients are degree 4, 36 (degree 5) are refused."""
+    fields = (np.zeros((4, 3)), np.ones((4, 4)), np.zeros((4, 3)), np.zeros(4))
+    assert SplatCloud(*fields, np.zeros((4, 25, 3))).sh_degree == 4
+    with pytest.raises(SplatValidationError, match=r"K in \(1, 4, 9, 16, 25\)"):
+        SplatCloud(*fields, np.zeros((4, 36, 3)))
+    four, one = random_cloud(5, sh_degree=4, seed=1), random_cloud(6, sh_degree=1, seed=2)
+    both = SplatCloud.concatenate([one, four])
+    assert both.sh_degree == 4 and not both.sh[:5, 4:].any()
+    np.testing.assert_array_equal(both.sh[6:], four.sh)
+    assert four.with_sh_degree(3).sh.shape == (5, 16, 3) and sh.num_coeffs(4) == 25 and sh.degree_of(25) == 4
+    with pytest.raises(ValueError, match="0..4"):
+        sh.num_coeffs(5)
+
+
 def test_select_and_concatenate_keep_fields_and_extras_aligned():
     a, b = random_cloud(20, sh_degree=3, seed=1), random_cloud(30, sh_degree=1, seed=2)
     a.extras["tag"] = np.arange(20)
