@@ -135,8 +135,9 @@ def _run_info(args):
 def _add_convert(p):
     p.add_argument("input")
     p.add_argument("output")
-    p.add_argument("--sh-degree", type=int, choices=range(4), help="truncate SH to this degree")
-    p.add_argument("--spz-version", type=int, choices=(2, 3, 4), help="SPZ version to write (default 3)")
+    p.add_argument("--sh-degree", type=int, choices=range(5), help="truncate SH to this degree (0..4)")
+    p.add_argument("--spz-version", type=int, choices=(2, 3, 4),
+                   help="SPZ version to write (default 3, or 4 for SH degree 4, which v2/v3 cannot store)")
     p.add_argument("--half", action="store_true",
                    help="OpenUSD output: orientations, scales, opacities and SH as half floats")
     p.add_argument("--axes", choices=("upright", "y-up", "as-is"),

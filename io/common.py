@@ -69,6 +69,23 @@ def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
     return cloud if policy == "keep" else cloud[~bad]
 
 
+def reduced_sh(cloud, degree, what, notes):
+    """The cloud with its SH cut to `degree` where the format `what` stores no higher band; a note
+    says so when the bands dropped held anything."""
+    if cloud.sh_degree <= degree:
+        return cloud
+    if np.any(cloud.sh[:, (degree + 1) ** 2:]):
+        notes.append(f"{what} stores SH up to degree {degree}: SH degree {cloud.sh_degree} reduced to {degree} "
+                     "(the higher bands' view-dependent colour dropped)")
+    return cloud.with_sh_degree(degree)
+
+
+def warn_notes(path, notes, stacklevel=3):
+    """One SplatFileWarning for a writer's or reader's notes, if any."""
+    if notes:
+        warnings.warn(f"{path}: " + "; ".join(notes), SplatFileWarning, stacklevel=stacklevel)
+
+
 def log_scales_from_linear(scales, notes):
     """float32 natural logs of linear scales; negative scales count by magnitude and zero ones (a
     flat axis) become the smallest normal float32, so the log stays finite. Repairs go to `notes`."""

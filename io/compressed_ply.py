@@ -24,10 +24,12 @@ import numpy as np
 from ..core import SplatCloud
 from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
-from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
+from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
+                     reduced_sh, warn_notes)
 from .ply import _read_header, sh_order
 
 CHUNK = 256
+MAX_SH_DEGREE = 3                  # the sh element holds 9, 24 or 45 f_rest; degree 4 is reduced on writing
 BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
           "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z"]
 COLOR_BOUNDS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
@@ -248,6 +250,9 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     if cloud.extras:
         warnings.warn(f"{path}: compressed PLY has no room for extras; {sorted(cloud.extras)} not written",
                       SplatFileWarning, stacklevel=2)
+    notes = []
+    cloud = reduced_sh(cloud, MAX_SH_DEGREE, "compressed PLY", notes)
+    warn_notes(path, notes)
     header, chunks, vertices, rest = encode(cloud) if len(cloud) else _empty(cloud)
     with atomic_write(path) as f:
         f.write(header)

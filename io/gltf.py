@@ -8,7 +8,9 @@ and colour space ("srgb_rec709_display"), with the attributes
     KHR_gaussian_splatting:SCALE               VEC3 linear standard deviations
     KHR_gaussian_splatting:OPACITY             SCALAR linear opacity in [0, 1]
     KHR_gaussian_splatting:SH_DEGREE_l_COEF_n  VEC3 float, the raw 3DGS coefficients; degree 0 is
-                                               required, degree l needs all 2l+1 and every lower degree
+                                               required, degree l needs all 2l+1 and every lower degree;
+                                               the extension stops at degree 3 (45 coefficients), so a
+                                               degree-4 cloud is written at degree 3 with a warning
     COLOR_0                                    optional VEC4 fallback colour for point renderers
 Axes: glTF is +Y up with +Z to the front and +X to the left (LUF); the model's 3DGS axes (RDF) are a
 half turn about Z from it, so x and y change sign (positions, quaternion x and y, SH by parity), as
@@ -30,10 +32,11 @@ from ..core import SplatCloud
 from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
-                     log_scales_from_linear, publish_together)
+                     log_scales_from_linear, publish_together, reduced_sh, warn_notes)
 from .spz import flip_axes
 
 EXTENSION = "KHR_gaussian_splatting"
+MAX_SH_DEGREE = 3                       # "up to 45 spherical harmonic coefficients"
 ROTATION, SCALE, OPACITY = (f"{EXTENSION}:{name}" for name in ("ROTATION", "SCALE", "OPACITY"))
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 LUF = [-1, -1, 1]                       # the half turn about Z between RDF and glTF's axes
@@ -364,6 +367,9 @@ def write(path, cloud, nonfinite="raise"):
     if cloud.extras:
         warnings.warn(f"{path}: glTF splats carry no extras; {sorted(cloud.extras)} not written",
                       SplatFileWarning, stacklevel=2)
+    notes = []
+    cloud = reduced_sh(cloud, MAX_SH_DEGREE, EXTENSION, notes)
+    warn_notes(path, notes)
     doc, binary = encode(cloud)
     if str(path).lower().endswith(".gltf"):
         bin_path = Path(path).with_suffix(".bin")

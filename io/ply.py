@@ -49,6 +49,7 @@ REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "
 MAX_HEADER = 1 << 20
 PARALLEL_ROWS = 1 << 16                # below this, threads cost more than they save
 CHUNK_ROWS = 1 << 13                   # rows converted together while they are in cache (~2 MB)
+REST_COUNTS = tuple(3 * (k - 1) for k in shmod.VALID_COUNTS)      # f_rest properties: 0, 9, 24, 45, 72
 
 
 def layout_names(sh_degree):
@@ -364,9 +365,9 @@ def _sh_count(path, names):
     if set(rest) != {f"f_rest_{i}" for i in range(len(rest))}:
         raise SplatFileError(path, "f_rest properties must be numbered f_rest_0 .. f_rest_M without gaps, "
                                    f"found {sorted(rest, key=lambda p: (len(p), p))}")
-    if len(rest) not in (0, 9, 24, 45):
-        raise SplatFileError(path, f"{len(rest)} f_rest properties; 3DGS files have 0, 9, 24 or 45 "
-                                   "(SH degree 0..3)")
+    if len(rest) not in REST_COUNTS:
+        raise SplatFileError(path, f"{len(rest)} f_rest properties; 3DGS files have 0, 9, 24, 45 or 72 "
+                                   f"(SH degree 0..{shmod.MAX_DEGREE})")
     return len(rest) // 3 + 1
 
 

@@ -32,7 +32,7 @@ import numpy as np
 from ..core import SplatCloud
 from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
-                     publish_together)
+                     publish_together, reduced_sh, warn_notes)
 from .compressed_ply import morton_order
 
 FILES = {"means": ["means_l.webp", "means_u.webp"], "scales": ["scales.webp"], "quats": ["quats.webp"],
@@ -342,6 +342,9 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     if cloud.extras:
         warnings.warn(f"{path}: SOG has no room for extras; {sorted(cloud.extras)} not written",
                       SplatFileWarning, stacklevel=2)
+    notes = []
+    cloud = reduced_sh(cloud, max(SH_COEFFS), "SOG", notes)
+    warn_notes(path, notes)
     files = encode(path, cloud)
     if str(path).lower().endswith("meta.json"):
         folder = Path(path).parent

@@ -10,8 +10,9 @@ fractional bits, flags) then, with flag 0x2, extension records, then per-attribu
                v3+: N x u32   "smallest three": 2 bits index of the largest |component| (x,y,z,w
                               order), then the other three as sign bit + 9 bits of |q| / sqrt(1/2)
     SH         N x (K-1) x 3 x u8, coefficient-major, channel fastest: q * 128 + 128, rounded to a
-               bucket of 2^(8-5) for degree 1 and 2^(8-4) above (or min/max scaled when the Adobe
-               SH-quantization extension 0xADBE0001 says so)
+               bucket of 2^(8-5) for degree 1 and 2^(8-4) above, degree 4 included (or min/max
+               scaled when the Adobe SH-quantization extension 0xADBE0001 says so); K-1 = 0, 3, 8,
+               15 or 24 (degree 0..4)
 v4: the same header fields uncompressed in a 32-byte header (byte 15: stream count, bytes 16..19:
 table-of-contents offset), extension records up to that offset, a table of (compressed, raw) u64
 sizes, then one zstd frame per non-empty attribute block in the order above (five at SH degree 0).
@@ -24,9 +25,16 @@ stream, not the same bytes - and v4 blocks are compressed at zstd level 1 (ZSTD_
 parallel: on 1M SH-3 splats level 12 takes ~20x longer for a file no smaller (quantised SH bytes are
 nearly incompressible noise to zstd's longer searches), and both are smaller than gsply's.
 
+SH degree 4 came with v4: Niantic's loaders of the v2/v3 era refuse degrees above 3 (its library of
+today writes and reads degree 4 under any version number). Every version is read at degree 4, but
+write() stores it only in v4 (the default version for a degree-4 cloud) and reduces it to degree 3
+with a warning when asked for v2/v3.
+
 Axes: SPZ is RUB (x right, y up, z back), the model (like 3DGS PLY) is RDF. Reading and writing
 flip y and z: positions negate, quaternions (w, x, -y, -z), and each SH coefficient by its parity
-under the flip. axes=None skips the flip.
+under the flip, by Niantic's converter's table (SPZ_SH_FLIP). That table also negates the m = 4
+coefficient of degree 4, though its function is even in y and z; we follow it, so that files mean
+the same to Niantic's library and to us, both ways. axes=None skips the flip.
 
 Positions use 12 fractional bits (1/4096) when the cloud fits in +-2048, else the most that fit
 (a warning states the resolution). Values outside what a byte can hold are clamped and counted in a
@@ -43,7 +51,7 @@ from ..core import SplatCloud
 from ..core import sh as shmod
 from ..core.parallel import in_chunks, map_threads
 from ..core.splats import logit
-from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write
+from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, reduced_sh
 from .policy import SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR, STREAM_PIECE
 
 MAGIC = 0x5053474E
@@ -71,12 +79,17 @@ EXTENSION_ROOM = 1 << 16                       # bytes of extension records a v2
 # axis flips: two axes reversed (a half turn), exact since only signs change --------------------------
 
 def sh_signs(signs):
-    """Sign of each SH basis function (degrees 0..3) under (x, y, z) -> signs * (x, y, z)."""
+    """Sign of each SH basis function (degrees 0..4) under (x, y, z) -> signs * (x, y, z)."""
     d = np.array([[0.267, 0.535, 0.802]])
-    return np.sign(shmod.basis(d * signs, 3)[0] / shmod.basis(d, 3)[0]).astype(np.float32)
+    degree = shmod.MAX_DEGREE
+    return np.sign(shmod.basis(d * signs, degree)[0] / shmod.basis(d, degree)[0]).astype(np.float32)
 
 
 SH_FLIP = sh_signs([1, -1, -1])
+# Niantic's RDF <-> RUB signs (CoordinateConverter.flipSh): SH_FLIP but for the m = 4 coefficient
+# of degree 4, which that table gives the sign of y.
+SPZ_SH_FLIP = SH_FLIP * np.where(np.arange(len(SH_FLIP)) == 24, np.float32(-1), np.float32(1))
+LEGACY_MAX_DEGREE = 3                          # the highest SH degree v2/v3 readers take
 
 
 def flip_axes(cloud, signs):
@@ -102,10 +115,12 @@ def _block_sizes(n, dim, version):
 
 
 def uncompressed_size(count, sh_degree, version=3):
-    """Bytes of the data write() compresses for `count` splats of `sh_degree`: the header and the
-    attribute blocks (v2/v3: one gzip stream of both), or the blocks (v4: each a zstd stream, after a
-    32-byte header and 16 bytes of contents per stream). The file is smaller by what compression saves."""
-    blocks = sum(size for _, size in _block_sizes(count, SH_DIMS[sh_degree], version))
+    """Bytes of the data write() compresses for `count` splats of `sh_degree` (v2/v3: at most degree 3,
+    as write() reduces): the header and the attribute blocks (v2/v3: one gzip stream of both), or the
+    blocks (v4: each a zstd stream, after a 32-byte header and 16 bytes of contents per stream). The
+    file is smaller by what compression saves."""
+    degree = sh_degree if version >= 4 else min(sh_degree, LEGACY_MAX_DEGREE)
+    blocks = sum(size for _, size in _block_sizes(count, SH_DIMS[degree], version))
     return blocks + (HEADER.size if version < 4 else 0)
 
 
@@ -316,20 +331,27 @@ def decode(path, raw, axes="RDF"):
     scales = np.frombuffer(blocks["scales"], np.uint8).reshape(n, 3).astype(np.float32)
     xyzw = _decode_rotations(blocks["rotations"], n, version)
     dim = SH_DIMS[degree]
-    sh = np.empty((n, 1 + min(dim, 15), 3), np.float32)
+    sh = np.empty((n, 1 + dim, 3), np.float32)
     sh[:, 0] = (colors / np.float32(255) - np.float32(0.5)) / np.float32(COLOR_SCALE)
     if dim:
         lo, hi = _sh_range(blocks["extensions"])
-        u = np.frombuffer(blocks["sh"], np.uint8).reshape(n, dim, 3)[:, :15].astype(np.float32)
+        u = np.frombuffer(blocks["sh"], np.uint8).reshape(n, dim, 3).astype(np.float32)
         sh[:, 1:] = (u - 128) / 128 if (lo, hi) == (-1.0, 1.0) else lo + u / np.float32(255) * np.float32(hi - lo)
     cloud = SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], scales / np.float32(16) - np.float32(10),
                        logit(alphas), sh, antialiased=bool(flags & FLAG_ANTIALIASED))
     if axes == "RDF":
-        cloud = flip_yz(cloud)
+        cloud = _flip_spz(cloud)
     elif axes is not None:
         raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
     return cloud, {"version": version, "fractional_bits": bits, "antialiased": bool(flags & FLAG_ANTIALIASED),
                    "sh_degree_in_file": degree}
+
+
+def _flip_spz(cloud):
+    """RUB <-> RDF with Niantic's SH signs (SPZ_SH_FLIP)."""
+    flipped = flip_yz(cloud)
+    k = cloud.sh.shape[1]
+    return flipped.replace(sh=flipped.sh * (SPZ_SH_FLIP[:k] * SH_FLIP[:k])[None, :, None])
 
 
 def read(path, axes="RDF", nonfinite="raise"):
@@ -339,10 +361,7 @@ def read(path, axes="RDF", nonfinite="raise"):
             raw = f.read()
     except OSError as exc:
         raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
-    cloud, facts = decode(path, raw, axes)
-    if facts["sh_degree_in_file"] > shmod.MAX_DEGREE:
-        warnings.warn(f"{path}: SH degree {facts['sh_degree_in_file']} truncated to {shmod.MAX_DEGREE}",
-                      SplatFileWarning, stacklevel=2)
+    cloud, _ = decode(path, raw, axes)
     return apply_nonfinite_policy(path, cloud, nonfinite, "read")
 
 
@@ -453,7 +472,7 @@ class _Packer:
         self.blocks = {name: view[a:a + size] for (name, size), a in zip(self.sizes, self.offsets)}
         self.position_sign = np.float32([1, -1, -1]) if flip else np.ones(3, np.float32)
         self.rotation_sign = np.float32([1, 1, -1, -1]) if flip else np.ones(4, np.float32)
-        self.sh_sign = SH_FLIP[1:k, None] if flip else np.ones((k - 1, 1), np.float32)
+        self.sh_sign = SPZ_SH_FLIP[1:k, None] if flip else np.ones((k - 1, 1), np.float32)
         self.buckets = _sh_buckets(k, sh1_bits, rest_bits)
         self.clamped = []
 
@@ -498,15 +517,36 @@ def _outside(x):
     return int(((x <= -0.5) | (x >= 255.5)).sum())     # what rounds outside 0..255
 
 
-def encode(cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
+def default_version(cloud):
+    """The version write() takes unless told: 3, or 4 for a cloud of SH degree 4 (the first that
+    stores it) where the zstandard package is there to write it."""
+    if cloud.sh_degree <= LEGACY_MAX_DEGREE:
+        return 3
+    try:
+        import zstandard  # noqa: F401
+    except ImportError:
+        return 3
+    return 4
+
+
+def _storable(cloud, version, notes):
+    """The cloud at an SH degree `version` can store: degree 4 only in v4, else reduced to 3."""
+    if version >= 4:
+        return cloud
+    return reduced_sh(cloud, LEGACY_MAX_DEGREE, f"SPZ v{version} (v4 stores degree 4)", notes)
+
+
+def encode(cloud, version=None, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
            axes="RDF", level=None, notes=None):
-    """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); level: gzip (v2/v3) or
-    zstd (v4) compression level, by default the reference writer's up to 1 MiB of data (the same
-    bytes as Niantic's) and a faster one beyond (see the module's notes); the antialiased flag is
-    the cloud's unless `antialiased` says otherwise."""
+    """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); version None: see
+    default_version(); level: gzip (v2/v3) or zstd (v4) compression level, by default the reference
+    writer's up to 1 MiB of data (the same bytes as Niantic's) and a faster one beyond (see the
+    module's notes); the antialiased flag is the cloud's unless `antialiased` says otherwise."""
     notes = [] if notes is None else notes
+    version = default_version(cloud) if version is None else version
     if version not in VERSIONS:
         raise ValueError(f"SPZ version must be one of {VERSIONS}, got {version}")
+    cloud = _storable(cloud, version, notes)
     if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
         raise ValueError("sh1_bits and sh_rest_bits must be 1..8")
     if axes not in ("RDF", None):
@@ -578,9 +618,10 @@ def _pack_v4(n, degree, bits, flags, payload, sizes, level):
     return b"".join([header, toc, *frames])
 
 
-def write(path, cloud, version=3, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
+def write(path, cloud, version=None, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
           axes="RDF", level=None, nonfinite="raise"):
-    """Write an SPZ file (default version 3, gzip). Version 4 needs the zstandard package."""
+    """Write an SPZ file: by default version 3 (gzip), or 4 for SH degree 4 (default_version()).
+    Version 4 needs the zstandard package; v2/v3 reduce SH degree 4 to 3 with a warning."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     notes = []
     try:

@@ -124,8 +124,9 @@ DTYPE_KEY = "splatwright:dtype"
 NARROW_INTS = {name for name, sdf in EXTRA_TYPES.items() if sdf == "int" and name != "int32"}
 ADOBE_PRIMVARS = {"rot", "widths1", "widths2", "displayColor", "displayOpacity", "clipping"}
 BLENDER_BASE = "radiance:base"                    # Blender's point-cloud splats: DC rgb + opacity
+REST_COUNTS = tuple(k - 1 for k in shmod.VALID_COUNTS)      # higher coefficients per channel: 0, 3, 8, 15, 24
 BLENDER_PRIMVARS = {"rotation", "scale", BLENDER_BASE, "displayColor", "displayOpacity"} | \
-    {f"radiance:sh_{i}" for i in range(15)}
+    {f"radiance:sh_{i}" for i in range(REST_COUNTS[-1])}
 
 # Linear values read from a file, kept per cloud object so that writing an unchanged cloud back
 # reproduces them bit for bit (the model stores logs and logits, which float32 cannot invert exactly).
@@ -773,7 +774,8 @@ def _is_blender_splat(prim):
 def _blender_cloud(prim, time, notes):
     """UsdGeomPoints as Blender's USD export writes splat point clouds: `points`, primvars `rotation`
     (w, x, y, z; a quatf[] is read by its own order), `scale` linear, `radiance:base` (DC rgb and
-    the activated opacity) and `radiance:sh_0..14` (the higher coefficients in 3DGS order)."""
+    the activated opacity) and `radiance:sh_0..14`, or `..23` for degree 4 as Blender 5.3 writes (the
+    higher coefficients in 3DGS order)."""
     positions = _value(prim, "points", time, (3,))
     positions = np.zeros((0, 3), np.float32) if positions is None else positions.astype(np.float32)
     n = len(positions)
@@ -796,9 +798,9 @@ def _blender_cloud(prim, time, notes):
         opacities = _fit(_primvar(prim, "displayOpacity", time), n, (), "primvars:displayOpacity", "1", [])
         opacities = np.ones(n, np.float32) if opacities is None else opacities.astype(np.float32)
     rest = []
-    while len(rest) < 15 and (value := _primvar(prim, f"radiance:sh_{len(rest)}", time, (3,))) is not None:
+    while len(rest) < REST_COUNTS[-1] and (value := _primvar(prim, f"radiance:sh_{len(rest)}", time, (3,))) is not None:
         rest.append(value.astype(np.float32))
-    if len(rest) not in (0, 3, 8, 15) or any(len(v) != n for v in rest):
+    if len(rest) not in REST_COUNTS or any(len(v) != n for v in rest):
         notes.append(f"{len(rest)} radiance:sh_* primvars (or wrong lengths); view-dependent colour dropped")
         rest = []
     sh = np.concatenate([dc[:, None, :]] + [v[:, None, :] for v in rest], axis=1)
@@ -837,7 +839,7 @@ def _adobe_cloud(prim, time, notes):
     clip = _primvar(prim, "clipping", time, (3,))
     if clip is not None:
         notes.append(f"primvars:clipping box {clip.reshape(-1, 3).tolist()} not applied")
-    taken = ADOBE_PRIMVARS | {f"fRest{i}" for i in range(45)}
+    taken = ADOBE_PRIMVARS | {f"fRest{i}" for i in range(3 * REST_COUNTS[-1])}
     cloud = SplatCloud(positions, rotations, _log_scales_from(scales, None, notes),
                        _logits_from(opacities, None, notes), sh, _extras(prim, time, n, taken, notes))
     return cloud, opacities, np.abs(scales)
@@ -846,9 +848,9 @@ def _adobe_cloud(prim, time, notes):
 def _adobe_rest(prim, time, n, notes):
     """(n, K-1, 3) higher-order SH from fRest0.., channel-major: fRest[c*(K-1) + j]."""
     found = []
-    while (value := _primvar(prim, f"fRest{len(found)}", time)) is not None and len(found) < 45:
+    while (value := _primvar(prim, f"fRest{len(found)}", time)) is not None and len(found) < 3 * REST_COUNTS[-1]:
         found.append(value)
-    if len(found) not in (0, 9, 24, 45) or any(len(v) != n for v in found):
+    if len(found) not in [3 * k for k in REST_COUNTS] or any(len(v) != n for v in found):
         notes.append(f"{len(found)} fRest primvars (or wrong lengths); view-dependent colour dropped")
         found = []
     k1 = len(found) // 3

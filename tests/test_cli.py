@@ -126,10 +126,26 @@ def test_errors_exit_non_zero_naming_file_and_problem(capsys, scene, tmp_path):
     assert code != 0 and str(text) in err and "not a PLY file" in err
 
 
+def test_sh_degree_4_converts_and_reports(capsys, tmp_path):
+    """--sh-degree takes 0..4; a degree-4 PLY goes to SPZ v4 whole, or down to any lower degree."""
+    cloud = random_cloud(50, sh_degree=4, seed=6)
+    cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -0.9, 0.9)           # within SPZ's range
+    ply.write(tmp_path / "d4.ply", cloud)
+    code, _, err = run(capsys, "convert", tmp_path / "d4.ply", tmp_path / "d4.spz", "--no-check")
+    assert code == 0, err
+    code, out, err = run(capsys, "info", tmp_path / "d4.spz", "--json")
+    assert code == 0 and json.loads(out)["sh_degree"] == 4, err
+    code, out, err = run(capsys, "convert", tmp_path / "d4.ply", tmp_path / "d2.ply", "--sh-degree", "2", "--no-check")
+    assert code == 0 and "SH degree 2" in out, err
+    np.testing.assert_array_equal(ply.read(tmp_path / "d2.ply").sh, cloud.sh[:, :9])
+    code, out, err = run(capsys, "convert", tmp_path / "d2.ply", tmp_path / "up.ply", "--sh-degree", "4", "--no-check")
+    assert code == 0 and ply.read(tmp_path / "up.ply").sh_degree == 4, err
+
+
 def test_bad_arguments_exit_non_zero(capsys, scene):
     path, _ = scene
     with pytest.raises(SystemExit) as exc:
-        main(["convert", str(path), "x.ply", "--sh-degree", "4"])
+        main(["convert", str(path), "x.ply", "--sh-degree", "5"])
     assert exc.value.code != 0
     assert "--sh-degree" in capsys.readouterr().err
 

@@ -330,3 +330,31 @@ def test_gltf_documents_of_the_wrong_shape(tmp_path):
         path.write_text(json.dumps(broken))
         with pytest.raises(SplatFileError, match=message):
             read_splats(path)
+
+
+# SH degree 4 where a format stops at 3 -----------------------------------------------------------------
+
+@pytest.mark.parametrize("name, words", [("r.compressed.ply", "compressed PLY stores SH up to degree 3"),
+                                         ("r.glb", "KHR_gaussian_splatting stores SH up to degree 3"),
+                                         ("r.sog", "SOG stores SH up to degree 3"),
+                                         ("r.splat", "stores the DC colour only; SH degree 4")])
+def test_formats_without_a_fourth_band_reduce_degree_4_and_say_so(tmp_path, name, words):
+    """The file is the one the degree-3 truncation of the cloud makes, byte for byte; a cloud whose
+    fourth band is zero (a degree-3 cloud padded up) loses nothing and gets no warning."""
+    if name.endswith(".sog"):
+        pytest.importorskip("PIL")
+    cloud = random_cloud(300, sh_degree=4, seed=46)
+    path, lower = tmp_path / name, tmp_path / f"three-{name}"
+    with pytest.warns(SplatFileWarning, match=words):
+        write_splats(path, cloud)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                 # .splat warns for degree 3 too
+        write_splats(lower, cloud.with_sh_degree(3))
+    assert path.read_bytes() == lower.read_bytes()
+    assert read_splats(path).sh_degree == (0 if name.endswith(".splat") else 3)
+    padded = cloud.with_sh_degree(3).with_sh_degree(4)
+    if not name.endswith(".splat"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            write_splats(tmp_path / f"padded-{name}", padded)
+        assert (tmp_path / f"padded-{name}").read_bytes() == lower.read_bytes()

@@ -133,7 +133,7 @@ def cloud_with_extras(n, degree, seed=0):
     return c
 
 
-@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
 def test_our_files_round_trip_byte_for_byte(tmp_path, degree):
     cloud = cloud_with_extras(300, degree, seed=degree)
     first, second = tmp_path / "a.ply", tmp_path / "b.ply"
@@ -167,6 +167,24 @@ def test_plyfile_reads_our_file_in_the_reference_layout(tmp_path):
     assert_fields(cloud, expected_fields(cols))
     for key in ("nx", "ny", "nz", "segment", "weight", "id", "tag"):
         np.testing.assert_array_equal(vertex[key], cloud.extras[key])
+
+
+def test_plyfile_reads_our_degree_4_file_with_72_f_rest(tmp_path):
+    """SH degree 4 as Blender 5.3 and 3DGS trainers with sh_degree 4 write it: f_rest_0..71, channel-major."""
+    cloud = random_cloud(150, sh_degree=4, seed=9)
+    path = tmp_path / "sh4.ply"
+    write_splats(path, cloud)
+    vertex = plyfile.PlyData.read(str(path))["vertex"]
+    names = list(vertex.data.dtype.names)
+    assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                     + [f"f_rest_{i}" for i in range(72)]
+                     + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert_fields(cloud, expected_fields({n: vertex[n] for n in names}))
+    # f_rest_47 is channel 1 (green), coefficient 47 - 24 + 1 = 24: the m = 4 term of band 4
+    np.testing.assert_array_equal(vertex["f_rest_47"], cloud.sh[:, 24, 1])
+    back = read_splats(path)
+    assert back.sh_degree == 4 and back.sh.shape == (150, 25, 3)
+    np.testing.assert_array_equal(back.sh, cloud.sh)
 
 
 def test_antialiased_splats_say_so_in_a_comment_other_readers_skip(tmp_path):
@@ -209,7 +227,7 @@ def test_cloud_without_normals_gets_zero_normals_and_reads_back_without_them(tmp
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian", "binary_big_endian"])
 @pytest.mark.parametrize("ptype", ["float", "double"])
-@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
 def test_hand_built_files_read_value_for_value(tmp_path, fmt, ptype, degree):
     rng = np.random.default_rng(degree)
     cols = gaussian_columns(40, degree, seed=degree, normals=bool(degree % 2))

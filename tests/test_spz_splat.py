@@ -221,17 +221,81 @@ def test_hard_cases_are_clamped_and_reported(tmp_path):
     assert np.abs(got.positions - far.positions).max() <= 2.0 ** -4
 
 
-def test_sh_degree_4_files_are_truncated(tmp_path):
-    n = 3
+# Parity of the nine degree-4 polynomials (m = -4..4: xy(xx-yy), yz(3xx-yy), xy(7zz-1), yz(7zz-3),
+# 35z^4-30z^2+3, xz(7zz-3), (xx-yy)(7zz-1), xz(xx-3yy), x^4-6xxyy+y^4) under y -> -y, z -> -z, as
+# Niantic's converter applies them: its table gives the last (even in y and z) the sign of y.
+NIANTIC_FLIP_4 = np.array([-1, 1, -1, 1, 1, -1, 1, -1, -1], np.float32)
+
+
+def degree_4_bytes(n):
+    """A v3 payload of n splats at SH degree 4 (as Niantic's writer makes for any version) whose SH
+    bytes count 0, 1, 2, ... coefficient by coefficient, channel fastest."""
     header = struct.pack("<IIIBBBB", 0x5053474E, 3, n, 4, 12, 0, 0)
     body = bytes(9 * n) + bytes([200] * n) + bytes([128] * 3 * n) + bytes([100] * 3 * n)
-    body += struct.pack("<III", *(3 << 30,) * n) + bytes(range(24 * 3)) * n
+    return header + body + struct.pack("<III", *(3 << 30,) * n) + bytes(range(24 * 3)) * n
+
+
+def test_sh_degree_4_files_are_read_whole(tmp_path):
     path = tmp_path / "d4.spz"
-    path.write_bytes(gzip.compress(header + body))
-    with pytest.warns(SplatFileWarning, match="SH degree 4 truncated to 3"):
-        got = spz.read(path, axes=None)
+    path.write_bytes(gzip.compress(degree_4_bytes(3)))
+    got = spz.read(path, axes=None)
+    assert got.sh_degree == 4 and got.sh.shape == (3, 25, 3)
+    np.testing.assert_allclose(got.sh[0, 1:].reshape(-1), (np.arange(72) - 128) / 128)
+    flipped = spz.read(path)                                   # RUB -> RDF: signs only
+    signs = np.concatenate([FLIP_SIGNS[1:], NIANTIC_FLIP_4])
+    np.testing.assert_array_equal(flipped.sh[:, 1:], got.sh[:, 1:] * signs[None, :, None])
+
+
+def v4_blocks(raw):
+    """The raw attribute blocks of a v4 file (positions, alphas, colours, scales, rotations[, SH]),
+    from its header and table of contents."""
+    import zstandard
+    magic, version, n, degree, bits, flags, streams, toc = struct.unpack_from("<IIIBBBBI", raw)
+    assert (magic, version) == (0x5053474E, 4)
+    sizes = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
+    at, blocks = toc + 16 * streams, []
+    for packed, unpacked in sizes.tolist():
+        blocks.append(zstandard.ZstdDecompressor().decompress(raw[at:at + packed], max_output_size=unpacked))
+        at += packed
+    return degree, blocks
+
+
+def test_degree_4_is_written_as_v4_with_four_bit_buckets(tmp_path):
+    """SPZ stores degree 4 from v4 on: write() picks v4 for it, and the fourth band's bytes are
+    round(128 x) + 128 to the middle of a 16-step bucket (4 bits, like bands 2 and 3), 72 per splat,
+    coefficient-major; read back within half a bucket."""
+    cloud = in_range_cloud(300, degree=4, seed=44)
+    path = tmp_path / "d4.spz"
+    spz.write(path, cloud)
+    degree, blocks = v4_blocks(path.read_bytes())
+    assert degree == 4 and len(blocks) == 6 and len(blocks[5]) == 300 * 72
+    stored = np.frombuffer(blocks[5], np.uint8).reshape(300, 24, 3)
+    x = cloud.sh[:, 16:].astype(np.float64) * NIANTIC_FLIP_4[None, :, None]      # RDF -> RUB
+    q = np.trunc(x * 128 + np.copysign(0.5, x)) + 128                           # C's round()
+    np.testing.assert_array_equal(stored[:, 15:], np.clip((q + 8) // 16 * 16, 0, 255))
+    got = spz.read(path)
+    assert got.sh_degree == 4
+    check_spz_error(got, cloud)
+    assert np.abs(got.sh[:, 16:] - cloud.sh[:, 16:]).max() <= (8 + 0.5) / 128 + 1e-6
+    # without the flip, the same bytes in the file's own axes
+    spz.write(tmp_path / "raw.spz", cloud, axes=None)
+    raw = np.frombuffer(v4_blocks((tmp_path / "raw.spz").read_bytes())[1][5], np.uint8).reshape(300, 24, 3)
+    flips = NIANTIC_FLIP_4 != 1
+    np.testing.assert_array_equal(raw[:, 15:][:, ~flips], stored[:, 15:][:, ~flips])
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_versions_before_4_reduce_degree_4_to_3_and_say_so(tmp_path, version):
+    cloud = in_range_cloud(200, degree=4, seed=45)
+    path = tmp_path / "d3.spz"
+    with pytest.warns(SplatFileWarning, match=f"SPZ v{version}.*SH degree 4 reduced to 3"):
+        spz.write(path, cloud, version=version)
+    header = struct.unpack_from("<IIIBBBB", gzip.decompress(path.read_bytes()))
+    assert header[1:4] == (version, 200, 3)
+    got = spz.read(path)
     assert got.sh_degree == 3
-    np.testing.assert_allclose(got.sh[0, 1:].reshape(-1), (np.arange(45) - 128) / 128)
+    check_spz_error(got, cloud.with_sh_degree(3), rotation_bound=np.pi if version == 2 else np.radians(0.25))
+    assert spz.uncompressed_size(200, 4, version) == spz.uncompressed_size(200, 3, version)
 
 
 def test_bad_spz_files(tmp_path, monkeypatch):

@@ -18,6 +18,9 @@ from splatwright.io import SplatFileWarning
 # Parity of each 3DGS SH basis polynomial under (x, y, z) -> (x, -y, -z), worked out by hand:
 # 1 | y z x | xy yz (2zz-xx-yy) xz (xx-yy) | y(3xx-yy) xyz y(..) z(..) x(..) z(xx-yy) x(xx-3yy)
 FLIP_SIGNS = np.array([1, -1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], np.float32)
+# ... and of the nine degree-4 ones, m = -4..4: xy(xx-yy), yz(3xx-yy), xy(7zz-1), yz(7zz-3), 35z^4-30z^2+3,
+# xz(7zz-3), (xx-yy)(7zz-1), xz(xx-3yy), x^4-6xxyy+y^4
+FLIP_SIGNS_4 = np.concatenate([FLIP_SIGNS, np.float32([-1, 1, -1, 1, 1, -1, 1, -1, 1])])
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 
 
@@ -695,9 +698,11 @@ def blender_points(path, cloud, quat_type="float4"):
     stage.GetRootLayer().Save()
 
 
-@pytest.mark.parametrize("quat_type", ["float4", "quatf"])
-def test_blender_splat_point_clouds(tmp_path, quat_type):
-    cloud = random_cloud(20, sh_degree=3, seed=12)
+@pytest.mark.parametrize("quat_type, degree", [("float4", 3), ("quatf", 3), ("float4", 4)])
+def test_blender_splat_point_clouds(tmp_path, quat_type, degree):
+    """Blender 5.3 writes degree 4 as radiance:sh_0..23; the SH turn with the axes (Z-up to RDF is
+    x, y, z -> x, -z, y: the colour seen from d in the file is the one seen from that d turned)."""
+    cloud = random_cloud(20, sh_degree=degree, seed=12)
     path = tmp_path / "blender.usda"
     blender_points(path, cloud, quat_type)
     prims = usd.read_stage(path, axes=None)                 # the stage's own (Blender's Z-up) axes
@@ -711,6 +716,29 @@ def test_blender_splat_point_clouds(tmp_path, quat_type):
     # in the model's axes: Z-up turned to Y-up, then to 3DGS's y down (x, y, z) -> (x, -z, y)
     rdf = usd.read(path)
     np.testing.assert_allclose(rdf.positions, cloud.positions[:, [0, 2, 1]] * [1, -1, 1], atol=1e-6)
+    assert rdf.sh_degree == degree
+    d = np.random.default_rng(3).normal(size=(20, 3))
+    np.testing.assert_allclose(shmod.evaluate(rdf.sh, d[:, [0, 2, 1]] * [1, -1, 1]), shmod.evaluate(cloud.sh, d),
+                               atol=2e-6)
+
+
+def test_degree_4_is_25_coefficients_per_particle_as_the_schema_says(tmp_path):
+    """radiance:sphericalHarmonicsDegree 4 and (4+1)^2 float3 per particle, particle-major, as plain pxr
+    reads them; exact both ways; layout y-up turns them by each basis function's parity."""
+    cloud = random_cloud(30, sh_degree=4, seed=14)
+    path = tmp_path / "sh4.usdc"
+    usd.write(path, cloud)
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/Splats")
+    assert prim.GetAttribute("radiance:sphericalHarmonicsDegree").Get() == 4
+    coefficients = prim.GetAttribute("radiance:sphericalHarmonicsCoefficients")
+    assert coefficients.GetMetadata("elementSize") == 25
+    np.testing.assert_array_equal(np.asarray(coefficients.Get()), cloud.sh.reshape(-1, 3))
+    assert_same(read_splats(path), cloud)
+    usd.write(tmp_path / "up.usda", cloud, layout="y-up", exact=False)
+    values = attr_values(tmp_path / "up.usda")["radiance:sphericalHarmonicsCoefficients"]
+    np.testing.assert_array_equal(values.reshape(30, 25, 3), cloud.sh * FLIP_SIGNS_4[None, :, None])
+    np.testing.assert_array_equal(usd.read(tmp_path / "up.usda", unmarked="stage").sh, cloud.sh)
 
 
 def test_convert_axes_and_usd_input_options(tmp_path, capsys):

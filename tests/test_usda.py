@@ -38,6 +38,8 @@ CASES = {
     "exact": lambda p: usd.write(p, extras_cloud()),
     "half": lambda p: usd.write(p, random_cloud(30, 2, seed=2), half=True, half_positions=True),
     "y-up": lambda p: usd.write(p, random_cloud(30, 1, seed=3), layout="y-up", exact=False),
+    "sh4": lambda p: usd.write(p, extras_cloud(degree=4)),
+    "sh4-y-up": lambda p: usd.write(p, random_cloud(20, 4, seed=8), layout="y-up", exact=False),
     "antialiased": lambda p: usd.write(p, random_cloud(12, 2, seed=7).replace(antialiased=True)),
     "frames": lambda p: usd.write_frames(p, (moved(extras_cloud(), k) for k in range(3)), times=[1, 2, 5], fps=30),
     "stage": lambda p: usd.write_stage(p, {"/World/A": random_cloud(9, 0, seed=4),
@@ -191,10 +193,10 @@ def test_transform_ops_units_and_up_axis_read_as_pxr_reads_them(tmp_path, monkey
     _assert_same_reading(want, got, exact=False)
 
 
-@pytest.mark.parametrize("quat_type", ["float4", "quatf"])
-def test_blender_point_clouds_read_without_pxr(tmp_path, monkeypatch, quat_type):
+@pytest.mark.parametrize("quat_type, degree", [("float4", 3), ("quatf", 3), ("float4", 4)])
+def test_blender_point_clouds_read_without_pxr(tmp_path, monkeypatch, quat_type, degree):
     path = tmp_path / "blender.usda"
-    blender_points(path, random_cloud(20, sh_degree=3, seed=12), quat_type)
+    blender_points(path, random_cloud(20, sh_degree=degree, seed=12), quat_type)
     want = _read_everything(path)
     monkeypatch.setattr(usd, "Usd", None)
     _assert_same_reading(want, _read_everything(path))
