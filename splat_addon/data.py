@@ -159,7 +159,13 @@ def sh_degree(obj):
 def native_supported():
     """Whether this Blender can make point clouds holding points from Python: resize() (5.2 and
     later), or converting a mesh (4.5 and later)."""
-    return hasattr(bpy.types.PointCloud, "resize") or "POINTCLOUD" in _convert_targets()
+    return _resizable() or "POINTCLOUD" in _convert_targets()
+
+
+def _resizable():
+    """Whether point clouds have resize() (5.2 and later). An RNA function: the class lists it in
+    bl_rna.functions, while hasattr() on the class is False."""
+    return "resize" in bpy.types.PointCloud.bl_rna.functions
 
 
 def native_by_default():
@@ -538,7 +544,7 @@ def _convert_targets():
 
 def _new_pointcloud(name, count):
     """A point cloud of `count` points: resized (Blender 5.2+), else converted from a mesh (4.5+)."""
-    if hasattr(bpy.types.PointCloud, "resize"):
+    if _resizable():
         pointcloud = bpy.data.pointclouds.new(name)
         pointcloud.resize(count)
         return pointcloud
@@ -562,9 +568,9 @@ def _new_pointcloud(name, count):
     finally:
         mesh_left = obj.data if isinstance(obj.data, bpy.types.Mesh) else None
         bpy.data.objects.remove(obj)
-        if mesh_left is not None:
+        if mesh_left is not None:               # not converted: that is `mesh`, gone now
             bpy.data.meshes.remove(mesh_left)
-        if mesh.name in bpy.data.meshes and mesh.users == 0:
+        elif mesh.name in bpy.data.meshes and mesh.users == 0:
             bpy.data.meshes.remove(mesh)
 
 
