@@ -570,11 +570,9 @@ def create_splat_objects(context, results):
 
 
 def remove_objects(objects):
-    """Remove splat objects this module created, with their meshes."""
+    """Remove splat objects this module created, with their data (meshes or point clouds)."""
     for obj in objects:
-        mesh = obj.data
-        bpy.data.objects.remove(obj)
-        bpy.data.meshes.remove(mesh)
+        data.remove_splat_object(obj)
 
 
 def from_mesh(context, objects, **options):
