@@ -15,10 +15,15 @@ import numpy as np
 import pytest
 from blender_session import MODULE, blender_fixture
 from helpers import check_transformed, format_errors, read
-from workers.addon import (ANIM_OFFSET, DEFAULT_AXES, FORMAT_CLOUD, LOG_SCALE, MENUS, OPACITY, RENDER_CASES, ROTATION,
-                           SH, WORLD_COLOR)
+from workers.addon import (ANIM_OFFSET, DEFAULT_AXES, EXACT, FORMAT_CLOUD, LOG_SCALE, MENUS, NATIVE_BASE,
+                           NATIVE_ROTATION, NATIVE_SCALE, NATIVE_SH, OPACITY, RENDER_CASES, ROTATION, SH, WORLD_COLOR)
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version: ~5-15 s
+
+
+def _native(blender):
+    """Whether new splat objects are Blender's own Gaussian-splat point clouds in this version (5.3 on)."""
+    return blender.version_tuple >= (5, 3)
 
 
 def _random_cloud(n, degree, seed, spread=1.0):
@@ -82,15 +87,30 @@ def test_import_ply_stores_documented_attributes_upright(blender):
     res = blender.step("import_ply")
     source = read(blender.work / "a.ply")
     d = np.load(blender.out / "import_a.npz")
-    assert res["type"] == "MESH" and res["marker"] and res["count"] == len(source)
-    assert res["modifiers"] == ["Splatwright Display"]
-    np.testing.assert_array_equal(d["co"], source.positions)
-    np.testing.assert_array_equal(d[ROTATION], source.rotations)
-    np.testing.assert_array_equal(d[LOG_SCALE], source.log_scales)
-    np.testing.assert_array_equal(d[OPACITY][:, 0], source.opacity_logits)
-    for k in range(16):
-        np.testing.assert_array_equal(d[f"{SH}{k}"], source.sh[:, k])
-    assert f"{SH}16" not in d
+    assert res["count"] == len(source)
+    np.testing.assert_array_equal(d["position"], source.positions)
+    if _native(blender):
+        # Blender's own splats, drawn by Blender: linear scales, DC + activated opacity, SH rest by index
+        assert res["type"] == "POINTCLOUD" and res["marker"] == "GAUSSIAN_SPLAT" and res["modifiers"] == []
+        np.testing.assert_array_equal(d[NATIVE_ROTATION], source.rotations)
+        np.testing.assert_allclose(d[NATIVE_SCALE], np.exp(source.log_scales.astype(np.float64)), rtol=2.5e-7)
+        np.testing.assert_array_equal(d[NATIVE_BASE][:, :3], source.sh[:, 0])
+        np.testing.assert_allclose(d[NATIVE_BASE][:, 3], 1 / (1 + np.exp(-source.opacity_logits.astype(np.float64))),
+                                   rtol=2.5e-7, atol=1e-12)
+        np.testing.assert_array_equal(d[EXACT[0]], source.log_scales)              # kept exactly beside them
+        np.testing.assert_array_equal(d[EXACT[1]][:, 0], source.opacity_logits)
+        for k in range(1, 16):
+            np.testing.assert_array_equal(d[f"{NATIVE_SH}{k - 1}"], source.sh[:, k])
+        assert f"{NATIVE_SH}15" not in d and not any(name.startswith("splat_") and "extra" not in name for name in d)
+    else:
+        assert res["type"] == "MESH" and res["marker"] is True
+        assert res["modifiers"] == ["Splatwright Display"]
+        np.testing.assert_array_equal(d[ROTATION], source.rotations)
+        np.testing.assert_array_equal(d[LOG_SCALE], source.log_scales)
+        np.testing.assert_array_equal(d[OPACITY][:, 0], source.opacity_logits)
+        for k in range(16):
+            np.testing.assert_array_equal(d[f"{SH}{k}"], source.sh[:, k])
+        assert f"{SH}16" not in d
     np.testing.assert_array_equal(d["splat_extra_nx"][:, 0], source.extras["nx"])
     np.testing.assert_array_equal(d["splat_extra_segment"][:, 0], source.extras["segment"])
     # upright: the file's -Y (up in a COLMAP capture) is Blender's +Z, its +Z (forward) is Blender's +Y
@@ -102,6 +122,11 @@ def test_import_ply_stores_documented_attributes_upright(blender):
 def test_import_of_several_files_at_once(blender):
     res = blender.step("import_ply")
     assert res["multi"] == [120, 300] and res["multi_selected"] == 2
+
+
+def test_import_while_another_object_is_in_edit_mode(blender):
+    res = blender.step("import_ply")["in_edit_mode"]
+    assert res == {"result": ["FINISHED"], "error": None, "count": 120}
 
 
 def test_ply_import_export_is_lossless(blender):
@@ -245,11 +270,13 @@ def test_non_finite_splats_are_dropped_by_default(blender):
 @pytest.mark.parametrize("name, words", [
     ("non-splat selection", ["no splat objects selected", "'Cube' (MESH)"]),
     ("empty selection", ["nothing is selected"]),
-    ("missing attribute", ["no 'splat_rotation' point attribute"]),
+    ("missing attribute", ["no '{rotation}' point attribute"]),      # the form's rotation attribute
     ("unknown extension", ["never4.xyz", "unknown splat file extension"]),
 ])
 def test_wrong_objects_report_and_write_nothing(blender, name, words):
     res = blender.step("wrong_objects")
+    rotation = NATIVE_ROTATION if _native(blender) else ROTATION
+    words = [word.format(rotation=rotation) for word in words]
     assert res[name]["result"] == ["CANCELLED"]
     for word in words:
         assert word in res[name]["error"], res[name]["error"]
@@ -261,14 +288,21 @@ def test_wrong_objects_report_and_write_nothing(blender, name, words):
 def test_viewport_display_points_sized_by_scale(blender):
     res = blender.step("display")
     source = read(blender.work / "a.ply")
+    size = np.load(blender.out / "display_size.npy")
+    if _native(blender):
+        # Blender draws its own Gaussian splats: every splat, sized by its scales; no display of ours
+        assert res["pointclouds"] == 1 and res["type"] == "GAUSSIAN_SPLAT" and res["count"] == len(source)
+        assert res["modifiers"] == [] and not res["added"] and "Splatwright Splat" not in res["material"]
+        np.testing.assert_allclose(size, source.scales, rtol=1e-5)
+        return
     assert res["pointclouds"] == 1 and res["material"] == ["Splatwright Splat"]
+    assert res["modifiers"] == ["Splatwright Display"] and res["added"]
     assert res["show_render"] is False
     visible = source.opacities > 0.05
     assert res["count"] == int(visible.sum())
     n, half = int(visible.sum()), res["half_count"][0]
     assert abs(half - n / 2) < 4 * np.sqrt(n / 4)           # Display Ratio 0.5 keeps about half
-    radius = np.load(blender.out / "display_radius.npy")
-    np.testing.assert_allclose(np.sort(radius), np.sort(source.scales.max(axis=1)[visible]), rtol=1e-5)
+    np.testing.assert_allclose(np.sort(size[:, 0]), np.sort(source.scales.max(axis=1)[visible]), rtol=1e-5)
 
 
 # render engine -----------------------------------------------------------------------------------------

@@ -20,6 +20,16 @@ from workers.bad_input import N, RENDER_SIZE, WRONG_KINDS
 pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version: ~3 s
 
 
+def _native(blender):
+    """Whether new splat objects are Blender's own Gaussian-splat point clouds in this version (5.3 on)."""
+    return blender.version_tuple >= (5, 3)
+
+
+def _type_name(blender):
+    """How messages name the type of a splat object this version makes."""
+    return "pointcloud" if _native(blender) else "mesh"
+
+
 def _write_inputs(work):
     from splatwright.io import write_splats
     write_splats(work / "empty.ply", random_cloud(0, sh_degree=1))
@@ -64,19 +74,24 @@ def test_every_operator_is_exercised(blender):
 
 # broken splat objects --------------------------------------------------------------------------------
 
-MISSING = {f"no_{a}": f"no '{a}' point attribute" for a in ("splat_rotation", "splat_log_scale",
-                                                           "splat_opacity_logit")}
-MISSING.update(no_splat_sh_0="missing [0]", no_splat_sh_2="missing [2]",
-               int_opacity="'splat_opacity_logit' is INT on POINT, expected FLOAT")
+# defect -> what the refusal says, for a splat mesh and for a native cloud (see workers.bad_input.DEFECT_ATTRIBUTES)
+MISSING = {
+    "mesh": dict(no_rotation="no 'splat_rotation' point attribute", no_scale="no 'splat_log_scale' point attribute",
+                 no_opacity="no 'splat_opacity_logit' point attribute", no_first_sh="missing [0]",
+                 no_middle_sh="missing [2]", int_opacity="'splat_opacity_logit' is INT on POINT, expected FLOAT"),
+    "native": dict(no_rotation="no 'rotation' point attribute", no_scale="no 'scale' point attribute",
+                   no_opacity="no 'radiance:base' point attribute", no_first_sh="missing [0]",
+                   no_middle_sh="missing [1]", int_opacity="'radiance:base' is INT on POINT, expected FLOAT4"),
+}
 READERS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind", "convert",
            "render")
 
 
-@pytest.mark.parametrize("defect", sorted(MISSING))
+@pytest.mark.parametrize("defect", sorted(MISSING["mesh"]))
 @pytest.mark.parametrize("operation", READERS)
 def test_missing_or_wrong_attributes_are_refused_by_name(blender, defect, operation):
     case = blender.step("defects")[f"{defect} {operation}"]
-    assert_refused(case, f"'{defect}'", MISSING[defect])
+    assert_refused(case, f"'{defect}'", MISSING["native" if _native(blender) else "mesh"][defect])
     assert case["written"] == []
 
 
@@ -166,7 +181,7 @@ def test_wrong_objects_are_refused_or_hidden(blender, kind):
         assert_refused(d[f"{kind} {op}"], "poll() failed")
     if kind != "plain_mesh":
         assert_refused(d[f"{kind} from_mesh"], "nothing is selected" if kind == "nothing" else "no mesh objects")
-    assert_refused(d[f"{kind} bind onto splats"], "'good' is mesh, not an armature")
+    assert_refused(d[f"{kind} bind onto splats"], f"'good' is {_type_name(blender)}, not an armature")
     assert_refused(d[f"{kind} convert"], "no selected splat objects")
     assert d[f"{kind} written"] == []
     if kind == "nothing":
@@ -217,8 +232,12 @@ def test_a_failed_export_keeps_the_file_it_would_replace(blender):
 def test_an_empty_file_imports_as_an_empty_splat_object(blender):
     case = blender.step("files")["import empty.ply contents"]
     assert case["result"] == ["FINISHED"] and case["count"] == 0
-    assert {"position", "splat_rotation", "splat_log_scale", "splat_opacity_logit", "splat_sh_0",
-            "splat_sh_3"} <= set(case["attributes"])
+    if _native(blender):
+        assert {"position", "rotation", "scale", "radiance:base", "radiance:sh_0",
+                "radiance:sh_2"} <= set(case["attributes"])
+    else:
+        assert {"position", "splat_rotation", "splat_log_scale", "splat_opacity_logit", "splat_sh_0",
+                "splat_sh_3"} <= set(case["attributes"])
     assert case["export"]["result"] == ["FINISHED"]
     header = (blender.out / "empty_again.ply").read_bytes().split(b"end_header")[0]
     assert b"element vertex 0" in header and b"f_rest_8" in header
@@ -299,6 +318,11 @@ def test_groups_that_match_no_bone_stay_put_as_in_blender(blender):
     case = blender.step("rigs")["bones renamed"]
     assert case["result"] == ["FINISHED"]
     d = blender.npz("renamed")
+    # Export follows what Blender shows: its own Armature modifier's result on a splat mesh (Blender
+    # renamed the vertex groups with the bones), or the native splats as drawn, which keep their bind
+    # pose (their splat_weight:<bone> attributes now match no bone)
+    if _native(blender):
+        np.testing.assert_allclose(d["blender_co"], d["rest_co"], atol=1e-6)
     expected = d["blender_co"].astype(np.float64) @ d["matrix_world"][:3, :3].T + d["matrix_world"][:3, 3]
     got = read(blender.out / "renamed.ply").positions
     np.testing.assert_allclose(got, expected, atol=1e-6)
@@ -306,12 +330,13 @@ def test_groups_that_match_no_bone_stay_put_as_in_blender(blender):
 
 @pytest.mark.parametrize("name, words", [
     ("empty as camera", ["'Rig Empty' is empty, not a camera object"]),
-    ("mesh as camera", ["'splats' is mesh, not a camera object"]),
+    ("splats as camera", ["'splats' is {type}, not a camera object"]),      # a splat object's type
     ("zero scale camera", ["'Camera'", "zero scale"]),
     ("nan camera", ["'Camera'", "NaN or Inf"]),
 ])
 def test_cameras_the_engine_cannot_use_are_refused(blender, name, words):
     case = blender.step("cameras")[name]
+    words = [word.format(type=_type_name(blender)) for word in words]
     assert case["result"] == ["CANCELLED"] and not case["image"]
     assert "internal error" not in case["error"]
     for word in words:

@@ -3,12 +3,18 @@ workers/base.py)."""
 
 import numpy as np
 
-from workers.base import MODULE, BlenderWorker, worker_main
+from workers.base import MODULE, BlenderWorker, point_attribute, point_attributes, splat_total, worker_main
 
 
 # menu -> entries the extension adds to it (the Object menu gets Join Splats and Check Collisions)
 MENUS = {"TOPBAR_MT_file_import": 1, "TOPBAR_MT_file_export": 1, "VIEW3D_MT_object_apply": 1, "VIEW3D_MT_object": 2}
 ROTATION, LOG_SCALE, OPACITY, SH = "splat_rotation", "splat_log_scale", "splat_opacity_logit", "splat_sh_"
+# Blender 5.3's own Gaussian-splat point clouds (the form new splat objects take there): linear scales,
+# radiance:base = DC and opacity, radiance:sh_<j> = SH coefficient j + 1; the exact log-scales and logits
+# Splatwright keeps beside them in hidden attributes
+NATIVE_ROTATION, NATIVE_SCALE, NATIVE_BASE, NATIVE_SH = "rotation", "scale", "radiance:base", "radiance:sh_"
+EXACT = (".splatwright_log_scale", ".splatwright_opacity_logit")
+SPLAT_TYPES = ("MESH", "POINTCLOUD")   # the object types splat objects have, in either form
 # file (x, y, z) -> Blender (x, z, -y): the documented default for 3DGS captures (-Y up, +Z forward)
 DEFAULT_AXES = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
 WORLD_COLOR = (0.2, 0.35, 0.5)
@@ -37,9 +43,9 @@ class Worker(BlenderWorker):
 
     steps = ("install", "import_ply", "formats", "export_axes", "edits", "join", "selected_only", "bad_inputs",
              "wrong_objects", "display", "render", "render_antialiased", "render_edges", "animation", "reregister")
-    keep_objects = ("Cube", "Camera", "Light")     # the startup scene; every step adds only splat meshes
-    orphan_kinds = ("meshes",)
-    inventory_kinds = ("objects", "meshes", "materials", "node_groups", "cameras", "collections")
+    keep_objects = ("Cube", "Camera", "Light")     # the startup scene; every step adds only splat objects
+    orphan_kinds = ("meshes", "pointclouds")
+    inventory_kinds = ("objects", "meshes", "pointclouds", "materials", "node_groups", "cameras", "collections")
 
     # helpers -----------------------------------------------------------------------------------
 
@@ -53,23 +59,16 @@ class Worker(BlenderWorker):
         return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name), **kw)
 
     def dump(self, obj, name):
-        """The object's point attributes read through Blender's API by their documented names."""
-        mesh = obj.data
-        n = len(mesh.vertices)
-        arrays = {"co": np.empty(n * 3, np.float32)}
-        mesh.vertices.foreach_get("co", arrays["co"])
-        props = {"FLOAT": ("value", 1), "INT": ("value", 1), "FLOAT_VECTOR": ("vector", 3),
-                 "FLOAT2": ("vector", 2), "QUATERNION": ("value", 4)}
-        for attr in mesh.attributes:
-            if attr.domain == "POINT" and attr.data_type in props and not attr.name.startswith("."):
-                prop, width = props[attr.data_type]
-                values = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
-                attr.data.foreach_get(prop, values)
-                arrays[attr.name] = values
-        arrays = {k: v.reshape(n, -1) for k, v in arrays.items()}
+        """The object's point attributes read through Blender's API by their documented names (a native
+        cloud's hidden exact values too); `marker`: the splat mesh's property, a point cloud's type."""
+        geometry = obj.data
+        arrays = point_attributes(geometry)
+        for hidden in EXACT if obj.type == "POINTCLOUD" else ():
+            arrays[hidden] = point_attribute(geometry, hidden)
         np.savez(self.out / f"{name}.npz", matrix_world=np.array(obj.matrix_world), **arrays)
-        return {"type": obj.type, "marker": "splatwright" in mesh.keys(),
-                "modifiers": [m.name for m in obj.modifiers], "count": n}
+        marker = geometry.type if obj.type == "POINTCLOUD" else "splatwright" in geometry.keys()
+        return {"type": obj.type, "marker": marker, "modifiers": [m.name for m in obj.modifiers],
+                "count": splat_total(obj)}
 
     # steps ---------------------------------------------------------------------------------------
 
@@ -106,8 +105,16 @@ class Worker(BlenderWorker):
         info["export"] = self.export("a_roundtrip.ply", selected_only=True)
         before = set(self.bpy.data.objects)
         self.bpy.ops.splat.import_file(directory=str(self.work), files=[{"name": "a.ply"}, {"name": "b.ply"}])
-        info["multi"] = sorted(len(o.data.vertices) for o in set(self.bpy.data.objects) - before)
+        info["multi"] = sorted(splat_total(o) for o in set(self.bpy.data.objects) - before)
         info["multi_selected"] = len(self.bpy.context.selected_objects)
+        # importing while another object is in Edit Mode (no operator that needs Object Mode may run)
+        self.select([self.bpy.data.objects["Cube"]])
+        self.bpy.ops.object.mode_set(mode="EDIT")
+        res = self.call(self.bpy.ops.splat.import_file, filepath=str(self.work / "b.ply"))
+        made = self.bpy.context.active_object
+        info["in_edit_mode"] = {**res, "count": splat_total(made) if made.name != "Cube" else None}
+        self.select([self.bpy.data.objects["Cube"]])
+        self.bpy.ops.object.mode_set(mode="OBJECT")
         return info
 
     def formats(self):
@@ -116,7 +123,7 @@ class Worker(BlenderWorker):
             obj = self.import_file(name)
             self.select([obj])
             done[name] = {"export": self.export("re_" + name, selected_only=True),
-                          "matrix_world": np.array(obj.matrix_world).tolist(), "count": len(obj.data.vertices)}
+                          "matrix_world": np.array(obj.matrix_world).tolist(), "count": splat_total(obj)}
         return done
 
     def export_axes(self):
@@ -124,17 +131,31 @@ class Worker(BlenderWorker):
         self.select([obj])
         return {"export": self.export("a_blender_axes.ply", selected_only=True, axis_forward="Y", axis_up="Z")}
 
+    def delete_every_third(self, obj):
+        """Delete splats 0, 3, 6, ... as an artist would: bmesh on a splat mesh, Edit Mode's Delete on a
+        point cloud. Returns how many there were."""
+        n = splat_total(obj)
+        if obj.type == "MESH":
+            import bmesh
+            bm = bmesh.new()
+            bm.from_mesh(obj.data)
+            bm.verts.ensure_lookup_table()
+            bmesh.ops.delete(bm, geom=[bm.verts[i] for i in range(0, n, 3)], context="VERTS")
+            bm.to_mesh(obj.data)
+            bm.free()
+            return n
+        selection = obj.data.attributes.get(".selection") or obj.data.attributes.new(".selection", "BOOLEAN",
+                                                                                     "POINT")
+        selection.data.foreach_set("value", np.arange(n) % 3 == 0)
+        self.select([obj])
+        self.bpy.ops.object.mode_set(mode="EDIT")
+        self.bpy.ops.pointcloud.delete()
+        self.bpy.ops.object.mode_set(mode="OBJECT")
+        return n
+
     def edits(self):
-        import bmesh
         obj = self.import_file("a.ply")
-        mesh = obj.data
-        bm = bmesh.new()
-        bm.from_mesh(mesh)
-        bm.verts.ensure_lookup_table()
-        n = len(bm.verts)
-        bmesh.ops.delete(bm, geom=[bm.verts[i] for i in range(0, n, 3)], context="VERTS")
-        bm.to_mesh(mesh)
-        bm.free()
+        n = self.delete_every_third(obj)
         obj.location = (1.0, -2.0, 0.5)
         obj.rotation_euler = (0.3, -0.2, 0.5)
         obj.scale = (1.5, 1.5, 1.5)
@@ -163,7 +184,7 @@ class Worker(BlenderWorker):
         with bpy.context.temp_override(active_object=a, selected_editable_objects=[a, b], selected_objects=[a, b]):
             bpy.ops.object.join()
         self.select([a])
-        res = {"objects": [o.name for o in bpy.data.objects if o.type == "MESH"],
+        res = {"objects": [o.name for o in bpy.data.objects if o.type in SPLAT_TYPES],
                "export": self.export("joined.ply", selected_only=True)}
         # Join Splats: b turned and stretched, joined into a moved a; the splats keep their world shape.
         self.clear_scene()
@@ -176,7 +197,7 @@ class Worker(BlenderWorker):
         self.select([a, b], active=a)
         res["join_splats"] = self.call(bpy.ops.splat.join)
         self.select([a])
-        res["splat_objects"] = [o.name for o in bpy.data.objects if o.type == "MESH" and o.name != "Cube"]
+        res["splat_objects"] = [o.name for o in bpy.data.objects if o.type in SPLAT_TYPES and o.name != "Cube"]
         res["export_splats"] = self.export("joined_splats.ply", selected_only=True)
         return res
 
@@ -204,7 +225,7 @@ class Worker(BlenderWorker):
         cases["good and bad together"] = {**res, "unchanged": before == self.inventory()}
         before = self.inventory()
         obj = self.import_file("nan.ply")      # drop_invalid defaults to True
-        cases["nan.ply dropped"] = {"count": len(obj.data.vertices), "added": len(self.inventory()["objects"]) -
+        cases["nan.ply dropped"] = {"count": splat_total(obj), "added": len(self.inventory()["objects"]) -
                                     len(before["objects"])}
         return cases
 
@@ -216,7 +237,7 @@ class Worker(BlenderWorker):
         self.select([])
         cases["empty selection"] = self.export("never2.ply", selected_only=True)
         obj = self.import_file("a.ply")
-        obj.data.attributes.remove(obj.data.attributes[ROTATION])
+        obj.data.attributes.remove(obj.data.attributes[ROTATION if obj.type == "MESH" else NATIVE_ROTATION])
         self.select([obj])
         cases["missing attribute"] = self.export("never3.ply", selected_only=True)
         obj2 = self.import_file("a.ply")
@@ -226,21 +247,27 @@ class Worker(BlenderWorker):
         return cases
 
     def display(self):
+        """What the viewport draws of an imported object: the point cloud the display modifier makes of a
+        splat mesh (its radii), or Blender's own Gaussian splats (their scales), read from the depsgraph."""
         bpy = self.bpy
         obj = self.import_file("a.ply")
         depsgraph = bpy.context.evaluated_depsgraph_get()
         found = []
+        size = "radius" if obj.type == "MESH" else NATIVE_SCALE
         for inst in depsgraph.object_instances:      # instance data is only valid during iteration
             if inst.object.type == "POINTCLOUD" and inst.object.original == obj:
                 points = inst.object.data
-                radius = np.empty(len(points.points), np.float32)
-                points.attributes["radius"].data.foreach_get("value", radius)
-                found.append({"count": len(points.points), "radius": radius,
+                found.append({"count": len(points.points), "size": point_attribute(points, size),
+                              "type": points.type if hasattr(points, "type") else None,
                               "material": [m.name for m in points.materials if m is not None]})
         if len(found) != 1:
             return {"pointclouds": len(found)}
-        np.save(self.out / "display_radius.npy", found[0].pop("radius"))
-        res = {"pointclouds": 1, **found[0], "show_render": obj.modifiers[0].show_render}
+        np.save(self.out / "display_size.npy", found[0].pop("size"))
+        res = {"pointclouds": 1, **found[0], "modifiers": [m.name for m in obj.modifiers],
+               "added": self.module("splat_addon.display").add_display(obj) is not None}
+        if obj.type != "MESH":
+            return res
+        res["show_render"] = obj.modifiers[0].show_render
         mod = obj.modifiers[0]
         self.module("splat_addon.display").set_input(mod, "Display Ratio", 0.5)
         obj.update_tag()
@@ -332,7 +359,7 @@ class Worker(BlenderWorker):
         res["mixed_export"] = self.export("mixed.spz", axis_forward="Y", axis_up="Z")
         self.select([obj, other], active=obj)
         res["join"] = self.call(bpy.ops.splat.join)
-        res["after_join"] = sorted(o.name for o in bpy.data.objects if o.type == "MESH" and o.name != "Cube")
+        res["after_join"] = sorted(o.name for o in bpy.data.objects if o.type in SPLAT_TYPES and o.name != "Cube")
         return res
 
     def render_edges(self):

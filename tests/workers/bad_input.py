@@ -9,14 +9,22 @@ import os
 from pathlib import Path
 import numpy as np
 
-from workers.base import BlenderWorker, worker_main
+from workers.base import BlenderWorker, point_attribute, splat_total, worker_main
 
 
 N = 40                                   # splats of every test object
 RENDER_SIZE = (24, 16)
 # splat objects with a defect, each named by it (built by Worker.defective), and what is tried on them
-DEFECTS = ("nan_values", "empty", "no_splat_rotation", "no_splat_log_scale", "no_splat_opacity_logit",
-           "no_splat_sh_0", "no_splat_sh_2", "int_opacity", "zero_scale", "nan_location")
+DEFECTS = ("nan_values", "empty", "no_rotation", "no_scale", "no_opacity", "no_first_sh", "no_middle_sh",
+           "int_opacity", "zero_scale", "nan_location")
+# the attribute each attribute defect deletes (or, int_opacity, turns into INT), by the object's type: a
+# splat mesh's, or a native cloud's (Blender 5.3's Gaussian splats, the form new objects take there)
+DEFECT_ATTRIBUTES = {
+    "MESH": dict(no_rotation="splat_rotation", no_scale="splat_log_scale", no_opacity="splat_opacity_logit",
+                 no_first_sh="splat_sh_0", no_middle_sh="splat_sh_2", int_opacity="splat_opacity_logit"),
+    "POINTCLOUD": dict(no_rotation="rotation", no_scale="scale", no_opacity="radiance:base",
+                       no_first_sh="radiance:sh_0", no_middle_sh="radiance:sh_1", int_opacity="radiance:base"),
+}
 OPERATIONS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind",
               "convert", "render")
 WRONG_KINDS = ("camera", "empty_object", "curve", "armature", "plain_mesh", "nothing")
@@ -28,12 +36,21 @@ FOREACH = {"FLOAT": ("value", 1, np.float32), "INT": ("value", 1, np.int32), "IN
            "BYTE_COLOR": ("color", 4, np.float32)}
 
 
+def _plain(value):
+    """A custom property's value as plain Python (ID property groups and arrays repr by address)."""
+    for convert in ("to_dict", "to_list"):
+        if hasattr(value, convert):
+            return repr(getattr(value, convert)())
+    return repr(value)
+
+
 # the worker (a separate Python process with bpy) -----------------------------------------------------
 
 class Worker(BlenderWorker):
     steps = ("install", "defects", "wrong_objects", "files", "animation_files", "read_only", "from_mesh", "rigs",
              "cameras", "cli")
-    inventory_kinds = ("objects", "meshes", "materials", "node_groups", "collections", "armatures", "cameras")
+    inventory_kinds = ("objects", "meshes", "pointclouds", "materials", "node_groups", "collections", "armatures",
+                       "cameras")
 
     # helpers -------------------------------------------------------------------------------------
 
@@ -50,16 +67,22 @@ class Worker(BlenderWorker):
             cloud.sh[7, 2, 0] = np.nan
         obj = self.splat(defect, cloud)
         attrs = obj.data.attributes
+        name = DEFECT_ATTRIBUTES[obj.type].get(defect)
         if defect.startswith("no_"):
-            attrs.remove(attrs[defect[3:]])
+            attrs.remove(attrs[name])
         elif defect == "int_opacity":
-            attrs.remove(attrs["splat_opacity_logit"])
-            attrs.new("splat_opacity_logit", "INT", "POINT")
+            attrs.remove(attrs[name])
+            attrs.new(name, "INT", "POINT")
         elif defect == "zero_scale":
             obj.scale = (0.0, 0.0, 0.0)
         elif defect == "nan_location":
             obj.location = (float("nan"), 0.0, 0.0)
         return obj
+
+    @staticmethod
+    def other_form(obj):
+        """The form Convert Splat Form turns the splat object `obj` into."""
+        return "NATIVE" if obj.type == "MESH" else "MESH"
 
     def armature(self, name, bones=(("Bone", (0, 0, -1), (0, 0, 1), True),)):
         """An armature object with bones (name, head, tail, deforms)."""
@@ -84,13 +107,16 @@ class Worker(BlenderWorker):
 
     def fingerprint(self):
         """Names of the data (inventory) and, per object, a digest of its transform, parent,
-        modifiers, vertex groups and the bytes of every point attribute: what a refusal must keep."""
+        modifiers, vertex groups, custom properties (its own and its data's: a native binding's armature,
+        say) and the bytes of every point attribute: what a refusal must keep."""
         state = self.inventory()
         for obj in self.bpy.data.objects:
             digest = hashlib.sha1(np.array(obj.matrix_world, np.float64).tobytes())
             digest.update(repr((obj.parent and obj.parent.name, [m.name for m in obj.modifiers],
                                 [g.name for g in obj.vertex_groups])).encode())
-            if obj.type == "MESH":
+            for owner in (obj, obj.data) if obj.data is not None else (obj,):
+                digest.update(repr(sorted((key, _plain(owner[key])) for key in owner.keys())).encode())
+            if obj.type in ("MESH", "POINTCLOUD"):
                 for attr in sorted(obj.data.attributes, key=lambda a: a.name):
                     digest.update(f"{attr.name}:{attr.data_type}:{attr.domain}".encode())
                     if attr.data_type in FOREACH:
@@ -152,7 +178,7 @@ class Worker(BlenderWorker):
         # the reference for the NaN render: the same object without its broken splats
         self.clear_scene()
         obj = self.defective("nan_values")
-        cloud = self.module("splat_addon.data").mesh_to_cloud(obj.data)
+        cloud = self.module("splat_addon.data").object_cloud(obj)
         self.clear_scene()
         self.splat("finite", cloud[cloud.finite_mask()])
         self.setup_render("finite_render")
@@ -173,7 +199,7 @@ class Worker(BlenderWorker):
             target = good if operation == "join_into_good" else obj
             self.select([good, obj], active=target)
             res = self.attempt(ops.join)
-            res["count"] = len(target.data.vertices) if target.name in bpy.data.objects else None
+            res["count"] = splat_total(target) if target.name in bpy.data.objects else None
             res["objects"] = sorted(o.name for o in bpy.context.scene.objects)
         elif operation.startswith("anim"):
             path = f"{name}_####.ply" if operation == "anim_ply" else f"{name}.usd"
@@ -189,7 +215,7 @@ class Worker(BlenderWorker):
             res = self.attempt(ops.bind_armature)
         elif operation == "convert":
             self.select([obj])
-            res = self.attempt(ops.convert_form, form="NATIVE")
+            res = self.attempt(ops.convert_form, form=self.other_form(obj))
         else:
             good.hide_render = True
             self.setup_render(name)
@@ -216,7 +242,7 @@ class Worker(BlenderWorker):
                 "join": (ops.join, {}),
                 "from_mesh": (ops.from_mesh, dict(max_splats=20)),
                 "bind onto splats": (ops.bind_armature, dict(armature="good")),
-                "convert": (ops.convert_form, dict(form="NATIVE")),
+                "convert": (ops.convert_form, dict(form=self.other_form(good))),
             }
             for name, (op, kw) in runs.items():
                 if name == "from_mesh" and kind == "plain_mesh":
@@ -263,7 +289,7 @@ class Worker(BlenderWorker):
         res = self.call(ops.import_file, filepath=str(self.work / "empty.ply"))
         obj = self.bpy.context.active_object
         res["attributes"] = sorted(a.name for a in obj.data.attributes if not a.name.startswith("."))
-        res["count"] = len(obj.data.vertices)
+        res["count"] = splat_total(obj)
         res["export"] = self.call(ops.export_file, filepath=str(self.out / "empty_again.ply"), selected_only=True)
         cases["import empty.ply contents"] = res
         good = self.splat("good", self.random_cloud(N, sh_degree=1, seed=4))
@@ -368,26 +394,41 @@ class Worker(BlenderWorker):
         warnings = []
         plans = rigging.bind_armature([made], arm, warn=warnings.append)
         cases["groups match no bone"] = {"source": plans[0].source, "warnings": warnings,
-                                         "groups": sorted(g.name for g in made.vertex_groups)}
-        # a bound object whose groups match no bone once the bones are renamed: it stays put, as the
-        # vertices under Blender's own Armature modifier do
+                                         "groups": sorted(self.weight_names(made))}
+        # the bones renamed and one posed: Blender renames a splat mesh's vertex groups with them (they
+        # follow), a native cloud's splat_weight:<bone> attributes then match no bone (they stay put)
+        rest = point_attribute(made.data, "position")          # as bound, before any pose
         for bone in arm.data.bones:
             bone.name = "Renamed" + bone.name
         arm.pose.bones["RenamedLower"].rotation_mode = "XYZ"
         arm.pose.bones["RenamedLower"].rotation_euler = (0.7, 0.0, 0.0)
-        made.modifiers["Splatwright Display"].show_viewport = False
+        if made.type == "MESH":
+            made.modifiers["Splatwright Display"].show_viewport = False
         depsgraph = bpy.context.evaluated_depsgraph_get()
         evaluated = made.evaluated_get(depsgraph)
-        mesh = evaluated.to_mesh()
-        blender_co = np.empty(len(mesh.vertices) * 3, np.float32)
-        mesh.vertices.foreach_get("co", blender_co)
-        evaluated.to_mesh_clear()
+        if made.type == "MESH":                                 # Blender's own Armature modifier's result
+            mesh = evaluated.to_mesh()
+            blender_co = np.empty(len(mesh.vertices) * 3, np.float32)
+            mesh.vertices.foreach_get("co", blender_co)
+            evaluated.to_mesh_clear()
+        else:                                                   # what Blender draws of the native splats
+            blender_co = point_attribute(evaluated.data, "position")
         self.select([made])
         res = self.attempt(bpy.ops.splat.export_file, filepath=str(self.out / "renamed.ply"), selected_only=True,
                            axis_forward="Y", axis_up="Z")
         cases["bones renamed"] = res
-        self.save("renamed", blender_co=blender_co.reshape(-1, 3), matrix_world=np.array(made.matrix_world))
+        self.save("renamed", blender_co=blender_co.reshape(-1, 3), rest_co=rest,
+                  matrix_world=np.array(made.matrix_world))
         return cases
+
+    @staticmethod
+    def weight_names(obj):
+        """The bone names a splat object holds weights for: a mesh's vertex groups, a native cloud's
+        splat_weight:<bone> attributes."""
+        if obj.type == "MESH":
+            return [g.name for g in obj.vertex_groups]
+        prefix = "splat_weight:"
+        return [a.name[len(prefix):] for a in obj.data.attributes if a.name.startswith(prefix)]
 
     def cameras(self):
         """Scene cameras the engine cannot render from: an empty, a mesh, a zero or NaN transform."""
@@ -399,7 +440,7 @@ class Worker(BlenderWorker):
         scene.collection.objects.link(empty)
         cam = bpy.data.objects["Camera"]
         setups = {"empty as camera": lambda: setattr(scene, "camera", empty),
-                  "mesh as camera": lambda: setattr(scene, "camera", bpy.data.objects["splats"]),
+                  "splats as camera": lambda: setattr(scene, "camera", bpy.data.objects["splats"]),
                   "zero scale camera": lambda: setattr(cam, "scale", (0.0, 0.0, 0.0)),
                   "nan camera": lambda: setattr(cam, "location", (0.0, float("nan"), 0.0))}
         for name, setup in setups.items():

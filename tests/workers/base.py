@@ -148,12 +148,61 @@ class BlenderWorker:
                     out[i, j] = group.weight(i)
         return out
 
+    def weight_matrix(self, obj, names):
+        """(splats, len(names)) bone weights of a splat object in either form: a mesh's vertex groups
+        (group_matrix), a native point cloud's FLOAT attributes splat_weight:<name>, or <name> itself
+        (the binding-strength mask), 0 where there is none."""
+        if obj.type != "POINTCLOUD":
+            return self.group_matrix(obj, names)
+        attributes = obj.data.attributes
+        out = np.zeros((len(obj.data.points), len(names)))
+        for j, name in enumerate(names):
+            attr = attributes.get("splat_weight:" + name) or attributes.get(name)
+            if attr is not None:
+                column = np.empty(len(out), np.float32)
+                attr.data.foreach_get("value", column)
+                out[:, j] = column
+        return out
+
     def save(self, name, **arrays):
         np.savez(self.out / f"{name}.npz", **arrays)
 
     def random_cloud(self, n, sh_degree=3, seed=0, spread=1.0):
         """random_cloud_arrays as a SplatCloud of the installed extension."""
         return self.module("core").SplatCloud(**random_cloud_arrays(n, sh_degree, seed, spread))
+
+
+# Blender attribute type -> (foreach_get property, components, NumPy dtype)
+POINT_TYPES = {"FLOAT": ("value", 1, np.float32), "INT": ("value", 1, np.int32), "FLOAT2": ("vector", 2, np.float32),
+               "FLOAT_VECTOR": ("vector", 3, np.float32), "QUATERNION": ("value", 4, np.float32),
+               "FLOAT_COLOR": ("color", 4, np.float32), "FLOAT4": ("vector", 4, np.float32)}
+
+
+def splat_total(obj):
+    """How many splats a splat object holds in either form: a mesh's vertices, a point cloud's points."""
+    return len(obj.data.points) if obj.type == "POINTCLOUD" else len(obj.data.vertices)
+
+
+def point_attributes(geometry):
+    """{name: (points, components) array} of a mesh's or point cloud's visible point attributes of
+    POINT_TYPES, as Blender stores them (foreach_get)."""
+    out = {}
+    for attr in geometry.attributes:
+        if attr.domain == "POINT" and attr.data_type in POINT_TYPES and not attr.name.startswith("."):
+            prop, width, dtype = POINT_TYPES[attr.data_type]
+            values = np.empty(len(attr.data) * width, dtype)
+            attr.data.foreach_get(prop, values)
+            out[attr.name] = values.reshape(-1, width)
+    return out
+
+
+def point_attribute(geometry, name):
+    """One point attribute of POINT_TYPES by name, hidden ones too, as a (points, components) array."""
+    attr = geometry.attributes[name]
+    prop, width, dtype = POINT_TYPES[attr.data_type]
+    values = np.empty(len(attr.data) * width, dtype)
+    attr.data.foreach_get(prop, values)
+    return values.reshape(-1, width)
 
 
 def worker_main(worker_class):
