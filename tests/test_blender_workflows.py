@@ -201,7 +201,10 @@ def test_from_mesh_budget_placement_and_provenance(blender, case):
     np.testing.assert_allclose(d["splat_extra_barycentric"].sum(axis=1), 1.0, atol=1e-6)
     assert res["source"] == {"object": f"plane_{case}", "mesh": f"plane_{case}", "vertices": 20,
                              "original_vertices": 20, "rest_pose": True}
-    assert res["modifiers"] == ["Splatwright Display"] and res["selected"] == [res["name"]]
+    # Blender 5.3 draws its own splat point clouds; earlier, a splat mesh with the display modifier
+    native = blender.version_tuple >= (5, 3)
+    assert res["form"] == ("NATIVE" if native else "MESH")
+    assert res["modifiers"] == ([] if native else ["Splatwright Display"]) and res["selected"] == [res["name"]]
 
 
 def test_from_mesh_applies_modifiers(blender):

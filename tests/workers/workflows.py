@@ -6,7 +6,7 @@ import io
 import json
 import numpy as np
 
-from workers.base import MODULE, BlenderWorker, worker_main
+from workers.base import MODULE, BlenderWorker, point_attributes, splat_total, worker_main
 
 
 C0 = 0.28209479177387814
@@ -117,18 +117,12 @@ class Worker(BlenderWorker):
             ev.to_mesh_clear()
 
     def splat_dump(self, obj):
-        mesh = obj.data
-        n = len(mesh.vertices)
-        arrays = {}
-        props = {"FLOAT": ("value", 1), "INT": ("value", 1), "FLOAT_VECTOR": ("vector", 3),
-                 "QUATERNION": ("value", 4)}
-        for attr in mesh.attributes:
-            if attr.domain == "POINT" and attr.data_type in props and not attr.name.startswith("."):
-                prop, width = props[attr.data_type]
-                values = np.empty(n * width, np.int32 if attr.data_type == "INT" else np.float32)
-                attr.data.foreach_get(prop, values)
-                arrays[attr.name] = values.reshape(n, width)
-        return arrays
+        """A splat object's point attributes as Blender stores them, in either form; a native cloud's DC
+        (radiance:base's colour) also as splat_sh_0, the mesh form's name for it (':' saved as '__')."""
+        arrays = point_attributes(obj.data)
+        if "radiance:base" in arrays:
+            arrays["splat_sh_0"] = arrays["radiance:base"][:, :3]
+        return {name.replace(":", "__"): values for name, values in arrays.items()}
 
     def convert(self, objects, **kw):
         """Run from_mesh on `objects` (without silhouette calibration unless asked: these steps check
@@ -177,7 +171,7 @@ class Worker(BlenderWorker):
             counts = []
             for budget in BUDGETS:
                 op, created = self.convert([obj], max_splats=budget)
-                counts.append(len(created[0].data.vertices) if created else None)
+                counts.append(splat_total(created[0]) if created else None)
                 res[f"{name}_{budget}"] = op
                 if budget == BUDGETS[0]:
                     splats = created[0]
@@ -187,6 +181,7 @@ class Worker(BlenderWorker):
             res[name] = {"counts": counts, "colorspace": img.colorspace_settings.name, "is_float": img.is_float,
                          "source": json.loads(splats.data["splatwright_source"]),
                          "modifiers": [m.name for m in splats.modifiers], "name": splats.name,
+                         "form": self.module("splat_addon.data").splat_form(splats),
                          "selected": selected}
         # modifiers applied: an Array modifier doubles the surface
         cube = self.grid("arrayed", nx=2, ny=2)
@@ -321,7 +316,7 @@ class Worker(BlenderWorker):
             with self.counted_renders() as renders:
                 op, created = self.convert([sphere], max_splats=1500, calibrate=calibrate, view_near=1.0,
                                            view_far=1.0, view_count=1, view_size=48, made_for=made_for)
-            res[key] = {**op, "renders": dict(renders), "count": len(created[0].data.vertices),
+            res[key] = {**op, "renders": dict(renders), "count": splat_total(created[0]),
                         "antialiased": data.object_cloud(created[0]).antialiased}
             self.save(f"calibration_{key}", **self.source_dump(sphere), **self.splat_dump(created[0]))
         props = bpy.ops.splat.from_mesh.get_rna_type().properties
@@ -360,7 +355,7 @@ class Worker(BlenderWorker):
                 "textured": any(n.bl_idname == "ShaderNodeTexImage"
                                 for m in mesh.materials for n in m.node_tree.nodes),
                 "environment": {"splat": self.module("splat_addon.data").is_splat_object(env),
-                                "count": len(env.data.vertices), "source": json.loads(env.data["splatwright_source"])},
+                                "count": splat_total(env), "source": json.loads(env.data["splatwright_source"])},
                 "animated": arm.animation_data is not None and arm.animation_data.action is not None}
 
     def rest_pose(self):
@@ -391,7 +386,7 @@ class Worker(BlenderWorker):
         obj.data.materials.append(self.material("quality", link=texture))
         op, created = self.convert([obj], mode="QUALITY", target_psnr=28.0, max_splats=4000, view_count=2,
                                    view_size=64)
-        res = {**op, "count": len(created[0].data.vertices) if created else None}
+        res = {**op, "count": splat_total(created[0]) if created else None}
         # Quality measured along the scene camera's path (frames 1 and 10), in the object's space.
         bpy, scene = self.bpy, self.bpy.context.scene
         obj.location = (0.5, 0.0, 0.0)
@@ -409,7 +404,7 @@ class Worker(BlenderWorker):
         res["frame_after"] = scene.frame_current
         missed, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
                                        view_source="CAMERA", view_count=2, view_size=32)
-        res["missed"] = {**missed, "count": len(created[0].data.vertices) if created else None}
+        res["missed"] = {**missed, "count": splat_total(created[0]) if created else None}
         # Mirrored, turned and scaled unevenly: its space mirrors and shears the camera.
         obj.rotation_euler, obj.scale = (0.0, 0.0, 0.3), (-1.0, 2.0, 1.0)
         bpy.context.view_layer.update()
@@ -418,7 +413,7 @@ class Worker(BlenderWorker):
         res["mirrored_centres"] = [list(map(float, v.center)) for v in views]
         mirrored, created = self.convert([obj], mode="QUALITY", target_psnr=80.0, max_splats=300,
                                          view_source="CAMERA", view_count=2, view_size=32)
-        res["mirrored"] = {**mirrored, "count": len(created[0].data.vertices) if created else None}
+        res["mirrored"] = {**mirrored, "count": splat_total(created[0]) if created else None}
         # Moving from x = 0.5 (frame 1) to 3.5 (frame 10): the path as the object sees it, in world
         # space where it stands at frame 4 (the views a bake renders).
         obj.rotation_euler, obj.scale = (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
