@@ -172,6 +172,11 @@ def native_step(blender, name):
 def test_native_point_clouds_are_read_like_splat_meshes(blender):
     res = native_step(blender, "native_forms")
     assert res["forms"] == ["MESH", "NATIVE"]
+    # as Blender 5.3's importers make them where the types exist (FLOAT4 from 5.2, the splat type 5.3)
+    assert res["layout"] == ["FLOAT4" if blender.version_tuple >= (5, 2) else "FLOAT_COLOR",
+                             "GAUSSIAN_SPLAT" if blender.version_tuple >= (5, 3) else None]
+    # made without Splatwright, off SPZ's grid: a PLY's values in its own axes (written back in them)
+    assert res["landed_raw"] == [False, True]
     for case in res["export"] + res["render"]:
         finished(case)
     ours, theirs = read(blender.out / "nat_ours.ply"), read(blender.out / "nat_theirs.ply")
@@ -215,7 +220,7 @@ def test_apply_splat_transform_and_join_on_native_point_clouds(blender):
     ours, theirs = read(blender.out / "nat_ours_applied.ply"), read(blender.out / "nat_theirs_applied.ply")
     assert_close_clouds(ours, read(blender.out / "nat_ours.ply"))
     assert_close_clouds(theirs, ours)
-    assert res["joined_forms"] == ["MESH", "NATIVE"]
+    assert res["joined_forms"] == ["MESH", "NATIVE"] and res["joined_raw"] == [False, True]
     joined_ours, joined_theirs = read(blender.out / "nat_ours_joined.ply"), read(blender.out / "nat_theirs_joined.ply")
     assert len(joined_ours) == len(joined_theirs) == N + N // 2
     assert_close_clouds(joined_theirs, joined_ours)

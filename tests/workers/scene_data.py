@@ -1,6 +1,8 @@
 """The Blender side of tests/test_blender_scene_data.py (run in each Blender of the version matrix; see
 workers/base.py): splat objects as users leave them (Edit Mode, modifiers, shape keys, instances) and
-Blender 5.3's own splat point clouds, built here attribute by attribute as Blender's importer makes them."""
+Blender 5.3's own splat point clouds, built here attribute by attribute as Blender's importer makes them
+(on 4.5-5.2, which have no Gaussian-splat type, without it; before 5.2, which has no FLOAT4, with
+radiance:base a colour, the layout guessed before 5.3)."""
 
 import numpy as np
 
@@ -20,22 +22,24 @@ BONES = {"Upper": ((0, 0, -1.5), (0, 0, 0)), "Lower": ((0, 0, 0), (0, 0, 1.5))} 
 POSE = {"Upper": (0.2, 0.0, 0.1), "Lower": (0.0, 0.7, -0.3)}                         # Euler XYZ
 
 
-def native_arrays(arrays):
+def native_arrays(arrays, base_type="FLOAT4"):
     """A cloud's fields as Blender 5.3's importer stores them (see splat_addon/data.py): linear scale,
-    the sigmoid of the logit in radiance:base's alpha, higher SH as radiance:sh_<j>; float32."""
+    the sigmoid of the logit in radiance:base's fourth value, higher SH as radiance:sh_<j>; float32.
+    `base_type`: radiance:base's type, FLOAT4 as 5.3 writes it, FLOAT_COLOR where a Blender lacks FLOAT4."""
     sh = np.asarray(arrays["sh"], np.float32)
     base = np.c_[sh[:, 0], 1.0 / (1.0 + np.exp(-np.asarray(arrays["opacity_logits"], np.float64)))]
     out = {"position": ("FLOAT_VECTOR", arrays["positions"]),
            "scale": ("FLOAT_VECTOR", np.exp(np.asarray(arrays["log_scales"], np.float64))),
            "rotation": ("QUATERNION", arrays["rotations"]),
-           "radiance:base": ("FLOAT_COLOR", base)}
+           "radiance:base": (base_type, base)}
     for j in range(1, sh.shape[1]):
         out[f"radiance:sh_{j - 1}"] = ("FLOAT_VECTOR", sh[:, j])
     return out
 
 
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
-FOREACH = {"FLOAT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "QUATERNION": ("value", 4), "FLOAT_COLOR": ("color", 4)}
+FOREACH = {"FLOAT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "QUATERNION": ("value", 4),
+           "FLOAT_COLOR": ("color", 4), "FLOAT4": ("vector", 4)}
 
 
 class Worker(BlenderWorker):
@@ -62,7 +66,9 @@ class Worker(BlenderWorker):
 
     def native_object(self, name, arrays, **transform):
         """A point cloud with Blender 5.3's Gaussian-splat attributes, made without the extension: a mesh
-        of loose vertices carrying them, converted by Blender (or a resized point cloud on 5.2+)."""
+        of loose vertices carrying them, converted by Blender (or a resized point cloud on 5.2+). As 5.3's
+        importers make them where this Blender can: radiance:base FLOAT4 (5.2+, a colour before) and the
+        point cloud's type GAUSSIAN_SPLAT (5.3+)."""
         bpy = self.bpy
         n = len(arrays["positions"])
         if hasattr(bpy.types.PointCloud, "resize"):
@@ -79,20 +85,28 @@ class Worker(BlenderWorker):
             bpy.ops.object.convert(target="POINTCLOUD")
             obj = bpy.context.view_layer.objects.active
             geometry = obj.data
-        props = {"FLOAT_VECTOR": "vector", "QUATERNION": "value", "FLOAT_COLOR": "color"}
-        for attr_name, (kind, values) in native_arrays(arrays).items():
+        types = bpy.types.Attribute.bl_rna.properties["data_type"].enum_items.keys()
+        base_type = "FLOAT4" if "FLOAT4" in types else "FLOAT_COLOR"
+        for attr_name, (kind, values) in native_arrays(arrays, base_type).items():
             attr = geometry.attributes.get(attr_name) or geometry.attributes.new(attr_name, kind, "POINT")
-            attr.data.foreach_set(props[kind], np.ascontiguousarray(values, np.float32).ravel())
+            assert attr.data_type == kind, (attr_name, attr.data_type)
+            attr.data.foreach_set(FOREACH[kind][0], np.ascontiguousarray(values, np.float32).ravel())
+        if "GAUSSIAN_SPLAT" in getattr(geometry.bl_rna.properties.get("type"), "enum_items", {}).keys():
+            geometry.type = "GAUSSIAN_SPLAT"
         for key, value in transform.items():
             setattr(obj, key, value)
         return obj
 
-    def export(self, name, objects=None):
-        """Export (world space = file space) the visible splats, or `objects` selected."""
+    def export(self, name, objects=None, file_axes=False):
+        """Export (world space = file space) the visible splats, or `objects` selected. `file_axes`: for
+        native clouds made without Splatwright, which stand in their file's own axes as Blender's PLY
+        importer leaves them (splat_addon/data.py, landed_raw): world space is written with the default
+        axes then."""
         if objects is not None:
             self.select(objects)
+        axes = {} if file_axes else dict(axis_forward="Y", axis_up="Z")
         return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name),
-                         axis_forward="Y", axis_up="Z", selected_only=objects is not None)
+                         selected_only=objects is not None, **axes)
 
     def render(self, name, shown=None):
         """F12 through the engine to a 32-bit EXR (the tests read it); only `shown` splat objects when given."""
@@ -267,7 +281,9 @@ class Worker(BlenderWorker):
         ours = self.splats("ours", arrays, **NATIVE_TRANSFORM)
         theirs = self.native_object("theirs", arrays, **NATIVE_TRANSFORM)
         res = {"forms": [ext.data.splat_form(ours), ext.data.splat_form(theirs)],
-               "export": [self.export("nat_ours.ply", [ours]), self.export("nat_theirs.ply", [theirs])],
+               "layout": [theirs.data.attributes["radiance:base"].data_type, getattr(theirs.data, "type", None)],
+               "landed_raw": [ext.data.landed_raw(ours), ext.data.landed_raw(theirs)],
+               "export": [self.export("nat_ours.ply", [ours]), self.export("nat_theirs.ply", [theirs], True)],
                "render": [self.render("nat_ours", [ours]), self.render("nat_theirs", [theirs])]}
         env = self.splats("env", random_cloud_arrays(N, 0, seed=6, spread=0.8))
         reports = [ext.collide.check_collisions(self.bpy.context, obj, env, [1]) for obj in (ours, theirs)]
@@ -276,12 +292,13 @@ class Worker(BlenderWorker):
         res["apply"] = [self.apply_transform(ours), self.apply_transform(theirs)]
         res["applied_matrices"] = [self.matrix(ours), self.matrix(theirs)]
         for obj in (ours, theirs):
-            self.export(f"nat_{obj.name}_applied.ply", [obj])
+            self.export(f"nat_{obj.name}_applied.ply", [obj], obj is theirs)
         res["join"] = [self.join(ours, self.splats("ours_more", second, **DUPLICATE)),
                        self.join(theirs, self.native_object("theirs_more", second, **DUPLICATE))]
         res["joined_forms"] = [ext.data.splat_form(ours), ext.data.splat_form(theirs)]
+        res["joined_raw"] = [ext.data.landed_raw(ours), ext.data.landed_raw(theirs)]
         for obj in (ours, theirs):
-            self.export(f"nat_{obj.name}_joined.ply", [obj])
+            self.export(f"nat_{obj.name}_joined.ply", [obj], obj is theirs)
         self.select([ours])
         res["to_native"] = self.call(self.bpy.ops.splat.convert_form, form="NATIVE")
         converted = self.bpy.data.objects["ours"]
@@ -306,7 +323,7 @@ class Worker(BlenderWorker):
         self.select([ours, theirs], active=arm)
         res = {"bind": self.call(bpy.ops.splat.bind_armature, armature=arm.name, use_source_weights=False)}
         bpy.context.view_layer.update()
-        res["export"] = [self.export("rig_ours.ply", [ours]), self.export("rig_theirs.ply", [theirs])]
+        res["export"] = [self.export("rig_ours.ply", [ours]), self.export("rig_theirs.ply", [theirs], True)]
         res["render"] = [self.render("rig_ours", [ours]), self.render("rig_theirs", [theirs])]
         res["weights"] = sorted(a.name for a in theirs.data.attributes if a.name.startswith("splat_weight:"))
         # what Blender itself draws: the native attributes, written for the frame when it changes
