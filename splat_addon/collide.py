@@ -114,7 +114,7 @@ def splat_objects_pair(scene, name_a, name_b, context=None):
 
 def _labels(obj):
     """(bone names, per-splat bone index or -1) of a splat object; ([], None) when unbound."""
-    bound = rigging.main_bones(obj) if data.splat_form(obj) == data.MESH_FORM else None
+    bound = rigging.main_bones(obj)
     return bound if bound is not None else ([], None)
 
 

@@ -596,6 +596,7 @@ def write_plans(plans, armature, preserve_volume=False):
     finally:
         for plan in plans:
             forget_weights(plan.obj.data)
+    show_poses(bpy.context.evaluated_depsgraph_get(), {armature.name})     # native splats drawn posed at once
 
 
 # the operator ---------------------------------------------------------------------------------------
@@ -688,6 +689,7 @@ def show_poses(depsgraph, armatures=None):
         pose = poser(obj, depsgraph)
         if pose is not None:
             try:
+                data.keep_rest_pose(obj)       # bound by hand (weights and property): keep its rest pose first
                 data.show_posed(obj, pose(data.object_cloud(obj)))
             except (SkinningError, *EXPECTED_ERRORS):
                 pass             # reported when the splats are next exported or rendered
