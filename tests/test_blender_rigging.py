@@ -48,12 +48,20 @@ def test_handlers_follow_the_extension(blender):
 
 # posing against Blender's Armature modifier -----------------------------------------------------------
 
+def native(blender):
+    """Whether this Blender makes splat objects native point clouds (5.3 and later), not splat meshes."""
+    return blender.version_tuple >= (5, 3)
+
+
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
 def test_skinned_centres_equal_blenders_armature_modifier(blender, mode):
     """Rolls, scaled bones (uniform and not), unnormalised and missing weights, a non-deforming bone, an
-    object scaled non-uniformly and an armature placed off the origin: Blender's own result to 1e-5."""
+    object scaled non-uniformly and an armature placed off the origin: Blender's own result to 1e-5
+    (its Armature modifier on the splat mesh, or on a plain mesh of native splats' centres with the
+    same vertex groups)."""
     res = blender.step("skinning")
-    assert res["modifiers"] == ["ARMATURE", "NODES"]
+    assert res["form"] == ("NATIVE" if native(blender) else "MESH") and res["armature"] == "Rig"
+    assert res["modifiers"] == ([] if native(blender) else ["ARMATURE", "NODES"])
     d = blender.npz("skinning")
     ours, theirs = d[f"{mode}_positions"], d[f"{mode}_blender"]
     scale = np.abs(theirs).max()
@@ -61,8 +69,43 @@ def test_skinned_centres_equal_blenders_armature_modifier(blender, mode):
     assert np.abs(theirs - d["rest_positions"]).max() > 0.3              # the pose really moves them
     unbound = slice(0, 20)                                                # no groups, or only Ctrl
     np.testing.assert_allclose(ours[unbound], d["rest_positions"][unbound], atol=1e-6)
-    # the viewport display draws the posed centres (the Armature modifier runs before it)
-    np.testing.assert_allclose(d[f"{mode}_display"], theirs, atol=1e-6)
+    if native(blender):
+        # Blender draws native splats from their attributes, which hold our posed splats
+        np.testing.assert_allclose(d[f"{mode}_display"], ours, rtol=0, atol=1e-6)
+    else:
+        # the viewport display draws the posed centres (the Armature modifier runs before it)
+        np.testing.assert_allclose(d[f"{mode}_display"], theirs, atol=1e-6)
+
+
+@pytest.mark.parametrize("mode", ["lbs", "dqs"])
+def test_blender_draws_native_splats_posed_whole(blender, mode):
+    """Bound native splats: the attributes Blender's viewport, EEVEE and Cycles draw hold the posed
+    splats, orientations, sizes, opacities and SH included, not only the centres."""
+    if not native(blender):
+        pytest.skip(f"Blender {blender.version} makes splat meshes, whose display draws centres")
+    d = blender.npz("skinning")
+    rotations = d[f"{mode}_rotations"].astype(np.float64)
+    drawn = d[f"{mode}_drawn_rotation"].astype(np.float64)
+    np.testing.assert_allclose(drawn, rotations, rtol=0, atol=1e-6 * np.abs(rotations).max())
+    assert np.abs(drawn - d["rest_rotations"]).max() > 0.1             # turned, not the rest pose
+    np.testing.assert_allclose(d[f"{mode}_drawn_scale"], np.exp(d[f"{mode}_log_scales"].astype(np.float64)),
+                               rtol=1e-6)
+    sh = d[f"{mode}_sh"].astype(np.float64)
+    base = d[f"{mode}_drawn_radiance_base"]
+    np.testing.assert_allclose(base[:, :3], sh[:, 0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(base[:, 3], 1 / (1 + np.exp(-d[f"{mode}_opacity_logits"].astype(np.float64))),
+                               rtol=0, atol=1e-6)
+    for j in range(1, sh.shape[1]):
+        np.testing.assert_allclose(d[f"{mode}_drawn_radiance_sh_{j - 1}"], sh[:, j], rtol=0, atol=1e-6)
+    assert np.abs(sh[:, 1:] - d["rest_sh"][:, 1:]).max() > 0.05          # SH turned with the bones
+
+
+def test_posing_keeps_the_splats_own_values(blender):
+    """However often the pose is drawn, the object's own splats stay the rest pose they were."""
+    d = blender.npz("skinning")
+    for field in ("positions", "rotations", "sh"):
+        np.testing.assert_array_equal(d[f"kept_{field}"], d[f"rest_{field}"].astype(np.float32))
+    np.testing.assert_allclose(d["kept_log_scales"], d["rest_log_scales"], rtol=1e-6)
 
 
 def test_modes_differ_where_bones_disagree(blender):
@@ -84,6 +127,8 @@ def test_the_modifiers_vertex_group_mask_is_followed(blender, mode):
     theirs = d[f"masked_{mode}_blender"]
     np.testing.assert_allclose(d[f"masked_{mode}_positions"], theirs, rtol=0, atol=1e-5 * np.abs(theirs).max())
     assert np.abs(theirs - d["repainted_positions"]).max() > 1e-2         # the mask changes the pose
+    if native(blender):                                                   # and what Blender draws
+        np.testing.assert_allclose(d[f"masked_{mode}_display"], d[f"masked_{mode}_positions"], rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
@@ -111,8 +156,10 @@ def test_rigidly_bound_splats_turn_and_stretch_with_their_bone(blender, mode):
 def test_weights_transfer_exactly_from_the_skinned_mesh(blender):
     res = blender.step("transfer")
     assert res["bind"]["result"] == ["FINISHED"]
-    assert sorted(res["groups"]) == ["Base", "Fore", "Hand", "Upper"]
-    assert res["modifiers"] == [["ARMATURE", "Demo Arm Rig"], ["NODES", None]]
+    assert res["form"] == ("NATIVE" if native(blender) else "MESH")
+    assert sorted(res["groups"]) == ["Base", "Fore", "Hand", "Upper"]     # vertex groups, or weight attributes
+    assert res["armature"] == "Demo Arm Rig"
+    assert res["modifiers"] == ([] if native(blender) else [["ARMATURE", "Demo Arm Rig"], ["NODES", None]])
     assert res["parent"] == "Demo Arm Rig" and res["matrix_kept"]
     d = blender.npz("transfer")
     corners = d["source_vertices"].astype(int)
@@ -142,6 +189,10 @@ def test_weights_from_bones_follow_segment_distances(blender):
     space), weights under 1% dropped, the two largest kept, normalised."""
     res = blender.step("bone_weights")
     assert res["bind"]["result"] == ["FINISHED"] and res["preserve_volume"] is True
+    assert res["preserve_volume_stored"] is True          # the modifier's, or the native splats' property
+    if native(blender):          # what Blender draws right after binding: the posed splats, not the rest
+        to_posed, to_rest = res["drawn_posed"]
+        assert to_posed <= 1e-6 and to_rest > 0.1
     assert sorted(res["groups"]) == ["Mid", "Root", "Side", "Tip"]        # Ctrl does not deform
     d = blender.npz("bone_weights")
     names = list(d["bones"])

@@ -28,6 +28,8 @@ RIG_POSE = {  # name: location, Euler XYZ rotation, scale (bone space)
 GROUP_ORDER = ("Side", "Root", "Ctrl", "Tip", "Mid")      # not the bone order
 ARM_TRANSFORM = dict(location=(0.3, -0.2, 0.1), rotation_euler=(0.1, 0.2, -0.3), scale=(1.1, 1.1, 1.1))
 SPLAT_TRANSFORM = dict(location=(0.5, 0.4, -0.2), rotation_euler=(0.3, -0.1, 0.5), scale=(1.0, 1.3, 0.8))
+DRAWN_TYPES = {"FLOAT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "QUATERNION": ("value", 4),
+               "FLOAT4": ("vector", 4), "FLOAT_COLOR": ("color", 4)}
 RIG_SPLATS = 400
 RENDER_SIZE = (480, 360)
 BENT_FRAME = 12
@@ -87,6 +89,57 @@ class Worker(BlenderWorker):
         finally:
             ev.to_mesh_clear()
 
+    def drawn(self, obj):
+        """What Blender draws of native splats: their visible attributes as stored (float32)."""
+        out = {}
+        for attr in obj.data.attributes:
+            if attr.domain == "POINT" and not attr.name.startswith(".") and attr.data_type in DRAWN_TYPES:
+                prop, width = DRAWN_TYPES[attr.data_type]
+                values = np.empty(len(attr.data) * width, np.float32)
+                attr.data.foreach_get(prop, values)
+                out[attr.name] = values.reshape(-1, width)
+        return out
+
+    def repose(self):
+        """A frame change, which writes bound native splats posed into what Blender draws."""
+        scene = self.bpy.context.scene
+        scene.frame_set(scene.frame_current)
+
+    def write_weights(self, obj, weights):
+        """Bone weights {group: {splat: weight}} as a user stores them: vertex groups of a splat mesh,
+        FLOAT attributes splat_weight:<group> of native splats."""
+        if obj.type == "MESH":
+            for name, members in weights.items():
+                group = obj.vertex_groups.get(name) or obj.vertex_groups.new(name=name)
+                for v, w in members.items():
+                    group.add([v], w, "REPLACE")
+            return
+        count = len(obj.data.points)
+        for name, members in weights.items():
+            attr = obj.data.attributes.get("splat_weight:" + name)
+            column = np.zeros(count, np.float32)
+            if attr is None:
+                attr = obj.data.attributes.new("splat_weight:" + name, "FLOAT", "POINT")
+            else:
+                attr.data.foreach_get("value", column)
+            column[list(members)] = list(members.values())
+            attr.data.foreach_set("value", column)
+        obj.data.update_tag()
+
+    def twin_mesh(self, obj, weights, arm):
+        """A plain mesh of the centres of `obj`'s own splats with its transform, the vertex groups
+        `weights` and an Armature modifier: Blender's own skinning of those points."""
+        bpy = self.bpy
+        centres = self.module("splat_addon.data").object_cloud(obj).positions
+        mesh = bpy.data.meshes.new(obj.name + " Twin")
+        mesh.from_pydata([tuple(map(float, c)) for c in centres], [], [])
+        twin = bpy.data.objects.new(obj.name + " Twin", mesh)
+        bpy.context.scene.collection.objects.link(twin)
+        twin.matrix_world = obj.matrix_world.copy()
+        self.write_weights(twin, weights)
+        twin.modifiers.new("Armature", "ARMATURE").object = arm
+        return twin
+
     def display_positions(self, obj):
         """The viewport display's points (object space)."""
         depsgraph = self.bpy.context.evaluated_depsgraph_get()
@@ -105,7 +158,9 @@ class Worker(BlenderWorker):
         inv["groups"] = {o.name: [g.name for g in o.vertex_groups] for o in bpy.data.objects}
         inv["modifiers"] = {o.name: [m.name for m in o.modifiers] for o in bpy.data.objects}
         inv["parents"] = {o.name: o.parent.name if o.parent else None for o in bpy.data.objects}
-        inv["attributes"] = {m.name: sorted(a.name for a in m.attributes) for m in bpy.data.meshes}
+        inv["properties"] = {o.name: sorted(o.keys()) for o in bpy.data.objects}
+        inv["attributes"] = {g.name: sorted(a.name for a in g.attributes)
+                             for g in (*bpy.data.meshes, *bpy.data.pointclouds)}
         return inv
 
     def build_rig(self):
@@ -157,26 +212,54 @@ class Worker(BlenderWorker):
                                  handlers.redo_post) for f in lst if f.__module__.startswith(MODULE))
 
     def skinning(self):
+        """Weights stored by hand as a user does (vertex groups and an Armature modifier on a splat mesh;
+        splat_weight:<bone> attributes and the armature property on native splats), posed against
+        Blender's Armature modifier on the same centres: the splat mesh's own, or a plain twin mesh
+        of native splats' centres with the same groups."""
         bpy = self.bpy
         data = self.module("splat_addon.data")
         display = self.module("splat_addon.display")
+        rigging = self.module("splat_addon.rigging")
         arm = self.build_rig()
         arrays = rig_cloud_arrays(RIG_SPLATS)
         obj = self.splat_object("RigSplats", arrays)
         for key, value in SPLAT_TRANSFORM.items():
             setattr(obj, key, value)
-        for name, members in rig_weights(RIG_SPLATS).items():      # groups in GROUP_ORDER
-            group = obj.vertex_groups.new(name=name)
-            for v, w in members.items():
-                group.add([v], w, "REPLACE")
-        mod = obj.modifiers.new("Armature", "ARMATURE")
-        mod.object = arm
-        shown = display.add_display(obj)
-        display.set_input(shown, "Min Opacity", 0.0)
         bpy.context.view_layer.update()
-        res = {"modifiers": [m.type for m in obj.modifiers]}
+        native = data.splat_form(obj) == data.NATIVE_FORM
+        weights_given = rig_weights(RIG_SPLATS)             # groups in GROUP_ORDER
+        self.write_weights(obj, weights_given)
+        if native:
+            obj[rigging.ARMATURE_PROPERTY] = arm
+            twin = self.twin_mesh(obj, weights_given, arm)   # Blender's Armature modifier on the same points
+            mod, shown = twin.modifiers["Armature"], None
+        else:
+            twin = obj
+            mod = obj.modifiers.new("Armature", "ARMATURE")
+            mod.object = arm
+            shown = display.add_display(obj)
+            display.set_input(shown, "Min Opacity", 0.0)
+
+        def set_volume(volume):
+            mod.use_deform_preserve_volume = volume
+            if native:
+                obj[rigging.PRESERVE_VOLUME_PROPERTY] = volume
+                self.repose()
+
+        def theirs():
+            """Blender's Armature modifier's vertices (object space), the display modifier off."""
+            if shown is None:
+                return self.blender_positions(twin)
+            shown.show_viewport = False
+            try:
+                return self.blender_positions(obj)
+            finally:
+                shown.show_viewport = True
+
+        bpy.context.view_layer.update()
+        res = {"modifiers": [m.type for m in obj.modifiers], "form": data.splat_form(obj),
+               "armature": rigging.rig_of(obj)[0].name}
         names = list(RIG_BONES)
-        depsgraph = bpy.context.evaluated_depsgraph_get()
         arm_world, obj_world = np.array(arm.matrix_world), np.array(obj.matrix_world)
         to_obj = np.linalg.inv(obj_world) @ arm_world
         deform = np.stack([to_obj @ np.array(arm.pose.bones[n].matrix)
@@ -184,38 +267,53 @@ class Worker(BlenderWorker):
                            for n in names])
         arrays_out = {}
         for mode, volume in (("lbs", False), ("dqs", True)):
-            mod.use_deform_preserve_volume = volume
+            set_volume(volume)
             depsgraph = bpy.context.evaluated_depsgraph_get()
             ours = data.evaluated_cloud(obj, depsgraph, np.eye(4))
-            arrays_out[f"{mode}_display"] = self.display_positions(obj)
-            shown.show_viewport = False
-            arrays_out[f"{mode}_blender"] = self.blender_positions(obj)
-            shown.show_viewport = True
+            if native:          # what Blender draws: the posed splats, every attribute
+                drawn = self.drawn(obj)
+                arrays_out[f"{mode}_display"] = drawn["position"]
+                arrays_out.update({f"{mode}_drawn_{k.replace(':', '_')}": v for k, v in drawn.items()
+                                   if k in ("rotation", "scale") or k.startswith("radiance:")})
+            else:
+                arrays_out[f"{mode}_display"] = self.display_positions(obj)
+            arrays_out[f"{mode}_blender"] = theirs()
             arrays_out.update({f"{mode}_positions": ours.positions, f"{mode}_rotations": ours.rotations,
-                               f"{mode}_log_scales": ours.log_scales, f"{mode}_sh": ours.sh})
-        weights = self.group_matrix(obj, names)
+                               f"{mode}_log_scales": ours.log_scales, f"{mode}_sh": ours.sh,
+                               f"{mode}_opacity_logits": ours.opacity_logits})
+        weights = self.weight_matrix(obj, names)
+        kept = data.object_cloud(obj)                     # the rest pose, however often it was drawn posed
         # weights painted after the first evaluation: the cached weights must follow
-        mod.use_deform_preserve_volume = False
-        group = obj.vertex_groups["Tip"]
-        group.add(list(range(20, 60)), 0.7, "REPLACE")
+        set_volume(False)
+        repaint = {"Tip": {v: 0.7 for v in range(20, 60)}}
+        self.write_weights(obj, repaint)
+        if native:
+            self.write_weights(twin, repaint)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         arrays_out["repainted_positions"] = data.evaluated_cloud(obj, depsgraph, np.eye(4)).positions
-        shown.show_viewport = False
-        arrays_out["repainted_blender"] = self.blender_positions(obj)
-        # a mask painted by hand and inverted on the modifier: every fifth splat is outside the group
-        fade = obj.vertex_groups.new(name="Fade")
-        for v, w in enumerate(np.random.default_rng(5).uniform(0, 1, RIG_SPLATS)):
-            if v % 5:
-                fade.add([v], float(w), "REPLACE")
+        arrays_out["repainted_blender"] = theirs()
+        # a mask painted by hand and inverted on the modifier: every fifth splat is outside the group;
+        # native splats hold it as the binding strength itself (1 - weight, 1 outside the group)
+        fade = {v: float(w) for v, w in enumerate(np.random.default_rng(5).uniform(0, 1, RIG_SPLATS)) if v % 5}
+        self.write_weights(twin, {"Fade": fade})
         mod.vertex_group, mod.invert_vertex_group = "Fade", True
+        if native:
+            strength = np.ones(RIG_SPLATS, np.float32)
+            strength[list(fade)] = 1.0 - np.array(list(fade.values()), np.float32)
+            attr = obj.data.attributes.new(rigging.MASK_GROUP, "FLOAT", "POINT")
+            attr.data.foreach_set("value", strength)
+            obj.data.update_tag()
         for mode, volume in (("lbs", False), ("dqs", True)):
-            mod.use_deform_preserve_volume = volume
+            set_volume(volume)
             depsgraph = bpy.context.evaluated_depsgraph_get()
             arrays_out[f"masked_{mode}_positions"] = data.evaluated_cloud(obj, depsgraph, np.eye(4)).positions
-            arrays_out[f"masked_{mode}_blender"] = self.blender_positions(obj)
+            arrays_out[f"masked_{mode}_blender"] = theirs()
+            if native:
+                arrays_out[f"masked_{mode}_display"] = self.drawn(obj)["position"]
         self.save("skinning", rest_positions=arrays["positions"], rest_rotations=arrays["rotations"],
                   rest_log_scales=arrays["log_scales"], deform=deform, bones=np.array(names),
-                  weights=weights, **arrays_out)
+                  weights=weights, kept_positions=kept.positions, kept_rotations=kept.rotations,
+                  kept_log_scales=kept.log_scales, kept_sh=kept.sh, rest_sh=arrays["sh"], **arrays_out)
         return res
 
     def transfer(self):
@@ -224,13 +322,15 @@ class Worker(BlenderWorker):
         rig, splats = self.demo()
         names = [b.name for b in rig.armature.data.bones]
         res = {"bind": self.call(bpy.ops.splat.bind_armature, armature=rig.armature.name, max_influences=8)}
-        extras = data.mesh_to_cloud(splats.data).extras
-        res.update(groups=[g.name for g in splats.vertex_groups],
+        rigging = self.module("splat_addon.rigging")
+        extras = data.object_cloud(splats).extras
+        res.update(groups=rigging.weight_names(splats), form=data.splat_form(splats),
+                   armature=rigging.rig_of(splats)[0].name,
                    modifiers=[[m.type, m.object.name if m.type == "ARMATURE" else None] for m in splats.modifiers],
                    parent=splats.parent.name if splats.parent else None,
                    matrix_kept=bool(np.allclose(np.array(splats.matrix_world), np.array(rig.body.matrix_world))),
                    source=json.loads(splats.data["splatwright_source"]))
-        self.save("transfer", weights=self.group_matrix(splats, names), source=self.group_matrix(rig.body, names),
+        self.save("transfer", weights=self.weight_matrix(splats, names), source=self.group_matrix(rig.body, names),
                   source_vertices=extras["source_vertices"], barycentric=extras["barycentric"])
         # the active armature, one influence
         self.select([rig.body])
@@ -238,7 +338,7 @@ class Worker(BlenderWorker):
         single = bpy.context.active_object
         self.select([single, rig.armature], active=rig.armature)
         res["single"] = self.call(bpy.ops.splat.bind_armature, max_influences=1)
-        self.save("transfer_single", weights=self.group_matrix(single, names))
+        self.save("transfer_single", weights=self.weight_matrix(single, names))
         # a source mesh that is gone: weights from the bones, with a warning
         self.select([rig.body])
         bpy.ops.splat.from_mesh(max_splats=200, calibrate=False)
@@ -262,10 +362,19 @@ class Worker(BlenderWorker):
         res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2, falloff=4.0, min_weight=0.01,
                                  preserve_volume=True)}
         names = list(RIG_BONES)
-        res["preserve_volume"] = obj.modifiers[0].use_deform_preserve_volume
-        res["groups"] = [g.name for g in obj.vertex_groups]
+        rigging = self.module("splat_addon.rigging")
+        res["preserve_volume"] = rigging.rig_of(obj)[1]
+        res["preserve_volume_stored"] = obj.modifiers[0].use_deform_preserve_volume if obj.type == "MESH" \
+            else bool(obj[rigging.PRESERVE_VOLUME_PROPERTY])
+        res["groups"] = rigging.weight_names(obj)
+        if obj.type == "POINTCLOUD":        # bound to a posed armature: Blender draws them posed at once
+            posed = self.module("splat_addon.data").evaluated_cloud(obj, bpy.context.evaluated_depsgraph_get(),
+                                                                    np.eye(4))
+            drawn = self.drawn(obj)["position"]
+            res["drawn_posed"] = [float(np.abs(drawn - posed.positions).max()),
+                                  float(np.abs(drawn - arrays["positions"]).max())]
         to_arm = np.linalg.inv(np.array(arm.matrix_world)) @ np.array(obj.matrix_world)
-        self.save("bone_weights", weights=self.group_matrix(obj, names), positions=arrays["positions"],
+        self.save("bone_weights", weights=self.weight_matrix(obj, names), positions=arrays["positions"],
                   to_arm=to_arm, heads=np.array([arm.data.bones[n].head_local for n in names]),
                   tails=np.array([arm.data.bones[n].tail_local for n in names]), bones=np.array(names))
         return res
@@ -380,10 +489,10 @@ class Worker(BlenderWorker):
                 clouds[f"{key}{frame}_opacity_logits"] = cloud.opacity_logits
         contact = {}
         for key, obj in (("a", a), ("b", b)):
-            values = np.empty(len(obj.data.vertices), np.float32)
+            values = np.empty(data.splat_count(obj.data), np.float32)
             obj.data.attributes["splat_contact"].data.foreach_get("value", values)
             contact[f"contact_{key}"] = values
-        self.save("collide_small", weights=self.group_matrix(a, ["Lower", "Upper"]), **clouds, **contact)
+        self.save("collide_small", weights=self.weight_matrix(a, ["Lower", "Upper"]), **clouds, **contact)
         return res
 
     def collide_demo(self):
@@ -395,10 +504,11 @@ class Worker(BlenderWorker):
         env = rig.environment
         res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=splats.name, object_b=env.name,
                               ignore_bones="Base")
-        values = np.empty(len(splats.data.vertices), np.float32)
+        data = self.module("splat_addon.data")
+        values = np.empty(data.splat_count(splats.data), np.float32)
         splats.data.attributes["splat_contact"].data.foreach_get("value", values)
         res["contact_max"], res["contact_splats"] = float(values.max()), int((values > 0).sum())
-        res["exported_extras"] = sorted(self.module("splat_addon.data").mesh_to_cloud(splats.data).extras)
+        res["exported_extras"] = sorted(data.object_cloud(splats).extras)
         res["report"] = collide.check_collisions(bpy.context, splats, env, range(1, 25), ignore_bones=["Base"],
                                                  write_attribute=False).as_dict()
         res["with_base"] = collide.check_collisions(bpy.context, splats, env, [1], write_attribute=False).as_dict()
