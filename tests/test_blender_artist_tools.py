@@ -179,8 +179,12 @@ def test_splats_take_the_weights_of_the_nearest_surface_point(proxy_case):
     far = dist > 0.1
     assert far.sum() == FAR and not far[:NEAR].any()
     expected = np.einsum("nk,nkb->nb", bary, d["vertex_weights"][d["triangles"][tri]])
-    np.testing.assert_allclose(d["bound"], expected, atol=2e-6)          # far ones too: their mask is 0
-    assert ((d["bound"] > 0).sum(axis=1) == 2).sum() > 50            # splats where the bones blend
+    for form in ("MESH", "NATIVE"):           # vertex groups; weight attributes of native splats
+        if f"bound_{form}" in d:
+            np.testing.assert_allclose(d[f"bound_{form}"], expected, atol=2e-6)    # far ones too: their mask is 0
+    assert ((d["bound_MESH"] > 0).sum(axis=1) == 2).sum() > 50            # splats where the bones blend
+    if "bound_NATIVE" in d:
+        assert res["native"] == ["Rig", False, True]          # the armature property, the strength attribute
 
 
 @pytest.mark.parametrize("form", ["MESH", "NATIVE"])
@@ -196,12 +200,14 @@ def test_posed_splats_follow_the_posed_proxy_surface(proxy_case, form):
     assert np.abs(d["rest"][near] - posed[near]).max() > 0.5             # the pose moves them
     assert (gap <= dist[near] + 0.02).all(), gap.max()                   # they stay on the skin
     # exactly linear blend skinning of each splat with its weights
-    w = d["bound"]
+    w = d[f"bound_{form}"]
     blended = np.einsum("nb,bij->nij", w[near], d["deform"])
     lbs = np.einsum("nij,nj->ni", blended[:, :3, :3], d["rest"][near]) + blended[:, :3, 3]
     np.testing.assert_allclose(posed[near], lbs, atol=1e-5)
     # far splats stay where they were
     np.testing.assert_allclose(posed[NEAR:], d["rest"][NEAR:], atol=1e-5)
+    if form == "NATIVE":                      # Blender draws them posed (the bones were posed by hand)
+        np.testing.assert_allclose(d["drawn_NATIVE"], posed, rtol=0, atol=1e-5)
 
 
 def test_far_splats_are_reported(proxy_case):
@@ -236,6 +242,10 @@ def test_falloff_is_the_armature_modifiers_mask_group(falloff_case, mode):
     assert res[f"bind_{mode}"]["result"] == ["FINISHED"], res[f"bind_{mode}"]
     assert res[f"modifier_{mode}"] == ["ARMATURE", "splatwright_bind_strength", False, mode == "dqs"]
     np.testing.assert_allclose(d[f"strength_{mode}"], smoothstep_falloff(dist), atol=2e-6)
+    if f"strength_NATIVE_{mode}" in d:        # native splats: the same weights and strength as attributes
+        assert res[f"native_{mode}"] == ["Rig", mode == "dqs", True]
+        np.testing.assert_allclose(d[f"strength_NATIVE_{mode}"], smoothstep_falloff(dist), atol=2e-6)
+        np.testing.assert_allclose(d[f"bound_NATIVE_{mode}"], d[f"bound_{mode}"], atol=2e-6)
     near, far = dist <= FALLOFF_START, dist > MAX_DISTANCE
     fading = ~near & ~far
     assert near.sum() > 40 and far.sum() > 40 and fading.sum() > 80, (near.sum(), fading.sum(), far.sum())
@@ -258,6 +268,8 @@ def test_fading_splats_move_as_blenders_masked_modifier_moves_vertices(falloff_c
     np.testing.assert_allclose(posed[far], rest[far], atol=1e-6)                # far ones stay
     fraction = smoothstep_falloff(dist)[:, None]                                # between: by the falloff
     np.testing.assert_allclose(posed, rest + fraction * (full - rest), atol=1e-5)
+    if form == "NATIVE":                                                        # as Blender draws them
+        np.testing.assert_allclose(d[f"drawn_NATIVE_{mode}"], posed, rtol=0, atol=1e-5)
 
 
 def test_bad_proxy_input_is_refused_and_changes_nothing(blender):

@@ -272,18 +272,36 @@ class Worker(BlenderWorker):
             res["native_far"] = results[0][1]
         res["modifiers"] = [m.type for m in objects["MESH"].modifiers]
         res["parent"] = objects["MESH"].parent.name if objects["MESH"].parent else None
-        bound = self.group_matrix(objects["MESH"], ["Lower", "Upper"])
+        bound = {f"bound_{form}": self.weight_matrix(obj, ["Lower", "Upper"]) for form, obj in objects.items()}
+        res["native"] = self.native_binding(objects.get("NATIVE"))
         self.pose_rig(arm)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         posed = {form: data.evaluated_cloud(obj, depsgraph).positions for form, obj in objects.items()}
+        drawn = {f"drawn_{form}": self.drawn_world(obj) for form, obj in objects.items() if form == "NATIVE"}
         arm_world = np.array(arm.matrix_world)
         deform = np.stack([arm_world @ np.array(arm.pose.bones[b].matrix)
                            @ np.linalg.inv(np.array(arm.data.bones[b].matrix_local)) @ np.linalg.inv(arm_world)
                            for b in ("Lower", "Upper")])
         self.save("proxy_bind", rest=positions, proxy_rest=verts + np.array(arm.location), triangles=faces,
                   vertex_weights=weights, proxy_posed=self.evaluated_world(proxy, depsgraph),
-                  bound=bound, deform=deform, **{f"posed_{f}": p for f, p in posed.items()})
+                  deform=deform, **bound, **drawn, **{f"posed_{f}": p for f, p in posed.items()})
         return res
+
+    def native_binding(self, obj):
+        """How native splats hold their binding: (armature, preserve volume, has a strength mask)."""
+        if obj is None:
+            return None
+        rigging = self.module("splat_addon.rigging")
+        arm = obj.get(rigging.ARMATURE_PROPERTY)
+        return [arm.name if arm is not None else None, bool(obj.get(rigging.PRESERVE_VOLUME_PROPERTY, False)),
+                rigging.MASK_GROUP in obj.data.attributes]
+
+    def drawn_world(self, obj):
+        """The centres Blender draws of native splats (their position attribute), in world space."""
+        co = np.empty(len(obj.data.points) * 3, np.float32)
+        obj.data.attributes["position"].data.foreach_get("vector", co)
+        world = np.array(obj.matrix_world)
+        return co.reshape(-1, 3).astype(np.float64) @ world[:3, :3].T + world[:3, 3]
 
     def proxy_falloff(self):
         """Splats at spread distances bound with the falloff, by linear blend (proxy as it is) and by dual
@@ -314,11 +332,17 @@ class Worker(BlenderWorker):
                                        mod.use_deform_preserve_volume]
             groups = self.group_matrix(mesh_obj, ["Lower", "Upper", rigging.MASK_GROUP])
             arrays[f"bound_{mode}"], arrays[f"strength_{mode}"] = groups[:, :2], groups[:, 2]
+            if "NATIVE" in objects:
+                native = self.weight_matrix(objects["NATIVE"], ["Lower", "Upper", rigging.MASK_GROUP])
+                arrays[f"bound_NATIVE_{mode}"], arrays[f"strength_NATIVE_{mode}"] = native[:, :2], native[:, 2]
+                res[f"native_{mode}"] = self.native_binding(objects["NATIVE"])
             plain = {masked: self.plain_twin(mesh_obj, groups, arm, masked) for masked in (True, False)}
             self.pose_rig(arm)
             depsgraph = bpy.context.evaluated_depsgraph_get()
             for form, obj in objects.items():
                 arrays[f"posed_{form}_{mode}"] = data.evaluated_cloud(obj, depsgraph).positions
+                if form == "NATIVE":
+                    arrays[f"drawn_{form}_{mode}"] = self.drawn_world(obj)
             for masked, obj in plain.items():
                 arrays[f"blender_{'masked' if masked else 'full'}_{mode}"] = self.evaluated_world(obj, depsgraph)
             for pb in arm.pose.bones:               # back to rest for the next binding
