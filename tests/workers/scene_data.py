@@ -49,11 +49,12 @@ class Worker(BlenderWorker):
 
     # helpers -------------------------------------------------------------------------------------
 
-    def splats(self, name, arrays, **transform):
-        """A splat mesh (Splatwright's own form) holding `arrays`, with the display modifier."""
+    def splats(self, name, arrays, form="MESH", **transform):
+        """A splat mesh (Splatwright's own form) holding `arrays`, with the display modifier; `form` None:
+        the form this Blender makes new splat objects in (native on 5.3, which needs no display)."""
         ext = self.module("splat_addon")
         obj, _ = ext.data.new_splat_object(self.module("core").SplatCloud(**arrays), name,
-                                           self.bpy.context.scene.collection, form="MESH")
+                                           self.bpy.context.scene.collection, form=form)
         ext.display.add_display(obj)
         for key, value in transform.items():
             setattr(obj, key, value)
@@ -193,8 +194,8 @@ class Worker(BlenderWorker):
         return res
 
     def modifiers(self):
-        """Array, Mirror, a geometry-nodes Transform and a shape key, each on its own splat mesh after
-        the display modifier."""
+        """Array, Mirror and a shape key, each on its own splat mesh after the display modifier, and a
+        geometry-nodes Transform on splats of the form this Blender makes (native on 5.3)."""
         arrays = random_cloud_arrays(N, 2, seed=2)
         array = self.splats("array", arrays)
         mod = array.modifiers.new("Array", "ARRAY")
@@ -204,14 +205,16 @@ class Worker(BlenderWorker):
         mod = mirror.modifiers.new("Mirror", "MIRROR")
         mod.use_axis = (True, False, False)
         mod.use_mirror_merge = False
-        transform = self.splats("transform", arrays)
+        transform = self.splats("transform", arrays, form=None)
         transform.modifiers.new("Turn", "NODES").node_group = self.transform_group()
         shaped = self.splats("shaped", arrays)
         shaped.shape_key_add(name="Basis")
         key = shaped.shape_key_add(name="Lift")
         key.data[1].co = [a + b for a, b in zip(key.data[1].co, SHAPE_OFFSET)]
         key.value = 1.0
-        return {obj.name: self.export(f"mod_{obj.name}.ply", [obj]) for obj in (array, mirror, transform, shaped)}
+        res = {obj.name: self.export(f"mod_{obj.name}.ply", [obj]) for obj in (array, mirror, transform, shaped)}
+        res["transform_form"] = self.module("splat_addon.data").splat_form(transform)
+        return res
 
     def transform_group(self):
         bpy = self.bpy
@@ -227,13 +230,13 @@ class Worker(BlenderWorker):
         return group
 
     def instances(self):
-        """A splat object in a collection left out of the view layer, drawn by an Empty instancing that
-        collection, and a linked duplicate of it: export and F12."""
+        """A splat object (of the form this Blender makes) in a collection left out of the view layer,
+        drawn by an Empty instancing that collection, and a linked duplicate of it: export and F12."""
         bpy = self.bpy
         scene = bpy.context.scene
         collection = bpy.data.collections.new("Splat Source")
         scene.collection.children.link(collection)
-        source = self.splats("source", random_cloud_arrays(N, 3, seed=3))
+        source = self.splats("source", random_cloud_arrays(N, 3, seed=3), form=None)
         scene.collection.objects.unlink(source)
         collection.objects.link(source)
         bpy.context.view_layer.layer_collection.children[collection.name].exclude = True
@@ -248,7 +251,7 @@ class Worker(BlenderWorker):
         scene.collection.objects.link(duplicate)
         res = {"visible": self.export("inst_visible.ply"), "selected_empty": self.export("inst_empty.ply", [empty]),
                "matrices": {"instance": self.matrix(empty), "duplicate": self.matrix(duplicate)},
-               "render": self.render("inst_render")}
+               "render": self.render("inst_render"), "form": self.module("splat_addon.data").splat_form(source)}
         reference = self.reimported("reference", self.out / "inst_visible.ply")
         res["reference_render"] = self.render("inst_reference", [reference])
         return res
