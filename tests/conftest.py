@@ -1,9 +1,11 @@
-"""Shared fixtures."""
+"""Shared fixtures, and CI's rule for skips."""
+
+import os
 
 import blender_session
 import numpy as np
 import pytest
-from helpers import build_extension_zip, random_cloud
+from helpers import PLATFORM_SKIP, build_extension_zip, random_cloud
 
 
 @pytest.hookimpl(trylast=True)
@@ -17,6 +19,24 @@ def pytest_collection_finish(session):
 
 def pytest_sessionfinish(session, exitstatus):
     blender_session.stop_workers()
+
+
+# Skips for what a platform cannot do say so (helpers.skip_platform). Any other skip means a tool the
+# suite needs is missing (a Python for a Blender version, node and npm, numba, a peer's package, a
+# registry): on CI (CI set) that is a failure, so a fresh machine cannot pass by testing less.
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if not (os.environ.get("CI") and report.skipped and not hasattr(report, "wasxfail")):
+        return
+    reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    reason = reason.removeprefix("Skipped: ")
+    if not reason.startswith(PLATFORM_SKIP):
+        report.outcome = "failed"
+        report.longrepr = f"skipped on CI, where every tool the tests need must be installed: {reason}"
 
 
 @pytest.fixture

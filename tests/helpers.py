@@ -7,6 +7,7 @@ import tomllib
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from splatwright.core import SplatCloud
 from workers.base import random_cloud_arrays
@@ -39,7 +40,6 @@ def fetch_wheels():
     """Download the wheels the manifest bundles into wheels/ (kept there, git-ignored), as Blender's
     manual describes: `pip download --no-deps --only-binary=:all: --python-version V --platform P`.
     Skips the calling test with one line when PyPI cannot be reached."""
-    import pytest
     manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
     for entry in manifest.get("wheels", []):
         path = REPO_ROOT / entry
@@ -70,6 +70,14 @@ def build_extension_zip(out_dir):
 
 # independent references (textbook formulas in float64, none of the code under test) ------------------
 
+PLATFORM_SKIP = "not on this platform: "    # CI fails any other skip (conftest.py)
+
+
+def skip_platform(reason):
+    """Skip for what this platform or Blender version cannot do (CI lets only these pass)."""
+    pytest.skip(PLATFORM_SKIP + reason)
+
+
 def read(path):
     """A splat file read through splatwright.io (each reader is tested against its format elsewhere)."""
     from splatwright.io import read_splats
@@ -84,6 +92,19 @@ def quat_matrices(q):
     return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
                      np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
                      np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
+def rebuilt_rotation_bound(unit, rebuilt, half_step):
+    """The largest turn a quaternion stored as three components (each to within `half_step`) and one
+    rebuilt from the unit norm can come back with, per splat: `unit` (N, 4), `rebuilt` (N,) the index
+    of the rebuilt component (SPZ v2: w; smallest-three: the largest). The stored part moves by at most
+    dv = sqrt(3) half_step and the rebuilt one by dw, most where it is small; the quaternion then moves
+    by a chord e <= hypot(dv, dw), its direction by arcsin(e) and the rotation by twice that."""
+    q = np.asarray(unit, np.float64)
+    w = np.abs(q[np.arange(len(q)), rebuilt])
+    v, dv = np.sqrt(np.maximum(1 - w * w, 0)), np.sqrt(3) * half_step
+    dw = np.maximum(np.sqrt(1 - np.maximum(v - dv, 0) ** 2) - w, w - np.sqrt(np.maximum(1 - (v + dv) ** 2, 0)))
+    return 2 * np.arcsin(np.minimum(np.hypot(dv, dw), 1.0)) + 1e-6
 
 
 def covariances(rotations, log_scales):

@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 from blender_session import blender_fixture
+from helpers import skip_platform
 from splatwright.core import cleanup
 from splatwright.core.camera import Camera
 from splatwright.core.economy import contributions
@@ -35,7 +36,7 @@ def test_operators_and_edit_hook_are_registered(blender):
 def cleanup_result(blender, form):
     res = blender.step(f"cleanup_{form.lower()}")
     if res.get("skipped"):
-        pytest.skip(f"Blender {blender.version} makes no native splats from Python")
+        skip_platform(f"Blender {blender.version} makes no native splats from Python")
     return res, blender.npz(f"cleanup_{form}")
 
 
@@ -191,7 +192,7 @@ def test_splats_take_the_weights_of_the_nearest_surface_point(proxy_case):
 def test_posed_splats_follow_the_posed_proxy_surface(proxy_case, form):
     res, d, tri, bary, dist = proxy_case
     if f"posed_{form}" not in d:
-        pytest.skip("this Blender makes no native splats from Python")
+        skip_platform("this Blender makes no native splats from Python")
     posed = d[f"posed_{form}"].astype(np.float64)
     near = slice(0, NEAR)
     # Blender's posed proxy, at the same surface point
@@ -213,7 +214,7 @@ def test_posed_splats_follow_the_posed_proxy_surface(proxy_case, form):
 def test_far_splats_are_reported(proxy_case):
     res, d, tri, bary, dist = proxy_case
     if "native_far" not in res:
-        pytest.skip("this Blender makes no native splats from Python")
+        skip_platform("this Blender makes no native splats from Python")
     far = res["native_far"]
     assert far["far"] == FAR and far["far_kept_still"]
     assert far["farthest"] == pytest.approx(dist.max(), abs=1e-6)
@@ -257,7 +258,7 @@ def test_falloff_is_the_armature_modifiers_mask_group(falloff_case, mode):
 def test_fading_splats_move_as_blenders_masked_modifier_moves_vertices(falloff_case, mode, form):
     res, d, dist = falloff_case
     if f"posed_{form}_{mode}" not in d:
-        pytest.skip("this Blender makes no native splats from Python")
+        skip_platform("this Blender makes no native splats from Python")
     posed = d[f"posed_{form}_{mode}"].astype(np.float64)
     rest, full = d["rest"], d[f"blender_full_{mode}"]
     # Blender's own Armature modifier on a plain mesh of the same points, groups and mask

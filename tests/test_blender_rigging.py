@@ -14,7 +14,7 @@ import json
 import numpy as np
 import pytest
 from blender_session import blender_fixture
-from helpers import covariances, linear_to_srgb, psnr
+from helpers import covariances, linear_to_srgb, psnr, skip_platform
 from splatwright.io.exr import read_exr
 from workers.rigging import BENT_FRAME, RENDER_SIZE, RIG_BONES
 
@@ -82,7 +82,7 @@ def test_blender_draws_native_splats_posed_whole(blender, mode):
     """Bound native splats: the attributes Blender's viewport, EEVEE and Cycles draw hold the posed
     splats, orientations, sizes, opacities and SH included, not only the centres."""
     if not native(blender):
-        pytest.skip(f"Blender {blender.version} makes splat meshes, whose display draws centres")
+        skip_platform(f"Blender {blender.version} makes splat meshes, whose display draws centres")
     d = blender.npz("skinning")
     rotations = d[f"{mode}_rotations"].astype(np.float64)
     drawn = d[f"{mode}_drawn_rotation"].astype(np.float64)

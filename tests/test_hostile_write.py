@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import random_cloud
+from helpers import PLATFORM_SKIP, random_cloud
 
 from splatwright.io import SplatFileError, read_splats, write_splats
 from splatwright.io import common
@@ -117,7 +117,7 @@ def test_full_disk_at_fsync(old_file, monkeypatch, capfd):
     assert capfd.readouterr().err == ""
 
 
-@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason=PLATFORM_SKIP + "needs /dev/full")
 @pytest.mark.parametrize("kind", [k for k in KINDS if k not in BY_NAME])
 def test_full_disk_mid_write(tmp_path, kind, monkeypatch):
     """The writer's own writes fail: every byte goes to /dev/full, which refuses them (ENOSPC)."""

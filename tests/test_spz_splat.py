@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from helpers import random_cloud
+from helpers import rebuilt_rotation_bound, random_cloud
 
 from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
@@ -37,6 +37,17 @@ def angle_between(q1, q2):
     return 2 * np.arccos(np.clip(np.abs((a * b).sum(axis=1)), 0, 1))
 
 
+def v2_rotation_bound(want):
+    """The largest turn SPZ v2's rotation bytes allow, per splat: x, y, z of the unit quaternion with
+    w >= 0, each stored to half a step (1/255) of q * 127.5 + 127.5, w rebuilt from the norm."""
+    return rebuilt_rotation_bound(want.unit_rotations, np.zeros(len(want), int), 1 / 255)
+
+
+def spz_rotation_bound(version, want):
+    """v2's per-splat bound, or the smallest-three's 0.25 degrees of v3 and later."""
+    return v2_rotation_bound(want) if version == 2 else np.radians(0.25)
+
+
 def check_spz_error(got, want, fractional_bits=12, rotation_bound=np.radians(0.25), sh=True):
     """Closed-form SPZ quantisation bounds (rounding to nearest in every field)."""
     assert len(got) == len(want)
@@ -49,7 +60,7 @@ def check_spz_error(got, want, fractional_bits=12, rotation_bound=np.radians(0.2
         assert err[:, :3].max() <= (4 + 0.5) / 128 + 1e-6        # 5 bits: buckets of 8 steps
         if want.sh_degree > 1:
             assert err[:, 3:].max() <= (8 + 0.5) / 128 + 1e-6    # 4 bits: buckets of 16 steps
-    assert angle_between(got.rotations, want.rotations).max() <= rotation_bound
+    assert (angle_between(got.rotations, want.rotations) <= rotation_bound).all()
 
 
 # SPZ against hand-built bytes ---------------------------------------------------------------------
@@ -151,7 +162,7 @@ def test_round_trip_within_quantisation(tmp_path, version):
     path = tmp_path / f"v{version}.spz"
     spz.write(path, cloud, version=version)
     got = spz.read(path)
-    check_spz_error(got, cloud, rotation_bound=np.pi if version == 2 else np.radians(0.25))
+    check_spz_error(got, cloud, rotation_bound=spz_rotation_bound(version, cloud))
     if version == 2:      # x, y, z of the unit quaternion with w >= 0, each to half a step of 1/127.5
         unit = lambda q: q / np.linalg.norm(q, axis=1, keepdims=True) * np.where(q[:, :1] < 0, -1, 1)
         assert np.abs(unit(got.rotations)[:, 1:] - unit(cloud.rotations)[:, 1:]).max() <= 0.5 / 127.5 + 1e-6
@@ -294,7 +305,7 @@ def test_versions_before_4_reduce_degree_4_to_3_and_say_so(tmp_path, version):
     assert header[1:4] == (version, 200, 3)
     got = spz.read(path)
     assert got.sh_degree == 3
-    check_spz_error(got, cloud.with_sh_degree(3), rotation_bound=np.pi if version == 2 else np.radians(0.25))
+    check_spz_error(got, cloud.with_sh_degree(3), rotation_bound=spz_rotation_bound(version, cloud))
     assert spz.uncompressed_size(200, 4, version) == spz.uncompressed_size(200, 3, version)
 
 
@@ -424,7 +435,7 @@ def test_splat_transform_reads_our_spz(tmp_path, splat_transform, version):
     run_transform(splat_transform, tmp_path / "ours.spz", tmp_path / "theirs.ply")
     with pytest.warns(SplatFileWarning):           # their decoder turns alpha 255 into an infinite logit
         got = read_splats(tmp_path / "theirs.ply", nonfinite="keep")
-    check_spz_error(got, cloud, rotation_bound=np.pi if version == 2 else np.radians(0.25))
+    check_spz_error(got, cloud, rotation_bound=spz_rotation_bound(version, cloud))
 
 
 @pytest.mark.slow
@@ -462,3 +473,16 @@ def test_splat_transform_reads_our_splat(tmp_path, splat_transform):
     # splat-transform decodes rotation bytes as b / 127.5 - 1 rather than (b - 128) / 128: half a
     # step more per component than our own reader, hence 2 degrees rather than 1
     assert angle_between(got.rotations, cloud.rotations).max() <= np.radians(2.0)
+
+
+def test_the_v2_rotation_bound_is_tight_and_holds(tmp_path):
+    """What v2's bytes do to many quaternions, small w included: never past the per-splat bound, and the
+    bound not loose by more than a few times where it matters (the worst splat comes within half of it)."""
+    cloud = in_range_cloud(4000, degree=0, seed=5)
+    q = np.random.default_rng(6).normal(size=(4000, 4))
+    q[:1000, 0] *= 1e-3                                    # w near zero: where v2 loses most
+    cloud = cloud.replace(rotations=q.astype(np.float32))
+    write_splats(tmp_path / "v2.spz", cloud, version=2)
+    angles, bound = angle_between(read_splats(tmp_path / "v2.spz").rotations, cloud.rotations), v2_rotation_bound(cloud)
+    assert (angles <= bound).all()
+    assert angles.max() > 0.5 * bound[np.argmax(angles)] and np.degrees(angles.max()) > 2
