@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .core.frames import frame_ranges
 from .io.common import atomic_write
 
 ARM_SPLATS = 20_000
@@ -54,17 +55,6 @@ def run_demo(out_dir, progress=None):
 def _fail(message):
     print(f"splatwright demo: error: {message}", file=sys.stderr, flush=True)
     return 1
-
-
-def _ranges(frames):
-    """[11, 12, 13, 20] -> '11-13, 20'."""
-    runs = []
-    for f in frames:
-        if runs and f == runs[-1][1] + 1:
-            runs[-1][1] = f
-        else:
-            runs.append([f, f])
-    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _size(path):
@@ -277,7 +267,7 @@ class Demo:
                                       "deepest_sigma": None if np.isinf(bent.deepest) else round(bent.deepest, 3)}
         if not report.contact_frames:
             return f"no contact in frames {frames.start}-{frames.stop - 1}"
-        return f"contact at frames {_ranges(report.contact_frames)} (bones: {', '.join(bones)}); " \
+        return f"contact at frames {frame_ranges(report.contact_frames)} (bones: {', '.join(bones)}); " \
                f"{bent.pairs} splat pairs at frame {BENT_FRAME}, the deepest touching at {bent.deepest:.2f} sigma"
 
     def save(self):
@@ -310,7 +300,7 @@ class Demo:
             f"(centres only: {pose['centres_only_psnr_db']:.2f} dB)",
             f"  renders: {len(s['render']['png'])} PNG + {len(s['render']['exr'])} EXR at "
             f"{s['render']['size'][0]}x{s['render']['size'][1]}, splats on Cycles meshes",
-            f"  collisions: contact frames {_ranges(hits['contact_frames']) or 'none'}; "
+            f"  collisions: contact frames {frame_ranges(hits['contact_frames']) or 'none'}; "
             f"{hits['pairs_at_bent_frame']} splat pairs at frame {BENT_FRAME}",
             f"  files: {len(s['files'])}, {sum(s['files'].values()) / 1e6:.2f} MB in all (sizes in summary.json)",
             "  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items()),

@@ -28,6 +28,7 @@ from . import sh as shmod
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import Shapes, render
+from .steps import drain
 
 # Measured on Suzanne lit by Cycles (bench/bake.py's scene, roughness 0.35, 20k splats, 48 views of 128 px,
 # damped towards the Base Color; towards the views' mean colours, 0.1 and 30 gave 25.3 / 27.8 / 32.1), held-out
@@ -79,7 +80,6 @@ def path_weights(around, path, share=PATH_SHARE):
 
 def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
     """bake_sh_steps run to its end, each step passed to `progress(done, total, label)`."""
-    from .mesh_refine import drain
     return drain(bake_sh_steps(cloud, cameras, images, degree, **options), progress)
 
 
@@ -182,7 +182,6 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
 
 def bake_splats(cloud, cameras, images, *, progress=None, **options):
     """bake_splats_steps run to its end, each step passed to `progress(done, total, label)`."""
-    from .mesh_refine import drain
     return drain(bake_splats_steps(cloud, cameras, images, **options), progress)
 
 

@@ -313,29 +313,6 @@ class _Inset:
                 d = a + ratio * (b - a)
 
 
-def drain(steps, progress=None):
-    """Run a generator of (done, total, label) steps to its end, passing each to `progress`;
-    returns the generator's return value."""
-    while True:
-        try:
-            step = next(steps)
-        except StopIteration as stop:
-            return stop.value
-        if progress:
-            progress(*step)
-
-
-def mapped_steps(steps, fn):
-    """A generator of (done, total, label) steps passed on as fn(done, total, label); returns the
-    generator's return value (for `yield from`)."""
-    while True:
-        try:
-            step = next(steps)
-        except StopIteration as stop:
-            return stop.value
-        yield fn(*step)
-
-
 def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
                   view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE, pixel_filter=PIXEL_FILTER,
                   try_fewer=True):

@@ -24,6 +24,7 @@ from .mesh import Surface, shade, to_display
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .parallel import WORKERS, map_threads
 from .splats import SplatCloud, logit
+from .steps import drain
 
 DEFAULT_TARGET_PSNR = 36.0
 # The rendering splats are made for by default: antialiased, whose outlines hold at every distance
@@ -48,7 +49,6 @@ BISECT_CHUNK = 1 << 14  # points placed per task, on every core
 def mesh_to_splats(vertices, faces, *, progress=None, **options):
     """Convert a triangle mesh to a SplatCloud of flat Gaussians: mesh_to_splats_steps run to its
     end, each step passed to `progress(done, total, label)`. The options are mesh_to_splats_steps'."""
-    from .mesh_refine import drain
     return drain(mesh_to_splats_steps(vertices, faces, **options), progress)
 
 

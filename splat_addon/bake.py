@@ -24,7 +24,7 @@ from ..core import geometry, sh as shmod
 from ..core.bake import (DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_splats_steps, bake_views,
                          path_weights)
 from ..core.camera import blender_lens, opengl_camera_to_world
-from ..core.mesh_refine import mapped_steps
+from ..core.steps import mapped_steps
 from . import data
 
 TEMPORARY = "splatwright_bake"

@@ -18,6 +18,7 @@ import numpy as np
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 
 from ..core.collision import CollisionInputError, EnvironmentIndex, ellipsoid_contacts
+from ..core.frames import frame_ranges
 from ..core.skinning import SkinningError
 from . import data, rigging
 from .animation import frame_range
@@ -72,19 +73,7 @@ class CollisionReport:
         bones = sorted({b for f in self.frames for b in f.bones_a})
         where = f" (bones of '{self.object_a}': {', '.join(bones)})" if bones else ""
         return (f"'{self.object_a}' touches '{self.object_b}' at {len(self.contact_frames)} of {len(self.frames)} "
-                f"frame(s): {_ranges(self.contact_frames)}{where}")
-
-
-def _ranges(frames):
-    """[1, 2, 3, 7] -> "1-3, 7"."""
-    runs, start = [], None
-    for i, f in enumerate(frames):
-        if start is None:
-            start = f
-        if i + 1 == len(frames) or frames[i + 1] != f + 1:
-            runs.append(str(start) if start == f else f"{start}-{f}")
-            start = None
-    return ", ".join(runs)
+                f"frame(s): {frame_ranges(self.contact_frames)}{where}")
 
 
 def splat_objects_pair(scene, name_a, name_b, context=None):

@@ -34,7 +34,8 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from ..core import geometry
 from ..core.camera import Camera, spread_along
 from ..core.mesh import Material
-from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, drain, mapped_steps, summary
+from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
+from ..core.steps import drain, mapped_steps
 from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
 from ..core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
 from ..core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps

@@ -1167,7 +1167,7 @@ def test_every_budget_tries_the_rungs_a_smaller_budget_tried():
 def test_a_budget_steps_through_the_counts_it_tries():
     """A budget yields after each count it tries (the budget, then the ladder's 4,000 and 2,000),
     its progress never going back, and keeps the one its views rate best."""
-    from splatwright.core.mesh_refine import drain
+    from splatwright.core.steps import drain
     from splatwright.core.mesh_to_splats import mesh_to_splats_steps
     v, f, _ = uv_sphere(24, 12)
     seen = []
