@@ -26,7 +26,7 @@ from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
                      reduced_sh, warn_notes)
-from .ply import _read_header, sh_order
+from .ply_header import read_header, sh_order
 
 CHUNK = 256
 MAX_SH_DEGREE = 3                  # the sh element holds 9, 24 or 45 f_rest; degree 4 is reduced on writing
@@ -133,7 +133,7 @@ def read(path, nonfinite="raise"):
     check_nonfinite_policy(nonfinite)
     try:
         with open(path, "rb") as f:
-            fmt, elements, start, _ = _read_header(path, f)
+            fmt, elements, start, _ = read_header(path, f)
             if fmt != "binary_little_endian":
                 raise SplatFileError(path, f"compressed PLY must be binary_little_endian, not {fmt}")
             chunk_dtype, vertex_dtype, sh_dtype, chunks, n = _layout(path, elements)
