@@ -31,11 +31,16 @@ tree level, for one configuration or a batch of them.
 """
 
 from dataclasses import dataclass, field
+from typing import Annotated, Any
 
 import numpy as np
 
 from . import geometry
 from . import jit
+from .arrays import ArrayLike, Floats, Matrix4
+
+Configuration = Annotated[Floats, "(dof,) one configuration, or (B, dof) a batch"]
+LinkTransforms = Annotated[Floats, "(L, 4, 4) per link, or (B, L, 4, 4) for a batch"]
 
 JOINT_DOF = {"fixed": 0, "revolute": 1, "continuous": 1, "prismatic": 1, "ball": 3, "planar": 3, "floating": 6}
 _ROTATING = ("revolute", "continuous")
@@ -131,15 +136,16 @@ class KinematicTree:
     mimic: optional, per link None or (name of the joint it follows, multiplier, offset).
     """
 
-    names: tuple
-    parents: np.ndarray
-    origins: np.ndarray
-    joint_types: tuple
-    axes: np.ndarray = None
-    lower: np.ndarray = None
-    upper: np.ndarray = None
-    joint_names: tuple = None
-    mimic: tuple = None
+    # Given as any sequences or array-likes; __post_init__ stores tuples and float64 arrays.
+    names: Any
+    parents: Any
+    origins: Any
+    joint_types: Any
+    axes: Any = None
+    lower: Any = None
+    upper: Any = None
+    joint_names: Any = None
+    mimic: Any = None
     _levels: list = field(init=False, repr=False)
 
     def __post_init__(self):
@@ -264,7 +270,7 @@ class KinematicTree:
     # construction ---------------------------------------------------------------------------
 
     @classmethod
-    def from_joints(cls, joints, root=None):
+    def from_joints(cls, joints: list[dict], root: str | None = None) -> "KinematicTree":
         """Build from an unordered list of joint dicts, one per non-root link:
         {"name", "parent", "child", "type", "origin" (4,4), "axis" (3,), "lower", "upper",
         "mimic" (None or (joint name, multiplier, offset))}.
@@ -273,7 +279,7 @@ class KinematicTree:
         joints do not make it obvious. Raises KinematicsError for cycles, second parents and
         several roots.
         """
-        children = {}
+        children: dict[str, dict] = {}
         for j in joints:
             if j["child"] in children:
                 raise KinematicsError(f"link '{j['child']}' has two parent joints "
@@ -283,7 +289,7 @@ class KinematicTree:
         roots = sorted(parents - set(children)) if root is None else [root]
         if len(roots) != 1:
             raise KinematicsError(f"expected one root link, found {roots or 'none (the joints form a cycle)'}")
-        order, by_parent = [roots[0]], {}
+        order, by_parent = [roots[0]], dict[str, list[str]]()
         for j in joints:
             by_parent.setdefault(j["parent"], []).append(j["child"])
         for link in order:                               # breadth-first; the list grows as we go
@@ -308,7 +314,8 @@ class KinematicTree:
         )
 
     @classmethod
-    def from_rest_matrices(cls, names, parents, rest, joint_type="ball"):
+    def from_rest_matrices(cls, names: list[str], parents: ArrayLike, rest: ArrayLike,
+                           joint_type: str = "ball") -> "KinematicTree":
         """A skeleton in Blender's terms: bones with parents (topologically ordered) and rest
         matrices in armature space (Blender's `bone.matrix_local`). Every bone gets a joint of
         `joint_type` at its head, so a ball joint's rotation vector is the pose rotation in the
@@ -325,7 +332,7 @@ class KinematicTree:
         return len(self.names)
 
     @property
-    def dof_names(self):
+    def dof_names(self) -> list[str]:
         """One name per configuration value: the joint name, with .x/.y/.z for ball joints,
         .a/.b/.theta for planar ones and .x/.y/.z/.rx/.ry/.rz for floating ones; mimic joints
         have none."""
@@ -337,10 +344,10 @@ class KinematicTree:
                 out += [f"{name}.{c}" for c in suffixes[kind]] if kind in suffixes else [name] * JOINT_DOF[kind]
         return out
 
-    def zero(self, batch=None):
+    def zero(self, batch: int | None = None) -> Configuration:
         return np.zeros(self.dof if batch is None else (batch, self.dof))
 
-    def pack(self, values):
+    def pack(self, values: dict[str, Any]) -> Configuration:
         """A configuration vector from {joint name: value}; unnamed joints stay at 0. A ball joint
         takes a rotation vector (3 values) or a w,x,y,z quaternion (4 values); a floating joint
         x, y, z and a rotation vector (6), x, y, z and a quaternion (7) or a 4x4 rigid transform;
@@ -368,7 +375,7 @@ class KinematicTree:
             raise KinematicsError("configuration has non-finite values")
         return q
 
-    def clamp(self, q):
+    def clamp(self, q: Configuration) -> Configuration:
         """The configuration with every joint inside its limits (ball joints: angle <= upper)."""
         q = self._check_configuration(q).copy()
         one = self._limited
@@ -381,7 +388,7 @@ class KinematicTree:
             q[..., self._ball_cols] = v * shrink[..., None]
         return q
 
-    def within_limits(self, q, tol=1e-12):
+    def within_limits(self, q: Configuration, tol: float = 1e-12) -> Any:
         """True for each configuration (scalar for one) whose joints all respect their limits."""
         q = self._check_configuration(q)
         return np.all(np.abs(self.clamp(q) - q) <= tol, axis=-1)
@@ -434,7 +441,8 @@ class KinematicTree:
             out.append((self._floating, _rotvec_matrices(v[..., 3:]), v[..., :3]))
         return out
 
-    def forward_kinematics(self, q=None, base=None, clamp=False):
+    def forward_kinematics(self, q: ArrayLike | None = None, base: Matrix4 | None = None,
+                           clamp: bool = False) -> LinkTransforms:
         """World transforms of every link: (L,4,4) for one configuration (dof,), (B,L,4,4) for a
         batch (B,dof). `base` (4,4) places the roots; `clamp` first applies the joint limits."""
         kernel = _fk_kernel()
@@ -482,11 +490,12 @@ class KinematicTree:
             raise KinematicsError("configuration has non-finite values")
         return world if q.ndim == 2 else world[0]
 
-    def rest_transforms(self, base=None):
+    def rest_transforms(self, base: Matrix4 | None = None) -> LinkTransforms:
         """World transforms of every link at the zero configuration, (L,4,4)."""
         return self.forward_kinematics(None, base=base)
 
-    def deform_matrices(self, q=None, base=None, clamp=False):
+    def deform_matrices(self, q: ArrayLike | None = None, base: Matrix4 | None = None,
+                        clamp: bool = False) -> LinkTransforms:
         """Per-link skinning matrices world(q) @ inverse(world(0)): what a splat bound to a link
         at rest goes through (Blender's pose @ inverse(rest))."""
         rest_inv = np.linalg.inv(self.rest_transforms(base))

@@ -30,11 +30,15 @@ DQS that turn is the consistent choice, not one map moving both.)
 """
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
+from numpy.typing import NDArray
 
 from . import geometry, sh as shmod
+from .arrays import ArrayLike, Floats, Matrices4, Positions, Weights
 from .parallel import in_chunks
+from .splats import SplatCloud
 
 # Blender leaves a vertex in place when the total of its weights is not above this.
 MIN_TOTAL_WEIGHT = 1e-4
@@ -65,11 +69,11 @@ class Binding:
     splat's original weight that the tolerance or the influence limit dropped.
     """
 
-    indices: np.ndarray
-    weights: np.ndarray
-    pruned: np.ndarray = None
+    indices: Annotated[NDArray[np.integer], "(N, k) bone indices"]
+    weights: Annotated[Floats, "(N, k)"]
+    pruned: Annotated[Floats, "(N,)"] | None = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.indices = np.asarray(self.indices, dtype=np.int32)
         self.weights = np.asarray(self.weights, dtype=np.float32)
         if self.pruned is None:
@@ -82,11 +86,12 @@ class Binding:
         return len(self.weights)
 
     @property
-    def influences(self):
+    def influences(self) -> int:
         return self.weights.shape[1]
 
     @classmethod
-    def from_weights(cls, indices, weights, max_influences=None, tolerance=1e-6):
+    def from_weights(cls, indices: ArrayLike, weights: ArrayLike, max_influences: int | None = None,
+                     tolerance: float = 1e-6) -> "Binding":
         """Normalise and prune per-splat (bone index, weight) lists of any width m.
 
         Weights below `tolerance` times their splat's total are dropped, then all but the
@@ -104,7 +109,7 @@ class Binding:
         return cls._build(indices, weights, weights.sum(axis=1), max_influences, tolerance)
 
     @classmethod
-    def from_dense(cls, weights, max_influences=None, tolerance=1e-6):
+    def from_dense(cls, weights: Weights, max_influences: int | None = None, tolerance: float = 1e-6) -> "Binding":
         """From a dense (N, B) weight matrix (e.g. Blender vertex groups, one column per bone)."""
         weights = np.asarray(weights, dtype=np.float64)
         if weights.ndim != 2:
@@ -141,7 +146,7 @@ class Binding:
         return cls(np.where(keep, np.take_along_axis(indices, order, axis=1), 0), normalised, pruned)
 
     @classmethod
-    def rigid(cls, bone_of_splat):
+    def rigid(cls, bone_of_splat: ArrayLike) -> "Binding":
         """One bone per splat with weight 1 (robot links): the exact rigid special case."""
         bone = np.asarray(bone_of_splat).reshape(-1, 1)
         if (bone < 0).any():
@@ -187,7 +192,7 @@ def _check_weights(indices, weights):
 
 # pose ---------------------------------------------------------------------------------------------
 
-def deform_matrices(rest, pose):
+def deform_matrices(rest: Matrices4, pose: Matrices4) -> Matrices4:
     """Blender's skinning matrices pose @ inverse(rest) for (B,4,4) rest and pose bone matrices
     (e.g. `bone.matrix_local` and `pose_bone.matrix`, both in armature space)."""
     rest, pose = np.asarray(rest, np.float64), np.asarray(pose, np.float64)
@@ -203,11 +208,11 @@ class BonePose:
     frame); None means identity.
     """
 
-    deform: np.ndarray
-    rest: np.ndarray = None
+    deform: Matrices4
+    rest: Matrices4 | None = None
     derived: dict = field(init=False, repr=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.deform = _check_matrices("deform", self.deform)
         n = len(self.deform)
         self.rest = np.broadcast_to(np.eye(4), (n, 4, 4)) if self.rest is None else _check_matrices("rest", self.rest)
@@ -219,7 +224,7 @@ class BonePose:
         self.derived = {**_lbs_bones(self.deform), **_dqs_bones(self.deform, self.rest)}
 
     @classmethod
-    def from_blender(cls, rest, pose):
+    def from_blender(cls, rest: Matrices4, pose: Matrices4) -> "BonePose":
         """From armature-space rest (`bone.matrix_local`) and pose (`pose_bone.matrix`) matrices."""
         return cls(deform_matrices(rest, pose), rest)
 
@@ -500,15 +505,16 @@ def _check_call(arrays, binding, pose, mode, lbs_stretch="bones"):
 
 # public API ---------------------------------------------------------------------------------------
 
-def skin_centres(positions, binding, pose, mode="lbs", strength=None):
+def skin_centres(positions: Positions, binding: Binding, pose: "BonePose | Matrices4", mode: str = "lbs",
+                 strength: Floats | None = None) -> Positions:
     """Posed centres (N,3) float64 only: the fastest path, and exactly what Blender's Armature
     modifier does to vertices (`mode="dqs"` is its Preserve Volume; `strength` (N,) in 0..1 its
     vertex-group mask). `pose` is a BonePose or (B,4,4) deform matrices."""
     positions = np.asarray(positions)
-    pose = _check_call({"positions": positions}, binding, pose, mode)
+    bone_pose = _check_call({"positions": positions}, binding, pose, mode)
     strength = _check_strength(strength, len(positions))
     out = np.empty((len(positions), 3))
-    chunk_fn, bones = _MODES[mode], pose.derived
+    chunk_fn, bones = _MODES[mode], bone_pose.derived
 
     def work(a, b):
         out[a:b] = chunk_fn(*_chunk_inputs(positions, binding, strength, a, b), bones, False)[0].T
@@ -517,7 +523,9 @@ def skin_centres(positions, binding, pose, mode="lbs", strength=None):
     return out
 
 
-def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretch="bones", strength=None):
+def skin(cloud: SplatCloud, binding: Binding, pose: "BonePose | Matrices4", mode: str = "lbs",
+         covariances: bool = True, sh: bool = True, lbs_stretch: str = "bones",
+         strength: Floats | None = None) -> SplatCloud:
     """The posed cloud: centres moved, covariances turned (and stretched where bones scale), SH
     rotated. `covariances=False` moves centres only (as mesh-based add-ons do), `sh=False` keeps
     the SH as they are; `strength` (N,) in 0..1 fades each splat's binding (see the module's
@@ -525,14 +533,14 @@ def skin(cloud, binding, pose, mode="lbs", covariances=True, sh=True, lbs_stretc
     finite = {"positions": cloud.positions}
     if covariances:
         finite.update(rotations=cloud.rotations, log_scales=cloud.log_scales)
-    pose = _check_call(finite, binding, pose, mode, lbs_stretch)
+    bone_pose = _check_call(finite, binding, pose, mode, lbs_stretch)
     n = len(cloud)
     strength = _check_strength(strength, n)
     positions = np.empty((n, 3), np.float32)
     rotations, log_scales = (np.empty((n, 4), np.float32), np.empty((n, 3), np.float32)) if covariances \
         else (cloud.rotations, cloud.log_scales)
     turn = np.empty((n, 3, 3)) if sh and cloud.sh_degree > 0 else None
-    chunk_fn, bones = _MODES[mode], pose.derived
+    chunk_fn, bones = _MODES[mode], bone_pose.derived
 
     def work(a, b):
         centres, linear = chunk_fn(*_chunk_inputs(cloud.positions, binding, strength, a, b), bones,

@@ -1,10 +1,24 @@
 """The splat model: one cloud of N Gaussians stored as 3DGS training produces them."""
 
 from dataclasses import dataclass, field, replace
+from typing import Any, Iterable
 
 import numpy as np
 
-from . import geometry, sh as shmod
+from . import geometry
+from . import sh as shmod
+from .arrays import (
+    ArrayLike,
+    Colors,
+    Covariances,
+    Floats,
+    Logits,
+    LogScales,
+    Mask,
+    Positions,
+    Quaternions,
+    SHCoefficients,
+)
 
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
 
@@ -23,7 +37,7 @@ MAX_LOG_SCALE = 88.72                                               # exp: 3.39e
 BOUNDED_FIELDS = ("positions",)
 
 
-def bad_rows(name, values):
+def bad_rows(name: str, values: ArrayLike) -> Mask:
     """(N,) True where a splat's values of field `name` (or of a float extra) are NaN, infinite, or
     overflow float32 once activated (see MAX_MAGNITUDE and MAX_LOG_SCALE). Integer extras are never bad."""
     values = np.asarray(values)
@@ -40,7 +54,7 @@ def bad_rows(name, values):
     return ~ok.all(axis=1) if flat.shape[1] else np.zeros(len(values), bool)
 
 
-def memory_bytes(count, sh_degree):
+def memory_bytes(count: int, sh_degree: int) -> int:
     """Bytes the float32 fields of a cloud of `count` splats of `sh_degree` hold (extras aside): what
     one copy of the splats takes in memory, in the model or as Blender's attributes of either form."""
     return 4 * count * (3 + 4 + 3 + 1 + 3 * (sh_degree + 1) ** 2)
@@ -50,7 +64,7 @@ class SplatValidationError(ValueError):
     """A cloud whose arrays are malformed or hold values no renderer can use."""
 
 
-def sigmoid(x):
+def sigmoid(x: ArrayLike) -> Floats:
     x = np.asarray(x, dtype=np.float64)
     # exp(-|x|) never overflows, so +-1e4 logits give exactly 0 or 1 instead of a warning.
     with np.errstate(under="ignore"):
@@ -58,7 +72,7 @@ def sigmoid(x):
     return np.where(x >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
 
 
-def logit(p, eps=1e-7):
+def logit(p: ArrayLike, eps: float = 1e-7) -> Floats:
     p = np.clip(np.asarray(p, dtype=np.float64), eps, 1.0 - eps)
     return np.log(p) - np.log1p(-p)
 
@@ -75,15 +89,15 @@ class SplatCloud:
     "antialiased" mode, SPZ's flag), which is then the mode they render in by default.
     """
 
-    positions: np.ndarray
-    rotations: np.ndarray
-    log_scales: np.ndarray
-    opacity_logits: np.ndarray
-    sh: np.ndarray
-    extras: dict = field(default_factory=dict)
+    positions: Positions
+    rotations: Quaternions
+    log_scales: LogScales
+    opacity_logits: Logits
+    sh: SHCoefficients
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
     antialiased: bool = False
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in FIELDS:
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.float32))
         self.extras = {k: np.asarray(v) for k, v in self.extras.items()}
@@ -93,12 +107,14 @@ class SplatCloud:
     # construction ---------------------------------------------------------------------------
 
     @classmethod
-    def empty(cls, sh_degree=0):
+    def empty(cls, sh_degree: int = 0) -> "SplatCloud":
         k = shmod.num_coeffs(sh_degree)
         return cls(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, k, 3)))
 
     @classmethod
-    def from_activated(cls, positions, rotations, scales, opacities, colors=None, sh=None, extras=None):
+    def from_activated(cls, positions: Positions, rotations: Quaternions, scales: Floats, opacities: Floats,
+                       colors: Colors | None = None, sh: SHCoefficients | None = None,
+                       extras: dict[str, np.ndarray] | None = None) -> "SplatCloud":
         """Build from linear scales, opacities in [0,1] and either display-sRGB colours or raw SH."""
         positions = np.asarray(positions, dtype=np.float64)
         if sh is None:
@@ -109,7 +125,7 @@ class SplatCloud:
         return cls(positions, rotations, log_scales, logit(opacities), sh, extras or {})
 
     @classmethod
-    def concatenate(cls, clouds):
+    def concatenate(cls, clouds: Iterable["SplatCloud"]) -> "SplatCloud":
         """One cloud from many; lower SH degrees are zero-padded (same colours), extras kept where
         every cloud has them. Clouds made for different render modes cannot share one (ValueError):
         either mode would render some of them wrongly."""
@@ -124,17 +140,17 @@ class SplatCloud:
         clouds = [c.with_sh_degree(degree) for c in clouds]
         common = set.intersection(*(set(c.extras) for c in clouds))
         return cls(
-            *(np.concatenate([getattr(c, name) for c in clouds]) for name in FIELDS),
+            **{name: np.concatenate([getattr(c, name) for c in clouds]) for name in FIELDS},
             extras={k: np.concatenate([c.extras[k] for c in clouds]) for k in sorted(common)},
             antialiased=modes.pop(),
         )
 
     # basic protocol ------------------------------------------------------------------------
 
-    def __len__(self):
+    def __len__(self) -> int:
         return len(self.positions)
 
-    def __getitem__(self, index):
+    def __getitem__(self, index: Any) -> "SplatCloud":
         """Select splats by boolean mask, integer indices or slice."""
         if isinstance(index, (int, np.integer)):
             index = [index]
@@ -143,47 +159,47 @@ class SplatCloud:
 
     select = __getitem__
 
-    def copy(self):
+    def copy(self) -> "SplatCloud":
         return self.replace(**{name: getattr(self, name).copy() for name in FIELDS},
                             extras={k: v.copy() for k, v in self.extras.items()})
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> "SplatCloud":
         """A new cloud with some fields replaced (arrays are shared, not copied); what is not replaced,
         such as the render mode the splats were made for, carries over."""
         return replace(self, **changes)
 
-    def __repr__(self):
+    def __repr__(self) -> str:
         mode = ", antialiased" if self.antialiased else ""
         return f"SplatCloud(n={len(self)}, sh_degree={self.sh_degree}, extras={sorted(self.extras)}{mode})"
 
     # activated views ---------------------------------------------------------------------------
 
     @property
-    def sh_degree(self):
+    def sh_degree(self) -> int:
         return shmod.degree_of(self.sh.shape[1])
 
     @property
-    def scales(self):
+    def scales(self) -> Floats:
         with np.errstate(over="ignore"):          # a log-scale beyond 709 is an infinite sigma: finite_mask says so
             return np.exp(self.log_scales.astype(np.float64))
 
     @property
-    def opacities(self):
+    def opacities(self) -> Floats:
         return sigmoid(self.opacity_logits)
 
     @property
-    def unit_rotations(self):
+    def unit_rotations(self) -> Quaternions:
         """Normalised quaternions w,x,y,z, float64."""
         return geometry.normalize_quaternions(self.rotations)
 
-    def rotation_matrices(self):
+    def rotation_matrices(self) -> Covariances:
         return geometry.quaternions_to_matrices(self.rotations)
 
-    def covariances(self):
+    def covariances(self) -> Covariances:
         """World-space covariances R S S^T R^T, float64 (N,3,3)."""
         return geometry.covariances(self.rotations, self.scales)
 
-    def colors(self, camera_center=None, directions=None):
+    def colors(self, camera_center: ArrayLike | None = None, directions: Positions | None = None) -> Colors:
         """Display-sRGB colours (N,3) seen from a camera centre or along given view directions."""
         if directions is None:
             if camera_center is None:
@@ -192,7 +208,7 @@ class SplatCloud:
                 directions = self.positions.astype(np.float64) - np.asarray(camera_center, np.float64)
         return shmod.colors(self.sh, directions)
 
-    def with_sh_degree(self, degree):
+    def with_sh_degree(self, degree: int) -> "SplatCloud":
         """Truncate (or zero-pad) the SH to `degree`; truncation drops view-dependent detail only."""
         if degree == self.sh_degree:
             return self
@@ -200,7 +216,7 @@ class SplatCloud:
 
     # transforms ----------------------------------------------------------------------------------
 
-    def transformed(self, matrix):
+    def transformed(self, matrix: ArrayLike) -> "SplatCloud":
         """The cloud under the affine map x -> A x + t, given as a 4x4 matrix (or a 3x3 A, t = 0).
 
         Positions become A p + t (in float64), covariances A Sigma A^T, re-diagonalised into rotations
@@ -255,14 +271,14 @@ class SplatCloud:
         if wrong:
             raise SplatValidationError("malformed splat cloud: " + "; ".join(wrong))
 
-    def checked_arrays(self):
+    def checked_arrays(self) -> dict[str, np.ndarray]:
         """{name: array} of every field and float extra the non-finite rule covers; extras are
         named "extra 'name'"."""
         arrays = {name: getattr(self, name) for name in FIELDS}
         arrays.update({f"extra '{k}'": v for k, v in self.extras.items() if v.dtype.kind in "fc"})
         return arrays
 
-    def bad_counts(self):
+    def bad_counts(self) -> dict[str, int]:
         """{field: splats with NaN/Inf or overflowing values in it}, only the fields that have some."""
         counts = {}
         for name, values in self.checked_arrays().items():
@@ -271,7 +287,7 @@ class SplatCloud:
                 counts[name] = bad
         return counts
 
-    def problems(self):
+    def problems(self) -> list[str]:
         """Human-readable list of value problems (empty when the cloud is usable)."""
         found = [f"{count} splats with non-finite {name}" for name, count in self.bad_counts().items()]
         qn = np.linalg.norm(self.rotations.astype(np.float64), axis=1)
@@ -280,14 +296,14 @@ class SplatCloud:
             found.append(f"{int(zero.sum())} splats with a zero rotation quaternion")
         return found
 
-    def validate(self):
+    def validate(self) -> "SplatCloud":
         """Raise SplatValidationError naming every problem and its count; return self if clean."""
         found = self.problems()
         if found:
             raise SplatValidationError("invalid splat cloud: " + "; ".join(found))
         return self
 
-    def finite_mask(self):
+    def finite_mask(self) -> Mask:
         """True for splats whose every stored value (float extras included) is finite and stays
         finite when activated (see bad_rows)."""
         ok = np.ones(len(self), bool)

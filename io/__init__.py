@@ -2,9 +2,12 @@
 of Splatwright reads and writes through them."""
 
 import importlib
+import os
 import warnings
 from pathlib import Path
+from typing import Any
 
+from ..core.splats import SplatCloud
 from .common import SplatFileError, SplatFileWarning
 
 # extension -> module in this package exposing read(path) -> SplatCloud and write(path, cloud, **options)
@@ -30,7 +33,7 @@ DEFAULT_EXTENSIONS = {"ply": ".ply", "spz": ".spz", "splat": ".splat", "usd": ".
                       "compressed_ply": ".compressed.ply", "sog": ".sog", "gltf": ".glb"}
 
 
-def format_of(path):
+def format_of(path: str | os.PathLike) -> str:
     """The format module name for a path (the longest known ending of its name wins, so
     x.compressed.ply is compressed PLY; a bare ".ply" is no name), or SplatFileError naming the
     unknown extension."""
@@ -42,7 +45,7 @@ def format_of(path):
     raise SplatFileError(path, f"unknown splat file extension '{Path(path).suffix.lower()}' (known: {known})")
 
 
-def file_sizes(count, sh_degree, spz_version=3, half=False):
+def file_sizes(count: int, sh_degree: int, spz_version: int = 3, half: bool = False) -> dict[str, int]:
     """{format: bytes} a file of `count` splats of `sh_degree` takes, by each writer's own layout:
     "ply" and "splat" exactly (without extras), "spz" before compression (the file is smaller),
     "usd" the arrays a crate file holds (see usd.data_size)."""
@@ -55,7 +58,7 @@ def _module(path):
     return importlib.import_module(f".{format_of(path)}", __name__)
 
 
-def read_splats(path, **options):
+def read_splats(path: str | os.PathLike, **options: Any) -> SplatCloud:
     """Read a splat file of any known format into a SplatCloud.
 
     Every reader takes `nonfinite="raise"|"keep"|"drop"` (default raise) for splats holding NaN/Inf,
@@ -70,7 +73,7 @@ def read_splats(path, **options):
 RECORDS_ANTIALIASED = {"ply", "spz", "usd"}
 
 
-def write_splats(path, cloud, **options):
+def write_splats(path: str | os.PathLike, cloud: SplatCloud, **options: Any) -> None:
     """Write a SplatCloud in the format its extension names; the file appears whole or not at all.
     A cloud made for antialiased rendering written where the format cannot say so gets a warning:
     readers of that file will render it classic, with fatter outlines."""
