@@ -29,6 +29,7 @@ import numpy as np
 
 from . import geometry
 from . import jit
+from .spatial import Grid, cell_start, sort_by_cell
 
 DEFAULT_CUTOFF = 6.0          # Mahalanobis distance beyond which pairs are skipped
 BOUND_MARGIN = 1.0            # with a bound, pairs up to cutoff + this are visited and their skipped terms summed
@@ -238,10 +239,9 @@ def _gauss_terms(d, s, w, limit, want_x, want_skipped=False):
 # broad phase: a sorted grid per size class ----------------------------------------------------------
 
 @dataclass
-class _Level:
-    origin: np.ndarray     # (3,) corner of cell (0,0,0)
-    h: float               # cell size
-    dims: np.ndarray       # (3,) cells per axis
+class _Level(Grid):
+    """A size class's grid (core.spatial.Grid: origin, cell size h, dims) and its sorted members."""
+
     cell_start: np.ndarray  # (cells+1,) first sorted index of each cell, x-major then y then z
     sigma: float           # largest sigma_max in the level
     weight: float          # largest weight in the level
@@ -301,16 +301,14 @@ class EnvironmentIndex:
         cap = cells_per_splat * len(members) + 64
         while np.prod(np.floor(extent / h) + 1) > cap:
             h *= 1.25
-        dims = (np.floor(extent / h) + 1).astype(np.int64)
-        cell = np.minimum(np.floor((pts - lo) / h).astype(np.int64), dims - 1)
-        key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
-        order = np.argsort(key, kind="stable")
-        counts = np.bincount(key, minlength=int(np.prod(dims)))
-        start = np.zeros(len(counts) + 1, np.int64)
-        np.cumsum(counts, out=start[1:])
-        svt = np.zeros(tuple(dims + 1), np.int64)
-        svt[1:, 1:, 1:] = counts.reshape(tuple(dims)).cumsum(0).cumsum(1).cumsum(2)
-        level = _Level(lo, h, dims, start + offset, sigma, float(flat.weights[members].max()), len(members), svt)
+        grid = Grid(lo, h, (np.floor(extent / h) + 1).astype(np.int64))
+        key = grid.keys(np.minimum(grid.cells(pts), grid.dims - 1))
+        order, _ = sort_by_cell(key)
+        start = cell_start(key, grid.size)
+        svt = np.zeros(tuple(grid.dims + 1), np.int64)
+        svt[1:, 1:, 1:] = np.diff(start).reshape(tuple(grid.dims)).cumsum(0).cumsum(1).cumsum(2)
+        level = _Level(grid.origin, grid.h, grid.dims, start + offset, sigma, float(flat.weights[members].max()),
+                       len(members), svt)
         return level, members[order]
 
     def __len__(self):

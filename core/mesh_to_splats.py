@@ -23,6 +23,7 @@ from . import geometry, jit, sh as shmod
 from .mesh import Surface, shade, to_display
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .parallel import WORKERS, map_threads
+from .spatial import NEIGHBOURS, Grid, morton_order, runs, sort_by_cell
 from .splats import SplatCloud, logit
 from .steps import drain
 
@@ -194,30 +195,6 @@ def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.0
 
 
 # counts per face ---------------------------------------------------------------------------------
-
-def morton_order(points):
-    """Indices sorting points along a 3D Morton (Z-order) curve, 21 bits per axis."""
-    p = np.asarray(points, np.float64)
-    finite = np.isfinite(p).all(axis=1)
-    if not finite.any():
-        return np.arange(len(p))
-    lo, hi = p[finite].min(axis=0), p[finite].max(axis=0)
-    span = np.where(hi > lo, hi - lo, 1.0)
-    q = np.where(finite[:, None], (p - lo) / span, 0.0)
-    q = np.clip(q * (2**21 - 1), 0, 2**21 - 1).astype(np.uint64)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) \
-        | (_spread_bits(q[:, 2]) << np.uint64(2))
-    return np.argsort(code, kind="stable")
-
-
-def _spread_bits(x):
-    """Insert two zero bits between each of the low 21 bits (the classic magic-number sequence)."""
-    x = x & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
-        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
-    return x
-
 
 def systematic_counts(expected, order, rng):
     """Integer counts with sum round(sum(expected)) and |count - expected| < 1 for every face.
@@ -552,26 +529,21 @@ def wall_thickness(surface, reach, max_points=60_000):
     ask_tri, ask_bary = bisection_samples(surface, asking)
     points, normals = surface.points(tri, bary), surface.normal[tri] * outward[tri, None]
     queries, query_normals = surface.points(ask_tri, ask_bary), surface.normal[ask_tri] * outward[ask_tri, None]
-    origin = points.min(axis=0)
-    cell = np.floor((points - origin) / reach).astype(np.int64)
-    dims = cell.max(axis=0) + 3
-    grid_key = lambda c: ((c[:, 0] + 1) * dims[1] + c[:, 1] + 1) * dims[2] + c[:, 2] + 1  # noqa: E731
-    key = grid_key(cell)
-    query_key = grid_key(np.clip(np.floor((queries - origin) / reach).astype(np.int64), 0, dims - 3))
-    order = np.argsort(key, kind="stable")
-    sorted_keys = key[order]
+    grid = Grid(points.min(axis=0), reach, None)
+    cell = grid.cells(points)
+    grid.dims = cell.max(axis=0) + 3                    # a cell of margin on every side
+    query_key = grid.keys(np.clip(grid.cells(queries), 0, grid.dims - 3) + 1)
+    order, sorted_keys = sort_by_cell(grid.keys(cell + 1))
 
     def nearest_in(cells):
         best, nearest = np.full(len(queries), np.inf), np.zeros(len(queries), np.int64)
         for dx, dy, dz in cells:
-            near = query_key + (dx * dims[1] + dy) * dims[2] + dz
-            lo = np.searchsorted(sorted_keys, near, "left")
-            hi = np.searchsorted(sorted_keys, near, "right")
+            lo, hi = runs(sorted_keys, query_key + grid.step(dx, dy, dz))
             _nearest_behind(surface, queries, query_normals, points, normals, tri, order, lo, hi, reach, best, nearest)
         return best, nearest
 
     # The 27 neighbouring cells dealt out to the cores, each with its own minima, merged after.
-    cells = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+    cells = NEIGHBOURS
     # Ties go to the lowest candidate, so the result does not depend on how many cores there are.
     found = map_threads(nearest_in, [cells[k::WORKERS] for k in range(min(WORKERS, len(cells)))])
     depths, candidates = np.stack([b for b, _ in found]), np.stack([n for _, n in found])

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .mesh_to_splats import morton_order
+from .spatial import morton_order
 
 PAIRS_PER_CHUNK = 1 << 20        # (point, triangle) pairs evaluated together: ~150 MB of float64 at most
 LEAF = 8                        # triangles per cluster

@@ -22,7 +22,7 @@ import warnings
 import numpy as np
 
 from ..core import SplatCloud
-from ..core import sh as shmod
+from ..core import sh as shmod, spatial
 from ..core.splats import logit, sigmoid
 from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
                      reduced_sh, warn_notes)
@@ -157,19 +157,10 @@ def read(path, nonfinite="raise"):
 
 # writing ------------------------------------------------------------------------------------------
 
-def morton_order(positions, bits=10):
-    """Indices that sort points along a Morton (Z-order) curve over their bounding box."""
-    p = np.asarray(positions, np.float64)
-    if not len(p):
-        return np.zeros(0, np.int64)
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    cells = np.clip((p - lo) / np.where(hi > lo, hi - lo, 1) * ((1 << bits) - 1), 0, (1 << bits) - 1)
-    cells = cells.astype(np.uint64)
-    code = np.zeros(len(p), np.uint64)
-    for bit in range(bits):
-        for axis in range(3):
-            code |= ((cells[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + (2 - axis))
-    return np.argsort(code, kind="stable")
+def morton_order(positions):
+    """Indices that sort points along a Morton (Z-order) curve over their bounding box, 10 bits per
+    axis, x the most significant bit of each triple."""
+    return spatial.morton_order(np.asarray(positions)[:, ::-1], bits=10)
 
 
 def _unit_fraction(values, lo, hi):
