@@ -21,6 +21,7 @@ import numpy as np
 from . import color, jit
 from .mesh import Surface, shade, to_display
 from .parallel import WORKERS, map_threads
+from .spatial import ramp
 
 CANDIDATES_PER_CHUNK = 1 << 21
 BACKENDS = ("auto", "compiled", "numpy")
@@ -204,7 +205,7 @@ def _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bb
     """Draw the faces (edge functions, corner depths, boxes) into the flat buffers."""
     w = cam.width
     rows_face = np.repeat(np.arange(len(faces)), y1 - y0)
-    rows_y = y0[rows_face] + _ramp(y1 - y0)
+    rows_y = y0[rows_face] + ramp(y1 - y0)
     # Along a row only x changes: e = a x + (b y + c), the bracket once per row.
     brackets = b[rows_face] * rows_y[:, None] + c[rows_face]
     starts, widths = _row_spans(a[rows_face], brackets, x0[rows_face], x1[rows_face])
@@ -214,7 +215,7 @@ def _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bb
         stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + CANDIDATES_PER_CHUNK, "right"))
         stop = max(stop, start + 1)
         rf, ry, rw = rows_face[start:stop], rows_y[start:stop], widths[start:stop]
-        px = np.repeat(starts[start:stop], rw) + _ramp(rw)
+        px = np.repeat(starts[start:stop], rw) + ramp(rw)
         e = np.repeat(a[rf], rw, axis=0) * px[:, None]
         e += np.repeat(brackets[start:stop], rw, axis=0)
         _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), zbuf, fbuf, bbuf)
@@ -260,12 +261,6 @@ def _edge_functions(v, cam):
     planes = np.cross(v[:, [1, 2, 0]], v[:, [2, 0, 1]])
     a, b = planes[..., 0] / cam.fx, planes[..., 1] / cam.fy
     return a, b, planes[..., 2] + a * (0.5 - cam.cx) + b * (0.5 - cam.cy)
-
-
-def _ramp(counts):
-    """0, 1, ..., c-1 for each count c, concatenated."""
-    counts = np.asarray(counts, np.int64)
-    return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def _screen_boxes(surface, cam, v):

@@ -41,15 +41,11 @@ from types import SimpleNamespace
 import numpy as np
 
 from . import geometry, jit, sh as shmod
+from .render_constants import (AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS, MAX_TILE_SIZE, MODES,
+                               T_MIN, TILE_SIZE)
+from .spatial import ramp
 from .splats import sigmoid
 
-ALPHA_MIN = 1.0 / 255.0     # skip a splat at a pixel below this alpha
-ALPHA_MAX = 0.99            # per-splat alpha clamp
-T_MIN = 1e-4                # stop before T would drop below this
-LOW_PASS = 0.3              # px^2 added to the projected covariance's diagonal
-AA_MIN_RATIO = 0.000025     # floor of det(Sigma2D) / det(Sigma2D + 0.3 I) in antialiased mode
-FRUSTUM_MARGIN = 1.3        # the Jacobian is taken at x/z, y/z clamped to 1.3 x the half field of view
-MODES = ("classic", "antialiased")
 PRECISIONS = {"float32": np.float32, "float64": np.float64}
 BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.render_kernels"     # the compiled module, loaded by core.jit
@@ -173,7 +169,7 @@ def _floats(records):
 
 
 def render(cloud, camera, background=(0.0, 0.0, 0.0), mode=None, return_counts=False, *,
-           return_weights=False, tile_size=8, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
+           return_weights=False, tile_size=TILE_SIZE, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
            threads=None, progress=None, backend="auto", layer=None, gather=None, shapes=None):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
@@ -204,8 +200,8 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode=None, return_counts=F
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
-    if int(tile_size) != tile_size or not 1 <= tile_size <= 64:
-        raise ValueError(f"tile_size must be an integer in 1..64, got {tile_size!r}")
+    if int(tile_size) != tile_size or not 1 <= tile_size <= MAX_TILE_SIZE:
+        raise ValueError(f"tile_size must be an integer in 1..{MAX_TILE_SIZE}, got {tile_size!r}")
     if int(wave) != wave or wave < 1:
         raise ValueError(f"wave must be a positive integer, got {wave!r}")
     if not 0.0 <= t_min < 1.0:
@@ -304,7 +300,7 @@ def backend_status():
 
 # memory -----------------------------------------------------------------------------------------
 
-def image_bytes(width, height, tile_size=8, counts=False, compiled=True):
+def image_bytes(width, height, tile_size=TILE_SIZE, counts=False, compiled=True):
     """Bytes a render of this size holds for its image buffers, whatever the cloud: the result's
     colour, alpha and depth and the working images (the NumPy path keeps five float32
     accumulators and a transmittance per pixel of whole tiles)."""
@@ -341,7 +337,7 @@ def physical_memory():
     return None
 
 
-def check_image_memory(camera, tile_size=8, counts=False, compiled=True):
+def check_image_memory(camera, tile_size=TILE_SIZE, counts=False, compiled=True):
     """Refuse (ValueError) an image whose buffers alone would take more than this machine's memory."""
     need, have = image_bytes(camera.width, camera.height, tile_size, counts, compiled), physical_memory()
     if have is not None and need > have:
@@ -562,24 +558,18 @@ def _bin_chunk(proj, lo, hi, ts, tiles_x, n_tiles):
     row0 = box[:, 1] // ts
     rows = box[:, 3] // ts - row0 + 1
     splat = np.repeat(np.arange(lo, hi, dtype=np.int32), rows)
-    row = np.repeat(row0, rows) + _ramp(rows)
+    row = np.repeat(row0, rows) + ramp(rows)
     col0, col1 = np.repeat(box[:, 0] // ts, rows), np.repeat(box[:, 2] // ts, rows)
     # A box one tile high or wide meets every tile it covers; only larger ones need the ellipse.
     big = np.flatnonzero((rows > 1) & (box[:, 2] // ts > box[:, 0] // ts))
     if len(big):
-        fit = np.repeat(np.cumsum(rows)[big] - rows[big], rows[big]) + _ramp(rows[big])
+        fit = np.repeat(np.cumsum(rows)[big] - rows[big], rows[big]) + ramp(rows[big])
         col0[fit], col1[fit] = _row_extent(proj, lo + big, rows[big], row[fit], ts)
     cols = np.maximum(col1 - col0 + 1, 0)
     splat = np.repeat(splat, cols)
-    tile = np.repeat(row * tiles_x + col0, cols) + _ramp(cols)
+    tile = np.repeat(row * tiles_x + col0, cols) + ramp(cols)
     order = _stable_argsort(tile, n_tiles)
     return splat[order], np.bincount(tile, minlength=n_tiles)
-
-
-def _ramp(counts):
-    """0, 1, ..., c-1 for each count c, concatenated."""
-    total = int(counts.sum())
-    return np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def _row_extent(proj, ids, rows, row, ts):

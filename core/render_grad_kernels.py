@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from .jit import njit
-from .render import ALPHA_MAX, ALPHA_MIN, T_MIN
+from .render_constants import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 LOG_ALPHA_MIN = math.log(ALPHA_MIN)
 

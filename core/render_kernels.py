@@ -18,14 +18,12 @@ import math
 import numpy as np
 
 from .jit import njit, prefetcher
+from .render_constants import AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, MAX_TILE_SIZE
 from .sh import C0, C1, C2, C3, C4
 
 prefetch = prefetcher()     # random reads (records by entry, rows by index) start a few items early
-ALPHA_MIN = 1.0 / 255.0
 LOG_ALPHA_MIN = math.log(ALPHA_MIN)
-LOG_ALPHA_MAX = math.log(0.99)
-LOW_PASS = 0.3
-AA_MIN_RATIO = 0.000025
+LOG_ALPHA_MAX = math.log(ALPHA_MAX)
 # exp(x) for x in [EXP_FLOOR, 0] (alpha >= 1/255 needs x >= -5.55) as p(x/16)^16, p the Taylor terms to
 # r^7 (relative error below 2e-8 for |r| <= 3/8, 4e-7 after the squarings)
 EXP_FLOOR = -6.0
@@ -354,7 +352,7 @@ def exp_constants(dtype):
 # index wrap-around are what let the compiler prove the channels apart and vectorise the pixel loop.
 # (A channel is MAX_PIXELS values and one cache line more: at a power-of-two stride every channel
 # of a pixel would fall in the same cache set.)
-MAX_PIXELS = 64 * 64
+MAX_PIXELS = MAX_TILE_SIZE * MAX_TILE_SIZE
 STRIDE = MAX_PIXELS + 16
 CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t", "x_offset", "y_offset")
 R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT, EX, EY = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))

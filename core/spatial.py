@@ -9,7 +9,7 @@ Grid: cell (i, j, k) covers origin + h [i, i + 1) x [j, j + 1) x [k, k + 1); a c
 x-major, then y, then z, so the cells of one (x, y) column are consecutive keys and a run of
 points sorted by key. Queries find a cell's points either from a table of every cell's first
 sorted position (`cell_start`, for grids with a bounded number of cells) or by binary search of
-the sorted keys (`runs`, for grids of any size)."""
+the sorted keys (`runs`, for grids of any size). `ramp` numbers the places within runs."""
 
 from dataclasses import dataclass
 
@@ -86,6 +86,13 @@ def cell_start(keys, size):
     start = np.zeros(size + 1, np.int64)
     np.cumsum(np.bincount(keys, minlength=size), out=start[1:])
     return start
+
+
+def ramp(counts):
+    """0, 1, ..., c-1 for each count c, concatenated (int64): the places within runs of those lengths,
+    as the rasterisers walk a splat's tiles or a face's pixels along a row."""
+    counts = np.asarray(counts, np.int64)
+    return np.arange(int(counts.sum()), dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
 def runs(sorted_keys, keys):
