@@ -30,11 +30,11 @@ morton = lambda cloud: compressed_ply.morton_order(cloud.positions)       # noqa
 def without_pxr(function):
     """`function` run as where OpenUSD's Python module is missing (Blender 4.2): text layers."""
     def run(*args):
-        saved, usd.Usd = usd.Usd, None
+        saved, usd.stages.active = usd.stages.active, usd.stages.TEXT
         try:
             return function(*args)
         finally:
-            usd.Usd = saved
+            usd.stages.active = saved
     return run
 
 

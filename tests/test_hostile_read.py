@@ -30,7 +30,7 @@ from splatwright.io.policy import MAX_IMAGE_PIXELS, MAX_TEXT_LAYER_BYTES, SPZ_MA
 def usd_reader(request, monkeypatch):
     """Read OpenUSD through pxr and through the text-layer reader used where pxr is missing."""
     if request.param == "text":
-        monkeypatch.setattr(usd, "Usd", None)
+        monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     return request.param
 
 
@@ -353,7 +353,7 @@ def test_usdz_composes_only_from_its_own_package(tmp_path):
 def test_usd_text_reader_refuses_composition_by_name(tmp_path, monkeypatch):
     for kind in ("sub", "ref", "payload"):
         path = stage_with(tmp_path, [(kind, "./in.usdc")])
-        monkeypatch.setattr(usd, "Usd", None)
+        monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
         with pytest.raises(SplatFileError, match=r"stage.usda: .*uses composition \((subLayers|references|payload)\)"):
             usd.read(path)
         monkeypatch.undo()
@@ -596,7 +596,7 @@ def test_openusd_errors_while_reading_values_become_named_errors(tmp_path, monke
     def failing(*args, **kwargs):
         raise Tf.ErrorException("Error in 'CrateFile::_UnpackValue' at line 1 in file crateFile.cpp : "
                                 "'Corrupt asset: exception thrown unpacking a value'")
-    monkeypatch.setattr(usd, "_world_matrix", failing)
+    monkeypatch.setattr(usd.stages.PXR, "world_matrix", failing)
     with pytest.raises(SplatFileError, match=r"ok.usdc: OpenUSD cannot read it \(truncated or corrupt\?\): "
                                              "'Corrupt asset: exception thrown unpacking a value'"):
         read_splats(tmp_path / "ok.usdc")
@@ -606,7 +606,7 @@ def test_openusd_errors_while_reading_values_become_named_errors(tmp_path, monke
 
 def test_text_stages_beyond_the_stated_size_are_refused_before_parsing(tmp_path, monkeypatch):
     """Without pxr, OpenUSD text is parsed by NumPy: 1 GiB at most, and usdz roots must be stored."""
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     assert MAX_TEXT_LAYER_BYTES == 1 << 30
     big = tmp_path / "big.usda"
     with open(big, "wb") as f:                       # sparse: 1 GiB + 1 byte, nothing really written

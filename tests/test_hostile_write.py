@@ -395,7 +395,7 @@ def test_multi_file_formats_keep_the_old_set_when_one_file_fails(tmp_path, monke
 def test_openusd_failing_to_save_is_a_splat_file_error_and_leaves_nothing(tmp_path, monkeypatch, capfd):
     """pxr's own temporary (`<partial>.XXXXXX`) goes with the partial; nothing is printed."""
     from splatwright.io import usd
-    author = usd._author_stage
+    author = usd.stages.PXR._author_stage
 
     def blocked(path, layer_path, *args):
         os.mkdir(layer_path + ".in_the_way")             # pxr saves, then cannot rename onto a folder
@@ -403,7 +403,7 @@ def test_openusd_failing_to_save_is_a_splat_file_error_and_leaves_nothing(tmp_pa
             author(path, layer_path + ".in_the_way", *args)
         finally:
             os.rmdir(layer_path + ".in_the_way")
-    monkeypatch.setattr(usd, "_author_stage", blocked)
+    monkeypatch.setattr(usd.stages.PXR, "_author_stage", blocked)
     path = tmp_path / "out.usdc"
     with pytest.raises(SplatFileError, match="OpenUSD could not write it: .*Is a directory") as exc:
         write("usdc", path)

@@ -13,6 +13,7 @@ from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
 from splatwright.io import read_splats, usd, write_splats
 from splatwright.io.common import SplatFileError
+from splatwright.io.usd import pxr_stages, writer
 from splatwright.io import SplatFileWarning
 
 # Parity of each 3DGS SH basis polynomial under (x, y, z) -> (x, -y, -z), worked out by hand:
@@ -222,7 +223,7 @@ def test_without_the_schema_class_the_file_is_the_same(tmp_path, monkeypatch):
     with_schema, without = tmp_path / "schema.usda", tmp_path / "generic.usda"
     usd.write(with_schema, cloud)
     monkeypatch.delattr(UsdVol, "ParticleField3DGaussianSplat")
-    assert usd._schema_class() is None
+    assert pxr_stages._schema_class() is None
     usd.write(without, cloud)
     assert without.read_text() == with_schema.read_text()
     assert_same(usd.read(without), cloud)
@@ -782,8 +783,8 @@ def test_upright_transform_counts_where_pxr_does_not_know_the_schema(tmp_path):
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set((1, 2, 3))
     prim = stage.DefinePrim("/World/S", "SplatTypeUnknownHere")
-    usd._upright_op(prim)
+    writer._upright_op(prim)
     assert not UsdGeom.Xformable(prim)                 # as in a pxr without the schema
     expected = np.diag([1.0, -1.0, -1.0, 1.0])
     expected[:3, 3] = (1, 2, 3)
-    np.testing.assert_array_equal(usd._world_matrix(prim, Usd.TimeCode.Default()), expected)
+    np.testing.assert_array_equal(usd.stages.PXR.world_matrix(prim, Usd.TimeCode.Default()), expected)

@@ -1,5 +1,5 @@
-"""OpenUSD where OpenUSD's Python module is missing (Blender 4.2 bundles none): io/usd.py's text
-layer path, checked against usd-core reading what it writes and writing what it reads."""
+"""OpenUSD where OpenUSD's Python module is missing (Blender 4.2 bundles none): io/usd's text
+stage implementation, checked against usd-core reading what it writes and writing what it reads."""
 
 import math
 
@@ -14,8 +14,8 @@ from splatwright.io import SplatFileError, SplatFileWarning, usd
 
 @pytest.fixture
 def without_pxr(monkeypatch):
-    """io/usd.py as it runs where `import pxr` fails."""
-    monkeypatch.setattr(usd, "Usd", None)
+    """io/usd as it runs where `import pxr` fails: the text stage implementation."""
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
 
 
 def extras_cloud(n=40, degree=3, seed=5):
@@ -94,7 +94,7 @@ def test_text_layers_hold_what_pxr_writes(tmp_path, monkeypatch, case, ext):
     """Written without pxr, usd-core reads the very prims, attributes, metadata and values it
     reads from the file pxr writes."""
     CASES[case](tmp_path / f"pxr{ext}")
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     CASES[case](tmp_path / f"text{ext}")
     monkeypatch.undo()
     want, got = layer_contents(tmp_path / f"pxr{ext}"), layer_contents(tmp_path / f"text{ext}")
@@ -143,14 +143,14 @@ def test_text_reader_reads_what_pxr_writes_as_pxr_does(tmp_path, monkeypatch, ca
     path = tmp_path / "pxr.usda"
     CASES[case](path)
     want = _read_everything(path)
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     _assert_same_reading(want, _read_everything(path))
 
 
 def test_splats_made_for_antialiased_rendering_are_marked_as_pxr_reads_it(tmp_path, monkeypatch):
     for writer in ("pxr", "text"):
         if writer == "text":
-            monkeypatch.setattr(usd, "Usd", None)
+            monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
         CASES["antialiased"](tmp_path / f"{writer}.usda")
         monkeypatch.undo()
         stage = Usd.Stage.Open(str(tmp_path / f"{writer}.usda"))
@@ -187,7 +187,7 @@ def test_transform_ops_units_and_up_axis_read_as_pxr_reads_them(tmp_path, monkey
     options = dict(unmarked="stage")
     with pytest.warns(SplatFileWarning):
         want = _read_everything(path, **options)
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     with pytest.warns(SplatFileWarning):
         got = _read_everything(path, **options)
     _assert_same_reading(want, got, exact=False)
@@ -198,14 +198,14 @@ def test_blender_point_clouds_read_without_pxr(tmp_path, monkeypatch, quat_type,
     path = tmp_path / "blender.usda"
     blender_points(path, random_cloud(20, sh_degree=degree, seed=12), quat_type)
     want = _read_everything(path)
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     _assert_same_reading(want, _read_everything(path))
 
 
 def test_binary_layers_are_refused_by_name_without_pxr(tmp_path, monkeypatch):
     usd.write(tmp_path / "crate.usdc", random_cloud(5, 0))
     usd.write(tmp_path / "crate.usdz", random_cloud(5, 0))
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     for name in ("crate.usdc", "crate.usdz"):
         with pytest.raises(SplatFileError, match=r"binary \(crate\).*pxr"):
             usd.read(tmp_path / name)
@@ -229,7 +229,7 @@ def test_composition_is_refused_by_name_without_pxr(tmp_path, monkeypatch, arc):
     else:
         prim.GetVariantSets().AddVariantSet("look").AddVariant("red")
     stage.GetRootLayer().Save()
-    monkeypatch.setattr(usd, "Usd", None)
+    monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
     with pytest.raises(SplatFileError, match=arc.replace("variantSet", "variant") + r".*OpenUSD's Python module"):
         usd.read(tmp_path / "scene.usda")
 
@@ -265,3 +265,25 @@ def test_text_layer_keeps_non_finite_values_and_extremes(tmp_path, without_pxr):
         back = usd.read(tmp_path / "x.usda", nonfinite="keep")
     np.testing.assert_array_equal(back.positions, cloud.positions)
     assert np.signbit(back.positions[1, 1])
+
+
+def test_both_stage_implementations_answer_the_whole_interface():
+    """The readers and the writer reach stages only through stages.Stages; pxr is imported by the
+    interface module (which asks whether it exists) and by its pxr implementation, nowhere else."""
+    import ast
+    from pathlib import Path
+    stages = usd.stages
+    assert stages.active is stages.PXR and {stages.PXR.name, stages.TEXT.name} == {"pxr", "text"}
+    wanted = {name for name in vars(stages.Stages) if not name.startswith("_")} | {"name", "errors"}
+    for impl in (stages.PXR, stages.TEXT):
+        assert isinstance(impl, stages.Stages)
+        assert not [name for name in wanted if not hasattr(impl, name)]
+    io_root = Path(usd.__file__).resolve().parents[1]
+    importing = set()
+    for source in io_root.rglob("*.py"):
+        for node in ast.walk(ast.parse(source.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
+            if any(n == "pxr" or n.startswith("pxr.") for n in names):
+                importing.add(source.relative_to(io_root).as_posix())
+    assert importing == {"usd/stages.py", "usd/pxr_stages.py"}

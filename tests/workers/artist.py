@@ -160,7 +160,7 @@ class Worker(BlenderWorker):
         panel = self.module("splat_addon.panel")
         obj = self.import_cloud("panel.ply", *PANEL_CLOUD)
         usd = self.module("io.usd")
-        out = {"stats": {}, "exports": {}, "pxr": usd.Usd is not None}
+        out = {"stats": {}, "exports": {}, "pxr": usd.stages.PXR is not None}
         for version in (2, 3, 4):
             for half in (False, True):
                 stats = panel.splat_stats(obj, spz_version=version, half=half)
@@ -170,7 +170,7 @@ class Worker(BlenderWorker):
                               ("size_v3.spz", dict(spz_version="3")), ("size_v4.spz", dict(spz_version="4")),
                               ("size.usda", {}), ("size_half.usda", dict(use_half=True))):
             out["exports"][name] = self.export(name, **options)
-        if usd.Usd is not None:
+        if usd.stages.PXR is not None:
             out["exports"]["size.usdc"] = self.export("size.usdc")
             out["exports"]["size_half.usdc"] = self.export("size_half.usdc", use_half=True)
         return out
