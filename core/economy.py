@@ -25,6 +25,7 @@ from . import render as rendering
 from .camera import frame_points
 from .metrics import psnr, psnr_from_mse
 from .parallel import map_threads
+from .render_constants import ALPHA_MIN
 
 GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
@@ -86,7 +87,7 @@ def orbit_views(points, count=8, width=128, height=None, fov_deg=50.0, phase=0.0
 
 def cloud_points(cloud):
     """The centres worth framing: finite, and opaque enough to show (alpha can reach 1/255)."""
-    keep = cloud.finite_mask() & (cloud.opacities >= rendering.ALPHA_MIN)
+    keep = cloud.finite_mask() & (cloud.opacities >= ALPHA_MIN)
     return cloud.positions[keep]
 
 

@@ -24,3 +24,28 @@ def in_chunks(n, work, chunk=1 << 13):
     write only its own rows.
     """
     map_threads(lambda span: work(*span), [(a, min(a + chunk, n)) for a in range(0, n, chunk)])
+
+
+class Pool:
+    """A thread pool of `threads` workers (default: all cores) as a context manager; with one
+    thread, map() runs inline."""
+
+    def __init__(self, threads=None):
+        self.threads = max(1, int(threads or os.cpu_count() or 1))
+        self.executor = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.executor is not None:
+            self.executor.shutdown()
+
+    def map(self, fn, items):
+        return list(self.imap(fn, items))
+
+    def imap(self, fn, items):
+        """fn over items, results yielded in order in the calling thread as they come."""
+        if self.executor is None or len(items) < 2:
+            return (fn(item) for item in items)
+        return self.executor.map(fn, items)

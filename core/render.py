@@ -24,6 +24,9 @@ three stages, and the final alpha, depth and background of a render without a la
 compiled loops (core/render_kernels.py), which also skip the pixel rows of a tile that a splat's
 ellipse does not cross and write the image without per-tile accumulators.
 `render(..., backend=...)` picks one; both are tested against the float64 reference.
+The NumPy path's stages have modules of their own: projection and binning in core/render_project.py,
+compositing (and the Layer crossing) in core/render_composite.py; the numbers of the image in
+core/render_constants.py.
 
 A Layer (a surface rendered by something else: per pixel a colour, an alpha and a camera depth)
 joins each pixel's front-to-back list as one more element, before the first splat whose camera z
@@ -33,27 +36,20 @@ on the splat where the pixel crosses the layer; the compiled path applies it bet
 
 import math
 import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 
 import numpy as np
 
-from . import geometry, jit, sh as shmod
-from .render_constants import (AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS, MAX_TILE_SIZE, MODES,
-                               T_MIN, TILE_SIZE)
-from .spatial import ramp
-from .splats import sigmoid
+from . import jit
+from .parallel import Pool
+from .render_composite import Compositor, LayerCrossing
+from .render_constants import FRUSTUM_MARGIN, MAX_TILE_SIZE, MODES, PRECISIONS, T_MIN, TILE_SIZE
+from .render_project import PROJECT_CHUNK, Bins, Projected, bin_tiles, new_records, project, stable_argsort
 
-PRECISIONS = {"float32": np.float32, "float64": np.float64}
 BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.render_kernels"     # the compiled module, loaded by core.jit
 
-# OpenBLAS runs larger products on its own threads, which fights our pool and is slower for these
-# thin products; it stays single-threaded below m*n*k = 65536 * 4 (its SMP threshold).
-_BLAS_SINGLE_THREAD_MNK = 65536 * 4
-_BATCH_EVALS = 1 << 18      # splat-pixel evaluations per batch (measured sweet spot)
 
 
 @dataclass
@@ -128,46 +124,6 @@ class Layer:
         return Layer(**arrays)
 
 
-@dataclass
-class Projected:
-    """Visible splats in front-to-back order (ties by index), in pixel space.
-
-    Each splat is one 64-byte record (a cache line, so the compositor fetches it with one read):
-    float64 u, v (pixel-space mean) and conic a, b, c (inverse of Sigma2D + 0.3 I), then float32
-    log opacity, r, g, b, camera z and 1. The last record is padding whose alpha is exactly 0.
-    """
-
-    index: np.ndarray       # (n,) index into the input cloud
-    records: np.ndarray     # (n+1, 8) float64, laid out as above
-    r2: np.ndarray          # (n,) squared Mahalanobis extent: alpha >= 1/255 inside
-    bbox: np.ndarray        # (n, 4) int64 inclusive pixel box x0, y0, x1, y1 (clipped to the image)
-    skipped_nonfinite: int
-
-    def __len__(self):
-        return len(self.index)
-
-    @property
-    def mean_conic(self):
-        """(n+1, 5) float64 view: u, v, conic a, b, c."""
-        return self.records[:, :5]
-
-
-
-def _records(n):
-    """Room for n records plus the padding record, each record on one cache line (64-byte aligned:
-    NumPy's large arrays start 16 bytes past a page, which would put every record across two)."""
-    raw = np.zeros((n + 2) * 64, np.uint8)
-    start = -raw.ctypes.data % 64
-    rec = raw[start:start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
-    _floats(rec[n:])[:, 0] = -1e30          # padding: exp(-1e30) = 0
-    return rec
-
-
-def _floats(records):
-    """The float32 part of records: (m, 6) log opacity, r, g, b, camera z, 1."""
-    return records[:, 5:].view(np.float32)
-
-
 def render(cloud, camera, background=(0.0, 0.0, 0.0), mode=None, return_counts=False, *,
            return_weights=False, tile_size=TILE_SIZE, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
            threads=None, progress=None, backend="auto", layer=None, gather=None, shapes=None):
@@ -240,12 +196,12 @@ def _checked_gather(image, camera):
 def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, tile_size, wave,
             t_min, max_sigma, dtype, threads, progress, layer=None, gather=None, shapes=None):
     """The checked render() by the compiled kernels, or by NumPy when kernels is None."""
-    with _pool(threads) as pool:
+    with Pool(threads) as pool:
         if kernels is None:
             proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
             bins = bin_tiles(proj, camera, tile_size, pool=pool)
-            crossing = None if layer is None else _LayerCrossing(layer, bins, dtype)
-            compositor = _Compositor(proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights,
+            crossing = None if layer is None else LayerCrossing(layer, bins, dtype)
+            compositor = Compositor(proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights,
                                      crossing, gather)
         else:
             proj, spare = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes)
@@ -274,7 +230,7 @@ def _check_kernels(kernels):
                        rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 25, 3)))
     camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20)
     gather = rng.normal(size=(camera.height, camera.width, 2)).astype(np.float32)
-    shapes = SimpleNamespace(values=_shape_values(kernels, cloud, _pool(1)))     # Shapes, without loading kernels
+    shapes = SimpleNamespace(values=_shape_values(kernels, cloud, Pool(1)))     # Shapes, without loading kernels
     for mode in MODES:
         args = (cloud, camera, np.zeros(3), (0, 0, 0), mode, True, True, 8, 32, T_MIN, None, np.float32, 1, None)
         for layer in (None, _check_layer(camera)):
@@ -346,270 +302,6 @@ def check_image_memory(camera, tile_size=TILE_SIZE, counts=False, compiled=True)
                          "in pieces (a camera per piece: smaller width and height, cx and cy shifted)")
 
 
-class _pool:
-    """A thread pool of `threads` workers (default: all cores) as a context manager; with one
-    thread, map() runs inline."""
-
-    def __init__(self, threads=None):
-        self.threads = max(1, int(threads or os.cpu_count() or 1))
-        self.executor = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        if self.executor is not None:
-            self.executor.shutdown()
-
-    def map(self, fn, items):
-        return list(self.imap(fn, items))
-
-    def imap(self, fn, items):
-        """fn over items, results yielded in order in the calling thread as they come."""
-        if self.executor is None or len(items) < 2:
-            return (fn(item) for item in items)
-        return self.executor.map(fn, items)
-
-
-# projection -----------------------------------------------------------------------------------
-
-_PROJECT_CHUNK = 1 << 16    # splats per projection task
-
-
-def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
-    """Cull and project every splat: pixel-space means, conics, extents and view-dependent colours
-    of the visible ones, sorted front to back (equal depths keep input order)."""
-    pool = pool or _pool(1)
-    chunks = [slice(i, i + _PROJECT_CHUNK) for i in range(0, len(cloud), _PROJECT_CHUNK)] or [slice(0, 0)]
-    parts = pool.map(lambda sl: _project_chunk(cloud, sl, camera, mode, max_sigma), chunks)
-    skipped = sum(p.pop("skipped") for p in parts)
-    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
-    # float32 precision are ties, kept in index order (chunks are in index order), so round-off in
-    # a far-from-origin camera pose cannot reorder them.
-    # (Positive float32 values sort like their bit patterns: two 16-bit radix passes.)
-    order = _stable_argsort(cols["z"].astype(np.float32).view(np.uint32), 1 << 32)
-    records = _records(len(order))
-    np.take(cols["records"], order, axis=0, out=records[:-1])
-    return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
-
-
-def _project_chunk(cloud, sl, camera, mode, max_sigma):
-    """Projection of cloud[sl], unsorted, as columns (float64 unless noted)."""
-    idx = np.arange(len(cloud))[sl]
-    fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
-    every = fields + [cloud.sh[sl]]
-    if not all(np.isfinite(f).all() for f in every):      # rare: find the bad splats
-        good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
-        idx, fields = idx[good], [f[good] for f in fields]
-    skipped = len(every[-1]) - len(idx)
-    positions, rotations, log_scales, logits = fields
-
-    rel = positions.astype(np.float64) - camera.center      # world offsets from the eye
-    cam = _rotate(rel, camera.rotation)
-    z = cam[:, 2]
-    opacity = sigmoid(logits)
-    keep = np.flatnonzero((z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
-    if len(keep) < len(z):
-        idx, rel, cam, z, opacity = idx[keep], rel[keep], cam[keep], z[keep], opacity[keep]
-        rotations, log_scales = rotations[keep], log_scales[keep]
-
-    u, v, m0, m1 = screen_rows(cam, camera)
-    rs = geometry.quaternions_to_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
-    with np.errstate(over="ignore", invalid="ignore"):
-        _, _, a, b, c, det0 = screen_covariance(m0, m1, rs)
-        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
-        if mode == "antialiased":
-            opacity = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, det0 / det))
-        r2 = 2.0 * np.log(np.maximum(255.0 * opacity, 1e-300))
-        if max_sigma is not None:
-            r2 = np.minimum(r2, float(max_sigma) ** 2)
-        a, c = a + LOW_PASS, c + LOW_PASS
-        half_x, half_y = np.sqrt(r2 * a), np.sqrt(r2 * c)
-    finite = np.isfinite(det) & np.isfinite(u) & np.isfinite(v)
-    skipped += int((~finite).sum())
-    box = [np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
-           np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
-           np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
-           np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1)]
-    sel = np.flatnonzero(finite & (r2 > 0) & (box[0] <= box[2]) & (box[1] <= box[3]))
-
-    if camera.is_orthographic:    # parallel rays: every splat is seen along the camera axis
-        directions = np.broadcast_to(camera.forward, (len(sel), 3))
-    else:
-        directions = rel[sel]
-    rgb = shmod.colors(cloud.sh[idx[sel]], directions) if len(sel) else np.zeros((0, 3))
-    d = det[sel]
-    records = _records(len(sel))[:-1]
-    records[:, 0], records[:, 1] = u[sel], v[sel]
-    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d   # the conic
-    floats = _floats(records)
-    floats[:, 0], floats[:, 1:4], floats[:, 4], floats[:, 5] = np.log(opacity[sel]), rgb, z[sel], 1.0
-    bbox = np.empty((len(sel), 4), dtype=np.int64)
-    for k, x in enumerate(box):
-        bbox[:, k] = x[sel]
-    return {"index": idx[sel], "z": z[sel], "records": records, "r2": r2[sel], "bbox": bbox, "skipped": skipped}
-
-
-def _rotate(points, rotation):
-    """points @ rotation.T, written out: a BLAS product this thin would start BLAS's own threads."""
-    out = np.empty_like(points)
-    for k in range(3):
-        out[:, k] = points[:, 0] * rotation[k, 0] + points[:, 1] * rotation[k, 1] + points[:, 2] * rotation[k, 2]
-    return out
-
-
-def _dot3(p, q):
-    return p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1] + p[:, 2] * q[:, 2]
-
-
-def _cross3(p, q):
-    return np.stack([p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
-                     p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
-                     p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]], axis=1)
-
-
-def screen_covariance(m0, m1, rs):
-    """Sigma2D = V V^T with V = J W R S (2x3, rows m0 rs and m1 rs): V's rows, Sigma2D's entries a, b,
-    c, and its determinant. V V^T is exactly symmetric and PSD, and its determinant is the squared
-    cross product of V's rows, free of the cancellation in a c - b^2 for needles."""
-    v0 = np.einsum("nj,njk->nk", m0, rs)
-    v1 = np.einsum("nj,njk->nk", m1, rs)
-    return v0, v1, _dot3(v0, v0), _dot3(v0, v1), _dot3(v1, v1), _dot3(*(_cross3(v0, v1),) * 2)
-
-
-def clamped_ratios(tx, ty, camera):
-    """x/z and y/z clamped where the Jacobian is taken: the reference clamps them to 1.3 x tan(half
-    fov) around the centre; with an off-centre principal point the same 30% margin is kept beyond
-    each image edge."""
-    mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
-    return (np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx),
-            np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy))
-
-
-def screen_rows(cam, camera):
-    """Pixel-space means and the rows of J W (the projection's Jacobian at each camera-space point
-    times the world-to-camera rotation), each (n,3)."""
-    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
-    rot = camera.rotation
-    if camera.is_orthographic:
-        u, v = camera.fx * x + camera.cx, camera.fy * y + camera.cy
-        return u, v, np.broadcast_to(camera.fx * rot[0], cam.shape), np.broadcast_to(camera.fy * rot[1], cam.shape)
-    tx, ty = x / z, y / z
-    u, v = camera.fx * tx + camera.cx, camera.fy * ty + camera.cy
-    tx, ty = clamped_ratios(tx, ty, camera)
-    # J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]]; each row times W
-    fz, gz = camera.fx / z, camera.fy / z
-    m0, m1 = np.empty_like(cam), np.empty_like(cam)
-    for k in range(3):
-        m0[:, k] = fz * (rot[0, k] - tx * rot[2, k])
-        m1[:, k] = gz * (rot[1, k] - ty * rot[2, k])
-    return u, v, m0, m1
-
-
-# tile binning ---------------------------------------------------------------------------------
-
-@dataclass
-class Bins:
-    tile_size: int
-    tiles_x: int
-    tiles_y: int
-    entry_splat: np.ndarray     # (E,) splat per entry, grouped by tile, front to back within a tile
-    offsets: np.ndarray         # (tiles+1,) entries of tile t are entry_splat[offsets[t]:offsets[t+1]]
-
-    @property
-    def n_tiles(self):
-        return self.tiles_x * self.tiles_y
-
-
-def bin_tiles(proj, camera, tile_size, pool=None):
-    """Every (tile, splat) pair whose alpha >= 1/255 ellipse reaches the rectangle spanned by the
-    tile's pixel centres, grouped by tile and front to back within each tile.
-
-    Runs on depth-ordered chunks of splats in parallel; each chunk's entries are sorted by tile,
-    then the chunks' per-tile runs are laid out one after the other, which keeps depth order.
-    """
-    pool = pool or _pool(1)
-    ts = tile_size
-    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
-    n_tiles = tiles_x * tiles_y
-    n = len(proj)
-    bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
-    parts = pool.map(lambda k: _bin_chunk(proj, bounds[k], bounds[k + 1], ts, tiles_x, n_tiles),
-                     list(range(len(bounds) - 1)))
-    counts = np.stack([c for _, c in parts])                      # (chunks, tiles)
-    offsets = np.zeros(n_tiles + 1, dtype=np.int64)
-    np.cumsum(counts.sum(axis=0), out=offsets[1:])
-    starts = offsets[:-1] + np.cumsum(counts, axis=0) - counts     # where each chunk's run begins
-    entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
-
-    def place(k):
-        splat, count = parts[k]
-        local = np.cumsum(count) - count
-        entry_splat[np.repeat(starts[k] - local, count) + np.arange(len(splat))] = splat
-
-    pool.map(place, list(range(len(parts))))
-    return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
-
-
-def _bin_chunk(proj, lo, hi, ts, tiles_x, n_tiles):
-    """Entries of splats lo..hi-1 sorted by tile (stable): (splat ids, entries per tile)."""
-    box = proj.bbox[lo:hi]
-    row0 = box[:, 1] // ts
-    rows = box[:, 3] // ts - row0 + 1
-    splat = np.repeat(np.arange(lo, hi, dtype=np.int32), rows)
-    row = np.repeat(row0, rows) + ramp(rows)
-    col0, col1 = np.repeat(box[:, 0] // ts, rows), np.repeat(box[:, 2] // ts, rows)
-    # A box one tile high or wide meets every tile it covers; only larger ones need the ellipse.
-    big = np.flatnonzero((rows > 1) & (box[:, 2] // ts > box[:, 0] // ts))
-    if len(big):
-        fit = np.repeat(np.cumsum(rows)[big] - rows[big], rows[big]) + ramp(rows[big])
-        col0[fit], col1[fit] = _row_extent(proj, lo + big, rows[big], row[fit], ts)
-    cols = np.maximum(col1 - col0 + 1, 0)
-    splat = np.repeat(splat, cols)
-    tile = np.repeat(row * tiles_x + col0, cols) + ramp(cols)
-    order = _stable_argsort(tile, n_tiles)
-    return splat[order], np.bincount(tile, minlength=n_tiles)
-
-
-def _row_extent(proj, ids, rows, row, ts):
-    """First and last tile column that the splat's ellipse reaches within a tile row (its band of
-    pixel-centre rows, cut to the splat's box). The right edge of the ellipse, x(dy), is concave in
-    dy with its maximum at the ellipse's rightmost point, so over a band of dy it peaks there or at
-    the band end nearest to it; the left edge mirrors this. `ids` are splats spanning `rows` tile
-    rows each; `row` lists those rows, splat by splat."""
-    u, v, a, b, c = proj.mean_conic[ids].T
-    r2 = proj.r2[ids]
-    det = a * c - b * b
-    sxx = c / det                                           # covariance entries
-    half_x = np.sqrt(r2 * sxx)
-    peak = np.sqrt(r2 / sxx) * (-b / det)                  # dy of the rightmost point (leftmost: -peak)
-    box = proj.bbox[ids]
-    u, v, a, b, r2, det, half_x, peak = (np.repeat(x, rows) for x in (u, v, a, b, r2, det, half_x, peak))
-    box = np.repeat(box, rows, axis=0)
-    lo = np.maximum(row * ts, box[:, 1]) + 0.5 - v
-    hi = np.minimum(row * ts + ts - 1, box[:, 3]) + 0.5 - v
-
-    def edge(dy, sign):
-        return (-b * dy + sign * np.sqrt(np.maximum(a * r2 - det * dy * dy, 0.0))) / a
-
-    right = np.where((peak >= lo) & (peak <= hi), half_x, edge(np.minimum(np.maximum(peak, lo), hi), 1.0))
-    left = np.where((-peak >= lo) & (-peak <= hi), -half_x, edge(np.minimum(np.maximum(-peak, lo), hi), -1.0))
-    x0 = np.maximum(np.ceil(u + left - 0.5), box[:, 0]).astype(np.int64)
-    x1 = np.minimum(np.floor(u + right - 0.5), box[:, 2]).astype(np.int64)
-    return x0 // ts, np.where(x1 >= x0, x1 // ts, x0 // ts - 1)
-
-
-def _stable_argsort(keys, n_keys):
-    """Stable argsort of non-negative integers below n_keys <= 2^32: NumPy radix-sorts 16-bit
-    keys, and two 16-bit passes (low half, then high half) sort larger ones."""
-    if n_keys <= 1 << 16:
-        return np.argsort(keys.astype(np.uint16), kind="stable")
-    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
-    high = np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")
-    return low[high]
-
-
 # the compiled path -----------------------------------------------------------------------------------
 
 class Shapes:
@@ -629,7 +321,7 @@ class Shapes:
     def __init__(self, cloud, threads=None):
         self.sources = tuple(getattr(cloud, name) for name in self.FIELDS)
         kernels = jit.load(KERNELS, check=_check_kernels)
-        with _pool(threads) as pool:
+        with Pool(threads) as pool:
             self.values = None if kernels is None else _shape_values(kernels, cloud, pool)
 
     def fits(self, cloud):
@@ -642,8 +334,8 @@ def _shape_values(kernels, cloud, pool):
     n = len(cloud)
     fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32) for name in Shapes.FIELDS]
     values = np.empty((n, 10))
-    pool.map(lambda lo: kernels.shape_range(*fields, lo, min(lo + _PROJECT_CHUNK, n), values, 0),
-             list(range(0, n, _PROJECT_CHUNK)))
+    pool.map(lambda lo: kernels.shape_range(*fields, lo, min(lo + PROJECT_CHUNK, n), values, 0),
+             list(range(0, n, PROJECT_CHUNK)))
     return values
 
 
@@ -655,7 +347,7 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32)
               for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")]
     fields.append(np.zeros((0, 10)) if shapes is None or shapes.values is None else shapes.values)
-    records = _records(n)
+    records = new_records(n)
     index, depth = np.empty(n, np.int64), np.empty(n, np.float32)
     r2, bbox = np.empty(n), np.empty((n, 4), np.int32)
     w, h = camera.width, camera.height
@@ -668,19 +360,19 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     rec32 = records.view(np.float32)
 
     def run(lo):
-        hi = min(lo + _PROJECT_CHUNK, n)
+        hi = min(lo + PROJECT_CHUNK, n)
         return lo, *kernels.project_range(*fields, lo, hi, camera.center, rotation, intrinsics,
                                           np.array([w, h]), clip, camera.is_orthographic,
                                           mode == "antialiased", max_r2, records, rec32, index, depth, r2, bbox)
 
-    parts = pool.map(run, list(range(0, n, _PROJECT_CHUNK)))
+    parts = pool.map(run, list(range(0, n, PROJECT_CHUNK)))
     rows = np.concatenate([np.arange(lo, lo + count) for lo, count, _ in parts] or [np.zeros(0, np.int64)])
     # float32 depth keys, ties in index order (see project())
     by_depth = np.empty_like(rows)
     kernels.stable_order(depth.view(np.uint32), rows, by_depth)
     rows = by_depth
     m = len(rows)
-    proj = Projected(np.empty(m, np.int64), _records(m), np.empty(m), np.empty((m, 4), np.int32),
+    proj = Projected(np.empty(m, np.int64), new_records(m), np.empty(m), np.empty((m, 4), np.int32),
                      sum(skipped for _, _, skipped in parts))
     bounds = np.linspace(0, m, pool.threads + 1).astype(np.int64)
     pool.map(lambda k: kernels.gather(rows, bounds[k], bounds[k + 1], records, bbox, r2, index, proj.records,
@@ -724,7 +416,7 @@ def _by_first_tile(proj, camera, tile_size):
     while -(-camera.width // block) * -(-camera.height // block) > 1 << 16:
         block *= 2
     blocks_x = -(-camera.width // block)
-    order = _stable_argsort(proj.bbox[:, 1] // block * blocks_x + proj.bbox[:, 0] // block, 1 << 16)
+    order = stable_argsort(proj.bbox[:, 1] // block * blocks_x + proj.bbox[:, 0] // block, 1 << 16)
     number = np.empty(len(order), np.int32)
     number[order] = np.arange(len(order), dtype=np.int32)
     return order, number
@@ -773,7 +465,7 @@ class _CompiledCompositor:
         """The records and boxes in the order the entries number them."""
         proj, n = self.proj, len(self.proj)
         if self.spare is None:
-            records, bbox = _records(n), np.empty((n, 4), np.int32)
+            records, bbox = new_records(n), np.empty((n, 4), np.int32)
         else:
             records, bbox = self.spare[0][:n], self.spare[1][:n]
         empty, empty_index = np.zeros(0), np.zeros(0, np.int64)         # r2 and index stay behind
@@ -822,204 +514,6 @@ class _CompiledCompositor:
         return out
 
 
-# compositing ----------------------------------------------------------------------------------
-
-class _Compositor:
-    """Front-to-back compositing of every tile, in waves of at most `wave` entries per tile."""
-
-    def __init__(self, proj, bins, camera, dtype, wave, t_min, pool, want_counts=False, want_weights=False,
-                 crossing=None, gather=None):
-        self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
-        self.crossing = crossing
-        self.width, self.height = camera.width, camera.height
-        self.t_min = dtype(t_min)
-        ts = bins.tile_size
-        self.pixels = ts * ts
-        e = np.arange(ts) + 0.5 - ts / 2             # pixel-centre offsets from the tile centre
-        ey, ex = np.repeat(e, ts), np.tile(e, ts)    # row-major pixels within a tile
-        self.basis = np.stack([np.ones_like(ex), ex, ey, ex * ex, ex * ey, ey * ey]).astype(dtype)
-        n_tiles = bins.n_tiles
-        self.acc = np.zeros((n_tiles, self.pixels, 5), dtype=dtype)     # sum w * (r, g, b, z, 1)
-        self.trans = self._inside_image(bins, camera).astype(dtype)     # T, or 0 once a pixel stopped
-        self.counts = np.zeros((n_tiles, self.pixels), dtype=np.int32) if want_counts else None
-        self.order, self.records, self.entry_splat = self._by_locality(proj, bins)
-        # largest weight of each (renumbered) splat; the last slot takes the padding entries
-        self.best = np.zeros(len(proj) + 1, np.float32) if want_weights else None
-        self.best_lock = threading.Lock()
-        # the gather image in tile layout, and each (renumbered) splat's sum of weight x image
-        self.gather_tiles = None if gather is None else _tiled(gather, bins, 0.0).astype(dtype)
-        self.sums = None if gather is None else np.zeros((len(proj) + 1, gather.shape[2]))
-        self.evaluated = 0
-
-    @staticmethod
-    def _inside_image(bins, camera):
-        """(tiles, pixels) bool: which pixels of the edge tiles lie inside the image. Those beyond
-        start with T = 0, so they take no weight and never keep a tile alive."""
-        ts, k = bins.tile_size, np.arange(bins.tile_size ** 2)
-        tiles = np.arange(bins.n_tiles)[:, None]
-        return (((tiles % bins.tiles_x) * ts + k % ts < camera.width)
-                & ((tiles // bins.tiles_x) * ts + k // ts < camera.height))
-
-    @staticmethod
-    def _by_locality(proj, bins):
-        """Records renumbered by the tile of their box's top-left corner, so that the entries of
-        neighbouring tiles read neighbouring records (cache hits) instead of depth-scattered ones.
-        Returns the order (new number -> old), the records and the entries renumbered."""
-        n = len(proj)
-        first_tile = (proj.bbox[:, 1] // bins.tile_size) * bins.tiles_x + proj.bbox[:, 0] // bins.tile_size
-        order = _stable_argsort(first_tile, bins.n_tiles)
-        renumber = np.empty(n + 1, dtype=np.int32)
-        renumber[order] = np.arange(n, dtype=np.int32)
-        renumber[n] = n
-        records = proj.records.take(np.append(order, n), axis=0)
-        return order, records, renumber.take(bins.entry_splat)
-
-    def max_weight(self, n_cloud):
-        """(n_cloud,) float32: the largest weight of every input splat, 0 for those not projected."""
-        out = np.zeros(n_cloud, np.float32)
-        out[self.proj.index[self.order]] = self.best[:-1]
-        return out
-
-    def gathered(self, n_cloud):
-        """(n_cloud, C) float64: the gather image's weighted sum of every input splat."""
-        out = np.zeros((n_cloud, self.sums.shape[1]))
-        out[self.proj.index[self.order]] = self.sums[:-1]
-        return out
-
-    def images(self, progress=None):
-        """Composite every tile; returns (colour sums (H,W,3), weights, depth sums, counts or None)
-        in image layout."""
-        acc, counts = self.run(progress)
-        acc = self._image(acc)              # (H, W, 5): the one copy out of tile order
-        return acc[..., :3], acc[..., 4], acc[..., 3], None if counts is None else self._image(counts).copy()
-
-    def _image(self, a):
-        """(tiles, pixels, ...) -> (H, W, ...)."""
-        bins, ts = self.bins, self.bins.tile_size
-        a = a.reshape(bins.tiles_y, bins.tiles_x, ts, ts, *a.shape[2:]).swapaxes(1, 2)
-        return a.reshape(bins.tiles_y * ts, bins.tiles_x * ts, *a.shape[4:])[:self.height, :self.width]
-
-    def layer_transmittance(self, weight):
-        """(H, W) T where each pixel reached the layer (see _LayerCrossing.transmittance)."""
-        return self.crossing.transmittance(self._image(self.crossing.t), self._image(self.crossing.pending),
-                                           np.clip(weight, 0.0, 1.0))
-
-    def run(self, progress=None):
-        bins = self.bins
-        total = np.diff(bins.offsets)
-        cursor = self._cursor = np.zeros(bins.n_tiles, dtype=np.int64)
-        alive = np.flatnonzero(total > 0)
-        done_tiles = bins.n_tiles - len(alive)
-        while len(alive):
-            take = np.minimum(total[alive] - cursor[alive], self.wave)
-            batches = self._batches(alive, take)
-            self.evaluated += sum(len(t) * d for t, _, d in batches) * self.pixels
-            finished = self.pool.map(lambda b: self._composite(*b), batches)
-            cursor[alive] += take
-            stopped = np.zeros(bins.n_tiles, bool)
-            for tiles, flags in finished:
-                stopped[tiles] = flags
-            still = (cursor[alive] < total[alive]) & ~stopped[alive]
-            done_tiles += int((~still).sum())
-            alive = alive[still]
-            if progress is not None:
-                progress(done_tiles, bins.n_tiles, "render")
-        return self.acc, self.counts
-
-    def _batches(self, alive, take):
-        """Split the alive tiles into batches of similar entry counts, ~_BATCH_EVALS evaluations each."""
-        order = np.argsort(-take, kind="stable")
-        tiles, take = alive[order], take[order]
-        out, i = [], 0
-        while i < len(tiles):
-            depth = int(take[i])
-            g = max(1, _BATCH_EVALS // (depth * self.pixels))
-            out.append((tiles[i:i + g], take[i:i + g], depth))
-            i += g
-        return out
-
-    def _composite(self, tiles, take, depth):
-        """Composite the next `take` entries of each tile (padded to `depth`); returns the tiles
-        and whether each has stopped at every pixel."""
-        bins, dtype = self.bins, self.dtype
-        g, p = len(tiles), self.pixels
-        slot = np.arange(depth)[:, None]
-        pos = (bins.offsets[tiles] + self._cursor[tiles])[None, :] + slot
-        splat = np.where(slot < take[None, :], self.entry_splat.take(pos, mode="clip"),
-                         len(self.proj)).ravel()                     # (depth * g), padding -> no-op row
-        rec = self.records.take(splat, axis=0)                       # one cache line per entry
-        log_o = _floats(rec)[:, 0]
-        power = self._exponent(rec, tiles)                           # (depth * g, p) log alpha
-        bright = np.flatnonzero(log_o > math.log(ALPHA_MAX))
-        if len(bright):                                              # clamp alpha at 0.99
-            power[bright] = np.minimum(power[bright], dtype(math.log(ALPHA_MAX)))
-        visible = power >= dtype(math.log(ALPHA_MIN))   # (multiplying by a mask beats masked stores)
-        alpha = np.exp(power, out=power)
-        alpha *= visible
-        alpha = alpha.reshape(depth, g, p)
-
-        trans = np.empty((depth + 1, g, p), dtype=dtype)             # T before each entry
-        trans[0] = self.trans[tiles]
-        keep = np.subtract(1, alpha, dtype=dtype)
-        first = None if self.crossing is None else self.crossing.enter(tiles, _floats(rec)[:, 4], alpha, keep)
-        for k in range(depth):
-            np.multiply(trans[k], keep[k], out=trans[k + 1])
-        if first is not None:
-            self.crossing.record(tiles, first, trans, self.t_min)
-        weight = np.multiply(trans[:-1], alpha, out=keep)            # w = T alpha
-        crossed = trans[-1] < self.t_min
-        if (crossed & (trans[0] >= self.t_min)).any():               # a pixel stops in this wave
-            weight *= trans[1:] >= self.t_min
-        feat = _floats(rec)[:, 1:].astype(dtype, copy=False).reshape(depth, g, 5)
-        self.acc[tiles] += np.matmul(weight.transpose(1, 2, 0), feat.transpose(1, 0, 2))
-        if self.counts is not None:
-            self.counts[tiles] += np.count_nonzero(weight, axis=0).astype(np.int32)
-        if self.best is not None:
-            self._keep_best(splat, weight)
-        if self.sums is not None:
-            self._gather(tiles, splat, weight)
-        last = trans[-1]
-        last *= ~crossed
-        self.trans[tiles] = last
-        return tiles, ~last.any(axis=1)
-
-    def _keep_best(self, splat, weight):
-        """Fold each entry's largest weight over its pixels into the per-splat maximum."""
-        rows = weight.reshape(len(splat), -1)         # slot-major, like `splat`
-        peak = rows[np.arange(len(rows)), rows.argmax(axis=1)]    # (argmax is ~3x faster than max)
-        hit = np.flatnonzero(peak)
-        with self.best_lock:                         # batches run in parallel threads
-            np.maximum.at(self.best, splat[hit], peak[hit].astype(np.float32))
-
-    def _gather(self, tiles, splat, weight):
-        """Add each entry's sum over its tile's pixels of weight x gather image to its splat."""
-        per_entry = np.matmul(weight.transpose(1, 0, 2), self.gather_tiles[tiles])   # (g, depth, C)
-        per_entry = per_entry.transpose(1, 0, 2).reshape(len(splat), -1)            # slot-major, like splat
-        with self.best_lock:
-            np.add.at(self.sums, splat, per_entry.astype(np.float64))
-
-    def _exponent(self, rec, tiles):
-        """log(o) - q/2 at every pixel of every entry (records `rec`, slot-major over `tiles`).
-        q is a quadratic in the pixel's offset e from the tile centre, q = q0 + 2 g.e + e^T Q e,
-        expanded in float64 around the tile centre (so large pixel coordinates never meet in
-        float32) and evaluated as coefficients @ basis."""
-        ts, g = self.bins.tile_size, len(tiles)
-        u, v, a, b, c = rec[:, :5].T
-        reps = len(rec) // g
-        dx = np.tile((tiles % self.bins.tiles_x) * ts + ts / 2, reps) - u
-        dy = np.tile((tiles // self.bins.tiles_x) * ts + ts / 2, reps) - v
-        gx, gy = a * dx + b * dy, b * dx + c * dy
-        coef = np.empty((len(rec), 6), dtype=self.dtype)
-        coef[:, 0] = _floats(rec)[:, 0] - 0.5 * (gx * dx + gy * dy)
-        coef[:, 1], coef[:, 2] = -gx, -gy
-        coef[:, 3], coef[:, 4], coef[:, 5] = -0.5 * a, -b, -0.5 * c
-        out = np.empty((len(rec), self.pixels), dtype=self.dtype)
-        step = max(1, _BLAS_SINGLE_THREAD_MNK // (6 * self.pixels) - 1)
-        for i in range(0, len(rec), step):
-            np.matmul(coef[i:i + step], self.basis, out=out[i:i + step])
-        return out
-
-
 def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud, layer=None, layer_t=None,
             kernels=None, pool=None):
     """Image sums (colour and depth weighted by T alpha, and the weight) -> the result; with a layer,
@@ -1055,69 +549,3 @@ def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud,
         stats=stats,
         layer_transmittance=layer_t,
     )
-
-
-def _tiled(a, bins, fill):
-    """(H, W, ...) image -> (tiles, pixels, ...), pixels beyond the image edge set to `fill`."""
-    ts, rest = bins.tile_size, a.shape[2:]
-    padded = np.full((bins.tiles_y * ts, bins.tiles_x * ts, *rest), fill, dtype=np.float64)
-    padded[:a.shape[0], :a.shape[1]] = a
-    return padded.reshape(bins.tiles_y, ts, bins.tiles_x, ts, *rest).swapaxes(1, 2).reshape(
-        bins.n_tiles, ts * ts, *rest)
-
-
-class _LayerCrossing:
-    """Where each pixel meets the Layer, in tile layout (tiles, pixels): the layer's depth and
-    1 - alpha, whether the pixel still waits for it, and the T it was reached with."""
-
-    def __init__(self, layer, bins, dtype):
-        self.layer = layer
-        self.depth = _tiled(layer.depth, bins, np.inf).astype(dtype)
-        self.keep = _tiled(1.0 - layer.alpha, bins, 1.0).astype(dtype)
-        self.pending = np.ones(self.depth.shape, bool)
-        self.t = np.zeros(self.depth.shape, dtype)
-        # the nearest layer depth of each tile: a wave whose splats all lie in front skips the test
-        self.nearest = self.depth.min(axis=1)
-
-    def enter(self, tiles, z, alpha, keep):
-        """Put the layer into a wave: `z` (depth * g,) are the entries' camera depths, slot-major;
-        alpha and keep (depth, g, p) are scaled by the layer's 1 - alpha at the entry where each
-        waiting pixel crosses it: the first entry not in front of it (entries are sorted by z; the
-        padding, z = 0, counts as behind everything). Returns where that happens for record(), or
-        None if no pixel crosses in this wave. Only tiles and entries that can cross are looked at."""
-        depth, g = alpha.shape[:2]
-        z = z.reshape(depth, g)
-        z = np.where(z > 0, z, np.inf)
-        nearest = self.nearest[tiles]                    # inf: no surface left to cross (finish() adds the rest)
-        reach = (z >= nearest) & np.isfinite(nearest)    # (depth, g): at or past the tile's nearest waiting pixel
-        cross = np.flatnonzero(reach.any(axis=0))
-        if not len(cross):
-            return None
-        k0 = int(reach[:, cross].any(axis=1).argmax())   # every entry before k0 is in front of every waiting pixel
-        sel = tiles[cross]
-        slot = k0 + (z[k0:, cross, None] < self.depth[sel][None]).sum(axis=0, dtype=np.int32)
-        hit_g, hit_p = np.nonzero(self.pending[sel] & (slot < depth))
-        if not len(hit_g):
-            return None
-        at_slot, at_tile = slot[hit_g, hit_p], cross[hit_g]
-        factor = self.keep[sel[hit_g], hit_p]
-        alpha[at_slot, at_tile, hit_p] *= factor
-        keep[at_slot, at_tile, hit_p] *= factor
-        return at_slot, at_tile, hit_p, sel[hit_g]
-
-    def record(self, tiles, crossing, trans, t_min):
-        """Keep T where each pixel reached the layer. A pixel that had already stopped (T below
-        t_min) keeps waiting: it gives the layer the T it stopped with (see transmittance)."""
-        at_slot, at_tile, pixel, tile = crossing
-        t = trans[at_slot, at_tile, pixel]
-        ok = t >= t_min
-        self.t[tile[ok], pixel[ok]] = t[ok]
-        self.pending[tile[ok], pixel[ok]] = False
-        changed = np.unique(tile[ok])
-        self.nearest[changed] = np.where(self.pending[changed], self.depth[changed], np.inf).min(axis=1)
-
-    @staticmethod
-    def transmittance(t, pending, splat_alpha):
-        """(H, W) T at the layer: where the pixel never crossed it (no splat behind, or stopped
-        first), what the splats left."""
-        return np.where(pending, 1.0 - splat_alpha, t).astype(np.float32)

@@ -1,0 +1,293 @@
+"""The NumPy path's first two stages (core/render.py's notes): splats culled and projected to
+pixel space, one 64-byte record each, sorted front to back; and those records binned into square
+tiles, each tile's entries front to back. The projection's covariance and clamp (screen_covariance,
+clamped_ratios, screen_rows) are the backward pass's too (core/render_grad.py)."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import geometry, sh as shmod
+from .parallel import Pool
+from .render_constants import AA_MIN_RATIO, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS
+from .spatial import ramp
+from .splats import sigmoid
+
+
+@dataclass
+class Projected:
+    """Visible splats in front-to-back order (ties by index), in pixel space.
+
+    Each splat is one 64-byte record (a cache line, so the compositor fetches it with one read):
+    float64 u, v (pixel-space mean) and conic a, b, c (inverse of Sigma2D + 0.3 I), then float32
+    log opacity, r, g, b, camera z and 1. The last record is padding whose alpha is exactly 0.
+    """
+
+    index: np.ndarray       # (n,) index into the input cloud
+    records: np.ndarray     # (n+1, 8) float64, laid out as above
+    r2: np.ndarray          # (n,) squared Mahalanobis extent: alpha >= 1/255 inside
+    bbox: np.ndarray        # (n, 4) int64 inclusive pixel box x0, y0, x1, y1 (clipped to the image)
+    skipped_nonfinite: int
+
+    def __len__(self):
+        return len(self.index)
+
+    @property
+    def mean_conic(self):
+        """(n+1, 5) float64 view: u, v, conic a, b, c."""
+        return self.records[:, :5]
+
+
+
+def new_records(n):
+    """Room for n records plus the padding record, each record on one cache line (64-byte aligned:
+    NumPy's large arrays start 16 bytes past a page, which would put every record across two)."""
+    raw = np.zeros((n + 2) * 64, np.uint8)
+    start = -raw.ctypes.data % 64
+    rec = raw[start:start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
+    record_floats(rec[n:])[:, 0] = -1e30          # padding: exp(-1e30) = 0
+    return rec
+
+
+def record_floats(records):
+    """The float32 part of records: (m, 6) log opacity, r, g, b, camera z, 1."""
+    return records[:, 5:].view(np.float32)
+
+
+# projection -----------------------------------------------------------------------------------
+
+PROJECT_CHUNK = 1 << 16    # splats per projection task
+
+
+def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
+    """Cull and project every splat: pixel-space means, conics, extents and view-dependent colours
+    of the visible ones, sorted front to back (equal depths keep input order)."""
+    pool = pool or Pool(1)
+    chunks = [slice(i, i + PROJECT_CHUNK) for i in range(0, len(cloud), PROJECT_CHUNK)] or [slice(0, 0)]
+    parts = pool.map(lambda sl: _project_chunk(cloud, sl, camera, mode, max_sigma), chunks)
+    skipped = sum(p.pop("skipped") for p in parts)
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
+    # float32 precision are ties, kept in index order (chunks are in index order), so round-off in
+    # a far-from-origin camera pose cannot reorder them.
+    # (Positive float32 values sort like their bit patterns: two 16-bit radix passes.)
+    order = stable_argsort(cols["z"].astype(np.float32).view(np.uint32), 1 << 32)
+    records = new_records(len(order))
+    np.take(cols["records"], order, axis=0, out=records[:-1])
+    return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
+
+
+def _project_chunk(cloud, sl, camera, mode, max_sigma):
+    """Projection of cloud[sl], unsorted, as columns (float64 unless noted)."""
+    idx = np.arange(len(cloud))[sl]
+    fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
+    every = fields + [cloud.sh[sl]]
+    if not all(np.isfinite(f).all() for f in every):      # rare: find the bad splats
+        good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
+        idx, fields = idx[good], [f[good] for f in fields]
+    skipped = len(every[-1]) - len(idx)
+    positions, rotations, log_scales, logits = fields
+
+    rel = positions.astype(np.float64) - camera.center      # world offsets from the eye
+    cam = _rotate(rel, camera.rotation)
+    z = cam[:, 2]
+    opacity = sigmoid(logits)
+    keep = np.flatnonzero((z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
+    if len(keep) < len(z):
+        idx, rel, cam, z, opacity = idx[keep], rel[keep], cam[keep], z[keep], opacity[keep]
+        rotations, log_scales = rotations[keep], log_scales[keep]
+
+    u, v, m0, m1 = screen_rows(cam, camera)
+    rs = geometry.quaternions_to_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
+    with np.errstate(over="ignore", invalid="ignore"):
+        _, _, a, b, c, det0 = screen_covariance(m0, m1, rs)
+        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
+        if mode == "antialiased":
+            opacity = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, det0 / det))
+        r2 = 2.0 * np.log(np.maximum(255.0 * opacity, 1e-300))
+        if max_sigma is not None:
+            r2 = np.minimum(r2, float(max_sigma) ** 2)
+        a, c = a + LOW_PASS, c + LOW_PASS
+        half_x, half_y = np.sqrt(r2 * a), np.sqrt(r2 * c)
+    finite = np.isfinite(det) & np.isfinite(u) & np.isfinite(v)
+    skipped += int((~finite).sum())
+    box = [np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
+           np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
+           np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
+           np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1)]
+    sel = np.flatnonzero(finite & (r2 > 0) & (box[0] <= box[2]) & (box[1] <= box[3]))
+
+    if camera.is_orthographic:    # parallel rays: every splat is seen along the camera axis
+        directions = np.broadcast_to(camera.forward, (len(sel), 3))
+    else:
+        directions = rel[sel]
+    rgb = shmod.colors(cloud.sh[idx[sel]], directions) if len(sel) else np.zeros((0, 3))
+    d = det[sel]
+    records = new_records(len(sel))[:-1]
+    records[:, 0], records[:, 1] = u[sel], v[sel]
+    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d   # the conic
+    floats = record_floats(records)
+    floats[:, 0], floats[:, 1:4], floats[:, 4], floats[:, 5] = np.log(opacity[sel]), rgb, z[sel], 1.0
+    bbox = np.empty((len(sel), 4), dtype=np.int64)
+    for k, x in enumerate(box):
+        bbox[:, k] = x[sel]
+    return {"index": idx[sel], "z": z[sel], "records": records, "r2": r2[sel], "bbox": bbox, "skipped": skipped}
+
+
+def _rotate(points, rotation):
+    """points @ rotation.T, written out: a BLAS product this thin would start BLAS's own threads."""
+    out = np.empty_like(points)
+    for k in range(3):
+        out[:, k] = points[:, 0] * rotation[k, 0] + points[:, 1] * rotation[k, 1] + points[:, 2] * rotation[k, 2]
+    return out
+
+
+def _dot3(p, q):
+    return p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1] + p[:, 2] * q[:, 2]
+
+
+def _cross3(p, q):
+    return np.stack([p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
+                     p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
+                     p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]], axis=1)
+
+
+def screen_covariance(m0, m1, rs):
+    """Sigma2D = V V^T with V = J W R S (2x3, rows m0 rs and m1 rs): V's rows, Sigma2D's entries a, b,
+    c, and its determinant. V V^T is exactly symmetric and PSD, and its determinant is the squared
+    cross product of V's rows, free of the cancellation in a c - b^2 for needles."""
+    v0 = np.einsum("nj,njk->nk", m0, rs)
+    v1 = np.einsum("nj,njk->nk", m1, rs)
+    return v0, v1, _dot3(v0, v0), _dot3(v0, v1), _dot3(v1, v1), _dot3(*(_cross3(v0, v1),) * 2)
+
+
+def clamped_ratios(tx, ty, camera):
+    """x/z and y/z clamped where the Jacobian is taken: the reference clamps them to 1.3 x tan(half
+    fov) around the centre; with an off-centre principal point the same 30% margin is kept beyond
+    each image edge."""
+    mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
+    return (np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx),
+            np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy))
+
+
+def screen_rows(cam, camera):
+    """Pixel-space means and the rows of J W (the projection's Jacobian at each camera-space point
+    times the world-to-camera rotation), each (n,3)."""
+    x, y, z = cam[:, 0], cam[:, 1], cam[:, 2]
+    rot = camera.rotation
+    if camera.is_orthographic:
+        u, v = camera.fx * x + camera.cx, camera.fy * y + camera.cy
+        return u, v, np.broadcast_to(camera.fx * rot[0], cam.shape), np.broadcast_to(camera.fy * rot[1], cam.shape)
+    tx, ty = x / z, y / z
+    u, v = camera.fx * tx + camera.cx, camera.fy * ty + camera.cy
+    tx, ty = clamped_ratios(tx, ty, camera)
+    # J = [[fx/z, 0, -fx tx/z], [0, fy/z, -fy ty/z]]; each row times W
+    fz, gz = camera.fx / z, camera.fy / z
+    m0, m1 = np.empty_like(cam), np.empty_like(cam)
+    for k in range(3):
+        m0[:, k] = fz * (rot[0, k] - tx * rot[2, k])
+        m1[:, k] = gz * (rot[1, k] - ty * rot[2, k])
+    return u, v, m0, m1
+
+
+# tile binning ---------------------------------------------------------------------------------
+
+@dataclass
+class Bins:
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    entry_splat: np.ndarray     # (E,) splat per entry, grouped by tile, front to back within a tile
+    offsets: np.ndarray         # (tiles+1,) entries of tile t are entry_splat[offsets[t]:offsets[t+1]]
+
+    @property
+    def n_tiles(self):
+        return self.tiles_x * self.tiles_y
+
+
+def bin_tiles(proj, camera, tile_size, pool=None):
+    """Every (tile, splat) pair whose alpha >= 1/255 ellipse reaches the rectangle spanned by the
+    tile's pixel centres, grouped by tile and front to back within each tile.
+
+    Runs on depth-ordered chunks of splats in parallel; each chunk's entries are sorted by tile,
+    then the chunks' per-tile runs are laid out one after the other, which keeps depth order.
+    """
+    pool = pool or Pool(1)
+    ts = tile_size
+    tiles_x, tiles_y = -(-camera.width // ts), -(-camera.height // ts)
+    n_tiles = tiles_x * tiles_y
+    n = len(proj)
+    bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
+    parts = pool.map(lambda k: _bin_chunk(proj, bounds[k], bounds[k + 1], ts, tiles_x, n_tiles),
+                     list(range(len(bounds) - 1)))
+    counts = np.stack([c for _, c in parts])                      # (chunks, tiles)
+    offsets = np.zeros(n_tiles + 1, dtype=np.int64)
+    np.cumsum(counts.sum(axis=0), out=offsets[1:])
+    starts = offsets[:-1] + np.cumsum(counts, axis=0) - counts     # where each chunk's run begins
+    entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
+
+    def place(k):
+        splat, count = parts[k]
+        local = np.cumsum(count) - count
+        entry_splat[np.repeat(starts[k] - local, count) + np.arange(len(splat))] = splat
+
+    pool.map(place, list(range(len(parts))))
+    return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
+
+
+def _bin_chunk(proj, lo, hi, ts, tiles_x, n_tiles):
+    """Entries of splats lo..hi-1 sorted by tile (stable): (splat ids, entries per tile)."""
+    box = proj.bbox[lo:hi]
+    row0 = box[:, 1] // ts
+    rows = box[:, 3] // ts - row0 + 1
+    splat = np.repeat(np.arange(lo, hi, dtype=np.int32), rows)
+    row = np.repeat(row0, rows) + ramp(rows)
+    col0, col1 = np.repeat(box[:, 0] // ts, rows), np.repeat(box[:, 2] // ts, rows)
+    # A box one tile high or wide meets every tile it covers; only larger ones need the ellipse.
+    big = np.flatnonzero((rows > 1) & (box[:, 2] // ts > box[:, 0] // ts))
+    if len(big):
+        fit = np.repeat(np.cumsum(rows)[big] - rows[big], rows[big]) + ramp(rows[big])
+        col0[fit], col1[fit] = _row_extent(proj, lo + big, rows[big], row[fit], ts)
+    cols = np.maximum(col1 - col0 + 1, 0)
+    splat = np.repeat(splat, cols)
+    tile = np.repeat(row * tiles_x + col0, cols) + ramp(cols)
+    order = stable_argsort(tile, n_tiles)
+    return splat[order], np.bincount(tile, minlength=n_tiles)
+
+
+def _row_extent(proj, ids, rows, row, ts):
+    """First and last tile column that the splat's ellipse reaches within a tile row (its band of
+    pixel-centre rows, cut to the splat's box). The right edge of the ellipse, x(dy), is concave in
+    dy with its maximum at the ellipse's rightmost point, so over a band of dy it peaks there or at
+    the band end nearest to it; the left edge mirrors this. `ids` are splats spanning `rows` tile
+    rows each; `row` lists those rows, splat by splat."""
+    u, v, a, b, c = proj.mean_conic[ids].T
+    r2 = proj.r2[ids]
+    det = a * c - b * b
+    sxx = c / det                                           # covariance entries
+    half_x = np.sqrt(r2 * sxx)
+    peak = np.sqrt(r2 / sxx) * (-b / det)                  # dy of the rightmost point (leftmost: -peak)
+    box = proj.bbox[ids]
+    u, v, a, b, r2, det, half_x, peak = (np.repeat(x, rows) for x in (u, v, a, b, r2, det, half_x, peak))
+    box = np.repeat(box, rows, axis=0)
+    lo = np.maximum(row * ts, box[:, 1]) + 0.5 - v
+    hi = np.minimum(row * ts + ts - 1, box[:, 3]) + 0.5 - v
+
+    def edge(dy, sign):
+        return (-b * dy + sign * np.sqrt(np.maximum(a * r2 - det * dy * dy, 0.0))) / a
+
+    right = np.where((peak >= lo) & (peak <= hi), half_x, edge(np.minimum(np.maximum(peak, lo), hi), 1.0))
+    left = np.where((-peak >= lo) & (-peak <= hi), -half_x, edge(np.minimum(np.maximum(-peak, lo), hi), -1.0))
+    x0 = np.maximum(np.ceil(u + left - 0.5), box[:, 0]).astype(np.int64)
+    x1 = np.minimum(np.floor(u + right - 0.5), box[:, 2]).astype(np.int64)
+    return x0 // ts, np.where(x1 >= x0, x1 // ts, x0 // ts - 1)
+
+
+def stable_argsort(keys, n_keys):
+    """Stable argsort of non-negative integers below n_keys <= 2^32: NumPy radix-sorts 16-bit
+    keys, and two 16-bit passes (low half, then high half) sort larger ones."""
+    if n_keys <= 1 << 16:
+        return np.argsort(keys.astype(np.uint16), kind="stable")
+    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    high = np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")
+    return low[high]
