@@ -333,7 +333,7 @@ def demo_rig_clouds(arm_splats=20_000, env_splats=20_000):
     with the arm bent as at frame 12 (Upper and Fore tipped towards the box, Hand twisted)."""
     from splatwright.core.mesh_to_splats import mesh_to_splats
     from splatwright.core.skinning import Binding, skin
-    from splatwright.splat_addon import demo_rig as rig
+    from splatwright.splat_addon.convert import demo_rig as rig
     arm = mesh_to_splats(*_triangles([rig.prism(r, s, rig.JOINTS[i], rig.JOINTS[i + 1])
                                       for i, (r, s, _, _) in enumerate(rig.LINKS)]), max_splats=arm_splats)
     half = rig.FLOOR_SIZE / 2
@@ -365,20 +365,20 @@ def demo_rig_rows(quick):
     """ellipsoid_contacts on the demo rig's splats at frame 12, CPU seconds per frame (all threads):
     today's compiled path and its NumPy path (what Blender's Python runs) against the code before."""
     from _before import module_before
-    from splatwright.core import collision
+    from splatwright.core.collision import contacts
     before = module_before("core/collision.py")
     arm, env = demo_rig_clouds()
     index, old_index = col.EnvironmentIndex(env), before.EnvironmentIndex(env)
     cpu = lambda fn: min(_cpu_seconds(fn) for _ in range(2 if quick else 3))
     old = cpu(lambda: before.ellipsoid_contacts(arm, old_index, k=3.0))
     rows = []
-    for label, kernel in (("compiled", collision._contact_kernel), ("NumPy", lambda: None)):
-        saved, collision._contact_kernel = collision._contact_kernel, kernel
+    for label, kernel in (("compiled", contacts._contact_kernel), ("NumPy", lambda: None)):
+        saved, contacts._contact_kernel = contacts._contact_kernel, kernel
         try:
             ours = cpu(lambda: col.ellipsoid_contacts(arm, index, k=3.0))
             pairs = len(col.ellipsoid_contacts(arm, index, k=3.0))
         finally:
-            collision._contact_kernel = saved
+            contacts._contact_kernel = saved
         rows.append(Row(TOPIC, f"demo rig contacts per frame, {label} (CPU s)", Timing(ours, 0.0, 1),
                         Timing(old, 0.0, 1),
                         extra={"pairs": pairs, "target": "4x faster than before", "baseline": "the code before"}))

@@ -483,8 +483,8 @@ def test_compiled_contacts_match_the_eigen_solution_including_flat_needle_and_po
     thin = idx < 650              # thinner than the pivot floor: both solutions are at its resolution
     np.testing.assert_allclose(got[~thin], mu[idx[~thin]], rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(got[thin], mu[idx[thin]], rtol=1e-6)
-    from splatwright.core import collision
-    monkeypatch.setattr(collision, "_contact_kernel", lambda: None)    # the NumPy path finds the same pairs
+    from splatwright.core.collision import contacts
+    monkeypatch.setattr(contacts, "_contact_kernel", lambda: None)    # the NumPy path finds the same pairs
     numpy_path = col.ellipsoid_contacts(robot, env, k=3.0)
     np.testing.assert_array_equal(numpy_path.robot, found.robot)
     np.testing.assert_array_equal(numpy_path.env, found.env)
@@ -499,11 +499,11 @@ def test_signed_distance_among_flat_splats_matches_every_ellipsoid(monkeypatch):
     rng = np.random.default_rng(34)
     points = rng.uniform([-0.4, -0.4, -0.3], [0.4, 0.4, 0.3], (150, 3))
     k = 3.0
-    brute = np.array([col._ellipsoid_signed_distance(p - env.means, env.covs, k).min() for p in points])
+    from splatwright.core.collision import distance
+    brute = np.array([distance._ellipsoid_signed_distance(p - env.means, env.covs, k).min() for p in points])
     for compiled in (True, False):
         if not compiled:
-            from splatwright.core import collision
-            monkeypatch.setattr(collision, "_bounds_kernel", lambda: None)
+            monkeypatch.setattr(distance, "_bounds_kernel", lambda: None)
         got = col.signed_distance(env_cloud, points, k=k, max_distance=0.25)
         np.testing.assert_allclose(got, np.minimum(brute, 0.25), rtol=1e-12, atol=1e-14)
 

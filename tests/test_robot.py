@@ -263,8 +263,9 @@ def test_everything_works_where_numba_cannot_be_imported(robot_dir):
         sys.meta_path.insert(0, NoNumba())
         import numpy as np
         from splatwright.core import collision as col, jit, kinematics
+        from splatwright.core.collision import contacts
         from splatwright.io.urdf import read_robot
-        assert kinematics._fk_kernel() is None and col._contact_kernel() is None
+        assert kinematics._fk_kernel() is None and contacts._contact_kernel() is None
         assert "numba is blocked" in jit.status("splatwright.core.kinematics:_fk_pass")
         urdf, share = {str(robot_dir / 'robot' / 'testbot.urdf')!r}, {str(robot_dir / 'share')!r}
         robot = read_robot(urdf, [share], max_splats=2000)
