@@ -1,18 +1,27 @@
 """The Blender side of Splatwright: splat objects, import/export operators, viewport display and
-the SPLATWRIGHT render engine. The only package that imports bpy."""
+the SPLATWRIGHT render engine. The only package that imports bpy.
+
+Floors, each importing only those below it: data/ (splat clouds as Blender data, the one reader;
+imports nothing else of the add-on), then the features (files/, edit/, convert/, rig/, render/),
+then ui/ and command.py. Features put their hooks into data/ when they register."""
 
 import bpy
 
-from . import bundled
+from .data import bundled_pxr
 
-bundled.expose("pxr")      # before any io module imports it
+bundled_pxr.expose("pxr")      # before any io format module imports it
 
-from . import animation, apply_guard, cleanup, collide, command, engine, from_mesh, operators, proxy_binding, rigging  # noqa: E402,I001
-from . import panel, preferences  # noqa: E402
+from . import command  # noqa: E402,I001
+from .convert import from_mesh  # noqa: E402
+from .edit import blender_apply, cleanup, objects  # noqa: E402
+from .files import animation, import_export  # noqa: E402
+from .render import engine  # noqa: E402
+from .rig import armature, collide, proxy  # noqa: E402
+from .ui import panel, preferences  # noqa: E402
 
-CLASSES = (operators.CLASSES + animation.CLASSES + from_mesh.CLASSES + rigging.CLASSES + collide.CLASSES
-           + engine.CLASSES + cleanup.CLASSES + proxy_binding.CLASSES + preferences.CLASSES + panel.CLASSES)
-MENUS = operators.MENUS + from_mesh.MENUS + rigging.MENUS + collide.MENUS
+CLASSES = (import_export.CLASSES + objects.CLASSES + animation.CLASSES + from_mesh.CLASSES + armature.CLASSES
+           + collide.CLASSES + engine.CLASSES + cleanup.CLASSES + proxy.CLASSES + preferences.CLASSES + panel.CLASSES)
+MENUS = import_export.MENUS + objects.MENUS + from_mesh.MENUS + armature.MENUS + collide.MENUS
 
 
 def register():
@@ -21,17 +30,17 @@ def register():
     for menu, draw in MENUS:
         menu.append(draw)
     engine.register()
-    rigging.register()
+    armature.register()
     cleanup.register()
-    apply_guard.register()
+    blender_apply.register()
     command.register()
 
 
 def unregister():
     command.unregister()
-    apply_guard.unregister()
+    blender_apply.unregister()
     cleanup.unregister()
-    rigging.unregister()
+    armature.unregister()
     engine.unregister()
     for menu, draw in MENUS:
         menu.remove(draw)

@@ -27,8 +27,14 @@ import bpy
 from ..core import sh as shmod
 from ..io import DEFAULT_EXTENSIONS, FORMATS, format_of, write_splats
 from ..io.common import atomic_write
-from . import animation, collide, data, engine, from_mesh, mesh_layer, operators, preferences
-from .export_options import ExportOptions
+from . import data
+from .convert import from_mesh
+from .files import animation, import_export
+from .files.export_options import ExportOptions
+from .render import mesh_layer
+from .render.scene import MESH_ENGINE
+from .rig import collide
+from .ui import preferences
 
 COMMAND = "splatwright"
 FORMAT_EXTENSIONS = DEFAULT_EXTENSIONS
@@ -204,7 +210,7 @@ def execute(argv):
     runs = {"export": run_export, "render": run_render, "from-mesh": run_from_mesh, "collide": run_collide}
     try:
         runs[args.verb](args, bpy.context)
-    except (CommandError, from_mesh.MeshConversionError, *operators.EXPECTED_ERRORS, RuntimeError) as exc:
+    except (CommandError, from_mesh.MeshConversionError, *data.EXPECTED_ERRORS, RuntimeError) as exc:
         print(f"{COMMAND}: error: {exc}", file=sys.stderr, flush=True)
         return 1
     except Exception:
@@ -219,7 +225,7 @@ def execute(argv):
 def parse_frames(text, scene):
     """Frames from "A-B", "A-B:STEP" or "A"; the scene's range and step when `text` is None."""
     if text is None:
-        return animation.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
+        return data.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
     match = FRAMES.match(text)
     if match is None:
         raise CommandError(f"--frames '{text}': expected A-B, A-B:STEP or A (whole frame numbers)")
@@ -227,7 +233,7 @@ def parse_frames(text, scene):
     end = int(match.group(2)) if match.group(2) is not None else start
     step = int(match.group(3)) if match.group(3) is not None else 1
     try:
-        return animation.frame_range(start, end, step)
+        return data.frame_range(start, end, step)
     except ValueError as exc:
         raise CommandError(f"--frames '{text}': {exc}") from None
 
@@ -247,7 +253,7 @@ def named_objects(text, scene):
 
 def splat_objects(text, context):
     if text is None:
-        return operators.export_objects(context, selected_only=False)
+        return import_export.export_objects(context, selected_only=False)
     objects = named_objects(text, context.scene)
     wrong = [f"'{o.name}' ({o.type})" for o in objects if not data.is_splat_object(o)]
     if wrong:
@@ -279,7 +285,7 @@ def run_export(args, context):
     path = output_path(args.output, args.format)
     frames = parse_frames(args.frames, scene)
     objects = splat_objects(args.objects, context)
-    conversion = operators.export_conversion(args.axis_forward, args.axis_up)
+    conversion = import_export.export_conversion(args.axis_forward, args.axis_up)
     options = export_options(args, path)
     _say(f"export {len(objects)} object(s), frames {frames[0]}-{frames[-1]} ({len(frames)}) to {path}")
     written = animation.export_animation(context, objects, path, frames, conversion,
@@ -327,7 +333,7 @@ def _render_settings(scene, output, only, meshes=None):
     render = scene.render
     settings = [(render, "engine", "SPLATWRIGHT")]
     if meshes is not None:
-        settings.append((scene, engine.MESH_ENGINE, meshes.upper()))
+        settings.append((scene, MESH_ENGINE, meshes.upper()))
     if output is not None:
         settings.append((render, "filepath", output))
         formats = IMAGE_FORMATS.get(Path(output).suffix.lower())
@@ -418,7 +424,8 @@ def run_from_mesh(args, context):
         if is_blend:
             bpy.ops.wm.save_as_mainfile(filepath=str(out), copy=True)
         else:
-            write_splats(out, operators.scene_cloud(context, created, operators.export_conversion(), keep_source=True))
+            write_splats(out, import_export.scene_cloud(context, created, import_export.export_conversion(),
+                                                        keep_source=True))
     except BaseException:
         from_mesh.remove_objects(created)          # a session that goes on keeps the scene it had
         raise

@@ -20,12 +20,12 @@ import bpy
 import mathutils
 import numpy as np
 
-from ..core import geometry, sh as shmod
-from ..core.bake import (DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_splats_steps, bake_views,
+from ...core import geometry, sh as shmod
+from ...core.bake import (DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_splats_steps, bake_views,
                          path_weights)
-from ..core.camera import blender_lens, opengl_camera_to_world
-from ..core.steps import mapped_steps
-from . import data
+from ...core.camera import blender_lens, opengl_camera_to_world
+from ...core.steps import mapped_steps
+from .. import data
 
 TEMPORARY = "splatwright_bake"
 

@@ -31,19 +31,22 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 
-from ..core import geometry
-from ..core.camera import Camera, spread_along
-from ..core.mesh import Material
-from ..core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
-from ..core.steps import drain, mapped_steps
-from ..core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
-from ..core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
-from ..core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
-from . import camera, data, display
-from .modal import JobOperator
-from .operators import DISPLAY_BUDGET, EXPECTED_ERRORS
+from ...core import geometry
+from ...core.camera import Camera, spread_along
+from ...core.mesh import Material
+from ...core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
+from ...core.steps import drain, mapped_steps
+from ...core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
+from ...core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
+from ...core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
+from .. import data
+from ..data import camera, display
+from ..data.display import DISPLAY_BUDGET
+from ..data.errors import EXPECTED_ERRORS
+from ..data.keys import SOURCE
+from ..data.modal_jobs import JobOperator
+from .bake import bake_steps
 
-SOURCE = "splatwright_source"      # splat mesh property: JSON, see source_record()
 BAKE_SAMPLES = 16                  # Cycles samples per baked view (denoised)
 BAKE_DEGREE = 3
 MAX_BAKE_VIEWS, MAX_BAKE_SAMPLES, MAX_BAKE_DEGREE = 256, 4096, 3
@@ -479,7 +482,6 @@ class ConversionJob:
         share = 1.0 if self.bake is None else 0.5
         cloud, record = yield from _scaled(steps, 0.0, share)
         if self.bake is not None:
-            from .bake import bake_steps
             options = dict(self.bake)
             path = (options.pop("paths", None) or {}).get(obj, ())
             baking = bake_steps(self.scene, obj, cloud, triangles.vertices, path=path,

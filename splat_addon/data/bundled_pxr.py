@@ -3,7 +3,7 @@
 Blender 4.4 and later bundle OpenUSD's Python bindings (`pxr`) in their own site-packages. The
 Blender application has that folder on sys.path; Blender as a Python module (`bpy` from PyPI) keeps it
 inside the module and does not. io/usd.py imports `pxr` once, when it is first imported, so this runs
-before any io module: at the top of the splat_addon package.
+before any io format module: at the top of the splat_addon package.
 """
 
 import importlib.util

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from ..core.camera import Camera
+from ...core.camera import Camera
 
 
 class CameraError(ValueError):

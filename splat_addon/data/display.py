@@ -9,8 +9,10 @@ The modifier is viewport-only: the render engine and the exporter read the splat
 
 import bpy
 
-from ..core import sh as shmod
-from .data import LOG_SCALE, OPACITY, built_datablock, sh_attribute
+from ...core import sh as shmod
+from .attributes import sh_attribute
+from .forms import built_datablock
+from .keys import LOG_SCALE, OPACITY
 
 GROUP_NAME = "Splatwright Display"
 MATERIAL_NAME = "Splatwright Splat"
@@ -18,6 +20,7 @@ MODIFIER_NAME = "Splatwright Display"
 TAG = "splatwright_display"     # custom property on the node group and material: build version
 VERSION = 3                     # 3: the mesh passes through; gamma by a Gamma node (POWER is 4.3+)
 SRGB_GAMMA = 2.2                # display-only approximation of the sRGB -> linear curve
+DISPLAY_BUDGET = 1_000_000      # splats drawn per object before the display thins itself out
 
 
 def display_material():

@@ -1,11 +1,10 @@
 """Long operators run as modal jobs: a step per timer tick, progress in the status bar, Esc to cancel.
 
-A job (from_mesh.ConversionJob, collide.CollisionJob) has step() -> bool (more to do), cancel()
+A job (convert/from_mesh.py ConversionJob, rig/collide.py CollisionJob) has step() -> bool (more to do), cancel()
 (leaves the scene as it was before the job) and done / total / label; execute() runs the same job to
 its end without a window (Python, `blender -b`), so both paths compute the same thing.
 """
 
-import bpy
 
 CANCEL_KEYS = {"ESC", "RIGHTMOUSE"}
 TICK = 0.01                        # seconds between steps: the interface redraws in between

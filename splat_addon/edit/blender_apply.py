@@ -18,7 +18,8 @@ import bpy
 import numpy as np
 from bpy.app.handlers import persistent
 
-from . import data
+from .. import data
+from ..rig.armature import rig_of
 
 TOLERANCE = 1e-5           # relative to the probe centres' size: float32 round-off of the moved centres
 
@@ -68,8 +69,7 @@ def check(obj):
 
 
 def _bound(obj):
-    from . import rigging
-    return rigging.rig_of(obj) is not None
+    return rig_of(obj) is not None
 
 
 @persistent

@@ -27,11 +27,12 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
 
-from ..core import cleanup as core_cleanup
-from ..core import economy
-from . import camera as blender_camera
-from . import data
-from .operators import EXPECTED_ERRORS
+from ...core import cleanup as core_cleanup
+from ...core import economy
+from .. import data
+from ..data import camera as blender_camera
+from ..data.errors import EXPECTED_ERRORS
+from ..data.meshes import mesh_triangles
 
 SETTINGS = "splatwright_cleanup"
 REPORT = "splatwright_cleanup_report"          # the last change's report (JSON), for panels and scripts
@@ -75,17 +76,6 @@ def crop_mask(obj, depsgraph, positions, crop):
         vertices, triangles = mesh_triangles(volume.data)
         inside = core_cleanup.inside_mesh(positions, vertices @ to_object[:3, :3].T + to_object[:3, 3], triangles)
     return ~inside if crop.get("invert") else inside
-
-
-def mesh_triangles(mesh):
-    """(V,3) float64 vertices and (F,3) triangles of a mesh datablock (its own data)."""
-    vertices = np.empty(len(mesh.vertices) * 3, np.float32)
-    mesh.vertices.foreach_get("co", vertices)
-    if len(mesh.polygons) and not len(mesh.loop_triangles):
-        mesh.calc_loop_triangles()
-    triangles = np.empty(len(mesh.loop_triangles) * 3, np.int32)
-    mesh.loop_triangles.foreach_get("vertices", triangles)
-    return vertices.reshape(-1, 3).astype(np.float64), triangles.reshape(-1, 3)
 
 
 def visibility_weights(obj, count):

@@ -5,7 +5,7 @@ Sequence names follow Blender's output paths: the last run of '#' in the file na
 frame number zero-padded to that many digits (shot_####.ply -> shot_0007.ply); without '#',
 "_" and four digits go before the extension (shot.ply -> shot_0007.ply). A frame's file name never
 depends on the range exported, so render-farm jobs can split a range and write the same files.
-Every frame goes through the same evaluated-cloud path as a single export (operators.scene_cloud).
+Every frame goes through the same evaluated-cloud path as a single export (import_export.scene_cloud).
 """
 
 import re
@@ -15,9 +15,13 @@ import bpy
 from bpy.props import BoolProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, orientation_helper
 
-from ..io import SplatFileError, format_of, write_splats
-from ..io.common import publish_together
-from . import data, operators
+from ...io import SplatFileError, format_of, write_splats
+from ...io.common import publish_together
+from .. import data
+from ..data.errors import EXPECTED_ERRORS
+from ..data.progress import Progress
+from ..data.scene import frame_range
+from . import import_export
 from .export_options import ExportOptionProperties, ExportOptions
 
 HASHES = re.compile(r"#+")
@@ -42,20 +46,11 @@ def is_single_file(path):
     return format_of(path) == "usd"
 
 
-def frame_range(start, end, step=1):
-    """The frames start, start + step, ..., end; ValueError naming the problem for a bad range."""
-    if step < 1:
-        raise ValueError(f"frame step must be at least 1, got {step}")
-    if end < start:
-        raise ValueError(f"frame range {start}-{end} ends before it starts")
-    return list(range(start, end + 1, step))
-
-
 def export_animation(context, objects, path, frames, conversion=None, progress=None, options=None):
     """Write `objects` (splat objects) at each of `frames` to `path`; returns the files written.
     All or nothing: a frame that fails leaves every file of the sequence as it was.
 
-    conversion: the Blender -> file axis matrix (default: operators.export_conversion()).
+    conversion: the Blender -> file axis matrix (default: import_export.export_conversion()).
     progress(done, total, message) is called after each frame. The scene's frame is restored.
     options: an ExportOptions (SH degree, SPZ version, half floats, pruning); pruning keeps the same
     splats in every frame: those at least that opaque at the first frame.
@@ -68,7 +63,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
     single = is_single_file(path)            # raises SplatFileError for an unknown extension
     if not path.parent.is_dir():
         raise SplatFileError(path, f"folder {path.parent} does not exist")
-    conversion = operators.export_conversion() if conversion is None else conversion
+    conversion = import_export.export_conversion() if conversion is None else conversion
     scene = context.scene
     current, subframe = scene.frame_current, scene.frame_subframe
 
@@ -78,7 +73,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
         for i, frame in enumerate(frames):
             scene.frame_set(frame)
             try:
-                cloud = operators.scene_cloud(context, objects, conversion)
+                cloud = import_export.scene_cloud(context, objects, conversion)
             except data.SplatObjectError as exc:
                 raise data.SplatObjectError(f"frame {frame}: {exc}") from None
             kept = options.kept(cloud) if i == 0 else kept
@@ -95,7 +90,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
 
     try:
         if single:
-            from ..io import usd
+            from ...io import usd
             usd.write_frames(path, clouds(), times=frames, fps=scene.render.fps / scene.render.fps_base,
                              **options.writer_options(path))
             return [path]
@@ -111,7 +106,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
         scene.frame_set(current, subframe=subframe)
 
 
-@orientation_helper(axis_forward=operators.FILE_FORWARD, axis_up=operators.FILE_UP)
+@orientation_helper(axis_forward=import_export.FILE_FORWARD, axis_up=import_export.FILE_UP)
 class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, ExportHelper):
     """Export splat objects over a frame range: one animated OpenUSD file, or one file per frame
     (name_####.ply) for other formats"""
@@ -122,7 +117,7 @@ class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, Expo
 
     filename_ext = ".usd"          # binary with OpenUSD's module, text where Blender lacks it (4.2)
     check_extension = None
-    filter_glob: StringProperty(default=operators.FILTER_GLOB, options={"HIDDEN"})
+    filter_glob: StringProperty(default=import_export.FILTER_GLOB, options={"HIDDEN"})
     selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",
                                 default=False)
     use_scene_range: BoolProperty(name="Scene Frame Range", default=True,
@@ -140,16 +135,16 @@ class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, Expo
         path = Path(bpy.path.abspath(self.filepath))
         try:
             frames = self.frames(context.scene)
-            objects = operators.export_objects(context, self.selected_only)
-            progress = operators._Progress(context, len(frames))
+            objects = import_export.export_objects(context, self.selected_only)
+            progress = Progress(context, len(frames))
             try:
                 written = export_animation(context, objects, path, frames,
-                                           operators.export_conversion(self.axis_forward, self.axis_up),
+                                           import_export.export_conversion(self.axis_forward, self.axis_up),
                                            progress=lambda done, total, message: progress.update(done),
                                            options=self.export_options(context))
             finally:
                 progress.end()
-        except operators.EXPECTED_ERRORS as exc:
+        except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         where = written[0] if len(written) == 1 else f"{written[0]} ... {written[-1].name}"
@@ -157,4 +152,4 @@ class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, Expo
         return {"FINISHED"}
 
 
-CLASSES = (SPLAT_OT_export_animation,)      # listed in File > Export by operators.menu_export
+CLASSES = (SPLAT_OT_export_animation,)      # listed in File > Export by import_export.menu_export

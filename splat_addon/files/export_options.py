@@ -8,11 +8,10 @@ import bpy
 from bpy.props import FloatProperty
 from bpy_extras.io_utils import ExportHelper
 
-from ..core import economy
-from ..core import sh as shmod
-from ..io import format_of
-from . import preferences
-
+from ...core import economy
+from ...core import sh as shmod
+from ...io import format_of
+from ..ui import preferences
 
 SPZ_VERSION_OF_DEGREE_4 = 4       # SPZ versions before 4 hold SH up to degree 3
 

@@ -1,8 +1,8 @@
 """The child Blender of a SPLATWRIGHT render (see mesh_layer.py): renders the mesh layer of a scene
 snapshot with Cycles, EEVEE or Workbench into an uncompressed multilayer EXR.
 
-Run as a script, never imported: `blender -b --python mesh_layer_child.py` (a Blender install) or
-`python mesh_layer_child.py` (the bpy module). It answers one JSON request per stdin line with one
+Run as a script, never imported: `blender -b --python child_blender.py` (a Blender install) or
+`python child_blender.py` (the bpy module). It answers one JSON request per stdin line with one
 line starting with REPLY, and ends when stdin closes:
 
     {"blend": snapshot.blend, "scene": name, "view_layer": name, "frame": 12, "subframe": 0.0,

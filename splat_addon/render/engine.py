@@ -8,9 +8,11 @@ import traceback
 import bpy
 import numpy as np
 
-from ..core.color import linear_to_srgb, srgb_to_linear
-from . import camera as blender_camera
-from . import data, mesh_layer, viewport
+from ...core.color import linear_to_srgb
+from .. import data
+from ..data import camera as blender_camera
+from . import mesh_layer, viewport
+from .scene import MESH_ENGINE, mesh_engine, scene_splats, textured_world, to_scene_linear, world_color
 
 EMPTY_DEPTH = 1e10      # what Blender's own engines write in the Depth pass where nothing was hit
 
@@ -21,59 +23,9 @@ def render_size(render):
     return max(1, render.resolution_x * pct // 100), max(1, render.resolution_y * pct // 100)
 
 
-def scene_splats(depsgraph, origin):
-    """Every splat object and instance the depsgraph renders as one cloud, in world space shifted by
-    -`origin` (None if there are none). Instances whose transform collapses them (zero scale) show
-    nothing."""
-    shift = np.eye(4)
-    shift[:3, 3] = -origin
-    instances = [(i.obj, i.matrix) for i in data.splat_instances(depsgraph)
-                 if (i.instancer is not None or not i.obj.hide_render) and abs(np.linalg.det(i.matrix[:3, :3])) > 0]
-    return data.instances_cloud(depsgraph, instances, shift) if instances else None
-
-
-def world_color(scene):
-    """The world's background colour (scene-linear RGB): colour x strength of the Background node
-    feeding the world output; the world's plain colour when it uses no nodes or a texture drives
-    the background; black without a world."""
-    world = scene.world
-    if world is None:
-        return np.zeros(3)
-    uses_nodes = world.node_tree is not None and (bpy.app.version >= (5, 0, 0) or world.use_nodes)
-    node = _background_node(world.node_tree) if uses_nodes else None
-    if node is None or node.inputs["Color"].is_linked or node.inputs["Strength"].is_linked:
-        return np.array(world.color[:3], dtype=np.float64)
-    return np.array(node.inputs["Color"].default_value[:3], dtype=np.float64) * node.inputs["Strength"].default_value
-
-
-def _background_node(tree):
-    output = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld" and n.is_active_output), None)
-    if output is None or not output.inputs["Surface"].is_linked:
-        return None
-    node = output.inputs["Surface"].links[0].from_node
-    return node if node.bl_idname == "ShaderNodeBackground" else None
-
-
-def to_scene_linear(color, alpha):
-    """Display-sRGB colour premultiplied by `alpha` -> premultiplied scene-linear RGBA (float32). The
-    curve is applied to the straight colour, so a transparent film saves exactly the core image's
-    colours."""
-    alpha = np.asarray(alpha, dtype=np.float32)[..., None]
-    straight = np.asarray(color, dtype=np.float32) / np.where(alpha > 0, alpha, np.float32(1))
-    rgba = np.empty(alpha.shape[:-1] + (4,), dtype=np.float32)
-    rgba[..., :3] = srgb_to_linear(straight, np.float32) * alpha
-    rgba[..., 3] = alpha[..., 0]
-    return rgba
-
-
 _Cancelled = mesh_layer.Cancelled
 
-MESH_ENGINE = "splatwright_mesh_engine"          # Scene property: what renders everything but the splats
 SPLAT_PASSES = "splatwright_use_pass_splats"     # ViewLayer property: write the Splats (and Meshes) pass
-
-
-def mesh_engine(scene):
-    return getattr(scene, MESH_ENGINE, "NONE")
 
 
 class SplatwrightRenderEngine(bpy.types.RenderEngine):
@@ -160,7 +112,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
     def _image(self, cloud, cam, background, layer=None):
         """The core renderer's RenderResult (display-sRGB colour, transparent when `background` is
         None), composited with `layer`."""
-        from ..core.render import render     # the renderer loads on first use
+        from ...core.render import render     # the renderer loads on first use
 
         def progress(done, total, label=""):
             self.update_progress(done / total if total else 1.0)
@@ -217,18 +169,8 @@ def splat_passes(image, layer, meshes):
     return passes
 
 
-def textured_world(scene):
-    """Whether the world's background is more than one colour (a texture or nodes drive it): then
-    the mesh layer renders it, else world_color() stands for it."""
-    world = scene.world
-    if world is None or world.node_tree is None or (bpy.app.version < (5, 0, 0) and not world.use_nodes):
-        return False
-    node = _background_node(world.node_tree)
-    return node is None or node.inputs["Color"].is_linked or node.inputs["Strength"].is_linked
-
-
 def _no_splats():
-    from ..core.splats import SplatCloud
+    from ...core.splats import SplatCloud
     return SplatCloud.empty()
 
 

@@ -39,13 +39,13 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ..core.color import linear_to_srgb
-from ..core.render import Layer
-from ..io.exr_plain import read_plain_exr
-from . import data
+from ...core.color import linear_to_srgb
+from ...core.render import Layer
+from ...io.exr_plain import read_plain_exr
+from .. import data
 
-CHILD_SCRIPT = Path(__file__).with_name("mesh_layer_child.py")
-REPLY = "@splatwright-mesh-layer "          # the child's answer lines start with this (mesh_layer_child.REPLY)
+CHILD_SCRIPT = Path(__file__).with_name("child_blender.py")
+REPLY = "@splatwright-mesh-layer "          # the child's answer lines start with this (child_blender.REPLY)
 ENGINE_CHOICES = (
     ("CYCLES", "Cycles", "Meshes, curves, volumes and the world rendered by Cycles with the scene's Cycles settings"),
     ("EEVEE", "EEVEE", "Rendered by EEVEE with the scene's EEVEE settings (needs a GPU, also in background mode)"),
@@ -244,7 +244,7 @@ _state = {"child": None, "workdir": None}
 
 
 def child_command():
-    """How to start a Blender without a window that runs mesh_layer_child.py: this Blender's own
+    """How to start a Blender without a window that runs child_blender.py: this Blender's own
     executable, or, for the bpy module (no executable of its own), this Python."""
     binary = bpy.app.binary_path
     if binary and Path(binary).exists() and "python" not in Path(binary).name.lower():

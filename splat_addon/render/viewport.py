@@ -11,12 +11,13 @@ need a GPU, which background mode does not have.
 import os
 import weakref
 
-import bpy
 import numpy as np
 
-from ..core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
-from ..core.splats import SplatCloud
-from . import data
+from ...core.color import linear_to_srgb
+from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
+from ...core.splats import SplatCloud
+from .. import data
+from .scene import mesh_engine, scene_splats, to_scene_linear, world_color
 
 SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}      # what to_mesh() turns into triangles
 
@@ -73,7 +74,6 @@ def triangles(depsgraph):
 
 def picture_inputs(depsgraph):
     """(splats, triangles, background) of the depsgraph's scene for the viewport picture."""
-    from .engine import linear_to_srgb, mesh_engine, scene_splats, world_color
     scene = depsgraph.scene
     cloud = scene_splats(depsgraph, np.zeros(3))
     meshes = triangles(depsgraph) if mesh_engine(scene) != "NONE" else Triangles.empty()
@@ -96,7 +96,6 @@ class Viewport:
 
     def picture(self, view, scale, check):
         """Scene-linear premultiplied RGBA (rows top first) of `view` at `scale` (on the thread)."""
-        from .engine import to_scene_linear
         cloud, meshes, background = self.inputs
         image = preview_image(cloud, meshes, scaled(view.camera, scale), background=background,
                               threads=max(1, (os.cpu_count() or 2) - 1),      # a core stays with the interface

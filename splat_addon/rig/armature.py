@@ -15,7 +15,7 @@ display shows the posed centres. The weights come from:
 Weights below `min_weight` of a splat's total are dropped, then all but the k largest; the rest is
 normalised (Blender divides by the total anyway).
 
-Posing (`poser`, listed in data.POSERS): Blender's Armature modifier moves the vertices only,
+Posing (`poser`, put in data.POSERS by register()): Blender's Armature modifier moves the vertices only,
 so the deformer re-reads the splats from the original mesh, reads the weights from the vertex groups
 and skins centres, covariances and SH with the core (linear blend, or dual quaternions with the
 modifier's Preserve Volume), in armature space as Blender does. The modifier's vertex-group mask
@@ -41,10 +41,10 @@ import numpy as np
 from bpy.app.handlers import persistent
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 
-from ..core.skinning import Binding, BonePose, SkinningError, skin
-from . import data
-from .from_mesh import SOURCE
-from .operators import EXPECTED_ERRORS
+from ...core.skinning import Binding, BonePose, SkinningError, skin
+from .. import data
+from ..data.errors import EXPECTED_ERRORS
+from ..data.keys import SOURCE
 
 READER_GROUP = ".Splatwright Weight Reader"
 READER_TAG = "splatwright_weight_reader"        # node group property: build version
@@ -649,7 +649,7 @@ class SPLAT_OT_bind_armature(bpy.types.Operator):
 
 def menu_parent(self, context):
     self.layout.operator(SPLAT_OT_bind_armature.bl_idname, text="Splats to Armature (Bone Weights)")
-    self.layout.operator("splat.bind_proxy", text="Splats to Armature (Through Proxy Mesh)")    # proxy_binding
+    self.layout.operator("splat.bind_proxy", text="Splats to Armature (Through Proxy Mesh)")    # rig/proxy.py
 
 
 CLASSES = (SPLAT_OT_bind_armature,)
@@ -740,6 +740,8 @@ HANDLERS = ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update),
 
 
 def register():
+    if poser not in data.POSERS:
+        data.POSERS.append(poser)
     for handlers, fn in HANDLERS:
         if fn not in handlers:
             handlers.append(fn)
@@ -749,6 +751,8 @@ def unregister():
     for handlers, fn in HANDLERS:
         if fn in handlers:
             handlers.remove(fn)
+    if poser in data.POSERS:
+        data.POSERS.remove(poser)
     if bpy.app.timers.is_registered(_refill):
         bpy.app.timers.unregister(_refill)
     forget_weights()

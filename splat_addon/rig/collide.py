@@ -17,13 +17,14 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 
-from ..core.collision import CollisionInputError, EnvironmentIndex, ellipsoid_contacts
-from ..core.frames import frame_ranges
-from ..core.skinning import SkinningError
-from . import data, rigging
-from .animation import frame_range
-from .modal import JobOperator
-from .operators import EXPECTED_ERRORS
+from ...core.collision import CollisionInputError, EnvironmentIndex, ellipsoid_contacts
+from ...core.frames import frame_ranges
+from ...core.skinning import SkinningError
+from .. import data
+from ..data.errors import EXPECTED_ERRORS
+from ..data.modal_jobs import JobOperator
+from ..data.scene import frame_range
+from . import armature as rigging
 
 CONTACT_ATTRIBUTE = "splat_contact"
 DEFAULT_SIGMA = 3.0

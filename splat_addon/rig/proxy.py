@@ -22,11 +22,12 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from ..core import proxy as core_proxy
-from ..core.skinning import SkinningError
-from . import data, rigging
-from .cleanup import mesh_triangles
-from .operators import EXPECTED_ERRORS
+from ...core import proxy as core_proxy
+from ...core.skinning import SkinningError
+from .. import data
+from ..data.errors import EXPECTED_ERRORS
+from ..data.meshes import mesh_triangles
+from . import armature as rigging
 
 DEFAULT_MAX_DISTANCE = 0.1
 DEFAULT_FALLOFF_START = 0.05

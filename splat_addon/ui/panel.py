@@ -12,10 +12,13 @@ import bpy
 
 import json
 
-from ..core.economy import describe_change
-from ..core.splats import memory_bytes
-from ..io import file_sizes
-from . import cleanup, data, display, preferences
+from ...core.economy import describe_change
+from ...core.splats import memory_bytes
+from ...io import file_sizes
+from .. import data
+from ..data import display
+from ..edit import cleanup
+from . import preferences
 
 DISPLAY_INPUTS = ("Radius Scale", "Min Opacity", "Display Ratio")
 # format -> (label, how the number relates to the file)

@@ -8,11 +8,11 @@ from types import SimpleNamespace
 import bpy
 from bpy.props import BoolProperty, EnumProperty
 
-from ..io import DEFAULT_EXTENSIONS
+from ...io import DEFAULT_EXTENSIONS
 
-# Blender finds an extension's preferences by its package name: the package above this one
+# Blender finds an extension's preferences by its package name: the package two above this one (ui, splat_addon)
 # (bl_ext.<repository>.splatwright when installed as an extension, splatwright beside the bpy module).
-ADDON = __package__.rpartition(".")[0]
+ADDON = __package__.rsplit(".", 2)[0]
 
 FORMAT_ITEMS = (
     ("ply", "PLY", "3DGS PLY: float32, lossless"),

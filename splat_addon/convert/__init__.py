@@ -1,0 +1,1 @@
+"""Meshes to splats: conversion, appearance baking by Cycles, and the demo rig."""

@@ -1,0 +1,1 @@
+"""Splat files: the import and export operators, export options and animation export."""

@@ -1,0 +1,1 @@
+"""The interface: the Splats panel and the add-on preferences."""
