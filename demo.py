@@ -117,13 +117,14 @@ class Demo:
         from . import register
         register()
         self.registered = True
-        from .splat_addon import engine
+        from .splat_addon.render import engine
         if not hasattr(bpy.types, "SPLAT_OT_bind_armature") or not engine.SplatwrightRenderEngine.is_registered:
             raise DemoError("the extension did not register its operators and render engine")
         return f"Blender {bpy.app.version_string}, extension registered from {Path(__file__).parent}"
 
     def build_rig(self):
-        from .splat_addon import data, demo_rig
+        from .splat_addon import data
+        from .splat_addon.convert import demo_rig
         self.rig = demo_rig.build_demo_rig(self.bpy.context.scene, environment_splats=ENVIRONMENT_SPLATS)
         self.env = self.rig.environment
         self.summary["environment_splats"] = data.splat_count(self.env.data)
@@ -131,13 +132,14 @@ class Demo:
                f"'{self.env.name}': {data.splat_count(self.env.data)} splats"
 
     def convert_arm(self):
-        from .splat_addon import data, from_mesh
+        from .splat_addon import data
+        from .splat_addon.convert import from_mesh
         self.arm = from_mesh.from_mesh(self.bpy.context, [self.rig.body], max_splats=ARM_SPLATS)[0]
         self.summary["arm_splats"] = data.splat_count(self.arm.data)
         return f"'{self.arm.name}': {data.splat_count(self.arm.data)} splats from '{self.rig.body.name}' in its rest pose"
 
     def bind(self):
-        from .splat_addon import rigging
+        from .splat_addon.rig import armature as rigging
         warnings = []
         plan, = rigging.bind_armature([self.arm], self.rig.armature, warn=warnings.append)
         if not plan.source.startswith("mesh"):
@@ -153,7 +155,9 @@ class Demo:
         flatter it). Moving the centres alone, as Blender's modifier does, is the comparison."""
         from .core.metrics import psnr
         from .core.render import render
-        from .splat_addon import camera, data, from_mesh
+        from .splat_addon import data
+        from .splat_addon.convert import from_mesh
+        from .splat_addon.data import camera
         bpy, scene = self.bpy, self.bpy.context.scene
         scene.frame_set(BENT_FRAME)
         try:
@@ -231,9 +235,10 @@ class Demo:
                 background.inputs["Color"].default_value = (*WORLD_COLOR, 1.0)
 
     def export(self):
-        from .splat_addon import animation, data
+        from .splat_addon import data
+        from .splat_addon.files import animation
         context, scene = self.bpy.context, self.bpy.context.scene
-        frames = animation.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
+        frames = data.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
         everything = [self.arm, self.env]
         one, = animation.export_animation(context, everything, self.out / "scene_####.ply", [BENT_FRAME])
         (self.out / "arm_ply").mkdir(exist_ok=True)
@@ -251,7 +256,7 @@ class Demo:
                f"files, {seq_bytes / 1e6:.2f} MB); {usd.name} ({len(frames)} time samples, {_size(usd)})"
 
     def collide(self):
-        from .splat_addon import collide
+        from .splat_addon.rig import collide
         context, scene = self.bpy.context, self.bpy.context.scene
         frames = range(scene.frame_start, scene.frame_end + 1)
         report = collide.check_collisions(context, self.arm, self.env, frames, ignore_bones=IGNORE_BONES,

@@ -161,7 +161,7 @@ def turning_path(mesh, start):
 def turn_rows(name, mesh, start, splats, views, images, views_s, folder, iterations):
     """Baked from a still-then-turning camera path's frames picked three ways, at frames along the
     turn; seconds as the other bake rows', the Cycles views around (`views_s`) included."""
-    from splatwright.splat_addon.from_mesh import BAKE_PATH_SPACING, VIEW_COUNTS
+    from splatwright.splat_addon.convert.from_mesh import BAKE_PATH_SPACING, VIEW_COUNTS
     centre, path = turning_path(mesh, start)
     along = list(range(50, 100, 4))
     references, _ = cycles_render(mesh, [path[i] for i in along], folder, samples=REFERENCE_SAMPLES, lit=True)

@@ -90,14 +90,15 @@ def engine_side(cloud, camera, layer, folder):
     Splats and Meshes passes, as callables (None without bpy)."""
     try:
         from splatwright.io.exr_plain import read_plain_exr
-        from splatwright.splat_addon import engine, mesh_layer as meshes_module
+        from splatwright.splat_addon.render import engine, mesh_layer as meshes_module
+        from splatwright.splat_addon.render.scene import to_scene_linear
     except ImportError:
         return None
     path = mesh_exr(layer, folder)
 
     def splats_only():
         image = render(cloud, camera, background=(0.1, 0.1, 0.1))
-        engine.to_scene_linear(image.color, np.ones_like(image.alpha))
+        to_scene_linear(image.color, np.ones_like(image.alpha))
         engine.composite_depth(image, None)
 
     def composited(passes):
@@ -108,7 +109,7 @@ def engine_side(cloud, camera, layer, folder):
             image = render(cloud, camera, background=None, layer=surface)
             if passes:
                 engine.splat_passes(image, surface, got)
-            engine.to_scene_linear(image.color, np.ones_like(image.alpha))
+            to_scene_linear(image.color, np.ones_like(image.alpha))
             engine.composite_depth(image, surface)
         return run
     return splats_only, composited(False), composited(True)

@@ -264,12 +264,12 @@ class Worker(BlenderWorker):
             return {"pointclouds": len(found)}
         np.save(self.out / "display_size.npy", found[0].pop("size"))
         res = {"pointclouds": 1, **found[0], "modifiers": [m.name for m in obj.modifiers],
-               "added": self.module("splat_addon.display").add_display(obj) is not None}
+               "added": self.module("splat_addon.data.display").add_display(obj) is not None}
         if obj.type != "MESH":
             return res
         res["show_render"] = obj.modifiers[0].show_render
         mod = obj.modifiers[0]
-        self.module("splat_addon.display").set_input(mod, "Display Ratio", 0.5)
+        self.module("splat_addon.data.display").set_input(mod, "Display Ratio", 0.5)
         obj.update_tag()
         depsgraph = bpy.context.evaluated_depsgraph_get()
         res["half_count"] = [len(inst.object.data.points) for inst in depsgraph.object_instances

@@ -120,7 +120,7 @@ class Worker(BlenderWorker):
                                               form=data.NATIVE_FORM)
             bpy.context.view_layer.objects.active = native
             polls["native"] = [bpy.types.SPLAT_PT_object.poll(bpy.context), bpy.types.SPLAT_PT_view3d.poll(bpy.context)]
-            polls["native_stats"] = list(self.module("splat_addon.panel").splat_stats(native)[:3])
+            polls["native_stats"] = list(self.module("splat_addon.ui.panel").splat_stats(native)[:3])
         return {"panels": [cls.is_registered for cls in (bpy.types.SPLAT_PT_object, bpy.types.SPLAT_PT_view3d)],
                 "panel_spaces": [(cls.bl_space_type, cls.bl_region_type, getattr(cls, "bl_category", ""),
                                   getattr(cls, "bl_context", "")) for cls in (bpy.types.SPLAT_PT_object,
@@ -157,7 +157,7 @@ class Worker(BlenderWorker):
 
     def panel_numbers(self):
         """The panel's numbers for an imported cloud, and files written from the same object."""
-        panel = self.module("splat_addon.panel")
+        panel = self.module("splat_addon.ui.panel")
         obj = self.import_cloud("panel.ply", *PANEL_CLOUD)
         usd = self.module("io.usd")
         out = {"stats": {}, "exports": {}, "pxr": usd.stages.PXR is not None}
@@ -241,7 +241,7 @@ class Worker(BlenderWorker):
         """Step the collision job, cancel it part-way: frame and attributes as they were; then finish it
         and compare with check_collisions and the operator."""
         bpy = self.bpy
-        collide = self.module("splat_addon.collide")
+        collide = self.module("splat_addon.rig.collide")
         a = self.import_cloud("col_a.ply", 300, 1, 11)
         b = self.import_cloud("col_b.ply", 300, 1, 12)
         a.location = (-8, 0, 0)
@@ -274,7 +274,7 @@ class Worker(BlenderWorker):
         """Step a target-PSNR conversion of an armature-deformed mesh, cancel it part-way: nothing made,
         the armature posed again; then run it through."""
         bpy = self.bpy
-        from_mesh = self.module("splat_addon.from_mesh")
+        from_mesh = self.module("splat_addon.convert.from_mesh")
         bpy.ops.mesh.primitive_uv_sphere_add(segments=24, ring_count=12)
         sphere = bpy.context.active_object
         arm = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))

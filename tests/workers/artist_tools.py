@@ -267,7 +267,7 @@ class Worker(BlenderWorker):
         self.select([objects["MESH"], proxy], active=proxy)
         res["bind"] = self.call(bpy.ops.splat.bind_proxy, max_distance=0.1, far="STAY", min_weight=0.0)
         if "NATIVE" in objects:
-            results = self.module("splat_addon.proxy_binding").bind_proxy([objects["NATIVE"]], proxy, 0.1, "STAY",
+            results = self.module("splat_addon.rig.proxy").bind_proxy([objects["NATIVE"]], proxy, 0.1, "STAY",
                                                                           min_weight=0.0)
             res["native_far"] = results[0][1]
         res["modifiers"] = [m.type for m in objects["MESH"].modifiers]
@@ -291,7 +291,7 @@ class Worker(BlenderWorker):
         """How native splats hold their binding: (armature, preserve volume, has a strength mask)."""
         if obj is None:
             return None
-        rigging = self.module("splat_addon.rigging")
+        rigging = self.module("splat_addon.rig.armature")
         arm = obj.get(rigging.ARMATURE_PROPERTY)
         return [arm.name if arm is not None else None, bool(obj.get(rigging.PRESERVE_VOLUME_PROPERTY, False)),
                 rigging.MASK_GROUP in obj.data.attributes]
@@ -309,7 +309,7 @@ class Worker(BlenderWorker):
         plain mesh of the same points with the same groups and modifier, with the mask and without."""
         bpy = self.bpy
         data = self.module("splat_addon.data")
-        rigging = self.module("splat_addon.rigging")
+        rigging = self.module("splat_addon.rig.armature")
         arm, proxy = self.rigged_tube()
         positions = fading_positions() + np.array(arm.location)
         cloud = self.capture_cloud(positions, seed=14)
@@ -354,7 +354,7 @@ class Worker(BlenderWorker):
     def plain_twin(self, splats, groups, arm, masked):
         """A plain mesh of the splat centres of `splats` with its transform, its groups' weights (N, 3:
         Lower, Upper, mask) and a copy of its Armature modifier (mask left out unless `masked`)."""
-        rigging = self.module("splat_addon.rigging")
+        rigging = self.module("splat_addon.rig.armature")
         centres = self.module("splat_addon.data").object_cloud(splats).positions
         obj = self.mesh_object(f"Plain{splats.name}{masked}", centres, [])
         for j, name in enumerate(["Lower", "Upper", rigging.MASK_GROUP]):

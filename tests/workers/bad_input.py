@@ -377,7 +377,7 @@ class Worker(BlenderWorker):
     def rigs(self):
         """Armatures without (deforming) bones; vertex groups that match no bone."""
         bpy = self.bpy
-        rigging = self.module("splat_addon.rigging")
+        rigging = self.module("splat_addon.rig.armature")
         cases = {}
         splats = self.splat("splats", self.random_cloud(N, sh_degree=1, seed=4))
         for name, bones in (("no bones", ()), ("no deforming bones", (("Ctrl", (0, 0, 0), (0, 0, 1), False),))):
@@ -388,7 +388,7 @@ class Worker(BlenderWorker):
         self.clear_scene()
         grid = self.mesh("Skin", [(x, 0, z) for z in (-1, 0, 1) for x in (-0.5, 0.5)], [(0, 1, 3, 2), (2, 3, 5, 4)])
         grid.vertex_groups.new(name="NotABone").add(list(range(6)), 1.0, "REPLACE")
-        made = self.module("splat_addon.from_mesh").from_mesh(bpy.context, [grid], max_splats=60,
+        made = self.module("splat_addon.convert.from_mesh").from_mesh(bpy.context, [grid], max_splats=60,
                                                                      calibrate=False)[0]
         arm = self.armature("Rig", (("Lower", (0, 0, -1), (0, 0, 0), True), ("Upper", (0, 0, 0), (0, 0, 1), True)))
         warnings = []

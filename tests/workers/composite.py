@@ -243,7 +243,7 @@ class Worker(BlenderWorker):
         cam = scene.camera
         view = np.array(cam.matrix_world.inverted())
         projection = np.array(cam.calc_matrix_camera(depsgraph, x=SIZE[0], y=SIZE[1]))
-        viewport = self.module("splat_addon.viewport")
+        viewport = self.module("splat_addon.render.viewport")
         preview = self.module("core.preview")
 
         class Region:

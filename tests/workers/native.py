@@ -218,7 +218,7 @@ class NativeWorker(BlenderWorker):
     def collisions(self):
         """Two clouds Blender imported, overlapping, then set 100 apart: the exact contact test on both."""
         bpy = self.bpy
-        collide = self.module("splat_addon.collide")
+        collide = self.module("splat_addon.rig.collide")
         a, b = self.blender_import("other.ply"), self.blender_import("collide.ply")
         res = {"near": collide.check_collisions(bpy.context, a, b, [1], write_attribute=False).as_dict()}
         res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=a.name, object_b=b.name,

@@ -187,7 +187,7 @@ class Worker(BlenderWorker):
     def demo(self, environment_splats=0, body_splats=3000):
         """The demo rig and its arm converted to splats in the rest pose (selected, the armature active)."""
         bpy = self.bpy
-        rig = self.module("splat_addon.demo_rig").build_demo_rig(bpy.context.scene, environment_splats,
+        rig = self.module("splat_addon.convert.demo_rig").build_demo_rig(bpy.context.scene, environment_splats,
                                                                     calibrate=False)
         self.select([rig.body])
         bpy.ops.splat.from_mesh(max_splats=body_splats, calibrate=False)
@@ -218,8 +218,8 @@ class Worker(BlenderWorker):
         of native splats' centres with the same groups."""
         bpy = self.bpy
         data = self.module("splat_addon.data")
-        display = self.module("splat_addon.display")
-        rigging = self.module("splat_addon.rigging")
+        display = self.module("splat_addon.data.display")
+        rigging = self.module("splat_addon.rig.armature")
         arm = self.build_rig()
         arrays = rig_cloud_arrays(RIG_SPLATS)
         obj = self.splat_object("RigSplats", arrays)
@@ -322,7 +322,7 @@ class Worker(BlenderWorker):
         rig, splats = self.demo()
         names = [b.name for b in rig.armature.data.bones]
         res = {"bind": self.call(bpy.ops.splat.bind_armature, armature=rig.armature.name, max_influences=8)}
-        rigging = self.module("splat_addon.rigging")
+        rigging = self.module("splat_addon.rig.armature")
         extras = data.object_cloud(splats).extras
         res.update(groups=rigging.weight_names(splats), form=data.splat_form(splats),
                    armature=rigging.rig_of(splats)[0].name,
@@ -345,7 +345,7 @@ class Worker(BlenderWorker):
         orphan = bpy.context.active_object
         rig.body.name = "Renamed Arm"
         warnings = []
-        plans = self.module("splat_addon.rigging").bind_armature([orphan], rig.armature, warn=warnings.append)
+        plans = self.module("splat_addon.rig.armature").bind_armature([orphan], rig.armature, warn=warnings.append)
         res["orphan"] = {"warnings": warnings, "source": plans[0].source}
         return res
 
@@ -362,7 +362,7 @@ class Worker(BlenderWorker):
         res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2, falloff=4.0, min_weight=0.01,
                                  preserve_volume=True)}
         names = list(RIG_BONES)
-        rigging = self.module("splat_addon.rigging")
+        rigging = self.module("splat_addon.rig.armature")
         res["preserve_volume"] = rigging.rig_of(obj)[1]
         res["preserve_volume_stored"] = obj.modifiers[0].use_deform_preserve_volume if obj.type == "MESH" \
             else bool(obj[rigging.PRESERVE_VOLUME_PROPERTY])
@@ -383,9 +383,9 @@ class Worker(BlenderWorker):
         bpy = self.bpy
         scene = bpy.context.scene
         data = self.module("splat_addon.data")
-        rigging = self.module("splat_addon.rigging")
-        camera = self.module("splat_addon.camera")
-        from_mesh = self.module("splat_addon.from_mesh")
+        rigging = self.module("splat_addon.rig.armature")
+        camera = self.module("splat_addon.data.camera")
+        from_mesh = self.module("splat_addon.convert.from_mesh")
         render = self.module("core.render").render
         rig, splats = self.demo(body_splats=8000)
         res = {"bind": self.call(bpy.ops.splat.bind_armature)}
@@ -451,7 +451,7 @@ class Worker(BlenderWorker):
         bpy = self.bpy
         scene = bpy.context.scene
         data = self.module("splat_addon.data")
-        collide = self.module("splat_addon.collide")
+        collide = self.module("splat_addon.rig.collide")
         arm = self.two_bone_armature("Pole")
         rng = np.random.default_rng(11)
         n_a, n_b = 60, 50
@@ -498,7 +498,7 @@ class Worker(BlenderWorker):
     def collide_demo(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        collide = self.module("splat_addon.collide")
+        collide = self.module("splat_addon.rig.collide")
         rig, splats = self.demo(environment_splats=20_000, body_splats=8000)
         res = {"bind": self.call(bpy.ops.splat.bind_armature)}
         env = rig.environment

@@ -23,7 +23,7 @@ POSE = {"Upper": (0.2, 0.0, 0.1), "Lower": (0.0, 0.7, -0.3)}                    
 
 
 def native_arrays(arrays, base_type="FLOAT4"):
-    """A cloud's fields as Blender 5.3's importer stores them (see splat_addon/data.py): linear scale,
+    """A cloud's fields as Blender 5.3's importer stores them (see splat_addon/data/forms.py): linear scale,
     the sigmoid of the logit in radiance:base's fourth value, higher SH as radiance:sh_<j>; float32.
     `base_type`: radiance:base's type, FLOAT4 as 5.3 writes it, FLOAT_COLOR where a Blender lacks FLOAT4."""
     sh = np.asarray(arrays["sh"], np.float32)
@@ -55,7 +55,7 @@ class Worker(BlenderWorker):
         ext = self.module("splat_addon")
         obj, _ = ext.data.new_splat_object(self.module("core").SplatCloud(**arrays), name,
                                            self.bpy.context.scene.collection, form=form)
-        ext.display.add_display(obj)
+        ext.data.display.add_display(obj)
         for key, value in transform.items():
             setattr(obj, key, value)
         return obj
@@ -101,7 +101,7 @@ class Worker(BlenderWorker):
     def export(self, name, objects=None, file_axes=False):
         """Export (world space = file space) the visible splats, or `objects` selected. `file_axes`: for
         native clouds made without Splatwright, which stand in their file's own axes as Blender's PLY
-        importer leaves them (splat_addon/data.py, landed_raw): world space is written with the default
+        importer leaves them (splat_addon/data/forms.py, landed_raw): world space is written with the default
         axes then."""
         if objects is not None:
             self.select(objects)
@@ -289,7 +289,7 @@ class Worker(BlenderWorker):
                "export": [self.export("nat_ours.ply", [ours]), self.export("nat_theirs.ply", [theirs], True)],
                "render": [self.render("nat_ours", [ours]), self.render("nat_theirs", [theirs])]}
         env = self.splats("env", random_cloud_arrays(N, 0, seed=6, spread=0.8))
-        reports = [ext.collide.check_collisions(self.bpy.context, obj, env, [1]) for obj in (ours, theirs)]
+        reports = [ext.rig.collide.check_collisions(self.bpy.context, obj, env, [1]) for obj in (ours, theirs)]
         res["contacts"] = [r.as_dict()["frames"][0] for r in reports]
         res["contact_values"] = [np.asarray(r.contact_a).tolist() for r in reports]
         res["apply"] = [self.apply_transform(ours), self.apply_transform(theirs)]

@@ -137,7 +137,7 @@ class Worker(BlenderWorker):
     def path_views(self, obj, count, world=False):
         """The scene camera's `count` path views of `obj`, 32 pixels wide, as Mesh to Splats measures
         them (in its space) or, with `world`, as a bake renders them (without the views its spacing adds)."""
-        from_mesh = self.module("splat_addon.from_mesh")
+        from_mesh = self.module("splat_addon.convert.from_mesh")
         path = from_mesh.CameraPath(self.bpy.context.scene, [obj], 32, from_mesh.frames_looked_at(count))
         return path.views(obj, count, world)
 
@@ -233,7 +233,7 @@ class Worker(BlenderWorker):
 
         def rgb(nodes):
             return nodes.new("ShaderNodeRGB").outputs[0]
-        look = self.module("splat_addon.from_mesh").material_appearance(
+        look = self.module("splat_addon.convert.from_mesh").material_appearance(
             self.material("odd", (0.25, 0.5, 0.75), rgb), warnings.append)
         res["odd"] = {"warnings": warnings, "base": list(look.material.base_color)}
         # an image whose file is missing has no pixels: warned, the base colour used
@@ -245,7 +245,7 @@ class Worker(BlenderWorker):
             node.image = missing
             return node.outputs["Color"]
         warnings = []
-        look = self.module("splat_addon.from_mesh").material_appearance(
+        look = self.module("splat_addon.convert.from_mesh").material_appearance(
             self.material("lost", (0.5, 0.25, 0.125), texture), warnings.append)
         res["missing image"] = {"warnings": warnings, "base": list(look.material.base_color),
                                 "texture": look.material.texture is not None}
@@ -326,7 +326,7 @@ class Worker(BlenderWorker):
     def demo_rig(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=3000, calibrate=False)
+        rig = self.module("splat_addon.convert.demo_rig").build_demo_rig(scene, environment_splats=3000, calibrate=False)
         body, arm = rig.body, rig.armature
         mesh = body.data
         weights = np.zeros((len(mesh.vertices), len(arm.data.bones)))
@@ -361,7 +361,7 @@ class Worker(BlenderWorker):
     def rest_pose(self):
         bpy = self.bpy
         scene = bpy.context.scene
-        rig = self.module("splat_addon.demo_rig").build_demo_rig(scene, environment_splats=0)
+        rig = self.module("splat_addon.convert.demo_rig").build_demo_rig(scene, environment_splats=0)
         scene.frame_set(12)
         rest = np.array([tuple(v.co) for v in rig.body.data.vertices])
         posed = self.source_dump(rig.body)
@@ -446,7 +446,7 @@ class Worker(BlenderWorker):
         count_frame_sets = lambda scene, *args: frame_sets.append(scene.frame_current)  # noqa: E731
         bpy.app.handlers.frame_change_pre.append(count_frame_sets)
         try:
-            baked = self.module("splat_addon.from_mesh").measured_views(scene, [obj], "CAMERA", 2, 32, 0.5, 3.0,
+            baked = self.module("splat_addon.convert.from_mesh").measured_views(scene, [obj], "CAMERA", 2, 32, 0.5, 3.0,
                                                                        bake=True)[1][obj]
         finally:
             bpy.app.handlers.frame_change_pre.remove(count_frame_sets)
@@ -483,7 +483,7 @@ class Worker(BlenderWorker):
         world.node_tree.nodes["Background"].inputs["Color"].default_value = (0, 0, 0, 1)
         render, cycles = scene.render, scene.cycles
         res = {"default": [cycles.pixel_filter_type, cycles.filter_width]}
-        scene_filter = self.module("splat_addon.from_mesh").scene_pixel_filter
+        scene_filter = self.module("splat_addon.convert.from_mesh").scene_pixel_filter
         names = ("camera", "world", "engine", "resolution_x", "resolution_y", "resolution_percentage", "filepath")
         cycles_names = ("samples", "use_adaptive_sampling", "use_denoising", "pixel_filter_type", "filter_width")
         before = [getattr(scene if n in ("camera", "world") else render, n) for n in names]
@@ -533,11 +533,11 @@ class Worker(BlenderWorker):
                   opacity_logits=cloud.opacity_logits, sh=cloud.sh, matrix=np.array(obj.matrix_world))
 
     def held_out_view(self, ball, name):
-        """Cycles' render of the ball (splat_addon.bake.render_view) from a view no bake uses, saved as
+        """Cycles' render of the ball (splat_addon.convert.bake.render_view) from a view no bake uses, saved as
         `name` with its camera."""
         camera = self.module("core.camera").Camera.look_at((3.5, -4.0, 3.0), BALL_PLACE[0], up=(0, 0, -1),
                                                            fov_deg=35, width=48, height=48)
-        reference = self.module("splat_addon.bake").render_view(self.bpy.context.scene, ball, camera, 32,
+        reference = self.module("splat_addon.convert.bake").render_view(self.bpy.context.scene, ball, camera, 32,
                                                                 str(self.out / f"{name}.png"))
         self.save(name, image=reference, world_to_camera=camera.world_to_camera, fx=camera.fx)
 
@@ -670,7 +670,7 @@ class Worker(BlenderWorker):
         bpy, render = self.bpy, scene.render
         path = self.path_views(ball, 2, world=True)
         view = path[0]
-        image = self.module("splat_addon.bake").render_view(scene, ball, view, 8, str(self.out / "path_view.png"))
+        image = self.module("splat_addon.convert.bake").render_view(scene, ball, view, 8, str(self.out / "path_view.png"))
         floor.visible_camera = False
         render.resolution_x, render.resolution_y = 32, 20
         render.engine, scene.cycles.device, scene.cycles.samples, scene.cycles.use_denoising = "CYCLES", "CPU", 8, True
@@ -741,7 +741,7 @@ class Worker(BlenderWorker):
         return res
 
     def frame_names(self):
-        frame_path = self.module("splat_addon.animation").frame_path
+        frame_path = self.module("splat_addon.files.animation").frame_path
         cases = [("/a/shot_####.ply", 7), ("/a/shot.ply", 7), ("/a/shot_##.ply", 123), ("/a/v#_f###.spz", 5),
                  ("/a/shot_####.ply", -3), ("/a/shot.ply", 12345), ("/a/shot", 2)]
         return {"names": [[p, f, str(frame_path(p, f))] for p, f in cases]}
