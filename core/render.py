@@ -24,9 +24,9 @@ three stages, and the final alpha, depth and background of a render without a la
 compiled loops (core/render_kernels.py), which also skip the pixel rows of a tile that a splat's
 ellipse does not cross and write the image without per-tile accumulators.
 `render(..., backend=...)` picks one; both are tested against the float64 reference.
-The NumPy path's stages have modules of their own: projection and binning in core/render_project.py,
-compositing (and the Layer crossing) in core/render_composite.py; the numbers of the image in
-core/render_constants.py.
+Here: the public render(), the NumPy projection and the compiled path; the projected records, the
+screen geometry and the NumPy binning are in core/render_tiles.py, the NumPy compositing (and the
+Layer crossing) in core/render_composite.py, the numbers of the image in core/render_constants.py.
 
 A Layer (a surface rendered by something else: per pixel a colour, an alpha and a camera depth)
 joins each pixel's front-to-back list as one more element, before the first splat whose camera z
@@ -41,11 +41,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from . import jit
+from . import geometry, jit, sh as shmod
 from .parallel import Pool
 from .render_composite import Compositor, LayerCrossing
-from .render_constants import FRUSTUM_MARGIN, MAX_TILE_SIZE, MODES, PRECISIONS, T_MIN, TILE_SIZE
-from .render_project import PROJECT_CHUNK, Bins, Projected, bin_tiles, new_records, project, stable_argsort
+from .render_constants import (AA_MIN_RATIO, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS, MAX_TILE_SIZE, MODES, PRECISIONS,
+                               T_MIN, TILE_SIZE)
+from .render_tiles import (Bins, Projected, bin_tiles, new_records, record_floats, screen_covariance, screen_rows,
+                           stable_argsort)
+from .splats import sigmoid
 
 BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.render_kernels"     # the compiled module, loaded by core.jit
@@ -300,6 +303,94 @@ def check_image_memory(camera, tile_size=TILE_SIZE, counts=False, compiled=True)
         raise ValueError(f"a {camera.width}x{camera.height} render needs {need / 2**30:.1f} GiB for its image "
                          f"buffers alone, more than this machine's {have / 2**30:.1f} GiB of memory; render it "
                          "in pieces (a camera per piece: smaller width and height, cx and cy shifted)")
+
+
+# projection -----------------------------------------------------------------------------------
+
+PROJECT_CHUNK = 1 << 16    # splats per projection task
+
+
+def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
+    """Cull and project every splat: pixel-space means, conics, extents and view-dependent colours
+    of the visible ones, sorted front to back (equal depths keep input order)."""
+    pool = pool or Pool(1)
+    chunks = [slice(i, i + PROJECT_CHUNK) for i in range(0, len(cloud), PROJECT_CHUNK)] or [slice(0, 0)]
+    parts = pool.map(lambda sl: _project_chunk(cloud, sl, camera, mode, max_sigma), chunks)
+    skipped = sum(p.pop("skipped") for p in parts)
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
+    # float32 precision are ties, kept in index order (chunks are in index order), so round-off in
+    # a far-from-origin camera pose cannot reorder them.
+    # (Positive float32 values sort like their bit patterns: two 16-bit radix passes.)
+    order = stable_argsort(cols["z"].astype(np.float32).view(np.uint32), 1 << 32)
+    records = new_records(len(order))
+    np.take(cols["records"], order, axis=0, out=records[:-1])
+    return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
+
+
+def _project_chunk(cloud, sl, camera, mode, max_sigma):
+    """Projection of cloud[sl], unsorted, as columns (float64 unless noted)."""
+    idx = np.arange(len(cloud))[sl]
+    fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
+    every = fields + [cloud.sh[sl]]
+    if not all(np.isfinite(f).all() for f in every):      # rare: find the bad splats
+        good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
+        idx, fields = idx[good], [f[good] for f in fields]
+    skipped = len(every[-1]) - len(idx)
+    positions, rotations, log_scales, logits = fields
+
+    rel = positions.astype(np.float64) - camera.center      # world offsets from the eye
+    cam = _rotate(rel, camera.rotation)
+    z = cam[:, 2]
+    opacity = sigmoid(logits)
+    keep = np.flatnonzero((z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
+    if len(keep) < len(z):
+        idx, rel, cam, z, opacity = idx[keep], rel[keep], cam[keep], z[keep], opacity[keep]
+        rotations, log_scales = rotations[keep], log_scales[keep]
+
+    u, v, m0, m1 = screen_rows(cam, camera)
+    rs = geometry.quaternions_to_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
+    with np.errstate(over="ignore", invalid="ignore"):
+        _, _, a, b, c, det0 = screen_covariance(m0, m1, rs)
+        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
+        if mode == "antialiased":
+            opacity = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, det0 / det))
+        r2 = 2.0 * np.log(np.maximum(255.0 * opacity, 1e-300))
+        if max_sigma is not None:
+            r2 = np.minimum(r2, float(max_sigma) ** 2)
+        a, c = a + LOW_PASS, c + LOW_PASS
+        half_x, half_y = np.sqrt(r2 * a), np.sqrt(r2 * c)
+    finite = np.isfinite(det) & np.isfinite(u) & np.isfinite(v)
+    skipped += int((~finite).sum())
+    box = [np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
+           np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
+           np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
+           np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1)]
+    sel = np.flatnonzero(finite & (r2 > 0) & (box[0] <= box[2]) & (box[1] <= box[3]))
+
+    if camera.is_orthographic:    # parallel rays: every splat is seen along the camera axis
+        directions = np.broadcast_to(camera.forward, (len(sel), 3))
+    else:
+        directions = rel[sel]
+    rgb = shmod.colors(cloud.sh[idx[sel]], directions) if len(sel) else np.zeros((0, 3))
+    d = det[sel]
+    records = new_records(len(sel))[:-1]
+    records[:, 0], records[:, 1] = u[sel], v[sel]
+    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d   # the conic
+    floats = record_floats(records)
+    floats[:, 0], floats[:, 1:4], floats[:, 4], floats[:, 5] = np.log(opacity[sel]), rgb, z[sel], 1.0
+    bbox = np.empty((len(sel), 4), dtype=np.int64)
+    for k, x in enumerate(box):
+        bbox[:, k] = x[sel]
+    return {"index": idx[sel], "z": z[sel], "records": records, "r2": r2[sel], "bbox": bbox, "skipped": skipped}
+
+
+def _rotate(points, rotation):
+    """points @ rotation.T, written out: a BLAS product this thin would start BLAS's own threads."""
+    out = np.empty_like(points)
+    for k in range(3):
+        out[:, k] = points[:, 0] * rotation[k, 0] + points[:, 1] * rotation[k, 1] + points[:, 2] * rotation[k, 2]
+    return out
 
 
 # the compiled path -----------------------------------------------------------------------------------

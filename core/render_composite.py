@@ -8,7 +8,7 @@ import threading
 import numpy as np
 
 from .render_constants import ALPHA_MAX, ALPHA_MIN
-from .render_project import record_floats, stable_argsort
+from .render_tiles import record_floats, stable_argsort
 
 # OpenBLAS runs larger products on its own threads, which fights our pool and is slower for these
 # thin products; it stays single-threaded below m*n*k = 65536 * 4 (its SMP threshold).

@@ -26,7 +26,7 @@ import numpy as np
 from . import geometry, jit, sh as shmod
 from .parallel import WORKERS, map_threads
 from .render_constants import AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, PRECISIONS, T_MIN
-from .render_project import clamped_ratios, screen_covariance, screen_rows
+from .render_tiles import clamped_ratios, screen_covariance, screen_rows
 from .splats import FIELDS, sigmoid
 
 TILE = 16

@@ -1,17 +1,15 @@
-"""The NumPy path's first two stages (core/render.py's notes): splats culled and projected to
-pixel space, one 64-byte record each, sorted front to back; and those records binned into square
-tiles, each tile's entries front to back. The projection's covariance and clamp (screen_covariance,
-clamped_ratios, screen_rows) are the backward pass's too (core/render_grad.py)."""
+"""Between projection and compositing (core/render.py's notes): the projected splats, one 64-byte
+record each, front to back (Projected); the screen-space covariance and frustum clamp that the
+projection and the backward pass (core/render_grad.py) share; and the NumPy path's binning of the
+records into square tiles, each tile's entries front to back."""
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry, sh as shmod
 from .parallel import Pool
-from .render_constants import AA_MIN_RATIO, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS
+from .render_constants import FRUSTUM_MARGIN
 from .spatial import ramp
-from .splats import sigmoid
 
 
 @dataclass
@@ -54,93 +52,7 @@ def record_floats(records):
     return records[:, 5:].view(np.float32)
 
 
-# projection -----------------------------------------------------------------------------------
-
-PROJECT_CHUNK = 1 << 16    # splats per projection task
-
-
-def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
-    """Cull and project every splat: pixel-space means, conics, extents and view-dependent colours
-    of the visible ones, sorted front to back (equal depths keep input order)."""
-    pool = pool or Pool(1)
-    chunks = [slice(i, i + PROJECT_CHUNK) for i in range(0, len(cloud), PROJECT_CHUNK)] or [slice(0, 0)]
-    parts = pool.map(lambda sl: _project_chunk(cloud, sl, camera, mode, max_sigma), chunks)
-    skipped = sum(p.pop("skipped") for p in parts)
-    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
-    # float32 precision are ties, kept in index order (chunks are in index order), so round-off in
-    # a far-from-origin camera pose cannot reorder them.
-    # (Positive float32 values sort like their bit patterns: two 16-bit radix passes.)
-    order = stable_argsort(cols["z"].astype(np.float32).view(np.uint32), 1 << 32)
-    records = new_records(len(order))
-    np.take(cols["records"], order, axis=0, out=records[:-1])
-    return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
-
-
-def _project_chunk(cloud, sl, camera, mode, max_sigma):
-    """Projection of cloud[sl], unsorted, as columns (float64 unless noted)."""
-    idx = np.arange(len(cloud))[sl]
-    fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
-    every = fields + [cloud.sh[sl]]
-    if not all(np.isfinite(f).all() for f in every):      # rare: find the bad splats
-        good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
-        idx, fields = idx[good], [f[good] for f in fields]
-    skipped = len(every[-1]) - len(idx)
-    positions, rotations, log_scales, logits = fields
-
-    rel = positions.astype(np.float64) - camera.center      # world offsets from the eye
-    cam = _rotate(rel, camera.rotation)
-    z = cam[:, 2]
-    opacity = sigmoid(logits)
-    keep = np.flatnonzero((z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
-    if len(keep) < len(z):
-        idx, rel, cam, z, opacity = idx[keep], rel[keep], cam[keep], z[keep], opacity[keep]
-        rotations, log_scales = rotations[keep], log_scales[keep]
-
-    u, v, m0, m1 = screen_rows(cam, camera)
-    rs = geometry.quaternions_to_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
-    with np.errstate(over="ignore", invalid="ignore"):
-        _, _, a, b, c, det0 = screen_covariance(m0, m1, rs)
-        det = det0 + LOW_PASS * (a + c) + LOW_PASS * LOW_PASS
-        if mode == "antialiased":
-            opacity = opacity * np.sqrt(np.maximum(AA_MIN_RATIO, det0 / det))
-        r2 = 2.0 * np.log(np.maximum(255.0 * opacity, 1e-300))
-        if max_sigma is not None:
-            r2 = np.minimum(r2, float(max_sigma) ** 2)
-        a, c = a + LOW_PASS, c + LOW_PASS
-        half_x, half_y = np.sqrt(r2 * a), np.sqrt(r2 * c)
-    finite = np.isfinite(det) & np.isfinite(u) & np.isfinite(v)
-    skipped += int((~finite).sum())
-    box = [np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
-           np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
-           np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
-           np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1)]
-    sel = np.flatnonzero(finite & (r2 > 0) & (box[0] <= box[2]) & (box[1] <= box[3]))
-
-    if camera.is_orthographic:    # parallel rays: every splat is seen along the camera axis
-        directions = np.broadcast_to(camera.forward, (len(sel), 3))
-    else:
-        directions = rel[sel]
-    rgb = shmod.colors(cloud.sh[idx[sel]], directions) if len(sel) else np.zeros((0, 3))
-    d = det[sel]
-    records = new_records(len(sel))[:-1]
-    records[:, 0], records[:, 1] = u[sel], v[sel]
-    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d   # the conic
-    floats = record_floats(records)
-    floats[:, 0], floats[:, 1:4], floats[:, 4], floats[:, 5] = np.log(opacity[sel]), rgb, z[sel], 1.0
-    bbox = np.empty((len(sel), 4), dtype=np.int64)
-    for k, x in enumerate(box):
-        bbox[:, k] = x[sel]
-    return {"index": idx[sel], "z": z[sel], "records": records, "r2": r2[sel], "bbox": bbox, "skipped": skipped}
-
-
-def _rotate(points, rotation):
-    """points @ rotation.T, written out: a BLAS product this thin would start BLAS's own threads."""
-    out = np.empty_like(points)
-    for k in range(3):
-        out[:, k] = points[:, 0] * rotation[k, 0] + points[:, 1] * rotation[k, 1] + points[:, 2] * rotation[k, 2]
-    return out
-
+# screen geometry, shared with the backward pass ---------------------------------------------------
 
 def _dot3(p, q):
     return p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1] + p[:, 2] * q[:, 2]
