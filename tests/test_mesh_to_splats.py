@@ -116,7 +116,7 @@ def bisection_reference(gram, n):
 def test_points_are_the_centroids_of_an_equal_area_bisection(compiled, monkeypatch):
     """bisection_samples against a plain recursion, on a jittered grid, a 1000:1 sliver and faces of
     0, 1, 2, 3 and up to 300 points; the compiled path (where numba loads) and NumPy's alike."""
-    from splatwright.core import mesh_to_splats as m2s
+    from splatwright.core import mesh_sampling as m2s
     if not compiled:
         monkeypatch.setattr(m2s, "_bisect_kernel", lambda: None)
     elif m2s._bisect_kernel() is None:
@@ -143,7 +143,7 @@ def test_points_are_the_centroids_of_an_equal_area_bisection(compiled, monkeypat
 def test_compiled_bisection_is_numpys_bit_for_bit(monkeypatch):
     """Many runs' worth of points in one face, slivers and single points: the compiled twin gives
     NumPy's points in NumPy's order to the bit."""
-    from splatwright.core import mesh_to_splats as m2s
+    from splatwright.core import mesh_sampling as m2s
     v, f = grid_plane(30, jitter=0.45, seed=4)
     surface = Surface(tilted(v, seed=1), f)
     counts = np.random.default_rng(6).integers(0, 40, len(f))
@@ -225,7 +225,7 @@ def test_wall_contrast_is_the_far_sides_colour_difference():
 def test_splats_and_walls_are_the_same_on_any_number_of_cores(monkeypatch):
     """Points are dealt out to the cores in the same runs, and wall ties go to the same far side,
     whatever the cores: one conversion gives the same splats on a laptop and on a farm."""
-    from splatwright.core import mesh_to_splats as m2s, parallel
+    from splatwright.core import mesh_sampling as m2s, parallel
     cup = scenes.thin_walled_cup()
     surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, cup.materials)
     density = np.full(len(cup.faces), 5 * m2s.BISECT_CHUNK / surface.area.sum())   # several runs
