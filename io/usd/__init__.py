@@ -15,7 +15,7 @@ Reading (`read`, `read_stage`, `read_frames`)
   2 sigma per axis; `primvars:rot` quatf; `primvars:displayOpacity` linear; `primvars:displayColor`
   the DC colour clamped to [0,1]; `primvars:fRest0..` channel-major like PLY's f_rest; and
   UsdGeomPoints as Blender's USD export writes splat point clouds, recognised by `primvars:rotation`
-  and `primvars:scale` (see _blender_cloud). Other prims are skipped with a SplatFileWarning
+  and `primvars:scale` (see dialects._blender_cloud). Other prims are skipped with a SplatFileWarning
   listing them.
 - Float attributes are preferred to their half twins, as the schema asks. Per the schema, an array
   too long is truncated to the particle count and one too short is ignored (orientation identity,

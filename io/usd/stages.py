@@ -9,10 +9,12 @@ switch; tests set it to TEXT to run the text path where pxr is installed too.
 The interface has two levels. A Stages object (below) opens, creates and saves stages and does
 what differs between the two: traversal, primvars, transforms, time codes, array types, authoring
 attributes by schema name. The stages, prims and attributes it hands out answer one shared subset
-of pxr's calls (GetAttribute, GetAttributes, Get, Set, HasAuthoredValue, GetTimeSamples,
-GetTypeName, GetName, GetPath, GetPrimAtPath, GetStage().GetRootLayer().identifier, and on primvars
-GetPrimvar, HasPrimvar, GetPrimvarsWithAuthoredValues, ComputeFlattened, GetInterpolation,
-GetElementSize), so each reader and the writer is written once for both.
+of pxr's calls (stages: GetPrimAtPath, GetRootLayer().identifier; prims: GetAttribute,
+GetAttributes, GetTypeName, GetPath, GetStage; attributes: Get, Set, HasAuthoredValue,
+GetTimeSamples, GetTypeName, GetName, GetCustomDataByKey; primvars, from `primvars(prim)`:
+GetPrimvar, HasPrimvar, GetPrimvarsWithAuthoredValues, and on each GetAttr, GetPrimvarName,
+GetTypeName, GetInterpolation, GetElementSize, HasAuthoredValue, ComputeFlattened), so each reader
+and the writer is written once for both.
 """
 
 import contextlib
