@@ -45,7 +45,7 @@ def test_built_zip_validates_and_leaves_out_dev_files(extension_zip):
     for needed in ("blender_manifest.toml", "__init__.py", "cli.py", "core/splats.py", "io/ply.py", "io/common.py"):
         assert needed in names
     top = {n.split("/")[0] for n in names}
-    assert not top & {"tests", "bench", ".ci", ".venv", ".git", "run", "pyproject.toml", "out", "build"}
+    assert not top & {"tests", "bench", "docs", ".ci", ".venv", ".git", "run", "pyproject.toml", "out", "build"}
     assert not [n for n in names if "__pycache__" in n or ".egg-info" in n or "/." in "/" + n]
 
 
