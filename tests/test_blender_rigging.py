@@ -38,7 +38,7 @@ def test_install_registers_operators_menus_deformer_and_handlers(blender):
     res = blender.step("install")
     assert res["operators"] == [True, True]
     assert res["menus"] == {"VIEW3D_MT_object_parent": 1, "VIEW3D_MT_object": 2}     # Check Collisions, Join Splats
-    assert "_armature_pose" in res["posers"]
+    assert res["posers"] == ["rig.armature.poser"]      # registered by the rigging itself
     assert res["handlers"] == 7          # weights cache (4), native poses (1), Blender's Apply completed (2)
 
 

@@ -203,7 +203,8 @@ class Worker(BlenderWorker):
         menus = {name: self.menu_entries(name) for name in ("VIEW3D_MT_object_parent", "VIEW3D_MT_object")}
         data = self.module("splat_addon.data")
         return {"operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_bind_armature", "SPLAT_OT_check_collisions")],
-                "menus": menus, "posers": [f.__name__ for f in data.POSERS],
+                "menus": menus,
+                "posers": [f"{f.__module__.rpartition('splat_addon.')[2]}.{f.__name__}" for f in data.POSERS],
                 "handlers": self.handler_count()}
 
     def handler_count(self):
