@@ -43,7 +43,7 @@ def main(job_path):
 def _run(job, work, results):
     import bpy
     bpy.ops.extensions.package_install_files(filepath=job["zip"], repo="user_default", enable_on_install=True)
-    camera = importlib.import_module(f"{MODULE}.splat_addon.camera")
+    camera = importlib.import_module(f"{MODULE}.splat_addon.data.camera")
     scene = _scene(bpy, job, results)
     results["core_camera"] = _core_camera(bpy, camera, scene)
     direct = _direct(bpy, camera, scene, job)
@@ -112,7 +112,7 @@ def _scene(bpy, job, results):
 
 
 def _core_camera(bpy, camera, scene):
-    """The core Camera that splat_addon/camera.py makes of the scene camera (what the engine renders
+    """The core Camera that splat_addon/data/camera.py makes of the scene camera (what the engine renders
     through), as plain numbers."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
     cam = camera.from_object(scene.camera.evaluated_get(depsgraph), scene, scene.render.resolution_x,
@@ -124,7 +124,7 @@ def _core_camera(bpy, camera, scene):
 
 def _direct(bpy, camera, scene, job):
     """A renderer calling the installed extension's core.render on the PLY's splats through the camera
-    conversion the engine uses (splat_addon/camera.py), without Blender's render pipeline; its image
+    conversion the engine uses (splat_addon/data/camera.py), without Blender's render pipeline; its image
     is kept as scene-linear RGBA like the others (the core's display sRGB turned linear)."""
     render = importlib.import_module(f"{MODULE}.core.render")
     color = importlib.import_module(f"{MODULE}.core.color")
