@@ -30,6 +30,8 @@ from . import compressed_ply
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
 from .ply_header import ANTIALIASED_COMMENT, FORMATS, TYPE_NAMES, read_header, sh_order
 
+KERNELS = "io.ply_kernels"     # the compiled record fill, loaded by core.jit
+
 FLAT_SIGMA = 1e-6                      # 2DGS third axis: thin next to any real splat, still invertible
 FLAT_LOG_SCALE = float(np.log(FLAT_SIGMA))
 
@@ -342,7 +344,7 @@ def write(path, cloud, nonfinite="raise"):
     names = layout_names(cloud.sh_degree)
     extras = _extra_columns(path, cloud, set(names))
     dtype, header = _layout(len(cloud), names, [(name, a.dtype) for name, a in extras], cloud.antialiased)
-    fill = _Filler(cloud, extras, jit.load("io.ply_kernels", check=_check_kernels))
+    fill = _Filler(cloud, extras, jit.load(KERNELS, check=_check_kernels))
     tallies = []
     try:
         with atomic_write(path) as f:
