@@ -10,9 +10,11 @@ __version__ = "0.1.0"
 
 def register():
     from . import splat_addon
+
     splat_addon.register()
 
 
 def unregister():
     from . import splat_addon
+
     splat_addon.unregister()

@@ -88,9 +88,13 @@ def check_ranges(args):
 
 # info ---------------------------------------------------------------------------------------------
 
+
 def _add_info(p):
-    p.add_argument("file", help="a splat file (.ply, .compressed.ply, .usd/.usda/.usdc/.usdz, .spz, .splat, "
-                                ".sog or meta.json, .glb/.gltf)")
+    p.add_argument(
+        "file",
+        help="a splat file (.ply, .compressed.ply, .usd/.usda/.usdc/.usdz, .spz, .splat, "
+        ".sog or meta.json, .glb/.gltf)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -98,8 +102,7 @@ def summarize(cloud):
     """The statistics `info` prints, as plain Python values."""
     finite = cloud.finite_mask()
     pos = cloud.positions[finite]
-    stats = lambda a: {"min": float(a.min()), "median": float(np.median(a)), "max": float(a.max())} \
-        if len(a) else None
+    stats = lambda a: {"min": float(a.min()), "median": float(np.median(a)), "max": float(a.max())} if len(a) else None
     return {
         "count": len(cloud),
         "sh_degree": cloud.sh_degree,
@@ -116,12 +119,17 @@ def summarize(cloud):
 
 def _run_info(args):
     from .io import format_of, read_splats
+
     # info reports non-finite values (and any other reader warning) instead of refusing the file.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         cloud = read_splats(args.file, nonfinite="keep")
-    summary = {"file": args.file, "format": format_of(args.file), **summarize(cloud),
-               "warnings": [str(w.message) for w in caught]}
+    summary = {
+        "file": args.file,
+        "format": format_of(args.file),
+        **summarize(cloud),
+        "warnings": [str(w.message) for w in caught],
+    }
     if args.json:
         print(json.dumps(summary))
     else:
@@ -132,36 +140,62 @@ def _run_info(args):
 
 # convert ------------------------------------------------------------------------------------------
 
+
 def _add_convert(p):
     p.add_argument("input")
     p.add_argument("output")
     p.add_argument("--sh-degree", type=int, choices=range(5), help="truncate SH to this degree (0..4)")
-    p.add_argument("--spz-version", type=int, choices=(2, 3, 4),
-                   help="SPZ version to write (default 3, or 4 for SH degree 4, which v2/v3 cannot store)")
-    p.add_argument("--half", action="store_true",
-                   help="OpenUSD output: orientations, scales, opacities and SH as half floats")
-    p.add_argument("--axes", choices=("upright", "y-up", "as-is"),
-                   help="OpenUSD output: the capture's coordinates under a transform standing them upright "
-                        "(default), values turned Y-up with no transform, or the coordinates as they are "
-                        "(as NVIDIA's converter writes: upside down in Y-up viewers)")
-    p.add_argument("--usd-input", choices=("capture", "stage"),
-                   help="OpenUSD input: take splat prims without our upright transform as capture (PLY) "
-                        "coordinates (default, right for NVIDIA's and OpenUSD's converters) or in the stage's axes")
+    p.add_argument(
+        "--spz-version",
+        type=int,
+        choices=(2, 3, 4),
+        help="SPZ version to write (default 3, or 4 for SH degree 4, which v2/v3 cannot store)",
+    )
+    p.add_argument(
+        "--half", action="store_true", help="OpenUSD output: orientations, scales, opacities and SH as half floats"
+    )
+    p.add_argument(
+        "--axes",
+        choices=("upright", "y-up", "as-is"),
+        help="OpenUSD output: the capture's coordinates under a transform standing them upright "
+        "(default), values turned Y-up with no transform, or the coordinates as they are "
+        "(as NVIDIA's converter writes: upside down in Y-up viewers)",
+    )
+    p.add_argument(
+        "--usd-input",
+        choices=("capture", "stage"),
+        help="OpenUSD input: take splat prims without our upright transform as capture (PLY) "
+        "coordinates (default, right for NVIDIA's and OpenUSD's converters) or in the stage's axes",
+    )
     p.add_argument("--prune-opacity", type=float, metavar="T", help="drop splats whose opacity is below T (0..1)")
-    p.add_argument("--prune-invisible", type=float, nargs="?", const=0.0, metavar="W",
-                   help="drop splats that add nothing to any pixel of the views around the cloud (with W: "
-                        "whose blending weight T*alpha never exceeds W; 0.004 is about one 8-bit step)")
-    p.add_argument("--views", type=int, default=12,
-                   help="views around the cloud that --prune-invisible keeps what they see of (default 12); "
-                        "the error is measured from as many others, between them")
+    p.add_argument(
+        "--prune-invisible",
+        type=float,
+        nargs="?",
+        const=0.0,
+        metavar="W",
+        help="drop splats that add nothing to any pixel of the views around the cloud (with W: "
+        "whose blending weight T*alpha never exceeds W; 0.004 is about one 8-bit step)",
+    )
+    p.add_argument(
+        "--views",
+        type=int,
+        default=12,
+        help="views around the cloud that --prune-invisible keeps what they see of (default 12); "
+        "the error is measured from as many others, between them",
+    )
     p.add_argument("--view-size", type=int, default=128, help="pixels per side of those views (default 128)")
-    p.add_argument("--no-check", action="store_true",
-                   help="skip measuring the render error of the economies (quicker for huge files)")
+    p.add_argument(
+        "--no-check",
+        action="store_true",
+        help="skip measuring the render error of the economies (quicker for huge files)",
+    )
 
 
 def _write_options(args):
     """Format-specific write options from the convert flags, refusing flags the output cannot use."""
     from .io import format_of
+
     fmt = format_of(args.output)
     options = {}
     if args.spz_version is not None:
@@ -182,6 +216,7 @@ def _write_options(args):
 def _read_options(args):
     """Format-specific read options from the convert flags."""
     from .io import format_of
+
     if args.usd_input is None:
         return {}
     if format_of(args.input) != "usd":
@@ -191,6 +226,7 @@ def _read_options(args):
 
 def _run_convert(args):
     from .io import read_splats, write_splats
+
     options = _write_options(args)
     cloud = read_splats(args.input, **_read_options(args))
     stages = _economy_stages(args, cloud, options)
@@ -207,6 +243,7 @@ def _economy_stages(args, cloud, options):
     """[(label, cloud, write options)]: the input as the output format writes it, then one stage per
     economy asked for, each applied to the one before; [] when none is asked for."""
     from .core import economy
+
     plain = {k: v for k, v in options.items() if k != "half"}
     stages = [(f"as {Path(args.output).suffix}", cloud, plain)]
     try:
@@ -235,6 +272,7 @@ def _write_stages(args, original, stages):
     about the files written only to be measured are left out: the output's own are shown."""
     from .core import economy
     from .io import read_splats, write_splats
+
     views = reference = None
     if not args.no_check:
         views = economy.orbit_views(economy.cloud_points(original), args.views, args.view_size, phase=0.5)
@@ -252,8 +290,10 @@ def _write_stages(args, original, stages):
                     warnings.simplefilter("ignore")
                 write_splats(path, cloud, **options)
             size = os.path.getsize(path)
-            row = f"{label[:33]:<34}{len(cloud):>10}{_change(len(cloud), previous and previous[0]):>9}" \
-                  f"{size:>14}{_change(size, previous and previous[1]):>9}"
+            row = (
+                f"{label[:33]:<34}{len(cloud):>10}{_change(len(cloud), previous and previous[0]):>9}"
+                f"{size:>14}{_change(size, previous and previous[1]):>9}"
+            )
             if views is not None:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
@@ -263,8 +303,10 @@ def _write_stages(args, original, stages):
             print(row, flush=True)
             previous = (len(cloud), size)
     if views is not None:
-        print(f"error: RGBA renders of each file written against the input, {len(views)} views of "
-              f"{args.view_size} px around it (colour premultiplied, clipped to [0, 1])")
+        print(
+            f"error: RGBA renders of each file written against the input, {len(views)} views of "
+            f"{args.view_size} px around it (colour premultiplied, clipped to [0, 1])"
+        )
 
 
 def _change(value, before):
@@ -273,6 +315,7 @@ def _change(value, before):
 
 
 # render -------------------------------------------------------------------------------------------
+
 
 def _add_render(p):
     p.add_argument("input", help="a splat file")
@@ -283,15 +326,26 @@ def _add_render(p):
     p.add_argument("--camera-pos", type=_parse_vec, help="x,y,z (default: frame the cloud)")
     p.add_argument("--look-at", type=_parse_vec, help="x,y,z (default: the centre of the cloud)")
     p.add_argument("--up", type=_parse_vec, default=np.array([0.0, 1.0, 0.0]), help="x,y,z world up")
-    p.add_argument("--background", type=lambda t: None if t.lower() == "none" else _parse_vec(t),
-                   default=np.zeros(3),
-                   help="r,g,b display sRGB in [0,1]; 'none' for a transparent image")
+    p.add_argument(
+        "--background",
+        type=lambda t: None if t.lower() == "none" else _parse_vec(t),
+        default=np.zeros(3),
+        help="r,g,b display sRGB in [0,1]; 'none' for a transparent image",
+    )
     p.add_argument("--ortho-scale", type=float, help="orthographic camera showing this width in world units")
-    p.add_argument("--mode", choices=("classic", "antialiased"), default=None,
-                   help="render mode (default: the one the splats were made for: antialiased where the file "
-                        "says so, classic otherwise)")
-    p.add_argument("--near", type=float, default=0.2,
-                   help="near clip distance (default 0.2, as the 3DGS reference; the same wherever the camera looks)")
+    p.add_argument(
+        "--mode",
+        choices=("classic", "antialiased"),
+        default=None,
+        help="render mode (default: the one the splats were made for: antialiased where the file "
+        "says so, classic otherwise)",
+    )
+    p.add_argument(
+        "--near",
+        type=float,
+        default=0.2,
+        help="near clip distance (default 0.2, as the 3DGS reference; the same wherever the camera looks)",
+    )
 
 
 def _run_render(args):
@@ -300,35 +354,48 @@ def _run_render(args):
     from .core.render import check_image_memory, render
     from .io import read_splats
     from .io.image import write_image
-    try:                                        # before the file is read and anything allocated
+
+    try:  # before the file is read and anything allocated
         check_image_memory(Camera(args.width, args.height, 1.0, 1.0, 0.0, 0.0))
     except ValueError as exc:
         raise OptionError(f"--width, --height: {exc}") from None
     cloud = read_splats(args.input)
     try:
-        camera = frame_points(economy.cloud_points(cloud), args.width, args.height, args.fov,
-                              ortho_scale=args.ortho_scale, eye=args.camera_pos, target=args.look_at, up=args.up,
-                              near=args.near)
+        camera = frame_points(
+            economy.cloud_points(cloud),
+            args.width,
+            args.height,
+            args.fov,
+            ortho_scale=args.ortho_scale,
+            eye=args.camera_pos,
+            target=args.look_at,
+            up=args.up,
+            near=args.near,
+        )
     except ValueError as exc:
         raise OptionError(f"--camera-pos, --look-at: {exc}") from None
     up = args.up / np.linalg.norm(args.up)
     if np.linalg.norm(np.cross(camera.forward, up)) < 1e-6:
-        raise OptionError(f"--up ({','.join(f'{x:g}' for x in args.up)}) is parallel to the view direction; "
-                          "give an up that is not")
+        raise OptionError(
+            f"--up ({','.join(f'{x:g}' for x in args.up)}) is parallel to the view direction; give an up that is not"
+        )
     start = time.perf_counter()
     try:
         result = render(cloud, camera, background=args.background, mode=args.mode, progress=Progress())
-    except ValueError as exc:                   # its memory check again, for the kernels it will use
+    except ValueError as exc:  # its memory check again, for the kernels it will use
         raise OptionError(str(exc)) from None
     write_image(args.output, result)
     skipped = result.stats["skipped_nonfinite"]
-    print(f"rendered {result.stats['visible']} of {len(cloud)} splats at {args.width}x{args.height} in "
-          f"{time.perf_counter() - start:.2f} s to {args.output}"
-          + (f" ({skipped} splats with non-finite values skipped)" if skipped else ""))
+    print(
+        f"rendered {result.stats['visible']} of {len(cloud)} splats at {args.width}x{args.height} in "
+        f"{time.perf_counter() - start:.2f} s to {args.output}"
+        + (f" ({skipped} splats with non-finite values skipped)" if skipped else "")
+    )
     return 0
 
 
 # mesh2splats --------------------------------------------------------------------------------------
+
 
 def _float_list(text):
     try:
@@ -343,33 +410,61 @@ def _float_list(text):
 def _add_mesh2splats(p):
     from .core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, PIXEL_FILTERS
     from .core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR
-    p.add_argument("mesh", help="a triangle mesh (.obj with its .mtl and textures; .stl, .dae, .glb, ... "
-                                "through trimesh)")
+
+    p.add_argument(
+        "mesh", help="a triangle mesh (.obj with its .mtl and textures; .stl, .dae, .glb, ... through trimesh)"
+    )
     p.add_argument("output", help="the splat file to write (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat)")
     size = p.add_mutually_exclusive_group()
     size.add_argument("--max-splats", type=int, metavar="N", help="a splat budget, spread by area")
-    size.add_argument("--target-psnr", type=float, metavar="DB",
-                      help=f"refine until renders from every view reach this PSNR against the mesh's "
-                           f"(default {DEFAULT_TARGET_PSNR:g})")
+    size.add_argument(
+        "--target-psnr",
+        type=float,
+        metavar="DB",
+        help=f"refine until renders from every view reach this PSNR against the mesh's "
+        f"(default {DEFAULT_TARGET_PSNR:g})",
+    )
     p.add_argument("--view-size", type=int, default=256, help="pixels per side of the views PSNR is measured in")
-    p.add_argument("--view-distances", type=_float_list, default=None, metavar="D,D,...",
-                   help="distances of the views, multiples of the one that frames the whole mesh "
-                        "(default 0.5,1,3: close-up, whole, distant)")
+    p.add_argument(
+        "--view-distances",
+        type=_float_list,
+        default=None,
+        metavar="D,D,...",
+        help="distances of the views, multiples of the one that frames the whole mesh "
+        "(default 0.5,1,3: close-up, whole, distant)",
+    )
     p.add_argument("--view-count", type=int, default=None, metavar="N", help="views at each distance (default 4)")
-    p.add_argument("--mode", choices=("classic", "antialiased"), default=DEFAULT_RENDER_MODE,
-                   help="the render mode the splats are made for, which the file records (SPZ's flag, a PLY "
-                        f"header comment, an OpenUSD attribute); default {DEFAULT_RENDER_MODE}: antialiased keeps "
-                        "silhouettes right at every distance, classic is for viewers that cannot render antialiased")
-    p.add_argument("--calibrate", action=argparse.BooleanOptionalAction, default=True,
-                   help="with --max-splats: calibrate the silhouettes against renders of the mesh and the splats "
-                        "from the views (default; seconds per 100k splats); --no-calibrate renders nothing and "
-                        "keeps the splats on the surface")
-    p.add_argument("--pixel-filter", choices=PIXEL_FILTERS, default=DEFAULT_PIXEL_FILTER,
-                   help="the pixel filter of the renders the splats should match, as Cycles' Film settings name it "
-                        f"(default {DEFAULT_PIXEL_FILTER}, Cycles' default)")
-    p.add_argument("--filter-width", type=float, default=CYCLES_FILTER_WIDTH, metavar="PX",
-                   help=f"the filter's width in pixels, as Cycles' Film settings give it (default "
-                        f"{CYCLES_FILTER_WIDTH:g}; the box filter is one pixel whatever the width)")
+    p.add_argument(
+        "--mode",
+        choices=("classic", "antialiased"),
+        default=DEFAULT_RENDER_MODE,
+        help="the render mode the splats are made for, which the file records (SPZ's flag, a PLY "
+        f"header comment, an OpenUSD attribute); default {DEFAULT_RENDER_MODE}: antialiased keeps "
+        "silhouettes right at every distance, classic is for viewers that cannot render antialiased",
+    )
+    p.add_argument(
+        "--calibrate",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="with --max-splats: calibrate the silhouettes against renders of the mesh and the splats "
+        "from the views (default; seconds per 100k splats); --no-calibrate renders nothing and "
+        "keeps the splats on the surface",
+    )
+    p.add_argument(
+        "--pixel-filter",
+        choices=PIXEL_FILTERS,
+        default=DEFAULT_PIXEL_FILTER,
+        help="the pixel filter of the renders the splats should match, as Cycles' Film settings name it "
+        f"(default {DEFAULT_PIXEL_FILTER}, Cycles' default)",
+    )
+    p.add_argument(
+        "--filter-width",
+        type=float,
+        default=CYCLES_FILTER_WIDTH,
+        metavar="PX",
+        help=f"the filter's width in pixels, as Cycles' Film settings give it (default "
+        f"{CYCLES_FILTER_WIDTH:g}; the box filter is one pixel whatever the width)",
+    )
 
 
 def _run_mesh2splats(args):
@@ -377,50 +472,83 @@ def _run_mesh2splats(args):
     from .core.mesh_to_splats import mesh_to_splats
     from .io import SplatFileError, write_splats
     from .io.meshes import read_mesh_file
+
     if not args.calibrate and args.max_splats is None:
         raise OptionError("--no-calibrate applies to a --max-splats budget; a target PSNR always calibrates")
     start = time.perf_counter()
     mesh = read_mesh_file(args.mesh)
     info = {}
     try:
-        cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(),
-                               max_splats=args.max_splats, target_psnr=args.target_psnr,
-                               view_size=args.view_size, view_distances=args.view_distances,
-                               view_count=args.view_count, render_mode=args.mode, calibrate=args.calibrate,
-                               pixel_filter=args.pixel_filter, filter_width=args.filter_width,
-                               progress=Progress(), info=info)
+        cloud = mesh_to_splats(
+            mesh.vertices,
+            mesh.faces,
+            **mesh.appearance(),
+            max_splats=args.max_splats,
+            target_psnr=args.target_psnr,
+            view_size=args.view_size,
+            view_distances=args.view_distances,
+            view_count=args.view_count,
+            render_mode=args.mode,
+            calibrate=args.calibrate,
+            pixel_filter=args.pixel_filter,
+            filter_width=args.filter_width,
+            progress=Progress(),
+            info=info,
+        )
     except ValueError as exc:
         raise SplatFileError(args.mesh, str(exc)) from None
     write_splats(args.output, cloud)
     skipped = info.get("repaired")
     quality = summary(info)
     quality = f", {quality}" if quality else ""
-    print(f"wrote {len(cloud)} splats from {len(mesh.faces)} faces{quality} to {args.output} in "
-          f"{time.perf_counter() - start:.1f} s" + (f" (skipped or repaired: {skipped})" if skipped else ""))
+    print(
+        f"wrote {len(cloud)} splats from {len(mesh.faces)} faces{quality} to {args.output} in "
+        f"{time.perf_counter() - start:.1f} s" + (f" (skipped or repaired: {skipped})" if skipped else "")
+    )
     return 0
 
 
 # urdf2splats --------------------------------------------------------------------------------------
 
+
 def _add_urdf2splats(p):
     p.add_argument("urdf", help="a robot description (.urdf) with its meshes (.obj, .stl, .dae, ...)")
-    p.add_argument("output", help="the splat file to write (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat); "
-                                  "the splats keep the URDF's frame (z up) and, in .ply, each one's link index")
-    p.add_argument("--package-path", action="append", default=[], metavar="DIR",
-                   help="a folder to look for package:// meshes in (repeat for more; ROS_PACKAGE_PATH is also used)")
+    p.add_argument(
+        "output",
+        help="the splat file to write (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat); "
+        "the splats keep the URDF's frame (z up) and, in .ply, each one's link index",
+    )
+    p.add_argument(
+        "--package-path",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="a folder to look for package:// meshes in (repeat for more; ROS_PACKAGE_PATH is also used)",
+    )
     size = p.add_mutually_exclusive_group()
-    size.add_argument("--max-splats", type=int, metavar="N", help="a splat budget for the whole robot, spread by area "
-                                                                 "(default 60000)")
-    size.add_argument("--target-psnr", type=float, metavar="DB",
-                      help="refine until renders of the robot from every view reach this PSNR against its meshes")
-    p.add_argument("--joint", action="append", default=[], metavar="NAME=VALUE",
-                   help="pose the robot: a joint value (radians or metres; comma-separated for multi-value joints)")
+    size.add_argument(
+        "--max-splats", type=int, metavar="N", help="a splat budget for the whole robot, spread by area (default 60000)"
+    )
+    size.add_argument(
+        "--target-psnr",
+        type=float,
+        metavar="DB",
+        help="refine until renders of the robot from every view reach this PSNR against its meshes",
+    )
+    p.add_argument(
+        "--joint",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="pose the robot: a joint value (radians or metres; comma-separated for multi-value joints)",
+    )
 
 
 def _run_urdf2splats(args):
     from .core.kinematics import KinematicsError
     from .io import SplatFileError, write_splats
     from .io.urdf import read_robot
+
     start = time.perf_counter()
     values = {}
     for item in args.joint:
@@ -430,24 +558,34 @@ def _run_urdf2splats(args):
         except argparse.ArgumentTypeError:
             values[name] = None
         if not sep or values[name] is None or not np.isfinite(values[name]).all():
-            raise OptionError(f"--joint expects NAME=VALUE with finite numbers (comma-separated for several), "
-                              f"got '{item}'")
+            raise OptionError(
+                f"--joint expects NAME=VALUE with finite numbers (comma-separated for several), got '{item}'"
+            )
     info = {}
-    robot = read_robot(args.urdf, args.package_path, max_splats=args.max_splats, target_psnr=args.target_psnr,
-                       progress=Progress(), info=info)
+    robot = read_robot(
+        args.urdf,
+        args.package_path,
+        max_splats=args.max_splats,
+        target_psnr=args.target_psnr,
+        progress=Progress(),
+        info=info,
+    )
     try:
         cloud = robot.pose(robot.tree.pack(values))
     except KinematicsError as exc:
         raise SplatFileError(args.urdf, str(exc)) from None
     write_splats(args.output, cloud)
     quality = f", {info['psnr']:.1f} dB PSNR in the worst of {info['views']} views" if "psnr" in info else ""
-    print(f"wrote {len(cloud)} splats on {len(np.unique(robot.links))} of {len(robot.tree)} links of "
-          f"'{robot.name}' ({robot.tree.dof} degrees of freedom{quality}) to {args.output} in "
-          f"{time.perf_counter() - start:.1f} s")
+    print(
+        f"wrote {len(cloud)} splats on {len(np.unique(robot.links))} of {len(robot.tree)} links of "
+        f"'{robot.name}' ({robot.tree.dof} degrees of freedom{quality}) to {args.output} in "
+        f"{time.perf_counter() - start:.1f} s"
+    )
     return 0
 
 
 # demo (the main job) ------------------------------------------------------------------------------
+
 
 def _add_demo(p):
     p.add_argument("--out", default="out/demo", help="folder for everything the demo writes")
@@ -455,6 +593,7 @@ def _add_demo(p):
 
 def _run_demo(args):
     from .demo import run_demo
+
     return run_demo(args.out, progress=Progress())
 
 
@@ -470,7 +609,8 @@ VERBS = {
 
 def build_parser():
     parser = argparse.ArgumentParser(
-        prog="splatwright", description="3D Gaussian splats: inspect, convert, render, make from meshes, and a demo.")
+        prog="splatwright", description="3D Gaussian splats: inspect, convert, render, make from meshes, and a demo."
+    )
     sub = parser.add_subparsers(dest="verb", required=True)
     for name, (add, run, help_text) in VERBS.items():
         p = sub.add_parser(name, help=help_text)
@@ -487,6 +627,7 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     from .core import SplatValidationError
     from .io import SplatFileError
+
     try:
         check_ranges(args)
         return args.run(args)

@@ -26,12 +26,12 @@ from .io.common import atomic_write
 
 ARM_SPLATS = 20_000
 ENVIRONMENT_SPLATS = 20_000
-BENT_FRAME = 12                      # the demo rig's most bent pose
-RENDER_FRAMES = "6-24:6"             # frames 6, 12, 18, 24
+BENT_FRAME = 12  # the demo rig's most bent pose
+RENDER_FRAMES = "6-24:6"  # frames 6, 12, 18, 24
 RENDER_SIZE = (480, 360)
-CYCLES_SAMPLES = 16                  # the floor and box, lit by the sun: few samples suffice
-WORLD_COLOR = (0.03, 0.035, 0.045)   # a dim sky, which also lights the shadows
-IGNORE_BONES = ("Base",)             # the base stands on the floor: not a collision
+CYCLES_SAMPLES = 16  # the floor and box, lit by the sun: few samples suffice
+WORLD_COLOR = (0.03, 0.035, 0.045)  # a dim sky, which also lights the shadows
+IGNORE_BONES = ("Base",)  # the base stands on the floor: not a collision
 
 
 class DemoError(Exception):
@@ -45,8 +45,9 @@ def run_demo(out_dir, progress=None):
         out.mkdir(parents=True, exist_ok=True)
         import bpy
     except ImportError:
-        return _fail("the demo needs Blender's bpy module (Python 3.11, `pip install bpy==5.0.1`); "
-                     "`./run demo` sets it up")
+        return _fail(
+            "the demo needs Blender's bpy module (Python 3.11, `pip install bpy==5.0.1`); `./run demo` sets it up"
+        )
     except OSError as exc:
         return _fail(f"cannot create the output folder {out}: {exc}")
     return Demo(bpy, out, progress).run()
@@ -99,6 +100,7 @@ class Demo:
         finally:
             if self.registered:
                 from . import unregister
+
                 unregister()
         self.summary["seconds"]["total"] = round(time.perf_counter() - start, 3)
         self.write_summary()
@@ -115,9 +117,11 @@ class Demo:
         bpy = self.bpy
         bpy.ops.wm.read_factory_settings(use_empty=True)
         from . import register
+
         register()
         self.registered = True
         from .splat_addon.render import engine
+
         if not hasattr(bpy.types, "SPLAT_OT_bind_armature") or not engine.SplatwrightRenderEngine.is_registered:
             raise DemoError("the extension did not register its operators and render engine")
         return f"Blender {bpy.app.version_string}, extension registered from {Path(__file__).parent}"
@@ -125,29 +129,38 @@ class Demo:
     def build_rig(self):
         from .splat_addon import data
         from .splat_addon.convert import demo_rig
+
         self.rig = demo_rig.build_demo_rig(self.bpy.context.scene, environment_splats=ENVIRONMENT_SPLATS)
         self.env = self.rig.environment
         self.summary["environment_splats"] = data.splat_count(self.env.data)
-        return f"robot arm with {len(self.rig.armature.data.bones)} bones, frames 1-24; environment " \
-               f"'{self.env.name}': {data.splat_count(self.env.data)} splats"
+        return (
+            f"robot arm with {len(self.rig.armature.data.bones)} bones, frames 1-24; environment "
+            f"'{self.env.name}': {data.splat_count(self.env.data)} splats"
+        )
 
     def convert_arm(self):
         from .splat_addon import data
         from .splat_addon.convert import from_mesh
+
         self.arm = from_mesh.from_mesh(self.bpy.context, [self.rig.body], max_splats=ARM_SPLATS)[0]
         self.summary["arm_splats"] = data.splat_count(self.arm.data)
-        return f"'{self.arm.name}': {data.splat_count(self.arm.data)} splats from '{self.rig.body.name}' in its rest pose"
+        return (
+            f"'{self.arm.name}': {data.splat_count(self.arm.data)} splats from '{self.rig.body.name}' in its rest pose"
+        )
 
     def bind(self):
         from .splat_addon.rig import armature as rigging
+
         warnings = []
-        plan, = rigging.bind_armature([self.arm], self.rig.armature, warn=warnings.append)
+        (plan,) = rigging.bind_armature([self.arm], self.rig.armature, warn=warnings.append)
         if not plan.source.startswith("mesh"):
             raise DemoError(f"the weights came from {plan.source}, not from the skinned mesh: {'; '.join(warnings)}")
         report = plan.report
         self.summary["binding"] = {"weights_from": plan.source, **report}
-        return f"weights from {plan.source} (exact transfer), up to {report['max_influences']} bones per splat, " \
-               f"{report['unbound']} unbound"
+        return (
+            f"weights from {plan.source} (exact transfer), up to {report['max_influences']} bones per splat, "
+            f"{report['unbound']} unbound"
+        )
 
     def measure_pose(self):
         """The bound splats posed at the bent frame against splats made from the posed mesh, both
@@ -158,6 +171,7 @@ class Demo:
         from .splat_addon import data
         from .splat_addon.convert import from_mesh
         from .splat_addon.data import camera
+
         bpy, scene = self.bpy, self.bpy.context.scene
         scene.frame_set(BENT_FRAME)
         try:
@@ -165,36 +179,49 @@ class Demo:
             posed = data.evaluated_cloud(self.arm, depsgraph)
             rest = data.object_cloud(self.arm)
             rest = data.transform_cloud(rest, data.world_matrix(self.arm, depsgraph))
-            _, remade, _ = from_mesh.convert_objects(bpy.context, [self.rig.body], max_splats=ARM_SPLATS,
-                                                     use_rest_pose=False)[0]
+            _, remade, _ = from_mesh.convert_objects(
+                bpy.context, [self.rig.body], max_splats=ARM_SPLATS, use_rest_pose=False
+            )[0]
             depsgraph = bpy.context.evaluated_depsgraph_get()
             remade = data.transform_cloud(remade, data.world_matrix(self.rig.body, depsgraph))
             cam = camera.from_object(scene.camera.evaluated_get(depsgraph), scene, *RENDER_SIZE)
         finally:
             scene.frame_set(1)
-        images = {name: render(cloud, cam) for name, cloud in
-                  (("posed", posed), ("remade", remade), ("centres", rest.replace(positions=posed.positions)))}
+        images = {
+            name: render(cloud, cam)
+            for name, cloud in (
+                ("posed", posed),
+                ("remade", remade),
+                ("centres", rest.replace(positions=posed.positions)),
+            )
+        }
         covered = (images["posed"].alpha > 0.01) | (images["remade"].alpha > 0.01)
         if not covered.any():
             raise DemoError("the arm is not in view of the scene camera")
         rows, cols = np.nonzero(covered)
         box = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
         score = {name: psnr(images[name].color[box], images["remade"].color[box]) for name in ("posed", "centres")}
-        self.summary["pose_check"] = {"frame": BENT_FRAME, "psnr_db": round(score["posed"], 2),
-                                      "centres_only_psnr_db": round(score["centres"], 2),
-                                      "region_px": [int(rows.ptp()) + 1, int(cols.ptp()) + 1]}
-        return f"PSNR {score['posed']:.1f} dB against splats of the posed mesh (centres only: " \
-               f"{score['centres']:.1f} dB) over {rows.ptp() + 1}x{cols.ptp() + 1} px"
+        self.summary["pose_check"] = {
+            "frame": BENT_FRAME,
+            "psnr_db": round(score["posed"], 2),
+            "centres_only_psnr_db": round(score["centres"], 2),
+            "region_px": [int(rows.ptp()) + 1, int(cols.ptp()) + 1],
+        }
+        return (
+            f"PSNR {score['posed']:.1f} dB against splats of the posed mesh (centres only: "
+            f"{score['centres']:.1f} dB) over {rows.ptp() + 1}x{cols.ptp() + 1} px"
+        )
 
     def render(self):
         from .splat_addon import command
+
         scene = self.bpy.context.scene
         render = scene.render
         render.resolution_x, render.resolution_y = RENDER_SIZE
         render.resolution_percentage = 100
-        scene.view_settings.view_transform = "Standard"     # PNG colours as 3DGS viewers show them
-        self.bpy.context.view_layer.use_pass_z = True       # the EXR gets the depth pass too,
-        self.bpy.context.view_layer.splatwright_use_pass_splats = True      # and the splats and meshes apart
+        scene.view_settings.view_transform = "Standard"  # PNG colours as 3DGS viewers show them
+        self.bpy.context.view_layer.use_pass_z = True  # the EXR gets the depth pass too,
+        self.bpy.context.view_layer.splatwright_use_pass_splats = True  # and the splats and meshes apart
         self._meshes_for_render(scene)
         folder = self.out / "render"
         folder.mkdir(exist_ok=True)
@@ -208,13 +235,19 @@ class Demo:
                 raise DemoError(f"rendering {kind.upper()} frames failed (the error is above)")
             frames = command.parse_frames(RENDER_FRAMES, scene)
             written[kind] = [folder / f"frame_{f:04d}.{kind}" for f in frames]
-        self.summary["render"] = {"frames": frames, "size": list(RENDER_SIZE), "meshes": "Cycles",
-                                  "cycles_samples": CYCLES_SAMPLES,
-                                  **{k: [p.name for p in v] for k, v in written.items()}}
+        self.summary["render"] = {
+            "frames": frames,
+            "size": list(RENDER_SIZE),
+            "meshes": "Cycles",
+            "cycles_samples": CYCLES_SAMPLES,
+            **{k: [p.name for p in v] for k, v in written.items()},
+        }
         self._files(*written["png"], *written["exr"])
-        return f"{len(frames)} PNG + {len(frames)} EXR (Combined, Depth, Splats, Meshes) frames at " \
-               f"{RENDER_SIZE[0]}x{RENDER_SIZE[1]}, frames {', '.join(map(str, frames))}: the arm's splats on the " \
-               f"floor and box meshes (Cycles, {CYCLES_SAMPLES} samples), in {folder.name}/"
+        return (
+            f"{len(frames)} PNG + {len(frames)} EXR (Combined, Depth, Splats, Meshes) frames at "
+            f"{RENDER_SIZE[0]}x{RENDER_SIZE[1]}, frames {', '.join(map(str, frames))}: the arm's splats on the "
+            f"floor and box meshes (Cycles, {CYCLES_SAMPLES} samples), in {folder.name}/"
+        )
 
     def _meshes_for_render(self, scene):
         """The environment shows as its meshes (Cycles renders them), the arm as its splats: the
@@ -224,7 +257,7 @@ class Demo:
         self.env.hide_render = True
         self.rig.body.hide_render = True
         scene.cycles.samples = CYCLES_SAMPLES
-        scene.cycles.use_denoising = False    # OIDN would take longer than the render here
+        scene.cycles.use_denoising = False  # OIDN would take longer than the render here
         scene.cycles.device = "CPU"
         if scene.world is None:
             scene.world = bpy.data.worlds.new("Splatwright Demo Sky")
@@ -237,47 +270,68 @@ class Demo:
     def export(self):
         from .splat_addon import data
         from .splat_addon.files import animation
+
         context, scene = self.bpy.context, self.bpy.context.scene
         frames = data.frame_range(scene.frame_start, scene.frame_end, scene.frame_step)
         everything = [self.arm, self.env]
-        one, = animation.export_animation(context, everything, self.out / "scene_####.ply", [BENT_FRAME])
+        (one,) = animation.export_animation(context, everything, self.out / "scene_####.ply", [BENT_FRAME])
         (self.out / "arm_ply").mkdir(exist_ok=True)
-        sequence = animation.export_animation(context, [self.arm], self.out / "arm_ply" / "arm_####.ply", frames,
-                                              progress=self._frames_progress("PLY sequence"))
-        usd, = animation.export_animation(context, [self.arm], self.out / "arm.usdc", frames,
-                                          progress=self._frames_progress("OpenUSD"))
+        sequence = animation.export_animation(
+            context,
+            [self.arm],
+            self.out / "arm_ply" / "arm_####.ply",
+            frames,
+            progress=self._frames_progress("PLY sequence"),
+        )
+        (usd,) = animation.export_animation(
+            context, [self.arm], self.out / "arm.usdc", frames, progress=self._frames_progress("OpenUSD")
+        )
         splats = data.splat_count(self.arm.data) + data.splat_count(self.env.data)
-        self.summary["exports"] = {"ply": one.name, "ply_splats": splats,
-                                   "ply_sequence": [p.relative_to(self.out).as_posix() for p in sequence],
-                                   "usd": usd.name, "usd_frames": frames}
+        self.summary["exports"] = {
+            "ply": one.name,
+            "ply_splats": splats,
+            "ply_sequence": [p.relative_to(self.out).as_posix() for p in sequence],
+            "usd": usd.name,
+            "usd_frames": frames,
+        }
         self._files(one, *sequence, usd)
         seq_bytes = sum(p.stat().st_size for p in sequence)
-        return f"{one.name} (arm and environment at frame {BENT_FRAME}, {_size(one)}); arm_ply/ ({len(sequence)} " \
-               f"files, {seq_bytes / 1e6:.2f} MB); {usd.name} ({len(frames)} time samples, {_size(usd)})"
+        return (
+            f"{one.name} (arm and environment at frame {BENT_FRAME}, {_size(one)}); arm_ply/ ({len(sequence)} "
+            f"files, {seq_bytes / 1e6:.2f} MB); {usd.name} ({len(frames)} time samples, {_size(usd)})"
+        )
 
     def collide(self):
         from .splat_addon.rig import collide
+
         context, scene = self.bpy.context, self.bpy.context.scene
         frames = range(scene.frame_start, scene.frame_end + 1)
-        report = collide.check_collisions(context, self.arm, self.env, frames, ignore_bones=IGNORE_BONES,
-                                          progress=self._frames_progress("collisions"))
+        report = collide.check_collisions(
+            context, self.arm, self.env, frames, ignore_bones=IGNORE_BONES, progress=self._frames_progress("collisions")
+        )
         path = self.out / "contacts.json"
         with atomic_write(path, "w") as f:
             json.dump(report.as_dict(), f, indent=1)
         self._files(path)
         bent = next(f for f in report.frames if f.frame == BENT_FRAME)
         bones = sorted({b for f in report.frames for b in f.bones_a})
-        self.summary["collisions"] = {"contact_frames": report.contact_frames, "bones": bones,
-                                      "pairs_at_bent_frame": bent.pairs,
-                                      "deepest_sigma": None if np.isinf(bent.deepest) else round(bent.deepest, 3)}
+        self.summary["collisions"] = {
+            "contact_frames": report.contact_frames,
+            "bones": bones,
+            "pairs_at_bent_frame": bent.pairs,
+            "deepest_sigma": None if np.isinf(bent.deepest) else round(bent.deepest, 3),
+        }
         if not report.contact_frames:
             return f"no contact in frames {frames.start}-{frames.stop - 1}"
-        return f"contact at frames {frame_ranges(report.contact_frames)} (bones: {', '.join(bones)}); " \
-               f"{bent.pairs} splat pairs at frame {BENT_FRAME}, the deepest touching at {bent.deepest:.2f} sigma"
+        return (
+            f"contact at frames {frame_ranges(report.contact_frames)} (bones: {', '.join(bones)}); "
+            f"{bent.pairs} splat pairs at frame {BENT_FRAME}, the deepest touching at {bent.deepest:.2f} sigma"
+        )
 
     def save(self):
         from .core.scenes import seed_cube
         from .io import write_splats
+
         blend = self.out / "demo.blend"
         self.bpy.ops.wm.save_as_mainfile(filepath=str(blend), copy=True)
         cube = self.out / "seed_cube.ply"

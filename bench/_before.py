@@ -13,8 +13,9 @@ ROOT = Path(__file__).resolve().parent.parent
 def module_before(path, renames=None, commit=BEFORE, suffix="before"):
     """The module at `path` (e.g. "core/collision.py") as of `commit`, importable as
     splatwright.<package>._<name>_<suffix>; `renames` rewrite its imports first (to other old modules)."""
-    source = subprocess.run(["git", "-C", str(ROOT), "show", f"{commit}:{path}"], check=True,
-                            capture_output=True, text=True).stdout
+    source = subprocess.run(
+        ["git", "-C", str(ROOT), "show", f"{commit}:{path}"], check=True, capture_output=True, text=True
+    ).stdout
     for old, new in (renames or {}).items():
         source = source.replace(old, new)
     package = "splatwright." + ".".join(Path(path).parent.parts)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-MODULE = "bl_ext.user_default.splatwright"      # the extension's package once installed
+MODULE = "bl_ext.user_default.splatwright"  # the extension's package once installed
 
 
 def main(job_path):
@@ -35,13 +35,14 @@ def main(job_path):
     results = {"runs": {}, "notes": {}}
     try:
         _run(job, work, results)
-    except Exception:                   # noqa: BLE001 - handed to the bench, which raises it with the log
+    except Exception:  # noqa: BLE001 - handed to the bench, which raises it with the log
         results["error"] = traceback.format_exc()
     (work / "results.json").write_text(json.dumps(results, indent=1))
 
 
 def _run(job, work, results):
     import bpy
+
     bpy.ops.extensions.package_install_files(filepath=job["zip"], repo="user_default", enable_on_install=True)
     camera = importlib.import_module(f"{MODULE}.splat_addon.data.camera")
     scene = _scene(bpy, job, results)
@@ -49,7 +50,7 @@ def _run(job, work, results):
     direct = _direct(bpy, camera, scene, job)
 
     renderers = job["renderers"]
-    for r in renderers:                       # warm-up: kernels, shaders, compiled code, caches
+    for r in renderers:  # warm-up: kernels, shaders, compiled code, caches
         if r.get("warmup", True):
             direct(r) if r["engine"] == "CORE" else _render(bpy, scene, r, job)
     saved = set()
@@ -68,14 +69,18 @@ def _run(job, work, results):
                 if len(saved) == 1:
                     np.save(work / "check.npy", _view_png(bpy, scene, work))
     results["colour_management"] = {
-        "view_transform": scene.view_settings.view_transform, "look": scene.view_settings.look,
-        "exposure": scene.view_settings.exposure, "gamma": scene.view_settings.gamma,
-        "display_device": scene.display_settings.display_device}
+        "view_transform": scene.view_settings.view_transform,
+        "look": scene.view_settings.look,
+        "exposure": scene.view_settings.exposure,
+        "gamma": scene.view_settings.gamma,
+        "display_device": scene.display_settings.display_device,
+    }
 
 
 def _scene(bpy, job, results):
     """The default scene with only its camera, placed as the job says, and the imported PLY."""
     import mathutils
+
     scene = bpy.context.scene
     for obj in list(bpy.data.objects):
         if obj.type != "CAMERA":
@@ -94,7 +99,7 @@ def _scene(bpy, job, results):
     results["pointcloud_type"] = getattr(cloud.data, "type", None)
     results["points"] = len(cloud.data.points)
     results["object_matrix"] = [list(row) for row in cloud.matrix_world]
-    scene.world = None                        # black behind the splats, in every renderer
+    scene.world = None  # black behind the splats, in every renderer
     render = scene.render
     render.resolution_x, render.resolution_y = job["size"]
     render.resolution_percentage = 100
@@ -115,11 +120,21 @@ def _core_camera(bpy, camera, scene):
     """The core Camera that splat_addon/data/camera.py makes of the scene camera (what the engine renders
     through), as plain numbers."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    cam = camera.from_object(scene.camera.evaluated_get(depsgraph), scene, scene.render.resolution_x,
-                             scene.render.resolution_y)
-    return {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy,
-            "world_to_camera": cam.world_to_camera.tolist(), "near": cam.near,
-            "far": None if not np.isfinite(cam.far) else cam.far, "projection": cam.projection}
+    cam = camera.from_object(
+        scene.camera.evaluated_get(depsgraph), scene, scene.render.resolution_x, scene.render.resolution_y
+    )
+    return {
+        "width": cam.width,
+        "height": cam.height,
+        "fx": cam.fx,
+        "fy": cam.fy,
+        "cx": cam.cx,
+        "cy": cam.cy,
+        "world_to_camera": cam.world_to_camera.tolist(),
+        "near": cam.near,
+        "far": None if not np.isfinite(cam.far) else cam.far,
+        "projection": cam.projection,
+    }
 
 
 def _direct(bpy, camera, scene, job):
@@ -130,16 +145,19 @@ def _direct(bpy, camera, scene, job):
     color = importlib.import_module(f"{MODULE}.core.color")
     cloud = importlib.import_module(f"{MODULE}.io").read_splats(job["ply"])
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    cam = camera.from_object(scene.camera.evaluated_get(depsgraph), scene, scene.render.resolution_x,
-                             scene.render.resolution_y)
+    cam = camera.from_object(
+        scene.camera.evaluated_get(depsgraph), scene, scene.render.resolution_x, scene.render.resolution_y
+    )
 
     def run(r):
         start = time.perf_counter()
         image = render.render(cloud, cam, background=(0.0, 0.0, 0.0)).color
         seconds = time.perf_counter() - start
-        run.image = np.concatenate([color.srgb_to_linear(image, np.float32),
-                                    np.ones(image.shape[:2] + (1,), np.float32)], axis=-1)
+        run.image = np.concatenate(
+            [color.srgb_to_linear(image, np.float32), np.ones(image.shape[:2] + (1,), np.float32)], axis=-1
+        )
         return seconds, None
+
     return run
 
 
@@ -150,16 +168,16 @@ def _render(bpy, scene, r, job):
         cycles = scene.cycles
         cycles.device = "CPU"
         cycles.samples = r["samples"]
-        cycles.use_adaptive_sampling = False          # exactly `samples` per pixel
-        cycles.use_denoising = False                  # the noise is what the sample count buys
+        cycles.use_adaptive_sampling = False  # exactly `samples` per pixel
+        cycles.use_denoising = False  # the noise is what the sample count buys
         cycles.seed = 0
-        cycles.pixel_filter_type, cycles.filter_width = r.get("filter", ("BLACKMAN_HARRIS", 1.5))   # default: 1.5 px
+        cycles.pixel_filter_type, cycles.filter_width = r.get("filter", ("BLACKMAN_HARRIS", 1.5))  # default: 1.5 px
     elif r["engine"] == "BLENDER_EEVEE":
         scene.eevee.taa_render_samples = r["samples"]
     start = time.perf_counter()
     try:
         bpy.ops.render.render()
-    except RuntimeError as exc:                       # an engine's ERROR report, in background mode
+    except RuntimeError as exc:  # an engine's ERROR report, in background mode
         return time.perf_counter() - start, str(exc)
     return time.perf_counter() - start, None
 
@@ -175,7 +193,7 @@ def _pixels(bpy, scene, work, name):
         image.pixels.foreach_get(pixels)
     finally:
         bpy.data.images.remove(image)
-    return pixels.reshape(height, width, 4)[::-1].copy()        # Blender's rows start at the bottom
+    return pixels.reshape(height, width, 4)[::-1].copy()  # Blender's rows start at the bottom
 
 
 def _view_png(bpy, scene, work):
@@ -192,7 +210,7 @@ def _view_png(bpy, scene, work):
         settings.color_depth, settings.exr_codec = old[1], "NONE"
     image = bpy.data.images.load(str(path))
     try:
-        image.colorspace_settings.name = "Non-Color"             # the file's numbers, not decoded
+        image.colorspace_settings.name = "Non-Color"  # the file's numbers, not decoded
         width, height = image.size
         pixels = np.empty(width * height * 4, np.float32)
         image.pixels.foreach_get(pixels)

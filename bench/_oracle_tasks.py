@@ -22,6 +22,7 @@ def pinocchio_fk(urdf, links, joint_names, joint_values, repeat):
     """Link frames from Pinocchio's forward kinematics (framesForwardKinematics), and its time for one
     configuration and for a Python loop over the batch."""
     import pinocchio as pin
+
     model = pin.buildModelFromUrdf(str(urdf))
     data = model.createData()
     values = dict(zip(joint_names.tolist(), np.asarray(joint_values).T))
@@ -47,6 +48,7 @@ def fcl_distances(files, links, origins, scales, worlds, box_size, box_pose, rep
     mesh-to-box distance (0 when they touch), and fcl's time for the collision test of all links."""
     import fcl
     import trimesh
+
     models = []
     for path, scale in zip(files.tolist(), scales):
         mesh = trimesh.load(path, force="mesh", process=False)

@@ -49,8 +49,12 @@ def run_oracle(task, **inputs):
 
 def pybullet_data():
     """The folder of pybullet's data (robots, meshes and their textures), as pybullet ships it."""
-    path = subprocess.run([str(oracle_python()), "-c", "import pybullet_data; print(pybullet_data.getDataPath())"],
-                          check=True, capture_output=True, text=True).stdout.strip()
+    path = subprocess.run(
+        [str(oracle_python()), "-c", "import pybullet_data; print(pybullet_data.getDataPath())"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
     return Path(path)
 
 

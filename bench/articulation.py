@@ -32,14 +32,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from common import Row, Timing, machine, paired, print_rows, timeit  # noqa: E402
 from helpers import random_cloud  # noqa: E402
 
-from splatwright.core import geometry, sh as shmod  # noqa: E402
-from splatwright.core.articulation import (Binding, BonePose, KinematicTree, axis_angle_matrices,  # noqa: E402
-                                           skin, skin_centres, transforms)
+from splatwright.core import geometry  # noqa: E402
+from splatwright.core import sh as shmod
+from splatwright.core.articulation import (
+    Binding,
+    BonePose,
+    KinematicTree,
+    axis_angle_matrices,  # noqa: E402
+    skin,
+    skin_centres,
+    transforms,
+)
 
 TOPIC = "articulation"
 
 
 # timing -------------------------------------------------------------------------------------------
+
 
 def cpu_seconds(fn):
     """CPU time of one call, all threads: on a machine shared with other jobs it shows what the
@@ -75,6 +84,7 @@ def workload(n, seed=0, scaled=False):
 
 
 # straightforward float64 baselines ----------------------------------------------------------------
+
 
 def baseline_lbs(cloud, binding, pose):
     """Centres, per-splat linear maps (for covariances) and rotations (for SH), whole cloud at once."""
@@ -116,8 +126,9 @@ def _blender_dq(rest, deform):
 
 def _qmul(a, b):
     aw, av, bw, bv = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
-    return np.concatenate([aw * bw - np.sum(av * bv, axis=-1, keepdims=True),
-                           aw * bv + bw * av + np.cross(av, bv)], axis=-1)
+    return np.concatenate(
+        [aw * bw - np.sum(av * bv, axis=-1, keepdims=True), aw * bv + bw * av + np.cross(av, bv)], axis=-1
+    )
 
 
 def baseline_dqs(cloud, binding, pose):
@@ -140,7 +151,7 @@ def baseline_dqs(cloud, binding, pose):
         signed = np.where(np.sum(real_sum * q, axis=1) < 0, -wj, wj)[:, None]
         real_sum += signed * q
         dual_sum += signed * d
-    norm2 = np.sum(real_sum ** 2, axis=1)
+    norm2 = np.sum(real_sum**2, axis=1)
     turn = geometry.quaternions_to_matrices(real_sum)
     translation = 2 * _qmul(dual_sum, real_sum * [1, -1, -1, -1])[:, 1:] / norm2[:, None]
     centres = np.einsum("nij,nj->ni", turn, p) + translation
@@ -155,7 +166,7 @@ def baseline_cloud(cloud, fn, binding, pose, parts):
         return centres, None, None
     factor = maps @ (geometry.quaternions_to_matrices(cloud.rotations) * cloud.scales[:, None, :])
     cov = factor @ np.swapaxes(factor, 1, 2)
-    vals, vecs = np.linalg.eigh(cov)                       # re-diagonalise every splat
+    vals, vecs = np.linalg.eigh(cov)  # re-diagonalise every splat
     rotations = geometry.matrices_to_quaternions(vecs * np.where(np.linalg.det(vecs) < 0, -1.0, 1.0)[:, None, None])
     log_scales = np.log(np.sqrt(np.maximum(vals, 1e-300)))
     sh = shmod.rotate(cloud.sh, turn) if parts == "all" else None
@@ -165,8 +176,11 @@ def baseline_cloud(cloud, fn, binding, pose, parts):
 def errors(cloud, ours, exact, parts, rng):
     """Error columns of our result against the float64 baseline."""
     extent = np.abs(exact[0]).max()
-    err = {"centre_rel_err": float(np.abs(np.asarray(ours.positions if parts != "centres" else ours, np.float64)
-                                          - exact[0]).max() / extent)}
+    err = {
+        "centre_rel_err": float(
+            np.abs(np.asarray(ours.positions if parts != "centres" else ours, np.float64) - exact[0]).max() / extent
+        )
+    }
     if parts == "centres":
         return err
     mine = geometry.covariances(ours.rotations, ours.scales)
@@ -174,7 +188,7 @@ def errors(cloud, ours, exact, parts, rng):
     err["cov_rel_err"] = float((np.abs(mine - ref).max(axis=(1, 2)) / np.abs(ref).max(axis=(1, 2))).max())
     if parts == "all":
         d = rng.normal(size=(len(cloud), 3))
-        rest_dirs = np.einsum("nji,nj->ni", exact[2][1], d)       # R^T d
+        rest_dirs = np.einsum("nji,nj->ni", exact[2][1], d)  # R^T d
         err["color_abs_err"] = float(np.abs(shmod.evaluate(ours.sh, d) - shmod.evaluate(cloud.sh, rest_dirs)).max())
     return err
 
@@ -191,13 +205,22 @@ def skinning_rows(n, repeat, scaled=False):
                 ours = lambda: skin(cloud, binding, pose, mode, sh=parts == "all")  # noqa: E731
             base_t, ours_t = paired(lambda: baseline_cloud(cloud, fn, binding, pose, parts), ours, repeat)
             exact = baseline_cloud(cloud, fn, binding, pose, parts)
-            label = {"centres": "centres only", "gaussians": "centres + covariances",
-                     "all": "centres + covariances + SH"}[parts]
+            label = {
+                "centres": "centres only",
+                "gaussians": "centres + covariances",
+                "all": "centres + covariances + SH",
+            }[parts]
             bones = "20 bones, 2 scaled" if scaled else "20 bones turning"
-            rows.append(Row(TOPIC, f"{mode.upper()} {label}, {n:,} splats, degree 3, 4 influences, {bones}",
-                            ours_t, base_t, error=errors(cloud, ours(), exact, parts, rng),
-                            extra={"cpu_s": f"{cpu_seconds(ours):.3g}",
-                                   "baseline": "float64 einsum/SVD/eigh, one pass"}))
+            rows.append(
+                Row(
+                    TOPIC,
+                    f"{mode.upper()} {label}, {n:,} splats, degree 3, 4 influences, {bones}",
+                    ours_t,
+                    base_t,
+                    error=errors(cloud, ours(), exact, parts, rng),
+                    extra={"cpu_s": f"{cpu_seconds(ours):.3g}", "baseline": "float64 einsum/SVD/eigh, one pass"},
+                )
+            )
     return rows
 
 
@@ -207,8 +230,11 @@ def blender_float32_rows(n, repeat):
     the same run, and the same frame with the tolerance before (1e-9, below float32's rounding: every
     turned bone took the per-splat stretch path). Errors against the float64 baseline."""
     from splatwright.core import skinning
+
     cloud, binding, exact_pose = workload(n)
-    pose = BonePose.from_blender(exact_pose.rest.astype(np.float32), (exact_pose.deform @ exact_pose.rest).astype(np.float32))
+    pose = BonePose.from_blender(
+        exact_pose.rest.astype(np.float32), (exact_pose.deform @ exact_pose.rest).astype(np.float32)
+    )
     _, stretch = geometry.polar_decomposition(pose.deform[:, :3, :3])
     noise = np.abs(stretch - np.eye(3)).max() / np.finfo(np.float32).eps
     lbs = lambda: skin(cloud, binding, pose, "lbs")  # noqa: E731
@@ -217,28 +243,51 @@ def blender_float32_rows(n, repeat):
     rng = np.random.default_rng(5)
     err = errors(cloud, lbs(), baseline_cloud(cloud, baseline_lbs, binding, pose, "all"), "all", rng)
     label = f"{n:,} splats, degree 3, 4 influences, 20 bones turning, Blender float32 matrices"
-    rows = [Row(TOPIC, f"LBS centres + covariances + SH, {label} (vs DQS, CPU s)", lbs_t, dqs_t, error=err,
-                extra={"baseline": "DQS of the same frame, same run (CPU s)", "target": "within 1.5x of DQS (speed-up >= 0.67)",
-                       "stretch_eps": f"{noise:.2g} (rigid below {skinning.RIGID_TOLERANCE / np.finfo(np.float32).eps:g})"})]
+    rows = [
+        Row(
+            TOPIC,
+            f"LBS centres + covariances + SH, {label} (vs DQS, CPU s)",
+            lbs_t,
+            dqs_t,
+            error=err,
+            extra={
+                "baseline": "DQS of the same frame, same run (CPU s)",
+                "target": "within 1.5x of DQS (speed-up >= 0.67)",
+                "stretch_eps": f"{noise:.2g} (rigid below {skinning.RIGID_TOLERANCE / np.finfo(np.float32).eps:g})",
+            },
+        )
+    ]
     saved, skinning.RIGID_TOLERANCE = skinning.RIGID_TOLERANCE, 1e-9
     try:
         strict = BonePose.from_blender(pose.rest, pose.deform @ pose.rest)
-        before_t = timeit(lambda: skin(cloud, binding, strict, "lbs"), repeat=max(1, repeat // 2), clock=time.process_time)
+        before_t = timeit(
+            lambda: skin(cloud, binding, strict, "lbs"), repeat=max(1, repeat // 2), clock=time.process_time
+        )
     finally:
         skinning.RIGID_TOLERANCE = saved
-    rows.append(Row(TOPIC, f"LBS centres + covariances + SH, {label}, rigid tolerance 1e-9 (before; vs DQS, CPU s)",
-                    before_t, dqs_t, extra={"baseline": "DQS of the same frame, same run (CPU s)"}))
+    rows.append(
+        Row(
+            TOPIC,
+            f"LBS centres + covariances + SH, {label}, rigid tolerance 1e-9 (before; vs DQS, CPU s)",
+            before_t,
+            dqs_t,
+            extra={"baseline": "DQS of the same frame, same run (CPU s)"},
+        )
+    )
     return rows
 
 
 # forward kinematics -------------------------------------------------------------------------------
 
+
 def random_tree(n=50, seed=2):
     rng = np.random.default_rng(seed)
     kinds = ["fixed"] + list(rng.choice(["revolute", "continuous", "prismatic", "ball", "revolute"], n - 1))
     axes = rng.normal(size=(n, 3))
-    origins = transforms(axis_angle_matrices(axes / np.linalg.norm(axes, axis=1, keepdims=True),
-                                             rng.uniform(-1, 1, n)), rng.normal(0, 0.3, (n, 3)))
+    origins = transforms(
+        axis_angle_matrices(axes / np.linalg.norm(axes, axis=1, keepdims=True), rng.uniform(-1, 1, n)),
+        rng.normal(0, 0.3, (n, 3)),
+    )
     parents = [-1] + [int(rng.integers(max(0, i - 3), i)) for i in range(1, n)]
     return KinematicTree([f"link{i}" for i in range(n)], parents, origins, kinds, axes=rng.normal(size=(n, 3)))
 
@@ -253,9 +302,9 @@ def loop_fk(tree, q):
             if kind in ("revolute", "continuous"):
                 motion[:3, :3] = axis_angle_matrices(tree.axes[i], config[o])
             elif kind == "ball":
-                angle = np.linalg.norm(config[o:o + 3])
+                angle = np.linalg.norm(config[o : o + 3])
                 if angle > 0:
-                    motion[:3, :3] = axis_angle_matrices(config[o:o + 3] / angle, angle)
+                    motion[:3, :3] = axis_angle_matrices(config[o : o + 3] / angle, angle)
             elif kind == "prismatic":
                 motion[:3, 3] = tree.axes[i] * config[o]
             local = tree.origins[i] @ motion
@@ -270,11 +319,20 @@ def fk_rows(repeat):
     base_t, ours_t = paired(lambda: loop_fk(tree, few), lambda: tree.forward_kinematics(q), repeat)
     base_per = Timing(base_t.median * len(q) / len(few), base_t.spread * len(q) / len(few), base_t.runs)
     err = float(np.abs(tree.forward_kinematics(few) - loop_fk(tree, few)).max())
-    return [Row(TOPIC, f"forward kinematics, {len(tree)}-link tree ({tree.dof} dof), batch of {len(q)}",
-                ours_t, base_per, error={"max_abs_err": err},
-                extra={"us_per_config": f"{ours_t.median / len(q) * 1e6:.1f}",
-                       "cpu_us_per_config": f"{cpu_seconds(lambda: tree.forward_kinematics(q)) / len(q) * 1e6:.1f}",
-                       "baseline": f"per-config per-joint loop, timed on {len(few)} configs, scaled"})]
+    return [
+        Row(
+            TOPIC,
+            f"forward kinematics, {len(tree)}-link tree ({tree.dof} dof), batch of {len(q)}",
+            ours_t,
+            base_per,
+            error={"max_abs_err": err},
+            extra={
+                "us_per_config": f"{ours_t.median / len(q) * 1e6:.1f}",
+                "cpu_us_per_config": f"{cpu_seconds(lambda: tree.forward_kinematics(q)) / len(q) * 1e6:.1f}",
+                "baseline": f"per-config per-joint loop, timed on {len(few)} configs, scaled",
+            },
+        )
+    ]
 
 
 def panda_fk_rows(repeat):
@@ -282,9 +340,12 @@ def panda_fk_rows(repeat):
     environment: one configuration at a time, and a batch of 1000 against a Python loop of
     Pinocchio calls; the compiled pass and the NumPy one (what Blender's Python runs)."""
     import warnings
+
     from _oracles import panda_urdf, run_oracle
+
     from splatwright.core import kinematics
     from splatwright.io.urdf import read_urdf
+
     path = panda_urdf()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -294,9 +355,14 @@ def panda_fk_rows(repeat):
     upper = np.where(np.isfinite(tree.upper), tree.upper, np.pi)[tree._limited]
     q = rng.uniform(lower, upper, (1000, tree.dof))
     one = np.flatnonzero(np.isin(tree.joint_types, ("revolute", "continuous", "prismatic")))
-    pin = run_oracle("pinocchio_fk", urdf=str(path), links=np.array(tree.names),
-                     joint_names=np.array([tree.joint_names[i] for i in one]),
-                     joint_values=tree.joint_values(q)[:, one], repeat=repeat + 2)
+    pin = run_oracle(
+        "pinocchio_fk",
+        urdf=str(path),
+        links=np.array(tree.names),
+        joint_names=np.array([tree.joint_names[i] for i in one]),
+        joint_values=tree.joint_values(q)[:, one],
+        repeat=repeat + 2,
+    )
     err = float(np.abs(tree.forward_kinematics(q) - pin["transforms"]).max())
     rows = []
     for label, fk_kernel in (("compiled", kinematics._fk_kernel), ("NumPy", lambda: None)):
@@ -307,27 +373,45 @@ def panda_fk_rows(repeat):
         finally:
             kinematics._fk_kernel = saved
         common = {"dof": f"{tree.dof} (Pinocchio: {int(pin['nq'])}, the mimic finger counted)", "links": len(tree)}
-        rows.append(Row(TOPIC, f"Panda FK, one configuration, {label} (vs Pinocchio)", _per(single, 1000),
-                        Timing(float(pin["single"]), 0.0, repeat + 2), error={"max_abs_err": err},
-                        extra={**common, "target": "within 5x of Pinocchio (speed-up >= 0.2)"}))
-        rows.append(Row(TOPIC, f"Panda FK, batch of {len(q)}, {label} (vs a Pinocchio loop)", batch,
-                        Timing(float(pin["batch"]), 0.0, repeat + 2), error={"max_abs_err": err},
-                        extra={**common, "target": "faster than the loop (speed-up > 1)"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"Panda FK, one configuration, {label} (vs Pinocchio)",
+                _per(single, 1000),
+                Timing(float(pin["single"]), 0.0, repeat + 2),
+                error={"max_abs_err": err},
+                extra={**common, "target": "within 5x of Pinocchio (speed-up >= 0.2)"},
+            )
+        )
+        rows.append(
+            Row(
+                TOPIC,
+                f"Panda FK, batch of {len(q)}, {label} (vs a Pinocchio loop)",
+                batch,
+                Timing(float(pin["batch"]), 0.0, repeat + 2),
+                error={"max_abs_err": err},
+                extra={**common, "target": "faster than the loop (speed-up > 1)"},
+            )
+        )
     return rows
 
 
 def chain_urdf(n):
     links = "".join(f'<link name="l{k}"/>' for k in range(n))
-    joints = "".join(f'<joint name="j{k}" type="revolute"><parent link="l{k}"/><child link="l{k + 1}"/>'
-                     f'<origin xyz="0 0 0.01"/><axis xyz="0 1 0"/><limit lower="-1" upper="1"/></joint>'
-                     for k in range(n - 1))
+    joints = "".join(
+        f'<joint name="j{k}" type="revolute"><parent link="l{k}"/><child link="l{k + 1}"/>'
+        f'<origin xyz="0 0 0.01"/><axis xyz="0 1 0"/><limit lower="-1" upper="1"/></joint>'
+        for k in range(n - 1)
+    )
     return f"<robot name='chain'>{links}{joints}</robot>"
 
 
 def urdf_rows(quick):
     """Reading long chains: today's reader against the one before (quadratic in links)."""
     from _before import module_before
+
     from splatwright.io.urdf import parse_urdf
+
     module_before("core/kinematics.py")
     before = module_before("io/urdf.py", {"..core.kinematics import": "..core._kinematics_before import"})
     rows = []
@@ -335,9 +419,15 @@ def urdf_rows(quick):
         text = chain_urdf(n)
         ours = timeit(lambda: parse_urdf(text), repeat=3)
         baseline = timeit(lambda: before.parse_urdf(text), repeat=1, warmup=0) if n <= 4000 else None
-        rows.append(Row(TOPIC, f"read a URDF chain of {n:,} links", ours, baseline,
-                        extra={"baseline": "the reader before (quadratic)" if baseline
-                               else "before: > 120 s, not run"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"read a URDF chain of {n:,} links",
+                ours,
+                baseline,
+                extra={"baseline": "the reader before (quadratic)" if baseline else "before: > 120 s, not run"},
+            )
+        )
     return rows
 
 
@@ -358,8 +448,9 @@ def cylinder(around=96, along=128, radius=0.3, length=2.0):
     vertices = np.stack([radius * np.cos(ph), yy, radius * np.sin(ph)], -1).reshape(-1, 3)
     i, j = np.meshgrid(np.arange(along - 1), np.arange(around), indexing="ij")
     a, b = i * around + j, i * around + (j + 1) % around
-    faces = np.concatenate([np.stack([a, b, b + around], -1).reshape(-1, 3),
-                            np.stack([a, b + around, a + around], -1).reshape(-1, 3)])
+    faces = np.concatenate(
+        [np.stack([a, b, b + around], -1).reshape(-1, 3), np.stack([a, b + around, a + around], -1).reshape(-1, 3)]
+    )
     checker = ((np.floor(ph / (2 * np.pi) * 12) + np.floor(yy / length * 16)) % 2).reshape(-1)
     colors = np.where(checker[:, None] > 0, [0.9, 0.5, 0.1], [0.1, 0.3, 0.8])
     return vertices, faces, colors
@@ -388,9 +479,13 @@ def bent_cylinder_images(mode, max_splats, size, around=96, along=128):
     vertices, faces, colors = cylinder(around, along)
     pose = bend_pose()
     bent = skin_centres(vertices, joint_binding(vertices[:, 1]), pose, mode)
-    style = dict(corner_colors=colors, face_materials=np.zeros(len(faces), int),
-                 materials=[Material(base_color=(1, 1, 1), rim_color=(0.05, 0.05, 0.05))], max_splats=max_splats,
-                 calibrate=False)     # splats on the surface: skinning is measured, not silhouette calibration
+    style = dict(
+        corner_colors=colors,
+        face_materials=np.zeros(len(faces), int),
+        materials=[Material(base_color=(1, 1, 1), rim_color=(0.05, 0.05, 0.05))],
+        max_splats=max_splats,
+        calibrate=False,
+    )  # splats on the surface: skinning is measured, not silhouette calibration
     rest_cloud = mesh_to_splats(vertices, faces, **style)
     direct = mesh_to_splats(bent, faces, **style)
     resampled = mesh_to_splats(bent, faces, seed=1, **style)
@@ -413,23 +508,37 @@ def bent_cylinder_images(mode, max_splats, size, around=96, along=128):
 
 def cylinder_rows(quick):
     from splatwright.core.metrics import psnr
+
     rows = []
     for mode in ("lbs", "dqs"):
         images, reference, n = bent_cylinder_images(mode, 10_000 if quick else 40_000, 128 if quick else 256)
         for name, (image, t) in images.items():
             if name == "blended-matrix covariance" and mode == "dqs":
-                continue                                   # the same map as full skinning for DQS
-            rows.append(Row(TOPIC, f"bent cylinder {mode.upper()}, {n:,} splats: {name}",
-                            t or Timing(0.0, 0.0, 0), error={"psnr_db": psnr(image, reference)},
-                            extra={"reference": "splats made from the bent mesh"}))
+                continue  # the same map as full skinning for DQS
+            rows.append(
+                Row(
+                    TOPIC,
+                    f"bent cylinder {mode.upper()}, {n:,} splats: {name}",
+                    t or Timing(0.0, 0.0, 0),
+                    error={"psnr_db": psnr(image, reference)},
+                    extra={"reference": "splats made from the bent mesh"},
+                )
+            )
     return rows
 
 
 def run(quick=False):
     n = 100_000 if quick else 1_000_000
     repeat = 3 if quick else 5
-    return (fk_rows(repeat) + panda_fk_rows(repeat) + urdf_rows(quick) + skinning_rows(n, repeat)
-            + skinning_rows(n, repeat, scaled=True) + blender_float32_rows(n, repeat) + cylinder_rows(quick))
+    return (
+        fk_rows(repeat)
+        + panda_fk_rows(repeat)
+        + urdf_rows(quick)
+        + skinning_rows(n, repeat)
+        + skinning_rows(n, repeat, scaled=True)
+        + blender_float32_rows(n, repeat)
+        + cylinder_rows(quick)
+    )
 
 
 # rows that `./run bench articulation --only NAME` runs alone (merged into the report's section)

@@ -40,8 +40,18 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from common import Row, Timing, print_rows  # noqa: E402
-from mesh2splats import (blender_primitives, by_distance, convert, cycles_render,  # noqa: E402
-                         held_out_cameras, sphere_texture, uv_sphere, versus, worst_distance, write_obj)
+from mesh2splats import (
+    blender_primitives,
+    by_distance,
+    convert,
+    cycles_render,  # noqa: E402
+    held_out_cameras,
+    sphere_texture,
+    uv_sphere,
+    versus,
+    worst_distance,
+    write_obj,
+)
 
 from splatwright.core.bake import VIEWS_PER_DISTANCE, bake_sh, bake_splats, bake_views, path_weights  # noqa: E402
 from splatwright.core.camera import Camera, spread_along  # noqa: E402
@@ -76,24 +86,49 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
     images, render_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
     base = by_distance(cloud, held, references)
     common = {"splats": len(cloud), "faces": len(mesh.faces)}
-    rows = [Row(TOPIC, f"{name}: Base Color only", Timing(0.0, 0.0, 1),
-                error={**base, "worst dB": worst_distance(base)}, extra=common)]
+    rows = [
+        Row(
+            TOPIC,
+            f"{name}: Base Color only",
+            Timing(0.0, 0.0, 1),
+            error={**base, "worst dB": worst_distance(base)},
+            extra=common,
+        )
+    ]
     antialiased = convert(mesh, max_splats=budget, view_size=size, render_mode="antialiased", try_fewer=False)
     path, path_s = cycles_render(mesh, held_cameras, folder, samples=BAKE_SAMPLES, lit=True)
-    runs = ((views, images, None, "", cloud, render_s),
-            (views, images, None, ", made for antialiased rendering", antialiased, render_s),
-            (views + held_cameras, images + path, path_weights(len(views), len(held)),
-             ", antialiased, the held-out views baked from too as a camera path", antialiased, render_s + path_s))
+    runs = (
+        (views, images, None, "", cloud, render_s),
+        (views, images, None, ", made for antialiased rendering", antialiased, render_s),
+        (
+            views + held_cameras,
+            images + path,
+            path_weights(len(views), len(held)),
+            ", antialiased, the held-out views baked from too as a camera path",
+            antialiased,
+            render_s + path_s,
+        ),
+    )
     for views_used, images_used, weights, made_for, splats, cycles_s in runs:
-        baked, row = sh_row(name, made_for, splats, views_used, images_used, weights, held, references, cycles_s,
-                            iterations, common)
+        baked, row = sh_row(
+            name, made_for, splats, views_used, images_used, weights, held, references, cycles_s, iterations, common
+        )
         rows.append(row)
         if made_for == ", made for antialiased rendering":
             rows.append(geometry_row(name, baked, views, images, held, references, row.timing.median, common))
     rows += denser_rows(name, mesh, size, antialiased, held, references, folder, iterations, common)
     if name == "textured sphere":
-        rows += turn_rows(name, mesh, [cam for d, cam in held if d == 1.0][1], antialiased, views, images, render_s,
-                          folder, iterations)
+        rows += turn_rows(
+            name,
+            mesh,
+            [cam for d, cam in held if d == 1.0][1],
+            antialiased,
+            views,
+            images,
+            render_s,
+            folder,
+            iterations,
+        )
     return rows
 
 
@@ -104,13 +139,22 @@ def sh_row(name, made_for, splats, views, images, weights, held, references, cyc
     start = time.perf_counter()
     baked = bake_sh(splats, views, images, degree=DEGREE, iterations=iterations, weights=weights, info=info)
     bake_s = time.perf_counter() - start
-    after = by_distance(baked, held, references)          # rendered in the mode it was made for
-    return baked, Row(TOPIC, f"{name}: baked from Cycles (SH {DEGREE}){made_for}", Timing(cycles_s + bake_s, 0.0, 1),
-                      error={**after, "worst dB": worst_distance(after)},
-                      extra={**common, "views": len(views), "Cycles s": f"{cycles_s:.1f}", "fit s": f"{bake_s:.1f}",
-                             "iterations": info["iterations"],
-                             "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
-                             "worst fitted view dB": worst_fitted(baked, views, images)})
+    after = by_distance(baked, held, references)  # rendered in the mode it was made for
+    return baked, Row(
+        TOPIC,
+        f"{name}: baked from Cycles (SH {DEGREE}){made_for}",
+        Timing(cycles_s + bake_s, 0.0, 1),
+        error={**after, "worst dB": worst_distance(after)},
+        extra={
+            **common,
+            "views": len(views),
+            "Cycles s": f"{cycles_s:.1f}",
+            "fit s": f"{bake_s:.1f}",
+            "iterations": info["iterations"],
+            "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
+            "worst fitted view dB": worst_fitted(baked, views, images),
+        },
+    )
 
 
 def denser_rows(name, mesh, size, splats, held, references, folder, iterations, common):
@@ -120,8 +164,12 @@ def denser_rows(name, mesh, size, splats, held, references, folder, iterations, 
     images, cycles_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit=True)
     label = f", antialiased, from {len(views)} views"
     baked, row = sh_row(name, label, splats, views, images, None, held, references, cycles_s, iterations, common)
-    return [row, geometry_row(name, baked, views, images, held, references, row.timing.median, common,
-                              f", from {len(views)} views")]
+    return [
+        row,
+        geometry_row(
+            name, baked, views, images, held, references, row.timing.median, common, f", from {len(views)} views"
+        ),
+    ]
 
 
 def geometry_row(name, baked, views, images, held, references, before_s, common, label=""):
@@ -132,19 +180,26 @@ def geometry_row(name, baked, views, images, held, references, before_s, common,
     fitted = bake_splats(baked, views, images, steps=GEOMETRY_STEPS, info=info)
     fit_s = time.perf_counter() - start
     after = by_distance(fitted, held, references)
-    return Row(TOPIC, f"{name}: baked (SH {DEGREE}), antialiased{label}, then {GEOMETRY_STEPS} steps fitting "
-                      "the splats",
-               Timing(before_s + fit_s, 0.0, 1),
-               error={**after, "worst dB": worst_distance(after)},
-               extra={**common, "views": len(views), "fit s": f"{fit_s:.1f}",
-                      "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
-                      "worst fitted view dB": worst_fitted(fitted, views, images)})
+    return Row(
+        TOPIC,
+        f"{name}: baked (SH {DEGREE}), antialiased{label}, then {GEOMETRY_STEPS} steps fitting the splats",
+        Timing(before_s + fit_s, 0.0, 1),
+        error={**after, "worst dB": worst_distance(after)},
+        extra={
+            **common,
+            "views": len(views),
+            "fit s": f"{fit_s:.1f}",
+            "fit dB": f"{info['psnr'][0]:.1f} -> {info['psnr'][-1]:.1f}",
+            "worst fitted view dB": worst_fitted(fitted, views, images),
+        },
+    )
 
 
 def worst_fitted(cloud, views, images):
     """The lowest PSNR among the views the splats were fitted to."""
-    return round(min(psnr_from_mse(np.mean((render(cloud, cam).color - image) ** 2))
-                     for cam, image in zip(views, images)), 1)
+    return round(
+        min(psnr_from_mse(np.mean((render(cloud, cam).color - image) ** 2)) for cam, image in zip(views, images)), 1
+    )
 
 
 def turning_path(mesh, start):
@@ -154,37 +209,60 @@ def turning_path(mesh, start):
     eye = start.center - centre
     axis = np.cross(eye, [0.0, 0.0, 1.0])
     turns = axis_angle_matrices(axis / np.linalg.norm(axis), [0.0] * 50 + list(np.linspace(0.0, np.pi / 2, 51)[1:]))
-    return centre, [Camera.look_at(centre + turn @ eye, centre, fov_deg=40.0, width=start.width, height=start.height,
-                                   near=start.near) for turn in turns]
+    return centre, [
+        Camera.look_at(
+            centre + turn @ eye, centre, fov_deg=40.0, width=start.width, height=start.height, near=start.near
+        )
+        for turn in turns
+    ]
 
 
 def turn_rows(name, mesh, start, splats, views, images, views_s, folder, iterations):
     """Baked from a still-then-turning camera path's frames picked three ways, at frames along the
     turn; seconds as the other bake rows', the Cycles views around (`views_s`) included."""
     from splatwright.splat_addon.convert.from_mesh import BAKE_PATH_SPACING, VIEW_COUNTS
+
     centre, path = turning_path(mesh, start)
     along = list(range(50, 100, 4))
     references, _ = cycles_render(mesh, [path[i] for i in along], folder, samples=REFERENCE_SAMPLES, lit=True)
-    picks = {"4 frames spread evenly": np.unique(np.round(np.linspace(0, len(path) - 1, 4)).astype(int)),
-             "4 frames spread by view change": spread_along(path, 4, centre),
-             f"frames at most {BAKE_PATH_SPACING} apart by view change (the add-on's bake)":
-                 spread_along(path, 4, centre, BAKE_PATH_SPACING, VIEW_COUNTS[1])}
+    picks = {
+        "4 frames spread evenly": np.unique(np.round(np.linspace(0, len(path) - 1, 4)).astype(int)),
+        "4 frames spread by view change": spread_along(path, 4, centre),
+        f"frames at most {BAKE_PATH_SPACING} apart by view change (the add-on's bake)": spread_along(
+            path, 4, centre, BAKE_PATH_SPACING, VIEW_COUNTS[1]
+        ),
+    }
     rows = []
     for label, pick in picks.items():
         cams = [path[i] for i in pick]
         shots, cycles_s = cycles_render(mesh, cams, folder, samples=BAKE_SAMPLES, lit=True)
         start_s = time.perf_counter()
-        baked = bake_sh(splats, views + cams, images + shots, degree=DEGREE, iterations=iterations,
-                        weights=path_weights(len(views), len(cams)))
+        baked = bake_sh(
+            splats,
+            views + cams,
+            images + shots,
+            degree=DEGREE,
+            iterations=iterations,
+            weights=path_weights(len(views), len(cams)),
+        )
         bake_s = time.perf_counter() - start_s
         seen = [render(baked, path[i]).color for i in along]
         each = [versus([image], [ref])["psnr_db"] for image, ref in zip(seen, references)]
         whole = versus(seen, references)["psnr_db"]
-        rows.append(Row(TOPIC, f"{name}: a camera still, then turning 90 degrees; baked from {label}",
-                        Timing(views_s + cycles_s + bake_s, 0.0, 1),
-                        error={"dB along the turn": whole, "worst dB": min(each)},
-                        extra={"views": len(views) + len(cams), "path views": len(cams),
-                               "Cycles s": f"{views_s + cycles_s:.1f}", "fit s": f"{bake_s:.1f}"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}: a camera still, then turning 90 degrees; baked from {label}",
+                Timing(views_s + cycles_s + bake_s, 0.0, 1),
+                error={"dB along the turn": whole, "worst dB": min(each)},
+                extra={
+                    "views": len(views) + len(cams),
+                    "path views": len(cams),
+                    "Cycles s": f"{views_s + cycles_s:.1f}",
+                    "fit s": f"{bake_s:.1f}",
+                },
+            )
+        )
     return rows
 
 

@@ -31,8 +31,13 @@ TOPIC = "blender"
 
 def make_cloud(n, degree=3, seed=0):
     rng = np.random.default_rng(seed)
-    return SplatCloud(rng.normal(0, 2, (n, 3)), rng.normal(size=(n, 4)), rng.uniform(-5, -1, (n, 3)),
-                      rng.normal(0, 2, n), rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)))
+    return SplatCloud(
+        rng.normal(0, 2, (n, 3)),
+        rng.normal(size=(n, 4)),
+        rng.uniform(-5, -1, (n, 3)),
+        rng.normal(0, 2, n),
+        rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)),
+    )
 
 
 def max_abs_error(a, b):
@@ -41,6 +46,7 @@ def max_abs_error(a, b):
 
 
 # ours ----------------------------------------------------------------------------------------------
+
 
 def _remove(bpy, obj):
     mesh = obj.data
@@ -54,10 +60,11 @@ def _against_blender_import(bpy, src, repeat):
 
     def importer(op):
         def run():
-            while made:                  # one imported object alive at a time
+            while made:  # one imported object alive at a time
                 _remove(bpy, made.pop())
             op(filepath=str(src))
             made.append(bpy.context.active_object)
+
         return run
 
     timings = paired(importer(bpy.ops.wm.ply_import), importer(bpy.ops.splat.import_file), repeat)
@@ -70,7 +77,7 @@ def _ours(bpy, src, out, repeat):
     made = []
 
     def do_import():
-        if made:                       # keep one object alive at a time (removal: ~20 ms at 1M)
+        if made:  # keep one object alive at a time (removal: ~20 ms at 1M)
             _remove(bpy, made.pop())
         bpy.ops.splat.import_file(filepath=str(src))
         made.append(bpy.context.active_object)
@@ -85,9 +92,11 @@ def _ours(bpy, src, out, repeat):
 
 # baseline: per-splat loops -------------------------------------------------------------------------
 
+
 def baseline_import(bpy, path):
     import mathutils
-    cloud = read_splats(path)       # parsing itself is not what differs; use the same reader
+
+    cloud = read_splats(path)  # parsing itself is not what differs; use the same reader
     n, k = len(cloud), cloud.sh.shape[1]
     xyz = np.stack([cloud.positions[:, i].astype(np.float64) for i in range(3)], axis=1)
     log_opacity = cloud.opacity_logits.astype(np.float64)[:, None]
@@ -95,7 +104,7 @@ def baseline_import(bpy, path):
     log_scales = np.stack([cloud.log_scales[:, i].astype(np.float64) for i in range(3)], axis=1)
     quats = np.stack([cloud.rotations[:, i].astype(np.float64) for i in range(4)], axis=1)
     euler = np.zeros((n, 3))
-    for i in range(n):                                   # the per-splat loop
+    for i in range(n):  # the per-splat loop
         e = mathutils.Quaternion(quats[i].tolist()).to_euler()
         euler[i] = (e.x, e.y, e.z)
     mesh = bpy.data.meshes.new("baseline")
@@ -128,20 +137,22 @@ def baseline_export(obj, path, k):
     qxyz, qw = mesh.attributes["quatxyz"], mesh.attributes["quatw"]
     xyz, opac, scale, rot = np.zeros((n, 3)), np.zeros((n, 1)), np.zeros((n, 3)), np.zeros((n, 4))
     dc, rest = np.zeros((n, 3)), np.zeros((n, 3 * (k - 1)))
-    for i in range(n):                                   # the per-splat loop
+    for i in range(n):  # the per-splat loop
         xyz[i] = pos.data[i].vector.to_tuple()
         opac[i] = logop.data[i].value
         scale[i] = logscale.data[i].vector.to_tuple()
         dc[i] = sh[0].data[i].vector.to_tuple()
         for j in range(1, k):
-            rest[i, j - 1::k - 1] = sh[j].data[i].vector.to_tuple()
+            rest[i, j - 1 :: k - 1] = sh[j].data[i].vector.to_tuple()
         rot[i] = (*qxyz.data[i].vector.to_tuple(), qw.data[i].value)
     columns = np.concatenate([xyz, np.zeros((n, 3)), dc, rest, opac, scale, rot], axis=1)
     rows = np.empty(n, np.dtype([(f"c{i}", "<f4") for i in range(columns.shape[1])]))
     rows[:] = list(map(tuple, columns))
-    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-             + [f"f_rest_{i}" for i in range(rest.shape[1])]
-             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    names = (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(rest.shape[1])]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     header += [f"property float {name}" for name in names] + ["end_header\n"]
     with open(path, "wb") as f:
@@ -168,8 +179,10 @@ def _baseline(bpy, src, out, subset, scale, repeat):
 
 # run -----------------------------------------------------------------------------------------------
 
+
 def run(quick=False):
     import bpy
+
     from splatwright import splat_addon
 
     n = 100_000 if quick else 1_000_000
@@ -191,14 +204,31 @@ def run(quick=False):
         splat_addon.unregister()
     note = {"splats": n, "sh_degree": 3, "baseline_timed_on": subset, "baseline_scaled_by": round(n / subset, 1)}
     return [
-        Row(TOPIC, "PLY -> Blender object (splat.import_file)", t_import, b_import,
-            {"max_abs_roundtrip": ours_error, "baseline_max_abs_roundtrip": b_error}, note),
-        Row(TOPIC, "PLY -> Blender object, against Blender's own wm.ply_import", t_import_paired, t_blender,
-            {"max_abs_roundtrip": ours_error}, {**note, "baseline": "wm.ply_import (raw attributes)"}),
-        Row(TOPIC, "Blender object -> PLY (splat.export_file)", t_export, b_export,
-            {"max_abs_roundtrip": ours_error, "baseline_max_abs_roundtrip": b_error}, note),
-        Row(TOPIC, "viewport display evaluation (geometry nodes)", t_display, None, {},
-            {"splats": n}),
+        Row(
+            TOPIC,
+            "PLY -> Blender object (splat.import_file)",
+            t_import,
+            b_import,
+            {"max_abs_roundtrip": ours_error, "baseline_max_abs_roundtrip": b_error},
+            note,
+        ),
+        Row(
+            TOPIC,
+            "PLY -> Blender object, against Blender's own wm.ply_import",
+            t_import_paired,
+            t_blender,
+            {"max_abs_roundtrip": ours_error},
+            {**note, "baseline": "wm.ply_import (raw attributes)"},
+        ),
+        Row(
+            TOPIC,
+            "Blender object -> PLY (splat.export_file)",
+            t_export,
+            b_export,
+            {"max_abs_roundtrip": ours_error, "baseline_max_abs_roundtrip": b_error},
+            note,
+        ),
+        Row(TOPIC, "viewport display evaluation (geometry nodes)", t_display, None, {}, {"splats": n}),
     ]
 
 

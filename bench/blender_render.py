@@ -45,6 +45,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(1, str(ROOT / "tests"))
 from common import Row, Timing, print_rows
+
 from splatwright.core import SplatCloud
 from splatwright.core.camera import Camera
 from splatwright.core.color import linear_to_srgb, srgb_to_linear
@@ -54,11 +55,12 @@ from splatwright.io import write_splats
 TOPIC = "blender_render"
 BLENDER = "5.3"
 CHILD = HERE / "_blender_render_child.py"
-CLAMP = 1e-3          # Cycles' reported floor on a splat's smallest scale, relative to its largest
+CLAMP = 1e-3  # Cycles' reported floor on a splat's smallest scale, relative to its largest
 C0 = 0.28209479177387814
 
 
 # the scene -------------------------------------------------------------------------------------------
+
 
 def _turn_z_to(normals):
     """(w, x, y, z) quaternions turning +z onto each unit normal."""
@@ -66,7 +68,7 @@ def _turn_z_to(normals):
     axis = np.cross(z, normals)
     w = 1.0 + normals @ z
     q = np.concatenate([w[:, None], axis], axis=1)
-    flip = w < 1e-9                                          # the normal is -z: half a turn about x
+    flip = w < 1e-9  # the normal is -z: half a turn about x
     q[flip] = [0.0, 1.0, 0.0, 0.0]
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
@@ -110,6 +112,7 @@ def linear_blend_reference(cloud, camera):
     blended, the sum shown through the sRGB curve. (The reference itself, like the 3DGS rasteriser,
     blends the display values.)"""
     import reference_render
+
     plain = reference_render.sh_colors
     reference_render.sh_colors = lambda coeffs, directions: srgb_to_linear(plain(coeffs, directions))
     try:
@@ -122,35 +125,48 @@ def clamped(cloud, ratio=CLAMP):
     """The cloud with each splat's smallest scale raised to `ratio` of its largest."""
     scales = np.exp(cloud.log_scales.astype(np.float64))
     floor = ratio * scales.max(axis=1, keepdims=True)
-    return SplatCloud(cloud.positions, cloud.rotations, np.log(np.maximum(scales, floor)), cloud.opacity_logits,
-                      cloud.sh)
+    return SplatCloud(
+        cloud.positions, cloud.rotations, np.log(np.maximum(scales, floor)), cloud.opacity_logits, cloud.sh
+    )
 
 
 # Blender's side --------------------------------------------------------------------------------------
 
+
 def blender_python():
     """Blender 5.3's bpy-only interpreter (tests/blender_envs.py), or a RuntimeError saying what is missing."""
     import blender_envs
+
     try:
         return blender_envs.python_of(BLENDER)
     except blender_envs.Unavailable as exc:
-        raise RuntimeError(f"bench {TOPIC} renders in Blender {BLENDER} ({blender_envs.VERSIONS[BLENDER][1][0]} "
-                           f"on Python {blender_envs.VERSIONS[BLENDER][0]}) and cannot run here: {exc}. Install "
-                           f"Python {blender_envs.VERSIONS[BLENDER][0]}, then `python tests/blender_envs.py` makes "
-                           f"the environment in {blender_envs.CACHE / BLENDER}") from None
+        raise RuntimeError(
+            f"bench {TOPIC} renders in Blender {BLENDER} ({blender_envs.VERSIONS[BLENDER][1][0]} "
+            f"on Python {blender_envs.VERSIONS[BLENDER][0]}) and cannot run here: {exc}. Install "
+            f"Python {blender_envs.VERSIONS[BLENDER][0]}, then `python tests/blender_envs.py` makes "
+            f"the environment in {blender_envs.CACHE / BLENDER}"
+        ) from None
 
 
 def run_blender(job, work):
     """Run the child on `job` (written into `work`); its results.json."""
     python = blender_python()
     from helpers import build_extension_zip
+
     job = {**job, "work": str(work), "zip": str(build_extension_zip(work))}
     (work / "job.json").write_text(json.dumps(job))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
     env["BLENDER_USER_RESOURCES"] = str(work / "user")
-    proc = subprocess.run([python, str(CHILD), str(work / "job.json")], check=False, cwd=work, env=env,
-                          capture_output=True, text=True, timeout=7200)
-    shutil.rmtree(work / "user", ignore_errors=True)          # the installed extension: ~300 MB
+    proc = subprocess.run(
+        [python, str(CHILD), str(work / "job.json")],
+        check=False,
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=7200,
+    )
+    shutil.rmtree(work / "user", ignore_errors=True)  # the installed extension: ~300 MB
     log = f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-3000:]}\n--- stderr\n{proc.stderr[-3000:]}"
     results_file = work / "results.json"
     if not results_file.exists():
@@ -162,11 +178,17 @@ def run_blender(job, work):
 
 
 def core_camera(fields):
-    return Camera(**{**fields, "world_to_camera": np.array(fields["world_to_camera"]),
-                     "far": np.inf if fields["far"] is None else fields["far"]})
+    return Camera(
+        **{
+            **fields,
+            "world_to_camera": np.array(fields["world_to_camera"]),
+            "far": np.inf if fields["far"] is None else fields["far"],
+        }
+    )
 
 
 # scoring ---------------------------------------------------------------------------------------------
+
 
 def display(linear_rgb):
     """Scene-linear RGB -> display sRGB as the Standard view transform shows it, clipped to [0, 1]."""
@@ -184,12 +206,29 @@ def timing(seconds):
 
 # run -------------------------------------------------------------------------------------------------
 
+
 def renderers(quick):
     samples = (16, 64) if quick else (16, 64, 256)
-    out = [{"name": f"cycles_{s}", "engine": "CYCLES", "samples": s, "label": f"Cycles CPU, {s} samples",
-            "warmup": s == samples[0]} for s in samples]
-    out.append({"name": f"cycles_{samples[-1]}_point", "engine": "CYCLES", "samples": samples[-1], "warmup": False,
-                "filter": ["BOX", 0.01], "label": f"Cycles CPU, {samples[-1]} samples, 0.01 px box filter"})
+    out = [
+        {
+            "name": f"cycles_{s}",
+            "engine": "CYCLES",
+            "samples": s,
+            "label": f"Cycles CPU, {s} samples",
+            "warmup": s == samples[0],
+        }
+        for s in samples
+    ]
+    out.append(
+        {
+            "name": f"cycles_{samples[-1]}_point",
+            "engine": "CYCLES",
+            "samples": samples[-1],
+            "warmup": False,
+            "filter": ["BOX", 0.01],
+            "label": f"Cycles CPU, {samples[-1]} samples, 0.01 px box filter",
+        }
+    )
     eevee = 16 if quick else 64
     out.append({"name": "eevee", "engine": "BLENDER_EEVEE", "samples": eevee, "label": f"EEVEE, {eevee} samples"})
     out.append({"name": "splatwright", "engine": "SPLATWRIGHT", "label": "SPLATWRIGHT engine (F12)"})
@@ -201,8 +240,12 @@ def run(quick=False):
     size = (160, 120) if quick else (320, 240)
     repeat = 3
     cloud = make_scene(2000 if quick else 4000)
-    job = {"size": size, "repeat": repeat, "renderers": renderers(quick),
-           "camera": {"location": [3.4, -3.0, 1.9], "target": [0.0, 0.0, 0.0], "lens": 40.0, "clip": [0.1, 100.0]}}
+    job = {
+        "size": size,
+        "repeat": repeat,
+        "renderers": renderers(quick),
+        "camera": {"location": [3.4, -3.0, 1.9], "target": [0.0, 0.0, 0.0], "lens": 40.0, "clip": [0.1, 100.0]},
+    }
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         job["ply"] = str(work / "scene.ply")
@@ -216,6 +259,7 @@ def run(quick=False):
         raise RuntimeError("wm.ply_import placed the cloud with a transform; the reference assumes none")
     camera = core_camera(results["core_camera"])
     from reference_render import reference_render
+
     reference = np.clip(reference_render(cloud, camera)["color"], 0.0, 1.0)
     reference_linear = linear_blend_reference(cloud, camera)
     reference_clamped = linear_blend_reference(clamped(cloud), camera)
@@ -223,9 +267,13 @@ def run(quick=False):
     view_check = float(np.abs(check[..., :3] - display(images[first][..., :3].astype(np.float64))).max())
 
     cycles_base = timing(results["runs"][first])
-    note = {"splats": len(cloud), "sh_degree": 3, "pixels": f"{size[0]}x{size[1]}",
-            "colour": f"view {results['colour_management']['view_transform']}, display "
-                      f"{results['colour_management']['display_device']}"}
+    note = {
+        "splats": len(cloud),
+        "sh_degree": 3,
+        "pixels": f"{size[0]}x{size[1]}",
+        "colour": f"view {results['colour_management']['view_transform']}, display "
+        f"{results['colour_management']['display_device']}",
+    }
     rows = []
     for r in job["renderers"]:
         linear = images[r["name"]][..., :3].astype(np.float64)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 @dataclass
 class Timing:
     median: float
-    spread: float      # (max - min) / 2 over the runs, seconds
+    spread: float  # (max - min) / 2 over the runs, seconds
     runs: int
 
     def __str__(self):
@@ -39,12 +39,13 @@ def timeit(fn, repeat=5, warmup=1, clock=time.perf_counter):
 @dataclass
 class Row:
     """One measured configuration: what it is, how fast, against what baseline, at what error."""
+
     topic: str
     case: str
     timing: Timing
     baseline: Timing | None = None
-    error: dict = field(default_factory=dict)    # metric name -> value
-    extra: dict = field(default_factory=dict)    # anything else worth a column
+    error: dict = field(default_factory=dict)  # metric name -> value
+    extra: dict = field(default_factory=dict)  # anything else worth a column
 
     @property
     def ratio(self):
@@ -55,8 +56,10 @@ class Row:
 def paired(baseline, ours, repeat=5, clock=time.perf_counter, warmup=True):
     """(baseline Timing, our Timing) from runs that alternate, so both meet the same load on a shared
     machine; one untimed warm-up each (unless not `warmup`: for long runs whose code is warm)."""
-    pairs = [(timeit(baseline, 1, int(i == 0 and warmup), clock), timeit(ours, 1, int(i == 0 and warmup), clock))
-             for i in range(repeat)]
+    pairs = [
+        (timeit(baseline, 1, int(i == 0 and warmup), clock), timeit(ours, 1, int(i == 0 and warmup), clock))
+        for i in range(repeat)
+    ]
     return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
 
 
@@ -68,24 +71,32 @@ def _combine(timings):
 def fresh_file(path, write):
     """A callable writing `write(path)` to a new file each time: replacing a large file makes the
     file system flush the old one first, a cost that would swamp what is measured."""
+
     def run():
         if path.exists():
             path.unlink()
         write(path)
+
     return run
 
 
 def machine():
     """A one-line description of the machine the numbers come from."""
     import numpy as np
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"Python {platform.python_version()}, NumPy {np.__version__}, {platform.system()}")
+
+    return (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"Python {platform.python_version()}, NumPy {np.__version__}, {platform.system()}"
+    )
 
 
 def print_rows(rows):
     for r in rows:
         ratio = f"  x{r.ratio:.3g} vs baseline ({r.baseline})" if r.baseline else ""
-        err = "  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.error.items()) \
-            if r.error else ""
+        err = (
+            "  " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.error.items())
+            if r.error
+            else ""
+        )
         ext = "  " + ", ".join(f"{k}={v}" for k, v in r.extra.items()) if r.extra else ""
         print(f"[{r.topic}] {r.case}: {r.timing}{ratio}{err}{ext}")

@@ -43,6 +43,7 @@ def cloud_rows(n, repeat):
     full_time = timeit(lambda: render(cloud, camera), repeat=repeat)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+
         def size(c, name, **options):
             path = Path(tmp) / name
             with warnings.catch_warnings():
@@ -63,10 +64,20 @@ def cloud_rows(n, repeat):
             nbytes, back = size(variant, f"v.{ext}", **options)
             err = economy.image_error(reference, back, check_views)
             t = timeit(lambda: render(back, camera), repeat=repeat)
-            rows.append(Row(TOPIC, name, t, full_time,
-                            error={"psnr_db": err.psnr, "max_abs": err.max_abs},
-                            extra={"splats": len(back), "splats_saved": f"{1 - len(back) / n:.1%}",
-                                   "bytes_saved": f"{1 - nbytes / full_bytes:.1%}"}))
+            rows.append(
+                Row(
+                    TOPIC,
+                    name,
+                    t,
+                    full_time,
+                    error={"psnr_db": err.psnr, "max_abs": err.max_abs},
+                    extra={
+                        "splats": len(back),
+                        "splats_saved": f"{1 - len(back) / n:.1%}",
+                        "bytes_saved": f"{1 - nbytes / full_bytes:.1%}",
+                    },
+                )
+            )
     return rows
 
 
@@ -79,9 +90,16 @@ def weight_rows(n, repeat):
         pruned = Binding.from_weights(binding.indices, binding.weights, max_influences=k)
         t = timeit(lambda: skin_centres(cloud.positions, pruned, pose), repeat=repeat)
         moved = np.linalg.norm(skin_centres(cloud.positions, pruned, pose) - exact, axis=1)
-        rows.append(Row(TOPIC, f"skinning weights pruned to {k} of 4 influences", t, full_time,
-                        error={"centre_err_median": float(np.median(moved)), "centre_err_max": float(moved.max())},
-                        extra={"pruned_weight_mean": f"{pruned.pruned.mean():.3f}"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"skinning weights pruned to {k} of 4 influences",
+                t,
+                full_time,
+                error={"centre_err_median": float(np.median(moved)), "centre_err_max": float(moved.max())},
+                extra={"pruned_weight_mean": f"{pruned.pruned.mean():.3f}"},
+            )
+        )
     return rows
 
 

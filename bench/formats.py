@@ -21,20 +21,22 @@ from common import Row, Timing, fresh_file, machine, paired, print_rows  # noqa:
 from helpers import random_cloud  # noqa: E402
 
 from splatwright.core import sh as shmod  # noqa: E402
-from splatwright.io import SplatFileWarning, compressed_ply, gltf, ply, sog, splat, spz, usd  # noqa: E402
 from splatwright.core.splats import FIELDS  # noqa: E402
+from splatwright.io import SplatFileWarning, compressed_ply, gltf, ply, sog, splat, spz, usd  # noqa: E402
 
-morton = lambda cloud: compressed_ply.morton_order(cloud.positions)       # noqa: E731
+morton = lambda cloud: compressed_ply.morton_order(cloud.positions)  # noqa: E731
 
 
 def without_pxr(function):
     """`function` run as where OpenUSD's Python module is missing (Blender 4.2): text layers."""
+
     def run(*args):
         saved, usd.stages.active = usd.stages.active, usd.stages.TEXT
         try:
             return function(*args)
         finally:
             usd.stages.active = saved
+
     return run
 
 
@@ -60,7 +62,7 @@ FORMATS = {
 def attribute_errors(got, want):
     """Per-attribute error of a decoded cloud against the original."""
     a, b = got.unit_rotations, want.unit_rotations
-    b = b * np.where((a * b).sum(axis=1, keepdims=True) < 0, -1, 1)       # q and -q: one rotation
+    b = b * np.where((a * b).sum(axis=1, keepdims=True) < 0, -1, 1)  # q and -q: one rotation
     angles = np.degrees(4 * np.arcsin(np.minimum(1, np.linalg.norm(a - b, axis=1) / 2)))
     k = min(got.sh.shape[1], want.sh.shape[1])
     rest = np.abs(got.sh[:, 1:k].astype(np.float64) - want.sh[:, 1:k]) if k > 1 else np.zeros(1)
@@ -86,8 +88,9 @@ def gsply_rows(cloud, tmp, repeat):
     note) when gsply cannot be installed."""
     try:
         import interop
+
         python = interop.python_tool("gsply")
-    except BaseException as exc:          # pytest's skip is a BaseException
+    except BaseException as exc:  # pytest's skip is a BaseException
         print(f"[formats] gsply not available, SPZ is not timed against it: {exc}", file=sys.stderr)
         return []
     interop.save_arrays(tmp / "cloud.npz", **interop.ply_arrays(cloud))
@@ -102,20 +105,35 @@ def gsply_rows(cloud, tmp, repeat):
             start = time.perf_counter()
             write()
             ours.append(time.perf_counter() - start)
-            done = subprocess.run([str(python), str(driver), "time-spz", str(tmp / "cloud.npz"), str(tmp / "g.spz"),
-                                   "1", str(version)], capture_output=True, text=True, check=True)
+            done = subprocess.run(
+                [str(python), str(driver), "time-spz", str(tmp / "cloud.npz"), str(tmp / "g.spz"), "1", str(version)],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
             theirs.append(float(done.stdout.split()[-1]))
         tracemalloc.start()
         spz.write(tmp / "ours.spz", cloud, version=version)
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        timing = lambda t: Timing(float(np.median(t)), (max(t) - min(t)) / 2, len(t))   # noqa: E731
+        timing = lambda t: Timing(float(np.median(t)), (max(t) - min(t)) / 2, len(t))  # noqa: E731
         size, their_size = (tmp / "ours.spz").stat().st_size, (tmp / "g.spz").stat().st_size
-        rows.append(Row("formats", f"write SPZ v{version} against gsply, {len(cloud):,} splats, SH degree 3",
-                        timing(ours), timing(theirs), {},
-                        {"baseline": f"gsply write_spz(version={version})", "MiB": f"{size / 2**20:.1f}",
-                         "gsply_MiB": f"{their_size / 2**20:.1f}", "peak_memory_vs_cloud": f"{peak / nbytes:.2f}",
-                         "speed_vs_gsply": f"{np.median(theirs) / np.median(ours):.2f}x"}))
+        rows.append(
+            Row(
+                "formats",
+                f"write SPZ v{version} against gsply, {len(cloud):,} splats, SH degree 3",
+                timing(ours),
+                timing(theirs),
+                {},
+                {
+                    "baseline": f"gsply write_spz(version={version})",
+                    "MiB": f"{size / 2**20:.1f}",
+                    "gsply_MiB": f"{their_size / 2**20:.1f}",
+                    "peak_memory_vs_cloud": f"{peak / nbytes:.2f}",
+                    "speed_vs_gsply": f"{np.median(theirs) / np.median(ours):.2f}x",
+                },
+            )
+        )
     return rows
 
 
@@ -125,25 +143,39 @@ def run(quick=False):
     full = random_cloud(n, sh_degree=3, seed=0)
     rows = []
     with tempfile.TemporaryDirectory(prefix="splatwright-bench-formats-") as folder, warnings.catch_warnings():
-        warnings.simplefilter("ignore", SplatFileWarning)     # clamping and dropped SH: measured below
+        warnings.simplefilter("ignore", SplatFileWarning)  # clamping and dropped SH: measured below
         tmp = Path(folder)
         for name, (suffix, write, read, share, order) in FORMATS.items():
-            cloud = full[:n // share]
+            cloud = full[: n // share]
             ply_path = tmp / "cloud.ply"
             ply.write(ply_path, cloud)
             ply_size = ply_path.stat().st_size
             case = f"{len(cloud):,} splats, SH degree 3"
             path = tmp / f"out{suffix}"
-            write_ply, write_ours = paired(fresh_file(tmp / "base.ply", lambda p: ply.write(p, cloud)),
-                                            fresh_file(path, lambda p: write(p, cloud)), repeat)
+            write_ply, write_ours = paired(
+                fresh_file(tmp / "base.ply", lambda p: ply.write(p, cloud)),
+                fresh_file(path, lambda p: write(p, cloud)),
+                repeat,
+            )
             read_ply, read_ours = paired(lambda: ply.read(ply_path), lambda: read(path), repeat)
             size = path.stat().st_size
             errors = attribute_errors(read(path), cloud if order is None else cloud[order(cloud)])
-            extra = {"MiB": f"{size / 2**20:.1f}", "bytes_per_splat": f"{size / len(cloud):.1f}",
-                     "size_vs_ply": f"{size / ply_size:.3f}"}
+            extra = {
+                "MiB": f"{size / 2**20:.1f}",
+                "bytes_per_splat": f"{size / len(cloud):.1f}",
+                "size_vs_ply": f"{size / ply_size:.3f}",
+            }
             for verb, ours, base in (("write", write_ours, write_ply), ("read", read_ours, read_ply)):
-                rows.append(Row("formats", f"{verb} {name}, {case}", ours, base, errors,
-                                {**extra, "baseline": f"PLY {verb}", "slowdown": f"{ours.median / base.median:.2f}x"}))
+                rows.append(
+                    Row(
+                        "formats",
+                        f"{verb} {name}, {case}",
+                        ours,
+                        base,
+                        errors,
+                        {**extra, "baseline": f"PLY {verb}", "slowdown": f"{ours.median / base.median:.2f}x"},
+                    )
+                )
         rows += gsply_rows(full, tmp, repeat)
     return rows
 

@@ -38,8 +38,10 @@ sys.path.insert(0, str(HERE))
 from _oracles import pybullet_data  # noqa: E402
 from common import Row, Timing, paired, print_rows, timeit  # noqa: E402
 
-from splatwright.core import SplatCloud  # noqa: E402
-from splatwright.core import metrics  # noqa: E402
+from splatwright.core import (
+    SplatCloud,  # noqa: E402
+    metrics,  # noqa: E402
+)
 from splatwright.core.camera import Camera, opengl_camera_to_world  # noqa: E402
 from splatwright.core.mesh import Material, Mesh  # noqa: E402
 from splatwright.core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
@@ -53,6 +55,7 @@ DISTANCES = (0.5, 1.0, 3.0)
 
 
 # bench meshes ------------------------------------------------------------------------------------
+
 
 def uv_sphere(segments, rings):
     """A closed UV sphere: shared poles and seam positions, per-corner UVs with the seam split."""
@@ -85,9 +88,11 @@ def sphere_texture(w=1024, h=512, checker=False):
 def write_obj(folder, name, v, f, uv, texture, face_materials=None, flat_kd=(0.6, 0.25, 0.05)):
     """OBJ + MTL + PNG; material 'painted' (texture) and, where face_materials is 1, 'flat'."""
     from PIL import Image
+
     Image.fromarray(texture).save(folder / f"{name}.png")
-    (folder / f"{name}.mtl").write_text(f"newmtl painted\nKd 0.8 0.8 0.8\nmap_Kd {name}.png\n"
-                                        f"newmtl flat\nKd {flat_kd[0]} {flat_kd[1]} {flat_kd[2]}\n")
+    (folder / f"{name}.mtl").write_text(
+        f"newmtl painted\nKd 0.8 0.8 0.8\nmap_Kd {name}.png\nnewmtl flat\nKd {flat_kd[0]} {flat_kd[1]} {flat_kd[2]}\n"
+    )
     fm = np.zeros(len(f), int) if face_materials is None else face_materials
     lines = [f"mtllib {name}.mtl"]
     lines += [f"v {a:.9g} {b:.9g} {c:.9g}" for a, b, c in v]
@@ -117,13 +122,21 @@ def large_plane(size=10.0, n=40):
 def blender_primitives(folder):
     """Suzanne and a torus as Blender makes them, one flat colour each."""
     out = folder / "primitives.npz"
-    subprocess.run([sys.executable, __file__, "--primitives", str(out)], check=True,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, __file__, "--primitives", str(out)],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     d = np.load(out)
-    return {"Blender Suzanne": Mesh(d["suzanne_vertices"], d["suzanne_faces"], None, None,
-                                    [Material(base_color=(0.7, 0.35, 0.1))]),
-            "Blender torus": Mesh(d["torus_vertices"], d["torus_faces"], None, None,
-                                  [Material(base_color=(0.2, 0.45, 0.7))])}
+    return {
+        "Blender Suzanne": Mesh(
+            d["suzanne_vertices"], d["suzanne_faces"], None, None, [Material(base_color=(0.7, 0.35, 0.1))]
+        ),
+        "Blender torus": Mesh(
+            d["torus_vertices"], d["torus_faces"], None, None, [Material(base_color=(0.2, 0.45, 0.7))]
+        ),
+    }
 
 
 def pybullet_meshes():
@@ -133,16 +146,21 @@ def pybullet_meshes():
         root = pybullet_data()
     except (OSError, subprocess.CalledProcessError) as exc:
         return {}, f"pybullet's data could not be installed ({exc}): its meshes were not measured"
-    return {"pybullet duck": read_mesh(root / "duck.obj"), "pybullet bunny": read_mesh(root / "bunny.obj"),
-            "pybullet robot hand (5 materials)": read_mesh(root / "franka_panda/meshes/visual/hand.obj")}, ""
+    return {
+        "pybullet duck": read_mesh(root / "duck.obj"),
+        "pybullet bunny": read_mesh(root / "bunny.obj"),
+        "pybullet robot hand (5 materials)": read_mesh(root / "franka_panda/meshes/visual/hand.obj"),
+    }, ""
 
 
 def bench_meshes(folder, quick):
     """name -> Mesh, and a note about meshes that could not be had."""
     sphere = uv_sphere(48, 24) if quick else uv_sphere(96, 48)
-    meshes = {"textured sphere": read_mesh(write_obj(folder, "sphere", *sphere, sphere_texture())),
-              "thin-walled cup (5 mm)": thin_walled_cup(),
-              "large plane (10 m)": large_plane()}
+    meshes = {
+        "textured sphere": read_mesh(write_obj(folder, "sphere", *sphere, sphere_texture())),
+        "thin-walled cup (5 mm)": thin_walled_cup(),
+        "large plane (10 m)": large_plane(),
+    }
     meshes.update(blender_primitives(folder))
     found, note = pybullet_meshes()
     meshes.update(found)
@@ -163,20 +181,30 @@ def held_out_cameras(mesh, size, per_distance=3, distances=DISTANCES, seed=5, fl
         if floor:
             azimuth = rng.uniform(0, 2 * np.pi, per_distance)
             elevation = np.radians([2.0, 15.0, 50.0][:per_distance])
-            dirs = np.column_stack([np.cos(elevation) * np.cos(azimuth), np.sin(elevation),
-                                    np.cos(elevation) * np.sin(azimuth)])
+            dirs = np.column_stack(
+                [np.cos(elevation) * np.cos(azimuth), np.sin(elevation), np.cos(elevation) * np.sin(azimuth)]
+            )
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        cams += [(d, Camera.look_at(centre + framing * d * u, centre, fov_deg=40.0, width=size, height=size,
-                                    near=1e-3 * framing)) for u in dirs]
+        cams += [
+            (
+                d,
+                Camera.look_at(
+                    centre + framing * d * u, centre, fov_deg=40.0, width=size, height=size, near=1e-3 * framing
+                ),
+            )
+            for u in dirs
+        ]
     return cams
 
 
 # Cycles ----------------------------------------------------------------------------------------
 
+
 def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
     """Render the mesh with Blender Cycles from every camera in one subprocess; returns ([display
     sRGB images], seconds). Unlit (emission) unless `lit`: then see _lit_scene."""
     from PIL import Image
+
     spec = folder / "cycles_spec.npz"
     textures, materials = [], mesh.materials or [Material()]
     for k, material in enumerate(materials):
@@ -190,19 +218,34 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
         textures.append(path)
     uvs = mesh.corner_uvs if mesh.corner_uvs is not None else np.zeros((len(mesh.faces), 3, 2))
     fm = mesh.face_materials if mesh.face_materials is not None else np.zeros(len(mesh.faces), int)
-    np.savez(spec, vertices=mesh.vertices, faces=mesh.faces, uvs=uvs, face_materials=fm,
-             base_colors=np.array([m.base_color for m in materials]), textures=np.array(textures),
-             camera_to_world=np.array([opengl_camera_to_world(c.world_to_camera) for c in cameras]),
-             fov=np.array([c.fov_x_deg for c in cameras]), width=cameras[0].width, height=cameras[0].height,
-             samples=samples, lit=lit, out=str(folder / "cycles_"))
+    np.savez(
+        spec,
+        vertices=mesh.vertices,
+        faces=mesh.faces,
+        uvs=uvs,
+        face_materials=fm,
+        base_colors=np.array([m.base_color for m in materials]),
+        textures=np.array(textures),
+        camera_to_world=np.array([opengl_camera_to_world(c.world_to_camera) for c in cameras]),
+        fov=np.array([c.fov_x_deg for c in cameras]),
+        width=cameras[0].width,
+        height=cameras[0].height,
+        samples=samples,
+        lit=lit,
+        out=str(folder / "cycles_"),
+    )
     start = time.perf_counter()
-    subprocess.run([sys.executable, __file__, "--cycles", str(spec)], check=True,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(
+        [sys.executable, __file__, "--cycles", str(spec)],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     seconds = time.perf_counter() - start
     images = []
     for i in range(len(cameras)):
         rgba = np.asarray(Image.open(folder / f"cycles_{i}.png").convert("RGBA"), np.float64) / 255.0
-        images.append(rgba[..., :3] * rgba[..., 3:])        # over black (unlit: alpha is 1)
+        images.append(rgba[..., :3] * rgba[..., 3:])  # over black (unlit: alpha is 1)
     return images, seconds
 
 
@@ -210,6 +253,7 @@ def _cycles_main(spec_path):
     """Runs inside the subprocess: build the scene in bpy and render it from every camera."""
     import bpy
     import mathutils
+
     d = np.load(spec_path)
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -229,7 +273,7 @@ def _cycles_main(spec_path):
             shader = nodes.new("ShaderNodeEmission")
             shader.inputs["Strength"].default_value = 1.0
             colour_input = shader.inputs["Color"]
-        colour_input.default_value = (*base, 1.0)                       # scene-linear, as Kd
+        colour_input.default_value = (*base, 1.0)  # scene-linear, as Kd
         if str(texture):
             image = nodes.new("ShaderNodeTexImage")
             image.image = bpy.data.images.load(str(texture))
@@ -283,6 +327,7 @@ def _lit_scene(scene, obj, world):
     the world transparent to the camera (so images come over black, as splats render), denoised."""
     import bpy
     import mathutils
+
     co = np.array([v.co[:] for v in obj.data.vertices])
     centre = (co.min(axis=0) + co.max(axis=0)) / 2
     size = max(float(np.abs(co - centre).max()), 1e-3)
@@ -306,6 +351,7 @@ def _lit_scene(scene, obj, world):
 def _primitives_main(out_path):
     """Runs inside a subprocess: Blender's own primitives as triangles."""
     import bpy
+
     bpy.ops.wm.read_factory_settings(use_empty=True)
     arrays = {}
     for name, add in (("suzanne", bpy.ops.mesh.primitive_monkey_add), ("torus", bpy.ops.mesh.primitive_torus_add)):
@@ -319,6 +365,7 @@ def _primitives_main(out_path):
 
 
 # comparisons -----------------------------------------------------------------------------------
+
 
 def versus(images, references):
     """PSNR over all images together and mean SSIM."""
@@ -336,6 +383,7 @@ def convert(mesh, **options):
 
 
 # the baseline: one Python iteration per triangle -------------------------------------------------
+
 
 def baseline_convert(mesh, max_splats, seed=0):
     """A straightforward per-triangle converter: per face, round(N * area share) random points
@@ -360,8 +408,12 @@ def baseline_convert(mesh, max_splats, seed=0):
         t1 = (v[b] - v[a]) / np.linalg.norm(v[b] - v[a])
         frame = np.stack([t1, np.cross(normal, t1), normal], 1)
         w_ = math.sqrt(max(0.0, 1 + frame[0, 0] + frame[1, 1] + frame[2, 2])) / 2
-        quat = [w_, (frame[2, 1] - frame[1, 2]) / (4 * w_ + 1e-12), (frame[0, 2] - frame[2, 0]) / (4 * w_ + 1e-12),
-                (frame[1, 0] - frame[0, 1]) / (4 * w_ + 1e-12)]
+        quat = [
+            w_,
+            (frame[2, 1] - frame[1, 2]) / (4 * w_ + 1e-12),
+            (frame[0, 2] - frame[2, 0]) / (4 * w_ + 1e-12),
+            (frame[1, 0] - frame[0, 1]) / (4 * w_ + 1e-12),
+        ]
         out["q"].append(np.tile(quat, (n, 1)))
         sigma = math.sqrt(areas[k] / n)
         out["s"].append(np.tile([sigma, sigma, 0.01 * sigma], (n, 1)))
@@ -369,8 +421,13 @@ def baseline_convert(mesh, max_splats, seed=0):
         px = (uv[:, 0] % 1 * w).astype(int).clip(0, w - 1)
         py = ((1 - uv[:, 1] % 1) * h).astype(int).clip(0, h - 1)
         out["c"].append(texture[py, px])
-    return SplatCloud.from_activated(np.concatenate(out["p"]), np.concatenate(out["q"]), np.concatenate(out["s"]),
-                                     np.full(sum(len(p) for p in out["p"]), 0.99), colors=np.concatenate(out["c"]))
+    return SplatCloud.from_activated(
+        np.concatenate(out["p"]),
+        np.concatenate(out["q"]),
+        np.concatenate(out["s"]),
+        np.full(sum(len(p) for p in out["p"]), 0.99),
+        colors=np.concatenate(out["c"]),
+    )
 
 
 def speed_rows(quick, sphere_mesh, cameras, references):
@@ -379,7 +436,7 @@ def speed_rows(quick, sphere_mesh, cameras, references):
     v, f, uv = uv_sphere(segments, rings)
     big = Mesh(v, f, uv, None, [Material(texture=sphere_texture())])
     splats = 10 * len(f)
-    big.materials[0].linear_texture()                 # decode once, outside the timing
+    big.materials[0].linear_texture()  # decode once, outside the timing
     ours = timeit(lambda: convert(big, max_splats=splats, calibrate=False), repeat=3 if quick else 5)
     subset = 1000 if quick else 2000
     part = Mesh(v, f[:subset], uv[:subset], None, big.materials)
@@ -390,15 +447,29 @@ def speed_rows(quick, sphere_mesh, cameras, references):
     equal = 60_000 if quick else 150_000
     err_ours = splat_error(convert(sphere_mesh, max_splats=equal, calibrate=False), cameras, references)
     err_base = splat_error(baseline_convert(sphere_mesh, equal), cameras, references)
-    return [Row(TOPIC, f"{len(f) // 1000}k triangles -> {splats // 1000}k splats (budget)", ours, baseline,
-                error={"psnr_db": err_ours["psnr_db"], "baseline_psnr_db": err_base["psnr_db"],
-                       "ssim": err_ours["ssim"], "baseline_ssim": err_base["ssim"]},
-                extra={"s per 100k tris": f"{ours.median * per_100k:.2f}",
-                       "baseline s per 100k tris": f"{baseline.median * per_100k:.1f} (timed on {subset} faces)",
-                       "error at": f"{equal // 1000}k splats on the bench sphere"})]
+    return [
+        Row(
+            TOPIC,
+            f"{len(f) // 1000}k triangles -> {splats // 1000}k splats (budget)",
+            ours,
+            baseline,
+            error={
+                "psnr_db": err_ours["psnr_db"],
+                "baseline_psnr_db": err_base["psnr_db"],
+                "ssim": err_ours["ssim"],
+                "baseline_ssim": err_base["ssim"],
+            },
+            extra={
+                "s per 100k tris": f"{ours.median * per_100k:.2f}",
+                "baseline s per 100k tris": f"{baseline.median * per_100k:.1f} (timed on {subset} faces)",
+                "error at": f"{equal // 1000}k splats on the bench sphere",
+            },
+        )
+    ]
 
 
 # the benchmark -----------------------------------------------------------------------------------
+
 
 def by_distance(cloud, cams, references):
     """PSNR per held-out distance (over its views together) and the mean SSIM of all views."""
@@ -419,20 +490,27 @@ def worst_distance(error):
 # the default conversion against the converter before its speed-up ----------------------------------
 
 OTHER_MODE = "antialiased" if DEFAULT_RENDER_MODE == "classic" else "classic"
-SPEED_BEFORE = "b588814"     # the last commit before the default conversion was made faster
+SPEED_BEFORE = "b588814"  # the last commit before the default conversion was made faster
 SPEED_MESHES = ("textured sphere", "Blender Suzanne")
 
 
 def converter_before():
     """mesh_to_splats as of SPEED_BEFORE (with its refinement and mesh rasteriser), beside today's."""
     from _before import module_before
+
     old = dict(commit=SPEED_BEFORE, suffix="speed_before")
     module_before("core/mesh_render.py", **old)
-    steps = module_before("core/mesh_to_splats.py",
-                          {"from .mesh_refine import": "from ._mesh_refine_speed_before import"}, **old)
-    module_before("core/mesh_refine.py", {"from .mesh_render import": "from ._mesh_render_speed_before import",
-                                          "from .mesh_to_splats import": "from ._mesh_to_splats_speed_before import"},
-                  **old)
+    steps = module_before(
+        "core/mesh_to_splats.py", {"from .mesh_refine import": "from ._mesh_refine_speed_before import"}, **old
+    )
+    module_before(
+        "core/mesh_refine.py",
+        {
+            "from .mesh_render import": "from ._mesh_render_speed_before import",
+            "from .mesh_to_splats import": "from ._mesh_to_splats_speed_before import",
+        },
+        **old,
+    )
     return steps.mesh_to_splats
 
 
@@ -448,20 +526,30 @@ def speed_before_row(name, mesh, size, cams, references, quick):
             info = {}
             cloud = fn(mesh.vertices, mesh.faces, **mesh.appearance(), view_size=size, info=info, **mode)
             runs[key] = (cloud, info)
+
         return run
 
-    base, ours = paired(conversion(before, "before"), conversion(mesh_to_splats, "ours", render_mode="classic"),
-                        1 if quick else 3,
-                        time.process_time, warmup=False)
+    base, ours = paired(
+        conversion(before, "before"),
+        conversion(mesh_to_splats, "ours", render_mode="classic"),
+        1 if quick else 3,
+        time.process_time,
+        warmup=False,
+    )
     error = {}
     for key, prefix in (("ours", ""), ("before", "before ")):
         cloud, info = runs[key]
         held = by_distance(cloud, cams, references)
         error[f"{prefix}own worst dB"] = info["psnr"]
         error[f"{prefix}held-out worst dB"] = worst_distance(held)
-    return Row(TOPIC, f"{name}: classic conversion, CPU s, against {SPEED_BEFORE} (before the speed-up)", ours,
-               base, error=error, extra={"faces": len(mesh.faces), "splats": len(runs["ours"][0]),
-                                         "splats before": len(runs["before"][0])})
+    return Row(
+        TOPIC,
+        f"{name}: classic conversion, CPU s, against {SPEED_BEFORE} (before the speed-up)",
+        ours,
+        base,
+        error=error,
+        extra={"faces": len(mesh.faces), "splats": len(runs["ours"][0]), "splats before": len(runs["before"][0])},
+    )
 
 
 def mesh_rows(name, mesh, size, budgets, folder, quick=False):
@@ -472,23 +560,42 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
     start = time.perf_counter()
     cloud = convert(mesh, view_size=size, info=info)
     seconds = time.perf_counter() - start
-    rows.append(Row(TOPIC, f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB, {DEFAULT_RENDER_MODE})",
-                    Timing(seconds, 0.0, 1),
-                    error=by_distance(cloud, cams, references),
-                    extra={"faces": len(mesh.faces), "splats": len(cloud), "own worst dB": f"{info['psnr']:.1f}",
-                           "reached": info["reached"],
-                           "worst own view": f"{info['worst_view_distance']:g}x, "
-                                             f"{info['worst_view_edge_share']:.0%} on silhouettes"}))
+    rows.append(
+        Row(
+            TOPIC,
+            f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB, {DEFAULT_RENDER_MODE})",
+            Timing(seconds, 0.0, 1),
+            error=by_distance(cloud, cams, references),
+            extra={
+                "faces": len(mesh.faces),
+                "splats": len(cloud),
+                "own worst dB": f"{info['psnr']:.1f}",
+                "reached": info["reached"],
+                "worst own view": f"{info['worst_view_distance']:g}x, "
+                f"{info['worst_view_edge_share']:.0%} on silhouettes",
+            },
+        )
+    )
     info = {}
     start = time.perf_counter()
     cloud = convert(mesh, view_size=size, info=info, render_mode=OTHER_MODE)
     seconds = time.perf_counter() - start
-    rows.append(Row(TOPIC, f"{name}: default, made for {OTHER_MODE} rendering", Timing(seconds, 0.0, 1),
-                    error=by_distance(cloud, cams, references),        # rendered in its own mode
-                    extra={"faces": len(mesh.faces), "splats": len(cloud), "own worst dB": f"{info['psnr']:.1f}",
-                           "reached": info["reached"],
-                           "worst own view": f"{info['worst_view_distance']:g}x, "
-                                             f"{info['worst_view_edge_share']:.0%} on silhouettes"}))
+    rows.append(
+        Row(
+            TOPIC,
+            f"{name}: default, made for {OTHER_MODE} rendering",
+            Timing(seconds, 0.0, 1),
+            error=by_distance(cloud, cams, references),  # rendered in its own mode
+            extra={
+                "faces": len(mesh.faces),
+                "splats": len(cloud),
+                "own worst dB": f"{info['psnr']:.1f}",
+                "reached": info["reached"],
+                "worst own view": f"{info['worst_view_distance']:g}x, "
+                f"{info['worst_view_edge_share']:.0%} on silhouettes",
+            },
+        )
+    )
     if name in SPEED_MESHES:
         rows.append(speed_before_row(name, mesh, size, cams, references, quick))
     for n in budgets:
@@ -498,23 +605,44 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
         curve["calibrated"].append((n, worst_distance(error)))
-        rows.append(Row(TOPIC, f"{name}: budget {n}", Timing(seconds, 0.0, 1), error=error,
-                        extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}: budget {n}",
+                Timing(seconds, 0.0, 1),
+                error=error,
+                extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"},
+            )
+        )
         start = time.perf_counter()
         cloud = convert(mesh, max_splats=n, calibrate=False)
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
         curve["before"].append((n, worst_distance(error)))
-        rows.append(Row(TOPIC, f"{name}: budget {n}, uncalibrated (as before)", Timing(seconds, 0.0, 1),
-                        error=error, extra={"splats": n}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}: budget {n}, uncalibrated (as before)",
+                Timing(seconds, 0.0, 1),
+                error=error,
+                extra={"splats": n},
+            )
+        )
         info = {}
         start = time.perf_counter()
         cloud = convert(mesh, max_splats=n, view_size=size, info=info, render_mode=OTHER_MODE)
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
         curve[OTHER_MODE].append((n, worst_distance(error)))
-        rows.append(Row(TOPIC, f"{name}: budget {n}, made for {OTHER_MODE} rendering", Timing(seconds, 0.0, 1),
-                        error=error, extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}: budget {n}, made for {OTHER_MODE} rendering",
+                Timing(seconds, 0.0, 1),
+                error=error,
+                extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"},
+            )
+        )
     return rows, curve, (cams, references, cycles_s)
 
 
@@ -543,13 +671,18 @@ def run(quick=False):
 
 def _plot(curves, path):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(10, 5))
     for k, (name, curve) in enumerate(curves.items()):
         colour = f"C{k}"
-        for kind, style, note in (("calibrated", "o-", ""), ("before", "x:", " (uncalibrated)"),
-                                  (OTHER_MODE, "s--", f" ({OTHER_MODE})")):
+        for kind, style, note in (
+            ("calibrated", "o-", ""),
+            ("before", "x:", " (uncalibrated)"),
+            (OTHER_MODE, "s--", f" ({OTHER_MODE})"),
+        ):
             pts = sorted(curve[kind])
             if pts:
                 n, p = zip(*pts)
@@ -559,7 +692,7 @@ def _plot(curves, path):
     ax.set_ylabel("worst distance's PSNR vs Cycles (dB)")
     ax.grid(True, alpha=0.3)
     ax.axhline(DEFAULT_TARGET_PSNR, color="gray", lw=0.8)
-    ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5))     # beside the curves, not on them
+    ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the curves, not on them
     fig.suptitle("mesh2splats: budget against PSNR at 0.5x, 1x, 3x held-out views")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

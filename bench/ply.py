@@ -24,8 +24,10 @@ from splatwright.io import ply  # noqa: E402
 
 
 def _max_error(a, b):
-    return max(float(np.abs(getattr(a, f).astype(np.float64) - getattr(b, f)).max())
-               for f in ("positions", "rotations", "log_scales", "opacity_logits", "sh"))
+    return max(
+        float(np.abs(getattr(a, f).astype(np.float64) - getattr(b, f)).max())
+        for f in ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+    )
 
 
 def run(quick=False):
@@ -41,10 +43,14 @@ def run(quick=False):
 
         read_base, read_ours = paired(lambda: np.fromfile(path, np.uint8), lambda: ply.read(path), repeat)
         back = ply.read(path)
-        write_base, write_ours = paired(fresh_file(tmp / "raw.bin", raw.tofile),
-                                         fresh_file(tmp / "out.ply", lambda p: ply.write(p, back)), repeat)
-        durable_base, durable_ours = paired(fresh_file(tmp / "raw.bin", lambda p: (raw.tofile(p), _fsync(p))),
-                                             fresh_file(tmp / "out.ply", lambda p: ply.write(p, back)), repeat)
+        write_base, write_ours = paired(
+            fresh_file(tmp / "raw.bin", raw.tofile), fresh_file(tmp / "out.ply", lambda p: ply.write(p, back)), repeat
+        )
+        durable_base, durable_ours = paired(
+            fresh_file(tmp / "raw.bin", lambda p: (raw.tofile(p), _fsync(p))),
+            fresh_file(tmp / "out.ply", lambda p: ply.write(p, back)),
+            repeat,
+        )
         same_bytes = (tmp / "out.ply").read_bytes() == path.read_bytes()
         written_error = _max_error(ply.read(tmp / "out.ply"), cloud)
         gsply_rows = _against_gsply(tmp, path, back, repeat)
@@ -53,18 +59,43 @@ def run(quick=False):
 
     case = f"{n:,} splats, SH degree 3, {size}"
     return [
-        Row("ply", f"read {case}", read_ours, read_base,
+        Row(
+            "ply",
+            f"read {case}",
+            read_ours,
+            read_base,
             error={"max_abs_error": _max_error(back, cloud)},
-            extra={"baseline": "np.fromfile", "slowdown": f"{read_ours.median / read_base.median:.2f}x",
-                   "threads": ply.WORKERS}),
-        Row("ply", f"write {case}", write_ours, write_base,
+            extra={
+                "baseline": "np.fromfile",
+                "slowdown": f"{read_ours.median / read_base.median:.2f}x",
+                "threads": ply.WORKERS,
+            },
+        ),
+        Row(
+            "ply",
+            f"write {case}",
+            write_ours,
+            write_base,
             error={"max_abs_error": written_error},
-            extra={"baseline": "ndarray.tofile", "bytes_identical": same_bytes, "slowdown": f"{write_ours.median / write_base.median:.2f}x",
-                   "threads": ply.WORKERS}),
-        Row("ply", f"write {case}, against tofile then fsync (as ours ends)", durable_ours, durable_base,
+            extra={
+                "baseline": "ndarray.tofile",
+                "bytes_identical": same_bytes,
+                "slowdown": f"{write_ours.median / write_base.median:.2f}x",
+                "threads": ply.WORKERS,
+            },
+        ),
+        Row(
+            "ply",
+            f"write {case}, against tofile then fsync (as ours ends)",
+            durable_ours,
+            durable_base,
             error={"max_abs_error": written_error},
-            extra={"baseline": "ndarray.tofile + os.fsync",
-                   "slowdown": f"{durable_ours.median / durable_base.median:.2f}x", "threads": ply.WORKERS}),
+            extra={
+                "baseline": "ndarray.tofile + os.fsync",
+                "slowdown": f"{durable_ours.median / durable_base.median:.2f}x",
+                "threads": ply.WORKERS,
+            },
+        ),
     ] + gsply_rows
 
 
@@ -82,21 +113,36 @@ def _against_gsply(tmp, path, cloud, repeat):
     replaces the old one), which makes a large write as slow as the disk; gsply's does not, so
     the last row gives gsply the same fsync."""
     import gsply
+
     data = gsply.plyread(str(path))
-    arrays = dict(scales=cloud.log_scales, quats=cloud.rotations, opacities=cloud.opacity_logits,
-                  sh0=np.ascontiguousarray(cloud.sh[:, 0]), shN=np.ascontiguousarray(cloud.sh[:, 1:]))
+    arrays = dict(
+        scales=cloud.log_scales,
+        quats=cloud.rotations,
+        opacities=cloud.opacity_logits,
+        sh0=np.ascontiguousarray(cloud.sh[:, 0]),
+        shN=np.ascontiguousarray(cloud.sh[:, 1:]),
+    )
     rows = []
-    for label, theirs in [("its GSData (zero-copy)", lambda p: gsply.plywrite(str(p), data)),
-                          ("arrays", lambda p: gsply.plywrite(str(p), cloud.positions, **arrays)),
-                          ("its GSData, then fsync as ours does",
-                           lambda p: (gsply.plywrite(str(p), data), _fsync(p)))]:
-        base, ours = paired(fresh_file(tmp / "gsply.ply", theirs), fresh_file(tmp / "ours.ply", lambda p: ply.write(p, cloud)),
-                            repeat)
-        check = gsply.plyread(str(tmp / "ours.ply"))          # gsply reads what we wrote
+    for label, theirs in [
+        ("its GSData (zero-copy)", lambda p: gsply.plywrite(str(p), data)),
+        ("arrays", lambda p: gsply.plywrite(str(p), cloud.positions, **arrays)),
+        ("its GSData, then fsync as ours does", lambda p: (gsply.plywrite(str(p), data), _fsync(p))),
+    ]:
+        base, ours = paired(
+            fresh_file(tmp / "gsply.ply", theirs), fresh_file(tmp / "ours.ply", lambda p: ply.write(p, cloud)), repeat
+        )
+        check = gsply.plyread(str(tmp / "ours.ply"))  # gsply reads what we wrote
         error = float(np.abs(np.asarray(check.means) - cloud.positions).max())
-        rows.append(Row("ply", f"write {len(cloud):,} splats SH 3 against gsply {gsply.__version__} from {label}",
-                        ours, base, error={"max_abs_error": error},
-                        extra={"baseline": f"gsply.plywrite from {label}", "target": ">= 1x"}))
+        rows.append(
+            Row(
+                "ply",
+                f"write {len(cloud):,} splats SH 3 against gsply {gsply.__version__} from {label}",
+                ours,
+                base,
+                error={"max_abs_error": error},
+                extra={"baseline": f"gsply.plywrite from {label}", "target": ">= 1x"},
+            )
+        )
     return rows
 
 

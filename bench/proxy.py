@@ -43,11 +43,11 @@ def brute_force(points, verts, faces, chunk=1 << 20):
     step = max(1, chunk // len(faces))
     best = np.empty(len(points))
     for start in range(0, len(points), step):
-        p = points[start:start + step]
+        p = points[start : start + step]
         pp = np.repeat(np.arange(len(p)), len(faces))
         tri = np.tile(faces, (len(p), 1))
         d2, _ = proxy.closest_on_triangles(p[pp], verts[tri[:, 0]], verts[tri[:, 1]], verts[tri[:, 2]])
-        best[start:start + step] = np.sqrt(d2.reshape(len(p), len(faces)).min(axis=1))
+        best[start : start + step] = np.sqrt(d2.reshape(len(p), len(faces)).min(axis=1))
     return best
 
 
@@ -60,11 +60,19 @@ def run(quick=False):
         points = capture(verts, n_near, n_far)
         found = proxy.closest_points(points, verts, faces)
         exact = brute_force(points, verts, faces)
-        base, ours = paired(lambda: brute_force(points, verts, faces), lambda: proxy.closest_points(points, verts, faces),
-                            repeat=repeat)
-        rows.append(Row(TOPIC, f"{len(points)} splats ({n_far} far), {len(faces)} triangles", ours, base,
-                        error={"max_distance_diff_m": float(np.abs(found.distance - exact).max())},
-                        extra={"us_per_splat": f"{1e6 * ours.median / len(points):.0f}"}))
+        base, ours = paired(
+            lambda: brute_force(points, verts, faces), lambda: proxy.closest_points(points, verts, faces), repeat=repeat
+        )
+        rows.append(
+            Row(
+                TOPIC,
+                f"{len(points)} splats ({n_far} far), {len(faces)} triangles",
+                ours,
+                base,
+                error={"max_distance_diff_m": float(np.abs(found.distance - exact).max())},
+                extra={"us_per_splat": f"{1e6 * ours.median / len(points):.0f}"},
+            )
+        )
     return rows
 
 

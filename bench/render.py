@@ -18,7 +18,6 @@ with alpha >= 1/255 (the footprint: blended pairs when the transmittance stop is
 """
 
 import math
-import resource
 import subprocess
 import sys
 import tempfile
@@ -108,8 +107,11 @@ def max_error(image, pixels, ref):
 def scenes(quick):
     """(name, cloud, camera) for each small benchmark scene; quick mode shrinks them."""
     cam = seed_camera()
-    for label, edge, sigma, opacity in [("seed cube", 10, 0.05, 0.08), ("small splats", 60, 0.008, 0.5),
-                                        ("large splats", 40, 0.05, 0.08)]:
+    for label, edge, sigma, opacity in [
+        ("seed cube", 10, 0.05, 0.08),
+        ("small splats", 60, 0.008, 0.5),
+        ("large splats", 40, 0.05, 0.08),
+    ]:
         edge = edge // 2 if quick and edge > 10 else edge
         yield f"{label} {edge}^3 (sigma {sigma}, o {opacity}) 512x512", seed_cube(edge, sigma, opacity=opacity), cam
 
@@ -127,7 +129,7 @@ def alpha_pairs(cloud, cam):
     """Splat-pixel pairs with alpha >= 1/255, counted splat by splat over every pixel (for deep
     stacks, where the transmittance of a render without its stop underflows to 0)."""
     splats = _project_all(cloud, cam, "classic")
-    rows, cols = np.mgrid[0:cam.height, 0:cam.width]
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
     px, py = cols.ravel() + 0.5, rows.ravel() + 0.5
     total = 0
     for start in range(0, len(splats["z"]), 4096):
@@ -165,11 +167,31 @@ def small_scenes(quick):
         for backend in ("compiled", "numpy"):
             result = render(cloud, cam, backend=backend)
             timing = timeit(lambda: render(cloud, cam, backend=backend), repeat=2 if quick else 3)
-            rows.append(Row(TOPIC, f"{name}: {backend}", timing, base, {"max_err_255": max_error(result.color, pixels, ref)},
-                            {"splats": len(cloud), "footprint_pairs": pairs,
-                             "ns_per_pair": f"{timing.median / pairs * 1e9:.1f}", "baseline": "seed prototype"}))
-        rows.append(Row(TOPIC, f"{name}: seed prototype", base, None, {"max_err_255": max_error(image, pixels, ref)},
-                        {"splats": len(cloud), "footprint_pairs": pairs}))
+            rows.append(
+                Row(
+                    TOPIC,
+                    f"{name}: {backend}",
+                    timing,
+                    base,
+                    {"max_err_255": max_error(result.color, pixels, ref)},
+                    {
+                        "splats": len(cloud),
+                        "footprint_pairs": pairs,
+                        "ns_per_pair": f"{timing.median / pairs * 1e9:.1f}",
+                        "baseline": "seed prototype",
+                    },
+                )
+            )
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}: seed prototype",
+                base,
+                None,
+                {"max_err_255": max_error(image, pixels, ref)},
+                {"splats": len(cloud), "footprint_pairs": pairs},
+            )
+        )
     return rows
 
 
@@ -188,23 +210,58 @@ def big_scene(quick):
     fast, slow = render(cloud, cam, return_counts=True), render(cloud, cam, return_counts=True, backend="numpy")
     extra = {"splats": n, "footprint_pairs": pairs, "baseline": "NumPy path, CPU s"}
     rows = [
-        Row(TOPIC, f"{name}: compiled, CPU s (target >= 4x)", fast_cpu, slow_cpu,
+        Row(
+            TOPIC,
+            f"{name}: compiled, CPU s (target >= 4x)",
+            fast_cpu,
+            slow_cpu,
             {"max_err_255": max_error(fast.color, pixels, ref)},
-            {**extra, "ns_per_pair": f"{fast_cpu.median / pairs * 1e9:.1f}", "evaluated_pairs": fast.stats["evaluated"],
-             "blended_pairs": int(fast.counts.sum())}),
-        Row(TOPIC, f"{name}: NumPy path, CPU s", slow_cpu, None, {"max_err_255": max_error(slow.color, pixels, ref)},
-            {**extra, "ns_per_pair": f"{slow_cpu.median / pairs * 1e9:.1f}", "evaluated_pairs": slow.stats["evaluated"],
-             "blended_pairs": int(slow.counts.sum())}),
+            {
+                **extra,
+                "ns_per_pair": f"{fast_cpu.median / pairs * 1e9:.1f}",
+                "evaluated_pairs": fast.stats["evaluated"],
+                "blended_pairs": int(fast.counts.sum()),
+            },
+        ),
+        Row(
+            TOPIC,
+            f"{name}: NumPy path, CPU s",
+            slow_cpu,
+            None,
+            {"max_err_255": max_error(slow.color, pixels, ref)},
+            {
+                **extra,
+                "ns_per_pair": f"{slow_cpu.median / pairs * 1e9:.1f}",
+                "evaluated_pairs": slow.stats["evaluated"],
+                "blended_pairs": int(slow.counts.sum()),
+            },
+        ),
         Row(TOPIC, f"{name}: compiled, wall s", fast_wall, slow_wall, {}, {"baseline": "NumPy path, wall s"}),
     ]
-    options = [] if quick else [("tile 16", {"tile_size": 16}), ("float64", {"precision": "float64"}),
-                                ("max_sigma 3 (reference cut)", {"max_sigma": 3.0}), ("1 thread", {"threads": 1}),
-                                ("with max_weight per splat", {"return_weights": True})]
+    options = (
+        []
+        if quick
+        else [
+            ("tile 16", {"tile_size": 16}),
+            ("float64", {"precision": "float64"}),
+            ("max_sigma 3 (reference cut)", {"max_sigma": 3.0}),
+            ("1 thread", {"threads": 1}),
+            ("with max_weight per splat", {"return_weights": True}),
+        ]
+    )
     for label, opts in options:
         timing = timeit(lambda: render(cloud, cam, **opts), repeat=2, clock=CPU)
         result = render(cloud, cam, **opts)
-        rows.append(Row(TOPIC, f"{name}: compiled, {label}, CPU s", timing, slow_cpu,
-                        {"max_err_255": max_error(result.color, pixels, ref)}, {"baseline": "NumPy path default, CPU s"}))
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}: compiled, {label}, CPU s",
+                timing,
+                slow_cpu,
+                {"max_err_255": max_error(result.color, pixels, ref)},
+                {"baseline": "NumPy path default, CPU s"},
+            )
+        )
     big_scene.per_pair = fast_cpu.median / pairs
     return rows
 
@@ -220,11 +277,21 @@ def deep_stack(quick, big_row):
     pixels = sample_pixels(cam, 256)
     ref = reference_render(cloud, cam, pixels=pixels)
     per_pair = fast.median / pairs
-    return [Row(TOPIC, f"deep stack {n // 1000}k splats 16x16: compiled, CPU s", fast, slow,
-                {"max_err_255": max_error(render(cloud, cam).color, pixels, ref)},
-                {"footprint_pairs": pairs, "ns_per_pair": f"{per_pair * 1e9:.1f}",
-                 "per_pair_vs_big_scene": f"{per_pair / big_scene.per_pair:.2f}x (target <= 1.5x)",
-                 "baseline": "NumPy path, CPU s"})]
+    return [
+        Row(
+            TOPIC,
+            f"deep stack {n // 1000}k splats 16x16: compiled, CPU s",
+            fast,
+            slow,
+            {"max_err_255": max_error(render(cloud, cam).color, pixels, ref)},
+            {
+                "footprint_pairs": pairs,
+                "ns_per_pair": f"{per_pair * 1e9:.1f}",
+                "per_pair_vs_big_scene": f"{per_pair / big_scene.per_pair:.2f}x (target <= 1.5x)",
+                "baseline": "NumPy path, CPU s",
+            },
+        )
+    ]
 
 
 def resolution_sweep(quick):
@@ -237,14 +304,24 @@ def resolution_sweep(quick):
         for w, h in sizes:
             cam = wide_camera(w, h)
             cloud = trained_like_scene(w * h // 2, cam, seed=5, sigma_px=sigma_px)
-            repeat = 9 if w * h < 1e6 else 3          # small renders are short: more runs steady the median
+            repeat = 9 if w * h < 1e6 else 3  # small renders are short: more runs steady the median
             slow, fast = paired(lambda: render(cloud, cam, backend="numpy"), lambda: render(cloud, cam), repeat, CPU)
             result, blended = render(cloud, cam), footprint(cloud, cam)
             per_pixel[(w, h)] = fast.median / (w * h)
-            rows.append(Row(TOPIC, f"sweep sigma {sigma_px} px, {w}x{h}, {len(cloud) // 1000}k splats: compiled, CPU s",
-                            fast, slow, {}, {"ns_per_pixel": f"{per_pixel[(w, h)] * 1e9:.1f}",
-                                             "evaluated_per_footprint_pair": f"{result.stats['evaluated'] / blended:.2f}",
-                                             "baseline": "NumPy path, CPU s"}))
+            rows.append(
+                Row(
+                    TOPIC,
+                    f"sweep sigma {sigma_px} px, {w}x{h}, {len(cloud) // 1000}k splats: compiled, CPU s",
+                    fast,
+                    slow,
+                    {},
+                    {
+                        "ns_per_pixel": f"{per_pixel[(w, h)] * 1e9:.1f}",
+                        "evaluated_per_footprint_pair": f"{result.stats['evaluated'] / blended:.2f}",
+                        "baseline": "NumPy path, CPU s",
+                    },
+                )
+            )
         spread = max(per_pixel.values()) / min(per_pixel.values())
         rows[-1].extra["per_pixel_max_over_min"] = f"{spread:.2f} (target <= 1.5, linear)"
     return rows
@@ -287,19 +364,34 @@ def memory(quick):
     with tempfile.TemporaryDirectory(prefix="splatwright-bench-render-") as tmp:
         path = Path(tmp) / "cloud.ply"
         from splatwright.io import ply
+
         ply.write(path, trained_like_scene(n, cam, seed=7))
         size = path.stat().st_size
         for backend, (w, h) in [("compiled", (1920, 1080)), ("numpy", (1920, 1080)), ("compiled", (40000, 40000))]:
-            done = subprocess.run([sys.executable, "-c", textwrap.dedent(MEMORY_CHILD), str(path), str(w), str(h), backend],
-                                  capture_output=True, text=True)
+            done = subprocess.run(
+                [sys.executable, "-c", textwrap.dedent(MEMORY_CHILD), str(path), str(w), str(h), backend],
+                capture_output=True,
+                text=True,
+            )
             if done.returncode != 0:
                 raise RuntimeError(done.stderr)
             seconds, peak, read_peak, outcome = done.stdout.strip().splitlines()[-4:]
-            rows.append(Row(TOPIC, f"{n // 1_000_000 or n / 1e6}M splats from a {size / 2**30:.2f} GiB PLY at {w}x{h}: "
-                                   f"{backend}, peak memory while rendering", Timing(float(seconds), 0.0, 1), None,
-                            {"peak_over_file": round(int(peak) / size, 2)},
-                            {"peak_GiB": f"{int(peak) / 2**30:.2f}", "target": "peak < 4x the file",
-                             "read_peak_GiB": f"{int(read_peak) / 2**30:.2f}", "outcome": outcome[:90]}))
+            rows.append(
+                Row(
+                    TOPIC,
+                    f"{n // 1_000_000 or n / 1e6}M splats from a {size / 2**30:.2f} GiB PLY at {w}x{h}: "
+                    f"{backend}, peak memory while rendering",
+                    Timing(float(seconds), 0.0, 1),
+                    None,
+                    {"peak_over_file": round(int(peak) / size, 2)},
+                    {
+                        "peak_GiB": f"{int(peak) / 2**30:.2f}",
+                        "target": "peak < 4x the file",
+                        "read_peak_GiB": f"{int(read_peak) / 2**30:.2f}",
+                        "outcome": outcome[:90],
+                    },
+                )
+            )
     return rows
 
 

@@ -39,13 +39,22 @@ TOPIC = "render_grad"
 
 def scene(size, budget):
     mesh = thin_walled_cup()
-    cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), max_splats=budget, view_size=size,
-                           render_mode="antialiased", try_fewer=False)
+    cloud = mesh_to_splats(
+        mesh.vertices,
+        mesh.faces,
+        **mesh.appearance(),
+        max_splats=budget,
+        view_size=size,
+        render_mode="antialiased",
+        try_fewer=False,
+    )
     cloud = cloud.with_sh_degree(3)
     rng = np.random.default_rng(0)
     noisy = cloud.replace(sh=(cloud.sh + rng.normal(0, 0.05, cloud.sh.shape)).astype(np.float32))
-    cameras = [frame_points(mesh.vertices, size, size, fov_deg=40.0, direction=d, near=0.01)
-               for d in ((1, 0.6, 1), (-1, 0.8, 0.3), (0.2, -0.5, -1), (0.6, 1.5, -0.4))]
+    cameras = [
+        frame_points(mesh.vertices, size, size, fov_deg=40.0, direction=d, near=0.01)
+        for d in ((1, 0.6, 1), (-1, 0.8, 0.3), (0.2, -0.5, -1), (0.6, 1.5, -0.4))
+    ]
     return noisy, cameras, [render(cloud, cam).color for cam in cameras]
 
 
@@ -56,16 +65,31 @@ def run(quick=False):
     for view, (camera, target) in enumerate(zip(cameras[:2] if quick else cameras, targets), 1):
         exact = mse_gradients(cloud, camera, target, precision="float64", backend="numpy")
         common = {"splats": len(cloud), "pixels": f"{size}x{size}", "view": view}
-        for label, options in (("compiled (float64)", {"backend": "compiled"}),
-                               ("NumPy, float32 pixels", {"backend": "numpy", "precision": "float32"})):
-            base, ours = paired(lambda: render(cloud, camera), lambda: mse_gradients(cloud, camera, target, **options),
-                                repeat=5)
+        for label, options in (
+            ("compiled (float64)", {"backend": "compiled"}),
+            ("NumPy, float32 pixels", {"backend": "numpy", "precision": "float32"}),
+        ):
+            base, ours = paired(
+                lambda: render(cloud, camera), lambda: mse_gradients(cloud, camera, target, **options), repeat=5
+            )
             image, _, grad = mse_gradients(cloud, camera, target, **options)
-            error = {"image err (1/255)": 255 * np.abs(image - exact[0]).max(),
-                     "grad err": max(np.abs(getattr(grad, n) - getattr(exact[2], n)).max()
-                                     / np.abs(getattr(exact[2], n)).max() for n in FIELDS)}
-            rows.append(Row(TOPIC, f"view {view}: image and gradients, {label} (baseline: the compiled forward render)",
-                            ours, base, error=error, extra=common))
+            error = {
+                "image err (1/255)": 255 * np.abs(image - exact[0]).max(),
+                "grad err": max(
+                    np.abs(getattr(grad, n) - getattr(exact[2], n)).max() / np.abs(getattr(exact[2], n)).max()
+                    for n in FIELDS
+                ),
+            }
+            rows.append(
+                Row(
+                    TOPIC,
+                    f"view {view}: image and gradients, {label} (baseline: the compiled forward render)",
+                    ours,
+                    base,
+                    error=error,
+                    extra=common,
+                )
+            )
     return rows
 
 

@@ -1,12 +1,12 @@
 """Run every benchmark under bench/ and write bench/REPORT.md with PNG plots beside it.
 
-    ./run bench            all topics, full size
-    ./run bench --quick    smaller inputs, for a smoke test
-    ./run bench render ply only these topics (their sections of an existing report are replaced,
-                           the others kept)
-    ./run bench articulation --only blender-float32
-                           only these parts of a topic (its PARTS): their rows replace the rows of the
-                           same case in the topic's section, the other rows are kept
+./run bench            all topics, full size
+./run bench --quick    smaller inputs, for a smoke test
+./run bench render ply only these topics (their sections of an existing report are replaced,
+                       the others kept)
+./run bench articulation --only blender-float32
+                       only these parts of a topic (its PARTS): their rows replace the rows of the
+                       same case in the topic's section, the other rows are kept
 """
 
 import argparse
@@ -42,8 +42,13 @@ def table(rows):
     head = ["case", "median s", "± s", "baseline s", "speed-up"] + err_keys + extra_keys
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [r.case, fmt(r.timing.median), fmt(r.timing.spread),
-                 fmt(r.baseline.median) if r.baseline else "", f"{r.ratio:.3g}x" if r.ratio else ""]
+        cells = [
+            r.case,
+            fmt(r.timing.median),
+            fmt(r.timing.spread),
+            fmt(r.baseline.median) if r.baseline else "",
+            f"{r.ratio:.3g}x" if r.ratio else "",
+        ]
         cells += [fmt(r.error.get(k)) for k in err_keys] + [fmt(r.extra.get(k)) for k in extra_keys]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -51,13 +56,18 @@ def table(rows):
 
 def plot(topic, rows, out_dir):
     """Speed against error for a topic's rows that carry both; returns the PNG name or None."""
-    err_keys = [k for k in sorted({k for r in rows for k in r.error})
-                if all(isinstance(r.error.get(k), (int, float)) for r in rows if k in r.error)]
+    err_keys = [
+        k
+        for k in sorted({k for r in rows for k in r.error})
+        if all(isinstance(r.error.get(k), (int, float)) for r in rows if k in r.error)
+    ]
     if not err_keys:
         return None
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     key = err_keys[0]
     pts = [(r.error[key], r.timing.median, r.timing.spread, r.case) for r in rows if key in r.error]
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -123,8 +133,12 @@ def main(argv=None):
     parser.add_argument("topics", nargs="*", help=f"default: all of {', '.join(topics())}")
     parser.add_argument("--quick", action="store_true", help="smaller inputs (smoke test)")
     parser.add_argument("--report", default=str(HERE / "REPORT.md"))
-    parser.add_argument("--only", action="append", metavar="PART",
-                        help="run only this part of the topic (a key of its PARTS); rows merged into its section")
+    parser.add_argument(
+        "--only",
+        action="append",
+        metavar="PART",
+        help="run only this part of the topic (a key of its PARTS); rows merged into its section",
+    )
     args = parser.parse_args(argv)
     report = Path(args.report)
     report.parent.mkdir(parents=True, exist_ok=True)
@@ -146,20 +160,27 @@ def main(argv=None):
         if args.only and old is not None:
             parts = ", ".join(args.only)
             stamp = f"_{time.perf_counter() - t0:.0f} s for {parts}, measured {time.strftime('%Y-%m-%d %H:%M')}._"
-            kept = "\n\n".join(p for p in merge_rows(old, rows).rstrip().split("\n\n")
-                                if not (p.startswith("_") and f" s for {parts}, measured" in p))
+            kept = "\n\n".join(
+                p
+                for p in merge_rows(old, rows).rstrip().split("\n\n")
+                if not (p.startswith("_") and f" s for {parts}, measured" in p)
+            )
             sections.append(kept + "\n\n" + stamp + "\n")
             continue
         png = plot(topic, rows, report.parent)
         section = f"## {topic}\n\n{table(rows)}\n"
         if png:
             section += f"\n![{topic}]({png})\n"
-        sections.append(section + f"\n_{time.perf_counter() - t0:.0f} s for this topic, measured "
-                        f"{time.strftime('%Y-%m-%d %H:%M')}{' at quick sizes' if args.quick else ''}._\n")
+        sections.append(
+            section + f"\n_{time.perf_counter() - t0:.0f} s for this topic, measured "
+            f"{time.strftime('%Y-%m-%d %H:%M')}{' at quick sizes' if args.quick else ''}._\n"
+        )
     sections = _merge_with_existing(report, sections)
-    header = (f"# Benchmark report\n\nMachine: {machine()}. Written by `./run bench`. Every time is the median of "
-              "several runs, ± half their range; speed-up is baseline time / our time, both measured in "
-              "this run.\n")
+    header = (
+        f"# Benchmark report\n\nMachine: {machine()}. Written by `./run bench`. Every time is the median of "
+        "several runs, ± half their range; speed-up is baseline time / our time, both measured in "
+        "this run.\n"
+    )
     report.write_text(header + "\n" + "\n".join(sections))
     print(f"wrote {report}")
     if failed:

@@ -30,8 +30,10 @@ SAMPLES = 32
 
 def _paired(baseline, ours, repeat):
     """Baseline and ours timed alternately, so both meet the same load on a shared machine."""
-    pairs = [(timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
-             for i in range(repeat)]
+    pairs = [
+        (timeit(baseline, repeat=1, warmup=int(i == 0)), timeit(ours, repeat=1, warmup=int(i == 0)))
+        for i in range(repeat)
+    ]
     return tuple(_combine([p[side].median for p in pairs]) for side in (0, 1))
 
 
@@ -43,12 +45,12 @@ def fit_rotated_samples(coeffs, rotations, chunk=1 << 14):
     """Baseline: sample f(R^T s_j) at fixed directions s_j and fit coefficients by least squares."""
     degree = sh.degree_of(coeffs.shape[1])
     dirs = sh._sphere_samples(SAMPLES)
-    fit = np.linalg.pinv(sh.basis(dirs, degree))                    # (K, samples)
+    fit = np.linalg.pinv(sh.basis(dirs, degree))  # (K, samples)
     out = np.empty_like(coeffs)
     for start in range(0, len(coeffs), chunk):
-        turned = dirs @ rotations[start:start + chunk]                # rows R^T s_j, (n, samples, 3)
-        values = sh.basis(turned, degree) @ coeffs[start:start + chunk].astype(np.float64)
-        out[start:start + chunk] = fit @ values
+        turned = dirs @ rotations[start : start + chunk]  # rows R^T s_j, (n, samples, 3)
+        values = sh.basis(turned, degree) @ coeffs[start : start + chunk].astype(np.float64)
+        out[start : start + chunk] = fit @ values
     return out
 
 
@@ -69,20 +71,42 @@ def run(quick=False):
     rows = []
 
     base, ours = _paired(lambda: fit_rotated_samples(coeffs, rotations), lambda: sh.rotate(coeffs, rotations), repeat)
-    rows.append(Row("sh", f"rotate, one rotation per splat, {n:,} splats, degree 3", ours, base, error={
-        "max colour error": colour_error(sh.rotate(coeffs, rotations), coeffs, rotations, rng),
-    }, extra={"baseline": f"least squares on {SAMPLES} rotated samples", "baseline error": _fmt(
-        colour_error(fit_rotated_samples(coeffs, rotations), coeffs, rotations, rng)),
-        "CPU s, all threads": _fmt(_cpu_seconds(lambda: sh.rotate(coeffs, rotations)))}))
+    rows.append(
+        Row(
+            "sh",
+            f"rotate, one rotation per splat, {n:,} splats, degree 3",
+            ours,
+            base,
+            error={
+                "max colour error": colour_error(sh.rotate(coeffs, rotations), coeffs, rotations, rng),
+            },
+            extra={
+                "baseline": f"least squares on {SAMPLES} rotated samples",
+                "baseline error": _fmt(colour_error(fit_rotated_samples(coeffs, rotations), coeffs, rotations, rng)),
+                "CPU s, all threads": _fmt(_cpu_seconds(lambda: sh.rotate(coeffs, rotations))),
+            },
+        )
+    )
 
     one = rotations[0]
     fitted = sh.fitted_rotation_matrix(one, 3)
     plain = lambda: np.einsum("kj,njc->nkc", fitted, coeffs.astype(np.float64)).astype(np.float32)  # noqa: E731
     base, ours = _paired(plain, lambda: sh.rotate(coeffs, one), repeat)
-    rows.append(Row("sh", f"rotate, one rotation for all, {n:,} splats, degree 3", ours, base, error={
-        "max colour error": colour_error(sh.rotate(coeffs, one), coeffs, one, rng),
-    }, extra={"baseline": "einsum with the fitted matrix",
-              "baseline error": _fmt(colour_error(plain(), coeffs, one, rng))}))
+    rows.append(
+        Row(
+            "sh",
+            f"rotate, one rotation for all, {n:,} splats, degree 3",
+            ours,
+            base,
+            error={
+                "max colour error": colour_error(sh.rotate(coeffs, one), coeffs, one, rng),
+            },
+            extra={
+                "baseline": "einsum with the fitted matrix",
+                "baseline error": _fmt(colour_error(plain(), coeffs, one, rng)),
+            },
+        )
+    )
 
     rows.append(_covariance_row(n // 4, repeat, rng))
     return rows
@@ -94,7 +118,7 @@ def _covariance_row(n, repeat, rng):
     scales = np.stack([big, big * 1e-6, big * rng.uniform(1e-6, 1, n)], axis=1)
     q = rng.normal(size=(n, 4))
     a = geometry.quaternions_to_matrices(rng.normal(size=4)) @ np.diag([1.0, 2.0, 0.5])
-    det = np.abs(np.linalg.det(a)) * scales.prod(axis=1)        # exact product of the new scales
+    det = np.abs(np.linalg.det(a)) * scales.prod(axis=1)  # exact product of the new scales
 
     def thin_axis_error(scales_out):
         # The product of the three new scales must equal |det A| * the old product.
@@ -103,9 +127,16 @@ def _covariance_row(n, repeat, rng):
     eigh_way = lambda: geometry.decompose_covariances(a @ geometry.covariances(q, scales) @ a.T)  # noqa: E731
     ours_way = lambda: geometry.transform_covariances(a, q, scales)  # noqa: E731
     base, ours = _paired(eigh_way, ours_way, repeat)
-    return Row("sh", f"covariance transform, general affine, {n:,} needles (axis ratio 1e6)", ours, base, error={
-        "thin-axis relative error": thin_axis_error(ours_way()[1]),
-    }, extra={"baseline": "eigh of A Sigma A^T", "baseline error": _fmt(thin_axis_error(eigh_way()[1]))})
+    return Row(
+        "sh",
+        f"covariance transform, general affine, {n:,} needles (axis ratio 1e6)",
+        ours,
+        base,
+        error={
+            "thin-axis relative error": thin_axis_error(ours_way()[1]),
+        },
+        extra={"baseline": "eigh of A Sigma A^T", "baseline error": _fmt(thin_axis_error(eigh_way()[1]))},
+    )
 
 
 def _cpu_seconds(fn, repeat=3):

@@ -8,8 +8,23 @@ from typing import Annotated
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["ArrayLike", "Floats", "Positions", "Quaternions", "LogScales", "Logits", "SHCoefficients",
-           "Covariances", "Colors", "Mask", "Matrix4", "Matrices4", "Image", "Weights", "Indices"]
+__all__ = [
+    "ArrayLike",
+    "Floats",
+    "Positions",
+    "Quaternions",
+    "LogScales",
+    "Logits",
+    "SHCoefficients",
+    "Covariances",
+    "Colors",
+    "Mask",
+    "Matrix4",
+    "Matrices4",
+    "Image",
+    "Weights",
+    "Indices",
+]
 
 Floats = NDArray[np.floating]
 Positions = Annotated[Floats, "(N, 3)"]

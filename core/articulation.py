@@ -9,11 +9,30 @@ through io.urdf) and skinning of whole clouds with linear-blend or dual-quaterni
     posed = skin(cloud, binding, tree.deform_matrices(q), mode="dqs")
 """
 
-from .kinematics import (JOINT_DOF, KinematicsError, KinematicTree, axis_angle_matrices,
-                         quaternions_to_rotvec, rotvec_to_quaternions, transforms)
-from .skinning import (MIN_TOTAL_WEIGHT, Binding, BonePose, SkinningError, deform_matrices, skin,
-                       skin_centres)
+from .kinematics import (
+    JOINT_DOF,
+    KinematicsError,
+    KinematicTree,
+    axis_angle_matrices,
+    quaternions_to_rotvec,
+    rotvec_to_quaternions,
+    transforms,
+)
+from .skinning import MIN_TOTAL_WEIGHT, Binding, BonePose, SkinningError, deform_matrices, skin, skin_centres
 
-__all__ = ["JOINT_DOF", "KinematicsError", "KinematicTree", "axis_angle_matrices", "quaternions_to_rotvec",
-           "rotvec_to_quaternions", "transforms", "MIN_TOTAL_WEIGHT", "Binding", "BonePose", "SkinningError",
-           "deform_matrices", "skin", "skin_centres"]
+__all__ = [
+    "JOINT_DOF",
+    "KinematicsError",
+    "KinematicTree",
+    "axis_angle_matrices",
+    "quaternions_to_rotvec",
+    "rotvec_to_quaternions",
+    "transforms",
+    "MIN_TOTAL_WEIGHT",
+    "Binding",
+    "BonePose",
+    "SkinningError",
+    "deform_matrices",
+    "skin",
+    "skin_centres",
+]

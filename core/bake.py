@@ -11,7 +11,8 @@ damped towards a prior (Tikhonov: splats that few views see keep it), by
 conjugate gradients on the normal equations (A^T W A + lambda I) x = A^T W b (W: each view's
 weight on its pixels), the three colour channels
 side by side. The prior (start and damping target) is by default each splat's mean lit colour over
-the images, so what the views leave undetermined falls back to the local colour. Each step is one render and one gather per view:
+the images, so what the views leave undetermined falls back to the local colour. Each step is one
+render and one gather per view:
 - A p is a render of the colour field Y p (a degree-0 cloud with those colours, shifted to be
   non-negative so nothing is clamped, the shift taken off again through the alpha);
 - A^T r is the residual image gathered through the weights (core.render's `gather`), times Y per
@@ -40,12 +41,12 @@ from .steps import drain
 # 25.2 / 35.8 and 30.2 / 31.3 / 39.8; SH 3 at 0.01 and 3: 35.5 / 25.4 / 36.3 and 29.6 / 31.0 / 40.0; SH 2 at
 # 0.01 and 3, the sphere 34.8 / 25.1 / 35.8; SH 3 at 0.003 and 1 over-fits (the sphere's 0.5x 32.8).
 DEFAULT_ITERATIONS = 20
-DEFAULT_DAMPING = 0.03      # lambda, as a fraction of the median splat's DC diagonal
+DEFAULT_DAMPING = 0.03  # lambda, as a fraction of the median splat's DC diagonal
 DEFAULT_BAND_DAMPING = 10.0  # band l's lambda is (1 + this l (l + 1)) times band 0's
 # 32 views per distance against 16, bench/bake.py's quick scene (20k splats made for antialiased rendering),
 # held-out dB at 0.5x / 1x / 3x: Suzanne (100k) 31.5, 34.4, 31.6 / 33.3, 29.3, 33.0 -> 33.7, 36.0, 34.8 / 34.3,
 # 29.7, 32.2 (3x unchanged); the sphere 28.2, 38.6, 30.1 -> 29.8, 40.1, 33.6 at 0.5x, 1x and 3x unchanged.
-VIEWS_PER_DISTANCE = 32     # reference views at each distance of core.mesh_refine's view placement
+VIEWS_PER_DISTANCE = 32  # reference views at each distance of core.mesh_refine's view placement
 # A highlight comes out right only close to a view it was fitted to (bench/bake.py's quick scene, the sphere
 # at 1x: views 21 degrees apart 25.6 dB held out, 544 views 9 degrees apart 27.8, four views 5 degrees
 # around each held-out one 32.0): the views a user renders from (a camera path) are fitted too, weighted
@@ -67,9 +68,15 @@ def bake_views(vertices, size=256, count=VIEWS_PER_DISTANCE, distances=None):
     """Reference cameras around a mesh for baking: core.mesh_refine's views (a Fibonacci spiral
     at 0.5x, 1x and 3x the distance framing the mesh, or `distances`), `count` per distance."""
     from types import SimpleNamespace
+
     from .mesh_refine import VIEW_DISTANCES, default_views
-    return default_views(SimpleNamespace(vertices=np.asarray(vertices, np.float64)), size, count,
-                         distances=VIEW_DISTANCES if distances is None else distances)
+
+    return default_views(
+        SimpleNamespace(vertices=np.asarray(vertices, np.float64)),
+        size,
+        count,
+        distances=VIEW_DISTANCES if distances is None else distances,
+    )
 
 
 def path_weights(around, path, share=PATH_SHARE):
@@ -83,9 +90,24 @@ def bake_sh(cloud, cameras, images, degree=None, *, progress=None, **options):
     return drain(bake_sh_steps(cloud, cameras, images, degree, **options), progress)
 
 
-def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITERATIONS, damping=DEFAULT_DAMPING,
-                  band_damping=DEFAULT_BAND_DAMPING, prior="views", background=(0.0, 0.0, 0.0), mode=None,
-                  tolerance=1e-6, weights=None, info=None, backend="auto", threads=None):
+def bake_sh_steps(
+    cloud,
+    cameras,
+    images,
+    degree=None,
+    *,
+    iterations=DEFAULT_ITERATIONS,
+    damping=DEFAULT_DAMPING,
+    band_damping=DEFAULT_BAND_DAMPING,
+    prior="views",
+    background=(0.0, 0.0, 0.0),
+    mode=None,
+    tolerance=1e-6,
+    weights=None,
+    info=None,
+    backend="auto",
+    threads=None,
+):
     """A generator fitting the SH of `cloud` to `images` seen through `cameras`; yields (done,
     total, label) after the setup and each iteration and returns the cloud with the fitted SH
     (float32, `degree`, default the cloud's own).
@@ -113,11 +135,13 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     bg = np.asarray(background, np.float64).reshape(3)
     opts = dict(mode=mode, backend=backend, threads=threads)
     weights = _checked_weights(weights, len(cameras))
-    views = [_View(cam, _checked_image(img, cam, i), degree, w)
-             for i, (cam, img, w) in enumerate(zip(cameras, images, weights))]
+    views = [
+        _View(cam, _checked_image(img, cam, i), degree, w)
+        for i, (cam, img, w) in enumerate(zip(cameras, images, weights))
+    ]
     x0 = shmod.truncate(cloud.sh.astype(np.float64), degree)
-    shape = cloud.replace(sh=np.zeros((len(cloud), 1, 3), np.float32))     # the geometry: colours are set per render
-    opts["shapes"] = Shapes(shape, threads)     # and its splats' shapes, the same in every render
+    shape = cloud.replace(sh=np.zeros((len(cloud), 1, 3), np.float32))  # the geometry: colours are set per render
+    opts["shapes"] = Shapes(shape, threads)  # and its splats' shapes, the same in every render
     total = iterations + 1
 
     # setup: the preconditioner, the start and prior, its residual and the gathered right-hand side
@@ -132,8 +156,9 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     if prior == "views":
         x0 = _seen_colours(shape, views, x0, seen, one, threads)
     rhs = np.zeros_like(x0)
-    for view, gathered in zip(views, each(lambda view: view.start(shape, x0, one) or
-                                          view.gather(shape, view.residual, one))):
+    for view, gathered in zip(
+        views, each(lambda view: view.start(shape, x0, one) or view.gather(shape, view.residual, one))
+    ):
         rhs += view.back(gathered)
     band = np.floor(np.sqrt(np.arange(k)))
     lam = damping * (np.median(diag[seen, 0]) if seen.any() else 1.0) * (1.0 + band_damping * band * (band + 1))
@@ -143,7 +168,7 @@ def bake_sh_steps(cloud, cameras, images, degree=None, *, iterations=DEFAULT_ITE
     yield 1, total, "bake"
 
     delta = np.zeros_like(x0)
-    g = rhs                                     # the normal equations' residual
+    g = rhs  # the normal equations' residual
     z = g * precond
     p = z.copy()
     rz = _dot(g, z)
@@ -185,8 +210,20 @@ def bake_splats(cloud, cameras, images, *, progress=None, **options):
     return drain(bake_splats_steps(cloud, cameras, images, **options), progress)
 
 
-def bake_splats_steps(cloud, cameras, images, *, steps=DEFAULT_STEPS, background=(0.0, 0.0, 0.0), mode=None,
-                      weights=None, seed=0, report_every=REPORT_EVERY, info=None, threads=None):
+def bake_splats_steps(
+    cloud,
+    cameras,
+    images,
+    *,
+    steps=DEFAULT_STEPS,
+    background=(0.0, 0.0, 0.0),
+    mode=None,
+    weights=None,
+    seed=0,
+    report_every=REPORT_EVERY,
+    info=None,
+    threads=None,
+):
     """A generator fitting every parameter of `cloud` (positions, rotations, scales, opacities and
     SH) to `images` by Adam steps on the squared error of one view at a time (core.render_grad's
     backward pass); yields (done, total, label) every `report_every` steps and returns the cloud.
@@ -196,6 +233,7 @@ def bake_splats_steps(cloud, cameras, images, *, steps=DEFAULT_STEPS, background
     receives "psnr": the mean squared error of the views drawn, as PSNR, per REPORT_EVERY steps.
     """
     from .render_grad import mse_gradients
+
     if int(steps) != steps or steps < 0:
         raise ValueError(f"steps must be a whole number >= 0, got {steps!r}")
     if len(cameras) != len(images) or not len(cameras):
@@ -234,7 +272,7 @@ def _adam_step(value, grad, first, second, rate, step, beta1=0.9, beta2=0.999, e
     first += (1 - beta1) * grad
     second *= beta2
     second += (1 - beta2) * grad * grad
-    value -= rate * (first / (1 - beta1 ** step)) / (np.sqrt(second / (1 - beta2 ** step)) + eps)
+    value -= rate * (first / (1 - beta1**step)) / (np.sqrt(second / (1 - beta2**step)) + eps)
 
 
 def _seen_colours(cloud, views, x0, seen, opts, threads):
@@ -242,8 +280,15 @@ def _seen_colours(cloud, views, x0, seen, opts, threads):
     sum_i w_i pixel_i / sum_i w_i alpha_i over every view (pixels are premultiplied by their alpha,
     so a lone splat gets its own colour back)."""
     sums = np.zeros((len(cloud), 4))
-    gather = lambda view: render(cloud, view.camera, background=None,  # noqa: E731
-                                 gather=np.concatenate([view.target, view.alpha], axis=2), **opts).gathered
+    gather = lambda view: (
+        render(
+            cloud,
+            view.camera,
+            background=None,  # noqa: E731
+            gather=np.concatenate([view.target, view.alpha], axis=2),
+            **opts,
+        ).gathered
+    )
     for part in map_threads(gather, views, threads):
         sums += part
     seen = seen & (sums[:, 3] > 0)
@@ -297,11 +342,15 @@ class _View:
         """The basis, the splats' coverage (sum of weights), the target (image less background) and
         this view's share of the preconditioner (N, K)."""
         cam = self.camera
-        directions = (np.broadcast_to(cam.forward, cloud.positions.shape) if cam.is_orthographic
-                      else cloud.positions.astype(np.float64) - cam.center)     # as core.render sees them
+        directions = (
+            np.broadcast_to(cam.forward, cloud.positions.shape)
+            if cam.is_orthographic
+            else cloud.positions.astype(np.float64) - cam.center
+        )  # as core.render sees them
         self.basis = shmod.basis(directions, self.degree, np.float32)
-        out = render(cloud, self.camera, background=None, return_weights=True, gather=np.ones(self.image.shape[:2]),
-                     **opts)
+        out = render(
+            cloud, self.camera, background=None, return_weights=True, gather=np.ones(self.image.shape[:2]), **opts
+        )
         self.alpha = out.alpha[..., None]
         self.target = (self.image - (1.0 - self.alpha) * bg.astype(np.float32)).astype(np.float32)
         footprint = out.gathered[:, 0] * out.max_weight

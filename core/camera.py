@@ -58,8 +58,11 @@ class Camera:
             problems.append(f"world_to_camera must be a finite 4x4 matrix, got shape {m.shape}")
         else:
             r = m[:3, :3]
-            if np.abs(r @ r.T - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0 \
-                    or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-12:
+            if (
+                np.abs(r @ r.T - np.eye(3)).max() > 1e-6
+                or np.linalg.det(r) < 0
+                or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-12
+            ):
                 problems.append("world_to_camera must be rigid (a rotation and a translation)")
         if problems:
             raise ValueError("invalid camera: " + "; ".join(problems))
@@ -69,8 +72,7 @@ class Camera:
     # construction ---------------------------------------------------------------------------
 
     @classmethod
-    def look_at(cls, eye, target, up=(0.0, 1.0, 0.0), fov_deg=60.0, width=512, height=512,
-                near=0.2, far=math.inf):
+    def look_at(cls, eye, target, up=(0.0, 1.0, 0.0), fov_deg=60.0, width=512, height=512, near=0.2, far=math.inf):
         """A centred perspective camera at `eye` looking at `target`; `fov_deg` is horizontal and
         world `up` appears up in the image."""
         if not 0.0 < fov_deg < 180.0:
@@ -79,22 +81,30 @@ class Camera:
         return cls(width, height, f, f, width / 2, height / 2, look_at_matrix(eye, target, up), near, far)
 
     @classmethod
-    def look_at_ortho(cls, eye, target, up=(0.0, 1.0, 0.0), ortho_scale=2.0, width=512, height=512,
-                      near=0.2, far=math.inf):
+    def look_at_ortho(
+        cls, eye, target, up=(0.0, 1.0, 0.0), ortho_scale=2.0, width=512, height=512, near=0.2, far=math.inf
+    ):
         """A centred orthographic camera; `ortho_scale` is the visible width in world units."""
         if not (math.isfinite(ortho_scale) and ortho_scale > 0):
             raise ValueError(f"invalid camera: ortho_scale must be finite and > 0, got {ortho_scale!r}")
         f = width / ortho_scale
-        return cls(width, height, f, f, width / 2, height / 2, look_at_matrix(eye, target, up), near, far,
-                   "orthographic")
+        return cls(
+            width, height, f, f, width / 2, height / 2, look_at_matrix(eye, target, up), near, far, "orthographic"
+        )
 
     @classmethod
     def from_blender(cls, matrix_world, width, height, clip_start=0.2, clip_end=math.inf, **lens):
         """From a Blender camera object's matrix_world (any scale is removed) and its lens settings
         (the keyword arguments of `blender_intrinsics`)."""
         intr = blender_intrinsics(width, height, **lens)
-        return cls(width, height, world_to_camera=world_to_camera_from_opengl(matrix_world),
-                   near=clip_start, far=clip_end, **intr)
+        return cls(
+            width,
+            height,
+            world_to_camera=world_to_camera_from_opengl(matrix_world),
+            near=clip_start,
+            far=clip_end,
+            **intr,
+        )
 
     def with_(self, **changes):
         """A copy with some fields changed (e.g. a different resolution or clip plane)."""
@@ -155,8 +165,18 @@ class Camera:
         return np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=1), z
 
 
-def frame_points(points, width=512, height=512, fov_deg=60.0, ortho_scale=None, eye=None, target=None,
-                 up=(0.0, 1.0, 0.0), direction=(1.2, 0.8, 1.0), near=0.2):
+def frame_points(
+    points,
+    width=512,
+    height=512,
+    fov_deg=60.0,
+    ortho_scale=None,
+    eye=None,
+    target=None,
+    up=(0.0, 1.0, 0.0),
+    direction=(1.2, 0.8, 1.0),
+    near=0.2,
+):
     """A camera that sees all of `points` (their bounding sphere), for previews.
 
     Looks at `target` (default: the centre of the points' box) from `eye` (default: along
@@ -212,6 +232,7 @@ def look_at_matrix(eye, target, up=(0.0, 1.0, 0.0)):
 
 # OpenGL / Blender ---------------------------------------------------------------------------------
 
+
 def world_to_camera_from_opengl(camera_to_world):
     """Our world-to-camera from an OpenGL/Blender camera-to-world matrix (camera looks down -Z,
     +Y up). Scale in the matrix (a scaled camera object) is removed; the result is rigid."""
@@ -247,9 +268,20 @@ def blender_sensor_fit(width, height, sensor_fit="AUTO", pixel_aspect_x=1.0, pix
     return fit
 
 
-def blender_intrinsics(width, height, lens=50.0, sensor_width=36.0, sensor_height=24.0, sensor_fit="AUTO",
-                       shift_x=0.0, shift_y=0.0, type="PERSP", ortho_scale=None,
-                       pixel_aspect_x=1.0, pixel_aspect_y=1.0):
+def blender_intrinsics(
+    width,
+    height,
+    lens=50.0,
+    sensor_width=36.0,
+    sensor_height=24.0,
+    sensor_fit="AUTO",
+    shift_x=0.0,
+    shift_y=0.0,
+    type="PERSP",
+    ortho_scale=None,
+    pixel_aspect_x=1.0,
+    pixel_aspect_y=1.0,
+):
     """fx, fy, cx, cy and projection for a Blender camera, following Blender's view-plane rules.
 
     `lens` and the sensor sizes are in mm; `shift_*` and `ortho_scale` are relative to the fitted
@@ -287,9 +319,15 @@ def blender_lens(camera, sensor_width=36.0):
     fitted sensor, its principal point as a shift, unequal fx and fy as a pixel aspect."""
     width, height = camera.width, camera.height
     ycor = camera.fx / camera.fy
-    lens = {"sensor_width": sensor_width, "sensor_height": sensor_width, "sensor_fit": "HORIZONTAL",
-            "shift_x": (width / 2 - camera.cx) / width, "shift_y": (camera.cy - height / 2) * ycor / width,
-            "pixel_aspect_x": max(1.0, 1.0 / ycor), "pixel_aspect_y": max(1.0, ycor)}   # Blender's are >= 1
+    lens = {
+        "sensor_width": sensor_width,
+        "sensor_height": sensor_width,
+        "sensor_fit": "HORIZONTAL",
+        "shift_x": (width / 2 - camera.cx) / width,
+        "shift_y": (camera.cy - height / 2) * ycor / width,
+        "pixel_aspect_x": max(1.0, 1.0 / ycor),
+        "pixel_aspect_y": max(1.0, ycor),
+    }  # Blender's are >= 1
     if camera.is_orthographic:
         return {**lens, "type": "ORTHO", "ortho_scale": width / camera.fx, "lens": 50.0}
     return {**lens, "type": "PERSP", "ortho_scale": None, "lens": camera.fx * sensor_width / width}
@@ -325,6 +363,10 @@ def _path_change(cameras, centre):
     forward = np.array([cam.forward for cam in cameras])
     zoom = np.log([cam.fx for cam in cameras])
     turn = lambda a, b: np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))  # noqa: E731
-    steps = (turn(offset[:-1], offset[1:]) + np.abs(np.diff(np.log(distance)))
-             + turn(forward[:-1], forward[1:]) + np.abs(np.diff(zoom)))
+    steps = (
+        turn(offset[:-1], offset[1:])
+        + np.abs(np.diff(np.log(distance)))
+        + turn(forward[:-1], forward[1:])
+        + np.abs(np.diff(zoom))
+    )
     return np.concatenate([[0.0], np.cumsum(steps)])

@@ -24,7 +24,7 @@ from .sh import C0
 
 # Rec. 709 luma: the grey that saturation keeps and white balance preserves
 LUMA = np.array([0.2126, 0.7152, 0.0722])
-_CHUNK_PAIRS = 1 << 22          # (point, triangle) pairs per winding-number chunk
+_CHUNK_PAIRS = 1 << 22  # (point, triangle) pairs per winding-number chunk
 
 
 class CleanupError(ValueError):
@@ -32,6 +32,7 @@ class CleanupError(ValueError):
 
 
 # crop -----------------------------------------------------------------------------------------------
+
 
 def inside_box(points, box_matrix):
     """(N,) bool: points inside the box that `box_matrix` (4x4) makes of the cube [-1, 1]^3."""
@@ -49,17 +50,21 @@ def winding_numbers(points, vertices, triangles):
     vertices = np.asarray(vertices, np.float64).reshape(-1, 3)
     triangles = np.asarray(triangles, np.int64).reshape(-1, 3)
     points = np.asarray(points, np.float64).reshape(-1, 3)
-    corners = vertices[triangles]                                          # (F,3,3)
+    corners = vertices[triangles]  # (F,3,3)
     out = np.zeros(len(points))
     step = max(1, _CHUNK_PAIRS // max(len(triangles), 1))
     for start in range(0, len(points), step):
-        rel = corners[None] - points[start:start + step, None, None]       # (n,F,3,3)
+        rel = corners[None] - points[start : start + step, None, None]  # (n,F,3,3)
         a, b, c = rel[:, :, 0], rel[:, :, 1], rel[:, :, 2]
         la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
         det = np.einsum("nfi,nfi->nf", a, np.cross(b, c))
-        den = la * lb * lc + np.einsum("nfi,nfi->nf", a, b) * lc + np.einsum("nfi,nfi->nf", a, c) * lb \
+        den = (
+            la * lb * lc
+            + np.einsum("nfi,nfi->nf", a, b) * lc
+            + np.einsum("nfi,nfi->nf", a, c) * lb
             + np.einsum("nfi,nfi->nf", b, c) * la
-        out[start:start + step] = 2.0 * np.arctan2(det, den).sum(axis=1) / (4.0 * math.pi)
+        )
+        out[start : start + step] = 2.0 * np.arctan2(det, den).sum(axis=1) / (4.0 * math.pi)
     return out
 
 
@@ -82,6 +87,7 @@ def inside_mesh(points, vertices, triangles):
 
 # size -----------------------------------------------------------------------------------------------
 
+
 def size_mask(cloud, min_size=0.0, max_size=math.inf, scale=1.0):
     """Splats whose largest standard deviation, times `scale` (an object's scale), lies in
     [min_size, max_size]: drops needle-thin specks below and huge floaters above."""
@@ -92,6 +98,7 @@ def size_mask(cloud, min_size=0.0, max_size=math.inf, scale=1.0):
 
 
 # grading --------------------------------------------------------------------------------------------
+
 
 def grade_matrix(exposure=0.0, saturation=1.0, hue=0.0, white=(1.0, 1.0, 1.0)):
     """The 3x3 colour map of a grade, applied in this order: white balance (the colour `white`
@@ -107,7 +114,7 @@ def grade_matrix(exposure=0.0, saturation=1.0, hue=0.0, white=(1.0, 1.0, 1.0)):
     axis = np.ones(3) / math.sqrt(3.0)
     cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     turn = np.eye(3) + math.sin(hue) * cross + (1.0 - math.cos(hue)) * cross @ cross
-    return (2.0 ** exposure) * turn @ saturate @ balance
+    return (2.0**exposure) * turn @ saturate @ balance
 
 
 def grade_sh(sh, matrix, offset=(0.0, 0.0, 0.0)):

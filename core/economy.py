@@ -32,6 +32,7 @@ GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))
 
 # pruning --------------------------------------------------------------------------------------------
 
+
 def opacity_mask(cloud, threshold):
     """Splats whose opacity is at least `threshold` (in [0, 1])."""
     if not 0.0 <= threshold <= 1.0:
@@ -59,8 +60,15 @@ def contributions(cloud, views, mode=None, tile_size=8, threads=None):
     best = np.zeros(len(cloud), np.float32)
 
     def weights(camera):
-        return rendering.render(cloud, camera, background=None, mode=mode, return_weights=True,
-                                tile_size=tile_size, threads=threads // workers).max_weight
+        return rendering.render(
+            cloud,
+            camera,
+            background=None,
+            mode=mode,
+            return_weights=True,
+            tile_size=tile_size,
+            threads=threads // workers,
+        ).max_weight
 
     for weight in map_threads(weights, views, workers):
         np.maximum(best, weight, out=best)
@@ -68,6 +76,7 @@ def contributions(cloud, views, mode=None, tile_size=8, threads=None):
 
 
 # views and image error ------------------------------------------------------------------------------
+
 
 def orbit_views(points, count=8, width=128, height=None, fov_deg=50.0, phase=0.0, up=(0.0, -1.0, 0.0)):
     """`count` perspective cameras spread evenly over a sphere of directions around `points`, each
@@ -78,7 +87,7 @@ def orbit_views(points, count=8, width=128, height=None, fov_deg=50.0, phase=0.0
         raise ValueError(f"need at least one view, got {count}")
     height = width if height is None else height
     i = np.arange(count) + 0.5
-    z = 1.0 - 2.0 * i / count                              # even in z: even area on the sphere
+    z = 1.0 - 2.0 * i / count  # even in z: even area on the sphere
     ring = np.sqrt(np.maximum(0.0, 1.0 - z * z))
     angle = GOLDEN_ANGLE * (i + phase)
     directions = np.column_stack([ring * np.cos(angle), z, ring * np.sin(angle)])
@@ -105,6 +114,7 @@ def render_views(cloud, views, mode=None):
 class ImageError:
     """What a change costs in the image, over all views: PSNR (dB, inf when identical) of the RGBA
     pixels together, the largest absolute difference of any channel, and the PSNR of each view."""
+
     psnr: float
     max_abs: float
     view_psnr: list
@@ -122,12 +132,13 @@ def image_error(before, after, views, mode=None):
         raise ValueError(f"need one image per view: {len(ref)} and {len(test)} images for {len(views)} views")
     diff = [np.abs(np.asarray(t, np.float64) - r) for r, t in zip(ref, test)]
     mse = sum(float((d * d).sum()) for d in diff) / sum(d.size for d in diff)
-    return ImageError(psnr_from_mse(mse),
-                      max(float(d.max(initial=0.0)) for d in diff),
-                      [psnr(t, r) for r, t in zip(ref, test)])
+    return ImageError(
+        psnr_from_mse(mse), max(float(d.max(initial=0.0)) for d in diff), [psnr(t, r) for r, t in zip(ref, test)]
+    )
 
 
 # what a change saves and costs ----------------------------------------------------------------------
+
 
 def ply_bytes(cloud):
     """Bytes of the splats' records in a 3DGS PLY (float32, normals included): 4 (14 + 3K) a splat."""
@@ -139,9 +150,15 @@ def change_report(before, after, views=None, view_count=6, view_size=96):
     economy: splats and PLY bytes before and after, and the render error of `after` against `before`
     (RGBA, premultiplied, clipped) from `views`, default `view_count` orbit views of `view_size` px
     around `before`. PSNR is inf when nothing changes in any view; None without views (empty cloud)."""
-    report = {"splats_before": len(before), "splats_after": len(after),
-              "bytes_before": ply_bytes(before), "bytes_after": ply_bytes(after),
-              "psnr": None, "max_abs": None, "views": 0}
+    report = {
+        "splats_before": len(before),
+        "splats_after": len(after),
+        "bytes_before": ply_bytes(before),
+        "bytes_after": ply_bytes(after),
+        "psnr": None,
+        "max_abs": None,
+        "views": 0,
+    }
     points = cloud_points(before) if views is None else None
     if views is None and len(points):
         views = orbit_views(points, view_count, view_size, phase=0.5)
@@ -153,9 +170,11 @@ def change_report(before, after, views=None, view_count=6, view_size=96):
 
 def describe_change(report):
     """One line for a change_report: '-1,234 splats (-12.0%), -56 KB, PSNR 41.2 dB over 6 views'."""
+
     def change(key):
         before, after = report[f"{key}_before"], report[f"{key}_after"]
         return after - before, (100.0 * (after - before) / before) if before else 0.0
+
     splats, share = change("splats")
     size, _ = change("bytes")
     text = f"{splats:+,} splats ({share:+.1f}%), {size / 1024:+,.0f} KB as PLY"

@@ -82,10 +82,15 @@ def multiply_quaternions(a, b):
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
 
 
 def determinants(m):
@@ -100,7 +105,7 @@ def _require_finite(a, what):
         raise ValueError(f"{what}: {int(bad.sum())} matrices hold NaN or Inf")
 
 
-POLAR_NEWTON_CONDITION = 1e6     # above this condition number the SVD is the safer road
+POLAR_NEWTON_CONDITION = 1e6  # above this condition number the SVD is the safer road
 
 
 def polar_decomposition(a):
@@ -168,8 +173,17 @@ def _polar_loop(m, tolerance, condition, out, singular):
             na, nb, nc = hg * a + hi * c0, hg * b + hi * c1, hg * c + hi * c2
             nd, ne, nf = hg * d + hi * c3, hg * e + hi * c4, hg * f + hi * c5
             ng, nh, nk = hg * g + hi * c6, hg * h + hi * c7, hg * k + hi * c8
-            moved = max(abs(na - a), abs(nb - b), abs(nc - c), abs(nd - d), abs(ne - e), abs(nf - f),
-                        abs(ng - g), abs(nh - h), abs(nk - k))
+            moved = max(
+                abs(na - a),
+                abs(nb - b),
+                abs(nc - c),
+                abs(nd - d),
+                abs(ne - e),
+                abs(nf - f),
+                abs(ng - g),
+                abs(nh - h),
+                abs(nk - k),
+            )
             a, b, c, d, e, f, g, h, k = na, nb, nc, nd, ne, nf, ng, nh, nk
             if moved < 10 * tolerance:
                 break
@@ -192,9 +206,17 @@ def _polar_rotation_newton(m, tolerance=1e-15, max_iterations=40):
     for step in range(max_iterations):
         a, b, c, d, e, f, g, h, k = x
         # cofactors of [[a b c] [d e f] [g h k]]: inverse transpose = cof / det
-        cof = [e * k - f * h, f * g - d * k, d * h - e * g,
-               c * h - b * k, a * k - c * g, b * g - a * h,
-               b * f - c * e, c * d - a * f, a * e - b * d]
+        cof = [
+            e * k - f * h,
+            f * g - d * k,
+            d * h - e * g,
+            c * h - b * k,
+            a * k - c * g,
+            b * g - a * h,
+            b * f - c * e,
+            c * d - a * f,
+            a * e - b * d,
+        ]
         det = a * cof[0] + b * cof[1] + c * cof[2]
         norm_x, norm_cof = sum(v * v for v in x), sum(v * v for v in cof)
         if step == 0:
@@ -253,8 +275,9 @@ def split_affine(matrix, condition_limit=1e12):
     a, t = m[:3, :3], (m[:3, 3] if m.shape == (4, 4) else np.zeros(3))
     sigma = np.linalg.svd(a, compute_uv=False)
     if not sigma[-1] > sigma[0] / condition_limit:
-        raise ValueError(f"transform is singular (singular values {sigma.tolist()}): it would flatten "
-                         "splats to zero thickness")
+        raise ValueError(
+            f"transform is singular (singular values {sigma.tolist()}): it would flatten splats to zero thickness"
+        )
     return a.copy(), t.copy()
 
 
@@ -266,8 +289,9 @@ def transform_covariances(a, rotations, scales):
     largest scale (eigh of the product would square the spread: 1e-7 and 1e4 in one splat would
     lose the small axis altogether). A reflected U becomes a rotation by flipping one column.
     """
-    factor = np.asarray(a, dtype=np.float64) @ (quaternions_to_matrices(rotations)
-                                                * np.asarray(scales, dtype=np.float64)[..., None, :])
+    factor = np.asarray(a, dtype=np.float64) @ (
+        quaternions_to_matrices(rotations) * np.asarray(scales, dtype=np.float64)[..., None, :]
+    )
     u, sigma, _ = np.linalg.svd(factor)
     u[determinants(u) < 0, :, 2] *= -1
     return matrices_to_quaternions(u), sigma

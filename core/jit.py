@@ -24,9 +24,9 @@ import time
 from pathlib import Path
 
 _lock = threading.Lock()
-_modules = {}       # kernel module name -> module or None
-_reasons = {}       # kernel module name -> why it is not available
-STALE_DAYS = 30     # a kernel folder unused this long is removed
+_modules = {}  # kernel module name -> module or None
+_reasons = {}  # kernel module name -> why it is not available
+STALE_DAYS = 30  # a kernel folder unused this long is removed
 
 
 def enabled():
@@ -49,9 +49,9 @@ def cache_dir():
 
 def load(name, check=None):
     """The compiled kernel module `splatwright.<name>` (e.g. "core.render_kernels"; it imports
-    numba), or None when numba cannot be loaded or kernels are turned off. Imported once per process; `check(module)`, if
-    given, then runs the kernels once (compiling them, or loading them from the cache) and must
-    return without an error for the module to be used."""
+    numba), or None when numba cannot be loaded or kernels are turned off. Imported once per
+    process; `check(module)`, if given, then runs the kernels once (compiling them, or loading them
+    from the cache) and must return without an error for the module to be used."""
     if not enabled():
         return None
     with _lock:
@@ -62,7 +62,7 @@ def load(name, check=None):
                 if check is not None:
                     check(module)
                 _modules[name] = module
-            except Exception as exc:        # any failure to load or compile means: use NumPy
+            except Exception as exc:  # any failure to load or compile means: use NumPy
                 _modules[name], _reasons[name] = None, f"{type(exc).__name__}: {exc}"
         return _modules[name]
 
@@ -73,8 +73,8 @@ def compiled(module_name, names):
     the last returned; None when numba cannot be loaded or kernels are turned off. For kernels that
     live beside their NumPy path; compiled once per process, on first use."""
     key = f"{module_name}:{names[-1]}"
-    if key in _modules:                  # the hot path (forward kinematics of one configuration):
-        return _modules[key]             # no environment lookup once a kernel is in use
+    if key in _modules:  # the hot path (forward kinematics of one configuration):
+        return _modules[key]  # no environment lookup once a kernel is in use
     if not enabled():
         return None
     with _lock:
@@ -84,10 +84,10 @@ def compiled(module_name, names):
                 module = sys.modules[module_name]
                 for name in names:
                     function = getattr(module, name)
-                    if not hasattr(function, "py_func"):        # not compiled by an earlier kernel
+                    if not hasattr(function, "py_func"):  # not compiled by an earlier kernel
                         setattr(module, name, njit(function))
                 _modules[key] = getattr(module, names[-1])
-            except Exception as exc:        # any failure to load or compile means: use NumPy
+            except Exception as exc:  # any failure to load or compile means: use NumPy
                 _modules[key], _reasons[key] = None, f"{type(exc).__name__}: {exc}"
         return _modules[key]
 
@@ -108,10 +108,11 @@ def njit(fn=None, *, contract=False):
     if fn is None:
         return lambda f: njit(f, contract=contract)
     import numba
+
     options = {"nogil": True, "error_model": "numpy", **({"fastmath": {"contract"}} if contract else {})}
     try:
         return numba.njit(cache=True, **options)(fn)
-    except RuntimeError:                # no writable cache folder anywhere: compile in every process
+    except RuntimeError:  # no writable cache folder anywhere: compile in every process
         return numba.njit(**options)(fn)
 
 
@@ -129,10 +130,12 @@ def prefetcher():
             i64 = context.cast(builder, args[1], signature.args[1], types.int64)
             byte_ptr, int32 = ir.IntType(8).as_pointer(), ir.IntType(32)
             fn = cgutils.get_or_insert_function(
-                builder.module, ir.FunctionType(ir.VoidType(), [byte_ptr, int32, int32, int32]), "llvm.prefetch.p0i8")
+                builder.module, ir.FunctionType(ir.VoidType(), [byte_ptr, int32, int32, int32]), "llvm.prefetch.p0i8"
+            )
             # a read, kept in every cache level, of data
             builder.call(fn, [builder.bitcast(builder.gep(base, [i64]), byte_ptr), int32(0), int32(3), int32(1)])
             return context.get_dummy_value()
+
         return types.void(array, i), codegen
 
     return prefetch
@@ -150,7 +153,7 @@ def _install_cache_locator():
     from numba.core import caching
 
     impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
-    package = __package__.rpartition(".")[0]       # "splatwright", or the name Blender imports it by
+    package = __package__.rpartition(".")[0]  # "splatwright", or the name Blender imports it by
     root = cache_dir()
     prune_stale(root)
 
@@ -160,7 +163,7 @@ def _install_cache_locator():
             self._lineno = py_func.__code__.co_firstlineno
             self._cache_path = str(root / _cache_subpath(py_func.__module__, py_file))
             try:
-                os.utime(self._cache_path)          # in use: not stale
+                os.utime(self._cache_path)  # in use: not stale
             except OSError:
                 pass
 
@@ -173,7 +176,7 @@ def _install_cache_locator():
             # project's folder keeps numba's own choice.
             if not py_func.__module__.startswith(package + "."):
                 return None
-            return super().from_function(py_func, py_file)     # None when the folder is not writable
+            return super().from_function(py_func, py_file)  # None when the folder is not writable
 
     impl._locator_classes.insert(0, SplatwrightCacheLocator)
     _installed = True

@@ -35,8 +35,7 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from . import geometry
-from . import jit
+from . import geometry, jit
 from .arrays import ArrayLike, Floats, Matrix4
 
 Configuration = Annotated[Floats, "(dof,) one configuration, or (B, dof) a batch"]
@@ -54,6 +53,7 @@ class KinematicsError(ValueError):
 
 # small rotation helpers ---------------------------------------------------------------------------
 
+
 def rotvec_to_quaternions(rotvec):
     """(..., 3) rotation vectors (axis * angle) -> (..., 4) unit quaternions w,x,y,z."""
     v = np.asarray(rotvec, dtype=np.float64)
@@ -66,7 +66,7 @@ def rotvec_to_quaternions(rotvec):
 def quaternions_to_rotvec(q):
     """(..., 4) w,x,y,z (any norm) -> (..., 3) rotation vectors with angles in [0, pi]."""
     q = geometry.normalize_quaternions(q)
-    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)          # the short way round
+    q = q * np.where(q[..., :1] < 0, -1.0, 1.0)  # the short way round
     vec_norm = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
     angle = 2.0 * np.arctan2(vec_norm, q[..., :1])
     # angle / sin(angle/2), again through sinc so that tiny rotations stay exact.
@@ -112,7 +112,7 @@ def transforms(rotations=None, translations=None):
     """(..., 4, 4) homogeneous transforms from (..., 3, 3) rotations and/or (..., 3) translations."""
     r = None if rotations is None else np.asarray(rotations, np.float64)
     t = None if translations is None else np.asarray(translations, np.float64)
-    shape = (r.shape[:-2] if r is not None else t.shape[:-1])
+    shape = r.shape[:-2] if r is not None else t.shape[:-1]
     out = np.zeros(shape + (4, 4))
     out[..., :3, :3] = np.eye(3) if r is None else r
     if t is not None:
@@ -122,6 +122,7 @@ def transforms(rotations=None, translations=None):
 
 
 # the tree -----------------------------------------------------------------------------------------
+
 
 @dataclass(eq=False)
 class KinematicTree:
@@ -169,9 +170,13 @@ class KinematicTree:
         problems = []
         if len(set(self.names)) != n:
             problems.append("link names are not unique")
-        for name, arr, shape in (("parents", self.parents, (n,)), ("origins", self.origins, (n, 4, 4)),
-                                 ("axes", self.axes, (n, 3)), ("lower", self.lower, (n,)),
-                                 ("upper", self.upper, (n,))):
+        for name, arr, shape in (
+            ("parents", self.parents, (n,)),
+            ("origins", self.origins, (n, 4, 4)),
+            ("axes", self.axes, (n, 3)),
+            ("lower", self.lower, (n,)),
+            ("upper", self.upper, (n,)),
+        ):
             if arr.shape != shape:
                 problems.append(f"{name} has shape {arr.shape}, expected {shape}")
         if len(self.joint_types) != n or len(self.joint_names) != n or len(self.mimic) != n:
@@ -181,26 +186,34 @@ class KinematicTree:
         where = lambda i: f"link '{self.names[i]}' (joint '{self.joint_names[i]}')"
         unknown = [i for i, kind in enumerate(self.joint_types) if kind not in JOINT_DOF]
         if unknown:
-            raise KinematicsError(f"{where(unknown[0])}: unknown joint type '{self.joint_types[unknown[0]]}' "
-                                  f"(known: {', '.join(JOINT_DOF)})")
+            raise KinematicsError(
+                f"{where(unknown[0])}: unknown joint type '{self.joint_types[unknown[0]]}' "
+                f"(known: {', '.join(JOINT_DOF)})"
+            )
         # whole-array checks, then the first offender by name (trees of 20,000 links stay fast)
         axis_ok = np.isfinite(self.axes).all(axis=1) & (np.linalg.norm(self.axes, axis=1) > 1e-12)
         uses_axis = np.isin(np.array(self.joint_types), ("revolute", "continuous", "prismatic", "planar"))
         checks = [
-            (~((self.parents >= -1) & (self.parents < np.arange(n))),
-             lambda i: f"parent index {self.parents[i]} is not an earlier link (links must be in topological order)"),
+            (
+                ~((self.parents >= -1) & (self.parents < np.arange(n))),
+                lambda i: f"parent index {self.parents[i]} is not an earlier link (links must be in topological order)",
+            ),
             (~np.isfinite(self.origins).all(axis=(1, 2)), lambda i: "origin is not finite"),
-            ((self.origins[:, 3] != [0.0, 0.0, 0.0, 1.0]).any(axis=1),
-             lambda i: f"origin's last row {self.origins[i, 3].tolist()} is not 0 0 0 1 (not affine)"),
+            (
+                (self.origins[:, 3] != [0.0, 0.0, 0.0, 1.0]).any(axis=1),
+                lambda i: f"origin's last row {self.origins[i, 3].tolist()} is not 0 0 0 1 (not affine)",
+            ),
             (uses_axis & ~axis_ok, lambda i: f"axis {self.axes[i].tolist()} is zero or not finite"),
-            (np.isnan(self.lower) | np.isnan(self.upper) | (self.lower > self.upper),
-             lambda i: f"limits [{self.lower[i]}, {self.upper[i]}] are not an interval"),
+            (
+                np.isnan(self.lower) | np.isnan(self.upper) | (self.lower > self.upper),
+                lambda i: f"limits [{self.lower[i]}, {self.upper[i]}] are not an interval",
+            ),
         ]
         for bad, message in checks:
             if bad.any():
                 i = int(np.argmax(bad))
                 raise KinematicsError(f"{where(i)}: {message(i)}")
-        self.axes[~axis_ok] = [1.0, 0.0, 0.0]       # axes of fixed, ball and floating joints are unused
+        self.axes[~axis_ok] = [1.0, 0.0, 0.0]  # axes of fixed, ball and floating joints are unused
 
     def _resolve_mimics(self):
         """Per link: the joint whose value it takes (itself unless it mimics), and the multiplier and
@@ -216,13 +229,15 @@ class KinematicTree:
             if name not in index:
                 raise KinematicsError(f"{where} mimics '{name}', which is not a joint of this tree")
             if self.joint_types[i] not in _ONE_VALUE or self.joint_types[index[name]] not in _ONE_VALUE:
-                raise KinematicsError(f"{where} ({self.joint_types[i]}) mimics '{name}' "
-                                      f"({self.joint_types[index[name]]}): only one-value joints can mimic")
+                raise KinematicsError(
+                    f"{where} ({self.joint_types[i]}) mimics '{name}' "
+                    f"({self.joint_types[index[name]]}): only one-value joints can mimic"
+                )
             if not (np.isfinite(multiplier) and np.isfinite(offset)):
                 raise KinematicsError(f"{where}: mimic multiplier {multiplier} and offset {offset} must be finite")
             source[i], scale[i], shift[i] = index[name], multiplier, offset
         mimics = np.flatnonzero(source != np.arange(n))
-        for i in mimics:                                 # follow chains: q_i = m_i (m_s q + o_s) + o_i
+        for i in mimics:  # follow chains: q_i = m_i (m_s q + o_s) + o_i
             for _ in range(n):
                 s = source[i]
                 if source[s] == s:
@@ -256,16 +271,25 @@ class KinematicTree:
         o = self.origins[self._rotating, :3, :3]
         self._origin_rodrigues = (o @ k, o @ k @ k)
         depth = np.zeros(n, np.int64)
-        for i, p in enumerate(self.parents.tolist()):     # once per tree, not per configuration
+        for i, p in enumerate(self.parents.tolist()):  # once per tree, not per configuration
             depth[i] = 0 if p < 0 else depth[p] + 1
         order = np.argsort(depth, kind="stable")
         self._levels = np.split(order, np.flatnonzero(np.diff(depth[order])) + 1) if n else []
         # the compiled pass takes two tables (few arguments: each costs time at every call)
-        self._kernel_ints = np.ascontiguousarray(np.column_stack([self.parents, self._codes, self.dof_offsets]),
-                                                 dtype=np.int64)
-        self._kernel_floats = np.ascontiguousarray(np.column_stack([
-            self.origins[:, :3, :].reshape(n, 12), self._scale, self._shift, self.axes,
-            self.plane_axes.reshape(n, 6)]))
+        self._kernel_ints = np.ascontiguousarray(
+            np.column_stack([self.parents, self._codes, self.dof_offsets]), dtype=np.int64
+        )
+        self._kernel_floats = np.ascontiguousarray(
+            np.column_stack(
+                [
+                    self.origins[:, :3, :].reshape(n, 12),
+                    self._scale,
+                    self._shift,
+                    self.axes,
+                    self.plane_axes.reshape(n, 6),
+                ]
+            )
+        )
 
     # construction ---------------------------------------------------------------------------
 
@@ -282,8 +306,9 @@ class KinematicTree:
         children: dict[str, dict] = {}
         for j in joints:
             if j["child"] in children:
-                raise KinematicsError(f"link '{j['child']}' has two parent joints "
-                                      f"('{children[j['child']]['name']}' and '{j['name']}')")
+                raise KinematicsError(
+                    f"link '{j['child']}' has two parent joints ('{children[j['child']]['name']}' and '{j['name']}')"
+                )
             children[j["child"]] = j
         parents = {j["parent"] for j in joints}
         roots = sorted(parents - set(children)) if root is None else [root]
@@ -292,12 +317,13 @@ class KinematicTree:
         order, by_parent = [roots[0]], dict[str, list[str]]()
         for j in joints:
             by_parent.setdefault(j["parent"], []).append(j["child"])
-        for link in order:                               # breadth-first; the list grows as we go
+        for link in order:  # breadth-first; the list grows as we go
             order.extend(by_parent.get(link, []))
         unreached = set(children) - set(order)
         if unreached:
-            raise KinematicsError(f"links {sorted(unreached)} are not connected to root '{roots[0]}' "
-                                  "(their joints form a cycle)")
+            raise KinematicsError(
+                f"links {sorted(unreached)} are not connected to root '{roots[0]}' (their joints form a cycle)"
+            )
         index = {name: i for i, name in enumerate(order)}
         spec = [children.get(name) for name in order]
         eye = np.eye(4)
@@ -314,8 +340,9 @@ class KinematicTree:
         )
 
     @classmethod
-    def from_rest_matrices(cls, names: list[str], parents: ArrayLike, rest: ArrayLike,
-                           joint_type: str = "ball") -> "KinematicTree":
+    def from_rest_matrices(
+        cls, names: list[str], parents: ArrayLike, rest: ArrayLike, joint_type: str = "ball"
+    ) -> "KinematicTree":
         """A skeleton in Blender's terms: bones with parents (topologically ordered) and rest
         matrices in armature space (Blender's `bone.matrix_local`). Every bone gets a joint of
         `joint_type` at its head, so a ball joint's rotation vector is the pose rotation in the
@@ -336,8 +363,11 @@ class KinematicTree:
         """One name per configuration value: the joint name, with .x/.y/.z for ball joints,
         .a/.b/.theta for planar ones and .x/.y/.z/.rx/.ry/.rz for floating ones; mimic joints
         have none."""
-        suffixes = {"ball": ("x", "y", "z"), "planar": ("a", "b", "theta"),
-                    "floating": ("x", "y", "z", "rx", "ry", "rz")}
+        suffixes = {
+            "ball": ("x", "y", "z"),
+            "planar": ("a", "b", "theta"),
+            "floating": ("x", "y", "z", "rx", "ry", "rz"),
+        }
         out = []
         for name, kind, follows in zip(self.joint_names, self.joint_types, self._follows):
             if not follows:
@@ -364,7 +394,7 @@ class KinematicTree:
             if not np.isfinite(value).all():
                 raise KinematicsError(f"joint '{name}': value {value.tolist()} is not finite")
             value = _joint_values(name, kind, value)
-            q[self.dof_offsets[i]:self.dof_offsets[i] + len(value)] = value
+            q[self.dof_offsets[i] : self.dof_offsets[i] + len(value)] = value
         return q
 
     def _check_configuration(self, q):
@@ -417,7 +447,7 @@ class KinematicTree:
             o_k, o_k2 = self._origin_rodrigues
             local[rot, :, :3, :3] += np.sin(angle) * o_k[:, None] + (1.0 - np.cos(angle)) * o_k2[:, None]
         if len(pri):
-            shift = self.origins[pri, :3, :3] @ self.axes[pri, :, None]          # axis in the parent frame
+            shift = self.origins[pri, :3, :3] @ self.axes[pri, :, None]  # axis in the parent frame
             local[pri, :, :3, 3] += value(pri)[..., None] * shift[:, None, :, 0]
         for links, turn, move in self._free_motions(q):
             o = self.origins[links, None, :3, :3]
@@ -441,14 +471,15 @@ class KinematicTree:
             out.append((self._floating, _rotvec_matrices(v[..., 3:]), v[..., :3]))
         return out
 
-    def forward_kinematics(self, q: ArrayLike | None = None, base: Matrix4 | None = None,
-                           clamp: bool = False) -> LinkTransforms:
+    def forward_kinematics(
+        self, q: ArrayLike | None = None, base: Matrix4 | None = None, clamp: bool = False
+    ) -> LinkTransforms:
         """World transforms of every link: (L,4,4) for one configuration (dof,), (B,L,4,4) for a
         batch (B,dof). `base` (4,4) places the roots; `clamp` first applies the joint limits."""
         kernel = _fk_kernel()
         if kernel is not None and q is not None and not clamp and self.names:
             q = np.asarray(q, dtype=np.float64)
-            if q.ndim == 1 and base is None and q.shape[0] == self.dof:     # the planner's hot path
+            if q.ndim == 1 and base is None and q.shape[0] == self.dof:  # the planner's hot path
                 world = np.empty((1, len(self.names), 4, 4))
                 if kernel(q.reshape(1, -1), self._kernel_ints, self._kernel_floats, _IDENTITY, world):
                     return world[0]
@@ -464,7 +495,7 @@ class KinematicTree:
         world = np.empty_like(local)
         for level in self._levels:
             parent = self.parents[level]
-            if parent[0] < 0:                                        # depth 0: the roots
+            if parent[0] < 0:  # depth 0: the roots
                 world[level] = base @ local[level]
             else:
                 world[level] = world[parent] @ local[level]
@@ -475,15 +506,16 @@ class KinematicTree:
         microseconds for one configuration."""
         q = np.asarray(q, dtype=np.float64)
         if q.shape[-1:] != (self.dof,) or q.ndim > 2:
-            self._check_configuration(q)                           # raises, naming the shape
+            self._check_configuration(q)  # raises, naming the shape
         base = _IDENTITY if base is None else _check_base(base)
         q2 = q if q.ndim == 2 else q.reshape(1, self.dof)
         world = np.empty((len(q2), len(self), 4, 4))
         tables, kernel = (self._kernel_ints, self._kernel_floats, base), _fk_kernel()
         if len(q2) >= _PARALLEL_BATCH:
             from .parallel import map_threads
+
             halves = [(h[0], h[-1] + 1) for h in np.array_split(np.arange(len(q2)), 2)]
-            finite = all(map_threads(lambda h: kernel(q2[h[0]:h[1]], *tables, world[h[0]:h[1]]), halves))
+            finite = all(map_threads(lambda h: kernel(q2[h[0] : h[1]], *tables, world[h[0] : h[1]]), halves))
         else:
             finite = kernel(q2, *tables, world)
         if not finite:
@@ -494,8 +526,9 @@ class KinematicTree:
         """World transforms of every link at the zero configuration, (L,4,4)."""
         return self.forward_kinematics(None, base=base)
 
-    def deform_matrices(self, q: ArrayLike | None = None, base: Matrix4 | None = None,
-                        clamp: bool = False) -> LinkTransforms:
+    def deform_matrices(
+        self, q: ArrayLike | None = None, base: Matrix4 | None = None, clamp: bool = False
+    ) -> LinkTransforms:
         """Per-link skinning matrices world(q) @ inverse(world(0)): what a splat bound to a link
         at rest goes through (Blender's pose @ inverse(rest))."""
         rest_inv = np.linalg.inv(self.rest_transforms(base))
@@ -503,7 +536,7 @@ class KinematicTree:
 
 
 _IDENTITY = np.eye(4)
-_PARALLEL_BATCH = 8192          # configurations from which both cores share forward kinematics
+_PARALLEL_BATCH = 8192  # configurations from which both cores share forward kinematics
 
 
 def _check_base(base):
@@ -551,6 +584,7 @@ def _joint_values(name, kind, value):
 
 # the compiled pass: one configuration at a time, every link in topological order ------------------
 
+
 def _rotvec_into(vx, vy, vz, r):
     """r (3,3) = the rotation by rotation vector v (Rodrigues; a series below 1e-4 rad)."""
     t2 = vx * vx + vy * vy + vz * vz
@@ -587,29 +621,29 @@ def _fk_pass(q, ints, floats, base, out):
                 t[a] = 0.0
                 for k in range(3):
                     r[a, k] = 1.0 if a == k else 0.0
-            if code == 1:                                   # revolute, continuous
+            if code == 1:  # revolute, continuous
                 x = q[b, c] * o[12] + o[13]
                 _rotvec_into(ax * x, ay * x, az * x, r)
-            elif code == 2:                                 # prismatic
+            elif code == 2:  # prismatic
                 x = q[b, c] * o[12] + o[13]
                 t[0], t[1], t[2] = ax * x, ay * x, az * x
-            elif code == 3:                                 # ball
+            elif code == 3:  # ball
                 _rotvec_into(q[b, c], q[b, c + 1], q[b, c + 2], r)
-            elif code == 4:                                 # planar
+            elif code == 4:  # planar
                 x = q[b, c + 2]
                 _rotvec_into(ax * x, ay * x, az * x, r)
                 for a in range(3):
                     t[a] = q[b, c] * o[17 + a] + q[b, c + 1] * o[20 + a]
-            elif code == 5:                                 # floating
+            elif code == 5:  # floating
                 _rotvec_into(q[b, c + 3], q[b, c + 4], q[b, c + 5], r)
                 for a in range(3):
                     t[a] = q[b, c + a]
-            for a in range(3):                              # local = origin @ [r | t]
+            for a in range(3):  # local = origin @ [r | t]
                 for k in range(3):
                     local[a, k] = o[4 * a] * r[0, k] + o[4 * a + 1] * r[1, k] + o[4 * a + 2] * r[2, k]
                 local[a, 3] = o[4 * a] * t[0] + o[4 * a + 1] * t[1] + o[4 * a + 2] * t[2] + o[4 * a + 3]
             out[b, i, 3, 0], out[b, i, 3, 1], out[b, i, 3, 2], out[b, i, 3, 3] = 0.0, 0.0, 0.0, 1.0
-            for a in range(3):                              # world = world[parent] (or base) @ local
+            for a in range(3):  # world = world[parent] (or base) @ local
                 for k in range(4):
                     if p >= 0:
                         s = out[b, p, a, 3] if k == 3 else 0.0

@@ -76,7 +76,7 @@ def decode_texture(image, srgb=True):
     if img.ndim != 3 or img.shape[2] not in (1, 2, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"texture has shape {img.shape}, expected (H, W, 1..4)")
     img = img[:, :, :1].repeat(3, axis=2) if img.shape[2] <= 2 else img[:, :, :3]
-    if img.dtype in (np.uint8, np.uint16):          # every value once, then a lookup: 10x faster
+    if img.dtype in (np.uint8, np.uint16):  # every value once, then a lookup: 10x faster
         return np.ascontiguousarray(_decoded_values(img.dtype, srgb)[img])
     if np.issubdtype(img.dtype, np.integer):
         rgb = img.astype(np.float32) / np.float32(np.iinfo(img.dtype).max)
@@ -104,7 +104,7 @@ def sample_texture(texture, uv):
     x0 = x0.astype(np.int64) % w
     y0 = y0.astype(np.int64) % h
     x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-    texels = texture.reshape(h * w, -1)           # flat lookups: much faster than 2D fancy indexing
+    texels = texture.reshape(h * w, -1)  # flat lookups: much faster than 2D fancy indexing
     row0, row1 = y0 * w, y1 * w
     gx = 1 - fx
     top = texels.take(row0 + x0, axis=0) * gx + texels.take(row0 + x1, axis=0) * fx
@@ -122,7 +122,7 @@ def sample_mipmap(levels, uv, level):
     for k in present:
         sel = slice(None) if len(present) == 1 else np.flatnonzero(lo == k)
         value = sample_texture(levels[k], uv[sel])
-        blend = np.flatnonzero(frac[sel] > 0)          # only where the footprint is between levels
+        blend = np.flatnonzero(frac[sel] > 0)  # only where the footprint is between levels
         if len(blend):
             f = frac[sel][blend, None]
             above = sample_texture(levels[min(k + 1, len(levels) - 1)], uv[sel][blend])
@@ -149,8 +149,12 @@ class Mesh:
 
     def appearance(self):
         """The keyword arguments mesh_to_splats and render_mesh take besides vertices and faces."""
-        return dict(corner_uvs=self.corner_uvs, face_materials=self.face_materials,
-                    materials=self.materials, corner_colors=self.corner_colors)
+        return dict(
+            corner_uvs=self.corner_uvs,
+            face_materials=self.face_materials,
+            materials=self.materials,
+            corner_colors=self.corner_colors,
+        )
 
 
 class Surface:
@@ -160,21 +164,22 @@ class Surface:
     but marked in `valid`; `report` counts what was skipped or repaired.
     """
 
-    def __init__(self, vertices, faces, corner_uvs=None, face_materials=None, materials=None,
-                 corner_colors=None):
+    def __init__(self, vertices, faces, corner_uvs=None, face_materials=None, materials=None, corner_colors=None):
         self.report, self._cache = {}, {}
         self.vertices = _as_array(vertices, "vertices", (None, 3), np.float64)
         self.faces = _faces(faces, len(self.vertices))
         f = len(self.faces)
-        corners = self.vertices[self.faces]                       # (F,3,3)
+        corners = self.vertices[self.faces]  # (F,3,3)
         self.origin = corners[:, 0]
         self.edge1 = corners[:, 1] - corners[:, 0]
         self.edge2 = corners[:, 2] - corners[:, 0]
         with np.errstate(invalid="ignore", over="ignore"):
             cross = np.cross(self.edge1, self.edge2)
             double_area = np.linalg.norm(cross, axis=1)
-            longest2 = np.max(np.stack([np.einsum("ij,ij->i", e, e) for e in
-                                        (self.edge1, self.edge2, self.edge2 - self.edge1)]), axis=0)
+            longest2 = np.max(
+                np.stack([np.einsum("ij,ij->i", e, e) for e in (self.edge1, self.edge2, self.edge2 - self.edge1)]),
+                axis=0,
+            )
             finite = np.isfinite(corners).all(axis=(1, 2)) & np.isfinite(double_area) & np.isfinite(longest2)
             self.valid = finite & (double_area > DEGENERATE_RATIO * 2 * longest2) & (double_area > 0)
         self.area = np.where(self.valid, 0.5 * double_area, 0.0)
@@ -189,7 +194,7 @@ class Surface:
         self.corner_colors = self._corner_colors(corner_colors, f)
         if self.corner_uvs is None and any(m.texture is not None for m in self.materials):
             self.report["textured faces without UVs (base colour used)"] = int(self.valid.sum())
-            warnings.warn("mesh has textured materials but no UVs: using the materials' base colours")
+            warnings.warn("mesh has textured materials but no UVs: using the materials' base colours", stacklevel=2)
 
     # validation helpers -------------------------------------------------------------------------
 
@@ -219,10 +224,12 @@ class Surface:
             return None
         c = np.asarray(corner_colors, np.float64)
         if c.ndim == 2 and c.shape[0] == len(self.vertices) and c.shape[1] in (3, 4):
-            c = c[self.faces]                                     # per vertex -> per corner
+            c = c[self.faces]  # per vertex -> per corner
         if c.ndim != 3 or c.shape[:2] != (f, 3) or c.shape[2] not in (3, 4):
-            raise ValueError(f"corner_colors has shape {c.shape}, expected ({f}, 3, 3) per corner "
-                             f"or ({len(self.vertices)}, 3) per vertex")
+            raise ValueError(
+                f"corner_colors has shape {c.shape}, expected ({f}, 3, 3) per corner "
+                f"or ({len(self.vertices)}, 3) per vertex"
+            )
         c = c[:, :, :3]
         self._count("faces with non-finite colours (set to 0)", ~np.isfinite(c).all(axis=(1, 2)))
         return np.where(np.isfinite(c), np.maximum(c, 0.0), 0.0)
@@ -312,7 +319,7 @@ class Surface:
         normals = np.where(self.valid[:, None], self.normal, 0.0)
         total = np.zeros((len(uses), 3))
         np.add.at(total, inverse, np.repeat(normals, 3, axis=0))
-        other = total[inverse] - np.repeat(normals, 3, axis=0)        # the neighbour across the edge
+        other = total[inverse] - np.repeat(normals, 3, axis=0)  # the neighbour across the edge
         turn = np.einsum("ij,ij->i", other, np.repeat(normals, 3, axis=0))
         sharp = (uses[inverse] != 2) | (turn < np.cos(np.radians(angle_deg)))
         return sharp.reshape(-1, 3) & self.valid[:, None]
@@ -352,11 +359,20 @@ class Surface:
         corners = self.vertices[np.where(flipped[:, None], self.faces[:, ::-1], self.faces)]
         finite = np.isfinite(corners).all(axis=(1, 2))
         count = np.maximum(np.bincount(part, weights=finite, minlength=n_parts), 1)
-        centers = np.stack([np.bincount(part, weights=np.where(finite, corners[:, :, k].mean(axis=1), 0.0),
-                                        minlength=n_parts) for k in range(3)], axis=1) / count[:, None]
+        centers = (
+            np.stack(
+                [
+                    np.bincount(part, weights=np.where(finite, corners[:, :, k].mean(axis=1), 0.0), minlength=n_parts)
+                    for k in range(3)
+                ],
+                axis=1,
+            )
+            / count[:, None]
+        )
         c = np.where(np.isfinite(corners), corners - centers[part][:, None, :], 0.0)
-        volume = np.bincount(part, weights=np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])) / 6,
-                             minlength=n_parts)
+        volume = np.bincount(
+            part, weights=np.einsum("ij,ij->i", c[:, 0], np.cross(c[:, 1], c[:, 2])) / 6, minlength=n_parts
+        )
         area = np.bincount(part, weights=np.where(self.valid, self.area, 0.0), minlength=n_parts)
         enclosing = (watertight | (np.abs(volume) >= OPEN_VOLUME * area**1.5)) & consistent
         sign = np.where(enclosing & (volume != 0), np.sign(volume), 0.0)
@@ -381,9 +397,9 @@ def to_display(linear):
     return color.linear_to_srgb(np.clip(linear, 0.0, 1.0))
 
 
-OPEN_VOLUME = 0.03      # enclosed volume / area^1.5 above which an open part counts as a solid
-NON_MANIFOLD_SHARE = 0.01   # a solid's edges may be shared by more than two faces up to this share (fins, seams)
-REWIND_PASSES = 8       # _misoriented's passes: a patch of wrongly wound faces turns a ring per pass
+OPEN_VOLUME = 0.03  # enclosed volume / area^1.5 above which an open part counts as a solid
+NON_MANIFOLD_SHARE = 0.01  # a solid's edges may be shared by more than two faces up to this share (fins, seams)
+REWIND_PASSES = 8  # _misoriented's passes: a patch of wrongly wound faces turns a ring per pass
 
 
 def _edge_keys(faces):
@@ -467,6 +483,8 @@ def _faces(faces, n_vertices):
     bad = (f < 0) | (f >= n_vertices)
     if bad.any():
         row = int(np.flatnonzero(bad.any(axis=1))[0])
-        raise ValueError(f"faces: face {row} refers to vertex {int(f[row][bad[row]][0])}, but there are "
-                         f"{n_vertices} vertices ({int(bad.any(axis=1).sum())} faces out of range)")
+        raise ValueError(
+            f"faces: face {row} refers to vertex {int(f[row][bad[row]][0])}, but there are "
+            f"{n_vertices} vertices ({int(bad.any(axis=1).sum())} faces out of range)"
+        )
     return f

@@ -50,27 +50,27 @@ from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import Shapes, render
 
-VIEW_DISTANCES = (0.5, 1.0, 3.0)   # default view distances, multiples of the one that frames the mesh
+VIEW_DISTANCES = (0.5, 1.0, 3.0)  # default view distances, multiples of the one that frames the mesh
 VIEWS_PER_DISTANCE = 4
 VIEW_FOV = 40.0
 SUPERSAMPLE = 3
-PIXEL_FILTER = (DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH)   # the reference's (kind, width): Cycles' default
+PIXEL_FILTER = (DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH)  # the reference's (kind, width): Cycles' default
 BACKGROUND = (0.0, 0.0, 0.0)
-START_SPACING = 8.0       # pixels of the finest view between splats at the start
-MAX_PER_PIXEL = 2.0       # density cap, splats per pixel of the finest view
+START_SPACING = 8.0  # pixels of the finest view between splats at the start
+MAX_PER_PIXEL = 2.0  # density cap, splats per pixel of the finest view
 MAX_ROUNDS = 12
 MAX_GROWTH = 2.5
-INSET_SEARCH = 6          # evaluations of the golden-section search for the silhouette shift
-SEARCH_SHARE = 1 / 3      # ... which compares shifts on this share of the views, the worst ones,
-SEARCH_VIEWS = 4          # ... and at least this many (all, when there are no more)
+INSET_SEARCH = 6  # evaluations of the golden-section search for the silhouette shift
+SEARCH_SHARE = 1 / 3  # ... which compares shifts on this share of the views, the worst ones,
+SEARCH_VIEWS = 4  # ... and at least this many (all, when there are no more)
 RECALIBRATE_GROWTH = 2.0  # search the shift again once the cloud has grown this much (or got worse)
-PATIENCE = 1              # stop after this many rounds in a row that rendered no better than the best
-                          # (on the bench's meshes a second never did, and cost the cup 20 s)
-MIN_GROWTH = 0.05         # stop once a round would add fewer splats than this fraction (below the cap)
-AIM = 0.7                 # faces aim at this fraction of the target MSE (not all of them can)
+PATIENCE = 1  # stop after this many rounds in a row that rendered no better than the best
+# (on the bench's meshes a second never did, and cost the cup 20 s)
+MIN_GROWTH = 0.05  # stop once a round would add fewer splats than this fraction (below the cap)
+AIM = 0.7  # faces aim at this fraction of the target MSE (not all of them can)
 MIN_BUDGET_SPLATS = 2000  # a budget also tries this many splats, twice as many, ... (budget_ladder)
-RUNG_GAP = 1.25           # ... up to a rung this much below the budget
-EDGE_BAND = 2             # pixels either side of a silhouette that count as silhouette error
+RUNG_GAP = 1.25  # ... up to a rung this much below the budget
+EDGE_BAND = 2  # pixels either side of a silhouette that count as silhouette error
 
 
 def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV, distances=VIEW_DISTANCES):
@@ -98,8 +98,16 @@ def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV,
     views = []
     for i, d in enumerate(dirs):
         distance = framing * distances[i % len(distances)]
-        views.append(Camera.look_at(center + distance * d, center, fov_deg=fov_deg, width=size, height=size,
-                                    near=max(distance - 1.5 * radius, distance * 1e-3)))
+        views.append(
+            Camera.look_at(
+                center + distance * d,
+                center,
+                fov_deg=fov_deg,
+                width=size,
+                height=size,
+                near=max(distance - 1.5 * radius, distance * 1e-3),
+            )
+        )
     return views
 
 
@@ -124,13 +132,13 @@ def _pixel_all_around(surface, cameras):
 class Measured:
     """One comparison of a cloud with the mesh over all views."""
 
-    psnr: float            # of the worst view
-    err: np.ndarray        # per-face squared-error sums
-    px: np.ndarray         # per-face pixel counts
-    dilation: float        # pixels the silhouettes of solid parts lie outside the mesh's, on average
-    overall: float         # PSNR over all views together
-    views: list            # PSNR per view
-    edge_share: list       # per view, the fraction of its squared error within EDGE_BAND of a silhouette
+    psnr: float  # of the worst view
+    err: np.ndarray  # per-face squared-error sums
+    px: np.ndarray  # per-face pixel counts
+    dilation: float  # pixels the silhouettes of solid parts lie outside the mesh's, on average
+    overall: float  # PSNR over all views together
+    views: list  # PSNR per view
+    edge_share: list  # per view, the fraction of its squared error within EDGE_BAND of a silhouette
 
     @property
     def worst(self):
@@ -145,15 +153,17 @@ class _Views:
         kind, width = pixel_filter
 
         def reference(cam):
-            ref = render_mesh(surface, cam, background=BACKGROUND, supersample=SUPERSAMPLE, pixel_filter=kind,
-                              filter_width=width)
+            ref = render_mesh(
+                surface, cam, background=BACKGROUND, supersample=SUPERSAMPLE, pixel_filter=kind, filter_width=width
+            )
             owner = _dilate_labels(ref.face, 2 * SUPERSAMPLE)
             return ref, owner, _face_shares(owner, len(surface.faces))
 
         self.refs, self.owners, self.shares = (list(x) for x in zip(*map_threads(reference, cameras)))
         self._shapes = []
-        self.face_pixels = sum(np.bincount(face, weights=share, minlength=len(surface.faces))
-                               for _, face, share in self.shares)
+        self.face_pixels = sum(
+            np.bincount(face, weights=share, minlength=len(surface.faces)) for _, face, share in self.shares
+        )
         self.pixel = self._pixel_sizes()
         # Pixels around the silhouettes of solid parts, and the silhouette length there (pixels).
         centre = SUPERSAMPLE // 2
@@ -172,7 +182,7 @@ class _Views:
         for cam, ref in zip(self.cameras, self.refs):
             xy, depth = cam.project(center)
             framed = (depth > 0) & (xy >= 0).all(axis=1) & (xy[:, 0] <= cam.width) & (xy[:, 1] <= cam.height)
-            framed[ref.face[ref.face >= 0]] = True      # seen, if only in part
+            framed[ref.face[ref.face >= 0]] = True  # seen, if only in part
             px = np.full(len(center), 1.0 / cam.fx) if cam.is_orthographic else np.maximum(depth, cam.near) / cam.fx
             size = np.where(framed, np.minimum(size, px), size)
         finite = np.isfinite(size)
@@ -189,6 +199,7 @@ class _Views:
         def one(i):
             result = render(cloud, self.cameras[i], background=BACKGROUND, mode=self.mode, threads=1, shapes=shapes)
             return result.alpha, ((result.color.astype(np.float64) - self.refs[i].color) ** 2).mean(axis=2)
+
         return dict(zip(which, map_threads(one, which)))
 
     def _shapes_of(self, cloud):
@@ -220,16 +231,24 @@ class _Views:
         excess = 0.0
         renders = dict(rendered or {})
         renders.update(self._renders(cloud, [i for i in range(len(self.cameras)) if i not in renders]))
-        for i, (ref, (pixel, face, share), solid, edge) in enumerate(zip(self.refs, self.shares, self.solid,
-                                                                          self.edges)):
+        for i, (ref, (pixel, face, share), solid, edge) in enumerate(
+            zip(self.refs, self.shares, self.solid, self.edges)
+        ):
             alpha, err = renders[i]
             excess += float((alpha - ref.alpha)[solid].sum())
             mses.append(err.mean())
             shares.append(float(err[edge].sum() / max(err.sum(), 1e-300)))
             err_sum += np.bincount(face, weights=err.ravel()[pixel] * share, minlength=n)
         dilation = excess / self.outline if self.outline > 0 else 0.0
-        return Measured(psnr_from_mse(max(mses)), err_sum, self.face_pixels, dilation, psnr_from_mse(np.mean(mses)),
-                        [psnr_from_mse(m) for m in mses], shares)
+        return Measured(
+            psnr_from_mse(max(mses)),
+            err_sum,
+            self.face_pixels,
+            dilation,
+            psnr_from_mse(np.mean(mses)),
+            [psnr_from_mse(m) for m in mses],
+            shares,
+        )
 
 
 class _Inset:
@@ -258,10 +277,10 @@ class _Inset:
         another shift, and the classic 20k budget of Suzanne at 128 px shifted its far views'
         outlines in and its close-ups fell from 28.1 to 24.6 dB."""
         views, every = set(self.views.search_views(basis)), set(range(len(self.views.cameras)))
-        tried = {}          # shift -> [cloud, {view: PSNR}, Measured or None]
+        tried = {}  # shift -> [cloud, {view: PSNR}, Measured or None]
         if known is not None:
             tried[known[0]] = [known[1], dict(enumerate(known[2].views)), known[2]]
-        kept = [None, {}]   # the best shift so far and its renders, which its measure takes
+        kept = [None, {}]  # the best shift so far and its renders, which its measure takes
 
         def measured(x):
             if tried[x][2] is None:
@@ -276,7 +295,7 @@ class _Inset:
             if x not in tried:
                 tried[x] = [self.make(density, x), {}, None]
             psnrs = tried[x][1]
-            if views == every and not psnrs:    # all views from the start: one measure each
+            if views == every and not psnrs:  # all views from the start: one measure each
                 measured(x)
             missing = sorted(views - psnrs.keys())
             if missing:
@@ -313,16 +332,29 @@ class _Inset:
                 d = a + ratio * (b - a)
 
 
-def refine_rounds(surface, target, max_splats, views, view_size, render_mode, info, style, uniform=False,
-                  view_distances=VIEW_DISTANCES, view_count=VIEWS_PER_DISTANCE, pixel_filter=PIXEL_FILTER,
-                  try_fewer=True):
+def refine_rounds(
+    surface,
+    target,
+    max_splats,
+    views,
+    view_size,
+    render_mode,
+    info,
+    style,
+    uniform=False,
+    view_distances=VIEW_DISTANCES,
+    view_count=VIEWS_PER_DISTANCE,
+    pixel_filter=PIXEL_FILTER,
+    try_fewer=True,
+):
     """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable), one
     round at a time: a generator yielding (round, MAX_ROUNDS, label) after the calibration and each
     round and returning the cloud, so a caller can stop between rounds (close() it). With
     `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes are
     calibrated for the views (a budget)."""
-    cameras = list(views) if views is not None else default_views(surface, view_size, view_count,
-                                                                  distances=view_distances)
+    cameras = (
+        list(views) if views is not None else default_views(surface, view_size, view_count, distances=view_distances)
+    )
     if not cameras:
         raise ValueError("need at least one view")
     outward = surface.outward_signs()
@@ -336,7 +368,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     density = np.where(surface.valid, 1.0 / (START_SPACING * pixel) ** 2, 0.0)
     if uniform:
         density = np.where(surface.valid, max_splats / area.sum(), 0.0)
-    walls, wall = thin_wall_density(surface, density, style["overlap"])   # thin walls need smaller splats
+    walls, wall = thin_wall_density(surface, density, style["overlap"])  # thin walls need smaller splats
     cap = np.where(surface.valid, MAX_PER_PIXEL / pixel**2, 0.0)
     walls = np.minimum(walls, WALL_BOOST * cap)
     cap = np.maximum(cap, walls)
@@ -347,7 +379,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     elif max_splats is not None:
         density = _fit_budget(density, area, max_splats)
 
-    built = []     # recent (density, Unplaced): a shift search rebuilds only the positions
+    built = []  # recent (density, Unplaced): a shift search rebuilds only the positions
 
     def make(dens, inset):
         shift = np.minimum(inset * pixel, WALL_INSET * wall)
@@ -363,7 +395,7 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     best, previous, rounds, stale = None, None, 0, 0
     saturated = np.zeros(len(area), bool)
     stop = "no more splats help"
-    if uniform:         # a budget: calibrated, no rounds
+    if uniform:  # a budget: calibrated, no rounds
         fewest = MIN_BUDGET_SPLATS if try_fewer else max_splats
         inset, cloud, m = yield from _calibrate_budget(v, make, even, outward.any(), max_splats, fewest)
         best, rounds = (m.psnr, cloud, inset, m), 1
@@ -425,15 +457,24 @@ def refine_rounds(surface, target, max_splats, views, view_size, render_mode, in
     if isinstance(info, dict):
         worst = m.worst
         distance = view_distances[worst % len(view_distances)] if views is None else None
-        info.update(psnr=psnr, psnr_all_views=m.overall, psnr_views=list(m.views), worst_view=worst,
-                    worst_view_distance=distance, worst_view_edge_share=m.edge_share[worst],
-                    inset_pixels=inset, views=len(cameras), rounds=rounds)
+        info.update(
+            psnr=psnr,
+            psnr_all_views=m.overall,
+            psnr_views=list(m.views),
+            worst_view=worst,
+            worst_view_distance=distance,
+            worst_view_edge_share=m.edge_share[worst],
+            inset_pixels=inset,
+            views=len(cameras),
+            rounds=rounds,
+        )
         if uniform:
             info.update(budget=max_splats)
         if not uniform:
             reached = psnr >= target
-            info.update(target_psnr=target, reached=reached,
-                        limit=None if reached else _why(m, stop, max_splats, render_mode))
+            info.update(
+                target_psnr=target, reached=reached, limit=None if reached else _why(m, stop, max_splats, render_mode)
+            )
     return cloud
 
 
@@ -505,12 +546,18 @@ def _why(m, stop, max_splats, render_mode="classic"):
         cause = f"refinement ran out of rounds ({MAX_ROUNDS})"
     else:
         cause = "more splats no longer lowered the error"
-    outline = ("edge-on splats render outlines about a pixel fat in classic 3DGS rendering; one cloud cannot "
-               "match the outline at every distance: antialiased mode can" if render_mode == "classic" else
-               "a splat's Gaussian edge is softer than the mesh's pixel-filtered one; larger views make it thinner")
-    where = f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes ({outline})" \
-        if share >= 0.5 else f"{1 - share:.0%} of its error lies inside the surface (texture detail finer than " \
-                             f"the splats or the renderer's 0.3 px^2 low-pass)"
+    outline = (
+        "edge-on splats render outlines about a pixel fat in classic 3DGS rendering; one cloud cannot "
+        "match the outline at every distance: antialiased mode can"
+        if render_mode == "classic"
+        else "a splat's Gaussian edge is softer than the mesh's pixel-filtered one; larger views make it thinner"
+    )
+    where = (
+        f"{share:.0%} of its error lies within {EDGE_BAND} px of the silhouettes ({outline})"
+        if share >= 0.5
+        else f"{1 - share:.0%} of its error lies inside the surface (texture detail finer than "
+        f"the splats or the renderer's 0.3 px^2 low-pass)"
+    )
     return f"{cause}; {where}"
 
 
@@ -578,8 +625,10 @@ def _dilate_labels(labels, steps):
         if not len(frontier):
             break
         row, col = np.divmod(frontier, w)
-        around = [np.where(inside, frontier + offset, frontier) for inside, offset in
-                  ((row > 0, -w), (row < h - 1, w), (col > 0, -1), (col < w - 1, 1))]
+        around = [
+            np.where(inside, frontier + offset, frontier)
+            for inside, offset in ((row > 0, -w), (row < h - 1, w), (col > 0, -1), (col < w - 1, 1))
+        ]
         label = np.full(len(frontier), -1, out.dtype)
         for neighbour in around:
             source = flat[neighbour]

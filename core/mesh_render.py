@@ -25,9 +25,9 @@ from .spatial import ramp
 
 CANDIDATES_PER_CHUNK = 1 << 21
 BACKENDS = ("auto", "compiled", "numpy")
-KERNELS = "core.mesh_render_kernels"     # the compiled module, loaded by core.jit
-THREADED_PIXELS = 1 << 16                 # smaller images are drawn on the calling thread
-DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH = "blackman-harris", 1.5   # Cycles' default pixel filter
+KERNELS = "core.mesh_render_kernels"  # the compiled module, loaded by core.jit
+THREADED_PIXELS = 1 << 16  # smaller images are drawn on the calling thread
+DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH = "blackman-harris", 1.5  # Cycles' default pixel filter
 
 
 @dataclass
@@ -43,8 +43,17 @@ class MeshRender:
     samples: int
 
 
-def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, pixel_filter=DEFAULT_PIXEL_FILTER,
-                filter_width=CYCLES_FILTER_WIDTH, backend="auto", **appearance):
+def render_mesh(
+    surface,
+    camera,
+    background=(0.0, 0.0, 0.0),
+    supersample=3,
+    *,
+    pixel_filter=DEFAULT_PIXEL_FILTER,
+    filter_width=CYCLES_FILTER_WIDTH,
+    backend="auto",
+    **appearance,
+):
     """Render a mesh through a core Camera. `surface` is a core.mesh.Surface, a Mesh, or vertices
     (V,3) with `faces=` and the other appearance arguments of mesh_to_splats.
 
@@ -59,8 +68,14 @@ def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, p
     if s < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     taps, margin = filter_taps(pixel_filter, filter_width, s)
-    cam = camera.with_(width=camera.width * s + 2 * margin, height=camera.height * s + 2 * margin,
-                       fx=camera.fx * s, fy=camera.fy * s, cx=camera.cx * s + margin, cy=camera.cy * s + margin)
+    cam = camera.with_(
+        width=camera.width * s + 2 * margin,
+        height=camera.height * s + 2 * margin,
+        fx=camera.fx * s,
+        fy=camera.fy * s,
+        cx=camera.cx * s + margin,
+        cy=camera.cy * s + margin,
+    )
     face, bary, depth = rasterize(surface, cam, backend=backend)
     hit = face >= 0
     bg_linear = color.srgb_to_linear(np.asarray(background, np.float64).reshape(3))
@@ -72,11 +87,16 @@ def render_mesh(surface, camera, background=(0.0, 0.0, 0.0), supersample=3, *, p
     covered = filtered(hit.astype(np.float64))
     mean_depth = np.where(covered > 0, filtered(np.where(hit, depth, 0.0)) / np.maximum(covered, 1e-300), 0.0)
     inside = slice(margin, margin + h * s), slice(margin, margin + w * s)
-    return MeshRender(to_display(filtered(linear)).astype(np.float32), covered.astype(np.float32),
-                      mean_depth.astype(np.float32), face[inside], s)
+    return MeshRender(
+        to_display(filtered(linear)).astype(np.float32),
+        covered.astype(np.float32),
+        mean_depth.astype(np.float32),
+        face[inside],
+        s,
+    )
 
 
-PIXEL_FILTERS = ("blackman-harris", "gaussian", "box")     # Cycles' three
+PIXEL_FILTERS = ("blackman-harris", "gaussian", "box")  # Cycles' three
 
 
 def filter_taps(pixel_filter, width, samples):
@@ -94,14 +114,14 @@ def filter_taps(pixel_filter, width, samples):
         raise ValueError(f"filter_width must be positive, got {width}")
     radius = float(width) * (1.0 if pixel_filter == "blackman-harris" else 1.5)
     margin = int(np.ceil(radius * samples))
-    offset = (np.arange(-margin, samples + margin) + 0.5) / samples - 0.5    # from the pixel centre
+    offset = (np.arange(-margin, samples + margin) + 0.5) / samples - 0.5  # from the pixel centre
     if pixel_filter == "gaussian":
         weights = np.exp(-0.5 * (offset / (width / 4)) ** 2)
     else:
         phase = 2 * np.pi * (np.clip(offset / radius, -1, 1) + 1) / 2
         weights = 0.35875 - 0.48829 * np.cos(phase) + 0.14128 * np.cos(2 * phase) - 0.01168 * np.cos(3 * phase)
     weights[np.abs(offset) >= radius] = 0.0
-    if weights.sum() <= 0:                       # a window narrower than the samples: the nearest
+    if weights.sum() <= 0:  # a window narrower than the samples: the nearest
         weights[np.argmin(np.abs(offset))] = 1.0
     return weights / weights.sum(), margin
 
@@ -165,15 +185,19 @@ def _check_kernels(kernels):
     """Run the compiled kernel once on a small scene (compiling it, or loading it from the cache)
     and compare with the NumPy path: a broken build falls back to NumPy, not a wrong image."""
     from .camera import Camera
+
     rng = np.random.default_rng(0)
     n = 24
-    vertices = np.concatenate([rng.normal(0, 0.6, (n, 3)) + [0, 0, 3],
-                               [[-3, 0.5, 1.0], [3, 0.6, 1.0], [0, 0.7, 9.0]]])    # through the near plane
+    vertices = np.concatenate(
+        [rng.normal(0, 0.6, (n, 3)) + [0, 0, 3], [[-3, 0.5, 1.0], [3, 0.6, 1.0], [0, 0.7, 9.0]]]
+    )  # through the near plane
     faces = rng.integers(0, n, (40, 3))
-    faces = np.concatenate([faces, [[n, n + 1, n + 2]], faces[1:2]])    # and a twin of a seen face
+    faces = np.concatenate([faces, [[n, n + 1, n + 2]], faces[1:2]])  # and a twin of a seen face
     surface = Surface(vertices, faces)
-    for camera in (Camera.look_at((0.3, -0.4, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20, near=0.5),
-                   Camera.look_at_ortho((0.3, -0.4, 0.0), (0, 0, 3), ortho_scale=2.5, width=24, height=20)):
+    for camera in (
+        Camera.look_at((0.3, -0.4, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20, near=0.5),
+        Camera.look_at_ortho((0.3, -0.4, 0.0), (0, 0, 3), ortho_scale=2.5, width=24, height=20),
+    ):
         got, want = _rasterize(kernels, surface, camera), _rasterize(None, surface, camera)
         if not all(np.array_equal(g, w) for g, w in zip(got, want)):
             raise RuntimeError("the compiled mesh rasteriser disagrees with the NumPy path on a test scene")
@@ -185,16 +209,19 @@ def _rasterize(kernels, surface, cam):
     zbuf = np.full(h * w, np.inf)
     fbuf = np.full(h * w, -1, np.int64)
     bbuf = np.zeros((h * w, 3))
-    v = cam.to_camera(surface.vertices)[surface.faces]                  # (F,3,3) camera space
+    v = cam.to_camera(surface.vertices)[surface.faces]  # (F,3,3) camera space
     faces, x0, x1, y0, y1 = _screen_boxes(surface, cam, v)
     a, b, c = _edge_functions(v[faces], cam)
     depths = np.ascontiguousarray(v[faces, :, 2])
     if kernels is not None:
         # Row y goes to call y % n: the rows of a face, and so the work, are dealt out evenly.
         n = min(WORKERS, h) if h * w >= THREADED_PIXELS else 1
-        map_threads(lambda first: kernels.rasterize_rows(
-            a, b, c, depths, faces, x0, x1, y0, y1, float(cam.near), float(cam.far), w, first, n,
-            zbuf, fbuf, bbuf), range(n))
+        map_threads(
+            lambda first: kernels.rasterize_rows(
+                a, b, c, depths, faces, x0, x1, y0, y1, float(cam.near), float(cam.far), w, first, n, zbuf, fbuf, bbuf
+            ),
+            range(n),
+        )
     else:
         _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bbuf)
     depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
@@ -228,7 +255,7 @@ def _row_spans(a, bracket, x0, x1, margin=1.0):
     pixels against round-off (the exact test comes later). Keeps a face's candidates near its own
     area rather than its bounding box's, about half of it."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        root = -bracket / a                       # where each edge function changes sign
+        root = -bracket / a  # where each edge function changes sign
     rising, falling = a > 0, a < 0
     inf = np.inf
     # All >= 0: x above the roots of rising edges and below those of falling ones; all <= 0: reversed.

@@ -17,8 +17,7 @@ from .jit import njit
 
 
 @njit
-def rasterize_rows(a, b, c, depths, faces, x0, x1, y0, y1, near, far, width, first_row, step,
-                   zbuf, fbuf, bbuf):
+def rasterize_rows(a, b, c, depths, faces, x0, x1, y0, y1, near, far, width, first_row, step, zbuf, fbuf, bbuf):
     """Draw faces[i] (edge functions a, b, c (F,3), corner camera depths (F,3), pixel boxes
     [x0, x1) x [y0, y1)) on the pixel rows y = first_row (mod step) of the flat buffers zbuf, fbuf,
     bbuf (width pixels a row)."""
@@ -67,7 +66,7 @@ def _row_span(a0, a1, a2, e0, e1, e2, x0, x1):
     for a, e in ((a0, e0), (a1, e1), (a2, e2)):
         root = -e / a
         if not (a > 0 or a < 0) or not math.isfinite(root):
-            flat = True                 # a constant edge function (or a NaN): keep the box
+            flat = True  # a constant edge function (or a NaN): keep the box
         elif a > 0:
             lo_pos = max(lo_pos, root)
             hi_neg = min(hi_neg, root)

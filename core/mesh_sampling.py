@@ -17,24 +17,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry, jit, sh as shmod
+from . import geometry, jit
+from . import sh as shmod
 from .mesh import shade, to_display
 from .parallel import WORKERS, map_threads
 from .spatial import NEIGHBOURS, Grid, morton_order, runs, sort_by_cell
 from .splats import SplatCloud, logit
 
-EDGE_SOFTNESS = 2.0     # spread across an outline edge <= distance to it / this
-MIN_ACROSS = 0.05       # ... but at least this fraction of the splat's sigma
-WALL_SIGMAS = 8.0       # a splat's in-plane sigma stays below the wall thickness behind it / this,
+EDGE_SOFTNESS = 2.0  # spread across an outline edge <= distance to it / this
+MIN_ACROSS = 0.05  # ... but at least this fraction of the splat's sigma
+WALL_SIGMAS = 8.0  # a splat's in-plane sigma stays below the wall thickness behind it / this,
 SAME_WALL_SIGMAS = 4.0  # ... or / this where the far side's display colour is within LEAK_CONTRAST:
 LEAK_CONTRAST = 1 / 64  # no leak of it can show (36 dB's RMS error), but wider discs poke out at rims
-WALL_BOOST = 16.0       # a budget raises thin walls' density at most this many times
-WALL_INSET = 0.1        # silhouette shifts take at most this fraction of the wall behind a face
-OPAQUE = 0.99           # the opacity of splats on open surfaces and walls hiding another colour
-SOLID_OPACITY = 0.75    # ... and on solid parts, whose outlines it thins (see the design notes)
-SEE_THROUGH = 0.5       # a wall's far side differing by more than this (display) keeps OPAQUE: a solid
-                        # layer lets a few per cent through, 36 dB's RMS error at this contrast
-BUILD_CHUNK = 1 << 16   # splats built per task, on every core
+WALL_BOOST = 16.0  # a budget raises thin walls' density at most this many times
+WALL_INSET = 0.1  # silhouette shifts take at most this fraction of the wall behind a face
+OPAQUE = 0.99  # the opacity of splats on open surfaces and walls hiding another colour
+SOLID_OPACITY = 0.75  # ... and on solid parts, whose outlines it thins (see the design notes)
+SEE_THROUGH = 0.5  # a wall's far side differing by more than this (display) keeps OPAQUE: a solid
+# layer lets a few per cent through, 36 dB's RMS error at this contrast
+BUILD_CHUNK = 1 << 16  # splats built per task, on every core
 BISECT_CHUNK = 1 << 14  # points placed per task, on every core
 
 
@@ -53,8 +54,7 @@ def budget_density(density, floor, area, count):
     return spend(hi)
 
 
-def build_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None,
-                 offset=None):
+def build_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None, offset=None):
     """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
     `offset` (world units, default 0) along its unit normal."""
     unplaced = unplaced_splats(surface, density, overlap, opacity, thickness, seed, max_splats)
@@ -87,13 +87,14 @@ def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.0
     counts = systematic_counts(expected, morton_order(surface.centroids), np.random.default_rng(seed))
     tri, bary = bisection_samples(surface, counts)
     opacity = np.broadcast_to(np.asarray(opacity, np.float64), density.shape)  # per face, or one for all
-    rotations, edges = _face_rotations(surface), _edge_normals(surface)     # per face, once
+    rotations, edges = _face_rotations(surface), _edge_normals(surface)  # per face, once
     points = surface.points(tri, bary)
 
     def part(rows):
         t = tri[rows]
-        return _cloud(surface, t, bary[rows], points[rows], density[t], rotations[t], edges, overlap, opacity[t],
-                      thickness)
+        return _cloud(
+            surface, t, bary[rows], points[rows], density[t], rotations[t], edges, overlap, opacity[t], thickness
+        )
 
     # Chunks on every core (NumPy releases the GIL): the hand's 636k splats build in half the time.
     rows = [slice(a, a + BUILD_CHUNK) for a in range(0, max(len(tri), 1), BUILD_CHUNK)]
@@ -102,6 +103,7 @@ def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.0
 
 
 # counts per face ---------------------------------------------------------------------------------
+
 
 def systematic_counts(expected, order, rng):
     """Integer counts with sum round(sum(expected)) and |count - expected| < 1 for every face.
@@ -122,6 +124,7 @@ def systematic_counts(expected, order, rng):
 
 # points inside faces -----------------------------------------------------------------------------
 
+
 def bisection_samples(surface, counts):
     """(tri (N,), bary (N,3)) with counts[f] points in face f: centroids of an equal-area bisection.
 
@@ -133,9 +136,14 @@ def bisection_samples(surface, counts):
     """
     counts = np.asarray(counts, np.int64)
     faces = np.flatnonzero(counts > 0)
-    gram = np.stack([np.einsum("ij,ij->i", surface.edge1, surface.edge1),
-                     np.einsum("ij,ij->i", surface.edge1, surface.edge2),
-                     np.einsum("ij,ij->i", surface.edge2, surface.edge2)], axis=1)
+    gram = np.stack(
+        [
+            np.einsum("ij,ij->i", surface.edge1, surface.edge1),
+            np.einsum("ij,ij->i", surface.edge1, surface.edge2),
+            np.einsum("ij,ij->i", surface.edge2, surface.edge2),
+        ],
+        axis=1,
+    )
     # Faces dealt out to the cores in runs of about BISECT_CHUNK points (NumPy releases the GIL).
     ends = np.cumsum(counts[faces])
     total = int(ends[-1]) if len(ends) else 0
@@ -182,8 +190,8 @@ def _bisect_loop(faces, counts, first, gram, uv):
     float64 operations in the same order, the leaves of faces[i] written to uv rows first[i].. in
     the order bisection_samples gives them."""
     most = counts.max() if len(counts) else 0
-    pieces, held = np.empty((most, 3, 2)), np.empty(most, np.int64)       # this level's
-    firsts, first_held = np.empty((most, 3, 2)), np.empty(most, np.int64)     # the next level's
+    pieces, held = np.empty((most, 3, 2)), np.empty(most, np.int64)  # this level's
+    firsts, first_held = np.empty((most, 3, 2)), np.empty(most, np.int64)  # the next level's
     seconds, second_held = np.empty((most, 3, 2)), np.empty(most, np.int64)
     for i in range(len(faces)):
         g0, g1, g2 = gram[faces[i], 0], gram[faces[i], 1], gram[faces[i], 2]
@@ -219,7 +227,7 @@ def _bisect_loop(faces, counts, first, gram, uv):
                 cut += 1
             # the next level: every first half, then every second half
             pieces[:cut], held[:cut] = firsts[:cut], first_held[:cut]
-            pieces[cut:2 * cut], held[cut:2 * cut] = seconds[:cut], second_held[:cut]
+            pieces[cut : 2 * cut], held[cut : 2 * cut] = seconds[:cut], second_held[:cut]
             count = 2 * cut
 
 
@@ -228,8 +236,11 @@ def _longest_edge(corners, gram):
     rows = np.arange(len(corners))
     # Edge k joins corners k+1 and k+2 (mod 3); its length^2 in the face metric is d^T G d.
     d = corners[:, [2, 0, 1]] - corners[:, [1, 2, 0]]
-    length2 = gram[:, None, 0] * d[..., 0] ** 2 + 2 * gram[:, None, 1] * d[..., 0] * d[..., 1] \
+    length2 = (
+        gram[:, None, 0] * d[..., 0] ** 2
+        + 2 * gram[:, None, 1] * d[..., 0] * d[..., 1]
         + gram[:, None, 2] * d[..., 1] ** 2
+    )
     k = np.argmax(length2, axis=1)
     return corners[rows, (k + 1) % 3], corners[rows, (k + 2) % 3], corners[rows, k]
 
@@ -245,6 +256,7 @@ def _bisect(tri, n, corners, gram):
 
 # splats ------------------------------------------------------------------------------------------
 
+
 def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, opacity, thickness):
     """Flat discs at the sample points `positions` (no shift): in-plane sigma overlap/sqrt(density),
     normal axis thin; `edges` the faces' _edge_normals."""
@@ -259,9 +271,18 @@ def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, op
         sh = shmod.rgb_to_dc(to_display(linear))[:, None, :]
     with np.errstate(divide="ignore"):
         log_scales = np.log(scales)
-    return SplatCloud(positions, rotations, log_scales, np.broadcast_to(logit(opacity), (n,)).astype(np.float32), sh,
-                      extras={"source_triangle": tri.astype(np.int32), "barycentric": bary.astype(np.float32),
-                              "normal_offset": np.zeros(n, np.float32)})
+    return SplatCloud(
+        positions,
+        rotations,
+        log_scales,
+        np.broadcast_to(logit(opacity), (n,)).astype(np.float32),
+        sh,
+        extras={
+            "source_triangle": tri.astype(np.int32),
+            "barycentric": bary.astype(np.float32),
+            "normal_offset": np.zeros(n, np.float32),
+        },
+    )
 
 
 def _outline_frames(surface, tri, bary, sigma, rotations, edges):
@@ -284,15 +305,15 @@ def _outline_frames(surface, tri, bary, sigma, rotations, edges):
     for k in range(3):
         ax, ay = across[f, k, 0], across[f, k, 1]
         limit = np.maximum(b[:, k] * reach[f, k], MIN_ACROSS * s)
-        lx, ly = xx * ax + xy * ay, xy * ax + yy * ay        # the covariance times `across`
+        lx, ly = xx * ax + xy * ay, xy * ax + yy * ay  # the covariance times `across`
         spread = ax * lx + ay * ly
         cut = np.where(near[sel, k] & (spread > limit**2), (1 - limit**2 / spread) / spread, 0.0)
         xx, xy, yy = xx - cut * lx * lx, xy - cut * lx * ly, yy - cut * ly * ly
     mean, radius = (xx + yy) / 2, np.hypot((xx - yy) / 2, xy)
-    half = 0.25 * np.arctan2(2 * xy, xx - yy)                # half the major axis' angle from the first edge
+    half = 0.25 * np.arctan2(2 * xy, xx - yy)  # half the major axis' angle from the first edge
     turn = np.column_stack([np.cos(half), np.zeros(len(f)), np.zeros(len(f)), np.sin(half)])
     rotations = rotations.copy()
-    rotations[sel] = geometry.multiply_quaternions(rotations[sel], turn)     # turned about the normal
+    rotations[sel] = geometry.multiply_quaternions(rotations[sel], turn)  # turned about the normal
     in_plane[sel] = np.sqrt(np.column_stack([mean + radius, np.maximum(mean - radius, 0.0)]))
     return rotations, in_plane
 
@@ -307,7 +328,9 @@ def _edge_normals(surface):
     t2 = np.cross(surface.normal, t1)
     corners = np.zeros((len(surface.faces), 3, 2))
     corners[:, 1, 0] = length1
-    corners[:, 2] = np.column_stack([np.einsum("ij,ij->i", surface.edge2, t1), np.einsum("ij,ij->i", surface.edge2, t2)])
+    corners[:, 2] = np.column_stack(
+        [np.einsum("ij,ij->i", surface.edge2, t1), np.einsum("ij,ij->i", surface.edge2, t2)]
+    )
     across, reach = np.zeros((len(surface.faces), 3, 2)), np.zeros((len(surface.faces), 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         for k in range(3):
@@ -330,6 +353,7 @@ def _face_rotations(surface):
 
 # view-dependent materials: the facing blend projected onto SH ------------------------------------
 
+
 def _legendre_weights(degree=2, nodes=64):
     """lambda_l = 2 pi * integral of g(t) P_l(t) over [-1, 1] as Gauss-Legendre weights per node.
 
@@ -339,7 +363,7 @@ def _legendre_weights(degree=2, nodes=64):
     t = np.concatenate([(x - 1) / 2, (x + 1) / 2])
     wt = np.concatenate([w, w]) / 2
     p = np.stack([np.polynomial.legendre.legval(t, np.eye(degree + 1)[l]) for l in range(degree + 1)])
-    return t, 2 * np.pi * p * wt                     # (Q,), (L+1, Q)
+    return t, 2 * np.pi * p * wt  # (Q,), (L+1, Q)
 
 
 def _rim_sh(surface, tri, base_linear, chunk=1 << 15):
@@ -354,17 +378,18 @@ def _rim_sh(surface, tri, base_linear, chunk=1 << 15):
     t, weights = _legendre_weights()
     band = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
     for start in range(0, len(tri), chunk):
-        sel = np.flatnonzero(has[start:start + chunk]) + start
+        sel = np.flatnonzero(has[start : start + chunk]) + start
         if not len(sel):
             continue
         g = to_display(shade(base_linear[sel, None, :], rim[sel, None, :], True, t[None, :]))  # (n,Q,3)
-        lam = np.einsum("lq,nqc->nlc", weights, g)                                          # (n,3,3)
+        lam = np.einsum("lq,nqc->nlc", weights, g)  # (n,3,3)
         sh[sel] = lam[:, band, :] * shmod.basis(surface.normal[tri[sel]], 2)[:, :, None]
-        sh[sel, 0] -= 0.5 / shmod.C0                    # rgb = 0.5 + sum Y sh
+        sh[sel, 0] -= 0.5 / shmod.C0  # rgb = 0.5 + sum Y sh
     return sh
 
 
 # thin walls -------------------------------------------------------------------------------------
+
 
 def thin_wall_density(surface, density, overlap):
     """(density floor, wall thickness) per face: the density below which its splats would be wider
@@ -438,7 +463,7 @@ def wall_thickness(surface, reach, max_points=60_000):
     queries, query_normals = surface.points(ask_tri, ask_bary), surface.normal[ask_tri] * outward[ask_tri, None]
     grid = Grid(points.min(axis=0), reach, None)
     cell = grid.cells(points)
-    grid.dims = cell.max(axis=0) + 3                    # a cell of margin on every side
+    grid.dims = cell.max(axis=0) + 3  # a cell of margin on every side
     query_key = grid.keys(np.clip(grid.cells(queries), 0, grid.dims - 3) + 1)
     order, sorted_keys = sort_by_cell(grid.keys(cell + 1))
 
@@ -464,8 +489,10 @@ def wall_thickness(surface, reach, max_points=60_000):
     np.minimum.at(thickness, ask_tri, best)
     np.maximum.at(contrast, ask_tri[walled], differs)
     unsampled = solid & (asking == 0)
-    return (_spread_to_unsampled(surface, thickness, unsampled, outward),
-            -_spread_to_unsampled(surface, -contrast, unsampled, outward))
+    return (
+        _spread_to_unsampled(surface, thickness, unsampled, outward),
+        -_spread_to_unsampled(surface, -contrast, unsampled, outward),
+    )
 
 
 def _spread_to_unsampled(surface, thickness, unsampled, outward):
@@ -489,8 +516,9 @@ def _spread_to_unsampled(surface, thickness, unsampled, outward):
         known[fresh] = True
 
 
-def _nearest_behind(surface, queries, query_normals, points, normals, tri, order, lo, hi, reach, best, nearest,
-                    chunk=1 << 20):
+def _nearest_behind(
+    surface, queries, query_normals, points, normals, tri, order, lo, hi, reach, best, nearest, chunk=1 << 20
+):
     """For every query i and the candidate points order[lo[i]:hi[i]] (on faces tri), lower best[i]
     to the depth at which i's inward ray meets a candidate's face facing the other way, and set
     nearest[i] to that candidate."""

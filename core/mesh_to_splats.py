@@ -10,14 +10,34 @@ import numpy as np
 from .mesh import Surface
 from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
-from .mesh_sampling import (OPAQUE, SAME_WALL_SIGMAS, SOLID_OPACITY, WALL_SIGMAS, build_splats, budget_density,
-                            face_opacities, thin_wall_density, wall_thickness)
+from .mesh_sampling import (
+    OPAQUE,
+    SAME_WALL_SIGMAS,
+    SOLID_OPACITY,
+    WALL_SIGMAS,
+    budget_density,
+    build_splats,
+    face_opacities,
+    thin_wall_density,
+    wall_thickness,
+)
 from .steps import drain
 
 # The entry points, and the sampling names callers of mesh_to_splats reach for.
-__all__ = ["DEFAULT_RENDER_MODE", "DEFAULT_TARGET_PSNR", "OPAQUE", "SAME_WALL_SIGMAS", "SOLID_OPACITY", "WALL_SIGMAS",
-           "build_splats", "face_opacities", "mesh_to_splats", "mesh_to_splats_steps", "thin_wall_density",
-           "wall_thickness"]
+__all__ = [
+    "DEFAULT_RENDER_MODE",
+    "DEFAULT_TARGET_PSNR",
+    "OPAQUE",
+    "SAME_WALL_SIGMAS",
+    "SOLID_OPACITY",
+    "WALL_SIGMAS",
+    "build_splats",
+    "face_opacities",
+    "mesh_to_splats",
+    "mesh_to_splats_steps",
+    "thin_wall_density",
+    "wall_thickness",
+]
 
 DEFAULT_TARGET_PSNR = 36.0
 # The rendering splats are made for by default: antialiased, whose outlines hold at every distance
@@ -32,12 +52,31 @@ def mesh_to_splats(vertices, faces, *, progress=None, **options):
     return drain(mesh_to_splats_steps(vertices, faces, **options), progress)
 
 
-def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=None, materials=None,
-                         corner_colors=None, max_splats=None, target_psnr=None,
-                         overlap=0.8, opacity=None, thickness=0.01, seed=0, views=None, view_size=256,
-                         view_distances=None, view_count=None, render_mode=DEFAULT_RENDER_MODE, calibrate=True,
-                         try_fewer=True, pixel_filter=DEFAULT_PIXEL_FILTER, filter_width=CYCLES_FILTER_WIDTH,
-                         info=None):
+def mesh_to_splats_steps(
+    vertices,
+    faces,
+    *,
+    corner_uvs=None,
+    face_materials=None,
+    materials=None,
+    corner_colors=None,
+    max_splats=None,
+    target_psnr=None,
+    overlap=0.8,
+    opacity=None,
+    thickness=0.01,
+    seed=0,
+    views=None,
+    view_size=256,
+    view_distances=None,
+    view_count=None,
+    render_mode=DEFAULT_RENDER_MODE,
+    calibrate=True,
+    try_fewer=True,
+    pixel_filter=DEFAULT_PIXEL_FILTER,
+    filter_width=CYCLES_FILTER_WIDTH,
+    info=None,
+):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
 
     vertices (V,3), faces (F,3) int; corner_uvs (F,3,2); face_materials (F,) indices into
@@ -79,27 +118,44 @@ def mesh_to_splats_steps(vertices, faces, *, corner_uvs=None, face_materials=Non
     """
     surface = Surface(vertices, faces, corner_uvs, face_materials, materials, corner_colors)
     if not surface.valid.any():
-        raise ValueError(f"mesh has no face with positive area ({len(surface.faces)} faces, "
-                         f"{len(surface.vertices)} vertices)")
+        raise ValueError(
+            f"mesh has no face with positive area ({len(surface.faces)} faces, {len(surface.vertices)} vertices)"
+        )
     if max_splats is not None and int(max_splats) < 1:
         raise ValueError(f"max_splats must be at least 1, got {max_splats}")
-    filter_taps(pixel_filter, filter_width, 1)                  # a ValueError for an unknown filter
-    style = dict(overlap=overlap, opacity=face_opacities(surface, opacity, render_mode == "antialiased"),
-                 thickness=thickness, seed=seed)
+    filter_taps(pixel_filter, filter_width, 1)  # a ValueError for an unknown filter
+    style = dict(
+        overlap=overlap,
+        opacity=face_opacities(surface, opacity, render_mode == "antialiased"),
+        thickness=thickness,
+        seed=seed,
+    )
     if target_psnr is None and max_splats is not None and not calibrate:
         density = _uniform_density(surface, int(max_splats))
-        cloud = build_splats(surface, budget_density(density, thin_wall_density(surface, density, overlap)[0],
-                                                     surface.area, int(max_splats)), **style)
+        cloud = build_splats(
+            surface,
+            budget_density(density, thin_wall_density(surface, density, overlap)[0], surface.area, int(max_splats)),
+            **style,
+        )
         yield 1, 1, "mesh2splats"
     else:
         budget_only = target_psnr is None and max_splats is not None
         target = DEFAULT_TARGET_PSNR if target_psnr is None else float(target_psnr)
         cloud = yield from refine_rounds(
-            surface, np.inf if budget_only else target, max_splats, views, view_size, render_mode, info, style,
+            surface,
+            np.inf if budget_only else target,
+            max_splats,
+            views,
+            view_size,
+            render_mode,
+            info,
+            style,
             uniform=budget_only,
             view_distances=VIEW_DISTANCES if view_distances is None else tuple(view_distances),
             view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count),
-            pixel_filter=(pixel_filter, filter_width), try_fewer=try_fewer)
+            pixel_filter=(pixel_filter, filter_width),
+            try_fewer=try_fewer,
+        )
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud.replace(antialiased=render_mode == "antialiased")

@@ -21,7 +21,7 @@ from .camera import GL_TO_CV, Camera
 from .color import linear_to_srgb
 from .render import Layer, render
 
-HEADLIGHT_AMBIENT = 0.25       # shading: ambient + (1 - ambient) |cos| between the face normal and the view ray
+HEADLIGHT_AMBIENT = 0.25  # shading: ambient + (1 - ambient) |cos| between the face normal and the view ray
 
 
 def camera_from_opengl(view_matrix, projection_matrix, width, height):
@@ -31,9 +31,9 @@ def camera_from_opengl(view_matrix, projection_matrix, width, height):
     view = np.asarray(view_matrix, np.float64)
     p = np.asarray(projection_matrix, np.float64)
     w2c = GL_TO_CV @ view
-    w2c[:3, :3] /= np.linalg.norm(w2c[:3, :3], axis=1, keepdims=True)        # a view may carry scale
+    w2c[:3, :3] /= np.linalg.norm(w2c[:3, :3], axis=1, keepdims=True)  # a view may carry scale
     fx, fy = 0.5 * width * p[0, 0], 0.5 * height * p[1, 1]
-    if p[3, 3] == 0.0:                                    # perspective: clip w = -z
+    if p[3, 3] == 0.0:  # perspective: clip w = -z
         cx, cy = 0.5 * width * (1.0 - p[0, 2]), 0.5 * height * (1.0 + p[1, 2])
         near, far = p[2, 3] / (p[2, 2] - 1.0), p[2, 3] / (p[2, 2] + 1.0)
         return Camera(width, height, fx, fy, cx, cy, w2c, near=max(near, 0.0), far=far)
@@ -41,8 +41,7 @@ def camera_from_opengl(view_matrix, projection_matrix, width, height):
     near, far = (p[2, 3] + 1.0) / p[2, 2], (p[2, 3] - 1.0) / p[2, 2]
     back = max(0.0, 1e-3 - near)
     w2c[2, 3] += back
-    return Camera(width, height, fx, fy, cx, cy, w2c, near=near + back, far=far + back,
-                  projection="orthographic")
+    return Camera(width, height, fx, fy, cx, cy, w2c, near=near + back, far=far + back, projection="orthographic")
 
 
 def scaled(camera, scale):
@@ -75,6 +74,7 @@ def mesh_layer(triangles, camera):
         return Layer(np.zeros(shape + (3,)), np.zeros(shape), np.full(shape, np.inf))
     from .mesh import Surface
     from .mesh_render import rasterize
+
     flat = triangles.corners.reshape(-1, 3)
     surface = Surface(flat, np.arange(len(flat)).reshape(-1, 3))
     face, _, depth = rasterize(surface, camera)
@@ -84,8 +84,9 @@ def mesh_layer(triangles, camera):
         rays = np.broadcast_to(camera.forward, (len(f), 3))
     else:
         rows, cols = np.nonzero(hit)
-        local = np.stack([(cols + 0.5 - camera.cx) / camera.fx, (rows + 0.5 - camera.cy) / camera.fy,
-                          np.ones(len(f))], axis=1)
+        local = np.stack(
+            [(cols + 0.5 - camera.cx) / camera.fx, (rows + 0.5 - camera.cy) / camera.fy, np.ones(len(f))], axis=1
+        )
         rays = local @ camera.rotation
         rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     cos = np.abs(np.einsum("ij,ij->i", surface.normal[f], rays))
@@ -96,11 +97,13 @@ def mesh_layer(triangles, camera):
 
 def preview_image(cloud, triangles, camera, background=None, threads=None, progress=None):
     """The splats and the triangles in one picture (a core RenderResult, display sRGB)."""
-    return render(cloud, camera, background=background, layer=mesh_layer(triangles, camera), threads=threads,
-                  progress=progress)
+    return render(
+        cloud, camera, background=background, layer=mesh_layer(triangles, camera), threads=threads, progress=progress
+    )
 
 
 # progressive rendering -------------------------------------------------------------------------
+
 
 class Stale(Exception):
     """A render given up because a newer view or scene came in."""
@@ -168,7 +171,7 @@ class Progressive:
             done = generation
             if not self._make(view, generation, self.coarse):
                 continue
-            with self.lock:                       # wait for the view to settle
+            with self.lock:  # wait for the view to settle
                 until = self.clock() + self.settle
                 while not self.stopped and self.generation == generation and self.clock() < until:
                     self.lock.wait(max(0.0, until - self.clock()))
@@ -178,6 +181,7 @@ class Progressive:
 
     def _make(self, view, generation, scale):
         """Render and publish one frame; False if a newer request made it stale."""
+
         def check():
             if self.stopped or self.generation != generation:
                 raise Stale
@@ -186,7 +190,7 @@ class Progressive:
             image = self.render(view, scale, check)
         except Stale:
             return False
-        except Exception as exc:              # kept for whoever draws; the thread goes on
+        except Exception as exc:  # kept for whoever draws; the thread goes on
             self.error = exc
             return False
         with self.lock:
@@ -199,6 +203,15 @@ class Progressive:
 
 def view_key(camera):
     """Hashable, comparable numbers that identify a view (its camera)."""
-    return (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, camera.near,
-            camera.far if math.isfinite(camera.far) else -1.0, camera.projection,
-            tuple(np.round(camera.world_to_camera.ravel(), 12)))
+    return (
+        camera.width,
+        camera.height,
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        camera.near,
+        camera.far if math.isfinite(camera.far) else -1.0,
+        camera.projection,
+        tuple(np.round(camera.world_to_camera.ravel(), 12)),
+    )

@@ -21,8 +21,8 @@ import numpy as np
 
 from .spatial import morton_order
 
-PAIRS_PER_CHUNK = 1 << 20        # (point, triangle) pairs evaluated together: ~150 MB of float64 at most
-LEAF = 8                        # triangles per cluster
+PAIRS_PER_CHUNK = 1 << 20  # (point, triangle) pairs evaluated together: ~150 MB of float64 at most
+LEAF = 8  # triangles per cluster
 
 
 class ProxyError(ValueError):
@@ -33,6 +33,7 @@ class ProxyError(ValueError):
 class Closest:
     """Nearest surface points of N query points: triangle (N,) int, barycentric (N,3) float64
     coordinates over that triangle's corners, point (N,3) and distance (N,) float64."""
+
     triangle: np.ndarray
     barycentric: np.ndarray
     point: np.ndarray
@@ -68,7 +69,7 @@ def closest_on_triangles(p, a, b, c):
     inside = usable & (u >= 0) & (v >= 0) & (w >= 0)
     plane = a + v[:, None] * e0 + w[:, None] * e1
     best = np.where(inside, _dot(p - plane, p - plane), np.inf)
-    for i, j in ((0, 1), (1, 2), (2, 0)):                # edge corner i -> corner j
+    for i, j in ((0, 1), (1, 2), (2, 0)):  # edge corner i -> corner j
         x, y = (a, b, c)[i], (a, b, c)[j]
         edge = y - x
         t = np.clip(_dot(p - x, edge) / np.maximum(_dot(edge, edge), 1e-300), 0.0, 1.0)
@@ -91,7 +92,7 @@ class _Clusters:
     box of its triangles: compact groups whose boxes bound the distance to every triangle in them."""
 
     def __init__(self, vertices, triangles):
-        corners = vertices[triangles]                              # (F,3,3)
+        corners = vertices[triangles]  # (F,3,3)
         self.order = morton_order(corners.mean(axis=1))
         self.starts = np.arange(0, len(triangles), LEAF)
         self.counts = np.minimum(LEAF, len(triangles) - self.starts)
@@ -153,8 +154,13 @@ def closest_points(points, vertices, triangles):
         rows, cols = np.nonzero(bound < best[0][ids][:, None])
         per_piece = max(1, PAIRS_PER_CHUNK // LEAF)
         for piece in range(0, len(rows), per_piece):
-            _best_pairs(points, vertices, triangles,
-                        *clusters.pairs(ids[rows[piece:piece + per_piece]], cols[piece:piece + per_piece]), best)
+            _best_pairs(
+                points,
+                vertices,
+                triangles,
+                *clusters.pairs(ids[rows[piece : piece + per_piece]], cols[piece : piece + per_piece]),
+                best,
+            )
     d2, triangle, bary = best
     point = np.einsum("nk,nki->ni", bary, vertices[triangles[triangle]])
     return Closest(triangle, bary, point, np.sqrt(d2))
@@ -163,7 +169,7 @@ def closest_points(points, vertices, triangles):
 def surface_weights(closest, triangles, vertex_weights):
     """(N, B) weights of the surface points `closest` (a Closest on the mesh of `triangles`): the
     per-vertex weights (V, B) blended with each point's barycentric coordinates."""
-    corners = np.asarray(triangles, np.int64).reshape(-1, 3)[closest.triangle]          # (N,3)
+    corners = np.asarray(triangles, np.int64).reshape(-1, 3)[closest.triangle]  # (N,3)
     weights = np.asarray(vertex_weights, np.float64)
     return np.einsum("nk,nkb->nb", closest.barycentric, weights[corners])
 

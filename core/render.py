@@ -41,18 +41,35 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from . import geometry, jit, sh as shmod
+from . import geometry, jit
+from . import sh as shmod
 from .parallel import Pool
 from .render_composite import Compositor, LayerCrossing
-from .render_constants import (AA_MIN_RATIO, ALPHA_MIN, FRUSTUM_MARGIN, LOW_PASS, MAX_TILE_SIZE, MODES, PRECISIONS,
-                               T_MIN, TILE_SIZE)
-from .render_tiles import (Bins, Projected, bin_tiles, new_records, record_floats, screen_covariance, screen_rows,
-                           stable_argsort)
+from .render_constants import (
+    AA_MIN_RATIO,
+    ALPHA_MIN,
+    FRUSTUM_MARGIN,
+    LOW_PASS,
+    MAX_TILE_SIZE,
+    MODES,
+    PRECISIONS,
+    T_MIN,
+    TILE_SIZE,
+)
+from .render_tiles import (
+    Bins,
+    Projected,
+    bin_tiles,
+    new_records,
+    record_floats,
+    screen_covariance,
+    screen_rows,
+    stable_argsort,
+)
 from .splats import sigmoid
 
 BACKENDS = ("auto", "compiled", "numpy")
-KERNELS = "core.render_kernels"     # the compiled module, loaded by core.jit
-
+KERNELS = "core.render_kernels"  # the compiled module, loaded by core.jit
 
 
 @dataclass
@@ -115,21 +132,40 @@ class Layer:
         for name, want in (("color", shape + (3,)), ("alpha", shape), ("depth", shape)):
             a = np.asarray(getattr(self, name), dtype=np.float32)
             if a.shape != want:
-                raise ValueError(f"layer {name} has shape {a.shape}, expected {want} for a "
-                                 f"{camera.width}x{camera.height} image")
+                raise ValueError(
+                    f"layer {name} has shape {a.shape}, expected {want} for a {camera.width}x{camera.height} image"
+                )
             bad = np.isnan(a) if name == "depth" else ~np.isfinite(a)
             if bad.any():
-                raise ValueError(f"layer {name} holds {int(bad.sum())} {'NaN' if name == 'depth' else 'non-finite'} "
-                                 "values")
+                raise ValueError(
+                    f"layer {name} holds {int(bad.sum())} {'NaN' if name == 'depth' else 'non-finite'} values"
+                )
             arrays[name] = a
         if (arrays["alpha"] < 0).any() or (arrays["alpha"] > 1).any():
             raise ValueError("layer alpha must lie in [0, 1]")
         return Layer(**arrays)
 
 
-def render(cloud, camera, background=(0.0, 0.0, 0.0), mode=None, return_counts=False, *,
-           return_weights=False, tile_size=TILE_SIZE, wave=32, t_min=T_MIN, max_sigma=None, precision="float32",
-           threads=None, progress=None, backend="auto", layer=None, gather=None, shapes=None):
+def render(
+    cloud,
+    camera,
+    background=(0.0, 0.0, 0.0),
+    mode=None,
+    return_counts=False,
+    *,
+    return_weights=False,
+    tile_size=TILE_SIZE,
+    wave=32,
+    t_min=T_MIN,
+    max_sigma=None,
+    precision="float32",
+    threads=None,
+    progress=None,
+    backend="auto",
+    layer=None,
+    gather=None,
+    shapes=None,
+):
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
@@ -180,8 +216,26 @@ def render(cloud, camera, background=(0.0, 0.0, 0.0), mode=None, return_counts=F
     if kernels is None and backend == "compiled":
         raise RuntimeError(f"compiled render kernels are not available: {jit.status(KERNELS)}")
     check_image_memory(camera, int(tile_size), return_counts, compiled=kernels is not None)
-    return _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, int(tile_size),
-                   int(wave), t_min, max_sigma, PRECISIONS[precision], threads, progress, layer, gather, shapes)
+    return _render(
+        kernels,
+        cloud,
+        camera,
+        bg,
+        background,
+        mode,
+        return_counts,
+        return_weights,
+        int(tile_size),
+        int(wave),
+        t_min,
+        max_sigma,
+        PRECISIONS[precision],
+        threads,
+        progress,
+        layer,
+        gather,
+        shapes,
+    )
 
 
 def _checked_gather(image, camera):
@@ -189,29 +243,63 @@ def _checked_gather(image, camera):
     a = np.asarray(image, dtype=np.float32)
     a = a[..., None] if a.ndim == 2 else a
     if a.ndim != 3 or a.shape[:2] != (camera.height, camera.width) or a.shape[2] < 1:
-        raise ValueError(f"gather image has shape {np.shape(image)}, expected ({camera.height}, {camera.width}) "
-                         "or (height, width, channels)")
+        raise ValueError(
+            f"gather image has shape {np.shape(image)}, expected ({camera.height}, {camera.width}) "
+            "or (height, width, channels)"
+        )
     if not np.isfinite(a).all():
         raise ValueError("gather image holds non-finite values")
     return np.ascontiguousarray(a)
 
 
-def _render(kernels, cloud, camera, bg, background, mode, return_counts, return_weights, tile_size, wave,
-            t_min, max_sigma, dtype, threads, progress, layer=None, gather=None, shapes=None):
+def _render(
+    kernels,
+    cloud,
+    camera,
+    bg,
+    background,
+    mode,
+    return_counts,
+    return_weights,
+    tile_size,
+    wave,
+    t_min,
+    max_sigma,
+    dtype,
+    threads,
+    progress,
+    layer=None,
+    gather=None,
+    shapes=None,
+):
     """The checked render() by the compiled kernels, or by NumPy when kernels is None."""
     with Pool(threads) as pool:
         if kernels is None:
             proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
             bins = bin_tiles(proj, camera, tile_size, pool=pool)
             crossing = None if layer is None else LayerCrossing(layer, bins, dtype)
-            compositor = Compositor(proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights,
-                                     crossing, gather)
+            compositor = Compositor(
+                proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights, crossing, gather
+            )
         else:
             proj, spare = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes)
             order, number = _by_first_tile(proj, camera, tile_size)
             bins = _bin_compiled(kernels, proj, camera, tile_size, pool, number)
-            compositor = _CompiledCompositor(kernels, proj, bins, order, camera, dtype, t_min, pool,
-                                             return_counts, return_weights, layer, spare, gather)
+            compositor = _CompiledCompositor(
+                kernels,
+                proj,
+                bins,
+                order,
+                camera,
+                dtype,
+                t_min,
+                pool,
+                return_counts,
+                return_weights,
+                layer,
+                spare,
+                gather,
+            )
         images = compositor.images(progress)
         layer_t = None if layer is None else compositor.layer_transmittance(images[1])
         result = _finish(*images, bg, background, proj, bins, cloud, layer, layer_t, kernels, pool)
@@ -227,20 +315,29 @@ def _check_kernels(kernels):
     cache) and compare with the NumPy path: a broken build falls back to NumPy, not a wrong image."""
     from .camera import Camera
     from .splats import SplatCloud
+
     rng = np.random.default_rng(0)
     n = 64
-    cloud = SplatCloud(rng.normal(0, 0.3, (n, 3)) + [0, 0, 3], rng.normal(size=(n, 4)),
-                       rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 25, 3)))
+    cloud = SplatCloud(
+        rng.normal(0, 0.3, (n, 3)) + [0, 0, 3],
+        rng.normal(size=(n, 4)),
+        rng.uniform(-3, -1.5, (n, 3)),
+        rng.normal(1, 2, n),
+        rng.normal(0, 0.3, (n, 25, 3)),
+    )
     camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20)
     gather = rng.normal(size=(camera.height, camera.width, 2)).astype(np.float32)
-    shapes = SimpleNamespace(values=_shape_values(kernels, cloud, Pool(1)))     # Shapes, without loading kernels
+    shapes = SimpleNamespace(values=_shape_values(kernels, cloud, Pool(1)))  # Shapes, without loading kernels
     for mode in MODES:
         args = (cloud, camera, np.zeros(3), (0, 0, 0), mode, True, True, 8, 32, T_MIN, None, np.float32, 1, None)
         for layer in (None, _check_layer(camera)):
             got, want = _render(kernels, *args, layer, gather), _render(None, *args, layer, gather)
-            if (np.abs(got.color - want.color).max() > 1e-3 or np.abs(got.max_weight - want.max_weight).max() > 1e-3
-                    or np.abs(got.gathered - want.gathered).max() > 1e-3
-                    or not np.array_equal(_render(kernels, *args, layer, gather, shapes).color, got.color)):
+            if (
+                np.abs(got.color - want.color).max() > 1e-3
+                or np.abs(got.max_weight - want.max_weight).max() > 1e-3
+                or np.abs(got.gathered - want.gathered).max() > 1e-3
+                or not np.array_equal(_render(kernels, *args, layer, gather, shapes).color, got.color)
+            ):
                 raise RuntimeError("the compiled render kernels disagree with the NumPy path on a test scene")
 
 
@@ -259,17 +356,18 @@ def backend_status():
 
 # memory -----------------------------------------------------------------------------------------
 
+
 def image_bytes(width, height, tile_size=TILE_SIZE, counts=False, compiled=True):
     """Bytes a render of this size holds for its image buffers, whatever the cloud: the result's
     colour, alpha and depth and the working images (the NumPy path keeps five float32
     accumulators and a transmittance per pixel of whole tiles)."""
     pixels = width * height
-    per_pixel = 12 + 4 + 4 + (4 if counts else 0)                       # the result
+    per_pixel = 12 + 4 + 4 + (4 if counts else 0)  # the result
     if compiled:
-        per_pixel += 12 + 4 + 4 + (4 if counts else 0)                  # colour, weight, depth sums
+        per_pixel += 12 + 4 + 4 + (4 if counts else 0)  # colour, weight, depth sums
     else:
         tiled = -(-width // tile_size) * tile_size * -(-height // tile_size) * tile_size
-        per_pixel += (20 + 4 + 1 + (4 if counts else 0)) * tiled / pixels + 20   # tiles, then one copy
+        per_pixel += (20 + 4 + 1 + (4 if counts else 0)) * tiled / pixels + 20  # tiles, then one copy
     return int(pixels * per_pixel)
 
 
@@ -279,14 +377,22 @@ def physical_memory():
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (AttributeError, ValueError, OSError):
         pass
-    try:                                # Windows
+    try:  # Windows
         import ctypes
 
         class Status(ctypes.Structure):
-            _fields_ = [("length", ctypes.c_ulong), ("load", ctypes.c_ulong), ("total", ctypes.c_ulonglong),
-                        ("available", ctypes.c_ulonglong), ("page_total", ctypes.c_ulonglong),
-                        ("page_available", ctypes.c_ulonglong), ("virtual_total", ctypes.c_ulonglong),
-                        ("virtual_available", ctypes.c_ulonglong), ("extended", ctypes.c_ulonglong)]
+            _fields_ = [
+                ("length", ctypes.c_ulong),
+                ("load", ctypes.c_ulong),
+                ("total", ctypes.c_ulonglong),
+                ("available", ctypes.c_ulonglong),
+                ("page_total", ctypes.c_ulonglong),
+                ("page_available", ctypes.c_ulonglong),
+                ("virtual_total", ctypes.c_ulonglong),
+                ("virtual_available", ctypes.c_ulonglong),
+                ("extended", ctypes.c_ulonglong),
+            ]
+
         status = Status()
         status.length = ctypes.sizeof(Status)
         if ctypes.windll.kernel32.GlobalMemoryStatusEx(ctypes.byref(status)):
@@ -300,14 +406,16 @@ def check_image_memory(camera, tile_size=TILE_SIZE, counts=False, compiled=True)
     """Refuse (ValueError) an image whose buffers alone would take more than this machine's memory."""
     need, have = image_bytes(camera.width, camera.height, tile_size, counts, compiled), physical_memory()
     if have is not None and need > have:
-        raise ValueError(f"a {camera.width}x{camera.height} render needs {need / 2**30:.1f} GiB for its image "
-                         f"buffers alone, more than this machine's {have / 2**30:.1f} GiB of memory; render it "
-                         "in pieces (a camera per piece: smaller width and height, cx and cy shifted)")
+        raise ValueError(
+            f"a {camera.width}x{camera.height} render needs {need / 2**30:.1f} GiB for its image "
+            f"buffers alone, more than this machine's {have / 2**30:.1f} GiB of memory; render it "
+            "in pieces (a camera per piece: smaller width and height, cx and cy shifted)"
+        )
 
 
 # projection -----------------------------------------------------------------------------------
 
-PROJECT_CHUNK = 1 << 16    # splats per projection task
+PROJECT_CHUNK = 1 << 16  # splats per projection task
 
 
 def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
@@ -333,13 +441,13 @@ def _project_chunk(cloud, sl, camera, mode, max_sigma):
     idx = np.arange(len(cloud))[sl]
     fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
     every = fields + [cloud.sh[sl]]
-    if not all(np.isfinite(f).all() for f in every):      # rare: find the bad splats
+    if not all(np.isfinite(f).all() for f in every):  # rare: find the bad splats
         good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
         idx, fields = idx[good], [f[good] for f in fields]
     skipped = len(every[-1]) - len(idx)
     positions, rotations, log_scales, logits = fields
 
-    rel = positions.astype(np.float64) - camera.center      # world offsets from the eye
+    rel = positions.astype(np.float64) - camera.center  # world offsets from the eye
     cam = _rotate(rel, camera.rotation)
     z = cam[:, 2]
     opacity = sigmoid(logits)
@@ -362,13 +470,15 @@ def _project_chunk(cloud, sl, camera, mode, max_sigma):
         half_x, half_y = np.sqrt(r2 * a), np.sqrt(r2 * c)
     finite = np.isfinite(det) & np.isfinite(u) & np.isfinite(v)
     skipped += int((~finite).sum())
-    box = [np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
-           np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
-           np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
-           np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1)]
+    box = [
+        np.maximum(np.ceil(np.clip(u - half_x - 0.5, -1.0, camera.width)), 0),
+        np.maximum(np.ceil(np.clip(v - half_y - 0.5, -1.0, camera.height)), 0),
+        np.minimum(np.floor(np.clip(u + half_x - 0.5, -1.0, camera.width)), camera.width - 1),
+        np.minimum(np.floor(np.clip(v + half_y - 0.5, -1.0, camera.height)), camera.height - 1),
+    ]
     sel = np.flatnonzero(finite & (r2 > 0) & (box[0] <= box[2]) & (box[1] <= box[3]))
 
-    if camera.is_orthographic:    # parallel rays: every splat is seen along the camera axis
+    if camera.is_orthographic:  # parallel rays: every splat is seen along the camera axis
         directions = np.broadcast_to(camera.forward, (len(sel), 3))
     else:
         directions = rel[sel]
@@ -376,7 +486,7 @@ def _project_chunk(cloud, sl, camera, mode, max_sigma):
     d = det[sel]
     records = new_records(len(sel))[:-1]
     records[:, 0], records[:, 1] = u[sel], v[sel]
-    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d   # the conic
+    records[:, 2], records[:, 3], records[:, 4] = c[sel] / d, -b[sel] / d, a[sel] / d  # the conic
     floats = record_floats(records)
     floats[:, 0], floats[:, 1:4], floats[:, 4], floats[:, 5] = np.log(opacity[sel]), rgb, z[sel], 1.0
     bbox = np.empty((len(sel), 4), dtype=np.int64)
@@ -394,6 +504,7 @@ def _rotate(points, rotation):
 
 
 # the compiled path -----------------------------------------------------------------------------------
+
 
 class Shapes:
     """What projecting a cloud's splats needs that no camera changes: each splat's R S (its rotation
@@ -425,8 +536,10 @@ def _shape_values(kernels, cloud, pool):
     n = len(cloud)
     fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32) for name in Shapes.FIELDS]
     values = np.empty((n, 10))
-    pool.map(lambda lo: kernels.shape_range(*fields, lo, min(lo + PROJECT_CHUNK, n), values, 0),
-             list(range(0, n, PROJECT_CHUNK)))
+    pool.map(
+        lambda lo: kernels.shape_range(*fields, lo, min(lo + PROJECT_CHUNK, n), values, 0),
+        list(range(0, n, PROJECT_CHUNK)),
+    )
     return values
 
 
@@ -435,8 +548,10 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     the (records, bbox) it was projected into before the depth sort, for the compositor to reuse
     (fresh memory costs a page fault per 4 KiB: at 4K, a quarter of the render's time went there)."""
     n = len(cloud)
-    fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32)
-              for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")]
+    fields = [
+        np.ascontiguousarray(getattr(cloud, name), dtype=np.float32)
+        for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+    ]
     fields.append(np.zeros((0, 10)) if shapes is None or shapes.values is None else shapes.values)
     records = new_records(n)
     index, depth = np.empty(n, np.int64), np.empty(n, np.float32)
@@ -444,17 +559,41 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     w, h = camera.width, camera.height
     mx, my = (FRUSTUM_MARGIN - 1) / 2 * w, (FRUSTUM_MARGIN - 1) / 2 * h
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-    clip = np.array([camera.near, camera.far, (-camera.cx - mx) / camera.fx, (w - camera.cx + mx) / camera.fx,
-                     (-camera.cy - my) / camera.fy, (h - camera.cy + my) / camera.fy])
+    clip = np.array(
+        [
+            camera.near,
+            camera.far,
+            (-camera.cx - mx) / camera.fx,
+            (w - camera.cx + mx) / camera.fx,
+            (-camera.cy - my) / camera.fy,
+            (h - camera.cy + my) / camera.fy,
+        ]
+    )
     max_r2 = math.inf if max_sigma is None else float(max_sigma) ** 2
     rotation = np.ascontiguousarray(camera.rotation)
     rec32 = records.view(np.float32)
 
     def run(lo):
         hi = min(lo + PROJECT_CHUNK, n)
-        return lo, *kernels.project_range(*fields, lo, hi, camera.center, rotation, intrinsics,
-                                          np.array([w, h]), clip, camera.is_orthographic,
-                                          mode == "antialiased", max_r2, records, rec32, index, depth, r2, bbox)
+        return lo, *kernels.project_range(
+            *fields,
+            lo,
+            hi,
+            camera.center,
+            rotation,
+            intrinsics,
+            np.array([w, h]),
+            clip,
+            camera.is_orthographic,
+            mode == "antialiased",
+            max_r2,
+            records,
+            rec32,
+            index,
+            depth,
+            r2,
+            bbox,
+        )
 
     parts = pool.map(run, list(range(0, n, PROJECT_CHUNK)))
     rows = np.concatenate([np.arange(lo, lo + count) for lo, count, _ in parts] or [np.zeros(0, np.int64)])
@@ -463,11 +602,20 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     kernels.stable_order(depth.view(np.uint32), rows, by_depth)
     rows = by_depth
     m = len(rows)
-    proj = Projected(np.empty(m, np.int64), new_records(m), np.empty(m), np.empty((m, 4), np.int32),
-                     sum(skipped for _, _, skipped in parts))
+    proj = Projected(
+        np.empty(m, np.int64),
+        new_records(m),
+        np.empty(m),
+        np.empty((m, 4), np.int32),
+        sum(skipped for _, _, skipped in parts),
+    )
     bounds = np.linspace(0, m, pool.threads + 1).astype(np.int64)
-    pool.map(lambda k: kernels.gather(rows, bounds[k], bounds[k + 1], records, bbox, r2, index, proj.records,
-                                      proj.bbox, proj.r2, proj.index), list(range(pool.threads)))
+    pool.map(
+        lambda k: kernels.gather(
+            rows, bounds[k], bounds[k + 1], records, bbox, r2, index, proj.records, proj.bbox, proj.r2, proj.index
+        ),
+        list(range(pool.threads)),
+    )
     return proj, (records, bbox)
 
 
@@ -481,19 +629,27 @@ def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
     bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
     chunks = list(range(len(bounds) - 1))
     rec64 = proj.records
-    rows = proj.bbox[:, 3] // ts - proj.bbox[:, 1] // ts + 1            # tile rows of each splat
+    rows = proj.bbox[:, 3] // ts - proj.bbox[:, 1] // ts + 1  # tile rows of each splat
     first_row = np.zeros(n + 1, np.int64)
     np.cumsum(rows, out=first_row[1:])
-    spans = np.empty((int(first_row[-1]), 2), np.int32)                # tile columns per splat and row
+    spans = np.empty((int(first_row[-1]), 2), np.int32)  # tile columns per splat and row
     counts = np.zeros((len(chunks), n_tiles), np.int64)
-    pool.map(lambda k: kernels.count_tiles(rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x,
-                                           first_row, spans, counts[k]), chunks)
+    pool.map(
+        lambda k: kernels.count_tiles(
+            rec64, proj.r2, proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x, first_row, spans, counts[k]
+        ),
+        chunks,
+    )
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     np.cumsum(counts.sum(axis=0), out=offsets[1:])
-    cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts       # where each chunk's run begins
+    cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts  # where each chunk's run begins
     entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
-    pool.map(lambda k: kernels.fill_tiles(proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x, first_row, spans,
-                                          number, cursor[k], entry_splat), chunks)
+    pool.map(
+        lambda k: kernels.fill_tiles(
+            proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x, first_row, spans, number, cursor[k], entry_splat
+        ),
+        chunks,
+    )
     return Bins(ts, tiles_x, tiles_y, entry_splat, offsets)
 
 
@@ -520,10 +676,24 @@ class _CompiledCompositor:
 
     RUNS_PER_THREAD = 16
 
-    def __init__(self, kernels, proj, bins, order, camera, dtype, t_min, pool, want_counts, want_weights,
-                 layer=None, spare=None, gather=None):
+    def __init__(
+        self,
+        kernels,
+        proj,
+        bins,
+        order,
+        camera,
+        dtype,
+        t_min,
+        pool,
+        want_counts,
+        want_weights,
+        layer=None,
+        spare=None,
+        gather=None,
+    ):
         self.kernels, self.proj, self.bins, self.order, self.camera = kernels, proj, bins, order, camera
-        self.spare = spare          # (records, bbox) at least as long as proj's, free to overwrite
+        self.spare = spare  # (records, bbox) at least as long as proj's, free to overwrite
         self.dtype, self.t_min, self.pool = dtype, float(t_min), pool
         h, w = camera.height, camera.width
         self.color = np.empty((h, w, 3), np.float32)
@@ -532,8 +702,9 @@ class _CompiledCompositor:
         self.peaks = np.zeros(len(bins.entry_splat), np.float32) if want_weights else np.zeros(0, np.float32)
         # the gather image and each entry's sum of weight x image (written by the kernel)
         self.gather_image = np.zeros((0, 0, 0), np.float32) if gather is None else gather
-        self.entry_sums = np.zeros((0 if gather is None else len(bins.entry_splat),
-                                    0 if gather is None else gather.shape[2]))
+        self.entry_sums = np.zeros(
+            (0 if gather is None else len(bins.entry_splat), 0 if gather is None else gather.shape[2])
+        )
         # the layer's depth and 1 - alpha, and T where each pixel reached it (written by the kernel)
         empty = np.zeros((0, 0), np.float32)
         self.layer_depth = empty if layer is None else layer.depth
@@ -547,7 +718,7 @@ class _CompiledCompositor:
     def _runs(self):
         """Consecutive tile ranges of about equal entry counts (empty tiles still need writing)."""
         bins = self.bins
-        work = bins.offsets + np.arange(bins.n_tiles + 1)          # entries, and one per tile
+        work = bins.offsets + np.arange(bins.n_tiles + 1)  # entries, and one per tile
         parts = self.RUNS_PER_THREAD * self.pool.threads
         cuts = np.searchsorted(work, np.linspace(0, work[-1], parts + 1)[1:-1])
         return [r for r in zip(np.r_[0, cuts], np.r_[cuts, bins.n_tiles]) if r[1] > r[0]]
@@ -559,11 +730,24 @@ class _CompiledCompositor:
             records, bbox = new_records(n), np.empty((n, 4), np.int32)
         else:
             records, bbox = self.spare[0][:n], self.spare[1][:n]
-        empty, empty_index = np.zeros(0), np.zeros(0, np.int64)         # r2 and index stay behind
+        empty, empty_index = np.zeros(0), np.zeros(0, np.int64)  # r2 and index stay behind
         bounds = np.linspace(0, n, self.pool.threads + 1).astype(np.int64)
-        self.pool.map(lambda k: self.kernels.gather(self.order, bounds[k], bounds[k + 1], proj.records, proj.bbox,
-                                                    empty, empty_index, records, bbox, empty, empty_index),
-                      list(range(self.pool.threads)))
+        self.pool.map(
+            lambda k: self.kernels.gather(
+                self.order,
+                bounds[k],
+                bounds[k + 1],
+                proj.records,
+                proj.bbox,
+                empty,
+                empty_index,
+                records,
+                bbox,
+                empty,
+                empty_index,
+            ),
+            list(range(self.pool.threads)),
+        )
         return records, bbox
 
     def images(self, progress=None):
@@ -575,10 +759,29 @@ class _CompiledCompositor:
 
         def run(span):
             return span, self.kernels.composite_tiles(
-                np.arange(*span), bins.offsets, bins.entry_splat, records, rec32, bbox, ts, bins.tiles_x,
-                cam.width, cam.height, self.t_min, k,
-                self.color, self.weight, self.depth_sum, self.counts, self.peaks,
-                self.layer_depth, self.layer_keep, self.layer_t, self.gather_image, self.entry_sums)
+                np.arange(*span),
+                bins.offsets,
+                bins.entry_splat,
+                records,
+                rec32,
+                bbox,
+                ts,
+                bins.tiles_x,
+                cam.width,
+                cam.height,
+                self.t_min,
+                k,
+                self.color,
+                self.weight,
+                self.depth_sum,
+                self.counts,
+                self.peaks,
+                self.layer_depth,
+                self.layer_keep,
+                self.layer_t,
+                self.gather_image,
+                self.entry_sums,
+            )
 
         done = 0
         for (lo, hi), evaluated in self.pool.imap(run, self._runs()):
@@ -605,8 +808,21 @@ class _CompiledCompositor:
         return out
 
 
-def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud, layer=None, layer_t=None,
-            kernels=None, pool=None):
+def _finish(
+    color,
+    weight,
+    depth_sum,
+    counts,
+    bg,
+    background,
+    proj,
+    bins,
+    cloud,
+    layer=None,
+    layer_t=None,
+    kernels=None,
+    pool=None,
+):
     """Image sums (colour and depth weighted by T alpha, and the weight) -> the result; with a layer,
     its colour at the T each pixel reached it with (layer_t) goes in, before the background.
     The compiled kernels (when given) do it on every core of `pool`."""
@@ -615,10 +831,15 @@ def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud,
         bounds = np.linspace(0, len(weight), pool.threads + 1).astype(np.int64)
         bg32 = np.zeros(0, np.float32) if bg is None else bg.astype(np.float32)
         none = np.zeros((0, 0), np.float32)
-        layer_arrays = (none, np.zeros((0, 0, 3), np.float32), none) if layer is None else \
-            (layer_t, layer.color, layer.alpha)
-        pool.map(lambda k: kernels.finish_rows(color, weight, depth_sum, bg32, bounds[k], bounds[k + 1], alpha, depth,
-                                               *layer_arrays), list(range(pool.threads)))
+        layer_arrays = (
+            (none, np.zeros((0, 0, 3), np.float32), none) if layer is None else (layer_t, layer.color, layer.alpha)
+        )
+        pool.map(
+            lambda k: kernels.finish_rows(
+                color, weight, depth_sum, bg32, bounds[k], bounds[k + 1], alpha, depth, *layer_arrays
+            ),
+            list(range(pool.threads)),
+        )
     else:
         alpha = np.clip(weight, 0.0, 1.0).astype(np.float32)
         color = np.ascontiguousarray(color, dtype=np.float32)
@@ -629,8 +850,12 @@ def _finish(color, weight, depth_sum, counts, bg, background, proj, bins, cloud,
             color += (1.0 - alpha)[..., None] * bg.astype(np.float32)
         depth = np.zeros_like(alpha)
         np.divide(depth_sum, weight, out=depth, where=weight > 0)
-    stats = {"input": len(cloud), "skipped_nonfinite": proj.skipped_nonfinite, "visible": len(proj),
-             "entries": len(bins.entry_splat)}
+    stats = {
+        "input": len(cloud),
+        "skipped_nonfinite": proj.skipped_nonfinite,
+        "visible": len(proj),
+        "entries": len(bins.entry_splat),
+    }
     return RenderResult(
         color=color,
         alpha=alpha,

@@ -13,26 +13,38 @@ from .render_tiles import record_floats, stable_argsort
 # OpenBLAS runs larger products on its own threads, which fights our pool and is slower for these
 # thin products; it stays single-threaded below m*n*k = 65536 * 4 (its SMP threshold).
 _BLAS_SINGLE_THREAD_MNK = 65536 * 4
-_BATCH_EVALS = 1 << 18      # splat-pixel evaluations per batch (measured sweet spot)
+_BATCH_EVALS = 1 << 18  # splat-pixel evaluations per batch (measured sweet spot)
 
 
 class Compositor:
     """Front-to-back compositing of every tile, in waves of at most `wave` entries per tile."""
 
-    def __init__(self, proj, bins, camera, dtype, wave, t_min, pool, want_counts=False, want_weights=False,
-                 crossing=None, gather=None):
+    def __init__(
+        self,
+        proj,
+        bins,
+        camera,
+        dtype,
+        wave,
+        t_min,
+        pool,
+        want_counts=False,
+        want_weights=False,
+        crossing=None,
+        gather=None,
+    ):
         self.proj, self.bins, self.dtype, self.wave, self.pool = proj, bins, dtype, wave, pool
         self.crossing = crossing
         self.width, self.height = camera.width, camera.height
         self.t_min = dtype(t_min)
         ts = bins.tile_size
         self.pixels = ts * ts
-        e = np.arange(ts) + 0.5 - ts / 2             # pixel-centre offsets from the tile centre
-        ey, ex = np.repeat(e, ts), np.tile(e, ts)    # row-major pixels within a tile
+        e = np.arange(ts) + 0.5 - ts / 2  # pixel-centre offsets from the tile centre
+        ey, ex = np.repeat(e, ts), np.tile(e, ts)  # row-major pixels within a tile
         self.basis = np.stack([np.ones_like(ex), ex, ey, ex * ex, ex * ey, ey * ey]).astype(dtype)
         n_tiles = bins.n_tiles
-        self.acc = np.zeros((n_tiles, self.pixels, 5), dtype=dtype)     # sum w * (r, g, b, z, 1)
-        self.trans = self._inside_image(bins, camera).astype(dtype)     # T, or 0 once a pixel stopped
+        self.acc = np.zeros((n_tiles, self.pixels, 5), dtype=dtype)  # sum w * (r, g, b, z, 1)
+        self.trans = self._inside_image(bins, camera).astype(dtype)  # T, or 0 once a pixel stopped
         self.counts = np.zeros((n_tiles, self.pixels), dtype=np.int32) if want_counts else None
         self.order, self.records, self.entry_splat = self._by_locality(proj, bins)
         # largest weight of each (renumbered) splat; the last slot takes the padding entries
@@ -47,10 +59,11 @@ class Compositor:
     def _inside_image(bins, camera):
         """(tiles, pixels) bool: which pixels of the edge tiles lie inside the image. Those beyond
         start with T = 0, so they take no weight and never keep a tile alive."""
-        ts, k = bins.tile_size, np.arange(bins.tile_size ** 2)
+        ts, k = bins.tile_size, np.arange(bins.tile_size**2)
         tiles = np.arange(bins.n_tiles)[:, None]
-        return (((tiles % bins.tiles_x) * ts + k % ts < camera.width)
-                & ((tiles // bins.tiles_x) * ts + k // ts < camera.height))
+        return ((tiles % bins.tiles_x) * ts + k % ts < camera.width) & (
+            (tiles // bins.tiles_x) * ts + k // ts < camera.height
+        )
 
     @staticmethod
     def _by_locality(proj, bins):
@@ -82,19 +95,20 @@ class Compositor:
         """Composite every tile; returns (colour sums (H,W,3), weights, depth sums, counts or None)
         in image layout."""
         acc, counts = self.run(progress)
-        acc = self._image(acc)              # (H, W, 5): the one copy out of tile order
+        acc = self._image(acc)  # (H, W, 5): the one copy out of tile order
         return acc[..., :3], acc[..., 4], acc[..., 3], None if counts is None else self._image(counts).copy()
 
     def _image(self, a):
         """(tiles, pixels, ...) -> (H, W, ...)."""
         bins, ts = self.bins, self.bins.tile_size
         a = a.reshape(bins.tiles_y, bins.tiles_x, ts, ts, *a.shape[2:]).swapaxes(1, 2)
-        return a.reshape(bins.tiles_y * ts, bins.tiles_x * ts, *a.shape[4:])[:self.height, :self.width]
+        return a.reshape(bins.tiles_y * ts, bins.tiles_x * ts, *a.shape[4:])[: self.height, : self.width]
 
     def layer_transmittance(self, weight):
         """(H, W) T where each pixel reached the layer (see LayerCrossing.transmittance)."""
-        return self.crossing.transmittance(self._image(self.crossing.t), self._image(self.crossing.pending),
-                                           np.clip(weight, 0.0, 1.0))
+        return self.crossing.transmittance(
+            self._image(self.crossing.t), self._image(self.crossing.pending), np.clip(weight, 0.0, 1.0)
+        )
 
     def run(self, progress=None):
         bins = self.bins
@@ -126,7 +140,7 @@ class Compositor:
         while i < len(tiles):
             depth = int(take[i])
             g = max(1, _BATCH_EVALS // (depth * self.pixels))
-            out.append((tiles[i:i + g], take[i:i + g], depth))
+            out.append((tiles[i : i + g], take[i : i + g], depth))
             i += g
         return out
 
@@ -137,20 +151,21 @@ class Compositor:
         g, p = len(tiles), self.pixels
         slot = np.arange(depth)[:, None]
         pos = (bins.offsets[tiles] + self._cursor[tiles])[None, :] + slot
-        splat = np.where(slot < take[None, :], self.entry_splat.take(pos, mode="clip"),
-                         len(self.proj)).ravel()                     # (depth * g), padding -> no-op row
-        rec = self.records.take(splat, axis=0)                       # one cache line per entry
+        splat = np.where(
+            slot < take[None, :], self.entry_splat.take(pos, mode="clip"), len(self.proj)
+        ).ravel()  # (depth * g), padding -> no-op row
+        rec = self.records.take(splat, axis=0)  # one cache line per entry
         log_o = record_floats(rec)[:, 0]
-        power = self._exponent(rec, tiles)                           # (depth * g, p) log alpha
+        power = self._exponent(rec, tiles)  # (depth * g, p) log alpha
         bright = np.flatnonzero(log_o > math.log(ALPHA_MAX))
-        if len(bright):                                              # clamp alpha at 0.99
+        if len(bright):  # clamp alpha at 0.99
             power[bright] = np.minimum(power[bright], dtype(math.log(ALPHA_MAX)))
-        visible = power >= dtype(math.log(ALPHA_MIN))   # (multiplying by a mask beats masked stores)
+        visible = power >= dtype(math.log(ALPHA_MIN))  # (multiplying by a mask beats masked stores)
         alpha = np.exp(power, out=power)
         alpha *= visible
         alpha = alpha.reshape(depth, g, p)
 
-        trans = np.empty((depth + 1, g, p), dtype=dtype)             # T before each entry
+        trans = np.empty((depth + 1, g, p), dtype=dtype)  # T before each entry
         trans[0] = self.trans[tiles]
         keep = np.subtract(1, alpha, dtype=dtype)
         first = None if self.crossing is None else self.crossing.enter(tiles, record_floats(rec)[:, 4], alpha, keep)
@@ -158,9 +173,9 @@ class Compositor:
             np.multiply(trans[k], keep[k], out=trans[k + 1])
         if first is not None:
             self.crossing.record(tiles, first, trans, self.t_min)
-        weight = np.multiply(trans[:-1], alpha, out=keep)            # w = T alpha
+        weight = np.multiply(trans[:-1], alpha, out=keep)  # w = T alpha
         crossed = trans[-1] < self.t_min
-        if (crossed & (trans[0] >= self.t_min)).any():               # a pixel stops in this wave
+        if (crossed & (trans[0] >= self.t_min)).any():  # a pixel stops in this wave
             weight *= trans[1:] >= self.t_min
         feat = record_floats(rec)[:, 1:].astype(dtype, copy=False).reshape(depth, g, 5)
         self.acc[tiles] += np.matmul(weight.transpose(1, 2, 0), feat.transpose(1, 0, 2))
@@ -177,16 +192,16 @@ class Compositor:
 
     def _keep_best(self, splat, weight):
         """Fold each entry's largest weight over its pixels into the per-splat maximum."""
-        rows = weight.reshape(len(splat), -1)         # slot-major, like `splat`
-        peak = rows[np.arange(len(rows)), rows.argmax(axis=1)]    # (argmax is ~3x faster than max)
+        rows = weight.reshape(len(splat), -1)  # slot-major, like `splat`
+        peak = rows[np.arange(len(rows)), rows.argmax(axis=1)]  # (argmax is ~3x faster than max)
         hit = np.flatnonzero(peak)
-        with self.best_lock:                         # batches run in parallel threads
+        with self.best_lock:  # batches run in parallel threads
             np.maximum.at(self.best, splat[hit], peak[hit].astype(np.float32))
 
     def _gather(self, tiles, splat, weight):
         """Add each entry's sum over its tile's pixels of weight x gather image to its splat."""
-        per_entry = np.matmul(weight.transpose(1, 0, 2), self.gather_tiles[tiles])   # (g, depth, C)
-        per_entry = per_entry.transpose(1, 0, 2).reshape(len(splat), -1)            # slot-major, like splat
+        per_entry = np.matmul(weight.transpose(1, 0, 2), self.gather_tiles[tiles])  # (g, depth, C)
+        per_entry = per_entry.transpose(1, 0, 2).reshape(len(splat), -1)  # slot-major, like splat
         with self.best_lock:
             np.add.at(self.sums, splat, per_entry.astype(np.float64))
 
@@ -208,7 +223,7 @@ class Compositor:
         out = np.empty((len(rec), self.pixels), dtype=self.dtype)
         step = max(1, _BLAS_SINGLE_THREAD_MNK // (6 * self.pixels) - 1)
         for i in range(0, len(rec), step):
-            np.matmul(coef[i:i + step], self.basis, out=out[i:i + step])
+            np.matmul(coef[i : i + step], self.basis, out=out[i : i + step])
         return out
 
 
@@ -216,9 +231,10 @@ def tiled(a, bins, fill):
     """(H, W, ...) image -> (tiles, pixels, ...), pixels beyond the image edge set to `fill`."""
     ts, rest = bins.tile_size, a.shape[2:]
     padded = np.full((bins.tiles_y * ts, bins.tiles_x * ts, *rest), fill, dtype=np.float64)
-    padded[:a.shape[0], :a.shape[1]] = a
-    return padded.reshape(bins.tiles_y, ts, bins.tiles_x, ts, *rest).swapaxes(1, 2).reshape(
-        bins.n_tiles, ts * ts, *rest)
+    padded[: a.shape[0], : a.shape[1]] = a
+    return (
+        padded.reshape(bins.tiles_y, ts, bins.tiles_x, ts, *rest).swapaxes(1, 2).reshape(bins.n_tiles, ts * ts, *rest)
+    )
 
 
 class LayerCrossing:
@@ -243,12 +259,12 @@ class LayerCrossing:
         depth, g = alpha.shape[:2]
         z = z.reshape(depth, g)
         z = np.where(z > 0, z, np.inf)
-        nearest = self.nearest[tiles]                    # inf: no surface left to cross (finish() adds the rest)
-        reach = (z >= nearest) & np.isfinite(nearest)    # (depth, g): at or past the tile's nearest waiting pixel
+        nearest = self.nearest[tiles]  # inf: no surface left to cross (finish() adds the rest)
+        reach = (z >= nearest) & np.isfinite(nearest)  # (depth, g): at or past the tile's nearest waiting pixel
         cross = np.flatnonzero(reach.any(axis=0))
         if not len(cross):
             return None
-        k0 = int(reach[:, cross].any(axis=1).argmax())   # every entry before k0 is in front of every waiting pixel
+        k0 = int(reach[:, cross].any(axis=1).argmax())  # every entry before k0 is in front of every waiting pixel
         sel = tiles[cross]
         slot = k0 + (z[k0:, cross, None] < self.depth[sel][None]).sum(axis=0, dtype=np.int32)
         hit_g, hit_p = np.nonzero(self.pending[sel] & (slot < depth))

@@ -23,14 +23,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import geometry, jit, sh as shmod
+from . import geometry, jit
+from . import sh as shmod
 from .parallel import WORKERS, map_threads
 from .render_constants import AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, PRECISIONS, T_MIN
 from .render_tiles import clamped_ratios, screen_covariance, screen_rows
 from .splats import FIELDS, sigmoid
 
 TILE = 16
-KERNELS = "core.render_grad_kernels"     # the compiled tile passes, loaded by core.jit
+KERNELS = "core.render_grad_kernels"  # the compiled tile passes, loaded by core.jit
 BACKENDS = ("auto", "compiled", "numpy")
 # columns of the per-splat sums the tile passes return
 UV, CONIC, OPACITY, RGB = slice(0, 2), slice(2, 5), 5, slice(6, 9)
@@ -47,8 +48,9 @@ class Gradients:
     sh: np.ndarray
 
 
-def mse_gradients(cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, precision="float32", threads=None,
-                  backend="auto"):
+def mse_gradients(
+    cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, precision="float32", threads=None, backend="auto"
+):
     """(image, mean squared error against `target` (H, W, 3), Gradients of that error).
 
     backend: "compiled" (core/render_grad_kernels.py, float64 throughout), "numpy" (the dense tile
@@ -68,7 +70,7 @@ def mse_gradients(cloud, camera, target, background=(0.0, 0.0, 0.0), mode=None, 
     bg = np.asarray(background, dtype=np.float64).reshape(3)
     proj = _Projection(cloud, camera, mode)
     image = np.empty((camera.height, camera.width, 3))
-    image[:] = bg                   # tiles no splat touches
+    image[:] = bg  # tiles no splat touches
     tiles = proj.tile_lists()
     share = max(1, int(threads or WORKERS))
     jobs = [np.arange(i, len(tiles.ids), share) for i in range(share)]
@@ -90,8 +92,9 @@ def _numpy_tiles(_, proj, tiles, jobs, target, bg, dtype, image):
         y0, x0 = ty * TILE, tx * TILE
         y1, x1 = min(y0 + TILE, camera.height), min(x0 + TILE, camera.width)
         ys, xs = np.mgrid[y0:y1, x0:x1]
-        tile = _Tile(proj, tiles.members[tiles.starts[j]:tiles.ends[j]], xs.ravel() + 0.5, ys.ravel() + 0.5, bg,
-                     dtype)
+        tile = _Tile(
+            proj, tiles.members[tiles.starts[j] : tiles.ends[j]], xs.ravel() + 0.5, ys.ravel() + 0.5, bg, dtype
+        )
         color = tile.color.reshape(y1 - y0, x1 - x0, 3)
         image[y0:y1, x0:x1] = color
         tile.backward(scale * (color - target[y0:y1, x0:x1]).reshape(-1, 3), acc)
@@ -102,9 +105,26 @@ def _compiled_tiles(kernels, proj, tiles, jobs, target, bg, _, image):
     """_numpy_tiles by the compiled kernel (float64)."""
     acc = np.zeros((len(proj.index), 9))
     camera = proj.camera
-    kernels.tile_passes(jobs, tiles.ids, tiles.starts, tiles.ends, tiles.members, TILE, camera.width, camera.height,
-                        proj.uv, proj.conic, proj.opacity, proj.box, proj.rgb, target, bg, 2.0 / image.size, image,
-                        acc)
+    kernels.tile_passes(
+        jobs,
+        tiles.ids,
+        tiles.starts,
+        tiles.ends,
+        tiles.members,
+        TILE,
+        camera.width,
+        camera.height,
+        proj.uv,
+        proj.conic,
+        proj.opacity,
+        proj.box,
+        proj.rgb,
+        target,
+        bg,
+        2.0 / image.size,
+        image,
+        acc,
+    )
     return acc
 
 
@@ -113,10 +133,16 @@ def _check_kernels(kernels):
     and compare with the NumPy path: a broken build falls back to NumPy, not wrong gradients."""
     from .camera import Camera
     from .splats import SplatCloud
+
     rng = np.random.default_rng(0)
     n = 64
-    cloud = SplatCloud(rng.normal(0, 0.3, (n, 3)) + [0, 0, 3], rng.normal(size=(n, 4)),
-                       rng.uniform(-3, -1.5, (n, 3)), rng.normal(1, 2, n), rng.normal(0, 0.3, (n, 4, 3)))
+    cloud = SplatCloud(
+        rng.normal(0, 0.3, (n, 3)) + [0, 0, 3],
+        rng.normal(size=(n, 4)),
+        rng.uniform(-3, -1.5, (n, 3)),
+        rng.normal(1, 2, n),
+        rng.normal(0, 0.3, (n, 4, 3)),
+    )
     camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=40, height=20)
     target = rng.uniform(0, 1, (camera.height, camera.width, 3))
     for mode in ("classic", "antialiased"):
@@ -126,8 +152,9 @@ def _check_kernels(kernels):
         images = [np.zeros(target.shape), np.zeros(target.shape)]
         got = _compiled_tiles(kernels, proj, tiles, jobs, target, bg, None, images[0])
         want = _numpy_tiles(None, proj, tiles, jobs, target, bg, np.float64, images[1])
-        if not (np.allclose(images[0], images[1], atol=1e-9)
-                and np.allclose(got, want, atol=1e-9 * np.abs(want).max())):
+        if not (
+            np.allclose(images[0], images[1], atol=1e-9) and np.allclose(got, want, atol=1e-9 * np.abs(want).max())
+        ):
             raise RuntimeError("the compiled backward kernel disagrees with the NumPy path on a test scene")
 
 
@@ -152,8 +179,9 @@ class _Projection:
         cam = rel @ camera.rotation.T
         z = cam[:, 2]
         opacity = sigmoid(cloud.opacity_logits.astype(np.float64))
-        finite = np.logical_and.reduce([np.isfinite(getattr(cloud, name).reshape(len(pos), -1)).all(1)
-                                        for name in FIELDS])
+        finite = np.logical_and.reduce(
+            [np.isfinite(getattr(cloud, name).reshape(len(pos), -1)).all(1) for name in FIELDS]
+        )
         keep = np.flatnonzero(finite & (z > camera.near) & (z <= camera.far) & (opacity >= ALPHA_MIN))
         self.index, rel, cam, opacity = keep, rel[keep], cam[keep], opacity[keep]
         self.cam, self.sigmoid = cam, opacity
@@ -163,7 +191,7 @@ class _Projection:
         self.rs = self.rot * self.scales[:, None, :]
         self._screen(cam, camera)
         v0, v1, a, b, c, det0 = screen_covariance(self.m0, self.m1, self.rs)
-        det = det0 + LOW_PASS * (a + c) + LOW_PASS ** 2
+        det = det0 + LOW_PASS * (a + c) + LOW_PASS**2
         self.v0, self.v1, self.abc, self.det0, self.det = v0, v1, (a, b, c), det0, det
         self.ratio = det0 / det
         self.aa = mode == "antialiased"
@@ -204,8 +232,12 @@ class _Projection:
         box = self.box[order]
         lo = np.floor(np.clip(np.ceil(box[:, :2]), 0, None) / TILE).astype(np.int64)
         hi = np.floor(np.minimum(np.floor(box[:, 2:]), [cam.width - 1, cam.height - 1]) / TILE).astype(np.int64)
-        inside = (hi >= lo).all(1) & (np.floor(box[:, 2:]) >= 0).all(1) \
-            & (np.ceil(box[:, 0]) <= cam.width - 1) & (np.ceil(box[:, 1]) <= cam.height - 1)
+        inside = (
+            (hi >= lo).all(1)
+            & (np.floor(box[:, 2:]) >= 0).all(1)
+            & (np.ceil(box[:, 0]) <= cam.width - 1)
+            & (np.ceil(box[:, 1]) <= cam.height - 1)
+        )
         order, lo, hi = order[inside], lo[inside], hi[inside]
         span = hi - lo + 1
         count = span[:, 0] * span[:, 1]
@@ -214,7 +246,7 @@ class _Projection:
         tx = lo[owner, 0] + k % span[owner, 0]
         ty = lo[owner, 1] + k // span[owner, 0]
         tile = ty * nx + tx
-        by_tile = np.argsort(tile, kind="stable")         # stays front to back within a tile
+        by_tile = np.argsort(tile, kind="stable")  # stays front to back within a tile
         tile, members = tile[by_tile], order[owner[by_tile]]
         starts = np.flatnonzero(np.r_[True, tile[1:] != tile[:-1]]) if len(tile) else np.zeros(0, np.int64)
         ends = np.r_[starts[1:], len(tile)].astype(np.int64)
@@ -227,8 +259,10 @@ class _Projection:
         g_rgb = acc[:, RGB] * self.unclamped
         grad.sh[k] = self.basis[:, :, None] * g_rgb[:, None, :]
         g_abc, g_sig = self._opacity_and_conic(acc)
-        g_v0, g_v1 = 2 * g_abc[0][:, None] * self.v0 + g_abc[1][:, None] * self.v1, \
-            2 * g_abc[2][:, None] * self.v1 + g_abc[1][:, None] * self.v0
+        g_v0, g_v1 = (
+            2 * g_abc[0][:, None] * self.v0 + g_abc[1][:, None] * self.v1,
+            2 * g_abc[2][:, None] * self.v1 + g_abc[1][:, None] * self.v0,
+        )
         g_rs = self.m0[:, :, None] * g_v0[:, None, :] + self.m1[:, :, None] * g_v1[:, None, :]
         g_m0, g_m1 = np.einsum("njk,nk->nj", self.rs, g_v0), np.einsum("njk,nk->nj", self.rs, g_v1)
         grad.log_scales[k] = (g_rs * self.rot).sum(1) * self.scales
@@ -258,9 +292,9 @@ class _Projection:
             g_ratio = np.where(self.ratio > AA_MIN_RATIO, acc[:, OPACITY] * self.sigmoid / (2 * root), 0.0)
             g_sig = acc[:, OPACITY] * root
             det, det0 = self.det, self.det0
-            ga = ga + g_ratio * (c * det - det0 * (c + LOW_PASS)) / det ** 2
-            gc = gc + g_ratio * (a * det - det0 * (a + LOW_PASS)) / det ** 2
-            gb = gb + g_ratio * (-2 * b * (det - det0)) / det ** 2
+            ga = ga + g_ratio * (c * det - det0 * (c + LOW_PASS)) / det**2
+            gc = gc + g_ratio * (a * det - det0 * (a + LOW_PASS)) / det**2
+            gb = gb + g_ratio * (-2 * b * (det - det0)) / det**2
         return (ga, gb, gc), g_sig
 
     def _position_gradient(self, g_uv, g_m0, g_m1):
@@ -273,7 +307,7 @@ class _Projection:
         g_t = -np.stack([(g_m0 @ r2) * camera.fx / z, (g_m1 @ r2) * camera.fy / z], 1) * self.free
         g_t += g_uv * [camera.fx, camera.fy]
         gz = -((self.m0 * g_m0).sum(1) + (self.m1 * g_m1).sum(1)) / z
-        gz -= (g_t[:, 0] * x + g_t[:, 1] * y) / z ** 2
+        gz -= (g_t[:, 0] * x + g_t[:, 1] * y) / z**2
         return np.stack([g_t[:, 0] / z, g_t[:, 1] / z, gz], 1)
 
 
@@ -289,7 +323,7 @@ class _Tile:
         self.gauss = np.exp(-0.5 * (A * dx * dx + C * dy * dy) - B * dx * dy)
         raw = proj.opacity[members].astype(dtype) * self.gauss
         alpha = np.where(raw >= ALPHA_MIN, np.minimum(raw, ALPHA_MAX), 0.0)
-        on = np.cumprod(1 - alpha, axis=1) >= T_MIN        # stop before T would drop below T_MIN
+        on = np.cumprod(1 - alpha, axis=1) >= T_MIN  # stop before T would drop below T_MIN
         self.alpha = np.where(on, alpha, 0.0)
         self.moving = on & (raw >= ALPHA_MIN) & (raw < ALPHA_MAX)
         t_after = np.cumprod(1 - self.alpha, axis=1)
@@ -311,8 +345,9 @@ class _Tile:
         g_power = g_alpha * self.alpha
         dx, dy = self.dx, self.dy
         A, B, C = p.conic[m].astype(self.dtype).T
-        acc[m, CONIC] += np.stack([-0.5 * (g_power * dx * dx).sum(0), -(g_power * dx * dy).sum(0),
-                                   -0.5 * (g_power * dy * dy).sum(0)], 1)
+        acc[m, CONIC] += np.stack(
+            [-0.5 * (g_power * dx * dx).sum(0), -(g_power * dx * dy).sum(0), -0.5 * (g_power * dy * dy).sum(0)], 1
+        )
         acc[m, UV] += np.stack([(g_power * (A * dx + B * dy)).sum(0), (g_power * (C * dy + B * dx)).sum(0)], 1)
 
 
@@ -324,10 +359,10 @@ def _quaternion_gradient(q, g_rot):
     g = g_rot.reshape(-1, 9)
     zero = np.zeros_like(w)
     parts = [
-        [zero, -2 * z, 2 * y, 2 * z, zero, -2 * x, -2 * y, 2 * x, zero],                      # d R / d w
-        [zero, 2 * y, 2 * z, 2 * y, -4 * x, -2 * w, 2 * z, 2 * w, -4 * x],                    # d R / d x
-        [-4 * y, 2 * x, 2 * w, 2 * x, zero, 2 * z, -2 * w, 2 * z, -4 * y],                    # d R / d y
-        [-4 * z, -2 * w, 2 * x, 2 * w, -4 * z, 2 * y, 2 * x, 2 * y, zero],                    # d R / d z
+        [zero, -2 * z, 2 * y, 2 * z, zero, -2 * x, -2 * y, 2 * x, zero],  # d R / d w
+        [zero, 2 * y, 2 * z, 2 * y, -4 * x, -2 * w, 2 * z, 2 * w, -4 * x],  # d R / d x
+        [-4 * y, 2 * x, 2 * w, 2 * x, zero, 2 * z, -2 * w, 2 * z, -4 * y],  # d R / d y
+        [-4 * z, -2 * w, 2 * x, 2 * w, -4 * z, 2 * y, 2 * x, 2 * y, zero],  # d R / d z
     ]
     g_unit = np.stack([(np.stack(d, 1) * g).sum(1) for d in parts], 1)
     return (g_unit - unit * (unit * g_unit).sum(1, keepdims=True)) / norm

@@ -19,13 +19,14 @@ LOG_ALPHA_MIN = math.log(ALPHA_MIN)
 
 
 @njit
-def tile_passes(jobs, tiles, starts, ends, members, tile, width, height, uv, conic, opacity, box, rgb, target, bg,
-                scale, image, acc):
+def tile_passes(
+    jobs, tiles, starts, ends, members, tile, width, height, uv, conic, opacity, box, rgb, target, bg, scale, image, acc
+):
     """For each tile number in `jobs`: its image (written to `image`) and its share of the mean
     squared error's gradient, added per splat to acc (n, 9): d/du, d/dv, d/d conic (a, b, c),
     d/d opacity, d/d rgb. Tile j is tiles[j] (row-major, `tile` pixels square) with splats
     members[starts[j]:ends[j]] front to back."""
-    floor = LOG_ALPHA_MIN - np.log(opacity) - 1e-9      # powers below this are clearly under the alpha rule
+    floor = LOG_ALPHA_MIN - np.log(opacity) - 1e-9  # powers below this are clearly under the alpha rule
     tiles_x = (width + tile - 1) // tile
     size = tile * tile
     t = np.empty(size)
@@ -40,9 +41,10 @@ def tile_passes(jobs, tiles, starts, ends, members, tile, width, height, uv, con
         th = min(tile, height - y0)
         t[:] = 1.0
         color[:] = 0.0
-        stop[:] = ends[job]             # a pixel takes entries before stop[p]
-        last = _forward(starts[job], ends[job], members, x0, y0, tw, th, uv, conic, opacity, floor, box, rgb, t, color,
-                        stop)
+        stop[:] = ends[job]  # a pixel takes entries before stop[p]
+        last = _forward(
+            starts[job], ends[job], members, x0, y0, tw, th, uv, conic, opacity, floor, box, rgb, t, color, stop
+        )
         for p in range(tw * th):
             y, x = y0 + p // tw, x0 + p % tw
             behind[p] = 0.0
@@ -51,8 +53,9 @@ def tile_passes(jobs, tiles, starts, ends, members, tile, width, height, uv, con
                 image[y, x, ch] = c
                 grad[p, ch] = scale * (c - target[y, x, ch])
                 behind[p] += t[p] * grad[p, ch] * bg[ch]
-        _backward(starts[job], last, members, x0, y0, tw, th, uv, conic, opacity, floor, box, rgb, t, stop, grad,
-                  behind, acc)
+        _backward(
+            starts[job], last, members, x0, y0, tw, th, uv, conic, opacity, floor, box, rgb, t, stop, grad, behind, acc
+        )
 
 
 @njit
@@ -71,7 +74,7 @@ def _alpha(s, x, y, uv, conic, opacity, floor):
     dx = x + 0.5 - uv[s, 0]
     dy = y + 0.5 - uv[s, 1]
     power = -0.5 * (conic[s, 0] * dx * dx + conic[s, 2] * dy * dy) - conic[s, 1] * dx * dy
-    if power < floor[s]:            # no exp where the answer is clear
+    if power < floor[s]:  # no exp where the answer is clear
         return 0.0, 0.0, dx, dy
     gauss = math.exp(power)
     raw = opacity[s] * gauss
@@ -133,7 +136,7 @@ def _backward(start, last, members, x0, y0, tw, th, uv, conic, opacity, floor, b
                 g_r += weight * grad[p, 0]
                 g_g += weight * grad[p, 1]
                 g_bl += weight * grad[p, 2]
-                if raw < ALPHA_MAX:         # the clamp holds alpha (its gradient is 0) above
+                if raw < ALPHA_MAX:  # the clamp holds alpha (its gradient is 0) above
                     g_alpha = before * g_weight - behind[p] / (1.0 - alpha)
                     g_o += g_alpha * gauss
                     g_power = g_alpha * alpha

@@ -21,27 +21,35 @@ from .jit import njit, prefetcher
 from .render_constants import AA_MIN_RATIO, ALPHA_MAX, ALPHA_MIN, LOW_PASS, MAX_TILE_SIZE
 from .sh import C0, C1, C2, C3, C4
 
-prefetch = prefetcher()     # random reads (records by entry, rows by index) start a few items early
+prefetch = prefetcher()  # random reads (records by entry, rows by index) start a few items early
 LOG_ALPHA_MIN = math.log(ALPHA_MIN)
 LOG_ALPHA_MAX = math.log(ALPHA_MAX)
 # exp(x) for x in [EXP_FLOOR, 0] (alpha >= 1/255 needs x >= -5.55) as p(x/16)^16, p the Taylor terms to
 # r^7 (relative error below 2e-8 for |r| <= 3/8, 4e-7 after the squarings)
 EXP_FLOOR = -6.0
-SHAPE_PIECE = 4096      # splats whose shapes project_range computes at a time (80 B each: stays in cache)
+SHAPE_PIECE = 4096  # splats whose shapes project_range computes at a time (80 B each: stays in cache)
 EXP_TERMS = (1.0, 1.0, 1.0 / 2, 1.0 / 6, 1.0 / 24, 1.0 / 120, 1.0 / 720, 1.0 / 5040)
 
 
 # projection ---------------------------------------------------------------------------------------
+
 
 @njit
 def band4_color(x, y, z, c):
     """sum over m of the degree-4 basis function (core.sh._band4) at the unit x, y, z times c[m + 4]."""
     xx, yy, zz = x * x, y * y, z * z
     xy, yz, xz = x * y, y * z, x * z
-    return (C4[0] * xy * (xx - yy) * c[0] + C4[1] * yz * (3 * xx - yy) * c[1] + C4[2] * xy * (7 * zz - 1) * c[2]
-            + C4[3] * yz * (7 * zz - 3) * c[3] + C4[4] * (zz * (35 * zz - 30) + 3) * c[4]
-            + C4[5] * xz * (7 * zz - 3) * c[5] + C4[6] * (xx - yy) * (7 * zz - 1) * c[6]
-            + C4[7] * xz * (xx - 3 * yy) * c[7] + C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy)) * c[8])
+    return (
+        C4[0] * xy * (xx - yy) * c[0]
+        + C4[1] * yz * (3 * xx - yy) * c[1]
+        + C4[2] * xy * (7 * zz - 1) * c[2]
+        + C4[3] * yz * (7 * zz - 3) * c[3]
+        + C4[4] * (zz * (35 * zz - 30) + 3) * c[4]
+        + C4[5] * xz * (7 * zz - 3) * c[5]
+        + C4[6] * (xx - yy) * (7 * zz - 1) * c[6]
+        + C4[7] * xz * (xx - 3 * yy) * c[7]
+        + C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy)) * c[8]
+    )
 
 
 @njit
@@ -62,8 +70,12 @@ def shape_range(rotations, log_scales, logits, lo, hi, out, base):
             continue
         logit = np.float64(logits[i])
         out[row, 9] = 1.0 / (1.0 + math.exp(-logit)) if logit >= 0 else math.exp(logit) / (1.0 + math.exp(logit))
-        qw, qx, qy, qz = (np.float64(rotations[i, 0]), np.float64(rotations[i, 1]),
-                          np.float64(rotations[i, 2]), np.float64(rotations[i, 3]))
+        qw, qx, qy, qz = (
+            np.float64(rotations[i, 0]),
+            np.float64(rotations[i, 1]),
+            np.float64(rotations[i, 2]),
+            np.float64(rotations[i, 3]),
+        )
         norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         if np.isfinite(norm) and norm > 1e-30:
             qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
@@ -84,8 +96,30 @@ def shape_range(rotations, log_scales, logits, lo, hi, out, base):
 
 
 @njit
-def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, center, rot, intrinsics, size,
-                  clip, ortho, antialiased, max_r2, rec64, rec32, index, depth, r2_out, bbox):
+def project_range(
+    positions,
+    rotations,
+    log_scales,
+    logits,
+    sh,
+    shapes,
+    lo,
+    hi,
+    center,
+    rot,
+    intrinsics,
+    size,
+    clip,
+    ortho,
+    antialiased,
+    max_r2,
+    rec64,
+    rec32,
+    index,
+    depth,
+    r2_out,
+    bbox,
+):
     """Cull and project splats lo..hi-1, writing the visible ones (in input order) to rows lo.. of
     the outputs. Returns (visible count, skipped for non-finite values).
 
@@ -102,7 +136,7 @@ def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, 
     m0 = np.empty(3)
     m1 = np.empty(3)
     own = shapes.shape[0] == 0
-    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes     # rows of R S and opacity, splat i at row i - base
+    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes  # rows of R S and opacity, splat i at row i - base
     for start in range(lo, hi, SHAPE_PIECE):
         stop = min(start + SHAPE_PIECE, hi)
         base = start if own else 0
@@ -189,15 +223,23 @@ def project_range(positions, rotations, log_scales, logits, sh, shapes, lo, hi, 
                     col += C1 * (-dy * sh[i, 1, ch] + dz * sh[i, 2, ch] - dx * sh[i, 3, ch])
                 if k > 4:
                     xx, yy, zz = dx * dx, dy * dy, dz * dz
-                    col += (C2[0] * dx * dy * sh[i, 4, ch] + C2[1] * dy * dz * sh[i, 5, ch]
-                            + C2[2] * (2 * zz - xx - yy) * sh[i, 6, ch] + C2[3] * dx * dz * sh[i, 7, ch]
-                            + C2[4] * (xx - yy) * sh[i, 8, ch])
+                    col += (
+                        C2[0] * dx * dy * sh[i, 4, ch]
+                        + C2[1] * dy * dz * sh[i, 5, ch]
+                        + C2[2] * (2 * zz - xx - yy) * sh[i, 6, ch]
+                        + C2[3] * dx * dz * sh[i, 7, ch]
+                        + C2[4] * (xx - yy) * sh[i, 8, ch]
+                    )
                     if k > 9:
-                        col += (C3[0] * dy * (3 * xx - yy) * sh[i, 9, ch] + C3[1] * dx * dy * dz * sh[i, 10, ch]
-                                + C3[2] * dy * (4 * zz - xx - yy) * sh[i, 11, ch]
-                                + C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, ch]
-                                + C3[4] * dx * (4 * zz - xx - yy) * sh[i, 13, ch]
-                                + C3[5] * dz * (xx - yy) * sh[i, 14, ch] + C3[6] * dx * (xx - 3 * yy) * sh[i, 15, ch])
+                        col += (
+                            C3[0] * dy * (3 * xx - yy) * sh[i, 9, ch]
+                            + C3[1] * dx * dy * dz * sh[i, 10, ch]
+                            + C3[2] * dy * (4 * zz - xx - yy) * sh[i, 11, ch]
+                            + C3[3] * dz * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, ch]
+                            + C3[4] * dx * (4 * zz - xx - yy) * sh[i, 13, ch]
+                            + C3[5] * dz * (xx - yy) * sh[i, 14, ch]
+                            + C3[6] * dx * (xx - 3 * yy) * sh[i, 15, ch]
+                        )
                         if k > 16:
                             col += band4_color(dx, dy, dz, sh[i, 16:25, ch])
                 rec32[out, 11 + ch] = max(0.0, col)
@@ -252,6 +294,7 @@ def stable_order(keys, rows, out):
 
 # tile binning -------------------------------------------------------------------------------------
 
+
 @njit
 def count_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, first_row, spans, counts):
     """counts[tile] += the number of splats lo..hi-1 whose ellipse reaches that tile; each splat's
@@ -270,9 +313,9 @@ def count_tiles(rec64, r2, bbox, lo, hi, ts, tiles_x, first_row, spans, counts):
         u, v, a, b, c = rec64[s, 0], rec64[s, 1], rec64[s, 2], rec64[s, 3], rec64[s, 4]
         rr = r2[s]
         det = a * c - b * b
-        sxx = c / det                                       # the covariance's x variance
+        sxx = c / det  # the covariance's x variance
         half = math.sqrt(rr * sxx)
-        peak = math.sqrt(rr / sxx) * (-b / det)             # dy of the rightmost point (leftmost: -peak)
+        peak = math.sqrt(rr / sxx) * (-b / det)  # dy of the rightmost point (leftmost: -peak)
         inv_a, ar = 1.0 / a, a * rr
         for row in range(y0 // ts, y1 // ts + 1):
             if whole:
@@ -313,7 +356,7 @@ def fill_tiles(bbox, lo, hi, ts, tiles_x, first_row, spans, number, cursor, entr
             at += 1
 
 
-GATHER_AHEAD = 16           # rows ahead whose source gather() starts loading
+GATHER_AHEAD = 16  # rows ahead whose source gather() starts loading
 
 
 @njit
@@ -340,6 +383,7 @@ def gather(rows, lo, hi, records, bbox, r2, index, records_out, bbox_out, r2_out
 
 # compositing --------------------------------------------------------------------------------------
 
+
 def exp_constants(dtype):
     """Constants of the compositor in its working precision (scalars read from an array of that
     dtype keep the pixel loop in it): the Taylor terms 1/2! .. 1/7!, the limits log(1/255),
@@ -354,18 +398,53 @@ def exp_constants(dtype):
 # of a pixel would fall in the same cache set.)
 MAX_PIXELS = MAX_TILE_SIZE * MAX_TILE_SIZE
 STRIDE = MAX_PIXELS + 16
-CHANNELS = ("trans", "r", "g", "b", "z", "w", "count", "peak", "layer_depth", "layer_keep", "layer_t", "x_offset", "y_offset")
+CHANNELS = (
+    "trans",
+    "r",
+    "g",
+    "b",
+    "z",
+    "w",
+    "count",
+    "peak",
+    "layer_depth",
+    "layer_keep",
+    "layer_t",
+    "x_offset",
+    "y_offset",
+)
 R_, G_, B_, Z_, W_, N_, PK, LD, LK, LT, EX, EY = (np.uint64(k * STRIDE) for k in range(1, len(CHANNELS)))
-PREFETCH = 8                # entries ahead whose record and box the compositor starts loading
-ALIVE_CHECK = 8             # entries between checks for the tile rows whose every pixel has stopped
-LANES = 8                   # tile rows are padded to a multiple of this many pixels (a vector of
-                            # float32), so an entry's rows are whole vectors
+PREFETCH = 8  # entries ahead whose record and box the compositor starts loading
+ALIVE_CHECK = 8  # entries between checks for the tile rows whose every pixel has stopped
+LANES = 8  # tile rows are padded to a multiple of this many pixels (a vector of
+# float32), so an entry's rows are whole vectors
 
 
 @njit(contract=True)
-def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x, width, height,
-                    t_min, k, color, weight, depth, counts, peaks, layer_depth, layer_keep, layer_t,
-                    gather_image, entry_sums):
+def composite_tiles(
+    tiles,
+    offsets,
+    entry_splat,
+    rec64,
+    rec32,
+    bbox,
+    ts,
+    tiles_x,
+    width,
+    height,
+    t_min,
+    k,
+    color,
+    weight,
+    depth,
+    counts,
+    peaks,
+    layer_depth,
+    layer_keep,
+    layer_t,
+    gather_image,
+    entry_sums,
+):
     """Composite every tile in `tiles` front to back and write its pixels into the image arrays
     color (H,W,3), weight (H,W) = sum of T alpha, depth (H,W) = sum of T alpha z; counts (H,W)
     and peaks (entries,) = each entry's largest T alpha are written when they are not empty.
@@ -390,11 +469,11 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     e2, e3, e4, e5, e6, e7 = k[0], k[1], k[2], k[3], k[4], k[5]
     log_min, log_max, floor, sixteenth = k[6], k[7], k[8], k[9]
     one, zero, tmin = typ(1.0), typ(0.0), typ(t_min)
-    row_len = -(-ts // LANES) * LANES          # a tile row, padded
+    row_len = -(-ts // LANES) * LANES  # a tile row, padded
     pixels = ts * row_len
     st = np.zeros(len(CHANNELS) * STRIDE, k.dtype)
     centre = ts / 2.0
-    for p in range(pixels):                     # each pixel's x and y offsets from the tile centre
+    for p in range(pixels):  # each pixel's x and y offsets from the tile centre
         st[np.uint64(p) + EX] = typ(p % row_len + 0.5 - centre)
         st[np.uint64(p) + EY] = typ(p // row_len + 0.5 - centre)
     want_counts = counts.size > 0
@@ -402,7 +481,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
     use_layer = layer_t.size > 0
     want_gather = entry_sums.size > 0
     n_gather = gather_image.shape[2]
-    tile_image = np.zeros((pixels, n_gather))    # the tile's gather image, 0 beyond the image edge
+    tile_image = np.zeros((pixels, n_gather))  # the tile's gather image, 0 beyond the image edge
     far = typ(np.inf)
     evaluated = 0
     for t in tiles:
@@ -413,7 +492,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
             inside = p % row_len < tw and p // row_len < th
             st[up] = one if inside else zero
             st[up + R_], st[up + G_], st[up + B_], st[up + Z_], st[up + W_], st[up + N_] = 0, 0, 0, 0, 0, 0
-        near = far                              # the nearest layer depth a pixel still waits for
+        near = far  # the nearest layer depth a pixel still waits for
         if use_layer:
             for p in range(pixels):
                 up = np.uint64(p)
@@ -421,7 +500,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                 inside = col < tw and row < th
                 st[up + LD] = typ(layer_depth[ty0 + row, tx0 + col]) if inside else far
                 st[up + LK] = typ(layer_keep[ty0 + row, tx0 + col]) if inside else one
-                st[up + LT] = -one                 # still waiting
+                st[up + LT] = -one  # still waiting
                 near = min(near, st[up + LD])
         if want_gather:
             for row in range(th):
@@ -430,7 +509,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                         tile_image[row * row_len + col, ch] = gather_image[ty0 + row, tx0 + col, ch]
         cx, cy = tx0 + centre, ty0 + centre
         first, last = offsets[t], offsets[t + 1]
-        top, bottom = 0, th - 1                 # the rows with pixels still going
+        top, bottom = 0, th - 1  # the rows with pixels still going
         for e in range(first, last):
             if t_min > 0 and (e - first) % ALIVE_CHECK == ALIVE_CHECK - 1:
                 while top <= bottom and not _row_alive(st, top, row_len):
@@ -450,7 +529,7 @@ def composite_tiles(tiles, offsets, entry_splat, rec64, rec32, bbox, ts, tiles_x
                 continue
             u, v, a, b, c = rec64[s, 0], rec64[s, 1], rec64[s, 2], rec64[s, 3], rec64[s, 4]
             cz = typ(rec32[s, 14])
-            if use_layer and cz >= near:         # some pixels meet the layer before this entry
+            if use_layer and cz >= near:  # some pixels meet the layer before this entry
                 near = far
                 for p in range(pixels):
                     up = np.uint64(p)

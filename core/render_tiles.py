@@ -21,10 +21,10 @@ class Projected:
     log opacity, r, g, b, camera z and 1. The last record is padding whose alpha is exactly 0.
     """
 
-    index: np.ndarray       # (n,) index into the input cloud
-    records: np.ndarray     # (n+1, 8) float64, laid out as above
-    r2: np.ndarray          # (n,) squared Mahalanobis extent: alpha >= 1/255 inside
-    bbox: np.ndarray        # (n, 4) int64 inclusive pixel box x0, y0, x1, y1 (clipped to the image)
+    index: np.ndarray  # (n,) index into the input cloud
+    records: np.ndarray  # (n+1, 8) float64, laid out as above
+    r2: np.ndarray  # (n,) squared Mahalanobis extent: alpha >= 1/255 inside
+    bbox: np.ndarray  # (n, 4) int64 inclusive pixel box x0, y0, x1, y1 (clipped to the image)
     skipped_nonfinite: int
 
     def __len__(self):
@@ -36,14 +36,13 @@ class Projected:
         return self.records[:, :5]
 
 
-
 def new_records(n):
     """Room for n records plus the padding record, each record on one cache line (64-byte aligned:
     NumPy's large arrays start 16 bytes past a page, which would put every record across two)."""
     raw = np.zeros((n + 2) * 64, np.uint8)
     start = -raw.ctypes.data % 64
-    rec = raw[start:start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
-    record_floats(rec[n:])[:, 0] = -1e30          # padding: exp(-1e30) = 0
+    rec = raw[start : start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
+    record_floats(rec[n:])[:, 0] = -1e30  # padding: exp(-1e30) = 0
     return rec
 
 
@@ -54,14 +53,20 @@ def record_floats(records):
 
 # screen geometry, shared with the backward pass ---------------------------------------------------
 
+
 def _dot3(p, q):
     return p[:, 0] * q[:, 0] + p[:, 1] * q[:, 1] + p[:, 2] * q[:, 2]
 
 
 def _cross3(p, q):
-    return np.stack([p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
-                     p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
-                     p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]], axis=1)
+    return np.stack(
+        [
+            p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
+            p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
+            p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0],
+        ],
+        axis=1,
+    )
 
 
 def screen_covariance(m0, m1, rs):
@@ -78,8 +83,10 @@ def clamped_ratios(tx, ty, camera):
     fov) around the centre; with an off-centre principal point the same 30% margin is kept beyond
     each image edge."""
     mx, my = (FRUSTUM_MARGIN - 1) / 2 * camera.width, (FRUSTUM_MARGIN - 1) / 2 * camera.height
-    return (np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx),
-            np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy))
+    return (
+        np.minimum(np.maximum(tx, (-camera.cx - mx) / camera.fx), (camera.width - camera.cx + mx) / camera.fx),
+        np.minimum(np.maximum(ty, (-camera.cy - my) / camera.fy), (camera.height - camera.cy + my) / camera.fy),
+    )
 
 
 def screen_rows(cam, camera):
@@ -104,13 +111,14 @@ def screen_rows(cam, camera):
 
 # tile binning ---------------------------------------------------------------------------------
 
+
 @dataclass
 class Bins:
     tile_size: int
     tiles_x: int
     tiles_y: int
-    entry_splat: np.ndarray     # (E,) splat per entry, grouped by tile, front to back within a tile
-    offsets: np.ndarray         # (tiles+1,) entries of tile t are entry_splat[offsets[t]:offsets[t+1]]
+    entry_splat: np.ndarray  # (E,) splat per entry, grouped by tile, front to back within a tile
+    offsets: np.ndarray  # (tiles+1,) entries of tile t are entry_splat[offsets[t]:offsets[t+1]]
 
     @property
     def n_tiles(self):
@@ -130,12 +138,13 @@ def bin_tiles(proj, camera, tile_size, pool=None):
     n_tiles = tiles_x * tiles_y
     n = len(proj)
     bounds = np.linspace(0, n, 2 * pool.threads + 1 if n > 10000 else 2).astype(np.int64)
-    parts = pool.map(lambda k: _bin_chunk(proj, bounds[k], bounds[k + 1], ts, tiles_x, n_tiles),
-                     list(range(len(bounds) - 1)))
-    counts = np.stack([c for _, c in parts])                      # (chunks, tiles)
+    parts = pool.map(
+        lambda k: _bin_chunk(proj, bounds[k], bounds[k + 1], ts, tiles_x, n_tiles), list(range(len(bounds) - 1))
+    )
+    counts = np.stack([c for _, c in parts])  # (chunks, tiles)
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     np.cumsum(counts.sum(axis=0), out=offsets[1:])
-    starts = offsets[:-1] + np.cumsum(counts, axis=0) - counts     # where each chunk's run begins
+    starts = offsets[:-1] + np.cumsum(counts, axis=0) - counts  # where each chunk's run begins
     entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
 
     def place(k):
@@ -176,9 +185,9 @@ def _row_extent(proj, ids, rows, row, ts):
     u, v, a, b, c = proj.mean_conic[ids].T
     r2 = proj.r2[ids]
     det = a * c - b * b
-    sxx = c / det                                           # covariance entries
+    sxx = c / det  # covariance entries
     half_x = np.sqrt(r2 * sxx)
-    peak = np.sqrt(r2 / sxx) * (-b / det)                  # dy of the rightmost point (leftmost: -peak)
+    peak = np.sqrt(r2 / sxx) * (-b / det)  # dy of the rightmost point (leftmost: -peak)
     box = proj.bbox[ids]
     u, v, a, b, r2, det, half_x, peak = (np.repeat(x, rows) for x in (u, v, a, b, r2, det, half_x, peak))
     box = np.repeat(box, rows, axis=0)

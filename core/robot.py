@@ -27,6 +27,7 @@ SPHERE_RINGS = 24
 class SplatRobot:
     """tree: the KinematicTree; cloud: the splats at the zero configuration, in the world (the
     tree's root frame); links: (N,) the link index of each splat; name: the robot's name."""
+
     tree: object
     cloud: object
     links: np.ndarray
@@ -44,6 +45,7 @@ class SplatRobot:
         """The rest splats as core.collision.Gaussians with their links: for overlap_at and
         pose_robot."""
         from .collision import Gaussians
+
         return Gaussians.from_cloud(self.cloud, opacity_weights, links=self.links, name="robot")
 
 
@@ -56,14 +58,23 @@ def splat_robot(tree, parts, max_splats=DEFAULT_SPLATS, target_psnr=None, name="
     meshes, face_links = [], []
     for link, mesh, origin in parts:
         m = rest[link] @ np.asarray(origin, np.float64)
-        meshes.append(Mesh(mesh.vertices @ m[:3, :3].T + m[:3, 3], mesh.faces, mesh.corner_uvs, mesh.face_materials,
-                           mesh.materials, mesh.corner_colors))
+        meshes.append(
+            Mesh(
+                mesh.vertices @ m[:3, :3].T + m[:3, 3],
+                mesh.faces,
+                mesh.corner_uvs,
+                mesh.face_materials,
+                mesh.materials,
+                mesh.corner_colors,
+            )
+        )
         face_links.append(np.full(len(mesh.faces), link, np.int32))
     whole = join_meshes(meshes)
     # A budget stays on the surfaces (no silhouette calibration) unless asked: contacts use the splats.
     options.setdefault("calibrate", False)
-    cloud = mesh_to_splats(whole.vertices, whole.faces, **whole.appearance(), max_splats=max_splats,
-                           target_psnr=target_psnr, **options)
+    cloud = mesh_to_splats(
+        whole.vertices, whole.faces, **whole.appearance(), max_splats=max_splats, target_psnr=target_psnr, **options
+    )
     links = np.concatenate(face_links)[cloud.extras["source_triangle"]]
     cloud.extras = {"link": links.astype(np.int32)}
     return SplatRobot(tree, cloud, links.astype(np.int64), name)
@@ -85,14 +96,19 @@ def join_meshes(meshes):
         fm = np.zeros(f, np.int64) if m.face_materials is None else np.asarray(m.face_materials, np.int64)
         face_materials.append(fm + o)
         materials += list(m.materials) or [Material(name="default")]
-    return Mesh(np.concatenate([m.vertices for m in meshes]), np.concatenate(faces),
-                np.concatenate(uvs) if any_uv else None, np.concatenate(face_materials), materials,
-                np.concatenate(colors) if any_color else None)
+    return Mesh(
+        np.concatenate([m.vertices for m in meshes]),
+        np.concatenate(faces),
+        np.concatenate(uvs) if any_uv else None,
+        np.concatenate(face_materials),
+        materials,
+        np.concatenate(colors) if any_color else None,
+    )
 
 
 def _corner_colors(mesh):
     c = np.asarray(mesh.corner_colors, np.float64)
-    if c.ndim == 2:                                  # per vertex -> per corner
+    if c.ndim == 2:  # per vertex -> per corner
         c = c[mesh.faces]
     return c[:, :, :3]
 
@@ -102,9 +118,10 @@ def visual_mesh(geometry, size=(), mesh=None, scale=(1.0, 1.0, 1.0), color=None)
     `mesh` scaled by `scale`; `color` (scene-linear RGB) replaces the materials' colours."""
     if geometry == "mesh":
         scale = np.asarray(scale, np.float64)
-        faces = mesh.faces if np.prod(scale) > 0 else mesh.faces[:, ::-1]       # a mirror flips winding
-        out = Mesh(mesh.vertices * scale, faces, mesh.corner_uvs, mesh.face_materials, mesh.materials,
-                   mesh.corner_colors)
+        faces = mesh.faces if np.prod(scale) > 0 else mesh.faces[:, ::-1]  # a mirror flips winding
+        out = Mesh(
+            mesh.vertices * scale, faces, mesh.corner_uvs, mesh.face_materials, mesh.materials, mesh.corner_colors
+        )
     else:
         vertices, faces = primitive(geometry, size)
         out = Mesh(vertices, faces)
@@ -127,28 +144,41 @@ def primitive(kind, size):
         n = CYLINDER_SEGMENTS
         angle = 2 * np.pi * np.arange(n) / n
         ring = np.column_stack([radius * np.cos(angle), radius * np.sin(angle)])
-        vertices = np.concatenate([np.column_stack([ring, np.full(n, -length / 2)]),
-                                   np.column_stack([ring, np.full(n, length / 2)]),
-                                   [[0, 0, -length / 2], [0, 0, length / 2]]])
+        vertices = np.concatenate(
+            [
+                np.column_stack([ring, np.full(n, -length / 2)]),
+                np.column_stack([ring, np.full(n, length / 2)]),
+                [[0, 0, -length / 2], [0, 0, length / 2]],
+            ]
+        )
         k, k1 = np.arange(n), (np.arange(n) + 1) % n
         side = np.concatenate([np.column_stack([k, k1, k1 + n]), np.column_stack([k, k1 + n, k + n])])
-        caps = np.concatenate([np.column_stack([np.full(n, 2 * n), k1, k]),
-                               np.column_stack([np.full(n, 2 * n + 1), k + n, k1 + n])])
+        caps = np.concatenate(
+            [np.column_stack([np.full(n, 2 * n), k1, k]), np.column_stack([np.full(n, 2 * n + 1), k + n, k1 + n])]
+        )
         return vertices, np.concatenate([side, caps])
     if kind == "sphere":
         (radius,) = size
         rings, n = SPHERE_RINGS, 2 * SPHERE_RINGS
         theta = np.pi * np.arange(1, rings) / rings
         phi = 2 * np.pi * np.arange(n) / n
-        body = np.stack([np.outer(np.sin(theta), np.cos(phi)), np.outer(np.sin(theta), np.sin(phi)),
-                         np.outer(np.cos(theta), np.ones(n))], axis=-1).reshape(-1, 3)
+        body = np.stack(
+            [
+                np.outer(np.sin(theta), np.cos(phi)),
+                np.outer(np.sin(theta), np.sin(phi)),
+                np.outer(np.cos(theta), np.ones(n)),
+            ],
+            axis=-1,
+        ).reshape(-1, 3)
         vertices = radius * np.concatenate([[[0, 0, 1]], body, [[0, 0, -1]]])
         ring = lambda r: 1 + r * n + np.arange(n)
         nxt = lambda r: 1 + r * n + (np.arange(n) + 1) % n
         faces = [np.column_stack([np.zeros(n, int), ring(0), nxt(0)])]
         for r in range(rings - 2):
-            faces += [np.column_stack([ring(r), ring(r + 1), nxt(r + 1)]),
-                      np.column_stack([ring(r), nxt(r + 1), nxt(r)])]
+            faces += [
+                np.column_stack([ring(r), ring(r + 1), nxt(r + 1)]),
+                np.column_stack([ring(r), nxt(r + 1), nxt(r)]),
+            ]
         bottom = len(vertices) - 1
         faces.append(np.column_stack([np.full(n, bottom), nxt(rings - 2), ring(rings - 2)]))
         return vertices, np.concatenate(faces)

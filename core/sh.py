@@ -45,16 +45,32 @@ def truncate(sh, degree):
 
 C1 = 0.4886025119029199
 C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-      -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 # Band 4, m = -4..4, each times its polynomial in basis() (unit x, y, z): the real harmonics with the
 # Condon-Shortley phase (-1)^m that bands 1..3 carry, normalised like them (integral of Y^2 over the
 # sphere is 1). The ordering and signs are gsplat's degree-4 evaluation (sh_coeffs_to_color_fast, from
 # Sloan's "Efficient Spherical Harmonic Evaluation"), whose sign pattern Niantic's SPZ coordinate
 # flips follow too. Closed forms: 3/4 sqrt(35/pi), 3/4 sqrt(35/(2 pi)), 3/4 sqrt(5/pi),
 # 3/4 sqrt(5/(2 pi)), 3/16 sqrt(1/pi), and 3/8 sqrt(5/pi), 3/16 sqrt(35/pi) for m = 2, 4.
-C4 = (2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.6690465435572892, 0.10578554691520431,
-      -0.6690465435572892, 0.47308734787878004, -1.7701307697799304, 0.6258357354491761)
+C4 = (
+    2.5033429417967046,
+    -1.7701307697799304,
+    0.9461746957575601,
+    -0.6690465435572892,
+    0.10578554691520431,
+    -0.6690465435572892,
+    0.47308734787878004,
+    -1.7701307697799304,
+    0.6258357354491761,
+)
 
 
 def basis(directions, degree, dtype=np.float64):
@@ -73,9 +89,15 @@ def basis(directions, degree, dtype=np.float64):
         xx, yy, zz = x * x, y * y, z * z
         out += [C2[0] * x * y, C2[1] * y * z, C2[2] * (2 * zz - xx - yy), C2[3] * x * z, C2[4] * (xx - yy)]
     if degree >= 3:
-        out += [C3[0] * y * (3 * xx - yy), C3[1] * x * y * z, C3[2] * y * (4 * zz - xx - yy),
-                C3[3] * z * (2 * zz - 3 * xx - 3 * yy), C3[4] * x * (4 * zz - xx - yy),
-                C3[5] * z * (xx - yy), C3[6] * x * (xx - 3 * yy)]
+        out += [
+            C3[0] * y * (3 * xx - yy),
+            C3[1] * x * y * z,
+            C3[2] * y * (4 * zz - xx - yy),
+            C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            C3[4] * x * (4 * zz - xx - yy),
+            C3[5] * z * (xx - yy),
+            C3[6] * x * (xx - 3 * yy),
+        ]
     if degree >= 4:
         out += _band4(x, y, z)
     return np.stack(out, axis=-1)
@@ -85,10 +107,17 @@ def _band4(x, y, z):
     """The nine degree-4 basis functions (m = -4..4) at unit x, y, z."""
     xx, yy, zz = x * x, y * y, z * z
     xy, yz, xz = x * y, y * z, x * z
-    return [C4[0] * xy * (xx - yy), C4[1] * yz * (3 * xx - yy), C4[2] * xy * (7 * zz - 1),
-            C4[3] * yz * (7 * zz - 3), C4[4] * (zz * (35 * zz - 30) + 3), C4[5] * xz * (7 * zz - 3),
-            C4[6] * (xx - yy) * (7 * zz - 1), C4[7] * xz * (xx - 3 * yy),
-            C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy))]
+    return [
+        C4[0] * xy * (xx - yy),
+        C4[1] * yz * (3 * xx - yy),
+        C4[2] * xy * (7 * zz - 1),
+        C4[3] * yz * (7 * zz - 3),
+        C4[4] * (zz * (35 * zz - 30) + 3),
+        C4[5] * xz * (7 * zz - 3),
+        C4[6] * (xx - yy) * (7 * zz - 1),
+        C4[7] * xz * (xx - 3 * yy),
+        C4[8] * (xx * (xx - 3 * yy) - yy * (3 * xx - yy)),
+    ]
 
 
 def _band4_gradient(w, x, y, z):
@@ -96,12 +125,33 @@ def _band4_gradient(w, x, y, z):
     xx, yy, zz = x * x, y * y, z * z
     a, b, c, e, f, g, h, k, m = (C4[i] * w[..., 16 + i] for i in range(9))
     seven1, seven3 = 7 * zz - 1, 7 * zz - 3
-    gx = a * y * (3 * xx - yy) + 6 * b * x * y * z + c * y * seven1 + g * z * seven3 + 2 * h * x * seven1 \
-        + 3 * k * z * (xx - yy) + 4 * m * x * (xx - 3 * yy)
-    gy = a * x * (xx - 3 * yy) + 3 * b * z * (xx - yy) + c * x * seven1 + e * z * seven3 - 2 * h * y * seven1 \
-        - 6 * k * x * y * z + 4 * m * y * (yy - 3 * xx)
-    gz = b * y * (3 * xx - yy) + 14 * c * x * y * z + e * y * (21 * zz - 3) + f * z * (140 * zz - 60) \
-        + g * x * (21 * zz - 3) + 14 * h * z * (xx - yy) + k * x * (xx - 3 * yy)
+    gx = (
+        a * y * (3 * xx - yy)
+        + 6 * b * x * y * z
+        + c * y * seven1
+        + g * z * seven3
+        + 2 * h * x * seven1
+        + 3 * k * z * (xx - yy)
+        + 4 * m * x * (xx - 3 * yy)
+    )
+    gy = (
+        a * x * (xx - 3 * yy)
+        + 3 * b * z * (xx - yy)
+        + c * x * seven1
+        + e * z * seven3
+        - 2 * h * y * seven1
+        - 6 * k * x * y * z
+        + 4 * m * y * (yy - 3 * xx)
+    )
+    gz = (
+        b * y * (3 * xx - yy)
+        + 14 * c * x * y * z
+        + e * y * (21 * zz - 3)
+        + f * z * (140 * zz - 60)
+        + g * x * (21 * zz - 3)
+        + 14 * h * z * (xx - yy)
+        + k * x * (xx - 3 * yy)
+    )
     return gx, gy, gz
 
 
@@ -127,14 +177,30 @@ def basis_gradient(weights, directions):
         gz = gz + b * y + 4 * c * z + e * x
     if degree >= 3:
         a, b, c, e, f, g, h = (C3[i] * w[..., 9 + i] for i in range(7))
-        gx = gx + 6 * a * x * y + b * y * z - 2 * c * x * y - 6 * e * x * z + f * (4 * zz - 3 * xx - yy) \
-            + 2 * g * x * z + 3 * h * (xx - yy)
-        gy = gy + 3 * a * (xx - yy) + b * x * z + c * (4 * zz - xx - 3 * yy) - 6 * e * y * z - 2 * f * x * y \
-            - 2 * g * y * z - 6 * h * x * y
+        gx = (
+            gx
+            + 6 * a * x * y
+            + b * y * z
+            - 2 * c * x * y
+            - 6 * e * x * z
+            + f * (4 * zz - 3 * xx - yy)
+            + 2 * g * x * z
+            + 3 * h * (xx - yy)
+        )
+        gy = (
+            gy
+            + 3 * a * (xx - yy)
+            + b * x * z
+            + c * (4 * zz - xx - 3 * yy)
+            - 6 * e * y * z
+            - 2 * f * x * y
+            - 2 * g * y * z
+            - 6 * h * x * y
+        )
         gz = gz + b * x * y + 8 * c * y * z + e * (6 * zz - 3 * xx - 3 * yy) + 8 * f * x * z + g * (xx - yy)
     if degree >= 4:
         gx, gy, gz = (g + g4 for g, g4 in zip((gx, gy, gz), _band4_gradient(w, x, y, z)))
-    grad = np.stack([gx, gy, gz], axis=-1)        # d/du
+    grad = np.stack([gx, gy, gz], axis=-1)  # d/du
     return (grad - (grad * u).sum(-1, keepdims=True) * u) / norm
 
 
@@ -175,7 +241,7 @@ def colors(sh, directions):
 # m = 1..l, then m = -1..-l.
 
 _ORTHOGONALITY_TOLERANCE = 1e-4
-_CHUNK = 1 << 13        # splats per work item: keeps the float64 temporaries in cache
+_CHUNK = 1 << 13  # splats per work item: keeps the float64 temporaries in cache
 
 
 def _band_rows(l):
@@ -185,8 +251,7 @@ def _band_rows(l):
 
 def _working_order(degree):
     """3DGS indices of the coefficients, in the order of the work array's rows."""
-    return np.array([l * l + l + m for l in range(degree + 1)
-                     for m in [0, *range(1, l + 1), *range(-1, -l - 1, -1)]])
+    return np.array([l * l + l + m for l in range(degree + 1) for m in [0, *range(1, l + 1), *range(-1, -l - 1, -1)]])
 
 
 def _sphere_samples(count):
@@ -205,7 +270,7 @@ def fitted_rotation_matrix(rotation, degree, samples=64):
     fast closed form. Used for the constant X and as an independent reference.
     """
     dirs = _sphere_samples(samples)
-    rotated = dirs @ np.asarray(rotation, dtype=np.float64)        # rows are R^T d
+    rotated = dirs @ np.asarray(rotation, dtype=np.float64)  # rows are R^T d
     return np.linalg.lstsq(basis(dirs, degree), basis(rotated, degree), rcond=None)[0]
 
 
@@ -237,7 +302,7 @@ def _euler_angles(r):
     a+g, a-g has the factor >= 1, so every angle is accurate to round-off even where s is tiny.
     Returns ((cos a, sin a), (cos b, sin b), (cos g, sin g)).
     """
-    cb, sb = r[2][2], np.sqrt(r[0][2] ** 2 + r[1][2] ** 2)        # entries are at most 1: no overflow
+    cb, sb = r[2][2], np.sqrt(r[0][2] ** 2 + r[1][2] ** 2)  # entries are at most 1: no overflow
     safe = np.where(sb > 0, sb, 1.0)
     ca, sa = r[0][2] / safe + (sb == 0), r[1][2] / safe
     # e^{i(a+g)} where c >= 0, else e^{i(a-g)}; then g = (a+g) - a, or g = a - (a-g).
@@ -265,7 +330,7 @@ def _spin(work, angle, degree):
     cos, sin = _multiples(angle, degree)
     for l in range(1, degree + 1):
         band = work[_band_rows(l)]
-        plus, minus = band[1:l + 1], band[l + 1:]
+        plus, minus = band[1 : l + 1], band[l + 1 :]
         c, s = cos[:l], sin[:l]
         minus_sin = minus * s
         plus_sin = plus * s
@@ -322,7 +387,7 @@ def _rotate_each(coeffs, rot, out):
     deviation = np.zeros(len(rot))
 
     def work(start, stop):
-        r = np.ascontiguousarray(np.moveaxis(rot[start:stop], 0, -1))     # r[i][j] is (n,)
+        r = np.ascontiguousarray(np.moveaxis(rot[start:stop], 0, -1))  # r[i][j] is (n,)
         deviation[start:stop] = _orthogonality_error(r)
         if degree == 0:
             out[start:stop] = coeffs[start:stop]
@@ -331,7 +396,7 @@ def _rotate_each(coeffs, rot, out):
         w = np.empty((len(order), coeffs.shape[2], stop - start))
         for row, k in enumerate(order):
             w[row] = coeffs[start:stop, k].T
-        with np.errstate(invalid="ignore", divide="ignore"):      # bad matrices are reported below
+        with np.errstate(invalid="ignore", divide="ignore"):  # bad matrices are reported below
             w = _rotate_working(w, _euler_angles(r * sign), degree)
         if (sign < 0).any():
             for l in range(1, degree + 1, 2):
@@ -341,10 +406,12 @@ def _rotate_each(coeffs, rot, out):
     in_chunks(len(coeffs), work, _CHUNK)
     bad = ~(deviation <= _ORTHOGONALITY_TOLERANCE)
     if bad.any():
-        raise ValueError(f"rotation must be orthogonal: {int(bad.sum())} of {len(rot)} matrices are not "
-                         f"(largest |R R^T - I| is {np.nanmax(np.where(bad, deviation, 0)):.3g}"
-                         f"{', some are not finite' if np.isnan(deviation).any() else ''}); "
-                         "geometry.polar_decomposition gives the rotation of a general matrix")
+        raise ValueError(
+            f"rotation must be orthogonal: {int(bad.sum())} of {len(rot)} matrices are not "
+            f"(largest |R R^T - I| is {np.nanmax(np.where(bad, deviation, 0)):.3g}"
+            f"{', some are not finite' if np.isnan(deviation).any() else ''}); "
+            "geometry.polar_decomposition gives the rotation of a general matrix"
+        )
     return out
 
 

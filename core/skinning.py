@@ -35,7 +35,8 @@ from typing import Annotated
 import numpy as np
 from numpy.typing import NDArray
 
-from . import geometry, sh as shmod
+from . import geometry
+from . import sh as shmod
 from .arrays import ArrayLike, Floats, Matrices4, Positions, Weights
 from .parallel import in_chunks
 from .splats import SplatCloud
@@ -49,8 +50,8 @@ MIN_TOTAL_WEIGHT = 1e-4
 # (a stretch of 1e-3) 260 times above it, and treating such a bone as rigid moves a covariance by at most
 # 2 x 32 eps relative, below the 1e-5 to which Blender's own float32 skinning matches ours.
 RIGID_TOLERANCE = 32 * float(np.finfo(np.float32).eps)
-_POLAR_TOLERANCE = 1e-7      # the blended matrices' polar rotations to ~1e-12: far below float32 output
-_CHUNK = 1 << 14              # splats per work item: float64 temporaries stay in cache
+_POLAR_TOLERANCE = 1e-7  # the blended matrices' polar rotations to ~1e-12: far below float32 output
+_CHUNK = 1 << 14  # splats per work item: float64 temporaries stay in cache
 
 
 class SkinningError(ValueError):
@@ -58,6 +59,7 @@ class SkinningError(ValueError):
 
 
 # binding ------------------------------------------------------------------------------------------
+
 
 @dataclass(eq=False)
 class Binding:
@@ -79,8 +81,9 @@ class Binding:
         if self.pruned is None:
             self.pruned = np.zeros(len(self.weights), np.float32)
         if self.indices.ndim != 2 or self.indices.shape != self.weights.shape:
-            raise SkinningError(f"binding indices {self.indices.shape} and weights {self.weights.shape} "
-                                "must both have shape (N, k)")
+            raise SkinningError(
+                f"binding indices {self.indices.shape} and weights {self.weights.shape} must both have shape (N, k)"
+            )
 
     def __len__(self):
         return len(self.weights)
@@ -90,8 +93,9 @@ class Binding:
         return self.weights.shape[1]
 
     @classmethod
-    def from_weights(cls, indices: ArrayLike, weights: ArrayLike, max_influences: int | None = None,
-                     tolerance: float = 1e-6) -> "Binding":
+    def from_weights(
+        cls, indices: ArrayLike, weights: ArrayLike, max_influences: int | None = None, tolerance: float = 1e-6
+    ) -> "Binding":
         """Normalise and prune per-splat (bone index, weight) lists of any width m.
 
         Weights below `tolerance` times their splat's total are dropped, then all but the
@@ -119,8 +123,7 @@ class Binding:
         k = weights.shape[1] if max_influences is None else max(1, min(max_influences, weights.shape[1]))
         top = np.sort(np.argpartition(-weights, k - 1, axis=1)[:, :k], axis=1) if k < weights.shape[1] else bones
         # The totals come from every bone, so what the influence limit drops counts as pruned.
-        return cls._build(top, np.take_along_axis(weights, top, axis=1), weights.sum(axis=1),
-                          max_influences, tolerance)
+        return cls._build(top, np.take_along_axis(weights, top, axis=1), weights.sum(axis=1), max_influences, tolerance)
 
     @classmethod
     def _build(cls, indices, weights, total, max_influences, tolerance):
@@ -135,7 +138,7 @@ class Binding:
             keep_ranked[:, max_influences:] = False
         keep = np.zeros_like(keep_ranked)
         np.put_along_axis(keep, by_weight, keep_ranked, axis=1)
-        order = np.argsort(~keep, axis=1, kind="stable")          # kept ones first, in given order
+        order = np.argsort(~keep, axis=1, kind="stable")  # kept ones first, in given order
         width = max(int(keep.sum(axis=1).max(initial=0)), 1)
         order = order[:, :width]
         keep = np.take_along_axis(keep, order, axis=1)
@@ -172,8 +175,9 @@ class Binding:
             raise SkinningError(f"binding has {len(self)} rows for {n_splats} splats")
         used = self.weights > 0
         if used.any() and (self.indices[used].max() >= n_bones or self.indices[used].min() < 0):
-            raise SkinningError(f"binding refers to bone {int(self.indices[used].max())} "
-                                f"but the pose has {n_bones} bones")
+            raise SkinningError(
+                f"binding refers to bone {int(self.indices[used].max())} but the pose has {n_bones} bones"
+            )
 
 
 def _check_weights(indices, weights):
@@ -191,6 +195,7 @@ def _check_weights(indices, weights):
 
 
 # pose ---------------------------------------------------------------------------------------------
+
 
 def deform_matrices(rest: Matrices4, pose: Matrices4) -> Matrices4:
     """Blender's skinning matrices pose @ inverse(rest) for (B,4,4) rest and pose bone matrices
@@ -244,7 +249,7 @@ def _check_matrices(name, m):
 
 # Per-splat work is done on component-first arrays (components, n): every gather and product
 # then runs over contiguous rows, several times faster than on (n, 3, 4) stacks.
-_LINEAR = [0, 1, 2, 4, 5, 6, 8, 9, 10]          # the 3x3 part of a flattened 3x4 affine
+_LINEAR = [0, 1, 2, 4, 5, 6, 8, 9, 10]  # the 3x3 part of a flattened 3x4 affine
 _IDENTITY12 = np.eye(3, 4).reshape(12, 1)
 
 
@@ -255,21 +260,26 @@ def _lbs_bones(deform):
     rigid = np.abs(stretch - np.eye(3)).max(axis=(1, 2)) <= RIGID_TOLERANCE
     stretch[rigid] = np.eye(3)
     sign = np.where(geometry.determinants(rotation) < 0, -1.0, 1.0)[:, None, None]
-    return {"affine": _rows(deform[:, :3, :4]), "rotation": rotation, "stretch": _rows(stretch),
-            "scales": ~rigid, "quat": _rows(geometry.matrices_to_quaternions(sign * rotation))}
+    return {
+        "affine": _rows(deform[:, :3, :4]),
+        "rotation": rotation,
+        "stretch": _rows(stretch),
+        "scales": ~rigid,
+        "quat": _rows(geometry.matrices_to_quaternions(sign * rotation)),
+    }
 
 
 def _dqs_bones(deform, rest):
     """Per bone, Blender's split of a deform matrix into a dual quaternion and a scale matrix."""
     lin = deform[:, :3, :3]
-    base = deform @ rest                                    # the posed bone frame, scale included
-    sizes = np.linalg.norm(base[:, :3, :3], axis=1)         # column lengths
+    base = deform @ rest  # the posed bone frame, scale included
+    sizes = np.linalg.norm(base[:, :3, :3], axis=1)  # column lengths
     off = np.abs(np.swapaxes(lin, 1, 2) @ lin - np.eye(3)).max(axis=(1, 2))
     scaled = (off > 1e-6) | (geometry.determinants(lin) < 0) | (((sizes - 1.0) ** 2).sum(axis=1) > 1e-8)
     rigid = deform.copy()
     scale = np.broadcast_to(np.eye(4), deform.shape).copy()
     if scaled.any():
-        base_r = _orthonormal_keep_y(base[scaled])           # Blender keeps the bone's Y axis
+        base_r = _orthonormal_keep_y(base[scaled])  # Blender keeps the bone's Y axis
         rest_inv = np.linalg.inv(rest[scaled])
         rigid[scaled] = base_r @ rest_inv
         scale[scaled] = rest[scaled] @ np.linalg.inv(base_r) @ base[scaled] @ rest_inv
@@ -292,10 +302,10 @@ def _orthonormal_keep_y(m):
     """Rigid transforms with the rotation rebuilt around each matrix's Y column (as Blender's
     orthogonalize_m4(m, 1)) and the translation kept."""
     x, y = m[:, :3, 0], _normalize_columns(m[:, :3, 1:2])[:, :, 0]
-    y[np.linalg.norm(y, axis=1) == 0] = [0.0, 1.0, 0.0]      # a bone scaled to nothing along Y
+    y[np.linalg.norm(y, axis=1) == 0] = [0.0, 1.0, 0.0]  # a bone scaled to nothing along Y
     z = np.cross(x, y)
     degenerate = np.linalg.norm(z, axis=1) < 1e-12
-    if degenerate.any():                                     # X along Y: any perpendicular will do
+    if degenerate.any():  # X along Y: any perpendicular will do
         helper = np.where(np.abs(y[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
         z[degenerate] = np.cross(helper, y)[degenerate]
     z /= np.linalg.norm(z, axis=1, keepdims=True)
@@ -306,6 +316,7 @@ def _orthonormal_keep_y(m):
 
 
 # component-first helpers --------------------------------------------------------------------------
+
 
 def _pure(v):
     """(3, n) vectors as (4, n) quaternions (0, v)."""
@@ -356,19 +367,20 @@ def _exact_weights(w):
 
 # per-chunk skinning: p (3, n) float64, idx and w (k, n) -------------------------------------------
 
+
 def _lbs_chunk(p, idx, w, m, bones, want_linear):
     """Centres, and (if wanted) the rotation and the covariance map of each splat under LBS; `m` (n,)
     binding strengths or None (all 1)."""
     w, bound = _exact_weights(w)
     blended = _blend(bones["affine"], idx, w)
-    blended[:, ~bound] = _IDENTITY12                         # unbound splats stay where they are
-    if m is not None:                                        # the identity as an influence of weight 1 - m
+    blended[:, ~bound] = _IDENTITY12  # unbound splats stay where they are
+    if m is not None:  # the identity as an influence of weight 1 - m
         blended = m * blended + (1.0 - m) * _IDENTITY12
     centres = _apply(blended, p)
     if not want_linear:
         return centres, None
     linear_part = _matrices(blended[_LINEAR])
-    multi = w[0] != 1.0                                      # kept influences come first
+    multi = w[0] != 1.0  # kept influences come first
     if m is not None:
         multi |= m != 1.0
     if multi.all():
@@ -417,16 +429,16 @@ def _dqs_chunk(p, idx, w, m, bones, want_linear):
         real += signed * q
         dual += signed * d
     norm2 = np.einsum("in,in->n", real, real)
-    unbound = norm2 == 0.0                                   # all weights zero: stays in place
+    unbound = norm2 == 0.0  # all weights zero: stays in place
     real[0, unbound], norm2[unbound] = 1.0, 1.0
     unit = real / np.sqrt(norm2)
     conj = real * np.array([[1.0], [-1.0], [-1.0], [-1.0]])
     centres = _qrotate(unit, p) + 2.0 * _qmul(dual, conj)[1:] / norm2
-    if m is not None:                                       # Blender: co + m (posed - co)
+    if m is not None:  # Blender: co + m (posed - co)
         centres = p + m * (centres - p)
     if not want_linear:
         return centres, None
-    if m is not None:                                       # nlerp from the identity, on unit's side
+    if m is not None:  # nlerp from the identity, on unit's side
         unit = m * unit
         unit[0] += np.where(unit[0] < 0, m - 1.0, 1.0 - m)
         unit /= np.linalg.norm(unit, axis=0)
@@ -468,9 +480,12 @@ _MODES = {"lbs": _lbs_chunk, "dqs": _dqs_chunk}
 def _chunk_inputs(positions, binding, strength, a, b):
     """Splats a..b component-first: positions (3, n) float64, indices and weights (k, n), strengths
     (n,) float64 or None."""
-    return (np.ascontiguousarray(positions[a:b].T, dtype=np.float64),
-            np.ascontiguousarray(binding.indices[a:b].T), np.ascontiguousarray(binding.weights[a:b].T),
-            None if strength is None else strength[a:b])
+    return (
+        np.ascontiguousarray(positions[a:b].T, dtype=np.float64),
+        np.ascontiguousarray(binding.indices[a:b].T),
+        np.ascontiguousarray(binding.weights[a:b].T),
+        None if strength is None else strength[a:b],
+    )
 
 
 def _check_strength(strength, n):
@@ -489,7 +504,7 @@ def _check_strength(strength, n):
 def _check_call(arrays, binding, pose, mode, lbs_stretch="bones"):
     """Validate a skinning call; `arrays` maps field names to per-splat arrays that must be finite."""
     for name, values in arrays.items():
-        ok = np.isfinite(values) | (np.isneginf(values) if name == "log_scales" else False)   # -inf: a zero scale
+        ok = np.isfinite(values) | (np.isneginf(values) if name == "log_scales" else False)  # -inf: a zero scale
         bad = ~ok.reshape(len(values), -1).all(axis=1)
         if bad.any():
             raise SkinningError(f"{int(bad.sum())} splats have non-finite {name}")
@@ -505,8 +520,14 @@ def _check_call(arrays, binding, pose, mode, lbs_stretch="bones"):
 
 # public API ---------------------------------------------------------------------------------------
 
-def skin_centres(positions: Positions, binding: Binding, pose: "BonePose | Matrices4", mode: str = "lbs",
-                 strength: Floats | None = None) -> Positions:
+
+def skin_centres(
+    positions: Positions,
+    binding: Binding,
+    pose: "BonePose | Matrices4",
+    mode: str = "lbs",
+    strength: Floats | None = None,
+) -> Positions:
     """Posed centres (N,3) float64 only: the fastest path, and exactly what Blender's Armature
     modifier does to vertices (`mode="dqs"` is its Preserve Volume; `strength` (N,) in 0..1 its
     vertex-group mask). `pose` is a BonePose or (B,4,4) deform matrices."""
@@ -523,9 +544,16 @@ def skin_centres(positions: Positions, binding: Binding, pose: "BonePose | Matri
     return out
 
 
-def skin(cloud: SplatCloud, binding: Binding, pose: "BonePose | Matrices4", mode: str = "lbs",
-         covariances: bool = True, sh: bool = True, lbs_stretch: str = "bones",
-         strength: Floats | None = None) -> SplatCloud:
+def skin(
+    cloud: SplatCloud,
+    binding: Binding,
+    pose: "BonePose | Matrices4",
+    mode: str = "lbs",
+    covariances: bool = True,
+    sh: bool = True,
+    lbs_stretch: str = "bones",
+    strength: Floats | None = None,
+) -> SplatCloud:
     """The posed cloud: centres moved, covariances turned (and stretched where bones scale), SH
     rotated. `covariances=False` moves centres only (as mesh-based add-ons do), `sh=False` keeps
     the SH as they are; `strength` (N,) in 0..1 fades each splat's binding (see the module's
@@ -537,23 +565,29 @@ def skin(cloud: SplatCloud, binding: Binding, pose: "BonePose | Matrices4", mode
     n = len(cloud)
     strength = _check_strength(strength, n)
     positions = np.empty((n, 3), np.float32)
-    rotations, log_scales = (np.empty((n, 4), np.float32), np.empty((n, 3), np.float32)) if covariances \
+    rotations, log_scales = (
+        (np.empty((n, 4), np.float32), np.empty((n, 3), np.float32))
+        if covariances
         else (cloud.rotations, cloud.log_scales)
+    )
     turn = np.empty((n, 3, 3)) if sh and cloud.sh_degree > 0 else None
     chunk_fn, bones = _MODES[mode], bone_pose.derived
 
     def work(a, b):
-        centres, linear = chunk_fn(*_chunk_inputs(cloud.positions, binding, strength, a, b), bones,
-                                   covariances or turn is not None)
+        centres, linear = chunk_fn(
+            *_chunk_inputs(cloud.positions, binding, strength, a, b), bones, covariances or turn is not None
+        )
         positions[a:b] = centres.T
         if covariances:
-            rot, log = _covariance_chunk(cloud.rotations[a:b], cloud.log_scales[a:b], linear,
-                                         lbs_stretch if mode == "lbs" else "bones")
+            rot, log = _covariance_chunk(
+                cloud.rotations[a:b], cloud.log_scales[a:b], linear, lbs_stretch if mode == "lbs" else "bones"
+            )
             rotations[a:b], log_scales[a:b] = rot.T, log.T
         if turn is not None:
             turn[a:b] = linear["rotation"]
 
     in_chunks(n, work, _CHUNK)
     new_sh = shmod.rotate(cloud.sh, turn) if turn is not None else cloud.sh
-    return cloud.replace(positions=positions, rotations=rotations, log_scales=log_scales, sh=new_sh,
-                         extras=dict(cloud.extras))
+    return cloud.replace(
+        positions=positions, rotations=rotations, log_scales=log_scales, sh=new_sh, extras=dict(cloud.extras)
+    )

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MORTON_BITS = 21        # the most that three axes interleave into 64 bits
+MORTON_BITS = 21  # the most that three axes interleave into 64 bits
 # The 27 cells around a cell, itself included: (dx, dy, dz), dx slowest.
 NEIGHBOURS = [(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
 
@@ -34,16 +34,20 @@ def morton_order(points, bits=MORTON_BITS):
     span = np.where(hi > lo, hi - lo, 1.0)
     q = np.where(finite[:, None], (p - lo) / span, 0.0)
     q = np.clip(q * top, 0, top).astype(np.uint64)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) \
-        | (_spread_bits(q[:, 2]) << np.uint64(2))
+    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | (_spread_bits(q[:, 2]) << np.uint64(2))
     return np.argsort(code, kind="stable")
 
 
 def _spread_bits(x):
     """Insert two zero bits between each of the low 21 bits (the classic magic-number sequence)."""
     x = x & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
         x = (x | (x << np.uint64(shift))) & np.uint64(mask)
     return x
 

@@ -1,7 +1,8 @@
 """The splat model: one cloud of N Gaussians stored as 3DGS training produces them."""
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -32,8 +33,8 @@ SIMILARITY_TOLERANCE = 1e-6
 # glTF store; exp(1e30) is inf outright). Quaternions are normalised in float64 (any float32 norm is
 # fine), logits go through a sigmoid and SH enter colours linearly: those fields are refused only for
 # NaN and Inf.
-MAX_MAGNITUDE = float(np.sqrt(np.finfo(np.float32).max / 3.0))     # about 1.06e19
-MAX_LOG_SCALE = 88.72                                               # exp: 3.39e38, float32's largest is 3.40e38
+MAX_MAGNITUDE = float(np.sqrt(np.finfo(np.float32).max / 3.0))  # about 1.06e19
+MAX_LOG_SCALE = 88.72  # exp: 3.39e38, float32's largest is 3.40e38
 BOUNDED_FIELDS = ("positions",)
 
 
@@ -41,12 +42,12 @@ def bad_rows(name: str, values: ArrayLike) -> Mask:
     """(N,) True where a splat's values of field `name` (or of a float extra) are NaN, infinite, or
     overflow float32 once activated (see MAX_MAGNITUDE and MAX_LOG_SCALE). Integer extras are never bad."""
     values = np.asarray(values)
-    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))     # also for N = 0
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))  # also for N = 0
     if values.dtype.kind not in "fc":
         return np.zeros(len(values), bool)
     with np.errstate(invalid="ignore"):
         if name == "log_scales":
-            ok = (flat <= MAX_LOG_SCALE) & (flat > -np.inf)          # NaN fails both; -inf is a zero scale
+            ok = (flat <= MAX_LOG_SCALE) & (flat > -np.inf)  # NaN fails both; -inf is a zero scale
         elif name in BOUNDED_FIELDS:
             ok = np.abs(flat) <= MAX_MAGNITUDE
         else:
@@ -112,9 +113,16 @@ class SplatCloud:
         return cls(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, k, 3)))
 
     @classmethod
-    def from_activated(cls, positions: Positions, rotations: Quaternions, scales: Floats, opacities: Floats,
-                       colors: Colors | None = None, sh: SHCoefficients | None = None,
-                       extras: dict[str, np.ndarray] | None = None) -> "SplatCloud":
+    def from_activated(
+        cls,
+        positions: Positions,
+        rotations: Quaternions,
+        scales: Floats,
+        opacities: Floats,
+        colors: Colors | None = None,
+        sh: SHCoefficients | None = None,
+        extras: dict[str, np.ndarray] | None = None,
+    ) -> "SplatCloud":
         """Build from linear scales, opacities in [0,1] and either display-sRGB colours or raw SH."""
         positions = np.asarray(positions, dtype=np.float64)
         if sh is None:
@@ -134,8 +142,10 @@ class SplatCloud:
             return cls.empty()
         modes = {c.antialiased for c in clouds}
         if len(modes) > 1:
-            raise ValueError("cannot join splats made for antialiased rendering with splats made for classic "
-                             "rendering; convert one of them again in the other mode")
+            raise ValueError(
+                "cannot join splats made for antialiased rendering with splats made for classic "
+                "rendering; convert one of them again in the other mode"
+            )
         degree = max(c.sh_degree for c in clouds)
         clouds = [c.with_sh_degree(degree) for c in clouds]
         common = set.intersection(*(set(c.extras) for c in clouds))
@@ -154,14 +164,18 @@ class SplatCloud:
         """Select splats by boolean mask, integer indices or slice."""
         if isinstance(index, (int, np.integer)):
             index = [index]
-        return self.replace(**{name: getattr(self, name)[index] for name in FIELDS},
-                            extras={k: v[index] for k, v in self.extras.items()})
+        return self.replace(
+            **{name: getattr(self, name)[index] for name in FIELDS},
+            extras={k: v[index] for k, v in self.extras.items()},
+        )
 
     select = __getitem__
 
     def copy(self) -> "SplatCloud":
-        return self.replace(**{name: getattr(self, name).copy() for name in FIELDS},
-                            extras={k: v.copy() for k, v in self.extras.items()})
+        return self.replace(
+            **{name: getattr(self, name).copy() for name in FIELDS},
+            extras={k: v.copy() for k, v in self.extras.items()},
+        )
 
     def replace(self, **changes: Any) -> "SplatCloud":
         """A new cloud with some fields replaced (arrays are shared, not copied); what is not replaced,
@@ -180,7 +194,7 @@ class SplatCloud:
 
     @property
     def scales(self) -> Floats:
-        with np.errstate(over="ignore"):          # a log-scale beyond 709 is an infinite sigma: finite_mask says so
+        with np.errstate(over="ignore"):  # a log-scale beyond 709 is an infinite sigma: finite_mask says so
             return np.exp(self.log_scales.astype(np.float64))
 
     @property
@@ -233,15 +247,19 @@ class SplatCloud:
             rotations, log_scales = self._similarity_frames(a, rotation)
         else:
             rotations, log_scales = self._affine_frames(a)
-        return self.replace(positions=self.positions.astype(np.float64) @ a.T + t, rotations=rotations,
-                            log_scales=log_scales, sh=shmod.rotate(self.sh, rotation))
+        return self.replace(
+            positions=self.positions.astype(np.float64) @ a.T + t,
+            rotations=rotations,
+            log_scales=log_scales,
+            sh=shmod.rotate(self.sh, rotation),
+        )
 
     def _similarity_frames(self, a, rotation):
         """A = scale * Q: quaternions compose with Q's proper part (-Q if Q mirrors, which leaves
         covariances alone) and log-scales shift by log(scale)."""
         turn = geometry.matrices_to_quaternions(rotation * np.sign(np.linalg.det(a)))
         rotations = self.rotations.astype(np.float64)
-        ok = np.isfinite(rotations).all(axis=1)          # non-finite rows stay as they are
+        ok = np.isfinite(rotations).all(axis=1)  # non-finite rows stay as they are
         rotations[ok] = geometry.multiply_quaternions(turn, self.unit_rotations[ok])
         return rotations, self.log_scales.astype(np.float64) + np.log(abs(np.linalg.det(a))) / 3.0
 
@@ -252,7 +270,7 @@ class SplatCloud:
         ok = np.isfinite(rotations).all(axis=1) & np.isfinite(scales).all(axis=1)
         quaternions, sigma = geometry.transform_covariances(a, rotations[ok], scales[ok])
         rotations[ok] = quaternions
-        with np.errstate(divide="ignore"):      # a zero scale stays a zero scale (log -inf)
+        with np.errstate(divide="ignore"):  # a zero scale stays a zero scale (log -inf)
             log_scales[ok] = np.log(sigma)
         return rotations, log_scales
 
@@ -261,13 +279,21 @@ class SplatCloud:
     def _check_shapes(self):
         n = len(self.positions)
         expect = {"positions": (n, 3), "rotations": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,)}
-        wrong = [f"{k} has shape {getattr(self, k).shape}, expected {v}"
-                 for k, v in expect.items() if getattr(self, k).shape != v]
-        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3 \
-                or self.sh.shape[1] not in shmod.VALID_COUNTS:
+        wrong = [
+            f"{k} has shape {getattr(self, k).shape}, expected {v}"
+            for k, v in expect.items()
+            if getattr(self, k).shape != v
+        ]
+        if (
+            self.sh.ndim != 3
+            or self.sh.shape[0] != n
+            or self.sh.shape[2] != 3
+            or self.sh.shape[1] not in shmod.VALID_COUNTS
+        ):
             wrong.append(f"sh has shape {self.sh.shape}, expected ({n}, K, 3) with K in {shmod.VALID_COUNTS}")
-        wrong += [f"extra '{k}' has {len(v)} rows, expected {n}"
-                  for k, v in self.extras.items() if v.ndim == 0 or len(v) != n]
+        wrong += [
+            f"extra '{k}' has {len(v)} rows, expected {n}" for k, v in self.extras.items() if v.ndim == 0 or len(v) != n
+        ]
         if wrong:
             raise SplatValidationError("malformed splat cloud: " + "; ".join(wrong))
 

@@ -29,8 +29,15 @@ FORMATS = {
 
 # format module -> the extension a writer's file gets when only the format is named (OpenUSD: .usd,
 # binary where OpenUSD's module is present, text where it is not)
-DEFAULT_EXTENSIONS = {"ply": ".ply", "spz": ".spz", "splat": ".splat", "usd": ".usd",
-                      "compressed_ply": ".compressed.ply", "sog": ".sog", "gltf": ".glb"}
+DEFAULT_EXTENSIONS = {
+    "ply": ".ply",
+    "spz": ".spz",
+    "splat": ".splat",
+    "usd": ".usd",
+    "compressed_ply": ".compressed.ply",
+    "sog": ".sog",
+    "gltf": ".glb",
+}
 
 
 def format_of(path: str | os.PathLike) -> str:
@@ -50,8 +57,13 @@ def file_sizes(count: int, sh_degree: int, spz_version: int = 3, half: bool = Fa
     "ply" and "splat" exactly (without extras), "spz" before compression (the file is smaller),
     "usd" the arrays a crate file holds (see usd.data_size)."""
     from . import ply, splat, spz, usd
-    return {"ply": ply.file_size(count, sh_degree), "spz": spz.uncompressed_size(count, sh_degree, spz_version),
-            "splat": splat.file_size(count, sh_degree), "usd": usd.data_size(count, sh_degree, half)}
+
+    return {
+        "ply": ply.file_size(count, sh_degree),
+        "spz": spz.uncompressed_size(count, sh_degree, spz_version),
+        "splat": splat.file_size(count, sh_degree),
+        "usd": usd.data_size(count, sh_degree, half),
+    }
 
 
 def _module(path):
@@ -78,12 +90,24 @@ def write_splats(path: str | os.PathLike, cloud: SplatCloud, **options: Any) -> 
     A cloud made for antialiased rendering written where the format cannot say so gets a warning:
     readers of that file will render it classic, with fatter outlines."""
     if cloud.antialiased and format_of(path) not in RECORDS_ANTIALIASED:
-        warnings.warn(f"{path}: this format cannot record that the splats were made for antialiased rendering; "
-                      "readers will render them classic (outlines about a pixel wider); PLY, SPZ and OpenUSD "
-                      "record it",
-                      SplatFileWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: this format cannot record that the splats were made for antialiased rendering; "
+            "readers will render them classic (outlines about a pixel wider); PLY, SPZ and OpenUSD "
+            "record it",
+            SplatFileWarning,
+            stacklevel=2,
+        )
     return _module(path).write(path, cloud, **options)
 
 
-__all__ = ["DEFAULT_EXTENSIONS", "FORMATS", "RECORDS_ANTIALIASED", "SplatFileError", "SplatFileWarning", "file_sizes",
-           "format_of", "read_splats", "write_splats"]
+__all__ = [
+    "DEFAULT_EXTENSIONS",
+    "FORMATS",
+    "RECORDS_ANTIALIASED",
+    "SplatFileError",
+    "SplatFileWarning",
+    "file_sizes",
+    "format_of",
+    "read_splats",
+    "write_splats",
+]

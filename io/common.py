@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 NONFINITE_POLICIES = ("raise", "keep", "drop")
 
 
@@ -61,8 +60,10 @@ def apply_nonfinite_policy(path, cloud, policy, verb, counts=None):
         return cloud
     bad = ~cloud.finite_mask()
     detail = ", ".join(f"{name} in {c}" for name, c in counts.items())
-    what = (f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf, beyond float32, or "
-            f"overflowing float32 once activated): {detail}")
+    what = (
+        f"{int(bad.sum())} of {len(cloud)} splats have non-finite values (NaN, Inf, beyond float32, or "
+        f"overflowing float32 once activated): {detail}"
+    )
     if policy == "raise":
         raise SplatFileError(path, f"{what}; {verb} with nonfinite='keep' or 'drop' to go on anyway")
     warnings.warn(f"{path}: {what}; {'kept' if policy == 'keep' else 'dropped'}", SplatFileWarning, stacklevel=3)
@@ -74,9 +75,11 @@ def reduced_sh(cloud, degree, what, notes):
     says so when the bands dropped held anything."""
     if cloud.sh_degree <= degree:
         return cloud
-    if np.any(cloud.sh[:, (degree + 1) ** 2:]):
-        notes.append(f"{what} stores SH up to degree {degree}: SH degree {cloud.sh_degree} reduced to {degree} "
-                     "(the higher bands' view-dependent colour dropped)")
+    if np.any(cloud.sh[:, (degree + 1) ** 2 :]):
+        notes.append(
+            f"{what} stores SH up to degree {degree}: SH degree {cloud.sh_degree} reduced to {degree} "
+            "(the higher bands' view-dependent colour dropped)"
+        )
     return cloud.with_sh_degree(degree)
 
 
@@ -139,7 +142,7 @@ def atomic_path(path):
 
 
 PARTIAL_TAG = ".splatwright-partial-"
-STALE_AFTER = 24 * 3600     # seconds: a partial this old is swept whoever wrote it
+STALE_AFTER = 24 * 3600  # seconds: a partial this old is swept whoever wrote it
 _PARTIAL_NAME = re.compile(re.escape(PARTIAL_TAG) + r"(\d+)")
 
 
@@ -151,12 +154,12 @@ def _partial(path):
     _sweep_partials(target.parent)
     mode = _existing_mode(target)
     try:
-        fd, tmp = _create_partial(target, 0o666 if mode is None else mode | 0o600)   # the writer may reopen it
+        fd, tmp = _create_partial(target, 0o666 if mode is None else mode | 0o600)  # the writer may reopen it
     except OSError as exc:
         raise SplatFileError(path, _write_problem(exc, target)) from None
     try:
         yield fd, tmp
-        if mode is not None:            # exactly the replaced file's, whatever the umask
+        if mode is not None:  # exactly the replaced file's, whatever the umask
             os.chmod(tmp, mode)
         group = _together.get()
         if group is not None:
@@ -179,7 +182,7 @@ def publish_together():
     """Hold back the renames of every atomic write in the block until it ends: the files appear
     together when the block succeeds (one after another, each whole), and none does when it fails
     (every partial is removed)."""
-    if _together.get() is not None:                 # inside another group: its renames decide
+    if _together.get() is not None:  # inside another group: its renames decide
         yield
         return
     group = []
@@ -224,7 +227,7 @@ def _create_partial(target, mode):
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
     base = f"{target}{PARTIAL_TAG}{os.getpid()}"
     for n in itertools.count():
-        tmp = base if n == 0 else f"{base}-{n}"      # another thread writing the same target
+        tmp = base if n == 0 else f"{base}-{n}"  # another thread writing the same target
         try:
             return os.open(tmp, flags, mode), tmp
         except FileExistsError:
@@ -254,10 +257,15 @@ def _sweep_partials(folder):
     now = time.time()
     for entry in entries:
         match = _PARTIAL_NAME.search(entry.name)
-        with contextlib.suppress(OSError):          # gone already, or not ours to remove
-            if match and entry.is_file(follow_symlinks=False) and (
+        with contextlib.suppress(OSError):  # gone already, or not ours to remove
+            if (
+                match
+                and entry.is_file(follow_symlinks=False)
+                and (
                     not _process_alive(int(match.group(1)))
-                    or now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER):
+                    or now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER
+                )
+            ):
                 os.unlink(entry.path)
 
 
@@ -268,7 +276,7 @@ def _process_alive(pid):
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except OSError:                                 # alive, another user's
+    except OSError:  # alive, another user's
         return True
     return True
 

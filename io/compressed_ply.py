@@ -21,17 +21,36 @@ import warnings
 
 import numpy as np
 
-from ..core import SplatCloud
-from ..core import sh as shmod, spatial
+from ..core import SplatCloud, spatial
+from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
-from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
-                     reduced_sh, warn_notes)
+from .common import (
+    SplatFileError,
+    SplatFileWarning,
+    apply_nonfinite_policy,
+    atomic_write,
+    check_nonfinite_policy,
+    reduced_sh,
+    warn_notes,
+)
 from .ply_header import read_header, sh_order
 
 CHUNK = 256
-MAX_SH_DEGREE = 3                  # the sh element holds 9, 24 or 45 f_rest; degree 4 is reduced on writing
-BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
-          "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z"]
+MAX_SH_DEGREE = 3  # the sh element holds 9, 24 or 45 f_rest; degree 4 is reduced on writing
+BOUNDS = [
+    "min_x",
+    "min_y",
+    "min_z",
+    "max_x",
+    "max_y",
+    "max_z",
+    "min_scale_x",
+    "min_scale_y",
+    "min_scale_z",
+    "max_scale_x",
+    "max_scale_y",
+    "max_scale_z",
+]
 COLOR_BOUNDS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
 PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 SCALE_LIMIT = 20.0
@@ -42,38 +61,60 @@ SQRT1_2 = np.sqrt(0.5)
 def is_compressed(elements):
     """Whether parsed PLY header elements are PlayCanvas's compressed layout."""
     names = {e.name: e for e in elements}
-    return "chunk" in names and "vertex" in names and \
-        {"packed_position", "packed_rotation"} <= {p for p, _ in names["vertex"].properties}
+    return (
+        "chunk" in names
+        and "vertex" in names
+        and {"packed_position", "packed_rotation"} <= {p for p, _ in names["vertex"].properties}
+    )
 
 
 # reading ------------------------------------------------------------------------------------------
+
 
 def _layout(path, elements):
     """(chunk dtype, vertex dtype, sh dtype or None, counts) checked against the layout."""
     by_name = {e.name: e for e in elements}
     extra = [e.name for e in elements if e.name not in ("chunk", "vertex", "sh")]
     if extra or [e.name for e in elements][:2] != ["chunk", "vertex"]:
-        raise SplatFileError(path, f"compressed PLY needs the elements chunk, vertex[, sh] in that order; "
-                                   f"found {[e.name for e in elements]}")
+        raise SplatFileError(
+            path,
+            f"compressed PLY needs the elements chunk, vertex[, sh] in that order; found {[e.name for e in elements]}",
+        )
     chunk, vertex, sh = by_name["chunk"], by_name["vertex"], by_name.get("sh")
     names = [p for p, _ in chunk.properties]
     if names not in (BOUNDS, BOUNDS + COLOR_BOUNDS) or any(t != "f4" for _, t in chunk.properties):
-        raise SplatFileError(path, f"compressed PLY chunk element must hold the float properties {BOUNDS} "
-                                   f"(and optionally {COLOR_BOUNDS}); found {names}")
+        raise SplatFileError(
+            path,
+            f"compressed PLY chunk element must hold the float properties {BOUNDS} "
+            f"(and optionally {COLOR_BOUNDS}); found {names}",
+        )
     if [p for p, _ in vertex.properties] != PACKED or any(t != "u4" for _, t in vertex.properties):
-        raise SplatFileError(path, f"compressed PLY vertex element must hold the uint properties {PACKED}; "
-                                   f"found {[p for p, _ in vertex.properties]}")
+        raise SplatFileError(
+            path,
+            f"compressed PLY vertex element must hold the uint properties {PACKED}; "
+            f"found {[p for p, _ in vertex.properties]}",
+        )
     if chunk.count != -(-vertex.count // CHUNK):
-        raise SplatFileError(path, f"{chunk.count} chunks for {vertex.count} splats; compressed PLY has one "
-                                   f"per {CHUNK} ({-(-vertex.count // CHUNK)})")
+        raise SplatFileError(
+            path,
+            f"{chunk.count} chunks for {vertex.count} splats; compressed PLY has one "
+            f"per {CHUNK} ({-(-vertex.count // CHUNK)})",
+        )
     sh_dtype = None
     if sh is not None:
         rest = [p for p, _ in sh.properties]
-        if rest != [f"f_rest_{i}" for i in range(len(rest))] or len(rest) not in (9, 24, 45) \
-                or any(t != "u1" for _, t in sh.properties) or sh.count != vertex.count:
-            raise SplatFileError(path, f"compressed PLY sh element must hold uchar f_rest_0..M (M+1 = 9, 24 or "
-                                       f"45) for each of the {vertex.count} splats; found {len(rest)} properties "
-                                       f"for {sh.count}")
+        if (
+            rest != [f"f_rest_{i}" for i in range(len(rest))]
+            or len(rest) not in (9, 24, 45)
+            or any(t != "u1" for _, t in sh.properties)
+            or sh.count != vertex.count
+        ):
+            raise SplatFileError(
+                path,
+                f"compressed PLY sh element must hold uchar f_rest_0..M (M+1 = 9, 24 or "
+                f"45) for each of the {vertex.count} splats; found {len(rest)} properties "
+                f"for {sh.count}",
+            )
         sh_dtype = sh.dtype("<")
     return chunk.dtype("<"), vertex.dtype("<"), sh_dtype, chunk.count, vertex.count
 
@@ -96,11 +137,19 @@ def decode(chunks, vertices, sh_bytes):
     n = len(vertices)
     c = {name: np.repeat(chunks[name].astype(np.float64), CHUNK)[:n] for name in chunks.dtype.names}
     px, py, pz = _fields(vertices["packed_position"], (11, 10, 11))
-    positions = np.stack([_lerp(c["min_x"], c["max_x"], px), _lerp(c["min_y"], c["max_y"], py),
-                          _lerp(c["min_z"], c["max_z"], pz)], axis=1)
+    positions = np.stack(
+        [_lerp(c["min_x"], c["max_x"], px), _lerp(c["min_y"], c["max_y"], py), _lerp(c["min_z"], c["max_z"], pz)],
+        axis=1,
+    )
     sx, sy, sz = _fields(vertices["packed_scale"], (11, 10, 11))
-    log_scales = np.stack([_lerp(c["min_scale_x"], c["max_scale_x"], sx), _lerp(c["min_scale_y"], c["max_scale_y"], sy),
-                           _lerp(c["min_scale_z"], c["max_scale_z"], sz)], axis=1)
+    log_scales = np.stack(
+        [
+            _lerp(c["min_scale_x"], c["max_scale_x"], sx),
+            _lerp(c["min_scale_y"], c["max_scale_y"], sy),
+            _lerp(c["min_scale_z"], c["max_scale_z"], sz),
+        ],
+        axis=1,
+    )
     rgba = np.stack(_fields(vertices["packed_color"], (8, 8, 8, 8)), axis=1)
     rgb = rgba[:, :3]
     if "min_r" in c:
@@ -137,13 +186,17 @@ def read(path, nonfinite="raise"):
             if fmt != "binary_little_endian":
                 raise SplatFileError(path, f"compressed PLY must be binary_little_endian, not {fmt}")
             chunk_dtype, vertex_dtype, sh_dtype, chunks, n = _layout(path, elements)
-            need = chunks * chunk_dtype.itemsize + n * vertex_dtype.itemsize + (n * sh_dtype.itemsize if sh_dtype else 0)
+            need = (
+                chunks * chunk_dtype.itemsize + n * vertex_dtype.itemsize + (n * sh_dtype.itemsize if sh_dtype else 0)
+            )
             f.seek(0, 2)
             have = f.tell() - start
             if have != need:
                 what = "truncated" if have < need else f"{have - need} bytes beyond the data"
-                raise SplatFileError(path, f"{what}: the header's {n} splats in {chunks} chunks need {need} data "
-                                           f"bytes, the file has {have}")
+                raise SplatFileError(
+                    path,
+                    f"{what}: the header's {n} splats in {chunks} chunks need {need} data bytes, the file has {have}",
+                )
             f.seek(start)
             chunk_records = np.fromfile(f, chunk_dtype, chunks)
             vertices = np.fromfile(f, vertex_dtype, n)
@@ -156,6 +209,7 @@ def read(path, nonfinite="raise"):
 
 
 # writing ------------------------------------------------------------------------------------------
+
 
 def morton_order(positions):
     """Indices that sort points along a Morton (Z-order) curve over their bounding box, 10 bits per
@@ -210,7 +264,7 @@ def encode(cloud):
     pb, sb, cb = (_chunk_bounds(v) for v in (positions, logs, colors))
     sb = np.clip(sb, -SCALE_LIMIT, SCALE_LIMIT)
     chunks = np.concatenate([pb.reshape(-1, 6), sb.reshape(-1, 6), cb.reshape(-1, 6)], axis=1).astype("<f4")
-    per_splat = lambda bounds: np.repeat(bounds, CHUNK, axis=0)[:n]                  # noqa: E731
+    per_splat = lambda bounds: np.repeat(bounds, CHUNK, axis=0)[:n]  # noqa: E731
     p, s, c = per_splat(pb), per_splat(sb), per_splat(cb)
     fractions = lambda v, b: [_unit_fraction(v[:, i], b[:, 0, i], b[:, 1, i]) for i in range(v.shape[1])]  # noqa: E731
     vertices = np.empty((n, 4), "<u4")
@@ -220,11 +274,17 @@ def encode(cloud):
     vertices[:, 3] = _pack(fractions(colors, c) + [sigmoid(cloud.opacity_logits)], (8, 8, 8, 8))
     rest = None
     if k > 1:
-        f_rest = cloud.sh[:, 1:].transpose(0, 2, 1).reshape(n, -1).astype(np.float64)    # channel-major
+        f_rest = cloud.sh[:, 1:].transpose(0, 2, 1).reshape(n, -1).astype(np.float64)  # channel-major
         rest = np.clip(np.trunc((f_rest / 8 + 0.5) * 256), 0, 255).astype(np.uint8)
-    header = ["ply", "format binary_little_endian 1.0", "comment Generated by Splatwright",
-              f"element chunk {len(chunks)}", *(f"property float {name}" for name in BOUNDS + COLOR_BOUNDS),
-              f"element vertex {n}", *(f"property uint {name}" for name in PACKED)]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment Generated by Splatwright",
+        f"element chunk {len(chunks)}",
+        *(f"property float {name}" for name in BOUNDS + COLOR_BOUNDS),
+        f"element vertex {n}",
+        *(f"property uint {name}" for name in PACKED),
+    ]
     if rest is not None:
         header += [f"element sh {n}", *(f"property uchar f_rest_{i}" for i in range(rest.shape[1]))]
     return ("\n".join(header) + "\nend_header\n").encode("ascii"), chunks, vertices, rest
@@ -239,8 +299,11 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     elif order is not None:
         raise ValueError(f"order must be 'morton' or None, got {order!r}")
     if cloud.extras:
-        warnings.warn(f"{path}: compressed PLY has no room for extras; {sorted(cloud.extras)} not written",
-                      SplatFileWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: compressed PLY has no room for extras; {sorted(cloud.extras)} not written",
+            SplatFileWarning,
+            stacklevel=2,
+        )
     notes = []
     cloud = reduced_sh(cloud, MAX_SH_DEGREE, "compressed PLY", notes)
     warn_notes(path, notes)
@@ -253,7 +316,12 @@ def write(path, cloud, order="morton", nonfinite="raise"):
 
 
 def _empty(cloud):
-    header = ["ply", "format binary_little_endian 1.0", "element chunk 0",
-              *(f"property float {name}" for name in BOUNDS + COLOR_BOUNDS), "element vertex 0",
-              *(f"property uint {name}" for name in PACKED)]
+    header = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "element chunk 0",
+        *(f"property float {name}" for name in BOUNDS + COLOR_BOUNDS),
+        "element vertex 0",
+        *(f"property uint {name}" for name in PACKED),
+    ]
     return ("\n".join(header) + "\nend_header\n").encode("ascii"), None, None, None

@@ -13,7 +13,7 @@ import numpy as np
 
 from .common import SplatFileError, SplatFileWarning, atomic_path
 
-HALF_MAX = float(np.finfo(np.float16).max)   # 65504
+HALF_MAX = float(np.finfo(np.float16).max)  # 65504
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
@@ -40,8 +40,7 @@ def _checked_channels(path, channels, half):
             shape = a.shape
         elif a.shape != shape:
             raise SplatFileError(path, f"channel '{name}' has shape {a.shape}, other channels {shape}")
-        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)
-                or a.dtype == bool):
+        if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer) or a.dtype == bool):
             raise SplatFileError(path, f"channel '{name}' has dtype {a.dtype}, expected numbers")
         a = a.astype(np.float32)
         if np.isnan(a).any():
@@ -50,8 +49,11 @@ def _checked_channels(path, channels, half):
             # Finite values past the half range would silently turn into infinities.
             big = np.isfinite(a) & (np.abs(a) > HALF_MAX)
             if big.any():
-                raise SplatFileError(path, f"channel '{name}' holds {int(big.sum())} values beyond the "
-                                           f"half-float range (|x| > {HALF_MAX:g}); write it as float32")
+                raise SplatFileError(
+                    path,
+                    f"channel '{name}' holds {int(big.sum())} values beyond the "
+                    f"half-float range (|x| > {HALF_MAX:g}); write it as float32",
+                )
             a = a.astype(np.float16)
         out[name] = np.ascontiguousarray(a)
     return out
@@ -97,7 +99,7 @@ def read_exr(path, part=0, nan="raise"):
         raise SplatFileError(path, "no such file") from None
     except OSError as exc:
         raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
-    except (RuntimeError, ValueError, TypeError) as exc:     # ValueError includes UnicodeDecodeError
+    except (RuntimeError, ValueError, TypeError) as exc:  # ValueError includes UnicodeDecodeError
         raise SplatFileError(path, f"OpenEXR could not read the image (truncated or corrupt?): {exc}") from exc
     parts = image.parts
     if not parts:
@@ -107,8 +109,9 @@ def read_exr(path, part=0, nan="raise"):
     out = {}
     for name, channel in parts[part].channels.items():
         if channel.xSampling != 1 or channel.ySampling != 1:
-            raise SplatFileError(path, f"channel '{name}' is subsampled "
-                                       f"({channel.xSampling}x{channel.ySampling}); not supported")
+            raise SplatFileError(
+                path, f"channel '{name}' is subsampled ({channel.xSampling}x{channel.ySampling}); not supported"
+            )
         pixels = channel.pixels
         if pixels is None or pixels.ndim != 2:
             raise SplatFileError(path, f"channel '{name}' has no flat pixel data (deep images are not supported)")

@@ -34,21 +34,23 @@ def read_plain_exr(path):
     while True:
         header, pos = _header(path, raw, pos)
         headers.append(header)
-        if not multipart or raw[pos:pos + 1] == b"\0":
+        if not multipart or raw[pos : pos + 1] == b"\0":
             pos += multipart
             break
     channels = {}
     for part, header in enumerate(headers):
         if header.get("compression", 0) != 0:
-            raise SplatFileError(path, f"part {part} is compressed (codec {header['compression']}); "
-                                       "only uncompressed EXR is read here")
+            raise SplatFileError(
+                path, f"part {part} is compressed (codec {header['compression']}); only uncompressed EXR is read here"
+            )
         x0, y0, x1, y1 = header["dataWindow"]
         width, height = x1 - x0 + 1, y1 - y0 + 1
         count = header.get("chunkCount", height)
         offsets = np.frombuffer(raw, "<u8", count, pos).astype(np.int64)
         pos += 8 * count
-        channels.update(_scanlines(path, data, raw, offsets, header["channels"], width, height, y0,
-                                   4 if multipart else 0))
+        channels.update(
+            _scanlines(path, data, raw, offsets, header["channels"], width, height, y0, 4 if multipart else 0)
+        )
     return channels
 
 
@@ -61,7 +63,7 @@ def _header(path, raw, pos):
             name, pos = _string(raw, pos)
             kind, pos = _string(raw, pos)
             size = struct.unpack_from("<i", raw, pos)[0]
-            value = raw[pos + 4:pos + 4 + size]
+            value = raw[pos + 4 : pos + 4 + size]
             pos += 4 + size
             if name == "channels":
                 header[name] = _channel_list(value)
@@ -100,22 +102,21 @@ def _scanlines(path, data, raw, offsets, channel_list, width, height, y0, part_p
     """Every scanline of one part gathered at once: row y's bytes hold each channel's row in turn."""
     line = width * sum(dt.itemsize for _, dt in channel_list)
     if len(offsets) != height or offsets.min() < 0 or offsets.max() + part_prefix + 8 + line > len(raw):
-        raise SplatFileError(path, "EXR chunk table does not fit the file (truncated, or not one scanline "
-                                   "per chunk)")
+        raise SplatFileError(path, "EXR chunk table does not fit the file (truncated, or not one scanline per chunk)")
     starts = offsets + part_prefix
-    ys = data[starts[:, None] + np.arange(8)].view("<i4").astype(np.int64)     # (y, size) of each chunk
+    ys = data[starts[:, None] + np.arange(8)].view("<i4").astype(np.int64)  # (y, size) of each chunk
     if (ys[:, 1] != line).any() or not np.array_equal(np.sort(ys[:, 0] - y0), np.arange(height)):
         raise SplatFileError(path, "EXR chunks do not hold one uncompressed scanline each")
     first, step = starts[0] + 8, np.diff(starts)
-    if len(step) and (step == step[0]).all() and step[0] >= line:    # evenly spaced chunks: one strided view
+    if len(step) and (step == step[0]).all() and step[0] >= line:  # evenly spaced chunks: one strided view
         rows = np.lib.stride_tricks.as_strided(data[first:], (height, line), (int(step[0]), 1), writeable=False)
     else:
-        rows = np.stack([data[s + 8:s + 8 + line] for s in starts])  # (chunks, line) bytes, chunk by chunk
+        rows = np.stack([data[s + 8 : s + 8 + line] for s in starts])  # (chunks, line) bytes, chunk by chunk
     image = np.empty((height, line), np.uint8)
     image[ys[:, 0] - y0] = rows
     out, col = {}, 0
     for name, dtype in channel_list:
         size = width * dtype.itemsize
-        out[name] = np.ascontiguousarray(image[:, col:col + size]).view(dtype).astype(np.float32)
+        out[name] = np.ascontiguousarray(image[:, col : col + size]).view(dtype).astype(np.float32)
         col += size
     return out

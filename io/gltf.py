@@ -31,18 +31,27 @@ import numpy as np
 from ..core import SplatCloud
 from ..core import sh as shmod
 from ..core.splats import logit, sigmoid
-from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
-                     log_scales_from_linear, publish_together, reduced_sh, warn_notes)
+from .common import (
+    SplatFileError,
+    SplatFileWarning,
+    apply_nonfinite_policy,
+    atomic_write,
+    check_nonfinite_policy,
+    log_scales_from_linear,
+    publish_together,
+    reduced_sh,
+    warn_notes,
+)
 from .spz import flip_axes
 
 EXTENSION = "KHR_gaussian_splatting"
-MAX_SH_DEGREE = 3                       # "up to 45 spherical harmonic coefficients"
+MAX_SH_DEGREE = 3  # "up to 45 spherical harmonic coefficients"
 ROTATION, SCALE, OPACITY = (f"{EXTENSION}:{name}" for name in ("ROTATION", "SCALE", "OPACITY"))
 GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
-LUF = [-1, -1, 1]                       # the half turn about Z between RDF and glTF's axes
+LUF = [-1, -1, 1]  # the half turn about Z between RDF and glTF's axes
 COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
-MAX_BYTES = 1 << 34                     # a buffer claiming more than this is refused before reading
+MAX_BYTES = 1 << 34  # a buffer claiming more than this is refused before reading
 
 
 def sh_name(degree, coefficient):
@@ -50,6 +59,7 @@ def sh_name(degree, coefficient):
 
 
 # reading ------------------------------------------------------------------------------------------
+
 
 def _load_document(path):
     """(glTF JSON, list of buffers as bytes) from a .glb or .gltf file."""
@@ -86,7 +96,7 @@ def _split_glb(path, raw):
         size, kind = struct.unpack_from("<II", raw, at)
         if at + 8 + size > len(raw):
             raise SplatFileError(path, f"truncated: a GLB chunk of {size} bytes runs past the end of the file")
-        chunks.append((kind, raw[at + 8:at + 8 + size]))
+        chunks.append((kind, raw[at + 8 : at + 8 + size]))
         at += 8 + size
     if not chunks or chunks[0][0] != JSON_CHUNK:
         raise SplatFileError(path, "GLB has no JSON chunk first")
@@ -121,6 +131,7 @@ def _buffer(path, index, buffer, binary):
             raise SplatFileError(path, f"buffer {index} has a malformed data URI") from None
     elif isinstance(uri, str):
         from urllib.parse import unquote
+
         target = Path(path).parent / unquote(uri)
         try:
             data = target.read_bytes()
@@ -144,8 +155,11 @@ def _accessor(path, doc, buffers, index, name):
     kind, width = COMPONENTS.get(acc.get("componentType")), WIDTH.get(acc.get("type"))
     count = acc.get("count")
     if kind is None or width is None or not isinstance(count, int) or count < 0:
-        raise SplatFileError(path, f"attribute {name}: accessor {index} has componentType "
-                                   f"{acc.get('componentType')!r}, type {acc.get('type')!r}, count {count!r}")
+        raise SplatFileError(
+            path,
+            f"attribute {name}: accessor {index} has componentType "
+            f"{acc.get('componentType')!r}, type {acc.get('type')!r}, count {count!r}",
+        )
     dtype = np.dtype(kind)
     if "bufferView" not in acc:
         return np.zeros((count, width))
@@ -163,8 +177,11 @@ def _accessor(path, doc, buffers, index, name):
     need = start + (stride * (count - 1) + dtype.itemsize * width if count else 0)
     view_end = view.get("byteOffset", 0) + view.get("byteLength", 0)
     if need > min(len(data), view_end) or start < 0:
-        raise SplatFileError(path, f"attribute {name}: {count} elements from byte {start} run past the end of "
-                                   f"their buffer view or buffer (truncated or corrupt?)")
+        raise SplatFileError(
+            path,
+            f"attribute {name}: {count} elements from byte {start} run past the end of "
+            f"their buffer view or buffer (truncated or corrupt?)",
+        )
     values = np.ndarray((count, width), dtype, buffer=data, offset=start, strides=(stride, dtype.itemsize))
     values = values.astype(np.float64)
     if acc.get("normalized") and dtype.kind in "iu":
@@ -197,11 +214,12 @@ def _node_matrices(path, doc):
 
 def _local_matrix(node):
     if "matrix" in node:
-        return np.array(node["matrix"], float).reshape(4, 4).T        # column-major
+        return np.array(node["matrix"], float).reshape(4, 4).T  # column-major
     t = np.eye(4)
     t[:3, 3] = node.get("translation", [0, 0, 0])
     x, y, z, w = node.get("rotation", [0, 0, 0, 1])
     from ..core.geometry import quaternions_to_matrices
+
     r = np.eye(4)
     r[:3, :3] = quaternions_to_matrices(np.array([[w, x, y, z]], float))[0]
     s = np.diag([*node.get("scale", [1, 1, 1]), 1.0])
@@ -211,13 +229,15 @@ def _local_matrix(node):
 def _primitive_cloud(path, doc, buffers, primitive, notes):
     attributes = primitive.get("attributes", {})
     if primitive.get("mode", 4) != 0:
-        raise SplatFileError(path, f"a {EXTENSION} primitive has mode {primitive.get('mode', 4)}; it must be "
-                                   "POINTS (0)")
+        raise SplatFileError(
+            path, f"a {EXTENSION} primitive has mode {primitive.get('mode', 4)}; it must be POINTS (0)"
+        )
     ext = primitive["extensions"][EXTENSION]
     if ext.get("kernel", "ellipse") != "ellipse":
         notes.append(f"kernel '{ext.get('kernel')}' read as the 3DGS ellipse")
     if ext.get("colorSpace", "srgb_rec709_display") != "srgb_rec709_display":
         notes.append(f"colorSpace '{ext.get('colorSpace')}': SH values kept as they are (the model's are display sRGB)")
+
     def get(name, width):
         values = _accessor(path, doc, buffers, attributes[name], name)
         if width is not None and values.shape[1] != width:
@@ -322,6 +342,7 @@ def _read(path, nonfinite):
 
 # writing ------------------------------------------------------------------------------------------
 
+
 def encode(cloud, generator="Splatwright"):
     """(glTF JSON dict, binary buffer) for a cloud (model axes in, glTF's out)."""
     cloud = flip_axes(cloud, LUF)
@@ -331,18 +352,27 @@ def encode(cloud, generator="Splatwright"):
         scales = np.exp(cloud.log_scales.astype(np.float64))
     opacities = sigmoid(cloud.opacity_logits)
     rgba = np.concatenate([shmod.dc_to_rgb(cloud.sh[:, 0]), opacities[:, None]], axis=1)
-    arrays = [("POSITION", cloud.positions, "VEC3"), (ROTATION, q, "VEC4"), (SCALE, scales, "VEC3"),
-              (OPACITY, opacities, "SCALAR")]
-    arrays += [(sh_name(d, c), cloud.sh[:, d * d + c], "VEC3") for d in range(cloud.sh_degree + 1)
-               for c in range(2 * d + 1)]
+    arrays = [
+        ("POSITION", cloud.positions, "VEC3"),
+        (ROTATION, q, "VEC4"),
+        (SCALE, scales, "VEC3"),
+        (OPACITY, opacities, "SCALAR"),
+    ]
+    arrays += [
+        (sh_name(d, c), cloud.sh[:, d * d + c], "VEC3") for d in range(cloud.sh_degree + 1) for c in range(2 * d + 1)
+    ]
     arrays.append(("COLOR_0", np.clip(np.rint(rgba * 255), 0, 255).astype(np.uint8), "VEC4"))
     blobs, views, accessors, attributes, at = [], [], [], {}, 0
     for name, values, kind in arrays:
         values = np.ascontiguousarray(values, np.uint8 if values.dtype == np.uint8 else "<f4")
         blob = values.tobytes()
         views.append({"buffer": 0, "byteOffset": at, "byteLength": len(blob), "target": 34962})
-        accessor = {"bufferView": len(views) - 1, "componentType": 5121 if values.dtype == np.uint8 else 5126,
-                    "count": n, "type": kind}
+        accessor = {
+            "bufferView": len(views) - 1,
+            "componentType": 5121 if values.dtype == np.uint8 else 5126,
+            "count": n,
+            "type": kind,
+        }
         if name == "COLOR_0":
             accessor["normalized"] = True
         if name == "POSITION" and n:
@@ -352,12 +382,34 @@ def encode(cloud, generator="Splatwright"):
         attributes[name] = len(accessors) - 1
         blobs.append(blob + bytes(-len(blob) % 4))
         at += len(blobs[-1])
-    doc = {"asset": {"version": "2.0", "generator": generator}, "extensionsUsed": [EXTENSION],
-           "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "Splats"}],
-           "meshes": [{"primitives": [{"mode": 0, "attributes": attributes, "extensions": {EXTENSION: {
-               "kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective",
-               "sortingMethod": "cameraDistance"}}}]}],
-           "buffers": [{"byteLength": at}], "bufferViews": views, "accessors": accessors}
+    doc = {
+        "asset": {"version": "2.0", "generator": generator},
+        "extensionsUsed": [EXTENSION],
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "Splats"}],
+        "meshes": [
+            {
+                "primitives": [
+                    {
+                        "mode": 0,
+                        "attributes": attributes,
+                        "extensions": {
+                            EXTENSION: {
+                                "kernel": "ellipse",
+                                "colorSpace": "srgb_rec709_display",
+                                "projection": "perspective",
+                                "sortingMethod": "cameraDistance",
+                            }
+                        },
+                    }
+                ]
+            }
+        ],
+        "buffers": [{"byteLength": at}],
+        "bufferViews": views,
+        "accessors": accessors,
+    }
     return doc, b"".join(blobs)
 
 
@@ -365,8 +417,9 @@ def write(path, cloud, nonfinite="raise"):
     """Write a .glb (one file) or a .gltf with its buffer in `<name>.bin` beside it."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     if cloud.extras:
-        warnings.warn(f"{path}: glTF splats carry no extras; {sorted(cloud.extras)} not written",
-                      SplatFileWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: glTF splats carry no extras; {sorted(cloud.extras)} not written", SplatFileWarning, stacklevel=2
+        )
     notes = []
     cloud = reduced_sh(cloud, MAX_SH_DEGREE, EXTENSION, notes)
     warn_notes(path, notes)
@@ -374,7 +427,7 @@ def write(path, cloud, nonfinite="raise"):
     if str(path).lower().endswith(".gltf"):
         bin_path = Path(path).with_suffix(".bin")
         doc["buffers"][0]["uri"] = bin_path.name
-        with publish_together():                      # both files, or neither
+        with publish_together():  # both files, or neither
             with atomic_write(bin_path) as f:
                 f.write(binary)
             with atomic_write(path) as f:
@@ -387,4 +440,3 @@ def write(path, cloud, nonfinite="raise"):
         f.write(struct.pack("<III", GLB_MAGIC, 2, total))
         f.write(struct.pack("<II", len(text), JSON_CHUNK) + text)
         f.write(struct.pack("<II", len(binary), BIN_CHUNK) + binary)
-

@@ -35,7 +35,8 @@ def write_image(path, image, half=False):
         _write_png(path, color, None if kind == "opaque" else alpha, kind == "premultiplied")
     else:
         from .exr import write_exr
-        if kind == "straight" and alpha is not None:       # EXR colour is premultiplied
+
+        if kind == "straight" and alpha is not None:  # EXR colour is premultiplied
             color = color * alpha[..., None]
         channels = {"R": color[..., 0], "G": color[..., 1], "B": color[..., 2]}
         if alpha is not None:
@@ -49,18 +50,25 @@ def _planes(path, image):
     """(color (H,W,3), alpha (H,W) or None, depth (H,W) or None, kind) as float arrays; kind is
     "opaque" (alpha is coverage only: the colour already holds a background), "premultiplied" or
     "straight"."""
-    if hasattr(image, "color"):    # a RenderResult
+    if hasattr(image, "color"):  # a RenderResult
         kind = "premultiplied" if getattr(image, "background", ()) is None else "opaque"
-        return (_array(path, "color", image.color), _array(path, "alpha", image.alpha),
-                _array(path, "depth", image.depth), kind)
+        return (
+            _array(path, "color", image.color),
+            _array(path, "alpha", image.alpha),
+            _array(path, "depth", image.depth),
+            kind,
+        )
     if isinstance(image, dict):
         if "color" not in image:
             raise SplatFileError(path, "an image dict needs a 'color' entry")
         alpha = image.get("alpha")
         depth = image.get("depth")
-        return (_array(path, "color", image["color"]), None if alpha is None else _array(path, "alpha", alpha),
-                None if depth is None else _array(path, "depth", depth),
-                "premultiplied" if image.get("premultiplied") else "straight")
+        return (
+            _array(path, "color", image["color"]),
+            None if alpha is None else _array(path, "alpha", alpha),
+            None if depth is None else _array(path, "depth", depth),
+            "premultiplied" if image.get("premultiplied") else "straight",
+        )
     a = _array(path, "image", image)
     if a.ndim == 2:
         return np.repeat(a[..., None], 3, axis=2), None, None, "opaque"
@@ -114,5 +122,9 @@ def png_bytes(pixels):
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     header = struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + \
-        chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6))
+        + chunk(b"IEND", b"")
+    )

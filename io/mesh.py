@@ -26,8 +26,21 @@ from .policy import MAX_IMAGE_PIXELS, inside, outside_message
 THE_FOLDER = "the model's folder"
 
 # map_* options and how many numbers each takes (at most; -o/-s/-t take one to three).
-_MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1, "-imfchan": 1,
-                "-mm": 2, "-o": 3, "-s": 3, "-t": 3, "-texres": 1, "-type": 1}
+_MAP_OPTIONS = {
+    "-blendu": 1,
+    "-blendv": 1,
+    "-bm": 1,
+    "-boost": 1,
+    "-cc": 1,
+    "-clamp": 1,
+    "-imfchan": 1,
+    "-mm": 2,
+    "-o": 3,
+    "-s": 3,
+    "-t": 3,
+    "-texres": 1,
+    "-type": 1,
+}
 
 
 def read_mesh(path):
@@ -50,7 +63,7 @@ class _ObjReader:
 
     def read(self):
         text = read_text(self.path)
-        text = text.replace("\\\r\n", " ").replace("\\\n", " ")          # line continuations
+        text = text.replace("\\\r\n", " ").replace("\\\n", " ")  # line continuations
         for number, line in enumerate(text.splitlines(), 1):
             parts = line.split("#", 1)[0].split()
             if parts:
@@ -104,9 +117,12 @@ class _ObjReader:
         found = next((p for p in allowed if p is not None and p.is_file()), None)
         if found is None:
             refused = [n for n, p in zip(candidates, allowed) if p is None]
-            why = (f"material library {outside_message(refused[0], THE_FOLDER)}" if refused
-                   else f"material library '{names}' not found")
-            warnings.warn(f"{self.path}: {why}; using default colours")
+            why = (
+                f"material library {outside_message(refused[0], THE_FOLDER)}"
+                if refused
+                else f"material library '{names}' not found"
+            )
+            warnings.warn(f"{self.path}: {why}; using default colours", stacklevel=2)
             return
         self.library.update(read_mtl(found, root=folder))
         # Materials used before their library was named pick up its definitions.
@@ -136,7 +152,7 @@ class _ObjReader:
             corner_uvs = np.where((uv_ids >= 0)[..., None], uvs[np.maximum(uv_ids, 0)], 0.0)
         face_mat = np.asarray(self.face_mat)[tri_poly]
         materials = list(self.materials)
-        if (face_mat < 0).any():        # faces before any usemtl get the default material
+        if (face_mat < 0).any():  # faces before any usemtl get the default material
             face_mat = np.where(face_mat < 0, len(materials), face_mat)
             materials.append(Material(name="default"))
         return Mesh(positions, faces, corner_uvs, face_mat, materials, self._vertex_colors())
@@ -154,8 +170,7 @@ def _finite_rows(path, values, what):
     bad = ~np.isfinite(values).all(axis=1)
     if bad.any():
         first = int(np.argmax(bad))
-        raise SplatFileError(path, f"{what} {first + 1} holds NaN or infinite values "
-                                   f"({int(bad.sum())} {what}s in all)")
+        raise SplatFileError(path, f"{what} {first + 1} holds NaN or infinite values ({int(bad.sum())} {what}s in all)")
     return values
 
 
@@ -210,7 +225,7 @@ def _texture(material, args, mtl_path, root):
         name, most = args[i].lower(), _MAP_OPTIONS[args[i].lower()]
         values = []
         i += 1
-        numeric_only = name in ("-o", "-s", "-t")               # these take one to three numbers
+        numeric_only = name in ("-o", "-s", "-t")  # these take one to three numbers
         while len(values) < most and i < len(args) and (_is_number(args[i]) or not numeric_only):
             values.append(args[i])
             i += 1
@@ -235,15 +250,19 @@ def load_image(path):
     """An image file as a uint8/uint16 array (H,W,3), row 0 at the top. An image of more than
     policy.MAX_IMAGE_PIXELS is refused from its header, before any pixel is decoded."""
     from PIL import Image
+
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)      # our limit is lower
-            img = Image.open(path)             # reads the header only; pixels are decoded on use
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our limit is lower
+            img = Image.open(path)  # reads the header only; pixels are decoded on use
         with img:
             width, height = img.size
             if width * height > MAX_IMAGE_PIXELS:
-                raise SplatFileError(path, f"image of {width} x {height} pixels, more than the "
-                                           f"{MAX_IMAGE_PIXELS} ({_side(MAX_IMAGE_PIXELS)}) textures may have")
+                raise SplatFileError(
+                    path,
+                    f"image of {width} x {height} pixels, more than the "
+                    f"{MAX_IMAGE_PIXELS} ({_side(MAX_IMAGE_PIXELS)}) textures may have",
+                )
             if img.mode in ("I;16", "I;16B", "I;16L", "I"):
                 a = np.asarray(img, dtype=np.uint32)
                 return np.repeat(np.clip(a, 0, 65535).astype(np.uint16)[:, :, None], 3, axis=2)
@@ -256,7 +275,7 @@ def load_image(path):
 
 
 def _side(pixels):
-    side = int(round(pixels ** 0.5))
+    side = int(round(pixels**0.5))
     return f"{side} x {side}" if side * side == pixels else f"{pixels} pixels"
 
 
@@ -273,10 +292,14 @@ def _find_image(mtl_path, material, name, root):
     use = beside if beside is not None and beside.is_file() else None
     if named is None:
         instead = f"; read '{Path(name).name}' beside the MTL instead" if use else "; using its Kd colour"
-        warnings.warn(f"{mtl_path}: texture of material '{material.name}' {outside_message(name, THE_FOLDER)}"
-                      f"{instead}")
+        warnings.warn(
+            f"{mtl_path}: texture of material '{material.name}' {outside_message(name, THE_FOLDER)}{instead}",
+            stacklevel=2,
+        )
     elif use is None:
-        warnings.warn(f"{mtl_path}: texture '{name}' of material '{material.name}' not found; using its Kd colour")
+        warnings.warn(
+            f"{mtl_path}: texture '{name}' of material '{material.name}' not found; using its Kd colour", stacklevel=2
+        )
     return use
 
 

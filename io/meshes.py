@@ -32,13 +32,14 @@ def read_mesh_file(path):
     try:
         import trimesh
     except ImportError:
-        raise SplatFileError(path, f"reading '{path.suffix}' meshes needs the trimesh and pycollada "
-                                   "packages, which this Python lacks") from None
+        raise SplatFileError(
+            path, f"reading '{path.suffix}' meshes needs the trimesh and pycollada packages, which this Python lacks"
+        ) from None
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")          # trimesh's own chatter about optional extras
+            warnings.simplefilter("ignore")  # trimesh's own chatter about optional extras
             scene = trimesh.load(str(path), force="scene", process=False)
-    except Exception as exc:                          # trimesh raises many kinds; name the file
+    except Exception as exc:  # trimesh raises many kinds; name the file
         raise SplatFileError(path, f"cannot read the mesh: {type(exc).__name__}: {exc}") from None
     parts = [_part(geometry) for geometry in _flattened(scene)]
     parts = [p for p in parts if p is not None]
@@ -79,8 +80,9 @@ def _part(geometry):
         return Mesh(vertices, faces, corner_uvs, np.zeros(len(faces), np.int64), [material])
     if kind == "vertex":
         rgb = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255.0
-        return Mesh(vertices, faces, corner_colors=color.srgb_to_linear(rgb),
-                    materials=[Material(base_color=(1, 1, 1))])
+        return Mesh(
+            vertices, faces, corner_colors=color.srgb_to_linear(rgb), materials=[Material(base_color=(1, 1, 1))]
+        )
     if kind == "face":
         rgb = np.asarray(visual.face_colors, np.float64)[:, :3] / 255.0
         corner = np.repeat(color.srgb_to_linear(rgb)[:, None], 3, axis=1)

@@ -22,35 +22,50 @@ import warnings
 
 import numpy as np
 
-from ..core import SplatCloud
-from ..core.splats import bad_rows
-from ..core import jit, sh as shmod
+from ..core import SplatCloud, jit
+from ..core import sh as shmod
 from ..core.parallel import WORKERS, in_chunks
+from ..core.splats import bad_rows
 from . import compressed_ply
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy
 from .ply_header import ANTIALIASED_COMMENT, FORMATS, TYPE_NAMES, read_header, sh_order
 
-KERNELS = "io.ply_kernels"     # the compiled record fill, loaded by core.jit
+KERNELS = "io.ply_kernels"  # the compiled record fill, loaded by core.jit
 
-FLAT_SIGMA = 1e-6                      # 2DGS third axis: thin next to any real splat, still invertible
+FLAT_SIGMA = 1e-6  # 2DGS third axis: thin next to any real splat, still invertible
 FLAT_LOG_SCALE = float(np.log(FLAT_SIGMA))
 
 NORMALS = ("nx", "ny", "nz")
 _BLANK_LINE = re.compile(r"(?:^|\n)[ \t\r]*(?=\n|$)")
-CORE = "layout columns"     # the record field holding the layout: whitespace, so no PLY property can clash
-REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1",
-            "rot_0", "rot_1", "rot_2", "rot_3")
-PARALLEL_ROWS = 1 << 16                # below this, threads cost more than they save
-CHUNK_ROWS = 1 << 13                   # rows converted together while they are in cache (~2 MB)
-REST_COUNTS = tuple(3 * (k - 1) for k in shmod.VALID_COUNTS)      # f_rest properties: 0, 9, 24, 45, 72
+CORE = "layout columns"  # the record field holding the layout: whitespace, so no PLY property can clash
+REQUIRED = (
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+)
+PARALLEL_ROWS = 1 << 16  # below this, threads cost more than they save
+CHUNK_ROWS = 1 << 13  # rows converted together while they are in cache (~2 MB)
+REST_COUNTS = tuple(3 * (k - 1) for k in shmod.VALID_COUNTS)  # f_rest properties: 0, 9, 24, 45, 72
 
 
 def layout_names(sh_degree):
     """The 3DGS reference property order for an SH degree."""
     rest = 3 * (shmod.num_coeffs(sh_degree) - 1)
-    return (["x", "y", "z", *NORMALS, "f_dc_0", "f_dc_1", "f_dc_2"]
-            + [f"f_rest_{i}" for i in range(rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    return (
+        ["x", "y", "z", *NORMALS, "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 def _vertex_element(path, elements):
@@ -67,27 +82,36 @@ def _vertex_element(path, elements):
 
 # data ---------------------------------------------------------------------------------------------
 
+
 def _binary_layout(path, fmt, elements, index, header_len):
     """(vertex record dtype, byte offset of the vertex data), once the file size matches the header."""
     order = FORMATS[fmt]
-    before, vertex, after = elements[:index], elements[index], elements[index + 1:]
+    before, vertex, after = elements[:index], elements[index], elements[index + 1 :]
     if any(e.has_lists for e in before):
         names = [e.name for e in before if e.has_lists]
-        raise SplatFileError(path, f"elements {names} with list properties come before 'vertex'; "
-                                   "this reader cannot skip them")
+        raise SplatFileError(
+            path, f"elements {names} with list properties come before 'vertex'; this reader cannot skip them"
+        )
     dtype = vertex.dtype(order)
     start = header_len + sum(e.count * e.dtype(order).itemsize for e in before)
-    need = start + vertex.count * dtype.itemsize \
-        + sum(e.count * e.dtype(order).itemsize for e in after if not e.has_lists)
+    need = (
+        start + vertex.count * dtype.itemsize + sum(e.count * e.dtype(order).itemsize for e in after if not e.has_lists)
+    )
     size = os.path.getsize(path)
     if size < need:
-        raise SplatFileError(path, f"truncated: the header promises {vertex.count} vertices of "
-                                   f"{dtype.itemsize} bytes ({need - header_len} data bytes in all) "
-                                   f"but only {size - header_len} bytes follow the header")
-    exact = not any(e.has_lists for e in after)    # list elements have no size known in advance
+        raise SplatFileError(
+            path,
+            f"truncated: the header promises {vertex.count} vertices of "
+            f"{dtype.itemsize} bytes ({need - header_len} data bytes in all) "
+            f"but only {size - header_len} bytes follow the header",
+        )
+    exact = not any(e.has_lists for e in after)  # list elements have no size known in advance
     if exact and size > need:
-        raise SplatFileError(path, f"{size - need} bytes beyond the data the header describes "
-                                   f"(does its vertex count of {vertex.count} understate the file?)")
+        raise SplatFileError(
+            path,
+            f"{size - need} bytes beyond the data the header describes "
+            f"(does its vertex count of {vertex.count} understate the file?)",
+        )
     return dtype, start
 
 
@@ -103,19 +127,26 @@ def _read_ascii(path, elements, index, header_len):
     while lines and not lines[-1].strip():
         lines.pop()
     blank = _BLANK_LINE.search("\n".join(lines)) if lines else None
-    if blank:      # np.loadtxt would skip it and shift every row after it
+    if blank:  # np.loadtxt would skip it and shift every row after it
         row = blank.string.count("\n", 0, blank.end()) + 1
-        raise SplatFileError(path, f"data line {row} (counted after the header) is blank; "
-                                   "ASCII PLY has one element per line")
+        raise SplatFileError(
+            path, f"data line {row} (counted after the header) is blank; ASCII PLY has one element per line"
+        )
     vertex = elements[index]
     start = sum(e.count for e in elements[:index])
     expected = sum(e.count for e in elements)
     if len(lines) < expected:
-        raise SplatFileError(path, f"truncated: the header promises {expected} data lines "
-                                   f"({vertex.count} vertices) but the file has {len(lines)}")
+        raise SplatFileError(
+            path,
+            f"truncated: the header promises {expected} data lines "
+            f"({vertex.count} vertices) but the file has {len(lines)}",
+        )
     if len(lines) > expected:
-        raise SplatFileError(path, f"{len(lines) - expected} data lines beyond what the header describes "
-                                   f"(does its vertex count of {vertex.count} understate the file?)")
+        raise SplatFileError(
+            path,
+            f"{len(lines) - expected} data lines beyond what the header describes "
+            f"(does its vertex count of {vertex.count} understate the file?)",
+        )
     dtype = vertex.dtype("=")
     if vertex.count == 0:
         return np.zeros(0, dtype)
@@ -123,7 +154,7 @@ def _read_ascii(path, elements, index, header_len):
     # np.loadtxt would wrap out-of-range integers silently.
     parsed = np.dtype([(name, "f8" if dtype[name].kind in "iu" else dtype[name]) for name in dtype.names])
     try:
-        records = np.loadtxt(lines[start:start + vertex.count], dtype=parsed, comments=None, ndmin=1)
+        records = np.loadtxt(lines[start : start + vertex.count], dtype=parsed, comments=None, ndmin=1)
     except ValueError as exc:
         raise SplatFileError(path, f"vertex data (rows counted from the first vertex): {exc}") from None
     return records if parsed == dtype else _as_integers(path, records, dtype)
@@ -139,8 +170,11 @@ def _as_integers(path, records, dtype):
             bad = ~((values == np.round(values)) & (values >= info.min) & (values <= info.max))
             if bad.any():
                 row = int(np.argmax(bad))
-                raise SplatFileError(path, f"vertex {row}: {TYPE_NAMES[dtype[name].str[1:]]} property '{name}' "
-                                           f"holds {float(values[row])!r}, not an integer in {info.min}..{info.max}")
+                raise SplatFileError(
+                    path,
+                    f"vertex {row}: {TYPE_NAMES[dtype[name].str[1:]]} property '{name}' "
+                    f"holds {float(values[row])!r}, not an integer in {info.min}..{info.max}",
+                )
         out[name] = values
     return out
 
@@ -177,6 +211,7 @@ def _reserve(fd, size):
 
 
 # row chunks on every core -------------------------------------------------------------------------
+
 
 def _in_parallel(n, work):
     """Run work(rows) on one contiguous slice of rows per core (NumPy and file I/O release the GIL);
@@ -215,13 +250,19 @@ def _block(records, names):
     fields, f32 = records.dtype.fields, np.dtype(np.float32)
     offset = fields[names[0]][1]
     if all(fields[n][0] == f32 and fields[n][1] == offset + 4 * i for i, n in enumerate(names)):
-        return np.ndarray((len(records), len(names)), np.float32, buffer=records.view(np.uint8),
-                          offset=offset, strides=(records.itemsize, 4))
-    with np.errstate(over="ignore"):   # doubles beyond float32 become inf: reported as non-finite
+        return np.ndarray(
+            (len(records), len(names)),
+            np.float32,
+            buffer=records.view(np.uint8),
+            offset=offset,
+            strides=(records.itemsize, 4),
+        )
+    with np.errstate(over="ignore"):  # doubles beyond float32 become inf: reported as non-finite
         return np.stack([records[n].astype(np.float32) for n in names], axis=1)
 
 
 # reading ------------------------------------------------------------------------------------------
+
 
 class _Converter:
     """Fills the cloud's (contiguous) arrays from vertex records, one chunk of rows at a time, so
@@ -237,13 +278,20 @@ class _Converter:
         k = _sh_count(path, names)
         self.sh_names = ["f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(3 * (k - 1))]
         self.sh_order = sh_order(k)
-        self.arrays = {"positions": np.empty((n, 3), np.float32), "rotations": np.empty((n, 4), np.float32),
-                       "log_scales": np.empty((n, 3), np.float32), "opacity_logits": np.empty(n, np.float32),
-                       "sh": np.empty((n, k, 3), np.float32)}
+        self.arrays = {
+            "positions": np.empty((n, 3), np.float32),
+            "rotations": np.empty((n, 4), np.float32),
+            "log_scales": np.empty((n, 3), np.float32),
+            "opacity_logits": np.empty(n, np.float32),
+            "sh": np.empty((n, k, 3), np.float32),
+        }
         layout = set(layout_names(shmod.degree_of(k))) - set(NORMALS)
         # Normals belong to the layout, so they are float32 like its other fields; extras keep their dtype.
-        self.extras = {p: np.empty(n, np.float32 if p in NORMALS else dtype[p].newbyteorder("="))
-                       for p in dtype.names if p not in layout}
+        self.extras = {
+            p: np.empty(n, np.float32 if p in NORMALS else dtype[p].newbyteorder("="))
+            for p in dtype.names
+            if p not in layout
+        }
         self._float_extras = {f"extra '{p}'": a for p, a in self.extras.items() if a.dtype.kind == "f"}
         self.tallies = []
 
@@ -267,7 +315,7 @@ class _Converter:
     def cloud(self):
         extras = dict(self.extras)
         if all(p in extras for p in NORMALS) and not any(extras[p].any() for p in NORMALS):
-            for p in NORMALS:          # all zero: the reference writer's placeholder, nothing to keep
+            for p in NORMALS:  # all zero: the reference writer's placeholder, nothing to keep
                 del extras[p]
         return SplatCloud(**self.arrays, extras=extras, antialiased=self.antialiased)
 
@@ -276,11 +324,15 @@ def _sh_count(path, names):
     """K, the SH coefficients per channel, from the f_rest properties present."""
     rest = [p for p in names if p.startswith("f_rest_")]
     if set(rest) != {f"f_rest_{i}" for i in range(len(rest))}:
-        raise SplatFileError(path, "f_rest properties must be numbered f_rest_0 .. f_rest_M without gaps, "
-                                   f"found {sorted(rest, key=lambda p: (len(p), p))}")
+        raise SplatFileError(
+            path,
+            "f_rest properties must be numbered f_rest_0 .. f_rest_M without gaps, "
+            f"found {sorted(rest, key=lambda p: (len(p), p))}",
+        )
     if len(rest) not in REST_COUNTS:
-        raise SplatFileError(path, f"{len(rest)} f_rest properties; 3DGS files have 0, 9, 24, 45 or 72 "
-                                   f"(SH degree 0..{shmod.MAX_DEGREE})")
+        raise SplatFileError(
+            path, f"{len(rest)} f_rest properties; 3DGS files have 0, 9, 24, 45 or 72 (SH degree 0..{shmod.MAX_DEGREE})"
+        )
     return len(rest) // 3 + 1
 
 
@@ -299,8 +351,12 @@ def read(path, nonfinite="raise"):
     except OSError as exc:
         raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
     if convert.flat:
-        warnings.warn(f"{path}: 2DGS file (scale_0, scale_1 only); third axis set flat "
-                      f"(sigma {FLAT_SIGMA:g}, log-scale {FLAT_LOG_SCALE:.4f})", SplatFileWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: 2DGS file (scale_0, scale_1 only); third axis set flat "
+            f"(sigma {FLAT_SIGMA:g}, log-scale {FLAT_LOG_SCALE:.4f})",
+            SplatFileWarning,
+            stacklevel=2,
+        )
     cloud = convert.cloud()
     return apply_nonfinite_policy(path, cloud, nonfinite, "read", _merge(convert.tallies, cloud.checked_arrays()))
 
@@ -317,20 +373,22 @@ def _load(path):
         _in_parallel(n, lambda rows: [convert.convert(records[c], c) for c in _chunks(rows)])
         return convert
     dtype, start = _binary_layout(path, fmt, elements, index, header_len)
-    convert = _Converter(path, dtype, n, antialiased)     # checks the properties before any data is read
+    convert = _Converter(path, dtype, n, antialiased)  # checks the properties before any data is read
 
     def load(rows):
         buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)
         with open(path, "rb", buffering=0) as f:
             for chunk in _chunks(rows):
-                part = buffer[:chunk.stop - chunk.start]
+                part = buffer[: chunk.stop - chunk.start]
                 _read_into(path, f, start + chunk.start * dtype.itemsize, part)
                 convert.convert(part, chunk)
+
     _in_parallel(n, load)
     return convert
 
 
 # writing ------------------------------------------------------------------------------------------
+
 
 def write(path, cloud, nonfinite="raise"):
     """Write binary little-endian 3DGS PLY: the reference layout, then the extras.
@@ -355,10 +413,11 @@ def write(path, cloud, nonfinite="raise"):
             def fill_and_write(rows):
                 buffer = np.empty(min(CHUNK_ROWS, rows.stop - rows.start), dtype)
                 for chunk in _chunks(rows):
-                    part = buffer[:chunk.stop - chunk.start]
-                    if not fill(part, chunk):                  # tally the non-finite values (rarely)
+                    part = buffer[: chunk.stop - chunk.start]
+                    if not fill(part, chunk):  # tally the non-finite values (rarely)
                         tallies.append(_nonfinite_rows(cloud.checked_arrays(), chunk))
                     _write_at(f.fileno(), part, len(header) + chunk.start * dtype.itemsize)
+
             _in_parallel(len(cloud), fill_and_write)
             if nonfinite == "raise":
                 apply_nonfinite_policy(path, cloud, "raise", "write", _merge(tallies, cloud.checked_arrays()))
@@ -393,16 +452,23 @@ class _Filler:
         self.cloud, self.extras, self.kernels = cloud, extras, kernels
         self.normals = [cloud.extras.get(name) for name in NORMALS]
         k = cloud.sh.shape[1]
-        self.sh_columns = np.argsort(sh_order(k))       # cloud SH (K*3) -> file f_dc, f_rest order
-        self.m = 3 * k                                  # f_dc + f_rest columns
+        self.sh_columns = np.argsort(sh_order(k))  # cloud SH (K*3) -> file f_dc, f_rest order
+        self.m = 3 * k  # f_dc + f_rest columns
         if kernels is not None:
             c = cloud
-            normals = np.zeros((0, 0), np.float32) if all(n is None for n in self.normals) else np.stack(
-                [np.zeros(len(c), np.float32) if n is None else n.astype(np.float32) for n in self.normals])
-            self.arrays = [np.ascontiguousarray(c.positions, dtype=np.float32), normals,
-                           np.ascontiguousarray(c.sh, dtype=np.float32).reshape(len(c), self.m),
-                           self.sh_columns.astype(np.int64)] + [
-                np.ascontiguousarray(a, dtype=np.float32) for a in (c.opacity_logits, c.log_scales, c.rotations)]
+            normals = (
+                np.zeros((0, 0), np.float32)
+                if all(n is None for n in self.normals)
+                else np.stack(
+                    [np.zeros(len(c), np.float32) if n is None else n.astype(np.float32) for n in self.normals]
+                )
+            )
+            self.arrays = [
+                np.ascontiguousarray(c.positions, dtype=np.float32),
+                normals,
+                np.ascontiguousarray(c.sh, dtype=np.float32).reshape(len(c), self.m),
+                self.sh_columns.astype(np.int64),
+            ] + [np.ascontiguousarray(a, dtype=np.float32) for a in (c.opacity_logits, c.log_scales, c.rotations)]
 
     def __call__(self, part, rows):
         if self.kernels is not None:
@@ -420,10 +486,10 @@ class _Filler:
         for i, normal in enumerate(self.normals):
             core[:, 3 + i] = 0.0 if normal is None else normal[rows]
         sh = cloud.sh[rows].reshape(len(part), m)
-        core[:, 6:6 + m] = np.take(sh, self.sh_columns, axis=1, mode="clip")
+        core[:, 6 : 6 + m] = np.take(sh, self.sh_columns, axis=1, mode="clip")
         core[:, 6 + m] = cloud.opacity_logits[rows]
-        core[:, 7 + m:10 + m] = cloud.log_scales[rows]
-        core[:, 10 + m:14 + m] = cloud.rotations[rows]
+        core[:, 7 + m : 10 + m] = cloud.log_scales[rows]
+        core[:, 10 + m : 14 + m] = cloud.rotations[rows]
         for name, values in self.extras:
             part[name] = values[rows]
 
@@ -431,6 +497,7 @@ class _Filler:
 def _check_kernels(kernels):
     """The compiled fill against the NumPy one on a small cloud (compiling it, or loading the cache)."""
     from ..core.scenes import seed_cube
+
     cloud = seed_cube(2)
     dtype = np.dtype([(CORE, "<f4", (len(layout_names(cloud.sh_degree)),))])
     fast, slow = _Filler(cloud, [], kernels), _Filler(cloud, [])
@@ -454,10 +521,18 @@ def _extra_columns(path, cloud, taken):
     seen = set(taken) | set(NORMALS)
     for name, _ in columns:
         # f_rest_* would be read back as SH coefficients, so those names belong to the layout too.
-        if name in seen or name.startswith("f_rest_") or not name or not name.isascii() \
-                or any(c.isspace() for c in name):
-            raise SplatFileError(path, f"extra '{name}' cannot be a PLY property: it is empty, not ASCII, "
-                                       "holds whitespace or clashes with a 3DGS or another extra property")
+        if (
+            name in seen
+            or name.startswith("f_rest_")
+            or not name
+            or not name.isascii()
+            or any(c.isspace() for c in name)
+        ):
+            raise SplatFileError(
+                path,
+                f"extra '{name}' cannot be a PLY property: it is empty, not ASCII, "
+                "holds whitespace or clashes with a 3DGS or another extra property",
+            )
         seen.add(name)
     return columns
 
@@ -475,5 +550,6 @@ def _ply_typed(path, key, a):
         return a.astype(np.float32)
     if a.dtype.kind in "iuf" and a.dtype.str[1:] in TYPE_NAMES:
         return a
-    raise SplatFileError(path, f"extra '{key}' has dtype {a.dtype}, which PLY cannot store "
-                               "(PLY has 8-32 bit integers, float and double)")
+    raise SplatFileError(
+        path, f"extra '{key}' has dtype {a.dtype}, which PLY cannot store (PLY has 8-32 bit integers, float and double)"
+    )

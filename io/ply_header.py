@@ -9,13 +9,36 @@ import numpy as np
 from .common import SplatFileError
 
 # PLY scalar type names (both spellings of the spec) -> NumPy type codes, and back for writing.
-PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-             "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-             "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-TYPE_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint",
-              "f4": "float", "f8": "double"}
+PLY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
+TYPE_NAMES = {
+    "i1": "char",
+    "u1": "uchar",
+    "i2": "short",
+    "u2": "ushort",
+    "i4": "int",
+    "u4": "uint",
+    "f4": "float",
+    "f8": "double",
+}
 FORMATS = {"ascii": "=", "binary_little_endian": "<", "binary_big_endian": ">"}
-ANTIALIASED_COMMENT = "antialiased"     # the header comment's first word for splats made for that mode
+ANTIALIASED_COMMENT = "antialiased"  # the header comment's first word for splats made for that mode
 MAX_HEADER = 1 << 20
 
 
@@ -23,7 +46,7 @@ MAX_HEADER = 1 << 20
 class Element:
     name: str
     count: int
-    properties: list          # (name, type code) or (name, ("list", count code, item code))
+    properties: list  # (name, type code) or (name, ("list", count code, item code))
 
     @property
     def has_lists(self):
@@ -43,7 +66,7 @@ def read_header(path, f):
     if end is None:
         raise SplatFileError(path, "PLY header has no 'end_header' line (truncated file?)")
     try:
-        lines = head[:end.start()].decode("ascii").splitlines()[1:]
+        lines = head[: end.start()].decode("ascii").splitlines()[1:]
     except UnicodeDecodeError:
         raise SplatFileError(path, "PLY header is not ASCII text") from None
     fmt, elements, antialiased = None, [], False
@@ -56,8 +79,11 @@ def read_header(path, f):
         where = f"PLY header line {number} '{line.strip()}'"
         if words[0] == "format":
             if len(words) != 3 or words[1] not in FORMATS or words[2] != "1.0":
-                raise SplatFileError(path, f"{where}: unsupported format (expected ascii, "
-                                           "binary_little_endian or binary_big_endian, version 1.0)")
+                raise SplatFileError(
+                    path,
+                    f"{where}: unsupported format (expected ascii, "
+                    "binary_little_endian or binary_big_endian, version 1.0)",
+                )
             fmt = words[1]
         elif words[0] == "element":
             if len(words) != 3 or not words[2].isdigit():
@@ -86,12 +112,15 @@ def _parse_property(path, where, words):
             return words[4], ("list", PLY_TYPES[types[0]], PLY_TYPES[types[1]])
     elif len(words) == 3 and words[1] in PLY_TYPES:
         return words[2], PLY_TYPES[words[1]]
-    raise SplatFileError(path, f"{where}: expected 'property TYPE NAME' or 'property list TYPE TYPE NAME' "
-                               f"with TYPE one of {', '.join(sorted(set(TYPE_NAMES.values())))}")
+    raise SplatFileError(
+        path,
+        f"{where}: expected 'property TYPE NAME' or 'property list TYPE TYPE NAME' "
+        f"with TYPE one of {', '.join(sorted(set(TYPE_NAMES.values())))}",
+    )
 
 
 def sh_order(k):
     """Column permutation from the file's f_dc_0..2, f_rest_* (channel-major) to the cloud's
     (K, 3) coefficient-major SH: sh.reshape(N, 3K) = file_columns[:, sh_order(k)]."""
-    j, c = np.meshgrid(np.arange(1, k), np.arange(3), indexing="ij")   # coefficient j, channel c
+    j, c = np.meshgrid(np.arange(1, k), np.arange(3), indexing="ij")  # coefficient j, channel c
     return np.concatenate([[0, 1, 2], 3 + c.ravel() * (k - 1) + (j.ravel() - 1)])

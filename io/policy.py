@@ -28,7 +28,7 @@ SPZ_RATIO_FLOOR = 64 << 20
 # Payloads are decompressed in pieces of this size, counting bytes as they come.
 STREAM_PIECE = 16 << 20
 
-_DRIVE = re.compile(r"^[A-Za-z]:|^//")      # Windows drive letters and UNC shares (after \ -> /)
+_DRIVE = re.compile(r"^[A-Za-z]:|^//")  # Windows drive letters and UNC shares (after \ -> /)
 
 
 def outside_message(reference, where):

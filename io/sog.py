@@ -31,16 +31,29 @@ import numpy as np
 
 from ..core import SplatCloud
 from ..core.splats import logit, sigmoid
-from .common import (SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, check_nonfinite_policy,
-                     publish_together, reduced_sh, warn_notes)
+from .common import (
+    SplatFileError,
+    SplatFileWarning,
+    apply_nonfinite_policy,
+    atomic_write,
+    check_nonfinite_policy,
+    publish_together,
+    reduced_sh,
+    warn_notes,
+)
 from .compressed_ply import morton_order
 
-FILES = {"means": ["means_l.webp", "means_u.webp"], "scales": ["scales.webp"], "quats": ["quats.webp"],
-         "sh0": ["sh0.webp"], "shN": ["shN_centroids.webp", "shN_labels.webp"]}
+FILES = {
+    "means": ["means_l.webp", "means_u.webp"],
+    "scales": ["scales.webp"],
+    "quats": ["quats.webp"],
+    "sh0": ["sh0.webp"],
+    "shN": ["shN_centroids.webp", "shN_labels.webp"],
+}
 SH_COEFFS = {1: 3, 2: 8, 3: 15}
 PALETTE_MAX = 1 << 16
 CODEBOOK = 256
-MAX_FILE = 1 << 30                  # an entry of a .sog bigger than this is refused before reading
+MAX_FILE = 1 << 30  # an entry of a .sog bigger than this is refused before reading
 SQRT2 = np.sqrt(2.0)
 
 
@@ -49,15 +62,19 @@ def _pillow(path):
     try:
         from PIL import Image, features
     except ImportError:
-        raise SplatFileError(path, "SOG stores splats as WebP images and this Python has no WebP codec (the "
-                                   "Pillow package; Blender's own Python lacks it): convert the file with "
-                                   "the splatwright command outside Blender") from None
+        raise SplatFileError(
+            path,
+            "SOG stores splats as WebP images and this Python has no WebP codec (the "
+            "Pillow package; Blender's own Python lacks it): convert the file with "
+            "the splatwright command outside Blender",
+        ) from None
     if not features.check("webp"):
         raise SplatFileError(path, "SOG stores splats as WebP images and this Pillow was built without WebP")
     return Image
 
 
 # reading ------------------------------------------------------------------------------------------
+
 
 class _Source:
     """The files of a SOG: entries of a .sog zip, or files beside a meta.json."""
@@ -110,7 +127,7 @@ def _image(path, source, name, count):
             pixels = np.asarray(image.convert("RGBA"))
     except SplatFileError:
         raise
-    except Exception as exc:       # noqa: BLE001 - Pillow raises many types for damaged images
+    except Exception as exc:  # noqa: BLE001 - Pillow raises many types for damaged images
         raise SplatFileError(path, f"{name} is not a readable WebP image: {exc}") from None
     return pixels.reshape(-1, 4)
 
@@ -125,8 +142,9 @@ def _meta(path, source):
     if not isinstance(meta, dict):
         raise SplatFileError(path, "meta.json must hold an object")
     if meta.get("version") != 2:
-        raise SplatFileError(path, f"SOG version {meta.get('version', '1 (no version field)')}; this reader takes "
-                                   "version 2")
+        raise SplatFileError(
+            path, f"SOG version {meta.get('version', '1 (no version field)')}; this reader takes version 2"
+        )
     try:
         count = int(meta["count"])
         mins, maxs = (np.asarray(meta["means"][k], np.float64) for k in ("mins", "maxs"))
@@ -168,7 +186,7 @@ def _unpack_quats(path, rgba):
     for i in range(3):
         q[rows, others[:, i]] = abc[:, i]
     q[rows, tag] = np.sqrt(np.maximum(0, 1 - (abc * abc).sum(axis=1)))
-    q[bad] = (1, 0, 0, 0)                                  # as the reference decoder does
+    q[bad] = (1, 0, 0, 0)  # as the reference decoder does
     return q
 
 
@@ -185,8 +203,10 @@ def _sh_rest(path, source, shn, n):
     centroids = _image(path, source, names[0], 0)
     rows = -(-count // 64)
     if len(centroids) < rows * 64 * k:
-        raise SplatFileError(path, f"{names[0]} holds {len(centroids)} texels, {count} palette entries need {rows * 64 * k}")
-    palette = codebook[centroids[:rows * 64 * k, :3]].reshape(rows * 64, k, 3)
+        raise SplatFileError(
+            path, f"{names[0]} holds {len(centroids)} texels, {count} palette entries need {rows * 64 * k}"
+        )
+    palette = codebook[centroids[: rows * 64 * k, :3]].reshape(rows * 64, k, 3)
     labels = _image(path, source, names[1], n)[:n]
     index = labels[:, 0].astype(np.int64) | (labels[:, 1].astype(np.int64) << 8)
     out = np.zeros((n, k, 3), np.float32)
@@ -211,6 +231,7 @@ def read(path, nonfinite="raise"):
 
 
 # writing ------------------------------------------------------------------------------------------
+
 
 def kmeans_1d(values, k=CODEBOOK, iterations=12):
     """(centroids (k,) float32 ascending, labels) of 1-D k-means, started at quantiles. On sorted
@@ -259,9 +280,14 @@ def palette(vectors, size):
     return (sums / np.diff(bounds)[:, None]).astype(np.float32), labels
 
 
+def _round_up(value, step):
+    """The smallest multiple of `step` at or above `value`."""
+    return -(-value // step) * step
+
+
 def _grid(n):
-    width = max(4, -(-int(np.ceil(np.sqrt(n))) // 4) * 4)
-    height = max(4, -(-(-(-n // width)) // 4) * 4)
+    width = max(4, _round_up(int(np.ceil(np.sqrt(n))), 4))
+    height = max(4, _round_up(_round_up(n, width) // width, 4))
     return width, height
 
 
@@ -269,7 +295,7 @@ def _rgba(values, width, height, alpha=255):
     """A (height, width, 4) uint8 image with one splat's bytes (N, 3 or 4) per pixel."""
     out = np.zeros((width * height, 4), np.uint8)
     out[:, 3] = alpha
-    out[:len(values), :values.shape[1]] = values
+    out[: len(values), : values.shape[1]] = values
     return out.reshape(height, width, 4)
 
 
@@ -292,8 +318,10 @@ def encode(path, cloud):
     mins, maxs = logs.min(axis=0), logs.max(axis=0)
     span = np.where(maxs > mins, maxs - mins, 1.0)
     q16 = np.clip(np.rint((logs - mins) / span * 65535), 0, 65535).astype(np.uint16)
-    files = {"means_l.webp": _rgba((q16 & 0xFF).astype(np.uint8), width, height),
-             "means_u.webp": _rgba((q16 >> 8).astype(np.uint8), width, height)}
+    files = {
+        "means_l.webp": _rgba((q16 & 0xFF).astype(np.uint8), width, height),
+        "means_u.webp": _rgba((q16 >> 8).astype(np.uint8), width, height),
+    }
     q = cloud.unit_rotations.astype(np.float64)
     largest = np.argmax(np.abs(q), axis=1)
     rows = np.arange(n)
@@ -306,11 +334,15 @@ def encode(path, cloud):
     dc_book, dc_labels = kmeans_1d(cloud.sh[:, 0])
     alpha = _bytes(sigmoid(cloud.opacity_logits) * 255)
     files["sh0.webp"] = _rgba(np.column_stack([dc_labels.reshape(n, 3).astype(np.uint8), alpha]), width, height)
-    meta = {"version": 2, "asset": {"generator": "Splatwright"}, "count": n,
-            "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": FILES["means"]},
-            "scales": {"codebook": scale_book.tolist(), "files": FILES["scales"]},
-            "quats": {"files": FILES["quats"]},
-            "sh0": {"codebook": dc_book.tolist(), "files": FILES["sh0"]}}
+    meta = {
+        "version": 2,
+        "asset": {"generator": "Splatwright"},
+        "count": n,
+        "means": {"mins": mins.tolist(), "maxs": maxs.tolist(), "files": FILES["means"]},
+        "scales": {"codebook": scale_book.tolist(), "files": FILES["scales"]},
+        "quats": {"files": FILES["quats"]},
+        "sh0": {"codebook": dc_book.tolist(), "files": FILES["sh0"]},
+    }
     if degree:
         k = SH_COEFFS[degree]
         centroids, labels = palette(cloud.sh[:, 1:].reshape(n, -1), PALETTE_MAX)
@@ -319,7 +351,7 @@ def encode(path, cloud):
         rows_of_64 = -(-len(centroids) // 64)
         texels = np.zeros((rows_of_64 * 64, k, 4), np.uint8)
         texels[:, :, 3] = 255
-        texels[:len(centroids), :, :3] = coded
+        texels[: len(centroids), :, :3] = coded
         files["shN_centroids.webp"] = texels.reshape(rows_of_64, 64 * k, 4)
         files["shN_labels.webp"] = _rgba(np.column_stack([labels & 0xFF, labels >> 8]).astype(np.uint8), width, height)
         meta["shN"] = {"count": len(centroids), "bands": degree, "codebook": book.tolist(), "files": FILES["shN"]}
@@ -340,20 +372,21 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     elif order is not None:
         raise ValueError(f"order must be 'morton' or None, got {order!r}")
     if cloud.extras:
-        warnings.warn(f"{path}: SOG has no room for extras; {sorted(cloud.extras)} not written",
-                      SplatFileWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: SOG has no room for extras; {sorted(cloud.extras)} not written", SplatFileWarning, stacklevel=2
+        )
     notes = []
     cloud = reduced_sh(cloud, max(SH_COEFFS), "SOG", notes)
     warn_notes(path, notes)
     files = encode(path, cloud)
     if str(path).lower().endswith("meta.json"):
         folder = Path(path).parent
-        with publish_together():                    # meta.json and its images, or none of them
+        with publish_together():  # meta.json and its images, or none of them
             for name, data in files.items():
                 if name != "meta.json":
                     with atomic_write(folder / name) as f:
                         f.write(data)
-            with atomic_write(path) as f:          # renamed last: the images it names are in place
+            with atomic_write(path) as f:  # renamed last: the images it names are in place
                 f.write(files["meta.json"])
         return
     with atomic_write(path) as f, zipfile.ZipFile(f, "w", zipfile.ZIP_STORED) as bundle:

@@ -40,8 +40,9 @@ def read(path, nonfinite="raise"):
     except OSError as exc:
         raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
     if len(data) % RECORD.itemsize:
-        raise SplatFileError(path, f"{len(data)} bytes is not a whole number of 32-byte splats "
-                                   "(truncated, or not a .splat file)")
+        raise SplatFileError(
+            path, f"{len(data)} bytes is not a whole number of 32-byte splats (truncated, or not a .splat file)"
+        )
     rec = data.view(RECORD)
     notes = []
     rgba = rec["rgba"].astype(np.float64) / 255.0
@@ -75,8 +76,11 @@ def write(path, cloud, nonfinite="raise"):
     """Write a .splat file; view-dependent SH (degree > 0) is dropped with a warning."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     if cloud.sh_degree > 0 and np.any(cloud.sh[:, 1:]):
-        warnings.warn(f"{path}: .splat stores the DC colour only; SH degree {cloud.sh_degree} "
-                      "view-dependent colour dropped", SplatFileWarning, stacklevel=2)
+        warnings.warn(
+            f"{path}: .splat stores the DC colour only; SH degree {cloud.sh_degree} view-dependent colour dropped",
+            SplatFileWarning,
+            stacklevel=2,
+        )
     rec = encode(cloud)
     with atomic_write(path) as f:
-        f.write(np.ascontiguousarray(rec).data)     # not tofile: it loses a full disk's error on small writes
+        f.write(np.ascontiguousarray(rec).data)  # not tofile: it loses a full disk's error on small writes

@@ -56,27 +56,28 @@ from .policy import SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR, STREAM_PIECE
 
 MAGIC = 0x5053474E
 VERSIONS = (2, 3, 4)
-HEADER = struct.Struct("<IIIBBBB")            # magic, version, count, SH degree, fractional bits, flags, reserved
-V4_HEADER = struct.Struct("<IIIBBBBI12x")     # ... , stream count, TOC offset, reserved
+HEADER = struct.Struct("<IIIBBBB")  # magic, version, count, SH degree, fractional bits, flags, reserved
+V4_HEADER = struct.Struct("<IIIBBBBI12x")  # ... , stream count, TOC offset, reserved
 COLOR_SCALE = 0.15
 SQRT1_2 = np.float32(0.7071067811865476)
 FLAG_ANTIALIASED, FLAG_EXTENSIONS = 0x1, 0x2
 SH_QUANTIZATION_EXT = 0xADBE0001
 MAX_POINTS = 1 << 28
-SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}    # higher-order coefficients per channel
-GZIP_LEVEL, ZSTD_LEVEL = 6, 12                 # what Niantic's writer uses (v4 output is byte-identical)
-ZSTD_FAST_LEVEL = 1                            # v4 blocks beyond GZIP_CHUNK of data (see the module's notes)
-GZIP_CHUNK = 1 << 20                           # deflated independently, in parallel, like pigz
-GZIP_OS = 3                                    # the OS byte zlib writes on Unix
-ISAL_LEVEL = 1                                 # ISA-L level 1: about zlib 6's size, many times its speed
+SH_DIMS = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}  # higher-order coefficients per channel
+GZIP_LEVEL, ZSTD_LEVEL = 6, 12  # what Niantic's writer uses (v4 output is byte-identical)
+ZSTD_FAST_LEVEL = 1  # v4 blocks beyond GZIP_CHUNK of data (see the module's notes)
+GZIP_CHUNK = 1 << 20  # deflated independently, in parallel, like pigz
+GZIP_OS = 3  # the OS byte zlib writes on Unix
+ISAL_LEVEL = 1  # ISA-L level 1: about zlib 6's size, many times its speed
 # The most a compressed byte can expand to: deflate reaches at most 1032:1; a zstd block (a 3-byte
 # header at least) holds at most 128 KiB. A header claiming more splats than that is lying.
 DEFLATE_MAX_RATIO = 1032
 ZSTD_BLOCK_HEADER, ZSTD_MAX_BLOCK = 3, 128 << 10
-EXTENSION_ROOM = 1 << 16                       # bytes of extension records a v2/v3 payload may carry
+EXTENSION_ROOM = 1 << 16  # bytes of extension records a v2/v3 payload may carry
 
 
 # axis flips: two axes reversed (a half turn), exact since only signs change --------------------------
+
 
 def sh_signs(signs):
     """Sign of each SH basis function (degrees 0..4) under (x, y, z) -> signs * (x, y, z)."""
@@ -89,7 +90,7 @@ SH_FLIP = sh_signs([1, -1, -1])
 # Niantic's RDF <-> RUB signs (CoordinateConverter.flipSh): SH_FLIP but for the m = 4 coefficient
 # of degree 4, which that table gives the sign of y.
 SPZ_SH_FLIP = SH_FLIP * np.where(np.arange(len(SH_FLIP)) == 24, np.float32(-1), np.float32(1))
-LEGACY_MAX_DEGREE = 3                          # the highest SH degree v2/v3 readers take
+LEGACY_MAX_DEGREE = 3  # the highest SH degree v2/v3 readers take
 
 
 def flip_axes(cloud, signs):
@@ -97,8 +98,11 @@ def flip_axes(cloud, signs):
     positions and each quaternion's vector part take the signs, SH their basis functions' parity."""
     signs = np.float32(signs)
     k = cloud.sh.shape[1]
-    return cloud.replace(positions=cloud.positions * signs, rotations=cloud.rotations * np.concatenate([[1], signs]),
-                         sh=cloud.sh * sh_signs(signs)[None, :k, None])
+    return cloud.replace(
+        positions=cloud.positions * signs,
+        rotations=cloud.rotations * np.concatenate([[1], signs]),
+        sh=cloud.sh * sh_signs(signs)[None, :k, None],
+    )
 
 
 def flip_yz(cloud):
@@ -108,10 +112,17 @@ def flip_yz(cloud):
 
 # reading ------------------------------------------------------------------------------------------
 
+
 def _block_sizes(n, dim, version):
     """(name, bytes) of the attribute blocks in file order."""
-    return [("positions", 9 * n), ("alphas", n), ("colors", 3 * n), ("scales", 3 * n),
-            ("rotations", (4 if version >= 3 else 3) * n), ("sh", 3 * dim * n)]
+    return [
+        ("positions", 9 * n),
+        ("alphas", n),
+        ("colors", 3 * n),
+        ("scales", 3 * n),
+        ("rotations", (4 if version >= 3 else 3) * n),
+        ("sh", 3 * dim * n),
+    ]
 
 
 def uncompressed_size(count, sh_degree, version=3):
@@ -141,12 +152,18 @@ def _check_claim(path, n, need, file_size):
     """Refuse a header whose splats need more bytes than the stated limits allow (policy.SPZ_*): past
     SPZ_MAX_BYTES, or past SPZ_MAX_RATIO times the compressed file once beyond SPZ_RATIO_FLOOR."""
     if need > SPZ_MAX_BYTES:
-        raise SplatFileError(path, f"header claims {n} splats ({need} data bytes), more than the "
-                                   f"{SPZ_MAX_BYTES >> 30} GiB this reader decompresses")
+        raise SplatFileError(
+            path,
+            f"header claims {n} splats ({need} data bytes), more than the "
+            f"{SPZ_MAX_BYTES >> 30} GiB this reader decompresses",
+        )
     if need > max(SPZ_RATIO_FLOOR, SPZ_MAX_RATIO * file_size):
-        raise SplatFileError(path, f"header claims {n} splats ({need} data bytes) in a {file_size}-byte file: "
-                                   f"more than {SPZ_MAX_RATIO}x its size, which no SPZ compresses to "
-                                   "(a decompression bomb, or a corrupt count)")
+        raise SplatFileError(
+            path,
+            f"header claims {n} splats ({need} data bytes) in a {file_size}-byte file: "
+            f"more than {SPZ_MAX_RATIO}x its size, which no SPZ compresses to "
+            "(a decompression bomb, or a corrupt count)",
+        )
 
 
 def _gunzip_legacy(path, raw):
@@ -166,8 +183,11 @@ def _gunzip_legacy(path, raw):
             raise SplatFileError(path, "SPZ version 4 inside gzip; v4 files are not gzipped")
         need = sum(size for _, size in _block_sizes(n, SH_DIMS[degree], version))
         if need > DEFLATE_MAX_RATIO * len(raw):
-            raise SplatFileError(path, f"header claims {n} splats ({need} data bytes), more than a "
-                                       f"{len(raw)}-byte gzip file can hold (truncated or corrupt?)")
+            raise SplatFileError(
+                path,
+                f"header claims {n} splats ({need} data bytes), more than a "
+                f"{len(raw)}-byte gzip file can hold (truncated or corrupt?)",
+            )
         _check_claim(path, n, need, len(raw))
         body = _inflate(d, need + EXTENSION_ROOM + 1)
     except zlib.error as exc:
@@ -199,11 +219,12 @@ def _split_legacy(path, fields, body):
     if extra < 0:
         raise SplatFileError(path, f"truncated: {len(body)} data bytes, the header's {n} splats need {need}")
     if extra and not flags & FLAG_EXTENSIONS:
-        raise SplatFileError(path, f"{extra} bytes beyond the data the header describes "
-                                   f"(does its count of {n} understate the file?)")
+        raise SplatFileError(
+            path, f"{extra} bytes beyond the data the header describes (does its count of {n} understate the file?)"
+        )
     blocks, at = {"extensions": body[:extra]}, extra
     for name, size in sizes:
-        blocks[name], at = body[at:at + size], at + size
+        blocks[name], at = body[at : at + size], at + size
     return blocks
 
 
@@ -211,8 +232,9 @@ def _zstd(path):
     try:
         import zstandard
     except ImportError:
-        raise SplatFileError(path, "SPZ version 4 is zstd-compressed and needs the zstandard package, "
-                                   "which this Python lacks") from None
+        raise SplatFileError(
+            path, "SPZ version 4 is zstd-compressed and needs the zstandard package, which this Python lacks"
+        ) from None
     return zstandard
 
 
@@ -231,22 +253,28 @@ def _split_v4(path, raw):
     else:
         listed = [(name, size) for name, size in sizes if size]
     if streams != len(listed) or toc < V4_HEADER.size or toc + 16 * streams > len(raw):
-        raise SplatFileError(path, f"bad v4 table of contents ({streams} streams at byte {toc} of {len(raw)}; "
-                                   f"{len(listed)} expected for SH degree {degree})")
+        raise SplatFileError(
+            path,
+            f"bad v4 table of contents ({streams} streams at byte {toc} of {len(raw)}; "
+            f"{len(listed)} expected for SH degree {degree})",
+        )
     table = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
     _check_claim(path, n, sum(size for _, size in listed), len(raw))
     decompressor = _zstd(path).ZstdDecompressor()
-    blocks = {"extensions": raw[V4_HEADER.size:toc], "sh": b""}
+    blocks = {"extensions": raw[V4_HEADER.size : toc], "sh": b""}
     at = toc + 16 * streams
-    for (name, size), (packed, unpacked) in zip(listed, table.tolist()):     # Python ints: no uint64 wrap
+    for (name, size), (packed, unpacked) in zip(listed, table.tolist()):  # Python ints: no uint64 wrap
         if unpacked != size:
             raise SplatFileError(path, f"v4 {name} stream holds {unpacked} bytes, the header's {n} splats need {size}")
         if at + packed > len(raw):
             raise SplatFileError(path, f"truncated: the {name} stream runs past the end of the file")
         if size > -(-packed // ZSTD_BLOCK_HEADER) * ZSTD_MAX_BLOCK:
-            raise SplatFileError(path, f"v4 {name} stream of {packed} bytes cannot hold the {size} bytes "
-                                       f"the header's {n} splats need (truncated or corrupt?)")
-        blocks[name] = _unzstd(path, name, decompressor, raw[at:at + packed], size)
+            raise SplatFileError(
+                path,
+                f"v4 {name} stream of {packed} bytes cannot hold the {size} bytes "
+                f"the header's {n} splats need (truncated or corrupt?)",
+            )
+        blocks[name] = _unzstd(path, name, decompressor, raw[at : at + packed], size)
         if len(blocks[name]) != size:
             raise SplatFileError(path, f"v4 {name} stream decompressed to {len(blocks[name])} of {size} bytes")
         at += packed
@@ -302,8 +330,8 @@ def _decode_rotations(data, n, version):
     comp = np.frombuffer(data, "<u4").astype(np.uint32)
     largest = (comp >> 30).astype(np.int64)
     q = np.zeros((n, 4), np.float32)
-    slot = np.zeros(n, np.int64)        # how many 10-bit fields were already taken, from the low end
-    for i in (3, 2, 1, 0):              # the last component sits in the lowest bits
+    slot = np.zeros(n, np.int64)  # how many 10-bit fields were already taken, from the low end
+    for i in (3, 2, 1, 0):  # the last component sits in the lowest bits
         here = largest != i
         field = (comp >> (10 * slot).astype(np.uint32)) & 0x3FF
         value = SQRT1_2 * (field & 0x1FF).astype(np.float32) / np.float32(511)
@@ -337,14 +365,24 @@ def decode(path, raw, axes="RDF"):
         lo, hi = _sh_range(blocks["extensions"])
         u = np.frombuffer(blocks["sh"], np.uint8).reshape(n, dim, 3).astype(np.float32)
         sh[:, 1:] = (u - 128) / 128 if (lo, hi) == (-1.0, 1.0) else lo + u / np.float32(255) * np.float32(hi - lo)
-    cloud = SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], scales / np.float32(16) - np.float32(10),
-                       logit(alphas), sh, antialiased=bool(flags & FLAG_ANTIALIASED))
+    cloud = SplatCloud(
+        positions,
+        xyzw[:, [3, 0, 1, 2]],
+        scales / np.float32(16) - np.float32(10),
+        logit(alphas),
+        sh,
+        antialiased=bool(flags & FLAG_ANTIALIASED),
+    )
     if axes == "RDF":
         cloud = _flip_spz(cloud)
     elif axes is not None:
         raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
-    return cloud, {"version": version, "fractional_bits": bits, "antialiased": bool(flags & FLAG_ANTIALIASED),
-                   "sh_degree_in_file": degree}
+    return cloud, {
+        "version": version,
+        "fractional_bits": bits,
+        "antialiased": bool(flags & FLAG_ANTIALIASED),
+        "sh_degree_in_file": degree,
+    }
 
 
 def _flip_spz(cloud):
@@ -367,6 +405,7 @@ def read(path, axes="RDF", nonfinite="raise"):
 
 # writing ------------------------------------------------------------------------------------------
 
+
 def fractional_bits_for(positions, preferred=12):
     """`preferred` fractional bits if every position fits 24-bit fixed point with them, else the most
     that fit; None when even 0 bits overflow (|x| >= 2^23)."""
@@ -379,6 +418,7 @@ def fractional_bits_for(positions, preferred=12):
 
 # The reference writer's arithmetic, to the bit: float32 expressions, rounded half away from zero
 # (std::round), so our files match Niantic's byte for byte.
+
 
 def round_half_away(x):
     """Round to nearest, ties away from zero, as C's round() does (exact for float32 inputs)."""
@@ -409,7 +449,7 @@ def _encode_rotations(q_wxyz, version):
         q = q * np.where(q[:, 3:] < 0, np.float32(-127.5), np.float32(127.5)) + np.float32(127.5)
         return _bytes_of(q[:, :3])
     n = len(q)
-    largest = np.argmax(np.abs(q), axis=1)        # the first of equal magnitudes, as the reference
+    largest = np.argmax(np.abs(q), axis=1)  # the first of equal magnitudes, as the reference
     negate = q[np.arange(n), largest] < 0
     comp = largest.astype(np.uint32)
     for i in range(4):
@@ -448,14 +488,14 @@ def _quantize_sh(sh, signs, buckets):
     r = _round_half_away32(sh.reshape(n, -1) * np.repeat(signs.reshape(-1) * np.float32(128), 3))
     q = np.clip(r, -1024, 1024, out=r).astype(np.int16)
     q += np.int16(128)
-    outside = int(np.count_nonzero(q.view(np.uint16) > 255))      # negatives wrap above 255
+    outside = int(np.count_nonzero(q.view(np.uint16) > 255))  # negatives wrap above 255
     half, mask = buckets
     q += half
-    q &= mask                             # down to a multiple of the bucket (floor for negatives too)
+    q &= mask  # down to a multiple of the bucket (floor for negatives too)
     return np.clip(q, 0, 255, out=q).astype(np.uint8).reshape(sh.shape), outside
 
 
-CHUNK = 1 << 13     # splats quantised together: their temporaries stay in cache
+CHUNK = 1 << 13  # splats quantised together: their temporaries stay in cache
 
 
 class _Packer:
@@ -466,10 +506,10 @@ class _Packer:
         self.cloud, self.version, self.bits = cloud, version, bits
         n, k = len(cloud), cloud.sh.shape[1]
         self.sizes = _block_sizes(n, k - 1, version)
-        self.offsets = np.cumsum([prefix] + [size for _, size in self.sizes])     # prefix: room for a header
+        self.offsets = np.cumsum([prefix] + [size for _, size in self.sizes])  # prefix: room for a header
         self.payload = bytearray(int(self.offsets[-1]))
         view = np.frombuffer(self.payload, np.uint8)
-        self.blocks = {name: view[a:a + size] for (name, size), a in zip(self.sizes, self.offsets)}
+        self.blocks = {name: view[a : a + size] for (name, size), a in zip(self.sizes, self.offsets)}
         self.position_sign = np.float32([1, -1, -1]) if flip else np.ones(3, np.float32)
         self.rotation_sign = np.float32([1, 1, -1, -1]) if flip else np.ones(4, np.float32)
         self.sh_sign = SPZ_SH_FLIP[1:k, None] if flip else np.ones((k - 1, 1), np.float32)
@@ -481,7 +521,7 @@ class _Packer:
         # the flip only changes signs, so it commutes with the reference's float32 arithmetic
         scaled = cloud.positions[a:b] * self.position_sign * np.float32(1 << self.bits)
         fixed = round_half_away(scaled).astype(np.int64) & 0xFFFFFF
-        p = blocks["positions"][9 * a:9 * b].reshape(-1, 3, 3)
+        p = blocks["positions"][9 * a : 9 * b].reshape(-1, 3, 3)
         p[..., 0], p[..., 1], p[..., 2] = fixed & 0xFF, (fixed >> 8) & 0xFF, fixed >> 16
         logits = cloud.opacity_logits[a:b].astype(np.float32)
         with np.errstate(over="ignore"):
@@ -491,22 +531,24 @@ class _Packer:
         scales = (cloud.log_scales[a:b] + np.float32(10)) * np.float32(16)
         out["DC colours"] = _outside(colors)
         out["log scales"] = _outside(scales)
-        blocks["colors"][3 * a:3 * b] = _bytes_of(colors).reshape(-1)
-        blocks["scales"][3 * a:3 * b] = _bytes_of(scales).reshape(-1)
+        blocks["colors"][3 * a : 3 * b] = _bytes_of(colors).reshape(-1)
+        blocks["scales"][3 * a : 3 * b] = _bytes_of(scales).reshape(-1)
         rotations = _encode_rotations(cloud.rotations[a:b] * self.rotation_sign, self.version)
         width = 4 if self.version >= 3 else 3
-        blocks["rotations"][width * a:width * b] = rotations.view(np.uint8).reshape(-1)
+        blocks["rotations"][width * a : width * b] = rotations.view(np.uint8).reshape(-1)
         if cloud.sh.shape[1] > 1:
             sh, out["SH coefficients"] = _quantize_sh(cloud.sh[a:b, 1:], self.sh_sign, self.buckets)
             rest = 3 * (cloud.sh.shape[1] - 1)
-            blocks["sh"][rest * a:rest * b] = sh.reshape(-1)
+            blocks["sh"][rest * a : rest * b] = sh.reshape(-1)
         self.clamped.append(out)
 
     def run(self, notes):
         in_chunks(len(self.cloud), self.pack, CHUNK)
-        for what, valid in (("log scales", "[-10, 5.94]"),
-                            ("DC colours", f"[{-0.5 / COLOR_SCALE:.3g}, {0.5 / COLOR_SCALE:.3g}]"),
-                            ("SH coefficients", "[-1, 1]")):
+        for what, valid in (
+            ("log scales", "[-10, 5.94]"),
+            ("DC colours", f"[{-0.5 / COLOR_SCALE:.3g}, {0.5 / COLOR_SCALE:.3g}]"),
+            ("SH coefficients", "[-1, 1]"),
+        ):
             count = sum(c.get(what, 0) for c in self.clamped)
             if count:
                 notes.append(f"{count} {what} outside {valid} clamped")
@@ -514,7 +556,7 @@ class _Packer:
 
 
 def _outside(x):
-    return int(((x <= -0.5) | (x >= 255.5)).sum())     # what rounds outside 0..255
+    return int(((x <= -0.5) | (x >= 255.5)).sum())  # what rounds outside 0..255
 
 
 def default_version(cloud):
@@ -536,8 +578,17 @@ def _storable(cloud, version, notes):
     return reduced_sh(cloud, LEGACY_MAX_DEGREE, f"SPZ v{version} (v4 stores degree 4)", notes)
 
 
-def encode(cloud, version=None, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
-           axes="RDF", level=None, notes=None):
+def encode(
+    cloud,
+    version=None,
+    fractional_bits=None,
+    sh1_bits=5,
+    sh_rest_bits=4,
+    antialiased=None,
+    axes="RDF",
+    level=None,
+    notes=None,
+):
     """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); version None: see
     default_version(); level: gzip (v2/v3) or zstd (v4) compression level, by default the reference
     writer's up to 1 MiB of data (the same bytes as Niantic's) and a faster one beyond (see the
@@ -557,7 +608,7 @@ def encode(cloud, version=None, fractional_bits=None, sh1_bits=5, sh_rest_bits=4
     if bits is None or not 0 <= bits <= 23 or round_half_away(reach * (1 << bits)) >= (1 << 23):
         raise ValueError(f"positions up to {reach:g} do not fit SPZ's 24-bit fixed point with {bits} fractional bits")
     if fractional_bits is None and bits < 12:
-        notes.append(f"positions reach {reach:g}; stored with {bits} fractional bits (resolution {2.0 ** -bits:g})")
+        notes.append(f"positions reach {reach:g}; stored with {bits} fractional bits (resolution {2.0**-bits:g})")
     flags = FLAG_ANTIALIASED if (cloud.antialiased if antialiased is None else antialiased) else 0
     prefix = 0 if version == 4 else HEADER.size
     payload = _Packer(cloud, version, bits, sh1_bits, sh_rest_bits, axes == "RDF", prefix).run(notes)
@@ -590,14 +641,18 @@ def _gzip(data, level=None):
     fast = _fast_deflate() if level is None else None
     lib, level = (fast, ISAL_LEVEL) if fast is not None else (zlib, GZIP_LEVEL if level is None else level)
     view = memoryview(data)
-    chunks = [view[at:at + GZIP_CHUNK] for at in range(0, len(data), GZIP_CHUNK)]
+    chunks = [view[at : at + GZIP_CHUNK] for at in range(0, len(data), GZIP_CHUNK)]
 
     def deflate(index):
-        z = lib.compressobj(level, lib.DEFLATED, -15) if lib is not zlib else zlib.compressobj(level, zlib.DEFLATED, -15, 9)
+        z = (
+            lib.compressobj(level, lib.DEFLATED, -15)
+            if lib is not zlib
+            else zlib.compressobj(level, zlib.DEFLATED, -15, 9)
+        )
         return z.compress(chunks[index]) + z.flush(lib.Z_FINISH if index == len(chunks) - 1 else lib.Z_SYNC_FLUSH)
 
     body = map_threads(deflate, range(len(chunks)))
-    xfl = {1: 4, 9: 2}.get(level, 0) if lib is zlib else 0    # zlib's "fastest"/"best" hint
+    xfl = {1: 4, 9: 2}.get(level, 0) if lib is zlib else 0  # zlib's "fastest"/"best" hint
     header = struct.pack("<BBBBIBB", 0x1F, 0x8B, 8, 0, 0, xfl, GZIP_OS)
     return b"".join([header, *body, struct.pack("<II", zlib.crc32(data), len(data) & 0xFFFFFFFF)])
 
@@ -610,7 +665,7 @@ def _pack_v4(n, degree, bits, flags, payload, sizes, level):
     view, at, blocks = memoryview(payload), 0, []
     for _, size in sizes:
         if size:
-            blocks.append(view[at:at + size])
+            blocks.append(view[at : at + size])
         at += size
     frames = map_threads(lambda b: zstd.ZstdCompressor(level=level).compress(b), blocks)
     header = V4_HEADER.pack(MAGIC, 4, n, degree, bits, flags, len(frames), V4_HEADER.size)
@@ -618,8 +673,18 @@ def _pack_v4(n, degree, bits, flags, payload, sizes, level):
     return b"".join([header, toc, *frames])
 
 
-def write(path, cloud, version=None, fractional_bits=None, sh1_bits=5, sh_rest_bits=4, antialiased=None,
-          axes="RDF", level=None, nonfinite="raise"):
+def write(
+    path,
+    cloud,
+    version=None,
+    fractional_bits=None,
+    sh1_bits=5,
+    sh_rest_bits=4,
+    antialiased=None,
+    axes="RDF",
+    level=None,
+    nonfinite="raise",
+):
     """Write an SPZ file: by default version 3 (gzip), or 4 for SH degree 4 (default_version()).
     Version 4 needs the zstandard package; v2/v3 reduce SH degree 4 to 3 with a warning."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")

@@ -40,6 +40,7 @@ class Visual:
     """One <visual> of a link. origin: (4,4) in the link's frame. geometry: 'box' (size = x, y, z),
     'cylinder' (radius, length, along z), 'sphere' (radius,) or 'mesh' (path, scale). rgba: the
     material colour as written (display sRGB, as URDF viewers show it), or None."""
+
     link: str
     origin: np.ndarray
     geometry: str
@@ -57,6 +58,7 @@ class Visual:
 @dataclass
 class RobotDescription:
     """A URDF: its name, kinematic tree and visuals (in file order)."""
+
     name: str
     tree: KinematicTree
     visuals: list
@@ -99,6 +101,7 @@ def read_robot(path, package_paths=(), max_splats=None, target_psnr=None, progre
     core.mesh_to_splats.mesh_to_splats; the default is a budget of DEFAULT_SPLATS)."""
     from ..core.robot import DEFAULT_SPLATS, splat_robot, visual_mesh
     from .meshes import has_own_colours, read_mesh_file
+
     description = read_description(path, package_paths)
     if not description.visuals:
         raise SplatFileError(path, "no <visual> elements: nothing to make splats from")
@@ -113,21 +116,31 @@ def read_robot(path, package_paths=(), max_splats=None, target_psnr=None, progre
             colour = None if has_own_colours(mesh) else visual.linear_color
         else:
             colour = visual.linear_color
-        parts.append((index[visual.link], visual_mesh(visual.geometry, visual.size, mesh, visual.scale, colour),
-                      visual.origin))
+        parts.append(
+            (index[visual.link], visual_mesh(visual.geometry, visual.size, mesh, visual.scale, colour), visual.origin)
+        )
     if max_splats is None and target_psnr is None:
         max_splats = DEFAULT_SPLATS
     try:
-        return splat_robot(description.tree, parts, max_splats=max_splats, target_psnr=target_psnr,
-                           progress=progress, info=info, name=description.name, **style)
+        return splat_robot(
+            description.tree,
+            parts,
+            max_splats=max_splats,
+            target_psnr=target_psnr,
+            progress=progress,
+            info=info,
+            name=description.name,
+            **style,
+        )
     except ValueError as exc:
         raise SplatFileError(path, str(exc)) from None
 
 
 # parsing -----------------------------------------------------------------------------------------
 
+
 def _root(text, source):
-    text = text.lstrip("\ufeff \t\r\n")          # a BOM or blank lines before <?xml: harmless
+    text = text.lstrip("\ufeff \t\r\n")  # a BOM or blank lines before <?xml: harmless
     try:
         robot = ET.fromstring(text)
     except ET.ParseError as exc:
@@ -145,7 +158,7 @@ def _links_and_joints(robot, source):
     if len(declared) != len(links):
         raise SplatFileError(source, "link names are not unique")
     joints = [_joint(source, j, declared) for j in robot.findall("joint")]
-    if joints:                                   # every origin in one batch: per-joint NumPy calls add up
+    if joints:  # every origin in one batch: per-joint NumPy calls add up
         poses = np.array([j["origin"] for j in joints])
         for j, m in zip(joints, transforms(rpy_matrices(poses[:, 1]), poses[:, 0])):
             j["origin"] = m
@@ -158,8 +171,9 @@ def _tree(links, joints, source):
     children = {j["child"] for j in joints}
     roots = [name for name in links if name not in children]
     if len(roots) != 1:
-        raise SplatFileError(source, f"expected exactly one root link (a link that is no joint's child), "
-                                     f"found {roots or 'none'}")
+        raise SplatFileError(
+            source, f"expected exactly one root link (a link that is no joint's child), found {roots or 'none'}"
+        )
     try:
         tree = KinematicTree.from_joints(joints, root=roots[0])
     except KinematicsError as exc:
@@ -198,8 +212,10 @@ def _pose(source, element, where):
     origin = element.find("origin")
     if origin is None:
         return np.zeros(3), np.zeros(3)
-    return (_numbers(source, origin.get("xyz", "0 0 0"), 3, f"{where} origin xyz"),
-            _numbers(source, origin.get("rpy", "0 0 0"), 3, f"{where} origin rpy"))
+    return (
+        _numbers(source, origin.get("xyz", "0 0 0"), 3, f"{where} origin xyz"),
+        _numbers(source, origin.get("rpy", "0 0 0"), 3, f"{where} origin rpy"),
+    )
 
 
 def _joint(source, element, links):
@@ -217,13 +233,24 @@ def _joint(source, element, links):
             raise SplatFileError(source, f"{where}: {end} link '{tag.get('link')}' is not declared")
         ends[end] = tag.get("link")
     axis_tag = element.find("axis")
-    axis = _numbers(source, axis_tag.get("xyz", "1 0 0"), 3, f"{where} axis") if axis_tag is not None \
+    axis = (
+        _numbers(source, axis_tag.get("xyz", "1 0 0"), 3, f"{where} axis")
+        if axis_tag is not None
         else np.array([1.0, 0.0, 0.0])
+    )
     if kind in ("revolute", "continuous", "prismatic", "planar") and not 1e-12 <= np.linalg.norm(axis) < np.inf:
         raise SplatFileError(source, f"{where} has a zero axis or one too long for floating point")
     lower, upper = _limits(source, element, kind, where)
-    return {"name": name, "type": kind, **ends, "origin": _pose(source, element, where),
-            "axis": axis, "lower": lower, "upper": upper, "mimic": _mimic(source, element, where)}
+    return {
+        "name": name,
+        "type": kind,
+        **ends,
+        "origin": _pose(source, element, where),
+        "axis": axis,
+        "lower": lower,
+        "upper": upper,
+        "mimic": _mimic(source, element, where),
+    }
 
 
 def _limits(source, element, kind, where):
@@ -231,14 +258,20 @@ def _limits(source, element, kind, where):
         return -np.inf, np.inf
     limit = element.find("limit")
     if limit is None:
-        warnings.warn(f"{source}: {where} ({kind}) has no <limit> (URDF requires one); left unlimited",
-                      SplatFileWarning, stacklevel=4)
+        warnings.warn(
+            f"{source}: {where} ({kind}) has no <limit> (URDF requires one); left unlimited",
+            SplatFileWarning,
+            stacklevel=4,
+        )
         return -np.inf, np.inf
     lower = _numbers(source, limit.get("lower", "0"), 1, f"{where} limit lower")[0]
     upper = _numbers(source, limit.get("upper", "0"), 1, f"{where} limit upper")[0]
     if lower > upper:
-        warnings.warn(f"{source}: {where}: limit lower {lower:g} is above upper {upper:g}; swapped",
-                      SplatFileWarning, stacklevel=4)
+        warnings.warn(
+            f"{source}: {where}: limit lower {lower:g} is above upper {upper:g}; swapped",
+            SplatFileWarning,
+            stacklevel=4,
+        )
         lower, upper = upper, lower
     return lower, upper
 
@@ -296,8 +329,7 @@ def _visuals(source, link, materials, resolver):
             if shape.get("scale") is not None:
                 item.scale = _numbers(source, shape.get("scale"), 3, f"{where} mesh scale")
         else:
-            raise SplatFileError(source, f"{where} has geometry <{shape.tag}>; supported: box, cylinder, "
-                                         "sphere, mesh")
+            raise SplatFileError(source, f"{where} has geometry <{shape.tag}>; supported: box, cylinder, sphere, mesh")
         out.append(item)
     return out
 
@@ -319,18 +351,21 @@ class _Resolver:
 
     def resolve(self, filename, where):
         if filename.startswith("package://"):
-            package, _, rest = filename[len("package://"):].partition("/")
+            package, _, rest = filename[len("package://") :].partition("/")
             candidates = [d / package / rest for d in self.search]
             candidates += [d / rest for d in self.search if d.name == package]
             candidates.append(self.urdf.parent / package / rest)
             candidates.append(self.urdf.parent / rest)
         elif filename.startswith("file://"):
-            candidates = [self.urdf.parent / filename[len("file://"):]]
+            candidates = [self.urdf.parent / filename[len("file://") :]]
         else:
             candidates = [self.urdf.parent / filename]
         for path in candidates:
             if path.is_file():
                 return path
-        raise SplatFileError(self.urdf, f"{where}: mesh '{filename}' not found (looked in "
-                                        f"{', '.join(str(p) for p in candidates[:4])}"
-                                        f"{' ...' if len(candidates) > 4 else ''}; add its folder with a package path)")
+        raise SplatFileError(
+            self.urdf,
+            f"{where}: mesh '{filename}' not found (looked in "
+            f"{', '.join(str(p) for p in candidates[:4])}"
+            f"{' ...' if len(candidates) > 4 else ''}; add its folder with a package path)",
+        )

@@ -9,7 +9,7 @@ import bpy
 
 from .data import bundled_pxr
 
-bundled_pxr.expose("pxr")      # before any io format module imports it
+bundled_pxr.expose("pxr")  # before any io format module imports it
 
 from . import command  # noqa: E402,I001
 from .convert import from_mesh  # noqa: E402
@@ -19,8 +19,19 @@ from .render import engine  # noqa: E402
 from .rig import armature, collide, proxy  # noqa: E402
 from .ui import panel, preferences  # noqa: E402
 
-CLASSES = (import_export.CLASSES + objects.CLASSES + animation.CLASSES + from_mesh.CLASSES + armature.CLASSES
-           + collide.CLASSES + engine.CLASSES + cleanup.CLASSES + proxy.CLASSES + preferences.CLASSES + panel.CLASSES)
+CLASSES = (
+    import_export.CLASSES
+    + objects.CLASSES
+    + animation.CLASSES
+    + from_mesh.CLASSES
+    + armature.CLASSES
+    + collide.CLASSES
+    + engine.CLASSES
+    + cleanup.CLASSES
+    + proxy.CLASSES
+    + preferences.CLASSES
+    + panel.CLASSES
+)
 MENUS = import_export.MENUS + objects.MENUS + from_mesh.MENUS + armature.MENUS + collide.MENUS
 
 

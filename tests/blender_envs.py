@@ -29,7 +29,7 @@ VERSIONS = {
     "5.2": ("3.13", ["bpy==5.2.3"]),
     "5.3": ("3.13", ["bpy==5.3.0"]),
 }
-PRIMARY = "5.0"          # the version of the project's own environment (pyproject.toml's dev extra)
+PRIMARY = "5.0"  # the version of the project's own environment (pyproject.toml's dev extra)
 
 
 class Unavailable(Exception):
@@ -48,8 +48,9 @@ def find_python(minor):
     candidates += [f"/usr/local/bin/python{minor}", f"/usr/bin/python{minor}"]
     for candidate in candidates:
         if candidate and os.access(candidate, os.X_OK):
-            probe = subprocess.run([candidate, "-c", "import sys, venv; print(sys.version_info[:2])"],
-                                   capture_output=True, text=True)
+            probe = subprocess.run(
+                [candidate, "-c", "import sys, venv; print(sys.version_info[:2])"], capture_output=True, text=True
+            )
             if probe.returncode == 0 and probe.stdout.strip() == str(tuple(map(int, minor.split(".")))):
                 return candidate
     return None
@@ -71,12 +72,17 @@ def python_of(version):
     env.parent.mkdir(parents=True, exist_ok=True)
     log = env.parent / f"{version}.log"
     with open(log, "w") as out:
-        ok = subprocess.run([base, "-m", "venv", str(env)], stdout=out, stderr=out).returncode == 0 and \
-            subprocess.run([str(python), "-m", "pip", "install", "--no-input", *requirements],
-                           stdout=out, stderr=out).returncode == 0
+        ok = (
+            subprocess.run([base, "-m", "venv", str(env)], stdout=out, stderr=out).returncode == 0
+            and subprocess.run(
+                [str(python), "-m", "pip", "install", "--no-input", *requirements], stdout=out, stderr=out
+            ).returncode
+            == 0
+        )
     if not ok:
-        raise RuntimeError(f"installing {want} for Blender {version} failed; the log is {log}:\n"
-                           + log.read_text()[-3000:])
+        raise RuntimeError(
+            f"installing {want} for Blender {version} failed; the log is {log}:\n" + log.read_text()[-3000:]
+        )
     stamp.write_text(want)
     return str(python)
 
@@ -91,6 +97,7 @@ def prepare(versions=None):
             return python_of(version)
         except (Unavailable, RuntimeError) as exc:
             return exc
+
     with ThreadPoolExecutor(2) as pool:
         return dict(zip(versions, pool.map(one, versions)))
 

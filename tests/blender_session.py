@@ -21,10 +21,9 @@ import subprocess
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import blender_envs
 import numpy as np
 import pytest
-
-import blender_envs
 
 TESTS = Path(__file__).resolve().parent
 from workers.base import MODULE  # noqa: F401  (the test modules import it from here)
@@ -60,9 +59,13 @@ def run_worker(worker, work, zip_path, version=blender_envs.PRIMARY):
         pytest.skip(str(exc))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
     env.update(BLENDER_USER_RESOURCES=str(work / "user"), PYTHONPATH=str(TESTS))
-    proc = subprocess.run([python, "-m", worker, str(work), str(zip_path)], cwd=work, env=env,
-                          capture_output=True, text=True, timeout=900)
-    log = f"Blender {version}, exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
+    proc = subprocess.run(
+        [python, "-m", worker, str(work), str(zip_path)], cwd=work, env=env, capture_output=True, text=True, timeout=900
+    )
+    log = (
+        f"Blender {version}, exit {proc.returncode}\n"
+        f"--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-4000:]}"
+    )
     # The installed extension (its bundled compiler wheels unpacked) is about 300 MB a worker, and
     # the tests read only results.json and out/: 36 of them would fill a small CI disk.
     shutil.rmtree(work / "user", ignore_errors=True)
@@ -74,7 +77,7 @@ def run_worker(worker, work, zip_path, version=blender_envs.PRIMARY):
 
 # every worker the collected tests need, run in the background --------------------------------------
 
-_WORKERS = {}        # test file -> (worker module, write_inputs)
+_WORKERS = {}  # test file -> (worker module, write_inputs)
 _POOL = None
 
 
@@ -89,6 +92,7 @@ def blender_fixture(worker, write_inputs=None, since=None):
     @pytest.fixture(scope="module", params=versions)
     def blender(request):
         return _POOL.session(worker, request.param)
+
     return blender
 
 
@@ -128,7 +132,7 @@ def _run_or_reason(worker, work, zip_path, version):
         return run_worker(worker, work, zip_path, version)
     except pytest.skip.Exception as exc:
         return "skip", str(exc)
-    except BaseException as exc:           # noqa: BLE001 - reported by every test of that session
+    except BaseException as exc:  # noqa: BLE001 - reported by every test of that session
         return "fail", f"{type(exc).__name__}: {exc}"
 
 
@@ -153,7 +157,8 @@ def start_workers(config, items):
         return
     jobs = _pythons_in_turn(jobs)
     from helpers import build_extension_zip
-    base = config._tmp_path_factory.mktemp("blender")          # pytest's own temporary folder
+
+    base = config._tmp_path_factory.mktemp("blender")  # pytest's own temporary folder
     zip_path = build_extension_zip(base)
     width = int(os.environ.get("SPLATWRIGHT_BLENDER_JOBS", min(2, os.cpu_count() or 1)))
     _POOL = WorkerPool(jobs, base, zip_path, width)

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from workers.base import random_cloud_arrays
 
 from splatwright.core import SplatCloud
-from workers.base import random_cloud_arrays
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -21,19 +21,28 @@ def random_cloud(n, sh_degree=3, seed=0, spread=1.0):
     return SplatCloud(**random_cloud_arrays(n, sh_degree, seed, spread))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def blender_ext_script():
     """Blender's own extension tool, blender_ext.py, from the bpy module (looked up in a child
     process so the test process does not import bpy)."""
-    scripts = subprocess.run([sys.executable, "-c", "import bpy; print(bpy.utils.system_resource('SCRIPTS'))"],
-                             capture_output=True, text=True, check=True).stdout.strip().splitlines()[-1]
+    scripts = (
+        subprocess.run(
+            [sys.executable, "-c", "import bpy; print(bpy.utils.system_resource('SCRIPTS'))"],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        .stdout.strip()
+        .splitlines()[-1]
+    )
     return Path(scripts) / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"
 
 
 def run_blender_ext(*args):
     """Run blender_ext.py with this Python; returns the CompletedProcess (text output)."""
-    return subprocess.run([sys.executable, str(blender_ext_script()), *map(str, args)],
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, str(blender_ext_script()), *map(str, args)], capture_output=True, text=True, timeout=300
+    )
 
 
 def fetch_wheels():
@@ -47,9 +56,25 @@ def fetch_wheels():
             continue
         name, version, python = path.name.split("-")[:3]
         platform = path.stem.split("-")[-1].split(".")[-1]
-        done = subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:",
-                               "--python-version", f"{python[2]}.{python[3:]}", "--platform", platform,
-                               "-d", str(path.parent), f"{name}=={version}"], capture_output=True, text=True)
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pip",
+                "download",
+                "--no-deps",
+                "--only-binary=:all:",
+                "--python-version",
+                f"{python[2]}.{python[3:]}",
+                "--platform",
+                platform,
+                "-d",
+                str(path.parent),
+                f"{name}=={version}",
+            ],
+            capture_output=True,
+            text=True,
+        )
         if not path.exists():
             if "Could not fetch" in done.stdout + done.stderr or "NewConnectionError" in done.stderr:
                 pytest.skip(f"cannot reach PyPI to fetch the bundled wheel {path.name}")
@@ -70,7 +95,7 @@ def build_extension_zip(out_dir):
 
 # independent references (textbook formulas in float64, none of the code under test) ------------------
 
-PLATFORM_SKIP = "not on this platform: "    # CI fails any other skip (conftest.py)
+PLATFORM_SKIP = "not on this platform: "  # CI fails any other skip (conftest.py)
 
 
 def skip_platform(reason):
@@ -81,6 +106,7 @@ def skip_platform(reason):
 def read(path):
     """A splat file read through splatwright.io (each reader is tested against its format elsewhere)."""
     from splatwright.io import read_splats
+
     return read_splats(path)
 
 
@@ -89,9 +115,14 @@ def quat_matrices(q):
     q = np.asarray(q, np.float64)
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
     w, x, y, z = q.T
-    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        1,
+    )
 
 
 def rebuilt_rotation_bound(unit, rebuilt, half_step):
@@ -134,6 +165,7 @@ def linear_to_srgb(c):
 
 # comparing clouds ------------------------------------------------------------------------------------
 
+
 def assert_clouds_equal(a, b):
     for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
@@ -143,27 +175,35 @@ def check_transformed(source, result, matrix, sh_rotation=None):
     """`result` is `source` under the affine `matrix`: centres, covariances L Sigma L^T and (when the
     linear part is a rotation times a uniform scale, `sh_rotation`) the colour seen from every side."""
     from splatwright.core import sh as shmod
+
     lin, t = matrix[:3, :3], matrix[:3, 3]
     np.testing.assert_allclose(result.positions, source.positions.astype(np.float64) @ lin.T + t, atol=2e-5, rtol=1e-5)
     expected = lin @ cloud_covariances(source) @ lin.T
     scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
-    assert np.abs(cloud_covariances(result) - expected).max(initial=0) <= 0 or \
-        np.max(np.abs(cloud_covariances(result) - expected) / scale) < 2e-5
+    assert (
+        np.abs(cloud_covariances(result) - expected).max(initial=0) <= 0
+        or np.max(np.abs(cloud_covariances(result) - expected) / scale) < 2e-5
+    )
     np.testing.assert_allclose(result.opacity_logits, source.opacity_logits, rtol=0, atol=0)
     if sh_rotation is not None:
         dirs = np.random.default_rng(9).normal(size=(len(source), 3))
-        np.testing.assert_allclose(shmod.colors(result.sh, dirs @ sh_rotation.T), shmod.colors(source.sh, dirs),
-                                   atol=2e-5)
+        np.testing.assert_allclose(
+            shmod.colors(result.sh, dirs @ sh_rotation.T), shmod.colors(source.sh, dirs), atol=2e-5
+        )
 
 
 def format_errors(a, b):
     """Largest differences a format can make: centres, covariances (relative), opacity, colours."""
     from splatwright.core import sh as shmod
+
     dirs = np.random.default_rng(8).normal(size=(len(a), 3))
     cov_a, cov_b = cloud_covariances(a), cloud_covariances(b)
     degree = min(a.sh_degree, b.sh_degree)
-    return {"positions": np.abs(a.positions - b.positions).max(),
-            "covariance": np.max(np.abs(cov_a - cov_b).max(axis=(1, 2)) / np.abs(cov_b).max(axis=(1, 2))),
-            "opacity": np.abs(a.opacities - b.opacities).max(),
-            "colour": np.abs(shmod.colors(a.with_sh_degree(degree).sh, dirs)
-                             - shmod.colors(b.with_sh_degree(degree).sh, dirs)).max()}
+    return {
+        "positions": np.abs(a.positions - b.positions).max(),
+        "covariance": np.max(np.abs(cov_a - cov_b).max(axis=(1, 2)) / np.abs(cov_b).max(axis=(1, 2))),
+        "opacity": np.abs(a.opacities - b.opacities).max(),
+        "colour": np.abs(
+            shmod.colors(a.with_sh_degree(degree).sh, dirs) - shmod.colors(b.with_sh_degree(degree).sh, dirs)
+        ).max(),
+    }

@@ -38,7 +38,7 @@ def _reachable(registry):
     try:
         with urllib.request.urlopen(REGISTRIES[registry], timeout=15):
             return True
-    except Exception:      # noqa: BLE001 - any failure to connect means unreachable
+    except Exception:  # noqa: BLE001 - any failure to connect means unreachable
         return False
 
 
@@ -58,7 +58,7 @@ def _install(registry, what, command, done_marker):
     done_marker.write_text(json.dumps(command))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def npm_prefix():
     """The npm prefix holding splat-transform, @adobe/spz and glTF Transform (installed once)."""
     if not (shutil.which("node") and shutil.which("npm")):
@@ -66,12 +66,16 @@ def npm_prefix():
     prefix = CACHE / "npm"
     prefix.mkdir(parents=True, exist_ok=True)
     marker = prefix / (".installed-" + "_".join(p.replace("/", "+") for p in NPM_PACKAGES))
-    _install("npm", ", ".join(NPM_PACKAGES),
-             ["npm", "install", "--prefix", str(prefix), "--no-audit", "--no-fund", "--no-save", *NPM_PACKAGES], marker)
+    _install(
+        "npm",
+        ", ".join(NPM_PACKAGES),
+        ["npm", "install", "--prefix", str(prefix), "--no-audit", "--no-fund", "--no-save", *NPM_PACKAGES],
+        marker,
+    )
     return prefix
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def python_tool(name):
     """The Python executable of the virtual environment holding PyPI tool `name` (installed once)."""
     env = CACHE / f"venv-{name}"
@@ -80,16 +84,28 @@ def python_tool(name):
     if not marker.exists():
         if not python.exists():
             subprocess.run([sys.executable, "-m", "venv", "--clear", str(env)], check=True, capture_output=True)
-        _install("pypi", " ".join(PYPI_TOOLS[name]),
-                 [str(python), "-m", "pip", "install", "--disable-pip-version-check", "-q", *PYPI_TOOLS[name]], marker)
+        _install(
+            "pypi",
+            " ".join(PYPI_TOOLS[name]),
+            [str(python), "-m", "pip", "install", "--disable-pip-version-check", "-q", *PYPI_TOOLS[name]],
+            marker,
+        )
     return python
 
 
 def run(command, timeout=300, cwd=None):
     """Run a tool; a failure shows its output."""
-    done = subprocess.run([str(c) for c in command], capture_output=True, text=True, timeout=timeout, cwd=cwd,
-                          env={**os.environ, "INTEROP_NODE_MODULES": str(CACHE / "npm" / "node_modules")})
-    assert done.returncode == 0, f"{command[0]} failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    done = subprocess.run(
+        [str(c) for c in command],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=cwd,
+        env={**os.environ, "INTEROP_NODE_MODULES": str(CACHE / "npm" / "node_modules")},
+    )
+    assert done.returncode == 0, (
+        f"{command[0]} failed ({done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
+    )
     return done.stdout
 
 
@@ -113,6 +129,7 @@ def python(tool, driver, *args):
 
 # the arrays the drivers exchange: the model's fields, in the tool's own conventions ------------------
 
+
 def save_arrays(path, **arrays):
     np.savez(path, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
 
@@ -134,8 +151,14 @@ def load_json(path):
 def ply_arrays(cloud):
     """A cloud as 3DGS PLY values: means, log scales, w-first quaternions, logits, DC, higher SH
     (N, K-1, 3) coefficient-major."""
-    return {"means": cloud.positions, "scales": cloud.log_scales, "quats": cloud.rotations,
-            "opacities": cloud.opacity_logits, "sh0": cloud.sh[:, 0], "shN": cloud.sh[:, 1:]}
+    return {
+        "means": cloud.positions,
+        "scales": cloud.log_scales,
+        "quats": cloud.rotations,
+        "opacities": cloud.opacity_logits,
+        "sh0": cloud.sh[:, 0],
+        "shN": cloud.sh[:, 1:],
+    }
 
 
 def cloud_from_arrays(a):

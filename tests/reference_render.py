@@ -18,10 +18,26 @@ ALPHA_MIN, ALPHA_MAX, T_MIN, LOW_PASS = 1.0 / 255.0, 0.99, 1e-4, 0.3
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-         1.445305721320277, -0.5900435899266435)
-SH_C4 = (2.5033429417967046, -1.7701307697799304, 0.9461746957575601, -0.6690465435572892, 0.10578554691520431,
-         -0.6690465435572892, 0.47308734787878004, -1.7701307697799304, 0.6258357354491761)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+SH_C4 = (
+    2.5033429417967046,
+    -1.7701307697799304,
+    0.9461746957575601,
+    -0.6690465435572892,
+    0.10578554691520431,
+    -0.6690465435572892,
+    0.47308734787878004,
+    -1.7701307697799304,
+    0.6258357354491761,
+)
 
 
 def sh_basis(directions):
@@ -29,17 +45,36 @@ def sh_basis(directions):
     d = np.asarray(directions, np.float64)
     x, y, z = (d / np.linalg.norm(d, axis=1, keepdims=True)).T
     xx, yy, zz = x * x, y * y, z * z
-    return np.stack([
-        np.full_like(x, SH_C0),
-        -SH_C1 * y, SH_C1 * z, -SH_C1 * x,
-        SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * x * z, SH_C2[4] * (xx - yy),
-        SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4 * zz - xx - yy),
-        SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
-        SH_C3[6] * x * (xx - 3 * yy),
-        SH_C4[0] * x * y * (xx - yy), SH_C4[1] * y * z * (3 * xx - yy), SH_C4[2] * x * y * (7 * zz - 1),
-        SH_C4[3] * y * z * (7 * zz - 3), SH_C4[4] * (35 * zz * zz - 30 * zz + 3), SH_C4[5] * x * z * (7 * zz - 3),
-        SH_C4[6] * (xx - yy) * (7 * zz - 1), SH_C4[7] * x * z * (xx - 3 * yy),
-        SH_C4[8] * (xx * xx - 6 * xx * yy + yy * yy)], axis=1)
+    return np.stack(
+        [
+            np.full_like(x, SH_C0),
+            -SH_C1 * y,
+            SH_C1 * z,
+            -SH_C1 * x,
+            SH_C2[0] * x * y,
+            SH_C2[1] * y * z,
+            SH_C2[2] * (2 * zz - xx - yy),
+            SH_C2[3] * x * z,
+            SH_C2[4] * (xx - yy),
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * x * y * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
+            SH_C4[0] * x * y * (xx - yy),
+            SH_C4[1] * y * z * (3 * xx - yy),
+            SH_C4[2] * x * y * (7 * zz - 1),
+            SH_C4[3] * y * z * (7 * zz - 3),
+            SH_C4[4] * (35 * zz * zz - 30 * zz + 3),
+            SH_C4[5] * x * z * (7 * zz - 3),
+            SH_C4[6] * (xx - yy) * (7 * zz - 1),
+            SH_C4[7] * x * z * (xx - 3 * yy),
+            SH_C4[8] * (xx * xx - 6 * xx * yy + yy * yy),
+        ],
+        axis=1,
+    )
 
 
 def sh_colors(coeffs, directions):
@@ -48,8 +83,9 @@ def sh_colors(coeffs, directions):
     return np.maximum(0.0, 0.5 + np.einsum("nk,nkc->nc", sh_basis(directions)[:, :k], coeffs.astype(np.float64)))
 
 
-def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN,
-                     layer=None, gather=None):
+def reference_render(
+    cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", pixels=None, t_min=T_MIN, layer=None, gather=None
+):
     """Returns a dict with color (.., 3), alpha, depth and counts, float64 (counts int), and
     max_weight (N,): each splat's largest blending weight T * alpha over the pixels, 0 if none.
 
@@ -63,7 +99,7 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
     the pixels of its weight T * alpha times the image.
     """
     if pixels is None:
-        rows, cols = np.mgrid[0:camera.height, 0:camera.width]
+        rows, cols = np.mgrid[0 : camera.height, 0 : camera.width]
         px, py = cols.ravel() + 0.5, rows.ravel() + 0.5
     else:
         pixels = np.asarray(pixels)
@@ -127,7 +163,7 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
         "depth": np.where(alpha > 0, depth_sum / np.where(alpha > 0, alpha, 1.0), 0.0),
         "counts": counts,
     }
-    if surfaces:               # depth and alpha of the splats alone, without the surfaces' share
+    if surfaces:  # depth and alpha of the splats alone, without the surfaces' share
         out["layer_t"] = layer_t[0] if isinstance(layer, tuple) else np.stack(layer_t, axis=-1)
         splat_alpha = alpha - sum(t * s[1][:, 0] for t, s in zip(layer_t, surfaces))
         out["depth"] = np.where(splat_alpha > 0, depth_sum / np.where(splat_alpha > 0, splat_alpha, 1.0), 0.0)
@@ -142,8 +178,13 @@ def reference_render(cloud, camera, background=(0.0, 0.0, 0.0), mode="classic", 
 def _project_all(cloud, camera, mode):
     """Per-splat pixel mean, 2D conic, opacity, colour, depth and cloud index of the splats in
     front of the camera, sorted by depth with ties in index order."""
-    fields = (cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits[:, None],
-              cloud.sh.reshape(len(cloud), -1))
+    fields = (
+        cloud.positions,
+        cloud.rotations,
+        cloud.log_scales,
+        cloud.opacity_logits[:, None],
+        cloud.sh.reshape(len(cloud), -1),
+    )
     finite = np.all([np.isfinite(f).all(axis=1) for f in fields], axis=0)
     idx = np.flatnonzero(finite)
     pos = cloud.positions[idx].astype(np.float64)
@@ -154,7 +195,7 @@ def _project_all(cloud, camera, mode):
     z = cam[:, 2]
     keep = (z > camera.near) & (z <= camera.far)
     idx, pos, cam, z, opacity = idx[keep], pos[keep], cam[keep], z[keep], opacity[keep]
-    order = np.argsort(z.astype(np.float32), kind="stable")     # float32 depth keys, ties by index
+    order = np.argsort(z.astype(np.float32), kind="stable")  # float32 depth keys, ties by index
     idx, pos, cam, z, opacity = idx[order], pos[order], cam[order], z[order], opacity[order]
 
     rot = geometry.quaternions_to_matrices(cloud.rotations[idx])
@@ -185,7 +226,9 @@ def _project_all(cloud, camera, mode):
     det = cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0]
     if mode == "antialiased":
         opacity = opacity * np.sqrt(np.maximum(0.000025, det0 / det))
-    conic = np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1),
-                      np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], 1) / det[:, None, None]
+    conic = (
+        np.stack([np.stack([cov[:, 1, 1], -cov[:, 0, 1]], -1), np.stack([-cov[:, 1, 0], cov[:, 0, 0]], -1)], 1)
+        / det[:, None, None]
+    )
     color = sh_colors(cloud.sh[idx], directions) if n else np.zeros((0, 3))
     return {"mean": mean, "conic": conic, "opacity": opacity, "color": color, "z": z, "index": idx}

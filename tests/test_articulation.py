@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from helpers import cloud_covariances, random_cloud
 
-from splatwright.core import SplatCloud, sh as shmod
-from splatwright.core.articulation import (Binding, BonePose, KinematicTree, SkinningError, skin,
-                                           skin_centres)
+from splatwright.core import SplatCloud
+from splatwright.core import sh as shmod
+from splatwright.core.articulation import Binding, BonePose, KinematicTree, SkinningError, skin, skin_centres
 
 # independent references ---------------------------------------------------------------------------
 
@@ -53,6 +53,7 @@ def cov_rel(a, b):
 # Blender's Armature modifier, one vertex at a time (float64 transcription of armature_deform.cc
 # and the dual-quaternion routines of math_rotation.cc).
 
+
 def q_mul(a, b):
     aw, av, bw, bv = a[0], a[1:], b[0], b[1:]
     return np.concatenate([[aw * bw - av @ bv], aw * bv + bw * av + np.cross(av, bv)])
@@ -62,8 +63,17 @@ def mat_to_quat(m):
     """Unit quaternion (w >= 0) of a rotation: the top eigenvector of Bar-Itzhack's K matrix."""
     m = m / np.linalg.norm(m, axis=0)
     (a, b, c), (d, e, f), (g, h, i) = m
-    k = np.array([[a - e - i, d + b, g + c, h - f], [d + b, e - a - i, h + f, c - g],
-                  [g + c, h + f, i - a - e, d - b], [h - f, c - g, d - b, a + e + i]]) / 3.0
+    k = (
+        np.array(
+            [
+                [a - e - i, d + b, g + c, h - f],
+                [d + b, e - a - i, h + f, c - g],
+                [g + c, h + f, i - a - e, d - b],
+                [h - f, c - g, d - b, a + e + i],
+            ]
+        )
+        / 3.0
+    )
     vals, vecs = np.linalg.eigh(k)
     x, y, z, w = vecs[:, -1]
     q = np.array([w, x, y, z])
@@ -85,8 +95,12 @@ def blender_dquat(basemat, mat):
     else:
         r, scale, scale_weight = mat, np.zeros((4, 4)), 0.0
     q = mat_to_quat(r[:3, :3])
-    return {"quat": q, "trans": 0.5 * q_mul(np.concatenate([[0], r[:3, 3]]), q), "scale": scale,
-            "scale_weight": scale_weight}
+    return {
+        "quat": q,
+        "trans": 0.5 * q_mul(np.concatenate([[0], r[:3, 3]]), q),
+        "scale": scale,
+        "scale_weight": scale_weight,
+    }
 
 
 def blender_dqs(p, bones, weights, dqs, parts=False):
@@ -98,11 +112,11 @@ def blender_dqs(p, bones, weights, dqs, parts=False):
         if w == 0:
             continue
         dq = {k: np.copy(v) for k, v in dqs[b].items()}
-        if dq["scale_weight"]:                                         # add_weighted_dq_dq_pivot
+        if dq["scale_weight"]:  # add_weighted_dq_dq_pivot
             dst = (dq["scale"] @ np.append(p, 1))[:3] - p
             dq["trans"] = dq["trans"] + 0.5 * q_mul(dq["quat"], np.concatenate([[0], dst]))
             dq["scale"][:3, 3] -= dst
-        flipped = s["quat"] @ dq["quat"] < 0                           # add_weighted_dq_dq
+        flipped = s["quat"] @ dq["quat"] < 0  # add_weighted_dq_dq
         ws = -w if flipped else w
         s["quat"] = s["quat"] + ws * dq["quat"]
         s["trans"] = s["trans"] + ws * dq["trans"]
@@ -116,11 +130,15 @@ def blender_dqs(p, bones, weights, dqs, parts=False):
     scale = np.eye(4)
     if s["scale_weight"]:
         scale = (s["scale"] + (contrib - s["scale_weight"]) * np.eye(4)) / contrib
-    len2 = s["quat"] @ s["quat"]                                       # mul_v3m3_dq
+    len2 = s["quat"] @ s["quat"]  # mul_v3m3_dq
     w, x, y, z = s["quat"]
-    rot = np.array([[w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                    [2 * (x * y + w * z), w * w + y * y - x * x - z * z, 2 * (y * z - w * x)],
-                    [2 * (x * z - w * y), 2 * (y * z + w * x), w * w + z * z - x * x - y * y]])
+    rot = np.array(
+        [
+            [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), w * w + y * y - x * x - z * z, 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), w * w + z * z - x * x - y * y],
+        ]
+    )
     t = 2 * q_mul(s["trans"], s["quat"] * [1, -1, -1, -1])[1:]
     out = (rot @ (scale @ np.append(p, 1))[:3] + t) / len2
     if parts:
@@ -142,8 +160,9 @@ def blender_lbs(p, bones, weights, deform):
 
 
 def random_rigid(rng, n, spread=1.0):
-    return np.stack([hom(rodrigues(rng.normal(size=3), rng.uniform(-3, 3)), rng.normal(0, spread, 3))
-                     for _ in range(n)])
+    return np.stack(
+        [hom(rodrigues(rng.normal(size=3), rng.uniform(-3, 3)), rng.normal(0, spread, 3)) for _ in range(n)]
+    )
 
 
 def cloud_at(points, rng, sh_degree=3):
@@ -153,6 +172,7 @@ def cloud_at(points, rng, sh_degree=3):
 
 
 # closed forms -------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
 def test_single_bone_rotation_moves_centres_covariances_and_colours(mode, rng):
@@ -229,7 +249,7 @@ def test_degree_4_colours_turn_with_the_blended_rotation(mode):
     rng = np.random.default_rng(4)
     bones = random_rigid(rng, len(cloud))
     posed = skin(cloud, Binding.rigid(np.arange(len(cloud))), bones, mode)
-    turned_back = np.einsum("nji,nj->ni", bones[:, :3, :3], d)                  # R^T d per splat
+    turned_back = np.einsum("nji,nj->ni", bones[:, :3, :3], d)  # R^T d per splat
     np.testing.assert_allclose(shmod.evaluate(posed.sh, d), shmod.evaluate(cloud.sh, turned_back), atol=3e-5)
 
 
@@ -260,7 +280,7 @@ def test_weights_not_summing_to_one_are_normalised_and_tiny_totals_stay_put():
     deform = np.stack([hom(rot_z(0.4), (1, 0, 0)), about(rodrigues([0, 1, 1], 1.1), (0, 1, 0)), hom(t=(5, 5, 5))])
     halves = Binding.from_weights(np.tile([0, 1, 2], (n, 1)), np.tile([0.2, 0.3, 0.0], (n, 1)))
     whole = Binding.from_weights(np.tile([0, 1], (n, 1)), np.tile([0.4, 0.6], (n, 1)))
-    assert halves.influences == 2                      # the zero weight is gone
+    assert halves.influences == 2  # the zero weight is gone
     for mode in ("lbs", "dqs"):
         a, b = skin(cloud, halves, deform, mode), skin(cloud, whole, deform, mode)
         np.testing.assert_array_equal(a.positions, b.positions)
@@ -305,6 +325,7 @@ def test_needles_keep_their_thin_axis_under_a_scaling_bone(mode):
 
 # brute force against Blender's algorithm ----------------------------------------------------------
 
+
 def random_armature(rng, n_bones=5):
     rest = random_rigid(rng, n_bones)
     pose = random_rigid(rng, n_bones)
@@ -323,8 +344,8 @@ def random_skinning_case(seed, n=300):
     dqs = [blender_dquat(rest[b], deform[b]) for b in range(len(rest))]
     cloud = cloud_at(rng.normal(size=(n, 3)), rng)
     idx = np.stack([rng.choice(len(rest), 3, replace=False) for _ in range(n)])
-    w = rng.uniform(0, 1, (n, 3)) * (rng.uniform(size=(n, 3)) > 0.2)       # some zeros
-    w[:10] = [1.0, 0.0, 0.0]                                                # single bone
+    w = rng.uniform(0, 1, (n, 3)) * (rng.uniform(size=(n, 3)) > 0.2)  # some zeros
+    w[:10] = [1.0, 0.0, 0.0]  # single bone
     return rng, rest, pose, deform, dqs, cloud, idx, w
 
 
@@ -332,8 +353,8 @@ def random_skinning_case(seed, n=300):
 def test_matches_blender_armature_modifier_per_splat(mode):
     rng, rest, pose, deform, dqs, cloud, idx, w = random_skinning_case(8)
     n = len(cloud)
-    w[10:15] = [3e-5, 2e-5, 0.0]                                            # unbound
-    w[15:25] *= 7.0                                                         # totals above one
+    w[10:15] = [3e-5, 2e-5, 0.0]  # unbound
+    w[15:25] *= 7.0  # totals above one
     binding = Binding.from_weights(idx, w, tolerance=0.0)
     posed = skin(cloud, binding, BonePose.from_blender(rest, pose), mode)
     centres = skin_centres(cloud.positions, binding, BonePose(deform, rest), mode)
@@ -359,9 +380,13 @@ def test_matches_blender_armature_modifier_per_splat(mode):
 
 def quat_matrix(q):
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
@@ -383,8 +408,11 @@ def test_binding_strength_blends_with_the_rest_as_blenders_modifier_mask(mode):
         if mode == "lbs":
             c, lin = blender_lbs(p, idx[i], w[i], deform)
             total = w[i].sum()
-            stretch = sum(wk * svd_polar(deform[b][:3, :3])[1] for b, wk in zip(idx[i], w[i])) / total \
-                if total > 1e-4 else np.eye(3)                              # unbound: stays
+            stretch = (
+                sum(wk * svd_polar(deform[b][:3, :3])[1] for b, wk in zip(idx[i], w[i])) / total
+                if total > 1e-4
+                else np.eye(3)
+            )  # unbound: stays
             turn = svd_polar(m * lin + (1 - m) * np.eye(3))[0]
             mapped = turn @ (m * stretch + (1 - m) * np.eye(3))
         else:
@@ -403,20 +431,24 @@ def test_binding_strength_blends_with_the_rest_as_blenders_modifier_mask(mode):
     assert np.abs(posed.positions[~still] - cloud.positions[~still]).max() > 0.5
     assert cov_rel(cloud_covariances(posed), maps @ cloud_covariances(cloud) @ maps.transpose(0, 2, 1)) < 1e-5
     np.testing.assert_allclose(posed.sh, shmod.rotate(cloud.sh.astype(np.float64), turns), atol=2e-5)
-    full = skin(cloud, binding, bones, mode)              # strength 1 everywhere: the plain binding
+    full = skin(cloud, binding, bones, mode)  # strength 1 everywhere: the plain binding
     np.testing.assert_array_equal(skin(cloud, binding, bones, mode, strength=np.ones(n)).positions, full.positions)
 
 
 def test_bad_binding_strengths_are_refused():
     cloud = random_cloud(5, seed=3)
     binding = Binding.rigid(np.zeros(5, int))
-    for bad, words in ((np.ones(4), "4 binding strengths for 5 splats"), ([0, 0.5, 1, 1.5, 1], "0..1"),
-                       ([0, np.nan, 1, 1, 1], "0..1")):
+    for bad, words in (
+        (np.ones(4), "4 binding strengths for 5 splats"),
+        ([0, 0.5, 1, 1.5, 1], "0..1"),
+        ([0, np.nan, 1, 1, 1], "0..1"),
+    ):
         with pytest.raises(SkinningError, match=words):
             skin(cloud, binding, [np.eye(4)], strength=bad)
 
 
 # exactness, hard cases ----------------------------------------------------------------------------
+
 
 def test_rigid_binding_is_exact():
     rng = np.random.default_rng(9)
@@ -441,19 +473,21 @@ def test_hard_cases_stay_finite_symmetric_and_positive():
     n = 400
     cloud = random_cloud(n, seed=12)
     log_scales = cloud.log_scales.copy()
-    log_scales[:100] = np.log(rng.choice([1e-7, 1e-3, 1.0, 1e4], size=(100, 3)))   # needles, pancakes
+    log_scales[:100] = np.log(rng.choice([1e-7, 1e-3, 1.0, 1e4], size=(100, 3)))  # needles, pancakes
     rotations = cloud.rotations.copy()
-    rotations[100:110] = 0.0                                                      # zero quaternions
-    rotations[110:120] *= 1e-20                                                   # tiny ones
+    rotations[100:110] = 0.0  # zero quaternions
+    rotations[110:120] *= 1e-20  # tiny ones
     cloud = cloud.replace(log_scales=log_scales, rotations=rotations)
-    deform = np.stack([
-        np.eye(4),
-        hom(rot_z(np.pi)),                                    # half turn: LBS blend of 50/50 collapses
-        hom(np.array([[1, 0.8, 0], [0, 1, 0], [0, 0, 1.0]])),  # shear
-        hom(np.diag([-1.0, 1, 1])),                           # mirror
-        hom(np.diag([1e-6, 1, 1])),                           # almost flat
-        hom(np.diag([1.0, 0, 1])),                            # collapsed along the bone's Y
-    ])
+    deform = np.stack(
+        [
+            np.eye(4),
+            hom(rot_z(np.pi)),  # half turn: LBS blend of 50/50 collapses
+            hom(np.array([[1, 0.8, 0], [0, 1, 0], [0, 0, 1.0]])),  # shear
+            hom(np.diag([-1.0, 1, 1])),  # mirror
+            hom(np.diag([1e-6, 1, 1])),  # almost flat
+            hom(np.diag([1.0, 0, 1])),  # collapsed along the bone's Y
+        ]
+    )
     idx = rng.integers(0, 6, (n, 3))
     idx[:50] = [0, 1, 0]
     w = rng.uniform(size=(n, 3))
@@ -478,9 +512,17 @@ def test_far_from_origin():
     deform = np.stack([about(rot_z(0.3), offset), about(rodrigues([1, 1, 0], -0.5), offset + [0, 1, 0])])
     binding = Binding.from_weights(np.tile([0, 1], (n, 1)), rng.uniform(size=(n, 2)))
     p = cloud.positions.astype(np.float64)
-    exact = {"lbs": np.array([blender_lbs(p[i], binding.indices[i], binding.weights[i], deform)[0] for i in range(n)]),
-             "dqs": np.array([blender_dqs(p[i], binding.indices[i], binding.weights[i],
-                                          [blender_dquat(np.eye(4), d) for d in deform])[0] for i in range(n)])}
+    exact = {
+        "lbs": np.array([blender_lbs(p[i], binding.indices[i], binding.weights[i], deform)[0] for i in range(n)]),
+        "dqs": np.array(
+            [
+                blender_dqs(
+                    p[i], binding.indices[i], binding.weights[i], [blender_dquat(np.eye(4), d) for d in deform]
+                )[0]
+                for i in range(n)
+            ]
+        ),
+    }
     for mode in ("lbs", "dqs"):
         assert np.abs(skin_centres(cloud.positions, binding, deform, mode) - exact[mode]).max() < 1e-6
         posed = skin(cloud, binding, deform, mode)
@@ -506,13 +548,16 @@ def test_centres_only_and_no_sh_paths_agree_with_the_full_one():
 
 # binding ------------------------------------------------------------------------------------------
 
+
 def test_binding_prunes_reports_and_normalises():
-    dense = np.array([
-        [0.5, 0.3, 0.15, 0.05, 0.0],
-        [0.0, 2.0, 0.0, 0.0, 0.0],
-        [1e-9, 0.0, 1.0, 0.0, 0.0],
-        [0.0, 0.0, 0.0, 0.0, 0.0],
-    ])
+    dense = np.array(
+        [
+            [0.5, 0.3, 0.15, 0.05, 0.0],
+            [0.0, 2.0, 0.0, 0.0, 0.0],
+            [1e-9, 0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 0.0, 0.0],
+        ]
+    )
     b = Binding.from_dense(dense, max_influences=3, tolerance=1e-6)
     assert b.influences == 3
     np.testing.assert_array_equal(b.indices[0], [0, 1, 2])
@@ -557,10 +602,15 @@ def test_bad_bindings_and_poses_are_rejected_clearly():
 
 # kinematics into skinning -------------------------------------------------------------------------
 
+
 def test_links_carry_their_splats_through_forward_kinematics():
-    tree = KinematicTree(["base", "upper", "lower"], [-1, 0, 1],
-                         [np.eye(4), hom(t=(0, 0, 1)), hom(rot_z(0.5), (0, 0, 1))],
-                         ["fixed", "revolute", "prismatic"], axes=[(1, 0, 0), (0, 1, 0), (0, 0, 1)])
+    tree = KinematicTree(
+        ["base", "upper", "lower"],
+        [-1, 0, 1],
+        [np.eye(4), hom(t=(0, 0, 1)), hom(rot_z(0.5), (0, 0, 1))],
+        ["fixed", "revolute", "prismatic"],
+        axes=[(1, 0, 0), (0, 1, 0), (0, 0, 1)],
+    )
     cloud = random_cloud(90, sh_degree=1, seed=17)
     link = np.repeat([0, 1, 2], 30)
     q = np.array([0.6, 0.25])
@@ -572,6 +622,7 @@ def test_links_carry_their_splats_through_forward_kinematics():
 
 
 # the bent cylinder: skinned splats against splats made from the bent surface ----------------------
+
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
 def test_bent_cylinder_renders_like_splats_of_the_bent_surface(mode):
@@ -611,11 +662,15 @@ def test_zero_scales_skin_as_points(mode):
     expect = cloud.positions[odd] @ deform[1, :3, :3].T + [0.5, 0, 0]
     np.testing.assert_allclose(posed.positions[odd], expect, atol=1e-6)
     with pytest.raises(SkinningError, match="non-finite log_scales"):
-        skin(cloud.replace(log_scales=np.where(np.isneginf(cloud.log_scales), np.inf, cloud.log_scales)),
-             Binding.rigid(np.arange(40) % 2), deform)
+        skin(
+            cloud.replace(log_scales=np.where(np.isneginf(cloud.log_scales), np.inf, cloud.log_scales)),
+            Binding.rigid(np.arange(40) % 2),
+            deform,
+        )
 
 
 # rigid bones at float32 precision ------------------------------------------------------------------
+
 
 def _float32_chain(rng, depth):
     """A Blender-like pose: a chain of turned bones whose armature-space matrices are products
@@ -632,18 +687,19 @@ def _float32_chain(rng, depth):
 
 def test_float32_rounded_turns_are_rigid_and_a_thousandth_of_scale_is_not():
     from splatwright.core.skinning import RIGID_TOLERANCE
+
     rng = np.random.default_rng(3)
     chains = [_float32_chain(rng, depth) for depth in (1, 4, 8, 12) for _ in range(25)]
     rest, pose = (np.stack(m) for m in zip(*chains))
     stretch = np.abs(svd_polar_batch(pose @ np.linalg.inv(rest)) - np.eye(3)).max(axis=(1, 2))
-    assert stretch.max() > 1e-9                             # the rounding the old tolerance took for scale
+    assert stretch.max() > 1e-9  # the rounding the old tolerance took for scale
     assert not BonePose.from_blender(rest, pose).derived["scales"].any()
     for scale in (np.diag([1.001, 1.001, 1.001, 1.0]), np.diag([1.0, 1.001, 1.0, 1.0]), np.diag([0.999, 1, 1, 1.0])):
         scaled = pose.copy()
         scaled[::7] = scaled[::7] @ scale
         flags = BonePose.from_blender(rest, scaled).derived["scales"]
         assert np.array_equal(flags, np.arange(len(pose)) % 7 == 0)
-    assert stretch.max() < RIGID_TOLERANCE < 1e-3 / 100      # rounding below it, a scale of 1.001 far above
+    assert stretch.max() < RIGID_TOLERANCE < 1e-3 / 100  # rounding below it, a scale of 1.001 far above
 
 
 def svd_polar_batch(m):
@@ -657,8 +713,10 @@ def test_skinning_with_float32_turns_stays_within_float32_of_float64():
     rest, pose = (np.stack(m) for m in zip(*[_float32_chain(rng, d) for d in (2, 5, 9, 12) * 3]))
     deform = pose @ np.linalg.inv(rest)
     cloud = random_cloud(2000, sh_degree=1, seed=5)
-    binding = Binding.from_weights(np.stack([rng.choice(len(pose), 3, replace=False) for _ in range(len(cloud))]),
-                                   rng.uniform(0.1, 1.0, (len(cloud), 3)))
+    binding = Binding.from_weights(
+        np.stack([rng.choice(len(pose), 3, replace=False) for _ in range(len(cloud))]),
+        rng.uniform(0.1, 1.0, (len(cloud), 3)),
+    )
     ours = skin(cloud, binding, BonePose.from_blender(rest, pose), "lbs")
     w = binding.weights.astype(np.float64)
     w /= w.sum(axis=1, keepdims=True)

@@ -15,10 +15,25 @@ import numpy as np
 import pytest
 from blender_session import MODULE, blender_fixture
 from helpers import check_transformed, format_errors, read
-from workers.addon import (ANIM_OFFSET, DEFAULT_AXES, EXACT, FORMAT_CLOUD, LOG_SCALE, MENUS, NATIVE_BASE,
-                           NATIVE_ROTATION, NATIVE_SCALE, NATIVE_SH, OPACITY, RENDER_CASES, ROTATION, SH, WORLD_COLOR)
+from workers.addon import (
+    ANIM_OFFSET,
+    DEFAULT_AXES,
+    EXACT,
+    FORMAT_CLOUD,
+    LOG_SCALE,
+    MENUS,
+    NATIVE_BASE,
+    NATIVE_ROTATION,
+    NATIVE_SCALE,
+    NATIVE_SH,
+    OPACITY,
+    RENDER_CASES,
+    ROTATION,
+    SH,
+    WORLD_COLOR,
+)
 
-pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version: ~5-15 s
+pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender worker per version: ~5-15 s
 
 
 def _native(blender):
@@ -28,16 +43,23 @@ def _native(blender):
 
 def _random_cloud(n, degree, seed, spread=1.0):
     from splatwright.core import SplatCloud
+
     rng = np.random.default_rng(seed)
-    return SplatCloud(rng.normal(0, spread, (n, 3)), rng.normal(size=(n, 4)) * rng.uniform(0.5, 2, (n, 1)),
-                      rng.uniform(-4, -1.5, (n, 3)), rng.normal(0, 2, n), rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)))
+    return SplatCloud(
+        rng.normal(0, spread, (n, 3)),
+        rng.normal(size=(n, 4)) * rng.uniform(0.5, 2, (n, 1)),
+        rng.uniform(-4, -1.5, (n, 3)),
+        rng.normal(0, 2, n),
+        rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)),
+    )
 
 
 def _write_inputs(work):
     """Every file the worker reads, written with splatwright.io (the formats under test elsewhere)."""
     from splatwright.io import write_splats
+
     a = _random_cloud(300, 3, 0)
-    a.extras["nx"] = np.linspace(-1, 1, 300, dtype=np.float32)   # kept: PLY normals that are not all zero
+    a.extras["nx"] = np.linspace(-1, 1, 300, dtype=np.float32)  # kept: PLY normals that are not all zero
     a.extras["ny"] = np.zeros(300, np.float32)
     a.extras["nz"] = np.ones(300, np.float32)
     a.extras["segment"] = (np.arange(300) % 7).astype(np.uint8)
@@ -56,8 +78,10 @@ def _write_inputs(work):
     full = (work / "a.ply").read_bytes()
     (work / "truncated.ply").write_bytes(full[: len(full) // 2])
     (work / "wrong_ext.xyz").write_bytes(b"1 2 3\n")
-    (work / "not_3dgs.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
-                                        b"property float y\nproperty float z\nend_header\n0 0 0\n")
+    (work / "not_3dgs.ply").write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n0 0 0\n"
+    )
     bad = _random_cloud(50, 0, 6)
     bad.positions[3, 1] = np.nan
     bad.opacity_logits[7] = np.inf
@@ -74,6 +98,7 @@ blender = blender_fixture("workers.addon", _write_inputs_quietly)
 
 
 # install, import, export -------------------------------------------------------------------------
+
 
 def test_install_enables_operators_engine_and_menus(blender):
     res = blender.step("install")
@@ -95,9 +120,10 @@ def test_import_ply_stores_documented_attributes_upright(blender):
         np.testing.assert_array_equal(d[NATIVE_ROTATION], source.rotations)
         np.testing.assert_allclose(d[NATIVE_SCALE], np.exp(source.log_scales.astype(np.float64)), rtol=2.5e-7)
         np.testing.assert_array_equal(d[NATIVE_BASE][:, :3], source.sh[:, 0])
-        np.testing.assert_allclose(d[NATIVE_BASE][:, 3], 1 / (1 + np.exp(-source.opacity_logits.astype(np.float64))),
-                                   rtol=2.5e-7, atol=1e-12)
-        np.testing.assert_array_equal(d[EXACT[0]], source.log_scales)              # kept exactly beside them
+        np.testing.assert_allclose(
+            d[NATIVE_BASE][:, 3], 1 / (1 + np.exp(-source.opacity_logits.astype(np.float64))), rtol=2.5e-7, atol=1e-12
+        )
+        np.testing.assert_array_equal(d[EXACT[0]], source.log_scales)  # kept exactly beside them
         np.testing.assert_array_equal(d[EXACT[1]][:, 0], source.opacity_logits)
         for k in range(1, 16):
             np.testing.assert_array_equal(d[f"{NATIVE_SH}{k - 1}"], source.sh[:, k])
@@ -156,6 +182,7 @@ def test_openusd_written_in_blender_reads_in_usd_core_as_the_schema(blender):
     or, in a Blender without pxr (4.2), as a text layer of its own; usd-core (this process) must see
     a ParticleField3DGaussianSplat with the values written either way."""
     from pxr import Usd, UsdVol
+
     res = blender.step("formats")
     assert res["fmt.usda"]["export"]["error"] is None
     stage = Usd.Stage.Open(str(blender.out / "re_fmt.usda"))
@@ -205,19 +232,19 @@ def test_apply_splat_transform_bakes_the_object_transform(blender):
 def test_export_of_joined_objects(blender):
     res = blender.step("join")
     assert res["export"]["error"] is None
-    assert len(res["objects"]) == 2          # the Cube and the joined splat object
+    assert len(res["objects"]) == 2  # the Cube and the joined splat object
     a, b = read(blender.work / "a.ply"), read(blender.out / "joined.ply")
     b_src = read(blender.work / "b.ply")
     assert len(b) == len(a) + len(b_src)
-    head, tail = b[: len(a)], b[len(a):]
+    head, tail = b[: len(a)], b[len(a) :]
     for name in ("positions", "rotations", "log_scales", "opacity_logits"):
         np.testing.assert_array_equal(getattr(head, name), getattr(a, name))
     np.testing.assert_array_equal(head.sh, a.sh)
     # b moved by (1, 2, 3) in Blender: in file axes that is (1, -3, 2)
     np.testing.assert_allclose(tail.positions, b_src.positions + [1.0, -3.0, 2.0], atol=1e-6)
     np.testing.assert_array_equal(tail.rotations, b_src.rotations)
-    np.testing.assert_array_equal(tail.sh[:, :4], b_src.sh)           # degree 1 joined into degree 3:
-    assert not tail.sh[:, 4:].any()                                  # zero-padded, same colours
+    np.testing.assert_array_equal(tail.sh[:, :4], b_src.sh)  # degree 1 joined into degree 3:
+    assert not tail.sh[:, 4:].any()  # zero-padded, same colours
 
 
 def test_join_splats_keeps_every_splat_in_world_space(blender):
@@ -228,9 +255,9 @@ def test_join_splats_keeps_every_splat_in_world_space(blender):
     joined = read(blender.out / "joined_splats.ply")
     to_file = np.linalg.inv(DEFAULT_AXES)
     # Independent reference: each source transformed on its own by its world matrix.
-    for part, src, world in ((joined[: len(a)], a, res["world_a"]), (joined[len(a):], b, res["world_b"])):
+    for part, src, world in ((joined[: len(a)], a, res["world_a"]), (joined[len(a) :], b, res["world_b"])):
         total = to_file @ np.array(world)
-        u, _, vt = np.linalg.svd(total[:3, :3])            # SH turn with the polar rotation U V^T
+        u, _, vt = np.linalg.svd(total[:3, :3])  # SH turn with the polar rotation U V^T
         check_transformed(src, part, total, sh_rotation=u @ vt)
 
 
@@ -245,15 +272,19 @@ def test_export_selected_visible_and_all(blender):
 
 # errors --------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name, words", [
-    ("garbage.ply", ["garbage.ply", "truncated"]),
-    ("truncated.ply", ["truncated.ply", "truncated"]),
-    ("wrong_ext.xyz", ["wrong_ext.xyz", ".xyz"]),
-    ("missing.ply", ["missing.ply", "no such file"]),
-    ("nan.ply", ["nan.ply", "non-finite"]),
-    ("not_3dgs.ply", ["not_3dgs.ply", "f_dc_0"]),
-    ("good and bad together", ["truncated.ply", "truncated"]),
-])
+
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("garbage.ply", ["garbage.ply", "truncated"]),
+        ("truncated.ply", ["truncated.ply", "truncated"]),
+        ("wrong_ext.xyz", ["wrong_ext.xyz", ".xyz"]),
+        ("missing.ply", ["missing.ply", "no such file"]),
+        ("nan.ply", ["nan.ply", "non-finite"]),
+        ("not_3dgs.ply", ["not_3dgs.ply", "f_dc_0"]),
+        ("good and bad together", ["truncated.ply", "truncated"]),
+    ],
+)
 def test_bad_files_report_and_leave_scene_unchanged(blender, name, words):
     case = blender.step("bad_inputs")[name]
     assert case["result"] == ["CANCELLED"]
@@ -267,12 +298,15 @@ def test_non_finite_splats_are_dropped_by_default(blender):
     assert case == {"count": 48, "added": 1}
 
 
-@pytest.mark.parametrize("name, words", [
-    ("non-splat selection", ["no splat objects selected", "'Cube' (MESH)"]),
-    ("empty selection", ["nothing is selected"]),
-    ("missing attribute", ["no '{rotation}' point attribute"]),      # the form's rotation attribute
-    ("unknown extension", ["never4.xyz", "unknown splat file extension"]),
-])
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("non-splat selection", ["no splat objects selected", "'Cube' (MESH)"]),
+        ("empty selection", ["nothing is selected"]),
+        ("missing attribute", ["no '{rotation}' point attribute"]),  # the form's rotation attribute
+        ("unknown extension", ["never4.xyz", "unknown splat file extension"]),
+    ],
+)
 def test_wrong_objects_report_and_write_nothing(blender, name, words):
     res = blender.step("wrong_objects")
     rotation = NATIVE_ROTATION if _native(blender) else ROTATION
@@ -284,6 +318,7 @@ def test_wrong_objects_report_and_write_nothing(blender, name, words):
 
 
 # viewport display ------------------------------------------------------------------------------------
+
 
 def test_viewport_display_points_sized_by_scale(blender):
     res = blender.step("display")
@@ -301,31 +336,49 @@ def test_viewport_display_points_sized_by_scale(blender):
     visible = source.opacities > 0.05
     assert res["count"] == int(visible.sum())
     n, half = int(visible.sum()), res["half_count"][0]
-    assert abs(half - n / 2) < 4 * np.sqrt(n / 4)           # Display Ratio 0.5 keeps about half
+    assert abs(half - n / 2) < 4 * np.sqrt(n / 4)  # Display Ratio 0.5 keeps about half
     np.testing.assert_allclose(np.sort(size[:, 0]), np.sort(source.scales.max(axis=1)[visible]), rtol=1e-5)
 
 
 # render engine -----------------------------------------------------------------------------------------
 
+
 def _core_camera(rec):
     from splatwright.core.camera import Camera
+
     x, y, pct = rec["resolution"]
     w, h = x * pct // 100, y * pct // 100
-    lens = {k: rec[k] for k in ("lens", "sensor_width", "sensor_height", "sensor_fit", "shift_x", "shift_y",
-                                "type", "ortho_scale", "pixel_aspect_x", "pixel_aspect_y")}
-    return Camera.from_blender(np.array(rec["matrix_world"]), w, h, clip_start=rec["clip_start"],
-                               clip_end=rec["clip_end"], **lens)
+    lens = {
+        k: rec[k]
+        for k in (
+            "lens",
+            "sensor_width",
+            "sensor_height",
+            "sensor_fit",
+            "shift_x",
+            "shift_y",
+            "type",
+            "ortho_scale",
+            "pixel_aspect_x",
+            "pixel_aspect_y",
+        )
+    }
+    return Camera.from_blender(
+        np.array(rec["matrix_world"]), w, h, clip_start=rec["clip_start"], clip_end=rec["clip_end"], **lens
+    )
 
 
 def _core_image(cloud, rec, transparent):
     from splatwright.core.color import linear_to_srgb
     from splatwright.core.render import render
+
     background = None if transparent else linear_to_srgb(np.array(WORLD_COLOR))
     return render(cloud, _core_camera(rec), background=background)
 
 
 def _png(path):
     from PIL import Image
+
     return np.asarray(Image.open(path), dtype=np.float64) / 255.0
 
 
@@ -348,20 +401,22 @@ def test_render_png_matches_core_renderer(blender, case):
     image = _core_image(read(blender.work / "scene.ply"), rec, transparent)
     png = _png(blender.out / f"render_{case}.png")
     assert png.shape == (*image.color.shape[:2], 4 if transparent else 3)
-    assert image.alpha.max() > 0.5 and image.alpha.min() < 0.5        # the cloud is in frame, not filling it
+    assert image.alpha.max() > 0.5 and image.alpha.min() < 0.5  # the cloud is in frame, not filling it
     if transparent:
         np.testing.assert_allclose(png[..., 3], image.alpha, atol=1 / 255)
-        seen = image.alpha > 0.05                          # straight colour is defined where there is alpha
+        seen = image.alpha > 0.05  # straight colour is defined where there is alpha
         straight = np.clip(image.color / np.maximum(image.alpha, 1e-12)[..., None], 0, 1)
         assert np.abs(png[..., :3][seen] - straight[seen]).max() <= 1 / 255
     else:
-        assert np.abs(png - np.clip(image.color, 0, 1)).max() <= 1 / 255     # 8 bits hold 0..1
+        assert np.abs(png - np.clip(image.color, 0, 1)).max() <= 1 / 255  # 8 bits hold 0..1
 
 
 @pytest.mark.parametrize("case", list(RENDER_CASES))
 def test_render_exr_is_scene_linear_with_depth(blender, case):
     import OpenEXR
+
     from splatwright.core.color import srgb_to_linear
+
     rec = blender.step("render")[case]
     transparent = RENDER_CASES[case]["transparent"]
     image = _core_image(read(blender.work / "scene.ply"), rec, transparent)
@@ -382,20 +437,21 @@ def test_render_exr_is_scene_linear_with_depth(blender, case):
 def test_view_transform_is_applied_to_the_linear_result(blender):
     blender.step("render")
     standard, agx = _png(blender.out / "render_persp.png"), _png(blender.out / "render_persp_agx.png")
-    assert np.abs(standard - agx).max() > 0.05      # AgX tone-maps; the exact match needs Standard
+    assert np.abs(standard - agx).max() > 0.05  # AgX tone-maps; the exact match needs Standard
 
 
 def test_splats_made_for_antialiased_rendering_render_and_export_so(blender):
     from splatwright.core import SplatCloud
     from splatwright.io import spz
+
     res = blender.step("render_antialiased")
     made = read(blender.work / "scene_aa.ply")
     assert made.antialiased and res["marked"] and not res["export"]["error"]
-    image = _core_image(made, res["alone"], transparent=False)             # its own mode by default
+    image = _core_image(made, res["alone"], transparent=False)  # its own mode by default
     classic = _core_image(made.replace(antialiased=False), res["alone"], transparent=False)
     png = _png(blender.out / "render_aa.png")
     assert np.abs(png - np.clip(image.color, 0, 1)).max() <= 1 / 255
-    assert np.abs(png - np.clip(classic.color, 0, 1)).max() > 4 / 255      # the modes differ here
+    assert np.abs(png - np.clip(classic.color, 0, 1)).max() > 4 / 255  # the modes differ here
     assert spz.read(blender.out / "aa.spz").antialiased
     assert not res["export_usd"]["error"] and read(blender.out / "aa.usd").antialiased
     both = SplatCloud.concatenate([made.replace(antialiased=False), read(blender.work / "b.ply")])
@@ -403,7 +459,7 @@ def test_splats_made_for_antialiased_rendering_render_and_export_so(blender):
     assert np.abs(_png(blender.out / "render_aa_mixed.png") - np.clip(mixed.color, 0, 1)).max() <= 1 / 255
     assert not res["mixed_export"]["error"] and not spz.read(blender.out / "mixed.spz").antialiased
     assert "made for classic rendering" in res["join"]["error"] and res["join"]["result"] == ["CANCELLED"]
-    assert len(res["after_join"]) == 2                                  # nothing joined, nothing lost
+    assert len(res["after_join"]) == 2  # nothing joined, nothing lost
 
 
 def test_render_near_clip_removes_splats(blender):
@@ -411,7 +467,7 @@ def test_render_near_clip_removes_splats(blender):
     cloud = read(blender.work / "scene.ply")
     cam = _core_camera(rec)
     _, depth = cam.project(cloud.positions)
-    assert 0 < (depth <= rec["clip_start"]).sum() < len(cloud)      # the case clips part of the cloud
+    assert 0 < (depth <= rec["clip_start"]).sum() < len(cloud)  # the case clips part of the cloud
 
 
 def test_render_far_from_origin_keeps_precision(blender):
@@ -441,9 +497,10 @@ def test_render_very_wide_and_very_narrow_lenses(blender, name):
     cam = _core_camera(rec)
     pixels, depth = cam.project(np.load(blender.work / "scene_positions.npy"))
     u, v, _ = np.array(rec["projection"]).T
-    near = np.abs(pixels).max(axis=1) < 1e4                  # beyond that, float32 in Blender's own math
-    np.testing.assert_allclose(pixels[near], np.stack([u * cam.width, (1 - v) * cam.height], axis=1)[near],
-                               rtol=1e-5, atol=1e-3)
+    near = np.abs(pixels).max(axis=1) < 1e4  # beyond that, float32 in Blender's own math
+    np.testing.assert_allclose(
+        pixels[near], np.stack([u * cam.width, (1 - v) * cam.height], axis=1)[near], rtol=1e-5, atol=1e-3
+    )
     image = _core_image(read(blender.work / "scene.ply"), rec, transparent=False)
     assert np.abs(_png(blender.out / f"edge_{name}.png") - np.clip(image.color, 0, 1)).max() <= 1 / 255
 
@@ -458,6 +515,7 @@ def test_render_one_pixel(blender):
 
 def test_hidden_splats_leave_the_world_colour(blender):
     from splatwright.core.color import linear_to_srgb
+
     blender.step("render_edges")
     png = _png(blender.out / "edge_hidden.png")
     assert np.abs(png - linear_to_srgb(np.array(WORLD_COLOR))).max() <= 1 / 255
@@ -480,6 +538,7 @@ def test_animation_renders_each_frame(blender):
 
 # registration ------------------------------------------------------------------------------------------
 
+
 def test_unregister_register_twice_leaves_nothing_behind(blender):
     res = blender.step("reregister")
     assert res["enabled"]["menus"] == MENUS
@@ -489,5 +548,3 @@ def test_unregister_register_twice_leaves_nothing_behind(blender):
     assert off["engine_panels"] == 0 and off["types_left"] == []
     assert not off["engine"] and MODULE not in off["addons"]
     assert res["re_enabled_menus"] == MENUS
-
-

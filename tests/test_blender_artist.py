@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 from blender_session import MODULE, blender_fixture
 from helpers import covariances, random_cloud
-from splatwright.core.skinning import RIGID_TOLERANCE, Binding, BonePose, skin
-from splatwright.io import read_splats
 from workers.artist import CHAIN, OPTIONS_CLOUD, PANEL_CLOUD, POSES, PREFERRED, SCALED_BONE
 
-pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version
+from splatwright.core.skinning import RIGID_TOLERANCE, Binding, BonePose, skin
+from splatwright.io import read_splats
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender worker per version
 
 blender = blender_fixture("workers.artist")
 EPS32 = float(np.finfo(np.float32).eps)
@@ -42,7 +43,7 @@ def spz_header(path):
         _, version, count, degree = struct.unpack("<IIIB", payload[:13])
         return version, count, degree, len(payload)
     _, version, count, degree, _, _, streams, toc = struct.unpack("<IIIBBBBI", raw[:20])
-    sizes = [struct.unpack("<QQ", raw[toc + 16 * i: toc + 16 * i + 16])[1] for i in range(streams)]
+    sizes = [struct.unpack("<QQ", raw[toc + 16 * i : toc + 16 * i + 16])[1] for i in range(streams)]
     return version, count, degree, sum(sizes)
 
 
@@ -56,11 +57,12 @@ def usd_types(path):
 
 # panel and preferences -------------------------------------------------------------------------------
 
+
 def test_panels_and_preferences_are_registered(blender):
     res = blender.step("install")
     assert res["panels"] == [True, True]
     assert res["panel_spaces"] == [["PROPERTIES", "WINDOW", "", "object"], ["VIEW_3D", "UI", "Splats", ""]]
-    assert res["preferences_idname"] == MODULE              # Blender finds an extension's preferences by package
+    assert res["preferences_idname"] == MODULE  # Blender finds an extension's preferences by package
     assert res["defaults"] == {"export_format": "ply", "sh_degree": "KEEP", "spz_version": "3", "use_half": False}
 
 
@@ -69,7 +71,7 @@ def test_panel_polls_only_for_splat_objects(blender):
     assert polls["Cube"] == [False, False]
     assert polls["Camera"] == [False, False]
     assert polls["poll"] == [True, True]
-    if blender.version_tuple >= (4, 5):                      # Blender's own splat point clouds
+    if blender.version_tuple >= (4, 5):  # Blender's own splat point clouds
         assert polls["native"] == [True, True]
         assert polls["native_stats"] == [30, 2, 4 * 30 * (3 + 4 + 3 + 1 + 3 * 9)]
 
@@ -77,23 +79,36 @@ def test_panel_polls_only_for_splat_objects(blender):
 def test_panel_draws_the_numbers_display_settings_and_existing_operators(blender):
     res = blender.step("panel_draw")
     labels = res["labels"]
-    form = "Blender point cloud" if blender.version_tuple >= (5, 3) else "splat mesh"     # what import makes
+    form = "Blender point cloud" if blender.version_tuple >= (5, 3) else "splat mesh"  # what import makes
     assert labels[0] == f"123 splats, SH degree 1 ({form})"
     assert labels[1] == f"Memory: {4 * 123 * (3 + 4 + 3 + 1 + 12) / 1024:.1f} KiB"
     assert res["marked_labels"] == labels[:1] + ["Made for antialiased rendering"] + labels[1:]
     from splatwright.io import ply
+
     assert f"    PLY: {ply.file_size(123, 1) / 1024:.1f} KiB" in labels
     assert f"    .splat: {123 * 32 / 1024:.1f} KiB" in labels
     props = [c for c in res["checks"] if c[0] == "prop"]
     # the display modifier's settings: a splat mesh has them; Blender draws native splats itself
-    assert [c[1] for c in props] == ([] if form == "Blender point cloud" else ["Radius Scale", "Min Opacity",
-                                                                             "Display Ratio"])
+    assert [c[1] for c in props] == (
+        [] if form == "Blender point cloud" else ["Radius Scale", "Min Opacity", "Display Ratio"]
+    )
     assert all(ok for _, _, ok in res["checks"]), res["checks"]
     operators = {c[1] for c in res["checks"] if c[0] != "prop"}
-    assert operators == {"splat.export_file", "splat.export_animation", "splat.apply_transform", "splat.join",
-                         "splat.convert_form", "splat.bind_armature", "splat.check_collisions",
-                         "splat.bind_proxy", "splat.crop", "splat.prune", "splat.grade", "splat.reduce_sh",
-                         "splat.clear_cleanup"}
+    assert operators == {
+        "splat.export_file",
+        "splat.export_animation",
+        "splat.apply_transform",
+        "splat.join",
+        "splat.convert_form",
+        "splat.bind_armature",
+        "splat.check_collisions",
+        "splat.bind_proxy",
+        "splat.crop",
+        "splat.prune",
+        "splat.grade",
+        "splat.reduce_sh",
+        "splat.clear_cleanup",
+    }
     assert "Clean-up: none" in labels
 
 
@@ -101,11 +116,12 @@ def test_panel_numbers_are_the_written_files(blender):
     res = blender.step("panel_numbers")
     count, degree, _ = PANEL_CLOUD
     out = blender.out
-    for key, stats in res["stats"].items():
+    for stats in res["stats"].values():
         assert stats["count"] == count and stats["sh_degree"] == degree
         source = _source(*PANEL_CLOUD)
-        assert stats["memory"] == sum(getattr(source, f).nbytes for f in
-                                      ("positions", "rotations", "log_scales", "opacity_logits", "sh"))
+        assert stats["memory"] == sum(
+            getattr(source, f).nbytes for f in ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+        )
     assert all(r["error"] is None for r in res["exports"].values()), res["exports"]
     sizes = res["stats"]["3_False"]["sizes"]
     assert sizes["ply"] == (out / "size.ply").stat().st_size
@@ -114,9 +130,9 @@ def test_panel_numbers_are_the_written_files(blender):
         path = out / f"size_v{version}.spz"
         written_version, written_count, written_degree, data = spz_header(path)
         assert (written_version, written_count, written_degree) == (version, count, degree)
-        assert res["stats"][f"{version}_False"]["sizes"]["spz"] == data        # the data the file compresses
+        assert res["stats"][f"{version}_False"]["sizes"]["spz"] == data  # the data the file compresses
         assert path.stat().st_size < data
-    if res["pxr"]:                                           # crate files: the arrays plus ~1.4 kB of structure
+    if res["pxr"]:  # crate files: the arrays plus ~1.4 kB of structure
         for name, half in (("size.usdc", False), ("size_half.usdc", True)):
             data = res["stats"][f"3_{half}"]["sizes"]["usd"]
             assert 0 <= (out / name).stat().st_size - data <= 2048, name
@@ -125,13 +141,14 @@ def test_panel_numbers_are_the_written_files(blender):
 
 # export options ------------------------------------------------------------------------------------------
 
+
 def test_export_options_through_the_operator(blender):
     res = blender.step("export_options")
     assert all(r["error"] is None for r in res.values()), res
     out, source = blender.out, _source(*OPTIONS_CLOUD)
     full = _read(out / "keep.ply")
     assert len(full) == len(source) and full.sh_degree == 3
-    np.testing.assert_array_equal(full.sh, source.sh)        # default axes: the file comes back as it was
+    np.testing.assert_array_equal(full.sh, source.sh)  # default axes: the file comes back as it was
     reduced = _read(out / "degree1.ply")
     assert reduced.sh_degree == 1
     np.testing.assert_array_equal(reduced.sh, source.sh[:, :4])
@@ -143,7 +160,7 @@ def test_export_options_through_the_operator(blender):
     pruned = _read(out / "pruned.ply")
     assert 0 < len(pruned) == kept.sum() < len(source)
     np.testing.assert_array_equal(pruned.positions, source.positions[kept])
-    ignored = _read(out / "ignored.ply")                     # SPZ version and half floats do not apply to PLY
+    ignored = _read(out / "ignored.ply")  # SPZ version and half floats do not apply to PLY
     assert len(ignored) == kept.sum() and ignored.sh_degree == 1
 
 
@@ -170,6 +187,7 @@ def test_animation_export_options(blender):
     types = usd_types(blender.out / "anim.usda")
     assert types["scalesh"] == "half3[]"
     from splatwright.io import usd
+
     frames = usd.read_frames(blender.out / "anim.usda")
     assert [t for t, _ in frames] == [1.0, 2.0, 3.0]
     assert all(c.sh_degree == 0 and len(c) == len(source) for _, c in frames)
@@ -180,8 +198,9 @@ def test_export_options_through_the_command(blender):
     res = blender.step("command_options")
     out, source = blender.out, _source(*OPTIONS_CLOUD)
     assert res["cmd_wrong.ply"] == 1 and res["cmd_wrong_half.spz"] == 1 and res["cmd_bad_prune.ply"] == 1
-    assert not any((out / n).exists() for n in ("cmd_wrong_0001.ply", "cmd_wrong_half_0001.spz",
-                                                "cmd_bad_prune_0001.ply"))
+    assert not any(
+        (out / n).exists() for n in ("cmd_wrong_0001.ply", "cmd_wrong_half_0001.spz", "cmd_bad_prune_0001.ply")
+    )
     assert res["cmd_degree1.ply"] == 0
     reduced = _read(out / "cmd_degree1_0001.ply")
     np.testing.assert_array_equal(reduced.sh, source.sh[:, :4])
@@ -201,19 +220,20 @@ def test_unset_options_come_from_the_preferences(blender):
     assert spz_header(out / "prefs.spz")[:3] == (int(PREFERRED["spz_version"]), len(source), 2)
     assert _read(out / "prefs.ply").sh_degree == 2
     assert "orientationsh" in usd_types(out / "prefs.usda")
-    assert _read(out / "prefs_override.ply").sh_degree == 3     # given explicitly: the operator's value
+    assert _read(out / "prefs_override.ply").sh_degree == 3  # given explicitly: the operator's value
     assert spz_header(out / "prefs_cmd_0001.spz")[:3] == (2, len(source), 2)
-    assert spz_header(out / "prefs_noext_0001.spz")[:3] == (2, len(source), 2)   # the preferred format's extension
+    assert spz_header(out / "prefs_noext_0001.spz")[:3] == (2, len(source), 2)  # the preferred format's extension
     assert spz_header(out / "prefs_cmd3_0001.spz")[:3] == (3, len(source), 3)
 
 
 # modal jobs ----------------------------------------------------------------------------------------------
 
+
 def test_collision_job_cancelled_midway_leaves_the_scene_as_it_was(blender):
     res = blender.step("collide_job")
     assert res["stepped"] == [True, True, True, True]
-    assert res["mid_frame"] == 4                             # the job really moved through the frames
-    assert res["after"] == res["before"]                     # frame 5, objects, attributes, earlier contacts
+    assert res["mid_frame"] == 4  # the job really moved through the frames
+    assert res["after"] == res["before"]  # frame 5, objects, attributes, earlier contacts
     assert res["done"] == 9 and res["frame_end"] == 5
 
 
@@ -229,7 +249,7 @@ def test_collision_job_run_through_matches_the_direct_check_and_the_operator(ble
 def test_mesh_to_splats_job_cancelled_midway_leaves_the_scene_as_it_was(blender):
     res = blender.step("from_mesh_job")
     assert res["steps"] == [True, True] and 0 < res["done"] < 1 and "dB" in res["label"]
-    assert res["during"] == res["before"]                    # the rest pose is back once the mesh is read
+    assert res["during"] == res["before"]  # the rest pose is back once the mesh is read
     assert res["after"] == res["before"]
     assert res["progress"] and res["progress"] == sorted(res["progress"]) and res["count"] > 0
     job = blender.npz("from_mesh_job")
@@ -237,6 +257,7 @@ def test_mesh_to_splats_job_cancelled_midway_leaves_the_scene_as_it_was(blender)
 
 
 # rigid bones at Blender's float32 precision --------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def armature(blender):
@@ -264,11 +285,13 @@ def test_turned_bones_of_a_real_armature_are_rigid_and_a_scaled_one_is_not(armat
         scaled = bones.derived["scales"]
         if t < len(poses) - 1:
             worst = max(worst, deviation.max())
-            assert not scaled.any(), f"pose {t}: bones {np.flatnonzero(scaled)} stretch {deviation.max() / EPS32:.1f} eps"
-        else:                                                # bone 3 scaled 1.001: it and the bones it carries
+            assert not scaled.any(), (
+                f"pose {t}: bones {np.flatnonzero(scaled)} stretch {deviation.max() / EPS32:.1f} eps"
+            )
+        else:  # bone 3 scaled 1.001: it and the bones it carries
             assert scaled[SCALED_BONE]
             assert np.array_equal(scaled, deviation > 1e-4)
-    assert 0 < worst < RIGID_TOLERANCE                       # float32 rounding along a 12-bone chain
+    assert 0 < worst < RIGID_TOLERANCE  # float32 rounding along a 12-bone chain
 
 
 def _reference_covariances(cloud, binding, deform):
@@ -288,8 +311,10 @@ def test_skinning_with_blender_matrices_stays_within_float32_of_the_float64_refe
     cloud = random_cloud(3000, sh_degree=1, seed=9)
     rng = np.random.default_rng(10)
     bones = len(rest)
-    binding = Binding.from_weights(np.stack([rng.choice(bones, 3, replace=False) for _ in range(len(cloud))]),
-                                   rng.uniform(0.1, 1.0, (len(cloud), 3)))
+    binding = Binding.from_weights(
+        np.stack([rng.choice(bones, 3, replace=False) for _ in range(len(cloud))]),
+        rng.uniform(0.1, 1.0, (len(cloud), 3)),
+    )
     for pose in poses[:-1:6]:
         bones_pose = BonePose.from_blender(rest, pose)
         deviation, _ = _stretch(bones_pose.deform)

@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import skip_platform
+from test_cleanup import parity_inside
+from test_proxy import ericson
+from workers.artist_tools import FADE_SPAN, FALLOFF_START, FAR, GRADE, MAX_DISTANCE, NEAR, tube_mesh
+
 from splatwright.core import cleanup
 from splatwright.core.camera import Camera
 from splatwright.core.economy import contributions
 from splatwright.core.splats import SplatCloud
-from test_cleanup import parity_inside
-from test_proxy import ericson
-from workers.artist_tools import (FADE_SPAN, FALLOFF_START, FAR, GRADE, MAX_DISTANCE, NEAR, tube_mesh)
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
@@ -32,6 +33,7 @@ def test_operators_and_edit_hook_are_registered(blender):
 
 
 # clean-up -------------------------------------------------------------------------------------------
+
 
 def cleanup_result(blender, form):
     res = blender.step(f"cleanup_{form.lower()}")
@@ -58,8 +60,8 @@ def test_crop_to_an_empty_box_keeps_the_splats_inside_it(blender, form):
     assert (report["splats_before"], report["splats_after"]) == (len(before), int(inside.sum()))
     assert report["bytes_after"] == int(inside.sum()) * 4 * (14 + 3 * 16)
     assert 0 < report["psnr"] < 60 and report["views"] == 6
-    assert res["crop_box"]["exported"] == inside.sum()                 # baked on export
-    assert res["cleared_export"] == len(before)                         # and cleared again
+    assert res["crop_box"]["exported"] == inside.sum()  # baked on export
+    assert res["cleared_export"] == len(before)  # and cleared again
 
 
 @pytest.mark.parametrize("form", ["MESH", "NATIVE"])
@@ -69,7 +71,7 @@ def test_crop_to_a_closed_mesh_follows_ray_parity(blender, form):
     before = d["before_positions"].astype(np.float64)
     inside = np.array([parity_inside(p, d["torus_vertices"], d["torus_triangles"]) for p in before])
     assert 20 < inside.sum() < len(before) - 20
-    np.testing.assert_allclose(d["crop_mesh_positions"], before[~inside], atol=1e-5)      # inverted
+    np.testing.assert_allclose(d["crop_mesh_positions"], before[~inside], atol=1e-5)  # inverted
     assert res["crop_mesh"]["exported"] == (~inside).sum()
 
 
@@ -116,12 +118,27 @@ def test_prune_by_visibility_keeps_what_the_camera_path_sees(blender):
     res = blender.step("visibility")
     assert res["prune"]["result"] == ["FINISHED"] and res["frame"] == 1
     d = blender.npz("visibility")
-    cloud = SplatCloud(positions=d["positions"], rotations=d["rotations"], log_scales=d["log_scales"],
-                       opacity_logits=d["opacity_logits"], sh=d["sh"])
+    cloud = SplatCloud(
+        positions=d["positions"],
+        rotations=d["rotations"],
+        log_scales=d["log_scales"],
+        opacity_logits=d["opacity_logits"],
+        sh=d["sh"],
+    )
     # the renderer's own weights from the three frames' cameras (256 px on the long side), from Blender's matrices
-    cameras = [Camera.from_blender(m, 256, 192, clip_start=float(d["clip"][0]), clip_end=float(d["clip"][1]),
-                                   lens=float(d["lens"]), sensor_width=float(d["sensor"][0]),
-                                   sensor_height=float(d["sensor"][1])) for m in d["cameras"]]
+    cameras = [
+        Camera.from_blender(
+            m,
+            256,
+            192,
+            clip_start=float(d["clip"][0]),
+            clip_end=float(d["clip"][1]),
+            lens=float(d["lens"]),
+            sensor_width=float(d["sensor"][0]),
+            sensor_height=float(d["sensor"][1]),
+        )
+        for m in d["cameras"]
+    ]
     expected = np.max([contributions(cloud, [c]) for c in cameras], axis=0)
     np.testing.assert_allclose(d["weights"], expected, atol=1e-6)
     kept = d["weights"] > 0.004
@@ -135,10 +152,15 @@ def test_prune_by_visibility_keeps_what_the_camera_path_sees(blender):
 
 def test_bad_clean_up_input_is_refused_and_changes_nothing(blender):
     res = blender.step("cleanup_refusals")
-    expected = {"camera_volume": "cannot be a crop volume", "faceless_volume": "no faces",
-                "missing_volume": "no object named 'Nowhere'", "not_splats": "not splat objects",
-                "nothing": "no splat objects selected", "no_camera": "no camera",
-                "sizes": "max size"}
+    expected = {
+        "camera_volume": "cannot be a crop volume",
+        "faceless_volume": "no faces",
+        "missing_volume": "no object named 'Nowhere'",
+        "not_splats": "not splat objects",
+        "nothing": "no splat objects selected",
+        "no_camera": "no camera",
+        "sizes": "max size",
+    }
     for name, words in expected.items():
         assert res[name]["result"] == ["CANCELLED"], name
         assert words in res[name]["error"], (name, res[name]["error"])
@@ -146,6 +168,7 @@ def test_bad_clean_up_input_is_refused_and_changes_nothing(blender):
 
 
 # binding through a proxy ----------------------------------------------------------------------------
+
 
 def reference_nearest(points, verts, faces):
     """(triangle, barycentric, distance) of the nearest surface point, one point and triangle at a time."""
@@ -180,12 +203,12 @@ def test_splats_take_the_weights_of_the_nearest_surface_point(proxy_case):
     far = dist > 0.1
     assert far.sum() == FAR and not far[:NEAR].any()
     expected = np.einsum("nk,nkb->nb", bary, d["vertex_weights"][d["triangles"][tri]])
-    for form in ("MESH", "NATIVE"):           # vertex groups; weight attributes of native splats
+    for form in ("MESH", "NATIVE"):  # vertex groups; weight attributes of native splats
         if f"bound_{form}" in d:
-            np.testing.assert_allclose(d[f"bound_{form}"], expected, atol=2e-6)    # far ones too: their mask is 0
-    assert ((d["bound_MESH"] > 0).sum(axis=1) == 2).sum() > 50            # splats where the bones blend
+            np.testing.assert_allclose(d[f"bound_{form}"], expected, atol=2e-6)  # far ones too: their mask is 0
+    assert ((d["bound_MESH"] > 0).sum(axis=1) == 2).sum() > 50  # splats where the bones blend
     if "bound_NATIVE" in d:
-        assert res["native"] == ["Rig", False, True]          # the armature property, the strength attribute
+        assert res["native"] == ["Rig", False, True]  # the armature property, the strength attribute
 
 
 @pytest.mark.parametrize("form", ["MESH", "NATIVE"])
@@ -198,8 +221,8 @@ def test_posed_splats_follow_the_posed_proxy_surface(proxy_case, form):
     # Blender's posed proxy, at the same surface point
     surface = np.einsum("nk,nki->ni", bary, d["proxy_posed"][d["triangles"][tri]])
     gap = np.linalg.norm(posed[near] - surface[near], axis=1)
-    assert np.abs(d["rest"][near] - posed[near]).max() > 0.5             # the pose moves them
-    assert (gap <= dist[near] + 0.02).all(), gap.max()                   # they stay on the skin
+    assert np.abs(d["rest"][near] - posed[near]).max() > 0.5  # the pose moves them
+    assert (gap <= dist[near] + 0.02).all(), gap.max()  # they stay on the skin
     # exactly linear blend skinning of each splat with its weights
     w = d[f"bound_{form}"]
     blended = np.einsum("nb,bij->nij", w[near], d["deform"])
@@ -207,7 +230,7 @@ def test_posed_splats_follow_the_posed_proxy_surface(proxy_case, form):
     np.testing.assert_allclose(posed[near], lbs, atol=1e-5)
     # far splats stay where they were
     np.testing.assert_allclose(posed[NEAR:], d["rest"][NEAR:], atol=1e-5)
-    if form == "NATIVE":                      # Blender draws them posed (the bones were posed by hand)
+    if form == "NATIVE":  # Blender draws them posed (the bones were posed by hand)
         np.testing.assert_allclose(d["drawn_NATIVE"], posed, rtol=0, atol=1e-5)
 
 
@@ -223,6 +246,7 @@ def test_far_splats_are_reported(proxy_case):
 
 # distance falloff ------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def falloff_case(blender):
     res = blender.step("proxy_falloff")
@@ -234,7 +258,7 @@ def falloff_case(blender):
 
 def smoothstep_falloff(dist):
     s = np.clip((dist - FALLOFF_START) / (MAX_DISTANCE - FALLOFF_START), 0.0, 1.0)
-    return 1.0 - 3.0 * s ** 2 + 2.0 * s ** 3
+    return 1.0 - 3.0 * s**2 + 2.0 * s**3
 
 
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
@@ -243,7 +267,7 @@ def test_falloff_is_the_armature_modifiers_mask_group(falloff_case, mode):
     assert res[f"bind_{mode}"]["result"] == ["FINISHED"], res[f"bind_{mode}"]
     assert res[f"modifier_{mode}"] == ["ARMATURE", "splatwright_bind_strength", False, mode == "dqs"]
     np.testing.assert_allclose(d[f"strength_{mode}"], smoothstep_falloff(dist), atol=2e-6)
-    if f"strength_NATIVE_{mode}" in d:        # native splats: the same weights and strength as attributes
+    if f"strength_NATIVE_{mode}" in d:  # native splats: the same weights and strength as attributes
         assert res[f"native_{mode}"] == ["Rig", mode == "dqs", True]
         np.testing.assert_allclose(d[f"strength_NATIVE_{mode}"], smoothstep_falloff(dist), atol=2e-6)
         np.testing.assert_allclose(d[f"bound_NATIVE_{mode}"], d[f"bound_{mode}"], atol=2e-6)
@@ -264,20 +288,26 @@ def test_fading_splats_move_as_blenders_masked_modifier_moves_vertices(falloff_c
     # Blender's own Armature modifier on a plain mesh of the same points, groups and mask
     np.testing.assert_allclose(posed, d[f"blender_masked_{mode}"], atol=1e-5)
     near, far = dist <= FALLOFF_START, dist > MAX_DISTANCE
-    assert np.linalg.norm(full - rest, axis=1).min() > 0.01                    # the pose moves every one
-    np.testing.assert_allclose(posed[near], full[near], atol=1e-5)              # near ones follow fully
-    np.testing.assert_allclose(posed[far], rest[far], atol=1e-6)                # far ones stay
-    fraction = smoothstep_falloff(dist)[:, None]                                # between: by the falloff
+    assert np.linalg.norm(full - rest, axis=1).min() > 0.01  # the pose moves every one
+    np.testing.assert_allclose(posed[near], full[near], atol=1e-5)  # near ones follow fully
+    np.testing.assert_allclose(posed[far], rest[far], atol=1e-6)  # far ones stay
+    fraction = smoothstep_falloff(dist)[:, None]  # between: by the falloff
     np.testing.assert_allclose(posed, rest + fraction * (full - rest), atol=1e-5)
-    if form == "NATIVE":                                                        # as Blender draws them
+    if form == "NATIVE":  # as Blender draws them
         np.testing.assert_allclose(d[f"drawn_NATIVE_{mode}"], posed, rtol=0, atol=1e-5)
 
 
 def test_bad_proxy_input_is_refused_and_changes_nothing(blender):
     res = blender.step("proxy_refusals")
-    expected = {"camera": "not a rigged mesh", "splats_as_proxy": "a splat object", "faceless": "no faces",
-                "no_armature": "no armature", "no_bones": "no deforming bones", "no_splats": "no splat objects",
-                "missing": "no object named 'Nowhere'"}
+    expected = {
+        "camera": "not a rigged mesh",
+        "splats_as_proxy": "a splat object",
+        "faceless": "no faces",
+        "no_armature": "no armature",
+        "no_bones": "no deforming bones",
+        "no_splats": "no splat objects",
+        "missing": "no object named 'Nowhere'",
+    }
     for name, words in expected.items():
         assert res[name]["result"] == ["CANCELLED"], name
         assert words in res[name]["error"], (name, res[name]["error"])

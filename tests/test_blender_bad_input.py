@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import random_cloud, read
-from workers.bad_input import N, RENDER_SIZE, WRONG_KINDS
+from workers.bad_input import RENDER_SIZE, WRONG_KINDS, N
 
-pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version: ~3 s
+pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender worker per version: ~3 s
 
 
 def _native(blender):
@@ -32,17 +32,19 @@ def _type_name(blender):
 
 def _write_inputs(work):
     from splatwright.io import write_splats
+
     write_splats(work / "empty.ply", random_cloud(0, sh_degree=1))
     write_splats(work / "cloud.ply", random_cloud(N, sh_degree=1))
     full = (work / "cloud.ply").read_bytes()
     (work / "truncated.ply").write_bytes(full[: len(full) * 2 // 3])
     (work / "cloud.xyz").write_bytes(full)
     import struct
+
     cloud = random_cloud(N, sh_degree=1)
-    write_splats(work / "damaged.usdc", cloud)                 # written by usd-core's pxr, outside Blender
+    write_splats(work / "damaged.usdc", cloud)  # written by usd-core's pxr, outside Blender
     crate = bytearray((work / "damaged.usdc").read_bytes())
     at = crate.find(cloud.positions.astype("<f4").tobytes()) - 8
-    struct.pack_into("<Q", crate, at, 1 << 28)                  # the positions' count: 3.2 GB to OpenUSD
+    struct.pack_into("<Q", crate, at, 1 << 28)  # the positions' count: 3.2 GB to OpenUSD
     (work / "damaged.usdc").write_bytes(bytes(crate))
     for folder in ("folder.ply", "folder.blend", "read_only"):
         (work / folder).mkdir()
@@ -66,25 +68,57 @@ def test_every_operator_is_exercised(blender):
     """A new operator fails this until its bad input is tested: here, or (clean-up and proxy binding)
     in test_blender_artist_tools.py's refusal tests."""
     assert blender.step("install")["operators"] == [
-        "SPLAT_OT_apply_transform", "SPLAT_OT_bind_armature", "SPLAT_OT_bind_proxy", "SPLAT_OT_check_collisions",
-        "SPLAT_OT_clear_cleanup", "SPLAT_OT_convert_form", "SPLAT_OT_crop", "SPLAT_OT_export_animation",
-        "SPLAT_OT_export_file", "SPLAT_OT_from_mesh", "SPLAT_OT_grade", "SPLAT_OT_import_file", "SPLAT_OT_join",
-        "SPLAT_OT_prune", "SPLAT_OT_reduce_sh"]
+        "SPLAT_OT_apply_transform",
+        "SPLAT_OT_bind_armature",
+        "SPLAT_OT_bind_proxy",
+        "SPLAT_OT_check_collisions",
+        "SPLAT_OT_clear_cleanup",
+        "SPLAT_OT_convert_form",
+        "SPLAT_OT_crop",
+        "SPLAT_OT_export_animation",
+        "SPLAT_OT_export_file",
+        "SPLAT_OT_from_mesh",
+        "SPLAT_OT_grade",
+        "SPLAT_OT_import_file",
+        "SPLAT_OT_join",
+        "SPLAT_OT_prune",
+        "SPLAT_OT_reduce_sh",
+    ]
 
 
 # broken splat objects --------------------------------------------------------------------------------
 
 # defect -> what the refusal says, for a splat mesh and for a native cloud (see workers.bad_input.DEFECT_ATTRIBUTES)
 MISSING = {
-    "mesh": dict(no_rotation="no 'splat_rotation' point attribute", no_scale="no 'splat_log_scale' point attribute",
-                 no_opacity="no 'splat_opacity_logit' point attribute", no_first_sh="missing [0]",
-                 no_middle_sh="missing [2]", int_opacity="'splat_opacity_logit' is INT on POINT, expected FLOAT"),
-    "native": dict(no_rotation="no 'rotation' point attribute", no_scale="no 'scale' point attribute",
-                   no_opacity="no 'radiance:base' point attribute", no_first_sh="missing [0]",
-                   no_middle_sh="missing [1]", int_opacity="'radiance:base' is INT on POINT, expected FLOAT4"),
+    "mesh": dict(
+        no_rotation="no 'splat_rotation' point attribute",
+        no_scale="no 'splat_log_scale' point attribute",
+        no_opacity="no 'splat_opacity_logit' point attribute",
+        no_first_sh="missing [0]",
+        no_middle_sh="missing [2]",
+        int_opacity="'splat_opacity_logit' is INT on POINT, expected FLOAT",
+    ),
+    "native": dict(
+        no_rotation="no 'rotation' point attribute",
+        no_scale="no 'scale' point attribute",
+        no_opacity="no 'radiance:base' point attribute",
+        no_first_sh="missing [0]",
+        no_middle_sh="missing [1]",
+        int_opacity="'radiance:base' is INT on POINT, expected FLOAT4",
+    ),
 }
-READERS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind", "convert",
-           "render")
+READERS = (
+    "export",
+    "apply",
+    "join_into_good",
+    "join_good_into",
+    "anim_ply",
+    "anim_usd",
+    "collide",
+    "bind",
+    "convert",
+    "render",
+)
 
 
 @pytest.mark.parametrize("defect", sorted(MISSING["mesh"]))
@@ -95,10 +129,13 @@ def test_missing_or_wrong_attributes_are_refused_by_name(blender, defect, operat
     assert case["written"] == []
 
 
-@pytest.mark.parametrize("defect, words", [
-    ("zero_scale", ["'zero_scale'", "singular"]),
-    ("nan_location", ["'nan_location'", "NaN or Inf"]),
-])
+@pytest.mark.parametrize(
+    "defect, words",
+    [
+        ("zero_scale", ["'zero_scale'", "singular"]),
+        ("nan_location", ["'nan_location'", "NaN or Inf"]),
+    ],
+)
 @pytest.mark.parametrize("operation", ["export", "apply", "join_into_good", "anim_ply", "anim_usd", "collide"])
 def test_degenerate_transforms_are_refused_by_name(blender, defect, words, operation):
     case = blender.step("defects")[f"{defect} {operation}"]
@@ -106,8 +143,10 @@ def test_degenerate_transforms_are_refused_by_name(blender, defect, words, opera
     assert case["written"] == []
 
 
-@pytest.mark.parametrize("defect, words", [("zero_scale", ["'zero_scale'", "zero scale"]),
-                                           ("nan_location", ["'nan_location'", "NaN or Inf"])])
+@pytest.mark.parametrize(
+    "defect, words",
+    [("zero_scale", ["'zero_scale'", "zero scale"]), ("nan_location", ["'nan_location'", "NaN or Inf"])],
+)
 def test_joining_into_a_degenerate_transform_is_refused(blender, defect, words):
     assert_refused(blender.step("defects")[f"{defect} join_good_into"], *words)
 
@@ -121,20 +160,32 @@ def test_a_nan_transform_binds_and_renders_nothing(blender):
 
 def test_a_zero_scale_object_renders_as_nothing(blender):
     from splatwright.io.exr import read_exr
+
     case = blender.step("defects")["zero_scale render"]
     assert case["result"] == ["FINISHED"]
     alpha = read_exr(blender.out / "zero_scale_render.exr")["A"]
     assert alpha.shape == RENDER_SIZE[::-1] and np.all(alpha == 0)
 
 
-@pytest.mark.parametrize("operation, words", [
-    ("export", ["nan_values_export.ply", "3 of 40 splats have non-finite values", "positions in 1",
-                "opacity_logits in 1", "sh in 1"]),
-    ("anim_ply", ["nan_values_anim_ply_0001.ply", "non-finite"]),
-    ("anim_usd", ["nan_values_anim_usd.usd", "non-finite"]),
-    ("collide", ["frame 1", "2 splats of 'nan_values'", "NaN"]),
-    ("bind", ["'nan_values'", "1 splat centres are NaN"]),
-])
+@pytest.mark.parametrize(
+    "operation, words",
+    [
+        (
+            "export",
+            [
+                "nan_values_export.ply",
+                "3 of 40 splats have non-finite values",
+                "positions in 1",
+                "opacity_logits in 1",
+                "sh in 1",
+            ],
+        ),
+        ("anim_ply", ["nan_values_anim_ply_0001.ply", "non-finite"]),
+        ("anim_usd", ["nan_values_anim_usd.usd", "non-finite"]),
+        ("collide", ["frame 1", "2 splats of 'nan_values'", "NaN"]),
+        ("bind", ["'nan_values'", "1 splat centres are NaN"]),
+    ],
+)
 def test_nan_values_never_reach_a_file_or_a_binding(blender, operation, words):
     case = blender.step("defects")[f"nan_values {operation}"]
     assert_refused(case, *words)
@@ -143,11 +194,12 @@ def test_nan_values_never_reach_a_file_or_a_binding(blender, operation, words):
 
 def test_nan_splats_are_left_out_of_a_render(blender):
     from splatwright.io.exr import read_exr
+
     d = blender.step("defects")
     assert d["nan_values render"]["result"] == ["FINISHED"] and d["finite render"]["result"] == ["FINISHED"]
     image = read_exr(blender.out / "nan_values_render.exr")
-    reference = read_exr(blender.out / "finite_render.exr")     # the 37 finite splats alone
-    assert reference["A"].max() > 0.3                           # the splats are in view
+    reference = read_exr(blender.out / "finite_render.exr")  # the 37 finite splats alone
+    assert reference["A"].max() > 0.3  # the splats are in view
     for channel in "RGBA":
         assert np.isfinite(image[channel]).all()
         np.testing.assert_allclose(image[channel], reference[channel], rtol=0, atol=1e-6)
@@ -155,6 +207,7 @@ def test_nan_splats_are_left_out_of_a_render(blender):
 
 def test_an_empty_splat_object_is_a_valid_empty_cloud(blender):
     from splatwright.io.exr import read_exr
+
     d = blender.step("defects")
     for operation in ("export", "apply", "anim_ply", "anim_usd", "collide", "render"):
         assert d[f"empty {operation}"]["result"] == ["FINISHED"], (operation, d[f"empty {operation}"])
@@ -170,14 +223,21 @@ def test_an_empty_splat_object_is_a_valid_empty_cloud(blender):
 
 # objects of the wrong type ---------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("kind", WRONG_KINDS)
 def test_wrong_objects_are_refused_or_hidden(blender, kind):
     d = blender.step("wrong_objects")
-    name = {"camera": "'Camera' (CAMERA)", "empty_object": "'Empty' (EMPTY)", "curve": "'Curve' (CURVE)",
-            "armature": "'NoBones' (ARMATURE)", "plain_mesh": "'Plain' (MESH)", "nothing": "nothing is selected"}[kind]
+    name = {
+        "camera": "'Camera' (CAMERA)",
+        "empty_object": "'Empty' (EMPTY)",
+        "curve": "'Curve' (CURVE)",
+        "armature": "'NoBones' (ARMATURE)",
+        "plain_mesh": "'Plain' (MESH)",
+        "nothing": "nothing is selected",
+    }[kind]
     assert_refused(d[f"{kind} export"], name)
     assert_refused(d[f"{kind} anim"], name)
-    for op in ("apply", "join"):                       # poll() hides them: no splat object is active
+    for op in ("apply", "join"):  # poll() hides them: no splat object is active
         assert_refused(d[f"{kind} {op}"], "poll() failed")
     if kind != "plain_mesh":
         assert_refused(d[f"{kind} from_mesh"], "nothing is selected" if kind == "nothing" else "no mesh objects")
@@ -196,18 +256,22 @@ def test_wrong_objects_are_refused_or_hidden(blender, kind):
 
 # files and paths -------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name, words", [
-    ("import truncated.ply", ["truncated.ply"]),
-    ("import missing.ply", ["missing.ply", "no such file"]),
-    ("import cloud.xyz", ["cloud.xyz", "unknown splat file extension"]),
-    ("import folder.ply", ["folder.ply"]),
-    ("import damaged.usdc", ["damaged.usdc"]),
-    ("import nothing", ["no file to import"]),
-    ("export missing folder", ["nowhere", "x.ply"]),
-    ("export a folder", ["folder.ply", "is a folder"]),
-    ("export no extension", ["noext", "unknown splat file extension"]),
-    ("export NaN over a file", ["precious.ply", "non-finite"]),
-])
+
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("import truncated.ply", ["truncated.ply"]),
+        ("import missing.ply", ["missing.ply", "no such file"]),
+        ("import cloud.xyz", ["cloud.xyz", "unknown splat file extension"]),
+        ("import folder.ply", ["folder.ply"]),
+        ("import damaged.usdc", ["damaged.usdc"]),
+        ("import nothing", ["no file to import"]),
+        ("export missing folder", ["nowhere", "x.ply"]),
+        ("export a folder", ["folder.ply", "is a folder"]),
+        ("export no extension", ["noext", "unknown splat file extension"]),
+        ("export NaN over a file", ["precious.ply", "non-finite"]),
+    ],
+)
 def test_bad_paths_and_files_are_refused(blender, name, words):
     assert_refused(blender.step("files")[name], *words)
 
@@ -216,9 +280,9 @@ def test_export_can_drop_invalid_splats(blender):
     """Asked to, export leaves out exactly the splats that hold NaN/Inf and says how many."""
     case = blender.step("files")["export NaN dropped"]
     assert case["result"] == ["FINISHED"], case
-    source = random_cloud(N, sh_degree=1, seed=3)            # as Worker.defective("nan_values") made it
+    source = random_cloud(N, sh_degree=1, seed=3)  # as Worker.defective("nan_values") made it
     finite = np.ones(N, bool)
-    finite[[3, 5, 7]] = False                                # the splats it gave NaN or Inf
+    finite[[3, 5, 7]] = False  # the splats it gave NaN or Inf
     got = read(blender.out / "dropped.ply")
     np.testing.assert_array_equal(got.opacity_logits, source.opacity_logits[finite])
     np.testing.assert_array_equal(got.log_scales, source.log_scales[finite])
@@ -233,11 +297,18 @@ def test_an_empty_file_imports_as_an_empty_splat_object(blender):
     case = blender.step("files")["import empty.ply contents"]
     assert case["result"] == ["FINISHED"] and case["count"] == 0
     if _native(blender):
-        assert {"position", "rotation", "scale", "radiance:base", "radiance:sh_0",
-                "radiance:sh_2"} <= set(case["attributes"])
+        assert {"position", "rotation", "scale", "radiance:base", "radiance:sh_0", "radiance:sh_2"} <= set(
+            case["attributes"]
+        )
     else:
-        assert {"position", "splat_rotation", "splat_log_scale", "splat_opacity_logit", "splat_sh_0",
-                "splat_sh_3"} <= set(case["attributes"])
+        assert {
+            "position",
+            "splat_rotation",
+            "splat_log_scale",
+            "splat_opacity_logit",
+            "splat_sh_0",
+            "splat_sh_3",
+        } <= set(case["attributes"])
     assert case["export"]["result"] == ["FINISHED"]
     header = (blender.out / "empty_again.ply").read_bytes().split(b"end_header")[0]
     assert b"element vertex 0" in header and b"f_rest_8" in header
@@ -247,7 +318,7 @@ def test_an_empty_file_imports_as_an_empty_splat_object(blender):
 def test_a_sequence_that_fails_at_a_frame_changes_no_file(blender):
     d = blender.step("animation_files")
     assert_refused(d["nan at frame 2"], "frame 2", "'moving'", "NaN or Inf")
-    assert d["nan at frame 2 files"] == ["shot_0001.ply"]          # no new frame, no temporary file
+    assert d["nan at frame 2 files"] == ["shot_0001.ply"]  # no new frame, no temporary file
     assert d["old frame kept"] is True
     assert_refused(d["nan at frame 2 usd"], "frame 2", "'moving'")
     assert_refused(d["folder in the way"], "shot_0002.ply", "folder")
@@ -269,19 +340,24 @@ def test_binary_openusd_needs_blenders_pxr_and_says_so(blender):
         assert not case["written"]
 
 
-@pytest.mark.parametrize("name", ["export ro.ply", "export ro.usd", "export ro.spz", "export ro.splat",
-                                  "animation ro_####.ply", "animation ro.usd"])
+@pytest.mark.parametrize(
+    "name",
+    ["export ro.ply", "export ro.usd", "export ro.spz", "export ro.splat", "animation ro_####.ply", "animation ro.usd"],
+)
 def test_a_read_only_folder_is_refused(blender, name):
     assert_refused(blender.step("read_only")[name], blender.step("read_only")["folder"], "ermission denied")
 
 
-@pytest.mark.parametrize("name, words", [
-    ("export", ["ermission denied"]),
-    ("render", ["cannot save", "ro_0001.png"]),
-    ("from-mesh", ["ro.ply", "ermission denied"]),
-    ("from-mesh blend", ["ro.blend"]),
-    ("collide json", ["ro.json", "ermission denied"]),
-])
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("export", ["ermission denied"]),
+        ("render", ["cannot save", "ro_0001.png"]),
+        ("from-mesh", ["ro.ply", "ermission denied"]),
+        ("from-mesh blend", ["ro.blend"]),
+        ("collide json", ["ro.json", "ermission denied"]),
+    ],
+)
 def test_cli_jobs_into_a_read_only_folder_fail_cleanly(blender, name, words):
     run = blender.step("read_only")[f"cli {name}"]
     assert run["code"] == 1 and run["new_objects"] == 0, run
@@ -293,11 +369,15 @@ def test_cli_jobs_into_a_read_only_folder_fail_cleanly(blender, name, words):
 
 # meshes, rigs, cameras -------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name, words", [
-    ("no_vertices", ["'no_vertices' has no faces", "0 vertices"]),
-    ("edges_only", ["'edges_only' has no faces"]),
-    ("nan_faces", ["'nan_faces'", "no face with positive area"]),
-])
+
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("no_vertices", ["'no_vertices' has no faces", "0 vertices"]),
+        ("edges_only", ["'edges_only' has no faces"]),
+        ("nan_faces", ["'nan_faces'", "no face with positive area"]),
+    ],
+)
 def test_meshes_without_a_surface_are_refused(blender, name, words):
     assert_refused(blender.step("from_mesh")[name], *words)
 
@@ -328,12 +408,15 @@ def test_groups_that_match_no_bone_stay_put_as_in_blender(blender):
     np.testing.assert_allclose(got, expected, atol=1e-6)
 
 
-@pytest.mark.parametrize("name, words", [
-    ("empty as camera", ["'Rig Empty' is empty, not a camera object"]),
-    ("splats as camera", ["'splats' is {type}, not a camera object"]),      # a splat object's type
-    ("zero scale camera", ["'Camera'", "zero scale"]),
-    ("nan camera", ["'Camera'", "NaN or Inf"]),
-])
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("empty as camera", ["'Rig Empty' is empty, not a camera object"]),
+        ("splats as camera", ["'splats' is {type}, not a camera object"]),  # a splat object's type
+        ("zero scale camera", ["'Camera'", "zero scale"]),
+        ("nan camera", ["'Camera'", "NaN or Inf"]),
+    ],
+)
 def test_cameras_the_engine_cannot_use_are_refused(blender, name, words):
     case = blender.step("cameras")[name]
     words = [word.format(type=_type_name(blender)) for word in words]
@@ -351,18 +434,22 @@ def test_refused_renders_write_no_image(blender):
 
 # the command -------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name, words", [
-    ("psnr nan", ["--target-psnr", "nan"]),
-    ("psnr negative", ["--target-psnr", "-3"]),
-    ("no splats", ["max_splats must be at least 1"]),
-    ("ply is a folder", ["folder.ply"]),
-    ("blend is a folder", ["folder.blend"]),
-    ("sigma inf", ["sigma", "finite", "inf"]),
-    ("min opacity nan", ["minimum opacity", "nan"]),
-    ("min opacity 2", ["minimum opacity", "between 0 and 1"]),
-    ("export nan location", ["'nan_location'", "NaN or Inf"]),
-    ("collide nan location", ["'nan_location'", "NaN or Inf"]),
-])
+
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("psnr nan", ["--target-psnr", "nan"]),
+        ("psnr negative", ["--target-psnr", "-3"]),
+        ("no splats", ["max_splats must be at least 1"]),
+        ("ply is a folder", ["folder.ply"]),
+        ("blend is a folder", ["folder.blend"]),
+        ("sigma inf", ["sigma", "finite", "inf"]),
+        ("min opacity nan", ["minimum opacity", "nan"]),
+        ("min opacity 2", ["minimum opacity", "between 0 and 1"]),
+        ("export nan location", ["'nan_location'", "NaN or Inf"]),
+        ("collide nan location", ["'nan_location'", "NaN or Inf"]),
+    ],
+)
 def test_cli_refuses_bad_values_and_leaves_no_objects(blender, name, words):
     run = blender.step("cli")[name]
     assert run["code"] == 1, run

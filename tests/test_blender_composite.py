@@ -21,29 +21,50 @@ from splatwright.core.color import linear_to_srgb, srgb_to_linear
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 STEP = 1.0 / 255.0
-EMISSION_PSNR = 38.0            # dB: flat-emission composite against the meshes made of splats, off outlines
-EMISSION_PSNR_WHOLE = 22.0      # dB: the same over the whole 192x144 picture, outlines included
+EMISSION_PSNR = 38.0  # dB: flat-emission composite against the meshes made of splats, off outlines
+EMISSION_PSNR_WHOLE = 22.0  # dB: the same over the whole 192x144 picture, outlines included
 
 blender = blender_fixture("workers.composite")
 
 
 def exr(path):
     import OpenEXR
+
     with OpenEXR.File(str(path)) as f:
         return {name: ch.pixels for part in f.parts for name, ch in part.channels.items()}
 
 
 def png(path):
     from PIL import Image
+
     return np.asarray(Image.open(path), dtype=np.float64) / 255.0
 
 
 def camera(rec):
     x, y, pct = rec["resolution"]
-    lens = {k: rec[k] for k in ("lens", "sensor_width", "sensor_height", "sensor_fit", "shift_x", "shift_y",
-                                "type", "ortho_scale", "pixel_aspect_x", "pixel_aspect_y")}
-    return Camera.from_blender(np.array(rec["matrix_world"]), x * pct // 100, y * pct // 100,
-                               clip_start=rec["clip_start"], clip_end=rec["clip_end"], **lens)
+    lens = {
+        k: rec[k]
+        for k in (
+            "lens",
+            "sensor_width",
+            "sensor_height",
+            "sensor_fit",
+            "shift_x",
+            "shift_y",
+            "type",
+            "ortho_scale",
+            "pixel_aspect_x",
+            "pixel_aspect_y",
+        )
+    }
+    return Camera.from_blender(
+        np.array(rec["matrix_world"]),
+        x * pct // 100,
+        y * pct // 100,
+        clip_start=rec["clip_start"],
+        clip_end=rec["clip_end"],
+        **lens,
+    )
 
 
 def display(rgba):
@@ -77,8 +98,12 @@ def oracle(blender, film):
     meshes = exr(blender.out / "meshes_transparent.exr")
     opaque = film == "opaque"
     layer = mesh_layer(meshes, exr(blender.out / "meshes_opaque.exr") if opaque else None)
-    ref = reference_render(SplatCloud(**oracle_cloud_arrays()), camera(blender.step("oracle")["camera"]),
-                           background=linear_to_srgb(np.array(WORLD)) if opaque else (0.0, 0.0, 0.0), layer=layer)
+    ref = reference_render(
+        SplatCloud(**oracle_cloud_arrays()),
+        camera(blender.step("oracle")["camera"]),
+        background=linear_to_srgb(np.array(WORLD)) if opaque else (0.0, 0.0, 0.0),
+        layer=layer,
+    )
     ref["coverage"] = ref["alpha"]
     ref["alpha"] = np.ones_like(ref["alpha"]) if opaque else ref["alpha"]
     return ref, meshes
@@ -111,9 +136,11 @@ def test_opaque_film_differs_from_an_opaque_mesh_layer_only_at_partly_covered_pi
     (the Environment pass) shows them through the uncovered part; elsewhere both agree."""
     ref, meshes = oracle(blender, "opaque")
     picture = exr(blender.out / "meshes_opaque.exr")
-    opaque = reference_render(SplatCloud(**oracle_cloud_arrays()), camera(blender.step("oracle")["camera"]),
-                              layer=(display(picture["ViewLayer.Combined"])[0], np.ones(SIZE[::-1]),
-                                     meshes["ViewLayer.Depth.Z"]))
+    opaque = reference_render(
+        SplatCloud(**oracle_cloud_arrays()),
+        camera(blender.step("oracle")["camera"]),
+        layer=(display(picture["ViewLayer.Combined"])[0], np.ones(SIZE[::-1]), meshes["ViewLayer.Depth.Z"]),
+    )
     coverage = meshes["ViewLayer.Combined"][..., 3]
     partly = (coverage > 1e-3) & (coverage < 1 - 1e-3)
     error = np.abs(ref["color"] - opaque["color"]).max(axis=-1)
@@ -125,13 +152,14 @@ def test_passes_depth_splats_and_meshes(blender, film):
     ref, meshes = oracle(blender, film)
     got = exr(blender.out / f"composite_{film}.exr")
     # the Meshes pass is Cycles' own picture (the same settings and seed give the same pixels)
-    np.testing.assert_allclose(got["ViewLayer.Meshes"], exr(blender.out / f"meshes_{film}.exr")["ViewLayer.Combined"],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        got["ViewLayer.Meshes"], exr(blender.out / f"meshes_{film}.exr")["ViewLayer.Combined"], atol=1e-6
+    )
     # Depth: the nearer of the splats (where any is blended) and the mesh surface
     surface = meshes["ViewLayer.Depth.Z"]
     splat_alpha = ref["coverage"] - ref["layer_t"] * display(meshes["ViewLayer.Combined"])[1]
     want = np.where(splat_alpha > 1e-4, np.minimum(ref["depth"], surface), surface)
-    clear = np.abs(splat_alpha - 1e-4) > 1e-5             # not on the edge of the "any splat" test
+    clear = np.abs(splat_alpha - 1e-4) > 1e-5  # not on the edge of the "any splat" test
     np.testing.assert_allclose(got["ViewLayer.Depth.Z"][clear], want[clear], rtol=2e-4)
     # Splats: what the splats add, with their coverage in front of the meshes; over the meshes (in
     # display terms) they give Combined where the meshes are opaque or absent. (Where a mesh edge is
@@ -141,7 +169,9 @@ def test_passes_depth_splats_and_meshes(blender, film):
     assert np.abs(splats_alpha - (1 - ref["layer_t"])).max() <= STEP
     mesh_color, mesh_alpha = display(got["ViewLayer.Meshes"])
     coverage = meshes["ViewLayer.Combined"][..., 3]
-    whole = (coverage == 1) | ((coverage == 0) & (ref["layer_t"] * ref["coverage"] < 1e-9 if film == "opaque" else True))
+    whole = (coverage == 1) | (
+        (coverage == 0) & (ref["layer_t"] * ref["coverage"] < 1e-9 if film == "opaque" else True)
+    )
     over = splats_color + (1 - splats_alpha)[..., None] * mesh_color
     assert np.abs(over - ref["color"])[whole].max() <= STEP
     assert np.abs(splats_alpha + (1 - splats_alpha) * mesh_alpha - ref["alpha"])[whole].max() <= STEP
@@ -154,7 +184,7 @@ def mesh_splats(triangles, color, spacing):
     a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
     normal = np.cross(b - a, c - a)
     area = 0.5 * np.linalg.norm(normal, axis=1)
-    count = rng.poisson(area / spacing ** 2 + 0.5)
+    count = rng.poisson(area / spacing**2 + 0.5)
     tri = np.repeat(np.arange(len(triangles)), count)
     u, v = rng.uniform(size=(2, len(tri)))
     flip = u + v > 1
@@ -167,9 +197,13 @@ def mesh_splats(triangles, color, spacing):
     quat = np.column_stack([w, axis])
     quat[w < 1e-9] = [0.0, 1.0, 0.0, 0.0]
     m = len(points)
-    return SplatCloud.from_activated(positions=points, rotations=quat,
-                                     scales=np.tile([spacing, spacing, spacing * 1e-3], (m, 1)),
-                                     opacities=np.full(m, 0.999), colors=np.tile(linear_to_srgb(color), (m, 1)))
+    return SplatCloud.from_activated(
+        positions=points,
+        rotations=quat,
+        scales=np.tile([spacing, spacing, spacing * 1e-3], (m, 1)),
+        opacities=np.full(m, 0.999),
+        colors=np.tile(linear_to_srgb(color), (m, 1)),
+    )
 
 
 def silhouettes(image, width=2):
@@ -189,6 +223,7 @@ def test_flat_emission_meshes_agree_with_the_meshes_made_of_splats(blender):
     low-pass summed over many splats) than Cycles' filtered edge, which bounds the whole-image PSNR."""
     from splatwright.core.metrics import psnr
     from splatwright.core.render import render
+
     rec = blender.step("emission")
     cam = camera(rec["camera"])
     triangles = blender.npz("emission_triangles")
@@ -201,7 +236,7 @@ def test_flat_emission_meshes_agree_with_the_meshes_made_of_splats(blender):
         away = ~silhouettes(np.clip(render(meshes, cam).color, 0, 1))
         inside.append(psnr(everything[away], picture[away]))
         whole.append(psnr(everything, picture))
-    assert inside[1] >= EMISSION_PSNR and inside[1] > inside[0] + 3, inside     # closer as the splats get denser
+    assert inside[1] >= EMISSION_PSNR and inside[1] > inside[0] + 3, inside  # closer as the splats get denser
     assert whole[1] >= EMISSION_PSNR_WHOLE, whole
 
 
@@ -220,19 +255,20 @@ def test_splats_behind_a_translucent_surface_show_through_it(blender):
     result = exr(blender.out / "translucent.exr")
     got = display(result["ViewLayer.Combined"])[0]
     meshes = exr(blender.out / "tr_meshes.exr")
-    single = reference_render(cloud, cam, background=world,
-                              layer=mesh_layer(meshes, exr(blender.out / "tr_meshes_opaque.exr")))
+    single = reference_render(
+        cloud, cam, background=world, layer=mesh_layer(meshes, exr(blender.out / "tr_meshes_opaque.exr"))
+    )
     assert np.abs(got - single["color"]).max() <= STEP
     glass, solid = (mesh_layer(exr(blender.out / f"tr_{name}.exr")) for name in ("glass", "solid"))
     both = reference_render(cloud, cam, background=world, layer=[glass, solid])
-    invisible = cloud[:1].replace(opacity_logits=np.full(1, -30.0, np.float32))      # the surfaces alone
+    invisible = cloud[:1].replace(opacity_logits=np.full(1, -30.0, np.float32))  # the surfaces alone
     bare = reference_render(invisible, cam, background=world, layer=[glass, solid])
-    mixing = display(result["ViewLayer.Meshes"])[0] - bare["color"]      # linear vs display mixing, seen at T
+    mixing = display(result["ViewLayer.Meshes"])[0] - bare["color"]  # linear vs display mixing, seen at T
     error = np.abs(got - both["color"] - both["layer_t"][..., :1] * mixing).max(axis=-1)
     overlap = (glass[1] > 0.01) & (solid[1] > 0.01)
     outline = ((glass[1] > 0.01) & (glass[1] < 0.59)) | ((solid[1] > 0.01) & (solid[1] < 0.99))
     assert error[~overlap & ~outline].max() <= 2 * STEP
-    assert 0.05 < error[overlap].max() <= 1 - 0.6 + STEP     # at most what the plane lets through
+    assert 0.05 < error[overlap].max() <= 1 - 0.6 + STEP  # at most what the plane lets through
     # where the plane is over the world alone, the splats behind it show through its 40%
     through = (glass[1] > 0.5) & (solid[1] < 0.01) & (single["layer_t"] > 0.99)
     assert (np.abs(got - display(result["ViewLayer.Meshes"])[0]).max(axis=-1)[through] > 0.05).sum() > 5
@@ -246,8 +282,11 @@ def test_command_verb_gives_the_f12_picture_and_can_leave_meshes_out(blender):
         np.testing.assert_array_equal(verb[name], f12[name])
     # --meshes none: the splats alone over the world colour, the plane and sphere gone
     alone = png(blender.out / "verb_none_0001.png")[..., :3]
-    ref = reference_render(SplatCloud(**oracle_cloud_arrays()), camera(blender.step("oracle")["camera"]),
-                           background=linear_to_srgb(np.array(WORLD)))
+    ref = reference_render(
+        SplatCloud(**oracle_cloud_arrays()),
+        camera(blender.step("oracle")["camera"]),
+        background=linear_to_srgb(np.array(WORLD)),
+    )
     assert np.abs(alone - np.clip(ref["color"], 0, 1)).max() <= 1.01 * STEP
 
 
@@ -258,8 +297,10 @@ def test_render_animation_renders_each_frames_meshes(blender):
     for f in (1, 2):
         meshes = exr(blender.out / f"anim_meshes_{f}.exr")
         np.testing.assert_allclose(frames[f]["ViewLayer.Meshes"], meshes["ViewLayer.Combined"], atol=1e-6)
-        np.testing.assert_allclose(frames[f]["ViewLayer.Depth.Z"].min(), min(meshes["ViewLayer.Depth.Z"].min(),
-                                   frames[f]["ViewLayer.Depth.Z"].min()))
+        np.testing.assert_allclose(
+            frames[f]["ViewLayer.Depth.Z"].min(),
+            min(meshes["ViewLayer.Depth.Z"].min(), frames[f]["ViewLayer.Depth.Z"].min()),
+        )
     moved = np.abs(frames[1]["ViewLayer.Meshes"] - frames[2]["ViewLayer.Meshes"]).max(axis=-1) > 0.05
     assert moved.sum() > 50
 

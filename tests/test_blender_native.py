@@ -16,19 +16,30 @@ from workers.native import MOVES
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
-PLY_FIELDS = {"positions": ["x", "y", "z"], "log_scales": ["scale_0", "scale_1", "scale_2"],
-              "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"], "opacity_logits": ["opacity"]}
+PLY_FIELDS = {
+    "positions": ["x", "y", "z"],
+    "log_scales": ["scale_0", "scale_1", "scale_2"],
+    "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"],
+    "opacity_logits": ["opacity"],
+}
 
 
 def _cloud(n, degree, seed, spread=1.0):
     from splatwright.core import SplatCloud
+
     rng = np.random.default_rng(seed)
-    return SplatCloud(rng.normal(0, spread, (n, 3)), rng.normal(size=(n, 4)) * rng.uniform(0.5, 2, (n, 1)),
-                      rng.uniform(-4, -1.5, (n, 3)), rng.normal(0, 2, n), rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)))
+    return SplatCloud(
+        rng.normal(0, spread, (n, 3)),
+        rng.normal(size=(n, 4)) * rng.uniform(0.5, 2, (n, 1)),
+        rng.uniform(-4, -1.5, (n, 3)),
+        rng.normal(0, 2, n),
+        rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)),
+    )
 
 
 def _write_inputs(work):
     from splatwright.io import write_splats
+
     for degree in (3, 4):
         write_splats(work / f"src{degree}.ply", _cloud(400, degree, degree))
     write_splats(work / "other.ply", _cloud(100, 3, 7, spread=2.0))
@@ -47,9 +58,12 @@ def _generated_arrays():
     rng = np.random.default_rng(11)
     n = 200
     q = rng.normal(size=(n, 4))
-    arrays = {"position": rng.normal(0, 0.6, (n, 3)), "scale": np.exp(rng.uniform(-3.2, -2.0, (n, 3))),
-              "rotation": q / np.linalg.norm(q, axis=1, keepdims=True),
-              "radiance:base": np.c_[rng.normal(0, 0.5, (n, 3)), rng.uniform(0.2, 0.95, n)]}
+    arrays = {
+        "position": rng.normal(0, 0.6, (n, 3)),
+        "scale": np.exp(rng.uniform(-3.2, -2.0, (n, 3))),
+        "rotation": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "radiance:base": np.c_[rng.normal(0, 0.5, (n, 3)), rng.uniform(0.2, 0.95, n)],
+    }
     arrays.update({f"radiance:sh_{j}": rng.normal(0, 0.2, (n, 3)) for j in range(3)})
     return {k: v.astype(np.float32) for k, v in arrays.items()}
 
@@ -60,6 +74,7 @@ blender = blender_fixture("workers.native", _write_inputs, since="5.3")
 def ply_columns(path):
     """Every vertex property of a PLY, float64, read by plyfile."""
     from plyfile import PlyData
+
     vertex = PlyData.read(str(path))["vertex"]
     return {p.name: np.asarray(vertex[p.name], np.float64) for p in vertex.properties}
 
@@ -80,7 +95,7 @@ def test_blenders_import_is_a_native_splat_cloud(blender):
         assert res[str(degree)]["type"] == "POINTCLOUD" and res[str(degree)]["data_type"] == "GAUSSIAN_SPLAT"
         assert res[str(degree)]["attributes"]["radiance:base"] == "FLOAT4"
         assert f"radiance:sh_{(degree + 1) ** 2 - 2}" in res[str(degree)]["attributes"]
-        assert np.array_equal(res[str(degree)]["matrix_world"], np.eye(4))       # left where it landed
+        assert np.array_equal(res[str(degree)]["matrix_world"], np.eye(4))  # left where it landed
 
 
 @pytest.mark.parametrize("degree", [3, 4])
@@ -96,7 +111,7 @@ def test_a_ply_blender_imported_exports_as_the_source_file(blender, degree):
     rotations = np.stack([written[f"rot_{i}"] for i in range(4)], axis=1)
     np.testing.assert_array_equal(rotations, blender.npz(f"blender_rotation{degree}")["rotation"])
     np.testing.assert_array_equal(rotations, blender_normalised(np.stack([source[f"rot_{i}"] for i in range(4)], 1)))
-    for i in range(3):       # log(float32(exp(s))): float32 round-off of the scale and of its log
+    for i in range(3):  # log(float32(exp(s))): float32 round-off of the scale and of its log
         np.testing.assert_allclose(written[f"scale_{i}"], source[f"scale_{i}"], rtol=0, atol=5e-7)
     np.testing.assert_allclose(sigmoid(written["opacity"]), sigmoid(source["opacity"]), rtol=0, atol=1.2e-7)
 
@@ -107,11 +122,12 @@ def test_every_format_writes_a_blender_imported_cloud_as_it_writes_the_source(bl
     import warnings
 
     from splatwright.io import write_splats
+
     res = blender.step("blender_ply")
     for degree in (3, 4):
         assert res[str(degree)]["exports"][ext]["error"] is None, res[str(degree)]["exports"][ext]
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")          # what the format cannot hold, said by both writers
+            warnings.simplefilter("ignore")  # what the format cannot hold, said by both writers
             write_splats(tmp_path / f"src{degree}{ext}", read(blender.work / f"src{degree}.ply"))
             ours, theirs = read(tmp_path / f"src{degree}{ext}"), read(blender.out / f"blender{degree}{ext}")
         assert theirs.sh_degree == ours.sh_degree
@@ -134,22 +150,29 @@ def test_a_moved_blender_import_exports_in_world_space(blender, move):
     under the object's matrix, colours turned with its rotation, opacity kept; Apply Splat Transform
     then leaves an identity and the same file."""
     from splatwright.core import sh as shmod
+
     res = blender.step("blender_ply_moved")[move]
     assert res["export"]["error"] is None and res["apply"]["error"] is None
     turn = _euler(MOVES[move]["rotation_euler"])
     linear = turn @ np.diag(MOVES[move]["scale"])
     np.testing.assert_allclose(np.array(res["matrix_world"])[:3, :3], linear, atol=1e-6)
     source, written = read(blender.work / "src3.ply"), read(blender.out / f"{move}.ply")
-    np.testing.assert_allclose(written.positions, source.positions.astype(np.float64) @ linear.T
-                               + MOVES[move]["location"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(
+        written.positions,
+        source.positions.astype(np.float64) @ linear.T + MOVES[move]["location"],
+        rtol=1e-6,
+        atol=1e-6,
+    )
     expected = linear @ covariances(source.rotations, source.log_scales) @ linear.T
-    relative = np.abs(covariances(written.rotations, written.log_scales) - expected).max(axis=(1, 2)) \
-        / np.abs(expected).max(axis=(1, 2))
+    relative = np.abs(covariances(written.rotations, written.log_scales) - expected).max(axis=(1, 2)) / np.abs(
+        expected
+    ).max(axis=(1, 2))
     assert relative.max() < 2e-5
     np.testing.assert_allclose(written.opacities, source.opacities, rtol=0, atol=1.2e-7)
     directions = np.random.default_rng(1).normal(size=(len(source), 3))
-    np.testing.assert_allclose(shmod.colors(written.sh, directions @ turn.T), shmod.colors(source.sh, directions),
-                               atol=2e-5)
+    np.testing.assert_allclose(
+        shmod.colors(written.sh, directions @ turn.T), shmod.colors(source.sh, directions), atol=2e-5
+    )
     assert np.allclose(res["applied_matrix"], np.eye(4)) and res["applied_export"]["error"] is None
     applied = read(blender.out / f"{move}_applied.ply")
     errors = format_errors(applied, written)
@@ -194,24 +217,27 @@ def test_blender_imports_join_in_their_file_axes(blender):
 
 def test_f12_renders_a_blender_imported_cloud_as_the_same_splats_of_ours(blender):
     from splatwright.io.exr import read_exr
+
     res = blender.step("render")
     assert res["blender"]["error"] is None and res["ours_render"]["error"] is None
     images = []
     for name in ("blender", "ours"):
         channels = read_exr(blender.out / f"render_{name}.exr")
         images.append(np.stack([channels[c] for c in "RGB"], axis=-1))
-    assert np.abs(images[0] - images[0].mean()).max() > 0.05           # splats are drawn
+    assert np.abs(images[0] - images[0].mean()).max() > 0.05  # splats are drawn
     np.testing.assert_allclose(images[0], images[1], rtol=0, atol=2e-6)
 
 
 def _images(blender, *names):
     from splatwright.io.exr import read_exr
+
     return [np.stack([read_exr(blender.out / f"render_{name}.exr")[c] for c in "RGB"], axis=-1) for name in names]
 
 
 def test_splats_made_by_geometry_nodes_export_and_render(blender):
     """Written in the default axes (Blender x, y, z -> file x, -z, y), as any upright splat object."""
     from splatwright.core import sh as shmod
+
     res = blender.step("geometry_nodes")
     assert all(res[k]["error"] is None for k in ("export", "render", "import", "imported_render")), res
     arrays, written = _generated_arrays(), read(blender.out / "generated.ply")
@@ -224,8 +250,9 @@ def test_splats_made_by_geometry_nodes_export_and_render(blender):
     np.testing.assert_allclose(written.opacities, arrays["radiance:base"][:, 3], rtol=0, atol=1.2e-7)
     sh = np.stack([arrays["radiance:base"][:, :3]] + [arrays[f"radiance:sh_{j}"] for j in range(3)], axis=1)
     directions = np.random.default_rng(2).normal(size=(len(sh), 3))
-    np.testing.assert_allclose(shmod.colors(written.sh, directions @ to_file.T), shmod.colors(sh, directions),
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        shmod.colors(written.sh, directions @ to_file.T), shmod.colors(sh, directions), atol=1e-6
+    )
     generated, imported = _images(blender, "generated", "generated_imported")
     assert np.abs(generated - generated.mean()).max() > 0.05
     np.testing.assert_allclose(generated, imported, rtol=0, atol=2e-6)
@@ -233,6 +260,7 @@ def test_splats_made_by_geometry_nodes_export_and_render(blender):
 
 def _quat_matrices(q):
     from helpers import quat_matrices
+
     return quat_matrices(q)
 
 

@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import covariances, linear_to_srgb, psnr, skip_platform
-from splatwright.io.exr import read_exr
 from workers.rigging import BENT_FRAME, RENDER_SIZE, RIG_BONES
 
-pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version
+from splatwright.io.exr import read_exr
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender worker per version
 
 blender = blender_fixture("workers.rigging")
 
@@ -34,12 +35,13 @@ def segment_distances(points, heads, tails):
 
 # install --------------------------------------------------------------------------------------------
 
+
 def test_install_registers_operators_menus_deformer_and_handlers(blender):
     res = blender.step("install")
     assert res["operators"] == [True, True]
-    assert res["menus"] == {"VIEW3D_MT_object_parent": 1, "VIEW3D_MT_object": 2}     # Check Collisions, Join Splats
-    assert res["posers"] == ["rig.armature.poser"]      # registered by the rigging itself
-    assert res["handlers"] == 7          # weights cache (4), native poses (1), Blender's Apply completed (2)
+    assert res["menus"] == {"VIEW3D_MT_object_parent": 1, "VIEW3D_MT_object": 2}  # Check Collisions, Join Splats
+    assert res["posers"] == ["rig.armature.poser"]  # registered by the rigging itself
+    assert res["handlers"] == 7  # weights cache (4), native poses (1), Blender's Apply completed (2)
 
 
 def test_handlers_follow_the_extension(blender):
@@ -47,6 +49,7 @@ def test_handlers_follow_the_extension(blender):
 
 
 # posing against Blender's Armature modifier -----------------------------------------------------------
+
 
 def native(blender):
     """Whether this Blender makes splat objects native point clouds (5.3 and later), not splat meshes."""
@@ -66,8 +69,8 @@ def test_skinned_centres_equal_blenders_armature_modifier(blender, mode):
     ours, theirs = d[f"{mode}_positions"], d[f"{mode}_blender"]
     scale = np.abs(theirs).max()
     np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-5 * scale)
-    assert np.abs(theirs - d["rest_positions"]).max() > 0.3              # the pose really moves them
-    unbound = slice(0, 20)                                                # no groups, or only Ctrl
+    assert np.abs(theirs - d["rest_positions"]).max() > 0.3  # the pose really moves them
+    unbound = slice(0, 20)  # no groups, or only Ctrl
     np.testing.assert_allclose(ours[unbound], d["rest_positions"][unbound], atol=1e-6)
     if native(blender):
         # Blender draws native splats from their attributes, which hold our posed splats
@@ -87,17 +90,17 @@ def test_blender_draws_native_splats_posed_whole(blender, mode):
     rotations = d[f"{mode}_rotations"].astype(np.float64)
     drawn = d[f"{mode}_drawn_rotation"].astype(np.float64)
     np.testing.assert_allclose(drawn, rotations, rtol=0, atol=1e-6 * np.abs(rotations).max())
-    assert np.abs(drawn - d["rest_rotations"]).max() > 0.1             # turned, not the rest pose
-    np.testing.assert_allclose(d[f"{mode}_drawn_scale"], np.exp(d[f"{mode}_log_scales"].astype(np.float64)),
-                               rtol=1e-6)
+    assert np.abs(drawn - d["rest_rotations"]).max() > 0.1  # turned, not the rest pose
+    np.testing.assert_allclose(d[f"{mode}_drawn_scale"], np.exp(d[f"{mode}_log_scales"].astype(np.float64)), rtol=1e-6)
     sh = d[f"{mode}_sh"].astype(np.float64)
     base = d[f"{mode}_drawn_radiance_base"]
     np.testing.assert_allclose(base[:, :3], sh[:, 0], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(base[:, 3], 1 / (1 + np.exp(-d[f"{mode}_opacity_logits"].astype(np.float64))),
-                               rtol=0, atol=1e-6)
+    np.testing.assert_allclose(
+        base[:, 3], 1 / (1 + np.exp(-d[f"{mode}_opacity_logits"].astype(np.float64))), rtol=0, atol=1e-6
+    )
     for j in range(1, sh.shape[1]):
         np.testing.assert_allclose(d[f"{mode}_drawn_radiance_sh_{j - 1}"], sh[:, j], rtol=0, atol=1e-6)
-    assert np.abs(sh[:, 1:] - d["rest_sh"][:, 1:]).max() > 0.05          # SH turned with the bones
+    assert np.abs(sh[:, 1:] - d["rest_sh"][:, 1:]).max() > 0.05  # SH turned with the bones
 
 
 def test_posing_keeps_the_splats_own_values(blender):
@@ -126,8 +129,8 @@ def test_the_modifiers_vertex_group_mask_is_followed(blender, mode):
     d = blender.npz("skinning")
     theirs = d[f"masked_{mode}_blender"]
     np.testing.assert_allclose(d[f"masked_{mode}_positions"], theirs, rtol=0, atol=1e-5 * np.abs(theirs).max())
-    assert np.abs(theirs - d["repainted_positions"]).max() > 1e-2         # the mask changes the pose
-    if native(blender):                                                   # and what Blender draws
+    assert np.abs(theirs - d["repainted_positions"]).max() > 1e-2  # the mask changes the pose
+    if native(blender):  # and what Blender draws
         np.testing.assert_allclose(d[f"masked_{mode}_display"], d[f"masked_{mode}_positions"], rtol=0, atol=1e-6)
 
 
@@ -153,11 +156,12 @@ def test_rigidly_bound_splats_turn_and_stretch_with_their_bone(blender, mode):
 
 # binding ----------------------------------------------------------------------------------------------
 
+
 def test_weights_transfer_exactly_from_the_skinned_mesh(blender):
     res = blender.step("transfer")
     assert res["bind"]["result"] == ["FINISHED"]
     assert res["form"] == ("NATIVE" if native(blender) else "MESH")
-    assert sorted(res["groups"]) == ["Base", "Fore", "Hand", "Upper"]     # vertex groups, or weight attributes
+    assert sorted(res["groups"]) == ["Base", "Fore", "Hand", "Upper"]  # vertex groups, or weight attributes
     assert res["armature"] == "Demo Arm Rig"
     assert res["modifiers"] == ([] if native(blender) else [["ARMATURE", "Demo Arm Rig"], ["NODES", None]])
     assert res["parent"] == "Demo Arm Rig" and res["matrix_kept"]
@@ -166,7 +170,7 @@ def test_weights_transfer_exactly_from_the_skinned_mesh(blender):
     expected = np.einsum("nk,nkb->nb", d["barycentric"].astype(np.float64), d["source"][corners])
     expected /= expected.sum(axis=1, keepdims=True)
     np.testing.assert_allclose(d["weights"], expected, atol=2e-6)
-    assert ((d["weights"] > 0).sum(axis=1) > 1).mean() > 0.2              # joints blend
+    assert ((d["weights"] > 0).sum(axis=1) > 1).mean() > 0.2  # joints blend
 
 
 def test_a_lost_source_mesh_falls_back_to_bone_weights(blender):
@@ -189,11 +193,11 @@ def test_weights_from_bones_follow_segment_distances(blender):
     space), weights under 1% dropped, the two largest kept, normalised."""
     res = blender.step("bone_weights")
     assert res["bind"]["result"] == ["FINISHED"] and res["preserve_volume"] is True
-    assert res["preserve_volume_stored"] is True          # the modifier's, or the native splats' property
-    if native(blender):          # what Blender draws right after binding: the posed splats, not the rest
+    assert res["preserve_volume_stored"] is True  # the modifier's, or the native splats' property
+    if native(blender):  # what Blender draws right after binding: the posed splats, not the rest
         to_posed, to_rest = res["drawn_posed"]
         assert to_posed <= 1e-6 and to_rest > 0.1
-    assert sorted(res["groups"]) == ["Mid", "Root", "Side", "Tip"]        # Ctrl does not deform
+    assert sorted(res["groups"]) == ["Mid", "Root", "Side", "Tip"]  # Ctrl does not deform
     d = blender.npz("bone_weights")
     names = list(d["bones"])
     deforming = [names.index(b) for b in RIG_BONES if RIG_BONES[b][5]]
@@ -211,6 +215,7 @@ def test_weights_from_bones_follow_segment_distances(blender):
 
 # rendering --------------------------------------------------------------------------------------------
 
+
 def test_posed_splat_avatar_renders_like_splats_of_the_posed_mesh(blender):
     """The demo arm bent at frame 12: its bound splats against splats made from the posed mesh, over
     the box around both renders (the background would flatter the number)."""
@@ -220,12 +225,15 @@ def test_posed_splat_avatar_renders_like_splats_of_the_posed_mesh(blender):
     covered = (d["ours_alpha"] > 0.01) | (d["reference_alpha"] > 0.01)
     rows, cols = np.nonzero(covered)
     box = (slice(rows.min(), rows.max() + 1), slice(cols.min(), cols.max() + 1))
-    scores = {name: psnr(d[f"{name}_color"][box], d["reference_color"][box])
-              for name in ("ours", "centres_only", "rest")}
-    print(f"\nposed splats vs splats of the posed mesh, {RENDER_SIZE} px, over "
-          f"{np.ptp(rows) + 1}x{np.ptp(cols) + 1} px: "
-          f"PSNR {scores['ours']:.1f} dB (whole image {psnr(d['ours_color'], d['reference_color']):.1f} dB); "
-          f"centres only {scores['centres_only']:.1f} dB; unposed {scores['rest']:.1f} dB")
+    scores = {
+        name: psnr(d[f"{name}_color"][box], d["reference_color"][box]) for name in ("ours", "centres_only", "rest")
+    }
+    print(
+        f"\nposed splats vs splats of the posed mesh, {RENDER_SIZE} px, over "
+        f"{np.ptp(rows) + 1}x{np.ptp(cols) + 1} px: "
+        f"PSNR {scores['ours']:.1f} dB (whole image {psnr(d['ours_color'], d['reference_color']):.1f} dB); "
+        f"centres only {scores['centres_only']:.1f} dB; unposed {scores['rest']:.1f} dB"
+    )
     assert scores["ours"] >= 30.0
     assert scores["centres_only"] < scores["ours"] - 3 and scores["rest"] < 20
     # the render engine poses the same splats through its own render depsgraph
@@ -236,19 +244,23 @@ def test_posed_splat_avatar_renders_like_splats_of_the_posed_mesh(blender):
 
 # bad input ------------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name, words", [
-    ("active not an armature", ["not an armature"]),
-    ("unknown armature", ["no object named 'Nope'"]),
-    ("camera as armature", ["'Camera'", "not an armature"]),
-    ("no active object", ["no armature given"]),
-    ("no splat objects", ["no splat objects", "'Demo Arm'"]),
-    ("nothing selected", ["no splat objects"]),
-    ("unknown object", ["no object named 'Nope'"]),
-    ("same object", ["itself"]),
-    ("not splats", ["'Demo Arm'", "not a splat object"]),
-    ("backwards", ["ends before it starts"]),
-    ("unknown bone", ["no bones named Nope"]),
-])
+
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("active not an armature", ["not an armature"]),
+        ("unknown armature", ["no object named 'Nope'"]),
+        ("camera as armature", ["'Camera'", "not an armature"]),
+        ("no active object", ["no armature given"]),
+        ("no splat objects", ["no splat objects", "'Demo Arm'"]),
+        ("nothing selected", ["no splat objects"]),
+        ("unknown object", ["no object named 'Nope'"]),
+        ("same object", ["itself"]),
+        ("not splats", ["'Demo Arm'", "not a splat object"]),
+        ("backwards", ["ends before it starts"]),
+        ("unknown bone", ["no bones named Nope"]),
+    ],
+)
 def test_bad_input_reports_and_changes_nothing(blender, name, words):
     case = blender.step("errors")[name]
     assert case["result"] == ["CANCELLED"] and case["unchanged"]
@@ -259,12 +271,13 @@ def test_bad_input_reports_and_changes_nothing(blender, name, words):
 
 # collisions ------------------------------------------------------------------------------------------------
 
+
 def contact_sigma_brute(mean_a, cov_a, mean_b, cov_b, samples=401, refine=60):
     """Brute force: mu = sqrt(max_s f(s)), f(s) = s(1-s) d^T (s A + (1-s) B)^-1 d, by a grid over s in
     (0, 1), then a ternary search (f is concave) between the best grid point's neighbours."""
     d = mean_a - mean_b
 
-    def f(s):                                           # s: (S, P) -> (S, P)
+    def f(s):  # s: (S, P) -> (S, P)
         m = s[..., None, None] * cov_a + (1 - s[..., None, None]) * cov_b
         x = np.linalg.solve(m, np.broadcast_to(d[..., None], m.shape[:-1] + (1,)))[..., 0]
         return s * (1 - s) * np.einsum("spi,pi->sp", x, d)
@@ -289,6 +302,7 @@ def small_case(d, key, frame):
 def test_small_collision_case_against_brute_force_and_the_core(blender):
     from splatwright.core import SplatCloud
     from splatwright.core.collision import ellipsoid_contacts
+
     res = blender.step("collide_small")
     assert res["bind"]["result"] == ["FINISHED"] and res["op"]["result"] == ["FINISHED"]
     assert res["frame_after"] == 2
@@ -299,11 +313,12 @@ def test_small_collision_case_against_brute_force_and_the_core(blender):
         (ma, ca, oa), (mb, cb, ob) = small_case(d, "a", frame), small_case(d, "b", frame)
         ka, kb = np.flatnonzero(oa >= 0.05), np.flatnonzero(ob >= 0.05)
         pa, pb = np.repeat(ka, len(kb)), np.tile(kb, len(ka))
-        near = np.linalg.norm(ma[pa] - mb[pb], axis=1) <= 3.0 * (np.sqrt(np.linalg.eigvalsh(ca[pa])[:, 2])
-                                                                 + np.sqrt(np.linalg.eigvalsh(cb[pb])[:, 2]))
+        near = np.linalg.norm(ma[pa] - mb[pb], axis=1) <= 3.0 * (
+            np.sqrt(np.linalg.eigvalsh(ca[pa])[:, 2]) + np.sqrt(np.linalg.eigvalsh(cb[pb])[:, 2])
+        )
         pa, pb = pa[near], pb[near]
         mu = contact_sigma_brute(ma[pa], ca[pa], mb[pb], cb[pb])
-        assert np.all(np.abs(mu - 3.0) > 1e-6)                             # no pair on the fence
+        assert np.all(np.abs(mu - 3.0) > 1e-6)  # no pair on the fence
         touching = mu <= 3.0
         assert found["frame"] == frame and found["pairs"] == touching.sum()
         hits["a"][np.unique(pa[touching])] += 1
@@ -311,13 +326,14 @@ def test_small_collision_case_against_brute_force_and_the_core(blender):
         bones = np.bincount(main_bone[np.unique(pa[touching])], minlength=2)
         assert found["bones_a"] == {n: int(c) for n, c in zip(("Lower", "Upper"), bones) if c}
         # the core called directly on the same clouds agrees
-        cloud = lambda key: SplatCloud(*(d[f"{key}{frame}_{f}"] for f in ("positions", "rotations", "log_scales",
-                                                                           "opacity_logits")),
-                                       np.zeros((len(d[f"{key}{frame}_positions"]), 1, 3)))
+        cloud = lambda key: SplatCloud(
+            *(d[f"{key}{frame}_{f}"] for f in ("positions", "rotations", "log_scales", "opacity_logits")),
+            np.zeros((len(d[f"{key}{frame}_positions"]), 1, 3)),
+        )
         core = ellipsoid_contacts(cloud("a")[ka], cloud("b")[kb], k=3.0)
         assert len(core) == found["pairs"]
     assert res["report"]["contact_frames"] == [3]
-    assert hits["b"][:5].sum() == 0                                        # faint splats are left out
+    assert hits["b"][:5].sum() == 0  # faint splats are left out
     np.testing.assert_allclose(d["contact_a"], hits["a"] / 3, atol=1e-7)
     np.testing.assert_allclose(d["contact_b"], hits["b"] / 3, atol=1e-7)
     assert d["contact_a"].max() == pytest.approx(1 / 3)
@@ -328,8 +344,9 @@ def test_demo_arm_touches_the_box_only_when_bent(blender):
     assert res["bind"]["result"] == ["FINISHED"] and res["op"]["result"] == ["FINISHED"]
     frames = {f["frame"]: f for f in res["report"]["frames"]}
     contact = res["report"]["contact_frames"]
-    print(f"\ndemo arm vs environment: contact at frames {contact}; "
-          f"frame {BENT_FRAME}: {frames[BENT_FRAME]['bones_a']}")
+    print(
+        f"\ndemo arm vs environment: contact at frames {contact}; frame {BENT_FRAME}: {frames[BENT_FRAME]['bones_a']}"
+    )
     assert BENT_FRAME in contact and 1 not in contact and 24 not in contact
     assert set(frames[BENT_FRAME]["bones_a"]) <= {"Fore", "Hand"} and frames[BENT_FRAME]["bones_a"]
     assert res["contact_splats"] > 0 and 0 < res["contact_max"] <= len(contact) / 24 + 1e-6
@@ -347,9 +364,10 @@ def test_cli_collide(blender):
     assert "[2/2] frame 12:" in ok["stdout"] and "Fore" in lines[2] and lines[-1].startswith("splatwright: done:")
     report = json.loads((blender.out / "collide.json").read_text())
     assert report["contact_frames"] == [12] and [f["frame"] for f in report["frames"]] == [1, 12]
-    for name, words in (("unknown", "no object named 'Nope'"), ("bad sigma", "must be positive"),
-                        ("missing folder", "does not exist")):
+    for name, words in (
+        ("unknown", "no object named 'Nope'"),
+        ("bad sigma", "must be positive"),
+        ("missing folder", "does not exist"),
+    ):
         assert cli[name]["code"] == 1 and words in cli[name]["stderr"]
     assert not (blender.out / "nowhere").exists()
-
-

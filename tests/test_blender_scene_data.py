@@ -13,13 +13,23 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import assert_clouds_equal, check_transformed, format_errors, random_cloud, read, skip_platform
+from workers.base import random_cloud_arrays
+from workers.scene_data import (
+    ARRAY_OFFSET,
+    DUPLICATE,
+    EDIT_OFFSET,
+    GN_ROTATION,
+    GN_SCALE,
+    INSTANCE,
+    NATIVE_TRANSFORM,
+    SHAPE_OFFSET,
+    N,
+)
+
 from splatwright.core import geometry
 from splatwright.io.exr import read_exr
-from workers.base import random_cloud_arrays
-from workers.scene_data import (ARRAY_OFFSET, DUPLICATE, EDIT_OFFSET, GN_ROTATION, GN_SCALE, INSTANCE, N,
-                                NATIVE_TRANSFORM, SHAPE_OFFSET)
 
-pytestmark = [pytest.mark.blender, pytest.mark.slow]      # one Blender worker per version
+pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender worker per version
 
 blender = blender_fixture("workers.scene_data")
 
@@ -46,7 +56,7 @@ def image(blender, name):
 
 def assert_same_image(blender, a, b, atol=1e-5):
     first, second = image(blender, a), image(blender, b)
-    assert np.abs(first[..., :3] - first[..., :3].mean()).max() > 0.01      # something is drawn
+    assert np.abs(first[..., :3] - first[..., :3].mean()).max() > 0.01  # something is drawn
     np.testing.assert_allclose(first, second, atol=atol)
 
 
@@ -63,6 +73,7 @@ def finished(case):
 
 
 # edit mode, modifiers, shape keys -------------------------------------------------------------------
+
 
 def test_edit_mode_edits_reach_export_animation_and_render(blender):
     res = blender.step("edit_mode")
@@ -99,12 +110,13 @@ def test_mirror_modifier_mirrors_orientations_and_colours(blender):
 def test_geometry_nodes_transform_turns_and_stretches_splats(blender):
     res = blender.step("modifiers")
     finished(res["transform"])
-    assert res["transform_form"] == ("NATIVE" if blender.version_tuple >= (5, 3) else "MESH")    # as new ones are
+    assert res["transform_form"] == ("NATIVE" if blender.version_tuple >= (5, 3) else "MESH")  # as new ones are
     source, exported = random_cloud(N, 2, seed=2), read(blender.out / "mod_transform.ply")
     turn = euler_matrix(GN_ROTATION)
     check_transformed(source, exported, affine(turn @ np.diag(GN_SCALE)))
     np.testing.assert_allclose(geometry.polar_rotation(turn @ np.diag(GN_SCALE)), turn, atol=1e-12)
     from splatwright.core import sh as shmod
+
     dirs = np.random.default_rng(3).normal(size=(N, 3))
     np.testing.assert_allclose(shmod.colors(exported.sh, dirs @ turn.T), shmod.colors(source.sh, dirs), atol=2e-5)
 
@@ -120,21 +132,24 @@ def test_shape_keys_move_centres_only(blender):
 
 # instances --------------------------------------------------------------------------------------------
 
+
 def test_collection_instances_and_linked_duplicates_export_with_their_matrices(blender):
     res = blender.step("instances")
     finished(res["visible"])
     finished(res["selected_empty"])
-    assert res["form"] == ("NATIVE" if blender.version_tuple >= (5, 3) else "MESH")       # as new ones are
+    assert res["form"] == ("NATIVE" if blender.version_tuple >= (5, 3) else "MESH")  # as new ones are
     source = random_cloud(N, 3, seed=3)
     instance, duplicate = (np.array(res["matrices"][k]) for k in ("instance", "duplicate"))
-    np.testing.assert_allclose(instance[:3, :3], euler_matrix(INSTANCE["rotation_euler"]) * INSTANCE["scale"][0],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        instance[:3, :3], euler_matrix(INSTANCE["rotation_euler"]) * INSTANCE["scale"][0], atol=1e-6
+    )
     np.testing.assert_allclose(duplicate[:3, 3], DUPLICATE["location"], atol=1e-6)
     check_transformed(source, read(blender.out / "inst_empty.ply"), instance, instance[:3, :3] / INSTANCE["scale"][0])
     both = read(blender.out / "inst_visible.ply")
     assert len(both) == 2 * N
-    first_is_instance = np.allclose(both.positions[:N], source.positions @ instance[:3, :3].T + instance[:3, 3],
-                                    atol=1e-4)
+    first_is_instance = np.allclose(
+        both.positions[:N], source.positions @ instance[:3, :3].T + instance[:3, 3], atol=1e-4
+    )
     inst_part, dup_part = (both[:N], both[N:]) if first_is_instance else (both[N:], both[:N])
     check_transformed(source, inst_part, instance)
     check_transformed(source, dup_part, duplicate)
@@ -149,6 +164,7 @@ def test_instances_render_like_the_same_splats_as_objects(blender):
 
 # Blender's own Apply -----------------------------------------------------------------------------------
 
+
 def test_blenders_apply_rotation_scale_and_all_keeps_the_splats_where_they_were(blender):
     res = blender.step("blender_apply")
     forms = ["mesh_form"] + (["native_form"] if "native_form before" in res else [])
@@ -156,7 +172,7 @@ def test_blenders_apply_rotation_scale_and_all_keeps_the_splats_where_they_were(
         for stage in ("before", "rotation_scale", "all"):
             finished(res[f"{form} {stage}"])
         basis = np.array(res[f"{form} basis"])
-        np.testing.assert_allclose(basis[:3, :3], np.eye(3), atol=1e-6)          # only the location is left
+        np.testing.assert_allclose(basis[:3, :3], np.eye(3), atol=1e-6)  # only the location is left
         assert res[f"{form} identity"]
         before = read(blender.out / f"apply_{form}_before.ply")
         for stage in ("rs", "all"):
@@ -164,6 +180,7 @@ def test_blenders_apply_rotation_scale_and_all_keeps_the_splats_where_they_were(
 
 
 # Blender 5.3's own splat point clouds -----------------------------------------------------------------
+
 
 def native_step(blender, name):
     res = blender.step(name)
@@ -176,8 +193,10 @@ def test_native_point_clouds_are_read_like_splat_meshes(blender):
     res = native_step(blender, "native_forms")
     assert res["forms"] == ["MESH", "NATIVE"]
     # as Blender 5.3's importers make them where the types exist (FLOAT4 from 5.2, the splat type 5.3)
-    assert res["layout"] == ["FLOAT4" if blender.version_tuple >= (5, 2) else "FLOAT_COLOR",
-                             "GAUSSIAN_SPLAT" if blender.version_tuple >= (5, 3) else None]
+    assert res["layout"] == [
+        "FLOAT4" if blender.version_tuple >= (5, 2) else "FLOAT_COLOR",
+        "GAUSSIAN_SPLAT" if blender.version_tuple >= (5, 3) else None,
+    ]
     # made without Splatwright, off SPZ's grid: a PLY's values in its own axes (written back in them)
     assert res["landed_raw"] == [False, True]
     for case in res["export"] + res["render"]:
@@ -185,8 +204,10 @@ def test_native_point_clouds_are_read_like_splat_meshes(blender):
     ours, theirs = read(blender.out / "nat_ours.ply"), read(blender.out / "nat_theirs.ply")
     # the object transform applied exactly to the native values too
     source = random_cloud(N, 3, seed=4)
-    matrix = affine(euler_matrix(NATIVE_TRANSFORM["rotation_euler"]) @ np.diag(NATIVE_TRANSFORM["scale"]),
-                    NATIVE_TRANSFORM["location"])
+    matrix = affine(
+        euler_matrix(NATIVE_TRANSFORM["rotation_euler"]) @ np.diag(NATIVE_TRANSFORM["scale"]),
+        NATIVE_TRANSFORM["location"],
+    )
     check_transformed(source, ours, matrix)
     assert_close_clouds(theirs, ours)
     assert_same_image(blender, "nat_ours", "nat_theirs")
@@ -252,10 +273,12 @@ def test_native_splats_bind_and_pose_like_splat_meshes(blender):
     assert_close_clouds(theirs, ours, opacity=1e-6)
     arrays = random_cloud_arrays(N, 3, seed=7)
     rest = arrays["positions"] * [0.4, 0.4, 1.2]
-    matrix = affine(euler_matrix(NATIVE_TRANSFORM["rotation_euler"]) @ np.diag(NATIVE_TRANSFORM["scale"]),
-                    NATIVE_TRANSFORM["location"])
+    matrix = affine(
+        euler_matrix(NATIVE_TRANSFORM["rotation_euler"]) @ np.diag(NATIVE_TRANSFORM["scale"]),
+        NATIVE_TRANSFORM["location"],
+    )
     unposed = rest @ matrix[:3, :3].T + matrix[:3, 3]
-    assert np.abs(ours.positions - unposed).max() > 0.1           # the pose moved them
+    assert np.abs(ours.positions - unposed).max() > 0.1  # the pose moved them
     assert_same_image(blender, "rig_ours", "rig_theirs")
 
 
@@ -264,12 +287,14 @@ def test_blender_draws_bound_native_splats_posed(blender):
     space) at the current frame, to float32."""
     native_step(blender, "native_rig")
     d = blender.npz("rig_drawn")
-    sign = np.sign(np.sum(d["rotation"] * d["exact_rotations"], axis=1, keepdims=True))     # q and -q agree
-    errors = {"position": np.abs(d["position"] - d["exact_positions"]).max(),
-              "rotation": np.abs(d["rotation"] * sign - d["exact_rotations"]).max(),
-              "scale": np.abs(d["scale"] / d["exact_scales"] - 1).max(),
-              "opacity": np.abs(d["radiance__base"][:, 3] - d["exact_opacities"]).max(),
-              "sh": max(np.abs(d[f"radiance__sh_{j}"] - d["exact_sh"][:, j + 1]).max() for j in range(15))}
+    sign = np.sign(np.sum(d["rotation"] * d["exact_rotations"], axis=1, keepdims=True))  # q and -q agree
+    errors = {
+        "position": np.abs(d["position"] - d["exact_positions"]).max(),
+        "rotation": np.abs(d["rotation"] * sign - d["exact_rotations"]).max(),
+        "scale": np.abs(d["scale"] / d["exact_scales"] - 1).max(),
+        "opacity": np.abs(d["radiance__base"][:, 3] - d["exact_opacities"]).max(),
+        "sh": max(np.abs(d[f"radiance__sh_{j}"] - d["exact_sh"][:, j + 1]).max() for j in range(15)),
+    }
     print(f"\nposed native splats as Blender draws them, against our exact pose: {errors}")
     assert errors["position"] < 1e-6 and errors["rotation"] < 1e-6 and errors["scale"] < 1e-6
     assert errors["opacity"] < 1e-7 and errors["sh"] < 1e-6

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 from helpers import random_cloud
+
 from splatwright.core import SplatCloud, cleanup, economy
 from splatwright.core.camera import Camera
 from splatwright.core.render import render
@@ -21,10 +22,13 @@ def box_mesh(lo, hi):
 
 
 def torus(r_major=1.0, r_minor=0.35, nu=24, nv=12):
-    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, nu, endpoint=False), np.linspace(0, 2 * np.pi, nv, endpoint=False),
-                       indexing="ij")
-    verts = np.stack([(r_major + r_minor * np.cos(v)) * np.cos(u), (r_major + r_minor * np.cos(v)) * np.sin(u),
-                      r_minor * np.sin(v)], -1).reshape(-1, 3)
+    u, v = np.meshgrid(
+        np.linspace(0, 2 * np.pi, nu, endpoint=False), np.linspace(0, 2 * np.pi, nv, endpoint=False), indexing="ij"
+    )
+    verts = np.stack(
+        [(r_major + r_minor * np.cos(v)) * np.cos(u), (r_major + r_minor * np.cos(v)) * np.sin(u), r_minor * np.sin(v)],
+        -1,
+    ).reshape(-1, 3)
     faces = []
     for i in range(nu):
         for j in range(nv):
@@ -52,6 +56,7 @@ def parity_inside(point, verts, faces, direction=(0.5773, 0.5774, 0.5775)):
 
 
 # crop -----------------------------------------------------------------------------------------------
+
 
 def test_inside_mesh_equals_ray_parity_on_a_torus():
     verts, faces = torus()
@@ -97,18 +102,23 @@ def test_size_mask_keeps_splats_between_the_sizes():
 
 # grading --------------------------------------------------------------------------------------------
 
-GRADES = [dict(exposure=0.5), dict(saturation=0.3), dict(hue=0.8), dict(white=(1.0, 0.8, 0.6)),
-          dict(exposure=-0.4, saturation=1.4, hue=-0.5, white=(0.9, 1.0, 1.1))]
+GRADES = [
+    dict(exposure=0.5),
+    dict(saturation=0.3),
+    dict(hue=0.8),
+    dict(white=(1.0, 0.8, 0.6)),
+    dict(exposure=-0.4, saturation=1.4, hue=-0.5, white=(0.9, 1.0, 1.1)),
+]
 
 
 def test_grade_matrix_parts():
     white = np.array([1.0, 0.8, 0.6])
     m = cleanup.grade_matrix(white=white)
-    np.testing.assert_allclose(m @ white, np.full(3, cleanup.LUMA @ white))          # white -> its grey
+    np.testing.assert_allclose(m @ white, np.full(3, cleanup.LUMA @ white))  # white -> its grey
     grey = np.full(3, 0.4)
     np.testing.assert_allclose(cleanup.grade_matrix(saturation=0.2, hue=1.1) @ grey, grey)
     hue = cleanup.grade_matrix(hue=2 * np.pi / 3)
-    np.testing.assert_allclose(hue @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)   # a third of a turn: r -> g
+    np.testing.assert_allclose(hue @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)  # a third of a turn: r -> g
     np.testing.assert_allclose(cleanup.grade_matrix(exposure=1.0), 2 * np.eye(3))
     with pytest.raises(cleanup.CleanupError, match="white"):
         cleanup.grade_matrix(white=(1.0, 0.0, 1.0))
@@ -136,8 +146,13 @@ def test_grading_then_rendering_equals_grading_the_render(grade):
     sh = np.zeros((n, 16, 3))
     sh[:, 0] = (colors - 0.5) / 0.28209479177387814
     sh[:, 1:] = rng.normal(0, 0.01, (n, 15, 3))
-    cloud = SplatCloud(positions=rng.normal(0, 0.5, (n, 3)), rotations=rng.normal(size=(n, 4)),
-                       log_scales=rng.uniform(-3.5, -2.0, (n, 3)), opacity_logits=rng.normal(0, 1, n), sh=sh)
+    cloud = SplatCloud(
+        positions=rng.normal(0, 0.5, (n, 3)),
+        rotations=rng.normal(size=(n, 4)),
+        log_scales=rng.uniform(-3.5, -2.0, (n, 3)),
+        opacity_logits=rng.normal(0, 1, n),
+        sh=sh,
+    )
     camera = Camera.look_at([0, 0, -4], [0, 0, 0], up=[0, -1, 0], fov_deg=40, width=96, height=96)
     m = cleanup.grade_matrix(**grade)
     before = render(cloud, camera, background=None)
@@ -149,6 +164,7 @@ def test_grading_then_rendering_equals_grading_the_render(grade):
 
 
 # what a change costs ---------------------------------------------------------------------------------
+
 
 def test_change_report_counts_and_measures():
     cloud = random_cloud(300, sh_degree=3, seed=8)

@@ -7,7 +7,7 @@ import pytest
 from helpers import random_cloud
 
 from splatwright.cli import main
-from splatwright.io import ply, SplatFileWarning
+from splatwright.io import SplatFileWarning, ply
 
 
 def run(capsys, *argv):
@@ -129,7 +129,7 @@ def test_errors_exit_non_zero_naming_file_and_problem(capsys, scene, tmp_path):
 def test_sh_degree_4_converts_and_reports(capsys, tmp_path):
     """--sh-degree takes 0..4; a degree-4 PLY goes to SPZ v4 whole, or down to any lower degree."""
     cloud = random_cloud(50, sh_degree=4, seed=6)
-    cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -0.9, 0.9)           # within SPZ's range
+    cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -0.9, 0.9)  # within SPZ's range
     ply.write(tmp_path / "d4.ply", cloud)
     code, _, err = run(capsys, "convert", tmp_path / "d4.ply", tmp_path / "d4.spz", "--no-check")
     assert code == 0, err
@@ -168,10 +168,21 @@ OUT_OF_RANGE = [
     ("render", ["--near", "-1"], "--near must be"),
     ("render", ["--width", "0"], "--width must be a whole number >= 1"),
     ("render", ["--height", "-3"], "--height must be a whole number >= 1"),
-    ("render", ["--camera-pos", "0,0,5", "--look-at", "0,0,0", "--up", "0,0,2"],
-     "--up (0,0,2) is parallel to the view direction"),
-    ("render", ["--camera-pos", "1,1,1", "--look-at", "1,1,1"], "--camera-pos, --look-at: invalid camera: eye and target"),
-    ("convert", ["--prune-invisible", "-1"], "--prune-invisible must be a blending weight from 0 up to (not including) 1"),
+    (
+        "render",
+        ["--camera-pos", "0,0,5", "--look-at", "0,0,0", "--up", "0,0,2"],
+        "--up (0,0,2) is parallel to the view direction",
+    ),
+    (
+        "render",
+        ["--camera-pos", "1,1,1", "--look-at", "1,1,1"],
+        "--camera-pos, --look-at: invalid camera: eye and target",
+    ),
+    (
+        "convert",
+        ["--prune-invisible", "-1"],
+        "--prune-invisible must be a blending weight from 0 up to (not including) 1",
+    ),
     ("convert", ["--prune-invisible", "nan"], "--prune-invisible must be"),
     ("convert", ["--prune-opacity", "1.5"], "--prune-opacity must be an opacity from 0 to 1"),
     ("convert", ["--prune-invisible", "--views", "0"], "--views must be a whole number from 1 to 1000"),
@@ -190,10 +201,12 @@ OUT_OF_RANGE = [
 
 
 def verb_argv(verb, scene_path, out):
-    return {"render": ["render", scene_path, "-o", out],
-            "convert": ["convert", scene_path, out],
-            "mesh2splats": ["mesh2splats", scene_path.with_suffix(".obj"), out],
-            "urdf2splats": ["urdf2splats", scene_path.with_suffix(".urdf"), out]}[verb]
+    return {
+        "render": ["render", scene_path, "-o", out],
+        "convert": ["convert", scene_path, out],
+        "mesh2splats": ["mesh2splats", scene_path.with_suffix(".obj"), out],
+        "urdf2splats": ["urdf2splats", scene_path.with_suffix(".urdf"), out],
+    }[verb]
 
 
 @pytest.mark.parametrize("verb, options, message", OUT_OF_RANGE)
@@ -208,9 +221,11 @@ def test_out_of_range_options_exit_1_naming_the_option(capsys, scene, tmp_path, 
 
 def test_an_image_too_big_for_memory_is_refused_before_the_file_is_read(capsys, tmp_path, monkeypatch):
     from splatwright.core import render
+
     monkeypatch.setattr(render, "physical_memory", lambda: 16 * 2**30)
-    code, _, err = run(capsys, "render", tmp_path / "never_read.ply", "-o", tmp_path / "o.png",
-                       "--width", 40000, "--height", 40000)
+    code, _, err = run(
+        capsys, "render", tmp_path / "never_read.ply", "-o", tmp_path / "o.png", "--width", 40000, "--height", 40000
+    )
     assert code == 1 and "--width, --height: a 40000x40000 render needs" in err
     assert "more than this machine's 16.0 GiB" in err and "never_read" not in err
 
@@ -226,10 +241,15 @@ def test_file_errors_exit_1(capsys, scene, tmp_path):
     assert code == 1 and f"the folder {tmp_path / 'nowhere'} does not exist" in err
 
 
-@pytest.mark.parametrize("argv", [["render", "x.ply", "-o", "o.png", "--fov", "abc"],
-                                  ["render", "x.ply", "-o", "o.png", "--width", "1.5"],
-                                  ["convert", "x.ply"],
-                                  ["convert", "x.ply", "y.ply", "--bogus"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "x.ply", "-o", "o.png", "--fov", "abc"],
+        ["render", "x.ply", "-o", "o.png", "--width", "1.5"],
+        ["convert", "x.ply"],
+        ["convert", "x.ply", "y.ply", "--bogus"],
+    ],
+)
 def test_usage_errors_exit_2(capsys, argv):
     with pytest.raises(SystemExit) as exc:
         main(argv)
@@ -240,17 +260,39 @@ def test_the_installed_command_prints_one_line_and_no_traceback(scene, tmp_path)
     """Through the real entry point (python -m splatwright), as a user runs it."""
     import subprocess
     import sys
+
     path, _ = scene
     for options, code, message in ((["--fov", "0"], 1, "--fov must be"), (["--fov", "x"], 2, "invalid float value")):
-        done = subprocess.run([sys.executable, "-m", "splatwright", "render", str(path), "-o", str(tmp_path / "o.png"),
-                               *options], capture_output=True, text=True, cwd=tmp_path)
+        done = subprocess.run(
+            [sys.executable, "-m", "splatwright", "render", str(path), "-o", str(tmp_path / "o.png"), *options],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+        )
         assert done.returncode == code and message in done.stderr and "Traceback" not in done.stderr
 
 
 def test_options_in_range_still_render(capsys, scene, tmp_path):
     path, _ = scene
     out = tmp_path / "o.png"
-    code, stdout, err = run(capsys, "render", path, "-o", out, "--width", 16, "--height", 12, "--fov", 179,
-                            "--background", "none", "--up", "0,-1,0", "--near", "0.01")
+    code, stdout, err = run(
+        capsys,
+        "render",
+        path,
+        "-o",
+        out,
+        "--width",
+        16,
+        "--height",
+        12,
+        "--fov",
+        179,
+        "--background",
+        "none",
+        "--up",
+        "0,-1,0",
+        "--near",
+        "0.01",
+    )
     assert code == 0, err
     assert "at 16x12" in stdout and out.read_bytes()[16:24] == (16).to_bytes(4, "big") + (12).to_bytes(4, "big")

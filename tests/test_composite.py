@@ -24,8 +24,9 @@ def crossing_scene(n=400, seed=0):
     """A random SH cloud around z = 3 that the surfaces below cut through."""
     c = random_cloud(n, sh_degree=2, seed=seed, spread=0.6)
     rng = np.random.default_rng(seed + 50)
-    return c.replace(positions=c.positions + np.float32([0, 0, 3.0]),
-                     log_scales=rng.uniform(-3.5, -1.8, (n, 3)).astype(np.float32))
+    return c.replace(
+        positions=c.positions + np.float32([0, 0, 3.0]), log_scales=rng.uniform(-3.5, -1.8, (n, 3)).astype(np.float32)
+    )
 
 
 def camera(width=64, height=48):
@@ -35,7 +36,7 @@ def camera(width=64, height=48):
 def surface(cam, seed=0, alpha=None):
     """A tilted plane through the cloud with a sphere in front of it and a hole (no surface: depth
     inf) in one corner: per pixel premultiplied colour, alpha and camera depth."""
-    rows, cols = np.mgrid[0:cam.height, 0:cam.width]
+    rows, cols = np.mgrid[0 : cam.height, 0 : cam.width]
     depth = 2.7 + 0.02 * (cols - cam.width / 2) + 0.015 * (rows - cam.height / 2)
     ball = (cols - 0.4 * cam.width) ** 2 + (rows - 0.5 * cam.height) ** 2 < (0.2 * cam.height) ** 2
     depth = np.where(ball, 2.4 + 0.01 * np.abs(cols - 0.4 * cam.width), depth)
@@ -50,12 +51,16 @@ def surface(cam, seed=0, alpha=None):
 def compare(cloud, cam, layer, background=(0.0, 0.0, 0.0), **options):
     got = render(cloud, cam, background=background, layer=layer, return_counts=True, **options)
     assert got.stats["backend"] == options.get("backend", "compiled")
-    ref = reference_render(cloud, cam, background=(0.0, 0.0, 0.0) if background is None else background,
-                           layer=(layer.color, layer.alpha, layer.depth))
+    ref = reference_render(
+        cloud,
+        cam,
+        background=(0.0, 0.0, 0.0) if background is None else background,
+        layer=(layer.color, layer.alpha, layer.depth),
+    )
     assert np.abs(got.color - ref["color"]).max() <= STEP
     assert np.abs(got.alpha - ref["alpha"]).max() <= STEP
     assert np.abs(got.layer_transmittance - ref["layer_t"]).max() <= STEP
-    seen = (ref["alpha"] - ref["layer_t"] * layer.alpha) > 0.05          # the splats' own share
+    seen = (ref["alpha"] - ref["layer_t"] * layer.alpha) > 0.05  # the splats' own share
     np.testing.assert_allclose(got.depth[seen], ref["depth"][seen], rtol=1e-3)
     assert (got.counts != ref["counts"]).sum() <= 1
     return got, ref
@@ -73,8 +78,17 @@ def test_opaque_surface_hides_splats_behind_it_and_takes_what_is_left(backend):
     assert ((got.layer_transmittance > 0.05) & (got.layer_transmittance < 0.95) & covered).sum() > 50
 
 
-@pytest.mark.parametrize("options", [{}, {"tile_size": 7, "wave": 3}, {"tile_size": 1, "wave": 2},
-                                     {"tile_size": 16, "wave": 1000}, {"threads": 1}, {"precision": "float64"}])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {},
+        {"tile_size": 7, "wave": 3},
+        {"tile_size": 1, "wave": 2},
+        {"tile_size": 16, "wave": 1000},
+        {"threads": 1},
+        {"precision": "float64"},
+    ],
+)
 def test_speed_options_do_not_change_the_composite(options, backend):
     compare(crossing_scene(seed=1), camera(), surface(camera(), seed=1), **options, backend=backend)
 
@@ -118,22 +132,30 @@ def test_surface_in_front_of_every_splat_is_all_that_shows_and_saves_the_work(ba
 def test_pixels_that_stop_on_an_opaque_pile_give_the_surface_their_last_transmittance(backend):
     n = 300
     rng = np.random.default_rng(6)
-    pile = SplatCloud.from_activated(                 # dense, near-opaque, in front of the surface
+    pile = SplatCloud.from_activated(  # dense, near-opaque, in front of the surface
         positions=np.column_stack([rng.normal(0, 0.15, n), rng.normal(0, 0.15, n), rng.uniform(2.0, 2.3, n)]),
-        rotations=np.tile([1.0, 0, 0, 0], (n, 1)), scales=rng.uniform(0.05, 0.2, (n, 3)),
-        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
+        rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
+        scales=rng.uniform(0.05, 0.2, (n, 3)),
+        opacities=rng.uniform(0.5, 1.0, n),
+        colors=rng.uniform(0, 1, (n, 3)),
+    )
     cloud = pile.replace(opacity_logits=np.where(np.arange(n) < n // 2, np.float32(1e4), pile.opacity_logits))
     cam = Camera.look_at((0, 0, 0), (0, 0, 3), fov_deg=30, width=40, height=40)
     shape = (cam.height, cam.width)
     layer = Layer(np.full(shape + (3,), 0.7), np.ones(shape), np.full(shape, 2.5))
     got, ref = compare(cloud, cam, layer, backend=backend)
-    stopped = ref["layer_t"] < 0.011          # stopped on the pile: T between 1e-4 and 0.01 left
+    stopped = ref["layer_t"] < 0.011  # stopped on the pile: T between 1e-4 and 0.01 left
     assert stopped.sum() > 20 and (ref["layer_t"][stopped] >= 1e-4).all()
 
 
 def test_splat_exactly_at_the_surface_depth_goes_behind_it(backend):
-    one = SplatCloud.from_activated(positions=[[0.0, 0.0, 2.0]], rotations=[[1.0, 0, 0, 0]], scales=[[0.3] * 3],
-                                    opacities=[0.9], colors=[[1.0, 0.0, 0.0]])
+    one = SplatCloud.from_activated(
+        positions=[[0.0, 0.0, 2.0]],
+        rotations=[[1.0, 0, 0, 0]],
+        scales=[[0.3] * 3],
+        opacities=[0.9],
+        colors=[[1.0, 0.0, 0.0]],
+    )
     cam = Camera.look_at((0, 0, 0), (0, 0, 2), fov_deg=40, width=8, height=8)
     shape = (8, 8)
     at = Layer(np.zeros(shape + (3,)), np.ones(shape), np.full(shape, np.float32(2.0)))
@@ -142,13 +164,16 @@ def test_splat_exactly_at_the_surface_depth_goes_behind_it(backend):
     assert render(one, cam, layer=before, backend=backend).color[..., 0].max() > 0.5
 
 
-@pytest.mark.parametrize("change, words", [
-    (lambda l: l.__setattr__("depth", l.depth[:-1]), ["layer depth", "shape", "(48, 64)"]),
-    (lambda l: l.__setattr__("color", l.color[..., :2]), ["layer color", "(48, 64, 3)"]),
-    (lambda l: l.depth.__setitem__((3, 4), np.nan), ["layer depth", "1 NaN"]),
-    (lambda l: l.color.__setitem__((3, 4, 0), np.inf), ["layer color", "non-finite"]),
-    (lambda l: l.alpha.__setitem__((0, 0), 1.5), ["layer alpha", "[0, 1]"]),
-])
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (lambda l: l.__setattr__("depth", l.depth[:-1]), ["layer depth", "shape", "(48, 64)"]),
+        (lambda l: l.__setattr__("color", l.color[..., :2]), ["layer color", "(48, 64, 3)"]),
+        (lambda l: l.depth.__setitem__((3, 4), np.nan), ["layer depth", "1 NaN"]),
+        (lambda l: l.color.__setitem__((3, 4, 0), np.inf), ["layer color", "non-finite"]),
+        (lambda l: l.alpha.__setitem__((0, 0), 1.5), ["layer alpha", "[0, 1]"]),
+    ],
+)
 def test_bad_layers_are_refused_by_name(change, words):
     layer = surface(camera())
     change(layer)

@@ -11,7 +11,6 @@ import json
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import plyfile
@@ -31,27 +30,35 @@ WALL = 21 * 21
 
 # blending weights: brute force ----------------------------------------------------------------------
 
+
 def brute_contributions(cloud, camera):
     """(N,) largest T * alpha of each splat over every pixel, by the reference rasteriser's rules
     written out pixel-parallel and splat by splat, in float64."""
     splats = _project_all(cloud, camera, "classic")
     # _project_all's splats, in its order: finite, inside the clip range, stable by float32 depth
-    fields = (cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits[:, None],
-              cloud.sh.reshape(len(cloud), -1))
+    fields = (
+        cloud.positions,
+        cloud.rotations,
+        cloud.log_scales,
+        cloud.opacity_logits[:, None],
+        cloud.sh.reshape(len(cloud), -1),
+    )
     idx = np.flatnonzero(np.all([np.isfinite(f).all(axis=1) for f in fields], axis=0))
     z = camera.to_camera(cloud.positions[idx])[:, 2]
     idx, z = idx[(z > camera.near) & (z <= camera.far)], z[(z > camera.near) & (z <= camera.far)]
     idx = idx[np.argsort(z.astype(np.float32), kind="stable")]
     assert len(idx) == len(splats["z"])
-    rows, cols = np.mgrid[0:camera.height, 0:camera.width]
+    rows, cols = np.mgrid[0 : camera.height, 0 : camera.width]
     px, py = cols.ravel() + 0.5, rows.ravel() + 0.5
     trans, done = np.ones(len(px)), np.zeros(len(px), bool)
     best = np.zeros(len(cloud))
     for k, i in enumerate(idx):
         dx, dy = px - splats["mean"][k, 0], py - splats["mean"][k, 1]
         con = splats["conic"][k]
-        alpha = np.minimum(ALPHA_MAX, splats["opacity"][k] * np.exp(
-            -0.5 * (con[0, 0] * dx * dx + 2 * con[0, 1] * dx * dy + con[1, 1] * dy * dy)))
+        alpha = np.minimum(
+            ALPHA_MAX,
+            splats["opacity"][k] * np.exp(-0.5 * (con[0, 0] * dx * dx + 2 * con[0, 1] * dx * dy + con[1, 1] * dy * dy)),
+        )
         use = ~done & (alpha >= ALPHA_MIN)
         after = trans * (1.0 - alpha)
         stop = use & (after < T_MIN)
@@ -72,20 +79,35 @@ def hard_cloud():
     grid = np.linspace(-1.0, 1.0, 21)
     wall = SplatCloud.from_activated(
         positions=np.column_stack([np.repeat(grid, 21), np.tile(grid, 21), np.full(WALL, 2.0)]),
-        rotations=np.tile([1.0, 0, 0, 0], (WALL, 1)), scales=np.tile([0.15, 0.15, 0.001], (WALL, 1)),
-        opacities=np.full(WALL, 0.999), colors=np.full((WALL, 3), 0.5))
+        rotations=np.tile([1.0, 0, 0, 0], (WALL, 1)),
+        scales=np.tile([0.15, 0.15, 0.001], (WALL, 1)),
+        opacities=np.full(WALL, 0.999),
+        colors=np.full((WALL, 3), 0.5),
+    )
     wall = wall.replace(sh=np.concatenate([wall.sh, np.zeros((WALL, 3, 3))], axis=1))
     extra = random_cloud(12, sh_degree=1, seed=8, spread=0.1)
-    extra.positions[:] = [[0, 0, -1], [0, 0, 0.25], [40, 0, 3], [0.1, 0.1, 3], [0.2, 0, 2.5], [0.2, 0.1, 2.5],
-                          [0.3, -0.2, 2.5], [-0.3, 0.3, 2.7], [-0.3, 0.3, 2.7], [0, 0.3, 1.0], [0.1, 0, 1.5], [0, 0, 3]]
+    extra.positions[:] = [
+        [0, 0, -1],
+        [0, 0, 0.25],
+        [40, 0, 3],
+        [0.1, 0.1, 3],
+        [0.2, 0, 2.5],
+        [0.2, 0.1, 2.5],
+        [0.3, -0.2, 2.5],
+        [-0.3, 0.3, 2.7],
+        [-0.3, 0.3, 2.7],
+        [0, 0.3, 1.0],
+        [0.1, 0, 1.5],
+        [0, 0, 3],
+    ]
     extra.opacity_logits[:] = 3.0
-    extra.opacity_logits[3] = np.log((1 / 300) / (1 - 1 / 300))             # never reaches 1/255
-    extra.log_scales[4] = np.log([0.3, 1e-4, 1e-4])                           # needle
-    extra.log_scales[5] = np.log([0.2, 0.2, 1e-6])                            # pancake
-    extra.log_scales[6] = np.log(1e-7)                                        # tiny
-    extra.log_scales[9] = np.log(1e4)                                         # huge (faint)
+    extra.opacity_logits[3] = np.log((1 / 300) / (1 - 1 / 300))  # never reaches 1/255
+    extra.log_scales[4] = np.log([0.3, 1e-4, 1e-4])  # needle
+    extra.log_scales[5] = np.log([0.2, 0.2, 1e-6])  # pancake
+    extra.log_scales[6] = np.log(1e-7)  # tiny
+    extra.log_scales[9] = np.log(1e4)  # huge (faint)
     extra.opacity_logits[9] = -4.0
-    extra.rotations[10] = 0.0                                                 # zero quaternion
+    extra.rotations[10] = 0.0  # zero quaternion
     extra.rotations[7] *= 1e3
     extra.positions[11, 0] = np.nan
     return SplatCloud.concatenate([wall, cloud, extra])
@@ -93,10 +115,13 @@ def hard_cloud():
 
 def views_for(cloud):
     straight = Camera.look_at((0, 0, 0), (0, 0, 3), up=(0, -1, 0), fov_deg=50, width=40, height=30, near=0.25)
-    return [straight, Camera.look_at((0, 0, 0), (0, 0, 3), fov_deg=170, width=24, height=20),
-            Camera.look_at((0.5, 0.2, 0), (0, 0, 3), fov_deg=40, width=1, height=1),
-            Camera.look_at((0, 0, 0), (0.2, 0.3, 2.5), fov_deg=0.5, width=16, height=12),
-            *economy.orbit_views(economy.cloud_points(cloud), count=2, width=32, height=24)]
+    return [
+        straight,
+        Camera.look_at((0, 0, 0), (0, 0, 3), fov_deg=170, width=24, height=20),
+        Camera.look_at((0.5, 0.2, 0), (0, 0, 3), fov_deg=40, width=1, height=1),
+        Camera.look_at((0, 0, 0), (0.2, 0.3, 2.5), fov_deg=0.5, width=16, height=12),
+        *economy.orbit_views(economy.cloud_points(cloud), count=2, width=32, height=24),
+    ]
 
 
 def test_contributions_equal_float64_brute_force_on_hard_cases():
@@ -112,11 +137,11 @@ def test_contributions_equal_float64_brute_force_on_hard_cases():
     middle = slice(WALL, WALL + 150)
     behind = (np.abs(cloud.positions[middle, :2]).max(axis=1) < 0.25) & (cloud.positions[middle, 2] > 2.3)
     hidden = np.arange(len(cloud))[middle][behind]
-    assert len(hidden) > 10 and not straight[hidden].any()                    # behind the opaque wall
+    assert len(hidden) > 10 and not straight[hidden].any()  # behind the opaque wall
     n = len(cloud)
-    assert not straight[n - 12:n - 9].any()                                   # behind, on near, off-image
-    assert got[n - 9] == 0 and got[n - 1] == 0                               # too faint; NaN
-    assert (got[n - 8:n - 5] > 0).all()                                       # needle, pancake, tiny: seen
+    assert not straight[n - 12 : n - 9].any()  # behind, on near, off-image
+    assert got[n - 9] == 0 and got[n - 1] == 0  # too faint; NaN
+    assert (got[n - 8 : n - 5] > 0).all()  # needle, pancake, tiny: seen
 
 
 def test_contributions_follow_the_stop_rule():
@@ -125,8 +150,11 @@ def test_contributions_follow_the_stop_rule():
     splats behind it."""
     stack = SplatCloud.from_activated(
         positions=[[0, 0, 2.0], [0, 0, 2.1], [0, 0, 2.2], [0, 0, 2.3], [0.001, 0, 2.4]],
-        rotations=np.tile([1.0, 0, 0, 0], (5, 1)), scales=[[1, 1, 1]] * 3 + [[0.001] * 3] * 2,
-        opacities=[0.98] * 3 + [0.9] * 2, colors=np.full((5, 3), 0.5))
+        rotations=np.tile([1.0, 0, 0, 0], (5, 1)),
+        scales=[[1, 1, 1]] * 3 + [[0.001] * 3] * 2,
+        opacities=[0.98] * 3 + [0.9] * 2,
+        colors=np.full((5, 3), 0.5),
+    )
     cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=10, width=9, height=9)
     want = brute_contributions(stack, cam)
     got = economy.contributions(stack, [cam])
@@ -173,12 +201,11 @@ def test_orbit_views_frame_every_point_from_spread_directions():
     for cam in views + between:
         uv, z = cam.project(points)
         assert (z > cam.near).all() and (uv >= 0).all() and (uv[:, 0] <= 64).all() and (uv[:, 1] <= 48).all()
-        np.testing.assert_allclose(cam.forward, (centre - cam.center) / np.linalg.norm(centre - cam.center),
-                                   atol=1e-12)
+        np.testing.assert_allclose(cam.forward, (centre - cam.center) / np.linalg.norm(centre - cam.center), atol=1e-12)
     directions = np.array([-c.forward for c in views + between])
     cosines = directions @ directions.T - 2 * np.eye(12)
-    assert cosines.max() < 0.95                                     # twelve different directions
-    assert abs(directions.sum(axis=0)).max() < 0.5 * 12 / 4        # spread around, not to one side
+    assert cosines.max() < 0.95  # twelve different directions
+    assert abs(directions.sum(axis=0)).max() < 0.5 * 12 / 4  # spread around, not to one side
     with pytest.raises(ValueError):
         economy.orbit_views(points, count=0)
 
@@ -193,16 +220,19 @@ def test_image_error_is_rgba_psnr_and_max_abs():
     b = [render(changed, cam, background=None) for cam in views]
     rgba = lambda r: np.clip(np.concatenate([r.color, r.alpha[..., None]], axis=2).astype(np.float64), 0, 1)
     diff = np.concatenate([(rgba(x) - rgba(y)).ravel() for x, y in zip(a, b)])
-    assert error.psnr == pytest.approx(10 * np.log10(1 / np.mean(diff ** 2)), rel=1e-9)
+    assert error.psnr == pytest.approx(10 * np.log10(1 / np.mean(diff**2)), rel=1e-9)
     assert error.max_abs == pytest.approx(np.abs(diff).max(), rel=1e-6)
     assert len(error.view_psnr) == 3
     same = economy.image_error(economy.render_views(cloud, views), cloud, views)
     assert same.psnr == float("inf") and same.max_abs == 0.0
     empty = SplatCloud.empty(1)
-    assert economy.image_error(empty, empty, economy.orbit_views(economy.cloud_points(empty), 2, 1)).psnr == float("inf")
+    assert economy.image_error(empty, empty, economy.orbit_views(economy.cloud_points(empty), 2, 1)).psnr == float(
+        "inf"
+    )
 
 
 # convert with economies -----------------------------------------------------------------------------
+
 
 def run(capsys, *argv):
     code = main([str(a) for a in argv])
@@ -251,10 +281,11 @@ def test_convert_half_usd_stays_within_half_rounding_and_prints_the_measured_err
     code, out, err = run(capsys, "convert", path, out_path, "--half", "--views", 4, "--view-size", 48)
     assert code == 0, err
     from pxr import Usd
+
     stage = Usd.Stage.Open(str(out_path))
     prim = stage.GetPrimAtPath("/Splats")
     values = {a.GetName(): np.asarray(a.Get()) for a in prim.GetAttributes() if a.HasAuthoredValue()}
-    half_bound = lambda got, want: np.abs(got - want) <= np.maximum(2.0 ** -11 * np.abs(want), 2.0 ** -25)
+    half_bound = lambda got, want: np.abs(got - want) <= np.maximum(2.0**-11 * np.abs(want), 2.0**-25)
     assert values["scalesh"].dtype == np.float16
     assert half_bound(values["scalesh"].astype(np.float64), np.exp(cloud.log_scales.astype(np.float64))).all()
     opacity = 1.0 / (1.0 + np.exp(-cloud.opacity_logits.astype(np.float64)))
@@ -270,11 +301,13 @@ def test_convert_half_usd_stays_within_half_rounding_and_prints_the_measured_err
     diffs = []
     for cam in views:
         want, got = render(cloud, cam, background=None), render(back, cam, background=None)
-        diffs.append(np.clip(np.dstack([got.color, got.alpha]), 0, 1).astype(np.float64)
-                     - np.clip(np.dstack([want.color, want.alpha]), 0, 1))
+        diffs.append(
+            np.clip(np.dstack([got.color, got.alpha]), 0, 1).astype(np.float64)
+            - np.clip(np.dstack([want.color, want.alpha]), 0, 1)
+        )
     diff = np.concatenate([d.ravel() for d in diffs])
     psnr_db, max_abs = rows["half floats"][2:]
-    assert psnr_db == pytest.approx(10 * np.log10(1 / np.mean(diff ** 2)), abs=0.006)
+    assert psnr_db == pytest.approx(10 * np.log10(1 / np.mean(diff**2)), abs=0.006)
     assert max_abs == pytest.approx(np.abs(diff).max(), abs=6e-5)
     assert psnr_db > 50 and rows["as .usdc"][2:] == [float("inf"), 0.0]
 
@@ -284,33 +317,40 @@ def test_convert_sh_degree_saves_exact_bytes_and_prune_invisible_drops_the_hidde
     rng = np.random.default_rng(4)
     normals = rng.normal(size=(4000, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    shell = SplatCloud.from_activated(positions=normals, rotations=np.tile([1.0, 0, 0, 0], (4000, 1)),
-                                      scales=np.full((4000, 3), 0.1), opacities=np.full(4000, 0.99),
-                                      colors=rng.uniform(0, 1, (4000, 3)))
+    shell = SplatCloud.from_activated(
+        positions=normals,
+        rotations=np.tile([1.0, 0, 0, 0], (4000, 1)),
+        scales=np.full((4000, 3), 0.1),
+        opacities=np.full(4000, 0.99),
+        colors=rng.uniform(0, 1, (4000, 3)),
+    )
     core = random_cloud(500, sh_degree=0, seed=5, spread=0.15)
     core = core.replace(opacity_logits=np.full(500, 4.0, np.float32), log_scales=np.full((500, 3), np.log(0.03)))
     cloud = SplatCloud.concatenate([shell, core])
     cloud = cloud.replace(sh=np.concatenate([cloud.sh, rng.normal(0, 0.05, (4500, 3, 3))], axis=1))
     path, out_path = tmp_path / "ball.ply", tmp_path / "small.ply"
     ply.write(path, cloud)
-    code, out, err = run(capsys, "convert", path, out_path, "--prune-invisible", "--sh-degree", 0,
-                         "--views", 8, "--view-size", 64)
+    code, out, err = run(
+        capsys, "convert", path, out_path, "--prune-invisible", "--sh-degree", 0, "--views", 8, "--view-size", 64
+    )
     assert code == 0, err
     back = ply.read(out_path)
     inside = np.linalg.norm(back.positions, axis=1) < 0.7
-    assert not inside.any() and len(back) > 3900            # the core is gone, the shell is kept
+    assert not inside.any() and len(back) > 3900  # the core is gone, the shell is kept
     rows = table(out)
     pruned, reduced = rows["prune invisible"], rows["SH degree 1 -> 0"]
     header = sum(len(f"property float f_rest_{j}\n") for j in range(9))
     assert pruned[1] - reduced[1] == len(back) * 9 * 4 + header  # nine f_rest floats per splat
     assert reduced[:2] == [len(back), out_path.stat().st_size]
-    assert pruned[2] > 40 and reduced[2] < pruned[2]           # hidden splats cost nothing; SH does
+    assert pruned[2] > 40 and reduced[2] < pruned[2]  # hidden splats cost nothing; SH does
 
 
 def test_convert_refuses_bad_economy_options(capsys, source, tmp_path):
     path, _ = source
-    for argv, words in ((("--prune-opacity", 1.5), "--prune-opacity must be an opacity from 0 to 1, got 1.5"),
-                        (("--prune-invisible", "--views", 0), "--views must be a whole number from 1 to 1000")):
+    for argv, words in (
+        (("--prune-opacity", 1.5), "--prune-opacity must be an opacity from 0 to 1, got 1.5"),
+        (("--prune-invisible", "--views", 0), "--views must be a whole number from 1 to 1000"),
+    ):
         assert main(["convert", str(path), str(tmp_path / "o.ply"), *map(str, argv)]) == 1
         assert words in capsys.readouterr().err
     assert not (tmp_path / "o.ply").exists()
@@ -318,16 +358,16 @@ def test_convert_refuses_bad_economy_options(capsys, source, tmp_path):
 
 # the demo --------------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo") / "out"
-    proc = subprocess.run([sys.executable, "-m", "splatwright", "demo", "--out", str(out)],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "splatwright", "demo", "--out", str(out)], capture_output=True, text=True, timeout=600
+    )
     log = f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-6000:]}\n--- stderr\n{proc.stderr[-4000:]}"
     assert proc.returncode == 0, log
     return out, proc.stdout, json.loads((out / "summary.json").read_text())
-
-
 
 
 @pytest.mark.blender
@@ -341,7 +381,7 @@ def test_demo_runs_every_step_and_names_its_folder(demo):
     assert summary["seconds"]["total"] < 120
     for name, size in summary["files"].items():
         assert (out / name).stat().st_size == size > 0
-    assert len(summary["files"]) == len([p for p in out.rglob("*") if p.is_file()]) - 1     # + summary.json
+    assert len(summary["files"]) == len([p for p in out.rglob("*") if p.is_file()]) - 1  # + summary.json
 
 
 @pytest.mark.blender
@@ -362,9 +402,11 @@ def test_demo_png_and_exr_frames_show_the_posed_arm(demo):
     """The arm's splats stand on the environment's meshes: the Meshes pass (Cycles) holds the floor
     and the box, not the arm; the Splats pass holds the arm; Combined is the splats over the meshes."""
     from PIL import Image
+
     from splatwright.core.color import linear_to_srgb
     from splatwright.demo import WORLD_COLOR
     from splatwright.io.exr import read_exr
+
     out, _, summary = demo
     assert summary["render"]["frames"] == list(RENDER_FRAMES) and summary["render"]["meshes"] == "Cycles"
     png = {}
@@ -374,33 +416,36 @@ def test_demo_png_and_exr_frames_show_the_posed_arm(demo):
         png[frame] = np.asarray(image.convert("RGB"), np.float64) / 255
         path = out / "render" / f"frame_{frame:04d}.exr"
         channels = {k: v for part in range(4) for k, v in read_exr(path, part=part).items()}
-        rgb, meshes, splats = (np.dstack([channels[f"ViewLayer.{name}.{c}"] for c in "RGBA"])
-                               for name in ("Combined", "Meshes", "Splats"))
+        rgb, meshes, splats = (
+            np.dstack([channels[f"ViewLayer.{name}.{c}"] for c in "RGBA"]) for name in ("Combined", "Meshes", "Splats")
+        )
         assert rgb.shape == (360, 480, 4) and np.isfinite(rgb).all()
         # Standard view transform: the PNG is the EXR's scene-linear colour in sRGB (dither aside)
         assert np.abs(linear_to_srgb(np.clip(rgb[..., :3], 0, 1)) - png[frame]).max() < 3 / 255
         depth = channels["ViewLayer.Depth.Z"]
         hit = depth < 1e9
-        assert 0.3 < hit.mean() < 0.9                                  # the floor, the box and the arm, not the sky
+        assert 0.3 < hit.mean() < 0.9  # the floor, the box and the arm, not the sky
         z = depth[hit]
-        assert 3 < z.min() and z.max() < 25                            # the camera is ~9 m from the arm
+        assert 3 < z.min() and z.max() < 25  # the camera is ~9 m from the arm
         sky = linear_to_srgb(np.array(WORLD_COLOR))
         # the sky, but for the outlines (Cycles' depth is one sample's, its colour filtered)
         assert (np.abs(png[frame][~hit] - sky).max(axis=-1) <= 2 / 255).mean() > 0.99
         arm = splats[..., 3] > 0.5
-        assert 1000 < arm.sum() < 0.3 * arm.size                       # the arm's splats, in front of the meshes
-        assert (meshes[..., 3] == 1).all()                             # the film is opaque: Cycles' world included
+        assert 1000 < arm.sum() < 0.3 * arm.size  # the arm's splats, in front of the meshes
+        assert (meshes[..., 3] == 1).all()  # the film is opaque: Cycles' world included
         # where the arm covers the floor, Combined shows the arm, not the floor behind it
         assert np.abs(rgb[..., :3] - meshes[..., :3])[splats[..., 3] > 0.99].max(axis=-1).mean() > 0.05
     moved = np.abs(png[12] - png[24]).max(axis=2) > 0.1
-    assert moved.sum() > 500                                           # bent at 12, at rest at 24
+    assert moved.sum() > 500  # bent at 12, at rest at 24
 
 
 @pytest.mark.blender
 @pytest.mark.slow
 def test_demo_exports_read_back_consistently(demo):
     from pxr import Usd, UsdGeom
+
     from splatwright import demo as demo_module
+
     out, _, summary = demo
     arm, env = demo_module.ARM_SPLATS, demo_module.ENVIRONMENT_SPLATS
     assert summary["arm_splats"] == arm and summary["environment_splats"] == env
@@ -415,8 +460,8 @@ def test_demo_exports_read_back_consistently(demo):
     assert not [p.name for p in scene.properties if p.name.startswith(provenance)]
     assert not [k for c in frames.values() for k in c.extras if k.startswith(provenance)]
     xyz = lambda v: np.column_stack([v["x"], v["y"], v["z"]])
-    np.testing.assert_array_equal(xyz(scene)[:arm], frames[12].positions)       # the arm comes first
-    np.testing.assert_array_equal(frames[1].positions, frames[24].positions)    # rest pose at both ends
+    np.testing.assert_array_equal(xyz(scene)[:arm], frames[12].positions)  # the arm comes first
+    np.testing.assert_array_equal(frames[1].positions, frames[24].positions)  # rest pose at both ends
     assert np.abs(frames[12].positions - frames[1].positions).max() > 0.5
     stage = Usd.Stage.Open(str(out / "arm.usdc"))
     prims = [p for p in stage.Traverse() if p.GetTypeName() == "ParticleField3DGaussianSplat"]
@@ -449,8 +494,12 @@ def test_demo_collisions_and_extras(demo):
 def test_demo_fails_clearly_when_it_cannot_write(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    proc = subprocess.run([sys.executable, "-m", "splatwright", "demo", "--out", str(blocker / "out")],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "splatwright", "demo", "--out", str(blocker / "out")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 1
     assert "splatwright demo: error: cannot create the output folder" in proc.stderr and str(blocker) in proc.stderr
 
@@ -461,9 +510,13 @@ def test_demo_names_the_step_that_failed(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "render").write_text("a file where the frames' folder goes")
-    proc = subprocess.run([sys.executable, "-m", "splatwright", "demo", "--out", str(out)],
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "splatwright", "demo", "--out", str(out)], capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == 1, proc.stdout + proc.stderr
-    assert "splatwright demo: error: step 'render PNG and EXR frames: the arm's splats on the meshes' failed" in proc.stderr
+    assert (
+        "splatwright demo: error: step 'render PNG and EXR frames: the arm's splats on the meshes' failed"
+        in proc.stderr
+    )
     assert "[5/9]" in proc.stdout and "[7/9]" not in proc.stdout and "summary" not in proc.stdout
     assert not (out / "summary.json").exists()

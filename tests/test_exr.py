@@ -12,17 +12,20 @@ from splatwright.io.exr import read_exr, write_exr
 
 def _image(rng, h=7, w=5):
     return {
-        "R": rng.uniform(0, 1, (h, w)), "G": rng.uniform(0, 1, (h, w)), "B": rng.uniform(0, 1, (h, w)),
-        "A": rng.uniform(0, 1, (h, w)), "Z": rng.uniform(0.2, 1e4, (h, w)),
-        "N.x": rng.normal(0, 1, (h, w)), "albedo.R": rng.uniform(0, 1, (h, w)),
+        "R": rng.uniform(0, 1, (h, w)),
+        "G": rng.uniform(0, 1, (h, w)),
+        "B": rng.uniform(0, 1, (h, w)),
+        "A": rng.uniform(0, 1, (h, w)),
+        "Z": rng.uniform(0.2, 1e4, (h, w)),
+        "N.x": rng.normal(0, 1, (h, w)),
+        "albedo.R": rng.uniform(0, 1, (h, w)),
     }
 
 
 def _openexr_read(path):
     """Plain OpenEXR reading, independent of read_exr: name -> (pixels, pixel type name)."""
     with OpenEXR.File(str(path), separate_channels=True) as f:
-        return {name: (c.pixels.copy(), str(c.type()).rsplit(".", 1)[-1])
-                for name, c in f.channels().items()}
+        return {name: (c.pixels.copy(), str(c.type()).rsplit(".", 1)[-1]) for name, c in f.channels().items()}
 
 
 def test_float32_channels_are_exact_in_openexr_and_back(tmp_path, rng):
@@ -53,7 +56,7 @@ def test_half_channels_round_to_nearest_half(tmp_path, rng):
         # numpy's float32->float16 cast rounds to nearest even, as Imath::half does.
         np.testing.assert_array_equal(pixels, values.astype(np.float32).astype(np.float16))
         rel = np.abs(read_exr(path)[name] - values) / np.maximum(np.abs(values), 6.1e-5)
-        assert rel.max() <= 2.0 ** -11 * 1.0001   # half keeps 11 significant bits
+        assert rel.max() <= 2.0**-11 * 1.0001  # half keeps 11 significant bits
 
 
 def test_one_by_one_and_infinite_depth(tmp_path):
@@ -77,8 +80,9 @@ def test_reads_a_file_written_by_plain_openexr_with_rgba_grouping(tmp_path, rng)
     rgba = rng.uniform(0, 1, (4, 6, 4)).astype(np.float32)
     z = rng.uniform(1, 2, (4, 6)).astype(np.float16)
     path = str(tmp_path / "theirs.exr")
-    OpenEXR.File({"compression": OpenEXR.PIZ_COMPRESSION, "type": OpenEXR.scanlineimage},
-                 {"RGBA": rgba, "Z": z}).write(path)
+    OpenEXR.File({"compression": OpenEXR.PIZ_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGBA": rgba, "Z": z}).write(
+        path
+    )
     back = read_exr(path)
     assert set(back) == {"R", "G", "B", "A", "Z"}
     for i, c in enumerate("RGBA"):
@@ -86,14 +90,17 @@ def test_reads_a_file_written_by_plain_openexr_with_rgba_grouping(tmp_path, rng)
     np.testing.assert_array_equal(back["Z"], z.astype(np.float32))
 
 
-@pytest.mark.parametrize("channels, problem", [
-    ({}, "no channels"),
-    ({"R": np.zeros((2, 2)), "G": np.zeros((2, 3))}, "channel 'G' has shape (2, 3)"),
-    ({"R": np.zeros((2, 2, 3))}, "channel 'R' has shape (2, 2, 3)"),
-    ({"R": np.full((2, 2), np.nan)}, "channel 'R' holds 4 NaN"),
-    ({"": np.zeros((2, 2))}, "channel name ''"),
-    ({"R": np.array([["a", "b"]])}, "channel 'R' has dtype"),
-])
+@pytest.mark.parametrize(
+    "channels, problem",
+    [
+        ({}, "no channels"),
+        ({"R": np.zeros((2, 2)), "G": np.zeros((2, 3))}, "channel 'G' has shape (2, 3)"),
+        ({"R": np.zeros((2, 2, 3))}, "channel 'R' has shape (2, 2, 3)"),
+        ({"R": np.full((2, 2), np.nan)}, "channel 'R' holds 4 NaN"),
+        ({"": np.zeros((2, 2))}, "channel name ''"),
+        ({"R": np.array([["a", "b"]])}, "channel 'R' has dtype"),
+    ],
+)
 def test_bad_channels_are_refused_and_leave_no_file(tmp_path, channels, problem):
     path = tmp_path / "bad.exr"
     with pytest.raises(SplatFileError, match=problem.replace("(", r"\(").replace(")", r"\)")) as info:
@@ -105,7 +112,7 @@ def test_bad_channels_are_refused_and_leave_no_file(tmp_path, channels, problem)
 def test_half_overflow_is_refused(tmp_path):
     with pytest.raises(SplatFileError, match="channel 'Z' holds 1 values beyond the half-float range"):
         write_exr(tmp_path / "z.exr", {"Z": [[1.0, 1e5]]}, half=True)
-    write_exr(tmp_path / "z.exr", {"Z": [[1.0, 1e5]]})   # float32 holds it
+    write_exr(tmp_path / "z.exr", {"Z": [[1.0, 1e5]]})  # float32 holds it
     assert read_exr(tmp_path / "z.exr")["Z"][0, 1] == 1e5
 
 

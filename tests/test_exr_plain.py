@@ -14,15 +14,17 @@ HEAD = {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.scanlineimage}
 
 def channels(seed=0, h=9, w=7):
     rng = np.random.default_rng(seed)
-    return {"V.Combined.R": rng.normal(size=(h, w)).astype(np.float32),
-            "V.Combined.A": rng.uniform(size=(h, w)).astype(np.float16),
-            "V.Depth.Z": np.full((h, w), 1e10, np.float32)}
+    return {
+        "V.Combined.R": rng.normal(size=(h, w)).astype(np.float32),
+        "V.Combined.A": rng.uniform(size=(h, w)).astype(np.float16),
+        "V.Depth.Z": np.full((h, w), 1e10, np.float32),
+    }
 
 
 @pytest.mark.parametrize("order", [OpenEXR.INCREASING_Y, OpenEXR.DECREASING_Y], ids=["increasing", "decreasing"])
 def test_single_part_in_either_line_order(tmp_path, order):
     want = channels()
-    OpenEXR.File(dict(HEAD, lineOrder=order), dict(want)).write(str(tmp_path / "a.exr"))   # File takes the arrays over
+    OpenEXR.File(dict(HEAD, lineOrder=order), dict(want)).write(str(tmp_path / "a.exr"))  # File takes the arrays over
     got = read_plain_exr(tmp_path / "a.exr")
     assert sorted(got) == sorted(want)
     for name, values in want.items():
@@ -44,14 +46,23 @@ def tiles(size):
     return description
 
 
-@pytest.mark.parametrize("make, words", [
-    (lambda p: OpenEXR.File(dict(HEAD, compression=OpenEXR.ZIP_COMPRESSION), channels()).write(str(p)),
-     ["compressed", "uncompressed"]),
-    (lambda p: OpenEXR.File({"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.tiledimage,
-                             "tiles": tiles(4)}, channels()).write(str(p)), ["tiled"]),
-    (lambda p: p.write_bytes(b"\x76\x2f\x31\x01\x02\x00\x00\x00channels\x00chl"), ["truncated"]),
-    (lambda p: p.write_bytes(b"PNG not EXR"), ["not an OpenEXR file"]),
-])
+@pytest.mark.parametrize(
+    "make, words",
+    [
+        (
+            lambda p: OpenEXR.File(dict(HEAD, compression=OpenEXR.ZIP_COMPRESSION), channels()).write(str(p)),
+            ["compressed", "uncompressed"],
+        ),
+        (
+            lambda p: OpenEXR.File(
+                {"compression": OpenEXR.NO_COMPRESSION, "type": OpenEXR.tiledimage, "tiles": tiles(4)}, channels()
+            ).write(str(p)),
+            ["tiled"],
+        ),
+        (lambda p: p.write_bytes(b"\x76\x2f\x31\x01\x02\x00\x00\x00channels\x00chl"), ["truncated"]),
+        (lambda p: p.write_bytes(b"PNG not EXR"), ["not an OpenEXR file"]),
+    ],
+)
 def test_other_files_are_refused_by_name(tmp_path, make, words):
     path = tmp_path / "bad.exr"
     make(path)

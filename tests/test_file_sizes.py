@@ -28,7 +28,7 @@ def _spz_data(path):
     if raw[:2] == b"\x1f\x8b":
         return len(gzip.decompress(raw))
     streams, toc = struct.unpack("<BI", raw[15:20])
-    return sum(struct.unpack("<QQ", raw[toc + 16 * i: toc + 16 * i + 16])[1] for i in range(streams))
+    return sum(struct.unpack("<QQ", raw[toc + 16 * i : toc + 16 * i + 16])[1] for i in range(streams))
 
 
 @pytest.mark.parametrize("count, degree", CASES)
@@ -60,8 +60,12 @@ def test_usd_crate_size_is_its_arrays_and_a_little_structure(tmp_path, count, de
 
 def test_file_sizes_asks_each_format():
     sizes = file_sizes(1000, 3, spz_version=4, half=True)
-    assert sizes == {"ply": ply.file_size(1000, 3), "spz": spz.uncompressed_size(1000, 3, 4),
-                     "splat": 32_000, "usd": usd.data_size(1000, 3, half=True)}
+    assert sizes == {
+        "ply": ply.file_size(1000, 3),
+        "spz": spz.uncompressed_size(1000, 3, 4),
+        "splat": 32_000,
+        "usd": usd.data_size(1000, 3, half=True),
+    }
 
 
 @pytest.mark.parametrize("count, degree", CASES)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from helpers import random_cloud
 
-from splatwright.core import SplatCloud, geometry, sh
+from splatwright.core import SplatCloud, geometry
 
 
 def random_rotations(rng, n):
@@ -32,13 +32,17 @@ def relative_error(got, want):
 
 # Small helpers -----------------------------------------------------------------------------------
 
+
 def test_quaternion_products_compose_rotations(rng):
     a, b = rng.normal(size=(2, 500, 4))
     m = geometry.quaternions_to_matrices
     np.testing.assert_allclose(m(geometry.multiply_quaternions(a, b)), m(a) @ m(b), atol=1e-13)
     # Norms multiply, so a product with a unit quaternion keeps the stored norm.
-    np.testing.assert_allclose(np.linalg.norm(geometry.multiply_quaternions(a, b), axis=1),
-                               np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), rtol=1e-13)
+    np.testing.assert_allclose(
+        np.linalg.norm(geometry.multiply_quaternions(a, b), axis=1),
+        np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1),
+        rtol=1e-13,
+    )
 
 
 def test_determinants(rng):
@@ -47,6 +51,7 @@ def test_determinants(rng):
 
 
 # Polar decomposition and anisotropy ---------------------------------------------------------------
+
 
 def check_polar(a, r, s):
     eye = np.broadcast_to(np.eye(3), a.shape)
@@ -80,7 +85,7 @@ def test_polar_decomposition_of_nearly_singular_matrices(rng, polar_path):
     rot = random_rotations(rng, 6)
     flat = [1e-12, 1e-300, 0.0]
     a = np.stack([rot[i] @ np.diag([2.0, 0.5, f]) @ rot[i + 3] for i, f in enumerate(flat)])
-    a = np.concatenate([a, [np.outer([1.0, 2.0, 3.0], [0.5, -1.0, 2.0])]])    # rank 1
+    a = np.concatenate([a, [np.outer([1.0, 2.0, 3.0], [0.5, -1.0, 2.0])]])  # rank 1
     r, s = geometry.polar_decomposition(a)
     check_polar(a, r, s)
     assert np.isfinite(r).all() and np.isfinite(s).all()
@@ -92,8 +97,9 @@ def test_polar_rotation_stopped_early_is_within_1e_12_of_the_svd(rng, polar_path
     """tolerance=1e-7 (what skinning asks for, its output being float32) saves a Newton step: the
     step after a move below 1e-6 is accurate to about its square."""
     rot = random_rotations(rng, 2000)
-    a = np.concatenate([rng.normal(size=(1000, 3, 3)),
-                        rot[:1000] @ (np.eye(3) + 0.3 * rng.normal(size=(1000, 3, 3))) @ rot[1000:]])
+    a = np.concatenate(
+        [rng.normal(size=(1000, 3, 3)), rot[:1000] @ (np.eye(3) + 0.3 * rng.normal(size=(1000, 3, 3))) @ rot[1000:]]
+    )
     u, _, vt = np.linalg.svd(a)
     assert np.abs(geometry.polar_rotation(a, tolerance=1e-7) - u @ vt).max() < 1e-12
 
@@ -169,12 +175,12 @@ def test_transform_covariances_keeps_thin_axes(rng):
     det = np.abs(np.linalg.det(a)) * scales.prod(axis=1)
     s_sorted = np.sort(s2, axis=1)
     np.testing.assert_allclose(s_sorted.prod(axis=1), det, rtol=1e-9)
-    np.testing.assert_allclose(s_sorted[:, 2], np.sqrt(np.linalg.eigvalsh(m @ np.swapaxes(m, 1, 2))[:, 2]),
-                               rtol=1e-12)
+    np.testing.assert_allclose(s_sorted[:, 2], np.sqrt(np.linalg.eigvalsh(m @ np.swapaxes(m, 1, 2))[:, 2]), rtol=1e-12)
     assert s_sorted.min() >= 1e-8
 
 
 # SplatCloud.transformed ---------------------------------------------------------------------------
+
 
 def colours_seen_from(cloud, camera):
     return cloud.colors(camera_center=camera)
@@ -188,7 +194,7 @@ def similarities(rng):
         "scaled": affine(2.5 * rot[1], (10.0, 0.0, -1.0)),
         "mirror": affine(0.3 * rot[2] @ np.diag([1.0, -1.0, 1.0]), (0.0, 1.0, 0.0)),
         "shrunk": affine(1e-3 * rot[3]),
-        "axes": affine(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])),     # Blender Z-up to Y-up
+        "axes": affine(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])),  # Blender Z-up to Y-up
     }
 
 
@@ -214,8 +220,9 @@ def test_similarities_are_exact_to_float32_round_off(rng, similarities):
         np.testing.assert_array_equal(out.opacity_logits, cloud.opacity_logits)
         # Colours: a transformed camera sees what the original camera saw.
         for camera in cameras:
-            np.testing.assert_allclose(colours_seen_from(out, a @ camera + t), colours_seen_from(cloud, camera),
-                                       atol=2e-6, err_msg=name)
+            np.testing.assert_allclose(
+                colours_seen_from(out, a @ camera + t), colours_seen_from(cloud, camera), atol=2e-6, err_msg=name
+            )
 
 
 def test_rigid_round_trip(rng, similarities):
@@ -257,7 +264,7 @@ def test_far_from_the_origin(rng):
     cloud.positions[:] += np.float32(1e6)
     rot = random_rotations(rng, 1)[0]
     centre = np.full(3, 1e6)
-    m = affine(rot, -rot @ centre)                  # rotate about the far centre, land at the origin
+    m = affine(rot, -rot @ centre)  # rotate about the far centre, land at the origin
     out = cloud.transformed(m)
     want = (cloud.positions.astype(np.float64) - centre) @ rot.T
     np.testing.assert_allclose(out.positions, want, rtol=0, atol=1e-6)
@@ -268,9 +275,9 @@ def test_non_finite_splats_stay_reported_without_warnings(rng):
     cloud.positions[1, 0] = np.nan
     cloud.log_scales[2, 1] = np.inf
     cloud.rotations[3] = np.nan
-    cloud.rotations[4] = 0.0                         # read as the identity
-    cloud.rotations[6] *= np.float32(1e-20)           # tiny but fine: only the direction matters
-    cloud.log_scales[5, 2] = -np.inf                 # a flat splat (zero thickness) stays flat
+    cloud.rotations[4] = 0.0  # read as the identity
+    cloud.rotations[6] *= np.float32(1e-20)  # tiny but fine: only the direction matters
+    cloud.log_scales[5, 2] = -np.inf  # a flat splat (zero thickness) stays flat
     for a in (2.0 * random_rotations(rng, 1)[0], rng.normal(size=(3, 3))):
         with warnings.catch_warnings():
             warnings.simplefilter("error")

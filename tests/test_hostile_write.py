@@ -16,18 +16,26 @@ import numpy as np
 import pytest
 from helpers import PLATFORM_SKIP, random_cloud
 
-from splatwright.io import SplatFileError, read_splats, write_splats
-from splatwright.io import common
+from splatwright.io import SplatFileError, common, read_splats, write_splats
 from splatwright.io.exr import read_exr
 from splatwright.io.image import write_image
 
 pytestmark = pytest.mark.filterwarnings("ignore::splatwright.io.SplatFileWarning")
 
 TESTS = Path(__file__).parent
-SPLAT_FORMATS = {"ply": ".ply", "compressed_ply": ".compressed.ply", "spz": ".spz", "splat": ".splat",
-                 "usda": ".usda", "usdc": ".usdc", "usdz": ".usdz", "sog": ".sog", "glb": ".glb"}
+SPLAT_FORMATS = {
+    "ply": ".ply",
+    "compressed_ply": ".compressed.ply",
+    "spz": ".spz",
+    "splat": ".splat",
+    "usda": ".usda",
+    "usdc": ".usdc",
+    "usdz": ".usdz",
+    "sog": ".sog",
+    "glb": ".glb",
+}
 EXTENSIONS = {**SPLAT_FORMATS, "png": ".png", "exr": ".exr"}
-BY_NAME = ("usda", "usdc", "usdz", "exr")          # libraries writing by name: atomic_path
+BY_NAME = ("usda", "usdc", "usdz", "exr")  # libraries writing by name: atomic_path
 KINDS = list(EXTENSIONS)
 
 
@@ -37,8 +45,9 @@ def write(kind, path, n=60, seed=0):
         write_splats(path, random_cloud(n, sh_degree=1, seed=seed))
     else:
         rgb = np.random.default_rng(seed).random((n, 8, 3))
-        write_image(path, {"color": rgb, "alpha": np.ones((n, 8)), "depth": np.full((n, 8), 2.0)}
-                    if kind == "exr" else rgb)
+        write_image(
+            path, {"color": rgb, "alpha": np.ones((n, 8)), "depth": np.full((n, 8), 2.0)} if kind == "exr" else rgb
+        )
 
 
 def count(kind, path):
@@ -49,7 +58,7 @@ def count(kind, path):
         return read_exr(path)["R"].shape[0]
     data = Path(path).read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    return int.from_bytes(data[20:24], "big")       # IHDR height
+    return int.from_bytes(data[20:24], "big")  # IHDR height
 
 
 def target(tmp_path, kind, name="out"):
@@ -61,6 +70,7 @@ def partials(folder):
 
 
 # the partial's name, and nothing else appears -----------------------------------------------------
+
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_partial_is_named_for_its_target_and_nothing_else_appears(tmp_path, kind, monkeypatch):
@@ -79,16 +89,18 @@ def test_partial_is_named_for_its_target_and_nothing_else_appears(tmp_path, kind
     def record(fd):
         synced.append("folder" if stat.S_ISDIR(os.fstat(fd).st_mode) else os.fstat(fd).st_size)
         fsync(fd)
+
     monkeypatch.setattr(os, "replace", watch)
     monkeypatch.setattr(os, "fsync", record)
     write(kind, path)
     partial = f"{path.name}.splatwright-partial-{os.getpid()}"
-    assert seen == [(partial, path.name, [partial])]     # no tmpXXXX folder, no second file
+    assert seen == [(partial, path.name, [partial])]  # no tmpXXXX folder, no second file
     assert os.listdir(tmp_path) == [path.name] and count(kind, path) == 60
-    assert synced == [path.stat().st_size, "rename", "folder"]   # the whole file, then the rename
+    assert synced == [path.stat().st_size, "rename", "folder"]  # the whole file, then the rename
 
 
 # failures: the old file stays, no partial is left, the error names the file ----------------------
+
 
 @pytest.fixture(params=KINDS)
 def old_file(request, tmp_path):
@@ -108,6 +120,7 @@ def test_full_disk_at_fsync(old_file, monkeypatch, capfd):
 
     def full(fd):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
     monkeypatch.setattr(os, "fsync", full)
     with pytest.raises(SplatFileError) as exc:
         write(kind, path, n=40)
@@ -131,6 +144,7 @@ def test_full_disk_mid_write(tmp_path, kind, monkeypatch):
         os.dup2(full, fd)
         os.close(full)
         return fdopen(fd, mode, *args, **kwargs)
+
     monkeypatch.setattr(os, "fdopen", onto_full_disk)
     with pytest.raises(SplatFileError, match="No space left on device") as exc:
         write(kind, path, n=40)
@@ -154,6 +168,7 @@ def read_only(monkeypatch):
         folder.chmod(0o555)
         if os.geteuid() == 0:
             monkeypatch.setattr(os, "open", refuse)
+
     yield make
     for folder in folders:
         folder.chmod(0o755)
@@ -167,7 +182,7 @@ def test_read_only_folder(old_file, read_only, capfd):
     assert exc.value.path == str(path)
     assert f"no permission to write in the folder {path.parent}" in str(exc.value)
     assert_untouched(path, before)
-    assert capfd.readouterr().err == ""                  # no C++ error lines from OpenUSD or OpenEXR
+    assert capfd.readouterr().err == ""  # no C++ error lines from OpenUSD or OpenEXR
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -203,6 +218,7 @@ def test_pipes_and_devices_are_refused(tmp_path):
 
 
 # permissions and symlinks -------------------------------------------------------------------------
+
 
 def test_a_private_file_stays_private(old_file):
     kind, path, _ = old_file
@@ -240,7 +256,7 @@ def test_a_symlink_is_written_through(tmp_path, kind):
 def test_a_dangling_symlink_gets_its_target_made(tmp_path, kind):
     real = target(tmp_path, kind, "real")
     link = target(tmp_path, kind, "link")
-    link.symlink_to(real.name)                           # relative, as ln -s makes it
+    link.symlink_to(real.name)  # relative, as ln -s makes it
     write(kind, link, n=40)
     assert link.is_symlink() and count(kind, real) == 40
     assert sorted(os.listdir(tmp_path)) == sorted([real.name, link.name])
@@ -260,6 +276,7 @@ def test_symlink_to_a_missing_folder_and_a_loop(tmp_path):
 
 # sweeping what a killed write left -----------------------------------------------------------------
 
+
 def dead_pid():
     child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     return int(child.stdout)
@@ -267,13 +284,15 @@ def dead_pid():
 
 def test_sweep_removes_partials_of_dead_processes_and_old_ones(tmp_path):
     dead, alive, now = dead_pid(), os.getpid(), time.time()
-    files = {f"a.ply.splatwright-partial-{dead}": True,                 # its writer is gone
-             f"b.usdz.splatwright-partial-{dead}-2.layer": True,
-             f"b.usdc.splatwright-partial-{dead}.pgbJio": True,         # pxr's own temporary, killed in Save
-             f"c.ply.splatwright-partial-{alive}": False,               # being written now
-             f"d.ply.splatwright-partial-{alive}-1": True,              # alive, but a day old
-             "e.splatwright-partial-notes.txt": False,                  # no pid: not ours
-             "f.ply": False}
+    files = {
+        f"a.ply.splatwright-partial-{dead}": True,  # its writer is gone
+        f"b.usdz.splatwright-partial-{dead}-2.layer": True,
+        f"b.usdc.splatwright-partial-{dead}.pgbJio": True,  # pxr's own temporary, killed in Save
+        f"c.ply.splatwright-partial-{alive}": False,  # being written now
+        f"d.ply.splatwright-partial-{alive}-1": True,  # alive, but a day old
+        "e.splatwright-partial-notes.txt": False,  # no pid: not ours
+        "f.ply": False,
+    }
     for name in files:
         (tmp_path / name).write_bytes(b"x")
     old = now - common.STALE_AFTER - 60
@@ -292,6 +311,7 @@ def kill_while_writing(kind, path):
     """Run in a child process: write `path`, SIGKILL ourselves part way. Writers that write through
     an open file die after the first half of their first write reaches the partial; libraries
     writing by name (pxr, OpenEXR) die once the file is written, before the rename."""
+
     def die():
         os.kill(os.getpid(), signal.SIGKILL)
 
@@ -305,7 +325,7 @@ def kill_while_writing(kind, path):
                 self.f = f
 
             def write(self, data):
-                self.f.write(bytes(memoryview(data).cast("B")[:max(1, len(data) // 2)]))
+                self.f.write(bytes(memoryview(data).cast("B")[: max(1, len(data) // 2)]))
                 self.f.flush()
                 die()
 
@@ -317,6 +337,7 @@ def kill_while_writing(kind, path):
 
             def __exit__(self, *exc):
                 return self.f.__exit__(*exc)
+
         os.fdopen = lambda *args, **kwargs: DyingFile(fdopen(*args, **kwargs))
     write(kind, path, n=KILLED_SPLATS)
 
@@ -328,8 +349,10 @@ def killed(tmp_path_factory):
     for kind in KINDS:
         path = target(tmp_path_factory.mktemp(f"killed_{kind}"), kind)
         write(kind, path, n=10, seed=1)
-        code = f"import sys; sys.path.insert(0, {str(TESTS)!r}); import test_hostile_write as t; " \
-               f"t.kill_while_writing({kind!r}, {str(path)!r})"
+        code = (
+            f"import sys; sys.path.insert(0, {str(TESTS)!r}); import test_hostile_write as t; "
+            f"t.kill_while_writing({kind!r}, {str(path)!r})"
+        )
         runs[kind] = (path, path.read_bytes(), subprocess.Popen([sys.executable, "-c", code], cwd=TESTS))
     return {kind: (path, before, child.pid, child.wait(timeout=120)) for kind, (path, before, child) in runs.items()}
 
@@ -347,6 +370,7 @@ def test_kill_mid_write_leaves_the_old_file_and_a_partial_the_next_write_sweeps(
 
 # groups of files: all or none -----------------------------------------------------------------------
 
+
 def fail_on_fsync(monkeypatch, call):
     calls = []
     fsync = os.fsync
@@ -356,6 +380,7 @@ def fail_on_fsync(monkeypatch, call):
         if len(calls) == call:
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         fsync(fd)
+
     monkeypatch.setattr(os, "fsync", maybe_fail)
 
 
@@ -363,7 +388,7 @@ def test_publish_together_makes_a_group_appear_whole_or_not_at_all(tmp_path, mon
     names = [tmp_path / f"frame_{i}.ply" for i in range(3)]
     write("ply", names[1], n=5)
     before = names[1].read_bytes()
-    fail_on_fsync(monkeypatch, 3)                        # the third file's data does not reach the disk
+    fail_on_fsync(monkeypatch, 3)  # the third file's data does not reach the disk
     with pytest.raises(SplatFileError, match="No space left") as exc, common.publish_together():
         for path in names:
             write("ply", path, n=40)
@@ -373,7 +398,7 @@ def test_publish_together_makes_a_group_appear_whole_or_not_at_all(tmp_path, mon
     monkeypatch.undo()
     with common.publish_together():
         for path in names:
-            with common.publish_together():              # an inner group joins the outer one
+            with common.publish_together():  # an inner group joins the outer one
                 write("ply", path, n=40)
             assert not names[0].exists()
     assert sorted(os.listdir(tmp_path)) == [p.name for p in names] and count("ply", names[2]) == 40
@@ -385,7 +410,7 @@ def test_multi_file_formats_keep_the_old_set_when_one_file_fails(tmp_path, monke
     write_splats(path, random_cloud(10, sh_degree=1, seed=1))
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     assert set(files) <= set(before)
-    fail_on_fsync(monkeypatch, len(before))              # the last file of the new set fails
+    fail_on_fsync(monkeypatch, len(before))  # the last file of the new set fails
     with pytest.raises(SplatFileError, match="No space left") as exc:
         write_splats(path, random_cloud(40, sh_degree=1))
     assert exc.value.path == str(path)
@@ -395,14 +420,16 @@ def test_multi_file_formats_keep_the_old_set_when_one_file_fails(tmp_path, monke
 def test_openusd_failing_to_save_is_a_splat_file_error_and_leaves_nothing(tmp_path, monkeypatch, capfd):
     """pxr's own temporary (`<partial>.XXXXXX`) goes with the partial; nothing is printed."""
     from splatwright.io import usd
+
     author = usd.stages.PXR._author_stage
 
     def blocked(path, layer_path, *args):
-        os.mkdir(layer_path + ".in_the_way")             # pxr saves, then cannot rename onto a folder
+        os.mkdir(layer_path + ".in_the_way")  # pxr saves, then cannot rename onto a folder
         try:
             author(path, layer_path + ".in_the_way", *args)
         finally:
             os.rmdir(layer_path + ".in_the_way")
+
     monkeypatch.setattr(usd.stages.PXR, "_author_stage", blocked)
     path = tmp_path / "out.usdc"
     with pytest.raises(SplatFileError, match="OpenUSD could not write it: .*Is a directory") as exc:

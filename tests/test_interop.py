@@ -9,8 +9,18 @@ Further rows sit with their formats below.
 import numpy as np
 import pytest
 from helpers import random_cloud, rebuilt_rotation_bound
-from interop import (cloud_from_arrays, load_arrays, load_json, matched, node, ply_arrays, python, save_arrays,
-                     save_json, splat_transform)
+from interop import (
+    cloud_from_arrays,
+    load_arrays,
+    load_json,
+    matched,
+    node,
+    ply_arrays,
+    python,
+    save_arrays,
+    save_json,
+    splat_transform,
+)
 from test_spz_splat import check_spz_error, in_range_cloud, spz_rotation_bound
 
 from splatwright.core import SplatCloud
@@ -22,21 +32,34 @@ DEGREES = [0, 1, 2, 3]
 
 # SPZ ------------------------------------------------------------------------------------------------
 
+
 def niantic_arrays(cloud):
     """The reference library's GaussianCloud fields (RDF, like the model): xyzw quaternions, SH
     coefficient-major with the channel fastest."""
     n, k = len(cloud), cloud.sh.shape[1]
-    return dict(numPoints=n, shDegree=cloud.sh_degree, positions=cloud.positions, scales=cloud.log_scales,
-                rotations=cloud.rotations[:, [1, 2, 3, 0]], alphas=cloud.opacity_logits, colors=cloud.sh[:, 0],
-                sh=cloud.sh[:, 1:].reshape(n, 3 * (k - 1)))
+    return dict(
+        numPoints=n,
+        shDegree=cloud.sh_degree,
+        positions=cloud.positions,
+        scales=cloud.log_scales,
+        rotations=cloud.rotations[:, [1, 2, 3, 0]],
+        alphas=cloud.opacity_logits,
+        colors=cloud.sh[:, 0],
+        sh=cloud.sh[:, 1:].reshape(n, 3 * (k - 1)),
+    )
 
 
 def cloud_from_niantic(a):
     n, k = int(a["numPoints"]), (int(a["shDegree"]) + 1) ** 2
     xyzw = np.asarray(a["rotations"], np.float32).reshape(n, 4)
     sh = np.concatenate([np.reshape(a["colors"], (n, 1, 3)), np.reshape(a["sh"], (n, k - 1, 3))], axis=1)
-    return SplatCloud(np.reshape(a["positions"], (n, 3)), xyzw[:, [3, 0, 1, 2]], np.reshape(a["scales"], (n, 3)),
-                      np.reshape(a["alphas"], n), sh)
+    return SplatCloud(
+        np.reshape(a["positions"], (n, 3)),
+        xyzw[:, [3, 0, 1, 2]],
+        np.reshape(a["scales"], (n, 3)),
+        np.reshape(a["alphas"], n),
+        sh,
+    )
 
 
 @pytest.mark.parametrize("degree", DEGREES)
@@ -51,15 +74,15 @@ def test_spz_niantic_both_ways_and_byte_identical(tmp_path, version, degree):
     check_spz_error(read_splats(tmp_path / "theirs.spz"), cloud, rotation_bound=rotation_bound)
     node("adobe_spz.mjs", "read", tmp_path / "ours.spz", tmp_path / "back.json")
     check_spz_error(cloud_from_niantic(load_json(tmp_path / "back.json")), cloud, rotation_bound=rotation_bound)
-    if version == 2:    # v2 keeps x, y, z of the quaternion with w >= 0: compare those
+    if version == 2:  # v2 keeps x, y, z of the quaternion with w >= 0: compare those
         ours, theirs = read_splats(tmp_path / "ours.spz"), cloud_from_niantic(load_json(tmp_path / "back.json"))
-        np.testing.assert_allclose(theirs.rotations, ours.rotations, atol=2e-5)   # w from float32 sqrt
+        np.testing.assert_allclose(theirs.rotations, ours.rotations, atol=2e-5)  # w from float32 sqrt
 
 
 def test_spz_rounding_ties_go_away_from_zero(tmp_path):
     """Values exactly halfway between two steps: Niantic rounds them away from zero (C's round)."""
     cloud = in_range_cloud(8, degree=1, seed=3)
-    cloud.positions[:] = (np.arange(24).reshape(8, 3) - 12 + 0.5) / 4096       # every one a tie
+    cloud.positions[:] = (np.arange(24).reshape(8, 3) - 12 + 0.5) / 4096  # every one a tie
     cloud.log_scales[:] = (np.arange(24).reshape(8, 3) + 60.5) / 16 - 10
     save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
     node("adobe_spz.mjs", "write", tmp_path / "cloud.json", tmp_path / "theirs.spz", 4)
@@ -82,11 +105,12 @@ def test_spz_gsply_both_ways(tmp_path, version, degree):
     python("gsply", "gsply_tool.py", "write-spz", tmp_path / "cloud.npz", tmp_path / "theirs.spz", version)
     got = spz.read(tmp_path / "theirs.spz", axes=None)
     check_spz_error(got, cloud, sh=False)
-    if degree:       # 8-bit SH: half a step of 1/128
+    if degree:  # 8-bit SH: half a step of 1/128
         assert np.abs(got.sh[:, 1:] - cloud.sh[:, 1:]).max() <= 0.5 / 128 + 1e-6
 
 
 # the same file decoded by them and by us ---------------------------------------------------------------
+
 
 def assert_same_splats(got, want, position=1e-6, scale=1e-5, opacity=1e-4, sh=1e-5, angle_deg=0.01):
     """Two decodings of one file: equal up to float32 round-off (the tolerances, absolute; opacity
@@ -116,11 +140,12 @@ def transform_ply(tmp_path, source, name):
 
 # PLY -----------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("degree", DEGREES)
 def test_ply_splat_transform_and_gsply_both_ways(tmp_path, degree):
     cloud = random_cloud(200, sh_degree=degree, seed=degree)
     write_splats(tmp_path / "ours.ply", cloud)
-    back = transform_ply(tmp_path, tmp_path / "ours.ply", "theirs.ply")       # they read ours, write theirs
+    back = transform_ply(tmp_path, tmp_path / "ours.ply", "theirs.ply")  # they read ours, write theirs
     for got in (back, read_splats(tmp_path / "theirs.ply")):
         np.testing.assert_array_equal(got.positions, cloud.positions)
         np.testing.assert_array_equal(got.sh, cloud.sh)
@@ -135,6 +160,7 @@ def test_ply_splat_transform_and_gsply_both_ways(tmp_path, degree):
 
 # compressed PLY ------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("degree", DEGREES)
 def test_compressed_ply_both_ways(tmp_path, degree):
     cloud = random_cloud(600, sh_degree=degree, seed=20 + degree)
@@ -147,8 +173,9 @@ def test_compressed_ply_both_ways(tmp_path, degree):
     assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
     # theirs: splat-transform (Morton order) and gsply, read by us, against their own decoding
     splat_transform(tmp_path / "src.ply", tmp_path / "st.compressed.ply")
-    assert_same_splats(read_splats(tmp_path / "st.compressed.ply"),
-                       transform_ply(tmp_path, tmp_path / "st.compressed.ply", "b.ply"))
+    assert_same_splats(
+        read_splats(tmp_path / "st.compressed.ply"), transform_ply(tmp_path, tmp_path / "st.compressed.ply", "b.ply")
+    )
     save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
     python("gsply", "gsply_tool.py", "write-compressed", tmp_path / "cloud.npz", tmp_path / "gs.compressed.ply")
     python("gsply", "gsply_tool.py", "read-ply", tmp_path / "gs.compressed.ply", tmp_path / "gs.npz")
@@ -160,7 +187,7 @@ def test_compressed_ply_both_ways(tmp_path, degree):
 def check_compressed_error(got, want):
     """Bounds of the compressed layout: 10-11 bits of each chunk's range (at most the cloud's),
     8 bits of colour range and opacity, SH bytes of 1/32."""
-    span = lambda a: a.max(axis=0) - a.min(axis=0)                     # noqa: E731
+    span = lambda a: a.max(axis=0) - a.min(axis=0)  # noqa: E731
     assert (np.abs(got.positions - want.positions) <= span(want.positions) / 2046 + 1e-6).all()
     assert (np.abs(got.log_scales - want.log_scales) <= span(want.log_scales) / 2046 + 1e-5).all()
     assert np.abs(got.opacities - want.opacities).max() <= 0.5 / 255 + 1e-6
@@ -169,6 +196,7 @@ def check_compressed_error(got, want):
 
 
 # SOG -----------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("degree", DEGREES)
 def test_sog_both_ways(tmp_path, degree):
@@ -190,9 +218,15 @@ def test_sog_both_ways(tmp_path, degree):
     # entries of the 256-entry codebooks their file carries, rotations within the 8-bit smallest-three's
     # bound (the SH palette they cluster is compared through splat-transform's own decoding, above)
     got, books = matched(theirs, cloud), sog_codebooks(tmp_path / "theirs.sog")
-    assert_same_splats(got.with_sh_degree(0).replace(sh=cloud.sh[:, :1], log_scales=cloud.log_scales,
-                                                     rotations=cloud.rotations),
-                       cloud.with_sh_degree(0), position=2e-4, scale=0, opacity=1 / 255, sh=0, angle_deg=1e-5)
+    assert_same_splats(
+        got.with_sh_degree(0).replace(sh=cloud.sh[:, :1], log_scales=cloud.log_scales, rotations=cloud.rotations),
+        cloud.with_sh_degree(0),
+        position=2e-4,
+        scale=0,
+        opacity=1 / 255,
+        sh=0,
+        angle_deg=1e-5,
+    )
     nearest = np.abs(cloud.log_scales[..., None] - books["scales"]).min(axis=-1)
     assert (np.abs(got.log_scales - cloud.log_scales) <= nearest + 1e-6).all()
     # splat-transform 2.7.1 gives the odd splat (1-2 of 500 when it writes SH bands) the codebook's first
@@ -212,6 +246,7 @@ def sog_codebooks(path):
     """The 256-entry codebooks (log-scales, DC colours) an .sog file's meta.json carries."""
     import json
     import zipfile
+
     with zipfile.ZipFile(path) as archive:
         meta = json.loads(archive.read("meta.json"))
     return {key: np.asarray(meta[key]["codebook"], np.float64) for key in ("scales", "sh0")}
@@ -219,7 +254,7 @@ def sog_codebooks(path):
 
 # glTF ----------------------------------------------------------------------------------------------
 
-GLTF_SH_SIGNS = np.float32([1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1])   # parity under x, y -> -x, -y
+GLTF_SH_SIGNS = np.float32([1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1, 1, -1])  # parity under x, y -> -x, -y
 
 
 @pytest.mark.parametrize("degree", DEGREES)
@@ -233,8 +268,9 @@ def test_gltf_both_ways(tmp_path, degree, ext):
     attributes = read["primitives"][0]
     unit = cloud.unit_rotations
     np.testing.assert_array_equal(np.float32(attributes["POSITION"]), cloud.positions * np.float32([-1, -1, 1]))
-    np.testing.assert_allclose(attributes["KHR_gaussian_splatting:ROTATION"], unit[:, [1, 2, 3, 0]] * [-1, -1, 1, 1],
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        attributes["KHR_gaussian_splatting:ROTATION"], unit[:, [1, 2, 3, 0]] * [-1, -1, 1, 1], atol=1e-6
+    )
     np.testing.assert_allclose(attributes["KHR_gaussian_splatting:SCALE"], cloud.scales, rtol=1e-6)
     np.testing.assert_allclose(np.reshape(attributes["KHR_gaussian_splatting:OPACITY"], -1), cloud.opacities, atol=1e-7)
     for d in range(4):
@@ -242,7 +278,9 @@ def test_gltf_both_ways(tmp_path, degree, ext):
             name = f"KHR_gaussian_splatting:SH_DEGREE_{d}_COEF_{c}"
             assert (name in attributes) == (d <= degree)
             if d <= degree:
-                np.testing.assert_array_equal(np.float32(attributes[name]), cloud.sh[:, d * d + c] * GLTF_SH_SIGNS[d * d + c])
+                np.testing.assert_array_equal(
+                    np.float32(attributes[name]), cloud.sh[:, d * d + c] * GLTF_SH_SIGNS[d * d + c]
+                )
     # theirs (splat-transform's .glb) against their own decoding of the PLY they read
     write_splats(tmp_path / "src.ply", cloud)
     splat_transform(tmp_path / "src.ply", tmp_path / "theirs.glb")
@@ -252,6 +290,7 @@ def test_gltf_both_ways(tmp_path, degree, ext):
 
 
 # .splat --------------------------------------------------------------------------------------------
+
 
 def test_splat_both_ways(tmp_path):
     cloud = random_cloud(300, sh_degree=0, seed=50)
@@ -267,11 +306,13 @@ def test_splat_both_ways(tmp_path):
     cos = np.abs((theirs.unit_rotations * cloud.unit_rotations).sum(axis=1))
     assert np.degrees(2 * np.arccos(np.clip(cos, 0, 1))).max() <= 2.0
     write_splats(tmp_path / "ours.splat", cloud)
-    assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.splat", "a.ply"), read_splats(tmp_path / "ours.splat"),
-                       angle_deg=1.0)
+    assert_same_splats(
+        transform_ply(tmp_path, tmp_path / "ours.splat", "a.ply"), read_splats(tmp_path / "ours.splat"), angle_deg=1.0
+    )
 
 
 # OpenUSD -------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("degree", DEGREES)
 def test_usd_nvidia_converter_and_openusd_schema(tmp_path, degree):
@@ -281,7 +322,7 @@ def test_usd_nvidia_converter_and_openusd_schema(tmp_path, degree):
     cloud = random_cloud(40, sh_degree=degree, seed=60 + degree)
     write_splats(tmp_path / "src.ply", cloud)
     python("nvidia", "-m", "usd_convert_gsplat", "-i", tmp_path / "src.ply", "-o", tmp_path / "nvidia.usda")
-    theirs = read_splats(tmp_path / "nvidia.usda")                       # no upright transform: capture values
+    theirs = read_splats(tmp_path / "nvidia.usda")  # no upright transform: capture values
     np.testing.assert_array_equal(theirs.positions, cloud.positions)
     np.testing.assert_allclose(theirs.sh, cloud.sh, atol=0)
     np.testing.assert_allclose(theirs.log_scales, cloud.log_scales, atol=2e-6)

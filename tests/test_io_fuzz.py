@@ -25,10 +25,11 @@ from splatwright.core import SplatCloud
 from splatwright.core.splats import FIELDS, MAX_LOG_SCALE, MAX_MAGNITUDE
 from splatwright.io import SplatFileError, SplatFileWarning, exr, image, mesh, ply, read_splats, splat, spz, urdf, usd
 
-SMALL_PEAK = 64 << 20          # bytes: a refused header claim must not allocate more than this
+SMALL_PEAK = 64 << 20  # bytes: a refused header claim must not allocate more than this
 
 
 # the two allowed outcomes ------------------------------------------------------------------------
+
 
 def outcome(read, path, *args, **options):
     """(result, warnings) of a read that succeeded, or None after a SplatFileError naming the file;
@@ -62,6 +63,7 @@ def check_splat_read(read, path):
 
 # systematic damage --------------------------------------------------------------------------------
 
+
 def damaged(data, header_len, seed, flips=24):
     """(label, bytes): empty, truncated at many offsets, flipped bits and words overwritten with
     0xFF or 0x00 in header and body, random garbage of the same length, trailing junk."""
@@ -81,7 +83,7 @@ def damaged(data, header_len, seed, flips=24):
     for i in range(flips // 3):
         at = int(rng.integers(0, header_len if i % 2 else n))
         for word in (b"\xff" * 4, b"\x00" * 4):
-            yield f"word{at}", (data[:at] + word + data[at + 4:])[:n]
+            yield f"word{at}", (data[:at] + word + data[at + 4 :])[:n]
     yield "garbage", rng.integers(0, 256, n, dtype=np.uint8).tobytes()
     yield "trailing", data + b"\x00" * 7
 
@@ -104,6 +106,7 @@ def peak_bytes(fn, *args):
 
 
 # PLY ------------------------------------------------------------------------------------------------
+
 
 def ply_bytes(tmp_path, n=40, degree=1):
     path = tmp_path / "valid.ply"
@@ -128,10 +131,10 @@ def test_ply_binary_damage(tmp_path):
         assert np.array_equal(cloud.rotations, np.stack([body[f"rot_{i}"] for i in range(4)], 1))
         assert np.array_equal(cloud.sh[:, 0], np.stack([body[f"f_dc_{i}"] for i in range(3)], 1))
         reads += 1
-    assert reads >= 5           # enough harmless body damage was read back and compared
+    assert reads >= 5  # enough harmless body damage was read back and compared
 
 
-@pytest.mark.parametrize("count", ["39", "41", "0", str(1 << 40), str(10 ** 30)])
+@pytest.mark.parametrize("count", ["39", "41", "0", str(1 << 40), str(10**30)])
 def test_ply_counts_that_lie(tmp_path, count):
     data, header_len = ply_bytes(tmp_path)
     bad = data.replace(b"element vertex 40\n", f"element vertex {count}\n".encode())
@@ -147,8 +150,9 @@ def ply_ascii(rows=3, types=None):
     values = np.random.default_rng(0).normal(size=(rows, len(names)))
     head = ["ply", "format ascii 1.0", f"element vertex {rows}"]
     head += [f"property {types.get(n, 'float')} {n}" for n in names] + ["end_header"]
-    body = [" ".join(f"{v:.5f}" if types.get(n, "float") == "float" else "1" for n, v in zip(names, row))
-            for row in values]
+    body = [
+        " ".join(f"{v:.5f}" if types.get(n, "float") == "float" else "1" for n, v in zip(names, row)) for row in values
+    ]
     return ("\n".join(head + body) + "\n").encode(), names
 
 
@@ -171,21 +175,29 @@ def test_ply_ascii_bad_values(tmp_path):
 
     nx, ny = names.index("nx"), names.index("ny")
     cases = {
-        "nan": with_value(0, b"nan"), "inf": with_value(1, b"-inf"), "beyond_float32": with_value(2, b"1e39"),
-        "uchar_300": with_value(nx, b"300"), "uchar_negative": with_value(nx, b"-1"),
-        "int_fraction": with_value(ny, b"1.5"), "int_overflow": with_value(ny, b"99999999999"),
-        "word": with_value(0, b"zero"), "short_row": head + rows[0] + b"\n1 2 3\n" + b"\n".join(rows[2:]),
-        "non_utf8_body": data[:first + 5] + b"\xff\xfe" + data[first + 5:],
+        "nan": with_value(0, b"nan"),
+        "inf": with_value(1, b"-inf"),
+        "beyond_float32": with_value(2, b"1e39"),
+        "uchar_300": with_value(nx, b"300"),
+        "uchar_negative": with_value(nx, b"-1"),
+        "int_fraction": with_value(ny, b"1.5"),
+        "int_overflow": with_value(ny, b"99999999999"),
+        "word": with_value(0, b"zero"),
+        "short_row": head + rows[0] + b"\n1 2 3\n" + b"\n".join(rows[2:]),
+        "non_utf8_body": data[: first + 5] + b"\xff\xfe" + data[first + 5 :],
         "non_utf8_header": data[:20] + b"\xc3\x28" + data[20:],
         "count_huge": data.replace(b"element vertex 3", b"element vertex 1099511627776"),
         "count_short": data.replace(b"element vertex 3", b"element vertex 2"),
         "version": data.replace(b"format ascii 1.0", b"format ascii 2.0"),
         "no_opacity": data.replace(b"property float opacity\n", b""),
         "list_vertex": data.replace(b"property float x\n", b"property list uchar float x\n"),
-        "f_rest_01": data.replace(b"property float f_dc_2\n", b"property float f_dc_2\n" + b"".join(
-            f"property float f_rest_{i:02d}\n".encode() for i in range(9))),
-        "repeated_other": data.replace(b"element vertex", b"element face 0\nproperty int a\nproperty int a\n"
-                                                         b"element vertex"),
+        "f_rest_01": data.replace(
+            b"property float f_dc_2\n",
+            b"property float f_dc_2\n" + b"".join(f"property float f_rest_{i:02d}\n".encode() for i in range(9)),
+        ),
+        "repeated_other": data.replace(
+            b"element vertex", b"element face 0\nproperty int a\nproperty int a\nelement vertex"
+        ),
     }
     for label, bad in cases.items():
         path = write_case(tmp_path, label, ".ply", bad)
@@ -203,6 +215,7 @@ def test_ply_ascii_bad_values(tmp_path):
 
 # .splat -----------------------------------------------------------------------------------------
 
+
 def test_splat_damage_reads_the_damaged_bytes(tmp_path):
     path = tmp_path / "valid.splat"
     splat.write(path, random_cloud(30, sh_degree=0, seed=4))
@@ -210,11 +223,15 @@ def test_splat_damage_reads_the_damaged_bytes(tmp_path):
     compared = 0
     for label, bad in damaged(data, 32, seed=3):
         cloud = check_splat_read(read_splats, write_case(tmp_path, label, ".splat", bad))
-        if cloud is None:           # refused: a partial record, or values the non-finite rule refuses
-            floats = np.frombuffer(bad[:len(bad) // 32 * 32], "<f4").reshape(-1, 8)[:, :6].astype(np.float64)
+        if cloud is None:  # refused: a partial record, or values the non-finite rule refuses
+            floats = np.frombuffer(bad[: len(bad) // 32 * 32], "<f4").reshape(-1, 8)[:, :6].astype(np.float64)
             with np.errstate(divide="ignore", over="ignore"):
-                assert len(bad) % 32 or not np.isfinite(floats).all() or \
-                    (np.abs(floats[:, :3]) > MAX_MAGNITUDE).any() or (np.log(np.abs(floats[:, 3:])) > MAX_LOG_SCALE).any()
+                assert (
+                    len(bad) % 32
+                    or not np.isfinite(floats).all()
+                    or (np.abs(floats[:, :3]) > MAX_MAGNITUDE).any()
+                    or (np.log(np.abs(floats[:, 3:])) > MAX_LOG_SCALE).any()
+                )
             continue
         records = np.frombuffer(bad, [("p", "<f4", 3), ("s", "<f4", 3), ("c", "u1", 4), ("q", "u1", 4)])
         assert np.array_equal(cloud.positions, records["p"])
@@ -222,12 +239,13 @@ def test_splat_damage_reads_the_damaged_bytes(tmp_path):
         with np.errstate(divide="ignore"):
             logs = np.log(np.abs(records["s"].astype(np.float64)))
         ok = np.isfinite(logs)
-        assert np.array_equal(cloud.log_scales[ok], logs[ok].astype(np.float32))    # zero scales: see io/common
+        assert np.array_equal(cloud.log_scales[ok], logs[ok].astype(np.float32))  # zero scales: see io/common
         compared += 1
     assert compared >= 10
 
 
 # SPZ --------------------------------------------------------------------------------------------
+
 
 def spz_bytes(tmp_path, version):
     path = tmp_path / f"valid{version}.spz"
@@ -249,18 +267,29 @@ def test_spz_damage(tmp_path, version):
 def test_spz_payload_damage_and_lying_headers(tmp_path, version):
     """Damage inside the gzip stream (recompressed, so it decompresses) reaches the decoder."""
     payload = gzip.decompress(spz_bytes(tmp_path, version))
-    fields = dict(zip(["magic", "version", "count", "degree", "bits", "flags", "reserved"],
-                      spz.HEADER.unpack_from(payload)))
+    fields = dict(
+        zip(["magic", "version", "count", "degree", "bits", "flags", "reserved"], spz.HEADER.unpack_from(payload))
+    )
 
     def header(**changes):
         return gzip.compress(spz.HEADER.pack(*{**fields, **changes}.values()) + payload[16:])
 
-    cases = {"count_short": header(count=29), "count_long": header(count=31), "count_zero": header(count=0),
-             "count_max": header(count=spz.MAX_POINTS), "count_2_32": header(count=0xFFFFFFFF),
-             "degree_up": header(degree=3), "degree_9": header(degree=9), "bits_30": header(bits=30),
-             "version_1": header(version=1), "version_4": header(version=4), "version_9": header(version=9),
-             "magic": header(magic=0x12345678), "flags": header(flags=0xFF),
-             "gzip_twice": gzip.compress(gzip.compress(payload))}
+    cases = {
+        "count_short": header(count=29),
+        "count_long": header(count=31),
+        "count_zero": header(count=0),
+        "count_max": header(count=spz.MAX_POINTS),
+        "count_2_32": header(count=0xFFFFFFFF),
+        "degree_up": header(degree=3),
+        "degree_9": header(degree=9),
+        "bits_30": header(bits=30),
+        "version_1": header(version=1),
+        "version_4": header(version=4),
+        "version_9": header(version=9),
+        "magic": header(magic=0x12345678),
+        "flags": header(flags=0xFF),
+        "gzip_twice": gzip.compress(gzip.compress(payload)),
+    }
     for label, bad in damaged(payload, 16, seed=10 + version):
         cases[f"inner_{label}"] = gzip.compress(bad)
     for label, bad in cases.items():
@@ -278,8 +307,9 @@ def test_spz_claims_beyond_the_file_fail_before_allocating(tmp_path):
     frame = struct.pack("<IB", 0xFD2FB528, 0xE0) + struct.pack("<Q", 1 << 30) + b"\x01\x00\x00"
     table = b"".join(struct.pack("<QQ", len(frame), 0) for _ in range(streams))
     empty = spz.V4_HEADER.pack(magic, version, 0, degree, bits, flags, streams, toc)
-    declared = write_case(tmp_path, "zstd_declared", ".spz", empty + data[spz.V4_HEADER.size:toc] + table
-                          + frame * streams)
+    declared = write_case(
+        tmp_path, "zstd_declared", ".spz", empty + data[spz.V4_HEADER.size : toc] + table + frame * streams
+    )
     # v4 table of contents with sizes near 2^64
     wrap = bytearray(data)
     struct.pack_into("<Q", wrap, toc, (1 << 64) - 8)
@@ -294,6 +324,7 @@ def test_spz_claims_beyond_the_file_fail_before_allocating(tmp_path):
 
 
 # OpenUSD ----------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("ext", [".usda", ".usdc", ".usdz"])
 def test_usd_damage(tmp_path, ext):
@@ -332,8 +363,10 @@ USDA_BAD = {
     "positions_scalar": (POSITIONS, "float positions = 3"),
     "positions_nan": (POSITIONS, "point3f[] positions = [(nan, 0, 1), (1, 0, 1), (0, 1, 1)]"),
     "orientations_float": ("quatf[] orientations", "float[] orientations"),
-    "scales_matrix": ("float3[] scales = [(0.1, 0.2, 0.3), (0.1, 0.1, 0.1), (1, 2, 3)]",
-                      "matrix4d scales = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))"),
+    "scales_matrix": (
+        "float3[] scales = [(0.1, 0.2, 0.3), (0.1, 0.1, 0.1), (1, 2, 3)]",
+        "matrix4d scales = ((1, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1))",
+    ),
     "scales_bool": ("float3[] scales = [(0.1, 0.2, 0.3), (0.1, 0.1, 0.1), (1, 2, 3)]", "bool[] scales = [1, 0, 1]"),
     "opacities_vectors": ("float[] opacities = [0.5, 0.25, 1]", "float3[] opacities = [(1, 2, 3)]"),
     "opacities_inf": ("float[] opacities = [0.5, 0.25, 1]", "float[] opacities = [inf, 0.25, 1]"),
@@ -341,27 +374,41 @@ USDA_BAD = {
     "degree_fraction": (DEGREE, "uniform float radiance:sphericalHarmonicsDegree = 1.5"),
     "degree_negative": (DEGREE, "uniform int radiance:sphericalHarmonicsDegree = -1"),
     "degree_array": (DEGREE, "uniform int[] radiance:sphericalHarmonicsDegree = [1, 2]"),
-    "sh_floats": ("float3[] radiance:sphericalHarmonicsCoefficients",
-                  "float[] radiance:sphericalHarmonicsCoefficients"),
+    "sh_floats": (
+        "float3[] radiance:sphericalHarmonicsCoefficients",
+        "float[] radiance:sphericalHarmonicsCoefficients",
+    ),
     "logits_strings": ("}\n", 'custom string[] splatwright:opacityLogits = ["a", "b", "c"]\n}\n'),
     "log_scales_floats": ("}\n", "custom float[] splatwright:logScales = [1, 2, 3, 4]\n}\n"),
-    "translate_nan": (PRIM, PRIM + "double3 xformOp:translate = (nan, 0, 0)\n"
-                            'uniform token[] xformOpOrder = ["xformOp:translate"]\n'),
-    "scale_zero": (PRIM, PRIM + "double3 xformOp:scale = (0, 0, 0)\n"
-                         'uniform token[] xformOpOrder = ["xformOp:scale"]\n'),
-    "scale_huge": (PRIM, PRIM + "double3 xformOp:scale = (1e300, 1e300, 1e300)\n"
-                         'uniform token[] xformOpOrder = ["xformOp:scale"]\n'),
+    "translate_nan": (
+        PRIM,
+        PRIM + 'double3 xformOp:translate = (nan, 0, 0)\nuniform token[] xformOpOrder = ["xformOp:translate"]\n',
+    ),
+    "scale_zero": (
+        PRIM,
+        PRIM + 'double3 xformOp:scale = (0, 0, 0)\nuniform token[] xformOpOrder = ["xformOp:scale"]\n',
+    ),
+    "scale_huge": (
+        PRIM,
+        PRIM + 'double3 xformOp:scale = (1e300, 1e300, 1e300)\nuniform token[] xformOpOrder = ["xformOp:scale"]\n',
+    ),
     "meters_nan": ("metersPerUnit = 1", "metersPerUnit = nan"),
     "meters_zero": ("metersPerUnit = 1", "metersPerUnit = 0"),
     "latin1": ('"Splats"', '"Spl\xe9ts"'),
     "version": ("#usda 1.0", "#usda 99.0"),
-    "adobe_widths_strings": (PRIM, 'def Points "P"\n{\npoint3f[] points = [(0, 0, 0)]\n'
-                                   'string[] primvars:widths1 = ["a"]\nfloat[] primvars:widths2 = [1]\n'
-                                   "quatf[] primvars:rot = [(1, 0, 0, 0)]\n}\n" + PRIM),
-    "adobe_colour_floats": (PRIM, 'def Points "P"\n{\npoint3f[] points = [(0, 0, 0)]\n'
-                                  "float[] primvars:widths1 = [1]\nfloat[] primvars:widths2 = [1]\n"
-                                  "quatf[] primvars:rot = [(1, 0, 0, 0)]\n"
-                                  "float[] primvars:displayColor = [1, 2, 3, 4]\n}\n" + PRIM),
+    "adobe_widths_strings": (
+        PRIM,
+        'def Points "P"\n{\npoint3f[] points = [(0, 0, 0)]\n'
+        'string[] primvars:widths1 = ["a"]\nfloat[] primvars:widths2 = [1]\n'
+        "quatf[] primvars:rot = [(1, 0, 0, 0)]\n}\n" + PRIM,
+    ),
+    "adobe_colour_floats": (
+        PRIM,
+        'def Points "P"\n{\npoint3f[] points = [(0, 0, 0)]\n'
+        "float[] primvars:widths1 = [1]\nfloat[] primvars:widths2 = [1]\n"
+        "quatf[] primvars:rot = [(1, 0, 0, 0)]\n"
+        "float[] primvars:displayColor = [1, 2, 3, 4]\n}\n" + PRIM,
+    ),
 }
 
 
@@ -372,8 +419,11 @@ def test_usd_malformed_attributes(tmp_path):
         path.write_bytes(USDA.replace(old, new, 1).encode("latin-1"))
         got = outcome(read_splats, path)
         assert got is None, f"{label}: read without an error"
-    with pytest.raises(SplatFileError, match=r"/Splats: positions holds a FloatArray \(float32, shape \(7,\)\), "
-                                             "expected an array of 3-component vectors"):
+    with pytest.raises(
+        SplatFileError,
+        match=r"/Splats: positions holds a FloatArray \(float32, shape \(7,\)\), "
+        "expected an array of 3-component vectors",
+    ):
         read_splats(tmp_path / "bad_positions_float.usda")
     with pytest.raises(SplatFileError, match="radiance:sphericalHarmonicsDegree is 'two', expected an int >= 0"):
         read_splats(tmp_path / "bad_degree_string.usda")
@@ -388,6 +438,7 @@ def test_usd_malformed_attributes(tmp_path):
 def test_usd_extra_dtype_custom_data(tmp_path):
     """The narrow-int marker on an extra's primvar is obeyed only where the values fit it."""
     from pxr import Usd
+
     cloud = random_cloud(4, sh_degree=0, seed=7)
     cloud.extras["label"] = np.array([1, -2, 3, 100], np.int8)
     path = tmp_path / "extras.usda"
@@ -408,6 +459,7 @@ def test_usd_extra_dtype_custom_data(tmp_path):
 
 # OpenEXR ----------------------------------------------------------------------------------------
 
+
 def test_exr_damage(tmp_path):
     rng = np.random.default_rng(8)
     for compression in ("zip", "none"):
@@ -425,8 +477,8 @@ def test_exr_nan_policy(tmp_path):
     exr.write_exr(path, {"R": np.zeros((2, 3)), "G": np.ones((2, 3))}, compression="none")
     data = bytearray(path.read_bytes())
     one = struct.pack("<f", 1.0)
-    at = data.rindex(one)                  # the last G pixel, stored as float32
-    data[at:at + 4] = struct.pack("<f", np.nan)
+    at = data.rindex(one)  # the last G pixel, stored as float32
+    data[at : at + 4] = struct.pack("<f", np.nan)
     path.write_bytes(bytes(data))
     with pytest.raises(SplatFileError, match=r"nan.exr: channels hold NaN values \('G' 1\)"):
         exr.read_exr(path)
@@ -436,6 +488,7 @@ def test_exr_nan_policy(tmp_path):
 
 
 # images (mesh textures) -------------------------------------------------------------------------
+
 
 def test_texture_image_damage(tmp_path):
     path = tmp_path / "valid.png"
@@ -447,6 +500,7 @@ def test_texture_image_damage(tmp_path):
             assert got[0].shape == (6, 5, 3)
     # a header claiming 10^10 pixels (with a valid checksum) is refused, not decoded
     import zlib
+
     bomb = bytearray(data)
     bomb[16:24] = struct.pack(">II", 100_000, 100_000)
     bomb[29:33] = struct.pack(">I", zlib.crc32(bytes(bomb[12:29])))
@@ -471,8 +525,9 @@ MTL = b"newmtl red\nKd 0.8 0.1 0.1\nmap_Kd -o 0.1 0.2 -s 2 2 tex.png\n"
 
 
 def finite_materials(materials):
-    return all(np.isfinite(np.asarray(v, float)).all() for m in materials
-               for v in (m.base_color, m.uv_offset, m.uv_scale))
+    return all(
+        np.isfinite(np.asarray(v, float)).all() for m in materials for v in (m.base_color, m.uv_offset, m.uv_scale)
+    )
 
 
 def finite_mesh(m):
@@ -484,12 +539,18 @@ def test_obj_and_mtl_damage(tmp_path):
     image.write_image(tmp_path / "tex.png", np.random.default_rng(0).random((4, 4, 3)))
     (tmp_path / "m.mtl").write_bytes(MTL)
     cases = dict(damaged(OBJ, 13, seed=50))
-    cases.update({"v_nan": OBJ.replace(b"v 1 0 0", b"v nan 0 0"), "v_inf": OBJ.replace(b"v 1 0 0", b"v 1e999 0 0"),
-                  "vt_nan": OBJ.replace(b"vt 1 0", b"vt nan 0"),
-                  "colour_nan": OBJ.replace(b"0.5 0.5 0.5", b"inf 0.5 0.5"),
-                  "binary": bytes(range(256)) * 4, "utf16": OBJ.decode().encode("utf-16"),
-                  "index_huge": OBJ.replace(b"f -3 -2 -1", b"f 1 2 99999999999999999999"),
-                  "index_zero": OBJ.replace(b"f -3 -2 -1", b"f 0 1 2")})
+    cases.update(
+        {
+            "v_nan": OBJ.replace(b"v 1 0 0", b"v nan 0 0"),
+            "v_inf": OBJ.replace(b"v 1 0 0", b"v 1e999 0 0"),
+            "vt_nan": OBJ.replace(b"vt 1 0", b"vt nan 0"),
+            "colour_nan": OBJ.replace(b"0.5 0.5 0.5", b"inf 0.5 0.5"),
+            "binary": bytes(range(256)) * 4,
+            "utf16": OBJ.decode().encode("utf-16"),
+            "index_huge": OBJ.replace(b"f -3 -2 -1", b"f 1 2 99999999999999999999"),
+            "index_zero": OBJ.replace(b"f -3 -2 -1", b"f 0 1 2"),
+        }
+    )
     for label, bad in cases.items():
         got = outcome(mesh.read_mesh, write_case(tmp_path, label, ".obj", bad))
         if got is not None:
@@ -500,9 +561,16 @@ def test_obj_and_mtl_damage(tmp_path):
         mesh.read_mesh(tmp_path / "bad_v_nan.obj")
 
     mtl_cases = dict(damaged(MTL, 10, seed=51))
-    mtl_cases.update({"kd_nan": MTL.replace(b"0.8", b"nan"), "kd_inf": MTL.replace(b"0.8", b"inf"),
-                      "offset_nan": MTL.replace(b"-o 0.1", b"-o nan"), "scale_inf": MTL.replace(b"-s 2", b"-s -inf"),
-                      "texture_not_image": MTL.replace(b"tex.png", b"m.mtl"), "binary": bytes(range(256))})
+    mtl_cases.update(
+        {
+            "kd_nan": MTL.replace(b"0.8", b"nan"),
+            "kd_inf": MTL.replace(b"0.8", b"inf"),
+            "offset_nan": MTL.replace(b"-o 0.1", b"-o nan"),
+            "scale_inf": MTL.replace(b"-s 2", b"-s -inf"),
+            "texture_not_image": MTL.replace(b"tex.png", b"m.mtl"),
+            "binary": bytes(range(256)),
+        }
+    )
     for label, bad in mtl_cases.items():
         got = outcome(mesh.read_mtl, write_case(tmp_path, label, ".mtl", bad))
         if got is not None:
@@ -530,16 +598,25 @@ URDF = b"""<?xml version="1.0"?>
 
 def test_urdf_damage(tmp_path):
     cases = dict(damaged(URDF, 40, seed=60))
-    laughs = (b'<?xml version="1.0"?><!DOCTYPE r [<!ENTITY a "aaaaaaaaaa">'
-              + b"".join(b'<!ENTITY %s "%s">' % (chr(98 + i).encode(), (b"&%s;" % chr(97 + i).encode()) * 10)
-                         for i in range(6))
-              + b']><robot name="&g;"><link name="a"/></robot>')
-    cases.update({"limit_nan": URDF.replace(b'upper="1"', b'upper="nan"'), "binary": bytes(range(256)),
-                  "utf16": URDF.decode().replace('<?xml version="1.0"?>', "").encode("utf-16"),
-                  "latin1": URDF.replace(b'name="r"', b'name="\xe9"'), "laughs": laughs,
-                  "axis_zero": URDF.replace(b'<axis xyz="0 0 1"/>', b'<axis xyz="0 0 0"/>'),
-                  "axis_overflow": URDF.replace(b'<axis xyz="0 0 1"/>', b'<axis xyz="1e300 1e300 0"/>'),
-                  "self_parent": URDF.replace(b'<parent link="a"/>', b'<parent link="b"/>')})
+    laughs = (
+        b'<?xml version="1.0"?><!DOCTYPE r [<!ENTITY a "aaaaaaaaaa">'
+        + b"".join(
+            b'<!ENTITY %s "%s">' % (chr(98 + i).encode(), (b"&%s;" % chr(97 + i).encode()) * 10) for i in range(6)
+        )
+        + b']><robot name="&g;"><link name="a"/></robot>'
+    )
+    cases.update(
+        {
+            "limit_nan": URDF.replace(b'upper="1"', b'upper="nan"'),
+            "binary": bytes(range(256)),
+            "utf16": URDF.decode().replace('<?xml version="1.0"?>', "").encode("utf-16"),
+            "latin1": URDF.replace(b'name="r"', b'name="\xe9"'),
+            "laughs": laughs,
+            "axis_zero": URDF.replace(b'<axis xyz="0 0 1"/>', b'<axis xyz="0 0 0"/>'),
+            "axis_overflow": URDF.replace(b'<axis xyz="0 0 1"/>', b'<axis xyz="1e300 1e300 0"/>'),
+            "self_parent": URDF.replace(b'<parent link="a"/>', b'<parent link="b"/>'),
+        }
+    )
     for label, bad in cases.items():
         got = outcome(urdf.read_urdf, write_case(tmp_path, label, ".urdf", bad))
         if got is not None:
@@ -552,9 +629,19 @@ def test_urdf_damage(tmp_path):
 
 # missing paths, directories, unknown formats ----------------------------------------------------
 
-READERS = {".ply": ply.read, ".splat": splat.read, ".spz": spz.read, ".usda": usd.read, ".usdc": usd.read,
-           ".usdz": usd.read, ".exr": exr.read_exr, ".png": mesh.load_image, ".obj": mesh.read_mesh,
-           ".mtl": mesh.read_mtl, ".urdf": urdf.read_urdf}
+READERS = {
+    ".ply": ply.read,
+    ".splat": splat.read,
+    ".spz": spz.read,
+    ".usda": usd.read,
+    ".usdc": usd.read,
+    ".usdz": usd.read,
+    ".exr": exr.read_exr,
+    ".png": mesh.load_image,
+    ".obj": mesh.read_mesh,
+    ".mtl": mesh.read_mtl,
+    ".urdf": urdf.read_urdf,
+}
 
 
 @pytest.mark.parametrize("ext", sorted(READERS))

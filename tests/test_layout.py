@@ -47,7 +47,7 @@ def imports_of(path, modules):
         if not isinstance(node, ast.ImportFrom) or node.level == 0:
             continue
         base = package.split(".") if package else []
-        base = base[:len(base) - (node.level - 1)] if node.level > 1 else base
+        base = base[: len(base) - (node.level - 1)] if node.level > 1 else base
         target = ".".join(base + ([node.module] if node.module else []))
         for alias in node.names:
             candidate = f"{target}.{alias.name}" if target else alias.name
@@ -109,22 +109,28 @@ def test_no_import_circle_in_the_product():
 
 
 def test_no_floor_imports_a_floor_above_it():
-    wrong = [(name, target) for name, targets in import_graph().items() for target in targets
-             if name.split(".")[0] in FLOORS and target.split(".")[0] not in FLOORS[name.split(".")[0]]]
+    wrong = [
+        (name, target)
+        for name, targets in import_graph().items()
+        for target in targets
+        if name.split(".")[0] in FLOORS and target.split(".")[0] not in FLOORS[name.split(".")[0]]
+    ]
     assert wrong == []
 
 
 def test_no_source_file_over_a_thousand_lines():
-    long = {str(f.relative_to(ROOT)): n for f in product_files()
-            if (n := len(f.read_text().splitlines())) > MAX_LINES}
+    long = {str(f.relative_to(ROOT)): n for f in product_files() if (n := len(f.read_text().splitlines())) > MAX_LINES}
     assert long == {}
 
 
 def test_the_installed_packages_are_the_ones_on_disk():
     """pyproject.toml lists every package (a sub-package left out is missing from a pip install)."""
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
-    on_disk = {"splatwright"} | {"splatwright." + ".".join(init.parent.relative_to(ROOT).parts)
-                                 for package in PRODUCT for init in (ROOT / package).rglob("__init__.py")}
+    on_disk = {"splatwright"} | {
+        "splatwright." + ".".join(init.parent.relative_to(ROOT).parts)
+        for package in PRODUCT
+        for init in (ROOT / package).rglob("__init__.py")
+    }
     assert listed == on_disk
 
 
@@ -135,13 +141,25 @@ def test_every_compiled_kernel_loads_here():
     from splatwright.core import geometry, jit, kinematics, mesh_render, mesh_sampling, render, render_grad
     from splatwright.core.collision import contacts, distance
     from splatwright.io import ply
+
     assert jit.enabled(), "SPLATWRIGHT_JIT turns the compiled kernels off"
-    missing = [name for name, kernel in (("polar", geometry._polar_kernel()), ("fk", kinematics._fk_kernel()),
-                                         ("contacts", contacts._contact_kernel()),
-                                         ("distance bounds", distance._bounds_kernel()),
-                                         ("bisection", mesh_sampling._bisect_kernel())) if kernel is None]
-    for name, module in (("render", render), ("mesh render", mesh_render), ("backward pass", render_grad),
-                         ("ply", ply)):
+    missing = [
+        name
+        for name, kernel in (
+            ("polar", geometry._polar_kernel()),
+            ("fk", kinematics._fk_kernel()),
+            ("contacts", contacts._contact_kernel()),
+            ("distance bounds", distance._bounds_kernel()),
+            ("bisection", mesh_sampling._bisect_kernel()),
+        )
+        if kernel is None
+    ]
+    for name, module in (
+        ("render", render),
+        ("mesh render", mesh_render),
+        ("backward pass", render_grad),
+        ("ply", ply),
+    ):
         if jit.load(module.KERNELS, check=module._check_kernels) is None:
             missing.append(f"{name}: {jit.status(module.KERNELS)}")
     assert missing == []

@@ -57,8 +57,8 @@ def cube(tmp_path):
     (tmp_path / "cube.obj").write_text(CUBE_OBJ)
     (tmp_path / "cube.mtl").write_text(CUBE_MTL)
     tex = np.zeros((4, 8, 3), np.uint8)
-    tex[:, :, 0] = np.arange(8)[None, :] * 30           # red grows to the right (u)
-    tex[:, :, 1] = np.arange(4)[:, None] * 60           # green grows downwards (towards v = 0)
+    tex[:, :, 0] = np.arange(8)[None, :] * 30  # red grows to the right (u)
+    tex[:, :, 1] = np.arange(4)[:, None] * 60  # green grows downwards (towards v = 0)
     Image.fromarray(tex).save(tmp_path / "tex file.png")
     return tmp_path / "cube.obj", tex
 
@@ -69,7 +69,7 @@ def test_obj_geometry_uvs_and_materials(cube):
     assert mesh.vertices.shape == (8, 3) and mesh.faces.shape == (12, 3)
     # Fan triangulation keeps each polygon's winding: (a, b, c), (a, c, d).
     np.testing.assert_array_equal(mesh.faces[:2], [[0, 3, 2], [0, 2, 1]])
-    np.testing.assert_array_equal(mesh.faces[10:], [[0, 4, 7], [0, 7, 3]])   # -8 -4 -1 -5
+    np.testing.assert_array_equal(mesh.faces[10:], [[0, 4, 7], [0, 7, 3]])  # -8 -4 -1 -5
     np.testing.assert_array_equal(mesh.corner_uvs[1], [[0, 0], [1, 1], [1, 0]])
     np.testing.assert_array_equal(mesh.face_materials, [0] * 6 + [1] * 6)
     painted, textured = mesh.materials
@@ -89,6 +89,7 @@ def test_obj_colours_reach_the_splats(cube):
     painted = mesh.face_materials[tri] == 0
     # Kd is scene-linear: the splats show its sRGB encoding.
     from splatwright.core.color import linear_to_srgb
+
     np.testing.assert_allclose(rgb[painted], np.tile(linear_to_srgb([0.8, 0.1, 0.05]), (painted.sum(), 1)), atol=2e-5)
     # Textured faces: bilinear between texel centres in linear light, repeat wrapping, at
     # uv * 2 + (0.25, 0.5) (the -s and -o options), row 0 of the image at v = 1.
@@ -98,8 +99,9 @@ def test_obj_colours_reach_the_splats(cube):
     x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     texel = lambda r, c: srgb_decode(tex[r % 4, c % 8] / 255.0)
-    linear = ((texel(y0, x0) * (1 - fx) + texel(y0, x0 + 1) * fx) * (1 - fy)
-              + (texel(y0 + 1, x0) * (1 - fx) + texel(y0 + 1, x0 + 1) * fx) * fy)
+    linear = (texel(y0, x0) * (1 - fx) + texel(y0, x0 + 1) * fx) * (1 - fy) + (
+        texel(y0 + 1, x0) * (1 - fx) + texel(y0 + 1, x0 + 1) * fx
+    ) * fy
     np.testing.assert_allclose(rgb[~painted], linear_to_srgb(linear), atol=2e-5)
 
 
@@ -112,19 +114,26 @@ def test_vertex_colours_are_srgb_in_the_file(tmp_path):
     cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), max_splats=5)
     # Default material (Kd 0.8 grey) times the vertex colour.
     from splatwright.core.color import linear_to_srgb
-    np.testing.assert_allclose(0.5 + 0.28209479177387814 * cloud.sh[:, 0],
-                               np.tile(linear_to_srgb(0.8 * srgb_decode([1, 0.5, 0])), (5, 1)), atol=2e-5)
+
+    np.testing.assert_allclose(
+        0.5 + 0.28209479177387814 * cloud.sh[:, 0],
+        np.tile(linear_to_srgb(0.8 * srgb_decode([1, 0.5, 0])), (5, 1)),
+        atol=2e-5,
+    )
 
 
-@pytest.mark.parametrize("text, problem", [
-    ("v 0 0 0\nv 1 0 0\nf 1 2 3\n", "line 3: vertex index 3 out of range"),
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 0\n", "line 4: vertex index 0"),
-    ("v 0 0 0\nv 1 zero 0\n", "line 2: could not convert"),
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/2 3/1\n", "line 5: texture coordinate index 2 out of range"),
-    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", "line 4: a face needs at least 3 corners"),
-    ("v 0 0 0\n", "no faces"),
-    ("# nothing\n", "no vertices"),
-])
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("v 0 0 0\nv 1 0 0\nf 1 2 3\n", "line 3: vertex index 3 out of range"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 0\n", "line 4: vertex index 0"),
+        ("v 0 0 0\nv 1 zero 0\n", "line 2: could not convert"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/2 3/1\n", "line 5: texture coordinate index 2 out of range"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", "line 4: a face needs at least 3 corners"),
+        ("v 0 0 0\n", "no faces"),
+        ("# nothing\n", "no vertices"),
+    ],
+)
 def test_malformed_obj_is_reported_with_file_and_line(tmp_path, text, problem):
     path = tmp_path / "bad.obj"
     path.write_text(text)
@@ -170,36 +179,56 @@ def test_cli_mesh2splats_budget(cube, tmp_path, capsys, monkeypatch):
     cloud = read_splats(out)
     assert len(cloud) == 2000 and not cloud.problems()
     assert "wrote 2000 splats from 12 faces, " in capsys.readouterr().out
-    assert {"render", "render_mesh"} <= set(renders)          # silhouettes calibrated by default
+    assert {"render", "render_mesh"} <= set(renders)  # silhouettes calibrated by default
 
 
-@pytest.mark.parametrize("options, expected", [([], ("blackman-harris", 1.5)),
-                                              (["--pixel-filter", "gaussian", "--filter-width", "2.5"], ("gaussian", 2.5))])
+@pytest.mark.parametrize(
+    "options, expected",
+    [([], ("blackman-harris", 1.5)), (["--pixel-filter", "gaussian", "--filter-width", "2.5"], ("gaussian", 2.5))],
+)
 def test_cli_mesh2splats_measures_against_the_pixel_filter_asked_for(cube, tmp_path, monkeypatch, options, expected):
     """The mesh is rendered with the filter of Cycles' Film settings the command names (its default:
     Cycles' own)."""
     filters = []
     original = mesh_refine.render_mesh
-    monkeypatch.setattr(mesh_refine, "render_mesh", lambda *a, **k: filters.append((k["pixel_filter"], k["filter_width"]))
-                        or original(*a, **k))
+    monkeypatch.setattr(
+        mesh_refine,
+        "render_mesh",
+        lambda *a, **k: filters.append((k["pixel_filter"], k["filter_width"])) or original(*a, **k),
+    )
     path, _ = cube
-    assert main(["mesh2splats", str(path), str(tmp_path / "cube.ply"), "--max-splats", "2000", "--view-size", "16",
-                 *options]) == 0
+    assert (
+        main(
+            [
+                "mesh2splats",
+                str(path),
+                str(tmp_path / "cube.ply"),
+                "--max-splats",
+                "2000",
+                "--view-size",
+                "16",
+                *options,
+            ]
+        )
+        == 0
+    )
     assert filters and set(filters) == {expected}
 
 
 def test_cli_splats_made_for_antialiased_rendering_say_so_and_render_so(cube, tmp_path):
     path, _ = cube
     out = tmp_path / "cube.spz"
-    assert main(["mesh2splats", str(path), str(out), "--max-splats", "3000", "--view-size", "32",
-                 "--mode", "antialiased"]) == 0
+    assert (
+        main(["mesh2splats", str(path), str(out), "--max-splats", "3000", "--view-size", "32", "--mode", "antialiased"])
+        == 0
+    )
     assert read_splats(out).antialiased
     images = {}
     for mode in ([], ["--mode", "antialiased"], ["--mode", "classic"]):
         png = tmp_path / f"{len(images)}.png"
         assert main(["render", str(out), "-o", str(png), "--width", "48", "--height", "48", *mode]) == 0
         images[tuple(mode[1:])] = np.asarray(Image.open(png), np.int16)
-    assert np.array_equal(images[()], images[("antialiased",)])            # its own mode by default
+    assert np.array_equal(images[()], images[("antialiased",)])  # its own mode by default
     assert np.abs(images[()] - images[("classic",)]).max() > 8
 
 
@@ -228,8 +257,24 @@ def test_cli_mesh2splats_target_and_errors(cube, tmp_path, capsys):
     captured = capsys.readouterr()
     assert "dB PSNR in the worst view (view " in captured.out and " of 12, at " in captured.out
     assert len(read_splats(out)) > 0
-    assert main(["mesh2splats", str(path), str(out), "--target-psnr", "70", "--view-size", "24",
-                 "--view-distances", "1", "--view-count", "2"]) == 0
+    assert (
+        main(
+            [
+                "mesh2splats",
+                str(path),
+                str(out),
+                "--target-psnr",
+                "70",
+                "--view-size",
+                "24",
+                "--view-distances",
+                "1",
+                "--view-count",
+                "2",
+            ]
+        )
+        == 0
+    )
     said = capsys.readouterr().out
     assert "target 70 dB not reached: " in said and " of 2, at 1x the framing distance); " in said
     assert "error lies" in said

@@ -63,6 +63,7 @@ def uv_sphere(segments=16, rings=8):
 
 # sampling ---------------------------------------------------------------------------------------
 
+
 def test_counts_follow_area_within_one_splat_per_face():
     rng = np.random.default_rng(3)
     f = 400
@@ -77,11 +78,11 @@ def test_counts_follow_area_within_one_splat_per_face():
     assert counts.sum() == n
     assert np.abs(counts - expected).max() < 1.0
     chi2 = ((counts - expected) ** 2 / np.maximum(expected, 1e-9))[expected > 1].sum()
-    assert chi2 < 0.1 * (expected > 1).sum()       # far below the ~1 per face of independent sampling
+    assert chi2 < 0.1 * (expected > 1).sum()  # far below the ~1 per face of independent sampling
 
 
 def test_faces_smaller_than_a_splat_are_covered_evenly():
-    v, f = grid_plane(100, jitter=0.3)                # 20000 faces, 0.1 splat each
+    v, f = grid_plane(100, jitter=0.3)  # 20000 faces, 0.1 splat each
     cloud = mesh_to_splats(v, f, max_splats=2000, calibrate=False)
     cells = np.floor(cloud.positions[:, :2].astype(np.float64) * 10).clip(0, 9).astype(int)
     per_cell = np.bincount(cells[:, 0] * 10 + cells[:, 1], minlength=100)
@@ -117,6 +118,7 @@ def test_points_are_the_centroids_of_an_equal_area_bisection(compiled, monkeypat
     """bisection_samples against a plain recursion, on a jittered grid, a 1000:1 sliver and faces of
     0, 1, 2, 3 and up to 300 points; the compiled path (where numba loads) and NumPy's alike."""
     from splatwright.core import mesh_sampling as m2s
+
     if not compiled:
         monkeypatch.setattr(m2s, "_bisect_kernel", lambda: None)
     elif m2s._bisect_kernel() is None:
@@ -138,12 +140,15 @@ def test_points_are_the_centroids_of_an_equal_area_bisection(compiled, monkeypat
         np.testing.assert_allclose(areas, 0.5 / counts[face], rtol=1e-9)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("numba") is None or not jit.enabled(),
-                    reason="numba is not installed, or compiled kernels are turned off")
+@pytest.mark.skipif(
+    importlib.util.find_spec("numba") is None or not jit.enabled(),
+    reason="numba is not installed, or compiled kernels are turned off",
+)
 def test_compiled_bisection_is_numpys_bit_for_bit(monkeypatch):
     """Many runs' worth of points in one face, slivers and single points: the compiled twin gives
     NumPy's points in NumPy's order to the bit."""
     from splatwright.core import mesh_sampling as m2s
+
     v, f = grid_plane(30, jitter=0.45, seed=4)
     surface = Surface(tilted(v, seed=1), f)
     counts = np.random.default_rng(6).integers(0, 40, len(f))
@@ -158,13 +163,14 @@ def test_compiled_bisection_is_numpys_bit_for_bit(monkeypatch):
 @pytest.mark.parametrize("jitter, aspect, least", [(0.3, 1, 0.99), (0.0, 8, 0.94)])
 def test_plane_renders_closed_inside(jitter, aspect, least, mode):
     v, f = grid_plane(12, jitter=jitter)
-    v[:, 1] /= aspect                                 # aspect > 1: sliver triangles
+    v[:, 1] /= aspect  # aspect > 1: sliver triangles
     cloud = mesh_to_splats(v, f, max_splats=6000 // aspect, calibrate=False, render_mode=mode)
-    if mode == "antialiased":      # splats about a pixel across keep ~half their opacity there: ~1% less cover
+    if mode == "antialiased":  # splats about a pixel across keep ~half their opacity there: ~1% less cover
         least -= 0.01
     # An orthographic view from above filling its height with the plane.
-    cam = Camera.look_at_ortho((0.5, 0.5 / aspect, 2.0), (0.5, 0.5 / aspect, 0.0), ortho_scale=1.0 / aspect,
-                               width=96, height=96)
+    cam = Camera.look_at_ortho(
+        (0.5, 0.5 / aspect, 2.0), (0.5, 0.5 / aspect, 0.0), ortho_scale=1.0 / aspect, width=96, height=96
+    )
     alpha = render(cloud, cam).alpha
     margin = int(np.ceil(3 * cloud.scales[:, 0].max() * cam.fx)) + 1
     inside = alpha[margin:-margin, margin:-margin]
@@ -173,7 +179,7 @@ def test_plane_renders_closed_inside(jitter, aspect, least, mode):
 
 
 def test_frames_are_flat_discs_along_the_face_normal():
-    v, f, _ = uv_sphere(24, 12)                       # closed, creases of 15 degrees: no outline edges
+    v, f, _ = uv_sphere(24, 12)  # closed, creases of 15 degrees: no outline edges
     cloud = mesh_to_splats(v, f, max_splats=3000, calibrate=False, thickness=0.01)
     tri = cloud.extras["source_triangle"]
     normal = np.cross(v[f[tri, 1]] - v[f[tri, 0]], v[f[tri, 2]] - v[f[tri, 0]])
@@ -183,7 +189,7 @@ def test_frames_are_flat_discs_along_the_face_normal():
     np.testing.assert_allclose(np.sqrt(vals[:, 1]), np.sqrt(vals[:, 2]), rtol=1e-5)
     np.testing.assert_allclose(np.sqrt(vals[:, 0] / vals[:, 2]), 0.01, rtol=1e-4)
     assert cloud.sh_degree == 0
-    np.testing.assert_allclose(cloud.opacities, SOLID_OPACITY, rtol=1e-6)     # a closed solid
+    np.testing.assert_allclose(cloud.opacities, SOLID_OPACITY, rtol=1e-6)  # a closed solid
 
 
 def test_splats_are_opaque_where_nothing_behind_covers_for_them():
@@ -196,8 +202,9 @@ def test_splats_are_opaque_where_nothing_behind_covers_for_them():
     def opacity_of(m, **kw):
         return mesh_to_splats(m.vertices, m.faces, **m.appearance(), max_splats=4000, calibrate=False, **kw).opacities
 
-    sheet = mesh_to_splats([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], max_splats=500,
-                           calibrate=False)
+    sheet = mesh_to_splats(
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]], max_splats=500, calibrate=False
+    )
     np.testing.assert_allclose(sheet.opacities, OPAQUE, rtol=1e-6)
     cup = scenes.thin_walled_cup()
     np.testing.assert_allclose(opacity_of(cup), OPAQUE, rtol=1e-6)
@@ -212,6 +219,7 @@ def test_wall_contrast_is_the_far_sides_colour_difference():
     orange and blue; none where the far side is past the reach."""
     from splatwright.core.mesh import to_display
     from splatwright.core.mesh_to_splats import wall_thickness
+
     cup = scenes.thin_walled_cup()
     surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, cup.materials)
     thickness, contrast = wall_thickness(surface, 0.02)
@@ -225,10 +233,12 @@ def test_wall_contrast_is_the_far_sides_colour_difference():
 def test_splats_and_walls_are_the_same_on_any_number_of_cores(monkeypatch):
     """Points are dealt out to the cores in the same runs, and wall ties go to the same far side,
     whatever the cores: one conversion gives the same splats on a laptop and on a farm."""
-    from splatwright.core import mesh_sampling as m2s, parallel
+    from splatwright.core import mesh_sampling as m2s
+    from splatwright.core import parallel
+
     cup = scenes.thin_walled_cup()
     surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, cup.materials)
-    density = np.full(len(cup.faces), 5 * m2s.BISECT_CHUNK / surface.area.sum())   # several runs
+    density = np.full(len(cup.faces), 5 * m2s.BISECT_CHUNK / surface.area.sum())  # several runs
     made = []
     for workers in (1, 2, 3):
         monkeypatch.setattr(parallel, "WORKERS", workers)
@@ -248,8 +258,9 @@ def test_a_wall_hiding_its_own_colour_gets_a_lower_density_floor():
     """thin_wall_density: splats at most 1/WALL_SIGMAS of the wall where the far side would show
     another colour, 1/SAME_WALL_SIGMAS where it has the face's own."""
     from splatwright.core.mesh_to_splats import SAME_WALL_SIGMAS, thin_wall_density
+
     cup = scenes.thin_walled_cup()
-    coarse = np.full(len(cup.faces), 1e5)                     # splats far wider than the 5 mm wall
+    coarse = np.full(len(cup.faces), 1e5)  # splats far wider than the 5 mm wall
     floors = {}
     for name, mats in (("two", cup.materials), ("one", [cup.materials[0]] * 2)):
         surface = Surface(cup.vertices, cup.faces, None, cup.face_materials, mats)
@@ -265,7 +276,7 @@ def test_a_wall_hiding_its_own_colour_gets_a_lower_density_floor():
 
 def test_discs_do_not_reach_past_outline_edges():
     rng = np.random.default_rng(5)
-    tris = rng.normal(size=(40, 1, 3)) * 4 + rng.normal(size=(40, 3, 3))   # a soup: every edge is a boundary
+    tris = rng.normal(size=(40, 1, 3)) * 4 + rng.normal(size=(40, 3, 3))  # a soup: every edge is a boundary
     v, f = tris.reshape(-1, 3), np.arange(120).reshape(40, 3)
     area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
     cloud = mesh_to_splats(v, f, max_splats=4000, calibrate=False)
@@ -288,7 +299,7 @@ def test_discs_do_not_reach_past_outline_edges():
         spread = np.sqrt(np.einsum("ni,nij,nj->n", across, cov, across))
         assert (spread <= np.maximum(distance / 2, 0.05 * sigma) * (1 + 1e-3) + 1e-9).all()
     narrowed = np.sqrt(vals[:, 1]) < 0.9 * sigma
-    assert 0.1 < narrowed.mean() < 0.9             # the splats near the edges, not all of them
+    assert 0.1 < narrowed.mean() < 0.9  # the splats near the edges, not all of them
 
 
 def test_extras_reproduce_positions_from_the_triangles():
@@ -308,6 +319,7 @@ def test_extras_reproduce_positions_from_the_triangles():
 
 # colours --------------------------------------------------------------------------------------
 
+
 def affine_texture(size=64):
     """Linear-light texture f(u, v) = a + b u + c v sampled at texel centres (bilinear-exact)."""
     j, i = np.meshgrid(np.arange(size), np.arange(size))
@@ -318,10 +330,11 @@ def affine_texture(size=64):
 
 def test_colours_follow_a_linear_texture_at_the_sampled_barycentrics():
     v, f = grid_plane(3, jitter=0.2)
-    uv = 0.1 + 0.8 * v[f][:, :, :2]                  # inside [0.1, 0.9]: no wrapping
+    uv = 0.1 + 0.8 * v[f][:, :, :2]  # inside [0.1, 0.9]: no wrapping
     tex, coeff = affine_texture()
-    cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=tex, texture_srgb=False)],
-                           max_splats=2000, calibrate=False)
+    cloud = mesh_to_splats(
+        v, f, corner_uvs=uv, materials=[Material(texture=tex, texture_srgb=False)], max_splats=2000, calibrate=False
+    )
     tri, bary = cloud.extras["source_triangle"], cloud.extras["barycentric"].astype(np.float64)
     at = np.einsum("nk,nkc->nc", bary, uv[tri])
     expected = coeff[0] + at[:, :1] * coeff[1] + at[:, 1:] * coeff[2]
@@ -364,17 +377,19 @@ def test_corner_and_vertex_colours_and_base_colours():
     v, f = grid_plane(2)
     rng = np.random.default_rng(4)
     corner = rng.uniform(0, 1, (len(f), 3, 3))
-    base = (0.21404114, 1.0, 0.5)                     # linear 0.21404114 is sRGB 0.5
-    cloud = mesh_to_splats(v, f, corner_colors=corner, materials=[Material(base_color=base)], max_splats=1000, calibrate=False)
+    base = (0.21404114, 1.0, 0.5)  # linear 0.21404114 is sRGB 0.5
+    cloud = mesh_to_splats(
+        v, f, corner_colors=corner, materials=[Material(base_color=base)], max_splats=1000, calibrate=False
+    )
     tri, bary = cloud.extras["source_triangle"], cloud.extras["barycentric"].astype(np.float64)
     expected = np.einsum("nk,nkc->nc", bary, corner[tri]) * np.array(base)
     np.testing.assert_allclose(display_colors(cloud), srgb(expected), atol=2e-5)
     vertex = rng.uniform(0, 1, (len(v), 3))
-    cloud = mesh_to_splats(v, f, corner_colors=vertex, max_splats=1000, calibrate=False,
-                           materials=[Material(base_color=(1, 1, 1))])
+    cloud = mesh_to_splats(
+        v, f, corner_colors=vertex, max_splats=1000, calibrate=False, materials=[Material(base_color=(1, 1, 1))]
+    )
     tri, bary = cloud.extras["source_triangle"], cloud.extras["barycentric"].astype(np.float64)
-    np.testing.assert_allclose(display_colors(cloud), srgb(np.einsum("nk,nkc->nc", bary, vertex[f[tri]])),
-                               atol=2e-5)
+    np.testing.assert_allclose(display_colors(cloud), srgb(np.einsum("nk,nkc->nc", bary, vertex[f[tri]])), atol=2e-5)
     plain = mesh_to_splats(v, f, materials=[Material(base_color=base)], max_splats=10, calibrate=False)
     np.testing.assert_allclose(display_colors(plain), np.tile([0.5, 1.0, 0.735356983], (10, 1)), atol=2e-5)
 
@@ -415,16 +430,33 @@ def test_view_dependent_material_projects_the_facing_blend_onto_sh():
 
 # hard cases ----------------------------------------------------------------------------------
 
+
 def test_degenerate_faces_are_skipped_and_reported_never_nan():
-    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [np.nan, 0, 0], [0, 0, 1],
-                  [1e4, 1e4, 0], [1e4 + 1e-6, 1e4, 0], [1e4, 1e4 + 1e-6, 0]], float)
-    f = np.array([[0, 1, 2],        # fine
-                  [0, 1, 3],        # collinear: zero area
-                  [1, 1, 2],        # repeated vertex
-                  [4, 1, 2],        # NaN vertex
-                  [0, 1, 5],        # shares edge 0-1 with two other faces: non-manifold
-                  [0, 1, 5],        # duplicate face
-                  [6, 7, 8]])       # tiny, far from the origin
+    v = np.array(
+        [
+            [0, 0, 0],
+            [1, 0, 0],
+            [0, 1, 0],
+            [2, 0, 0],
+            [np.nan, 0, 0],
+            [0, 0, 1],
+            [1e4, 1e4, 0],
+            [1e4 + 1e-6, 1e4, 0],
+            [1e4, 1e4 + 1e-6, 0],
+        ],
+        float,
+    )
+    f = np.array(
+        [
+            [0, 1, 2],  # fine
+            [0, 1, 3],  # collinear: zero area
+            [1, 1, 2],  # repeated vertex
+            [4, 1, 2],  # NaN vertex
+            [0, 1, 5],  # shares edge 0-1 with two other faces: non-manifold
+            [0, 1, 5],  # duplicate face
+            [6, 7, 8],
+        ]
+    )  # tiny, far from the origin
     info = {}
     cloud = mesh_to_splats(v, f, max_splats=3000, calibrate=False, info=info)
     assert len(cloud) == 3000 and not cloud.problems()
@@ -482,14 +514,14 @@ def test_a_solid_with_a_few_faces_wound_the_wrong_way_or_a_fin_stays_a_solid():
     v, f, _ = uv_sphere()
     centre_out = v[f].mean(axis=1)
 
-    def outward(faces):       # the closed form: the sign turning each face's winding normal outward
+    def outward(faces):  # the closed form: the sign turning each face's winding normal outward
         n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
         return np.sign(np.einsum("ij,ij->i", n, centre_out))
 
     a, b = f[5, 0], f[5, 1]
     shares_edge = [g for g in range(len(f)) if g != 5 and {a, b} <= set(f[g])]
     flipped = f.copy()
-    for g in [5, *shares_edge, 40]:                                   # a patch of two, and one alone
+    for g in [5, *shares_edge, 40]:  # a patch of two, and one alone
         flipped[g] = flipped[g, ::-1]
     np.testing.assert_array_equal(Surface(v, flipped).outward_signs(), outward(flipped))
     # A fin on one edge (an edge of three faces) is one non-manifold edge among hundreds.
@@ -504,6 +536,7 @@ def test_a_solid_with_a_few_faces_wound_the_wrong_way_or_a_fin_stays_a_solid():
 
 
 # the mesh rasteriser -------------------------------------------------------------------------------
+
 
 def ray_cast(camera, triangles, colors_fn):
     """Brute force, one pixel at a time in float64: nearest hit of the pixel-centre ray."""
@@ -534,9 +567,21 @@ def ray_cast(camera, triangles, colors_fn):
 @pytest.mark.parametrize("ortho", [False, True])
 def test_rasteriser_matches_ray_casting(ortho):
     tex, coeff = affine_texture()
-    v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0],     # textured quad
-                  [-0.5, -0.3, 0.4], [0.9, 0.1, -0.3], [0.0, 0.8, 0.5],  # a triangle through it
-                  [-3, 0.5, 1.0], [3, 0.6, 1.0], [0.0, 0.7, 9.0]], float)  # crosses the near plane
+    v = np.array(
+        [
+            [-1, -1, 0],
+            [1, -1, 0],
+            [1, 1, 0],
+            [-1, 1, 0],  # textured quad
+            [-0.5, -0.3, 0.4],
+            [0.9, 0.1, -0.3],
+            [0.0, 0.8, 0.5],  # a triangle through it
+            [-3, 0.5, 1.0],
+            [3, 0.6, 1.0],
+            [0.0, 0.7, 9.0],
+        ],
+        float,
+    )  # crosses the near plane
     f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [7, 8, 9]])
     uv = 0.1 + 0.4 * (v[f][:, :, :2] + 1)
     mats = [Material(texture=tex, texture_srgb=False), Material(base_color=(0.9, 0.2, 0.1))]
@@ -558,16 +603,23 @@ def test_rasteriser_matches_ray_casting(ortho):
     assert 200 < hit.sum() < hit.size
     np.testing.assert_array_equal(got.face >= 0, hit)
     np.testing.assert_allclose(got.color[hit], color[hit], atol=1e-5)
-    np.testing.assert_allclose(got.depth[hit], depth[hit], rtol=1e-6)    # stored as float32
+    np.testing.assert_allclose(got.depth[hit], depth[hit], rtol=1e-6)  # stored as float32
     np.testing.assert_array_equal(got.color[~hit], 0.0)
 
 
 def test_rasteriser_supersampling_averages_linear_light():
-    v = np.array([[0, -5, 0], [5, -5, 0], [5, 5, 0], [0, 5, 0]], float)    # right half of the view
+    v = np.array([[0, -5, 0], [5, -5, 0], [5, 5, 0], [0, 5, 0]], float)  # right half of the view
     f = np.array([[0, 1, 2], [0, 2, 3]])
     cam = Camera.look_at_ortho((0.1, 0, 3), (0.1, 0, 0), ortho_scale=2.0, width=10, height=4)
-    got = render_mesh(v, cam, faces=f, materials=[Material(base_color=(1, 1, 1))], supersample=4,
-                      pixel_filter="box", background=(0, 0, 0))
+    got = render_mesh(
+        v,
+        cam,
+        faces=f,
+        materials=[Material(base_color=(1, 1, 1))],
+        supersample=4,
+        pixel_filter="box",
+        background=(0, 0, 0),
+    )
     # The edge x = 0 falls at pixel 4.5: that column is half covered, averaged in linear light.
     np.testing.assert_allclose(got.alpha[:, 4], 0.5)
     np.testing.assert_allclose(got.color[:, 4], srgb(0.5), atol=1e-6)
@@ -581,8 +633,12 @@ def blackman_harris_cdf(t, width=1.5):
     span = 2 * width
     u = np.clip(np.asarray(t, np.float64) / span + 0.5, 0.0, 1.0)
     a = (0.35875, 0.48829, 0.14128, 0.01168)
-    integral = a[0] * u - a[1] * np.sin(2 * np.pi * u) / (2 * np.pi) + a[2] * np.sin(4 * np.pi * u) / (4 * np.pi) \
+    integral = (
+        a[0] * u
+        - a[1] * np.sin(2 * np.pi * u) / (2 * np.pi)
+        + a[2] * np.sin(4 * np.pi * u) / (4 * np.pi)
         - a[3] * np.sin(6 * np.pi * u) / (6 * np.pi)
+    )
     return integral / a[0]
 
 
@@ -592,26 +648,37 @@ def test_rasteriser_pixel_filters_are_cycles_own(edge):
     filter's share right of the edge. Blackman-Harris (Cycles' default, reaching 1.5 px into the
     neighbours) against the closed form of its integral, Cycles' Gaussian (sigma = width / 4)
     against the normal distribution, and a box of one pixel whatever its width, as Cycles draws it."""
-    ndtr = np.vectorize(lambda x: 0.5 * (1 + math.erf(x / math.sqrt(2))))      # the normal distribution
+    ndtr = np.vectorize(lambda x: 0.5 * (1 + math.erf(x / math.sqrt(2))))  # the normal distribution
     v = np.array([[edge, -50, 0], [50, -50, 0], [50, 50, 0], [edge, 50, 0]], float)
     cam = Camera.look_at_ortho((0, 0, 3), (0, 0, 0), ortho_scale=12.0, width=12, height=4)
     s = 20
     # Samples 1/s apart place the edge to half a sample: at most half a sample's weight, the
     # window's peak over s, off the integral.
-    bh_peak = lambda width: 1 / (0.35875 * 2 * width)                            # noqa: E731
-    gauss_peak = lambda width: 1 / (np.sqrt(2 * np.pi) * width / 4)               # noqa: E731
+    bh_peak = lambda width: 1 / (0.35875 * 2 * width)  # noqa: E731
+    gauss_peak = lambda width: 1 / (np.sqrt(2 * np.pi) * width / 4)  # noqa: E731
     centres = np.arange(12) + 0.5 - 6
-    cases = [("blackman-harris", 1.5, 1 - blackman_harris_cdf(edge - centres, 1.5), bh_peak(1.5)),
-             ("blackman-harris", 3.0, 1 - blackman_harris_cdf(edge - centres, 3.0), bh_peak(3.0)),
-             ("gaussian", 1.5, ndtr((centres - edge) / (1.5 / 4)), gauss_peak(1.5)),
-             ("gaussian", 2.5, ndtr((centres - edge) / (2.5 / 4)), gauss_peak(2.5)),
-             ("box", 1.5, np.clip(centres + 0.5 - edge, 0, 1), 1.0)]
+    cases = [
+        ("blackman-harris", 1.5, 1 - blackman_harris_cdf(edge - centres, 1.5), bh_peak(1.5)),
+        ("blackman-harris", 3.0, 1 - blackman_harris_cdf(edge - centres, 3.0), bh_peak(3.0)),
+        ("gaussian", 1.5, ndtr((centres - edge) / (1.5 / 4)), gauss_peak(1.5)),
+        ("gaussian", 2.5, ndtr((centres - edge) / (2.5 / 4)), gauss_peak(2.5)),
+        ("box", 1.5, np.clip(centres + 0.5 - edge, 0, 1), 1.0),
+    ]
     for kind, width, want, peak in cases:
-        got = render_mesh(v, cam, faces=[[0, 1, 2], [0, 2, 3]], materials=[Material(base_color=(1, 1, 1))],
-                          supersample=s, pixel_filter=kind, filter_width=width, background=(0, 0, 0))
-        np.testing.assert_allclose(got.alpha, np.broadcast_to(want, (4, 12)), atol=0.5 * peak / s + 1e-9,
-                                   err_msg=f"{kind} {width}")
-        np.testing.assert_allclose(got.color[..., 0], srgb(got.alpha), atol=1e-6)     # linear light, filtered
+        got = render_mesh(
+            v,
+            cam,
+            faces=[[0, 1, 2], [0, 2, 3]],
+            materials=[Material(base_color=(1, 1, 1))],
+            supersample=s,
+            pixel_filter=kind,
+            filter_width=width,
+            background=(0, 0, 0),
+        )
+        np.testing.assert_allclose(
+            got.alpha, np.broadcast_to(want, (4, 12)), atol=0.5 * peak / s + 1e-9, err_msg=f"{kind} {width}"
+        )
+        np.testing.assert_allclose(got.color[..., 0], srgb(got.alpha), atol=1e-6)  # linear light, filtered
     with pytest.raises(ValueError, match="pixel_filter"):
         render_mesh(v, cam, faces=[[0, 1, 2], [0, 2, 3]], pixel_filter="mitchell")
     with pytest.raises(ValueError, match="pixel_filter"):
@@ -620,8 +687,10 @@ def test_rasteriser_pixel_filters_are_cycles_own(edge):
         mesh_to_splats(v, np.array([[0, 1, 2], [0, 2, 3]]), max_splats=10, filter_width=0.0)
 
 
-needs_numba = pytest.mark.skipif(importlib.util.find_spec("numba") is None or not jit.enabled(),
-                                 reason="numba is not installed, or compiled kernels are turned off")
+needs_numba = pytest.mark.skipif(
+    importlib.util.find_spec("numba") is None or not jit.enabled(),
+    reason="numba is not installed, or compiled kernels are turned off",
+)
 
 
 def assert_backends_agree(surface, cam):
@@ -677,7 +746,7 @@ def test_compiled_rasteriser_matches_numpy_on_unstructured_meshes(ortho, workers
 def test_compiled_rasteriser_matches_numpy_where_the_near_plane_cuts_faces():
     v, f, _ = uv_sphere(32, 16)
     surface = Surface(v, f)
-    for near in (0.3, 0.6, 0.95):       # from just in front of the sphere to deep into it
+    for near in (0.3, 0.6, 0.95):  # from just in front of the sphere to deep into it
         cam = Camera.look_at((0.2, 0.3, 1.4), (0, 0, 0), fov_deg=70, width=96, height=80, near=near)
         face, _, depth = assert_backends_agree(surface, cam)
         hit = face >= 0
@@ -695,10 +764,10 @@ def test_compiled_rasteriser_matches_numpy_on_edge_on_faces_and_pixel_centre_edg
     gv, gf = grid_plane(6, jitter=0.2, seed=1)
     quad = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
     v = np.concatenate([gv - [0.5, 0.5, 0.0], quad * [1, 1, 0] + [0, 0, 0.3]])
-    v[:len(gv)] = v[:len(gv)][:, [0, 2, 1]]                 # the grid in the plane y = 0
+    v[: len(gv)] = v[: len(gv)][:, [0, 2, 1]]  # the grid in the plane y = 0
     f = np.concatenate([gf, [[0, 1, 2], [0, 2, 3]] + np.array(len(gv))])
     surface = Surface(v, f)
-    if ortho:       # 16 px over 2 units, offset half a pixel: pixel centres at x, y = i / 8 - 0.875
+    if ortho:  # 16 px over 2 units, offset half a pixel: pixel centres at x, y = i / 8 - 0.875
         cam = Camera.look_at_ortho((1 / 16, 1 / 16, 3.0), (1 / 16, 1 / 16, 0.0), ortho_scale=2.0, width=16, height=16)
     else:
         cam = Camera.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), fov_deg=40, width=17, height=17)
@@ -712,10 +781,12 @@ def test_compiled_rasteriser_breaks_depth_ties_to_the_lower_face():
     gv, gf = grid_plane(4, jitter=0.3, seed=2)
     v = np.concatenate([sv, tilted(gv - 0.5, seed=5)])
     f = np.concatenate([sf, gf + len(sv)])
-    twins = np.concatenate([f[::-1], f[::-1]])              # every face twice, the copies later
+    twins = np.concatenate([f[::-1], f[::-1]])  # every face twice, the copies later
     surface = Surface(v, twins)
-    for cam in (Camera.look_at((0.4, 0.9, 3.0), (0, 0, 0), fov_deg=50, width=64, height=48),
-                Camera.look_at_ortho((0.4, 0.9, 3.0), (0, 0, 0), ortho_scale=2.5, width=64, height=48)):
+    for cam in (
+        Camera.look_at((0.4, 0.9, 3.0), (0, 0, 0), fov_deg=50, width=64, height=48),
+        Camera.look_at_ortho((0.4, 0.9, 3.0), (0, 0, 0), ortho_scale=2.5, width=64, height=48),
+    ):
         face, _, _ = assert_backends_agree(surface, cam)
         hit = face >= 0
         assert hit.any() and (face[hit] < len(f)).all()
@@ -735,11 +806,18 @@ def test_render_mesh_is_the_same_image_on_both_rasterisers():
 
 # target PSNR -----------------------------------------------------------------------------------
 
+
 def _wavy_texture():
     """A 64x64 sRGB texture of slow colour waves."""
     j, i = np.meshgrid(np.arange(64), np.arange(64))
-    tex = np.stack([0.5 + 0.4 * np.sin(2 * np.pi * j / 16), 0.5 + 0.4 * np.cos(2 * np.pi * i / 16),
-                    0.5 + 0.3 * np.sin(2 * np.pi * (i + j) / 32)], -1)
+    tex = np.stack(
+        [
+            0.5 + 0.4 * np.sin(2 * np.pi * j / 16),
+            0.5 + 0.4 * np.cos(2 * np.pi * i / 16),
+            0.5 + 0.3 * np.sin(2 * np.pi * (i + j) / 32),
+        ],
+        -1,
+    )
     return (tex * 255).astype(np.uint8)
 
 
@@ -747,11 +825,21 @@ def test_target_psnr_is_reached_and_splats_go_where_the_detail_is():
     v, f, uv = uv_sphere(24, 12)
     mats = [Material(texture=_wavy_texture()), Material(base_color=(0.2, 0.5, 0.3))]
     north = v[f].mean(axis=1)[:, 1] > 0
-    fm = np.where(north, 0, 1)                       # textured top, one flat colour below
+    fm = np.where(north, 0, 1)  # textured top, one flat colour below
     info = {}
     target = 28.0
-    cloud = mesh_to_splats(v, f, corner_uvs=uv, face_materials=fm, materials=mats, target_psnr=target,
-                           view_size=96, view_distances=(1.0,), view_count=8, info=info)
+    cloud = mesh_to_splats(
+        v,
+        f,
+        corner_uvs=uv,
+        face_materials=fm,
+        materials=mats,
+        target_psnr=target,
+        view_size=96,
+        view_distances=(1.0,),
+        view_count=8,
+        info=info,
+    )
     assert info["reached"] and info["psnr"] >= target and info["limit"] is None
     # Re-measure independently of the converter's bookkeeping: every one of the views reaches it.
     surface = Surface(v, f, uv, fm, mats)
@@ -778,41 +866,70 @@ def test_the_round_reaching_the_target_is_kept_without_searching_its_shift_again
     except the round that reaches the target: rendered once and kept as it is. A search compares
     three shifts on the worst views only, then measures the best on all of them."""
     from splatwright.core import mesh_refine
+
     monkeypatch.setattr(mesh_refine, "RECALIBRATE_GROWTH", 1.0)
     measures, searched = [], []
     measure, psnr_of = mesh_refine._Views.measure, mesh_refine._Views.psnr_of
-    monkeypatch.setattr(mesh_refine._Views, "measure", lambda views, cloud, *kept: measures.append(len(cloud)) or
-                        measure(views, cloud, *kept))
-    monkeypatch.setattr(mesh_refine._Views, "psnr_of", lambda views, cloud, which, *keep: searched.append(which) or
-                        psnr_of(views, cloud, which, *keep))
+    monkeypatch.setattr(
+        mesh_refine._Views,
+        "measure",
+        lambda views, cloud, *kept: measures.append(len(cloud)) or measure(views, cloud, *kept),
+    )
+    monkeypatch.setattr(
+        mesh_refine._Views,
+        "psnr_of",
+        lambda views, cloud, which, *keep: searched.append(which) or psnr_of(views, cloud, which, *keep),
+    )
     steps = []
     v, f, uv = uv_sphere(24, 12)
     info = {}
-    mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=28.0,
-                   view_size=96, view_distances=(1.0,), view_count=8, info=info,
-                   progress=lambda done, total, label: steps.append((len(measures), len(searched))))
-    per_round = np.diff(steps[1:-1], axis=0)     # (measures, searches) between rounds, from the second
+    mesh_to_splats(
+        v,
+        f,
+        corner_uvs=uv,
+        materials=[Material(texture=_wavy_texture())],
+        target_psnr=28.0,
+        view_size=96,
+        view_distances=(1.0,),
+        view_count=8,
+        info=info,
+        progress=lambda done, total, label: steps.append((len(measures), len(searched))),
+    )
+    per_round = np.diff(steps[1:-1], axis=0)  # (measures, searches) between rounds, from the second
     assert info["reached"] and info["rounds"] >= 3
-    assert per_round[-1].tolist() == [1, 0]      # the round that reached the target
-    assert (per_round[:-1, 1] == 3).all()        # the others: a search of three shifts,
-    assert np.isin(per_round[:-1, 0], [1, 2]).all()   # their render, and the best shift's unless it was theirs
-    assert all(len(which) == 4 for which in searched)    # a third of the 8 views, but at least 4
+    assert per_round[-1].tolist() == [1, 0]  # the round that reached the target
+    assert (per_round[:-1, 1] == 3).all()  # the others: a search of three shifts,
+    assert np.isin(per_round[:-1, 0], [1, 2]).all()  # their render, and the best shift's unless it was theirs
+    assert all(len(which) == 4 for which in searched)  # a third of the 8 views, but at least 4
 
 
 def test_shift_searches_on_the_worst_third_of_the_views_pick_the_shifts_all_views_pick(monkeypatch):
     """Silhouette shifts compared on the worst four of twelve views: the same shifts, the same
     splats and PSNR as searches on all twelve, with fewer views rendered."""
     from splatwright.core import mesh_refine
+
     v, f, uv = uv_sphere(24, 12)
     renders = mesh_refine._Views._renders
 
     def convert(share):
         monkeypatch.setattr(mesh_refine, "SEARCH_SHARE", share)
         rendered, info = [0], {}
-        monkeypatch.setattr(mesh_refine._Views, "_renders", lambda views, cloud, which: rendered.__setitem__(
-            0, rendered[0] + len(which)) or renders(views, cloud, which))
-        cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=[Material(texture=_wavy_texture())], target_psnr=30.0,
-                               view_size=96, info=info)
+        monkeypatch.setattr(
+            mesh_refine._Views,
+            "_renders",
+            lambda views, cloud, which: (
+                rendered.__setitem__(0, rendered[0] + len(which)) or renders(views, cloud, which)
+            ),
+        )
+        cloud = mesh_to_splats(
+            v,
+            f,
+            corner_uvs=uv,
+            materials=[Material(texture=_wavy_texture())],
+            target_psnr=30.0,
+            view_size=96,
+            info=info,
+        )
         return cloud, info, rendered[0]
 
     cloud, info, rendered = convert(mesh_refine.SEARCH_SHARE)
@@ -837,7 +954,7 @@ def test_background_samples_take_the_label_of_the_first_labelled_neighbour_step_
                 for c in range(w):
                     if before[r, c] >= 0:
                         continue
-                    for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):    # above, below, left, right
+                    for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):  # above, below, left, right
                         if 0 <= rr < h and 0 <= cc < w and before[rr, cc] >= 0:
                             out[r, c] = before[rr, cc]
                             break
@@ -855,6 +972,7 @@ def test_a_measure_takes_the_renders_a_search_kept_and_renders_only_the_others(m
     """The views a shift search rendered are not rendered again when its best is measured on all:
     the same Measured as a measure from scratch."""
     from splatwright.core import mesh_refine
+
     v, f, uv = uv_sphere(24, 12)
     surface = Surface(v, f, uv, None, [Material(texture=_wavy_texture())])
     views = mesh_refine._Views(surface, default_views(surface, 48), "antialiased", surface.outward_signs() != 0)
@@ -862,8 +980,9 @@ def test_a_measure_takes_the_renders_a_search_kept_and_renders_only_the_others(m
     kept, rendered = {}, []
     views.psnr_of(cloud, [1, 5, 6], kept)
     renders = mesh_refine._Views._renders
-    monkeypatch.setattr(mesh_refine._Views, "_renders", lambda self, cloud, which: rendered.extend(which) or
-                        renders(self, cloud, which))
+    monkeypatch.setattr(
+        mesh_refine._Views, "_renders", lambda self, cloud, which: rendered.extend(which) or renders(self, cloud, which)
+    )
     measured = views.measure(cloud, kept)
     assert rendered == [0, 2, 3, 4, 7, 8, 9, 10, 11]
     fresh = views.measure(cloud)
@@ -877,6 +996,7 @@ def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst(monkeypa
     near outlines): compared on the four alone, the largest shift would win; the others join once
     the best's measure shows them worse, and the search lands where a search on all views does."""
     from types import SimpleNamespace
+
     from splatwright.core import mesh_refine
 
     def psnr(view, x):
@@ -893,7 +1013,7 @@ def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst(monkeypa
             return {i: psnr(i, x) for i in which}
 
         def measure(self, x, rendered=None):
-            assert all(shift == x for shift in (rendered or {}).values())    # renders of this shift only
+            assert all(shift == x for shift in (rendered or {}).values())  # renders of this shift only
             self.rendered += 12 - len(rendered or {})
             views = [psnr(i, x) for i in range(12)]
             return SimpleNamespace(views=views, psnr=min(views))
@@ -907,8 +1027,8 @@ def test_a_view_that_a_shift_search_left_out_joins_once_it_is_the_worst(monkeypa
     (x, _, m), rendered = search(1 / 3)
     (every_x, _, every_m), every_rendered = search(1.0)
     assert x == every_x and m.psnr == every_m.psnr
-    assert abs(x - 4 / 3) < 0.1 and m.psnr > 26.0            # the true compromise: 20 + 5x = 40 - 10x
-    assert rendered <= 2 * every_rendered     # here all eight joined: at most the search again
+    assert abs(x - 4 / 3) < 0.1 and m.psnr > 26.0  # the true compromise: 20 + 5x = 40 - 10x
+    assert rendered <= 2 * every_rendered  # here all eight joined: at most the search again
 
 
 def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_classic_ones_cannot():
@@ -921,9 +1041,9 @@ def test_splats_made_for_antialiased_rendering_reach_a_target_at_every_distance_
     assert not classic["reached"] and "antialiased mode can" in classic["limit"]
     assert cloud.antialiased and antialiased["reached"]
     surface = Surface(v, f, materials=materials)
-    for cam in default_views(surface, 96, 2, distances=(0.5, 1.0, 3.0)):   # rendered in its own mode by default
+    for cam in default_views(surface, 96, 2, distances=(0.5, 1.0, 3.0)):  # rendered in its own mode by default
         assert psnr(render(cloud, cam).color, render_mesh(surface, cam, supersample=3).color) >= 33.0
-    assert mesh_to_splats(v, f, max_splats=500, calibrate=False).antialiased        # antialiased by default
+    assert mesh_to_splats(v, f, max_splats=500, calibrate=False).antialiased  # antialiased by default
 
 
 def test_budget_with_views_keeps_the_count_and_calibrates_silhouettes():
@@ -948,16 +1068,24 @@ def held_out_views(surface, size, distances=(0.5, 1.0, 3.0), seed=11):
     framing = 1.1 * np.linalg.norm(v - centre, axis=1).max() / np.sin(np.radians(20.0))
     dirs = np.random.default_rng(seed).normal(size=(len(distances), 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    return [Camera.look_at(centre + framing * d * u, centre, fov_deg=40.0, width=size, height=size,
-                           near=0.01 * framing) for d, u in zip(distances, dirs)]
+    return [
+        Camera.look_at(centre + framing * d * u, centre, fov_deg=40.0, width=size, height=size, near=0.01 * framing)
+        for d, u in zip(distances, dirs)
+    ]
 
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 def test_budget_never_renders_worse_with_more_splats(mode):
     v, f, uv = uv_sphere(24, 12)
     j, i = np.meshgrid(np.arange(64), np.arange(64))
-    tex = np.stack([0.5 + 0.4 * np.sin(2 * np.pi * j / 16), 0.5 + 0.4 * np.cos(2 * np.pi * i / 16),
-                    0.5 + 0.3 * np.sin(2 * np.pi * (i + j) / 32)], -1)
+    tex = np.stack(
+        [
+            0.5 + 0.4 * np.sin(2 * np.pi * j / 16),
+            0.5 + 0.4 * np.cos(2 * np.pi * i / 16),
+            0.5 + 0.3 * np.sin(2 * np.pi * (i + j) / 32),
+        ],
+        -1,
+    )
     mats = [Material(texture=(tex * 255).astype(np.uint8))]
     surface = Surface(v, f, uv, None, mats)
     cams = held_out_views(surface, 64)
@@ -965,28 +1093,59 @@ def test_budget_never_renders_worse_with_more_splats(mode):
     worst, own, counts = [], [], []
     for budget in (2_000, 8_000, 32_000):
         info = {}
-        cloud = mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=budget, view_size=64,
-                               view_count=2, info=info, render_mode=mode)
+        cloud = mesh_to_splats(
+            v,
+            f,
+            corner_uvs=uv,
+            materials=mats,
+            max_splats=budget,
+            view_size=64,
+            view_count=2,
+            info=info,
+            render_mode=mode,
+        )
         assert info["budget"] == budget and len(cloud) == info["splats"] <= budget
         worst.append(min(psnr(render(cloud, cam).color, ref) for cam, ref in zip(cams, refs)))
         counts.append(len(cloud))
         own.append(info["psnr"])
     # Without the calibration (no silhouette shift, every splat of the budget), the silhouettes render fat.
-    plain = [min(psnr(render(mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=b, calibrate=False,
-                                            render_mode=mode), cam).color, ref)
-                 for cam, ref in zip(cams, refs)) for b in (2_000, 32_000)]
+    plain = [
+        min(
+            psnr(
+                render(
+                    mesh_to_splats(
+                        v, f, corner_uvs=uv, materials=mats, max_splats=b, calibrate=False, render_mode=mode
+                    ),
+                    cam,
+                ).color,
+                ref,
+            )
+            for cam, ref in zip(cams, refs)
+        )
+        for b in (2_000, 32_000)
+    ]
     assert all(b >= a - 0.2 for a, b in zip(worst, worst[1:])), worst
     assert worst[-1] > plain[1] + 3
     # Each budget is the best of itself and the ladder's rungs below it on the converter's views: these
     # budgets are rungs themselves, so a larger one tries what a smaller one kept and renders no worse.
     assert own == sorted(own), own
     assert all(n in [b] + budget_ladder(b) for n, b in zip(counts, (2_000, 8_000, 32_000)))
-    if mode == "classic":        # edge-on splats fatten classic outlines: the largest budget keeps fewer
+    if mode == "classic":  # edge-on splats fatten classic outlines: the largest budget keeps fewer
         assert counts[-1] < 32_000, counts
         assert f"{counts[-1]} of the 32000 splats budgeted: more rendered worse" in summary(info)
-        kept = mesh_to_splats(v, f, corner_uvs=uv, materials=mats, max_splats=32_000, view_size=64, view_count=2,
-                              render_mode=mode, try_fewer=False, info=info)
-        assert len(kept) == 32_000 and info["inset_pixels"] > 0     # the whole budget, still calibrated
+        kept = mesh_to_splats(
+            v,
+            f,
+            corner_uvs=uv,
+            materials=mats,
+            max_splats=32_000,
+            view_size=64,
+            view_count=2,
+            render_mode=mode,
+            try_fewer=False,
+            info=info,
+        )
+        assert len(kept) == 32_000 and info["inset_pixels"] > 0  # the whole budget, still calibrated
 
 
 def test_a_missed_target_says_what_was_reached_where_and_why():
@@ -1009,6 +1168,7 @@ def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_bes
     its PSNR what the views measure. (Opaque splats: their outlines fatten the most.)"""
     from splatwright.core.mesh_refine import MAX_ROUNDS, PATIENCE
     from splatwright.core.mesh_to_splats import OPAQUE
+
     v, f, _ = uv_sphere(16, 8)
     info, rounds = {}, []
 
@@ -1016,15 +1176,17 @@ def test_refinement_stops_after_rounds_that_render_no_better_and_returns_the_bes
         if 0 < done < total:
             rounds.append((int(label.split()[1]), float(label.split()[3])))
 
-    cloud = mesh_to_splats(v, f, target_psnr=60, view_size=48, view_count=1, info=info, progress=progress,
-                           opacity=OPAQUE)
+    cloud = mesh_to_splats(
+        v, f, target_psnr=60, view_size=48, view_count=1, info=info, progress=progress, opacity=OPAQUE
+    )
     best = max(range(len(rounds)), key=lambda k: rounds[k][1])
     assert len(rounds) == info["rounds"] < MAX_ROUNDS
-    assert len(rounds) - 1 - best == PATIENCE and all(p <= rounds[best][1] for _, p in rounds[best + 1:])
+    assert len(rounds) - 1 - best == PATIENCE and all(p <= rounds[best][1] for _, p in rounds[best + 1 :])
     assert len(cloud) == rounds[best][0] < max(n for n, _ in rounds)
     surface = Surface(v, f)
-    measured = min(psnr(render(cloud, cam).color, render_mesh(surface, cam).color)
-                   for cam in default_views(surface, 48, 1))
+    measured = min(
+        psnr(render(cloud, cam).color, render_mesh(surface, cam).color) for cam in default_views(surface, 48, 1)
+    )
     assert info["psnr"] == pytest.approx(measured) and abs(measured - rounds[best][1]) <= 0.05
     assert "more splats no longer lowered the error" in info["limit"]
 
@@ -1034,14 +1196,15 @@ def test_wall_thickness_of_faces_finer_than_its_points():
     cup still gets its wall, not the rim's (40 mm of solid below it, past the reach), and a sphere
     none."""
     from splatwright.core.mesh_to_splats import wall_thickness
+
     cup = scenes.thin_walled_cup(radius=0.02, height=0.04, wall=0.005, n=512)
     surface = Surface(cup.vertices, cup.faces)
     n = 512
     thickness, _ = wall_thickness(surface, 0.02)
-    assert surface.area.max() < (0.02 / 2) ** 2 / 10          # ten faces or more per point
-    sides = np.r_[0:2 * n, 4 * n:8 * n]                         # outer and inner walls, floor, bottom
+    assert surface.area.max() < (0.02 / 2) ** 2 / 10  # ten faces or more per point
+    sides = np.r_[0 : 2 * n, 4 * n : 8 * n]  # outer and inner walls, floor, bottom
     np.testing.assert_allclose(thickness[sides], 0.005, rtol=0.1)
-    assert np.isinf(thickness[2 * n:4 * n]).all()
+    assert np.isinf(thickness[2 * n : 4 * n]).all()
     v, f, _ = uv_sphere(96, 48)
     assert np.isinf(wall_thickness(Surface(v, f), 0.5)[0]).all()
 
@@ -1051,14 +1214,15 @@ def test_a_face_is_sized_by_the_finest_view_that_frames_it_seen_or_not():
     side: a face's pixel is depth / focal length in the finest view whose frustum holds it, hidden
     or not, and faces outside every frustum get the coarsest pixel of the framed ones."""
     from splatwright.core.mesh_refine import _Views
+
     v, f, _ = uv_sphere(24, 12)
-    v = np.concatenate([v, v + (40.0, 0, 0)])                  # a second sphere, out of every view
+    v = np.concatenate([v, v + (40.0, 0, 0)])  # a second sphere, out of every view
     f = np.concatenate([f, f + len(v) // 2])
     surface = Surface(v, f)
     cams = [Camera.look_at((0, 0, z), (0, 0, 0), fov_deg=40, width=32, height=32) for z in (4.0, 8.0)]
     views = _Views(surface, cams, "classic", surface.outward_signs() != 0)
     centre = v[f].mean(axis=1)
-    near = (4.0 - centre[:, 2]) / cams[0].fx                   # the closer view frames the whole sphere
+    near = (4.0 - centre[:, 2]) / cams[0].fx  # the closer view frames the whole sphere
     first = np.arange(len(f)) < len(f) // 2
     hidden = first & (centre[:, 2] < -0.5)
     assert hidden.sum() > 50
@@ -1071,6 +1235,7 @@ def test_antialiased_default_views_size_faces_for_the_nearest_view_from_anywhere
     antialiased rendering, a face is sized for the nearest such view (closed form for a sphere
     centred on the views' target), seen or framed by these twelve or not."""
     from splatwright.core.mesh_refine import _pixel_all_around, _Views
+
     v, f, _ = uv_sphere(24, 12)
     surface = Surface(v, f)
     cams = default_views(surface, 64)
@@ -1092,8 +1257,11 @@ def test_thin_walls_do_not_show_the_other_side():
     surface = Surface(v, f, None, fm, mats)
     assert (surface.outward_signs() == 1).all()
     # Close-ups of the outside from below and above, where the inside is right behind the wall.
-    cams = [Camera.look_at((r * np.cos(a), y, r * np.sin(a)), (0, 0.02, 0), fov_deg=40, width=64, height=64,
-                           near=0.001) for a in (0.3, 2.0, 4.1) for r, y in ((0.045, -0.02), (0.05, 0.06))]
+    cams = [
+        Camera.look_at((r * np.cos(a), y, r * np.sin(a)), (0, 0.02, 0), fov_deg=40, width=64, height=64, near=0.001)
+        for a in (0.3, 2.0, 4.1)
+        for r, y in ((0.045, -0.02), (0.05, 0.06))
+    ]
     # Box-filtered: the leak is judged pixel by pixel, each pixel by its own samples alone.
     refs = [render_mesh(surface, cam, supersample=3, pixel_filter="box") for cam in cams]
     outer = [(ref.alpha == 1) & (fm[np.maximum(ref.face[1::3, 1::3], 0)] == 0) for ref in refs]
@@ -1106,8 +1274,9 @@ def test_thin_walls_do_not_show_the_other_side():
         error = np.concatenate([((c - ref.color) ** 2)[o] for c, ref, o in zip(colors, refs, outer)])
         return (blue > 0.05).mean(), -10 * np.log10(error.mean())
 
-    cloud = mesh_to_splats(v, f, face_materials=fm, materials=mats, max_splats=20_000, calibrate=False,
-                           render_mode="classic")
+    cloud = mesh_to_splats(
+        v, f, face_materials=fm, materials=mats, max_splats=20_000, calibrate=False, render_mode="classic"
+    )
     # Splats as wide as 2500 spread evenly would be (sigma 0.35 of the wall): the inside shows.
     even = build_splats(surface, np.full(len(f), 2500 / surface.area.sum()))
     wall_sigma = np.exp(cloud.log_scales[:, :2].astype(np.float64)).max(axis=1)
@@ -1130,9 +1299,14 @@ def test_steps_are_the_refinement_rounds_and_stop_when_closed():
     """mesh_to_splats_steps yields after every round (a caller may stop between rounds) and returns
     what mesh_to_splats returns; closed part-way it ends at once."""
     from splatwright.core.mesh_to_splats import mesh_to_splats_steps
+
     v, f, _ = uv_sphere(24, 12)
-    options = dict(face_materials=np.zeros(len(f), int), materials=[Material(base_color=(0.7, 0.2, 0.1))],
-                   target_psnr=33.0, view_size=64)
+    options = dict(
+        face_materials=np.zeros(len(f), int),
+        materials=[Material(base_color=(0.7, 0.2, 0.1))],
+        target_psnr=33.0,
+        view_size=64,
+    )
     seen = []
     whole = mesh_to_splats(v, f, progress=lambda *step: seen.append(step), **options)
     steps = mesh_to_splats_steps(v, f, **options)
@@ -1167,12 +1341,14 @@ def test_every_budget_tries_the_rungs_a_smaller_budget_tried():
 def test_a_budget_steps_through_the_counts_it_tries():
     """A budget yields after each count it tries (the budget, then the ladder's 4,000 and 2,000),
     its progress never going back, and keeps the one its views rate best."""
-    from splatwright.core.steps import drain
     from splatwright.core.mesh_to_splats import mesh_to_splats_steps
+    from splatwright.core.steps import drain
+
     v, f, _ = uv_sphere(24, 12)
     seen = []
-    cloud = drain(mesh_to_splats_steps(v, f, max_splats=9000, view_size=48, view_count=2),
-                  lambda *step: seen.append(step))
+    cloud = drain(
+        mesh_to_splats_steps(v, f, max_splats=9000, view_size=48, view_count=2), lambda *step: seen.append(step)
+    )
     fractions = [done / total for done, total, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
     tried = [label for _, _, label in seen[:-1]]

@@ -13,7 +13,16 @@ from helpers import random_cloud
 from test_io_fuzz import check_splat_read, damaged, outcome, write_case
 
 from splatwright.core import sh as shmod
-from splatwright.io import SplatFileError, SplatFileWarning, compressed_ply, format_of, gltf, read_splats, sog, write_splats
+from splatwright.io import (
+    SplatFileError,
+    SplatFileWarning,
+    compressed_ply,
+    format_of,
+    gltf,
+    read_splats,
+    sog,
+    write_splats,
+)
 
 C0 = 0.28209479177387814
 
@@ -34,9 +43,10 @@ def test_format_table_names_the_new_formats(tmp_path):
 
 # compressed PLY --------------------------------------------------------------------------------------
 
+
 def test_compressed_ply_hand_built_bytes(tmp_path):
     """One chunk, two splats, packed by hand from the layout."""
-    chunk = struct.pack("<18f", -1, 0, 2, 3, 1, 4,   -5, -4, -3, -1, -2, -1,   0.2, 0.3, 0.4, 0.8, 0.9, 1.0)
+    chunk = struct.pack("<18f", -1, 0, 2, 3, 1, 4, -5, -4, -3, -1, -2, -1, 0.2, 0.3, 0.4, 0.8, 0.9, 1.0)
     # splat 0: the chunk's minimum corner; splat 1: x at 1/2047 of 2047 steps = max, y 0, z half way
     pos = [0, (2047 << 21) | (0 << 11) | 1023]
     # rotations: identity (largest rot_0 = w, others at 1/2 -> 511.5 ~ 512 of 1023); a half turn
@@ -58,12 +68,23 @@ def test_compressed_ply_hand_built_bytes(tmp_path):
     np.testing.assert_allclose(got.log_scales, [[-1, -2, -1], [-5, -4, -3]], atol=1e-6)
     np.testing.assert_allclose(shmod.dc_to_rgb(got.sh[:, 0]), [[0.2, 0.9, 0.4], [0.8, 0.3, 0.4 + 0.6 * 0.2]], atol=1e-6)
     np.testing.assert_allclose(got.opacities, [1 - 1e-7, 0.2], atol=1e-6)
-    step = (mid / 1023 - 0.5) * np.sqrt(2)       # what 512 of 1023 stands for: nearly zero
+    step = (mid / 1023 - 0.5) * np.sqrt(2)  # what 512 of 1023 stands for: nearly zero
     np.testing.assert_allclose(got.rotations[0, 1:], step, atol=1e-9)
-    np.testing.assert_allclose(got.rotations[1, 3], np.sqrt(1 - 3 * step ** 2))
+    np.testing.assert_allclose(got.rotations[1, 3], np.sqrt(1 - 3 * step**2))
     # sh bytes: 0 and 255 are the ends (-4, 4), others (b + 0.5) / 256 * 8 - 4; channel-major
-    rest = np.array([-4, 4, (128.5 / 256 - 0.5) * 8, (64.5 / 256 - 0.5) * 8, (192.5 / 256 - 0.5) * 8,
-                     (1.5 / 256 - 0.5) * 8, (2.5 / 256 - 0.5) * 8, (3.5 / 256 - 0.5) * 8, (4.5 / 256 - 0.5) * 8])
+    rest = np.array(
+        [
+            -4,
+            4,
+            (128.5 / 256 - 0.5) * 8,
+            (64.5 / 256 - 0.5) * 8,
+            (192.5 / 256 - 0.5) * 8,
+            (1.5 / 256 - 0.5) * 8,
+            (2.5 / 256 - 0.5) * 8,
+            (3.5 / 256 - 0.5) * 8,
+            (4.5 / 256 - 0.5) * 8,
+        ]
+    )
     np.testing.assert_allclose(got.sh[0, 1:], rest.reshape(3, 3).T, atol=1e-6)
 
 
@@ -77,9 +98,11 @@ def test_compressed_ply_round_trip_within_its_steps(tmp_path, degree):
     want = cloud[compressed_ply.morton_order(cloud.positions)]
     chunks = -(-len(want) // 256)
     pad = lambda a: np.concatenate([a, np.repeat(a[-1:], chunks * 256 - len(a), 0)]).reshape(chunks, 256, -1)  # noqa: E731
-    for values, got_values, bits in ((want.positions, got.positions, (11, 10, 11)),
-                                     (want.log_scales, got.log_scales, (11, 10, 11))):
-        span = np.repeat(np.ptp(pad(values.astype(np.float64)), axis=1), 256, axis=0)[:len(values)]
+    for values, got_values, bits in (
+        (want.positions, got.positions, (11, 10, 11)),
+        (want.log_scales, got.log_scales, (11, 10, 11)),
+    ):
+        span = np.repeat(np.ptp(pad(values.astype(np.float64)), axis=1), 256, axis=0)[: len(values)]
         steps = span / (2.0 ** np.array(bits) - 1)
         assert (np.abs(got_values - values) <= steps / 2 + 1e-6).all()
     assert np.abs(got.opacities - want.opacities).max() <= 0.5 / 255 + 1e-7
@@ -107,14 +130,21 @@ def test_compressed_ply_policy_errors_and_damage(tmp_path):
     header_len = data.index(b"end_header\n") + 11
     for label, damaged_bytes in damaged(data, header_len, seed=70):
         check_splat_read(read_splats, write_case(tmp_path, label, ".compressed.ply", damaged_bytes))
-        check_splat_read(read_splats, write_case(tmp_path, label, ".ply", damaged_bytes))    # sniffed as well
-    cases = {"chunks": data.replace(b"element chunk 2", b"element chunk 3"),
-             "count": data.replace(b"element vertex 300", b"element vertex 301"),
-             "uint": data.replace(b"property uint packed_scale", b"property float packed_scale"),
-             "sh_rest": data.replace(b"property uchar f_rest_8\n", b""),
-             "ascii": data.replace(b"binary_little_endian", b"ascii")}
-    messages = {"chunks": "3 chunks for 300 splats", "count": "each of the 301 splats; found 9 properties for 300", "uint": "uint properties",
-                "sh_rest": "f_rest_0..M", "ascii": "must be binary_little_endian"}
+        check_splat_read(read_splats, write_case(tmp_path, label, ".ply", damaged_bytes))  # sniffed as well
+    cases = {
+        "chunks": data.replace(b"element chunk 2", b"element chunk 3"),
+        "count": data.replace(b"element vertex 300", b"element vertex 301"),
+        "uint": data.replace(b"property uint packed_scale", b"property float packed_scale"),
+        "sh_rest": data.replace(b"property uchar f_rest_8\n", b""),
+        "ascii": data.replace(b"binary_little_endian", b"ascii"),
+    }
+    messages = {
+        "chunks": "3 chunks for 300 splats",
+        "count": "each of the 301 splats; found 9 properties for 300",
+        "uint": "uint properties",
+        "sh_rest": "f_rest_0..M",
+        "ascii": "must be binary_little_endian",
+    }
     for label, bad_bytes in cases.items():
         with pytest.raises(SplatFileError, match=messages[label]):
             read_splats(write_case(tmp_path, label, ".compressed.ply", bad_bytes))
@@ -122,11 +152,28 @@ def test_compressed_ply_policy_errors_and_damage(tmp_path):
 
 # glTF ------------------------------------------------------------------------------------------------
 
+
 def gltf_doc(attributes, count, extension=None, mode=0):
-    return {"asset": {"version": "2.0"}, "extensionsUsed": ["KHR_gaussian_splatting"],
-            "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
-            "meshes": [{"primitives": [{"mode": mode, "attributes": attributes, "extensions": {
-                "KHR_gaussian_splatting": extension or {"kernel": "ellipse", "colorSpace": "srgb_rec709_display"}}}]}]}
+    return {
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["KHR_gaussian_splatting"],
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [
+            {
+                "primitives": [
+                    {
+                        "mode": mode,
+                        "attributes": attributes,
+                        "extensions": {
+                            "KHR_gaussian_splatting": extension
+                            or {"kernel": "ellipse", "colorSpace": "srgb_rec709_display"}
+                        },
+                    }
+                ]
+            }
+        ],
+    }
 
 
 def hand_gltf(path, values, extension=None, mode=0, extra=None):
@@ -135,14 +182,28 @@ def hand_gltf(path, values, extension=None, mode=0, extra=None):
     for name, (array, ctype, kind, normalized) in values.items():
         data = np.ascontiguousarray(array).tobytes()
         views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(data)})
-        accessors.append({"bufferView": len(views) - 1, "componentType": ctype, "count": len(array), "type": kind,
-                          **({"normalized": True} if normalized else {})})
+        accessors.append(
+            {
+                "bufferView": len(views) - 1,
+                "componentType": ctype,
+                "count": len(array),
+                "type": kind,
+                **({"normalized": True} if normalized else {}),
+            }
+        )
         attributes[name] = len(accessors) - 1
         blob += data + bytes(-len(data) % 4)
     doc = gltf_doc(attributes, len(next(iter(values.values()))[0]), extension, mode)
     import base64
-    doc.update(buffers=[{"byteLength": len(blob), "uri": "data:application/octet-stream;base64,"
-                         + base64.b64encode(blob).decode()}], bufferViews=views, accessors=accessors, **(extra or {}))
+
+    doc.update(
+        buffers=[
+            {"byteLength": len(blob), "uri": "data:application/octet-stream;base64," + base64.b64encode(blob).decode()}
+        ],
+        bufferViews=views,
+        accessors=accessors,
+        **(extra or {}),
+    )
     path.write_text(json.dumps(doc))
 
 
@@ -150,15 +211,22 @@ def test_gltf_hand_built_file_with_quantised_rotations(tmp_path):
     """glTF's axes (LUF) against the model's (RDF): x and y change sign; normalised shorts for the
     rotation, as the extension allows."""
     positions = np.float32([[1, 2, 3], [-4, 5, 0.5]])
-    q = np.array([[0, 0, 0, 1], [0.6, 0, 0, 0.8]])                       # x, y, z, w
+    q = np.array([[0, 0, 0, 1], [0.6, 0, 0, 0.8]])  # x, y, z, w
     rotation = np.rint(q * 32767).astype("<i2")
-    values = {"POSITION": (positions, 5126, "VEC3", False),
-              "KHR_gaussian_splatting:ROTATION": (rotation, 5122, "VEC4", True),
-              "KHR_gaussian_splatting:SCALE": (np.float32([[0.1, 0.2, 0.3], [1, 1, 1]]), 5126, "VEC3", False),
-              "KHR_gaussian_splatting:OPACITY": (np.float32([0.5, 1.0]), 5126, "SCALAR", False),
-              "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0": (np.float32([[0.1, 0.2, 0.3], [0, 0, 0]]), 5126, "VEC3", False)}
+    values = {
+        "POSITION": (positions, 5126, "VEC3", False),
+        "KHR_gaussian_splatting:ROTATION": (rotation, 5122, "VEC4", True),
+        "KHR_gaussian_splatting:SCALE": (np.float32([[0.1, 0.2, 0.3], [1, 1, 1]]), 5126, "VEC3", False),
+        "KHR_gaussian_splatting:OPACITY": (np.float32([0.5, 1.0]), 5126, "SCALAR", False),
+        "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0": (np.float32([[0.1, 0.2, 0.3], [0, 0, 0]]), 5126, "VEC3", False),
+    }
     for c in range(3):
-        values[f"KHR_gaussian_splatting:SH_DEGREE_1_COEF_{c}"] = (np.full((2, 3), c + 1, np.float32), 5126, "VEC3", False)
+        values[f"KHR_gaussian_splatting:SH_DEGREE_1_COEF_{c}"] = (
+            np.full((2, 3), c + 1, np.float32),
+            5126,
+            "VEC3",
+            False,
+        )
     hand_gltf(tmp_path / "hand.gltf", values)
     got = read_splats(tmp_path / "hand.gltf")
     np.testing.assert_array_equal(got.positions, positions * [-1, -1, 1])
@@ -217,6 +285,7 @@ def test_gltf_round_trip_policy_and_damage(tmp_path, ext):
 
 # SOG -------------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_sog_round_trip_within_its_quantisation(tmp_path, degree):
     cloud = random_cloud(800, sh_degree=degree, seed=degree)
@@ -236,11 +305,13 @@ def test_sog_round_trip_within_its_quantisation(tmp_path, degree):
         # codebooks: 256 k-means centres; a value is as far as half the widest gap between them, or
         # beyond the outermost centre
         meta = json.loads(_meta_text(path))
-        assert np.abs(got.log_scales - want.log_scales).max() <= codebook_bound(meta["scales"]["codebook"],
-                                                                                want.log_scales)
-        if degree:      # fewer splats than palette entries: each its own, only the 8-bit codebook rounds
-            assert np.abs(got.sh[:, 1:] - want.sh[:, 1:]).max() <= codebook_bound(meta["shN"]["codebook"],
-                                                                                  want.sh[:, 1:])
+        assert np.abs(got.log_scales - want.log_scales).max() <= codebook_bound(
+            meta["scales"]["codebook"], want.log_scales
+        )
+        if degree:  # fewer splats than palette entries: each its own, only the 8-bit codebook rounds
+            assert np.abs(got.sh[:, 1:] - want.sh[:, 1:]).max() <= codebook_bound(
+                meta["shN"]["codebook"], want.sh[:, 1:]
+            )
 
 
 def codebook_bound(book, values):
@@ -253,6 +324,7 @@ def _meta_text(path):
     if path.name == "meta.json":
         return path.read_text()
     import zipfile
+
     return zipfile.ZipFile(path).read("meta.json").decode()
 
 
@@ -272,7 +344,9 @@ def test_sog_without_pillow_says_what_is_missing(tmp_path, monkeypatch):
     write_splats(tmp_path / "a.sog", random_cloud(10, sh_degree=0))
     monkeypatch.setitem(sys.modules, "PIL", None)
     for call in (lambda: read_splats(tmp_path / "a.sog"), lambda: write_splats(tmp_path / "b.sog", random_cloud(5))):
-        with pytest.raises(SplatFileError, match="no WebP codec \\(the Pillow package; Blender's own Python lacks it\\)") as info:
+        with pytest.raises(
+            SplatFileError, match="no WebP codec \\(the Pillow package; Blender's own Python lacks it\\)"
+        ) as info:
             call()
         assert "pip install" not in str(info.value)
     assert not (tmp_path / "b.sog").exists()
@@ -297,10 +371,12 @@ def test_sog_policy_errors_and_damage(tmp_path):
     meta = tmp_path / "loose" / "meta.json"
     write_splats(meta, cloud)
     text = json.loads(meta.read_text())
-    for label, change, message in [("version", {"version": 1}, "SOG version 1"),
-                                   ("count", {"count": 10 ** 6}, "pixels for 1000000 splats"),
-                                   ("codebook", {"scales": {"codebook": [0, 1], "files": ["scales.webp"]}}, "256-entry"),
-                                   ("escape", {"quats": {"files": ["../v.sog"]}}, "outside its folder")]:
+    for _label, change, message in [
+        ("version", {"version": 1}, "SOG version 1"),
+        ("count", {"count": 10**6}, "pixels for 1000000 splats"),
+        ("codebook", {"scales": {"codebook": [0, 1], "files": ["scales.webp"]}}, "256-entry"),
+        ("escape", {"quats": {"files": ["../v.sog"]}}, "outside its folder"),
+    ]:
         meta.write_text(json.dumps({**text, **change}))
         with pytest.raises(SplatFileError, match=message):
             read_splats(meta)
@@ -314,15 +390,23 @@ def test_sog_policy_errors_and_damage(tmp_path):
 
 def test_gltf_documents_of_the_wrong_shape(tmp_path):
     import base64
+
     doc, binary = gltf.encode(random_cloud(5, sh_degree=1))
     doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(binary).decode()
-    cases = {"matrix": (lambda d: d["nodes"][0].update(matrix=[1, 2]), "malformed glTF document"),
-             "scene": (lambda d: d.update(scene=5), "scene 5 does not exist"),
-             "attributes": (lambda d: d["meshes"][0]["primitives"][0].update(attributes="x"), "no POSITION"),
-             "extension": (lambda d: d["meshes"][0]["primitives"][0]["extensions"].update(KHR_gaussian_splatting=3),
-                           "malformed glTF document"),
-             "accessor": (lambda d: d["accessors"][0].update(count=10 ** 12), "run past the end"),
-             "no_splats": (lambda d: d["meshes"][0]["primitives"][0].pop("extensions"), "no KHR_gaussian_splatting primitive")}
+    cases = {
+        "matrix": (lambda d: d["nodes"][0].update(matrix=[1, 2]), "malformed glTF document"),
+        "scene": (lambda d: d.update(scene=5), "scene 5 does not exist"),
+        "attributes": (lambda d: d["meshes"][0]["primitives"][0].update(attributes="x"), "no POSITION"),
+        "extension": (
+            lambda d: d["meshes"][0]["primitives"][0]["extensions"].update(KHR_gaussian_splatting=3),
+            "malformed glTF document",
+        ),
+        "accessor": (lambda d: d["accessors"][0].update(count=10**12), "run past the end"),
+        "no_splats": (
+            lambda d: d["meshes"][0]["primitives"][0].pop("extensions"),
+            "no KHR_gaussian_splatting primitive",
+        ),
+    }
     for label, (mutate, message) in cases.items():
         broken = json.loads(json.dumps(doc))
         mutate(broken)
@@ -334,10 +418,16 @@ def test_gltf_documents_of_the_wrong_shape(tmp_path):
 
 # SH degree 4 where a format stops at 3 -----------------------------------------------------------------
 
-@pytest.mark.parametrize("name, words", [("r.compressed.ply", "compressed PLY stores SH up to degree 3"),
-                                         ("r.glb", "KHR_gaussian_splatting stores SH up to degree 3"),
-                                         ("r.sog", "SOG stores SH up to degree 3"),
-                                         ("r.splat", "stores the DC colour only; SH degree 4")])
+
+@pytest.mark.parametrize(
+    "name, words",
+    [
+        ("r.compressed.ply", "compressed PLY stores SH up to degree 3"),
+        ("r.glb", "KHR_gaussian_splatting stores SH up to degree 3"),
+        ("r.sog", "SOG stores SH up to degree 3"),
+        ("r.splat", "stores the DC colour only; SH degree 4"),
+    ],
+)
 def test_formats_without_a_fourth_band_reduce_degree_4_and_say_so(tmp_path, name, words):
     """The file is the one the degree-3 truncation of the cloud makes, byte for byte; a cloud whose
     fourth band is zero (a degree-3 cloud padded up) loses nothing and gets no warning."""
@@ -348,7 +438,7 @@ def test_formats_without_a_fourth_band_reduce_degree_4_and_say_so(tmp_path, name
     with pytest.warns(SplatFileWarning, match=words):
         write_splats(path, cloud)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")                 # .splat warns for degree 3 too
+        warnings.simplefilter("ignore")  # .splat warns for degree 3 too
         write_splats(lower, cloud.with_sh_degree(3))
     assert path.read_bytes() == lower.read_bytes()
     assert read_splats(path).sh_degree == (0 if name.endswith(".splat") else 3)

@@ -10,7 +10,6 @@ import textwrap
 import zipfile
 from pathlib import Path
 
-import pytest
 from helpers import REPO_ROOT, run_blender_ext
 
 from splatwright.core.scenes import seed_cube
@@ -18,8 +17,9 @@ from splatwright.io import write_splats
 
 
 def run_python(code, cwd):
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          cwd=cwd, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, cwd=cwd, timeout=120
+    )
 
 
 def test_blender_ext_offers_validate_and_build():
@@ -52,7 +52,8 @@ def test_built_zip_validates_and_leaves_out_dev_files(extension_zip):
 def test_core_and_io_work_without_bpy(tmp_path):
     """In a fresh interpreter where bpy cannot even be imported, the NumPy side reads and writes PLY
     and never touches bpy (or pxr, which core must not need)."""
-    done = run_python("""
+    done = run_python(
+        """
         import sys
 
         class NoBpy:
@@ -73,7 +74,9 @@ def test_core_and_io_work_without_bpy(tmp_path):
         bad = sorted(m for m in sys.modules if m == "bpy" or m.startswith(("bpy.", "splatwright.splat_addon")))
         assert not bad, bad
         print("ok")
-    """, cwd=tmp_path)
+    """,
+        cwd=tmp_path,
+    )
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stdout + done.stderr
 
 
@@ -83,12 +86,12 @@ def test_console_script_and_python_dash_m(tmp_path):
     env = dict(os.environ, PYTHONPATH="")
     write_splats(tmp_path / "cube.ply", seed_cube())
     for command in ([script], [sys.executable, "-m", "splatwright"]):
-        done = subprocess.run([*command, "--help"], capture_output=True, text=True, cwd=tmp_path, env=env,
-                              timeout=120)
+        done = subprocess.run([*command, "--help"], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120)
         assert done.returncode == 0, done.stderr
         assert "info" in done.stdout and "convert" in done.stdout and "demo" in done.stdout
-        info = subprocess.run([*command, "info", "cube.ply", "--json"], capture_output=True, text=True,
-                              cwd=tmp_path, env=env, timeout=120)
+        info = subprocess.run(
+            [*command, "info", "cube.ply", "--json"], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=120
+        )
         assert info.returncode == 0, info.stderr
         assert json.loads(info.stdout)["count"] == 1000
 
@@ -103,9 +106,16 @@ def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_p
     assert any(n.startswith("wheels/numba-") and "cp311" in n for n in names)
     compiled = []
     for user in ("user", "user_again"):
-        env = {**os.environ, "BLENDER_USER_RESOURCES": str(tmp_path / user),
-               "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")}
-        done = subprocess.run([sys.executable, "-c", textwrap.dedent(f"""
+        env = {
+            **os.environ,
+            "BLENDER_USER_RESOURCES": str(tmp_path / user),
+            "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache"),
+        }
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                textwrap.dedent(f"""
             import importlib, sys, bpy
             import numpy as np
             bpy.ops.extensions.package_install_files(filepath={str(extension_zip)!r}, repo="user_default",
@@ -120,22 +130,37 @@ def test_installed_extension_renders_with_its_bundled_numba(extension_zip, tmp_p
             geometry.polar_rotation(np.eye(3)[None])
             kernels = [*vars(kernels).values(), geometry._polar_loop]
             print(sum(len(f.stats.cache_misses) for f in kernels if hasattr(f, "stats")))
-        """)], capture_output=True, text=True, env=env, timeout=600)
+        """),
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+        )
         assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
         status, numba_file, misses = done.stdout.strip().splitlines()[-3:]
         assert status == "compiled"
-        assert str(tmp_path / user) in numba_file and ".local" in numba_file      # the bundled wheel
+        assert str(tmp_path / user) in numba_file and ".local" in numba_file  # the bundled wheel
         compiled.append(int(misses))
     assert list((tmp_path / "cache").rglob("render_kernels.*.nbi"))
-    assert compiled[0] > 0 and compiled[1] == 0             # compiled by the first install only
+    assert compiled[0] > 0 and compiled[1] == 0  # compiled by the first install only
     # the same source imported as splatwright (pip) has kernels of its own beside the extension's
-    done = subprocess.run([sys.executable, "-c", textwrap.dedent("""
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent("""
         import numpy as np
         from splatwright.core import geometry
         r = geometry.polar_rotation(np.diag([2.0, 1.0, -1.0])[None])
         print(np.abs(r[0] - np.diag([1.0, 1.0, -1.0])).max(), len(geometry._polar_loop.stats.cache_misses))
-    """)], capture_output=True, text=True, env={**os.environ, "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")},
-        timeout=600)
+    """),
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache")},
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     error, misses = done.stdout.split()
     assert float(error) < 1e-12 and int(misses) == 1

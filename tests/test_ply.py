@@ -11,18 +11,32 @@ import pytest
 from helpers import random_cloud
 
 from splatwright.core import SplatCloud
-from splatwright.io import SplatFileError, ply, read_splats, write_splats, SplatFileWarning
+from splatwright.io import SplatFileError, SplatFileWarning, ply, read_splats, write_splats
 
 # An independent PLY writer -----------------------------------------------------------------------
 
-CODES = {"char": "i1", "uchar": "u1", "short": "i2", "ushort": "u2", "int": "i4", "uint": "u4",
-         "float": "f4", "double": "f8", "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
-         "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8"}
+CODES = {
+    "char": "i1",
+    "uchar": "u1",
+    "short": "i2",
+    "ushort": "u2",
+    "int": "i4",
+    "uint": "u4",
+    "float": "f4",
+    "double": "f8",
+    "int8": "i1",
+    "uint8": "u1",
+    "int16": "i2",
+    "uint16": "u2",
+    "int32": "i4",
+    "uint32": "u4",
+    "float32": "f4",
+    "float64": "f8",
+}
 ENDIAN = {"binary_little_endian": "<", "binary_big_endian": ">"}
 
 
-def build_ply(vertex, types=None, fmt="binary_little_endian", count=None, before=(), after=(),
-              newline="\n"):
+def build_ply(vertex, types=None, fmt="binary_little_endian", count=None, before=(), after=(), newline="\n"):
     """PLY bytes for vertex columns {name: values} (file order = dict order), each of a PLY type
     (float unless `types` says otherwise). before/after: other elements as (name, props, rows) with
     props [(name, type)] or [(name, ("list", count type, item type))] and rows tuples of values."""
@@ -31,12 +45,13 @@ def build_ply(vertex, types=None, fmt="binary_little_endian", count=None, before
     elements = [*before, ("vertex", [(p, types.get(p, "float")) for p in vertex], None), *after]
     head = ["ply", f"format {fmt} 1.0", "comment built by test_ply"]
     for name, props, rows in elements:
-        head.append(f"element {name} {count if (name == 'vertex' and count is not None) else (n if rows is None else len(rows))}")
+        rows_stated = count if (name == "vertex" and count is not None) else (n if rows is None else len(rows))
+        head.append(f"element {name} {rows_stated}")
         for p, t in props:
             head.append(f"property list {t[1]} {t[2]} {p}" if isinstance(t, tuple) else f"property {t} {p}")
     head.append("end_header")
     body = b""
-    for name, props, rows in elements:
+    for _name, props, rows in elements:
         if rows is None:
             rows = list(zip(*vertex.values()))
         body += _element_bytes(props, rows, fmt)
@@ -95,18 +110,25 @@ def gaussian_columns(n, degree, seed=0, normals=True, extras=True):
 
 def expected_fields(cols):
     """What a reader must produce, derived from the columns with the layout's rules spelled out."""
+
     def f32(names):
-        with np.errstate(over="ignore"):      # doubles beyond float32 become inf, as in any reader
+        with np.errstate(over="ignore"):  # doubles beyond float32 become inf, as in any reader
             return np.stack([np.asarray(cols[c], np.float64) for c in names], 1).astype(np.float32)
+
     m = sum(1 for c in cols if c.startswith("f_rest_"))
     k = m // 3 + 1
     sh = np.zeros((len(cols["x"]), k, 3), np.float32)
     for c in range(3):
         sh[:, 0, c] = np.float32(cols[f"f_dc_{c}"])
-        for j in range(k - 1):      # channel-major: f_rest[c*(K-1) + j] is channel c, coefficient j+1
+        for j in range(k - 1):  # channel-major: f_rest[c*(K-1) + j] is channel c, coefficient j+1
             sh[:, 1 + j, c] = np.float32(cols[f"f_rest_{c * (k - 1) + j}"])
-    return dict(positions=f32("xyz"), rotations=f32(["rot_0", "rot_1", "rot_2", "rot_3"]),
-                log_scales=f32(["scale_0", "scale_1", "scale_2"]), opacity_logits=f32(["opacity"])[:, 0], sh=sh)
+    return dict(
+        positions=f32("xyz"),
+        rotations=f32(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        log_scales=f32(["scale_0", "scale_1", "scale_2"]),
+        opacity_logits=f32(["opacity"])[:, 0],
+        sh=sh,
+    )
 
 
 def assert_fields(cloud, expected):
@@ -123,13 +145,19 @@ def write_bytes(tmp_path, data, name="in.ply"):
 
 # Round trips --------------------------------------------------------------------------------------
 
+
 def cloud_with_extras(n, degree, seed=0):
     c = random_cloud(n, sh_degree=degree, seed=seed)
     rng = np.random.default_rng(seed + 1)
-    c.extras = {"nx": rng.normal(size=n).astype(np.float32), "ny": np.zeros(n, np.float32),
-                "nz": rng.normal(size=n).astype(np.float32), "segment": rng.integers(0, 255, n).astype(np.uint8),
-                "weight": rng.normal(size=n), "id": rng.integers(-2**31, 2**31 - 1, n).astype(np.int32),
-                "tag": rng.integers(-100, 100, n).astype(np.int16)}
+    c.extras = {
+        "nx": rng.normal(size=n).astype(np.float32),
+        "ny": np.zeros(n, np.float32),
+        "nz": rng.normal(size=n).astype(np.float32),
+        "segment": rng.integers(0, 255, n).astype(np.uint8),
+        "weight": rng.normal(size=n),
+        "id": rng.integers(-(2**31), 2**31 - 1, n).astype(np.int32),
+        "tag": rng.integers(-100, 100, n).astype(np.int16),
+    }
     return c
 
 
@@ -157,12 +185,19 @@ def test_plyfile_reads_our_file_in_the_reference_layout(tmp_path):
     assert not data.text and data.byte_order == "<"
     vertex = data["vertex"]
     names = list(vertex.data.dtype.names)
-    assert names[:62] == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-                          + [f"f_rest_{i}" for i in range(45)]
-                          + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert names[:62] == (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     assert names[62:] == ["segment", "weight", "id", "tag"]
     assert all(vertex.data.dtype[i] == np.dtype("<f4") for i in range(62))
-    assert [vertex.data.dtype[n] for n in names[62:]] == [np.dtype("u1"), np.dtype("<f8"), np.dtype("<i4"), np.dtype("<i2")]
+    assert [vertex.data.dtype[n] for n in names[62:]] == [
+        np.dtype("u1"),
+        np.dtype("<f8"),
+        np.dtype("<i4"),
+        np.dtype("<i2"),
+    ]
     cols = {n: vertex[n] for n in names}
     assert_fields(cloud, expected_fields(cols))
     for key in ("nx", "ny", "nz", "segment", "weight", "id", "tag"):
@@ -176,9 +211,11 @@ def test_plyfile_reads_our_degree_4_file_with_72_f_rest(tmp_path):
     write_splats(path, cloud)
     vertex = plyfile.PlyData.read(str(path))["vertex"]
     names = list(vertex.data.dtype.names)
-    assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-                     + [f"f_rest_{i}" for i in range(72)]
-                     + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert names == (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(72)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     assert_fields(cloud, expected_fields({n: vertex[n] for n in names}))
     # f_rest_47 is channel 1 (green), coefficient 47 - 24 + 1 = 24: the m = 4 term of band 4
     np.testing.assert_array_equal(vertex["f_rest_47"], cloud.sh[:, 24, 1])
@@ -198,7 +235,7 @@ def test_antialiased_splats_say_so_in_a_comment_other_readers_skip(tmp_path):
     assert plyfile.PlyData.read(str(tmp_path / "classic.ply")).comments == []
     assert not read_splats(tmp_path / "classic.ply").antialiased
     other = plyfile.PlyData([data["vertex"]], text=True, comments=["antialiased, written by another tool"])
-    other.write(str(tmp_path / "other.ply"))                  # ASCII, the word with a comma: not ours
+    other.write(str(tmp_path / "other.ply"))  # ASCII, the word with a comma: not ours
     assert not read_splats(tmp_path / "other.ply").antialiased
     plyfile.PlyData([data["vertex"]], text=True, comments=["antialiased"]).write(str(tmp_path / "text.ply"))
     assert read_splats(tmp_path / "text.ply").antialiased
@@ -232,7 +269,7 @@ def test_hand_built_files_read_value_for_value(tmp_path, fmt, ptype, degree):
     rng = np.random.default_rng(degree)
     cols = gaussian_columns(40, degree, seed=degree, normals=bool(degree % 2))
     order = list(cols)
-    if degree >= 2:                      # any property order
+    if degree >= 2:  # any property order
         rng.shuffle(order)
     cols = {k: cols[k] for k in order}
     types = {k: ptype for k in cols} | {"segment": "uchar"}
@@ -242,13 +279,15 @@ def test_hand_built_files_read_value_for_value(tmp_path, fmt, ptype, degree):
     assert cloud.extras["segment"].dtype == np.uint8
     np.testing.assert_array_equal(cloud.extras["segment"], cols["segment"])
     assert cloud.extras["confidence"].dtype == (np.float64 if ptype == "double" else np.float32)
-    np.testing.assert_array_equal(cloud.extras["confidence"], cols["confidence"].astype(cloud.extras["confidence"].dtype))
+    np.testing.assert_array_equal(
+        cloud.extras["confidence"], cols["confidence"].astype(cloud.extras["confidence"].dtype)
+    )
     assert ("nx" in cloud.extras) == bool(degree % 2)
     # value for value through our writer and back
     ply.write(tmp_path / "out.ply", cloud)
     again = ply.read(tmp_path / "out.ply")
     assert_fields(again, expected_fields(cols))
-    assert sorted(again.extras) == sorted(cloud.extras)     # normals move to their layout slot
+    assert sorted(again.extras) == sorted(cloud.extras)  # normals move to their layout slot
     for key, values in cloud.extras.items():
         np.testing.assert_array_equal(again.extras[key], values)
         assert again.extras[key].dtype == values.dtype
@@ -262,8 +301,14 @@ def test_every_scalar_type_in_core_and_extra_properties(tmp_path):
     cols["y"] = rng.integers(0, 255, n)
     cols["opacity"] = rng.integers(-3000, 3000, n)
     types = {"x": "int", "y": "uchar", "z": "double", "opacity": "short"}
-    spans = {"char": (-128, 127), "uchar": (0, 255), "short": (-2**15, 2**15 - 1), "ushort": (0, 2**16 - 1),
-             "int": (-2**31, 2**31 - 1), "uint": (0, 2**32 - 1)}
+    spans = {
+        "char": (-128, 127),
+        "uchar": (0, 255),
+        "short": (-(2**15), 2**15 - 1),
+        "ushort": (0, 2**16 - 1),
+        "int": (-(2**31), 2**31 - 1),
+        "uint": (0, 2**32 - 1),
+    }
     for t, (lo, hi) in spans.items():
         cols[f"e_{t}"] = np.r_[lo, hi, rng.integers(lo, hi, n - 2, endpoint=True)]
         types[f"e_{t}"] = t
@@ -281,8 +326,11 @@ def test_every_scalar_type_in_core_and_extra_properties(tmp_path):
 
 def test_other_elements_before_and_after_the_vertices(tmp_path):
     cols = gaussian_columns(20, 1, normals=False, extras=False)
-    camera = ("camera", [("fx", "float"), ("fy", "float"), ("width", "uint"), ("height", "uint")],
-              [(500.0, 500.0, 640, 480), (300.0, 310.0, 320, 240)])
+    camera = (
+        "camera",
+        [("fx", "float"), ("fy", "float"), ("width", "uint"), ("height", "uint")],
+        [(500.0, 500.0, 640, 480), (300.0, 310.0, 320, 240)],
+    )
     face = ("face", [("vertex_indices", ("list", "uchar", "int"))], [((0, 1, 2),), ((2, 3, 4, 5),)])
     for fmt in ("binary_little_endian", "binary_big_endian", "ascii"):
         for before, after in [((camera,), ()), ((), (camera, face)), ((camera,), (face,))]:
@@ -305,14 +353,16 @@ def test_2dgs_file_gets_a_flat_third_axis_and_says_so(tmp_path):
     path = write_bytes(tmp_path, build_ply(cols))
     with pytest.warns(SplatFileWarning, match="2DGS.*flat"):
         cloud = ply.read(path)
-    np.testing.assert_array_equal(cloud.log_scales[:, :2], np.stack([cols["scale_0"], cols["scale_1"]], 1).astype(np.float32))
+    np.testing.assert_array_equal(
+        cloud.log_scales[:, :2], np.stack([cols["scale_0"], cols["scale_1"]], 1).astype(np.float32)
+    )
     np.testing.assert_array_equal(cloud.log_scales[:, 2], np.float32(np.log(1e-6)))
     assert np.all(cloud.scales[:, 2] < 1.01e-6) and np.all(cloud.scales[:, 2] > 0.99e-6)
-    cov = cloud.covariances()           # flat but still a valid (invertible) covariance
+    cov = cloud.covariances()  # flat but still a valid (invertible) covariance
     assert np.all(np.linalg.eigvalsh(cov) > 0)
     ply.write(tmp_path / "3d.ply", cloud)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")      # written back as 3DGS: no warning on reading it
+        warnings.simplefilter("error")  # written back as 3DGS: no warning on reading it
         np.testing.assert_array_equal(ply.read(tmp_path / "3d.ply").log_scales, cloud.log_scales)
 
 
@@ -357,8 +407,11 @@ def test_many_chunks_on_several_threads_match_one_pass(tmp_path, monkeypatch):
 def test_extras_of_other_dtypes_are_written_as_ply_types(tmp_path):
     n = 12
     cloud = random_cloud(n, sh_degree=0)
-    cloud.extras = {"hit": np.arange(n) % 2 == 0, "tri": np.arange(n, dtype=np.int64) * 1000,
-                    "uv": np.arange(2 * n, dtype=np.float16).reshape(n, 2)}
+    cloud.extras = {
+        "hit": np.arange(n) % 2 == 0,
+        "tri": np.arange(n, dtype=np.int64) * 1000,
+        "uv": np.arange(2 * n, dtype=np.float16).reshape(n, 2),
+    }
     ply.write(tmp_path / "x.ply", cloud)
     vertex = plyfile.PlyData.read(str(tmp_path / "x.ply"))["vertex"]
     assert vertex.data.dtype["hit"] == np.uint8 and vertex.data.dtype["tri"] == np.dtype("<i4")
@@ -376,8 +429,10 @@ def test_read_splats_dispatches_to_ply(tmp_path):
 
 # Bad input ----------------------------------------------------------------------------------------
 
+
 def raises_naming(path, *fragments):
     """pytest.raises for a SplatFileError whose message names `path` and every fragment."""
+
     class Check:
         def __enter__(self):
             self.ctx = pytest.raises(SplatFileError)
@@ -391,6 +446,7 @@ def raises_naming(path, *fragments):
             for fragment in fragments:
                 assert fragment in message, message
             return handled
+
     return Check()
 
 
@@ -439,23 +495,28 @@ def test_missing_required_properties_are_named(tmp_path):
         ply.read(path)
 
 
-@pytest.mark.parametrize("data, words", [
-    (b"", "not a PLY file"),
-    (b"\x89PNG\r\n\x1a\n" + bytes(100), "not a PLY file"),
-    (b"plyx\nformat ascii 1.0\n", "not a PLY file"),
-    (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no 'end_header'"),
-    (b"ply\nformat binary_middle_endian 1.0\nelement vertex 0\nend_header\n", "unsupported format"),
-    (b"ply\nelement vertex 0\nproperty float x\nend_header\n", "no 'format' line"),
-    (b"ply\nformat ascii 1.0\nproperty float x\nend_header\n", "property before any element"),
-    (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty half x\nend_header\n", "property TYPE NAME"),
-    (b"ply\nformat ascii 1.0\nelement vertex -1\nend_header\n", "element NAME COUNT"),
-    (b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n",
-     "no 'vertex' element"),
-    (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float x\nend_header\n", "repeats"),
-    (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty list uchar float x\nend_header\n", "list properties"),
-    (b"ply\nformat ascii 1.0\nwhatever\nend_header\n", "unknown keyword"),
-    (b"ply\nformat ascii 1.0\ncomment \xff\nend_header\n", "not ASCII"),
-])
+@pytest.mark.parametrize(
+    "data, words",
+    [
+        (b"", "not a PLY file"),
+        (b"\x89PNG\r\n\x1a\n" + bytes(100), "not a PLY file"),
+        (b"plyx\nformat ascii 1.0\n", "not a PLY file"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n", "no 'end_header'"),
+        (b"ply\nformat binary_middle_endian 1.0\nelement vertex 0\nend_header\n", "unsupported format"),
+        (b"ply\nelement vertex 0\nproperty float x\nend_header\n", "no 'format' line"),
+        (b"ply\nformat ascii 1.0\nproperty float x\nend_header\n", "property before any element"),
+        (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty half x\nend_header\n", "property TYPE NAME"),
+        (b"ply\nformat ascii 1.0\nelement vertex -1\nend_header\n", "element NAME COUNT"),
+        (
+            b"ply\nformat ascii 1.0\nelement face 0\nproperty list uchar int vertex_indices\nend_header\n",
+            "no 'vertex' element",
+        ),
+        (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float x\nend_header\n", "repeats"),
+        (b"ply\nformat ascii 1.0\nelement vertex 0\nproperty list uchar float x\nend_header\n", "list properties"),
+        (b"ply\nformat ascii 1.0\nwhatever\nend_header\n", "unknown keyword"),
+        (b"ply\nformat ascii 1.0\ncomment \xff\nend_header\n", "not ASCII"),
+    ],
+)
 def test_malformed_headers(tmp_path, data, words):
     path = write_bytes(tmp_path, data)
     with raises_naming(path, words):
@@ -500,7 +561,7 @@ def nonfinite_columns():
     cols["opacity"][2] = np.nan
     cols["x"][5] = np.inf
     cols["f_rest_7"][5] = -np.inf
-    cols["rot_1"][7] = 1e300       # a double beyond float32
+    cols["rot_1"][7] = 1e300  # a double beyond float32
     return cols
 
 
@@ -550,6 +611,7 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_partial_one(tmp_path, mon
         if len(calls) == 2:
             raise OSError(28, "No space left on device")
         os.pwrite(fd, records.view(np.uint8).tobytes(), offset)
+
     monkeypatch.setattr(ply, "_write_at", fail_midway)
     monkeypatch.setattr(ply, "CHUNK_ROWS", 10)
     with raises_naming(path, "cannot write", "No space left"):
@@ -559,15 +621,18 @@ def test_failed_write_keeps_the_old_file_and_leaves_no_partial_one(tmp_path, mon
     assert os.listdir(tmp_path) == ["scene.ply"]
 
 
-@pytest.mark.parametrize("extras, words", [
-    ({"opacity": np.zeros(4)}, "'opacity'"),
-    ({"bad name": np.zeros(4)}, "'bad name'"),
-    ({"f_rest_50": np.zeros(4)}, "'f_rest_50'"),
-    ({"uv": np.zeros((4, 2)), "uv_1": np.zeros(4)}, "'uv_1'"),
-    ({"big": np.array([0, 2**40, 0, 0], np.int64)}, "extra 'big' has dtype int64"),
-    ({"obj": np.array(["a", "b", "c", "d"])}, "extra 'obj' has dtype <U1"),
-    ({"nx": np.zeros((4, 2))}, "'nx' must hold one value per splat"),
-])
+@pytest.mark.parametrize(
+    "extras, words",
+    [
+        ({"opacity": np.zeros(4)}, "'opacity'"),
+        ({"bad name": np.zeros(4)}, "'bad name'"),
+        ({"f_rest_50": np.zeros(4)}, "'f_rest_50'"),
+        ({"uv": np.zeros((4, 2)), "uv_1": np.zeros(4)}, "'uv_1'"),
+        ({"big": np.array([0, 2**40, 0, 0], np.int64)}, "extra 'big' has dtype int64"),
+        ({"obj": np.array(["a", "b", "c", "d"])}, "extra 'obj' has dtype <U1"),
+        ({"nx": np.zeros((4, 2))}, "'nx' must hold one value per splat"),
+    ],
+)
 def test_extras_that_cannot_be_written(tmp_path, extras, words):
     cloud = random_cloud(4, sh_degree=0)
     cloud.extras = extras
@@ -580,16 +645,22 @@ def test_extras_that_cannot_be_written(tmp_path, extras, words):
 def test_struct_packed_reference_file(tmp_path):
     """One 3DGS vertex packed field by field with struct, as the reference writer lays it out."""
     values = list(range(1, 63))
-    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
-    header = "ply\nformat binary_little_endian 1.0\nelement vertex 1\n" \
-        + "".join(f"property float {n}\n" for n in names) + "end_header\n"
+    names = (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 1\n"
+        + "".join(f"property float {n}\n" for n in names)
+        + "end_header\n"
+    )
     path = write_bytes(tmp_path, header.encode() + struct.pack("<62f", *values))
     cloud = ply.read(path)
     assert cloud.positions.tolist() == [[1, 2, 3]]
     assert cloud.extras["nx"].tolist() == [4]
     assert cloud.sh[0, 0].tolist() == [7, 8, 9]
-    assert cloud.sh[0, 1].tolist() == [10, 25, 40]      # coefficient 1 of R, G, B
+    assert cloud.sh[0, 1].tolist() == [10, 25, 40]  # coefficient 1 of R, G, B
     assert cloud.sh[0, 15].tolist() == [24, 39, 54]
     assert cloud.opacity_logits.tolist() == [55]
     assert cloud.log_scales.tolist() == [[56, 57, 58]]
@@ -602,6 +673,7 @@ def test_compiled_and_numpy_fills_write_the_same_bytes(tmp_path, monkeypatch):
     """The compiled record fill (where numba loads) and the NumPy one give byte-identical files,
     with normals and extras, and both count non-finite values the same way."""
     from splatwright.core import jit
+
     cloud = random_cloud(3000, sh_degree=2, seed=41)
     cloud.extras.update(nx=np.linspace(0, 1, 3000, dtype=np.float32), label=np.arange(3000, dtype=np.int32))
     bad = cloud.copy()

@@ -42,10 +42,14 @@ def clip_to_pixels(view, projection, points, width, height):
     return np.stack([(ndc[:, 0] + 1) / 2 * width, (1 - ndc[:, 1]) / 2 * height], axis=1)
 
 
-@pytest.mark.parametrize("make", [
-    lambda: Camera(80, 60, 70.0, 72.0, 35.0, 33.0, Camera.look_at((1, 2, -3), (0, 0, 1)).world_to_camera),
-    lambda: Camera.look_at_ortho((2, 1, -4), (0, 0, 0), ortho_scale=3.0, width=50, height=70),
-], ids=["perspective-shifted", "orthographic"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: Camera(80, 60, 70.0, 72.0, 35.0, 33.0, Camera.look_at((1, 2, -3), (0, 0, 1)).world_to_camera),
+        lambda: Camera.look_at_ortho((2, 1, -4), (0, 0, 0), ortho_scale=3.0, width=50, height=70),
+    ],
+    ids=["perspective-shifted", "orthographic"],
+)
 def test_camera_of_an_opengl_view_projects_as_opengl_does(make):
     cam = make()
     view, projection = opengl(cam, near=0.5, far=50.0)
@@ -81,8 +85,13 @@ def test_scaled_camera_keeps_the_view():
 def plane_and_box():
     """A floor (z = 0, two triangles) and a tilted square in front of it, with flat colours."""
     floor = np.array([[[-3, -3, 0], [3, -3, 0], [3, 3, 0]], [[-3, -3, 0], [3, 3, 0], [-3, 3, 0]]], float)
-    square = np.array([[[-0.5, -0.5, 0.5], [0.5, -0.5, 0.9], [0.5, 0.5, 0.9]],
-                       [[-0.5, -0.5, 0.5], [0.5, 0.5, 0.9], [-0.5, 0.5, 0.5]]], float)
+    square = np.array(
+        [
+            [[-0.5, -0.5, 0.5], [0.5, -0.5, 0.9], [0.5, 0.5, 0.9]],
+            [[-0.5, -0.5, 0.5], [0.5, 0.5, 0.9], [-0.5, 0.5, 0.5]],
+        ],
+        float,
+    )
     return Triangles(np.concatenate([floor, square]), np.array([[0.5, 0.5, 0.5]] * 2 + [[0.9, 0.2, 0.1]] * 2))
 
 
@@ -91,16 +100,16 @@ def test_mesh_layer_depth_is_the_nearest_surface_at_each_pixel_centre():
     layer = mesh_layer(plane_and_box(), cam)
     rows, cols = np.mgrid[0:48, 0:64]
     rays = np.stack([(cols + 0.5 - cam.cx) / cam.fx, (rows + 0.5 - cam.cy) / cam.fy, np.ones((48, 64))], -1)
-    world = rays @ cam.rotation                                    # direction per unit camera depth
+    world = rays @ cam.rotation  # direction per unit camera depth
     eye = cam.center
-    t_floor = -eye[2] / world[..., 2]                              # camera depth where the ray meets z = 0
+    t_floor = -eye[2] / world[..., 2]  # camera depth where the ray meets z = 0
     hit = np.abs(eye[None, None, :2] + t_floor[..., None] * world[..., :2]).max(-1) < 3
     # the square's plane: z = 0.7 + 0.4 x, |x|, |y| <= 0.5
     t_sq = (0.7 + 0.4 * eye[0] - eye[2]) / (world[..., 2] - 0.4 * world[..., 0])
     at = eye[None, None] + t_sq[..., None] * world
     on_square = (np.abs(at[..., 0]) <= 0.5) & (np.abs(at[..., 1]) <= 0.5) & (t_sq > 0)
     want = np.where(on_square, t_sq, np.where(hit & (t_floor > 0), t_floor, np.inf))
-    edge = np.abs(np.abs(at[..., :2]).max(-1) - 0.5) < 0.02       # pixel centres on the square's border
+    edge = np.abs(np.abs(at[..., :2]).max(-1) - 0.5) < 0.02  # pixel centres on the square's border
     keep = ~edge
     np.testing.assert_allclose(layer.depth[keep], want[keep], rtol=1e-9)
     assert (layer.alpha == np.isfinite(layer.depth)).all() and on_square.sum() > 30
@@ -109,18 +118,23 @@ def test_mesh_layer_depth_is_the_nearest_surface_at_each_pixel_centre():
 def test_preview_composites_splats_with_the_mesh_layer_exactly():
     cam = Camera.look_at((2.0, -4.0, 3.0), (0.0, 0.0, 0.3), up=(0, 0, 1), fov_deg=50, width=64, height=48)
     cloud = random_cloud(300, sh_degree=1, seed=5, spread=0.5)
-    cloud = cloud.replace(positions=cloud.positions + np.float32([0, 0, 0.5]),
-                          log_scales=np.random.default_rng(6).uniform(-3.5, -2.2, cloud.log_scales.shape).astype(np.float32))
+    cloud = cloud.replace(
+        positions=cloud.positions + np.float32([0, 0, 0.5]),
+        log_scales=np.random.default_rng(6).uniform(-3.5, -2.2, cloud.log_scales.shape).astype(np.float32),
+    )
     meshes = plane_and_box()
     got = preview_image(cloud, meshes, cam, background=(0.1, 0.2, 0.3))
     layer = mesh_layer(meshes, cam)
     ref = reference_render(cloud, cam, background=(0.1, 0.2, 0.3), layer=(layer.color, layer.alpha, layer.depth))
     assert np.abs(got.color - ref["color"]).max() <= STEP
-    assert ((ref["layer_t"] < 0.9) & (layer.alpha == 1)).sum() > 50        # splats in front of the meshes
-    assert (np.abs(reference_render(cloud, cam, background=(0.1, 0.2, 0.3))["color"] - ref["color"]).max(-1) > 0.2).sum() > 50
+    assert ((ref["layer_t"] < 0.9) & (layer.alpha == 1)).sum() > 50  # splats in front of the meshes
+    assert (
+        np.abs(reference_render(cloud, cam, background=(0.1, 0.2, 0.3))["color"] - ref["color"]).max(-1) > 0.2
+    ).sum() > 50
 
 
 # progressive rendering -------------------------------------------------------------------------
+
 
 class FakeRenderer:
     """Records (view, scale) of each render; a render takes `seconds` and looks for staleness."""
@@ -151,11 +165,11 @@ def test_a_still_view_gets_a_coarse_pass_then_the_full_picture():
     fake, ready = FakeRenderer(), threading.Event()
     prog = Progressive(fake, on_ready=ready.set, coarse=0.25, settle=0.05)
     try:
-        assert prog.show("A") is None                    # nothing yet: asking never waits
+        assert prog.show("A") is None  # nothing yet: asking never waits
         wait_for(lambda: prog.frame is not None and prog.frame.scale == 1.0)
         assert fake.calls == [("A", 0.25), ("A", 1.0)]
         assert prog.show("A").image == "A@1.0" and ready.is_set()
-        prog.refresh()                                   # the scene changed: coarse again, then full
+        prog.refresh()  # the scene changed: coarse again, then full
         wait_for(lambda: len(fake.calls) == 4 and prog.frame.scale == 1.0)
         assert fake.calls[2:] == [("A", 0.25), ("A", 1.0)]
     finally:
@@ -166,7 +180,7 @@ def test_a_moving_view_gets_coarse_passes_only_and_never_waits():
     fake = FakeRenderer(seconds=0.02)
     prog = Progressive(fake, coarse=0.25, settle=0.3)
     try:
-        for k in range(12):                              # the view changes every 40 ms, faster than it settles
+        for k in range(12):  # the view changes every 40 ms, faster than it settles
             start = time.monotonic()
             prog.show(f"V{k}")
             assert time.monotonic() - start < 0.01
@@ -182,10 +196,10 @@ def test_a_full_render_made_stale_by_a_new_view_is_given_up():
     prog = Progressive(fake, coarse=0.25, settle=0.0)
     try:
         prog.show("A")
-        wait_for(lambda: ("A", 1.0) in fake.calls)       # the full picture of A has begun
+        wait_for(lambda: ("A", 1.0) in fake.calls)  # the full picture of A has begun
         prog.show("B")
         wait_for(lambda: prog.frame is not None and prog.frame.view == "B" and prog.frame.scale == 1.0)
-        assert fake.calls[-2:] == [("B", 0.25), ("B", 1.0)]          # A's full picture never finished
+        assert fake.calls[-2:] == [("B", 0.25), ("B", 1.0)]  # A's full picture never finished
     finally:
         prog.stop()
 

@@ -3,6 +3,7 @@ closest-point-on-triangle, one point and one triangle at a time."""
 
 import numpy as np
 import pytest
+
 from splatwright.core import proxy
 
 
@@ -40,7 +41,7 @@ def uv_sphere(rows=14, cols=24):
     for i in range(rows - 1):
         for j in range(cols - 1):
             a = i * cols + j
-            faces += [(a, a + cols, a + 1), (a + 1, a + cols, a + cols + 1)]     # poles: degenerate triangles
+            faces += [(a, a + cols, a + 1), (a + 1, a + cols, a + cols + 1)]  # poles: degenerate triangles
     return verts, np.array(faces)
 
 
@@ -49,15 +50,20 @@ def test_nearest_points_equal_the_brute_force():
     rng = np.random.default_rng(2)
     direction = rng.normal(size=(250, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-    points = np.concatenate([direction * rng.uniform(0.9, 1.1, (250, 1)),      # near the surface
-                             rng.uniform(-4, 4, (60, 3))])                        # inside and far
+    points = np.concatenate(
+        [
+            direction * rng.uniform(0.9, 1.1, (250, 1)),  # near the surface
+            rng.uniform(-4, 4, (60, 3)),
+        ]
+    )  # inside and far
     found = proxy.closest_points(points, verts, faces)
     best = np.array([min(np.linalg.norm(p - ericson(p, *verts[f])) for f in faces) for p in points])
     np.testing.assert_allclose(found.distance, best, rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(found.point - points, axis=1), best, rtol=0, atol=1e-12)
     # the point is where the triangle and barycentrics say
-    np.testing.assert_allclose(found.point, np.einsum("nk,nki->ni", found.barycentric, verts[faces[found.triangle]]),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        found.point, np.einsum("nk,nki->ni", found.barycentric, verts[faces[found.triangle]]), atol=1e-12
+    )
     assert (found.barycentric >= -1e-12).all()
     np.testing.assert_allclose(found.barycentric.sum(axis=1), 1.0, atol=1e-12)
 
@@ -84,8 +90,8 @@ def test_bad_meshes_are_refused():
 def test_falloff_is_a_smoothstep_from_start_to_end():
     d = np.array([0.0, 0.04, 0.05, 0.07, 0.1, 0.13, 0.4])
     s = np.clip((d - 0.04) / 0.06, 0, 1)
-    np.testing.assert_allclose(proxy.falloff_strength(d, 0.04, 0.1), 1 - 3 * s ** 2 + 2 * s ** 3, atol=1e-15)
-    assert proxy.falloff_strength(0.07, 0.04, 0.1) == pytest.approx(0.5)          # halfway, by symmetry
+    np.testing.assert_allclose(proxy.falloff_strength(d, 0.04, 0.1), 1 - 3 * s**2 + 2 * s**3, atol=1e-15)
+    assert proxy.falloff_strength(0.07, 0.04, 0.1) == pytest.approx(0.5)  # halfway, by symmetry
     np.testing.assert_array_equal(proxy.falloff_strength(d, 0.1, 0.1), d <= 0.1)  # start == end: a hard cut
     for start, end in ((0.2, 0.1), (-0.1, 0.1)):
         with pytest.raises(proxy.ProxyError, match="falloff must start"):

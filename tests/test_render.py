@@ -33,8 +33,9 @@ def scene(n=300, seed=0, center=(0.0, 0.0, 3.0), spread=0.7, sh_degree=3, log_sc
     """A random anisotropic SH cloud in front of the cameras below, with non-unit quaternions."""
     c = random_cloud(n, sh_degree=sh_degree, seed=seed, spread=spread)
     rng = np.random.default_rng(seed + 100)
-    return c.replace(positions=c.positions + np.float32(center),
-                     log_scales=rng.uniform(*log_scale, (n, 3)).astype(np.float32))
+    return c.replace(
+        positions=c.positions + np.float32(center), log_scales=rng.uniform(*log_scale, (n, 3)).astype(np.float32)
+    )
 
 
 def perspective(width=64, height=48, fov=60.0, eye=(1.8, 1.2, 4.5), target=(0.0, 0.0, 3.0)):
@@ -48,8 +49,7 @@ def orthographic(width=64, height=48):
 def assert_matches_reference(cloud, camera, color_tol=STEP, background=(0.0, 0.0, 0.0), **options):
     mode = options.get("mode", "classic")
     got = render(cloud, camera, background=background, return_counts=True, **options)
-    ref = reference_render(cloud, camera, background=background, mode=mode,
-                           t_min=options.get("t_min", 1e-4))
+    ref = reference_render(cloud, camera, background=background, mode=mode, t_min=options.get("t_min", 1e-4))
     assert got.stats["backend"] == options.get("backend", "compiled")
     for name in ("color", "alpha", "depth"):
         assert np.isfinite(getattr(got, name)).all(), f"non-finite {name}"
@@ -66,12 +66,15 @@ def assert_matches_reference(cloud, camera, color_tol=STEP, background=(0.0, 0.0
 
 # agreement with the reference -----------------------------------------------------------------
 
+
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
 @pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_random_sh3_scenes_match_the_float64_reference(mode, make_camera, seed, backend):
-    got, ref = assert_matches_reference(scene(seed=seed), make_camera(), mode=mode, background=(0.2, 0.5, 0.9), backend=backend)
-    assert ref["alpha"].max() > 0.9 and (ref["counts"] > 3).any()    # a scene with real overlap
+    got, ref = assert_matches_reference(
+        scene(seed=seed), make_camera(), mode=mode, background=(0.2, 0.5, 0.9), backend=backend
+    )
+    assert ref["alpha"].max() > 0.9 and (ref["counts"] > 3).any()  # a scene with real overlap
 
 
 @pytest.mark.parametrize("mode", ["classic", "antialiased"])
@@ -94,11 +97,13 @@ def test_splats_render_by_default_in_the_mode_they_were_made_for(backend):
     assert np.abs(by_default - ref).max() <= STEP
     classic = render(made, perspective(), mode="classic", backend=backend).color
     assert np.abs(classic - reference_render(made, perspective(), mode="classic")["color"]).max() <= STEP
-    assert np.abs(classic - by_default).max() > 10 * STEP          # the two modes differ on this scene
+    assert np.abs(classic - by_default).max() > 10 * STEP  # the two modes differ on this scene
 
 
-@pytest.mark.parametrize("options", [{"tile_size": 8}, {"tile_size": 7, "wave": 3}, {"tile_size": 1},
-                                     {"tile_size": 32, "wave": 1000}, {"threads": 1}])
+@pytest.mark.parametrize(
+    "options",
+    [{"tile_size": 8}, {"tile_size": 7, "wave": 3}, {"tile_size": 1}, {"tile_size": 32, "wave": 1000}, {"threads": 1}],
+)
 def test_speed_options_do_not_change_the_image(options, backend):
     assert_matches_reference(scene(seed=2), perspective(), **options, backend=backend)
 
@@ -114,8 +119,11 @@ def opaque_pile(n, seed, spread, log_scales):
     rng = np.random.default_rng(seed)
     pile = SplatCloud.from_activated(
         positions=np.column_stack([rng.normal(0, spread, n), rng.normal(0, spread, n), rng.uniform(2.5, 3.5, n)]),
-        rotations=rng.normal(size=(n, 4)), scales=np.exp(rng.uniform(*log_scales, (n, 3))),
-        opacities=rng.uniform(0.5, 1.0, n), colors=rng.uniform(0, 1, (n, 3)))
+        rotations=rng.normal(size=(n, 4)),
+        scales=np.exp(rng.uniform(*log_scales, (n, 3))),
+        opacities=rng.uniform(0.5, 1.0, n),
+        colors=rng.uniform(0, 1, (n, 3)),
+    )
     pile.opacity_logits[: n // 2] = 1e4
     return pile
 
@@ -131,7 +139,7 @@ def test_opaque_pile_stops_at_the_transmittance_limit_and_clamps_alpha(backend):
 
 def test_two_threads_and_one_thread_give_identical_images_on_a_large_cloud(backend):
     """More than one projection and binning chunk: the parallel paths must not change a bit."""
-    cloud = scene(n=70_000, seed=4, spread=0.8, log_scale=(-6, -3.5), sh_degree=1)   # > 1 chunk
+    cloud = scene(n=70_000, seed=4, spread=0.8, log_scale=(-6, -3.5), sh_degree=1)  # > 1 chunk
     cam = perspective(96, 64)
     a = render(cloud, cam, return_counts=True, threads=2, backend=backend)
     b = render(cloud, cam, return_counts=True, threads=1, backend=backend)
@@ -145,17 +153,20 @@ def test_two_threads_and_one_thread_give_identical_images_on_a_large_cloud(backe
 
 # hard cases --------------------------------------------------------------------------------------
 
+
 def test_near_plane_behind_on_and_across(backend):
     cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=60, width=48, height=40, near=0.25)
-    z = np.array([-1.0, 0.1, 0.25, 0.25 + 2.0**-20, 0.26, 0.3, 0.5, 1.0])     # float32-exact
+    z = np.array([-1.0, 0.1, 0.25, 0.25 + 2.0**-20, 0.26, 0.3, 0.5, 1.0])  # float32-exact
     n = len(z)
     cloud = SplatCloud.from_activated(
         positions=np.column_stack([np.linspace(-0.05, 0.05, n), np.zeros(n), z]),
         rotations=np.tile([1.0, 0, 0, 0], (n, 1)),
-        scales=np.column_stack([np.full(n, 0.3), np.full(n, 0.05), np.full(n, 0.4)]),   # reach across z = 0.2
-        opacities=np.full(n, 0.6), colors=np.linspace(0, 1, 3 * n).reshape(n, 3))
+        scales=np.column_stack([np.full(n, 0.3), np.full(n, 0.05), np.full(n, 0.4)]),  # reach across z = 0.2
+        opacities=np.full(n, 0.6),
+        colors=np.linspace(0, 1, 3 * n).reshape(n, 3),
+    )
     got, ref = assert_matches_reference(cloud, cam, backend=backend)
-    assert got.stats["visible"] == 5                     # z <= near is culled, as in the reference
+    assert got.stats["visible"] == 5  # z <= near is culled, as in the reference
 
 
 def test_scales_from_1e_minus_7_to_1e4_in_one_cloud(backend):
@@ -172,16 +183,16 @@ def test_needles_and_pancakes(backend):
     cloud = scene(n=150, seed=8)
     thin = rng.integers(0, 3, 150)
     scales = np.full((150, 3), 0.15)
-    scales[np.arange(150), thin] = 1e-5                    # pancakes
+    scales[np.arange(150), thin] = 1e-5  # pancakes
     scales[:75] = 1e-5
-    scales[np.arange(75), thin[:75]] = 0.3                 # needles
+    scales[np.arange(75), thin[:75]] = 0.3  # needles
     cloud.log_scales[:] = np.log(scales)
     assert_matches_reference(cloud, perspective(), backend=backend)
 
 
 def test_far_from_origin_renders_like_the_same_scene_at_the_origin(backend):
     base = scene(n=200, seed=9, center=(0, 0, 0), spread=0.5)
-    grid = np.round(base.positions * 16) / 16             # exactly representable at 1e6 too
+    grid = np.round(base.positions * 16) / 16  # exactly representable at 1e6 too
     offset = np.array([1e6, -1e6, 5e5])
     far = base.replace(positions=(grid + offset).astype(np.float32))
     near = base.replace(positions=grid.astype(np.float32))
@@ -200,13 +211,14 @@ def test_identical_depths_sort_by_index(backend):
     n = 30
     rng = np.random.default_rng(10)
     pos = np.column_stack([rng.normal(0, 0.1, n), rng.normal(0, 0.1, n), np.full(n, 3.0)])
-    cloud = SplatCloud.from_activated(pos, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 0.15),
-                                      np.full(n, 0.9), colors=rng.uniform(0, 1, (n, 3)))
+    cloud = SplatCloud.from_activated(
+        pos, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 0.15), np.full(n, 0.9), colors=rng.uniform(0, 1, (n, 3))
+    )
     cam = Camera.look_at_ortho((0, 0, 0), (0, 0, 1), ortho_scale=1.0, width=40, height=40)
     got, _ = assert_matches_reference(cloud, cam, backend=backend)
     flipped = cloud[np.arange(n)[::-1]]
     got_flipped, _ = assert_matches_reference(flipped, cam, backend=backend)
-    assert np.abs(got.color - got_flipped.color).max() > 0.1      # order matters, and is followed
+    assert np.abs(got.color - got_flipped.color).max() > 0.1  # order matters, and is followed
 
 
 @pytest.mark.parametrize("width, height, fov", [(1, 1, 60.0), (1, 7, 60.0), (64, 48, 5.0), (64, 48, 160.0)])
@@ -254,10 +266,12 @@ def test_shapes_made_once_render_every_view_and_every_shifted_or_recoloured_copy
     cloud.log_scales[8, 1] = -np.inf
     cloud.opacity_logits[9] = np.nan
     cloud.sh[11, 4, 1] = -np.inf
-    cloud.rotations[13] = 0.0                       # a zero quaternion: the identity
+    cloud.rotations[13] = 0.0  # a zero quaternion: the identity
     shapes = Shapes(cloud)
-    shifted = cloud.replace(positions=cloud.positions + np.float32([0.05, -0.02, 0.1]),
-                            sh=np.random.default_rng(2).normal(0, 0.3, cloud.sh.shape).astype(np.float32))
+    shifted = cloud.replace(
+        positions=cloud.positions + np.float32([0.05, -0.02, 0.1]),
+        sh=np.random.default_rng(2).normal(0, 0.3, cloud.sh.shape).astype(np.float32),
+    )
     for camera in (perspective(), perspective(eye=(0.2, -2.5, 1.0)), orthographic()):
         for mode in ("classic", "antialiased"):
             for splats in (cloud, shifted):
@@ -271,10 +285,10 @@ def test_shapes_made_once_render_every_view_and_every_shifted_or_recoloured_copy
 def test_shapes_of_other_splats_are_refused():
     cloud = scene(seed=16)
     shapes = Shapes(cloud)
-    other = cloud.replace(rotations=cloud.rotations.copy())     # equal values, but not the arrays they were made from
+    other = cloud.replace(rotations=cloud.rotations.copy())  # equal values, but not the arrays they were made from
     with pytest.raises(ValueError, match="shapes were made from other splats"):
         render(other, perspective(), shapes=shapes)
-    render(cloud.replace(positions=cloud.positions + 1), perspective(), shapes=shapes)   # the same shapes, moved
+    render(cloud.replace(positions=cloud.positions + 1), perspective(), shapes=shapes)  # the same shapes, moved
 
 
 def test_extreme_logits_and_zero_quaternions(backend):
@@ -303,9 +317,14 @@ def test_three_sigma_cut_only_drops_faint_tails(backend):
 
 
 def test_bad_options_are_refused():
-    for kwargs, message in [({"mode": "fast"}, "mode"), ({"tile_size": 0}, "tile_size"),
-                            ({"precision": "float16"}, "precision"), ({"background": (1, 2)}, "background"),
-                            ({"t_min": 1.0}, "t_min"), ({"wave": 0}, "wave")]:
+    for kwargs, message in [
+        ({"mode": "fast"}, "mode"),
+        ({"tile_size": 0}, "tile_size"),
+        ({"precision": "float16"}, "precision"),
+        ({"background": (1, 2)}, "background"),
+        ({"t_min": 1.0}, "t_min"),
+        ({"wave": 0}, "wave"),
+    ]:
         with pytest.raises(ValueError, match=message):
             render(scene(n=5), perspective(), **kwargs)
 
@@ -318,6 +337,7 @@ def test_progress_reports_every_tile():
 
 
 # per-splat weights ---------------------------------------------------------------------------------
+
 
 def assert_weights_match_reference(cloud, camera, atol=2e-6, **options):
     """max_weight against the reference's float64 per-splat maximum of T * alpha, and the image
@@ -341,10 +361,11 @@ def test_max_weights_match_the_float64_reference(mode, make_camera, backend):
     assert (want > 0.5).any() and (want > 0).sum() > 100 and (want == 0).any()
 
 
-@pytest.mark.parametrize("options", [{"tile_size": 7, "wave": 3}, {"tile_size": 1}, {"threads": 1},
-                                     {"precision": "float64"}, {"t_min": 0.0}])
+@pytest.mark.parametrize(
+    "options", [{"tile_size": 7, "wave": 3}, {"tile_size": 1}, {"threads": 1}, {"precision": "float64"}, {"t_min": 0.0}]
+)
 def test_max_weights_do_not_depend_on_speed_options(options, backend):
-    atol = 1e-7 if options.get("precision") == "float64" else 2e-6     # float64: float32 output rounding
+    atol = 1e-7 if options.get("precision") == "float64" else 2e-6  # float64: float32 output rounding
     assert_weights_match_reference(scene(seed=21), perspective(61, 45), atol=atol, **options, backend=backend)
 
 
@@ -356,22 +377,34 @@ def test_max_weights_follow_the_stop_rule_and_skip_hidden_faint_and_broken_splat
     n = 80
     pile = opaque_pile(n, seed=22, spread=0.1, log_scales=(-2.5, -1.5))
     back = SplatCloud.from_activated(
-        positions=[[0, 0, 4.0], [0, 0, 4.1], [0, 0, 4.2], [0, 0, 4.5], [0.1, 0.1, 4.6],
-                   [0.3, 0.2, 2.0], [0, 0, -2.0], [9.0, 0, 3.0], [np.nan, 0, 3.0]],
-        rotations=np.tile([1.0, 0, 0, 0], (9, 1)), scales=[[100.0] * 3] * 3 + [[0.02] * 3] * 6,
-        opacities=[0.98] * 3 + [0.9] * 2 + [1 / 300, 0.9, 0.9, 0.9], colors=np.full((9, 3), 0.5))
+        positions=[
+            [0, 0, 4.0],
+            [0, 0, 4.1],
+            [0, 0, 4.2],
+            [0, 0, 4.5],
+            [0.1, 0.1, 4.6],
+            [0.3, 0.2, 2.0],
+            [0, 0, -2.0],
+            [9.0, 0, 3.0],
+            [np.nan, 0, 3.0],
+        ],
+        rotations=np.tile([1.0, 0, 0, 0], (9, 1)),
+        scales=[[100.0] * 3] * 3 + [[0.02] * 3] * 6,
+        opacities=[0.98] * 3 + [0.9] * 2 + [1 / 300, 0.9, 0.9, 0.9],
+        colors=np.full((9, 3), 0.5),
+    )
     cloud = SplatCloud.concatenate([pile, back])
     cam = Camera.look_at((0, 0, 0), (0, 0, 1), fov_deg=30, width=40, height=36)
     with np.errstate(invalid="ignore"):
         got, want = assert_weights_match_reference(cloud, cam, backend=backend)
         unstopped = reference_render(cloud, cam, t_min=0.0)["max_weight"]
-    assert (want[:n + 2] > 0).all() and (want[n + 2:] == 0).all()
-    assert (unstopped[n + 2:n + 5] > 0).all()           # seen but for the stop rule
-    assert not got[n + 2:].any()
+    assert (want[: n + 2] > 0).all() and (want[n + 2 :] == 0).all()
+    assert (unstopped[n + 2 : n + 5] > 0).all()  # seen but for the stop rule
+    assert not got[n + 2 :].any()
 
 
 def test_max_weights_of_an_empty_or_unseen_cloud_are_zero(backend):
-    for cloud in (SplatCloud.empty(3), scene(seed=23, center=(0, 0, 30))):      # behind the camera
+    for cloud in (SplatCloud.empty(3), scene(seed=23, center=(0, 0, 30))):  # behind the camera
         got = render(cloud, perspective(), return_weights=True, backend=backend)
         assert got.max_weight.shape == (len(cloud),) and not got.max_weight.any()
 
@@ -382,15 +415,17 @@ def test_max_weights_count_only_pixels_inside_the_image(backend):
     cam = Camera.look_at_ortho((0, 0, 0), (0, 0, 1), up=(0, -1, 0), ortho_scale=2.0, width=61, height=45)
     pixel = 2.0 / 61
     edge = [[30.5 * pixel + 1.2 * pixel, 0.0, 2.0], [0.0, 22.5 * pixel + 1.2 * pixel, 2.0]]
-    cloud = SplatCloud.from_activated(edge, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), pixel),
-                                      np.full(2, 0.9), colors=np.full((2, 3), 0.5))
+    cloud = SplatCloud.from_activated(
+        edge, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), pixel), np.full(2, 0.9), colors=np.full((2, 3), 0.5)
+    )
     pixels, _ = cam.project(cloud.positions)
-    assert pixels[0, 0] > 61 and pixels[1, 1] > 45                   # both centres outside
+    assert pixels[0, 0] > 61 and pixels[1, 1] > 45  # both centres outside
     got, want = assert_weights_match_reference(cloud, cam, backend=backend)
-    assert (want > 0).all() and (want < 0.5 * 0.9).all()             # well below the peak alpha
+    assert (want > 0).all() and (want < 0.5 * 0.9).all()  # well below the peak alpha
 
 
 # gathering an image through the blending weights ----------------------------------------------------
+
 
 @pytest.mark.parametrize("make_camera", [perspective, orthographic], ids=["perspective", "orthographic"])
 @pytest.mark.parametrize("options", [{}, {"tile_size": 7, "threads": 1}, {"precision": "float64", "t_min": 0.0}])
@@ -418,7 +453,7 @@ def test_gathering_is_the_adjoint_of_rendering_colours(backend):
     cloud = base.replace(sh=((x - 0.5) / 0.28209479177387814)[:, None, :].astype(np.float32))
     r = rng.normal(size=(camera.height, camera.width, 3))
     image = render(cloud, camera, background=None, gather=r, backend=backend)
-    x32 = 0.5 + 0.28209479177387814 * cloud.sh[:, 0].astype(np.float64)       # the colours as stored
+    x32 = 0.5 + 0.28209479177387814 * cloud.sh[:, 0].astype(np.float64)  # the colours as stored
     lhs, rhs = np.vdot(image.color, r), np.vdot(x32, image.gathered)
     assert abs(lhs) > 10 and abs(lhs - rhs) <= 1e-5 * np.abs(image.color * r).sum()
     mono = render(cloud, camera, gather=r[..., 1], backend=backend).gathered
@@ -434,12 +469,14 @@ def test_bad_gather_images_are_refused(backend):
 
 # the compiled kernels, the fallback and limits ---------------------------------------------------
 
+
 def test_the_compiled_depth_sort_is_a_stable_argsort():
     """stable_order, the compiled projection's depth sort, against NumPy's stable argsort of the
     same rows: keys over all 32 bits, a few distinct keys (ties stay in row order), keys sharing
     their high bytes or all of them, one row and none."""
     from splatwright.core import jit
     from splatwright.core.render import KERNELS, _check_kernels
+
     kernels = jit.load(KERNELS, check=_check_kernels)
     rng = np.random.default_rng(12)
     for n, distinct in ((0, 10), (1, 10), (9, 1), (5000, 3), (100_000, 1 << 32), (20_000, 1 << 16), (7000, 1 << 24)):
@@ -458,7 +495,7 @@ def test_compiled_kernels_load_here_and_agree_with_the_numpy_path_on_a_large_sce
     cam = perspective(160, 120)
     fast, slow = render(cloud, cam, return_counts=True), render(cloud, cam, return_counts=True, backend="numpy")
     assert fast.stats["backend"] == "compiled" and slow.stats["backend"] == "numpy"
-    assert fast.stats["entries"] == slow.stats["entries"]              # the same tile lists
+    assert fast.stats["entries"] == slow.stats["entries"]  # the same tile lists
     assert np.abs(fast.color - slow.color).max() < 0.5 * STEP
     assert (fast.counts != slow.counts).sum() <= 2
     pixels = np.random.default_rng(1).integers(0, [160, 120], (400, 2))
@@ -467,8 +504,13 @@ def test_compiled_kernels_load_here_and_agree_with_the_numpy_path_on_a_large_sce
 
 
 def run_python(code, **env):
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          timeout=300, env={**os.environ, **env})
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, **env},
+    )
 
 
 def test_without_numba_the_numpy_path_renders_and_says_why():
@@ -499,15 +541,19 @@ def test_without_numba_the_numpy_path_renders_and_says_why():
 
 
 def test_kernels_can_be_turned_off_and_are_cached_in_the_user_cache_folder(monkeypatch, tmp_path):
-    off = run_python("""
+    off = run_python(
+        """
         from splatwright.core.render import render, backend_status
         from splatwright.core.camera import Camera
         from splatwright.core.scenes import seed_cube
         print(render(seed_cube(2), Camera.look_at((0, 0, -3), (0, 0, 0), width=8, height=8)).stats["backend"],
               backend_status())
-    """, SPLATWRIGHT_JIT="0")
+    """,
+        SPLATWRIGHT_JIT="0",
+    )
     assert off.returncode == 0 and off.stdout.split()[0] == "numpy" and "SPLATWRIGHT_JIT=0" in off.stdout, off.stderr
     from splatwright.core import jit
+
     assert backend_status() == "compiled"
     cached = list(jit.cache_dir().rglob("render_kernels.*.nbi"))
     assert cached and all(jit.cache_dir() in path.parents for path in cached)
@@ -519,6 +565,7 @@ def test_kernel_folders_unused_for_a_month_are_removed_and_in_use_ones_kept(tmp_
     """An upgrade compiles its kernels into new folders (one per source version): the old ones go
     once no process has used them for STALE_DAYS; a folder in use is touched and stays."""
     from splatwright.core import jit
+
     day = 86400
     for name, age in (("core_old", jit.STALE_DAYS + 1), ("core_recent", jit.STALE_DAYS - 1), ("io_new", 0)):
         folder = tmp_path / name
@@ -549,6 +596,7 @@ def test_only_our_own_kernels_are_cached_in_our_folder():
     from numba.core import caching
 
     from splatwright.core import jit
+
     jit._install_cache_locator()
     impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
     locator = impl._locator_classes[0]
@@ -558,6 +606,7 @@ def test_only_our_own_kernels_are_cached_in_our_folder():
         f = lambda: None  # noqa: E731
         f.__module__ = module
         return f
+
     assert locator.from_function(function("gsply.formats"), here) is None
     assert locator.from_function(function("splatwright.core.render_kernels"), jit.__file__) is not None
 
@@ -581,12 +630,14 @@ def test_sub_pixel_splats_cost_rows_of_a_tile_not_whole_tiles():
 
 # images -----------------------------------------------------------------------------------------
 
+
 def test_png_and_exr_hold_what_was_rendered(tmp_path):
     from PIL import Image
+
     result = render(seed_cube(), perspective(), background=(0.0, 0.0, 0.0))
     write_image(tmp_path / "a.png", result)
     png = np.asarray(Image.open(tmp_path / "a.png"))
-    assert png.shape == (48, 64, 3)                       # opaque background: no alpha channel
+    assert png.shape == (48, 64, 3)  # opaque background: no alpha channel
     np.testing.assert_array_equal(png, np.round(np.clip(result.color, 0, 1) * 255).astype(np.uint8))
     write_image(tmp_path / "a.exr", result)
     exr = read_exr(tmp_path / "a.exr")
@@ -598,6 +649,7 @@ def test_png_and_exr_hold_what_was_rendered(tmp_path):
 
 def test_transparent_png_stores_straight_colour(tmp_path):
     from PIL import Image
+
     result = render(seed_cube(), perspective(), background=None)
     write_image(tmp_path / "t.png", result)
     png = np.asarray(Image.open(tmp_path / "t.png")).astype(np.float64) / 255
@@ -610,6 +662,7 @@ def test_transparent_png_stores_straight_colour(tmp_path):
 
 def test_straight_alpha_arrays_are_premultiplied_in_exr_and_kept_in_png(tmp_path):
     from PIL import Image
+
     rng = np.random.default_rng(19)
     rgba = rng.uniform(0, 1, (5, 7, 4))
     write_image(tmp_path / "s.png", rgba)
@@ -622,7 +675,8 @@ def test_straight_alpha_arrays_are_premultiplied_in_exr_and_kept_in_png(tmp_path
 
 def test_png_is_written_without_pillow(tmp_path, monkeypatch):
     """Blender's Python has no Pillow: the PNG writer needs only the standard library."""
-    from PIL import Image                               # the reference reader, taken before it is hidden
+    from PIL import Image  # the reference reader, taken before it is hidden
+
     rgb = np.random.default_rng(3).integers(0, 256, (3, 300, 3)) / 255
     monkeypatch.setitem(sys.modules, "PIL", None)
     monkeypatch.setitem(sys.modules, "PIL.Image", None)
@@ -643,22 +697,43 @@ def test_bad_images_are_refused_and_leave_no_file(tmp_path):
 
 # command line -----------------------------------------------------------------------------------
 
+
 def test_cli_render_frames_the_cloud_and_follows_an_explicit_camera(tmp_path, capsys):
     from PIL import Image
 
     from splatwright.cli import main
+
     cloud = seed_cube()
     write_splats(tmp_path / "cube.ply", cloud)
-    assert main(["render", str(tmp_path / "cube.ply"), "-o", str(tmp_path / "auto.png"),
-                 "--width", "80", "--height", "60"]) == 0
+    assert (
+        main(
+            ["render", str(tmp_path / "cube.ply"), "-o", str(tmp_path / "auto.png"), "--width", "80", "--height", "60"]
+        )
+        == 0
+    )
     auto = np.asarray(Image.open(tmp_path / "auto.png"))
     assert auto.shape == (60, 80, 3)
     assert auto[0].max() < 40 and auto[-1].max() < 40 and auto[:, 0].max() < 40 and auto[:, -1].max() < 40
-    assert auto.max() > 150                                # all of the cube inside, borders dark
+    assert auto.max() > 150  # all of the cube inside, borders dark
 
-    args = ["render", str(tmp_path / "cube.ply"), "-o", str(tmp_path / "cam.exr"), "--width", "64",
-            "--height", "48", "--fov", "60", "--camera-pos", "1.8,1.2,4.5", "--look-at", "0,0,3",
-            "--background", "0.5,0.5,0.5"]
+    args = [
+        "render",
+        str(tmp_path / "cube.ply"),
+        "-o",
+        str(tmp_path / "cam.exr"),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--fov",
+        "60",
+        "--camera-pos",
+        "1.8,1.2,4.5",
+        "--look-at",
+        "0,0,3",
+        "--background",
+        "0.5,0.5,0.5",
+    ]
     assert main(args) == 0
     assert "rendered 1000 of 1000 splats" in capsys.readouterr().out
     exr = read_exr(tmp_path / "cam.exr")
@@ -674,27 +749,70 @@ def test_the_near_plane_does_not_depend_on_where_the_camera_looks(tmp_path):
     from PIL import Image
 
     from splatwright.cli import main
-    cloud = SplatCloud.from_activated([[0, 0, 0.3], [0.05, 0, 0.15]], np.tile([1.0, 0, 0, 0], (2, 1)),
-                                      np.full((2, 3), 0.02), np.full(2, 0.9), colors=[[1, 0, 0], [0, 1, 0]])
+
+    cloud = SplatCloud.from_activated(
+        [[0, 0, 0.3], [0.05, 0, 0.15]],
+        np.tile([1.0, 0, 0, 0], (2, 1)),
+        np.full((2, 3), 0.02),
+        np.full(2, 0.9),
+        colors=[[1, 0, 0], [0, 1, 0]],
+    )
     write_splats(tmp_path / "c.ply", cloud)
     images = {}
     for far in (1, 100):
         cam = Camera.look_at((0, 0, 0), (0, 0, far), width=32, height=24)
         images[far] = render(cloud, cam).color
         out = tmp_path / f"{far}.png"
-        assert main(["render", str(tmp_path / "c.ply"), "-o", str(out), "--width", "32", "--height", "24",
-                     "--camera-pos", "0,0,0", "--look-at", f"0,0,{far}"]) == 0
+        assert (
+            main(
+                [
+                    "render",
+                    str(tmp_path / "c.ply"),
+                    "-o",
+                    str(out),
+                    "--width",
+                    "32",
+                    "--height",
+                    "24",
+                    "--camera-pos",
+                    "0,0,0",
+                    "--look-at",
+                    f"0,0,{far}",
+                ]
+            )
+            == 0
+        )
         images[f"cli{far}"] = np.asarray(Image.open(out))
     np.testing.assert_array_equal(images[1], images[100])
     np.testing.assert_array_equal(images["cli1"], images["cli100"])
-    assert images[1][..., 0].max() > 0.5 and images[1][..., 1].max() == 0       # the 0.15 splat is culled
-    assert main(["render", str(tmp_path / "c.ply"), "-o", str(tmp_path / "n.png"), "--width", "32", "--height",
-                 "24", "--camera-pos", "0,0,0", "--look-at", "0,0,1", "--near", "0.1"]) == 0
+    assert images[1][..., 0].max() > 0.5 and images[1][..., 1].max() == 0  # the 0.15 splat is culled
+    assert (
+        main(
+            [
+                "render",
+                str(tmp_path / "c.ply"),
+                "-o",
+                str(tmp_path / "n.png"),
+                "--width",
+                "32",
+                "--height",
+                "24",
+                "--camera-pos",
+                "0,0,0",
+                "--look-at",
+                "0,0,1",
+                "--near",
+                "0.1",
+            ]
+        )
+        == 0
+    )
     assert np.asarray(Image.open(tmp_path / "n.png"))[..., 1].max() > 100
 
 
 def test_framing_a_tiny_cloud_keeps_it_beyond_the_near_plane():
     from splatwright.core.camera import frame_points
+
     cloud = scene(n=50, seed=32, center=(5, 0, 0), spread=0.01)
     for cam in (frame_points(cloud.positions, 40, 30), frame_points(cloud.positions, 40, 30, ortho_scale=0)):
         assert cam.near == 0.2
@@ -703,6 +821,7 @@ def test_framing_a_tiny_cloud_keeps_it_beyond_the_near_plane():
 
 def test_cli_render_reports_bad_input(tmp_path, capsys):
     from splatwright.cli import main
+
     assert main(["render", str(tmp_path / "missing.ply"), "-o", str(tmp_path / "x.png")]) == 1
     assert "no such file" in capsys.readouterr().err
     write_splats(tmp_path / "c.ply", seed_cube(2))

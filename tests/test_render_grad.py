@@ -4,6 +4,9 @@ views of a known cloud."""
 
 import numpy as np
 import pytest
+from helpers import random_cloud
+from reference_render import reference_render
+from test_bake import cameras_around, known_cloud
 
 from splatwright.core.bake import bake_sh, bake_splats
 from splatwright.core.camera import Camera
@@ -11,10 +14,6 @@ from splatwright.core.metrics import psnr
 from splatwright.core.render import render
 from splatwright.core.render_grad import mse_gradients
 from splatwright.core.splats import FIELDS
-
-from helpers import random_cloud
-from reference_render import reference_render
-from test_bake import cameras_around, known_cloud
 
 BACKGROUND = np.array([0.1, 0.2, 0.3])
 
@@ -31,8 +30,16 @@ def overlapping_cloud(degree, seed=3):
 CAMERAS = {
     "perspective": Camera.look_at((0.3, -0.4, 2.5), (0, 0, 0), width=40, height=33, fov_deg=50),
     "off-centre": Camera(40, 33, 38.0, 41.0, 12.0, 25.0, Camera.look_at((0.3, -0.4, 2.5), (0, 0, 0)).world_to_camera),
-    "orthographic": Camera(40, 33, 30.0, 30.0, 20.0, 16.5, Camera.look_at((1.0, 0.5, 2.5), (0, 0, 0)).world_to_camera,
-                           projection="orthographic"),
+    "orthographic": Camera(
+        40,
+        33,
+        30.0,
+        30.0,
+        20.0,
+        16.5,
+        Camera.look_at((1.0, 0.5, 2.5), (0, 0, 0)).world_to_camera,
+        projection="orthographic",
+    ),
 }
 
 
@@ -91,14 +98,14 @@ def test_opaque_stacks_stop_and_clamp_as_the_renderer_does(backend):
     cloud = overlapping_cloud(degree=0, seed=7)
     camera = CAMERAS["perspective"]
     depth = np.linspace(-0.6, 0.6, len(cloud))[:, None]
-    cloud.positions[:] = 0.05 * cloud.positions + depth * camera.forward     # a column along the view
-    cloud.log_scales[:] = np.log(np.linspace(0.3, 0.05, len(cloud)))[:, None]   # the far ones inside the near ones
-    cloud.opacity_logits[:] = 8.0                      # alpha clamped at 0.99 near each centre
+    cloud.positions[:] = 0.05 * cloud.positions + depth * camera.forward  # a column along the view
+    cloud.log_scales[:] = np.log(np.linspace(0.3, 0.05, len(cloud)))[:, None]  # the far ones inside the near ones
+    cloud.opacity_logits[:] = 8.0  # alpha clamped at 0.99 near each centre
     target = np.zeros((camera.height, camera.width, 3))
     image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, "classic", precision="float64", backend=backend)
     reference = reference_render(cloud, camera, BACKGROUND, "classic")
     assert np.abs(image - reference["color"]).max() < 1e-6
-    hidden = reference["max_weight"] == 0               # no pixel composites them
+    hidden = reference["max_weight"] == 0  # no pixel composites them
     assert hidden.sum() >= 3
     for name in FIELDS:
         assert not getattr(grad, name)[hidden].any()
@@ -108,9 +115,9 @@ def test_opaque_stacks_stop_and_clamp_as_the_renderer_does(backend):
 def test_splats_the_camera_cannot_see_get_no_gradient(backend):
     cloud = overlapping_cloud(degree=1)
     camera = CAMERAS["perspective"]
-    cloud.positions[0] = camera.center + 0.01 * camera.forward          # before the near plane
+    cloud.positions[0] = camera.center + 0.01 * camera.forward  # before the near plane
     cloud.positions[1] = [np.nan, 0, 0]
-    cloud.positions[2] = camera.center - 3 * camera.forward             # behind the camera
+    cloud.positions[2] = camera.center - 3 * camera.forward  # behind the camera
     cloud.log_scales[3] = np.inf
     target = np.full((camera.height, camera.width, 3), 0.5)
     image, _, grad = mse_gradients(cloud, camera, target, BACKGROUND, precision="float64", backend=backend)
@@ -131,9 +138,11 @@ def test_bake_splats_moves_splats_back_to_where_the_views_show_them():
     which SH colours alone cannot."""
     truth = known_cloud(150, seed=1, spread=0.6, log_scale=(-3.2, -2.6), opacity=(0.5, 0.9))
     rng = np.random.default_rng(2)
-    moved = truth.replace(positions=truth.positions + rng.normal(0, 0.03, truth.positions.shape),
-                          log_scales=truth.log_scales + rng.normal(0, 0.3, truth.log_scales.shape),
-                          opacity_logits=truth.opacity_logits - 0.7)
+    moved = truth.replace(
+        positions=truth.positions + rng.normal(0, 0.03, truth.positions.shape),
+        log_scales=truth.log_scales + rng.normal(0, 0.3, truth.log_scales.shape),
+        opacity_logits=truth.opacity_logits - 0.7,
+    )
     cameras, held = cameras_around(24, seed=3, size=40), cameras_around(4, seed=4, size=40)
     images = [render(truth, c).color for c in cameras]
     truth_held = [render(truth, c).color for c in held]
@@ -144,10 +153,11 @@ def test_bake_splats_moves_splats_back_to_where_the_views_show_them():
     coloured = bake_sh(moved, cameras, images)
     info = {}
     fitted = bake_splats(coloured, cameras, images, steps=600, info=info)
-    assert held_psnr(fitted) > held_psnr(coloured) + 7        # 29.1 -> 37.6 dB
+    assert held_psnr(fitted) > held_psnr(coloured) + 7  # 29.1 -> 37.6 dB
     assert info["psnr"][-1] > info["psnr"][0] + 6
-    assert np.median(np.linalg.norm(fitted.positions - truth.positions, axis=1)) < \
-        0.6 * np.median(np.linalg.norm(moved.positions - truth.positions, axis=1))
+    assert np.median(np.linalg.norm(fitted.positions - truth.positions, axis=1)) < 0.6 * np.median(
+        np.linalg.norm(moved.positions - truth.positions, axis=1)
+    )
 
 
 def test_bake_splats_refuses_mismatched_views():
@@ -166,7 +176,7 @@ def test_a_wrong_backend_is_refused_and_compiled_needs_numba(monkeypatch):
     monkeypatch.setenv("SPLATWRIGHT_JIT", "0")
     with pytest.raises(RuntimeError, match="SPLATWRIGHT_JIT=0"):
         mse_gradients(cloud, camera, target, backend="compiled")
-    auto = mse_gradients(cloud, camera, target, precision="float64")            # NumPy then
+    auto = mse_gradients(cloud, camera, target, precision="float64")  # NumPy then
     assert np.array_equal(auto[0], mse_gradients(cloud, camera, target, precision="float64", backend="numpy")[0])
 
 

@@ -82,15 +82,17 @@ def robot_dir(tmp_path):
 
 
 def test_primitives_are_closed_and_match_their_volumes():
-    for kind, size, volume, tolerance in (("box", (0.4, 0.3, 0.1), 0.012, 1e-15),
-                                          ("cylinder", (0.05, 0.4), np.pi * 0.05 ** 2 * 0.4, 3e-3),
-                                          ("sphere", (0.06,), 4 / 3 * np.pi * 0.06 ** 3, 1e-2)):
+    for kind, size, volume, tolerance in (
+        ("box", (0.4, 0.3, 0.1), 0.012, 1e-15),
+        ("cylinder", (0.05, 0.4), np.pi * 0.05**2 * 0.4, 3e-3),
+        ("sphere", (0.06,), 4 / 3 * np.pi * 0.06**3, 1e-2),
+    ):
         v, f = primitive(kind, size)
         t = v[f]
-        signed = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6   # outward winding: > 0
+        signed = np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6  # outward winding: > 0
         assert signed == pytest.approx(volume, rel=tolerance)
         edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        assert (np.unique(edges, axis=0, return_counts=True)[1] == 2).all()            # watertight
+        assert (np.unique(edges, axis=0, return_counts=True)[1] == 2).all()  # watertight
 
 
 def test_description_resolves_packages_materials_and_scales(robot_dir):
@@ -101,7 +103,7 @@ def test_description_resolves_packages_materials_and_scales(robot_dir):
     assert d.name == "testbot" and [v.link for v in d.visuals] == ["base", "upper", "ball", "claw", "plate"]
     base, upper, ball, claw, plate = d.visuals
     assert base.geometry == "box" and base.size == (0.4, 0.3, 0.1) and base.rgba == (0.9, 0.1, 0.1, 1.0)
-    assert ball.rgba == (0.1, 0.6, 0.6, 1.0)                        # declared inside another link
+    assert ball.rgba == (0.1, 0.6, 0.6, 1.0)  # declared inside another link
     assert claw.path == robot_dir / "share" / "toolkit" / "meshes" / "tetra.stl"
     np.testing.assert_array_equal(claw.scale, [0.1, 0.2, 0.05])
     assert plate.path == robot_dir / "robot" / "plate.obj"
@@ -187,7 +189,7 @@ def test_splat_robot_sits_on_its_visuals_with_their_colours(robot_dir):
     np.testing.assert_allclose(rgb[link["ball"]].mean(axis=0), [0.1, 0.6, 0.6], atol=2e-3)
     # claw: on the scaled, turned tetrahedron 6 cm above the elbow
     turn = np.array([[np.cos(0.3), -np.sin(0.3), 0], [np.sin(0.3), np.cos(0.3), 0], [0, 0, 1]])
-    local = (p[link["claw"]] - [0.02, 0, 0.56]) @ turn / [0.1, 0.2, 0.05]          # back to the unit tetrahedron
+    local = (p[link["claw"]] - [0.02, 0, 0.56]) @ turn / [0.1, 0.2, 0.05]  # back to the unit tetrahedron
     on_face = np.min(np.abs(np.column_stack([local, 1 - local.sum(axis=1)])), axis=1)
     assert on_face.max() < 1e-5 and (local > -1e-5).all()
     # plate: its own OBJ material wins over the URDF's red (Kd is linear, splats hold display sRGB)
@@ -211,9 +213,13 @@ def test_posed_robot_moves_each_link_by_its_transform(robot_dir):
     upper = hom(t=(0, 0, 0.1)) @ hom(ry)
     ball = upper @ hom(t=(0, 0, 0.4)) @ hom(rx)
     claw = ball @ hom(t=(0, 0, 0.06 + 0.05))
-    plate = ball @ hom(t=(0, 0.1 - 0.05, 0))                     # the mimic joint moves by -grip
-    rest = {"upper": hom(t=(0, 0, 0.1)), "ball": hom(t=(0, 0, 0.5)), "claw": hom(t=(0, 0, 0.56)),
-            "plate": hom(t=(0, 0.1, 0.5))}
+    plate = ball @ hom(t=(0, 0.1 - 0.05, 0))  # the mimic joint moves by -grip
+    rest = {
+        "upper": hom(t=(0, 0, 0.1)),
+        "ball": hom(t=(0, 0, 0.5)),
+        "claw": hom(t=(0, 0, 0.56)),
+        "plate": hom(t=(0, 0.1, 0.5)),
+    }
     for name, world in (("upper", upper), ("ball", ball), ("claw", claw), ("plate", plate)):
         pick = robot.links == robot.tree.names.index(name)
         m = world @ np.linalg.inv(rest[name])
@@ -226,8 +232,21 @@ def test_posed_robot_moves_each_link_by_its_transform(robot_dir):
 def test_urdf2splats_verb_writes_the_posed_robot(robot_dir, capsys):
     out = robot_dir / "bot.ply"
     urdf = str(robot_dir / "robot" / "testbot.urdf")
-    code = main(["urdf2splats", urdf, str(out), "--package-path", str(robot_dir / "share"), "--max-splats", "3000",
-                 "--joint", "shoulder=0.7", "--joint", "grip=0.05"])
+    code = main(
+        [
+            "urdf2splats",
+            urdf,
+            str(out),
+            "--package-path",
+            str(robot_dir / "share"),
+            "--max-splats",
+            "3000",
+            "--joint",
+            "shoulder=0.7",
+            "--joint",
+            "grip=0.05",
+        ]
+    )
     printed = capsys.readouterr().out
     assert code == 0 and "wrote 3000 splats on 5 of 5 links of 'testbot' (3 degrees of freedom)" in printed
     written = read_splats(out)
@@ -254,6 +273,7 @@ def test_everything_works_where_numba_cannot_be_imported(robot_dir):
     import subprocess
     import sys
     import textwrap
+
     script = textwrap.dedent(f"""
         import json, sys
         class NoNumba:
@@ -267,7 +287,7 @@ def test_everything_works_where_numba_cannot_be_imported(robot_dir):
         from splatwright.io.urdf import read_robot
         assert kinematics._fk_kernel() is None and contacts._contact_kernel() is None
         assert "numba is blocked" in jit.status("splatwright.core.kinematics:_fk_pass")
-        urdf, share = {str(robot_dir / 'robot' / 'testbot.urdf')!r}, {str(robot_dir / 'share')!r}
+        urdf, share = {str(robot_dir / "robot" / "testbot.urdf")!r}, {str(robot_dir / "share")!r}
         robot = read_robot(urdf, [share], max_splats=2000)
         q = robot.tree.pack({{"shoulder": 2.0, "elbow": -1.9}})          # folded onto the base
         posed = col.pose_robot(robot.gaussians(), robot.deform(q))
@@ -280,6 +300,7 @@ def test_everything_works_where_numba_cannot_be_imported(robot_dir):
     assert done.returncode == 0, done.stderr
     there = json.loads(done.stdout.strip().splitlines()[-1])
     from splatwright.core import collision as col
+
     robot = read_robot(robot_dir / "robot" / "testbot.urdf", [robot_dir / "share"], max_splats=2000)
     q = robot.tree.pack({"shoulder": 2.0, "elbow": -1.9})
     posed = col.pose_robot(robot.gaussians(), robot.deform(q))
@@ -287,5 +308,8 @@ def test_everything_works_where_numba_cannot_be_imported(robot_dir):
     assert there["pairs"] == len(hits) > 100
     np.testing.assert_allclose(there["fk"], robot.tree.forward_kinematics(q), atol=1e-14)
     np.testing.assert_allclose(there["sigma"], hits.sigma.sum(), rtol=1e-9)
-    np.testing.assert_allclose(there["sdf"], col.signed_distance(robot.cloud, np.array([[0.3, 0.2, 0.4], [0, 0, 0.8]]),
-                                                                  max_distance=1.0), rtol=1e-12)
+    np.testing.assert_allclose(
+        there["sdf"],
+        col.signed_distance(robot.cloud, np.array([[0.3, 0.2, 0.4], [0, 0, 0.8]]), max_distance=1.0),
+        rtol=1e-12,
+    )

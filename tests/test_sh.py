@@ -23,12 +23,12 @@ def unit(v):
 def assert_rotates(coeffs, rotations, directions, atol=1e-12):
     """evaluate(rotate(sh, R), d) == evaluate(sh, R^T d), one rotation per splat."""
     rotated = sh.rotate(coeffs, rotations)
-    turned_back = np.einsum("nji,nj->ni", rotations, directions)     # R^T d
-    np.testing.assert_allclose(sh.evaluate(rotated, directions), sh.evaluate(coeffs, turned_back),
-                               rtol=0, atol=atol)
+    turned_back = np.einsum("nji,nj->ni", rotations, directions)  # R^T d
+    np.testing.assert_allclose(sh.evaluate(rotated, directions), sh.evaluate(coeffs, turned_back), rtol=0, atol=atol)
 
 
 # Basis and truncation ---------------------------------------------------------------------------
+
 
 def sphere_quadrature(n_theta=12, n_phi=24):
     """Gauss-Legendre in cos(theta) times uniform phi: exact for polynomials of degree < 2 n_theta."""
@@ -54,6 +54,7 @@ def condon_shortley_harmonics(directions, degree):
     sin(|m| phi) (m < 0) or 1, with P_l^m = (-1)^m (1 - x^2)^(m/2) d^m/dx^m P_l(x) (Legendre's
     polynomials differentiated by NumPy) and N_lm = sqrt((2l+1)/(4 pi) (l-m)!/(l+m)!)."""
     from math import factorial
+
     x, y, z = unit(directions).T
     theta, phi = np.arccos(np.clip(z, -1, 1)), np.arctan2(y, x)
     out = []
@@ -77,22 +78,34 @@ def test_basis_is_the_condon_shortley_real_harmonics_in_every_band(rng):
 
 def test_degree_4_constants_are_the_closed_forms():
     pi = np.pi
-    closed = [3 / 4 * np.sqrt(35 / pi), -3 / 4 * np.sqrt(35 / (2 * pi)), 3 / 4 * np.sqrt(5 / pi),
-              -3 / 4 * np.sqrt(5 / (2 * pi)), 3 / 16 * np.sqrt(1 / pi), -3 / 4 * np.sqrt(5 / (2 * pi)),
-              3 / 8 * np.sqrt(5 / pi), -3 / 4 * np.sqrt(35 / (2 * pi)), 3 / 16 * np.sqrt(35 / pi)]
+    closed = [
+        3 / 4 * np.sqrt(35 / pi),
+        -3 / 4 * np.sqrt(35 / (2 * pi)),
+        3 / 4 * np.sqrt(5 / pi),
+        -3 / 4 * np.sqrt(5 / (2 * pi)),
+        3 / 16 * np.sqrt(1 / pi),
+        -3 / 4 * np.sqrt(5 / (2 * pi)),
+        3 / 8 * np.sqrt(5 / pi),
+        -3 / 4 * np.sqrt(35 / (2 * pi)),
+        3 / 16 * np.sqrt(35 / pi),
+    ]
     np.testing.assert_allclose(sh.C4, closed, rtol=1e-15)
     # gsplat's degree-4 evaluation writes band 4 as recurrences in z and (x + iy)^m; the same
     # numbers at one direction (its literal constants).
     x, y, z = unit(np.array([0.3, -0.5, 0.8]))
     c2, c3, c4 = ((x + 1j * y) ** m for m in (2, 3, 4))
-    want = [0.6258357354491763 * c4.imag, -1.770130769779931 * z * c3.imag,
-            (3.31161143515146 * z * z - 0.47308734787878) * c2.imag,
-            z * (-4.683325804901025 * z * z + 2.007139630671868) * y,
-            1.984313483298443 * z * z * (1.865881662950577 * z * z - 1.119528997770346)
-            - 1.006230589874905 * (0.9461746957575601 * z * z - 0.3153915652525201),
-            z * (-4.683325804901025 * z * z + 2.007139630671868) * x,
-            (3.31161143515146 * z * z - 0.47308734787878) * c2.real, -1.770130769779931 * z * c3.real,
-            0.6258357354491763 * c4.real]
+    want = [
+        0.6258357354491763 * c4.imag,
+        -1.770130769779931 * z * c3.imag,
+        (3.31161143515146 * z * z - 0.47308734787878) * c2.imag,
+        z * (-4.683325804901025 * z * z + 2.007139630671868) * y,
+        1.984313483298443 * z * z * (1.865881662950577 * z * z - 1.119528997770346)
+        - 1.006230589874905 * (0.9461746957575601 * z * z - 0.3153915652525201),
+        z * (-4.683325804901025 * z * z + 2.007139630671868) * x,
+        (3.31161143515146 * z * z - 0.47308734787878) * c2.real,
+        -1.770130769779931 * z * c3.real,
+        0.6258357354491763 * c4.real,
+    ]
     np.testing.assert_allclose(sh.basis([[x, y, z]], 4)[0, 16:], want, rtol=1e-13)
 
 
@@ -100,13 +113,25 @@ def test_basis_follows_the_reference_constants_and_ordering():
     d = unit(np.array([[0.3, -0.5, 0.8]]))[0]
     x, y, z = d
     c1, c2, c3 = sh.C1, sh.C2, sh.C3
-    expected = [sh.C0, -c1 * y, c1 * z, -c1 * x,
-                c2[0] * x * y, c2[1] * y * z, c2[2] * (2 * z * z - x * x - y * y), c2[3] * x * z,
-                c2[4] * (x * x - y * y),
-                c3[0] * y * (3 * x * x - y * y), c3[1] * x * y * z, c3[2] * y * (4 * z * z - x * x - y * y),
-                c3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y), c3[4] * x * (4 * z * z - x * x - y * y),
-                c3[5] * z * (x * x - y * y), c3[6] * x * (x * x - 3 * y * y)]
-    np.testing.assert_allclose(sh.basis(d * 7.0, 3), expected, rtol=1e-14)   # directions get normalised
+    expected = [
+        sh.C0,
+        -c1 * y,
+        c1 * z,
+        -c1 * x,
+        c2[0] * x * y,
+        c2[1] * y * z,
+        c2[2] * (2 * z * z - x * x - y * y),
+        c2[3] * x * z,
+        c2[4] * (x * x - y * y),
+        c3[0] * y * (3 * x * x - y * y),
+        c3[1] * x * y * z,
+        c3[2] * y * (4 * z * z - x * x - y * y),
+        c3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y),
+        c3[4] * x * (4 * z * z - x * x - y * y),
+        c3[5] * z * (x * x - y * y),
+        c3[6] * x * (x * x - 3 * y * y),
+    ]
+    np.testing.assert_allclose(sh.basis(d * 7.0, 3), expected, rtol=1e-14)  # directions get normalised
     # The constants are the normalisations of the real harmonics: C0 = 1/(2 sqrt(pi)), C1 = sqrt(3/(4 pi)).
     assert sh.C0 == pytest.approx(0.5 / np.sqrt(np.pi), rel=1e-15)
     assert sh.C1 == pytest.approx(np.sqrt(3 / (4 * np.pi)), rel=1e-15)
@@ -123,7 +148,7 @@ def test_basis_gradient_is_the_central_difference_of_the_basis(degree):
     for j in range(3):
         e = np.eye(3)[j] * step[:, None]
         fd = ((sh.basis(d + e, degree) - sh.basis(d - e, degree)) * weights).sum(1) / (2 * step)
-        np.testing.assert_allclose(got[:, j] * step, fd * step, rtol=0, atol=1e-13)     # relative to 1 / |d|
+        np.testing.assert_allclose(got[:, j] * step, fd * step, rtol=0, atol=1e-13)  # relative to 1 / |d|
     assert np.abs((got * d).sum(1)).max() < 1e-12
 
 
@@ -135,8 +160,7 @@ def test_truncation_keeps_exactly_the_low_bands(rng, degree):
     assert low.shape == (50, (degree + 1) ** 2, 3)
     # Brute force: the full sum over only the kept basis functions.
     y = sh.basis(d, 3)[:, : (degree + 1) ** 2]
-    np.testing.assert_allclose(sh.evaluate(low, d), np.einsum("nk,nkc->nc", y, coeffs[:, : len(y[0])]),
-                               atol=1e-13)
+    np.testing.assert_allclose(sh.evaluate(low, d), np.einsum("nk,nkc->nc", y, coeffs[:, : len(y[0])]), atol=1e-13)
     # Band by band, truncation is the L2 projection: the dropped bands are orthogonal to the kept ones.
     dirs, weights = sphere_quadrature()
     one = coeffs[:1]
@@ -150,6 +174,7 @@ def test_truncation_keeps_exactly_the_low_bands(rng, degree):
 
 # Rotation: brute force ---------------------------------------------------------------------------
 
+
 def test_1000_random_rotations_match_brute_force(rng):
     for _ in range(1000):
         r = random_rotations(rng, 1)[0]
@@ -157,17 +182,18 @@ def test_1000_random_rotations_match_brute_force(rng):
         d = unit(rng.normal(size=(64, 3)))
         rotated = sh.rotate(coeffs, r)
         assert rotated.shape == (16, 3)
-        diff = sh.evaluate(np.broadcast_to(rotated, (64, 16, 3)), d) - \
-            sh.evaluate(np.broadcast_to(coeffs, (64, 16, 3)), d @ r)
+        diff = sh.evaluate(np.broadcast_to(rotated, (64, 16, 3)), d) - sh.evaluate(
+            np.broadcast_to(coeffs, (64, 16, 3)), d @ r
+        )
         assert np.abs(diff).max() < 1e-12
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3, 4])
 def test_per_splat_rotations_match_brute_force(rng, degree):
-    n = 20000      # more than one chunk, so the threaded path runs
+    n = 20000  # more than one chunk, so the threaded path runs
     coeffs = rng.normal(0, 0.5, size=(n, (degree + 1) ** 2, 3))
     rotations = random_rotations(rng, n)
-    rotations[::5] *= -1                                   # mirrors among them
+    rotations[::5] *= -1  # mirrors among them
     assert_rotates(coeffs, rotations, unit(rng.normal(size=(n, 3))))
 
 
@@ -175,7 +201,7 @@ def brute_force_rotation(rotation, degree, rng):
     """D with basis(R^T d) = basis(d) D, by least squares over 500 random directions; and the largest
     residual (zero when every band is closed under the rotation)."""
     d = unit(rng.normal(size=(500, 3)))
-    before, after = sh.basis(d, degree), sh.basis(d @ rotation, degree)      # rows of d @ R are R^T d
+    before, after = sh.basis(d, degree), sh.basis(d @ rotation, degree)  # rows of d @ R are R^T d
     fit = np.linalg.lstsq(before, after, rcond=None)[0]
     return fit, np.abs(before @ fit - after).max()
 
@@ -190,10 +216,10 @@ def test_degree_4_rotations_and_mirrors_match_a_brute_force_fit(rng):
     per_splat = sh.rotate(coeffs, matrices)
     for r, c, got in zip(matrices, coeffs, per_splat):
         fit, residual = brute_force_rotation(r, 4, rng)
-        assert residual < 1e-12                                  # band 4 is closed under R
+        assert residual < 1e-12  # band 4 is closed under R
         band = slice(16, 25)
         assert np.abs(fit[band, :16]).max() < 1e-12 and np.abs(fit[:16, band]).max() < 1e-12
-        np.testing.assert_allclose(sh.rotation_matrix(r, 4), fit, atol=1e-12)     # rotate: c' = D c
+        np.testing.assert_allclose(sh.rotation_matrix(r, 4), fit, atol=1e-12)  # rotate: c' = D c
         np.testing.assert_allclose(got, fit @ c, atol=1e-12)
         np.testing.assert_allclose(sh.rotate(c, r), fit @ c, atol=1e-12)
     # odd bands flip under -I, band 4 does not
@@ -205,9 +231,17 @@ def test_degree_4_band_turns_with_the_x90_that_spz_tabulates():
     ordering and these signs: the same matrix (its closed-form entries written out)."""
     r2, r5, r7, r14, r35 = (np.sqrt(v) for v in (2, 5, 7, 14, 35))
     want = np.zeros((9, 9))
-    rows = {0: {5: -r14 / 4, 7: r2 / 4}, 1: {1: -0.75, 3: r7 / 4}, 2: {5: -r2 / 4, 7: -r14 / 4},
-            3: {1: r7 / 4, 3: 0.75}, 4: {4: 3 / 8, 6: r5 / 4, 8: r35 / 8}, 5: {0: r14 / 4, 2: r2 / 4},
-            6: {4: r5 / 4, 6: 0.5, 8: -r7 / 4}, 7: {0: -r2 / 4, 2: r14 / 4}, 8: {4: r35 / 8, 6: -r7 / 4, 8: 0.125}}
+    rows = {
+        0: {5: -r14 / 4, 7: r2 / 4},
+        1: {1: -0.75, 3: r7 / 4},
+        2: {5: -r2 / 4, 7: -r14 / 4},
+        3: {1: r7 / 4, 3: 0.75},
+        4: {4: 3 / 8, 6: r5 / 4, 8: r35 / 8},
+        5: {0: r14 / 4, 2: r2 / 4},
+        6: {4: r5 / 4, 6: 0.5, 8: -r7 / 4},
+        7: {0: -r2 / 4, 2: r14 / 4},
+        8: {4: r35 / 8, 6: -r7 / 4, 8: 0.125},
+    }
     for i, row in rows.items():
         for j, v in row.items():
             want[i, j] = v
@@ -239,9 +273,9 @@ def test_identity_changes_nothing(rng):
 def awkward_rotations():
     """Half turns and rotations at the singular points of z-y-z Euler angles (b = 0, b = pi, tiny b)."""
     axes = [[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -2, 3], [0, 1, 1e-9]]
-    yield from (axis_angle(a, np.pi) for a in axes)                      # 180 degrees
+    yield from (axis_angle(a, np.pi) for a in axes)  # 180 degrees
     yield from (axis_angle([0, 0, 1], t) for t in (0.3, -2.0, np.pi / 2))  # b = 0 exactly
-    yield axis_angle([1, 0, 0], np.pi) @ axis_angle([0, 0, 1], 0.7)      # b = pi exactly
+    yield axis_angle([1, 0, 0], np.pi) @ axis_angle([0, 0, 1], 0.7)  # b = pi exactly
     for tiny in (1e-7, 1e-10, 1e-15):
         yield axis_angle([0, 0, 1], 1.1) @ axis_angle([1, 2, 0], tiny) @ axis_angle([0, 0, 1], -0.4)
         yield axis_angle([0, 1, 0], np.pi - tiny) @ axis_angle([0, 0, 1], 2.5)
@@ -253,7 +287,7 @@ def test_half_turns_and_euler_singularities(rng):
     n = len(rotations)
     coeffs = rng.normal(size=(n, 16, 3))
     assert_rotates(coeffs, rotations, unit(rng.normal(size=(n, 3))))
-    for r in rotations:     # the single-matrix path too, against the least-squares reference
+    for r in rotations:  # the single-matrix path too, against the least-squares reference
         np.testing.assert_allclose(sh.rotation_matrix(r, 3), sh.fitted_rotation_matrix(r, 3), atol=1e-12)
 
 
@@ -275,11 +309,11 @@ def test_mirrors_follow_y_of_minus_d(rng):
 def test_rotation_matrices_are_an_orthogonal_representation(rng):
     r1, r2 = random_rotations(rng, 2)
     d1, d2, d12 = (sh.rotation_matrix(r, 3) for r in (r1, r2, r1 @ r2))
-    np.testing.assert_allclose(d12, d1 @ d2, atol=1e-13)       # D(R1 R2) = D(R1) D(R2)
+    np.testing.assert_allclose(d12, d1 @ d2, atol=1e-13)  # D(R1 R2) = D(R1) D(R2)
     np.testing.assert_allclose(d1 @ d1.T, np.eye(16), atol=1e-13)
-    mask = np.zeros((16, 16), bool)                            # block diagonal by band
+    mask = np.zeros((16, 16), bool)  # block diagonal by band
     for l in range(4):
-        mask[l * l:(l + 1) ** 2, l * l:(l + 1) ** 2] = True
+        mask[l * l : (l + 1) ** 2, l * l : (l + 1) ** 2] = True
     assert np.abs(d1[~mask]).max() < 1e-14
     batched = sh.rotation_matrix(np.stack([r1, r2]), 2)
     np.testing.assert_allclose(batched, [sh.fitted_rotation_matrix(r, 2) for r in (r1, r2)], atol=1e-12)
@@ -300,7 +334,7 @@ def test_a_broken_splat_does_not_spread(rng):
     before = coeffs.copy()
     rotations = random_rotations(rng, 10)
     rotated = sh.rotate(coeffs, rotations)
-    np.testing.assert_array_equal(coeffs, before)                    # the input is left alone
+    np.testing.assert_array_equal(coeffs, before)  # the input is left alone
     ok = np.arange(10) != 3
     assert np.isfinite(rotated[ok]).all()
     np.testing.assert_allclose(rotated[ok], sh.rotate(coeffs[ok], rotations[ok]), atol=1e-14)

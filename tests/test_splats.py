@@ -110,8 +110,13 @@ def test_dc_colour_round_trip():
 def test_the_render_mode_splats_were_made_for_travels_with_them():
     made = random_cloud(30, sh_degree=1).replace(antialiased=True)
     turn = np.diag([1.0, -1.0, -1.0, 1.0])
-    kept = [made[::2], made.copy(), made.transformed(turn), made.with_sh_degree(0),
-            SplatCloud.concatenate([made, made[:3]])]
+    kept = [
+        made[::2],
+        made.copy(),
+        made.transformed(turn),
+        made.with_sh_degree(0),
+        SplatCloud.concatenate([made, made[:3]]),
+    ]
     assert all(c.antialiased for c in kept) and "antialiased" in repr(made)
     assert not SplatCloud.concatenate([random_cloud(4), random_cloud(5)]).antialiased
     with pytest.raises(ValueError, match="antialiased rendering with splats made for classic"):

@@ -9,13 +9,12 @@ import sys
 
 import numpy as np
 import pytest
-from helpers import rebuilt_rotation_bound, random_cloud
+from helpers import random_cloud, rebuilt_rotation_bound
 
 from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
-from splatwright.io import read_splats, spz, splat, write_splats
+from splatwright.io import SplatFileWarning, read_splats, splat, spz, write_splats
 from splatwright.io.common import SplatFileError
-from splatwright.io import SplatFileWarning
 
 C0 = 0.28209479177387814
 # Parity of the 16 SH basis polynomials under y -> -y, z -> -z (worked out by hand, see test_usd.py).
@@ -57,13 +56,14 @@ def check_spz_error(got, want, fractional_bits=12, rotation_bound=np.radians(0.2
     assert np.abs(got.sh[:, 0] - want.sh[:, 0]).max() <= 0.5 / (0.15 * 255) + 1e-6
     if sh and want.sh_degree:
         err = np.abs(got.sh[:, 1:] - want.sh[:, 1:])
-        assert err[:, :3].max() <= (4 + 0.5) / 128 + 1e-6        # 5 bits: buckets of 8 steps
+        assert err[:, :3].max() <= (4 + 0.5) / 128 + 1e-6  # 5 bits: buckets of 8 steps
         if want.sh_degree > 1:
-            assert err[:, 3:].max() <= (8 + 0.5) / 128 + 1e-6    # 4 bits: buckets of 16 steps
+            assert err[:, 3:].max() <= (8 + 0.5) / 128 + 1e-6  # 4 bits: buckets of 16 steps
     assert (angle_between(got.rotations, want.rotations) <= rotation_bound).all()
 
 
 # SPZ against hand-built bytes ---------------------------------------------------------------------
+
 
 def hand_built_v3():
     """Two splats encoded by hand from the SPZ description (RUB axes on disk), and the cloud (RDF) they
@@ -72,9 +72,9 @@ def hand_built_v3():
     # positions: RUB (1, 2.5, -0.25) and (-3, 0, 4) in 24-bit fixed point with 12 fractional bits
     fixed = [4096, 10240, -1024, -12288, 0, 16384]
     positions = b"".join(struct.pack("<i", v)[:3] for v in fixed)
-    alphas = bytes([255, 51])                        # opacities 1 and 0.2
-    colors = bytes([128, 128, 128, 255, 0, 166])     # DC (x/255 - 0.5) / 0.15
-    scales = bytes([160, 144, 176, 0, 255, 152])     # log scale x/16 - 10
+    alphas = bytes([255, 51])  # opacities 1 and 0.2
+    colors = bytes([128, 128, 128, 255, 0, 166])  # DC (x/255 - 0.5) / 0.15
+    scales = bytes([160, 144, 176, 0, 255, 152])  # log scale x/16 - 10
     # rotations, smallest three: identity (largest = w, index 3) and a 90 degree turn about RUB x
     # (x = w = sqrt(1/2): largest is x, index 0; y, z, w follow as sign bit + 9 bits)
     identity = 3 << 30
@@ -84,7 +84,7 @@ def hand_built_v3():
     raw = header + positions + alphas + colors + scales + rotations + sh
     flip = np.array([1, -1, -1])
     s = np.sqrt(0.5)
-    rub_rot = np.array([[1, 0, 0, 0], [s, s, 0, 0]])           # w, x, y, z
+    rub_rot = np.array([[1, 0, 0, 0], [s, s, 0, 0]])  # w, x, y, z
     want_sh = np.zeros((2, 4, 3))
     want_sh[:, 1:] = ((np.array([128, 136, 120, 64, 192, 128, 128, 128, 128]) - 128) / 128).reshape(3, 3)
     want_sh[:, 0] = (np.array([[128, 128, 128], [255, 0, 166]]) / 255 - 0.5) / 0.15
@@ -92,7 +92,7 @@ def hand_built_v3():
         positions=np.array([[1, 2.5, -0.25], [-3, 0, 4]]) * flip,
         rotations=rub_rot * np.array([1, 1, -1, -1]),
         log_scales=np.array([[160, 144, 176], [0, 255, 152]]) / 16 - 10,
-        opacity_logits=np.log([1e7, 0.25]),      # 1 and 0.2 (0.2/0.8), see the check below
+        opacity_logits=np.log([1e7, 0.25]),  # 1 and 0.2 (0.2/0.8), see the check below
         sh=want_sh * FLIP_SIGNS[None, :4, None],
     )
     return raw, cloud
@@ -146,14 +146,14 @@ def test_v2_rotations_keep_xyz_with_positive_w(tmp_path):
     data = gzip.decompress(path.read_bytes())
     n = len(cloud)
     start = 16 + 9 * n + n + 3 * n + 3 * n
-    stored = np.frombuffer(data[start:start + 3 * n], np.uint8).reshape(n, 3)
+    stored = np.frombuffer(data[start : start + 3 * n], np.uint8).reshape(n, 3)
     q = cloud.rotations / np.linalg.norm(cloud.rotations, axis=1, keepdims=True)
     q *= np.where(q[:, :1] < 0, -1, 1)
     np.testing.assert_array_equal(stored, np.clip(np.rint(q[:, 1:] * 127.5 + 127.5), 0, 255))
     got = spz.read(path, axes=None)
     xyz = stored / 127.5 - 1
     np.testing.assert_allclose(got.rotations[:, 1:], xyz, atol=1e-6)
-    np.testing.assert_allclose(got.rotations[:, 0], np.sqrt(np.maximum(0, 1 - (xyz ** 2).sum(1))), atol=2e-6)
+    np.testing.assert_allclose(got.rotations[:, 0], np.sqrt(np.maximum(0, 1 - (xyz**2).sum(1))), atol=2e-6)
 
 
 @pytest.mark.parametrize("version", [2, 3, 4])
@@ -163,7 +163,7 @@ def test_round_trip_within_quantisation(tmp_path, version):
     spz.write(path, cloud, version=version)
     got = spz.read(path)
     check_spz_error(got, cloud, rotation_bound=spz_rotation_bound(version, cloud))
-    if version == 2:      # x, y, z of the unit quaternion with w >= 0, each to half a step of 1/127.5
+    if version == 2:  # x, y, z of the unit quaternion with w >= 0, each to half a step of 1/127.5
         unit = lambda q: q / np.linalg.norm(q, axis=1, keepdims=True) * np.where(q[:, :1] < 0, -1, 1)
         assert np.abs(unit(got.rotations)[:, 1:] - unit(cloud.rotations)[:, 1:]).max() <= 0.5 / 127.5 + 1e-6
     head = path.read_bytes()[:4]
@@ -176,7 +176,7 @@ def test_gzip_made_of_independent_chunks_is_one_valid_member(tmp_path, monkeypat
     monkeypatch.setattr(spz, "GZIP_CHUNK", 4096)
     spz.write(tmp_path / "chunks.spz", cloud)
     one, chunks = (tmp_path / "one.spz").read_bytes(), (tmp_path / "chunks.spz").read_bytes()
-    assert one != chunks and gzip.decompress(one) == gzip.decompress(chunks)     # Python's own gunzip
+    assert one != chunks and gzip.decompress(one) == gzip.decompress(chunks)  # Python's own gunzip
     check_spz_error(spz.read(tmp_path / "chunks.spz"), cloud)
 
 
@@ -185,7 +185,7 @@ def test_large_v4_uses_the_fast_level_and_decodes_the_same(tmp_path, monkeypatch
     the same payload once decompressed (zstandard's own decoder) and the same splats read back."""
     zstandard = pytest.importorskip("zstandard")
     cloud = in_range_cloud(2000, seed=6)
-    spz.write(tmp_path / "reference.spz", cloud, version=4)              # 130 kB of data: level 12
+    spz.write(tmp_path / "reference.spz", cloud, version=4)  # 130 kB of data: level 12
     monkeypatch.setattr(spz, "GZIP_CHUNK", 4096)
     spz.write(tmp_path / "fast.spz", cloud, version=4)
     spz.write(tmp_path / "level12.spz", cloud, version=4, level=12)
@@ -194,10 +194,10 @@ def test_large_v4_uses_the_fast_level_and_decodes_the_same(tmp_path, monkeypatch
 
     def frames(data):
         count, toc = data[15], struct.unpack_from("<I", data, 16)[0]
-        sizes = np.frombuffer(data[toc:toc + 16 * count], "<u8").reshape(-1, 2)
+        sizes = np.frombuffer(data[toc : toc + 16 * count], "<u8").reshape(-1, 2)
         at, out = toc + 16 * count, []
         for packed, _ in sizes:
-            out.append(data[at:at + int(packed)])
+            out.append(data[at : at + int(packed)])
             at += int(packed)
         return out
 
@@ -220,16 +220,17 @@ def test_hard_cases_are_clamped_and_reported(tmp_path):
         spz.write(path, cloud)
     got = spz.read(path)
     assert np.isfinite(got.positions).all() and np.isfinite(got.log_scales).all()
-    np.testing.assert_allclose(got.log_scales[:, 0], np.clip(cloud.log_scales[:, 0], -10, 255 / 16 - 10),
-                               atol=1 / 32 + 1e-6)
+    np.testing.assert_allclose(
+        got.log_scales[:, 0], np.clip(cloud.log_scales[:, 0], -10, 255 / 16 - 10), atol=1 / 32 + 1e-6
+    )
     np.testing.assert_allclose(got.opacities[:2], [1, 0], atol=1e-6)
-    np.testing.assert_allclose(got.rotations[6], [1, 0, 0, 0], atol=1e-6)      # zero -> identity
+    np.testing.assert_allclose(got.rotations[6], [1, 0, 0, 0], atol=1e-6)  # zero -> identity
     far = cloud.copy()
     far.positions[0] = [1e6, -2e5, 3]
     with pytest.warns(SplatFileWarning, match=r"stored with 3 fractional bits \(resolution 0.125\)"):
         spz.write(path, far)
     got = spz.read(path)
-    assert np.abs(got.positions - far.positions).max() <= 2.0 ** -4
+    assert np.abs(got.positions - far.positions).max() <= 2.0**-4
 
 
 # Parity of the nine degree-4 polynomials (m = -4..4: xy(xx-yy), yz(3xx-yy), xy(7zz-1), yz(7zz-3),
@@ -252,7 +253,7 @@ def test_sh_degree_4_files_are_read_whole(tmp_path):
     got = spz.read(path, axes=None)
     assert got.sh_degree == 4 and got.sh.shape == (3, 25, 3)
     np.testing.assert_allclose(got.sh[0, 1:].reshape(-1), (np.arange(72) - 128) / 128)
-    flipped = spz.read(path)                                   # RUB -> RDF: signs only
+    flipped = spz.read(path)  # RUB -> RDF: signs only
     signs = np.concatenate([FLIP_SIGNS[1:], NIANTIC_FLIP_4])
     np.testing.assert_array_equal(flipped.sh[:, 1:], got.sh[:, 1:] * signs[None, :, None])
 
@@ -261,12 +262,13 @@ def v4_blocks(raw):
     """The raw attribute blocks of a v4 file (positions, alphas, colours, scales, rotations[, SH]),
     from its header and table of contents."""
     import zstandard
+
     magic, version, n, degree, bits, flags, streams, toc = struct.unpack_from("<IIIBBBBI", raw)
     assert (magic, version) == (0x5053474E, 4)
     sizes = np.frombuffer(raw, "<u8", 2 * streams, toc).reshape(streams, 2)
     at, blocks = toc + 16 * streams, []
     for packed, unpacked in sizes.tolist():
-        blocks.append(zstandard.ZstdDecompressor().decompress(raw[at:at + packed], max_output_size=unpacked))
+        blocks.append(zstandard.ZstdDecompressor().decompress(raw[at : at + packed], max_output_size=unpacked))
         at += packed
     return degree, blocks
 
@@ -281,8 +283,8 @@ def test_degree_4_is_written_as_v4_with_four_bit_buckets(tmp_path):
     degree, blocks = v4_blocks(path.read_bytes())
     assert degree == 4 and len(blocks) == 6 and len(blocks[5]) == 300 * 72
     stored = np.frombuffer(blocks[5], np.uint8).reshape(300, 24, 3)
-    x = cloud.sh[:, 16:].astype(np.float64) * NIANTIC_FLIP_4[None, :, None]      # RDF -> RUB
-    q = np.trunc(x * 128 + np.copysign(0.5, x)) + 128                           # C's round()
+    x = cloud.sh[:, 16:].astype(np.float64) * NIANTIC_FLIP_4[None, :, None]  # RDF -> RUB
+    q = np.trunc(x * 128 + np.copysign(0.5, x)) + 128  # C's round()
     np.testing.assert_array_equal(stored[:, 15:], np.clip((q + 8) // 16 * 16, 0, 255))
     got = spz.read(path)
     assert got.sh_degree == 4
@@ -359,17 +361,22 @@ def test_failed_spz_write_leaves_the_old_file(tmp_path):
 
 # .splat -------------------------------------------------------------------------------------------
 
+
 def test_splat_bytes_follow_the_layout(tmp_path):
     cloud = SplatCloud.from_activated(
-        positions=[[1.5, -2.0, 3.25]], rotations=[[0.0, 0.0, 2.0, 0.0]], scales=[[0.5, 0.25, 2.0]],
-        opacities=[0.4], colors=[[1.0, 0.6, 0.0]])
+        positions=[[1.5, -2.0, 3.25]],
+        rotations=[[0.0, 0.0, 2.0, 0.0]],
+        scales=[[0.5, 0.25, 2.0]],
+        opacities=[0.4],
+        colors=[[1.0, 0.6, 0.0]],
+    )
     path = tmp_path / "one.splat"
     splat.write(path, cloud)
     data = path.read_bytes()
     assert len(data) == 32
     assert struct.unpack("<6f", data[:24]) == (1.5, -2.0, 3.25, 0.5, 0.25, 2.0)
-    assert list(data[24:28]) == [255, 153, 0, 102]             # 0.6 * 255 = 153, 0.4 * 255 = 102
-    assert list(data[28:32]) == [128, 128, 255, 128]           # (0, 0, 1, 0) * 128 + 128, clamped
+    assert list(data[24:28]) == [255, 153, 0, 102]  # 0.6 * 255 = 153, 0.4 * 255 = 102
+    assert list(data[28:32]) == [128, 128, 255, 128]  # (0, 0, 1, 0) * 128 + 128, clamped
     got = splat.read(path)
     np.testing.assert_array_equal(got.positions, cloud.positions)
     np.testing.assert_array_equal(got.log_scales, cloud.log_scales)
@@ -414,10 +421,12 @@ def test_bad_splat_files(tmp_path):
 
 # PlayCanvas splat-transform -------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="session")
 def splat_transform():
     """The splat-transform CLI, installed once under .cache/interop (see tests/interop.py)."""
     import interop
+
     return interop.npm_prefix() / "node_modules" / ".bin" / "splat-transform"
 
 
@@ -430,10 +439,10 @@ def run_transform(cli, *args):
 @pytest.mark.parametrize("version", [2, 3, 4])
 def test_splat_transform_reads_our_spz(tmp_path, splat_transform, version):
     cloud = in_range_cloud(300, seed=10 + version)
-    cloud.opacity_logits[0] = 10.0                  # stored as alpha 255
+    cloud.opacity_logits[0] = 10.0  # stored as alpha 255
     spz.write(tmp_path / "ours.spz", cloud, version=version)
     run_transform(splat_transform, tmp_path / "ours.spz", tmp_path / "theirs.ply")
-    with pytest.warns(SplatFileWarning):           # their decoder turns alpha 255 into an infinite logit
+    with pytest.warns(SplatFileWarning):  # their decoder turns alpha 255 into an infinite logit
         got = read_splats(tmp_path / "theirs.ply", nonfinite="keep")
     check_spz_error(got, cloud, rotation_bound=spz_rotation_bound(version, cloud))
 
@@ -480,7 +489,7 @@ def test_the_v2_rotation_bound_is_tight_and_holds(tmp_path):
     bound not loose by more than a few times where it matters (the worst splat comes within half of it)."""
     cloud = in_range_cloud(4000, degree=0, seed=5)
     q = np.random.default_rng(6).normal(size=(4000, 4))
-    q[:1000, 0] *= 1e-3                                    # w near zero: where v2 loses most
+    q[:1000, 0] *= 1e-3  # w near zero: where v2 loses most
     cloud = cloud.replace(rotations=q.astype(np.float32))
     write_splats(tmp_path / "v2.spz", cloud, version=2)
     angles, bound = angle_between(read_splats(tmp_path / "v2.spz").rotations, cloud.rotations), v2_rotation_bound(cloud)

@@ -3,13 +3,12 @@
 import numpy as np
 import pytest
 
-from splatwright.core.kinematics import (KinematicsError, KinematicTree, quaternions_to_rotvec,
-                                         rotvec_to_quaternions)
+from splatwright.core.kinematics import KinematicsError, KinematicTree, quaternions_to_rotvec, rotvec_to_quaternions
 from splatwright.io.common import SplatFileError
 from splatwright.io.urdf import parse_urdf, read_urdf
 
-
 # hand-written reference matrices ----------------------------------------------------------------
+
 
 def rot_x(t):
     c, s = np.cos(t), np.sin(t)
@@ -40,6 +39,7 @@ def rodrigues(axis, angle):
 
 
 # a small tree with every joint type ---------------------------------------------------------------
+
 
 def small_tree():
     #   base -(revolute z)-> arm -(prismatic x)-> slider -(ball)-> wrist
@@ -77,8 +77,8 @@ def test_layout_of_configuration():
     tree, _ = small_tree()
     assert tree.dof == 6
     assert tree.dof_names == ["arm", "slider", "wrist.x", "wrist.y", "wrist.z", "wheel"]
-    assert tree.axes[1].tolist() == [0, 0, 1]            # normalised
-    assert tree.lower[4] == -np.inf and tree.upper[4] == np.inf   # continuous ignores limits
+    assert tree.axes[1].tolist() == [0, 0, 1]  # normalised
+    assert tree.lower[4] == -np.inf and tree.upper[4] == np.inf  # continuous ignores limits
 
 
 def test_forward_kinematics_matches_hand_products():
@@ -105,11 +105,12 @@ def test_ball_joint_takes_quaternion_or_rotation_vector():
     tree, origins = small_tree()
     axis, angle = np.array([1.0, 2.0, -2.0]) / 3.0, 2.5
     quat = np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * axis])
-    q_quat = tree.pack({"wrist": -quat})                 # the antipodal quaternion is the same turn
+    q_quat = tree.pack({"wrist": -quat})  # the antipodal quaternion is the same turn
     q_vec = tree.pack({"wrist": axis * angle})
     np.testing.assert_allclose(q_quat, q_vec, atol=1e-14)
-    np.testing.assert_allclose(tree.forward_kinematics(q_quat)[3],
-                               hand_fk(origins, 0, 0, axis * angle, 0)[3], atol=1e-14)
+    np.testing.assert_allclose(
+        tree.forward_kinematics(q_quat)[3], hand_fk(origins, 0, 0, axis * angle, 0)[3], atol=1e-14
+    )
     with pytest.raises(KinematicsError, match="takes 1 values, got 3"):
         tree.pack({"arm": [1, 2, 3]})
     with pytest.raises(KinematicsError, match="no joint named 'elbow'"):
@@ -130,7 +131,7 @@ def test_limits_clamp_and_report():
     q = np.array([2.0, -1.0, 3.0, 0.0, 0.0, 100.0])
     clamped = tree.clamp(q)
     assert clamped[0] == 1.0 and clamped[1] == 0.0 and clamped[5] == 100.0
-    assert np.linalg.norm(clamped[2:5]) == pytest.approx(0.8)          # ball angle <= upper
+    assert np.linalg.norm(clamped[2:5]) == pytest.approx(0.8)  # ball angle <= upper
     np.testing.assert_allclose(clamped[2:5] / 0.8, [1, 0, 0])
     assert not tree.within_limits(q) and tree.within_limits(clamped)
     np.testing.assert_array_equal(tree.within_limits(np.stack([q, clamped])), [False, True])
@@ -148,8 +149,13 @@ def test_deform_matrices_are_pose_times_inverse_rest():
 
 def test_blender_style_skeleton_from_rest_matrices():
     # Armature-space rest matrices; a posed bone is parent_pose @ (parent_rest^-1 rest) @ basis.
-    rest = np.stack([hom(rot_x(-np.pi / 2), (0, 0, 0)), hom(rot_x(-np.pi / 2) @ rot_z(0.3), (0, 0, 1)),
-                     hom(rot_y(0.5), (0.2, 0.1, 2))])
+    rest = np.stack(
+        [
+            hom(rot_x(-np.pi / 2), (0, 0, 0)),
+            hom(rot_x(-np.pi / 2) @ rot_z(0.3), (0, 0, 1)),
+            hom(rot_y(0.5), (0.2, 0.1, 2)),
+        ]
+    )
     tree = KinematicTree.from_rest_matrices(["root", "spine", "head"], [-1, 0, 1], rest)
     np.testing.assert_allclose(tree.rest_transforms(), rest, atol=1e-15)
     basis = [rot_z(0.2), rot_x(0.7), rodrigues([1, 1, 0], 0.4)]
@@ -162,9 +168,13 @@ def test_blender_style_skeleton_from_rest_matrices():
 
 def test_deep_chain_batch():
     n = 40
-    tree = KinematicTree([f"l{i}" for i in range(n)], np.arange(n) - 1,
-                         np.broadcast_to(hom(t=(0, 0, 0.1)), (n, 4, 4)), ["revolute"] * n,
-                         axes=np.tile([0, 1, 0], (n, 1)))
+    tree = KinematicTree(
+        [f"l{i}" for i in range(n)],
+        np.arange(n) - 1,
+        np.broadcast_to(hom(t=(0, 0, 0.1)), (n, 4, 4)),
+        ["revolute"] * n,
+        axes=np.tile([0, 1, 0], (n, 1)),
+    )
     q = np.full((3, n), 0.05)
     tip = tree.forward_kinematics(q)[:, -1]
     # A planar chain of equal links bending evenly: the tip angle is the sum of the joint angles.
@@ -259,8 +269,7 @@ def test_urdf_tree_and_forward_kinematics():
     upper = shoulder @ hom(rot_z(0.3) @ rot_y(-0.2) @ rot_x(0.1), (0, 0, 0.5)) @ hom(rot_y(0.8))
     slide = upper @ hom(rot_z(np.pi / 2), (0.3, 0, 0)) @ hom(t=0.25 * np.array([1, 0, 1]) / np.sqrt(2))
     wheel = shoulder @ hom(rot_x(np.pi / 2)) @ hom(rot_z(2.2))
-    for name, expect in [("shoulder", shoulder), ("upper", upper), ("slide", slide), ("tool", slide),
-                         ("wheel", wheel)]:
+    for name, expect in [("shoulder", shoulder), ("upper", upper), ("slide", slide), ("tool", slide), ("wheel", wheel)]:
         np.testing.assert_allclose(world[i[name]], expect, atol=1e-14, err_msg=name)
     # A point at the tool tip, by the same matrices
     np.testing.assert_allclose(world[i["tool"]] @ [0, 0, 0, 1], slide[:, 3], atol=1e-14)
@@ -275,25 +284,43 @@ def test_read_urdf_file(tmp_path):
         read_urdf(tmp_path / "missing.urdf")
 
 
-@pytest.mark.parametrize("change, message", [
-    (('type="continuous"', 'type="hinge"'), "joint 'spin' has type 'hinge'"),
-    (('<limit lower="0" upper="0.4" effort="1" velocity="1"/>', '<limit lower="0" upper="x"/>'),
-     "joint 'extend' limit upper: 'x' is not 1 numbers"),
-    (('<child link="tool"/>', '<child link="toool"/>'), "child link 'toool' is not declared"),
-    (('xyz="0.3 0 0"', 'xyz="0.3 0"'), "joint 'extend' origin xyz: '0.3 0' is not 3"),
-    (('rpy="0.1 -0.2 0.3"', 'rpy="0.1 nan 0.3"'), "elbow' origin rpy"),
-    (('<mesh filename="package://x/shoulder.stl"/>', '<mesh filename="package://x/shoulder.stl"/><box size="1"/>'),
-     None),
-    (('<axis xyz="0 1 0"/>', '<axis xyz="0 0 0"/>'), "joint 'elbow' has a zero axis"),
-    (('<link name="tool"/>', '<link name="tool"/><link name="orphan"/>'), "exactly one root link"),
-    (('</robot>', '<joint name="spin" type="fixed"><parent link="tool"/><child link="world"/></joint></robot>'),
-     "not unique"),
-    (('<joint name="mount"', '<joint name="loop" type="fixed"><parent link="wheel"/><child link="world"/>'
-      '</joint><joint name="mount"'), "one root link"),
-    (('</robot>', ''), "not valid XML"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (('type="continuous"', 'type="hinge"'), "joint 'spin' has type 'hinge'"),
+        (
+            ('<limit lower="0" upper="0.4" effort="1" velocity="1"/>', '<limit lower="0" upper="x"/>'),
+            "joint 'extend' limit upper: 'x' is not 1 numbers",
+        ),
+        (('<child link="tool"/>', '<child link="toool"/>'), "child link 'toool' is not declared"),
+        (('xyz="0.3 0 0"', 'xyz="0.3 0"'), "joint 'extend' origin xyz: '0.3 0' is not 3"),
+        (('rpy="0.1 -0.2 0.3"', 'rpy="0.1 nan 0.3"'), "elbow' origin rpy"),
+        (
+            (
+                '<mesh filename="package://x/shoulder.stl"/>',
+                '<mesh filename="package://x/shoulder.stl"/><box size="1"/>',
+            ),
+            None,
+        ),
+        (('<axis xyz="0 1 0"/>', '<axis xyz="0 0 0"/>'), "joint 'elbow' has a zero axis"),
+        (('<link name="tool"/>', '<link name="tool"/><link name="orphan"/>'), "exactly one root link"),
+        (
+            ("</robot>", '<joint name="spin" type="fixed"><parent link="tool"/><child link="world"/></joint></robot>'),
+            "not unique",
+        ),
+        (
+            (
+                '<joint name="mount"',
+                '<joint name="loop" type="fixed"><parent link="wheel"/><child link="world"/>'
+                '</joint><joint name="mount"',
+            ),
+            "one root link",
+        ),
+        (("</robot>", ""), "not valid XML"),
+    ],
+)
 def test_urdf_errors_name_the_problem(change, message):
-    if message is None:                          # visuals are not the kinematic reader's business
+    if message is None:  # visuals are not the kinematic reader's business
         parse_urdf(URDF.replace(*change), source="arm.urdf")
         return
     with pytest.raises(SplatFileError, match=message):
@@ -334,7 +361,7 @@ MIMIC_URDF = """
 
 def test_mimic_joints_follow_their_joint_in_dof_pack_and_fk():
     with pytest.warns(UserWarning, match="limit lower 1.2 is above upper -1.2; swapped"):
-        tree = parse_urdf(MIMIC_URDF)                    # blank line before <?xml, swapped limits
+        tree = parse_urdf(MIMIC_URDF)  # blank line before <?xml, swapped limits
     i = {name: k for k, name in enumerate(tree.names)}
     assert tree.dof == 2 and tree.dof_names == ["shoulder", "left_slide"]
     assert (tree.lower[i["arm"]], tree.upper[i["arm"]]) == (-1.2, 1.2)
@@ -345,19 +372,23 @@ def test_mimic_joints_follow_their_joint_in_dof_pack_and_fk():
     arm = hom(rot_y(0.2), (0, 0, 0.3)) @ hom(rot_y(0.4))
     right_value = 0.5 * 0.03 + 0.01
     right = arm @ hom(t=(0.1, -0.02, 0)) @ hom(t=(0, -right_value, 0))
-    cam = right @ hom(rot_x(10 * right_value))          # a mimic of a mimic: 10 * (0.5 q + 0.01)
+    cam = right @ hom(rot_x(10 * right_value))  # a mimic of a mimic: 10 * (0.5 q + 0.01)
     np.testing.assert_allclose(world[i["right"]], right, atol=1e-15)
     np.testing.assert_allclose(world[i["cam"]], cam, atol=1e-15)
-    np.testing.assert_allclose(tree.joint_values(q)[[i["left"], i["right"], i["cam"]]],
-                               [0.03, right_value, 10 * right_value], atol=1e-15)
+    np.testing.assert_allclose(
+        tree.joint_values(q)[[i["left"], i["right"], i["cam"]]], [0.03, right_value, 10 * right_value], atol=1e-15
+    )
 
 
 @pytest.mark.filterwarnings("ignore:.*swapped")
 def test_mimic_errors_are_named():
     with pytest.raises(SplatFileError, match="mimics 'nowhere', which is not a joint"):
         parse_urdf(MIMIC_URDF.replace('mimic joint="left_slide"', 'mimic joint="nowhere"'))
-    loop = MIMIC_URDF.replace('<limit lower="0" upper="0.04"/>\n  </joint>',
-                              '<limit lower="0" upper="0.04"/><mimic joint="right_slide"/>\n  </joint>', 1)
+    loop = MIMIC_URDF.replace(
+        '<limit lower="0" upper="0.04"/>\n  </joint>',
+        '<limit lower="0" upper="0.04"/><mimic joint="right_slide"/>\n  </joint>',
+        1,
+    )
     with pytest.raises(SplatFileError, match="cycle of mimic joints"):
         parse_urdf(loop)
     with pytest.raises(SplatFileError, match="mimic multiplier"):
@@ -377,8 +408,17 @@ FREE_URDF = """<robot name="free">
 def test_floating_planar_and_spherical_joints_match_hand_products():
     tree = parse_urdf(FREE_URDF)
     assert tree.dof == 12 and tree.joint_types[1:] == ("floating", "planar", "ball")
-    assert tree.dof_names[:9] == ["float.x", "float.y", "float.z", "float.rx", "float.ry", "float.rz",
-                                  "table.a", "table.b", "table.theta"]
+    assert tree.dof_names[:9] == [
+        "float.x",
+        "float.y",
+        "float.z",
+        "float.rx",
+        "float.ry",
+        "float.rz",
+        "table.a",
+        "table.b",
+        "table.theta",
+    ]
     t, axis, angle = np.array([0.3, -0.2, 0.5]), np.array([1.0, 2.0, 2.0]) / 3, 0.9
     neck = np.array([0.2, -0.1, 0.3])
     q = tree.pack({"float": np.concatenate([t, axis * angle]), "table": [0.4, -0.7, 1.1], "neck": neck})
@@ -410,10 +450,15 @@ def test_non_finite_values_and_bases_are_refused():
 
 def test_compiled_and_numpy_forward_kinematics_agree(monkeypatch):
     from splatwright.core import kinematics
-    tree = parse_urdf(FREE_URDF.replace('<link name="head"/>', '<link name="head"/><link name="tip"/>').replace(
-        "</robot>", '<joint name="tip" type="revolute"><parent link="head"/><child link="tip"/><axis xyz="0 1 1"/>'
-                    '<origin xyz="0.1 0 0"/><limit lower="-1" upper="1"/></joint></robot>'))
-    q = np.random.default_rng(4).normal(size=(3000, tree.dof))      # above the two-thread batch size
+
+    tree = parse_urdf(
+        FREE_URDF.replace('<link name="head"/>', '<link name="head"/><link name="tip"/>').replace(
+            "</robot>",
+            '<joint name="tip" type="revolute"><parent link="head"/><child link="tip"/><axis xyz="0 1 1"/>'
+            '<origin xyz="0.1 0 0"/><limit lower="-1" upper="1"/></joint></robot>',
+        )
+    )
+    q = np.random.default_rng(4).normal(size=(3000, tree.dof))  # above the two-thread batch size
     base = hom(rot_x(0.3), (1, 2, 3))
     compiled = tree.forward_kinematics(q, base=base)
     single = tree.forward_kinematics(q[7], base=base)
@@ -427,9 +472,11 @@ def test_urdf_reading_is_linear_in_links():
     # a 20,000-link chain (reading was quadratic: minutes); its tip is the sum of the offsets
     n = 20_000
     links = "".join(f'<link name="l{k}"/>' for k in range(n))
-    joints = "".join(f'<joint name="j{k}" type="revolute"><parent link="l{k}"/><child link="l{k + 1}"/>'
-                     f'<origin xyz="0 0 0.001"/><axis xyz="0 1 0"/><limit lower="-1" upper="1"/></joint>'
-                     for k in range(n - 1))
+    joints = "".join(
+        f'<joint name="j{k}" type="revolute"><parent link="l{k}"/><child link="l{k + 1}"/>'
+        f'<origin xyz="0 0 0.001"/><axis xyz="0 1 0"/><limit lower="-1" upper="1"/></joint>'
+        for k in range(n - 1)
+    )
     tree = parse_urdf(f"<robot name='chain'>{links}{joints}</robot>")
     assert len(tree) == n and tree.dof == n - 1 and len(tree._levels) == n
     tip = tree.forward_kinematics(np.full(n - 1, 1e-4))[-1]
@@ -445,15 +492,22 @@ def test_forward_kinematics_matches_yourdfpy(tmp_path):
     for k in range(1, n):
         kind = kinds[rng.integers(4)]
         axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)                 # (yourdfpy takes a prismatic axis as written)
-        mimic = f'<mimic joint="j{k - 1}" multiplier="{rng.uniform(-2, 2):.6f}" offset="{rng.uniform(-.3, .3):.6f}"/>' \
-            if k > 1 and kind != "fixed" and kinds_of.get(k - 1) in ("revolute", "prismatic", "continuous") \
-            and rng.uniform() < 0.3 else ""             # (yourdfpy follows one mimic, not chains of them)
+        axis /= np.linalg.norm(axis)  # (yourdfpy takes a prismatic axis as written)
+        mimic = (
+            f'<mimic joint="j{k - 1}" multiplier="{rng.uniform(-2, 2):.6f}" offset="{rng.uniform(-0.3, 0.3):.6f}"/>'
+            if k > 1
+            and kind != "fixed"
+            and kinds_of.get(k - 1) in ("revolute", "prismatic", "continuous")
+            and rng.uniform() < 0.3
+            else ""
+        )  # (yourdfpy follows one mimic, not chains of them)
         kinds_of[k] = "mimic" if mimic else kind
-        parts.append(f'<joint name="j{k}" type="{kind}"><parent link="l{rng.integers(k)}"/><child link="l{k}"/>'
-                     f'<origin xyz="{" ".join(f"{v:.6f}" for v in rng.normal(0, .3, 3))}" '
-                     f'rpy="{" ".join(f"{v:.6f}" for v in rng.uniform(-3, 3, 3))}"/>'
-                     f'<axis xyz="{" ".join(f"{v:.17g}" for v in axis)}"/><limit lower="-3" upper="3"/>{mimic}</joint>')
+        parts.append(
+            f'<joint name="j{k}" type="{kind}"><parent link="l{rng.integers(k)}"/><child link="l{k}"/>'
+            f'<origin xyz="{" ".join(f"{v:.6f}" for v in rng.normal(0, 0.3, 3))}" '
+            f'rpy="{" ".join(f"{v:.6f}" for v in rng.uniform(-3, 3, 3))}"/>'
+            f'<axis xyz="{" ".join(f"{v:.17g}" for v in axis)}"/><limit lower="-3" upper="3"/>{mimic}</joint>'
+        )
     links = "".join(f"<link name='l{k}'/>" for k in range(n))
     text = f'<robot name="r">{links}{"".join(parts)}</robot>'
     path = tmp_path / "random.urdf"
@@ -467,4 +521,3 @@ def test_forward_kinematics_matches_yourdfpy(tmp_path):
         world = ours.forward_kinematics(ours.pack(dict(zip(theirs.actuated_joint_names, q))))
         for k, name in enumerate(ours.names):
             np.testing.assert_allclose(world[k], theirs.get_transform(name, "l0"), atol=1e-12, err_msg=name)
-

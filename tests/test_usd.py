@@ -11,10 +11,9 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdVol, Vt
 
 from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
-from splatwright.io import read_splats, usd, write_splats
+from splatwright.io import SplatFileWarning, read_splats, usd, write_splats
 from splatwright.io.common import SplatFileError
 from splatwright.io.usd import pxr_stages, writer
-from splatwright.io import SplatFileWarning
 
 # Parity of each 3DGS SH basis polynomial under (x, y, z) -> (x, -y, -z), worked out by hand:
 # 1 | y z x | xy yz (2zz-xx-yy) xz (xx-yy) | y(3xx-yy) xyz y(..) z(..) x(..) z(xx-yy) x(xx-3yy)
@@ -62,13 +61,14 @@ def ulps(a, b):
 
 # round trips --------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("ext", [".usda", ".usdc", ".usdz", ".usd"])
 def test_our_file_round_trips_exactly(tmp_path, ext):
     cloud = hard_cloud()
     first, second = tmp_path / f"a{ext}", tmp_path / f"b{ext}"
     write_splats(first, cloud)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")          # our own file reads without a single note
+        warnings.simplefilter("error")  # our own file reads without a single note
         back = read_splats(first)
     assert_same(back, cloud)
     write_splats(second, back)
@@ -135,6 +135,7 @@ def test_ply_to_usd_to_ply_within_two_ulps(tmp_path):
 
 # what the file says, read with plain pxr -----------------------------------------------------------
 
+
 def test_plain_pxr_sees_every_attribute_as_the_schema_defines_it(tmp_path):
     cloud = random_cloud(40, sh_degree=3, seed=11)
     path = tmp_path / "s.usda"
@@ -146,8 +147,14 @@ def test_plain_pxr_sees_every_attribute_as_the_schema_defines_it(tmp_path):
     assert prim.GetTypeName() == "ParticleField3DGaussianSplat" and UsdVol.ParticleField3DGaussianSplat(prim)
     schema = Usd.SchemaRegistry().FindConcretePrimDefinition("ParticleField3DGaussianSplat")
     n, k = len(cloud), 16
-    expected_len = {"positions": n, "orientations": n, "scales": n, "opacities": n,
-                    "radiance:sphericalHarmonicsCoefficients": n * k, "extent": 2}
+    expected_len = {
+        "positions": n,
+        "orientations": n,
+        "scales": n,
+        "opacities": n,
+        "radiance:sphericalHarmonicsCoefficients": n * k,
+        "extent": 2,
+    }
     for name, length in expected_len.items():
         attr = prim.GetAttribute(name)
         definition = schema.GetAttributeDefinition(name)
@@ -166,8 +173,9 @@ def test_plain_pxr_sees_every_attribute_as_the_schema_defines_it(tmp_path):
     for i in (0, 17, 39):
         q = quats[i]
         np.testing.assert_allclose([q.GetReal(), *q.GetImaginary()], unit[i], atol=1e-7)
-    np.testing.assert_array_equal(np.asarray(prim.GetAttribute("scales").Get()),
-                                  np.exp(cloud.log_scales.astype(np.float64)).astype(np.float32))
+    np.testing.assert_array_equal(
+        np.asarray(prim.GetAttribute("scales").Get()), np.exp(cloud.log_scales.astype(np.float64)).astype(np.float32)
+    )
     sigmoid64 = 1 / (1 + np.exp(-cloud.opacity_logits.astype(np.float64)))
     np.testing.assert_array_equal(np.asarray(prim.GetAttribute("opacities").Get()), sigmoid64.astype(np.float32))
     sh_attr = prim.GetAttribute("radiance:sphericalHarmonicsCoefficients")
@@ -179,8 +187,10 @@ def test_plain_pxr_sees_every_attribute_as_the_schema_defines_it(tmp_path):
     np.testing.assert_array_equal(world, np.diag([1.0, -1.0, -1.0, 1.0]))
     np.testing.assert_array_equal(np.asarray(prim.GetAttribute("splatwright:rotations").Get()), cloud.rotations)
     # the exact logits and log scales are custom attributes in our own namespace
-    for name, values in (("splatwright:opacityLogits", cloud.opacity_logits),
-                         ("splatwright:logScales", cloud.log_scales)):
+    for name, values in (
+        ("splatwright:opacityLogits", cloud.opacity_logits),
+        ("splatwright:logScales", cloud.log_scales),
+    ):
         attr = prim.GetAttribute(name)
         assert attr.IsCustom()
         np.testing.assert_array_equal(np.asarray(attr.Get()), values)
@@ -203,13 +213,17 @@ def test_extent_holds_every_visible_pixel_and_is_tight(tmp_path):
     for i in range(len(cloud)):
         o = 1 / (1 + np.exp(-float(cloud.opacity_logits[i])))
         if o * 255 <= 1:
-            pts = cloud.positions[i:i + 1].astype(np.float64)
+            pts = cloud.positions[i : i + 1].astype(np.float64)
         else:
             q = cloud.rotations[i].astype(np.float64)
             w, x, y, z = q / np.linalg.norm(q) if q.any() else (1, 0, 0, 0)
-            r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+            r = np.array(
+                [
+                    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+                ]
+            )
             radius = np.sqrt(2 * np.log(255 * o))
             pts = cloud.positions[i] + radius * (u * np.exp(cloud.log_scales[i].astype(np.float64))) @ r.T
         reach_lo, reach_hi = np.minimum(reach_lo, pts.min(0)), np.maximum(reach_hi, pts.max(0))
@@ -231,6 +245,7 @@ def test_without_the_schema_class_the_file_is_the_same(tmp_path, monkeypatch):
 
 # stages written by others -------------------------------------------------------------------------
 
+
 def _define_splats(stage, path, cloud):
     """A ParticleField3DGaussianSplat authored with plain pxr from a cloud's values as they are."""
     splat = UsdVol.ParticleField3DGaussianSplat.Define(stage, path)
@@ -240,7 +255,8 @@ def _define_splats(stage, path, cloud):
     splat.CreateOpacitiesAttr(Vt.FloatArray.FromNumpy(cloud.opacities.astype(np.float32)))
     splat.CreateRadianceSphericalHarmonicsDegreeAttr(cloud.sh_degree)
     splat.CreateRadianceSphericalHarmonicsCoefficientsAttr(
-        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cloud.sh.reshape(-1, 3))))
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cloud.sh.reshape(-1, 3)))
+    )
     return splat
 
 
@@ -248,9 +264,20 @@ def _covariances64(cloud):
     q = cloud.rotations.astype(np.float64)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     w, x, y, z = q.T
-    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    r = np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        1,
+    ).reshape(-1, 3, 3)
     rs = r * np.exp(cloud.log_scales.astype(np.float64))[:, None, :]
     return rs @ rs.transpose(0, 2, 1)
 
@@ -283,7 +310,7 @@ def test_transforms_units_and_up_axis_are_applied(tmp_path):
     stage.GetRootLayer().Save()
 
     with pytest.warns(SplatFileWarning) as caught:
-        prims = usd.read_stage(path, unmarked="stage")      # the values are Z-up stage geometry
+        prims = usd.read_stage(path, unmarked="stage")  # the values are Z-up stage geometry
     text = " ".join(str(w.message) for w in caught)
     assert "Mesh x1 (/World/Ground)" in text and "Points x1 (/World/Cloud)" in text
     assert "/World/B: its transform stretches unevenly" in text and "/World/A: its" not in text
@@ -295,14 +322,12 @@ def test_transforms_units_and_up_axis_are_applied(tmp_path):
         a = to_rdf @ world[:3, :3]
         expected = (cloud.positions.astype(np.float64) @ world[:3, :3].T + world[:3, 3]) @ to_rdf.T
         np.testing.assert_allclose(prim.cloud.positions, expected, rtol=1e-6, atol=1e-6)
-        np.testing.assert_allclose(prim.cloud.covariances(), a @ _covariances64(cloud) @ a.T,
-                                   rtol=1e-4, atol=1e-9)
+        np.testing.assert_allclose(prim.cloud.covariances(), a @ _covariances64(cloud) @ a.T, rtol=1e-4, atol=1e-9)
         np.testing.assert_allclose(prim.anisotropy, np.linalg.cond(m[:3, :3]) - 1, rtol=1e-9)
     # the similarity keeps colours exact: seen along R d, the new SH give the old colour along d
     rotation = to_rdf @ (parent @ spin)[:3, :3] / (0.01 * 2.5)
     d = rng.normal(size=(len(a_cloud), 3))
-    np.testing.assert_allclose(shmod.colors(prims[0].cloud.sh, d @ rotation.T), shmod.colors(a_cloud.sh, d),
-                               atol=2e-5)
+    np.testing.assert_allclose(shmod.colors(prims[0].cloud.sh, d @ rotation.T), shmod.colors(a_cloud.sh, d), atol=2e-5)
     # read() concatenates both prims (the lower SH degree zero-padded)
     with pytest.warns(SplatFileWarning):
         everything = usd.read(path, unmarked="stage")
@@ -344,17 +369,25 @@ def test_adobe_points_convention(tmp_path):
 
     primvar("widths1", Sdf.ValueTypeNames.FloatArray, Vt.FloatArray.FromNumpy((2 * sigma[:, 1]).astype(np.float32)))
     primvar("widths2", Sdf.ValueTypeNames.FloatArray, Vt.FloatArray.FromNumpy((2 * sigma[:, 2]).astype(np.float32)))
-    primvar("rot", Sdf.ValueTypeNames.QuatfArray,
-            Vt.QuatfArray.FromNumpy(np.ascontiguousarray(unit[:, [1, 2, 3, 0]]).astype(np.float32)))
-    primvar("displayOpacity", Sdf.ValueTypeNames.FloatArray,
-            Vt.FloatArray.FromNumpy(cloud.opacities.astype(np.float32)))
-    primvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
-            Vt.Vec3fArray.FromNumpy(shmod.dc_to_rgb(cloud.sh[:, 0]).astype(np.float32)))
-    rest = cloud.sh[:, 1:].transpose(0, 2, 1).reshape(12, 45)          # PLY f_rest order
+    primvar(
+        "rot",
+        Sdf.ValueTypeNames.QuatfArray,
+        Vt.QuatfArray.FromNumpy(np.ascontiguousarray(unit[:, [1, 2, 3, 0]]).astype(np.float32)),
+    )
+    primvar(
+        "displayOpacity", Sdf.ValueTypeNames.FloatArray, Vt.FloatArray.FromNumpy(cloud.opacities.astype(np.float32))
+    )
+    primvar(
+        "displayColor",
+        Sdf.ValueTypeNames.Color3fArray,
+        Vt.Vec3fArray.FromNumpy(shmod.dc_to_rgb(cloud.sh[:, 0]).astype(np.float32)),
+    )
+    rest = cloud.sh[:, 1:].transpose(0, 2, 1).reshape(12, 45)  # PLY f_rest order
     for i in range(45):
         primvar(f"fRest{i}", Sdf.ValueTypeNames.FloatArray, Vt.FloatArray.FromNumpy(np.ascontiguousarray(rest[:, i])))
-    primvar("clipping", Sdf.ValueTypeNames.Float3Array, Vt.Vec3fArray([(-2, -2, -2), (2, 2, 2)]),
-            UsdGeom.Tokens.constant)
+    primvar(
+        "clipping", Sdf.ValueTypeNames.Float3Array, Vt.Vec3fArray([(-2, -2, -2), (2, 2, 2)]), UsdGeom.Tokens.constant
+    )
     stage.GetRootLayer().Save()
     with pytest.warns(SplatFileWarning, match="clipping box"):
         (prim,) = usd.read_stage(path, axes="RUB")
@@ -390,12 +423,13 @@ def test_schema_length_rules(tmp_path):
     assert "scales has 1 entries for 6 particles; ignored" in text
     assert "opacities not authored" in text and "needed for degree 2" in text
     np.testing.assert_array_equal(got.rotations, np.tile(np.float32([0.8, 0, 0, 0.6]), (6, 1)))
-    np.testing.assert_array_equal(got.scales, np.ones((6, 3)))       # the float attribute wins, then 1
+    np.testing.assert_array_equal(got.scales, np.ones((6, 3)))  # the float attribute wins, then 1
     np.testing.assert_allclose(got.opacities, 1, atol=1e-6)
     assert got.sh_degree == 0 and not got.sh.any()
 
 
 # animation, half precision ------------------------------------------------------------------------
+
 
 def test_frames_are_time_samples_of_one_prim(tmp_path):
     frames = [random_cloud(50, 2, seed=s) for s in range(3)]
@@ -406,12 +440,12 @@ def test_frames_are_time_samples_of_one_prim(tmp_path):
     assert prim.GetAttribute("positions").GetTimeSamples() == [1, 5, 9]
     assert prim.GetAttribute("extent").GetTimeSamples() == [1, 5, 9]
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (1, 9)
-    assert not stage.GetRootLayer().HasTimeCodesPerSecond()     # no rate given: players assume 24
+    assert not stage.GetRootLayer().HasTimeCodesPerSecond()  # no rate given: players assume 24
     assert usd.time_codes(path) == [1, 5, 9]
-    for (t, got), want in zip(usd.read_frames(path), frames):
+    for (_time, got), want in zip(usd.read_frames(path), frames):
         assert_same(got, want)
     assert_same(usd.read(path, time=5), frames[1])
-    assert_same(usd.read(path), frames[0])                # default: the earliest sample
+    assert_same(usd.read(path), frames[0])  # default: the earliest sample
     with pytest.raises(SplatFileError, match="same splat count"):
         usd.write_frames(tmp_path / "bad.usdc", [frames[0], frames[1][:10]])
 
@@ -445,9 +479,9 @@ def test_unchanging_attributes_are_authored_once(tmp_path):
     prim = stage.GetPrimAtPath("/Splats")
     sampled = {a.GetName() for a in prim.GetAttributes() if a.GetTimeSamples()}
     assert sampled == {"positions", "orientations", "extent", usd.SH_COEFFS, usd.RAW_ROTATIONS}
-    assert prim.GetAttribute("opacities").HasAuthoredValue()           # the one default value
+    assert prim.GetAttribute("opacities").HasAuthoredValue()  # the one default value
     assert prim.GetAttribute(usd.SH_COEFFS).GetTimeSamples() == [10, 11, 12, 13]
-    for (t, got), want in zip(usd.read_frames(path), frames):
+    for (_time, got), want in zip(usd.read_frames(path), frames):
         assert_same(got, want)
     assert usd.time_codes(path) == [10, 11, 12, 13]
 
@@ -463,7 +497,7 @@ def test_frames_stream_from_a_generator(tmp_path):
             asked.append(i)
             yield random_cloud(20, 0, seed=i)
 
-    usd.write_frames(tmp_path / "gen.usdc", clouds())              # times default to 0, 1, 2
+    usd.write_frames(tmp_path / "gen.usdc", clouds())  # times default to 0, 1, 2
     assert asked == [0, 1, 2] and usd.time_codes(tmp_path / "gen.usdc") == [0, 1, 2]
     assert_same(usd.read(tmp_path / "gen.usdc", time=2), random_cloud(20, 0, seed=2))
     with pytest.raises(RuntimeError, match="could not be evaluated"):
@@ -490,7 +524,7 @@ def test_many_prims_animated_and_static_in_one_stage(tmp_path):
     assert_same(at_20[0].cloud, static)
     assert_same(at_20[1].cloud, frames[1])
     assert usd.time_codes(path, "/World/rock") == [] and usd.time_codes(path) == [10, 20]
-    (t, only), = usd.read_frames(path, "/World/rock")
+    ((t, only),) = usd.read_frames(path, "/World/rock")
     assert t is None
     assert_same(only, static)
 
@@ -510,8 +544,10 @@ def test_half_precision_is_an_economy_with_half_rounding(tmp_path):
     linear = np.exp(cloud.log_scales.astype(np.float64)).astype(np.float32)
     # the model keeps log scales, so linear values come back within float32 round-off of the halves
     np.testing.assert_allclose(back.scales, linear.astype(np.float16).astype(np.float64), rtol=3e-7)
-    np.testing.assert_array_equal(back.sh, (cloud.sh * FLIP_SIGNS[None, :, None]).astype(np.float16)
-                                  .astype(np.float32) * FLIP_SIGNS[None, :, None])
+    np.testing.assert_array_equal(
+        back.sh,
+        (cloud.sh * FLIP_SIGNS[None, :, None]).astype(np.float16).astype(np.float32) * FLIP_SIGNS[None, :, None],
+    )
     assert os.path.getsize(half) < 0.55 * os.path.getsize(full)
     with pytest.raises(SplatFileError, match="exceed the half-float range"):
         usd.write(tmp_path / "big.usdc", cloud.replace(sh=cloud.sh * 1e6), half=True)
@@ -519,6 +555,7 @@ def test_half_precision_is_an_economy_with_half_rounding(tmp_path):
 
 
 # bad input ------------------------------------------------------------------------------------------
+
 
 def test_bad_files_raise_clear_errors(tmp_path):
     good = tmp_path / "good.usdc"
@@ -532,7 +569,7 @@ def test_bad_files_raise_clear_errors(tmp_path):
     with pytest.raises(SplatFileError, match="not a .usdc file"):
         usd.read(wrong)
     broken = tmp_path / "broken.usda"
-    broken.write_text("#usda 1.0\ndef ParticleField3DGaussianSplat \"S\" {\n  point3f[] positions = [(1, 2\n")
+    broken.write_text('#usda 1.0\ndef ParticleField3DGaussianSplat "S" {\n  point3f[] positions = [(1, 2\n')
     with pytest.raises(SplatFileError, match="broken.usda: OpenUSD cannot open it"):
         usd.read(broken)
     empty = tmp_path / "empty.usda"
@@ -585,8 +622,9 @@ def test_stale_exact_values_give_way_to_edited_schema_values(tmp_path):
     with pytest.warns(SplatFileWarning, match="opacityLogits: 1 entries no longer match"):
         got = usd.read(path)
     np.testing.assert_allclose(got.opacities[2], 0.25, rtol=1e-6)
-    np.testing.assert_allclose(got.scales[5], [np.exp(cloud.log_scales[5, 0]), 3.0, np.exp(cloud.log_scales[5, 2])],
-                               rtol=1e-6)
+    np.testing.assert_allclose(
+        got.scales[5], [np.exp(cloud.log_scales[5, 0]), 3.0, np.exp(cloud.log_scales[5, 2])], rtol=1e-6
+    )
     untouched = np.setdiff1d(np.arange(8), [2])
     np.testing.assert_array_equal(got.opacity_logits[untouched], cloud.opacity_logits[untouched])
 
@@ -600,11 +638,12 @@ def test_convert_every_pair_and_info_every_format(tmp_path, capsys):
     import json
 
     from splatwright.cli import main
+
     cloud = random_cloud(40, sh_degree=1, seed=21)
     cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -0.9, 0.9)
     write_splats(tmp_path / "src.ply", cloud)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", SplatFileWarning)      # .splat drops SH, SPZ rounds: said elsewhere
+        warnings.simplefilter("ignore", SplatFileWarning)  # .splat drops SH, SPZ rounds: said elsewhere
         for a in FORMATS:
             assert main(["convert", str(tmp_path / "src.ply"), str(tmp_path / f"a{a}")]) == 0
             for b in FORMATS:
@@ -612,14 +651,17 @@ def test_convert_every_pair_and_info_every_format(tmp_path, capsys):
                 assert main(["convert", str(tmp_path / f"a{a}"), str(out)]) == 0
                 got = read_splats(out)
                 lossy = {".spz", ".splat"} & {a, b}
-                tolerance = 2.0 ** -13 if ".spz" in lossy else 0.0
+                tolerance = 2.0**-13 if ".spz" in lossy else 0.0
                 assert np.abs(got.positions - cloud.positions).max() <= tolerance, (a, b)
                 assert got.sh_degree == (0 if ".splat" in lossy else 1), (a, b)
             capsys.readouterr()
             assert main(["info", "--json", str(tmp_path / f"a{a}")]) == 0
             summary = json.loads(capsys.readouterr().out)
-            assert summary["count"] == 40 and summary["format"] == {".ply": "ply", ".spz": "spz",
-                                                                   ".splat": "splat"}.get(a, "usd")
+            assert summary["count"] == 40 and summary["format"] == {
+                ".ply": "ply",
+                ".spz": "spz",
+                ".splat": "splat",
+            }.get(a, "usd")
     assert main(["convert", str(tmp_path / "src.ply"), str(tmp_path / "v4.spz"), "--spz-version", "4"]) == 0
     assert (tmp_path / "v4.spz").read_bytes()[:8] == b"NGSP\x04\x00\x00\x00"
     assert main(["convert", str(tmp_path / "src.ply"), str(tmp_path / "h.usdc"), "--half"]) == 0
@@ -631,6 +673,7 @@ def test_convert_every_pair_and_info_every_format(tmp_path, capsys):
 
 
 # layouts, prims without the upright transform, Blender's point clouds ------------------------------
+
 
 @pytest.mark.parametrize("layout", ["upright", "y-up", "as-is"])
 def test_layouts_show_the_same_splats_or_say_how_they_differ(tmp_path, layout):
@@ -647,7 +690,7 @@ def test_layouts_show_the_same_splats_or_say_how_they_differ(tmp_path, layout):
     flip = np.array([1, -1, -1])
     expected = cloud.positions * (1 if layout == "as-is" else flip)
     np.testing.assert_array_equal(shown, expected)
-    unmarked = "capture" if layout != "y-up" else "stage"       # y-up values are stage geometry
+    unmarked = "capture" if layout != "y-up" else "stage"  # y-up values are stage geometry
     assert_same(usd.read(path, unmarked=unmarked), cloud)
 
 
@@ -684,18 +727,23 @@ def blender_points(path, cloud, quat_type="float4"):
     api = UsdGeom.PrimvarsAPI(points)
     if quat_type == "float4":
         api.CreatePrimvar("rotation", Sdf.ValueTypeNames.Float4Array, UsdGeom.Tokens.vertex).Set(
-            Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(cloud.rotations)))
+            Vt.Vec4fArray.FromNumpy(np.ascontiguousarray(cloud.rotations))
+        )
     else:
         api.CreatePrimvar("rotation", Sdf.ValueTypeNames.QuatfArray, UsdGeom.Tokens.vertex).Set(
-            Vt.QuatfArray.FromNumpy(np.ascontiguousarray(cloud.rotations[:, [1, 2, 3, 0]])))
+            Vt.QuatfArray.FromNumpy(np.ascontiguousarray(cloud.rotations[:, [1, 2, 3, 0]]))
+        )
     api.CreatePrimvar("scale", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
-        Vt.Vec3fArray.FromNumpy(cloud.scales.astype(np.float32)))
+        Vt.Vec3fArray.FromNumpy(cloud.scales.astype(np.float32))
+    )
     base = np.column_stack([cloud.sh[:, 0], cloud.opacities]).astype(np.float32)
     api.CreatePrimvar("radiance:base", Sdf.ValueTypeNames.Float4Array, UsdGeom.Tokens.vertex).Set(
-        Vt.Vec4fArray.FromNumpy(base))
+        Vt.Vec4fArray.FromNumpy(base)
+    )
     for i in range(cloud.sh.shape[1] - 1):
         api.CreatePrimvar(f"radiance:sh_{i}", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
-            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cloud.sh[:, i + 1])))
+            Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(cloud.sh[:, i + 1]))
+        )
     stage.GetRootLayer().Save()
 
 
@@ -706,7 +754,7 @@ def test_blender_splat_point_clouds(tmp_path, quat_type, degree):
     cloud = random_cloud(20, sh_degree=degree, seed=12)
     path = tmp_path / "blender.usda"
     blender_points(path, cloud, quat_type)
-    prims = usd.read_stage(path, axes=None)                 # the stage's own (Blender's Z-up) axes
+    prims = usd.read_stage(path, axes=None)  # the stage's own (Blender's Z-up) axes
     assert prims[0].source == "Points (Blender splat primvars)"
     got = prims[0].cloud
     np.testing.assert_array_equal(got.positions, cloud.positions)
@@ -719,8 +767,9 @@ def test_blender_splat_point_clouds(tmp_path, quat_type, degree):
     np.testing.assert_allclose(rdf.positions, cloud.positions[:, [0, 2, 1]] * [1, -1, 1], atol=1e-6)
     assert rdf.sh_degree == degree
     d = np.random.default_rng(3).normal(size=(20, 3))
-    np.testing.assert_allclose(shmod.evaluate(rdf.sh, d[:, [0, 2, 1]] * [1, -1, 1]), shmod.evaluate(cloud.sh, d),
-                               atol=2e-6)
+    np.testing.assert_allclose(
+        shmod.evaluate(rdf.sh, d[:, [0, 2, 1]] * [1, -1, 1]), shmod.evaluate(cloud.sh, d), atol=2e-6
+    )
 
 
 def test_degree_4_is_25_coefficients_per_particle_as_the_schema_says(tmp_path):
@@ -744,11 +793,14 @@ def test_degree_4_is_25_coefficients_per_particle_as_the_schema_says(tmp_path):
 
 def test_convert_axes_and_usd_input_options(tmp_path, capsys):
     from splatwright.cli import main
+
     cloud = random_cloud(20, sh_degree=1, seed=13)
     write_splats(tmp_path / "in.ply", cloud)
     for layout in ("upright", "y-up", "as-is"):
         assert main(["convert", str(tmp_path / "in.ply"), str(tmp_path / f"{layout}.usda"), "--axes", layout]) == 0
-    positions = {layout: attr_values(tmp_path / f"{layout}.usda")["positions"] for layout in ("upright", "y-up", "as-is")}
+    positions = {
+        layout: attr_values(tmp_path / f"{layout}.usda")["positions"] for layout in ("upright", "y-up", "as-is")
+    }
     np.testing.assert_array_equal(positions["upright"], cloud.positions)
     np.testing.assert_array_equal(positions["as-is"], cloud.positions)
     np.testing.assert_array_equal(positions["y-up"], cloud.positions * np.float32([1, -1, -1]))
@@ -763,6 +815,7 @@ def test_crate_counts_the_file_cannot_hold_are_refused_before_openusd_reads_them
     """A flipped bit in a crate section's element count makes OpenUSD's reader size arrays by it
     (gigabytes, minutes): refused from the table of contents first."""
     import struct
+
     path = tmp_path / "ok.usdc"
     usd.write(path, random_cloud(20, sh_degree=1, seed=6))
     data = bytearray(path.read_bytes())
@@ -784,7 +837,7 @@ def test_upright_transform_counts_where_pxr_does_not_know_the_schema(tmp_path):
     UsdGeom.Xform.Define(stage, "/World").AddTranslateOp().Set((1, 2, 3))
     prim = stage.DefinePrim("/World/S", "SplatTypeUnknownHere")
     writer._upright_op(prim)
-    assert not UsdGeom.Xformable(prim)                 # as in a pxr without the schema
+    assert not UsdGeom.Xformable(prim)  # as in a pxr without the schema
     expected = np.diag([1.0, -1.0, -1.0, 1.0])
     expected[:3, 3] = (1, 2, 3)
     np.testing.assert_array_equal(usd.stages.PXR.world_matrix(prim, Usd.TimeCode.Default()), expected)

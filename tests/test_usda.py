@@ -21,9 +21,13 @@ def without_pxr(monkeypatch):
 def extras_cloud(n=40, degree=3, seed=5):
     cloud = hard_cloud(n, degree, seed)
     rng = np.random.default_rng(seed)
-    cloud.extras.update(label=rng.integers(0, 255, n).astype(np.uint8), feature=rng.normal(size=(n, 2)).astype(np.float32),
-                        keep=rng.random(n) > 0.5, part=rng.integers(-300, 300, n).astype(np.int16),
-                        weight=rng.random(n))
+    cloud.extras.update(
+        label=rng.integers(0, 255, n).astype(np.uint8),
+        feature=rng.normal(size=(n, 2)).astype(np.float32),
+        keep=rng.random(n) > 0.5,
+        part=rng.integers(-300, 300, n).astype(np.int16),
+        weight=rng.random(n),
+    )
     return cloud
 
 
@@ -42,9 +46,11 @@ CASES = {
     "sh4-y-up": lambda p: usd.write(p, random_cloud(20, 4, seed=8), layout="y-up", exact=False),
     "antialiased": lambda p: usd.write(p, random_cloud(12, 2, seed=7).replace(antialiased=True)),
     "frames": lambda p: usd.write_frames(p, (moved(extras_cloud(), k) for k in range(3)), times=[1, 2, 5], fps=30),
-    "stage": lambda p: usd.write_stage(p, {"/World/A": random_cloud(9, 0, seed=4),
-                                           "/World/B": [random_cloud(7, 3, seed=5), random_cloud(7, 3, seed=6)]},
-                                       times=[0, 1]),
+    "stage": lambda p: usd.write_stage(
+        p,
+        {"/World/A": random_cloud(9, 0, seed=4), "/World/B": [random_cloud(7, 3, seed=5), random_cloud(7, 3, seed=6)]},
+        times=[0, 1],
+    ),
 }
 
 
@@ -62,8 +68,12 @@ def _same(a, b):
     if isinstance(a, (tuple, list)):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
     if isinstance(a, np.ndarray):
-        return isinstance(b, np.ndarray) and a.shape == b.shape and a.dtype == b.dtype and \
-            np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+        return (
+            isinstance(b, np.ndarray)
+            and a.shape == b.shape
+            and a.dtype == b.dtype
+            and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+        )
     if isinstance(a, float) and math.isnan(a):
         return isinstance(b, float) and math.isnan(b)
     return a == b
@@ -74,16 +84,33 @@ def layer_contents(path):
     attribute's type, variability, custom flag, primvar metadata, custom data, default and samples."""
     stage = Usd.Stage.Open(str(path))
     layer = stage.GetRootLayer()
-    out = {"meta": {key: layer.GetPrimAtPath("/").GetInfo(key) if layer.GetPrimAtPath("/").HasInfo(key) else None
-                    for key in ("upAxis", "metersPerUnit", "defaultPrim", "startTimeCode", "endTimeCode",
-                                "timeCodesPerSecond", "framesPerSecond")}}
+    out = {
+        "meta": {
+            key: layer.GetPrimAtPath("/").GetInfo(key) if layer.GetPrimAtPath("/").HasInfo(key) else None
+            for key in (
+                "upAxis",
+                "metersPerUnit",
+                "defaultPrim",
+                "startTimeCode",
+                "endTimeCode",
+                "timeCodesPerSecond",
+                "framesPerSecond",
+            )
+        }
+    }
     for prim in stage.Traverse():
         attrs = {}
         for a in prim.GetAuthoredAttributes():
-            attrs[a.GetName()] = (str(a.GetTypeName()), str(a.GetVariability()), a.IsCustom(),
-                                  a.GetMetadata("interpolation"), a.GetMetadata("elementSize"),
-                                  dict(a.GetCustomData()), _plain(a.Get(Usd.TimeCode.Default())),
-                                  {t: _plain(a.Get(t)) for t in a.GetTimeSamples()})
+            attrs[a.GetName()] = (
+                str(a.GetTypeName()),
+                str(a.GetVariability()),
+                a.IsCustom(),
+                a.GetMetadata("interpolation"),
+                a.GetMetadata("elementSize"),
+                dict(a.GetCustomData()),
+                _plain(a.Get(Usd.TimeCode.Default())),
+                {t: _plain(a.Get(t)) for t in a.GetTimeSamples()},
+            )
         out[str(prim.GetPath())] = (str(prim.GetTypeName()), attrs)
     return out
 
@@ -123,8 +150,11 @@ def _assert_same_reading(a, b, exact=True):
     (frames_a, prims_a), (frames_b, prims_b) = a, b
     assert [t for t, _ in frames_a] == [t for t, _ in frames_b]
     assert [(p.path, p.source) for p in prims_a] == [(p.path, p.source) for p in prims_b]
-    check = np.testing.assert_array_equal if exact else \
-        (lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6))
+    check = (
+        np.testing.assert_array_equal
+        if exact
+        else (lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6))
+    )
     for (_, x), (_, y) in zip(frames_a, frames_b):
         for field in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
             check(getattr(x, field), getattr(y, field))
@@ -211,8 +241,10 @@ def test_binary_layers_are_refused_by_name_without_pxr(tmp_path, monkeypatch):
             usd.read(tmp_path / name)
     with pytest.raises(SplatFileError, match=r"\.usdc.*pxr.*write \.usda"):
         usd.write(tmp_path / "new.usdc", random_cloud(5, 0))
-    assert not (tmp_path / "new.usdc").exists() and sorted(p.name for p in tmp_path.iterdir()) == \
-        ["crate.usdc", "crate.usdz"]
+    assert not (tmp_path / "new.usdc").exists() and sorted(p.name for p in tmp_path.iterdir()) == [
+        "crate.usdc",
+        "crate.usdz",
+    ]
 
 
 @pytest.mark.parametrize("arc", ["references", "subLayers", "payload", "variantSet"])
@@ -240,14 +272,14 @@ def test_damaged_text_is_refused_with_its_line(tmp_path, without_pxr):
     text = path.read_text()
     for fraction in np.linspace(0.05, 0.98, 25):
         cut = tmp_path / "cut.usda"
-        cut.write_text(text[:int(len(text) * fraction)])
+        cut.write_text(text[: int(len(text) * fraction)])
         with pytest.raises(SplatFileError, match="line [0-9]+"):
             usd.read_frames(cut)
     lines = text.splitlines()
     row = next(i for i, line in enumerate(lines) if "positions.timeSamples" in line) + 1
     for bad in ("(0.5, 1.5, abc)", "(0.5, 1.5)", "(0.5, 1.5, 2.5, 3.5)"):
         broken = tmp_path / "broken.usda"
-        broken.write_text("\n".join(lines[:row] + [lines[row].replace("[(", f"[{bad}, (", 1)] + lines[row + 1:]))
+        broken.write_text("\n".join(lines[:row] + [lines[row].replace("[(", f"[{bad}, (", 1)] + lines[row + 1 :]))
         with pytest.raises(SplatFileError, match=f"line {row + 1}: .*point3f"):
             usd.read_frames(broken)
     (tmp_path / "b.usda").write_text("hello")
@@ -272,6 +304,7 @@ def test_both_stage_implementations_answer_the_whole_interface():
     interface module (which asks whether it exists) and by its pxr implementation, nowhere else."""
     import ast
     from pathlib import Path
+
     stages = usd.stages
     assert stages.active is stages.PXR and {stages.PXR.name, stages.TEXT.name} == {"pxr", "text"}
     wanted = {name for name in vars(stages.Stages) if not name.startswith("_")} | {"name", "errors"}
@@ -282,8 +315,13 @@ def test_both_stage_implementations_answer_the_whole_interface():
     importing = set()
     for source in io_root.rglob("*.py"):
         for node in ast.walk(ast.parse(source.read_text())):
-            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
-                [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
+            names = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.Import)
+                else [node.module or ""]
+                if isinstance(node, ast.ImportFrom) and not node.level
+                else []
+            )
             if any(n == "pxr" or n.startswith("pxr.") for n in names):
                 importing.add(source.relative_to(io_root).as_posix())
     assert importing == {"usd/stages.py", "usd/pxr_stages.py"}

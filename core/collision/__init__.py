@@ -27,14 +27,44 @@ importable from here.
 
 from .contacts import Contacts, contact_sigma, ellipsoid_contacts
 from .distance import Occupancy, occupancy, signed_distance
-from .gaussians import (BOUND_MARGIN, DEFAULT_CUTOFF, PIVOT_FLOOR, QUANTISATION_LIMIT, CollisionInputError,
-                        CollisionPrecisionWarning, Gaussians, as_gaussians)
+from .gaussians import (
+    BOUND_MARGIN,
+    DEFAULT_CUTOFF,
+    PIVOT_FLOOR,
+    QUANTISATION_LIMIT,
+    CollisionInputError,
+    CollisionPrecisionWarning,
+    Gaussians,
+    as_gaussians,
+)
 from .index import COARSE, EnvironmentIndex, as_index
 from .joints import overlap_at, pose_robot
 from .overlap import Overlap, overlap, overlap_all_pairs
 from .proxies import fit_proxies, proxy_error
 
-__all__ = ["BOUND_MARGIN", "COARSE", "DEFAULT_CUTOFF", "PIVOT_FLOOR", "QUANTISATION_LIMIT", "CollisionInputError",
-           "CollisionPrecisionWarning", "Contacts", "EnvironmentIndex", "Gaussians", "Occupancy", "Overlap",
-           "as_gaussians", "as_index", "contact_sigma", "ellipsoid_contacts", "fit_proxies", "occupancy", "overlap",
-           "overlap_all_pairs", "overlap_at", "pose_robot", "proxy_error", "signed_distance"]
+__all__ = [
+    "BOUND_MARGIN",
+    "COARSE",
+    "DEFAULT_CUTOFF",
+    "PIVOT_FLOOR",
+    "QUANTISATION_LIMIT",
+    "CollisionInputError",
+    "CollisionPrecisionWarning",
+    "Contacts",
+    "EnvironmentIndex",
+    "Gaussians",
+    "Occupancy",
+    "Overlap",
+    "as_gaussians",
+    "as_index",
+    "contact_sigma",
+    "ellipsoid_contacts",
+    "fit_proxies",
+    "occupancy",
+    "overlap",
+    "overlap_all_pairs",
+    "overlap_at",
+    "pose_robot",
+    "proxy_error",
+    "signed_distance",
+]

@@ -6,8 +6,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import jit
-from .gaussians import PIVOT_FLOOR, _TINY, CollisionInputError, _full, _ldl_quadratic, _mahalanobis, _sym6, as_gaussians
+from .gaussians import _TINY, PIVOT_FLOOR, CollisionInputError, _full, _ldl_quadratic, _mahalanobis, _sym6, as_gaussians
 from .index import as_index
+
 
 def contact_sigma(mean_a, cov_a, mean_b, cov_b, iterations=100):
     """For P pairs of Gaussians, the sigma multiple mu at which their ellipsoids touch: the k-sigma
@@ -25,10 +26,10 @@ def contact_sigma(mean_a, cov_a, mean_b, cov_b, iterations=100):
     c = a + np.asarray(cov_b, np.float64)
     if not len(d):
         return np.zeros(0)
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):   # point splats: mu is inf
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # point splats: mu is inf
         cvals, cvecs = np.linalg.eigh(c)
         floor = np.maximum(PIVOT_FLOOR * cvals.sum(axis=1, keepdims=True), _TINY)
-        white = np.swapaxes(cvecs, 1, 2) / np.sqrt(np.maximum(cvals, floor))[:, :, None]   # W C W^T = I
+        white = np.swapaxes(cvecs, 1, 2) / np.sqrt(np.maximum(cvals, floor))[:, :, None]  # W C W^T = I
         m = white @ a @ np.swapaxes(white, 1, 2)
         alpha, vecs = np.linalg.eigh(0.5 * (m + np.swapaxes(m, 1, 2)))
         alpha = np.clip(alpha, 0.0, 1.0)
@@ -37,7 +38,7 @@ def contact_sigma(mean_a, cov_a, mean_b, cov_b, iterations=100):
         s = _contact_parameter(alpha, e2, iterations)
         den = alpha * s[:, None] + beta * (1.0 - s[:, None])
         f = s * (1.0 - s) * (e2 / den).sum(axis=1)
-    f = np.where((d == 0).all(axis=1), 0.0, np.nan_to_num(f, nan=np.inf, posinf=np.inf))    # coincident: 0
+    f = np.where((d == 0).all(axis=1), 0.0, np.nan_to_num(f, nan=np.inf, posinf=np.inf))  # coincident: 0
     return np.sqrt(np.maximum(f, 0.0))
 
 
@@ -54,10 +55,10 @@ def _contact_parameter(alpha, e2, iterations):
         a, e, x = alpha[active], e2[active], s[active]
         b, xc = 1.0 - a, x[:, None]
         den = a * xc + b * (1.0 - xc)
-        num = b * (1.0 - xc) ** 2 - a * xc ** 2
-        g = (e * num / den ** 2).sum(axis=1)
+        num = b * (1.0 - xc) ** 2 - a * xc**2
+        g = (e * num / den**2).sum(axis=1)
         dnum = -2.0 * (b * (1.0 - xc) + a * xc)
-        gp = (e * (dnum * den - 2.0 * num * (a - b)) / den ** 3).sum(axis=1)
+        gp = (e * (dnum * den - 2.0 * num * (a - b)) / den**3).sum(axis=1)
         low = np.where(g > 0, x, lo[active])
         high = np.where(g > 0, hi[active], x)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -71,11 +72,12 @@ def _contact_parameter(alpha, e2, iterations):
 @dataclass
 class Contacts:
     """Robot/environment Gaussian pairs whose k-sigma ellipsoids overlap, and a per-link summary."""
-    robot: np.ndarray           # (P,) robot Gaussian indices
-    env: np.ndarray             # (P,) environment Gaussian indices (the environment's own order)
-    sigma: np.ndarray           # (P,) contact_sigma of each pair (<= k)
+
+    robot: np.ndarray  # (P,) robot Gaussian indices
+    env: np.ndarray  # (P,) environment Gaussian indices (the environment's own order)
+    sigma: np.ndarray  # (P,) contact_sigma of each pair (<= k)
     k: float
-    link_pairs: np.ndarray      # (L,) overlapping pairs per link
+    link_pairs: np.ndarray  # (L,) overlapping pairs per link
     link_gaussians: np.ndarray  # (L,) robot Gaussians of each link that overlap something
     link_min_sigma: np.ndarray  # (L,) the deepest contact per link (inf when none)
 
@@ -118,9 +120,12 @@ def ellipsoid_contacts(robot, env, k=3.0, links=None, opacity_weights=True, thre
         q = _mahalanobis([x[near] for x in d], [rc[i] + ec[j] for rc, ec in zip(rcov, index.cov)])[0]
         near = np.flatnonzero(q <= 2 * k * k * (1 + 1e-9))
         i, j = i[near], j[near]
-        mu = contact_sigma(robot.means[i], _full([c[i] for c in rcov]),
-                           np.column_stack([index.mx[j], index.my[j], index.mz[j]]),
-                           _full([c[j] for c in index.cov]))
+        mu = contact_sigma(
+            robot.means[i],
+            _full([c[i] for c in rcov]),
+            np.column_stack([index.mx[j], index.my[j], index.mz[j]]),
+            _full([c[j] for c in index.cov]),
+        )
         hit = mu <= k
         return i[hit], j[hit], mu[hit]
 
@@ -135,8 +140,15 @@ def ellipsoid_contacts(robot, env, k=3.0, links=None, opacity_weights=True, thre
     min_sigma = np.full(n_links, np.inf)
     np.minimum.at(min_sigma, links[i], mu)
     touched = np.unique(i)
-    return Contacts(i, index.order[j], mu, float(k), np.bincount(links[i], minlength=n_links),
-                    np.bincount(links[touched], minlength=n_links), min_sigma)
+    return Contacts(
+        i,
+        index.order[j],
+        mu,
+        float(k),
+        np.bincount(links[i], minlength=n_links),
+        np.bincount(links[touched], minlength=n_links),
+        min_sigma,
+    )
 
 
 def _contact_pass(i, j, rx, ry, rz, rc, rs, ex, ey, ez, ec, elam, k, out):
@@ -164,14 +176,34 @@ def _contact_pass(i, j, rx, ry, rz, rc, rs, ex, ey, ez, ec, elam, k, out):
         s, lo, hi = 0.5, 0.0, 1.0
         for _ in range(100):
             t = 1.0 - s
-            dx = _ldl_quadratic(s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02, s * a11 + t * b11,
-                                s * a12 + t * b12, s * a22 + t * b22, d0, d1, d2, x)
+            dx = _ldl_quadratic(
+                s * a00 + t * b00,
+                s * a01 + t * b01,
+                s * a02 + t * b02,
+                s * a11 + t * b11,
+                s * a12 + t * b12,
+                s * a22 + t * b22,
+                d0,
+                d1,
+                d2,
+                x,
+            )
             y0 = (a00 - b00) * x[0] + (a01 - b01) * x[1] + (a02 - b02) * x[2]
             y1 = (a01 - b01) * x[0] + (a11 - b11) * x[1] + (a12 - b12) * x[2]
             y2 = (a02 - b02) * x[0] + (a12 - b12) * x[1] + (a22 - b22) * x[2]
             u = x[0] * y0 + x[1] * y1 + x[2] * y2
-            w = _ldl_quadratic(s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02, s * a11 + t * b11,
-                               s * a12 + t * b12, s * a22 + t * b22, y0, y1, y2, z)
+            w = _ldl_quadratic(
+                s * a00 + t * b00,
+                s * a01 + t * b01,
+                s * a02 + t * b02,
+                s * a11 + t * b11,
+                s * a12 + t * b12,
+                s * a22 + t * b22,
+                y0,
+                y1,
+                y2,
+                z,
+            )
             g = (1.0 - 2.0 * s) * dx - s * t * u
             gp = -2.0 * dx - 2.0 * (1.0 - 2.0 * s) * u + 2.0 * s * t * w
             if g > 0:
@@ -186,8 +218,22 @@ def _contact_pass(i, j, rx, ry, rz, rc, rs, ex, ey, ez, ec, elam, k, out):
             if done:
                 break
         t = 1.0 - s
-        f = s * t * _ldl_quadratic(s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02, s * a11 + t * b11,
-                                   s * a12 + t * b12, s * a22 + t * b22, d0, d1, d2, x)
+        f = (
+            s
+            * t
+            * _ldl_quadratic(
+                s * a00 + t * b00,
+                s * a01 + t * b01,
+                s * a02 + t * b02,
+                s * a11 + t * b11,
+                s * a12 + t * b12,
+                s * a22 + t * b22,
+                d0,
+                d1,
+                d2,
+                x,
+            )
+        )
         out[p] = np.sqrt(max(f, 0.0))
 
 

@@ -6,16 +6,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import jit
-from .gaussians import (DEFAULT_CUTOFF, CollisionInputError, Gaussians, _full, _ldl_quadratic, _mahalanobis,
-                        _require_finite)
+from .gaussians import (
+    DEFAULT_CUTOFF,
+    CollisionInputError,
+    Gaussians,
+    _full,
+    _ldl_quadratic,
+    _mahalanobis,
+    _require_finite,
+)
 from .index import as_index
 from .overlap import overlap
 
+
 @dataclass
 class Occupancy:
-    values: np.ndarray     # (M,) 1 - exp(-density), in [0, 1)
-    density: np.ndarray    # (M,) sum_j alpha_j exp(-1/2 d^T Sigma_j^-1 d)
-    bound: np.ndarray      # (M,) upper bound on the density the cutoff dropped (and so on values' error)
+    values: np.ndarray  # (M,) 1 - exp(-density), in [0, 1)
+    density: np.ndarray  # (M,) sum_j alpha_j exp(-1/2 d^T Sigma_j^-1 d)
+    bound: np.ndarray  # (M,) upper bound on the density the cutoff dropped (and so on values' error)
 
 
 def occupancy(env, points, cutoff=DEFAULT_CUTOFF, opacity_weights=True, threads=None):
@@ -78,8 +86,12 @@ def _distance_bounds(index, points, i, j, k):
     d = (points[i, 0] - index.mx[j], points[i, 1] - index.my[j], points[i, 2] - index.mz[j])
     centre = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     c = [x[j] for x in index.cov]
-    spread = (c[0] * d[0] * d[0] + c[3] * d[1] * d[1] + c[5] * d[2] * d[2]
-              + 2.0 * (c[1] * d[0] * d[1] + c[2] * d[0] * d[2] + c[4] * d[1] * d[2]))
+    spread = (
+        c[0] * d[0] * d[0]
+        + c[3] * d[1] * d[1]
+        + c[5] * d[2] * d[2]
+        + 2.0 * (c[1] * d[0] * d[1] + c[2] * d[0] * d[2] + c[4] * d[1] * d[2])
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         lower = np.where(centre > 0, centre - k * np.sqrt(np.maximum(spread, 0.0)) / centre, -np.inf)
         r = np.sqrt(_mahalanobis(d, c)[0]) / k
@@ -90,6 +102,7 @@ def _distance_bounds(index, points, i, j, k):
 def _least_upper_bounds(index, points, rho, k, min_opacity, threads):
     """Per point, the least upper bound on its distance over the ellipsoids whose lower bound is
     within its rho (inf where there are none)."""
+
     def reach(lv):
         return rho + k * lv.sigma
 
@@ -112,6 +125,7 @@ def _least_upper_bounds(index, points, rho, k, min_opacity, threads):
 def _exact_distances(index, points, radius, k, min_opacity, threads):
     """Per point, the least signed distance to the ellipsoids whose lower bound is within its
     radius (inf where there are none)."""
+
     def reach(lv):
         return radius + k * lv.sigma
 
@@ -140,8 +154,9 @@ def _bounds_pass(i, j, points, mx, my, mz, cov, w, min_opacity, k, rho, out):
         centre = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         c00, c01, c02, c11, c12, c22 = cov[0, e], cov[1, e], cov[2, e], cov[3, e], cov[4, e], cov[5, e]
         if centre > 0:
-            spread = (c00 * d0 * d0 + c11 * d1 * d1 + c22 * d2 * d2
-                      + 2.0 * (c01 * d0 * d1 + c02 * d0 * d2 + c12 * d1 * d2))
+            spread = (
+                c00 * d0 * d0 + c11 * d1 * d1 + c22 * d2 * d2 + 2.0 * (c01 * d0 * d1 + c02 * d0 * d2 + c12 * d1 * d2)
+            )
             if centre - k * np.sqrt(max(spread, 0.0)) / centre > rho[p]:
                 continue
         r = np.sqrt(_ldl_quadratic(c00, c01, c02, c11, c12, c22, d0, d1, d2, x)) / k
@@ -162,7 +177,7 @@ def _ellipsoid_signed_distance(d, cov, k):
     semi = k * np.sqrt(np.maximum(vals, 0.0))
     semi = np.maximum(semi, np.maximum(1e-6 * semi.max(axis=1, keepdims=True), 1e-150))
     z = np.abs(np.einsum("pji,pj->pi", vecs, d))
-    with np.errstate(over="ignore", under="ignore", invalid="ignore"):   # point splats: r is inf outside
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # point splats: r is inf outside
         r = np.sqrt(((z / semi) ** 2).sum(axis=1))
         out = np.empty(len(d))
         inside = r <= 1.0
@@ -186,7 +201,7 @@ def _outside_distance(z, a, iterations=100):
         u2 = (az / den) ** 2
         g = u2.sum(axis=1)
         h = 1.0 / np.sqrt(g)
-        dh = h / g * (u2 / den).sum(axis=1)          # -1/2 G^-3/2 G', G' = -2 sum u^2 / den
+        dh = h / g * (u2 / den).sum(axis=1)  # -1/2 G^-3/2 G', G' = -2 sum u^2 / den
         lo = np.where(h < 1.0, t, lo)
         hi = np.where(h < 1.0, hi, t)
         step = t - (h - 1.0) / dh

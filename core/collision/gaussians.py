@@ -11,11 +11,11 @@ import numpy as np
 
 from .. import geometry
 
-DEFAULT_CUTOFF = 6.0          # Mahalanobis distance beyond which pairs are skipped
-BOUND_MARGIN = 1.0            # with a bound, pairs up to cutoff + this are visited and their skipped terms summed
-PIVOT_FLOOR = 1e-12           # relative floor on L D L^T pivots (see module notes)
-_TINY = 1e-300                # absolute floor, for all-zero covariances (point splats)
-_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))   # the 6 entries of a symmetric 3x3
+DEFAULT_CUTOFF = 6.0  # Mahalanobis distance beyond which pairs are skipped
+BOUND_MARGIN = 1.0  # with a bound, pairs up to cutoff + this are visited and their skipped terms summed
+PIVOT_FLOOR = 1e-12  # relative floor on L D L^T pivots (see module notes)
+_TINY = 1e-300  # absolute floor, for all-zero covariances (point splats)
+_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))  # the 6 entries of a symmetric 3x3
 
 
 class CollisionInputError(ValueError):
@@ -26,7 +26,7 @@ class CollisionPrecisionWarning(UserWarning):
     """Inputs whose stored precision moves the results: float32 positions far from the origin."""
 
 
-QUANTISATION_LIMIT = 0.01     # warn when float32 rounds positions by more than this fraction of a splat
+QUANTISATION_LIMIT = 0.01  # warn when float32 rounds positions by more than this fraction of a splat
 
 
 def _check_precision(name, positions, sigma):
@@ -37,11 +37,15 @@ def _check_precision(name, positions, sigma):
     step = np.spacing(np.abs(positions).max(axis=1))
     coarse = (step > QUANTISATION_LIMIT * sigma) & (sigma > 0)
     if coarse.any():
-        warnings.warn(f"{name}: {int(coarse.sum())} splats lie so far from the origin (up to "
-                      f"{float(np.abs(positions[coarse]).max()):.3g}) that their float32 positions are rounded by "
-                      f"up to {float(step[coarse].max()):.3g}, more than {QUANTISATION_LIMIT:.0%} of their size, and "
-                      "collision results shift with them; move the scene nearer the origin, or give "
-                      "float64 Gaussians", CollisionPrecisionWarning, stacklevel=4)
+        warnings.warn(
+            f"{name}: {int(coarse.sum())} splats lie so far from the origin (up to "
+            f"{float(np.abs(positions[coarse]).max()):.3g}) that their float32 positions are rounded by "
+            f"up to {float(step[coarse].max()):.3g}, more than {QUANTISATION_LIMIT:.0%} of their size, and "
+            "collision results shift with them; move the scene nearer the origin, or give "
+            "float64 Gaussians",
+            CollisionPrecisionWarning,
+            stacklevel=4,
+        )
 
 
 def _require_finite(name, values, allow_neg_inf=False):
@@ -97,16 +101,22 @@ class Gaussians:
         scales = cloud.scales
         _check_precision(name, cloud.positions, scales.max(axis=1) if len(cloud) else np.zeros(0))
         weights = cloud.opacities if opacity_weights else np.ones(len(cloud))
-        return cls(cloud.positions, geometry.covariances(cloud.rotations, scales), weights, links,
-                   scales.max(axis=1) if len(cloud) else np.zeros(0))
+        return cls(
+            cloud.positions,
+            geometry.covariances(cloud.rotations, scales),
+            weights,
+            links,
+            scales.max(axis=1) if len(cloud) else np.zeros(0),
+        )
 
     def __len__(self):
         return len(self.means)
 
     def subset(self, index):
         pick = lambda a: None if a is None else a[index]
-        return Gaussians(self.means[index], self.covs[index], self.weights[index], pick(self.links),
-                         self.sigma_max[index])
+        return Gaussians(
+            self.means[index], self.covs[index], self.weights[index], pick(self.links), self.sigma_max[index]
+        )
 
     def transformed(self, rotations, translations):
         """A rigid motion: mu' = R mu + t and Sigma' = R Sigma R^T, with one rotation (3,3) and
@@ -139,6 +149,7 @@ def _full(c6):
 class _Flat:
     """Per-Gaussian arrays as queries use them: coordinates and the 6 covariance entries as
     separate contiguous arrays, the largest variance `lam` and the smallest `nu`."""
+
     means: list
     cov6: list
     weights: np.ndarray
@@ -149,8 +160,13 @@ class _Flat:
 def _flatten(x, opacity_weights=True, name="cloud", threads=None):
     if isinstance(x, Gaussians):
         vals = np.linalg.eigvalsh(x.covs) if len(x) else np.zeros((0, 3))
-        return _Flat([np.ascontiguousarray(x.means[:, a]) for a in range(3)], _sym6(x.covs), x.weights,
-                     np.maximum(vals[:, 2], 0.0), np.maximum(vals[:, 0], 0.0))
+        return _Flat(
+            [np.ascontiguousarray(x.means[:, a]) for a in range(3)],
+            _sym6(x.covs),
+            x.weights,
+            np.maximum(vals[:, 2], 0.0),
+            np.maximum(vals[:, 0], 0.0),
+        )
     for field_name in ("positions", "rotations", "opacity_logits"):
         _require_finite(f"{name}.{field_name}", getattr(x, field_name))
     _require_finite(f"{name}.log_scales", x.log_scales, allow_neg_inf=True)
@@ -171,8 +187,9 @@ def _flatten(x, opacity_weights=True, name="cloud", threads=None):
     weights = x.opacities if opacity_weights else np.ones(n)
     lam = cat([p[1] for p in parts])
     _check_precision(name, x.positions, np.sqrt(lam))
-    return _Flat([x.positions[:, a].astype(np.float64) for a in range(3)], cov6, weights,
-                 lam, cat([p[2] for p in parts]))
+    return _Flat(
+        [x.positions[:, a].astype(np.float64) for a in range(3)], cov6, weights, lam, cat([p[2] for p in parts])
+    )
 
 
 # the pair kernel ---------------------------------------------------------------------------------

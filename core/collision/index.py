@@ -11,8 +11,8 @@ import numpy as np
 from ..spatial import Grid, cell_start, sort_by_cell
 from .gaussians import _TINY, Gaussians, _flatten, _full, _map
 
-_UNIT_PAIRS = 1 << 18         # candidate pairs per work unit: bounded memory, two units in flight
-COARSE = 32                   # cells a side of the blocks that find a size class's dense part
+_UNIT_PAIRS = 1 << 18  # candidate pairs per work unit: bounded memory, two units in flight
+COARSE = 32  # cells a side of the blocks that find a size class's dense part
 
 
 @dataclass
@@ -20,10 +20,10 @@ class _Level(Grid):
     """A size class's grid (core.spatial.Grid: origin, cell size h, dims) and its sorted members."""
 
     cell_start: np.ndarray  # (cells+1,) first sorted index of each cell, x-major then y then z
-    sigma: float           # largest sigma_max in the level
-    weight: float          # largest weight in the level
+    sigma: float  # largest sigma_max in the level
+    weight: float  # largest weight in the level
     count: int
-    svt: np.ndarray = field(repr=False, default=None)   # summed-volume table of counts
+    svt: np.ndarray = field(repr=False, default=None)  # summed-volume table of counts
 
 
 class EnvironmentIndex:
@@ -37,10 +37,9 @@ class EnvironmentIndex:
     member and 1% of the fullest block) in one grid and the rest in grids of their own, so a few
     distant splats never coarsen the cells of the many."""
 
-    def __init__(self, env, opacity_weights=True, cell_factor=2.0, level_ratio=2.0, cells_per_splat=4,
-                 threads=None):
+    def __init__(self, env, opacity_weights=True, cell_factor=2.0, level_ratio=2.0, cells_per_splat=4, threads=None):
         flat = _flatten(env, opacity_weights, "environment", threads)
-        keep = np.flatnonzero(flat.weights > 0)      # transparent splats can touch nothing
+        keep = np.flatnonzero(flat.weights > 0)  # transparent splats can touch nothing
         self.size = len(flat.weights)
         self.levels = []
         orders = []
@@ -56,14 +55,14 @@ class EnvironmentIndex:
                 parts += dense
                 sparse.append(rest)
             sparse = np.concatenate(sparse)
-            for part in parts + ([sparse] if len(sparse) else []):   # outliers of every class share a grid
+            for part in parts + ([sparse] if len(sparse) else []):  # outliers of every class share a grid
                 level, order = self._build_level(flat, part, cell_factor, cells_per_splat, sum(map(len, orders)))
                 self.levels.append(level)
                 orders.append(order)
         self.order = o = np.concatenate(orders) if orders else np.zeros(0, np.int64)
         self.mx, self.my, self.mz = (flat.means[a][o] for a in range(3))
         self.cov6 = np.stack([c[o] for c in flat.cov6]) if len(o) else np.zeros((6, 0))
-        self.cov = list(self.cov6)                   # row views: one array per entry, no copy
+        self.cov = list(self.cov6)  # row views: one array per entry, no copy
         self.w = flat.weights[o]
         self.lam = flat.lam[o]
         self.nu = flat.nu[o]
@@ -84,13 +83,13 @@ class EnvironmentIndex:
         start = cell_start(key, grid.size)
         svt = np.zeros(tuple(grid.dims + 1), np.int64)
         svt[1:, 1:, 1:] = np.diff(start).reshape(tuple(grid.dims)).cumsum(0).cumsum(1).cumsum(2)
-        level = _Level(grid.origin, grid.h, grid.dims, start + offset, sigma, float(flat.weights[members].max()),
-                       len(members), svt)
+        level = _Level(
+            grid.origin, grid.h, grid.dims, start + offset, sigma, float(flat.weights[members].max()), len(members), svt
+        )
         return level, members[order]
 
     def __len__(self):
         return self.size
-
 
     @property
     def typical_sigma(self):
@@ -125,13 +124,13 @@ class EnvironmentIndex:
         rel, r, lo, hi = rel[pts], r[pts], lo[pts], hi[pts]
         off = np.arange(int((hi - lo).max()) + 1)
         cx, cy = lo[:, :1] + off, lo[:, 1:] + off
-        gx = np.maximum(np.abs(rel[:, :1] - cx - 0.5) - 0.5, 0.0)    # distance to the column, in cells
+        gx = np.maximum(np.abs(rel[:, :1] - cx - 0.5) - 0.5, 0.0)  # distance to the column, in cells
         gy = np.maximum(np.abs(rel[:, 1:2] - cy - 0.5) - 0.5, 0.0)
         gx[cx > hi[:, :1]] = np.inf
         gy[cy > hi[:, 1:]] = np.inf
         chord2 = ((r * r)[:, None, None] - (gx * gx)[:, :, None] - (gy * gy)[:, None, :]).ravel()
         column = ((cx * lv.dims[1])[:, :, None] + cy[:, None, :]).ravel()
-        k = np.flatnonzero(chord2 >= 0)                  # flat indices: cheaper than 3-D ones
+        k = np.flatnonzero(chord2 >= 0)  # flat indices: cheaper than 3-D ones
         p = k // (len(off) * len(off))
         half = np.sqrt(chord2[k])
         z = rel[p, 2]
@@ -163,8 +162,8 @@ class EnvironmentIndex:
         owner = np.minimum((np.cumsum(load) - load) * parts // load.sum(), parts - 1).astype(np.int64)
         tasks = [[] for _ in range(parts)]
         offset = 0
-        for level, active, reach, count in entries:
-            mine = owner[offset:offset + len(active)]
+        for level, active, reach, _count in entries:
+            mine = owner[offset : offset + len(active)]
             offset += len(active)
             for t in np.unique(mine):
                 sel = mine == t
@@ -178,7 +177,7 @@ class EnvironmentIndex:
             p, start, stop = self._runs(level, points[idx], reach)
             if not len(p):
                 continue
-            first = np.cumsum(stop - start) - (stop - start)      # index of each run's first pair
+            first = np.cumsum(stop - start) - (stop - start)  # index of each run's first pair
             cuts = np.flatnonzero(np.diff(first // _UNIT_PAIRS)) + 1
             bounds = [0, *cuts.tolist(), len(p)]
             for a, b in zip(bounds[:-1], bounds[1:]):
@@ -228,21 +227,22 @@ class EnvironmentIndex:
             np.maximum.at(glam, inv, lam)
             gout = np.full(len(groups), np.inf)
             np.minimum.at(gout, inv, outside)
-            lam_tot = glam + lv.sigma ** 2
+            lam_tot = glam + lv.sigma**2
             gcell = np.array(np.unravel_index(groups, tuple(lv.dims + 2))).T - 1
             # enough rings that the rest is negligible next to one pair at the cutoff
             need = math.sqrt(c2 + 2.0 * math.log(lv.count + 1.0) + 80.0) * math.sqrt(lam_tot.max()) / lv.h
             rings = int(min(math.ceil(need) + 2, lv.dims.max() + 1))
             k = np.arange(rings + 1)
-            box = self._box_counts(lv, gcell, k)                       # (G, rings+1)
+            box = self._box_counts(lv, gcell, k)  # (G, rings+1)
             shell = np.diff(box, axis=1, prepend=0)
             dist = np.maximum(np.maximum(k - 1, 0)[None, :] * lv.h, gout[:, None])
-            scale = np.maximum(lam_tot, _TINY)                          # 0 for point splats
+            scale = np.maximum(lam_tot, _TINY)  # 0 for point splats
             with np.errstate(over="ignore", under="ignore"):
-                expo = np.maximum(c2, dist ** 2 / scale[:, None])
+                expo = np.maximum(c2, dist**2 / scale[:, None])
                 tail_expo = np.maximum(c2, np.maximum(rings * lv.h, gout) ** 2 / scale)
-                per_group = (shell * np.exp(-0.5 * expo)).sum(axis=1) \
-                    + (lv.count - box[:, -1]) * np.exp(-0.5 * tail_expo)
+                per_group = (shell * np.exp(-0.5 * expo)).sum(axis=1) + (lv.count - box[:, -1]) * np.exp(
+                    -0.5 * tail_expo
+                )
             total += lv.weight * weights * per_group[inv]
         return total
 
@@ -300,8 +300,16 @@ def _count_boxes(svt, lo, hi):
     x0, y0, z0 = lo[..., 0], lo[..., 1], lo[..., 2]
     x1, y1, z1 = hi[..., 0], hi[..., 1], hi[..., 2]
     s = svt
-    return (s[x1, y1, z1] - s[x0, y1, z1] - s[x1, y0, z1] - s[x1, y1, z0]
-            + s[x0, y0, z1] + s[x0, y1, z0] + s[x1, y0, z0] - s[x0, y0, z0])
+    return (
+        s[x1, y1, z1]
+        - s[x0, y1, z1]
+        - s[x1, y0, z1]
+        - s[x1, y1, z0]
+        + s[x0, y0, z1]
+        + s[x0, y1, z0]
+        + s[x1, y0, z0]
+        - s[x0, y0, z0]
+    )
 
 
 def as_index(env, opacity_weights=True, threads=None):

@@ -7,21 +7,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gaussians import BOUND_MARGIN, DEFAULT_CUTOFF, _SYM, CollisionInputError, _gauss_terms, _map, _sym6, as_gaussians
+from .gaussians import _SYM, BOUND_MARGIN, DEFAULT_CUTOFF, CollisionInputError, _gauss_terms, _map, _sym6, as_gaussians
 from .index import EnvironmentIndex, as_index
+
 
 @dataclass
 class Overlap:
     """The soft overlap cost of a query and what it cost to compute."""
+
     cost: float
-    per_gaussian: np.ndarray            # (N,) each robot Gaussian's share of the cost
-    grad_means: np.ndarray = None       # (N,3) dC/dmu_i
-    grad_covs: np.ndarray = None        # (N,3,3) dC/dSigma_i (symmetric), when asked for
-    bound: float = 0.0                  # upper bound on what the cutoff dropped (absolute)
-    relative_bound: float = 0.0         # bound / cost (inf when the cost is 0 and the bound is not)
-    pairs: int = 0                      # pairs within the cutoff, evaluated exactly
+    per_gaussian: np.ndarray  # (N,) each robot Gaussian's share of the cost
+    grad_means: np.ndarray = None  # (N,3) dC/dmu_i
+    grad_covs: np.ndarray = None  # (N,3,3) dC/dSigma_i (symmetric), when asked for
+    bound: float = 0.0  # upper bound on what the cutoff dropped (absolute)
+    relative_bound: float = 0.0  # bound / cost (inf when the cost is 0 and the bound is not)
+    pairs: int = 0  # pairs within the cutoff, evaluated exactly
     cutoff: float = math.inf
-    grad_q: np.ndarray = None           # (dof,) dC/dq, from overlap_at (robots on kinematic trees)
+    grad_q: np.ndarray = None  # (dof,) dC/dq, from overlap_at (robots on kinematic trees)
 
 
 def _finish(n, parts, want_grad, want_cov):
@@ -54,8 +56,9 @@ def _accumulate(i, n, e, x, want_grad, want_cov):
     return per, grad, gcov, len(i)
 
 
-def overlap(robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False, bound=True,
-            opacity_weights=True, threads=None):
+def overlap(
+    robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False, bound=True, opacity_weights=True, threads=None
+):
     """Soft overlap C between `robot` and `env` (SplatCloud, Gaussians or a prebuilt
     EnvironmentIndex), its gradient w.r.t. the robot means (and covariances, if asked), and a
     bound on the error of the cutoff. cutoff=inf sums every pair (use `overlap_all_pairs` then)."""
@@ -69,13 +72,13 @@ def overlap(robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False
     n = len(robot)
     rm = robot.means
     rx, ry, rz = (np.ascontiguousarray(rm[:, a]) for a in range(3))
-    rlam = robot.sigma_max ** 2
+    rlam = robot.sigma_max**2
     rcov = _sym6(robot.covs)
     c2 = cutoff * cutoff
-    visit = cutoff + (BOUND_MARGIN if bound else 0.0)        # pairs the query sees (and accounts for)
+    visit = cutoff + (BOUND_MARGIN if bound else 0.0)  # pairs the query sees (and accounts for)
 
     def reach(lv):
-        return visit * np.sqrt(rlam + lv.sigma ** 2)
+        return visit * np.sqrt(rlam + lv.sigma**2)
 
     def work(i, j):
         dx, dy, dz = rx[i] - index.mx[j], ry[i] - index.my[j], rz[i] - index.mz[j]
@@ -83,7 +86,7 @@ def overlap(robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False
         d2, lam = dx * dx + dy * dy + dz * dz, rlam[i] + index.lam[j]
         close = d2 <= visit * visit * lam
         far = 0.0
-        if bound:                                            # each far term is below its cheap bound
+        if bound:  # each far term is below its cheap bound
             with np.errstate(divide="ignore", under="ignore"):
                 out = ~close
                 far = float(np.sum(robot.weights[i[out]] * index.w[j[out]] * np.exp(-0.5 * d2[out] / lam[out])))
@@ -104,8 +107,7 @@ def overlap(robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False
     return Overlap(float(per.sum()), per, grad, gcov, skip, relative, pairs, cutoff)
 
 
-def overlap_all_pairs(robot, env, gradient=True, cov_gradient=False, opacity_weights=True, threads=None,
-                      chunk=1 << 18):
+def overlap_all_pairs(robot, env, gradient=True, cov_gradient=False, opacity_weights=True, threads=None, chunk=1 << 18):
     """Every pair, no cutoff, in chunks: the exact reference (and the baseline for speed)."""
     robot = as_gaussians(robot, opacity_weights, name="robot")
     env = as_gaussians(env, opacity_weights, name="environment")

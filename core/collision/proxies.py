@@ -6,9 +6,10 @@ import math
 
 import numpy as np
 
-from .gaussians import DEFAULT_CUTOFF, _TINY, CollisionInputError, Gaussians, as_gaussians
+from .gaussians import _TINY, DEFAULT_CUTOFF, CollisionInputError, Gaussians, as_gaussians
 from .index import as_index
 from .overlap import overlap
+
 
 def fit_proxies(robot, per_link=16, links=None, reference_sigma=None, iterations=10, opacity_weights=True):
     """A few Gaussians per link standing in for the link's splats in the soft overlap.
@@ -31,9 +32,9 @@ def fit_proxies(robot, per_link=16, links=None, reference_sigma=None, iterations
         raise CollisionInputError(f"per_link must be at least 1, got {per_link}")
     if reference_sigma is None:
         reference_sigma = float(np.median(np.sqrt(np.trace(robot.covs, axis1=1, axis2=2) / 3))) if len(robot) else 0.0
-    if reference_sigma <= 0 and len(robot):        # point splats: a size from the robot's extent, or masses vanish
+    if reference_sigma <= 0 and len(robot):  # point splats: a size from the robot's extent, or masses vanish
         reference_sigma = 1e-3 * max(float(np.ptp(robot.means, axis=0).max()), 1e-6)
-    ref = reference_sigma ** 2 * np.eye(3)
+    ref = reference_sigma**2 * np.eye(3)
     mass = robot.weights * (2 * np.pi) ** 1.5 * np.sqrt(np.maximum(np.linalg.det(robot.covs + ref), 0.0))
     means, covs, weights, owner = [], [], [], []
     for link in np.unique(links):
@@ -73,8 +74,9 @@ def _split_clusters(points, mass, count, iterations):
         labels[pick[(points[pick] - centre) @ axis_ > 0]] = n
         n += 1
     for _ in range(iterations):
-        centres = np.array([np.average(points[labels == c], axis=0, weights=mass[labels == c] + 1e-300)
-                            for c in range(n)])
+        centres = np.array(
+            [np.average(points[labels == c], axis=0, weights=mass[labels == c] + 1e-300) for c in range(n)]
+        )
         new = np.argmin(((points[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
         if np.array_equal(new, labels) or len(np.unique(new)) < n:
             break

@@ -45,10 +45,10 @@ capture upright in the stage (layout="upright"). layout="y-up" turns the values 
 (no transform), layout="as-is" writes neither (as NVIDIA's converter). One prim per cloud (default
 /Splats); a sequence of same-count clouds (any iterable, consumed one at a time) becomes time
 samples on one prim, where an attribute that never changes is authored once as its default value.
-half=True stores orientations, scales, opacities and SH as half floats (about half the size; positions stay float32 unless half_positions=True). Extras
-become `primvars:<name>` with vertex interpolation. Without pxr.UsdVol's schema classes (an older
-pxr, e.g. one bundled with Blender) the same prim and attributes are authored by name through the
-generic API, giving the same file.
+half=True stores orientations, scales, opacities and SH as half floats (about half the size;
+positions stay float32 unless half_positions=True). Extras become `primvars:<name>` with vertex
+interpolation. Without pxr.UsdVol's schema classes (an older pxr, e.g. one bundled with Blender)
+the same prim and attributes are authored by name through the generic API, giving the same file.
 
 Modules, each importing only those above it in this list:
 - schema: prim type and attribute names, value types, and the conversions between a cloud's arrays
@@ -62,16 +62,67 @@ Modules, each importing only those above it in this list:
 - reader, writer: the public reading and writing below
 """
 
-
 from . import stages
 from .reader import AXES, MAGIC, SplatPrim, read, read_frames, read_stage, stage_matrix, time_codes
-from .schema import (ADOBE_PRIMVARS, ANISOTROPY_TOLERANCE, ANTIALIASED, BLENDER_BASE, BLENDER_PRIMVARS, CUSTOM,
-                     DTYPE_KEY, EXTRA_TYPES, LAYOUTS, LOG_SCALES, LOGITS, RAW_ROTATIONS, REST_COUNTS, SCHEMA,
-                     SH_COEFFS, SH_DEGREE, TYPE_NAME, UNMARKED, UPRIGHT, UPRIGHT_OP, alpha_extent, data_size)
+from .schema import (
+    ADOBE_PRIMVARS,
+    ANISOTROPY_TOLERANCE,
+    ANTIALIASED,
+    BLENDER_BASE,
+    BLENDER_PRIMVARS,
+    CUSTOM,
+    DTYPE_KEY,
+    EXTRA_TYPES,
+    LAYOUTS,
+    LOG_SCALES,
+    LOGITS,
+    RAW_ROTATIONS,
+    REST_COUNTS,
+    SCHEMA,
+    SH_COEFFS,
+    SH_DEGREE,
+    TYPE_NAME,
+    UNMARKED,
+    UPRIGHT,
+    UPRIGHT_OP,
+    alpha_extent,
+    data_size,
+)
 from .writer import write, write_frames, write_stage
 
-__all__ = ["ADOBE_PRIMVARS", "ANISOTROPY_TOLERANCE", "ANTIALIASED", "AXES", "BLENDER_BASE", "BLENDER_PRIMVARS",
-           "CUSTOM", "DTYPE_KEY", "EXTRA_TYPES", "LAYOUTS", "LOG_SCALES", "LOGITS", "MAGIC", "RAW_ROTATIONS",
-           "REST_COUNTS", "SCHEMA", "SH_COEFFS", "SH_DEGREE", "TYPE_NAME", "UNMARKED", "UPRIGHT", "UPRIGHT_OP",
-           "SplatPrim", "alpha_extent", "data_size", "read", "read_frames", "read_stage", "stage_matrix", "stages",
-           "time_codes", "write", "write_frames", "write_stage"]
+__all__ = [
+    "ADOBE_PRIMVARS",
+    "ANISOTROPY_TOLERANCE",
+    "ANTIALIASED",
+    "AXES",
+    "BLENDER_BASE",
+    "BLENDER_PRIMVARS",
+    "CUSTOM",
+    "DTYPE_KEY",
+    "EXTRA_TYPES",
+    "LAYOUTS",
+    "LOG_SCALES",
+    "LOGITS",
+    "MAGIC",
+    "RAW_ROTATIONS",
+    "REST_COUNTS",
+    "SCHEMA",
+    "SH_COEFFS",
+    "SH_DEGREE",
+    "TYPE_NAME",
+    "UNMARKED",
+    "UPRIGHT",
+    "UPRIGHT_OP",
+    "SplatPrim",
+    "alpha_extent",
+    "data_size",
+    "read",
+    "read_frames",
+    "read_stage",
+    "stage_matrix",
+    "stages",
+    "time_codes",
+    "write",
+    "write_frames",
+    "write_stage",
+]

@@ -15,16 +15,46 @@ import numpy as np
 
 from ..common import SplatFileError
 
-CRATE_EXPANSION = 256      # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
-CRATE_INT_EXPANSION = 1024     # compressed integers: 2 code bits per int, then LZ4 (255:1)
+CRATE_EXPANSION = 256  # the most an element count may exceed its section's bytes by (LZ4 tops 255:1)
+CRATE_INT_EXPANSION = 1024  # compressed integers: 2 code bits per int, then LZ4 (255:1)
 # Non-inlined value types that start with a u64 count, and the fewest bytes each element takes:
 # Dictionary (string index + value offset), PathVector, TokenVector, VariantSelectionMap,
 # DoubleVector, LayerOffsetVector, StringVector (crateDataTypes.h).
 CRATE_COUNTED = {31: 12, 40: 4, 41: 4, 45: 8, 48: 8, 49: 16, 50: 4}
 # Bytes per element of uncompressed arrays by crate type (bool .. Vec4i, TimeCode); others take >= 1.
-CRATE_ELEMENT = {1: 1, 2: 1, 3: 4, 4: 4, 5: 8, 6: 8, 7: 2, 8: 4, 9: 8, 10: 4, 11: 4, 12: 4, 13: 32, 14: 72,
-                 15: 128, 16: 32, 17: 16, 18: 8, 19: 16, 20: 8, 21: 4, 22: 8, 23: 24, 24: 12, 25: 6, 26: 12,
-                 27: 32, 28: 16, 29: 8, 30: 16, 56: 8}
+CRATE_ELEMENT = {
+    1: 1,
+    2: 1,
+    3: 4,
+    4: 4,
+    5: 8,
+    6: 8,
+    7: 2,
+    8: 4,
+    9: 8,
+    10: 4,
+    11: 4,
+    12: 4,
+    13: 32,
+    14: 72,
+    15: 128,
+    16: 32,
+    17: 16,
+    18: 8,
+    19: 16,
+    20: 8,
+    21: 4,
+    22: 8,
+    23: 24,
+    24: 12,
+    25: 6,
+    26: 12,
+    27: 32,
+    28: 16,
+    29: 8,
+    30: 16,
+    56: 8,
+}
 
 
 class _CrateError(Exception):
@@ -39,6 +69,7 @@ def check_crate(path, identifier=None):
     may sit in a .usdz ("pkg.usdz[inner]", or the package itself for its first file)."""
     import mmap
     import zipfile
+
     identifier = os.path.abspath(path) if identifier is None else identifier
     outer, _, inner = identifier.partition("[")
     if not os.path.isfile(outer):
@@ -46,8 +77,11 @@ def check_crate(path, identifier=None):
     try:
         with open(outer, "rb") as f:
             # not closed explicitly: views of it may live on in a traceback; freed with the last one
-            data = memoryview(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)) if os.fstat(f.fileno()).st_size \
+            data = (
+                memoryview(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
+                if os.fstat(f.fileno()).st_size
                 else memoryview(b"")
+            )
         if bytes(data[:4]) == b"PK\x03\x04":
             data = _packaged(data, outer, inner.rstrip("]"))
         if data is not None and bytes(data[:8]) == b"PXR-USDC":
@@ -62,6 +96,7 @@ def _packaged(view, outer, inner):
     """The bytes of file `inner` (default: the first) of the zip `outer`, if stored uncompressed
     (OpenUSD reads no other kind), else None."""
     import zipfile
+
     with zipfile.ZipFile(outer) as z:
         infos = z.infolist()
         match = [i for i in infos if i.filename == inner] if inner else infos[:1]
@@ -72,12 +107,12 @@ def _packaged(view, outer, inner):
     start = info.header_offset + 30 + name_length + extra_length
     if start + info.file_size > len(view):
         raise _CrateError(f"packaged file {info.filename!r} runs past the package")
-    return view[start:start + info.file_size]
+    return view[start : start + info.file_size]
 
 
 def _check_crate_bytes(path, data):
     size = len(data)
-    major, minor, patch = data[8], data[9], data[10]
+    major, minor = data[8], data[9]
     toc = struct.unpack_from("<q", data, 16)[0]
     sections = struct.unpack_from("<Q", data, toc)[0] if 88 <= toc <= size - 8 else None
     if sections is None or sections > (size - toc - 8) // 32:
@@ -90,10 +125,9 @@ def _check_crate_bytes(path, data):
             raise SplatFileError(path, f"crate section {name!r} lies outside the file (truncated or corrupt?)")
         count = struct.unpack_from("<Q", data, start)[0]
         if count > CRATE_EXPANSION * length:
-            raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes "
-                                       "(corrupt?)")
+            raise SplatFileError(path, f"crate section {name!r} claims {count} entries in {length} bytes (corrupt?)")
         found[name] = (start, length, count)
-    if (major, minor) < (0, 4):         # before 0.4.0 sections were not compressed: counts checked above
+    if (major, minor) < (0, 4):  # before 0.4.0 sections were not compressed: counts checked above
         return
     sizes = {"TOKENS": 2, "FIELDS": 0, "FIELDSETS": 1, "PATHS": 0, "SPECS": 3}
     for name, (start, length, count) in found.items():
@@ -101,8 +135,9 @@ def _check_crate_bytes(path, data):
         if name == "TOKENS":
             raw, packed = struct.unpack_from("<QQ", data, at)
             if at + 16 + packed > end or raw > 255 * packed + 16 or count > raw:
-                raise _CrateError(f"TOKENS claims {count} tokens in {raw} bytes packed in {packed}, "
-                                  f"in a {length}-byte section")
+                raise _CrateError(
+                    f"TOKENS claims {count} tokens in {raw} bytes packed in {packed}, in a {length}-byte section"
+                )
         elif name == "PATHS":
             encoded = struct.unpack_from("<Q", data, at)[0]
             if encoded > CRATE_INT_EXPANSION * length:
@@ -113,7 +148,7 @@ def _check_crate_bytes(path, data):
             packed = struct.unpack_from("<Q", data, at)[0]
             if at + 8 + packed > end:
                 raise _CrateError(f"FIELDS value representations ({packed} bytes) run past the section")
-            reps = _fast_decompress(data[at + 8:at + 8 + packed], 8 * count)
+            reps = _fast_decompress(data[at + 8 : at + 8 + packed], 8 * count)
             if len(reps) != 8 * count:
                 raise _CrateError(f"FIELDS holds {len(reps) // 8} value representations, not {count}")
             _check_values(data, reps, toc, (major, minor) >= (0, 7))
@@ -134,27 +169,30 @@ def _skip_packed(data, at, end, blocks, name):
 def _check_values(data, reps, data_end, wide_counts):
     """Every non-inlined array, vector and dictionary must hold its count in the bytes before the TOC."""
     values = np.frombuffer(reps, "<u8")
-    outside = (values >> 62) & 1 == 0                       # not inlined: the payload is a file offset
+    outside = (values >> 62) & 1 == 0  # not inlined: the payload is a file offset
     offsets = values & ((1 << 48) - 1)
     kinds = (values >> 48) & 0xFF
     arrays = (values >> 63) == 1
     counted = outside & (arrays | np.isin(kinds, list(CRATE_COUNTED)))
-    for value, offset, kind, is_array in zip(values[counted].tolist(), offsets[counted].tolist(),
-                                             kinds[counted].tolist(), arrays[counted].tolist()):
+    for value, offset, kind, is_array in zip(
+        values[counted].tolist(), offsets[counted].tolist(), kinds[counted].tolist(), arrays[counted].tolist()
+    ):
         width = 8 if wide_counts or not is_array else 4
-        if offset == 0 and is_array:                         # an empty array
+        if offset == 0 and is_array:  # an empty array
             continue
         if offset < 88 or offset + width > data_end:
             raise _CrateError(f"a value of type {kind} lies outside the data (offset {offset})")
         count = struct.unpack_from("<Q" if width == 8 else "<I", data, offset)[0]
         room = data_end - offset - width
-        if is_array and (value >> 61) & 1:                   # compressed: integers, or a lookup table
+        if is_array and (value >> 61) & 1:  # compressed: integers, or a lookup table
             fits = count <= CRATE_INT_EXPANSION * room + 16
         else:
             fits = count * (CRATE_ELEMENT.get(kind, 1) if is_array else CRATE_COUNTED[kind]) <= room
         if not fits:
-            raise _CrateError(f"{'an array' if is_array else 'a value'} of type {kind} at byte {offset} claims "
-                              f"{count} elements, more than the {room} bytes after it can hold")
+            raise _CrateError(
+                f"{'an array' if is_array else 'a value'} of type {kind} at byte {offset} claims "
+                f"{count} elements, more than the {room} bytes after it can hold"
+            )
 
 
 def _fast_decompress(src, limit):
@@ -169,7 +207,7 @@ def _fast_decompress(src, limit):
         size = struct.unpack_from("<i", src, at)[0]
         if size < 0 or at + 4 + size > len(src):
             raise _CrateError("a compressed chunk runs past its block")
-        out += _lz4_block(src[at + 4:at + 4 + size], limit - len(out))
+        out += _lz4_block(src[at + 4 : at + 4 + size], limit - len(out))
         at += 4 + size
     return bytes(out)
 
@@ -183,7 +221,7 @@ def _lz4_block(src, limit):
         literals, i = _lz4_length(src, i, token >> 4)
         if len(out) + literals > limit or i + literals > n:
             raise _CrateError("compressed data expands past its stated size")
-        out += src[i:i + literals]
+        out += src[i : i + literals]
         i += literals
         if i >= n:
             break
@@ -193,8 +231,8 @@ def _lz4_block(src, limit):
         if not 0 < offset <= len(out) or len(out) + match > limit:
             raise _CrateError("compressed data refers outside itself")
         start = len(out) - offset
-        while match > 0:                                     # overlapping copies repeat the pattern
-            piece = out[start:start + min(match, offset)]
+        while match > 0:  # overlapping copies repeat the pattern
+            piece = out[start : start + min(match, offset)]
             out += piece
             start += len(piece)
             match -= len(piece)

@@ -18,10 +18,30 @@ from ...core import SplatCloud
 from ...core import sh as shmod
 from ..common import SplatFileError
 from . import stages
-from .schema import (ADOBE_PRIMVARS, ANTIALIASED, BLENDER_BASE, BLENDER_PRIMVARS, DTYPE_KEY, LOG_SCALES, LOGITS,
-                     RAW_ROTATIONS, REST_COUNTS, SH_COEFFS, SH_DEGREE, TYPE_NAME, _file, _fit, _log_scales_from,
-                     _logits_from, _narrowed, _numbers, _rotations_from, _sh_from, _valid_opacities,
-                     is_quaternion)
+from .schema import (
+    ADOBE_PRIMVARS,
+    ANTIALIASED,
+    BLENDER_BASE,
+    BLENDER_PRIMVARS,
+    DTYPE_KEY,
+    LOG_SCALES,
+    LOGITS,
+    RAW_ROTATIONS,
+    REST_COUNTS,
+    SH_COEFFS,
+    SH_DEGREE,
+    TYPE_NAME,
+    _file,
+    _fit,
+    _log_scales_from,
+    _logits_from,
+    _narrowed,
+    _numbers,
+    _rotations_from,
+    _sh_from,
+    _valid_opacities,
+    is_quaternion,
+)
 
 ADOBE = "Points (Adobe 3DGS primvars)"
 BLENDER = "Points (Blender splat primvars)"
@@ -41,6 +61,7 @@ def _dialect(prim):
 
 def _primvars(prim):
     return stages.active.primvars(prim)
+
 
 def _value(prim, name, time, shape=()):
     """An authored array attribute as NumPy (numbers, `shape` per entry), or None."""
@@ -70,19 +91,28 @@ def _gaussian_cloud(prim, time, notes):
     opacities = _fit(_float_or_half(prim, "opacities", time, ()), n, (), "opacities", "1 (opaque)", notes)
     sh = _sh_from(prim, _float_or_half(prim, SH_COEFFS, time, (3,)), _sh_degree(prim), n, notes)
     stored_logits = _fit(_value(prim, LOGITS, time), n, (), LOGITS, "-", []) if opacities is not None else None
-    stored_logs = _fit(_value(prim, LOG_SCALES, time, (3,)), n, (3,), LOG_SCALES, "-", []) \
-        if scales is not None else None
+    stored_logs = (
+        _fit(_value(prim, LOG_SCALES, time, (3,)), n, (3,), LOG_SCALES, "-", []) if scales is not None else None
+    )
     rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1)) if quats is None else quats[:, [3, 0, 1, 2]]
     if quats is not None:
-        rotations = _rotations_from(rotations, _fit(_value(prim, RAW_ROTATIONS, time, (4,)), n, (4,),
-                                                    RAW_ROTATIONS, "-", []), notes)
+        rotations = _rotations_from(
+            rotations, _fit(_value(prim, RAW_ROTATIONS, time, (4,)), n, (4,), RAW_ROTATIONS, "-", []), notes
+        )
     opacities = np.ones(n, np.float32) if opacities is None else _valid_opacities(opacities, notes)
     scales = np.ones((n, 3), np.float32) if scales is None else scales
     logits = _logits_from(opacities, stored_logits, notes)
     log_scales = _log_scales_from(scales, stored_logs, notes)
     marked = prim.GetAttribute(ANTIALIASED)
-    cloud = SplatCloud(positions, rotations, log_scales, logits, sh, _extras(prim, time, n, set(), notes),
-                       antialiased=bool(marked and marked.HasAuthoredValue() and marked.Get()))
+    cloud = SplatCloud(
+        positions,
+        rotations,
+        log_scales,
+        logits,
+        sh,
+        _extras(prim, time, n, set(), notes),
+        antialiased=bool(marked and marked.HasAuthoredValue() and marked.Get()),
+    )
     return cloud, opacities, np.abs(scales)
 
 
@@ -120,7 +150,7 @@ def _blender_cloud(prim, time, notes):
     if quats is None:
         rotations = np.tile(np.float32([1, 0, 0, 0]), (n, 1))
     elif is_quaternion(rotation.GetTypeName()):
-        rotations = quats[:, [3, 0, 1, 2]].astype(np.float32)          # Vt quaternions are x, y, z, w in memory
+        rotations = quats[:, [3, 0, 1, 2]].astype(np.float32)  # Vt quaternions are x, y, z, w in memory
     else:
         rotations = quats.astype(np.float32)
     scales = _fit(_primvar(prim, "scale", time, (3,)), n, (3,), "primvars:scale", "1", notes)
@@ -140,9 +170,14 @@ def _blender_cloud(prim, time, notes):
         notes.append(f"{len(rest)} radiance:sh_* primvars (or wrong lengths); view-dependent colour dropped")
         rest = []
     sh = np.concatenate([dc[:, None, :]] + [v[:, None, :] for v in rest], axis=1)
-    cloud = SplatCloud(positions, rotations, _log_scales_from(scales, None, notes),
-                       _logits_from(_valid_opacities(opacities, notes), None, notes), sh,
-                       _extras(prim, time, n, BLENDER_PRIMVARS, notes))
+    cloud = SplatCloud(
+        positions,
+        rotations,
+        _log_scales_from(scales, None, notes),
+        _logits_from(_valid_opacities(opacities, notes), None, notes),
+        sh,
+        _extras(prim, time, n, BLENDER_PRIMVARS, notes),
+    )
     return cloud, opacities, np.abs(scales)
 
 
@@ -176,8 +211,14 @@ def _adobe_cloud(prim, time, notes):
     if clip is not None:
         notes.append(f"primvars:clipping box {clip.reshape(-1, 3).tolist()} not applied")
     taken = ADOBE_PRIMVARS | {f"fRest{i}" for i in range(3 * REST_COUNTS[-1])}
-    cloud = SplatCloud(positions, rotations, _log_scales_from(scales, None, notes),
-                       _logits_from(opacities, None, notes), sh, _extras(prim, time, n, taken, notes))
+    cloud = SplatCloud(
+        positions,
+        rotations,
+        _log_scales_from(scales, None, notes),
+        _logits_from(opacities, None, notes),
+        sh,
+        _extras(prim, time, n, taken, notes),
+    )
     return cloud, opacities, np.abs(scales)
 
 

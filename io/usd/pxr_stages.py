@@ -23,9 +23,10 @@ from .schema import CUSTOM, SCHEMA, TYPE_NAME
 from .usdz import write_usdz
 
 try:
-    from pxr import UsdVol          # the splat schema's classes (usd-core >= 26.3; not in Blender's pxr)
+    from pxr import UsdVol  # the splat schema's classes (usd-core >= 26.3; not in Blender's pxr)
 except ImportError:
     UsdVol = None
+
 
 def _layer(path, identifier):
     """The Sdf layer at `identifier` (a file, or "pkg.usdz[inner]"), re-read if an earlier open left it
@@ -48,8 +49,9 @@ def _names(path, spec, key, where=""):
         return []
     names = spec.GetInfo(key)
     if not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
-        raise SplatFileError(path, f"{where}{spec.path}: its {key} hold a {type(names).__name__}, "
-                                   "not a list of names (corrupt?)")
+        raise SplatFileError(
+            path, f"{where}{spec.path}: its {key} hold a {type(names).__name__}, not a list of names (corrupt?)"
+        )
     return names
 
 
@@ -64,15 +66,19 @@ def _check_children(path, layer):
         for name in _names(path, prim, "primChildren", where):
             child = layer.GetPrimAtPath(prim.path.AppendChild(name)) if Sdf.Path.IsValidIdentifier(name) else None
             if child is None:
-                raise SplatFileError(path, f"{where}prim {prim.path} lists a child {name!r} that the "
-                                           "layer does not hold (corrupt?)")
+                raise SplatFileError(
+                    path, f"{where}prim {prim.path} lists a child {name!r} that the layer does not hold (corrupt?)"
+                )
             todo.append(child)
         for name in _names(path, prim, "properties", where):
-            ok = Sdf.Path.IsValidNamespacedIdentifier(name) and \
-                layer.GetPropertyAtPath(prim.path.AppendProperty(name)) is not None
+            ok = (
+                Sdf.Path.IsValidNamespacedIdentifier(name)
+                and layer.GetPropertyAtPath(prim.path.AppendProperty(name)) is not None
+            )
             if not ok:
-                raise SplatFileError(path, f"{where}prim {prim.path} lists a property {name!r} that "
-                                           "the layer does not hold (corrupt?)")
+                raise SplatFileError(
+                    path, f"{where}prim {prim.path} lists a property {name!r} that the layer does not hold (corrupt?)"
+                )
 
 
 def _composed_layers(path, allow_outside):
@@ -93,13 +99,19 @@ def _composed_layers(path, allow_outside):
         named_by = "" if layer is first else f"layer {layer.identifier} "
         for asset in layer.GetCompositionAssetDependencies():
             resolved = layer.ComputeAbsolutePath(asset)
-            if not os.path.isabs(resolved.split("[", 1)[0]):          # a search path: anchored as the resolver does first
+            if not os.path.isabs(resolved.split("[", 1)[0]):  # a search path: anchored as the resolver does first
                 resolved = layer.ComputeAbsolutePath("./" + asset)
-            ok = inside_package(package, resolved) if package else within(os.path.dirname(root),
-                                                                           resolved.split("[", 1)[0])
+            ok = (
+                inside_package(package, resolved)
+                if package
+                else within(os.path.dirname(root), resolved.split("[", 1)[0])
+            )
             if not ok and not allow_outside:
-                raise SplatFileError(path, f"{named_by}refers to a layer: {outside_message(asset, where)} "
-                                           "(read with allow_outside=True to allow it)")
+                raise SplatFileError(
+                    path,
+                    f"{named_by}refers to a layer: {outside_message(asset, where)} "
+                    "(read with allow_outside=True to allow it)",
+                )
             if resolved in seen:
                 continue
             try:
@@ -107,8 +119,11 @@ def _composed_layers(path, allow_outside):
             except Tf.ErrorException:
                 found = None
             if found is None:
-                raise SplatFileError(path, f"{named_by}refers to the layer '{asset}', which cannot be opened "
-                                           "(missing, or not an OpenUSD layer)")
+                raise SplatFileError(
+                    path,
+                    f"{named_by}refers to the layer '{asset}', which cannot be opened "
+                    "(missing, or not an OpenUSD layer)",
+                )
             seen.add(found.identifier)
             seen.add(resolved)
             layers.append(found)
@@ -119,7 +134,7 @@ def _composed_layers(path, allow_outside):
 def _tf_message(exc):
     try:
         text = str(exc)
-    except UnicodeDecodeError:          # OpenUSD quoting bytes of the file that are not UTF-8
+    except UnicodeDecodeError:  # OpenUSD quoting bytes of the file that are not UTF-8
         return "it holds bytes that are not UTF-8 text"
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     return lines[0].split(" : ", 1)[-1] if lines else "unknown error"
@@ -161,7 +176,7 @@ class PxrStages:
 
     def open(self, path, allow_outside):
         try:
-            layers = _composed_layers(path, allow_outside)      # held open until the stage uses them
+            layers = _composed_layers(path, allow_outside)  # held open until the stage uses them
             stage = Usd.Stage.Open(layers[0], Usd.Stage.LoadAll)
         except Tf.ErrorException as exc:
             raise SplatFileError(path, f"OpenUSD cannot open it (truncated or corrupt?): {_tf_message(exc)}") from None
@@ -200,7 +215,7 @@ class PxrStages:
     # writing
 
     def check_writable(self, path):
-        pass                                # every layer format OpenUSD knows
+        pass  # every layer format OpenUSD knows
 
     def filled(self, kind, shape, dtype, fill):
         return _vt_filled(getattr(Vt, kind), shape[0], shape, dtype, fill)
@@ -223,8 +238,9 @@ class PxrStages:
         return prim.CreateAttribute(name, Sdf.ValueTypeNames.Find(type_name), False, variability)
 
     def vertex_primvar(self, prim, name, type_name, element_size):
-        pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(name, Sdf.ValueTypeNames.Find(type_name),
-                                                     UsdGeom.Tokens.vertex, element_size)
+        pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(
+            name, Sdf.ValueTypeNames.Find(type_name), UsdGeom.Tokens.vertex, element_size
+        )
         return pv.GetAttr()
 
     def set_custom_data(self, attr, key, value):
@@ -237,8 +253,7 @@ class PxrStages:
     def transform_op(self, prim, name, matrix):
         op = prim.CreateAttribute(name, Sdf.ValueTypeNames.Matrix4d, False)
         op.Set(Gf.Matrix4d(*matrix.T.reshape(-1).tolist()))
-        prim.CreateAttribute("xformOpOrder", Sdf.ValueTypeNames.TokenArray, False,
-                             Sdf.VariabilityUniform).Set([name])
+        prim.CreateAttribute("xformOpOrder", Sdf.ValueTypeNames.TokenArray, False, Sdf.VariabilityUniform).Set([name])
 
     def set_value(self, attr, value, code):
         if code is None:
@@ -248,7 +263,7 @@ class PxrStages:
 
     def save(self, path, partial, prims, author, fps):
         if path.lower().endswith(".usdz"):
-            layer_path = partial + ".layer"             # a partial too: swept with it after a kill
+            layer_path = partial + ".layer"  # a partial too: swept with it after a kill
             try:
                 self._save_stage(path, layer_path, "usdc", prims, author, fps)
                 write_usdz(partial, os.path.splitext(os.path.basename(path))[0] + ".usdc", layer_path)

@@ -25,22 +25,23 @@ from . import stages
 from .dialects import _dialect
 from .schema import _READ_LINEAR, ANISOTROPY_TOLERANCE, TYPE_NAME, UNMARKED, UPRIGHT_OP, _file
 
+
 @dataclass
 class SplatPrim:
     """One splat prim of a stage: its path, the cloud (world space, target axes and units) and what
     reading it had to report."""
+
     path: str
     cloud: SplatCloud
-    source: str                        # "ParticleField3DGaussianSplat" or "Points (Adobe 3DGS primvars)"
-    to_world: np.ndarray               # 4x4 (column vectors) applied to the prim's local values
-    anisotropy: float = 0.0            # how far to_world is from rotation * uniform scale
+    source: str  # "ParticleField3DGaussianSplat" or "Points (Adobe 3DGS primvars)"
+    to_world: np.ndarray  # 4x4 (column vectors) applied to the prim's local values
+    anisotropy: float = 0.0  # how far to_world is from rotation * uniform scale
     notes: list = field(default_factory=list)
 
 
 # opening ------------------------------------------------------------------------------------------
 
-MAGIC = {".usdc": (b"PXR-USDC",), ".usdz": (b"PK\x03\x04",), ".usda": (b"#usda",),
-         ".usd": (b"PXR-USDC", b"#usda")}
+MAGIC = {".usdc": (b"PXR-USDC",), ".usdz": (b"PK\x03\x04",), ".usda": (b"#usda",), ".usd": (b"PXR-USDC", b"#usda")}
 
 
 def _open(path, allow_outside=False):
@@ -62,8 +63,8 @@ def _open(path, allow_outside=False):
 
 # stage units and axes ----------------------------------------------------------------------------
 
-Z_UP_TO_Y_UP = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float)    # (x, y, z) -> (x, z, -y)
-RUB_TO_RDF = np.diag([1.0, -1.0, -1.0])                                 # y and z reversed
+Z_UP_TO_Y_UP = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float)  # (x, y, z) -> (x, z, -y)
+RUB_TO_RDF = np.diag([1.0, -1.0, -1.0])  # y and z reversed
 AXES = ("RDF", "RUB", None)
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -114,6 +115,7 @@ def _stage_metadata(stage, key, fallback):
 
 # prims -------------------------------------------------------------------------------------------
 
+
 def _op_order(prim):
     """The prim's xformOpOrder as a list of op names ([] if unauthored), or a SplatFileError when it
     holds anything else (a damaged crate file can point it at any value)."""
@@ -123,8 +125,10 @@ def _op_order(prim):
         return []
     names = list(order) if not isinstance(order, str) and hasattr(order, "__iter__") else None
     if names is None or not all(isinstance(n, str) for n in names):
-        raise SplatFileError(_file(prim), f"{prim.GetPath()}: xformOpOrder holds a {type(order).__name__}, "
-                                          "not a list of transform op names")
+        raise SplatFileError(
+            _file(prim),
+            f"{prim.GetPath()}: xformOpOrder holds a {type(order).__name__}, not a list of transform op names",
+        )
     return names
 
 
@@ -140,7 +144,7 @@ def _nonfinite_ops(prim, time):
     for name in names:
         attr = prim.GetAttribute(name)
         value = attr.Get(time) if attr else None
-        if hasattr(value, "GetImaginary"):          # a Gf quaternion
+        if hasattr(value, "GetImaginary"):  # a Gf quaternion
             value = [value.GetReal(), *value.GetImaginary()]
         try:
             numbers = np.asarray(value, np.float64)
@@ -171,20 +175,21 @@ def _read_prim(prim, time, matrices, notes):
         raise SplatFileError(_file(prim), f"{prim.GetPath()}: {where} NaN or Inf")
     anisotropy = 0.0
     if np.array_equal(to_world, np.eye(4)) or np.array_equal(to_world, FLIP):
-        cloud = cloud if to_world[1, 1] == 1 else flip_yz(cloud)       # exact: only signs change
+        cloud = cloud if to_world[1, 1] == 1 else flip_yz(cloud)  # exact: only signs change
         _READ_LINEAR[cloud] = (cloud.opacity_logits.copy(), opacities, cloud.log_scales.copy(), scales)
     else:
         try:
             anisotropy = float(geometry.anisotropy(to_world[:3, :3]))
             cloud = cloud.transformed(to_world)
         except ValueError as exc:
-            raise SplatFileError(_file(prim),
-                                 f"{prim.GetPath()}: cannot apply its transform: {exc}") from None
+            raise SplatFileError(_file(prim), f"{prim.GetPath()}: cannot apply its transform: {exc}") from None
         if anisotropy > ANISOTROPY_TOLERANCE:
             angle = np.degrees(np.arctan(anisotropy / (2 * np.sqrt(1 + anisotropy))))
-            prim_notes.append(f"its transform stretches unevenly (anisotropy {anisotropy:.3g}): positions "
-                              "and covariances are exact, SH colours follow its nearest rotation only "
-                              f"(view directions off by up to {angle:.3g} degrees)")
+            prim_notes.append(
+                f"its transform stretches unevenly (anisotropy {anisotropy:.3g}): positions "
+                "and covariances are exact, SH colours follow its nearest rotation only "
+                f"(view directions off by up to {angle:.3g} degrees)"
+            )
     notes += [f"{prim.GetPath()}: {text}" for text in prim_notes]
     return SplatPrim(str(prim.GetPath()), cloud, source, to_world, anisotropy, prim_notes)
 
@@ -194,7 +199,7 @@ def _splat_prims(stage, time, axes, meters_per_unit, notes, unmarked="capture"):
         raise ValueError(f"unmarked must be one of {UNMARKED}, got {unmarked!r}")
     stage_m = stage_matrix(stage, axes, meters_per_unit, notes)
     capture_m = stage_m
-    if unmarked == "capture":       # values are capture coordinates already: only units (and RUB) apply
+    if unmarked == "capture":  # values are capture coordinates already: only units (and RUB) apply
         capture_m = stage_matrix(stage, None, meters_per_unit, [])
         if axes == "RUB":
             capture_m = FLIP @ capture_m
@@ -206,8 +211,9 @@ def _splat_prims(stage, time, axes, meters_per_unit, notes, unmarked="capture"):
         elif stages.active.is_geometry(prim) or prim.GetTypeName().startswith("ParticleField"):
             skipped.setdefault(str(prim.GetTypeName()), []).append(str(prim.GetPath()))
     if skipped:
-        listed = "; ".join(f"{t} x{len(p)} ({', '.join(p[:3])}{', ...' if len(p) > 3 else ''})"
-                           for t, p in sorted(skipped.items()))
+        listed = "; ".join(
+            f"{t} x{len(p)} ({', '.join(p[:3])}{', ...' if len(p) > 3 else ''})" for t, p in sorted(skipped.items())
+        )
         notes.append(f"skipped prims that are not splats: {listed}")
     return found
 
@@ -219,8 +225,10 @@ def _warn(path, notes):
 
 # public reading -----------------------------------------------------------------------------------
 
-def read_stage(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
-               allow_outside=False):
+
+def read_stage(
+    path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture", allow_outside=False
+):
     """Every splat prim of a stage as a SplatPrim (path, world-space cloud, transform, notes).
 
     time: a time code (default: the earliest sample, or the default value of unanimated files).
@@ -244,8 +252,7 @@ def _read_stage(stage, path, time, axes, meters_per_unit, nonfinite, unmarked="c
     return prims
 
 
-def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
-         allow_outside=False):
+def read(path, time=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture", allow_outside=False):
     """All splat prims of the stage, in world space, concatenated into one SplatCloud (unmarked and
     allow_outside: see read_stage)."""
     prims = read_stage(path, time, axes, meters_per_unit, nonfinite, unmarked, allow_outside)
@@ -276,13 +283,14 @@ def _time_codes(stage, path, prim_path):
         prims = [p for p in stages.active.traverse(stage) if _dialect(p) is not None]
     times = set()
     for prim in prims:
-        for attr in prim.GetAttributes():        # transform ops included: a moving prim is animated too
+        for attr in prim.GetAttributes():  # transform ops included: a moving prim is animated too
             times.update(attr.GetTimeSamples())
     return sorted(times)
 
 
-def read_frames(path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture",
-                allow_outside=False):
+def read_frames(
+    path, prim_path=None, axes="RDF", meters_per_unit=1.0, nonfinite="raise", unmarked="capture", allow_outside=False
+):
     """[(time code, cloud)] for every time sample of the stage's splat prims (concatenated per time),
     or of the one at prim_path; one (None, cloud) entry for an unanimated file."""
     with stages.reading(path):

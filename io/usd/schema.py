@@ -24,16 +24,16 @@ SH_DEGREE = "radiance:sphericalHarmonicsDegree"
 SH_COEFFS = "radiance:sphericalHarmonicsCoefficients"
 LOGITS = "splatwright:opacityLogits"
 LOG_SCALES = "splatwright:logScales"
-RAW_ROTATIONS = "splatwright:rotations"           # w, x, y, z as the model holds them (any norm)
-ANTIALIASED = "splatwright:antialiased"           # authored (true) for splats made for antialiased rendering
-UPRIGHT_OP = "xformOp:transform:upright"          # capture (y down, z forward) -> the Y-up stage
-UPRIGHT = np.diag([1.0, -1.0, -1.0, 1.0])         # a half turn about X, exact in a matrix op
+RAW_ROTATIONS = "splatwright:rotations"  # w, x, y, z as the model holds them (any norm)
+ANTIALIASED = "splatwright:antialiased"  # authored (true) for splats made for antialiased rendering
+UPRIGHT_OP = "xformOp:transform:upright"  # capture (y down, z forward) -> the Y-up stage
+UPRIGHT = np.diag([1.0, -1.0, -1.0, 1.0])  # a half turn about X, exact in a matrix op
 LAYOUTS = ("upright", "y-up", "as-is")
 UNMARKED = ("capture", "stage")
 PRIM_PATH = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
 VALID_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-VALID_NAMESPACED = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(:[A-Za-z_][A-Za-z0-9_]*)*")      # a property name
-ANISOTROPY_TOLERANCE = 1e-6        # below this a transform counts as rotation * uniform scale
+VALID_NAMESPACED = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(:[A-Za-z_][A-Za-z0-9_]*)*")  # a property name
+ANISOTROPY_TOLERANCE = 1e-6  # below this a transform counts as rotation * uniform scale
 
 # schema attribute -> (Sdf type name, uniform?, schema creator method)
 SCHEMA = {
@@ -53,20 +53,40 @@ SCHEMA = {
 CUSTOM = {LOGITS: "float[]", LOG_SCALES: "float3[]", RAW_ROTATIONS: "float4[]", ANTIALIASED: "bool"}
 
 # NumPy dtype of an extra -> Sdf scalar type of its primvar (narrow ints widen to int, restored on read)
-EXTRA_TYPES = {"float32": "float", "float64": "double", "float16": "half", "int32": "int",
-               "uint32": "uint", "int64": "int64", "uint64": "uint64", "uint8": "uchar", "bool": "bool",
-               "int8": "int", "int16": "int", "uint16": "int"}
+EXTRA_TYPES = {
+    "float32": "float",
+    "float64": "double",
+    "float16": "half",
+    "int32": "int",
+    "uint32": "uint",
+    "int64": "int64",
+    "uint64": "uint64",
+    "uint8": "uchar",
+    "bool": "bool",
+    "int8": "int",
+    "int16": "int",
+    "uint16": "int",
+}
 DTYPE_KEY = "splatwright:dtype"
 NARROW_INTS = {name for name, sdf in EXTRA_TYPES.items() if sdf == "int" and name != "int32"}
 ADOBE_PRIMVARS = {"rot", "widths1", "widths2", "displayColor", "displayOpacity", "clipping"}
-BLENDER_BASE = "radiance:base"                    # Blender's point-cloud splats: DC rgb + opacity
-REST_COUNTS = tuple(k - 1 for k in shmod.VALID_COUNTS)      # higher coefficients per channel: 0, 3, 8, 15, 24
-BLENDER_PRIMVARS = {"rotation", "scale", BLENDER_BASE, "displayColor", "displayOpacity"} | \
-    {f"radiance:sh_{i}" for i in range(REST_COUNTS[-1])}
+BLENDER_BASE = "radiance:base"  # Blender's point-cloud splats: DC rgb + opacity
+REST_COUNTS = tuple(k - 1 for k in shmod.VALID_COUNTS)  # higher coefficients per channel: 0, 3, 8, 15, 24
+BLENDER_PRIMVARS = {"rotation", "scale", BLENDER_BASE, "displayColor", "displayOpacity"} | {
+    f"radiance:sh_{i}" for i in range(REST_COUNTS[-1])
+}
 
-VT_ARRAYS = {"float32": "FloatArray", "float64": "DoubleArray", "float16": "HalfArray", "int32": "IntArray",
-             "uint32": "UIntArray", "int64": "Int64Array", "uint64": "UInt64Array", "uint8": "UCharArray",
-             "bool": "BoolArray"}
+VT_ARRAYS = {
+    "float32": "FloatArray",
+    "float64": "DoubleArray",
+    "float16": "HalfArray",
+    "int32": "IntArray",
+    "uint32": "UIntArray",
+    "int64": "Int64Array",
+    "uint64": "UInt64Array",
+    "uint8": "UCharArray",
+    "bool": "BoolArray",
+}
 
 # Linear values read from a file, kept per cloud object so that writing an unchanged cloud back
 # reproduces them bit for bit (the model stores logs and logits, which float32 cannot invert exactly).
@@ -80,6 +100,7 @@ def is_quaternion(type_name):
 
 # reading values ---------------------------------------------------------------------------------
 
+
 def _file(prim):
     return prim.GetStage().GetRootLayer().identifier
 
@@ -90,8 +111,11 @@ def _numbers(prim, name, value, shape):
     values = np.asarray(value)
     if values.dtype.kind not in "iuf" or values.ndim != 1 + len(shape) or values.shape[1:] != shape:
         entries = f"{shape[0]}-component vectors" if shape else "numbers"
-        raise SplatFileError(_file(prim), f"{prim.GetPath()}: {name} holds a {type(value).__name__} "
-                                          f"({values.dtype}, shape {values.shape}), expected an array of {entries}")
+        raise SplatFileError(
+            _file(prim),
+            f"{prim.GetPath()}: {name} holds a {type(value).__name__} "
+            f"({values.dtype}, shape {values.shape}), expected an array of {entries}",
+        )
     return values
 
 
@@ -118,20 +142,19 @@ def _sh_from(prim, coeffs, degree, n, notes):
             notes.append(f"{SH_COEFFS} not authored; using grey (SH degree 0, DC 0)")
         return np.zeros((n, 1, 3), np.float32)
     coeffs = coeffs.reshape(-1, 3)
-    if degree is None:                  # unauthored: infer from the count, else the schema's fallback 3
+    if degree is None:  # unauthored: infer from the count, else the schema's fallback 3
         per = len(coeffs) // n if n else 16
         degree = shmod.degree_of(per) if n and len(coeffs) == n * per and per in shmod.VALID_COUNTS else 3
     k = (degree + 1) ** 2
     if len(coeffs) < n * k:
-        notes.append(f"{SH_COEFFS} has {len(coeffs)} entries, {n * k} needed for degree {degree}; "
-                     "ignored, using grey")
+        notes.append(f"{SH_COEFFS} has {len(coeffs)} entries, {n * k} needed for degree {degree}; ignored, using grey")
         return np.zeros((n, 1, 3), np.float32)
     if len(coeffs) > n * k:
         notes.append(f"{SH_COEFFS} has {len(coeffs)} entries for {n} particles; truncated")
-    sh = coeffs[:n * k].reshape(n, k, 3)
+    sh = coeffs[: n * k].reshape(n, k, 3)
     if degree > shmod.MAX_DEGREE:
         notes.append(f"SH degree {degree} truncated to {shmod.MAX_DEGREE}")
-        sh = sh[:, :shmod.num_coeffs(shmod.MAX_DEGREE)]
+        sh = sh[:, : shmod.num_coeffs(shmod.MAX_DEGREE)]
     return sh
 
 
@@ -147,8 +170,9 @@ def _logits_from(opacities, stored, notes):
     """float32 logits: the stored exact ones where they still reproduce `opacities`, else derived."""
     # NaN and Inf stay as they are (logit would clamp Inf to a finite value) for the non-finite policy
     derived = np.where(np.isfinite(opacities), logit(opacities), opacities).astype(np.float32)
-    return _prefer_stored(derived, stored, sigmoid(stored).astype(np.float32) if stored is not None else None,
-                          opacities, LOGITS, notes)
+    return _prefer_stored(
+        derived, stored, sigmoid(stored).astype(np.float32) if stored is not None else None, opacities, LOGITS, notes
+    )
 
 
 def _log_scales_from(scales, stored, notes):
@@ -213,8 +237,8 @@ def _narrowed(values, dtype, name, notes):
 
 # writing values ---------------------------------------------------------------------------------
 
-EXTENT_PAD = 1e-12         # relative: covers float64 round-off in the half widths below
-EXTENT_CHUNK = 1 << 15     # splats per block: a block's temporaries stay in cache
+EXTENT_PAD = 1e-12  # relative: covers float64 round-off in the half widths below
+EXTENT_CHUNK = 1 << 15  # splats per block: a block's temporaries stay in cache
 
 
 def _extent_block(positions, rotations, scales, opacities):
@@ -225,13 +249,15 @@ def _extent_block(positions, rotations, scales, opacities):
     # overflows, and everything runs on contiguous columns, which NumPy streams fastest.
     q = np.ascontiguousarray(rotations.T, dtype=np.float64)
     big = np.abs(q).max(axis=0)
-    unit = big > 0                                            # a zero quaternion means the identity
+    unit = big > 0  # a zero quaternion means the identity
     w, x, y, z = q / np.where(unit, big, 1)
     ww, xx, yy, zz = w * w, x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
-    m = [(ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)),
-         (2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)),
-         (2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz)]
+    m = [
+        (ww + xx - yy - zz, 2 * (xy - wz), 2 * (xz + wy)),
+        (2 * (xy + wz), ww - xx + yy - zz, 2 * (yz - wx)),
+        (2 * (xz - wy), 2 * (yz + wx), ww - xx - yy + zz),
+    ]
     sx, sy, sz = np.ascontiguousarray(scales.T, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         reach = np.sqrt(2 * np.log(np.maximum(255 * opacities.astype(np.float64), 1)))
@@ -253,8 +279,10 @@ def _extent_block(positions, rotations, scales, opacities):
 def alpha_extent(positions, rotations, scales, opacities):
     """(2,3) float32 box holding every splat out to where its alpha falls below 1/255 (rounded
     outwards), or None when no splat is finite. rotations w,x,y,z; scales and opacities linear."""
-    corners = [_extent_block(*(v[a:a + EXTENT_CHUNK] for v in (positions, rotations, scales, opacities)))
-               for a in range(0, len(positions), EXTENT_CHUNK)]
+    corners = [
+        _extent_block(*(v[a : a + EXTENT_CHUNK] for v in (positions, rotations, scales, opacities)))
+        for a in range(0, len(positions), EXTENT_CHUNK)
+    ]
     if not corners:
         return None
     lo, hi = np.min([c[0] for c in corners], axis=0), np.max([c[1] for c in corners], axis=0)
@@ -298,13 +326,15 @@ def _half(path, name, values):
 def _check_half_range(path, name, values):
     big = np.isfinite(values) & (np.abs(values) > np.finfo(np.float16).max)
     if big.any():
-        raise SplatFileError(path, f"{int(big.sum())} {name} values exceed the half-float range "
-                                   "(65504); write without half=True")
+        raise SplatFileError(
+            path, f"{int(big.sum())} {name} values exceed the half-float range (65504); write without half=True"
+        )
 
 
 @dataclass(frozen=True)
 class _WriteOptions:
     """How write_stage stores values (its arguments of the same names)."""
+
     half: bool = False
     half_positions: bool = False
     exact: bool = True
@@ -323,26 +353,35 @@ def _frame_values(path, cloud, options, stages):
     # unless the layout asks for them flipped into the Y-up stage (folded into the copies Vt needs).
     flip = axes == "RDF" and options.layout == "y-up"
     positions = cloud.positions * np.float32([1, -1, -1]) if flip else np.ascontiguousarray(cloud.positions)
-    xyzw = _unit_quaternions(cloud.rotations)[:, [1, 2, 3, 0]]                # Vt's memory order
+    xyzw = _unit_quaternions(cloud.rotations)[:, [1, 2, 3, 0]]  # Vt's memory order
     xyzw = xyzw * np.float32([1, -1, -1, 1]) if flip else xyzw
     signs = np.repeat(SH_FLIP[:k], 3) if flip else np.ones(3 * k, np.float32)
-    flat = cloud.sh.reshape(n, 3 * k)                                       # (N, K*3): fast broadcast
-    if half:                   # the extent below is taken from the values as stored
+    flat = cloud.sh.reshape(n, 3 * k)  # (N, K*3): fast broadcast
+    if half:  # the extent below is taken from the values as stored
         _check_half_range(path, "SH", flat)
-        xyzw, scales, opacities = (_half(path, name, v) for name, v in
-                                   (("rotation", xyzw), ("scale", scales), ("opacity", opacities)))
-        values = {"orientationsh": _vt(stages, "QuathArray", xyzw),
-                  "scalesh": _vt(stages, "Vec3hArray", scales),
-                  "opacitiesh": _vt(stages, "HalfArray", opacities),
-                  SH_COEFFS + "h": stages.filled("Vec3hArray", (n * k, 3), np.float16,
-                                              lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k),
-                                                                      casting="same_kind"))}
+        xyzw, scales, opacities = (
+            _half(path, name, v) for name, v in (("rotation", xyzw), ("scale", scales), ("opacity", opacities))
+        )
+        values = {
+            "orientationsh": _vt(stages, "QuathArray", xyzw),
+            "scalesh": _vt(stages, "Vec3hArray", scales),
+            "opacitiesh": _vt(stages, "HalfArray", opacities),
+            SH_COEFFS + "h": stages.filled(
+                "Vec3hArray",
+                (n * k, 3),
+                np.float16,
+                lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k), casting="same_kind"),
+            ),
+        }
     else:
-        values = {"orientations": _vt(stages, "QuatfArray", xyzw),
-                  "scales": _vt(stages, "Vec3fArray", scales),
-                  "opacities": _vt(stages, "FloatArray", opacities),
-                  SH_COEFFS: stages.filled("Vec3fArray", (n * k, 3), np.float32,
-                                        lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k)))}
+        values = {
+            "orientations": _vt(stages, "QuatfArray", xyzw),
+            "scales": _vt(stages, "Vec3fArray", scales),
+            "opacities": _vt(stages, "FloatArray", opacities),
+            SH_COEFFS: stages.filled(
+                "Vec3fArray", (n * k, 3), np.float32, lambda out: np.multiply(flat, signs, out=out.reshape(n, 3 * k))
+            ),
+        }
     if half_positions:
         positions = _half(path, "position", positions)
         values["positionsh"] = _vt(stages, "Vec3hArray", positions)
@@ -367,8 +406,8 @@ def data_size(count, sh_degree, half=False, exact=True):
     text layer takes about 10 bytes per number instead of 4."""
     k = (sh_degree + 1) ** 2
     width = 2 if half else 4
-    numbers = 4 + 3 + 1 + 3 * k                       # orientation, scale, opacity, SH
-    raw = 1 + 3 + 4 if exact and not half else 0      # logits, log scales, raw rotations (float32)
+    numbers = 4 + 3 + 1 + 3 * k  # orientation, scale, opacity, SH
+    raw = 1 + 3 + 4 if exact and not half else 0  # logits, log scales, raw rotations (float32)
     return count * (3 * 4 + numbers * width + raw * 4) + 2 * 3 * 4
 
 
@@ -386,7 +425,7 @@ class _Samples:
             if value is self.first or _same_bytes(value, self.first):
                 self.waiting.append(code)
                 return
-            self.held = False                # the first change: the frames so far get samples
+            self.held = False  # the first change: the frames so far get samples
             for earlier in self.waiting:
                 self.set(self.first, earlier)
         self.set(value, code)

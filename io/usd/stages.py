@@ -23,12 +23,13 @@ from typing import Protocol, runtime_checkable
 from ..common import SplatFileError
 from . import text_stages
 
-try:                                        # the one question whether pxr exists
+try:  # the one question whether pxr exists
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdUtils, Vt  # noqa: F401
 except ImportError:
     PXR = None
 else:
     from . import pxr_stages
+
     PXR = pxr_stages.PxrStages()
 TEXT = text_stages.TextStages()
 active = PXR if PXR is not None else TEXT
@@ -39,8 +40,8 @@ class Stages(Protocol):
     """What an implementation provides. Times are the implementation's own (see time_code); arrays
     are filled in its own array type (see filled)."""
 
-    name: str                               # "pxr" or "text"
-    errors: tuple                           # exception types its calls raise on a damaged file
+    name: str  # "pxr" or "text"
+    errors: tuple  # exception types its calls raise on a damaged file
 
     def message(self, exc):
         """One line saying what went wrong in `exc`, one of `errors`."""
@@ -119,5 +120,6 @@ def reading(path):
     except active.errors as exc:
         raise SplatFileError(path, f"OpenUSD cannot read it (truncated or corrupt?): {active.message(exc)}") from None
     except UnicodeDecodeError:
-        raise SplatFileError(path, "OpenUSD cannot read it: it holds names or strings that are not UTF-8 "
-                                   "(corrupt?)") from None
+        raise SplatFileError(
+            path, "OpenUSD cannot read it: it holds names or strings that are not UTF-8 (corrupt?)"
+        ) from None

@@ -17,7 +17,7 @@ class TextStages:
     """stages.Stages on usda.Layer."""
 
     name = "text"
-    errors = ()                             # its failures are SplatFileErrors already
+    errors = ()  # its failures are SplatFileErrors already
 
     def message(self, exc):
         return str(exc)
@@ -25,7 +25,7 @@ class TextStages:
     # reading
 
     def open(self, path, allow_outside):
-        return usda_parse.read_layer(path)             # composes nothing: nothing outside to refuse
+        return usda_parse.read_layer(path)  # composes nothing: nothing outside to refuse
 
     def time_code(self, time):
         return None if time is None else float(time)
@@ -52,8 +52,11 @@ class TextStages:
 
     def check_writable(self, path):
         if os.fspath(path).lower().endswith(".usdc"):
-            raise SplatFileError(path, "binary OpenUSD (.usdc) needs OpenUSD's Python module (pxr), which this "
-                                       "Python lacks (Blender 4.4 and later bundle it); write .usda, .usd or .usdz")
+            raise SplatFileError(
+                path,
+                "binary OpenUSD (.usdc) needs OpenUSD's Python module (pxr), which this "
+                "Python lacks (Blender 4.4 and later bundle it); write .usda, .usd or .usdz",
+            )
 
     def filled(self, kind, shape, dtype, fill):
         out = np.empty(shape, dtype)

@@ -30,12 +30,23 @@ HEADER = "#usda 1.0"
 COMPOSITION = ("subLayers", "references", "payload", "inherits", "specializes", "variantSets", "variants")
 
 # scalar type -> NumPy dtype (bools are written 0 and 1)
-SCALARS = {"bool": np.bool_, "uchar": np.uint8, "int": np.int32, "uint": np.uint32, "int64": np.int64,
-           "uint64": np.uint64, "half": np.float16, "float": np.float32, "double": np.float64,
-           "timecode": np.float64}
+SCALARS = {
+    "bool": np.bool_,
+    "uchar": np.uint8,
+    "int": np.int32,
+    "uint": np.uint32,
+    "int64": np.int64,
+    "uint64": np.uint64,
+    "half": np.float16,
+    "float": np.float32,
+    "double": np.float64,
+    "timecode": np.float64,
+}
 FLOATS = {"h": np.float16, "f": np.float32, "d": np.float64}
-VECTOR = re.compile(r"(half|float|double|int)([234])|(point|normal|vector|color)3([hfd])|texCoord([23])([hfd])"
-                    r"|quat([hfd])|matrix([234])d")
+VECTOR = re.compile(
+    r"(half|float|double|int)([234])|(point|normal|vector|color)3([hfd])|texCoord([23])([hfd])"
+    r"|quat([hfd])|matrix([234])d"
+)
 
 
 def element(type_name):
@@ -60,11 +71,13 @@ def element(type_name):
 
 # the layer model ----------------------------------------------------------------------------------
 
+
 @dataclass
 class Attribute:
     """One attribute: its default value and time samples as NumPy arrays (or Python scalars,
     strings, lists of strings), and its metadata. Quaternions are held in Vt's memory order
     (x, y, z, w), as pxr hands them out."""
+
     name: str
     type_name: str
     uniform: bool = False
@@ -169,7 +182,7 @@ class Prim:
                 m, reset = np.eye(4), True
                 continue
             invert = name.startswith("!invert!")
-            op_name = name[len("!invert!"):] if invert else name
+            op_name = name[len("!invert!") :] if invert else name
             attr = self.GetAttribute(op_name)
             if not attr or not attr.HasAuthoredValue():
                 raise SplatFileError(self.layer.identifier, f"{self.path}: transform op {op_name} has no value")
@@ -189,16 +202,16 @@ def _op_matrix(path, prim_path, name, value):
     kind = name.split(":")[1] if name.count(":") >= 1 else ""
     m = np.eye(4)
     value = np.asarray(value, np.float64)
-    if not np.isfinite(value).all():            # a NaN quaternion would normalise to the identity
+    if not np.isfinite(value).all():  # a NaN quaternion would normalise to the identity
         raise SplatFileError(path, f"{prim_path}: its transform ops {name} hold NaN or Inf")
     if kind == "transform":
-        return value.reshape(4, 4).T                # USD matrices act on row vectors
+        return value.reshape(4, 4).T  # USD matrices act on row vectors
     if kind == "translate":
         m[:3, 3] = value.reshape(3)
     elif kind == "scale":
         m[:3, :3] = np.diag(np.broadcast_to(value.reshape(-1), 3))
     elif kind == "orient":
-        x, y, z, w = value.reshape(4)               # Vt order (see Attribute)
+        x, y, z, w = value.reshape(4)  # Vt order (see Attribute)
         m[:3, :3] = quaternions_to_matrices(np.array([[w, x, y, z]]))[0]
     elif kind in ("rotateX", "rotateY", "rotateZ"):
         m[:3, :3] = _rotation(kind[-1], float(value))
@@ -206,8 +219,7 @@ def _op_matrix(path, prim_path, name, value):
         for axis, angle in zip(kind[-3:], value.reshape(3)):
             m[:3, :3] = _rotation(axis, float(angle)) @ m[:3, :3]
     else:
-        raise SplatFileError(path, f"{prim_path}: transform op {name} cannot be read without OpenUSD's "
-                                   "Python module")
+        raise SplatFileError(path, f"{prim_path}: transform op {name} cannot be read without OpenUSD's Python module")
     return m
 
 
@@ -300,7 +312,7 @@ def _write_prim(out, prim, indent):
 def _write_attribute(out, attr, indent):
     head = ("custom " if attr.custom else "") + ("uniform " if attr.uniform else "") + f"{attr.type_name} {attr.name}"
     meta = _metadata_text(attr.metadata, indent)
-    if attr.default is not None or not attr.samples or meta:       # metadata sits on the declaration
+    if attr.default is not None or not attr.samples or meta:  # metadata sits on the declaration
         value = f" = {value_text(attr.default, attr.type_name)}" if attr.default is not None else ""
         out.write(f"{indent}{head}{value}{meta}\n")
     if attr.samples:
@@ -313,7 +325,9 @@ def _write_attribute(out, attr, indent):
 def _metadata_text(metadata, indent):
     if not metadata:
         return ""
-    lines = [f"{indent}    {key} = {_meta_value_text(value, indent + '    ')}" for key, value in sorted(metadata.items())]
+    lines = [
+        f"{indent}    {key} = {_meta_value_text(value, indent + '    ')}" for key, value in sorted(metadata.items())
+    ]
     return " (\n" + "\n".join(lines) + f"\n{indent})"
 
 
@@ -374,9 +388,8 @@ def value_text(value, type_name):
     return "[" + ", ".join([one] * len(words)) % tuple(words.reshape(-1).tolist()) + "]"
 
 
-
-
 # pxr-like views for the readers ----------------------------------------------------------------------
+
 
 class Primvar:
     def __init__(self, attr, prim):
@@ -389,7 +402,7 @@ class Primvar:
         return self.attr
 
     def GetPrimvarName(self):
-        return self.attr.name[len("primvars:"):]
+        return self.attr.name[len("primvars:") :]
 
     def GetTypeName(self):
         return self.attr.type_name
@@ -410,8 +423,9 @@ class Primvar:
             return value
         index = np.asarray(indices.Get(time))
         if len(index) and (index.min() < 0 or index.max() >= len(value)):
-            raise SplatFileError(self.prim.layer.identifier, f"{self.prim.path}: {self.attr.name}:indices "
-                                                             "point outside its values")
+            raise SplatFileError(
+                self.prim.layer.identifier, f"{self.prim.path}: {self.attr.name}:indices point outside its values"
+            )
         return np.asarray(value)[index]
 
 
@@ -427,5 +441,8 @@ class PrimvarsAPI:
         return bool(self.prim.GetAttribute("primvars:" + name))
 
     def GetPrimvarsWithAuthoredValues(self):
-        return [Primvar(a, self.prim) for name, a in self.prim.attributes.items()
-                if name.startswith("primvars:") and not name.endswith(":indices") and a.HasAuthoredValue()]
+        return [
+            Primvar(a, self.prim)
+            for name, a in self.prim.attributes.items()
+            if name.startswith("primvars:") and not name.endswith(":indices") and a.HasAuthoredValue()
+        ]

@@ -16,6 +16,7 @@ from ..common import SplatFileError
 from ..policy import MAX_TEXT_LAYER_BYTES
 from .usda import COMPOSITION, Layer, element
 
+
 def read_layer(path):
     """The Layer in a .usda/.usd text file or a .usdz package whose first file is text. A layer of
     more than policy.MAX_TEXT_LAYER_BYTES is refused before it is read."""
@@ -25,9 +26,12 @@ def read_layer(path):
     if data.startswith(b"PK\x03\x04"):
         data = _usdz_root(path, data)
     if data.startswith(b"PXR-USDC"):
-        raise SplatFileError(path, "a binary (crate) OpenUSD layer needs OpenUSD's Python module (pxr), which "
-                                   "this Python lacks (Blender 4.4 and later bundle it); only text layers "
-                                   "(.usda) can be read here")
+        raise SplatFileError(
+            path,
+            "a binary (crate) OpenUSD layer needs OpenUSD's Python module (pxr), which "
+            "this Python lacks (Blender 4.4 and later bundle it); only text layers "
+            "(.usda) can be read here",
+        )
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
@@ -41,8 +45,11 @@ def read_layer(path):
 
 def _check_text_size(path, size):
     if size > MAX_TEXT_LAYER_BYTES:
-        raise SplatFileError(path, f"a {size}-byte text layer, more than the {MAX_TEXT_LAYER_BYTES >> 20} MiB "
-                                   "this reader parses without OpenUSD (write .usdc with pxr for bigger stages)")
+        raise SplatFileError(
+            path,
+            f"a {size}-byte text layer, more than the {MAX_TEXT_LAYER_BYTES >> 20} MiB "
+            "this reader parses without OpenUSD (write .usdc with pxr for bigger stages)",
+        )
 
 
 def _usdz_root(path, data):
@@ -54,7 +61,7 @@ def _usdz_root(path, data):
             if not names[0].lower().endswith((".usda", ".usd", ".usdc")):
                 raise SplatFileError(path, f"the .usdz package's first file {names[0]!r} is not an OpenUSD layer")
             info = z.getinfo(names[0])
-            if info.compress_type != zipfile.ZIP_STORED:          # the usdz rule; also no zip bomb
+            if info.compress_type != zipfile.ZIP_STORED:  # the usdz rule; also no zip bomb
                 raise SplatFileError(path, f"the .usdz package's {names[0]!r} is compressed; usdz files are stored")
             _check_text_size(path, info.file_size)
             return z.read(names[0])
@@ -62,9 +69,11 @@ def _usdz_root(path, data):
         raise SplatFileError(path, f"the .usdz package is damaged: {exc}") from None
 
 
-TOKEN = re.compile(r'\s*(?:#[^\n]*\n\s*)*(?:("""(?:.|\n)*?"""|"(?:[^"\\\n]|\\.)*"|\'(?:[^\'\\\n]|\\.)*\')'
-                   r'|(@[^@]*@)|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|-?inf\b|nan\b)'
-                   r'|([A-Za-z_][\w:.]*(?:\[\])?|![\w]+!)|(\S))')
+TOKEN = re.compile(
+    r'\s*(?:#[^\n]*\n\s*)*(?:("""(?:.|\n)*?"""|"(?:[^"\\\n]|\\.)*"|\'(?:[^\'\\\n]|\\.)*\')'
+    r"|(@[^@]*@)|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|-?inf\b|nan\b)"
+    r"|([A-Za-z_][\w:.]*(?:\[\])?|![\w]+!)|(\S))"
+)
 
 
 class _Parser:
@@ -107,7 +116,7 @@ class _Parser:
         meta = {}
         while not self.at(")"):
             kind, tok = self.next()
-            if kind == 1:                           # a doc string
+            if kind == 1:  # a doc string
                 meta["doc"] = _string(tok)
                 continue
             if tok in ("add", "delete", "prepend", "append", "reorder"):
@@ -218,22 +227,23 @@ class _Parser:
         end = self.text.find("]", self.pos)
         if end < 0:
             self.fail(f"a {type_name} array is not closed")
-        body = self.text[self.pos:end]
+        body = self.text[self.pos : end]
         if re.search(r"[^\d\s.,()eE+\-infa]", body):
             self.fail(f"a {type_name} array holds something other than numbers")
         parse = np.float64 if dtype.kind == "f" else np.int64
         with warnings.catch_warnings():
             warnings.simplefilter("error", DeprecationWarning)
             try:
-                flat = np.fromstring(body.translate(_SEPARATORS), parse, sep=" ") if body.strip() else \
-                    np.zeros(0, parse)
+                flat = (
+                    np.fromstring(body.translate(_SEPARATORS), parse, sep=" ") if body.strip() else np.zeros(0, parse)
+                )
             except (DeprecationWarning, ValueError):
                 self.fail(f"a {type_name} array holds text that is not a number")
         if flat.size % width:
             self.fail(f"a {type_name} array has {flat.size} numbers, not a multiple of {width}")
         values = flat.astype(dtype).reshape((-1, width) if width > 1 else (-1,))
         if type_name.startswith("quat"):
-            values = np.ascontiguousarray(values[:, [1, 2, 3, 0]])     # w first in text, x, y, z, w held
+            values = np.ascontiguousarray(values[:, [1, 2, 3, 0]])  # w first in text, x, y, z, w held
         self.pos = end + 1
         return values
 

@@ -17,7 +17,7 @@ def write_usdz(path, name, layer):
         info.file_size = size
         header = 30 + len(name.encode())
         pad = -(header + 4) % USDZ_ALIGN
-        info.extra = b"\x86\x19" + pad.to_bytes(2, "little") + b"\0" * pad   # a private padding field
+        info.extra = b"\x86\x19" + pad.to_bytes(2, "little") + b"\0" * pad  # a private padding field
         with z.open(info, "w") as out:
             if isinstance(layer, bytes):
                 out.write(layer)

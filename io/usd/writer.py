@@ -16,8 +16,24 @@ import numpy as np
 from ...core import SplatCloud
 from ..common import SplatFileError, apply_nonfinite_policy, atomic_path, check_nonfinite_policy
 from . import stages
-from .schema import (ANTIALIASED, DTYPE_KEY, EXTRA_TYPES, LAYOUTS, PRIM_PATH, SH_COEFFS, SH_DEGREE, UPRIGHT,
-                     UPRIGHT_OP, VALID_NAMESPACED, VT_ARRAYS, _frame_values, _Samples, _vt, _WriteOptions)
+from .schema import (
+    ANTIALIASED,
+    DTYPE_KEY,
+    EXTRA_TYPES,
+    LAYOUTS,
+    PRIM_PATH,
+    SH_COEFFS,
+    SH_DEGREE,
+    UPRIGHT,
+    UPRIGHT_OP,
+    VALID_NAMESPACED,
+    VT_ARRAYS,
+    _frame_values,
+    _Samples,
+    _vt,
+    _WriteOptions,
+)
+
 
 def _extra_primvars(path, prim, cloud):
     """[(attribute, extra name, widen to int32?)] authoring each extra as a vertex primvar."""
@@ -25,8 +41,11 @@ def _extra_primvars(path, prim, cloud):
     for key, values in cloud.extras.items():
         type_name = EXTRA_TYPES.get(values.dtype.name)
         if type_name is None or not VALID_NAMESPACED.fullmatch(key):
-            raise SplatFileError(path, f"extra '{key}' ({values.dtype}) cannot be a USD primvar: it needs a "
-                                       f"valid identifier and one of the dtypes {sorted(EXTRA_TYPES)}")
+            raise SplatFileError(
+                path,
+                f"extra '{key}' ({values.dtype}) cannot be a USD primvar: it needs a "
+                f"valid identifier and one of the dtypes {sorted(EXTRA_TYPES)}",
+            )
         size = int(np.prod(values.shape[1:])) if values.ndim > 1 else -1
         attr = stages.active.vertex_primvar(prim, key, type_name + "[]", size)
         widen = type_name == "int" and values.dtype != np.int32
@@ -43,7 +62,7 @@ def _author_prim(path, stage, prim_path, frames, times, options):
     prim, samples, codes, shape = None, {}, [], None
     for cloud, code in _checked_frames(path, prim_path, frames, times, options):
         shape = (len(cloud), cloud.sh.shape[1])
-        if prim is None:                     # the first frame sets the prim up
+        if prim is None:  # the first frame sets the prim up
             prim = impl.define_splat(stage, prim_path)
             impl.attribute(prim, SH_DEGREE).Set(cloud.sh_degree)
             if cloud.antialiased:
@@ -54,14 +73,15 @@ def _author_prim(path, stage, prim_path, frames, times, options):
         values = {**_frame_values(path, cloud, options, impl), **_extra_values(cloud, extras)}
         for name, value in values.items():
             if name not in samples:
-                samples[name] = _Samples(prim.GetAttribute(name) or impl.attribute(prim, name), name != "positions",
-                                         impl)
+                samples[name] = _Samples(
+                    prim.GetAttribute(name) or impl.attribute(prim, name), name != "positions", impl
+                )
             samples[name].add(value, code)
         codes.append(code)
-        del cloud, values                    # let this frame go before the next one is made
+        del cloud, values  # let this frame go before the next one is made
     for attr in samples.values():
         attr.finish()
-    for name in (SH_COEFFS, SH_COEFFS + "h"):   # one particle's coefficients per element, as primvars say
+    for name in (SH_COEFFS, SH_COEFFS + "h"):  # one particle's coefficients per element, as primvars say
         if name in samples:
             impl.set_vertex_interpolation(samples[name].attr, shape[1])
     return [c for c in codes if c is not None]
@@ -87,7 +107,7 @@ def _checked_frames(path, prim_path, frames, times, options):
     """(cloud, time code) pairs, each cloud checked as it comes: the same splat count, SH degree and
     extras in every frame, one time code per cloud, the non-finite policy applied."""
     if isinstance(frames, SplatCloud):
-        frames, codes = [frames], iter([None])                     # None: the default value
+        frames, codes = [frames], iter([None])  # None: the default value
     else:
         codes = (float(t) for t in (itertools.count() if times is None else times))
     shape, count = None, 0
@@ -98,9 +118,12 @@ def _checked_frames(path, prim_path, frames, times, options):
         cloud = apply_nonfinite_policy(f"{path}:{prim_path}", cloud, options.nonfinite, "write")
         this = (len(cloud), cloud.sh_degree, tuple(sorted(cloud.extras)))
         if shape is not None and this != shape:
-            raise SplatFileError(path, f"{prim_path}: time samples need the same splat count, SH degree and "
-                                       f"extras in every frame; frame {count} has (count, degree, extras) "
-                                       f"{this}, the first {shape}")
+            raise SplatFileError(
+                path,
+                f"{prim_path}: time samples need the same splat count, SH degree and "
+                f"extras in every frame; frame {count} has (count, degree, extras) "
+                f"{this}, the first {shape}",
+            )
         shape, count = this, count + 1
         yield cloud, code
         del cloud
@@ -110,8 +133,18 @@ def _checked_frames(path, prim_path, frames, times, options):
         raise SplatFileError(path, f"{prim_path}: more time codes than clouds ({count})")
 
 
-def write_stage(path, prims, times=None, half=False, half_positions=False, exact=True, axes="RDF",
-                nonfinite="raise", fps=None, layout="upright"):
+def write_stage(
+    path,
+    prims,
+    times=None,
+    half=False,
+    half_positions=False,
+    exact=True,
+    axes="RDF",
+    nonfinite="raise",
+    fps=None,
+    layout="upright",
+):
     """Write {prim path: cloud, or clouds one per time code} as a Y-up, metre stage.
 
     The clouds of an animated prim may come from any iterable (a generator, say): each is authored
@@ -146,13 +179,26 @@ def write_stage(path, prims, times=None, half=False, half_positions=False, exact
     if times is not None:
         times = list(times)
     with atomic_path(path) as tmp:
-        stages.active.save(path, tmp, prims,
-                           lambda stage, prim_path, frames: _author_prim(path, stage, prim_path, frames, times, options),
-                           fps)
+        stages.active.save(
+            path,
+            tmp,
+            prims,
+            lambda stage, prim_path, frames: _author_prim(path, stage, prim_path, frames, times, options),
+            fps,
+        )
 
 
-def write(path, cloud, prim_path="/Splats", half=False, half_positions=False, exact=True, axes="RDF",
-          nonfinite="raise", layout="upright"):
+def write(
+    path,
+    cloud,
+    prim_path="/Splats",
+    half=False,
+    half_positions=False,
+    exact=True,
+    axes="RDF",
+    nonfinite="raise",
+    layout="upright",
+):
     """Write one cloud as one ParticleField3DGaussianSplat prim (options as write_stage's)."""
     if not isinstance(cloud, SplatCloud):
         raise TypeError(f"write takes one SplatCloud, got {type(cloud).__name__}; write_frames takes a sequence")

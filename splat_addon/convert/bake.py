@@ -20,9 +20,16 @@ import bpy
 import mathutils
 import numpy as np
 
-from ...core import geometry, sh as shmod
-from ...core.bake import (DEFAULT_ITERATIONS, VIEWS_PER_DISTANCE, bake_sh_steps, bake_splats_steps, bake_views,
-                         path_weights)
+from ...core import geometry
+from ...core import sh as shmod
+from ...core.bake import (
+    DEFAULT_ITERATIONS,
+    VIEWS_PER_DISTANCE,
+    bake_sh_steps,
+    bake_splats_steps,
+    bake_views,
+    path_weights,
+)
 from ...core.camera import blender_lens, opengl_camera_to_world
 from ...core.steps import mapped_steps
 from .. import data
@@ -30,8 +37,22 @@ from .. import data
 TEMPORARY = "splatwright_bake"
 
 
-def bake_steps(scene, obj, cloud, vertices, *, samples=16, count=VIEWS_PER_DISTANCE, size=256,
-               distances=None, degree=2, iterations=DEFAULT_ITERATIONS, geometry_steps=0, path=(), info=None):
+def bake_steps(
+    scene,
+    obj,
+    cloud,
+    vertices,
+    *,
+    samples=16,
+    count=VIEWS_PER_DISTANCE,
+    size=256,
+    distances=None,
+    degree=2,
+    iterations=DEFAULT_ITERATIONS,
+    geometry_steps=0,
+    path=(),
+    info=None,
+):
     """A generator baking `obj`'s look into `cloud` (object space, made from the object's evaluated
     `vertices`): yields (done, total, label) per Cycles view and per fitting iteration or step and
     returns the cloud with fitted SH of `degree`. `path`: core Cameras (world space) the object will
@@ -51,12 +72,20 @@ def bake_steps(scene, obj, cloud, vertices, *, samples=16, count=VIEWS_PER_DISTA
             images.append(render_view(scene, obj, cam, samples, os.path.join(folder, f"view_{i}.png")))
             yield i + 1, total, f"bake: Cycles view {i + 1}/{len(cameras)}"
     weights = path_weights(len(around), len(cameras) - len(around))
-    fit = bake_sh_steps(cloud.transformed(world), cameras, images, degree, iterations=iterations, weights=weights,
-                        info=info)
+    fit = bake_sh_steps(
+        cloud.transformed(world), cameras, images, degree, iterations=iterations, weights=weights, info=info
+    )
     fitted = yield from _relabelled(fit, len(cameras), total, "fitting colours")
     if geometry_steps:
-        steps = bake_splats_steps(fitted, cameras, images, steps=geometry_steps, weights=weights, report_every=1,
-                                  info=None if info is None else info.setdefault("geometry", {}))
+        steps = bake_splats_steps(
+            fitted,
+            cameras,
+            images,
+            steps=geometry_steps,
+            weights=weights,
+            report_every=1,
+            info=None if info is None else info.setdefault("geometry", {}),
+        )
         fitted = yield from _relabelled(steps, total - geometry_steps, total, "fitting splats")
         return fitted.transformed(np.linalg.inv(world))
     rotation = geometry.polar_rotation(world[:3, :3])
@@ -83,16 +112,15 @@ def render_view(scene, obj, cam, samples, path):
             cam_data.ortho_scale = lens["ortho_scale"]
         cam_data.clip_start = cam.near
         cam_data.clip_end = cam.far if np.isfinite(cam.far) else 1e6 * max(cam.near, 1e-6)
-        cam_obj.matrix_world = mathutils.Matrix(opengl_camera_to_world(cam.world_to_camera).tolist())   # rows
+        cam_obj.matrix_world = mathutils.Matrix(opengl_camera_to_world(cam.world_to_camera).tolist())  # rows
         others = [o for o in scene.objects if o is not obj and o is not cam_obj]
-        hidden = [(o, "hide_render", True) if data.is_splat_object(o) else (o, "visible_camera", False)
-                  for o in others]
+        hidden = [(o, "hide_render", True) if data.is_splat_object(o) else (o, "visible_camera", False) for o in others]
         with _changed(_settings(scene, cam_obj, cam, lens, samples, path) + hidden):
             bpy.ops.render.render(write_still=True, scene=scene.name)
         image = bpy.data.images.load(path, check_existing=False)
         pixels = np.empty(image.size[0] * image.size[1] * image.channels, np.float32)
         image.pixels.foreach_get(pixels)
-        rgba = pixels.reshape(image.size[1], image.size[0], image.channels)[::-1]     # row 0 at the top
+        rgba = pixels.reshape(image.size[1], image.size[0], image.channels)[::-1]  # row 0 at the top
     finally:
         if image is not None:
             bpy.data.images.remove(image)
@@ -106,15 +134,28 @@ def render_view(scene, obj, cam, samples, path):
 def _settings(scene, cam_obj, cam, lens, samples, path):
     """(owner, attribute, value) of every setting a bake view changes (`lens`: the camera's blender_lens)."""
     render, image = scene.render, scene.render.image_settings
-    return [(scene, "camera", cam_obj), (render, "engine", "CYCLES"), (scene.cycles, "device", "CPU"),
-            (scene.cycles, "samples", int(samples)), (scene.cycles, "use_denoising", True),
-            (render, "resolution_x", cam.width), (render, "resolution_y", cam.height),
-            (render, "resolution_percentage", 100), (render, "pixel_aspect_x", lens["pixel_aspect_x"]),
-            (render, "pixel_aspect_y", lens["pixel_aspect_y"]),
-            (render, "use_border", False), (render, "film_transparent", True), (render, "use_compositing", False),
-            (render, "use_sequencer", False), (render, "use_multiview", False), (render, "filepath", path),
-            (render, "use_file_extension", False), (image, "file_format", "PNG"), (image, "color_mode", "RGBA"),
-            (image, "color_depth", "8")]
+    return [
+        (scene, "camera", cam_obj),
+        (render, "engine", "CYCLES"),
+        (scene.cycles, "device", "CPU"),
+        (scene.cycles, "samples", int(samples)),
+        (scene.cycles, "use_denoising", True),
+        (render, "resolution_x", cam.width),
+        (render, "resolution_y", cam.height),
+        (render, "resolution_percentage", 100),
+        (render, "pixel_aspect_x", lens["pixel_aspect_x"]),
+        (render, "pixel_aspect_y", lens["pixel_aspect_y"]),
+        (render, "use_border", False),
+        (render, "film_transparent", True),
+        (render, "use_compositing", False),
+        (render, "use_sequencer", False),
+        (render, "use_multiview", False),
+        (render, "filepath", path),
+        (render, "use_file_extension", False),
+        (image, "file_format", "PNG"),
+        (image, "color_mode", "RGBA"),
+        (image, "color_depth", "8"),
+    ]
 
 
 @contextlib.contextmanager
@@ -126,6 +167,6 @@ def _changed(settings):
             old.append((owner, name, getattr(owner, name)))
             setattr(owner, name, value)
         yield
-    finally:                                    # in order: a file format before its colour depth
+    finally:  # in order: a file format before its colour depth
         for owner, name, value in old:
             setattr(owner, name, value)

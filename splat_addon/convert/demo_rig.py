@@ -16,14 +16,14 @@ import bpy
 import numpy as np
 
 BONES = ("Base", "Upper", "Fore", "Hand")
-JOINTS = (0.0, 0.3, 1.5, 2.5, 2.8)           # bone i runs from JOINTS[i] to JOINTS[i + 1] along z
+JOINTS = (0.0, 0.3, 1.5, 2.5, 2.8)  # bone i runs from JOINTS[i] to JOINTS[i + 1] along z
 LINKS = (  # (radius of the circumscribed circle, sides, colour (linear), textured)
     (0.5, 24, (0.05, 0.05, 0.06), False),
     (0.21, 4, (0.9, 0.35, 0.04), False),
     (0.18, 4, (0.05, 0.25, 0.8), False),
     (0.16, 4, (1.0, 1.0, 1.0), True),
 )
-BLEND = 0.15                                  # half width of the weight blend at each joint
+BLEND = 0.15  # half width of the weight blend at each joint
 RING_SPACING = 0.05
 FRAMES = (1, 24)
 POSE = {  # frame 12: bone -> Euler XYZ in radians (bone space: the bone's Y runs along it)
@@ -31,7 +31,7 @@ POSE = {  # frame 12: bone -> Euler XYZ in radians (bone space: the bone's Y run
     "Fore": (np.radians(50.0), 0.0, 0.0),
     "Hand": (0.0, np.radians(90.0), 0.0),
 }
-ENVIRONMENT_BOX = ((0.0, -1.6, 0.9), 0.6)     # centre, edge length
+ENVIRONMENT_BOX = ((0.0, -1.6, 0.9), 0.6)  # centre, edge length
 FLOOR_SIZE = 6.0
 CAMERA_LOCATION = (5.5, -6.0, 3.2)
 LOOK_AT = (0.0, -0.4, 1.2)
@@ -39,15 +39,16 @@ LOOK_AT = (0.0, -0.4, 1.2)
 
 @dataclass
 class DemoRig:
-    armature: object           # the Armature object
-    body: object               # the skinned mesh (vertex groups + Armature modifier)
+    armature: object  # the Armature object
+    body: object  # the skinned mesh (vertex groups + Armature modifier)
     camera: object
     light: object
-    environment_mesh: object   # floor + box, a plain mesh
-    environment: object        # its splats (a splat object), or None when not made
+    environment_mesh: object  # floor + box, a plain mesh
+    environment: object  # its splats (a splat object), or None when not made
 
 
 # geometry -------------------------------------------------------------------------------------------
+
 
 def _ring_heights(z0, z1):
     """Heights of the vertex rings of a link: evenly spaced, plus both ends of every joint blend."""
@@ -60,7 +61,7 @@ def prism(radius, sides, z0, z1):
     """A capped prism along z: (vertices (V,3), faces as lists of vertex indices, per-face corner
     UVs). Side UVs wrap around (u) and run up (v) the prism; the caps get planar UVs."""
     heights = _ring_heights(z0, z1)
-    angles = np.pi / sides + 2 * np.pi * np.arange(sides) / sides       # boxes sit square to the axes
+    angles = np.pi / sides + 2 * np.pi * np.arange(sides) / sides  # boxes sit square to the axes
     ring = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
     vertices = np.concatenate([np.column_stack([ring, np.full(sides, z)]) for z in heights])
     faces, uvs = [], []
@@ -80,9 +81,11 @@ def prism(radius, sides, z0, z1):
 
 def bone_weights(z):
     """(V, 4) weights of the bones at heights z: smoothstep blends at the joints, summing to 1."""
+
     def above(joint):
         t = np.clip((z - joint + BLEND) / (2 * BLEND), 0.0, 1.0)
         return t * t * (3 - 2 * t)
+
     steps = [np.ones_like(z)] + [above(j) for j in JOINTS[1:-1]] + [np.zeros_like(z)]
     return np.stack([steps[i] - steps[i + 1] for i in range(len(BONES))], axis=1)
 
@@ -92,7 +95,7 @@ def checker_image(name="Splatwright Demo Checker", size=64, cells=8):
     image = bpy.data.images.get(name)
     if image is None:
         image = bpy.data.images.new(name, size, size)
-        cell = (np.arange(size) * cells // size)
+        cell = np.arange(size) * cells // size
         odd = (cell[:, None] + cell[None, :]) % 2 == 1
         pixels = np.where(odd[..., None], (0.95, 0.8, 0.1, 1.0), (0.15, 0.15, 0.15, 1.0)).astype(np.float32)
         image.pixels.foreach_set(pixels.ravel())
@@ -139,6 +142,7 @@ def _mesh_object(name, parts, collection):
 
 # the rig ---------------------------------------------------------------------------------------------
 
+
 def _armature(scene, collection):
     arm_data = bpy.data.armatures.new("Demo Arm Rig")
     arm = bpy.data.objects.new("Demo Arm Rig", arm_data)
@@ -168,7 +172,7 @@ def _skin(body, arm):
     for b, name in enumerate(BONES):
         group = body.vertex_groups.new(name=name)
         w = weights[:, b]
-        for value in np.unique(w[w > 0]):          # one call per distinct weight (one per ring height)
+        for value in np.unique(w[w > 0]):  # one call per distinct weight (one per ring height)
             group.add(np.flatnonzero(w == value).tolist(), float(value), "REPLACE")
     mod = body.modifiers.new("Armature", "ARMATURE")
     mod.object = arm
@@ -188,6 +192,7 @@ def _animate(scene, arm):
 
 def _camera_and_light(scene, collection):
     from mathutils import Vector
+
     cam = bpy.data.objects.new("Demo Camera", bpy.data.cameras.new("Demo Camera"))
     cam.location = CAMERA_LOCATION
     cam.rotation_euler = (Vector(LOOK_AT) - Vector(CAMERA_LOCATION)).to_track_quat("-Z", "Y").to_euler()
@@ -202,8 +207,12 @@ def _camera_and_light(scene, collection):
 
 def _environment_mesh(collection):
     half = FLOOR_SIZE / 2
-    floor = (np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], float),
-             [[0, 1, 2, 3]], [[(0, 0), (1, 0), (1, 1), (0, 1)]], _material("Demo Floor", (0.3, 0.3, 0.28)))
+    floor = (
+        np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], float),
+        [[0, 1, 2, 3]],
+        [[(0, 0), (1, 0), (1, 1), (0, 1)]],
+        _material("Demo Floor", (0.3, 0.3, 0.28)),
+    )
     centre, edge = ENVIRONMENT_BOX
     corners = np.array([[x, y, z] for z in (-1, 1) for y in (-1, 1) for x in (-1, 1)], float) * edge / 2 + centre
     quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
@@ -234,8 +243,8 @@ def build_demo_rig(scene, environment_splats=20_000, calibrate=True):
     environment = None
     if environment_splats:
         from . import from_mesh
-        results = from_mesh.convert_objects(bpy.context, [env_mesh], max_splats=environment_splats,
-                                            calibrate=calibrate)
+
+        results = from_mesh.convert_objects(bpy.context, [env_mesh], max_splats=environment_splats, calibrate=calibrate)
         environment = from_mesh.create_splat_objects(bpy.context, results)[0]
         env_mesh.hide_render = True
     scene.frame_set(FRAMES[0])

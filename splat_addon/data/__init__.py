@@ -18,18 +18,84 @@ The names of the first six are gathered here: `data.evaluated_cloud`, `data.Spla
 """
 
 # ruff: noqa: F401
-from .keys import (MARKER, LAYOUT_VERSION, EXTRAS_SPEC, ANTIALIASED, SOURCE_EXTRAS, MESH_FORM, NATIVE_FORM, LANDING,
-                   SPZ_POSITION_BITS, ROTATION, LOG_SCALE, OPACITY, SH_PREFIX, EXTRA_PREFIX, MAX_NAME, NATIVE_SCALE,
-                   NATIVE_ROTATION, NATIVE_BASE, NATIVE_SH_PREFIX, EXACT_LOG_SCALE, EXACT_LOGIT, REST_PREFIX,
-                   NATIVE_REQUIRED, FRAME_RECORD, SOURCE)
-from .errors import SplatModeWarning, reported_warnings, SplatObjectError, EXPECTED_ERRORS
-from .attributes import (splat_count, sh_attribute, set_attribute, BASE_TYPES, base_type, native_log_scales,
-                         native_opacity_logits)
-from .forms import (is_splat_mesh, is_native_splats, is_gaussian_type, splat_form, is_splat_object, sh_degree,
-                    native_supported, native_by_default, is_posed_native, keep_rest_pose, show_posed, landed_raw,
-                    on_spz_grid, stamp_landing, geometry_cloud, made_antialiased, mesh_to_cloud, cloud_to_mesh,
-                    cloud_to_pointcloud, update_splats, built_datablock, new_splat_object, remove_geometry,
-                    remove_splat_object, object_cloud, object_to_cloud)
-from .transforms import probe_indices, probe_centres, remember_frame, world_matrix, snap_matrix, transform_cloud
-from .scene import (POSERS, OWN_MODIFIERS, EDITS, evaluated_cloud, own_cloud, is_modified, modified_cloud,
-                    carry_frames, SplatInstance, splat_instances, generated_cloud, instances_cloud, frame_range)
+from .attributes import (
+    BASE_TYPES,
+    base_type,
+    native_log_scales,
+    native_opacity_logits,
+    set_attribute,
+    sh_attribute,
+    splat_count,
+)
+from .errors import EXPECTED_ERRORS, SplatModeWarning, SplatObjectError, reported_warnings
+from .forms import (
+    built_datablock,
+    cloud_to_mesh,
+    cloud_to_pointcloud,
+    geometry_cloud,
+    is_gaussian_type,
+    is_native_splats,
+    is_posed_native,
+    is_splat_mesh,
+    is_splat_object,
+    keep_rest_pose,
+    landed_raw,
+    made_antialiased,
+    mesh_to_cloud,
+    native_by_default,
+    native_supported,
+    new_splat_object,
+    object_cloud,
+    object_to_cloud,
+    on_spz_grid,
+    remove_geometry,
+    remove_splat_object,
+    sh_degree,
+    show_posed,
+    splat_form,
+    stamp_landing,
+    update_splats,
+)
+from .keys import (
+    ANTIALIASED,
+    EXACT_LOG_SCALE,
+    EXACT_LOGIT,
+    EXTRA_PREFIX,
+    EXTRAS_SPEC,
+    FRAME_RECORD,
+    LANDING,
+    LAYOUT_VERSION,
+    LOG_SCALE,
+    MARKER,
+    MAX_NAME,
+    MESH_FORM,
+    NATIVE_BASE,
+    NATIVE_FORM,
+    NATIVE_REQUIRED,
+    NATIVE_ROTATION,
+    NATIVE_SCALE,
+    NATIVE_SH_PREFIX,
+    OPACITY,
+    REST_PREFIX,
+    ROTATION,
+    SH_PREFIX,
+    SOURCE,
+    SOURCE_EXTRAS,
+    SPZ_POSITION_BITS,
+)
+from .scene import (
+    EDITS,
+    OWN_MODIFIERS,
+    POSERS,
+    SplatInstance,
+    carry_frames,
+    evaluated_cloud,
+    frame_range,
+    generated_cloud,
+    instances_cloud,
+    is_modified,
+    modified_cloud,
+    own_cloud,
+    splat_instances,
+)
+from .transforms import probe_centres, probe_indices, remember_frame, snap_matrix, transform_cloud, world_matrix

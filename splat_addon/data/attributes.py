@@ -25,7 +25,6 @@ _TYPES = {
 }
 
 
-
 def splat_count(geometry):
     """Splats of a mesh or point cloud datablock (original or evaluated)."""
     return len(geometry.vertices) if isinstance(geometry, bpy.types.Mesh) else len(geometry.points)
@@ -36,6 +35,7 @@ def sh_attribute(k):
 
 
 # attributes -------------------------------------------------------------------------------------------
+
 
 def _set(geometry, name, kind, values):
     """Write `values` into the point attribute `name`, creating it if needed."""
@@ -70,8 +70,10 @@ def _get(geometry, name, kinds, owner, out=None):
     if attr is None:
         raise SplatObjectError(f"'{owner}' has no '{name}' point attribute")
     if attr.data_type not in kinds or attr.domain != "POINT":
-        raise SplatObjectError(f"'{owner}': attribute '{name}' is {attr.data_type} on {attr.domain}, "
-                               f"expected {' or '.join(kinds)} on POINT")
+        raise SplatObjectError(
+            f"'{owner}': attribute '{name}' is {attr.data_type} on {attr.domain}, "
+            f"expected {' or '.join(kinds)} on POINT"
+        )
     prop, width, dtype = _TYPES[attr.data_type]
     if out is None:
         out = np.empty((splat_count(geometry), width), dtype=dtype)
@@ -84,21 +86,26 @@ def _coefficient_major(sh, rows=4096):
     whole-array transpose, whose scattered writes miss the cache."""
     out = np.empty((sh.shape[1], sh.shape[0], 3), np.float32)
     for start in range(0, len(sh), rows):
-        out[:, start:start + rows] = sh[start:start + rows].transpose(1, 0, 2)
+        out[:, start : start + rows] = sh[start : start + rows].transpose(1, 0, 2)
     return out
 
 
 def _sh_count(geometry, prefix, offset, owner):
     """Coefficients held as attributes prefix<k> (k = 0..) plus `offset` held elsewhere."""
-    present = {int(a.name[len(prefix):]) for a in geometry.attributes
-               if a.name.startswith(prefix) and a.name[len(prefix):].isdigit()}
+    present = {
+        int(a.name[len(prefix) :])
+        for a in geometry.attributes
+        if a.name.startswith(prefix) and a.name[len(prefix) :].isdigit()
+    }
     stored = max(present, default=-1) + 1
     count = stored + offset
     missing = sorted(set(range(stored)) - present)
     if count not in shmod.VALID_COUNTS or missing:
-        raise SplatObjectError(f"'{owner}': SH attributes {prefix}0..{stored - 1} do not form a full degree "
-                               f"(found {count} coefficients, missing {missing or 'none'}; need one of "
-                               f"{', '.join(map(str, shmod.VALID_COUNTS))})")
+        raise SplatObjectError(
+            f"'{owner}': SH attributes {prefix}0..{stored - 1} do not form a full degree "
+            f"(found {count} coefficients, missing {missing or 'none'}; need one of "
+            f"{', '.join(map(str, shmod.VALID_COUNTS))})"
+        )
     return count
 
 
@@ -111,7 +118,7 @@ def _read_sh(geometry, prefix, first, owner, count):
     return by_coefficient.transpose(1, 0, 2)
 
 
-BASE_TYPES = ("FLOAT4", "FLOAT_COLOR", "QUATERNION")     # what radiance:base may be: four floats
+BASE_TYPES = ("FLOAT4", "FLOAT_COLOR", "QUATERNION")  # what radiance:base may be: four floats
 
 
 def base_type():
@@ -130,7 +137,7 @@ def native_log_scales(scales):
 def native_opacity_logits(opacities):
     """Logits of float32 opacities; 0 and 1 become the logits of the nearest float32 opacities
     inside (0, 1), so a fully opaque or clear splat stays finite."""
-    return logit(opacities.astype(np.float64), eps=2.0 ** -24)
+    return logit(opacities.astype(np.float64), eps=2.0**-24)
 
 
 def _exact_or(pointcloud, name, kind, owner, linear, from_linear):
@@ -146,6 +153,7 @@ def _exact_or(pointcloud, name, kind, owner, linear, from_linear):
 
 
 # extras -----------------------------------------------------------------------------------------------
+
 
 def _extra_kind(values):
     """How an extra array is stored: (kind, columns) or None when it does not fit an attribute."""
@@ -197,15 +205,19 @@ def _read_extras(geometry, owner, spec_owner):
     for name, (dtype, columns, ndim) in spec.items():
         names = _extra_names(name, columns)
         if all(n in geometry.attributes for n in names):
-            values = np.concatenate([_get(geometry, n, geometry.attributes[n].data_type, owner) for n in names],
-                                    axis=1)
+            values = np.concatenate([_get(geometry, n, geometry.attributes[n].data_type, owner) for n in names], axis=1)
             extras[name] = (values[:, 0] if ndim == 1 else values).astype(np.dtype(dtype))
     # Extras joined in from another splat object whose spec was not kept: read them as stored.
     known = {n for name, (_, columns, _) in spec.items() for n in _extra_names(name, columns)}
     for attr in geometry.attributes:
-        name = attr.name[len(EXTRA_PREFIX):]
-        if attr.name.startswith(EXTRA_PREFIX) and attr.name not in known and "." not in name \
-                and attr.domain == "POINT" and attr.data_type in _TYPES:
+        name = attr.name[len(EXTRA_PREFIX) :]
+        if (
+            attr.name.startswith(EXTRA_PREFIX)
+            and attr.name not in known
+            and "." not in name
+            and attr.domain == "POINT"
+            and attr.data_type in _TYPES
+        ):
             values = _get(geometry, attr.name, attr.data_type, owner)
             extras[name] = values[:, 0] if values.shape[1] == 1 else values
     return extras

@@ -12,8 +12,9 @@ class CameraError(ValueError):
 def lens_settings(cam_data, render):
     """The keyword arguments of core.camera.blender_intrinsics for a Blender camera datablock."""
     if cam_data.type not in ("PERSP", "ORTHO"):
-        raise CameraError(f"camera '{cam_data.name}' is {cam_data.type}; Splatwright renders "
-                          "perspective and orthographic cameras")
+        raise CameraError(
+            f"camera '{cam_data.name}' is {cam_data.type}; Splatwright renders perspective and orthographic cameras"
+        )
     return {
         "lens": cam_data.lens,
         "sensor_width": cam_data.sensor_width,
@@ -38,6 +39,11 @@ def from_object(cam_obj, scene, width, height, origin=(0.0, 0.0, 0.0)):
     if not np.isfinite(matrix).all() or np.linalg.det(matrix[:3, :3]) == 0:
         raise CameraError(f"camera '{cam_obj.name}' has a zero scale or a transform holding NaN or Inf")
     matrix[:3, 3] -= origin
-    return Camera.from_blender(matrix, width, height,
-                               clip_start=cam_data.clip_start, clip_end=cam_data.clip_end,
-                               **lens_settings(cam_data, scene.render))
+    return Camera.from_blender(
+        matrix,
+        width,
+        height,
+        clip_start=cam_data.clip_start,
+        clip_end=cam_data.clip_end,
+        **lens_settings(cam_data, scene.render),
+    )

@@ -17,10 +17,10 @@ from .keys import LOG_SCALE, OPACITY
 GROUP_NAME = "Splatwright Display"
 MATERIAL_NAME = "Splatwright Splat"
 MODIFIER_NAME = "Splatwright Display"
-TAG = "splatwright_display"     # custom property on the node group and material: build version
-VERSION = 3                     # 3: the mesh passes through; gamma by a Gamma node (POWER is 4.3+)
-SRGB_GAMMA = 2.2                # display-only approximation of the sRGB -> linear curve
-DISPLAY_BUDGET = 1_000_000      # splats drawn per object before the display thins itself out
+TAG = "splatwright_display"  # custom property on the node group and material: build version
+VERSION = 3  # 3: the mesh passes through; gamma by a Gamma node (POWER is 4.3+)
+SRGB_GAMMA = 2.2  # display-only approximation of the sRGB -> linear curve
+DISPLAY_BUDGET = 1_000_000  # splats drawn per object before the display thins itself out
 
 
 def display_material():
@@ -30,7 +30,7 @@ def display_material():
         return mat
     mat = bpy.data.materials.new(MATERIAL_NAME)
     mat[TAG] = VERSION
-    mat.diffuse_color = (0.55, 0.62, 0.75, 1.0)    # Solid mode's material colour
+    mat.diffuse_color = (0.55, 0.62, 0.75, 1.0)  # Solid mode's material colour
     tree = _material_tree(mat)
     nodes, links = tree.nodes, tree.links
     nodes.clear()
@@ -38,7 +38,7 @@ def display_material():
     attr.attribute_type, attr.attribute_name = "GEOMETRY", sh_attribute(0)
     dc_to_rgb = _vector_math(nodes, "MULTIPLY_ADD", None, (shmod.C0,) * 3, (0.5,) * 3)
     clamp = _vector_math(nodes, "MAXIMUM", None, (0.0,) * 3)
-    to_linear = nodes.new("ShaderNodeGamma")        # Vector Math has POWER only from Blender 4.3
+    to_linear = nodes.new("ShaderNodeGamma")  # Vector Math has POWER only from Blender 4.3
     to_linear.inputs["Gamma"].default_value = SRGB_GAMMA
     emission = nodes.new("ShaderNodeEmission")
     out = nodes.new("ShaderNodeOutputMaterial")
@@ -103,12 +103,27 @@ def display_group():
     group = bpy.data.node_groups.new(GROUP_NAME, "GeometryNodeTree")
     group[TAG] = VERSION
     _socket(group, "Geometry", "INPUT", "NodeSocketGeometry")
-    _socket(group, "Radius Scale", "INPUT", "NodeSocketFloat", 1.0, 0.0, None,
-            "Point radius in standard deviations of each splat's longest axis")
-    _socket(group, "Min Opacity", "INPUT", "NodeSocketFloat", 0.05, 0.0, 1.0,
-            "Hide splats fainter than this")
-    _socket(group, "Display Ratio", "INPUT", "NodeSocketFloat", 1.0, 0.0, 1.0,
-            "Fraction of splats drawn (lower it for very large clouds)")
+    _socket(
+        group,
+        "Radius Scale",
+        "INPUT",
+        "NodeSocketFloat",
+        1.0,
+        0.0,
+        None,
+        "Point radius in standard deviations of each splat's longest axis",
+    )
+    _socket(group, "Min Opacity", "INPUT", "NodeSocketFloat", 0.05, 0.0, 1.0, "Hide splats fainter than this")
+    _socket(
+        group,
+        "Display Ratio",
+        "INPUT",
+        "NodeSocketFloat",
+        1.0,
+        0.0,
+        1.0,
+        "Fraction of splats drawn (lower it for very large clouds)",
+    )
     _socket(group, "Geometry", "OUTPUT", "NodeSocketGeometry")
     nodes, links = group.nodes, group.links
     gin, gout = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
@@ -134,8 +149,9 @@ def _radius(nodes, links, gin):
     """exp(max(log_scale)) * Radius Scale."""
     split = nodes.new("ShaderNodeSeparateXYZ")
     links.new(_named(nodes, "FLOAT_VECTOR", LOG_SCALE), split.inputs[0])
-    largest = _math(nodes, links, "MAXIMUM", _math(nodes, links, "MAXIMUM", split.outputs[0], split.outputs[1]),
-                    split.outputs[2])
+    largest = _math(
+        nodes, links, "MAXIMUM", _math(nodes, links, "MAXIMUM", split.outputs[0], split.outputs[1]), split.outputs[2]
+    )
     return _math(nodes, links, "MULTIPLY", _math(nodes, links, "EXPONENT", largest), gin.outputs["Radius Scale"])
 
 
@@ -172,8 +188,11 @@ def add_display(obj, display_ratio=1.0):
 def input_property(mod, name):
     """(owner, property name) of the display modifier's input `name`, for layout.prop(): a struct's
     `value` from Blender 5.2, the modifier's ID property before (see set_input)."""
-    identifier = next(item.identifier for item in mod.node_group.interface.items_tree
-                      if getattr(item, "name", None) == name and item.in_out == "INPUT")
+    identifier = next(
+        item.identifier
+        for item in mod.node_group.interface.items_tree
+        if getattr(item, "name", None) == name and item.in_out == "INPUT"
+    )
     if "properties" in mod.bl_rna.properties:
         return getattr(mod.properties.inputs, identifier), "value"
     return mod, f'["{identifier}"]'
@@ -182,8 +201,11 @@ def input_property(mod, name):
 def set_input(mod, name, value):
     """Set one of the display modifier's inputs by its name. Up to Blender 5.1 the values are ID
     properties of the modifier; from 5.2 each is a struct under `properties.inputs` with a `value`."""
-    identifier = next(item.identifier for item in mod.node_group.interface.items_tree
-                      if getattr(item, "name", None) == name and item.in_out == "INPUT")
+    identifier = next(
+        item.identifier
+        for item in mod.node_group.interface.items_tree
+        if getattr(item, "name", None) == name and item.in_out == "INPUT"
+    )
     if "properties" in mod.bl_rna.properties:
         getattr(mod.properties.inputs, identifier).value = value
     else:

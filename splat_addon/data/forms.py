@@ -38,18 +38,52 @@ import numpy as np
 from ...core import SplatCloud
 from ...core import sh as shmod
 from ...core.splats import sigmoid
-from .attributes import (BASE_TYPES, _changed, _coefficient_major, _exact_or, _extra_kind, _get, _read_extras,
-                         _read_sh, _set, _sh_count, _write_extra, _write_extras, base_type, native_log_scales,
-                         native_opacity_logits, sh_attribute, splat_count)
+from .attributes import (
+    BASE_TYPES,
+    _changed,
+    _coefficient_major,
+    _exact_or,
+    _extra_kind,
+    _get,
+    _read_extras,
+    _read_sh,
+    _set,
+    _sh_count,
+    _write_extra,
+    _write_extras,
+    base_type,
+    native_log_scales,
+    native_opacity_logits,
+    sh_attribute,
+    splat_count,
+)
 from .errors import SplatObjectError
-from .keys import (ANTIALIASED, EXACT_LOG_SCALE, EXACT_LOGIT, EXTRAS_SPEC, LANDING, LAYOUT_VERSION, LOG_SCALE, MARKER,
-                   MESH_FORM, NATIVE_BASE, NATIVE_FORM, NATIVE_REQUIRED, NATIVE_ROTATION, NATIVE_SCALE,
-                   NATIVE_SH_PREFIX, OPACITY, REST_PREFIX, ROTATION, SH_PREFIX, SPZ_POSITION_BITS)
+from .keys import (
+    ANTIALIASED,
+    EXACT_LOG_SCALE,
+    EXACT_LOGIT,
+    EXTRAS_SPEC,
+    LANDING,
+    LAYOUT_VERSION,
+    LOG_SCALE,
+    MARKER,
+    MESH_FORM,
+    NATIVE_BASE,
+    NATIVE_FORM,
+    NATIVE_REQUIRED,
+    NATIVE_ROTATION,
+    NATIVE_SCALE,
+    NATIVE_SH_PREFIX,
+    OPACITY,
+    REST_PREFIX,
+    ROTATION,
+    SH_PREFIX,
+    SPZ_POSITION_BITS,
+)
 from .transforms import remember_frame, transform_cloud
 
-
-
 # forms ------------------------------------------------------------------------------------------------
+
 
 def is_splat_mesh(mesh):
     return mesh is not None and MARKER in mesh.keys()
@@ -112,8 +146,9 @@ def native_by_default():
 
 # the mesh form ----------------------------------------------------------------------------------------
 
+
 def _write_mesh_form(mesh, cloud):
-    _set(mesh, "position", "FLOAT_VECTOR", cloud.positions)      # an empty mesh has no position attribute yet
+    _set(mesh, "position", "FLOAT_VECTOR", cloud.positions)  # an empty mesh has no position attribute yet
     _set(mesh, ROTATION, "QUATERNION", cloud.rotations)
     _set(mesh, LOG_SCALE, "FLOAT_VECTOR", cloud.log_scales)
     _set(mesh, OPACITY, "FLOAT", cloud.opacity_logits)
@@ -124,13 +159,17 @@ def _write_mesh_form(mesh, cloud):
 
 def _read_mesh_form(mesh, owner):
     sh = _read_sh(mesh, SH_PREFIX, 0, owner, _sh_count(mesh, SH_PREFIX, 0, owner))
-    return dict(positions=_get(mesh, "position", "FLOAT_VECTOR", owner),
-                rotations=_get(mesh, ROTATION, "QUATERNION", owner),
-                log_scales=_get(mesh, LOG_SCALE, "FLOAT_VECTOR", owner),
-                opacity_logits=_get(mesh, OPACITY, "FLOAT", owner)[:, 0], sh=sh)
+    return dict(
+        positions=_get(mesh, "position", "FLOAT_VECTOR", owner),
+        rotations=_get(mesh, ROTATION, "QUATERNION", owner),
+        log_scales=_get(mesh, LOG_SCALE, "FLOAT_VECTOR", owner),
+        opacity_logits=_get(mesh, OPACITY, "FLOAT", owner)[:, 0],
+        sh=sh,
+    )
 
 
 # the native form --------------------------------------------------------------------------------------
+
 
 def _write_native_form(pointcloud, cloud, prefix=""):
     """Write `cloud` as native attributes; `prefix` REST_PREFIX keeps it as the rest pose instead."""
@@ -147,8 +186,8 @@ def _write_native_form(pointcloud, cloud, prefix=""):
     for k in range(1, cloud.sh.shape[1]):
         _set(pointcloud, f"{sh_prefix}{k - 1}", "FLOAT_VECTOR", by_coefficient[k])
     for name in [a.name for a in pointcloud.attributes if a.name.startswith(sh_prefix)]:
-        suffix = name[len(sh_prefix):]
-        if suffix.isdigit() and int(suffix) >= cloud.sh.shape[1] - 1:      # a lower degree than before
+        suffix = name[len(sh_prefix) :]
+        if suffix.isdigit() and int(suffix) >= cloud.sh.shape[1] - 1:  # a lower degree than before
             pointcloud.attributes.remove(pointcloud.attributes[name])
     _set(pointcloud, prefix + EXACT_LOG_SCALE, "FLOAT_VECTOR", cloud.log_scales)
     _set(pointcloud, prefix + EXACT_LOGIT, "FLOAT", cloud.opacity_logits)
@@ -162,13 +201,15 @@ def _read_native_form(pointcloud, owner):
     base = _get(pointcloud, prefix + NATIVE_BASE, BASE_TYPES, owner)
     sh[:, 0] = base[:, :3]
     scales = _get(pointcloud, prefix + NATIVE_SCALE, "FLOAT_VECTOR", owner)
-    return dict(positions=_get(pointcloud, prefix + "position", "FLOAT_VECTOR", owner),
-                rotations=_get(pointcloud, prefix + NATIVE_ROTATION, "QUATERNION", owner),
-                log_scales=_exact_or(pointcloud, prefix + EXACT_LOG_SCALE, "FLOAT_VECTOR", owner, scales,
-                                     native_log_scales),
-                opacity_logits=_exact_or(pointcloud, prefix + EXACT_LOGIT, "FLOAT", owner, base[:, 3:],
-                                         native_opacity_logits)[:, 0],
-                sh=sh)
+    return dict(
+        positions=_get(pointcloud, prefix + "position", "FLOAT_VECTOR", owner),
+        rotations=_get(pointcloud, prefix + NATIVE_ROTATION, "QUATERNION", owner),
+        log_scales=_exact_or(pointcloud, prefix + EXACT_LOG_SCALE, "FLOAT_VECTOR", owner, scales, native_log_scales),
+        opacity_logits=_exact_or(pointcloud, prefix + EXACT_LOGIT, "FLOAT", owner, base[:, 3:], native_opacity_logits)[
+            :, 0
+        ],
+        sh=sh,
+    )
 
 
 def is_posed_native(pointcloud):
@@ -190,6 +231,7 @@ def show_posed(obj, posed):
 
 
 # where the values stand -------------------------------------------------------------------------------
+
 
 def landed_raw(obj):
     """Whether `obj`'s own splats are a file's axes placed as they are (a capture lying on its side):
@@ -214,11 +256,11 @@ def on_spz_grid(positions):
     values = values[values != 0]
     if values.size == 0:
         return True
-    fraction, exponent = np.frexp(values)               # values = fraction 2^exponent, 0.5 <= |fraction| < 1
-    mantissa = np.abs(fraction * 2.0 ** 53).astype(np.uint64)
+    fraction, exponent = np.frexp(values)  # values = fraction 2^exponent, 0.5 <= |fraction| < 1
+    mantissa = np.abs(fraction * 2.0**53).astype(np.uint64)
     trailing = np.log2((mantissa & (~mantissa + np.uint64(1))).astype(np.float64))
     bits_needed = np.maximum(53 - exponent - trailing, 0).max()
-    return bool(np.abs(values).max() * 2.0 ** bits_needed < 2.0 ** (SPZ_POSITION_BITS - 1))
+    return bool(np.abs(values).max() * 2.0**bits_needed < 2.0 ** (SPZ_POSITION_BITS - 1))
 
 
 def stamp_landing(obj, raw=None):
@@ -228,6 +270,7 @@ def stamp_landing(obj, raw=None):
 
 
 # datablocks -------------------------------------------------------------------------------------------
+
 
 def geometry_cloud(geometry, owner=None, form=None, spec_owner=None):
     """The SplatCloud a splat mesh or point cloud (original or evaluated) holds, in object space.
@@ -240,8 +283,11 @@ def geometry_cloud(geometry, owner=None, form=None, spec_owner=None):
             raise SplatObjectError(f"'{owner}' is not a splat cloud (mesh without the '{MARKER}' marker)")
     read = _read_mesh_form if form == MESH_FORM else _read_native_form
     spec_owner = spec_owner or geometry
-    return SplatCloud(**read(geometry, owner), extras=_read_extras(geometry, owner, spec_owner),
-                      antialiased=made_antialiased(spec_owner))
+    return SplatCloud(
+        **read(geometry, owner),
+        extras=_read_extras(geometry, owner, spec_owner),
+        antialiased=made_antialiased(spec_owner),
+    )
 
 
 def made_antialiased(geometry):
@@ -305,16 +351,19 @@ def _new_pointcloud(name, count):
         pointcloud.resize(count)
         return pointcloud
     if not native_supported():
-        raise SplatObjectError(f"Blender {bpy.app.version_string} cannot make point clouds from Python "
-                               f"(Blender 4.5 and later can): '{name}' stays a splat mesh")
+        raise SplatObjectError(
+            f"Blender {bpy.app.version_string} cannot make point clouds from Python "
+            f"(Blender 4.5 and later can): '{name}' stays a splat mesh"
+        )
     mesh = bpy.data.meshes.new(name)
     mesh.vertices.add(count)
     obj = bpy.data.objects.new(name, mesh)
     scene = bpy.context.scene
     scene.collection.objects.link(obj)
     try:
-        with bpy.context.temp_override(active_object=obj, object=obj, selected_objects=[obj],
-                                       selected_editable_objects=[obj]):
+        with bpy.context.temp_override(
+            active_object=obj, object=obj, selected_objects=[obj], selected_editable_objects=[obj]
+        ):
             bpy.ops.object.convert(target="POINTCLOUD")
         pointcloud = obj.data
         if not isinstance(pointcloud, bpy.types.PointCloud):
@@ -324,7 +373,7 @@ def _new_pointcloud(name, count):
     finally:
         mesh_left = obj.data if isinstance(obj.data, bpy.types.Mesh) else None
         bpy.data.objects.remove(obj)
-        if mesh_left is not None:               # not converted: that is `mesh`, gone now
+        if mesh_left is not None:  # not converted: that is `mesh`, gone now
             bpy.data.meshes.remove(mesh_left)
         elif mesh.name in bpy.data.meshes and mesh.users == 0:
             bpy.data.meshes.remove(mesh)
@@ -372,6 +421,7 @@ def built_datablock(collection, name, tag, version):
 
 
 # objects ----------------------------------------------------------------------------------------------
+
 
 def new_splat_object(cloud, name, collection, matrix=None, form=None):
     """Link a new splat object holding `cloud` into `collection`; returns (object, skipped extras).

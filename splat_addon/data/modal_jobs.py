@@ -5,9 +5,8 @@ A job (convert/from_mesh.py ConversionJob, rig/collide.py CollisionJob) has step
 its end without a window (Python, `blender -b`), so both paths compute the same thing.
 """
 
-
 CANCEL_KEYS = {"ESC", "RIGHTMOUSE"}
-TICK = 0.01                        # seconds between steps: the interface redraws in between
+TICK = 0.01  # seconds between steps: the interface redraws in between
 PROGRESS_UNITS = 1000
 
 

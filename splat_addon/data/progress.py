@@ -16,4 +16,3 @@ class Progress:
     def end(self):
         if self.wm is not None:
             self.wm.progress_end()
-

@@ -15,11 +15,16 @@ import numpy as np
 
 from ...core import SplatCloud
 from .errors import SplatModeWarning
-from .forms import (NATIVE_FORM, _transformed, geometry_cloud, is_native_splats, is_splat_object, object_cloud,
-                    splat_form)
+from .forms import (
+    NATIVE_FORM,
+    _transformed,
+    geometry_cloud,
+    is_native_splats,
+    is_splat_object,
+    object_cloud,
+    splat_form,
+)
 from .transforms import transform_cloud, world_matrix
-
-
 
 # the evaluated scene ----------------------------------------------------------------------------------
 
@@ -64,7 +69,7 @@ def _evaluated_geometry_cloud(obj, depsgraph):
     evaluated, form = obj.evaluated_get(depsgraph), splat_form(obj)
     if obj.mode != "EDIT" or obj.type != "MESH":
         return geometry_cloud(evaluated.data, obj.name, form, spec_owner=obj.data)
-    mesh = evaluated.to_mesh()      # apart from the edit data, where the attribute API would look
+    mesh = evaluated.to_mesh()  # apart from the edit data, where the attribute API would look
     try:
         return geometry_cloud(mesh, obj.name, form, spec_owner=obj.data)
     finally:
@@ -77,8 +82,9 @@ def is_modified(obj, depsgraph):
     if obj.mode == "EDIT" or getattr(obj.data, "shape_keys", None) is not None:
         return True
     render = depsgraph.mode == "RENDER"
-    return any((mod.show_render if render else mod.show_viewport) and mod.name not in OWN_MODIFIERS
-               for mod in obj.modifiers)
+    return any(
+        (mod.show_render if render else mod.show_viewport) and mod.name not in OWN_MODIFIERS for mod in obj.modifiers
+    )
 
 
 def modified_cloud(obj, depsgraph):
@@ -107,32 +113,33 @@ def carry_frames(own, evaluated, tolerance=1e-5):
     if n == 0 or m % n or m == 0:
         return evaluated
     copies = m // n
-    blocks = [evaluated[i * n:(i + 1) * n] for i in range(copies)]
-    if not all(np.array_equal(b.rotations, own.rotations) and np.array_equal(b.log_scales, own.log_scales)
-               for b in blocks):
+    blocks = [evaluated[i * n : (i + 1) * n] for i in range(copies)]
+    if not all(
+        np.array_equal(b.rotations, own.rotations) and np.array_equal(b.log_scales, own.log_scales) for b in blocks
+    ):
         return evaluated
     source = np.c_[own.positions.astype(np.float64), np.ones(n)]
     if np.linalg.matrix_rank(source - source.mean(axis=0) * [1, 1, 1, 0]) < 4:
-        return evaluated          # coplanar centres leave the map's normal part unknown
+        return evaluated  # coplanar centres leave the map's normal part unknown
     size = max(1.0, float(np.abs(evaluated.positions).max(initial=0.0)))
     turned = []
     for block in blocks:
         target = block.positions.astype(np.float64)
-        fit = np.linalg.lstsq(source, target, rcond=None)[0]          # (4, 3): x -> [x 1] fit
+        fit = np.linalg.lstsq(source, target, rcond=None)[0]  # (4, 3): x -> [x 1] fit
         if np.abs(source @ fit - target).max(initial=0.0) > tolerance * size:
             return evaluated
         matrix = np.eye(4)
         matrix[:3, :] = fit.T
-        if not np.allclose(matrix, np.eye(4), atol=tolerance):   # values a modifier set stay; frames turn
+        if not np.allclose(matrix, np.eye(4), atol=tolerance):  # values a modifier set stay; frames turn
             block = transform_cloud(block.replace(positions=own.positions), matrix).replace(positions=block.positions)
         turned.append(block)
     return turned[0] if copies == 1 else SplatCloud.concatenate(turned)
 
 
 class SplatInstance(NamedTuple):
-    obj: object              # the splat object (original)
-    instancer: object        # the object that instances it (original), None when drawn as itself
-    matrix: np.ndarray       # (4, 4) float64 world matrix of this instance
+    obj: object  # the splat object (original)
+    instancer: object  # the object that instances it (original), None when drawn as itself
+    matrix: np.ndarray  # (4, 4) float64 world matrix of this instance
 
 
 def splat_instances(depsgraph):
@@ -140,15 +147,20 @@ def splat_instances(depsgraph):
     instances (collection instances, instancing by vertices or faces), each with its own matrix. The
     display's point cloud of a splat mesh is not counted again."""
     found = []
-    for inst in depsgraph.object_instances:          # instance data is only valid during iteration
+    for inst in depsgraph.object_instances:  # instance data is only valid during iteration
         evaluated = inst.object
         original = evaluated.original
         instancer = inst.parent.original if inst.is_instance and inst.parent else None
         if evaluated.type == original.type and is_splat_object(original):
             found.append(SplatInstance(original, instancer, np.array(inst.matrix_world, dtype=np.float64)))
         elif _generated(evaluated, original):
-            found.append(SplatInstance(original, None if instancer == original else instancer,
-                                       np.array(inst.matrix_world, dtype=np.float64)))
+            found.append(
+                SplatInstance(
+                    original,
+                    None if instancer == original else instancer,
+                    np.array(inst.matrix_world, dtype=np.float64),
+                )
+            )
     return found
 
 
@@ -163,18 +175,19 @@ def generated_cloud(obj, depsgraph):
     evaluated = obj.evaluated_get(depsgraph)
     if is_splat_object(obj) or not hasattr(evaluated, "evaluated_geometry"):
         return None
-    geometry = evaluated.evaluated_geometry()          # the point cloud lives as long as this does
+    geometry = evaluated.evaluated_geometry()  # the point cloud lives as long as this does
     pointcloud = geometry.pointcloud
     if pointcloud is None or not is_native_splats(pointcloud):
         return None
     return geometry_cloud(pointcloud, obj.name, NATIVE_FORM)
 
 
-def instances_cloud(depsgraph, instances, conversion=np.eye(4)):
+def instances_cloud(depsgraph, instances, conversion=None):
     """One cloud of every (object, matrix) of `instances`, `conversion` @ matrix applied to each; each
     object is evaluated once however many instances it has. Splats made for antialiased rendering
     beside classic ones join them as classic (one render shows one mode), with a SplatModeWarning
     naming the objects."""
+    conversion = np.eye(4) if conversion is None else conversion
     own = {}
     clouds = []
     for obj, matrix in instances:
@@ -185,9 +198,12 @@ def instances_cloud(depsgraph, instances, conversion=np.eye(4)):
         return clouds[0]
     marked = sorted(name for name, cloud in own.items() if cloud.antialiased)
     if marked and len(marked) < len(own):
-        warnings.warn(f"{', '.join(marked)}: made for antialiased rendering, shown classic beside "
-                      "splats made for classic rendering (outlines about a pixel wider)", SplatModeWarning,
-                      stacklevel=2)
+        warnings.warn(
+            f"{', '.join(marked)}: made for antialiased rendering, shown classic beside "
+            "splats made for classic rendering (outlines about a pixel wider)",
+            SplatModeWarning,
+            stacklevel=2,
+        )
         clouds = [c.replace(antialiased=False) for c in clouds]
     return SplatCloud.concatenate(clouds)
 

@@ -24,8 +24,12 @@ def remember_frame(obj):
     this at once, so their own change is not taken for one."""
     count = splat_count(obj.data)
     indices = probe_indices(count)
-    obj[FRAME_RECORD] = {"basis": np.array(obj.matrix_basis, dtype=np.float64).ravel().tolist(), "count": count,
-                         "probes": indices, "centres": probe_centres(obj, indices).ravel().tolist()}
+    obj[FRAME_RECORD] = {
+        "basis": np.array(obj.matrix_basis, dtype=np.float64).ravel().tolist(),
+        "count": count,
+        "probes": indices,
+        "centres": probe_centres(obj, indices).ravel().tolist(),
+    }
 
 
 def world_matrix(obj, depsgraph=None):
@@ -51,7 +55,7 @@ def transform_cloud(cloud, matrix):
     """`cloud` under the affine 4x4 `matrix`; the identity returns the cloud itself, untouched, and
     a pure translation moves the centres only."""
     matrix = snap_matrix(matrix)
-    if not np.isfinite(matrix).all():      # the translation-only path below would spread NaN silently
+    if not np.isfinite(matrix).all():  # the translation-only path below would spread NaN silently
         raise ValueError("transform holds NaN or Inf")
     if np.array_equal(matrix[:3, :3], np.eye(3)) and np.array_equal(matrix[3], [0, 0, 0, 1]):
         if not matrix[:3, 3].any():

@@ -21,7 +21,7 @@ from bpy.app.handlers import persistent
 from .. import data
 from ..rig.armature import rig_of
 
-TOLERANCE = 1e-5           # relative to the probe centres' size: float32 round-off of the moved centres
+TOLERANCE = 1e-5  # relative to the probe centres' size: float32 round-off of the moved centres
 
 
 def applied_map(obj, record):
@@ -35,7 +35,7 @@ def applied_map(obj, record):
         return None
     moved = np.linalg.inv(new_basis) @ old_basis
     if np.allclose(moved[:3, :3], np.eye(3), rtol=0, atol=1e-12):
-        return None                          # a translation moves centres only: nothing to complete
+        return None  # a translation moves centres only: nothing to complete
     old = np.array(record["centres"], dtype=np.float64).reshape(-1, 3)
     now = data.probe_centres(obj, record["probes"])
     expected = old @ moved[:3, :3].T + moved[:3, 3]

@@ -35,10 +35,10 @@ from ..data.errors import EXPECTED_ERRORS
 from ..data.meshes import mesh_triangles
 
 SETTINGS = "splatwright_cleanup"
-REPORT = "splatwright_cleanup_report"          # the last change's report (JSON), for panels and scripts
-VISIBILITY = ".splatwright_visibility"          # FLOAT point attribute: largest weight over the camera path
+REPORT = "splatwright_cleanup_report"  # the last change's report (JSON), for panels and scripts
+VISIBILITY = ".splatwright_visibility"  # FLOAT point attribute: largest weight over the camera path
 DEFAULT_MAX_FRAMES = 24
-VISIBILITY_SIZE = 256                           # pixels on the long side of the visibility renders
+VISIBILITY_SIZE = 256  # pixels on the long side of the visibility renders
 
 
 class CleanupError(ValueError):
@@ -46,6 +46,7 @@ class CleanupError(ValueError):
 
 
 # settings -------------------------------------------------------------------------------------------
+
 
 def settings_of(obj):
     """The object's clean-up settings (a dict; empty when it has none)."""
@@ -84,8 +85,9 @@ def visibility_weights(obj, count):
     attr = obj.data.attributes.get(VISIBILITY)
     own = data.splat_count(obj.data)
     if attr is None or len(attr.data) != own or own == 0 or count % own:
-        raise data.SplatObjectError(f"'{obj.name}': its visibility was measured for other splats; "
-                                    "prune by visibility again")
+        raise data.SplatObjectError(
+            f"'{obj.name}': its visibility was measured for other splats; prune by visibility again"
+        )
     weights = np.empty(own, np.float32)
     attr.data.foreach_get("value", weights)
     return np.tile(weights, count // own)
@@ -97,6 +99,7 @@ def keep_mask(obj, depsgraph, cloud, settings):
 
     def both(mask):
         return mask if keep is None else keep & mask
+
     if "crop" in settings:
         keep = both(crop_mask(obj, depsgraph, cloud.positions, settings["crop"]))
     if "opacity" in settings:
@@ -132,6 +135,7 @@ def apply_settings(obj, depsgraph, cloud):
 
 # measuring ------------------------------------------------------------------------------------------
 
+
 def change_report(context, obj, measure=True):
     """What `obj`'s edits save and cost against its unedited splats (world space, the current frame):
     core.economy.change_report, stored on the object as REPORT and returned."""
@@ -139,7 +143,7 @@ def change_report(context, obj, measure=True):
     before = data.evaluated_cloud(obj, depsgraph, edits=False)
     after = data.evaluated_cloud(obj, depsgraph)
     report = economy.change_report(before, after, views=None if measure else [])
-    obj[REPORT] = json.dumps(report)           # an unchanged image's PSNR is written Infinity
+    obj[REPORT] = json.dumps(report)  # an unchanged image's PSNR is written Infinity
     return report
 
 
@@ -150,8 +154,11 @@ def camera_path_weights(context, obj, max_frames=DEFAULT_MAX_FRAMES):
     scene = context.scene
     if scene.camera is None:
         raise CleanupError("the scene has no camera: visibility is measured along the scene camera's path")
-    frames = np.unique(np.linspace(scene.frame_start, scene.frame_end,
-                                   min(max_frames, scene.frame_end - scene.frame_start + 1)).round().astype(int))
+    frames = np.unique(
+        np.linspace(scene.frame_start, scene.frame_end, min(max_frames, scene.frame_end - scene.frame_start + 1))
+        .round()
+        .astype(int)
+    )
     width, height = _visibility_size(scene)
     own = data.splat_count(obj.data)
     best = np.zeros(own, np.float32)
@@ -162,8 +169,9 @@ def camera_path_weights(context, obj, max_frames=DEFAULT_MAX_FRAMES):
             depsgraph = context.evaluated_depsgraph_get()
             cloud = data.evaluated_cloud(obj, depsgraph, edits=False)
             if own == 0 or len(cloud) % own:
-                raise CleanupError(f"'{obj.name}': its modifiers change its splat count, so its splats' "
-                                   "visibility cannot be kept")
+                raise CleanupError(
+                    f"'{obj.name}': its modifiers change its splat count, so its splats' visibility cannot be kept"
+                )
             cam = blender_camera.from_object(scene.camera.evaluated_get(depsgraph), scene, width, height)
             weight = economy.contributions(cloud, [cam]).reshape(-1, own).max(axis=0)
             np.maximum(best, weight, out=best)
@@ -182,6 +190,7 @@ def _visibility_size(scene):
 
 # operators ------------------------------------------------------------------------------------------
 
+
 def splat_targets(context, exclude=()):
     """The selected splat objects (not those in `exclude`), or CleanupError naming what was selected."""
     chosen = [o for o in context.selected_objects if data.is_splat_object(o) and o not in exclude]
@@ -196,9 +205,12 @@ class _CleanupOperator:
 
     bl_options = {"REGISTER", "UNDO"}
 
-    measure: BoolProperty(name="Measure", default=True,
-                          description="Report the render error of the change (PSNR over a few views around "
-                                      "the splats); off is quicker for huge clouds")
+    measure: BoolProperty(
+        name="Measure",
+        default=True,
+        description="Report the render error of the change (PSNR over a few views around "
+        "the splats); off is quicker for huge clouds",
+    )
 
     @classmethod
     def poll(cls, context):
@@ -207,7 +219,7 @@ class _CleanupOperator:
     def execute(self, context):
         try:
             targets = self.targets(context)
-            changes = [(obj, self.change(context, obj)) for obj in targets]     # everything checked first
+            changes = [(obj, self.change(context, obj)) for obj in targets]  # everything checked first
         except (CleanupError, core_cleanup.CleanupError, *EXPECTED_ERRORS) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -222,7 +234,7 @@ class _CleanupOperator:
                 store_settings(obj, settings)
                 self.stored(obj)
             reports = [(obj, change_report(context, obj, self.measure)) for obj in targets]
-        except EXPECTED_ERRORS as exc:             # a setting that cannot be applied: put the old back
+        except EXPECTED_ERRORS as exc:  # a setting that cannot be applied: put the old back
             for obj in targets:
                 store_settings(obj, olds[obj.name])
             self.report({"ERROR"}, str(exc))
@@ -246,8 +258,9 @@ class SPLAT_OT_crop(_CleanupOperator, bpy.types.Operator):
     bl_label = "Crop Splats"
     bl_options = {"REGISTER", "UNDO"}
 
-    volume: StringProperty(name="Volume", default="",
-                           description="Empty (its cube) or closed mesh to crop to (empty: the active object)")
+    volume: StringProperty(
+        name="Volume", default="", description="Empty (its cube) or closed mesh to crop to (empty: the active object)"
+    )
     invert: BoolProperty(name="Invert", default=False, description="Keep the splats outside the volume instead")
     clear: BoolProperty(name="Clear", default=False, description="Remove the crop")
 
@@ -258,11 +271,16 @@ class SPLAT_OT_crop(_CleanupOperator, bpy.types.Operator):
     def find_volume(self, context):
         volume = bpy.data.objects.get(self.volume) if self.volume else context.view_layer.objects.active
         if volume is None:
-            raise CleanupError(f"no object named '{self.volume}'" if self.volume else
-                               "no crop volume: make an Empty or a closed mesh the active object, or name it")
+            raise CleanupError(
+                f"no object named '{self.volume}'"
+                if self.volume
+                else "no crop volume: make an Empty or a closed mesh the active object, or name it"
+            )
         if volume.type not in ("EMPTY", "MESH") or data.is_splat_object(volume):
-            raise CleanupError(f"'{volume.name}' ({volume.type.lower()}) cannot be a crop volume: use an Empty "
-                               "(its cube) or a closed mesh")
+            raise CleanupError(
+                f"'{volume.name}' ({volume.type.lower()}) cannot be a crop volume: use an Empty "
+                "(its cube) or a closed mesh"
+            )
         if volume.type == "MESH" and not len(volume.data.polygons):
             raise CleanupError(f"the crop mesh '{volume.name}' has no faces: it encloses no volume")
         return volume
@@ -279,19 +297,38 @@ class SPLAT_OT_prune(_CleanupOperator, bpy.types.Operator):
     bl_label = "Prune Splats"
     bl_options = {"REGISTER", "UNDO"}
 
-    by: EnumProperty(name="By", default="OPACITY", items=(
-        ("OPACITY", "Opacity", "Remove splats fainter than the threshold"),
-        ("SIZE", "Size", "Remove splats smaller or larger than the sizes (largest standard deviation, world units)"),
-        ("VISIBILITY", "Camera Visibility", "Remove splats the scene camera never sees over the frame range")))
+    by: EnumProperty(
+        name="By",
+        default="OPACITY",
+        items=(
+            ("OPACITY", "Opacity", "Remove splats fainter than the threshold"),
+            (
+                "SIZE",
+                "Size",
+                "Remove splats smaller or larger than the sizes (largest standard deviation, world units)",
+            ),
+            ("VISIBILITY", "Camera Visibility", "Remove splats the scene camera never sees over the frame range"),
+        ),
+    )
     threshold: FloatProperty(name="Min Opacity", default=0.05, min=0.0, max=1.0)
     min_size: FloatProperty(name="Min Size", default=0.0, min=0.0, unit="LENGTH")
-    max_size: FloatProperty(name="Max Size", default=0.0, min=0.0, unit="LENGTH",
-                            description="Remove splats larger than this (0: no limit)")
-    min_weight: FloatProperty(name="Min Weight", default=1.0 / 255.0, min=0.0, max=1.0,
-                              description="Remove splats whose largest blending weight (T alpha) over the "
-                                          "camera's frames is not above this")
-    max_frames: IntProperty(name="Frames", default=DEFAULT_MAX_FRAMES, min=1, max=1000,
-                            description="Camera frames to look from, spread over the frame range")
+    max_size: FloatProperty(
+        name="Max Size", default=0.0, min=0.0, unit="LENGTH", description="Remove splats larger than this (0: no limit)"
+    )
+    min_weight: FloatProperty(
+        name="Min Weight",
+        default=1.0 / 255.0,
+        min=0.0,
+        max=1.0,
+        description="Remove splats whose largest blending weight (T alpha) over the camera's frames is not above this",
+    )
+    max_frames: IntProperty(
+        name="Frames",
+        default=DEFAULT_MAX_FRAMES,
+        min=1,
+        max=1000,
+        description="Camera frames to look from, spread over the frame range",
+    )
     clear: BoolProperty(name="Clear", default=False, description="Remove this kind of pruning")
 
     KEYS = {"OPACITY": "opacity", "SIZE": "size", "VISIBILITY": "visibility"}
@@ -307,7 +344,7 @@ class SPLAT_OT_prune(_CleanupOperator, bpy.types.Operator):
                 raise CleanupError(f"max size {self.max_size:g} is below min size {self.min_size:g}")
             return key, [self.min_size, self.max_size or None]
         weights, _ = camera_path_weights(context, obj, self.max_frames)
-        self._pending = getattr(self, "_pending", {})          # written once every object is checked
+        self._pending = getattr(self, "_pending", {})  # written once every object is checked
         self._pending[obj.name] = weights
         return key, self.min_weight
 
@@ -325,20 +362,34 @@ class SPLAT_OT_grade(_CleanupOperator, bpy.types.Operator):
     bl_label = "Grade Splats"
     bl_options = {"REGISTER", "UNDO"}
 
-    exposure: FloatProperty(name="Exposure", default=0.0, min=-10.0, max=10.0,
-                            description="Stops: colours times 2^exposure")
+    exposure: FloatProperty(
+        name="Exposure", default=0.0, min=-10.0, max=10.0, description="Stops: colours times 2^exposure"
+    )
     saturation: FloatProperty(name="Saturation", default=1.0, min=0.0, max=4.0)
-    hue: FloatProperty(name="Hue", default=0.0, min=-np.pi, max=np.pi, subtype="ANGLE",
-                       description="Turn of the hues about the grey axis")
-    white: FloatVectorProperty(name="White", default=(1.0, 1.0, 1.0), min=1e-3, max=1.0, size=3, subtype="COLOR",
-                               description="The colour that becomes neutral grey (white balance)")
+    hue: FloatProperty(
+        name="Hue",
+        default=0.0,
+        min=-np.pi,
+        max=np.pi,
+        subtype="ANGLE",
+        description="Turn of the hues about the grey axis",
+    )
+    white: FloatVectorProperty(
+        name="White",
+        default=(1.0, 1.0, 1.0),
+        min=1e-3,
+        max=1.0,
+        size=3,
+        subtype="COLOR",
+        description="The colour that becomes neutral grey (white balance)",
+    )
     clear: BoolProperty(name="Clear", default=False, description="Remove the grade")
 
     def change(self, context, obj):
         if self.clear:
             return "grade", None
         grade = {"exposure": self.exposure, "saturation": self.saturation, "hue": self.hue, "white": list(self.white)}
-        core_cleanup.grade_matrix(**grade)         # refused here, not at export
+        core_cleanup.grade_matrix(**grade)  # refused here, not at export
         return "grade", grade
 
 

@@ -66,8 +66,7 @@ class SPLAT_OT_join(bpy.types.Operator):
             # Read everything before changing anything, so an error leaves the scene as it was; the
             # target too, or Join would fill its missing attributes with made-up defaults.
             own = data.object_cloud(target)
-            moved = [data.object_to_cloud(o, to_target @ np.array(o.matrix_world, dtype=np.float64))
-                     for o in others]
+            moved = [data.object_to_cloud(o, to_target @ np.array(o.matrix_world, dtype=np.float64)) for o in others]
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -82,8 +81,9 @@ class SPLAT_OT_join(bpy.types.Operator):
             data.update_splats(obj, cloud)
             obj.matrix_world = target.matrix_world
             data.remember_frame(obj)
-        with context.temp_override(active_object=target, selected_editable_objects=[target, *others],
-                                   selected_objects=[target, *others]):
+        with context.temp_override(
+            active_object=target, selected_editable_objects=[target, *others], selected_objects=[target, *others]
+        ):
             done = bpy.ops.object.join()
         if done != {"FINISHED"}:
             self.report({"ERROR"}, f"Blender's Join did not join the splat objects into '{target.name}'")
@@ -94,8 +94,9 @@ class SPLAT_OT_join(bpy.types.Operator):
         holding every cloud; the others are removed."""
         try:
             joined = SplatCloud.concatenate(clouds)
-            made, skipped = data.new_splat_object(joined, target.name, context.scene.collection,
-                                                  form=data.splat_form(target))
+            made, skipped = data.new_splat_object(
+                joined, target.name, context.scene.collection, form=data.splat_form(target)
+            )
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -121,13 +122,15 @@ def _join_problem(target, others):
         return f"splat data shared by several objects: {', '.join(shared)}"
     if not others:
         return "select the splat objects to join into the active one"
-    if not any(data.splat_count(o.data) for o in others):      # Blender's Join would cancel
+    if not any(data.splat_count(o.data) for o in others):  # Blender's Join would cancel
         return f"nothing to join: the selected splat objects hold no splats ({', '.join(o.name for o in others)})"
     antialiased = data.made_antialiased(target.data)
     other_mode = [o.name for o in others if data.made_antialiased(o.data) != antialiased]
     if other_mode:
-        return (f"{', '.join(other_mode)}: made for {'classic' if antialiased else 'antialiased'} rendering, "
-                f"'{target.name}' for {'antialiased' if antialiased else 'classic'}; one object renders one way")
+        return (
+            f"{', '.join(other_mode)}: made for {'classic' if antialiased else 'antialiased'} rendering, "
+            f"'{target.name}' for {'antialiased' if antialiased else 'classic'}; one object renders one way"
+        )
     matrix = np.array(target.matrix_world, dtype=np.float64)
     if not np.isfinite(matrix).all():
         return f"'{target.name}' has a transform holding NaN or Inf: splats cannot be joined into it"
@@ -179,9 +182,14 @@ class SPLAT_OT_convert_form(bpy.types.Operator):
     bl_label = "Convert Splat Form"
     bl_options = {"REGISTER", "UNDO"}
 
-    form: EnumProperty(name="Form", default="NATIVE", items=(
-        ("NATIVE", "Point Cloud (Blender's Gaussian splats)", "Blender 5.3's own splat point clouds"),
-        ("MESH", "Splat Mesh", "Splatwright's mesh form, drawn by its display modifier")))
+    form: EnumProperty(
+        name="Form",
+        default="NATIVE",
+        items=(
+            ("NATIVE", "Point Cloud (Blender's Gaussian splats)", "Blender 5.3's own splat point clouds"),
+            ("MESH", "Splat Mesh", "Splatwright's mesh form, drawn by its display modifier"),
+        ),
+    )
 
     @classmethod
     def poll(cls, context):
@@ -197,14 +205,16 @@ class SPLAT_OT_convert_form(bpy.types.Operator):
             self.report({"ERROR"}, f"splat data shared by several objects: {', '.join(shared)}")
             return {"CANCELLED"}
         try:
-            for obj in targets:              # every object readable before any is replaced
+            for obj in targets:  # every object readable before any is replaced
                 data.object_cloud(obj)
         except EXPECTED_ERRORS as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         if self.form == data.NATIVE_FORM and not data.native_supported():
-            self.report({"ERROR"}, f"Blender {bpy.app.version_string} cannot make point clouds from Python "
-                                   "(Blender 4.5 and later can)")
+            self.report(
+                {"ERROR"},
+                f"Blender {bpy.app.version_string} cannot make point clouds from Python (Blender 4.5 and later can)",
+            )
             return {"CANCELLED"}
         for obj in targets:
             try:

@@ -25,7 +25,7 @@ from . import import_export
 from .export_options import ExportOptionProperties, ExportOptions
 
 HASHES = re.compile(r"#+")
-DEFAULT_PADDING = 4                 # Blender's own default, ####
+DEFAULT_PADDING = 4  # Blender's own default, ####
 
 
 def frame_path(pattern, frame):
@@ -35,7 +35,7 @@ def frame_path(pattern, frame):
     runs = list(HASHES.finditer(name))
     if runs:
         last = runs[-1]
-        name = f"{name[:last.start()]}{frame:0{len(last.group())}d}{name[last.end():]}"
+        name = f"{name[: last.start()]}{frame:0{len(last.group())}d}{name[last.end() :]}"
     else:
         name = f"{pattern.stem}_{frame:0{DEFAULT_PADDING}d}{pattern.suffix}"
     return pattern.with_name(name)
@@ -60,7 +60,7 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
     frames = list(frames)
     if not frames:
         raise ValueError("no frames to export")
-    single = is_single_file(path)            # raises SplatFileError for an unknown extension
+    single = is_single_file(path)  # raises SplatFileError for an unknown extension
     if not path.parent.is_dir():
         raise SplatFileError(path, f"folder {path.parent} does not exist")
     conversion = import_export.export_conversion() if conversion is None else conversion
@@ -78,12 +78,15 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
                 raise data.SplatObjectError(f"frame {frame}: {exc}") from None
             kept = options.kept(cloud) if i == 0 else kept
             if kept is not None and len(kept) != len(cloud):
-                raise SplatFileError(path, f"frame {frame} has {len(cloud)} splats, the first frame {len(kept)}: "
-                                           "pruning keeps the first frame's splats in every frame")
+                raise SplatFileError(
+                    path,
+                    f"frame {frame} has {len(cloud)} splats, the first frame {len(kept)}: "
+                    "pruning keeps the first frame's splats in every frame",
+                )
             cloud = options.reduce(cloud, kept)
             count = len(cloud)
             yield cloud
-            del cloud                        # before the next frame is evaluated
+            del cloud  # before the next frame is evaluated
             if progress:
                 where = "" if single else f" -> {frame_path(path, frame)}"
                 progress(i + 1, len(frames), f"frame {frame}: {count} splats{where}")
@@ -91,14 +94,20 @@ def export_animation(context, objects, path, frames, conversion=None, progress=N
     try:
         if single:
             from ...io import usd
-            usd.write_frames(path, clouds(), times=frames, fps=scene.render.fps / scene.render.fps_base,
-                             **options.writer_options(path))
+
+            usd.write_frames(
+                path,
+                clouds(),
+                times=frames,
+                fps=scene.render.fps / scene.render.fps_base,
+                **options.writer_options(path),
+            )
             return [path]
         written = [frame_path(path, frame) for frame in frames]
         blocked = next((out for out in written if out.is_dir()), None)
-        if blocked is not None:              # found before any frame is written, not when renaming
+        if blocked is not None:  # found before any frame is written, not when renaming
             raise SplatFileError(blocked, "a folder of that name is in the way")
-        with publish_together():             # each frame lands on its name once all are written
+        with publish_together():  # each frame lands on its name once all are written
             for out, cloud in zip(written, clouds()):
                 write_splats(out, cloud, **options.writer_options(out, cloud))
         return written
@@ -115,13 +124,13 @@ class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, Expo
     bl_label = "Export Splat Animation"
     bl_options = {"REGISTER", "PRESET"}
 
-    filename_ext = ".usd"          # binary with OpenUSD's module, text where Blender lacks it (4.2)
+    filename_ext = ".usd"  # binary with OpenUSD's module, text where Blender lacks it (4.2)
     check_extension = None
     filter_glob: StringProperty(default=import_export.FILTER_GLOB, options={"HIDDEN"})
-    selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",
-                                default=False)
-    use_scene_range: BoolProperty(name="Scene Frame Range", default=True,
-                                  description="Export the scene's frame range and step")
+    selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects", default=False)
+    use_scene_range: BoolProperty(
+        name="Scene Frame Range", default=True, description="Export the scene's frame range and step"
+    )
     frame_start: IntProperty(name="Start", default=1, description="First frame (without the scene range)")
     frame_end: IntProperty(name="End", default=250, description="Last frame (without the scene range)")
     frame_step: IntProperty(name="Step", default=1, min=1, description="Frames between exported frames")
@@ -138,10 +147,15 @@ class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, Expo
             objects = import_export.export_objects(context, self.selected_only)
             progress = Progress(context, len(frames))
             try:
-                written = export_animation(context, objects, path, frames,
-                                           import_export.export_conversion(self.axis_forward, self.axis_up),
-                                           progress=lambda done, total, message: progress.update(done),
-                                           options=self.export_options(context))
+                written = export_animation(
+                    context,
+                    objects,
+                    path,
+                    frames,
+                    import_export.export_conversion(self.axis_forward, self.axis_up),
+                    progress=lambda done, total, message: progress.update(done),
+                    options=self.export_options(context),
+                )
             finally:
                 progress.end()
         except EXPECTED_ERRORS as exc:
@@ -152,4 +166,4 @@ class SPLAT_OT_export_animation(ExportOptionProperties, bpy.types.Operator, Expo
         return {"FINISHED"}
 
 
-CLASSES = (SPLAT_OT_export_animation,)      # listed in File > Export by import_export.menu_export
+CLASSES = (SPLAT_OT_export_animation,)  # listed in File > Export by import_export.menu_export

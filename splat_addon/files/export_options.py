@@ -13,15 +13,15 @@ from ...core import sh as shmod
 from ...io import format_of
 from ..ui import preferences
 
-SPZ_VERSION_OF_DEGREE_4 = 4       # SPZ versions before 4 hold SH up to degree 3
+SPZ_VERSION_OF_DEGREE_4 = 4  # SPZ versions before 4 hold SH up to degree 3
 
 
 @dataclass(frozen=True)
 class ExportOptions:
-    sh_degree: int = None          # None: as the splats have it; otherwise reduced to at most this
+    sh_degree: int = None  # None: as the splats have it; otherwise reduced to at most this
     spz_version: int = 3
-    half: bool = False             # OpenUSD half floats
-    prune_opacity: float = 0.0     # splats whose opacity is below this are left out (0: none)
+    half: bool = False  # OpenUSD half floats
+    prune_opacity: float = 0.0  # splats whose opacity is below this are left out (0: none)
 
     def __post_init__(self):
         if self.sh_degree is not None and self.sh_degree not in range(shmod.MAX_DEGREE + 1):
@@ -50,8 +50,11 @@ class ExportOptions:
         Degree of 3 keeps older readers' versions)."""
         fmt = format_of(path)
         if fmt == "spz":
-            return {"version": max(self.spz_version, SPZ_VERSION_OF_DEGREE_4) if cloud is not None and cloud.sh_degree == 4
-                    else self.spz_version}
+            return {
+                "version": max(self.spz_version, SPZ_VERSION_OF_DEGREE_4)
+                if cloud is not None and cloud.sh_degree == 4
+                else self.spz_version
+            }
         if fmt == "usd":
             return {"half": self.half}
         return {}
@@ -59,11 +62,12 @@ class ExportOptions:
 
 def from_settings(sh_degree="KEEP", spz_version="3", use_half=False, prune_opacity=0.0):
     """ExportOptions from the property values (enum identifiers as the properties hold them)."""
-    return ExportOptions(None if sh_degree == "KEEP" else int(sh_degree), int(spz_version), bool(use_half),
-                         float(prune_opacity))
+    return ExportOptions(
+        None if sh_degree == "KEEP" else int(sh_degree), int(spz_version), bool(use_half), float(prune_opacity)
+    )
 
 
-PREFERRED = ("sh_degree", "spz_version", "use_half")       # unset in an operator call: the preferences'
+PREFERRED = ("sh_degree", "spz_version", "use_half")  # unset in an operator call: the preferences'
 
 
 class ExportOptionProperties:
@@ -73,8 +77,13 @@ class ExportOptionProperties:
     sh_degree: preferences.sh_degree_property()
     spz_version: preferences.spz_version_property()
     use_half: preferences.half_property()
-    prune_opacity: FloatProperty(name="Prune Opacity Below", default=0.0, min=0.0, max=1.0,
-                                 description="Leave out splats fainter than this (0 keeps every splat)")
+    prune_opacity: FloatProperty(
+        name="Prune Opacity Below",
+        default=0.0,
+        min=0.0,
+        max=1.0,
+        description="Leave out splats fainter than this (0 keeps every splat)",
+    )
 
     def export_options(self, context):
         prefs = preferences.current(context)

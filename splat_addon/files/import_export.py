@@ -37,7 +37,6 @@ def export_conversion(forward=None, up=None):
     return axis_conversion(to_forward=forward or FILE_FORWARD, to_up=up or FILE_UP).to_4x4()
 
 
-
 def read_cloud(path, drop_invalid, report):
     """Read a splat file, passing the format's warnings on as Blender warnings. Splats with NaN/Inf
     cannot be drawn or rendered: with `drop_invalid` they are dropped (and counted in a warning),
@@ -55,8 +54,11 @@ def finite_for_export(path, cloud, drop_invalid, report):
         return cloud
     if not drop_invalid:
         detail = ", ".join(f"{name} in {count}" for name, count in nonfinite_counts(cloud).items())
-        raise SplatFileError(path, f"{bad} of {len(cloud)} splats have non-finite values (NaN or Inf): {detail}; "
-                                   "turn on Drop Invalid Splats to export the others")
+        raise SplatFileError(
+            path,
+            f"{bad} of {len(cloud)} splats have non-finite values (NaN or Inf): {detail}; "
+            "turn on Drop Invalid Splats to export the others",
+        )
     report({"WARNING"}, f"left out {bad} of {len(cloud)} splats holding NaN or infinite values")
     return cloud[finite]
 
@@ -73,9 +75,11 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
     filter_glob: StringProperty(default=FILTER_GLOB, options={"HIDDEN"})
     files: CollectionProperty(type=bpy.types.OperatorFileListElement, options={"HIDDEN", "SKIP_SAVE"})
     directory: StringProperty(subtype="DIR_PATH", options={"HIDDEN", "SKIP_SAVE"})
-    drop_invalid: BoolProperty(name="Drop Invalid Splats", default=True,
-                               description="Drop splats holding NaN or Inf values (with a warning) "
-                                           "instead of refusing the file")
+    drop_invalid: BoolProperty(
+        name="Drop Invalid Splats",
+        default=True,
+        description="Drop splats holding NaN or Inf values (with a warning) instead of refusing the file",
+    )
 
     def _paths(self):
         names = [f.name for f in self.files if f.name]
@@ -91,7 +95,7 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         progress = Progress(context, 2 * len(paths))
         try:
             clouds = []
-            for i, path in enumerate(paths):     # read everything first: a bad file changes nothing
+            for i, path in enumerate(paths):  # read everything first: a bad file changes nothing
                 clouds.append(read_cloud(path, self.drop_invalid, self.report))
                 progress.update(i + 1)
             objects = self._create(context, paths, clouds, progress)
@@ -118,13 +122,14 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
                 matrix = axis_conversion(from_forward=forward, from_up=up).to_4x4()
                 obj, skipped = data.new_splat_object(cloud, path.stem, collection, matrix)
                 created.append(obj)
-                add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))    # mesh form only
+                add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))  # mesh form only
                 if skipped:
-                    self.report({"WARNING"}, f"{path}: extras not kept (no matching attribute type): "
-                                             f"{', '.join(skipped)}")
+                    self.report(
+                        {"WARNING"}, f"{path}: extras not kept (no matching attribute type): {', '.join(skipped)}"
+                    )
                 progress.update(len(paths) + i + 1)
         except BaseException:
-            for obj in created:          # leave the scene as it was
+            for obj in created:  # leave the scene as it was
                 data.remove_splat_object(obj)
             raise
         return created
@@ -155,8 +160,11 @@ def scene_instances(depsgraph, objects):
     names = {obj.name for obj in objects}
     found = data.splat_instances(depsgraph)
     generated = {i.obj.name for i in found if i.instancer is None and not data.is_splat_object(i.obj)}
-    own = [(obj, data.world_matrix(obj, depsgraph)) for obj in objects
-           if data.is_splat_object(obj) or obj.name in generated]
+    own = [
+        (obj, data.world_matrix(obj, depsgraph))
+        for obj in objects
+        if data.is_splat_object(obj) or obj.name in generated
+    ]
     return own + [(i.obj, i.matrix) for i in found if i.instancer is not None and i.instancer.name in names]
 
 
@@ -188,13 +196,15 @@ class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHel
     bl_options = {"REGISTER", "PRESET"}
 
     filename_ext = ".ply"
-    check_extension = None          # the extension picks the format: keep what the user typed
+    check_extension = None  # the extension picks the format: keep what the user typed
     filter_glob: StringProperty(default=FILTER_GLOB, options={"HIDDEN"})
-    selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects",
-                                default=False)
-    drop_invalid: BoolProperty(name="Drop Invalid Splats", default=False,
-                               description="Leave out splats holding NaN or infinite values (counted in a "
-                                           "warning) instead of refusing to export")
+    selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects", default=False)
+    drop_invalid: BoolProperty(
+        name="Drop Invalid Splats",
+        default=False,
+        description="Leave out splats holding NaN or infinite values (counted in a "
+        "warning) instead of refusing to export",
+    )
 
     def execute(self, context):
         path = Path(bpy.path.abspath(self.filepath))
@@ -213,11 +223,13 @@ class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHel
             return {"CANCELLED"}
         finally:
             progress.end()
-        pruned = f" ({len(cloud) - len(written)} fainter than {options.prune_opacity:g} left out)" \
-            if len(written) < len(cloud) else ""
+        pruned = (
+            f" ({len(cloud) - len(written)} fainter than {options.prune_opacity:g} left out)"
+            if len(written) < len(cloud)
+            else ""
+        )
         self.report({"INFO"}, f"wrote {len(written)} splats{pruned} from {len(objects)} object(s) to {path}")
         return {"FINISHED"}
-
 
 
 class SPLAT_FH_files(bpy.types.FileHandler):

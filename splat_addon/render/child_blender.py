@@ -23,8 +23,8 @@ REPLY = "@splatwright-mesh-layer "
 
 def render(request):
     import bpy
-    bpy.ops.wm.open_mainfile(filepath=request["blend"], load_ui=False,
-                             use_scripts=request.get("autoexec", False))
+
+    bpy.ops.wm.open_mainfile(filepath=request["blend"], load_ui=False, use_scripts=request.get("autoexec", False))
     scene = bpy.data.scenes[request["scene"]]
     for name in request["hide"]:
         obj = bpy.data.objects.get(name)
@@ -36,7 +36,7 @@ def render(request):
     settings = scene.render
     settings.engine = request["engine"]
     settings.use_border = False
-    settings.use_compositing = False       # the render layer itself, not what the compositor makes of it
+    settings.use_compositing = False  # the render layer itself, not what the compositor makes of it
     settings.use_sequencer = False
     settings.filepath = request["out"]
     image = settings.image_settings

@@ -14,7 +14,7 @@ from ..data import camera as blender_camera
 from . import mesh_layer, viewport
 from .scene import MESH_ENGINE, mesh_engine, scene_splats, textured_world, to_scene_linear, world_color
 
-EMPTY_DEPTH = 1e10      # what Blender's own engines write in the Depth pass where nothing was hit
+EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
 
 
 def render_size(render):
@@ -25,7 +25,7 @@ def render_size(render):
 
 _Cancelled = mesh_layer.Cancelled
 
-SPLAT_PASSES = "splatwright_use_pass_splats"     # ViewLayer property: write the Splats (and Meshes) pass
+SPLAT_PASSES = "splatwright_use_pass_splats"  # ViewLayer property: write the Splats (and Meshes) pass
 
 
 class SplatwrightRenderEngine(bpy.types.RenderEngine):
@@ -33,14 +33,14 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
     bl_label = "Splatwright"
     bl_use_preview = False
     bl_use_postprocess = True
-    bl_use_eevee_viewport = True     # Material Preview: EEVEE draws the coloured display points
+    bl_use_eevee_viewport = True  # Material Preview: EEVEE draws the coloured display points
 
     def render(self, depsgraph):
         try:
             self._render(depsgraph)
         except _Cancelled:
             pass
-        except (ValueError, data.SplatObjectError, mesh_layer.MeshLayerError) as exc:   # CameraError is a ValueError
+        except (ValueError, data.SplatObjectError, mesh_layer.MeshLayerError) as exc:  # CameraError is a ValueError
             self.report({"ERROR"}, f"Splatwright: {exc}")
         except Exception as exc:
             # Reported, not raised: a traceback kept by Blender would hold evaluated data that the
@@ -68,7 +68,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         image = self._image(cloud, cam, background, layer)
         passes = splat_passes(image, layer, meshes) if getattr(depsgraph.view_layer, SPLAT_PASSES, False) else {}
         world = None if meshes is None else meshes.world()
-        if world is not None:               # the world rendered apart: behind everything, per pixel
+        if world is not None:  # the world rendered apart: behind everything, per pixel
             image.color += (1.0 - image.alpha)[..., None] * world
         alpha = image.alpha if transparent else np.ones_like(image.alpha)
         self._write(width, height, to_scene_linear(image.color, alpha), composite_depth(image, layer), passes)
@@ -106,21 +106,23 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if engine == "NONE" or not (mesh_layer.has_geometry(depsgraph) or textured_world(depsgraph.scene)):
             return None
         self.update_stats("", f"Splatwright: rendering the meshes with {engine.title()}")
-        return mesh_layer.render(depsgraph, engine, width, height, test_break=self.test_break,
-                                 progress=self.update_progress)
+        return mesh_layer.render(
+            depsgraph, engine, width, height, test_break=self.test_break, progress=self.update_progress
+        )
 
     def _image(self, cloud, cam, background, layer=None):
         """The core renderer's RenderResult (display-sRGB colour, transparent when `background` is
         None), composited with `layer`."""
-        from ...core.render import render     # the renderer loads on first use
+        from ...core.render import render  # the renderer loads on first use
 
         def progress(done, total, label=""):
             self.update_progress(done / total if total else 1.0)
             if self.test_break():
                 raise _Cancelled
 
-        return render(cloud if cloud is not None else _no_splats(), cam, background=background, layer=layer,
-                      progress=progress)
+        return render(
+            cloud if cloud is not None else _no_splats(), cam, background=background, layer=layer, progress=progress
+        )
 
     def _write(self, width, height, rgba, depth, extra):
         result = self.begin_result(0, 0, width, height)
@@ -171,6 +173,7 @@ def splat_passes(image, layer, meshes):
 
 def _no_splats():
     from ...core.splats import SplatCloud
+
     return SplatCloud.empty()
 
 
@@ -191,7 +194,7 @@ class RENDER_PT_splatwright(bpy.types.Panel):
         scene = context.scene
         layout.prop(scene, MESH_ENGINE)
         engine = mesh_engine(scene)
-        if engine == "CYCLES" and hasattr(scene, "cycles"):       # the mesh engine's own quality settings
+        if engine == "CYCLES" and hasattr(scene, "cycles"):  # the mesh engine's own quality settings
             layout.prop(scene.cycles, "device", text="Cycles Device")
             layout.prop(scene.cycles, "samples", text="Cycles Samples")
             layout.prop(scene.cycles, "use_denoising", text="Denoise")
@@ -225,14 +228,27 @@ def _generic_panels():
 
 
 def register():
-    setattr(bpy.types.Scene, MESH_ENGINE, bpy.props.EnumProperty(
-        name="Meshes", items=mesh_layer.ENGINE_CHOICES, default="CYCLES",
-        description="What renders everything that is not a splat (meshes, curves, volumes, the world); "
-                    "the splats are composited with it in depth order"))
-    setattr(bpy.types.ViewLayer, SPLAT_PASSES, bpy.props.BoolProperty(
-        name="Splats and Meshes Passes", default=False,
-        description="Also write the splats alone (with their alpha) and the meshes alone as passes, so a "
-                    "compositor can redo the mix"))
+    setattr(
+        bpy.types.Scene,
+        MESH_ENGINE,
+        bpy.props.EnumProperty(
+            name="Meshes",
+            items=mesh_layer.ENGINE_CHOICES,
+            default="CYCLES",
+            description="What renders everything that is not a splat (meshes, curves, volumes, the world); "
+            "the splats are composited with it in depth order",
+        ),
+    )
+    setattr(
+        bpy.types.ViewLayer,
+        SPLAT_PASSES,
+        bpy.props.BoolProperty(
+            name="Splats and Meshes Passes",
+            default=False,
+            description="Also write the splats alone (with their alpha) and the meshes alone as passes, so a "
+            "compositor can redo the mix",
+        ),
+    )
     for panel in _generic_panels():
         panel.COMPAT_ENGINES.add(SplatwrightRenderEngine.bl_idname)
     mesh_layer.register()

@@ -45,7 +45,7 @@ from ...io.exr_plain import read_plain_exr
 from .. import data
 
 CHILD_SCRIPT = Path(__file__).with_name("child_blender.py")
-REPLY = "@splatwright-mesh-layer "          # the child's answer lines start with this (child_blender.REPLY)
+REPLY = "@splatwright-mesh-layer "  # the child's answer lines start with this (child_blender.REPLY)
 ENGINE_CHOICES = (
     ("CYCLES", "Cycles", "Meshes, curves, volumes and the world rendered by Cycles with the scene's Cycles settings"),
     ("EEVEE", "EEVEE", "Rendered by EEVEE with the scene's EEVEE settings (needs a GPU, also in background mode)"),
@@ -53,10 +53,20 @@ ENGINE_CHOICES = (
     ("NONE", "None", "Splats only: meshes do not show in the render"),
 )
 # every object type that Blender's engines draw as a surface, volume or strokes
-GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES", "POINTCLOUD", "VOLUME", "GPENCIL",
-                  "GREASEPENCIL"}
-NO_SURFACE = 1e10          # what the Depth pass holds where nothing was hit
-SAMPLE = re.compile(r"\| Sample (\d+)/(\d+)")    # a child's Cycles progress line
+GEOMETRY_TYPES = {
+    "MESH",
+    "CURVE",
+    "SURFACE",
+    "META",
+    "FONT",
+    "CURVES",
+    "POINTCLOUD",
+    "VOLUME",
+    "GPENCIL",
+    "GREASEPENCIL",
+}
+NO_SURFACE = 1e10  # what the Depth pass holds where nothing was hit
+SAMPLE = re.compile(r"\| Sample (\d+)/(\d+)")  # a child's Cycles progress line
 
 
 class MeshLayerError(RuntimeError):
@@ -148,10 +158,19 @@ def render(depsgraph, engine, width, height, test_break=lambda: False, progress=
         # Cycles renders the world apart (its Environment pass) when the film is opaque, so that
         # splats behind a translucent surface show through it; the others render the film as set.
         apart = engine == "CYCLES" and not scene.render.film_transparent
-        request = {"blend": str(blend), "scene": scene.name, "view_layer": depsgraph.view_layer.name,
-                   "frame": scene.frame_current, "subframe": scene.frame_subframe,
-                   "camera": scene.camera.name if scene.camera else "", "engine": engine_id(engine),
-                   "hide": hide, "out": str(exr), "autoexec": not bpy.app.autoexec_fail, "environment": apart}
+        request = {
+            "blend": str(blend),
+            "scene": scene.name,
+            "view_layer": depsgraph.view_layer.name,
+            "frame": scene.frame_current,
+            "subframe": scene.frame_subframe,
+            "camera": scene.camera.name if scene.camera else "",
+            "engine": engine_id(engine),
+            "hide": hide,
+            "out": str(exr),
+            "autoexec": not bpy.app.autoexec_fail,
+            "environment": apart,
+        }
         reply = _child().ask(request, test_break, progress)
         if not reply.get("ok"):
             raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")
@@ -159,14 +178,13 @@ def render(depsgraph, engine, width, height, test_break=lambda: False, progress=
     finally:
         for path in (blend, exr):
             path.unlink(missing_ok=True)
-    return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart,
-                                time.perf_counter() - start)
+    return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart, time.perf_counter() - start)
 
 
 def _layer_from_channels(channels, view_layer, width, height, environment, seconds):
     """The MeshLayer in an EXR's channels, or MeshLayerError naming what is missing or wrong."""
     names = [f"{view_layer}.Combined.{c}" for c in "RGBA"] + [f"{view_layer}.Depth.Z"]
-    if environment:                       # the pass is "Env" before Blender 5.0
+    if environment:  # the pass is "Env" before Blender 5.0
         env = "Environment" if f"{view_layer}.Environment.R" in channels else "Env"
         names += [f"{view_layer}.{env}.{c}" for c in "RGB"]
     missing = [n for n in names if n not in channels]
@@ -195,7 +213,7 @@ def write_snapshot(scene_name, path):
 # the main thread ------------------------------------------------------------------------------------
 
 _calls = queue.Queue()
-MAIN_THREAD_POLL = 0.05     # seconds between the main-thread timer's looks at the queue
+MAIN_THREAD_POLL = 0.05  # seconds between the main-thread timer's looks at the queue
 
 
 def on_main_thread(fn, test_break=lambda: False):
@@ -258,20 +276,28 @@ class _Child:
     def __init__(self):
         flags = subprocess.CREATE_NO_WINDOW if sys.platform == "win32" else 0
         try:
-            self.proc = subprocess.Popen(child_command(), stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                         stderr=subprocess.STDOUT, text=True, encoding="utf-8", errors="replace",
-                                         bufsize=1, creationflags=flags)
+            self.proc = subprocess.Popen(
+                child_command(),
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+                encoding="utf-8",
+                errors="replace",
+                bufsize=1,
+                creationflags=flags,
+            )
         except OSError as exc:
             raise MeshLayerError(f"cannot start a Blender to render the meshes ({child_command()[0]}): {exc}") from exc
         self.replies, self.log = queue.Queue(), collections.deque(maxlen=40)
-        self.busy = threading.Lock()          # one request at a time
-        self.samples = None                   # (done, total) of the frame being rendered
+        self.busy = threading.Lock()  # one request at a time
+        self.samples = None  # (done, total) of the frame being rendered
         threading.Thread(target=self._read, daemon=True).start()
 
     def _read(self):
         for line in self.proc.stdout:
             if line.startswith(REPLY):
-                self.replies.put(json.loads(line[len(REPLY):]))
+                self.replies.put(json.loads(line[len(REPLY) :]))
             else:
                 self.log.append(line.rstrip())
                 found = SAMPLE.search(line)
@@ -299,11 +325,10 @@ class _Child:
                 if self.samples is not None:
                     progress(self.samples[0] / max(self.samples[1], 1))
                 if test_break():
-                    self.close(kill=True)     # a render cannot be stopped half way: start afresh next time
+                    self.close(kill=True)  # a render cannot be stopped half way: start afresh next time
                     raise Cancelled
                 if not self.alive():
-                    raise MeshLayerError("the Blender rendering the meshes ended unexpectedly:\n"
-                                         + "\n".join(self.log))
+                    raise MeshLayerError("the Blender rendering the meshes ended unexpectedly:\n" + "\n".join(self.log))
 
     def close(self, kill=False):
         """Let the child end (its stdin closes), or kill it."""

@@ -8,7 +8,7 @@ import numpy as np
 from ...core.color import srgb_to_linear
 from .. import data
 
-MESH_ENGINE = "splatwright_mesh_engine"          # Scene property: what renders everything but the splats
+MESH_ENGINE = "splatwright_mesh_engine"  # Scene property: what renders everything but the splats
 
 
 def mesh_engine(scene):
@@ -21,8 +21,11 @@ def scene_splats(depsgraph, origin):
     nothing."""
     shift = np.eye(4)
     shift[:3, 3] = -origin
-    instances = [(i.obj, i.matrix) for i in data.splat_instances(depsgraph)
-                 if (i.instancer is not None or not i.obj.hide_render) and abs(np.linalg.det(i.matrix[:3, :3])) > 0]
+    instances = [
+        (i.obj, i.matrix)
+        for i in data.splat_instances(depsgraph)
+        if (i.instancer is not None or not i.obj.hide_render) and abs(np.linalg.det(i.matrix[:3, :3])) > 0
+    ]
     return data.instances_cloud(depsgraph, instances, shift) if instances else None
 
 

@@ -19,7 +19,7 @@ from ...core.splats import SplatCloud
 from .. import data
 from .scene import mesh_engine, scene_splats, to_scene_linear, world_color
 
-SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}      # what to_mesh() turns into triangles
+SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}  # what to_mesh() turns into triangles
 
 
 class View:
@@ -34,8 +34,9 @@ class View:
 
 def region_camera(region, region_3d):
     """The core Camera of a 3D viewport region."""
-    return camera_from_opengl(np.array(region_3d.view_matrix), np.array(region_3d.window_matrix),
-                              region.width, region.height)
+    return camera_from_opengl(
+        np.array(region_3d.view_matrix), np.array(region_3d.window_matrix), region.width, region.height
+    )
 
 
 def triangles(depsgraph):
@@ -58,8 +59,10 @@ def triangles(depsgraph):
             mesh.loop_triangles.foreach_get("vertices", tris)
             slots = np.empty(n, np.int64)
             mesh.loop_triangles.foreach_get("material_index", slots)
-            palette = [tuple(m.diffuse_color[:3]) if m is not None else tuple(obj.color[:3])
-                       for m in (obj.material_slots[i].material for i in range(len(obj.material_slots)))]
+            palette = [
+                tuple(m.diffuse_color[:3]) if m is not None else tuple(obj.color[:3])
+                for m in (obj.material_slots[i].material for i in range(len(obj.material_slots)))
+            ]
             palette = np.array(palette or [tuple(obj.color[:3])], np.float64)
             matrix = np.array(inst.matrix_world, np.float64)
             world = co.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
@@ -97,9 +100,14 @@ class Viewport:
     def picture(self, view, scale, check):
         """Scene-linear premultiplied RGBA (rows top first) of `view` at `scale` (on the thread)."""
         cloud, meshes, background = self.inputs
-        image = preview_image(cloud, meshes, scaled(view.camera, scale), background=background,
-                              threads=max(1, (os.cpu_count() or 2) - 1),      # a core stays with the interface
-                              progress=lambda *_: check())
+        image = preview_image(
+            cloud,
+            meshes,
+            scaled(view.camera, scale),
+            background=background,
+            threads=max(1, (os.cpu_count() or 2) - 1),  # a core stays with the interface
+            progress=lambda *_: check(),
+        )
         return to_scene_linear(image.color, image.alpha if background is None else np.ones_like(image.alpha))
 
     def draw(self, engine, context):
@@ -119,22 +127,25 @@ def _redraw(engine_ref):
     if engine is not None:
         try:
             engine.tag_redraw()
-        except ReferenceError:          # the viewport closed meanwhile
+        except ReferenceError:  # the viewport closed meanwhile
             pass
 
 
 # the GPU: untestable without a window, kept to these lines ------------------------------------------
 
+
 def _texture(rgba):
     import gpu
+
     h, w = rgba.shape[:2]
-    pixels = np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel()      # GPU rows start at the bottom
+    pixels = np.ascontiguousarray(rgba[::-1], dtype=np.float32).ravel()  # GPU rows start at the bottom
     return gpu.types.GPUTexture((w, h), format="RGBA16F", data=gpu.types.Buffer("FLOAT", pixels.size, pixels))
 
 
 def _draw(engine, context, texture):
     import gpu
     from gpu_extras.presets import draw_texture_2d
+
     gpu.state.blend_set("ALPHA_PREMULT")
     engine.bind_display_space_shader(context.scene)
     draw_texture_2d(texture, (0, 0), context.region.width, context.region.height)

@@ -47,19 +47,19 @@ from ..data.errors import EXPECTED_ERRORS
 from ..data.keys import SOURCE
 
 READER_GROUP = ".Splatwright Weight Reader"
-READER_TAG = "splatwright_weight_reader"        # node group property: build version
-READER_VERSION = 2                                # 2: loose vertices, read through to_mesh()
+READER_TAG = "splatwright_weight_reader"  # node group property: build version
+READER_VERSION = 2  # 2: loose vertices, read through to_mesh()
 READER_DROPPED = ("splat_sh_*", "splat_extra_*")  # splat data the reader need not copy
-TEMP_ATTRIBUTE = "splatwright_weight_in"        # holds one bone's weights while it becomes a group
-WEIGHT_PREFIX = "splat_weight:"                  # native splats: one FLOAT point attribute per bone
-ARMATURE_PROPERTY = "splatwright_armature"         # native splats: the armature object binding them
+TEMP_ATTRIBUTE = "splatwright_weight_in"  # holds one bone's weights while it becomes a group
+WEIGHT_PREFIX = "splat_weight:"  # native splats: one FLOAT point attribute per bone
+ARMATURE_PROPERTY = "splatwright_armature"  # native splats: the armature object binding them
 PRESERVE_VOLUME_PROPERTY = "splatwright_preserve_volume"
-MASK_GROUP = "splatwright_bind_strength"          # binding strength: the modifier's mask group (mesh),
-                                                 # a FLOAT attribute of that name (native splats)
+MASK_GROUP = "splatwright_bind_strength"  # binding strength: the modifier's mask group (mesh),
+# a FLOAT attribute of that name (native splats)
 DEFAULT_INFLUENCES = 4
 DEFAULT_FALLOFF = 4.0
 DEFAULT_MIN_WEIGHT = 0.01
-REFRESH_DELAY = 0.3                             # seconds after an edit before cached weights refill
+REFRESH_DELAY = 0.3  # seconds after an edit before cached weights refill
 
 
 class RiggingError(ValueError):
@@ -68,13 +68,19 @@ class RiggingError(ValueError):
 
 # armatures and bones -------------------------------------------------------------------------------
 
+
 def armature_modifier(obj, depsgraph=None):
     """The first Armature modifier of `obj` that deforms by vertex groups in the depsgraph's mode
     (viewport or render) with an armature object set, or None."""
     render = depsgraph is not None and depsgraph.mode == "RENDER"
     for mod in obj.modifiers:
-        if mod.type == "ARMATURE" and (mod.show_render if render else mod.show_viewport) \
-                and mod.object is not None and mod.object.type == "ARMATURE" and mod.use_vertex_groups:
+        if (
+            mod.type == "ARMATURE"
+            and (mod.show_render if render else mod.show_viewport)
+            and mod.object is not None
+            and mod.object.type == "ARMATURE"
+            and mod.use_vertex_groups
+        ):
             return mod
     return None
 
@@ -108,7 +114,7 @@ def weight_names(obj):
     """Bone names `obj` holds weights for: its vertex groups (mesh) or weight attributes (native)."""
     if obj.type == "MESH":
         return [g.name for g in obj.vertex_groups]
-    return [a.name[len(WEIGHT_PREFIX):] for a in obj.data.attributes if a.name.startswith(WEIGHT_PREFIX)]
+    return [a.name[len(WEIGHT_PREFIX) :] for a in obj.data.attributes if a.name.startswith(WEIGHT_PREFIX)]
 
 
 def deform_bones(arm):
@@ -131,6 +137,7 @@ def to_armature_space(obj, arm, depsgraph=None):
 
 # reading vertex groups --------------------------------------------------------------------------------
 
+
 def _reader_group():
     """The node group that turns a mesh into loose vertices, one per vertex, its vertex groups
     becoming float point attributes (built once per file)."""
@@ -145,7 +152,7 @@ def _reader_group():
     socket = nodes.new("NodeGroupInput").outputs[0]
     for pattern in READER_DROPPED:
         drop = nodes.new("GeometryNodeRemoveAttribute")
-        if "Pattern Mode" in drop.inputs:            # a menu socket from Blender 5.0, a property before
+        if "Pattern Mode" in drop.inputs:  # a menu socket from Blender 5.0, a property before
             drop.inputs["Pattern Mode"].default_value = "Wildcard"
         else:
             drop.pattern_mode = "WILDCARD"
@@ -173,8 +180,7 @@ def read_vertex_groups(mesh, names):
     if not names or not len(mesh.vertices):
         return out
     if not can_read_groups():
-        raise data.SplatObjectError(f"'{mesh.name}': vertex-group weights can only be read on Blender's "
-                                    "main thread")
+        raise data.SplatObjectError(f"'{mesh.name}': vertex-group weights can only be read on Blender's main thread")
     helper = bpy.data.objects.new(".splatwright weights", mesh)
     try:
         helper.modifiers.new("Read Weights", "NODES").node_group = _reader_group()
@@ -210,7 +216,7 @@ def group_weights(obj, bones):
 def binding_from_groups(columns, bone_of_column, count):
     """A core Binding from per-group weight columns (G, N). A splat's influences keep the group
     order, as Blender blends a vertex's groups in their order; nothing is pruned."""
-    rows, cols = np.nonzero(columns.T > 0)          # sorted by splat, then by group
+    rows, cols = np.nonzero(columns.T > 0)  # sorted by splat, then by group
     per_splat = np.bincount(rows, minlength=count)
     width = max(int(per_splat.max(initial=0)), 1)
     slot = np.arange(len(rows)) - np.repeat(np.cumsum(per_splat) - per_splat, per_splat)
@@ -236,8 +242,9 @@ def splat_binding(obj, bones):
     if cached is not None and cached[0] == state:
         return cached[1]
     if obj.type == "MESH" and not can_read_groups():
-        raise data.SplatObjectError(f"'{obj.name}': its bone weights changed and cannot be re-read during "
-                                    "this render; render again")
+        raise data.SplatObjectError(
+            f"'{obj.name}': its bone weights changed and cannot be re-read during this render; render again"
+        )
     names, columns = group_weights(obj, bones)
     index = {name: i for i, name in enumerate(bones)}
     binding = binding_from_groups(columns, [index[n] for n in names], count)
@@ -258,13 +265,14 @@ def splat_strength(obj, mask):
         return cached[1]
     if obj.type == "MESH":
         if not can_read_groups():
-            raise data.SplatObjectError(f"'{obj.name}': its binding strengths changed and cannot be re-read "
-                                        "during this render; render again")
+            raise data.SplatObjectError(
+                f"'{obj.name}': its binding strengths changed and cannot be re-read during this render; render again"
+            )
         weights = read_vertex_groups(geometry, [mask[0]])[0]
     else:
         weights = np.empty(count, np.float32)
         geometry.attributes[mask[0]].data.foreach_get("value", weights)
-    strength = np.clip(weights.astype(np.float64), 0.0, 1.0)      # Blender clamps group weights too
+    strength = np.clip(weights.astype(np.float64), 0.0, 1.0)  # Blender clamps group weights too
     strength = 1.0 - strength if mask[1] else strength
     _STRENGTHS[geometry.session_uid] = (state, strength)
     return strength
@@ -285,6 +293,7 @@ def is_cached(geometry):
 
 # posing -----------------------------------------------------------------------------------------------
 
+
 def poser(obj, depsgraph):
     """None when nothing binds `obj` at the depsgraph; else a function posing its own splats (object
     space) by its armature there. A data.POSERS hook (see data.evaluated_cloud)."""
@@ -301,9 +310,15 @@ def poser(obj, depsgraph):
     def pose(cloud):
         binding = splat_binding(obj, bones)
         to_arm = to_armature_space(obj, arm, depsgraph)
-        posed = skin(data.transform_cloud(cloud, to_arm), binding, bone_pose(arm, bones),
-                     mode="dqs" if preserve_volume else "lbs", strength=splat_strength(obj, mask))
+        posed = skin(
+            data.transform_cloud(cloud, to_arm),
+            binding,
+            bone_pose(arm, bones),
+            mode="dqs" if preserve_volume else "lbs",
+            strength=splat_strength(obj, mask),
+        )
         return data.transform_cloud(posed, np.linalg.inv(to_arm))
+
     return pose
 
 
@@ -330,6 +345,7 @@ def main_bones(obj):
 
 # computing weights ------------------------------------------------------------------------------------
 
+
 def segment_distances(points, heads, tails):
     """(N, B) distances from points (N,3) to the segments heads[b]-tails[b] (B,3)."""
     axis = tails - heads
@@ -346,8 +362,8 @@ def bone_weights(points, heads, tails, falloff=DEFAULT_FALLOFF, chunk=1 << 15):
     scale = max(float(np.linalg.norm(tails - heads, axis=1).max(initial=0.0)), 1e-9)
     out = np.empty((len(points), len(heads)))
     for start in range(0, len(points), chunk):
-        d = segment_distances(points[start:start + chunk], heads, tails) + 1e-9 * scale
-        out[start:start + chunk] = (d.min(axis=1, keepdims=True) / d) ** falloff
+        d = segment_distances(points[start : start + chunk], heads, tails) + 1e-9 * scale
+        out[start : start + chunk] = (d.min(axis=1, keepdims=True) / d) ** falloff
     return out
 
 
@@ -366,19 +382,25 @@ def source_weights(obj, bones, warn):
     if corners is None or bary is None:
         return None
     if record.get("vertices") != record.get("original_vertices"):
-        warn(f"'{obj.name}' was made from '{source.name}' after modifiers that change its vertices, so its "
-             "splats cannot be traced to the mesh's vertices; weights come from the bones")
+        warn(
+            f"'{obj.name}' was made from '{source.name}' after modifiers that change its vertices, so its "
+            "splats cannot be traced to the mesh's vertices; weights come from the bones"
+        )
         return None
     vertex_count = len(source.data.vertices)
     if record.get("vertices") != vertex_count or corners.size and corners.max() >= vertex_count:
-        warn(f"'{obj.name}': '{source.name}' no longer has the vertices its splats were made from; "
-             "weights come from the bones")
+        warn(
+            f"'{obj.name}': '{source.name}' no longer has the vertices its splats were made from; "
+            "weights come from the bones"
+        )
         return None
     names, columns = group_weights(source, bones)
     if not names:
         if len(source.vertex_groups):
-            warn(f"'{obj.name}': no vertex group of its source mesh '{source.name}' is named like a deforming "
-                 "bone; weights come from the bones")
+            warn(
+                f"'{obj.name}': no vertex group of its source mesh '{source.name}' is named like a deforming "
+                "bone; weights come from the bones"
+            )
         return None
     if not record.get("rest_pose", True):
         warn(f"'{obj.name}' was made from the posed mesh; the binding takes its splats as the rest pose")
@@ -394,16 +416,24 @@ def source_weights(obj, bones, warn):
 class BindPlan:
     """The weights one splat object gets: (N, B) dense weights over `bones` after pruning, and
     (N,) binding strengths in 0..1 (the mask MASK_GROUP; None: every splat binds fully)."""
+
     obj: object
     bones: list
     weights: np.ndarray
-    source: str          # where the weights came from, for the report
+    source: str  # where the weights came from, for the report
     report: dict
     strength: np.ndarray = None
 
 
-def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, falloff=DEFAULT_FALLOFF,
-                 min_weight=DEFAULT_MIN_WEIGHT, warn=print):
+def plan_binding(
+    obj,
+    arm,
+    max_influences=DEFAULT_INFLUENCES,
+    use_source=True,
+    falloff=DEFAULT_FALLOFF,
+    min_weight=DEFAULT_MIN_WEIGHT,
+    warn=print,
+):
     """Compute the weights binding splat object `obj` to armature object `arm` (nothing changes)."""
     if not data.is_splat_object(obj):
         raise RiggingError(f"'{obj.name}' is not a splat object")
@@ -421,9 +451,10 @@ def plan_binding(obj, arm, max_influences=DEFAULT_INFLUENCES, use_source=True, f
         to_arm = to_armature_space(obj, arm)
         centres = centres @ to_arm[:3, :3].T + to_arm[:3, 3]
         bad = ~np.isfinite(centres).all(axis=1)
-        if bad.any():       # (its transform or its splats): no bone is nearest to them
-            raise RiggingError(f"'{obj.name}': {int(bad.sum())} splat centres are NaN or infinite where "
-                               f"'{arm.name}' sees them")
+        if bad.any():  # (its transform or its splats): no bone is nearest to them
+            raise RiggingError(
+                f"'{obj.name}': {int(bad.sum())} splat centres are NaN or infinite where '{arm.name}' sees them"
+            )
         heads = np.array([arm.data.bones[n].head_local for n in bones], np.float64)
         tails = np.array([arm.data.bones[n].tail_local for n in bones], np.float64)
         dense = bone_weights(centres, heads, tails, falloff)
@@ -436,12 +467,13 @@ def plan_from_weights(obj, bones, dense, source, max_influences, tolerance):
     total and to `max_influences`."""
     binding = Binding.from_dense(dense, max_influences=max_influences, tolerance=tolerance)
     pruned = np.zeros_like(dense, dtype=np.float32)
-    rows, slots = np.nonzero(binding.weights > 0)        # unused slots pad with bone 0: skip them
+    rows, slots = np.nonzero(binding.weights > 0)  # unused slots pad with bone 0: skip them
     pruned[rows, binding.indices[rows, slots]] = binding.weights[rows, slots]
     return BindPlan(obj, bones, pruned, source, binding.report())
 
 
 # writing the binding ----------------------------------------------------------------------------------
+
 
 def write_weights(obj, bones, weights):
     """Store the columns of (N, B) `weights` on `obj` as its weights for `bones`: vertex groups on a
@@ -500,12 +532,13 @@ def attach(obj, arm, preserve_volume=False, masked=False):
     properties on native splats. `masked`: the modifier's mask is MASK_GROUP (else a mask of ours
     is cleared; one the artist set is kept)."""
     if obj.type == "MESH":
-        mod = next((m for m in obj.modifiers if m.type == "ARMATURE"), None) or \
-            obj.modifiers.new("Armature", "ARMATURE")
+        mod = next((m for m in obj.modifiers if m.type == "ARMATURE"), None) or obj.modifiers.new(
+            "Armature", "ARMATURE"
+        )
         mod.object = arm
         mod.use_vertex_groups, mod.use_bone_envelopes = True, False
         mod.use_deform_preserve_volume = preserve_volume
-        mod.show_in_editmode = False             # Edit Mode edits the rest pose (see data.own_cloud)
+        mod.show_in_editmode = False  # Edit Mode edits the rest pose (see data.own_cloud)
         if masked:
             mod.vertex_group, mod.invert_vertex_group = MASK_GROUP, False
         elif mod.vertex_group == MASK_GROUP:
@@ -522,11 +555,15 @@ def attach(obj, arm, preserve_volume=False, masked=False):
 
 
 def _snapshot(obj):
-    return {"groups": [g.name for g in obj.vertex_groups] if obj.type == "MESH" else [],
-            "attributes": [a.name for a in obj.data.attributes],
-            "properties": {k: obj[k] for k in (ARMATURE_PROPERTY, PRESERVE_VOLUME_PROPERTY) if k in obj},
-            "modifiers": [m.name for m in obj.modifiers], "parent": obj.parent,
-            "matrix_parent_inverse": obj.matrix_parent_inverse.copy(), "matrix_world": obj.matrix_world.copy()}
+    return {
+        "groups": [g.name for g in obj.vertex_groups] if obj.type == "MESH" else [],
+        "attributes": [a.name for a in obj.data.attributes],
+        "properties": {k: obj[k] for k in (ARMATURE_PROPERTY, PRESERVE_VOLUME_PROPERTY) if k in obj},
+        "modifiers": [m.name for m in obj.modifiers],
+        "parent": obj.parent,
+        "matrix_parent_inverse": obj.matrix_parent_inverse.copy(),
+        "matrix_world": obj.matrix_world.copy(),
+    }
 
 
 def _restore(obj, snap):
@@ -565,8 +602,16 @@ def find_armature(context, name):
     return arm
 
 
-def bind_armature(objects, armature, max_influences=DEFAULT_INFLUENCES, use_source=True,
-                  falloff=DEFAULT_FALLOFF, min_weight=DEFAULT_MIN_WEIGHT, preserve_volume=False, warn=print):
+def bind_armature(
+    objects,
+    armature,
+    max_influences=DEFAULT_INFLUENCES,
+    use_source=True,
+    falloff=DEFAULT_FALLOFF,
+    min_weight=DEFAULT_MIN_WEIGHT,
+    preserve_volume=False,
+    warn=print,
+):
     """Bind the splat objects among `objects` to `armature` (an object); returns their BindPlans.
     Every binding is computed before anything changes, so an error leaves the scene as it was."""
     if max_influences < 1:
@@ -596,10 +641,11 @@ def write_plans(plans, armature, preserve_volume=False):
     finally:
         for plan in plans:
             forget_weights(plan.obj.data)
-    show_poses(bpy.context.evaluated_depsgraph_get(), {armature.name})     # native splats drawn posed at once
+    show_poses(bpy.context.evaluated_depsgraph_get(), {armature.name})  # native splats drawn posed at once
 
 
 # the operator ---------------------------------------------------------------------------------------
+
 
 class SPLAT_OT_bind_armature(bpy.types.Operator):
     """Bind the selected splat objects to an armature (the active one unless named): bone weights as
@@ -610,20 +656,37 @@ class SPLAT_OT_bind_armature(bpy.types.Operator):
     bl_label = "Bind Splats to Armature"
     bl_options = {"REGISTER", "UNDO"}
 
-    armature: StringProperty(name="Armature", default="",
-                             description="Armature object to bind to (empty: the active object)")
-    max_influences: IntProperty(name="Max Influences", default=DEFAULT_INFLUENCES, min=1, max=32,
-                                description="Bones per splat, at most")
-    use_source_weights: BoolProperty(name="Weights From Source Mesh", default=True,
-                                     description="Interpolate the vertex-group weights of the skinned mesh the "
-                                                 "splats were made from, when there is one")
-    falloff: FloatProperty(name="Falloff", default=DEFAULT_FALLOFF, min=1.0, max=16.0,
-                           description="Weights from bones: how fast a bone's weight falls with distance "
-                                       "(higher gives sharper joints)")
-    min_weight: FloatProperty(name="Min Weight", default=DEFAULT_MIN_WEIGHT, min=0.0, max=0.5,
-                              description="Weights from bones: drop bones below this share of a splat's weight")
-    preserve_volume: BoolProperty(name="Preserve Volume", default=False,
-                                  description="Dual-quaternion skinning (the Armature modifier's Preserve Volume)")
+    armature: StringProperty(
+        name="Armature", default="", description="Armature object to bind to (empty: the active object)"
+    )
+    max_influences: IntProperty(
+        name="Max Influences", default=DEFAULT_INFLUENCES, min=1, max=32, description="Bones per splat, at most"
+    )
+    use_source_weights: BoolProperty(
+        name="Weights From Source Mesh",
+        default=True,
+        description="Interpolate the vertex-group weights of the skinned mesh the "
+        "splats were made from, when there is one",
+    )
+    falloff: FloatProperty(
+        name="Falloff",
+        default=DEFAULT_FALLOFF,
+        min=1.0,
+        max=16.0,
+        description="Weights from bones: how fast a bone's weight falls with distance (higher gives sharper joints)",
+    )
+    min_weight: FloatProperty(
+        name="Min Weight",
+        default=DEFAULT_MIN_WEIGHT,
+        min=0.0,
+        max=0.5,
+        description="Weights from bones: drop bones below this share of a splat's weight",
+    )
+    preserve_volume: BoolProperty(
+        name="Preserve Volume",
+        default=False,
+        description="Dual-quaternion skinning (the Armature modifier's Preserve Volume)",
+    )
 
     @classmethod
     def poll(cls, context):
@@ -633,23 +696,34 @@ class SPLAT_OT_bind_armature(bpy.types.Operator):
         warn = lambda message: self.report({"WARNING"}, message)
         try:
             arm = find_armature(context, self.armature)
-            plans = bind_armature(context.selected_objects, arm, self.max_influences, self.use_source_weights,
-                                  self.falloff, self.min_weight, self.preserve_volume, warn)
+            plans = bind_armature(
+                context.selected_objects,
+                arm,
+                self.max_influences,
+                self.use_source_weights,
+                self.falloff,
+                self.min_weight,
+                self.preserve_volume,
+                warn,
+            )
         except (RiggingError, SkinningError, *EXPECTED_ERRORS) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
         for plan in plans:
             r = plan.report
-            self.report({"INFO"}, f"'{plan.obj.name}': {r['splats']} splats bound to '{arm.name}' (weights from "
-                                  f"{plan.source}), up to {r['max_influences']} bones each, "
-                                  f"{r['pruned_splats']} splats pruned (at most {r['max_pruned_weight']:.1%} "
-                                  "of their weight)")
+            self.report(
+                {"INFO"},
+                f"'{plan.obj.name}': {r['splats']} splats bound to '{arm.name}' (weights from "
+                f"{plan.source}), up to {r['max_influences']} bones each, "
+                f"{r['pruned_splats']} splats pruned (at most {r['max_pruned_weight']:.1%} "
+                "of their weight)",
+            )
         return {"FINISHED"}
 
 
 def menu_parent(self, context):
     self.layout.operator(SPLAT_OT_bind_armature.bl_idname, text="Splats to Armature (Bone Weights)")
-    self.layout.operator("splat.bind_proxy", text="Splats to Armature (Through Proxy Mesh)")    # rig/proxy.py
+    self.layout.operator("splat.bind_proxy", text="Splats to Armature (Through Proxy Mesh)")  # rig/proxy.py
 
 
 CLASSES = (SPLAT_OT_bind_armature,)
@@ -668,8 +742,13 @@ def _on_depsgraph_update(scene, depsgraph):
     dropped = False
     for update in depsgraph.updates:
         owner = update.id.original
-        geometry = owner if isinstance(owner, GEOMETRY_TYPES) else \
-            owner.data if isinstance(owner, bpy.types.Object) and update.is_updated_geometry else None
+        geometry = (
+            owner
+            if isinstance(owner, GEOMETRY_TYPES)
+            else owner.data
+            if isinstance(owner, bpy.types.Object) and update.is_updated_geometry
+            else None
+        )
         if isinstance(geometry, GEOMETRY_TYPES) and is_cached(geometry):
             forget_weights(geometry)
             dropped = True
@@ -689,10 +768,10 @@ def show_poses(depsgraph, armatures=None):
         pose = poser(obj, depsgraph)
         if pose is not None:
             try:
-                data.keep_rest_pose(obj)       # bound by hand (weights and property): keep its rest pose first
+                data.keep_rest_pose(obj)  # bound by hand (weights and property): keep its rest pose first
                 data.show_posed(obj, pose(data.object_cloud(obj)))
             except (SkinningError, *EXPECTED_ERRORS):
-                pass             # reported when the splats are next exported or rendered
+                pass  # reported when the splats are next exported or rendered
 
 
 @persistent
@@ -703,9 +782,13 @@ def _on_frame_change(scene, depsgraph=None):
 @persistent
 def _on_pose_edit(scene, depsgraph):
     """Posing bones by hand changes no frame: repose the native splats of the armatures that moved."""
-    moved = {u.id.original.name for u in depsgraph.updates
-             if isinstance(u.id, bpy.types.Object) and u.id.type == "ARMATURE"
-             and (u.is_updated_transform or u.is_updated_geometry)}
+    moved = {
+        u.id.original.name
+        for u in depsgraph.updates
+        if isinstance(u.id, bpy.types.Object)
+        and u.id.type == "ARMATURE"
+        and (u.is_updated_transform or u.is_updated_geometry)
+    }
     if moved:
         show_poses(depsgraph, moved)
 
@@ -728,15 +811,18 @@ def _refill():
                 splat_binding(obj, deform_bones(rig[0]))
                 splat_strength(obj, binding_mask(obj))
             except (SkinningError, *EXPECTED_ERRORS):
-                pass          # reported when the splats are next posed
+                pass  # reported when the splats are next posed
     return None
 
 
-HANDLERS = ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update),
-            (bpy.app.handlers.depsgraph_update_post, _on_pose_edit),
-            (bpy.app.handlers.frame_change_post, _on_frame_change),
-            (bpy.app.handlers.load_post, _on_load), (bpy.app.handlers.undo_post, _on_load),
-            (bpy.app.handlers.redo_post, _on_load))
+HANDLERS = (
+    (bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update),
+    (bpy.app.handlers.depsgraph_update_post, _on_pose_edit),
+    (bpy.app.handlers.frame_change_post, _on_frame_change),
+    (bpy.app.handlers.load_post, _on_load),
+    (bpy.app.handlers.undo_post, _on_load),
+    (bpy.app.handlers.redo_post, _on_load),
+)
 
 
 def register():

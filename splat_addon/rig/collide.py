@@ -38,13 +38,14 @@ class CollisionSetupError(ValueError):
 @dataclass
 class FrameContacts:
     """What touched at one frame: splat pairs, splats of each object, and splats per bone."""
+
     frame: int
     pairs: int = 0
     splats_a: int = 0
     splats_b: int = 0
-    bones_a: dict = field(default_factory=dict)    # bone name -> splats of A in contact
+    bones_a: dict = field(default_factory=dict)  # bone name -> splats of A in contact
     bones_b: dict = field(default_factory=dict)
-    deepest: float = float("inf")                  # smallest sigma multiple at which a pair touches
+    deepest: float = float("inf")  # smallest sigma multiple at which a pair touches
 
 
 @dataclass
@@ -52,8 +53,8 @@ class CollisionReport:
     object_a: str
     object_b: str
     k: float
-    frames: list                 # FrameContacts per checked frame
-    contact_a: np.ndarray        # (N_a,) fraction of frames each splat of A was in contact
+    frames: list  # FrameContacts per checked frame
+    contact_a: np.ndarray  # (N_a,) fraction of frames each splat of A was in contact
     contact_b: np.ndarray
 
     @property
@@ -62,19 +63,35 @@ class CollisionReport:
 
     def as_dict(self):
         """Plain numbers, for JSON."""
-        frames = [{"frame": f.frame, "pairs": f.pairs, "splats_a": f.splats_a, "splats_b": f.splats_b,
-                   "bones_a": f.bones_a, "bones_b": f.bones_b,
-                   "deepest_sigma": None if np.isinf(f.deepest) else f.deepest} for f in self.frames]
-        return {"object_a": self.object_a, "object_b": self.object_b, "sigma": self.k,
-                "contact_frames": self.contact_frames, "frames": frames}
+        frames = [
+            {
+                "frame": f.frame,
+                "pairs": f.pairs,
+                "splats_a": f.splats_a,
+                "splats_b": f.splats_b,
+                "bones_a": f.bones_a,
+                "bones_b": f.bones_b,
+                "deepest_sigma": None if np.isinf(f.deepest) else f.deepest,
+            }
+            for f in self.frames
+        ]
+        return {
+            "object_a": self.object_a,
+            "object_b": self.object_b,
+            "sigma": self.k,
+            "contact_frames": self.contact_frames,
+            "frames": frames,
+        }
 
     def summary(self):
         if not self.contact_frames:
             return f"'{self.object_a}' and '{self.object_b}' never touch in {len(self.frames)} frame(s)"
         bones = sorted({b for f in self.frames for b in f.bones_a})
         where = f" (bones of '{self.object_a}': {', '.join(bones)})" if bones else ""
-        return (f"'{self.object_a}' touches '{self.object_b}' at {len(self.contact_frames)} of {len(self.frames)} "
-                f"frame(s): {frame_ranges(self.contact_frames)}{where}")
+        return (
+            f"'{self.object_a}' touches '{self.object_b}' at {len(self.contact_frames)} of {len(self.frames)} "
+            f"frame(s): {frame_ranges(self.contact_frames)}{where}"
+        )
 
 
 def splat_objects_pair(scene, name_a, name_b, context=None):
@@ -135,8 +152,9 @@ def _check_finite(frame, *objects_and_clouds):
             values = getattr(cloud, name)
             bad |= ~np.isfinite(values).all(axis=tuple(range(1, values.ndim)))
         if bad.any():
-            raise CollisionSetupError(f"frame {frame}: {int(bad.sum())} splats of '{obj.name}' hold NaN or "
-                                      "infinite values")
+            raise CollisionSetupError(
+                f"frame {frame}: {int(bad.sum())} splats of '{obj.name}' hold NaN or infinite values"
+            )
 
 
 def _per_bone(bones, labels):
@@ -151,8 +169,10 @@ class _Environment:
         self.cloud, self.index = None, None
 
     def get(self, cloud):
-        same = self.cloud is not None and all(np.array_equal(getattr(self.cloud, f), getattr(cloud, f))
-                                              for f in ("positions", "rotations", "log_scales", "opacity_logits"))
+        same = self.cloud is not None and all(
+            np.array_equal(getattr(self.cloud, f), getattr(cloud, f))
+            for f in ("positions", "rotations", "log_scales", "opacity_logits")
+        )
         if not same:
             self.cloud, self.index = cloud, EnvironmentIndex(cloud)
         return self.index
@@ -165,8 +185,17 @@ class CollisionJob:
     CollisionReport; cancel() puts the frame back and writes nothing, leaving the scene as it was.
     `done` / `total` / `label` say how far it is."""
 
-    def __init__(self, context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity=DEFAULT_MIN_OPACITY,
-                 ignore_bones=(), write_attribute=True):
+    def __init__(
+        self,
+        context,
+        obj_a,
+        obj_b,
+        frames,
+        k=DEFAULT_SIGMA,
+        min_opacity=DEFAULT_MIN_OPACITY,
+        ignore_bones=(),
+        write_attribute=True,
+    ):
         frames = list(frames)
         if not frames:
             raise CollisionSetupError("no frames to check")
@@ -178,11 +207,13 @@ class CollisionJob:
         (self.bones_a, self.labels_a), (self.bones_b, self.labels_b) = _labels(obj_a), _labels(obj_b)
         unknown = self.ignore - set(self.bones_a) - set(self.bones_b)
         if unknown:
-            raise CollisionSetupError(f"no bones named {', '.join(sorted(unknown))} bind '{obj_a.name}' or '{obj_b.name}'")
+            raise CollisionSetupError(
+                f"no bones named {', '.join(sorted(unknown))} bind '{obj_a.name}' or '{obj_b.name}'"
+            )
         self.context, self.obj_a, self.obj_b, self.frames = context, obj_a, obj_b, frames
         self.k, self.min_opacity, self.write_attribute = float(k), min_opacity, write_attribute
         self.hits_a, self.hits_b = np.zeros(data.splat_count(obj_a.data)), np.zeros(data.splat_count(obj_b.data))
-        self.traced = [True, True]      # whether every frame's contacts map back onto each object's splats
+        self.traced = [True, True]  # whether every frame's contacts map back onto each object's splats
         scene = context.scene
         self.restore = (scene.frame_current, scene.frame_subframe)
         self.environment, self.results = _Environment(), []
@@ -213,16 +244,23 @@ class CollisionJob:
             return FrameContacts(frame)
         contacts = ellipsoid_contacts(cloud_a[keep_a], self.environment.get(cloud_b[keep_b]), k=self.k)
         touched_a, touched_b = keep_a[np.unique(contacts.robot)], keep_b[np.unique(contacts.env)]
-        for side, (hits, touched, cloud) in enumerate(((self.hits_a, touched_a, cloud_a),
-                                                        (self.hits_b, touched_b, cloud_b))):
+        for side, (hits, touched, cloud) in enumerate(
+            ((self.hits_a, touched_a, cloud_a), (self.hits_b, touched_b, cloud_b))
+        ):
             own = _own_splats(touched, len(hits), len(cloud))
             if own is None:
                 self.traced[side] = False
             else:
                 hits[own] += 1
-        return FrameContacts(frame, len(contacts), len(touched_a), len(touched_b),
-                             _per_bone(self.bones_a, shown_a[touched_a]), _per_bone(self.bones_b, shown_b[touched_b]),
-                             float(contacts.sigma.min(initial=np.inf)))
+        return FrameContacts(
+            frame,
+            len(contacts),
+            len(touched_a),
+            len(touched_b),
+            _per_bone(self.bones_a, shown_a[touched_a]),
+            _per_bone(self.bones_b, shown_b[touched_b]),
+            float(contacts.sigma.min(initial=np.inf)),
+        )
 
     def _restore_frame(self):
         current, subframe = self.restore
@@ -236,18 +274,30 @@ class CollisionJob:
         """The report of the frames checked; the frame goes back and `splat_contact` is written."""
         self._restore_frame()
         checked = max(len(self.results), 1)
-        report = CollisionReport(self.obj_a.name, self.obj_b.name, self.k, self.results,
-                                 self.hits_a / checked, self.hits_b / checked)
+        report = CollisionReport(
+            self.obj_a.name, self.obj_b.name, self.k, self.results, self.hits_a / checked, self.hits_b / checked
+        )
         if self.write_attribute:
-            for obj, values, ok in ((self.obj_a, report.contact_a, self.traced[0]),
-                                    (self.obj_b, report.contact_b, self.traced[1])):
+            for obj, values, ok in (
+                (self.obj_a, report.contact_a, self.traced[0]),
+                (self.obj_b, report.contact_b, self.traced[1]),
+            ):
                 if ok:
                     write_contact(obj, values)
         return report
 
 
-def check_collisions(context, obj_a, obj_b, frames, k=DEFAULT_SIGMA, min_opacity=DEFAULT_MIN_OPACITY,
-                     ignore_bones=(), write_attribute=True, progress=None):
+def check_collisions(
+    context,
+    obj_a,
+    obj_b,
+    frames,
+    k=DEFAULT_SIGMA,
+    min_opacity=DEFAULT_MIN_OPACITY,
+    ignore_bones=(),
+    write_attribute=True,
+    progress=None,
+):
     """Test splat objects `obj_a` and `obj_b` for contact at each of `frames`; returns a
     CollisionReport and (with `write_attribute`) writes `splat_contact` on both. The scene's frame
     is restored. progress(done, total, FrameContacts) is called after each frame."""
@@ -269,6 +319,7 @@ def write_contact(obj, values):
 
 # the operator ---------------------------------------------------------------------------------------
 
+
 class SPLAT_OT_check_collisions(JobOperator, bpy.types.Operator):
     """Find the frames and bones at which two splat objects touch (exact k-sigma ellipsoid test) and
     store each splat's share of frames in contact in its 'splat_contact' attribute (from the interface a
@@ -279,21 +330,37 @@ class SPLAT_OT_check_collisions(JobOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
     job_errors = (CollisionSetupError, CollisionInputError, SkinningError, *EXPECTED_ERRORS)
 
-    object_a: StringProperty(name="Object A", default="",
-                             description="A splat object, e.g. a rigged avatar (empty: the active object)")
-    object_b: StringProperty(name="Object B", default="",
-                             description="The other splat object (empty: the other selected object)")
-    use_scene_range: BoolProperty(name="Scene Frame Range", default=True,
-                                  description="Check the scene's frame range and step")
+    object_a: StringProperty(
+        name="Object A", default="", description="A splat object, e.g. a rigged avatar (empty: the active object)"
+    )
+    object_b: StringProperty(
+        name="Object B", default="", description="The other splat object (empty: the other selected object)"
+    )
+    use_scene_range: BoolProperty(
+        name="Scene Frame Range", default=True, description="Check the scene's frame range and step"
+    )
     frame_start: IntProperty(name="Start", default=1, description="First frame (without the scene range)")
     frame_end: IntProperty(name="End", default=250, description="Last frame (without the scene range)")
     frame_step: IntProperty(name="Step", default=1, min=1, description="Frames between checked frames")
-    sigma: FloatProperty(name="Sigma", default=DEFAULT_SIGMA, min=0.1, max=10.0,
-                         description="Splats touch when their ellipsoids of this many standard deviations meet")
-    min_opacity: FloatProperty(name="Min Opacity", default=DEFAULT_MIN_OPACITY, min=0.0, max=1.0,
-                               description="Leave out splats fainter than this")
-    ignore_bones: StringProperty(name="Ignore Bones", default="",
-                                 description="Comma-separated bones whose splats are left out (e.g. feet on a floor)")
+    sigma: FloatProperty(
+        name="Sigma",
+        default=DEFAULT_SIGMA,
+        min=0.1,
+        max=10.0,
+        description="Splats touch when their ellipsoids of this many standard deviations meet",
+    )
+    min_opacity: FloatProperty(
+        name="Min Opacity",
+        default=DEFAULT_MIN_OPACITY,
+        min=0.0,
+        max=1.0,
+        description="Leave out splats fainter than this",
+    )
+    ignore_bones: StringProperty(
+        name="Ignore Bones",
+        default="",
+        description="Comma-separated bones whose splats are left out (e.g. feet on a floor)",
+    )
 
     @classmethod
     def poll(cls, context):
@@ -302,8 +369,11 @@ class SPLAT_OT_check_collisions(JobOperator, bpy.types.Operator):
     def make_job(self, context):
         scene = context.scene
         obj_a, obj_b = splat_objects_pair(scene, self.object_a, self.object_b, context)
-        start, end, step = (scene.frame_start, scene.frame_end, scene.frame_step) if self.use_scene_range \
+        start, end, step = (
+            (scene.frame_start, scene.frame_end, scene.frame_step)
+            if self.use_scene_range
             else (self.frame_start, self.frame_end, self.frame_step)
+        )
         ignore = [n.strip() for n in self.ignore_bones.split(",") if n.strip()]
         return CollisionJob(context, obj_a, obj_b, frame_range(start, end, step), self.sigma, self.min_opacity, ignore)
 

@@ -39,18 +39,22 @@ def proxy_rig(proxy):
     parent; RiggingError naming what is missing."""
     if proxy.type != "MESH" or data.is_splat_object(proxy):
         kind = "a splat object" if data.is_splat_object(proxy) else proxy.type.lower()
-        raise rigging.RiggingError(f"'{proxy.name}' is {kind}, not a rigged mesh: the proxy must be a mesh "
-                                   "skinned to an armature")
+        raise rigging.RiggingError(
+            f"'{proxy.name}' is {kind}, not a rigged mesh: the proxy must be a mesh skinned to an armature"
+        )
     if not len(proxy.data.polygons):
         raise rigging.RiggingError(f"the proxy mesh '{proxy.name}' has no faces")
-    mod = next((m for m in proxy.modifiers if m.type == "ARMATURE" and m.object is not None
-                and m.object.type == "ARMATURE"), None)
+    mod = next(
+        (m for m in proxy.modifiers if m.type == "ARMATURE" and m.object is not None and m.object.type == "ARMATURE"),
+        None,
+    )
     if mod is not None:
         return mod.object, mod.use_deform_preserve_volume
     if proxy.parent is not None and proxy.parent.type == "ARMATURE":
         return proxy.parent, False
-    raise rigging.RiggingError(f"the proxy mesh '{proxy.name}' has no armature (an Armature modifier or an "
-                               "armature parent)")
+    raise rigging.RiggingError(
+        f"the proxy mesh '{proxy.name}' has no armature (an Armature modifier or an armature parent)"
+    )
 
 
 def proxy_surface(proxy, bones):
@@ -78,9 +82,16 @@ def falloff_range(far, falloff_start, max_distance):
     return max_distance if far == "STAY" else min(falloff_start, max_distance)
 
 
-def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
-                       max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT,
-                       falloff_start=DEFAULT_FALLOFF_START):
+def plan_proxy_binding(
+    obj,
+    proxy,
+    arm,
+    max_distance=DEFAULT_MAX_DISTANCE,
+    far="FADE",
+    max_influences=rigging.DEFAULT_INFLUENCES,
+    min_weight=rigging.DEFAULT_MIN_WEIGHT,
+    falloff_start=DEFAULT_FALLOFF_START,
+):
     """(BindPlan, far report) binding splat object `obj` through `proxy` (nothing changes)."""
     start = falloff_range(far, falloff_start, max_distance)
     bones = rigging.deform_bones(arm)
@@ -99,15 +110,27 @@ def plan_proxy_binding(obj, proxy, arm, max_distance=DEFAULT_MAX_DISTANCE, far="
     plan = rigging.plan_from_weights(obj, bones, dense, f"proxy '{proxy.name}'", max_influences, min_weight)
     plan.strength = strength
     partial = 0 if strength is None else int(((strength > 0) & (strength < 1)).sum())
-    report = {"far": int((closest.distance > max_distance).sum()), "max_distance": max_distance,
-              "falloff_start": start, "partial": partial, "far_kept_still": start is not None,
-              "farthest": float(closest.distance.max()), "mean_distance": float(closest.distance.mean())}
+    report = {
+        "far": int((closest.distance > max_distance).sum()),
+        "max_distance": max_distance,
+        "falloff_start": start,
+        "partial": partial,
+        "far_kept_still": start is not None,
+        "farthest": float(closest.distance.max()),
+        "mean_distance": float(closest.distance.mean()),
+    }
     return plan, report
 
 
-def bind_proxy(objects, proxy, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
-               max_influences=rigging.DEFAULT_INFLUENCES, min_weight=rigging.DEFAULT_MIN_WEIGHT,
-               falloff_start=DEFAULT_FALLOFF_START):
+def bind_proxy(
+    objects,
+    proxy,
+    max_distance=DEFAULT_MAX_DISTANCE,
+    far="FADE",
+    max_influences=rigging.DEFAULT_INFLUENCES,
+    min_weight=rigging.DEFAULT_MIN_WEIGHT,
+    falloff_start=DEFAULT_FALLOFF_START,
+):
     """Bind the splat objects among `objects` to the armature of `proxy` through its surface; returns
     [(BindPlan, far report)]. Every binding is computed before anything changes."""
     arm, preserve_volume = proxy_rig(proxy)
@@ -117,8 +140,9 @@ def bind_proxy(objects, proxy, max_distance=DEFAULT_MAX_DISTANCE, far="FADE",
         raise rigging.RiggingError("no splat objects to bind" + (f"; {listed} are not splat objects" if listed else ""))
     if max_influences < 1:
         raise rigging.RiggingError(f"max_influences must be at least 1, got {max_influences}")
-    results = [plan_proxy_binding(o, proxy, arm, max_distance, far, max_influences, min_weight, falloff_start)
-               for o in targets]
+    results = [
+        plan_proxy_binding(o, proxy, arm, max_distance, far, max_influences, min_weight, falloff_start) for o in targets
+    ]
     rigging.write_plans([plan for plan, _ in results], arm, preserve_volume)
     return results
 
@@ -131,23 +155,48 @@ class SPLAT_OT_bind_proxy(bpy.types.Operator):
     bl_label = "Bind Splats Through Proxy"
     bl_options = {"REGISTER", "UNDO"}
 
-    proxy: StringProperty(name="Proxy", default="",
-                          description="Mesh skinned to an armature (empty: the active object)")
-    falloff_start: FloatProperty(name="Falloff Start", default=DEFAULT_FALLOFF_START, min=0.0, unit="LENGTH",
-                                 description="Splats nearer than this to the proxy's surface follow it fully; "
-                                             "farther ones fade (smoothstep) until Max Distance (at or beyond "
-                                             "it: a hard cut there)")
-    max_distance: FloatProperty(name="Max Distance", default=DEFAULT_MAX_DISTANCE, min=0.0, unit="LENGTH",
-                                description="Splats farther than this from the proxy's surface are reported "
-                                            "and, unless Far Splats follow, stay still")
-    far: EnumProperty(name="Far Splats", default="FADE", items=(
-        ("FADE", "Fade", "Binding strength fades from 1 at Falloff Start to 0 at Max Distance: the "
-                         "Armature modifier's mask group " + rigging.MASK_GROUP),
-        ("STAY", "Stay", "Splats beyond Max Distance stay still, nearer ones follow fully (a hard cut)"),
-        ("FOLLOW", "Follow", "Every splat follows its nearest surface point fully, however far")))
+    proxy: StringProperty(
+        name="Proxy", default="", description="Mesh skinned to an armature (empty: the active object)"
+    )
+    falloff_start: FloatProperty(
+        name="Falloff Start",
+        default=DEFAULT_FALLOFF_START,
+        min=0.0,
+        unit="LENGTH",
+        description="Splats nearer than this to the proxy's surface follow it fully; "
+        "farther ones fade (smoothstep) until Max Distance (at or beyond "
+        "it: a hard cut there)",
+    )
+    max_distance: FloatProperty(
+        name="Max Distance",
+        default=DEFAULT_MAX_DISTANCE,
+        min=0.0,
+        unit="LENGTH",
+        description="Splats farther than this from the proxy's surface are reported "
+        "and, unless Far Splats follow, stay still",
+    )
+    far: EnumProperty(
+        name="Far Splats",
+        default="FADE",
+        items=(
+            (
+                "FADE",
+                "Fade",
+                "Binding strength fades from 1 at Falloff Start to 0 at Max Distance: the "
+                "Armature modifier's mask group " + rigging.MASK_GROUP,
+            ),
+            ("STAY", "Stay", "Splats beyond Max Distance stay still, nearer ones follow fully (a hard cut)"),
+            ("FOLLOW", "Follow", "Every splat follows its nearest surface point fully, however far"),
+        ),
+    )
     max_influences: IntProperty(name="Max Influences", default=rigging.DEFAULT_INFLUENCES, min=1, max=32)
-    min_weight: FloatProperty(name="Min Weight", default=rigging.DEFAULT_MIN_WEIGHT, min=0.0, max=0.5,
-                              description="Drop bones below this share of a splat's weight")
+    min_weight: FloatProperty(
+        name="Min Weight",
+        default=rigging.DEFAULT_MIN_WEIGHT,
+        min=0.0,
+        max=0.5,
+        description="Drop bones below this share of a splat's weight",
+    )
 
     @classmethod
     def poll(cls, context):
@@ -157,10 +206,20 @@ class SPLAT_OT_bind_proxy(bpy.types.Operator):
         try:
             proxy = bpy.data.objects.get(self.proxy) if self.proxy else context.view_layer.objects.active
             if proxy is None:
-                raise rigging.RiggingError(f"no object named '{self.proxy}'" if self.proxy else
-                                           "no proxy: make the rigged mesh the active object, or name it")
-            results = bind_proxy(context.selected_objects, proxy, self.max_distance, self.far,
-                                 self.max_influences, self.min_weight, self.falloff_start)
+                raise rigging.RiggingError(
+                    f"no object named '{self.proxy}'"
+                    if self.proxy
+                    else "no proxy: make the rigged mesh the active object, or name it"
+                )
+            results = bind_proxy(
+                context.selected_objects,
+                proxy,
+                self.max_distance,
+                self.far,
+                self.max_influences,
+                self.min_weight,
+                self.falloff_start,
+            )
         except (rigging.RiggingError, core_proxy.ProxyError, SkinningError, *EXPECTED_ERRORS) as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}
@@ -168,12 +227,18 @@ class SPLAT_OT_bind_proxy(bpy.types.Operator):
             r = plan.report
             still = "kept still" if far["far_kept_still"] else "bound all the same"
             fading = f", {far['partial']} of them partly (fading with distance)" if far["partial"] else ""
-            self.report({"INFO"}, f"'{plan.obj.name}': {r['splats'] - r['unbound']} of {r['splats']} splats bound "
-                                  f"through '{proxy.name}', up to {r['max_influences']} bones each{fading}")
+            self.report(
+                {"INFO"},
+                f"'{plan.obj.name}': {r['splats'] - r['unbound']} of {r['splats']} splats bound "
+                f"through '{proxy.name}', up to {r['max_influences']} bones each{fading}",
+            )
             if far["far"]:
-                self.report({"WARNING"}, f"'{plan.obj.name}': {far['far']} splats are farther than "
-                                         f"{far['max_distance']:g} from the proxy (farthest {far['farthest']:.3g}), "
-                                         f"{still}")
+                self.report(
+                    {"WARNING"},
+                    f"'{plan.obj.name}': {far['far']} splats are farther than "
+                    f"{far['max_distance']:g} from the proxy (farthest {far['farthest']:.3g}), "
+                    f"{still}",
+                )
         return {"FINISHED"}
 
 

@@ -6,11 +6,10 @@ splats), so drawing stays cheap for any size; the file sizes are each writer's o
 (io.file_sizes) for the export defaults in the preferences.
 """
 
+import json
 from typing import NamedTuple
 
 import bpy
-
-import json
 
 from ...core.economy import describe_change
 from ...core.splats import memory_bytes
@@ -22,15 +21,19 @@ from . import preferences
 
 DISPLAY_INPUTS = ("Radius Scale", "Min Opacity", "Display Ratio")
 # format -> (label, how the number relates to the file)
-SIZE_LABELS = {"ply": ("PLY", ""), "spz": ("SPZ", "at most (before compression)"), "splat": (".splat", ""),
-               "usd": ("OpenUSD", "arrays (crate file about 1.4 kB more)")}
+SIZE_LABELS = {
+    "ply": ("PLY", ""),
+    "spz": ("SPZ", "at most (before compression)"),
+    "splat": (".splat", ""),
+    "usd": ("OpenUSD", "arrays (crate file about 1.4 kB more)"),
+}
 
 
 class SplatStats(NamedTuple):
     count: int
     sh_degree: int
-    memory: int            # bytes of one copy of the splats' float32 fields
-    sizes: dict            # format -> bytes (see io.file_sizes)
+    memory: int  # bytes of one copy of the splats' float32 fields
+    sizes: dict  # format -> bytes (see io.file_sizes)
     spz_version: int
     half: bool
 
@@ -42,8 +45,9 @@ def splat_stats(obj, spz_version=None, half=None, context=None):
     spz_version = int(prefs.spz_version) if spz_version is None else int(spz_version)
     half = bool(prefs.use_half) if half is None else bool(half)
     count, degree = data.splat_count(obj.data), data.sh_degree(obj)
-    return SplatStats(count, degree, memory_bytes(count, degree), file_sizes(count, degree, spz_version, half),
-                      spz_version, half)
+    return SplatStats(
+        count, degree, memory_bytes(count, degree), file_sizes(count, degree, spz_version, half), spz_version, half
+    )
 
 
 def human_bytes(n):
@@ -91,8 +95,13 @@ def draw_cleanup(box, obj):
     report = obj.get(cleanup.REPORT)
     if report:
         col.label(text="Last: " + describe_change(json.loads(report)))
-    for idname, icon in (("splat.crop", "MOD_BOOLEAN"), ("splat.prune", "TRASH"), ("splat.grade", "COLOR"),
-                         ("splat.reduce_sh", "SPHERE"), ("splat.clear_cleanup", "LOOP_BACK")):
+    for idname, icon in (
+        ("splat.crop", "MOD_BOOLEAN"),
+        ("splat.prune", "TRASH"),
+        ("splat.grade", "COLOR"),
+        ("splat.reduce_sh", "SPHERE"),
+        ("splat.clear_cleanup", "LOOP_BACK"),
+    ):
         col.operator(idname, icon=icon)
 
 

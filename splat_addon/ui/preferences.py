@@ -39,28 +39,41 @@ DEFAULTS = SimpleNamespace(export_format="ply", sh_degree="KEEP", spz_version="3
 
 
 def sh_degree_property(default="KEEP"):
-    return EnumProperty(name="SH Degree", items=SH_DEGREE_ITEMS, default=default,
-                        description="SH degree written (only reduces: a lower degree than the splats have "
-                                    "drops view-dependent colour)")
+    return EnumProperty(
+        name="SH Degree",
+        items=SH_DEGREE_ITEMS,
+        default=default,
+        description="SH degree written (only reduces: a lower degree than the splats have drops view-dependent colour)",
+    )
 
 
 def spz_version_property(default="3"):
-    return EnumProperty(name="SPZ Version", items=SPZ_VERSION_ITEMS, default=default,
-                        description="SPZ file version written (.spz files only)")
+    return EnumProperty(
+        name="SPZ Version",
+        items=SPZ_VERSION_ITEMS,
+        default=default,
+        description="SPZ file version written (.spz files only)",
+    )
 
 
 def half_property(default=False):
-    return BoolProperty(name="Half Floats", default=default,
-                        description="OpenUSD: store orientations, scales, opacities and SH as half floats "
-                                    "(half the size, about 5e-4 relative error)")
+    return BoolProperty(
+        name="Half Floats",
+        default=default,
+        description="OpenUSD: store orientations, scales, opacities and SH as half floats "
+        "(half the size, about 5e-4 relative error)",
+    )
 
 
 class SplatwrightPreferences(bpy.types.AddonPreferences):
     bl_idname = ADDON
 
-    export_format: EnumProperty(name="Export Format", items=FORMAT_ITEMS, default=DEFAULTS.export_format,
-                                description="The file format export dialogs and `--command splatwright export` "
-                                            "start from")
+    export_format: EnumProperty(
+        name="Export Format",
+        items=FORMAT_ITEMS,
+        default=DEFAULTS.export_format,
+        description="The file format export dialogs and `--command splatwright export` start from",
+    )
     sh_degree: sh_degree_property(DEFAULTS.sh_degree)
     spz_version: spz_version_property(DEFAULTS.spz_version)
     use_half: half_property(DEFAULTS.use_half)

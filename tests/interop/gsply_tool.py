@@ -1,10 +1,10 @@
 """PyPI gsply on .npz arrays (3DGS PLY values: means, log scales, w-first quats, logits, sh0, shN).
 
-    python gsply_tool.py write-spz in.npz out.spz VERSION
-    python gsply_tool.py write-compressed in.npz out.compressed.ply
-    python gsply_tool.py read-spz|read-ply|read-sog in out.npz
-    python gsply_tool.py time-spz in.npz out.spz REPEAT [VERSION]   (the median of REPEAT writes
-                                                                     after one untimed, in seconds)
+python gsply_tool.py write-spz in.npz out.spz VERSION
+python gsply_tool.py write-compressed in.npz out.compressed.ply
+python gsply_tool.py read-spz|read-ply|read-sog in out.npz
+python gsply_tool.py time-spz in.npz out.spz REPEAT [VERSION]   (the median of REPEAT writes
+                                                                 after one untimed, in seconds)
 """
 
 import statistics
@@ -18,15 +18,22 @@ from gsply import spz
 
 def data_from(path):
     with np.load(path) as a:
-        return gsply.GSData(means=a["means"], scales=a["scales"], quats=a["quats"], opacities=a["opacities"],
-                            sh0=a["sh0"], shN=a["shN"] if a["shN"].size else None)
+        return gsply.GSData(
+            means=a["means"],
+            scales=a["scales"],
+            quats=a["quats"],
+            opacities=a["opacities"],
+            sh0=a["sh0"],
+            shN=a["shN"] if a["shN"].size else None,
+        )
 
 
 def save(data, path):
     n = len(data.means)
     shn = np.zeros((n, 0, 3), np.float32) if data.shN is None else np.asarray(data.shN).reshape(n, -1, 3)
-    np.savez(path, means=data.means, scales=data.scales, quats=data.quats, opacities=data.opacities,
-             sh0=data.sh0, shN=shn)
+    np.savez(
+        path, means=data.means, scales=data.scales, quats=data.quats, opacities=data.opacities, sh0=data.sh0, shN=shn
+    )
 
 
 verb, args = sys.argv[1], sys.argv[2:]

@@ -16,14 +16,16 @@ assert len(prims) == 1, f"{len(prims)} splat prims"
 splat = UsdVol.ParticleField3DGaussianSplat(prims[0])
 time = Usd.TimeCode.Default()
 sh = splat.GetRadianceSphericalHarmonicsCoefficientsAttr()
-np.savez(sys.argv[2],
-         positions=np.asarray(splat.GetPositionsAttr().Get()),
-         orientations_xyzw=np.asarray(splat.GetOrientationsAttr().Get()),
-         scales=np.asarray(splat.GetScalesAttr().Get()),
-         opacities=np.asarray(splat.GetOpacitiesAttr().Get()),
-         degree=splat.GetRadianceSphericalHarmonicsDegreeAttr().Get(),
-         sh=np.asarray(sh.Get()),
-         element_size=UsdGeom.Primvar(sh).GetElementSize(),
-         interpolation=str(UsdGeom.Primvar(sh).GetInterpolation()),
-         up_axis=str(UsdGeom.GetStageUpAxis(stage)),
-         to_world=np.array(UsdGeom.Xformable(prims[0]).ComputeLocalToWorldTransform(time)).T)
+np.savez(
+    sys.argv[2],
+    positions=np.asarray(splat.GetPositionsAttr().Get()),
+    orientations_xyzw=np.asarray(splat.GetOrientationsAttr().Get()),
+    scales=np.asarray(splat.GetScalesAttr().Get()),
+    opacities=np.asarray(splat.GetOpacitiesAttr().Get()),
+    degree=splat.GetRadianceSphericalHarmonicsDegreeAttr().Get(),
+    sh=np.asarray(sh.Get()),
+    element_size=UsdGeom.Primvar(sh).GetElementSize(),
+    interpolation=str(UsdGeom.Primvar(sh).GetInterpolation()),
+    up_axis=str(UsdGeom.GetStageUpAxis(stage)),
+    to_world=np.array(UsdGeom.Xformable(prims[0]).ComputeLocalToWorldTransform(time)).T,
+)

@@ -1,5 +1,5 @@
 """PyPI ply2splat (a Rust converter) turning a 3DGS PLY into antimatter15 .splat, in file order:
-    python ply2splat_tool.py in.ply out.splat"""
+python ply2splat_tool.py in.ply out.splat"""
 
 import sys
 

@@ -6,11 +6,11 @@ import numpy as np
 
 from workers.base import MODULE, BlenderWorker, worker_main
 
-PANEL_CLOUD = (700, 2, 7)             # count, SH degree, seed of the cloud the panel's numbers are checked on
-OPTIONS_CLOUD = (400, 3, 8)           # the cloud the export options are checked on
-CHAIN = 12                            # bones in the armature's longest chain
-POSES = 60                            # random poses of the armature
-SCALED_BONE = 3                       # scaled by 1.001 in the last pose
+PANEL_CLOUD = (700, 2, 7)  # count, SH degree, seed of the cloud the panel's numbers are checked on
+OPTIONS_CLOUD = (400, 3, 8)  # the cloud the export options are checked on
+CHAIN = 12  # bones in the armature's longest chain
+POSES = 60  # random poses of the armature
+SCALED_BONE = 3  # scaled by 1.001 in the last pose
 PREFERRED = dict(export_format="spz", sh_degree="2", spz_version="2", use_half=True)
 
 
@@ -63,8 +63,18 @@ def _resolves(owner, prop):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "panel_draw", "panel_numbers", "export_options", "animation_options", "command_options",
-             "preferences_defaults", "collide_job", "from_mesh_job", "armature_matrices")
+    steps = (
+        "install",
+        "panel_draw",
+        "panel_numbers",
+        "export_options",
+        "animation_options",
+        "command_options",
+        "preferences_defaults",
+        "collide_job",
+        "from_mesh_job",
+        "armature_matrices",
+    )
     keep_objects = ("Cube", "Camera", "Light")
     orphan_kinds = ("meshes", "armatures", "actions")
 
@@ -116,17 +126,23 @@ class Worker(BlenderWorker):
             bpy.context.view_layer.objects.active = bpy.data.objects[name]
             polls[name] = [bpy.types.SPLAT_PT_object.poll(bpy.context), bpy.types.SPLAT_PT_view3d.poll(bpy.context)]
         if data.native_supported():
-            native, _ = data.new_splat_object(self.random_cloud(30, 2, 2), "native", bpy.context.scene.collection,
-                                              form=data.NATIVE_FORM)
+            native, _ = data.new_splat_object(
+                self.random_cloud(30, 2, 2), "native", bpy.context.scene.collection, form=data.NATIVE_FORM
+            )
             bpy.context.view_layer.objects.active = native
             polls["native"] = [bpy.types.SPLAT_PT_object.poll(bpy.context), bpy.types.SPLAT_PT_view3d.poll(bpy.context)]
             polls["native_stats"] = list(self.module("splat_addon.ui.panel").splat_stats(native)[:3])
-        return {"panels": [cls.is_registered for cls in (bpy.types.SPLAT_PT_object, bpy.types.SPLAT_PT_view3d)],
-                "panel_spaces": [(cls.bl_space_type, cls.bl_region_type, getattr(cls, "bl_category", ""),
-                                  getattr(cls, "bl_context", "")) for cls in (bpy.types.SPLAT_PT_object,
-                                                                              bpy.types.SPLAT_PT_view3d)],
-                "preferences": type(prefs).__name__, "preferences_idname": type(prefs).bl_idname,
-                "defaults": {name: getattr(prefs, name) for name in PREFERRED}, "polls": polls}
+        return {
+            "panels": [cls.is_registered for cls in (bpy.types.SPLAT_PT_object, bpy.types.SPLAT_PT_view3d)],
+            "panel_spaces": [
+                (cls.bl_space_type, cls.bl_region_type, getattr(cls, "bl_category", ""), getattr(cls, "bl_context", ""))
+                for cls in (bpy.types.SPLAT_PT_object, bpy.types.SPLAT_PT_view3d)
+            ],
+            "preferences": type(prefs).__name__,
+            "preferences_idname": type(prefs).bl_idname,
+            "defaults": {name: getattr(prefs, name) for name in PREFERRED},
+            "polls": polls,
+        }
 
     def panel_draw(self):
         """The panel's draw() on a recording layout: every label it shows, and whether every property
@@ -150,7 +166,7 @@ class Worker(BlenderWorker):
                 ok = (kind != "operator_menu_enum" or args[1] in props) and all(k in props for k in set_props)
                 checks.append([kind, args[0], ok])
         labels = lambda calls: [kw.get("text") for kind, _, kw in calls if kind == "label"]  # noqa: E731
-        obj.data[self.module("splat_addon.data").ANTIALIASED] = True       # as splats made for that mode
+        obj.data[self.module("splat_addon.data").ANTIALIASED] = True  # as splats made for that mode
         marked = Recorder()
         panel.draw(type("Drawn", (), {"layout": marked})(), bpy.context)
         return {"labels": labels(layout.calls), "checks": checks, "marked_labels": labels(marked.calls)}
@@ -164,11 +180,21 @@ class Worker(BlenderWorker):
         for version in (2, 3, 4):
             for half in (False, True):
                 stats = panel.splat_stats(obj, spz_version=version, half=half)
-                out["stats"][f"{version}_{half}"] = {"count": stats.count, "sh_degree": stats.sh_degree,
-                                                     "memory": stats.memory, "sizes": stats.sizes}
-        for name, options in (("size.ply", {}), ("size.splat", {}), ("size_v2.spz", dict(spz_version="2")),
-                              ("size_v3.spz", dict(spz_version="3")), ("size_v4.spz", dict(spz_version="4")),
-                              ("size.usda", {}), ("size_half.usda", dict(use_half=True))):
+                out["stats"][f"{version}_{half}"] = {
+                    "count": stats.count,
+                    "sh_degree": stats.sh_degree,
+                    "memory": stats.memory,
+                    "sizes": stats.sizes,
+                }
+        for name, options in (
+            ("size.ply", {}),
+            ("size.splat", {}),
+            ("size_v2.spz", dict(spz_version="2")),
+            ("size_v3.spz", dict(spz_version="3")),
+            ("size_v4.spz", dict(spz_version="4")),
+            ("size.usda", {}),
+            ("size_half.usda", dict(use_half=True)),
+        ):
             out["exports"][name] = self.export(name, **options)
         if usd.stages.PXR is not None:
             out["exports"]["size.usdc"] = self.export("size.usdc")
@@ -177,11 +203,17 @@ class Worker(BlenderWorker):
 
     def export_options(self):
         self.import_cloud("options.ply", *OPTIONS_CLOUD)
-        cases = {"degree1.ply": dict(sh_degree="1"), "degree0.spz": dict(sh_degree="0", spz_version="4"),
-                 "v2.spz": dict(spz_version="2"), "v4.spz": dict(spz_version="4"),
-                 "half.usda": dict(use_half=True), "full.usda": dict(use_half=False),
-                 "pruned.ply": dict(prune_opacity=0.6), "keep.ply": dict(sh_degree="KEEP"),
-                 "ignored.ply": dict(prune_opacity=0.6, sh_degree="1", spz_version="2", use_half=True)}
+        cases = {
+            "degree1.ply": dict(sh_degree="1"),
+            "degree0.spz": dict(sh_degree="0", spz_version="4"),
+            "v2.spz": dict(spz_version="2"),
+            "v4.spz": dict(spz_version="4"),
+            "half.usda": dict(use_half=True),
+            "full.usda": dict(use_half=False),
+            "pruned.ply": dict(prune_opacity=0.6),
+            "keep.ply": dict(sh_degree="KEEP"),
+            "ignored.ply": dict(prune_opacity=0.6, sh_degree="1", spz_version="2", use_half=True),
+        }
         return {name: self.export(name, **options) for name, options in cases.items()}
 
     def animation_options(self):
@@ -193,12 +225,27 @@ class Worker(BlenderWorker):
         obj.keyframe_insert("location", frame=3)
         bpy.context.scene.frame_set(2)
         done = {}
-        done["seq"] = self.call(bpy.ops.splat.export_animation, filepath=str(self.out / "anim_####.spz"),
-                                selected_only=True, use_scene_range=False, frame_start=1, frame_end=3,
-                                sh_degree="1", spz_version="4", prune_opacity=0.6)
-        done["usd"] = self.call(bpy.ops.splat.export_animation, filepath=str(self.out / "anim.usda"),
-                                selected_only=True, use_scene_range=False, frame_start=1, frame_end=3,
-                                use_half=True, sh_degree="0")
+        done["seq"] = self.call(
+            bpy.ops.splat.export_animation,
+            filepath=str(self.out / "anim_####.spz"),
+            selected_only=True,
+            use_scene_range=False,
+            frame_start=1,
+            frame_end=3,
+            sh_degree="1",
+            spz_version="4",
+            prune_opacity=0.6,
+        )
+        done["usd"] = self.call(
+            bpy.ops.splat.export_animation,
+            filepath=str(self.out / "anim.usda"),
+            selected_only=True,
+            use_scene_range=False,
+            frame_start=1,
+            frame_end=3,
+            use_half=True,
+            sh_degree="0",
+        )
         done["frame"] = bpy.context.scene.frame_current
         return done
 
@@ -214,8 +261,10 @@ class Worker(BlenderWorker):
             "cmd_wrong_half.spz": ["--half"],
             "cmd_bad_prune.ply": ["--prune-opacity", "1.5"],
         }
-        return {name: command.execute(["export", str(self.out / name), "--frames", "1", *args])
-                for name, args in runs.items()}
+        return {
+            name: command.execute(["export", str(self.out / name), "--frames", "1", *args])
+            for name, args in runs.items()
+        }
 
     def preferences_defaults(self):
         """Options left unset take the preferences' values, in the operator and in the command."""
@@ -226,12 +275,26 @@ class Worker(BlenderWorker):
         try:
             for name, value in PREFERRED.items():
                 setattr(prefs, name, value)
-            out = {"op_spz": self.export("prefs.spz"), "op_ply": self.export("prefs.ply"),
-                   "op_usda": self.export("prefs.usda"), "op_override": self.export("prefs_override.ply", sh_degree="KEEP"),
-                   "cmd_spz": command.execute(["export", str(self.out / "prefs_cmd.spz"), "--frames", "1"]),
-                   "cmd_noext": command.execute(["export", str(self.out / "prefs_noext"), "--frames", "1"]),
-                   "cmd_override": command.execute(["export", str(self.out / "prefs_cmd3.spz"), "--frames", "1",
-                                                    "--spz-version", "3", "--sh-degree", "3"])}
+            out = {
+                "op_spz": self.export("prefs.spz"),
+                "op_ply": self.export("prefs.ply"),
+                "op_usda": self.export("prefs.usda"),
+                "op_override": self.export("prefs_override.ply", sh_degree="KEEP"),
+                "cmd_spz": command.execute(["export", str(self.out / "prefs_cmd.spz"), "--frames", "1"]),
+                "cmd_noext": command.execute(["export", str(self.out / "prefs_noext"), "--frames", "1"]),
+                "cmd_override": command.execute(
+                    [
+                        "export",
+                        str(self.out / "prefs_cmd3.spz"),
+                        "--frames",
+                        "1",
+                        "--spz-version",
+                        "3",
+                        "--sh-degree",
+                        "3",
+                    ]
+                ),
+            }
         finally:
             for name, value in saved.items():
                 setattr(prefs, name, value)
@@ -248,7 +311,7 @@ class Worker(BlenderWorker):
         a.keyframe_insert("location", frame=1)
         a.location = (8, 0, 0)
         a.keyframe_insert("location", frame=9)
-        collide.write_contact(b, np.linspace(0, 1, 300))           # an earlier check's result, to be kept
+        collide.write_contact(b, np.linspace(0, 1, 300))  # an earlier check's result, to be kept
         bpy.context.scene.frame_set(5)
         before = self.scene_state([a, b])
         frames = list(range(1, 10))
@@ -262,13 +325,28 @@ class Worker(BlenderWorker):
             pass
         stepped_report = job.finish().as_dict()
         direct = collide.check_collisions(bpy.context, a, b, frames).as_dict()
-        operator = self.call(bpy.ops.splat.check_collisions, object_a=a.name, object_b=b.name,
-                             use_scene_range=False, frame_start=1, frame_end=9)
+        operator = self.call(
+            bpy.ops.splat.check_collisions,
+            object_a=a.name,
+            object_b=b.name,
+            use_scene_range=False,
+            frame_start=1,
+            frame_end=9,
+        )
         contact = np.empty(300, np.float32)
         a.data.attributes[collide.CONTACT_ATTRIBUTE].data.foreach_get("value", contact)
-        return {"stepped": stepped, "mid_frame": mid_frame, "done": job.done, "before": before, "after": after,
-                "stepped_report": stepped_report, "direct": direct, "operator": operator,
-                "frame_end": bpy.context.scene.frame_current, "contact_a": contact.tolist()}
+        return {
+            "stepped": stepped,
+            "mid_frame": mid_frame,
+            "done": job.done,
+            "before": before,
+            "after": after,
+            "stepped_report": stepped_report,
+            "direct": direct,
+            "operator": operator,
+            "frame_end": bpy.context.scene.frame_current,
+            "contact_a": contact.tolist(),
+        }
 
     def from_mesh_job(self):
         """Step a target-PSNR conversion of an armature-deformed mesh, cancel it part-way: nothing made,
@@ -295,8 +373,16 @@ class Worker(BlenderWorker):
         results = full.run(lambda d, t, label: progress.append(d))
         direct = from_mesh.convert_objects(bpy.context, [sphere], target_psnr=30.0, max_splats=3000, **views)
         self.save("from_mesh_job", stepped=results[0][1].positions, direct=direct[0][1].positions)
-        return {"before": before, "during": during, "after": after, "steps": steps, "label": label, "done": done,
-                "progress": progress, "count": len(results[0][1])}
+        return {
+            "before": before,
+            "during": during,
+            "after": after,
+            "steps": steps,
+            "label": label,
+            "done": done,
+            "progress": progress,
+            "count": len(results[0][1]),
+        }
 
     def armature_matrices(self):
         """Rest and pose matrices (armature space, as Blender stores them) of a rig with a 12-bone chain
@@ -317,7 +403,7 @@ class Worker(BlenderWorker):
             if chain:
                 bone.parent, bone.use_connect = chain[-1], True
             chain.append(bone)
-        for i in range(4):                                   # branches off the chain, not connected
+        for i in range(4):  # branches off the chain, not connected
             bone = arm.edit_bones.new(f"b{i}")
             bone.head = chain[3 * i].head + self.vector(rng.normal(0, 0.2, 3))
             bone.tail = bone.head + self.vector(rng.normal(0, 0.3, 3))
@@ -349,6 +435,7 @@ class Worker(BlenderWorker):
 
     def vector(self, values):
         from mathutils import Vector
+
         return Vector([float(v) for v in values])
 
 

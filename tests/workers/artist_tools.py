@@ -12,10 +12,10 @@ SPLATS = 500
 BOX = dict(location=(0.2, -0.1, 0.1), rotation_euler=(0.3, 0.2, 0.5), scale=(1.0, 0.7, 1.2), size=0.6)
 GRADE = dict(exposure=0.4, saturation=0.6, hue=0.5, white=(1.0, 0.9, 0.7))
 TUBE = dict(radius=0.3, height=2.0, rings=13, segments=16)
-NEAR, FAR = 300, 20          # capture splats around the proxy's surface, and farther away
-FADING = 240                 # capture splats at distances 0..FADE_SPAN from the tube, to test the falloff
+NEAR, FAR = 300, 20  # capture splats around the proxy's surface, and farther away
+FADING = 240  # capture splats at distances 0..FADE_SPAN from the tube, to test the falloff
 FALLOFF_START, MAX_DISTANCE, FADE_SPAN = 0.04, 0.1, 0.14
-POSE = (("Upper", (0.87, 0.0, 0.0)), ("Lower", (0.0, 0.26, 0.0)))      # Upper 50 degrees about x, Lower 15 about y
+POSE = (("Upper", (0.87, 0.0, 0.0)), ("Lower", (0.0, 0.26, 0.0)))  # Upper 50 degrees about x, Lower 15 about y
 
 
 def tube_mesh():
@@ -59,8 +59,16 @@ def fading_positions(seed=13):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "cleanup_mesh", "cleanup_native", "visibility", "cleanup_refusals", "proxy_bind",
-             "proxy_falloff", "proxy_refusals")
+    steps = (
+        "install",
+        "cleanup_mesh",
+        "cleanup_native",
+        "visibility",
+        "cleanup_refusals",
+        "proxy_bind",
+        "proxy_falloff",
+        "proxy_refusals",
+    )
 
     def splat_object(self, name, cloud, form=None):
         data = self.module("splat_addon.data")
@@ -89,10 +97,18 @@ class Worker(BlenderWorker):
 
     def install(self):
         self.install_extension()
-        names = ("SPLAT_OT_crop", "SPLAT_OT_prune", "SPLAT_OT_grade", "SPLAT_OT_reduce_sh", "SPLAT_OT_bind_proxy",
-                 "SPLAT_OT_clear_cleanup")
-        return {"operators": {n: hasattr(self.bpy.types, n) for n in names},
-                "edits": [f.__name__ for f in self.module("splat_addon.data").EDITS]}
+        names = (
+            "SPLAT_OT_crop",
+            "SPLAT_OT_prune",
+            "SPLAT_OT_grade",
+            "SPLAT_OT_reduce_sh",
+            "SPLAT_OT_bind_proxy",
+            "SPLAT_OT_clear_cleanup",
+        )
+        return {
+            "operators": {n: hasattr(self.bpy.types, n) for n in names},
+            "edits": [f.__name__ for f in self.module("splat_addon.data").EDITS],
+        }
 
     def cleanup(self, form):
         """Every clean-up on one object, each checked against the unedited splats (world space)."""
@@ -146,8 +162,14 @@ class Worker(BlenderWorker):
         step("reduce_sh", bpy.ops.splat.reduce_sh, degree=1)
         res["cleared_export"] = self.export_count(self.out / f"{form}_cleared.ply")
         res["matrix"] = np.array(obj.matrix_world).tolist()
-        self.save(f"cleanup_{form}", before_positions=before.positions, before_sh=before.sh,
-                  before_opacity=before.opacity_logits, before_log_scales=before.log_scales, **out)
+        self.save(
+            f"cleanup_{form}",
+            before_positions=before.positions,
+            before_sh=before.sh,
+            before_opacity=before.opacity_logits,
+            before_log_scales=before.log_scales,
+            **out,
+        )
         return res
 
     def cleanup_mesh(self):
@@ -172,8 +194,11 @@ class Worker(BlenderWorker):
             cam.keyframe_insert("rotation_euler", frame=frame)
         rng = np.random.default_rng(31)
         cloud = self.random_cloud(SPLATS, sh_degree=1, seed=31, spread=1.0)
-        cloud = cloud.replace(positions=np.c_[rng.uniform(-3, 3, SPLATS), rng.uniform(-5.5, 1, SPLATS),
-                                              rng.uniform(-2, 2, SPLATS)].astype(np.float32))
+        cloud = cloud.replace(
+            positions=np.c_[
+                rng.uniform(-3, 3, SPLATS), rng.uniform(-5.5, 1, SPLATS), rng.uniform(-2, 2, SPLATS)
+            ].astype(np.float32)
+        )
         obj = self.splat_object("Room", cloud)
         self.select([obj])
         res = {"prune": self.call(bpy.ops.splat.prune, by="VISIBILITY", min_weight=0.004)}
@@ -187,11 +212,20 @@ class Worker(BlenderWorker):
         res["frame"] = scene.frame_current
         res["report"] = json.loads(obj["splatwright_cleanup_report"])
         unedited = self.world_cloud(obj, edits=False)
-        self.save("visibility", positions=unedited.positions, rotations=unedited.rotations,
-                  log_scales=unedited.log_scales, opacity_logits=unedited.opacity_logits, sh=unedited.sh,
-                  kept=self.world_cloud(obj).positions, weights=weights, cameras=np.stack(cams),
-                  lens=cam.data.lens, sensor=[cam.data.sensor_width, cam.data.sensor_height],
-                  clip=[cam.data.clip_start, cam.data.clip_end])
+        self.save(
+            "visibility",
+            positions=unedited.positions,
+            rotations=unedited.rotations,
+            log_scales=unedited.log_scales,
+            opacity_logits=unedited.opacity_logits,
+            sh=unedited.sh,
+            kept=self.world_cloud(obj).positions,
+            weights=weights,
+            cameras=np.stack(cams),
+            lens=cam.data.lens,
+            sensor=[cam.data.sensor_width, cam.data.sensor_height],
+            clip=[cam.data.clip_start, cam.data.clip_end],
+        )
         return res
 
     def cleanup_refusals(self):
@@ -203,13 +237,15 @@ class Worker(BlenderWorker):
         res = {}
         bpy.context.scene.camera = None
         camera = bpy.data.objects["Camera"]
-        cases = {"camera_volume": ([obj, camera], camera, bpy.ops.splat.crop, {}),
-                 "faceless_volume": ([obj, flat], flat, bpy.ops.splat.crop, {}),
-                 "missing_volume": ([obj], obj, bpy.ops.splat.crop, {"volume": "Nowhere"}),
-                 "not_splats": ([plain], plain, bpy.ops.splat.grade, {"exposure": 1.0}),
-                 "nothing": ([], None, bpy.ops.splat.reduce_sh, {}),
-                 "no_camera": ([obj], obj, bpy.ops.splat.prune, {"by": "VISIBILITY"}),
-                 "sizes": ([obj], obj, bpy.ops.splat.prune, {"by": "SIZE", "min_size": 0.5, "max_size": 0.1})}
+        cases = {
+            "camera_volume": ([obj, camera], camera, bpy.ops.splat.crop, {}),
+            "faceless_volume": ([obj, flat], flat, bpy.ops.splat.crop, {}),
+            "missing_volume": ([obj], obj, bpy.ops.splat.crop, {"volume": "Nowhere"}),
+            "not_splats": ([plain], plain, bpy.ops.splat.grade, {"exposure": 1.0}),
+            "nothing": ([], None, bpy.ops.splat.reduce_sh, {}),
+            "no_camera": ([obj], obj, bpy.ops.splat.prune, {"by": "VISIBILITY"}),
+            "sizes": ([obj], obj, bpy.ops.splat.prune, {"by": "SIZE", "min_size": 0.5, "max_size": 0.1}),
+        }
         for name, (selected, active, op, kw) in cases.items():
             self.select(selected, active=active)
             before = self.inventory()
@@ -243,9 +279,13 @@ class Worker(BlenderWorker):
     def capture_cloud(self, positions, seed=12):
         n = len(positions)
         rng = np.random.default_rng(seed)
-        return self.module("core").SplatCloud(positions=positions, rotations=rng.normal(size=(n, 4)),
-                                              log_scales=rng.uniform(-4, -3, (n, 3)),
-                                              opacity_logits=rng.normal(1, 1, n), sh=rng.normal(0, 0.2, (n, 4, 3)))
+        return self.module("core").SplatCloud(
+            positions=positions,
+            rotations=rng.normal(size=(n, 4)),
+            log_scales=rng.uniform(-4, -3, (n, 3)),
+            opacity_logits=rng.normal(1, 1, n),
+            sh=rng.normal(0, 0.2, (n, 4, 3)),
+        )
 
     def proxy_bind(self):
         bpy = self.bpy
@@ -257,9 +297,13 @@ class Worker(BlenderWorker):
         n = NEAR + FAR
         core = self.module("core")
         positions = capture_positions() + np.array(arm.location)
-        cloud = core.SplatCloud(positions=positions, rotations=rng.normal(size=(n, 4)),
-                                log_scales=rng.uniform(-4, -3, (n, 3)), opacity_logits=rng.normal(1, 1, n),
-                                sh=rng.normal(0, 0.2, (n, 4, 3)))
+        cloud = core.SplatCloud(
+            positions=positions,
+            rotations=rng.normal(size=(n, 4)),
+            log_scales=rng.uniform(-4, -3, (n, 3)),
+            opacity_logits=rng.normal(1, 1, n),
+            sh=rng.normal(0, 0.2, (n, 4, 3)),
+        )
         forms = ["MESH"] + (["NATIVE"] if data.native_supported() else [])
         objects = {form: self.splat_object(f"Capture{form}", cloud, form) for form in forms}
         bpy.context.view_layer.update()
@@ -267,8 +311,9 @@ class Worker(BlenderWorker):
         self.select([objects["MESH"], proxy], active=proxy)
         res["bind"] = self.call(bpy.ops.splat.bind_proxy, max_distance=0.1, far="STAY", min_weight=0.0)
         if "NATIVE" in objects:
-            results = self.module("splat_addon.rig.proxy").bind_proxy([objects["NATIVE"]], proxy, 0.1, "STAY",
-                                                                          min_weight=0.0)
+            results = self.module("splat_addon.rig.proxy").bind_proxy(
+                [objects["NATIVE"]], proxy, 0.1, "STAY", min_weight=0.0
+            )
             res["native_far"] = results[0][1]
         res["modifiers"] = [m.type for m in objects["MESH"].modifiers]
         res["parent"] = objects["MESH"].parent.name if objects["MESH"].parent else None
@@ -279,12 +324,27 @@ class Worker(BlenderWorker):
         posed = {form: data.evaluated_cloud(obj, depsgraph).positions for form, obj in objects.items()}
         drawn = {f"drawn_{form}": self.drawn_world(obj) for form, obj in objects.items() if form == "NATIVE"}
         arm_world = np.array(arm.matrix_world)
-        deform = np.stack([arm_world @ np.array(arm.pose.bones[b].matrix)
-                           @ np.linalg.inv(np.array(arm.data.bones[b].matrix_local)) @ np.linalg.inv(arm_world)
-                           for b in ("Lower", "Upper")])
-        self.save("proxy_bind", rest=positions, proxy_rest=verts + np.array(arm.location), triangles=faces,
-                  vertex_weights=weights, proxy_posed=self.evaluated_world(proxy, depsgraph),
-                  deform=deform, **bound, **drawn, **{f"posed_{f}": p for f, p in posed.items()})
+        deform = np.stack(
+            [
+                arm_world
+                @ np.array(arm.pose.bones[b].matrix)
+                @ np.linalg.inv(np.array(arm.data.bones[b].matrix_local))
+                @ np.linalg.inv(arm_world)
+                for b in ("Lower", "Upper")
+            ]
+        )
+        self.save(
+            "proxy_bind",
+            rest=positions,
+            proxy_rest=verts + np.array(arm.location),
+            triangles=faces,
+            vertex_weights=weights,
+            proxy_posed=self.evaluated_world(proxy, depsgraph),
+            deform=deform,
+            **bound,
+            **drawn,
+            **{f"posed_{f}": p for f, p in posed.items()},
+        )
         return res
 
     def native_binding(self, obj):
@@ -293,8 +353,11 @@ class Worker(BlenderWorker):
             return None
         rigging = self.module("splat_addon.rig.armature")
         arm = obj.get(rigging.ARMATURE_PROPERTY)
-        return [arm.name if arm is not None else None, bool(obj.get(rigging.PRESERVE_VOLUME_PROPERTY, False)),
-                rigging.MASK_GROUP in obj.data.attributes]
+        return [
+            arm.name if arm is not None else None,
+            bool(obj.get(rigging.PRESERVE_VOLUME_PROPERTY, False)),
+            rigging.MASK_GROUP in obj.data.attributes,
+        ]
 
     def drawn_world(self, obj):
         """The centres Blender draws of native splats (their position attribute), in world space."""
@@ -320,16 +383,22 @@ class Worker(BlenderWorker):
             objects = {form: self.splat_object(f"Fading{form}{mode}", cloud, form) for form in forms}
             bpy.context.view_layer.update()
             self.select([objects["MESH"], proxy], active=proxy)
-            res[f"bind_{mode}"] = self.call(bpy.ops.splat.bind_proxy, falloff_start=FALLOFF_START,
-                                            max_distance=MAX_DISTANCE, min_weight=0.0)
+            res[f"bind_{mode}"] = self.call(
+                bpy.ops.splat.bind_proxy, falloff_start=FALLOFF_START, max_distance=MAX_DISTANCE, min_weight=0.0
+            )
             if "NATIVE" in objects:
                 self.select([objects["NATIVE"], proxy], active=proxy)
-                self.call(bpy.ops.splat.bind_proxy, falloff_start=FALLOFF_START, max_distance=MAX_DISTANCE,
-                          min_weight=0.0)
+                self.call(
+                    bpy.ops.splat.bind_proxy, falloff_start=FALLOFF_START, max_distance=MAX_DISTANCE, min_weight=0.0
+                )
             mesh_obj = objects["MESH"]
             mod = mesh_obj.modifiers[0]
-            res[f"modifier_{mode}"] = [mod.type, mod.vertex_group, mod.invert_vertex_group,
-                                       mod.use_deform_preserve_volume]
+            res[f"modifier_{mode}"] = [
+                mod.type,
+                mod.vertex_group,
+                mod.invert_vertex_group,
+                mod.use_deform_preserve_volume,
+            ]
             groups = self.group_matrix(mesh_obj, ["Lower", "Upper", rigging.MASK_GROUP])
             arrays[f"bound_{mode}"], arrays[f"strength_{mode}"] = groups[:, :2], groups[:, 2]
             if "NATIVE" in objects:
@@ -345,7 +414,7 @@ class Worker(BlenderWorker):
                     arrays[f"drawn_{form}_{mode}"] = self.drawn_world(obj)
             for masked, obj in plain.items():
                 arrays[f"blender_{'masked' if masked else 'full'}_{mode}"] = self.evaluated_world(obj, depsgraph)
-            for pb in arm.pose.bones:               # back to rest for the next binding
+            for pb in arm.pose.bones:  # back to rest for the next binding
                 pb.rotation_euler = (0.0, 0.0, 0.0)
             bpy.context.view_layer.update()
         self.save("proxy_falloff", **arrays)
@@ -397,15 +466,17 @@ class Worker(BlenderWorker):
         bpy.context.scene.collection.objects.link(arm)
         faceless.modifiers.new("Armature", "ARMATURE").object = arm
         rigged = self.mesh_object("Rigged", *tube_mesh())
-        rigged.modifiers.new("Armature", "ARMATURE").object = arm          # an armature without bones
+        rigged.modifiers.new("Armature", "ARMATURE").object = arm  # an armature without bones
         other = self.splat_object("Other", self.random_cloud(20, seed=52))
-        cases = {"camera": ([obj], bpy.data.objects["Camera"], {}),
-                 "splats_as_proxy": ([obj], other, {}),
-                 "faceless": ([obj], faceless, {}),
-                 "no_armature": ([obj], unrigged, {}),
-                 "no_bones": ([obj], rigged, {}),
-                 "no_splats": ([rigged], rigged, {}),
-                 "missing": ([obj], obj, {"proxy": "Nowhere"})}
+        cases = {
+            "camera": ([obj], bpy.data.objects["Camera"], {}),
+            "splats_as_proxy": ([obj], other, {}),
+            "faceless": ([obj], faceless, {}),
+            "no_armature": ([obj], unrigged, {}),
+            "no_bones": ([obj], rigged, {}),
+            "no_splats": ([rigged], rigged, {}),
+            "missing": ([obj], obj, {"proxy": "Nowhere"}),
+        }
         res = {}
         for name, (selected, active, kw) in cases.items():
             self.select(selected + [active], active=active)

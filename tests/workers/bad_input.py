@@ -7,33 +7,72 @@ import importlib.util
 import io
 import os
 from pathlib import Path
+
 import numpy as np
 
 from workers.base import BlenderWorker, point_attribute, splat_total, worker_main
 
-
-N = 40                                   # splats of every test object
+N = 40  # splats of every test object
 RENDER_SIZE = (24, 16)
 # splat objects with a defect, each named by it (built by Worker.defective), and what is tried on them
-DEFECTS = ("nan_values", "empty", "no_rotation", "no_scale", "no_opacity", "no_first_sh", "no_middle_sh",
-           "int_opacity", "zero_scale", "nan_location")
+DEFECTS = (
+    "nan_values",
+    "empty",
+    "no_rotation",
+    "no_scale",
+    "no_opacity",
+    "no_first_sh",
+    "no_middle_sh",
+    "int_opacity",
+    "zero_scale",
+    "nan_location",
+)
 # the attribute each attribute defect deletes (or, int_opacity, turns into INT), by the object's type: a
 # splat mesh's, or a native cloud's (Blender 5.3's Gaussian splats, the form new objects take there)
 DEFECT_ATTRIBUTES = {
-    "MESH": dict(no_rotation="splat_rotation", no_scale="splat_log_scale", no_opacity="splat_opacity_logit",
-                 no_first_sh="splat_sh_0", no_middle_sh="splat_sh_2", int_opacity="splat_opacity_logit"),
-    "POINTCLOUD": dict(no_rotation="rotation", no_scale="scale", no_opacity="radiance:base",
-                       no_first_sh="radiance:sh_0", no_middle_sh="radiance:sh_1", int_opacity="radiance:base"),
+    "MESH": dict(
+        no_rotation="splat_rotation",
+        no_scale="splat_log_scale",
+        no_opacity="splat_opacity_logit",
+        no_first_sh="splat_sh_0",
+        no_middle_sh="splat_sh_2",
+        int_opacity="splat_opacity_logit",
+    ),
+    "POINTCLOUD": dict(
+        no_rotation="rotation",
+        no_scale="scale",
+        no_opacity="radiance:base",
+        no_first_sh="radiance:sh_0",
+        no_middle_sh="radiance:sh_1",
+        int_opacity="radiance:base",
+    ),
 }
-OPERATIONS = ("export", "apply", "join_into_good", "join_good_into", "anim_ply", "anim_usd", "collide", "bind",
-              "convert", "render")
+OPERATIONS = (
+    "export",
+    "apply",
+    "join_into_good",
+    "join_good_into",
+    "anim_ply",
+    "anim_usd",
+    "collide",
+    "bind",
+    "convert",
+    "render",
+)
 WRONG_KINDS = ("camera", "empty_object", "curve", "armature", "plain_mesh", "nothing")
 # Blender attribute type -> (foreach property, components, dtype), for fingerprints of every attribute
-FOREACH = {"FLOAT": ("value", 1, np.float32), "INT": ("value", 1, np.int32), "INT8": ("value", 1, np.int32),
-           "BOOLEAN": ("value", 1, bool), "QUATERNION": ("value", 4, np.float32),
-           "FLOAT_VECTOR": ("vector", 3, np.float32), "FLOAT2": ("vector", 2, np.float32),
-           "INT32_2D": ("value", 2, np.int32), "FLOAT_COLOR": ("color", 4, np.float32),
-           "BYTE_COLOR": ("color", 4, np.float32)}
+FOREACH = {
+    "FLOAT": ("value", 1, np.float32),
+    "INT": ("value", 1, np.int32),
+    "INT8": ("value", 1, np.int32),
+    "BOOLEAN": ("value", 1, bool),
+    "QUATERNION": ("value", 4, np.float32),
+    "FLOAT_VECTOR": ("vector", 3, np.float32),
+    "FLOAT2": ("vector", 2, np.float32),
+    "INT32_2D": ("value", 2, np.int32),
+    "FLOAT_COLOR": ("color", 4, np.float32),
+    "BYTE_COLOR": ("color", 4, np.float32),
+}
 
 
 def _plain(value):
@@ -46,11 +85,30 @@ def _plain(value):
 
 # the worker (a separate Python process with bpy) -----------------------------------------------------
 
+
 class Worker(BlenderWorker):
-    steps = ("install", "defects", "wrong_objects", "files", "animation_files", "read_only", "from_mesh", "rigs",
-             "cameras", "cli")
-    inventory_kinds = ("objects", "meshes", "pointclouds", "materials", "node_groups", "collections", "armatures",
-                       "cameras")
+    steps = (
+        "install",
+        "defects",
+        "wrong_objects",
+        "files",
+        "animation_files",
+        "read_only",
+        "from_mesh",
+        "rigs",
+        "cameras",
+        "cli",
+    )
+    inventory_kinds = (
+        "objects",
+        "meshes",
+        "pointclouds",
+        "materials",
+        "node_groups",
+        "collections",
+        "armatures",
+        "cameras",
+    )
 
     # helpers -------------------------------------------------------------------------------------
 
@@ -112,8 +170,15 @@ class Worker(BlenderWorker):
         state = self.inventory()
         for obj in self.bpy.data.objects:
             digest = hashlib.sha1(np.array(obj.matrix_world, np.float64).tobytes())
-            digest.update(repr((obj.parent and obj.parent.name, [m.name for m in obj.modifiers],
-                                [g.name for g in obj.vertex_groups])).encode())
+            digest.update(
+                repr(
+                    (
+                        obj.parent and obj.parent.name,
+                        [m.name for m in obj.modifiers],
+                        [g.name for g in obj.vertex_groups],
+                    )
+                ).encode()
+            )
             for owner in (obj, obj.data) if obj.data is not None else (obj,):
                 digest.update(repr(sorted((key, _plain(owner[key])) for key in owner.keys())).encode())
             if obj.type in ("MESH", "POINTCLOUD"):
@@ -129,7 +194,7 @@ class Worker(BlenderWorker):
 
     def attempt(self, op, **kw):
         """Run an operator; its outcome, whether the scene kept its fingerprint, and the scene frame."""
-        self.bpy.context.view_layer.update()          # matrix_world of objects just edited
+        self.bpy.context.view_layer.update()  # matrix_world of objects just edited
         before = self.fingerprint()
         res = self.call(op, **kw)
         return {**res, "unchanged": before == self.fingerprint(), "frame": self.bpy.context.scene.frame_current}
@@ -141,7 +206,7 @@ class Worker(BlenderWorker):
         scene = self.bpy.context.scene
         render = scene.render
         render.engine = "SPLATWRIGHT"
-        scene.splatwright_mesh_engine = "NONE"          # splats alone
+        scene.splatwright_mesh_engine = "NONE"  # splats alone
         render.resolution_x, render.resolution_y, render.resolution_percentage = *RENDER_SIZE, 100
         self.image_format(render.image_settings, "OPEN_EXR")
         render.film_transparent = transparent
@@ -204,11 +269,23 @@ class Worker(BlenderWorker):
         elif operation.startswith("anim"):
             path = f"{name}_####.ply" if operation == "anim_ply" else f"{name}.usd"
             self.select([obj])
-            res = self.attempt(ops.export_animation, filepath=str(self.out / path), selected_only=True,
-                               use_scene_range=False, frame_start=1, frame_end=2)
+            res = self.attempt(
+                ops.export_animation,
+                filepath=str(self.out / path),
+                selected_only=True,
+                use_scene_range=False,
+                frame_start=1,
+                frame_end=2,
+            )
         elif operation == "collide":
-            res = self.attempt(ops.check_collisions, object_a=obj.name, object_b=good.name,
-                               use_scene_range=False, frame_start=1, frame_end=2)
+            res = self.attempt(
+                ops.check_collisions,
+                object_a=obj.name,
+                object_b=good.name,
+                use_scene_range=False,
+                frame_start=1,
+                frame_end=2,
+            )
         elif operation == "bind":
             arm = self.armature("Rig")
             self.select([obj], active=arm)
@@ -236,8 +313,15 @@ class Worker(BlenderWorker):
             selection = [obj] if obj is not None else []
             runs = {
                 "export": (ops.export_file, dict(filepath=str(self.out / f"wrong_{kind}.ply"), selected_only=True)),
-                "anim": (ops.export_animation, dict(filepath=str(self.out / f"wrong_{kind}.usd"),
-                                                    selected_only=True, use_scene_range=False, frame_end=2)),
+                "anim": (
+                    ops.export_animation,
+                    dict(
+                        filepath=str(self.out / f"wrong_{kind}.usd"),
+                        selected_only=True,
+                        use_scene_range=False,
+                        frame_end=2,
+                    ),
+                ),
                 "apply": (ops.apply_transform, {}),
                 "join": (ops.join, {}),
                 "from_mesh": (ops.from_mesh, dict(max_splats=20)),
@@ -246,7 +330,7 @@ class Worker(BlenderWorker):
             }
             for name, (op, kw) in runs.items():
                 if name == "from_mesh" and kind == "plain_mesh":
-                    continue                     # a plain mesh is what it converts
+                    continue  # a plain mesh is what it converts
                 self.select(selection)
                 cases[f"{kind} {name}"] = self.attempt(op, **kw)
             self.select(selection, active=rig)
@@ -254,8 +338,9 @@ class Worker(BlenderWorker):
             self.select([good, *selection], active=good)
             cases[f"{kind} join into splats"] = self.attempt(ops.join)
             if obj is not None:
-                cases[f"{kind} collide"] = self.attempt(ops.check_collisions, object_a="good", object_b=obj.name,
-                                                        use_scene_range=False, frame_end=1)
+                cases[f"{kind} collide"] = self.attempt(
+                    ops.check_collisions, object_a="good", object_b=obj.name, use_scene_range=False, frame_end=1
+                )
             cases[f"{kind} written"] = self.written("wrong_")
         return cases
 
@@ -294,19 +379,25 @@ class Worker(BlenderWorker):
         cases["import empty.ply contents"] = res
         good = self.splat("good", self.random_cloud(N, sh_degree=1, seed=4))
         self.select([good])
-        for name, path in (("missing folder", self.out / "nowhere" / "x.ply"), ("a folder", self.work / "folder.ply"),
-                           ("no extension", self.out / "noext")):
+        for name, path in (
+            ("missing folder", self.out / "nowhere" / "x.ply"),
+            ("a folder", self.work / "folder.ply"),
+            ("no extension", self.out / "noext"),
+        ):
             cases[f"export {name}"] = self.attempt(ops.export_file, filepath=str(path), selected_only=True)
         (self.out / "precious.ply").write_bytes(b"precious")
         self.select([self.defective("nan_values")])
-        cases["export NaN over a file"] = self.attempt(ops.export_file, filepath=str(self.out / "precious.ply"),
-                                                       selected_only=True)
+        cases["export NaN over a file"] = self.attempt(
+            ops.export_file, filepath=str(self.out / "precious.ply"), selected_only=True
+        )
         cases["precious kept"] = (self.out / "precious.ply").read_bytes() == b"precious"
-        cases["export NaN dropped"] = self.call(ops.export_file, filepath=str(self.out / "dropped.ply"),
-                                                selected_only=True, drop_invalid=True)
+        cases["export NaN dropped"] = self.call(
+            ops.export_file, filepath=str(self.out / "dropped.ply"), selected_only=True, drop_invalid=True
+        )
         self.select([good])
-        cases["export binary usd"] = self.attempt(ops.export_file, filepath=str(self.out / "binary.usdc"),
-                                                  selected_only=True)
+        cases["export binary usd"] = self.attempt(
+            ops.export_file, filepath=str(self.out / "binary.usdc"), selected_only=True
+        )
         cases["export binary usd"]["written"] = (self.out / "binary.usdc").exists()
         cases["has pxr"] = importlib.util.find_spec("pxr") is not None
         return cases
@@ -316,7 +407,7 @@ class Worker(BlenderWorker):
         ops = self.bpy.ops.splat
         obj = self.splat("moving", self.random_cloud(N, sh_degree=1, seed=4))
         obj.keyframe_insert("location", frame=1)
-        obj.location = (float("nan"), 0.0, 0.0)         # frames 2 and 3 interpolate towards NaN
+        obj.location = (float("nan"), 0.0, 0.0)  # frames 2 and 3 interpolate towards NaN
         obj.keyframe_insert("location", frame=3)
         self.bpy.context.scene.frame_set(1)
         seq = self.out / "seq"
@@ -349,16 +440,23 @@ class Worker(BlenderWorker):
             cases[f"export {name}"] = self.attempt(ops.export_file, filepath=str(folder / name))
         for name in ("ro_####.ply", "ro.usd"):
             cases[f"animation {name}"] = self.attempt(ops.export_animation, filepath=str(folder / name))
-        for name, argv in (("export", ["export", str(folder / "ro_####.ply")]),
-                           ("render", ["render", str(folder / "ro_####.png"), "--frames", "1"]),
-                           ("from-mesh", ["from-mesh", str(folder / "ro.ply"), "--objects", "Grid",
-                                          "--max-splats", "20", "--no-calibrate"]),
-                           ("from-mesh blend", ["from-mesh", str(folder / "ro.blend"), "--objects", "Grid",
-                                                "--max-splats", "20", "--no-calibrate"])):
+        for name, argv in (
+            ("export", ["export", str(folder / "ro_####.ply")]),
+            ("render", ["render", str(folder / "ro_####.png"), "--frames", "1"]),
+            (
+                "from-mesh",
+                ["from-mesh", str(folder / "ro.ply"), "--objects", "Grid", "--max-splats", "20", "--no-calibrate"],
+            ),
+            (
+                "from-mesh blend",
+                ["from-mesh", str(folder / "ro.blend"), "--objects", "Grid", "--max-splats", "20", "--no-calibrate"],
+            ),
+        ):
             cases[f"cli {name}"] = self.run_cli(argv)
         self.splat("other", self.random_cloud(N, sh_degree=1, seed=5))
-        cases["cli collide json"] = self.run_cli(["collide", "splats", "other", "--frames", "1",
-                                                  "--json", str(folder / "ro.json")])
+        cases["cli collide json"] = self.run_cli(
+            ["collide", "splats", "other", "--frames", "1", "--json", str(folder / "ro.json")]
+        )
         cases["written"] = sorted(p.name for p in folder.glob("ro*"))
         return cases
 
@@ -366,9 +464,11 @@ class Worker(BlenderWorker):
         """Meshes with nothing to convert: no vertices, no faces, only faces at NaN."""
         cases = {}
         nan = float("nan")
-        for name, verts, faces, edges in (("no_vertices", [], [], []),
-                                          ("edges_only", [(0, 0, 0), (1, 0, 0), (1, 1, 0)], [], [(0, 1), (1, 2)]),
-                                          ("nan_faces", [(nan, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)], [])):
+        for name, verts, faces, edges in (
+            ("no_vertices", [], [], []),
+            ("edges_only", [(0, 0, 0), (1, 0, 0), (1, 1, 0)], [], [(0, 1), (1, 2)]),
+            ("nan_faces", [(nan, 0, 0), (1, 0, 0), (0, 1, 0)], [(0, 1, 2)], []),
+        ):
             self.clear_scene()
             self.select([self.mesh(name, verts, faces, edges)])
             cases[name] = self.attempt(self.bpy.ops.splat.from_mesh, max_splats=20)
@@ -388,16 +488,20 @@ class Worker(BlenderWorker):
         self.clear_scene()
         grid = self.mesh("Skin", [(x, 0, z) for z in (-1, 0, 1) for x in (-0.5, 0.5)], [(0, 1, 3, 2), (2, 3, 5, 4)])
         grid.vertex_groups.new(name="NotABone").add(list(range(6)), 1.0, "REPLACE")
-        made = self.module("splat_addon.convert.from_mesh").from_mesh(bpy.context, [grid], max_splats=60,
-                                                                     calibrate=False)[0]
+        made = self.module("splat_addon.convert.from_mesh").from_mesh(
+            bpy.context, [grid], max_splats=60, calibrate=False
+        )[0]
         arm = self.armature("Rig", (("Lower", (0, 0, -1), (0, 0, 0), True), ("Upper", (0, 0, 0), (0, 0, 1), True)))
         warnings = []
         plans = rigging.bind_armature([made], arm, warn=warnings.append)
-        cases["groups match no bone"] = {"source": plans[0].source, "warnings": warnings,
-                                         "groups": sorted(self.weight_names(made))}
+        cases["groups match no bone"] = {
+            "source": plans[0].source,
+            "warnings": warnings,
+            "groups": sorted(self.weight_names(made)),
+        }
         # the bones renamed and one posed: Blender renames a splat mesh's vertex groups with them (they
         # follow), a native cloud's splat_weight:<bone> attributes then match no bone (they stay put)
-        rest = point_attribute(made.data, "position")          # as bound, before any pose
+        rest = point_attribute(made.data, "position")  # as bound, before any pose
         for bone in arm.data.bones:
             bone.name = "Renamed" + bone.name
         arm.pose.bones["RenamedLower"].rotation_mode = "XYZ"
@@ -406,19 +510,25 @@ class Worker(BlenderWorker):
             made.modifiers["Splatwright Display"].show_viewport = False
         depsgraph = bpy.context.evaluated_depsgraph_get()
         evaluated = made.evaluated_get(depsgraph)
-        if made.type == "MESH":                                 # Blender's own Armature modifier's result
+        if made.type == "MESH":  # Blender's own Armature modifier's result
             mesh = evaluated.to_mesh()
             blender_co = np.empty(len(mesh.vertices) * 3, np.float32)
             mesh.vertices.foreach_get("co", blender_co)
             evaluated.to_mesh_clear()
-        else:                                                   # what Blender draws of the native splats
+        else:  # what Blender draws of the native splats
             blender_co = point_attribute(evaluated.data, "position")
         self.select([made])
-        res = self.attempt(bpy.ops.splat.export_file, filepath=str(self.out / "renamed.ply"), selected_only=True,
-                           axis_forward="Y", axis_up="Z")
+        res = self.attempt(
+            bpy.ops.splat.export_file,
+            filepath=str(self.out / "renamed.ply"),
+            selected_only=True,
+            axis_forward="Y",
+            axis_up="Z",
+        )
         cases["bones renamed"] = res
-        self.save("renamed", blender_co=blender_co.reshape(-1, 3), rest_co=rest,
-                  matrix_world=np.array(made.matrix_world))
+        self.save(
+            "renamed", blender_co=blender_co.reshape(-1, 3), rest_co=rest, matrix_world=np.array(made.matrix_world)
+        )
         return cases
 
     @staticmethod
@@ -428,7 +538,7 @@ class Worker(BlenderWorker):
         if obj.type == "MESH":
             return [g.name for g in obj.vertex_groups]
         prefix = "splat_weight:"
-        return [a.name[len(prefix):] for a in obj.data.attributes if a.name.startswith(prefix)]
+        return [a.name[len(prefix) :] for a in obj.data.attributes if a.name.startswith(prefix)]
 
     def cameras(self):
         """Scene cameras the engine cannot render from: an empty, a mesh, a zero or NaN transform."""
@@ -439,16 +549,19 @@ class Worker(BlenderWorker):
         empty = bpy.data.objects.new("Rig Empty", None)
         scene.collection.objects.link(empty)
         cam = bpy.data.objects["Camera"]
-        setups = {"empty as camera": lambda: setattr(scene, "camera", empty),
-                  "splats as camera": lambda: setattr(scene, "camera", bpy.data.objects["splats"]),
-                  "zero scale camera": lambda: setattr(cam, "scale", (0.0, 0.0, 0.0)),
-                  "nan camera": lambda: setattr(cam, "location", (0.0, float("nan"), 0.0))}
+        setups = {
+            "empty as camera": lambda: setattr(scene, "camera", empty),
+            "splats as camera": lambda: setattr(scene, "camera", bpy.data.objects["splats"]),
+            "zero scale camera": lambda: setattr(cam, "scale", (0.0, 0.0, 0.0)),
+            "nan camera": lambda: setattr(cam, "location", (0.0, float("nan"), 0.0)),
+        }
         for name, setup in setups.items():
             path = self.setup_render(name.replace(" ", "_"))
             setup()
             cases[name] = {**self.attempt(bpy.ops.render.render, write_still=True), "image": path.exists()}
-            cases[name]["cli"] = self.run_cli(["render", str(self.out / f"cli_{name.replace(' ', '_')}.png"),
-                                               "--frames", "1"])
+            cases[name]["cli"] = self.run_cli(
+                ["render", str(self.out / f"cli_{name.replace(' ', '_')}.png"), "--frames", "1"]
+            )
         cases["written"] = self.written("cli_")
         return cases
 
@@ -460,19 +573,31 @@ class Worker(BlenderWorker):
         self.splat("b", self.random_cloud(N, sh_degree=1, seed=5))
         self.defective("nan_location")
         for name, argv in {
-                "psnr nan": ["from-mesh", str(self.out / "f.ply"), "--objects", "Grid", "--target-psnr", "nan"],
-                "psnr negative": ["from-mesh", str(self.out / "f.ply"), "--objects", "Grid", "--target-psnr", "-3"],
-                "no splats": ["from-mesh", str(self.out / "f.ply"), "--objects", "Grid", "--max-splats", "0"],
-                "ply is a folder": ["from-mesh", str(self.work / "folder.ply"), "--objects", "Grid",
-                                    "--max-splats", "20"],
-                "blend is a folder": ["from-mesh", str(self.work / "folder.blend"), "--objects", "Grid",
-                                      "--max-splats", "20"],
-                "sigma inf": ["collide", "a", "b", "--frames", "1", "--sigma", "inf"],
-                "min opacity nan": ["collide", "a", "b", "--frames", "1", "--min-opacity", "nan"],
-                "min opacity 2": ["collide", "a", "b", "--frames", "1", "--min-opacity", "2"],
-                "export nan location": ["export", str(self.out / "cli_nan.ply"), "--frames", "1",
-                                        "--objects", "nan_location"],
-                "collide nan location": ["collide", "a", "nan_location", "--frames", "1"]}.items():
+            "psnr nan": ["from-mesh", str(self.out / "f.ply"), "--objects", "Grid", "--target-psnr", "nan"],
+            "psnr negative": ["from-mesh", str(self.out / "f.ply"), "--objects", "Grid", "--target-psnr", "-3"],
+            "no splats": ["from-mesh", str(self.out / "f.ply"), "--objects", "Grid", "--max-splats", "0"],
+            "ply is a folder": ["from-mesh", str(self.work / "folder.ply"), "--objects", "Grid", "--max-splats", "20"],
+            "blend is a folder": [
+                "from-mesh",
+                str(self.work / "folder.blend"),
+                "--objects",
+                "Grid",
+                "--max-splats",
+                "20",
+            ],
+            "sigma inf": ["collide", "a", "b", "--frames", "1", "--sigma", "inf"],
+            "min opacity nan": ["collide", "a", "b", "--frames", "1", "--min-opacity", "nan"],
+            "min opacity 2": ["collide", "a", "b", "--frames", "1", "--min-opacity", "2"],
+            "export nan location": [
+                "export",
+                str(self.out / "cli_nan.ply"),
+                "--frames",
+                "1",
+                "--objects",
+                "nan_location",
+            ],
+            "collide nan location": ["collide", "a", "nan_location", "--frames", "1"],
+        }.items():
             cases[name] = self.run_cli(argv)
         cases["written"] = self.written("cli_") + self.written("f.")
         cases["folders"] = [p.is_dir() for p in (self.work / "folder.ply", self.work / "folder.blend")]

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-MODULE = "bl_ext.user_default.splatwright"      # the extension's package once installed
+MODULE = "bl_ext.user_default.splatwright"  # the extension's package once installed
 
 
 def random_cloud_arrays(n, sh_degree=3, seed=0, spread=1.0):
@@ -27,24 +27,27 @@ def random_cloud_arrays(n, sh_degree=3, seed=0, spread=1.0):
     (tests/helpers.random_cloud wraps them in a SplatCloud)."""
     rng = np.random.default_rng(seed)
     k = (sh_degree + 1) ** 2
-    return dict(positions=rng.normal(0, spread, (n, 3)),
-                rotations=rng.normal(0, 1, (n, 4)) * rng.uniform(0.5, 2.0, (n, 1)),
-                log_scales=rng.uniform(-4, -1, (n, 3)),
-                opacity_logits=rng.normal(0, 2, n),
-                sh=rng.normal(0, 0.3, (n, k, 3)))
+    return dict(
+        positions=rng.normal(0, spread, (n, 3)),
+        rotations=rng.normal(0, 1, (n, 4)) * rng.uniform(0.5, 2.0, (n, 1)),
+        log_scales=rng.uniform(-4, -1, (n, 3)),
+        opacity_logits=rng.normal(0, 2, n),
+        sh=rng.normal(0, 0.3, (n, k, 3)),
+    )
 
 
 class BlenderWorker:
     """Runs the step methods named in `steps`, each on a cleared scene, and records into
     self.results[step] what it returned (or the traceback on failure)."""
 
-    steps = ()                                  # names of step methods, in the order they run
-    keep_objects = ("Camera", "Light")          # what clear_scene leaves of the startup scene
+    steps = ()  # names of step methods, in the order they run
+    keep_objects = ("Camera", "Light")  # what clear_scene leaves of the startup scene
     orphan_kinds = ("meshes", "armatures", "materials", "images", "collections", "actions")
     inventory_kinds = ("objects", "meshes", "materials", "node_groups", "collections")
 
     def __init__(self, work, zip_path):
         import bpy
+
         self.bpy, self.work, self.zip = bpy, Path(work), zip_path
         self.out = self.work / "out"
         self.out.mkdir(exist_ok=True)
@@ -59,7 +62,7 @@ class BlenderWorker:
             except Exception:
                 self.results[name] = {"worker_error": traceback.format_exc()}
             self.seconds[name] = round(time.perf_counter() - start, 2)
-        self.results["_seconds"] = self.seconds         # where a worker's time goes
+        self.results["_seconds"] = self.seconds  # where a worker's time goes
         (self.work / "results.json").write_text(json.dumps(self.results, indent=1))
 
     def clear_scene(self):
@@ -80,8 +83,9 @@ class BlenderWorker:
 
     def install_extension(self):
         """Install the zip into the user repository and enable it, as Install from Disk does."""
-        self.bpy.ops.extensions.package_install_files(filepath=str(self.zip), repo="user_default",
-                                                      enable_on_install=True)
+        self.bpy.ops.extensions.package_install_files(
+            filepath=str(self.zip), repo="user_default", enable_on_install=True
+        )
 
     def module(self, name):
         """A module of the installed extension, e.g. "splat_addon.data" or "core.render"."""
@@ -144,7 +148,7 @@ class BlenderWorker:
         for j, name in enumerate(names):
             group = obj.vertex_groups.get(name)
             for i in range(len(out)) if group is not None else ():
-                with contextlib.suppress(RuntimeError):      # not in the group
+                with contextlib.suppress(RuntimeError):  # not in the group
                     out[i, j] = group.weight(i)
         return out
 
@@ -173,9 +177,15 @@ class BlenderWorker:
 
 
 # Blender attribute type -> (foreach_get property, components, NumPy dtype)
-POINT_TYPES = {"FLOAT": ("value", 1, np.float32), "INT": ("value", 1, np.int32), "FLOAT2": ("vector", 2, np.float32),
-               "FLOAT_VECTOR": ("vector", 3, np.float32), "QUATERNION": ("value", 4, np.float32),
-               "FLOAT_COLOR": ("color", 4, np.float32), "FLOAT4": ("vector", 4, np.float32)}
+POINT_TYPES = {
+    "FLOAT": ("value", 1, np.float32),
+    "INT": ("value", 1, np.int32),
+    "FLOAT2": ("vector", 2, np.float32),
+    "FLOAT_VECTOR": ("vector", 3, np.float32),
+    "QUATERNION": ("value", 4, np.float32),
+    "FLOAT_COLOR": ("color", 4, np.float32),
+    "FLOAT4": ("vector", 4, np.float32),
+}
 
 
 def splat_total(obj):

@@ -8,7 +8,7 @@ import numpy as np
 from workers.base import BlenderWorker, random_cloud_arrays, worker_main
 
 SIZE = (64, 48)
-EMISSION_SIZE = (192, 144)              # larger: the emission comparison is about the inside of surfaces
+EMISSION_SIZE = (192, 144)  # larger: the emission comparison is about the inside of surfaces
 CLOUD = dict(n=500, sh_degree=1, seed=21, spread=0.55)
 CLOUD_CENTRE = (0.1, 0.0, 0.45)
 CAMERA = dict(location=(1.6, -4.6, 2.3), look_at=(0.0, 0.0, 0.35), lens=35.0)
@@ -16,8 +16,8 @@ PLANE = dict(size=4.0, location=(0.0, 0.0, 0.0), color=(0.55, 0.5, 0.4))
 SPHERE = dict(radius=0.55, location=(0.35, 0.1, 0.5), color=(0.8, 0.15, 0.1))
 WORLD = (0.05, 0.08, 0.12)
 EMISSION = {"Plane": (0.2, 0.45, 0.9), "Sphere": (0.95, 0.6, 0.1)}
-SPHERE_MOVE = (-0.6, 0.0, 0.2)          # frame 2 of the animation: the sphere moved by this
-GLASS = dict(size=1.5, location=(-0.45, -0.45, 0.85), color=(0.1, 0.9, 0.3), alpha=0.6)   # upright, translucent
+SPHERE_MOVE = (-0.6, 0.0, 0.2)  # frame 2 of the animation: the sphere moved by this
+GLASS = dict(size=1.5, location=(-0.45, -0.45, 0.85), color=(0.1, 0.9, 0.3), alpha=0.6)  # upright, translucent
 SAMPLES = 8
 
 
@@ -42,6 +42,7 @@ class Worker(BlenderWorker):
         """Plane, sphere, splats, camera, world and Cycles settings; returns the splat object."""
         bpy = self.bpy
         from mathutils import Vector
+
         scene = bpy.context.scene
         bpy.ops.mesh.primitive_plane_add(size=PLANE["size"], location=PLANE["location"])
         bpy.context.active_object.name = "Plane"
@@ -51,11 +52,14 @@ class Worker(BlenderWorker):
             color = EMISSION[name] if emission else spec["color"]
             scene.objects[name].data.materials.append(self.material(name, color, emission))
         ext = self.module("splat_addon")
-        splats, _ = ext.data.new_splat_object(self.module("core").SplatCloud(**oracle_cloud_arrays()), "Splats",
-                                              scene.collection)
+        splats, _ = ext.data.new_splat_object(
+            self.module("core").SplatCloud(**oracle_cloud_arrays()), "Splats", scene.collection
+        )
         cam = scene.camera
         cam.location = CAMERA["location"]
-        cam.rotation_euler = (Vector(CAMERA["look_at"]) - Vector(CAMERA["location"])).to_track_quat("-Z", "Y").to_euler()
+        cam.rotation_euler = (
+            (Vector(CAMERA["look_at"]) - Vector(CAMERA["location"])).to_track_quat("-Z", "Y").to_euler()
+        )
         cam.data.lens = CAMERA["lens"]
         background = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
         background.inputs["Color"].default_value = (*WORLD, 1.0)
@@ -107,13 +111,22 @@ class Worker(BlenderWorker):
         scene = self.bpy.context.scene
         cam = scene.camera
         d = cam.data
-        return {"matrix_world": np.array(cam.matrix_world).tolist(), "lens": d.lens, "sensor_width": d.sensor_width,
-                "sensor_height": d.sensor_height, "sensor_fit": d.sensor_fit, "shift_x": d.shift_x,
-                "shift_y": d.shift_y, "type": d.type, "ortho_scale": d.ortho_scale, "clip_start": d.clip_start,
-                "clip_end": d.clip_end, "pixel_aspect_x": scene.render.pixel_aspect_x,
-                "pixel_aspect_y": scene.render.pixel_aspect_y,
-                "resolution": [scene.render.resolution_x, scene.render.resolution_y,
-                               scene.render.resolution_percentage]}
+        return {
+            "matrix_world": np.array(cam.matrix_world).tolist(),
+            "lens": d.lens,
+            "sensor_width": d.sensor_width,
+            "sensor_height": d.sensor_height,
+            "sensor_fit": d.sensor_fit,
+            "shift_x": d.shift_x,
+            "shift_y": d.shift_y,
+            "type": d.type,
+            "ortho_scale": d.ortho_scale,
+            "clip_start": d.clip_start,
+            "clip_end": d.clip_end,
+            "pixel_aspect_x": scene.render.pixel_aspect_x,
+            "pixel_aspect_y": scene.render.pixel_aspect_y,
+            "resolution": [scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage],
+        }
 
     # rendering ------------------------------------------------------------------------------------
 
@@ -210,8 +223,10 @@ class Worker(BlenderWorker):
         self.composited("f12")
         self.image_format(self.bpy.context.scene.render.image_settings, "OPEN_EXR_MULTILAYER", color_depth="32")
         command = self.module("splat_addon.command")
-        codes = [command.execute(["render", str(self.out / "verb_####.exr"), "--frames", "1"]),
-                 command.execute(["render", str(self.out / "verb_none_####.png"), "--frames", "1", "--meshes", "none"])]
+        codes = [
+            command.execute(["render", str(self.out / "verb_####.exr"), "--frames", "1"]),
+            command.execute(["render", str(self.out / "verb_none_####.png"), "--frames", "1", "--meshes", "none"]),
+        ]
         return {"codes": codes, "mesh_engine_after": self.bpy.context.scene.splatwright_mesh_engine}
 
     def animation(self):
@@ -236,6 +251,7 @@ class Worker(BlenderWorker):
         and projection matrices, the picture at full and coarse scale through the progressive
         renderer, and the mesh layer it composites with."""
         import time
+
         bpy = self.bpy
         self.build()
         scene = bpy.context.scene
@@ -275,12 +291,27 @@ class Worker(BlenderWorker):
             port.stop()
         cloud, meshes, background = port.inputs
         layer = preview.mesh_layer(meshes, camera)
-        self.save("viewport", full=frames[-1].image, coarse=frames[0].image, layer_color=layer.color,
-                  layer_alpha=layer.alpha, layer_depth=layer.depth, world=view, projection=projection)
-        return {"camera": self.camera_record(), "scales": [f.scale for f in frames], "redraws": Engine.redraws,
-                "splats": len(cloud), "triangles": len(meshes), "background": list(background),
-                "mesh_triangles": sum(len(o.data.polygons) * 2 for o in scene.objects if o.type == "MESH"
-                                      and o.name != "Splats")}
+        self.save(
+            "viewport",
+            full=frames[-1].image,
+            coarse=frames[0].image,
+            layer_color=layer.color,
+            layer_alpha=layer.alpha,
+            layer_depth=layer.depth,
+            world=view,
+            projection=projection,
+        )
+        return {
+            "camera": self.camera_record(),
+            "scales": [f.scale for f in frames],
+            "redraws": Engine.redraws,
+            "splats": len(cloud),
+            "triangles": len(meshes),
+            "background": list(background),
+            "mesh_triangles": sum(
+                len(o.data.polygons) * 2 for o in scene.objects if o.type == "MESH" and o.name != "Splats"
+            ),
+        }
 
 
 if __name__ == "__main__":

@@ -7,15 +7,27 @@ from workers.base import BlenderWorker, worker_main
 
 # Object transforms given to a cloud Blender imported: a turn with a uniform scale, and a shear-free
 # stretch along a turned axis (no rotation times uniform scale: covariances re-diagonalised).
-MOVES = {"turned": {"location": (0.5, -2.0, 1.25), "rotation_euler": (0.3, -1.1, 2.0), "scale": (1.5, 1.5, 1.5)},
-         "stretched": {"location": (0.0, 1.0, 0.0), "rotation_euler": (0.0, 0.0, 0.7), "scale": (1.0, 2.0, 0.5)}}
+MOVES = {
+    "turned": {"location": (0.5, -2.0, 1.25), "rotation_euler": (0.3, -1.1, 2.0), "scale": (1.5, 1.5, 1.5)},
+    "stretched": {"location": (0.0, 1.0, 0.0), "rotation_euler": (0.0, 0.0, 0.7), "scale": (1.0, 2.0, 0.5)},
+}
 FORMATS = (".ply", ".spz", ".usd", ".usda", ".splat", ".glb")
 CAMERA = {"location": (0.0, -6.0, 0.0), "rotation_euler": (np.pi / 2, 0.0, 0.0), "lens": 40.0}
 
 
 class NativeWorker(BlenderWorker):
-    steps = ("blender_ply", "blender_ply_moved", "blender_spz", "ours_native", "join", "render", "geometry_nodes",
-             "tools", "bind", "collisions")
+    steps = (
+        "blender_ply",
+        "blender_ply_moved",
+        "blender_spz",
+        "ours_native",
+        "join",
+        "render",
+        "geometry_nodes",
+        "tools",
+        "bind",
+        "collisions",
+    )
 
     def __init__(self, work, zip_path):
         super().__init__(work, zip_path)
@@ -34,9 +46,12 @@ class NativeWorker(BlenderWorker):
         pointcloud = obj.data
         rotation = np.empty(len(pointcloud.points) * 4, np.float32)
         pointcloud.attributes["rotation"].data.foreach_get("value", rotation)
-        return {"type": obj.type, "data_type": getattr(pointcloud, "type", None),
-                "attributes": {a.name: a.data_type for a in pointcloud.attributes},
-                "matrix_world": np.array(obj.matrix_world).tolist()}, rotation.reshape(-1, 4)
+        return {
+            "type": obj.type,
+            "data_type": getattr(pointcloud, "type", None),
+            "attributes": {a.name: a.data_type for a in pointcloud.attributes},
+            "matrix_world": np.array(obj.matrix_world).tolist(),
+        }, rotation.reshape(-1, 4)
 
     def export(self, name, **kw):
         return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name), **kw)
@@ -63,8 +78,11 @@ class NativeWorker(BlenderWorker):
                 setattr(obj, key, value)
             self.bpy.context.view_layer.update()
             self.select([obj])
-            res[name] = {"matrix_world": np.array(obj.matrix_world).tolist(), "export": self.export(f"{name}.ply"),
-                         "apply": self.call(self.bpy.ops.splat.apply_transform)}
+            res[name] = {
+                "matrix_world": np.array(obj.matrix_world).tolist(),
+                "export": self.export(f"{name}.ply"),
+                "apply": self.call(self.bpy.ops.splat.apply_transform),
+            }
             res[name]["applied_matrix"] = np.array(obj.matrix_world).tolist()
             res[name]["applied_export"] = self.export(f"{name}_applied.ply")
             self.bpy.data.objects.remove(obj)
@@ -82,11 +100,17 @@ class NativeWorker(BlenderWorker):
         bpy = self.bpy
         theirs = self.blender_import("src.spz", importer="spz")
         self.select([theirs])
-        res = {"blender": self.attributes(theirs)[0], "export_spz": self.export("spz_blender.spz"),
-               "export_ply": self.export("spz_blender.ply")}
+        res = {
+            "blender": self.attributes(theirs)[0],
+            "export_spz": self.export("spz_blender.spz"),
+            "export_ply": self.export("spz_blender.ply"),
+        }
         ours = self.call(bpy.ops.splat.import_file, filepath=str(self.work / "src.spz"))
-        self.save("spz_world", blender=self.world_positions(theirs),
-                  ours=self.world_positions(bpy.context.view_layer.objects.active))
+        self.save(
+            "spz_world",
+            blender=self.world_positions(theirs),
+            ours=self.world_positions(bpy.context.view_layer.objects.active),
+        )
         return {**res, "import": ours}
 
     def ours_native(self):
@@ -94,8 +118,12 @@ class NativeWorker(BlenderWorker):
         bpy = self.bpy
         res = self.call(bpy.ops.splat.import_file, filepath=str(self.work / "src3.ply"))
         obj = bpy.context.view_layer.objects.active
-        return {**res, "type": obj.type, "data_type": getattr(obj.data, "type", None),
-                "attributes": {a.name: a.data_type for a in obj.data.attributes}}
+        return {
+            **res,
+            "type": obj.type,
+            "data_type": getattr(obj.data, "type", None),
+            "attributes": {a.name: a.data_type for a in obj.data.attributes},
+        }
 
     def join(self):
         """Two Blender-imported PLYs joined by Join Splats, exported with the default settings."""
@@ -116,8 +144,9 @@ class NativeWorker(BlenderWorker):
         scene.render.filepath = str(self.out / "render_blender.exr")
         res["blender"] = self.call(bpy.ops.render.render, write_still=True)
         bpy.data.objects.remove(theirs)
-        res["ours"] = self.call(bpy.ops.splat.import_file, filepath=str(self.work / "scene.ply"),
-                                axis_forward="Y", axis_up="Z")
+        res["ours"] = self.call(
+            bpy.ops.splat.import_file, filepath=str(self.work / "scene.ply"), axis_forward="Y", axis_up="Z"
+        )
         scene.render.filepath = str(self.out / "render_ours.exr")
         res["ours_render"] = self.call(bpy.ops.render.render, write_still=True)
         return res
@@ -143,8 +172,11 @@ class NativeWorker(BlenderWorker):
         mesh = bpy.data.meshes.new("generated")
         mesh.vertices.add(len(arrays["position"]))
         mesh.vertices.foreach_set("co", arrays["position"].ravel())
-        kinds = {"scale": ("FLOAT_VECTOR", "vector"), "rotation": ("QUATERNION", "value"),
-                 "radiance:base": ("FLOAT4", "vector")}
+        kinds = {
+            "scale": ("FLOAT_VECTOR", "vector"),
+            "rotation": ("QUATERNION", "value"),
+            "radiance:base": ("FLOAT4", "vector"),
+        }
         kinds.update({f"radiance:sh_{j}": ("FLOAT_VECTOR", "vector") for j in range(3)})
         for name, (kind, prop) in kinds.items():
             mesh.attributes.new(name, kind, "POINT").data.foreach_set(prop, arrays[name].ravel())
@@ -210,8 +242,12 @@ class NativeWorker(BlenderWorker):
         for j, name in enumerate(names):
             obj.data.attributes[f"splat_weight:{name}"].data.foreach_get("value", weights[:, j])
         bones = [arm.pose.bones[n] for n in names]
-        deform = np.stack([np.array(arm.matrix_world @ b.matrix @ b.bone.matrix_local.inverted()
-                                    @ arm.matrix_world.inverted()) for b in bones])
+        deform = np.stack(
+            [
+                np.array(arm.matrix_world @ b.matrix @ b.bone.matrix_local.inverted() @ arm.matrix_world.inverted())
+                for b in bones
+            ]
+        )
         self.save("bind", weights=weights, deform=deform)
         return res
 
@@ -221,8 +257,14 @@ class NativeWorker(BlenderWorker):
         collide = self.module("splat_addon.rig.collide")
         a, b = self.blender_import("other.ply"), self.blender_import("collide.ply")
         res = {"near": collide.check_collisions(bpy.context, a, b, [1], write_attribute=False).as_dict()}
-        res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=a.name, object_b=b.name,
-                              use_scene_range=False, frame_start=1, frame_end=1)
+        res["op"] = self.call(
+            bpy.ops.splat.check_collisions,
+            object_a=a.name,
+            object_b=b.name,
+            use_scene_range=False,
+            frame_start=1,
+            frame_end=1,
+        )
         b.location = (100.0, 0.0, 0.0)
         bpy.context.view_layer.update()
         res["far"] = collide.check_collisions(bpy.context, a, b, [1], write_attribute=False).as_dict()

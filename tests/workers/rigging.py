@@ -4,10 +4,10 @@ workers/base.py)."""
 import contextlib
 import io
 import json
+
 import numpy as np
 
 from workers.base import MODULE, BlenderWorker, worker_main
-
 
 # A rig that exercises every part of Blender's skinning: bone rolls, an unconnected child, scaled
 # bones (uniform and not), a bone that does not deform, and an armature object placed off the origin.
@@ -25,17 +25,23 @@ RIG_POSE = {  # name: location, Euler XYZ rotation, scale (bone space)
     "Tip": ((0.0, 0.0, 0.0), (0.2, -1.2, 0.8), (0.7, 1.2, 0.9)),
     "Ctrl": ((0.5, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)),
 }
-GROUP_ORDER = ("Side", "Root", "Ctrl", "Tip", "Mid")      # not the bone order
+GROUP_ORDER = ("Side", "Root", "Ctrl", "Tip", "Mid")  # not the bone order
 ARM_TRANSFORM = dict(location=(0.3, -0.2, 0.1), rotation_euler=(0.1, 0.2, -0.3), scale=(1.1, 1.1, 1.1))
 SPLAT_TRANSFORM = dict(location=(0.5, 0.4, -0.2), rotation_euler=(0.3, -0.1, 0.5), scale=(1.0, 1.3, 0.8))
-DRAWN_TYPES = {"FLOAT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "QUATERNION": ("value", 4),
-               "FLOAT4": ("vector", 4), "FLOAT_COLOR": ("color", 4)}
+DRAWN_TYPES = {
+    "FLOAT": ("value", 1),
+    "FLOAT_VECTOR": ("vector", 3),
+    "QUATERNION": ("value", 4),
+    "FLOAT4": ("vector", 4),
+    "FLOAT_COLOR": ("color", 4),
+}
 RIG_SPLATS = 400
 RENDER_SIZE = (480, 360)
 BENT_FRAME = 12
 
 
 # the worker (a separate Python process with bpy) -----------------------------------------------------
+
 
 def rig_cloud_arrays(n, seed=3):
     """Splats scattered around the rig's bones, anisotropic, with non-unit quaternions and SH degree 1."""
@@ -44,9 +50,13 @@ def rig_cloud_arrays(n, seed=3):
     tails = np.array([RIG_BONES[b][1] for b in GROUP_ORDER if RIG_BONES[b][5]])
     pick, t = rng.integers(0, len(heads), n), rng.uniform(0, 1, (n, 1))
     positions = heads[pick] + t * (tails[pick] - heads[pick]) + rng.normal(0, 0.15, (n, 3))
-    return dict(positions=positions, rotations=rng.normal(0, 1, (n, 4)) * rng.uniform(0.5, 2, (n, 1)),
-                log_scales=rng.uniform(-4, -2, (n, 3)), opacity_logits=rng.normal(2, 1, n),
-                sh=rng.normal(0, 0.3, (n, 4, 3)))
+    return dict(
+        positions=positions,
+        rotations=rng.normal(0, 1, (n, 4)) * rng.uniform(0.5, 2, (n, 1)),
+        log_scales=rng.uniform(-4, -2, (n, 3)),
+        opacity_logits=rng.normal(2, 1, n),
+        sh=rng.normal(0, 0.3, (n, 4, 3)),
+    )
 
 
 def rig_weights(n, seed=4):
@@ -66,8 +76,17 @@ def rig_weights(n, seed=4):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "skinning", "transfer", "bone_weights", "render", "errors", "collide_small",
-             "collide_demo", "reregister")
+    steps = (
+        "install",
+        "skinning",
+        "transfer",
+        "bone_weights",
+        "render",
+        "errors",
+        "collide_small",
+        "collide_demo",
+        "reregister",
+    )
 
     # helpers -------------------------------------------------------------------------------------
 
@@ -143,7 +162,7 @@ class Worker(BlenderWorker):
     def display_positions(self, obj):
         """The viewport display's points (object space)."""
         depsgraph = self.bpy.context.evaluated_depsgraph_get()
-        for inst in depsgraph.object_instances:      # instance data is only valid during iteration
+        for inst in depsgraph.object_instances:  # instance data is only valid during iteration
             if inst.object.type == "POINTCLOUD" and inst.object.original == obj:
                 points = inst.object.data
                 co = np.empty(len(points.points) * 3, np.float32)
@@ -159,8 +178,9 @@ class Worker(BlenderWorker):
         inv["modifiers"] = {o.name: [m.name for m in o.modifiers] for o in bpy.data.objects}
         inv["parents"] = {o.name: o.parent.name if o.parent else None for o in bpy.data.objects}
         inv["properties"] = {o.name: sorted(o.keys()) for o in bpy.data.objects}
-        inv["attributes"] = {g.name: sorted(a.name for a in g.attributes)
-                             for g in (*bpy.data.meshes, *bpy.data.pointclouds)}
+        inv["attributes"] = {
+            g.name: sorted(a.name for a in g.attributes) for g in (*bpy.data.meshes, *bpy.data.pointclouds)
+        }
         return inv
 
     def build_rig(self):
@@ -187,8 +207,9 @@ class Worker(BlenderWorker):
     def demo(self, environment_splats=0, body_splats=3000):
         """The demo rig and its arm converted to splats in the rest pose (selected, the armature active)."""
         bpy = self.bpy
-        rig = self.module("splat_addon.convert.demo_rig").build_demo_rig(bpy.context.scene, environment_splats,
-                                                                    calibrate=False)
+        rig = self.module("splat_addon.convert.demo_rig").build_demo_rig(
+            bpy.context.scene, environment_splats, calibrate=False
+        )
         self.select([rig.body])
         bpy.ops.splat.from_mesh(max_splats=body_splats, calibrate=False)
         splats = bpy.context.active_object
@@ -202,15 +223,21 @@ class Worker(BlenderWorker):
         self.install_extension()
         menus = {name: self.menu_entries(name) for name in ("VIEW3D_MT_object_parent", "VIEW3D_MT_object")}
         data = self.module("splat_addon.data")
-        return {"operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_bind_armature", "SPLAT_OT_check_collisions")],
-                "menus": menus,
-                "posers": [f"{f.__module__.rpartition('splat_addon.')[2]}.{f.__name__}" for f in data.POSERS],
-                "handlers": self.handler_count()}
+        return {
+            "operators": [hasattr(bpy.types, n) for n in ("SPLAT_OT_bind_armature", "SPLAT_OT_check_collisions")],
+            "menus": menus,
+            "posers": [f"{f.__module__.rpartition('splat_addon.')[2]}.{f.__name__}" for f in data.POSERS],
+            "handlers": self.handler_count(),
+        }
 
     def handler_count(self):
         handlers = self.bpy.app.handlers
-        return sum(1 for lst in (handlers.depsgraph_update_post, handlers.load_post, handlers.undo_post,
-                                 handlers.redo_post) for f in lst if f.__module__.startswith(MODULE))
+        return sum(
+            1
+            for lst in (handlers.depsgraph_update_post, handlers.load_post, handlers.undo_post, handlers.redo_post)
+            for f in lst
+            if f.__module__.startswith(MODULE)
+        )
 
     def skinning(self):
         """Weights stored by hand as a user does (vertex groups and an Armature modifier on a splat mesh;
@@ -228,11 +255,11 @@ class Worker(BlenderWorker):
             setattr(obj, key, value)
         bpy.context.view_layer.update()
         native = data.splat_form(obj) == data.NATIVE_FORM
-        weights_given = rig_weights(RIG_SPLATS)             # groups in GROUP_ORDER
+        weights_given = rig_weights(RIG_SPLATS)  # groups in GROUP_ORDER
         self.write_weights(obj, weights_given)
         if native:
             obj[rigging.ARMATURE_PROPERTY] = arm
-            twin = self.twin_mesh(obj, weights_given, arm)   # Blender's Armature modifier on the same points
+            twin = self.twin_mesh(obj, weights_given, arm)  # Blender's Armature modifier on the same points
             mod, shown = twin.modifiers["Armature"], None
         else:
             twin = obj
@@ -258,32 +285,52 @@ class Worker(BlenderWorker):
                 shown.show_viewport = True
 
         bpy.context.view_layer.update()
-        res = {"modifiers": [m.type for m in obj.modifiers], "form": data.splat_form(obj),
-               "armature": rigging.rig_of(obj)[0].name}
+        res = {
+            "modifiers": [m.type for m in obj.modifiers],
+            "form": data.splat_form(obj),
+            "armature": rigging.rig_of(obj)[0].name,
+        }
         names = list(RIG_BONES)
         arm_world, obj_world = np.array(arm.matrix_world), np.array(obj.matrix_world)
         to_obj = np.linalg.inv(obj_world) @ arm_world
-        deform = np.stack([to_obj @ np.array(arm.pose.bones[n].matrix)
-                           @ np.linalg.inv(np.array(arm.data.bones[n].matrix_local)) @ np.linalg.inv(to_obj)
-                           for n in names])
+        deform = np.stack(
+            [
+                to_obj
+                @ np.array(arm.pose.bones[n].matrix)
+                @ np.linalg.inv(np.array(arm.data.bones[n].matrix_local))
+                @ np.linalg.inv(to_obj)
+                for n in names
+            ]
+        )
         arrays_out = {}
         for mode, volume in (("lbs", False), ("dqs", True)):
             set_volume(volume)
             depsgraph = bpy.context.evaluated_depsgraph_get()
             ours = data.evaluated_cloud(obj, depsgraph, np.eye(4))
-            if native:          # what Blender draws: the posed splats, every attribute
+            if native:  # what Blender draws: the posed splats, every attribute
                 drawn = self.drawn(obj)
                 arrays_out[f"{mode}_display"] = drawn["position"]
-                arrays_out.update({f"{mode}_drawn_{k.replace(':', '_')}": v for k, v in drawn.items()
-                                   if k in ("rotation", "scale") or k.startswith("radiance:")})
+                arrays_out.update(
+                    {
+                        f"{mode}_drawn_{k.replace(':', '_')}": v
+                        for k, v in drawn.items()
+                        if k in ("rotation", "scale") or k.startswith("radiance:")
+                    }
+                )
             else:
                 arrays_out[f"{mode}_display"] = self.display_positions(obj)
             arrays_out[f"{mode}_blender"] = theirs()
-            arrays_out.update({f"{mode}_positions": ours.positions, f"{mode}_rotations": ours.rotations,
-                               f"{mode}_log_scales": ours.log_scales, f"{mode}_sh": ours.sh,
-                               f"{mode}_opacity_logits": ours.opacity_logits})
+            arrays_out.update(
+                {
+                    f"{mode}_positions": ours.positions,
+                    f"{mode}_rotations": ours.rotations,
+                    f"{mode}_log_scales": ours.log_scales,
+                    f"{mode}_sh": ours.sh,
+                    f"{mode}_opacity_logits": ours.opacity_logits,
+                }
+            )
         weights = self.weight_matrix(obj, names)
-        kept = data.object_cloud(obj)                     # the rest pose, however often it was drawn posed
+        kept = data.object_cloud(obj)  # the rest pose, however often it was drawn posed
         # weights painted after the first evaluation: the cached weights must follow
         set_volume(False)
         repaint = {"Tip": {v: 0.7 for v in range(20, 60)}}
@@ -311,10 +358,21 @@ class Worker(BlenderWorker):
             arrays_out[f"masked_{mode}_blender"] = theirs()
             if native:
                 arrays_out[f"masked_{mode}_display"] = self.drawn(obj)["position"]
-        self.save("skinning", rest_positions=arrays["positions"], rest_rotations=arrays["rotations"],
-                  rest_log_scales=arrays["log_scales"], deform=deform, bones=np.array(names),
-                  weights=weights, kept_positions=kept.positions, kept_rotations=kept.rotations,
-                  kept_log_scales=kept.log_scales, kept_sh=kept.sh, rest_sh=arrays["sh"], **arrays_out)
+        self.save(
+            "skinning",
+            rest_positions=arrays["positions"],
+            rest_rotations=arrays["rotations"],
+            rest_log_scales=arrays["log_scales"],
+            deform=deform,
+            bones=np.array(names),
+            weights=weights,
+            kept_positions=kept.positions,
+            kept_rotations=kept.rotations,
+            kept_log_scales=kept.log_scales,
+            kept_sh=kept.sh,
+            rest_sh=arrays["sh"],
+            **arrays_out,
+        )
         return res
 
     def transfer(self):
@@ -325,14 +383,22 @@ class Worker(BlenderWorker):
         res = {"bind": self.call(bpy.ops.splat.bind_armature, armature=rig.armature.name, max_influences=8)}
         rigging = self.module("splat_addon.rig.armature")
         extras = data.object_cloud(splats).extras
-        res.update(groups=rigging.weight_names(splats), form=data.splat_form(splats),
-                   armature=rigging.rig_of(splats)[0].name,
-                   modifiers=[[m.type, m.object.name if m.type == "ARMATURE" else None] for m in splats.modifiers],
-                   parent=splats.parent.name if splats.parent else None,
-                   matrix_kept=bool(np.allclose(np.array(splats.matrix_world), np.array(rig.body.matrix_world))),
-                   source=json.loads(splats.data["splatwright_source"]))
-        self.save("transfer", weights=self.weight_matrix(splats, names), source=self.group_matrix(rig.body, names),
-                  source_vertices=extras["source_vertices"], barycentric=extras["barycentric"])
+        res.update(
+            groups=rigging.weight_names(splats),
+            form=data.splat_form(splats),
+            armature=rigging.rig_of(splats)[0].name,
+            modifiers=[[m.type, m.object.name if m.type == "ARMATURE" else None] for m in splats.modifiers],
+            parent=splats.parent.name if splats.parent else None,
+            matrix_kept=bool(np.allclose(np.array(splats.matrix_world), np.array(rig.body.matrix_world))),
+            source=json.loads(splats.data["splatwright_source"]),
+        )
+        self.save(
+            "transfer",
+            weights=self.weight_matrix(splats, names),
+            source=self.group_matrix(rig.body, names),
+            source_vertices=extras["source_vertices"],
+            barycentric=extras["barycentric"],
+        )
         # the active armature, one influence
         self.select([rig.body])
         bpy.ops.splat.from_mesh(max_splats=3000, calibrate=False)
@@ -360,24 +426,39 @@ class Worker(BlenderWorker):
             setattr(obj, key, value)
         bpy.context.view_layer.update()
         self.select([obj], active=arm)
-        res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2, falloff=4.0, min_weight=0.01,
-                                 preserve_volume=True)}
+        res = {
+            "bind": self.call(
+                bpy.ops.splat.bind_armature, max_influences=2, falloff=4.0, min_weight=0.01, preserve_volume=True
+            )
+        }
         names = list(RIG_BONES)
         rigging = self.module("splat_addon.rig.armature")
         res["preserve_volume"] = rigging.rig_of(obj)[1]
-        res["preserve_volume_stored"] = obj.modifiers[0].use_deform_preserve_volume if obj.type == "MESH" \
+        res["preserve_volume_stored"] = (
+            obj.modifiers[0].use_deform_preserve_volume
+            if obj.type == "MESH"
             else bool(obj[rigging.PRESERVE_VOLUME_PROPERTY])
+        )
         res["groups"] = rigging.weight_names(obj)
-        if obj.type == "POINTCLOUD":        # bound to a posed armature: Blender draws them posed at once
-            posed = self.module("splat_addon.data").evaluated_cloud(obj, bpy.context.evaluated_depsgraph_get(),
-                                                                    np.eye(4))
+        if obj.type == "POINTCLOUD":  # bound to a posed armature: Blender draws them posed at once
+            posed = self.module("splat_addon.data").evaluated_cloud(
+                obj, bpy.context.evaluated_depsgraph_get(), np.eye(4)
+            )
             drawn = self.drawn(obj)["position"]
-            res["drawn_posed"] = [float(np.abs(drawn - posed.positions).max()),
-                                  float(np.abs(drawn - arrays["positions"]).max())]
+            res["drawn_posed"] = [
+                float(np.abs(drawn - posed.positions).max()),
+                float(np.abs(drawn - arrays["positions"]).max()),
+            ]
         to_arm = np.linalg.inv(np.array(arm.matrix_world)) @ np.array(obj.matrix_world)
-        self.save("bone_weights", weights=self.weight_matrix(obj, names), positions=arrays["positions"],
-                  to_arm=to_arm, heads=np.array([arm.data.bones[n].head_local for n in names]),
-                  tails=np.array([arm.data.bones[n].tail_local for n in names]), bones=np.array(names))
+        self.save(
+            "bone_weights",
+            weights=self.weight_matrix(obj, names),
+            positions=arrays["positions"],
+            to_arm=to_arm,
+            heads=np.array([arm.data.bones[n].head_local for n in names]),
+            tails=np.array([arm.data.bones[n].tail_local for n in names]),
+            bones=np.array(names),
+        )
         return res
 
     def render(self):
@@ -392,29 +473,42 @@ class Worker(BlenderWorker):
         res = {"bind": self.call(bpy.ops.splat.bind_armature)}
         rest = data.evaluated_cloud(splats, bpy.context.evaluated_depsgraph_get())
         scene.frame_set(BENT_FRAME)
-        reference = from_mesh.convert_objects(bpy.context, [rig.body], max_splats=8000, calibrate=False,
-                                               use_rest_pose=False)[0][1]
+        reference = from_mesh.convert_objects(
+            bpy.context, [rig.body], max_splats=8000, calibrate=False, use_rest_pose=False
+        )[0][1]
         depsgraph = bpy.context.evaluated_depsgraph_get()
         ours = data.evaluated_cloud(splats, depsgraph)
         reference = data.transform_cloud(reference, data.world_matrix(rig.body, depsgraph))
         width, height = RENDER_SIZE
         cam = camera.from_object(scene.camera.evaluated_get(depsgraph), scene, width, height)
-        images = {name: render(cloud, cam, background=(0.0, 0.0, 0.0))
-                  for name, cloud in (("ours", ours), ("reference", reference), ("rest", rest),
-                                      ("centres_only", rest.replace(positions=ours.positions)))}
+        images = {
+            name: render(cloud, cam, background=(0.0, 0.0, 0.0))
+            for name, cloud in (
+                ("ours", ours),
+                ("reference", reference),
+                ("rest", rest),
+                ("centres_only", rest.replace(positions=ours.positions)),
+            )
+        }
         # the render engine (its own render depsgraph), with the weights cache empty
         render_settings = scene.render
         render_settings.engine = "SPLATWRIGHT"
-        scene.splatwright_mesh_engine = "NONE"          # splats alone: the skinned mesh stays out
-        render_settings.resolution_x, render_settings.resolution_y, render_settings.resolution_percentage = \
-            width, height, 100
+        scene.splatwright_mesh_engine = "NONE"  # splats alone: the skinned mesh stays out
+        render_settings.resolution_x, render_settings.resolution_y, render_settings.resolution_percentage = (
+            width,
+            height,
+            100,
+        )
         self.image_format(render_settings.image_settings, "OPEN_EXR")
         render_settings.filepath = str(self.out / "engine.exr")
         scene.world = None
         rigging.forget_weights()
         res["engine"] = self.call(bpy.ops.render.render, write_still=True)
-        self.save("render", **{f"{k}_color": v.color for k, v in images.items()},
-                  **{f"{k}_alpha": v.alpha for k, v in images.items()})
+        self.save(
+            "render",
+            **{f"{k}_color": v.color for k, v in images.items()},
+            **{f"{k}_alpha": v.alpha for k, v in images.items()},
+        )
         return res
 
     def errors(self):
@@ -424,12 +518,13 @@ class Worker(BlenderWorker):
         cases = {}
         bind = bpy.ops.splat.bind_armature
         for name, selected, active, kw in (
-                ("active not an armature", [splats], splats, {}),
-                ("unknown armature", [splats], splats, {"armature": "Nope"}),
-                ("camera as armature", [splats], splats, {"armature": "Camera"}),
-                ("no active object", [splats], None, {}),
-                ("no splat objects", [rig.body], rig.armature, {}),
-                ("nothing selected", [], rig.armature, {})):
+            ("active not an armature", [splats], splats, {}),
+            ("unknown armature", [splats], splats, {"armature": "Nope"}),
+            ("camera as armature", [splats], splats, {"armature": "Camera"}),
+            ("no active object", [splats], None, {}),
+            ("no splat objects", [rig.body], rig.armature, {}),
+            ("nothing selected", [], rig.armature, {}),
+        ):
             self.select(selected, active=active)
             if active is None:
                 bpy.context.view_layer.objects.active = None
@@ -437,14 +532,19 @@ class Worker(BlenderWorker):
             cases[name] = {**self.call(bind, **kw), "unchanged": before == self.inventory()}
         collide = bpy.ops.splat.check_collisions
         base = dict(use_scene_range=False, frame_start=1, frame_end=2)
-        for name, kw in (("unknown object", dict(object_a=splats.name, object_b="Nope")),
-                         ("same object", dict(object_a=splats.name, object_b=splats.name)),
-                         ("not splats", dict(object_a=splats.name, object_b=rig.body.name)),
-                         ("backwards", dict(object_a=splats.name, object_b=env.name, frame_start=5, frame_end=2)),
-                         ("unknown bone", dict(object_a=splats.name, object_b=env.name, ignore_bones="Nope"))):
+        for name, kw in (
+            ("unknown object", dict(object_a=splats.name, object_b="Nope")),
+            ("same object", dict(object_a=splats.name, object_b=splats.name)),
+            ("not splats", dict(object_a=splats.name, object_b=rig.body.name)),
+            ("backwards", dict(object_a=splats.name, object_b=env.name, frame_start=5, frame_end=2)),
+            ("unknown bone", dict(object_a=splats.name, object_b=env.name, ignore_bones="Nope")),
+        ):
             before = self.inventory()
-            cases[name] = {**self.call(collide, **{**base, **kw}), "unchanged": before == self.inventory(),
-                           "frame": bpy.context.scene.frame_current}
+            cases[name] = {
+                **self.call(collide, **{**base, **kw}),
+                "unchanged": before == self.inventory(),
+                "frame": bpy.context.scene.frame_current,
+            }
         return cases
 
     def collide_small(self):
@@ -456,12 +556,20 @@ class Worker(BlenderWorker):
         arm = self.two_bone_armature("Pole")
         rng = np.random.default_rng(11)
         n_a, n_b = 60, 50
-        pole = dict(positions=np.column_stack([rng.normal(0, 0.08, (n_a, 2)), rng.uniform(0, 2, n_a)]),
-                    rotations=rng.normal(0, 1, (n_a, 4)), log_scales=rng.uniform(-3.2, -2.0, (n_a, 3)),
-                    opacity_logits=np.full(n_a, 4.0), sh=np.zeros((n_a, 1, 3)))
-        blob = dict(positions=rng.normal(0, 0.15, (n_b, 3)), rotations=rng.normal(0, 1, (n_b, 4)),
-                    log_scales=rng.uniform(-3.0, -2.0, (n_b, 3)),
-                    opacity_logits=np.where(np.arange(n_b) < 5, -6.0, 3.0), sh=np.zeros((n_b, 1, 3)))
+        pole = dict(
+            positions=np.column_stack([rng.normal(0, 0.08, (n_a, 2)), rng.uniform(0, 2, n_a)]),
+            rotations=rng.normal(0, 1, (n_a, 4)),
+            log_scales=rng.uniform(-3.2, -2.0, (n_a, 3)),
+            opacity_logits=np.full(n_a, 4.0),
+            sh=np.zeros((n_a, 1, 3)),
+        )
+        blob = dict(
+            positions=rng.normal(0, 0.15, (n_b, 3)),
+            rotations=rng.normal(0, 1, (n_b, 4)),
+            log_scales=rng.uniform(-3.0, -2.0, (n_b, 3)),
+            opacity_logits=np.where(np.arange(n_b) < 5, -6.0, 3.0),
+            sh=np.zeros((n_b, 1, 3)),
+        )
         a, b = self.splat_object("PoleSplats", pole), self.splat_object("Blob", blob)
         self.select([a], active=arm)
         res = {"bind": self.call(bpy.ops.splat.bind_armature, max_influences=2)}
@@ -473,8 +581,14 @@ class Worker(BlenderWorker):
             b.location = where
             b.keyframe_insert("location", frame=frame)
         scene.frame_set(2)
-        res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=a.name, object_b=b.name,
-                              use_scene_range=False, frame_start=1, frame_end=3)
+        res["op"] = self.call(
+            bpy.ops.splat.check_collisions,
+            object_a=a.name,
+            object_b=b.name,
+            use_scene_range=False,
+            frame_start=1,
+            frame_end=3,
+        )
         res["frame_after"] = scene.frame_current
         report = collide.check_collisions(bpy.context, a, b, [1, 2, 3], write_attribute=False)
         res["report"] = report.as_dict()
@@ -498,28 +612,47 @@ class Worker(BlenderWorker):
 
     def collide_demo(self):
         bpy = self.bpy
-        scene = bpy.context.scene
         collide = self.module("splat_addon.rig.collide")
         rig, splats = self.demo(environment_splats=20_000, body_splats=8000)
         res = {"bind": self.call(bpy.ops.splat.bind_armature)}
         env = rig.environment
-        res["op"] = self.call(bpy.ops.splat.check_collisions, object_a=splats.name, object_b=env.name,
-                              ignore_bones="Base")
+        res["op"] = self.call(
+            bpy.ops.splat.check_collisions, object_a=splats.name, object_b=env.name, ignore_bones="Base"
+        )
         data = self.module("splat_addon.data")
         values = np.empty(data.splat_count(splats.data), np.float32)
         splats.data.attributes["splat_contact"].data.foreach_get("value", values)
         res["contact_max"], res["contact_splats"] = float(values.max()), int((values > 0).sum())
         res["exported_extras"] = sorted(data.object_cloud(splats).extras)
-        res["report"] = collide.check_collisions(bpy.context, splats, env, range(1, 25), ignore_bones=["Base"],
-                                                 write_attribute=False).as_dict()
+        res["report"] = collide.check_collisions(
+            bpy.context, splats, env, range(1, 25), ignore_bones=["Base"], write_attribute=False
+        ).as_dict()
         res["with_base"] = collide.check_collisions(bpy.context, splats, env, [1], write_attribute=False).as_dict()
         execute = self.module("splat_addon.command").execute
-        runs = {"ok": ["collide", splats.name, env.name, "--frames", "1-12:11", "--ignore-bones", "Base",
-                       "--json", str(self.out / "collide.json")],
-                "unknown": ["collide", splats.name, "Nope", "--frames", "1"],
-                "bad sigma": ["collide", splats.name, env.name, "--frames", "1", "--sigma", "-1"],
-                "missing folder": ["collide", splats.name, env.name, "--frames", "1",
-                                   "--json", str(self.out / "nowhere" / "c.json")]}
+        runs = {
+            "ok": [
+                "collide",
+                splats.name,
+                env.name,
+                "--frames",
+                "1-12:11",
+                "--ignore-bones",
+                "Base",
+                "--json",
+                str(self.out / "collide.json"),
+            ],
+            "unknown": ["collide", splats.name, "Nope", "--frames", "1"],
+            "bad sigma": ["collide", splats.name, env.name, "--frames", "1", "--sigma", "-1"],
+            "missing folder": [
+                "collide",
+                splats.name,
+                env.name,
+                "--frames",
+                "1",
+                "--json",
+                str(self.out / "nowhere" / "c.json"),
+            ],
+        }
         res["cli"] = {}
         for name, argv in runs.items():
             out, err = io.StringIO(), io.StringIO()
@@ -530,6 +663,7 @@ class Worker(BlenderWorker):
 
     def reregister(self):
         import addon_utils
+
         addon_utils.disable(MODULE, default_set=True)
         off = self.handler_count()
         addon_utils.enable(MODULE, default_set=True)

@@ -8,18 +8,18 @@ import numpy as np
 
 from workers.base import BlenderWorker, random_cloud_arrays, worker_main
 
-N = 60                                   # splats of the test clouds
+N = 60  # splats of the test clouds
 RENDER_SIZE = (40, 30)
-EDIT_OFFSET = (0.3, -0.2, 0.1)           # vertex 0 moved in Edit Mode
-ARRAY_OFFSET = (0.75, 0.0, 0.0)          # the Array modifier's constant offset
-GN_ROTATION, GN_SCALE = (0.3, -0.2, 0.5), (1.0, 1.7, 0.6)    # a geometry-nodes Transform Geometry
-SHAPE_OFFSET = (0.0, 0.0, 0.4)           # a shape key moves splat 1
+EDIT_OFFSET = (0.3, -0.2, 0.1)  # vertex 0 moved in Edit Mode
+ARRAY_OFFSET = (0.75, 0.0, 0.0)  # the Array modifier's constant offset
+GN_ROTATION, GN_SCALE = (0.3, -0.2, 0.5), (1.0, 1.7, 0.6)  # a geometry-nodes Transform Geometry
+SHAPE_OFFSET = (0.0, 0.0, 0.4)  # a shape key moves splat 1
 INSTANCE = dict(location=(1.5, -0.5, 0.25), rotation_euler=(0.4, 0.1, -0.7), scale=(1.3, 1.3, 1.3))
 DUPLICATE = dict(location=(-1.0, 0.5, 0.0), rotation_euler=(0.0, 0.6, 0.2), scale=(0.8, 1.0, 1.2))
 APPLIED = dict(location=(0.5, 0.2, -0.3), rotation_euler=(0.7, -0.4, 1.1), scale=(1.5, 0.6, 1.0))
 NATIVE_TRANSFORM = dict(location=(0.2, -0.4, 0.3), rotation_euler=(0.5, -0.3, 0.8), scale=(1.2, 0.9, 1.1))
-BONES = {"Upper": ((0, 0, -1.5), (0, 0, 0)), "Lower": ((0, 0, 0), (0, 0, 1.5))}     # head, tail
-POSE = {"Upper": (0.2, 0.0, 0.1), "Lower": (0.0, 0.7, -0.3)}                         # Euler XYZ
+BONES = {"Upper": ((0, 0, -1.5), (0, 0, 0)), "Lower": ((0, 0, 0), (0, 0, 1.5))}  # head, tail
+POSE = {"Upper": (0.2, 0.0, 0.1), "Lower": (0.0, 0.7, -0.3)}  # Euler XYZ
 
 
 def native_arrays(arrays, base_type="FLOAT4"):
@@ -28,18 +28,25 @@ def native_arrays(arrays, base_type="FLOAT4"):
     `base_type`: radiance:base's type, FLOAT4 as 5.3 writes it, FLOAT_COLOR where a Blender lacks FLOAT4."""
     sh = np.asarray(arrays["sh"], np.float32)
     base = np.c_[sh[:, 0], 1.0 / (1.0 + np.exp(-np.asarray(arrays["opacity_logits"], np.float64)))]
-    out = {"position": ("FLOAT_VECTOR", arrays["positions"]),
-           "scale": ("FLOAT_VECTOR", np.exp(np.asarray(arrays["log_scales"], np.float64))),
-           "rotation": ("QUATERNION", arrays["rotations"]),
-           "radiance:base": (base_type, base)}
+    out = {
+        "position": ("FLOAT_VECTOR", arrays["positions"]),
+        "scale": ("FLOAT_VECTOR", np.exp(np.asarray(arrays["log_scales"], np.float64))),
+        "rotation": ("QUATERNION", arrays["rotations"]),
+        "radiance:base": (base_type, base),
+    }
     for j in range(1, sh.shape[1]):
         out[f"radiance:sh_{j - 1}"] = ("FLOAT_VECTOR", sh[:, j])
     return out
 
 
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
-FOREACH = {"FLOAT": ("value", 1), "FLOAT_VECTOR": ("vector", 3), "QUATERNION": ("value", 4),
-           "FLOAT_COLOR": ("color", 4), "FLOAT4": ("vector", 4)}
+FOREACH = {
+    "FLOAT": ("value", 1),
+    "FLOAT_VECTOR": ("vector", 3),
+    "QUATERNION": ("value", 4),
+    "FLOAT_COLOR": ("color", 4),
+    "FLOAT4": ("vector", 4),
+}
 
 
 class Worker(BlenderWorker):
@@ -53,8 +60,9 @@ class Worker(BlenderWorker):
         """A splat mesh (Splatwright's own form) holding `arrays`, with the display modifier; `form` None:
         the form this Blender makes new splat objects in (native on 5.3, which needs no display)."""
         ext = self.module("splat_addon")
-        obj, _ = ext.data.new_splat_object(self.module("core").SplatCloud(**arrays), name,
-                                           self.bpy.context.scene.collection, form=form)
+        obj, _ = ext.data.new_splat_object(
+            self.module("core").SplatCloud(**arrays), name, self.bpy.context.scene.collection, form=form
+        )
         ext.data.display.add_display(obj)
         for key, value in transform.items():
             setattr(obj, key, value)
@@ -106,8 +114,9 @@ class Worker(BlenderWorker):
         if objects is not None:
             self.select(objects)
         axes = {} if file_axes else dict(axis_forward="Y", axis_up="Z")
-        return self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / name),
-                         selected_only=objects is not None, **axes)
+        return self.call(
+            self.bpy.ops.splat.export_file, filepath=str(self.out / name), selected_only=objects is not None, **axes
+        )
 
     def render(self, name, shown=None):
         """F12 through the engine to a 32-bit EXR (the tests read it); only `shown` splat objects when given."""
@@ -115,11 +124,13 @@ class Worker(BlenderWorker):
         scene = bpy.context.scene
         hidden = []
         if shown is not None:
-            hidden = [o for o in scene.objects if o not in shown and not o.hide_render and o.type in ("MESH", "POINTCLOUD")]
+            hidden = [
+                o for o in scene.objects if o not in shown and not o.hide_render and o.type in ("MESH", "POINTCLOUD")
+            ]
             for obj in hidden:
                 obj.hide_render = True
         scene.render.engine = "SPLATWRIGHT"
-        scene.splatwright_mesh_engine = "NONE"          # splats alone
+        scene.splatwright_mesh_engine = "NONE"  # splats alone
         scene.render.resolution_x, scene.render.resolution_y = RENDER_SIZE
         scene.render.resolution_percentage = 100
         scene.render.film_transparent = False
@@ -175,6 +186,7 @@ class Worker(BlenderWorker):
         """A splat mesh left in Edit Mode after a vertex moved there: export, animation export and F12."""
         import bmesh
         from mathutils import Vector
+
         bpy = self.bpy
         obj = self.splats("edited", random_cloud_arrays(N, 2, seed=1))
         self.select([obj])
@@ -183,11 +195,20 @@ class Worker(BlenderWorker):
         edit.verts.ensure_lookup_table()
         edit.verts[0].co += Vector(EDIT_OFFSET)
         bmesh.update_edit_mesh(obj.data)
-        res = {"export": self.export("edit.ply"),
-               "animation": self.call(bpy.ops.splat.export_animation, filepath=str(self.out / "edit_####.ply"),
-                                      use_scene_range=False, frame_start=1, frame_end=2, axis_forward="Y",
-                                      axis_up="Z"),
-               "render": self.render("edit_render"), "mode": obj.mode}
+        res = {
+            "export": self.export("edit.ply"),
+            "animation": self.call(
+                bpy.ops.splat.export_animation,
+                filepath=str(self.out / "edit_####.ply"),
+                use_scene_range=False,
+                frame_start=1,
+                frame_end=2,
+                axis_forward="Y",
+                axis_up="Z",
+            ),
+            "render": self.render("edit_render"),
+            "mode": obj.mode,
+        }
         bpy.ops.object.mode_set(mode="OBJECT")
         reference = self.reimported("reference", self.out / "edit.ply")
         res["reference_render"] = self.render("edit_reference", [reference])
@@ -245,13 +266,17 @@ class Worker(BlenderWorker):
         for key, value in INSTANCE.items():
             setattr(empty, key, value)
         scene.collection.objects.link(empty)
-        duplicate = source.copy()          # shares the mesh: a linked duplicate
+        duplicate = source.copy()  # shares the mesh: a linked duplicate
         for key, value in DUPLICATE.items():
             setattr(duplicate, key, value)
         scene.collection.objects.link(duplicate)
-        res = {"visible": self.export("inst_visible.ply"), "selected_empty": self.export("inst_empty.ply", [empty]),
-               "matrices": {"instance": self.matrix(empty), "duplicate": self.matrix(duplicate)},
-               "render": self.render("inst_render"), "form": self.module("splat_addon.data").splat_form(source)}
+        res = {
+            "visible": self.export("inst_visible.ply"),
+            "selected_empty": self.export("inst_empty.ply", [empty]),
+            "matrices": {"instance": self.matrix(empty), "duplicate": self.matrix(duplicate)},
+            "render": self.render("inst_render"),
+            "form": self.module("splat_addon.data").splat_form(source),
+        }
         reference = self.reimported("reference", self.out / "inst_visible.ply")
         res["reference_render"] = self.render("inst_reference", [reference])
         return res
@@ -283,11 +308,13 @@ class Worker(BlenderWorker):
         arrays, second = random_cloud_arrays(N, 3, seed=4), random_cloud_arrays(N // 2, 3, seed=5)
         ours = self.splats("ours", arrays, **NATIVE_TRANSFORM)
         theirs = self.native_object("theirs", arrays, **NATIVE_TRANSFORM)
-        res = {"forms": [ext.data.splat_form(ours), ext.data.splat_form(theirs)],
-               "layout": [theirs.data.attributes["radiance:base"].data_type, getattr(theirs.data, "type", None)],
-               "landed_raw": [ext.data.landed_raw(ours), ext.data.landed_raw(theirs)],
-               "export": [self.export("nat_ours.ply", [ours]), self.export("nat_theirs.ply", [theirs], True)],
-               "render": [self.render("nat_ours", [ours]), self.render("nat_theirs", [theirs])]}
+        res = {
+            "forms": [ext.data.splat_form(ours), ext.data.splat_form(theirs)],
+            "layout": [theirs.data.attributes["radiance:base"].data_type, getattr(theirs.data, "type", None)],
+            "landed_raw": [ext.data.landed_raw(ours), ext.data.landed_raw(theirs)],
+            "export": [self.export("nat_ours.ply", [ours]), self.export("nat_theirs.ply", [theirs], True)],
+            "render": [self.render("nat_ours", [ours]), self.render("nat_theirs", [theirs])],
+        }
         env = self.splats("env", random_cloud_arrays(N, 0, seed=6, spread=0.8))
         reports = [ext.rig.collide.check_collisions(self.bpy.context, obj, env, [1]) for obj in (ours, theirs)]
         res["contacts"] = [r.as_dict()["frames"][0] for r in reports]
@@ -296,8 +323,10 @@ class Worker(BlenderWorker):
         res["applied_matrices"] = [self.matrix(ours), self.matrix(theirs)]
         for obj in (ours, theirs):
             self.export(f"nat_{obj.name}_applied.ply", [obj], obj is theirs)
-        res["join"] = [self.join(ours, self.splats("ours_more", second, **DUPLICATE)),
-                       self.join(theirs, self.native_object("theirs_more", second, **DUPLICATE))]
+        res["join"] = [
+            self.join(ours, self.splats("ours_more", second, **DUPLICATE)),
+            self.join(theirs, self.native_object("theirs_more", second, **DUPLICATE)),
+        ]
         res["joined_forms"] = [ext.data.splat_form(ours), ext.data.splat_form(theirs)]
         res["joined_raw"] = [ext.data.landed_raw(ours), ext.data.landed_raw(theirs)]
         for obj in (ours, theirs):
@@ -319,7 +348,7 @@ class Worker(BlenderWorker):
             return {"skipped": self.bpy.app.version_string}
         bpy = self.bpy
         arrays = random_cloud_arrays(N, 3, seed=7)
-        arrays["positions"] = arrays["positions"] * [0.4, 0.4, 1.2]        # along the bones
+        arrays["positions"] = arrays["positions"] * [0.4, 0.4, 1.2]  # along the bones
         ours = self.splats("ours", arrays, **NATIVE_TRANSFORM)
         theirs = self.native_object("theirs", arrays, **NATIVE_TRANSFORM)
         arm = self.rig()
@@ -339,10 +368,18 @@ class Worker(BlenderWorker):
                 values = np.empty(len(attr.data) * width, np.float32)
                 attr.data.foreach_get(prop, values)
                 drawn[name] = values.reshape(-1, width)
-        exact = self.module("splat_addon.data").evaluated_cloud(theirs, bpy.context.evaluated_depsgraph_get(), np.eye(4))
-        self.save("rig_drawn", **{k.replace(":", "__"): v for k, v in drawn.items()},
-                  exact_positions=exact.positions, exact_rotations=exact.unit_rotations, exact_scales=exact.scales,
-                  exact_opacities=exact.opacities, exact_sh=exact.sh)
+        exact = self.module("splat_addon.data").evaluated_cloud(
+            theirs, bpy.context.evaluated_depsgraph_get(), np.eye(4)
+        )
+        self.save(
+            "rig_drawn",
+            **{k.replace(":", "__"): v for k, v in drawn.items()},
+            exact_positions=exact.positions,
+            exact_rotations=exact.unit_rotations,
+            exact_scales=exact.scales,
+            exact_opacities=exact.opacities,
+            exact_sh=exact.sh,
+        )
         return res
 
 
