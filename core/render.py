@@ -36,13 +36,18 @@ on the splat where the pixel crosses the layer; the compiled path applies it bet
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import SimpleNamespace
+from typing import Annotated
 
 import numpy as np
+from numpy.typing import NDArray
 
 from . import geometry, jit
 from . import sh as shmod
+from .arrays import Floats, Image
+from .camera import Camera
 from .parallel import Pool
 from .render_composite import Compositor, LayerCrossing
 from .render_constants import (
@@ -66,7 +71,7 @@ from .render_tiles import (
     screen_rows,
     stable_argsort,
 )
-from .splats import sigmoid
+from .splats import SplatCloud, sigmoid
 
 BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.render_kernels"  # the compiled module, loaded by core.jit
@@ -98,12 +103,12 @@ class RenderResult:
         (- (1 - alpha) * background).
     """
 
-    color: np.ndarray
-    alpha: np.ndarray
-    depth: np.ndarray
-    counts: np.ndarray | None = None
-    max_weight: np.ndarray | None = None
-    gathered: np.ndarray | None = None
+    color: Image
+    alpha: Annotated[Floats, "(H, W)"]
+    depth: Annotated[Floats, "(H, W)"]
+    counts: Annotated[NDArray[np.integer], "(H, W)"] | None = None
+    max_weight: Annotated[Floats, "(N,)"] | None = None
+    gathered: Annotated[Floats, "(N, C)"] | None = None
     background: tuple | None = (0.0, 0.0, 0.0)
     stats: dict = field(default_factory=dict)
     layer_transmittance: np.ndarray | None = None
@@ -147,25 +152,25 @@ class Layer:
 
 
 def render(
-    cloud,
-    camera,
-    background=(0.0, 0.0, 0.0),
-    mode=None,
-    return_counts=False,
+    cloud: SplatCloud,
+    camera: Camera,
+    background: tuple[float, float, float] | None = (0.0, 0.0, 0.0),
+    mode: str | None = None,
+    return_counts: bool = False,
     *,
-    return_weights=False,
-    tile_size=TILE_SIZE,
-    wave=32,
-    t_min=T_MIN,
-    max_sigma=None,
-    precision="float32",
-    threads=None,
-    progress=None,
-    backend="auto",
-    layer=None,
-    gather=None,
-    shapes=None,
-):
+    return_weights: bool = False,
+    tile_size: int = TILE_SIZE,
+    wave: int = 32,
+    t_min: float = T_MIN,
+    max_sigma: float | None = None,
+    precision: str = "float32",
+    threads: int | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+    backend: str = "auto",
+    layer: "Layer | None" = None,
+    gather: Image | None = None,
+    shapes: "Shapes | None" = None,
+) -> RenderResult:
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
     background: display-sRGB colour behind the splats, or None for a transparent render.
@@ -313,8 +318,6 @@ def _render(
 def _check_kernels(kernels):
     """Run the compiled kernels once on a small scene (compiling them, or loading them from the
     cache) and compare with the NumPy path: a broken build falls back to NumPy, not a wrong image."""
-    from .camera import Camera
-    from .splats import SplatCloud
 
     rng = np.random.default_rng(0)
     n = 64

@@ -6,8 +6,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import jit
-from .gaussians import _TINY, PIVOT_FLOOR, CollisionInputError, _full, _ldl_quadratic, _mahalanobis, _sym6, as_gaussians
-from .index import as_index
+from ..arrays import ArrayLike
+from ..splats import SplatCloud
+from .gaussians import (
+    _TINY,
+    PIVOT_FLOOR,
+    CollisionInputError,
+    Gaussians,
+    _full,
+    _ldl_quadratic,
+    _mahalanobis,
+    _sym6,
+    as_gaussians,
+)
+from .index import EnvironmentIndex, as_index
 
 
 def contact_sigma(mean_a, cov_a, mean_b, cov_b, iterations=100):
@@ -85,7 +97,14 @@ class Contacts:
         return len(self.robot)
 
 
-def ellipsoid_contacts(robot, env, k=3.0, links=None, opacity_weights=True, threads=None):
+def ellipsoid_contacts(
+    robot: "SplatCloud | Gaussians",
+    env: "SplatCloud | Gaussians | EnvironmentIndex",
+    k: float = 3.0,
+    links: ArrayLike | None = None,
+    opacity_weights: bool = True,
+    threads: int | None = None,
+) -> "Contacts":
     """Every robot/environment pair whose k-sigma ellipsoids intersect (exact test, batched), with
     counts and the deepest contact per link (links: per robot Gaussian, default robot.links or 0)."""
     if not k > 0:

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import jit
+from ..arrays import Floats, Positions
+from ..splats import SplatCloud
 from .gaussians import (
     DEFAULT_CUTOFF,
     CollisionInputError,
@@ -15,7 +17,7 @@ from .gaussians import (
     _mahalanobis,
     _require_finite,
 )
-from .index import as_index
+from .index import EnvironmentIndex, as_index
 from .overlap import overlap
 
 
@@ -26,7 +28,13 @@ class Occupancy:
     bound: np.ndarray  # (M,) upper bound on the density the cutoff dropped (and so on values' error)
 
 
-def occupancy(env, points, cutoff=DEFAULT_CUTOFF, opacity_weights=True, threads=None):
+def occupancy(
+    env: "SplatCloud | Gaussians | EnvironmentIndex",
+    points: Positions,
+    cutoff: float = DEFAULT_CUTOFF,
+    opacity_weights: bool = True,
+    threads: int | None = None,
+) -> "Occupancy":
     """Occupancy 1 - exp(-sum_j alpha_j G_j(x)) at query points, G_j the unnormalised Gaussians,
     alpha_j the opacities; terms beyond Mahalanobis `cutoff` are skipped and bounded per point."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -38,7 +46,15 @@ def occupancy(env, points, cutoff=DEFAULT_CUTOFF, opacity_weights=True, threads=
     return Occupancy(-np.expm1(-r.per_gaussian), r.per_gaussian, bound)
 
 
-def signed_distance(env, points, k=3.0, max_distance=1.0, opacity_weights=True, min_opacity=0.0, threads=None):
+def signed_distance(
+    env: "SplatCloud | Gaussians | EnvironmentIndex",
+    points: Positions,
+    k: float = 3.0,
+    max_distance: float = 1.0,
+    opacity_weights: bool = True,
+    min_opacity: float = 0.0,
+    threads: int | None = None,
+) -> Floats:
     """Approximate signed distance from points to the union of the environment's k-sigma ellipsoids
     (those with opacity >= min_opacity); values above max_distance are returned as max_distance.
 

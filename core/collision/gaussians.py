@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import geometry
+from ..splats import SplatCloud
 
 DEFAULT_CUTOFF = 6.0  # Mahalanobis distance beyond which pairs are skipped
 BOUND_MARGIN = 1.0  # with a bound, pairs up to cutoff + this are visited and their skipped terms summed
@@ -128,7 +129,7 @@ class Gaussians:
         return Gaussians(means, covs, self.weights, self.links, self.sigma_max)
 
 
-def as_gaussians(x, opacity_weights=True, name="cloud"):
+def as_gaussians(x: "SplatCloud | Gaussians", opacity_weights: bool = True, name: str = "cloud") -> "Gaussians":
     return x if isinstance(x, Gaussians) else Gaussians.from_cloud(x, opacity_weights, name=name)
 
 

@@ -7,7 +7,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gaussians import _SYM, BOUND_MARGIN, DEFAULT_CUTOFF, CollisionInputError, _gauss_terms, _map, _sym6, as_gaussians
+from ..splats import SplatCloud
+from .gaussians import (
+    _SYM,
+    BOUND_MARGIN,
+    DEFAULT_CUTOFF,
+    CollisionInputError,
+    Gaussians,
+    _gauss_terms,
+    _map,
+    _sym6,
+    as_gaussians,
+)
 from .index import EnvironmentIndex, as_index
 
 
@@ -17,13 +28,13 @@ class Overlap:
 
     cost: float
     per_gaussian: np.ndarray  # (N,) each robot Gaussian's share of the cost
-    grad_means: np.ndarray = None  # (N,3) dC/dmu_i
-    grad_covs: np.ndarray = None  # (N,3,3) dC/dSigma_i (symmetric), when asked for
+    grad_means: np.ndarray | None = None  # (N,3) dC/dmu_i
+    grad_covs: np.ndarray | None = None  # (N,3,3) dC/dSigma_i (symmetric), when asked for
     bound: float = 0.0  # upper bound on what the cutoff dropped (absolute)
     relative_bound: float = 0.0  # bound / cost (inf when the cost is 0 and the bound is not)
     pairs: int = 0  # pairs within the cutoff, evaluated exactly
     cutoff: float = math.inf
-    grad_q: np.ndarray = None  # (dof,) dC/dq, from overlap_at (robots on kinematic trees)
+    grad_q: np.ndarray | None = None  # (dof,) dC/dq, from overlap_at (robots on kinematic trees)
 
 
 def _finish(n, parts, want_grad, want_cov):
@@ -57,8 +68,15 @@ def _accumulate(i, n, e, x, want_grad, want_cov):
 
 
 def overlap(
-    robot, env, cutoff=DEFAULT_CUTOFF, gradient=True, cov_gradient=False, bound=True, opacity_weights=True, threads=None
-):
+    robot: "SplatCloud | Gaussians",
+    env: "SplatCloud | Gaussians | EnvironmentIndex",
+    cutoff: float = DEFAULT_CUTOFF,
+    gradient: bool = True,
+    cov_gradient: bool = False,
+    bound: bool = True,
+    opacity_weights: bool = True,
+    threads: int | None = None,
+) -> "Overlap":
     """Soft overlap C between `robot` and `env` (SplatCloud, Gaussians or a prebuilt
     EnvironmentIndex), its gradient w.r.t. the robot means (and covariances, if asked), and a
     bound on the error of the cutoff. cutoff=inf sums every pair (use `overlap_all_pairs` then)."""

@@ -275,7 +275,7 @@ class Worker(BlenderWorker):
         def rgb(nodes):
             return nodes.new("ShaderNodeRGB").outputs[0]
 
-        look = self.module("splat_addon.convert.from_mesh").material_appearance(
+        look = self.module("splat_addon.convert.mesh_reading").material_appearance(
             self.material("odd", (0.25, 0.5, 0.75), rgb), warnings.append
         )
         res["odd"] = {"warnings": warnings, "base": list(look.material.base_color)}
@@ -289,7 +289,7 @@ class Worker(BlenderWorker):
             return node.outputs["Color"]
 
         warnings = []
-        look = self.module("splat_addon.convert.from_mesh").material_appearance(
+        look = self.module("splat_addon.convert.mesh_reading").material_appearance(
             self.material("lost", (0.5, 0.25, 0.125), texture), warnings.append
         )
         res["missing image"] = {
