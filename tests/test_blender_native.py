@@ -11,44 +11,24 @@ exported rotations are Blender's bit for bit, and the source's to that rounding.
 import numpy as np
 import pytest
 from blender_session import blender_fixture
-from helpers import covariances, format_errors, read
+from helpers import covariances, format_errors, random_cloud, read
 from workers.native import MOVES
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
-
-PLY_FIELDS = {
-    "positions": ["x", "y", "z"],
-    "log_scales": ["scale_0", "scale_1", "scale_2"],
-    "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"],
-    "opacity_logits": ["opacity"],
-}
-
-
-def _cloud(n, degree, seed, spread=1.0):
-    from splatwright.core import SplatCloud
-
-    rng = np.random.default_rng(seed)
-    return SplatCloud(
-        rng.normal(0, spread, (n, 3)),
-        rng.normal(size=(n, 4)) * rng.uniform(0.5, 2, (n, 1)),
-        rng.uniform(-4, -1.5, (n, 3)),
-        rng.normal(0, 2, n),
-        rng.normal(0, 0.3, (n, (degree + 1) ** 2, 3)),
-    )
 
 
 def _write_inputs(work):
     from splatwright.io import write_splats
 
     for degree in (3, 4):
-        write_splats(work / f"src{degree}.ply", _cloud(400, degree, degree))
-    write_splats(work / "other.ply", _cloud(100, 3, 7, spread=2.0))
-    write_splats(work / "src.spz", _cloud(300, 3, 8))
-    scene = _cloud(300, 3, 9, spread=0.6)
+        write_splats(work / f"src{degree}.ply", random_cloud(400, degree, degree))
+    write_splats(work / "other.ply", random_cloud(100, 3, 7, spread=2.0))
+    write_splats(work / "src.spz", random_cloud(300, 3, 8))
+    scene = random_cloud(300, 3, 9, spread=0.6)
     scene.log_scales[:] = np.random.default_rng(10).uniform(-3.2, -2.0, scene.log_scales.shape)
     write_splats(work / "scene.ply", scene)
     np.savez(work / "generated.npz", **_generated_arrays())
-    blobs = _cloud(80, 0, 12)
+    blobs = random_cloud(80, 0, 12)
     blobs.log_scales[:] = np.random.default_rng(13).uniform(-2.5, -1.5, blobs.log_scales.shape)
     write_splats(work / "collide.ply", blobs)
 
