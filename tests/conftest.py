@@ -5,7 +5,7 @@ import os
 import blender_session
 import numpy as np
 import pytest
-from helpers import PLATFORM_SKIP, build_extension_zip, random_cloud
+from helpers import PLATFORM_SKIP, build_extension_zips, random_cloud
 
 
 @pytest.hookimpl(trylast=True)
@@ -50,6 +50,13 @@ def cloud():
 
 
 @pytest.fixture(scope="session")
-def extension_zip(tmp_path_factory):
-    """The extension zip built by blender_ext.py, once for every test that installs it into Blender."""
-    return build_extension_zip(tmp_path_factory.mktemp("extension"))
+def platform_zips(tmp_path_factory):
+    """Every platform's extension zip, built by Blender's split build as `./run package` builds them:
+    {Blender platform: path}."""
+    return build_extension_zips(tmp_path_factory.mktemp("extension"))
+
+
+@pytest.fixture(scope="session")
+def extension_zip(platform_zips):
+    """The linux-x64 zip, the one every test installing the extension into Blender uses."""
+    return platform_zips["linux-x64"]

@@ -1,9 +1,12 @@
 """Test helpers shared by several test modules (tests/ is on sys.path)."""
 
 import functools
+import importlib.util
+import json
+import os
+import shutil
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -45,52 +48,65 @@ def run_blender_ext(*args):
     )
 
 
+def _package_tool():
+    """tools/package.py, which fetches the bundled wheels and builds the platform zips (`./run package`)."""
+    spec = importlib.util.spec_from_file_location("splatwright_package_tool", REPO_ROOT / "tools" / "package.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+package_tool = functools.cache(_package_tool)
+
+
 def fetch_wheels():
-    """Download the wheels the manifest bundles into wheels/ (kept there, git-ignored), as Blender's
-    manual describes: `pip download --no-deps --only-binary=:all: --python-version V --platform P`.
-    Skips the calling test with one line when PyPI cannot be reached."""
-    manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
-    for entry in manifest.get("wheels", []):
-        path = REPO_ROOT / entry
-        if path.exists():
-            continue
-        name, version, python = path.name.split("-")[:3]
-        platform = path.stem.split("-")[-1].split(".")[-1]
-        done = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "pip",
-                "download",
-                "--no-deps",
-                "--only-binary=:all:",
-                "--python-version",
-                f"{python[2]}.{python[3:]}",
-                "--platform",
-                platform,
-                "-d",
-                str(path.parent),
-                f"{name}=={version}",
-            ],
-            capture_output=True,
-            text=True,
-        )
-        if not path.exists():
-            if "Could not fetch" in done.stdout + done.stderr or "NewConnectionError" in done.stderr:
-                pytest.skip(f"cannot reach PyPI to fetch the bundled wheel {path.name}")
-            raise RuntimeError(f"pip download of {path.name} failed:\n{done.stdout}\n{done.stderr}")
+    """Download the wheels the manifest bundles into wheels/ (kept there, git-ignored) as `./run
+    package` does; skips the calling test with one line when PyPI cannot be reached."""
+    tool = package_tool()
+    try:
+        tool.fetch_wheels(quiet=True)
+    except tool.NoNetwork as exc:
+        pytest.skip(str(exc))
+
+
+def build_extension_zips(out_dir):
+    """Every platform's zip, built into out_dir as `./run package` builds them (Blender's split build,
+    its wheels fetched first); {Blender platform: path}."""
+    fetch_wheels()
+    return package_tool().build(out_dir)
 
 
 def build_extension_zip(out_dir):
-    """Build the Blender extension zip from the repository with `blender_ext.py build` (its bundled
-    wheels fetched first); returns its path."""
-    fetch_wheels()
-    manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
-    out = Path(out_dir) / f"{manifest['id']}-{manifest['version']}.zip"
-    done = run_blender_ext("build", "--source-dir", REPO_ROOT, "--output-filepath", out)
-    if done.returncode != 0 or not out.is_file():
-        raise RuntimeError(f"blender_ext.py build failed ({done.returncode}):\n{done.stdout}\n{done.stderr}")
-    return out
+    """The linux-x64 zip of the split build (the Blender matrix runs on Linux x86_64), built into
+    out_dir; returns its path."""
+    return build_extension_zips(out_dir)["linux-x64"]
+
+
+def first_renders(python, zip_path, ply, work, renders=2, size=(320, 240), cache=None, env=None):
+    """Install `zip_path` into a fresh user folder of the bpy-only `python` and F12-render `ply` with
+    the Splatwright engine `renders` times (tests/workers/first_render.py); its results.json, with
+    the first render's pixels as "pixels". `cache` is the kernel cache folder (default: a new one in
+    `work`, empty: a first render after install)."""
+    work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    job = {"zip": str(zip_path), "ply": str(ply), "work": str(work), "renders": renders, "size": list(size)}
+    (work / "job.json").write_text(json.dumps(job))
+    child_env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+    child_env.update(BLENDER_USER_RESOURCES=str(work / "user"), SPLATWRIGHT_CACHE_DIR=str(cache or work / "cache"))
+    child_env.update(env or {})
+    script = Path(__file__).resolve().parent / "workers" / "first_render.py"
+    done = subprocess.run(
+        [str(python), str(script), str(work / "job.json")], env=child_env, capture_output=True, text=True, timeout=900
+    )
+    shutil.rmtree(work / "user", ignore_errors=True)  # the installed extension, ~300 MB with its wheels
+    log = f"exit {done.returncode}\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+    if not (work / "results.json").exists():
+        raise RuntimeError(f"the first-render child wrote no results:\n{log}")
+    results = json.loads((work / "results.json").read_text())
+    if "error" in results:
+        raise RuntimeError(f"the first-render child failed:\n{results['error']}\n{log}")
+    results["pixels"] = np.load(work / "render.npy")
+    return results
 
 
 # independent references (textbook formulas in float64, none of the code under test) ------------------

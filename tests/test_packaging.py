@@ -3,14 +3,18 @@ as a Python package (no bpy where it is not needed; console script and `python -
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
 import textwrap
+import tomllib
 import zipfile
 from pathlib import Path
 
-from helpers import REPO_ROOT, run_blender_ext
+import numpy as np
+import pytest
+from helpers import REPO_ROOT, first_renders, package_tool, random_cloud, run_blender_ext
 
 from splatwright.core.scenes import seed_cube
 from splatwright.io import write_splats
@@ -47,6 +51,99 @@ def test_built_zip_validates_and_leaves_out_dev_files(extension_zip):
     top = {n.split("/")[0] for n in names}
     assert not top & {"tests", "bench", "docs", ".ci", ".venv", ".git", "run", "pyproject.toml", "out", "build"}
     assert not [n for n in names if "__pycache__" in n or ".egg-info" in n or "/." in "/" + n]
+
+
+# The platforms Blender ships for, and the Pythons whose numba/llvmlite wheels each zip holds: the
+# pinned numba and llvmlite publish no macOS x86_64 wheels and Windows arm64 ones for 3.13 alone.
+PLATFORM_PYTHONS = {
+    "windows-x64": {"cp311", "cp313"},
+    "windows-arm64": {"cp313"},
+    "macos-arm64": {"cp311", "cp313"},
+    "macos-x64": set(),
+    "linux-x64": {"cp311", "cp313"},
+}
+PLATFORM_TAGS = {  # what a wheel's platform tag must look like in each zip
+    "windows-x64": ("win_amd64",),
+    "windows-arm64": ("win_arm64",),
+    "macos-arm64": ("macosx_", "_arm64"),
+    "macos-x64": ("macosx_", "_x86_64"),
+    "linux-x64": ("manylinux_", "_x86_64"),
+}
+
+
+def test_one_zip_per_platform_named_as_blender_names_them(platform_zips):
+    manifest = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())
+    assert set(manifest["platforms"]) == set(PLATFORM_PYTHONS)
+    assert {p: z.name for p, z in platform_zips.items()} == {
+        p: f"splatwright-{manifest['version']}-{p.replace('-', '_')}.zip" for p in PLATFORM_PYTHONS
+    }
+
+
+@pytest.mark.parametrize("platform", sorted(PLATFORM_PYTHONS))
+def test_each_platform_zip_holds_its_own_wheels_and_nothing_else(platform_zips, platform):
+    path = platform_zips[platform]
+    names = zipfile.ZipFile(path).namelist()
+    wheels = [n for n in names if n.endswith(".whl")]
+    tool = package_tool()
+    pythons = {tool.wheel_tags(w)[2] for w in wheels}
+    assert pythons == PLATFORM_PYTHONS[platform]
+    for wheel in wheels:
+        dist, version, python, tag = tool.wheel_tags(wheel)
+        assert tag.startswith(PLATFORM_TAGS[platform][0]) and tag.endswith(PLATFORM_TAGS[platform][-1]), wheel
+    by_python = {py: sorted(tool.wheel_tags(w)[0] for w in wheels if tool.wheel_tags(w)[2] == py) for py in pythons}
+    assert all(dists == ["llvmlite", "numba"] for dists in by_python.values()), by_python
+    assert tool.check_zip(path, platform) == []  # the manifest's wheels, its platform alone, no dev files
+    top = {n.split("/")[0] for n in names}
+    assert not top & {"tests", "bench", "docs", "tools", "dist", ".venv", ".git", "run", "pyproject.toml"}
+    assert [n for n in names if n.endswith(".md")] == ["README.md"]
+    built = tomllib.loads(zipfile.ZipFile(path).read("blender_manifest.toml").decode())["build"]["generated"]
+    assert built["platforms"] == [platform] and sorted(Path(w).name for w in built["wheels"]) == sorted(
+        Path(w).name for w in wheels
+    )
+    done = run_blender_ext("validate", path)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def _without_wheels(zip_path, out):
+    """A copy of `zip_path` with no numba/llvmlite wheels (as the macos-x64 zip, but installable
+    here): the installed extension's kernels cannot load, so it renders on the NumPy path."""
+    with zipfile.ZipFile(zip_path) as source, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as target:
+        for info in source.infolist():
+            data = source.read(info)
+            if info.filename.endswith(".whl"):
+                continue
+            if info.filename == "blender_manifest.toml":
+                text = data.decode()  # the listed wheels dropped; the generated list left empty
+                generated = text.index("[build.generated]")
+                drop = lambda m: "wheels = []\n" if m.start() > generated else ""  # noqa: E731
+                data = re.sub(r"^wheels = \[[^\]]*\]\n", drop, text, flags=re.M).encode()
+            target.writestr(info, data)
+    return out
+
+
+def test_a_zip_whose_kernels_cannot_load_renders_the_same_image(extension_zip, tmp_path):
+    """The F12 render of a fresh Blender (a bpy-only Python: no numba but the zip's) with the linux-x64
+    zip installed runs the compiled kernels; the same extension without its wheels takes the NumPy path
+    and gives the same image."""
+    import blender_envs
+
+    from splatwright.core import jit
+
+    try:
+        python = blender_envs.python_of(blender_envs.PRIMARY)
+    except blender_envs.Unavailable as exc:
+        pytest.skip(str(exc))
+    ply = tmp_path / "cloud.ply"
+    write_splats(ply, random_cloud(3000, spread=0.5))
+    no_wheels = _without_wheels(extension_zip, tmp_path / "no_wheels.zip")
+    assert not [n for n in zipfile.ZipFile(no_wheels).namelist() if n.endswith(".whl")]
+    cache = jit.cache_dir()  # the user's kernel cache, which the Blender workers fill too
+    compiled = first_renders(python, extension_zip, ply, tmp_path / "compiled", renders=1, cache=cache)
+    numpy_path = first_renders(python, no_wheels, ply, tmp_path / "numpy", renders=1, cache=cache)
+    assert compiled["backend"] == "compiled" and ".local" in compiled["numba"]
+    assert numpy_path["backend"].startswith("unavailable") and numpy_path["numba"] is None
+    assert numpy_path["pixels"][..., 3].max() > 0.5
+    np.testing.assert_allclose(numpy_path["pixels"], compiled["pixels"], rtol=0, atol=2e-5)
 
 
 def test_core_and_io_work_without_bpy(tmp_path):
