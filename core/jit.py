@@ -67,6 +67,12 @@ def load(name, check=None):
         return _modules[name]
 
 
+def loaded(name):
+    """Whether this process has already tried `load(name)` (so a call now returns at once, without
+    compiling or reading the cache)."""
+    return name in _modules or not enabled()
+
+
 def compiled(module_name, names):
     """The functions `names` of the loaded module `module_name` compiled in order with njit, each
     rebound in its module (a later one may call an earlier one: numba resolves it as a global), and

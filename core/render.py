@@ -351,6 +351,12 @@ def _check_layer(camera):
     return Layer(np.full(shape + (3,), 0.3), np.full(shape, 0.5), depth).checked(camera)
 
 
+def kernels_loaded():
+    """Whether this process has loaded (or given up on) the compiled kernels: when not, the next
+    render first loads them, compiling them if the kernel cache lacks them (jit.cache_dir)."""
+    return jit.loaded(KERNELS)
+
+
 def backend_status():
     """'compiled' when the compiled kernels load here (loading them), else why the NumPy path is used."""
     jit.load(KERNELS, check=_check_kernels)

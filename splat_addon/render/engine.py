@@ -113,7 +113,13 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
     def _image(self, cloud, cam, background, layer=None):
         """The core renderer's RenderResult (display-sRGB colour, transparent when `background` is
         None), composited with `layer`."""
-        from ...core.render import render  # the renderer loads on first use
+        from ...core.render import kernels_loaded, render  # the renderer loads on first use
+
+        if not kernels_loaded():
+            # The first render after install compiles the kernels (about 15 s; later renders and
+            # later sessions load them from the kernel cache in a fraction of a second).
+            self.update_stats("", "Splatwright: preparing the compiled kernels (the first render compiles them)")
+            self.update_progress(0.0)
 
         def progress(done, total, label=""):
             self.update_progress(done / total if total else 1.0)
