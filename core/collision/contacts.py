@@ -195,34 +195,15 @@ def _contact_pass(i, j, rx, ry, rz, rc, rs, ex, ey, ez, ec, elam, k, out):
         s, lo, hi = 0.5, 0.0, 1.0
         for _ in range(100):
             t = 1.0 - s
-            dx = _ldl_quadratic(
-                s * a00 + t * b00,
-                s * a01 + t * b01,
-                s * a02 + t * b02,
-                s * a11 + t * b11,
-                s * a12 + t * b12,
-                s * a22 + t * b22,
-                d0,
-                d1,
-                d2,
-                x,
-            )
+            # the blended matrix s A + (1 - s) B, solved against d and against (A - B) x
+            m00, m01, m02 = s * a00 + t * b00, s * a01 + t * b01, s * a02 + t * b02
+            m11, m12, m22 = s * a11 + t * b11, s * a12 + t * b12, s * a22 + t * b22
+            dx = _ldl_quadratic(m00, m01, m02, m11, m12, m22, d0, d1, d2, x)
             y0 = (a00 - b00) * x[0] + (a01 - b01) * x[1] + (a02 - b02) * x[2]
             y1 = (a01 - b01) * x[0] + (a11 - b11) * x[1] + (a12 - b12) * x[2]
             y2 = (a02 - b02) * x[0] + (a12 - b12) * x[1] + (a22 - b22) * x[2]
             u = x[0] * y0 + x[1] * y1 + x[2] * y2
-            w = _ldl_quadratic(
-                s * a00 + t * b00,
-                s * a01 + t * b01,
-                s * a02 + t * b02,
-                s * a11 + t * b11,
-                s * a12 + t * b12,
-                s * a22 + t * b22,
-                y0,
-                y1,
-                y2,
-                z,
-            )
+            w = _ldl_quadratic(m00, m01, m02, m11, m12, m22, y0, y1, y2, z)
             g = (1.0 - 2.0 * s) * dx - s * t * u
             gp = -2.0 * dx - 2.0 * (1.0 - 2.0 * s) * u + 2.0 * s * t * w
             if g > 0:
