@@ -177,8 +177,10 @@ def scene_cloud(context, objects, conversion, keep_source=False):
     # Splats that landed in a file's own axes (data.landed_raw) stand as if imported upright: written
     # with the default axes, their world coordinates are the file's, and the file comes back as it was.
     instances = scene_instances(depsgraph, objects)
-    raw = {obj.name for obj in {obj for obj, _ in instances} if data.landed_raw(obj)}
-    instances = [(obj, upright() @ matrix if obj.name in raw else matrix) for obj, matrix in instances]
+    objects_shown = {obj.name: obj for obj, _ in instances}
+    raw = {name for name, obj in objects_shown.items() if data.landed_raw(obj)}
+    stand_up = upright()
+    instances = [(obj, stand_up @ matrix if obj.name in raw else matrix) for obj, matrix in instances]
     if not instances:
         return SplatCloud.empty()
     cloud = data.instances_cloud(depsgraph, instances, np.array(conversion, dtype=np.float64))
