@@ -253,7 +253,7 @@ def on_spz_grid(positions):
     """Whether every centre is a multiple of one power of two 2^-k with all of them inside SPZ's 24-bit
     signed range at that k, as centres an SPZ file held are (k is the file's fractional bits)."""
     values = np.asarray(positions, dtype=np.float64).ravel()
-    values = values[values != 0]
+    values = values[np.isfinite(values) & (values != 0)]  # NaN/Inf say nothing of a grid (export refuses them)
     if values.size == 0:
         return True
     fraction, exponent = np.frexp(values)  # values = fraction 2^exponent, 0.5 <= |fraction| < 1
