@@ -126,6 +126,15 @@ def read(path):
     return read_splats(path)
 
 
+def euler_matrix(euler):
+    """Blender's XYZ Euler rotation: R = Rz Ry Rx."""
+    x, y, z = euler
+    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
 def quat_matrices(q):
     """Rotation matrices of (w, x, y, z) quaternions of any length, float64."""
     q = np.asarray(q, np.float64)

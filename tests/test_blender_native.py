@@ -11,7 +11,7 @@ exported rotations are Blender's bit for bit, and the source's to that rounding.
 import numpy as np
 import pytest
 from blender_session import blender_fixture
-from helpers import covariances, format_errors, random_cloud, read
+from helpers import covariances, euler_matrix, format_errors, quat_matrices, random_cloud, read
 from workers.native import MOVES
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
@@ -116,14 +116,6 @@ def test_every_format_writes_a_blender_imported_cloud_as_it_writes_the_source(bl
         assert errors["opacity"] < 1e-6 and errors["colour"] < 1e-6, (ext, degree, errors)
 
 
-def _euler(euler):
-    x, y, z = euler
-    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
-    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
-    return rz @ ry @ rx
-
-
 @pytest.mark.parametrize("move", list(MOVES))
 def test_a_moved_blender_import_exports_in_world_space(blender, move):
     """World coordinates as the file's (the object landed in the file's axes): centres and covariances
@@ -133,7 +125,7 @@ def test_a_moved_blender_import_exports_in_world_space(blender, move):
 
     res = blender.step("blender_ply_moved")[move]
     assert res["export"]["error"] is None and res["apply"]["error"] is None
-    turn = _euler(MOVES[move]["rotation_euler"])
+    turn = euler_matrix(MOVES[move]["rotation_euler"])
     linear = turn @ np.diag(MOVES[move]["scale"])
     np.testing.assert_allclose(np.array(res["matrix_world"])[:3, :3], linear, atol=1e-6)
     source, written = read(blender.work / "src3.ply"), read(blender.out / f"{move}.ply")
@@ -223,7 +215,7 @@ def test_splats_made_by_geometry_nodes_export_and_render(blender):
     arrays, written = _generated_arrays(), read(blender.out / "generated.ply")
     to_file = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
     np.testing.assert_allclose(written.positions, arrays["position"].astype(np.float64) @ to_file.T, atol=1e-7)
-    rs = _quat_matrices(arrays["rotation"]) * arrays["scale"].astype(np.float64)[:, None, :]
+    rs = quat_matrices(arrays["rotation"]) * arrays["scale"].astype(np.float64)[:, None, :]
     expected = to_file @ (rs @ rs.transpose(0, 2, 1)) @ to_file.T
     got = covariances(written.rotations, written.log_scales)
     assert (np.abs(got - expected).max(axis=(1, 2)) / np.abs(expected).max(axis=(1, 2))).max() < 1e-5
@@ -236,12 +228,6 @@ def test_splats_made_by_geometry_nodes_export_and_render(blender):
     generated, imported = _images(blender, "generated", "generated_imported")
     assert np.abs(generated - generated.mean()).max() > 0.05
     np.testing.assert_allclose(generated, imported, rtol=0, atol=2e-6)
-
-
-def _quat_matrices(q):
-    from helpers import quat_matrices
-
-    return quat_matrices(q)
 
 
 def test_converted_pruned_and_commanded_exports_keep_the_files_axes(blender):

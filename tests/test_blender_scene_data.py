@@ -12,7 +12,15 @@ cloud held as a splat mesh: the two forms must export, transform, join, collide,
 import numpy as np
 import pytest
 from blender_session import blender_fixture
-from helpers import assert_clouds_equal, check_transformed, format_errors, random_cloud, read, skip_platform
+from helpers import (
+    assert_clouds_equal,
+    check_transformed,
+    euler_matrix,
+    format_errors,
+    random_cloud,
+    read,
+    skip_platform,
+)
 from workers.base import random_cloud_arrays
 from workers.scene_data import (
     ARRAY_OFFSET,
@@ -32,15 +40,6 @@ from splatwright.io.exr import read_exr
 pytestmark = [pytest.mark.blender, pytest.mark.slow]  # one Blender worker per version
 
 blender = blender_fixture("workers.scene_data")
-
-
-def euler_matrix(euler):
-    """Blender's XYZ Euler rotation: R = Rz Ry Rx."""
-    x, y, z = euler
-    rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
-    ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
-    rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 def affine(linear, translation=(0, 0, 0)):
