@@ -10,8 +10,12 @@ is the same text whether or not the named file exists, so a hostile file cannot 
 Limits on what a header may make a reader decode (image pixels, SPZ payloads) live here too.
 """
 
+import os
 import re
+import stat
 from pathlib import Path, PurePosixPath
+
+from .common import SplatFileError
 
 # A texture bigger than this is refused from its header, before decoding: 8192 x 8192 RGBA8 is
 # 256 MiB; the largest textures of captured or sold models are 8K (16K would be 4 GiB decoded).
@@ -45,6 +49,36 @@ def inside(root, base, reference):
         return None
     candidate = (Path(base) / text).resolve()
     return candidate if within(root, candidate) else None
+
+
+def referenced_file(owner, reference, roots, base=None, allow_outside=False, what="file"):
+    """The one reading policy for every name a file makes (glTF URIs, OpenUSD layers, URDF meshes,
+    textures, SOG images): the regular file that `reference` names, relative to the folder `base`
+    (default: the folder of `owner`, the file that names it). It must lie under one of `roots` once
+    `..` and symbolic links are followed, unless `allow_outside`; FIFOs, devices, sockets and folders
+    are refused before they are opened (a FIFO would hang the read, /dev/zero never ends). Refused,
+    missing and special files all raise the same SplatFileError, so a hostile file cannot learn
+    whether a path exists. `reference` is a plain path: decode URIs (percent escapes, file://)
+    first."""
+    base = Path(owner).parent if base is None else Path(base)
+    roots = [Path(r) for r in ([roots] if isinstance(roots, str | os.PathLike) else roots)]
+    text = str(reference).strip().replace("\\", "/")
+    if allow_outside:
+        candidate = (base / text).resolve() if text else None
+    else:
+        candidate = next((c for r in roots if (c := inside(r, base, text)) is not None), None)
+    try:
+        regular = candidate is not None and stat.S_ISREG(os.stat(candidate).st_mode)
+    except (OSError, ValueError):
+        regular = False
+    if not regular:
+        where = " or ".join(f"'{r}'" for r in roots) or "the file's folder"
+        raise SplatFileError(
+            owner,
+            f"{what} '{reference}' is not a readable file under {where} (only regular files there are read; "
+            "allow_outside lifts the folder rule)",
+        )
+    return candidate
 
 
 def within(root, path):
