@@ -60,7 +60,14 @@ def find_python(minor):
 def python_of(version):
     """The bpy-only environment's interpreter for `version`, made if needed; Unavailable says why not."""
     minor, requirements = VERSIONS[version]
-    env = CACHE / version
+    return make_env(version, minor, requirements, f"Blender {version}")
+
+
+def make_env(name, minor, requirements, purpose):
+    """The interpreter of the virtual environment .cache/blender/`name` of Python `minor` holding only
+    `requirements`, made if needed (a stamp records what it holds); Unavailable if this machine lacks
+    that Python, RuntimeError with the install log's tail if the install fails."""
+    env = CACHE / name
     python = env / "bin" / "python"
     stamp = env / ".installed"
     want = " ".join(requirements)
@@ -68,10 +75,10 @@ def python_of(version):
         return str(python)
     base = find_python(minor)
     if base is None:
-        raise Unavailable(f"Blender {version} needs Python {minor}, which this machine lacks")
+        raise Unavailable(f"{purpose} needs Python {minor}, which this machine lacks")
     shutil.rmtree(env, ignore_errors=True)
     env.parent.mkdir(parents=True, exist_ok=True)
-    log = env.parent / f"{version}.log"
+    log = env.parent / f"{name}.log"
     with open(log, "w") as out:
         ok = (
             subprocess.run([base, "-m", "venv", str(env)], stdout=out, stderr=out).returncode == 0
@@ -81,9 +88,7 @@ def python_of(version):
             == 0
         )
     if not ok:
-        raise RuntimeError(
-            f"installing {want} for Blender {version} failed; the log is {log}:\n" + log.read_text()[-3000:]
-        )
+        raise RuntimeError(f"installing {want} for {purpose} failed; the log is {log}:\n" + log.read_text()[-3000:])
     stamp.write_text(want)
     return str(python)
 

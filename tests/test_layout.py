@@ -138,28 +138,9 @@ def test_every_compiled_kernel_loads_here():
     """numba is a dependency: every compiled twin must load, so the tests that set a kernel beside
     its NumPy path compare two paths, not NumPy with itself (where numba cannot load, as in Blender's
     Python, the NumPy paths run and are tested on their own)."""
-    from splatwright.core import geometry, jit, kinematics, mesh_render, mesh_sampling, render, render_grad
-    from splatwright.core.collision import contacts, distance
-    from splatwright.io import ply
+    from kernels import missing_kernels
+
+    from splatwright.core import jit
 
     assert jit.enabled(), "SPLATWRIGHT_JIT turns the compiled kernels off"
-    missing = [
-        name
-        for name, kernel in (
-            ("polar", geometry._polar_kernel()),
-            ("fk", kinematics._fk_kernel()),
-            ("contacts", contacts._contact_kernel()),
-            ("distance bounds", distance._bounds_kernel()),
-            ("bisection", mesh_sampling._bisect_kernel()),
-        )
-        if kernel is None
-    ]
-    for name, module in (
-        ("render", render),
-        ("mesh render", mesh_render),
-        ("backward pass", render_grad),
-        ("ply", ply),
-    ):
-        if jit.load(module.KERNELS, check=module._check_kernels) is None:
-            missing.append(f"{name}: {jit.status(module.KERNELS)}")
-    assert missing == []
+    assert missing_kernels() == []

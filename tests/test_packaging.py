@@ -59,7 +59,7 @@ PLATFORM_PYTHONS = {
     "windows-x64": {"cp311", "cp313"},
     "windows-arm64": {"cp313"},
     "macos-arm64": {"cp311", "cp313"},
-    "macos-x64": set(),
+    "macos-x64": {"cp311", "cp313"},
     "linux-x64": {"cp311", "cp313"},
 }
 PLATFORM_TAGS = {  # what a wheel's platform tag must look like in each zip
@@ -144,6 +144,68 @@ def test_a_zip_whose_kernels_cannot_load_renders_the_same_image(extension_zip, t
     assert numpy_path["backend"].startswith("unavailable") and numpy_path["numba"] is None
     assert numpy_path["pixels"][..., 3].max() > 0.5
     np.testing.assert_allclose(numpy_path["pixels"], compiled["pixels"], rtol=0, atol=2e-5)
+
+
+def _bundled_versions(platform_tail):
+    """{distribution: version} of the wheels the manifest bundles whose platform tag ends so."""
+    tool = package_tool()
+    wheels = tomllib.loads((REPO_ROOT / "blender_manifest.toml").read_text())["wheels"]
+    return {tool.wheel_tags(w)[0]: tool.wheel_tags(w)[1] for w in wheels if w.endswith(platform_tail + ".whl")}
+
+
+KERNEL_CHECK = """
+import json, sys
+import numpy as np
+import numba
+from kernels import missing_kernels
+from splatwright.core import render, scenes
+from splatwright.core.camera import Camera
+
+cloud = scenes.seed_cube(points_per_edge=12, sigma=0.06, opacity=0.3)
+camera = Camera.look_at((1.2, 0.8, 0.5), (0.0, 0.0, 3.0), width=96, height=80)
+compiled = render.render(cloud, camera, backend="compiled")
+numpy_path = render.render(cloud, camera, backend="numpy")
+print(json.dumps({
+    "numba": numba.__version__, "numpy": np.__version__, "missing": missing_kernels(),
+    "alpha": float(compiled.alpha.max()),
+    "difference": float(np.abs(compiled.color - numpy_path.color).max()),
+}))
+"""
+
+
+@pytest.mark.parametrize("python, numpy_version", [("3.11", "1.26.4"), ("3.13", "2.3.5")])
+def test_the_macos_x64_zips_numba_compiles_every_kernel(python, numpy_version, tmp_path):
+    """The macOS x86_64 zip bundles an older numba than the other zips: the last that publishes
+    wheels for it. macOS cannot run here, so that numba's Linux wheels stand in, in an environment of
+    their own with the NumPy of Blender 4.2-5.0 (1.26) and the newest that numba accepts (2.3): every
+    kernel compiles, and renders the NumPy path's image."""
+    import blender_envs
+
+    versions = _bundled_versions("macosx_10_15_x86_64")
+    assert set(versions) == {"numba", "llvmlite"} and versions["numba"] != "0.68.1"
+    requirements = [f"numpy=={numpy_version}", *(f"{d}=={v}" for d, v in sorted(versions.items()))]
+    name = f"numba-{versions['numba']}-py{python}"
+    try:
+        interpreter = blender_envs.make_env(name, python, requirements, f"numba {versions['numba']}")
+    except blender_envs.Unavailable as exc:
+        pytest.skip(str(exc))
+    (tmp_path / "splatwright").symlink_to(REPO_ROOT, target_is_directory=True)
+    done = subprocess.run(
+        [interpreter, "-c", KERNEL_CHECK],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env={
+            **os.environ,
+            "PYTHONPATH": f"{tmp_path}{os.pathsep}{REPO_ROOT / 'tests'}",
+            "SPLATWRIGHT_CACHE_DIR": str(tmp_path / "cache"),
+        },
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    assert (result["numba"], result["numpy"]) == (versions["numba"], numpy_version)
+    assert result["missing"] == []
+    assert result["alpha"] > 0.5 and result["difference"] < 2e-5
 
 
 def test_core_and_io_work_without_bpy(tmp_path):
