@@ -62,6 +62,7 @@ PLATFORM_PYTHONS = {
     "macos-x64": {"cp311", "cp313"},
     "linux-x64": {"cp311", "cp313"},
 }
+UPLOAD_LIMIT = 300e6  # bytes extensions.blender.org takes in one upload (since May 2024)
 PLATFORM_TAGS = {  # what a wheel's platform tag must look like in each zip
     "windows-x64": ("win_amd64",),
     "windows-arm64": ("win_arm64",),
@@ -93,6 +94,7 @@ def test_each_platform_zip_holds_its_own_wheels_and_nothing_else(platform_zips, 
     by_python = {py: sorted(tool.wheel_tags(w)[0] for w in wheels if tool.wheel_tags(w)[2] == py) for py in pythons}
     assert all(dists == ["llvmlite", "numba"] for dists in by_python.values()), by_python
     assert tool.check_zip(path, platform) == []  # the manifest's wheels, its platform alone, no dev files
+    assert path.stat().st_size < UPLOAD_LIMIT
     top = {n.split("/")[0] for n in names}
     assert not top & {"tests", "bench", "docs", "tools", "dist", ".venv", ".git", "run", "pyproject.toml"}
     assert [n for n in names if n.endswith(".md")] == ["README.md"]
