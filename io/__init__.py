@@ -2,6 +2,7 @@
 of Splatwright reads and writes through them."""
 
 import importlib
+import inspect
 import os
 import warnings
 from pathlib import Path
@@ -74,10 +75,15 @@ def read_splats(path: str | os.PathLike, **options: Any) -> SplatCloud:
     """Read a splat file of any known format into a SplatCloud.
 
     Every reader takes `nonfinite="raise"|"keep"|"drop"` (default raise) for splats holding NaN/Inf,
-    and reports anything it could not read exactly as a SplatFileWarning."""
+    and reports anything it could not read exactly as a SplatFileWarning. `allow_outside=True` lets
+    the readers of files that name other files (OpenUSD layers, glTF buffers, SOG images) follow
+    names outside the file's folder (io.policy); formats that name no other file take no notice."""
     if not Path(path).is_file():
         raise SplatFileError(path, "no such file")
-    return _module(path).read(path, **options)
+    read = _module(path).read
+    if "allow_outside" in options and "allow_outside" not in inspect.signature(read).parameters:
+        del options["allow_outside"]  # this format names no other file
+    return read(path, **options)
 
 
 # formats that record whether splats were made for antialiased rendering (SPZ's flag, a PLY comment,
