@@ -48,11 +48,20 @@ import zlib
 import numpy as np
 
 from ..core import SplatCloud
-from ..core import sh as shmod
 from ..core.parallel import in_chunks, map_threads
 from ..core.splats import logit
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, reduced_sh
 from .policy import SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR, STREAM_PIECE
+from .spz_axes import (
+    COORDINATE_SYSTEM_EXT,
+    DEFAULT_AXES,
+    axes_code,
+    axes_name,
+    axes_of_code,
+    from_model,
+    sh_signs,
+    to_model,
+)
 
 MAGIC = 0x5053474E
 VERSIONS = (2, 3, 4)
@@ -77,13 +86,6 @@ EXTENSION_ROOM = 1 << 16  # bytes of extension records a v2/v3 payload may carry
 
 
 # axis flips: two axes reversed (a half turn), exact since only signs change --------------------------
-
-
-def sh_signs(signs):
-    """Sign of each SH basis function (degrees 0..4) under (x, y, z) -> signs * (x, y, z)."""
-    d = np.array([[0.267, 0.535, 0.802]])
-    degree = shmod.MAX_DEGREE
-    return np.sign(shmod.basis(d * signs, degree)[0] / shmod.basis(d, degree)[0]).astype(np.float32)
 
 
 SH_FLIP = sh_signs([1, -1, -1])
@@ -211,7 +213,9 @@ def _inflate(d, limit):
 
 
 def _split_legacy(path, fields, body):
-    """{attribute: bytes} from a v2/v3 payload, skipping extension records (flag 0x2)."""
+    """{attribute: bytes} from a v2/v3 payload and its extension records (flag 0x2). Niantic's library
+    writes the records after the blocks (gsply and splat-transform skip them there); Adobe's first
+    writers put them before: bytes after the blocks that chain as records tell which."""
     version, n, degree, _, flags = fields
     sizes = _block_sizes(n, SH_DIMS[degree], version)
     need = sum(size for _, size in sizes)
@@ -222,7 +226,8 @@ def _split_legacy(path, fields, body):
         raise SplatFileError(
             path, f"{extra} bytes beyond the data the header describes (does its count of {n} understate the file?)"
         )
-    blocks, at = {"extensions": body[:extra]}, extra
+    at = 0 if _chains(body[need:]) else extra
+    blocks = {"extensions": body[need:] if at == 0 else body[:extra]}
     for name, size in sizes:
         blocks[name], at = body[at : at + size], at + size
     return blocks
@@ -302,23 +307,70 @@ def _unzstd(path, name, decompressor, frame, size):
         raise SplatFileError(path, f"corrupt zstd {name} stream: {exc}") from None
 
 
-def _sh_range(extensions):
-    """(min, max) of the Adobe SH-quantization extension if present, else the legacy (-1, 1).
-
-    Records are [u32 type][u32 length][payload]; the first writers omitted the length, so a record
-    that does not fit that way is read as type + u8 sh1Bits + u8 shRestBits + f32 min + f32 max."""
-    at = 0
+def _records(extensions):
+    """{type: payload} of the extension records, each [u32 type][u32 length][payload]. The first
+    writers of the SH-quantization record omitted its length: one that does not fit that way is read
+    as type + u8 sh1Bits + u8 shRestBits + f32 min + f32 max."""
+    records, at = {}, 0
     while at + 8 <= len(extensions):
         kind, length = struct.unpack_from("<II", extensions, at)
-        if kind == SH_QUANTIZATION_EXT:
-            if length == 10 and at + 18 <= len(extensions):
-                return struct.unpack_from("<ff", extensions, at + 10)
+        if kind == SH_QUANTIZATION_EXT and not (length == 10 and at + 18 <= len(extensions)):
             if at + 14 <= len(extensions):
-                return struct.unpack_from("<ff", extensions, at + 6)
+                records.setdefault(kind, bytes(extensions[at + 4 : at + 14]))
+            at += 14
+            continue
         if at + 8 + length > len(extensions):
             break
+        records.setdefault(kind, bytes(extensions[at + 8 : at + 8 + length]))
         at += 8 + length
-    return -1.0, 1.0
+    return records
+
+
+def _chains(data):
+    """Whether `data` is whole extension records, back to back, to its last byte."""
+    at = 0
+    while at + 8 <= len(data):
+        at += 8 + struct.unpack_from("<I", data, at + 4)[0]
+    return len(data) > 0 and at == len(data)
+
+
+def _sh_range(records):
+    """(min, max) of the Adobe SH-quantization extension if present, else the legacy (-1, 1)."""
+    payload = records.get(SH_QUANTIZATION_EXT, b"")
+    return struct.unpack_from("<ff", payload, 2) if len(payload) >= 10 else (-1.0, 1.0)
+
+
+def _recorded_axes(path, records):
+    """The axes the coordinate-system record names (None without one); a record saying
+    "unspecified" (0) or a value past 16 counts as none, with a warning."""
+    payload = records.get(COORDINATE_SYSTEM_EXT)
+    if payload is None:
+        return None
+    code = struct.unpack_from("<I", payload)[0] if len(payload) >= 4 else None
+    recorded = None if code is None else axes_of_code(code)
+    if recorded is None:
+        said = "no value" if code is None else ("unspecified axes" if code == 0 else f"unknown axes {code}")
+        warnings.warn(
+            f"{path}: the coordinate-system record says {said}; read as SPZ's documented {DEFAULT_AXES}",
+            SplatFileWarning,
+            stacklevel=4,
+        )
+    return recorded
+
+
+def _file_axes(path, recorded, spz_axes):
+    """The axes the values are read in: an explicit `spz_axes` ("rub", "rdf", ...) wins, with a
+    warning where the record says otherwise; None or "auto": the record's, else RUB."""
+    if spz_axes is None or str(spz_axes).lower() == "auto":
+        return recorded or DEFAULT_AXES
+    asked = axes_name(spz_axes)
+    if recorded is not None and recorded != asked:
+        warnings.warn(
+            f"{path}: its coordinate-system record says {recorded}; read as {asked}, as asked",
+            SplatFileWarning,
+            stacklevel=4,
+        )
+    return asked
 
 
 def _decode_rotations(data, n, version):
@@ -342,14 +394,22 @@ def _decode_rotations(data, n, version):
     return q
 
 
-def decode(path, raw, axes="RDF"):
-    """SplatCloud and file facts {version, fractional_bits, antialiased, sh_degree_in_file} from bytes."""
+def decode(path, raw, axes="RDF", spz_axes=None):
+    """SplatCloud and file facts {version, fractional_bits, antialiased, sh_degree_in_file,
+    axes_record, spz_axes} from bytes. axes="RDF" turns the values from the file's axes (spz_axes,
+    see _file_axes) into the model's; axes=None keeps them as stored."""
+    if axes not in ("RDF", None):
+        raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
     if raw[:4] == b"NGSP":
         fields, blocks = _split_v4(path, raw)
     else:
         fields, body = _gunzip_legacy(path, raw)
         blocks = _split_legacy(path, fields, body)
     version, n, degree, bits, flags = fields
+    records = _records(blocks["extensions"])
+    # Niantic's library reads records only under flag 0x2: a file means the same to both
+    recorded = _recorded_axes(path, records) if flags & FLAG_EXTENSIONS else None
+    file_axes = _file_axes(path, recorded, spz_axes)
     p = np.frombuffer(blocks["positions"], np.uint8).reshape(n, 3, 3).astype(np.int32)
     fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
     fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
@@ -362,7 +422,7 @@ def decode(path, raw, axes="RDF"):
     sh = np.empty((n, 1 + dim, 3), np.float32)
     sh[:, 0] = (colors / np.float32(255) - np.float32(0.5)) / np.float32(COLOR_SCALE)
     if dim:
-        lo, hi = _sh_range(blocks["extensions"])
+        lo, hi = _sh_range(records)
         u = np.frombuffer(blocks["sh"], np.uint8).reshape(n, dim, 3).astype(np.float32)
         sh[:, 1:] = (u - 128) / 128 if (lo, hi) == (-1.0, 1.0) else lo + u / np.float32(255) * np.float32(hi - lo)
     cloud = SplatCloud(
@@ -374,14 +434,14 @@ def decode(path, raw, axes="RDF"):
         antialiased=bool(flags & FLAG_ANTIALIASED),
     )
     if axes == "RDF":
-        cloud = _flip_spz(cloud)
-    elif axes is not None:
-        raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
+        cloud = _flip_spz(cloud) if file_axes == "RUB" else to_model(cloud, file_axes)
     return cloud, {
         "version": version,
         "fractional_bits": bits,
         "antialiased": bool(flags & FLAG_ANTIALIASED),
         "sh_degree_in_file": degree,
+        "axes_record": recorded,
+        "spz_axes": file_axes,
     }
 
 
@@ -392,14 +452,22 @@ def _flip_spz(cloud):
     return flipped.replace(sh=flipped.sh * (SPZ_SH_FLIP[:k] * SH_FLIP[:k])[None, :, None])
 
 
-def read(path, axes="RDF", nonfinite="raise"):
-    """Read an SPZ file (v2, v3, or v4 with zstandard) into a SplatCloud in RDF axes."""
+def read(path, axes="RDF", nonfinite="raise", spz_axes=None, facts=None):
+    """Read an SPZ file (v2, v3, or v4 with zstandard) into a SplatCloud in RDF axes.
+
+    spz_axes: the axes the file's values are in: "rub" (SPZ's documented axes), "rdf" (PLY's, as
+    many files in the wild hold them), any of the 16 names of spz_axes.AXES, or None/"auto": the
+    file's coordinate-system record if it has one, else RUB. An explicit value wins over the record,
+    with a warning where they differ. axes=None returns the values as stored, unturned. A dict given
+    as `facts` receives what decode() says of the file (version, axes_record, spz_axes, ...)."""
     try:
         with open(path, "rb") as f:
             raw = f.read()
     except OSError as exc:
         raise SplatFileError(path, f"cannot open: {exc.strerror or exc}") from None
-    cloud, _ = decode(path, raw, axes)
+    cloud, said = decode(path, raw, axes, spz_axes)
+    if facts is not None:
+        facts.update(said)
     return apply_nonfinite_policy(path, cloud, nonfinite, "read")
 
 
@@ -588,11 +656,14 @@ def encode(
     axes="RDF",
     level=None,
     notes=None,
+    spz_axes=None,
 ):
     """The bytes of an SPZ file for a cloud (in RDF axes unless axes=None); version None: see
     default_version(); level: gzip (v2/v3) or zstd (v4) compression level, by default the reference
     writer's up to 1 MiB of data (the same bytes as Niantic's) and a faster one beyond (see the
-    module's notes); the antialiased flag is the cloud's unless `antialiased` says otherwise."""
+    module's notes); the antialiased flag is the cloud's unless `antialiased` says otherwise.
+    spz_axes: the axes stored (see stored_axes), named by a coordinate-system record in v4, and in
+    v2/v3 where they are not the documented RUB."""
     notes = [] if notes is None else notes
     version = default_version(cloud) if version is None else version
     if version not in VERSIONS:
@@ -600,8 +671,9 @@ def encode(
     cloud = _storable(cloud, version, notes)
     if not (1 <= sh1_bits <= 8 and 1 <= sh_rest_bits <= 8):
         raise ValueError("sh1_bits and sh_rest_bits must be 1..8")
-    if axes not in ("RDF", None):
-        raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
+    stored = stored_axes(axes, spz_axes)
+    if axes == "RDF" and stored not in ("RUB", "RDF"):
+        cloud = from_model(cloud, stored)  # RUB is flipped while packing, without a copy
     n, degree = len(cloud), cloud.sh_degree
     reach = float(np.abs(cloud.positions).max()) if n else 0.0
     bits = fractional_bits_for(cloud.positions) if fractional_bits is None else int(fractional_bits)
@@ -610,14 +682,31 @@ def encode(
     if fractional_bits is None and bits < 12:
         notes.append(f"positions reach {reach:g}; stored with {bits} fractional bits (resolution {2.0**-bits:g})")
     flags = FLAG_ANTIALIASED if (cloud.antialiased if antialiased is None else antialiased) else 0
+    record = b""
+    if stored is not None and (version == 4 or stored != DEFAULT_AXES):
+        record = struct.pack("<III", COORDINATE_SYSTEM_EXT, 4, axes_code(stored))
+        flags |= FLAG_EXTENSIONS
     prefix = 0 if version == 4 else HEADER.size
-    payload = _Packer(cloud, version, bits, sh1_bits, sh_rest_bits, axes == "RDF", prefix).run(notes)
+    flip = axes == "RDF" and stored == "RUB"
+    payload = _Packer(cloud, version, bits, sh1_bits, sh_rest_bits, flip, prefix).run(notes)
     if version == 4:
         if level is None:
             level = ZSTD_LEVEL if len(payload) <= GZIP_CHUNK else ZSTD_FAST_LEVEL
-        return _pack_v4(n, degree, bits, flags, payload, _block_sizes(n, SH_DIMS[degree], 4), level)
+        return _pack_v4(n, degree, bits, flags, payload, _block_sizes(n, SH_DIMS[degree], 4), level, record)
     payload[:prefix] = HEADER.pack(MAGIC, version, n, degree, bits, flags, 0)
+    payload += record  # after the blocks, where Niantic's library writes v2/v3 records
     return _gzip(payload, level)
+
+
+def stored_axes(axes="RDF", spz_axes=None):
+    """The axes a write stores: `spz_axes` ("rub", "rdf" or another of spz_axes.AXES), by default
+    SPZ's documented RUB; with axes=None (values stored as given) only what spz_axes says, else
+    None: unknown, and no record states them."""
+    if axes not in ("RDF", None):
+        raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
+    if spz_axes is None or str(spz_axes).lower() == "auto":
+        return DEFAULT_AXES if axes == "RDF" else None
+    return axes_name(spz_axes)
 
 
 def _fast_deflate():
@@ -657,8 +746,9 @@ def _gzip(data, level=None):
     return b"".join([header, *body, struct.pack("<II", zlib.crc32(data), len(data) & 0xFFFFFFFF)])
 
 
-def _pack_v4(n, degree, bits, flags, payload, sizes, level):
-    """The NGSP container: header, table of contents, one zstd frame per non-empty block (the
+def _pack_v4(n, degree, bits, flags, payload, sizes, level, records=b""):
+    """The NGSP container: header, extension records, table of contents, one zstd frame per
+    non-empty block (the
     reference skips empty ones: five streams at SH degree 0), compressed in parallel: at the
     reference's level, byte-identical to the reference's."""
     zstd = _zstd("SPZ v4")
@@ -668,9 +758,9 @@ def _pack_v4(n, degree, bits, flags, payload, sizes, level):
             blocks.append(view[at : at + size])
         at += size
     frames = map_threads(lambda b: zstd.ZstdCompressor(level=level).compress(b), blocks)
-    header = V4_HEADER.pack(MAGIC, 4, n, degree, bits, flags, len(frames), V4_HEADER.size)
+    header = V4_HEADER.pack(MAGIC, 4, n, degree, bits, flags, len(frames), V4_HEADER.size + len(records))
     toc = b"".join(struct.pack("<QQ", len(f), len(b)) for f, b in zip(frames, blocks))
-    return b"".join([header, toc, *frames])
+    return b"".join([header, records, toc, *frames])
 
 
 def write(
@@ -684,13 +774,19 @@ def write(
     axes="RDF",
     level=None,
     nonfinite="raise",
+    spz_axes=None,
 ):
     """Write an SPZ file: by default version 3 (gzip), or 4 for SH degree 4 (default_version()).
-    Version 4 needs the zstandard package; v2/v3 reduce SH degree 4 to 3 with a warning."""
+    Version 4 needs the zstandard package; v2/v3 reduce SH degree 4 to 3 with a warning.
+    spz_axes: the axes the file stores, "rub" (default, SPZ's documented axes) or "rdf" (PLY's, as
+    splat-transform reads SPZ) or another of spz_axes.AXES; v4 files name them in a coordinate-system
+    record, v2/v3 files too unless RUB."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     notes = []
     try:
-        data = encode(cloud, version, fractional_bits, sh1_bits, sh_rest_bits, antialiased, axes, level, notes)
+        data = encode(
+            cloud, version, fractional_bits, sh1_bits, sh_rest_bits, antialiased, axes, level, notes, spz_axes
+        )
     except ValueError as exc:
         raise SplatFileError(path, str(exc)) from None
     except SplatFileError as exc:
