@@ -11,7 +11,8 @@ from typing import Any
 from ..core.splats import SplatCloud
 from .common import SplatFileError, SplatFileWarning
 
-# extension -> module in this package exposing read(path) -> SplatCloud and write(path, cloud, **options)
+# extension -> module in this package exposing read(path) -> SplatCloud and (unless READ_ONLY)
+# write(path, cloud, **options)
 FORMATS = {
     ".ply": "ply",
     ".compressed.ply": "compressed_ply",
@@ -25,7 +26,12 @@ FORMATS = {
     "meta.json": "sog",
     ".glb": "gltf",
     ".gltf": "gltf",
+    ".ksplat": "ksplat",
+    "lod-meta.json": "sog_streamed",
 }
+
+# formats Splatwright reads but does not write
+READ_ONLY = {"ksplat", "sog_streamed"}
 
 
 # format module -> the extension a writer's file gets when only the format is named (OpenUSD: .usd,
@@ -95,6 +101,9 @@ def write_splats(path: str | os.PathLike, cloud: SplatCloud, **options: Any) -> 
     """Write a SplatCloud in the format its extension names; the file appears whole or not at all.
     A cloud made for antialiased rendering written where the format cannot say so gets a warning:
     readers of that file will render it classic, with fatter outlines."""
+    if format_of(path) in READ_ONLY:
+        writable = ", ".join(sorted(DEFAULT_EXTENSIONS.values()))
+        raise SplatFileError(path, f"Splatwright reads this format but does not write it; write one of {writable}")
     if cloud.antialiased and format_of(path) not in RECORDS_ANTIALIASED:
         warnings.warn(
             f"{path}: this format cannot record that the splats were made for antialiased rendering; "
@@ -109,6 +118,7 @@ def write_splats(path: str | os.PathLike, cloud: SplatCloud, **options: Any) -> 
 __all__ = [
     "DEFAULT_EXTENSIONS",
     "FORMATS",
+    "READ_ONLY",
     "RECORDS_ANTIALIASED",
     "SplatFileError",
     "SplatFileWarning",
