@@ -54,6 +54,7 @@ from .forms import (
     show_posed,
     splat_form,
     stamp_landing,
+    stamp_unrecorded,
     update_splats,
 )
 from .keys import (

@@ -238,9 +238,10 @@ def landed_raw(obj):
     what Blender's PLY importer makes, while Splatwright's importers and Blender's SPZ importer stand
     captures upright. Exports write such splats in those axes, so the file comes back as it was.
 
-    Splatwright records the answer on every datablock it makes or changes (LANDING). Blender's
-    importers record nothing: their clouds are told apart by SPZ's fixed-point grid, which the SPZ
-    importer's centres lie on and a PLY's float32 centres (past a handful) do not."""
+    Splatwright records the answer on every datablock it makes or changes (LANDING), and on clouds
+    Blender's importers make as they appear (stamp_unrecorded). Unrecorded, the splats decide: SPZ's
+    fixed-point grid, which the SPZ importer's centres lie on and a PLY's float32 centres (past a
+    handful) do not."""
     stamp = obj.data.get(LANDING) if obj is not None and obj.data is not None else None
     if stamp is not None:
         return stamp == "RAW"
@@ -261,6 +262,21 @@ def on_spz_grid(positions):
     trailing = np.log2((mantissa & (~mantissa + np.uint64(1))).astype(np.float64))
     bits_needed = np.maximum(53 - exponent - trailing, 0).max()
     return bool(np.abs(values).max() * 2.0**bits_needed < 2.0 ** (SPZ_POSITION_BITS - 1))
+
+
+def stamp_unrecorded(obj, at_import=True):
+    """Record where an unstamped native cloud's splats stand. Blender's importers record nothing, but
+    the depsgraph update inside each import operator shows the new object as the importer left it
+    (`at_import`): its PLY importer at the identity, its USD importer with the stage's transforms and
+    up axis in the object's matrix (the splats then stand as the stage shows them, upright), its SPZ
+    importer on SPZ's grid. So a cloud is raw only when landed_raw finds it so and it stands at the
+    identity then; later (a file saved before stamps were kept) the splats alone decide."""
+    if obj.type != "POINTCLOUD" or LANDING in obj.data or obj.data.library is not None:
+        return
+    if splat_form(obj) != NATIVE_FORM:
+        return
+    placed = obj.parent is not None or not np.array_equal(np.array(obj.matrix_basis), np.eye(4))
+    stamp_landing(obj, raw=landed_raw(obj) and not (at_import and placed))
 
 
 def stamp_landing(obj, raw=None):
