@@ -8,7 +8,7 @@ from bpy.props import BoolProperty, CollectionProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper, axis_conversion, orientation_helper
 
 from ...core import SplatCloud
-from ...io import FORMATS, SplatFileError, read_splats, write_splats
+from ...io import FORMATS, READ_ONLY, SplatFileError, read_splats, write_splats
 from ...io.common import nonfinite_counts
 from .. import data
 from ..data.display import DISPLAY_BUDGET, add_display
@@ -16,9 +16,11 @@ from ..data.errors import EXPECTED_ERRORS
 from ..data.progress import Progress
 from .export_options import ExportOptionProperties
 
-FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)
+FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)  # .ksplat and lod-meta.json among them
+EXPORT_FILTER_GLOB = ";".join(f"*{ext}" for ext, fmt in FORMATS.items() if fmt not in READ_ONLY)
 EXTENSIONS = ";".join(FORMATS)
 MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat)"
+IMPORT_MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat, .ksplat)"
 
 # 3DGS captures come out of COLMAP/OpenCV: the scene's up is -Y and cameras look along +Z. These
 # defaults turn that upright in Blender (file x, y, z -> Blender x, z, -y, a quarter turn about X).
@@ -65,7 +67,7 @@ def finite_for_export(path, cloud, drop_invalid, report):
 
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
 class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
-    """Import Gaussian splats (PLY, OpenUSD, SPZ, .splat) as splat objects"""
+    """Import Gaussian splats (PLY, OpenUSD, SPZ, SOG, glTF, .splat, .ksplat) as splat objects"""
 
     bl_idname = "splat.import_file"
     bl_label = "Import Splats"
@@ -199,7 +201,7 @@ class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHel
 
     filename_ext = ".ply"
     check_extension = None  # the extension picks the format: keep what the user typed
-    filter_glob: StringProperty(default=FILTER_GLOB, options={"HIDDEN"})
+    filter_glob: StringProperty(default=EXPORT_FILTER_GLOB, options={"HIDDEN"})
     selected_only: BoolProperty(name="Selected Only", description="Export only selected splat objects", default=False)
     drop_invalid: BoolProperty(
         name="Drop Invalid Splats",
@@ -247,7 +249,7 @@ class SPLAT_FH_files(bpy.types.FileHandler):
 
 
 def menu_import(self, context):
-    self.layout.operator(SPLAT_OT_import_file.bl_idname, text=MENU_LABEL)
+    self.layout.operator(SPLAT_OT_import_file.bl_idname, text=IMPORT_MENU_LABEL)
 
 
 def menu_export(self, context):
