@@ -177,12 +177,13 @@ def _unpack_rotations(packed):
     return q
 
 
-def read(path, nonfinite="raise"):
-    """Read a compressed PLY into a SplatCloud (also reached through ply.read)."""
+def read(path, nonfinite="raise", header=None):
+    """Read a compressed PLY into a SplatCloud (also reached through ply.read, which passes the
+    header it parsed: read_header's tuple)."""
     check_nonfinite_policy(nonfinite)
     try:
         with open(path, "rb") as f:
-            fmt, elements, start, _ = read_header(path, f)
+            fmt, elements, start, _ = read_header(path, f) if header is None else header
             if fmt != "binary_little_endian":
                 raise SplatFileError(path, f"compressed PLY must be binary_little_endian, not {fmt}")
             chunk_dtype, vertex_dtype, sh_dtype, chunks, n = _layout(path, elements)

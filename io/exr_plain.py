@@ -21,10 +21,15 @@ PIXEL_TYPES = {0: np.dtype("<u4"), 1: np.dtype("<f2"), 2: np.dtype("<f4")}
 
 
 def read_plain_exr(path):
-    """{channel name: (H, W) float32} of every part of an uncompressed scanline EXR."""
-    data = np.fromfile(path, dtype=np.uint8)
+    """{channel name: (H, W) float32} of every part of an uncompressed scanline EXR. Every size the
+    headers state is checked against the file before anything is allocated: the pixels a part
+    claims, in chunks that do not overlap, must be in the file."""
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as exc:
+        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
     raw = data.tobytes()
-    if raw[:4] != MAGIC:
+    if len(raw) < 8 or raw[:4] != MAGIC:
         raise SplatFileError(path, "not an OpenEXR file (bad magic number)")
     flags = struct.unpack_from("<I", raw, 4)[0]
     if flags & (TILED | DEEP):
@@ -45,12 +50,20 @@ def read_plain_exr(path):
             )
         x0, y0, x1, y1 = header["dataWindow"]
         width, height = x1 - x0 + 1, y1 - y0 + 1
+        line = width * sum(dt.itemsize for _, dt in header["channels"])
+        prefix = 4 if multipart else 0
         count = header.get("chunkCount", height)
+        # each scanline: an offset in the table, then its own chunk (part number, y, size, pixels)
+        if width < 1 or height < 1 or line < 1 or count != height or pos + height * (8 + prefix + 8 + line) > len(raw):
+            raise SplatFileError(
+                path,
+                f"part {part}: a {width} x {height} data window of {len(header['channels'])} channels in "
+                f"{count} chunks does not fit the file's {len(raw)} bytes (truncated, empty, or not one "
+                "scanline per chunk)",
+            )
         offsets = np.frombuffer(raw, "<u8", count, pos).astype(np.int64)
         pos += 8 * count
-        channels.update(
-            _scanlines(path, data, raw, offsets, header["channels"], width, height, y0, 4 if multipart else 0)
-        )
+        channels.update(_scanlines(path, data, raw, offsets, header["channels"], width, height, y0, prefix))
     return channels
 
 
@@ -63,16 +76,20 @@ def _header(path, raw, pos):
             name, pos = _string(raw, pos)
             kind, pos = _string(raw, pos)
             size = struct.unpack_from("<i", raw, pos)[0]
+            if not 0 <= size <= len(raw) - pos - 4:
+                raise SplatFileError(path, f"EXR header attribute '{name}' of {size} bytes does not fit the file")
             value = raw[pos + 4 : pos + 4 + size]
             pos += 4 + size
             if name == "channels":
-                header[name] = _channel_list(value)
+                header[name] = _channel_list(path, value)
             elif name == "compression":
                 header[name] = value[0]
             elif name == "dataWindow":
                 header[name] = struct.unpack("<4i", value)
             elif name == "chunkCount":
                 header[name] = struct.unpack("<i", value)[0]
+    except SplatFileError:
+        raise
     except (IndexError, struct.error, ValueError):
         raise SplatFileError(path, "truncated EXR header") from None
     if "channels" not in header or "dataWindow" not in header:
@@ -85,7 +102,7 @@ def _string(raw, pos):
     return raw[pos:end].decode("utf-8", "replace"), end + 1
 
 
-def _channel_list(value):
+def _channel_list(path, value):
     """[(name, dtype)] in file order (alphabetical, as the format requires)."""
     out, pos = [], 0
     while value[pos] != 0:
@@ -93,7 +110,7 @@ def _channel_list(value):
         pixel_type, _, _, x_sampling, y_sampling = struct.unpack_from("<iB3sii", value, pos)
         pos += 16
         if (x_sampling, y_sampling) != (1, 1) or pixel_type not in PIXEL_TYPES:
-            raise ValueError(f"channel {name}: subsampled or unknown pixel type")
+            raise SplatFileError(path, f"EXR channel '{name}' is subsampled or of an unknown pixel type")
         out.append((name, PIXEL_TYPES[pixel_type]))
     return out
 
@@ -101,8 +118,11 @@ def _channel_list(value):
 def _scanlines(path, data, raw, offsets, channel_list, width, height, y0, part_prefix):
     """Every scanline of one part gathered at once: row y's bytes hold each channel's row in turn."""
     line = width * sum(dt.itemsize for _, dt in channel_list)
-    if len(offsets) != height or offsets.min() < 0 or offsets.max() + part_prefix + 8 + line > len(raw):
+    ordered = np.sort(offsets)
+    if ordered[0] < 0 or ordered[-1] + part_prefix + 8 + line > len(raw):
         raise SplatFileError(path, "EXR chunk table does not fit the file (truncated, or not one scanline per chunk)")
+    if (np.diff(ordered) < part_prefix + 8 + line).any():  # overlapping chunks would multiply the file
+        raise SplatFileError(path, "EXR chunks overlap; each scanline needs bytes of its own")
     starts = offsets + part_prefix
     ys = data[starts[:, None] + np.arange(8)].view("<i4").astype(np.int64)  # (y, size) of each chunk
     if (ys[:, 1] != line).any() or not np.array_equal(np.sort(ys[:, 0] - y0), np.arange(height)):

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .common import SplatFileError, atomic_write
+from .policy import MAX_IMAGE_PIXELS
 
 FORMATS = (".png", ".exr")
 
@@ -128,3 +129,66 @@ def png_bytes(pixels):
         + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6))
         + chunk(b"IEND", b"")
     )
+
+
+# reading image headers ----------------------------------------------------------------------------
+
+
+def header_size(data):
+    """(width, height) a PNG, JPEG or WebP image states in its header, from its first bytes alone
+    (no decoder is involved); None for other or damaged data."""
+    data = bytes(data[: 1 << 16])  # a JPEG's frame header follows its metadata segments
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        return struct.unpack(">II", data[16:24])
+    if data[:2] == b"\xff\xd8":
+        return _jpeg_size(data)
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return _webp_size(data)
+    return None
+
+
+# JPEG start-of-frame markers (every coding process) carry the image size; C4, C8 and CC do not
+_JPEG_FRAMES = set(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _jpeg_size(data):
+    pos = 2
+    while pos + 9 <= len(data):
+        if data[pos] != 0xFF:
+            return None
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in _JPEG_FRAMES:
+            height, width = struct.unpack(">HH", data[pos + 5 : pos + 9])
+            return width, height
+        if marker in (0x01, *range(0xD0, 0xD9)):  # markers without a length
+            pos += 2
+            continue
+        pos += 2 + struct.unpack(">H", data[pos + 2 : pos + 4])[0]
+    return None
+
+
+def _webp_size(data):
+    kind, body = data[12:16], data[20:30]
+    if kind == b"VP8 " and len(body) >= 10:
+        width, height = struct.unpack("<HH", body[6:10])
+        return width & 0x3FFF, height & 0x3FFF
+    if kind == b"VP8L" and len(body) >= 5:
+        bits = int.from_bytes(body[1:5], "little")
+        return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+    if kind == b"VP8X" and len(body) >= 10:
+        return int.from_bytes(body[4:7], "little") + 1, int.from_bytes(body[7:10], "little") + 1
+    return None
+
+
+def check_image_size(owner, width, height, what="image"):
+    """Refuse (SplatFileError naming `owner`) an image of more than policy.MAX_IMAGE_PIXELS pixels."""
+    if width * height > MAX_IMAGE_PIXELS:
+        side = int(MAX_IMAGE_PIXELS**0.5)
+        raise SplatFileError(
+            owner,
+            f"{what} of {width} x {height} pixels, more than the {MAX_IMAGE_PIXELS} ({side} x {side}) "
+            "textures may have",
+        )

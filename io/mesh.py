@@ -10,7 +10,8 @@ Malformed lines raise SplatFileError naming the file and line. A missing MTL fil
 image is reported with a warning and the material falls back to its `Kd` (or the default grey).
 MTL files and textures are read only from the OBJ's folder and below (io.policy: absolute paths,
 `../` escapes and working-directory names are refused with a warning that does not say whether the
-file exists), and a texture beyond policy.MAX_IMAGE_PIXELS is refused from its header.
+file exists) unless `allow_outside=True`, and a texture beyond policy.MAX_IMAGE_PIXELS is refused
+from its header.
 """
 
 import warnings
@@ -43,19 +44,20 @@ _MAP_OPTIONS = {
 }
 
 
-def read_mesh(path):
-    """Read an OBJ file (and the MTL files and textures it names) into a core.mesh.Mesh."""
+def read_mesh(path, allow_outside=False):
+    """Read an OBJ file (and the MTL files and textures it names) into a core.mesh.Mesh.
+    allow_outside: follow MTL and texture names outside the OBJ's folder too."""
     path = Path(path)
     if not path.is_file():
         raise SplatFileError(path, "no such file")
     if path.suffix.lower() != ".obj":
         raise SplatFileError(path, f"unknown mesh file extension '{path.suffix}' (known: .obj)")
-    return _ObjReader(path).read()
+    return _ObjReader(path, allow_outside).read()
 
 
 class _ObjReader:
-    def __init__(self, path):
-        self.path = path
+    def __init__(self, path, allow_outside=False):
+        self.path, self.allow_outside = path, allow_outside
         self.positions, self.colors, self.uvs = [], [], []
         self.corner_v, self.corner_t, self.face_sizes, self.face_mat = [], [], [], []
         self.materials, self.material_index, self.library = [], {}, {}
@@ -113,7 +115,7 @@ class _ObjReader:
     def _library(self, names):
         folder = self.path.parent
         candidates = [names] + names.split()
-        allowed = [inside(folder, folder, n) for n in candidates]
+        allowed = [_named(folder, folder, n, self.allow_outside) for n in candidates]
         found = next((p for p in allowed if p is not None and p.is_file()), None)
         if found is None:
             refused = [n for n, p in zip(candidates, allowed) if p is None]
@@ -124,7 +126,7 @@ class _ObjReader:
             )
             warnings.warn(f"{self.path}: {why}; using default colours", stacklevel=2)
             return
-        self.library.update(read_mtl(found, root=folder))
+        self.library.update(read_mtl(found, root=folder, allow_outside=self.allow_outside))
         # Materials used before their library was named pick up its definitions.
         for name, i in self.material_index.items():
             if name in self.library:
@@ -192,9 +194,9 @@ def _index(text, count, what):
     return resolved
 
 
-def read_mtl(path, root=None):
+def read_mtl(path, root=None, allow_outside=False):
     """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image. Textures
-    are read only from the folder `root` (default: the MTL's own) and below."""
+    are read only from the folder `root` (default: the MTL's own) and below, unless allow_outside."""
     path = Path(path)
     root = path.parent if root is None else Path(root)
     materials, current = {}, None
@@ -213,13 +215,13 @@ def read_mtl(path, root=None):
                 values = _finite(parts[1:4])
                 current.base_color = tuple(values + [values[-1]] * (3 - len(values)))
             elif key == "map_kd":
-                _texture(current, parts[1:], path, root)
+                _texture(current, parts[1:], path, root, allow_outside)
         except (ValueError, IndexError) as exc:
             raise SplatFileError(path, f"line {number}: {exc}: '{line.strip()[:80]}'") from None
     return materials
 
 
-def _texture(material, args, mtl_path, root):
+def _texture(material, args, mtl_path, root, allow_outside=False):
     options, i = {}, 0
     while i < len(args) and args[i].lower() in _MAP_OPTIONS:
         name, most = args[i].lower(), _MAP_OPTIONS[args[i].lower()]
@@ -232,7 +234,7 @@ def _texture(material, args, mtl_path, root):
         options[name] = values
     if i >= len(args):
         raise ValueError("map_Kd without a file name")
-    image_path = _find_image(mtl_path, material, " ".join(args[i:]), root)
+    image_path = _find_image(mtl_path, material, " ".join(args[i:]), root, allow_outside)
     if image_path is None:
         return
     material.texture = load_image(image_path)
@@ -279,16 +281,16 @@ def _side(pixels):
     return f"{side} x {side}" if side * side == pixels else f"{pixels} pixels"
 
 
-def _find_image(mtl_path, material, name, root):
+def _find_image(mtl_path, material, name, root, allow_outside=False):
     """The texture `name` names (relative to the MTL's folder), or the file of that name beside the
     MTL (exporters write absolute paths of the machine they ran on); only inside `root`. Refusals
     and misses are warned about, and the material keeps its Kd colour."""
     name = name.strip().strip('"').replace("\\", "/")
     folder = mtl_path.parent
-    named = inside(root, folder, name)
+    named = _named(root, folder, name, allow_outside)
     if named is not None and named.is_file():
         return named
-    beside = inside(root, folder, Path(name).name)
+    beside = _named(root, folder, Path(name).name, allow_outside)
     use = beside if beside is not None and beside.is_file() else None
     if named is None:
         instead = f"; read '{Path(name).name}' beside the MTL instead" if use else "; using its Kd colour"
@@ -301,6 +303,15 @@ def _find_image(mtl_path, material, name, root):
             f"{mtl_path}: texture '{name}' of material '{material.name}' not found; using its Kd colour", stacklevel=2
         )
     return use
+
+
+def _named(root, base, name, allow_outside):
+    """The path `name` gives relative to the folder `base`: only inside `root` (policy.inside)
+    unless allow_outside; None for an empty or refused name."""
+    if not allow_outside:
+        return inside(root, base, name)
+    text = str(name).strip().strip('"').replace("\\", "/")
+    return (Path(base) / text).resolve() if text else None
 
 
 def _is_number(text):

@@ -345,9 +345,10 @@ def read(path, nonfinite="raise"):
     check_nonfinite_policy(nonfinite)
     try:
         with open(path, "rb") as f:
-            if compressed_ply.is_compressed(read_header(path, f)[1]):
-                return compressed_ply.read(path, nonfinite)
-        convert = _load(path)
+            header = read_header(path, f)  # once: a hostile header may take a megabyte of lines
+        if compressed_ply.is_compressed(header[1]):
+            return compressed_ply.read(path, nonfinite, header=header)
+        convert = _load(path, header)
     except OSError as exc:
         raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
     if convert.flat:
@@ -361,10 +362,9 @@ def read(path, nonfinite="raise"):
     return apply_nonfinite_policy(path, cloud, nonfinite, "read", _merge(convert.tallies, cloud.checked_arrays()))
 
 
-def _load(path):
-    """A _Converter holding every vertex of the file."""
-    with open(path, "rb") as f:
-        fmt, elements, header_len, antialiased = read_header(path, f)
+def _load(path, header):
+    """A _Converter holding every vertex of the file, whose parsed header is `header` (read_header's)."""
+    fmt, elements, header_len, antialiased = header
     index, vertex = _vertex_element(path, elements)
     n = vertex.count
     if fmt == "ascii":

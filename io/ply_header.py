@@ -2,6 +2,7 @@
 formats and elements, and the column order of a 3DGS file's SH properties."""
 
 import re
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,9 +98,8 @@ def read_header(path, f):
             raise SplatFileError(path, f"{where}: unknown keyword '{words[0]}'")
     if fmt is None:
         raise SplatFileError(path, "PLY header has no 'format' line")
-    for element in elements:
-        names = [name for name, _ in element.properties]
-        dupes = sorted({n for n in names if names.count(n) > 1})
+    for element in elements:  # counted once each: a 1 MiB header holds 45,000 properties
+        dupes = sorted(n for n, times in Counter(name for name, _ in element.properties).items() if times > 1)
         if dupes:
             raise SplatFileError(path, f"{element.name} element repeats properties {dupes}")
     return fmt, elements, end.end(), antialiased

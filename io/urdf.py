@@ -6,12 +6,16 @@ visuals (origin, box / cylinder / sphere / mesh file with its scale, material co
 files resolved, and `read_robot(path, ...)` turns all of it into a core.robot.SplatRobot: the
 visuals' meshes converted to splats, bound rigidly to their links.
 
-Mesh files: `package://name/rest` is looked up in the search path (`package_paths`, then the
-ROS_PACKAGE_PATH environment variable, then the URDF's folder and its parents): as
-`<dir>/name/rest`, or `<dir>/rest` for a folder itself called `name`, or the bare `rest` relative
-to the URDF (what pybullet does for its data); `file://` paths and plain relative paths are
-taken from the URDF's folder. Meshes are read by io.meshes (OBJ natively, STL and DAE through
-trimesh).
+Mesh files follow io.policy's reading rule: they are read only from the allowed roots, the URDF's
+folder and the package paths the user gives (`package_paths`, then the ROS_PACKAGE_PATH
+environment variable, which the user set too), once `..` and symbolic links are followed; absolute
+paths, `../` escapes and special files are refused with the same error as a missing file, unless
+`allow_outside=True`. `package://name/rest` is looked up in those roots: as `<root>/name/rest`, or
+`<root>/rest` for a root itself called `name`, or the bare `rest` relative to the URDF (what
+pybullet does for its data); with allow_outside the URDF's parent folders are searched too.
+`file://` paths (percent escapes decoded) and plain relative paths are taken from the URDF's
+folder. Meshes are read by io.meshes (OBJ natively, STL and DAE through trimesh), whose own
+textures follow the same rule inside the mesh's folder.
 
 Lenient where the common loaders (pybullet, yourdfpy, Pinocchio) are and it is harmless: text
 before `<?xml` that is only whitespace, limits given upper-first (swapped, with a warning), a
@@ -25,12 +29,14 @@ import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 
 from ..core import color
 from ..core.kinematics import KinematicsError, KinematicTree, rpy_matrices, transforms
 from .common import SplatFileError, SplatFileWarning, read_text
+from .policy import referenced_file
 
 _TYPES = ("fixed", "revolute", "continuous", "prismatic", "floating", "planar", "spherical")
 
@@ -79,8 +85,9 @@ def parse_urdf(text, source="<string>"):
     return _tree(links, joints, source)
 
 
-def read_description(path, package_paths=()):
-    """Read a .urdf file with its visuals (mesh paths resolved, not yet read) into a RobotDescription."""
+def read_description(path, package_paths=(), allow_outside=False):
+    """Read a .urdf file with its visuals (mesh paths resolved, not yet read) into a RobotDescription.
+    allow_outside: follow mesh names outside the allowed roots too (see the module notes)."""
     path = Path(path)
     if not path.is_file():
         raise SplatFileError(path, "no such file")
@@ -88,21 +95,31 @@ def read_description(path, package_paths=()):
     robot = _root(read_text(path), source)
     links, joints = _links_and_joints(robot, source)
     tree = _tree(links, joints, source)
-    resolver = _Resolver(path, package_paths)
+    resolver = _Resolver(path, package_paths, allow_outside)
     materials = _materials(robot, source)
     visuals = [v for link in robot.findall("link") for v in _visuals(source, link, materials, resolver)]
     return RobotDescription(robot.get("name", path.stem), tree, visuals)
 
 
-def read_robot(path, package_paths=(), max_splats=None, target_psnr=None, progress=None, info=None, **style):
+def read_robot(
+    path,
+    package_paths=(),
+    max_splats=None,
+    target_psnr=None,
+    progress=None,
+    info=None,
+    allow_outside=False,
+    **style,
+):
     """A URDF as a core.robot.SplatRobot: every visual meshed (primitives tessellated, mesh files
     read and scaled), placed by its origin on its link at the zero configuration, and converted to
     splats in one pass (one density over the whole robot: `max_splats` or `target_psnr` as in
-    core.mesh_to_splats.mesh_to_splats; the default is a budget of DEFAULT_SPLATS)."""
+    core.mesh_to_splats.mesh_to_splats; the default is a budget of DEFAULT_SPLATS). allow_outside:
+    follow mesh and texture names outside the allowed folders too (see the module notes)."""
     from ..core.robot import DEFAULT_SPLATS, splat_robot, visual_mesh
     from .meshes import has_own_colours, read_mesh_file
 
-    description = read_description(path, package_paths)
+    description = read_description(path, package_paths, allow_outside)
     if not description.visuals:
         raise SplatFileError(path, "no <visual> elements: nothing to make splats from")
     index = {name: i for i, name in enumerate(description.tree.names)}
@@ -111,7 +128,7 @@ def read_robot(path, package_paths=(), max_splats=None, target_psnr=None, progre
         mesh = None
         if visual.geometry == "mesh":
             if visual.path not in files:
-                files[visual.path] = read_mesh_file(visual.path)
+                files[visual.path] = read_mesh_file(visual.path, allow_outside=allow_outside)
             mesh = files[visual.path]
             colour = None if has_own_colours(mesh) else visual.linear_color
         else:
@@ -342,30 +359,44 @@ def _positive(source, shape, key, where):
 
 
 class _Resolver:
-    """Mesh filenames to files: package://, file:// and relative paths (see the module notes)."""
+    """Mesh filenames to files, under io.policy's reading rule (see the module notes): only regular
+    files under the allowed roots (the URDF's folder, then the package paths) are returned, and a
+    refused name, a missing file and a special file give the same error."""
 
-    def __init__(self, urdf_path, package_paths):
+    def __init__(self, urdf_path, package_paths, allow_outside=False):
         self.urdf = Path(urdf_path).resolve()
-        env = [p for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
-        self.search = [Path(p) for p in [*package_paths, *env]] + list(self.urdf.parents)
+        self.allow_outside = allow_outside
+        self.roots = [self.urdf.parent, *package_search_path(package_paths)]
 
     def resolve(self, filename, where):
-        if filename.startswith("package://"):
-            package, _, rest = filename[len("package://") :].partition("/")
-            candidates = [d / package / rest for d in self.search]
-            candidates += [d / rest for d in self.search if d.name == package]
-            candidates.append(self.urdf.parent / package / rest)
-            candidates.append(self.urdf.parent / rest)
-        elif filename.startswith("file://"):
-            candidates = [self.urdf.parent / filename[len("file://") :]]
-        else:
-            candidates = [self.urdf.parent / filename]
-        for path in candidates:
-            if path.is_file():
-                return path
+        for reference, base in self._candidates(filename):
+            try:
+                return referenced_file(self.urdf, reference, self.roots, base, self.allow_outside, "mesh")
+            except SplatFileError:
+                continue
+        roots = ", ".join(f"'{r}'" for r in self.roots)
         raise SplatFileError(
             self.urdf,
-            f"{where}: mesh '{filename}' not found (looked in "
-            f"{', '.join(str(p) for p in candidates[:4])}"
-            f"{' ...' if len(candidates) > 4 else ''}; add its folder with a package path)",
+            f"{where}: mesh '{filename}' not found among the regular files under {roots} (names outside "
+            "them are not followed unless allowed; add a package's folder with a package path)",
         )
+
+    def _candidates(self, filename):
+        """(reference, folder it is relative to) pairs to try in turn."""
+        if filename.startswith("package://"):
+            package, _, rest = unquote(filename[len("package://") :]).partition("/")
+            searched = self.roots + (list(self.urdf.parents) if self.allow_outside else [])
+            pairs = [(f"{package}/{rest}", d) for d in searched]
+            pairs += [(rest, d) for d in searched if d.name == package]
+            return pairs + [(rest, self.urdf.parent)]  # pybullet's data: the bare rest beside the URDF
+        if filename.startswith("file://"):
+            return [(unquote(filename[len("file://") :]), self.urdf.parent)]
+        return [(filename, self.urdf.parent)]
+
+
+def package_search_path(package_paths=()):
+    """The folders package:// meshes are looked up in: `package_paths`, then the ROS_PACKAGE_PATH
+    environment variable. Both are the user's own choice (whoever runs the reader set the variable),
+    so both are allowed roots for the meshes a URDF names, beside the URDF's own folder."""
+    env = [p for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
+    return [Path(p).resolve() for p in [*package_paths, *env]]
