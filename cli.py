@@ -96,6 +96,29 @@ def _add_info(p):
         ".sog or meta.json, .glb/.gltf)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_spz_axes(p)
+
+
+SPZ_INPUT_AXES = "SPZ input: the axes its values are in (default: what its coordinate-system record says, else RUB)"
+
+
+def _add_spz_axes(p, what=SPZ_INPUT_AXES):
+    p.add_argument(
+        "--spz-axes",
+        choices=("rub", "rdf"),
+        help=f"{what}; rdf for files holding PLY's axes without saying so (upside down and mirrored when read as RUB)",
+    )
+
+
+def _spz_read_options(args, path):
+    """{"spz_axes": ...} for an SPZ file when --spz-axes was given; refuses it for other files."""
+    from .io import format_of
+
+    if args.spz_axes is None:
+        return {}
+    if format_of(path) != "spz":
+        raise UsageError(f"--spz-axes needs an SPZ file (.spz), not {path}")
+    return {"spz_axes": args.spz_axes}
 
 
 def summarize(cloud):
@@ -121,12 +144,17 @@ def _run_info(args):
     from .io import format_of, read_splats
 
     # info reports non-finite values (and any other reader warning) instead of refusing the file.
+    options, facts = _spz_read_options(args, args.file), {}
+    if format_of(args.file) == "spz":
+        options["facts"] = facts  # the version, the axes read in and the record naming them
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        cloud = read_splats(args.file, nonfinite="keep")
+        cloud = read_splats(args.file, nonfinite="keep", **options)
+    spz_facts = {f"spz_{key}": facts[key] for key in ("version", "axes", "axes_record")} if facts else {}
     summary = {
         "file": args.file,
         "format": format_of(args.file),
+        **spz_facts,
         **summarize(cloud),
         "warnings": [str(w.message) for w in caught],
     }
@@ -167,6 +195,11 @@ def _add_convert(p):
         help="OpenUSD input: take splat prims without our upright transform as capture (PLY) "
         "coordinates (default, right for NVIDIA's and OpenUSD's converters) or in the stage's axes",
     )
+    _add_spz_axes(
+        p,
+        "with an SPZ input: the axes it is read in (default: its coordinate-system record's, else RUB); "
+        "else, with an SPZ output: the axes it stores (default RUB)",
+    )
     p.add_argument("--prune-opacity", type=float, metavar="T", help="drop splats whose opacity is below T (0..1)")
     p.add_argument(
         "--prune-invisible",
@@ -206,6 +239,10 @@ def _write_options(args):
         if fmt != "usd":
             raise UsageError(f"--half needs an OpenUSD output (.usd, .usda, .usdc, .usdz), not {args.output}")
         options["half"] = True
+    if args.spz_axes is not None and format_of(args.input) != "spz":
+        if fmt != "spz":
+            raise UsageError(f"--spz-axes needs an SPZ input or output, not {args.input} to {args.output}")
+        options["spz_axes"] = args.spz_axes
     if args.axes is not None:
         if fmt != "usd":
             raise UsageError(f"--axes needs an OpenUSD output (.usd, .usda, .usdc, .usdz), not {args.output}")
@@ -217,6 +254,8 @@ def _read_options(args):
     """Format-specific read options from the convert flags."""
     from .io import format_of
 
+    if args.spz_axes is not None and format_of(args.input) == "spz":
+        return {"spz_axes": args.spz_axes}
     if args.usd_input is None:
         return {}
     if format_of(args.input) != "usd":
@@ -346,6 +385,7 @@ def _add_render(p):
         default=0.2,
         help="near clip distance (default 0.2, as the 3DGS reference; the same wherever the camera looks)",
     )
+    _add_spz_axes(p)
 
 
 def _run_render(args):
@@ -359,7 +399,7 @@ def _run_render(args):
         check_image_memory(Camera(args.width, args.height, 1.0, 1.0, 0.0, 0.0))
     except ValueError as exc:
         raise OptionError(f"--width, --height: {exc}") from None
-    cloud = read_splats(args.input)
+    cloud = read_splats(args.input, **_spz_read_options(args, args.input))
     try:
         camera = frame_points(
             economy.cloud_points(cloud),

@@ -1,7 +1,8 @@
 """Niantic SPZ, versions 2 and 3 (read and write) and 4 (read and write with the zstandard package).
 
 v2/v3: a gzip stream of a 16-byte header (magic 0x5053474E "NGSP", version, count, SH degree,
-fractional bits, flags) then, with flag 0x2, extension records, then per-attribute blocks:
+fractional bits, flags), the per-attribute blocks, then, with flag 0x2, extension records (Adobe's
+first writers put them before the blocks; both are read):
     positions  N x 3 x int24  fixed point, `fractional bits` after the binary point
     alphas     N x u8         sigmoid(opacity) * 255
     colours    N x 3 x u8     DC * 0.15 * 255 + 127.5 (0.15 rather than C0 leaves head room)
@@ -30,11 +31,15 @@ today writes and reads degree 4 under any version number). Every version is read
 write() stores it only in v4 (the default version for a degree-4 cloud) and reduces it to degree 3
 with a warning when asked for v2/v3.
 
-Axes: SPZ is RUB (x right, y up, z back), the model (like 3DGS PLY) is RDF. Reading and writing
-flip y and z: positions negate, quaternions (w, x, -y, -z), and each SH coefficient by its parity
-under the flip, by Niantic's converter's table (SPZ_SH_FLIP). That table also negates the m = 4
-coefficient of degree 4, though its function is even in y and z; we follow it, so that files mean
-the same to Niantic's library and to us, both ways. axes=None skips the flip.
+Axes: SPZ is RUB (x right, y up, z back) by its documentation, the model (like 3DGS PLY) is RDF; a
+coordinate-system extension record (0xADBE0003) may name other axes (spz_axes.py: the 16 systems and
+the turns). Reading takes the record's axes, else RUB; `spz_axes` ("rub", "rdf", ...) overrides both,
+with a warning where a record disagrees (many files without a record hold PLY's RDF values). Writing
+stores RUB unless told, and names the axes in a record in every v4 file, and in v2/v3 files not in
+RUB. RUB <-> RDF flips y and z: positions negate, quaternions (w, x, -y, -z), and each SH coefficient
+by its parity under the flip, by Niantic's converter's table (SPZ_SH_FLIP). That table also negates
+the m = 4 coefficient of degree 4, though its function is even in y and z; we follow it, so that files
+mean the same to Niantic's library and to us, both ways. axes=None skips every turn.
 
 Positions use 12 fractional bits (1/4096) when the cloud fits in +-2048, else the most that fit
 (a warning states the resolution). Values outside what a byte can hold are clamped and counted in a
@@ -396,7 +401,7 @@ def _decode_rotations(data, n, version):
 
 def decode(path, raw, axes="RDF", spz_axes=None):
     """SplatCloud and file facts {version, fractional_bits, antialiased, sh_degree_in_file,
-    axes_record, spz_axes} from bytes. axes="RDF" turns the values from the file's axes (spz_axes,
+    axes_record, axes} from bytes. axes="RDF" turns the values from the file's axes (spz_axes,
     see _file_axes) into the model's; axes=None keeps them as stored."""
     if axes not in ("RDF", None):
         raise ValueError(f"axes must be 'RDF' or None, got {axes!r}")
@@ -441,7 +446,7 @@ def decode(path, raw, axes="RDF", spz_axes=None):
         "antialiased": bool(flags & FLAG_ANTIALIASED),
         "sh_degree_in_file": degree,
         "axes_record": recorded,
-        "spz_axes": file_axes,
+        "axes": file_axes,
     }
 
 
@@ -459,7 +464,8 @@ def read(path, axes="RDF", nonfinite="raise", spz_axes=None, facts=None):
     many files in the wild hold them), any of the 16 names of spz_axes.AXES, or None/"auto": the
     file's coordinate-system record if it has one, else RUB. An explicit value wins over the record,
     with a warning where they differ. axes=None returns the values as stored, unturned. A dict given
-    as `facts` receives what decode() says of the file (version, axes_record, spz_axes, ...)."""
+    as `facts` receives what decode() says of the file (version, axes: those read in, axes_record: those
+    its record names, ...)."""
     try:
         with open(path, "rb") as f:
             raw = f.read()
