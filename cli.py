@@ -86,6 +86,15 @@ def check_ranges(args):
             raise OptionError(f"--{dest.replace('_', '-')} must be {what}, got {shown}")
 
 
+def _add_allow_outside(p):
+    p.add_argument(
+        "--allow-outside",
+        action="store_true",
+        help="follow the names a file makes of other files (OpenUSD layers, glTF buffers, SOG images, "
+        "URDF meshes, textures) outside its folder too; a hostile file could then read any file on this machine",
+    )
+
+
 # info ---------------------------------------------------------------------------------------------
 
 
@@ -96,6 +105,7 @@ def _add_info(p):
         ".sog or meta.json, .glb/.gltf)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_allow_outside(p)
     _add_spz_axes(p)
 
 
@@ -149,7 +159,7 @@ def _run_info(args):
         options["facts"] = facts  # the version, the axes read in and the record naming them
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        cloud = read_splats(args.file, nonfinite="keep", **options)
+        cloud = read_splats(args.file, nonfinite="keep", allow_outside=args.allow_outside, **options)
     spz_facts = {f"spz_{key}": facts[key] for key in ("version", "axes", "axes_record")} if facts else {}
     summary = {
         "file": args.file,
@@ -172,6 +182,7 @@ def _run_info(args):
 def _add_convert(p):
     p.add_argument("input")
     p.add_argument("output")
+    _add_allow_outside(p)
     p.add_argument("--sh-degree", type=int, choices=range(5), help="truncate SH to this degree (0..4)")
     p.add_argument(
         "--spz-version",
@@ -267,7 +278,7 @@ def _run_convert(args):
     from .io import read_splats, write_splats
 
     options = _write_options(args)
-    cloud = read_splats(args.input, **_read_options(args))
+    cloud = read_splats(args.input, allow_outside=args.allow_outside, **_read_options(args))
     stages = _economy_stages(args, cloud, options)
     if stages:
         _write_stages(args, cloud, stages)
@@ -358,6 +369,7 @@ def _change(value, before):
 
 def _add_render(p):
     p.add_argument("input", help="a splat file")
+    _add_allow_outside(p)
     p.add_argument("-o", "--output", required=True, help="image to write: .png (8-bit) or .exr (R,G,B,A,Z)")
     p.add_argument("--width", type=int, default=512)
     p.add_argument("--height", type=int, default=512)
@@ -399,7 +411,7 @@ def _run_render(args):
         check_image_memory(Camera(args.width, args.height, 1.0, 1.0, 0.0, 0.0))
     except ValueError as exc:
         raise OptionError(f"--width, --height: {exc}") from None
-    cloud = read_splats(args.input, **_spz_read_options(args, args.input))
+    cloud = read_splats(args.input, allow_outside=args.allow_outside, **_spz_read_options(args, args.input))
     try:
         camera = frame_points(
             economy.cloud_points(cloud),
@@ -455,6 +467,7 @@ def _add_mesh2splats(p):
         "mesh", help="a triangle mesh (.obj with its .mtl and textures; .stl, .dae, .glb, ... through trimesh)"
     )
     p.add_argument("output", help="the splat file to write (.ply, .usd/.usda/.usdc/.usdz, .spz, .splat)")
+    _add_allow_outside(p)
     size = p.add_mutually_exclusive_group()
     size.add_argument("--max-splats", type=int, metavar="N", help="a splat budget, spread by area")
     size.add_argument(
@@ -516,7 +529,7 @@ def _run_mesh2splats(args):
     if not args.calibrate and args.max_splats is None:
         raise OptionError("--no-calibrate applies to a --max-splats budget; a target PSNR always calibrates")
     start = time.perf_counter()
-    mesh = read_mesh_file(args.mesh)
+    mesh = read_mesh_file(args.mesh, allow_outside=args.allow_outside)
     info = {}
     try:
         cloud = mesh_to_splats(
@@ -563,8 +576,10 @@ def _add_urdf2splats(p):
         action="append",
         default=[],
         metavar="DIR",
-        help="a folder to look for package:// meshes in (repeat for more; ROS_PACKAGE_PATH is also used)",
+        help="a folder to look for package:// meshes in (repeat for more; ROS_PACKAGE_PATH is also used); "
+        "meshes are read only from these and the URDF's folder",
     )
+    _add_allow_outside(p)
     size = p.add_mutually_exclusive_group()
     size.add_argument(
         "--max-splats", type=int, metavar="N", help="a splat budget for the whole robot, spread by area (default 60000)"
@@ -609,6 +624,7 @@ def _run_urdf2splats(args):
         target_psnr=args.target_psnr,
         progress=Progress(),
         info=info,
+        allow_outside=args.allow_outside,
     )
     try:
         cloud = robot.pose(robot.tree.pack(values))
@@ -663,7 +679,9 @@ def main(argv=None):
     """Run one verb. Exit status: 0 done; 1 a file or value error (a file that cannot be read or
     written, an option out of range); 2 a usage error (argparse's: an unknown option, a missing
     argument, text where a number belongs; ours: an option the files given cannot use). The
-    message names the file or option either way."""
+    message names the file or option either way. A file the system cannot read (OSError) or that
+    needs more memory than there is is a bad file too: one line, status 1; any other exception is
+    a defect and keeps its traceback."""
     args = build_parser().parse_args(argv)
     from .core import SplatValidationError
     from .io import SplatFileError
@@ -677,6 +695,17 @@ def main(argv=None):
     except UsageError as exc:
         print(f"splatwright {args.verb}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"splatwright {args.verb}: error: {exc.filename or _input(args)}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    except MemoryError:
+        print(f"splatwright {args.verb}: error: {_input(args)}: not enough memory for it", file=sys.stderr)
+        return 1
+
+
+def _input(args):
+    """The file a verb reads, to name in a message."""
+    return next((getattr(args, k) for k in ("file", "input", "mesh", "urdf") if getattr(args, k, None)), "input")
 
 
 if __name__ == "__main__":
