@@ -7,6 +7,7 @@ import argparse
 import json
 import math
 import os
+import re
 import sys
 import tempfile
 import time
@@ -459,6 +460,14 @@ def _float_list(text):
     return values
 
 
+def _memory_size(text):
+    """'4G', '512M', '1.5GiB', '2e9' -> bytes (K, M, G, T are powers of 1024)."""
+    match = re.fullmatch(r"\s*([0-9.]+(?:e[0-9]+)?)\s*([kmgt]?)(?:i?b)?\s*", text.lower())
+    if not match:
+        raise argparse.ArgumentTypeError(f"expected a size such as 4G or 512M, got {text!r}")
+    return int(float(match.group(1)) * 1024 ** " kmgt".index(match.group(2) or " "))
+
+
 def _add_mesh2splats(p):
     from .core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, PIXEL_FILTERS
     from .core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR
@@ -478,6 +487,13 @@ def _add_mesh2splats(p):
         f"(default {DEFAULT_TARGET_PSNR:g})",
     )
     p.add_argument("--view-size", type=int, default=256, help="pixels per side of the views PSNR is measured in")
+    p.add_argument(
+        "--memory-budget",
+        type=_memory_size,
+        metavar="SIZE",
+        help="the most memory the conversion may take, e.g. 4G or 512M (default: half the memory free "
+        "when it starts); it holds the splats to what fits and says so",
+    )
     p.add_argument(
         "--view-distances",
         type=_float_list,
@@ -545,11 +561,13 @@ def _run_mesh2splats(args):
             calibrate=args.calibrate,
             pixel_filter=args.pixel_filter,
             filter_width=args.filter_width,
+            memory_budget=args.memory_budget,
             progress=Progress(),
             info=info,
         )
     except ValueError as exc:
         raise SplatFileError(args.mesh, str(exc)) from None
+    print(f"writing {len(cloud)} splats ({_file_size(args.output, cloud)}) to {args.output}", flush=True)
     write_splats(args.output, cloud)
     skipped = info.get("repaired")
     quality = summary(info)
@@ -559,6 +577,17 @@ def _run_mesh2splats(args):
         f"{time.perf_counter() - start:.1f} s" + (f" (skipped or repaired: {skipped})" if skipped else "")
     )
     return 0
+
+
+def _file_size(path, cloud):
+    """About how large `cloud` will be written to `path`, for people ("12.3 MB")."""
+    from .io import file_sizes, format_of
+
+    fmt = format_of(path)
+    size = file_sizes(len(cloud), cloud.sh_degree).get(fmt)
+    if size is not None and fmt == "ply":  # PLY also keeps the extras (a mesh's source triangles, ...)
+        size += sum(np.asarray(values).nbytes for values in cloud.extras.values())
+    return "size unknown" if size is None else f"about {size / 1e6:.1f} MB"
 
 
 # urdf2splats --------------------------------------------------------------------------------------
@@ -701,6 +730,9 @@ def main(argv=None):
     except MemoryError:
         print(f"splatwright {args.verb}: error: {_input(args)}: not enough memory for it", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:  # Ctrl-C: outputs are written whole at the end (temporary file, rename), or not at all
+        print(f"\nsplatwright {args.verb}: stopped (Ctrl-C); no output was written or changed", file=sys.stderr)
+        return 130
 
 
 def _input(args):

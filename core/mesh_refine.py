@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import Camera
+from .memory import describe
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, render_mesh
 from .mesh_sampling import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .metrics import psnr_from_mse
@@ -71,6 +72,15 @@ AIM = 0.7  # faces aim at this fraction of the target MSE (not all of them can)
 MIN_BUDGET_SPLATS = 2000  # a budget also tries this many splats, twice as many, ... (budget_ladder)
 RUNG_GAP = 1.25  # ... up to a rung this much below the budget
 EDGE_BAND = 2  # pixels either side of a silhouette that count as silhouette error
+# A conversion's peak memory, modelled from tracemalloc peaks on the bench's textured cylinder
+# (bench/mesh2splats.py, memory rows): about 500-650 bytes per splat (the placed and unplaced splats,
+# the best cloud so far, a render's projections) and 480 per pixel of the views (the mesh's
+# supersampled reference renders); each is doubled here for what tracemalloc cannot see (numba's own
+# buffers, the allocator's slack), so a prediction errs on the safe side.
+BYTES_PER_SPLAT = 1280
+BYTES_PER_VIEW_PIXEL = 1024
+BYTES_PER_FACE = 1024
+BASE_BYTES = 48 << 20
 
 
 def default_views(surface, size=256, count=VIEWS_PER_DISTANCE, fov_deg=VIEW_FOV, distances=VIEW_DISTANCES):
@@ -332,6 +342,26 @@ class _Inset:
                 d = a + ratio * (b - a)
 
 
+def conversion_bytes(splats, faces, view_pixels):
+    """Predicted peak bytes of a conversion holding `splats` splats of a mesh of `faces` faces, measured
+    in views of `view_pixels` pixels in all (the model above; bench/mesh2splats.py checks it)."""
+    return BASE_BYTES + BYTES_PER_FACE * faces + BYTES_PER_VIEW_PIXEL * view_pixels + BYTES_PER_SPLAT * splats
+
+
+def splats_within(budget, faces, view_pixels):
+    """The most splats a conversion can hold within `budget` bytes; ValueError when its mesh and views
+    alone would not fit (nothing could be reached)."""
+    fixed = conversion_bytes(0, faces, view_pixels)
+    room = (budget - fixed) // BYTES_PER_SPLAT
+    if room < MIN_BUDGET_SPLATS:
+        raise ValueError(
+            f"the memory budget ({describe(budget)}) cannot hold this conversion: its mesh ({faces} faces) "
+            f"and views ({view_pixels} pixels) alone take {describe(fixed)}; give a larger memory budget, "
+            "or fewer or smaller views"
+        )
+    return int(room)
+
+
 def refine_rounds(
     surface,
     target,
@@ -346,17 +376,24 @@ def refine_rounds(
     view_count=VIEWS_PER_DISTANCE,
     pixel_filter=PIXEL_FILTER,
     try_fewer=True,
+    memory_budget=None,
 ):
     """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable), one
     round at a time: a generator yielding (round, MAX_ROUNDS, label) after the calibration and each
     round and returning the cloud, so a caller can stop between rounds (close() it). With
     `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes are
-    calibrated for the views (a budget)."""
+    calibrated for the views (a budget). With `memory_budget` (bytes) the splats are capped at what
+    it holds (splats_within), before anything is allocated for them."""
     cameras = (
         list(views) if views is not None else default_views(surface, view_size, view_count, distances=view_distances)
     )
     if not cameras:
         raise ValueError("need at least one view")
+    memory_cap = None
+    if memory_budget is not None:
+        room = splats_within(memory_budget, len(surface.faces), sum(c.width * c.height for c in cameras))
+        if max_splats is None or room < max_splats:
+            memory_cap = max_splats = room
     outward = surface.outward_signs()
     v = _Views(surface, cameras, render_mode, outward != 0, pixel_filter)
     pixel = v.pixel
@@ -452,6 +489,8 @@ def refine_rounds(
         if not uniform:
             at_cap = max_splats is not None and (density * area).sum() >= 0.999 * max_splats
             stop = "max_splats" if at_cap else "rounds"
+    if stop == "max_splats" and memory_cap is not None:
+        stop = "memory"
     psnr, cloud, inset, m = best
     yield MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
     if isinstance(info, dict):
@@ -468,13 +507,14 @@ def refine_rounds(
             views=len(cameras),
             rounds=rounds,
         )
+        if memory_budget is not None:
+            info.update(memory_budget=memory_budget, memory_cap=memory_cap)
         if uniform:
             info.update(budget=max_splats)
         if not uniform:
             reached = psnr >= target
-            info.update(
-                target_psnr=target, reached=reached, limit=None if reached else _why(m, stop, max_splats, render_mode)
-            )
+            cause = _why(m, stop, max_splats, render_mode, memory_budget)
+            info.update(target_psnr=target, reached=reached, limit=None if reached else cause)
     return cloud
 
 
@@ -523,9 +563,16 @@ def budget_ladder(budget):
 
 def summary(info):
     """One sentence about the quality a conversion reached, from its `info` ("" without views):
-    the worst view's PSNR, which view that is and, for a missed target, why."""
+    the worst view's PSNR, which view that is and, for a missed target, why; and whether the memory
+    budget held the splats back."""
+    capped = info.get("memory_cap") is not None and info.get("reached") is not False  # else "limit" says it
+    held = (
+        f"the memory budget ({describe(info['memory_budget'])}) held it to {info['memory_cap']} splats"
+        if capped
+        else ""
+    )
     if "psnr" not in info:
-        return ""
+        return held
     where = f"view {info['worst_view'] + 1} of {info['views']}"
     if info.get("worst_view_distance") is not None:
         where += f", at {info['worst_view_distance']:g}x the framing distance"
@@ -534,13 +581,17 @@ def summary(info):
         text += f"; {info['splats']} of the {info['budget']} splats budgeted: more rendered worse"
     if info.get("reached") is False:
         text = f"target {info['target_psnr']:g} dB not reached: {text}; {info['limit']}"
-    return text
+    return f"{text}; {held}" if held else text
 
 
-def _why(m, stop, max_splats, render_mode="classic"):
+def _why(m, stop, max_splats, render_mode="classic", memory_budget=None):
     """Why the worst view missed the target, in words."""
     share = m.edge_share[m.worst]
-    if stop == "max_splats":
+    if stop == "memory":
+        cause = (
+            f"the memory budget ({describe(memory_budget)}) holds at most {max_splats} splats, and they were reached"
+        )
+    elif stop == "max_splats":
         cause = f"the splat cap (max_splats={max_splats}) was reached"
     elif stop == "rounds":
         cause = f"refinement ran out of rounds ({MAX_ROUNDS})"

@@ -7,8 +7,9 @@ core/mesh_refine.py choose the density per face from the render error against th
 
 import numpy as np
 
+from .memory import check_budget
 from .mesh import Surface
-from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds
+from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds, splats_within
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .mesh_sampling import (
     OPAQUE,
@@ -75,6 +76,7 @@ def mesh_to_splats_steps(
     try_fewer=True,
     pixel_filter=DEFAULT_PIXEL_FILTER,
     filter_width=CYCLES_FILTER_WIDTH,
+    memory_budget=None,
     info=None,
 ):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
@@ -109,6 +111,13 @@ def mesh_to_splats_steps(
     "worst_view_distance", "psnr_all_views", "inset_pixels", "views", "budget" (budgets:
     `max_splats`) and (target mode) "reached" and "limit" (why not).
 
+    Memory: the conversion predicts its peak memory (core.mesh_refine.conversion_bytes) and holds
+    no more splats than `memory_budget` bytes allow (default: core.memory.default_budget(), half the
+    memory free when it starts); a conversion stopped there keeps the best splats it reached, and
+    `info` says so ("memory_budget", "memory_cap": the splats it allowed, None when it did not bind;
+    "limit" names it). A budget too small for the mesh and views alone is a ValueError, raised before
+    anything is allocated.
+
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
     source_triangle, k]] + normal_offset * (unit normal of the face's winding). The offset is 0
@@ -124,6 +133,7 @@ def mesh_to_splats_steps(
     if max_splats is not None and int(max_splats) < 1:
         raise ValueError(f"max_splats must be at least 1, got {max_splats}")
     filter_taps(pixel_filter, filter_width, 1)  # a ValueError for an unknown filter
+    budget = check_budget(memory_budget)
     style = dict(
         overlap=overlap,
         opacity=face_opacities(surface, opacity, render_mode == "antialiased"),
@@ -131,12 +141,15 @@ def mesh_to_splats_steps(
         seed=seed,
     )
     if target_psnr is None and max_splats is not None and not calibrate:
-        density = _uniform_density(surface, int(max_splats))
+        count = min(int(max_splats), splats_within(budget, len(surface.faces), 0))
+        density = _uniform_density(surface, count)
         cloud = build_splats(
             surface,
-            budget_density(density, thin_wall_density(surface, density, overlap)[0], surface.area, int(max_splats)),
+            budget_density(density, thin_wall_density(surface, density, overlap)[0], surface.area, count),
             **style,
         )
+        if isinstance(info, dict):
+            info.update(memory_budget=budget, memory_cap=count if count < int(max_splats) else None)
         yield 1, 1, "mesh2splats"
     else:
         budget_only = target_psnr is None and max_splats is not None
@@ -155,6 +168,7 @@ def mesh_to_splats_steps(
             view_count=VIEWS_PER_DISTANCE if view_count is None else int(view_count),
             pixel_filter=(pixel_filter, filter_width),
             try_fewer=try_fewer,
+            memory_budget=budget,
         )
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))

@@ -35,7 +35,6 @@ on the splat where the pixel crosses the layer; the compiled path applies it bet
 """
 
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import SimpleNamespace
@@ -48,6 +47,7 @@ from . import geometry, jit
 from . import sh as shmod
 from .arrays import Floats, Image
 from .camera import Camera
+from .memory import physical_memory
 from .parallel import Pool
 from .render_composite import Compositor, LayerCrossing
 from .render_constants import (
@@ -378,37 +378,6 @@ def image_bytes(width, height, tile_size=TILE_SIZE, counts=False, compiled=True)
         tiled = -(-width // tile_size) * tile_size * -(-height // tile_size) * tile_size
         per_pixel += (20 + 4 + 1 + (4 if counts else 0)) * tiled / pixels + 20  # tiles, then one copy
     return int(pixels * per_pixel)
-
-
-def physical_memory():
-    """This machine's memory in bytes, or None where it cannot be told."""
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):
-        pass
-    try:  # Windows
-        import ctypes
-
-        class Status(ctypes.Structure):
-            _fields_ = [
-                ("length", ctypes.c_ulong),
-                ("load", ctypes.c_ulong),
-                ("total", ctypes.c_ulonglong),
-                ("available", ctypes.c_ulonglong),
-                ("page_total", ctypes.c_ulonglong),
-                ("page_available", ctypes.c_ulonglong),
-                ("virtual_total", ctypes.c_ulonglong),
-                ("virtual_available", ctypes.c_ulonglong),
-                ("extended", ctypes.c_ulonglong),
-            ]
-
-        status = Status()
-        status.length = ctypes.sizeof(Status)
-        if ctypes.windll.kernel32.GlobalMemoryStatusEx(ctypes.byref(status)):
-            return int(status.total)
-    except Exception:
-        pass
-    return None
 
 
 def check_image_memory(camera, tile_size=TILE_SIZE, counts=False, compiled=True):
