@@ -39,12 +39,13 @@ def export_conversion(forward=None, up=None):
     return axis_conversion(to_forward=forward or FILE_FORWARD, to_up=up or FILE_UP).to_4x4()
 
 
-def read_cloud(path, drop_invalid, report):
+def read_cloud(path, drop_invalid, report, allow_outside=False):
     """Read a splat file, passing the format's warnings on as Blender warnings. Splats with NaN/Inf
     cannot be drawn or rendered: with `drop_invalid` they are dropped (and counted in a warning),
-    otherwise the file is refused."""
+    otherwise the file is refused. allow_outside: follow the names of other files the file makes
+    (OpenUSD layers, glTF buffers, SOG images) outside its folder too (io.policy)."""
     with data.reported_warnings(report):
-        return read_splats(path, nonfinite="drop" if drop_invalid else "raise")
+        return read_splats(path, nonfinite="drop" if drop_invalid else "raise", allow_outside=allow_outside)
 
 
 def finite_for_export(path, cloud, drop_invalid, report):
@@ -82,6 +83,12 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         default=True,
         description="Drop splats holding NaN or Inf values (with a warning) instead of refusing the file",
     )
+    allow_outside: BoolProperty(
+        name="Allow Files Outside",
+        default=False,
+        description="Also read the files a splat file names (OpenUSD layers, glTF buffers, SOG images) from "
+        "outside its folder. Only for files you trust: a hostile file could then read any file on this machine",
+    )
 
     def _paths(self):
         names = [f.name for f in self.files if f.name]
@@ -98,7 +105,7 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         try:
             clouds = []
             for i, path in enumerate(paths):  # read everything first: a bad file changes nothing
-                clouds.append(read_cloud(path, self.drop_invalid, self.report))
+                clouds.append(read_cloud(path, self.drop_invalid, self.report, self.allow_outside))
                 progress.update(i + 1)
             objects = self._create(context, paths, clouds, progress)
         except EXPECTED_ERRORS as exc:
