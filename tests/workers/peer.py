@@ -10,6 +10,7 @@ from workers.base import BlenderWorker, point_attributes, worker_main
 
 DEGREES = (0, 3, 4)
 USD_EXTENSIONS = (".usda", ".usdc", ".usdz")
+HALF_USD = "d3_half.usdc"  # written with half floats (use_half)
 # An object transform given on Blender's side before export: a turn with a stretch along the object's
 # own axes (shear-free), so the SH turn with the rotation alone.
 MOVE = {"location": (0.25, -1.5, 2.0), "rotation_euler": (0.4, -0.9, 1.3), "scale": (1.0, 2.5, 0.5)}
@@ -25,7 +26,7 @@ def peer_files():
     names = []
     for degree in DEGREES:
         names += [f"d{degree}.ply", *spz_names(degree), *(f"d{degree}{ext}" for ext in USD_EXTENSIONS)]
-    return names
+    return [*names, HALF_USD]
 
 
 def blender_importer(name):
