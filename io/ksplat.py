@@ -23,6 +23,8 @@ GaussianSplats3D writes SH degrees 0 to 2; a degree-3 section's third band follo
 (as splat-transform reads it). Positions stay as stored (the PLY's axes).
 """
 
+import os
+
 import numpy as np
 
 from ..core import SplatCloud
@@ -89,7 +91,7 @@ def stored_sh_order(sh_degree: int) -> np.ndarray:
     return np.array(order, np.int64)
 
 
-def read(path, nonfinite="raise"):
+def read(path: str | os.PathLike, nonfinite: str = "raise") -> SplatCloud:
     """Read a .ksplat file (compression level 0, 1 or 2; SH degree 0 to 3) into a SplatCloud."""
     check_nonfinite_policy(nonfinite)
     try:
@@ -99,7 +101,7 @@ def read(path, nonfinite="raise"):
     header = _header(path, data)
     level = int(header["level"])
     sections = _section_headers(path, data, int(header["max_sections"]))
-    notes = []
+    notes: list[str] = []
     clouds = []
     offset = HEADER_BYTES + len(sections) * SECTION_HEADER_BYTES
     with np.errstate(invalid="ignore", over="ignore"):

@@ -15,7 +15,9 @@ files under the lod-meta.json's folder only, unless allow_outside). Units must b
 """
 
 import json
+import os
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 
 from ..core import SplatCloud
@@ -26,7 +28,13 @@ from .policy import referenced_file
 MAX_META_BYTES = 64 << 20  # far beyond any real tree (splat-transform's are a few MB for 100M splats)
 
 
-def read(path, levels="finest", environment=True, allow_outside=False, nonfinite="raise"):
+def read(
+    path: str | os.PathLike,
+    levels: str | int | Sequence[int] = "finest",
+    environment: bool = True,
+    allow_outside: bool = False,
+    nonfinite: str = "raise",
+) -> SplatCloud:
     """Read a streamed SOG into one SplatCloud.
 
     `levels`: "finest" (level 0, the full capture), "all" (every level, finest first, as one cloud:
