@@ -18,13 +18,23 @@ PlayCanvas does. Node transforms above a splat primitive are applied on reading.
 
 The writer stores float32 values: quaternions normalised, scales and opacities activated (exp and
 sigmoid, so reading back is exact to float32 round-off, about 1e-7 relative). Extras are not stored.
+
+A buffer in a file is read only under the reading policy (io/policy.py): a regular file in the
+glTF's folder or below (the folder of the file a symbolic link names, where the writer puts it),
+its URI percent-decoded first, and no more of it than its byteLength. All the accessors of a file
+together may decode to at most DECODE_RATIO numbers per byte its buffers hold (past DECODE_FLOOR),
+so instancing, views read many times and accessors without data cannot turn a small file into a
+large cloud.
 """
 
 import base64
 import json
+import os
+import re
 import struct
 import warnings
 from pathlib import Path
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
@@ -42,6 +52,7 @@ from .common import (
     reduced_sh,
     warn_notes,
 )
+from .policy import referenced_file
 from .spz import flip_axes
 
 EXTENSION = "KHR_gaussian_splatting"
@@ -52,6 +63,11 @@ LUF = [-1, -1, 1]  # the half turn about Z between RDF and glTF's axes
 COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 MAX_BYTES = 1 << 34  # a buffer claiming more than this is refused before reading
+# Numbers the accessors of a file may decode to: any file this many, a larger one this many per byte
+# its buffers hold. A file read once decodes to at most one number per byte (normalised bytes); the
+# ratio leaves room for a mesh instanced 32 times.
+DECODE_FLOOR = 1 << 24
+DECODE_RATIO = 32
 
 
 def sh_name(degree, coefficient):
@@ -61,7 +77,7 @@ def sh_name(degree, coefficient):
 # reading ------------------------------------------------------------------------------------------
 
 
-def _load_document(path):
+def _load_document(path, allow_outside):
     """(glTF JSON, list of buffers as bytes) from a .glb or .gltf file."""
     try:
         raw = Path(path).read_bytes()
@@ -73,13 +89,13 @@ def _load_document(path):
     else:
         try:
             doc = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError) as exc:
+        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
             raise SplatFileError(path, f"not a glTF file (neither GLB nor JSON: {exc})") from None
     if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "")).split(".")[0] != "2":
         raise SplatFileError(path, "not a glTF 2.0 document (asset.version must be 2.x)")
     buffers = []
     for i, buffer in enumerate(_list(path, doc, "buffers")):
-        buffers.append(_buffer(path, i, buffer, binary))
+        buffers.append(_buffer(path, i, buffer, binary, allow_outside))
     return doc, buffers
 
 
@@ -102,7 +118,7 @@ def _split_glb(path, raw):
         raise SplatFileError(path, "GLB has no JSON chunk first")
     try:
         doc = json.loads(chunks[0][1].decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise SplatFileError(path, f"GLB JSON chunk is not valid JSON: {exc}") from None
     binary = chunks[1][1] if len(chunks) > 1 and chunks[1][0] == BIN_CHUNK else None
     return doc, binary
@@ -115,7 +131,7 @@ def _list(path, doc, key):
     return value
 
 
-def _buffer(path, index, buffer, binary):
+def _buffer(path, index, buffer, binary, allow_outside):
     length = buffer.get("byteLength")
     if not isinstance(length, int) or not 0 <= length <= MAX_BYTES:
         raise SplatFileError(path, f"buffer {index} has byteLength {length!r}")
@@ -130,18 +146,38 @@ def _buffer(path, index, buffer, binary):
         except (IndexError, ValueError):
             raise SplatFileError(path, f"buffer {index} has a malformed data URI") from None
     elif isinstance(uri, str):
-        from urllib.parse import unquote
-
-        target = Path(path).parent / unquote(uri)
-        try:
-            data = target.read_bytes()
-        except OSError as exc:
-            raise SplatFileError(path, f"buffer {index} file '{uri}' cannot be read: {exc.strerror or exc}") from None
+        data = _buffer_file(path, index, uri, length, allow_outside)
     else:
         raise SplatFileError(path, f"buffer {index} uri must be a string")
     if len(data) < length:
         raise SplatFileError(path, f"truncated: buffer {index} holds {len(data)} of its {length} bytes")
     return data
+
+
+def _buffer_file(path, index, uri, length, allow_outside):
+    """The first `length` bytes of the file a buffer's URI names (relative, or file://), under the
+    reading policy; a file shorter than `length` is refused from its size, unread."""
+    parts = urlsplit(uri)
+    if parts.scheme.lower() == "file":
+        reference = unquote(parts.path)
+        if re.match(r"/[A-Za-z]:", reference):  # file:///C:/... names a drive
+            reference = reference[1:]
+        elif parts.netloc not in ("", "localhost"):  # a share on another machine
+            reference = f"//{parts.netloc}{reference}"
+    elif len(parts.scheme) > 1:  # one letter is a Windows drive, refused as a path
+        raise SplatFileError(path, f"buffer {index} uri '{uri}': only data: URIs and files are read")
+    else:
+        reference = unquote(uri)
+    folder = Path(os.path.realpath(path)).parent
+    target = referenced_file(path, reference, folder, folder, allow_outside, what=f"buffer {index} file")
+    try:
+        with open(target, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            if size < length:
+                raise SplatFileError(path, f"truncated: buffer {index} holds {size} of its {length} bytes")
+            return f.read(length)
+    except OSError as exc:
+        raise SplatFileError(path, f"buffer {index} file '{uri}' cannot be read: {exc.strerror or exc}") from None
 
 
 def _accessor(path, doc, buffers, index, name):
@@ -174,6 +210,10 @@ def _accessor(path, doc, buffers, index, name):
     data = buffers[buffer_index]
     start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
     stride = view.get("byteStride") or dtype.itemsize * width
+    if not isinstance(stride, int) or not dtype.itemsize * width <= stride <= 252:
+        raise SplatFileError(
+            path, f"attribute {name}: byteStride {stride!r}, elements are {dtype.itemsize * width} bytes (at most 252)"
+        )
     need = start + (stride * (count - 1) + dtype.itemsize * width if count else 0)
     view_end = view.get("byteOffset", 0) + view.get("byteLength", 0)
     if need > min(len(data), view_end) or start < 0:
@@ -217,11 +257,12 @@ def _local_matrix(node):
         return np.array(node["matrix"], float).reshape(4, 4).T  # column-major
     t = np.eye(4)
     t[:3, 3] = node.get("translation", [0, 0, 0])
-    x, y, z, w = node.get("rotation", [0, 0, 0, 1])
-    from ..core.geometry import quaternions_to_matrices
-
     r = np.eye(4)
-    r[:3, :3] = quaternions_to_matrices(np.array([[w, x, y, z]], float))[0]
+    if "rotation" in node:  # most nodes have none, and a file may have many nodes
+        from ..core.geometry import quaternions_to_matrices
+
+        x, y, z, w = node["rotation"]
+        r[:3, :3] = quaternions_to_matrices(np.array([[w, x, y, z]], float))[0]
     s = np.diag([*node.get("scale", [1, 1, 1]), 1.0])
     return t @ r @ s
 
@@ -296,48 +337,93 @@ def _sh(path, attributes, get, n, notes):
     return np.stack(coefficients, axis=1)
 
 
-def read(path, nonfinite="raise"):
+def read(path, nonfinite="raise", allow_outside=False):
     """Every KHR_gaussian_splatting primitive of the default scene (node transforms applied),
-    concatenated into one SplatCloud in the model's axes."""
+    concatenated into one SplatCloud in the model's axes. allow_outside: also read buffer files
+    outside the glTF's folder (special files never)."""
     check_nonfinite_policy(nonfinite)
+    if not Path(path).is_file():
+        raise SplatFileError(path, "no such file")
     try:
-        return _read(path, nonfinite)
+        return _read(path, nonfinite, allow_outside)
     except SplatFileError:
         raise
-    except (KeyError, IndexError, TypeError, ValueError, AttributeError) as exc:
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError, RecursionError) as exc:
         # JSON of the wrong shape somewhere (a string where an object belongs, a short matrix, ...)
         raise SplatFileError(path, f"malformed glTF document ({type(exc).__name__}: {exc})") from None
 
 
-def _read(path, nonfinite):
-    doc, buffers = _load_document(path)
+def _read(path, nonfinite, allow_outside):
+    doc, buffers = _load_document(path, allow_outside)
     unknown = [e for e in doc.get("extensionsRequired", []) if e != EXTENSION]
     if unknown:
         raise SplatFileError(path, f"the file requires glTF extensions this reader does not know: {unknown}")
-    meshes, notes, clouds = _list(path, doc, "meshes"), [], []
-    for node, matrix in sorted(_node_matrices(path, doc).items()):
-        mesh = _list(path, doc, "nodes")[node].get("mesh")
-        if mesh is None:
-            continue
-        if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
-            raise SplatFileError(path, f"node {node} names mesh {mesh!r}, which does not exist")
-        for primitive in meshes[mesh].get("primitives", []):
-            if EXTENSION not in primitive.get("extensions", {}):
-                continue
-            with np.errstate(invalid="ignore", over="ignore"):
-                cloud = flip_axes(_primitive_cloud(path, doc, buffers, primitive, notes), LUF)
-                if not np.array_equal(matrix, np.eye(4)):
-                    try:
-                        cloud = cloud.transformed(np.diag(LUF + [1]) @ matrix @ np.diag(LUF + [1]))
-                    except ValueError as exc:
-                        raise SplatFileError(path, f"node {node} transform cannot be applied: {exc}") from None
-            clouds.append(cloud)
+    placed = _splat_primitives(path, doc)
+    _check_claims(path, doc, buffers, [primitive for _, _, primitive in placed])
+    notes, clouds = [], []
+    for node, matrix, primitive in placed:
+        with np.errstate(invalid="ignore", over="ignore"):
+            cloud = flip_axes(_primitive_cloud(path, doc, buffers, primitive, notes), LUF)
+            if not np.array_equal(matrix, np.eye(4)):
+                try:
+                    cloud = cloud.transformed(np.diag(LUF + [1]) @ matrix @ np.diag(LUF + [1]))
+                except ValueError as exc:
+                    raise SplatFileError(path, f"node {node} transform cannot be applied: {exc}") from None
+        clouds.append(cloud)
     if not clouds:
         raise SplatFileError(path, f"no {EXTENSION} primitive in the file's scene")
     if notes:
         warnings.warn(f"{path}: " + "; ".join(dict.fromkeys(notes)), SplatFileWarning, stacklevel=2)
     cloud = clouds[0] if len(clouds) == 1 else SplatCloud.concatenate(clouds)
     return apply_nonfinite_policy(path, cloud, nonfinite, "read")
+
+
+def _splat_primitives(path, doc):
+    """[(node, world matrix, primitive)] of every splat primitive the default scene places."""
+    meshes, nodes, placed = _list(path, doc, "meshes"), _list(path, doc, "nodes"), []
+    for node, matrix in sorted(_node_matrices(path, doc).items()):
+        mesh = nodes[node].get("mesh")
+        if mesh is None:
+            continue
+        if not isinstance(mesh, int) or not 0 <= mesh < len(meshes):
+            raise SplatFileError(path, f"node {node} names mesh {mesh!r}, which does not exist")
+        primitives = meshes[mesh].get("primitives", [])
+        placed += [(node, matrix, p) for p in primitives if EXTENSION in p.get("extensions", {})]
+    return placed
+
+
+def _check_claims(path, doc, buffers, primitives):
+    """Refuse, before anything is decoded, a file whose placed primitives claim more numbers than
+    DECODE_RATIO per byte of its buffers (past DECODE_FLOOR)."""
+    accessors, views, claims = _list(path, doc, "accessors"), _list(path, doc, "bufferViews"), [0]
+    for primitive in primitives:
+        attributes = primitive.get("attributes", {})
+        for index in attributes.values() if isinstance(attributes, dict) else ():
+            if isinstance(index, int) and 0 <= index < len(accessors):
+                claims.append(_claim(accessors[index], views))
+    stored = sum(len(b) for b in buffers)
+    limit = max(DECODE_FLOOR, DECODE_RATIO * stored)
+    if sum(claims) > limit:
+        raise SplatFileError(
+            path,
+            f"its {len(primitives)} placed splat primitives claim {sum(claims)} numbers (one accessor "
+            f"{max(claims)} of them), more than the {limit} a file whose buffers hold {stored} bytes may decode to "
+            "(instanced, aliased or accessors without data?)",
+        )
+
+
+def _claim(acc, views):
+    """The numbers an accessor decodes to; 0 for one that reading refuses anyway, before allocating
+    (a count its buffer view cannot hold, a type that does not exist)."""
+    count, width, kind = acc.get("count"), WIDTH.get(acc.get("type")), COMPONENTS.get(acc.get("componentType"))
+    if not isinstance(count, int) or count <= 0 or width is None or kind is None:
+        return 0
+    view = acc.get("bufferView")
+    if view is not None:
+        holds = views[view].get("byteLength", 0) if isinstance(view, int) and 0 <= view < len(views) else 0
+        if count * np.dtype(kind).itemsize * width > holds:
+            return 0
+    return count * width
 
 
 # writing ------------------------------------------------------------------------------------------

@@ -19,10 +19,16 @@ are the means of a balanced k-d split of the SH vectors). Extras are not stored.
 
 WebP is decoded and encoded by Pillow. Blender's own Python has no Pillow: there SOG files cannot be
 read or written, and the error says so (convert them with the `splatwright` command outside).
+
+Before a pixel is decoded, every image's size is taken from its WebP header and checked against the
+splat count and io.policy.MAX_IMAGE_PIXELS, and the count against the bytes the file stores (see
+SOG_MAX_RATIO); a bundle entry may inflate to at most ENTRY_MAX_RATIO times its stored size. Loose
+images are read under the reading policy (io/policy.py): regular files in the meta.json's folder.
 """
 
 import io
 import json
+import os
 import warnings
 import zipfile
 from pathlib import Path
@@ -42,6 +48,7 @@ from .common import (
     warn_notes,
 )
 from .compressed_ply import morton_order
+from .policy import MAX_IMAGE_PIXELS, referenced_file
 
 FILES = {
     "means": ["means_l.webp", "means_u.webp"],
@@ -54,6 +61,17 @@ SH_COEFFS = {1: 3, 2: 8, 3: 15}
 PALETTE_MAX = 1 << 16
 CODEBOOK = 256
 MAX_FILE = 1 << 30  # an entry of a .sog bigger than this is refused before reading
+# A bundle entry may inflate to at most this many times its stored size once past the floor: WebP
+# images do not deflate at all, JSON a few times.
+ENTRY_MAX_RATIO = 64
+ENTRY_RATIO_FLOOR = 1 << 20
+# The numbers a SOG decodes to (3 + 4 + 3 + 1 + 3 per SH coefficient per splat): at most
+# SOG_RATIO_FLOOR (1.2M splats without SH, 280K at degree 3; any file under 1 MiB) or SOG_MAX_RATIO
+# per byte its meta.json and images store. Real captures store about 14 bytes per splat (1 number per
+# byte), a cubic grid of identical splats 13 numbers per byte; a flat grid (24) reads up to the floor.
+# A one-colour 5000x5000 WebP is 38 bytes.
+SOG_RATIO_FLOOR = 1 << 24
+SOG_MAX_RATIO = 16
 SQRT2 = np.sqrt(2.0)
 
 
@@ -77,67 +95,121 @@ def _pillow(path):
 
 
 class _Source:
-    """The files of a SOG: entries of a .sog zip, or files beside a meta.json."""
+    """The files of a SOG: entries of a .sog zip, or files beside a meta.json (the folder of the
+    file a symbolic link names, where the writer puts them). `stored` counts the bytes read."""
 
-    def __init__(self, path):
-        self.path = path
+    def __init__(self, path, allow_outside=False):
+        self.path, self.allow_outside = path, allow_outside
         self.zip = None
+        self.stored = 0
         if not str(path).lower().endswith("meta.json"):
             try:
                 self.zip = zipfile.ZipFile(path)
             except (zipfile.BadZipFile, OSError, EOFError) as exc:
                 raise SplatFileError(path, f"not a SOG bundle (a zip of meta.json and WebP images): {exc}") from None
 
+    def meta(self):
+        """The bytes of meta.json: the bundle's entry, or the file itself."""
+        return self.read("meta.json") if self.zip is not None else self._file(self.path, "meta.json")
+
     def read(self, name):
-        if self.zip is None:
-            target = Path(self.path).parent / name
-            if Path(name).name != name:
-                raise SplatFileError(self.path, f"meta.json names the file '{name}' outside its folder")
-            try:
-                return target.read_bytes()
-            except OSError as exc:
-                raise SplatFileError(self.path, f"cannot read {name}: {exc.strerror or exc}") from None
+        """The bytes of an image (or meta.json) the SOG names."""
+        if self.zip is not None:
+            return self._entry(name)
+        folder = Path(os.path.realpath(self.path)).parent
+        return self._file(referenced_file(self.path, name, folder, folder, self.allow_outside, "SOG image"), name)
+
+    def _file(self, target, name):
+        try:
+            with open(target, "rb") as f:
+                data = f.read(MAX_FILE + 1)
+        except OSError as exc:
+            raise SplatFileError(self.path, f"cannot read {name}: {exc.strerror or exc}") from None
+        if len(data) > MAX_FILE:
+            raise SplatFileError(self.path, f"{name} holds more than {MAX_FILE} bytes, more than a SOG file may")
+        self.stored += len(data)
+        return data
+
+    def _entry(self, name):
         try:
             info = self.zip.getinfo(name)
         except KeyError:
             raise SplatFileError(self.path, f"the bundle has no {name}") from None
-        if info.file_size > MAX_FILE:
-            raise SplatFileError(self.path, f"{name} claims {info.file_size} bytes, more than a SOG entry may hold")
+        inflated = info.file_size > max(ENTRY_RATIO_FLOOR, ENTRY_MAX_RATIO * info.compress_size)
+        if info.file_size > MAX_FILE or inflated:
+            raise SplatFileError(
+                self.path,
+                f"{name} claims {info.file_size} bytes from {info.compress_size} stored, more than a SOG entry may "
+                f"hold (at most {MAX_FILE}, and {ENTRY_MAX_RATIO} times its stored size)",
+            )
         try:
-            return self.zip.read(info)
+            data = self.zip.read(info)
         except (zipfile.BadZipFile, OSError, EOFError, NotImplementedError) as exc:
             raise SplatFileError(self.path, f"cannot read {name} from the bundle: {exc}") from None
+        self.stored += info.compress_size
+        return data
 
     def close(self):
         if self.zip is not None:
             self.zip.close()
 
 
-def _image(path, source, name, count):
-    """(H*W, 4) uint8 RGBA pixels of a WebP image holding at least `count` pixels."""
-    image_module = _pillow(path)
-    data = source.read(name)
-    try:
-        with image_module.open(io.BytesIO(data)) as image:
-            if image.format != "WEBP":
-                raise SplatFileError(path, f"{name} is {image.format}, not WebP")
-            width, height = image.size
-            if width * height < count or width * height > 4 * count + (1 << 20):
-                raise SplatFileError(path, f"{name} is {width}x{height} pixels for {count} splats")
-            pixels = np.asarray(image.convert("RGBA"))
-    except SplatFileError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - Pillow raises many types for damaged images
-        raise SplatFileError(path, f"{name} is not a readable WebP image: {exc}") from None
-    return pixels.reshape(-1, 4)
+def webp_size(data):
+    """(width, height) from a WebP file's header, or None when it is not one (lossless VP8L, lossy
+    VP8 and extended VP8X: the first chunk says)."""
+    if len(data) < 30 or data[:4] != b"RIFF" or data[8:12] != b"WEBP":
+        return None
+    chunk = data[12:16]
+    if chunk == b"VP8L" and data[20] == 0x2F:
+        bits = int.from_bytes(data[21:25], "little")
+        return (bits & 0x3FFF) + 1, (bits >> 14 & 0x3FFF) + 1
+    if chunk == b"VP8X":
+        return int.from_bytes(data[24:27], "little") + 1, int.from_bytes(data[27:30], "little") + 1
+    if chunk == b"VP8 " and data[23:26] == b"\x9d\x01\x2a":
+        return int.from_bytes(data[26:28], "little") & 0x3FFF, int.from_bytes(data[28:30], "little") & 0x3FFF
+    return None
+
+
+class _Image:
+    """A SOG image read but not decoded: its bytes, and its size from its header, checked to hold
+    between `least` and `most` pixels (and no more than MAX_IMAGE_PIXELS); `what` they are for."""
+
+    def __init__(self, path, source, name, least, most, what):
+        self.path, self.name, self.data = path, name, source.read(name)
+        size = webp_size(self.data)
+        if size is None:
+            raise SplatFileError(path, f"{name} is not a WebP image")
+        self.size = width, height = size
+        if width * height > MAX_IMAGE_PIXELS:
+            raise SplatFileError(
+                path, f"{name} is {width}x{height} pixels, more than the {MAX_IMAGE_PIXELS} an image may have"
+            )
+        if not least <= width * height <= most:
+            raise SplatFileError(path, f"{name} is {width}x{height} pixels for {what}")
+
+    def pixels(self):
+        """(H*W, 4) uint8 RGBA."""
+        try:
+            with _pillow(self.path).open(io.BytesIO(self.data)) as image:
+                if image.format != "WEBP" or image.size != self.size:
+                    raise SplatFileError(self.path, f"{self.name} decodes to {image.size}, its header says {self.size}")
+                pixels = np.asarray(image.convert("RGBA"))
+        except SplatFileError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - Pillow raises many types for damaged images
+            raise SplatFileError(self.path, f"{self.name} is not a readable WebP image: {exc}") from None
+        return pixels.reshape(-1, 4)
+
+
+def _splat_image(path, source, name, count):
+    """A per-splat image: at least `count` pixels, at most what a writer's padding adds."""
+    return _Image(path, source, name, count, 4 * count + (1 << 20), f"{count} splats")
 
 
 def _meta(path, source):
     try:
-        meta = json.loads(source.read("meta.json") if source.zip is not None else Path(path).read_bytes())
-    except OSError as exc:
-        raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
-    except (UnicodeDecodeError, ValueError) as exc:
+        meta = json.loads(source.meta())
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise SplatFileError(path, f"meta.json is not valid JSON: {exc}") from None
     if not isinstance(meta, dict):
         raise SplatFileError(path, "meta.json must hold an object")
@@ -149,29 +221,60 @@ def _meta(path, source):
         count = int(meta["count"])
         mins, maxs = (np.asarray(meta["means"][k], np.float64) for k in ("mins", "maxs"))
         codebooks = {k: np.asarray(meta[k]["codebook"], np.float32) for k in ("scales", "sh0")}
-        files = {k: list(meta[k]["files"]) for k in ("means", "scales", "quats", "sh0")}
-    except (KeyError, TypeError, ValueError) as exc:
+        files = {k: _files(path, meta[k], k, len(FILES[k])) for k in ("means", "scales", "quats", "sh0")}
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise SplatFileError(path, f"meta.json lacks or garbles {exc}") from None
     if count < 0 or mins.shape != (3,) or maxs.shape != (3,) or any(c.shape != (CODEBOOK,) for c in codebooks.values()):
         raise SplatFileError(path, "meta.json: count, means.mins/maxs (3 each) or 256-entry codebooks are malformed")
     return meta, count, mins, maxs, codebooks, files
 
 
+def _files(path, section, key, number):
+    """The `number` image names a section of meta.json lists."""
+    names = section.get("files") if isinstance(section, dict) else None
+    if not isinstance(names, list) or len(names) != number or not all(isinstance(n, str) and n for n in names):
+        raise SplatFileError(path, f"meta.json: {key}.files must list {number} image names, not {names!r:.100}")
+    return names
+
+
+def _sh_meta(path, shn):
+    """(SH degree, palette entries, codebook, image names) of meta.json's shN."""
+    try:
+        bands, count = int(shn["bands"]), int(shn["count"])
+        codebook = np.asarray(shn["codebook"], np.float32)
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise SplatFileError(path, f"meta.json shN lacks or garbles {exc}") from None
+    if bands not in SH_COEFFS or codebook.shape != (CODEBOOK,) or not 0 < count <= PALETTE_MAX:
+        raise SplatFileError(path, f"meta.json shN: bands {bands}, count {count} or its codebook is malformed")
+    return bands, count, codebook, _files(path, shn, "shN", 2)
+
+
 def decode(path, source):
+    """The cloud a SOG holds; every image's size and the count checked before any is decoded."""
     meta, n, mins, maxs, codebooks, files = _meta(path, source)
-    lo, hi = (_image(path, source, name, n)[:n] for name in files["means"][:2])
+    images = {key: [_splat_image(path, source, name, n) for name in names] for key, names in files.items()}
+    sh_rest = _sh_images(path, source, _sh_meta(path, meta["shN"]), n) if meta.get("shN") else None
+    numbers = n * (3 + 4 + 3 + 1 + 3 * (1 + (sh_rest[1] if sh_rest else 0)))
+    limit = max(SOG_RATIO_FLOOR, SOG_MAX_RATIO * source.stored)
+    if numbers > limit:
+        raise SplatFileError(
+            path,
+            f"meta.json claims {n} splats, {numbers} numbers to decode: more than the {limit} a SOG storing "
+            f"{source.stored} bytes may decode to (a decompression bomb?)",
+        )
+    lo, hi = (image.pixels()[:n] for image in images["means"])
     quantised = lo[:, :3].astype(np.float64) + 256.0 * hi[:, :3]
     ranges = np.where(maxs - mins == 0, 1.0, maxs - mins)
     logs = mins + ranges * quantised / 65535
     positions = np.sign(logs) * np.expm1(np.abs(logs))
-    rotations = _unpack_quats(path, _image(path, source, files["quats"][0], n)[:n])
-    scales = codebooks["scales"][_image(path, source, files["scales"][0], n)[:n, :3]]
-    sh0 = _image(path, source, files["sh0"][0], n)[:n]
+    rotations = _unpack_quats(path, images["quats"][0].pixels()[:n])
+    scales = codebooks["scales"][images["scales"][0].pixels()[:n, :3]]
+    sh0 = images["sh0"][0].pixels()[:n]
     dc = codebooks["sh0"][sh0[:, :3]]
     logits = logit(sh0[:, 3] / 255.0)
     sh = dc[:, None, :]
-    if meta.get("shN"):
-        sh = np.concatenate([sh, _sh_rest(path, source, meta["shN"], n)], axis=1)
+    if sh_rest:
+        sh = np.concatenate([sh, _sh_rest(*sh_rest, n)], axis=1)
     return SplatCloud(positions, rotations, scales, logits, sh)
 
 
@@ -180,34 +283,28 @@ def _unpack_quats(path, rgba):
     bad = (tag < 0) | (tag > 3)
     tag = np.where(bad, 0, tag)
     abc = (rgba[:, :3] / 255.0 * 2 - 1) / SQRT2
-    q = np.zeros((len(rgba), 4))
-    others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[tag]
-    rows = np.arange(len(rgba))
-    for i in range(3):
-        q[rows, others[:, i]] = abc[:, i]
-    q[rows, tag] = np.sqrt(np.maximum(0, 1 - (abc * abc).sum(axis=1)))
+    largest = np.sqrt(np.maximum(0, 1 - (abc * abc).sum(axis=1)))
+    q = np.empty((len(rgba), 4))
+    for j in range(4):  # component j is abc[j] before the largest, abc[j - 1] after it (column-wise: fast)
+        q[:, j] = np.where(tag == j, largest, np.where(j < tag, abc[:, min(j, 2)], abc[:, max(j - 1, 0)]))
     q[bad] = (1, 0, 0, 0)  # as the reference decoder does
     return q
 
 
-def _sh_rest(path, source, shn, n):
-    try:
-        bands, count = int(shn["bands"]), int(shn["count"])
-        codebook = np.asarray(shn["codebook"], np.float32)
-        names = list(shn["files"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise SplatFileError(path, f"meta.json shN lacks or garbles {exc}") from None
-    if bands not in SH_COEFFS or codebook.shape != (CODEBOOK,) or not 0 < count <= PALETTE_MAX:
-        raise SplatFileError(path, f"meta.json shN: bands {bands}, count {count} or its codebook is malformed")
-    k = SH_COEFFS[bands]
-    centroids = _image(path, source, names[0], 0)
+def _sh_images(path, source, sh_meta, n):
+    """(palette entries, coefficients per entry, codebook, centroids image, labels image)."""
+    _, count, codebook, names = sh_meta
+    k = SH_COEFFS[sh_meta[0]]
+    texels = -(-count // 64) * 64 * k  # rows of 64 entries, k texels each
+    centroids = _Image(path, source, names[0], texels, texels + (1 << 20), f"{count} palette entries")
+    return count, k, codebook, centroids, _splat_image(path, source, names[1], n)
+
+
+def _sh_rest(count, k, codebook, centroids, labels, n):
+    """(n, k, 3) SH above degree 0 from the palette and each splat's label."""
     rows = -(-count // 64)
-    if len(centroids) < rows * 64 * k:
-        raise SplatFileError(
-            path, f"{names[0]} holds {len(centroids)} texels, {count} palette entries need {rows * 64 * k}"
-        )
-    palette = codebook[centroids[: rows * 64 * k, :3]].reshape(rows * 64, k, 3)
-    labels = _image(path, source, names[1], n)[:n]
+    palette = codebook[centroids.pixels()[: rows * 64 * k, :3]].reshape(rows * 64, k, 3)
+    labels = labels.pixels()[:n]
     index = labels[:, 0].astype(np.int64) | (labels[:, 1].astype(np.int64) << 8)
     out = np.zeros((n, k, 3), np.float32)
     ok = index < count
@@ -215,13 +312,14 @@ def _sh_rest(path, source, shn, n):
     return out
 
 
-def read(path, nonfinite="raise"):
-    """Read a .sog bundle or a SOG meta.json (with its images beside it) into a SplatCloud."""
+def read(path, nonfinite="raise", allow_outside=False):
+    """Read a .sog bundle or a SOG meta.json (with its images beside it) into a SplatCloud.
+    allow_outside: also read loose images outside the meta.json's folder (special files never)."""
     check_nonfinite_policy(nonfinite)
     if not Path(path).is_file():
         raise SplatFileError(path, "no such file")
     _pillow(path)
-    source = _Source(path)
+    source = _Source(path, allow_outside)
     try:
         with np.errstate(invalid="ignore", over="ignore"):
             cloud = decode(path, source)
