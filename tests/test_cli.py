@@ -1,6 +1,7 @@
 """The `splatwright` command line: info and convert, checked against the clouds the tests wrote."""
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -296,3 +297,73 @@ def test_options_in_range_still_render(capsys, scene, tmp_path):
     )
     assert code == 0, err
     assert "at 16x12" in stdout and out.read_bytes()[16:24] == (16).to_bytes(4, "big") + (12).to_bytes(4, "big")
+
+
+# hostile and damaged files: one line, exit 1; names outside the folder only with --allow-outside ----
+
+
+def damaged_files(folder):
+    """Files of every format our writers make, cut short (not at a record boundary) or to four bytes."""
+    from splatwright.io import write_splats
+
+    cloud = random_cloud(30, sh_degree=1, seed=9)
+    for name in ("a.ply", "b.compressed.ply", "c.spz", "d.splat", "e.sog", "f.glb", "g.usdc", "h.usda"):
+        path = folder / name
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SplatFileWarning)  # formats that drop SH degree 1
+            write_splats(path, cloud)
+        data = path.read_bytes()
+        yield path.with_name(f"cut_{name}"), data[: len(data) // 2 - 1]
+        yield path.with_name(f"four_{name}"), data[:4]
+
+
+def test_damaged_files_of_every_format_exit_1_with_one_line(capsys, tmp_path):
+    for path, data in damaged_files(tmp_path):
+        path.write_bytes(data)
+        verbs = (["info", path], ["convert", path, tmp_path / "out.ply"], ["render", path, "-o", tmp_path / "o.png"])
+        for argv in verbs:
+            code, _, err = run(capsys, *argv)
+            assert code == 1, (argv, err)
+            assert err.startswith(f"splatwright {argv[0]}: error: ") and err.count("\n") == 1, err
+            assert path.name in err and "Traceback" not in err
+    assert not (tmp_path / "out.ply").exists() and not (tmp_path / "o.png").exists()
+
+
+def test_system_errors_name_the_file_and_exit_1_but_defects_keep_their_traceback(capsys, scene, monkeypatch):
+    import splatwright.io
+
+    path, _ = scene
+    for error, words in (
+        (PermissionError(13, "Permission denied", str(path)), f"{path}: Permission denied"),
+        (MemoryError(), f"{path}: not enough memory for it"),
+    ):
+
+        def fail(*args, error=error, **kwargs):
+            raise error
+
+        monkeypatch.setattr(splatwright.io, "read_splats", fail)
+        code, _, err = run(capsys, "info", path)
+        assert code == 1 and err == f"splatwright info: error: {words}\n"
+    monkeypatch.setattr(splatwright.io, "read_splats", lambda *a, **k: [][1])  # a defect, not a bad file
+    with pytest.raises(IndexError):
+        main(["info", str(path)])
+
+
+def test_allow_outside_lets_a_file_name_files_outside_its_folder(capsys, tmp_path):
+    from splatwright.io import gltf
+
+    model = tmp_path / "model"
+    model.mkdir()
+    gltf.write(model / "v.gltf", random_cloud(5, sh_degree=0, seed=3))
+    (model / "v.bin").rename(tmp_path / "v.bin")
+    doc = json.loads((model / "v.gltf").read_text())
+    doc["buffers"][0]["uri"] = "../v.bin"
+    (model / "v.gltf").write_text(json.dumps(doc))
+    code, _, err = run(capsys, "info", model / "v.gltf")
+    assert code == 1 and "v.gltf" in err and "../v.bin" in err and err.count("\n") == 1
+    code, out, err = run(capsys, "info", model / "v.gltf", "--allow-outside", "--json")
+    assert code == 0, err
+    assert json.loads(out)["count"] == 5
+    with pytest.raises(SystemExit) as exc:
+        main(["info", "--allow-outside"])
+    assert exc.value.code == 2
