@@ -500,7 +500,8 @@ def encode(cloud, generator="Splatwright"):
 
 
 def write(path, cloud, nonfinite="raise"):
-    """Write a .glb (one file) or a .gltf with its buffer in `<name>.bin` beside it."""
+    """Write a .glb (one file) or a .gltf with its buffer in `<name>.bin` beside it (through a
+    symbolic link: beside the file it names, as `<that name>.bin`)."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     if cloud.extras:
         warnings.warn(
@@ -511,7 +512,8 @@ def write(path, cloud, nonfinite="raise"):
     warn_notes(path, notes)
     doc, binary = encode(cloud)
     if str(path).lower().endswith(".gltf"):
-        bin_path = Path(path).with_suffix(".bin")
+        # beside the file a symbolic link names, which names it by a relative URI
+        bin_path = Path(os.path.realpath(path)).with_suffix(".bin")
         doc["buffers"][0]["uri"] = bin_path.name
         with publish_together():  # both files, or neither
             with atomic_write(bin_path) as f:

@@ -459,7 +459,8 @@ def encode(path, cloud):
 
 
 def write(path, cloud, order="morton", nonfinite="raise"):
-    """Write a .sog bundle, or (a path ending in meta.json) meta.json and its WebP images beside it.
+    """Write a .sog bundle, or (a path ending in meta.json) meta.json and its WebP images beside it
+    (through a symbolic link: beside the file it names).
     order="morton" sorts the splats along a Morton curve as PlayCanvas does; None keeps the order."""
     _pillow(path)
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
@@ -478,7 +479,7 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     warn_notes(path, notes)
     files = encode(path, cloud)
     if str(path).lower().endswith("meta.json"):
-        folder = Path(path).parent
+        folder = Path(os.path.realpath(path)).parent  # beside the file a symbolic link names
         with publish_together():  # meta.json and its images, or none of them
             for name, data in files.items():
                 if name != "meta.json":

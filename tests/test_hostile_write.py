@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from helpers import PLATFORM_SKIP, random_cloud
 
-from splatwright.io import SplatFileError, common, read_splats, write_splats
+from splatwright.io import SplatFileError, common, read_splats, sog, write_splats
 from splatwright.io.exr import read_exr
 from splatwright.io.image import write_image
 
@@ -436,3 +436,22 @@ def test_openusd_failing_to_save_is_a_splat_file_error_and_leaves_nothing(tmp_pa
         write("usdc", path)
     assert exc.value.path == str(path) and os.listdir(tmp_path) == []
     assert capfd.readouterr().err == ""
+
+
+@pytest.mark.parametrize("made", [True, False], ids=["existing", "dangling"])
+@pytest.mark.parametrize("link_name, real_name", [("x.gltf", "real.gltf"), ("meta.json", "meta.json")])
+def test_companion_files_land_beside_the_file_a_symlink_names(tmp_path, made, link_name, real_name):
+    """A .gltf names its .bin, a SOG meta.json its images, by a name relative to itself: they go
+    beside the file the link points to, and both the link and that file read back."""
+    (tmp_path / "A").mkdir()
+    (tmp_path / "B").mkdir()
+    real, link = tmp_path / "B" / real_name, tmp_path / "A" / link_name
+    if made:
+        write_splats(real, random_cloud(10, sh_degree=1))
+    link.symlink_to(real)
+    write_splats(link, random_cloud(40, sh_degree=1, seed=2))
+    assert os.listdir(tmp_path / "A") == [link_name] and link.is_symlink()
+    images = [name for names in sog.FILES.values() for name in names]
+    expected = ["real.bin", "real.gltf"] if real_name == "real.gltf" else ["meta.json", *images]
+    assert sorted(os.listdir(tmp_path / "B")) == sorted(expected)
+    assert len(read_splats(real)) == 40 and len(read_splats(link)) == 40
