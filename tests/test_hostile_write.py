@@ -250,6 +250,7 @@ def test_a_symlink_is_written_through(tmp_path, kind):
     assert link.is_symlink() and os.readlink(link) == str(real)
     assert count(kind, real) == 40
     assert os.listdir(tmp_path / "store") == [real.name]
+    assert sorted(os.listdir(tmp_path)) == sorted(["store", link.name])  # nothing written beside the link
 
 
 @pytest.mark.parametrize("kind", KINDS)
