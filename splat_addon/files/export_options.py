@@ -1,11 +1,11 @@
-"""What an export writes beyond the splats themselves: SH degree (reduced on export), SPZ version,
-half floats for OpenUSD and pruning of faint splats. The export and animation export operators take
+"""What an export writes beyond the splats themselves: SH degree (reduced on export), SPZ version and
+axes, half floats for OpenUSD and pruning of faint splats. The export and animation export operators take
 them as properties (unset ones come from the preferences), the command verb as flags."""
 
 from dataclasses import dataclass
 
 import bpy
-from bpy.props import FloatProperty
+from bpy.props import EnumProperty, FloatProperty
 from bpy_extras.io_utils import ExportHelper
 
 from ...core import economy
@@ -22,12 +22,15 @@ class ExportOptions:
     spz_version: int = 3
     half: bool = False  # OpenUSD half floats
     prune_opacity: float = 0.0  # splats whose opacity is below this are left out (0: none)
+    spz_axes: str = "rub"  # the axes an SPZ stores: SPZ's documented RUB, or PLY's RDF
 
     def __post_init__(self):
         if self.sh_degree is not None and self.sh_degree not in range(shmod.MAX_DEGREE + 1):
             raise ValueError(f"SH degree must be 0..{shmod.MAX_DEGREE}, got {self.sh_degree}")
         if self.spz_version not in (2, 3, 4):
             raise ValueError(f"SPZ version must be 2, 3 or 4, got {self.spz_version}")
+        if self.spz_axes not in ("rub", "rdf"):
+            raise ValueError(f"SPZ axes must be rub or rdf, got {self.spz_axes}")
         if not 0.0 <= self.prune_opacity <= 1.0:
             raise ValueError(f"the opacity to prune below must be in [0, 1], got {self.prune_opacity}")
 
@@ -53,17 +56,22 @@ class ExportOptions:
             return {
                 "version": max(self.spz_version, SPZ_VERSION_OF_DEGREE_4)
                 if cloud is not None and cloud.sh_degree == 4
-                else self.spz_version
+                else self.spz_version,
+                "spz_axes": self.spz_axes,
             }
         if fmt == "usd":
             return {"half": self.half}
         return {}
 
 
-def from_settings(sh_degree="KEEP", spz_version="3", use_half=False, prune_opacity=0.0):
+def from_settings(sh_degree="KEEP", spz_version="3", use_half=False, prune_opacity=0.0, spz_axes="RUB"):
     """ExportOptions from the property values (enum identifiers as the properties hold them)."""
     return ExportOptions(
-        None if sh_degree == "KEEP" else int(sh_degree), int(spz_version), bool(use_half), float(prune_opacity)
+        None if sh_degree == "KEEP" else int(sh_degree),
+        int(spz_version),
+        bool(use_half),
+        float(prune_opacity),
+        spz_axes.lower(),
     )
 
 
@@ -84,11 +92,20 @@ class ExportOptionProperties:
         max=1.0,
         description="Leave out splats fainter than this (0 keeps every splat)",
     )
+    spz_axes: EnumProperty(
+        name="SPZ Axes",
+        items=(
+            ("RUB", "RUB", "SPZ's documented axes (x right, y up, z back), as Niantic's library and Blender read SPZ"),
+            ("RDF", "RDF", "PLY's axes (x right, y down, z front), as splat-transform reads SPZ"),
+        ),
+        default="RUB",
+        description="The axes an SPZ file stores (.spz files only); v4 files name them in a record",
+    )
 
     def export_options(self, context):
         prefs = preferences.current(context)
         values = {name: getattr(self if self.properties.is_property_set(name) else prefs, name) for name in PREFERRED}
-        return from_settings(**values, prune_opacity=self.prune_opacity)
+        return from_settings(**values, prune_opacity=self.prune_opacity, spz_axes=self.spz_axes)
 
     def invoke(self, context, event):
         """The dialog opens on the preferences' options and format."""

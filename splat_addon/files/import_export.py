@@ -4,11 +4,11 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, CollectionProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, EnumProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper, axis_conversion, orientation_helper
 
 from ...core import SplatCloud
-from ...io import FORMATS, READ_ONLY, SplatFileError, read_splats, write_splats
+from ...io import FORMATS, READ_ONLY, SplatFileError, format_of, read_splats, write_splats
 from ...io.common import nonfinite_counts
 from .. import data
 from ..data.display import DISPLAY_BUDGET, add_display
@@ -39,13 +39,51 @@ def export_conversion(forward=None, up=None):
     return axis_conversion(to_forward=forward or FILE_FORWARD, to_up=up or FILE_UP).to_4x4()
 
 
-def read_cloud(path, drop_invalid, report, allow_outside=False):
+def read_cloud(path, drop_invalid, report, allow_outside=False, spz_axes=None):
     """Read a splat file, passing the format's warnings on as Blender warnings. Splats with NaN/Inf
     cannot be drawn or rendered: with `drop_invalid` they are dropped (and counted in a warning),
     otherwise the file is refused. allow_outside: follow the names of other files the file makes
-    (OpenUSD layers, glTF buffers, SOG images) outside its folder too (io.policy)."""
+    (OpenUSD layers, glTF buffers, SOG images) outside its folder too (io.policy). spz_axes: the axes
+    an SPZ file's values are in ("rub", "rdf"; None: its coordinate-system record's, else RUB)."""
+    options = {"spz_axes": spz_axes} if spz_axes and format_of(path) == "spz" else {}
     with data.reported_warnings(report):
-        return read_splats(path, nonfinite="drop" if drop_invalid else "raise", allow_outside=allow_outside)
+        return read_splats(path, nonfinite="drop" if drop_invalid else "raise", allow_outside=allow_outside, **options)
+
+
+SPZ_AXES_ITEMS = (
+    ("AUTO", "Auto", "What the file's coordinate-system record says, else RUB (SPZ's documented axes)"),
+    ("RUB", "RUB", "SPZ's documented axes: x right, y up, z back"),
+    ("RDF", "RDF", "PLY's axes, as many SPZ files without a record hold them (read as RUB they stand upside down)"),
+)
+
+
+PLACEMENT_ITEMS = (
+    ("UPRIGHT", "Upright (Splatwright)", "The file's values as they are, stood upright by the object's transform"),
+    (
+        "BLENDER",
+        "As Blender's Importer",
+        "Where Blender 5.3's own importers put a file: an SPZ turned upright in its values, a PLY in the "
+        "file's axes (on its side), both with no transform; other formats upright",
+    ),
+)
+
+
+def spz_axes_option(value):
+    """The io layer's spz_axes for an SPZ Axes property value (None: auto)."""
+    return None if value == "AUTO" else value.lower()
+
+
+def placed(cloud, path, conversion, as_blender):
+    """(values, object matrix, whether the values are the file's axes as they are) for a file's cloud.
+    Splatwright keeps the values and stands them upright by the object's matrix (`conversion`); as
+    Blender 5.3's own importers do, an SPZ's values are turned upright instead and a PLY's left in the
+    file's axes (a capture on its side), both at the identity, so clouds imported either way share a
+    scene. Formats Blender imports no splats from are placed upright."""
+    if as_blender and format_of(path) == "spz":
+        return data.transform_cloud(cloud, np.array(conversion, dtype=np.float64)), np.eye(4), False
+    if as_blender and format_of(path) == "ply":
+        return cloud, np.eye(4), True
+    return cloud, conversion, False
 
 
 def finite_for_export(path, cloud, drop_invalid, report):
@@ -89,6 +127,15 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         description="Also read the files a splat file names (OpenUSD layers, glTF buffers, SOG images) from "
         "outside its folder. Only for files you trust: a hostile file could then read any file on this machine",
     )
+    spz_axes: EnumProperty(
+        name="SPZ Axes", items=SPZ_AXES_ITEMS, default="AUTO", description="The axes an SPZ file's values are in"
+    )
+    placement: EnumProperty(
+        name="Placement",
+        items=PLACEMENT_ITEMS,
+        default="UPRIGHT",
+        description="Where the splats stand: one scene stays in one place when importers are mixed",
+    )
 
     def _paths(self):
         names = [f.name for f in self.files if f.name]
@@ -105,7 +152,8 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         try:
             clouds = []
             for i, path in enumerate(paths):  # read everything first: a bad file changes nothing
-                clouds.append(read_cloud(path, self.drop_invalid, self.report, self.allow_outside))
+                spz_axes = spz_axes_option(self.spz_axes)
+                clouds.append(read_cloud(path, self.drop_invalid, self.report, self.allow_outside, spz_axes))
                 progress.update(i + 1)
             objects = self._create(context, paths, clouds, progress)
         except EXPECTED_ERRORS as exc:
@@ -128,9 +176,11 @@ class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
         try:
             for i, (path, cloud) in enumerate(zip(paths, clouds)):
                 forward, up = self.axis_forward, self.axis_up
-                matrix = axis_conversion(from_forward=forward, from_up=up).to_4x4()
+                conversion = axis_conversion(from_forward=forward, from_up=up).to_4x4()
+                cloud, matrix, raw = placed(cloud, path, conversion, self.placement == "BLENDER")
                 obj, skipped = data.new_splat_object(cloud, path.stem, collection, matrix)
                 created.append(obj)
+                data.stamp_landing(obj, raw)
                 add_display(obj, min(1.0, DISPLAY_BUDGET / max(len(cloud), 1)))  # mesh form only
                 if skipped:
                     self.report(
