@@ -117,7 +117,7 @@ def _add_spz_axes(p, what=SPZ_INPUT_AXES):
     p.add_argument(
         "--spz-axes",
         choices=("rub", "rdf"),
-        help=f"{what}; rdf for files holding PLY's axes without saying so (upside down and mirrored when read as RUB)",
+        help=f"{what}; rdf for files holding PLY's axes without saying so (upside down when read as RUB)",
     )
 
 
