@@ -1,0 +1,55 @@
+"""The Blender extension imports the read-only formats through read_splats: .ksplat (a file of the
+layout tests/test_new_readers.py writes and splat-transform reads) and streamed SOG, whose WebP
+images Blender's own Python cannot decode (no Pillow): refused by name, nothing made."""
+
+import json
+
+import numpy as np
+import pytest
+from blender_session import blender_fixture
+from helpers import random_cloud
+
+from splatwright.io import read_splats, write_splats
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+
+def _write_inputs(work):
+    from test_new_readers import ksplat_cloud, write_ksplat
+
+    write_ksplat(work / "a.ksplat", ksplat_cloud(n=120, degree=2, seed=60), level=1, sections=2)
+    unit = work / "scene" / "0_0" / "meta.json"
+    unit.parent.mkdir(parents=True)
+    write_splats(unit, random_cloud(30, sh_degree=0, seed=61))
+    meta = {"version": 1, "lodLevels": 1, "counts": [30], "filenames": ["0_0/meta.json"],
+            "tree": {"lods": {"0": {"file": 0, "offset": 0, "count": 30}}}}  # fmt: skip
+    (work / "scene" / "lod-meta.json").write_text(json.dumps(meta))
+
+
+blender = blender_fixture("workers.new_readers", _write_inputs)
+
+
+def test_import_dialog_offers_the_read_only_formats_and_export_does_not(blender):
+    globs = blender.step("dialogs")
+    assert {"*.ksplat", "*lod-meta.json", "*.ply", "*.sog"} <= set(globs["import"].split(";"))
+    exported = set(globs["export"].split(";"))
+    assert "*.ply" in exported and not {"*.ksplat", "*lod-meta.json"} & exported
+
+
+def test_ksplat_imports_and_exports_back_as_read(blender):
+    res = blender.step("imports")["ksplat"]
+    assert res["result"] == ["FINISHED"] and res["objects"] == 1 and res["count"] == 120, res
+    assert res["export"]["result"] == ["FINISHED"], res["export"]
+    want = read_splats(blender.work / "a.ksplat")
+    got = read_splats(blender.out / "a_back.ply")
+    np.testing.assert_allclose(got.positions, want.positions, atol=1e-5)
+    np.testing.assert_allclose(got.log_scales, want.log_scales, atol=1e-5)
+    np.testing.assert_allclose(got.sh, want.sh, atol=1e-4)
+    cos = np.abs((got.unit_rotations * want.unit_rotations).sum(axis=1))
+    assert cos.min() > 1 - 1e-6
+
+
+def test_streamed_sog_is_refused_by_name_without_pillow(blender):
+    res = blender.step("imports")["streamed"]
+    assert res["result"] == ["CANCELLED"] and res["objects"] == 0, res
+    assert "meta.json" in res["error"] and "WebP" in res["error"] and "Traceback" not in res["error"]
