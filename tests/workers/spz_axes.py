@@ -61,6 +61,7 @@ class SpzAxesWorker(BlenderWorker):
             self.record(tag, obj)
             self.bpy.data.objects.remove(obj)
         self.record("tagged_blender", self.imported("tagged.spz", "blender"))
+        self.record("tagged3_blender", self.imported("tagged3.spz", "blender"))
         return {}
 
     def spz_axes_export(self):
