@@ -1,65 +1,192 @@
 """Every format both ways against independent tools, installed from their registries on first use
 (see tests/interop.py): values equal, or within the format's quantisation, at SH degrees 0..3.
+Tools reorder splats when they write (splat-transform and spz-js into Morton order), so splats are
+compared in any order (interop.matched pairs them by centre).
 
 | format | they read ours | we read theirs |
-| SPZ v2/v3/v4 | Niantic's library (@adobe/spz), gsply | Niantic's library (byte-identical), gsply |
-Further rows sit with their formats below.
+| PLY | splat-transform, gsply, spz-js, plyfile (bit-exact) | the same four (bit-exact) |
+| compressed PLY | splat-transform, gsply, spz-js | splat-transform, gsply, spz-js |
+| SPZ | Niantic's library (@adobe/spz, v2-v4), gsply (v3, v4), splat-transform (v2-v4), spz-js (v2) |
+|     | Niantic's library and splat-transform (our bytes identical to theirs), gsply, spz-js |
+| SOG | splat-transform, gsply | splat-transform (and its layout is ours) |
+| glTF | glTF Transform | splat-transform (.glb) |
+| .splat | splat-transform | ply2splat |
+| OpenUSD | OpenUSD's own schema (usd-core) | NVIDIA's usd-convert-gsplat |
 """
+
+import io
+import json
+import zipfile
 
 import numpy as np
 import pytest
 from helpers import random_cloud, rebuilt_rotation_bound
 from interop import (
+    assert_same_splats,
+    batch,
     cloud_from_arrays,
+    cloud_from_niantic,
+    cloud_from_ply_properties,
     load_arrays,
     load_json,
     matched,
+    niantic_arrays,
     node,
     ply_arrays,
+    ply_properties,
     python,
     save_arrays,
     save_json,
     splat_transform,
 )
-from test_spz_splat import check_spz_error, in_range_cloud, spz_rotation_bound
+from test_spz_splat import FLIP_SIGNS, check_spz_error, in_range_cloud, spz_rotation_bound, v2_rotation_bound
 
-from splatwright.core import SplatCloud
 from splatwright.io import read_splats, spz, usd, write_splats
 
 pytestmark = pytest.mark.slow
 DEGREES = [0, 1, 2, 3]
+# SPZ in the PLY's axes (RDF), with no turn to SPZ's RUB: how splat-transform 3.7.0, gsply and spz-js
+# store it (our files so written name the axes in a coordinate-system record)
+SPZ_RDF = {"spz_axes": "rdf"}
+
+
+def check_spz(got, want, **bounds):
+    """`got` (in any order) is `want` within SPZ's quantisation (test_spz_splat.check_spz_error)."""
+    check_spz_error(matched(got, want), want, **bounds)
+
+
+def turned_yz(cloud):
+    """The cloud seen with y and z reversed (a half turn about x): positions and the quaternion's y, z
+    negated, each SH coefficient by its parity (test_spz_splat.FLIP_SIGNS, worked out by hand)."""
+    signs = FLIP_SIGNS[: cloud.sh.shape[1], None]
+    return cloud.replace(
+        positions=cloud.positions * np.float32([1, -1, -1]),
+        rotations=cloud.rotations * np.float32([1, 1, -1, -1]),
+        sh=cloud.sh * signs,
+    )
+
+
+# PLY -----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_ply_both_ways(tmp_path, degree):
+    """Every tool reads our PLY's values bit for bit, and writes values we read bit for bit (plyfile
+    in ASCII and big-endian too, properties in reverse order, positions as doubles)."""
+    cloud = random_cloud(200, sh_degree=degree, seed=degree)
+    ours = tmp_path / "ours.ply"
+    write_splats(ours, cloud)
+    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
+    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
+    save_arrays(tmp_path / "props.npz", **dict(reversed(ply_properties(cloud).items())))
+    splat_transform(ours, tmp_path / "splat-transform.ply")
+    python(
+        "gsply",
+        "gsply_tool.py",
+        *batch(["read-ply", ours, "g.npz"], ["write-ply", "cloud.npz", "gsply.ply"]),
+        cwd=tmp_path,
+    )
+    node("spz_js.mjs", *batch(["read-ply", ours, "js.json"], ["write-ply", "cloud.json", "spz-js.ply"]), cwd=tmp_path)
+    python(
+        "plyfile",
+        "plyfile_tool.py",
+        *batch(
+            ["read", ours, "plyfile.npz"],
+            ["write", "props.npz", "plyfile-ascii.ply", "ascii"],
+            ["write", "props.npz", "plyfile-big-endian.ply", "binary_big_endian"],
+        ),
+        cwd=tmp_path,
+    )
+    plyfile_read = load_arrays(tmp_path / "plyfile.npz")
+    assert (
+        list(plyfile_read["names"])
+        == list(ply_properties(cloud))[:3] + ["nx", "ny", "nz"] + list(ply_properties(cloud))[3:]
+    )
+    readings = {
+        "gsply": cloud_from_arrays(load_arrays(tmp_path / "g.npz")),
+        "spz-js": cloud_from_niantic(load_json(tmp_path / "js.json")),
+        "plyfile": cloud_from_ply_properties(plyfile_read),
+    }
+    for name in ("splat-transform", "gsply", "spz-js", "plyfile-ascii", "plyfile-big-endian"):
+        readings[f"our reading of {name}'s"] = read_splats(tmp_path / f"{name}.ply")
+    for name, got in readings.items():
+        got = matched(got, cloud)
+        for field in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(cloud, field), err_msg=f"{name}: {field}")
+
+
+# compressed PLY ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_compressed_ply_both_ways(tmp_path, degree):
+    """Each tool's decoding of our file is ours; each tool's file decodes the same for it and for us,
+    and is the source within the layout's quantisation."""
+    cloud = random_cloud(600, sh_degree=degree, seed=20 + degree)
+    cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -3.9, 3.9)
+    write_splats(tmp_path / "src.ply", cloud)
+    write_splats(tmp_path / "ours.compressed.ply", cloud)
+    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
+    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
+    ours = read_splats(tmp_path / "ours.compressed.ply")
+    splat_transform(tmp_path / "src.ply", tmp_path / "st.compressed.ply")
+    python(
+        "gsply",
+        "gsply_tool.py",
+        *batch(
+            ["read-ply", "ours.compressed.ply", "g.npz"],
+            ["write-compressed", "cloud.npz", "gs.compressed.ply"],
+            ["read-ply", "gs.compressed.ply", "gs.npz"],
+        ),
+        cwd=tmp_path,
+    )
+    node(
+        "spz_js.mjs",
+        *batch(
+            ["read-compressed", "ours.compressed.ply", "js.json"],
+            ["write-compressed", "cloud.json", "js.compressed.ply"],
+            ["read-compressed", "js.compressed.ply", "js-theirs.json"],
+        ),
+        cwd=tmp_path,
+    )
+    # spz-js decodes SH bytes b as 8 b / 255 - 4 where we and splat-transform take the bucket's centre,
+    # 8 (b + 0.5) / 256 - 4 (at most 1/64 apart), and its reader (1.2.5) fills the SH bands of degrees
+    # 1 and 2 from the wrong places (its loop over colour channels stops at the SH degree): there it is
+    # compared without them
+    spz_js = dict(sh=1 / 64 + 1e-6)
+    spz_js_view = (lambda c: c) if degree in (0, 3) else (lambda c: c.with_sh_degree(0))  # noqa: E731
+    # they read ours
+    assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.compressed.ply", "a.ply"), ours)
+    assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
+    assert_same_splats(spz_js_view(cloud_from_niantic(load_json(tmp_path / "js.json"))), spz_js_view(ours), **spz_js)
+    # theirs, read by us: what they read in it, and the source within the layout's quantisation
+    theirs = {
+        "st": transform_ply(tmp_path, tmp_path / "st.compressed.ply", "b.ply"),
+        "gs": cloud_from_arrays(load_arrays(tmp_path / "gs.npz")),
+    }
+    for name, their_reading in theirs.items():
+        got = read_splats(tmp_path / f"{name}.compressed.ply")
+        assert_same_splats(got, their_reading)
+        check_compressed_error(matched(got, cloud), cloud)
+    got = read_splats(tmp_path / "js.compressed.ply")
+    assert_same_splats(
+        spz_js_view(got), spz_js_view(cloud_from_niantic(load_json(tmp_path / "js-theirs.json"))), **spz_js
+    )
+    check_compressed_error(matched(got, cloud), cloud)
+
+
+def check_compressed_error(got, want):
+    """Bounds of the compressed layout: 10-11 bits of each chunk's range (at most the cloud's),
+    8 bits of colour range and opacity, SH bytes of 1/32 (truncated by spz-js: a whole step)."""
+    span = lambda a: a.max(axis=0) - a.min(axis=0)  # noqa: E731
+    assert (np.abs(got.positions - want.positions) <= span(want.positions) / 2046 + 1e-6).all()
+    assert (np.abs(got.log_scales - want.log_scales) <= span(want.log_scales) / 2046 + 1e-5).all()
+    assert np.abs(got.opacities - want.opacities).max() <= 0.5 / 255 + 1e-6
+    if want.sh_degree:
+        assert np.abs(got.sh[:, 1:] - want.sh[:, 1:]).max() <= 1 / 32 + 1e-6
 
 
 # SPZ ------------------------------------------------------------------------------------------------
-
-
-def niantic_arrays(cloud):
-    """The reference library's GaussianCloud fields (RDF, like the model): xyzw quaternions, SH
-    coefficient-major with the channel fastest."""
-    n, k = len(cloud), cloud.sh.shape[1]
-    return dict(
-        numPoints=n,
-        shDegree=cloud.sh_degree,
-        positions=cloud.positions,
-        scales=cloud.log_scales,
-        rotations=cloud.rotations[:, [1, 2, 3, 0]],
-        alphas=cloud.opacity_logits,
-        colors=cloud.sh[:, 0],
-        sh=cloud.sh[:, 1:].reshape(n, 3 * (k - 1)),
-    )
-
-
-def cloud_from_niantic(a):
-    n, k = int(a["numPoints"]), (int(a["shDegree"]) + 1) ** 2
-    xyzw = np.asarray(a["rotations"], np.float32).reshape(n, 4)
-    sh = np.concatenate([np.reshape(a["colors"], (n, 1, 3)), np.reshape(a["sh"], (n, k - 1, 3))], axis=1)
-    return SplatCloud(
-        np.reshape(a["positions"], (n, 3)),
-        xyzw[:, [3, 0, 1, 2]],
-        np.reshape(a["scales"], (n, 3)),
-        np.reshape(a["alphas"], n),
-        sh,
-    )
 
 
 @pytest.mark.parametrize("degree", DEGREES)
@@ -67,16 +194,16 @@ def cloud_from_niantic(a):
 def test_spz_niantic_both_ways_and_byte_identical(tmp_path, version, degree):
     cloud = in_range_cloud(300, degree=degree, seed=10 * version + degree)
     save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
-    node("adobe_spz.mjs", "write", tmp_path / "cloud.json", tmp_path / "theirs.spz", version)
     spz.write(tmp_path / "ours.spz", cloud, version=version)
+    node("adobe_spz.mjs", "write", "cloud.json", "theirs.spz", version, cwd=tmp_path)
+    node("adobe_spz.mjs", "read", "ours.spz", "back.json", cwd=tmp_path)
     assert (tmp_path / "ours.spz").read_bytes() == (tmp_path / "theirs.spz").read_bytes()
     rotation_bound = spz_rotation_bound(version, cloud)
-    check_spz_error(read_splats(tmp_path / "theirs.spz"), cloud, rotation_bound=rotation_bound)
-    node("adobe_spz.mjs", "read", tmp_path / "ours.spz", tmp_path / "back.json")
-    check_spz_error(cloud_from_niantic(load_json(tmp_path / "back.json")), cloud, rotation_bound=rotation_bound)
+    check_spz(read_splats(tmp_path / "theirs.spz"), cloud, rotation_bound=rotation_bound)
+    theirs = cloud_from_niantic(load_json(tmp_path / "back.json"))
+    check_spz(theirs, cloud, rotation_bound=rotation_bound)
     if version == 2:  # v2 keeps x, y, z of the quaternion with w >= 0: compare those
-        ours, theirs = read_splats(tmp_path / "ours.spz"), cloud_from_niantic(load_json(tmp_path / "back.json"))
-        np.testing.assert_allclose(theirs.rotations, ours.rotations, atol=2e-5)  # w from float32 sqrt
+        np.testing.assert_allclose(theirs.rotations, read_splats(tmp_path / "ours.spz").rotations, atol=2e-5)
 
 
 def test_spz_rounding_ties_go_away_from_zero(tmp_path):
@@ -93,35 +220,94 @@ def test_spz_rounding_ties_go_away_from_zero(tmp_path):
 
 
 @pytest.mark.parametrize("degree", DEGREES)
+def test_spz_splat_transform_in_ply_axes_both_ways_and_byte_identical(tmp_path, degree):
+    """splat-transform 3.7.0 takes SPZ's values for the PLY's axes (no turn from SPZ's RUB; it reads
+    no axes record), and writes v4 by default: our SPZ written with spz_axes="rdf" opens in it as
+    its PLY source (within SPZ's quantisation, versions 2 to 4), and its SPZ (v3, v4: Niantic's code
+    inside) read with spz_axes="rdf" is its source, in our writer's very bytes."""
+    cloud = in_range_cloud(300, degree=degree, seed=20 + degree)
+    cloud.opacity_logits[0] = 10.0  # alpha byte 255: a finite logit from their decoder (2.7.1 gave inf)
+    write_splats(tmp_path / "src.ply", cloud)
+    for version in (2, 3, 4):
+        spz.write(tmp_path / f"ours{version}.spz", cloud, version=version, **SPZ_RDF)
+        splat_transform(tmp_path / f"ours{version}.spz", tmp_path / f"back{version}.ply")
+        back = read_splats(tmp_path / f"back{version}.ply")
+        check_spz(back, cloud, rotation_bound=spz_rotation_bound(version, cloud))
+    splat_transform(tmp_path / "src.ply", tmp_path / "theirs4.spz")  # no --spz-version: v4
+    splat_transform(tmp_path / "src.ply", "--spz-version", 3, tmp_path / "theirs3.spz")
+    for version in (3, 4):
+        theirs = (tmp_path / f"theirs{version}.spz").read_bytes()
+        assert spz.decode("theirs.spz", theirs)[1]["version"] == version
+        check_spz(spz.read(tmp_path / f"theirs{version}.spz", **SPZ_RDF), cloud)
+        # the values as given (axes=None: no turn, no axes record) are its bytes
+        spz.write(tmp_path / "plain.spz", cloud, version=version, axes=None)
+        assert theirs == (tmp_path / "plain.spz").read_bytes()
+
+
+def test_spz_splat_transform_default_axes_turn_y_and_z(tmp_path):
+    """Our default SPZ holds SPZ's RUB axes, which splat-transform 3.7.0 takes for the PLY's: it turns
+    our file into a PLY with y and z reversed (exactly), and its own SPZ of a PLY, read as SPZ says,
+    is that PLY reversed so. This fails the day splat-transform turns SPZ's axes."""
+    cloud = in_range_cloud(300, degree=3, seed=29)
+    write_splats(tmp_path / "src.ply", cloud)
+    spz.write(tmp_path / "ours.spz", cloud)
+    splat_transform(tmp_path / "ours.spz", tmp_path / "back.ply")
+    splat_transform(tmp_path / "src.ply", tmp_path / "theirs.spz")
+    ours = read_splats(tmp_path / "ours.spz")
+    back = matched(read_splats(tmp_path / "back.ply", nonfinite="keep"), turned_yz(ours))
+    np.testing.assert_array_equal(back.positions, ours.positions * np.float32([1, -1, -1]))
+    np.testing.assert_array_equal(back.sh[:, 1:], ours.sh[:, 1:] * FLIP_SIGNS[1:16, None])
+    assert_same_splats(back, turned_yz(ours))
+    check_spz(read_splats(tmp_path / "theirs.spz"), turned_yz(cloud))
+
+
+@pytest.mark.parametrize("degree", DEGREES)
 @pytest.mark.parametrize("version", [3, 4])
 def test_spz_gsply_both_ways(tmp_path, version, degree):
     """gsply stores the PLY's values in SPZ without turning them to SPZ's RUB axes (and with full
-    8-bit SH): compared in the file's own axes (axes=None)."""
+    8-bit SH): compared in the file's own axes."""
     cloud = in_range_cloud(300, degree=degree, seed=100 + 10 * version + degree)
-    spz.write(tmp_path / "ours.spz", cloud, version=version, axes=None)
-    python("gsply", "gsply_tool.py", "read-spz", tmp_path / "ours.spz", tmp_path / "back.npz")
-    check_spz_error(cloud_from_arrays(load_arrays(tmp_path / "back.npz")), cloud)
+    spz.write(tmp_path / "ours.spz", cloud, version=version, **SPZ_RDF)
     save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
-    python("gsply", "gsply_tool.py", "write-spz", tmp_path / "cloud.npz", tmp_path / "theirs.spz", version)
-    got = spz.read(tmp_path / "theirs.spz", axes=None)
-    check_spz_error(got, cloud, sh=False)
+    python(
+        "gsply",
+        "gsply_tool.py",
+        *batch(["read-spz", "ours.spz", "back.npz"], ["write-spz", "cloud.npz", "theirs.spz", version]),
+        cwd=tmp_path,
+    )
+    check_spz(cloud_from_arrays(load_arrays(tmp_path / "back.npz")), cloud)
+    got = spz.read(tmp_path / "theirs.spz", **SPZ_RDF)
+    check_spz(got, cloud, sh=False)
     if degree:  # 8-bit SH: half a step of 1/128
-        assert np.abs(got.sh[:, 1:] - cloud.sh[:, 1:]).max() <= 0.5 / 128 + 1e-6
+        assert np.abs(matched(got, cloud).sh[:, 1:] - cloud.sh[:, 1:]).max() <= 0.5 / 128 + 1e-6
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_spz_spz_js_both_ways(tmp_path, degree):
+    """spz-js reads SPZ v1/v2 and writes v2, in the PLY's axes (no turn to RUB). It refuses a file
+    holding anything after the SH block, so an axes record too: ours is written with the values as
+    given (axes=None), the model's RDF, and no record."""
+    cloud = in_range_cloud(300, degree=degree, seed=200 + degree)
+    spz.write(tmp_path / "ours.spz", cloud, version=2, axes=None)
+    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
+    node(
+        "spz_js.mjs",
+        *batch(
+            ["read-spz", "ours.spz", "back.json"],
+            ["write-spz", "cloud.json", "theirs.spz"],
+            ["read-spz", "theirs.spz", "theirs.json"],
+        ),
+        cwd=tmp_path,
+    )
+    bound = v2_rotation_bound(cloud)
+    check_spz(cloud_from_niantic(load_json(tmp_path / "back.json")), cloud, rotation_bound=bound)
+    got = spz.read(tmp_path / "theirs.spz", **SPZ_RDF)
+    assert spz.decode("theirs.spz", (tmp_path / "theirs.spz").read_bytes())[1]["version"] == 2
+    check_spz(got, cloud, rotation_bound=bound)
+    assert_same_splats(got, cloud_from_niantic(load_json(tmp_path / "theirs.json")), angle_deg=0.05)
 
 
 # the same file decoded by them and by us ---------------------------------------------------------------
-
-
-def assert_same_splats(got, want, position=1e-6, scale=1e-5, opacity=1e-4, sh=1e-5, angle_deg=0.01):
-    """Two decodings of one file: equal up to float32 round-off (the tolerances, absolute; opacity
-    1e-4 for the ends, which tools clamp differently: 0, 1e-7, sigmoid(-10))."""
-    assert len(got) == len(want) and got.sh_degree == want.sh_degree
-    np.testing.assert_allclose(got.positions, want.positions, rtol=1e-6, atol=position)
-    np.testing.assert_allclose(got.log_scales, want.log_scales, atol=scale)
-    np.testing.assert_allclose(got.opacities, want.opacities, atol=opacity)
-    np.testing.assert_allclose(got.sh, want.sh, atol=sh)
-    cos = np.abs((got.unit_rotations * want.unit_rotations).sum(axis=1))
-    assert np.degrees(2 * np.arccos(np.clip(cos, 0, 1))).max() <= angle_deg
 
 
 def assert_same_covariances(got, want, rtol=1e-5):
@@ -138,80 +324,36 @@ def transform_ply(tmp_path, source, name):
     return read_splats(tmp_path / name, nonfinite="keep")
 
 
-# PLY -----------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("degree", DEGREES)
-def test_ply_splat_transform_and_gsply_both_ways(tmp_path, degree):
-    cloud = random_cloud(200, sh_degree=degree, seed=degree)
-    write_splats(tmp_path / "ours.ply", cloud)
-    back = transform_ply(tmp_path, tmp_path / "ours.ply", "theirs.ply")  # they read ours, write theirs
-    for got in (back, read_splats(tmp_path / "theirs.ply")):
-        np.testing.assert_array_equal(got.positions, cloud.positions)
-        np.testing.assert_array_equal(got.sh, cloud.sh)
-        np.testing.assert_array_equal(got.rotations, cloud.rotations)
-        np.testing.assert_array_equal(got.log_scales, cloud.log_scales)
-        np.testing.assert_array_equal(got.opacity_logits, cloud.opacity_logits)
-    python("gsply", "gsply_tool.py", "read-ply", tmp_path / "ours.ply", tmp_path / "g.npz")
-    got = cloud_from_arrays(load_arrays(tmp_path / "g.npz"))
-    np.testing.assert_array_equal(got.positions, cloud.positions)
-    np.testing.assert_array_equal(got.sh, cloud.sh)
-
-
-# compressed PLY ------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("degree", DEGREES)
-def test_compressed_ply_both_ways(tmp_path, degree):
-    cloud = random_cloud(600, sh_degree=degree, seed=20 + degree)
-    cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -3.9, 3.9)
-    write_splats(tmp_path / "src.ply", cloud)
-    write_splats(tmp_path / "ours.compressed.ply", cloud)
-    ours = read_splats(tmp_path / "ours.compressed.ply")
-    assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.compressed.ply", "a.ply"), ours)
-    python("gsply", "gsply_tool.py", "read-ply", tmp_path / "ours.compressed.ply", tmp_path / "g.npz")
-    assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
-    # theirs: splat-transform (Morton order) and gsply, read by us, against their own decoding
-    splat_transform(tmp_path / "src.ply", tmp_path / "st.compressed.ply")
-    assert_same_splats(
-        read_splats(tmp_path / "st.compressed.ply"), transform_ply(tmp_path, tmp_path / "st.compressed.ply", "b.ply")
-    )
-    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
-    python("gsply", "gsply_tool.py", "write-compressed", tmp_path / "cloud.npz", tmp_path / "gs.compressed.ply")
-    python("gsply", "gsply_tool.py", "read-ply", tmp_path / "gs.compressed.ply", tmp_path / "gs.npz")
-    assert_same_splats(read_splats(tmp_path / "gs.compressed.ply"), cloud_from_arrays(load_arrays(tmp_path / "gs.npz")))
-    # and what they wrote is the input within the format's quantisation
-    check_compressed_error(matched(read_splats(tmp_path / "st.compressed.ply"), cloud), cloud)
-
-
-def check_compressed_error(got, want):
-    """Bounds of the compressed layout: 10-11 bits of each chunk's range (at most the cloud's),
-    8 bits of colour range and opacity, SH bytes of 1/32."""
-    span = lambda a: a.max(axis=0) - a.min(axis=0)  # noqa: E731
-    assert (np.abs(got.positions - want.positions) <= span(want.positions) / 2046 + 1e-6).all()
-    assert (np.abs(got.log_scales - want.log_scales) <= span(want.log_scales) / 2046 + 1e-5).all()
-    assert np.abs(got.opacities - want.opacities).max() <= 0.5 / 255 + 1e-6
-    if want.sh_degree:
-        assert np.abs(got.sh[:, 1:] - want.sh[:, 1:]).max() <= 1 / 32 + 1e-6
-
-
 # SOG -----------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("degree", DEGREES)
 def test_sog_both_ways(tmp_path, degree):
+    """SOG version 2 (what splat-transform 3.7.0 writes as .sog; it needs `-g cpu` without a GPU):
+    our files, bundled and loose, have the layout its writer makes and its reader expects, and it
+    reads them as we do; gsply too. Its file reads the same for us as for it, and is the source
+    within SOG's quantisation."""
     cloud = random_cloud(500, sh_degree=degree, seed=30 + degree)
     write_splats(tmp_path / "src.ply", cloud)
     write_splats(tmp_path / "ours.sog", cloud)
     (tmp_path / "loose").mkdir()
     write_splats(tmp_path / "loose" / "meta.json", cloud)
+    splat_transform("-g", "cpu", tmp_path / "src.ply", tmp_path / "theirs.sog")
+    (ours_meta, ours), (their_meta, theirs) = sog_files(tmp_path / "ours.sog"), sog_files(tmp_path / "theirs.sog")
+    for meta, files in ((ours_meta, ours), sog_files(tmp_path / "loose" / "meta.json"), (their_meta, theirs)):
+        check_sog_v2_layout(meta, files, len(cloud), degree)
+    assert key_paths(ours_meta) == key_paths(their_meta)
+    for name in FILES_PER_SPLAT:
+        assert pixels(ours[name]).shape == pixels(theirs[name]).shape, name
+    if degree:  # the palette's rows of 64 entries: as wide, as many rows as entries need
+        assert pixels(ours["shN_centroids.webp"]).shape[1] == pixels(theirs["shN_centroids.webp"]).shape[1]
+
     ours = read_splats(tmp_path / "ours.sog")
     assert_same_splats(read_splats(tmp_path / "loose" / "meta.json"), ours, position=0, scale=0, opacity=0, sh=0)
     for source in (tmp_path / "ours.sog", tmp_path / "loose" / "meta.json"):
         assert_same_splats(transform_ply(tmp_path, source, "a.ply"), ours)
     python("gsply", "gsply_tool.py", "read-sog", tmp_path / "ours.sog", tmp_path / "g.npz")
     assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
-    splat_transform("-g", "cpu", tmp_path / "src.ply", tmp_path / "theirs.sog")
     theirs = read_splats(tmp_path / "theirs.sog")
     assert_same_splats(theirs, transform_ply(tmp_path, tmp_path / "theirs.sog", "b.ply"))
     # what they wrote is the input within SOG's quantisation: log-scales and DC colours are the nearest
@@ -229,8 +371,8 @@ def test_sog_both_ways(tmp_path, degree):
     )
     nearest = np.abs(cloud.log_scales[..., None] - books["scales"]).min(axis=-1)
     assert (np.abs(got.log_scales - cloud.log_scales) <= nearest + 1e-6).all()
-    # splat-transform 2.7.1 gives the odd splat (1-2 of 500 when it writes SH bands) the codebook's first
-    # colour on all three channels; every other DC colour is the nearest entry
+    # splat-transform (2.7.1 and 3.7.0 alike) gives the odd splat (1-2 of 500 when it writes SH bands)
+    # the codebook's first colour on all three channels; every other DC colour is the nearest entry
     nearest = np.abs(cloud.sh[:, 0, :, None] - books["sh0"]).min(axis=-1)
     within = (np.abs(got.sh[:, 0] - cloud.sh[:, 0]) <= nearest + 1e-6).all(axis=1)
     assert (~within).sum() <= len(cloud) // 100 and (got.sh[~within, 0] == np.float32(books["sh0"][0])).all()
@@ -244,12 +386,74 @@ def test_sog_both_ways(tmp_path, degree):
 
 def sog_codebooks(path):
     """The 256-entry codebooks (log-scales, DC colours) an .sog file's meta.json carries."""
-    import json
-    import zipfile
-
-    with zipfile.ZipFile(path) as archive:
-        meta = json.loads(archive.read("meta.json"))
+    meta, _ = sog_files(path)
     return {key: np.asarray(meta[key]["codebook"], np.float64) for key in ("scales", "sh0")}
+
+
+# SOG version 2's layout, as PlayCanvas's specification states it and splat-transform 3.7.0's writer
+# (writeSogSource) and reader (readSogSourceV2) implement it
+FILES_PER_SPLAT = ["means_l.webp", "means_u.webp", "scales.webp", "quats.webp", "sh0.webp"]
+SOG_FILES = {
+    "means": ["means_l.webp", "means_u.webp"],
+    "scales": ["scales.webp"],
+    "quats": ["quats.webp"],
+    "sh0": ["sh0.webp"],
+    "shN": ["shN_centroids.webp", "shN_labels.webp"],
+}
+
+
+def sog_files(path):
+    """A SOG's meta.json (parsed) and the bytes of its other files, from a .sog bundle or a loose
+    meta.json."""
+    if path.suffix == ".sog":
+        with zipfile.ZipFile(path) as archive:
+            files = {name: archive.read(name) for name in archive.namelist()}
+    else:
+        files = {p.name: p.read_bytes() for p in path.parent.iterdir()}
+    return json.loads(files.pop("meta.json")), files
+
+
+def pixels(webp):
+    """A WebP image's pixels: (height, width, 4) uint8."""
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(webp)).convert("RGBA"))
+
+
+def key_paths(tree, prefix=""):
+    """Every key path of a JSON object but the free-form "asset" (generator name)."""
+    if not isinstance(tree, dict):
+        return set()
+    paths = set()
+    for key, value in tree.items():
+        if key != "asset":
+            paths |= {prefix + key} | key_paths(value, prefix + key + ".")
+    return paths
+
+
+def check_sog_v2_layout(meta, files, count, degree):
+    assert meta["version"] == 2 and meta["count"] == count
+    assert set(meta) - {"asset", "model"} == {"version", "count", *SOG_FILES} - (set() if degree else {"shN"})
+    for key in meta.keys() & SOG_FILES.keys():
+        assert meta[key]["files"] == SOG_FILES[key]
+        for name in SOG_FILES[key]:  # lossless WebP (a VP8L chunk): lossy would change the values
+            assert files[name][:4] == b"RIFF" and files[name][8:16] == b"WEBPVP8L", name
+    assert len(meta["means"]["mins"]) == len(meta["means"]["maxs"]) == 3
+    assert (np.asarray(meta["means"]["mins"]) <= meta["means"]["maxs"]).all()
+    assert len(meta["scales"]["codebook"]) == len(meta["sh0"]["codebook"]) == 256
+    # every per-splat image alike: one splat per pixel, row by row, as wide as splat-transform sizes them
+    width = int(np.ceil(np.sqrt(count) / 4) * 4)
+    names = FILES_PER_SPLAT + (["shN_labels.webp"] if degree else [])
+    assert {pixels(files[name]).shape for name in names} == {(int(np.ceil(count / width / 4) * 4), width, 4)}
+    quats = pixels(files["quats.webp"]).reshape(-1, 4)[:count]
+    assert ((quats[:, 3] >= 252) & (quats[:, 3] <= 255)).all()  # 252 + the largest component's index
+    if degree:
+        shn = meta["shN"]
+        assert shn["bands"] == degree and len(shn["codebook"]) == 256
+        rows, width, _ = pixels(files["shN_centroids.webp"]).shape
+        assert width == 64 * ((degree + 1) ** 2 - 1) and rows * 64 >= shn["count"]
+        labels = pixels(files["shN_labels.webp"]).reshape(-1, 4)[:count].astype(int)
+        assert (labels[:, 0] + 256 * labels[:, 1] < shn["count"]).all()
 
 
 # glTF ----------------------------------------------------------------------------------------------

@@ -1,10 +1,9 @@
-"""SPZ and .splat: hand-built bytes from the format descriptions, closed-form quantisation bounds,
-and PlayCanvas splat-transform (which runs Niantic's own SPZ code) reading and writing our files."""
+"""SPZ and .splat: hand-built bytes from the format descriptions and closed-form quantisation bounds
+(the peer tools reading and writing these files are in test_interop.py)."""
 
 import gzip
 import os
 import struct
-import subprocess
 import sys
 
 import numpy as np
@@ -417,71 +416,6 @@ def test_bad_splat_files(tmp_path):
         splat.read(tmp_path / "nan.splat")
     with pytest.warns(SplatFileWarning, match="1 of 1 splats have non-finite values"):
         assert len(splat.read(tmp_path / "nan.splat", nonfinite="drop")) == 0
-
-
-# PlayCanvas splat-transform -------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="session")
-def splat_transform():
-    """The splat-transform CLI, installed once under .cache/interop (see tests/interop.py)."""
-    import interop
-
-    return interop.npm_prefix() / "node_modules" / ".bin" / "splat-transform"
-
-
-def run_transform(cli, *args):
-    done = subprocess.run([str(cli), "-q", "-w", *map(str, args)], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("version", [2, 3, 4])
-def test_splat_transform_reads_our_spz(tmp_path, splat_transform, version):
-    cloud = in_range_cloud(300, seed=10 + version)
-    cloud.opacity_logits[0] = 10.0  # stored as alpha 255
-    spz.write(tmp_path / "ours.spz", cloud, version=version)
-    run_transform(splat_transform, tmp_path / "ours.spz", tmp_path / "theirs.ply")
-    with pytest.warns(SplatFileWarning):  # their decoder turns alpha 255 into an infinite logit
-        got = read_splats(tmp_path / "theirs.ply", nonfinite="keep")
-    check_spz_error(got, cloud, rotation_bound=spz_rotation_bound(version, cloud))
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("version", [3, 4])
-def test_we_read_splat_transform_spz(tmp_path, splat_transform, version):
-    cloud = in_range_cloud(300, seed=20 + version)
-    write_splats(tmp_path / "src.ply", cloud)
-    run_transform(splat_transform, tmp_path / "src.ply", "--spz-version", version, tmp_path / "theirs.spz")
-    got = read_splats(tmp_path / "theirs.spz")
-    check_spz_error(got, cloud)
-    assert spz.decode("x", (tmp_path / "theirs.spz").read_bytes())[1]["version"] == version
-
-
-@pytest.mark.slow
-def test_our_v4_is_byte_identical_to_niantics(tmp_path, splat_transform):
-    """splat-transform writes SPZ with Niantic's own code (compiled to WebAssembly)."""
-    cloud = in_range_cloud(500, seed=41)
-    write_splats(tmp_path / "src.ply", cloud)
-    run_transform(splat_transform, tmp_path / "src.ply", "--spz-version", 4, tmp_path / "theirs.spz")
-    spz.write(tmp_path / "ours.spz", read_splats(tmp_path / "src.ply"), version=4)
-    assert (tmp_path / "ours.spz").read_bytes() == (tmp_path / "theirs.spz").read_bytes()
-
-
-@pytest.mark.slow
-def test_splat_transform_reads_our_splat(tmp_path, splat_transform):
-    cloud = in_range_cloud(300, degree=0, seed=31)
-    cloud.sh[:, 0] = shmod.rgb_to_dc(np.random.default_rng(2).uniform(0, 1, (300, 3)))
-    write_splats(tmp_path / "ours.splat", cloud)
-    run_transform(splat_transform, tmp_path / "ours.splat", tmp_path / "theirs.ply")
-    got = read_splats(tmp_path / "theirs.ply")
-    np.testing.assert_array_equal(got.positions, cloud.positions)
-    np.testing.assert_allclose(got.log_scales, cloud.log_scales, atol=1e-6)
-    assert np.abs(got.opacities - cloud.opacities).max() <= 0.5 / 255 + 1e-6
-    assert np.abs(shmod.dc_to_rgb(got.sh[:, 0]) - shmod.dc_to_rgb(cloud.sh[:, 0])).max() <= 0.5 / 255 + 1e-6
-    # splat-transform decodes rotation bytes as b / 127.5 - 1 rather than (b - 128) / 128: half a
-    # step more per component than our own reader, hence 2 degrees rather than 1
-    assert angle_between(got.rotations, cloud.rotations).max() <= np.radians(2.0)
 
 
 def test_the_v2_rotation_bound_is_tight_and_holds(tmp_path):

@@ -1,10 +1,11 @@
 """PyPI gsply on .npz arrays (3DGS PLY values: means, log scales, w-first quats, logits, sh0, shN).
 
 python gsply_tool.py write-spz in.npz out.spz VERSION
-python gsply_tool.py write-compressed in.npz out.compressed.ply
+python gsply_tool.py write-ply|write-compressed in.npz out.ply
 python gsply_tool.py read-spz|read-ply|read-sog in out.npz
 python gsply_tool.py time-spz in.npz out.spz REPEAT [VERSION]   (the median of REPEAT writes
                                                                  after one untimed, in seconds)
+Several jobs run in one process when separated by "+".
 """
 
 import statistics
@@ -36,23 +37,27 @@ def save(data, path):
     )
 
 
-verb, args = sys.argv[1], sys.argv[2:]
-if verb == "write-spz":
-    spz.write_spz(args[1], data_from(args[0]), version=int(args[2]))
-elif verb == "write-compressed":
-    gsply.plywrite(args[1], data_from(args[0]), compressed=True)
-elif verb == "time-spz":
-    data, times = data_from(args[0]), []
-    for _ in range(int(args[2]) + 1):
+def time_spz(source, out, repeat, version=3):
+    data, times = data_from(source), []
+    for _ in range(int(repeat) + 1):
         start = time.perf_counter()
-        spz.write_spz(args[1], data, version=int(args[3]) if len(args) > 3 else 3)
+        spz.write_spz(out, data, version=int(version))
         times.append(time.perf_counter() - start)
     print(statistics.median(times[1:]))
-elif verb == "read-spz":
-    save(spz.read_spz(args[0]), args[1])
-elif verb == "read-ply":
-    save(gsply.plyread(args[0]), args[1])
-elif verb == "read-sog":
-    save(gsply.sogread(args[0]), args[1])
-else:
-    raise SystemExit(f"unknown verb {verb}")
+
+
+VERBS = {
+    "write-spz": lambda source, out, version: spz.write_spz(out, data_from(source), version=int(version)),
+    "write-ply": lambda source, out: gsply.plywrite(out, data_from(source)),
+    "write-compressed": lambda source, out: gsply.plywrite(out, data_from(source), compressed=True),
+    "time-spz": time_spz,
+    "read-spz": lambda source, out: save(spz.read_spz(source), out),
+    "read-ply": lambda source, out: save(gsply.plyread(source), out),
+    "read-sog": lambda source, out: save(gsply.sogread(source), out),
+}
+args = sys.argv[1:]
+while args:
+    end = args.index("+") if "+" in args else len(args)
+    verb, *rest = args[:end]
+    args = args[end + 1 :]
+    VERBS[verb](*rest)
