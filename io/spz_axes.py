@@ -8,7 +8,7 @@ where the file's x, y and z axes point: Right/Left, Up/Down, Front/Back (codes 9
 on y and up/down on z, as Blender's RFU).
 
 A turn is a signed permutation M (file axes -> RDF), proper or a mirror. Positions take M; each
-covariance M S M^T, built back as the rotation M R M^T (for a mirror, the proper (-M) R (-M)^T: the
+covariance C becomes M C M^T, built back as the rotation M R M^T (for a mirror, the proper (-M) R (-M)^T: the
 quaternion's vector part takes det(M) M) with the scales permuted as M permutes the axes; the SH
 colour function f'(d) = f(M^T d), mirrors included (core.sh.rotate).
 
@@ -23,6 +23,7 @@ letters say; we follow the letters.
 import numpy as np
 
 from ..core import sh as shmod
+from ..core.splats import SplatCloud
 
 COORDINATE_SYSTEM_EXT = 0xADBE0003
 AXES = (
@@ -30,7 +31,6 @@ AXES = (
     "LFD", "RFD", "LFU", "RFU", "LBD", "RBD", "LBU", "RBU",
 )  # fmt: skip
 DEFAULT_AXES = "RUB"  # the documented axes, what a file without the record holds
-MODEL_AXES = "RDF"
 # each letter as (model axis, sign) in RDF: x right, y down, z front
 DIRECTIONS = {"R": (0, 1), "L": (0, -1), "D": (1, 1), "U": (1, -1), "F": (2, 1), "B": (2, -1)}
 SH_M4 = 24  # the coefficient Niantic's tables negate with the vertical axis
@@ -69,12 +69,12 @@ def up_negates_m4(axes: str) -> bool:
     return "U" in axes_name(axes)
 
 
-def to_model(cloud, axes: str):
+def to_model(cloud: SplatCloud, axes: str) -> SplatCloud:
     """The cloud whose values are stored in `axes`, in the model's RDF axes."""
     return _turn(_niantic_m4(cloud, axes), axis_matrix(axes))
 
 
-def from_model(cloud, axes: str):
+def from_model(cloud: SplatCloud, axes: str) -> SplatCloud:
     """The values an SPZ file in `axes` stores for a cloud in RDF axes."""
     return _niantic_m4(_turn(cloud, axis_matrix(axes).T), axes)
 
@@ -113,7 +113,7 @@ def _turn_sh(sh, m):
     return shmod.rotate(sh, m)
 
 
-def sh_signs(signs):
+def sh_signs(signs) -> np.ndarray:
     """Sign of each SH basis function (degrees 0..4) under (x, y, z) -> signs * (x, y, z)."""
     d = np.array([[0.267, 0.535, 0.802]])  # no basis function vanishes here
     degree = shmod.MAX_DEGREE
