@@ -13,6 +13,12 @@ from . import usda, usda_parse
 from .schema import CUSTOM, SCHEMA, TYPE_NAME
 
 
+def _shown(prim):
+    """Whether a stage traversal visits the prim (and so its children), as Usd.Stage.Traverse's
+    default predicate decides: defined (`def`, not `over` or an abstract `class`) and active."""
+    return prim.specifier == "def" and prim.metadata.get("active", True) is not False
+
+
 class TextStages:
     """stages.Stages on usda.Layer."""
 
@@ -31,7 +37,7 @@ class TextStages:
         return None if time is None else float(time)
 
     def traverse(self, stage):
-        return stage.traverse()
+        return stage.traverse(_shown)
 
     def metadata(self, stage, key):
         return stage.metadata.get(key)

@@ -15,13 +15,13 @@ the text writes them w first.
 """
 
 import io as _io
+import math
 import os
 import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...core.geometry import quaternions_to_matrices
 from ..common import SplatFileError
 from .schema import is_quaternion
 from .usdz import write_usdz
@@ -44,8 +44,8 @@ SCALARS = {
 }
 FLOATS = {"h": np.float16, "f": np.float32, "d": np.float64}
 VECTOR = re.compile(
-    r"(half|float|double|int)([234])|(point|normal|vector|color)3([hfd])|texCoord([23])([hfd])"
-    r"|quat([hfd])|matrix([234])d"
+    r"(half|float|double|int)([234])|(point|normal|vector|color)3([hfd])|color4([hfd])|texCoord([23])([hfd])"
+    r"|quat([hfd])|matrix([234])d|(frame)4d"
 )
 
 
@@ -57,16 +57,18 @@ def element(type_name):
     m = VECTOR.fullmatch(base)
     if m is None:
         return None
-    scalar, n, _, role, tex_n, tex_t, quat, matrix = m.groups()
+    scalar, n, _, role, color4, tex_n, tex_t, quat, matrix, frame = m.groups()
     if scalar:
         return np.dtype(SCALARS[scalar]), int(n)
     if role:
         return np.dtype(FLOATS[role]), 3
+    if color4:
+        return np.dtype(FLOATS[color4]), 4
     if tex_n:
         return np.dtype(FLOATS[tex_t]), int(tex_n)
     if quat:
         return np.dtype(FLOATS[quat]), 4
-    return np.dtype(np.float64), int(matrix) ** 2
+    return np.dtype(np.float64), 16 if frame else int(matrix) ** 2
 
 
 # the layer model ----------------------------------------------------------------------------------
@@ -117,8 +119,8 @@ class Attribute:
 
     def Get(self, time=None):
         """The value at `time` as OpenUSD resolves it: time samples over the default, held before
-        the first and after the last, linear between samples of the same shape; time=None asks for
-        the earliest sample (the default when there are none)."""
+        the first and after the last, interpolated between samples (see _interpolated); time=None
+        asks for the earliest sample (the default when there are none)."""
         if not self.samples:
             return self.default
         times = self.GetTimeSamples()
@@ -126,11 +128,55 @@ class Attribute:
         i = int(np.searchsorted(times, t, side="right"))
         if i == 0 or times[i - 1] == t or i == len(times):
             return self.samples[times[max(i - 1, 0)]]
-        a, b = self.samples[times[i - 1]], self.samples[times[i]]
-        if isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape and a.dtype.kind == "f":
-            w = (t - times[i - 1]) / (times[i] - times[i - 1])
-            return (a + (b - a) * w).astype(a.dtype)
+        alpha = (t - times[i - 1]) / (times[i] - times[i - 1])
+        return _interpolated(self.type_name, self.samples[times[i - 1]], self.samples[times[i]], alpha)
+
+
+def _interpolated(type_name, a, b, alpha):
+    """The value `alpha` of the way from sample a to sample b as OpenUSD interpolates it: quaternions
+    slerped, other floating-point values and arrays of them blended (1 - alpha) a + alpha b,
+    rounded where Gf's arithmetic rounds; anything else (integers, bools, text, arrays of different
+    lengths, a blocked sample) held at a."""
+    spec = element(type_name)
+    if a is None or b is None or spec is None or spec[0].kind != "f":
         return a
+    dtype = spec[0]
+    if isinstance(a, float) and isinstance(b, float):  # one number: blended in double, rounded once
+        return np.float64((1 - alpha) * a + alpha * b).astype(dtype).item()
+    a, b = np.asarray(a), np.asarray(b)
+    if a.shape != b.shape or a.dtype != dtype or b.dtype != dtype:
+        return a
+    if is_quaternion(type_name):
+        return _slerp(alpha, a, b)
+    wide_a, wide_b = a.astype(np.float64), b.astype(np.float64)
+    if a.ndim == 1 and type_name.endswith("[]"):  # arrays of numbers: each blended in double
+        return ((1 - alpha) * wide_a + alpha * wide_b).astype(dtype)
+    return ((1 - alpha) * wide_a).astype(dtype) + (alpha * wide_b).astype(dtype)  # Gf vectors: per term
+
+
+def _slerp(alpha, q0, q1):
+    """GfSlerp of quaternions (..., 4) held x, y, z, w: the shorter arc, rotations within 1e-5 of
+    each other blended linearly; computed in the quaternions' own precision as Gf computes (its
+    dot products accumulate in float for half and float quaternions)."""
+    dtype = q0.dtype
+    acc = np.float64 if dtype == np.float64 else np.float32
+    a, b = q0.astype(acc), q1.astype(acc)
+    imaginary = ((a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]) + a[..., 2] * b[..., 2]).astype(dtype)
+    cos = (imaginary.astype(acc) + a[..., 3] * b[..., 3]).astype(np.float64)
+    flip = cos < 0
+    cos = np.abs(cos)
+    far = 1.0 - cos > 1e-5
+
+    def narrow(x):
+        return np.asarray(x).astype(dtype).astype(np.float64)
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        theta = narrow(np.arccos(np.minimum(cos, 1)))
+        sin = narrow(np.sin(theta))
+        s0 = narrow(np.where(far, np.sin((1 - alpha) * theta) / sin, 1 - alpha))
+        s1 = narrow(np.where(far, np.sin(alpha * theta) / sin, alpha))
+    s1 = np.where(flip, -s1, s1)
+    return (q0 * s0[..., None]).astype(dtype) + (q1 * s1[..., None]).astype(dtype)
 
 
 class _Missing:
@@ -174,61 +220,170 @@ class Prim:
 
     def local_matrix(self, time):
         """4x4 (column vectors) of the prim's own transform ops, and whether it resets the parents'."""
-        order = self.GetAttribute("xformOpOrder")
-        names = list(order.Get() or []) if order else []
         m, reset = np.eye(4), False
-        for name in names:
+        for name in self._op_order():
             if name == "!resetXformStack!":
                 m, reset = np.eye(4), True
                 continue
             invert = name.startswith("!invert!")
-            op_name = name[len("!invert!") :] if invert else name
+            op_name = name.removeprefix("!invert!")
             attr = self.GetAttribute(op_name)
-            if not attr or not attr.HasAuthoredValue():
+            if not attr or not attr.HasAuthoredValue() or attr.Get(time) is None:
                 raise SplatFileError(self.layer.identifier, f"{self.path}: transform op {op_name} has no value")
-            op = _op_matrix(self.layer.identifier, self.path, op_name, attr.Get(time))
-            m = m @ (np.linalg.inv(op) if invert else op)
+            m = m @ _op_matrix(self.layer.identifier, self.path, attr, time, invert)
         return m, reset
 
+    def _op_order(self):
+        order = self.GetAttribute("xformOpOrder")
+        names = order.Get() if order else None
+        if names is None:
+            return []
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise SplatFileError(
+                self.layer.identifier, f"{self.path}: xformOpOrder holds {names!r:.60}, not a list of op names"
+            )
+        return names
+
     def world_matrix(self, time):
-        local, reset = self.local_matrix(time)
-        parent = self.layer.prim_at(self.path.rsplit("/", 1)[0]) if self.path.count("/") > 1 else None
-        return local if reset or parent is None else parent.world_matrix(time) @ local
+        """Its own ops, then each ancestor's that OpenUSD counts as Xformable, up to the root or a
+        prim that resets the transform stack."""
+        m, prim = np.eye(4), self
+        while prim is not None:
+            if prim is self or is_xformable(prim.type_name):
+                local, reset = prim.local_matrix(time)
+                m = local @ m
+                if reset:
+                    break
+            prim = prim.parent()
+        return m
+
+    def parent(self):
+        return self.layer.prim_at(self.path.rsplit("/", 1)[0]) if self.path.count("/") > 1 else None
 
 
-def _op_matrix(path, prim_path, name, value):
-    """4x4 (column vectors) of one transform op, OpenUSD's conventions (angles in degrees; an
-    xformOp:rotateXYZ turns about X first)."""
-    kind = name.split(":")[1] if name.count(":") >= 1 else ""
-    m = np.eye(4)
-    value = np.asarray(value, np.float64)
+XFORMABLE = {
+    "Xform", "Mesh", "Points", "BasisCurves", "NurbsCurves", "HermiteCurves", "NurbsPatch", "TetMesh", "Capsule",
+    "Capsule_1", "Cone", "Cube", "Cylinder", "Cylinder_1", "Sphere", "Plane", "Camera", "PointInstancer", "SkelRoot",
+    "Skeleton", "Volume", "OpenVDBAsset", "Field3DAsset", "GenerativeProcedural",
+}  # fmt: skip
+
+
+def is_xformable(type_name):
+    """Whether OpenUSD counts a prim of this type as Xformable (its transform ops apply to its
+    children): Xform, the gprims, cameras, lights, volumes, skeletons, particle fields."""
+    return type_name in XFORMABLE or type_name.endswith("Light") or type_name.startswith("ParticleField")
+
+
+_ONE_AXIS = re.compile(r"(rotate|translate|scale)([XYZ])")
+_THREE_AXES = ("rotateXYZ", "rotateXZY", "rotateYXZ", "rotateYZX", "rotateZXY", "rotateZYX")
+
+
+def _op_kind(name):
+    """(op, the value it takes: "scalar", "vec3", "quat" or "matrix"), or None for a name that is no
+    transform op OpenUSD knows."""
+    parts = name.split(":")
+    op = parts[1] if len(parts) > 1 and parts[0] == "xformOp" else ""
+    if op in ("translate", "scale") or op in _THREE_AXES:
+        return op, "vec3"
+    if _ONE_AXIS.fullmatch(op):
+        return op, "scalar"
+    return {"orient": (op, "quat"), "transform": (op, "matrix")}.get(op)
+
+
+def _value_kind(type_name):
+    spec = element(type_name)
+    if type_name.endswith("[]") or spec is None or spec[0].kind != "f" or type_name == "timecode":
+        return None
+    if is_quaternion(type_name):
+        return "quat"
+    if type_name.startswith(("matrix4", "frame4")):
+        return "matrix"
+    return {1: "scalar", 3: "vec3"}.get(spec[1])
+
+
+def _op_matrix(path, prim_path, attr, time, invert=False):
+    """4x4 (column vectors) of one transform op (or its inverse) as UsdGeomXformOp computes it:
+    angles in degrees, three of them always X, Y, Z whatever order the op's name applies them in
+    (rotateZYX turns about Z first); inverses taken op by op (negated angles and translations,
+    reciprocal scales, a matrix's inverse unless it is singular); a value of a type OpenUSD does not
+    take for the op refused."""
+    name = attr.name
+    kind = _op_kind(name)
+    if kind is None:
+        raise SplatFileError(path, f"{prim_path}: {name} is not a transform op OpenUSD knows")
+    op, takes = kind
+    if _value_kind(attr.type_name) != takes:
+        raise SplatFileError(path, f"{prim_path}: transform op {name} holds a {attr.type_name}, not a {takes} value")
+    value = np.asarray(attr.Get(time), np.float64)
     if not np.isfinite(value).all():  # a NaN quaternion would normalise to the identity
         raise SplatFileError(path, f"{prim_path}: its transform ops {name} hold NaN or Inf")
-    if kind == "transform":
-        return value.reshape(4, 4).T  # USD matrices act on row vectors
-    if kind == "translate":
-        m[:3, 3] = value.reshape(3)
-    elif kind == "scale":
-        m[:3, :3] = np.diag(np.broadcast_to(value.reshape(-1), 3))
-    elif kind == "orient":
-        x, y, z, w = value.reshape(4)  # Vt order (see Attribute)
-        m[:3, :3] = quaternions_to_matrices(np.array([[w, x, y, z]]))[0]
-    elif kind in ("rotateX", "rotateY", "rotateZ"):
-        m[:3, :3] = _rotation(kind[-1], float(value))
-    elif re.fullmatch("rotate[XYZ]{3}", kind):
-        for axis, angle in zip(kind[-3:], value.reshape(3)):
-            m[:3, :3] = _rotation(axis, float(angle)) @ m[:3, :3]
+    m = np.eye(4)
+    if op == "transform":
+        m = value.reshape(4, 4).T  # USD matrices act on row vectors
+        if invert:
+            if abs(np.linalg.det(m)) <= 1e-9:
+                raise SplatFileError(path, f"{prim_path}: !invert!{name} cannot invert a singular transform")
+            m = np.linalg.inv(m)
+        return m
+    if op == "orient":
+        m[:3, :3] = _orient(value, invert)
+        return m
+    sign = -1.0 if invert else 1.0
+    if op == "translate":
+        m[:3, 3] = sign * value
+    elif op == "scale":
+        with np.errstate(divide="ignore"):
+            m[:3, :3] = np.diag(1 / value if invert else value)
+    elif op in _THREE_AXES:
+        turns = {axis: _rotation(axis, sign * angle) for axis, angle in zip("XYZ", value)}
+        order = op[-3:][::-1] if invert else op[-3:]
+        for axis in order:
+            m[:3, :3] = turns[axis] @ m[:3, :3]
     else:
-        raise SplatFileError(path, f"{prim_path}: transform op {name} cannot be read without OpenUSD's Python module")
+        verb, axis = _ONE_AXIS.fullmatch(op).groups()
+        i = "XYZ".index(axis)
+        if verb == "scale" and invert:  # OpenUSD negates it (a mirror), where its inverse is 1 / scale
+            raise SplatFileError(
+                path, f"{prim_path}: !invert!{name}: OpenUSD inverts a one-axis scale by negating it, not as 1 / scale"
+            )
+        if verb == "rotate":
+            m[:3, :3] = _rotation(axis, sign * float(value))
+        elif verb == "translate":
+            m[i, 3] = sign * value
+        else:
+            m[i, i] = value
     return m
 
 
+def _orient(xyzw, invert=False):
+    """The rotation of a quaternion as GfRotation reads one that may not be unit: the angle
+    2 acos(w) (w clamped to [-1, 1]) about the direction of (x, y, z); none when that is ~0."""
+    x, y, z, w = (float(v) for v in xyzw)
+    length = math.sqrt(x * x + y * y + z * z)
+    if length <= 1e-10:
+        return np.eye(3)
+    degrees = 2.0 * math.degrees(math.acos(min(max(w, -1.0), 1.0)))
+    return _axis_rotation((x / length, y / length, z / length), -degrees if invert else degrees)
+
+
 def _rotation(axis, degrees):
-    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
-    i, j = {"X": (1, 2), "Y": (2, 0), "Z": (0, 1)}[axis]
-    r = np.eye(3)
-    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
-    return r
+    return _axis_rotation(np.eye(3)["XYZ".index(axis)], degrees)
+
+
+def _axis_rotation(axis, degrees):
+    """3x3 (column vectors) turning `degrees` about the unit `axis`, through the quaternion as
+    GfRotation makes it (so that a half turn is as inexact as OpenUSD's)."""
+    half = degrees * (math.pi / 180.0) / 2.0
+    r = math.cos(half)
+    i, j, k = (float(a) * math.sin(half) for a in axis)
+    rows = np.array(
+        [
+            [1.0 - 2.0 * (j * j + k * k), 2.0 * (i * j + k * r), 2.0 * (k * i - j * r)],
+            [2.0 * (i * j - k * r), 1.0 - 2.0 * (k * k + i * i), 2.0 * (j * k + i * r)],
+            [2.0 * (k * i + j * r), 2.0 * (j * k - i * r), 1.0 - 2.0 * (j * j + i * i)],
+        ]
+    )
+    return rows.T  # Gf's matrices act on row vectors
 
 
 class Layer:
@@ -245,14 +400,24 @@ class Layer:
 
     def define(self, path, type_name=""):
         """The prim at `path` (ancestors defined as Xform where missing), its type set."""
-        prim = self._by_path.get(path)
-        if prim is None:
-            parent_path = path.rsplit("/", 1)[0]
-            parent = self.define(parent_path, "Xform") if parent_path else None
+        parent_path, _, _ = path.rpartition("/")
+        if path not in self._by_path and (not parent_path or parent_path in self._by_path):  # the usual case
             prim = Prim(path, type_name, layer=self)
-            (parent.children if parent else self.root_prims).append(prim)
+            (self._by_path[parent_path].children if parent_path else self.root_prims).append(prim)
             self._by_path[path] = prim
-        elif type_name and not prim.type_name:
+            return prim
+        missing = []
+        at = path
+        while at and at not in self._by_path:
+            missing.append(at)
+            at = at.rsplit("/", 1)[0]
+        for i, new in enumerate(reversed(missing)):
+            parent = self._by_path.get(new.rsplit("/", 1)[0])
+            prim = Prim(new, type_name if i == len(missing) - 1 else "Xform", layer=self)
+            (parent.children if parent else self.root_prims).append(prim)
+            self._by_path[new] = prim
+        prim = self._by_path[path]
+        if type_name and not prim.type_name:
             prim.type_name = type_name
         return prim
 
@@ -262,13 +427,15 @@ class Layer:
     def GetPrimAtPath(self, path):
         return self._by_path.get(path) or _Missing()
 
-    def traverse(self):
-        """Every prim, parents before children."""
+    def traverse(self, keep=None):
+        """Every prim, parents before children; with `keep`, only prims keep(prim) is true of, and
+        none under a prim it is false of (as Usd.PrimRange prunes)."""
         stack = list(reversed(self.root_prims))
         while stack:
             prim = stack.pop()
-            yield prim
-            stack.extend(reversed(prim.children))
+            if keep is None or keep(prim):
+                yield prim
+                stack.extend(reversed(prim.children))
 
     # writing
     def save(self, path, package_name=None, usdz=None):
@@ -411,7 +578,12 @@ class Primvar:
         return self.attr.metadata.get("interpolation", "constant")
 
     def GetElementSize(self):
-        return int(self.attr.metadata.get("elementSize", 1))
+        size = self.attr.metadata.get("elementSize", 1)
+        if not isinstance(size, int) or isinstance(size, bool):
+            raise SplatFileError(
+                self.prim.layer.identifier, f"{self.prim.path}: {self.attr.name}: elementSize {size!r} is not an int"
+            )
+        return size
 
     def HasAuthoredValue(self):
         return self.attr.HasAuthoredValue()
@@ -421,7 +593,16 @@ class Primvar:
         indices = self.prim.GetAttribute(self.attr.name + ":indices")
         if value is None or not indices or not indices.HasAuthoredValue():
             return value
-        index = np.asarray(indices.Get(time))
+        index = indices.Get(time)
+        if not indices.GetTypeName() == "int[]" or not isinstance(index, np.ndarray) or index.ndim != 1:
+            raise SplatFileError(
+                self.prim.layer.identifier,
+                f"{self.prim.path}: {self.attr.name}:indices is a {indices.GetTypeName()}, not an int[]",
+            )
+        if not isinstance(value, np.ndarray):
+            raise SplatFileError(
+                self.prim.layer.identifier, f"{self.prim.path}: {self.attr.name} is indexed but holds no array"
+            )
         if len(index) and (index.min() < 0 or index.max() >= len(value)):
             raise SplatFileError(
                 self.prim.layer.identifier, f"{self.prim.path}: {self.attr.name}:indices point outside its values"

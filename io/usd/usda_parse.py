@@ -1,20 +1,32 @@
 """Reading OpenUSD text layers without OpenUSD: a .usda file (or a .usdz whose first file is one)
-into a usda.Layer, by recursive descent over the subset of the grammar usda.py describes, numeric
-arrays parsed in bulk by NumPy. A layer bigger than policy.MAX_TEXT_LAYER_BYTES is refused before it
-is read; composition and crate layers are refused by name.
+into a usda.Layer, over the subset of the grammar usda.py describes (tokens: usda_tokens.py; typed
+values as OpenUSD reads them, numeric arrays in bulk: usda_values.py). A layer bigger than
+policy.MAX_TEXT_LAYER_BYTES is refused before it is read; composition and crate layers are refused
+by name.
+
+The parser keeps its own stacks rather than recursing, and prims, lists and dictionaries nested
+more than MAX_DEPTH deep are refused, so no text can exhaust Python's stack; memory stays a few
+times the size of the text.
 """
 
 import io as _io
 import os
 import re
-import warnings
 import zipfile
-
-import numpy as np
 
 from ..common import SplatFileError
 from ..policy import MAX_TEXT_LAYER_BYTES
 from .usda import COMPOSITION, Layer, element
+from .usda_tokens import ASSET, NUMBER, PATH, STRING, WORD, Tokens, Word, shown
+from .usda_values import BadValue, numeric_array, scalar, typed, typed_list
+
+MAX_DEPTH = 256  # prims in prims, lists in lists, dictionaries in dictionaries
+SPECIFIERS = ("def", "over", "class")
+QUALIFIERS = ("custom", "uniform", "varying", "config")
+LIST_OPS = ("add", "delete", "prepend", "append", "reorder")
+# metadata OpenUSD types, read as it reads them: (type name, dtype spec)
+TYPED_METADATA = {"elementSize": "int", "active": "bool", "instanceable": "bool", "hidden": "bool"}
+TEXT_METADATA = ("interpolation", "kind", "upAxis", "defaultPrim")
 
 
 def read_layer(path):
@@ -36,10 +48,14 @@ def read_layer(path):
         text = data.decode("utf-8")
     except UnicodeDecodeError:
         raise SplatFileError(path, "it holds bytes that are not UTF-8 text") from None
+    del data
     if not text.startswith("#usda"):
         raise SplatFileError(path, "not an OpenUSD text layer (it does not start with '#usda')")
     layer = Layer(os.fspath(path))
-    _Parser(path, text, layer).parse()
+    try:
+        _Parser(path, text, layer).parse()
+    except MemoryError:
+        raise SplatFileError(path, "its values need more memory than this machine has") from None
     return layer
 
 
@@ -69,223 +85,272 @@ def _usdz_root(path, data):
         raise SplatFileError(path, f"the .usdz package is damaged: {exc}") from None
 
 
-TOKEN = re.compile(
-    r'\s*(?:#[^\n]*\n\s*)*(?:("""(?:.|\n)*?"""|"(?:[^"\\\n]|\\.)*"|\'(?:[^\'\\\n]|\\.)*\')'
-    r"|(@[^@]*@)|([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|-?inf\b|nan\b)"
-    r"|([A-Za-z_][\w:.]*(?:\[\])?|![\w]+!)|(\S))"
-)
+_PRIM_NAME = re.compile(r"[^\W\d]\w*+")
 
 
 class _Parser:
-    """Recursive descent over the USDA grammar's subset named in the module notes."""
+    """The layer's prims, properties and values; each kind of nesting is kept on a stack of its own
+    and refused beyond MAX_DEPTH."""
 
     def __init__(self, path, text, layer):
-        self.path, self.text, self.layer, self.pos = path, text, layer, text.index("\n") if "\n" in text else len(text)
+        first_line = text.find("\n")
+        self.tokens = Tokens(path, text, len(text) if first_line < 0 else first_line)
+        self.layer = layer
 
     def fail(self, problem):
-        line = self.text.count("\n", 0, self.pos) + 1
-        raise SplatFileError(self.path, f"line {line}: {problem}")
-
-    def peek(self):
-        m = TOKEN.match(self.text, self.pos)
-        if m is None or m.lastindex is None:
-            return None, None, self.pos
-        return m.lastindex, m.group(m.lastindex), m.end()
-
-    def next(self, expected=None):
-        kind, tok, end = self.peek()
-        if tok is None:
-            self.fail(f"unexpected end of file{f', expected {expected!r}' if expected else ''}")
-        if expected is not None and tok != expected:
-            self.fail(f"expected {expected!r}, found {tok!r}")
-        self.pos = end
-        return kind, tok
-
-    def at(self, tok):
-        return self.peek()[1] == tok
+        self.tokens.fail(problem)
 
     def parse(self):
-        if self.at("("):
+        t = self.tokens
+        if t.at("("):
             self.layer.metadata = self.metadata("layer")
-        while self.peek()[1] is not None:
-            self.prim("")
-
-    def metadata(self, owner):
-        """{key: value} of a parenthesised metadata block; composition arcs refused."""
-        self.next("(")
-        meta = {}
-        while not self.at(")"):
-            kind, tok = self.next()
-            if kind == 1:  # a doc string
-                meta["doc"] = _string(tok)
-                continue
-            if tok in ("add", "delete", "prepend", "append", "reorder"):
-                kind, tok = self.next()
-            if tok in COMPOSITION:
-                self.fail(f"{owner} uses composition ({tok}), which needs OpenUSD's Python module to resolve")
-            self.next("=")
-            meta[tok] = self.dictionary() if self.at("{") else self.value()
-        self.next(")")
-        return meta
+        open_prims = []
+        while True:
+            kind, tok, _ = t.peek()
+            if tok is None:
+                if open_prims:
+                    self.fail(f"unexpected end of file, expected '}}' closing {open_prims[-1].path}")
+                return
+            if tok == "}" and open_prims:
+                t.next()
+                open_prims.pop()
+            elif kind == WORD and tok in SPECIFIERS:
+                if len(open_prims) >= MAX_DEPTH:
+                    self.fail(f"prims nested more than {MAX_DEPTH} deep, the most this reader follows")
+                open_prims.append(self.prim(open_prims[-1].path if open_prims else ""))
+            elif open_prims:
+                self.property(open_prims[-1])
+            else:
+                self.fail(f"expected a prim (def, over or class), found {shown(tok)}")
 
     def prim(self, parent):
-        kind, specifier = self.next()
-        if specifier not in ("def", "over", "class"):
-            self.fail(f"expected a prim (def, over or class), found {specifier!r}")
-        kind, tok = self.next()
+        """A prim's header and metadata, up to the `{` opening its body."""
+        t = self.tokens
+        _, specifier = t.next()
+        kind, tok = t.next()
         type_name = ""
-        if kind != 1:
+        if kind == WORD:
             type_name = tok
-            kind, tok = self.next()
-        if kind != 1:
-            self.fail(f"expected the prim's name in quotes, found {tok!r}")
-        path = f"{parent}/{_string(tok)}"
+            kind, tok = t.next()
+        if kind != STRING:
+            self.fail(f"expected the prim's name in quotes, found {shown(tok)}")
+        name = t.string(tok)
+        if not _PRIM_NAME.fullmatch(name):
+            self.fail(f"{shown(name)} is not a valid prim name")
+        path = f"{parent}/{name}"
         if self.layer.prim_at(path) is not None:
             self.fail(f"prim {path} is defined twice")
         prim = self.layer.define(path, type_name)
         prim.specifier = specifier
-        if self.at("("):
+        if t.at("("):
             prim.metadata = self.metadata(path)
-        self.next("{")
-        while not self.at("}"):
-            if self.peek()[1] in ("def", "over", "class"):
-                self.prim(path)
-            else:
-                self.property(prim)
-        self.next("}")
+        t.next("{")
+        return prim
+
+    def metadata(self, owner):
+        """{key: value} of a parenthesised metadata block; composition arcs refused."""
+        t = self.tokens
+        t.next("(")
+        meta = {}
+        while not t.at(")"):
+            kind, tok = t.next()
+            if kind == STRING:  # a doc string
+                meta["doc"] = t.string(tok)
+                continue
+            if tok in LIST_OPS:
+                kind, tok = t.next()
+            if tok in COMPOSITION:
+                self.fail(f"{owner} uses composition ({tok}), which needs OpenUSD's Python module to resolve")
+            if kind != WORD:
+                self.fail(f"expected metadata of {owner}, found {shown(tok)}")
+            t.next("=")
+            meta[tok] = self.dictionary() if t.at("{") else self.metadata_value(owner, tok, self.value())
+            if t.at(";"):
+                t.next()
+        t.next(")")
+        return meta
+
+    def metadata_value(self, owner, key, value):
+        """Metadata the readers use, checked as OpenUSD types it."""
+        if key in TYPED_METADATA:
+            type_name = TYPED_METADATA[key]
+            try:
+                return scalar(type_name, element(type_name)[0], value)
+            except BadValue as exc:
+                self.fail(f"{owner}: {key}: {exc}")
+        if key in TEXT_METADATA and (not isinstance(value, str) or isinstance(value, Word)):
+            self.fail(f"{owner}: {key} must be a string in quotes, found {shown(str(value))}")
+        return value
 
     def property(self, prim):
+        t = self.tokens
         qualifiers = set()
-        kind, tok = self.next()
-        while tok in ("custom", "uniform", "varying", "config"):
+        kind, tok = t.next()
+        while tok in QUALIFIERS or tok in LIST_OPS:
             qualifiers.add(tok)
-            kind, tok = self.next()
+            kind, tok = t.next()
         if tok == "rel":
-            kind, name = self.next()
-            if self.at("="):
-                self.next()
+            _, name = t.next()
+            if t.at("="):
+                t.next()
                 self.value()
-            if self.at("("):
+            if t.at("("):
                 self.metadata(f"{prim.path}.{name}")
             return
         if tok == "variantSet":
             self.fail(f"{prim.path} has a variant set, which needs OpenUSD's Python module to resolve")
+        if kind != WORD:
+            self.fail(f"expected a property of {prim.path}, found {shown(tok)}")
         type_name = tok
-        kind, name = self.next()
-        if kind != 4:
-            self.fail(f"expected an attribute name after {type_name!r}, found {name!r}")
+        kind, name = t.next()
+        if kind != WORD:
+            self.fail(f"expected an attribute name after {shown(type_name)}, found {shown(name)}")
         name, _, suffix = name.partition(".")
         if suffix not in ("", "timeSamples", "connect"):
             self.fail(f"{prim.path}.{name}: .{suffix} values cannot be read without OpenUSD's Python module")
         attr = prim.attribute(name, type_name, "uniform" in qualifiers, "custom" in qualifiers)
-        if self.at("="):
-            self.next()
+        where = f"{prim.path}.{name}"
+        if t.at("="):
+            t.next()
             if suffix == "timeSamples":
-                attr.samples = self.time_samples(type_name)
+                attr.samples = self.time_samples(where, type_name)
             elif suffix == "connect":
                 self.value()
             else:
-                attr.default = self.typed_value(type_name)
-        if self.at("("):
-            attr.metadata.update(self.metadata(f"{prim.path}.{name}"))
+                attr.default = self.typed_value(where, type_name)
+        if t.at("("):
+            attr.metadata.update(self.metadata(where))
 
-    def time_samples(self, type_name):
-        self.next("{")
+    def time_samples(self, where, type_name):
+        t = self.tokens
+        t.next("{")
         samples = {}
-        while not self.at("}"):
-            kind, tok = self.next()
-            if kind != 3:
-                self.fail(f"expected a time code, found {tok!r}")
-            self.next(":")
-            samples[float(tok)] = self.typed_value(type_name)
-            if self.at(","):
-                self.next()
-        self.next("}")
+        while not t.at("}"):
+            kind, tok = t.next()
+            if kind != NUMBER:
+                self.fail(f"{where}: expected a time code, found {shown(tok)}")
+            t.next(":")
+            samples[float(tok)] = self.typed_value(where, type_name)
+            if not t.at("}"):
+                t.next(",")
+        t.next("}")
         return samples
 
-    def typed_value(self, type_name):
-        """A value of `type_name`: numeric arrays parsed in bulk, anything else generically."""
-        spec = element(type_name)
-        if self.at("None"):
-            self.next()
+    def typed_value(self, where, type_name):
+        """A value of `type_name` as OpenUSD reads it (see usda_values.py), or None (blocked)."""
+        t = self.tokens
+        if t.at("None"):
+            t.next()
             return None
-        if spec is None or not self.at("["):
+        spec = element(type_name)
+        is_array = type_name.endswith("[]")
+        try:
+            if spec is not None and is_array and spec[0].kind != "b":
+                return self.numeric_array(type_name, spec)
             value = self.value()
-            if spec is not None and not isinstance(value, str):
-                dtype, width = spec
-                value = np.asarray(value, np.float64)
-                if value.size != width:
-                    self.fail(f"a {type_name} needs {width} numbers, found {value.size}")
-                value = value.astype(dtype) if width > 1 else value.astype(dtype).item()
-                if type_name.startswith("quat"):
-                    value = value[[1, 2, 3, 0]]
-            return value
-        return self.numeric_array(type_name, *spec)
+            if spec is None:
+                return _text_value(type_name, value)
+            if is_array:
+                if not isinstance(value, list):
+                    raise BadValue(f"a {type_name} needs a list in [ ], found {shown(str(value))}")
+                return typed_list(type_name, spec, value)
+            return typed(type_name, spec, value)
+        except BadValue as exc:
+            self.fail(f"{where}: {exc}")
 
-    def numeric_array(self, type_name, dtype, width):
-        self.next("[")
-        end = self.text.find("]", self.pos)
+    def numeric_array(self, type_name, spec):
+        t = self.tokens
+        t.next("[")
+        end = t.text.find("]", t.pos)
         if end < 0:
             self.fail(f"a {type_name} array is not closed")
-        body = self.text[self.pos : end]
-        if re.search(r"[^\d\s.,()eE+\-infa]", body):
-            self.fail(f"a {type_name} array holds something other than numbers")
-        parse = np.float64 if dtype.kind == "f" else np.int64
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", DeprecationWarning)
-            try:
-                flat = (
-                    np.fromstring(body.translate(_SEPARATORS), parse, sep=" ") if body.strip() else np.zeros(0, parse)
-                )
-            except (DeprecationWarning, ValueError):
-                self.fail(f"a {type_name} array holds text that is not a number")
-        if flat.size % width:
-            self.fail(f"a {type_name} array has {flat.size} numbers, not a multiple of {width}")
-        values = flat.astype(dtype).reshape((-1, width) if width > 1 else (-1,))
-        if type_name.startswith("quat"):
-            values = np.ascontiguousarray(values[:, [1, 2, 3, 0]])  # w first in text, x, y, z, w held
-        self.pos = end + 1
+        values = numeric_array(type_name, spec, t.text[t.pos : end])
+        t.pos = end + 1
         return values
 
     def dictionary(self):
-        self.next("{")
-        d = {}
-        while not self.at("}"):
-            kind, type_name = self.next()
-            kind, key = self.next()
-            key = _string(key) if kind == 1 else key
-            self.next("=")
-            d[key] = self.dictionary() if type_name == "dictionary" else self.value()
-        self.next("}")
-        return d
+        """A dictionary's { type key = value ... } entries, dictionaries in it kept on a stack."""
+        t = self.tokens
+        t.next("{")
+        root = {}
+        stack = [root]
+        while stack:
+            if t.at("}"):
+                t.next()
+                stack.pop()
+                continue
+            _, type_name = t.next()
+            kind, key = t.next()
+            key = t.string(key) if kind == STRING else key
+            t.next("=")
+            if type_name != "dictionary":
+                stack[-1][key] = self.value()
+                continue
+            if len(stack) >= MAX_DEPTH:
+                self.fail(f"dictionaries nested more than {MAX_DEPTH} deep, the most this reader follows")
+            t.next("{")
+            stack[-1][key] = child = {}
+            stack.append(child)
+        return root
 
     def value(self):
-        """A generic value: number, string, token, asset path, tuple or list (nested)."""
-        kind, tok = self.next()
-        if tok in ("(", "["):
-            close = ")" if tok == "(" else "]"
-            items = []
-            while not self.at(close):
-                items.append(self.value())
-                if self.at(","):
-                    self.next()
-            self.next(close)
-            return tuple(items) if tok == "(" else items
-        if kind == 1:
-            return _string(tok)
-        if kind == 2:
+        """A generic value: number, string, word, asset or prim path, tuple or list (nested)."""
+        t = self.tokens
+        stack = []  # (items, closing token) of the tuples and lists still open
+        while True:
+            if stack and t.at(stack[-1][1]):  # empty, or after a trailing comma
+                item = self._close(stack)
+            else:
+                kind, tok = t.next()
+                if tok in ("(", "[") and kind not in (STRING, PATH):
+                    if len(stack) >= MAX_DEPTH:
+                        self.fail(f"values nested more than {MAX_DEPTH} deep, the most this reader follows")
+                    stack.append(([], ")" if tok == "(" else "]"))
+                    continue
+                item = self.atom(kind, tok)
+            while stack:
+                items, close = stack[-1]
+                items.append(item)
+                _, tok, end = t.peek()
+                if tok == ",":
+                    t.pos = end
+                    break
+                if tok != close:
+                    self.fail(f"expected ',' or {close!r}, found {shown(tok or 'the end of the file')}")
+                item = self._close(stack)
+            else:
+                return item
+
+    def _close(self, stack):
+        items, close = stack.pop()
+        self.tokens.next(close)
+        return tuple(items) if close == ")" else items
+
+    def atom(self, kind, tok):
+        if kind == STRING:
+            return self.tokens.string(tok)
+        if kind == NUMBER:
+            if any(c in tok for c in ".eEin"):
+                return float(tok)
+            if len(tok) > 40:  # beyond any integer type (and Python's own digit limit)
+                self.fail(f"the number {shown(tok)} is too long")
+            return int(tok)
+        if kind == WORD:
+            return Word(tok)
+        if kind in (ASSET, PATH):
             return tok[1:-1]
-        if kind == 3:
-            return float(tok) if any(c in tok for c in ".eEin") else int(tok)
-        if kind == 4:
-            return tok
-        self.fail(f"unexpected {tok!r}")
+        self.fail(f"unexpected {shown(tok)}")
 
 
-_SEPARATORS = str.maketrans("(),", "   ")
-
-
-def _string(tok):
-    if tok.startswith('"""'):
-        return tok[3:-3]
-    return re.sub(r"\\(.)", r"\1", tok[1:-1])
+def _text_value(type_name, value):
+    """A value of a non-numeric type: strings and tokens must be quoted (others are kept as read)."""
+    base = type_name.removesuffix("[]")
+    if base not in ("string", "token"):
+        return value
+    items = value if type_name.endswith("[]") else [value]
+    if type_name.endswith("[]") and not isinstance(value, list):
+        raise BadValue(f"a {type_name} needs a list in [ ], found {shown(str(value))}")
+    for item in items:
+        if not isinstance(item, str) or isinstance(item, Word):
+            raise BadValue(f"a {base} is a string in quotes, found {shown(str(item))}")
+    return value
