@@ -20,12 +20,17 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
+
 from ..core import SplatCloud
 from . import sog
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, check_nonfinite_policy
 from .policy import referenced_file
 
-MAX_META_BYTES = 64 << 20  # far beyond any real tree (splat-transform's are a few MB for 100M splats)
+# A lod-meta.json beyond this is refused unparsed: real ones hold a few hundred bytes per chunk (16 MiB:
+# some 40,000 chunks, 20 billion splats at splat-transform's default chunk size), and Python's parse of
+# one costs about 30 times its size in memory.
+MAX_META_BYTES = 16 << 20
 
 
 def read(
@@ -85,8 +90,8 @@ def _meta(path):
 
 
 def _count(value):
-    """Whether a JSON value is a whole number >= 0 (not a bool)."""
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+    """Whether a JSON value is a whole number from 0 to 2^53 (JSON's exact integers; not a bool)."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 1 << 53
 
 
 def _references(path, meta):
@@ -110,7 +115,9 @@ def _references(path, meta):
             file, offset, count = (ref.get(k) for k in ("file", "offset", "count"))
             if not (_count(file) and _count(offset) and _count(count)) or file >= files:
                 raise SplatFileError(
-                    path, f"lod-meta.json: a level {level} reference {ref} names no file of its {files}"
+                    path,
+                    f"lod-meta.json: the level {level} reference {ref} needs a file index below {files} and a "
+                    "whole-number offset and count",
                 )
             refs.setdefault(level, []).append((file, offset, count))
     counts = meta.get("counts")
@@ -136,23 +143,25 @@ def _chosen_levels(path, levels, count):
 
 
 def _level(path, units, refs):
-    """One level's splats: each unit's referenced runs, by file then offset."""
+    """One level's splats: each unit's referenced runs, by file then offset (one selection per unit,
+    however many leaves share it)."""
     pieces = []
     by_file = {}
     for file, offset, count in refs:
         by_file.setdefault(file, []).append((offset, count))
     for file in sorted(by_file):
         unit = units.read(file)
-        end = 0
-        for offset, count in sorted(by_file[file]):
-            if offset < end or offset + count > len(unit):
-                raise SplatFileError(
-                    path,
-                    f"lod-meta.json: splats {offset} to {offset + count} of '{units.names[file]}' overlap "
-                    f"another reference or lie beyond its {len(unit)} splats",
-                )
-            end = offset + count
-            pieces.append(unit[offset:end])
+        offsets, counts = np.array(sorted(by_file[file]), np.int64).T
+        ends = offsets + counts
+        bad = np.flatnonzero((ends > len(unit)) | (offsets < np.maximum.accumulate(np.r_[0, ends[:-1]])))
+        if len(bad):
+            raise SplatFileError(
+                path,
+                f"lod-meta.json: splats {offsets[bad[0]]} to {ends[bad[0]]} of '{units.names[file]}' overlap "
+                f"another reference or lie beyond its {len(unit)} splats",
+            )
+        starts = np.repeat(offsets - (np.cumsum(counts) - counts), counts)
+        pieces.append(unit[starts + np.arange(len(starts))])
     return SplatCloud.concatenate(pieces) if pieces else SplatCloud.empty()
 
 

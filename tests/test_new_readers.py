@@ -24,7 +24,16 @@ from splatwright.cli import main
 from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
 from splatwright.core.splats import sigmoid
-from splatwright.io import FORMATS, SplatFileError, SplatFileWarning, format_of, ksplat, read_splats, write_splats
+from splatwright.io import (
+    FORMATS,
+    SplatFileError,
+    SplatFileWarning,
+    format_of,
+    ksplat,
+    read_splats,
+    sog_streamed,
+    write_splats,
+)
 
 LEVELS = [0, 1, 2]
 DEGREES = [0, 1, 2, 3]
@@ -422,10 +431,12 @@ def test_streamed_sog_built_from_our_units_keeps_offsets(tmp_path):
          r"splats 30 to 50 of '0_0/meta.json' overlap another reference or lie beyond its 40 splats"),
         ({"tree": {"lods": {"0": {"file": 0, "offset": 0, "count": 1 << 40}}}, "counts": None},
          r"splats 0 to 1099511627776 of '0_0/meta.json'"),
-        ({"tree": {"lods": {"0": {"file": 5, "offset": 0, "count": 1}}}, "counts": None}, r"names no file of its 2"),
+        ({"tree": {"lods": {"0": {"file": 5, "offset": 0, "count": 1}}}, "counts": None}, r"file index below 2"),
         ({"tree": {"lods": {"7": {"file": 0, "offset": 0, "count": 1}}}, "counts": None},
          r"level '7' .* not one of its 2"),
-        ({"tree": {"lods": {"0": {"file": 0, "offset": -1, "count": 1}}}, "counts": None}, r"names no file"),
+        ({"tree": {"lods": {"0": {"file": 0, "offset": -1, "count": 1}}}, "counts": None}, r"whole-number offset"),
+        ({"tree": {"lods": {"0": {"file": 0, "offset": 2**60, "count": 1}}}, "counts": None}, r"whole-number offset"),
+        ({"tree": {"lods": {"0": {"file": 0, "offset": 0, "count": 1.5}}}, "counts": None}, r"whole-number offset"),
         ({"tree": {"children": [{"lods": {"0": {"file": 0, "offset": 0, "count": 40}}}] * 2}, "counts": None},
          r"overlap another reference"),
         ({"tree": {"children": "x"}}, r"children must be a list"),
@@ -452,6 +463,20 @@ def test_hostile_streamed_sog_is_refused_by_name(tmp_path, meta, problem):
     path.write_text(json.dumps(content))
     with pytest.raises(SplatFileError, match=rf"lod-meta\.json: .*{problem}"):
         read_splats(path, levels="all")
+
+
+def test_streamed_sog_leaves_sharing_a_unit_come_back_in_unit_order(tmp_path):
+    unit = random_cloud(2000, sh_degree=0, seed=47)
+    leaves = [{"lods": {"0": {"file": 0, "offset": i, "count": 1}}} for i in reversed(range(2000))]
+    path = write_streamed(tmp_path, [unit], {"tree": {"children": leaves}})
+    np.testing.assert_array_equal(read_splats(path).positions, read_splats(tmp_path / "0_0" / "meta.json").positions)
+
+
+def test_lod_meta_beyond_the_limit_is_refused_unparsed(tmp_path, monkeypatch):
+    path = write_streamed(tmp_path, [random_cloud(40, sh_degree=0, seed=48)])
+    monkeypatch.setattr(sog_streamed, "MAX_META_BYTES", path.stat().st_size - 1)
+    with pytest.raises(SplatFileError, match=r"lod-meta\.json: lod-meta\.json beyond 0 MiB is refused"):
+        read_splats(path)
 
 
 def test_streamed_sog_outside_its_folder_only_with_allow_outside(tmp_path):
