@@ -16,7 +16,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import random_cloud
+from helpers import random_cloud, skip_platform
 from interop import matched, splat_transform
 from test_io_fuzz import SMALL_PEAK, outcome, peak_bytes
 
@@ -493,7 +493,7 @@ def test_streamed_sog_outside_its_folder_only_with_allow_outside(tmp_path):
 
 def test_streamed_sog_unit_that_is_a_fifo_is_refused_unopened(tmp_path):
     if not hasattr(os, "mkfifo"):
-        pytest.skip("no FIFOs here")
+        skip_platform("this platform has no FIFOs")
     path = write_streamed(tmp_path, [random_cloud(40, sh_degree=0, seed=45)])
     os.mkfifo(tmp_path / "fifo.sog")
     content = {**json.loads(path.read_text()), "filenames": ["fifo.sog"]}
