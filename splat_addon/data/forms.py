@@ -267,16 +267,32 @@ def on_spz_grid(positions):
 def stamp_unrecorded(obj, at_import=True):
     """Record where an unstamped native cloud's splats stand. Blender's importers record nothing, but
     the depsgraph update inside each import operator shows the new object as the importer left it
-    (`at_import`): its PLY importer at the identity, its USD importer with the stage's transforms and
-    up axis in the object's matrix (the splats then stand as the stage shows them, upright), its SPZ
-    importer on SPZ's grid. So a cloud is raw only when landed_raw finds it so and it stands at the
-    identity then; later (a file saved before stamps were kept) the splats alone decide."""
+    (`at_import`): its PLY and SPZ importers at the identity (landed_raw tells them apart), its USD
+    importer turned by the stage's up axis and the prim's transform, a turn of the axes for the files
+    of Splatwright and OpenUSD's converters (the splats then stand as the stage shows them, upright).
+    Any other placement is a script's: left to landed_raw, as are clouds of files saved before stamps
+    were kept (`at_import` False)."""
     if obj.type != "POINTCLOUD" or LANDING in obj.data or obj.data.library is not None:
         return
     if splat_form(obj) != NATIVE_FORM:
         return
-    placed = obj.parent is not None or not np.array_equal(np.array(obj.matrix_basis), np.eye(4))
-    stamp_landing(obj, raw=landed_raw(obj) and not (at_import and placed))
+    matrix = np.array(obj.matrix_world, dtype=np.float64)
+    if not at_import or np.array_equal(matrix, np.eye(4)):
+        stamp_landing(obj)
+    elif _turns_axes(matrix[:3, :3]):
+        stamp_landing(obj, raw=False)
+
+
+def _turns_axes(linear):
+    """Whether a linear map is a signed permutation of the axes times a uniform scale (to float32
+    round-off of its Euler angles)."""
+    size = abs(np.linalg.det(linear)) ** (1 / 3)
+    if not np.isfinite(size) or size == 0:
+        return False
+    unit = linear / size
+    rounded = np.round(unit)
+    permutes = (np.abs(rounded).sum(axis=0) == 1).all() and (np.abs(rounded).sum(axis=1) == 1).all()
+    return bool(permutes and np.abs(unit - rounded).max() <= 1e-6)
 
 
 def stamp_landing(obj, raw=None):
