@@ -356,7 +356,7 @@ def _recorded_axes(path, records):
     if recorded is None:
         said = "no value" if code is None else ("unspecified axes" if code == 0 else f"unknown axes {code}")
         warnings.warn(
-            f"{path}: the coordinate-system record says {said}; read as SPZ's documented {DEFAULT_AXES}",
+            f"{path}: the coordinate-system record says {said}; taken as no record",
             SplatFileWarning,
             stacklevel=4,
         )
