@@ -78,7 +78,7 @@ def sh_name(degree, coefficient):
 
 
 def _load_document(path, allow_outside):
-    """(glTF JSON, list of buffers as bytes) from a .glb or .gltf file."""
+    """(glTF JSON, list of buffers' bytes, distinct bytes they hold) from a .glb or .gltf file."""
     try:
         raw = Path(path).read_bytes()
     except OSError as exc:
@@ -93,10 +93,7 @@ def _load_document(path, allow_outside):
             raise SplatFileError(path, f"not a glTF file (neither GLB nor JSON: {exc})") from None
     if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "")).split(".")[0] != "2":
         raise SplatFileError(path, "not a glTF 2.0 document (asset.version must be 2.x)")
-    buffers = []
-    for i, buffer in enumerate(_list(path, doc, "buffers")):
-        buffers.append(_buffer(path, i, buffer, binary, allow_outside))
-    return doc, buffers
+    return doc, *_load_buffers(path, doc, binary, allow_outside)
 
 
 def _split_glb(path, raw):
@@ -131,7 +128,29 @@ def _list(path, doc, key):
     return value
 
 
+def _load_buffers(path, doc, binary, allow_outside):
+    """(every buffer's bytes, as views, and the distinct bytes they hold). A file that several
+    buffers name is read once, as far as the longest of them reaches (a small .gltf could otherwise
+    have a large file beside it read any number of times); one shorter than a buffer is refused from
+    its size, unread."""
+    named = [_buffer(path, i, b, binary, allow_outside) for i, b in enumerate(_list(path, doc, "buffers"))]
+    reach = {}
+    for source, length in named:
+        if isinstance(source, Path):
+            reach[source] = max(reach.get(source, 0), length)
+    sizes = {target: _file_size(path, target) for target in reach}
+    for index, (source, length) in enumerate(named):
+        size = sizes[source] if isinstance(source, Path) else len(source)
+        if size < length:
+            raise SplatFileError(path, f"truncated: buffer {index} holds {size} of its {length} bytes")
+    files = {target: _file_start(path, target, need) for target, need in reach.items()}
+    held = [files[source] if isinstance(source, Path) else source for source, _ in named]
+    stored = sum(len(data) for data in {id(data): data for data in held}.values())
+    return [memoryview(data)[:length] for data, (_, length) in zip(held, named)], stored
+
+
 def _buffer(path, index, buffer, binary, allow_outside):
+    """(bytes, or the path of the file holding them, byteLength) of buffer `index`."""
     length = buffer.get("byteLength")
     if not isinstance(length, int) or not 0 <= length <= MAX_BYTES:
         raise SplatFileError(path, f"buffer {index} has byteLength {length!r}")
@@ -139,24 +158,19 @@ def _buffer(path, index, buffer, binary, allow_outside):
     if uri is None:
         if binary is None:
             raise SplatFileError(path, f"buffer {index} has no uri and the file has no GLB binary chunk")
-        data = binary
-    elif isinstance(uri, str) and uri.startswith("data:"):
+        return binary, length
+    if not isinstance(uri, str):
+        raise SplatFileError(path, f"buffer {index} uri must be a string")
+    if uri.startswith("data:"):
         try:
-            data = base64.b64decode(uri.split(",", 1)[1], validate=True)
+            return base64.b64decode(uri.split(",", 1)[1], validate=True), length
         except (IndexError, ValueError):
             raise SplatFileError(path, f"buffer {index} has a malformed data URI") from None
-    elif isinstance(uri, str):
-        data = _buffer_file(path, index, uri, length, allow_outside)
-    else:
-        raise SplatFileError(path, f"buffer {index} uri must be a string")
-    if len(data) < length:
-        raise SplatFileError(path, f"truncated: buffer {index} holds {len(data)} of its {length} bytes")
-    return data
+    return _buffer_file(path, index, uri, allow_outside), length
 
 
-def _buffer_file(path, index, uri, length, allow_outside):
-    """The first `length` bytes of the file a buffer's URI names (relative, or file://), under the
-    reading policy; a file shorter than `length` is refused from its size, unread."""
+def _buffer_file(path, index, uri, allow_outside):
+    """The file a buffer's URI names (relative, or file://), percent-decoded, under the reading policy."""
     parts = urlsplit(uri)
     if parts.scheme.lower() == "file":
         reference = unquote(parts.path)
@@ -169,15 +183,26 @@ def _buffer_file(path, index, uri, length, allow_outside):
     else:
         reference = unquote(uri)
     folder = Path(os.path.realpath(path)).parent
-    target = referenced_file(path, reference, folder, folder, allow_outside, what=f"buffer {index} file")
+    return referenced_file(path, reference, folder, folder, allow_outside, what=f"buffer {index} file")
+
+
+def _file_size(path, target):
+    try:
+        return os.stat(target).st_size
+    except OSError as exc:
+        raise SplatFileError(path, f"buffer file '{target.name}' cannot be read: {exc.strerror or exc}") from None
+
+
+def _file_start(path, target, length):
+    """The first `length` bytes of a buffer file."""
     try:
         with open(target, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            if size < length:
-                raise SplatFileError(path, f"truncated: buffer {index} holds {size} of its {length} bytes")
-            return f.read(length)
+            data = f.read(length)
     except OSError as exc:
-        raise SplatFileError(path, f"buffer {index} file '{uri}' cannot be read: {exc.strerror or exc}") from None
+        raise SplatFileError(path, f"buffer file '{target.name}' cannot be read: {exc.strerror or exc}") from None
+    if len(data) < length:  # shortened since its size was taken
+        raise SplatFileError(path, f"truncated: buffer file '{target.name}' holds {len(data)} of {length} bytes")
+    return data
 
 
 def _accessor(path, doc, buffers, index, name):
@@ -354,12 +379,12 @@ def read(path, nonfinite="raise", allow_outside=False):
 
 
 def _read(path, nonfinite, allow_outside):
-    doc, buffers = _load_document(path, allow_outside)
+    doc, buffers, stored = _load_document(path, allow_outside)
     unknown = [e for e in doc.get("extensionsRequired", []) if e != EXTENSION]
     if unknown:
         raise SplatFileError(path, f"the file requires glTF extensions this reader does not know: {unknown}")
     placed = _splat_primitives(path, doc)
-    _check_claims(path, doc, buffers, [primitive for _, _, primitive in placed])
+    _check_claims(path, doc, stored, [primitive for _, _, primitive in placed])
     notes, clouds = [], []
     for node, matrix, primitive in placed:
         with np.errstate(invalid="ignore", over="ignore"):
@@ -392,7 +417,7 @@ def _splat_primitives(path, doc):
     return placed
 
 
-def _check_claims(path, doc, buffers, primitives):
+def _check_claims(path, doc, stored, primitives):
     """Refuse, before anything is decoded, a file whose placed primitives claim more numbers than
     DECODE_RATIO per byte of its buffers (past DECODE_FLOOR)."""
     accessors, views, claims = _list(path, doc, "accessors"), _list(path, doc, "bufferViews"), [0]
@@ -401,7 +426,6 @@ def _check_claims(path, doc, buffers, primitives):
         for index in attributes.values() if isinstance(attributes, dict) else ():
             if isinstance(index, int) and 0 <= index < len(accessors):
                 claims.append(_claim(accessors[index], views))
-    stored = sum(len(b) for b in buffers)
     limit = max(DECODE_FLOOR, DECODE_RATIO * stored)
     if sum(claims) > limit:
         raise SplatFileError(

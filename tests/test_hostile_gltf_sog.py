@@ -195,6 +195,16 @@ def test_gltf_buffers_inside_the_folder_read(layout):
     assert f"holds 20 of its {1 << 33} bytes" in refusal(read_splats, path)  # from its size, unread
 
 
+def test_gltf_a_file_many_buffers_name_is_read_once(layout):
+    """400 buffers naming one 2 MB file beside a 40 KB .gltf: read once, not 800 MB."""
+    (layout / "model" / "shared.bin").write_bytes(SECRET + bytes(2 << 20))
+    doc, blob = gltf_document({"uri": "shared.bin", "byteLength": 32})
+    doc["buffers"] += [{"uri": "shared.bin", "byteLength": (2 << 20) - i} for i in range(400)]
+    path = save_gltf(layout / "model" / "many.gltf", doc, blob)
+    assert peak_bytes(lambda: outcome(read_splats, path)) < 16 << 20
+    assert rotation_bytes(read_splats(path)) == SECRET
+
+
 def test_gltf_special_files_are_refused_without_opening_them(layout):
     model = layout / "model"
     uris = {"zero": "/dev/zero", "null": "/dev/null", "folder": "."}
