@@ -168,6 +168,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
         "mode",
         "max_splats",
         "calibrate",
+        "memory_budget",
         "use_rest_pose",
         "|",
         "view_source",
@@ -187,6 +188,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
         "mode",
         "max_splats",
         "target_psnr",
+        "memory_budget",
         "use_rest_pose",
         "|",
         "view_source",
@@ -264,6 +266,15 @@ def test_from_mesh_applies_modifiers(blender):
     np.testing.assert_allclose(d["position"], surface_points(d), atol=1e-5)
     assert d["position"][:, 0].max() > 2.5  # splats on the arrayed copy too
     np.testing.assert_allclose(dc_color(d), np.broadcast_to(linear_to_srgb([0.2, 0.5, 0.8]), (300, 3)), atol=2e-4)
+
+
+def test_from_mesh_holds_the_splats_to_the_memory_budget(blender):
+    from splatwright.core.mesh_refine import splats_within
+
+    res = blender.step("textured")["held"]
+    assert res["result"] == ["FINISHED"]
+    cap = splats_within(int(0.08 * 2**30), res["faces"], 0)
+    assert abs(res["splats"] - cap) <= 0.02 * cap
 
 
 def test_from_mesh_corner_colour_attribute(blender):

@@ -38,6 +38,7 @@ from ...core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
 from ...core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
 from ...core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from ...core.steps import drain, mapped_steps
+from ...io.ply import file_size as ply_size
 from .. import data
 from ..data import camera, display
 from ..data.display import DISPLAY_BUDGET
@@ -500,8 +501,8 @@ def bake_options(
 def conversion_report(count, info):
     """What a report says of one converted object: its splat count, the quality reached and where
     (mesh_refine.summary), and for a baked look its fit."""
-    quality = f", {summary(info)}" if "psnr" in info else ""
-    return f"{count} splats{quality}{baked_summary(info)}"
+    quality = summary(info)
+    return f"{count} splats{', ' + quality if quality else ''}{baked_summary(info)}"
 
 
 def baked_summary(info):
@@ -529,7 +530,7 @@ def shown_options(mode, view_source, appearance):
     Target PSNR only when sizing by it, Calibrate Silhouettes only with a budget (a target always
     calibrates), Near and Far where views are placed around the mesh (measuring Around, or baking),
     the bake options only for the Rendered look."""
-    size = ["mode", "max_splats", "target_psnr" if mode == "QUALITY" else "calibrate", "use_rest_pose"]
+    size = ["mode", "max_splats", "target_psnr" if mode == "QUALITY" else "calibrate", "memory_budget", "use_rest_pose"]
     around = view_source == "AROUND" or appearance == "RENDERED"
     views = ["view_source", *(("view_near", "view_far") if around else ()), "view_count", "view_size"]
     bake = ("bake_views", "bake_samples", "bake_degree", "bake_geometry_steps") if appearance == "RENDERED" else ()
@@ -581,6 +582,14 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
         description="Render quality to reach, in dB",
     )
     calibrate: BoolProperty(name="Calibrate Silhouettes", default=True, description=CALIBRATE_TOOLTIP)
+    memory_budget: FloatProperty(
+        name="Memory Budget (GiB)",
+        default=0.0,
+        min=0.0,
+        soft_max=64.0,
+        description="The most memory one object's conversion may take; 0: half the memory free when it "
+        "starts. A conversion that reaches it keeps the splats that fit and says so",
+    )
     use_rest_pose: BoolProperty(
         name="Rest Pose",
         default=True,
@@ -754,6 +763,7 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
             render_mode=self.made_for.lower(),
             warn=lambda message: self.report({"WARNING"}, message),
             bake=bake,
+            memory_budget=int(self.memory_budget * 2**30) or None,
             **views,
         )
 
@@ -774,7 +784,10 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
             missed = info.get("reached") is False
             self.report({"WARNING"} if missed else {"INFO"}, f"'{source.name}': {conversion_report(len(cloud), info)}")
         total = sum(len(cloud) for _, cloud, _ in job.results)
-        self.report({"INFO"}, f"made {total} splats from {len(created)} mesh object(s)")
+        size = sum(ply_size(len(cloud), cloud.sh_degree) for _, cloud, _ in job.results)
+        self.report(
+            {"INFO"}, f"made {total} splats from {len(created)} mesh object(s), about {size / 1e6:.1f} MB as PLY"
+        )
         return {"FINISHED"}
 
 

@@ -232,6 +232,14 @@ class Worker(BlenderWorker):
             "source": json.loads(created[0].data["splatwright_source"]),
         }
         self.save("arrayed", **self.source_dump(cube), **self.splat_dump(created[0]))
+        # a memory budget holds the splats to what fits, whatever Max Splats asks
+        held = self.grid("held", nx=2, ny=2)
+        op, created = self.convert([held], max_splats=10**7, memory_budget=0.08)
+        res["held"] = {
+            **op,
+            "faces": 2 * len(held.data.polygons),
+            "splats": self.module("splat_addon.data.attributes").splat_count(created[0].data),
+        }
         return res
 
     def colors(self):
