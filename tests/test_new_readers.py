@@ -465,6 +465,15 @@ def test_hostile_streamed_sog_is_refused_by_name(tmp_path, meta, problem):
         read_splats(path, levels="all")
 
 
+def test_streamed_sog_before_versioning_reads(tmp_path):
+    """Files written before splat-transform stamped `version`, `count` and `counts` read as well."""
+    clouds = [random_cloud(40, sh_degree=1, seed=49), random_cloud(10, sh_degree=1, seed=50)]
+    path = write_streamed(tmp_path, clouds)
+    content = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("version", "count", "counts")}
+    path.write_text(json.dumps(content))
+    check_sog_error(read_splats(path, levels="all"), SplatCloud.concatenate(clouds))
+
+
 def test_streamed_sog_leaves_sharing_a_unit_come_back_in_unit_order(tmp_path):
     unit = random_cloud(2000, sh_degree=0, seed=47)
     leaves = [{"lods": {"0": {"file": 0, "offset": i, "count": 1}}} for i in reversed(range(2000))]
