@@ -164,16 +164,14 @@ def _bombs():
 @pytest.mark.parametrize("name", [name for name, _ in _bombs()])
 def test_small_layers_read_or_refused_in_bounded_time_and_memory(tmp_path, name):
     path = layer(tmp_path, dict(_bombs())[name])
+    tracemalloc.start()  # which slows the reading about threefold: the bound on time allows for it
     start = time.perf_counter()
-    read_with(stages.TEXT, path)
-    seconds = time.perf_counter() - start
-    tracemalloc.start()
     try:
         read_with(stages.TEXT, path)
-        peak = tracemalloc.get_traced_memory()[1]
+        seconds, peak = time.perf_counter() - start, tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert seconds < 10 and peak < 256 << 20, (seconds, peak)
+    assert seconds < 30 and peak < 256 << 20, (seconds, peak)
 
 
 # values read as pxr reads them ------------------------------------------------------------------------
@@ -185,6 +183,22 @@ def test_three_axis_rotations_take_x_y_z_angles_in_the_named_order(tmp_path, ord
     assert_read_as_pxr(layer(tmp_path, splat(body=ops)), unmarked="stage")
     ops = f'float3 xformOp:rotate{order} = (30, -50, 70)\n    uniform token[] xformOpOrder = ["xformOp:rotate{order}"]'
     assert_read_as_pxr(layer(tmp_path, splat(body=ops)), unmarked="stage")
+
+
+@pytest.mark.parametrize("op", ["rotateX", "rotateY", "rotateZ", "translateX", "translateY", "translateZ", "scaleZ"])
+def test_one_axis_ops_read_as_pxr_reads_them(tmp_path, op):
+    for invert in ("", "!invert!") if not op.startswith("scale") else ("",):
+        ops = f'half xformOp:{op} = 70\n    uniform token[] xformOpOrder = ["{invert}xformOp:{op}"]'
+        assert_read_as_pxr(layer(tmp_path, splat(body=ops)), unmarked="stage")
+
+
+def test_indexed_primvars_read_as_pxr_reads_them(tmp_path):
+    body = (
+        'float[] primvars:w = [0.5, 7] (\n interpolation = "vertex"\n)\n    int[] primvars:w:indices = [1, 0]\n'
+        '    token[] primvars:t = ["a", "b"] (\n interpolation = "vertex"\n)\n    int[] primvars:t:indices = [1, 1]'
+    )
+    got = assert_read_as_pxr(layer(tmp_path, splat(body=body)))
+    np.testing.assert_array_equal(got[0][1].extras["w"], [7, 0.5])
 
 
 @pytest.mark.parametrize("value", ["false", "true", "0", "1", "0.0", "2", '"false"', '"true"'])
@@ -252,6 +266,8 @@ def test_classes_overs_and_inactive_prims_are_skipped_as_pxr_skips_them(tmp_path
         'uchar[] primvars:label = [1, 300] (\n interpolation = "vertex"\n)',
         "uchar primvars:label = 300",
         "uniform int radiance:sphericalHarmonicsDegree = 4294967296",
+        "int primvars:n = 4294967296",
+        'int[] primvars:n = [4294967296, 1] (\n interpolation = "vertex"\n)',
         "uniform int radiance:sphericalHarmonicsDegree = +1",
         "uniform int radiance:sphericalHarmonicsDegree = nan",
         'int[] primvars:n = [1, 2, 1e10] (\n interpolation = "vertex"\n)',
@@ -314,6 +330,7 @@ def test_values_pxr_accepts_read_as_pxr_reads_them(tmp_path, body):
         ('float3 xformOp:rotateX = (1, 2, 3)\n    uniform token[] xformOpOrder = ["xformOp:rotateX"]', ["rotateX"]),
         ('double4 xformOp:orient = (1, 0, 0, 0)\n    uniform token[] xformOpOrder = ["xformOp:orient"]', ["orient"]),
         ('float3 xformOp:foo = (1, 2, 3)\n    uniform token[] xformOpOrder = ["xformOp:foo"]', ["foo"]),
+        ('double xformOp:scaleY = 2\n    uniform token[] xformOpOrder = ["!invert!xformOp:scaleY"]', ["negating"]),
         ('float3 xformOp:translate = (1, 2, 3)\n    uniform token[] xformOpOrder = "xformOp:translate"', []),
     ],
 )

@@ -599,7 +599,7 @@ class Primvar:
                 self.prim.layer.identifier,
                 f"{self.prim.path}: {self.attr.name}:indices is a {indices.GetTypeName()}, not an int[]",
             )
-        if not isinstance(value, np.ndarray):
+        if np.ndim(value) == 0:
             raise SplatFileError(
                 self.prim.layer.identifier, f"{self.prim.path}: {self.attr.name} is indexed but holds no array"
             )
