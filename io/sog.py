@@ -48,7 +48,8 @@ from .common import (
     warn_notes,
 )
 from .compressed_ply import morton_order
-from .policy import MAX_IMAGE_PIXELS, referenced_file
+from .image import check_image_size, header_size
+from .policy import referenced_file
 
 FILES = {
     "means": ["means_l.webp", "means_u.webp"],
@@ -154,36 +155,17 @@ class _Source:
             self.zip.close()
 
 
-def webp_size(data):
-    """(width, height) from a WebP file's header, or None when it is not one (lossless VP8L, lossy
-    VP8 and extended VP8X: the first chunk says)."""
-    if len(data) < 30 or data[:4] != b"RIFF" or data[8:12] != b"WEBP":
-        return None
-    chunk = data[12:16]
-    if chunk == b"VP8L" and data[20] == 0x2F:
-        bits = int.from_bytes(data[21:25], "little")
-        return (bits & 0x3FFF) + 1, (bits >> 14 & 0x3FFF) + 1
-    if chunk == b"VP8X":
-        return int.from_bytes(data[24:27], "little") + 1, int.from_bytes(data[27:30], "little") + 1
-    if chunk == b"VP8 " and data[23:26] == b"\x9d\x01\x2a":
-        return int.from_bytes(data[26:28], "little") & 0x3FFF, int.from_bytes(data[28:30], "little") & 0x3FFF
-    return None
-
-
 class _Image:
     """A SOG image read but not decoded: its bytes, and its size from its header, checked to hold
-    between `least` and `most` pixels (and no more than MAX_IMAGE_PIXELS); `what` they are for."""
+    between `least` and `most` pixels (and no more than policy.MAX_IMAGE_PIXELS); `what` they are for."""
 
     def __init__(self, path, source, name, least, most, what):
         self.path, self.name, self.data = path, name, source.read(name)
-        size = webp_size(self.data)
+        size = header_size(self.data)
         if size is None:
-            raise SplatFileError(path, f"{name} is not a WebP image")
+            raise SplatFileError(path, f"{name} is not a WebP image (its header states no size)")
         self.size = width, height = size
-        if width * height > MAX_IMAGE_PIXELS:
-            raise SplatFileError(
-                path, f"{name} is {width}x{height} pixels, more than the {MAX_IMAGE_PIXELS} an image may have"
-            )
+        check_image_size(path, width, height, name)
         if not least <= width * height <= most:
             raise SplatFileError(path, f"{name} is {width}x{height} pixels for {what}")
 
@@ -253,8 +235,10 @@ def decode(path, source):
     """The cloud a SOG holds; every image's size and the count checked before any is decoded."""
     meta, n, mins, maxs, codebooks, files = _meta(path, source)
     images = {key: [_splat_image(path, source, name, n) for name in names] for key, names in files.items()}
-    sh_rest = _sh_images(path, source, _sh_meta(path, meta["shN"]), n) if meta.get("shN") else None
-    numbers = n * (3 + 4 + 3 + 1 + 3 * (1 + (sh_rest[1] if sh_rest else 0)))
+    sh_meta = _sh_meta(path, meta["shN"]) if meta.get("shN") else None
+    if sh_meta:
+        images["shN"] = _sh_images(path, source, sh_meta, n)
+    numbers = n * (3 + 4 + 3 + 1 + 3 * (1 + (SH_COEFFS[sh_meta[0]] if sh_meta else 0)))
     limit = max(SOG_RATIO_FLOOR, SOG_MAX_RATIO * source.stored)
     if numbers > limit:
         raise SplatFileError(
@@ -273,8 +257,8 @@ def decode(path, source):
     dc = codebooks["sh0"][sh0[:, :3]]
     logits = logit(sh0[:, 3] / 255.0)
     sh = dc[:, None, :]
-    if sh_rest:
-        sh = np.concatenate([sh, _sh_rest(*sh_rest, n)], axis=1)
+    if sh_meta:
+        sh = np.concatenate([sh, _sh_rest(sh_meta, *images["shN"], n)], axis=1)
     return SplatCloud(positions, rotations, scales, logits, sh)
 
 
@@ -292,16 +276,17 @@ def _unpack_quats(path, rgba):
 
 
 def _sh_images(path, source, sh_meta, n):
-    """(palette entries, coefficients per entry, codebook, centroids image, labels image)."""
-    _, count, codebook, names = sh_meta
-    k = SH_COEFFS[sh_meta[0]]
-    texels = -(-count // 64) * 64 * k  # rows of 64 entries, k texels each
+    """[centroids image, labels image] of meta.json's shN."""
+    bands, count, _, names = sh_meta
+    texels = -(-count // 64) * 64 * SH_COEFFS[bands]  # rows of 64 entries, k texels each
     centroids = _Image(path, source, names[0], texels, texels + (1 << 20), f"{count} palette entries")
-    return count, k, codebook, centroids, _splat_image(path, source, names[1], n)
+    return [centroids, _splat_image(path, source, names[1], n)]
 
 
-def _sh_rest(count, k, codebook, centroids, labels, n):
+def _sh_rest(sh_meta, centroids, labels, n):
     """(n, k, 3) SH above degree 0 from the palette and each splat's label."""
+    bands, count, codebook, _ = sh_meta
+    k = SH_COEFFS[bands]
     rows = -(-count // 64)
     palette = codebook[centroids.pixels()[: rows * 64 * k, :3]].reshape(rows * 64, k, 3)
     labels = labels.pixels()[:n]

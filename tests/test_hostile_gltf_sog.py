@@ -435,10 +435,10 @@ def test_sog_images_past_the_pixel_limit_are_refused_from_their_headers(tmp_path
     assert side * side > MAX_IMAGE_PIXELS
     path = bomb(tmp_path / "wide.sog", side * side, 0, 0, image=forged(side, side))
     seconds, peak, result = in_child(path)
-    assert f"{side}x{side}" in result and "wide.sog" in result, result
+    assert f"{side} x {side}" in result and "wide.sog" in result, result
     assert seconds < 2 and peak < 1 << 30
     path = sog_bundle(tmp_path / "one.sog", files={"quats.webp": forged(side, side)})
-    assert f"{side}x{side}" in refusal(read_splats, path)
+    assert f"quats.webp of {side} x {side} pixels" in refusal(read_splats, path)
 
 
 # unbundled SOG: meta.json and images beside it --------------------------------------------------
