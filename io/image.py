@@ -11,6 +11,7 @@ background is opaque: PNG gets RGB only, EXR gets the colour and its coverage as
 whole or not at all.
 """
 
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -134,7 +135,7 @@ def png_bytes(pixels):
 # reading image headers ----------------------------------------------------------------------------
 
 
-def header_size(data):
+def header_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) a PNG, JPEG or WebP image states in its header, from its first bytes alone
     (no decoder is involved); None for other or damaged data."""
     data = bytes(data[: 1 << 16])  # a JPEG's frame header follows its metadata segments
@@ -183,7 +184,7 @@ def _webp_size(data):
     return None
 
 
-def check_image_size(owner, width, height, what="image"):
+def check_image_size(owner: str | os.PathLike, width: int, height: int, what: str = "image") -> None:
     """Refuse (SplatFileError naming `owner`) an image of more than policy.MAX_IMAGE_PIXELS pixels."""
     if width * height > MAX_IMAGE_PIXELS:
         side = int(MAX_IMAGE_PIXELS**0.5)

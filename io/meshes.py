@@ -14,6 +14,7 @@ texture beyond policy.MAX_IMAGE_PIXELS, embedded or referenced, is refused from 
 it is decoded.
 """
 
+import os
 import warnings
 from pathlib import Path
 from urllib.parse import unquote
@@ -31,7 +32,7 @@ from .policy import referenced_file
 OWN_FORMATS = (".obj",)
 
 
-def read_mesh_file(path, allow_outside=False):
+def read_mesh_file(path: str | os.PathLike, allow_outside: bool = False) -> Mesh:
     """Read a triangle mesh file of any format trimesh knows (OBJ natively) into a core.mesh.Mesh.
     allow_outside: follow the names of other files outside the mesh's folder too."""
     path = Path(path)

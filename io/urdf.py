@@ -27,6 +27,7 @@ element and the problem.
 import os
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote
@@ -394,7 +395,7 @@ class _Resolver:
         return [(filename, self.urdf.parent)]
 
 
-def package_search_path(package_paths=()):
+def package_search_path(package_paths: Iterable[str | os.PathLike] = ()) -> list[Path]:
     """The folders package:// meshes are looked up in: `package_paths`, then the ROS_PACKAGE_PATH
     environment variable. Both are the user's own choice (whoever runs the reader set the variable),
     so both are allowed roots for the meshes a URDF names, beside the URDF's own folder."""
