@@ -45,18 +45,21 @@ def placed(blender, tag):
     return world, linear @ cov @ linear.T, saved, matrix
 
 
+@pytest.mark.parametrize("axes", ["", "_axes"])
 @pytest.mark.parametrize("name", ["src_spz", "src_ply"])
-def test_as_blenders_importer_is_blenders_placement(blender, name):
+def test_as_blenders_importer_is_blenders_placement(blender, name, axes):
+    """Values and transforms as Blender's importer makes them (with Forward/Up at their defaults, and
+    changed: Blender's importers have no such settings)."""
     landing = blender.step("placement")["landing"]
     world, cov, theirs, matrix = placed(blender, f"{name}_blender")
-    ours_world, ours_cov, ours, ours_matrix = placed(blender, f"{name}_BLENDER")
+    ours_world, ours_cov, ours, ours_matrix = placed(blender, f"{name}_BLENDER{axes}")
     np.testing.assert_array_equal(matrix, np.eye(4))
     np.testing.assert_array_equal(ours_matrix, np.eye(4))  # Blender's: values placed, no transform
     np.testing.assert_allclose(ours_world, world, rtol=0, atol=1e-6)
     np.testing.assert_allclose(ours_cov, cov, rtol=0, atol=1e-6 * np.abs(cov).max())
     for key in ("radiance_base", "radiance_sh_0", "radiance_sh_4", "radiance_sh_14"):
         np.testing.assert_allclose(ours[key], theirs[key], rtol=0, atol=2e-6, err_msg=key)
-    assert landing[f"{name}_BLENDER"] == ("RAW" if name == "src_ply" else "UPRIGHT")
+    assert landing[f"{name}_BLENDER{axes}"] == ("RAW" if name == "src_ply" else "UPRIGHT")
 
 
 @pytest.mark.parametrize("name", ["src_spz", "src_ply"])

@@ -75,12 +75,13 @@ def spz_axes_option(value):
 
 def placed(cloud, path, conversion, as_blender):
     """(values, object matrix, whether the values are the file's axes as they are) for a file's cloud.
-    Splatwright keeps the values and stands them upright by the object's matrix (`conversion`); as
-    Blender 5.3's own importers do, an SPZ's values are turned upright instead and a PLY's left in the
-    file's axes (a capture on its side), both at the identity, so clouds imported either way share a
-    scene. Formats Blender imports no splats from are placed upright."""
+    Splatwright keeps the values and stands them upright by the object's matrix (`conversion`, from
+    the Forward/Up settings); as Blender 5.3's own importers do (which have no such settings), an
+    SPZ's values are turned upright instead and a PLY's left in the file's axes (a capture on its
+    side), both at the identity, so clouds imported either way share a scene. Formats Blender imports
+    no splats from are placed by `conversion`."""
     if as_blender and format_of(path) == "spz":
-        return data.transform_cloud(cloud, np.array(conversion, dtype=np.float64)), np.eye(4), False
+        return data.transform_cloud(cloud, upright()), np.eye(4), False
     if as_blender and format_of(path) == "ply":
         return cloud, np.eye(4), True
     return cloud, conversion, False

@@ -46,6 +46,10 @@ class SpzAxesWorker(BlenderWorker):
                     self.select([obj])
                     self.bpy.ops.splat.export_file(filepath=str(self.out / f"{stem}_as_blender.ply"))
                 self.bpy.data.objects.remove(obj)
+            # Blender's importers have no Forward/Up: as they place it, whatever those say
+            obj = self.imported(name, {"placement": "BLENDER", "axis_forward": "Y", "axis_up": "Z"})
+            landing[f"{stem}_BLENDER_axes"] = self.record(f"{stem}_BLENDER_axes", obj)
+            self.bpy.data.objects.remove(obj)
         return {"landing": landing}
 
     def spz_axes_import(self):
