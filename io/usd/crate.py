@@ -1,14 +1,13 @@
 """Crate (.usdc) files checked against their own sizes before OpenUSD's crate reader opens them.
 
 OpenUSD sizes its buffers by the counts a crate file states: one flipped bit in a count makes it
-allocate gigabytes, read past the file, or abort the process. `_check_crate` refuses a file whose
+allocate gigabytes, read past the file, or abort the process. `check_crate_bytes` refuses a file whose
 table of contents, section counts, compressed block sizes, or the element counts of the arrays,
 vectors and dictionaries its FIELDS section points to, cannot fit in the bytes the file holds. The
 FIELDS value representations are compressed; they are decoded here by a small LZ4 block decoder
 that never produces more than the section says it holds (OpenUSD's TfFastCompression framing).
 """
 
-import os
 import struct
 
 import numpy as np
@@ -61,53 +60,22 @@ class _CrateError(Exception):
     pass
 
 
-def check_crate(path, identifier=None):
-    """Refuse a .usdc whose structure the file cannot hold, before OpenUSD's crate reader sizes
-    buffers by it: the table of contents and every section's counts and compressed sizes, and the
-    element count of every array, vector and dictionary the FIELDS section points to (a flipped bit
-    in one makes OpenUSD allocate gigabytes, read past the file, or abort the process). The layer
-    may sit in a .usdz ("pkg.usdz[inner]", or the package itself for its first file)."""
-    import mmap
-    import zipfile
-
-    identifier = os.path.abspath(path) if identifier is None else identifier
-    outer, _, inner = identifier.partition("[")
-    if not os.path.isfile(outer):
-        return
+def check_crate_bytes(path, data, where=""):
+    """Refuse the crate layer `data` (its bytes; layer_check.py maps them, from a file or a .usdz)
+    if its structure cannot fit in them: the table of contents and every section's counts and
+    compressed sizes, and the element count of every array, vector and dictionary the FIELDS
+    section points to (a flipped bit in one makes OpenUSD allocate gigabytes, read past the file,
+    or abort the process). `where` prefixes the problem ("layer x.usdc: ") for a composed layer."""
     try:
-        with open(outer, "rb") as f:
-            # not closed explicitly: views of it may live on in a traceback; freed with the last one
-            data = (
-                memoryview(mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ))
-                if os.fstat(f.fileno()).st_size
-                else memoryview(b"")
-            )
-        if bytes(data[:4]) == b"PK\x03\x04":
-            data = _packaged(data, outer, inner.rstrip("]"))
-        if data is not None and bytes(data[:8]) == b"PXR-USDC":
-            _check_crate_bytes(path, data)
-    except (struct.error, zipfile.BadZipFile):
-        raise SplatFileError(path, "crate header or table of contents is truncated") from None
+        _check_crate_bytes(path, data)
+    except struct.error:
+        raise SplatFileError(path, f"{where}crate header or table of contents is truncated") from None
     except (_CrateError, ValueError, IndexError) as exc:
-        raise SplatFileError(path, f"crate file is corrupt: {exc}") from None
-
-
-def _packaged(view, outer, inner):
-    """The bytes of file `inner` (default: the first) of the zip `outer`, if stored uncompressed
-    (OpenUSD reads no other kind), else None."""
-    import zipfile
-
-    with zipfile.ZipFile(outer) as z:
-        infos = z.infolist()
-        match = [i for i in infos if i.filename == inner] if inner else infos[:1]
-        if not match or match[0].compress_type != zipfile.ZIP_STORED:
-            return None
-        info = match[0]
-    name_length, extra_length = struct.unpack_from("<HH", view, info.header_offset + 26)
-    start = info.header_offset + 30 + name_length + extra_length
-    if start + info.file_size > len(view):
-        raise _CrateError(f"packaged file {info.filename!r} runs past the package")
-    return view[start : start + info.file_size]
+        raise SplatFileError(path, f"{where}crate file is corrupt: {exc}") from None
+    except SplatFileError as exc:
+        if not where:
+            raise
+        raise SplatFileError(path, where + exc.problem) from None
 
 
 def _check_crate_bytes(path, data):

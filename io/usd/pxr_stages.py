@@ -11,35 +11,30 @@ bundled with Blender), which gives the same file. Arrays are Vt arrays, filled i
 
 import contextlib
 import ctypes
+import math
 import os
+import re
+import zipfile
 
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
+from .. import policy
 from ..common import SplatFileError
-from ..policy import inside_package, outside_message, within
-from .crate import check_crate
+from .layer_check import check_layer, split_packaged
 from .schema import CUSTOM, SCHEMA, TYPE_NAME
 from .usdz import write_usdz
+
+# Clip templates: OpenUSD tries every time from start to end by stride (in steps of stride * 10000
+# added to time * 10000, which stop moving once the time is large enough), resolving a file each.
+MAX_TEMPLATE_CLIPS = 100_000
+MAX_CLIP_TIME = 1e9
+MIN_CLIP_STRIDE = 1e-3
 
 try:
     from pxr import UsdVol  # the splat schema's classes (usd-core >= 26.3; not in Blender's pxr)
 except ImportError:
     UsdVol = None
-
-
-def _layer(path, identifier):
-    """The Sdf layer at `identifier` (a file, or "pkg.usdz[inner]"), re-read if an earlier open left it
-    cached (it may be stale); crate files are checked before OpenUSD parses them. None if missing."""
-    check_crate(path, identifier)
-    layer = Sdf.Layer.Find(identifier)
-    if layer is not None:
-        layer.Reload(True)
-    else:
-        layer = Sdf.Layer.FindOrOpen(identifier)
-    if layer is not None:
-        _check_children(path, layer)
-    return layer
 
 
 def _names(path, spec, key, where=""):
@@ -82,53 +77,191 @@ def _check_children(path, layer):
 
 
 def _composed_layers(path, allow_outside):
-    """The root layer and every layer it composes (sublayers, references, payloads, recursively),
-    each opened with Sdf before the stage is: OpenUSD would read any path a layer names (/etc/...,
-    ../../, a URL) and only warn about missing ones. A layer outside the stage's package (.usdz) or
-    folder is refused unless allow_outside, with the same message whether it exists or not; a
-    missing one is a SplatFileError either way."""
-    root = os.path.abspath(path)
-    package = root if root.lower().endswith(".usdz") else None
-    where = "the stage's package" if package else "the stage's folder"
-    first = _layer(path, root)
-    if first is None:
-        raise SplatFileError(path, "OpenUSD cannot open it")
-    layers, todo, seen = [first], [first], {first.identifier}
+    """The root layer and every layer it composes, each checked and opened with Sdf before the
+    stage is: OpenUSD would read any path a layer names (/etc/..., ../../, a URL, a FIFO) and only
+    warn about missing ones. See _LayerWalk."""
+    walk = _LayerWalk(path, allow_outside)
+    first = walk.open(os.path.abspath(path), "", "")
+    layers, todo = [first], [first]
     while todo:
         layer = todo.pop()
         named_by = "" if layer is first else f"layer {layer.identifier} "
-        for asset in layer.GetCompositionAssetDependencies():
-            resolved = layer.ComputeAbsolutePath(asset)
-            if not os.path.isabs(resolved.split("[", 1)[0]):  # a search path: anchored as the resolver does first
-                resolved = layer.ComputeAbsolutePath("./" + asset)
-            ok = (
-                inside_package(package, resolved)
-                if package
-                else within(os.path.dirname(root), resolved.split("[", 1)[0])
-            )
-            if not ok and not allow_outside:
-                raise SplatFileError(
-                    path,
-                    f"{named_by}refers to a layer: {outside_message(asset, where)} "
-                    "(read with allow_outside=True to allow it)",
-                )
-            if resolved in seen:
+        for asset, resolved in walk.dependencies(layer, named_by):
+            if walk.key(resolved) in walk.checked:
                 continue
-            try:
-                found = _layer(path, resolved)
-            except Tf.ErrorException:
-                found = None
-            if found is None:
-                raise SplatFileError(
-                    path,
-                    f"{named_by}refers to the layer '{asset}', which cannot be opened "
-                    "(missing, or not an OpenUSD layer)",
-                )
-            seen.add(found.identifier)
-            seen.add(resolved)
+            found = walk.open(resolved, asset, named_by)
             layers.append(found)
             todo.append(found)
-    return layers
+    walk.check_template_times()
+    return layers, walk
+
+
+class _LayerWalk:
+    """Which layers a stage may compose, and their checks. A layer is followed when it lies in the
+    stage's package (.usdz) or folder (policy.py), unless allow_outside; it must be a regular file
+    (or a stored member of the package), pass layer_check.check_layer, and open with Sdf. Layers
+    are named by sublayers, references and payloads (in variants too), and by value clips on any
+    prim spec: assetPaths, manifestAssetPath and templateAssetPath, whose every matching file is
+    checked. A layer outside is refused with the same message whether it exists or not; a missing
+    one is a SplatFileError either way. After the stage opens, `verify` holds it to the layers
+    checked here."""
+
+    def __init__(self, path, allow_outside):
+        self.path, self.allow_outside = path, allow_outside
+        self.root = os.path.abspath(path)
+        self.package = self.root if self.root.lower().endswith(".usdz") else None
+        self.where = "the stage's package" if self.package else "the stage's folder"
+        self.checked = set()
+        self.template_times = []  # (start, end, stride) of every templated clip set
+
+    @staticmethod
+    def key(identifier):
+        """`identifier` with its file's symbolic links followed, to compare layers OpenUSD names."""
+        outer, bracket, rest = identifier.partition("[")
+        return os.path.realpath(outer) + bracket + rest
+
+    def open(self, resolved, asset, named_by):
+        """The Sdf layer at `resolved` (a file or "pkg.usdz[inner]"), checked before OpenUSD parses it,
+        re-read if an earlier open left it cached (it may be stale)."""
+        try:  # regular files only: a FIFO would hang OpenUSD, /dev/zero never ends
+            policy.referenced_file(self.path, resolved.split("[", 1)[0], [], allow_outside=True, what="layer")
+        except SplatFileError:
+            if not asset:
+                raise SplatFileError(self.path, "not a regular file") from None
+            raise self._unopened(asset, named_by) from None
+        check_layer(self.path, resolved)
+        try:
+            layer = Sdf.Layer.Find(resolved)
+            if layer is not None:
+                layer.Reload(True)
+            else:
+                layer = Sdf.Layer.FindOrOpen(resolved)
+        except Tf.ErrorException:
+            layer = None
+        if layer is None:
+            if not asset:
+                raise SplatFileError(self.path, "OpenUSD cannot open it")
+            raise self._unopened(asset, named_by)
+        _check_children(self.path, layer)
+        self.checked.update((self.key(resolved), self.key(layer.identifier)))
+        return layer
+
+    def _unopened(self, asset, named_by):
+        return SplatFileError(
+            self.path,
+            f"{named_by}refers to the layer '{asset}', which cannot be opened "
+            "(missing, not a regular file, or not an OpenUSD layer)",
+        )
+
+    def dependencies(self, layer, named_by):
+        """(asset, resolved identifier) of every layer `layer` names, each refused if outside."""
+        for asset in layer.GetCompositionAssetDependencies():
+            yield asset, self.resolve(layer, asset, named_by)
+        for spec in _prim_specs(layer):
+            if spec.HasInfo("clips"):
+                yield from self._clips(layer, spec, named_by)
+
+    def resolve(self, layer, asset, named_by, shown=None):
+        """The identifier OpenUSD opens for `asset` named in `layer`, refused unless it lies in the
+        package or folder (or allow_outside); `shown` is the name the refusal gives (default asset)."""
+        if asset.startswith("`"):  # an expression of variables, evaluated by OpenUSD when composing
+            raise SplatFileError(
+                self.path, f"{named_by}names a layer by an expression ({asset}); only plain asset paths are read"
+            )
+        resolved = layer.ComputeAbsolutePath(asset)
+        if not os.path.isabs(resolved.split("[", 1)[0]):  # a search path: anchored as the resolver does first
+            resolved = layer.ComputeAbsolutePath("./" + asset)
+        if self.package:
+            ok = policy.inside_package(self.package, resolved)
+        else:
+            ok = policy.within(os.path.dirname(self.root), resolved.split("[", 1)[0])
+        if not ok and not self.allow_outside:
+            raise SplatFileError(
+                self.path,
+                f"{named_by}refers to a layer: {policy.outside_message(shown or asset, self.where)} "
+                "(read with allow_outside=True to allow it)",
+            )
+        return resolved
+
+    def _clips(self, layer, spec, named_by):
+        """The layers the value clips of prim `spec` name (every clip set of its `clips`)."""
+        clips = spec.GetInfo("clips")
+        for clip_set in clips.values() if isinstance(clips, dict) else ():
+            if not isinstance(clip_set, dict):
+                continue
+            paths = clip_set.get("assetPaths")
+            for asset in paths if isinstance(paths, Sdf.AssetPathArray) else ():
+                yield asset.path, self.resolve(layer, asset.path, named_by)
+            manifest = clip_set.get("manifestAssetPath")
+            if isinstance(manifest, Sdf.AssetPath) and manifest.path:
+                yield manifest.path, self.resolve(layer, manifest.path, named_by)
+            template = clip_set.get("templateAssetPath")
+            if isinstance(template, str) and template:
+                times = [clip_set.get(f"template{k}") for k in ("StartTime", "EndTime", "Stride")]
+                self.template_times.append(times)
+                for name in self._template_files(layer, template, named_by):
+                    yield name, self.resolve(layer, name, named_by)
+
+    def _template_files(self, layer, template, named_by):
+        """Every file that a clip template ("clips/shot.###.usda") can expand to: the names in its
+        folder (or package) that match it, its hashes standing for numbers. Its folder must be
+        inside; the hashes may stand only in the file's name."""
+        folder, _, name = template.replace("\\", "/").rpartition("/")
+        if "#" in folder:
+            raise SplatFileError(self.path, f"{named_by}a clip template '{template}' has hashes in its folder")
+        anchor = self.resolve(layer, (folder or ".") + "/", named_by, shown=template)
+        parts = [p for p in name.split(".") if p]
+        pattern = re.compile(r"\.".join(r"-?\d+" if set(p) == {"#"} else re.escape(p) for p in parts), re.IGNORECASE)
+        if self.package:
+            outer, members = split_packaged(anchor)
+            inner = "/".join(members[-1:]).rstrip("/") if members else ""
+            with zipfile.ZipFile(outer) as z:
+                names = [n[len(inner) + 1 :] if inner else n for n in z.namelist() if n.startswith(inner)]
+        else:
+            names = os.listdir(anchor) if os.path.isdir(anchor) else []
+        prefix = folder + "/" if folder else ""
+        return [prefix + n for n in names if "/" not in n and pattern.fullmatch(n)]
+
+    def check_template_times(self):
+        """Refuse clip templates whose times would make OpenUSD try too many files, or loop
+        forever (a stride too small to move a time that large)."""
+        times = [t for t in self.template_times if all(isinstance(v, float | int) for v in t)]
+        if not times:
+            return
+        start, end, stride = min(t[0] for t in times), max(t[1] for t in times), min(t[2] for t in times)
+        bounded = all(math.isfinite(v) and abs(v) <= MAX_CLIP_TIME for v in (start, end))
+        if not bounded or not stride >= MIN_CLIP_STRIDE or (end - start) / stride > MAX_TEMPLATE_CLIPS:
+            raise SplatFileError(
+                self.path,
+                f"a clip template spans times {start} to {end} by {stride}: at most {MAX_TEMPLATE_CLIPS} clips, "
+                f"times within +-{MAX_CLIP_TIME:g} and strides of at least {MIN_CLIP_STRIDE} are read",
+            )
+
+    def verify(self, stage):
+        """Every layer the open stage uses, value clips included, must be one checked before it
+        opened: a backstop for any way of naming a layer that the walk does not know."""
+        used = [layer.identifier for layer in stage.GetUsedLayers(True) if not layer.anonymous]
+        for prim in Usd.PrimRange.Stage(stage, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
+            if prim.HasAuthoredMetadata("clips"):
+                clips = Usd.ClipsAPI(prim)
+                for name in clips.GetClips():
+                    used += [a.resolvedPath or a.path for a in clips.ComputeClipAssetPaths(name)]
+        unchecked = [u for u in used if self.key(u) not in self.checked]
+        if unchecked:
+            raise SplatFileError(
+                self.path, f"the stage composes a layer that was not checked before it opened: {unchecked[0]}"
+            )
+
+
+def _prim_specs(layer):
+    """Every prim spec of the layer, variants' included."""
+    paths = []
+    layer.Traverse(Sdf.Path.absoluteRootPath, paths.append)
+    for path in paths:
+        if path.IsPrimPath() or path.IsPrimVariantSelectionPath():
+            spec = layer.GetPrimAtPath(path)
+            if spec is not None:
+                yield spec
 
 
 def _tf_message(exc):
@@ -176,8 +309,10 @@ class PxrStages:
 
     def open(self, path, allow_outside):
         try:
-            layers = _composed_layers(path, allow_outside)  # held open until the stage uses them
+            layers, walk = _composed_layers(path, allow_outside)  # held open until the stage uses them
             stage = Usd.Stage.Open(layers[0], Usd.Stage.LoadAll)
+            if stage is not None:
+                walk.verify(stage)
         except Tf.ErrorException as exc:
             raise SplatFileError(path, f"OpenUSD cannot open it (truncated or corrupt?): {_tf_message(exc)}") from None
         if stage is None:

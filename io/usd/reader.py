@@ -13,6 +13,7 @@ reported. A cloud read unchanged through an identity or flip keeps the file's li
 
 import math
 import os
+import stat
 import warnings
 from dataclasses import dataclass, field
 
@@ -45,11 +46,13 @@ MAGIC = {".usdc": (b"PXR-USDC",), ".usdz": (b"PK\x03\x04",), ".usda": (b"#usda",
 
 
 def _open(path, allow_outside=False):
-    """The stage (through the active stage implementation) of a file whose header matches its
-    extension; its sublayers, references and payloads must lie in its package or folder unless
-    allow_outside (see pxr_stages._composed_layers)."""
+    """The stage (through the active stage implementation) of a regular file whose header matches
+    its extension; the layers it composes (sublayers, references, payloads, value clips) must lie
+    in its package or folder unless allow_outside (see pxr_stages._LayerWalk)."""
     path = os.fspath(path)
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would hang the read, a device never end
+            raise SplatFileError(path, "not a regular file (a FIFO, device or folder?)")
         with open(path, "rb") as f:
             head = f.read(8)
     except OSError as exc:
