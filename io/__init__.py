@@ -28,10 +28,11 @@ FORMATS = {
     ".gltf": "gltf",
     ".ksplat": "ksplat",
     "lod-meta.json": "sog_streamed",
+    ".lcc2": "lcc2",
 }
 
 # formats Splatwright reads but does not write
-READ_ONLY = {"ksplat", "sog_streamed"}
+READ_ONLY = {"ksplat", "sog_streamed", "lcc2"}
 
 
 # format module -> the extension a writer's file gets when only the format is named (OpenUSD: .usd,

@@ -48,9 +48,9 @@ def read(
     check_nonfinite_policy(nonfinite)
     meta = _meta(path)
     refs = _references(path, meta)
-    chosen = _chosen_levels(path, levels, meta["lodLevels"])
-    units = _Units(path, meta["filenames"], allow_outside)
-    clouds = [_level(path, units, refs.get(level, [])) for level in chosen]
+    chosen = chosen_levels(path, levels, meta["lodLevels"])
+    units = Units(path, meta["filenames"], allow_outside)
+    clouds = [level_cloud(path, units, refs.get(level, [])) for level in chosen]
     if environment and meta.get("environment") is not None:
         clouds.append(units.read(meta["environment"], "environment"))
     for note in units.notes:
@@ -59,25 +59,31 @@ def read(
     return apply_nonfinite_policy(path, cloud, nonfinite, "read")
 
 
-def _meta(path):
+def read_index(path, what="lod-meta.json"):
+    """The JSON object of an index file (`what` names its kind), read within MAX_META_BYTES."""
     try:
         with open(path, "rb") as f:
             text = f.read(MAX_META_BYTES + 1)
     except OSError as exc:
         raise SplatFileError(path, f"cannot read: {exc.strerror or exc}") from None
     if len(text) > MAX_META_BYTES:
-        raise SplatFileError(path, f"lod-meta.json beyond {MAX_META_BYTES >> 20} MiB is refused")
+        raise SplatFileError(path, f"{what} beyond {MAX_META_BYTES >> 20} MiB is refused")
     try:
         meta = json.loads(text)
     except RecursionError:
-        raise SplatFileError(path, "lod-meta.json nests too deeply to be a level-of-detail tree") from None
+        raise SplatFileError(path, f"{what} nests too deeply to be a level-of-detail tree") from None
     except (UnicodeDecodeError, ValueError) as exc:
-        raise SplatFileError(path, f"lod-meta.json is not valid JSON: {exc}") from None
+        raise SplatFileError(path, f"{what} is not valid JSON: {exc}") from None
     if not isinstance(meta, dict):
-        raise SplatFileError(path, "lod-meta.json must hold an object")
+        raise SplatFileError(path, f"{what} must hold an object")
+    return meta
+
+
+def _meta(path):
+    meta = read_index(path)
     if meta.get("version", 1) != 1:
         raise SplatFileError(path, f"streamed SOG version {meta.get('version')}; this reader takes version 1")
-    if not _count(meta.get("lodLevels")) or meta["lodLevels"] == 0:
+    if not whole_number(meta.get("lodLevels")) or meta["lodLevels"] == 0:
         raise SplatFileError(path, "lod-meta.json: lodLevels must be a positive whole number")
     names = meta.get("filenames")
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
@@ -89,7 +95,7 @@ def _meta(path):
     return meta
 
 
-def _count(value):
+def whole_number(value):
     """Whether a JSON value is a whole number from 0 to 2^53 (JSON's exact integers; not a bool)."""
     return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 1 << 53
 
@@ -113,7 +119,7 @@ def _references(path, meta):
             if not isinstance(ref, dict) or not 0 <= level < levels:
                 raise SplatFileError(path, f"lod-meta.json: level '{key}' of a tree node is not one of its {levels}")
             file, offset, count = (ref.get(k) for k in ("file", "offset", "count"))
-            if not (_count(file) and _count(offset) and _count(count)) or file >= files:
+            if not (whole_number(file) and whole_number(offset) and whole_number(count)) or file >= files:
                 raise SplatFileError(
                     path,
                     f"lod-meta.json: the level {level} reference {ref} needs a file index below {files} and a "
@@ -128,7 +134,7 @@ def _references(path, meta):
     return refs
 
 
-def _chosen_levels(path, levels, count):
+def chosen_levels(path, levels, count):
     if levels == "finest":
         return [0]
     if levels == "all":
@@ -142,7 +148,7 @@ def _chosen_levels(path, levels, count):
     return [level % count for level in wanted]
 
 
-def _level(path, units, refs):
+def level_cloud(path, units, refs):
     """One level's splats: each unit's referenced runs, by file then offset (one selection per unit,
     however many leaves share it)."""
     pieces = []
@@ -165,11 +171,17 @@ def _level(path, units, refs):
     return SplatCloud.concatenate(pieces) if pieces else SplatCloud.empty()
 
 
-class _Units:
-    """The SOG units of a streamed SOG, each read once, by the one reading policy."""
+# a streamed SOG's units: name ending -> reader (never another lod-meta.json)
+SOG_UNITS = {"meta.json": sog.read, ".sog": sog.read}
 
-    def __init__(self, path, names, allow_outside):
+
+class Units:
+    """The units (chunk files) a tree of levels names, each read once, by the one reading policy;
+    `readers` maps the name endings allowed to their readers (lcc2 uses this too)."""
+
+    def __init__(self, path, names, allow_outside, readers=None, kind="a SOG (meta.json or .sog)"):
         self.path, self.names, self.allow_outside = path, names, allow_outside
+        self.readers, self.kind = readers or SOG_UNITS, kind
         self.clouds = {}
         self.notes = []
 
@@ -177,20 +189,21 @@ class _Units:
         """The cloud of unit `key` (an index into filenames, or a name)."""
         if key not in self.clouds:
             name = self.names[key] if isinstance(key, int) else key
-            lower = name.lower()
-            if lower.endswith("lod-meta.json") or not lower.endswith(("meta.json", ".sog")):
-                raise SplatFileError(self.path, f"{what} '{name}' is not a SOG (meta.json or .sog)")
+            lower = name.lower() if isinstance(name, str) else ""
+            reader = next((r for end, r in self.readers.items() if lower.endswith(end)), None)
+            if reader is None or lower.endswith("lod-meta.json"):
+                raise SplatFileError(self.path, f"{what} '{name}' is not {self.kind}")
             unit = referenced_file(
                 self.path, name, [Path(self.path).parent], allow_outside=self.allow_outside, what=what
             )
-            self.clouds[key] = self._read_unit(unit)
+            self.clouds[key] = self._read_unit(reader, unit)
         return self.clouds[key]
 
-    def _read_unit(self, unit):
+    def _read_unit(self, reader, unit):
         """Read a unit keeping non-finite splats (the whole cloud is judged once, at the end, so
         references keep their offsets); its other warnings are passed on."""
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            cloud = sog.read(unit, nonfinite="keep")
+            cloud = reader(unit, nonfinite="keep")
         self.notes += [str(w.message) for w in caught if "non-finite" not in str(w.message)]
         return cloud

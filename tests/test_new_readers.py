@@ -30,6 +30,7 @@ from splatwright.io import (
     SplatFileWarning,
     format_of,
     ksplat,
+    lcc2,
     read_splats,
     sog_streamed,
     write_splats,
@@ -525,6 +526,113 @@ def test_nested_lod_meta_is_walked_without_recursion(tmp_path):
     path.write_text(json.dumps({**content, "tree": "@"}).replace('"@"', nested_tree(100_000)))
     with pytest.raises(SplatFileError, match=r"lod-meta\.json: lod-meta\.json nests too deeply"):
         read_splats(path)
+
+
+# XGRIDS LCC2 --------------------------------------------------------------------------------------
+
+
+def lcc2_sources():
+    """Level 0 (60 splats), level 1 (20) and an environment (10, far out)."""
+    return (
+        random_cloud(60, sh_degree=1, seed=70, spread=2.0),
+        random_cloud(20, sh_degree=1, seed=71, spread=2.0),
+        random_cloud(10, sh_degree=1, seed=72, spread=20.0),
+    )
+
+
+def write_lcc2(folder, kind=".sog", legacy=False, **overrides):
+    """An LCC2 scene of lcc2_sources as XGRIDS's white paper lays it out: chunk files under data/3dgs,
+    the root's one child holding level 1, its two children level 0 (one chunk file, split by start
+    and count); `legacy`: the older field names. `overrides` replace top-level fields."""
+    fine, coarse, env = lcc2_sources()
+    names = [f"data/3dgs/{name}{kind}" for name in ("lod0", "lod1", "env")]
+    for name, cloud in zip(names, (fine, coarse, env), strict=True):
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        write_splats(folder / name, cloud, **({"order": None} if kind == ".sog" else {}))
+    leaves = [
+        {"id": "0-0-0", "data": {"3dgs": {"name": 0, "start": 0, "count": 25}}, "childNum": 0},
+        {"id": "0-0-1", "data": {"3dgs": {"name": 0, "start": 25, "count": 35}}, "childNum": 0},
+    ]
+    node = {"id": "0-0", "data": {"3dgs": {"name": 1, "start": 0, "count": 20}}, "childNum": 2, "child": leaves}
+    root = {"id": "0", "data": {"env": {"name": 2}}, "childNum": 1, "child": {"0": node}}
+    if legacy:  # chunk names from the root, without their extension
+        meta = {
+            "total_splats": 80,
+            "lod_3dgs_info": [20, 60],
+            "lod_level": 2,
+            "root": {**root, "files": ["/" + n.removesuffix(".sog") for n in names]},
+        }
+    else:
+        meta = {
+            "version": "0.0.3",
+            "totalSplats": 80,
+            "lodSplats": [60, 20],
+            "totalLevels": 2,
+            "splatType": kind,
+            "root": {**root, "splatFiles": names},
+        }
+    path = folder / "scene.lcc2"
+    path.write_text(json.dumps({**meta, **overrides}))
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, legacy", [(".sog", False), (".spz", False), (".sog", True)])
+def test_lcc2_splat_transform_reads_what_we_read(tmp_path, kind, legacy):
+    """splat-transform 3.7.0 reads an LCC2 scene built to the white paper (SOG or SPZ chunks, current
+    or older field names) as we do, level by level; ours (every level and the environment) is the
+    source turned from Z up to the PLY's axes, within SOG's quantisation."""
+    path = write_lcc2(tmp_path, kind, legacy)
+    for level in (0, 1):
+        splat_transform(path, "-L", str(level), tmp_path / "theirs.ply")
+        ours = read_splats(path, levels=level, environment=False)
+        assert_same_splats(matched(read_splats(tmp_path / "theirs.ply"), ours), ours)
+    splat_transform(path, tmp_path / "default.ply")  # a PLY holds one level: the finest, no environment
+    ours = read_splats(path, environment=False)
+    assert_same_splats(matched(read_splats(tmp_path / "default.ply"), ours), ours)
+    if kind == ".sog":
+        everything = SplatCloud.concatenate([cloud.transformed(lcc2.TO_PLY) for cloud in lcc2_sources()])
+        check_sog_error(read_splats(path, levels="all"), everything)
+
+
+@pytest.mark.parametrize(
+    "overrides, problem",
+    [
+        ({"totalLevels": 1}, r"a node 2 deep holds splats, below its 1 levels"),
+        ({"totalLevels": 0}, r"totalLevels must be a positive whole number"),
+        ({"splatType": ".ply"}, r"splatType '.ply'; this reader takes .sog and .spz"),
+        ({"root": {"splatFiles": ["../outside/x.sog"], "child": [{"data": {"3dgs": {"name": 0, "count": 5}}}]}},
+         r"SOG unit '../outside/x.sog' is not a readable file under|'../outside/x.sog' is not a readable file"),
+        ({"root": {"splatFiles": ["data/3dgs/lod0.sog"], "child": [{"data": {"3dgs": {"name": 0, "count": 61}}}]}},
+         r"splats 0 to 61 of 'data/3dgs/lod0.sog' overlap another reference or lie beyond its 60"),
+        ({"root": {"splatFiles": ["data/3dgs/lod0.sog"], "child": [{"data": {"3dgs": {"name": 3, "count": 1}}}]}},
+         r"needs a file index below 1"),
+        ({"root": {"splatFiles": ["data/3dgs/lod0.sog"], "child": [{"data": {"3dgs": [0]}}]}},
+         r"3dgs data must be an object"),
+        ({"root": {"splatFiles": ["scene.lcc2"], "child": [{"data": {"3dgs": {"name": 0, "count": 1}}}]}},
+         r"'scene.lcc2' is not a .sog file"),
+        ({"root": {"splatFiles": ["data/3dgs/lod0.sog"], "data": {"env": {"name": 4}}}}, r"environment names no file"),
+        ({"root": {"splatFiles": [], "child": "x"}}, r"child must be a list or an object of nodes"),
+    ],
+)  # fmt: skip
+def test_hostile_lcc2_is_refused_by_name(tmp_path, overrides, problem):
+    (tmp_path / "outside").mkdir()
+    write_splats(tmp_path / "outside" / "x.sog", random_cloud(5, sh_degree=0, seed=1))
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    path = write_lcc2(folder, **overrides)
+    with pytest.raises(SplatFileError, match=rf"scene\.lcc2: .*({problem})"):
+        read_splats(path, levels="all")
+
+
+def test_lcc2_is_read_z_up_turned_to_the_ply_axes(tmp_path):
+    path = write_lcc2(tmp_path)
+    fine, _, env = lcc2_sources()
+    unit = read_splats(tmp_path / "data" / "3dgs" / "lod0.sog")
+    got = read_splats(path, environment=False)
+    np.testing.assert_allclose(got.positions, unit.positions[:, [0, 2, 1]] * [1, -1, 1], atol=1e-6)
+    check_sog_error(got, fine.transformed(lcc2.TO_PLY))
+    assert len(read_splats(path)) == 70 and len(read_splats(path, levels=1, environment=False)) == 20
 
 
 # dispatch, the command and the Blender dialog ------------------------------------------------------
