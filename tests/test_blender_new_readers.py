@@ -31,9 +31,9 @@ blender = blender_fixture("workers.new_readers", _write_inputs)
 
 def test_import_dialog_offers_the_read_only_formats_and_export_does_not(blender):
     globs = blender.step("dialogs")
-    assert {"*.ksplat", "*lod-meta.json", "*.ply", "*.sog"} <= set(globs["import"].split(";"))
+    assert {"*.ksplat", "*lod-meta.json", "*.lcc2", "*.ply", "*.sog"} <= set(globs["import"].split(";"))
     exported = set(globs["export"].split(";"))
-    assert "*.ply" in exported and not {"*.ksplat", "*lod-meta.json"} & exported
+    assert "*.ply" in exported and not {"*.ksplat", "*lod-meta.json", "*.lcc2"} & exported
 
 
 def test_ksplat_imports_and_exports_back_as_read(blender):

@@ -16,11 +16,11 @@ from ..data.errors import EXPECTED_ERRORS
 from ..data.progress import Progress
 from .export_options import ExportOptionProperties
 
-FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)  # .ksplat and lod-meta.json among them
+FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)  # .ksplat, lod-meta.json and .lcc2 among them
 EXPORT_FILTER_GLOB = ";".join(f"*{ext}" for ext, fmt in FORMATS.items() if fmt not in READ_ONLY)
 EXTENSIONS = ";".join(FORMATS)
 MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat)"
-IMPORT_MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat, .ksplat)"
+IMPORT_MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat, .ksplat, .lcc2)"
 
 # 3DGS captures come out of COLMAP/OpenCV: the scene's up is -Y and cameras look along +Z. These
 # defaults turn that upright in Blender (file x, y, z -> Blender x, z, -y, a quarter turn about X).
@@ -107,7 +107,7 @@ def finite_for_export(path, cloud, drop_invalid, report):
 
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
 class SPLAT_OT_import_file(bpy.types.Operator, ImportHelper):
-    """Import Gaussian splats (PLY, OpenUSD, SPZ, SOG, glTF, .splat, .ksplat) as splat objects"""
+    """Import Gaussian splats (PLY, OpenUSD, SPZ, SOG, glTF, .splat, .ksplat, LCC2) as splat objects"""
 
     bl_idname = "splat.import_file"
     bl_label = "Import Splats"
