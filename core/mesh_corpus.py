@@ -1,0 +1,204 @@
+"""Textured test meshes made from code, as artists' meshes are textured: hard-edged stripes and
+checkerboards, one- and two-texel lines, lettering on a decal, UV seams and mirrored UVs, several
+materials on one mesh and hard-edged vertex colours. Tests and the bench both use them; every mesh
+is a core.mesh.Mesh with 8-bit sRGB textures, the same on every machine.
+
+Alpha-cut materials (leaves) are not here: core.mesh ignores a texture's alpha, in the reference
+rasteriser as in the converter (see docs/mesh-to-splats.md).
+"""
+
+import numpy as np
+
+from .mesh import Material, Mesh
+
+CREAM = (235, 226, 200)
+RED = (200, 24, 20)
+INK = (20, 24, 40)
+
+
+def _image(h, w, colour):
+    return np.broadcast_to(np.asarray(colour, np.uint8), (h, w, 3)).copy()
+
+
+def stripe_texture(width=1024, height=256, period=64, stripe=24, background=CREAM, colour=RED):
+    """Hard vertical stripes: `stripe` texels of `colour` every `period` texels along u."""
+    img = _image(height, width, background)
+    img[:, (np.arange(width) % period) < stripe] = colour
+    return img
+
+
+def grid_texture(size=1024, squares=8, line_every=32, line_width=1):
+    """A two-colour checkerboard of `squares` x `squares` with dark lines `line_width` texels wide
+    every `line_every` texels: hard edges and lines thinner than any splat a distant view needs."""
+    i = np.arange(size)
+    cell = size // squares
+    check = ((i[:, None] // cell) + (i[None, :] // cell)) % 2 == 1
+    img = np.where(check[..., None], np.array((60, 110, 170), np.uint8), np.array(CREAM, np.uint8))
+    line = (i % line_every) < line_width
+    img[line] = INK
+    img[:, line] = INK
+    return img.astype(np.uint8)
+
+
+# A 5 x 7 pixel font for the decal's lettering (rows top to bottom, '#' set).
+_GLYPHS = {
+    "S": [" ####", "#    ", "#    ", " ### ", "    #", "    #", "#### "],
+    "P": ["#### ", "#   #", "#   #", "#### ", "#    ", "#    ", "#    "],
+    "L": ["#    ", "#    ", "#    ", "#    ", "#    ", "#    ", "#####"],
+    "A": [" ### ", "#   #", "#   #", "#####", "#   #", "#   #", "#   #"],
+    "T": ["#####", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  "],
+    "4": ["   # ", "  ## ", " # # ", "#  # ", "#####", "   # ", "   # "],
+    "2": [" ### ", "#   #", "    #", "   # ", "  #  ", " #   ", "#####"],
+    " ": ["     "] * 7,
+}
+
+
+def text_texture(text="SPLAT 42", scale=8, margin=2, background=CREAM, colour=INK):
+    """Lettering rasterised from a 5 x 7 font, each font pixel `scale` texels square, with a
+    one-texel outline box round it: a decal's glyph edges and thin lines."""
+    rows = [" ".join(_GLYPHS[c][r] for c in text) for r in range(7)]
+    mask = np.array([[ch == "#" for ch in row] for row in rows])
+    mask = np.pad(mask, margin).repeat(scale, 0).repeat(scale, 1)
+    img = np.where(mask[..., None], np.array(colour, np.uint8), np.array(background, np.uint8)).astype(np.uint8)
+    img[[1, -2], 1:-1] = colour
+    img[1:-1, [1, -2]] = colour
+    return img
+
+
+def _grid(nu, nv):
+    """Vertices (u, v) in [0,1]^2 of an (nu+1) x (nv+1) grid and its 2 nu nv triangles."""
+    u, v = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1))
+    i = (np.arange(nv)[:, None] * (nu + 1) + np.arange(nu)[None, :]).ravel()
+    f = np.concatenate([np.stack([i, i + 1, i + nu + 2], 1), np.stack([i, i + nu + 2, i + nu + 1], 1)])
+    return np.column_stack([u.ravel(), v.ravel()]), f
+
+
+def striped_cylinder(segments=64, rings=32, radius=0.5, height=1.0, texture=None):
+    """An open cylinder of 2 x segments x rings triangles (4,096 by default), a 1024 x 256 texture
+    of 24-texel red stripes every 64 texels wrapped once round it (its seam at u = 0 = 1)."""
+    uv, f = _grid(segments, rings)
+    angle = 2 * np.pi * uv[:, 0]
+    v = np.column_stack([radius * np.cos(angle), height * (uv[:, 1] - 0.5), -radius * np.sin(angle)])
+    tex = stripe_texture() if texture is None else texture
+    return Mesh(v, f, uv[f], None, [Material(texture=tex)])
+
+
+def grid_plane(n=32, size=2.0, texture=None):
+    """A square plane of 2 n^2 triangles (2,048 by default) in y = 0, facing up, with a checkerboard
+    and one-texel grid lines."""
+    uv, f = _grid(n, n)
+    v = np.column_stack([size * (uv[:, 0] - 0.5), np.zeros(len(uv)), size * (0.5 - uv[:, 1])])
+    tex = grid_texture() if texture is None else texture
+    return Mesh(v, f, uv[f], None, [Material(texture=tex)])
+
+
+def striped_cup(segments=256, profile_steps=57, radius=0.04, height=0.09, wall=0.005, texture=None):
+    """A closed cup turned from a profile (outside floor, outer wall, rim, inner wall, inner floor),
+    about 29k triangles by default: hard red stripes round the outside (material 0, its seam at
+    u = 0 = 1), plain blue inside (material 1)."""
+    inner = radius - wall
+    # The profile from the outside floor's centre round to the inside floor's centre, as (r, y, outside).
+    legs = [
+        ((0.0, 0.0), (radius, 0.0), 0.1),
+        ((radius, 0.0), (radius, height), 0.4),
+        ((radius, height), (inner, height), 0.02),
+        ((inner, height), (inner, wall), 0.38),
+        ((inner, wall), (0.0, wall), 0.1),
+    ]
+    points, outside = [], []
+    for k, (a, b, share) in enumerate(legs):
+        n = max(2, round(share * profile_steps))
+        t = np.linspace(0, 1, n, endpoint=False) if k < len(legs) - 1 else np.linspace(0, 1, n + 1)
+        points += [np.array(a) + s * (np.array(b) - np.array(a)) for s in t]
+        outside += [k <= 1] * len(t)
+    profile = np.array(points)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(profile, axis=0), axis=1))])
+    uv, f = _grid(segments, len(profile) - 1)
+    row = np.round(uv[:, 1] * (len(profile) - 1)).astype(int)
+    angle = 2 * np.pi * uv[:, 0]
+    r, y = profile[row, 0], profile[row, 1]
+    v = np.column_stack([r * np.cos(angle), y, -r * np.sin(angle)])
+    uv[:, 1] = arc[row] / arc[-1]
+    corners = v[f]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    f = f[area > 1e-12 * height**2]  # the fans' degenerate halves at the two centres
+    below = np.array(outside)[row[f].min(axis=1)]
+    material = np.where(below, 0, 1)
+    tex = stripe_texture(1024, 512, period=64, stripe=24) if texture is None else texture
+    tex = tex.copy()
+    tex[262:280] = RED  # and a hard band round it just below the rim (v = 1 is the inside's centre)
+    return Mesh(v, f, uv[f], material, [Material(texture=tex), Material(base_color=(0.05, 0.2, 0.9))])
+
+
+def decal_box(n=8, size=1.0):
+    """A box of 6 x 2 n^2 triangles and three materials: painted wood-red sides (a base colour),
+    a lettered decal on the front, and a stripe texture mirrored about the middle of the top (its
+    UVs run back at u = 0.5, as artists mirror a symmetric texture) and on the back (a UV seam)."""
+    uv, quad = _grid(n, n)
+    s = size / 2
+    sides = {  # (origin, u axis, v axis): outward-facing when wound (u, v)
+        "front": ((-s, -s, s), (1, 0, 0), (0, 1, 0)),
+        "back": ((s, -s, -s), (-1, 0, 0), (0, 1, 0)),
+        "left": ((-s, -s, -s), (0, 0, 1), (0, 1, 0)),
+        "right": ((s, -s, s), (0, 0, -1), (0, 1, 0)),
+        "top": ((-s, s, s), (1, 0, 0), (0, 0, -1)),
+        "bottom": ((-s, -s, -s), (1, 0, 0), (0, 0, 1)),
+    }
+    vertices, faces, corner_uvs, material = [], [], [], []
+    for name, (origin, du, dv) in sides.items():
+        pts = np.asarray(origin) + size * (uv[:, :1] * np.asarray(du) + uv[:, 1:] * np.asarray(dv))
+        faces.append(quad + sum(len(p) for p in vertices))
+        vertices.append(pts)
+        side_uv = uv[quad].copy()
+        if name in ("top", "back"):
+            side_uv[..., 0] = 1 - np.abs(2 * side_uv[..., 0] - 1)  # mirrored about the middle
+        corner_uvs.append(side_uv)
+        material.append(np.full(len(quad), {"front": 1, "top": 2, "back": 2}.get(name, 0)))
+    stripes = stripe_texture(256, 256, period=32, stripe=10, colour=(30, 120, 60))
+    stripes[:, :2] = INK  # a two-texel line on the mirror's fold side
+    return Mesh(
+        np.concatenate(vertices),
+        np.concatenate(faces),
+        np.concatenate(corner_uvs),
+        np.concatenate(material),
+        [
+            Material(base_color=(0.45, 0.08, 0.04)),
+            Material(texture=text_texture()),
+            Material(texture=stripes),
+        ],
+    )
+
+
+def vertex_coloured_sphere(segments=48, rings=24):
+    """A UV sphere coloured by corner colours only (no texture): flat-coloured bands, each face one
+    colour, so colour changes hard along triangle edges, and a smooth blend on the lower half."""
+    uv, f = _grid(segments, rings)
+    theta, phi = np.pi * (1 - uv[:, 1]), 2 * np.pi * uv[:, 0]
+    v = np.column_stack([np.sin(theta) * np.cos(phi), np.cos(theta), -np.sin(theta) * np.sin(phi)])
+    corners = v[f]
+    area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    f = f[area > 1e-12]
+    palette = np.array([[0.8, 0.1, 0.05], [0.9, 0.75, 0.1], [0.05, 0.3, 0.8], [0.05, 0.5, 0.1]])
+    centre = v[f].mean(axis=1)
+    band = (np.floor((np.arctan2(-centre[:, 2], centre[:, 0]) / (2 * np.pi) % 1) * 8)).astype(int) % 4
+    flat = np.repeat(palette[band][:, None, :], 3, axis=1)
+    smooth = 0.5 + 0.4 * v[f] * np.array([1.0, 0.0, -1.0])  # per corner, blended across faces
+    colours = np.where((centre[:, 1] > 0)[:, None, None], flat, np.clip(smooth, 0.0, 1.0))
+    return Mesh(v, f, None, None, [Material(base_color=(1.0, 1.0, 1.0))], colours)
+
+
+def textured_corpus(small=False):
+    """name -> Mesh: the textured meshes mesh-to-splats is measured on. `small` gives coarser
+    meshes and textures of the same kinds, for tests."""
+    if small:
+        return {
+            "striped cylinder": striped_cylinder(16, 8, texture=stripe_texture(256, 64, 16, 6)),
+            "grid plane": grid_plane(8, texture=grid_texture(256, 4, 16, 1)),
+        }
+    return {
+        "striped cylinder": striped_cylinder(),
+        "striped cup": striped_cup(),
+        "grid plane": grid_plane(),
+        "decal box": decal_box(),
+        "vertex-coloured sphere": vertex_coloured_sphere(),
+    }
