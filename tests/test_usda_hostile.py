@@ -300,6 +300,8 @@ def test_values_pxr_refuses_are_refused_by_name(tmp_path, body):
         "float3[] scales = [(1, 2, 3,), (.5, 5., 1E1)]",
         "half[] opacitiesh = [0.1, 1e-10]",
         "float[] opacities = [1e300, -inf] (\n doc = 'x'\n)",
+        "quath[] orientationsh = [(1, 0, 0, 0), # the first\n (0, 0.6, 0.8, 0) /* the second */]",
+        "float[] opacities = [0.5, // a note\n 1e-3,]",
     ],
 )
 def test_values_pxr_accepts_read_as_pxr_reads_them(tmp_path, body):

@@ -17,7 +17,7 @@ import zipfile
 from ..common import SplatFileError
 from ..policy import MAX_TEXT_LAYER_BYTES
 from .usda import COMPOSITION, Layer, element
-from .usda_tokens import ASSET, NUMBER, PATH, STRING, WORD, Tokens, Word, shown
+from .usda_tokens import ASSET, NUMBER, PATH, STRING, WORD, Asset, Tokens, Word, shown
 from .usda_values import BadValue, numeric_array, scalar, typed, typed_list
 
 MAX_DEPTH = 256  # prims in prims, lists in lists, dictionaries in dictionaries
@@ -259,12 +259,18 @@ class _Parser:
             self.fail(f"{where}: {exc}")
 
     def numeric_array(self, type_name, spec):
+        """A numeric array in bulk, or token by token where it holds comments."""
         t = self.tokens
+        start = t.pos
         t.next("[")
         end = t.text.find("]", t.pos)
         if end < 0:
             self.fail(f"a {type_name} array is not closed")
-        values = numeric_array(type_name, spec, t.text[t.pos : end])
+        body = t.text[t.pos : end]
+        if "#" in body or "/" in body:
+            t.pos = start
+            return typed_list(type_name, spec, self.value())
+        values = numeric_array(type_name, spec, body)
         t.pos = end + 1
         return values
 
@@ -337,20 +343,24 @@ class _Parser:
             return int(tok)
         if kind == WORD:
             return Word(tok)
-        if kind in (ASSET, PATH):
+        if kind == ASSET:
+            return Asset(tok[1:-1])
+        if kind == PATH:
             return tok[1:-1]
         self.fail(f"unexpected {shown(tok)}")
 
 
 def _text_value(type_name, value):
-    """A value of a non-numeric type: strings and tokens must be quoted (others are kept as read)."""
+    """A value of a non-numeric type: strings and tokens in quotes, asset paths in @s (or quotes),
+    arrays of them in [ ] (values of types OpenUSD does not know are kept as read)."""
     base = type_name.removesuffix("[]")
-    if base not in ("string", "token"):
+    if base not in ("string", "token", "asset"):
         return value
-    items = value if type_name.endswith("[]") else [value]
-    if type_name.endswith("[]") and not isinstance(value, list):
-        raise BadValue(f"a {type_name} needs a list in [ ], found {shown(str(value))}")
-    for item in items:
-        if not isinstance(item, str) or isinstance(item, Word):
-            raise BadValue(f"a {base} is a string in quotes, found {shown(str(item))}")
+    is_array = type_name.endswith("[]")
+    if is_array != isinstance(value, list):
+        raise BadValue(f"a {type_name} needs {'a list in [ ]' if is_array else 'one value'}, found {shown(str(value))}")
+    for item in value if is_array else [value]:
+        if not isinstance(item, str) or isinstance(item, Word) or (base != "asset" and isinstance(item, Asset)):
+            needs = "a path in @s" if base == "asset" else "a string in quotes"
+            raise BadValue(f"a {base} is {needs}, found {item!r:.60}")
     return value

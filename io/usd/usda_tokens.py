@@ -29,6 +29,10 @@ class Word(str):
     """A bare word of the text (a keyword such as `true`, or a name), as opposed to a quoted string."""
 
 
+class Asset(str):
+    """An asset path of the text (`@path@`)."""
+
+
 class Tokens:
     """The tokens of `text` from `pos` on; failures are SplatFileErrors naming the file and line."""
 

@@ -66,13 +66,15 @@ def typed(type_name, spec, value):
 
 
 def typed_list(type_name, spec, items):
-    """An array value parsed generically (bools, which may be words): a NumPy array."""
+    """An array value parsed token by token (bools, which may be words; arrays with comments): a
+    NumPy array as numeric_array makes it."""
     dtype = spec[0]
     shape = shape_of(type_name, spec)
     rows = [_flatten(type_name, shape, item) if shape else [item] for item in items]
     width = int(np.prod(shape)) if shape else 1
     flat = [scalar(type_name, dtype, v) for row in rows for v in row]
-    return np.array(flat, dtype).reshape((-1, width) if shape else (-1,))
+    values = np.array(flat, dtype).reshape((-1, width) if shape else (-1,))
+    return np.ascontiguousarray(values[:, [1, 2, 3, 0]]) if type_name.startswith("quat") else values
 
 
 def _flatten(type_name, shape, value):
