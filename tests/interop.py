@@ -133,6 +133,11 @@ def batch(*jobs):
     return [word for job in jobs for word in ["+", *job]][1:]
 
 
+def batch_in(folders, *jobs):
+    """The same jobs for each of `folders` (a "{}" in a word stands for the folder), as one batch."""
+    return batch(*[[str(word).replace("{}", folder) for word in job] for folder in folders for job in jobs])
+
+
 def python(tool, driver, *args, cwd=None):
     """Run one of our Python drivers (tests/interop/*.py), or `-m module`, in a tool's own environment
     (relative paths from `cwd`)."""

@@ -24,6 +24,7 @@ from helpers import random_cloud, rebuilt_rotation_bound
 from interop import (
     assert_same_splats,
     batch,
+    batch_in,
     cloud_from_arrays,
     cloud_from_niantic,
     cloud_from_ply_properties,
@@ -69,46 +70,63 @@ def turned_yz(cloud):
 # PLY -----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("degree", DEGREES)
-def test_ply_both_ways(tmp_path, degree):
-    """Every tool reads our PLY's values bit for bit, and writes values we read bit for bit (plyfile
-    in ASCII and big-endian too, properties in reverse order, positions as doubles)."""
-    cloud = random_cloud(200, sh_degree=degree, seed=degree)
-    ours = tmp_path / "ours.ply"
-    write_splats(ours, cloud)
-    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
-    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
-    save_arrays(tmp_path / "props.npz", **dict(reversed(ply_properties(cloud).items())))
-    splat_transform(ours, tmp_path / "splat-transform.ply")
+def ply_cloud(degree):
+    return random_cloud(200, sh_degree=degree, seed=degree)
+
+
+@pytest.fixture(scope="module")
+def ply_work(tmp_path_factory):
+    """Our PLY of each SH degree (in folders d0..d3) read, and the tools' own written, by one run of
+    each tool (splat-transform: one per file)."""
+    work, folders = tmp_path_factory.mktemp("ply"), [f"d{d}" for d in DEGREES]
+    for degree, folder in zip(DEGREES, folders, strict=True):
+        cloud = ply_cloud(degree)
+        (work / folder).mkdir()
+        write_splats(work / folder / "ours.ply", cloud)
+        save_arrays(work / folder / "cloud.npz", **ply_arrays(cloud))
+        save_json(work / folder / "cloud.json", **niantic_arrays(cloud))
+        save_arrays(work / folder / "props.npz", **dict(reversed(ply_properties(cloud).items())))
+        splat_transform(work / folder / "ours.ply", work / folder / "splat-transform.ply")
     python(
         "gsply",
         "gsply_tool.py",
-        *batch(["read-ply", ours, "g.npz"], ["write-ply", "cloud.npz", "gsply.ply"]),
-        cwd=tmp_path,
+        *batch_in(folders, ["read-ply", "{}/ours.ply", "{}/g.npz"], ["write-ply", "{}/cloud.npz", "{}/gsply.ply"]),
+        cwd=work,
     )
-    node("spz_js.mjs", *batch(["read-ply", ours, "js.json"], ["write-ply", "cloud.json", "spz-js.ply"]), cwd=tmp_path)
+    node(
+        "spz_js.mjs",
+        *batch_in(folders, ["read-ply", "{}/ours.ply", "{}/js.json"], ["write-ply", "{}/cloud.json", "{}/spz-js.ply"]),
+        cwd=work,
+    )
     python(
         "plyfile",
         "plyfile_tool.py",
-        *batch(
-            ["read", ours, "plyfile.npz"],
-            ["write", "props.npz", "plyfile-ascii.ply", "ascii"],
-            ["write", "props.npz", "plyfile-big-endian.ply", "binary_big_endian"],
+        *batch_in(
+            folders,
+            ["read", "{}/ours.ply", "{}/plyfile.npz"],
+            ["write", "{}/props.npz", "{}/plyfile-ascii.ply", "ascii"],
+            ["write", "{}/props.npz", "{}/plyfile-big-endian.ply", "binary_big_endian"],
         ),
-        cwd=tmp_path,
+        cwd=work,
     )
-    plyfile_read = load_arrays(tmp_path / "plyfile.npz")
-    assert (
-        list(plyfile_read["names"])
-        == list(ply_properties(cloud))[:3] + ["nx", "ny", "nz"] + list(ply_properties(cloud))[3:]
-    )
+    return work
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_ply_both_ways(ply_work, degree):
+    """Every tool reads our PLY's values bit for bit, and writes values we read bit for bit (plyfile
+    in ASCII and big-endian too, properties in reverse order, positions as doubles)."""
+    cloud, work = ply_cloud(degree), ply_work / f"d{degree}"
+    plyfile_read = load_arrays(work / "plyfile.npz")
+    names = list(ply_properties(cloud))
+    assert list(plyfile_read["names"]) == names[:3] + ["nx", "ny", "nz"] + names[3:]
     readings = {
-        "gsply": cloud_from_arrays(load_arrays(tmp_path / "g.npz")),
-        "spz-js": cloud_from_niantic(load_json(tmp_path / "js.json")),
+        "gsply": cloud_from_arrays(load_arrays(work / "g.npz")),
+        "spz-js": cloud_from_niantic(load_json(work / "js.json")),
         "plyfile": cloud_from_ply_properties(plyfile_read),
     }
     for name in ("splat-transform", "gsply", "spz-js", "plyfile-ascii", "plyfile-big-endian"):
-        readings[f"our reading of {name}'s"] = read_splats(tmp_path / f"{name}.ply")
+        readings[f"our reading of {name}'s"] = read_splats(work / f"{name}.ply")
     for name, got in readings.items():
         got = matched(got, cloud)
         for field in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
@@ -118,37 +136,57 @@ def test_ply_both_ways(tmp_path, degree):
 # compressed PLY ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("degree", DEGREES)
-def test_compressed_ply_both_ways(tmp_path, degree):
-    """Each tool's decoding of our file is ours; each tool's file decodes the same for it and for us,
-    and is the source within the layout's quantisation."""
+def compressed_cloud(degree):
     cloud = random_cloud(600, sh_degree=degree, seed=20 + degree)
     cloud.sh[:, 1:] = np.clip(cloud.sh[:, 1:], -3.9, 3.9)
-    write_splats(tmp_path / "src.ply", cloud)
-    write_splats(tmp_path / "ours.compressed.ply", cloud)
-    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
-    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
-    ours = read_splats(tmp_path / "ours.compressed.ply")
-    splat_transform(tmp_path / "src.ply", tmp_path / "st.compressed.ply")
+    return cloud
+
+
+@pytest.fixture(scope="module")
+def compressed_work(tmp_path_factory):
+    """Our compressed PLY of each SH degree (in folders d0..d3) read, and the tools' own written and
+    read, by one run of each tool (splat-transform: one per file)."""
+    work, folders = tmp_path_factory.mktemp("compressed"), [f"d{d}" for d in DEGREES]
+    for degree, folder in zip(DEGREES, folders, strict=True):
+        cloud, here = compressed_cloud(degree), work / folder
+        here.mkdir()
+        write_splats(here / "src.ply", cloud)
+        write_splats(here / "ours.compressed.ply", cloud)
+        save_arrays(here / "cloud.npz", **ply_arrays(cloud))
+        save_json(here / "cloud.json", **niantic_arrays(cloud))
+        splat_transform(here / "src.ply", here / "st.compressed.ply")
+        splat_transform(here / "ours.compressed.ply", here / "a.ply")  # their decoding of ours
+        splat_transform(here / "st.compressed.ply", here / "b.ply")  # and of their own
     python(
         "gsply",
         "gsply_tool.py",
-        *batch(
-            ["read-ply", "ours.compressed.ply", "g.npz"],
-            ["write-compressed", "cloud.npz", "gs.compressed.ply"],
-            ["read-ply", "gs.compressed.ply", "gs.npz"],
+        *batch_in(
+            folders,
+            ["read-ply", "{}/ours.compressed.ply", "{}/g.npz"],
+            ["write-compressed", "{}/cloud.npz", "{}/gs.compressed.ply"],
+            ["read-ply", "{}/gs.compressed.ply", "{}/gs.npz"],
         ),
-        cwd=tmp_path,
+        cwd=work,
     )
     node(
         "spz_js.mjs",
-        *batch(
-            ["read-compressed", "ours.compressed.ply", "js.json"],
-            ["write-compressed", "cloud.json", "js.compressed.ply"],
-            ["read-compressed", "js.compressed.ply", "js-theirs.json"],
+        *batch_in(
+            folders,
+            ["read-compressed", "{}/ours.compressed.ply", "{}/js.json"],
+            ["write-compressed", "{}/cloud.json", "{}/js.compressed.ply"],
+            ["read-compressed", "{}/js.compressed.ply", "{}/js-theirs.json"],
         ),
-        cwd=tmp_path,
+        cwd=work,
     )
+    return work
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_compressed_ply_both_ways(compressed_work, degree):
+    """Each tool's decoding of our file is ours; each tool's file decodes the same for it and for us,
+    and is the source within the layout's quantisation."""
+    cloud, work = compressed_cloud(degree), compressed_work / f"d{degree}"
+    ours = read_splats(work / "ours.compressed.ply")
     # spz-js decodes SH bytes b as 8 b / 255 - 4 where we and splat-transform take the bucket's centre,
     # 8 (b + 0.5) / 256 - 4 (at most 1/64 apart), and its reader (1.2.5) fills the SH bands of degrees
     # 1 and 2 from the wrong places (its loop over colour channels stops at the SH degree): there it is
@@ -156,22 +194,20 @@ def test_compressed_ply_both_ways(tmp_path, degree):
     spz_js = dict(sh=1 / 64 + 1e-6)
     spz_js_view = (lambda c: c) if degree in (0, 3) else (lambda c: c.with_sh_degree(0))  # noqa: E731
     # they read ours
-    assert_same_splats(transform_ply(tmp_path, tmp_path / "ours.compressed.ply", "a.ply"), ours)
-    assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
-    assert_same_splats(spz_js_view(cloud_from_niantic(load_json(tmp_path / "js.json"))), spz_js_view(ours), **spz_js)
+    assert_same_splats(read_splats(work / "a.ply", nonfinite="keep"), ours)
+    assert_same_splats(cloud_from_arrays(load_arrays(work / "g.npz")), ours)
+    assert_same_splats(spz_js_view(cloud_from_niantic(load_json(work / "js.json"))), spz_js_view(ours), **spz_js)
     # theirs, read by us: what they read in it, and the source within the layout's quantisation
     theirs = {
-        "st": transform_ply(tmp_path, tmp_path / "st.compressed.ply", "b.ply"),
-        "gs": cloud_from_arrays(load_arrays(tmp_path / "gs.npz")),
+        "st": read_splats(work / "b.ply", nonfinite="keep"),
+        "gs": cloud_from_arrays(load_arrays(work / "gs.npz")),
     }
     for name, their_reading in theirs.items():
-        got = read_splats(tmp_path / f"{name}.compressed.ply")
+        got = read_splats(work / f"{name}.compressed.ply")
         assert_same_splats(got, their_reading)
         check_compressed_error(matched(got, cloud), cloud)
-    got = read_splats(tmp_path / "js.compressed.ply")
-    assert_same_splats(
-        spz_js_view(got), spz_js_view(cloud_from_niantic(load_json(tmp_path / "js-theirs.json"))), **spz_js
-    )
+    got = read_splats(work / "js.compressed.ply")
+    assert_same_splats(spz_js_view(got), spz_js_view(cloud_from_niantic(load_json(work / "js-theirs.json"))), **spz_js)
     check_compressed_error(matched(got, cloud), cloud)
 
 
@@ -189,21 +225,42 @@ def check_compressed_error(got, want):
 # SPZ ------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("degree", DEGREES)
-@pytest.mark.parametrize("version", [2, 3, 4])
-def test_spz_niantic_both_ways_and_byte_identical(tmp_path, version, degree):
-    cloud = in_range_cloud(300, degree=degree, seed=10 * version + degree)
-    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
-    spz.write(tmp_path / "ours.spz", cloud, version=version)
-    node("adobe_spz.mjs", "write", "cloud.json", "theirs.spz", version, cwd=tmp_path)
-    node("adobe_spz.mjs", "read", "ours.spz", "back.json", cwd=tmp_path)
-    assert (tmp_path / "ours.spz").read_bytes() == (tmp_path / "theirs.spz").read_bytes()
+SPZ_CASES = [(version, degree) for version in (2, 3, 4) for degree in DEGREES]
+
+
+def spz_cloud(version, degree, seed=0):
+    return in_range_cloud(300, degree=degree, seed=seed + 10 * version + degree)
+
+
+@pytest.fixture(scope="module")
+def niantic_work(tmp_path_factory):
+    """Niantic's library writing each version and degree (in folders v2d0..v4d3) and reading ours,
+    in one run."""
+    work, jobs = tmp_path_factory.mktemp("niantic"), []
+    for version, degree in SPZ_CASES:
+        here = work / f"v{version}d{degree}"
+        here.mkdir()
+        cloud = spz_cloud(version, degree)
+        save_json(here / "cloud.json", **niantic_arrays(cloud))
+        spz.write(here / "ours.spz", cloud, version=version)
+        jobs += [
+            ["write", here / "cloud.json", here / "theirs.spz", version],
+            ["read", here / "ours.spz", here / "back.json"],
+        ]
+    node("adobe_spz.mjs", *batch(*jobs))
+    return work
+
+
+@pytest.mark.parametrize(("version", "degree"), SPZ_CASES)
+def test_spz_niantic_both_ways_and_byte_identical(niantic_work, version, degree):
+    cloud, work = spz_cloud(version, degree), niantic_work / f"v{version}d{degree}"
+    assert (work / "ours.spz").read_bytes() == (work / "theirs.spz").read_bytes()
     rotation_bound = spz_rotation_bound(version, cloud)
-    check_spz(read_splats(tmp_path / "theirs.spz"), cloud, rotation_bound=rotation_bound)
-    theirs = cloud_from_niantic(load_json(tmp_path / "back.json"))
+    check_spz(read_splats(work / "theirs.spz"), cloud, rotation_bound=rotation_bound)
+    theirs = cloud_from_niantic(load_json(work / "back.json"))
     check_spz(theirs, cloud, rotation_bound=rotation_bound)
     if version == 2:  # v2 keeps x, y, z of the quaternion with w >= 0: compare those
-        np.testing.assert_allclose(theirs.rotations, read_splats(tmp_path / "ours.spz").rotations, atol=2e-5)
+        np.testing.assert_allclose(theirs.rotations, read_splats(work / "ours.spz").rotations, atol=2e-5)
 
 
 def test_spz_rounding_ties_go_away_from_zero(tmp_path):
@@ -261,50 +318,77 @@ def test_spz_splat_transform_default_axes_turn_y_and_z(tmp_path):
     check_spz(read_splats(tmp_path / "theirs.spz"), turned_yz(cloud))
 
 
-@pytest.mark.parametrize("degree", DEGREES)
-@pytest.mark.parametrize("version", [3, 4])
-def test_spz_gsply_both_ways(tmp_path, version, degree):
+GSPLY_SPZ_CASES = [(version, degree) for version in (3, 4) for degree in DEGREES]
+
+
+@pytest.fixture(scope="module")
+def gsply_spz_work(tmp_path_factory):
+    """gsply reading our SPZ (in the PLY's axes) and writing its own, for v3/v4 at each degree (in
+    folders v3d0..v4d3), in one run."""
+    work, jobs = tmp_path_factory.mktemp("gsply-spz"), []
+    for version, degree in GSPLY_SPZ_CASES:
+        here = work / f"v{version}d{degree}"
+        here.mkdir()
+        cloud = spz_cloud(version, degree, seed=100)
+        spz.write(here / "ours.spz", cloud, version=version, **SPZ_RDF)
+        save_arrays(here / "cloud.npz", **ply_arrays(cloud))
+        jobs += [
+            ["read-spz", here / "ours.spz", here / "back.npz"],
+            ["write-spz", here / "cloud.npz", here / "theirs.spz", version],
+        ]
+    python("gsply", "gsply_tool.py", *batch(*jobs))
+    return work
+
+
+@pytest.mark.parametrize(("version", "degree"), GSPLY_SPZ_CASES)
+def test_spz_gsply_both_ways(gsply_spz_work, version, degree):
     """gsply stores the PLY's values in SPZ without turning them to SPZ's RUB axes (and with full
     8-bit SH): compared in the file's own axes."""
-    cloud = in_range_cloud(300, degree=degree, seed=100 + 10 * version + degree)
-    spz.write(tmp_path / "ours.spz", cloud, version=version, **SPZ_RDF)
-    save_arrays(tmp_path / "cloud.npz", **ply_arrays(cloud))
-    python(
-        "gsply",
-        "gsply_tool.py",
-        *batch(["read-spz", "ours.spz", "back.npz"], ["write-spz", "cloud.npz", "theirs.spz", version]),
-        cwd=tmp_path,
-    )
-    check_spz(cloud_from_arrays(load_arrays(tmp_path / "back.npz")), cloud)
-    got = spz.read(tmp_path / "theirs.spz", **SPZ_RDF)
+    cloud, work = spz_cloud(version, degree, seed=100), gsply_spz_work / f"v{version}d{degree}"
+    check_spz(cloud_from_arrays(load_arrays(work / "back.npz")), cloud)
+    got = spz.read(work / "theirs.spz", **SPZ_RDF)
     check_spz(got, cloud, sh=False)
     if degree:  # 8-bit SH: half a step of 1/128
         assert np.abs(matched(got, cloud).sh[:, 1:] - cloud.sh[:, 1:]).max() <= 0.5 / 128 + 1e-6
 
 
-@pytest.mark.parametrize("degree", DEGREES)
-def test_spz_spz_js_both_ways(tmp_path, degree):
-    """spz-js reads SPZ v1/v2 and writes v2, in the PLY's axes (no turn to RUB). It refuses a file
-    holding anything after the SH block, so an axes record too: ours is written with the values as
-    given (axes=None), the model's RDF, and no record."""
-    cloud = in_range_cloud(300, degree=degree, seed=200 + degree)
-    spz.write(tmp_path / "ours.spz", cloud, version=2, axes=None)
-    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
+def spz_js_cloud(degree):
+    return in_range_cloud(300, degree=degree, seed=200 + degree)
+
+
+@pytest.fixture(scope="module")
+def spz_js_work(tmp_path_factory):
+    """spz-js reading our SPZ v2 and writing and reading its own, at each degree (folders d0..d3), in
+    one run. It refuses a file holding anything after the SH block, so an axes record too: ours is
+    written with the values as given (axes=None), the model's RDF, and no record."""
+    work, folders = tmp_path_factory.mktemp("spz-js"), [f"d{d}" for d in DEGREES]
+    for degree, folder in zip(DEGREES, folders, strict=True):
+        (work / folder).mkdir()
+        spz.write(work / folder / "ours.spz", spz_js_cloud(degree), version=2, axes=None)
+        save_json(work / folder / "cloud.json", **niantic_arrays(spz_js_cloud(degree)))
     node(
         "spz_js.mjs",
-        *batch(
-            ["read-spz", "ours.spz", "back.json"],
-            ["write-spz", "cloud.json", "theirs.spz"],
-            ["read-spz", "theirs.spz", "theirs.json"],
+        *batch_in(
+            folders,
+            ["read-spz", "{}/ours.spz", "{}/back.json"],
+            ["write-spz", "{}/cloud.json", "{}/theirs.spz"],
+            ["read-spz", "{}/theirs.spz", "{}/theirs.json"],
         ),
-        cwd=tmp_path,
+        cwd=work,
     )
+    return work
+
+
+@pytest.mark.parametrize("degree", DEGREES)
+def test_spz_spz_js_both_ways(spz_js_work, degree):
+    """spz-js reads SPZ v1/v2 and writes v2, in the PLY's axes (no turn to RUB)."""
+    cloud, work = spz_js_cloud(degree), spz_js_work / f"d{degree}"
     bound = v2_rotation_bound(cloud)
-    check_spz(cloud_from_niantic(load_json(tmp_path / "back.json")), cloud, rotation_bound=bound)
-    got = spz.read(tmp_path / "theirs.spz", **SPZ_RDF)
-    assert spz.decode("theirs.spz", (tmp_path / "theirs.spz").read_bytes())[1]["version"] == 2
+    check_spz(cloud_from_niantic(load_json(work / "back.json")), cloud, rotation_bound=bound)
+    got = spz.read(work / "theirs.spz", **SPZ_RDF)
+    assert spz.decode("theirs.spz", (work / "theirs.spz").read_bytes())[1]["version"] == 2
     check_spz(got, cloud, rotation_bound=bound)
-    assert_same_splats(got, cloud_from_niantic(load_json(tmp_path / "theirs.json")), angle_deg=0.05)
+    assert_same_splats(got, cloud_from_niantic(load_json(work / "theirs.json")), angle_deg=0.05)
 
 
 # the same file decoded by them and by us ---------------------------------------------------------------
@@ -329,17 +413,19 @@ def transform_ply(tmp_path, source, name):
 
 @pytest.mark.parametrize("degree", DEGREES)
 def test_sog_both_ways(tmp_path, degree):
-    """SOG version 2 (what splat-transform 3.7.0 writes as .sog; it needs `-g cpu` without a GPU):
-    our files, bundled and loose, have the layout its writer makes and its reader expects, and it
-    reads them as we do; gsply too. Its file reads the same for us as for it, and is the source
-    within SOG's quantisation."""
+    """SOG version 2, which splat-transform 3.7.0 writes as .sog or loose beside a meta.json (with SH
+    bands it needs `-g cpu` without a GPU): our files, bundled and loose, have the layout its writer
+    makes and its reader expects, and it reads them as we do; gsply too. Its files read the same for
+    us as for it, and are the source within SOG's quantisation."""
     cloud = random_cloud(500, sh_degree=degree, seed=30 + degree)
     write_splats(tmp_path / "src.ply", cloud)
     write_splats(tmp_path / "ours.sog", cloud)
     (tmp_path / "loose").mkdir()
     write_splats(tmp_path / "loose" / "meta.json", cloud)
-    splat_transform("-g", "cpu", tmp_path / "src.ply", tmp_path / "theirs.sog")
-    (ours_meta, ours), (their_meta, theirs) = sog_files(tmp_path / "ours.sog"), sog_files(tmp_path / "theirs.sog")
+    theirs_path = tmp_path / "theirs.sog" if degree % 2 else tmp_path / "theirs" / "meta.json"  # bundled, loose
+    theirs_path.parent.mkdir(exist_ok=True)
+    splat_transform("-g", "cpu", tmp_path / "src.ply", theirs_path)
+    (ours_meta, ours), (their_meta, theirs) = sog_files(tmp_path / "ours.sog"), sog_files(theirs_path)
     for meta, files in ((ours_meta, ours), sog_files(tmp_path / "loose" / "meta.json"), (their_meta, theirs)):
         check_sog_v2_layout(meta, files, len(cloud), degree)
     assert key_paths(ours_meta) == key_paths(their_meta)
@@ -354,12 +440,12 @@ def test_sog_both_ways(tmp_path, degree):
         assert_same_splats(transform_ply(tmp_path, source, "a.ply"), ours)
     python("gsply", "gsply_tool.py", "read-sog", tmp_path / "ours.sog", tmp_path / "g.npz")
     assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
-    theirs = read_splats(tmp_path / "theirs.sog")
-    assert_same_splats(theirs, transform_ply(tmp_path, tmp_path / "theirs.sog", "b.ply"))
+    theirs = read_splats(theirs_path)
+    assert_same_splats(theirs, transform_ply(tmp_path, theirs_path, "b.ply"))
     # what they wrote is the input within SOG's quantisation: log-scales and DC colours are the nearest
     # entries of the 256-entry codebooks their file carries, rotations within the 8-bit smallest-three's
     # bound (the SH palette they cluster is compared through splat-transform's own decoding, above)
-    got, books = matched(theirs, cloud), sog_codebooks(tmp_path / "theirs.sog")
+    got, books = matched(theirs, cloud), sog_codebooks(theirs_path)
     assert_same_splats(
         got.with_sh_degree(0).replace(sh=cloud.sh[:, :1], log_scales=cloud.log_scales, rotations=cloud.rotations),
         cloud.with_sh_degree(0),
