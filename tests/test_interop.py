@@ -411,22 +411,46 @@ def transform_ply(tmp_path, source, name):
 # SOG -----------------------------------------------------------------------------------------------
 
 
+def sog_cloud(degree):
+    return random_cloud(500, sh_degree=degree, seed=30 + degree)
+
+
+def their_sog(work):
+    """Where splat-transform's SOG of a degree's folder is: bundled at odd degrees, loose at even."""
+    return work / "theirs.sog" if int(work.name[1:]) % 2 else work / "theirs" / "meta.json"
+
+
+@pytest.fixture(scope="module")
+def sog_work(tmp_path_factory):
+    """Our SOG of each SH degree (in folders d0..d3), bundled and loose, and splat-transform's SOG
+    (bundled or loose in turn); splat-transform's decoding of each as a PLY (a1: our .sog, a2: our
+    loose one, b: its own), gsply's of ours in one run."""
+    work, folders = tmp_path_factory.mktemp("sog"), [f"d{d}" for d in DEGREES]
+    for degree, folder in zip(DEGREES, folders, strict=True):
+        cloud, here = sog_cloud(degree), work / folder
+        (here / "loose").mkdir(parents=True)
+        write_splats(here / "src.ply", cloud)
+        write_splats(here / "ours.sog", cloud)
+        write_splats(here / "loose" / "meta.json", cloud)
+        their_sog(here).parent.mkdir(exist_ok=True)
+        splat_transform("-g", "cpu", here / "src.ply", their_sog(here))
+        for source, name in ((here / "ours.sog", "a1.ply"), (here / "loose" / "meta.json", "a2.ply")):
+            splat_transform(source, here / name)
+        splat_transform(their_sog(here), here / "b.ply")
+    python("gsply", "gsply_tool.py", *batch_in(folders, ["read-sog", "{}/ours.sog", "{}/g.npz"]), cwd=work)
+    return work
+
+
 @pytest.mark.parametrize("degree", DEGREES)
-def test_sog_both_ways(tmp_path, degree):
+def test_sog_both_ways(sog_work, degree):
     """SOG version 2, which splat-transform 3.7.0 writes as .sog or loose beside a meta.json (with SH
     bands it needs `-g cpu` without a GPU): our files, bundled and loose, have the layout its writer
     makes and its reader expects, and it reads them as we do; gsply too. Its files read the same for
     us as for it, and are the source within SOG's quantisation."""
-    cloud = random_cloud(500, sh_degree=degree, seed=30 + degree)
-    write_splats(tmp_path / "src.ply", cloud)
-    write_splats(tmp_path / "ours.sog", cloud)
-    (tmp_path / "loose").mkdir()
-    write_splats(tmp_path / "loose" / "meta.json", cloud)
-    theirs_path = tmp_path / "theirs.sog" if degree % 2 else tmp_path / "theirs" / "meta.json"  # bundled, loose
-    theirs_path.parent.mkdir(exist_ok=True)
-    splat_transform("-g", "cpu", tmp_path / "src.ply", theirs_path)
-    (ours_meta, ours), (their_meta, theirs) = sog_files(tmp_path / "ours.sog"), sog_files(theirs_path)
-    for meta, files in ((ours_meta, ours), sog_files(tmp_path / "loose" / "meta.json"), (their_meta, theirs)):
+    cloud, work = sog_cloud(degree), sog_work / f"d{degree}"
+    theirs_path = their_sog(work)
+    (ours_meta, ours), (their_meta, theirs) = sog_files(work / "ours.sog"), sog_files(theirs_path)
+    for meta, files in ((ours_meta, ours), sog_files(work / "loose" / "meta.json"), (their_meta, theirs)):
         check_sog_v2_layout(meta, files, len(cloud), degree)
     assert key_paths(ours_meta) == key_paths(their_meta)
     for name in FILES_PER_SPLAT:
@@ -434,14 +458,13 @@ def test_sog_both_ways(tmp_path, degree):
     if degree:  # the palette's rows of 64 entries: as wide, as many rows as entries need
         assert pixels(ours["shN_centroids.webp"]).shape[1] == pixels(theirs["shN_centroids.webp"]).shape[1]
 
-    ours = read_splats(tmp_path / "ours.sog")
-    assert_same_splats(read_splats(tmp_path / "loose" / "meta.json"), ours, position=0, scale=0, opacity=0, sh=0)
-    for source in (tmp_path / "ours.sog", tmp_path / "loose" / "meta.json"):
-        assert_same_splats(transform_ply(tmp_path, source, "a.ply"), ours)
-    python("gsply", "gsply_tool.py", "read-sog", tmp_path / "ours.sog", tmp_path / "g.npz")
-    assert_same_splats(cloud_from_arrays(load_arrays(tmp_path / "g.npz")), ours)
+    ours = read_splats(work / "ours.sog")
+    assert_same_splats(read_splats(work / "loose" / "meta.json"), ours, position=0, scale=0, opacity=0, sh=0)
+    for name in ("a1.ply", "a2.ply"):
+        assert_same_splats(read_splats(work / name, nonfinite="keep"), ours)
+    assert_same_splats(cloud_from_arrays(load_arrays(work / "g.npz")), ours)
     theirs = read_splats(theirs_path)
-    assert_same_splats(theirs, transform_ply(tmp_path, theirs_path, "b.ply"))
+    assert_same_splats(theirs, read_splats(work / "b.ply", nonfinite="keep"))
     # what they wrote is the input within SOG's quantisation: log-scales and DC colours are the nearest
     # entries of the 256-entry codebooks their file carries, rotations within the 8-bit smallest-three's
     # bound (the SH palette they cluster is compared through splat-transform's own decoding, above)
