@@ -285,3 +285,25 @@ def test_a_moved_blender_import_exports_its_world_splats(blender):
             np.testing.assert_allclose(
                 shmod.evaluate(written.sh, seen @ rotation.T), shmod.evaluate(source.sh, seen), atol=1e-6, err_msg=name
             )
+
+
+def test_blenders_own_usd_export_is_not_read_back_as_splats(blender):
+    """Blender 5.3.0 writes a splat cloud as UsdGeomPoints with its attributes as primvars, but leaves
+    `radiance:base` (FLOAT4: the DC colour and opacity) out, "cannot be converted to USD", and its USD
+    import makes plain points of that file: Blender's own USD round trip loses the DC, the opacities and
+    the splat type. Splatwright's ParticleField3DGaussianSplat files are what it reads as splats."""
+    from pxr import Usd
+
+    res = blender.step("blender_usd")
+    assert res["import"]["error"] is None and res["export"]["error"] is None, res
+    stage = Usd.Stage.Open(str(blender.out / "blender_export.usda"))
+    kinds = {"Points", "ParticleField3DGaussianSplat"}
+    (prim,) = [p for p in stage.Traverse() if p.GetTypeName() in kinds]
+    assert prim.GetTypeName() == "Points"
+    names = {a.GetName() for a in prim.GetAttributes()}
+    assert "primvars:radiance:base" not in names
+    assert {"primvars:rotation", "primvars:scale", "primvars:radiance:sh_14"} <= names
+    stored = blender.npz("blender_d3.ply")["scale"]
+    np.testing.assert_array_equal(np.array(prim.GetAttribute("primvars:scale").Get(), np.float32), stored)
+    again = res["reimport"]
+    assert again["data_type"] == ["POINTS"] and "radiance:base" not in again["attributes"], again

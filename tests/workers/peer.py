@@ -35,7 +35,7 @@ def blender_importer(name):
 
 
 class PeerWorker(BlenderWorker):
-    steps = ("imports", "round_trips", "moved")
+    steps = ("imports", "round_trips", "moved", "blender_usd")
 
     def __init__(self, work, zip_path):
         super().__init__(work, zip_path)
@@ -133,6 +133,16 @@ class PeerWorker(BlenderWorker):
             }
             self.bpy.data.objects.remove(obj)
         return res
+
+    def blender_usd(self):
+        """Blender's own USD export of the degree-3 PLY it imported, and its USD import of that file."""
+        (obj,), outcome = self.blender_import("d3.ply")
+        self.select([obj])
+        path = self.out / "blender_export.usda"
+        res = {"import": outcome, "export": self.call(self.bpy.ops.wm.usd_export, filepath=str(path))}
+        self.bpy.data.objects.remove(obj)
+        made = self.new_objects(lambda: self.call(self.bpy.ops.wm.usd_import, filepath=str(path)))
+        return {**res, "reimport": self.describe(*made, "blender_usd_reimport")}
 
 
 if __name__ == "__main__":
