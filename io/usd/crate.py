@@ -68,14 +68,14 @@ def check_crate_bytes(path, data, where=""):
     or abort the process). `where` prefixes the problem ("layer x.usdc: ") for a composed layer."""
     try:
         _check_crate_bytes(path, data)
+    except SplatFileError as exc:  # a ValueError too: caught first
+        if not where:
+            raise
+        raise SplatFileError(path, where + exc.problem) from None
     except struct.error:
         raise SplatFileError(path, f"{where}crate header or table of contents is truncated") from None
     except (_CrateError, ValueError, IndexError) as exc:
         raise SplatFileError(path, f"{where}crate file is corrupt: {exc}") from None
-    except SplatFileError as exc:
-        if not where:
-            raise
-        raise SplatFileError(path, where + exc.problem) from None
 
 
 def _check_crate_bytes(path, data):

@@ -15,8 +15,6 @@ import mmap
 import os
 import re
 import struct
-import zipfile
-from io import RawIOBase
 
 import numpy as np
 
@@ -59,13 +57,9 @@ def check_layer(owner, identifier):
     layer that is compressed (OpenUSD reads only stored ones). `owner` names the file in errors."""
     outer, members = split_packaged(identifier)
     data, name = _mapped(outer), os.path.basename(outer)
-    try:
-        while bytes(data[:4]) == b"PK\x03\x04":  # a package: its named member, or its first
-            member = members.pop(0) if members else None
-            data, inner = _member(owner, data, member)
-            name += f"[{inner}]"
-    except (struct.error, zipfile.BadZipFile):
-        raise SplatFileError(owner, f"package {name} is truncated or corrupt") from None
+    while bytes(data[:4]) == b"PK\x03\x04":  # a package: its named member, or its first
+        data, inner = _member(owner, data, members.pop(0) if members else None)
+        name += f"[{inner}]"
     where = "" if str(identifier) == os.path.abspath(owner) else f"layer {name}: "
     if bytes(data[:8]) == b"PXR-USDC":
         check_crate_bytes(owner, data, where)
@@ -94,48 +88,42 @@ def _mapped(path):
 
 
 def _member(owner, view, name):
-    """(bytes, name) of the member `name` (None: the first) of the zip in `view`."""
-    with zipfile.ZipFile(_ViewFile(view)) as z:
-        infos = z.infolist()
-        found = [i for i in infos if i.filename == name] if name else infos[:1]
-    if not found:
-        raise SplatFileError(owner, f"the package holds no layer {name!r}")
-    info = found[0]
-    if info.compress_type != zipfile.ZIP_STORED:
-        raise SplatFileError(
-            owner, f"packaged layer {info.filename!r} is compressed; a .usdz stores its layers uncompressed"
+    """(bytes, name) of the member `name` (None: the first) of the package in `view`, found as
+    OpenUSD finds it (see _headers)."""
+    for found, method, start, size in _headers(view):
+        if name is None or found == name:
+            if method != 0:
+                raise SplatFileError(
+                    owner, f"packaged layer {found!r} is compressed; a .usdz stores its layers uncompressed"
+                )
+            return view[start : start + size], found
+    raise SplatFileError(owner, f"the package holds no layer {name!r}" if name else "the package holds no layer")
+
+
+def _headers(view):
+    """(name, compression method, start, size) of each member of the package in `view`, read as
+    OpenUSD reads a package: walking the local file headers from the start, each member sized by its
+    own header. The central directory is not read, so its sizes cannot differ from the bytes
+    OpenUSD parses."""
+    at = 0
+    while len(view) - at >= 30:
+        signature, _, _, method, _, _, _, size, _, name_length, extra_length = struct.unpack_from(
+            "<IHHHHHIIIHH", view, at
         )
-    name_length, extra_length = struct.unpack_from("<HH", view, info.header_offset + 26)
-    start = info.header_offset + 30 + name_length + extra_length
-    if start + info.file_size > len(view):
-        raise SplatFileError(owner, f"packaged layer {info.filename!r} runs past the package (truncated?)")
-    return view[start : start + info.file_size], info.filename
+        start = at + 30 + name_length + extra_length
+        if signature != 0x04034B50 or start + size > len(view):
+            return
+        yield bytes(view[at + 30 : at + 30 + name_length]).decode("utf-8", "replace"), method, start, size
+        at = start + size
 
 
-class _ViewFile(RawIOBase):
-    """A mapped view read as a file, so that zipfile lists a package without copying it."""
-
-    def __init__(self, view):
-        self.view, self.at = view, 0
-
-    def readable(self):
-        return True
-
-    def seekable(self):
-        return True
-
-    def seek(self, offset, whence=0):
-        self.at = (offset, self.at + offset, len(self.view) + offset)[whence]
-        return self.at
-
-    def tell(self):
-        return self.at
-
-    def readinto(self, buffer):
-        piece = self.view[self.at : self.at + len(buffer)]
-        buffer[: len(piece)] = piece
-        self.at += len(piece)
-        return len(piece)
+def package_names(owner, package, members=()):
+    """The names of the members of the package `package` (a file), or of the package nested in it
+    at `members` ("a.usdz", ...)."""
+    data = _mapped(package)
+    for member in members:
+        data = _member(owner, data, member)[0]
+    return [name for name, *_ in _headers(data)]
 
 
 def check_text(owner, data, where=""):

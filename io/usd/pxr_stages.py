@@ -13,15 +13,15 @@ import contextlib
 import ctypes
 import math
 import os
+import posixpath
 import re
-import zipfile
 
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
 from .. import policy
 from ..common import SplatFileError
-from .layer_check import check_layer, split_packaged
+from .layer_check import check_layer, package_names, split_packaged
 from .schema import CUSTOM, SCHEMA, TYPE_NAME
 from .usdz import write_usdz
 
@@ -214,9 +214,9 @@ class _LayerWalk:
         pattern = re.compile(r"\.".join(r"-?\d+" if set(p) == {"#"} else re.escape(p) for p in parts), re.IGNORECASE)
         if self.package:
             outer, members = split_packaged(anchor)
-            inner = "/".join(members[-1:]).rstrip("/") if members else ""
-            with zipfile.ZipFile(outer) as z:
-                names = [n[len(inner) + 1 :] if inner else n for n in z.namelist() if n.startswith(inner)]
+            inner = posixpath.normpath(members.pop()) if members else "."
+            inner = "" if inner == "." else inner + "/"
+            names = [n[len(inner) :] for n in package_names(self.path, outer, members) if n.startswith(inner)]
         else:
             names = os.listdir(anchor) if os.path.isdir(anchor) else []
         prefix = folder + "/" if folder else ""
