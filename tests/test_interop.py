@@ -627,28 +627,61 @@ def test_splat_both_ways(tmp_path):
 # OpenUSD -------------------------------------------------------------------------------------------
 
 
+def usd_cloud(degree):
+    return in_range_cloud(40, degree=degree, seed=60 + degree)
+
+
+@pytest.fixture(scope="module")
+def usd_work(tmp_path_factory):
+    """For each SH degree (folders d0..d3): NVIDIA's converter turning our PLY, and our SPZ v2 and v3
+    in the PLY's axes, into OpenUSD; OpenUSD's schema reading our file and NVIDIA's; one run."""
+    work, folders = tmp_path_factory.mktemp("usd"), [f"d{d}" for d in DEGREES]
+    for degree, folder in zip(DEGREES, folders, strict=True):
+        cloud, here = usd_cloud(degree), work / folder
+        here.mkdir()
+        write_splats(here / "src.ply", cloud)
+        write_splats(here / "ours.usda", cloud)
+        for version in (2, 3):
+            spz.write(here / f"v{version}.spz", cloud, version=version, **SPZ_RDF)
+    python(
+        "nvidia",
+        "nvidia_usd.py",
+        *batch_in(
+            folders,
+            ["convert", "{}/src.ply", "{}/nvidia.usda"],
+            ["convert", "{}/v2.spz", "{}/nvidia-v2.usda"],
+            ["convert", "{}/v3.spz", "{}/nvidia-v3.usda"],
+            ["read", "{}/ours.usda", "{}/ours.npz"],
+            ["read", "{}/nvidia.usda", "{}/nvidia.npz"],
+        ),
+        cwd=work,
+    )
+    return work
+
+
 @pytest.mark.parametrize("degree", DEGREES)
-def test_usd_nvidia_converter_and_openusd_schema(tmp_path, degree):
-    """NVIDIA's usd-convert-gsplat turns our PLY into OpenUSD: we read the PLY's values back. OpenUSD's
-    own schema (in that environment, its own usd-core) reads our file: the values NVIDIA's converter
-    writes for the same PLY, with the same metadata, and a transform standing the capture upright."""
-    cloud = random_cloud(40, sh_degree=degree, seed=60 + degree)
-    write_splats(tmp_path / "src.ply", cloud)
-    python("nvidia", "-m", "usd_convert_gsplat", "-i", tmp_path / "src.ply", "-o", tmp_path / "nvidia.usda")
-    theirs = read_splats(tmp_path / "nvidia.usda")  # no upright transform: capture values
+def test_usd_nvidia_converter_and_openusd_schema(usd_work, degree):
+    """NVIDIA's usd-convert-gsplat turns our PLY into OpenUSD: we read the PLY's values back; and our
+    SPZ (v2, v3; it reads them in the PLY's axes): we read them back within SPZ's quantisation.
+    OpenUSD's own schema (in that environment, its own usd-core) reads our file: the values NVIDIA's
+    converter writes for the same PLY, with the same metadata, and a transform standing the capture
+    upright."""
+    cloud, work = usd_cloud(degree), usd_work / f"d{degree}"
+    theirs = read_splats(work / "nvidia.usda")  # no upright transform: capture values
     np.testing.assert_array_equal(theirs.positions, cloud.positions)
     np.testing.assert_allclose(theirs.sh, cloud.sh, atol=0)
     np.testing.assert_allclose(theirs.log_scales, cloud.log_scales, atol=2e-6)
     np.testing.assert_allclose(theirs.opacities, cloud.opacities, atol=1e-6)
     assert_same_covariances(theirs, cloud)
+    for version in (2, 3):
+        check_spz(
+            read_splats(work / f"nvidia-v{version}.usda"), cloud, rotation_bound=spz_rotation_bound(version, cloud)
+        )
     # the same file taken in the stage's own axes comes back turned (what the file shows in a viewer)
-    turned = usd.read(tmp_path / "nvidia.usda", unmarked="stage")
+    turned = usd.read(work / "nvidia.usda", unmarked="stage")
     np.testing.assert_array_equal(turned.positions, cloud.positions * np.float32([1, -1, -1]))
 
-    write_splats(tmp_path / "ours.usda", cloud)
-    python("nvidia", "openusd_read.py", tmp_path / "ours.usda", tmp_path / "ours.npz")
-    python("nvidia", "openusd_read.py", tmp_path / "nvidia.usda", tmp_path / "nvidia.npz")
-    ours, nvidia = load_arrays(tmp_path / "ours.npz"), load_arrays(tmp_path / "nvidia.npz")
+    ours, nvidia = load_arrays(work / "ours.npz"), load_arrays(work / "nvidia.npz")
     for name in ("positions", "sh", "degree", "element_size", "interpolation", "up_axis"):
         np.testing.assert_array_equal(ours[name], nvidia[name], err_msg=name)
     for name in ("orientations_xyzw", "scales", "opacities"):
