@@ -1,6 +1,6 @@
 """The Blender extension imports the read-only formats through read_splats: .ksplat (a file of the
-layout tests/test_new_readers.py writes and splat-transform reads) and streamed SOG, whose WebP
-images Blender's own Python cannot decode (no Pillow): refused by name, nothing made."""
+layout tests/test_new_readers.py writes and splat-transform reads), LCC2 of SPZ chunks, and streamed
+SOG, whose WebP images Blender's own Python cannot decode (no Pillow): refused by name, nothing made."""
 
 import json
 
@@ -15,9 +15,11 @@ pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 
 def _write_inputs(work):
-    from test_new_readers import ksplat_cloud, write_ksplat
+    from test_new_readers import ksplat_cloud, write_ksplat, write_lcc2
 
     write_ksplat(work / "a.ksplat", ksplat_cloud(n=120, degree=2, seed=60), level=1, sections=2)
+    (work / "lcc2").mkdir()
+    write_lcc2(work / "lcc2", kind=".spz")  # SPZ chunks: no WebP, so Blender's Python reads them
     unit = work / "scene" / "0_0" / "meta.json"
     unit.parent.mkdir(parents=True)
     write_splats(unit, random_cloud(30, sh_degree=0, seed=61))
@@ -47,6 +49,15 @@ def test_ksplat_imports_and_exports_back_as_read(blender):
     np.testing.assert_allclose(got.sh, want.sh, atol=1e-4)
     cos = np.abs((got.unit_rotations * want.unit_rotations).sum(axis=1))
     assert cos.min() > 1 - 1e-6
+
+
+def test_lcc2_of_spz_chunks_imports_as_read(blender):
+    res = blender.step("imports")["lcc2"]
+    assert res["result"] == ["FINISHED"] and res["objects"] == 1 and res["count"] == 70, res
+    want = read_splats(blender.work / "lcc2" / "scene.lcc2")
+    got = read_splats(blender.out / "lcc2_back.ply")
+    np.testing.assert_allclose(got.positions, want.positions, atol=1e-5)
+    np.testing.assert_allclose(got.sh, want.sh, atol=1e-4)
 
 
 def test_streamed_sog_is_refused_by_name_without_pillow(blender):

@@ -1,11 +1,12 @@
-"""Readers for formats users bring from other tools: mkkellogg's `.ksplat` and PlayCanvas's streamed
-SOG (`lod-meta.json`).
+"""Readers for formats users bring from other tools: mkkellogg's `.ksplat`, PlayCanvas's streamed SOG
+(`lod-meta.json`) and XGRIDS's LCC2 (`.lcc2`).
 
 No tool writes `.ksplat` outside a browser, so the tests write it themselves (`write_ksplat`, below,
 from the layout GaussianSplats3D's SplatBuffer documents in its code: its bucketing, rounding and
 clamping) and splat-transform 3.7.0 reads the same files: both readings must agree, and match the
 source within each compression level's quantisation. splat-transform writes streamed SOG on the CPU,
-so those files are theirs; hostile variants are built from our own SOG writer.
+so those files are theirs; hostile variants are built from our own SOG writer. LCC2 scenes are built
+to XGRIDS's white paper from our SOG and SPZ writers, and splat-transform reads them too.
 """
 
 import json

@@ -1,5 +1,5 @@
-"""Worker: the Blender import of the read-only formats, .ksplat and streamed SOG (see
-tests/test_blender_new_readers.py): the dialogs' file filters, an import written back as PLY, and the
+"""Worker: the Blender import of the read-only formats, .ksplat, LCC2 and streamed SOG (see
+tests/test_blender_new_readers.py): the dialogs' file filters, imports written back as PLY, and the
 refusal of a streamed SOG where Blender's Python has no WebP codec."""
 
 from workers.base import BlenderWorker, splat_total, worker_main
@@ -32,6 +32,10 @@ class NewReadersWorker(BlenderWorker):
         res["ksplat"]["export"] = self.call(
             self.bpy.ops.splat.export_file, filepath=str(self.out / "a_back.ply"), selected_only=True
         )
+        outcome, made = self.import_file("lcc2/scene.lcc2")
+        res["lcc2"] = {**outcome, "objects": len(made), "count": sum(splat_total(o) for o in made)}
+        self.select(made)
+        self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / "lcc2_back.ply"), selected_only=True)
         outcome, made = self.import_file("scene/lod-meta.json")
         res["streamed"] = {**outcome, "objects": len(made)}
         return res
