@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+from helpers import random_cloud
 
 from splatwright.io import SplatFileError, usd
 from splatwright.io.usd import stages
@@ -106,6 +107,15 @@ def test_deeply_nested_prims_read_as_pxr_reads_them(tmp_path):
     got = assert_read_as_pxr(layer(tmp_path, prims))
     assert got[0][0].count("/") == depth + 1
     assert got[0][1].positions[0, 0] == pytest.approx(1 + 0.5 * depth)
+
+
+def test_prims_of_any_depth_are_written_and_refused_past_the_limit_on_reading(tmp_path):
+    deep = "/" + "/".join(["P"] * 1500)
+    path = str(tmp_path / "deep.usda")
+    with using(stages.TEXT):
+        usd.write_stage(path, {deep: random_cloud(3, 0, seed=1), "/Near/S": random_cloud(2, 0, seed=2)})
+    assert_refused(path, str(MAX_DEPTH), "deep")
+    assert open(path).read().count("{") >= 1500
 
 
 @pytest.mark.parametrize("name", ["/".join(["a"] * 3000), "a.b", "1a", "a b", ""])

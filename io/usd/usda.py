@@ -464,16 +464,24 @@ class Layer:
 
 
 def _write_prim(out, prim, indent):
-    name = prim.path.rsplit("/", 1)[1]
-    type_part = f"{prim.type_name} " if prim.type_name else ""
-    out.write(f'{indent}{prim.specifier} {type_part}"{name}"\n{indent}{{\n')
-    inner = indent + "    "
-    for attr in prim.attributes.values():
-        _write_attribute(out, attr, inner)
-    for child in prim.children:
-        out.write("\n")
-        _write_prim(out, child, inner)
-    out.write(f"{indent}}}\n")
+    """The prim and its descendants, each opened before its children and closed after them (a stack
+    of what is left to write, so that any depth of prims can be written)."""
+    todo = [(prim, indent)]
+    while todo:
+        prim, indent = todo.pop()
+        if isinstance(prim, str):  # the closing brace of a prim whose children are written
+            out.write(prim)
+            continue
+        name = prim.path.rsplit("/", 1)[1]
+        type_part = f"{prim.type_name} " if prim.type_name else ""
+        out.write(f'{indent}{prim.specifier} {type_part}"{name}"\n{indent}{{\n')
+        inner = indent + "    "
+        for attr in prim.attributes.values():
+            _write_attribute(out, attr, inner)
+        todo.append((f"{indent}}}\n", indent))
+        for child in reversed(prim.children):
+            todo.append((child, inner))
+            todo.append(("\n", inner))
 
 
 def _write_attribute(out, attr, indent):
