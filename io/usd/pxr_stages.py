@@ -1,9 +1,11 @@
 """The stage interface (stages.Stages) on OpenUSD's own Python module, pxr.
 
-Opening: the root layer and every layer it composes are opened with Sdf before Usd.Stage.Open
-composes them (_composed_layers): each must lie in the stage's package (.usdz) or folder (see
-policy.py), crate layers are checked against their own sizes first (crate.py), and every child a
-prim spec lists must exist. Writing: a new layer in the format the extension names (a .usdz packages
+Opening: the root layer and every layer it composes (sublayers, references, payloads, value clips)
+are opened with Sdf before Usd.Stage.Open composes them (_composed_layers, _LayerWalk): each must
+lie in the stage's package (.usdz) or folder (see policy.py) and be a regular file, its bytes are
+checked before OpenUSD parses them (layer_check.py: crate counts, text nesting), and every child a
+prim spec lists must exist. The open stage may then use no layer the walk did not check.
+Writing: a new layer in the format the extension names (a .usdz packages
 a crate layer, see usdz.py); the splat prim is authored through pxr.UsdVol's schema class where this
 pxr has it, else by type name and attributes through the generic API (an older pxr, such as one
 bundled with Blender), which gives the same file. Arrays are Vt arrays, filled in place.
