@@ -47,7 +47,7 @@ def read(
     meta = _meta(path, read_index(path, ".lcc2"))
     root, total = meta["root"], meta["totalLevels"]
     kind = meta.get("splatType", ".sog")
-    if kind not in CHUNK_READERS:
+    if not isinstance(kind, str) or kind not in CHUNK_READERS:
         raise SplatFileError(path, f"splatType '{kind}'; this reader takes .sog and .spz chunks")
     data = root.get("data") or {}
     env = data.get("env") if isinstance(data, dict) else None

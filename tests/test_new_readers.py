@@ -602,6 +602,8 @@ def test_lcc2_splat_transform_reads_what_we_read(tmp_path, kind, legacy):
         ({"totalLevels": 1}, r"a node 2 deep holds splats, below its 1 levels"),
         ({"totalLevels": 0}, r"totalLevels must be a positive whole number"),
         ({"splatType": ".ply"}, r"splatType '.ply'; this reader takes .sog and .spz"),
+        ({"splatType": [".sog"]}, r"splatType '\['.sog'\]'; this reader takes"),
+        ({"root": []}, r"root must be an object listing its splatFiles"),
         ({"root": {"splatFiles": ["../outside/x.sog"], "child": [{"data": {"3dgs": {"name": 0, "count": 5}}}]}},
          r"SOG unit '../outside/x.sog' is not a readable file under|'../outside/x.sog' is not a readable file"),
         ({"root": {"splatFiles": ["data/3dgs/lod0.sog"], "child": [{"data": {"3dgs": {"name": 0, "count": 61}}}]}},
@@ -624,6 +626,43 @@ def test_hostile_lcc2_is_refused_by_name(tmp_path, overrides, problem):
     path = write_lcc2(folder, **overrides)
     with pytest.raises(SplatFileError, match=rf"scene\.lcc2: .*({problem})"):
         read_splats(path, levels="all")
+
+
+HOSTILE_VALUES = [-1, 1 << 70, 1.5, "x", None, True, [], {}, [0], {"0": {}}]
+
+
+def scalar_paths(value, at=()):
+    """The key paths of every value in a JSON document, innermost last."""
+    children = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else []
+    for key, child in children:
+        yield from scalar_paths(child, (*at, key))
+    if at:
+        yield at
+
+
+def replaced(document, at, value):
+    copy = json.loads(json.dumps(document))
+    parent = copy
+    for key in at[:-1]:
+        parent = parent[key]
+    parent[at[-1]] = value
+    return copy
+
+
+@pytest.mark.parametrize("fmt", ["lcc2", "lod-meta"])
+def test_every_index_value_replaced_reads_or_is_refused_by_name(tmp_path, fmt):
+    """Each value of an LCC2 index or a lod-meta.json, in turn, replaced by numbers, strings, lists
+    and objects it should not be: a read, or a SplatFileError naming the file; nothing else."""
+    if fmt == "lcc2":
+        path = write_lcc2(tmp_path, kind=".spz")
+    else:
+        clouds = [random_cloud(40, sh_degree=0, seed=51), random_cloud(10, sh_degree=0, seed=52)]
+        path = write_streamed(tmp_path, clouds)
+    document = json.loads(path.read_text())
+    for at in scalar_paths(document):
+        for value in HOSTILE_VALUES:
+            path.write_text(json.dumps(replaced(document, at, value)))
+            outcome(read_splats, path, levels="all", nonfinite="keep")
 
 
 def test_lcc2_is_read_z_up_turned_to_the_ply_axes(tmp_path):
