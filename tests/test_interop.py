@@ -1,17 +1,9 @@
 """Every format both ways against independent tools, installed from their registries on first use
-(see tests/interop.py): values equal, or within the format's quantisation, at SH degrees 0..3.
-Tools reorder splats when they write (splat-transform and spz-js into Morton order), so splats are
-compared in any order (interop.matched pairs them by centre).
-
-| format | they read ours | we read theirs |
-| PLY | splat-transform, gsply, spz-js, plyfile (bit-exact) | the same four (bit-exact) |
-| compressed PLY | splat-transform, gsply, spz-js | splat-transform, gsply, spz-js |
-| SPZ | Niantic's library (@adobe/spz, v2-v4), gsply (v3, v4), splat-transform (v2-v4), spz-js (v2) |
-|     | Niantic's library and splat-transform (our bytes identical to theirs), gsply, spz-js |
-| SOG | splat-transform, gsply | splat-transform (and its layout is ours) |
-| glTF | glTF Transform | splat-transform (.glb) |
-| .splat | splat-transform | ply2splat |
-| OpenUSD | OpenUSD's own schema (usd-core) | NVIDIA's usd-convert-gsplat |
+(see tests/interop.py): values equal, or within the format's quantisation, at SH degrees 0..3. Which
+tool reads and writes what, at which version: docs/formats.md, "Interop with other tools". Tools
+reorder splats when they write (splat-transform and spz-js into Morton order), so splats are compared
+in any order (interop.matched pairs them by centre). Each tool runs once per format for every degree
+(module fixtures batching its jobs); splat-transform's command line once per file.
 """
 
 import io
