@@ -125,6 +125,25 @@ def test_prim_names_that_are_no_identifiers_are_refused(tmp_path, name):
     assert_refused(path, "not a valid prim name")
 
 
+def test_relationships_orders_and_comments_read_as_pxr_reads_them(tmp_path):
+    body = (
+        "rel material:binding = </Looks/M>  // a comment\n"
+        "    rel proxyPrim = [</A>, </B>]\n"
+        '    reorder nameChildren = ["B", "A"]\n'
+        "    /* a block\n comment */\n"
+        "    custom string note = '''one\ntwo''' # and another"
+    )
+    got = assert_read_as_pxr(layer(tmp_path, splat(body=body, inner=splat("A") + splat("B"))))
+    assert [p for p, _ in got] == ["/S", "/S/B", "/S/A"]
+
+
+@pytest.mark.parametrize("order", [["D", "B"], ["C", "A"], ["B", "X", "A"], ["D"], ["D", "A", "D"], []])
+def test_children_are_reordered_as_pxr_reorders_them(tmp_path, order):
+    listed = ", ".join(f'"{name}"' for name in order)
+    children = "".join(splat(name) for name in "ABCD")
+    assert_read_as_pxr(layer(tmp_path, splat(body=f"reorder nameChildren = [{listed}]", inner=children)))
+
+
 def test_unicode_prim_names_read_as_pxr_reads_them(tmp_path):
     got = assert_read_as_pxr(layer(tmp_path, splat(name="Éclair_2")))
     assert got[0][0] == "/Éclair_2"

@@ -1,7 +1,7 @@
 """The text stage implementation against usd-core over generated layers: for every layer a seeded
 generator writes (transform ops of every kind, order and value type, inverted, reset, time-sampled;
-def, over and class prims, active or not; value types and their literals; samples of quaternions),
-both read the same splats at each time, or both refuse the layer."""
+def, over and class prims, active or not, reordered; value types and their literals; samples of
+quaternions), both read the same splats at each time, or both refuse the layer."""
 
 import numpy as np
 import pytest
@@ -135,7 +135,11 @@ class Layers:
         type_name = "ParticleField3DGaussianSplat" if splat else self.pick("Xform", "Xform", "Scope", "")
         meta = f" (\n    active = {self.pick('true', 'false', '0', '1')}\n)" if self.chance(0.15) else ""
         body = self.transform() + (self.splat_values() if splat else [])
-        children = [self.prim(f"{name}_{i}", depth + 1) for i in range(self.rng.integers(1, 4))] if depth < 2 else []
+        count = int(self.rng.integers(1, 4)) if depth < 2 else 0
+        children = [self.prim(f"{name}_{i}", depth + 1) for i in range(count)]
+        if count > 1 and self.chance(0.3):  # an order naming some of the children
+            listed = ", ".join(f'"{name}_{i}"' for i in self.rng.permutation(count)[: self.rng.integers(1, count + 1)])
+            body.append(f"reorder nameChildren = [{listed}]")
         typed = f"{type_name} " if type_name else ""
         return f'{specifier} {typed}"{name}"{meta}\n{{\n' + "\n".join(body + children) + "\n}\n"
 

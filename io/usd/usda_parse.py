@@ -24,7 +24,7 @@ MAX_DEPTH = 256  # prims in prims, lists in lists, dictionaries in dictionaries
 SPECIFIERS = ("def", "over", "class")
 QUALIFIERS = ("custom", "uniform", "varying", "config")
 LIST_OPS = ("add", "delete", "prepend", "append", "reorder")
-# metadata OpenUSD types, read as it reads them: (type name, dtype spec)
+# metadata the readers use, typed as OpenUSD types them
 TYPED_METADATA = {"elementSize": "int", "active": "bool", "instanceable": "bool", "hidden": "bool"}
 TEXT_METADATA = ("interpolation", "kind", "upAxis", "defaultPrim")
 
@@ -96,6 +96,7 @@ class _Parser:
         first_line = text.find("\n")
         self.tokens = Tokens(path, text, len(text) if first_line < 0 else first_line)
         self.layer = layer
+        self.child_orders = {}  # prim path -> the names its `reorder nameChildren` lists
 
     def fail(self, problem):
         self.tokens.fail(problem)
@@ -113,7 +114,9 @@ class _Parser:
                 return
             if tok == "}" and open_prims:
                 t.next()
-                open_prims.pop()
+                closed = open_prims.pop()
+                if closed.path in self.child_orders:
+                    closed.children = _reordered(closed.children, self.child_orders[closed.path])
             elif kind == WORD and tok in SPECIFIERS:
                 if len(open_prims) >= MAX_DEPTH:
                     self.fail(f"prims nested more than {MAX_DEPTH} deep, the most this reader follows")
@@ -189,6 +192,14 @@ class _Parser:
         while tok in QUALIFIERS or tok in LIST_OPS:
             qualifiers.add(tok)
             kind, tok = t.next()
+        if "reorder" in qualifiers and tok in ("nameChildren", "properties"):
+            t.next("=")
+            order = self.value()
+            if not isinstance(order, list) or not order or not all(_is_quoted(name) for name in order):
+                self.fail(f"{prim.path}: reorder {tok} needs a list of names in quotes")
+            if tok == "nameChildren":
+                self.child_orders[prim.path] = order
+            return
         if tok == "rel":
             _, name = t.next()
             if t.at("="):
@@ -338,8 +349,8 @@ class _Parser:
         if kind == NUMBER:
             if any(c in tok for c in ".eEin"):
                 return float(tok)
-            if len(tok) > 40:  # beyond any integer type (and Python's own digit limit)
-                self.fail(f"the number {shown(tok)} is too long")
+            if len(tok) > 40:  # beyond every integer type (and Python's digit limit): as a double
+                return float(tok)
             return int(tok)
         if kind == WORD:
             return Word(tok)
@@ -348,6 +359,27 @@ class _Parser:
         if kind == PATH:
             return tok[1:-1]
         self.fail(f"unexpected {shown(tok)}")
+
+
+def _is_quoted(value):
+    return isinstance(value, str) and not isinstance(value, (Word, Asset))
+
+
+def _reordered(children, order):
+    """The prims in the order `reorder nameChildren` gives, as Sdf applies one: each named prim
+    takes the unnamed ones after it along, the named groups follow the order, and prims before the
+    first named one stay first."""
+    names = {child.path.rsplit("/", 1)[1] for child in children}
+    named = [name for name in dict.fromkeys(order) if name in names]
+    if not named:
+        return children
+    first, groups, current = [], {name: [] for name in named}, None
+    for child in children:
+        name = child.path.rsplit("/", 1)[1]
+        if name in groups:
+            current = name
+        (groups[current] if current is not None else first).append(child)
+    return first + [child for name in named for child in groups[name]]
 
 
 def _text_value(type_name, value):
@@ -360,7 +392,7 @@ def _text_value(type_name, value):
     if is_array != isinstance(value, list):
         raise BadValue(f"a {type_name} needs {'a list in [ ]' if is_array else 'one value'}, found {shown(str(value))}")
     for item in value if is_array else [value]:
-        if not isinstance(item, str) or isinstance(item, Word) or (base != "asset" and isinstance(item, Asset)):
+        if not (_is_quoted(item) or (base == "asset" and isinstance(item, Asset))):
             needs = "a path in @s" if base == "asset" else "a string in quotes"
             raise BadValue(f"a {base} is {needs}, found {item!r:.60}")
     return value

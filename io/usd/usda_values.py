@@ -18,6 +18,7 @@ class BadValue(ValueError):
 
 
 def shape_of(type_name, spec):
+    """The shape of one element: () for a number, (n,) for a tuple, (k, k) for a matrix."""
     width = spec[1]
     base = type_name.removesuffix("[]")
     if base.startswith(("matrix", "frame")):
@@ -27,6 +28,7 @@ def shape_of(type_name, spec):
 
 
 def describe(shape):
+    """What an element of `shape` is, in words."""
     if not shape:
         return "a number"
     if len(shape) == 1:
