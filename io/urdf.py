@@ -400,4 +400,4 @@ def package_search_path(package_paths: Iterable[str | os.PathLike] = ()) -> list
     environment variable. Both are the user's own choice (whoever runs the reader set the variable),
     so both are allowed roots for the meshes a URDF names, beside the URDF's own folder."""
     env = [p for p in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep) if p]
-    return [Path(p).resolve() for p in [*package_paths, *env]]
+    return [Path(p).expanduser().resolve() for p in [*package_paths, *env]]

@@ -249,6 +249,8 @@ def test_urdf_packages_are_looked_up_only_in_the_given_roots(world, monkeypatch)
     # the package sits beside the robot's folder: found only once its folder is given
     assert "package://pkg/meshes/m.stl' not found" in error_of(read_description, urdf)
     assert read_description(urdf, package_paths=[world]).visuals[0].path == world / "pkg" / "meshes" / "m.stl"
+    monkeypatch.setenv("HOME", str(world))
+    assert read_description(urdf, package_paths=["~"]).visuals[0].path == world / "pkg" / "meshes" / "m.stl"
     monkeypatch.setenv("ROS_PACKAGE_PATH", f"/nonexistent{os.pathsep}{world}")
     assert read_description(urdf).visuals[0].path == world / "pkg" / "meshes" / "m.stl"
     # a package path names a root, not a way out of it
