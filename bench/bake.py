@@ -21,6 +21,9 @@ own views gives at them. Each fitted row also gives its worst fitted view, the l
 the views it was fitted to: where that is low, the look is beyond what the splats can hold even
 where they were shown it.
 
+The same meshes with Diffuse BSDF materials (no specular: the look SH of degree 3 can hold from
+every direction), baked on the antialiased splats from the views around (`--only diffuse`).
+
 For the sphere, a camera path: still at a 1x held-out view for 50 frames, then turning 90 degrees
 around the mesh over 50, baked from four of its frames spread evenly, four spread by how much the
 view changes (core.camera.spread_along) and as many as the add-on's bake spacing takes, measured at
@@ -130,6 +133,21 @@ def mesh_rows(name, mesh, size, budget, folder, iterations):
             iterations,
         )
     return rows
+
+
+def diffuse_rows(name, mesh, size, budget, folder, iterations):
+    """The mesh with Diffuse BSDF materials (no specular, the same colours, textures and lights),
+    baked (SH 3) on splats made for antialiased rendering from the views around, as the add-on
+    bakes: the look without highlights, at the held-out views."""
+    held = held_out_cameras(mesh, size)
+    references, _ = cycles_render(mesh, [cam for _, cam in held], folder, samples=REFERENCE_SAMPLES, lit="diffuse")
+    splats = convert(mesh, max_splats=budget, view_size=size, render_mode="antialiased", try_fewer=False)
+    views = bake_views(mesh.vertices, size)
+    images, cycles_s = cycles_render(mesh, views, folder, samples=BAKE_SAMPLES, lit="diffuse")
+    common = {"splats": len(splats), "faces": len(mesh.faces)}
+    label = ", antialiased, diffuse materials (no specular)"
+    _, row = sh_row(name, label, splats, views, images, None, held, references, cycles_s, iterations, common)
+    return [row]
 
 
 def sh_row(name, made_for, splats, views, images, weights, held, references, cycles_s, iterations, common):
@@ -266,16 +284,26 @@ def turn_rows(name, mesh, start, splats, views, images, views_s, folder, iterati
     return rows
 
 
-def run(quick=False):
-    size, budget, iterations = (128, 20_000, 20) if quick else (256, 60_000, 20)
+def sizes(quick):
+    """(view size, splat budget, iterations)."""
+    return (128, 20_000, 20) if quick else (256, 60_000, 20)
+
+
+def run(quick=False, parts=(mesh_rows, diffuse_rows)):
+    size, budget, iterations = sizes(quick)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         for name, mesh in bench_meshes(folder, quick).items():
-            part = mesh_rows(name, mesh, size, budget, folder, iterations)
-            print_rows(part)
-            rows += part
+            for rows_of in parts:
+                part = rows_of(name, mesh, size, budget, folder, iterations)
+                print_rows(part)
+                rows += part
     return rows
+
+
+# Parts that `./run bench bake --only <part>` runs alone, their rows merged into the report's.
+PARTS = {"diffuse": lambda quick: run(quick, parts=(diffuse_rows,))}
 
 
 if __name__ == "__main__":

@@ -24,6 +24,9 @@ the PSNR each reaches.
 """
 
 import math
+import pickle
+import re
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -44,6 +47,7 @@ from splatwright.core import (
 )
 from splatwright.core.camera import Camera, opengl_camera_to_world  # noqa: E402
 from splatwright.core.mesh import Material, Mesh  # noqa: E402
+from splatwright.core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, conversion_bytes  # noqa: E402
 from splatwright.core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
 from splatwright.core.scenes import thin_walled_cup  # noqa: E402
@@ -52,6 +56,16 @@ from splatwright.io.mesh import read_mesh  # noqa: E402
 TOPIC = "mesh2splats"
 CYCLES_SAMPLES = 64
 DISTANCES = (0.5, 1.0, 3.0)
+# The PSNR-against-splats curve: budgets doubling (the knee is where a doubling buys under
+# KNEE_GAIN_DB at the worst held-out distance), and the Blender operator's default budget beside them.
+CURVE_BUDGETS = (8_000, 16_000, 32_000, 64_000, 128_000, 256_000)
+QUICK_CURVE_BUDGETS = (4_000, 16_000, 64_000)
+KNEE_GAIN_DB = 0.5
+SPEED_REPEAT = 3  # default conversions of textured meshes, each in a fresh process
+LARGE_SEGMENTS, LARGE_RINGS = 176, 86  # a textured sphere of 29,920 triangles
+MEMORY_BOUND = 4 << 30  # the most a default conversion of a mesh under 100k triangles may take
+ROOT = HERE.parent
+LARGE_NAME = "textured sphere, 30k triangles (checker patch)"
 
 
 # bench meshes ------------------------------------------------------------------------------------
@@ -153,18 +167,47 @@ def pybullet_meshes():
     }, ""
 
 
+def corpus_meshes():
+    """The textured mesh corpus that core may carry (a public function of core.scenes, or of a core
+    module named for textures or a corpus, whose name says corpus): name -> Mesh, empty without one."""
+    import importlib
+    import pkgutil
+
+    import splatwright.core as core
+
+    names = ["scenes"] + [m.name for m in pkgutil.iter_modules(core.__path__) if re.search("corpus|textur", m.name)]
+    for module_name in names:
+        module = importlib.import_module(f"splatwright.core.{module_name}")
+        for attr in sorted(dir(module)):
+            if "corpus" in attr and not attr.startswith("_") and callable(getattr(module, attr)):
+                found = getattr(module, attr)()
+                items = found.items() if isinstance(found, dict) else found
+                return {f"corpus: {name}": mesh for name, mesh in items if isinstance(mesh, Mesh)}
+    return {}
+
+
 def bench_meshes(folder, quick):
     """name -> Mesh, and a note about meshes that could not be had."""
     sphere = uv_sphere(48, 24) if quick else uv_sphere(96, 48)
+    large = uv_sphere(LARGE_SEGMENTS, LARGE_RINGS)
     meshes = {
         "textured sphere": read_mesh(write_obj(folder, "sphere", *sphere, sphere_texture())),
+        "textured sphere, checker patch": read_mesh(
+            write_obj(folder, "checker", *sphere, sphere_texture(checker=True))
+        ),
+        LARGE_NAME: read_mesh(write_obj(folder, "large", *large, sphere_texture(checker=True))),
         "thin-walled cup (5 mm)": thin_walled_cup(),
         "large plane (10 m)": large_plane(),
     }
     meshes.update(blender_primitives(folder))
     found, note = pybullet_meshes()
     meshes.update(found)
+    meshes.update(corpus_meshes())
     return meshes, note
+
+
+def textured(mesh):
+    return any(m.texture is not None for m in mesh.materials or [])
 
 
 def held_out_cameras(mesh, size, per_distance=3, distances=DISTANCES, seed=5, floor=False):
@@ -202,7 +245,8 @@ def held_out_cameras(mesh, size, per_distance=3, distances=DISTANCES, seed=5, fl
 
 def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
     """Render the mesh with Blender Cycles from every camera in one subprocess; returns ([display
-    sRGB images], seconds). Unlit (emission) unless `lit`: then see _lit_scene."""
+    sRGB images], seconds). Unlit (emission) unless `lit`: then see _lit_scene (`lit="diffuse"`:
+    Diffuse BSDF materials, no specular, in the same lights)."""
     from PIL import Image
 
     spec = folder / "cycles_spec.npz"
@@ -266,7 +310,10 @@ def _cycles_main(spec_path):
         material.use_nodes = True
         nodes, links = material.node_tree.nodes, material.node_tree.links
         nodes.clear()
-        if d["lit"]:
+        if str(d["lit"]) == "diffuse":
+            shader = nodes.new("ShaderNodeBsdfDiffuse")
+            colour_input = shader.inputs["Color"]
+        elif d["lit"]:
             shader = nodes.new("ShaderNodeBsdfPrincipled")
             colour_input = shader.inputs["Base Color"]
         else:
@@ -491,7 +538,7 @@ def worst_distance(error):
 
 OTHER_MODE = "antialiased" if DEFAULT_RENDER_MODE == "classic" else "classic"
 SPEED_BEFORE = "b588814"  # the last commit before the default conversion was made faster
-SPEED_MESHES = ("textured sphere", "Blender Suzanne")
+SPEED_MESHES = ("textured sphere", LARGE_NAME)
 
 
 def converter_before():
@@ -532,7 +579,7 @@ def speed_before_row(name, mesh, size, cams, references, quick):
     base, ours = paired(
         conversion(before, "before"),
         conversion(mesh_to_splats, "ours", render_mode="classic"),
-        1 if quick else 3,
+        1,  # each run of the converter before takes minutes on the larger meshes
         time.process_time,
         warmup=False,
     )
@@ -552,59 +599,174 @@ def speed_before_row(name, mesh, size, cams, references, quick):
     )
 
 
-def mesh_rows(name, mesh, size, budgets, folder, quick=False):
-    cams = held_out_cameras(mesh, size, floor="plane" in name)
-    references, cycles_s = cycles_render(mesh, [cam for _, cam in cams], folder)
-    rows, curve = [], {"calibrated": [], "before": [], OTHER_MODE: []}
+def operator_budget():
+    """The Blender operator's default splat budget (splat_addon/convert/from_mesh.py DEFAULT_BUDGET,
+    read from the file: importing it needs bpy)."""
+    text = (ROOT / "splat_addon" / "convert" / "from_mesh.py").read_text()
+    return int(re.search(r"^DEFAULT_BUDGET = ([\d_]+)", text, re.M).group(1).replace("_", ""))
+
+
+def default_view_pixels(size):
+    return VIEWS_PER_DISTANCE * len(VIEW_DISTANCES) * size * size
+
+
+def convert_in_child(mesh, folder, repeat=1, **options):
+    """The conversion run `repeat` times, each in a fresh process (so its peak resident memory is
+    its own): (cloud, info, Timing of the conversions, memory of the run with the highest peak)."""
+    src, dst = folder / "convert_in.pkl", folder / "convert_out.pkl"
+    with open(src, "wb") as f:
+        pickle.dump((mesh, options), f)
+    seconds, memory = [], None
+    for _ in range(repeat):
+        subprocess.run([sys.executable, __file__, "--convert", str(src), str(dst)], check=True)
+        with open(dst, "rb") as f:
+            cloud, info, took, used = pickle.load(f)
+        seconds.append(took)
+        memory = used if memory is None or used["peak"] > memory["peak"] else memory
+    spread = (max(seconds) - min(seconds)) / 2
+    return cloud, info, Timing(statistics.median(seconds), spread, repeat), memory
+
+
+def _status_bytes(field):
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) * 1024
+    return None
+
+
+def _reset_peak():
+    """Start the peak resident memory (VmHWM) again from the current (Linux 4.0+); False where it
+    cannot be."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def _convert_main(src, dst):
+    """Runs in the child: a small conversion to load the compiled kernels, then the one measured."""
+    import resource
+
+    with open(src, "rb") as f:
+        mesh, options = pickle.load(f)
+    small = uv_sphere(12, 6)
+    convert(Mesh(*small[:2], small[2], None, [Material(texture=sphere_texture(64, 32))]), view_size=32)
+    rss_before = _status_bytes("VmRSS")
+    fresh_peak = _reset_peak()
     info = {}
     start = time.perf_counter()
-    cloud = convert(mesh, view_size=size, info=info)
+    cloud = convert(mesh, info=info, **options)
     seconds = time.perf_counter() - start
-    rows.append(
-        Row(
-            TOPIC,
-            f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB, {DEFAULT_RENDER_MODE})",
-            Timing(seconds, 0.0, 1),
-            error=by_distance(cloud, cams, references),
-            extra={
-                "faces": len(mesh.faces),
-                "splats": len(cloud),
-                "own worst dB": f"{info['psnr']:.1f}",
-                "reached": info["reached"],
-                "worst own view": f"{info['worst_view_distance']:g}x, "
-                f"{info['worst_view_edge_share']:.0%} on silhouettes",
-            },
-        )
+    peak = _status_bytes("VmHWM") if fresh_peak else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    memory = {"rss_before": rss_before, "peak": peak, "peak_is_conversion": fresh_peak}
+    info = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool, list, dict, type(None)))}
+    with open(dst, "wb") as f:
+        pickle.dump((cloud, info, seconds, memory), f)
+
+
+def default_row(name, mesh, size, cams, references, folder, quick):
+    """The default conversion (target DEFAULT_TARGET_PSNR) in fresh processes (SPEED_REPEAT runs for
+    textured meshes): its held-out error, seconds and peak resident memory beside the prediction."""
+    repeat = SPEED_REPEAT if textured(mesh) and not quick else 1
+    cloud, info, timing, memory = convert_in_child(mesh, folder, repeat, view_size=size)
+    predicted = conversion_bytes(len(cloud), len(mesh.faces), default_view_pixels(size))
+    grown = memory["peak"] - memory["rss_before"]
+    row = Row(
+        TOPIC,
+        f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB, {DEFAULT_RENDER_MODE})",
+        timing,
+        error=by_distance(cloud, cams, references),
+        extra={
+            "faces": len(mesh.faces),
+            "splats": len(cloud),
+            "own worst dB": f"{info['psnr']:.1f}",
+            "reached": info["reached"],
+            "worst own view": f"{info['worst_view_distance']:g}x, {info['worst_view_edge_share']:.0%} on silhouettes",
+            "textured": textured(mesh),
+            "peak RSS MiB": round(memory["peak"] / 2**20),
+            "RSS growth MiB": round(grown / 2**20),
+            "predicted MiB": round(predicted / 2**20),
+            "memory budget GiB": f"{info['memory_budget'] / 2**30:.1f}",
+            "memory cap": info.get("memory_cap"),
+        },
     )
+    memory.update(predicted=predicted, budget=info["memory_budget"], cap=info.get("memory_cap"), faces=len(mesh.faces))
+    return row, cloud, memory
+
+
+def classic_row(name, mesh, size, cams, references):
     info = {}
     start = time.perf_counter()
     cloud = convert(mesh, view_size=size, info=info, render_mode=OTHER_MODE)
     seconds = time.perf_counter() - start
-    rows.append(
-        Row(
-            TOPIC,
-            f"{name}: default, made for {OTHER_MODE} rendering",
-            Timing(seconds, 0.0, 1),
-            error=by_distance(cloud, cams, references),  # rendered in its own mode
-            extra={
-                "faces": len(mesh.faces),
-                "splats": len(cloud),
-                "own worst dB": f"{info['psnr']:.1f}",
-                "reached": info["reached"],
-                "worst own view": f"{info['worst_view_distance']:g}x, "
-                f"{info['worst_view_edge_share']:.0%} on silhouettes",
-            },
-        )
+    return Row(
+        TOPIC,
+        f"{name}: default, made for {OTHER_MODE} rendering",
+        Timing(seconds, 0.0, 1),
+        error=by_distance(cloud, cams, references),  # rendered in its own mode
+        extra={
+            "faces": len(mesh.faces),
+            "splats": len(cloud),
+            "own worst dB": f"{info['psnr']:.1f}",
+            "reached": info["reached"],
+            "worst own view": f"{info['worst_view_distance']:g}x, {info['worst_view_edge_share']:.0%} on silhouettes",
+        },
     )
-    if name in SPEED_MESHES:
-        rows.append(speed_before_row(name, mesh, size, cams, references, quick))
+
+
+def knee(points):
+    """(budget, worst dB) of the first budget after which the next one buys under KNEE_GAIN_DB per
+    doubling at the worst held-out distance, or None when every step measured still buys more."""
+    pts = sorted(points)
+    for (n, worst), (more, better) in zip(pts, pts[1:]):
+        if (better - worst) / math.log2(more / n) < KNEE_GAIN_DB:
+            return n, worst
+    return None
+
+
+def knee_row(name, curve, operator):
+    """Where the defaults land against the knee of the mesh's curve."""
+    doubling = [(n, worst_distance(e)) for n, _, e, _ in curve["budgets"] if n != operator]
+    at = knee(doubling)
+    seconds = {n: s for n, _, _, s in curve["budgets"]}
+    splats, error = curve["default"]
+    extra = {
+        "default splats": splats,
+        "default worst dB": f"{worst_distance(error):.1f}",
+        "knee budget": at[0] if at else f"past {max(n for n, _ in doubling)}",
+        "knee worst dB": f"{at[1]:.1f}" if at else "",
+    }
+    if at:
+        extra["default / knee splats"] = f"{splats / at[0]:.2f}"
+        extra["knee budget s"] = f"{seconds[at[0]]:.1f}"
+    for n, kept, e, s in curve["budgets"]:
+        if n == operator:
+            extra["operator budget worst dB"] = f"{worst_distance(e):.1f}"
+            extra["operator budget kept"] = kept
+            extra["operator budget s"] = f"{s:.1f}"
+            if at:
+                extra["operator budget over knee dB"] = f"{worst_distance(e) - at[1]:+.1f}"
+    return Row(
+        TOPIC,
+        f"{name}: knee (next doubling buys < {KNEE_GAIN_DB:g} dB) and the defaults",
+        Timing(0.0, 0.0, 0),
+        extra=extra,
+    )
+
+
+def curve_rows(name, mesh, size, budgets, cams, references):
+    """A calibrated budget conversion per budget: rows and the curve's points (budget, kept, error)."""
+    rows, points = [], []
     for n in budgets:
         info = {}
         start = time.perf_counter()
         cloud = convert(mesh, max_splats=n, view_size=size, info=info)
         seconds = time.perf_counter() - start
         error = by_distance(cloud, cams, references)
-        curve["calibrated"].append((n, worst_distance(error)))
+        points.append((n, len(cloud), error, seconds))
         rows.append(
             Row(
                 TOPIC,
@@ -614,42 +776,49 @@ def mesh_rows(name, mesh, size, budgets, folder, quick=False):
                 extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"},
             )
         )
-        start = time.perf_counter()
-        cloud = convert(mesh, max_splats=n, calibrate=False)
-        seconds = time.perf_counter() - start
-        error = by_distance(cloud, cams, references)
-        curve["before"].append((n, worst_distance(error)))
-        rows.append(
-            Row(
-                TOPIC,
-                f"{name}: budget {n}, uncalibrated (as before)",
-                Timing(seconds, 0.0, 1),
-                error=error,
-                extra={"splats": n},
-            )
-        )
-        info = {}
-        start = time.perf_counter()
-        cloud = convert(mesh, max_splats=n, view_size=size, info=info, render_mode=OTHER_MODE)
-        seconds = time.perf_counter() - start
-        error = by_distance(cloud, cams, references)
-        curve[OTHER_MODE].append((n, worst_distance(error)))
-        rows.append(
-            Row(
-                TOPIC,
-                f"{name}: budget {n}, made for {OTHER_MODE} rendering",
-                Timing(seconds, 0.0, 1),
-                error=error,
-                extra={"splats": len(cloud), "inset px": f"{info['inset_pixels']:.2f}"},
-            )
-        )
-    return rows, curve, (cams, references, cycles_s)
+    return rows, points
+
+
+def mesh_rows(name, mesh, size, budgets, folder, quick=False):
+    cams = held_out_cameras(mesh, size, floor="plane" in name)
+    references, cycles_s = cycles_render(mesh, [cam for _, cam in cams], folder)
+    row, cloud, memory = default_row(name, mesh, size, cams, references, folder, quick)
+    rows = [row, classic_row(name, mesh, size, cams, references)]
+    if name in SPEED_MESHES and not (quick and name == LARGE_NAME):
+        rows.append(speed_before_row(name, mesh, size, cams, references, quick))
+    budget_rows, points = curve_rows(name, mesh, size, budgets, cams, references)
+    rows += budget_rows
+    curve = {"budgets": points, "default": (len(cloud), row.error)}
+    rows.append(knee_row(name, curve, operator_budget()))
+    return rows, curve, memory, (cams, references, cycles_s)
+
+
+def memory_row(memories):
+    """Whether any default conversion exceeded its memory budget, or the bound for its size."""
+    over_budget = [m for m in memories if m["peak"] - m["rss_before"] > m["budget"] or m["cap"] is not None]
+    under_100k = [m for m in memories if m["faces"] < 100_000]
+    worst = max(m["peak"] for m in memories)
+    ratio = max((m["peak"] - m["rss_before"]) / m["predicted"] for m in memories)
+    within = sum(m["peak"] <= MEMORY_BOUND for m in under_100k)
+    return Row(
+        TOPIC,
+        f"memory: {len(memories)} default conversions, each in a fresh process",
+        Timing(0.0, 0.0, 0),
+        extra={
+            "over their memory budget": len(over_budget),
+            "highest peak RSS MiB": round(worst / 2**20),
+            "under 100k faces within 4 GiB": f"{within} of {len(under_100k)}",
+            "highest growth / predicted": f"{ratio:.2f}",
+            "memory budget GiB": f"{min(m['budget'] for m in memories) / 2**30:.1f}",
+        },
+    )
 
 
 def run(quick=False):
     size = 128 if quick else 256
-    budgets = [10_000, 100_000] if quick else [10_000, 30_000, 100_000]
-    rows, curves = [], {}
+    operator = operator_budget()
+    budgets = sorted(set(QUICK_CURVE_BUDGETS if quick else CURVE_BUDGETS) | {operator})
+    rows, curves, memories = [], {}, []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         meshes, note = bench_meshes(folder, quick)
@@ -657,45 +826,62 @@ def run(quick=False):
             meshes = {k: meshes[k] for k in list(meshes)[:3]}
         first = None
         for name, mesh in meshes.items():
-            mesh_rows_, curves[name], held = mesh_rows(name, mesh, size, budgets, folder, quick)
+            mesh_rows_, curves[name], memory, held = mesh_rows(name, mesh, size, budgets, folder, quick)
             rows += mesh_rows_
+            memories.append(memory)
             first = first or (mesh, held)
             print_rows(mesh_rows_)
         if note:
             rows.append(Row(TOPIC, note, Timing(0.0, 0.0, 0)))
+        rows.append(memory_row(memories))
         mesh, (cams, references, _) = first
         rows += speed_rows(quick, mesh, [cam for _, cam in cams], references)
-    _plot(curves, HERE / "mesh2splats_curve.png")
+    _plot(curves, operator, HERE / "mesh2splats_curve.png")
     return rows
 
 
-def _plot(curves, path):
+def _plot(curves, operator, path):
+    """One panel per mesh: PSNR at each held-out distance against the budget, the default target's
+    conversion as stars, the operator's default budget and the knee as vertical lines."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(10, 5))
-    for k, (name, curve) in enumerate(curves.items()):
-        colour = f"C{k}"
-        for kind, style, note in (
-            ("calibrated", "o-", ""),
-            ("before", "x:", " (uncalibrated)"),
-            (OTHER_MODE, "s--", f" ({OTHER_MODE})"),
-        ):
-            pts = sorted(curve[kind])
-            if pts:
-                n, p = zip(*pts)
-                ax.plot(n, p, style, color=colour, label=name + note)
-    ax.set_xscale("log")
-    ax.set_xlabel("splats (budget)")
-    ax.set_ylabel("worst distance's PSNR vs Cycles (dB)")
-    ax.grid(True, alpha=0.3)
-    ax.axhline(DEFAULT_TARGET_PSNR, color="gray", lw=0.8)
-    ax.legend(fontsize=6, loc="center left", bbox_to_anchor=(1.01, 0.5))  # beside the curves, not on them
-    fig.suptitle("mesh2splats: budget against PSNR at 0.5x, 1x, 3x held-out views")
+    cols = 4
+    rows = math.ceil(len(curves) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.2 * rows), squeeze=False, sharey=True)
+    for ax, (name, curve) in zip(axes.ravel(), curves.items()):
+        pts = sorted(curve["budgets"])
+        budgets = [n for n, _, _, _ in pts]
+        splats, default = curve["default"]
+        for k, d in enumerate(DISTANCES):
+            key = f"dB {d:g}x"
+            ax.plot(budgets, [e[key] for _, _, e, _ in pts], "o-", ms=3, color=f"C{k}", label=f"{d:g}x")
+            ax.plot([splats], [default[key]], "*", ms=11, color=f"C{k}", mec="k", mew=0.5)
+        doubling = [(n, worst_distance(e)) for n, _, e, _ in pts if n != operator]
+        at = knee(doubling)
+        if at:
+            ax.axvline(at[0], color="k", ls=":", lw=1)
+        ax.axvline(operator, color="gray", ls="--", lw=1)
+        ax.axhline(DEFAULT_TARGET_PSNR, color="gray", lw=0.6)
+        ax.set_xscale("log")
+        ax.set_title(name, fontsize=8)
+        ax.grid(True, alpha=0.3)
+    for ax in axes.ravel()[len(curves) :]:
+        ax.axis("off")
+    for ax in axes[:, 0]:
+        ax.set_ylabel("PSNR vs Cycles (dB)")
+    for ax in axes[-1]:
+        ax.set_xlabel("splat budget")
+    axes[0, 0].legend(fontsize=7, title="held-out", title_fontsize=7)
+    fig.suptitle(
+        f"mesh2splats: PSNR against splat budget (stars: default target {DEFAULT_TARGET_PSNR:g} dB at its splats; "
+        f"dashed: operator default {operator:,}; dotted: knee, next doubling < {KNEE_GAIN_DB:g} dB)",
+        fontsize=9,
+    )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
@@ -704,5 +890,7 @@ if __name__ == "__main__":
         _cycles_main(sys.argv[2])
     elif len(sys.argv) == 3 and sys.argv[1] == "--primitives":
         _primitives_main(sys.argv[2])
+    elif len(sys.argv) == 4 and sys.argv[1] == "--convert":
+        _convert_main(sys.argv[2], sys.argv[3])
     else:
         print_rows(run(quick="--quick" in sys.argv))
