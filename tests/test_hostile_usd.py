@@ -387,6 +387,19 @@ def test_usd_read_refuses_a_fifo_without_opening_it(tmp_path):
     assert done.stdout.strip() == f"{tmp_path / 'pipe.usda'}: not a regular file (a FIFO, device or folder?)", done
 
 
+@pytest.mark.parametrize("arc", ["sublayer", "clip"])
+def test_a_layer_linked_to_a_device_is_refused_even_when_outside_is_allowed(tmp_path, arc):
+    model, _ = folders(tmp_path)
+    if not os.path.exists("/dev/zero"):
+        skip_platform("no /dev/zero on this platform")
+    (model / "zero.usda").symlink_to("/dev/zero")  # OpenUSD would read it for ever
+    path = stage_naming(model, arc, "./zero.usda")
+    rc, err, _ = run_cli("info", str(path))
+    assert rc == 1 and "'./zero.usda' is outside the stage's folder" in err, err
+    rc, err, _ = run_cli("info", "--allow-outside", str(path))
+    assert rc == 1 and "'./zero.usda', which cannot be opened (missing, not a regular file" in err, err
+
+
 @pytest.mark.parametrize("verb", ["convert", "render"])
 def test_convert_and_render_refuse_them_too(tmp_path, verb):
     path, problem = hostile_case(tmp_path, "(")
