@@ -9,12 +9,19 @@ is premultiplied by alpha, so PNG (which stores straight alpha) gets colour / al
 channel, while EXR (premultiplied by convention) gets the colour as it is. A render over a
 background is opaque: PNG gets RGB only, EXR gets the colour and its coverage as A. Files appear
 whole or not at all.
+
+Also image sizes from PNG, JPEG and WebP headers (header_size, check_image_size), and the WebP codecs
+SOG decodes and encodes through (decode_webp, encode_webp): Pillow's where it imports, else one the
+Blender extension registers (register_webp_codec), Blender's own Python having no Pillow.
 """
 
+import io
 import os
 import struct
 import zlib
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -193,3 +200,97 @@ def check_image_size(owner: str | os.PathLike, width: int, height: int, what: st
             f"{what} of {width} x {height} pixels, more than the {MAX_IMAGE_PIXELS} ({side} x {side}) "
             "textures may have",
         )
+
+
+# WebP codecs --------------------------------------------------------------------------------------
+
+
+class WebPCodec(NamedTuple):
+    """decode: WebP bytes -> (H, W, 4) uint8 RGBA, top row first. encode: (H, W, 4) uint8 RGBA ->
+    lossless WebP bytes that decode to every byte given (the colour of transparent pixels too), or
+    None where the codec has no such encoder."""
+
+    name: str
+    decode: Callable[[bytes], np.ndarray]
+    encode: Callable[[np.ndarray], bytes] | None = None
+
+
+def _pillow_decode(data):
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as image:
+        if image.format != "WEBP":
+            raise ValueError(f"it decodes as {image.format}")
+        return np.asarray(image.convert("RGBA"))
+
+
+def _pillow_encode(pixels):
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    # exact: lossless WebP otherwise drops the colour of transparent pixels
+    Image.fromarray(pixels, "RGBA").save(buffer, "WEBP", lossless=True, exact=True, quality=50, method=2)
+    return buffer.getvalue()
+
+
+PILLOW = WebPCodec("Pillow", _pillow_decode, _pillow_encode)
+_registered: list[WebPCodec] = []
+
+
+def _pillow_has_webp():
+    try:
+        from PIL import features
+    except ImportError:
+        return False
+    return features.check("webp")
+
+
+def register_webp_codec(codec: WebPCodec) -> None:
+    """Add a codec (replacing one of its name); webp_codec uses it where Pillow is missing."""
+    unregister_webp_codec(codec.name)
+    _registered.append(codec)
+
+
+def unregister_webp_codec(name: str) -> None:
+    _registered[:] = [codec for codec in _registered if codec.name != name]
+
+
+def webp_codec(job: str = "decode") -> WebPCodec | None:
+    """The codec that can `job` ("decode" or "encode"): Pillow's where it imports with WebP, else the
+    latest registered that can; None if none can."""
+    candidates = ([PILLOW] if _pillow_has_webp() else []) + _registered[::-1]
+    return next((codec for codec in candidates if getattr(codec, job) is not None), None)
+
+
+def decode_webp(owner: str | os.PathLike, data: bytes, what: str = "WebP image") -> np.ndarray:
+    """(H, W, 4) uint8 RGBA of a WebP image, its size taken from its header and checked
+    (check_image_size) before any codec sees it; SplatFileError naming `owner` and `what` otherwise."""
+    size = header_size(data) if data[:4] == b"RIFF" and data[8:12] == b"WEBP" else None
+    if size is None:
+        raise SplatFileError(owner, f"{what} is not a WebP image (its header states no size)")
+    width, height = size
+    check_image_size(owner, width, height, what)
+    # Blender's decoder reports a damaged image only to its log, so what libwebp would refuse from
+    # the sizes alone is refused here, for every codec
+    claimed = max(8 + int.from_bytes(data[4:8], "little"), 20 + int.from_bytes(data[16:20], "little"))
+    if claimed > len(data):
+        raise SplatFileError(owner, f"{what} is cut short: its header claims {claimed} bytes, {len(data)} are stored")
+    codec = webp_codec("decode")
+    if codec is None:
+        raise SplatFileError(owner, f"{what} is a WebP image and this Python has no WebP codec (the Pillow package)")
+    try:
+        pixels = np.asarray(codec.decode(bytes(data)))
+    except Exception as exc:  # noqa: BLE001 - codecs raise many types for damaged images
+        raise SplatFileError(owner, f"{what} is not a readable WebP image: {exc}") from None
+    if pixels.shape != (height, width, 4) or pixels.dtype != np.uint8:
+        raise SplatFileError(owner, f"{what} decodes to {pixels.shape}, its header says {width} x {height}")
+    return pixels
+
+
+def encode_webp(owner: str | os.PathLike, pixels: np.ndarray) -> bytes:
+    """Lossless WebP bytes of (H, W, 4) uint8 RGBA pixels, every byte kept; SplatFileError naming
+    `owner` where no codec can."""
+    codec = webp_codec("encode")
+    if codec is None or codec.encode is None:
+        raise SplatFileError(owner, "this Python has no exact lossless WebP encoder (the Pillow package)")
+    return codec.encode(np.ascontiguousarray(pixels, np.uint8))

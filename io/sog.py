@@ -17,8 +17,10 @@ The writer orders splats along a Morton curve (as PlayCanvas does), finds the 25
 1-D k-means, and gives every splat its own palette entry up to 65,536 splats (beyond that, entries
 are the means of a balanced k-d split of the SH vectors). Extras are not stored.
 
-WebP is decoded and encoded by Pillow. Blender's own Python has no Pillow: there SOG files cannot be
-read or written, and the error says so (convert them with the `splatwright` command outside).
+WebP is decoded and encoded through io.image's codecs: Pillow's, or where Pillow is missing (Blender's
+own Python) Blender's decoder, which the extension registers. Blender's encoder changes the colour
+of transparent pixels (sh0 keeps it for splats of opacity under 1/510), so without Pillow SOG files
+are read but not written, and the error says so (write them with the `splatwright` command outside).
 
 Before a pixel is decoded, every image's size is taken from its WebP header and checked against the
 splat count and io.policy.MAX_IMAGE_PIXELS, and the count against the bytes the file stores (see
@@ -26,7 +28,6 @@ SOG_MAX_RATIO); a bundle entry may inflate to at most ENTRY_MAX_RATIO times its 
 images are read under the reading policy (io/policy.py): regular files in the meta.json's folder.
 """
 
-import io
 import json
 import os
 import warnings
@@ -48,7 +49,7 @@ from .common import (
     warn_notes,
 )
 from .compressed_ply import morton_order
-from .image import check_image_size, header_size
+from .image import check_image_size, decode_webp, encode_webp, header_size, webp_codec
 from .policy import referenced_file
 
 FILES = {
@@ -76,20 +77,22 @@ SOG_MAX_RATIO = 16
 SQRT2 = np.sqrt(2.0)
 
 
-def _pillow(path):
-    """Pillow's Image module with its WebP codec, or a SplatFileError saying what is missing."""
-    try:
-        from PIL import Image, features
-    except ImportError:
+def _codec(path, job):
+    """Refuse (SplatFileError saying what is missing) where no WebP codec can `job` ("decode", "encode")."""
+    if webp_codec(job) is not None:
+        return
+    if job == "encode" and webp_codec("decode") is not None:
         raise SplatFileError(
             path,
-            "SOG stores splats as WebP images and this Python has no WebP codec (the "
-            "Pillow package; Blender's own Python lacks it): convert the file with "
+            "SOG stores splats as lossless WebP images and this Python has no exact WebP encoder (the "
+            "Pillow package; Blender's own changes the colour of transparent pixels): write the file with "
             "the splatwright command outside Blender",
-        ) from None
-    if not features.check("webp"):
-        raise SplatFileError(path, "SOG stores splats as WebP images and this Pillow was built without WebP")
-    return Image
+        )
+    raise SplatFileError(
+        path,
+        "SOG stores splats as WebP images and this Python has no WebP codec (the Pillow package; "
+        "Blender's own Python lacks it): in Blender, the Splatwright extension lends Blender's decoder",
+    )
 
 
 # reading ------------------------------------------------------------------------------------------
@@ -171,16 +174,7 @@ class _Image:
 
     def pixels(self):
         """(H*W, 4) uint8 RGBA."""
-        try:
-            with _pillow(self.path).open(io.BytesIO(self.data)) as image:
-                if image.format != "WEBP" or image.size != self.size:
-                    raise SplatFileError(self.path, f"{self.name} decodes to {image.size}, its header says {self.size}")
-                pixels = np.asarray(image.convert("RGBA"))
-        except SplatFileError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - Pillow raises many types for damaged images
-            raise SplatFileError(self.path, f"{self.name} is not a readable WebP image: {exc}") from None
-        return pixels.reshape(-1, 4)
+        return decode_webp(self.path, self.data, self.name).reshape(-1, 4)
 
 
 def _splat_image(path, source, name, count):
@@ -303,7 +297,7 @@ def read(path, nonfinite="raise", allow_outside=False):
     check_nonfinite_policy(nonfinite)
     if not Path(path).is_file():
         raise SplatFileError(path, "no such file")
-    _pillow(path)
+    _codec(path, "decode")
     source = _Source(path, allow_outside)
     try:
         with np.errstate(invalid="ignore", over="ignore"):
@@ -382,12 +376,6 @@ def _rgba(values, width, height, alpha=255):
     return out.reshape(height, width, 4)
 
 
-def _webp(path, pixels):
-    buffer = io.BytesIO()
-    _pillow(path).fromarray(pixels, "RGBA").save(buffer, "WEBP", lossless=True, exact=True, quality=50, method=2)
-    return buffer.getvalue()
-
-
 def _bytes(x):
     return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
@@ -438,7 +426,7 @@ def encode(path, cloud):
         files["shN_centroids.webp"] = texels.reshape(rows_of_64, 64 * k, 4)
         files["shN_labels.webp"] = _rgba(np.column_stack([labels & 0xFF, labels >> 8]).astype(np.uint8), width, height)
         meta["shN"] = {"count": len(centroids), "bands": degree, "codebook": book.tolist(), "files": FILES["shN"]}
-    out = {name: _webp(path, pixels) for name, pixels in files.items()}
+    out = {name: encode_webp(path, pixels) for name, pixels in files.items()}
     out["meta.json"] = json.dumps(meta).encode("utf-8")
     return out
 
@@ -447,7 +435,7 @@ def write(path, cloud, order="morton", nonfinite="raise"):
     """Write a .sog bundle, or (a path ending in meta.json) meta.json and its WebP images beside it
     (through a symbolic link: beside the file it names).
     order="morton" sorts the splats along a Morton curve as PlayCanvas does; None keeps the order."""
-    _pillow(path)
+    _codec(path, "encode")
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
     if not len(cloud):
         raise SplatFileError(path, "SOG cannot hold an empty cloud (its images need at least one splat)")

@@ -14,7 +14,7 @@ bundled_pxr.expose("pxr")  # before any io format module imports it
 from . import command  # noqa: E402,I001
 from .convert import from_mesh  # noqa: E402
 from .edit import blender_apply, cleanup, objects  # noqa: E402
-from .files import animation, import_export, landing  # noqa: E402
+from .files import animation, import_export, landing, webp  # noqa: E402
 from .render import engine  # noqa: E402
 from .rig import armature, collide, proxy  # noqa: E402
 from .ui import panel, preferences  # noqa: E402
@@ -45,11 +45,13 @@ def register():
     cleanup.register()
     blender_apply.register()
     landing.register()
+    webp.register()  # SOG's WebP images, where Pillow is missing
     command.register()
 
 
 def unregister():
     command.unregister()
+    webp.unregister()
     landing.unregister()
     blender_apply.unregister()
     cleanup.unregister()
