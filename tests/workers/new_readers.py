@@ -1,6 +1,6 @@
 """Worker: the Blender import of the read-only formats, .ksplat, LCC2 and streamed SOG (see
-tests/test_blender_new_readers.py): the dialogs' file filters, imports written back as PLY, and the
-refusal of a streamed SOG where Blender's Python has no WebP codec."""
+tests/test_blender_new_readers.py): the dialogs' file filters, imports written back as PLY, and a
+streamed SOG, whose WebP images the extension decodes with Blender's own decoder."""
 
 from workers.base import BlenderWorker, splat_total, worker_main
 
@@ -37,7 +37,7 @@ class NewReadersWorker(BlenderWorker):
         self.select(made)
         self.call(self.bpy.ops.splat.export_file, filepath=str(self.out / "lcc2_back.ply"), selected_only=True)
         outcome, made = self.import_file("scene/lod-meta.json")
-        res["streamed"] = {**outcome, "objects": len(made)}
+        res["streamed"] = {**outcome, "objects": len(made), "count": sum(splat_total(o) for o in made)}
         return res
 
 
