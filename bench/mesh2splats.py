@@ -814,30 +814,78 @@ def memory_row(memories):
     )
 
 
-def run(quick=False):
+CURVES_FILE = HERE / "mesh2splats_curves.json"  # every mesh's curve and memory, for the plot
+# Parts that `./run bench mesh2splats --only <part>` runs alone (on two cores, two at once), their rows
+# merged into the report's: the meshes up to and including the first group's last, the rest, and
+# core's textured corpus; the plot and the memory row are made from every mesh measured so far.
+FIRST_PART_LAST = "thin-walled cup (5 mm)"
+
+
+def in_part(part, names):
+    """The bench meshes' names in `part` (None: all)."""
+    names = list(names)
+    split = names.index(FIRST_PART_LAST) + 1
+    return {
+        None: names,
+        "first": names[:split],
+        "second": [n for n in names[split:] if not n.startswith("corpus")],
+        "corpus": [n for n in names if n.startswith("corpus")],
+    }[part]
+
+
+def run(quick=False, part=None):
     size = 128 if quick else 256
     operator = operator_budget()
     budgets = sorted(set(QUICK_CURVE_BUDGETS if quick else CURVE_BUDGETS) | {operator})
-    rows, curves, memories = [], {}, []
+    rows = []
+    if part is None:
+        CURVES_FILE.unlink(missing_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         meshes, note = bench_meshes(folder, quick)
+        names = in_part(part, meshes)
         if quick:
-            meshes = {k: meshes[k] for k in list(meshes)[:3]}
+            names = names[:3]
         first = None
-        for name, mesh in meshes.items():
-            mesh_rows_, curves[name], memory, held = mesh_rows(name, mesh, size, budgets, folder, quick)
+        for name in names:
+            mesh = meshes[name]
+            mesh_rows_, curve, memory, held = mesh_rows(name, mesh, size, budgets, folder, quick)
             rows += mesh_rows_
-            memories.append(memory)
-            first = first or (mesh, held)
+            first = first or (name, mesh, held)
+            _save_curve(name, curve, memory)
             print_rows(mesh_rows_)
-        if note:
+        if note and part != "corpus":
             rows.append(Row(TOPIC, note, Timing(0.0, 0.0, 0)))
-        rows.append(memory_row(memories))
-        mesh, (cams, references, _) = first
-        rows += speed_rows(quick, mesh, [cam for _, cam in cams], references)
-    _plot(curves, operator, HERE / "mesh2splats_curve.png")
+        store = _load_curves()
+        rows.append(memory_row(list(store["memories"].values())))
+        if first is not None and first[0] == "textured sphere":
+            _, mesh, (cams, references, _) = first
+            rows += speed_rows(quick, mesh, [cam for _, cam in cams], references)
+    _plot(store["curves"], operator, HERE / "mesh2splats_curve.png")
     return rows
+
+
+PARTS = {part: (lambda quick, part=part: run(quick, part)) for part in ("first", "second", "corpus")}
+
+
+def _save_curve(name, curve, memory):
+    """Add a mesh's curve and memory to CURVES_FILE (read again first: parts may run at once)."""
+    import json
+
+    store = _load_curves()
+    store["curves"][name], store["memories"][name] = curve, memory
+    CURVES_FILE.write_text(json.dumps(store, indent=1))
+
+
+def _load_curves():
+    import json
+
+    if not CURVES_FILE.exists():
+        return {"curves": {}, "memories": {}}
+    store = json.loads(CURVES_FILE.read_text())
+    for curve in store["curves"].values():
+        curve["budgets"] = [tuple(point) for point in curve["budgets"]]
+    return store
 
 
 def _plot(curves, operator, path):
