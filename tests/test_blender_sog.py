@@ -4,7 +4,6 @@ by our writer here read there exactly as our reader reads them here through Pill
 gives Pillow's bytes for random images (transparent pixels' colour kept). Export to SOG stays refused
 there (Blender's encoder changes the colour of transparent pixels), as does a damaged image."""
 
-import io
 import zipfile
 
 import numpy as np
@@ -117,16 +116,3 @@ def test_a_damaged_sog_image_is_refused_by_name(blender):
     assert res["result"] == ["CANCELLED"] and res["objects"] == 0, res
     assert "damaged.sog" in res["error"] and "sh0.webp is cut short" in res["error"], res
 
-
-def test_a_cut_short_webp_is_refused_before_pillow_sees_it_too():
-    """The same refusal where Pillow decodes: the check stands in front of every codec."""
-    from splatwright.io import SplatFileError
-
-    buffer = io.BytesIO()
-    Image.new("RGBA", (8, 8), (1, 2, 3, 0)).save(buffer, "WEBP", lossless=True, exact=True)
-    data = buffer.getvalue()
-    from splatwright.io.image import decode_webp
-
-    np.testing.assert_array_equal(decode_webp("x.sog", data), np.tile([1, 2, 3, 0], (8, 8, 1)))
-    with pytest.raises(SplatFileError, match="x.sog: sh0.webp is cut short"):
-        decode_webp("x.sog", data[:-4], "sh0.webp")
