@@ -842,14 +842,6 @@ FUZZED = {
 }
 
 
-# Cases that found defects in readers being mended elsewhere: (reader, case) -> the defect. The fuzz
-# passes over them; each is an xfail of its own below, not run (a hang would stall the suite).
-KNOWN_DEFECTS = {
-    ("usdz", "m3k3"): "OpenUSD (Sdf.Layer.FindOrOpen in io/usd/pxr_stages.py) takes 30 s on this "
-    "4.5 KB usdz, whose zip local header lost 22 bytes",
-}
-
-
 def fuzz_cases(tmp_path, reader):
     """(the valid file, then (label, bytes) of each case in the seeded order)."""
     make, read, right, cases = FUZZED[reader]
@@ -865,8 +857,6 @@ def test_reader_fuzz(tmp_path, reader):
     assert got is not None and right(got[0])  # the valid file reads
     start, done = time.monotonic(), 0
     for label, bad in cases:
-        if (reader, label) in KNOWN_DEFECTS:
-            continue
         valid.write_bytes(bad)
         case = time.monotonic()
         got = outcome(read, valid)
@@ -877,16 +867,3 @@ def test_reader_fuzz(tmp_path, reader):
         if done >= MIN_CASES and time.monotonic() - start > FUZZ_SECONDS:
             break
     assert done >= MIN_CASES
-
-
-@pytest.mark.parametrize(
-    "reader, label",
-    [pytest.param(*case, marks=pytest.mark.xfail(run=False, reason=why)) for case, why in KNOWN_DEFECTS.items()],
-)
-def test_known_fuzz_defects(tmp_path, reader, label):
-    _, read, right, _ = FUZZED[reader]
-    valid, cases = fuzz_cases(tmp_path, reader)
-    valid.write_bytes(dict(cases)[label])
-    start = time.monotonic()
-    got = outcome(read, valid)
-    assert time.monotonic() - start < 5 and (got is None or right(got[0]))
