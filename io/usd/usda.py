@@ -11,7 +11,10 @@ Numeric arrays are written (and parsed) in bulk by NumPy: writing costs about 1 
 reading a quarter of that. Prims, attributes and primvars answer the few pxr calls the readers make
 (GetAttribute, Get, HasAuthoredValue, GetTimeSamples, PrimvarsAPI ...), so one reader serves both
 implementations; like pxr, arrays of quaternions come back in Vt's memory order (x, y, z, w) although
-the text writes them w first.
+the text writes them w first. They answer as pxr does: samples are interpolated as Usd interpolates
+them (Gf's slerp for quaternions), transform ops give the matrices UsdGeomXformOp gives (through
+GfRotation's quaternions, each op inverted as it inverts them, a value of a type it does not take
+refused), and only Xformable ancestors' ops reach a prim's world transform.
 """
 
 import io as _io
