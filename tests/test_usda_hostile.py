@@ -363,6 +363,8 @@ def test_values_pxr_accepts_read_as_pxr_reads_them(tmp_path, body):
         ('float3 xformOp:foo = (1, 2, 3)\n    uniform token[] xformOpOrder = ["xformOp:foo"]', ["foo"]),
         ('double xformOp:scaleY = 2\n    uniform token[] xformOpOrder = ["!invert!xformOp:scaleY"]', ["negating"]),
         ('float3 xformOp:translate = (1, 2, 3)\n    uniform token[] xformOpOrder = "xformOp:translate"', []),
+        ("float[] opacities.timeSamples = { 0: [1, 1], nan: [0, 0] }", ["time sample at nan"]),
+        ("float[] opacities.timeSamples = { 0: [1, 1], -inf: [0, 0] }", ["time sample at -inf"]),
     ],
 )
 def test_malformed_values_are_the_projects_own_error(tmp_path, body, words):

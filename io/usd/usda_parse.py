@@ -10,6 +10,7 @@ times the size of the text.
 """
 
 import io as _io
+import math
 import os
 import re
 import zipfile
@@ -240,6 +241,8 @@ class _Parser:
             kind, tok = t.next()
             if kind != NUMBER:
                 self.fail(f"{where}: expected a time code, found {shown(tok)}")
+            if not math.isfinite(float(tok)):  # OpenUSD keeps such a sample but orders it nowhere
+                self.fail(f"{where}: a time sample at {tok}")
             t.next(":")
             samples[float(tok)] = self.typed_value(where, type_name)
             if not t.at("}"):
