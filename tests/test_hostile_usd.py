@@ -262,6 +262,18 @@ def test_brackets_in_strings_and_comments_do_not_count(tmp_path):
     np.testing.assert_array_equal(usd.read(tmp_path / "noisy.usda").positions, usd.read(tmp_path / "s.usda").positions)
 
 
+def test_a_text_layer_past_the_size_limit_is_refused_unread(tmp_path):
+    from splatwright.io.policy import MAX_TEXT_LAYER_BYTES
+
+    model, _ = folders(tmp_path)
+    with open(model / "huge.usda", "wb") as f:  # sparse: no disk is used
+        f.write(b"#usda 1.0\n")
+        f.truncate(MAX_TEXT_LAYER_BYTES + 1)
+    for path in (model / "huge.usda", stage_naming(model, "sublayer", "./huge.usda")):
+        with pytest.raises(SplatFileError, match=f"a {MAX_TEXT_LAYER_BYTES + 1}-byte text layer, more than"):
+            usd.read(path)
+
+
 # the command line never hangs or aborts -----------------------------------------------------------
 
 PEAK_LIMIT = 1 << 30  # bytes of resident memory the child may reach
