@@ -17,6 +17,7 @@ GfRotation's quaternions, each op inverted as it inverts them, a value of a type
 refused), and only Xformable ancestors' ops reach a prim's world transform.
 """
 
+import bisect
 import io as _io
 import math
 import os
@@ -112,7 +113,14 @@ class Attribute:
         return self.default is not None or bool(self.samples)
 
     def GetTimeSamples(self):
-        return sorted(self.samples)
+        return list(self._times())
+
+    def _times(self):
+        """The sample times in order, sorted once for as long as the samples stay the same."""
+        key = (id(self.samples), len(self.samples))
+        if getattr(self, "_sorted", (None, None))[0] != key:
+            self._sorted = (key, sorted(self.samples))
+        return self._sorted[1]
 
     def GetCustomDataByKey(self, key):
         value = self.metadata.get("customData", {})
@@ -126,9 +134,9 @@ class Attribute:
         asks for the earliest sample (the default when there are none)."""
         if not self.samples:
             return self.default
-        times = self.GetTimeSamples()
+        times = self._times()
         t = times[0] if time is None else float(time)
-        i = int(np.searchsorted(times, t, side="right"))
+        i = bisect.bisect_right(times, t)
         if i == 0 or times[i - 1] == t or i == len(times):
             return self.samples[times[max(i - 1, 0)]]
         alpha = (t - times[i - 1]) / (times[i] - times[i - 1])
