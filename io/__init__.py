@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.splats import SplatCloud
-from .common import SplatFileError, SplatFileWarning
+from .common import SplatFileError, SplatFileWarning, check_file
 
 # extension -> module in this package exposing read(path) -> SplatCloud and (unless READ_ONLY)
 # write(path, cloud, **options)
@@ -85,8 +85,7 @@ def read_splats(path: str | os.PathLike, **options: Any) -> SplatCloud:
     and reports anything it could not read exactly as a SplatFileWarning. `allow_outside=True` lets
     the readers of files that name other files (OpenUSD layers, glTF buffers, SOG images) follow
     names outside the file's folder (io.policy); formats that name no other file take no notice."""
-    if not Path(path).is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     read = _module(path).read
     if "allow_outside" in options and "allow_outside" not in inspect.signature(read).parameters:
         del options["allow_outside"]  # this format names no other file

@@ -30,6 +30,18 @@ class SplatFileWarning(UserWarning):
     or dropped, view-dependent colour dropped by a format without it, ...)."""
 
 
+def check_file(path):
+    """SplatFileError unless `path` is a regular file (symbolic links followed): "no such file" when
+    nothing is there, "not a regular file" for a folder, FIFO, device or socket, whose read would fail,
+    hang or never end."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        raise SplatFileError(path, "no such file") from None
+    if not stat.S_ISREG(mode):
+        raise SplatFileError(path, "not a regular file (a folder, pipe or device); only files are read")
+
+
 def read_text(path):
     """A text file's contents (undecodable bytes replaced), or a SplatFileError naming why it
     cannot be read (missing, a folder, no permission)."""

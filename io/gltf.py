@@ -46,6 +46,7 @@ from .common import (
     SplatFileWarning,
     apply_nonfinite_policy,
     atomic_write,
+    check_file,
     check_nonfinite_policy,
     log_scales_from_linear,
     publish_together,
@@ -367,8 +368,7 @@ def read(path, nonfinite="raise", allow_outside=False):
     concatenated into one SplatCloud in the model's axes. allow_outside: also read buffer files
     outside the glTF's folder (special files never)."""
     check_nonfinite_policy(nonfinite)
-    if not Path(path).is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     try:
         return _read(path, nonfinite, allow_outside)
     except SplatFileError:

@@ -43,6 +43,7 @@ from .common import (
     SplatFileWarning,
     apply_nonfinite_policy,
     atomic_write,
+    check_file,
     check_nonfinite_policy,
     publish_together,
     reduced_sh,
@@ -295,8 +296,7 @@ def read(path, nonfinite="raise", allow_outside=False):
     """Read a .sog bundle or a SOG meta.json (with its images beside it) into a SplatCloud.
     allow_outside: also read loose images outside the meta.json's folder (special files never)."""
     check_nonfinite_policy(nonfinite)
-    if not Path(path).is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     _codec(path, "decode")
     source = _Source(path, allow_outside)
     try:

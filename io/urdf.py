@@ -36,7 +36,7 @@ import numpy as np
 
 from ..core import color
 from ..core.kinematics import KinematicsError, KinematicTree, rpy_matrices, transforms
-from .common import SplatFileError, SplatFileWarning, read_text
+from .common import SplatFileError, SplatFileWarning, check_file, read_text
 from .policy import referenced_file
 
 _TYPES = ("fixed", "revolute", "continuous", "prismatic", "floating", "planar", "spherical")
@@ -74,8 +74,7 @@ class RobotDescription:
 def read_urdf(path):
     """Read a .urdf file into a KinematicTree; SplatFileError names the file and the problem."""
     path = Path(path)
-    if not path.is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     return parse_urdf(read_text(path), source=str(path))
 
 
@@ -90,8 +89,7 @@ def read_description(path, package_paths=(), allow_outside=False):
     """Read a .urdf file with its visuals (mesh paths resolved, not yet read) into a RobotDescription.
     allow_outside: follow mesh names outside the allowed roots too (see the module notes)."""
     path = Path(path)
-    if not path.is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     source = str(path)
     robot = _root(read_text(path), source)
     links, joints = _links_and_joints(robot, source)

@@ -1,6 +1,7 @@
 """The `splatwright` command line: info and convert, checked against the clouds the tests wrote."""
 
 import json
+import os
 import warnings
 
 import numpy as np
@@ -101,6 +102,12 @@ def test_errors_exit_non_zero_naming_file_and_problem(capsys, scene, tmp_path):
     missing = tmp_path / "missing.ply"
     code, _, err = run(capsys, "info", missing)
     assert code != 0 and str(missing) in err and "no such file" in err
+    for special, make in (("pipe.ply", os.mkfifo), ("folder.ply", os.mkdir)):
+        if not hasattr(os, make.__name__):
+            continue  # no FIFOs on Windows
+        make(tmp_path / special)
+        code, _, err = run(capsys, "info", tmp_path / special)  # a FIFO would hang the read
+        assert code == 1 and f"{tmp_path / special}: not a regular file" in err
 
     code, _, err = run(capsys, "convert", path, tmp_path / "out.xyz")
     assert code != 0 and "out.xyz" in err and "unknown splat file extension '.xyz'" in err
