@@ -115,4 +115,3 @@ def test_a_damaged_sog_image_is_refused_by_name(blender):
     res = blender.step("refusals")["damaged"]
     assert res["result"] == ["CANCELLED"] and res["objects"] == 0, res
     assert "damaged.sog" in res["error"] and "sh0.webp is cut short" in res["error"], res
-
