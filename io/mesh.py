@@ -14,6 +14,7 @@ file exists) unless `allow_outside=True`, and a texture beyond policy.MAX_IMAGE_
 from its header.
 """
 
+import struct
 import warnings
 from pathlib import Path
 
@@ -269,7 +270,7 @@ def load_image(path):
                 a = np.asarray(img, dtype=np.uint32)
                 return np.repeat(np.clip(a, 0, 65535).astype(np.uint16)[:, :, None], 3, axis=2)
             return np.asarray(img.convert("RGB"))
-    except (OSError, ValueError, EOFError, SyntaxError, Image.DecompressionBombError) as exc:
+    except (OSError, ValueError, EOFError, SyntaxError, struct.error, Image.DecompressionBombError) as exc:
         if isinstance(exc, SplatFileError):
             raise
         # Pillow reports a corrupt or hostile file (a header claiming 10^10 pixels) in all of these.

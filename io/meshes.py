@@ -15,6 +15,7 @@ it is decoded.
 """
 
 import os
+import struct
 import warnings
 from pathlib import Path
 from urllib.parse import unquote
@@ -56,7 +57,7 @@ def read_mesh_file(path: str | os.PathLike, allow_outside: bool = False) -> Mesh
     except Exception as exc:  # trimesh raises many kinds; name the file
         raise SplatFileError(path, f"cannot read the mesh: {type(exc).__name__}: {exc}") from None
     resolver.report()
-    parts = [_part(path, geometry) for geometry in _flattened(scene)]
+    parts = [_part(path, geometry, transform) for geometry, transform in _flattened(scene)]
     parts = [p for p in parts if p is not None]
     if not parts:
         raise SplatFileError(path, "no triangles")
@@ -68,15 +69,15 @@ def read_mesh_file(path: str | os.PathLike, allow_outside: bool = False) -> Mesh
 
 
 def _flattened(scene):
-    """Every triangle geometry of a trimesh Scene, moved by its node's transform."""
+    """(geometry, its node's (4,4) transform) for every triangle geometry of a trimesh Scene. The
+    geometries are not copied: trimesh's copy decodes every texture of the material (normal maps,
+    roughness, ...), which this reader never uses and has not checked."""
     out = []
     for node in scene.graph.nodes_geometry:
         transform, name = scene.graph[node]
         geometry = scene.geometry[name]
         if hasattr(geometry, "faces") and len(geometry.faces):
-            geometry = geometry.copy()
-            geometry.apply_transform(transform)
-            out.append(geometry)
+            out.append((geometry, np.asarray(transform, np.float64)))
     return out
 
 
@@ -120,10 +121,12 @@ class _Resolver:
             warnings.warn(f"{self.mesh}: {problem}; left out", SplatFileWarning, stacklevel=3)
 
 
-def _part(path, geometry):
-    """One trimesh.Trimesh as a Mesh with its material, UVs or vertex colours."""
-    vertices = np.asarray(geometry.vertices, np.float64)
+def _part(path, geometry, transform):
+    """One trimesh.Trimesh moved by `transform` as a Mesh with its material, UVs or vertex colours."""
+    vertices = np.asarray(geometry.vertices, np.float64) @ transform[:3, :3].T + transform[:3, 3]
     faces = np.asarray(geometry.faces, np.int64)
+    if np.linalg.det(transform[:3, :3]) < 0:  # a mirror: keep the faces turned outward
+        faces = faces[:, ::-1]
     if not len(faces):
         return None
     visual = getattr(geometry, "visual", None)
@@ -154,10 +157,18 @@ def _material(path, material):
     if image is None:
         image = getattr(material, "image", None)
     rgb = (0.8, 0.8, 0.8) if base is None else tuple(np.asarray(base, np.float64)[:3] / 255.0)
-    if image is not None:  # trimesh leaves images undecoded: their size is the header's
-        check_image_size(path, *image.size, what="embedded texture")
-    texture = None if image is None else np.asarray(image.convert("RGB"))
+    texture = None if image is None else _pixels(path, image)
     return Material(base_color=rgb, texture=texture, name=str(getattr(material, "name", "") or "material"))
+
+
+def _pixels(path, image):
+    """The RGB pixels of a texture trimesh left undecoded (its size is its header's), once the size
+    is within the limit; a damaged image is a SplatFileError naming the mesh."""
+    check_image_size(path, *image.size, what="embedded texture")
+    try:
+        return np.asarray(image.convert("RGB"))
+    except (OSError, ValueError, EOFError, SyntaxError, struct.error) as exc:  # Pillow's for damaged data
+        raise SplatFileError(path, f"cannot decode a texture: {exc}") from None
 
 
 def has_own_colours(mesh):

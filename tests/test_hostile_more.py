@@ -338,17 +338,25 @@ def glb_bytes(doc, binary):
     return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
 
 
-def test_an_embedded_texture_past_the_limit_is_refused_before_it_is_decoded(tmp_path):
+def test_an_embedded_texture_past_the_limit_is_refused_before_it_is_decoded(tmp_path, monkeypatch):
+    from PIL.PngImagePlugin import PngImageFile
+
     path = tmp_path / "box.glb"
     path.write_bytes(glb_bytes(*gltf_triangle(image=png_of_zeros(8193, 8192))))
     assert path.stat().st_size < 1 << 20  # decoded: 67 million pixels, 200 MB as RGB
+    decoded = []
+    monkeypatch.setattr(PngImageFile, "load", lambda self: decoded.append(self.size))
     message = error_of(read_mesh_file, path)
     assert "box.glb: embedded texture of 8193 x 8192 pixels, more than the 67108864 (8192 x 8192)" in message
+    assert decoded == []  # refused from its header: no pixel decoded
+    monkeypatch.undo()
     assert image.header_size(png_of_zeros(8193, 1)) == (8193, 1)
-    # a texture within the limit reads, pixel for pixel
+    # a texture within the limit reads, pixel for pixel; a damaged one is a named error
     pixels = (np.arange(4 * 3 * 3).reshape(4, 3, 3) * 7 % 256).astype(np.uint8)
     path.write_bytes(glb_bytes(*gltf_triangle(image=image.png_bytes(pixels))))
     assert np.array_equal(read_mesh_file(path).materials[0].texture, pixels)
+    path.write_bytes(glb_bytes(*gltf_triangle(image=image.png_bytes(pixels)[:-30])))  # its pixels cut short
+    assert "box.glb: cannot decode a texture" in error_of(read_mesh_file, path)
 
 
 def test_gltf_textures_and_buffers_follow_the_reading_policy(tmp_path):
