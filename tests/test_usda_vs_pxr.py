@@ -129,12 +129,27 @@ class Layers:
             lines.append(self.pick("uchar primvars:bad = 300", "int primvars:bad = 4294967296"))
         return lines
 
+    def blender_points(self):
+        """Blender's splat points: positions, rotations (w, x, y, z) and scales as vertex primvars."""
+        rng, n = self.rng, int(self.rng.integers(1, 4))
+        vertex, rotation = ' (\n interpolation = "vertex"\n)', self.pick("quatf[]", "float4[]")
+        return [
+            self.attribute("point3f[]", "points", self.samples(lambda: array_text(rng.normal(size=(n, 3))))),
+            f"{rotation} primvars:rotation{vertex}",  # its metadata, then its values
+            self.attribute(
+                rotation, "primvars:rotation", self.samples(lambda: array_text([self.quaternion() for _ in range(n)]))
+            ),
+            f"float3[] primvars:scale = {array_text(rng.uniform(0.01, 1, (n, 3)))}{vertex}",
+            f"float4[] primvars:radiance:base = {array_text(rng.uniform(0, 1, (n, 4)))}{vertex}",
+        ]
+
     def prim(self, name, depth):
         specifier = "def" if self.chance(0.85) else self.pick("over", "class")
-        splat = depth > 0 and self.chance(0.75)
-        type_name = "ParticleField3DGaussianSplat" if splat else self.pick("Xform", "Xform", "Scope", "")
+        splat = self.pick("ParticleField3DGaussianSplat", "Points") if depth > 0 and self.chance(0.75) else None
+        type_name = splat or self.pick("Xform", "Xform", "Scope", "")
         meta = f" (\n    active = {self.pick('true', 'false', '0', '1')}\n)" if self.chance(0.15) else ""
-        body = self.transform() + (self.splat_values() if splat else [])
+        values = {"Points": self.blender_points, None: list}.get(splat, self.splat_values)
+        body = self.transform() + values()
         count = int(self.rng.integers(1, 4)) if depth < 2 else 0
         children = [self.prim(f"{name}_{i}", depth + 1) for i in range(count)]
         if count > 1 and self.chance(0.3):  # an order naming some of the children

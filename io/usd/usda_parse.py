@@ -230,7 +230,7 @@ class _Parser:
                 self.value()
             else:
                 attr.default = self.typed_value(where, type_name)
-        if t.at("("):
+        if t.at("(") and suffix == "":  # OpenUSD takes metadata on a declaration only
             attr.metadata.update(self.metadata(where))
 
     def time_samples(self, where, type_name):
