@@ -207,12 +207,14 @@ def check_image_size(owner: str | os.PathLike, width: int, height: int, what: st
 
 class WebPCodec(NamedTuple):
     """decode: WebP bytes -> (H, W, 4) uint8 RGBA, top row first. encode: (H, W, 4) uint8 RGBA ->
-    lossless WebP bytes that decode to every byte given (the colour of transparent pixels too), or
-    None where the codec has no such encoder."""
+    lossless WebP bytes that decode to every byte given, or None where the codec has no such encoder.
+    exact: False where the encoder keeps every byte but the colour (RGB) of fully transparent pixels
+    (alpha 0), which it replaces (Blender's: libwebp's lossless mode without its "exact" option)."""
 
     name: str
     decode: Callable[[bytes], np.ndarray]
     encode: Callable[[np.ndarray], bytes] | None = None
+    exact: bool = True
 
 
 def _pillow_decode(data):
@@ -288,9 +290,13 @@ def decode_webp(owner: str | os.PathLike, data: bytes, what: str = "WebP image")
 
 
 def encode_webp(owner: str | os.PathLike, pixels: np.ndarray) -> bytes:
-    """Lossless WebP bytes of (H, W, 4) uint8 RGBA pixels, every byte kept; SplatFileError naming
-    `owner` where no codec can."""
+    """Lossless WebP bytes of (H, W, 4) uint8 RGBA pixels, every byte kept (but the colour of fully
+    transparent pixels where webp_codec("encode") is not exact); SplatFileError naming `owner` where
+    no codec can."""
     codec = webp_codec("encode")
     if codec is None or codec.encode is None:
-        raise SplatFileError(owner, "this Python has no exact lossless WebP encoder (the Pillow package)")
-    return codec.encode(np.ascontiguousarray(pixels, np.uint8))
+        raise SplatFileError(owner, "this Python has no lossless WebP encoder (the Pillow package)")
+    try:
+        return codec.encode(np.ascontiguousarray(pixels, np.uint8))
+    except (OSError, RuntimeError) as exc:  # Blender's encoder writes a temporary file
+        raise SplatFileError(owner, f"cannot encode a WebP image: {exc}") from None

@@ -18,9 +18,12 @@ The writer orders splats along a Morton curve (as PlayCanvas does), finds the 25
 are the means of a balanced k-d split of the SH vectors). Extras are not stored.
 
 WebP is decoded and encoded through io.image's codecs: Pillow's, or where Pillow is missing (Blender's
-own Python) Blender's decoder, which the extension registers. Blender's encoder changes the colour
-of transparent pixels (sh0 keeps it for splats of opacity under 1/510), so without Pillow SOG files
-are read but not written, and the error says so (write them with the `splatwright` command outside).
+own Python) Blender's, which the extension registers. Blender's encoder is not exact: it replaces the
+colour of fully transparent pixels. Only sh0 has such pixels (every other image's alpha is 252 or
+more), one for each splat of opacity byte 0 (opacity under 1/510), which no viewer draws (renderers
+skip what stays under alpha 1/255). Such splats are kept, so every other splat reads back exactly as
+from Pillow's file (the codebooks, bounds and palette are found over all splats), and a warning counts
+those whose base colour (SH band 0) is not kept.
 
 Before a pixel is decoded, every image's size is taken from its WebP header and checked against the
 splat count and io.policy.MAX_IMAGE_PIXELS, and the count against the bytes the file stores (see
@@ -85,9 +88,8 @@ def _codec(path, job):
     if job == "encode" and webp_codec("decode") is not None:
         raise SplatFileError(
             path,
-            "SOG stores splats as lossless WebP images and this Python has no exact WebP encoder (the "
-            "Pillow package; Blender's own changes the colour of transparent pixels): write the file with "
-            "the splatwright command outside Blender",
+            "SOG stores splats as lossless WebP images and this Python has a WebP decoder but no encoder "
+            "(the Pillow package; in Blender, the Splatwright extension lends Blender's)",
         )
     raise SplatFileError(
         path,
@@ -380,6 +382,23 @@ def _bytes(x):
     return np.clip(np.rint(x), 0, 255).astype(np.uint8)
 
 
+def _opacity_bytes(cloud):
+    """sh0's alpha: each splat's opacity * 255."""
+    return _bytes(sigmoid(cloud.opacity_logits) * 255)
+
+
+def _invisible_note(cloud, notes):
+    """Where the WebP encoder replaces the colour of fully transparent pixels, a note counting the
+    splats of opacity byte 0 (drawn by no viewer), whose sh0 pixel is such a pixel."""
+    codec = webp_codec("encode")
+    invisible = int(np.count_nonzero(_opacity_bytes(cloud) == 0))
+    if codec is not None and not codec.exact and invisible:
+        notes.append(
+            f"{invisible} splats of opacity under 1/510 (drawn by no viewer) kept without their base colour (SH "
+            f"band 0): {codec.name}'s WebP encoder replaces the colour of fully transparent pixels"
+        )
+
+
 def encode(path, cloud):
     """{file name: bytes} of a SOG (meta.json included) for a cloud, in its order."""
     n, degree = len(cloud), cloud.sh_degree
@@ -403,7 +422,7 @@ def encode(path, cloud):
     scale_book, scale_labels = kmeans_1d(cloud.log_scales)
     files["scales.webp"] = _rgba(scale_labels.reshape(n, 3).astype(np.uint8), width, height)
     dc_book, dc_labels = kmeans_1d(cloud.sh[:, 0])
-    alpha = _bytes(sigmoid(cloud.opacity_logits) * 255)
+    alpha = _opacity_bytes(cloud)
     files["sh0.webp"] = _rgba(np.column_stack([dc_labels.reshape(n, 3).astype(np.uint8), alpha]), width, height)
     meta = {
         "version": 2,
@@ -449,6 +468,7 @@ def write(path, cloud, order="morton", nonfinite="raise"):
         )
     notes = []
     cloud = reduced_sh(cloud, max(SH_COEFFS), "SOG", notes)
+    _invisible_note(cloud, notes)
     warn_notes(path, notes)
     files = encode(path, cloud)
     if str(path).lower().endswith("meta.json"):

@@ -1,9 +1,12 @@
 """io.image's WebP codecs, the seam SOG decodes and encodes through: Pillow's where it imports, else
-one registered (the Blender extension registers Blender's decoder, tests/test_blender_sog.py), and the
-header checks in front of every codec."""
+one registered (the Blender extension registers Blender's, tests/test_blender_sog.py), and the header
+checks in front of every codec. An encoder that is not exact (it replaces the colour of fully
+transparent pixels, as Blender's does) writes a SOG that reads back as Pillow's for every splat a
+viewer draws."""
 
 import io
 import sys
+import warnings
 import zipfile
 
 import numpy as np
@@ -11,7 +14,7 @@ import pytest
 from helpers import random_cloud
 from PIL import Image
 
-from splatwright.io import SplatFileError, read_splats, write_splats
+from splatwright.io import SplatFileError, SplatFileWarning, read_splats, write_splats
 from splatwright.io import image as image_io
 
 
@@ -63,7 +66,7 @@ def test_a_registered_decoder_reads_sog_where_pillow_is_missing(tmp_path, monkey
     assert sorted(asked) == sorted(answers)
     for field in ("positions", "rotations", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
-    with pytest.raises(SplatFileError, match=r"b\.sog: .*no exact WebP encoder .*transparent pixels"):
+    with pytest.raises(SplatFileError, match=r"b\.sog: .*a WebP decoder but no encoder"):
         write_splats(tmp_path / "b.sog", want)
     assert not (tmp_path / "b.sog").exists()
     image_io.unregister_webp_codec("answers")
@@ -107,3 +110,83 @@ def test_pillow_comes_first_where_it_imports():
     finally:
         image_io.unregister_webp_codec("never")
     assert all(codec.name != "never" for codec in image_io._registered)
+
+
+FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+
+
+def faint_cloud():
+    """A cloud of SH degree 2 whose first 25 splats have SOG opacity byte 0 (opacity under 1/510)."""
+    cloud = random_cloud(500, sh_degree=2, seed=92)
+    cloud.opacity_logits[:25] = np.linspace(-30.0, -6.3, 25)
+    cloud.opacity_logits[25:] = np.clip(cloud.opacity_logits[25:], -6.0, None)  # byte 1 or more
+    return cloud
+
+
+def junk_transparent_colour(pixels):
+    """Pillow's exact encoding of `pixels` with random colour in every fully transparent pixel: what
+    an encoder that replaces that colour may store."""
+    pixels = pixels.copy()
+    clear = pixels[..., 3] == 0
+    pixels[clear, :3] = np.random.default_rng(int(clear.sum())).integers(0, 256, (int(clear.sum()), 3))
+    return webp(pixels)
+
+
+def sog_images(path):
+    """{image name: (H*W, 4) RGBA} of a .sog bundle, decoded by Pillow."""
+    with zipfile.ZipFile(path) as bundle:
+        return {n: pillow_pixels(bundle.read(n)).reshape(-1, 4) for n in bundle.namelist() if n.endswith(".webp")}
+
+
+def test_only_sh0_pixels_of_invisible_splats_are_transparent(tmp_path):
+    """The pixels whose colour an inexact encoder loses: in sh0 only, one per splat of opacity byte 0."""
+    cloud = faint_cloud()
+    write_splats(tmp_path / "a.sog", cloud, order=None)
+    for name, pixels in sog_images(tmp_path / "a.sog").items():
+        clear = np.flatnonzero(pixels[:, 3] == 0)
+        assert clear.tolist() == (list(range(25)) if name == "sh0.webp" else []), name
+    assert (sog_images(tmp_path / "a.sog")["quats.webp"][:, 3] >= 252).all()
+
+
+@pytest.mark.parametrize("name", ["a.sog", "loose/meta.json"])
+def test_an_inexact_encoder_writes_what_pillow_writes_for_every_visible_splat(tmp_path, monkeypatch, name):
+    """Written through an encoder that replaces the colour of transparent pixels, a SOG keeps every
+    splat in Pillow's order; every one of opacity byte 1 or more reads back (through Pillow) exactly as
+    from Pillow's own file, the others all but their base colour; one warning counts them."""
+    cloud = faint_cloud()
+    write_splats(tmp_path / "pillow.sog", cloud)
+    want = read_splats(tmp_path / "pillow.sog")
+    monkeypatch.setattr(image_io, "_pillow_has_webp", lambda: False)
+    monkeypatch.setattr(image_io, "_registered", [])
+    image_io.register_webp_codec(image_io.WebPCodec("Junk", pillow_pixels, junk_transparent_colour, exact=False))
+    assert image_io.webp_codec("encode").name == "Junk"
+    (tmp_path / "loose").mkdir()
+    with pytest.warns(SplatFileWarning) as caught:
+        write_splats(tmp_path / name, cloud)
+    assert len(caught) == 1
+    assert str(caught[0].message) == (
+        f"{tmp_path / name}: 25 splats of opacity under 1/510 (drawn by no viewer) kept without their base "
+        "colour (SH band 0): Junk's WebP encoder replaces the colour of fully transparent pixels"
+    )
+    got = read_splats(tmp_path / name)
+    visible = np.rint(want.opacities * 255) >= 1
+    assert len(got) == len(want) == 500 and visible.sum() == 475
+    for field in FIELDS:
+        np.testing.assert_array_equal(getattr(got, field)[visible], getattr(want, field)[visible], err_msg=field)
+        if field != "sh":
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=field)
+    np.testing.assert_array_equal(got.sh[~visible, 1:], want.sh[~visible, 1:])
+    assert (got.sh[~visible, 0] != want.sh[~visible, 0]).any()  # the junk colour, read through the codebook
+
+
+def test_no_note_where_the_encoder_is_exact_or_no_splat_is_invisible(tmp_path, monkeypatch):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_splats(tmp_path / "a.sog", faint_cloud())  # Pillow's encoder: exact
+        monkeypatch.setattr(image_io, "_pillow_has_webp", lambda: False)
+        monkeypatch.setattr(image_io, "_registered", [])
+        image_io.register_webp_codec(image_io.WebPCodec("Junk", pillow_pixels, junk_transparent_colour, exact=False))
+        cloud = faint_cloud()
+        cloud.opacity_logits[:25] = -6.0
+        write_splats(tmp_path / "b.sog", cloud)
+    np.testing.assert_array_equal(read_splats(tmp_path / "b.sog").sh, read_splats(tmp_path / "a.sog").sh)
