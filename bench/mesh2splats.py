@@ -657,9 +657,10 @@ def _convert_main(src, dst):
     rss_before = _status_bytes("VmRSS")
     fresh_peak = _reset_peak()
     info = {}
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     cloud = convert(mesh, info=info, **options)
     seconds = time.perf_counter() - start
+    info["cpu_seconds"] = time.process_time() - cpu
     peak = _status_bytes("VmHWM") if fresh_peak else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     memory = {"rss_before": rss_before, "peak": peak, "peak_is_conversion": fresh_peak}
     info = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool, list, dict, type(None)))}
@@ -686,6 +687,7 @@ def default_row(name, mesh, size, cams, references, folder, quick):
             "reached": info["reached"],
             "worst own view": f"{info['worst_view_distance']:g}x, {info['worst_view_edge_share']:.0%} on silhouettes",
             "textured": textured(mesh),
+            "CPU s": f"{info.get('cpu_seconds', float('nan')):.1f}",
             "peak RSS MiB": round(memory["peak"] / 2**20),
             "RSS growth MiB": round(grown / 2**20),
             "predicted MiB": round(predicted / 2**20),
