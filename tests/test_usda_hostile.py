@@ -187,6 +187,11 @@ def _bombs():
     yield "big array", splat(body="custom float[] x = [" + "1," * (n // 2) + "]")
     yield "tuples", splat(body="custom float3[] x = [" + "(1,2,3)," * (n // 8) + "]")
     yield "words", splat(body="custom token[] x = [" + '"a",' * (n // 4) + "]")
+    many_ops = '    double3 xformOp:translate = (0.001, 0, 0)\n    uniform token[] xformOpOrder = ["' + (
+        '", "'.join(["xformOp:translate"] * (n // 40))
+    )
+    children = "".join(splat(f"K{i}") for i in range(500))
+    yield "ops over many prims", 'def Xform "P"\n{\n' + many_ops + '"]\n' + children + "}\n"
     yield "dictionaries", splat(body="custom float x = 1 (\n customData = {" + 'string a = "b"\n' * (n // 16) + "}\n)")
 
 

@@ -52,7 +52,7 @@ class TextStages:
         return prim.GetTypeName() not in ("", "Xform", "Scope")
 
     def world_matrix(self, prim, time):
-        return prim.world_matrix(time)
+        return prim.world_matrix(time, prim.layer.read_matrices)
 
     # writing
 

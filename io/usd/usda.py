@@ -231,17 +231,18 @@ class Prim:
 
     def local_matrix(self, time):
         """4x4 (column vectors) of the prim's own transform ops, and whether it resets the parents'."""
-        m, reset = np.eye(4), False
+        m, reset, ops = np.eye(4), False, {}  # ops: each named op's matrix, made once
         for name in self._op_order():
             if name == "!resetXformStack!":
                 m, reset = np.eye(4), True
                 continue
-            invert = name.startswith("!invert!")
-            op_name = name.removeprefix("!invert!")
-            attr = self.GetAttribute(op_name)
-            if not attr or not attr.HasAuthoredValue() or attr.Get(time) is None:
-                raise SplatFileError(self.layer.identifier, f"{self.path}: transform op {op_name} has no value")
-            m = m @ _op_matrix(self.layer.identifier, self.path, attr, time, invert)
+            if name not in ops:
+                op_name = name.removeprefix("!invert!")
+                attr = self.GetAttribute(op_name)
+                if not attr or not attr.HasAuthoredValue() or attr.Get(time) is None:
+                    raise SplatFileError(self.layer.identifier, f"{self.path}: transform op {op_name} has no value")
+                ops[name] = _op_matrix(self.layer.identifier, self.path, attr, time, name != op_name)
+            m = m @ ops[name]
         return m, reset
 
     def _op_order(self):
@@ -255,13 +256,18 @@ class Prim:
             )
         return names
 
-    def world_matrix(self, time):
+    def world_matrix(self, time, known=None):
         """Its own ops, then each ancestor's that OpenUSD counts as Xformable, up to the root or a
-        prim that resets the transform stack."""
+        prim that resets the transform stack. `known`: {(prim path, time): (local matrix, reset)}
+        kept between calls, so that the children of a prim with many ops do not redo them."""
         m, prim = np.eye(4), self
+        known = {} if known is None else known
         while prim is not None:
             if prim is self or is_xformable(prim.type_name):
-                local, reset = prim.local_matrix(time)
+                key = (prim.path, time)
+                if key not in known:
+                    known[key] = prim.local_matrix(time)
+                local, reset = known[key]
                 m = local @ m
                 if reset:
                     break
@@ -405,6 +411,7 @@ class Layer:
         self.metadata = {}
         self.root_prims = []
         self._by_path = {}
+        self.read_matrices = {}  # local transforms the readers computed (reading edits nothing)
 
     def GetRootLayer(self):
         return self
