@@ -251,7 +251,7 @@ def scene_cloud(context, objects, conversion, keep_source=False):
 
 @orientation_helper(axis_forward=FILE_FORWARD, axis_up=FILE_UP)
 class SPLAT_OT_export_file(ExportOptionProperties, bpy.types.Operator, ExportHelper):
-    """Export splat objects (with their transforms applied) to PLY, OpenUSD, SPZ or .splat"""
+    """Export splat objects (with their transforms applied) to PLY, compressed PLY, OpenUSD, SPZ, SOG, glTF or .splat"""
 
     bl_idname = "splat.export_file"
     bl_label = "Export Splats"
