@@ -377,8 +377,18 @@ class _Resolver:
         raise SplatFileError(
             self.urdf,
             f"{where}: mesh '{filename}' not found among the regular files under {roots} (names outside "
-            "them are not followed unless allowed; add a package's folder with a package path)",
+            f"them are not followed unless allowed; {self._hint(filename)})",
         )
+
+    def _hint(self, filename):
+        """What to pass for a package the URDF itself lies in (robot/urdf/robot.urdf naming
+        package://robot/meshes/...): told from the URDF's own path alone, so it says nothing of
+        what exists on disk."""
+        package = unquote(filename[len("package://") :]).partition("/")[0] if filename.startswith("package://") else ""
+        home = next((d for d in self.urdf.parents if package and d.name == package), None)
+        if home is None or home.parent in self.roots:
+            return "add a package's folder with a package path"
+        return f"the URDF lies in a folder named '{package}': a package path of '{home.parent}' would allow it"
 
     def _candidates(self, filename):
         """(reference, folder it is relative to) pairs to try in turn."""

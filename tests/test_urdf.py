@@ -521,3 +521,22 @@ def test_forward_kinematics_matches_yourdfpy(tmp_path):
         world = ours.forward_kinematics(ours.pack(dict(zip(theirs.actuated_joint_names, q))))
         for k, name in enumerate(ours.names):
             np.testing.assert_allclose(world[k], theirs.get_transform(name, "l0"), atol=1e-12, err_msg=name)
+
+
+def test_a_package_the_urdf_lies_in_is_named_as_the_package_path_to_pass(tmp_path):
+    """ROS's layout (robot/urdf/robot.urdf naming package://robot/meshes/...): the package's folder is
+    outside the URDF's folder, so it is read only from a package path, which the error names."""
+    from splatwright.io.urdf import read_description
+
+    (tmp_path / "robot" / "urdf").mkdir(parents=True)
+    (tmp_path / "robot" / "meshes").mkdir()
+    (tmp_path / "robot" / "meshes" / "a.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    urdf = tmp_path / "robot" / "urdf" / "robot.urdf"
+    urdf.write_text(
+        '<robot name="r"><link name="base"><visual><geometry>'
+        '<mesh filename="package://robot/meshes/a.obj"/></geometry></visual></link></robot>'
+    )
+    with pytest.raises(SplatFileError, match=f"a package path of '{tmp_path}' would allow it"):
+        read_description(urdf)
+    description = read_description(urdf, package_paths=[tmp_path])
+    assert [v.path for v in description.visuals] == [tmp_path / "robot" / "meshes" / "a.obj"]
