@@ -235,10 +235,13 @@ def test_indexed_primvars_read_as_pxr_reads_them(tmp_path):
     np.testing.assert_array_equal(got[0][1].extras["w"], [7, 0.5])
 
 
-@pytest.mark.parametrize("value", ["false", "true", "0", "1", "0.0", "2", '"false"', '"true"'])
+@pytest.mark.parametrize(
+    "value", ["false", "true", "0", "1", "0.0", "2", '"false"', '"true"', "FALSE", "truE", "yes", '"no"', '"1"', "on"]
+)
 def test_bool_literals_read_as_pxr_reads_them(tmp_path, value):
     got = assert_read_as_pxr(layer(tmp_path, splat(body=f"custom bool splatwright:antialiased = {value}")))
-    assert got[0][1].antialiased == (value in ("true", "1", "2", '"true"'))
+    if value != "on":  # which OpenUSD refuses
+        assert got[0][1].antialiased == (value.strip('"').lower() in ("true", "1", "2", "yes"))
 
 
 def test_quaternion_samples_are_slerped_as_pxr_does(tmp_path):

@@ -1,6 +1,6 @@
 """Typed values of an OpenUSD text layer as OpenUSD reads them, for usda_parse.py: numbers of the
 attribute's type (floats rounded to it, overflowing to infinity; integers truncated towards zero and
-refused outside its range; bools from `true`, `false` or any number), tuples of exactly its shape,
+refused outside its range; bools from true, false, yes or no in any case, or any number), tuples of exactly its shape,
 and numeric arrays parsed in bulk by NumPy after their layout is checked against the type, in a few
 bytes per character of the text. What OpenUSD refuses raises BadValue saying why.
 """
@@ -10,7 +10,7 @@ import warnings
 
 import numpy as np
 
-BOOL_WORDS = {"true": True, "false": False}
+BOOL_WORDS = {"true": True, "yes": True, "1": True, "false": False, "no": False, "0": False}  # any case
 
 
 class BadValue(ValueError):
@@ -42,8 +42,8 @@ def describe(shape):
 def scalar(type_name, dtype, value):
     """One number of `dtype` as OpenUSD reads `value` (a Python number or, for bools, a word)."""
     if dtype.kind == "b":
-        if isinstance(value, str) and value in BOOL_WORDS:
-            return BOOL_WORDS[value]
+        if isinstance(value, str) and value.lower() in BOOL_WORDS:
+            return BOOL_WORDS[value.lower()]
         if _is_number(value):
             return bool(value != 0)
         raise BadValue(f"a {type_name} is true, false or a number, not {value!r}")
