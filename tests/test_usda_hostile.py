@@ -313,6 +313,7 @@ def test_classes_overs_and_inactive_prims_are_skipped_as_pxr_skips_them(tmp_path
         "float[] opacities = [1,,2]",
         "float[] opacities = [(1), 2]",
         'float[] opacities.timeSamples = { 0: [1, 1] } (\n interpolation = "vertex"\n)',
+        "float[] opacities = [1, 1]\n    half[] opacities.timeSamples = { 0: [1, 1] }",
         "float3[] scales = [(1, 2, 3, 4), (1, 2, 3, 4)]",
         "float3 xformOp:translate = (1, 2)",
         'float3 xformOp:translate = "abc"',

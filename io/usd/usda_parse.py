@@ -220,8 +220,11 @@ class _Parser:
         name, _, suffix = name.partition(".")
         if suffix not in ("", "timeSamples", "connect"):
             self.fail(f"{prim.path}.{name}: .{suffix} values cannot be read without OpenUSD's Python module")
-        attr = prim.attribute(name, type_name, "uniform" in qualifiers, "custom" in qualifiers)
         where = f"{prim.path}.{name}"
+        known = prim.attributes.get(name)
+        if known is not None and known.type_name != type_name:
+            self.fail(f"{where} already has type {known.type_name!r}, so it cannot be a {type_name!r}")
+        attr = prim.attribute(name, type_name, "uniform" in qualifiers, "custom" in qualifiers)
         if t.at("="):
             t.next()
             if suffix == "timeSamples":
