@@ -18,6 +18,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import color
+from .mesh_texture import (  # the texture lookups and the display conversion live there, used from here too
+    EdgeField,
+    footprint_average,
+    sample_mipmap,  # noqa: F401
+    sample_texture,
+    texel_jacobians,
+    to_display,  # noqa: F401
+)
 
 # A triangle whose area is below this fraction of its longest edge squared has no usable normal.
 DEGENERATE_RATIO = 1e-10
@@ -43,6 +51,7 @@ class Material:
     name: str = ""
     _linear: np.ndarray | None = field(default=None, repr=False)
     _mips: list | None = field(default=None, repr=False)
+    _edges: object = field(default=None, repr=False)
 
     def linear_texture(self):
         """The texture as float32 linear RGB (H,W,3), decoded once and cached."""
@@ -62,6 +71,13 @@ class Material:
                 levels.append(0.25 * (a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]))
             self._mips = levels
         return self._mips
+
+    def edge_field(self):
+        """The texture's hard edges and each texel's way to the nearest (core.mesh_texture.EdgeField),
+        cached."""
+        if self._edges is None:
+            self._edges = EdgeField(self.linear_texture())
+        return self._edges
 
     @property
     def view_dependent(self):
@@ -92,43 +108,6 @@ def _decoded_values(dtype, srgb):
     """decode_texture's value of each value of an unsigned integer `dtype`, by index."""
     rgb = np.arange(np.iinfo(dtype).max + 1).astype(np.float32) / np.float32(np.iinfo(dtype).max)
     return color.srgb_to_linear(rgb).astype(np.float32) if srgb else rgb
-
-
-def sample_texture(texture, uv):
-    """Bilinear lookup with repeat wrapping: (H,W,C) texture, (n,2) uv with v up -> (n,C) float64."""
-    h, w = texture.shape[:2]
-    x = np.asarray(uv[:, 0], np.float64) * w - 0.5
-    y = (1.0 - np.asarray(uv[:, 1], np.float64)) * h - 0.5
-    x0, y0 = np.floor(x), np.floor(y)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x0 = x0.astype(np.int64) % w
-    y0 = y0.astype(np.int64) % h
-    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
-    texels = texture.reshape(h * w, -1)  # flat lookups: much faster than 2D fancy indexing
-    row0, row1 = y0 * w, y1 * w
-    gx = 1 - fx
-    top = texels.take(row0 + x0, axis=0) * gx + texels.take(row0 + x1, axis=0) * fx
-    bottom = texels.take(row1 + x0, axis=0) * gx + texels.take(row1 + x1, axis=0) * fx
-    return top * (1 - fy) + bottom * fy
-
-
-def sample_mipmap(levels, uv, level):
-    """Trilinear lookup: bilinear in the two mip levels around `level` (n,), blended."""
-    level = np.clip(level, 0.0, len(levels) - 1.0)
-    lo = np.floor(level).astype(np.int64)
-    frac = level - lo
-    out = np.empty((len(uv), levels[0].shape[2]))
-    present = np.flatnonzero(np.bincount(lo, minlength=len(levels)))
-    for k in present:
-        sel = slice(None) if len(present) == 1 else np.flatnonzero(lo == k)
-        value = sample_texture(levels[k], uv[sel])
-        blend = np.flatnonzero(frac[sel] > 0)  # only where the footprint is between levels
-        if len(blend):
-            f = frac[sel][blend, None]
-            above = sample_texture(levels[min(k + 1, len(levels) - 1)], uv[sel][blend])
-            value[blend] = value[blend] * (1 - f) + above * f
-        out[sel] = value
-    return out
 
 
 @dataclass(eq=False)
@@ -249,12 +228,14 @@ class Surface:
         """World positions (n,3) float64 of barycentric points (n,3) on faces tri (n,)."""
         return self.origin[tri] + bary[:, 1:2] * self.edge1[tri] + bary[:, 2:3] * self.edge2[tri]
 
-    def linear_colors(self, tri, bary, footprint=None):
+    def linear_colors(self, tri, bary, footprint=None, covariance=None):
         """Scene-linear surface colour (n,3) float64 at barycentric points on faces tri.
 
         `footprint` (n,) is the world-space width each point stands for (a splat's share of the
         surface); textures are then averaged over it (trilinear mipmap lookup), so a splat
         covering many texels shows their mean rather than whichever texel its centre hits.
+        `covariance` (n,2,2), in each face's local frame (core.mesh_texture), is a Gaussian
+        footprint instead: the texture averaged over that Gaussian (an ellipse in texels).
         """
         out = np.empty((len(tri), 3))
         mat = self.face_materials[tri]
@@ -266,7 +247,11 @@ class Surface:
             if material.texture is not None and uv is not None:
                 scale = np.asarray(material.uv_scale, float)
                 lookup = uv[sel] * scale + np.asarray(material.uv_offset, float)
-                if footprint is None:
+                if covariance is not None:
+                    jac = self.texel_jacobians(m)[tri[sel]]
+                    texel_cov = jac @ covariance[sel] @ jac.transpose(0, 2, 1)
+                    out[sel] = footprint_average(material.mipmap(), lookup, texel_cov)
+                elif footprint is None:
                     out[sel] = sample_texture(material.linear_texture(), lookup)
                 else:
                     texels = footprint[sel] * self._texel_density(material, scale)[tri[sel]]
@@ -276,6 +261,13 @@ class Surface:
         if self.corner_colors is not None:
             out *= np.einsum("nk,nkc->nc", bary, self.corner_colors[tri])
         return np.maximum(out, 0.0)
+
+    def texel_jacobians(self, m):
+        """(F,2,2) d(texel) / d(local frame) of material m's texture on every face, cached."""
+        key = ("jacobians", m)
+        if key not in self._cache:
+            self._cache[key] = texel_jacobians(self, self.materials[m])
+        return self._cache[key]
 
     def _texel_density(self, material, uv_scale):
         """Texels per world unit on each face for a material's texture (square root of the ratio
@@ -390,11 +382,6 @@ def shade(base_linear, rim_linear, has_rim, cos_view):
     """Linear colour seen at |cos(view, normal)| = cos_view: the facing blend for rim materials."""
     facing = np.where(has_rim, 1.0 - np.abs(cos_view), 0.0)[..., None]
     return base_linear * (1.0 - facing) + rim_linear * facing
-
-
-def to_display(linear):
-    """Scene-linear -> display sRGB as an emission shader shows it under the 'Standard' view."""
-    return color.linear_to_srgb(np.clip(linear, 0.0, 1.0))
 
 
 OPEN_VOLUME = 0.03  # enclosed volume / area^1.5 above which an open part counts as a solid

@@ -47,6 +47,7 @@ from .camera import Camera
 from .memory import describe
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, render_mesh
 from .mesh_sampling import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
+from .mesh_texture import face_detail
 from .metrics import psnr_from_mse
 from .parallel import map_threads
 from .render import Shapes, render
@@ -68,6 +69,8 @@ RECALIBRATE_GROWTH = 2.0  # search the shift again once the cloud has grown this
 PATIENCE = 1  # stop after this many rounds in a row that rendered no better than the best
 # (on the bench's meshes a second never did, and cost the cup 20 s)
 MIN_GROWTH = 0.05  # stop once a round would add fewer splats than this fraction (below the cap)
+STUCK = 0.8  # a face that got denser with its error above this fraction of the last is left alone
+DETAIL_STUCK = 0.97  # ... above this one where it has colour detail (core.mesh_texture.face_detail)
 AIM = 0.7  # faces aim at this fraction of the target MSE (not all of them can)
 MIN_BUDGET_SPLATS = 2000  # a budget also tries this many splats, twice as many, ... (budget_ladder)
 RUNG_GAP = 1.25  # ... up to a rung this much below the budget
@@ -377,13 +380,20 @@ def refine_rounds(
     pixel_filter=PIXEL_FILTER,
     try_fewer=True,
     memory_budget=None,
+    fit_colours=None,
 ):
     """Splats whose renders reach `target` dB PSNR against the mesh's (or the best reachable), one
     round at a time: a generator yielding (round, MAX_ROUNDS, label) after the calibration and each
     round and returning the cloud, so a caller can stop between rounds (close() it). With
     `uniform`, the density stays spread evenly for `max_splats` and only the silhouettes are
     calibrated for the views (a budget). With `memory_budget` (bytes) the splats are capped at what
-    it holds (splats_within), before anything is allocated for them."""
+    it holds (splats_within), before anything is allocated for them. `fit_colours(cloud, cameras,
+    images, render_mode)`, if given (target mode), refits the best cloud's colours to the mesh's
+    renders from the views at the end where the surface has colour detail, kept where the fitted
+    cloud renders better there.
+    Faces with colour detail (core.mesh_texture.face_detail) count as stuck only when a denser
+    round left their error above DETAIL_STUCK of what it was: hard texture edges sharpen a little
+    with every doubling, and left alone at STUCK they stayed a few large splats across."""
     cameras = (
         list(views) if views is not None else default_views(surface, view_size, view_count, distances=view_distances)
     )
@@ -431,6 +441,11 @@ def refine_rounds(
     mse_target = 10 ** (-target / 10)
     best, previous, rounds, stale = None, None, 0, 0
     saturated = np.zeros(len(area), bool)
+    # How much a denser face's error must fall to be refined again: colour detail (texture edges,
+    # lines, colour seams) sharpens a little with every doubling, an outline soon not at all (the
+    # grid plane's faces at its centre stopped at 5 splats each, their lines blurred, at STUCK).
+    detail = face_detail(surface) if style.get("texture_aware", True) else np.zeros(len(area), bool)
+    stuck = np.where(detail, DETAIL_STUCK, STUCK)
     stop = "no more splats help"
     if uniform:  # a budget: calibrated, no rounds
         fewest = MIN_BUDGET_SPLATS if try_fewer else max_splats
@@ -470,7 +485,7 @@ def refine_rounds(
         local = _smoothed_error_density(surface, m.err, m.px)
         if previous is not None:
             grew, before = previous
-            saturated |= grew & (local > 0.8 * before)
+            saturated |= grew & (local > stuck * before)
         grow = np.clip(local / (AIM * mse_target), 1.0, MAX_GROWTH)
         grow[saturated] = 1.0
         new = np.maximum(_grade(surface, np.minimum(density * grow, cap)), walls)
@@ -492,6 +507,11 @@ def refine_rounds(
     if stop == "max_splats" and memory_cap is not None:
         stop = "memory"
     psnr, cloud, inset, m = best
+    if fit_colours is not None and not uniform and detail.any():
+        fitted = fit_colours(cloud, v.cameras, [ref.color for ref in v.refs], render_mode)
+        fitted_m = v.measure(fitted)
+        if fitted_m.psnr > psnr:
+            psnr, cloud, m = fitted_m.psnr, fitted, fitted_m
     yield MAX_ROUNDS, MAX_ROUNDS, f"mesh2splats: {len(cloud)} splats, {psnr:.1f} dB"
     if isinstance(info, dict):
         worst = m.worst

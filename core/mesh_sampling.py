@@ -20,11 +20,13 @@ import numpy as np
 from . import geometry, jit
 from . import sh as shmod
 from .mesh import shade, to_display
+from .mesh_texture import colour_seams, local_corners, texture_edges
 from .parallel import WORKERS, map_threads
 from .spatial import NEIGHBOURS, Grid, morton_order, runs, sort_by_cell
 from .splats import SplatCloud, logit
 
 EDGE_SOFTNESS = 2.0  # spread across an outline edge <= distance to it / this
+TEXTURE_SOFTNESS = 1.0  # ... and across a colour edge (a texture's, a material's) <= distance / this
 MIN_ACROSS = 0.05  # ... but at least this fraction of the splat's sigma
 WALL_SIGMAS = 8.0  # a splat's in-plane sigma stays below the wall thickness behind it / this,
 SAME_WALL_SIGMAS = 4.0  # ... or / this where the far side's display colour is within LEAK_CONTRAST:
@@ -54,10 +56,22 @@ def budget_density(density, floor, area, count):
     return spend(hi)
 
 
-def build_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None, offset=None):
+def build_splats(
+    surface,
+    density,
+    overlap=0.8,
+    opacity=OPAQUE,
+    thickness=0.01,
+    seed=0,
+    max_splats=None,
+    offset=None,
+    texture_aware=True,
+):
     """Splats for a per-face density (splats per unit area; 0 for none), each moved by the face's
-    `offset` (world units, default 0) along its unit normal."""
-    unplaced = unplaced_splats(surface, density, overlap, opacity, thickness, seed, max_splats)
+    `offset` (world units, default 0) along its unit normal. `texture_aware` (default): colours
+    averaged over each splat's Gaussian, splats narrowed across colour edges (_outline_frames);
+    False: colours averaged over a square mip footprint of the splats' spacing, as before."""
+    unplaced = unplaced_splats(surface, density, overlap, opacity, thickness, seed, max_splats, texture_aware)
     return unplaced.placed(np.zeros(len(surface.faces)) if offset is None else offset)
 
 
@@ -79,7 +93,9 @@ class Unplaced:
         return self.cloud.replace(positions=self.points + shift[:, None] * self.normal, extras=extras)
 
 
-def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None):
+def unplaced_splats(
+    surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.01, seed=0, max_splats=None, texture_aware=True
+):
     """build_splats without the shift: an Unplaced."""
     expected = density * surface.area
     if max_splats is not None and expected.sum() > max_splats:
@@ -93,7 +109,17 @@ def unplaced_splats(surface, density, overlap=0.8, opacity=OPAQUE, thickness=0.0
     def part(rows):
         t = tri[rows]
         return _cloud(
-            surface, t, bary[rows], points[rows], density[t], rotations[t], edges, overlap, opacity[t], thickness
+            surface,
+            t,
+            bary[rows],
+            points[rows],
+            density[t],
+            rotations[t],
+            edges,
+            overlap,
+            opacity[t],
+            thickness,
+            texture_aware,
         )
 
     # Chunks on every core (NumPy releases the GIL): the hand's 636k splats build in half the time.
@@ -257,14 +283,22 @@ def _bisect(tri, n, corners, gram):
 # splats ------------------------------------------------------------------------------------------
 
 
-def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, opacity, thickness):
+def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, opacity, thickness, texture_aware=True):
     """Flat discs at the sample points `positions` (no shift): in-plane sigma overlap/sqrt(density),
-    normal axis thin; `edges` the faces' _edge_normals."""
+    normal axis thin, narrowed across outline edges and the surface's colour edges; `edges` the
+    faces' _edge_normals. Colours: the surface colour averaged over each disc's own Gaussian."""
     n = len(tri)
     sigma = overlap / np.sqrt(density)
-    rotations, in_plane = _outline_frames(surface, tri, bary, sigma, rotations, edges)
+    rotations, in_plane, covariance = _outline_frames(surface, tri, bary, sigma, rotations, edges, texture_aware)
     scales = np.column_stack([in_plane, thickness * sigma])
-    linear = surface.linear_colors(tri, bary, footprint=1.0 / np.sqrt(density))
+    if texture_aware:
+        # The Gaussian shrunk to half the splats' spacing (sigma / overlap): the render blurs the
+        # colours by the splats' Gaussians again, and a round splat then gets the colour a square
+        # mip footprint of its spacing gave (the whole Gaussian, blurred twice, lost the bench's
+        # wavy sphere 0.5 to 2 dB in budgets); a narrowed one, its ellipse likewise shrunk.
+        linear = surface.linear_colors(tri, bary, covariance=covariance / (2 * overlap) ** 2)
+    else:
+        linear = surface.linear_colors(tri, bary, footprint=1.0 / np.sqrt(density))
     if surface.view_dependent:
         sh = _rim_sh(surface, tri, linear)
     else:
@@ -285,37 +319,61 @@ def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, op
     )
 
 
-def _outline_frames(surface, tri, bary, sigma, rotations, edges):
-    """Rotations and in-plane scales (N,2), narrowed across nearby outline edges.
+def _outline_frames(surface, tri, bary, sigma, rotations, edges, texture_aware=True):
+    """Rotations, in-plane scales (N,2) and in-plane covariances (N,2,2) in the faces' local frames,
+    narrowed across nearby outline edges and colour edges.
 
     A disc near a boundary or a sharp crease would reach past it into the air and fatten the
     silhouette; its spread across that edge is therefore kept below its distance to the edge
     divided by EDGE_SOFTNESS (a rank-one update of the in-plane covariance per edge), so the
-    coverage falls to about one half on the edge itself, like an antialiased edge.
+    coverage falls to about one half on the edge itself, like an antialiased edge. Across a colour
+    edge (a texture's, or a material or vertex-colour boundary between faces: core.mesh_texture)
+    a disc would smear the edge over its width: there the spread is kept below the distance over
+    TEXTURE_SOFTNESS, so discs near the edge grow long along it and thin across it, and the discs
+    of both sides still cover the edge between them.
     """
-    in_plane = np.column_stack([sigma, sigma])
-    near = surface.sharp_edges()[tri]
-    sel = np.flatnonzero(near.any(axis=1))
+    n = len(tri)
+    covariance = np.zeros((n, 2, 2))
+    covariance[:, 0, 0] = covariance[:, 1, 1] = sigma**2
+    outline = surface.sharp_edges()[tri]
+    if texture_aware:
+        seam = colour_seams(surface)[tri] & ~outline
+        distance, across_texture = texture_edges(surface, tri, bary, sigma)
+    else:
+        seam, distance, across_texture = np.zeros_like(outline), np.full(n, np.inf), np.zeros((n, 2))
+    textured = distance < TEXTURE_SOFTNESS * sigma
+    sel = np.flatnonzero(outline.any(axis=1) | seam.any(axis=1) | textured)
     if not len(sel):
-        return rotations, in_plane
+        return rotations, np.column_stack([sigma, sigma]), covariance
     f, b, s = tri[sel], bary[sel], sigma[sel]
     across, reach = edges
-    # The in-plane covariance (xx, xy, yy) in the face's (first edge, normal x first edge) frame.
     xx, xy, yy = s**2, np.zeros(len(f)), s**2
-    for k in range(3):
-        ax, ay = across[f, k, 0], across[f, k, 1]
-        limit = np.maximum(b[:, k] * reach[f, k], MIN_ACROSS * s)
+
+    def narrow(ax, ay, limit, near):
+        nonlocal xx, xy, yy
         lx, ly = xx * ax + xy * ay, xy * ax + yy * ay  # the covariance times `across`
         spread = ax * lx + ay * ly
-        cut = np.where(near[sel, k] & (spread > limit**2), (1 - limit**2 / spread) / spread, 0.0)
+        cut = np.where(
+            near & (spread > limit**2), (1 - limit**2 / np.maximum(spread, 1e-300)) / np.maximum(spread, 1e-300), 0.0
+        )
         xx, xy, yy = xx - cut * lx * lx, xy - cut * lx * ly, yy - cut * ly * ly
+
+    for k in range(3):
+        distance_k = b[:, k] * reach[f, k] * EDGE_SOFTNESS  # to edge k
+        softness = np.where(outline[sel, k], EDGE_SOFTNESS, TEXTURE_SOFTNESS)
+        near = outline[sel, k] | seam[sel, k]
+        narrow(across[f, k, 0], across[f, k, 1], np.maximum(distance_k / softness, MIN_ACROSS * s), near)
+    limit = np.maximum(distance[sel] / TEXTURE_SOFTNESS, MIN_ACROSS * s)
+    narrow(across_texture[sel, 0], across_texture[sel, 1], limit, textured[sel])
+    covariance[sel] = np.stack([np.stack([xx, xy], -1), np.stack([xy, yy], -1)], 1)
     mean, radius = (xx + yy) / 2, np.hypot((xx - yy) / 2, xy)
     half = 0.25 * np.arctan2(2 * xy, xx - yy)  # half the major axis' angle from the first edge
     turn = np.column_stack([np.cos(half), np.zeros(len(f)), np.zeros(len(f)), np.sin(half)])
     rotations = rotations.copy()
     rotations[sel] = geometry.multiply_quaternions(rotations[sel], turn)  # turned about the normal
+    in_plane = np.column_stack([sigma, sigma])
     in_plane[sel] = np.sqrt(np.column_stack([mean + radius, np.maximum(mean - radius, 0.0)]))
-    return rotations, in_plane
+    return rotations, in_plane, covariance
 
 
 def _edge_normals(surface):
@@ -323,14 +381,7 @@ def _edge_normals(surface):
     frame: the unit in-plane normal of the edge pointing into the face (F,3,2), and
     2 area / (edge length * EDGE_SOFTNESS) (F,3): a point's barycentric coordinate k times this is
     its distance to the edge over EDGE_SOFTNESS."""
-    length1 = np.linalg.norm(surface.edge1, axis=1)
-    t1 = surface.edge1 / np.where(length1 > 0, length1, 1.0)[:, None]
-    t2 = np.cross(surface.normal, t1)
-    corners = np.zeros((len(surface.faces), 3, 2))
-    corners[:, 1, 0] = length1
-    corners[:, 2] = np.column_stack(
-        [np.einsum("ij,ij->i", surface.edge2, t1), np.einsum("ij,ij->i", surface.edge2, t2)]
-    )
+    corners = local_corners(surface)
     across, reach = np.zeros((len(surface.faces), 3, 2)), np.zeros((len(surface.faces), 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         for k in range(3):
