@@ -340,6 +340,7 @@ def test_values_pxr_refuses_are_refused_by_name(tmp_path, body):
         "half[] opacitiesh = [0.1, 1e-10]",
         "float[] opacities = [1e300, -inf] (\n doc = 'x'\n)",
         "quath[] orientationsh = [(1, 0, 0, 0), # the first\n (0, 0.6, 0.8, 0) /* the second */]",
+        'doublE[] primvars:extra = [72, 30] (\n interpolation = "vertex"\n)',
         "float[] opacities = [0.5, // a note\n 1e-3,]",
     ],
 )

@@ -19,7 +19,7 @@ from ..common import SplatFileError
 from ..policy import MAX_TEXT_LAYER_BYTES
 from .usda import COMPOSITION, Layer, element
 from .usda_tokens import ASSET, NUMBER, PATH, STRING, WORD, Asset, Tokens, Word, shown
-from .usda_values import BadValue, numeric_array, scalar, typed, typed_list
+from .usda_values import BadValue, Unregistered, numeric_array, scalar, typed, typed_list
 
 MAX_DEPTH = 256  # prims in prims, lists in lists, dictionaries in dictionaries
 SPECIFIERS = ("def", "over", "class")
@@ -390,10 +390,10 @@ def _reordered(children, order):
 
 def _text_value(type_name, value):
     """A value of a non-numeric type: strings and tokens in quotes, asset paths in @s (or quotes),
-    arrays of them in [ ] (values of types OpenUSD does not know are kept as read)."""
+    arrays of them in [ ]; the value of a type OpenUSD does not know is kept as Unregistered."""
     base = type_name.removesuffix("[]")
     if base not in ("string", "token", "asset"):
-        return value
+        return value if base in ("opaque", "group", "pathExpression") else Unregistered(value)
     is_array = type_name.endswith("[]")
     if is_array != isinstance(value, list):
         raise BadValue(f"a {type_name} needs {'a list in [ ]' if is_array else 'one value'}, found {shown(str(value))}")

@@ -17,6 +17,17 @@ class BadValue(ValueError):
     """A value that is not one of its type (the parser names the line)."""
 
 
+class Unregistered:
+    """The value of an attribute whose type OpenUSD does not know, kept as read: like Sdf's
+    UnregisteredValue it is no number nor array to the readers."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def __repr__(self):
+        return f"Unregistered({self.value!r:.60})"
+
+
 def shape_of(type_name, spec):
     """The shape of one element: () for a number, (n,) for a tuple, (k, k) for a matrix."""
     width = spec[1]
