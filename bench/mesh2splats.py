@@ -39,7 +39,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _oracles import pybullet_data  # noqa: E402
-from common import Row, Timing, paired, print_rows, timeit  # noqa: E402
+from common import Row, Timing, _combine, paired, print_rows, timeit  # noqa: E402
 
 from splatwright.core import (
     SplatCloud,  # noqa: E402
@@ -871,7 +871,66 @@ def run(quick=False, part=None):
     return rows
 
 
+def texture_rows(name, mesh, size, folder, quick):
+    """The default conversion texture-aware (the converter's default) against texture_aware=False
+    (the converter before it), in alternating fresh processes: held-out error, seconds and memory."""
+    cams = held_out_cameras(mesh, size, floor="plane" in name)
+    references, _ = cycles_render(mesh, [cam for _, cam in cams], folder)
+    repeat = 1  # one pair: a pair takes minutes on the 30k-triangle sphere
+    runs = {True: [], False: []}
+    for _ in range(repeat):
+        for aware in (False, True):
+            runs[aware].append(convert_in_child(mesh, folder, 1, view_size=size, texture_aware=aware))
+    (cloud, info, _, memory), (old_cloud, _, _, _) = runs[True][-1], runs[False][-1]
+    timing, baseline = (_combine([r[2] for r in runs[aware]]) for aware in (True, False))
+    error, before = by_distance(cloud, cams, references), by_distance(old_cloud, cams, references)
+    row = Row(
+        TOPIC,
+        f"{name}: default, texture-aware, against texture_aware=False",
+        timing,
+        baseline,
+        error=error,
+        extra={
+            "faces": len(mesh.faces),
+            "splats": len(cloud),
+            "splats before": len(old_cloud),
+            "reached": info["reached"],
+            "CPU s": f"{info.get('cpu_seconds', float('nan')):.1f}",
+            "before dB 0.5x / 1x / 3x": " / ".join(f"{before[f'dB {d:g}x']:.1f}" for d in DISTANCES),
+            "peak RSS MiB": round(memory["peak"] / 2**20),
+            "RSS growth MiB": round((memory["peak"] - memory["rss_before"]) / 2**20),
+            "predicted MiB": round(conversion_bytes(len(cloud), len(mesh.faces), default_view_pixels(size)) / 2**20),
+        },
+    )
+    return row, (len(cloud), error)
+
+
+def run_textured(quick=False):
+    """texture_rows for every textured bench mesh; the texture-aware defaults join the curves' plot."""
+    size = 128 if quick else 256
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        meshes, _ = bench_meshes(folder, quick)
+        # texture edges first (where texture awareness matters), then the largest, then the rest
+        names = sorted(
+            (n for n, m in meshes.items() if textured(m)), key=lambda n: ("checker" not in n, n != LARGE_NAME)
+        )
+        for name in names[:2] if quick else names:
+            row, default = texture_rows(name, meshes[name], size, folder, quick)
+            rows.append(row)
+            print_rows([row])
+            store = _load_curves()
+            if name in store["curves"]:
+                store["curves"][name]["texture_aware_default"] = default
+                CURVES_FILE.write_text(__import__("json").dumps(store, indent=1))
+    store = _load_curves()
+    _plot(store["curves"], operator_budget(), HERE / "mesh2splats_curve.png")
+    return rows
+
+
 PARTS = {part: (lambda quick, part=part: run(quick, part)) for part in ("first", "second", "corpus")}
+PARTS["textured"] = run_textured
 
 
 def _save_curve(name, curve, memory):
@@ -913,6 +972,9 @@ def _plot(curves, operator, path):
             key = f"dB {d:g}x"
             ax.plot(budgets, [e[key] for _, _, e, _ in pts], "o-", ms=3, color=f"C{k}", label=f"{d:g}x")
             ax.plot([splats], [default[key]], "*", ms=11, color=f"C{k}", mec="k", mew=0.5)
+            if "texture_aware_default" in curve:
+                aware_splats, aware = curve["texture_aware_default"]
+                ax.plot([aware_splats], [aware[key]], "D", ms=6, color=f"C{k}", mec="k", mew=0.5)
         doubling = [(n, worst_distance(e)) for n, _, e, _ in pts if n != operator]
         at = knee(doubling)
         if at:
@@ -930,7 +992,8 @@ def _plot(curves, operator, path):
         ax.set_xlabel("splat budget")
     axes[0, 0].legend(fontsize=7, title="held-out", title_fontsize=7)
     fig.suptitle(
-        f"mesh2splats: PSNR against splat budget (stars: default target {DEFAULT_TARGET_PSNR:g} dB at its splats; "
+        f"mesh2splats: PSNR against splat budget (stars: default target {DEFAULT_TARGET_PSNR:g} dB at its splats, "
+        "diamonds: the same texture-aware; "
         f"dashed: operator default {operator:,}; dotted: knee, next doubling < {KNEE_GAIN_DB:g} dB)",
         fontsize=9,
     )
