@@ -339,15 +339,21 @@ class PxrStages:
     def is_geometry(self, prim):
         return prim.IsA(UsdGeom.Gprim)
 
-    def world_matrix(self, prim, time):
-        """Its own ops are read with GetLocalTransformation: a pxr without the splat schema
+    def world_matrices(self, time):
+        """A prim's own ops are read with GetLocalTransformation: a pxr without the splat schema
         (Blender's) does not count the prim as Xformable, and ComputeLocalToWorldTransform would
-        skip them."""
-        xformable = UsdGeom.Xformable(prim)
-        local = np.array(xformable.GetLocalTransformation(time), dtype=np.float64).T
-        if xformable.GetResetXformStack():
-            return local
-        return np.array(UsdGeom.XformCache(time).GetParentToWorldTransform(prim), dtype=np.float64).T @ local
+        skip them. One XformCache serves every prim of the read: a cache per prim evaluated a parent's
+        ops once per child (a 1 MB layer of 6,000 ops over 1,500 children took 25 s)."""
+        cache = UsdGeom.XformCache(time)
+
+        def world(prim):
+            xformable = UsdGeom.Xformable(prim)
+            local = np.array(xformable.GetLocalTransformation(time), dtype=np.float64).T
+            if xformable.GetResetXformStack():
+                return local
+            return np.array(cache.GetParentToWorldTransform(prim), dtype=np.float64).T @ local
+
+        return world
 
     # writing
 

@@ -158,7 +158,7 @@ def _nonfinite_ops(prim, time):
     return bad
 
 
-def _read_prim(prim, time, matrices, notes):
+def _read_prim(prim, time, matrices, notes, world):
     """SplatPrim for a splat prim, or None for any other prim. matrices: (stage, capture) 4x4s taking
     world space to the target axes and units: stage-axes geometry, and the captures of prims that
     carry no upright transform (unmarked="capture")."""
@@ -171,7 +171,7 @@ def _read_prim(prim, time, matrices, notes):
         stage_m = capture_m
     prim_notes = []
     cloud, opacities, scales = reader(prim, time, prim_notes)
-    to_world = stage_m @ stages.active.world_matrix(prim, time)
+    to_world = stage_m @ world(prim)
     if not np.isfinite(to_world).all():
         ops = _nonfinite_ops(prim, time)
         where = f"its transform ops {', '.join(ops)} hold" if ops else "a parent prim's transform holds"
@@ -207,8 +207,9 @@ def _splat_prims(stage, time, axes, meters_per_unit, notes, unmarked="capture"):
         if axes == "RUB":
             capture_m = FLIP @ capture_m
     found, skipped = [], {}
+    world = stages.active.world_matrices(time)
     for prim in stages.active.traverse(stage):
-        got = _read_prim(prim, time, (stage_m, capture_m), notes)
+        got = _read_prim(prim, time, (stage_m, capture_m), notes, world)
         if got is not None:
             found.append(got)
         elif stages.active.is_geometry(prim) or prim.GetTypeName().startswith("ParticleField"):

@@ -71,8 +71,9 @@ class Stages(Protocol):
     def is_geometry(self, prim):
         """Whether the prim is geometry (a Gprim), so that skipping it is worth a warning."""
 
-    def world_matrix(self, prim, time):
-        """4x4 (column vectors) local-to-world transform of the prim at `time`."""
+    def world_matrices(self, time):
+        """A function prim -> its 4x4 (column vectors) local-to-world transform at `time`, sharing the
+        parents' transforms among the prims of one read (a parent's ops read once, not once a child)."""
 
     # writing
 

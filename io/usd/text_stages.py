@@ -51,8 +51,8 @@ class TextStages:
     def is_geometry(self, prim):
         return prim.GetTypeName() not in ("", "Xform", "Scope")
 
-    def world_matrix(self, prim, time):
-        return prim.world_matrix(time, prim.layer.read_matrices)
+    def world_matrices(self, time):
+        return lambda prim: prim.world_matrix(time, prim.layer.read_matrices)  # the layer caches parents
 
     # writing
 
