@@ -682,7 +682,7 @@ def test_openusd_errors_while_reading_values_become_named_errors(tmp_path, monke
             "'Corrupt asset: exception thrown unpacking a value'"
         )
 
-    monkeypatch.setattr(usd.stages.PXR, "world_matrix", failing)
+    monkeypatch.setattr(usd.stages.PXR, "world_matrices", lambda time: failing)
     with pytest.raises(
         SplatFileError,
         match=r"ok.usdc: OpenUSD cannot read it \(truncated or corrupt\?\): "
