@@ -207,7 +207,8 @@ def bench_meshes(folder, quick):
 
 
 def textured(mesh):
-    return any(m.texture is not None for m in mesh.materials or [])
+    """Whether the mesh's colour varies within faces: a texture, or colours per corner."""
+    return mesh.corner_colors is not None or any(m.texture is not None for m in mesh.materials or [])
 
 
 def held_out_cameras(mesh, size, per_distance=3, distances=DISTANCES, seed=5, floor=False):
@@ -915,10 +916,10 @@ def run_textured(quick=False):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         meshes, _ = bench_meshes(folder, quick)
-        # texture edges first (where texture awareness matters), then the largest, then the rest
-        names = sorted(
-            (n for n, m in meshes.items() if textured(m)), key=lambda n: ("checker" not in n, n != LARGE_NAME)
-        )
+        # texture edges first (where texture awareness matters), the corpus next, the rest last
+        first = ("checker", "duck", "hand", "corpus")
+        rank = lambda n: next((k for k, word in enumerate(first) if word in n), len(first))  # noqa: E731
+        names = sorted((n for n, m in meshes.items() if textured(m)), key=rank)
         for name in names[:2] if quick else names:
             row, default = texture_rows(name, meshes[name], size, folder, quick)
             rows.append(row)
@@ -926,7 +927,8 @@ def run_textured(quick=False):
             store = _load_curves()
             if name in store["curves"]:
                 store["curves"][name]["texture_aware_default"] = default
-                CURVES_FILE.write_text(__import__("json").dumps(store, indent=1))
+            store.setdefault("texture_rows", {})[name] = _row_data(row)
+            CURVES_FILE.write_text(__import__("json").dumps(store, indent=1))
     store = _load_curves()
     _plot(store["curves"], operator_budget(), HERE / "mesh2splats_curve.png")
     return rows
@@ -937,6 +939,7 @@ def run_summary(quick=False):
     or the plot changed, or parts ran apart)."""
     store, operator = _load_curves(), operator_budget()
     rows = [knee_row(name, curve, operator) for name, curve in store["curves"].items()]
+    rows += [_row_from(data) for data in store.get("texture_rows", {}).values()]
     rows.append(memory_row(store))
     _plot(store["curves"], operator, HERE / "mesh2splats_curve.png")
     return rows
@@ -954,6 +957,16 @@ def _save_curve(name, curve, memory):
     store = _load_curves()
     store["curves"][name], store["memories"][name] = curve, memory
     CURVES_FILE.write_text(json.dumps(store, indent=1))
+
+
+def _row_data(row):
+    timings = {k: vars(getattr(row, k)) for k in ("timing", "baseline") if getattr(row, k) is not None}
+    return {"case": row.case, **timings, "error": row.error, "extra": row.extra}
+
+
+def _row_from(data):
+    baseline = Timing(**data["baseline"]) if "baseline" in data else None
+    return Row(TOPIC, data["case"], Timing(**data["timing"]), baseline, data["error"], data["extra"])
 
 
 def _load_curves():
