@@ -550,8 +550,11 @@ def _checked_fit(v, cloud, fit_colours):
     check = list(range(FIT_CHECK_EVERY - 1, len(v.cameras), FIT_CHECK_EVERY))
     fit = [i for i in range(len(v.cameras)) if i not in check]
     fitted = fit_colours(cloud, [v.cameras[i] for i in fit], [v.refs[i].color for i in fit], v.mode)
-    before, after = v.psnr_of(cloud, check), v.psnr_of(fitted, check)
-    return fitted if min(after.values()) > min(before.values()) else None
+
+    def worst(c):  # the largest mean squared error of the views left out
+        return max(err.mean() for _, err in v._renders(c, check).values())
+
+    return fitted if worst(fitted) < worst(cloud) else None
 
 
 def _calibrate_inset(v, make, density, solid, evaluations=INSET_SEARCH):
