@@ -20,14 +20,16 @@ def _image(h, w, colour):
     return np.broadcast_to(np.asarray(colour, np.uint8), (h, w, 3)).copy()
 
 
-def stripe_texture(width=1024, height=256, period=64, stripe=24, background=CREAM, colour=RED):
+def stripe_texture(
+    width: int = 1024, height: int = 256, period: int = 64, stripe: int = 24, background=CREAM, colour=RED
+) -> np.ndarray:
     """Hard vertical stripes: `stripe` texels of `colour` every `period` texels along u."""
     img = _image(height, width, background)
     img[:, (np.arange(width) % period) < stripe] = colour
     return img
 
 
-def grid_texture(size=1024, squares=8, line_every=32, line_width=1):
+def grid_texture(size: int = 1024, squares: int = 8, line_every: int = 32, line_width: int = 1) -> np.ndarray:
     """A two-colour checkerboard of `squares` x `squares` with dark lines `line_width` texels wide
     every `line_every` texels: hard edges and lines thinner than any splat a distant view needs."""
     i = np.arange(size)
@@ -53,7 +55,7 @@ _GLYPHS = {
 }
 
 
-def text_texture(text="SPLAT 42", scale=8, margin=2, background=CREAM, colour=INK):
+def text_texture(text: str = "SPLAT 42", scale: int = 8, margin: int = 2, background=CREAM, colour=INK) -> np.ndarray:
     """Lettering rasterised from a 5 x 7 font, each font pixel `scale` texels square, with a
     one-texel outline box round it: a decal's glyph edges and thin lines."""
     rows = [" ".join(_GLYPHS[c][r] for c in text) for r in range(7)]
@@ -73,7 +75,9 @@ def _grid(nu, nv):
     return np.column_stack([u.ravel(), v.ravel()]), f
 
 
-def striped_cylinder(segments=64, rings=32, radius=0.5, height=1.0, texture=None):
+def striped_cylinder(
+    segments: int = 64, rings: int = 32, radius: float = 0.5, height: float = 1.0, texture=None
+) -> Mesh:
     """An open cylinder of 2 x segments x rings triangles (4,096 by default), a 1024 x 256 texture
     of 24-texel red stripes every 64 texels wrapped once round it (its seam at u = 0 = 1)."""
     uv, f = _grid(segments, rings)
@@ -83,7 +87,7 @@ def striped_cylinder(segments=64, rings=32, radius=0.5, height=1.0, texture=None
     return Mesh(v, f, uv[f], None, [Material(texture=tex)])
 
 
-def grid_plane(n=32, size=2.0, texture=None):
+def grid_plane(n: int = 32, size: float = 2.0, texture=None) -> Mesh:
     """A square plane of 2 n^2 triangles (2,048 by default) in y = 0, facing up, with a checkerboard
     and one-texel grid lines."""
     uv, f = _grid(n, n)
@@ -92,7 +96,14 @@ def grid_plane(n=32, size=2.0, texture=None):
     return Mesh(v, f, uv[f], None, [Material(texture=tex)])
 
 
-def striped_cup(segments=256, profile_steps=57, radius=0.04, height=0.09, wall=0.005, texture=None):
+def striped_cup(
+    segments: int = 256,
+    profile_steps: int = 57,
+    radius: float = 0.04,
+    height: float = 0.09,
+    wall: float = 0.005,
+    texture=None,
+) -> Mesh:
     """A closed cup turned from a profile (outside floor, outer wall, rim, inner wall, inner floor),
     about 29k triangles by default: hard red stripes round the outside (material 0, its seam at
     u = 0 = 1), plain blue inside (material 1)."""
@@ -130,7 +141,7 @@ def striped_cup(segments=256, profile_steps=57, radius=0.04, height=0.09, wall=0
     return Mesh(v, f, uv[f], material, [Material(texture=tex), Material(base_color=(0.05, 0.2, 0.9))])
 
 
-def decal_box(n=8, size=1.0):
+def decal_box(n: int = 8, size: float = 1.0) -> Mesh:
     """A box of 6 x 2 n^2 triangles and three materials: painted wood-red sides (a base colour),
     a lettered decal on the front, and a stripe texture mirrored about the middle of the top (its
     UVs run back at u = 0.5, as artists mirror a symmetric texture) and on the back (a UV seam)."""
@@ -169,7 +180,7 @@ def decal_box(n=8, size=1.0):
     )
 
 
-def vertex_coloured_sphere(segments=48, rings=24):
+def vertex_coloured_sphere(segments: int = 48, rings: int = 24) -> Mesh:
     """A UV sphere coloured by corner colours only (no texture): flat-coloured bands, each face one
     colour, so colour changes hard along triangle edges, and a smooth blend on the lower half."""
     uv, f = _grid(segments, rings)
@@ -187,7 +198,7 @@ def vertex_coloured_sphere(segments=48, rings=24):
     return Mesh(v, f, None, None, [Material(base_color=(1.0, 1.0, 1.0))], colours)
 
 
-def textured_corpus(small=False):
+def textured_corpus(small: bool = False) -> dict[str, Mesh]:
     """name -> Mesh: the textured meshes mesh-to-splats is measured on. `small` gives coarser
     meshes and textures of the same kinds, for tests."""
     if small:

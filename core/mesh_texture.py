@@ -23,7 +23,7 @@ STEP_CONTRAST = 0.1  # ... and between the two sides of an edge, blurred to a sp
 MAX_TAPS = 9  # footprint_average's lookups along an elongated footprint, at most
 
 
-def local_corners(surface):
+def local_corners(surface) -> np.ndarray:
     """(F,3,2) the faces' corners in their local frames (corner 0 at the origin)."""
     length1 = np.linalg.norm(surface.edge1, axis=1)
     t1 = surface.edge1 / np.where(length1 > 0, length1, 1.0)[:, None]
@@ -36,7 +36,7 @@ def local_corners(surface):
     return corners
 
 
-def texel_jacobians(surface, material):
+def texel_jacobians(surface, material) -> np.ndarray:
     """(F,2,2): d(texel x, y) / d(local x, y) of `material`'s texture on every face (0 where a
     face's UVs or geometry are degenerate)."""
     h, w = material.texture.shape[:2]
@@ -52,7 +52,9 @@ def texel_jacobians(surface, material):
     return np.where(ok[:, None, None], dt @ inverse, 0.0)
 
 
-def footprint_average(levels, uv, cov, max_taps=MAX_TAPS):
+def footprint_average(
+    levels: list[np.ndarray], uv: np.ndarray, cov: np.ndarray, max_taps: int = MAX_TAPS
+) -> np.ndarray:
     """The texture averaged over Gaussian footprints: (n,3) float64 for texel-space covariances
     cov (n,2,2) centred at uv (n,2) (v up, as sample_texture takes them); `levels` a mipmap
     (core.mesh.Material.mipmap).
@@ -108,7 +110,7 @@ class EdgeField:
     (dx, dy) in texels from its centre to the nearest edge between texels whose display colours
     differ by more than EDGE_CONTRAST, and that edge's unit normal (texel space)."""
 
-    def __init__(self, linear_texture):
+    def __init__(self, linear_texture: np.ndarray):
         from scipy import ndimage
 
         display = to_display(linear_texture.astype(np.float64))
@@ -135,7 +137,7 @@ class EdgeField:
         nx, ny = ndimage.uniform_filter(nx, 3), ndimage.uniform_filter(ny, 3)
         self.nx, self.ny = nx[iy[0::2, 0::2], ix[0::2, 0::2]], ny[iy[0::2, 0::2], ix[0::2, 0::2]]
 
-    def at(self, uv):
+    def at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset (n,2), normal (n,2)) in texels at texture coordinates uv (n,2), wrapped."""
         h, w = self.dx.shape
         fx, fy = uv[:, 0] * w, (1.0 - uv[:, 1]) * h
@@ -153,7 +155,9 @@ class EdgeField:
         return offset, normal
 
 
-def texture_edges(surface, tri, bary, sigma=None):
+def texture_edges(
+    surface, tri: np.ndarray, bary: np.ndarray, sigma: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(distance (n,), across (n,2)): each point's distance (world units) to the nearest texture
     edge of its material, and that edge's unit normal in the face's local frame; inf and 0 where
     its material has no texture (or no edges).
@@ -206,7 +210,7 @@ def _is_step(material, uv, offset, normal, reach):
     return np.abs(near - far).max(axis=1) > STEP_CONTRAST
 
 
-def face_detail(surface):
+def face_detail(surface) -> np.ndarray:
     """(F,) bool: faces with colour detail, a texture edge within their reach (the distance from
     their centroid to the nearest edge below their size) or a colour seam along them."""
     detail = colour_seams(surface).any(axis=1)
@@ -216,7 +220,7 @@ def face_detail(surface):
     return (detail | (distance < size)) & surface.valid
 
 
-def colour_seams(surface, contrast=EDGE_CONTRAST):
+def colour_seams(surface, contrast: float = EDGE_CONTRAST) -> np.ndarray:
     """(F,3) bool: edge k of a face (opposite corner k) where the surface colour changes hard
     across it: another material, or corner colours that differ from the neighbour's on the shared
     edge by more than `contrast` (display). Welded by position, like core.mesh's outline edges."""
@@ -247,12 +251,12 @@ def colour_seams(surface, contrast=EDGE_CONTRAST):
     return seams.reshape(-1, 3) & surface.valid[:, None]
 
 
-def to_display(linear):
+def to_display(linear: np.ndarray) -> np.ndarray:
     """Scene-linear -> display sRGB as an emission shader shows it under the 'Standard' view."""
     return color.linear_to_srgb(np.clip(linear, 0.0, 1.0))
 
 
-def sample_texture(texture, uv):
+def sample_texture(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear lookup with repeat wrapping: (H,W,C) texture, (n,2) uv with v up -> (n,C) float64."""
     h, w = texture.shape[:2]
     x = np.asarray(uv[:, 0], np.float64) * w - 0.5
@@ -270,7 +274,7 @@ def sample_texture(texture, uv):
     return top * (1 - fy) + bottom * fy
 
 
-def sample_mipmap(levels, uv, level):
+def sample_mipmap(levels: list[np.ndarray], uv: np.ndarray, level: np.ndarray) -> np.ndarray:
     """Trilinear lookup: bilinear in the two mip levels around `level` (n,), blended."""
     level = np.clip(level, 0.0, len(levels) - 1.0)
     lo = np.floor(level).astype(np.int64)
