@@ -24,6 +24,7 @@ from .mesh_sampling import (
     thin_wall_density,
     wall_thickness,
 )
+from .splats import SplatCloud
 from .steps import drain
 
 # The entry points, and the sampling names callers of mesh_to_splats reach for.
@@ -194,7 +195,14 @@ def mesh_to_splats_steps(
     return cloud.replace(antialiased=render_mode == "antialiased")
 
 
-def fit_colours_to_views(cloud, cameras, images, render_mode, iterations=FIT_ITERATIONS, damping=FIT_DAMPING):
+def fit_colours_to_views(
+    cloud: SplatCloud,
+    cameras: list,
+    images: list,
+    render_mode: str,
+    iterations: int = FIT_ITERATIONS,
+    damping: float = FIT_DAMPING,
+) -> SplatCloud:
     """`cloud` with its colours fitted to the mesh's renders `images` from `cameras`: core.bake's
     linear least squares through the renderer's adjoint, started from and damped towards the
     colours sampled from the surface, so splats that few views see keep those."""
