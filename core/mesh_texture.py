@@ -111,31 +111,35 @@ class EdgeField:
     differ by more than EDGE_CONTRAST, and that edge's unit normal (texel space)."""
 
     def __init__(self, linear_texture: np.ndarray):
-        from scipy import ndimage
-
         display = to_display(linear_texture.astype(np.float64))
-        step_x = _hard_steps(np.abs(np.diff(display, axis=1)).max(axis=2), 1)  # between columns j, j+1
-        step_y = _hard_steps(np.abs(np.diff(display, axis=0)).max(axis=2), 0)
-        h, w = display.shape[:2]
-        # Edges live between texels: on a grid of twice the resolution, at the odd places between.
-        fine = np.zeros((2 * h, 2 * w), bool)
-        fine[0::2, 1:-1:2] = step_x
-        fine[1:-1:2, 0::2] = step_y
-        self.any = bool(fine.any())
+        # the steps between columns j and j + 1, and rows i and i + 1, the last and first included
+        step_x = _hard_steps(np.abs(np.roll(display, -1, axis=1) - display).max(axis=2), 1)
+        step_y = _hard_steps(np.abs(np.roll(display, -1, axis=0) - display).max(axis=2), 0)
+        self.any = bool(step_x.any() or step_y.any())
         if not self.any:
             return
-        _, (iy, ix) = ndimage.distance_transform_edt(~fine, return_indices=True)
-        centre_y, centre_x = np.mgrid[0 : 2 * h : 2, 0 : 2 * w : 2]
-        self.dx = (ix[0::2, 0::2] - centre_x) / 2.0
-        self.dy = (iy[0::2, 0::2] - centre_y) / 2.0
-        # The edge's normal where it is: the colour gradient there, from the edge's own orientation
-        # (a step between columns is a vertical edge, normal along x), averaged over a 3x3 window.
-        nx = np.zeros((2 * h, 2 * w))
-        ny = np.zeros((2 * h, 2 * w))
-        nx[0::2, 1:-1:2] = step_x
-        ny[1:-1:2, 0::2] = step_y
-        nx, ny = ndimage.uniform_filter(nx, 3), ndimage.uniform_filter(ny, 3)
-        self.nx, self.ny = nx[iy[0::2, 0::2], ix[0::2, 0::2]], ny[iy[0::2, 0::2], ix[0::2, 0::2]]
+        h, w = display.shape[:2]
+        # The texels beside each hard step start with its midpoint as their nearest edge point, and
+        # the step's signed size (summed over the channels) as its normal.
+        seed = np.zeros((h, w), bool)
+        point = np.zeros((2, h, w))  # (y, x) of the nearest edge point, texel centres at integers
+        grad = np.zeros((2, h, w))  # (x, y) signed steps around each texel: the edges' normals
+        total = display.sum(axis=2)
+        for axis, steps in ((1, step_x), (0, step_y)):
+            r, c = np.nonzero(steps)
+            size = (np.roll(total, -1, axis=axis) - total)[r, c]
+            for rr, cc in ((r, c), ((r + (axis == 0)) % h, (c + (axis == 1)) % w)):
+                seed[rr, cc] = True
+                point[0, rr, cc] = r + 0.5 * (axis == 0)
+                point[1, rr, cc] = c + 0.5 * (axis == 1)
+                np.add.at(grad[1 - axis], (rr, cc), size)
+        box = sum(np.roll(grad, (dy, dx), axis=(1, 2)) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+        normal = np.where(seed, box, 0.0)
+        point, normal = _jump_flood(seed, point, normal)
+        rows, cols = np.mgrid[0:h, 0:w]
+        self.dy = (point[0] - rows + h / 2) % h - h / 2  # textures repeat: the way round if shorter
+        self.dx = (point[1] - cols + w / 2) % w - w / 2
+        self.nx, self.ny = normal
 
     def at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset (n,2), normal (n,2)) in texels at texture coordinates uv (n,2), wrapped."""
@@ -153,6 +157,41 @@ class EdgeField:
             (length > 0)[:, None], normal / np.maximum(length, 1e-12)[:, None], offset / np.maximum(way, 1e-12)[:, None]
         )
         return offset, normal
+
+
+def _jump_flood(seed, point, normal):
+    """Every texel's nearest of the seeds' points, and that seed's `normal`, on a repeating grid:
+    jump flooding (each texel takes a neighbour's point where nearer, at steps of half the size,
+    a quarter, ... 1, then 1 again), in NumPy: every texel at once, a shift at a time."""
+    h, w = seed.shape
+    rows, cols = np.mgrid[0:h, 0:w]
+
+    def distance2(p):
+        dy = (p[0] - rows + h / 2) % h - h / 2
+        dx = (p[1] - cols + w / 2) % w - w / 2
+        return dy * dy + dx * dx
+
+    best = np.where(seed, distance2(point), np.inf)
+    step = 1 << max(int(np.log2(max(h, w))) - 1, 0)
+    steps = []
+    while step >= 1:
+        steps.append(step)
+        step //= 2
+    for step in steps + [1]:
+        for dy in (-step, 0, step):
+            for dx in (-step, 0, step):
+                if not (dy or dx):
+                    continue
+                has = np.roll(seed, (dy, dx), axis=(0, 1))
+                p = np.roll(point, (dy, dx), axis=(1, 2))
+                d = np.where(has, distance2(p), np.inf)
+                nearer = d < best
+                if nearer.any():
+                    best = np.where(nearer, d, best)
+                    seed = seed | nearer
+                    point = np.where(nearer, p, point)
+                    normal = np.where(nearer, np.roll(normal, (dy, dx), axis=(1, 2)), normal)
+    return point, normal
 
 
 def texture_edges(
