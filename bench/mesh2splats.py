@@ -940,6 +940,8 @@ def run_summary(quick=False):
     store, operator = _load_curves(), operator_budget()
     rows = [knee_row(name, curve, operator) for name, curve in store["curves"].items()]
     rows += [_row_from(data) for data in store.get("texture_rows", {}).values()]
+    report = (HERE / "REPORT.md").read_text() if (HERE / "REPORT.md").exists() else ""
+    rows += [row for row in _curve_rows_from(store) if f"| {row.case} |" not in report]
     rows.append(memory_row(store))
     _plot(store["curves"], operator, HERE / "mesh2splats_curve.png")
     return rows
@@ -957,6 +959,28 @@ def _save_curve(name, curve, memory):
     store = _load_curves()
     store["curves"][name], store["memories"][name] = curve, memory
     CURVES_FILE.write_text(json.dumps(store, indent=1))
+
+
+def _curve_rows_from(store):
+    """The default and budget rows of every stored curve (for a part stopped before it reported)."""
+    for name, curve in store["curves"].items():
+        splats, error = curve["default"]
+        memory = store["memories"][name]
+        yield Row(
+            TOPIC,
+            f"{name}: default (target {DEFAULT_TARGET_PSNR:g} dB, {DEFAULT_RENDER_MODE})",
+            Timing(float("nan"), 0.0, 0),
+            error=error,
+            extra={
+                "faces": memory["faces"],
+                "splats": splats,
+                "peak RSS MiB": round(memory["peak"] / 2**20),
+                "RSS growth MiB": round((memory["peak"] - memory["rss_before"]) / 2**20),
+                "predicted MiB": round(memory["predicted"] / 2**20),
+            },
+        )
+        for n, kept, error, seconds in curve["budgets"]:
+            yield Row(TOPIC, f"{name}: budget {n}", Timing(seconds, 0.0, 1), error=error, extra={"splats": kept})
 
 
 def _row_data(row):
