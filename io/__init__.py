@@ -29,10 +29,11 @@ FORMATS = {
     ".ksplat": "ksplat",
     "lod-meta.json": "sog_streamed",
     ".lcc2": "lcc2",
+    ".lcc": "lcc",
 }
 
 # formats Splatwright reads but does not write
-READ_ONLY = {"ksplat", "sog_streamed", "lcc2"}
+READ_ONLY = {"ksplat", "sog_streamed", "lcc2", "lcc"}
 
 
 # format module -> the extension a writer's file gets when only the format is named (OpenUSD: .usd,

@@ -16,11 +16,11 @@ from ..data.errors import EXPECTED_ERRORS
 from ..data.progress import Progress
 from .export_options import ExportOptionProperties
 
-FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)  # .ksplat, lod-meta.json and .lcc2 among them
+FILTER_GLOB = ";".join(f"*{ext}" for ext in FORMATS)  # .ksplat, lod-meta.json, .lcc2 and .lcc among them
 EXPORT_FILTER_GLOB = ";".join(f"*{ext}" for ext, fmt in FORMATS.items() if fmt not in READ_ONLY)
 EXTENSIONS = ";".join(FORMATS)
 MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat)"
-IMPORT_MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat, .ksplat, .lcc2)"
+IMPORT_MENU_LABEL = "Gaussian Splats (.ply, .spz, .usd, .sog, .glb, .splat, .ksplat, .lcc2, .lcc)"
 
 # 3DGS captures come out of COLMAP/OpenCV: the scene's up is -Y and cameras look along +Z. These
 # defaults turn that upright in Blender (file x, y, z -> Blender x, z, -y, a quarter turn about X).
