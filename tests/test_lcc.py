@@ -5,6 +5,8 @@ indexes, files and folders are refused by name."""
 
 import json
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -201,6 +203,19 @@ def test_lcc_dispatches_and_is_read_only(tmp_path):
     assert format_of("x/meta.LCC") == "lcc" and format_of("x/scene.lcc2") == "lcc2" and "lcc" in READ_ONLY
     with pytest.raises(SplatFileError, match=r"meta\.lcc: Splatwright reads this format but does not write it"):
         write_splats(tmp_path / "meta.lcc", source_cloud(3, 0, 0))
+
+
+def test_blender_import_dialog_offers_lcc_and_export_does_not():
+    """The extension's file filters (in a child process: importing them imports bpy)."""
+    script = (
+        "from splatwright.splat_addon.files import import_export as d; "
+        "print(d.FILTER_GLOB); print(d.EXPORT_FILTER_GLOB); print(d.IMPORT_MENU_LABEL)"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    imports, exports, label = done.stdout.splitlines()[-3:]
+    assert {"*.lcc", "*.lcc2"} <= set(imports.split(";")) and "*.lcc" not in exports.split(";")
+    assert ".lcc)" in label
 
 
 def small_scene(folder, degree=3, environment=True):
