@@ -18,7 +18,7 @@ import numpy as np
 
 from . import color
 
-EDGE_CONTRAST = 0.08  # display-colour step (largest channel) between neighbouring texels that is an edge
+EDGE_CONTRAST = 0.08  # display-colour step (largest channel) between neighbouring texels that can be an edge
 STEP_CONTRAST = 0.1  # ... and between the two sides of an edge, blurred to a splat's scale, that it narrows across
 MAX_TAPS = 9  # footprint_average's lookups along an elongated footprint, at most
 
@@ -107,8 +107,10 @@ def _hard_steps(steps, axis):
 
 class EdgeField:
     """Where a texture changes hard, and how far each texel is from there: per texel, the offset
-    (dx, dy) in texels from its centre to the nearest edge between texels whose display colours
-    differ by more than EDGE_CONTRAST, and that edge's unit normal (texel space)."""
+    (dx, dy) in texels from its centre to the nearest hard step between neighbouring texels
+    (_hard_steps), the way round the repeating texture if shorter, and that edge's normal (nx,
+    ny; texel space, not normalised: the signed steps around it). Computed once per texture
+    (core.mesh.Material.edge_field); `any` is False for a texture without hard steps."""
 
     def __init__(self, linear_texture: np.ndarray):
         display = to_display(linear_texture.astype(np.float64))
