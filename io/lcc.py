@@ -15,7 +15,8 @@ fixed (lower case, as splat-transform opens them, or capitalised, as the white p
                      SH coefficients, 11/10/11 bits of r/g/b between the shcoef attribute's min, max
     environment.bin  (optional) the environment, e.g. the sky: a data.bin record followed, for
                      "Quality", by its shcoef record; ranges from envscale and envshcoef
-A level is its units' splats in index order, as splat-transform reads them. The scene's global
+A level is its units' splats in index order, as splat-transform reads them; an entry's byte size is
+not used (its count of 32-byte records is). The scene's global
 offset, shift and scale are not applied (splat-transform does not either). Like LCC2, the scene is
 Z up: it is read turned into the PLY's axes by a quarter turn about X. Every file goes through
 io.policy.referenced_file; every run the index names is checked against the files' sizes, and runs

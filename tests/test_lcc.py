@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from helpers import skip_platform
 from interop import assert_same_splats, splat_transform
-from test_io_fuzz import outcome
+from test_io_fuzz import SMALL_PEAK, outcome, peak_bytes
 from test_new_readers import HOSTILE_VALUES, replaced, scalar_paths
 
 from splatwright.core import SplatCloud
@@ -247,6 +247,7 @@ def patch_index(folder, unit, level, count=None, offset=None, total=2):
 def test_hostile_lcc_counts_and_offsets_are_refused_before_allocating(tmp_path, count, offset, problem):
     path = small_scene(tmp_path)
     patch_index(tmp_path, unit=1, level=0, count=count, offset=offset)
+    assert peak_bytes(lambda: outcome(read_splats, path, levels="all")) < SMALL_PEAK
     with pytest.raises(SplatFileError, match=rf"meta\.lcc: index\.bin: .*({problem})"):
         read_splats(path, levels="all")
 
