@@ -57,6 +57,7 @@ from .forms import (
     stamp_unrecorded,
     update_splats,
 )
+from .handlers import add_handlers, remove_handlers
 from .keys import (
     ANTIALIASED,
     EXACT_LOG_SCALE,

@@ -32,12 +32,8 @@ HANDLERS = ((bpy.app.handlers.depsgraph_update_post, _on_depsgraph_update), (bpy
 
 
 def register():
-    for handlers, fn in HANDLERS:
-        if fn not in handlers:
-            handlers.append(fn)
+    data.add_handlers(HANDLERS)
 
 
 def unregister():
-    for handlers, fn in HANDLERS:
-        if fn in handlers:
-            handlers.remove(fn)
+    data.remove_handlers(HANDLERS)

@@ -828,15 +828,11 @@ HANDLERS = (
 def register():
     if poser not in data.POSERS:
         data.POSERS.append(poser)
-    for handlers, fn in HANDLERS:
-        if fn not in handlers:
-            handlers.append(fn)
+    data.add_handlers(HANDLERS)
 
 
 def unregister():
-    for handlers, fn in HANDLERS:
-        if fn in handlers:
-            handlers.remove(fn)
+    data.remove_handlers(HANDLERS)
     if poser in data.POSERS:
         data.POSERS.remove(poser)
     if bpy.app.timers.is_registered(_refill):
