@@ -13,7 +13,6 @@ import pytest
 from test_spz_splat import check_spz_error, in_range_cloud
 
 from splatwright.cli import main
-from splatwright.core import SplatCloud
 from splatwright.core import sh as shmod
 from splatwright.io import SplatFileWarning, ply, read_splats, spz, write_splats
 from splatwright.io.spz_axes import from_model, to_model
@@ -280,33 +279,11 @@ def test_cli_convert_and_render_read_the_axes_asked(capsys, wild, tmp_path):
 # Niantic's library ---------------------------------------------------------------------------------
 
 
-def niantic_json(cloud):
-    n, k = len(cloud), cloud.sh.shape[1]
-    return dict(
-        numPoints=n,
-        shDegree=cloud.sh_degree,
-        positions=cloud.positions,
-        scales=cloud.log_scales,
-        rotations=cloud.rotations[:, [1, 2, 3, 0]],
-        alphas=cloud.opacity_logits,
-        colors=cloud.sh[:, 0],
-        sh=cloud.sh[:, 1:].reshape(n, 3 * (k - 1)),
-    )
-
-
-def from_niantic_json(a):
-    n, k = int(a["numPoints"]), (int(a["shDegree"]) + 1) ** 2
-    xyzw = np.reshape(a["rotations"], (n, 4)).astype(np.float32)
-    sh = np.concatenate([np.reshape(a["colors"], (n, 1, 3)), np.reshape(a["sh"], (n, k - 1, 3))], axis=1)
-    return SplatCloud(np.reshape(a["positions"], (n, 3)), xyzw[:, [3, 0, 1, 2]], np.reshape(a["scales"], (n, 3)),
-                      np.reshape(a["alphas"], n), sh)  # fmt: skip
-
-
 def niantic_reads(tmp_path, path):
-    from interop import load_json, node
+    from interop import cloud_from_niantic, load_json, node
 
     node("adobe_spz.mjs", "read", path, tmp_path / "back.json")
-    return from_niantic_json(load_json(tmp_path / "back.json"))
+    return cloud_from_niantic(load_json(tmp_path / "back.json"))
 
 
 def agree(ours, theirs):
@@ -323,10 +300,10 @@ NIANTIC_HALF_TURNED = {"LFD", "RFD", "LBU", "RBU"}
 @pytest.mark.slow
 @pytest.mark.parametrize("name", NIANTIC_CODES)
 def test_niantic_writes_every_system_and_both_read_it_alike(tmp_path, name):
-    from interop import node, save_json
+    from interop import niantic_arrays, node, save_json
 
     cloud = in_range_cloud(100, degree=4, seed=11)
-    save_json(tmp_path / "cloud.json", **niantic_json(cloud))
+    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
     node("adobe_spz.mjs", "write", tmp_path / "cloud.json", tmp_path / "theirs.spz", 4, name)
     facts = {}
     ours = spz.read(tmp_path / "theirs.spz", facts=facts)
@@ -346,10 +323,10 @@ def test_niantic_writes_every_system_and_both_read_it_alike(tmp_path, name):
 def test_rdf_files_are_niantics_bytes(tmp_path, version):
     """Written in RDF, our files are the bytes Niantic's writer makes with an RDF record; its reader
     (whose WebAssembly build skips v2/v3 records) takes the v4 file as we do."""
-    from interop import node, save_json
+    from interop import niantic_arrays, node, save_json
 
     cloud = in_range_cloud(100, degree=3, seed=12)
-    save_json(tmp_path / "cloud.json", **niantic_json(cloud))
+    save_json(tmp_path / "cloud.json", **niantic_arrays(cloud))
     node("adobe_spz.mjs", "write", tmp_path / "cloud.json", tmp_path / "theirs.spz", version, "RDF")
     spz.write(tmp_path / "ours.spz", cloud, version=version, spz_axes="rdf")
     assert (tmp_path / "ours.spz").read_bytes() == (tmp_path / "theirs.spz").read_bytes()
