@@ -539,8 +539,8 @@ def refine_rounds(
             views=len(cameras),
             rounds=rounds,
         )
-        if memory_budget is not None:
-            info.update(memory_budget=memory_budget, memory_cap=memory_cap)
+        if memory_budget is not None:  # the cap is reported only where it bound
+            info.update(memory_budget=memory_budget, memory_cap=memory_cap if uniform or stop == "memory" else None)
         if uniform:
             info.update(budget=max_splats)
         if not uniform:

@@ -156,3 +156,13 @@ def test_the_command_takes_a_budget_and_tells_the_size_before_writing(tmp_path):
         cwd=REPO_ROOT.parent,
     )
     assert bad.returncode == 2 and "expected a size such as 4G" in bad.stderr
+
+
+def test_a_budget_that_did_not_bind_is_not_reported():
+    from splatwright.core.mesh_refine import summary
+
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    info = {}
+    mesh_to_splats(vertices, np.array([[0, 1, 2], [0, 2, 3]]), target_psnr=20, view_size=32, view_count=1, info=info)
+    assert info["reached"] and info["memory_budget"] > 0
+    assert info["memory_cap"] is None and "memory budget" not in summary(info)
