@@ -22,7 +22,7 @@ import numpy as np
 
 from ..core import color
 from ..core.mesh import Material, Mesh
-from .common import SplatFileError, read_text
+from .common import SplatFileError, check_file, read_text
 from .policy import MAX_IMAGE_PIXELS, inside, outside_message
 
 THE_FOLDER = "the model's folder"
@@ -49,8 +49,7 @@ def read_mesh(path, allow_outside=False):
     """Read an OBJ file (and the MTL files and textures it names) into a core.mesh.Mesh.
     allow_outside: follow MTL and texture names outside the OBJ's folder too."""
     path = Path(path)
-    if not path.is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     if path.suffix.lower() != ".obj":
         raise SplatFileError(path, f"unknown mesh file extension '{path.suffix}' (known: .obj)")
     return _ObjReader(path, allow_outside).read()

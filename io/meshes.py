@@ -25,7 +25,7 @@ import numpy as np
 from ..core import color
 from ..core.mesh import Material, Mesh
 from ..core.robot import join_meshes
-from .common import SplatFileError, SplatFileWarning
+from .common import SplatFileError, SplatFileWarning, check_file
 from .image import check_image_size, header_size
 from .mesh import read_mesh
 from .policy import referenced_file
@@ -37,8 +37,7 @@ def read_mesh_file(path: str | os.PathLike, allow_outside: bool = False) -> Mesh
     """Read a triangle mesh file of any format trimesh knows (OBJ natively) into a core.mesh.Mesh.
     allow_outside: follow the names of other files outside the mesh's folder too."""
     path = Path(path)
-    if not path.is_file():
-        raise SplatFileError(path, "no such file")
+    check_file(path)
     if path.suffix.lower() in OWN_FORMATS:
         return read_mesh(path, allow_outside=allow_outside)
     try:
