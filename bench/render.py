@@ -332,8 +332,14 @@ MEMORY_CHILD = """
     from splatwright.io import read_splats
     from splatwright.core.camera import Camera
     from splatwright.core.render import render
+
+    def peak():  # this process's own (VmHWM); ru_maxrss also counts the parent's memory at the fork
+        linux = sys.platform == "linux"
+        hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM")] if linux else []
+        return int(hwm[0].split()[1]) * 1024 if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
     cloud = read_splats(sys.argv[1])
-    read_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    read_peak = peak()
     try:                        # Linux: restart the peak (VmHWM) so that the render's own is measured
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
@@ -348,8 +354,7 @@ MEMORY_CHILD = """
     except ValueError as exc:
         outcome = f"refused: {exc}"
     print(time.process_time() - t0)
-    hwm = [line for line in open("/proc/self/status") if line.startswith("VmHWM")] if sys.platform == "linux" else []
-    print(int(hwm[0].split()[1]) * 1024 if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+    print(peak())
     print(read_peak)
     print(outcome)
 """
