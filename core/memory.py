@@ -61,9 +61,13 @@ def check_budget(budget: int | None) -> int:
     return budget
 
 
-def describe(nbytes: float) -> str:
-    """A byte count for people: '3.2 GiB', '640 MiB'."""
-    return f"{nbytes / 2**30:.1f} GiB" if nbytes >= 2**30 else f"{nbytes / 2**20:.0f} MiB"
+def human_bytes(n: float) -> str:
+    """A byte count for people: 1536 -> '1.5 KiB', 3 << 30 -> '3.0 GiB'."""
+    for unit in ("B", "KiB", "MiB"):
+        if n < 1024:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
 
 
 def _windows_memory_status():

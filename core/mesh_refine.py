@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import Camera
-from .memory import describe
+from .memory import human_bytes
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, render_mesh
 from .mesh_sampling import WALL_BOOST, WALL_INSET, budget_density, thin_wall_density, unplaced_splats
 from .mesh_texture import face_detail
@@ -361,8 +361,8 @@ def splats_within(budget, faces, view_pixels):
     room = (budget - fixed) // BYTES_PER_SPLAT
     if room < MIN_BUDGET_SPLATS:
         raise ValueError(
-            f"the memory budget ({describe(budget)}) cannot hold this conversion: its mesh ({faces} faces) "
-            f"and views ({view_pixels} pixels) alone take {describe(fixed)}; give a larger memory budget, "
+            f"the memory budget ({human_bytes(budget)}) cannot hold this conversion: its mesh ({faces} faces) "
+            f"and views ({view_pixels} pixels) alone take {human_bytes(fixed)}; give a larger memory budget, "
             "or fewer or smaller views"
         )
     return int(room)
@@ -614,7 +614,7 @@ def summary(info):
     budget held the splats back."""
     capped = info.get("memory_cap") is not None and info.get("reached") is not False  # else "limit" says it
     held = (
-        f"the memory budget ({describe(info['memory_budget'])}) held it to {info['memory_cap']} splats"
+        f"the memory budget ({human_bytes(info['memory_budget'])}) held it to {info['memory_cap']} splats"
         if capped
         else ""
     )
@@ -636,7 +636,7 @@ def _why(m, stop, max_splats, render_mode="classic", memory_budget=None):
     share = m.edge_share[m.worst]
     if stop == "memory":
         cause = (
-            f"the memory budget ({describe(memory_budget)}) holds at most {max_splats} splats, and they were reached"
+            f"the memory budget ({human_bytes(memory_budget)}) holds at most {max_splats} splats, and they were reached"
         )
     elif stop == "max_splats":
         cause = f"the splat cap (max_splats={max_splats}) was reached"

@@ -77,7 +77,7 @@ def test_a_conversion_stays_within_its_memory_budget(tmp_path):
     got = json.loads(done.stdout.strip().splitlines()[-1])
     cap = splats_within(budget, got["faces"], 12 * 96 * 96)
     assert got["cap"] == cap and 0.9 * cap <= got["splats"] <= cap
-    assert "memory budget (200 MiB)" in got["limit"] and np.isfinite(got["psnr"]) and got["psnr"] > 15
+    assert "memory budget (200.0 MiB)" in got["limit"] and np.isfinite(got["psnr"]) and got["psnr"] > 15
     assert 0 < got["grew"] <= budget
     # the model errs on the safe side, but not absurdly: the prediction is at most 4x what was used
     assert conversion_bytes(got["splats"], got["faces"], 12 * 96 * 96) <= 4 * got["grew"] + (64 << 20)
@@ -92,7 +92,7 @@ def test_a_budget_too_small_for_the_views_is_refused_before_any_splat(monkeypatc
     monkeypatch.setattr("splatwright.core.mesh_refine.unplaced_splats", no_splats)
     monkeypatch.setattr(sampling, "unplaced_splats", no_splats)
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
-    with pytest.raises(ValueError, match=r"memory budget \(70 MiB\) cannot hold this conversion.*views"):
+    with pytest.raises(ValueError, match=r"memory budget \(70.0 MiB\) cannot hold this conversion.*views"):
         mesh_to_splats(vertices, np.array([[0, 1, 2]]), view_size=512, memory_budget=70 << 20)
     with pytest.raises(ValueError, match="at least 64 MiB"):
         mesh_to_splats(vertices, np.array([[0, 1, 2]]), max_splats=10, memory_budget=1 << 20)
@@ -108,7 +108,7 @@ def test_a_budget_caps_a_splat_budget_and_says_so():
     assert info["memory_cap"] == cap and abs(len(cloud) - cap) < 0.02 * cap
     from splatwright.core.mesh_refine import summary
 
-    assert summary(info) == f"the memory budget (80 MiB) held it to {cap} splats"
+    assert summary(info) == f"the memory budget (80.0 MiB) held it to {cap} splats"
 
 
 def test_the_default_budget_is_half_the_memory_free():
@@ -146,7 +146,7 @@ def test_the_command_takes_a_budget_and_tells_the_size_before_writing(tmp_path):
     cap = splats_within(80 << 20, 2, 0)
     writing = next(line for line in done.stdout.splitlines() if line.startswith("writing "))
     count, size = int(writing.split()[1]), float(writing.split("about ")[1].split(" MB")[0]) * 1e6
-    assert abs(count - cap) < 0.02 * cap and "memory budget (80 MiB)" in done.stdout
+    assert abs(count - cap) < 0.02 * cap and "memory budget (80.0 MiB)" in done.stdout
     assert abs(out.stat().st_size - size) < 0.01 * size
     bad = subprocess.run(
         [sys.executable, "-m", "splatwright", "mesh2splats", str(obj), str(out), "--memory-budget", "lots"],

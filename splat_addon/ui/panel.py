@@ -12,6 +12,7 @@ from typing import NamedTuple
 import bpy
 
 from ...core.economy import describe_change
+from ...core.memory import human_bytes
 from ...core.splats import memory_bytes
 from ...io import file_sizes
 from .. import data
@@ -48,14 +49,6 @@ def splat_stats(obj, spz_version=None, half=None, context=None):
     return SplatStats(
         count, degree, memory_bytes(count, degree), file_sizes(count, degree, spz_version, half), spz_version, half
     )
-
-
-def human_bytes(n):
-    """1536 -> '1.5 KiB'."""
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024 or unit == "GiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
 
 
 def draw_stats(box, obj, stats):
