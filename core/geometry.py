@@ -243,6 +243,23 @@ def _polar_rotation_newton(m, tolerance=1e-15, max_iterations=40):
     return out, singular
 
 
+def transform_normals(a, normals):
+    """Unit surface normals carried through the linear map A ((3,3), or (N,3,3) one per row): the
+    inverse transpose A^-T n, renormalised, which keeps them perpendicular to the transformed
+    surface under any non-singular A (a mirror included). Zero or non-finite rows stay as they are,
+    so validation still reports them."""
+    a = np.asarray(a, dtype=np.float64)
+    n = np.asarray(normals, dtype=np.float64)
+    # A^-T n as a row vector is n A^-1; solve instead of invert for the batched case.
+    if a.ndim == 2:
+        turned = n @ np.linalg.inv(a)
+    else:
+        turned = np.linalg.solve(np.swapaxes(a, -1, -2), n[..., None])[..., 0]
+    length = np.linalg.norm(turned, axis=-1, keepdims=True)
+    good = np.isfinite(length) & (length > 1e-30)
+    return np.where(good, turned / np.where(good, length, 1.0), n)
+
+
 def anisotropy(a):
     """How far the linear map A is from a similarity (rotation or mirror times uniform scale):
     sigma_max / sigma_min - 1 over A's singular values, the stretch of its polar part. 0 for

@@ -22,6 +22,9 @@ from .arrays import (
 )
 
 FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+# The extras holding a unit surface normal per splat (the PLY convention; core.material names them
+# for relighting): transforms turn them, where every other extra is kept as it is.
+NORMAL_EXTRAS = ("nx", "ny", "nz")
 
 # transformed(): a linear part whose anisotropy (geometry.anisotropy) is at most this is treated as a
 # similarity; the covariance error that allows (about twice this, relative) is float32 round-off.
@@ -238,8 +241,9 @@ class SplatCloud:
         maps, mirrors included, are exact; a non-uniform stretch S changes view-dependent colour in a
         way no SH rotation expresses, and geometry.anisotropy(A) says by how much. Output quaternions
         are unit (a zero one is read as the identity, as everywhere); non-finite values stay
-        non-finite, so validation still reports them; extras are kept as they are. A singular,
-        projective or non-finite matrix raises ValueError.
+        non-finite, so validation still reports them. Normals (NORMAL_EXTRAS) turn by the inverse
+        transpose of A, renormalised; other extras are kept as they are. A singular, projective or
+        non-finite matrix raises ValueError.
         """
         a, t = geometry.split_affine(matrix)
         rotation = geometry.polar_rotation(a)
@@ -252,7 +256,16 @@ class SplatCloud:
             rotations=rotations,
             log_scales=log_scales,
             sh=shmod.rotate(self.sh, rotation),
+            extras=self._transformed_normals(a),
         )
+
+    def _transformed_normals(self, a) -> dict[str, np.ndarray]:
+        """The extras with the normals (if the cloud has all three) turned by A^-T."""
+        if not all(k in self.extras for k in NORMAL_EXTRAS):
+            return self.extras
+        stacked = np.stack([self.extras[k].reshape(len(self)) for k in NORMAL_EXTRAS], axis=1)
+        turned = geometry.transform_normals(a, stacked).astype(np.float32)
+        return {**self.extras, **{k: turned[:, i].copy() for i, k in enumerate(NORMAL_EXTRAS)}}
 
     def _similarity_frames(self, a, rotation):
         """A = scale * Q: quaternions compose with Q's proper part (-Q if Q mirrors, which leaves
