@@ -1,0 +1,249 @@
+"""Blender's lights (point, spot, sun, area) and a uniform world, in Blender's units, for relighting.
+
+A Light lives in the world frame of the cloud it lights. Its units are those Cycles renders with
+(tests/test_blender_lights.py checks every factor against Cycles renders of a white diffuse plane):
+
+- point: power P watts, radiant intensity P / (4 pi) W/sr in every direction; `radius` (Blender's
+  soft size) is a sphere of that intensity, which only softens shadows here (seen from outside, a
+  uniformly bright sphere lights a surface facing it exactly as a point at its centre does);
+- spot: a point light times Blender's cone: smoothstep((cos t - cos(size/2)) / ((1 - cos(size/2)) *
+  blend)) of the angle t between the spot's axis and the ray to the lit point (no cosine falloff
+  inside the cone; the cone does not concentrate the power);
+- sun: `power` is the irradiance ("Strength", W/m^2) on a surface facing it; `angle` (its disc's
+  diameter, radians) only softens shadows;
+- area: a one-sided rectangle or ellipse of `size_x` by `size_y` metres emitting radiance
+  AREA_RADIANCE * P / area towards its -Z side (`direction`), sampled at a fixed stratified set of
+  AREA_SAMPLES points, each a small cosine-weighted (Lambertian) emitter; see area_points.
+
+Irradiance is the power per square metre arriving on a surface, colour included; a diffuse surface of
+albedo a then reflects radiance a * E / pi. Lights are evaluated per splat, vectorised (`incident`
+and `irradiance`), with the light's direction and distance per point.
+"""
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+KINDS = ("point", "spot", "sun", "area")
+AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
+# Area lights are sampled on a fixed GRID x GRID stratified pattern (cell centres, mapped to the
+# disc by an area-preserving map for DISK/ELLIPSE): 16 points, within 1% of the exact irradiance of
+# a square beyond about one side length (tests/test_lights.py states the measured error).
+AREA_GRID = 4
+AREA_SAMPLES = AREA_GRID * AREA_GRID
+# Radiance of an area light per watt per square metre of its surface: Cycles emits
+# strength * 0.25 / area (kernel/light/area.h, eval_fac), checked against Cycles renders.
+AREA_RADIANCE = 0.25
+
+
+def _vector(value, name: str, problems: list[str], unit: bool = False) -> np.ndarray:
+    """`value` as a float64 (3,) vector; unit vectors normalised; problems noted, not raised."""
+    v = np.array(value, dtype=np.float64).reshape(-1)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        problems.append(f"{name} must be 3 finite numbers, got {value!r}")
+        return np.zeros(3)
+    if unit:
+        norm = float(np.linalg.norm(v))
+        if norm < 1e-12:
+            problems.append(f"{name} must be a non-zero vector, got {value!r}")
+            return np.zeros(3)
+        v = v / norm
+    return v
+
+
+@dataclass(frozen=True, eq=False)
+class Light:
+    """One light in the cloud's world frame, Blender's units (see the module docstring).
+
+    color: (3,) scene-linear, >= 0. power: watts (point, spot, area; Blender's Power times
+    2**exposure where the light has an exposure) or W/m^2 (sun's Strength). position: (3,) metres
+    (unused by the sun). direction: (3,) where the light points, Blender's light -Z axis (normalised
+    here). radius: point/spot soft size (m). angle: sun disc diameter (rad). spot_size: full cone angle
+    (rad, in (0, pi]); spot_blend in [0, 1]. size_x, size_y: area extent (m; SQUARE and DISK use
+    size_x for both); shape: one of AREA_SHAPES; x_axis: (3,) the area light's local +X in world
+    (made orthogonal to direction here).
+    """
+
+    kind: str
+    color: np.ndarray = field(default_factory=lambda: np.ones(3))
+    power: float = 1000.0
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    radius: float = 0.1
+    angle: float = 0.0
+    spot_size: float = math.radians(45.0)
+    spot_blend: float = 0.15
+    size_x: float = 1.0
+    size_y: float = 1.0
+    shape: str = "SQUARE"
+    x_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    cast_shadow: bool = True
+
+    def __post_init__(self):
+        problems: list[str] = []
+        if self.kind not in KINDS:
+            problems.append(f"kind must be one of {KINDS}, got {self.kind!r}")
+        color = _vector(self.color, "color", problems)
+        if (color < 0).any():
+            problems.append(f"color must be >= 0, got {self.color!r}")
+        direction = _vector(self.direction, "direction", problems, unit=True)
+        x_axis = _vector(self.x_axis, "x_axis", problems, unit=True)
+        if not problems and self.kind == "area":
+            # Gram-Schmidt: a light's matrix may carry round-off; a parallel axis is an error.
+            x_axis = x_axis - direction * float(x_axis @ direction)
+            if np.linalg.norm(x_axis) < 1e-6:
+                problems.append("x_axis must not be parallel to direction")
+            else:
+                x_axis = x_axis / np.linalg.norm(x_axis)
+        values = {
+            "power": (self.power, 0.0, math.inf, True),
+            "radius": (self.radius, 0.0, math.inf, True),
+            "angle": (self.angle, 0.0, math.pi, True),
+            "spot_size": (self.spot_size, 0.0, math.pi, False),
+            "spot_blend": (self.spot_blend, 0.0, 1.0, True),
+            "size_x": (self.size_x, 0.0, math.inf, False),
+            "size_y": (self.size_y, 0.0, math.inf, False),
+        }
+        for name, (value, low, high, closed_low) in values.items():
+            ok = isinstance(value, int | float | np.floating | np.integer) and math.isfinite(value)
+            ok = ok and (value >= low if closed_low else value > low) and value <= high
+            if not ok:
+                bound = ">=" if closed_low else ">"
+                problems.append(f"{name} must be finite, {bound} {low} and <= {high}, got {value!r}")
+        if self.shape not in AREA_SHAPES:
+            problems.append(f"shape must be one of {AREA_SHAPES}, got {self.shape!r}")
+        if problems:
+            raise ValueError("invalid light: " + "; ".join(problems))
+        object.__setattr__(self, "color", color)
+        object.__setattr__(self, "direction", direction)
+        object.__setattr__(self, "x_axis", x_axis)
+        object.__setattr__(self, "position", _vector(self.position, "position", problems))
+        object.__setattr__(self, "cast_shadow", bool(self.cast_shadow))
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """The area light's (x, y) size in metres: SQUARE and DISK are size_x both ways."""
+        square = self.shape in ("SQUARE", "DISK")
+        return self.size_x, self.size_x if square else self.size_y
+
+    @property
+    def round(self) -> bool:
+        return self.shape in ("DISK", "ELLIPSE")
+
+    @property
+    def area(self) -> float:
+        """The emitting area in m^2 (area lights)."""
+        sx, sy = self.extent
+        return sx * sy * (math.pi / 4.0 if self.round else 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """A uniform environment: scene-linear radiance `color` (3,) from every direction (Blender's
+    world Background colour times its strength)."""
+
+    color: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        problems: list[str] = []
+        color = _vector(self.color, "color", problems)
+        if problems or (color < 0).any():
+            raise ValueError(f"invalid world: color must be 3 finite numbers >= 0, got {self.color!r}")
+        object.__setattr__(self, "color", color)
+
+
+class Incident(NamedTuple):
+    """Light arriving at N points from one emitter (a whole point/spot/sun light, or one sample of an
+    area light): unit `direction` (N,3) from each point towards the emitter, `distance` (N,) to it
+    (inf for the sun), and `irradiance` (N,3) on a surface facing it (colour included, before the
+    receiver's cosine)."""
+
+    direction: np.ndarray
+    distance: np.ndarray
+    irradiance: np.ndarray
+
+
+def spot_cone(light: Light, cos_angle: np.ndarray) -> np.ndarray:
+    """Blender's spot cone factor (N,) for rays leaving the light at cos_angle (N,) to its axis:
+    smoothstep((cos_angle - cos(size/2)) / ((1 - cos(size/2)) * blend)), a hard edge at blend 0."""
+    cos_half = math.cos(0.5 * light.spot_size)
+    width = (1.0 - cos_half) * light.spot_blend
+    if width <= 0.0:
+        return (cos_angle > cos_half).astype(np.float64)
+    x = np.clip((cos_angle - cos_half) / width, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def area_points(light: Light, grid: int = AREA_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """The area light's sample points (grid*grid, 3) in world and each one's share of its area (m^2):
+    cell centres of a grid x grid split of the rectangle, or of the unit square mapped to the disc by
+    Shirley and Chiu's concentric map (area-preserving, so every point holds area / grid^2)."""
+    centres = (np.arange(grid) + 0.5) / grid * 2.0 - 1.0  # in (-1, 1)
+    a, b = (m.ravel() for m in np.meshgrid(centres, centres, indexing="ij"))
+    if light.round:
+        # concentric map: squares of the grid to rings, wedges to sectors, area kept
+        first = np.abs(a) > np.abs(b)
+        r = np.where(first, a, b)
+        safe_a = np.where(a == 0.0, 1.0, a)
+        safe_b = np.where(b == 0.0, 1.0, b)
+        phi = np.where(first, (math.pi / 4.0) * b / safe_a, math.pi / 2.0 - (math.pi / 4.0) * a / safe_b)
+        a, b = r * np.cos(phi), r * np.sin(phi)
+    sx, sy = light.extent
+    y_axis = np.cross(light.direction, light.x_axis)  # right-handed: x, y, -direction
+    points = light.position + np.outer(0.5 * sx * a, light.x_axis) + np.outer(0.5 * sy * b, y_axis)
+    return points, np.full(len(points), light.area / len(points))
+
+
+def _towards(source: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (N,3) from points to `source` (3,) and the distances (N,), float64."""
+    offset = source - points
+    distance = np.sqrt(np.einsum("ij,ij->i", offset, offset))
+    return offset / np.maximum(distance, 1e-300)[:, None], distance
+
+
+def incident(light: Light, points: np.ndarray) -> list[Incident]:
+    """The light arriving at points (N,3): one Incident per emitter (AREA_SAMPLES for area lights),
+    in float64. A point closer than 1e-300 to an emitter gets no light from it."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = len(points)
+    if light.kind == "sun":
+        towards = np.broadcast_to(-light.direction, (n, 3))
+        return [Incident(towards, np.full(n, np.inf), np.broadcast_to(light.power * light.color, (n, 3)))]
+    if light.kind in ("point", "spot"):
+        direction, distance = _towards(light.position, points)
+        intensity = np.full(n, light.power / (4.0 * math.pi))
+        if light.kind == "spot":
+            intensity = intensity * spot_cone(light, -(direction @ light.direction))
+        scalar = np.where(distance > 1e-300, intensity / np.maximum(distance, 1e-300) ** 2, 0.0)
+        return [Incident(direction, distance, scalar[:, None] * light.color)]
+    samples, shares = area_points(light)
+    radiance = AREA_RADIANCE * light.power / light.area
+    out = []
+    for sample, share in zip(samples, shares, strict=True):  # a loop over 16 emitters, not points
+        direction, distance = _towards(sample, points)
+        # one-sided Lambertian patch: its cosine towards each point, 0 behind it
+        cos_emit = np.maximum(-(direction @ light.direction), 0.0)
+        scalar = np.where(distance > 1e-300, radiance * share * cos_emit / np.maximum(distance, 1e-300) ** 2, 0.0)
+        out.append(Incident(direction, distance, scalar[:, None] * light.color))
+    return out
+
+
+def irradiance(light: Light, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Irradiance (N,3) float64 W/m^2 (colour included) from `light` on surfaces at points (N,3) with
+    unit normals (N,3): the sum over the light's emitters of their irradiance times max(0, n . l)."""
+    normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    total = np.zeros((len(normals), 3))
+    for inc in incident(light, points):
+        total += inc.irradiance * np.maximum(np.einsum("ij,ij->i", inc.direction, normals), 0.0)[:, None]
+    return total
+
+
+def direction_and_distance(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit direction (N,3) from each point towards the light (its centre; for the sun, -direction)
+    and the distance (N,) to it (inf for the sun): what shadow lookups need."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if light.kind == "sun":
+        return np.broadcast_to(-light.direction, points.shape).copy(), np.full(len(points), np.inf)
+    return _towards(light.position, points)
