@@ -11,7 +11,7 @@ import numpy as np
 from ...core.color import linear_to_srgb
 from .. import data
 from ..data import camera as blender_camera
-from . import mesh_layer, viewport
+from . import lights, mesh_layer, viewport
 from .scene import MESH_ENGINE, mesh_engine, scene_splats, textured_world, to_scene_linear, world_color
 
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
@@ -258,9 +258,11 @@ def register():
     for panel in _generic_panels():
         panel.COMPAT_ENGINES.add(SplatwrightRenderEngine.bl_idname)
     mesh_layer.register()
+    lights.register()
 
 
 def unregister():
+    lights.unregister()
     mesh_layer.unregister()
     for panel in _generic_panels():
         panel.COMPAT_ENGINES.discard(SplatwrightRenderEngine.bl_idname)

@@ -1,0 +1,139 @@
+"""The scene's lights as the core's relighting sees them (core.lights.Light), read from the depsgraph
+the engine renders: every visible point, spot, sun and area light, instances included, in the
+engine's frame (world space shifted by -origin, see engine.py), with Cycles' reading of each
+setting (intern/cycles/blender/light.cpp): strength = colour x temperature colour x power x
+2^exposure; a light whose Normalize is off emits its power per unit of its own area; area sizes
+follow the object's scale; the light points along its object's -Z, an area's width along +X."""
+
+import math
+
+import bpy
+import numpy as np
+
+from .scene import world_color
+
+KINDS = {"POINT": "point", "SPOT": "spot", "SUN": "sun", "AREA": "area"}
+
+
+def scene_lights(depsgraph, origin):
+    """A core.lights.Light for every light object (and instance of one) the depsgraph renders, in
+    world space shifted by -`origin`; lights of zero power are left out."""
+    found = []
+    for inst in depsgraph.object_instances:  # instance data is only valid during iteration
+        obj = inst.object
+        if obj.type != "LIGHT":
+            continue
+        light = light_from_blender(obj.data, np.array(inst.matrix_world, dtype=np.float64), origin)
+        if light is not None:
+            found.append(light)
+    return found
+
+
+def scene_world(scene):
+    """The world as a uniform environment (core.lights.World) of the world's background colour."""
+    from ...core.lights import World
+
+    return World(world_color(scene))
+
+
+def light_from_blender(light, matrix, origin=(0.0, 0.0, 0.0)):
+    """core.lights.Light of Blender light datablock `light` placed by world `matrix` (4,4), in the frame
+    shifted by -`origin`; None for a light that gives no light (zero power or colour)."""
+    from ...core.lights import Light
+
+    fields = light_fields(light, matrix, origin)
+    if fields is None:
+        return None
+    return Light(**fields)
+
+
+def light_fields(light, matrix, origin=(0.0, 0.0, 0.0)):
+    """The keyword arguments of core.lights.Light for `light` at `matrix` (see light_from_blender), or
+    None for a light that gives no light; kept apart so tests can compare them with plain numbers."""
+    kind = KINDS.get(light.type)
+    if kind is None:
+        return None
+    matrix = np.asarray(matrix, dtype=np.float64)
+    color = np.array(light.color[:3], dtype=np.float64)
+    if getattr(light, "use_temperature", False):  # 5.0+: a blackbody tint on top of the colour
+        color = color * np.array(light.temperature_color[:3], dtype=np.float64)
+    power = float(light.energy) * 2.0 ** float(getattr(light, "exposure", 0.0))
+    if power <= 0.0 or not color.any():
+        return None
+    axes = matrix[:3, :3]
+    fields = {
+        "kind": kind,
+        "color": color,
+        "position": matrix[:3, 3] - np.asarray(origin, dtype=np.float64),
+        "direction": _unit(-axes[:, 2]),
+        "cast_shadow": bool(light.use_shadow),
+    }
+    if kind == "sun":
+        fields["angle"] = float(light.angle)
+    elif kind == "area":
+        fields.update(_area_fields(light, axes))
+    else:
+        fields["radius"] = float(light.shadow_soft_size)
+    if kind == "spot":
+        fields["spot_size"] = float(light.spot_size)
+        fields["spot_blend"] = float(light.spot_blend)
+    if not getattr(light, "normalize", True):
+        power *= emitter_area(fields)
+    fields["power"] = power
+    return fields
+
+
+def _area_fields(light, axes):
+    """An area light's shape and its sizes in the world (the object's scale applied, as Cycles does)."""
+    shape = light.shape
+    size_x = float(light.size) * float(np.linalg.norm(axes[:, 0]))
+    size_y = float(light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size) * float(
+        np.linalg.norm(axes[:, 1])
+    )
+    return {"shape": shape, "size_x": size_x, "size_y": size_y, "x_axis": _unit(axes[:, 0])}
+
+
+def emitter_area(fields):
+    """The area an unnormalised light's power is per (Cycles' `area` of each kind): the rectangle
+    or ellipse of an area light, the disk of a point or spot light's radius, the disk a sun's angle
+    spans at unit distance; 1 where that is zero (a point light of radius 0 emits its power)."""
+    kind = fields["kind"]
+    if kind == "area":
+        area = fields["size_x"] * fields["size_y"] * (math.pi / 4.0 if fields["shape"] in ("DISK", "ELLIPSE") else 1.0)
+    elif kind == "sun":
+        area = math.pi * math.tan(fields["angle"] / 2.0) ** 2
+    else:
+        area = math.pi * fields["radius"] ** 2
+    return area if area > 0.0 else 1.0
+
+
+def _unit(v):
+    norm = float(np.linalg.norm(v))
+    return v / norm if norm > 0.0 else np.array([0.0, 0.0, -1.0])
+
+
+# the per-object switch ----------------------------------------------------------------------------
+
+RELIGHT = "splatwright_relight"  # Object property: shade the object with the scene's lights
+
+
+def is_relit(obj):
+    """Whether splat object `obj` (original) asks to be shaded with the scene's lights."""
+    return bool(getattr(obj, RELIGHT, False))
+
+
+def register():
+    setattr(
+        bpy.types.Object,
+        RELIGHT,
+        bpy.props.BoolProperty(
+            name="Relight",
+            default=False,
+            description="Shade the splats with the scene's lights and world (needs a material: albedo and "
+            "normals); off keeps the baked or captured look",
+        ),
+    )
+
+
+def unregister():
+    delattr(bpy.types.Object, RELIGHT)
