@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import color
+from .material import DEFAULT_METALLIC, DEFAULT_ROUGHNESS
 from .mesh_texture import (  # the texture lookups and the display conversion live there, used from here too
     EdgeField,
     footprint_average,
@@ -40,6 +41,8 @@ class Material:
     uv_scale, uv_offset: the texture is looked up at uv * uv_scale + uv_offset.
     rim_color: optional scene-linear RGB seen at grazing angles: the colour is
     mix(surface, rim_color, 1 - |cos(view, normal)|), a view-dependent 'facing' blend.
+    roughness, metallic: the Principled BSDF's, in [0,1], for the material splats carry for
+    relighting (core.material); the unlit colour ignores them.
     """
 
     base_color: tuple = (0.8, 0.8, 0.8)
@@ -49,6 +52,8 @@ class Material:
     uv_offset: tuple = (0.0, 0.0)
     rim_color: tuple | None = None
     name: str = ""
+    roughness: float = DEFAULT_ROUGHNESS
+    metallic: float = DEFAULT_METALLIC
     _linear: np.ndarray | None = field(default=None, repr=False)
     _mips: list | None = field(default=None, repr=False)
     _edges: object = field(default=None, repr=False)

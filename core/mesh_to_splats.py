@@ -11,6 +11,7 @@ from . import sh as shmod
 from .bake import bake_sh
 from .memory import check_budget
 from .mesh import Surface
+from .mesh_material import with_surface_material
 from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds, splats_within
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .mesh_sampling import (
@@ -89,6 +90,7 @@ def mesh_to_splats_steps(
     filter_width=CYCLES_FILTER_WIDTH,
     memory_budget=None,
     texture_aware=True,
+    material=False,
     info=None,
 ):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
@@ -135,6 +137,11 @@ def mesh_to_splats_steps(
     `info` says so ("memory_budget", "memory_cap": the splats it allowed, None when it did not bind;
     "limit" names it). A budget too small for the mesh and views alone is a ValueError, raised before
     anything is allocated.
+
+    Material: with `material`, the splats also carry what relighting shades them with
+    (core.material's extras, core.mesh_material): the Base Color in scene-linear light averaged over
+    each splat's footprint as its colour is, its face's winding normal, and the face material's
+    roughness and metallic. The splat's own colour stays the unlit look.
 
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
@@ -190,6 +197,8 @@ def mesh_to_splats_steps(
             memory_budget=budget,
             fit_colours=fit_colours_to_views if texture_aware and not budget_only else None,
         )
+    if material:
+        cloud = with_surface_material(cloud, surface, overlap=overlap, texture_aware=texture_aware)
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud.replace(antialiased=render_mode == "antialiased")

@@ -1,0 +1,63 @@
+"""The material splats made from a mesh carry for relighting (core.material): per splat the
+Base Color (albedo), normal, roughness and metallic of the surface point it stands for, read from
+its "source_triangle" and "barycentric" extras once the cloud is built, so every way of building
+it (budgets, targets, refinement) gets the same material."""
+
+import numpy as np
+
+from . import material as mat
+from .mesh import Surface
+from .splats import SplatCloud
+
+
+def face_frames(surface: Surface) -> np.ndarray:
+    """(F,3,2) the faces' local in-plane axes (t1 = first edge, t2 = normal x t1) as columns: the
+    frame core.mesh_texture measures texture footprints in."""
+    length = np.linalg.norm(surface.edge1, axis=1, keepdims=True)
+    t1 = np.where(length > 0, surface.edge1 / np.where(length > 0, length, 1.0), [1.0, 0.0, 0.0])
+    return np.stack([t1, np.cross(surface.normal, t1)], axis=2)
+
+
+def local_covariances(cloud: SplatCloud, surface: Surface, tri: np.ndarray) -> np.ndarray:
+    """(N,2,2) each splat's covariance seen in its face's local frame: T^T Sigma T."""
+    frames = face_frames(surface)[tri]
+    return np.einsum("nia,nij,njb->nab", frames, cloud.covariances(), frames)
+
+
+def surface_albedo(
+    cloud: SplatCloud, surface: Surface, tri: np.ndarray, bary: np.ndarray, overlap: float, texture_aware: bool
+) -> np.ndarray:
+    """(N,3) scene-linear Base Color in [0,1], averaged over each splat's footprint as its colour
+    is (core.mesh_sampling: the in-plane Gaussian shrunk by 2 overlap with `texture_aware`, else a
+    square mip footprint of the splats' spacing, sigma / overlap) but kept in linear light."""
+    local = local_covariances(cloud, surface, tri)
+    if texture_aware:
+        linear = surface.linear_colors(tri, bary, covariance=local / (2 * overlap) ** 2)
+    else:
+        # The spacing 1 / sqrt(density) is the in-plane sigma over `overlap`; narrowing along one
+        # edge leaves the major axis at sigma (splats narrowed both ways, in corners, read a
+        # smaller footprint than their colour did).
+        sigma = np.sqrt(np.maximum(np.linalg.eigvalsh(local)[:, 1], 0.0))
+        linear = surface.linear_colors(tri, bary, footprint=sigma / overlap)
+    return np.clip(linear, 0.0, 1.0)
+
+
+def with_surface_material(
+    cloud: SplatCloud, surface: Surface, *, overlap: float = 0.8, texture_aware: bool = True
+) -> SplatCloud:
+    """`cloud` (made from `surface`, with its "source_triangle" and "barycentric" extras) with the
+    material extras of core.material: albedo (surface_albedo), the face's winding normal, and the
+    face material's roughness and metallic."""
+    tri = cloud.extras["source_triangle"].astype(np.int64)
+    bary = cloud.extras["barycentric"].astype(np.float64)
+    materials = surface.materials
+    roughness = np.array([np.clip(m.roughness, 0.0, 1.0) for m in materials], np.float64)
+    metallic = np.array([np.clip(m.metallic, 0.0, 1.0) for m in materials], np.float64)
+    face_material = surface.face_materials[tri]
+    return mat.with_material(
+        cloud,
+        albedo=surface_albedo(cloud, surface, tri, bary, overlap, texture_aware),
+        normals=surface.normal[tri],
+        roughness=roughness[face_material],
+        metallic=metallic[face_material],
+    )
