@@ -534,6 +534,12 @@ def _add_mesh2splats(p):
         help=f"the filter's width in pixels, as Cycles' Film settings give it (default "
         f"{CYCLES_FILTER_WIDTH:g}; the box filter is one pixel whatever the width)",
     )
+    p.add_argument(
+        "--material",
+        action="store_true",
+        help="the splats also carry the surface's material for relighting: albedo (the Base Color, "
+        "linear), normal, roughness and metallic, kept by PLY and OpenUSD (other formats drop them)",
+    )
 
 
 def _run_mesh2splats(args):
@@ -562,6 +568,7 @@ def _run_mesh2splats(args):
             pixel_filter=args.pixel_filter,
             filter_width=args.filter_width,
             memory_budget=args.memory_budget,
+            material=args.material,
             progress=Progress(),
             info=info,
         )

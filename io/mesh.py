@@ -195,7 +195,8 @@ def _index(text, count, what):
 
 
 def read_mtl(path, root=None, allow_outside=False):
-    """Materials of an MTL file: name -> Material with Kd (scene-linear) and map_Kd image. Textures
+    """Materials of an MTL file: name -> Material with Kd (scene-linear), map_Kd image and the PBR
+    extension's Pr (roughness) and Pm (metallic), clamped to [0, 1]. Textures
     are read only from the folder `root` (default: the MTL's own) and below, unless allow_outside."""
     path = Path(path)
     root = path.parent if root is None else Path(root)
@@ -216,6 +217,9 @@ def read_mtl(path, root=None, allow_outside=False):
                 current.base_color = tuple(values + [values[-1]] * (3 - len(values)))
             elif key == "map_kd":
                 _texture(current, parts[1:], path, root, allow_outside)
+            elif key in ("pr", "pm"):  # PBR extension: roughness, metallic (as Blender's importer maps them)
+                value = min(max(_finite(parts[1:2])[0], 0.0), 1.0)
+                setattr(current, "roughness" if key == "pr" else "metallic", value)
         except (ValueError, IndexError) as exc:
             raise SplatFileError(path, f"line {number}: {exc}: '{line.strip()[:80]}'") from None
     return materials

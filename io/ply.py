@@ -5,7 +5,9 @@ by name. Reading accepts ASCII and binary of either byte order, every PLY scalar
 order and other elements beside `vertex`; properties the layout does not name are kept in
 `cloud.extras` under their own name and dtype and written back after the layout's own.
 Normals are kept as float32 extras `nx`, `ny`, `nz` unless they are all zero (the placeholder the
-3DGS reference writes); the writer puts them in the normal slot, or zeros when absent.
+3DGS reference writes); the writer puts them in the normal slot, or zeros when absent. 2-D extras
+are written as columns name_0, name_1, ... and read back as those columns, except the material's
+albedo (core.material), read back as the one (N,3) extra `albedo` it was.
 
 2DGS files (scale_0 and scale_1, no scale_2) get a flat third axis of sigma FLAT_SIGMA and a
 SplatFileWarning saying so; they are written back as 3DGS files with that scale_2.
@@ -22,7 +24,7 @@ import warnings
 
 import numpy as np
 
-from ..core import SplatCloud, jit
+from ..core import SplatCloud, jit, material
 from ..core import sh as shmod
 from ..core.parallel import WORKERS, in_chunks
 from ..core.splats import bad_rows
@@ -317,7 +319,17 @@ class _Converter:
         if all(p in extras for p in NORMALS) and not any(extras[p].any() for p in NORMALS):
             for p in NORMALS:  # all zero: the reference writer's placeholder, nothing to keep
                 del extras[p]
-        return SplatCloud(**self.arrays, extras=extras, antialiased=self.antialiased)
+        return SplatCloud(**self.arrays, extras=_material_columns(extras), antialiased=self.antialiased)
+
+
+def _material_columns(extras):
+    """The extras with the albedo's columns (written as albedo_0..2, as 2-D extras are) one (N,3)
+    extra again, as core.material names it; other 2-D extras stay columns, as they were read."""
+    names = [f"{material.ALBEDO}_{i}" for i in range(3)]
+    if material.ALBEDO in extras or not all(n in extras for n in names) or f"{material.ALBEDO}_3" in extras:
+        return extras
+    albedo = np.stack([extras.pop(n) for n in names], axis=1)
+    return {**extras, material.ALBEDO: albedo}
 
 
 def _sh_count(path, names):

@@ -73,8 +73,12 @@ def encode(cloud):
 
 
 def write(path, cloud, nonfinite="raise"):
-    """Write a .splat file; view-dependent SH (degree > 0) is dropped with a warning."""
+    """Write a .splat file; view-dependent SH (degree > 0) and extras are dropped with a warning."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
+    if cloud.extras:
+        warnings.warn(
+            f"{path}: .splat has no room for extras; {sorted(cloud.extras)} not written", SplatFileWarning, stacklevel=2
+        )
     if cloud.sh_degree > 0 and np.any(cloud.sh[:, 1:]):
         warnings.warn(
             f"{path}: .splat stores the DC colour only; SH degree {cloud.sh_degree} view-dependent colour dropped",

@@ -54,7 +54,7 @@ import numpy as np
 
 from ..core import SplatCloud
 from ..core.parallel import in_chunks, map_threads
-from ..core.splats import logit
+from ..core.splats import NORMAL_EXTRAS, logit
 from .common import SplatFileError, SplatFileWarning, apply_nonfinite_policy, atomic_write, reduced_sh
 from .policy import SPZ_MAX_BYTES, SPZ_MAX_RATIO, SPZ_RATIO_FLOOR, STREAM_PIECE
 from .spz_axes import (
@@ -102,13 +102,19 @@ LEGACY_MAX_DEGREE = 3  # the highest SH degree v2/v3 readers take
 
 def flip_axes(cloud, signs):
     """The cloud seen in axes reversed by `signs` (two of them -1: a half turn about the third):
-    positions and each quaternion's vector part take the signs, SH their basis functions' parity."""
+    positions, normals (NORMAL_EXTRAS) and each quaternion's vector part take the signs, SH their
+    basis functions' parity."""
     signs = np.float32(signs)
     k = cloud.sh.shape[1]
+    extras = dict(cloud.extras)
+    for name, sign in zip(NORMAL_EXTRAS, signs):
+        if name in extras and sign < 0:
+            extras[name] = -extras[name]
     return cloud.replace(
         positions=cloud.positions * signs,
         rotations=cloud.rotations * np.concatenate([[1], signs]),
         sh=cloud.sh * sh_signs(signs)[None, :k, None],
+        extras=extras,
     )
 
 
@@ -797,6 +803,8 @@ def write(
         raise SplatFileError(path, str(exc)) from None
     except SplatFileError as exc:
         raise SplatFileError(path, exc.problem) from None
+    if cloud.extras:  # as the other formats without extras say it: once, naming them
+        notes.append(f"SPZ has no room for extras; {sorted(cloud.extras)} not written")
     if notes:
         warnings.warn(f"{path}: " + "; ".join(notes), SplatFileWarning, stacklevel=2)
     with atomic_write(path) as f:

@@ -3,6 +3,7 @@ averaged over each splat's footprint (or exactly the base colour), normals again
 roughness and metallic from each face's material."""
 
 import numpy as np
+import pytest
 from helpers import cloud_covariances, linear_to_srgb, srgb_to_linear
 
 from splatwright.core import material as mat
@@ -133,3 +134,38 @@ def test_the_square_footprint_route_also_reads_linear_light():
     # corners, whose splats are narrowed both ways (their spacing is then read as smaller).
     off = np.abs(linear_to_srgb(mat.albedo(cloud)) - cloud.colors()).max(axis=1)
     assert np.mean(off < 2e-6) > 0.97 and off.max() < 0.05
+
+
+def test_mtl_pr_and_pm_give_roughness_and_metallic(tmp_path):
+    from splatwright.io.common import SplatFileError
+    from splatwright.io.mesh import read_mtl
+
+    path = tmp_path / "m.mtl"
+    path.write_text("newmtl shiny\nKd 0.5 0.5 0.5\nPr 0.125\nPm 1\nnewmtl plain\nKd 1 0 0\nnewmtl odd\nPr 1.5\n")
+    materials = read_mtl(path)
+    assert (materials["shiny"].roughness, materials["shiny"].metallic) == (0.125, 1.0)
+    assert (materials["plain"].roughness, materials["plain"].metallic) == (0.5, 0.0)  # Blender's defaults
+    assert materials["odd"].roughness == 1.0
+    path.write_text("newmtl bad\nPr nan\n")
+    with pytest.raises(SplatFileError, match="line 2"):
+        read_mtl(path)
+
+
+def test_the_command_line_writes_the_material_to_ply(tmp_path):
+    from splatwright.cli import main
+    from splatwright.io import read_splats
+
+    (tmp_path / "quad.mtl").write_text("newmtl m\nKd 0.2 0.4 0.6\nPr 0.3\nPm 0.75\n")
+    (tmp_path / "quad.obj").write_text(
+        "mtllib quad.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nusemtl m\nf 1 2 3\nf 1 3 4\n"
+    )
+    out = tmp_path / "quad.ply"
+    args = [str(tmp_path / "quad.obj"), str(out), "--max-splats", "200", "--no-calibrate"]
+    assert main(["mesh2splats", *args, "--material"]) == 0
+    cloud = read_splats(out)
+    np.testing.assert_allclose(mat.albedo(cloud), np.tile([0.2, 0.4, 0.6], (len(cloud), 1)), atol=1e-7)
+    np.testing.assert_allclose(mat.normals(cloud), np.tile([0.0, 0.0, 1.0], (len(cloud), 1)), atol=1e-7)
+    np.testing.assert_allclose(mat.roughness(cloud), 0.3, atol=1e-7)
+    np.testing.assert_allclose(mat.metallic(cloud), 0.75, atol=1e-7)
+    assert main(["mesh2splats", *args]) == 0
+    assert not mat.has_material(read_splats(out))

@@ -14,6 +14,7 @@ import os
 import numpy as np
 
 from ...core import SplatCloud
+from ...core.splats import NORMAL_EXTRAS
 from ..common import SplatFileError, apply_nonfinite_policy, atomic_path, check_nonfinite_policy
 from . import stages
 from .schema import (
@@ -70,7 +71,8 @@ def _author_prim(path, stage, prim_path, frames, times, options):
             if options.layout == "upright" and options.axes == "RDF":
                 _upright_op(prim)
             extras = _extra_primvars(path, prim, cloud)
-        values = {**_frame_values(path, cloud, options, impl), **_extra_values(cloud, extras)}
+        flip = options.axes == "RDF" and options.layout == "y-up"  # as _frame_values turns positions
+        values = {**_frame_values(path, cloud, options, impl), **_extra_values(cloud, extras, flip)}
         for name, value in values.items():
             if name not in samples:
                 samples[name] = _Samples(
@@ -93,11 +95,14 @@ def _upright_op(prim):
     stages.active.transform_op(prim, UPRIGHT_OP, UPRIGHT)
 
 
-def _extra_values(cloud, extras):
-    """{primvar attribute name: Vt array} of a cloud's extras (see _extra_primvars)."""
+def _extra_values(cloud, extras, flip=False):
+    """{primvar attribute name: Vt array} of a cloud's extras (see _extra_primvars); with `flip`
+    (values turned into the Y-up stage) the normals' y and z change sign as the positions' do."""
     values = {}
     for attr, key, widen in extras:
         flat = np.ascontiguousarray(cloud.extras[key].reshape(-1))
+        if flip and key in NORMAL_EXTRAS[1:]:
+            flat = -flat
         flat = flat.astype(np.int32) if widen else flat
         values[attr.GetName()] = _vt(stages.active, VT_ARRAYS[flat.dtype.name], flat)
     return values

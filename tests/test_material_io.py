@@ -1,0 +1,80 @@
+"""The material extras (core.material) through the file formats: PLY and OpenUSD keep them (every
+layout, with OpenUSD's module and with the text writer), the formats without extras drop them with
+one warning naming them."""
+
+import warnings
+
+import numpy as np
+import pytest
+from helpers import random_cloud
+
+from splatwright import io as sio
+from splatwright.core import material as mat
+from splatwright.io import usd
+from splatwright.io.spz import flip_axes
+
+
+def material_cloud(n=40, seed=1):
+    rng = np.random.default_rng(seed)
+    return mat.with_material(
+        random_cloud(n, sh_degree=1, seed=seed),
+        albedo=rng.uniform(0, 1, (n, 3)),
+        normals=rng.normal(size=(n, 3)),
+        roughness=rng.uniform(0, 1, n),
+        metallic=rng.uniform(0, 1, n),
+    )
+
+
+def assert_same_material(got, want, atol=0.0):
+    assert mat.has_material(got)
+    assert got.extras[mat.ALBEDO].shape == (len(want), 3)
+    for read in (mat.albedo, mat.normals, mat.roughness, mat.metallic):
+        np.testing.assert_allclose(read(got), read(want), rtol=0, atol=atol)
+
+
+def test_ply_keeps_the_material(tmp_path):
+    cloud = material_cloud()
+    sio.write_splats(tmp_path / "m.ply", cloud)
+    back = sio.read_splats(tmp_path / "m.ply")
+    assert_same_material(back, cloud)
+    assert sorted(back.extras) == sorted(mat.KEYS)
+    np.testing.assert_array_equal(back.positions, cloud.positions)
+
+
+@pytest.mark.parametrize("implementation", ["pxr", "text"])
+@pytest.mark.parametrize("layout", ["upright", "y-up", "as-is"])
+@pytest.mark.parametrize("ext", ["usda", "usdz"])
+def test_openusd_keeps_the_material_in_every_layout(tmp_path, monkeypatch, implementation, layout, ext):
+    if implementation == "text":
+        monkeypatch.setattr(usd.stages, "active", usd.stages.TEXT)
+    elif usd.stages.PXR is None:
+        pytest.skip("OpenUSD's module is not installed")
+    cloud = material_cloud()
+    path = tmp_path / f"m.{ext}"
+    sio.write_splats(path, cloud, layout=layout)
+    back = sio.read_splats(path)
+    # The normals come back in the axes the positions come back in (a y-up file, whose values are
+    # turned and which carries no upright transform, reads as a capture: y and z reversed).
+    signs = np.array([1.0, -1.0, -1.0]) if layout == "y-up" else np.ones(3)
+    np.testing.assert_allclose(back.positions, cloud.positions * signs, atol=1e-6)
+    assert_same_material(back, mat.with_material(cloud, normals=mat.normals(cloud) * signs), atol=1e-7)
+
+
+def test_axis_flips_turn_normals_like_positions():
+    cloud = material_cloud()
+    flipped = flip_axes(cloud, [-1, 1, -1])
+    np.testing.assert_allclose(mat.normals(flipped), mat.normals(cloud) * [-1, 1, -1])
+    np.testing.assert_array_equal(mat.albedo(flipped), mat.albedo(cloud))
+
+
+@pytest.mark.parametrize("ext", ["spz", "splat", "sog", "glb", "compressed.ply"])
+def test_formats_without_extras_warn_once_naming_the_dropped_ones(tmp_path, ext):
+    cloud = material_cloud()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sio.write_splats(tmp_path / f"m.{ext}", cloud)
+    dropped = [str(w.message) for w in caught if "not written" in str(w.message)]
+    assert len(dropped) == 1, [str(w.message) for w in caught]
+    assert all(repr(key) in dropped[0] for key in mat.KEYS)
+    back = sio.read_splats(tmp_path / f"m.{ext}")
+    assert not mat.has_material(back) and len(back) == len(cloud)
