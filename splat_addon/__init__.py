@@ -13,7 +13,7 @@ bundled_pxr.expose("pxr")  # before any io format module imports it
 
 from . import command  # noqa: E402,I001
 from .convert import from_mesh  # noqa: E402
-from .edit import blender_apply, cleanup, objects  # noqa: E402
+from .edit import blender_apply, cleanup, normals, objects  # noqa: E402
 from .files import animation, import_export, landing, webp  # noqa: E402
 from .render import engine  # noqa: E402
 from .rig import armature, collide, proxy  # noqa: E402
@@ -28,6 +28,7 @@ CLASSES = (
     + collide.CLASSES
     + engine.CLASSES
     + cleanup.CLASSES
+    + normals.CLASSES
     + proxy.CLASSES
     + preferences.CLASSES
     + panel.CLASSES

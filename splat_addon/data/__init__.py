@@ -50,6 +50,7 @@ from .forms import (
     on_spz_grid,
     remove_geometry,
     remove_splat_object,
+    set_extras,
     sh_degree,
     show_posed,
     splat_form,

@@ -44,6 +44,7 @@ from .attributes import (
     _coefficient_major,
     _exact_or,
     _extra_kind,
+    _extra_names,
     _get,
     _read_extras,
     _read_sh,
@@ -67,6 +68,7 @@ from .keys import (
     LAYOUT_VERSION,
     LOG_SCALE,
     MARKER,
+    MAX_NAME,
     MESH_FORM,
     NATIVE_BASE,
     NATIVE_FORM,
@@ -439,6 +441,29 @@ def update_splats(obj, cloud):
             _write_extra(geometry, name, values, kind)
     _keep_mode(geometry, cloud)
     _changed(geometry)
+
+
+def set_extras(obj, extras):
+    """Store `extras` ({name: (N,) or (N, k) array}) on the splat object `obj`'s own splats, adding
+    those it lacks and overwriting those it has (the spec that export reads updated to match);
+    returns the names that fit no attribute."""
+    geometry = obj.data
+    count = splat_count(geometry)
+    wrong = [f"'{name}' has {len(values)} rows" for name, values in extras.items() if len(values) != count]
+    if wrong:
+        raise SplatObjectError(f"'{obj.name}' has {count} splats: {', '.join(wrong)}")
+    spec, skipped = json.loads(geometry.get(EXTRAS_SPEC, "{}")), []
+    for name, values in extras.items():
+        values = np.asarray(values)
+        kind = _extra_kind(values)
+        if kind is None or len(_extra_names(name, kind[1])[-1]) > MAX_NAME:
+            skipped.append(name)
+            continue
+        _write_extra(geometry, name, values, kind)  # replaces an attribute of that name
+        spec[name] = [values.dtype.str, kind[1], values.ndim]
+    geometry[EXTRAS_SPEC] = json.dumps(spec)
+    _changed(geometry)
+    return skipped
 
 
 def built_datablock(collection, name, tag, version):
