@@ -39,7 +39,7 @@ from . import geometry
 from . import sh as shmod
 from .arrays import ArrayLike, Floats, Matrices4, Positions, Weights
 from .parallel import in_chunks
-from .splats import SplatCloud
+from .splats import NORMAL_EXTRAS, SplatCloud
 
 # Blender leaves a vertex in place when the total of its weights is not above this.
 MIN_TOTAL_WEIGHT = 1e-4
@@ -557,7 +557,9 @@ def skin(
     """The posed cloud: centres moved, covariances turned (and stretched where bones scale), SH
     rotated. `covariances=False` moves centres only (as mesh-based add-ons do), `sh=False` keeps
     the SH as they are; `strength` (N,) in 0..1 fades each splat's binding (see the module's
-    docstring). Opacities and extras are carried over unchanged."""
+    docstring). Normals (NORMAL_EXTRAS) turn with the covariances: by each splat's rotation, or by
+    the inverse transpose of its covariance map where that stretches (_normal_chunk). Opacities and
+    other extras are carried over unchanged."""
     finite = {"positions": cloud.positions}
     if covariances:
         finite.update(rotations=cloud.rotations, log_scales=cloud.log_scales)
@@ -571,7 +573,9 @@ def skin(
         else (cloud.rotations, cloud.log_scales)
     )
     turn = np.empty((n, 3, 3)) if sh and cloud.sh_degree > 0 else None
+    normals = _normals(cloud) if covariances else None
     chunk_fn, bones = _MODES[mode], bone_pose.derived
+    stretch_mode = lbs_stretch if mode == "lbs" else "bones"
 
     def work(a, b):
         centres, linear = chunk_fn(
@@ -579,15 +583,37 @@ def skin(
         )
         positions[a:b] = centres.T
         if covariances:
-            rot, log = _covariance_chunk(
-                cloud.rotations[a:b], cloud.log_scales[a:b], linear, lbs_stretch if mode == "lbs" else "bones"
-            )
+            rot, log = _covariance_chunk(cloud.rotations[a:b], cloud.log_scales[a:b], linear, stretch_mode)
             rotations[a:b], log_scales[a:b] = rot.T, log.T
+        if normals is not None:
+            normals[a:b] = _normal_chunk(normals[a:b], linear, stretch_mode)
         if turn is not None:
             turn[a:b] = linear["rotation"]
 
     in_chunks(n, work, _CHUNK)
     new_sh = shmod.rotate(cloud.sh, turn) if turn is not None else cloud.sh
-    return cloud.replace(
-        positions=positions, rotations=rotations, log_scales=log_scales, sh=new_sh, extras=dict(cloud.extras)
-    )
+    extras = dict(cloud.extras)
+    if normals is not None:
+        extras.update({k: normals[:, i].astype(np.float32) for i, k in enumerate(NORMAL_EXTRAS)})
+    return cloud.replace(positions=positions, rotations=rotations, log_scales=log_scales, sh=new_sh, extras=extras)
+
+
+def _normals(cloud):
+    """(N,3) float64 copy of the cloud's normals, or None when it has none."""
+    if not all(k in cloud.extras for k in NORMAL_EXTRAS):
+        return None
+    return np.stack([cloud.extras[k].reshape(len(cloud)).astype(np.float64) for k in NORMAL_EXTRAS], axis=1)
+
+
+def _normal_chunk(normals, linear, lbs_stretch):
+    """(n,3) normals through the map the covariances take (_covariance_chunk): the rotation R (a
+    rotation is its own inverse transpose), or the inverse transpose of M = R S where a stretch S
+    applies (M, the blended matrix, with lbs_stretch="blend"), renormalised."""
+    out = np.einsum("nij,nj->ni", linear["rotation"], normals)
+    if lbs_stretch == "blend":
+        return geometry.transform_normals(linear["blended"], normals)
+    if "stretched" in linear and linear["stretched"].any():
+        general = linear["stretched"]
+        maps = linear["rotation"][general] @ linear["stretch"]
+        out[general] = geometry.transform_normals(maps, normals[general])
+    return out
