@@ -182,9 +182,10 @@ def generated_cloud(obj, depsgraph):
     return geometry_cloud(pointcloud, obj.name, NATIVE_FORM)
 
 
-def instances_cloud(depsgraph, instances, conversion=None):
+def instances_cloud(depsgraph, instances, conversion=None, prepare=None):
     """One cloud of every (object, matrix) of `instances`, `conversion` @ matrix applied to each; each
-    object is evaluated once however many instances it has. Splats made for antialiased rendering
+    object is evaluated once however many instances it has, then given to `prepare(obj, cloud) ->
+    cloud` if set (the render engine marks relit splats so). Splats made for antialiased rendering
     beside classic ones join them as classic (one render shows one mode), with a SplatModeWarning
     naming the objects."""
     conversion = np.eye(4) if conversion is None else conversion
@@ -193,6 +194,8 @@ def instances_cloud(depsgraph, instances, conversion=None):
     for obj, matrix in instances:
         if obj.name not in own:
             own[obj.name] = evaluated_cloud(obj, depsgraph, np.eye(4))
+            if prepare is not None:
+                own[obj.name] = prepare(obj, own[obj.name])
         clouds.append(_transformed(obj, own[obj.name], conversion @ matrix))
     if len(clouds) == 1:
         return clouds[0]

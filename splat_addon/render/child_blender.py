@@ -7,10 +7,12 @@ line starting with REPLY, and ends when stdin closes:
 
     {"blend": snapshot.blend, "scene": name, "view_layer": name, "frame": 12, "subframe": 0.0,
      "camera": name, "engine": "CYCLES", "hide": [splat object names], "out": layer.exr,
-     "autoexec": true, "environment": true}
+     "autoexec": true, "environment": true, "shadow_casters": casters.npz}
 
 With "environment", the film is transparent and the Environment pass is written too: the world
-seen through each pixel, apart from the meshes.
+seen through each pixel, apart from the meshes. "shadow_casters" (optional) names an .npz of
+"vertices" (V,3) and "faces" (F,3), world space: the relit splats' stand-in mesh
+(core/shadow_casters.py), added visible to shadow rays only, so the meshes get the splats' shadows.
 """
 
 import json
@@ -19,6 +21,7 @@ import time
 import traceback
 
 REPLY = "@splatwright-mesh-layer "
+CASTERS = "Splatwright Shadow Casters"
 
 
 def render(request):
@@ -31,6 +34,8 @@ def render(request):
         if obj is not None:
             obj.hide_render = True
     scene.frame_set(request["frame"], subframe=request["subframe"])
+    if request.get("shadow_casters"):
+        add_shadow_casters(bpy, scene, request["shadow_casters"])
     if request.get("camera"):
         scene.camera = bpy.data.objects[request["camera"]]
     settings = scene.render
@@ -51,6 +56,27 @@ def render(request):
         settings.film_transparent = True
         layer.use_pass_environment = True
     bpy.ops.render.render(write_still=True, scene=scene.name, layer=layer.name)
+
+
+def add_shadow_casters(bpy, scene, path):
+    """The stand-in mesh in `path` as an object of `scene` that only shadow rays see."""
+    import numpy as np
+
+    with np.load(path) as arrays:
+        vertices, faces = arrays["vertices"].astype(np.float32), arrays["faces"].astype(np.int32)
+    mesh = bpy.data.meshes.new(CASTERS)
+    mesh.vertices.add(len(vertices))
+    mesh.vertices.foreach_set("co", vertices.ravel())
+    mesh.loops.add(faces.size)
+    mesh.loops.foreach_set("vertex_index", faces.ravel())
+    mesh.polygons.add(len(faces))
+    mesh.polygons.foreach_set("loop_start", np.arange(0, faces.size, 3, dtype=np.int32))
+    mesh.update()
+    obj = bpy.data.objects.new(CASTERS, mesh)
+    scene.collection.objects.link(obj)
+    for ray in ("camera", "diffuse", "glossy", "transmission", "volume_scatter"):
+        setattr(obj, f"visible_{ray}", False)
+    obj.visible_shadow = True
 
 
 def main():

@@ -11,8 +11,9 @@ import numpy as np
 from ...core.color import linear_to_srgb
 from .. import data
 from ..data import camera as blender_camera
-from . import lights, mesh_layer, viewport
-from .scene import MESH_ENGINE, mesh_engine, scene_splats, textured_world, to_scene_linear, world_color
+from . import lights, mesh_layer, relit, viewport
+from .lights import scene_lights, scene_world
+from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_color
 
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
 
@@ -59,14 +60,18 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         origin = np.array(cam_obj.matrix_world.translation, dtype=np.float64)
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
         with data.reported_warnings(self.report):
-            cloud = scene_splats(depsgraph, origin)
+            cloud, lit = relit.scene_cloud(depsgraph, origin)
         transparent = scene.render.film_transparent
-        meshes = self._mesh_layer(depsgraph, width, height)
+        meshes = self._mesh_layer(depsgraph, width, height, relit.shadow_casters(cloud, lit, origin))
         layer = None if meshes is None else meshes.as_layer()
         background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")
-        image = self._image(cloud, cam, background, layer)
-        passes = splat_passes(image, layer, meshes) if getattr(depsgraph.view_layer, SPLAT_PASSES, False) else {}
+        want_passes = getattr(depsgraph.view_layer, SPLAT_PASSES, False)
+        if lit is None:
+            image, lit_passes = self._image(cloud, cam, background, layer), {}
+        else:
+            image, lit_passes = self._lit_image(depsgraph, cloud, lit, cam, background, layer, origin, want_passes)
+        passes = {**splat_passes(image, layer, meshes), **lit_passes} if want_passes else {}
         world = None if meshes is None else meshes.world()
         if world is not None:  # the world rendered apart: behind everything, per pixel
             image.color += (1.0 - image.alpha)[..., None] * world
@@ -99,15 +104,21 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
 
     # final renders ------------------------------------------------------------------------------------
 
-    def _mesh_layer(self, depsgraph, width, height):
+    def _mesh_layer(self, depsgraph, width, height, shadow_casters=None):
         """The scene's meshes and world rendered by the chosen engine, or None (splats only, or
-        nothing but splats to render)."""
+        nothing but splats to render); `shadow_casters` is the relit splats' stand-in (see relit.py)."""
         engine = mesh_engine(depsgraph.scene)
         if engine == "NONE" or not (mesh_layer.has_geometry(depsgraph) or textured_world(depsgraph.scene)):
             return None
         self.update_stats("", f"Splatwright: rendering the meshes with {engine.title()}")
         return mesh_layer.render(
-            depsgraph, engine, width, height, test_break=self.test_break, progress=self.update_progress
+            depsgraph,
+            engine,
+            width,
+            height,
+            test_break=self.test_break,
+            progress=self.update_progress,
+            shadow_casters=shadow_casters,
         )
 
     def _image(self, cloud, cam, background, layer=None):
@@ -121,14 +132,32 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             self.update_stats("", "Splatwright: preparing the compiled kernels (the first render compiles them)")
             self.update_progress(0.0)
 
-        def progress(done, total, label=""):
-            self.update_progress(done / total if total else 1.0)
-            if self.test_break():
-                raise _Cancelled
+        cloud = cloud if cloud is not None else _no_splats()
+        return render(cloud, cam, background=background, layer=layer, progress=self._progress)
 
-        return render(
-            cloud if cloud is not None else _no_splats(), cam, background=background, layer=layer, progress=progress
+    def _progress(self, done, total, label=""):
+        self.update_progress(done / total if total else 1.0)
+        if self.test_break():
+            raise _Cancelled
+
+    def _lit_image(self, depsgraph, cloud, lit, cam, background, layer, origin, passes):
+        """The RenderResult of `cloud` with its `lit` splats shaded by the scene's lights and world
+        (relit.render_scene), and the Diffuse, Specular and Shadow passes when `passes`."""
+        self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
+        occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else []
+        result = relit.render_scene(
+            cloud,
+            lit,
+            cam,
+            scene_lights(depsgraph, origin),
+            scene_world(depsgraph.scene),
+            occluders=occluders,
+            background=background,
+            layer=layer,
+            passes=passes,
+            progress=self._progress,
         )
+        return result.image, (relit.lit_passes(result) if passes else {})
 
     def _write(self, width, height, rgba, depth, extra):
         result = self.begin_result(0, 0, width, height)
@@ -148,6 +177,9 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             self.register_pass(scene, renderlayer, "Splats", 4, "RGBA", "COLOR")
             if mesh_engine(scene) != "NONE":
                 self.register_pass(scene, renderlayer, "Meshes", 4, "RGBA", "COLOR")
+            if relit.any_relit(scene):
+                for name, channels, chan_id, kind in relit.PASSES:
+                    self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
 
 
 def splat_alpha(image, layer):

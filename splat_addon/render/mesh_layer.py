@@ -144,15 +144,18 @@ def has_geometry(depsgraph):
     return False
 
 
-def render(depsgraph, engine, width, height, test_break=lambda: False, progress=lambda fraction: None):
+def render(
+    depsgraph, engine, width, height, test_break=lambda: False, progress=lambda fraction: None, shadow_casters=None
+):
     """Render the mesh layer of the depsgraph's scene and view layer at its current frame with
     `engine` (an ENGINE_CHOICES key); returns a MeshLayer of width x height. progress(fraction) is
-    called while Cycles reports its samples."""
+    called while Cycles reports its samples. `shadow_casters`, (vertices (V,3), faces (F,3)) in world
+    space, is a mesh the child adds visible to shadow rays only (relit splats' shadows on meshes)."""
     start = time.perf_counter()
     scene = depsgraph.scene
     work = _workdir()
     stamp = f"{os.getpid()}_{next(_counter)}"
-    blend, exr = work / f"scene_{stamp}.blend", work / f"layer_{stamp}.exr"
+    blend, exr, casters = work / f"scene_{stamp}.blend", work / f"layer_{stamp}.exr", work / f"casters_{stamp}.npz"
     try:
         hide = on_main_thread(lambda: write_snapshot(scene.name, blend), test_break)
         # Cycles renders the world apart (its Environment pass) when the film is opaque, so that
@@ -171,12 +174,15 @@ def render(depsgraph, engine, width, height, test_break=lambda: False, progress=
             "autoexec": not bpy.app.autoexec_fail,
             "environment": apart,
         }
+        if shadow_casters is not None and len(shadow_casters[1]):
+            np.savez(casters, vertices=shadow_casters[0], faces=shadow_casters[1])
+            request["shadow_casters"] = str(casters)
         reply = _child().ask(request, test_break, progress)
         if not reply.get("ok"):
             raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")
         channels = read_plain_exr(exr)
     finally:
-        for path in (blend, exr):
+        for path in (blend, exr, casters):
             path.unlink(missing_ok=True)
     return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart, time.perf_counter() - start)
 

@@ -15,10 +15,11 @@ def mesh_engine(scene):
     return getattr(scene, MESH_ENGINE, "NONE")
 
 
-def scene_splats(depsgraph, origin):
+def scene_splats(depsgraph, origin, prepare=None):
     """Every splat object and instance the depsgraph renders as one cloud, in world space shifted by
-    -`origin` (None if there are none). Instances whose transform collapses them (zero scale) show
-    nothing."""
+    -`origin` (None if there are none); `prepare(obj, cloud) -> cloud` is applied to each object's
+    splats first (see data.instances_cloud). Instances whose transform collapses them (zero scale)
+    show nothing."""
     shift = np.eye(4)
     shift[:3, 3] = -origin
     instances = [
@@ -26,7 +27,49 @@ def scene_splats(depsgraph, origin):
         for i in data.splat_instances(depsgraph)
         if (i.instancer is not None or not i.obj.hide_render) and abs(np.linalg.det(i.matrix[:3, :3])) > 0
     ]
-    return data.instances_cloud(depsgraph, instances, shift) if instances else None
+    return data.instances_cloud(depsgraph, instances, shift, prepare) if instances else None
+
+
+SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}  # what to_mesh() turns into triangles
+
+
+def surface_triangles(depsgraph, shadow_casters_only=False):
+    """Every visible surface that is not a splat object as world-space triangles (T,3,3) with the
+    viewport colour (T,3) of each face's material (the object's colour without one); with
+    `shadow_casters_only`, only objects that shadow rays see (Object > Visibility > Shadow)."""
+    corners, colors = [], []
+    for inst in depsgraph.object_instances:
+        obj = inst.object
+        if obj.type not in SURFACE_TYPES or data.is_splat_object(obj.original):
+            continue
+        if shadow_casters_only and not getattr(obj, "visible_shadow", True):
+            continue
+        mesh = obj.to_mesh()
+        try:
+            if mesh is None or not len(mesh.polygons):
+                continue
+            mesh.calc_loop_triangles()
+            n = len(mesh.loop_triangles)
+            co = np.empty(len(mesh.vertices) * 3)
+            mesh.vertices.foreach_get("co", co)
+            tris = np.empty(n * 3, np.int64)
+            mesh.loop_triangles.foreach_get("vertices", tris)
+            slots = np.empty(n, np.int64)
+            mesh.loop_triangles.foreach_get("material_index", slots)
+            palette = [
+                tuple(m.diffuse_color[:3]) if m is not None else tuple(obj.color[:3])
+                for m in (obj.material_slots[i].material for i in range(len(obj.material_slots)))
+            ]
+            palette = np.array(palette or [tuple(obj.color[:3])], np.float64)
+            matrix = np.array(inst.matrix_world, np.float64)
+            world = co.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
+            corners.append(world[tris.reshape(-1, 3)])
+            colors.append(palette[np.minimum(slots, len(palette) - 1)])
+        finally:
+            obj.to_mesh_clear()
+    if not corners:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    return np.concatenate(corners), np.concatenate(colors)
 
 
 def world_color(scene):

@@ -16,10 +16,7 @@ import numpy as np
 from ...core.color import linear_to_srgb
 from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
 from ...core.splats import SplatCloud
-from .. import data
-from .scene import mesh_engine, scene_splats, to_scene_linear, world_color
-
-SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}  # what to_mesh() turns into triangles
+from .scene import mesh_engine, scene_splats, surface_triangles, to_scene_linear, world_color
 
 
 class View:
@@ -40,39 +37,10 @@ def region_camera(region, region_3d):
 
 
 def triangles(depsgraph):
-    """Every visible surface that is not a splat object, as world-space triangles with the viewport
-    colour of each face's material (the object's colour without one)."""
-    corners, colors = [], []
-    for inst in depsgraph.object_instances:
-        obj = inst.object
-        if obj.type not in SURFACE_TYPES or data.is_splat_object(obj.original):
-            continue
-        mesh = obj.to_mesh()
-        try:
-            if mesh is None or not len(mesh.polygons):
-                continue
-            mesh.calc_loop_triangles()
-            n = len(mesh.loop_triangles)
-            co = np.empty(len(mesh.vertices) * 3)
-            mesh.vertices.foreach_get("co", co)
-            tris = np.empty(n * 3, np.int64)
-            mesh.loop_triangles.foreach_get("vertices", tris)
-            slots = np.empty(n, np.int64)
-            mesh.loop_triangles.foreach_get("material_index", slots)
-            palette = [
-                tuple(m.diffuse_color[:3]) if m is not None else tuple(obj.color[:3])
-                for m in (obj.material_slots[i].material for i in range(len(obj.material_slots)))
-            ]
-            palette = np.array(palette or [tuple(obj.color[:3])], np.float64)
-            matrix = np.array(inst.matrix_world, np.float64)
-            world = co.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
-            corners.append(world[tris.reshape(-1, 3)])
-            colors.append(palette[np.minimum(slots, len(palette) - 1)])
-        finally:
-            obj.to_mesh_clear()
-    if not corners:
-        return Triangles.empty()
-    return Triangles(np.concatenate(corners), np.concatenate(colors))
+    """Every visible surface that is not a splat object as core.preview Triangles (world space, each
+    face with its material's viewport colour)."""
+    corners, colors = surface_triangles(depsgraph)
+    return Triangles(corners, colors) if len(corners) else Triangles.empty()
 
 
 def picture_inputs(depsgraph):

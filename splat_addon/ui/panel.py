@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import bpy
 
+from ...core import material
 from ...core.economy import describe_change
 from ...core.memory import human_bytes
 from ...core.splats import memory_bytes
@@ -18,6 +19,7 @@ from ...io import file_sizes
 from .. import data
 from ..data import display
 from ..edit import cleanup
+from ..render.lights import RELIGHT
 from . import preferences
 
 DISPLAY_INPUTS = ("Radius Scale", "Min Opacity", "Display Ratio")
@@ -98,6 +100,48 @@ def draw_cleanup(box, obj):
         col.operator(idname, icon=icon)
 
 
+ESTIMATE_NORMALS = "splatwright.estimate_normals"
+
+
+def material_status(obj):
+    """{key: bool} of the material extras (core.material.KEYS' names: albedo, normals, roughness,
+    metallic) splat object `obj` stores, read from attribute names only."""
+    names = {a.name for a in obj.data.attributes}
+
+    def stored(key):
+        base = data.EXTRA_PREFIX + key
+        return base in names or f"{base}.0" in names
+
+    return {
+        "albedo": stored(material.ALBEDO),
+        "normals": all(stored(k) for k in material.NORMALS),
+        "roughness": stored(material.ROUGHNESS),
+        "metallic": stored(material.METALLIC),
+    }
+
+
+def _operator_registered(idname):
+    """Whether operator `idname` ("module.name") is registered (another part may not be installed)."""
+    module, name = idname.split(".")
+    return hasattr(bpy.types, f"{module.upper()}_OT_{name}")
+
+
+def draw_material(box, obj):
+    """What the object carries for relighting, its Relight switch and Estimate Normals."""
+    status = material_status(obj)
+    col = box.column(align=True)
+    col.label(text="Material")
+    col.label(text=f"    Albedo: {'yes' if status['albedo'] else 'none'}")
+    col.label(text=f"    Normals: {'yes' if status['normals'] else 'none'}")
+    col.label(text=f"    Roughness: {'own' if status['roughness'] else f'default {material.DEFAULT_ROUGHNESS:g}'}")
+    col.label(text=f"    Metallic: {'own' if status['metallic'] else f'default {material.DEFAULT_METALLIC:g}'}")
+    col.prop(obj, RELIGHT, text="Relight")
+    if getattr(obj, RELIGHT, False) and not (status["albedo"] and status["normals"]):
+        col.label(text="No albedo and normals: renders unlit", icon="ERROR")
+    if _operator_registered(ESTIMATE_NORMALS):
+        col.operator(ESTIMATE_NORMALS, icon="NORMALS_FACE")
+
+
 class _SplatsPanel:
     bl_label = "Splats"
 
@@ -121,6 +165,7 @@ class _SplatsPanel:
                 owner, prop = display.input_property(mod, name)
                 col.prop(owner, prop, text=name)
         draw_cleanup(layout.box(), obj)
+        draw_material(layout.box(), obj)
         draw_operators(layout.column(align=True))
 
 
