@@ -42,8 +42,11 @@ def test_sphere_normals_point_outward_either_way(blender, form):
 
 @pytest.mark.parametrize("form", ["MESH", "NATIVE"])
 def test_sheet_normals_face_the_camera(blender, form):
-    res = _result(blender, f"sheet_{form.lower()}")["CAMERAS"]
+    both = _result(blender, f"sheet_{form.lower()}")
+    res = both["CAMERAS"]
     assert res["result"] == ["FINISHED"], res
+    # Five cameras in the scene, at most two used.
+    assert both["thinned"]["result"] == ["FINISHED"] and both["thinned"]["report"]["cameras"] == 2
     assert res["report"] == {"splats": SHEET * SHEET, "too_round": 0, "cameras": 1, "orient": "CAMERAS"}
     d = blender.npz(f"sheet_{form}")
     assert np.einsum("ij,ij->i", d["normals"], d["facing"]).min() > 0.9999

@@ -6,10 +6,11 @@ import json
 
 import bpy
 import numpy as np
-from bpy.props import EnumProperty
+from bpy.props import EnumProperty, IntProperty
 
 from ...core import geometry, material
 from ...core import normals as core_normals
+from ...core.camera import spread_along
 from .. import data
 from ..data import camera as cameras
 from ..data.errors import EXPECTED_ERRORS
@@ -31,6 +32,14 @@ class SPLATWRIGHT_OT_estimate_normals(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     orient: EnumProperty(name="Orient", items=ORIENT_ITEMS, default="CAMERAS")
+    # Each camera costs a render of the splats (about 1 s per 200k splats without compiled kernels):
+    # a capture's hundreds of cameras are thinned to this many, spread along their order by name.
+    max_cameras: IntProperty(
+        name="Cameras at Most",
+        description="Use at most this many of the scene's cameras, spread evenly along them by name",
+        default=32,
+        min=1,
+    )
 
     @classmethod
     def poll(cls, context):
@@ -46,6 +55,9 @@ class SPLATWRIGHT_OT_estimate_normals(bpy.types.Operator):
             matrix = np.array(obj.matrix_world, dtype=np.float64)
             world = data.object_to_cloud(obj, matrix)  # the cameras live in world space
             views, unusable = scene_cameras(scene) if self.orient == "CAMERAS" else ([], [])
+            if len(views) > self.max_cameras:
+                centre = core_normals.robust_centre(world.positions)
+                views = [views[i] for i in spread_along(views, self.max_cameras, centre)]
             found = core_normals.estimate_normals(world, cameras=views or None)
             own = geometry.transform_normals(np.linalg.inv(matrix[:3, :3]), found)  # world -> object: A^T n
             stored = material.with_material(data.object_cloud(obj), normals=own)
@@ -73,7 +85,7 @@ def scene_cameras(scene):
     scale = render.resolution_percentage / 100.0
     width, height = max(1, round(render.resolution_x * scale)), max(1, round(render.resolution_y * scale))
     views, unusable = [], []
-    for obj in scene.objects:
+    for obj in sorted(scene.objects, key=lambda o: o.name):
         if obj.type != "CAMERA":
             continue
         try:

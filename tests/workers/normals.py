@@ -101,12 +101,12 @@ class Worker(BlenderWorker):
         res["exported_extras"] = sorted(data.object_cloud(obj).extras)
         return res
 
-    def camera(self):
+    def camera(self, name="Cam", offset=(0.0, 0.0, 0.0)):
         bpy = self.bpy
-        cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+        cam = bpy.data.objects.new(name, bpy.data.cameras.new(name))
         bpy.context.scene.collection.objects.link(cam)
-        cam.location = CAMERA_AT
-        direction = np.asarray(SHEET_AT) - CAMERA_AT
+        cam.location = np.asarray(CAMERA_AT) + offset
+        direction = np.asarray(SHEET_AT) - cam.location
         cam.rotation_euler = _track(direction)
         bpy.context.view_layer.update()
         return cam
@@ -122,6 +122,11 @@ class Worker(BlenderWorker):
         res = {}
         res["CAMERAS"], normals = self.estimate(obj, "CAMERAS")
         self.save(f"sheet_{form}", normals=normals, facing=arrays[2])
+        for k in range(4):  # more cameras than the operator is allowed: thinned to two
+            self.camera(f"Cam{k}", offset=(0.3 * k - 0.5, 0.0, 0.2 * k))
+        self.select([obj])
+        res["thinned"] = self.call(self.bpy.ops.splatwright.estimate_normals, orient="CAMERAS", max_cameras=2)
+        res["thinned"]["report"] = json.loads(obj["splatwright_normals_report"])
         return res
 
     def sphere_mesh(self):
