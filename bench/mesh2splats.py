@@ -47,9 +47,11 @@ from splatwright.core import (
 )
 from splatwright.core.camera import Camera, opengl_camera_to_world  # noqa: E402
 from splatwright.core.mesh import Material, Mesh  # noqa: E402
-from splatwright.core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, conversion_bytes  # noqa: E402
+from splatwright.core.mesh_refine import KNEE_GAIN_DB, VIEW_DISTANCES, VIEWS_PER_DISTANCE, conversion_bytes  # noqa: E402
+from splatwright.core.mesh_render import render_mesh  # noqa: E402
 from splatwright.core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
+from splatwright.core.render_constants import LOW_PASS  # noqa: E402
 from splatwright.core.scenes import thin_walled_cup  # noqa: E402
 from splatwright.io.mesh import read_mesh  # noqa: E402
 
@@ -60,7 +62,6 @@ DISTANCES = (0.5, 1.0, 3.0)
 # KNEE_GAIN_DB at the worst held-out distance), and the Blender operator's default budget beside them.
 CURVE_BUDGETS = (8_000, 16_000, 32_000, 64_000, 128_000, 256_000)
 QUICK_CURVE_BUDGETS = (4_000, 16_000, 64_000)
-KNEE_GAIN_DB = 0.5
 SPEED_REPEAT = 3  # default conversions of textured meshes, each in a fresh process
 LARGE_SEGMENTS, LARGE_RINGS = 176, 86  # a textured sphere of 29,920 triangles
 MEMORY_BOUND = 4 << 30  # the most a default conversion of a mesh under 100k triangles may take
@@ -535,6 +536,24 @@ def by_distance(cloud, cams, references):
     return out
 
 
+def thin_splat_limit(mesh, cams, references):
+    """by_distance's PSNR of the image infinitely many, infinitely thin splats would draw: the mesh's
+    own samples blended in display colour under the renderer's low-pass (core.mesh_render, mix
+    "display"). A splat renderer blends display colours where Cycles mixes linear light, so hard
+    colour edges lose this much before the splats' own size; calibrated outlines can do better."""
+    width = 4 * math.sqrt(LOW_PASS)  # Cycles' Gaussian filter has sigma width / 4
+    images = [
+        render_mesh(mesh, cam, pixel_filter="gaussian", filter_width=width, mix="display").color for _, cam in cams
+    ]
+    return {
+        f"dB {d:g}x": versus(
+            [images[i] for i, (dd, _) in enumerate(cams) if dd == d],
+            [references[i] for i, (dd, _) in enumerate(cams) if dd == d],
+        )["psnr_db"]
+        for d in DISTANCES
+    }
+
+
 def worst_distance(error):
     """The lowest of by_distance's per-distance dB."""
     return min(error[f"dB {d:g}x"] for d in DISTANCES)
@@ -893,6 +912,7 @@ def texture_rows(name, mesh, size, folder, quick):
     (cloud, info, _, memory), (old_cloud, _, _, _) = runs[True][-1], runs[False][-1]
     timing, baseline = (_combine([r[2] for r in runs[aware]]) for aware in (True, False))
     error, before = by_distance(cloud, cams, references), by_distance(old_cloud, cams, references)
+    limit = thin_splat_limit(mesh, cams, references)
     row = Row(
         TOPIC,
         f"{name}: default, texture-aware, against texture_aware=False",
@@ -906,6 +926,7 @@ def texture_rows(name, mesh, size, folder, quick):
             "reached": info["reached"],
             "CPU s": f"{info.get('cpu_seconds', float('nan')):.1f}",
             "before dB 0.5x / 1x / 3x": " / ".join(f"{before[f'dB {d:g}x']:.1f}" for d in DISTANCES),
+            "thin-splat image dB 0.5x / 1x / 3x": " / ".join(f"{limit[f'dB {d:g}x']:.1f}" for d in DISTANCES),
             "peak RSS MiB": round(memory["peak"] / 2**20),
             "RSS growth MiB": round((memory["peak"] - memory["rss_before"]) / 2**20),
             "predicted MiB": round(conversion_bytes(len(cloud), len(mesh.faces), default_view_pixels(size)) / 2**20),

@@ -52,6 +52,7 @@ def render_mesh(
     pixel_filter=DEFAULT_PIXEL_FILTER,
     filter_width=CYCLES_FILTER_WIDTH,
     backend="auto",
+    mix="linear",
     **appearance,
 ):
     """Render a mesh through a core Camera. `surface` is a core.mesh.Surface, a Mesh, or vertices
@@ -62,7 +63,13 @@ def render_mesh(
     Cycles' default, Blackman-Harris 1.5 px, which reaches 1.5 px into the neighbours ("box": the
     pixel's own samples, equally). Samples past the frame's edge are rendered, as Cycles' rays reach.
     backend: the rasteriser's, as for rasterize().
+    mix: "linear" weighs the samples in linear light, as Cycles does; "display" weighs their display
+    colours, as a splat renderer blends splats. With a Gaussian filter of the splat renderer's
+    low-pass (filter_width 4 * sqrt(LOW_PASS)), "display" gives the image that infinitely many,
+    infinitely thin splats would draw: it tells what of a conversion's error is the blending's.
     """
+    if mix not in ("linear", "display"):
+        raise ValueError(f"mix must be 'linear' or 'display', got {mix!r}")
     surface = _as_surface(surface, appearance)
     s = int(supersample)
     if s < 1:
@@ -84,11 +91,12 @@ def render_mesh(
     linear[hit] = _shade_hits(surface, cam, face[hit], bary[hit], np.flatnonzero(hit.ravel()))
     h, w = camera.height, camera.width
     filtered = lambda a: _filter_axis(_filter_axis(a, taps, s, h, 0), taps, s, w, 1)  # noqa: E731
+    shown = to_display(filtered(linear)) if mix == "linear" else filtered(to_display(linear))
     covered = filtered(hit.astype(np.float64))
     mean_depth = np.where(covered > 0, filtered(np.where(hit, depth, 0.0)) / np.maximum(covered, 1e-300), 0.0)
     inside = slice(margin, margin + h * s), slice(margin, margin + w * s)
     return MeshRender(
-        to_display(filtered(linear)).astype(np.float32),
+        shown.astype(np.float32),
         covered.astype(np.float32),
         mean_depth.astype(np.float32),
         face[inside],
