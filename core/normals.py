@@ -26,8 +26,10 @@ TOO_ROUND = 0.7
 # Orientation rules with cameras (bench/normals.py chose the default by flip rate on mesh-made splats).
 RULES = ("vote", "head-on", "nearest")
 DEFAULT_RULE = "vote"
-# Visibility renders are this many pixels on their longer side: a splat's largest blending weight
-# there says whether the camera saw it, which needs no full-size image.
+# Visibility renders are this many pixels on their longer side: the depth test needs no full-size
+# image (bench/normals.py: 192 and 256 px flipped the same splats). A splat's largest blending weight
+# was no test: a closed surface of mesh-made splats lets through enough light (weights over 1/255)
+# that the far side of a sphere counted as seen, and the vote flipped every normal.
 VISIBILITY_SIZE = 192
 DEPTH_SIGMAS = 1.0  # bench/normals.py: at 3 the striped cup's 5 mm walls show through (31% flipped), at 1 2.2%
 
