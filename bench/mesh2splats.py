@@ -269,12 +269,16 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
         textures.append(path)
     uvs = mesh.corner_uvs if mesh.corner_uvs is not None else np.zeros((len(mesh.faces), 3, 2))
     fm = mesh.face_materials if mesh.face_materials is not None else np.zeros(len(mesh.faces), int)
+    corners = mesh.corner_colors
+    if corners is not None and corners.ndim == 2:  # per vertex: every corner takes its vertex's
+        corners = corners[mesh.faces]
     np.savez(
         spec,
         vertices=mesh.vertices,
         faces=mesh.faces,
         uvs=uvs,
         face_materials=fm,
+        corner_colors=np.zeros((0, 3, 3)) if corners is None else corners,
         base_colors=np.array([m.base_color for m in materials]),
         textures=np.array(textures),
         camera_to_world=np.array([opengl_camera_to_world(c.world_to_camera) for c in cameras]),
@@ -312,6 +316,11 @@ def _cycles_main(spec_path):
     mesh.from_pydata(d["vertices"].tolist(), [], d["faces"].tolist())
     mesh.uv_layers.new(name="UVMap").data.foreach_set("uv", d["uvs"].reshape(-1).astype(np.float32))
     mesh.polygons.foreach_set("material_index", d["face_materials"].astype(np.int32))
+    corners = d["corner_colors"] if "corner_colors" in d else np.zeros((0, 3, 3))
+    if len(corners):  # colours per corner multiply the material's, as core.mesh shades them
+        rgba = np.concatenate([corners, np.ones(corners.shape[:2] + (1,))], axis=2)
+        layer = mesh.color_attributes.new("Col", "FLOAT_COLOR", "CORNER")
+        layer.data.foreach_set("color", rgba.reshape(-1).astype(np.float32))
     for base, texture in zip(d["base_colors"], d["textures"]):
         material = bpy.data.materials.new("m")
         material.use_nodes = True
@@ -334,6 +343,8 @@ def _cycles_main(spec_path):
             image.image.colorspace_settings.name = "sRGB"
             image.interpolation = "Linear"
             links.new(image.outputs["Color"], colour_input)
+        if len(corners):
+            _multiply_by_corner_colours(nodes, links, colour_input)
         links.new(shader.outputs[0], nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
         mesh.materials.append(material)
     obj = bpy.data.objects.new("mesh", mesh)
@@ -373,6 +384,21 @@ def _cycles_main(spec_path):
         cam.matrix_world = mathutils.Matrix(matrix.tolist())
         render_settings.filepath = f"{d['out']}{i}.png"
         bpy.ops.render.render(write_still=True)
+
+
+def _multiply_by_corner_colours(nodes, links, colour_input):
+    """Feed `colour_input` what fed it (a texture, else its own value) times the "Col" attribute."""
+    mix = nodes.new("ShaderNodeMix")
+    mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
+    mix.inputs["Factor"].default_value = 1.0
+    if colour_input.is_linked:
+        links.new(colour_input.links[0].from_socket, mix.inputs[6])
+    else:
+        mix.inputs[6].default_value = colour_input.default_value
+    attribute = nodes.new("ShaderNodeAttribute")
+    attribute.attribute_name = "Col"
+    links.new(attribute.outputs["Color"], mix.inputs[7])
+    links.new(mix.outputs[2], colour_input)
 
 
 def _lit_scene(scene, obj, world):
