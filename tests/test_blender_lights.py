@@ -1,0 +1,84 @@
+"""core.lights' units against Cycles: a white diffuse plane (albedo 0.8) under one light of each kind,
+rendered by Cycles on the CPU (tests/workers/lights.py), must show at every pixel the radiance
+albedo * irradiance / pi that core.lights.irradiance predicts for the point the pixel sees, within
+Cycles' Monte Carlo noise (measured from two renders with different seeds) and the stated tolerance.
+
+Runs in every Blender of the version matrix (a few seconds each); the units are the same in 4.2 and
+5.x (point and spot lights are spheres since 4.0, whose light outside them is that of a point)."""
+
+import math
+
+import numpy as np
+import pytest
+from blender_session import blender_fixture
+from workers.lights import LIGHTS
+
+from splatwright.core.lights import Light, irradiance
+
+pytestmark = [pytest.mark.blender, pytest.mark.slow]
+
+blender = blender_fixture("workers.lights")
+
+# Largest relative error allowed on the mean over the lit pixels (systematic: units, falloffs),
+# and per pixel beyond 5 sigma of Cycles' own noise (the area lights' 16-point sampling included).
+MEAN_TOLERANCE = 0.01
+PIXEL_TOLERANCE = {"point": 0.01, "spot": 0.02, "sun": 0.01, "area_rectangle": 0.04, "area_disk": 0.04}
+
+
+def light_from_record(rec):
+    """The core.lights.Light of a Blender light as the worker recorded it: position and axes from its
+    world matrix (the light points along its -Z, an area light's x_axis is its +X)."""
+    m = np.array(rec["matrix_world"])
+    kind = {"POINT": "point", "SPOT": "spot", "SUN": "sun", "AREA": "area"}[rec["type"]]
+    common = dict(
+        color=rec["color"],
+        power=rec["energy"] * 2.0 ** rec["exposure"],
+        position=m[:3, 3],
+        direction=-m[:3, 2],
+        x_axis=m[:3, 0],
+    )
+    if kind in ("point", "spot"):
+        common["radius"] = rec["shadow_soft_size"]
+    if kind == "spot":
+        common.update(spot_size=rec["spot_size"], spot_blend=rec["spot_blend"])
+    if kind == "sun":
+        common["angle"] = rec["angle"]
+    if kind == "area":
+        common.update(shape=rec["shape"], size_x=rec["size"], size_y=rec["size_y"])
+    return Light(kind, **common)
+
+
+def plane_points(size, ortho_scale):
+    """The plane point (z = 0) each pixel of the straight-down orthographic camera sees, row 0 at the
+    top (+y), as (size*size, 3)."""
+    centres = (np.arange(size) + 0.5) / size * ortho_scale - 0.5 * ortho_scale
+    y, x = np.meshgrid(-centres, centres, indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), np.zeros(size * size)], axis=1)
+
+
+def compare(blender, name):
+    rec = blender.step(name)
+    light = light_from_record(rec["light"])
+    size = rec["size"]
+    points = plane_points(size, rec["ortho_scale"])
+    normals = np.broadcast_to([0.0, 0.0, 1.0], points.shape)
+    predicted = (rec["albedo"] / math.pi * irradiance(light, points, normals)).reshape(size, size, 3)
+    images = blender.npz(name)
+    first, second = images["first"].astype(np.float64), images["second"].astype(np.float64)
+    rendered = 0.5 * (first + second)
+    sigma = np.abs(first - second) / 2.0  # per pixel: |a - b| / sqrt(2) estimates one render's, / sqrt(2) again
+    return predicted, rendered, sigma
+
+
+@pytest.mark.parametrize("name", list(LIGHTS))
+def test_cycles_renders_the_irradiance_core_lights_predicts(blender, name):
+    predicted, rendered, sigma = compare(blender, name)
+    lit = predicted.mean(axis=-1) > 0.02 * predicted.max()
+    assert lit.sum() > 200  # the light falls on a good part of the picture
+    mean_error = abs(rendered[lit].sum() / predicted[lit].sum() - 1.0)
+    assert mean_error < MEAN_TOLERANCE, f"{name}: mean relative error {mean_error:.4f}"
+    excess = np.abs(rendered - predicted) - 5.0 * np.maximum(sigma, 1e-4) - PIXEL_TOLERANCE[name] * predicted.max()
+    assert excess.max() <= 0.0, f"{name}: worst pixel {np.abs(rendered - predicted).max():.4g}"
+    # and unlit stays unlit: outside the spot's cone and behind the area lights, black
+    if (~lit).any():
+        assert np.abs(rendered[~lit] - predicted[~lit]).max() < 0.03 * predicted.max() + 5 * sigma.max()

@@ -1,0 +1,135 @@
+"""The Blender side of tests/test_blender_lights.py (see workers/base.py): Cycles on the CPU renders a
+large white diffuse plane under one light of each kind, seen straight down by an orthographic camera,
+so that every pixel is the radiance the plane reflects at a known point: albedo * irradiance / pi.
+Each scene renders twice with different seeds (the difference measures Cycles' noise). Nothing of the
+extension is used: the lights' settings and matrices go back to the test, which converts them."""
+
+import math
+
+import numpy as np
+
+from workers.base import BlenderWorker, worker_main
+
+SIZE = 48  # pixels each way
+ORTHO_SCALE = 6.0  # metres across the picture
+ALBEDO = 0.8
+SAMPLES = 256
+# name -> the light's settings: type, data properties, location, rotation (Euler XYZ, radians)
+LIGHTS = {
+    "point": ("POINT", dict(energy=120.0, shadow_soft_size=0.05, color=(1.0, 0.8, 0.6)), (0.4, -0.3, 1.6), (0, 0, 0)),
+    "spot": (
+        "SPOT",
+        dict(energy=300.0, shadow_soft_size=0.02, spot_size=math.radians(70.0), spot_blend=0.4),
+        (-0.3, 0.2, 2.0),
+        (math.radians(12.0), 0.0, 0.0),
+    ),
+    "sun": ("SUN", dict(energy=2.5, angle=math.radians(0.5)), (0, 0, 5), (math.radians(35.0), 0.0, math.radians(20))),
+    "area_rectangle": (
+        "AREA",
+        dict(energy=150.0, shape="RECTANGLE", size=1.6, size_y=0.7),
+        (0.2, 0.1, 1.1),
+        (math.radians(15.0), math.radians(-10.0), math.radians(30.0)),
+    ),
+    "area_disk": ("AREA", dict(energy=80.0, shape="DISK", size=1.2), (-0.2, 0.3, 0.9), (0, 0, 0)),
+}
+
+
+class Worker(BlenderWorker):
+    steps = tuple(LIGHTS)
+    keep_objects = ("Camera",)
+    orphan_kinds = ("meshes", "materials", "lights")
+
+    def scene(self):
+        """The plane, the camera straight down and Cycles' settings: direct light only (nothing else
+        in the scene to bounce off), no denoiser, a box pixel as small as Cycles allows."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        bpy.ops.mesh.primitive_plane_add(size=60.0, location=(0.0, 0.0, 0.0))
+        material = bpy.data.materials.new("White")
+        material.use_nodes = True
+        nodes = material.node_tree.nodes
+        nodes.clear()
+        diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+        diffuse.inputs["Color"].default_value = (ALBEDO, ALBEDO, ALBEDO, 1.0)
+        diffuse.inputs["Roughness"].default_value = 0.0
+        output = nodes.new("ShaderNodeOutputMaterial")
+        material.node_tree.links.new(diffuse.outputs["BSDF"], output.inputs["Surface"])
+        bpy.context.active_object.data.materials.append(material)
+        cam = scene.camera
+        cam.location, cam.rotation_euler = (0.0, 0.0, 10.0), (0.0, 0.0, 0.0)
+        cam.data.type, cam.data.ortho_scale = "ORTHO", ORTHO_SCALE
+        background = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        background.inputs["Strength"].default_value = 0.0
+        render = scene.render
+        render.engine = "CYCLES"
+        render.resolution_x = render.resolution_y = SIZE
+        render.resolution_percentage = 100
+        render.dither_intensity = 0.0
+        scene.view_settings.view_transform = "Standard"
+        scene.cycles.device = "CPU"
+        scene.cycles.samples = SAMPLES
+        scene.cycles.use_adaptive_sampling = False
+        scene.cycles.use_denoising = False
+        scene.cycles.filter_width = 0.01
+        self.image_format(render.image_settings, "OPEN_EXR", color_depth="32")
+
+    def light(self, name):
+        kind, settings, location, rotation = LIGHTS[name]
+        bpy = self.bpy
+        data = bpy.data.lights.new(name, kind)
+        for key, value in settings.items():
+            setattr(data, key, value)
+        obj = bpy.data.objects.new(name, data)
+        bpy.context.scene.collection.objects.link(obj)
+        obj.location, obj.rotation_euler = location, rotation
+        bpy.context.view_layer.update()
+        return obj
+
+    def render(self, name, seed):
+        bpy = self.bpy
+        bpy.context.scene.cycles.seed = seed
+        bpy.ops.render.render()
+        path = self.out / f"{name}_{seed}.exr"
+        bpy.data.images["Render Result"].save_render(str(path))
+        loaded = bpy.data.images.load(str(path))
+        pixels = np.empty(len(loaded.pixels), np.float32)
+        loaded.pixels.foreach_get(pixels)
+        bpy.data.images.remove(loaded)
+        return pixels.reshape(SIZE, SIZE, 4)[::-1, :, :3]  # row 0 at the top
+
+    def record(self, obj):
+        """What the test needs to build the same light: the data's settings and the world matrix."""
+        data = obj.data
+        rec = {"type": data.type, "energy": data.energy, "color": list(data.color)}
+        rec["exposure"] = getattr(data, "exposure", 0.0)
+        for key in ("shadow_soft_size", "spot_size", "spot_blend", "angle", "shape", "size", "size_y"):
+            if hasattr(data, key):
+                rec[key] = getattr(data, key)
+        rec["matrix_world"] = [list(row) for row in obj.matrix_world]
+        return rec
+
+    def run_light(self, name):
+        self.scene()
+        obj = self.light(name)
+        images = [self.render(name, seed) for seed in (0, 1)]
+        self.save(name, first=images[0], second=images[1])
+        return {"light": self.record(obj), "albedo": ALBEDO, "size": SIZE, "ortho_scale": ORTHO_SCALE}
+
+    def point(self):
+        return self.run_light("point")
+
+    def spot(self):
+        return self.run_light("spot")
+
+    def sun(self):
+        return self.run_light("sun")
+
+    def area_rectangle(self):
+        return self.run_light("area_rectangle")
+
+    def area_disk(self):
+        return self.run_light("area_disk")
+
+
+if __name__ == "__main__":
+    worker_main(Worker)
