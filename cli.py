@@ -587,14 +587,12 @@ def _run_mesh2splats(args):
 
 
 def _file_size(path, cloud):
-    """About how large `cloud` will be written to `path`, for people ("12.3 MB")."""
-    from .io import file_sizes, format_of
+    """About how large `cloud` will be written to `path`, for people ("about 12.3 MiB")."""
+    from .core.memory import human_bytes
+    from .io import format_of, written_size
 
-    fmt = format_of(path)
-    size = file_sizes(len(cloud), cloud.sh_degree).get(fmt)
-    if size is not None and fmt == "ply":  # PLY also keeps the extras (a mesh's source triangles, ...)
-        size += sum(np.asarray(values).nbytes for values in cloud.extras.values())
-    return "size unknown" if size is None else f"about {size / 1e6:.1f} MB"
+    size = written_size(cloud, format_of(path))
+    return "size unknown" if size is None else f"about {human_bytes(size)}"
 
 
 # urdf2splats --------------------------------------------------------------------------------------

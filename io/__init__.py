@@ -8,6 +8,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..core.splats import SplatCloud
 from .common import SplatFileError, SplatFileWarning, check_file
 
@@ -73,6 +75,16 @@ def file_sizes(count: int, sh_degree: int, spz_version: int = 3, half: bool = Fa
         "splat": splat.file_size(count, sh_degree),
         "usd": usd.data_size(count, sh_degree, half),
     }
+
+
+def written_size(cloud: SplatCloud, fmt: str) -> int | None:
+    """About how many bytes `cloud` takes written as `fmt` (file_sizes' estimate; PLY with the extras
+    it keeps, such as a converted mesh's source triangles or a material), None for formats file_sizes
+    cannot tell. What the command line and the Mesh to Splats operator show before or after writing."""
+    size = file_sizes(len(cloud), cloud.sh_degree).get(fmt)
+    if size is not None and fmt == "ply":
+        size += sum(np.asarray(values).nbytes for values in cloud.extras.values())
+    return size
 
 
 def _module(path):

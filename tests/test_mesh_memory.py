@@ -145,7 +145,7 @@ def test_the_command_takes_a_budget_and_tells_the_size_before_writing(tmp_path):
     assert done.returncode == 0, done.stderr
     cap = splats_within(80 << 20, 2, 0)
     writing = next(line for line in done.stdout.splitlines() if line.startswith("writing "))
-    count, size = int(writing.split()[1]), float(writing.split("about ")[1].split(" MB")[0]) * 1e6
+    count, size = int(writing.split()[1]), float(writing.split("about ")[1].split(" MiB")[0]) * 2**20
     assert abs(count - cap) < 0.02 * cap and "memory budget (80.0 MiB)" in done.stdout
     assert abs(out.stat().st_size - size) < 0.01 * size
     bad = subprocess.run(
