@@ -250,10 +250,12 @@ def held_out_cameras(mesh, size, per_distance=3, distances=DISTANCES, seed=5, fl
 # Cycles ----------------------------------------------------------------------------------------
 
 
-def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
+def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False, script=None, **extra):
     """Render the mesh with Blender Cycles from every camera in one subprocess; returns ([display
     sRGB images], seconds). Unlit (emission) unless `lit`: then see _lit_scene (`lit="diffuse"`:
-    Diffuse BSDF materials, no specular, in the same lights)."""
+    Diffuse BSDF materials, no specular, in the same lights). `script`: another bench's file run as
+    the subprocess instead (it calls _cycles_main with its own lit scene), `extra` saved in the spec
+    for it."""
     from PIL import Image
 
     spec = folder / "cycles_spec.npz"
@@ -288,10 +290,11 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
         samples=samples,
         lit=lit,
         out=str(folder / "cycles_"),
+        **extra,
     )
     start = time.perf_counter()
     subprocess.run(
-        [sys.executable, __file__, "--cycles", str(spec)],
+        [sys.executable, script or __file__, "--cycles", str(spec)],
         check=True,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -304,8 +307,9 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False):
     return images, seconds
 
 
-def _cycles_main(spec_path):
-    """Runs inside the subprocess: build the scene in bpy and render it from every camera."""
+def _cycles_main(spec_path, lit_scene=None):
+    """Runs inside the subprocess: build the scene in bpy and render it from every camera; a lit
+    scene is set up by `lit_scene(scene, obj, world)` (default _lit_scene)."""
     import bpy
     import mathutils
 
@@ -375,7 +379,7 @@ def _cycles_main(spec_path):
     render_settings.image_settings.color_mode = "RGB"
     render_settings.image_settings.color_depth = "8"
     if d["lit"]:
-        _lit_scene(scene, obj, world)
+        (lit_scene or _lit_scene)(scene, obj, world)
     for i, (matrix, fov) in enumerate(zip(d["camera_to_world"], d["fov"])):
         cam_data.angle = math.radians(float(fov))
         distance = float(np.linalg.norm(matrix[:3, 3] - np.asarray(obj.location)))
