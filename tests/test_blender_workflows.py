@@ -183,6 +183,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
         "bake_samples",
         "bake_degree",
         "bake_geometry_steps",
+        "use_material",
     ]
     assert shown["QUALITY/CAMERA/BASE_COLOR"] == [
         "mode",
@@ -197,6 +198,7 @@ def test_from_mesh_panel_shows_the_bake_options_only_for_the_rendered_look(blend
         "|",
         "made_for",
         "appearance",
+        "use_material",
     ]
     assert res["appearances"] == ["BASE_COLOR", "RENDERED"]
     assert res["numbers"] == {

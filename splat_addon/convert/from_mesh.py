@@ -82,6 +82,7 @@ def object_steps(
     calibrate=True,
     try_fewer=True,
     render_mode=DEFAULT_RENDER_MODE,
+    material=False,
     warn=print,
     views=None,
     info=None,
@@ -93,8 +94,8 @@ def object_steps(
     view_count of mesh_to_splats) say where quality is measured, and pixel_filter and filter_width
     with what pixel filter (ConversionJob passes the scene's); `calibrate` and `try_fewer` (a budget
     only: the silhouettes calibrated against renders from those views, and fewer splats kept where
-    they render better there), `render_mode` (what the splats are made for) and `info` as
-    mesh_to_splats takes them."""
+    they render better there), `render_mode` (what the splats are made for), `material` (the
+    material extras relighting shades with) and `info` as mesh_to_splats takes them."""
     steps = mesh_to_splats_steps(
         triangles.vertices,
         triangles.faces,
@@ -103,6 +104,7 @@ def object_steps(
         calibrate=calibrate,
         try_fewer=try_fewer,
         render_mode=render_mode,
+        material=material,
         views=views,
         info=info,
         **view_options,
@@ -291,6 +293,7 @@ class ConversionJob:
         calibrate=True,
         use_rest_pose=True,
         render_mode=DEFAULT_RENDER_MODE,
+        material=False,
         warn=print,
         views=None,
         bake=None,
@@ -302,6 +305,7 @@ class ConversionJob:
             target_psnr=target_psnr,
             calibrate=calibrate,
             render_mode=render_mode,
+            material=material,
             warn=warn,
             try_fewer=bake is None,
             **scene_pixel_filter(context.scene),
@@ -387,6 +391,7 @@ def convert_objects(
     calibrate=True,
     use_rest_pose=True,
     render_mode=DEFAULT_RENDER_MODE,
+    material=False,
     progress=None,
     warn=print,
     infos=None,
@@ -399,6 +404,7 @@ def convert_objects(
     baked look adds a step per Cycles view and per fitting iteration).
     `calibrate`: a budget's silhouettes calibrated against renders (object_steps);
     `render_mode`: "classic" or "antialiased", the rendering the splats are made for (and keep);
+    `material`: the splats carry the material relighting shades them with (core.material);
     `bake`: bake_options() for the Rendered look, None for the Base Color;
     `view_options`: views (measured_views' mapping) or view_size, view_distances, view_count;
     `infos`, a list, receives each object's mesh_to_splats info (with "bake" when baked)."""
@@ -410,6 +416,7 @@ def convert_objects(
         calibrate=calibrate,
         use_rest_pose=use_rest_pose,
         render_mode=render_mode,
+        material=material,
         warn=warn,
         bake=bake,
         **view_options,
@@ -534,7 +541,7 @@ def shown_options(mode, view_source, appearance):
     around = view_source == "AROUND" or appearance == "RENDERED"
     views = ["view_source", *(("view_near", "view_far") if around else ()), "view_count", "view_size"]
     bake = ("bake_views", "bake_samples", "bake_degree", "bake_geometry_steps") if appearance == "RENDERED" else ()
-    look = ["made_for", "appearance", *bake]
+    look = ["made_for", "appearance", *bake, "use_material"]
     return [size, views, look]
 
 
@@ -674,6 +681,13 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
             ),
         ),
     )
+    use_material: BoolProperty(
+        name="Material for Relighting",
+        default=False,
+        description="The splats also carry the surface's material (Base Color, normal, Roughness, "
+        "Metallic of a Principled BSDF) so the Splatwright engine can light them with the scene's "
+        "lights; their own colour stays the look chosen above",
+    )
     bake_views: IntProperty(
         name="Bake Views",
         default=BAKE_VIEWS,
@@ -761,6 +775,7 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
             calibrate=self.calibrate,
             use_rest_pose=self.use_rest_pose,
             render_mode=self.made_for.lower(),
+            material=self.use_material,
             warn=lambda message: self.report({"WARNING"}, message),
             bake=bake,
             memory_budget=int(self.memory_budget * 2**30) or None,

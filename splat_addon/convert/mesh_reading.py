@@ -7,6 +7,7 @@ import contextlib
 import bpy
 import numpy as np
 
+from ...core.material import DEFAULT_METALLIC, DEFAULT_ROUGHNESS
 from ...core.mesh import Material
 
 
@@ -64,7 +65,39 @@ class Appearance:
 
 
 def material_appearance(mat, warn):
-    """Appearance of a Blender material (None: the default grey surface)."""
+    """Appearance of a Blender material (None: the default grey surface), with the Principled
+    BSDF's roughness and metallic for relighting (_principled_values)."""
+    appearance = _colour_appearance(mat, warn)
+    tree = _node_tree(mat) if mat is not None else None
+    appearance.material.roughness, appearance.material.metallic = _principled_values(tree)
+    return appearance
+
+
+def _principled_values(tree):
+    """(roughness, metallic) of the Principled BSDF feeding the active Material Output (else the
+    first one in the tree): each socket's own value where nothing is linked into it, Blender's
+    defaults where something is (a texture's values are not read) or there is no such node."""
+    if tree is None:
+        return DEFAULT_ROUGHNESS, DEFAULT_METALLIC
+    outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]
+    output = next((n for n in outputs if n.is_active_output), outputs[0] if outputs else None)
+    shader = _linked_node(output.inputs["Surface"]) if output is not None else None
+    principled = [n for n in tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled"]
+    node = shader if shader is not None and shader.bl_idname == "ShaderNodeBsdfPrincipled" else None
+    node = node or (principled[0] if principled else None)
+    if node is None:
+        return DEFAULT_ROUGHNESS, DEFAULT_METALLIC
+
+    def unlinked(name, default):
+        socket = node.inputs.get(name)
+        if socket is None or socket.is_linked:
+            return default
+        return float(min(max(socket.default_value, 0.0), 1.0))
+
+    return unlinked("Roughness", DEFAULT_ROUGHNESS), unlinked("Metallic", DEFAULT_METALLIC)
+
+
+def _colour_appearance(mat, warn):
     if mat is None:
         return Appearance(Material())
     tree = _node_tree(mat)
