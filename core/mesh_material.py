@@ -42,14 +42,50 @@ def surface_albedo(
     return np.clip(linear, 0.0, 1.0)
 
 
+def corner_normals_of(surface: Surface, corner_normals: np.ndarray | None) -> np.ndarray | None:
+    """(F,3,3) float64 per-corner normals from (F,3,3) per corner or (V,3) per vertex, or None;
+    ValueError for another shape."""
+    if corner_normals is None:
+        return None
+    n = np.asarray(corner_normals, np.float64)
+    if n.ndim == 2 and n.shape == (len(surface.vertices), 3):
+        n = n[surface.faces]
+    if n.shape != (len(surface.faces), 3, 3):
+        raise ValueError(
+            f"corner_normals has shape {n.shape}, expected ({len(surface.faces)}, 3, 3) per corner "
+            f"or ({len(surface.vertices)}, 3) per vertex"
+        )
+    return n
+
+
+def shading_normals(surface: Surface, tri: np.ndarray, bary: np.ndarray, corners: np.ndarray | None) -> np.ndarray:
+    """(N,3) unit normals at barycentric points: the corners' normals interpolated (smooth shading,
+    as a renderer interpolates them) where given, else the face's winding normal; also where the
+    interpolation is not finite or vanishes."""
+    face = surface.normal[tri]
+    if corners is None:
+        return face
+    smooth = np.einsum("nk,nkc->nc", bary, corners[tri])
+    length = np.linalg.norm(smooth, axis=1, keepdims=True)
+    good = np.isfinite(length) & (length > 1e-12)
+    return np.where(good, smooth / np.where(good, length, 1.0), face)
+
+
 def with_surface_material(
-    cloud: SplatCloud, surface: Surface, *, overlap: float = 0.8, texture_aware: bool = True
+    cloud: SplatCloud,
+    surface: Surface,
+    *,
+    overlap: float = 0.8,
+    texture_aware: bool = True,
+    corner_normals: np.ndarray | None = None,
 ) -> SplatCloud:
     """`cloud` (made from `surface`, with its "source_triangle" and "barycentric" extras) with the
-    material extras of core.material: albedo (surface_albedo), the face's winding normal, and the
-    face material's roughness and metallic."""
+    material extras of core.material: albedo (surface_albedo), the normal (the `corner_normals`
+    interpolated, else the face's winding normal: shading_normals), and the face material's
+    roughness and metallic."""
     tri = cloud.extras["source_triangle"].astype(np.int64)
     bary = cloud.extras["barycentric"].astype(np.float64)
+    corners = corner_normals_of(surface, corner_normals)
     materials = surface.materials
     roughness = np.array([np.clip(m.roughness, 0.0, 1.0) for m in materials], np.float64)
     metallic = np.array([np.clip(m.metallic, 0.0, 1.0) for m in materials], np.float64)
@@ -57,7 +93,7 @@ def with_surface_material(
     return mat.with_material(
         cloud,
         albedo=surface_albedo(cloud, surface, tri, bary, overlap, texture_aware),
-        normals=surface.normal[tri],
+        normals=shading_normals(surface, tri, bary, corners),
         roughness=roughness[face_material],
         metallic=metallic[face_material],
     )

@@ -11,7 +11,7 @@ from . import sh as shmod
 from .bake import bake_sh
 from .memory import check_budget
 from .mesh import Surface
-from .mesh_material import with_surface_material
+from .mesh_material import corner_normals_of, with_surface_material
 from .mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, refine_rounds, splats_within
 from .mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER, filter_taps
 from .mesh_sampling import (
@@ -91,6 +91,7 @@ def mesh_to_splats_steps(
     memory_budget=None,
     texture_aware=True,
     material=False,
+    corner_normals=None,
     info=None,
 ):
     """A generator converting a triangle mesh to a SplatCloud of flat Gaussians (SH in display sRGB).
@@ -140,8 +141,9 @@ def mesh_to_splats_steps(
 
     Material: with `material`, the splats also carry what relighting shades them with
     (core.material's extras, core.mesh_material): the Base Color in scene-linear light averaged over
-    each splat's footprint as its colour is, its face's winding normal, and the face material's
-    roughness and metallic. The splat's own colour stays the unlit look.
+    each splat's footprint as its colour is, the normal (`corner_normals`, (F,3,3) per corner or
+    (V,3) per vertex, interpolated where given: smooth shading; else the face's winding normal), and
+    the face material's roughness and metallic. The splat's own colour stays the unlit look.
 
     Extras: "source_triangle" (N,) int32 index into `faces`, "barycentric" (N,3) float32 and
     "normal_offset" (N,) float32, with position = sum_k barycentric[k] * vertices[faces[
@@ -151,6 +153,7 @@ def mesh_to_splats_steps(
     arrays or a mesh without any face of positive area.
     """
     surface = Surface(vertices, faces, corner_uvs, face_materials, materials, corner_colors)
+    corner_normals = corner_normals_of(surface, corner_normals) if material else None  # checked before any work
     if not surface.valid.any():
         raise ValueError(
             f"mesh has no face with positive area ({len(surface.faces)} faces, {len(surface.vertices)} vertices)"
@@ -198,7 +201,9 @@ def mesh_to_splats_steps(
             fit_colours=fit_colours_to_views if texture_aware and not budget_only else None,
         )
     if material:
-        cloud = with_surface_material(cloud, surface, overlap=overlap, texture_aware=texture_aware)
+        cloud = with_surface_material(
+            cloud, surface, overlap=overlap, texture_aware=texture_aware, corner_normals=corner_normals
+        )
     if isinstance(info, dict):
         info.update(splats=len(cloud), repaired=dict(surface.report))
     return cloud.replace(antialiased=render_mode == "antialiased")

@@ -50,3 +50,15 @@ def test_mesh_to_splats_reads_the_principled_bsdf(blender):
     np.testing.assert_allclose(d["normals"], winding / np.linalg.norm(winding, axis=1, keepdims=True), atol=1e-6)
     assert res["plain"]["result"] == ["FINISHED"]
     assert not {"albedo", "nx", "roughness", "metallic"} & set(res["plain_extras"])
+
+
+def test_smooth_shading_interpolates_blenders_corner_normals(blender):
+    res = blender.step("smooth")
+    assert res["result"] == ["FINISHED"], res
+    d = blender.npz("smooth")
+    tri = d["source_triangle"].astype(int)
+    expected = np.einsum("nk,nkc->nc", d["barycentric"].astype(np.float64), d["corner_normals"][tri])
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    np.testing.assert_allclose(d["normals"], expected, atol=2e-6)
+    radial = d["positions"] / np.linalg.norm(d["positions"], axis=1, keepdims=True)
+    assert np.median(np.einsum("ij,ij->i", d["normals"], radial)) > np.cos(np.radians(1.0))

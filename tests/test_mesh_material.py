@@ -169,3 +169,23 @@ def test_the_command_line_writes_the_material_to_ply(tmp_path):
     np.testing.assert_allclose(mat.metallic(cloud), 0.75, atol=1e-7)
     assert main(["mesh2splats", *args]) == 0
     assert not mat.has_material(read_splats(out))
+
+
+def test_corner_normals_are_interpolated_for_smooth_shading():
+    mesh = mesh_corpus.vertex_coloured_sphere(24, 12)
+    vertex_normals = mesh.vertices / np.linalg.norm(mesh.vertices, axis=1, keepdims=True)  # a smooth sphere's
+    cloud = mesh_to_splats(
+        mesh.vertices, mesh.faces, max_splats=2000, calibrate=False, material=True, corner_normals=vertex_normals
+    )
+    tri, bary = cloud.extras["source_triangle"].astype(int), cloud.extras["barycentric"].astype(np.float64)
+    expected = np.einsum("nk,nkc->nc", bary, vertex_normals[mesh.faces[tri]])
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    np.testing.assert_allclose(mat.normals(cloud), expected, atol=1e-6)
+    # Closer to the sphere's own normal at the splat than the faces' normals are.
+    radial = cloud.positions / np.linalg.norm(cloud.positions, axis=1, keepdims=True)
+    faceted = mesh_to_splats(mesh.vertices, mesh.faces, max_splats=2000, calibrate=False, material=True)
+    smooth_error = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", mat.normals(cloud), radial), -1, 1)))
+    flat_error = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", mat.normals(faceted), radial), -1, 1)))
+    assert np.median(smooth_error) < np.median(flat_error) / 3
+    with pytest.raises(ValueError, match="corner_normals has shape"):
+        mesh_to_splats(mesh.vertices, mesh.faces, max_splats=50, material=True, corner_normals=np.zeros((5, 3)))

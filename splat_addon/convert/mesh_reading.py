@@ -248,7 +248,15 @@ def mesh_inputs(obj, mesh, warn):
         face_materials=face_looks,
         materials=[a.material for a in looks],
         corner_colors=corner_colors,
+        corner_normals=_corner_normals(mesh, triangles),
     )
+
+
+def _corner_normals(mesh, triangles):
+    """(F,3,3) the normals Blender shades each triangle's corners with (smooth or flat faces, sharp
+    edges and custom normals resolved): what the material's normals interpolate."""
+    normals = _foreach(mesh.corner_normals, "vector", 3, np.float32).astype(np.float64)
+    return normals[triangles.loops]
 
 
 def _per_face(triangles, face_looks, looks, key, read, fill):

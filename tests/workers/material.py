@@ -29,7 +29,7 @@ def material_arrays(seed=3):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "forms_mesh", "forms_native", "convert")
+    steps = ("install", "forms_mesh", "forms_native", "convert", "smooth")
     keep_objects = ()
     orphan_kinds = ("meshes", "materials", "pointclouds")
 
@@ -126,6 +126,33 @@ class Worker(BlenderWorker):
             self.module("splat_addon.data").object_cloud(bpy.context.view_layer.objects.active).extras
         )
         return {**res, "name": made.name, "plain": plain, "plain_extras": plain_extras}
+
+    def smooth(self):
+        """A smooth-shaded UV sphere converted with its material: Blender's corner normals of each
+        loop triangle saved beside the splats' normals and barycentric coordinates."""
+        bpy = self.bpy
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=24, ring_count=12, radius=1.0)
+        obj = bpy.context.active_object
+        bpy.ops.object.shade_smooth()
+        bpy.context.view_layer.update()
+        self.select([obj])
+        res = self.call(bpy.ops.splat.from_mesh, mode="BUDGET", max_splats=1500, calibrate=False, use_material=True)
+        if res["result"] != ["FINISHED"]:
+            return res
+        cloud = self.module("splat_addon.data").object_cloud(bpy.data.objects[obj.name + "_splats"])
+        mesh = obj.data
+        mesh.calc_loop_triangles()
+        loops = np.array([list(t.loops) for t in mesh.loop_triangles])
+        corner = np.array([list(mesh.corner_normals[i].vector) for i in range(len(mesh.loops))], np.float64)
+        self.save(
+            "smooth",
+            normals=self.material_extras(cloud)["normals"],
+            source_triangle=cloud.extras["source_triangle"],
+            barycentric=cloud.extras["barycentric"],
+            positions=cloud.positions,
+            corner_normals=corner[loops],
+        )
+        return res
 
 
 if __name__ == "__main__":
