@@ -23,7 +23,7 @@ letters say; we follow the letters.
 import numpy as np
 
 from ..core import sh as shmod
-from ..core.splats import SplatCloud
+from ..core.splats import NORMAL_EXTRAS, SplatCloud
 
 COORDINATE_SYSTEM_EXT = 0xADBE0003
 AXES = (
@@ -88,8 +88,8 @@ def _niantic_m4(cloud, axes):
 
 
 def _turn(cloud, m):
-    """The cloud under the signed permutation m: exact for positions, scales and quaternions (only
-    moves and signs); SH by parity for a diagonal m, else by core.sh.rotate."""
+    """The cloud under the signed permutation m: exact for positions, normals, scales and quaternions
+    (only moves and signs); SH by parity for a diagonal m, else by core.sh.rotate."""
     if np.array_equal(m, np.eye(3)):
         return cloud
     source = np.argmax(np.abs(m), axis=1)  # new axis i is sign[i] times old axis source[i]
@@ -97,11 +97,15 @@ def _turn(cloud, m):
     handed = np.float32(np.linalg.det(m))
     rotations = cloud.rotations.copy()
     rotations[:, 1:] = cloud.rotations[:, 1 + source] * (handed * sign)
+    extras = dict(cloud.extras)
+    if all(k in extras for k in NORMAL_EXTRAS):  # normals move like positions (m is orthogonal)
+        extras.update({NORMAL_EXTRAS[i]: extras[NORMAL_EXTRAS[source[i]]] * sign[i] for i in range(3)})
     return cloud.replace(
         positions=cloud.positions[:, source] * sign,
         rotations=rotations,
         log_scales=cloud.log_scales[:, source],
         sh=_turn_sh(cloud.sh, m),
+        extras=extras,
     )
 
 

@@ -78,3 +78,15 @@ def test_formats_without_extras_warn_once_naming_the_dropped_ones(tmp_path, ext)
     assert all(repr(key) in dropped[0] for key in mat.KEYS)
     back = sio.read_splats(tmp_path / f"m.{ext}")
     assert not mat.has_material(back) and len(back) == len(cloud)
+
+
+@pytest.mark.parametrize("axes", ["RUB", "LUF", "RUF"])
+def test_spz_axis_turns_move_normals_like_positions(axes):
+    from splatwright.io import spz_axes
+
+    cloud = material_cloud()
+    turned = spz_axes.from_model(cloud, axes)
+    m = spz_axes.axis_matrix(axes).T  # from_model's turn
+    np.testing.assert_allclose(turned.positions, cloud.positions @ m.T, atol=1e-6)
+    np.testing.assert_allclose(mat.normals(turned), mat.normals(cloud) @ m.T, atol=1e-7)
+    np.testing.assert_allclose(mat.normals(spz_axes.to_model(turned, axes)), mat.normals(cloud), atol=1e-7)
