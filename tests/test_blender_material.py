@@ -62,3 +62,30 @@ def test_smooth_shading_interpolates_blenders_corner_normals(blender):
     np.testing.assert_allclose(d["normals"], expected, atol=2e-6)
     radial = d["positions"] / np.linalg.norm(d["positions"], axis=1, keepdims=True)
     assert np.median(np.einsum("ij,ij->i", d["normals"], radial)) > np.cos(np.radians(1.0))
+
+
+def _turned(normals, matrix):
+    """n A^-1 row-wise (A^-T n), renormalised: the closed form for normals under the linear part A."""
+    out = normals @ np.linalg.inv(matrix[:3, :3])
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("form", ["MESH", "NATIVE"])
+def test_join_and_apply_transform_turn_the_normals(blender, form):
+    res = blender.step(f"join_{form.lower()}")
+    if res.get("skipped"):
+        skip_platform(f"Blender {blender.version} makes no native splats from Python")
+    assert res["join"]["result"] == ["FINISHED"] and res["apply"]["result"] == ["FINISHED"], res
+    d = blender.npz(f"join_{form}")
+    n = len(d["a_normals"])
+    joined = d["join_normals"]
+    assert joined.shape == (2 * n, 3)
+    # The joined splats are A's as they were, then B's turned into A's space (in whichever order the
+    # form joins them: matched by albedo).
+    first_is_a = np.allclose(joined[:n], d["a_normals"], atol=1e-6)
+    a_rows, b_rows = (slice(0, n), slice(n, None)) if first_is_a else (slice(n, None), slice(0, n))
+    np.testing.assert_allclose(joined[a_rows], d["a_normals"], atol=1e-6)
+    np.testing.assert_allclose(d["join_albedo"][b_rows], d["b_albedo"], atol=1e-7)
+    np.testing.assert_allclose(joined[b_rows], _turned(d["b_normals"], d["to_target"]), atol=2e-6)
+    # Apply Splat Transform bakes A's stretch into everything it holds.
+    np.testing.assert_allclose(d["apply_normals"], _turned(joined, d["target_matrix"]), atol=2e-6)

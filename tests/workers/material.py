@@ -29,7 +29,7 @@ def material_arrays(seed=3):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "forms_mesh", "forms_native", "convert", "smooth")
+    steps = ("install", "forms_mesh", "forms_native", "convert", "smooth", "join_mesh", "join_native")
     keep_objects = ()
     orphan_kinds = ("meshes", "materials", "pointclouds")
 
@@ -153,6 +153,49 @@ class Worker(BlenderWorker):
             corner_normals=corner[loops],
         )
         return res
+
+    def join(self, form):
+        """Two material clouds of `form`, the second stretched and mirrored, joined into the first
+        (Join Splats); then the first's own stretch applied (Apply Splat Transform)."""
+        bpy, data = self.bpy, self.module("splat_addon.data")
+        if form == "NATIVE" and not data.native_supported():
+            return {"skipped": True}
+        material = self.module("core.material")
+        a_arrays, b_arrays = material_arrays(3), material_arrays(8)
+        a = material.with_material(self.random_cloud(COUNT, 0, seed=4), **a_arrays)
+        b = material.with_material(self.random_cloud(COUNT, 0, seed=9), **b_arrays)
+        collection = bpy.context.scene.collection
+        target, _ = data.new_splat_object(a, "A", collection, form=form)
+        other, _ = data.new_splat_object(b, "B", collection, form=form)
+        target.location, target.scale = (0.5, 0.0, 0.0), (1.5, 1.0, 0.8)
+        for key, value in MATRIX.items():
+            setattr(other, key, value)
+        bpy.context.view_layer.update()
+        to_target = np.linalg.inv(np.array(target.matrix_world)) @ np.array(other.matrix_world)
+        target_matrix = np.array(target.matrix_world, np.float64)
+        self.select([target, other], active=target)
+        joined = self.call(bpy.ops.splat.join)
+        after_join = self.material_extras(data.object_cloud(target))
+        self.select([target])
+        applied = self.call(bpy.ops.splat.apply_transform)
+        after_apply = self.material_extras(data.object_cloud(target))
+        self.save(
+            f"join_{form}",
+            to_target=to_target,
+            target_matrix=target_matrix,
+            a_normals=a_arrays["normals"],
+            b_normals=b_arrays["normals"],
+            b_albedo=b_arrays["albedo"],
+            **{f"join_{k}": v for k, v in after_join.items()},
+            **{f"apply_{k}": v for k, v in after_apply.items()},
+        )
+        return {"join": joined, "apply": applied}
+
+    def join_mesh(self):
+        return self.join("MESH")
+
+    def join_native(self):
+        return self.join("NATIVE")
 
 
 if __name__ == "__main__":
