@@ -18,9 +18,11 @@ What is modelled, per splat, vectorised over splats (float64 inside, float32 out
   sides), so a splat's back is lit as its front would be;
 - shadows come in as visibility per light (core.shadows): a light's contribution is scaled by it.
 
-Not modelled: multiple scattering inside the GGX lobe (Cycles' Multiscatter GGX adds up to about 10%
-at roughness 1), clearcoat, sheen, subsurface, transmission, emission, and light bouncing between
-splats.
+Multiple scattering between microfacets (Blender's default Multiscatter GGX) is given back by an
+energy compensation of the lobe (multiscatter_compensation; `multiscatter=False` for plain GGX).
+
+Not modelled: clearcoat, sheen, subsurface, transmission, emission, light bouncing between splats,
+and the world's occlusion.
 """
 
 import functools
@@ -162,6 +164,15 @@ def specular_albedo(cos_v: np.ndarray, roughness: np.ndarray, f0: np.ndarray) ->
     return np.clip(f0 * lerp(scale)[:, None] + lerp(bias)[:, None], 0.0, 1.0)
 
 
+def multiscatter_compensation(cos_v: np.ndarray, roughness: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    """(N,3) factor on the single-scattering GGX lobe for the light it loses to multiple scattering
+    between microfacets: 1 + F0 (1 / E1 - 1), E1 the lobe's albedo for F0 = 1 towards the view
+    (Turquin's energy compensation). A white metal (F0 = 1) then reflects all of a uniform world, as
+    Cycles' Multiscatter GGX nearly does."""
+    white = specular_albedo(cos_v, roughness, np.ones((len(cos_v), 3)))[:, :1]
+    return 1.0 + f0 * (1.0 / np.maximum(white, 1e-3) - 1.0)
+
+
 def angular_radius(light: Light, distance: np.ndarray, share: float) -> np.ndarray:
     """The angle (N,) a light's emitter subtends (its half-angle) seen from `distance` (N,): a point or
     spot light's sphere, the sun's disc, or one area sample's patch of `share` m^2 taken as a disc."""
@@ -191,10 +202,14 @@ def shade(
     lights: list[Light],
     world: World | None = None,
     visibility: dict[int, np.ndarray] | None = None,
+    *,
+    multiscatter: bool = True,
 ) -> Shading:
     """Shade every splat of `cloud` (which must carry a material: core.material.has_material) for an
     eye at a position (3,) or a Camera, under `lights` and an optional uniform `world`. visibility
-    maps a light's index in `lights` to (N,) values in [0,1] (1: unshadowed; lights absent: 1)."""
+    maps a light's index in `lights` to (N,) values in [0,1] (1: unshadowed; lights absent: 1).
+    multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
+    default Multiscatter GGX does; False for the plain single-scattering GGX distribution."""
     normals, albedo = material.normals(cloud), material.albedo(cloud)
     if normals is None or albedo is None:
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
@@ -206,13 +221,14 @@ def shade(
     alpha = np.maximum(rough * rough, ALPHA_MIN)
     f0 = DIELECTRIC_F0 + (albedo - DIELECTRIC_F0) * metal[:, None]
     cos_v = np.maximum(np.einsum("ij,ij->i", normal, view), 0.0)
-    layer = specular_albedo(cos_v, rough, f0)  # what the specular layer takes from the diffuse base
-    base = albedo * (1.0 - metal)[:, None] * (1.0 - layer)
+    boost = multiscatter_compensation(cos_v, rough, f0) if multiscatter else np.ones((n, 3))
+    layer = specular_albedo(cos_v, rough, f0) * boost  # what the specular layer takes from the base
+    base = albedo * (1.0 - metal)[:, None] * np.clip(1.0 - layer, 0.0, 1.0)
     diffuse, specular = np.zeros((n, 3)), np.zeros((n, 3))
     lit, seen = np.zeros(n), np.zeros(n)
     for index, light in enumerate(lights):  # a loop over lights
         d, s = _light_terms(light, points, normal, view, alpha, f0)
-        d = d * base / math.pi
+        d, s = d * base / math.pi, s * boost
         vis = _visibility(visibility, index, n)
         diffuse += vis[:, None] * d
         specular += vis[:, None] * s

@@ -106,10 +106,31 @@ def test_white_furnace_world_returns_the_world_colour():
     np.testing.assert_allclose(out.radiance, np.tile([0.3, 0.5, 0.7], (n, 1)), rtol=1e-6)
     assert out.diffuse.dtype == np.float32 and out.specular.dtype == np.float32 and (out.shadow == 0).all()
     # a grey diffuse-only splat sends back albedo * world minus what its specular layer reflects instead
-    grey = shade(cloud_of([[0, 0, 0]], [[0, 0, 1]], [[0.5, 0.5, 0.5]], 1.0), np.array([0, 0, 1.0]), [], world)
+    grey = shade(
+        cloud_of([[0, 0, 0]], [[0, 0, 1]], [[0.5, 0.5, 0.5]], 1.0), np.array([0, 0, 1.0]), [], world, multiscatter=False
+    )
     layer = brute_specular_albedo(1.0, 1.0, np.full(3, DIELECTRIC_F0))[0]
     assert grey.specular[0, 0] == pytest.approx(layer * 0.3, rel=0.02)
     assert grey.diffuse[0, 0] == pytest.approx(0.5 * (1 - layer) * 0.3, rel=0.01)
+
+
+def test_multiscatter_compensation_keeps_a_white_metal_white():
+    """With the lost energy given back, a white metal under a uniform world returns the world (single
+    scattering alone returns E1 of it, 0.31 at roughness 1 seen head-on, 1 - ln 2 exactly); light
+    arriving from a sun is scaled by the same factor 1 / E1."""
+    world = World((0.2, 0.4, 0.6))
+    for roughness in (0.2, 0.6, 1.0):
+        cloud = cloud_of([[0, 0, 0]], [[0, 0, 1]], [[1.0, 1.0, 1.0]], roughness, 1.0)
+        full = shade(cloud, np.array([0.0, 0.0, 3.0]), [], world)
+        np.testing.assert_allclose(full.radiance[0], [0.2, 0.4, 0.6], rtol=1e-6)
+    single = shade(cloud, np.array([0.0, 0.0, 3.0]), [], world, multiscatter=False)
+    assert single.radiance[0, 0] == pytest.approx(0.2 * (1 - math.log(2)), rel=1e-3)
+    sun = [Light("sun", power=1.0, direction=(0.3, 0.0, -1.0))]
+    ratio = (
+        shade(cloud, np.array([0.0, 0.0, 3.0]), sun).specular
+        / shade(cloud, np.array([0.0, 0.0, 3.0]), sun, multiscatter=False).specular
+    )
+    np.testing.assert_allclose(ratio, 1 / (1 - math.log(2)), rtol=1e-3)
 
 
 def fibonacci_hemisphere(count):
@@ -130,8 +151,8 @@ def test_a_world_of_suns_through_the_lights_gives_the_furnace_albedo():
     for roughness, cos_v in ((0.5, 0.8), (0.8, 0.4), (1.0, 1.0)):
         view = np.array([math.sqrt(1 - cos_v**2), 0.0, cos_v])
         cloud = cloud_of([[0, 0, 0]], [[0, 0, 1]], [[1.0, 1.0, 1.0]], roughness, 1.0)
-        by_lights = shade(cloud, view * 100.0, suns).specular[0, 0]
-        by_world = shade(cloud, view * 100.0, [], World((1.0, 1.0, 1.0))).specular[0, 0]
+        by_lights = shade(cloud, view * 100.0, suns, multiscatter=False).specular[0, 0]
+        by_world = shade(cloud, view * 100.0, [], World((1.0, 1.0, 1.0)), multiscatter=False).specular[0, 0]
         assert by_lights == pytest.approx(by_world, rel=0.02)
         assert by_world <= 1.0
 
@@ -185,7 +206,7 @@ def test_small_disc_light_against_the_brdf_integrated_over_it(size, roughness):
     for name, eye in EYES.items():
         eye = np.array(eye)
         view = unit(eye - point)
-        out = shade(cloud, eye, [light])
+        out = shade(cloud, eye, [light], multiscatter=False)
         diffuse, spec = disc_reference(point, normal, view, light, roughness, np.full(3, DIELECTRIC_F0))
         cos_v = np.array([view @ normal])
         layer = specular_albedo(cos_v, np.array([roughness]), np.full((1, 3), DIELECTRIC_F0))[0]
@@ -204,7 +225,7 @@ def test_point_light_per_splat_plainly():
     rough, metal = rng.uniform(0.2, 1, n), rng.uniform(0, 1, n)
     light = Light("point", power=80.0, color=(1.0, 0.9, 0.7), position=(0.5, 1.0, 2.0), radius=0.0)
     eye = np.array([0.0, -3.0, 1.0])
-    out = shade(cloud_of(positions, normals, albedo, rough, metal), eye, [light])
+    out = shade(cloud_of(positions, normals, albedo, rough, metal), eye, [light], multiscatter=False)
     for i in range(n):  # the reference, one splat at a time
         v = unit(eye - positions[i])
         nrm = normals[i] if normals[i] @ v >= 0 else -normals[i]  # two-sided

@@ -32,31 +32,52 @@ LIGHTS = {
     ),
     "area_disk": ("AREA", dict(energy=80.0, shape="DISK", size=1.2), (-0.2, 0.3, 0.9), (0, 0, 0)),
 }
+# Principled BSDF planes seen by an orthographic camera tilted TILT from straight down, lit by a
+# point light near the mirror direction: the highlight is in the picture. name -> (base colour,
+# roughness, metallic, distribution: GGX single scattering, or Blender's default MULTI_GGX)
+PRINCIPLED = {
+    "principled_dielectric": ((0.6, 0.5, 0.4), 0.4, 0.0, "GGX"),
+    "principled_metal": ((0.9, 0.6, 0.3), 0.5, 1.0, "GGX"),
+    "principled_rough_metal": ((0.9, 0.6, 0.3), 0.8, 1.0, "MULTI_GGX"),
+    "principled_rough_dielectric": ((0.3, 0.6, 0.4), 0.7, 0.0, "MULTI_GGX"),
+}
+TILT = math.radians(40.0)
+PRINCIPLED_LIGHT = ("POINT", dict(energy=60.0, shadow_soft_size=0.02), (0.2, 1.3, 1.5), (0, 0, 0))
 
 
 class Worker(BlenderWorker):
-    steps = tuple(LIGHTS)
+    steps = (*LIGHTS, *PRINCIPLED)
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "lights")
 
-    def scene(self):
-        """The plane, the camera straight down and Cycles' settings: direct light only (nothing else
-        in the scene to bounce off), no denoiser, a box pixel as small as Cycles allows."""
+    def scene(self, principled=None):
+        """The plane, the camera (straight down, or tilted for a Principled plane) and Cycles'
+        settings: direct light only (nothing else in the scene to bounce off), no denoiser, a box
+        pixel as small as Cycles allows."""
         bpy = self.bpy
         scene = bpy.context.scene
         bpy.ops.mesh.primitive_plane_add(size=60.0, location=(0.0, 0.0, 0.0))
-        material = bpy.data.materials.new("White")
+        material = bpy.data.materials.new("Plane")
         material.use_nodes = True
         nodes = material.node_tree.nodes
         nodes.clear()
-        diffuse = nodes.new("ShaderNodeBsdfDiffuse")
-        diffuse.inputs["Color"].default_value = (ALBEDO, ALBEDO, ALBEDO, 1.0)
-        diffuse.inputs["Roughness"].default_value = 0.0
+        if principled is None:
+            bsdf = nodes.new("ShaderNodeBsdfDiffuse")
+            bsdf.inputs["Color"].default_value = (ALBEDO, ALBEDO, ALBEDO, 1.0)
+            bsdf.inputs["Roughness"].default_value = 0.0
+        else:
+            bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+            color, roughness, metallic, bsdf.distribution = principled
+            bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+            bsdf.inputs["Roughness"].default_value = roughness
+            bsdf.inputs["Metallic"].default_value = metallic
         output = nodes.new("ShaderNodeOutputMaterial")
-        material.node_tree.links.new(diffuse.outputs["BSDF"], output.inputs["Surface"])
+        material.node_tree.links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
         bpy.context.active_object.data.materials.append(material)
         cam = scene.camera
-        cam.location, cam.rotation_euler = (0.0, 0.0, 10.0), (0.0, 0.0, 0.0)
+        tilt = 0.0 if principled is None else TILT
+        cam.location = (0.0, -10.0 * math.sin(tilt), 10.0 * math.cos(tilt))
+        cam.rotation_euler = (tilt, 0.0, 0.0)
         cam.data.type, cam.data.ortho_scale = "ORTHO", ORTHO_SCALE
         background = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
         background.inputs["Strength"].default_value = 0.0
@@ -74,7 +95,7 @@ class Worker(BlenderWorker):
         self.image_format(render.image_settings, "OPEN_EXR", color_depth="32")
 
     def light(self, name):
-        kind, settings, location, rotation = LIGHTS[name]
+        kind, settings, location, rotation = LIGHTS.get(name, PRINCIPLED_LIGHT)
         bpy = self.bpy
         data = bpy.data.lights.new(name, kind)
         for key, value in settings.items():
@@ -109,11 +130,12 @@ class Worker(BlenderWorker):
         return rec
 
     def run_light(self, name):
-        self.scene()
+        self.scene(PRINCIPLED.get(name))
         obj = self.light(name)
         images = [self.render(name, seed) for seed in (0, 1)]
         self.save(name, first=images[0], second=images[1])
-        return {"light": self.record(obj), "albedo": ALBEDO, "size": SIZE, "ortho_scale": ORTHO_SCALE}
+        camera = [list(row) for row in self.bpy.context.scene.camera.matrix_world]
+        return {"light": self.record(obj), "albedo": ALBEDO, "size": SIZE, "ortho_scale": ORTHO_SCALE, "camera": camera}
 
     def point(self):
         return self.run_light("point")
@@ -129,6 +151,18 @@ class Worker(BlenderWorker):
 
     def area_disk(self):
         return self.run_light("area_disk")
+
+    def principled_dielectric(self):
+        return self.run_light("principled_dielectric")
+
+    def principled_metal(self):
+        return self.run_light("principled_metal")
+
+    def principled_rough_metal(self):
+        return self.run_light("principled_rough_metal")
+
+    def principled_rough_dielectric(self):
+        return self.run_light("principled_rough_dielectric")
 
 
 if __name__ == "__main__":
