@@ -69,3 +69,210 @@ def test_scene_lights_make_core_lights(blender):
     if isinstance(made, str):
         pytest.fail(f"core.lights could not take the fields: {made}")
     assert sorted(m["kind"] for m in made) == sorted(["area", "area", "point", "point", "spot", "sun"])
+
+
+# relit renders -------------------------------------------------------------------------------------
+
+
+def exr(path):
+    """{layer.pass.channel: (H,W)} of every part of a multilayer EXR (4.3+ writes a part per pass)."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        return {name: ch.pixels for part in f.parts for name, ch in part.channels.items()}
+
+
+def camera(rec, origin=(0.0, 0.0, 0.0)):
+    """The core Camera of a worker's camera record, in the frame shifted by -origin (the engine's)."""
+    from test_blender_composite import camera as world_camera
+
+    rec = dict(rec)
+    matrix = np.array(rec["matrix_world"], dtype=np.float64)
+    matrix[:3, 3] -= origin
+    rec["matrix_world"] = matrix.tolist()
+    return world_camera(rec)
+
+
+def engine_cloud(arrays):
+    from splatwright.core import SplatCloud
+
+    extras = {k[len("extra_") :]: v for k, v in arrays.items() if k.startswith("extra_")}
+    fields = ("positions", "rotations", "log_scales", "opacity_logits", "sh")
+    return SplatCloud(*(arrays[f] for f in fields), extras=extras)
+
+
+def core_lights(res):
+    from splatwright.core.lights import Light, World
+
+    return [
+        Light(**{k: (np.array(v) if isinstance(v, list) else v) for k, v in f.items()}) for f in res["lights"]
+    ], World(np.array(res["world"]))
+
+
+def channels(image, name, letters):
+    """(H,W,len(letters)) of pass `name`: OpenEXR joins a pass's R, G, B (A) into one array."""
+    joined = image.get(f"ViewLayer.{name}")
+    if joined is not None:
+        return joined[..., : len(letters)]
+    return np.stack([image[f"ViewLayer.{name}.{c}"] for c in letters], axis=-1)
+
+
+def test_relit_passes_in_the_exr_are_the_shaded_splats_blended(blender):
+    """The Diffuse, Specular and Shadow passes of a multilayer EXR are the lit splats' shading
+    (core.shading.shade with core.shadows.visibility, for the cloud, camera, lights and world the
+    engine read) blended by the float64 brute-force renderer; Combined is the shaded cloud over the
+    world colour; the unlit cloud keeps its colour."""
+    from reference_render import reference_render
+
+    from splatwright.core.color import linear_to_srgb
+    from splatwright.core.sh import rgb_to_dc
+    from splatwright.core.shading import shade
+    from splatwright.core.shadows import visibility
+
+    res = blender.step("passes")
+    assert res["status"]["Ball"] == {"albedo": True, "normals": True, "roughness": False, "metallic": False}
+    assert res["status"]["Plain"] == {"albedo": False, "normals": False, "roughness": False, "metallic": False}
+    arrays = blender.npz("passes_inputs")
+    cloud, lit = engine_cloud(arrays), arrays["lit"].astype(bool)
+    assert lit.sum() == 3000  # the ball only: the plain cloud is not relit, the bare one has no material
+    lights, world = core_lights(res)
+    cam = camera(res["camera"], arrays["origin"])
+    visible = {i: visibility(cloud, light)[lit] for i, light in enumerate(lights) if light.cast_shadow}
+    shading = shade(cloud[lit], cam, lights, world, visible)
+    got = exr(blender.out / "passes.exr")
+
+    def blended(values):
+        sh = np.zeros((len(cloud), 1, 3))
+        sh[:, 0] = rgb_to_dc(0.0)
+        sh[lit, 0] = rgb_to_dc(values)
+        return reference_render(cloud.replace(sh=sh), cam, background=(0.0, 0.0, 0.0))["color"]
+
+    for name, values in (("Diffuse", shading.diffuse), ("Specular", shading.specular)):
+        np.testing.assert_allclose(channels(got, name, "RGB"), blended(values), atol=2e-3, err_msg=name)
+    shadow = blended(np.repeat(shading.shadow[:, None], 3, axis=1))[..., 0]
+    np.testing.assert_allclose(got["ViewLayer.Shadow.X"], shadow, atol=2e-3)
+    assert channels(got, "Diffuse", "RGB").max() > 0.05  # the sun lights the ball
+    # Combined: the lit colours (and the plain cloud's own) over the world, in display terms
+    sh = cloud.sh.copy()
+    sh[lit] = 0
+    sh[lit, 0] = rgb_to_dc(linear_to_srgb(np.maximum(shading.diffuse + shading.specular, 0.0)))
+    want = reference_render(cloud.replace(sh=sh), cam, background=linear_to_srgb(np.array(res["world"])))["color"]
+    combined = linear_to_srgb(np.clip(channels(got, "Combined", "RGB"), 0, None))
+    assert np.abs(combined - want).max() <= 1.5 / 255
+
+
+def floor_samples(cam, origin, size=4.0, step=0.01):
+    """Points of the z = 0 floor on a fine grid (world) and the pixel each falls in (or -1 outside)."""
+    ticks = np.arange(-size / 2, size / 2, step)
+    x, y = np.meshgrid(ticks, ticks)
+    points = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    uv, z = cam.project(points - origin)
+    ok = np.isfinite(uv).all(axis=1) & (z > 0)
+    col, row = np.floor(np.nan_to_num(uv, nan=-1)).astype(int).T
+    ok &= (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+    return points[ok], row[ok], col[ok]
+
+
+def sphere_shadow(points, sun_direction, centre, radius):
+    """Distance from the sphere's centre to each floor point's ray towards the sun, over the radius:
+    < 1 in the closed-form shadow of the sphere."""
+    towards = -np.asarray(sun_direction) / np.linalg.norm(sun_direction)
+    d = np.asarray(centre) - points
+    along = d @ towards
+    closest = d - along[:, None] * towards
+    return np.where(along > 0, np.linalg.norm(closest, axis=1) / radius, np.inf)
+
+
+def luminance(rgb):
+    return rgb @ np.array([0.2126, 0.7152, 0.0722])
+
+
+def inside_outside(image, row, col, ratio, inside=0.75, outside=1.3):
+    """Mean luminance of the pixels whose floor samples all lie well inside / well outside the
+    shadow (ratio < inside / > outside), and how many samples each mean took."""
+    values = luminance(image[row, col])
+    pixel = row * image.shape[1] + col
+    largest = np.zeros(image.shape[0] * image.shape[1])
+    smallest = np.full(image.shape[0] * image.shape[1], np.inf)
+    np.maximum.at(largest, pixel, ratio)
+    np.minimum.at(smallest, pixel, ratio)
+    in_mask, out_mask = largest[pixel] < inside, smallest[pixel] > outside
+    return values[in_mask].mean(), values[out_mask].mean(), in_mask.sum(), out_mask.sum()
+
+
+def hidden_by_sphere(points, eye, centre, radius):
+    """Whether the segment from `eye` to each point passes through the sphere (the camera cannot see
+    the floor there)."""
+    d = points - eye
+    t = np.clip(((np.asarray(centre) - eye) @ d.T) / np.einsum("ij,ij->i", d, d), 0.0, 1.0)
+    closest = eye + t[:, None] * d
+    return np.linalg.norm(closest - centre, axis=1) < radius * 1.05
+
+
+def test_relit_splats_shadow_the_mesh_floor(blender):
+    """Cycles' floor (the Meshes pass) is darker where the closed-form shadow of the splat ball falls,
+    and only when the ball is relit (its stand-in is in Cycles' scene)."""
+    from workers.relight import BALL
+
+    res = blender.step("splats_shadow_meshes")
+    origin = np.array(res["origin"])
+    cam = camera(res["camera"], origin)
+    points, row, col = floor_samples(cam, origin)
+    sun = res["lights"][0]["direction"]
+    ratio = sphere_shadow(points, sun, BALL["centre"], BALL["radius"])
+    relit = channels(exr(blender.out / "ball_relit.exr"), "Meshes", "RGB")
+    unlit = channels(exr(blender.out / "ball_unlit.exr"), "Meshes", "RGB")
+    shade_in, shade_out, n_in, n_out = inside_outside(relit, row, col, ratio)
+    plain_in, plain_out, _, _ = inside_outside(unlit, row, col, ratio)
+    assert n_in > 20 and n_out > 200
+    assert shade_in < 0.3 * shade_out, (shade_in, shade_out)
+    assert plain_in > 0.8 * plain_out, (plain_in, plain_out)
+    assert shade_out > 0.9 * plain_out  # outside the shadow the floor keeps its light
+
+
+def test_meshes_shadow_relit_splats(blender):
+    """A mesh ball over a relit splat floor: the splats' Diffuse pass is darker inside the closed-form
+    shadow than outside it, away from the ball itself."""
+    from workers.relight import BALL
+
+    res = blender.step("meshes_shadow_splats")
+    origin = np.array(res["origin"])
+    cam = camera(res["camera"], origin)
+    points, row, col = floor_samples(cam, origin)
+    ratio = sphere_shadow(points, res["lights"][0]["direction"], BALL["centre"], BALL["radius"])
+    got = exr(blender.out / "floor_relit.exr")
+    diffuse = channels(got, "Diffuse", "RGB")
+    uncovered = ~hidden_by_sphere(points, cam.center + origin, BALL["centre"], BALL["radius"])
+    shade_in, shade_out, n_in, n_out = inside_outside(diffuse, row[uncovered], col[uncovered], ratio[uncovered])
+    assert n_in > 20 and n_out > 200
+    assert shade_in < 0.3 * shade_out, (shade_in, shade_out)
+
+
+def test_relit_rigged_arm_shadows_the_demo_floor_over_frames(blender):
+    """The demo rig's arm, converted with its material, bound and relit: on frames 1 and 12 the demo
+    floor (Cycles, the Meshes pass) is darker where the splats' closed-form shadow falls (their
+    centres projected along the sun onto z = 0) than the same floor with Relight off, and unchanged
+    far from it."""
+    res = blender.step("rig")
+    assert res["bind"]["error"] is None, res["bind"]
+    for frame in ("1", "12"):
+        inputs = blender.npz(f"rig_inputs_{frame}")
+        origin = inputs["origin"]
+        assert inputs["lit"].all()
+        cam = camera(res["camera"], origin)
+        sun = np.array(res["frames"][frame]["lights"][0]["direction"])
+        centres = inputs["positions"].astype(np.float64) + origin
+        opaque = 1 / (1 + np.exp(-inputs["opacity_logits"])) > 0.5
+        shadow_points = centres[opaque] - (centres[opaque, 2] / sun[2])[:, None] * sun  # along the sun to z = 0
+        points, row, col = floor_samples(cam, origin, size=6.0, step=0.02)
+        near = np.full(len(points), np.inf)
+        for chunk in np.array_split(np.arange(len(points)), 50):
+            d = np.linalg.norm(points[chunk, None, :2] - shadow_points[None, :, :2], axis=2)
+            near[chunk] = d.min(axis=1)
+        relit = channels(exr(blender.out / f"rig_relit_{frame}.exr"), "Meshes", "RGB")
+        unlit = channels(exr(blender.out / f"rig_unlit_{frame}.exr"), "Meshes", "RGB")
+        ratio = luminance(relit[row, col]) / np.maximum(luminance(unlit[row, col]), 1e-6)
+        inside, outside = near < 0.03, near > 0.4
+        assert inside.sum() > 20 and outside.sum() > 200
+        assert np.median(ratio[inside]) < 0.5, (frame, np.median(ratio[inside]))
+        assert abs(np.median(ratio[outside]) - 1) < 0.05, (frame, np.median(ratio[outside]))

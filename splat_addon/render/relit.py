@@ -9,6 +9,7 @@ the extras every cloud has).
 """
 
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
@@ -106,23 +107,83 @@ def any_relit(scene):
     return any(is_relit(obj) for obj in scene.objects if data.is_splat_object(obj))
 
 
-def render_scene(cloud, lit, camera, lights, world, *, occluders, background, layer, passes, progress):
-    """core.relight.render_lit of `cloud` whose `lit` splats the lights and world shade (the others keep
-    their own colour), composited with `layer`, shadowed by `occluders` too."""
-    from ...core.relight import render_lit
+SHADOW_RESOLUTION = 512  # texels a side of each shadow-map view (core.shadows)
 
-    return render_lit(
-        cloud,
-        camera,
-        lights,
-        world,
-        meshes=occluders,
-        layer=layer,
-        passes=passes,
-        background=background,
-        progress=progress,
-        lit=lit,
-    )
+
+def visibilities(cloud, lights, occluders=(), resolution=SHADOW_RESOLUTION, threads=None):
+    """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
+    the whole cloud (relit or not) and the `occluders` meshes (core.shadows.visibility)."""
+    from ...core.shadows import visibility
+
+    return {
+        i: visibility(cloud, light, occluders=list(occluders), resolution=resolution, threads=threads)
+        for i, light in enumerate(lights)
+        if light.cast_shadow
+    }
+
+
+def shaded(cloud, lit, eye, lights, world, visible=None):
+    """(cloud, shading): `cloud` with its `lit` splats' colour replaced by the radiance the lights and
+    world send towards `eye` (a position or core Camera), as display sRGB in the DC coefficient (the
+    higher SH bands of those splats zeroed), and the core.shading.Shading of the lit splats.
+    `visible` is visibilities()'s result (None: no shadows)."""
+    from ...core.color import linear_to_srgb
+    from ...core.sh import rgb_to_dc
+    from ...core.shading import shade
+
+    part = cloud[lit]
+    shading = shade(part, eye, lights, world, {i: v[lit] for i, v in (visible or {}).items()})
+    sh = cloud.sh.copy()
+    sh[lit] = 0.0
+    radiance = np.maximum(shading.diffuse.astype(np.float64) + shading.specular, 0.0)
+    sh[lit, 0] = rgb_to_dc(linear_to_srgb(radiance))
+    return cloud.replace(sh=sh), shading
+
+
+class LitScene(NamedTuple):
+    """A relit render: image, the core RenderResult (display sRGB, as core.render gives it); diffuse,
+    specular (H,W,3) and shadow (H,W,1) scene-linear premultiplied passes, or None."""
+
+    image: object
+    diffuse: np.ndarray | None = None
+    specular: np.ndarray | None = None
+    shadow: np.ndarray | None = None
+
+
+def render_scene(cloud, lit, camera, lights, world, *, occluders, background, layer, passes, progress=None):
+    """`cloud` with its `lit` splats shaded by `lights` and `world` (the others keep their own colour),
+    shadowed by the whole cloud and by `occluders`, rendered once by core.render with `background`
+    and `layer`; with `passes`, also the lit splats' Diffuse, Specular and Shadow seen through the same
+    blending (one more render each, the layer's colour black so only the splats add)."""
+    from ...core.render import Layer, render
+
+    visible = visibilities(cloud, lights, occluders)
+    coloured, shading = shaded(cloud, lit, camera, lights, world, visible)
+    image = render(coloured, camera, background=background, layer=layer, progress=progress)
+    if not passes:
+        return LitScene(image)
+    dark = None if layer is None else Layer(np.zeros_like(layer.color), layer.alpha, layer.depth)
+    values = {
+        "diffuse": shading.diffuse,
+        "specular": shading.specular,
+        "shadow": np.repeat(shading.shadow[:, None], 3, 1),
+    }
+    out = {}
+    for name, value in values.items():
+        out[name] = _splat_image(cloud, lit, value, camera, dark)
+    out["shadow"] = out["shadow"][..., :1]
+    return LitScene(image, **out)
+
+
+def _splat_image(cloud, lit, value, camera, layer):
+    """(H,W,3) per-splat `value` (M,3) of the lit splats (0 for the others) blended as their colour."""
+    from ...core.render import render
+    from ...core.sh import rgb_to_dc
+
+    sh = np.zeros((len(cloud), 1, 3))
+    sh[:, 0] = rgb_to_dc(0.0)
+    sh[lit, 0] = rgb_to_dc(np.asarray(value, np.float64))
+    return render(cloud.replace(sh=sh), camera, background=None, layer=layer).color
 
 
 def lit_passes(result):

@@ -1,5 +1,6 @@
 """The SPLATWRIGHT engine in a 3D viewport's Rendered shading: the splats composited with the meshes
 (core/preview.py: triangles shaded flat with a headlight, composited by the final render's rule),
+relit splats shaded by the scene's lights as the final render shades them (relit.py),
 rendered progressively on a thread (a coarse pass while the view moves, the full picture once it
 stops) so drawing never waits. Solid and Material Preview keep Blender's own drawing.
 
@@ -16,7 +17,9 @@ import numpy as np
 from ...core.color import linear_to_srgb
 from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
 from ...core.splats import SplatCloud
-from .scene import mesh_engine, scene_splats, surface_triangles, to_scene_linear, world_color
+from . import relit
+from .lights import scene_lights, scene_world
+from .scene import mesh_engine, surface_triangles, to_scene_linear, world_color
 
 
 class View:
@@ -43,13 +46,35 @@ def triangles(depsgraph):
     return Triangles(corners, colors) if len(corners) else Triangles.empty()
 
 
+class Lighting:
+    """What shades the relit splats of a viewport picture: their mask, the lights, the world and the
+    meshes that shadow them; the shadows themselves (view-independent) are made once per scene
+    update, on the picture's thread, and kept."""
+
+    def __init__(self, lit, lights, world, occluders):
+        self.lit, self.lights, self.world, self.occluders = lit, lights, world, occluders
+        self.visible = None
+
+    def shade(self, cloud, camera):
+        """`cloud` with the relit splats' colours for an eye at `camera`."""
+        if self.visible is None:
+            self.visible = relit.visibilities(cloud, self.lights, self.occluders)
+        return relit.shaded(cloud, self.lit, camera, self.lights, self.world, self.visible)[0]
+
+
 def picture_inputs(depsgraph):
-    """(splats, triangles, background) of the depsgraph's scene for the viewport picture."""
+    """(splats, triangles, background, lighting) of the depsgraph's scene for the viewport picture;
+    lighting is a Lighting, or None when no splat is relit."""
     scene = depsgraph.scene
-    cloud = scene_splats(depsgraph, np.zeros(3))
+    origin = np.zeros(3)
+    cloud, lit = relit.scene_cloud(depsgraph, origin)
     meshes = triangles(depsgraph) if mesh_engine(scene) != "NONE" else Triangles.empty()
     background = None if scene.render.film_transparent else linear_to_srgb(world_color(scene))
-    return (cloud if cloud is not None else SplatCloud.empty()), meshes, background
+    lighting = None
+    if lit is not None:
+        occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
+        lighting = Lighting(lit, scene_lights(depsgraph, origin), scene_world(scene), occluders)
+    return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 
 class Viewport:
@@ -57,7 +82,7 @@ class Viewport:
 
     def __init__(self, engine):
         engine_ref = weakref.ref(engine)
-        self.inputs = (SplatCloud.empty(), Triangles.empty(), None)
+        self.inputs = (SplatCloud.empty(), Triangles.empty(), None, None)
         self.progressive = Progressive(self.picture, on_ready=lambda: _redraw(engine_ref))
         self.texture, self.drawn = None, None
 
@@ -67,7 +92,10 @@ class Viewport:
 
     def picture(self, view, scale, check):
         """Scene-linear premultiplied RGBA (rows top first) of `view` at `scale` (on the thread)."""
-        cloud, meshes, background = self.inputs
+        cloud, meshes, background, lighting = self.inputs
+        if lighting is not None:
+            check()
+            cloud = lighting.shade(cloud, view.camera)
         image = preview_image(
             cloud,
             meshes,

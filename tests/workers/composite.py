@@ -289,7 +289,7 @@ class Worker(BlenderWorker):
                 time.sleep(0.01)
         finally:
             port.stop()
-        cloud, meshes, background = port.inputs
+        cloud, meshes, background, _ = port.inputs
         layer = preview.mesh_layer(meshes, camera)
         self.save(
             "viewport",

@@ -33,8 +33,43 @@ INSTANCE_OFFSET = (5.0, 0.0, 0.0)  # a collection instance of the point light, m
 EXPOSURE = 1.0  # Blender 4.5+? set where the light has it: power x 2
 
 
+SIZE = (96, 72)
+BALL = dict(centre=(0.0, 0.0, 0.9), radius=0.5, count=3000, albedo=(0.8, 0.3, 0.2))
+SUN = dict(rotation=(0.35, 0.0, 0.6), energy=3.0, angle=0.02)
+WORLD = (0.05, 0.05, 0.06)
+FLOOR = dict(size=5.0, color=(0.6, 0.6, 0.6))
+CAMERA = dict(location=(2.6, -3.4, 2.9), look_at=(0.0, 0.0, 0.3), lens=30.0)
+SAMPLES = 8
+
+
+def ball_arrays(centre, radius, count):
+    """Flat splats on a sphere (a Fibonacci lattice), each facing out: positions, rotations (w,x,y,z)
+    turning +Z onto the normal, log scales, opacity logits, and the normals."""
+    i = np.arange(count) + 0.5
+    z = 1 - 2 * i / count
+    phi = np.pi * (1 + 5**0.5) * i
+    normals = np.stack([np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z], axis=1)
+    rotations = np.stack([1 + normals[:, 2], -normals[:, 1], normals[:, 0], np.zeros(count)], axis=1)
+    rotations /= np.linalg.norm(rotations, axis=1, keepdims=True)
+    spacing = radius * np.sqrt(4 * np.pi / count)
+    log_scales = np.log(np.tile([spacing * 0.7, spacing * 0.7, spacing * 0.05], (count, 1)))
+    positions = np.asarray(centre) + radius * normals
+    return positions, rotations, log_scales, np.full(count, 3.0), normals
+
+
+def floor_arrays(size, spacing):
+    """Flat splats tiling a square floor at z = 0, facing up."""
+    ticks = np.arange(-size / 2 + spacing / 2, size / 2, spacing)
+    x, y = np.meshgrid(ticks, ticks)
+    positions = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    n = len(positions)
+    rotations = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+    log_scales = np.log(np.tile([spacing * 0.7, spacing * 0.7, spacing * 0.05], (n, 1)))
+    return positions, rotations, log_scales, np.full(n, 3.0), np.tile([0.0, 0.0, 1.0], (n, 1))
+
+
 class Worker(BlenderWorker):
-    steps = ("install", "lights")
+    steps = ("install", "lights", "passes", "splats_shadow_meshes", "meshes_shadow_splats", "rig")
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "actions", "lights", "collections")
 
@@ -93,6 +128,198 @@ class Worker(BlenderWorker):
         except ImportError as exc:
             made = str(exc)
         return {"fields": fields, "exposure": has_exposure, "normalize": has_normalize, "scene_lights": made}
+
+    # relit renders --------------------------------------------------------------------------------
+
+    def material_cloud(self, arrays, albedo):
+        """A SplatCloud of (positions, rotations, log_scales, opacity_logits, normals) with a grey SH
+        colour and the material relighting shades."""
+        core, material = self.module("core"), self.module("core.material")
+        positions, rotations, log_scales, logits, normals = arrays
+        sh = np.zeros((len(positions), 1, 3))
+        sh[:, 0] = 0.2  # the unlit look, unlike the lit one
+        cloud = core.SplatCloud(positions, rotations, log_scales, logits, sh)
+        return material.with_material(cloud, albedo=np.tile(albedo, (len(cloud), 1)), normals=normals)
+
+    def stage(self, mesh_engine="NONE"):
+        """Camera, sun, world colour and render settings of every relit step."""
+        bpy = self.bpy
+        from mathutils import Vector
+
+        scene = bpy.context.scene
+        for obj in [o for o in scene.objects if o.type == "LIGHT"]:
+            bpy.data.objects.remove(obj)
+        self.add_light(
+            "Sun", "SUN", (0.0, 0.0, 5.0), SUN["rotation"], (1, 1, 1), dict(energy=SUN["energy"], angle=SUN["angle"])
+        )
+        cam = scene.camera
+        cam.location = CAMERA["location"]
+        cam.rotation_euler = (
+            (Vector(CAMERA["look_at"]) - Vector(CAMERA["location"])).to_track_quat("-Z", "Y").to_euler()
+        )
+        cam.data.lens = CAMERA["lens"]
+        scene.world.color = WORLD
+        if scene.world.node_tree is not None:
+            background = next(n for n in scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+            background.inputs["Color"].default_value = (*WORLD, 1.0)
+            background.inputs["Strength"].default_value = 1.0
+        render = scene.render
+        render.resolution_x, render.resolution_y = SIZE
+        render.resolution_percentage = 100
+        render.film_transparent = False
+        render.dither_intensity = 0.0
+        render.engine = "SPLATWRIGHT"
+        scene.view_settings.view_transform = "Standard"
+        scene.cycles.samples = SAMPLES
+        scene.cycles.use_denoising = False
+        scene.cycles.device = "CPU"
+        scene.splatwright_mesh_engine = mesh_engine
+        bpy.context.view_layer.use_pass_z = True
+        bpy.context.view_layer.splatwright_use_pass_splats = True
+
+    def splat_object(self, name, cloud, relit=True):
+        obj, _ = self.module("splat_addon.data").new_splat_object(cloud, name, self.bpy.context.scene.collection)
+        obj.splatwright_relight = relit
+        return obj
+
+    def floor_mesh(self):
+        bpy = self.bpy
+        bpy.ops.mesh.primitive_plane_add(size=FLOOR["size"])
+        floor = bpy.context.active_object
+        floor.name = "Floor"
+        mat = bpy.data.materials.new("Floor")
+        if bpy.app.version < (5, 0, 0):
+            mat.use_nodes = True
+        bsdf = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (*FLOOR["color"], 1.0)
+        floor.data.materials.append(mat)
+        return floor
+
+    def engine_inputs(self, name):
+        """What the engine reads of the scene (its frame shifted by the camera's position): the cloud
+        with its relit mask, the lights and the world, saved for the tests to render with the core."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        origin = np.array(scene.camera.matrix_world.translation)
+        relit = self.module("splat_addon.render.relit")
+        lights = self.module("splat_addon.render.lights")
+        cloud, lit = relit.scene_cloud(depsgraph, origin)
+        extras = {f"extra_{k}": v for k, v in cloud.extras.items()}
+        self.save(
+            name,
+            positions=cloud.positions,
+            rotations=cloud.rotations,
+            log_scales=cloud.log_scales,
+            opacity_logits=cloud.opacity_logits,
+            sh=cloud.sh,
+            lit=np.zeros(len(cloud), bool) if lit is None else lit,
+            origin=origin,
+            **extras,
+        )
+        light_fields = []
+        for inst in depsgraph.object_instances:
+            if inst.object.type == "LIGHT":
+                fields = lights.light_fields(inst.object.data, np.array(inst.matrix_world), origin)
+                light_fields.append({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in fields.items()})
+        return {"lights": light_fields, "world": list(lights.world_color(scene)), "origin": origin.tolist()}
+
+    def write(self, name):
+        scene = self.bpy.context.scene
+        self.image_format(scene.render.image_settings, "OPEN_EXR_MULTILAYER", color_depth="32", exr_codec="ZIP")
+        scene.render.filepath = str(self.out / f"{name}.exr")
+        self.bpy.ops.render.render(write_still=True)
+
+    def camera_record(self):
+        from workers.composite import Worker as Composite
+
+        return Composite.camera_record(self)
+
+    def passes(self):
+        """A relit splat ball beside an unlit cloud, splats only: the Diffuse, Specular and Shadow passes
+        in a multilayer EXR, and what the engine read to make them."""
+        self.stage("NONE")
+        ball = self.splat_object(
+            "Ball",
+            self.material_cloud(ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")}), BALL["albedo"]),
+        )
+        plain = self.splat_object("Plain", self.random_cloud(300, 1, seed=4, spread=0.3), relit=False)
+        plain.location = (-1.2, 0.8, 0.5)
+        bare = self.splat_object("Bare", self.random_cloud(50, 1, seed=5, spread=0.1), relit=True)  # no material
+        bare.location = (1.2, 0.8, 0.5)
+        self.bpy.context.view_layer.update()
+        res = self.engine_inputs("passes_inputs")
+        self.write("passes")
+        panel = self.module("splat_addon.ui.panel")
+        res.update(
+            camera=self.camera_record(),
+            status={o.name: panel.material_status(o) for o in (ball, plain, bare)},
+            registered=self.bpy.context.scene.render.engine,
+        )
+        return res
+
+    def splats_shadow_meshes(self):
+        """The relit ball over a mesh floor that Cycles renders, with Relight on and off."""
+        self.stage("CYCLES")
+        self.floor_mesh()
+        ball = self.splat_object(
+            "Ball",
+            self.material_cloud(ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")}), BALL["albedo"]),
+        )
+        self.bpy.context.view_layer.update()
+        res = self.engine_inputs("shadow_inputs")
+        self.write("ball_relit")
+        ball.splatwright_relight = False
+        self.write("ball_unlit")
+        res["camera"] = self.camera_record()
+        return res
+
+    def meshes_shadow_splats(self):
+        """A mesh ball over a relit splat floor: the mesh's shadow on the splats."""
+        bpy = self.bpy
+        self.stage("CYCLES")
+        floor = self.material_cloud(floor_arrays(FLOOR["size"], 0.05), FLOOR["color"])
+        self.splat_object("SplatFloor", floor)
+        bpy.ops.mesh.primitive_uv_sphere_add(radius=BALL["radius"], location=BALL["centre"], segments=48, ring_count=24)
+        bpy.context.view_layer.update()
+        res = self.engine_inputs("floor_inputs")
+        self.write("floor_relit")
+        res["camera"] = self.camera_record()
+        return res
+
+    def rig(self):
+        """The demo rig's arm converted with its material, bound, relit, over the demo's mesh floor:
+        frames 1 and 12 rendered with Relight on and off."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        rig = self.module("splat_addon.convert.demo_rig").build_demo_rig(scene, 0, calibrate=False)
+        self.select([rig.body])
+        bpy.ops.splat.from_mesh(max_splats=4000, calibrate=False, use_material=True)
+        splats = bpy.context.active_object
+        rig.body.hide_render = True
+        self.select([splats, rig.armature], active=rig.armature)
+        bound = self.call(bpy.ops.splat.bind_armature, armature=rig.armature.name)
+        splats.splatwright_relight = True
+        render = scene.render
+        render.engine = "SPLATWRIGHT"
+        render.resolution_x, render.resolution_y = 128, 96
+        render.resolution_percentage = 100
+        scene.cycles.samples = SAMPLES
+        scene.cycles.use_denoising = False
+        scene.cycles.device = "CPU"
+        scene.splatwright_mesh_engine = "CYCLES"
+        bpy.context.view_layer.splatwright_use_pass_splats = True
+        res = {"bind": bound, "frames": {}}
+        for frame in (1, 12):
+            scene.frame_set(frame)
+            splats.splatwright_relight = True
+            res["frames"][frame] = self.engine_inputs(f"rig_inputs_{frame}")
+            self.write(f"rig_relit_{frame}")
+            splats.splatwright_relight = False
+            self.write(f"rig_unlit_{frame}")
+        res["camera"] = self.camera_record()
+        res["sun"] = np.array(rig.light.matrix_world).tolist()
+        return res
 
 
 if __name__ == "__main__":
