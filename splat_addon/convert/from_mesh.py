@@ -34,11 +34,12 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty
 from ...core import geometry
 from ...core.bake import VIEWS_PER_DISTANCE as BAKE_VIEWS
 from ...core.camera import Camera, spread_along
+from ...core.memory import human_bytes
 from ...core.mesh_refine import VIEW_DISTANCES, VIEWS_PER_DISTANCE, summary
 from ...core.mesh_render import CYCLES_FILTER_WIDTH, DEFAULT_PIXEL_FILTER
 from ...core.mesh_to_splats import DEFAULT_RENDER_MODE, DEFAULT_TARGET_PSNR, mesh_to_splats_steps
 from ...core.steps import drain, mapped_steps
-from ...io.ply import file_size as ply_size
+from ...io import written_size
 from .. import data
 from ..data import camera, display
 from ..data.display import DISPLAY_BUDGET
@@ -799,9 +800,9 @@ class SPLAT_OT_from_mesh(JobOperator, bpy.types.Operator):
             missed = info.get("reached") is False
             self.report({"WARNING"} if missed else {"INFO"}, f"'{source.name}': {conversion_report(len(cloud), info)}")
         total = sum(len(cloud) for _, cloud, _ in job.results)
-        size = sum(ply_size(len(cloud), cloud.sh_degree) for _, cloud, _ in job.results)
+        size = sum(written_size(cloud, "ply") for _, cloud, _ in job.results)
         self.report(
-            {"INFO"}, f"made {total} splats from {len(created)} mesh object(s), about {size / 1e6:.1f} MB as PLY"
+            {"INFO"}, f"made {total} splats from {len(created)} mesh object(s), about {human_bytes(size)} as PLY"
         )
         return {"FINISHED"}
 
