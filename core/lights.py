@@ -60,7 +60,8 @@ class Light:
     """One light in the cloud's world frame, Blender's units (see the module docstring).
 
     color: (3,) scene-linear, >= 0. power: watts (point, spot, area; Blender's Power times
-    2**exposure where the light has an exposure) or W/m^2 (sun's Strength). position: (3,) metres
+    2**exposure where the light has an exposure, and times its area for an area light with Normalize
+    off) or W/m^2 (sun's Strength). position: (3,) metres
     (unused by the sun). direction: (3,) where the light points, Blender's light -Z axis (normalised
     here). radius: point/spot soft size (m). angle: sun disc diameter (rad). spot_size: full cone angle
     (rad, in (0, pi]); spot_blend in [0, 1]. size_x, size_y: area extent (m; SQUARE and DISK use

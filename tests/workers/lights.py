@@ -23,7 +23,12 @@ LIGHTS = {
         (-0.3, 0.2, 2.0),
         (math.radians(12.0), 0.0, 0.0),
     ),
-    "sun": ("SUN", dict(energy=2.5, angle=math.radians(0.5)), (0, 0, 5), (math.radians(35.0), 0.0, math.radians(20))),
+    "sun": (
+        "SUN",
+        dict(energy=2.5, angle=math.radians(0.5), exposure=0.5),
+        (0, 0, 5),
+        (math.radians(35.0), 0.0, math.radians(20)),
+    ),
     "area_rectangle": (
         "AREA",
         dict(energy=150.0, shape="RECTANGLE", size=1.6, size_y=0.7),
@@ -31,6 +36,13 @@ LIGHTS = {
         (math.radians(15.0), math.radians(-10.0), math.radians(30.0)),
     ),
     "area_disk": ("AREA", dict(energy=80.0, shape="DISK", size=1.2), (-0.2, 0.3, 0.9), (0, 0, 0)),
+    # Normalize off (Blender 4.5+): the power is per square metre of the light, not spread over it
+    "area_unnormalized": (
+        "AREA",
+        dict(energy=40.0, shape="RECTANGLE", size=1.5, size_y=0.6, normalize=False),
+        (0.1, -0.2, 1.2),
+        (0, 0, 0),
+    ),
 }
 # Principled BSDF planes seen by an orthographic camera tilted TILT from straight down, lit by a
 # point light near the mirror direction: the highlight is in the picture. name -> (base colour,
@@ -99,7 +111,8 @@ class Worker(BlenderWorker):
         bpy = self.bpy
         data = bpy.data.lights.new(name, kind)
         for key, value in settings.items():
-            setattr(data, key, value)
+            if hasattr(data, key):  # Normalize and Exposure came after 4.2
+                setattr(data, key, value)
         obj = bpy.data.objects.new(name, data)
         bpy.context.scene.collection.objects.link(obj)
         obj.location, obj.rotation_euler = location, rotation
@@ -123,6 +136,7 @@ class Worker(BlenderWorker):
         data = obj.data
         rec = {"type": data.type, "energy": data.energy, "color": list(data.color)}
         rec["exposure"] = getattr(data, "exposure", 0.0)
+        rec["normalize"] = getattr(data, "normalize", True)
         for key in ("shadow_soft_size", "spot_size", "spot_blend", "angle", "shape", "size", "size_y"):
             if hasattr(data, key):
                 rec[key] = getattr(data, key)
@@ -151,6 +165,9 @@ class Worker(BlenderWorker):
 
     def area_disk(self):
         return self.run_light("area_disk")
+
+    def area_unnormalized(self):
+        return self.run_light("area_unnormalized")
 
     def principled_dielectric(self):
         return self.run_light("principled_dielectric")
