@@ -161,12 +161,12 @@ class World:
 class Incident(NamedTuple):
     """Light arriving at N points from one emitter (a whole point/spot/sun light, or one sample of an
     area light): unit `direction` (N,3) from each point towards the emitter, `distance` (N,) to it
-    (inf for the sun), and `irradiance` (N,3) on a surface facing it (colour included, before the
-    receiver's cosine)."""
+    (inf for the sun), and `strength` (N,), the irradiance on a surface facing it before the light's
+    colour and the receiver's cosine (times Light.color: W/m^2 per channel)."""
 
     direction: np.ndarray
     distance: np.ndarray
-    irradiance: np.ndarray
+    strength: np.ndarray
 
 
 def spot_cone(light: Light, cos_angle: np.ndarray) -> np.ndarray:
@@ -215,14 +215,14 @@ def incident(light: Light, points: np.ndarray) -> list[Incident]:
     n = len(points)
     if light.kind == "sun":
         towards = np.broadcast_to(-light.direction, (n, 3))
-        return [Incident(towards, np.full(n, np.inf), np.broadcast_to(light.power * light.color, (n, 3)))]
+        return [Incident(towards, np.full(n, np.inf), np.full(n, light.power))]
     if light.kind in ("point", "spot"):
         direction, distance = _towards(light.position, points)
         intensity = np.full(n, light.power / (4.0 * math.pi))
         if light.kind == "spot":
             intensity = intensity * spot_cone(light, -(direction @ light.direction))
         scalar = np.where(distance > 1e-300, intensity / np.maximum(distance, 1e-300) ** 2, 0.0)
-        return [Incident(direction, distance, scalar[:, None] * light.color)]
+        return [Incident(direction, distance, scalar)]
     samples, shares = area_points(light)
     radiance = AREA_RADIANCE * light.power / light.area
     out = []
@@ -231,18 +231,18 @@ def incident(light: Light, points: np.ndarray) -> list[Incident]:
         # one-sided Lambertian patch: its cosine towards each point, 0 behind it
         cos_emit = np.maximum(-(direction @ light.direction), 0.0)
         scalar = np.where(distance > 1e-300, radiance * share * cos_emit / np.maximum(distance, 1e-300) ** 2, 0.0)
-        out.append(Incident(direction, distance, scalar[:, None] * light.color))
+        out.append(Incident(direction, distance, scalar))
     return out
 
 
 def irradiance(light: Light, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """Irradiance (N,3) float64 W/m^2 (colour included) from `light` on surfaces at points (N,3) with
-    unit normals (N,3): the sum over the light's emitters of their irradiance times max(0, n . l)."""
+    unit normals (N,3): the sum over the light's emitters of their strength times max(0, n . l)."""
     normals = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    total = np.zeros((len(normals), 3))
+    total = np.zeros(len(normals))
     for inc in incident(light, points):
-        total += inc.irradiance * np.maximum(np.einsum("ij,ij->i", inc.direction, normals), 0.0)[:, None]
-    return total
+        total += inc.strength * np.maximum(np.einsum("ij,ij->i", inc.direction, normals), 0.0)
+    return total[:, None] * light.color
 
 
 def direction_and_distance(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

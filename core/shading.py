@@ -99,23 +99,24 @@ def smith_g(cos_v: np.ndarray, cos_l: np.ndarray, alpha: np.ndarray) -> np.ndarr
     return 1.0 / (1.0 + smith_lambda(cos_v, alpha) + smith_lambda(cos_l, alpha))
 
 
-def schlick(f0: np.ndarray, cos_vh: np.ndarray) -> np.ndarray:
-    """Schlick's Fresnel (N,3) for F0 (N,3) and cos(v, h) (N,)."""
-    weight = (1.0 - np.clip(cos_vh, 0.0, 1.0)) ** 5
-    return f0 + (1.0 - f0) * weight[:, None]
+def ggx_parts(normal, view, light, alpha) -> tuple[np.ndarray, np.ndarray]:
+    """The GGX specular BRDF times the cosine split for Schlick's F: (D G / (4 n.v), 0 where n.l <= 0)
+    and the Fresnel weight (1 - v.h)^5, each (N,), so that f(v, l) (n.l) = scalar * (F0 (1 - w) + w)."""
+    cos_v = np.maximum(np.einsum("ij,ij->i", normal, view), COS_MIN)
+    cos_l = np.einsum("ij,ij->i", normal, light)
+    half = view + light
+    half /= np.maximum(np.sqrt(np.einsum("ij,ij->i", half, half)), 1e-300)[:, None]
+    cos_h = np.clip(np.einsum("ij,ij->i", normal, half), 0.0, 1.0)
+    weight = (1.0 - np.clip(np.einsum("ij,ij->i", view, half), 0.0, 1.0)) ** 5
+    scalar = ggx_d(cos_h, alpha) * smith_g(cos_v, np.maximum(cos_l, COS_MIN), alpha) / (4.0 * cos_v)
+    return np.where(cos_l > 0.0, scalar, 0.0), weight
 
 
 def ggx_reflect(normal, view, light, alpha, f0) -> np.ndarray:
     """The GGX specular BRDF times the cosine, f(v, l) * (n.l) = D G F / (4 n.v), (N,3), for unit
     normal, view and light directions (N,3), alpha (N,) and F0 (N,3); 0 where n.l <= 0."""
-    cos_v = np.maximum(np.einsum("ij,ij->i", normal, view), COS_MIN)
-    cos_l = np.einsum("ij,ij->i", normal, light)
-    half = view + light
-    half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-300)
-    cos_h = np.clip(np.einsum("ij,ij->i", normal, half), 0.0, 1.0)
-    cos_vh = np.einsum("ij,ij->i", view, half)
-    scalar = ggx_d(cos_h, alpha) * smith_g(cos_v, np.maximum(cos_l, COS_MIN), alpha) / (4.0 * cos_v)
-    return np.where(cos_l > 0.0, scalar, 0.0)[:, None] * schlick(f0, cos_vh)
+    scalar, weight = ggx_parts(normal, view, light, alpha)
+    return scalar[:, None] * (f0 * (1.0 - weight)[:, None] + weight[:, None])
 
 
 @functools.cache
@@ -183,17 +184,21 @@ def angular_radius(light: Light, distance: np.ndarray, share: float) -> np.ndarr
 
 
 def _light_terms(light, points, normal, view, alpha, f0) -> tuple[np.ndarray, np.ndarray]:
-    """One light's unshadowed (irradiance-weighted diffuse factor E * cos, specular radiance), (N,3) each."""
+    """One light's unshadowed diffuse factor (irradiance on the surface, E cos) and specular radiance,
+    (N,3) each. Per emitter only (N,) scalars are summed: the light's colour and Schlick's F0 come in
+    once at the end (F = F0 (1 - w) + w)."""
     emitters = incident(light, points)
     share = light.area / len(emitters) if light.kind == "area" else 0.0
-    diffuse = np.zeros_like(points)
-    specular = np.zeros_like(points)
+    diffuse, tinted, white = (np.zeros(len(points)) for _ in range(3))
     for inc in emitters:  # one emitter, or an area light's 16 samples
-        cos_l = np.maximum(np.einsum("ij,ij->i", normal, inc.direction), 0.0)
-        diffuse += inc.irradiance * cos_l[:, None]
+        diffuse += inc.strength * np.maximum(np.einsum("ij,ij->i", normal, inc.direction), 0.0)
         widened = np.minimum(np.hypot(alpha, 0.5 * angular_radius(light, inc.distance, share)), 1.0)
-        specular += inc.irradiance * ggx_reflect(normal, view, inc.direction, widened, f0)
-    return diffuse, specular
+        scalar, weight = ggx_parts(normal, view, inc.direction, widened)
+        scalar *= inc.strength
+        tinted += scalar * (1.0 - weight)
+        white += scalar * weight
+    specular = (f0 * tinted[:, None] + white[:, None]) * light.color
+    return diffuse[:, None] * light.color, specular
 
 
 def shade(
