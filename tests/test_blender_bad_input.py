@@ -66,7 +66,7 @@ def assert_refused(case, *words):
 
 def test_every_operator_is_exercised(blender):
     """A new operator fails this until its bad input is tested: here, or (clean-up and proxy binding)
-    in test_blender_artist_tools.py's refusal tests."""
+    in test_blender_artist_tools.py's refusal tests, or (Estimate Normals) in test_blender_normals.py."""
     assert blender.step("install")["operators"] == [
         "SPLAT_OT_apply_transform",
         "SPLAT_OT_bind_armature",
@@ -75,6 +75,7 @@ def test_every_operator_is_exercised(blender):
         "SPLAT_OT_clear_cleanup",
         "SPLAT_OT_convert_form",
         "SPLAT_OT_crop",
+        "SPLAT_OT_estimate_normals",
         "SPLAT_OT_export_animation",
         "SPLAT_OT_export_file",
         "SPLAT_OT_from_mesh",

@@ -23,11 +23,11 @@ ORIENT_ITEMS = (
 REPORT_KEY = "splatwright_normals_report"
 
 
-class SPLATWRIGHT_OT_estimate_normals(bpy.types.Operator):
+class SPLAT_OT_estimate_normals(bpy.types.Operator):
     """Estimate each splat's surface normal from its shape (its shortest axis) for relighting,
     facing the scene's cameras or pointing away from the splats' centre"""
 
-    bl_idname = "splatwright.estimate_normals"
+    bl_idname = "splat.estimate_normals"
     bl_label = "Estimate Normals"
     bl_options = {"REGISTER", "UNDO"}
 
@@ -107,4 +107,4 @@ def summary(count, round_count, camera_count, orient):
     )
 
 
-CLASSES = (SPLATWRIGHT_OT_estimate_normals,)
+CLASSES = (SPLAT_OT_estimate_normals,)

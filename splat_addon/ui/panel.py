@@ -100,7 +100,7 @@ def draw_cleanup(box, obj):
         col.operator(idname, icon=icon)
 
 
-ESTIMATE_NORMALS = "splatwright.estimate_normals"
+ESTIMATE_NORMALS = "splat.estimate_normals"
 
 
 def material_status(obj):
@@ -120,12 +120,6 @@ def material_status(obj):
     }
 
 
-def _operator_registered(idname):
-    """Whether operator `idname` ("module.name") is registered (another part may not be installed)."""
-    module, name = idname.split(".")
-    return hasattr(bpy.types, f"{module.upper()}_OT_{name}")
-
-
 def draw_material(box, obj):
     """What the object carries for relighting, its Relight switch and Estimate Normals."""
     status = material_status(obj)
@@ -138,8 +132,7 @@ def draw_material(box, obj):
     col.prop(obj, RELIGHT, text="Relight")
     if getattr(obj, RELIGHT, False) and not (status["albedo"] and status["normals"]):
         col.label(text="No albedo and normals: renders unlit", icon="ERROR")
-    if _operator_registered(ESTIMATE_NORMALS):
-        col.operator(ESTIMATE_NORMALS, icon="NORMALS_FACE")
+    col.operator(ESTIMATE_NORMALS, icon="NORMALS_FACE")
 
 
 class _SplatsPanel:

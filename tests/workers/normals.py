@@ -63,7 +63,7 @@ class Worker(BlenderWorker):
 
     def install(self):
         self.install_extension()
-        return {"operator": hasattr(self.bpy.ops.splatwright, "estimate_normals")}
+        return {"operator": hasattr(self.bpy.ops.splat, "estimate_normals")}
 
     def make(self, name, arrays, form, positions=None):
         rot, radial, _, scales = arrays
@@ -77,7 +77,7 @@ class Worker(BlenderWorker):
 
     def estimate(self, obj, orient):
         self.select([obj])
-        res = self.call(self.bpy.ops.splatwright.estimate_normals, orient=orient)
+        res = self.call(self.bpy.ops.splat.estimate_normals, orient=orient)
         res["report"] = json.loads(obj.get("splatwright_normals_report", "null"))
         extras = self.module("splat_addon.data").object_cloud(obj).extras
         normals = np.stack([extras[k] for k in ("nx", "ny", "nz")], 1) if "nx" in extras else np.zeros((0, 3))
@@ -125,7 +125,7 @@ class Worker(BlenderWorker):
         for k in range(4):  # more cameras than the operator is allowed: thinned to two
             self.camera(f"Cam{k}", offset=(0.3 * k - 0.5, 0.0, 0.2 * k))
         self.select([obj])
-        res["thinned"] = self.call(self.bpy.ops.splatwright.estimate_normals, orient="CAMERAS", max_cameras=2)
+        res["thinned"] = self.call(self.bpy.ops.splat.estimate_normals, orient="CAMERAS", max_cameras=2)
         res["thinned"]["report"] = json.loads(obj["splatwright_normals_report"])
         return res
 
