@@ -183,12 +183,7 @@ def corpus_meshes():
             if "corpus" in attr and not attr.startswith("_") and callable(getattr(module, attr)):
                 found = getattr(module, attr)()
                 items = found.items() if isinstance(found, dict) else found
-                # cycles_render draws no vertex colours yet: such a mesh would be measured against white
-                return {
-                    f"corpus: {name}": mesh
-                    for name, mesh in items
-                    if isinstance(mesh, Mesh) and mesh.corner_colors is None
-                }
+                return {f"corpus: {name}": mesh for name, mesh in items if isinstance(mesh, Mesh)}
     return {}
 
 
