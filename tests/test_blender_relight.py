@@ -276,3 +276,14 @@ def test_relit_rigged_arm_shadows_the_demo_floor_over_frames(blender):
         assert inside.sum() > 20 and outside.sum() > 200
         assert np.median(ratio[inside]) < 0.5, (frame, np.median(ratio[inside]))
         assert abs(np.median(ratio[outside]) - 1) < 0.05, (frame, np.median(ratio[outside]))
+
+
+def test_rendered_viewport_shows_the_relit_look(blender):
+    """The Rendered viewport's picture of the relit scene is the final render's Combined (the same
+    shading path; the viewport's camera comes from OpenGL matrices) to within 2/255 in display."""
+    from splatwright.core.color import linear_to_srgb
+
+    assert blender.step("passes")["viewport_lit"]
+    picture = blender.npz("passes_viewport")["rgba"][..., :3]
+    final = channels(exr(blender.out / "passes.exr"), "Combined", "RGB")
+    assert np.abs(linear_to_srgb(np.clip(picture, 0, None)) - linear_to_srgb(np.clip(final, 0, None))).max() <= 2 / 255

@@ -250,6 +250,7 @@ class Worker(BlenderWorker):
         self.bpy.context.view_layer.update()
         res = self.engine_inputs("passes_inputs")
         self.write("passes")
+        res["viewport_lit"] = self.viewport_picture("passes_viewport")
         panel = self.module("splat_addon.ui.panel")
         res.update(
             camera=self.camera_record(),
@@ -257,6 +258,35 @@ class Worker(BlenderWorker):
             registered=self.bpy.context.scene.render.engine,
         )
         return res
+
+    def viewport_picture(self, name):
+        """The Rendered viewport's full picture from the scene camera (its view and projection
+        matrices, as composite.py's viewport step builds them), made on this thread."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        cam = scene.camera
+        projection = cam.calc_matrix_camera(depsgraph, x=SIZE[0], y=SIZE[1])
+        viewport = self.module("splat_addon.render.viewport")
+
+        class Region:
+            width, height = SIZE
+
+        class RegionData:
+            view_matrix, window_matrix = cam.matrix_world.inverted(), projection
+
+        class Engine:
+            def tag_redraw(self):
+                pass
+
+        port = viewport.Viewport(Engine())
+        try:
+            port.update(depsgraph)
+            view = viewport.View(viewport.region_camera(Region, RegionData))
+            self.save(name, rgba=port.picture(view, 1.0, lambda: None))
+        finally:
+            port.stop()
+        return port.inputs[3] is not None
 
     def splats_shadow_meshes(self):
         """The relit ball over a mesh floor that Cycles renders, with Relight on and off."""
