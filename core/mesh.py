@@ -36,8 +36,13 @@ DEGENERATE_RATIO = 1e-10
 class Material:
     """Unlit appearance of one material.
 
-    base_color: scene-linear RGB. texture: optional image (H,W,3|4), uint8/uint16 or float, row 0
-    at the top (v = 1), sampled bilinearly with repeat wrapping at texel centres; alpha is ignored.
+    base_color: scene-linear RGB (or RGBA: its alpha multiplies the texture's). texture: optional
+    image (H,W,3|4), uint8/uint16 or float, row 0 at the top (v = 1), sampled bilinearly with
+    repeat wrapping at texel centres.
+    alpha_mode: what the alpha (the texture's 4th channel, or 2nd of grey + alpha, times the base
+    colour's alpha; never sRGB-decoded) does, as glTF names it: "OPAQUE" ignores it; "MASK" cuts
+    the surface where the bilinear alpha is below `alpha_cutoff` (glTF MASK, Blender's alpha clip);
+    "BLEND" makes it a fractional coverage (Cycles' mix with transparent).
     uv_scale, uv_offset: the texture is looked up at uv * uv_scale + uv_offset.
     rim_color: optional scene-linear RGB seen at grazing angles: the colour is
     mix(surface, rim_color, 1 - |cos(view, normal)|), a view-dependent 'facing' blend.
@@ -54,9 +59,55 @@ class Material:
     name: str = ""
     roughness: float = DEFAULT_ROUGHNESS
     metallic: float = DEFAULT_METALLIC
+    alpha_mode: str = "OPAQUE"
+    alpha_cutoff: float = 0.5
     _linear: np.ndarray | None = field(default=None, repr=False)
     _mips: list | None = field(default=None, repr=False)
     _edges: object = field(default=None, repr=False)
+    _alpha: np.ndarray | None = field(default=None, repr=False)
+    _premultiplied: list | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if self.alpha_mode not in ALPHA_MODES:
+            raise ValueError(f"alpha_mode must be one of {ALPHA_MODES}, got {self.alpha_mode!r}")
+
+    @property
+    def cut(self) -> bool:
+        """Whether alpha cuts or thins the surface: a MASK or BLEND material with an alpha below 1
+        somewhere (a texture alpha channel, or a base colour alpha)."""
+        return self.alpha_mode != "OPAQUE" and (self.alpha_texture() is not None or self.base_alpha < 1)
+
+    @property
+    def base_alpha(self) -> float:
+        return float(self.base_color[3]) if len(self.base_color) > 3 else 1.0
+
+    def alpha_texture(self):
+        """The texture's alpha times the base colour's, float32 (H,W,1), or None when the texture
+        has no alpha channel (or there is no texture). Decoded once and cached."""
+        if self.texture is None:
+            return None
+        if self._alpha is None:
+            img = np.asarray(self.texture)
+            if img.ndim != 3 or img.shape[2] not in (2, 4):
+                return None
+            a = img[:, :, -1:]
+            if np.issubdtype(a.dtype, np.integer):
+                a = a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
+            a = np.clip(np.nan_to_num(a.astype(np.float32), nan=1.0), 0.0, 1.0)
+            self._alpha = np.ascontiguousarray(a * np.float32(self.base_alpha))
+        return self._alpha
+
+    def premultiplied_mipmap(self):
+        """Mip levels (as mipmap()) of the linear texture premultiplied by its alpha, with the alpha
+        as a 4th channel: averaged over a footprint, colour / alpha is the colour of what is there
+        (a cut-out texel's colour adds nothing), and alpha its coverage. Cached."""
+        if self._premultiplied is None:
+            alpha = self.alpha_texture()
+            if alpha is None:
+                alpha = np.full(self.linear_texture().shape[:2] + (1,), self.base_alpha, np.float32)
+            levels = [np.concatenate([self.linear_texture() * alpha, alpha], axis=2)]
+            self._premultiplied = _reduce_mips(levels)
+        return self._premultiplied
 
     def linear_texture(self):
         """The texture as float32 linear RGB (H,W,3), decoded once and cached."""
@@ -69,24 +120,31 @@ class Material:
     def mipmap(self):
         """The linear texture and its 2x2 box-filtered reductions down to one texel, cached."""
         if self._mips is None:
-            levels = [self.linear_texture()]
-            while max(levels[-1].shape[:2]) > 1:
-                a = levels[-1]
-                a = np.pad(a, ((0, a.shape[0] % 2), (0, a.shape[1] % 2), (0, 0)), mode="edge")
-                levels.append(0.25 * (a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]))
-            self._mips = levels
+            self._mips = _reduce_mips([self.linear_texture()])
         return self._mips
 
     def edge_field(self):
         """The texture's hard edges and each texel's way to the nearest (core.mesh_texture.EdgeField),
-        cached."""
+        cached; an alpha-cut material's alpha steps are edges too (where the surface ends)."""
         if self._edges is None:
-            self._edges = EdgeField(self.linear_texture())
+            self._edges = EdgeField(self.linear_texture(), self.alpha_texture() if self.cut else None)
         return self._edges
 
     @property
     def view_dependent(self):
         return self.rim_color is not None
+
+
+ALPHA_MODES = ("OPAQUE", "MASK", "BLEND")  # glTF's alphaMode values
+
+
+def _reduce_mips(levels):
+    """`levels` ([level 0]) extended by 2x2 box-filtered reductions down to one texel."""
+    while max(levels[-1].shape[:2]) > 1:
+        a = levels[-1]
+        a = np.pad(a, ((0, a.shape[0] % 2), (0, a.shape[1] % 2), (0, 0)), mode="edge")
+        levels.append(0.25 * (a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]))
+    return levels
 
 
 def decode_texture(image, srgb=True):
@@ -255,7 +313,11 @@ class Surface:
                 if covariance is not None:
                     jac = self.texel_jacobians(m)[tri[sel]]
                     texel_cov = jac @ covariance[sel] @ jac.transpose(0, 2, 1)
-                    out[sel] = footprint_average(material.mipmap(), lookup, texel_cov)
+                    if material.cut:  # the colour of what is there: cut-out texels' colours left out
+                        rgba = footprint_average(material.premultiplied_mipmap(), lookup, texel_cov)
+                        out[sel] = rgba[:, :3] / np.maximum(rgba[:, 3:], 1e-6)
+                    else:
+                        out[sel] = footprint_average(material.mipmap(), lookup, texel_cov)
                 elif footprint is None:
                     out[sel] = sample_texture(material.linear_texture(), lookup)
                 else:
@@ -266,6 +328,43 @@ class Surface:
         if self.corner_colors is not None:
             out *= np.einsum("nk,nkc->nc", bary, self.corner_colors[tri])
         return np.maximum(out, 0.0)
+
+    @property
+    def cut(self) -> bool:
+        """Whether any material's alpha cuts or thins the surface (Material.cut)."""
+        return any(m.cut for m in self.materials)
+
+    def coverage(self, tri, bary, covariance=None):
+        """(n,) float64 the alpha at barycentric points on faces tri: 1 on materials whose alpha
+        does not cut (Material.cut), else the bilinear alpha, or with `covariance` (n,2,2), as in
+        linear_colors, the alpha averaged over that Gaussian footprint."""
+        out = np.ones(len(tri))
+        mat = self.face_materials[tri]
+        for m, material in enumerate(self.materials):
+            sel = np.flatnonzero(mat == m)
+            if not material.cut or not len(sel):
+                continue
+            if material.alpha_texture() is None or self.corner_uvs is None:
+                out[sel] = material.base_alpha
+                continue
+            uv = np.einsum("nk,nkc->nc", bary[sel], self.corner_uvs[tri[sel]])
+            lookup = uv * np.asarray(material.uv_scale, float) + np.asarray(material.uv_offset, float)
+            if covariance is None:
+                out[sel] = sample_texture(material.alpha_texture(), lookup)[:, 0]
+            else:
+                jac = self.texel_jacobians(m)[tri[sel]]
+                texel_cov = jac @ covariance[sel] @ jac.transpose(0, 2, 1)
+                out[sel] = footprint_average(material.premultiplied_mipmap(), lookup, texel_cov)[:, 3]
+        return out
+
+    def hit_alpha(self, tri, bary):
+        """(n,) float64 how much of a ray hitting faces tri at `bary` the surface stops, as a
+        renderer's alpha test does: 1 on opaque materials, 0 or 1 on MASK ones (alpha >=
+        alpha_cutoff, glTF's rule), the alpha itself on BLEND ones."""
+        alpha = self.coverage(tri, bary)
+        mode = np.array([m.alpha_mode if m.cut else "OPAQUE" for m in self.materials])[self.face_materials[tri]]
+        cutoff = np.array([m.alpha_cutoff for m in self.materials])[self.face_materials[tri]]
+        return np.where(mode == "MASK", (alpha >= cutoff).astype(np.float64), np.where(mode == "BLEND", alpha, 1.0))
 
     def texel_jacobians(self, m):
         """(F,2,2) d(texel) / d(local frame) of material m's texture on every face, cached."""

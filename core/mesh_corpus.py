@@ -3,8 +3,8 @@ checkerboards, one- and two-texel lines, lettering on a decal, UV seams and mirr
 materials on one mesh and hard-edged vertex colours. Tests and the bench both use them; every mesh
 is a core.mesh.Mesh with 8-bit sRGB textures, the same on every machine.
 
-Alpha-cut materials (leaves) are not here: core.mesh ignores a texture's alpha, in the reference
-rasteriser as in the converter (see docs/mesh-to-splats.md).
+The alpha-cut leaves are RGBA textures on crossed quads, alpha-masked (core.mesh.Material's MASK):
+leaf shapes with veins, cut out of a pale background that must not show.
 """
 
 import numpy as np
@@ -198,6 +198,67 @@ def vertex_coloured_sphere(segments: int = 48, rings: int = 24) -> Mesh:
     return Mesh(v, f, None, None, [Material(base_color=(1.0, 1.0, 1.0))], colours)
 
 
+LEAF = (52, 120, 38)
+VEIN = (170, 200, 90)
+LEAF_BACKGROUND = (235, 235, 225)  # the cut-out texels' colour: pale, so showing it is an error
+
+
+def leaf_texture(size: int = 512, leaves: int = 5, seed: int = 0) -> np.ndarray:
+    """RGBA uint8 (size, size, 4): `leaves` pointed leaves fanning out from a stem at the bottom
+    centre, each with a midrib and side veins (lighter, alpha 1), on a pale background of alpha 0."""
+    rng = np.random.default_rng(seed)
+    y, x = (np.mgrid[0:size, 0:size] + 0.5) / size
+    inside, vein = np.zeros((size, size), bool), np.zeros((size, size), bool)
+    shade = np.zeros((size, size))
+    angles = np.linspace(-0.9, 0.9, leaves) + rng.uniform(-0.1, 0.1, leaves)
+    for k, angle in enumerate(angles):
+        length = rng.uniform(0.55, 0.75)
+        base = np.array([0.5, 0.97]) + np.array([np.sin(angle), -np.cos(angle)]) * 0.08
+        along, across = np.array([np.sin(angle), -np.cos(angle)]), np.array([np.cos(angle), np.sin(angle)])
+        s = ((x - base[0]) * along[0] + (y - base[1]) * along[1]) / length  # 0 .. 1 base to tip
+        t = ((x - base[0]) * across[0] + (y - base[1]) * across[1]) / length
+        half = 0.22 * np.sin(np.pi * np.clip(s, 0, 1)) ** 0.8 * (1 - 0.3 * s)  # widest before the middle
+        leaf = (s > 0) & (s < 1) & (np.abs(t) < half)
+        midrib = np.abs(t) < 0.012 + 0.01 * (1 - s)
+        side = np.abs(((s - 1.4 * np.abs(t)) * 9) % 1 - 0.5) < 0.06  # veins slanting out to the tip
+        inside |= leaf
+        vein |= leaf & (midrib | (side & (np.abs(t) < 0.8 * half)))
+        shade = np.where(leaf, 0.85 + 0.3 * k / max(leaves - 1, 1) - 0.2 * np.abs(t) / np.maximum(half, 1e-9), shade)
+    stem = (np.abs(x - 0.5) < 0.012) & (y > 0.88)
+    inside |= stem
+    vein |= stem
+    rgb = np.clip(np.asarray(LEAF, float) * shade[..., None], 0, 255)
+    rgb = np.where(vein[..., None], np.asarray(VEIN, float), rgb)
+    rgb = np.where(inside[..., None], rgb, np.asarray(LEAF_BACKGROUND, float))
+    alpha = np.where(inside, 255, 0)
+    return np.concatenate([rgb, alpha[..., None]], axis=2).round().astype(np.uint8)
+
+
+def alpha_cut_leaves(cards: int = 3, n: int = 4, size: float = 1.0, texture_size: int = 512) -> Mesh:
+    """A small plant: `cards` upright square quads of 2 n^2 triangles crossed about their common
+    vertical axis (turned 180 / cards degrees apart), each with its own leaf_texture, alpha-masked
+    (MASK at 0.5): the rays between the leaves pass through to the cards behind."""
+    uv, quad = _grid(n, n)
+    vertices, faces, material = [], [], []
+    for k in range(cards):
+        angle = np.pi * k / cards
+        across = np.array([np.cos(angle), 0.0, -np.sin(angle)])
+        pts = size * ((uv[:, :1] - 0.5) * across + uv[:, 1:] * np.array([0.0, 1.0, 0.0]))
+        faces.append(quad + len(vertices) * len(uv))
+        vertices.append(pts)
+        material.append(np.full(len(quad), k))
+    materials = [
+        Material(texture=leaf_texture(texture_size, seed=k), alpha_mode="MASK", name=f"leaf {k}") for k in range(cards)
+    ]
+    return Mesh(
+        np.concatenate(vertices),
+        np.concatenate(faces),
+        np.tile(uv[quad], (cards, 1, 1)),
+        np.concatenate(material),
+        materials,
+    )
+
+
 def textured_corpus(small: bool = False) -> dict[str, Mesh]:
     """name -> Mesh: the textured meshes mesh-to-splats is measured on. `small` gives coarser
     meshes and textures of the same kinds, for tests."""
@@ -205,6 +266,7 @@ def textured_corpus(small: bool = False) -> dict[str, Mesh]:
         return {
             "striped cylinder": striped_cylinder(16, 8, texture=stripe_texture(256, 64, 16, 6)),
             "grid plane": grid_plane(8, texture=grid_texture(256, 4, 16, 1)),
+            "alpha-cut leaves": alpha_cut_leaves(3, 2, texture_size=128),
         }
     return {
         "striped cylinder": striped_cylinder(),
@@ -212,4 +274,5 @@ def textured_corpus(small: bool = False) -> dict[str, Mesh]:
         "grid plane": grid_plane(),
         "decal box": decal_box(),
         "vertex-coloured sphere": vertex_coloured_sphere(),
+        "alpha-cut leaves": alpha_cut_leaves(),
     }

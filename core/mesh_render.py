@@ -6,7 +6,9 @@ perspective-correct and faces crossing the near plane need no clipping). The z-b
 nearest hit per pixel, chunk by chunk of face rows, and the hit's surface colour is looked up once
 per pixel. Pixels weigh s x s samples each, and those around them, in scene-linear colour by Cycles'
 default pixel filter (a path tracer's pixel filter; a box filter on request). Faces are two-sided
-(an emission shader shows both sides).
+(an emission shader shows both sides). Alpha-cut materials (core.mesh.Material's alpha_mode) are
+seen through by depth peeling (rasterize_layers): where a hit is cut out, or part-covering, the same
+rasteriser runs again for the hits beyond it, and the layers are composited front to back.
 
 That NumPy path is the readable reference and the fallback. Where numba loads (core.jit), the same
 per-candidate arithmetic runs as compiled loops (core/mesh_render_kernels.py) over every core's
@@ -28,6 +30,7 @@ BACKENDS = ("auto", "compiled", "numpy")
 KERNELS = "core.mesh_render_kernels"  # the compiled module, loaded by core.jit
 THREADED_PIXELS = 1 << 16  # smaller images are drawn on the calling thread
 DEFAULT_PIXEL_FILTER, CYCLES_FILTER_WIDTH = "blackman-harris", 1.5  # Cycles' default pixel filter
+MAX_LAYERS = 8  # hits a ray passes through alpha cut-outs, at most: Cycles' default transparent bounces
 
 
 @dataclass
@@ -83,16 +86,25 @@ def render_mesh(
         cx=camera.cx * s + margin,
         cy=camera.cy * s + margin,
     )
-    face, bary, depth = rasterize(surface, cam, backend=backend)
+    layers = rasterize_layers(surface, cam, backend=backend)
+    face, _, depth = _first_stopping(layers)
     hit = face >= 0
     bg_linear = color.srgb_to_linear(np.asarray(background, np.float64).reshape(3))
-    linear = np.empty(face.shape + (3,))
-    linear[...] = bg_linear
-    linear[hit] = _shade_hits(surface, cam, face[hit], bary[hit], np.flatnonzero(hit.ravel()))
+    # Front to back through the layers (one for an opaque mesh): what each hit stops of what is
+    # left, then the background.
+    linear = np.zeros(face.shape + (3,))
+    left = np.ones(face.shape)
+    for layer_face, layer_bary, _, alpha in layers:
+        on = layer_face >= 0
+        stopped = left[on] * alpha[on]
+        shaded = _shade_hits(surface, cam, layer_face[on], layer_bary[on], np.flatnonzero(on.ravel()))
+        linear[on] += stopped[:, None] * shaded
+        left[on] -= stopped
+    linear += left[..., None] * bg_linear
     h, w = camera.height, camera.width
     filtered = lambda a: _filter_axis(_filter_axis(a, taps, s, h, 0), taps, s, w, 1)  # noqa: E731
     shown = to_display(filtered(linear)) if mix == "linear" else filtered(to_display(linear))
-    covered = filtered(hit.astype(np.float64))
+    covered = filtered(1.0 - left)
     mean_depth = np.where(covered > 0, filtered(np.where(hit, depth, 0.0)) / np.maximum(covered, 1e-300), 0.0)
     inside = slice(margin, margin + h * s), slice(margin, margin + w * s)
     return MeshRender(
@@ -169,18 +181,57 @@ def _rays(cam, px, py):
 
 
 def rasterize(surface, cam, backend="auto"):
-    """Nearest face per pixel: (face (H,W) int64, -1 where none; bary (H,W,3); depth (H,W)).
-    Of faces at the same depth, the lowest index wins.
+    """Nearest face per pixel that stops the ray: (face (H,W) int64, -1 where none; bary (H,W,3);
+    depth (H,W)). Of faces at the same depth, the lowest index wins. On alpha-cut materials
+    (core.mesh.Material.alpha_mode) a hit stops the ray where its Surface.hit_alpha is at least
+    1/2 (a MASK's alpha test; a BLEND's, as Cycles' Depth pass takes the first surface at least
+    half opaque); cut-out hits are seen through (rasterize_layers).
 
     backend: "auto" (or None: the compiled kernel where numba loads, else NumPy), "compiled"
     (an error if it cannot load) or "numpy". Both give the same buffers."""
+    return _first_stopping(rasterize_layers(surface, cam, backend))
+
+
+def rasterize_layers(surface, cam, backend="auto", max_layers=MAX_LAYERS):
+    """The hits along each pixel's ray, nearest first, as far as alpha-cut materials let it through:
+    a list of layers (face (H,W), bary (H,W,3), depth (H,W), alpha (H,W): Surface.hit_alpha, 0
+    where no hit), the first every pixel's nearest hit, each next one only where the rays so far
+    were not wholly stopped (depth peeling: the same rasteriser again, taking only hits beyond the
+    last layer's depth and face). An opaque mesh has one layer; at most `max_layers` (Cycles'
+    default transparent bounces), after which what is left sees the background."""
     backend = "auto" if backend is None else backend
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
     kernels = None if backend == "numpy" else jit.load(KERNELS, check=_check_kernels)
     if kernels is None and backend == "compiled":
         raise RuntimeError(f"compiled mesh rasteriser is not available: {jit.status(KERNELS)}")
-    return _rasterize(kernels, surface, cam)
+    n = cam.height * cam.width
+    zmin, fmin, left = np.full(n, -np.inf), np.full(n, -1, np.int64), np.ones(n)
+    layers = []
+    for _ in range(max_layers):
+        face, bary, depth = _rasterize(kernels, surface, cam, zmin, fmin)
+        hit = np.flatnonzero(face.ravel() >= 0)
+        alpha = np.zeros(n)
+        alpha[hit] = surface.hit_alpha(face.ravel()[hit], bary.reshape(-1, 3)[hit]) if surface.cut else 1.0
+        layers.append((face, bary, depth, alpha.reshape(face.shape)))
+        left[hit] *= 1.0 - alpha[hit]
+        through = hit[left[hit] > 0]  # rays a cut-out (or a translucent hit) lets on
+        if not len(through):
+            break
+        zmin[:] = np.inf  # every other pixel is done
+        zmin[through], fmin[through] = depth.ravel()[through], face.ravel()[through]
+    return layers
+
+
+def _first_stopping(layers):
+    """(face, bary, depth) of each pixel's first hit in `layers` with alpha >= 1/2."""
+    face, bary, depth, alpha = (np.array(a) for a in layers[0])
+    face[alpha < 0.5] = -1
+    for f, b, d, a in layers[1:]:
+        take = (face < 0) & (f >= 0) & (a >= 0.5)
+        face[take], bary[take], depth[take] = f[take], b[take], d[take]
+    depth[face < 0] = 0.0
+    return face, bary, depth
 
 
 def backend_status():
@@ -206,19 +257,25 @@ def _check_kernels(kernels):
         Camera.look_at((0.3, -0.4, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20, near=0.5),
         Camera.look_at_ortho((0.3, -0.4, 0.0), (0, 0, 3), ortho_scale=2.5, width=24, height=20),
     ):
-        got, want = _rasterize(kernels, surface, camera), _rasterize(None, surface, camera)
-        if not all(np.array_equal(g, w) for g, w in zip(got, want)):
-            raise RuntimeError("the compiled mesh rasteriser disagrees with the NumPy path on a test scene")
+        n = camera.width * camera.height
+        peel = np.where(np.arange(n) % 3 == 0, np.inf, -np.inf)
+        peel[1::3] = 3.0  # a bound inside the scene: only hits beyond depth 3
+        fmin = np.where(np.arange(n) % 2 == 0, 7, -1)
+        for bound in ((np.full(n, -np.inf), np.full(n, -1)), (peel, fmin)):
+            got, want = _rasterize(kernels, surface, camera, *bound), _rasterize(None, surface, camera, *bound)
+            if not all(np.array_equal(g, w) for g, w in zip(got, want)):
+                raise RuntimeError("the compiled mesh rasteriser disagrees with the NumPy path on a test scene")
 
 
-def _rasterize(kernels, surface, cam):
-    """rasterize() by the compiled kernels, or by NumPy when kernels is None."""
+def _rasterize(kernels, surface, cam, zmin, fmin):
+    """The nearest hits beyond (zmin, fmin) per flat pixel (rasterize_layers) by the compiled
+    kernels, or by NumPy when kernels is None."""
     h, w = cam.height, cam.width
     zbuf = np.full(h * w, np.inf)
     fbuf = np.full(h * w, -1, np.int64)
     bbuf = np.zeros((h * w, 3))
     v = cam.to_camera(surface.vertices)[surface.faces]  # (F,3,3) camera space
-    faces, x0, x1, y0, y1 = _screen_boxes(surface, cam, v)
+    faces, x0, x1, y0, y1 = _screen_boxes(surface, cam, v, _open_box(zmin.reshape(h, w)))
     a, b, c = _edge_functions(v[faces], cam)
     depths = np.ascontiguousarray(v[faces, :, 2])
     if kernels is not None:
@@ -226,18 +283,37 @@ def _rasterize(kernels, surface, cam):
         n = min(WORKERS, h) if h * w >= THREADED_PIXELS else 1
         map_threads(
             lambda first: kernels.rasterize_rows(
-                a, b, c, depths, faces, x0, x1, y0, y1, float(cam.near), float(cam.far), w, first, n, zbuf, fbuf, bbuf
+                a,
+                b,
+                c,
+                depths,
+                faces,
+                x0,
+                x1,
+                y0,
+                y1,
+                float(cam.near),
+                float(cam.far),
+                w,
+                first,
+                n,
+                zmin,
+                fmin,
+                zbuf,
+                fbuf,
+                bbuf,
             ),
             range(n),
         )
     else:
-        _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bbuf)
+        _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, (zmin, fmin), (zbuf, fbuf, bbuf))
     depth = np.where(np.isfinite(zbuf), zbuf, 0.0)
     return fbuf.reshape(h, w), bbuf.reshape(h, w, 3), depth.reshape(h, w)
 
 
-def _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bbuf):
-    """Draw the faces (edge functions, corner depths, boxes) into the flat buffers."""
+def _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, bound, buffers):
+    """Draw the faces (edge functions, corner depths, boxes) into the flat buffers (zbuf, fbuf,
+    bbuf), only hits beyond bound = (zmin, fmin)."""
     w = cam.width
     rows_face = np.repeat(np.arange(len(faces)), y1 - y0)
     rows_y = y0[rows_face] + ramp(y1 - y0)
@@ -253,7 +329,7 @@ def _rasterize_numpy(cam, a, b, c, depths, faces, x0, x1, y0, y1, zbuf, fbuf, bb
         px = np.repeat(starts[start:stop], rw) + ramp(rw)
         e = np.repeat(a[rf], rw, axis=0) * px[:, None]
         e += np.repeat(brackets[start:stop], rw, axis=0)
-        _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), zbuf, fbuf, bbuf)
+        _keep_nearest(cam, e, np.repeat(rf, rw), depths, faces, px + np.repeat(ry * w, rw), bound, buffers)
         start = stop
 
 
@@ -298,8 +374,17 @@ def _edge_functions(v, cam):
     return a, b, planes[..., 2] + a * (0.5 - cam.cx) + b * (0.5 - cam.cy)
 
 
-def _screen_boxes(surface, cam, v):
-    """Faces in view and their pixel bounding boxes [x0, x1) x [y0, y1), clipped to the image."""
+def _open_box(zmin):
+    """(x0, x1, y0, y1): the bounding box of the pixels a peeling pass still draws (zmin < inf)."""
+    rows, cols = np.flatnonzero((zmin < np.inf).any(axis=1)), np.flatnonzero((zmin < np.inf).any(axis=0))
+    if not len(rows):
+        return 0, 0, 0, 0
+    return cols[0], cols[-1] + 1, rows[0], rows[-1] + 1
+
+
+def _screen_boxes(surface, cam, v, window):
+    """Faces in view and their pixel bounding boxes [x0, x1) x [y0, y1), clipped to the image and
+    to window = (x0, x1, y0, y1)."""
     z = v[..., 2]
     ok = surface.valid & (z > cam.near).any(axis=1) & (z <= cam.far).any(axis=1)
     in_front = (z > cam.near).all(axis=1)
@@ -312,18 +397,20 @@ def _screen_boxes(surface, cam, v):
     lo = np.where(in_front[:, None], np.nan_to_num(xy.min(axis=1), nan=0.0), 0.0)
     hi = np.where(in_front[:, None], np.nan_to_num(xy.max(axis=1), nan=0.0), [cam.width, cam.height])
     # Pixel i is covered only if its centre i + 0.5 lies in [lo, hi].
-    x0 = np.clip(np.ceil(lo[:, 0] - 0.5), 0, cam.width).astype(np.int64)
-    x1 = np.clip(np.floor(hi[:, 0] - 0.5) + 1, 0, cam.width).astype(np.int64)
-    y0 = np.clip(np.ceil(lo[:, 1] - 0.5), 0, cam.height).astype(np.int64)
-    y1 = np.clip(np.floor(hi[:, 1] - 0.5) + 1, 0, cam.height).astype(np.int64)
+    wx0, wx1, wy0, wy1 = window
+    x0 = np.clip(np.ceil(lo[:, 0] - 0.5), wx0, wx1).astype(np.int64)
+    x1 = np.clip(np.floor(hi[:, 0] - 0.5) + 1, wx0, wx1).astype(np.int64)
+    y0 = np.clip(np.ceil(lo[:, 1] - 0.5), wy0, wy1).astype(np.int64)
+    y1 = np.clip(np.floor(hi[:, 1] - 0.5) + 1, wy0, wy1).astype(np.int64)
     ok &= (x1 > x0) & (y1 > y0)
     faces = np.flatnonzero(ok)
     return faces, x0[faces], x1[faces], y0[faces], y1[faces]
 
 
-def _keep_nearest(cam, e, local, depths, faces, pix, zbuf, fbuf, bbuf):
+def _keep_nearest(cam, e, local, depths, faces, pix, bound, buffers):
     """Of the candidates (edge functions e (M,3) of face faces[local] at pixel pix), keep each
-    pixel's nearest hit in the buffers (ties to the lower face index). The sums are written out
+    pixel's nearest hit beyond bound = (zmin, fmin) in buffers = (zbuf, fbuf, bbuf) (ties to the
+    lower face index). The sums are written out
     term by term, not left to sum or einsum (whose order of adding varies): the compiled kernel
     adds in this order too, so both give the same bits."""
     total = e[:, 0] + e[:, 1] + e[:, 2]
@@ -334,7 +421,10 @@ def _keep_nearest(cam, e, local, depths, faces, pix, zbuf, fbuf, bbuf):
     bary = e[inside] / total[inside, None]
     d = depths[local]
     z = bary[:, 0] * d[:, 0] + bary[:, 1] * d[:, 1] + bary[:, 2] * d[:, 2]
-    keep = np.flatnonzero((z > cam.near) & (z <= cam.far))
+    zbuf, fbuf, bbuf = buffers
+    zmin, fmin = bound[0][pix], bound[1][pix]
+    beyond = (z > zmin) | ((z == zmin) & (faces[local] > fmin))
+    keep = np.flatnonzero((z > cam.near) & (z <= cam.far) & beyond)
     # One sort by pixel, then the nearest (and of equals the lowest face) per run of a pixel: a
     # face has at most one candidate per pixel, so exactly one row per pixel is left.
     order = keep[np.argsort(pix[keep])]

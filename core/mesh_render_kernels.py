@@ -4,7 +4,8 @@ The same rules as the NumPy path in core/mesh_render.py, which stays the readabl
 the fallback, with the same float64 operations in the same order, so the buffers come out
 bit-identical: per face and pixel row, the row's span of candidate pixels (_row_spans), then per
 candidate the three edge functions a x + (b y + c), the inside test, the perspective-correct
-barycentrics and depth, the near/far test and the z-buffer (nearest, of equals the lowest face).
+barycentrics and depth, the near/far test, the peeling bound (hits beyond an earlier layer's) and
+the z-buffer (nearest, of equals the lowest face).
 What the loops buy besides speed: no candidate lists (the NumPy path holds up to a few million
 candidates and sorts them by pixel), so memory is the buffers. A call draws every `step`-th
 pixel row from `first_row`; core.mesh_render spreads the rows over the cores (the kernel
@@ -17,10 +18,13 @@ from .jit import njit
 
 
 @njit
-def rasterize_rows(a, b, c, depths, faces, x0, x1, y0, y1, near, far, width, first_row, step, zbuf, fbuf, bbuf):
+def rasterize_rows(
+    a, b, c, depths, faces, x0, x1, y0, y1, near, far, width, first_row, step, zmin, fmin, zbuf, fbuf, bbuf
+):
     """Draw faces[i] (edge functions a, b, c (F,3), corner camera depths (F,3), pixel boxes
     [x0, x1) x [y0, y1)) on the pixel rows y = first_row (mod step) of the flat buffers zbuf, fbuf,
-    bbuf (width pixels a row)."""
+    bbuf (width pixels a row), only hits beyond (zmin, fmin) per pixel: deeper, or as deep and of
+    a higher face index (depth peeling; -inf everywhere for the nearest, +inf to skip a pixel)."""
     for i in range(len(faces)):
         face = faces[i]
         d0, d1, d2 = depths[i, 0], depths[i, 1], depths[i, 2]
@@ -47,6 +51,8 @@ def rasterize_rows(a, b, c, depths, faces, x0, x1, y0, y1, near, far, width, fir
                 if not (z > near and z <= far):
                     continue
                 p = row + x
+                if z < zmin[p] or (z == zmin[p] and face <= fmin[p]):
+                    continue
                 if z < zbuf[p] or (z == zbuf[p] and face < fbuf[p]):
                     zbuf[p] = z
                     fbuf[p] = face

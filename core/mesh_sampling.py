@@ -10,7 +10,8 @@ pieces (measured in the face's own metric, so slivers are cut across and stay co
 Shape: a disc of standard deviation `overlap / sqrt(density)` in the face plane and `thickness`
 times that along the normal, narrowed across nearby outline edges (boundaries, creases) so it
 does not reach into the air past them. Colour: the surface colour at the point, as display sRGB
-SH; degree 2 for view-dependent (rim) materials, else degree 0.
+SH; degree 2 for view-dependent (rim) materials, else degree 0. Alpha-cut materials: splats on a
+MASK material's cut-outs are left out, a BLEND material's alpha scales their opacity (_alpha_cut).
 """
 
 from dataclasses import dataclass
@@ -37,6 +38,7 @@ OPAQUE = 0.99  # the opacity of splats on open surfaces and walls hiding another
 SOLID_OPACITY = 0.75  # ... and on solid parts, whose outlines it thins (see the design notes)
 SEE_THROUGH = 0.5  # a wall's far side differing by more than this (display) keeps OPAQUE: a solid
 # layer lets a few per cent through, 36 dB's RMS error at this contrast
+MIN_COVERAGE = 1 / 255  # a BLEND material's splat with less alpha than this over its footprint is left out
 BUILD_CHUNK = 1 << 16  # splats built per task, on every core
 BISECT_CHUNK = 1 << 14  # points placed per task, on every core
 
@@ -124,7 +126,11 @@ def unplaced_splats(
 
     # Chunks on every core (NumPy releases the GIL): the hand's 636k splats build in half the time.
     rows = [slice(a, a + BUILD_CHUNK) for a in range(0, max(len(tri), 1), BUILD_CHUNK)]
-    cloud = SplatCloud.concatenate(map_threads(part, rows))
+    built = map_threads(part, rows)
+    cloud = SplatCloud.concatenate([c for c, _ in built])
+    keep = np.concatenate([k for _, k in built])
+    if not keep.all():  # splats on alpha cut-outs were left out (_alpha_cut)
+        points, tri = points[keep], tri[keep]
     return Unplaced(cloud, points, surface.normal[tri], tri)
 
 
@@ -284,13 +290,17 @@ def _bisect(tri, n, corners, gram):
 
 
 def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, opacity, thickness, texture_aware=True):
-    """Flat discs at the sample points `positions` (no shift): in-plane sigma overlap/sqrt(density),
-    normal axis thin, narrowed across outline edges and the surface's colour edges; `edges` the
-    faces' _edge_normals. Colours: the surface colour averaged over each disc's own Gaussian."""
+    """(cloud, kept (n,) bool): flat discs at the sample points `positions` (no shift) but those
+    on alpha cut-outs (_alpha_cut): in-plane sigma overlap/sqrt(density), normal axis thin, narrowed
+    across outline edges and the surface's colour edges; `edges` the faces' _edge_normals.
+    Colours: the surface colour averaged over each disc's own Gaussian."""
     n = len(tri)
     sigma = overlap / np.sqrt(density)
     rotations, in_plane, covariance = _outline_frames(surface, tri, bary, sigma, rotations, edges, texture_aware)
     scales = np.column_stack([in_plane, thickness * sigma])
+    keep = None
+    if surface.cut:
+        keep, opacity = _alpha_cut(surface, tri, bary, covariance / (2 * overlap) ** 2, opacity)
     if texture_aware:
         # The Gaussian shrunk to half the splats' spacing (sigma / overlap): the render blurs the
         # colours by the splats' Gaussians again, and a round splat then gets the colour a square
@@ -305,7 +315,7 @@ def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, op
         sh = shmod.rgb_to_dc(to_display(linear))[:, None, :]
     with np.errstate(divide="ignore"):
         log_scales = np.log(scales)
-    return SplatCloud(
+    cloud = SplatCloud(
         positions,
         rotations,
         log_scales,
@@ -317,6 +327,23 @@ def _cloud(surface, tri, bary, positions, density, rotations, edges, overlap, op
             "normal_offset": np.zeros(n, np.float32),
         },
     )
+    return (cloud, np.ones(n, bool)) if keep is None else (cloud[keep], keep)
+
+
+def _alpha_cut(surface, tri, bary, footprint, opacity):
+    """(keep (n,) bool, opacity (n,)) for splats on alpha-cut materials (core.mesh.Material.cut):
+    a MASK material's splat stays where the alpha averaged over its colour `footprint` (n,2,2,
+    local frame) reaches the cutoff and its centre is not cut out (the reference shows nothing
+    there); a BLEND material's carries that average as a factor on its opacity."""
+    coverage = surface.coverage(tri, bary, footprint)
+    materials = surface.face_materials[tri]
+    mode = np.array([m.alpha_mode if m.cut else "OPAQUE" for m in surface.materials])[materials]
+    cutoff = np.array([m.alpha_cutoff for m in surface.materials])[materials]
+    centre = surface.hit_alpha(tri, bary)
+    masked = mode == "MASK"
+    keep = np.where(masked, (coverage >= cutoff) & (centre > 0), coverage > MIN_COVERAGE)
+    opacity = np.where(mode == "BLEND", opacity * np.clip(coverage, 0.0, 1.0), opacity)
+    return keep, opacity
 
 
 def _outline_frames(surface, tri, bary, sigma, rotations, edges, texture_aware=True):

@@ -4,10 +4,10 @@
   averaged over that Gaussian mapped into texels (an elliptical footprint: `footprint_average`),
   not the texel under its centre nor a square mip level.
 - Texture edges: where the surface colour changes hard (a stripe's edge, a one-texel line, a
-  glyph, a material or vertex-colour boundary), a splat reaching across the edge would smear it
-  over its own width. `texture_edges` gives each splat its distance to the nearest such edge and
-  the edge's normal in its face's frame, so sampling can narrow it across the edge (long along
-  it, thin across: core/mesh_sampling.py).
+  glyph, a material or vertex-colour boundary) or an alpha-cut surface ends, a splat reaching
+  across the edge would smear it over its own width. `texture_edges` gives each splat its
+  distance to the nearest such edge and the edge's normal in its face's frame, so sampling can
+  narrow it across the edge (long along it, thin across: core/mesh_sampling.py).
 
 Frames: a face's "local" frame is core/mesh_sampling.py's (first edge t1, normal x t1), in world
 units; texel coordinates are (u w, (1 - v) h) of a material's texture, rows down, as
@@ -112,8 +112,10 @@ class EdgeField:
     ny; texel space, not normalised: the signed steps around it). Computed once per texture
     (core.mesh.Material.edge_field); `any` is False for a texture without hard steps."""
 
-    def __init__(self, linear_texture: np.ndarray):
+    def __init__(self, linear_texture: np.ndarray, alpha: np.ndarray | None = None):
         display = to_display(linear_texture.astype(np.float64))
+        if alpha is not None:  # an alpha-cut texture (H,W,1): where the surface ends is an edge too
+            display = np.concatenate([display, alpha.astype(np.float64)], axis=2)
         # the steps between columns j and j + 1, and rows i and i + 1, the last and first included
         step_x = _hard_steps(np.abs(np.roll(display, -1, axis=1) - display).max(axis=2), 1)
         step_y = _hard_steps(np.abs(np.roll(display, -1, axis=0) - display).max(axis=2), 0)
@@ -200,8 +202,9 @@ def texture_edges(
     surface, tri: np.ndarray, bary: np.ndarray, sigma: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(distance (n,), across (n,2)): each point's distance (world units) to the nearest texture
-    edge of its material, and that edge's unit normal in the face's local frame; inf and 0 where
-    its material has no texture (or no edges).
+    edge of its material (a colour step, or where an alpha-cut material's alpha steps), and that
+    edge's unit normal in the face's local frame; inf and 0 where its material has no texture (or
+    no edges).
 
     With `sigma` (n,), a splat's standard deviation (world), only steps at that scale count: the
     texture blurred to sigma / 2 and read sigma either side of the edge must differ by more than
@@ -241,14 +244,19 @@ def texture_edges(
 def _is_step(material, uv, offset, normal, reach):
     """(n,) bool: whether the texture, blurred to `reach` / 2 texels, differs by more than
     STEP_CONTRAST (display) `reach` texels either side of the edge at `offset` texels from uv
-    across `normal`."""
+    across `normal`, or its alpha does on an alpha-cut material (an alpha edge: the surface ends)."""
     levels = material.mipmap()
     h, w = levels[0].shape[:2]
     edge = uv + offset * np.array([1.0 / w, -1.0 / h])
     way = normal * reach[:, None] * np.array([1.0 / w, -1.0 / h])
     level = np.log2(np.maximum(reach, 1.0))
     near, far = (to_display(sample_mipmap(levels, edge + sign * way, level)) for sign in (-1.0, 1.0))
-    return np.abs(near - far).max(axis=1) > STEP_CONTRAST
+    step = np.abs(near - far).max(axis=1) > STEP_CONTRAST
+    if material.cut:
+        alpha = material.premultiplied_mipmap()
+        near, far = (sample_mipmap(alpha, edge + sign * way, level)[:, 3] for sign in (-1.0, 1.0))
+        step |= np.abs(near - far) > STEP_CONTRAST
+    return step
 
 
 def face_detail(surface) -> np.ndarray:

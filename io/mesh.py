@@ -4,7 +4,9 @@
 `v x y z r g b` vertex colours, `usemtl`/`mtllib` and line continuations are understood. Colour
 spaces follow Blender's OBJ importer: `Kd` is scene-linear, vertex colours are sRGB-encoded (and
 converted to linear here), `map_Kd` images are sRGB-encoded 8/16-bit images read with Pillow; its
-`-o` and `-s` options offset and scale the UVs. A texture replaces `Kd`, as in Blender.
+`-o` and `-s` options offset and scale the UVs. A texture replaces `Kd`, as in Blender. A `map_d`
+image (its alpha channel, else its grey level) cuts the surface as an alpha mask (core.mesh.Material
+alpha_mode "MASK", cutoff 0.5), as Blender's importer links it to the Alpha.
 
 Malformed lines raise SplatFileError naming the file and line. A missing MTL file or texture
 image is reported with a warning and the material falls back to its `Kd` (or the default grey).
@@ -195,12 +197,12 @@ def _index(text, count, what):
 
 
 def read_mtl(path, root=None, allow_outside=False):
-    """Materials of an MTL file: name -> Material with Kd (scene-linear), map_Kd image and the PBR
-    extension's Pr (roughness) and Pm (metallic), clamped to [0, 1]. Textures
+    """Materials of an MTL file: name -> Material with Kd (scene-linear), map_Kd image, map_d mask
+    (_with_mask) and the PBR extension's Pr (roughness) and Pm (metallic), clamped to [0, 1]. Textures
     are read only from the folder `root` (default: the MTL's own) and below, unless allow_outside."""
     path = Path(path)
     root = path.parent if root is None else Path(root)
-    materials, current = {}, None
+    materials, current, masks = {}, None, {}
     for number, line in enumerate(read_text(path).splitlines(), 1):
         parts = line.split("#", 1)[0].split()
         if not parts:
@@ -217,15 +219,51 @@ def read_mtl(path, root=None, allow_outside=False):
                 current.base_color = tuple(values + [values[-1]] * (3 - len(values)))
             elif key == "map_kd":
                 _texture(current, parts[1:], path, root, allow_outside)
+            elif key == "map_d":
+                image_path, _ = _map(current, parts[1:], path, root, allow_outside)
+                if image_path is not None:
+                    masks[current.name] = load_image(image_path, alpha=True)
             elif key in ("pr", "pm"):  # PBR extension: roughness, metallic (as Blender's importer maps them)
                 value = min(max(_finite(parts[1:2])[0], 0.0), 1.0)
                 setattr(current, "roughness" if key == "pr" else "metallic", value)
         except (ValueError, IndexError) as exc:
             raise SplatFileError(path, f"line {number}: {exc}: '{line.strip()[:80]}'") from None
+    for name, alpha in masks.items():  # after the file: map_d may come before map_Kd
+        _with_mask(materials[name], alpha)
     return materials
 
 
+def _with_mask(material, alpha):
+    """Give `material` the alpha (H,W) of a map_d image as its texture's alpha channel, alpha_mode
+    MASK: beside its map_Kd texture (the mask resampled to its size, nearest texel), or beside its
+    Kd colour as a linear texture of the mask's size."""
+    a = alpha.astype(np.float32) / np.float32(np.iinfo(alpha.dtype).max)
+    if material.texture is None:
+        rgb = np.broadcast_to(np.asarray(material.base_color[:3], np.float32), a.shape + (3,))
+        material.texture_srgb = False
+    else:
+        rgb = material.texture
+        rgb = rgb.astype(np.float32) / np.float32(np.iinfo(rgb.dtype).max)
+        h, w = rgb.shape[:2]
+        rows = (np.arange(h) + 0.5) * a.shape[0] // h
+        cols = (np.arange(w) + 0.5) * a.shape[1] // w
+        a = a[rows.astype(np.int64)][:, cols.astype(np.int64)]
+    material.texture = np.concatenate([rgb, a[:, :, None]], axis=2)
+    material.alpha_mode = "MASK"
+
+
 def _texture(material, args, mtl_path, root, allow_outside=False):
+    image_path, options = _map(material, args, mtl_path, root, allow_outside)
+    if image_path is None:
+        return
+    material.texture = load_image(image_path)
+    material.texture_srgb = True
+    material.uv_offset = _pair(options.get("-o"), 0.0)
+    material.uv_scale = _pair(options.get("-s"), 1.0)
+
+
+def _map(material, args, mtl_path, root, allow_outside=False):
+    """(image path or None, {option: values}) of a map_* statement's arguments."""
     options, i = {}, 0
     while i < len(args) and args[i].lower() in _MAP_OPTIONS:
         name, most = args[i].lower(), _MAP_OPTIONS[args[i].lower()]
@@ -237,14 +275,8 @@ def _texture(material, args, mtl_path, root, allow_outside=False):
             i += 1
         options[name] = values
     if i >= len(args):
-        raise ValueError("map_Kd without a file name")
-    image_path = _find_image(mtl_path, material, " ".join(args[i:]), root, allow_outside)
-    if image_path is None:
-        return
-    material.texture = load_image(image_path)
-    material.texture_srgb = True
-    material.uv_offset = _pair(options.get("-o"), 0.0)
-    material.uv_scale = _pair(options.get("-s"), 1.0)
+        raise ValueError("map statement without a file name")
+    return _find_image(mtl_path, material, " ".join(args[i:]), root, allow_outside), options
 
 
 def _pair(values, default):
@@ -252,8 +284,9 @@ def _pair(values, default):
     return tuple(values + [default] * (2 - len(values)))
 
 
-def load_image(path):
-    """An image file as a uint8/uint16 array (H,W,3), row 0 at the top. An image of more than
+def load_image(path, alpha=False):
+    """An image file as a uint8/uint16 array (H,W,3), row 0 at the top; with `alpha`, its alpha
+    channel (H,W) uint8, or its grey level where it has none (a mask image). An image of more than
     policy.MAX_IMAGE_PIXELS is refused from its header, before any pixel is decoded."""
     from PIL import Image
 
@@ -269,6 +302,9 @@ def load_image(path):
                     f"image of {width} x {height} pixels, more than the "
                     f"{MAX_IMAGE_PIXELS} ({_side(MAX_IMAGE_PIXELS)}) textures may have",
                 )
+            if alpha:
+                transparent = "A" in img.getbands() or "transparency" in img.info
+                return np.asarray(img.convert("RGBA").getchannel("A") if transparent else img.convert("L"))
             if img.mode in ("I;16", "I;16B", "I;16L", "I"):
                 a = np.asarray(img, dtype=np.uint32)
                 return np.repeat(np.clip(a, 0, 65535).astype(np.uint16)[:, :, None], 3, axis=2)

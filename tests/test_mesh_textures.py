@@ -181,3 +181,46 @@ def test_stripes_on_a_cylinder_hold_at_every_distance_better_than_before():
     assert min(new.values()) > min(old.values()) + 0.3
     assert new[3.0] > old[3.0] + 3.0
     assert all(new[d] > old[d] - 0.5 for d in new)
+
+
+def alpha_ignored(mesh):
+    """The mesh with every material's alpha ignored (OPAQUE): what the converter made before."""
+    materials = [Material(texture=m.texture, name=m.name) for m in mesh.materials]
+    return Mesh(mesh.vertices, mesh.faces, mesh.corner_uvs, mesh.face_materials, materials)
+
+
+def bilinear_alpha(material, uv):
+    """A material's texture alpha (uint8 RGBA) read bilinearly at texel centres, repeating, float64."""
+    alpha = material.texture[..., 3].astype(np.float64) / 255
+    h, w = alpha.shape
+    x, y = uv[:, 0] * w - 0.5, (1 - uv[:, 1]) * h - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    a = lambda r, c: alpha[r % h, c % w]  # noqa: E731
+    return (1 - fy) * ((1 - fx) * a(y0, x0) + fx * a(y0, x0 + 1)) + fy * (
+        (1 - fx) * a(y0 + 1, x0) + fx * a(y0 + 1, x0 + 1)
+    )
+
+
+def test_alpha_cut_leaves_convert_to_the_leaves_alone():
+    """Crossed quads of alpha-masked leaf textures, against the same conversion with alpha ignored
+    (whole cards, their pale background shown). Measured at 96 px (0.5x / 1x / 3x): 20.7 / 26.6 /
+    37.8 dB against 3.4 / 7.8 / 18.5."""
+    mesh = mesh_corpus.textured_corpus(small=True)["alpha-cut leaves"]
+    cams = held_out(mesh, 96)
+    cloud = mesh_to_splats(mesh.vertices, mesh.faces, **mesh.appearance(), view_size=96)
+    new = held_out_psnr(mesh, cloud, cams)
+    ignored = alpha_ignored(mesh)
+    old = held_out_psnr(
+        mesh, mesh_to_splats(ignored.vertices, ignored.faces, **ignored.appearance(), view_size=96), cams
+    )
+    print("alpha-cut leaves", new, "alpha ignored", old)
+    assert all(new[d] > old[d] + 15.0 for d in new)
+    assert min(new.values()) > 19.0
+    # No splat's centre on a cut-out: the alpha there, read as the reference reads it, passes the cutoff.
+    tri = cloud.extras["source_triangle"].astype(np.int64)
+    uv = np.einsum("nk,nkc->nc", cloud.extras["barycentric"].astype(np.float64), mesh.corner_uvs[tri])
+    material = mesh.face_materials[tri]
+    alpha = np.concatenate([bilinear_alpha(mesh.materials[m], uv[material == m]) for m in range(3)])
+    assert len(alpha) == len(cloud) > 300
+    assert alpha.min() >= 0.5 - 1e-5  # float32 barycentrics

@@ -109,7 +109,9 @@ def _colour_appearance(mat, warn):
     if node is None:
         return Appearance(Material(base_color=base, name=mat.name))
     if node.bl_idname == "ShaderNodeTexImage":
-        return _texture_appearance(mat, node, base, warn)
+        appearance = _texture_appearance(mat, node, base, warn)
+        appearance.material.alpha_mode, appearance.material.alpha_cutoff = alpha_mode(mat, socket.node, node)
+        return appearance
     if node.bl_idname == "ShaderNodeVertexColor":
         return Appearance(Material(base_color=(1.0, 1.0, 1.0), name=mat.name), color_attribute=node.layer_name)
     if node.bl_idname == "ShaderNodeAttribute" and node.attribute_type == "GEOMETRY":
@@ -132,6 +134,56 @@ def _texture_appearance(mat, node, base, warn):
         Material(base_color=base, texture=pixels, texture_srgb=srgb, name=mat.name),
         uv_map=_texture_uv_map(mat, node, warn),
     )
+
+
+def alpha_mode(mat, shader, image_node):
+    """(alpha_mode, alpha_cutoff) of core.mesh.Material for a shader whose colour is `image_node`'s:
+    "MASK" where its Alpha input takes the image's Alpha through an alpha clip (as Blender's glTF
+    importer builds one and its exporter reads them: Round, 1 - (alpha < c), 1 - (c > alpha),
+    alpha > c, c < alpha), or directly on a material whose blend_method (Blender before 4.2's EEVEE)
+    is CLIP; "BLEND" where it takes the Alpha directly (Cycles mixes the surface with transparency);
+    else "OPAQUE"."""
+    socket = shader.inputs.get("Alpha")
+    if socket is None or not socket.is_linked:
+        return "OPAQUE", 0.5
+    node, output = socket.links[0].from_node, socket.links[0].from_socket
+    if node == image_node:
+        if output.name != "Alpha":
+            return "OPAQUE", 0.5
+        if getattr(mat, "blend_method", "") == "CLIP":
+            return "MASK", float(mat.alpha_threshold)
+        return "BLEND", 0.5
+    cutoff = _alpha_clip(node, image_node)
+    return ("MASK", cutoff) if cutoff is not None else ("OPAQUE", 0.5)
+
+
+def _alpha_clip(node, image_node):
+    """The cutoff of an alpha clip built of Math nodes from `image_node`'s Alpha, or None."""
+    if node.bl_idname != "ShaderNodeMath":
+        return None
+    a, b = node.inputs[0], node.inputs[1]
+
+    def is_alpha(socket):
+        return (
+            socket.is_linked and socket.links[0].from_node == image_node and socket.links[0].from_socket.name == "Alpha"
+        )
+
+    if node.operation == "ROUND" and is_alpha(a):
+        return 0.5
+    if node.operation == "SUBTRACT" and not a.is_linked and a.default_value == 1.0 and b.is_linked:
+        inner = b.links[0].from_node
+        if inner.bl_idname == "ShaderNodeMath":
+            x, y = inner.inputs[0], inner.inputs[1]
+            if inner.operation == "LESS_THAN" and is_alpha(x) and not y.is_linked:
+                return float(y.default_value)  # 1 - (alpha < c): alpha >= c
+            if inner.operation == "GREATER_THAN" and is_alpha(y) and not x.is_linked:
+                return float(x.default_value)  # 1 - (c > alpha)
+        return None
+    if node.operation == "GREATER_THAN" and is_alpha(a) and not b.is_linked:
+        return float(b.default_value)  # alpha > c
+    if node.operation == "LESS_THAN" and is_alpha(b) and not a.is_linked:
+        return float(a.default_value)  # c < alpha
+    return None
 
 
 def _texture_uv_map(mat, node, warn):
