@@ -225,6 +225,8 @@ def rasterize_layers(surface, cam, backend="auto", max_layers=MAX_LAYERS):
 
 def _first_stopping(layers):
     """(face, bary, depth) of each pixel's first hit in `layers` with alpha >= 1/2."""
+    if len(layers) == 1 and not (layers[0][3][layers[0][0] >= 0] < 0.5).any():
+        return layers[0][:3]  # an opaque mesh: its one layer as it is
     face, bary, depth, alpha = (np.array(a) for a in layers[0])
     face[alpha < 0.5] = -1
     for f, b, d, a in layers[1:]:
