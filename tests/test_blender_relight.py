@@ -135,6 +135,7 @@ def test_relit_passes_in_the_exr_are_the_shaded_splats_blended(blender):
     arrays = blender.npz("passes_inputs")
     cloud, lit = engine_cloud(arrays), arrays["lit"].astype(bool)
     assert lit.sum() == 3000  # the ball only: the plain cloud is not relit, the bare one has no material
+    assert len(res["warnings"]) == 1 and res["warnings"][0].startswith("Bare: Relight is on but")
     lights, world = core_lights(res)
     cam = camera(res["camera"], arrays["origin"])
     visible = {i: visibility(cloud, light)[lit] for i, light in enumerate(lights) if light.cast_shadow}

@@ -19,7 +19,6 @@ from .lights import is_relit
 from .scene import scene_splats, surface_triangles
 
 LIT = "splatwright_lit"  # extra: 1 where the splat is shaded with the scene's lights, else 0
-_warned = set()  # objects already warned about (Relight on, no material): once a session
 
 
 class RelightWarning(UserWarning):
@@ -47,15 +46,13 @@ def scene_cloud(depsgraph, origin):
 def _marked(obj, cloud):
     """`cloud` of object `obj` with its material (a placeholder where it is not relit) and LIT."""
     relit = is_relit(obj)
-    if relit and not material.has_material(cloud):
-        if obj.name not in _warned:
-            _warned.add(obj.name)
-            warnings.warn(
-                f"{obj.name}: Relight is on but its splats carry no material (albedo and normals): rendered "
-                "unlit; convert the mesh with Material for Relighting, or estimate normals",
-                RelightWarning,
-                stacklevel=2,
-            )
+    if relit and not material.has_material(cloud):  # once per render: objects are read once
+        warnings.warn(
+            f"{obj.name}: Relight is on but its splats carry no material (albedo and normals): rendered "
+            "unlit; convert the mesh with Material for Relighting, or estimate normals",
+            RelightWarning,
+            stacklevel=2,
+        )
         relit = False
     n = len(cloud)
     if relit:

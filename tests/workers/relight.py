@@ -204,7 +204,11 @@ class Worker(BlenderWorker):
         origin = np.array(scene.camera.matrix_world.translation)
         relit = self.module("splat_addon.render.relit")
         lights = self.module("splat_addon.render.lights")
-        cloud, lit = relit.scene_cloud(depsgraph, origin)
+        import warnings
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cloud, lit = relit.scene_cloud(depsgraph, origin)
         extras = {f"extra_{k}": v for k, v in cloud.extras.items()}
         self.save(
             name,
@@ -222,7 +226,12 @@ class Worker(BlenderWorker):
             if inst.object.type == "LIGHT":
                 fields = lights.light_fields(inst.object.data, np.array(inst.matrix_world), origin)
                 light_fields.append({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in fields.items()})
-        return {"lights": light_fields, "world": list(lights.world_color(scene)), "origin": origin.tolist()}
+        return {
+            "lights": light_fields,
+            "world": list(lights.world_color(scene)),
+            "origin": origin.tolist(),
+            "warnings": [str(w.message) for w in caught],
+        }
 
     def write(self, name):
         scene = self.bpy.context.scene
