@@ -160,6 +160,12 @@ def test_relit_passes_in_the_exr_are_the_shaded_splats_blended(blender):
     want = reference_render(cloud.replace(sh=sh), cam, background=linear_to_srgb(np.array(res["world"])))["color"]
     combined = linear_to_srgb(np.clip(channels(got, "Combined", "RGB"), 0, None))
     assert np.abs(combined - want).max() <= 1.5 / 255
+    # the Splats pass over the world colour is Combined (no meshes: the background taken out of it)
+    splats = channels(got, "Splats", "RGBA")
+    alpha = splats[..., 3:]
+    straight = np.where(alpha > 0, splats[..., :3] / np.maximum(alpha, 1e-30), 0.0)
+    over = linear_to_srgb(straight) * alpha + (1 - alpha) * linear_to_srgb(np.array(res["world"]))
+    assert np.abs(over - combined).max() <= 1.5 / 255
 
 
 def floor_samples(cam, origin, size=4.0, step=0.01):

@@ -71,7 +71,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             image, lit_passes = self._image(cloud, cam, background, layer), {}
         else:
             image, lit_passes = self._lit_image(depsgraph, cloud, lit, cam, background, layer, origin, want_passes)
-        passes = {**splat_passes(image, layer, meshes), **lit_passes} if want_passes else {}
+        passes = {**splat_passes(image, layer, meshes, background), **lit_passes} if want_passes else {}
         world = None if meshes is None else meshes.world()
         if world is not None:  # the world rendered apart: behind everything, per pixel
             image.color += (1.0 - image.alpha)[..., None] * world
@@ -194,15 +194,18 @@ def composite_depth(image, layer):
     return np.where(splat_alpha(image, layer) > 0, np.minimum(image.depth, surface), surface)
 
 
-def splat_passes(image, layer, meshes):
+def splat_passes(image, layer, meshes, background=None):
     """The Splats pass (what the splats add to the picture, scene-linear, premultiplied, with their
     coverage in front of the meshes as alpha) and the Meshes pass (the mesh layer as its engine
     rendered it). In display sRGB, Splats over Meshes is Combined: the colour everywhere, the alpha
-    where the meshes are opaque or absent."""
+    where the meshes are opaque or absent. Without a layer, the `background` colour the image was
+    rendered over (display sRGB) is taken out again."""
     color, alpha = image.color, splat_alpha(image, layer)
     if layer is not None:
         color = color - image.layer_transmittance[..., None] * layer.color
         alpha = 1.0 - image.layer_transmittance
+    elif background is not None:
+        color = color - (1.0 - image.alpha)[..., None] * np.asarray(background, np.float32)
     passes = {"Splats": to_scene_linear(np.maximum(color, 0.0), np.clip(alpha, 0.0, 1.0))}
     if meshes is not None:
         passes["Meshes"] = meshes.picture()
