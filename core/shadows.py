@@ -1,0 +1,315 @@
+"""Per-splat light visibility from shadow maps: how much of each light reaches each splat.
+
+A shadow map is what the light sees: core.render of the cloud from the light's position (its depth,
+the alpha-weighted expected camera z, and its alpha, the coverage), with the depth of occluding
+meshes (core.mesh_render.rasterize) folded in. The views per light kind:
+- spot: one perspective camera covering its cone (a cube, as for a point light, past 120 degrees);
+- sun: one orthographic camera along its direction covering the splats' and meshes' bounds;
+- point: a cube of six 90-degree perspective faces in world axes; each splat is tested on the face
+  its direction from the light falls in, and a face is rendered only with the splats near it (and
+  not at all when none are);
+- area: the cube from the light's centre, in the light's own axes, without the face behind the
+  light (nothing there is lit).
+
+A splat is tested at its centre: covered by the map's texel where the map is nearer the light than
+the splat by more than a bias, partly (by the texel's alpha) where the covering splats are faint.
+The bias grows with the splat's own extent along the light ray (its standard deviation there: a
+splat's neighbours on the same surface overlap its centre's texel, nearer the light by up to about
+that much) and with the depth a map texel spans on a surface tilted to the light.
+
+Soft shadows are percentage-closer filtered, PCSS-like: a blocker search (the mean depth of what
+covers the taps of a disc around the splat's texel) sizes the penumbra by similar triangles,
+light size x (receiver - blocker) / blocker, and the covered fraction of a disc of taps of that size
+is the shadow. The disc has the light's radius for point and spot lights, the angle's tangent for
+the sun, and the radius of a disc of the same area for area lights.
+"""
+
+import math
+from dataclasses import dataclass
+from typing import Annotated
+
+import numpy as np
+
+from . import material
+from .arrays import Floats
+from .camera import Camera, look_at_matrix
+from .mesh_render import rasterize
+from .render import render
+from .splats import SplatCloud
+
+TAPS = 24  # filter taps per splat (a golden-angle spiral over a disc), also the blocker search's
+MAX_SEARCH_TEXELS = 24.0  # the blocker search's radius is capped there
+SIGMA_BIAS = 2.5  # standard deviations of a splat along the light ray that count as its own surface
+TEXEL_BIAS = 2.5  # texels of depth slope that count as its own surface
+MAX_SLOPE = 20.0  # tan of the tilt beyond which the slope bias stops growing
+SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
+SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
+
+
+@dataclass
+class ShadowView:
+    """One camera of a light's shadow map: depth (H,W) float32 camera z of what the light sees
+    (inf where nothing), alpha (H,W) float32 its coverage (meshes count as 1)."""
+
+    camera: Camera
+    depth: Annotated[np.ndarray, "(H, W)"]
+    alpha: Annotated[np.ndarray, "(H, W)"]
+
+
+def visibility(
+    cloud: SplatCloud,
+    light,
+    *,
+    occluders=None,
+    resolution: int = 512,
+    taps: int = TAPS,
+    sigma_bias: float = SIGMA_BIAS,
+    texel_bias: float = TEXEL_BIAS,
+    soft: bool = True,
+    threads: int | None = None,
+) -> Annotated[Floats, "(N,)"]:
+    """(N,) float32 in [0, 1]: the fraction of `light` reaching each splat's centre (1 lit, 0 in
+    shadow), from shadow maps of `resolution` texels a side (per cube face for point and area
+    lights) of the cloud and of `occluders` (core.mesh.Surface meshes, or None).
+
+    taps: filter taps per splat; soft=False tests the centre texel only (hard shadows, no search).
+    sigma_bias, texel_bias: the self-shadow bias in the splat's standard deviations along the light
+    ray and in texels of depth slope. A light with cast_shadow False gives all ones."""
+    n = len(cloud)
+    out = np.ones(n, np.float32)
+    if n == 0 or not getattr(light, "cast_shadow", True):
+        return out
+    views = shadow_views(cloud, light, occluders=occluders, resolution=resolution, threads=threads)
+    points = cloud.positions.astype(np.float64)
+    sigma = _sigma_along(cloud, light, points)
+    slope = _slope(cloud, light, points)
+    size = _light_size(light)
+    face = _face_of(light, views, points)
+    for k, view in enumerate(views):
+        idx = np.flatnonzero(face == k)
+        if len(idx):
+            bias = sigma_bias * sigma[idx]
+            out[idx] = _filtered(view, points[idx], bias, slope[idx], texel_bias, size, light, taps, soft)
+    return out
+
+
+def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) -> list[ShadowView]:
+    """The light's shadow-map views (see the module notes), each rendered from the splats near it."""
+    points = cloud.positions.astype(np.float64)
+    reach = 3.0 * cloud.scales.max(axis=1) if len(cloud) else np.zeros(0)
+    meshes = list(occluders or [])
+    views = []
+    for camera in _cameras(light, points, reach, meshes, int(resolution)):
+        near = _near_mask(camera, points, reach)
+        depth = np.full((camera.height, camera.width), np.inf, np.float32)
+        alpha = np.zeros((camera.height, camera.width), np.float32)
+        if near.any():
+            part = cloud[near]
+            shadow = SplatCloud(
+                part.positions, part.rotations, part.log_scales, part.opacity_logits, part.sh[:, :1],
+                antialiased=cloud.antialiased,
+            )  # fmt: skip
+            result = render(shadow, camera, background=None, threads=threads)
+            alpha = result.alpha
+            depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
+        for mesh in meshes:
+            depth, alpha = _with_mesh(depth, alpha, mesh, camera)
+        views.append(ShadowView(camera, depth, alpha))
+    return views
+
+
+# cameras ------------------------------------------------------------------------------------------
+
+
+def _cameras(light, points, reach, meshes, resolution):
+    kind = light.kind
+    position = np.asarray(getattr(light, "position", np.zeros(3)), np.float64)
+    direction = _unit(light.direction)
+    if kind == "sun":
+        return [_sun_camera(direction, points, reach, meshes, resolution)]
+    near = _near_plane(position, points, reach, meshes)
+    if kind == "spot" and light.spot_size <= SPOT_CUBE_ANGLE:
+        fov = math.degrees(min(light.spot_size * 1.1 + 0.05, math.radians(170)))
+        matrix = look_at_matrix(position, position + direction, _up_for(direction))
+        f = 0.5 * resolution / math.tan(math.radians(fov) / 2)
+        return [Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, near)]
+    if kind == "area":
+        x = _unit(getattr(light, "x_axis", _up_for(direction)))
+        axes = np.stack([x, np.cross(direction, x), direction])  # the light's frame, rows
+        dirs = [axes[2], axes[0], -axes[0], axes[1], -axes[1]]  # not the face behind the light
+    else:
+        dirs = [np.array(d, np.float64) for d in np.vstack([np.eye(3), -np.eye(3)])]
+    return [_cube_face(position, d, near, resolution) for d in dirs]
+
+
+def _cube_face(position, forward, near, resolution):
+    matrix = look_at_matrix(position, position + forward, _up_for(forward))
+    f = resolution / 2  # 90 degrees
+    return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, near)
+
+
+def _sun_camera(direction, points, reach, meshes, resolution):
+    """An orthographic camera along `direction` framing the points (and mesh vertices), square texels."""
+    up = _up_for(direction)
+    frame = look_at_matrix(np.zeros(3), direction, up)[:3, :3]
+    everything = np.concatenate([points] + [m.vertices for m in meshes]) if meshes else points
+    pad = np.concatenate([reach] + [np.zeros(len(m.vertices)) for m in meshes]) if meshes else reach
+    local = everything @ frame.T
+    lo, hi = (local - pad[:, None]).min(axis=0), (local + pad[:, None]).max(axis=0)
+    extent = max(hi[0] - lo[0], hi[1] - lo[1], 1e-9) * 1.02
+    centre = frame.T @ ((lo + hi) / 2)
+    depth = hi[2] - lo[2]
+    eye = centre - direction * (depth / 2 + 1.0 + 0.01 * extent)
+    f = resolution / extent
+    matrix = look_at_matrix(eye, centre, up)
+    return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, 0.5, projection="orthographic")
+
+
+def _near_plane(position, points, reach, meshes):
+    """A near plane in front of everything the light sees (half the nearest splat's surface distance)."""
+    d = np.linalg.norm(points - position, axis=1) - reach if len(points) else np.ones(1)
+    for m in meshes:
+        d = np.append(d, np.linalg.norm(m.vertices - position, axis=1).min())
+    nearest = float(np.min(d)) if len(d) else 1.0
+    return float(np.clip(0.5 * nearest, 1e-4, 0.05))
+
+
+def _near_mask(camera, points, reach):
+    """Splats whose 3-sigma extent may reach the camera's image (a cone or box test, padded)."""
+    c = camera.to_camera(points)
+    half_x = (camera.width / 2 + 2) / camera.fx
+    half_y = (camera.height / 2 + 2) / camera.fy
+    if camera.is_orthographic:
+        return (np.abs(c[:, 0]) <= half_x + reach) & (np.abs(c[:, 1]) <= half_y + reach)
+    z = c[:, 2]
+    slack = reach * math.sqrt(1 + max(half_x, half_y) ** 2)
+    return (z + reach > camera.near) & (np.abs(c[:, 0]) <= half_x * z + slack) & (np.abs(c[:, 1]) <= half_y * z + slack)
+
+
+def _face_of(light, views, points):
+    """(N,) index of the view each splat is tested in: the cube face its direction falls in most
+    centrally (the largest forward component); -1 where no view looks (behind an area light)."""
+    if len(views) == 1:
+        return np.zeros(len(points), np.int64)
+    rel = points - views[0].camera.center
+    forward = np.stack([v.camera.forward for v in views])
+    along = rel @ forward.T
+    best = np.argmax(along, axis=1)
+    behind = along[np.arange(len(points)), best] <= 0
+    return np.where(behind, -1, best)
+
+
+def _up_for(direction):
+    """An up vector not parallel to `direction`."""
+    return np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+
+
+def _unit(v):
+    v = np.asarray(v, np.float64).reshape(3)
+    return v / np.linalg.norm(v)
+
+
+# meshes ---------------------------------------------------------------------------------------------
+
+
+def _with_mesh(depth, alpha, mesh, camera):
+    """The map with a mesh's depth folded in: the mesh covers fully; where a fairly solid splat
+    surface is in front of it, the splats' depth stays."""
+    face, _, mesh_depth = rasterize(mesh, camera)
+    hit = face >= 0
+    splat_first = (alpha >= SOLID_ALPHA) & (depth < mesh_depth)
+    depth = np.where(hit & ~splat_first, mesh_depth, depth).astype(np.float32)
+    return depth, np.where(hit, np.float32(1.0), alpha)
+
+
+# the test -------------------------------------------------------------------------------------------
+
+
+def _light_rays(light, points):
+    """(N,3) unit directions from the light towards each point (the sun's own for all)."""
+    if light.kind == "sun":
+        return np.broadcast_to(_unit(light.direction), points.shape)
+    rel = points - np.asarray(light.position, np.float64)
+    return rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-300)
+
+
+def _sigma_along(cloud, light, points):
+    """(N,) each splat's standard deviation along its ray from the light: sqrt(l^T Sigma l)."""
+    rays = _light_rays(light, points)
+    local = np.einsum("nji,nj->ni", cloud.rotation_matrices(), rays)  # the ray in the splat's axes
+    return np.sqrt(np.einsum("ni,ni->n", local * local, cloud.scales**2))
+
+
+def _slope(cloud, light, points):
+    """(N,) tan of the angle between each splat's surface normal (the material's, else its thinnest
+    axis) and its light
+    ray, capped at MAX_SLOPE: how much depth a texel spans across it."""
+    rays = _light_rays(light, points)
+    normal = material.normals(cloud)
+    if normal is None:
+        thin = np.argmin(cloud.log_scales, axis=1)
+        normal = cloud.rotation_matrices()[np.arange(len(points)), :, thin]
+    cos = np.abs(np.einsum("ni,ni->n", normal, rays))
+    return np.minimum(np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 1e-9), MAX_SLOPE)
+
+
+def _light_size(light):
+    """The radius (m) of the disc standing for the light's emitting area; for the sun the tangent of
+    its half angle. 0 is a hard shadow."""
+    kind = light.kind
+    if kind == "sun":
+        return math.tan(0.5 * float(getattr(light, "angle", 0.0)))
+    if kind == "area":
+        return math.sqrt(light.area / math.pi)
+    return float(getattr(light, "radius", 0.0))
+
+
+def _spiral(taps):
+    """(taps, 2) points of a golden-angle spiral filling the unit disc evenly (area per tap equal)."""
+    k = np.arange(taps) + 0.5
+    r = np.sqrt(k / taps)
+    t = k * math.pi * (3 - math.sqrt(5))
+    return np.stack([r * np.cos(t), r * np.sin(t)], axis=1)
+
+
+def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
+    """(n,) visibility of points in one view: PCSS search and percentage-closer filtering."""
+    cam = view.camera
+    uv, z = cam.project(points)
+    texel = (z if not cam.is_orthographic else 1.0) / cam.fx  # world size of a texel at the splat
+    limit = z - bias - texel_bias * texel * slope
+    if not soft or size <= 0:
+        return 1.0 - _covered(view, uv, limit, np.zeros((1, 2)), np.zeros(len(z)))[0]
+    disc = _spiral(taps)
+    # Blockers that can shade a receiver lie in the cone from it to the light; its radius in texels,
+    # f r (z - zb) / (z zb) (perspective) or f tan (z - zb) (sun), taken at a quarter of the way.
+    if cam.is_orthographic:
+        search = cam.fx * size * 0.75 * (z - cam.near)
+    else:
+        search = cam.fx * size * 3.0 / np.maximum(z, 1e-9)
+    search = np.clip(search, 1.0, MAX_SEARCH_TEXELS)
+    occluded, blocker = _covered(view, uv, limit, disc, search)
+    if cam.is_orthographic:
+        radius = cam.fx * size * np.maximum(z - blocker, 0)
+    else:
+        radius = cam.fx * size * np.maximum(z - blocker, 0) / np.maximum(z * blocker, 1e-12)
+    radius = np.where(occluded > 0, np.maximum(radius, 0.5), 0.0)
+    return 1.0 - _covered(view, uv, limit, disc, radius)[0]
+
+
+def _covered(view, uv, limit, disc, radius):
+    """(covered fraction (n,), mean blocker depth (n,)) of the taps uv + radius * disc (texels) by
+    map texels nearer than `limit`, each weighed by its alpha. Taps off the map read its edge."""
+    h, w = view.depth.shape
+    x = uv[:, None, 0] + radius[:, None] * disc[None, :, 0]
+    y = uv[:, None, 1] + radius[:, None] * disc[None, :, 1]
+    ix = np.clip(np.floor(np.nan_to_num(x, nan=-1.0)), 0, w - 1).astype(np.int64)
+    iy = np.clip(np.floor(np.nan_to_num(y, nan=-1.0)), 0, h - 1).astype(np.int64)
+    flat = iy * w + ix
+    depth = view.depth.ravel()[flat]
+    blocked = depth < limit[:, None]
+    weight = np.where(blocked, view.alpha.ravel()[flat], 0.0)
+    total = weight.sum(axis=1)
+    mean_depth = np.where(blocked, depth, 0.0).astype(np.float64) * weight
+    blocker = np.where(total > 0, mean_depth.sum(axis=1) / np.maximum(total, 1e-30), np.inf)
+    return np.clip(total / disc.shape[0], 0.0, 1.0), blocker
