@@ -1,0 +1,150 @@
+"""The lit render: splats shaded by lights (core.shading) with shadows (core.shadows), drawn by one
+core.render call.
+
+Per splat, the radiance towards the camera is computed from its material under the lights and the
+world, each light's share scaled by its visibility from the shadow maps; that radiance becomes the
+splat's display-sRGB colour (a degree-0 SH coefficient) in a shallow copy of the cloud, which core.render
+draws as it draws any cloud. A lit frame is thus one frame plus the lights' shadow maps. Splats
+without a material (a cloud with none, or rows whose albedo or normal is NaN, e.g. captured splats
+joined with converted ones) keep their own colours, view dependence included, and still cast
+shadows. The passes (diffuse, specular, shadow) are extra renders of the same splats, made only
+when asked for.
+"""
+
+import time
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import numpy as np
+
+from . import color, material, shadows
+from . import sh as shmod
+from .arrays import Image
+from .camera import Camera
+from .lights import Light, World
+from .render import Layer, Shapes, render
+from .shading import shade
+from .splats import SplatCloud
+
+# Shadow-map texels a side per light kind (per cube face for point and area lights), chosen so that
+# a light costs at most about one unlit 1920x1080 frame (bench/relight.py measures it).
+SHADOW_RESOLUTION = {"point": 512, "area": 512, "spot": 1024, "sun": 1024}
+
+
+@dataclass
+class LitRender:
+    """color (H,W,3) float32 display sRGB, alpha (H,W), depth (H,W) as core.render gives them; with
+    passes, diffuse and specular (H,W,3) float32 scene-linear radiance (premultiplied by the splats'
+    coverage, no background) and shadow (H,W) float32, the blended fraction of the lights' light
+    that shadows took away; otherwise None. stats: the render's, and the shadow maps' time."""
+
+    color: Image
+    alpha: Annotated[np.ndarray, "(H, W)"]
+    depth: Annotated[np.ndarray, "(H, W)"]
+    diffuse: Image | None = None
+    specular: Image | None = None
+    shadow: Annotated[np.ndarray, "(H, W)"] | None = None
+    stats: dict = field(default_factory=dict)
+
+
+def material_rows(cloud: SplatCloud) -> Annotated[np.ndarray, "(N,)"]:
+    """(N,) bool: the splats that carry a material (finite albedo and normal); none without one."""
+    if not material.has_material(cloud):
+        return np.zeros(len(cloud), bool)
+    return np.isfinite(material.albedo(cloud)).all(axis=1) & np.isfinite(material.normals(cloud)).all(axis=1)
+
+
+def lit_colors(
+    cloud: SplatCloud,
+    camera: Camera,
+    lights: list[Light],
+    world: World | None = None,
+    *,
+    meshes=None,
+    shadow_resolution: dict | int | None = None,
+    threads: int | None = None,
+):
+    """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
+    each light's share scaled by its visibility (lights that cast shadows; all splats and `meshes`
+    occlude)."""
+    rows = material_rows(cloud)
+    if not rows.any():
+        return rows, None
+    visibility = {}
+    for index, light in enumerate(lights):  # a loop over lights
+        if light.cast_shadow:
+            resolution = _resolution(shadow_resolution, light)
+            vis = shadows.visibility(cloud, light, occluders=meshes, resolution=resolution, threads=threads)
+            visibility[index] = vis[rows]
+    part = cloud if rows.all() else cloud[rows]
+    return rows, shade(part, camera, lights, world, visibility)
+
+
+def render_lit(
+    cloud: SplatCloud,
+    camera: Camera,
+    lights: list[Light],
+    world: World | None = None,
+    *,
+    meshes=None,
+    layer: Layer | None = None,
+    passes: bool = False,
+    background: tuple[float, float, float] | None = (0.0, 0.0, 0.0),
+    shadow_resolution: dict | int | None = None,
+    threads: int | None = None,
+    **render_options,
+) -> LitRender:
+    """Render `cloud` through `camera` lit by `lights` (core.lights.Light) and `world`.
+
+    meshes: core.mesh.Surface meshes that cast shadows on the splats (the picture's meshes come in
+    through `layer`, core.render's). passes: also the diffuse, specular and shadow images.
+    shadow_resolution: texels a side of the shadow maps, one number or a dict by light kind
+    (default SHADOW_RESOLUTION). Other keywords go to core.render (mode, tile_size, backend, ...)."""
+    t0 = time.perf_counter()
+    rows, shading = lit_colors(
+        cloud, camera, lights, world, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads
+    )
+    shading_time = time.perf_counter() - t0
+    if shading is None:
+        result = render(cloud, camera, background, layer=layer, threads=threads, **render_options)
+        return LitRender(result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=0.0))
+    lit = _with_colors(cloud, rows, color.linear_to_srgb(np.maximum(shading.radiance, 0.0)))
+    shapes = Shapes(lit, threads) if passes else None
+    options = dict(render_options, threads=threads, shapes=shapes)
+    result = render(lit, camera, background, layer=layer, **options)
+    out = LitRender(result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=shading_time))
+    if passes:
+        dark = None if layer is None else Layer(np.zeros_like(layer.color), layer.alpha, layer.depth)
+        # Passes are linear radiance blended as colours are; splats without a material add nothing.
+        pass_image = lambda values: (
+            render(  # noqa: E731
+                _with_colors(lit, rows, values, own=0.0), camera, None, layer=dark, **options
+            ).color
+        )
+        out.diffuse = pass_image(shading.diffuse)
+        out.specular = pass_image(shading.specular)
+        out.shadow = pass_image(np.repeat(shading.shadow[:, None], 3, axis=1))[..., 0]
+    return out
+
+
+def _with_colors(cloud, rows, values, own=None):
+    """A shallow copy of `cloud` whose splats `rows` show the display colours `values` (M,3) in every
+    direction; the others keep their own SH, or with `own` that constant colour. Degree 0 when
+    every splat is set."""
+    dc = shmod.rgb_to_dc(np.asarray(values, np.float64)).astype(np.float32)
+    if rows.all():
+        return cloud.replace(sh=dc[:, None, :])
+    sh = cloud.sh.copy() if own is None else np.zeros((len(cloud), 1, 3), np.float32)
+    if own is not None:
+        sh[:, 0] = shmod.rgb_to_dc(np.full(3, own))
+    sh[rows] = 0.0
+    sh[rows, 0] = dc
+    return cloud.replace(sh=sh)
+
+
+def _resolution(setting, light):
+    if setting is None:
+        return SHADOW_RESOLUTION[light.kind]
+    if isinstance(setting, dict):
+        return setting.get(light.kind, SHADOW_RESOLUTION[light.kind])
+    return int(setting)

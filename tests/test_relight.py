@@ -1,0 +1,81 @@
+"""The lit render (core.relight.render_lit) against the float64 brute-force renderer of the same
+splats coloured plainly per splat by their shading, and its passes and material-less splats."""
+
+import math
+
+import numpy as np
+import pytest
+from reference_render import reference_render
+from shadow_reference import plane_cloud, sphere_cloud
+
+from splatwright.core import material, relight, shadows
+from splatwright.core.camera import Camera
+from splatwright.core.lights import Light, World
+from splatwright.core.render import render
+from splatwright.core.shading import shade
+from splatwright.core.splats import SplatCloud
+
+CAMERA = Camera.look_at((2.2, -2.6, 2.4), (0, 0, 0.3), up=(0, 0, 1), fov_deg=45, width=64, height=48)
+LIGHTS = [
+    Light("point", power=400.0, position=(0.6, -0.4, 2.5), radius=0.2),
+    Light("sun", color=(1.0, 0.8, 0.6), power=2.0, direction=(0.4, 0.3, -1), angle=math.radians(4)),
+]
+
+
+def _srgb(linear):
+    """IEC 61966-2-1, written out."""
+    x = np.maximum(linear, 0.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cloud = SplatCloud.concatenate([plane_cloud(1.2, 24), sphere_cloud((0, 0, 0.6), 0.3, 400)])
+    rng = np.random.default_rng(0)
+    albedo = rng.uniform(0.2, 0.9, (len(cloud), 3))
+    return material.with_material(cloud, albedo=albedo, roughness=rng.uniform(0.3, 0.9, len(cloud)))
+
+
+def test_lit_render_is_the_cloud_coloured_by_its_shading(scene):
+    world = World((0.05, 0.06, 0.08))
+    got = relight.render_lit(scene, CAMERA, LIGHTS, world, background=(0.1, 0.1, 0.1))
+    visibility = {k: shadows.visibility(scene, light, resolution=relight.SHADOW_RESOLUTION[light.kind])
+                  for k, light in enumerate(LIGHTS)}  # fmt: skip
+    radiance = shade(scene, CAMERA, LIGHTS, world, visibility).radiance.astype(np.float64)
+    plain = scene.replace(sh=((_srgb(radiance) - 0.5) / 0.28209479177387814)[:, None, :])
+    want = reference_render(plain, CAMERA, background=(0.1, 0.1, 0.1))
+    assert np.abs(got.color - want["color"]).max() < 2e-3
+    assert np.abs(got.alpha - want["alpha"]).max() < 1e-3
+    # Shadows are in it: some splats see less than all of the lights.
+    assert (visibility[0] < 0.5).sum() > 20
+
+
+def test_passes_add_up_and_splats_without_material_keep_their_colours(scene):
+    rng = np.random.default_rng(1)
+    own = scene.replace(sh=rng.normal(0, 0.4, (len(scene), 4, 3)).astype(np.float32))
+    albedo = own.extras["albedo"].copy()
+    bare = np.arange(len(own)) >= len(own) - 400  # the sphere's splats: no material
+    albedo[bare] = np.nan
+    own.extras["albedo"] = albedo
+    got = relight.render_lit(own, CAMERA, LIGHTS, passes=True, background=None)
+    rows, shading = relight.lit_colors(own, CAMERA, LIGHTS)
+    assert np.array_equal(rows, ~bare)
+    # The sphere keeps its own view-dependent colours, the plane shows its shading.
+    sh = own.sh.copy()
+    sh[rows] = 0.0
+    sh[rows, 0] = (_srgb(shading.radiance.astype(np.float64)) - 0.5) / 0.28209479177387814
+    want = reference_render(own.replace(sh=sh), CAMERA, background=(0.0, 0.0, 0.0))
+    assert np.abs(got.color - want["color"]).max() < 2e-3
+    # Passes: linear radiance blended as colours are, material-less splats black.
+    lin = np.zeros((len(own), 3))
+    lin[rows] = shading.diffuse + shading.specular
+    flat = own.replace(sh=((lin - 0.5) / 0.28209479177387814)[:, None, :])
+    both = reference_render(flat, CAMERA, background=(0.0, 0.0, 0.0))["color"]
+    assert np.abs(got.diffuse + got.specular - both).max() < 2e-3
+    assert 0.0 <= got.shadow.min() and got.shadow.max() <= 1.0 and got.shadow.max() > 0.3
+
+
+def test_cloud_without_material_renders_as_it_is(scene):
+    bare = SplatCloud(scene.positions, scene.rotations, scene.log_scales, scene.opacity_logits, scene.sh)
+    got = relight.render_lit(bare, CAMERA, LIGHTS)
+    assert np.array_equal(got.color, render(bare, CAMERA).color)
