@@ -74,6 +74,10 @@ MIN_GROWTH = 0.05  # stop once a round would add fewer splats than this fraction
 # and the best so far is kept: the striped cup's rounds went 254k splats 29.4 dB, 419k 29.6, 573k 30.0,
 # so it keeps 254k where it kept 573k. The bench finds the knees of its curves with the same number.
 KNEE_GAIN_DB = 0.5
+# ... once the best round has this many splats: below, a round can plateau and the next climb out
+# again (the alpha-cut leaves' 96-px test stopped at 564 splats and 19 dB, where 42k gave 26), and
+# the bench's curves start here.
+KNEE_FROM_SPLATS = 8000
 FIT_CHECK_EVERY = 4  # the colour fit leaves out every 4th view (3, 7, 11: one per default distance) to check it
 STUCK = 0.8  # a face that got denser with its error above this fraction of the last is left alone
 # ... above this one where it has colour detail (core.mesh_texture.face_detail): the decal box took 722k
@@ -561,10 +565,10 @@ def refine_rounds(
 
 def _past_knee(psnr, splats, best):
     """Whether a round of `splats` rendering `psnr` buys less than KNEE_GAIN_DB per doubling of the
-    splats over `best` (psnr, cloud, ...), the best round so far. A round with fewer splats (the
-    shift search may keep a smaller cloud) is never past it."""
+    splats over `best` (psnr, cloud, ...), the best round so far, of at least KNEE_FROM_SPLATS. A
+    round with fewer splats (the shift search may keep a smaller cloud) is never past it."""
     doublings = math.log2(splats / max(len(best[1]), 1))
-    return doublings > 0 and psnr - best[0] < KNEE_GAIN_DB * doublings
+    return len(best[1]) >= KNEE_FROM_SPLATS and doublings > 0 and psnr - best[0] < KNEE_GAIN_DB * doublings
 
 
 def _checked_fit(v, cloud, fit_colours):
