@@ -30,7 +30,7 @@ from typing import Annotated
 
 import numpy as np
 
-from . import material
+from . import jit, material
 from .arrays import Floats
 from .camera import Camera, look_at_matrix
 from .mesh_render import rasterize
@@ -81,8 +81,7 @@ def visibility(
         return out
     views = shadow_views(cloud, light, occluders=occluders, resolution=resolution, threads=threads)
     points = cloud.positions.astype(np.float64)
-    sigma = _sigma_along(cloud, light, points)
-    slope = _slope(cloud, light, points)
+    sigma, slope = _extent_and_slope(cloud, light, points)
     size = _light_size(light)
     face = _face_of(light, views, points)
     for k, view in enumerate(views):
@@ -97,6 +96,9 @@ def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) 
     """The light's shadow-map views (see the module notes), each rendered from the splats near it."""
     points = cloud.positions.astype(np.float64)
     reach = 3.0 * cloud.scales.max(axis=1) if len(cloud) else np.zeros(0)
+    # What the maps need of the splats: their shapes (colour and extras are not drawn).
+    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, cloud.sh[:, :1])
+    bare.antialiased = cloud.antialiased
     meshes = list(occluders or [])
     views = []
     for camera in _cameras(light, points, reach, meshes, int(resolution)):
@@ -104,12 +106,7 @@ def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) 
         depth = np.full((camera.height, camera.width), np.inf, np.float32)
         alpha = np.zeros((camera.height, camera.width), np.float32)
         if near.any():
-            part = cloud[near]
-            shadow = SplatCloud(
-                part.positions, part.rotations, part.log_scales, part.opacity_logits, part.sh[:, :1],
-                antialiased=cloud.antialiased,
-            )  # fmt: skip
-            result = render(shadow, camera, background=None, threads=threads)
+            result = render(bare[near], camera, background=None, threads=threads)
             alpha = result.alpha
             depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
         for mesh in meshes:
@@ -233,24 +230,21 @@ def _light_rays(light, points):
     return rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-300)
 
 
-def _sigma_along(cloud, light, points):
-    """(N,) each splat's standard deviation along its ray from the light: sqrt(l^T Sigma l)."""
+def _extent_and_slope(cloud, light, points):
+    """(N,) each splat's standard deviation along its ray from the light, sqrt(l^T Sigma l), and
+    (N,) the tan of the angle between its surface normal (the material's, else its thinnest axis)
+    and that ray, capped at MAX_SLOPE: how much depth a texel spans across it."""
     rays = _light_rays(light, points)
-    local = np.einsum("nji,nj->ni", cloud.rotation_matrices(), rays)  # the ray in the splat's axes
-    return np.sqrt(np.einsum("ni,ni->n", local * local, cloud.scales**2))
-
-
-def _slope(cloud, light, points):
-    """(N,) tan of the angle between each splat's surface normal (the material's, else its thinnest
-    axis) and its light
-    ray, capped at MAX_SLOPE: how much depth a texel spans across it."""
-    rays = _light_rays(light, points)
+    rot = cloud.rotation_matrices()
+    local = np.einsum("nji,nj->ni", rot, rays)  # the ray in the splat's axes
+    sigma = np.sqrt(np.einsum("ni,ni->n", local * local, cloud.scales**2))
     normal = material.normals(cloud)
     if normal is None:
-        thin = np.argmin(cloud.log_scales, axis=1)
-        normal = cloud.rotation_matrices()[np.arange(len(points)), :, thin]
-    cos = np.abs(np.einsum("ni,ni->n", normal, rays))
-    return np.minimum(np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 1e-9), MAX_SLOPE)
+        cos = np.abs(local[np.arange(len(points)), np.argmin(cloud.log_scales, axis=1)])
+    else:
+        cos = np.abs(np.einsum("ni,ni->n", normal, rays))
+    slope = np.minimum(np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 1e-9), MAX_SLOPE)
+    return sigma, slope
 
 
 def _light_size(light):
@@ -278,8 +272,12 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     uv, z = cam.project(points)
     texel = (z if not cam.is_orthographic else 1.0) / cam.fx  # world size of a texel at the splat
     limit = z - bias - texel_bias * texel * slope
+    out = np.ones(len(z))
+    seen = np.flatnonzero(np.isfinite(uv).all(axis=1))  # not behind a spot light
+    uv, z, limit = uv[seen], z[seen], limit[seen]
     if not soft or size <= 0:
-        return 1.0 - _covered(view, uv, limit, np.zeros((1, 2)), np.zeros(len(z)))[0]
+        out[seen] = 1.0 - _covered(view, uv, limit, np.zeros((1, 2)), np.zeros(len(z)))[0]
+        return out
     disc = _spiral(taps)
     # Blockers that can shade a receiver lie in the cone from it to the light; its radius in texels,
     # f r (z - zb) / (z zb) (perspective) or f tan (z - zb) (sun), taken at a quarter of the way.
@@ -288,13 +286,59 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     else:
         search = cam.fx * size * 3.0 / np.maximum(z, 1e-9)
     search = np.clip(search, 1.0, MAX_SEARCH_TEXELS)
+    kernel = _pcss_kernel()
+    if kernel is not None:
+        vis = np.empty(len(z))
+        args = (uv, z, limit, search, view.depth, view.alpha, disc, cam.fx * size, cam.is_orthographic)
+        kernel(*(np.ascontiguousarray(a) if isinstance(a, np.ndarray) else a for a in args), vis)
+        out[seen] = vis
+        return out
     occluded, blocker = _covered(view, uv, limit, disc, search)
-    if cam.is_orthographic:
-        radius = cam.fx * size * np.maximum(z - blocker, 0)
-    else:
-        radius = cam.fx * size * np.maximum(z - blocker, 0) / np.maximum(z * blocker, 1e-12)
-    radius = np.where(occluded > 0, np.maximum(radius, 0.5), 0.0)
-    return 1.0 - _covered(view, uv, limit, disc, radius)[0]
+    out[seen] = 1.0 - _covered(view, uv, limit, disc, _penumbra(z, blocker, cam.fx * size, cam.is_orthographic))[0]
+    return out
+
+
+def _penumbra(z, blocker, scale, ortho):
+    """The filter's radius in texels for receivers at z and blockers at mean depth `blocker` (inf:
+    none, radius 0): scale (z - zb) for the sun, scale (z - zb) / (z zb) in perspective, at least
+    half a texel."""
+    gap = np.maximum(z - blocker, 0.0)
+    radius = scale * gap if ortho else scale * gap / np.maximum(z * blocker, 1e-12)
+    return np.where(np.isfinite(blocker), np.maximum(radius, 0.5), 0.0)
+
+
+def _pcss_kernel():
+    """The compiled twin of the search and filter (core.jit), or None: NumPy then does the work."""
+    return jit.compiled(__name__, ("_pcss_loop",))
+
+
+def _pcss_loop(uv, z, limit, search, depth, alpha, disc, scale, ortho, out):
+    """_covered's blocker search and filter one point at a time, as a scalar loop for numba; the
+    filter runs only where the search found a blocker (else out = 1)."""
+    h, w = depth.shape
+    taps = disc.shape[0]
+    for i in range(uv.shape[0]):
+        total, weighted = 0.0, 0.0
+        for k in range(taps):
+            x = min(max(int(np.floor(uv[i, 0] + search[i] * disc[k, 0])), 0), w - 1)
+            y = min(max(int(np.floor(uv[i, 1] + search[i] * disc[k, 1])), 0), h - 1)
+            if depth[y, x] < limit[i]:
+                total += alpha[y, x]
+                weighted += alpha[y, x] * depth[y, x]
+        if total <= 0.0:
+            out[i] = 1.0
+            continue
+        blocker = weighted / total
+        gap = max(z[i] - blocker, 0.0)
+        radius = scale * gap if ortho else scale * gap / max(z[i] * blocker, 1e-12)
+        radius = max(radius, 0.5)
+        covered = 0.0
+        for k in range(taps):
+            x = min(max(int(np.floor(uv[i, 0] + radius * disc[k, 0])), 0), w - 1)
+            y = min(max(int(np.floor(uv[i, 1] + radius * disc[k, 1])), 0), h - 1)
+            if depth[y, x] < limit[i]:
+                covered += alpha[y, x]
+        out[i] = 1.0 - min(covered / taps, 1.0)
 
 
 def _covered(view, uv, limit, disc, radius):

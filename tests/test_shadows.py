@@ -134,3 +134,13 @@ def test_point_light_cube_renders_only_faces_with_splats(scene):
     down = [i for i, v in enumerate(views) if v.camera.forward[2] < -0.9][0]
     up = [i for i, v in enumerate(views) if v.camera.forward[2] > 0.9][0]
     assert covered[down] and not covered[up]
+
+
+def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch):
+    cloud, _ = scene
+    light = LIGHTS["soft point"]
+    if shadows._pcss_kernel() is None:
+        pytest.skip("compiled kernels are not available here")
+    compiled = shadows.visibility(cloud, light, resolution=256)
+    monkeypatch.setattr(shadows, "_pcss_kernel", lambda: None)
+    assert np.abs(shadows.visibility(cloud, light, resolution=256) - compiled).max() < 1e-5
