@@ -26,8 +26,10 @@ from .render import Layer, Shapes, render
 from .shading import shade
 from .splats import SplatCloud
 
-# Shadow-map texels a side per light kind (per cube face for point and area lights), chosen so that
-# a light costs at most about one unlit 1920x1080 frame (bench/relight.py measures it).
+# Shadow-map texels a side per light kind (per cube face for point and area lights). The maps' cost
+# is mostly per splat, not per texel: by bench/relight.py, a 410k-splat 1080p frame lit by a point
+# light takes 1.41, 1.56 and 2.00 s with its cube at 256, 512 and 1024, for shadow errors of 0.008,
+# 0.004 and 0.002 (mean |visibility - float64 reference|); 512 is the knee.
 SHADOW_RESOLUTION = {"point": 512, "area": 512, "spot": 1024, "sun": 1024}
 
 
