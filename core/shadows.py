@@ -34,6 +34,7 @@ from . import jit, material
 from .arrays import Floats
 from .camera import Camera, look_at_matrix
 from .mesh_render import rasterize
+from .parallel import WORKERS, map_threads
 from .render import render
 from .splats import SplatCloud
 
@@ -289,8 +290,17 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     kernel = _pcss_kernel()
     if kernel is not None:
         vis = np.empty(len(z))
-        args = (uv, z, limit, search, view.depth, view.alpha, disc, cam.fx * size, cam.is_orthographic)
-        kernel(*(np.ascontiguousarray(a) if isinstance(a, np.ndarray) else a for a in args), vis)
+        uv, depth, alpha = np.ascontiguousarray(uv), view.depth, view.alpha
+        scale, ortho = cam.fx * size, cam.is_orthographic
+        # The kernel releases the GIL: contiguous shares of the points on every core.
+        bounds = np.linspace(0, len(z), min(WORKERS, max(1, len(z) // 4096)) + 1).astype(np.int64)
+        map_threads(
+            lambda k: kernel(
+                *(a[bounds[k] : bounds[k + 1]] for a in (uv, z, limit, search)),
+                depth, alpha, disc, scale, ortho, vis[bounds[k] : bounds[k + 1]],
+            ),
+            range(len(bounds) - 1),
+        )  # fmt: skip
         out[seen] = vis
         return out
     occluded, blocker = _covered(view, uv, limit, disc, search)
