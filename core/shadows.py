@@ -43,6 +43,7 @@ MAX_SEARCH_TEXELS = 24.0  # the blocker search's radius is capped there
 SIGMA_BIAS = 2.5  # standard deviations of a splat along the light ray that count as its own surface
 TEXEL_BIAS = 2.5  # texels of depth slope that count as its own surface
 MAX_SLOPE = 20.0  # tan of the tilt beyond which the slope bias stops growing
+CHUNK = 1 << 16  # points per step of the NumPy filter
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
 
@@ -303,8 +304,13 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
         )  # fmt: skip
         out[seen] = vis
         return out
-    occluded, blocker = _covered(view, uv, limit, disc, search)
-    out[seen] = 1.0 - _covered(view, uv, limit, disc, _penumbra(z, blocker, cam.fx * size, cam.is_orthographic))[0]
+    vis = np.empty(len(z))
+    for start in range(0, len(z), CHUNK):  # a loop over chunks: (chunk, taps) arrays stay small
+        sl = slice(start, start + CHUNK)
+        blocker = _covered(view, uv[sl], limit[sl], disc, search[sl])[1]
+        radius = _penumbra(z[sl], blocker, cam.fx * size, cam.is_orthographic)
+        vis[sl] = 1.0 - _covered(view, uv[sl], limit[sl], disc, radius)[0]
+    out[seen] = vis
     return out
 
 
