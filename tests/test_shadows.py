@@ -144,3 +144,20 @@ def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch):
     compiled = shadows.visibility(cloud, light, resolution=256)
     monkeypatch.setattr(shadows, "_pcss_kernel", lambda: None)
     assert np.abs(shadows.visibility(cloud, light, resolution=256) - compiled).max() < 1e-5
+
+
+def test_spot_lights_see_what_a_point_light_there_sees(scene):
+    cloud, n = scene
+    point = Light("point", position=(0.3, -0.2, 2.5), radius=0.2)
+    wide = Light("spot", position=point.position, radius=0.2, spot_size=math.radians(150))
+    narrow = Light("spot", position=point.position, radius=0.2, spot_size=math.radians(90))
+    assert len(shadows.shadow_views(cloud, wide, resolution=32)) == 6  # past 120 degrees: the cube
+    assert np.array_equal(shadows.visibility(cloud, wide), shadows.visibility(cloud, point))
+    # Inside the narrow cone, one 1024 map against the 512 cube faces: the same shadows.
+    p = cloud.positions.astype(np.float64) - point.position
+    inside = np.flatnonzero(p[:, 2] < -np.linalg.norm(p, axis=1) * math.cos(math.radians(40)))
+    inside = _facing(cloud, point, inside)
+    one = shadows.visibility(cloud, narrow, resolution=1024)[inside]
+    cube = shadows.visibility(cloud, point, resolution=512)[inside]
+    # Measured: 0.0024 (each is within about 0.004 of the ray reference on average).
+    assert len(inside) > 1000 and np.abs(one - cube).mean() < 0.006
