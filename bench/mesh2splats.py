@@ -262,7 +262,8 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False, scri
             texture = material.texture
             if texture.dtype != np.uint8:
                 texture = (np.clip(texture, 0, 1) * 255 + 0.5).astype(np.uint8)
-            Image.fromarray(texture[..., :3] if texture.ndim == 3 else texture).save(path)
+            keep_alpha = material.alpha_mode != "OPAQUE" and texture.ndim == 3 and texture.shape[2] == 4
+            Image.fromarray(texture if keep_alpha or texture.ndim == 2 else texture[..., :3]).save(path)
         textures.append(path)
     uvs = mesh.corner_uvs if mesh.corner_uvs is not None else np.zeros((len(mesh.faces), 3, 2))
     fm = mesh.face_materials if mesh.face_materials is not None else np.zeros(len(mesh.faces), int)
@@ -276,7 +277,9 @@ def cycles_render(mesh, cameras, folder, samples=CYCLES_SAMPLES, lit=False, scri
         uvs=uvs,
         face_materials=fm,
         corner_colors=np.zeros((0, 3, 3)) if corners is None else corners,
-        base_colors=np.array([m.base_color for m in materials]),
+        base_colors=np.array([m.base_color[:3] for m in materials]),
+        alpha_modes=np.array([m.alpha_mode for m in materials]),
+        alpha_cutoffs=np.array([m.alpha_cutoff for m in materials]),
         textures=np.array(textures),
         camera_to_world=np.array([opengl_camera_to_world(c.world_to_camera) for c in cameras]),
         fov=np.array([c.fov_x_deg for c in cameras]),
@@ -320,7 +323,9 @@ def _cycles_main(spec_path, lit_scene=None):
         rgba = np.concatenate([corners, np.ones(corners.shape[:2] + (1,))], axis=2)
         layer = mesh.color_attributes.new("Col", "FLOAT_COLOR", "CORNER")
         layer.data.foreach_set("color", rgba.reshape(-1).astype(np.float32))
-    for base, texture in zip(d["base_colors"], d["textures"]):
+    modes = d["alpha_modes"] if "alpha_modes" in d else ["OPAQUE"] * len(d["textures"])
+    cutoffs = d["alpha_cutoffs"] if "alpha_cutoffs" in d else [0.5] * len(d["textures"])
+    for base, texture, mode, cutoff in zip(d["base_colors"], d["textures"], modes, cutoffs):
         material = bpy.data.materials.new("m")
         material.use_nodes = True
         nodes, links = material.node_tree.nodes, material.node_tree.links
@@ -344,7 +349,11 @@ def _cycles_main(spec_path, lit_scene=None):
             links.new(image.outputs["Color"], colour_input)
         if len(corners):
             _multiply_by_corner_colours(nodes, links, colour_input)
-        links.new(shader.outputs[0], nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
+        surface = shader.outputs[0]
+        if str(texture) and str(mode) != "OPAQUE":
+            image.image.alpha_mode = "CHANNEL_PACKED"  # colours as stored, alpha beside them
+            surface = _cut_out(nodes, links, image.outputs["Alpha"], surface, str(mode), float(cutoff))
+        links.new(surface, nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
         mesh.materials.append(material)
     obj = bpy.data.objects.new("mesh", mesh)
     scene.collection.objects.link(obj)
@@ -383,6 +392,22 @@ def _cycles_main(spec_path, lit_scene=None):
         cam.matrix_world = mathutils.Matrix(matrix.tolist())
         render_settings.filepath = f"{d['out']}{i}.png"
         bpy.ops.render.render(write_still=True)
+
+
+def _cut_out(nodes, links, alpha, surface, mode, cutoff):
+    """`surface` mixed with a Transparent BSDF by the texture's `alpha`: by alpha >= cutoff for MASK
+    (glTF's rule, as core.mesh cuts), by alpha itself for BLEND."""
+    if mode == "MASK":
+        compare = nodes.new("ShaderNodeMath")
+        compare.operation = "GREATER_THAN"
+        compare.inputs[1].default_value = cutoff - 1e-6
+        links.new(alpha, compare.inputs[0])
+        alpha = compare.outputs[0]
+    mix = nodes.new("ShaderNodeMixShader")
+    links.new(alpha, mix.inputs[0])
+    links.new(nodes.new("ShaderNodeBsdfTransparent").outputs[0], mix.inputs[1])
+    links.new(surface, mix.inputs[2])
+    return mix.outputs[0]
 
 
 def _multiply_by_corner_colours(nodes, links, colour_input):
