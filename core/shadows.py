@@ -44,6 +44,7 @@ SIGMA_BIAS = 2.5  # standard deviations of a splat along the light ray that coun
 TEXEL_BIAS = 2.5  # texels of depth slope that count as its own surface
 MAX_SLOPE = 20.0  # tan of the tilt beyond which the slope bias stops growing
 CHUNK = 1 << 16  # points per step of the NumPy filter
+CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
 
@@ -143,7 +144,9 @@ def _cameras(light, points, reach, meshes, resolution):
 
 def _cube_face(position, forward, near, resolution):
     matrix = look_at_matrix(position, position + forward, _up_for(forward))
-    f = resolution / 2  # 90 degrees
+    # A little over 90 degrees: the filter's taps around a splat near a face's edge still read
+    # this face's map (each splat is tested on the face it is most central in).
+    f = resolution / 2 - min(CUBE_MARGIN, resolution / 8)
     return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, near)
 
 
