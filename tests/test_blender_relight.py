@@ -119,15 +119,14 @@ def channels(image, name, letters):
 
 def test_relit_passes_in_the_exr_are_the_shaded_splats_blended(blender):
     """The Diffuse, Specular and Shadow passes of a multilayer EXR are the lit splats' shading
-    (core.shading.shade with core.shadows.visibility, for the cloud, camera, lights and world the
-    engine read) blended by the float64 brute-force renderer; Combined is the shaded cloud over the
+    (core.relight.lit_colors: core.shading under core.shadows' visibility, for the cloud, camera,
+    lights and world the engine read) blended by the float64 brute-force renderer; Combined is the shaded cloud over the
     world colour; the unlit cloud keeps its colour."""
     from reference_render import reference_render
 
     from splatwright.core.color import linear_to_srgb
+    from splatwright.core.relight import lit_colors
     from splatwright.core.sh import rgb_to_dc
-    from splatwright.core.shading import shade
-    from splatwright.core.shadows import visibility
 
     res = blender.step("passes")
     assert res["status"]["Ball"] == {"albedo": True, "normals": True, "roughness": False, "metallic": False}
@@ -138,8 +137,8 @@ def test_relit_passes_in_the_exr_are_the_shaded_splats_blended(blender):
     assert len(res["warnings"]) == 1 and res["warnings"][0].startswith("Bare: Relight is on but")
     lights, world = core_lights(res)
     cam = camera(res["camera"], arrays["origin"])
-    visible = {i: visibility(cloud, light)[lit] for i, light in enumerate(lights) if light.cast_shadow}
-    shading = shade(cloud[lit], cam, lights, world, visible)
+    rows, shading = lit_colors(cloud, cam, lights, world)
+    assert np.array_equal(rows, lit)
     got = exr(blender.out / "passes.exr")
 
     def blended(values):

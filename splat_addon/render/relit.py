@@ -1,11 +1,11 @@
 """Relit splats in the SPLATWRIGHT engine's pictures: which splats the scene's lights shade (objects
-with Relight on that carry a material), the meshes that shadow them, and the stand-in that lets the
-meshes' engine draw their shadows in turn.
+with Relight on that carry a material), the meshes that shadow them, the stand-in that lets the
+meshes' engine draw their shadows in turn, and the lit picture (core.relight's shading).
 
 Relit and unlit splats render in ONE cloud (so they blend in depth order as before): when any
-object is relit, every object's splats get the material extras (unlit ones a placeholder) and the
-extra LIT, 1 where a splat is shaded, so that joining keeps them (data.instances_cloud joins only
-the extras every cloud has).
+object is relit, every object's splats carry the material extras, an unlit object's as NaN
+albedo and normals, the rows core.relight leaves with their own colour (material_rows), so
+that joining keeps the extras (data.instances_cloud joins only those every cloud has).
 """
 
 import warnings
@@ -17,8 +17,6 @@ from ...core import material
 from .. import data
 from .lights import is_relit
 from .scene import scene_splats, surface_triangles
-
-LIT = "splatwright_lit"  # extra: 1 where the splat is shaded with the scene's lights, else 0
 
 
 class RelightWarning(UserWarning):
@@ -34,17 +32,20 @@ def scene_cloud(depsgraph, origin):
     """(cloud, lit) of the depsgraph's splats (world shifted by -`origin`, see scene_splats): lit is an
     (N,) bool mask of the relit splats, or None when none is relit (the cloud is then as an unlit
     render reads it)."""
+    from ...core.relight import material_rows
+
     if not wants_relight(depsgraph):
         return scene_splats(depsgraph, origin), None
     cloud = scene_splats(depsgraph, origin, prepare=_marked)
     if cloud is None:
         return None, None
-    lit = cloud.extras.get(LIT, np.zeros(len(cloud))).astype(bool)
+    lit = material_rows(cloud)
     return cloud, (lit if lit.any() else None)
 
 
 def _marked(obj, cloud):
-    """`cloud` of object `obj` with its material (a placeholder where it is not relit) and LIT."""
+    """`cloud` of object `obj` with its material, all four parts (NaN albedo and normals where the
+    object is not relit, so core.relight keeps its colours)."""
     relit = is_relit(obj)
     if relit and not material.has_material(cloud):  # once per render: objects are read once
         warnings.warn(
@@ -55,18 +56,11 @@ def _marked(obj, cloud):
         )
         relit = False
     n = len(cloud)
-    if relit:
-        extras = {material.ROUGHNESS: material.roughness(cloud), material.METALLIC: material.metallic(cloud)}
-    else:
-        extras = {
-            material.ALBEDO: np.zeros((n, 3)),
-            **{k: np.zeros(n) for k in material.NORMALS[:2]},
-            material.NORMALS[2]: np.ones(n),
-            material.ROUGHNESS: np.full(n, material.DEFAULT_ROUGHNESS),
-            material.METALLIC: np.full(n, material.DEFAULT_METALLIC),
-        }
+    extras = {material.ROUGHNESS: material.roughness(cloud), material.METALLIC: material.metallic(cloud)}
+    if not relit:
+        extras.update({material.ALBEDO: np.full((n, 3), np.nan), **{k: np.full(n, np.nan) for k in material.NORMALS}})
     extras = {k: np.asarray(v, np.float32) for k, v in extras.items()}
-    return cloud.replace(extras={**cloud.extras, **extras, LIT: np.full(n, relit, np.uint8)})
+    return cloud.replace(extras={**cloud.extras, **extras})
 
 
 def occluders(depsgraph, origin):
@@ -104,42 +98,44 @@ def any_relit(scene):
     return any(is_relit(obj) for obj in scene.objects if data.is_splat_object(obj))
 
 
-SHADOW_RESOLUTION = 512  # texels a side of each shadow-map view (core.shadows)
-
-
-def visibilities(cloud, lights, occluders=(), resolution=SHADOW_RESOLUTION, threads=None):
+def visibilities(cloud, lights, occluders=()):
     """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
-    the whole cloud (relit or not) and the `occluders` meshes (core.shadows.visibility)."""
+    the whole cloud (relit or not) and the `occluders` meshes, at core.relight's shadow-map sizes."""
+    from ...core.relight import SHADOW_RESOLUTION
     from ...core.shadows import visibility
 
     return {
-        i: visibility(cloud, light, occluders=list(occluders), resolution=resolution, threads=threads)
+        i: visibility(cloud, light, occluders=list(occluders), resolution=SHADOW_RESOLUTION[light.kind])
         for i, light in enumerate(lights)
         if light.cast_shadow
     }
 
 
-def shaded(cloud, lit, eye, lights, world, visible=None):
-    """(cloud, shading): `cloud` with its `lit` splats' colour replaced by the radiance the lights and
-    world send towards `eye` (a position or core Camera), as display sRGB in the DC coefficient (the
-    higher SH bands of those splats zeroed), and the core.shading.Shading of the lit splats.
-    `visible` is visibilities()'s result (None: no shadows)."""
+def with_lit_colors(cloud, lit, shading):
+    """`cloud` whose `lit` splats show their shading's radiance (core.shading.Shading of cloud[lit])
+    as display sRGB in every direction (the DC coefficient; their higher SH bands zeroed), as
+    core.relight draws it; the other splats keep their own SH."""
     from ...core.color import linear_to_srgb
     from ...core.sh import rgb_to_dc
-    from ...core.shading import shade
 
-    part = cloud[lit]
-    shading = shade(part, eye, lights, world, {i: v[lit] for i, v in (visible or {}).items()})
     sh = cloud.sh.copy()
     sh[lit] = 0.0
-    radiance = np.maximum(shading.diffuse.astype(np.float64) + shading.specular, 0.0)
-    sh[lit, 0] = rgb_to_dc(linear_to_srgb(radiance))
-    return cloud.replace(sh=sh), shading
+    sh[lit, 0] = rgb_to_dc(linear_to_srgb(np.maximum(shading.radiance, 0.0)))
+    return cloud.replace(sh=sh)
+
+
+def shaded(cloud, lit, eye, lights, world, visible=None):
+    """`cloud` with its `lit` splats shaded for an eye at `eye` (a position or core Camera), each light
+    scaled by `visible` (visibilities()'s result, made once for many views; None: no shadows)."""
+    from ...core.shading import shade
+
+    shading = shade(cloud[lit], eye, lights, world, {i: v[lit] for i, v in (visible or {}).items()})
+    return with_lit_colors(cloud, lit, shading)
 
 
 class LitScene(NamedTuple):
     """A relit render: image, the core RenderResult (display sRGB, as core.render gives it); diffuse,
-    specular (H,W,3) and shadow (H,W,1) scene-linear premultiplied passes, or None."""
+    specular (H,W,3) and shadow (H,W) scene-linear premultiplied passes, or None."""
 
     image: object
     diffuse: np.ndarray | None = None
@@ -148,39 +144,33 @@ class LitScene(NamedTuple):
 
 
 def render_scene(cloud, lit, camera, lights, world, *, occluders, background, layer, passes, progress=None):
-    """`cloud` with its `lit` splats shaded by `lights` and `world` (the others keep their own colour),
-    shadowed by the whole cloud and by `occluders`, rendered once by core.render with `background`
-    and `layer`; with `passes`, also the lit splats' Diffuse, Specular and Shadow seen through the same
-    blending (one more render each, the layer's colour black so only the splats add)."""
-    from ...core.render import Layer, render
+    """`cloud` with its `lit` splats shaded by `lights` and `world` and shadowed by the whole cloud and
+    `occluders` (core.relight.lit_colors), the others with their own colour, drawn by ONE core.render
+    with `background` and `layer`. core.relight.render_lit does the same but gives back no
+    RenderResult, whose layer transmittance the engine's Depth and Splats passes need. With
+    `passes`, also the lit splats' Diffuse, Specular and Shadow blended as colours are (one more
+    render each; the layer black, so it only hides what is behind it), as render_lit makes them."""
+    from ...core.relight import lit_colors
+    from ...core.render import Layer, Shapes, render
+    from ...core.sh import rgb_to_dc
 
-    visible = visibilities(cloud, lights, occluders)
-    coloured, shading = shaded(cloud, lit, camera, lights, world, visible)
-    image = render(coloured, camera, background=background, layer=layer, progress=progress)
+    rows, shading = lit_colors(cloud, camera, lights, world, meshes=occluders)
+    if not np.array_equal(rows, lit):
+        raise ValueError("the relit splats changed between reading and shading")
+    coloured = with_lit_colors(cloud, lit, shading)
+    shapes = Shapes(coloured) if passes else None
+    image = render(coloured, camera, background=background, layer=layer, progress=progress, shapes=shapes)
     if not passes:
         return LitScene(image)
     dark = None if layer is None else Layer(np.zeros_like(layer.color), layer.alpha, layer.depth)
-    values = {
-        "diffuse": shading.diffuse,
-        "specular": shading.specular,
-        "shadow": np.repeat(shading.shadow[:, None], 3, 1),
-    }
-    out = {}
-    for name, value in values.items():
-        out[name] = _splat_image(cloud, lit, value, camera, dark)
-    out["shadow"] = out["shadow"][..., :1]
-    return LitScene(image, **out)
 
+    def blended(values):  # the lit splats show `values`, the others black
+        sh = np.full((len(cloud), 1, 3), rgb_to_dc(0.0), np.float32)
+        sh[lit, 0] = rgb_to_dc(values)
+        return render(coloured.replace(sh=sh), camera, background=None, layer=dark, shapes=shapes).color
 
-def _splat_image(cloud, lit, value, camera, layer):
-    """(H,W,3) per-splat `value` (M,3) of the lit splats (0 for the others) blended as their colour."""
-    from ...core.render import render
-    from ...core.sh import rgb_to_dc
-
-    sh = np.zeros((len(cloud), 1, 3))
-    sh[:, 0] = rgb_to_dc(0.0)
-    sh[lit, 0] = rgb_to_dc(np.asarray(value, np.float64))
-    return render(cloud.replace(sh=sh), camera, background=None, layer=layer).color
+    shadow = np.repeat(shading.shadow[:, None], 3, axis=1)
+    return LitScene(image, blended(shading.diffuse), blended(shading.specular), blended(shadow)[..., 0])
 
 
 def lit_passes(result):

@@ -59,7 +59,7 @@ class Lighting:
         """`cloud` with the relit splats' colours for an eye at `camera`."""
         if self.visible is None:
             self.visible = relit.visibilities(cloud, self.lights, self.occluders)
-        return relit.shaded(cloud, self.lit, camera, self.lights, self.world, self.visible)[0]
+        return relit.shaded(cloud, self.lit, camera, self.lights, self.world, self.visible)
 
 
 def picture_inputs(depsgraph):
