@@ -20,7 +20,8 @@ the Mesh to Splats bench draws them), max_bounces 0 (direct light only, as rende
 world's light is still shadowed by the mesh in Cycles, not in render_lit), no denoising, Standard
 view transform, film transparent, composited over black. Its noise floor is the PSNR between two
 renders with different seeds. Shadows off on both sides: the mesh's object invisible to shadow rays
-in Cycles, the light's cast_shadow False for render_lit, so shading error and shadow error part.
+in Cycles, the light's cast_shadow False for render_lit, so shading error and shadow error part
+(Cycles' world light stays occluded: hiding the object from shadow rays leaves it unchanged).
 
 Views: bench/mesh2splats.py's held-out cameras (0.5x, 1x and 3x the framing distance; the floor
 scene's from 2 to 50 degrees above the floor). PSNR per distance over its views together.
