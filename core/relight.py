@@ -22,7 +22,7 @@ from . import sh as shmod
 from .arrays import Image
 from .camera import Camera
 from .lights import Light, World
-from .render import Layer, Shapes, render
+from .render import Layer, RenderResult, Shapes, render
 from .shading import shade
 from .splats import SplatCloud
 
@@ -38,7 +38,8 @@ class LitRender:
     """color (H,W,3) float32 display sRGB, alpha (H,W), depth (H,W) as core.render gives them; with
     passes, diffuse and specular (H,W,3) float32 scene-linear radiance (premultiplied by the splats'
     coverage, no background) and shadow (H,W) float32, the blended fraction of the lights' light
-    that shadows took away; otherwise None. stats: the render's, and the shadow maps' time."""
+    that shadows took away; otherwise None. stats: the render's, and the shadow maps' time; result:
+    core.render's RenderResult of the lit cloud."""
 
     color: Image
     alpha: Annotated[np.ndarray, "(H, W)"]
@@ -47,6 +48,7 @@ class LitRender:
     specular: Image | None = None
     shadow: Annotated[np.ndarray, "(H, W)"] | None = None
     stats: dict = field(default_factory=dict)
+    result: RenderResult | None = None  # core.render's whole result (a layer's transmittance, ...)
 
 
 def material_rows(cloud: SplatCloud) -> Annotated[np.ndarray, "(N,)"]:
@@ -54,6 +56,26 @@ def material_rows(cloud: SplatCloud) -> Annotated[np.ndarray, "(N,)"]:
     if not material.has_material(cloud):
         return np.zeros(len(cloud), bool)
     return np.isfinite(material.albedo(cloud)).all(axis=1) & np.isfinite(material.normals(cloud)).all(axis=1)
+
+
+def visibilities(
+    cloud: SplatCloud,
+    lights: list[Light],
+    *,
+    meshes=None,
+    shadow_resolution: dict | int | None = None,
+    threads: int | None = None,
+) -> dict[int, np.ndarray]:
+    """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
+    the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told. They
+    do not depend on the camera: a viewport makes them once for many views."""
+    return {
+        index: shadows.visibility(
+            cloud, light, occluders=meshes, resolution=_resolution(shadow_resolution, light), threads=threads
+        )
+        for index, light in enumerate(lights)  # a loop over lights
+        if light.cast_shadow
+    }
 
 
 def lit_colors(
@@ -65,21 +87,24 @@ def lit_colors(
     meshes=None,
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
+    visible: dict[int, np.ndarray] | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
-    each light's share scaled by its visibility (lights that cast shadows; all splats and `meshes`
-    occlude)."""
+    each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
+    the lights that cast shadows: all splats and `meshes` occlude)."""
     rows = material_rows(cloud)
     if not rows.any():
         return rows, None
-    visibility = {}
-    for index, light in enumerate(lights):  # a loop over lights
-        if light.cast_shadow:
-            resolution = _resolution(shadow_resolution, light)
-            vis = shadows.visibility(cloud, light, occluders=meshes, resolution=resolution, threads=threads)
-            visibility[index] = vis[rows]
+    if visible is None:
+        visible = visibilities(cloud, lights, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads)
     part = cloud if rows.all() else cloud[rows]
-    return rows, shade(part, camera, lights, world, visibility)
+    return rows, shade(part, camera, lights, world, {i: v[rows] for i, v in visible.items()})
+
+
+def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:
+    """A shallow copy of `cloud` whose splats `rows` show their shading's radiance (lit_colors'
+    result) as display sRGB in every direction; the others keep their own SH."""
+    return _with_colors(cloud, rows, color.linear_to_srgb(np.maximum(shading.radiance, 0.0)))
 
 
 def render_lit(
@@ -109,12 +134,16 @@ def render_lit(
     shading_time = time.perf_counter() - t0
     if shading is None:
         result = render(cloud, camera, background, layer=layer, threads=threads, **render_options)
-        return LitRender(result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=0.0))
-    lit = _with_colors(cloud, rows, color.linear_to_srgb(np.maximum(shading.radiance, 0.0)))
+        return LitRender(
+            result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=0.0), result=result
+        )
+    lit = lit_cloud(cloud, rows, shading)
     shapes = Shapes(lit, threads) if passes else None
     options = dict(render_options, threads=threads, shapes=shapes)
     result = render(lit, camera, background, layer=layer, **options)
-    out = LitRender(result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=shading_time))
+    out = LitRender(
+        result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=shading_time), result=result
+    )
     if passes:
         dark = None if layer is None else Layer(np.zeros_like(layer.color), layer.alpha, layer.depth)
         # Passes are linear radiance blended as colours are; splats without a material add nothing.

@@ -147,7 +147,6 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else []
         result = relit.render_scene(
             cloud,
-            lit,
             cam,
             scene_lights(depsgraph, origin),
             scene_world(depsgraph.scene),

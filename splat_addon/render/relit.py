@@ -99,38 +99,20 @@ def any_relit(scene):
 
 
 def visibilities(cloud, lights, occluders=()):
-    """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
-    the whole cloud (relit or not) and the `occluders` meshes, at core.relight's shadow-map sizes."""
-    from ...core.relight import SHADOW_RESOLUTION
-    from ...core.shadows import visibility
+    """{light index: (N,) visibility} of every light that casts shadows, past the whole cloud (relit
+    or not) and the `occluders` meshes (core.relight.visibilities)."""
+    from ...core.relight import visibilities as made
 
-    return {
-        i: visibility(cloud, light, occluders=list(occluders), resolution=SHADOW_RESOLUTION[light.kind])
-        for i, light in enumerate(lights)
-        if light.cast_shadow
-    }
-
-
-def with_lit_colors(cloud, lit, shading):
-    """`cloud` whose `lit` splats show their shading's radiance (core.shading.Shading of cloud[lit])
-    as display sRGB in every direction (the DC coefficient; their higher SH bands zeroed), as
-    core.relight draws it; the other splats keep their own SH."""
-    from ...core.color import linear_to_srgb
-    from ...core.sh import rgb_to_dc
-
-    sh = cloud.sh.copy()
-    sh[lit] = 0.0
-    sh[lit, 0] = rgb_to_dc(linear_to_srgb(np.maximum(shading.radiance, 0.0)))
-    return cloud.replace(sh=sh)
+    return made(cloud, lights, meshes=list(occluders))
 
 
 def shaded(cloud, lit, eye, lights, world, visible=None):
     """`cloud` with its `lit` splats shaded for an eye at `eye` (a position or core Camera), each light
     scaled by `visible` (visibilities()'s result, made once for many views; None: no shadows)."""
-    from ...core.shading import shade
+    from ...core.relight import lit_cloud, lit_colors
 
-    shading = shade(cloud[lit], eye, lights, world, {i: v[lit] for i, v in (visible or {}).items()})
-    return with_lit_colors(cloud, lit, shading)
+    rows, shading = lit_colors(cloud, eye, lights, world, visible=visible or {})
+    return cloud if shading is None else lit_cloud(cloud, rows, shading)
 
 
 class LitScene(NamedTuple):
@@ -143,34 +125,27 @@ class LitScene(NamedTuple):
     shadow: np.ndarray | None = None
 
 
-def render_scene(cloud, lit, camera, lights, world, *, occluders, background, layer, passes, progress=None):
-    """`cloud` with its `lit` splats shaded by `lights` and `world` and shadowed by the whole cloud and
-    `occluders` (core.relight.lit_colors), the others with their own colour, drawn by ONE core.render
-    with `background` and `layer`. core.relight.render_lit does the same but gives back no
-    RenderResult, whose layer transmittance the engine's Depth and Splats passes need. With
-    `passes`, also the lit splats' Diffuse, Specular and Shadow blended as colours are (one more
-    render each; the layer black, so it only hides what is behind it), as render_lit makes them."""
-    from ...core.relight import lit_colors
-    from ...core.render import Layer, Shapes, render
-    from ...core.sh import rgb_to_dc
+def render_scene(cloud, camera, lights, world, *, occluders, background, layer, passes, progress=None):
+    """`cloud` with the splats that carry a material (the relit ones, scene_cloud's `lit`) shaded by
+    `lights` and `world` and shadowed by the whole cloud and `occluders`, the others with their own
+    colour, drawn by ONE core.render with `background` and
+    `layer` (core.relight.render_lit); with `passes`, also the lit splats' Diffuse, Specular and
+    Shadow. The RenderResult comes whole: the engine's Depth and Splats passes need its layer
+    transmittance."""
+    from ...core.relight import render_lit
 
-    rows, shading = lit_colors(cloud, camera, lights, world, meshes=occluders)
-    if not np.array_equal(rows, lit):
-        raise ValueError("the relit splats changed between reading and shading")
-    coloured = with_lit_colors(cloud, lit, shading)
-    shapes = Shapes(coloured) if passes else None
-    image = render(coloured, camera, background=background, layer=layer, progress=progress, shapes=shapes)
-    if not passes:
-        return LitScene(image)
-    dark = None if layer is None else Layer(np.zeros_like(layer.color), layer.alpha, layer.depth)
-
-    def blended(values):  # the lit splats show `values`, the others black
-        sh = np.full((len(cloud), 1, 3), rgb_to_dc(0.0), np.float32)
-        sh[lit, 0] = rgb_to_dc(values)
-        return render(coloured.replace(sh=sh), camera, background=None, layer=dark, shapes=shapes).color
-
-    shadow = np.repeat(shading.shadow[:, None], 3, axis=1)
-    return LitScene(image, blended(shading.diffuse), blended(shading.specular), blended(shadow)[..., 0])
+    out = render_lit(
+        cloud,
+        camera,
+        lights,
+        world,
+        meshes=occluders,
+        layer=layer,
+        passes=passes,
+        background=background,
+        progress=progress,
+    )
+    return LitScene(out.result, out.diffuse, out.specular, out.shadow)
 
 
 def lit_passes(result):
