@@ -23,6 +23,11 @@ energy compensation of the lobe (multiscatter_compensation; `multiscatter=False`
 
 Not modelled: clearcoat, sheen, subsurface, transmission, emission, light bouncing between splats,
 and the world's occlusion.
+
+The NumPy functions are the reference. Where numba loads (core.jit), shade() runs the same sums one
+splat at a time in a compiled loop (_shade_loop, float64 as NumPy, on every core): no (N,3) float64
+temporaries per emitter, which made NumPy's shading of a 410k-splat frame take about as long as the
+frame's render. tests/test_shading.py holds the two to 1e-5.
 """
 
 import functools
@@ -31,10 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import material
+from . import jit, material
 from .arrays import Floats
 from .camera import Camera
 from .lights import Light, World, incident
+from .parallel import WORKERS, map_threads
 from .splats import SplatCloud
 
 DIELECTRIC_F0 = 0.04  # Fresnel at normal incidence of an IOR 1.5 dielectric (Principled's default)
@@ -209,15 +215,20 @@ def shade(
     visibility: dict[int, np.ndarray] | None = None,
     *,
     multiscatter: bool = True,
+    backend: str = "auto",
 ) -> Shading:
     """Shade every splat of `cloud` (which must carry a material: core.material.has_material) for an
     eye at a position (3,) or a Camera, under `lights` and an optional uniform `world`. visibility
     maps a light's index in `lights` to (N,) values in [0,1] (1: unshadowed; lights absent: 1).
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
-    default Multiscatter GGX does; False for the plain single-scattering GGX distribution."""
+    default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
+    backend: "auto" (the compiled kernel where numba loads, core.jit) or "numpy" (the reference)."""
     normals, albedo = material.normals(cloud), material.albedo(cloud)
     if normals is None or albedo is None:
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
+    kernel = _shade_kernel() if backend != "numpy" else None
+    if kernel is not None:
+        return _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibility, multiscatter)
     points = cloud.positions.astype(np.float64)
     n = len(points)
     view = view_directions(eye, points)
@@ -254,3 +265,180 @@ def _visibility(visibility: dict[int, np.ndarray] | None, index: int, n: int) ->
     if vis.shape != (n,) or not np.isfinite(vis).all():
         raise ValueError(f"visibility of light {index} must be {n} finite values, got shape {vis.shape}")
     return np.clip(vis, 0.0, 1.0)
+
+
+# the compiled path -----------------------------------------------------------------------------------
+# The same shading one splat at a time (float64 throughout, as the NumPy path): each light is cut into
+# emitters, one row of numbers each (EMITTER_FIELDS), so the loop needs no Light objects.
+
+SUN, POINT, SPOT, AREA = 0, 1, 2, 3
+# kind, light index, position (3), direction (3: towards the sun; the spot's or area's axis),
+# strength factor, spot cos(size/2) and edge width, emitter radius (the sun's: its half angle)
+EMITTER_FIELDS = 12
+
+
+def _emitters(lights: list[Light]) -> np.ndarray:
+    """(E, EMITTER_FIELDS) float64: every light's emitters (an area light's samples, see incident)."""
+    from .lights import AREA_RADIANCE, area_points
+
+    rows = []
+    for index, light in enumerate(lights):  # a loop over lights
+        if light.kind == "sun":
+            rows.append([SUN, index, 0, 0, 0, *(-light.direction), light.power, 0, 0, 0.5 * light.angle])
+        elif light.kind in ("point", "spot"):
+            cos_half = math.cos(0.5 * light.spot_size)
+            kind = SPOT if light.kind == "spot" else POINT
+            strength = light.power / (4.0 * math.pi)
+            width = (1.0 - cos_half) * light.spot_blend
+            rows.append([kind, index, *light.position, *light.direction, strength, cos_half, width, light.radius])
+        else:
+            samples, shares = area_points(light)
+            for sample, share in zip(samples, shares, strict=True):  # 16 samples
+                strength = AREA_RADIANCE * light.power / light.area * share
+                rows.append([AREA, index, *sample, *light.direction, strength, 0, 0, math.sqrt(share / math.pi)])
+    return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS)
+
+
+def _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibility, multiscatter):
+    """shade() by the compiled kernel, on every core (it releases the GIL)."""
+    n = len(cloud)
+    vis = np.ones((len(lights), n))
+    for index in range(len(lights)):  # a loop over lights
+        if visibility is not None and index in visibility:
+            vis[index] = _visibility(visibility, index, n)
+    ortho = isinstance(eye, Camera) and eye.is_orthographic
+    if isinstance(eye, Camera):
+        eye = -eye.forward if ortho else eye.center
+    eye = np.asarray(eye, np.float64).reshape(3)
+    colors = np.array([light.color for light in lights], np.float64).reshape(-1, 3)
+    world_color = np.zeros(3) if world is None else np.asarray(world.color, np.float64)
+    scale, bias = _albedo_table()
+    points = np.ascontiguousarray(cloud.positions, np.float32)
+    rough, metal = material.roughness(cloud), material.metallic(cloud)
+    diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
+    emitters = _emitters(lights)
+    flags = np.array([ortho, multiscatter, world is not None])
+    bounds = np.linspace(0, n, min(WORKERS, max(1, n // 4096)) + 1).astype(np.int64)
+    map_threads(
+        lambda k: kernel(
+            bounds[k], bounds[k + 1], points, normals, albedo, rough, metal, eye, flags, emitters, colors,
+            vis, world_color, scale, bias, diffuse, specular, shadow,
+        ),
+        range(len(bounds) - 1),
+    )  # fmt: skip
+    return Shading(diffuse, specular, shadow)
+
+
+def _shade_kernel():
+    """The compiled twin of shade (core.jit), or None: NumPy then does the work."""
+    return jit.compiled(__name__, ("_lambda_one", "_table_one", "_shade_loop"))
+
+
+def _lambda_one(cos_t, alpha):
+    """smith_lambda of one direction."""
+    cos2 = max(cos_t * cos_t, COS_MIN * COS_MIN)
+    tan2 = max(1.0 - cos2, 0.0) / cos2
+    return 0.5 * (math.sqrt(1.0 + alpha * alpha * tan2) - 1.0)
+
+
+def _table_one(table, cos_v, roughness):
+    """specular_albedo's bilinear lookup of one (n.v, roughness) in a (TABLE, TABLE) table."""
+    x = min(max(cos_v, 0.0), 1.0) * (TABLE - 1)
+    y = min(max(roughness, 0.0), 1.0) * (TABLE - 1)
+    i, j = min(int(x), TABLE - 2), min(int(y), TABLE - 2)
+    fx, fy = x - i, y - j
+    low = table[i, j] * (1 - fx) + table[i + 1, j] * fx
+    high = table[i, j + 1] * (1 - fx) + table[i + 1, j + 1] * fx
+    return low * (1 - fy) + high * fy
+
+
+def _shade_loop(lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, colors, vis, world,
+                scale, bias, diffuse, specular, shadow):  # fmt: skip
+    """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
+    n_lights = colors.shape[0]
+    v, nrm, f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    out_d, out_s = np.empty(3), np.empty(3)
+    acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
+    for i in range(lo, hi):
+        if flags[0]:
+            v[:] = eye
+        else:
+            for c in range(3):
+                v[c] = eye[c] - points[i, c]
+            length = max(math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
+            v /= length
+        sign = -1.0 if normals[i, 0] * v[0] + normals[i, 1] * v[1] + normals[i, 2] * v[2] < 0.0 else 1.0
+        for c in range(3):
+            nrm[c] = normals[i, c] * sign
+        r, m = rough[i], metal[i]
+        alpha = max(r * r, ALPHA_MIN)
+        cos_v = max(nrm[0] * v[0] + nrm[1] * v[1] + nrm[2] * v[2], 0.0)
+        s_tab, b_tab = _table_one(scale, cos_v, r), _table_one(bias, cos_v, r)
+        white_albedo = min(max(s_tab + b_tab, 0.0), 1.0)
+        for c in range(3):
+            f0[c] = DIELECTRIC_F0 + (albedo[i, c] - DIELECTRIC_F0) * m
+            boost[c] = 1.0 + f0[c] * (1.0 / max(white_albedo, 1e-3) - 1.0) if flags[1] else 1.0
+            layer[c] = min(max(f0[c] * s_tab + b_tab, 0.0), 1.0) * boost[c]
+            base[c] = albedo[i, c] * (1.0 - m) * min(max(1.0 - layer[c], 0.0), 1.0)
+        cos_vg = max(cos_v, COS_MIN)
+        acc[:] = 0.0
+        for e in range(emitters.shape[0]):
+            kind, index, strength = emitters[e, 0], int(emitters[e, 1]), emitters[e, 8]
+            if kind == SUN:
+                lx, ly, lz, distance = emitters[e, 5], emitters[e, 6], emitters[e, 7], math.inf
+            else:
+                lx, ly, lz = emitters[e, 2] - points[i, 0], emitters[e, 3] - points[i, 1], emitters[e, 4] - points[i, 2]
+                distance = math.sqrt(lx * lx + ly * ly + lz * lz)
+                safe = max(distance, 1e-300)
+                lx, ly, lz = lx / safe, ly / safe, lz / safe
+                out = -(lx * emitters[e, 5] + ly * emitters[e, 6] + lz * emitters[e, 7])  # cos to the axis
+                if kind == SPOT:
+                    cos_half, width = emitters[e, 9], emitters[e, 10]
+                    if width <= 0.0:
+                        strength *= 1.0 if out > cos_half else 0.0
+                    else:
+                        x = min(max((out - cos_half) / width, 0.0), 1.0)
+                        strength *= x * x * (3.0 - 2.0 * x)
+                elif kind == AREA:
+                    strength *= max(out, 0.0)
+                strength = strength / (safe * safe) if distance > 1e-300 else 0.0
+            cos_l = nrm[0] * lx + nrm[1] * ly + nrm[2] * lz
+            if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone
+                continue
+            acc[index, 0] += strength * cos_l
+            radius = emitters[e, 11]
+            if kind != SUN:  # the emitter's angular radius (angular_radius)
+                radius = math.asin(min(max(radius / max(distance, 1e-300), 0.0), 1.0))
+            a = min(math.hypot(alpha, 0.5 * radius), 1.0)
+            hx, hy, hz = v[0] + lx, v[1] + ly, v[2] + lz
+            h_len = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
+            cos_h = min(max((nrm[0] * hx + nrm[1] * hy + nrm[2] * hz) / h_len, 0.0), 1.0)
+            weight = (1.0 - min(max((v[0] * hx + v[1] * hy + v[2] * hz) / h_len, 0.0), 1.0)) ** 5
+            a2 = a * a
+            denom = cos_h * cos_h * (a2 - 1.0) + 1.0
+            d = a2 / (math.pi * denom * denom)
+            g = 1.0 / (1.0 + _lambda_one(cos_vg, a) + _lambda_one(max(cos_l, COS_MIN), a))
+            value = d * g / (4.0 * cos_vg) * strength
+            acc[index, 1] += value * (1.0 - weight)
+            acc[index, 2] += value * weight
+        lit, seen = 0.0, 0.0
+        out_d[:] = 0.0
+        out_s[:] = 0.0
+        for k in range(n_lights):
+            visible = min(max(vis[k, i], 0.0), 1.0)
+            total = 0.0
+            for c in range(3):
+                dc = acc[k, 0] * colors[k, c] * base[c] / math.pi
+                sc = (f0[c] * acc[k, 1] + acc[k, 2]) * colors[k, c] * boost[c]
+                out_d[c] += visible * dc
+                out_s[c] += visible * sc
+                total += dc + sc
+            lit += total / 3.0
+            seen += visible * total / 3.0
+        for c in range(3):
+            if flags[2]:
+                out_d[c] += base[c] * world[c]
+                out_s[c] += layer[c] * world[c]
+            diffuse[i, c] = out_d[c]
+            specular[i, c] = out_s[c]
+        shadow[i] = min(max(1.0 - seen / lit, 0.0), 1.0) if lit > 0.0 else 0.0

@@ -47,6 +47,7 @@ CHUNK = 1 << 16  # points per step of the NumPy filter
 CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
+FULL_SHARE = 0.6  # a map with more of the splats near it than this draws the whole cloud (no copy)
 
 
 @dataclass
@@ -98,24 +99,36 @@ def visibility(
 def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) -> list[ShadowView]:
     """The light's shadow-map views (see the module notes), each rendered from the splats near it."""
     points = cloud.positions.astype(np.float64)
-    reach = 3.0 * cloud.scales.max(axis=1) if len(cloud) else np.zeros(0)
+    reach = _reach(cloud)
     # What the maps need of the splats: their shapes (colour and extras are not drawn).
     bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, cloud.sh[:, :1])
     bare.antialiased = cloud.antialiased
     meshes = list(occluders or [])
     views = []
-    for camera in _cameras(light, points, reach, meshes, int(resolution)):
-        near = _near_mask(camera, points, reach)
+    cameras = _cameras(light, points, reach, meshes, int(resolution))
+    masks = _near_masks(cameras, cloud.positions, points, reach)
+    for camera, near in zip(cameras, masks, strict=True):
         depth = np.full((camera.height, camera.width), np.inf, np.float32)
         alpha = np.zeros((camera.height, camera.width), np.float32)
-        if near.any():
-            result = render(bare[near], camera, background=None, threads=threads)
+        rows = np.flatnonzero(near)
+        if len(rows):
+            # The render culls what its camera cannot see as fast as a copy of the splats near it
+            # would be made, and gives the same map: most of the cloud is drawn as it is.
+            part = bare if len(rows) > FULL_SHARE * len(bare) else bare[rows]
+            result = render(part, camera, background=None, threads=threads)
             alpha = result.alpha
             depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
         for mesh in meshes:
             depth, alpha = _with_mesh(depth, alpha, mesh, camera)
         views.append(ShadowView(camera, depth, alpha))
     return views
+
+
+def _reach(cloud):
+    """(N,) float64: three standard deviations of each splat's widest axis (exp is monotonic: the
+    widest log-scale's exp is the widest scale)."""
+    with np.errstate(over="ignore"):
+        return 3.0 * np.exp(cloud.log_scales.max(axis=1).astype(np.float64))
 
 
 # cameras ------------------------------------------------------------------------------------------
@@ -169,11 +182,53 @@ def _sun_camera(direction, points, reach, meshes, resolution):
 
 def _near_plane(position, points, reach, meshes):
     """A near plane in front of everything the light sees (half the nearest splat's surface distance)."""
-    d = np.linalg.norm(points - position, axis=1) - reach if len(points) else np.ones(1)
+    rel = points - position
+    d = np.sqrt(np.einsum("ij,ij->i", rel, rel)) - reach if len(points) else np.ones(1)
     for m in meshes:
         d = np.append(d, np.linalg.norm(m.vertices - position, axis=1).min())
     nearest = float(np.min(d)) if len(d) else 1.0
     return float(np.clip(0.5 * nearest, 1e-4, 0.05))
+
+
+def _near_masks(cameras, positions, points, reach):
+    """_near_mask of every camera, by the compiled kernel in one pass over the splats when it loads."""
+    kernel = jit.compiled(__name__, ("_near_loop",))
+    if kernel is None:
+        return [_near_mask(camera, points, reach) for camera in cameras]
+    params = np.array([_near_params(camera) for camera in cameras]).reshape(-1, 7)
+    rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
+    out = np.empty((len(cameras), len(points)), np.bool_)
+    positions = np.ascontiguousarray(positions, np.float32)
+    bounds = np.linspace(0, len(points), min(WORKERS, max(1, len(points) // 4096)) + 1).astype(np.int64)
+    map_threads(
+        lambda k: kernel(bounds[k], bounds[k + 1], positions, reach, params, rotations, out), range(len(bounds) - 1)
+    )
+    return list(out)
+
+
+def _near_params(camera):
+    """(centre (3), half_x, half_y, near, orthographic) of a camera for _near_loop."""
+    half_x = (camera.width / 2 + 2) / camera.fx
+    half_y = (camera.height / 2 + 2) / camera.fy
+    return [*camera.center, half_x, half_y, camera.near, float(camera.is_orthographic)]
+
+
+def _near_loop(lo, hi, positions, reach, params, rotations, out):
+    """_near_mask for splats lo..hi and every camera (rows of params and rotations) into out (F,N)."""
+    for f in range(params.shape[0]):
+        half_x, half_y, near, ortho = params[f, 3], params[f, 4], params[f, 5], params[f, 6] > 0.5
+        widest = math.sqrt(1 + max(half_x, half_y) ** 2)
+        for i in range(lo, hi):
+            px, py, pz = positions[i, 0] - params[f, 0], positions[i, 1] - params[f, 1], positions[i, 2] - params[f, 2]
+            x = rotations[f, 0, 0] * px + rotations[f, 0, 1] * py + rotations[f, 0, 2] * pz
+            y = rotations[f, 1, 0] * px + rotations[f, 1, 1] * py + rotations[f, 1, 2] * pz
+            r = reach[i]
+            if ortho:
+                out[f, i] = abs(x) <= half_x + r and abs(y) <= half_y + r
+                continue
+            z = rotations[f, 2, 0] * px + rotations[f, 2, 1] * py + rotations[f, 2, 2] * pz
+            slack = r * widest
+            out[f, i] = z + r > near and abs(x) <= half_x * z + slack and abs(y) <= half_y * z + slack
 
 
 def _near_mask(camera, points, reach):
@@ -239,6 +294,9 @@ def _extent_and_slope(cloud, light, points):
     """(N,) each splat's standard deviation along its ray from the light, sqrt(l^T Sigma l), and
     (N,) the tan of the angle between its surface normal (the material's, else its thinnest axis)
     and that ray, capped at MAX_SLOPE: how much depth a texel spans across it."""
+    kernel = jit.compiled(__name__, ("_extent_loop",))
+    if kernel is not None:
+        return _extent_compiled(kernel, cloud, light)
     rays = _light_rays(light, points)
     rot = cloud.rotation_matrices()
     local = np.einsum("nji,nj->ni", rot, rays)  # the ray in the splat's axes
@@ -250,6 +308,65 @@ def _extent_and_slope(cloud, light, points):
         cos = np.abs(np.einsum("ni,ni->n", normal, rays))
     slope = np.minimum(np.sqrt(np.maximum(1 - cos * cos, 0)) / np.maximum(cos, 1e-9), MAX_SLOPE)
     return sigma, slope
+
+
+def _extent_compiled(kernel, cloud, light):
+    """_extent_and_slope by the compiled kernel, on every core."""
+    n = len(cloud)
+    normal = material.normals(cloud)
+    normal = np.zeros((0, 3)) if normal is None else normal
+    sun = light.kind == "sun"
+    source = _unit(light.direction) if sun else np.asarray(light.position, np.float64)
+    fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.rotations, cloud.log_scales)]
+    sigma, slope = np.empty(n), np.empty(n)
+    bounds = np.linspace(0, n, min(WORKERS, max(1, n // 4096)) + 1).astype(np.int64)
+    map_threads(
+        lambda k: kernel(bounds[k], bounds[k + 1], *fields, normal, source, sun, MAX_SLOPE, sigma, slope),
+        range(len(bounds) - 1),
+    )
+    return sigma, slope
+
+
+def _extent_loop(lo, hi, positions, rotations, log_scales, normals, source, sun, max_slope, sigma, slope):
+    """_extent_and_slope for splats lo..hi: the ray in the splat's axes by its unit quaternion
+    (w, x, y, z; a zero or non-finite one is the identity, as geometry.normalize_quaternions)."""
+    ray = np.empty(3)
+    for i in range(lo, hi):
+        if sun:
+            ray[:] = source
+        else:
+            for c in range(3):
+                ray[c] = positions[i, c] - source[c]
+            length = max(math.sqrt(ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2]), 1e-300)
+            ray /= length
+        w, x, y, z = (
+            np.float64(rotations[i, 0]),
+            np.float64(rotations[i, 1]),
+            np.float64(rotations[i, 2]),
+            np.float64(rotations[i, 3]),
+        )
+        norm = math.sqrt(w * w + x * x + y * y + z * z)
+        if not (norm > 1e-30 and math.isfinite(norm)):
+            w, x, y, z, norm = 1.0, 0.0, 0.0, 0.0, 1.0
+        w, x, y, z = w / norm, x / norm, y / norm, z / norm
+        # local = R^T ray, R's columns the splat's axes
+        l0 = (1 - 2 * (y * y + z * z)) * ray[0] + 2 * (x * y + w * z) * ray[1] + 2 * (x * z - w * y) * ray[2]
+        l1 = 2 * (x * y - w * z) * ray[0] + (1 - 2 * (x * x + z * z)) * ray[1] + 2 * (y * z + w * x) * ray[2]
+        l2 = 2 * (x * z + w * y) * ray[0] + 2 * (y * z - w * x) * ray[1] + (1 - 2 * (x * x + y * y)) * ray[2]
+        s0 = math.exp(np.float64(log_scales[i, 0]))
+        s1 = math.exp(np.float64(log_scales[i, 1]))
+        s2 = math.exp(np.float64(log_scales[i, 2]))
+        sigma[i] = math.sqrt(l0 * l0 * s0 * s0 + l1 * l1 * s1 * s1 + l2 * l2 * s2 * s2)
+        if normals.shape[0] == 0:  # the thinnest axis (the first of equals, as argmin)
+            thin = 0
+            if log_scales[i, 1] < log_scales[i, thin]:
+                thin = 1
+            if log_scales[i, 2] < log_scales[i, thin]:
+                thin = 2
+            cos = abs(l0 if thin == 0 else (l1 if thin == 1 else l2))
+        else:
+            cos = abs(normals[i, 0] * ray[0] + normals[i, 1] * ray[1] + normals[i, 2] * ray[2])
+        slope[i] = min(math.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 1e-9), max_slope)
 
 
 def _light_size(light):

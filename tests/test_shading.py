@@ -276,3 +276,41 @@ def test_orthographic_camera_views_along_its_axis_and_no_material_is_refused():
     )
     with pytest.raises(ValueError, match="material"):
         shade(bare, cam, [light])
+
+
+@pytest.mark.parametrize("eye", ["camera", "point", "orthographic"])
+def test_compiled_shade_matches_the_numpy_path(eye):
+    from splatwright.core import shading
+
+    if shading._shade_kernel() is None:
+        pytest.skip("compiled kernels are not available here")
+    rng = np.random.default_rng(11)
+    n = 2000
+    cloud = cloud_of(
+        rng.uniform(-1.0, 1.0, (n, 3)),
+        unit(rng.normal(size=(n, 3))),
+        rng.uniform(0.0, 1.0, (n, 3)),
+        rng.uniform(0.0, 1.0, n),
+        rng.uniform(0.0, 1.0, n),
+    )
+    lights = [
+        Light("point", power=300.0, position=(0.5, -0.4, 2.0), radius=0.2),
+        Light("spot", power=500.0, position=(-1.0, 0.5, 2.0), direction=(0.4, -0.2, -1.0), spot_size=0.9),
+        Light("spot", power=200.0, position=(0.0, 0.0, 2.5), direction=(0.0, 0.0, -1.0), spot_blend=0.0),
+        Light("sun", power=2.0, direction=(0.3, 0.2, -1.0), angle=0.05, color=(1.0, 0.8, 0.6)),
+        Light("area", power=100.0, position=(1.0, 1.0, 2.0), direction=(-0.3, -0.3, -1.0), size_x=0.8),
+        Light("area", power=80.0, position=(0, -1, 2), size_x=0.6, size_y=0.3, shape="ELLIPSE", x_axis=(0, 1, 0)),
+    ]
+    visibility = {0: rng.uniform(0.0, 1.0, n), 3: rng.uniform(0.0, 1.0, n), 4: np.zeros(n)}
+    cam = Camera.look_at((3, -4, 3), (0, 0, 0), up=(0, 0, 1), fov_deg=50, width=64, height=48)
+    if eye == "orthographic":
+        cam = Camera(64, 48, 20.0, 20.0, 32, 24, cam.world_to_camera, 0.1, projection="orthographic")
+    where = (0.5, -3.0, 1.5) if eye == "point" else cam
+    for world, multiscatter in ((World((0.1, 0.2, 0.3)), True), (None, False)):
+        args = (cloud, where, lights, world, visibility)
+        compiled = shade(*args, multiscatter=multiscatter)
+        reference = shade(*args, multiscatter=multiscatter, backend="numpy")
+        for name in ("diffuse", "specular", "shadow"):
+            got, want = getattr(compiled, name), getattr(reference, name)
+            assert got.dtype == want.dtype == np.float32
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())

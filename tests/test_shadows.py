@@ -161,3 +161,24 @@ def test_spot_lights_see_what_a_point_light_there_sees(scene):
     cube = shadows.visibility(cloud, point, resolution=512)[inside]
     # Measured: 0.0024 (each is within about 0.004 of the ray reference on average).
     assert len(inside) > 1000 and np.abs(one - cube).mean() < 0.006
+
+
+@pytest.mark.parametrize("kind", ["soft point", "tilted sun", "area"])
+def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, kind):
+    cloud, _ = scene
+    light = LIGHTS[kind]
+    points = cloud.positions.astype(np.float64)
+    if shadows.jit.compiled(shadows.__name__, ("_extent_loop",)) is None:
+        pytest.skip("compiled kernels are not available here")
+    compiled = shadows._extent_and_slope(cloud, light, points)
+    views = shadows.shadow_views(cloud, light, resolution=128)
+    # A map that draws the whole cloud (letting the render cull) is the map of the splats near it.
+    monkeypatch.setattr(shadows, "FULL_SHARE", 1.0)
+    copied = shadows.shadow_views(cloud, light, resolution=128)
+    monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
+    reference = shadows._extent_and_slope(cloud, light, points)
+    for got, want in zip(compiled, reference, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12)
+    for got, want, copy in zip(views, shadows.shadow_views(cloud, light, resolution=128), copied, strict=True):
+        assert np.array_equal(got.depth, want.depth) and np.array_equal(got.alpha, want.alpha)
+        assert np.array_equal(copy.depth, want.depth) and np.array_equal(copy.alpha, want.alpha)
