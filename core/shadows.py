@@ -87,6 +87,10 @@ def visibility(
     points = cloud.positions.astype(np.float64)
     sigma, slope = _extent_and_slope(cloud, light, points)
     size = _light_size(light)
+    kernel = jit.compiled(__name__, ("_pcss_one", "_visibility_loop"))
+    if kernel is not None and len({v.depth.shape for v in views}) == 1:
+        settings = (_light_size(light) if soft else 0.0, sigma_bias, texel_bias)
+        return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, _spiral(taps), out)
     face = _face_of(light, views, points)
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
@@ -408,22 +412,6 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     else:
         search = cam.fx * size * 3.0 / np.maximum(z, 1e-9)
     search = np.clip(search, 1.0, MAX_SEARCH_TEXELS)
-    kernel = _pcss_kernel()
-    if kernel is not None:
-        vis = np.empty(len(z))
-        uv, depth, alpha = np.ascontiguousarray(uv), view.depth, view.alpha
-        scale, ortho = cam.fx * size, cam.is_orthographic
-        # The kernel releases the GIL: contiguous shares of the points on every core.
-        bounds = np.linspace(0, len(z), min(WORKERS, max(1, len(z) // 4096)) + 1).astype(np.int64)
-        map_threads(
-            lambda k: kernel(
-                *(a[bounds[k] : bounds[k + 1]] for a in (uv, z, limit, search)),
-                depth, alpha, disc, scale, ortho, vis[bounds[k] : bounds[k + 1]],
-            ),
-            range(len(bounds) - 1),
-        )  # fmt: skip
-        out[seen] = vis
-        return out
     vis = np.empty(len(z))
     for start in range(0, len(z), CHUNK):  # a loop over chunks: (chunk, taps) arrays stay small
         sl = slice(start, start + CHUNK)
@@ -443,38 +431,98 @@ def _penumbra(z, blocker, scale, ortho):
     return np.where(np.isfinite(blocker), np.maximum(radius, 0.5), 0.0)
 
 
-def _pcss_kernel():
-    """The compiled twin of the search and filter (core.jit), or None: NumPy then does the work."""
-    return jit.compiled(__name__, ("_pcss_loop",))
+def _visibility_compiled(kernel, cloud, views, sigma, slope, settings, disc, out):
+    """visibility()'s test of every splat in its view (_face_of, _filtered) by one compiled loop on
+    every core: the splat's projection, bias, search and filter without (N,) temporaries per view."""
+    cams = np.array([_camera_row(view.camera) for view in views])
+    depth = np.stack([view.depth for view in views])
+    alpha = np.stack([view.alpha for view in views])
+    positions = np.ascontiguousarray(cloud.positions, np.float32)
+    params = np.array(settings, np.float64)
+    n = len(out)
+    bounds = np.linspace(0, n, min(WORKERS, max(1, n // 4096)) + 1).astype(np.int64)
+    map_threads(
+        lambda k: kernel(bounds[k], bounds[k + 1], positions, sigma, slope, cams, depth, alpha, disc, params, out),
+        range(len(bounds) - 1),
+    )
+    return out
 
 
-def _pcss_loop(uv, z, limit, search, depth, alpha, disc, scale, ortho, out):
-    """_covered's blocker search and filter one point at a time, as a scalar loop for numba; the
-    filter runs only where the search found a blocker (else out = 1)."""
-    h, w = depth.shape
-    taps = disc.shape[0]
-    for i in range(uv.shape[0]):
-        total, weighted = 0.0, 0.0
-        for k in range(taps):
-            x = min(max(int(np.floor(uv[i, 0] + search[i] * disc[k, 0])), 0), w - 1)
-            y = min(max(int(np.floor(uv[i, 1] + search[i] * disc[k, 1])), 0), h - 1)
-            if depth[y, x] < limit[i]:
-                total += alpha[y, x]
-                weighted += alpha[y, x] * depth[y, x]
-        if total <= 0.0:
-            out[i] = 1.0
+def _camera_row(camera):
+    """A camera as _visibility_loop reads it: rotation (9), centre (3), fx, fy, cx, cy, orthographic, near."""
+    flags = [float(camera.is_orthographic), camera.near]
+    return [*camera.rotation.ravel(), *camera.center, camera.fx, camera.fy, camera.cx, camera.cy, *flags]
+
+
+def _visibility_loop(lo, hi, positions, sigma, slope, cams, depth, alpha, disc, params, out):
+    """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
+    looking most nearly at it, none behind them all), then _filtered's test there."""
+    size, sigma_bias, texel_bias = params[0], params[1], params[2]
+    views = cams.shape[0]
+    for i in range(lo, hi):
+        f = 0
+        if views > 1:
+            best = -math.inf
+            for k in range(views):
+                along = 0.0
+                for c in range(3):
+                    along += (positions[i, c] - cams[0, 9 + c]) * cams[k, 6 + c]  # the view's forward
+                if along > best:
+                    best, f = along, k
+            if best <= 0.0:
+                continue  # behind an area light: out stays 1
+        r0, r1, r2 = positions[i, 0] - cams[f, 9], positions[i, 1] - cams[f, 10], positions[i, 2] - cams[f, 11]
+        x = cams[f, 0] * r0 + cams[f, 1] * r1 + cams[f, 2] * r2
+        y = cams[f, 3] * r0 + cams[f, 4] * r1 + cams[f, 5] * r2
+        z = cams[f, 6] * r0 + cams[f, 7] * r1 + cams[f, 8] * r2
+        fx, ortho = cams[f, 12], cams[f, 16] > 0.5
+        if not ortho:
+            if not z > 0.0:
+                continue  # behind a spot light: not in its map
+            x, y = x / z, y / z
+        u, v = fx * x + cams[f, 14], cams[f, 13] * y + cams[f, 15]
+        if not (math.isfinite(u) and math.isfinite(v)):
             continue
-        blocker = weighted / total
-        gap = max(z[i] - blocker, 0.0)
-        radius = scale * gap if ortho else scale * gap / max(z[i] * blocker, 1e-12)
-        radius = max(radius, 0.5)
-        covered = 0.0
-        for k in range(taps):
-            x = min(max(int(np.floor(uv[i, 0] + radius * disc[k, 0])), 0), w - 1)
-            y = min(max(int(np.floor(uv[i, 1] + radius * disc[k, 1])), 0), h - 1)
-            if depth[y, x] < limit[i]:
-                covered += alpha[y, x]
-        out[i] = 1.0 - min(covered / taps, 1.0)
+        texel = (1.0 if ortho else z) / fx
+        limit = z - sigma_bias * sigma[i] - texel_bias * texel * slope[i]
+        if size <= 0.0:
+            search = 0.0  # hard: the centre texel only
+        elif ortho:
+            search = min(max(fx * size * 0.75 * (z - cams[f, 17]), 1.0), MAX_SEARCH_TEXELS)
+        else:
+            search = min(max(fx * size * 3.0 / max(z, 1e-9), 1.0), MAX_SEARCH_TEXELS)
+        out[i] = _pcss_one(u, v, z, limit, search, depth[f], alpha[f], disc, fx * size, ortho)
+
+
+def _pcss_one(u, v, z, limit, search, depth, alpha, disc, scale, ortho):
+    """_covered's blocker search and filter of one point at (u, v) in a map; search 0 tests the
+    centre texel alone (a hard shadow)."""
+    h, w = depth.shape
+    if search == 0.0:
+        x = min(max(int(np.floor(u)), 0), w - 1)
+        y = min(max(int(np.floor(v)), 0), h - 1)
+        return 1.0 - min(max(alpha[y, x], 0.0), 1.0) if depth[y, x] < limit else 1.0
+    taps = disc.shape[0]
+    total, weighted = 0.0, 0.0
+    for k in range(taps):
+        x = min(max(int(np.floor(u + search * disc[k, 0])), 0), w - 1)
+        y = min(max(int(np.floor(v + search * disc[k, 1])), 0), h - 1)
+        if depth[y, x] < limit:
+            total += alpha[y, x]
+            weighted += alpha[y, x] * depth[y, x]
+    if total <= 0.0:
+        return 1.0
+    blocker = weighted / total
+    gap = max(z - blocker, 0.0)
+    radius = scale * gap if ortho else scale * gap / max(z * blocker, 1e-12)
+    radius = max(radius, 0.5)
+    covered = 0.0
+    for k in range(taps):
+        x = min(max(int(np.floor(u + radius * disc[k, 0])), 0), w - 1)
+        y = min(max(int(np.floor(v + radius * disc[k, 1])), 0), h - 1)
+        if depth[y, x] < limit:
+            covered += alpha[y, x]
+    return 1.0 - min(covered / taps, 1.0)
 
 
 def _covered(view, uv, limit, disc, radius):

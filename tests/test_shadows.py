@@ -136,14 +136,17 @@ def test_point_light_cube_renders_only_faces_with_splats(scene):
     assert covered[down] and not covered[up]
 
 
-def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch):
+@pytest.mark.parametrize("name", LIGHTS)
+def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch, name):
     cloud, _ = scene
-    light = LIGHTS["soft point"]
-    if shadows._pcss_kernel() is None:
+    light = LIGHTS[name]
+    if shadows.jit.compiled(shadows.__name__, ("_pcss_one", "_visibility_loop")) is None:
         pytest.skip("compiled kernels are not available here")
     compiled = shadows.visibility(cloud, light, resolution=256)
-    monkeypatch.setattr(shadows, "_pcss_kernel", lambda: None)
+    hard = shadows.visibility(cloud, light, resolution=256, soft=False)
+    monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
     assert np.abs(shadows.visibility(cloud, light, resolution=256) - compiled).max() < 1e-5
+    assert np.abs(shadows.visibility(cloud, light, resolution=256, soft=False) - hard).max() < 1e-5
 
 
 def test_spot_lights_see_what_a_point_light_there_sees(scene):
