@@ -13,14 +13,10 @@ ALBEDO = "albedo"
 NORMALS = NORMAL_EXTRAS  # ("nx", "ny", "nz"): the PLY convention io/ply.py reads and writes as normals
 ROUGHNESS = "roughness"
 METALLIC = "metallic"
-# 1 where the splat is the outside of a watertight solid: seen from behind it is the solid's far side
-# showing through the near side's soft outline, which a relit render leaves dark (core.relight); 0 or
-# absent: two-sided, shaded from whichever side is seen.
-ONE_SIDED = "one_sided"
 # Blender's Principled BSDF defaults, used where a cloud has no value of its own.
 DEFAULT_ROUGHNESS = 0.5
 DEFAULT_METALLIC = 0.0
-KEYS = (ALBEDO, *NORMALS, ROUGHNESS, METALLIC, ONE_SIDED)
+KEYS = (ALBEDO, *NORMALS, ROUGHNESS, METALLIC)
 
 
 def normals(cloud: SplatCloud) -> Positions | None:
@@ -51,13 +47,6 @@ def roughness(cloud: SplatCloud) -> Floats:
 def metallic(cloud: SplatCloud) -> Floats:
     """(N,) float64 metallic in [0,1]; DEFAULT_METALLIC where the cloud has none."""
     return _scalar(cloud, METALLIC, DEFAULT_METALLIC)
-
-
-def one_sided(cloud: SplatCloud) -> np.ndarray:
-    """(N,) bool: the splats shaded from their front only (ONE_SIDED); none where the cloud has no
-    such extra."""
-    values = cloud.extras.get(ONE_SIDED)
-    return np.zeros(len(cloud), bool) if values is None else values.reshape(len(cloud)) > 0.5
 
 
 def has_material(cloud: SplatCloud) -> bool:
@@ -94,13 +83,10 @@ def with_material(
     normals: ArrayLike | None = None,
     roughness: ArrayLike | None = None,
     metallic: ArrayLike | None = None,
-    one_sided: ArrayLike | None = None,
 ) -> SplatCloud:
     """A new cloud whose extras carry the given material parts (others kept as they are): albedo
     (N,3) in [0,1] scene-linear, normals (N,3) any non-zero length (stored unit), roughness and
-    metallic (N,) in [0,1] (a scalar is broadcast), one_sided (N,) bool (stored as 0/1 float32, like
-    the others, so every format that keeps float extras keeps it). ValueError for a wrong shape or
-    value."""
+    metallic (N,) in [0,1] (a scalar is broadcast). ValueError for a wrong shape or value."""
     n = len(cloud)
     extras = dict(cloud.extras)
     if albedo is not None:
@@ -115,7 +101,4 @@ def with_material(
         if values is not None:
             values = np.broadcast_to(np.asarray(values, dtype=np.float64), (n,))
             extras[key] = _checked(key, values, (n,), 0.0, 1.0)
-    if one_sided is not None:
-        flags = np.broadcast_to(np.asarray(one_sided, dtype=bool), (n,))
-        extras[ONE_SIDED] = flags.astype(np.float32)
     return cloud.replace(extras=extras)

@@ -472,16 +472,7 @@ class Surface:
         area = np.bincount(part, weights=np.where(self.valid, self.area, 0.0), minlength=n_parts)
         enclosing = (watertight | (np.abs(volume) >= OPEN_VOLUME * area**1.5)) & consistent
         sign = np.where(enclosing & (volume != 0), np.sign(volume), 0.0)
-        closed = (watertight & consistent & (volume != 0))[part] & self.valid
-        closed.flags.writeable = False
-        self._cache["closed"] = closed
         return sign[part] * self.valid * np.where(flipped, -1.0, 1.0)
-
-    def closed_faces(self):
-        """(F,) bool: the faces of watertight solids (outward_signs' parts that are closed, not open
-        ones like a head with eye holes): no view sees their back, as no view sees into them."""
-        self.outward_signs()
-        return self._cache["closed"]
 
     def rim_colors(self, tri):
         """Per-point rim colour (n,3) and a mask of points whose material has one."""

@@ -82,7 +82,7 @@ def with_surface_material(
     """`cloud` (made from `surface`, with its "source_triangle" and "barycentric" extras) with the
     material extras of core.material: albedo (surface_albedo), the normal (the `corner_normals`
     interpolated, else the face's winding normal: shading_normals; out of the solid where the part
-    is one), the face material's roughness and metallic, and one_sided for watertight solids."""
+    is one), and the face material's roughness and metallic."""
     tri = cloud.extras["source_triangle"].astype(np.int64)
     bary = cloud.extras["barycentric"].astype(np.float64)
     corners = corner_normals_of(surface, corner_normals)
@@ -90,8 +90,8 @@ def with_surface_material(
     roughness = np.array([np.clip(m.roughness, 0.0, 1.0) for m in materials], np.float64)
     metallic = np.array([np.clip(m.metallic, 0.0, 1.0) for m in materials], np.float64)
     face_material = surface.face_materials[tri]
-    # A solid's normals point out of it whichever way its faces are wound; its watertight parts are
-    # seen from outside only.
+    # A solid's normals point out of it whichever way its faces are wound (as files and other tools
+    # expect of normals), not along the winding.
     outward = surface.outward_signs()[tri]
     normals = shading_normals(surface, tri, bary, corners) * np.where(outward < 0, -1.0, 1.0)[:, None]
     return mat.with_material(
@@ -100,5 +100,4 @@ def with_surface_material(
         normals=normals,
         roughness=roughness[face_material],
         metallic=metallic[face_material],
-        one_sided=surface.closed_faces()[tri],
     )

@@ -23,7 +23,7 @@ from .arrays import Image
 from .camera import Camera
 from .lights import Light, World
 from .render import Layer, RenderResult, Shapes, render
-from .shading import Shading, shade, view_directions
+from .shading import shade
 from .splats import SplatCloud
 
 # Shadow-map texels a side per light kind (per cube face for point and area lights). The maps' cost
@@ -98,24 +98,7 @@ def lit_colors(
     if visible is None:
         visible = visibilities(cloud, lights, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads)
     part = cloud if rows.all() else cloud[rows]
-    shading = shade(part, camera, lights, world, {i: v[rows] for i, v in visible.items()})
-    return rows, _dark_behind(part, camera, shading)
-
-
-def _dark_behind(cloud: SplatCloud, eye, shading: Shading) -> Shading:
-    """`shading` with the one-sided splats (core.material.ONE_SIDED) seen from behind sending no
-    light: the far side of a closed solid that shows through its near side's soft outline, which
-    shading two-sided lit as if it faced the eye (a metal Suzanne's close-up under the sun: 24.0 dB
-    against Cycles with them lit, 32.0 dark, bench/relight_accuracy.py)."""
-    one_sided = material.one_sided(cloud)
-    if not one_sided.any():
-        return shading
-    view = view_directions(eye, cloud.positions.astype(np.float64))
-    behind = one_sided & (np.einsum("ij,ij->i", material.normals(cloud), view) < 0.0)
-    keep = (~behind)[:, None]
-    return Shading(
-        shading.diffuse * keep, shading.specular * keep, np.where(behind, 0.0, shading.shadow).astype(np.float32)
-    )
+    return rows, shade(part, camera, lights, world, {i: v[rows] for i, v in visible.items()})
 
 
 def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:

@@ -22,7 +22,6 @@ def material_cloud(n=40, seed=1):
         normals=rng.normal(size=(n, 3)),
         roughness=rng.uniform(0, 1, n),
         metallic=rng.uniform(0, 1, n),
-        one_sided=rng.uniform(0, 1, n) < 0.5,
     )
 
 
@@ -31,7 +30,6 @@ def assert_same_material(got, want, atol=0.0):
     assert got.extras[mat.ALBEDO].shape == (len(want), 3)
     for read in (mat.albedo, mat.normals, mat.roughness, mat.metallic):
         np.testing.assert_allclose(read(got), read(want), rtol=0, atol=atol)
-    np.testing.assert_array_equal(mat.one_sided(got), mat.one_sided(want))
 
 
 def test_ply_keeps_the_material(tmp_path):

@@ -79,17 +79,3 @@ def test_cloud_without_material_renders_as_it_is(scene):
     bare = SplatCloud(scene.positions, scene.rotations, scene.log_scales, scene.opacity_logits, scene.sh)
     got = relight.render_lit(bare, CAMERA, LIGHTS)
     assert np.array_equal(got.color, render(bare, CAMERA).color)
-
-
-def test_one_sided_splats_seen_from_behind_send_no_light(scene):
-    """The far side of a closed solid shows through its near side's soft outline: one-sided splats
-    facing away from the eye stay dark, two-sided ones are lit as their front would be."""
-    normals = material.normals(scene)
-    view = CAMERA.center - scene.positions.astype(np.float64)
-    behind = np.einsum("ij,ij->i", normals, view) < 0
-    assert 0 < behind.sum() < len(scene)
-    two_sided = relight.lit_colors(scene, CAMERA, LIGHTS)[1]
-    one_sided = relight.lit_colors(material.with_material(scene, one_sided=True), CAMERA, LIGHTS)[1]
-    np.testing.assert_array_equal(one_sided.radiance[behind], 0.0)
-    np.testing.assert_array_equal(one_sided.radiance[~behind], two_sided.radiance[~behind])
-    assert (two_sided.radiance[behind].max(axis=1) > 0).any()
