@@ -42,12 +42,12 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
+from _cycles import cycles_render  # noqa: E402
 from common import Row, Timing, print_rows  # noqa: E402
-from mesh2splats import (
+from mesh2splats import (  # noqa: E402
     blender_primitives,
     by_distance,
     convert,
-    cycles_render,  # noqa: E402
     held_out_cameras,
     sphere_texture,
     uv_sphere,
