@@ -43,6 +43,17 @@ def _subdivided():
 
 
 UNIT_VERTICES, UNIT_FACES = _subdivided()
+# The stand-in's shapes, finest first: the subdivided octahedron, then the octahedron itself.
+SHAPES = ((UNIT_VERTICES, UNIT_FACES), (_OCTAHEDRON, _OCTAHEDRON_FACES))
+# Memory a stand-in triangle takes: Blender 5.3's mesh of 6.4M such triangles and Cycles' render of it
+# grew the child's peak by 239 bytes a triangle; these arrays and their file add about 20.
+BYTES_PER_TRIANGLE = 260
+
+
+def shape_within(count: int, budget: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The finest of SHAPES whose stand-in of `count` splats takes at most `budget` bytes
+    (BYTES_PER_TRIANGLE each triangle), or None when not even the coarsest does."""
+    return next((shape for shape in SHAPES if count * len(shape[1]) * BYTES_PER_TRIANGLE <= budget), None)
 
 
 def reach(opacities: np.ndarray, alpha: float = ALPHA) -> np.ndarray:
@@ -54,9 +65,16 @@ def reach(opacities: np.ndarray, alpha: float = ALPHA) -> np.ndarray:
     return np.sqrt(np.clip(r2, 0.0, None))
 
 
-def ellipsoids(cloud: SplatCloud, alpha: float = ALPHA) -> tuple[np.ndarray, np.ndarray]:
+def casting(cloud: SplatCloud, alpha: float = ALPHA) -> np.ndarray:
+    """(N,) bool: the splats with a stand-in (finite, and somewhere at least `alpha` opaque)."""
+    return (reach(cloud.opacities, alpha) > 0) & cloud.finite_mask()
+
+
+def ellipsoids(cloud: SplatCloud, alpha: float = ALPHA, shape=None) -> tuple[np.ndarray, np.ndarray]:
     """The stand-in mesh of `cloud`: vertices (V,3) float32 in the cloud's frame and triangles (F,3)
-    int32, one closed ellipsoid per splat whose opacity exceeds `alpha` (the others are left out)."""
+    int32, one closed ellipsoid per splat whose opacity exceeds `alpha` (the others are left out),
+    each the unit `shape` (vertices, faces; default the finest of SHAPES) stretched and turned."""
+    unit_vertices, unit_faces = SHAPES[0] if shape is None else shape
     radius = reach(cloud.opacities, alpha)
     keep = np.flatnonzero((radius > 0) & cloud.finite_mask())
     if not len(keep):
@@ -64,6 +82,6 @@ def ellipsoids(cloud: SplatCloud, alpha: float = ALPHA) -> tuple[np.ndarray, np.
     part = cloud[keep]
     rotations = quaternions_to_matrices(part.unit_rotations)  # (K,3,3)
     axes = rotations * (part.scales * radius[keep][:, None])[:, None, :]  # columns scaled by the reach
-    vertices = np.einsum("kij,vj->kvi", axes, UNIT_VERTICES) + part.positions.astype(np.float64)[:, None, :]
-    faces = UNIT_FACES[None] + (np.arange(len(keep)) * len(UNIT_VERTICES))[:, None, None]
+    vertices = np.einsum("kij,vj->kvi", axes, unit_vertices) + part.positions.astype(np.float64)[:, None, :]
+    faces = unit_faces[None] + (np.arange(len(keep)) * len(unit_vertices))[:, None, None]
     return vertices.reshape(-1, 3).astype(np.float32), faces.reshape(-1, 3).astype(np.int32)

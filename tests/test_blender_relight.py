@@ -234,6 +234,12 @@ def test_relit_splats_shadow_the_mesh_floor(blender):
     assert shade_in < 0.3 * shade_out, (shade_in, shade_out)
     assert plain_in > 0.8 * plain_out, (plain_in, plain_out)
     assert shade_out > 0.9 * plain_out  # outside the shadow the floor keeps its light
+    # The stand-in within a memory budget: the finest shape, then the octahedron, then none, warned.
+    stand_in = res["stand_in"]
+    count = stand_in["count"]
+    assert count > 100 and stand_in["ample"] == [32 * count, []]
+    assert stand_in["coarse"][0] == 8 * count and "coarser ellipsoids" in stand_in["coarse"][1][0]
+    assert stand_in["none"][0] is None and "meshes get no shadow" in stand_in["none"][1][0]
 
 
 def test_meshes_shadow_relit_splats(blender):

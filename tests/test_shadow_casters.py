@@ -47,3 +47,31 @@ def test_no_splat_opaque_enough_gives_an_empty_mesh():
     cloud = cloud.replace(opacity_logits=np.full(5, -1.0, np.float32))
     vertices, faces = ellipsoids(cloud)
     assert vertices.shape == (0, 3) and faces.shape == (0, 3)
+
+
+def test_the_finest_shape_within_a_budget():
+    """32 triangles a splat while they fit, the octahedron's 8 past that, none past both."""
+    from splatwright.core.shadow_casters import BYTES_PER_TRIANGLE, SHAPES, shape_within
+
+    fine, coarse = SHAPES
+    assert len(fine[1]) == 32 and len(coarse[1]) == 8
+    per = BYTES_PER_TRIANGLE
+    assert shape_within(1000, 32 * 1000 * per) is fine
+    assert shape_within(1000, 32 * 1000 * per - 1) is coarse
+    assert shape_within(1000, 8 * 1000 * per) is coarse
+    assert shape_within(1000, 8 * 1000 * per - 1) is None
+
+
+def test_the_octahedron_stand_in_also_sits_at_the_alpha_level():
+    from splatwright.core.shadow_casters import SHAPES
+
+    cloud = random_cloud(40, sh_degree=0, seed=3)
+    vertices, faces = ellipsoids(cloud, shape=SHAPES[1])
+    kept = np.flatnonzero(cloud.opacities > 0.5)
+    assert vertices.shape == (len(kept) * 6, 3) and faces.shape == (len(kept) * 8, 3)
+    q = quat_matrices(cloud.rotations[kept])
+    s2 = np.exp(2 * cloud.log_scales[kept].astype(np.float64))
+    cov = np.einsum("kij,kj,klj->kil", q, s2, q)
+    d = vertices.astype(np.float64).reshape(len(kept), 6, 3) - cloud.positions[kept].astype(np.float64)[:, None]
+    m2 = np.einsum("kvi,kij,kvj->kv", d, np.linalg.inv(cov), d)
+    np.testing.assert_allclose(cloud.opacities[kept].astype(np.float64)[:, None] * np.exp(-0.5 * m2), 0.5, rtol=2e-4)

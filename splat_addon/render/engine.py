@@ -61,8 +61,9 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
         with data.reported_warnings(self.report):
             cloud, lit = relit.scene_cloud(depsgraph, origin)
+            casters = relit.shadow_casters(cloud, lit, origin)
         transparent = scene.render.film_transparent
-        meshes = self._mesh_layer(depsgraph, width, height, relit.shadow_casters(cloud, lit, origin))
+        meshes = self._mesh_layer(depsgraph, width, height, casters)
         layer = None if meshes is None else meshes.as_layer()
         background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")

@@ -75,14 +75,32 @@ def occluders(depsgraph, origin):
     return [Surface(vertices, np.arange(len(vertices)).reshape(-1, 3))]
 
 
-def shadow_casters(cloud, lit, origin):
+def shadow_casters(cloud, lit, origin, budget=None):
     """(vertices, faces) in world space of the relit splats' shadow stand-in (core.shadow_casters),
-    for the meshes' engine; None when nothing is relit."""
-    from ...core.shadow_casters import ellipsoids
+    for the meshes' engine; None when nothing is relit. Its memory in the meshes' Blender is held
+    to `budget` bytes (default: core.memory.default_budget()): past the finest shape's, each splat
+    gets the plain octahedron, and past that the meshes get no shadow from the splats (warned)."""
+    from ...core.memory import default_budget, human_bytes
+    from ...core.shadow_casters import BYTES_PER_TRIANGLE, SHAPES, casting, ellipsoids, shape_within
 
     if cloud is None or lit is None:
         return None
-    vertices, faces = ellipsoids(cloud[lit])
+    part = cloud[lit]
+    count = int(casting(part).sum())
+    budget = default_budget() if budget is None else budget
+    shape = shape_within(count, budget)
+    if shape is not SHAPES[0]:
+        need = count * len(SHAPES[0][1]) * BYTES_PER_TRIANGLE
+        warnings.warn(
+            f"the shadow stand-in of {count} relit splats would take {human_bytes(need)}, past the memory "
+            f"budget ({human_bytes(budget)}): "
+            + ("coarser ellipsoids cast their shadows" if shape is not None else "meshes get no shadow from them"),
+            RelightWarning,
+            stacklevel=2,
+        )
+    if shape is None:
+        return None
+    vertices, faces = ellipsoids(part, shape=shape)
     return vertices + np.asarray(origin, np.float32), faces
 
 

@@ -307,11 +307,30 @@ class Worker(BlenderWorker):
         )
         self.bpy.context.view_layer.update()
         res = self.engine_inputs("shadow_inputs")
+        res["stand_in"] = self.stand_in_within_budgets()
         self.write("ball_relit")
         ball.splatwright_relight = False
         self.write("ball_unlit")
         res["camera"] = self.camera_record()
         return res
+
+    def stand_in_within_budgets(self):
+        """The relit ball's shadow stand-in under an ample budget, one that holds only the coarse
+        shape, and one that holds neither: (triangles or None, warnings) each, and the splat count."""
+        import warnings
+
+        relit = self.module("splat_addon.render.relit")
+        casters = self.module("core.shadow_casters")
+        cloud, lit = relit.scene_cloud(self.bpy.context.evaluated_depsgraph_get(), np.zeros(3))
+        count = int(casters.casting(cloud[lit]).sum())
+        coarse = count * len(casters.SHAPES[1][1]) * casters.BYTES_PER_TRIANGLE
+        out = {"count": count}
+        for name, budget in (("ample", 1 << 40), ("coarse", coarse), ("none", coarse - 1)):
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                made = relit.shadow_casters(cloud, lit, np.zeros(3), budget=budget)
+            out[name] = (None if made is None else len(made[1]), [str(w.message) for w in caught])
+        return out
 
     def meshes_shadow_splats(self):
         """A mesh ball over a relit splat floor: the mesh's shadow on the splats."""
