@@ -38,7 +38,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _cycles import cycles_render  # noqa: E402
+from _cycles_reference import cycles_render  # noqa: E402
 from _oracles import pybullet_data  # noqa: E402
 from common import Row, Timing, _combine, paired, print_rows, timeit  # noqa: E402
 

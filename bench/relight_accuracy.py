@@ -53,7 +53,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from _cycles import _cycles_main, cycles_render  # noqa: E402
+from _cycles_reference import _cycles_main, cycles_render  # noqa: E402
 from common import Row, Timing, print_rows  # noqa: E402
 from mesh2splats import (  # noqa: E402
     DISTANCES,

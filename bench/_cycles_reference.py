@@ -4,7 +4,7 @@ transform gives sRGB-encoded emission) or lit ones, image textures, colours per 
 Attribute multiplying the material's colour) and alpha cut-outs (MASK, BLEND), over a black world.
 bench/mesh2splats.py, bench/bake.py and bench/relight_accuracy.py (with its own lit scene) use it.
 
-    python bench/_cycles.py --cycles SPEC.npz   (what cycles_render runs)
+    python bench/_cycles_reference.py --cycles SPEC.npz   (what cycles_render runs)
 """
 
 import math
