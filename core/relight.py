@@ -52,10 +52,15 @@ class LitRender:
 
 
 def material_rows(cloud: SplatCloud) -> Annotated[np.ndarray, "(N,)"]:
-    """(N,) bool: the splats that carry a material (finite albedo and normal); none without one."""
+    """(N,) bool: the splats that carry a material (finite albedo, and a finite normal of non-zero
+    length: Blender's own Join fills the normals of splats joined from an object without them with
+    zeros); none without one."""
     if not material.has_material(cloud):
         return np.zeros(len(cloud), bool)
-    return np.isfinite(material.albedo(cloud)).all(axis=1) & np.isfinite(material.normals(cloud)).all(axis=1)
+    normals = material.normals(cloud)
+    with np.errstate(invalid="ignore", over="ignore"):
+        length = np.linalg.norm(normals, axis=1)
+    return np.isfinite(material.albedo(cloud)).all(axis=1) & np.isfinite(length) & (length > 1e-6)
 
 
 def visibilities(

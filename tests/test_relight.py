@@ -79,3 +79,14 @@ def test_cloud_without_material_renders_as_it_is(scene):
     bare = SplatCloud(scene.positions, scene.rotations, scene.log_scales, scene.opacity_logits, scene.sh)
     got = relight.render_lit(bare, CAMERA, LIGHTS)
     assert np.array_equal(got.color, render(bare, CAMERA).color)
+
+
+def test_splats_with_zero_normals_keep_their_own_colours(scene):
+    """Blender's own Join fills missing normals with zeros: such splats count as without a material."""
+    normals = material.normals(scene).astype(np.float32)
+    normals[:10] = 0.0
+    zeroed = scene.replace(extras={**scene.extras, **{k: normals[:, i] for i, k in enumerate(material.NORMALS)}})
+    rows = relight.material_rows(zeroed)
+    assert not rows[:10].any() and rows[10:].all()
+    lit = relight.render_lit(zeroed, CAMERA, LIGHTS)
+    assert np.isfinite(lit.color).all()
