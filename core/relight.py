@@ -35,20 +35,29 @@ SHADOW_RESOLUTION = {"point": 512, "area": 512, "spot": 1024, "sun": 1024}
 
 @dataclass
 class LitRender:
-    """color (H,W,3) float32 display sRGB, alpha (H,W), depth (H,W) as core.render gives them; with
-    passes, diffuse and specular (H,W,3) float32 scene-linear radiance (premultiplied by the splats'
-    coverage, no background) and shadow (H,W) float32, the blended fraction of the lights' light
-    that shadows took away; otherwise None. stats: the render's, and the shadow maps' time; result:
-    core.render's RenderResult of the lit cloud."""
+    """result: core.render's RenderResult of the lit cloud (its color (H,W,3) display sRGB, alpha
+    and depth are this render's too, and a layer's transmittance); with passes, diffuse and specular
+    (H,W,3) float32 scene-linear radiance (premultiplied by the splats' coverage, no background) and
+    shadow (H,W) float32, the blended fraction of the lights' light that shadows took away; otherwise
+    None. stats: the render's, and the shading's time (shadow maps included)."""
 
-    color: Image
-    alpha: Annotated[np.ndarray, "(H, W)"]
-    depth: Annotated[np.ndarray, "(H, W)"]
+    result: RenderResult
     diffuse: Image | None = None
     specular: Image | None = None
     shadow: Annotated[np.ndarray, "(H, W)"] | None = None
     stats: dict = field(default_factory=dict)
-    result: RenderResult | None = None  # core.render's whole result (a layer's transmittance, ...)
+
+    @property
+    def color(self) -> Image:
+        return self.result.color
+
+    @property
+    def alpha(self) -> Annotated[np.ndarray, "(H, W)"]:
+        return self.result.alpha
+
+    @property
+    def depth(self) -> Annotated[np.ndarray, "(H, W)"]:
+        return self.result.depth
 
 
 def material_rows(cloud: SplatCloud) -> Annotated[np.ndarray, "(N,)"]:
@@ -139,16 +148,12 @@ def render_lit(
     shading_time = time.perf_counter() - t0
     if shading is None:
         result = render(cloud, camera, background, layer=layer, threads=threads, **render_options)
-        return LitRender(
-            result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=0.0), result=result
-        )
+        return LitRender(result, stats=dict(result.stats, shading_s=0.0))
     lit = lit_cloud(cloud, rows, shading)
     shapes = Shapes(lit, threads) if passes else None
     options = dict(render_options, threads=threads, shapes=shapes)
     result = render(lit, camera, background, layer=layer, **options)
-    out = LitRender(
-        result.color, result.alpha, result.depth, stats=dict(result.stats, shading_s=shading_time), result=result
-    )
+    out = LitRender(result, stats=dict(result.stats, shading_s=shading_time))
     if passes:
         dark = None if layer is None else Layer(np.zeros_like(layer.color), layer.alpha, layer.depth)
         # Passes are linear radiance blended as colours are; splats without a material add nothing.

@@ -142,22 +142,27 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             raise _Cancelled
 
     def _lit_image(self, depsgraph, cloud, lit, cam, background, layer, origin, passes):
-        """The RenderResult of `cloud` with its `lit` splats shaded by the scene's lights and world
-        (relit.render_scene), and the Diffuse, Specular and Shadow passes when `passes`."""
+        """The RenderResult of `cloud` with its `lit` splats (those with a material) shaded by the
+        scene's lights and world and shadowed by the whole cloud and the meshes, the others with their
+        own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
+        whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
+        passes when `passes`."""
+        from ...core.relight import render_lit  # only when something is relit
+
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
         occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else []
-        result = relit.render_scene(
+        lit_render = render_lit(
             cloud,
             cam,
             scene_lights(depsgraph, origin),
             scene_world(depsgraph.scene),
-            occluders=occluders,
+            meshes=occluders,
             background=background,
             layer=layer,
             passes=passes,
             progress=self._progress,
         )
-        return result.image, (relit.lit_passes(result) if passes else {})
+        return lit_render.result, (relit.lit_passes(lit_render) if passes else {})
 
     def _write(self, width, height, rgba, depth, extra):
         result = self.begin_result(0, 0, width, height)

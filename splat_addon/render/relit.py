@@ -9,7 +9,6 @@ that joining keeps the extras (data.instances_cloud joins only those every cloud
 """
 
 import warnings
-from typing import NamedTuple
 
 import numpy as np
 
@@ -116,56 +115,6 @@ def any_relit(scene):
     return any(is_relit(obj) for obj in scene.objects if data.is_splat_object(obj))
 
 
-def visibilities(cloud, lights, occluders=()):
-    """{light index: (N,) visibility} of every light that casts shadows, past the whole cloud (relit
-    or not) and the `occluders` meshes (core.relight.visibilities)."""
-    from ...core.relight import visibilities as made
-
-    return made(cloud, lights, meshes=list(occluders))
-
-
-def shaded(cloud, lit, eye, lights, world, visible=None):
-    """`cloud` with its `lit` splats shaded for an eye at `eye` (a position or core Camera), each light
-    scaled by `visible` (visibilities()'s result, made once for many views; None: no shadows)."""
-    from ...core.relight import lit_cloud, lit_colors
-
-    rows, shading = lit_colors(cloud, eye, lights, world, visible=visible or {})
-    return cloud if shading is None else lit_cloud(cloud, rows, shading)
-
-
-class LitScene(NamedTuple):
-    """A relit render: image, the core RenderResult (display sRGB, as core.render gives it); diffuse,
-    specular (H,W,3) and shadow (H,W) scene-linear premultiplied passes, or None."""
-
-    image: object
-    diffuse: np.ndarray | None = None
-    specular: np.ndarray | None = None
-    shadow: np.ndarray | None = None
-
-
-def render_scene(cloud, camera, lights, world, *, occluders, background, layer, passes, progress=None):
-    """`cloud` with the splats that carry a material (the relit ones, scene_cloud's `lit`) shaded by
-    `lights` and `world` and shadowed by the whole cloud and `occluders`, the others with their own
-    colour, drawn by ONE core.render with `background` and
-    `layer` (core.relight.render_lit); with `passes`, also the lit splats' Diffuse, Specular and
-    Shadow. The RenderResult comes whole: the engine's Depth and Splats passes need its layer
-    transmittance."""
-    from ...core.relight import render_lit
-
-    out = render_lit(
-        cloud,
-        camera,
-        lights,
-        world,
-        meshes=occluders,
-        layer=layer,
-        passes=passes,
-        background=background,
-        progress=progress,
-    )
-    return LitScene(out.result, out.diffuse, out.specular, out.shadow)
-
-
 def lit_passes(result):
-    """{pass name: (H,W,C) image} of a LitRender made with passes (see PASSES)."""
+    """{pass name: (H,W,C) image} of a core.relight.LitRender made with passes (see PASSES)."""
     return {"Diffuse": result.diffuse, "Specular": result.specular, "Shadow": result.shadow}

@@ -47,19 +47,22 @@ def triangles(depsgraph):
 
 
 class Lighting:
-    """What shades the relit splats of a viewport picture: their mask, the lights, the world and the
-    meshes that shadow them; the shadows themselves (view-independent) are made once per scene
-    update, on the picture's thread, and kept."""
+    """What shades the relit splats (those with a material) of a viewport picture: the lights, the
+    world and the meshes that shadow them; the shadows themselves (view-independent) are made once
+    per scene update, on the picture's thread, and kept."""
 
-    def __init__(self, lit, lights, world, occluders):
-        self.lit, self.lights, self.world, self.occluders = lit, lights, world, occluders
+    def __init__(self, lights, world, occluders):
+        self.lights, self.world, self.occluders = lights, world, occluders
         self.visible = None
 
     def shade(self, cloud, camera):
         """`cloud` with the relit splats' colours for an eye at `camera`."""
+        from ...core.relight import lit_cloud, lit_colors, visibilities  # only when something is relit
+
         if self.visible is None:
-            self.visible = relit.visibilities(cloud, self.lights, self.occluders)
-        return relit.shaded(cloud, self.lit, camera, self.lights, self.world, self.visible)
+            self.visible = visibilities(cloud, self.lights, meshes=self.occluders)
+        rows, shading = lit_colors(cloud, camera, self.lights, self.world, visible=self.visible)
+        return cloud if shading is None else lit_cloud(cloud, rows, shading)
 
 
 def picture_inputs(depsgraph):
@@ -73,7 +76,7 @@ def picture_inputs(depsgraph):
     lighting = None
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
-        lighting = Lighting(lit, scene_lights(depsgraph, origin), scene_world(scene), occluders)
+        lighting = Lighting(scene_lights(depsgraph, origin), scene_world(scene), occluders)
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 
