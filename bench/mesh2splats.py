@@ -365,13 +365,22 @@ def speed_rows(quick, sphere_mesh, cameras, references):
 # the benchmark -----------------------------------------------------------------------------------
 
 
-def by_distance(cloud, cams, references):
-    """PSNR per held-out distance (over its views together) and the mean SSIM of all views."""
-    images = [render(cloud, cam).color for _, cam in cams]
+def psnr_by_distance(images, cams, references):
+    """{"dB 0.5x": ...}: the PSNR of `images` against `references` per held-out distance, over the
+    views of each distance (`cams`: (distance, Camera) pairs) together; distances without views left
+    out."""
     out = {}
     for d in DISTANCES:
         pick = [i for i, (dd, _) in enumerate(cams) if dd == d]
-        out[f"dB {d:g}x"] = versus([images[i] for i in pick], [references[i] for i in pick])["psnr_db"]
+        if pick:
+            out[f"dB {d:g}x"] = versus([images[i] for i in pick], [references[i] for i in pick])["psnr_db"]
+    return out
+
+
+def by_distance(cloud, cams, references):
+    """PSNR per held-out distance (over its views together) and the mean SSIM of all views."""
+    images = [render(cloud, cam).color for _, cam in cams]
+    out = psnr_by_distance(images, cams, references)
     out["ssim"] = float(np.mean([metrics.ssim(a, b) for a, b in zip(images, references)]))
     return out
 
@@ -385,13 +394,7 @@ def thin_splat_limit(mesh, cams, references):
     images = [
         render_mesh(mesh, cam, pixel_filter="gaussian", filter_width=width, mix="display").color for _, cam in cams
     ]
-    return {
-        f"dB {d:g}x": versus(
-            [images[i] for i, (dd, _) in enumerate(cams) if dd == d],
-            [references[i] for i, (dd, _) in enumerate(cams) if dd == d],
-        )["psnr_db"]
-        for d in DISTANCES
-    }
+    return psnr_by_distance(images, cams, references)
 
 
 def worst_distance(error):

@@ -60,9 +60,9 @@ from mesh2splats import (  # noqa: E402
     blender_primitives,
     convert,
     held_out_cameras,
+    psnr_by_distance,
     pybullet_meshes,
     uv_sphere,
-    versus,
 )
 
 from splatwright.core.lights import Light, World  # noqa: E402
@@ -283,16 +283,6 @@ def display(image) -> np.ndarray:
     return np.clip(np.asarray(image, np.float64), 0.0, 1.0)
 
 
-def by_distance(images, references, cams) -> dict[str, float]:
-    """PSNR per held-out distance over its views together."""
-    out = {}
-    for d in DISTANCES:
-        pick = [i for i, (dd, _) in enumerate(cams) if dd == d]
-        if pick:
-            out[f"dB {d:g}x"] = versus([images[i] for i in pick], [references[i] for i in pick])["psnr_db"]
-    return out
-
-
 def _luminance(image) -> np.ndarray:
     return np.asarray(image, np.float64)[..., :3] @ np.array([0.2126, 0.7152, 0.0722])
 
@@ -339,10 +329,10 @@ def light_row(scene, kind, light, cloud, cams, folder, samples, unlit_seconds):
     # over the 1x views, against the unlit render of the same views
     timed = [cam for d, cam in cams if d == 1.0]
     _, seconds = lit_frames(cloud, timed, light, passes=False)
-    error = by_distance([display(f.color) for f in frames], ref, cams)
+    error = psnr_by_distance([display(f.color) for f in frames], cams, ref)
     error["worst dB"] = min(error.values())
-    no_shadow = by_distance([display(f.color) for f in flat], ref_flat, cams)
-    noise = by_distance(second, ref, cams)
+    no_shadow = psnr_by_distance([display(f.color) for f in flat], cams, ref_flat)
+    noise = psnr_by_distance(second, cams, ref)
     shares = error_shares(frames, ref)
     return Row(
         TOPIC,
@@ -378,7 +368,7 @@ def scene_rows(scene, folder, size, per_distance, samples) -> list[Row]:
         unlit.append(display(render(cloud, camera).color))
         if d == 1.0:
             unlit_seconds.append(time.perf_counter() - t0)
-    unlit_error = by_distance(unlit, unlit_refs, cams)
+    unlit_error = psnr_by_distance(unlit, cams, unlit_refs)
     rows = [
         Row(
             TOPIC,
