@@ -201,7 +201,7 @@ def area_points(light: Light, grid: int = AREA_GRID) -> tuple[np.ndarray, np.nda
     return points, np.full(len(points), light.area / len(points))
 
 
-def _towards(source: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def towards(source: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit directions (N,3) from points to `source` (3,) and the distances (N,), float64."""
     offset = source - points
     distance = np.sqrt(np.einsum("ij,ij->i", offset, offset))
@@ -214,10 +214,10 @@ def incident(light: Light, points: np.ndarray) -> list[Incident]:
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = len(points)
     if light.kind == "sun":
-        towards = np.broadcast_to(-light.direction, (n, 3))
-        return [Incident(towards, np.full(n, np.inf), np.full(n, light.power))]
+        to_sun = np.broadcast_to(-light.direction, (n, 3))
+        return [Incident(to_sun, np.full(n, np.inf), np.full(n, light.power))]
     if light.kind in ("point", "spot"):
-        direction, distance = _towards(light.position, points)
+        direction, distance = towards(light.position, points)
         intensity = np.full(n, light.power / (4.0 * math.pi))
         if light.kind == "spot":
             intensity = intensity * spot_cone(light, -(direction @ light.direction))
@@ -227,7 +227,7 @@ def incident(light: Light, points: np.ndarray) -> list[Incident]:
     radiance = AREA_RADIANCE * light.power / light.area
     out = []
     for sample, share in zip(samples, shares, strict=True):  # a loop over 16 emitters, not points
-        direction, distance = _towards(sample, points)
+        direction, distance = towards(sample, points)
         # one-sided Lambertian patch: its cosine towards each point, 0 behind it
         cos_emit = np.maximum(-(direction @ light.direction), 0.0)
         scalar = np.where(distance > 1e-300, radiance * share * cos_emit / np.maximum(distance, 1e-300) ** 2, 0.0)
@@ -251,4 +251,4 @@ def direction_and_distance(light: Light, points: np.ndarray) -> tuple[np.ndarray
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if light.kind == "sun":
         return np.broadcast_to(-light.direction, points.shape).copy(), np.full(len(points), np.inf)
-    return _towards(light.position, points)
+    return towards(light.position, points)

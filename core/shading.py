@@ -39,7 +39,7 @@ import numpy as np
 from . import jit, material
 from .arrays import Floats
 from .camera import Camera
-from .lights import Light, World, incident
+from .lights import Light, World, incident, towards
 from .parallel import WORKERS, map_threads
 from .splats import SplatCloud
 
@@ -75,9 +75,7 @@ def view_directions(eye: np.ndarray | Camera, points: np.ndarray) -> np.ndarray:
         if eye.is_orthographic:
             return np.broadcast_to(-eye.forward, points.shape).copy()
         eye = eye.center
-    eye = np.asarray(eye, dtype=np.float64).reshape(3)
-    offset = eye - points
-    return offset / np.maximum(np.linalg.norm(offset, axis=1, keepdims=True), 1e-300)
+    return towards(np.asarray(eye, dtype=np.float64).reshape(3), points)[0]
 
 
 def facing(normals: np.ndarray, view: np.ndarray) -> np.ndarray:

@@ -287,7 +287,8 @@ def _with_mesh(depth, alpha, mesh, camera):
 
 
 def _light_rays(light, points):
-    """(N,3) unit directions from the light towards each point (the sun's own for all)."""
+    """(N,3) unit directions from the light towards each point (the sun's own for all), normalised
+    as the compiled _extent_loop does (its test holds the two to 1e-12)."""
     if light.kind == "sun":
         return np.broadcast_to(_unit(light.direction), points.shape)
     rel = points - np.asarray(light.position, np.float64)
