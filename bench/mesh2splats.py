@@ -19,6 +19,8 @@ more splats rendered worse) and made for antialiased rendering. Speed: a 100k-tr
 (uncalibrated budget) against a per-triangle Python loop, and for the sphere and Suzanne the
 classic conversion's CPU seconds against the converter as of SPEED_BEFORE (alternating runs), with
 the PSNR each reaches.
+Ceiling rows (`--only ceiling`): what no conversion can beat at the held-out views, no conversion
+made (ceiling_rows).
 
     python bench/mesh2splats.py [--quick]
 """
@@ -395,6 +397,45 @@ def thin_splat_limit(mesh, cams, references):
         render_mesh(mesh, cam, pixel_filter="gaussian", filter_width=width, mix="display").color for _, cam in cams
     ]
     return psnr_by_distance(images, cams, references)
+
+
+def ceiling_rows(quick=False):
+    """What no splats drawn by a 3DGS renderer can beat on the textured bench meshes, no conversion
+    made: against Cycles at the held-out views, the image of infinitely many, infinitely thin splats
+    (the mesh's own samples under the renderer's 0.3 px^2 Gaussian) blended in display colour as every
+    3DGS renderer blends (thin_splat_limit), the same blended in linear light (as Cycles mixes a
+    pixel: what a linear-light splat renderer could reach), and core.mesh_render's own reference (the
+    Blackman-Harris filter Cycles uses, linear light: how far the reference itself is from Cycles)."""
+    size = 128 if quick else 256
+    width = 4 * math.sqrt(LOW_PASS)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        meshes, _ = bench_meshes(folder, quick)
+        names = [n for n, m in meshes.items() if textured(m)]
+        for name in names[:2] if quick else names:
+            mesh = meshes[name]
+            cams = held_out_cameras(mesh, size, floor="plane" in name)
+            references, _ = cycles_render(mesh, [cam for _, cam in cams], folder)
+            t0 = time.perf_counter()
+            display = thin_splat_limit(mesh, cams, references)
+            timing = Timing(time.perf_counter() - t0, 0.0, 1)
+            linear = [render_mesh(mesh, cam, pixel_filter="gaussian", filter_width=width).color for _, cam in cams]
+            own = [render_mesh(mesh, cam).color for _, cam in cams]
+            columns = lambda e: " / ".join(f"{e[f'dB {d:g}x']:.1f}" for d in DISTANCES)  # noqa: E731
+            row = Row(
+                TOPIC,
+                f"{name}: ceiling of thin splats (display blending) against Cycles",
+                timing,
+                error=display,
+                extra={
+                    "linear-light thin splats dB 0.5x / 1x / 3x": columns(psnr_by_distance(linear, cams, references)),
+                    "mesh reference dB 0.5x / 1x / 3x": columns(psnr_by_distance(own, cams, references)),
+                },
+            )
+            rows.append(row)
+            print_rows([row])
+    return rows
 
 
 def worst_distance(error):
@@ -819,6 +860,7 @@ def run_summary(quick=False):
 PARTS = {part: (lambda quick, part=part: run(quick, part)) for part in ("first", "second", "corpus")}
 PARTS["textured"] = run_textured
 PARTS["summary"] = run_summary
+PARTS["ceiling"] = ceiling_rows
 
 
 def _save_curve(name, curve, memory):
