@@ -121,7 +121,28 @@ def run(quick=False):
                 },
             )
         )
+    rows += kind_rows(cloud, camera, world, repeat)
     rows += resolution_sweep(cloud, camera, world, repeat)
+    return rows
+
+
+def kind_rows(cloud, camera, world, repeat):
+    """Each kind of light alone: a point or area light's cube of maps against a sun's or spot's one."""
+    rows = []
+    for light in LIGHTS[1:]:
+        base, lit = paired(
+            lambda: render(cloud, camera), lambda: relight.render_lit(cloud, camera, [light], world), repeat
+        )
+        maps = len(shadows.shadow_views(cloud, light, resolution=relight.SHADOW_RESOLUTION[light.kind]))
+        rows.append(
+            Row(
+                TOPIC,
+                f"1 light ({light.kind}) alone",
+                lit,
+                base,
+                extra={"lit_over_unlit": f"{lit.median / base.median:.2f}", "shadow maps": maps},
+            )
+        )
     return rows
 
 

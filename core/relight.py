@@ -118,7 +118,9 @@ def lit_colors(
 def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:
     """A shallow copy of `cloud` whose splats `rows` show their shading's radiance (lit_colors'
     result) as display sRGB in every direction; the others keep their own SH."""
-    return _with_colors(cloud, rows, color.linear_to_srgb(np.maximum(shading.radiance, 0.0)))
+    # float32: the colours end as float32 SH, and the curve runs about 3x faster than in float64
+    radiance = np.maximum(shading.radiance, 0.0)
+    return _with_colors(cloud, rows, color.linear_to_srgb(radiance, np.float32))
 
 
 def render_lit(
