@@ -64,12 +64,12 @@ print(json.dumps({"splats": len(cloud), "grew": grew, "faces": len(f), "psnr": i
 
 
 def test_a_conversion_stays_within_its_memory_budget(tmp_path):
-    """Refinement of a striped wall asks for ever more splats; under a 200 MiB budget it stops at the
-    splats the budget holds, keeps the best it reached, says why, and the process's peak resident
-    memory (the operating system's count, not the model's) grew by less than the budget."""
+    """Refinement of a striped wall asks for more splats (33k unbounded); under a 180 MiB budget it
+    stops at the 18k splats the budget holds, keeps the best it reached, says why, and the process's
+    peak resident memory (the operating system's count, not the model's) grew by less than the budget."""
     if not os.path.exists("/proc/self/clear_refs"):
         skip_platform("the peak resident memory cannot be reset here (Linux's /proc/self/clear_refs)")
-    budget = 200 << 20
+    budget = 180 << 20
     done = subprocess.run(
         [sys.executable, "-c", MEASURED, str(budget)], capture_output=True, text=True, timeout=900, cwd=tmp_path
     )
@@ -77,7 +77,7 @@ def test_a_conversion_stays_within_its_memory_budget(tmp_path):
     got = json.loads(done.stdout.strip().splitlines()[-1])
     cap = splats_within(budget, got["faces"], 12 * 96 * 96)
     assert got["cap"] == cap and 0.9 * cap <= got["splats"] <= cap
-    assert "memory budget (200.0 MiB)" in got["limit"] and np.isfinite(got["psnr"]) and got["psnr"] > 15
+    assert "memory budget (180.0 MiB)" in got["limit"] and np.isfinite(got["psnr"]) and got["psnr"] > 15
     assert 0 < got["grew"] <= budget
     # the model errs on the safe side, but not absurdly: the prediction is at most 4x what was used
     assert conversion_bytes(got["splats"], got["faces"], 12 * 96 * 96) <= 4 * got["grew"] + (64 << 20)

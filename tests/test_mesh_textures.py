@@ -11,7 +11,7 @@ from splatwright.core import mesh_corpus
 from splatwright.core.camera import Camera
 from splatwright.core.mesh import Material, Mesh, Surface, sample_texture
 from splatwright.core.mesh_render import render_mesh
-from splatwright.core.mesh_sampling import build_splats
+from splatwright.core.mesh_sampling import MIN_ACROSS, TEXTURE_SOFTNESS, build_splats
 from splatwright.core.mesh_texture import footprint_average
 from splatwright.core.mesh_to_splats import mesh_to_splats
 from splatwright.core.render import render
@@ -94,8 +94,9 @@ def test_splats_near_a_stripe_edge_are_long_along_it_and_thin_across():
     near = inside & (distance < 0.5 * sigma)
     far = inside & (distance > 3 * sigma) & (np.abs(cloud.positions[:, 0]) < 0.5 - 3 * sigma)
     assert near.sum() > 50
-    # narrowed to their distance from the edge across it, their full sigma along it
-    assert np.allclose(shortest[near], np.maximum(distance[near], 0.05 * sigma), rtol=0.02)
+    # narrowed to their distance from the edge over the softness across it, their full sigma along it
+    want = np.maximum(distance[near] / TEXTURE_SOFTNESS, MIN_ACROSS * sigma)
+    assert np.allclose(shortest[near], want, rtol=0.02)
     assert np.allclose(longest[near], sigma, rtol=1e-5)
     assert np.median(longest[near] / shortest[near]) > 2.0
     assert np.all(np.abs(major[near, 1]) > 0.99)  # along the edge (y)
