@@ -39,8 +39,8 @@ import numpy as np
 from . import jit, material
 from .arrays import Floats
 from .camera import Camera
-from .lights import Light, World, incident, towards
-from .parallel import WORKERS, map_threads
+from .lights import AREA_RADIANCE, Light, World, area_points, incident, towards
+from .parallel import in_chunks
 from .splats import SplatCloud
 
 DIELECTRIC_F0 = 0.04  # Fresnel at normal incidence of an IOR 1.5 dielectric (Principled's default)
@@ -277,8 +277,6 @@ EMITTER_FIELDS = 12
 
 def _emitters(lights: list[Light]) -> np.ndarray:
     """(E, EMITTER_FIELDS) float64: every light's emitters (an area light's samples, see incident)."""
-    from .lights import AREA_RADIANCE, area_points
-
     rows = []
     for index, light in enumerate(lights):  # a loop over lights
         if light.kind == "sun":
@@ -316,13 +314,12 @@ def _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibili
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
     emitters = _emitters(lights)
     flags = np.array([ortho, multiscatter, world is not None])
-    bounds = np.linspace(0, n, min(WORKERS, max(1, n // 4096)) + 1).astype(np.int64)
-    map_threads(
-        lambda k: kernel(
-            bounds[k], bounds[k + 1], points, normals, albedo, rough, metal, eye, flags, emitters, colors,
+    in_chunks(
+        n,
+        lambda lo, hi: kernel(
+            lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, colors,
             vis, world_color, scale, bias, diffuse, specular, shadow,
         ),
-        range(len(bounds) - 1),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
 

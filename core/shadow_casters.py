@@ -76,7 +76,7 @@ def ellipsoids(cloud: SplatCloud, alpha: float = ALPHA, shape=None) -> tuple[np.
     each the unit `shape` (vertices, faces; default the finest of SHAPES) stretched and turned."""
     unit_vertices, unit_faces = SHAPES[0] if shape is None else shape
     radius = reach(cloud.opacities, alpha)
-    keep = np.flatnonzero((radius > 0) & cloud.finite_mask())
+    keep = np.flatnonzero(casting(cloud, alpha))
     if not len(keep):
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
     part = cloud[keep]

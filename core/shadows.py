@@ -34,7 +34,7 @@ from . import jit, material
 from .arrays import Floats
 from .camera import Camera, look_at_matrix
 from .mesh_render import rasterize
-from .parallel import WORKERS, map_threads
+from .parallel import in_chunks
 from .render import render
 from .splats import SplatCloud
 
@@ -89,7 +89,7 @@ def visibility(
     size = _light_size(light)
     kernel = jit.compiled(__name__, ("_pcss_one", "_visibility_loop"))
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
-        settings = (_light_size(light) if soft else 0.0, sigma_bias, texel_bias)
+        settings = (size if soft else 0.0, sigma_bias, texel_bias)
         return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, _spiral(taps), out)
     face = _face_of(light, views, points)
     for k, view in enumerate(views):
@@ -203,10 +203,7 @@ def _near_masks(cameras, positions, points, reach):
     rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
     out = np.empty((len(cameras), len(points)), np.bool_)
     positions = np.ascontiguousarray(positions, np.float32)
-    bounds = np.linspace(0, len(points), min(WORKERS, max(1, len(points) // 4096)) + 1).astype(np.int64)
-    map_threads(
-        lambda k: kernel(bounds[k], bounds[k + 1], positions, reach, params, rotations, out), range(len(bounds) - 1)
-    )
+    in_chunks(len(points), lambda lo, hi: kernel(lo, hi, positions, reach, params, rotations, out))
     return list(out)
 
 
@@ -324,11 +321,7 @@ def _extent_compiled(kernel, cloud, light):
     source = _unit(light.direction) if sun else np.asarray(light.position, np.float64)
     fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.rotations, cloud.log_scales)]
     sigma, slope = np.empty(n), np.empty(n)
-    bounds = np.linspace(0, n, min(WORKERS, max(1, n // 4096)) + 1).astype(np.int64)
-    map_threads(
-        lambda k: kernel(bounds[k], bounds[k + 1], *fields, normal, source, sun, MAX_SLOPE, sigma, slope),
-        range(len(bounds) - 1),
-    )
+    in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, normal, source, sun, MAX_SLOPE, sigma, slope))
     return sigma, slope
 
 
@@ -440,12 +433,7 @@ def _visibility_compiled(kernel, cloud, views, sigma, slope, settings, disc, out
     alpha = np.stack([view.alpha for view in views])
     positions = np.ascontiguousarray(cloud.positions, np.float32)
     params = np.array(settings, np.float64)
-    n = len(out)
-    bounds = np.linspace(0, n, min(WORKERS, max(1, n // 4096)) + 1).astype(np.int64)
-    map_threads(
-        lambda k: kernel(bounds[k], bounds[k + 1], positions, sigma, slope, cams, depth, alpha, disc, params, out),
-        range(len(bounds) - 1),
-    )
+    in_chunks(len(out), lambda lo, hi: kernel(lo, hi, positions, sigma, slope, cams, depth, alpha, disc, params, out))
     return out
 
 
