@@ -59,8 +59,13 @@ def run_worker(worker, work, zip_path, version=blender_envs.PRIMARY):
         pytest.skip(str(exc))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
     env.update(BLENDER_USER_RESOURCES=str(work / "user"), PYTHONPATH=str(TESTS))
-    proc = subprocess.run(
-        [python, "-m", worker, str(work), str(zip_path)], cwd=work, env=env, capture_output=True, text=True, timeout=900
+    proc = subprocess.run(  # faulthandler: a crash in Blender still prints each thread's Python stack
+        [python, "-X", "faulthandler", "-m", worker, str(work), str(zip_path)],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
     )
     log = (
         f"Blender {version}, exit {proc.returncode}\n"

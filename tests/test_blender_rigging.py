@@ -135,6 +135,18 @@ def test_the_modifiers_vertex_group_mask_is_followed(blender, mode):
         np.testing.assert_allclose(d[f"masked_{mode}_display"], d[f"masked_{mode}_positions"], rtol=0, atol=1e-6)
 
 
+def test_reading_weights_leaves_the_users_depsgraph_alone(blender):
+    """The first pose of a splat mesh reads its vertex groups through a temporary object: that object
+    lives in a scene of its own, so a depsgraph the caller holds is not re-evaluated with it and then
+    left pointing at it once freed (a crash when the caller went on to read its instances)."""
+    res = blender.step("weights_read_aside")
+    assert res["scene"] not in res["evaluated"]
+    assert res["instances"][0] == res["instances"][1]
+    assert res["unchanged"]
+    assert res["cached"] == [True, True]  # the read of the mask does not drop the weights just read
+    assert res["moved"] > 1e-2
+
+
 @pytest.mark.parametrize("mode", ["lbs", "dqs"])
 def test_rigidly_bound_splats_turn_and_stretch_with_their_bone(blender, mode):
     """A splat in one group moves by that bone's deform matrix D (object space) exactly: its

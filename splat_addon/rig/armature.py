@@ -28,7 +28,10 @@ are not used.
 Vertex-group weights cannot be read through foreach_get. They are read in one pass per mesh by a
 temporary object evaluating a tiny geometry-nodes group (Mesh to Points turns every vertex group into
 a float point attribute, which foreach_get can read), and cached per mesh until the mesh, its groups
-or the object's geometry is edited. The read needs the main thread (it adds an object for a moment):
+or the object's geometry is edited. The temporary object lives in a temporary scene: linked into the
+user's scene, it would be evaluated into that scene's depsgraph and then freed under anyone still
+reading it (an exporter or a background render iterating object_instances, which crashed so). The
+read needs the main thread (it adds a scene and an object for a moment):
 a render in a background thread uses the cache, which interactive sessions keep filled.
 """
 
@@ -50,6 +53,7 @@ READER_GROUP = ".Splatwright Weight Reader"
 READER_TAG = "splatwright_weight_reader"  # node group property: build version
 READER_VERSION = 2  # 2: loose vertices, read through to_mesh()
 READER_DROPPED = ("splat_sh_*", "splat_extra_*")  # splat data the reader need not copy
+READER_SCENE = ".splatwright weights"  # the reader's scene and object, there only while it reads
 TEMP_ATTRIBUTE = "splatwright_weight_in"  # holds one bone's weights while it becomes a group
 WEIGHT_PREFIX = "splat_weight:"  # native splats: one FLOAT point attribute per bone
 ARMATURE_PROPERTY = "splatwright_armature"  # native splats: the armature object binding them
@@ -175,17 +179,21 @@ def can_read_groups():
 
 def read_vertex_groups(mesh, names):
     """(len(names), V) float32 weights of the named vertex groups of `mesh`, 0 where a vertex is not
-    in a group. One evaluation of a temporary object sharing the mesh; main thread only."""
+    in a group. One evaluation of a temporary object sharing the mesh, in a scene of its own so the
+    depsgraph of the user's scene (which a caller may be reading) is neither changed nor re-evaluated
+    while an object comes and goes; main thread only."""
     out = np.zeros((len(names), len(mesh.vertices)), np.float32)
     if not names or not len(mesh.vertices):
         return out
     if not can_read_groups():
         raise data.SplatObjectError(f"'{mesh.name}': vertex-group weights can only be read on Blender's main thread")
-    helper = bpy.data.objects.new(".splatwright weights", mesh)
+    scene = bpy.data.scenes.new(READER_SCENE)
+    helper = bpy.data.objects.new(READER_SCENE, mesh)
     try:
         helper.modifiers.new("Read Weights", "NODES").node_group = _reader_group()
-        bpy.context.scene.collection.objects.link(helper)
-        evaluated = helper.evaluated_get(bpy.context.evaluated_depsgraph_get())
+        scene.collection.objects.link(helper)
+        with bpy.context.temp_override(scene=scene, view_layer=scene.view_layers[0]):
+            evaluated = helper.evaluated_get(bpy.context.evaluated_depsgraph_get())
         try:
             vertices = evaluated.to_mesh()
             for row, name in zip(out, names):
@@ -197,6 +205,7 @@ def read_vertex_groups(mesh, names):
             evaluated.to_mesh_clear()
     finally:
         bpy.data.objects.remove(helper)
+        bpy.data.scenes.remove(scene)
     return out
 
 

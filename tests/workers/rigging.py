@@ -79,6 +79,7 @@ class Worker(BlenderWorker):
     steps = (
         "install",
         "skinning",
+        "weights_read_aside",
         "transfer",
         "bone_weights",
         "render",
@@ -90,10 +91,11 @@ class Worker(BlenderWorker):
 
     # helpers -------------------------------------------------------------------------------------
 
-    def splat_object(self, name, arrays, matrix=None):
+    def splat_object(self, name, arrays, matrix=None, form=None):
         core = self.module("core")
         data = self.module("splat_addon.data")
-        obj, _ = data.new_splat_object(core.SplatCloud(**arrays), name, self.bpy.context.scene.collection, matrix)
+        scene = self.bpy.context.scene
+        obj, _ = data.new_splat_object(core.SplatCloud(**arrays), name, scene.collection, matrix, form)
         return obj
 
     def blender_positions(self, obj):
@@ -374,6 +376,45 @@ class Worker(BlenderWorker):
             **arrays_out,
         )
         return res
+
+    def weights_read_aside(self):
+        """A splat mesh's first pose reads its weights and mask group (the cache empty) while the caller
+        holds the scene's depsgraph, as an exporter or a background render does: which scenes were
+        evaluated meanwhile, the depsgraph's instances before and after, and what is left behind."""
+        bpy = self.bpy
+        data = self.module("splat_addon.data")
+        rigging = self.module("splat_addon.rig.armature")
+        arm = self.build_rig()
+        obj = self.splat_object("AsideSplats", rig_cloud_arrays(RIG_SPLATS), form=data.MESH_FORM)
+        self.write_weights(obj, rig_weights(RIG_SPLATS))
+        self.write_weights(obj, {"Fade": {v: 0.5 for v in range(0, RIG_SPLATS, 3)}})
+        mod = obj.modifiers.new("Armature", "ARMATURE")
+        mod.object, mod.vertex_group = arm, "Fade"
+        rigging.forget_weights()
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+
+        def instances():
+            return sorted(inst.object.original.name for inst in depsgraph.object_instances)
+
+        before, inventory = instances(), (self.inventory(), sorted(s.name for s in bpy.data.scenes))
+        evaluated = []
+
+        def record(scene, _depsgraph):
+            evaluated.append(scene.name)
+
+        bpy.app.handlers.depsgraph_update_post.append(record)
+        try:
+            posed = data.evaluated_cloud(obj, depsgraph, np.eye(4)).positions
+        finally:
+            bpy.app.handlers.depsgraph_update_post.remove(record)
+        return {
+            "scene": bpy.context.scene.name,
+            "evaluated": evaluated,
+            "instances": [before, instances()],
+            "unchanged": inventory == (self.inventory(), sorted(s.name for s in bpy.data.scenes)),
+            "cached": [obj.data.session_uid in cache for cache in (rigging._CACHE, rigging._STRENGTHS)],
+            "moved": float(np.abs(posed - data.object_cloud(obj).positions).max()),
+        }
 
     def transfer(self):
         bpy = self.bpy
