@@ -18,6 +18,7 @@ import json
 import os
 import shutil
 import subprocess
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -113,12 +114,15 @@ class WorkerPool:
     def __init__(self, jobs, base, zip_path, width):
         self.executor = ThreadPoolExecutor(max(1, width))
         self.futures = {}
+        started = time.monotonic()
         for worker, version, write_inputs in jobs:
             work = base / f"{worker.rsplit('.', 1)[-1]}_{version}"
             work.mkdir(parents=True)
             if write_inputs is not None:
                 write_inputs(work)
-            self.futures[worker, version] = self.executor.submit(_run_or_reason, worker, work, zip_path, version)
+            self.futures[worker, version] = self.executor.submit(
+                _run_or_reason, worker, work, zip_path, version, started
+            )
 
     def session(self, worker, version):
         outcome = self.futures[worker, version].result()
@@ -131,14 +135,34 @@ class WorkerPool:
         self.executor.shutdown(wait=False, cancel_futures=True)
 
 
-def _run_or_reason(worker, work, zip_path, version):
+_TIMES = {}  # (worker, version) -> (seconds it ran, seconds from the pool's start to its end)
+
+
+def _run_or_reason(worker, work, zip_path, version, started):
     """run_worker in a pool thread: its Session, or ("skip" | "fail", why) for the tests to report."""
+    begun = time.monotonic()
     try:
         return run_worker(worker, work, zip_path, version)
     except pytest.skip.Exception as exc:
         return "skip", str(exc)
     except BaseException as exc:  # noqa: BLE001 - reported by every test of that session
         return "fail", f"{type(exc).__name__}: {exc}"
+    finally:
+        _TIMES[worker, version] = (time.monotonic() - begun, time.monotonic() - started)
+
+
+def worker_times(slowest=8):
+    """Lines for the end of the test run: the Blender workers' total time and the slowest of them,
+    so the suite's time budget shows where it goes."""
+    if not _TIMES:
+        return []
+    ranked = sorted(_TIMES.items(), key=lambda item: -item[1][0])
+    lines = [
+        f"{len(_TIMES)} Blender workers: {sum(t for t, _ in _TIMES.values()):.0f} s in all, "
+        f"the last done {max(end for _, end in _TIMES.values()):.0f} s after they started"
+    ]
+    lines += [f"{seconds:7.1f} s  {worker} [{version}]" for (worker, version), (seconds, _) in ranked[:slowest]]
+    return lines
 
 
 def blender_last(items):

@@ -21,6 +21,11 @@ def pytest_sessionfinish(session, exitstatus):
     blender_session.stop_workers()
 
 
+def pytest_terminal_summary(terminalreporter):
+    for line in blender_session.worker_times():
+        terminalreporter.write_line(line)
+
+
 # Skips for what a platform cannot do say so (helpers.skip_platform). Any other skip means a tool the
 # suite needs is missing (a Python for a Blender version, node and npm, numba, a peer's package, a
 # registry): on CI (CI set) that is a failure, so a fresh machine cannot pass by testing less.
