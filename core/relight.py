@@ -12,6 +12,7 @@ when asked for.
 """
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated
 
@@ -84,16 +85,23 @@ def visibilities(
     meshes=None,
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
 ) -> dict[int, np.ndarray]:
     """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
     the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told. They
-    do not depend on the camera: a viewport makes them once for many views."""
+    do not depend on the camera: a viewport makes them once for many views. progress(done, total,
+    "shadows") follows all the lights' maps together (core.shadows.visibility)."""
+    casting = [index for index, light in enumerate(lights) if light.cast_shadow]
     return {
         index: shadows.visibility(
-            cloud, light, occluders=meshes, resolution=_resolution(shadow_resolution, light), threads=threads
+            cloud,
+            lights[index],
+            occluders=meshes,
+            resolution=_resolution(shadow_resolution, lights[index]),
+            threads=threads,
+            progress=shadows.part_progress(progress, step, len(casting)),
         )
-        for index, light in enumerate(lights)  # a loop over lights
-        if light.cast_shadow
+        for step, index in enumerate(casting)  # a loop over lights
     }
 
 
@@ -107,15 +115,18 @@ def lit_colors(
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
     visible: dict[int, np.ndarray] | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
-    the lights that cast shadows: all splats and `meshes` occlude)."""
+    the lights that cast shadows: all splats and `meshes` occlude; `progress` as visibilities')."""
     rows = material_rows(cloud)
     if not rows.any():
         return rows, None
     if visible is None:
-        visible = visibilities(cloud, lights, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads)
+        visible = visibilities(
+            cloud, lights, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads, progress=progress
+        )
     part = cloud if rows.all() else cloud[rows]
     return rows, shade(part, camera, lights, world, {i: v[rows] for i, v in visible.items()})
 
@@ -147,10 +158,18 @@ def render_lit(
     meshes: core.mesh.Surface meshes that cast shadows on the splats (the picture's meshes come in
     through `layer`, core.render's). passes: also the diffuse, specular and shadow images.
     shadow_resolution: texels a side of the shadow maps, one number or a dict by light kind
-    (default SHADOW_RESOLUTION). Other keywords go to core.render (mode, tile_size, backend, ...)."""
+    (default SHADOW_RESOLUTION). Other keywords go to core.render (mode, tile_size, backend, ...);
+    its `progress` follows the shadow maps first (label "shadows"), then the render's tiles."""
     t0 = time.perf_counter()
     rows, shading = lit_colors(
-        cloud, camera, lights, world, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads
+        cloud,
+        camera,
+        lights,
+        world,
+        meshes=meshes,
+        shadow_resolution=shadow_resolution,
+        threads=threads,
+        progress=render_options.get("progress"),
     )
     shading_time = time.perf_counter() - t0
     if shading is None:

@@ -25,6 +25,7 @@ the sun, and the radius of a disc of the same area for area lights.
 """
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -71,6 +72,7 @@ def visibility(
     texel_bias: float = TEXEL_BIAS,
     soft: bool = True,
     threads: int | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
 ) -> Annotated[Floats, "(N,)"]:
     """(N,) float32 in [0, 1]: the fraction of `light` reaching each splat's centre (1 lit, 0 in
     shadow), from shadow maps of `resolution` texels a side (per cube face for point and area
@@ -78,12 +80,14 @@ def visibility(
 
     taps: filter taps per splat; soft=False tests the centre texel only (hard shadows, no search).
     sigma_bias, texel_bias: the self-shadow bias in the splat's standard deviations along the light
-    ray and in texels of depth slope. A light with cast_shadow False gives all ones."""
+    ray and in texels of depth slope. A light with cast_shadow False gives all ones.
+    progress(done, total, "shadows") follows the maps as core.render's progress follows tiles (an
+    exception it raises, a cancel, stops the work there)."""
     n = len(cloud)
     out = np.ones(n, np.float32)
     if n == 0 or not getattr(light, "cast_shadow", True):
         return out
-    views = shadow_views(cloud, light, occluders=occluders, resolution=resolution, threads=threads)
+    views = shadow_views(cloud, light, occluders=occluders, resolution=resolution, threads=threads, progress=progress)
     points = cloud.positions.astype(np.float64)
     sigma, slope = _extent_and_slope(cloud, light, points)
     size = _light_size(light)
@@ -100,8 +104,9 @@ def visibility(
     return out
 
 
-def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) -> list[ShadowView]:
-    """The light's shadow-map views (see the module notes), each rendered from the splats near it."""
+def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None, progress=None) -> list[ShadowView]:
+    """The light's shadow-map views (see the module notes), each rendered from the splats near it;
+    progress as visibility's."""
     points = cloud.positions.astype(np.float64)
     reach = _reach(cloud)
     # What the maps need of the splats: their shapes (colour and extras are not drawn).
@@ -111,7 +116,9 @@ def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) 
     views = []
     cameras = _cameras(light, points, reach, meshes, int(resolution))
     masks = _near_masks(cameras, cloud.positions, points, reach)
-    for camera, near in zip(cameras, masks, strict=True):
+    for k, (camera, near) in enumerate(zip(cameras, masks, strict=True)):
+        if progress is not None:
+            progress(k, len(cameras), "shadows")
         depth = np.full((camera.height, camera.width), np.inf, np.float32)
         alpha = np.zeros((camera.height, camera.width), np.float32)
         rows = np.flatnonzero(near)
@@ -119,13 +126,28 @@ def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None) 
             # The render culls what its camera cannot see as fast as a copy of the splats near it
             # would be made, and gives the same map: most of the cloud is drawn as it is.
             part = bare if len(rows) > FULL_SHARE * len(bare) else bare[rows]
-            result = render(part, camera, background=None, threads=threads)
+            result = render(
+                part,
+                camera,
+                background=None,
+                threads=threads,
+                progress=part_progress(progress, k, len(cameras), "shadows"),
+            )
             alpha = result.alpha
             depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
         for mesh in meshes:
             depth, alpha = _with_mesh(depth, alpha, mesh, camera)
         views.append(ShadowView(camera, depth, alpha))
     return views
+
+
+def part_progress(progress, part, parts, label=None):
+    """A progress callback (done, total, label) for part `part` of `parts` equal parts of a job that
+    reports to `progress`: the part's own fraction placed in its share, under `label` when given
+    (else the part's own); None without progress."""
+    if progress is None:
+        return None
+    return lambda done, total, own: progress(part * total + done, parts * total, label or own)
 
 
 def _reach(cloud):

@@ -90,3 +90,31 @@ def test_splats_with_zero_normals_keep_their_own_colours(scene):
     assert not rows[:10].any() and rows[10:].all()
     lit = relight.render_lit(zeroed, CAMERA, LIGHTS)
     assert np.isfinite(lit.color).all()
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_shadow_maps_report_progress_first_and_a_raise_stops_them(scene):
+    """A lit render's progress follows every light's shadow maps ("shadows", rising from 0 towards 1
+    over both lights), then the render's tiles; an exception raised from it (a cancel) while the
+    maps are drawn stops the frame there."""
+    seen = []
+    relight.render_lit(scene, CAMERA, LIGHTS, progress=lambda done, total, label: seen.append((done / total, label)))
+    labels = [label for _, label in seen]
+    first_tiles = labels.index("render")
+    assert set(labels[:first_tiles]) == {"shadows"} and set(labels[first_tiles:]) == {"render"}
+    shadow = [fraction for fraction, label in seen if label == "shadows"]
+    assert shadow == sorted(shadow) and shadow[0] == 0.0 and shadow[-1] == 1.0
+    assert any(fraction < 0.5 for fraction in shadow) and any(fraction > 0.5 for fraction in shadow)
+    calls = []
+
+    def cancel(done, total, label):
+        calls.append(label)
+        if len(calls) == 3:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        relight.render_lit(scene, CAMERA, LIGHTS, progress=cancel)
+    assert calls == ["shadows"] * 3
