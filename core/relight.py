@@ -18,11 +18,12 @@ from typing import Annotated
 
 import numpy as np
 
-from . import color, material, shadows
+from . import color, jit, material, shadows
 from . import sh as shmod
 from .arrays import Image
 from .camera import Camera
 from .lights import Light, World
+from .parallel import in_chunks
 from .render import Layer, RenderResult, Shapes, render
 from .shading import shade
 from .splats import SplatCloud
@@ -134,9 +135,33 @@ def lit_colors(
 def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:
     """A shallow copy of `cloud` whose splats `rows` show their shading's radiance (lit_colors'
     result) as display sRGB in every direction; the others keep their own SH."""
-    # float32: the colours end as float32 SH, and the curve runs about 3x faster than in float64
-    radiance = np.maximum(shading.radiance, 0.0)
-    return _with_colors(cloud, rows, color.linear_to_srgb(radiance, np.float32))
+    return _with_dc(cloud, rows, display_dc(shading.radiance))
+
+
+def display_dc(radiance: Annotated[np.ndarray, "(N, 3)"]) -> Annotated[np.ndarray, "(N, 3)"]:
+    """(N,3) float32 degree-0 SH coefficients that show scene-linear `radiance` (N,3) as display
+    sRGB from every direction (light below 0 clipped): sh.rgb_to_dc(color.linear_to_srgb(...)), by
+    the compiled kernel where it loads (the sRGB curve costs NumPy most of a lit frame's colouring)."""
+    radiance = np.ascontiguousarray(radiance, np.float32)
+    kernel = jit.compiled(__name__, ("_display_dc_loop",))
+    if kernel is None:
+        srgb = color.linear_to_srgb(np.maximum(radiance, 0.0), np.float32)
+        return shmod.rgb_to_dc(srgb).astype(np.float32)
+    out = np.empty(radiance.shape, np.float32)
+    in_chunks(len(radiance), lambda lo, hi: kernel(lo, hi, radiance, out))
+    return out
+
+
+def _display_dc_loop(lo, hi, radiance, out):
+    """display_dc for rows lo..hi. The curve in float32, as NumPy's path: the power is most of the
+    cost, and float32's is about twice as fast."""
+    toe, slope, gain, offset = np.float32(0.0031308), np.float32(12.92), np.float32(1.055), np.float32(0.055)
+    exponent, zero = np.float32(1.0 / 2.4), np.float32(0.0)
+    for i in range(lo, hi):
+        for c in range(radiance.shape[1]):
+            x = max(radiance[i, c], zero)
+            srgb = slope * x if x <= toe else gain * x**exponent - offset
+            out[i, c] = (np.float64(srgb) - 0.5) / shmod.C0
 
 
 def render_lit(
@@ -185,7 +210,11 @@ def render_lit(
         # Passes are linear radiance blended as colours are; splats without a material add nothing.
         pass_image = lambda values: (
             render(  # noqa: E731
-                _with_colors(lit, rows, values, own=0.0), camera, None, layer=dark, **options
+                _with_dc(lit, rows, shmod.rgb_to_dc(values).astype(np.float32), own=0.0),
+                camera,
+                None,
+                layer=dark,
+                **options,
             ).color
         )
         out.diffuse = pass_image(shading.diffuse)
@@ -194,11 +223,10 @@ def render_lit(
     return out
 
 
-def _with_colors(cloud, rows, values, own=None):
-    """A shallow copy of `cloud` whose splats `rows` show the display colours `values` (M,3) in every
-    direction; the others keep their own SH, or with `own` that constant colour. Degree 0 when
-    every splat is set."""
-    dc = shmod.rgb_to_dc(np.asarray(values, np.float64)).astype(np.float32)
+def _with_dc(cloud, rows, dc, own=None):
+    """A shallow copy of `cloud` whose splats `rows` show the degree-0 coefficients `dc` (M,3) float32
+    in every direction; the others keep their own SH, or with `own` that constant display colour.
+    Degree 0 when every splat is set."""
     if rows.all():
         return cloud.replace(sh=dc[:, None, :])
     sh = cloud.sh.copy() if own is None else np.zeros((len(cloud), 1, 3), np.float32)

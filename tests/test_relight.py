@@ -118,3 +118,21 @@ def test_shadow_maps_report_progress_first_and_a_raise_stops_them(scene):
     with pytest.raises(_Stop):
         relight.render_lit(scene, CAMERA, LIGHTS, progress=cancel)
     assert calls == ["shadows"] * 3
+
+
+def test_display_dc_shows_the_radiance_as_display_srgb_on_both_paths(monkeypatch):
+    """The lit colours' degree-0 coefficients: the compiled kernel and the NumPy path against the sRGB
+    curve written out, across black, the curve's linear toe, mid-greys and highlights past 1."""
+    from splatwright.core import jit
+
+    rng = np.random.default_rng(3)
+    radiance = np.concatenate([[[0.0, 0.002, 0.0031308]], [[-0.5, 1.0, 3.3]], rng.uniform(0, 2, (500, 3))])
+    radiance = radiance.astype(np.float32)
+    want = (_srgb(radiance.astype(np.float64)) - 0.5) / 0.28209479177387814
+    assert jit.compiled(relight.__name__, ("_display_dc_loop",)) is not None  # numba loads here
+    compiled = relight.display_dc(radiance)
+    monkeypatch.setattr(jit, "compiled", lambda *_: None)
+    numpy_path = relight.display_dc(radiance)
+    for got in (compiled, numpy_path):
+        assert got.dtype == np.float32 and got.shape == radiance.shape
+        np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
