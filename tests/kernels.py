@@ -28,4 +28,35 @@ def missing_kernels():
     ):
         if jit.load(module.KERNELS, check=module._check_kernels) is None:
             missing.append(f"{name}: {jit.status(module.KERNELS)}")
+    return missing + _relighting_missing()
+
+
+def _relighting_missing():
+    """The relighting kernels (shadow maps' masks, extents and filter, shading, lit colours) compile
+    on first use: a small lit frame compiles them all; [why] where one fails or does not load."""
+    import numpy as np
+
+    from splatwright.core import jit, material, relight, scenes, shading, shadows
+    from splatwright.core.camera import Camera
+    from splatwright.core.lights import Light
+
+    cloud = scenes.seed_cube(points_per_edge=6, sigma=0.06, opacity=0.6)
+    normals = np.tile([0.0, 0.0, 1.0], (len(cloud), 1))
+    cloud = material.with_material(cloud, albedo=np.full((len(cloud), 3), 0.5), normals=normals)
+    camera = Camera.look_at((1.2, 0.8, 0.5), (0.0, 0.0, 3.0), width=32, height=24)
+    lights = [Light("point", position=(0.0, 0.0, 0.0), radius=0.1), Light("sun", direction=(0.0, 0.0, 1.0))]
+    try:
+        frame = relight.render_lit(cloud, camera, lights)
+    except Exception as exc:  # a kernel that does not compile with this numba
+        return [f"relighting: {type(exc).__name__}: {exc}"]
+    kernels = {
+        "shadow filter": (shadows.__name__, ("_pcss_one", "_visibility_loop")),
+        "shadow masks": (shadows.__name__, ("_near_loop",)),
+        "shadow extents": (shadows.__name__, ("_extent_loop",)),
+        "shading": (shading.__name__, ("_lambda_one", "_table_one", "_shade_loop")),
+        "lit colours": (relight.__name__, ("_display_dc_loop",)),
+    }
+    missing = [name for name, (module, names) in kernels.items() if jit.compiled(module, names) is None]
+    if not np.isfinite(frame.color).all():
+        missing.append("relighting: the lit frame is not finite")
     return missing
