@@ -155,8 +155,8 @@ def display_dc(radiance: Annotated[np.ndarray, "(N, 3)"]) -> Annotated[np.ndarra
 def _display_dc_loop(lo, hi, radiance, out):
     """display_dc for rows lo..hi. The curve in float32, as NumPy's path: the power is most of the
     cost, and float32's is about twice as fast."""
-    toe, slope, gain, offset = np.float32(0.0031308), np.float32(12.92), np.float32(1.055), np.float32(0.055)
-    exponent, zero = np.float32(1.0 / 2.4), np.float32(0.0)
+    toe, slope, zero = np.float32(color.LINEAR_TOE), np.float32(color.SLOPE), np.float32(0.0)
+    gain, offset, exponent = np.float32(color.GAIN), np.float32(color.OFFSET), np.float32(1.0 / color.GAMMA)
     for i in range(lo, hi):
         for c in range(radiance.shape[1]):
             x = max(radiance[i, c], zero)
