@@ -87,12 +87,16 @@ def visibilities(
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    shapes: Shapes | None = None,
 ) -> dict[int, np.ndarray]:
     """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
     the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told. They
     do not depend on the camera: a viewport makes them once for many views. progress(done, total,
-    "shadows") follows all the lights' maps together (core.shadows.visibility)."""
+    "shadows") follows all the lights' maps together (core.shadows.visibility); shapes,
+    core.render.Shapes of the cloud, are made here unless given."""
     casting = [index for index, light in enumerate(lights) if light.cast_shadow]
+    if casting and shapes is None:
+        shapes = Shapes(cloud, threads)  # once for every map
     return {
         index: shadows.visibility(
             cloud,
@@ -101,6 +105,7 @@ def visibilities(
             resolution=_resolution(shadow_resolution, lights[index]),
             threads=threads,
             progress=shadows.part_progress(progress, step, len(casting)),
+            shapes=shapes,
         )
         for step, index in enumerate(casting)  # a loop over lights
     }
@@ -117,16 +122,24 @@ def lit_colors(
     threads: int | None = None,
     visible: dict[int, np.ndarray] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    shapes: Shapes | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
-    the lights that cast shadows: all splats and `meshes` occlude; `progress` as visibilities')."""
+    the lights that cast shadows: all splats and `meshes` occlude; `progress` and `shapes` as
+    visibilities')."""
     rows = material_rows(cloud)
     if not rows.any():
         return rows, None
     if visible is None:
         visible = visibilities(
-            cloud, lights, meshes=meshes, shadow_resolution=shadow_resolution, threads=threads, progress=progress
+            cloud,
+            lights,
+            meshes=meshes,
+            shadow_resolution=shadow_resolution,
+            threads=threads,
+            progress=progress,
+            shapes=shapes,
         )
     part = cloud if rows.all() else cloud[rows]
     return rows, shade(part, camera, lights, world, {i: v[rows] for i, v in visible.items()})
@@ -186,6 +199,8 @@ def render_lit(
     (default SHADOW_RESOLUTION). Other keywords go to core.render (mode, tile_size, backend, ...);
     its `progress` follows the shadow maps first (label "shadows"), then the render's tiles."""
     t0 = time.perf_counter()
+    # The splats' shapes, made once for the shadow maps and the picture (the lit copy keeps them).
+    shapes = Shapes(cloud, threads)
     rows, shading = lit_colors(
         cloud,
         camera,
@@ -195,14 +210,14 @@ def render_lit(
         shadow_resolution=shadow_resolution,
         threads=threads,
         progress=render_options.get("progress"),
+        shapes=shapes,
     )
     shading_time = time.perf_counter() - t0
+    options = dict(render_options, threads=threads, shapes=shapes)
     if shading is None:
-        result = render(cloud, camera, background, layer=layer, threads=threads, **render_options)
+        result = render(cloud, camera, background, layer=layer, **options)
         return LitRender(result, stats=dict(result.stats, shading_s=0.0))
     lit = lit_cloud(cloud, rows, shading)
-    shapes = Shapes(lit, threads) if passes else None
-    options = dict(render_options, threads=threads, shapes=shapes)
     result = render(lit, camera, background, layer=layer, **options)
     out = LitRender(result, stats=dict(result.stats, shading_s=shading_time))
     if passes:

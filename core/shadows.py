@@ -6,8 +6,7 @@ meshes (core.mesh_render.rasterize) folded in. The views per light kind:
 - spot: one perspective camera covering its cone (a cube, as for a point light, past 120 degrees);
 - sun: one orthographic camera along its direction covering the splats' and meshes' bounds;
 - point: a cube of six 90-degree perspective faces in world axes; each splat is tested on the face
-  its direction from the light falls in, and a face is rendered only with the splats near it (and
-  not at all when none are);
+  its direction from the light falls in, and a face with no splat near it is not rendered;
 - area: the cube from the light's centre, in the light's own axes, without the face behind the
   light (nothing there is lit).
 
@@ -21,7 +20,9 @@ Soft shadows are percentage-closer filtered, PCSS-like: a blocker search (the me
 covers the taps of a disc around the splat's texel) sizes the penumbra by similar triangles,
 light size x (receiver - blocker) / blocker, and the covered fraction of a disc of taps of that size
 is the shadow. The disc has the light's radius for point and spot lights, the angle's tangent for
-the sun, and the radius of a disc of the same area for area lights.
+the sun, and the radius of a disc of the same area for area lights. Where the search finds nothing
+in front, the splat is lit; where it finds every tap covered and the filter's disc lies within its
+own, the search's mean coverage is the shadow (the filter would read the same surface again).
 """
 
 import math
@@ -36,10 +37,10 @@ from .arrays import Floats
 from .camera import Camera, look_at_matrix
 from .mesh_render import rasterize
 from .parallel import in_chunks
-from .render import render
+from .render import Shapes, render
 from .splats import SplatCloud
 
-TAPS = 24  # filter taps per splat (a golden-angle spiral over a disc), also the blocker search's
+TAPS = 24  # filter taps per splat (a golden-angle spiral over a disc); the blocker search takes half
 MAX_SEARCH_TEXELS = 24.0  # the blocker search's radius is capped there
 SIGMA_BIAS = 2.5  # standard deviations of a splat along the light ray that count as its own surface
 TEXEL_BIAS = 2.5  # texels of depth slope that count as its own surface
@@ -48,7 +49,6 @@ CHUNK = 1 << 16  # points per step of the NumPy filter
 CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
-FULL_SHARE = 0.6  # a map with more of the splats near it than this draws the whole cloud (no copy)
 
 
 @dataclass
@@ -73,6 +73,7 @@ def visibility(
     soft: bool = True,
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    shapes: Shapes | None = None,
 ) -> Annotated[Floats, "(N,)"]:
     """(N,) float32 in [0, 1]: the fraction of `light` reaching each splat's centre (1 lit, 0 in
     shadow), from shadow maps of `resolution` texels a side (per cube face for point and area
@@ -82,19 +83,23 @@ def visibility(
     sigma_bias, texel_bias: the self-shadow bias in the splat's standard deviations along the light
     ray and in texels of depth slope. A light with cast_shadow False gives all ones.
     progress(done, total, "shadows") follows the maps as core.render's progress follows tiles (an
-    exception it raises, a cancel, stops the work there)."""
+    exception it raises, a cancel, stops the work there). shapes: core.render.Shapes of the cloud,
+    when the caller has them (a lit frame makes them once for its maps and its picture)."""
     n = len(cloud)
     out = np.ones(n, np.float32)
     if n == 0 or not getattr(light, "cast_shadow", True):
         return out
-    views = shadow_views(cloud, light, occluders=occluders, resolution=resolution, threads=threads, progress=progress)
+    views = shadow_views(
+        cloud, light, occluders=occluders, resolution=resolution, threads=threads, progress=progress, shapes=shapes
+    )
     points = cloud.positions.astype(np.float64)
     sigma, slope = _extent_and_slope(cloud, light, points)
     size = _light_size(light)
     kernel = jit.compiled(__name__, ("_pcss_one", "_visibility_loop"))
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
         settings = (size if soft else 0.0, sigma_bias, texel_bias)
-        return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, _spiral(taps), out)
+        discs = (_spiral(_search_taps(taps)), _spiral(taps))
+        return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, out)
     face = _face_of(light, views, points)
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
@@ -104,14 +109,20 @@ def visibility(
     return out
 
 
-def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None, progress=None) -> list[ShadowView]:
-    """The light's shadow-map views (see the module notes), each rendered from the splats near it;
-    progress as visibility's."""
+def shadow_views(
+    cloud, light, *, occluders=None, resolution=512, threads=None, progress=None, shapes=None
+) -> list[ShadowView]:
+    """The light's shadow-map views (see the module notes); progress and shapes as visibility's."""
     points = cloud.positions.astype(np.float64)
     reach = _reach(cloud)
-    # What the maps need of the splats: their shapes (colour and extras are not drawn).
-    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, cloud.sh[:, :1])
+    # What the maps need of the splats: their shapes (colour and extras are not drawn). Every map
+    # draws the whole cloud and lets the render cull: with the shapes made once, a culled splat
+    # costs a position's transform, less than copying out the splats near each map.
+    dc = np.ascontiguousarray(cloud.sh[:, :1])
+    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, dc)
     bare.antialiased = cloud.antialiased
+    if shapes is None or not shapes.fits(bare):
+        shapes = Shapes(bare, threads)
     meshes = list(occluders or [])
     views = []
     cameras = _cameras(light, points, reach, meshes, int(resolution))
@@ -121,17 +132,14 @@ def shadow_views(cloud, light, *, occluders=None, resolution=512, threads=None, 
             progress(k, len(cameras), "shadows")
         depth = np.full((camera.height, camera.width), np.inf, np.float32)
         alpha = np.zeros((camera.height, camera.width), np.float32)
-        rows = np.flatnonzero(near)
-        if len(rows):
-            # The render culls what its camera cannot see as fast as a copy of the splats near it
-            # would be made, and gives the same map: most of the cloud is drawn as it is.
-            part = bare if len(rows) > FULL_SHARE * len(bare) else bare[rows]
+        if near.any():
             result = render(
-                part,
+                bare,
                 camera,
                 background=None,
                 threads=threads,
                 progress=part_progress(progress, k, len(cameras), "shadows"),
+                shapes=shapes,
             )
             alpha = result.alpha
             depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
@@ -411,6 +419,11 @@ def _spiral(taps):
     return np.stack([r * np.cos(t), r * np.sin(t)], axis=1)
 
 
+def _search_taps(taps):
+    """The blocker search's taps: half the filter's (a mean depth needs fewer than a coverage)."""
+    return max(taps // 2, 1)
+
+
 def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     """(n,) visibility of points in one view: PCSS search and percentage-closer filtering."""
     cam = view.camera
@@ -423,7 +436,7 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     if not soft or size <= 0:
         out[seen] = 1.0 - _covered(view, uv, limit, np.zeros((1, 2)), np.zeros(len(z)))[0]
         return out
-    disc = _spiral(taps)
+    disc, search_disc = _spiral(taps), _spiral(_search_taps(taps))
     # Blockers that can shade a receiver lie in the cone from it to the light; its radius in texels,
     # f r (z - zb) / (z zb) (perspective) or f tan (z - zb) (sun), taken at a quarter of the way.
     if cam.is_orthographic:
@@ -434,9 +447,11 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     vis = np.empty(len(z))
     for start in range(0, len(z), CHUNK):  # a loop over chunks: (chunk, taps) arrays stay small
         sl = slice(start, start + CHUNK)
-        blocker = _covered(view, uv[sl], limit[sl], disc, search[sl])[1]
+        coverage, blocker, every = _covered(view, uv[sl], limit[sl], search_disc, search[sl])
         radius = _penumbra(z[sl], blocker, cam.fx * size, cam.is_orthographic)
         vis[sl] = 1.0 - _covered(view, uv[sl], limit[sl], disc, radius)[0]
+        within = every & (radius <= search[sl])  # the filter would read the covered search disc again
+        vis[sl][within] = 1.0 - coverage[within]
     out[seen] = vis
     return out
 
@@ -450,15 +465,15 @@ def _penumbra(z, blocker, scale, ortho):
     return np.where(np.isfinite(blocker), np.maximum(radius, 0.5), 0.0)
 
 
-def _visibility_compiled(kernel, cloud, views, sigma, slope, settings, disc, out):
+def _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, out):
     """visibility()'s test of every splat in its view (_face_of, _filtered) by one compiled loop on
     every core: the splat's projection, bias, search and filter without (N,) temporaries per view."""
     cams = np.array([_camera_row(view.camera) for view in views])
-    depth = np.stack([view.depth for view in views])
-    alpha = np.stack([view.alpha for view in views])
+    # each texel's depth and alpha side by side: a tap reads one cache line, not two
+    texels = np.stack([np.stack([view.depth, view.alpha], axis=-1) for view in views])
     positions = np.ascontiguousarray(cloud.positions, np.float32)
     params = np.array(settings, np.float64)
-    in_chunks(len(out), lambda lo, hi: kernel(lo, hi, positions, sigma, slope, cams, depth, alpha, disc, params, out))
+    in_chunks(len(out), lambda lo, hi: kernel(lo, hi, positions, sigma, slope, cams, texels, *discs, params, out))
     return out
 
 
@@ -468,7 +483,7 @@ def _camera_row(camera):
     return [*camera.rotation.ravel(), *camera.center, camera.fx, camera.fy, camera.cx, camera.cy, *flags]
 
 
-def _visibility_loop(lo, hi, positions, sigma, slope, cams, depth, alpha, disc, params, out):
+def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, search_disc, disc, params, out):
     """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
     looking most nearly at it, none behind them all), then _filtered's test there."""
     size, sigma_bias, texel_bias = params[0], params[1], params[2]
@@ -505,43 +520,48 @@ def _visibility_loop(lo, hi, positions, sigma, slope, cams, depth, alpha, disc, 
             search = min(max(fx * size * 0.75 * (z - cams[f, 17]), 1.0), MAX_SEARCH_TEXELS)
         else:
             search = min(max(fx * size * 3.0 / max(z, 1e-9), 1.0), MAX_SEARCH_TEXELS)
-        out[i] = _pcss_one(u, v, z, limit, search, depth[f], alpha[f], disc, fx * size, ortho)
+        out[i] = _pcss_one(u, v, z, limit, search, texels[f], search_disc, disc, fx * size, ortho)
 
 
-def _pcss_one(u, v, z, limit, search, depth, alpha, disc, scale, ortho):
-    """_covered's blocker search and filter of one point at (u, v) in a map; search 0 tests the
-    centre texel alone (a hard shadow)."""
-    h, w = depth.shape
+def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):
+    """_filtered's blocker search and filter of one point at (u, v) in a map, texels (H,W,2) its
+    depth and alpha; search 0 tests the centre texel alone (a hard shadow)."""
+    h, w = texels.shape[0], texels.shape[1]
     if search == 0.0:
         x = min(max(int(np.floor(u)), 0), w - 1)
         y = min(max(int(np.floor(v)), 0), h - 1)
-        return 1.0 - min(max(alpha[y, x], 0.0), 1.0) if depth[y, x] < limit else 1.0
-    taps = disc.shape[0]
-    total, weighted = 0.0, 0.0
-    for k in range(taps):
-        x = min(max(int(np.floor(u + search * disc[k, 0])), 0), w - 1)
-        y = min(max(int(np.floor(v + search * disc[k, 1])), 0), h - 1)
-        if depth[y, x] < limit:
-            total += alpha[y, x]
-            weighted += alpha[y, x] * depth[y, x]
+        return 1.0 - min(max(texels[y, x, 1], 0.0), 1.0) if texels[y, x, 0] < limit else 1.0
+    searched = search_disc.shape[0]
+    total, weighted, blocked = 0.0, 0.0, 0
+    for k in range(searched):
+        x = min(max(int(np.floor(u + search * search_disc[k, 0])), 0), w - 1)
+        y = min(max(int(np.floor(v + search * search_disc[k, 1])), 0), h - 1)
+        if texels[y, x, 0] < limit:
+            total += texels[y, x, 1]
+            weighted += texels[y, x, 1] * texels[y, x, 0]
+            blocked += 1
     if total <= 0.0:
         return 1.0
     blocker = weighted / total
     gap = max(z - blocker, 0.0)
     radius = scale * gap if ortho else scale * gap / max(z * blocker, 1e-12)
     radius = max(radius, 0.5)
+    if blocked == searched and radius <= search:
+        return 1.0 - min(total / searched, 1.0)
+    taps = disc.shape[0]
     covered = 0.0
     for k in range(taps):
         x = min(max(int(np.floor(u + radius * disc[k, 0])), 0), w - 1)
         y = min(max(int(np.floor(v + radius * disc[k, 1])), 0), h - 1)
-        if depth[y, x] < limit:
-            covered += alpha[y, x]
+        if texels[y, x, 0] < limit:
+            covered += texels[y, x, 1]
     return 1.0 - min(covered / taps, 1.0)
 
 
 def _covered(view, uv, limit, disc, radius):
-    """(covered fraction (n,), mean blocker depth (n,)) of the taps uv + radius * disc (texels) by
-    map texels nearer than `limit`, each weighed by its alpha. Taps off the map read its edge."""
+    """(covered fraction (n,), mean blocker depth (n,), whether every tap is covered (n,)) of the
+    taps uv + radius * disc (texels) by map texels nearer than `limit`, each weighed by its alpha.
+    Taps off the map read its edge."""
     h, w = view.depth.shape
     x = uv[:, None, 0] + radius[:, None] * disc[None, :, 0]
     y = uv[:, None, 1] + radius[:, None] * disc[None, :, 1]
@@ -554,4 +574,4 @@ def _covered(view, uv, limit, disc, radius):
     total = weight.sum(axis=1)
     mean_depth = np.where(blocked, depth, 0.0).astype(np.float64) * weight
     blocker = np.where(total > 0, mean_depth.sum(axis=1) / np.maximum(total, 1e-30), np.inf)
-    return np.clip(total / disc.shape[0], 0.0, 1.0), blocker
+    return np.clip(total / disc.shape[0], 0.0, 1.0), blocker, blocked.all(axis=1)

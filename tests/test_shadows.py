@@ -11,6 +11,7 @@ from shadow_reference import plane_cloud, reference_visibility, sphere_cloud
 from splatwright.core import material, shadows
 from splatwright.core.lights import Light
 from splatwright.core.mesh import Surface
+from splatwright.core.render import render
 from splatwright.core.splats import SplatCloud
 
 CENTRE, RADIUS = np.array([0.0, 0.0, 0.8]), 0.3
@@ -175,9 +176,9 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
         pytest.skip("compiled kernels are not available here")
     compiled = shadows._extent_and_slope(cloud, light, points)
     views = shadows.shadow_views(cloud, light, resolution=128)
-    # A map that draws the whole cloud (letting the render cull) is the map of the splats near it.
-    monkeypatch.setattr(shadows, "FULL_SHARE", 1.0)
-    copied = shadows.shadow_views(cloud, light, resolution=128)
+    # A map draws the whole cloud and lets the render cull: it is the map of the splats near it.
+    masks = shadows._near_masks([v.camera for v in views], cloud.positions, points, shadows._reach(cloud))
+    copied = [_map_of(cloud[near], view.camera) for view, near in zip(views, masks, strict=True)]
     monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
     reference = shadows._extent_and_slope(cloud, light, points)
     for got, want in zip(compiled, reference, strict=True):
@@ -185,3 +186,10 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     for got, want, copy in zip(views, shadows.shadow_views(cloud, light, resolution=128), copied, strict=True):
         assert np.array_equal(got.depth, want.depth) and np.array_equal(got.alpha, want.alpha)
         assert np.array_equal(copy.depth, want.depth) and np.array_equal(copy.alpha, want.alpha)
+
+
+def _map_of(cloud, camera):
+    """A shadow map's depth and alpha drawn from `cloud` alone."""
+    result = render(cloud, camera, background=None)
+    depth = np.where(result.alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
+    return shadows.ShadowView(camera, depth, result.alpha)
