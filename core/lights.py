@@ -13,8 +13,8 @@ A Light lives in the world frame of the cloud it lights. Its units are those Cyc
   diameter, radians) only softens shadows;
 - area: a one-sided rectangle or ellipse of `size_x` by `size_y` metres emitting radiance
   P / (pi * area) towards its -Z side (`direction`; so P / area W/m^2 leave its surface), sampled
-  at a fixed stratified set of AREA_SAMPLES points, each a small cosine-weighted (Lambertian)
-  emitter (see area_points).
+  at a stratified grid of points, each a small cosine-weighted (Lambertian) emitter (see
+  area_points), the grid as fine as the lit point's distance needs (area_grids).
 
 Irradiance is the power per square metre arriving on a surface, colour included; a diffuse surface of
 albedo a then reflects radiance a * E / pi. Lights are evaluated per splat, vectorised (`incident`
@@ -29,11 +29,16 @@ import numpy as np
 
 KINDS = ("point", "spot", "sun", "area")
 AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
-# Area lights are sampled on a fixed GRID x GRID stratified pattern (cell centres, mapped to the
-# disc by an area-preserving map for DISK/ELLIPSE): 16 points, within 1% of the exact irradiance of
-# a square beyond about one side length (tests/test_lights.py states the measured error).
+# Area lights are sampled on a g x g stratified pattern (cell centres, mapped to the disc by an
+# area-preserving map for DISK/ELLIPSE). The midpoint rule's error falls as (side / (g distance))^2,
+# so a point gets g = ceil(AREA_REACH side / distance) clipped to 1..AREA_GRID (side: the longer one;
+# distance: to the centre): 16 points nearer than two sides, one point (the light as a single
+# patch) from AREA_REACH sides on. The largest error is then that of the full grid
+# at about one side length, a little over 1% (tests/test_lights.py states the measured errors).
 AREA_GRID = 4
-AREA_SAMPLES = AREA_GRID * AREA_GRID
+AREA_SAMPLES = AREA_GRID * AREA_GRID  # the most a point gets
+AREA_REACH = 6.0
+AREA_GLOSS = 2.0  # samples across a glossy lobe's width (area_grids' lobes)
 # Radiance of an area light per watt per square metre of its surface: 1/pi, so that its radiant
 # exitance (pi * radiance) is power / area. Measured: Cycles' renders agree within 0.1%
 # (tests/test_blender_lights.py); its kernel's 0.25 / area comes with a 4/pi from Blender's side.
@@ -161,12 +166,15 @@ class World:
 class Incident(NamedTuple):
     """Light arriving at N points from one emitter (a whole point/spot/sun light, or one sample of an
     area light): unit `direction` (N,3) from each point towards the emitter, `distance` (N,) to it
-    (inf for the sun), and `strength` (N,), the irradiance on a surface facing it before the light's
-    colour and the receiver's cosine (times Light.color: W/m^2 per channel)."""
+    (inf for the sun), `strength` (N,), the irradiance on a surface facing it before the light's
+    colour and the receiver's cosine (times Light.color: W/m^2 per channel), and `radius`, the
+    emitter's size in metres as a sphere or disc (a point or spot light's radius, (N,) for an area
+    sample's patch; the sun's is its angle)."""
 
     direction: np.ndarray
     distance: np.ndarray
     strength: np.ndarray
+    radius: np.ndarray | float = 0.0
 
 
 def spot_cone(light: Light, cos_angle: np.ndarray) -> np.ndarray:
@@ -201,16 +209,34 @@ def area_points(light: Light, grid: int = AREA_GRID) -> tuple[np.ndarray, np.nda
     return points, np.full(len(points), light.area / len(points))
 
 
+def area_grids(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) -> np.ndarray:
+    """(N,) int: the sampling grid (g of g x g, 1..AREA_GRID) of the area light at each point (N,3),
+    from its distance to the light's centre (see AREA_REACH); the finest where it is undefined.
+    lobes: (N,) angular widths (radians) of glossy reflections to be lit: the samples' spacing, the
+    side over g distance, stays within a lobe's width, or a glossy highlight takes the shape of
+    too few samples."""
+    distance = towards(light.position, np.asarray(points, np.float64).reshape(-1, 3))[1]
+    side = max(light.extent)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        grids = np.ceil(AREA_REACH * side / distance)
+        if lobes is not None:
+            grids = np.maximum(grids, np.ceil(AREA_GLOSS * side / (distance * lobes)))
+    return np.clip(np.nan_to_num(grids, nan=AREA_GRID), 1, AREA_GRID).astype(np.int64)
+
+
 def towards(source: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit directions (N,3) from points to `source` (3,) and the distances (N,), float64."""
+    """Unit directions (N,3) from points to `source` ((3,) or one per point (N,3)) and the distances
+    (N,), float64."""
     offset = source - points
     distance = np.sqrt(np.einsum("ij,ij->i", offset, offset))
     return offset / np.maximum(distance, 1e-300)[:, None], distance
 
 
-def incident(light: Light, points: np.ndarray) -> list[Incident]:
-    """The light arriving at points (N,3): one Incident per emitter (AREA_SAMPLES for area lights),
-    in float64. A point closer than 1e-300 to an emitter gets no light from it."""
+def incident(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) -> list[Incident]:
+    """The light arriving at points (N,3): one Incident per emitter, in float64. An area light gives
+    one per sample slot, up to AREA_SAMPLES: slot k holds sample k of each point's grid (area_grids),
+    no light where that grid has fewer (`lobes` as area_grids'). A point closer than 1e-300 to an
+    emitter gets no light from it."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = len(points)
     if light.kind == "sun":
@@ -222,16 +248,21 @@ def incident(light: Light, points: np.ndarray) -> list[Incident]:
         if light.kind == "spot":
             intensity = intensity * spot_cone(light, -(direction @ light.direction))
         scalar = np.where(distance > 1e-300, intensity / np.maximum(distance, 1e-300) ** 2, 0.0)
-        return [Incident(direction, distance, scalar)]
-    samples, shares = area_points(light)
+        return [Incident(direction, distance, scalar, light.radius)]
+    grids = area_grids(light, points, lobes)
+    table = np.zeros((AREA_GRID + 1, AREA_SAMPLES, 3))  # [g, k]: sample k of the g x g grid
+    for g in range(1, AREA_GRID + 1):  # a loop over grids
+        table[g, : g * g] = area_points(light, g)[0]
+    share = light.area / (grids * grids)
     radiance = AREA_RADIANCE * light.power / light.area
     out = []
-    for sample, share in zip(samples, shares, strict=True):  # a loop over 16 emitters, not points
-        direction, distance = towards(sample, points)
+    for k in range(int(grids.max(initial=1)) ** 2):  # a loop over sample slots, not points
+        direction, distance = towards(table[grids, k], points)
         # one-sided Lambertian patch: its cosine towards each point, 0 behind it
         cos_emit = np.maximum(-(direction @ light.direction), 0.0)
-        scalar = np.where(distance > 1e-300, radiance * share * cos_emit / np.maximum(distance, 1e-300) ** 2, 0.0)
-        out.append(Incident(direction, distance, scalar))
+        scalar = radiance * share * cos_emit / np.maximum(distance, 1e-300) ** 2
+        scalar = np.where((distance > 1e-300) & (k < grids * grids), scalar, 0.0)
+        out.append(Incident(direction, distance, scalar, np.sqrt(share / math.pi)))
     return out
 
 

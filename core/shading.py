@@ -39,7 +39,18 @@ import numpy as np
 from . import jit, material
 from .arrays import Floats
 from .camera import Camera
-from .lights import AREA_RADIANCE, Light, World, area_points, incident, towards
+from .lights import (
+    AREA_GLOSS,
+    AREA_GRID,
+    AREA_RADIANCE,
+    AREA_REACH,
+    Incident,
+    Light,
+    World,
+    area_points,
+    incident,
+    towards,
+)
 from .parallel import in_chunks
 from .splats import SplatCloud
 
@@ -178,25 +189,22 @@ def multiscatter_compensation(cos_v: np.ndarray, roughness: np.ndarray, f0: np.n
     return 1.0 + f0 * (1.0 / np.maximum(white, 1e-3) - 1.0)
 
 
-def angular_radius(light: Light, distance: np.ndarray, share: float) -> np.ndarray:
-    """The angle (N,) a light's emitter subtends (its half-angle) seen from `distance` (N,): a point or
-    spot light's sphere, the sun's disc, or one area sample's patch of `share` m^2 taken as a disc."""
+def angular_radius(light: Light, emitter: Incident) -> np.ndarray:
+    """The angle (N,) an emitter (core.lights.incident's) subtends (its half-angle) at the points it
+    lights: a point or spot light's sphere, the sun's disc, or an area sample's patch as a disc."""
     if light.kind == "sun":
-        return np.full(len(distance), 0.5 * light.angle)
-    radius = light.radius if light.kind in ("point", "spot") else math.sqrt(share / math.pi)
-    return np.arcsin(np.clip(radius / np.maximum(distance, 1e-300), 0.0, 1.0))
+        return np.full(len(emitter.distance), 0.5 * light.angle)
+    return np.arcsin(np.clip(emitter.radius / np.maximum(emitter.distance, 1e-300), 0.0, 1.0))
 
 
 def _light_terms(light, points, normal, view, alpha, f0) -> tuple[np.ndarray, np.ndarray]:
     """One light's unshadowed diffuse factor (irradiance on the surface, E cos) and specular radiance,
     (N,3) each. Per emitter only (N,) scalars are summed: the light's colour and Schlick's F0 come in
     once at the end (F = F0 (1 - w) + w)."""
-    emitters = incident(light, points)
-    share = light.area / len(emitters) if light.kind == "area" else 0.0
     diffuse, tinted, white = (np.zeros(len(points)) for _ in range(3))
-    for inc in emitters:  # one emitter, or an area light's 16 samples
+    for inc in incident(light, points, alpha):  # one emitter, or an area light's samples
         diffuse += inc.strength * np.maximum(np.einsum("ij,ij->i", normal, inc.direction), 0.0)
-        widened = np.minimum(np.hypot(alpha, 0.5 * angular_radius(light, inc.distance, share)), 1.0)
+        widened = np.minimum(np.hypot(alpha, 0.5 * angular_radius(light, inc)), 1.0)
         scalar, weight = ggx_parts(normal, view, inc.direction, widened)
         scalar *= inc.strength
         tinted += scalar * (1.0 - weight)
@@ -271,12 +279,14 @@ def _visibility(visibility: dict[int, np.ndarray] | None, index: int, n: int) ->
 
 SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # kind, light index, position (3), direction (3: towards the sun; the spot's or area's axis),
-# strength factor, spot cos(size/2) and edge width, emitter radius (the sun's: its half angle)
+# strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and 0),
+# emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
 
 
 def _emitters(lights: list[Light]) -> np.ndarray:
-    """(E, EMITTER_FIELDS) float64: every light's emitters (an area light's samples, see incident)."""
+    """(E, EMITTER_FIELDS) float64: every light's emitters (an area light's samples on every grid, see
+    core.lights.incident: each splat takes those of its own grid)."""
     rows = []
     for index, light in enumerate(lights):  # a loop over lights
         if light.kind == "sun":
@@ -288,11 +298,23 @@ def _emitters(lights: list[Light]) -> np.ndarray:
             width = (1.0 - cos_half) * light.spot_blend
             rows.append([kind, index, *light.position, *light.direction, strength, cos_half, width, light.radius])
         else:
-            samples, shares = area_points(light)
-            for sample, share in zip(samples, shares, strict=True):  # 16 samples
-                strength = AREA_RADIANCE * light.power / light.area * share
-                rows.append([AREA, index, *sample, *light.direction, strength, 0, 0, math.sqrt(share / math.pi)])
+            for grid in range(1, AREA_GRID + 1):  # 1 + 4 + 9 + 16 samples
+                samples, shares = area_points(light, grid)
+                for sample, share in zip(samples, shares, strict=True):
+                    strength = AREA_RADIANCE * light.power / light.area * share
+                    radius = math.sqrt(share / math.pi)
+                    rows.append([AREA, index, *sample, *light.direction, strength, grid, 0, radius])
     return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS)
+
+
+def _area_reaches(lights: list[Light]) -> np.ndarray:
+    """(L, 5) float64: per light, the centre (3), AREA_REACH times the longer side of an area light
+    and that side, from which a splat's grid follows (core.lights.area_grids); 0 for other lights."""
+    rows = []
+    for light in lights:  # a loop over lights
+        side = max(light.extent) if light.kind == "area" else 0.0
+        rows.append([*light.position, AREA_REACH * side, AREA_GLOSS * side])
+    return np.array(rows, np.float64).reshape(-1, 5)
 
 
 def _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibility, multiscatter):
@@ -312,12 +334,12 @@ def _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibili
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
-    emitters = _emitters(lights)
+    emitters, reaches = _emitters(lights), _area_reaches(lights)
     flags = np.array([ortho, multiscatter, world is not None])
     in_chunks(
         n,
         lambda lo, hi: kernel(
-            lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, colors,
+            lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, reaches, colors,
             vis, world_color, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
@@ -347,10 +369,11 @@ def _table_one(table, cos_v, roughness):
     return low * (1 - fy) + high * fy
 
 
-def _shade_loop(lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, colors, vis, world,
-                scale, bias, diffuse, specular, shadow):  # fmt: skip
+def _shade_loop(lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, reaches, colors, vis,
+                world, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
+    grids = np.empty(n_lights)  # each area light's grid at this splat (core.lights.area_grids)
     v, nrm, f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     out_d, out_s = np.empty(3), np.empty(3)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
@@ -377,8 +400,17 @@ def _shade_loop(lo, hi, points, normals, albedo, rough, metal, eye, flags, emitt
             base[c] = albedo[i, c] * (1.0 - m) * min(max(1.0 - layer[c], 0.0), 1.0)
         cos_vg = max(cos_v, COS_MIN)
         acc[:] = 0.0
+        for k in range(n_lights):
+            dx, dy, dz = reaches[k, 0] - points[i, 0], reaches[k, 1] - points[i, 1], reaches[k, 2] - points[i, 2]
+            distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+            grids[k] = AREA_GRID  # as core.lights.area_grids with the splat's lobe; also at 0 and NaN
+            if distance > 0.0:
+                grid = max(np.ceil(reaches[k, 3] / distance), np.ceil(reaches[k, 4] / (distance * alpha)))
+                grids[k] = min(max(grid, 1.0), AREA_GRID)
         for e in range(emitters.shape[0]):
             kind, index, strength = emitters[e, 0], int(emitters[e, 1]), emitters[e, 8]
+            if kind == AREA and emitters[e, 9] != grids[index]:
+                continue  # a sample of another grid than this splat's
             if kind == SUN:
                 lx, ly, lz, distance = emitters[e, 5], emitters[e, 6], emitters[e, 7], math.inf
             else:
