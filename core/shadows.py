@@ -21,8 +21,7 @@ covers the taps of a disc around the splat's texel) sizes the penumbra by simila
 light size x (receiver - blocker) / blocker, and the covered fraction of a disc of taps of that size
 is the shadow. The disc has the light's radius for point and spot lights, the angle's tangent for
 the sun, and the radius of a disc of the same area for area lights. Where the search finds nothing
-in front, the splat is lit; where it finds every tap covered and the filter's disc lies within its
-own, the search's mean coverage is the shadow (the filter would read the same surface again).
+in front, the splat is lit.
 """
 
 import math
@@ -447,11 +446,9 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     vis = np.empty(len(z))
     for start in range(0, len(z), CHUNK):  # a loop over chunks: (chunk, taps) arrays stay small
         sl = slice(start, start + CHUNK)
-        coverage, blocker, every = _covered(view, uv[sl], limit[sl], search_disc, search[sl])
+        blocker = _covered(view, uv[sl], limit[sl], search_disc, search[sl])[1]
         radius = _penumbra(z[sl], blocker, cam.fx * size, cam.is_orthographic)
         vis[sl] = 1.0 - _covered(view, uv[sl], limit[sl], disc, radius)[0]
-        within = every & (radius <= search[sl])  # the filter would read the covered search disc again
-        vis[sl][within] = 1.0 - coverage[within]
     out[seen] = vis
     return out
 
@@ -532,22 +529,19 @@ def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):
         y = min(max(int(np.floor(v)), 0), h - 1)
         return 1.0 - min(max(texels[y, x, 1], 0.0), 1.0) if texels[y, x, 0] < limit else 1.0
     searched = search_disc.shape[0]
-    total, weighted, blocked = 0.0, 0.0, 0
+    total, weighted = 0.0, 0.0
     for k in range(searched):
         x = min(max(int(np.floor(u + search * search_disc[k, 0])), 0), w - 1)
         y = min(max(int(np.floor(v + search * search_disc[k, 1])), 0), h - 1)
         if texels[y, x, 0] < limit:
             total += texels[y, x, 1]
             weighted += texels[y, x, 1] * texels[y, x, 0]
-            blocked += 1
     if total <= 0.0:
         return 1.0
     blocker = weighted / total
     gap = max(z - blocker, 0.0)
     radius = scale * gap if ortho else scale * gap / max(z * blocker, 1e-12)
     radius = max(radius, 0.5)
-    if blocked == searched and radius <= search:
-        return 1.0 - min(total / searched, 1.0)
     taps = disc.shape[0]
     covered = 0.0
     for k in range(taps):
@@ -559,9 +553,8 @@ def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):
 
 
 def _covered(view, uv, limit, disc, radius):
-    """(covered fraction (n,), mean blocker depth (n,), whether every tap is covered (n,)) of the
-    taps uv + radius * disc (texels) by map texels nearer than `limit`, each weighed by its alpha.
-    Taps off the map read its edge."""
+    """(covered fraction (n,), mean blocker depth (n,)) of the taps uv + radius * disc (texels) by
+    map texels nearer than `limit`, each weighed by its alpha. Taps off the map read its edge."""
     h, w = view.depth.shape
     x = uv[:, None, 0] + radius[:, None] * disc[None, :, 0]
     y = uv[:, None, 1] + radius[:, None] * disc[None, :, 1]
@@ -574,4 +567,4 @@ def _covered(view, uv, limit, disc, radius):
     total = weight.sum(axis=1)
     mean_depth = np.where(blocked, depth, 0.0).astype(np.float64) * weight
     blocker = np.where(total > 0, mean_depth.sum(axis=1) / np.maximum(total, 1e-30), np.inf)
-    return np.clip(total / disc.shape[0], 0.0, 1.0), blocker, blocked.all(axis=1)
+    return np.clip(total / disc.shape[0], 0.0, 1.0), blocker
