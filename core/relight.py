@@ -141,8 +141,9 @@ def lit_colors(
             progress=progress,
             shapes=shapes,
         )
-    part = cloud if rows.all() else cloud[rows]
-    return rows, shade(part, camera, lights, world, {i: v[rows] for i, v in visible.items()})
+    if rows.all():
+        return rows, shade(cloud, camera, lights, world, visible)
+    return rows, shade(cloud[rows], camera, lights, world, {i: v[rows] for i, v in visible.items()})
 
 
 def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:

@@ -91,14 +91,14 @@ def visibility(
     views = shadow_views(
         cloud, light, occluders=occluders, resolution=resolution, threads=threads, progress=progress, shapes=shapes
     )
-    points = cloud.positions.astype(np.float64)
-    sigma, slope = _extent_and_slope(cloud, light, points)
+    sigma, slope = _extent_and_slope(cloud, light)
     size = _light_size(light)
     kernel = jit.compiled(__name__, ("_pcss_one", "_visibility_loop"))
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
         settings = (size if soft else 0.0, sigma_bias, texel_bias)
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
         return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, out)
+    points = cloud.positions.astype(np.float64)
     face = _face_of(light, views, points)
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
@@ -112,20 +112,21 @@ def shadow_views(
     cloud, light, *, occluders=None, resolution=512, threads=None, progress=None, shapes=None
 ) -> list[ShadowView]:
     """The light's shadow-map views (see the module notes); progress and shapes as visibility's."""
-    points = cloud.positions.astype(np.float64)
-    reach = _reach(cloud)
-    # What the maps need of the splats: their shapes (colour and extras are not drawn). Every map
-    # draws the whole cloud and lets the render cull: with the shapes made once, a culled splat
-    # costs a position's transform, less than copying out the splats near each map.
-    dc = np.ascontiguousarray(cloud.sh[:, :1])
-    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, dc)
+    position = None if light.kind == "sun" else np.asarray(light.position, np.float64)
+    reach, gap = _reach_and_gap(cloud, position)
+    # What the maps need of the splats: their shapes (colour and extras are not drawn, so one black
+    # coefficient stands for every splat's: copying out the splats' own would read all their SH).
+    # Every map draws the whole cloud and lets the render cull: with the shapes made once, a culled
+    # splat costs a position's transform, less than copying out the splats near each map.
+    black = np.zeros((len(cloud), 1, 3), np.float32)
+    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
     bare.antialiased = cloud.antialiased
     if shapes is None or not shapes.fits(bare):
         shapes = Shapes(bare, threads)
     meshes = list(occluders or [])
     views = []
-    cameras = _cameras(light, points, reach, meshes, int(resolution))
-    masks = _near_masks(cameras, cloud.positions, points, reach)
+    cameras = _cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
+    masks = _near_masks(cameras, cloud.positions, reach)
     for k, (camera, near) in enumerate(zip(cameras, masks, strict=True)):
         if progress is not None:
             progress(k, len(cameras), "shadows")
@@ -160,22 +161,51 @@ def part_progress(progress, part, parts, label=None):
 def _reach(cloud):
     """(N,) float64: three standard deviations of each splat's widest axis (exp is monotonic: the
     widest log-scale's exp is the widest scale)."""
+    return _reach_and_gap(cloud, None)[0]
+
+
+def _reach_and_gap(cloud, source):
+    """((N,) _reach, (N,) float64 each splat's centre's distance to `source` (3,) less its reach, or
+    None without a source), by the compiled kernel in one pass where it loads."""
+    n = len(cloud)
+    kernel = jit.compiled(__name__, ("_reach_loop",))
+    if kernel is not None:
+        reach, gap = np.empty(n), np.empty(n if source is not None else 0)
+        fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.log_scales)]
+        origin = np.zeros(3) if source is None else source
+        in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, origin, reach, gap))
+        return reach, (gap if source is not None else None)
     log_scales = cloud.log_scales  # column by column: a reduction along rows of three is slow
     widest = np.maximum(np.maximum(log_scales[:, 0], log_scales[:, 1]), log_scales[:, 2])
     with np.errstate(over="ignore"):
-        return 3.0 * np.exp(widest.astype(np.float64))
+        reach = 3.0 * np.exp(widest.astype(np.float64))
+    if source is None:
+        return reach, None
+    rel = cloud.positions.astype(np.float64) - source
+    return reach, np.sqrt(np.einsum("ij,ij->i", rel, rel)) - reach
+
+
+def _reach_loop(lo, hi, positions, log_scales, source, reach, gap):
+    """_reach_and_gap for splats lo..hi (gap only when it has room for them)."""
+    for i in range(lo, hi):
+        widest = max(max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
+        reach[i] = 3.0 * math.exp(np.float64(widest))  # inf past float64's range, as NumPy's exp
+        if gap.shape[0]:
+            dx, dy = positions[i, 0] - source[0], positions[i, 1] - source[1]
+            dz = positions[i, 2] - source[2]
+            gap[i] = math.sqrt(dx * dx + dy * dy + dz * dz) - reach[i]
 
 
 # cameras ------------------------------------------------------------------------------------------
 
 
-def _cameras(light, points, reach, meshes, resolution):
+def _cameras(light, positions, reach, gap, meshes, resolution):
     kind = light.kind
     position = np.asarray(getattr(light, "position", np.zeros(3)), np.float64)
     direction = _unit(light.direction)
     if kind == "sun":
-        return [_sun_camera(direction, points, reach, meshes, resolution)]
-    near = _near_plane(position, points, reach, meshes)
+        return [_sun_camera(direction, positions, reach, meshes, resolution)]
+    near = _near_plane(position, gap, meshes)
     if kind == "spot" and light.spot_size <= SPOT_CUBE_ANGLE:
         fov = math.degrees(min(light.spot_size * 1.1 + 0.05, math.radians(170)))
         matrix = look_at_matrix(position, position + direction, _up_for(direction))
@@ -198,10 +228,12 @@ def _cube_face(position, forward, near, resolution):
     return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, near)
 
 
-def _sun_camera(direction, points, reach, meshes, resolution):
-    """An orthographic camera along `direction` framing the points (and mesh vertices), square texels."""
+def _sun_camera(direction, positions, reach, meshes, resolution):
+    """An orthographic camera along `direction` framing the splats' positions (N,3) and the mesh
+    vertices, square texels."""
     up = _up_for(direction)
     frame = look_at_matrix(np.zeros(3), direction, up)[:3, :3]
+    points = positions.astype(np.float64)
     everything = np.concatenate([points] + [m.vertices for m in meshes]) if meshes else points
     pad = np.concatenate([reach] + [np.zeros(len(m.vertices)) for m in meshes]) if meshes else reach
     local = everything @ frame.T
@@ -216,26 +248,27 @@ def _sun_camera(direction, points, reach, meshes, resolution):
     return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, 0.5, projection="orthographic")
 
 
-def _near_plane(position, points, reach, meshes):
-    """A near plane in front of everything the light sees (half the nearest splat's surface distance)."""
-    rel = points - position
-    d = np.sqrt(np.einsum("ij,ij->i", rel, rel)) - reach if len(points) else np.ones(1)
+def _near_plane(position, gap, meshes):
+    """A near plane in front of everything the light sees: half the nearest splat's surface distance
+    (gap, _reach_and_gap's) or mesh vertex's."""
+    d = gap if len(gap) else np.ones(1)
     for m in meshes:
         d = np.append(d, np.linalg.norm(m.vertices - position, axis=1).min())
     nearest = float(np.min(d)) if len(d) else 1.0
     return float(np.clip(0.5 * nearest, 1e-4, 0.05))
 
 
-def _near_masks(cameras, positions, points, reach):
+def _near_masks(cameras, positions, reach):
     """_near_mask of every camera, by the compiled kernel in one pass over the splats when it loads."""
     kernel = jit.compiled(__name__, ("_near_loop",))
     if kernel is None:
+        points = positions.astype(np.float64)
         return [_near_mask(camera, points, reach) for camera in cameras]
     params = np.array([_near_params(camera) for camera in cameras]).reshape(-1, 7)
     rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
-    out = np.empty((len(cameras), len(points)), np.bool_)
+    out = np.empty((len(cameras), len(positions)), np.bool_)
     positions = np.ascontiguousarray(positions, np.float32)
-    in_chunks(len(points), lambda lo, hi: kernel(lo, hi, positions, reach, params, rotations, out))
+    in_chunks(len(positions), lambda lo, hi: kernel(lo, hi, positions, reach, params, rotations, out))
     return list(out)
 
 
@@ -324,13 +357,14 @@ def _light_rays(light, points):
     return rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-300)
 
 
-def _extent_and_slope(cloud, light, points):
+def _extent_and_slope(cloud, light):
     """(N,) each splat's standard deviation along its ray from the light, sqrt(l^T Sigma l), and
     (N,) the tan of the angle between its surface normal (the material's, else its thinnest axis)
     and that ray, capped at MAX_SLOPE: how much depth a texel spans across it."""
     kernel = jit.compiled(__name__, ("_extent_loop",))
     if kernel is not None:
         return _extent_compiled(kernel, cloud, light)
+    points = cloud.positions.astype(np.float64)
     rays = _light_rays(light, points)
     rot = cloud.rotation_matrices()
     local = np.einsum("nji,nj->ni", rot, rays)  # the ray in the splat's axes

@@ -171,18 +171,30 @@ def test_spot_lights_see_what_a_point_light_there_sees(scene):
 def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, kind):
     cloud, _ = scene
     light = LIGHTS[kind]
-    points = cloud.positions.astype(np.float64)
     if shadows.jit.compiled(shadows.__name__, ("_extent_loop",)) is None:
         pytest.skip("compiled kernels are not available here")
-    compiled = shadows._extent_and_slope(cloud, light, points)
+    source = None if light.kind == "sun" else light.position
+    compiled = shadows._extent_and_slope(cloud, light)
+    reach, gap = shadows._reach_and_gap(cloud, source)
     views = shadows.shadow_views(cloud, light, resolution=128)
     # A map draws the whole cloud and lets the render cull: it is the map of the splats near it.
-    masks = shadows._near_masks([v.camera for v in views], cloud.positions, points, shadows._reach(cloud))
+    masks = shadows._near_masks([v.camera for v in views], cloud.positions, reach)
     copied = [_map_of(cloud[near], view.camera) for view, near in zip(views, masks, strict=True)]
     monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
-    reference = shadows._extent_and_slope(cloud, light, points)
+    reference = shadows._extent_and_slope(cloud, light)
     for got, want in zip(compiled, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-12)
+    want_reach, want_gap = shadows._reach_and_gap(cloud, source)
+    np.testing.assert_allclose(reach, want_reach, rtol=1e-12)
+    assert (gap is None) == (source is None)
+    if gap is not None:
+        np.testing.assert_allclose(gap, want_gap, rtol=1e-9, atol=1e-12)
+    assert all(
+        np.array_equal(got, want)
+        for got, want in zip(
+            masks, shadows._near_masks([v.camera for v in views], cloud.positions, want_reach), strict=True
+        )
+    )
     for got, want, copy in zip(views, shadows.shadow_views(cloud, light, resolution=128), copied, strict=True):
         assert np.array_equal(got.depth, want.depth) and np.array_equal(got.alpha, want.alpha)
         assert np.array_equal(copy.depth, want.depth) and np.array_equal(copy.alpha, want.alpha)
