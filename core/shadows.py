@@ -9,6 +9,8 @@ meshes (core.mesh_render.rasterize) folded in. The views per light kind:
   its direction from the light falls in, and a face with no splat near it is not rendered;
 - area: the cube from the light's centre, in the light's own axes, without the face behind the
   light (nothing there is lit).
+The maps draw the splats that may shadow something (the casters section): a floor with nothing
+under it is left out.
 
 A splat is tested at its centre: covered by the map's texel where the map is nearer the light than
 the splat by more than a bias, partly (by the texel's alpha) where the covering splats are faint.
@@ -35,7 +37,7 @@ from . import jit, material
 from .arrays import Floats
 from .camera import Camera, look_at_matrix
 from .mesh_render import rasterize
-from .parallel import in_chunks
+from .parallel import WORKERS, in_chunks, map_threads
 from .render import Shapes, render
 from .splats import SplatCloud
 
@@ -48,6 +50,13 @@ CHUNK = 1 << 16  # points per step of the NumPy filter
 CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
+CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
+CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
+CASTER_SHARE = 0.8  # maps draw the casters alone where they are at most this share of the splats
+# The compiled kernels: each tuple compiles in order, the last one the entry (core.jit.compiled).
+FILTER_KERNEL = ("_face_one", "_texel_one", "_pcss_one", "_visibility_loop")
+BOXES_KERNEL = ("_face_one", "_texel_one", "_boxes_loop")
+CASTERS_KERNEL = ("_face_one", "_texel_one", "_casters_loop")
 
 
 @dataclass
@@ -93,7 +102,7 @@ def visibility(
     )
     sigma, slope = _extent_and_slope(cloud, light)
     size = _light_size(light)
-    kernel = jit.compiled(__name__, ("_pcss_one", "_visibility_loop"))
+    kernel = jit.compiled(__name__, FILTER_KERNEL)
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
         settings = (size if soft else 0.0, sigma_bias, texel_bias)
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
@@ -127,6 +136,11 @@ def shadow_views(
     views = []
     cameras = _cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
     masks = _near_masks(cameras, cloud.positions, reach)
+    casters = _casters(cloud, light, cameras, masks, reach)
+    if casters is not None and casters.mean() <= CASTER_SHARE:  # else copying them out costs more
+        bare = bare[casters]
+        shapes = Shapes(bare, threads)
+        masks = masks & casters
     for k, (camera, near) in enumerate(zip(cameras, masks, strict=True)):
         if progress is not None:
             progress(k, len(cameras), "shadows")
@@ -259,17 +273,18 @@ def _near_plane(position, gap, meshes):
 
 
 def _near_masks(cameras, positions, reach):
-    """_near_mask of every camera, by the compiled kernel in one pass over the splats when it loads."""
+    """(F, N) bool: _near_mask of every camera, by the compiled kernel in one pass over the splats
+    when it loads."""
     kernel = jit.compiled(__name__, ("_near_loop",))
     if kernel is None:
         points = positions.astype(np.float64)
-        return [_near_mask(camera, points, reach) for camera in cameras]
+        return np.array([_near_mask(camera, points, reach) for camera in cameras]).reshape(len(cameras), -1)
     params = np.array([_near_params(camera) for camera in cameras]).reshape(-1, 7)
     rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
     out = np.empty((len(cameras), len(positions)), np.bool_)
     positions = np.ascontiguousarray(positions, np.float32)
     in_chunks(len(positions), lambda lo, hi: kernel(lo, hi, positions, reach, params, rotations, out))
-    return list(out)
+    return out
 
 
 def _near_params(camera):
@@ -330,6 +345,233 @@ def _up_for(direction):
 def _unit(v):
     v = np.asarray(v, np.float64).reshape(3)
     return v / np.linalg.norm(v)
+
+
+# casters --------------------------------------------------------------------------------------------
+# A splat shadows only what lies behind it: beyond the plane through its centre across its normal, on
+# the side away from the light (a point on the light's side of that plane reaches the whole light
+# without crossing it). A floor with nothing under it shadows nothing, yet costs a map as much as any
+# splat, and where it is tilted to the light it sits in its own neighbours' blocker search, nearer
+# the light than they are. The maps draw the casters only: every splat but those whose neighbourhood
+# in the map (the cells within the blocker search's reach) holds nothing behind their plane.
+
+
+def _casters(cloud, light, cameras, near, reach):
+    """(N,) bool: the splats the light's maps (views `cameras`; near, (F, N) _near_masks') must
+    draw; None where every splat may have to (a cloud without normals). A splat no map can show is
+    never drawn; kept besides the casters are splats without a usable normal, wider than
+    CASTER_REACH texels in the map, or whose plane the light's extent straddles."""
+    normals = material.normals(cloud)
+    if normals is None:
+        return None
+    cams = np.array([_camera_row(camera) for camera in cameras])
+    grid = (len(cameras), -(-cameras[0].height // CASTER_CELL), -(-cameras[0].width // CASTER_CELL))
+    positions = np.ascontiguousarray(cloud.positions, np.float32)
+    near = np.ascontiguousarray(near, np.bool_)
+    # the cells any tap of a receiver's search can read a splat's texels from, from its centre's cell
+    window = math.ceil((MAX_SEARCH_TEXELS + CASTER_REACH) / CASTER_CELL)
+    boxes = _dilated(_cell_boxes(positions, near, cams, grid), window)
+    log_scales = np.ascontiguousarray(cloud.log_scales, np.float32)
+    source, size = _light_source(light)
+    kernel = jit.compiled(__name__, CASTERS_KERNEL)
+    args = (positions, normals, log_scales, reach, cams, boxes, source, size, light.kind == "sun")
+    if kernel is None:
+        keep = _casters_numpy(*args)
+    else:
+        keep = np.empty(len(cloud), np.bool_)
+        in_chunks(len(cloud), lambda lo, hi: kernel(lo, hi, *args, keep))
+    return keep & near.any(axis=0)
+
+
+def _light_source(light):
+    """(source (3,), size): a positional light's centre and the radius of a sphere holding its
+    emitting extent (an area light's half diagonal); the sun's direction of travel and the sine of
+    its half angle."""
+    if light.kind == "sun":
+        return _unit(light.direction), math.sin(0.5 * float(getattr(light, "angle", 0.0)))
+    if light.kind == "area":
+        return np.asarray(light.position, np.float64), 0.5 * math.hypot(*light.extent)
+    return np.asarray(light.position, np.float64), float(getattr(light, "radius", 0.0))
+
+
+def _cell_boxes(positions, near, cams, grid):
+    """(F, GY, GX, 6) float64: per view and cell of CASTER_CELL texels, the box (min x, y, z, then
+    max x, y, z) of the centres of the splats near it (near (F, N)) that its map shows there; empty
+    cells +inf then -inf. One array per thread, merged: the cells are shared."""
+    kernel = jit.compiled(__name__, BOXES_KERNEL)
+    parts = max(1, min(WORKERS, len(positions) // 4096))
+    bounds = np.linspace(0, len(positions), parts + 1).astype(np.int64)
+
+    def part(k):
+        boxes = _empty_boxes(grid)
+        lo, hi = bounds[k], bounds[k + 1]
+        if kernel is not None:
+            kernel(lo, hi, positions, near, cams, float(CASTER_CELL), boxes)
+        else:
+            _boxes_numpy(positions[lo:hi], near[:, lo:hi], cams, boxes)
+        return boxes
+
+    boxes = map_threads(part, range(parts))
+    lo = np.minimum.reduce([b[..., :3] for b in boxes])
+    hi = np.maximum.reduce([b[..., 3:] for b in boxes])
+    return np.concatenate([lo, hi], axis=-1)
+
+
+def _empty_boxes(grid):
+    boxes = np.empty((*grid, 6))
+    boxes[..., :3], boxes[..., 3:] = np.inf, -np.inf
+    return boxes
+
+
+def _boxes_loop(lo, hi, positions, near, cams, cell, boxes):
+    """_cell_boxes for splats lo..hi: each into its cell of every view whose map shows it."""
+    views, rows, cols = boxes.shape[0], boxes.shape[1], boxes.shape[2]
+    for i in range(lo, hi):
+        for f in range(views):
+            if not near[f, i]:
+                continue
+            u, v, _ = _texel_one(positions, i, cams, f)
+            if not (u >= 0.0 and v >= 0.0):  # also NaN: behind the camera
+                continue
+            cx, cy = int(u / cell), int(v / cell)
+            if cx >= cols or cy >= rows:
+                continue
+            for c in range(3):
+                boxes[f, cy, cx, c] = min(boxes[f, cy, cx, c], positions[i, c])
+                boxes[f, cy, cx, 3 + c] = max(boxes[f, cy, cx, 3 + c], positions[i, c])
+
+
+def _boxes_numpy(positions, near, cams, boxes):
+    """_boxes_loop's work in NumPy, view by view."""
+    points = positions.astype(np.float64)
+    for f in range(boxes.shape[0]):  # a loop over views
+        u, v, _ = _texels_numpy(points, cams[f])
+        with np.errstate(invalid="ignore"):
+            inside = (u >= 0) & (v >= 0) & (u < boxes.shape[2] * CASTER_CELL) & (v < boxes.shape[1] * CASTER_CELL)
+        inside &= near[f]
+        cell = (v[inside] // CASTER_CELL).astype(np.int64) * boxes.shape[2] + (u[inside] // CASTER_CELL).astype(
+            np.int64
+        )
+        flat = boxes[f].reshape(-1, 6)
+        for c in range(3):
+            np.minimum.at(flat[:, c], cell, points[inside, c])
+            np.maximum.at(flat[:, 3 + c], cell, points[inside, c])
+
+
+def _texels_numpy(points, cam):
+    """_texel_one for many points (N,3) in one view (a _camera_row)."""
+    local = (points - cam[9:12]) @ cam[:9].reshape(3, 3).T
+    z = local[:, 2]
+    if cam[16] > 0.5:
+        x, y = local[:, 0], local[:, 1]
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.where(z > 0, local[:, 0] / z, np.nan)
+            y = np.where(z > 0, local[:, 1] / z, np.nan)
+    return cam[12] * x + cam[14], cam[13] * y + cam[15], z
+
+
+def _dilated(boxes, radius):
+    """The boxes of `boxes` (F, GY, GX, 6) grown to the union of their cells within `radius` cells."""
+    lo, hi = boxes[..., :3].copy(), boxes[..., 3:].copy()
+    for axis in (1, 2):
+        lo, hi = _sliding(np.minimum, lo, axis, radius, np.inf), _sliding(np.maximum, hi, axis, radius, -np.inf)
+    return np.concatenate([lo, hi], axis=-1)
+
+
+def _sliding(op, a, axis, radius, empty):
+    """op (np.minimum or np.maximum) of `a` over a window of `radius` either way along `axis`."""
+    n = a.shape[axis]
+    widths = [(0, 0)] * a.ndim
+    widths[axis] = (radius, radius)
+    padded = np.pad(a, widths, constant_values=empty)
+    index = [slice(None)] * a.ndim
+
+    def shifted(step):
+        index[axis] = slice(step, step + n)
+        return padded[tuple(index)]
+
+    out = shifted(0).copy()
+    for step in range(1, 2 * radius + 1):  # a loop over the window's offsets
+        op(out, shifted(step), out=out)
+    return out
+
+
+def _casters_loop(lo, hi, positions, normals, log_scales, reach, cams, boxes, source, size, sun, keep):
+    """_casters for splats lo..hi into keep: in its view's cell, whether the dilated box reaches
+    behind its plane by more than its own thickness (SIGMA_BIAS of its thinnest sigma) and a texel."""
+    rows, cols = boxes.shape[1], boxes.shape[2]
+    for i in range(lo, hi):
+        keep[i] = True
+        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        length = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if not (length > 1e-6 and math.isfinite(length)):
+            continue
+        n0, n1, n2 = n0 / length, n1 / length, n2 / length
+        # how far the light is in front of the plane: as a cosine for the sun, else in metres
+        if sun:
+            side = -(source[0] * n0 + source[1] * n1 + source[2] * n2)
+        else:
+            p0, p1, p2 = positions[i, 0], positions[i, 1], positions[i, 2]
+            side = (source[0] - p0) * n0 + (source[1] - p1) * n1 + (source[2] - p2) * n2
+        if not abs(side) > size:
+            continue  # the light straddles the plane
+        if side > 0.0:  # the normal away from the light
+            n0, n1, n2 = -n0, -n1, -n2
+        f = _face_one(positions, i, cams)
+        if f < 0:
+            continue
+        u, v, z = _texel_one(positions, i, cams, f)
+        if not (u >= 0.0 and v >= 0.0):
+            continue
+        cx, cy = int(u / CASTER_CELL), int(v / CASTER_CELL)
+        texel = (1.0 if cams[f, 16] > 0.5 else z) / cams[f, 12]
+        if cx >= cols or cy >= rows or reach[i] > CASTER_REACH * texel:
+            continue
+        box = boxes[f, cy, cx]  # its far corner is at least as far behind as any centre in it
+        behind = max(n0 * box[0], n0 * box[3]) + max(n1 * box[1], n1 * box[4]) + max(n2 * box[2], n2 * box[5])
+        behind -= n0 * positions[i, 0] + n1 * positions[i, 1] + n2 * positions[i, 2]
+        thinnest = min(min(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
+        keep[i] = behind > SIGMA_BIAS * math.exp(np.float64(thinnest)) + texel
+
+
+def _casters_numpy(positions, normals, log_scales, reach, cams, boxes, source, size, sun):
+    """_casters_loop's test in NumPy, for every splat at once."""
+    n = len(positions)
+    thin = np.exp(np.min(log_scales, axis=1).astype(np.float64))
+    points = positions.astype(np.float64)
+    length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = normals / length[:, None]
+        side = -(unit @ source) if sun else np.einsum("ij,ij->i", source - points, unit)
+        away = np.where((side > 0.0)[:, None], -unit, unit)
+    usable = (length > 1e-6) & np.isfinite(length) & (np.abs(side) > size)
+    keep = np.ones(n, bool)
+    face = _face_of_rows(points, cams)
+    for f in range(len(cams)):  # a loop over views
+        rows = np.flatnonzero(usable & (face == f))
+        u, v, z = _texels_numpy(points[rows], cams[f])
+        texel = (1.0 if cams[f, 16] > 0.5 else z) / cams[f, 12]
+        with np.errstate(invalid="ignore"):
+            cx, cy = u // CASTER_CELL, v // CASTER_CELL
+            ok = (u >= 0) & (v >= 0) & (cx < boxes.shape[2]) & (cy < boxes.shape[1])
+            ok &= ~(reach[rows] > CASTER_REACH * texel)
+        rows, cx, cy = rows[ok], cx[ok].astype(np.int64), cy[ok].astype(np.int64)
+        box = boxes[f, cy, cx]
+        d = away[rows]
+        behind = np.maximum(d * box[:, :3], d * box[:, 3:]).sum(axis=1) - np.einsum("ij,ij->i", d, points[rows])
+        margin = SIGMA_BIAS * thin[rows] + (texel[ok] if np.ndim(texel) else texel)
+        keep[rows] = behind > margin
+    return keep
+
+
+def _face_of_rows(points, cams):
+    """_face_one for many points (N,3): the view each is tested in, -1 behind them all."""
+    if len(cams) == 1:
+        return np.zeros(len(points), np.int64)
+    along = (points - cams[0, 9:12]) @ cams[:, 6:9].T
+    best = np.argmax(along, axis=1)
+    return np.where(along[np.arange(len(points)), best] > 0.0, best, -1)
 
 
 # meshes ---------------------------------------------------------------------------------------------
@@ -518,31 +760,14 @@ def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, search_disc,
     """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
     looking most nearly at it, none behind them all), then _filtered's test there."""
     size, sigma_bias, texel_bias = params[0], params[1], params[2]
-    views = cams.shape[0]
     for i in range(lo, hi):
-        f = 0
-        if views > 1:
-            best = -math.inf
-            for k in range(views):
-                along = 0.0
-                for c in range(3):
-                    along += (positions[i, c] - cams[0, 9 + c]) * cams[k, 6 + c]  # the view's forward
-                if along > best:
-                    best, f = along, k
-            if best <= 0.0:
-                continue  # behind an area light: out stays 1
-        r0, r1, r2 = positions[i, 0] - cams[f, 9], positions[i, 1] - cams[f, 10], positions[i, 2] - cams[f, 11]
-        x = cams[f, 0] * r0 + cams[f, 1] * r1 + cams[f, 2] * r2
-        y = cams[f, 3] * r0 + cams[f, 4] * r1 + cams[f, 5] * r2
-        z = cams[f, 6] * r0 + cams[f, 7] * r1 + cams[f, 8] * r2
-        fx, ortho = cams[f, 12], cams[f, 16] > 0.5
-        if not ortho:
-            if not z > 0.0:
-                continue  # behind a spot light: not in its map
-            x, y = x / z, y / z
-        u, v = fx * x + cams[f, 14], cams[f, 13] * y + cams[f, 15]
+        f = _face_one(positions, i, cams)
+        if f < 0:
+            continue  # behind an area light: out stays 1
+        u, v, z = _texel_one(positions, i, cams, f)
         if not (math.isfinite(u) and math.isfinite(v)):
-            continue
+            continue  # behind a spot light: not in its map
+        fx, ortho = cams[f, 12], cams[f, 16] > 0.5
         texel = (1.0 if ortho else z) / fx
         limit = z - sigma_bias * sigma[i] - texel_bias * texel * slope[i]
         if size <= 0.0:
@@ -552,6 +777,35 @@ def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, search_disc,
         else:
             search = min(max(fx * size * 3.0 / max(z, 1e-9), 1.0), MAX_SEARCH_TEXELS)
         out[i] = _pcss_one(u, v, z, limit, search, texels[f], search_disc, disc, fx * size, ortho)
+
+
+def _face_one(positions, i, cams):
+    """_face_of for splat i: the view (row of cams, _camera_row) looking most nearly at it; -1
+    behind them all (behind an area light)."""
+    if cams.shape[0] == 1:
+        return 0
+    best, f = -math.inf, 0
+    for k in range(cams.shape[0]):
+        along = 0.0
+        for c in range(3):
+            along += (positions[i, c] - cams[0, 9 + c]) * cams[k, 6 + c]  # the view's forward
+        if along > best:
+            best, f = along, k
+    return f if best > 0.0 else -1
+
+
+def _texel_one(positions, i, cams, f):
+    """(u, v, z): splat i's centre in view f's map (texels) and its camera z; u and v NaN where
+    the view cannot see it (behind a perspective camera)."""
+    r0, r1, r2 = positions[i, 0] - cams[f, 9], positions[i, 1] - cams[f, 10], positions[i, 2] - cams[f, 11]
+    x = cams[f, 0] * r0 + cams[f, 1] * r1 + cams[f, 2] * r2
+    y = cams[f, 3] * r0 + cams[f, 4] * r1 + cams[f, 5] * r2
+    z = cams[f, 6] * r0 + cams[f, 7] * r1 + cams[f, 8] * r2
+    if cams[f, 16] <= 0.5:
+        if not z > 0.0:
+            return math.nan, math.nan, z
+        x, y = x / z, y / z
+    return cams[f, 12] * x + cams[f, 14], cams[f, 13] * y + cams[f, 15], z
 
 
 def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):

@@ -50,8 +50,11 @@ def _relighting_missing():
     except Exception as exc:  # a kernel that does not compile with this numba
         return [f"relighting: {type(exc).__name__}: {exc}"]
     kernels = {
-        "shadow filter": (shadows.__name__, ("_pcss_one", "_visibility_loop")),
+        "shadow filter": (shadows.__name__, shadows.FILTER_KERNEL),
         "shadow masks": (shadows.__name__, ("_near_loop",)),
+        "shadow casters": (shadows.__name__, shadows.CASTERS_KERNEL),
+        "shadow cells": (shadows.__name__, shadows.BOXES_KERNEL),
+        "shadow reach": (shadows.__name__, ("_reach_loop",)),
         "shadow extents": (shadows.__name__, ("_extent_loop",)),
         "shading": (shading.__name__, ("_lambda_one", "_table_one", "_shade_loop")),
         "lit colours": (relight.__name__, ("_display_dc_loop",)),

@@ -141,7 +141,7 @@ def test_point_light_cube_renders_only_faces_with_splats(scene):
 def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch, name):
     cloud, _ = scene
     light = LIGHTS[name]
-    if shadows.jit.compiled(shadows.__name__, ("_pcss_one", "_visibility_loop")) is None:
+    if shadows.jit.compiled(shadows.__name__, shadows.FILTER_KERNEL) is None:
         pytest.skip("compiled kernels are not available here")
     compiled = shadows.visibility(cloud, light, resolution=256)
     hard = shadows.visibility(cloud, light, resolution=256, soft=False)
@@ -177,9 +177,13 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     compiled = shadows._extent_and_slope(cloud, light)
     reach, gap = shadows._reach_and_gap(cloud, source)
     views = shadows.shadow_views(cloud, light, resolution=128)
-    # A map draws the whole cloud and lets the render cull: it is the map of the splats near it.
-    masks = shadows._near_masks([v.camera for v in views], cloud.positions, reach)
-    copied = [_map_of(cloud[near], view.camera) for view, near in zip(views, masks, strict=True)]
+    # A map draws the casters (or, where most splats are, the whole cloud) and lets the render cull:
+    # it is the map of the casters near it.
+    cameras = [v.camera for v in views]
+    masks = shadows._near_masks(cameras, cloud.positions, reach)
+    casters = shadows._casters(cloud, light, cameras, masks, reach)
+    assert casters.mean() < shadows.CASTER_SHARE  # the sphere; the plane has nothing under it
+    copied = [_map_of(cloud[near & casters], view.camera) for view, near in zip(views, masks, strict=True)]
     monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
     reference = shadows._extent_and_slope(cloud, light)
     for got, want in zip(compiled, reference, strict=True):
@@ -189,12 +193,9 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     assert (gap is None) == (source is None)
     if gap is not None:
         np.testing.assert_allclose(gap, want_gap, rtol=1e-9, atol=1e-12)
-    assert all(
-        np.array_equal(got, want)
-        for got, want in zip(
-            masks, shadows._near_masks([v.camera for v in views], cloud.positions, want_reach), strict=True
-        )
-    )
+    want_masks = shadows._near_masks(cameras, cloud.positions, want_reach)
+    assert np.array_equal(masks, want_masks)
+    assert np.array_equal(casters, shadows._casters(cloud, light, cameras, want_masks, want_reach))
     for got, want, copy in zip(views, shadows.shadow_views(cloud, light, resolution=128), copied, strict=True):
         assert np.array_equal(got.depth, want.depth) and np.array_equal(got.alpha, want.alpha)
         assert np.array_equal(copy.depth, want.depth) and np.array_equal(copy.alpha, want.alpha)
@@ -205,3 +206,36 @@ def _map_of(cloud, camera):
     result = render(cloud, camera, background=None)
     depth = np.where(result.alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
     return shadows.ShadowView(camera, depth, result.alpha)
+
+
+@pytest.mark.parametrize("kind", list(LIGHTS))
+def test_maps_leave_out_splats_with_nothing_behind_them(scene, kind):
+    """A floor shadows nothing unless something lies under it: the maps draw the sphere, the floor
+    only over a lower floor (a table top over the ground), and all of it where a grazing sun's disc
+    straddles its plane."""
+    cloud, n_plane = scene
+    light = LIGHTS[kind]
+    below = plane_cloud(0.3, 12, z=-0.4)  # under the floor's middle
+    layered = SplatCloud.concatenate([cloud, below])
+    for c, expect_floor_over_below in ((cloud, False), (layered, True)):
+        views = shadows.shadow_views(c, light, resolution=512)
+        cameras = [v.camera for v in views]
+        reach = shadows._reach(c)
+        near = shadows._near_masks(cameras, c.positions, reach)
+        casters = shadows._casters(c, light, cameras, near, reach)
+        floor = casters[:n_plane]
+        assert casters[n_plane : len(cloud)][near[:, n_plane : len(cloud)].any(axis=0)].all()  # the sphere
+        xy = np.abs(c.positions[:n_plane, :2]).max(axis=1)
+        if expect_floor_over_below:
+            assert floor[xy < 0.3].all()  # over the lower floor: kept
+            assert not floor[xy > 1.2].any()  # far from it: left out
+        else:
+            assert not floor.any()
+    grazing = Light("sun", direction=(1.0, 0.0, -0.01), angle=math.radians(5))
+    views = shadows.shadow_views(cloud, grazing, resolution=128)
+    cameras = [v.camera for v in views]
+    reach = shadows._reach(cloud)
+    near = shadows._near_masks(cameras, cloud.positions, reach)
+    assert shadows._casters(cloud, grazing, cameras, near, reach)[:n_plane].all()
+    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, cloud.sh)
+    assert shadows._casters(bare, light, cameras, near, reach) is None  # no normals: all drawn
