@@ -26,6 +26,16 @@ def normals(cloud: SplatCloud) -> Positions | None:
     return np.stack([cloud.extras[k].astype(np.float64).reshape(len(cloud)) for k in NORMALS], axis=1)
 
 
+def normal_columns(cloud: SplatCloud) -> tuple[Floats, Floats, Floats] | None:
+    """The normals as three (N,) float64 columns (nx, ny, nz), or None: what a compiled loop reads,
+    with no (N,3) copy (float64 columns are passed as they are)."""
+    if not all(k in cloud.extras for k in NORMALS):
+        return None
+    n = len(cloud)
+    nx, ny, nz = (np.ascontiguousarray(cloud.extras[k].reshape(n), np.float64) for k in NORMALS)
+    return nx, ny, nz
+
+
 def albedo(cloud: SplatCloud) -> Floats | None:
     """(N,3) float64 scene-linear albedo, or None when the cloud has none."""
     values = cloud.extras.get(ALBEDO)

@@ -229,12 +229,12 @@ def shade(
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
     default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
     backend: "auto" (the compiled kernel where numba loads, core.jit) or "numpy" (the reference)."""
-    normals, albedo = material.normals(cloud), material.albedo(cloud)
-    if normals is None or albedo is None:
+    if not material.has_material(cloud):
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
     kernel = _shade_kernel() if backend != "numpy" else None
     if kernel is not None:
-        return _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibility, multiscatter)
+        return _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
+    normals, albedo = material.normals(cloud), material.albedo(cloud)
     points = cloud.positions.astype(np.float64)
     n = len(points)
     view = view_directions(eye, points)
@@ -317,9 +317,12 @@ def _area_reaches(lights: list[Light]) -> np.ndarray:
     return np.array(rows, np.float64).reshape(-1, 5)
 
 
-def _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibility, multiscatter):
-    """shade() by the compiled kernel, on every core (it releases the GIL)."""
+def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter):
+    """shade() by the compiled kernel, on every core (it releases the GIL). It reads the material's
+    columns as they are stored (float32 albedo, float64 normals) rather than (N,3) float64 copies."""
     n = len(cloud)
+    normals = material.normal_columns(cloud)
+    albedo = np.ascontiguousarray(cloud.extras[material.ALBEDO].reshape(n, 3), np.float32)
     vis = np.ones((len(lights), n))
     for index in range(len(lights)):  # a loop over lights
         if visibility is not None and index in visibility:
@@ -339,7 +342,7 @@ def _shade_compiled(kernel, cloud, normals, albedo, eye, lights, world, visibili
     in_chunks(
         n,
         lambda lo, hi: kernel(
-            lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, reaches, colors,
+            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, reaches, colors,
             vis, world_color, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
@@ -369,7 +372,7 @@ def _table_one(table, cos_v, roughness):
     return low * (1 - fy) + high * fy
 
 
-def _shade_loop(lo, hi, points, normals, albedo, rough, metal, eye, flags, emitters, reaches, colors, vis,
+def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, reaches, colors, vis,
                 world, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
@@ -385,9 +388,8 @@ def _shade_loop(lo, hi, points, normals, albedo, rough, metal, eye, flags, emitt
                 v[c] = eye[c] - points[i, c]
             length = max(math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
             v /= length
-        sign = -1.0 if normals[i, 0] * v[0] + normals[i, 1] * v[1] + normals[i, 2] * v[2] < 0.0 else 1.0
-        for c in range(3):
-            nrm[c] = normals[i, c] * sign
+        sign = -1.0 if nx[i] * v[0] + ny[i] * v[1] + nz[i] * v[2] < 0.0 else 1.0
+        nrm[0], nrm[1], nrm[2] = nx[i] * sign, ny[i] * sign, nz[i] * sign
         r, m = rough[i], metal[i]
         alpha = max(r * r, ALPHA_MIN)
         cos_v = max(nrm[0] * v[0] + nrm[1] * v[1] + nrm[2] * v[2], 0.0)

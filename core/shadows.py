@@ -361,7 +361,7 @@ def _casters(cloud, light, cameras, near, reach):
     draw; None where every splat may have to (a cloud without normals). A splat no map can show is
     never drawn; kept besides the casters are splats without a usable normal, wider than
     CASTER_REACH texels in the map, or whose plane the light's extent straddles."""
-    normals = material.normals(cloud)
+    normals = material.normal_columns(cloud)
     if normals is None:
         return None
     cams = np.array([_camera_row(camera) for camera in cameras])
@@ -374,7 +374,7 @@ def _casters(cloud, light, cameras, near, reach):
     log_scales = np.ascontiguousarray(cloud.log_scales, np.float32)
     source, size = _light_source(light)
     kernel = jit.compiled(__name__, CASTERS_KERNEL)
-    args = (positions, normals, log_scales, reach, cams, boxes, source, size, light.kind == "sun")
+    args = (positions, *normals, log_scales, reach, cams, boxes, source, size, light.kind == "sun")
     if kernel is None:
         keep = _casters_numpy(*args)
     else:
@@ -497,13 +497,13 @@ def _sliding(op, a, axis, radius, empty):
     return out
 
 
-def _casters_loop(lo, hi, positions, normals, log_scales, reach, cams, boxes, source, size, sun, keep):
+def _casters_loop(lo, hi, positions, nx, ny, nz, log_scales, reach, cams, boxes, source, size, sun, keep):
     """_casters for splats lo..hi into keep: in its view's cell, whether the dilated box reaches
     behind its plane by more than its own thickness (SIGMA_BIAS of its thinnest sigma) and a texel."""
     rows, cols = boxes.shape[1], boxes.shape[2]
     for i in range(lo, hi):
         keep[i] = True
-        n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        n0, n1, n2 = nx[i], ny[i], nz[i]
         length = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
         if not (length > 1e-6 and math.isfinite(length)):
             continue
@@ -535,9 +535,10 @@ def _casters_loop(lo, hi, positions, normals, log_scales, reach, cams, boxes, so
         keep[i] = behind > SIGMA_BIAS * math.exp(np.float64(thinnest)) + texel
 
 
-def _casters_numpy(positions, normals, log_scales, reach, cams, boxes, source, size, sun):
+def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cams, boxes, source, size, sun):
     """_casters_loop's test in NumPy, for every splat at once."""
     n = len(positions)
+    normals = np.stack([nx, ny, nz], axis=1)
     thin = np.exp(np.min(log_scales, axis=1).astype(np.float64))
     points = positions.astype(np.float64)
     length = np.sqrt(np.einsum("ij,ij->i", normals, normals))
@@ -623,17 +624,16 @@ def _extent_and_slope(cloud, light):
 def _extent_compiled(kernel, cloud, light):
     """_extent_and_slope by the compiled kernel, on every core."""
     n = len(cloud)
-    normal = material.normals(cloud)
-    normal = np.zeros((0, 3)) if normal is None else normal
+    normals = material.normal_columns(cloud) or (np.zeros(0), np.zeros(0), np.zeros(0))
     sun = light.kind == "sun"
     source = _unit(light.direction) if sun else np.asarray(light.position, np.float64)
     fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.rotations, cloud.log_scales)]
     sigma, slope = np.empty(n), np.empty(n)
-    in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, normal, source, sun, MAX_SLOPE, sigma, slope))
+    in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, *normals, source, sun, MAX_SLOPE, sigma, slope))
     return sigma, slope
 
 
-def _extent_loop(lo, hi, positions, rotations, log_scales, normals, source, sun, max_slope, sigma, slope):
+def _extent_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, source, sun, max_slope, sigma, slope):
     """_extent_and_slope for splats lo..hi: the ray in the splat's axes by its unit quaternion
     (w, x, y, z; a zero or non-finite one is the identity, as geometry.normalize_quaternions)."""
     ray = np.empty(3)
@@ -663,7 +663,7 @@ def _extent_loop(lo, hi, positions, rotations, log_scales, normals, source, sun,
         s1 = math.exp(np.float64(log_scales[i, 1]))
         s2 = math.exp(np.float64(log_scales[i, 2]))
         sigma[i] = math.sqrt(l0 * l0 * s0 * s0 + l1 * l1 * s1 * s1 + l2 * l2 * s2 * s2)
-        if normals.shape[0] == 0:  # the thinnest axis (the first of equals, as argmin)
+        if nx.shape[0] == 0:  # the thinnest axis (the first of equals, as argmin)
             thin = 0
             if log_scales[i, 1] < log_scales[i, thin]:
                 thin = 1
@@ -671,7 +671,7 @@ def _extent_loop(lo, hi, positions, rotations, log_scales, normals, source, sun,
                 thin = 2
             cos = abs(l0 if thin == 0 else (l1 if thin == 1 else l2))
         else:
-            cos = abs(normals[i, 0] * ray[0] + normals[i, 1] * ray[1] + normals[i, 2] * ray[2])
+            cos = abs(nx[i] * ray[0] + ny[i] * ray[1] + nz[i] * ray[2])
         slope[i] = min(math.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 1e-9), max_slope)
 
 
