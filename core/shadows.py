@@ -123,24 +123,23 @@ def shadow_views(
     """The light's shadow-map views (see the module notes); progress and shapes as visibility's."""
     position = None if light.kind == "sun" else np.asarray(light.position, np.float64)
     reach, gap = _reach_and_gap(cloud, position)
-    # What the maps need of the splats: their shapes (colour and extras are not drawn, so one black
-    # coefficient stands for every splat's: copying out the splats' own would read all their SH).
-    # Every map draws the whole cloud and lets the render cull: with the shapes made once, a culled
-    # splat costs a position's transform, less than copying out the splats near each map.
-    black = np.zeros((len(cloud), 1, 3), np.float32)
-    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
-    bare.antialiased = cloud.antialiased
-    if shapes is None or not shapes.fits(bare):
-        shapes = Shapes(bare, threads)
     meshes = list(occluders or [])
-    views = []
     cameras = _cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
     masks = _near_masks(cameras, cloud.positions, reach)
     casters = _casters(cloud, light, cameras, masks, reach)
-    if casters is not None and casters.mean() <= CASTER_SHARE:  # else copying them out costs more
-        bare = bare[casters]
+    # What the maps need of the splats: their shapes (colour and extras are not drawn, so one black
+    # coefficient stands for every splat's: copying out the splats' own would read all their SH).
+    # The maps draw the casters; where they are most of the cloud, the whole cloud, and let the
+    # render cull: with the shapes made once, a culled splat costs a position's transform, less
+    # than copying out the others.
+    black = np.zeros((len(cloud), 1, 3), np.float32)
+    bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
+    bare.antialiased = cloud.antialiased
+    if casters is not None and casters.mean() <= CASTER_SHARE:
+        bare, masks = bare[casters], masks & casters
+    if shapes is None or not shapes.fits(bare):
         shapes = Shapes(bare, threads)
-        masks = masks & casters
+    views = []
     for k, (camera, near) in enumerate(zip(cameras, masks, strict=True)):
         if progress is not None:
             progress(k, len(cameras), "shadows")
