@@ -29,14 +29,13 @@ from .shading import shade
 from .splats import SplatCloud
 
 # Shadow-map texels a side per light kind (per cube face for point and area lights). The maps' cost
-# is mostly per splat, not per texel: by bench/relight.py, a 410k-splat 1080p frame lit by a point
-# light takes 1.41, 1.56 and 2.00 s with its cube at 256, 512 and 1024, for shadow errors of 0.008,
-# 0.004 and 0.002 (mean |visibility - float64 reference|); 512 is the knee. A spot's cone (up to 120
-# degrees) spans less than a cube face, so its 512 texels are finer than a face's: its shadow error
-# is 0.0024 at 512 and 0.0019 at 1024, for 2.10 and 2.39 unlit frames (bench/relight.py). The sun's
-# one map over the whole scene has the least error of all: 0.0019 at 512, 0.0011 at 768, 0.0004 at
-# 1024, for 121, 131 and 149 ms of its 410k-splat visibility; 512 costs the accuracy bench 0.3 dB at
-# 0.5x framing on two of five meshes and nothing elsewhere (bench/relight_accuracy.py).
+# is mostly per splat drawn, not per texel: by bench/relight.py, a 410k-splat 1080p frame lit by a
+# point light costs 2.37, 2.52 and 2.64 unlit frames with its cube at 256, 512 and 1024, for shadow
+# errors of 0.0095, 0.0032 and 0.0020 (mean |visibility - float64 reference|); 512 is the knee. A
+# spot's cone (up to 120 degrees) spans less than a cube face, so its 512 texels are finer than a
+# face's (error 0.0017). The sun's one map over the whole scene keeps the least error of all at 512
+# (0.0010; 0.0004 at 1024 for 20% more of its visibility's time, and 0.3 dB of the accuracy bench at
+# 0.5x framing on two of five meshes, nothing elsewhere: bench/relight_accuracy.py).
 SHADOW_RESOLUTION = {"point": 512, "area": 512, "spot": 512, "sun": 512}
 
 
