@@ -743,10 +743,28 @@ def _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, ou
     cams = np.array([_camera_row(view.camera) for view in views])
     # each texel's depth and alpha side by side: a tap reads one cache line, not two
     texels = np.stack([np.stack([view.depth, view.alpha], axis=-1) for view in views])
+    occupied = _occupied_cells(texels[..., 0])
     positions = np.ascontiguousarray(cloud.positions, np.float32)
     params = np.array(settings, np.float64)
-    in_chunks(len(out), lambda lo, hi: kernel(lo, hi, positions, sigma, slope, cams, texels, *discs, params, out))
+    args = (positions, sigma, slope, cams, texels, occupied, *discs, params, out)
+    in_chunks(len(out), lambda lo, hi: kernel(lo, hi, *args))
     return out
+
+
+def _occupied_cells(depth):
+    """(F, GY, GX) uint8: per view, whether any texel within the blocker search's reach of a cell of
+    CASTER_CELL texels holds something (a finite depth). A splat whose cell holds nothing there
+    finds no blocker (every tap, the clamped ones too, reads a texel of those cells): it is lit,
+    exactly as the search would say, without the search."""
+    views, h, w = depth.shape
+    rows, cols = -(-h // CASTER_CELL), -(-w // CASTER_CELL)
+    filled = np.zeros((views, rows * CASTER_CELL, cols * CASTER_CELL), np.uint8)
+    filled[:, :h, :w] = np.isfinite(depth)
+    cells = filled.reshape(views, rows, CASTER_CELL, cols, CASTER_CELL).max(axis=(2, 4))
+    reach = math.ceil(MAX_SEARCH_TEXELS / CASTER_CELL)
+    for axis in (1, 2):
+        cells = _sliding(np.maximum, cells, axis, reach, 0)
+    return np.ascontiguousarray(cells)
 
 
 def _camera_row(camera):
@@ -755,10 +773,12 @@ def _camera_row(camera):
     return [*camera.rotation.ravel(), *camera.center, camera.fx, camera.fy, camera.cx, camera.cy, *flags]
 
 
-def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, search_disc, disc, params, out):
+def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, occupied, search_disc, disc, params, out):
     """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
-    looking most nearly at it, none behind them all), then _filtered's test there."""
+    looking most nearly at it, none behind them all), then _filtered's test there, skipped where the
+    map holds nothing within the search's reach (_occupied_cells: lit all the same)."""
     size, sigma_bias, texel_bias = params[0], params[1], params[2]
+    h, w = texels.shape[1], texels.shape[2]
     for i in range(lo, hi):
         f = _face_one(positions, i, cams)
         if f < 0:
@@ -766,6 +786,11 @@ def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, search_disc,
         u, v, z = _texel_one(positions, i, cams, f)
         if not (math.isfinite(u) and math.isfinite(v)):
             continue  # behind a spot light: not in its map
+        cx = int(min(max(u, 0.0), w - 1.0) / CASTER_CELL)
+        cy = int(min(max(v, 0.0), h - 1.0) / CASTER_CELL)
+        if occupied[f, cy, cx] == 0:
+            out[i] = 1.0
+            continue
         fx, ortho = cams[f, 12], cams[f, 16] > 0.5
         texel = (1.0 if ortho else z) / fx
         limit = z - sigma_bias * sigma[i] - texel_bias * texel * slope[i]
