@@ -21,9 +21,8 @@ KEYS = (ALBEDO, *NORMALS, ROUGHNESS, METALLIC)
 
 def normals(cloud: SplatCloud) -> Positions | None:
     """(N,3) float64 unit normals, or None when the cloud has none (all three of nx, ny, nz)."""
-    if not all(k in cloud.extras for k in NORMALS):
-        return None
-    return np.stack([cloud.extras[k].astype(np.float64).reshape(len(cloud)) for k in NORMALS], axis=1)
+    columns = normal_columns(cloud)
+    return None if columns is None else np.stack(columns, axis=1)
 
 
 def normal_columns(cloud: SplatCloud) -> tuple[Floats, Floats, Floats] | None:

@@ -403,6 +403,8 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
         cos_vg = max(cos_v, COS_MIN)
         acc[:] = 0.0
         for k in range(n_lights):
+            if reaches[k, 3] <= 0.0:
+                continue  # not an area light: no grid to choose
             dx, dy, dz = reaches[k, 0] - points[i, 0], reaches[k, 1] - points[i, 1], reaches[k, 2] - points[i, 2]
             distance = math.sqrt(dx * dx + dy * dy + dz * dz)
             grids[k] = AREA_GRID  # as core.lights.area_grids with the splat's lobe; also at 0 and NaN

@@ -108,7 +108,7 @@ def visibility(
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
         return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, out)
     points = cloud.positions.astype(np.float64)
-    face = _face_of(light, views, points)
+    face = _face_of([view.camera for view in views], points)
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
         if len(idx):
@@ -323,13 +323,14 @@ def _near_mask(camera, points, reach):
     return (z + reach > camera.near) & (np.abs(c[:, 0]) <= half_x * z + slack) & (np.abs(c[:, 1]) <= half_y * z + slack)
 
 
-def _face_of(light, views, points):
-    """(N,) index of the view each splat is tested in: the cube face its direction falls in most
-    centrally (the largest forward component); -1 where no view looks (behind an area light)."""
-    if len(views) == 1:
+def _face_of(cameras, points):
+    """(N,) index of the view (of `cameras`) each splat is tested in: the cube face its direction
+    falls in most centrally (the largest forward component); -1 where no view looks (behind an area
+    light)."""
+    if len(cameras) == 1:
         return np.zeros(len(points), np.int64)
-    rel = points - views[0].camera.center
-    forward = np.stack([v.camera.forward for v in views])
+    rel = points - cameras[0].center
+    forward = np.stack([camera.forward for camera in cameras])
     along = rel @ forward.T
     best = np.argmax(along, axis=1)
     behind = along[np.arange(len(points)), best] <= 0
@@ -363,20 +364,20 @@ def _casters(cloud, light, cameras, near, reach):
     normals = material.normal_columns(cloud)
     if normals is None:
         return None
-    cams = np.array([_camera_row(camera) for camera in cameras])
     grid = (len(cameras), -(-cameras[0].height // CASTER_CELL), -(-cameras[0].width // CASTER_CELL))
     positions = np.ascontiguousarray(cloud.positions, np.float32)
     near = np.ascontiguousarray(near, np.bool_)
     # the cells any tap of a receiver's search can read a splat's texels from, from its centre's cell
     window = math.ceil((MAX_SEARCH_TEXELS + CASTER_REACH) / CASTER_CELL)
-    boxes = _dilated(_cell_boxes(positions, near, cams, grid), window)
+    boxes = _dilated(_cell_boxes(positions, near, cameras, grid), window)
     log_scales = np.ascontiguousarray(cloud.log_scales, np.float32)
-    source, size = _light_source(light)
+    light_args = (*_light_source(light), light.kind == "sun")
     kernel = jit.compiled(__name__, CASTERS_KERNEL)
-    args = (positions, *normals, log_scales, reach, cams, boxes, source, size, light.kind == "sun")
     if kernel is None:
-        keep = _casters_numpy(*args)
+        keep = _casters_numpy(positions, *normals, log_scales, reach, cameras, boxes, *light_args)
     else:
+        cams = np.array([_camera_row(camera) for camera in cameras])
+        args = (positions, *normals, log_scales, reach, cams, boxes, *light_args)
         keep = np.empty(len(cloud), np.bool_)
         in_chunks(len(cloud), lambda lo, hi: kernel(lo, hi, *args, keep))
     return keep & near.any(axis=0)
@@ -393,11 +394,12 @@ def _light_source(light):
     return np.asarray(light.position, np.float64), float(getattr(light, "radius", 0.0))
 
 
-def _cell_boxes(positions, near, cams, grid):
+def _cell_boxes(positions, near, cameras, grid):
     """(F, GY, GX, 6) float64: per view and cell of CASTER_CELL texels, the box (min x, y, z, then
     max x, y, z) of the centres of the splats near it (near (F, N)) that its map shows there; empty
     cells +inf then -inf. One array per thread, merged: the cells are shared."""
     kernel = jit.compiled(__name__, BOXES_KERNEL)
+    cams = np.array([_camera_row(camera) for camera in cameras])
     parts = max(1, min(WORKERS, len(positions) // 4096))
     bounds = np.linspace(0, len(positions), parts + 1).astype(np.int64)
 
@@ -407,7 +409,7 @@ def _cell_boxes(positions, near, cams, grid):
         if kernel is not None:
             kernel(lo, hi, positions, near, cams, float(CASTER_CELL), boxes)
         else:
-            _boxes_numpy(positions[lo:hi], near[:, lo:hi], cams, boxes)
+            _boxes_numpy(positions[lo:hi], near[:, lo:hi], cameras, boxes)
         return boxes
 
     boxes = map_threads(part, range(parts))
@@ -440,11 +442,12 @@ def _boxes_loop(lo, hi, positions, near, cams, cell, boxes):
                 boxes[f, cy, cx, 3 + c] = max(boxes[f, cy, cx, 3 + c], positions[i, c])
 
 
-def _boxes_numpy(positions, near, cams, boxes):
+def _boxes_numpy(positions, near, cameras, boxes):
     """_boxes_loop's work in NumPy, view by view."""
     points = positions.astype(np.float64)
-    for f in range(boxes.shape[0]):  # a loop over views
-        u, v, _ = _texels_numpy(points, cams[f])
+    for f, camera in enumerate(cameras):  # a loop over views
+        uv = camera.project(points)[0]
+        u, v = uv[:, 0], uv[:, 1]
         with np.errstate(invalid="ignore"):
             inside = (u >= 0) & (v >= 0) & (u < boxes.shape[2] * CASTER_CELL) & (v < boxes.shape[1] * CASTER_CELL)
         inside &= near[f]
@@ -455,19 +458,6 @@ def _boxes_numpy(positions, near, cams, boxes):
         for c in range(3):
             np.minimum.at(flat[:, c], cell, points[inside, c])
             np.maximum.at(flat[:, 3 + c], cell, points[inside, c])
-
-
-def _texels_numpy(points, cam):
-    """_texel_one for many points (N,3) in one view (a _camera_row)."""
-    local = (points - cam[9:12]) @ cam[:9].reshape(3, 3).T
-    z = local[:, 2]
-    if cam[16] > 0.5:
-        x, y = local[:, 0], local[:, 1]
-    else:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.where(z > 0, local[:, 0] / z, np.nan)
-            y = np.where(z > 0, local[:, 1] / z, np.nan)
-    return cam[12] * x + cam[14], cam[13] * y + cam[15], z
 
 
 def _dilated(boxes, radius):
@@ -534,7 +524,7 @@ def _casters_loop(lo, hi, positions, nx, ny, nz, log_scales, reach, cams, boxes,
         keep[i] = behind > SIGMA_BIAS * math.exp(np.float64(thinnest)) + texel
 
 
-def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cams, boxes, source, size, sun):
+def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cameras, boxes, source, size, sun):
     """_casters_loop's test in NumPy, for every splat at once."""
     n = len(positions)
     normals = np.stack([nx, ny, nz], axis=1)
@@ -547,11 +537,12 @@ def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cams, boxes, source
         away = np.where((side > 0.0)[:, None], -unit, unit)
     usable = (length > 1e-6) & np.isfinite(length) & (np.abs(side) > size)
     keep = np.ones(n, bool)
-    face = _face_of_rows(points, cams)
-    for f in range(len(cams)):  # a loop over views
+    face = _face_of(cameras, points)
+    for f, camera in enumerate(cameras):  # a loop over views
         rows = np.flatnonzero(usable & (face == f))
-        u, v, z = _texels_numpy(points[rows], cams[f])
-        texel = (1.0 if cams[f, 16] > 0.5 else z) / cams[f, 12]
+        uv, z = camera.project(points[rows])
+        u, v = uv[:, 0], uv[:, 1]
+        texel = (1.0 if camera.is_orthographic else z) / camera.fx
         with np.errstate(invalid="ignore"):
             cx, cy = u // CASTER_CELL, v // CASTER_CELL
             ok = (u >= 0) & (v >= 0) & (cx < boxes.shape[2]) & (cy < boxes.shape[1])
@@ -563,15 +554,6 @@ def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cams, boxes, source
         margin = SIGMA_BIAS * thin[rows] + (texel[ok] if np.ndim(texel) else texel)
         keep[rows] = behind > margin
     return keep
-
-
-def _face_of_rows(points, cams):
-    """_face_one for many points (N,3): the view each is tested in, -1 behind them all."""
-    if len(cams) == 1:
-        return np.zeros(len(points), np.int64)
-    along = (points - cams[0, 9:12]) @ cams[:, 6:9].T
-    best = np.argmax(along, axis=1)
-    return np.where(along[np.arange(len(points)), best] > 0.0, best, -1)
 
 
 # meshes ---------------------------------------------------------------------------------------------
