@@ -282,6 +282,7 @@ SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and 0),
 # emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
+SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_shade_loop")
 
 
 def _emitters(lights: list[Light]) -> np.ndarray:
@@ -351,14 +352,19 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
 
 def _shade_kernel():
     """The compiled twin of shade (core.jit), or None: NumPy then does the work."""
-    return jit.compiled(__name__, ("_lambda_one", "_table_one", "_shade_loop"))
+    return jit.compiled(__name__, SHADE_KERNEL)
 
 
-def _lambda_one(cos_t, alpha):
-    """smith_lambda of one direction."""
+def _tan2(cos_t):
+    """tan^2 of a direction's angle to the normal from its cosine (> 0), as smith_lambda has it."""
     cos2 = max(cos_t * cos_t, COS_MIN * COS_MIN)
-    tan2 = max(1.0 - cos2, 0.0) / cos2
-    return 0.5 * (math.sqrt(1.0 + alpha * alpha * tan2) - 1.0)
+    return max(1.0 - cos2, 0.0) / cos2
+
+
+def _lambda_sq(tan2, alpha2):
+    """smith_lambda from tan^2 of the direction's angle and alpha^2 (one square root, no squaring of
+    a widened alpha's hypot)."""
+    return 0.5 * (math.sqrt(1.0 + alpha2 * tan2) - 1.0)
 
 
 def _table_one(table, cos_v, roughness):
@@ -401,6 +407,7 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
             layer[c] = min(max(f0[c] * s_tab + b_tab, 0.0), 1.0) * boost[c]
             base[c] = albedo[i, c] * (1.0 - m) * min(max(1.0 - layer[c], 0.0), 1.0)
         cos_vg = max(cos_v, COS_MIN)
+        tan2_v = _tan2(cos_vg)  # the view's part of Smith's Lambda, the same for every emitter
         acc[:] = 0.0
         for k in range(n_lights):
             if reaches[k, 3] <= 0.0:
@@ -440,16 +447,15 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
             radius = emitters[e, 11]
             if kind != SUN:  # the emitter's angular radius (angular_radius)
                 radius = math.asin(min(max(radius / max(distance, 1e-300), 0.0), 1.0))
-            a = min(math.hypot(alpha, 0.5 * radius), 1.0)
+            a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
             hx, hy, hz = v[0] + lx, v[1] + ly, v[2] + lz
             h_len = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
             cos_h = min(max((nrm[0] * hx + nrm[1] * hy + nrm[2] * hz) / h_len, 0.0), 1.0)
             weight = (1.0 - min(max((v[0] * hx + v[1] * hy + v[2] * hz) / h_len, 0.0), 1.0)) ** 5
-            a2 = a * a
             denom = cos_h * cos_h * (a2 - 1.0) + 1.0
-            d = a2 / (math.pi * denom * denom)
-            g = 1.0 / (1.0 + _lambda_one(cos_vg, a) + _lambda_one(max(cos_l, COS_MIN), a))
-            value = d * g / (4.0 * cos_vg) * strength
+            # D G / (4 n.v), D = a2 / (pi denom^2), G = 1 / (1 + Lambda(v) + Lambda(l)), in one division
+            lambdas = 1.0 + _lambda_sq(tan2_v, a2) + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)
+            value = strength * a2 / (math.pi * denom * denom * lambdas * 4.0 * cos_vg)
             acc[index, 1] += value * (1.0 - weight)
             acc[index, 2] += value * weight
         lit, seen = 0.0, 0.0

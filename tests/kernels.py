@@ -56,7 +56,7 @@ def _relighting_missing():
         "shadow cells": (shadows.__name__, shadows.BOXES_KERNEL),
         "shadow reach": (shadows.__name__, ("_reach_loop",)),
         "shadow extents": (shadows.__name__, ("_extent_loop",)),
-        "shading": (shading.__name__, ("_lambda_one", "_table_one", "_shade_loop")),
+        "shading": (shading.__name__, shading.SHADE_KERNEL),
         "lit colours": (relight.__name__, ("_display_dc_loop",)),
     }
     missing = [name for name, (module, names) in kernels.items() if jit.compiled(module, names) is None]
