@@ -170,6 +170,7 @@ def render(
     layer: "Layer | None" = None,
     gather: Image | None = None,
     shapes: "Shapes | None" = None,
+    rows: np.ndarray | None = None,
 ) -> RenderResult:
     """Render a SplatCloud through a Camera; returns a RenderResult.
 
@@ -189,6 +190,9 @@ def render(
     gather: an (H,W) or (H,W,C) image to gather through the blending weights into
         result.gathered (see RenderResult), or None.
     shapes: Shapes(cloud), made once for renders of the same splats from many cameras, or None.
+    rows: the splats to draw, as indices (M,) or a mask (N,) bool; the others are left out as if the
+        cloud lacked them (without copying the cloud: a shadow map draws a light's casters so), but
+        per-splat results (max_weight, gathered) still count every splat. None: all.
 
     Splats with non-finite values are skipped and counted in stats["skipped_nonfinite"];
     stats["backend"] says which path ran. An image whose buffers would not fit in this machine's
@@ -217,6 +221,7 @@ def render(
     gather = None if gather is None else _checked_gather(gather, camera)
     if shapes is not None and not shapes.fits(cloud):
         raise ValueError("shapes were made from other splats: make them from this cloud (Shapes(cloud))")
+    rows = None if rows is None else _checked_rows(rows, len(cloud))
     kernels = None if backend == "numpy" else jit.load(KERNELS, check=_check_kernels)
     if kernels is None and backend == "compiled":
         raise RuntimeError(f"compiled render kernels are not available: {jit.status(KERNELS)}")
@@ -240,7 +245,22 @@ def render(
         layer,
         gather,
         shapes,
+        rows,
     )
+
+
+def _checked_rows(rows, n):
+    """rows as int64 indices into n splats, or ValueError naming the problem."""
+    rows = np.asarray(rows)
+    if rows.dtype == np.bool_:
+        if rows.shape != (n,):
+            raise ValueError(f"a rows mask must have one value per splat ({n}), got shape {rows.shape}")
+        return np.flatnonzero(rows)
+    if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer):
+        raise ValueError(f"rows must be splat indices (M,) or a mask (N,), got {rows.dtype} {rows.shape}")
+    if len(rows) and not (0 <= rows.min() and rows.max() < n):
+        raise ValueError(f"rows must index the cloud's {n} splats, got {rows.min()}..{rows.max()}")
+    return np.ascontiguousarray(rows, np.int64)
 
 
 def _checked_gather(image, camera):
@@ -276,18 +296,19 @@ def _render(
     layer=None,
     gather=None,
     shapes=None,
+    rows=None,
 ):
     """The checked render() by the compiled kernels, or by NumPy when kernels is None."""
     with Pool(threads) as pool:
         if kernels is None:
-            proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool)
+            proj = project(cloud, camera, mode=mode, max_sigma=max_sigma, pool=pool, rows=rows)
             bins = bin_tiles(proj, camera, tile_size, pool=pool)
             crossing = None if layer is None else LayerCrossing(layer, bins, dtype)
             compositor = Compositor(
                 proj, bins, camera, dtype, wave, t_min, pool, return_counts, return_weights, crossing, gather
             )
         else:
-            proj, spare = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes)
+            proj, spare = _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes, rows)
             order, number = _by_first_tile(proj, camera, tile_size)
             bins = _bin_compiled(kernels, proj, camera, tile_size, pool, number)
             compositor = _CompiledCompositor(
@@ -342,6 +363,11 @@ def _check_kernels(kernels):
                 or not np.array_equal(_render(kernels, *args, layer, gather, shapes).color, got.color)
             ):
                 raise RuntimeError("the compiled render kernels disagree with the NumPy path on a test scene")
+    rows = np.arange(1, n, 3)
+    for own in (None, shapes):  # a subset, with the kernel's own shapes and with every splat's
+        got, want = _render(kernels, *args, None, None, own, rows), _render(None, *args, None, None, None, rows)
+        if np.abs(got.color - want.color).max() > 1e-3:
+            raise RuntimeError("the compiled render kernels disagree with the NumPy path on a subset of a test scene")
 
 
 def _check_layer(camera):
@@ -394,14 +420,17 @@ def check_image_memory(camera, tile_size=TILE_SIZE, counts=False, compiled=True)
 # projection -----------------------------------------------------------------------------------
 
 PROJECT_CHUNK = 1 << 16  # splats per projection task
+EVERY = np.zeros(0, np.int64)  # the kernels' rows for "every splat, in order"
 
 
-def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
-    """Cull and project every splat: pixel-space means, conics, extents and view-dependent colours
-    of the visible ones, sorted front to back (equal depths keep input order)."""
+def project(cloud, camera, mode="classic", max_sigma=None, pool=None, rows=None):
+    """Cull and project every splat (or those of `rows`, indices): pixel-space means, conics, extents
+    and view-dependent colours of the visible ones, sorted front to back (equal depths keep input
+    order)."""
     pool = pool or Pool(1)
-    chunks = [slice(i, i + PROJECT_CHUNK) for i in range(0, len(cloud), PROJECT_CHUNK)] or [slice(0, 0)]
-    parts = pool.map(lambda sl: _project_chunk(cloud, sl, camera, mode, max_sigma), chunks)
+    rows = np.arange(len(cloud)) if rows is None else rows
+    chunks = [rows[i : i + PROJECT_CHUNK] for i in range(0, len(rows), PROJECT_CHUNK)] or [rows[:0]]
+    parts = pool.map(lambda idx: _project_chunk(cloud, idx, camera, mode, max_sigma), chunks)
     skipped = sum(p.pop("skipped") for p in parts)
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
@@ -414,11 +443,10 @@ def project(cloud, camera, mode="classic", max_sigma=None, pool=None):
     return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
 
 
-def _project_chunk(cloud, sl, camera, mode, max_sigma):
-    """Projection of cloud[sl], unsorted, as columns (float64 unless noted)."""
-    idx = np.arange(len(cloud))[sl]
-    fields = [getattr(cloud, name)[sl] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
-    every = fields + [cloud.sh[sl]]
+def _project_chunk(cloud, idx, camera, mode, max_sigma):
+    """Projection of the splats idx (indices), unsorted, as columns (float64 unless noted)."""
+    fields = [getattr(cloud, name)[idx] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
+    every = fields + [cloud.sh[idx]]
     if not all(np.isfinite(f).all() for f in every):  # rare: find the bad splats
         good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
         idx, fields = idx[good], [f[good] for f in fields]
@@ -515,17 +543,17 @@ def _shape_values(kernels, cloud, pool):
     fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32) for name in Shapes.FIELDS]
     values = np.empty((n, 10))
     pool.map(
-        lambda lo: kernels.shape_range(*fields, lo, min(lo + PROJECT_CHUNK, n), values, 0),
+        lambda lo: kernels.shape_range(*fields, EVERY, lo, min(lo + PROJECT_CHUNK, n), values, 0),
         list(range(0, n, PROJECT_CHUNK)),
     )
     return values
 
 
-def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None):
+def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None, rows=None):
     """project() by the compiled kernel: the same Projected, built chunk by chunk on every core, and
     the (records, bbox) it was projected into before the depth sort, for the compositor to reuse
     (fresh memory costs a page fault per 4 KiB: at 4K, a quarter of the render's time went there)."""
-    n = len(cloud)
+    n = len(cloud) if rows is None else len(rows)
     fields = [
         np.ascontiguousarray(getattr(cloud, name), dtype=np.float32)
         for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh")
@@ -555,6 +583,7 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
         hi = min(lo + PROJECT_CHUNK, n)
         return lo, *kernels.project_range(
             *fields,
+            EVERY if rows is None else rows,
             lo,
             hi,
             camera.center,

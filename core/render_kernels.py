@@ -53,13 +53,15 @@ def band4_color(x, y, z, c):
 
 
 @njit
-def shape_range(rotations, log_scales, logits, lo, hi, out, base):
-    """Rows i - base of out (n, 10) for splats i in lo..hi-1: what projecting them needs that no
-    camera changes, in float64. out[:, :9] is R S row by row, the rotation (the normalised
-    quaternion; zero or non-finite norms: the identity) times the scales, out[:, 9] the opacity,
-    NaN where the rotation, scales or logit is not finite."""
-    for i in range(lo, hi):
-        row = i - base
+def shape_range(rotations, log_scales, logits, rows, lo, hi, out, base):
+    """Rows t - base of out (n, 10) for t in lo..hi-1, of splats rows[t] (of splat t where rows is
+    empty): what projecting them needs that no camera changes, in float64. out[:, :9] is R S row by
+    row, the rotation (the normalised quaternion; zero or non-finite norms: the identity) times the
+    scales, out[:, 9] the opacity, NaN where the rotation, scales or logit is not finite."""
+    every = rows.shape[0] == 0
+    for t in range(lo, hi):
+        i = t if every else rows[t]
+        row = t - base
         finite = np.isfinite(logits[i])
         for j in range(3):
             finite &= np.isfinite(log_scales[i, j])
@@ -103,6 +105,7 @@ def project_range(
     logits,
     sh,
     shapes,
+    rows,
     lo,
     hi,
     center,
@@ -120,8 +123,9 @@ def project_range(
     r2_out,
     bbox,
 ):
-    """Cull and project splats lo..hi-1, writing the visible ones (in input order) to rows lo.. of
-    the outputs. Returns (visible count, skipped for non-finite values).
+    """Cull and project splats rows[lo..hi-1] (splats lo..hi-1 where rows is empty), writing the
+    visible ones (in that order) to rows lo.. of the outputs. Returns (visible count, skipped for
+    non-finite values).
 
     shapes: shape_range's rows of every splat (index = splat), or an empty (0, 10) array to compute
     them here a piece at a time. intrinsics: fx, fy, cx, cy; size: width, height; clip: near, far,
@@ -136,14 +140,15 @@ def project_range(
     m0 = np.empty(3)
     m1 = np.empty(3)
     own = shapes.shape[0] == 0
-    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes  # rows of R S and opacity, splat i at row i - base
+    every = rows.shape[0] == 0
+    rs = np.empty((SHAPE_PIECE, 10)) if own else shapes  # R S and opacity: of the piece's t - start, or of splat i
     for start in range(lo, hi, SHAPE_PIECE):
         stop = min(start + SHAPE_PIECE, hi)
-        base = start if own else 0
         if own:
-            shape_range(rotations, log_scales, logits, start, stop, rs, base)
-        for i in range(start, stop):
-            s = i - base
+            shape_range(rotations, log_scales, logits, rows, start, stop, rs, start)
+        for t in range(start, stop):
+            i = t if every else rows[t]
+            s = t - start if own else i
             opacity = rs[s, 9]
             finite = np.isfinite(opacity)
             for j in range(3):

@@ -52,7 +52,6 @@ SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
 CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
-CASTER_SHARE = 0.8  # maps draw the casters alone where they are at most this share of the splats
 # The compiled kernels: each tuple compiles in order, the last one the entry (core.jit.compiled).
 FILTER_KERNEL = ("_face_one", "_texel_one", "_pcss_one", "_visibility_loop")
 BOXES_KERNEL = ("_face_one", "_texel_one", "_boxes_loop")
@@ -129,14 +128,13 @@ def shadow_views(
     casters = _casters(cloud, light, cameras, masks, reach)
     # What the maps need of the splats: their shapes (colour and extras are not drawn, so one black
     # coefficient stands for every splat's: copying out the splats' own would read all their SH).
-    # The maps draw the casters; where they are most of the cloud, the whole cloud, and let the
-    # render cull: with the shapes made once, a culled splat costs a position's transform, less
-    # than copying out the others.
+    # Each map draws its own rows, the casters near it, out of the whole cloud: nothing is copied,
+    # and the shapes are made once (or given) for every map and the picture.
     black = np.zeros((len(cloud), 1, 3), np.float32)
     bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
     bare.antialiased = cloud.antialiased
-    if casters is not None and casters.mean() <= CASTER_SHARE:
-        bare, masks = bare[casters], masks & casters
+    if casters is not None:
+        masks &= casters
     if shapes is None or not shapes.fits(bare):
         shapes = Shapes(bare, threads)
     views = []
@@ -145,7 +143,8 @@ def shadow_views(
             progress(k, len(cameras), "shadows")
         depth = np.full((camera.height, camera.width), np.inf, np.float32)
         alpha = np.zeros((camera.height, camera.width), np.float32)
-        if near.any():
+        rows = np.flatnonzero(near)
+        if len(rows):
             result = render(
                 bare,
                 camera,
@@ -153,6 +152,7 @@ def shadow_views(
                 threads=threads,
                 progress=part_progress(progress, k, len(cameras), "shadows"),
                 shapes=shapes,
+                rows=rows,
             )
             alpha = result.alpha
             depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)

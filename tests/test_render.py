@@ -292,6 +292,44 @@ def test_shapes_of_other_splats_are_refused():
     render(cloud.replace(positions=cloud.positions + 1), perspective(), shapes=shapes)  # the same shapes, moved
 
 
+def test_rows_draw_a_subset_as_a_copy_of_it_would_be_drawn(backend):
+    """A render of some rows (as a shadow map draws a light's casters) is the render of a copy of
+    those splats, to the bit, by index or by mask, with and without Shapes; skipped splats count
+    among the rows only, and per-splat results keep the whole cloud's numbering."""
+    cloud = scene(n=2000, seed=17)
+    cloud.positions[3, 0] = np.nan  # drawn, and skipped
+    cloud.rotations[4] = np.inf  # not drawn: not counted
+    rows = np.flatnonzero(np.random.default_rng(3).random(len(cloud)) < 0.4)
+    rows = np.union1d(rows, [3])
+    rows = rows[rows != 4]
+    mask = np.zeros(len(cloud), bool)
+    mask[rows] = True
+    copy = cloud[rows]
+    for camera in (perspective(), orthographic()):
+        want = render(copy, camera, return_weights=True, backend=backend)
+        choices = [(rows, None), (mask, None)] + ([(rows, Shapes(cloud))] if backend == "compiled" else [])
+        for chosen, shapes in choices:
+            got = render(cloud, camera, return_weights=True, backend=backend, rows=chosen, shapes=shapes)
+            for name in ("color", "alpha", "depth"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+            np.testing.assert_array_equal(got.max_weight[rows], want.max_weight)
+            assert got.max_weight.shape == (len(cloud),) and not got.max_weight[~mask].any()
+            assert got.stats["skipped_nonfinite"] == want.stats["skipped_nonfinite"] == 1
+    assert not render(cloud, perspective(), backend=backend, rows=rows[:0]).alpha.any()
+
+
+def test_bad_rows_are_refused():
+    cloud = scene(seed=18)
+    for rows, message in (
+        (np.array([0, len(cloud)]), "must index the cloud"),
+        (np.array([-1, 2]), "must index the cloud"),
+        (np.ones(5, bool), "one value per splat"),
+        (np.array([0.5, 1.0]), "splat indices"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            render(cloud, perspective(), rows=rows)
+
+
 def test_extreme_logits_and_zero_quaternions(backend):
     cloud = scene(seed=15)
     cloud.opacity_logits[::3] = 1e4
