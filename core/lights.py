@@ -38,7 +38,7 @@ AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
 AREA_GRID = 4
 AREA_SAMPLES = AREA_GRID * AREA_GRID  # the most a point gets
 AREA_REACH = 6.0
-AREA_GLOSS = 2.0  # samples across a glossy lobe's width (area_grids' lobes)
+AREA_GLOSS = 1.5  # samples across a glossy lobe's width (area_grids' lobes; docs/DESIGN.md's figures)
 # Radiance of an area light per watt per square metre of its surface: 1/pi, so that its radiant
 # exitance (pi * radiance) is power / area. Measured: Cycles' renders agree within 0.1%
 # (tests/test_blender_lights.py); its kernel's 0.25 / area comes with a 4/pi from Blender's side.
