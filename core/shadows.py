@@ -53,7 +53,8 @@ SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides t
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
 CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
 # The compiled kernels: each tuple compiles in order, the last one the entry (core.jit.compiled).
-FILTER_KERNEL = ("_face_one", "_texel_one", "_pcss_one", "_visibility_loop")
+FILTER_KERNEL = ("_face_one", "_texel_one", "_pcss_one", "_extent_one", "_extent_at", "_visibility_loop")
+EXTENT_KERNEL = ("_extent_one", "_extent_at", "_extent_loop")
 BOXES_KERNEL = ("_face_one", "_texel_one", "_boxes_loop")
 CASTERS_KERNEL = ("_face_one", "_texel_one", "_casters_loop")
 
@@ -99,13 +100,13 @@ def visibility(
     views = shadow_views(
         cloud, light, occluders=occluders, resolution=resolution, threads=threads, progress=progress, shapes=shapes
     )
-    sigma, slope = _extent_and_slope(cloud, light)
     size = _light_size(light)
     kernel = jit.compiled(__name__, FILTER_KERNEL)
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
         settings = (size if soft else 0.0, sigma_bias, texel_bias)
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
-        return _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, out)
+        return _visibility_compiled(kernel, cloud, light, views, settings, discs, out)
+    sigma, slope = _extent_and_slope(cloud, light)
     points = cloud.positions.astype(np.float64)
     face = _face_of([view.camera for view in views], points)
     for k, view in enumerate(views):
@@ -585,7 +586,7 @@ def _extent_and_slope(cloud, light):
     """(N,) each splat's standard deviation along its ray from the light, sqrt(l^T Sigma l), and
     (N,) the tan of the angle between its surface normal (the material's, else its thinnest axis)
     and that ray, capped at MAX_SLOPE: how much depth a texel spans across it."""
-    kernel = jit.compiled(__name__, ("_extent_loop",))
+    kernel = jit.compiled(__name__, EXTENT_KERNEL)
     if kernel is not None:
         return _extent_compiled(kernel, cloud, light)
     points = cloud.positions.astype(np.float64)
@@ -605,55 +606,74 @@ def _extent_and_slope(cloud, light):
 def _extent_compiled(kernel, cloud, light):
     """_extent_and_slope by the compiled kernel, on every core."""
     n = len(cloud)
+    sigma, slope = np.empty(n), np.empty(n)
+    args = _extent_args(cloud, light)
+    in_chunks(n, lambda lo, hi: kernel(lo, hi, *args, sigma, slope))
+    return sigma, slope
+
+
+def _extent_args(cloud, light):
+    """What _extent_one reads of the cloud and the light: positions, rotations and log-scales
+    (float32), the normals' columns (empty without), the light's position (the sun's direction)
+    and whether it is the sun."""
     normals = material.normal_columns(cloud) or (np.zeros(0), np.zeros(0), np.zeros(0))
     sun = light.kind == "sun"
     source = _unit(light.direction) if sun else np.asarray(light.position, np.float64)
     fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.rotations, cloud.log_scales)]
-    sigma, slope = np.empty(n), np.empty(n)
-    in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, *normals, source, sun, MAX_SLOPE, sigma, slope))
-    return sigma, slope
+    return (*fields, *normals, source, sun)
 
 
-def _extent_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, source, sun, max_slope, sigma, slope):
-    """_extent_and_slope for splats lo..hi: the ray in the splat's axes by its unit quaternion
-    (w, x, y, z; a zero or non-finite one is the identity, as geometry.normalize_quaternions)."""
-    ray = np.empty(3)
+def _extent_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, source, sun, sigma, slope):
+    """_extent_and_slope for splats lo..hi."""
     for i in range(lo, hi):
-        if sun:
-            ray[:] = source
-        else:
-            for c in range(3):
-                ray[c] = positions[i, c] - source[c]
-            length = max(math.sqrt(ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2]), 1e-300)
-            ray /= length
-        w, x, y, z = (
-            np.float64(rotations[i, 0]),
-            np.float64(rotations[i, 1]),
-            np.float64(rotations[i, 2]),
-            np.float64(rotations[i, 3]),
-        )
-        norm = math.sqrt(w * w + x * x + y * y + z * z)
-        if not (norm > 1e-30 and math.isfinite(norm)):
-            w, x, y, z, norm = 1.0, 0.0, 0.0, 0.0, 1.0
-        w, x, y, z = w / norm, x / norm, y / norm, z / norm
-        # local = R^T ray, R's columns the splat's axes
-        l0 = (1 - 2 * (y * y + z * z)) * ray[0] + 2 * (x * y + w * z) * ray[1] + 2 * (x * z - w * y) * ray[2]
-        l1 = 2 * (x * y - w * z) * ray[0] + (1 - 2 * (x * x + z * z)) * ray[1] + 2 * (y * z + w * x) * ray[2]
-        l2 = 2 * (x * z + w * y) * ray[0] + 2 * (y * z - w * x) * ray[1] + (1 - 2 * (x * x + y * y)) * ray[2]
-        s0 = math.exp(np.float64(log_scales[i, 0]))
-        s1 = math.exp(np.float64(log_scales[i, 1]))
-        s2 = math.exp(np.float64(log_scales[i, 2]))
-        sigma[i] = math.sqrt(l0 * l0 * s0 * s0 + l1 * l1 * s1 * s1 + l2 * l2 * s2 * s2)
-        if nx.shape[0] == 0:  # the thinnest axis (the first of equals, as argmin)
-            thin = 0
-            if log_scales[i, 1] < log_scales[i, thin]:
-                thin = 1
-            if log_scales[i, 2] < log_scales[i, thin]:
-                thin = 2
-            cos = abs(l0 if thin == 0 else (l1 if thin == 1 else l2))
-        else:
-            cos = abs(nx[i] * ray[0] + ny[i] * ray[1] + nz[i] * ray[2])
-        slope[i] = min(math.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 1e-9), max_slope)
+        sigma[i], slope[i] = _extent_at(positions, rotations, log_scales, nx, ny, nz, source, sun, i)
+
+
+def _extent_at(positions, rotations, log_scales, nx, ny, nz, source, sun, i):
+    """_extent_one of splat i (_extent_args' arrays; nx empty: no normals)."""
+    normal = nx.shape[0] > 0
+    return _extent_one(
+        np.float64(positions[i, 0]), np.float64(positions[i, 1]), np.float64(positions[i, 2]),
+        np.float64(rotations[i, 0]), np.float64(rotations[i, 1]), np.float64(rotations[i, 2]),
+        np.float64(rotations[i, 3]),
+        np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]), np.float64(log_scales[i, 2]),
+        nx[i] if normal else math.nan, ny[i] if normal else 0.0, nz[i] if normal else 0.0,
+        source[0], source[1], source[2], sun,
+    )  # fmt: skip
+
+
+def _extent_one(p0, p1, p2, qw, qx, qy, qz, ls0, ls1, ls2, n0, n1, n2, s0, s1, s2, sun):
+    """(sigma, slope) of one splat as _extent_and_slope: its centre p, quaternion q (w, x, y, z; a
+    zero or non-finite one is the identity, as geometry.normalize_quaternions), log-scales ls and
+    normal n (n0 NaN: none, its thinnest axis stands for it), for a light at s (the sun: s its unit
+    direction). All scalars: a compiled helper reading the arrays itself cost the shadow test a
+    third more."""
+    if sun:
+        r0, r1, r2 = s0, s1, s2
+    else:
+        r0, r1, r2 = p0 - s0, p1 - s1, p2 - s2
+        length = max(math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-300)
+        r0, r1, r2 = r0 / length, r1 / length, r2 / length
+    norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if not (norm > 1e-30 and math.isfinite(norm)):
+        qw, qx, qy, qz, norm = 1.0, 0.0, 0.0, 0.0, 1.0
+    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+    # local = R^T ray, R's columns the splat's axes
+    l0 = (1 - 2 * (qy * qy + qz * qz)) * r0 + 2 * (qx * qy + qw * qz) * r1 + 2 * (qx * qz - qw * qy) * r2
+    l1 = 2 * (qx * qy - qw * qz) * r0 + (1 - 2 * (qx * qx + qz * qz)) * r1 + 2 * (qy * qz + qw * qx) * r2
+    l2 = 2 * (qx * qz + qw * qy) * r0 + 2 * (qy * qz - qw * qx) * r1 + (1 - 2 * (qx * qx + qy * qy)) * r2
+    e0, e1, e2 = math.exp(ls0), math.exp(ls1), math.exp(ls2)
+    sigma = math.sqrt(l0 * l0 * e0 * e0 + l1 * l1 * e1 * e1 + l2 * l2 * e2 * e2)
+    if math.isnan(n0):  # the thinnest axis (the first of equals, as argmin)
+        thin = 0
+        if ls1 < ls0:
+            thin = 1
+        if ls2 < (ls0 if thin == 0 else ls1):
+            thin = 2
+        cos = abs(l0 if thin == 0 else (l1 if thin == 1 else l2))
+    else:
+        cos = abs(n0 * r0 + n1 * r1 + n2 * r2)
+    return sigma, min(math.sqrt(max(1 - cos * cos, 0.0)) / max(cos, 1e-9), MAX_SLOPE)
 
 
 def _light_size(light):
@@ -719,16 +739,16 @@ def _penumbra(z, blocker, scale, ortho):
     return np.where(np.isfinite(blocker), np.maximum(radius, 0.5), 0.0)
 
 
-def _visibility_compiled(kernel, cloud, views, sigma, slope, settings, discs, out):
+def _visibility_compiled(kernel, cloud, light, views, settings, discs, out):
     """visibility()'s test of every splat in its view (_face_of, _filtered) by one compiled loop on
-    every core: the splat's projection, bias, search and filter without (N,) temporaries per view."""
+    every core: the splat's projection, extent, bias, search and filter without (N,) temporaries per
+    view (the extent only where a search is made: most splats of a scene lie far from any shadow)."""
     cams = np.array([_camera_row(view.camera) for view in views])
     # each texel's depth and alpha side by side: a tap reads one cache line, not two
     texels = np.stack([np.stack([view.depth, view.alpha], axis=-1) for view in views])
     occupied = _occupied_cells(texels[..., 0])
-    positions = np.ascontiguousarray(cloud.positions, np.float32)
     params = np.array(settings, np.float64)
-    args = (positions, sigma, slope, cams, texels, occupied, *discs, params, out)
+    args = (*_extent_args(cloud, light), cams, texels, occupied, *discs, params, out)
     in_chunks(len(out), lambda lo, hi: kernel(lo, hi, *args))
     return out
 
@@ -755,7 +775,8 @@ def _camera_row(camera):
     return [*camera.rotation.ravel(), *camera.center, camera.fx, camera.fy, camera.cx, camera.cy, *flags]
 
 
-def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, occupied, search_disc, disc, params, out):
+def _visibility_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, source, sun, cams, texels, occupied,
+                     search_disc, disc, params, out):  # fmt: skip
     """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
     looking most nearly at it, none behind them all), then _filtered's test there, skipped where the
     map holds nothing within the search's reach (_occupied_cells: lit all the same)."""
@@ -775,7 +796,8 @@ def _visibility_loop(lo, hi, positions, sigma, slope, cams, texels, occupied, se
             continue
         fx, ortho = cams[f, 12], cams[f, 16] > 0.5
         texel = (1.0 if ortho else z) / fx
-        limit = z - sigma_bias * sigma[i] - texel_bias * texel * slope[i]
+        sigma, slope = _extent_at(positions, rotations, log_scales, nx, ny, nz, source, sun, i)
+        limit = z - sigma_bias * sigma - texel_bias * texel * slope
         if size <= 0.0:
             search = 0.0  # hard: the centre texel only
         elif ortho:

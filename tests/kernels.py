@@ -55,7 +55,7 @@ def _relighting_missing():
         "shadow casters": (shadows.__name__, shadows.CASTERS_KERNEL),
         "shadow cells": (shadows.__name__, shadows.BOXES_KERNEL),
         "shadow reach": (shadows.__name__, ("_reach_loop",)),
-        "shadow extents": (shadows.__name__, ("_extent_loop",)),
+        "shadow extents": (shadows.__name__, shadows.EXTENT_KERNEL),
         "shading": (shading.__name__, shading.SHADE_KERNEL),
         "lit colours": (relight.__name__, ("_display_dc_loop",)),
     }

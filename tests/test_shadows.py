@@ -171,7 +171,7 @@ def test_spot_lights_see_what_a_point_light_there_sees(scene):
 def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, kind):
     cloud, _ = scene
     light = LIGHTS[kind]
-    if shadows.jit.compiled(shadows.__name__, ("_extent_loop",)) is None:
+    if shadows.jit.compiled(shadows.__name__, shadows.EXTENT_KERNEL) is None:
         pytest.skip("compiled kernels are not available here")
     source = None if light.kind == "sun" else light.position
     compiled = shadows._extent_and_slope(cloud, light)
