@@ -209,6 +209,15 @@ def area_points(light: Light, grid: int = AREA_GRID) -> tuple[np.ndarray, np.nda
     return points, np.full(len(points), light.area / len(points))
 
 
+def area_table(light: Light) -> np.ndarray:
+    """(AREA_GRID + 1, AREA_SAMPLES, 3) float64: [g, k] is sample k of the area light's g x g grid
+    (area_points; each holds area / g^2), zeros past g * g and for g = 0."""
+    table = np.zeros((AREA_GRID + 1, AREA_SAMPLES, 3))
+    for g in range(1, AREA_GRID + 1):  # a loop over grids
+        table[g, : g * g] = area_points(light, g)[0]
+    return table
+
+
 def area_grids(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) -> np.ndarray:
     """(N,) int: the sampling grid (g of g x g, 1..AREA_GRID) of the area light at each point (N,3),
     from its distance to the light's centre (see AREA_REACH); the finest where it is undefined.
@@ -250,9 +259,7 @@ def incident(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) 
         scalar = np.where(distance > 1e-300, intensity / np.maximum(distance, 1e-300) ** 2, 0.0)
         return [Incident(direction, distance, scalar, light.radius)]
     grids = area_grids(light, points, lobes)
-    table = np.zeros((AREA_GRID + 1, AREA_SAMPLES, 3))  # [g, k]: sample k of the g x g grid
-    for g in range(1, AREA_GRID + 1):  # a loop over grids
-        table[g, : g * g] = area_points(light, g)[0]
+    table = area_table(light)
     share = light.area / (grids * grids)
     radiance = AREA_RADIANCE * light.power / light.area
     out = []

@@ -47,7 +47,7 @@ from .lights import (
     Incident,
     Light,
     World,
-    area_points,
+    area_table,
     incident,
     towards,
 )
@@ -299,12 +299,12 @@ def _emitters(lights: list[Light]) -> np.ndarray:
             width = (1.0 - cos_half) * light.spot_blend
             rows.append([kind, index, *light.position, *light.direction, strength, cos_half, width, light.radius])
         else:
+            table = area_table(light)
             for grid in range(1, AREA_GRID + 1):  # 1 + 4 + 9 + 16 samples
-                samples, shares = area_points(light, grid)
-                for sample, share in zip(samples, shares, strict=True):
-                    strength = AREA_RADIANCE * light.power / light.area * share
-                    radius = math.sqrt(share / math.pi)
-                    rows.append([AREA, index, *sample, *light.direction, strength, grid, 0, radius])
+                share = light.area / (grid * grid)
+                strength = AREA_RADIANCE * light.power / light.area * share
+                for sample in table[grid, : grid * grid]:
+                    rows.append([AREA, index, *sample, *light.direction, strength, grid, 0, math.sqrt(share / math.pi)])
     return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS)
 
 
