@@ -383,22 +383,21 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
     grids = np.empty(n_lights)  # each area light's grid at this splat (core.lights.area_grids)
-    v, nrm, f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     out_d, out_s = np.empty(3), np.empty(3)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
     for i in range(lo, hi):
         if flags[0]:
-            v[:] = eye
+            v0, v1, v2 = eye[0], eye[1], eye[2]
         else:
-            for c in range(3):
-                v[c] = eye[c] - points[i, c]
-            length = max(math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-300)
-            v /= length
-        sign = -1.0 if nx[i] * v[0] + ny[i] * v[1] + nz[i] * v[2] < 0.0 else 1.0
-        nrm[0], nrm[1], nrm[2] = nx[i] * sign, ny[i] * sign, nz[i] * sign
+            v0, v1, v2 = eye[0] - points[i, 0], eye[1] - points[i, 1], eye[2] - points[i, 2]
+            length = max(math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-300)
+            v0, v1, v2 = v0 / length, v1 / length, v2 / length
+        sign = -1.0 if nx[i] * v0 + ny[i] * v1 + nz[i] * v2 < 0.0 else 1.0
+        m0, m1, m2 = nx[i] * sign, ny[i] * sign, nz[i] * sign  # the normal facing the eye
         r, m = rough[i], metal[i]
         alpha = max(r * r, ALPHA_MIN)
-        cos_v = max(nrm[0] * v[0] + nrm[1] * v[1] + nrm[2] * v[2], 0.0)
+        cos_v = max(m0 * v0 + m1 * v1 + m2 * v2, 0.0)
         s_tab, b_tab = _table_one(scale, cos_v, r), _table_one(bias, cos_v, r)
         white_albedo = min(max(s_tab + b_tab, 0.0), 1.0)
         for c in range(3):
@@ -440,7 +439,7 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                 elif kind == AREA:
                     strength *= max(out, 0.0)
                 strength = strength / (safe * safe) if distance > 1e-300 else 0.0
-            cos_l = nrm[0] * lx + nrm[1] * ly + nrm[2] * lz
+            cos_l = m0 * lx + m1 * ly + m2 * lz
             if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone
                 continue
             acc[index, 0] += strength * cos_l
@@ -448,10 +447,10 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
             if kind != SUN:  # the emitter's angular radius (angular_radius)
                 radius = math.asin(min(max(radius / max(distance, 1e-300), 0.0), 1.0))
             a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
-            hx, hy, hz = v[0] + lx, v[1] + ly, v[2] + lz
+            hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
             h_len = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
-            cos_h = min(max((nrm[0] * hx + nrm[1] * hy + nrm[2] * hz) / h_len, 0.0), 1.0)
-            weight = (1.0 - min(max((v[0] * hx + v[1] * hy + v[2] * hz) / h_len, 0.0), 1.0)) ** 5
+            cos_h = min(max((m0 * hx + m1 * hy + m2 * hz) / h_len, 0.0), 1.0)
+            weight = (1.0 - min(max((v0 * hx + v1 * hy + v2 * hz) / h_len, 0.0), 1.0)) ** 5
             denom = cos_h * cos_h * (a2 - 1.0) + 1.0
             # D G / (4 n.v), D = a2 / (pi denom^2), G = 1 / (1 + Lambda(v) + Lambda(l)), in one division
             lambdas = 1.0 + _lambda_sq(tan2_v, a2) + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)
