@@ -30,8 +30,9 @@ from .splats import SplatCloud
 
 # Shadow-map texels a side per light kind (per cube face for point and area lights). The maps' cost
 # is mostly per splat drawn, not per texel: by bench/relight.py, a 410k-splat 1080p frame lit by a
-# point light costs 2.37, 2.52 and 2.64 unlit frames with its cube at 256, 512 and 1024, for shadow
-# errors of 0.0095, 0.0032 and 0.0020 (mean |visibility - float64 reference|); 512 is the knee. A
+# point light costs 1.9-2.1, 2.0-2.2 and 2.5-2.9 unlit frames with its cube at 256, 512 and 1024
+# (ranges over three runs), for shadow errors of 0.0095, 0.0032 and 0.0020 (mean |visibility -
+# float64 reference|); 512 is the knee. A
 # spot's cone (up to 120 degrees) spans less than a cube face, so its 512 texels are finer than a
 # face's (error 0.0017). The sun's one map over the whole scene keeps the least error of all at 512
 # (0.0010; 0.0004 at 1024 for 20% more of its visibility's time, and 0.3 dB of the accuracy bench at
