@@ -50,6 +50,7 @@ CHUNK = 1 << 16  # points per step of the NumPy filter
 CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
+MAP_TILE = 16  # the maps' render tiles: a few percent faster than the picture's 8 at 512 texels, the same maps
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
 CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
 # The compiled kernels: each tuple compiles in order, the last one the entry (core.jit.compiled).
@@ -154,6 +155,7 @@ def shadow_views(
                 progress=part_progress(progress, k, len(cameras), "shadows"),
                 shapes=shapes,
                 rows=rows,
+                tile_size=MAP_TILE,
             )
             alpha = result.alpha
             depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)

@@ -202,7 +202,7 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
 
 def _map_of(cloud, camera):
     """A shadow map's depth and alpha drawn from `cloud` alone."""
-    result = render(cloud, camera, background=None)
+    result = render(cloud, camera, background=None, tile_size=shadows.MAP_TILE)
     depth = np.where(result.alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
     return shadows.ShadowView(camera, depth, result.alpha)
 
