@@ -34,9 +34,11 @@ from typing import Annotated
 import numpy as np
 
 from . import jit, material
+from . import normals as normal_estimate
 from .arrays import Floats
 from .camera import Camera, look_at_matrix
 from .mesh_render import rasterize
+from .normals import TOO_ROUND
 from .parallel import WORKERS, in_chunks, map_threads
 from .render import Shapes, render
 from .splats import SplatCloud
@@ -57,7 +59,7 @@ CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be l
 FILTER_KERNEL = ("_face_one", "_texel_one", "_pcss_one", "_extent_one", "_extent_at", "_visibility_loop")
 EXTENT_KERNEL = ("_extent_one", "_extent_at", "_extent_loop")
 BOXES_KERNEL = ("_face_one", "_texel_one", "_boxes_loop")
-CASTERS_KERNEL = ("_face_one", "_texel_one", "_casters_loop")
+CASTERS_KERNEL = ("_face_one", "_texel_one", "_shortest_axis", "_casters_loop")
 
 
 @dataclass
@@ -135,8 +137,7 @@ def shadow_views(
     black = np.zeros((len(cloud), 1, 3), np.float32)
     bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
     bare.antialiased = cloud.antialiased
-    if casters is not None:
-        masks &= casters
+    masks &= casters
     if shapes is None or not shapes.fits(bare):
         shapes = Shapes(bare, threads)
     views = []
@@ -361,12 +362,11 @@ def _unit(v):
 
 def _casters(cloud, light, cameras, near, reach):
     """(N,) bool: the splats the light's maps (views `cameras`; near, (F, N) _near_masks') must
-    draw; None where every splat may have to (a cloud without normals). A splat no map can show is
-    never drawn; kept besides the casters are splats without a usable normal, wider than
-    CASTER_REACH texels in the map, or whose plane the light's extent straddles."""
-    normals = material.normal_columns(cloud)
-    if normals is None:
-        return None
+    draw. A splat no map can show is never drawn; kept besides the casters are splats without a
+    usable normal, wider than CASTER_REACH texels in the map, or whose plane the light's extent
+    straddles. Without material normals (captured splats), a splat's shortest axis stands for its
+    normal where it is flat enough to have one (core.normals.too_round)."""
+    normals = material.normal_columns(cloud) or (np.zeros(0), np.zeros(0), np.zeros(0))
     grid = (len(cameras), -(-cameras[0].height // CASTER_CELL), -(-cameras[0].width // CASTER_CELL))
     positions = np.ascontiguousarray(cloud.positions, np.float32)
     near = np.ascontiguousarray(near, np.bool_)
@@ -377,10 +377,14 @@ def _casters(cloud, light, cameras, near, reach):
     light_args = (*_light_source(light), light.kind == "sun")
     kernel = jit.compiled(__name__, CASTERS_KERNEL)
     if kernel is None:
+        if not len(normals[0]):
+            axes = np.where(normal_estimate.too_round(cloud)[:, None], np.nan, normal_estimate.shortest_axes(cloud))
+            normals = tuple(axes.T)
         keep = _casters_numpy(positions, *normals, log_scales, reach, cameras, boxes, *light_args)
     else:
         cams = np.array([_camera_row(camera) for camera in cameras])
-        args = (positions, *normals, log_scales, reach, cams, boxes, *light_args)
+        rotations = np.ascontiguousarray(cloud.rotations, np.float32)
+        args = (positions, rotations, *normals, log_scales, reach, cams, boxes, *light_args)
         keep = np.empty(len(cloud), np.bool_)
         in_chunks(len(cloud), lambda lo, hi: kernel(lo, hi, *args, keep))
     return keep & near.any(axis=0)
@@ -489,13 +493,22 @@ def _sliding(op, a, axis, radius, empty):
     return out
 
 
-def _casters_loop(lo, hi, positions, nx, ny, nz, log_scales, reach, cams, boxes, source, size, sun, keep):
+def _casters_loop(lo, hi, positions, rotations, nx, ny, nz, log_scales, reach, cams, boxes, source, size, sun, keep):
     """_casters for splats lo..hi into keep: in its view's cell, whether the dilated box reaches
-    behind its plane by more than its own thickness (SIGMA_BIAS of its thinnest sigma) and a texel."""
+    behind its plane by more than its own thickness (SIGMA_BIAS of its thinnest sigma) and a texel.
+    nx empty: each splat's shortest axis is its normal (_shortest_axis)."""
     rows, cols = boxes.shape[1], boxes.shape[2]
+    shaped = nx.shape[0] == 0
     for i in range(lo, hi):
         keep[i] = True
-        n0, n1, n2 = nx[i], ny[i], nz[i]
+        if shaped:
+            n0, n1, n2 = _shortest_axis(
+                np.float64(rotations[i, 0]), np.float64(rotations[i, 1]), np.float64(rotations[i, 2]),
+                np.float64(rotations[i, 3]),
+                np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]), np.float64(log_scales[i, 2]),
+            )  # fmt: skip
+        else:
+            n0, n1, n2 = nx[i], ny[i], nz[i]
         length = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
         if not (length > 1e-6 and math.isfinite(length)):
             continue
@@ -525,6 +538,29 @@ def _casters_loop(lo, hi, positions, nx, ny, nz, log_scales, reach, cams, boxes,
         behind -= n0 * positions[i, 0] + n1 * positions[i, 1] + n2 * positions[i, 2]
         thinnest = min(min(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
         keep[i] = behind > SIGMA_BIAS * math.exp(np.float64(thinnest)) + texel
+
+
+def _shortest_axis(qw, qx, qy, qz, ls0, ls1, ls2):
+    """A splat's shortest axis (its rotation's column of the smallest scale, the first of equals)
+    as core.normals.shortest_axes, or NaNs where it is too round to be a normal (the smallest scale
+    over the middle one at least TOO_ROUND, or not a number: core.normals.too_round)."""
+    norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if not (norm > 1e-30 and math.isfinite(norm)):
+        qw, qx, qy, qz, norm = 1.0, 0.0, 0.0, 0.0, 1.0  # as geometry.normalize_quaternions
+    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+    k = 0
+    if ls1 < ls0:
+        k = 1
+    if ls2 < (ls0 if k == 0 else ls1):
+        k = 2
+    middle = min(ls1, ls2) if k == 0 else (min(ls0, ls2) if k == 1 else min(ls0, ls1))
+    if not math.exp((ls0 if k == 0 else (ls1 if k == 1 else ls2)) - middle) < TOO_ROUND:
+        return math.nan, math.nan, math.nan
+    if k == 0:
+        return 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy + qw * qz), 2 * (qx * qz - qw * qy)
+    if k == 1:
+        return 2 * (qx * qy - qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz + qw * qx)
+    return 2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx), 1 - 2 * (qx * qx + qy * qy)
 
 
 def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cameras, boxes, source, size, sun):

@@ -182,6 +182,10 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     masks = shadows._near_masks(cameras, cloud.positions, reach)
     casters = shadows._casters(cloud, light, cameras, masks, reach)
     assert casters.mean() < 0.8  # the sphere; the plane has nothing under it
+    bare = SplatCloud(cloud.positions, cloud.rotations.copy(), cloud.log_scales.copy(), cloud.opacity_logits, cloud.sh)
+    bare.rotations[::7] *= -3.0  # any norm and sign: the same axes
+    bare.log_scales[::5, 2] = bare.log_scales[::5, 0]  # two equal smallest scales: too round
+    bare_casters = shadows._casters(bare, light, cameras, masks, reach)  # shortest axes for normals
     copied = [_map_of(cloud[near & casters], view.camera) for view, near in zip(views, masks, strict=True)]
     monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
     reference = shadows._extent_and_slope(cloud, light)
@@ -195,6 +199,7 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     want_masks = shadows._near_masks(cameras, cloud.positions, want_reach)
     assert np.array_equal(masks, want_masks)
     assert np.array_equal(casters, shadows._casters(cloud, light, cameras, want_masks, want_reach))
+    assert np.array_equal(bare_casters, shadows._casters(bare, light, cameras, want_masks, want_reach))
     for got, want, copy in zip(views, shadows.shadow_views(cloud, light, resolution=128), copied, strict=True):
         assert np.array_equal(got.depth, want.depth) and np.array_equal(got.alpha, want.alpha)
         assert np.array_equal(copy.depth, want.depth) and np.array_equal(copy.alpha, want.alpha)
@@ -236,5 +241,10 @@ def test_maps_leave_out_splats_with_nothing_behind_them(scene, kind):
     reach = shadows._reach(cloud)
     near = shadows._near_masks(cameras, cloud.positions, reach)
     assert shadows._casters(cloud, grazing, cameras, near, reach)[:n_plane].all()
+    # Without material normals (captured splats), a flat splat's shortest axis stands for its normal;
+    # splats too round to have one are all drawn.
     bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, cloud.sh)
-    assert shadows._casters(bare, light, cameras, near, reach) is None  # no normals: all drawn
+    with_normals = shadows._casters(cloud, light, cameras, near, reach)
+    assert np.array_equal(shadows._casters(bare, light, cameras, near, reach), with_normals)
+    round_ = bare.replace(log_scales=bare.log_scales[:, [0, 0, 0]])
+    assert shadows._casters(round_, light, cameras, near, reach)[near.any(axis=0)].all()
