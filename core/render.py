@@ -428,9 +428,11 @@ def project(cloud, camera, mode="classic", max_sigma=None, pool=None, rows=None)
     and view-dependent colours of the visible ones, sorted front to back (equal depths keep input
     order)."""
     pool = pool or Pool(1)
-    rows = np.arange(len(cloud)) if rows is None else rows
-    chunks = [rows[i : i + PROJECT_CHUNK] for i in range(0, len(rows), PROJECT_CHUNK)] or [rows[:0]]
-    parts = pool.map(lambda idx: _project_chunk(cloud, idx, camera, mode, max_sigma), chunks)
+    if rows is None:  # slices: views, not copies
+        chunks = [slice(i, i + PROJECT_CHUNK) for i in range(0, len(cloud), PROJECT_CHUNK)] or [slice(0, 0)]
+    else:
+        chunks = [rows[i : i + PROJECT_CHUNK] for i in range(0, len(rows), PROJECT_CHUNK)] or [rows[:0]]
+    parts = pool.map(lambda which: _project_chunk(cloud, which, camera, mode, max_sigma), chunks)
     skipped = sum(p.pop("skipped") for p in parts)
     cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     # Sort keys are float32 depths, as in the reference rasteriser: splats whose depths agree to
@@ -443,10 +445,11 @@ def project(cloud, camera, mode="classic", max_sigma=None, pool=None, rows=None)
     return Projected(cols["index"][order], records, cols["r2"][order], cols["bbox"][order], skipped)
 
 
-def _project_chunk(cloud, idx, camera, mode, max_sigma):
-    """Projection of the splats idx (indices), unsorted, as columns (float64 unless noted)."""
-    fields = [getattr(cloud, name)[idx] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
-    every = fields + [cloud.sh[idx]]
+def _project_chunk(cloud, which, camera, mode, max_sigma):
+    """Projection of cloud[which] (a slice or indices), unsorted, as columns (float64 unless noted)."""
+    idx = np.arange(len(cloud))[which] if isinstance(which, slice) else which
+    fields = [getattr(cloud, name)[which] for name in ("positions", "rotations", "log_scales", "opacity_logits")]
+    every = fields + [cloud.sh[which]]
     if not all(np.isfinite(f).all() for f in every):  # rare: find the bad splats
         good = np.logical_and.reduce([np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in every])
         idx, fields = idx[good], [f[good] for f in fields]
