@@ -6,7 +6,7 @@ meshes (core.mesh_render.rasterize) folded in. The views per light kind:
 - spot: one perspective camera covering its cone (a cube, as for a point light, past 120 degrees);
 - sun: one orthographic camera along its direction covering the splats' and meshes' bounds;
 - point: a cube of six 90-degree perspective faces in world axes; each splat is tested on the face
-  its direction from the light falls in, and a face with no splat near it is not rendered;
+  its direction from the light falls in, and a face with no splat near it is left out;
 - area: the cube from the light's centre, in the light's own axes, without the face behind the
   light (nothing there is lit).
 The maps draw the splats that may shadow something (the casters section): a floor with nothing
@@ -129,6 +129,10 @@ def shadow_views(
     meshes = list(occluders or [])
     cameras = _cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
     masks = _near_masks(cameras, cloud.positions, reach)
+    seen = masks.any(axis=1)
+    if len(cameras) > 1 and not seen.all():  # a cube face no splat can reach is left out: no splat is tested there
+        seen[np.argmax(seen)] = True  # (one face stays, even for a cloud the light sees none of)
+        cameras, masks = [c for c, s in zip(cameras, seen, strict=True) if s], masks[seen]
     casters = _casters(cloud, light, cameras, masks, reach)
     # What the maps need of the splats: their shapes (colour and extras are not drawn, so one black
     # coefficient stands for every splat's: copying out the splats' own would read all their SH).
