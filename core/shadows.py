@@ -56,10 +56,11 @@ MAP_TILE = 16  # the maps' render tiles: a few percent faster than the picture's
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
 CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
 # The compiled kernels: each tuple compiles in order, the last one the entry (core.jit.compiled).
-FILTER_KERNEL = ("_face_one", "_texel_one", "_pcss_one", "_extent_one", "_extent_at", "_visibility_loop")
-EXTENT_KERNEL = ("_extent_one", "_extent_at", "_extent_loop")
+SPLAT_AXES = ("_unit_quaternion", "_thinnest")  # the scalar helpers of a splat's axes, compiled first
+FILTER_KERNEL = (*SPLAT_AXES, "_face_one", "_texel_one", "_pcss_one", "_extent_one", "_extent_at", "_visibility_loop")
+EXTENT_KERNEL = (*SPLAT_AXES, "_extent_one", "_extent_at", "_extent_loop")
 BOXES_KERNEL = ("_face_one", "_texel_one", "_boxes_loop")
-CASTERS_KERNEL = ("_face_one", "_texel_one", "_shortest_axis", "_casters_loop")
+CASTERS_KERNEL = (*SPLAT_AXES, "_face_one", "_texel_one", "_shortest_axis", "_casters_loop")
 
 
 @dataclass
@@ -179,15 +180,11 @@ def part_progress(progress, part, parts, label=None):
     return lambda done, total, own: progress(part * total + done, parts * total, label or own)
 
 
-def _reach(cloud):
-    """(N,) float64: three standard deviations of each splat's widest axis (exp is monotonic: the
-    widest log-scale's exp is the widest scale)."""
-    return _reach_and_gap(cloud, None)[0]
-
-
 def _reach_and_gap(cloud, source):
-    """((N,) _reach, (N,) float64 each splat's centre's distance to `source` (3,) less its reach, or
-    None without a source), by the compiled kernel in one pass where it loads."""
+    """((N,) float64 three standard deviations of each splat's widest axis, (N,) float64 each splat's
+    centre's distance to `source` (3,) less that reach, or None without a source), by the compiled
+    kernel in one pass where it loads (exp is monotonic: the widest log-scale's exp is the widest
+    scale)."""
     n = len(cloud)
     kernel = jit.compiled(__name__, ("_reach_loop",))
     if kernel is not None:
@@ -544,19 +541,31 @@ def _casters_loop(lo, hi, positions, rotations, nx, ny, nz, log_scales, reach, c
         keep[i] = behind > SIGMA_BIAS * math.exp(np.float64(thinnest)) + texel
 
 
-def _shortest_axis(qw, qx, qy, qz, ls0, ls1, ls2):
-    """A splat's shortest axis (its rotation's column of the smallest scale, the first of equals)
-    as core.normals.shortest_axes, or NaNs where it is too round to be a normal (the smallest scale
-    over the middle one at least TOO_ROUND, or not a number: core.normals.too_round)."""
+def _unit_quaternion(qw, qx, qy, qz):
+    """The quaternion (w, x, y, z) normalised; a zero or non-finite one is the identity, as
+    geometry.normalize_quaternions."""
     norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     if not (norm > 1e-30 and math.isfinite(norm)):
-        qw, qx, qy, qz, norm = 1.0, 0.0, 0.0, 0.0, 1.0  # as geometry.normalize_quaternions
-    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+        return 1.0, 0.0, 0.0, 0.0
+    return qw / norm, qx / norm, qy / norm, qz / norm
+
+
+def _thinnest(ls0, ls1, ls2):
+    """The index of a splat's smallest log-scale, the first of equals (as NumPy's argmin)."""
     k = 0
     if ls1 < ls0:
         k = 1
     if ls2 < (ls0 if k == 0 else ls1):
         k = 2
+    return k
+
+
+def _shortest_axis(qw, qx, qy, qz, ls0, ls1, ls2):
+    """A splat's shortest axis (its rotation's column of the smallest scale, the first of equals)
+    as core.normals.shortest_axes, or NaNs where it is too round to be a normal (the smallest scale
+    over the middle one at least TOO_ROUND, or not a number: core.normals.too_round)."""
+    qw, qx, qy, qz = _unit_quaternion(qw, qx, qy, qz)
+    k = _thinnest(ls0, ls1, ls2)
     middle = min(ls1, ls2) if k == 0 else (min(ls0, ls2) if k == 1 else min(ls0, ls1))
     if not math.exp((ls0 if k == 0 else (ls1 if k == 1 else ls2)) - middle) < TOO_ROUND:
         return math.nan, math.nan, math.nan
@@ -696,22 +705,15 @@ def _extent_one(p0, p1, p2, qw, qx, qy, qz, ls0, ls1, ls2, n0, n1, n2, s0, s1, s
         r0, r1, r2 = p0 - s0, p1 - s1, p2 - s2
         length = max(math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), 1e-300)
         r0, r1, r2 = r0 / length, r1 / length, r2 / length
-    norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    if not (norm > 1e-30 and math.isfinite(norm)):
-        qw, qx, qy, qz, norm = 1.0, 0.0, 0.0, 0.0, 1.0
-    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+    qw, qx, qy, qz = _unit_quaternion(qw, qx, qy, qz)
     # local = R^T ray, R's columns the splat's axes
     l0 = (1 - 2 * (qy * qy + qz * qz)) * r0 + 2 * (qx * qy + qw * qz) * r1 + 2 * (qx * qz - qw * qy) * r2
     l1 = 2 * (qx * qy - qw * qz) * r0 + (1 - 2 * (qx * qx + qz * qz)) * r1 + 2 * (qy * qz + qw * qx) * r2
     l2 = 2 * (qx * qz + qw * qy) * r0 + 2 * (qy * qz - qw * qx) * r1 + (1 - 2 * (qx * qx + qy * qy)) * r2
     e0, e1, e2 = math.exp(ls0), math.exp(ls1), math.exp(ls2)
     sigma = math.sqrt(l0 * l0 * e0 * e0 + l1 * l1 * e1 * e1 + l2 * l2 * e2 * e2)
-    if math.isnan(n0):  # the thinnest axis (the first of equals, as argmin)
-        thin = 0
-        if ls1 < ls0:
-            thin = 1
-        if ls2 < (ls0 if thin == 0 else ls1):
-            thin = 2
+    if math.isnan(n0):  # the thinnest axis stands for the normal
+        thin = _thinnest(ls0, ls1, ls2)
         cos = abs(l0 if thin == 0 else (l1 if thin == 1 else l2))
     else:
         cos = abs(n0 * r0 + n1 * r1 + n2 * r2)

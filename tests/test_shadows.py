@@ -230,7 +230,7 @@ def test_maps_leave_out_splats_with_nothing_behind_them(scene, kind):
     for c, expect_floor_over_below in ((cloud, False), (layered, True)):
         views = shadows.shadow_views(c, light, resolution=512)
         cameras = [v.camera for v in views]
-        reach = shadows._reach(c)
+        reach = shadows._reach_and_gap(c, None)[0]
         near = shadows._near_masks(cameras, c.positions, reach)
         casters = shadows._casters(c, light, cameras, near, reach)
         floor = casters[:n_plane]
@@ -244,7 +244,7 @@ def test_maps_leave_out_splats_with_nothing_behind_them(scene, kind):
     grazing = Light("sun", direction=(1.0, 0.0, -0.01), angle=math.radians(5))
     views = shadows.shadow_views(cloud, grazing, resolution=128)
     cameras = [v.camera for v in views]
-    reach = shadows._reach(cloud)
+    reach = shadows._reach_and_gap(cloud, None)[0]
     near = shadows._near_masks(cameras, cloud.positions, reach)
     assert shadows._casters(cloud, grazing, cameras, near, reach)[:n_plane].all()
     # Without material normals (captured splats), a flat splat's shortest axis stands for its normal;
