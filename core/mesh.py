@@ -423,9 +423,9 @@ class Surface:
     def outward_signs(self):
         """Per face +1 or -1 so that sign * normal points out of the solid, 0 where there is no solid.
 
-        Computed per connected part (vertices welded by position): a part is a solid when it is
-        consistently wound (each edge used at most twice, once in each direction; at most
-        NON_MANIFOLD_SHARE of its edges used more often) and encloses a clear volume: closed, or
+        Computed per connected part (faces sharing an edge, vertices welded by position): a part is
+        a solid when it is consistently wound (each edge used at most twice, once in each
+        direction; at most NON_MANIFOLD_SHARE of its edges used more often) and encloses a clear volume: closed, or
         open like a head with eye holes, whose signed volume around its centre is at least
         OPEN_VOLUME times its area^1.5 (a sphere has 0.094, a hemisphere 0.067, a flat sheet 0).
         The sign of that volume tells outward from inward. Faces wound against most of their
@@ -539,21 +539,25 @@ def _weld_keys(vertices, tolerance=1e-9):
 
 
 def _connected_parts(faces, n_vertices):
-    """Part label per face: faces sharing a vertex belong to one part (label propagation with
-    pointer jumping, vectorised over faces)."""
-    label = np.arange(n_vertices)
-    flat = faces.ravel()
+    """Part label per face: faces sharing an edge belong to one part (label propagation with
+    pointer jumping, vectorised over faces). Edges, not vertices: a ball resting on a floor with its
+    pole on a floor vertex is still a solid of its own."""
+    if not len(faces):
+        return np.zeros(0, np.int64)
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1).astype(np.int64)
+    edge = np.unique(pairs[:, 0] * n_vertices + pairs[:, 1], return_inverse=True)[1].reshape(-1)
+    owner = np.repeat(np.arange(len(faces)), 3)
+    label = np.arange(len(faces))
     while True:
-        face_min = label[faces].min(axis=1)
+        edge_min = np.full(edge.max() + 1, len(faces))
+        np.minimum.at(edge_min, edge, label[owner])
         new = label.copy()
-        np.minimum.at(new, flat, np.repeat(face_min, 3))
+        np.minimum.at(new, owner, edge_min[edge])
         new = new[new]
         if np.array_equal(new, label):
             break
         label = new
-    if not len(faces):
-        return np.zeros(0, np.int64)
-    return np.unique(label[faces[:, 0]], return_inverse=True)[1].reshape(-1)
+    return np.unique(label, return_inverse=True)[1].reshape(-1)
 
 
 def _as_array(value, name, shape, dtype):

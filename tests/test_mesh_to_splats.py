@@ -510,6 +510,21 @@ def test_solids_know_outside_from_inside():
     assert not Surface(*grid_plane(4)).outward_signs().any()
 
 
+def test_a_ball_resting_on_a_floor_vertex_stays_a_solid():
+    # The ball's pole welds to a floor vertex: one vertex shared, no edge. The ball is still a solid
+    # and the floor still a sheet (before, the two were one open part and neither was a solid).
+    v, f, _ = uv_sphere()
+    ball = v[:, [0, 2, 1]] + np.array([2.0, 2.0, 1.0])  # poles on z; the south pole at (2, 2, 0)
+    floor_v, floor_f = grid_plane(4, size=4.0)
+    assert np.isclose(floor_v, [2.0, 2.0, 0.0]).all(axis=1).any()
+    corners = ball[f]
+    normal_out = np.einsum("ij,ij->i", np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                           corners.mean(1) - [2.0, 2.0, 1.0])  # fmt: skip
+    signs = Surface(np.vstack([ball, floor_v]), np.vstack([f, floor_f + len(ball)])).outward_signs()
+    np.testing.assert_array_equal(signs[: len(f)], np.sign(normal_out))
+    assert not signs[len(f) :].any()
+
+
 def test_a_solid_with_a_few_faces_wound_the_wrong_way_or_a_fin_stays_a_solid():
     v, f, _ = uv_sphere()
     centre_out = v[f].mean(axis=1)
