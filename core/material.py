@@ -63,6 +63,19 @@ def has_material(cloud: SplatCloud) -> bool:
     return ALBEDO in cloud.extras and all(k in cloud.extras for k in NORMALS)
 
 
+def carried(cloud: SplatCloud) -> np.ndarray:
+    """(N,) bool: the splats that carry a material (finite albedo, and a finite normal of non-zero
+    length: Blender's own Join fills the normals of splats joined from an object without them with
+    zeros); none without one."""
+    if not has_material(cloud):
+        return np.zeros(len(cloud), bool)
+    nx, ny, nz = normal_columns(cloud)  # column by column: reductions along rows of three cost more
+    with np.errstate(invalid="ignore", over="ignore"):
+        length2 = nx * nx + ny * ny + nz * nz
+    finite = np.isfinite(cloud.extras[ALBEDO].reshape(len(cloud), 3))  # as stored: no float64 copy
+    return finite[:, 0] & finite[:, 1] & finite[:, 2] & np.isfinite(length2) & (length2 > 1e-12)
+
+
 def unit_normals(values: ArrayLike) -> Floats:
     """(N,3) float64 rows scaled to unit length; ValueError for non-finite or zero-length rows."""
     values = np.asarray(values, dtype=np.float64)

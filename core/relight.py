@@ -67,21 +67,6 @@ class LitRender:
         return self.result.depth
 
 
-def material_rows(cloud: SplatCloud) -> Annotated[np.ndarray, "(N,)"]:
-    """(N,) bool: the splats that carry a material (finite albedo, and a finite normal of non-zero
-    length: Blender's own Join fills the normals of splats joined from an object without them with
-    zeros); none without one."""
-    if not material.has_material(cloud):
-        return np.zeros(len(cloud), bool)
-    n = len(cloud)
-    # column by column: reductions along a row of three cost more than the arithmetic
-    nx, ny, nz = (cloud.extras[k].reshape(n).astype(np.float64) for k in material.NORMALS)
-    with np.errstate(invalid="ignore", over="ignore"):
-        length2 = nx * nx + ny * ny + nz * nz
-    finite = np.isfinite(cloud.extras[material.ALBEDO].reshape(n, 3))
-    return finite[:, 0] & finite[:, 1] & finite[:, 2] & np.isfinite(length2) & (length2 > 1e-12)
-
-
 def visibilities(
     cloud: SplatCloud,
     lights: list[Light],
@@ -131,7 +116,7 @@ def lit_colors(
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
     the lights that cast shadows: all splats and `meshes` occlude; `progress` and `shapes` as
     visibilities')."""
-    rows = material_rows(cloud)
+    rows = material.carried(cloud)
     if not rows.any():
         return rows, None
     if visible is None:

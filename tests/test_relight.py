@@ -86,7 +86,7 @@ def test_splats_with_zero_normals_keep_their_own_colours(scene):
     normals = material.normals(scene).astype(np.float32)
     normals[:10] = 0.0
     zeroed = scene.replace(extras={**scene.extras, **{k: normals[:, i] for i, k in enumerate(material.NORMALS)}})
-    rows = relight.material_rows(zeroed)
+    rows = material.carried(zeroed)
     assert not rows[:10].any() and rows[10:].all()
     lit = relight.render_lit(zeroed, CAMERA, LIGHTS)
     assert np.isfinite(lit.color).all()

@@ -4,7 +4,7 @@ meshes' engine draw their shadows in turn, and the lit picture (core.relight's s
 
 Relit and unlit splats render in ONE cloud (so they blend in depth order as before): when any
 object is relit, every object's splats carry the material extras, an unlit object's as NaN
-albedo and normals, the rows core.relight leaves with their own colour (material_rows), so
+albedo and normals, the rows core.relight leaves with their own colour (core.material.carried), so
 that joining keeps the extras (data.instances_cloud joins only those every cloud has).
 """
 
@@ -31,14 +31,14 @@ def scene_cloud(depsgraph, origin):
     """(cloud, lit) of the depsgraph's splats (world shifted by -`origin`, see scene_splats): lit is an
     (N,) bool mask of the relit splats, or None when none is relit (the cloud is then as an unlit
     render reads it)."""
-    from ...core.relight import material_rows
+    from ...core.material import carried
 
     if not wants_relight(depsgraph):
         return scene_splats(depsgraph, origin), None
     cloud = scene_splats(depsgraph, origin, prepare=_marked)
     if cloud is None:
         return None, None
-    lit = material_rows(cloud)
+    lit = carried(cloud)
     return cloud, (lit if lit.any() else None)
 
 
