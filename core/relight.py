@@ -27,6 +27,7 @@ from .parallel import in_chunks
 from .render import Layer, RenderResult, Shapes, render
 from .shading import shade
 from .splats import SplatCloud
+from .steps import part_progress
 
 # Shadow-map texels a side per light kind (per cube face for point and area lights). The maps' cost
 # is mostly per splat drawn, not per texel: by bench/relight.py, a 410k-splat 1080p frame lit by a
@@ -92,7 +93,7 @@ def visibilities(
             occluders=meshes,
             resolution=_resolution(shadow_resolution, lights[index]),
             threads=threads,
-            progress=shadows.part_progress(progress, step, len(casting)),
+            progress=part_progress(progress, step, len(casting)),
             shapes=shapes,
         )
         for step, index in enumerate(casting)  # a loop over lights

@@ -42,6 +42,7 @@ from .normals import TOO_ROUND
 from .parallel import WORKERS, in_chunks, map_threads
 from .render import Shapes, render
 from .splats import SplatCloud
+from .steps import part_progress
 
 TAPS = 24  # filter taps per splat (a golden-angle spiral over a disc); the blocker search takes half
 MAX_SEARCH_TEXELS = 24.0  # the blocker search's radius is capped there
@@ -169,15 +170,6 @@ def shadow_views(
             depth, alpha = _with_mesh(depth, alpha, mesh, camera)
         views.append(ShadowView(camera, depth, alpha))
     return views
-
-
-def part_progress(progress, part, parts, label=None):
-    """A progress callback (done, total, label) for part `part` of `parts` equal parts of a job that
-    reports to `progress`: the part's own fraction placed in its share, under `label` when given
-    (else the part's own); None without progress."""
-    if progress is None:
-        return None
-    return lambda done, total, own: progress(part * total + done, parts * total, label or own)
 
 
 def _reach_and_gap(cloud, source):

@@ -1,5 +1,6 @@
 """Long work as a generator of (done, total, label) steps, so a caller can show progress and stop
-between steps (close() the generator): running one to its end, and relabelling its steps."""
+between steps (close() the generator): running one to its end, and relabelling its steps; and, for
+work that reports to a progress callback instead, a part's progress placed in its share of a whole."""
 
 
 def drain(steps, progress=None):
@@ -23,3 +24,12 @@ def mapped_steps(steps, fn):
         except StopIteration as stop:
             return stop.value
         yield fn(*step)
+
+
+def part_progress(progress, part, parts, label=None):
+    """A progress callback (done, total, label) for part `part` of `parts` equal parts of a job that
+    reports to `progress`: the part's own fraction placed in its share, under `label` when given
+    (else the part's own); None without progress."""
+    if progress is None:
+        return None
+    return lambda done, total, own: progress(part * total + done, parts * total, label or own)
