@@ -425,9 +425,10 @@ class Surface:
 
         Computed per connected part (faces sharing an edge, vertices welded by position): a part is
         a solid when it is consistently wound (each edge used at most twice, once in each
-        direction; at most NON_MANIFOLD_SHARE of its edges used more often) and encloses a clear volume: closed, or
-        open like a head with eye holes, whose signed volume around its centre is at least
-        OPEN_VOLUME times its area^1.5 (a sphere has 0.094, a hemisphere 0.067, a flat sheet 0).
+        direction; at most NON_MANIFOLD_SHARE of its edges used more often) and encloses a clear
+        volume: closed, or open like a head with eye holes, whose signed volume around its centre
+        is at least OPEN_VOLUME times its area^1.5 (a sphere has 0.094, a hemisphere 0.067, a flat
+        sheet 0).
         The sign of that volume tells outward from inward. Faces wound against most of their
         neighbours (`_misoriented`) count turned round, and get the opposite sign.
         """
@@ -441,7 +442,7 @@ class Surface:
         welded = self.welded_faces()
         flipped = _misoriented(welded)
         faces = np.where(flipped[:, None], welded[:, ::-1], welded)
-        part = _connected_parts(faces, len(self.vertices))
+        part = _connected_parts(faces)
         n_parts = part.max() + 1 if len(part) else 0
         a, b, uses, same_way = _edge_uses(faces)
         edge_part = np.repeat(part, 3)
@@ -538,14 +539,14 @@ def _weld_keys(vertices, tolerance=1e-9):
     return np.where(finite[:, None], keys, -1 - np.arange(len(vertices))[:, None]).astype(np.int64)
 
 
-def _connected_parts(faces, n_vertices):
-    """Part label per face: faces sharing an edge belong to one part (label propagation with
-    pointer jumping, vectorised over faces). Edges, not vertices: a ball resting on a floor with its
-    pole on a floor vertex is still a solid of its own."""
+def _connected_parts(faces):
+    """Part label per face: faces sharing an edge (_edge_keys) belong to one part (label
+    propagation with pointer jumping, vectorised over faces). Edges, not vertices: a ball resting
+    on a floor with its pole on a floor vertex is still a solid of its own."""
     if not len(faces):
         return np.zeros(0, np.int64)
-    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1).astype(np.int64)
-    edge = np.unique(pairs[:, 0] * n_vertices + pairs[:, 1], return_inverse=True)[1].reshape(-1)
+    _, edge = np.unique(_edge_keys(faces)[2], return_inverse=True)
+    edge = edge.reshape(-1)
     owner = np.repeat(np.arange(len(faces)), 3)
     label = np.arange(len(faces))
     while True:
