@@ -64,7 +64,16 @@ CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks b
 CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
 # The compiled kernels: each tuple compiles in order, the last one the entry (core.jit.compiled).
 SPLAT_AXES = ("_unit_quaternion", "_thinnest")  # the scalar helpers of a splat's axes, compiled first
-FILTER_KERNEL = (*SPLAT_AXES, "_face_one", "_texel_one", "_pcss_one", "_extent_one", "_extent_at", "_visibility_loop")
+FILTER_KERNEL = (
+    *SPLAT_AXES,
+    "_face_one",
+    "_texel_one",
+    "_plane_one",
+    "_pcss_one",
+    "_extent_one",
+    "_extent_at",
+    "_visibility_loop",
+)
 EXTENT_KERNEL = (*SPLAT_AXES, "_extent_one", "_extent_at", "_extent_loop")
 BOXES_KERNEL = ("_face_one", "_texel_one", "_boxes_loop")
 CASTERS_KERNEL = (*SPLAT_AXES, "_face_one", "_texel_one", "_shortest_axis", "_casters_loop")
@@ -90,6 +99,7 @@ def visibility(
     sigma_bias: float = SIGMA_BIAS,
     texel_bias: float = TEXEL_BIAS,
     soft: bool = True,
+    receiver_plane: bool = False,
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
@@ -100,7 +110,10 @@ def visibility(
 
     taps: filter taps per splat; soft=False tests the centre texel only (hard shadows, no search).
     sigma_bias, texel_bias: the self-shadow bias in the splat's standard deviations along the light
-    ray and in texels of depth slope. A light with cast_shadow False gives all ones.
+    ray and in texels of depth slope. receiver_plane: test each tap of the search and the filter
+    against the depth of the splat's own tangent plane there (its material normal; slope capped at
+    MAX_SLOPE), so a wide disc of taps on a surface tilted to the light does not find that surface
+    in front of the splat (core.ambient's wide suns). A light with cast_shadow False gives all ones.
     progress(done, total, "shadows") follows the maps as core.render's progress follows tiles (an
     exception it raises, a cancel, stops the work there). shapes: core.render.Shapes of the cloud,
     when the caller has them (a lit frame makes them once for its maps and its picture)."""
@@ -114,17 +127,20 @@ def visibility(
     size = _light_size(light)
     kernel = jit.compiled(__name__, FILTER_KERNEL)
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
-        settings = (size if soft else 0.0, sigma_bias, texel_bias)
+        plane = receiver_plane and material.normals(cloud) is not None
+        settings = (size if soft else 0.0, sigma_bias, texel_bias, float(plane))
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
         return _visibility_compiled(kernel, cloud, light, views, settings, discs, out)
     sigma, slope = _extent_and_slope(cloud, light)
     points = cloud.positions.astype(np.float64)
+    normals = material.normals(cloud) if receiver_plane else None
     face = _face_of([view.camera for view in views], points)
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
         if len(idx):
             bias = sigma_bias * sigma[idx]
-            out[idx] = _filtered(view, points[idx], bias, slope[idx], texel_bias, size, light, taps, soft)
+            plane = None if normals is None else normals[idx]
+            out[idx] = _filtered(view, points[idx], bias, slope[idx], texel_bias, size, light, taps, soft, plane)
     return out
 
 
@@ -742,15 +758,18 @@ def _search_taps(taps):
     return max(taps // 2, 1)
 
 
-def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
-    """(n,) visibility of points in one view: PCSS search and percentage-closer filtering."""
+def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft, normals=None):
+    """(n,) visibility of points in one view: PCSS search and percentage-closer filtering; with
+    `normals` (n,3), each tap against the receiver's tangent plane (_plane_gradient)."""
     cam = view.camera
     uv, z = cam.project(points)
     texel = (z if not cam.is_orthographic else 1.0) / cam.fx  # world size of a texel at the splat
     limit = z - bias - texel_bias * texel * slope
+    gradient = None if normals is None else _plane_gradient(cam, normals, z)
     out = np.ones(len(z))
     seen = np.flatnonzero(np.isfinite(uv).all(axis=1))  # not behind a spot light
     uv, z, limit = uv[seen], z[seen], limit[seen]
+    gradient = None if gradient is None else gradient[seen]
     if not soft or size <= 0:
         out[seen] = 1.0 - _covered(view, uv, limit, np.zeros((1, 2)), np.zeros(len(z)))[0]
         return out
@@ -765,11 +784,26 @@ def _filtered(view, points, bias, slope, texel_bias, size, light, taps, soft):
     vis = np.empty(len(z))
     for start in range(0, len(z), CHUNK):  # a loop over chunks: (chunk, taps) arrays stay small
         sl = slice(start, start + CHUNK)
-        blocker = _covered(view, uv[sl], limit[sl], search_disc, search[sl])[1]
+        plane = None if gradient is None else gradient[sl]
+        blocker = _covered(view, uv[sl], limit[sl], search_disc, search[sl], plane)[1]
         radius = _penumbra(z[sl], blocker, cam.fx * size, cam.is_orthographic)
-        vis[sl] = 1.0 - _covered(view, uv[sl], limit[sl], disc, radius)[0]
+        covered = _covered(view, uv[sl], limit[sl], disc, radius, plane)[0]
+        vis[sl] = np.where(np.isfinite(blocker), 1.0 - covered, 1.0)  # no blocker found: lit
     out[seen] = vis
     return out
+
+
+def _plane_gradient(camera, normals, z):
+    """(n,2) the depth change per texel along u and v of each receiver's tangent plane (normals
+    (n,3) in world, z (n,) its camera depth), at most MAX_SLOPE texels' worth; 0 for a plane seen
+    edge-on."""
+    n = normals @ camera.rotation.T  # in the camera's axes
+    facing = np.where(np.abs(n[:, 2]) > 1e-6, n[:, 2], np.inf)
+    # the world size of a texel along u and v at the receiver
+    texel = (np.ones_like(z) if camera.is_orthographic else z)[:, None] / np.array([camera.fx, camera.fy])
+    gradient = -n[:, :2] / facing[:, None] * texel
+    size = np.hypot(gradient[:, 0], gradient[:, 1])
+    return gradient * np.minimum(1.0, MAX_SLOPE * texel[:, 0] / np.maximum(size, 1e-300))[:, None]
 
 
 def _penumbra(z, blocker, scale, ortho):
@@ -822,7 +856,7 @@ def _visibility_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, sourc
     """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
     looking most nearly at it, none behind them all), then _filtered's test there, skipped where the
     map holds nothing within the search's reach (_occupied_cells: lit all the same)."""
-    size, sigma_bias, texel_bias = params[0], params[1], params[2]
+    size, sigma_bias, texel_bias, plane = params[0], params[1], params[2], params[3] > 0.5
     h, w = texels.shape[1], texels.shape[2]
     for i in range(lo, hi):
         f = _face_one(positions, i, cams)
@@ -846,7 +880,23 @@ def _visibility_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, sourc
             search = min(max(fx * size * 0.75 * (z - cams[f, 17]), 1.0), MAX_SEARCH_TEXELS)
         else:
             search = min(max(fx * size * 3.0 / max(z, 1e-9), 1.0), MAX_SEARCH_TEXELS)
-        out[i] = _pcss_one(u, v, z, limit, search, texels[f], search_disc, disc, fx * size, ortho)
+        gu, gv = _plane_one(nx, ny, nz, i, cams, f, z) if plane else (0.0, 0.0)
+        out[i] = _pcss_one(u, v, z, limit, gu, gv, search, texels[f], search_disc, disc, fx * size, ortho)
+
+
+def _plane_one(nx, ny, nz, i, cams, f, z):
+    """_plane_gradient of splat i in view f: its tangent plane's depth change per texel along u, v."""
+    n0 = cams[f, 0] * nx[i] + cams[f, 1] * ny[i] + cams[f, 2] * nz[i]
+    n1 = cams[f, 3] * nx[i] + cams[f, 4] * ny[i] + cams[f, 5] * nz[i]
+    n2 = cams[f, 6] * nx[i] + cams[f, 7] * ny[i] + cams[f, 8] * nz[i]
+    if abs(n2) <= 1e-6:
+        return 0.0, 0.0
+    depth = 1.0 if cams[f, 16] > 0.5 else z
+    tu, tv = depth / cams[f, 12], depth / cams[f, 13]
+    gu, gv = -n0 / n2 * tu, -n1 / n2 * tv
+    size = math.sqrt(gu * gu + gv * gv)
+    shrink = min(1.0, MAX_SLOPE * tu / max(size, 1e-300))
+    return gu * shrink, gv * shrink
 
 
 def _face_one(positions, i, cams):
@@ -878,9 +928,10 @@ def _texel_one(positions, i, cams, f):
     return cams[f, 12] * x + cams[f, 14], cams[f, 13] * y + cams[f, 15], z
 
 
-def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):
+def _pcss_one(u, v, z, limit, gu, gv, search, texels, search_disc, disc, scale, ortho):
     """_filtered's blocker search and filter of one point at (u, v) in a map, texels (H,W,2) its
-    depth and alpha; search 0 tests the centre texel alone (a hard shadow)."""
+    depth and alpha, each tap's limit moved along the receiver's plane by gu, gv (depth per texel;
+    0 without); search 0 tests the centre texel alone (a hard shadow)."""
     h, w = texels.shape[0], texels.shape[1]
     if search == 0.0:
         x = min(max(int(np.floor(u)), 0), w - 1)
@@ -889,9 +940,10 @@ def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):
     searched = search_disc.shape[0]
     total, weighted = 0.0, 0.0
     for k in range(searched):
-        x = min(max(int(np.floor(u + search * search_disc[k, 0])), 0), w - 1)
-        y = min(max(int(np.floor(v + search * search_disc[k, 1])), 0), h - 1)
-        if texels[y, x, 0] < limit:
+        dx, dy = search * search_disc[k, 0], search * search_disc[k, 1]
+        x = min(max(int(np.floor(u + dx)), 0), w - 1)
+        y = min(max(int(np.floor(v + dy)), 0), h - 1)
+        if texels[y, x, 0] < limit + dx * gu + dy * gv:
             total += texels[y, x, 1]
             weighted += texels[y, x, 1] * texels[y, x, 0]
     if total <= 0.0:
@@ -903,24 +955,27 @@ def _pcss_one(u, v, z, limit, search, texels, search_disc, disc, scale, ortho):
     taps = disc.shape[0]
     covered = 0.0
     for k in range(taps):
-        x = min(max(int(np.floor(u + radius * disc[k, 0])), 0), w - 1)
-        y = min(max(int(np.floor(v + radius * disc[k, 1])), 0), h - 1)
-        if texels[y, x, 0] < limit:
+        dx, dy = radius * disc[k, 0], radius * disc[k, 1]
+        x = min(max(int(np.floor(u + dx)), 0), w - 1)
+        y = min(max(int(np.floor(v + dy)), 0), h - 1)
+        if texels[y, x, 0] < limit + dx * gu + dy * gv:
             covered += texels[y, x, 1]
     return 1.0 - min(covered / taps, 1.0)
 
 
-def _covered(view, uv, limit, disc, radius):
+def _covered(view, uv, limit, disc, radius, gradient=None):
     """(covered fraction (n,), mean blocker depth (n,)) of the taps uv + radius * disc (texels) by
-    map texels nearer than `limit`, each weighed by its alpha. Taps off the map read its edge."""
+    map texels nearer than `limit` (moved along the receiver's plane by `gradient` (n,2), depth per
+    texel, when given), each weighed by its alpha. Taps off the map read its edge."""
     h, w = view.depth.shape
-    x = uv[:, None, 0] + radius[:, None] * disc[None, :, 0]
-    y = uv[:, None, 1] + radius[:, None] * disc[None, :, 1]
+    dx, dy = radius[:, None] * disc[None, :, 0], radius[:, None] * disc[None, :, 1]
+    x, y = uv[:, None, 0] + dx, uv[:, None, 1] + dy
     ix = np.clip(np.floor(np.nan_to_num(x, nan=-1.0)), 0, w - 1).astype(np.int64)
     iy = np.clip(np.floor(np.nan_to_num(y, nan=-1.0)), 0, h - 1).astype(np.int64)
     flat = iy * w + ix
     depth = view.depth.ravel()[flat]
-    blocked = depth < limit[:, None]
+    limits = limit[:, None] if gradient is None else limit[:, None] + dx * gradient[:, :1] + dy * gradient[:, 1:]
+    blocked = depth < limits
     weight = np.where(blocked, view.alpha.ravel()[flat], 0.0)
     total = weight.sum(axis=1)
     mean_depth = np.where(blocked, depth, 0.0).astype(np.float64) * weight
