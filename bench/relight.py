@@ -25,9 +25,9 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from common import Row, machine, paired, print_rows  # noqa: E402
-from shadow_reference import plane_cloud, reference_visibility, sphere_cloud  # noqa: E402
+from shadow_reference import ball_surface, plane_cloud, reference_visibility, sphere_cloud  # noqa: E402
 
-from splatwright.core import material, relight, shadows  # noqa: E402
+from splatwright.core import ambient, material, relight, shadows  # noqa: E402
 from splatwright.core.camera import Camera  # noqa: E402
 from splatwright.core.lights import Light, World  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
@@ -123,6 +123,7 @@ def run(quick=False):
         )
     rows += kind_rows(cloud, camera, world, repeat)
     rows += resolution_sweep(cloud, camera, world, repeat)
+    rows += world_occlusion_rows(cloud, camera, world, 2 if quick else 3)
     return rows
 
 
@@ -165,6 +166,45 @@ def resolution_sweep(cloud, camera, world, repeat):
                 base,
                 shadow_errors([light], resolution),
                 {"lit_over_unlit": f"{lit.median / base.median:.2f}", "measured_s": f"{time.perf_counter() - t0:.0f}"},
+            )
+        )
+    return rows
+
+
+def world_occlusion_rows(cloud, camera, world, repeat):
+    """The world's occlusion alone (no lights) from 8 to 32 directions: its frame against the unlit
+    one, and its error against the closed form of a mesh ball (radius 0.5, centre 0.9 m up) over a
+    splat floor: 1 - (r / D)^2 h / D at a floor splat D from the centre and h below it."""
+    floor = material.with_material(plane_cloud(2.0, 100), albedo=np.full((10000, 3), 0.5))
+    centre, radius = np.array([0.0, 0.0, 0.9]), 0.5
+    offset = centre - floor.positions
+    distance = np.linalg.norm(offset, axis=1)
+    closed_form = 1 - (radius / distance) ** 2 * offset[:, 2] / distance
+    ball = [ball_surface(centre, radius)]
+    rows = []
+    for directions in (8, 16, 24, 32):
+        error = ambient.world_visibility(floor, occluders=ball, directions=directions)[:, 0] - closed_form
+        occluded = World(world.color, directions)
+        base, lit = paired(
+            lambda: render(cloud, camera), lambda: relight.render_lit(cloud, camera, [], occluded), repeat
+        )
+        rows.append(
+            Row(
+                TOPIC,
+                f"world occlusion, {directions} directions, no lights"
+                + (" (core.ambient's default)" if directions == ambient.DIRECTIONS else ""),
+                lit,
+                base,
+                {
+                    "occlusion_mean_err": float(np.abs(error).mean()),
+                    "occlusion_p95_err": float(np.quantile(np.abs(error), 0.95)),
+                },
+                {
+                    "lit_over_unlit": f"{lit.median / base.median:.2f}",
+                    "worst error": f"{np.abs(error).max():.3f}",
+                    "mean signed error": f"{error.mean():+.4f}",
+                    "error against": "closed form, mesh ball over a splat floor",
+                },
             )
         )
     return rows

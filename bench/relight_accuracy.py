@@ -16,12 +16,14 @@ Cycles receives the same numbers (Blender units: watts, W/m^2, metres, radians).
 
 Reference: Cycles (CPU, headless bpy, bench/mesh2splats.py's child with this scene) renders the
 MESH with Principled BSDF materials carrying the same roughness and metallic (textures and colours as
-the Mesh to Splats bench draws them), max_bounces 0 (direct light only, as render_lit models it; the
-world's light is still shadowed by the mesh in Cycles, not in render_lit), no denoising, Standard
-view transform, film transparent, composited over black. Its noise floor is the PSNR between two
-renders with different seeds. Shadows off on both sides: the mesh's object invisible to shadow rays
-in Cycles, the light's cast_shadow False for render_lit, so shading error and shadow error part
-(Cycles' world light stays occluded: hiding the object from shadow rays leaves it unchanged).
+the Mesh to Splats bench draws them), max_bounces 0 (direct light only, as render_lit models it),
+no denoising, Standard view transform, film transparent, composited over black. Cycles shadows the
+world's light by the mesh; render_lit at its defaults does not (World.occlusion 0), and a column
+gives each light's dB with the world occluded from core.ambient's default directions. Its noise
+floor is the PSNR between two renders with different seeds. Shadows off on both sides: the mesh's
+object invisible to shadow rays in Cycles, the light's cast_shadow False for render_lit, so shading
+error and shadow error part (Cycles' world light stays occluded: hiding the object from shadow rays
+leaves it unchanged).
 
 Views: bench/mesh2splats.py's held-out cameras (0.5x, 1x and 3x the framing distance; the floor
 scene's from 2 to 50 degrees above the floor). PSNR per distance over its views together.
@@ -30,9 +32,13 @@ Rows per mesh and light: dB at 0.5x / 1x / 3x with shadows, the same without, th
 the share of the squared error inside penumbrae (render_lit's shadow pass between 0.05 and 0.95),
 inside full shadow (above 0.95), on specular highlights (the specular pass above 5% of the
 pixel's diffuse + specular) and on edges (silhouettes and texture steps: the reference's gradient above 0.1 per pixel).
-Time: a lit frame as the engine makes one (shadow maps, shading, one render; no passes) against the
-unlit render of the same splats, over the 1x views. A row per mesh gives its conversion's unlit
-error against Cycles' emission render (bench/mesh2splats.py's reference): what shading cannot beat.
+Time: a lit frame as the engine makes one for one light (shadow maps, shading, one render; no
+passes; the world unoccluded) against the unlit render of the same splats, over the 1x views. A row
+per mesh gives its conversion's unlit error against Cycles' emission render (bench/mesh2splats.py's
+reference): what shading cannot beat. Another gives the world alone (WORLD_ALONE grey, no light)
+against Cycles, occluded and not: what the world's occlusion is worth by itself; its time is the
+occlusion's (core.ambient.world_visibility), which depends on neither the view nor the lights,
+against the unlit frame.
 
     python bench/relight_accuracy.py [--quick]
     ./run bench relight_accuracy [--quick] [--only sphere|suzanne|duck|cylinder|box]
@@ -65,6 +71,7 @@ from mesh2splats import (  # noqa: E402
     uv_sphere,
 )
 
+from splatwright.core import ambient  # noqa: E402
 from splatwright.core.lights import Light, World  # noqa: E402
 from splatwright.core.mesh import Material, Mesh  # noqa: E402
 from splatwright.core.mesh_corpus import decal_box, grid_plane, striped_cylinder  # noqa: E402
@@ -76,6 +83,7 @@ TARGET_DB = 33.0
 SAMPLES, QUICK_SAMPLES = 96, 32
 IRRADIANCE = 2.5  # W/m^2 at the mesh's centre on a surface facing the light
 WORLD = (0.03, 0.03, 0.03)  # dim uniform grey, scene-linear
+WORLD_ALONE = (0.5, 0.5, 0.5)  # the world-alone rows' grey: no light, so the world's occlusion is all there is
 LIGHT_SEED = 11
 KINDS = ("point", "spot", "sun", "area")
 PENUMBRA = (0.05, 0.95)  # render_lit's shadow pass between these: a penumbra; above: full shadow
@@ -197,13 +205,13 @@ def light_spec(light: Light) -> dict:
 # Cycles ------------------------------------------------------------------------------------------
 
 
-def cycles_lit(mesh, cameras, folder, light, samples, shadows=True, seed=0, smooth=False):
-    """Cycles' images of the mesh under `light` and WORLD (see the module notes), smooth-shaded
+def cycles_lit(mesh, cameras, folder, light, samples, shadows=True, seed=0, smooth=False, world=WORLD):
+    """Cycles' images of the mesh under `light` and `world` (see the module notes), smooth-shaded
     (Blender's vertex normals) or flat."""
     spec = {
         "smooth": smooth,
         "light": light_spec(light),
-        "world": list(WORLD),
+        "world": list(world),
         "shadows": shadows,
         "seed": seed,
         "surfaces": [(m.roughness, m.metallic) for m in mesh.materials or [Material()]],
@@ -264,15 +272,20 @@ def _relit_scene(spec_path, scene, obj, world):
 # splats ------------------------------------------------------------------------------------------
 
 
-def lit_frames(cloud, cameras, light, shadows=True, passes=True):
-    """render_lit frames of the cloud under `light` and WORLD, and the seconds of each."""
-    from splatwright.core.relight import render_lit
+def lit_frames(cloud, cameras, lights, shadows=True, passes=True, occluded=True, timed=False, world=WORLD):
+    """render_lit frames of the cloud under `lights` and `world` (occluded from core.ambient's
+    default directions, as Cycles occludes it, or not), and the seconds of each. Timed frames
+    make their shadow maps each, as the engine does; the others share the lights' and the world's
+    (they do not depend on the camera)."""
+    from splatwright.core.relight import render_lit, visibilities
 
-    light = light if shadows else dataclasses.replace(light, cast_shadow=False)
+    lights = [light if shadows else dataclasses.replace(light, cast_shadow=False) for light in lights]
+    world = World(world, ambient.DIRECTIONS if occluded else 0)
+    visible = None if timed else visibilities(cloud, lights, world)
     frames, seconds = [], []
     for camera in cameras:
         start = time.perf_counter()
-        frames.append(render_lit(cloud, camera, [light], World(WORLD), passes=passes))
+        frames.append(render_lit(cloud, camera, lights, world, passes=passes, visible=visible))
         seconds.append(time.perf_counter() - start)
     return frames, seconds
 
@@ -317,19 +330,23 @@ def _timing(seconds) -> Timing:
 
 
 def light_row(scene, kind, light, cloud, cams, folder, samples, unlit_seconds):
-    """One row: a mesh under one light, with and without shadows, against Cycles."""
+    """One row: a mesh under one light, with and without shadows, the world unoccluded (the
+    engine's default) and occluded, against Cycles."""
     cameras = [cam for _, cam in cams]
     smooth = scene.normals is not None
     ref = cycles_lit(scene.mesh, cameras, folder, light, samples, smooth=smooth)
     second = cycles_lit(scene.mesh, cameras, folder, light, samples, seed=1, smooth=smooth)
     ref_flat = cycles_lit(scene.mesh, cameras, folder, light, samples, shadows=False, smooth=smooth)
-    frames, _ = lit_frames(cloud, cameras, light)
-    flat, _ = lit_frames(cloud, cameras, light, shadows=False)
-    # the time of a frame as the engine makes one (shadow maps, shading, one render; no passes),
-    # over the 1x views, against the unlit render of the same views
+    # at the engine's defaults: the world unoccluded (World.occlusion 0)
+    frames, _ = lit_frames(cloud, cameras, [light], occluded=False)
+    flat, _ = lit_frames(cloud, cameras, [light], shadows=False, occluded=False)
+    occluded_world, _ = lit_frames(cloud, cameras, [light], passes=False)
+    # the time of a frame as the engine makes one for one light (shadow maps, shading, one render;
+    # no passes), over the 1x views, against the unlit render of the same views
     timed = [cam for d, cam in cams if d == 1.0]
-    _, seconds = lit_frames(cloud, timed, light, passes=False)
+    _, seconds = lit_frames(cloud, timed, [light], passes=False, occluded=False, timed=True)
     error = psnr_by_distance([display(f.color) for f in frames], cams, ref)
+    occluded = psnr_by_distance([display(f.color) for f in occluded_world], cams, ref)
     error["worst dB"] = min(error.values())
     no_shadow = psnr_by_distance([display(f.color) for f in flat], cams, ref_flat)
     noise = psnr_by_distance(second, cams, ref)
@@ -342,6 +359,7 @@ def light_row(scene, kind, light, cloud, cams, folder, samples, unlit_seconds):
         error=error,
         extra={
             "no shadows dB 0.5x / 1x / 3x": _triple(no_shadow),
+            f"world occluded ({ambient.DIRECTIONS} directions) dB 0.5x / 1x / 3x": _triple(occluded),
             "no shadows worst dB": f"{min(no_shadow.values()):.1f}",
             "Cycles noise floor dB (worst)": f"{min(noise.values()):.1f}",
             "error share penumbra": f"{shares['penumbra']:.2f}",
@@ -349,8 +367,48 @@ def light_row(scene, kind, light, cloud, cams, folder, samples, unlit_seconds):
             "error share highlight": f"{shares['highlight']:.2f}",
             "error share edge": f"{shares['edge']:.2f}",
             f"meets {TARGET_DB:g} dB": error["worst dB"] >= TARGET_DB,
+            f"meets {TARGET_DB:g} dB, world occluded": min(occluded.values()) >= TARGET_DB,
         },
     )
+
+
+def world_row(scene, cloud, cams, folder, samples, unlit_seconds):
+    """The world alone (WORLD_ALONE, no light): render_lit with the world occluded from
+    core.ambient's default directions and unoccluded, against Cycles; its time is the occlusion's
+    (core.ambient.world_visibility, median of 3) against the unlit frame."""
+    cameras = [cam for _, cam in cams]
+    dark = dataclasses.replace(scene_lights(scene.mesh)["sun"], power=0.0)
+    smooth = scene.normals is not None
+    ref = cycles_lit(scene.mesh, cameras, folder, dark, samples, smooth=smooth, world=WORLD_ALONE)
+    occluded, _ = lit_frames(cloud, cameras, [], passes=False, world=WORLD_ALONE)
+    open_world, _ = lit_frames(cloud, cameras, [], passes=False, occluded=False, world=WORLD_ALONE)
+    seconds = []
+    for _ in range(3):
+        start = time.perf_counter()
+        ambient.world_visibility(cloud)
+        seconds.append(time.perf_counter() - start)
+    error = psnr_by_distance([display(f.color) for f in occluded], cams, ref)
+    error["worst dB"] = min(error.values())
+    unoccluded = psnr_by_distance([display(f.color) for f in open_world], cams, ref)
+    return Row(
+        TOPIC,
+        f"{scene.name}: the world alone (grey {WORLD_ALONE[0]:g}, no light), occluded from "
+        f"{ambient.DIRECTIONS} directions",
+        _timing(seconds),
+        _timing(unlit_seconds),
+        error=error,
+        extra={
+            "world unoccluded dB 0.5x / 1x / 3x": _triple(unoccluded),
+            "mean error, occluded / unoccluded": " / ".join(
+                f"{_mean_error(frames, ref):+.4f}" for frames in (occluded, open_world)
+            ),
+        },
+    )
+
+
+def _mean_error(frames, references) -> float:
+    """The mean of our display colour minus Cycles' over every pixel of every view."""
+    return float(np.mean([np.mean(display(f.color) - r) for f, r in zip(frames, references, strict=True)]))
 
 
 def scene_rows(scene, folder, size, per_distance, samples) -> list[Row]:
@@ -376,7 +434,8 @@ def scene_rows(scene, folder, size, per_distance, samples) -> list[Row]:
             Timing(seconds, 0.0, 1),
             error={**unlit_error, "worst dB": min(unlit_error.values())},
             extra={"splats": len(cloud), "faces": len(scene.mesh.faces)},
-        )
+        ),
+        world_row(scene, cloud, cams, folder, samples, unlit_seconds),
     ]
     print_rows(rows)
     for kind, light in scene_lights(scene.mesh).items():

@@ -151,16 +151,21 @@ class Light:
 @dataclass(frozen=True, eq=False)
 class World:
     """A uniform environment: scene-linear radiance `color` (3,) from every direction (Blender's
-    world Background colour times its strength)."""
+    world Background colour times its strength). occlusion: the directions sampled for what the
+    splats and meshes hide of it (core.ambient); 0 leaves it unoccluded."""
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    occlusion: int = 0
 
     def __post_init__(self):
         problems: list[str] = []
         color = _vector(self.color, "color", problems)
         if problems or (color < 0).any():
             raise ValueError(f"invalid world: color must be 3 finite numbers >= 0, got {self.color!r}")
+        if not isinstance(self.occlusion, int | np.integer) or self.occlusion < 0:
+            raise ValueError(f"invalid world: occlusion must be a whole number >= 0, got {self.occlusion!r}")
         object.__setattr__(self, "color", color)
+        object.__setattr__(self, "occlusion", int(self.occlusion))
 
 
 class Incident(NamedTuple):

@@ -18,7 +18,7 @@ from typing import Annotated
 
 import numpy as np
 
-from . import color, jit, material, shadows
+from . import ambient, color, jit, material, shadows
 from . import sh as shmod
 from .arrays import Image
 from .camera import Camera
@@ -71,33 +71,47 @@ class LitRender:
 def visibilities(
     cloud: SplatCloud,
     lights: list[Light],
+    world: World | None = None,
     *,
     meshes=None,
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
-) -> dict[int, np.ndarray]:
+) -> dict[int | str, np.ndarray]:
     """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
-    the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told. They
-    do not depend on the camera: a viewport makes them once for many views. progress(done, total,
-    "shadows") follows all the lights' maps together (core.shadows.visibility); shapes,
-    core.render.Shapes of the cloud, are made here unless given."""
+    the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told; and
+    under "world" the (N,2) share of `world` each splat sees (core.ambient.world_visibility) when
+    the world is occluded (World.occlusion directions) and not black. They do not depend on the
+    camera: a viewport makes them once for many views. progress(done, total, label) follows all the
+    maps together; shapes, core.render.Shapes of the cloud, are made here unless given."""
     casting = [index for index, light in enumerate(lights) if light.cast_shadow]
-    if casting and shapes is None:
+    occluded = world is not None and world.occlusion > 0 and bool(world.color.any())
+    parts = len(casting) + occluded
+    if parts and shapes is None:
         shapes = Shapes(cloud, threads)  # once for every map
-    return {
+    visible: dict[int | str, np.ndarray] = {
         index: shadows.visibility(
             cloud,
             lights[index],
             occluders=meshes,
             resolution=_resolution(shadow_resolution, lights[index]),
             threads=threads,
-            progress=part_progress(progress, step, len(casting)),
+            progress=part_progress(progress, step, parts),
             shapes=shapes,
         )
         for step, index in enumerate(casting)  # a loop over lights
     }
+    if occluded:
+        visible["world"] = ambient.world_visibility(
+            cloud,
+            occluders=meshes,
+            directions=world.occlusion,
+            threads=threads,
+            progress=part_progress(progress, len(casting), parts),
+            shapes=shapes,
+        )
+    return visible
 
 
 def lit_colors(
@@ -109,14 +123,14 @@ def lit_colors(
     meshes=None,
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
-    visible: dict[int, np.ndarray] | None = None,
+    visible: dict[int | str, np.ndarray] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
-    the lights that cast shadows: all splats and `meshes` occlude; `progress` and `shapes` as
-    visibilities')."""
+    the lights that cast shadows and an occluded world: all splats and `meshes` occlude; `progress`
+    and `shapes` as visibilities')."""
     rows = material.carried(cloud)
     if not rows.any():
         return rows, None
@@ -124,6 +138,7 @@ def lit_colors(
         visible = visibilities(
             cloud,
             lights,
+            world,
             meshes=meshes,
             shadow_resolution=shadow_resolution,
             threads=threads,
@@ -179,6 +194,7 @@ def render_lit(
     background: tuple[float, float, float] | None = (0.0, 0.0, 0.0),
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
+    visible: dict[int | str, np.ndarray] | None = None,
     **render_options,
 ) -> LitRender:
     """Render `cloud` through `camera` lit by `lights` (core.lights.Light) and `world`.
@@ -186,8 +202,10 @@ def render_lit(
     meshes: core.mesh.Surface meshes that cast shadows on the splats (the picture's meshes come in
     through `layer`, core.render's). passes: also the diffuse, specular and shadow images.
     shadow_resolution: texels a side of the shadow maps, one number or a dict by light kind
-    (default SHADOW_RESOLUTION). Other keywords go to core.render (mode, tile_size, backend, ...);
-    its `progress` follows the shadow maps first (label "shadows"), then the render's tiles."""
+    (default SHADOW_RESOLUTION). visible: visibilities()'s result when the caller has it (they do
+    not depend on the camera), else made here. Other keywords go to core.render (mode, tile_size,
+    backend, ...); its `progress` follows the shadow maps first (label "shadows"; the world's,
+    "world occlusion"), then the render's tiles."""
     t0 = time.perf_counter()
     # The splats' shapes, made once for the shadow maps and the picture (the lit copy keeps them).
     shapes = Shapes(cloud, threads)
@@ -199,6 +217,7 @@ def render_lit(
         meshes=meshes,
         shadow_resolution=shadow_resolution,
         threads=threads,
+        visible=visible,
         progress=render_options.get("progress"),
         shapes=shapes,
     )

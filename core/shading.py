@@ -13,7 +13,8 @@ What is modelled, per splat, vectorised over splats (float64 inside, float32 out
   highlight of a 1 m disc 1.5 m away comes within 12% of the BRDF integrated over the disc at
   roughness 0.3, 4% at 0.45, 1% at 0.7; at 0.1 a 0.5 m disc's is 29% dim: tests/test_shading.py);
 - world: a uniform environment of radiance W gives diffuse albedo * (1 - metallic) * (1 - E) * W and
-  specular E * W (white furnace: albedo 1, metallic 0 sends back exactly W), unoccluded;
+  specular E * W (white furnace: albedo 1, metallic 0 sends back exactly W), each scaled by the share
+  of the world the splat sees on its eye's side when that is given (core.ambient), else unoccluded;
 - two-sided: a normal facing away from the eye is flipped towards it (splats are seen from both
   sides), so a splat's back is lit as its front would be;
 - shadows come in as visibility per light (core.shadows): a light's contribution is scaled by it.
@@ -21,8 +22,7 @@ What is modelled, per splat, vectorised over splats (float64 inside, float32 out
 Multiple scattering between microfacets (Blender's default Multiscatter GGX) is given back by an
 energy compensation of the lobe (multiscatter_compensation; `multiscatter=False` for plain GGX).
 
-Not modelled: clearcoat, sheen, subsurface, transmission, emission, light bouncing between splats,
-and the world's occlusion.
+Not modelled: clearcoat, sheen, subsurface, transmission, emission, light bouncing between splats.
 
 The NumPy functions are the reference. Where numba loads (core.jit), shade() runs the same sums one
 splat at a time in a compiled loop (_shade_loop, float64 as NumPy, on every core): no (N,3) float64
@@ -89,10 +89,10 @@ def view_directions(eye: np.ndarray | Camera, points: np.ndarray) -> np.ndarray:
     return towards(np.asarray(eye, dtype=np.float64).reshape(3), points)[0]
 
 
-def facing(normals: np.ndarray, view: np.ndarray) -> np.ndarray:
-    """Normals (N,3) flipped where they face away from the view directions (two-sided splats)."""
-    sign = np.where(np.einsum("ij,ij->i", normals, view) < 0.0, -1.0, 1.0)
-    return normals * sign[:, None]
+def seen_from_front(normals: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """(N,) bool: whether each normal (N,3) faces its view direction (N,3); a splat seen from behind
+    is shaded with its normal flipped (two-sided splats) and sees the world of its back side."""
+    return np.einsum("ij,ij->i", normals, view) >= 0.0
 
 
 def ggx_d(cos_h: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -218,14 +218,16 @@ def shade(
     eye: np.ndarray | Camera,
     lights: list[Light],
     world: World | None = None,
-    visibility: dict[int, np.ndarray] | None = None,
+    visibility: dict[int | str, np.ndarray] | None = None,
     *,
     multiscatter: bool = True,
     backend: str = "auto",
 ) -> Shading:
     """Shade every splat of `cloud` (which must carry a material: core.material.has_material) for an
     eye at a position (3,) or a Camera, under `lights` and an optional uniform `world`. visibility
-    maps a light's index in `lights` to (N,) values in [0,1] (1: unshadowed; lights absent: 1).
+    maps a light's index in `lights` to (N,) values in [0,1] (1: unshadowed; lights absent: 1), and
+    "world" to the (N,2) share of the world each splat sees on its normal's side and the other
+    (core.ambient; absent: 1).
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
     default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
     backend: "auto" (the compiled kernel where numba loads, core.jit) or "numpy" (the reference)."""
@@ -238,7 +240,8 @@ def shade(
     points = cloud.positions.astype(np.float64)
     n = len(points)
     view = view_directions(eye, points)
-    normal = facing(normals, view)
+    front = seen_from_front(normals, view)
+    normal = np.where(front[:, None], normals, -normals)  # the side towards the eye
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     alpha = np.maximum(rough * rough, ALPHA_MIN)
     f0 = DIELECTRIC_F0 + (albedo - DIELECTRIC_F0) * metal[:, None]
@@ -258,8 +261,9 @@ def shade(
         lit += total
         seen += vis * total
     if world is not None:
-        diffuse += base * world.color
-        specular += layer * world.color
+        seen_world = _world_visibility(visibility, n)[np.arange(n), np.where(front, 0, 1)]
+        diffuse += base * world.color * seen_world[:, None]
+        specular += layer * world.color * seen_world[:, None]
     shadow = np.where(lit > 0.0, 1.0 - seen / np.where(lit > 0.0, lit, 1.0), 0.0)
     return Shading(diffuse.astype(np.float32), specular.astype(np.float32), np.clip(shadow, 0, 1).astype(np.float32))
 
@@ -271,6 +275,16 @@ def _visibility(visibility: dict[int, np.ndarray] | None, index: int, n: int) ->
     if vis.shape != (n,) or not np.isfinite(vis).all():
         raise ValueError(f"visibility of light {index} must be {n} finite values, got shape {vis.shape}")
     return np.clip(vis, 0.0, 1.0)
+
+
+def _world_visibility(visibility: dict | None, n: int) -> Floats:
+    """(N,2) float64 in [0,1]: visibility["world"] checked, or ones."""
+    if visibility is None or "world" not in visibility:
+        return np.ones((n, 2))
+    seen = np.asarray(visibility["world"], dtype=np.float64)
+    if seen.shape != (n, 2) or not np.isfinite(seen).all():
+        raise ValueError(f"the world's visibility must be ({n}, 2) finite values, got shape {seen.shape}")
+    return np.clip(seen, 0.0, 1.0)
 
 
 # the compiled path -----------------------------------------------------------------------------------
@@ -334,6 +348,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
     eye = np.asarray(eye, np.float64).reshape(3)
     colors = np.array([light.color for light in lights], np.float64).reshape(-1, 3)
     world_color = np.zeros(3) if world is None else np.asarray(world.color, np.float64)
+    seen_world = _world_visibility(visibility, n)
     scale, bias = _albedo_table()
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
@@ -344,7 +359,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
         n,
         lambda lo, hi: kernel(
             lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, reaches, colors,
-            vis, world_color, scale, bias, diffuse, specular, shadow,
+            vis, world_color, seen_world, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -379,7 +394,7 @@ def _table_one(table, cos_v, roughness):
 
 
 def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, reaches, colors, vis,
-                world, scale, bias, diffuse, specular, shadow):  # fmt: skip
+                world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
     grids = np.empty(n_lights)  # each area light's grid at this splat (core.lights.area_grids)
@@ -471,10 +486,11 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                 total += dc + sc
             lit += total / 3.0
             seen += visible * total / 3.0
+        sky = seen_world[i, 0] if sign > 0.0 else seen_world[i, 1]  # the world on the eye's side
         for c in range(3):
             if flags[2]:
-                out_d[c] += base[c] * world[c]
-                out_s[c] += layer[c] * world[c]
+                out_d[c] += base[c] * world[c] * sky
+                out_s[c] += layer[c] * world[c] * sky
             diffuse[i, c] = out_d[c]
             specular[i, c] = out_s[c]
         shadow[i] = min(max(1.0 - seen / lit, 0.0), 1.0) if lit > 0.0 else 0.0

@@ -60,6 +60,20 @@ def sphere_cloud(centre, radius, count=1500):
     return surface_splats(np.asarray(centre) + radius * normals, normals, 0.6 * spacing)
 
 
+def ball_surface(centre, radius, segments=48, rings=24):
+    """A closed UV sphere as a core.mesh.Surface (an occluder for shadow tests)."""
+    from splatwright.core.mesh import Surface
+
+    theta, phi = np.meshgrid(
+        np.linspace(0, math.pi, rings + 1), np.arange(segments) * 2 * math.pi / segments, indexing="ij"
+    )
+    ring = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
+    a = (np.arange(rings)[:, None] * segments + np.arange(segments)[None, :]).ravel()
+    b = (np.arange(rings)[:, None] * segments + (np.arange(segments)[None, :] + 1) % segments).ravel()
+    faces = np.concatenate([np.stack([a, a + segments, b], 1), np.stack([b, a + segments, b + segments], 1)])
+    return Surface(np.asarray(centre) + radius * ring, faces)
+
+
 def light_samples(light, receiver, count):
     """(count, 3) points on the light's emitting disc as the receiver sees it (or, for the sun,
     far points along directions within its disc); stratified, concentric."""

@@ -114,6 +114,19 @@ def test_white_furnace_world_returns_the_world_colour():
     assert grey.diffuse[0, 0] == pytest.approx(0.5 * (1 - layer) * 0.3, rel=0.01)
 
 
+@pytest.mark.parametrize("backend", ["auto", "numpy"])
+def test_the_world_is_scaled_by_the_share_seen_on_the_eyes_side(backend):
+    """A splat seen from the side its normal points to takes the world's first visibility column,
+    seen from behind the second: the white furnace's W times that share."""
+    cloud = cloud_of([[0, 0, 0], [1, 0, 0]], [[0, 0, 1], [0, 0, -1]], np.ones((2, 3)), 1.0)
+    world = World((0.3, 0.5, 0.7))
+    seen = {"world": np.array([[0.25, 0.75], [0.4, 0.9]])}
+    out = shade(cloud, np.array([0.5, 0.0, 10.0]), [], world, seen, backend=backend)
+    np.testing.assert_allclose(out.radiance, [[0.075, 0.125, 0.175], [0.27, 0.45, 0.63]], rtol=1e-5)
+    with pytest.raises(ValueError, match="world's visibility"):
+        shade(cloud, np.array([0.5, 0.0, 10.0]), [], world, {"world": np.ones(2)}, backend=backend)
+
+
 def test_multiscatter_compensation_keeps_a_white_metal_white():
     """With the lost energy given back, a white metal under a uniform world returns the world (single
     scattering alone returns E1 of it, 0.31 at roughness 1 seen head-on, 1 - ln 2 exactly); light
@@ -303,6 +316,7 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         Light("area", power=80.0, position=(0, -1, 2), size_x=0.6, size_y=0.3, shape="ELLIPSE", x_axis=(0, 1, 0)),
     ]
     visibility = {0: rng.uniform(0.0, 1.0, n), 3: rng.uniform(0.0, 1.0, n), 4: np.zeros(n)}
+    visibility["world"] = rng.uniform(0.0, 1.0, (n, 2))
     cam = Camera.look_at((3, -4, 3), (0, 0, 0), up=(0, 0, 1), fov_deg=50, width=64, height=48)
     if eye == "orthographic":
         cam = Camera(64, 48, 20.0, 20.0, 32, 24, cam.world_to_camera, 0.1, projection="orthographic")

@@ -12,7 +12,7 @@ from ...core.color import linear_to_srgb
 from .. import data
 from ..data import camera as blender_camera
 from . import lights, mesh_layer, relit, viewport
-from .lights import scene_lights, scene_world
+from .lights import WORLD_OCCLUSION, scene_lights, scene_world
 from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_color
 
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
@@ -252,6 +252,8 @@ class RENDER_PT_splatwright(bpy.types.Panel):
         world = context.scene.world
         if world is not None:
             layout.prop(world, "color", text="World Colour (without nodes)")
+        if relit.any_relit(scene):
+            layout.prop(scene, WORLD_OCCLUSION)
         view = context.scene.view_settings
         if view.view_transform != "Standard":
             # Splat colours are display sRGB; other view transforms tone-map them.

@@ -49,25 +49,44 @@ def triangles(depsgraph):
 class Lighting:
     """What shades the relit splats (those with a material) of a viewport picture: the lights, the
     world and the meshes that shadow them; the shadows themselves (view-independent) are made once
-    per scene update, on the picture's thread, and kept."""
+    per scene update, on the picture's thread, and kept. `kept` (a dict the viewport holds across
+    updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
+    light or recolouring the world does not make its many maps again."""
 
-    def __init__(self, lights, world, occluders):
+    def __init__(self, lights, world, occluders, kept=None):
         self.lights, self.world, self.occluders = lights, world, occluders
+        self.kept = {} if kept is None else kept
         self.visible = None
 
-    def shade(self, cloud, camera):
-        """`cloud` with the relit splats' colours for an eye at `camera`."""
+    def shade(self, cloud, camera, check=None):
+        """`cloud` with the relit splats' colours for an eye at `camera`; `check()`, called as the
+        shadow maps are made, may raise to stop them (a newer scene or view)."""
         from ...core.relight import lit_cloud, lit_colors, visibilities  # only when something is relit
 
         if self.visible is None:
-            self.visible = visibilities(cloud, self.lights, meshes=self.occluders)
+            progress = None if check is None else (lambda *_: check())
+            visible = visibilities(cloud, self.lights, meshes=self.occluders, progress=progress)
+            if self.world.occlusion and self.world.color.any():
+                visible["world"] = self._world_visibility(cloud, progress)
+            self.visible = visible
         rows, shading = lit_colors(cloud, camera, self.lights, self.world, visible=self.visible)
         return cloud if shading is None else lit_cloud(cloud, rows, shading)
 
+    def _world_visibility(self, cloud, progress):
+        from ...core import ambient
 
-def picture_inputs(depsgraph):
+        key = ambient.geometry_key(cloud, self.occluders, self.world.occlusion)
+        if self.kept.get("key") != key:
+            seen = ambient.world_visibility(
+                cloud, occluders=self.occluders, directions=self.world.occlusion, progress=progress
+            )
+            self.kept.update(key=key, seen=seen)
+        return self.kept["seen"]
+
+
+def picture_inputs(depsgraph, kept=None):
     """(splats, triangles, background, lighting) of the depsgraph's scene for the viewport picture;
-    lighting is a Lighting, or None when no splat is relit."""
+    lighting is a Lighting (with `kept`, see Lighting), or None when no splat is relit."""
     scene = depsgraph.scene
     origin = np.zeros(3)
     cloud, lit = relit.scene_cloud(depsgraph, origin)
@@ -76,7 +95,7 @@ def picture_inputs(depsgraph):
     lighting = None
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
-        lighting = Lighting(scene_lights(depsgraph, origin), scene_world(scene), occluders)
+        lighting = Lighting(scene_lights(depsgraph, origin), scene_world(scene), occluders, kept)
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 
@@ -88,9 +107,10 @@ class Viewport:
         self.inputs = (SplatCloud.empty(), Triangles.empty(), None, None)
         self.progressive = Progressive(self.picture, on_ready=lambda: _redraw(engine_ref))
         self.texture, self.drawn = None, None
+        self.kept = {}  # the world's occlusion across scene updates (Lighting)
 
     def update(self, depsgraph):
-        self.inputs = picture_inputs(depsgraph)
+        self.inputs = picture_inputs(depsgraph, self.kept)
         self.progressive.refresh()
 
     def picture(self, view, scale, check):
@@ -98,7 +118,7 @@ class Viewport:
         cloud, meshes, background, lighting = self.inputs
         if lighting is not None:
             check()
-            cloud = lighting.shade(cloud, view.camera)
+            cloud = lighting.shade(cloud, view.camera, check)
         image = preview_image(
             cloud,
             meshes,

@@ -68,6 +68,22 @@ def floor_arrays(size, spacing):
     return positions, rotations, log_scales, np.full(n, 3.0), np.tile([0.0, 0.0, 1.0], (n, 1))
 
 
+def bpy_camera(worker, viewport):
+    """The core camera of the scene's camera, as the viewport builds one from a region's view and
+    projection matrices (region_camera; composite.py's viewport step builds them the same way)."""
+    bpy = worker.bpy
+    cam = bpy.context.scene.camera
+    projection = cam.calc_matrix_camera(bpy.context.evaluated_depsgraph_get(), x=SIZE[0], y=SIZE[1])
+
+    class Region:
+        width, height = SIZE
+
+    class RegionData:
+        view_matrix, window_matrix = cam.matrix_world.inverted(), projection
+
+    return viewport.region_camera(Region, RegionData)
+
+
 class Worker(BlenderWorker):
     steps = ("install", "lights", "passes", "splats_shadow_meshes", "meshes_shadow_splats", "rig")
     keep_objects = ("Camera",)
@@ -271,18 +287,7 @@ class Worker(BlenderWorker):
     def viewport_picture(self, name):
         """The Rendered viewport's full picture from the scene camera (its view and projection
         matrices, as composite.py's viewport step builds them), made on this thread."""
-        bpy = self.bpy
-        scene = bpy.context.scene
-        depsgraph = bpy.context.evaluated_depsgraph_get()
-        cam = scene.camera
-        projection = cam.calc_matrix_camera(depsgraph, x=SIZE[0], y=SIZE[1])
         viewport = self.module("splat_addon.render.viewport")
-
-        class Region:
-            width, height = SIZE
-
-        class RegionData:
-            view_matrix, window_matrix = cam.matrix_world.inverted(), projection
 
         class Engine:
             def tag_redraw(self):
@@ -290,8 +295,8 @@ class Worker(BlenderWorker):
 
         port = viewport.Viewport(Engine())
         try:
-            port.update(depsgraph)
-            view = viewport.View(viewport.region_camera(Region, RegionData))
+            port.update(self.bpy.context.evaluated_depsgraph_get())
+            view = viewport.View(bpy_camera(self, viewport))
             self.save(name, rgba=port.picture(view, 1.0, lambda: None))
         finally:
             port.stop()
@@ -343,7 +348,50 @@ class Worker(BlenderWorker):
         res = self.engine_inputs("floor_inputs")
         self.write("floor_relit")
         res["camera"] = self.camera_record()
+        # The world alone, unoccluded and occluded by the ball (World Occlusion directions).
+        bpy.data.objects["Sun"].hide_render = True
+        scene = bpy.context.scene
+        for name, directions in (("floor_world", 0), ("floor_world_occluded", 24)):
+            scene.splatwright_world_occlusion = directions
+            self.write(name)
+        res["world_occlusion"] = self.module("splat_addon.render.lights").scene_world(scene).occlusion
+        res["viewport_world_maps"] = self.viewport_world_maps()
+        scene.splatwright_world_occlusion = 0
         return res
+
+    def viewport_world_maps(self):
+        """How often the Rendered viewport makes the world's occlusion over four scene updates: the
+        first picture, a moved light (kept), a moved mesh, and a moved splat object (both made again)."""
+        bpy = self.bpy
+        ambient = self.module("core.ambient")
+        viewport = self.module("splat_addon.render.viewport")
+        made, original = [], ambient.world_visibility
+
+        def counted(*args, **kwargs):
+            made.append(1)
+            return original(*args, **kwargs)
+
+        class Engine:
+            def tag_redraw(self):
+                pass
+
+        sun, ball = bpy.data.objects["Sun"], next(o for o in bpy.data.objects if o.type == "MESH")
+        floor = bpy.data.objects["SplatFloor"]
+        moves = [(None, 0, 0.0), (sun, 2, 6.0), (ball, 0, 0.2), (floor, 1, 0.1)]  # object, axis, metres
+        counts, port = [], viewport.Viewport(Engine())
+        ambient.world_visibility = counted
+        try:
+            for obj, axis, shift in moves:
+                if obj is not None:
+                    obj.location[axis] += shift
+                bpy.context.view_layer.update()
+                port.update(bpy.context.evaluated_depsgraph_get())
+                port.inputs[3].shade(port.inputs[0], bpy_camera(self, viewport))
+                counts.append(len(made))
+        finally:
+            ambient.world_visibility = original
+            port.stop()
+        return counts
 
     def rig(self):
         """The demo rig's arm converted with its material, bound, relit, over the demo's mesh floor:
