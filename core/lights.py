@@ -167,6 +167,12 @@ class World:
         object.__setattr__(self, "color", color)
         object.__setattr__(self, "occlusion", int(self.occlusion))
 
+    @property
+    def occluded(self) -> bool:
+        """Whether relighting tests what of the world the splats and meshes hide: some directions
+        asked for, and some light to hide."""
+        return self.occlusion > 0 and bool(self.color.any())
+
 
 class Incident(NamedTuple):
     """Light arriving at N points from one emitter (a whole point/spot/sun light, or one sample of an

@@ -86,7 +86,7 @@ def visibilities(
     camera: a viewport makes them once for many views. progress(done, total, label) follows all the
     maps together; shapes, core.render.Shapes of the cloud, are made here unless given."""
     casting = [index for index, light in enumerate(lights) if light.cast_shadow]
-    occluded = world is not None and world.occlusion > 0 and bool(world.color.any())
+    occluded = world is not None and world.occluded
     parts = len(casting) + occluded
     if parts and shapes is None:
         shapes = Shapes(cloud, threads)  # once for every map

@@ -127,8 +127,7 @@ def visibility(
     size = _light_size(light)
     kernel = jit.compiled(__name__, FILTER_KERNEL)
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
-        plane = receiver_plane and material.normals(cloud) is not None
-        settings = (size if soft else 0.0, sigma_bias, texel_bias, float(plane))
+        settings = (size if soft else 0.0, sigma_bias, texel_bias, float(receiver_plane))
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
         return _visibility_compiled(kernel, cloud, light, views, settings, discs, out)
     sigma, slope = _extent_and_slope(cloud, light)
@@ -856,7 +855,8 @@ def _visibility_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, sourc
     """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
     looking most nearly at it, none behind them all), then _filtered's test there, skipped where the
     map holds nothing within the search's reach (_occupied_cells: lit all the same)."""
-    size, sigma_bias, texel_bias, plane = params[0], params[1], params[2], params[3] > 0.5
+    size, sigma_bias, texel_bias = params[0], params[1], params[2]
+    plane = params[3] > 0.5 and nx.shape[0] > 0  # without normals (empty columns) the plain test
     h, w = texels.shape[1], texels.shape[2]
     for i in range(lo, hi):
         f = _face_one(positions, i, cams)

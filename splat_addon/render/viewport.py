@@ -66,7 +66,7 @@ class Lighting:
         if self.visible is None:
             progress = None if check is None else (lambda *_: check())
             visible = visibilities(cloud, self.lights, meshes=self.occluders, progress=progress)
-            if self.world.occlusion and self.world.color.any():
+            if self.world.occluded:
                 visible["world"] = self._world_visibility(cloud, progress)
             self.visible = visible
         rows, shading = lit_colors(cloud, camera, self.lights, self.world, visible=self.visible)
