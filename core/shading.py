@@ -348,7 +348,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
     eye = np.asarray(eye, np.float64).reshape(3)
     colors = np.array([light.color for light in lights], np.float64).reshape(-1, 3)
     world_color = np.zeros(3) if world is None else np.asarray(world.color, np.float64)
-    seen_world = _world_visibility(visibility, n)
+    seen_world = _world_visibility(visibility, n) if visibility and "world" in visibility else np.ones((1, 2))
     scale, bias = _albedo_table()
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
@@ -486,7 +486,8 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                 total += dc + sc
             lit += total / 3.0
             seen += visible * total / 3.0
-        sky = seen_world[i, 0] if sign > 0.0 else seen_world[i, 1]  # the world on the eye's side
+        row = i if seen_world.shape[0] > 1 else 0  # one row: the whole world everywhere
+        sky = seen_world[row, 0] if sign > 0.0 else seen_world[row, 1]  # the world on the eye's side
         for c in range(3):
             if flags[2]:
                 out_d[c] += base[c] * world[c] * sky

@@ -2,13 +2,9 @@
 
 A shadow map is what the light sees: core.render of the cloud from the light's position (its depth,
 the alpha-weighted expected camera z, and its alpha, the coverage), with the depth of occluding
-meshes (core.mesh_render.rasterize) folded in. The views per light kind:
-- spot: one perspective camera covering its cone (a cube, as for a point light, past 120 degrees);
-- sun: one orthographic camera along its direction covering the splats' and meshes' bounds;
-- point: a cube of six 90-degree perspective faces in world axes; each splat is tested on the face
-  its direction from the light falls in, and a face with no splat near it is left out;
-- area: the cube from the light's centre, in the light's own axes, without the face behind the
-  light (nothing there is lit).
+meshes (core.mesh_render.rasterize) folded in, through the light's cameras (core.shadow_cameras:
+one for a spot or the sun, a cube's faces for point and area lights; each splat is tested in the
+one looking most nearly at it).
 The maps draw the splats that may shadow something (the casters section): a floor with nothing
 under it is left out.
 
@@ -33,14 +29,15 @@ from typing import Annotated
 
 import numpy as np
 
-from . import jit, material
+from . import jit, material, shadow_cameras
 from . import normals as normal_estimate
 from .arrays import Floats
-from .camera import Camera, look_at_matrix
+from .camera import Camera
 from .mesh_render import rasterize
 from .normals import TOO_ROUND
 from .parallel import WORKERS, in_chunks, map_threads
 from .render import Shapes, render
+from .shadow_cameras import unit
 from .splats import SplatCloud
 from .steps import part_progress
 
@@ -56,8 +53,6 @@ TEXEL_BIAS = 2.5  # texels of depth slope that count as its own surface
 # and 0.017 at 2 (acne on faces lit at grazing angles), the other lights unchanged at 3 and above.
 MAX_SLOPE = 5.0
 CHUNK = 1 << 16  # points per step of the NumPy filter
-CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
-SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
 MAP_TILE = 16  # the maps' render tiles: a few percent faster than the picture's 8 at 512 texels, the same maps
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
@@ -133,7 +128,7 @@ def visibility(
     sigma, slope = _extent_and_slope(cloud, light)
     points = cloud.positions.astype(np.float64)
     normals = material.normals(cloud) if receiver_plane else None
-    face = _face_of([view.camera for view in views], points)
+    face = shadow_cameras.face_of([view.camera for view in views], points)
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
         if len(idx):
@@ -148,10 +143,10 @@ def shadow_views(
 ) -> list[ShadowView]:
     """The light's shadow-map views (see the module notes); progress and shapes as visibility's."""
     position = None if light.kind == "sun" else np.asarray(light.position, np.float64)
-    reach, gap = _reach_and_gap(cloud, position)
+    reach, gap = shadow_cameras.reach_and_gap(cloud, position)
     meshes = list(occluders or [])
-    cameras = _cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
-    masks = _near_masks(cameras, cloud.positions, reach)
+    cameras = shadow_cameras.light_cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
+    masks = shadow_cameras.near_masks(cameras, cloud.positions, reach)
     seen = masks.any(axis=1)
     if len(cameras) > 1 and not seen.all():  # a cube face no splat can reach is left out: no splat is tested there
         seen[np.argmax(seen)] = True  # (one face stays, even for a cloud the light sees none of)
@@ -193,178 +188,6 @@ def shadow_views(
     return views
 
 
-def _reach_and_gap(cloud, source):
-    """((N,) float64 three standard deviations of each splat's widest axis, (N,) float64 each splat's
-    centre's distance to `source` (3,) less that reach, or None without a source), by the compiled
-    kernel in one pass where it loads (exp is monotonic: the widest log-scale's exp is the widest
-    scale)."""
-    n = len(cloud)
-    kernel = jit.compiled(__name__, ("_reach_loop",))
-    if kernel is not None:
-        reach, gap = np.empty(n), np.empty(n if source is not None else 0)
-        fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.log_scales)]
-        origin = np.zeros(3) if source is None else source
-        in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, origin, reach, gap))
-        return reach, (gap if source is not None else None)
-    log_scales = cloud.log_scales  # column by column: a reduction along rows of three is slow
-    widest = np.maximum(np.maximum(log_scales[:, 0], log_scales[:, 1]), log_scales[:, 2])
-    with np.errstate(over="ignore"):
-        reach = 3.0 * np.exp(widest.astype(np.float64))
-    if source is None:
-        return reach, None
-    rel = cloud.positions.astype(np.float64) - source
-    return reach, np.sqrt(np.einsum("ij,ij->i", rel, rel)) - reach
-
-
-def _reach_loop(lo, hi, positions, log_scales, source, reach, gap):
-    """_reach_and_gap for splats lo..hi (gap only when it has room for them)."""
-    for i in range(lo, hi):
-        widest = max(max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
-        reach[i] = 3.0 * math.exp(np.float64(widest))  # inf past float64's range, as NumPy's exp
-        if gap.shape[0]:
-            dx, dy = positions[i, 0] - source[0], positions[i, 1] - source[1]
-            dz = positions[i, 2] - source[2]
-            gap[i] = math.sqrt(dx * dx + dy * dy + dz * dz) - reach[i]
-
-
-# cameras ------------------------------------------------------------------------------------------
-
-
-def _cameras(light, positions, reach, gap, meshes, resolution):
-    kind = light.kind
-    position = np.asarray(getattr(light, "position", np.zeros(3)), np.float64)
-    direction = _unit(light.direction)
-    if kind == "sun":
-        return [_sun_camera(direction, positions, reach, meshes, resolution)]
-    near = _near_plane(position, gap, meshes)
-    if kind == "spot" and light.spot_size <= SPOT_CUBE_ANGLE:
-        fov = math.degrees(min(light.spot_size * 1.1 + 0.05, math.radians(170)))
-        matrix = look_at_matrix(position, position + direction, _up_for(direction))
-        f = 0.5 * resolution / math.tan(math.radians(fov) / 2)
-        return [Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, near)]
-    if kind == "area":
-        x = _unit(getattr(light, "x_axis", _up_for(direction)))
-        axes = np.stack([x, np.cross(direction, x), direction])  # the light's frame, rows
-        dirs = [axes[2], axes[0], -axes[0], axes[1], -axes[1]]  # not the face behind the light
-    else:
-        dirs = [np.array(d, np.float64) for d in np.vstack([np.eye(3), -np.eye(3)])]
-    return [_cube_face(position, d, near, resolution) for d in dirs]
-
-
-def _cube_face(position, forward, near, resolution):
-    matrix = look_at_matrix(position, position + forward, _up_for(forward))
-    # A little over 90 degrees: the filter's taps around a splat near a face's edge still read
-    # this face's map (each splat is tested on the face it is most central in).
-    f = resolution / 2 - min(CUBE_MARGIN, resolution / 8)
-    return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, near)
-
-
-def _sun_camera(direction, positions, reach, meshes, resolution):
-    """An orthographic camera along `direction` framing the splats' positions (N,3) and the mesh
-    vertices, square texels."""
-    up = _up_for(direction)
-    frame = look_at_matrix(np.zeros(3), direction, up)[:3, :3]
-    points = positions.astype(np.float64)
-    everything = np.concatenate([points] + [m.vertices for m in meshes]) if meshes else points
-    pad = np.concatenate([reach] + [np.zeros(len(m.vertices)) for m in meshes]) if meshes else reach
-    local = everything @ frame.T
-    lo = np.array([(local[:, axis] - pad).min() for axis in range(3)])  # per axis: faster than along rows
-    hi = np.array([(local[:, axis] + pad).max() for axis in range(3)])
-    extent = max(hi[0] - lo[0], hi[1] - lo[1], 1e-9) * 1.02
-    centre = frame.T @ ((lo + hi) / 2)
-    depth = hi[2] - lo[2]
-    eye = centre - direction * (depth / 2 + 1.0 + 0.01 * extent)
-    f = resolution / extent
-    matrix = look_at_matrix(eye, centre, up)
-    return Camera(resolution, resolution, f, f, resolution / 2, resolution / 2, matrix, 0.5, projection="orthographic")
-
-
-def _near_plane(position, gap, meshes):
-    """A near plane in front of everything the light sees: half the nearest splat's surface distance
-    (gap, _reach_and_gap's) or mesh vertex's."""
-    d = gap if len(gap) else np.ones(1)
-    for m in meshes:
-        d = np.append(d, np.linalg.norm(m.vertices - position, axis=1).min())
-    nearest = float(np.min(d)) if len(d) else 1.0
-    return float(np.clip(0.5 * nearest, 1e-4, 0.05))
-
-
-def _near_masks(cameras, positions, reach):
-    """(F, N) bool: _near_mask of every camera, by the compiled kernel in one pass over the splats
-    when it loads."""
-    kernel = jit.compiled(__name__, ("_near_loop",))
-    if kernel is None:
-        points = positions.astype(np.float64)
-        return np.array([_near_mask(camera, points, reach) for camera in cameras]).reshape(len(cameras), -1)
-    params = np.array([_near_params(camera) for camera in cameras]).reshape(-1, 7)
-    rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
-    out = np.empty((len(cameras), len(positions)), np.bool_)
-    positions = np.ascontiguousarray(positions, np.float32)
-    in_chunks(len(positions), lambda lo, hi: kernel(lo, hi, positions, reach, params, rotations, out))
-    return out
-
-
-def _near_params(camera):
-    """(centre (3), half_x, half_y, near, orthographic) of a camera for _near_loop."""
-    half_x = (camera.width / 2 + 2) / camera.fx
-    half_y = (camera.height / 2 + 2) / camera.fy
-    return [*camera.center, half_x, half_y, camera.near, float(camera.is_orthographic)]
-
-
-def _near_loop(lo, hi, positions, reach, params, rotations, out):
-    """_near_mask for splats lo..hi and every camera (rows of params and rotations) into out (F,N)."""
-    for f in range(params.shape[0]):
-        half_x, half_y, near, ortho = params[f, 3], params[f, 4], params[f, 5], params[f, 6] > 0.5
-        widest = math.sqrt(1 + max(half_x, half_y) ** 2)
-        for i in range(lo, hi):
-            px, py, pz = positions[i, 0] - params[f, 0], positions[i, 1] - params[f, 1], positions[i, 2] - params[f, 2]
-            x = rotations[f, 0, 0] * px + rotations[f, 0, 1] * py + rotations[f, 0, 2] * pz
-            y = rotations[f, 1, 0] * px + rotations[f, 1, 1] * py + rotations[f, 1, 2] * pz
-            r = reach[i]
-            if ortho:
-                out[f, i] = abs(x) <= half_x + r and abs(y) <= half_y + r
-                continue
-            z = rotations[f, 2, 0] * px + rotations[f, 2, 1] * py + rotations[f, 2, 2] * pz
-            slack = r * widest
-            out[f, i] = z + r > near and abs(x) <= half_x * z + slack and abs(y) <= half_y * z + slack
-
-
-def _near_mask(camera, points, reach):
-    """Splats whose 3-sigma extent may reach the camera's image (a cone or box test, padded)."""
-    c = camera.to_camera(points)
-    half_x = (camera.width / 2 + 2) / camera.fx
-    half_y = (camera.height / 2 + 2) / camera.fy
-    if camera.is_orthographic:
-        return (np.abs(c[:, 0]) <= half_x + reach) & (np.abs(c[:, 1]) <= half_y + reach)
-    z = c[:, 2]
-    slack = reach * math.sqrt(1 + max(half_x, half_y) ** 2)
-    return (z + reach > camera.near) & (np.abs(c[:, 0]) <= half_x * z + slack) & (np.abs(c[:, 1]) <= half_y * z + slack)
-
-
-def _face_of(cameras, points):
-    """(N,) index of the view (of `cameras`) each splat is tested in: the cube face its direction
-    falls in most centrally (the largest forward component); -1 where no view looks (behind an area
-    light)."""
-    if len(cameras) == 1:
-        return np.zeros(len(points), np.int64)
-    rel = points - cameras[0].center
-    forward = np.stack([camera.forward for camera in cameras])
-    along = rel @ forward.T
-    best = np.argmax(along, axis=1)
-    behind = along[np.arange(len(points)), best] <= 0
-    return np.where(behind, -1, best)
-
-
-def _up_for(direction):
-    """An up vector not parallel to `direction`."""
-    return np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-
-
-def _unit(v):
-    v = np.asarray(v, np.float64).reshape(3)
-    return v / np.linalg.norm(v)
-
-
 # casters --------------------------------------------------------------------------------------------
 # A splat shadows only what lies behind it: beyond the plane through its centre across its normal, on
 # the side away from the light (a point on the light's side of that plane reaches the whole light
@@ -375,7 +198,7 @@ def _unit(v):
 
 
 def _casters(cloud, light, cameras, near, reach):
-    """(N,) bool: the splats the light's maps (views `cameras`; near, (F, N) _near_masks') must
+    """(N,) bool: the splats the light's maps (views `cameras`; near, (F, N) near_masks') must
     draw. A splat no map can show is never drawn; kept besides the casters are splats without a
     usable normal, wider than CASTER_REACH texels in the map, or whose plane the light's extent
     straddles. Without material normals (captured splats), a splat's shortest axis stands for its
@@ -409,7 +232,7 @@ def _light_source(light):
     emitting extent (an area light's half diagonal); the sun's direction of travel and the sine of
     its half angle."""
     if light.kind == "sun":
-        return _unit(light.direction), math.sin(0.5 * float(getattr(light, "angle", 0.0)))
+        return unit(light.direction), math.sin(0.5 * float(getattr(light, "angle", 0.0)))
     if light.kind == "area":
         return np.asarray(light.position, np.float64), 0.5 * math.hypot(*light.extent)
     return np.asarray(light.position, np.float64), float(getattr(light, "radius", 0.0))
@@ -602,7 +425,7 @@ def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cameras, boxes, sou
         away = np.where((side > 0.0)[:, None], -unit, unit)
     usable = (length > 1e-6) & np.isfinite(length) & (np.abs(side) > size)
     keep = np.ones(n, bool)
-    face = _face_of(cameras, points)
+    face = shadow_cameras.face_of(cameras, points)
     for f, camera in enumerate(cameras):  # a loop over views
         rows = np.flatnonzero(usable & (face == f))
         uv, z = camera.project(points[rows])
@@ -641,7 +464,7 @@ def _light_rays(light, points):
     """(N,3) unit directions from the light towards each point (the sun's own for all), normalised
     as the compiled _extent_loop does (its test holds the two to 1e-12)."""
     if light.kind == "sun":
-        return np.broadcast_to(_unit(light.direction), points.shape)
+        return np.broadcast_to(unit(light.direction), points.shape)
     rel = points - np.asarray(light.position, np.float64)
     return rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-300)
 
@@ -682,7 +505,7 @@ def _extent_args(cloud, light):
     and whether it is the sun."""
     normals = material.normal_columns(cloud) or (np.zeros(0), np.zeros(0), np.zeros(0))
     sun = light.kind == "sun"
-    source = _unit(light.direction) if sun else np.asarray(light.position, np.float64)
+    source = unit(light.direction) if sun else np.asarray(light.position, np.float64)
     fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.rotations, cloud.log_scales)]
     return (*fields, *normals, source, sun)
 
@@ -815,7 +638,8 @@ def _penumbra(z, blocker, scale, ortho):
 
 
 def _visibility_compiled(kernel, cloud, light, views, settings, discs, out):
-    """visibility()'s test of every splat in its view (_face_of, _filtered) by one compiled loop on
+    """visibility()'s test of every splat in its view (shadow_cameras.face_of, _filtered) by one compiled
+    loop on
     every core: the splat's projection, extent, bias, search and filter without (N,) temporaries per
     view (the extent only where a search is made: most splats of a scene lie far from any shadow)."""
     cams = np.array([_camera_row(view.camera) for view in views])
@@ -852,7 +676,7 @@ def _camera_row(camera):
 
 def _visibility_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, source, sun, cams, texels, occupied,
                      search_disc, disc, params, out):  # fmt: skip
-    """visibility() for splats lo..hi into out: each splat's view (_face_of: with several, the one
+    """visibility() for splats lo..hi into out: each splat's view (face_of: with several, the one
     looking most nearly at it, none behind them all), then _filtered's test there, skipped where the
     map holds nothing within the search's reach (_occupied_cells: lit all the same)."""
     size, sigma_bias, texel_bias = params[0], params[1], params[2]
@@ -900,7 +724,7 @@ def _plane_one(nx, ny, nz, i, cams, f, z):
 
 
 def _face_one(positions, i, cams):
-    """_face_of for splat i: the view (row of cams, _camera_row) looking most nearly at it; -1
+    """face_of for splat i: the view (row of cams, _camera_row) looking most nearly at it; -1
     behind them all (behind an area light)."""
     if cams.shape[0] == 1:
         return 0

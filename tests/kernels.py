@@ -36,7 +36,7 @@ def _relighting_missing():
     on first use: a small lit frame compiles them all; [why] where one fails or does not load."""
     import numpy as np
 
-    from splatwright.core import jit, material, relight, scenes, shading, shadows
+    from splatwright.core import jit, material, relight, scenes, shading, shadow_cameras, shadows
     from splatwright.core.camera import Camera
     from splatwright.core.lights import Light
 
@@ -51,10 +51,11 @@ def _relighting_missing():
         return [f"relighting: {type(exc).__name__}: {exc}"]
     kernels = {
         "shadow filter": (shadows.__name__, shadows.FILTER_KERNEL),
-        "shadow masks": (shadows.__name__, ("_near_loop",)),
+        "shadow masks": (shadow_cameras.__name__, ("_near_loop",)),
         "shadow casters": (shadows.__name__, shadows.CASTERS_KERNEL),
         "shadow cells": (shadows.__name__, shadows.BOXES_KERNEL),
-        "shadow reach": (shadows.__name__, ("_reach_loop",)),
+        "shadow reach": (shadow_cameras.__name__, ("_reach_loop",)),
+        "sun framing": (shadow_cameras.__name__, ("_bounds_loop",)),
         "shadow extents": (shadows.__name__, shadows.EXTENT_KERNEL),
         "shading": (shading.__name__, shading.SHADE_KERNEL),
         "lit colours": (relight.__name__, ("_display_dc_loop",)),

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from shadow_reference import plane_cloud, reference_visibility, sphere_cloud
 
-from splatwright.core import material, shadows
+from splatwright.core import material, shadow_cameras, shadows
 from splatwright.core.lights import Light
 from splatwright.core.mesh import Surface
 from splatwright.core.render import render
@@ -156,8 +156,8 @@ def test_point_light_cube_keeps_only_faces_with_splats(scene):
     assert 1 <= len(views) < 6 and not (forward[:, 2] > 0.9).any()
     down = np.flatnonzero(forward[:, 2] < -0.9)
     assert len(down) == 1 and (views[down[0]].alpha > 0).any()
-    cube = [shadows._cube_face(light.position, d, views[0].camera.near, 64) for d in (*np.eye(3), *-np.eye(3))]
-    own = set(shadows._face_of(cube, cloud.positions.astype(np.float64)).tolist())  # each splat's face
+    cube = [shadow_cameras._cube_face(light.position, d, views[0].camera.near, 64) for d in (*np.eye(3), *-np.eye(3))]
+    own = set(shadow_cameras.face_of(cube, cloud.positions.astype(np.float64)).tolist())  # each splat's face
     kept = {k for k, c in enumerate(cube) if any(np.allclose(c.forward, f) for f in forward)}
     assert own <= kept  # every splat is tested on the face it would have had in the whole cube
 
@@ -203,11 +203,13 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
         pytest.skip("compiled kernels are not available here")
     source = None if light.kind == "sun" else light.position
     compiled = shadows._extent_and_slope(cloud, light)
-    reach, gap = shadows._reach_and_gap(cloud, source)
+    reach, gap = shadow_cameras.reach_and_gap(cloud, source)
+    frame = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))[0]  # any rotation
+    bounds = shadow_cameras.bounds_in(frame, cloud.positions, reach)
     views = shadows.shadow_views(cloud, light, resolution=128)
     # A map draws its rows of the cloud: it is the map of a copy of the casters near it.
     cameras = [v.camera for v in views]
-    masks = shadows._near_masks(cameras, cloud.positions, reach)
+    masks = shadow_cameras.near_masks(cameras, cloud.positions, reach)
     casters = shadows._casters(cloud, light, cameras, masks, reach)
     assert casters.mean() < 0.8  # the sphere; the plane has nothing under it
     bare = SplatCloud(cloud.positions, cloud.rotations.copy(), cloud.log_scales.copy(), cloud.opacity_logits, cloud.sh)
@@ -219,12 +221,16 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     reference = shadows._extent_and_slope(cloud, light)
     for got, want in zip(compiled, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-12)
-    want_reach, want_gap = shadows._reach_and_gap(cloud, source)
+    want_reach, want_gap = shadow_cameras.reach_and_gap(cloud, source)
     np.testing.assert_allclose(reach, want_reach, rtol=1e-12)
+    local = cloud.positions.astype(np.float64) @ frame.T  # the sun's framing: float64 brute force
+    np.testing.assert_allclose(bounds[0], (local - reach[:, None]).min(axis=0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(bounds[1], (local + reach[:, None]).max(axis=0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(shadow_cameras.bounds_in(frame, cloud.positions, reach), bounds, rtol=1e-12, atol=1e-12)
     assert (gap is None) == (source is None)
     if gap is not None:
         np.testing.assert_allclose(gap, want_gap, rtol=1e-9, atol=1e-12)
-    want_masks = shadows._near_masks(cameras, cloud.positions, want_reach)
+    want_masks = shadow_cameras.near_masks(cameras, cloud.positions, want_reach)
     assert np.array_equal(masks, want_masks)
     assert np.array_equal(casters, shadows._casters(cloud, light, cameras, want_masks, want_reach))
     assert np.array_equal(bare_casters, shadows._casters(bare, light, cameras, want_masks, want_reach))
@@ -252,8 +258,8 @@ def test_maps_leave_out_splats_with_nothing_behind_them(scene, kind):
     for c, expect_floor_over_below in ((cloud, False), (layered, True)):
         views = shadows.shadow_views(c, light, resolution=512)
         cameras = [v.camera for v in views]
-        reach = shadows._reach_and_gap(c, None)[0]
-        near = shadows._near_masks(cameras, c.positions, reach)
+        reach = shadow_cameras.reach_and_gap(c, None)[0]
+        near = shadow_cameras.near_masks(cameras, c.positions, reach)
         casters = shadows._casters(c, light, cameras, near, reach)
         floor = casters[:n_plane]
         assert casters[n_plane : len(cloud)][near[:, n_plane : len(cloud)].any(axis=0)].all()  # the sphere
@@ -266,8 +272,8 @@ def test_maps_leave_out_splats_with_nothing_behind_them(scene, kind):
     grazing = Light("sun", direction=(1.0, 0.0, -0.01), angle=math.radians(5))
     views = shadows.shadow_views(cloud, grazing, resolution=128)
     cameras = [v.camera for v in views]
-    reach = shadows._reach_and_gap(cloud, None)[0]
-    near = shadows._near_masks(cameras, cloud.positions, reach)
+    reach = shadow_cameras.reach_and_gap(cloud, None)[0]
+    near = shadow_cameras.near_masks(cameras, cloud.positions, reach)
     assert shadows._casters(cloud, grazing, cameras, near, reach)[:n_plane].all()
     # Without material normals (captured splats), a flat splat's shortest axis stands for its normal;
     # splats too round to have one are all drawn.
