@@ -25,7 +25,7 @@ from .camera import Camera
 from .lights import Light, World
 from .parallel import in_chunks
 from .render import Layer, RenderResult, Shapes, render
-from .shading import shade
+from .shading import linked_masks, shade
 from .splats import SplatCloud
 from .steps import part_progress
 
@@ -124,13 +124,15 @@ def lit_colors(
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
     visible: dict[int | str, np.ndarray] | None = None,
+    receivers: dict[int, np.ndarray] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
     the lights that cast shadows and an occluded world: all splats and `meshes` occlude; `progress`
-    and `shapes` as visibilities')."""
+    and `shapes` as visibilities') and, with `receivers` (light linking: a light's index to the (N,)
+    bool splats it lights), given only to the splats each light is linked to."""
     rows = material.carried(cloud)
     if not rows.any():
         return rows, None
@@ -145,9 +147,11 @@ def lit_colors(
             progress=progress,
             shapes=shapes,
         )
+    receivers = linked_masks(receivers, len(cloud))
     if rows.all():
-        return rows, shade(cloud, camera, lights, world, visible)
-    return rows, shade(cloud[rows], camera, lights, world, {i: v[rows] for i, v in visible.items()})
+        return rows, shade(cloud, camera, lights, world, visible, receivers=receivers)
+    part = {i: v[rows] for i, v in visible.items()}
+    return rows, shade(cloud[rows], camera, lights, world, part, receivers={i: m[rows] for i, m in receivers.items()})
 
 
 def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:
@@ -195,6 +199,7 @@ def render_lit(
     shadow_resolution: dict | int | None = None,
     threads: int | None = None,
     visible: dict[int | str, np.ndarray] | None = None,
+    receivers: dict[int, np.ndarray] | None = None,
     **render_options,
 ) -> LitRender:
     """Render `cloud` through `camera` lit by `lights` (core.lights.Light) and `world`.
@@ -203,7 +208,8 @@ def render_lit(
     through `layer`, core.render's). passes: also the diffuse, specular and shadow images.
     shadow_resolution: texels a side of the shadow maps, one number or a dict by light kind
     (default SHADOW_RESOLUTION). visible: visibilities()'s result when the caller has it (they do
-    not depend on the camera), else made here. Other keywords go to core.render (mode, tile_size,
+    not depend on the camera), else made here. receivers: light linking, a light's index to the (N,)
+    bool splats it lights (absent: all; core.shading.shade). Other keywords go to core.render (mode, tile_size,
     backend, ...); its `progress` follows the shadow maps first (label "shadows"; the world's,
     "world occlusion"), then the render's tiles."""
     t0 = time.perf_counter()
@@ -218,6 +224,7 @@ def render_lit(
         shadow_resolution=shadow_resolution,
         threads=threads,
         visible=visible,
+        receivers=receivers,
         progress=render_options.get("progress"),
         shapes=shapes,
     )

@@ -220,6 +220,7 @@ def shade(
     world: World | None = None,
     visibility: dict[int | str, np.ndarray] | None = None,
     *,
+    receivers: dict[int, np.ndarray] | None = None,
     multiscatter: bool = True,
     backend: str = "auto",
 ) -> Shading:
@@ -228,14 +229,17 @@ def shade(
     maps a light's index in `lights` to (N,) values in [0,1] (1: unshadowed; lights absent: 1), and
     "world" to the (N,2) share of the world each splat sees on its normal's side and the other
     (core.ambient; absent: 1).
+    receivers: light linking, a light's index to the (N,) bool splats it lights (absent: all); the
+    others get none of its light, and it counts as no shadow on them.
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
     default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
     backend: "auto" (the compiled kernel where numba loads, core.jit) or "numpy" (the reference)."""
     if not material.has_material(cloud):
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
     kernel = _shade_kernel() if backend != "numpy" else None
+    reach = _reach(receivers, len(lights), len(cloud))
     if kernel is not None:
-        return _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
+        return _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter)
     normals, albedo = material.normals(cloud), material.albedo(cloud)
     points = cloud.positions.astype(np.float64)
     n = len(points)
@@ -254,11 +258,12 @@ def shade(
     for index, light in enumerate(lights):  # a loop over lights
         d, s = _light_terms(light, points, normal, view, alpha, f0)
         d, s = d * base / math.pi, s * boost
-        vis = _visibility(visibility, index, n)
+        linked = reach[index] if reach.shape[1] > 1 else reach[index, 0]
+        vis = _visibility(visibility, index, n) * linked
         diffuse += vis[:, None] * d
         specular += vis[:, None] * s
         total = (d + s).mean(axis=1)
-        lit += total
+        lit += linked * total
         seen += vis * total
     if world is not None:
         seen_world = _world_visibility(visibility, n)[np.arange(n), np.where(front, 0, 1)]
@@ -275,6 +280,32 @@ def _visibility(visibility: dict[int, np.ndarray] | None, index: int, n: int) ->
     if vis.shape != (n,) or not np.isfinite(vis).all():
         raise ValueError(f"visibility of light {index} must be {n} finite values, got shape {vis.shape}")
     return np.clip(vis, 0.0, 1.0)
+
+
+def linked_masks(receivers: dict[int, np.ndarray] | None, n: int) -> dict[int, np.ndarray]:
+    """Light linking's masks (a light's index to the splats it lights) as (N,) bool arrays;
+    ValueError for one that is not one value per splat."""
+    out = {}
+    for index, mask in (receivers or {}).items():
+        mask = np.asarray(mask).reshape(-1)
+        if mask.shape != (n,):
+            raise ValueError(f"light {index}'s receivers must be {n} values, one per splat, got {mask.shape[0]}")
+        out[int(index)] = mask.astype(bool)
+    return out
+
+
+def _reach(receivers: dict[int, np.ndarray] | None, n_lights: int, n: int) -> np.ndarray:
+    """(L, N) float64: 1 where a light lights a splat, 0 where its light linking leaves it out; (L, 1)
+    ones without linking. ValueError for a light index out of range."""
+    masks = linked_masks(receivers, n)
+    if not masks:
+        return np.ones((n_lights, 1))
+    reach = np.ones((n_lights, n))
+    for index, mask in masks.items():
+        if not 0 <= index < n_lights:
+            raise ValueError(f"light linking names light {index}, but there are {n_lights} lights")
+        reach[index] = mask
+    return reach
 
 
 def _world_visibility(visibility: dict | None, n: int) -> Floats:
@@ -332,7 +363,7 @@ def _area_reaches(lights: list[Light]) -> np.ndarray:
     return np.array(rows, np.float64).reshape(-1, 5)
 
 
-def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter):
+def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter):
     """shade() by the compiled kernel, on every core (it releases the GIL). It reads the material's
     columns as they are stored (float32 albedo, float64 normals) rather than (N,3) float64 copies."""
     n = len(cloud)
@@ -359,7 +390,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, multiscatter)
         n,
         lambda lo, hi: kernel(
             lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, reaches, colors,
-            vis, world_color, seen_world, scale, bias, diffuse, specular, shadow,
+            vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -394,7 +425,7 @@ def _table_one(table, cos_v, roughness):
 
 
 def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, reaches, colors, vis,
-                world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
+                reach, world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
     grids = np.empty(n_lights)  # each area light's grid at this splat (core.lights.area_grids)
@@ -476,7 +507,8 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
         out_d[:] = 0.0
         out_s[:] = 0.0
         for k in range(n_lights):
-            visible = min(max(vis[k, i], 0.0), 1.0)
+            linked = reach[k, i] if reach.shape[1] > 1 else reach[k, 0]  # light linking
+            visible = min(max(vis[k, i], 0.0), 1.0) * linked
             total = 0.0
             for c in range(3):
                 dc = acc[k, 0] * colors[k, c] * base[c] / math.pi
@@ -484,7 +516,7 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                 out_d[c] += visible * dc
                 out_s[c] += visible * sc
                 total += dc + sc
-            lit += total / 3.0
+            lit += linked * total / 3.0
             seen += visible * total / 3.0
         row = i if seen_world.shape[0] > 1 else 0  # one row: the whole world everywhere
         sky = seen_world[row, 0] if sign > 0.0 else seen_world[row, 1]  # the world on the eye's side

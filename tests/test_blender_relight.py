@@ -242,6 +242,33 @@ def test_relit_splats_shadow_the_mesh_floor(blender):
     assert stand_in["none"][0] is None and "meshes get no shadow" in stand_in["none"][1][0]
 
 
+def test_light_linking_lights_only_the_linked_splats(blender):
+    """A key light whose receiver collection includes the left ball: the left ball renders as with no
+    linking, the right one as with the key hidden; the engine's masks follow Include and Exclude."""
+    from workers.relight import LINKED_BALLS, LINKED_RADIUS
+
+    res = blender.step("light_linking")
+    per_ball = 1500
+    assert res["included"] == {"sun": None, "point": {"Left": per_ball, "Right": 0}}
+    assert res["excluded"] == {"sun": None, "point": {"Left": 0, "Right": per_ball}}
+    images = {n: exr(blender.out / f"link_{n}.exr") for n in ("all", "left", "none")}
+    color = {n: channels(im, "Combined", "RGB").astype(np.float64) for n, im in images.items()}
+    alpha = channels(images["all"], "Splats", "RGBA")[..., 3]
+    cam = camera(res["camera"], np.array(res["origin"]))
+    centres, depth = cam.project(np.array(list(LINKED_BALLS.values())) - np.array(res["origin"]))
+    radius = cam.fx * LINKED_RADIUS / depth  # each ball's outline in pixels, about
+    height, width = alpha.shape
+    rows, cols = np.mgrid[0:height, 0:width] + 0.5  # EXR rows start at the top, as the core's
+    within = [np.hypot(cols - x, rows - y) / r for (x, y), r in zip(centres, radius, strict=True)]
+    covered = alpha > 0.9
+    left, right = covered & (within[0] < within[1]), covered & (within[1] < within[0])
+    assert left.sum() > 100 and right.sum() > 100
+    key_light = (color["all"] - color["none"]).mean(axis=-1)
+    assert key_light[left].mean() > 0.03 and key_light[right].mean() > 0.03  # the key matters on both
+    assert np.abs(color["left"] - color["all"])[left].max() < 2e-3  # linked: lit as before
+    assert np.abs(color["left"] - color["none"])[right].max() < 2e-3  # not linked: as without the key
+
+
 def test_meshes_shadow_relit_splats(blender):
     """A mesh ball over a relit splat floor: the splats' Diffuse pass is darker inside the closed-form
     shadow than outside it, away from the ball itself."""

@@ -92,6 +92,27 @@ def test_splats_with_zero_normals_keep_their_own_colours(scene):
     assert np.isfinite(lit.color).all()
 
 
+def test_light_linking_reaches_the_splats_of_the_rows_with_a_material(scene):
+    """Receivers are one mask per splat of the whole cloud: where some splats carry no material, the
+    shading of the others follows their own rows of it."""
+    albedo = scene.extras["albedo"].copy()
+    albedo[:50] = np.nan  # the first 50 splats: no material, shaded by nothing
+    cloud = scene.replace(extras={**scene.extras, "albedo": albedo})
+    plane = np.arange(len(cloud)) < len(cloud) - 400  # the sun lights the floor only
+    visible = relight.visibilities(cloud, LIGHTS)
+    rows, linked = relight.lit_colors(cloud, CAMERA, LIGHTS, visible=visible, receivers={1: plane})
+    _, point_only = relight.lit_colors(cloud, CAMERA, LIGHTS[:1], visible={0: visible[0]})
+    _, both = relight.lit_colors(cloud, CAMERA, LIGHTS, visible=visible)
+    sphere = ~plane[rows]
+    assert rows.sum() == len(cloud) - 50 and sphere.sum() == 400
+    np.testing.assert_allclose(linked.radiance[sphere], point_only.radiance[sphere], rtol=1e-6)
+    np.testing.assert_array_equal(linked.radiance[~sphere], both.radiance[~sphere])
+    frame = relight.render_lit(cloud, CAMERA, LIGHTS, visible=visible, receivers={1: plane})
+    assert np.isfinite(frame.color).all()
+    with pytest.raises(ValueError, match="receivers must be"):
+        relight.render_lit(cloud, CAMERA, LIGHTS, visible=visible, receivers={1: plane[:-1]})
+
+
 class _Stop(Exception):
     pass
 

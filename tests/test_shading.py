@@ -274,6 +274,27 @@ def test_two_sided_visibility_and_shadow():
         shade(cloud, eye, two, visibility={0: np.array([0.5, 0.5])})
 
 
+@pytest.mark.parametrize("backend", ["auto", "numpy"])
+def test_light_linking_leaves_a_light_out_of_the_splats_it_is_not_linked_to(backend):
+    """A splat a light is not linked to is shaded as if the light were not there: its light and its
+    share of the shadow pass both go (a visibility of 0 would count the light as shadowed)."""
+    eye = np.array([0.0, 0.0, 5.0])
+    two = [Light("sun", power=2.0, direction=(0, 0, -1)), Light("point", power=50.0, position=(0, 1, 1))]
+    cloud = cloud_of([[0, 0, 0], [0.5, 0, 0]], [[0, 0, 1], [0, 0, 1]], [[0.8, 0.6, 0.4]] * 2)
+    world = World((0.1, 0.1, 0.1))
+    half = {0: np.array([0.5, 0.5])}
+    linked = shade(cloud, eye, two, world, half, receivers={1: np.array([True, False])}, backend=backend)
+    both = shade(cloud, eye, two, world, half, backend=backend)
+    first = shade(cloud, eye, two[:1], world, half, backend=backend)
+    np.testing.assert_array_equal(linked.radiance[0], both.radiance[0])  # linked: as before
+    np.testing.assert_allclose(linked.radiance[1], first.radiance[1], rtol=1e-6)  # as if only the sun
+    assert linked.shadow[1] == pytest.approx(first.shadow[1], rel=1e-6) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="receivers must be 2 values"):
+        shade(cloud, eye, two, receivers={1: np.array([True])}, backend=backend)
+    with pytest.raises(ValueError, match="light linking names light 5"):
+        shade(cloud, eye, two, receivers={5: np.array([True, False])}, backend=backend)
+
+
 def test_orthographic_camera_views_along_its_axis_and_no_material_is_refused():
     cam = Camera.look_at_ortho(eye=(0, 0, 5), target=(0, 0, 0), up=(0, 1, 0))
     light = Light("point", power=100.0, position=(1.0, 0.0, 1.0))
@@ -321,10 +342,11 @@ def test_compiled_shade_matches_the_numpy_path(eye):
     if eye == "orthographic":
         cam = Camera(64, 48, 20.0, 20.0, 32, 24, cam.world_to_camera, 0.1, projection="orthographic")
     where = (0.5, -3.0, 1.5) if eye == "point" else cam
-    for world, multiscatter in ((World((0.1, 0.2, 0.3)), True), (None, False)):
+    linked = {1: rng.uniform(size=n) < 0.5, 4: rng.uniform(size=n) < 0.3}  # light linking
+    for world, multiscatter, receivers in ((World((0.1, 0.2, 0.3)), True, None), (None, False, linked)):
         args = (cloud, where, lights, world, visibility)
-        compiled = shade(*args, multiscatter=multiscatter)
-        reference = shade(*args, multiscatter=multiscatter, backend="numpy")
+        compiled = shade(*args, multiscatter=multiscatter, receivers=receivers)
+        reference = shade(*args, multiscatter=multiscatter, receivers=receivers, backend="numpy")
         for name in ("diffuse", "specular", "shadow"):
             got, want = getattr(compiled, name), getattr(reference, name)
             assert got.dtype == want.dtype == np.float32

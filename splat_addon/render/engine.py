@@ -60,7 +60,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         origin = np.array(cam_obj.matrix_world.translation, dtype=np.float64)
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
         with data.reported_warnings(self.report):
-            cloud, lit = relit.scene_cloud(depsgraph, origin)
+            cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
             casters = relit.shadow_casters(cloud, lit, origin)
         transparent = scene.render.film_transparent
         meshes = self._mesh_layer(depsgraph, width, height, casters)
@@ -71,7 +71,10 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if lit is None:
             image, lit_passes = self._image(cloud, cam, background, layer), {}
         else:
-            image, lit_passes = self._lit_image(depsgraph, cloud, lit, cam, background, layer, origin, want_passes)
+            relit_splats = (lit, owners)
+            image, lit_passes = self._lit_image(
+                depsgraph, cloud, relit_splats, cam, background, layer, origin, want_passes
+            )
         passes = {**splat_passes(image, layer, meshes, background), **lit_passes} if want_passes else {}
         world = None if meshes is None else meshes.world()
         if world is not None:  # the world rendered apart: behind everything, per pixel
@@ -141,21 +144,26 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if self.test_break():
             raise _Cancelled
 
-    def _lit_image(self, depsgraph, cloud, lit, cam, background, layer, origin, passes):
-        """The RenderResult of `cloud` with its `lit` splats (those with a material) shaded by the
-        scene's lights and world and shadowed by the whole cloud and the meshes, the others with their
-        own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
-        whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
-        passes when `passes`."""
+    def _lit_image(self, depsgraph, cloud, relit_splats, cam, background, layer, origin, passes):
+        """The RenderResult of `cloud` with its lit splats (relit_splats: scene_cloud's lit mask of
+        those with a material, and their owners) shaded by the scene's lights (as their light linking
+        has it) and world and shadowed by the whole cloud and the meshes, the others with their own
+        colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the whole
+        RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow passes
+        when `passes`."""
         from ...core.relight import render_lit  # only when something is relit
 
+        lit, owners = relit_splats
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
         occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else []
+        links = []
+        lights = scene_lights(depsgraph, origin, links)
         lit_render = render_lit(
             cloud,
             cam,
-            scene_lights(depsgraph, origin),
+            lights,
             scene_world(depsgraph.scene),
+            receivers=relit.receivers(links, owners),
             meshes=occluders,
             background=background,
             layer=layer,

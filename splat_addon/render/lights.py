@@ -15,9 +15,10 @@ from .scene import world_color
 KINDS = {"POINT": "point", "SPOT": "spot", "SUN": "sun", "AREA": "area"}
 
 
-def scene_lights(depsgraph, origin):
+def scene_lights(depsgraph, origin, links=None):
     """A core.lights.Light for every light object (and instance of one) the depsgraph renders, in
-    world space shifted by -`origin`; lights of zero power are left out."""
+    world space shifted by -`origin`; lights of zero power are left out. `links`, a list if given,
+    receives each one's light linking (receivers_of), in the same order."""
     found = []
     for inst in depsgraph.object_instances:  # instance data is only valid during iteration
         obj = inst.object
@@ -26,7 +27,37 @@ def scene_lights(depsgraph, origin):
         light = light_from_blender(obj.data, np.array(inst.matrix_world, dtype=np.float64), origin)
         if light is not None:
             found.append(light)
+            if links is not None:
+                links.append(receivers_of(obj.original))
     return found
+
+
+def receivers_of(light_object):
+    """The light linking of a light object: None when it lights every object, else (included,
+    excluded) sets of object names from its receiver collection (objects set there, and every object
+    of a child collection set there), read as Blender reads them: only included objects when any is
+    included, every object but the excluded ones when none is, included minus excluded with both."""
+    linking = getattr(light_object, "light_linking", None)
+    collection = getattr(linking, "receiver_collection", None)
+    if collection is None:
+        return None
+    included, excluded = set(), set()
+    # Each entry's state sits beside the collection's own list, in its order (the entries hold no
+    # pointer to their object or child collection).
+    for obj, entry in zip(collection.objects, collection.collection_objects, strict=True):
+        (excluded if entry.light_linking.link_state == "EXCLUDE" else included).add(obj.name)
+    for child, entry in zip(collection.children, collection.collection_children, strict=True):
+        names = {obj.name for obj in child.all_objects}
+        (excluded if entry.light_linking.link_state == "EXCLUDE" else included).update(names)
+    return included, excluded
+
+
+def lights_object(link, name):
+    """Whether a light with light linking `link` (receivers_of's) lights the object called `name`."""
+    if link is None:
+        return True
+    included, excluded = link
+    return (not included or name in included) and name not in excluded
 
 
 def scene_world(scene):

@@ -14,7 +14,7 @@ import numpy as np
 
 from ...core import material
 from .. import data
-from .lights import is_relit
+from .lights import is_relit, lights_object
 from .scene import scene_splats, surface_triangles
 
 
@@ -28,18 +28,47 @@ def wants_relight(depsgraph):
 
 
 def scene_cloud(depsgraph, origin):
-    """(cloud, lit) of the depsgraph's splats (world shifted by -`origin`, see scene_splats): lit is an
-    (N,) bool mask of the relit splats, or None when none is relit (the cloud is then as an unlit
-    render reads it)."""
+    """(cloud, lit, owners) of the depsgraph's splats (world shifted by -`origin`, see scene_splats):
+    lit is an (N,) bool mask of the relit splats, or None when none is relit (the cloud is then as an
+    unlit render reads it, and owners None); owners, (names, (N,) int index into names) the object
+    each splat comes from, for light linking (receivers)."""
     from ...core.material import carried
 
     if not wants_relight(depsgraph):
-        return scene_splats(depsgraph, origin), None
-    cloud = scene_splats(depsgraph, origin, prepare=_marked)
+        return scene_splats(depsgraph, origin), None, None
+    names = []
+
+    def prepare(obj, cloud):
+        names.append(obj.name)
+        owner = np.full(len(cloud), len(names) - 1, np.float32)
+        marked = _marked(obj, cloud)
+        return marked.replace(extras={**marked.extras, OWNER: owner})
+
+    cloud = scene_splats(depsgraph, origin, prepare=prepare)
     if cloud is None:
-        return None, None
+        return None, None, None
+    extras = dict(cloud.extras)
+    index = extras.pop(OWNER).reshape(-1).astype(np.int32)
+    cloud = cloud.replace(extras=extras)
     lit = carried(cloud)
-    return cloud, (lit if lit.any() else None)
+    return cloud, (lit if lit.any() else None), ((names, index) if lit.any() else None)
+
+
+OWNER = "splatwright_owner"  # each splat's object while the scene's cloud is joined (scene_cloud)
+
+
+def receivers(links, owners):
+    """Light linking as core.relight takes it: {light index: (N,) bool, the splats of the objects it
+    lights} for every light of `links` (scene_lights') that leaves an object out; {} without owners."""
+    if owners is None:
+        return {}
+    names, index = owners
+    out = {}
+    for k, link in enumerate(links):
+        lit_names = np.array([lights_object(link, name) for name in names] + [True], bool)
+        if not lit_names.all():
+            out[k] = lit_names[index]
+    return out
 
 
 def _marked(obj, cloud):

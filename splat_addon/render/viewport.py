@@ -53,9 +53,10 @@ class Lighting:
     updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
     light or recolouring the world does not make its many maps again."""
 
-    def __init__(self, lights, world, occluders, kept=None):
+    def __init__(self, lights, world, occluders, kept=None, receivers=None):
         self.lights, self.world, self.occluders = lights, world, occluders
         self.kept = {} if kept is None else kept
+        self.receivers = receivers or {}  # light linking (relit.receivers)
         self.visible = None
 
     def shade(self, cloud, camera, check=None):
@@ -69,7 +70,9 @@ class Lighting:
             if self.world.occluded:
                 visible["world"] = self._world_visibility(cloud, progress)
             self.visible = visible
-        rows, shading = lit_colors(cloud, camera, self.lights, self.world, visible=self.visible)
+        rows, shading = lit_colors(
+            cloud, camera, self.lights, self.world, visible=self.visible, receivers=self.receivers
+        )
         return cloud if shading is None else lit_cloud(cloud, rows, shading)
 
     def _world_visibility(self, cloud, progress):
@@ -89,13 +92,15 @@ def picture_inputs(depsgraph, kept=None):
     lighting is a Lighting (with `kept`, see Lighting), or None when no splat is relit."""
     scene = depsgraph.scene
     origin = np.zeros(3)
-    cloud, lit = relit.scene_cloud(depsgraph, origin)
+    cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
     meshes = triangles(depsgraph) if mesh_engine(scene) != "NONE" else Triangles.empty()
     background = None if scene.render.film_transparent else linear_to_srgb(world_color(scene))
     lighting = None
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
-        lighting = Lighting(scene_lights(depsgraph, origin), scene_world(scene), occluders, kept)
+        links = []
+        lights = scene_lights(depsgraph, origin, links)
+        lighting = Lighting(lights, scene_world(scene), occluders, kept, relit.receivers(links, owners))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 

@@ -40,6 +40,9 @@ WORLD = (0.05, 0.05, 0.06)
 FLOOR = dict(size=5.0, color=(0.6, 0.6, 0.6))
 CAMERA = dict(location=(2.6, -3.4, 2.9), look_at=(0.0, 0.0, 0.3), lens=30.0)
 SAMPLES = 8
+LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
+LINKED_RADIUS = 0.35
+KEY = dict(location=(0.0, -2.0, 2.0), energy=300.0)
 
 
 def ball_arrays(centre, radius, count):
@@ -85,7 +88,7 @@ def bpy_camera(worker, viewport):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "lights", "passes", "splats_shadow_meshes", "meshes_shadow_splats", "rig")
+    steps = ("install", "lights", "passes", "splats_shadow_meshes", "meshes_shadow_splats", "light_linking", "rig")
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "actions", "lights", "collections")
 
@@ -224,7 +227,7 @@ class Worker(BlenderWorker):
 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            cloud, lit = relit.scene_cloud(depsgraph, origin)
+            cloud, lit, _ = relit.scene_cloud(depsgraph, origin)
         extras = {f"extra_{k}": v for k, v in cloud.extras.items()}
         self.save(
             name,
@@ -319,6 +322,53 @@ class Worker(BlenderWorker):
         res["camera"] = self.camera_record()
         return res
 
+    def light_linking(self):
+        """Two relit balls and a key light whose receiver collection includes the left one and
+        excludes the right: rendered with the key lighting both (no linking), linked, and hidden; and
+        the engine's light linking masks, then with the two states swapped."""
+        self.stage("NONE")
+        bpy = self.bpy
+        balls = {}
+        for name, centre in LINKED_BALLS.items():
+            arrays = ball_arrays(centre, LINKED_RADIUS, 1500)
+            balls[name] = self.splat_object(name, self.material_cloud(arrays, BALL["albedo"]))
+        key = self.add_light("Key", "POINT", KEY["location"], (0, 0, 0), (1, 1, 1), dict(energy=KEY["energy"]))
+        bpy.context.view_layer.update()
+        self.write("link_all")
+        receivers = bpy.data.collections.new("Key Receivers")
+        receivers.objects.link(balls["Right"])
+        receivers.objects.link(balls["Left"])
+        right, left = receivers.collection_objects  # in the order of receivers.objects
+        right.light_linking.link_state = "EXCLUDE"  # the left ball included, the right one excluded
+        key.light_linking.receiver_collection = receivers
+        bpy.context.view_layer.update()
+        self.write("link_left")
+        res = {"camera": self.camera_record(), "origin": list(bpy.context.scene.camera.matrix_world.translation)}
+        res["included"] = self.linking_masks()
+        right.light_linking.link_state, left.light_linking.link_state = "INCLUDE", "EXCLUDE"
+        bpy.context.view_layer.update()
+        res["excluded"] = self.linking_masks()
+        key.hide_render = True
+        bpy.context.view_layer.update()
+        self.write("link_none")
+        return res
+
+    def linking_masks(self):
+        """Per light the engine reads: how many splats of each ball it lights (None: every splat)."""
+        bpy = self.bpy
+        relit, lights = self.module("splat_addon.render.relit"), self.module("splat_addon.render.lights")
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        cloud, lit, owners = relit.scene_cloud(depsgraph, np.zeros(3))
+        links = []
+        found = lights.scene_lights(depsgraph, np.zeros(3), links)
+        masks = relit.receivers(links, owners)
+        names, index = owners
+        out = {}
+        for k, light in enumerate(found):
+            mask = masks.get(k)
+            out[light.kind] = None if mask is None else {n: int(mask[index == i].sum()) for i, n in enumerate(names)}
+        return out
+
     def stand_in_within_budgets(self):
         """The relit ball's shadow stand-in under an ample budget, one that holds only the coarse
         shape, and one that holds neither: (triangles or None, warnings) each, and the splat count."""
@@ -326,7 +376,7 @@ class Worker(BlenderWorker):
 
         relit = self.module("splat_addon.render.relit")
         casters = self.module("core.shadow_casters")
-        cloud, lit = relit.scene_cloud(self.bpy.context.evaluated_depsgraph_get(), np.zeros(3))
+        cloud, lit, _ = relit.scene_cloud(self.bpy.context.evaluated_depsgraph_get(), np.zeros(3))
         count = int(casters.casting(cloud[lit]).sum())
         coarse = count * len(casters.SHAPES[1][1]) * casters.BYTES_PER_TRIANGLE
         out = {"count": count}
