@@ -78,13 +78,16 @@ def visibilities(
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
+    blockers: dict[int, np.ndarray] | None = None,
 ) -> dict[int | str, np.ndarray]:
     """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
     the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told; and
     under "world" the (N,2) share of `world` each splat sees (core.ambient.world_visibility) when
     the world is occluded (World.occlusion directions) and not black. They do not depend on the
     camera: a viewport makes them once for many views. progress(done, total, label) follows all the
-    maps together; shapes, core.render.Shapes of the cloud, are made here unless given."""
+    maps together; shapes, core.render.Shapes of the cloud, are made here unless given. blockers:
+    shadow linking, a light's index to the (N,) bool splats that may shadow its light (absent: all;
+    the meshes shadow every light)."""
     casting = [index for index, light in enumerate(lights) if light.cast_shadow]
     occluded = world is not None and world.occluded
     parts = len(casting) + occluded
@@ -96,6 +99,7 @@ def visibilities(
             lights[index],
             occluders=meshes,
             resolution=_resolution(shadow_resolution, lights[index]),
+            blocking=(blockers or {}).get(index),
             threads=threads,
             progress=part_progress(progress, step, parts),
             shapes=shapes,
@@ -125,6 +129,7 @@ def lit_colors(
     threads: int | None = None,
     visible: dict[int | str, np.ndarray] | None = None,
     receivers: dict[int, np.ndarray] | None = None,
+    blockers: dict[int, np.ndarray] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
 ):
@@ -132,7 +137,8 @@ def lit_colors(
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
     the lights that cast shadows and an occluded world: all splats and `meshes` occlude; `progress`
     and `shapes` as visibilities') and, with `receivers` (light linking: a light's index to the (N,)
-    bool splats it lights), given only to the splats each light is linked to."""
+    bool splats it lights), given only to the splats each light is linked to; `blockers` as
+    visibilities' (when the visibilities are made here)."""
     rows = material.carried(cloud)
     if not rows.any():
         return rows, None
@@ -146,6 +152,7 @@ def lit_colors(
             threads=threads,
             progress=progress,
             shapes=shapes,
+            blockers=blockers,
         )
     receivers = linked_masks(receivers, len(cloud))
     if rows.all():
@@ -200,6 +207,7 @@ def render_lit(
     threads: int | None = None,
     visible: dict[int | str, np.ndarray] | None = None,
     receivers: dict[int, np.ndarray] | None = None,
+    blockers: dict[int, np.ndarray] | None = None,
     **render_options,
 ) -> LitRender:
     """Render `cloud` through `camera` lit by `lights` (core.lights.Light) and `world`.
@@ -209,7 +217,8 @@ def render_lit(
     shadow_resolution: texels a side of the shadow maps, one number or a dict by light kind
     (default SHADOW_RESOLUTION). visible: visibilities()'s result when the caller has it (they do
     not depend on the camera), else made here. receivers: light linking, a light's index to the (N,)
-    bool splats it lights (absent: all; core.shading.shade). Other keywords go to core.render (mode, tile_size,
+    bool splats it lights (absent: all; core.shading.shade); blockers: shadow linking, the splats
+    that shadow each light (visibilities'). Other keywords go to core.render (mode, tile_size,
     backend, ...); its `progress` follows the shadow maps first (label "shadows"; the world's,
     "world occlusion"), then the render's tiles."""
     t0 = time.perf_counter()
@@ -225,6 +234,7 @@ def render_lit(
         threads=threads,
         visible=visible,
         receivers=receivers,
+        blockers=blockers,
         progress=render_options.get("progress"),
         shapes=shapes,
     )

@@ -95,6 +95,7 @@ def visibility(
     texel_bias: float = TEXEL_BIAS,
     soft: bool = True,
     receiver_plane: bool = False,
+    blocking: np.ndarray | None = None,
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
@@ -108,7 +109,9 @@ def visibility(
     ray and in texels of depth slope. receiver_plane: test each tap of the search and the filter
     against the depth of the splat's own tangent plane there (its material normal; slope capped at
     MAX_SLOPE), so a wide disc of taps on a surface tilted to the light does not find that surface
-    in front of the splat (core.ambient's wide suns). A light with cast_shadow False gives all ones.
+    in front of the splat (core.ambient's wide suns). blocking: (N,) bool, the splats that may
+    shadow (shadow linking; default all: every splat still receives). A light with cast_shadow False
+    gives all ones.
     progress(done, total, "shadows") follows the maps as core.render's progress follows tiles (an
     exception it raises, a cancel, stops the work there). shapes: core.render.Shapes of the cloud,
     when the caller has them (a lit frame makes them once for its maps and its picture)."""
@@ -117,7 +120,14 @@ def visibility(
     if n == 0 or not getattr(light, "cast_shadow", True):
         return out
     views = shadow_views(
-        cloud, light, occluders=occluders, resolution=resolution, threads=threads, progress=progress, shapes=shapes
+        cloud,
+        light,
+        occluders=occluders,
+        resolution=resolution,
+        blocking=blocking,
+        threads=threads,
+        progress=progress,
+        shapes=shapes,
     )
     size = _light_size(light)
     kernel = jit.compiled(__name__, FILTER_KERNEL)
@@ -139,9 +149,10 @@ def visibility(
 
 
 def shadow_views(
-    cloud, light, *, occluders=None, resolution=512, threads=None, progress=None, shapes=None
+    cloud, light, *, occluders=None, resolution=512, blocking=None, threads=None, progress=None, shapes=None
 ) -> list[ShadowView]:
-    """The light's shadow-map views (see the module notes); progress and shapes as visibility's."""
+    """The light's shadow-map views (see the module notes); blocking, progress and shapes as
+    visibility's."""
     position = None if light.kind == "sun" else np.asarray(light.position, np.float64)
     reach, gap = shadow_cameras.reach_and_gap(cloud, position)
     meshes = list(occluders or [])
@@ -160,6 +171,11 @@ def shadow_views(
     bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
     bare.antialiased = cloud.antialiased
     masks &= casters
+    if blocking is not None:
+        blocking = np.asarray(blocking).reshape(-1)
+        if blocking.shape != (len(cloud),):
+            raise ValueError(f"blocking must be {len(cloud)} values, one per splat, got {blocking.shape[0]}")
+        masks &= blocking.astype(bool)
     if shapes is None or not shapes.fits(bare):
         shapes = Shapes(bare, threads)
     views = []

@@ -249,8 +249,9 @@ def test_light_linking_lights_only_the_linked_splats(blender):
 
     res = blender.step("light_linking")
     per_ball = 1500
-    assert res["included"] == {"sun": None, "point": {"Left": per_ball, "Right": 0}}
-    assert res["excluded"] == {"sun": None, "point": {"Left": 0, "Right": per_ball}}
+    unlinked = {"sun lit": None, "sun blocking": None, "point blocking": None}
+    assert res["included"] == {**unlinked, "point lit": {"Left": per_ball, "Right": 0}}
+    assert res["excluded"] == {**unlinked, "point lit": {"Left": 0, "Right": per_ball}}
     images = {n: exr(blender.out / f"link_{n}.exr") for n in ("all", "left", "none")}
     color = {n: channels(im, "Combined", "RGB").astype(np.float64) for n, im in images.items()}
     alpha = channels(images["all"], "Splats", "RGBA")[..., 3]
@@ -267,6 +268,30 @@ def test_light_linking_lights_only_the_linked_splats(blender):
     assert key_light[left].mean() > 0.03 and key_light[right].mean() > 0.03  # the key matters on both
     assert np.abs(color["left"] - color["all"])[left].max() < 2e-3  # linked: lit as before
     assert np.abs(color["left"] - color["none"])[right].max() < 2e-3  # not linked: as without the key
+
+
+def test_shadow_linking_takes_a_blocker_out_of_a_lights_shadows(blender):
+    """A ball between a key light and another: with the key's blocker collection excluding it, the
+    shaded ball renders as with the blocker moved out of the way, and the blocker's shadow had
+    darkened it before."""
+    from workers.relight import SHADOW_BALLS
+
+    res = blender.step("shadow_linking")
+    assert res["masks"] == {"point lit": None, "point blocking": {"Shaded": 1500, "Blocker": 0}}
+    images = {n: exr(blender.out / f"block_{n}.exr") for n in ("all", "linked", "moved")}
+    color = {n: channels(im, "Combined", "RGB").astype(np.float64) for n, im in images.items()}
+    alpha = channels(images["all"], "Splats", "RGBA")[..., 3]
+    cam = camera(res["camera"], np.array(res["origin"]))
+    centres, depth = cam.project(np.array([c for c, _ in SHADOW_BALLS.values()]) - np.array(res["origin"]))
+    radius = cam.fx * np.array([r for _, r in SHADOW_BALLS.values()]) / depth
+    height, width = alpha.shape
+    rows, cols = np.mgrid[0:height, 0:width] + 0.5
+    within = [np.hypot(cols - x, rows - y) / r for (x, y), r in zip(centres, radius, strict=True)]
+    shaded = (alpha > 0.9) & (within[0] < 0.9) & (within[1] > 1.5)
+    assert shaded.sum() > 50  # of a ball about 10 pixels across
+    shadow = (color["moved"] - color["all"]).mean(axis=-1)[shaded]
+    assert shadow.max() > 0.05  # the blocker's shadow shows on the shaded ball
+    assert np.abs(color["linked"] - color["moved"])[shaded].max() < 2e-3
 
 
 def test_meshes_shadow_relit_splats(blender):

@@ -177,6 +177,29 @@ def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch, name):
     assert np.abs(shadows.visibility(cloud, light, resolution=256, receiver_plane=True) - plane).max() < 1e-5
 
 
+@pytest.mark.parametrize("name", ["soft point", "tilted sun"])
+def test_shadow_linking_leaves_out_the_splats_that_do_not_block(scene, name):
+    """With the sphere left out of the blockers the plane under it is lit everywhere (nothing else
+    stands over it) and the sphere's lit side is lit as before; all splats blocking is the default,
+    to the bit."""
+    from splatwright.core import relight
+
+    cloud, n_plane = scene
+    light = LIGHTS[name]
+    plane = np.arange(len(cloud)) < n_plane
+    default = shadows.visibility(cloud, light)
+    assert (default[plane] < 0.5).sum() > 50  # the sphere's shadow on the plane
+    np.testing.assert_array_equal(shadows.visibility(cloud, light, blocking=np.ones(len(cloud), bool)), default)
+    unblocked = shadows.visibility(cloud, light, blocking=plane)
+    assert unblocked[plane].min() > 0.99
+    lit_side = _facing(cloud, light, np.flatnonzero(~plane))
+    np.testing.assert_allclose(unblocked[lit_side], default[lit_side], atol=1e-6)  # the lit side as before
+    visible = relight.visibilities(cloud, [light], blockers={0: plane})
+    np.testing.assert_array_equal(visible[0], unblocked)
+    with pytest.raises(ValueError, match="blocking must be"):
+        shadows.visibility(cloud, light, blocking=plane[:-1])
+
+
 def test_spot_lights_see_what_a_point_light_there_sees(scene):
     cloud, n = scene
     point = Light("point", position=(0.3, -0.2, 2.5), radius=0.2)

@@ -146,11 +146,11 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
 
     def _lit_image(self, depsgraph, cloud, relit_splats, cam, background, layer, origin, passes):
         """The RenderResult of `cloud` with its lit splats (relit_splats: scene_cloud's lit mask of
-        those with a material, and their owners) shaded by the scene's lights (as their light linking
-        has it) and world and shadowed by the whole cloud and the meshes, the others with their own
-        colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the whole
-        RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow passes
-        when `passes`."""
+        those with a material, and their owners) shaded by the scene's lights and world and shadowed
+        by the cloud and the meshes (the lights' light and shadow linking read for the splats), the
+        others with their own colour, in ONE core.render (core.relight.render_lit; the Depth and
+        Splats passes need the whole RenderResult, a layer's transmittance with it), and the Diffuse,
+        Specular and Shadow passes when `passes`."""
         from ...core.relight import render_lit  # only when something is relit
 
         lit, owners = relit_splats
@@ -164,6 +164,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             lights,
             scene_world(depsgraph.scene),
             receivers=relit.receivers(links, owners),
+            blockers=relit.blockers(links, owners),
             meshes=occluders,
             background=background,
             layer=layer,

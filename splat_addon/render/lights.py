@@ -18,7 +18,8 @@ KINDS = {"POINT": "point", "SPOT": "spot", "SUN": "sun", "AREA": "area"}
 def scene_lights(depsgraph, origin, links=None):
     """A core.lights.Light for every light object (and instance of one) the depsgraph renders, in
     world space shifted by -`origin`; lights of zero power are left out. `links`, a list if given,
-    receives each one's light linking (receivers_of), in the same order."""
+    receives each one's light and shadow linking (linking_of: receivers, blockers), in the same
+    order."""
     found = []
     for inst in depsgraph.object_instances:  # instance data is only valid during iteration
         obj = inst.object
@@ -28,17 +29,18 @@ def scene_lights(depsgraph, origin, links=None):
         if light is not None:
             found.append(light)
             if links is not None:
-                links.append(receivers_of(obj.original))
+                links.append((linking_of(obj.original, "receiver"), linking_of(obj.original, "blocker")))
     return found
 
 
-def receivers_of(light_object):
-    """The light linking of a light object: None when it lights every object, else (included,
-    excluded) sets of object names from its receiver collection (objects set there, and every object
-    of a child collection set there), read as Blender reads them: only included objects when any is
-    included, every object but the excluded ones when none is, included minus excluded with both."""
+def linking_of(light_object, kind):
+    """The light linking ("receiver") or shadow linking ("blocker") of a light object: None when it
+    takes in every object, else (included, excluded) sets of object names from its collection of
+    that kind (objects set there, and every object of a child collection set there), read as Blender
+    reads them: only included objects when any is included, every object but the excluded ones when
+    none is, included minus excluded with both."""
     linking = getattr(light_object, "light_linking", None)
-    collection = getattr(linking, "receiver_collection", None)
+    collection = getattr(linking, f"{kind}_collection", None)
     if collection is None:
         return None
     included, excluded = set(), set()
@@ -52,8 +54,9 @@ def receivers_of(light_object):
     return included, excluded
 
 
-def lights_object(link, name):
-    """Whether a light with light linking `link` (receivers_of's) lights the object called `name`."""
+def takes_in(link, name):
+    """Whether linking `link` (linking_of's) takes in the object called `name` (a light lights it,
+    or it shadows the light)."""
     if link is None:
         return True
     included, excluded = link

@@ -14,7 +14,7 @@ import numpy as np
 
 from ...core import material
 from .. import data
-from .lights import is_relit, lights_object
+from .lights import is_relit, takes_in
 from .scene import scene_splats, surface_triangles
 
 
@@ -60,14 +60,25 @@ OWNER = "splatwright_owner"  # each splat's object while the scene's cloud is jo
 def receivers(links, owners):
     """Light linking as core.relight takes it: {light index: (N,) bool, the splats of the objects it
     lights} for every light of `links` (scene_lights') that leaves an object out; {} without owners."""
+    return _linked([receiving for receiving, _ in links], owners)
+
+
+def blockers(links, owners):
+    """Shadow linking as core.relight takes it: {light index: (N,) bool, the splats of the objects
+    that shadow it} for every light of `links` that leaves a splat object out (meshes shadow every
+    light)."""
+    return _linked([blocking for _, blocking in links], owners)
+
+
+def _linked(rules, owners):
     if owners is None:
         return {}
     names, index = owners
     out = {}
-    for k, link in enumerate(links):
-        lit_names = np.array([lights_object(link, name) for name in names] + [True], bool)
-        if not lit_names.all():
-            out[k] = lit_names[index]
+    for k, rule in enumerate(rules):
+        taken = np.array([takes_in(rule, name) for name in names] + [True], bool)
+        if not taken.all():
+            out[k] = taken[index]
     return out
 
 

@@ -53,10 +53,10 @@ class Lighting:
     updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
     light or recolouring the world does not make its many maps again."""
 
-    def __init__(self, lights, world, occluders, kept=None, receivers=None):
+    def __init__(self, lights, world, occluders, kept=None, linking=({}, {})):
         self.lights, self.world, self.occluders = lights, world, occluders
         self.kept = {} if kept is None else kept
-        self.receivers = receivers or {}  # light linking (relit.receivers)
+        self.receivers, self.blockers = linking  # light and shadow linking (relit.receivers, blockers)
         self.visible = None
 
     def shade(self, cloud, camera, check=None):
@@ -66,7 +66,7 @@ class Lighting:
 
         if self.visible is None:
             progress = None if check is None else (lambda *_: check())
-            visible = visibilities(cloud, self.lights, meshes=self.occluders, progress=progress)
+            visible = visibilities(cloud, self.lights, meshes=self.occluders, progress=progress, blockers=self.blockers)
             if self.world.occluded:
                 visible["world"] = self._world_visibility(cloud, progress)
             self.visible = visible
@@ -100,7 +100,8 @@ def picture_inputs(depsgraph, kept=None):
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
         links = []
         lights = scene_lights(depsgraph, origin, links)
-        lighting = Lighting(lights, scene_world(scene), occluders, kept, relit.receivers(links, owners))
+        linking = relit.receivers(links, owners), relit.blockers(links, owners)
+        lighting = Lighting(lights, scene_world(scene), occluders, kept, linking)
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 

@@ -43,6 +43,8 @@ SAMPLES = 8
 LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
 LINKED_RADIUS = 0.35
 KEY = dict(location=(0.0, -2.0, 2.0), energy=300.0)
+# shadow_linking's balls (centre, radius): the blocker on the way from KEY to the shaded one
+SHADOW_BALLS = {"Shaded": ((0.0, 0.8, 0.5), 0.35), "Blocker": ((0.0, -0.74, 1.33), 0.25)}
 
 
 def ball_arrays(centre, radius, count):
@@ -88,7 +90,16 @@ def bpy_camera(worker, viewport):
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "lights", "passes", "splats_shadow_meshes", "meshes_shadow_splats", "light_linking", "rig")
+    steps = (
+        "install",
+        "lights",
+        "passes",
+        "splats_shadow_meshes",
+        "meshes_shadow_splats",
+        "light_linking",
+        "shadow_linking",
+        "rig",
+    )
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "actions", "lights", "collections")
 
@@ -353,20 +364,50 @@ class Worker(BlenderWorker):
         self.write("link_none")
         return res
 
+    def shadow_linking(self):
+        """A ball between a key light and another ball, the sun off: rendered with no shadow linking,
+        with the key's blocker collection excluding the near ball, and with that ball moved out of
+        the key's way; and the engine's masks."""
+        self.stage("NONE")
+        bpy = self.bpy
+        bpy.data.lights["Sun"].energy = 0.0
+        balls = {}
+        for name, (centre, radius) in SHADOW_BALLS.items():
+            cloud = self.material_cloud(ball_arrays(centre, radius, 1500), BALL["albedo"])
+            balls[name] = self.splat_object(name, cloud)
+        key = self.add_light("Key", "POINT", KEY["location"], (0, 0, 0), (1, 1, 1), dict(energy=KEY["energy"]))
+        key.data.shadow_soft_size = 0.05
+        bpy.context.view_layer.update()
+        self.write("block_all")
+        blockers = bpy.data.collections.new("Key Blockers")
+        blockers.objects.link(balls["Blocker"])
+        blockers.collection_objects[0].light_linking.link_state = "EXCLUDE"
+        key.light_linking.blocker_collection = blockers
+        bpy.context.view_layer.update()
+        self.write("block_linked")
+        res = {"camera": self.camera_record(), "origin": list(bpy.context.scene.camera.matrix_world.translation)}
+        res["masks"] = self.linking_masks()
+        balls["Blocker"].location = (0.0, 0.0, 20.0)  # far above: out of the key's way
+        bpy.context.view_layer.update()
+        self.write("block_moved")
+        return res
+
     def linking_masks(self):
-        """Per light the engine reads: how many splats of each ball it lights (None: every splat)."""
+        """Per light the engine reads: how many splats of each ball it lights and how many shadow it
+        (None: every splat)."""
         bpy = self.bpy
         relit, lights = self.module("splat_addon.render.relit"), self.module("splat_addon.render.lights")
         depsgraph = bpy.context.evaluated_depsgraph_get()
         cloud, lit, owners = relit.scene_cloud(depsgraph, np.zeros(3))
         links = []
         found = lights.scene_lights(depsgraph, np.zeros(3), links)
-        masks = relit.receivers(links, owners)
         names, index = owners
         out = {}
-        for k, light in enumerate(found):
-            mask = masks.get(k)
-            out[light.kind] = None if mask is None else {n: int(mask[index == i].sum()) for i, n in enumerate(names)}
+        for kind, masks in (("lit", relit.receivers(links, owners)), ("blocking", relit.blockers(links, owners))):
+            for k, light in enumerate(found):
+                mask = masks.get(k)
+                counts = None if mask is None else {n: int(mask[index == i].sum()) for i, n in enumerate(names)}
+                out[f"{light.kind} {kind}"] = counts
         return out
 
     def stand_in_within_budgets(self):
