@@ -266,7 +266,8 @@ def shade(
         lit += linked * total
         seen += vis * total
     if world is not None:
-        seen_world = _world_visibility(visibility, n)[np.arange(n), np.where(front, 0, 1)]
+        shares = _world_visibility(visibility, n)
+        seen_world = shares[np.arange(n) if len(shares) > 1 else 0, np.where(front, 0, 1)]
         diffuse += base * world.color * seen_world[:, None]
         specular += layer * world.color * seen_world[:, None]
     shadow = np.where(lit > 0.0, 1.0 - seen / np.where(lit > 0.0, lit, 1.0), 0.0)
@@ -309,9 +310,10 @@ def _reach(receivers: dict[int, np.ndarray] | None, n_lights: int, n: int) -> np
 
 
 def _world_visibility(visibility: dict | None, n: int) -> Floats:
-    """(N,2) float64 in [0,1]: visibility["world"] checked, or ones."""
+    """(N,2) float64 in [0,1]: visibility["world"] checked; (1,2) ones without it (the whole world
+    for every splat, with no (N,2) array made)."""
     if visibility is None or "world" not in visibility:
-        return np.ones((n, 2))
+        return np.ones((1, 2))
     seen = np.asarray(visibility["world"], dtype=np.float64)
     if seen.shape != (n, 2) or not np.isfinite(seen).all():
         raise ValueError(f"the world's visibility must be ({n}, 2) finite values, got shape {seen.shape}")
@@ -379,7 +381,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     eye = np.asarray(eye, np.float64).reshape(3)
     colors = np.array([light.color for light in lights], np.float64).reshape(-1, 3)
     world_color = np.zeros(3) if world is None else np.asarray(world.color, np.float64)
-    seen_world = _world_visibility(visibility, n) if visibility and "world" in visibility else np.ones((1, 2))
+    seen_world = _world_visibility(visibility, n)
     scale, bias = _albedo_table()
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)

@@ -59,6 +59,9 @@ def _reach_loop(lo, hi, positions, log_scales, source, reach, gap):
 
 
 def light_cameras(light, positions, reach, gap, meshes, resolution):
+    """The cameras of `light`'s maps (see the module notes), `resolution` texels a side, framing
+    the splats' centres `positions` (N,3) with their `reach` and `gap` (reach_and_gap's) and the
+    `meshes`' vertices."""
     kind = light.kind
     position = np.asarray(getattr(light, "position", np.zeros(3)), np.float64)
     direction = unit(light.direction)
@@ -222,5 +225,6 @@ def _up_for(direction):
 
 
 def unit(v):
+    """`v` (3,) as a float64 unit vector."""
     v = np.asarray(v, np.float64).reshape(3)
     return v / np.linalg.norm(v)

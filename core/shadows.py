@@ -654,10 +654,10 @@ def _penumbra(z, blocker, scale, ortho):
 
 
 def _visibility_compiled(kernel, cloud, light, views, settings, discs, out):
-    """visibility()'s test of every splat in its view (shadow_cameras.face_of, _filtered) by one compiled
-    loop on
-    every core: the splat's projection, extent, bias, search and filter without (N,) temporaries per
-    view (the extent only where a search is made: most splats of a scene lie far from any shadow)."""
+    """visibility()'s test of every splat in its view (shadow_cameras.face_of, _filtered) by one
+    compiled loop on every core: the splat's projection, extent, bias, search and filter without (N,)
+    temporaries per view (the extent only where a search is made: most splats of a scene lie far
+    from any shadow)."""
     cams = np.array([_camera_row(view.camera) for view in views])
     # each texel's depth and alpha side by side: a tap reads one cache line, not two
     texels = np.stack([np.stack([view.depth, view.alpha], axis=-1) for view in views])

@@ -12,7 +12,7 @@ from ...core.color import linear_to_srgb
 from .. import data
 from ..data import camera as blender_camera
 from . import lights, mesh_layer, relit, viewport
-from .lights import WORLD_OCCLUSION, scene_lights, scene_world
+from .lights import WORLD_OCCLUSION, scene_world
 from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_color
 
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
@@ -71,9 +71,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if lit is None:
             image, lit_passes = self._image(cloud, cam, background, layer), {}
         else:
-            relit_splats = (lit, owners)
             image, lit_passes = self._lit_image(
-                depsgraph, cloud, relit_splats, cam, background, layer, origin, want_passes
+                depsgraph, cloud, lit, owners, cam, background, layer, origin, want_passes
             )
         passes = {**splat_passes(image, layer, meshes, background), **lit_passes} if want_passes else {}
         world = None if meshes is None else meshes.world()
@@ -144,27 +143,25 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if self.test_break():
             raise _Cancelled
 
-    def _lit_image(self, depsgraph, cloud, relit_splats, cam, background, layer, origin, passes):
-        """The RenderResult of `cloud` with its lit splats (relit_splats: scene_cloud's lit mask of
-        those with a material, and their owners) shaded by the scene's lights and world and shadowed
-        by the cloud and the meshes (the lights' light and shadow linking read for the splats), the
-        others with their own colour, in ONE core.render (core.relight.render_lit; the Depth and
-        Splats passes need the whole RenderResult, a layer's transmittance with it), and the Diffuse,
-        Specular and Shadow passes when `passes`."""
+    def _lit_image(self, depsgraph, cloud, lit, owners, cam, background, layer, origin, passes):
+        """The RenderResult of `cloud` with its `lit` splats (those with a material; `owners` their
+        objects, scene_cloud's) shaded by the scene's lights and world and shadowed by the cloud and
+        the meshes (the lights' light and shadow linking read for the splats), the others with their
+        own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
+        whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
+        passes when `passes`."""
         from ...core.relight import render_lit  # only when something is relit
 
-        lit, owners = relit_splats
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
         occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else []
-        links = []
-        lights = scene_lights(depsgraph, origin, links)
+        lights, receivers, blockers = relit.linked_lights(depsgraph, origin, owners)
         lit_render = render_lit(
             cloud,
             cam,
             lights,
             scene_world(depsgraph.scene),
-            receivers=relit.receivers(links, owners),
-            blockers=relit.blockers(links, owners),
+            receivers=receivers,
+            blockers=blockers,
             meshes=occluders,
             background=background,
             layer=layer,

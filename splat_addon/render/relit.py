@@ -14,7 +14,7 @@ import numpy as np
 
 from ...core import material
 from .. import data
-from .lights import is_relit, takes_in
+from .lights import is_relit, scene_lights, takes_in
 from .scene import scene_splats, surface_triangles
 
 
@@ -51,32 +51,34 @@ def scene_cloud(depsgraph, origin):
     index = extras.pop(OWNER).reshape(-1).astype(np.int32)
     cloud = cloud.replace(extras=extras)
     lit = carried(cloud)
-    return cloud, (lit if lit.any() else None), ((names, index) if lit.any() else None)
+    if not lit.any():
+        return cloud, None, None
+    return cloud, lit, (names, index)
 
 
 OWNER = "splatwright_owner"  # each splat's object while the scene's cloud is joined (scene_cloud)
 
 
-def receivers(links, owners):
-    """Light linking as core.relight takes it: {light index: (N,) bool, the splats of the objects it
-    lights} for every light of `links` (scene_lights') that leaves an object out; {} without owners."""
-    return _linked([receiving for receiving, _ in links], owners)
-
-
-def blockers(links, owners):
-    """Shadow linking as core.relight takes it: {light index: (N,) bool, the splats of the objects
-    that shadow it} for every light of `links` that leaves a splat object out (meshes shadow every
-    light)."""
-    return _linked([blocking for _, blocking in links], owners)
+def linked_lights(depsgraph, origin, owners):
+    """(lights, receivers, blockers): the scene's lights (lights.scene_lights) and their light and
+    shadow linking as core.relight takes them, {light index: (N,) bool} the splats (of the objects
+    `owners`, scene_cloud's, names) each light lights and the splats that shadow it, for the lights
+    that leave an object out (meshes shadow every light)."""
+    links = []
+    found = scene_lights(depsgraph, origin, links)
+    receiving, blocking = zip(*links) if links else ((), ())
+    return found, _linked(receiving, owners), _linked(blocking, owners)
 
 
 def _linked(rules, owners):
+    """{light index: (N,) bool} of the splats each rule (lights.linking_of's) takes in, for the rules
+    that leave an object out; {} without owners."""
     if owners is None:
         return {}
     names, index = owners
     out = {}
     for k, rule in enumerate(rules):
-        taken = np.array([takes_in(rule, name) for name in names] + [True], bool)
+        taken = np.array([takes_in(rule, name) for name in names], bool)
         if not taken.all():
             out[k] = taken[index]
     return out

@@ -18,7 +18,7 @@ from ...core.color import linear_to_srgb
 from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
 from ...core.splats import SplatCloud
 from . import relit
-from .lights import scene_lights, scene_world
+from .lights import scene_world
 from .scene import mesh_engine, surface_triangles, to_scene_linear, world_color
 
 
@@ -53,10 +53,10 @@ class Lighting:
     updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
     light or recolouring the world does not make its many maps again."""
 
-    def __init__(self, lights, world, occluders, kept=None, linking=({}, {})):
+    def __init__(self, lights, world, occluders, kept=None, receivers=None, blockers=None):
         self.lights, self.world, self.occluders = lights, world, occluders
         self.kept = {} if kept is None else kept
-        self.receivers, self.blockers = linking  # light and shadow linking (relit.receivers, blockers)
+        self.receivers, self.blockers = receivers, blockers  # light and shadow linking (relit.linked_lights)
         self.visible = None
 
     def shade(self, cloud, camera, check=None):
@@ -98,10 +98,8 @@ def picture_inputs(depsgraph, kept=None):
     lighting = None
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
-        links = []
-        lights = scene_lights(depsgraph, origin, links)
-        linking = relit.receivers(links, owners), relit.blockers(links, owners)
-        lighting = Lighting(lights, scene_world(scene), occluders, kept, linking)
+        lights, receivers, blockers = relit.linked_lights(depsgraph, origin, owners)
+        lighting = Lighting(lights, scene_world(scene), occluders, kept, receivers, blockers)
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 

@@ -396,14 +396,13 @@ class Worker(BlenderWorker):
         """Per light the engine reads: how many splats of each ball it lights and how many shadow it
         (None: every splat)."""
         bpy = self.bpy
-        relit, lights = self.module("splat_addon.render.relit"), self.module("splat_addon.render.lights")
+        relit = self.module("splat_addon.render.relit")
         depsgraph = bpy.context.evaluated_depsgraph_get()
         cloud, lit, owners = relit.scene_cloud(depsgraph, np.zeros(3))
-        links = []
-        found = lights.scene_lights(depsgraph, np.zeros(3), links)
+        found, receivers, blockers = relit.linked_lights(depsgraph, np.zeros(3), owners)
         names, index = owners
         out = {}
-        for kind, masks in (("lit", relit.receivers(links, owners)), ("blocking", relit.blockers(links, owners))):
+        for kind, masks in (("lit", receivers), ("blocking", blockers)):
             for k, light in enumerate(found):
                 mask = masks.get(k)
                 counts = None if mask is None else {n: int(mask[index == i].sum()) for i, n in enumerate(names)}
