@@ -13,9 +13,14 @@ import numpy as np
 import pytest
 from workers.base import random_cloud_arrays
 
-from splatwright.core import SplatCloud
+from splatwright.core import SplatCloud, jit
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+needs_numba = pytest.mark.skipif(
+    importlib.util.find_spec("numba") is None or not jit.enabled(),
+    reason="numba is not installed, or compiled kernels are turned off",
+)
 
 
 def random_cloud(n, sh_degree=3, seed=0, spread=1.0):

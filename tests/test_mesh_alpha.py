@@ -3,20 +3,13 @@ with a cut-out pattern over a coloured quad behind it, against a float64 ray cas
 hit along each pixel's ray, and both rasteriser backends against each other; a BLEND quad against
 the closed form of its mix with what lies behind."""
 
-import importlib.util
-
 import numpy as np
-import pytest
+from helpers import needs_numba
 
-from splatwright.core import color, jit
+from splatwright.core import color
 from splatwright.core.camera import Camera
 from splatwright.core.mesh import Material, Mesh, Surface
 from splatwright.core.mesh_render import rasterize, rasterize_layers, render_mesh
-
-needs_numba = pytest.mark.skipif(
-    importlib.util.find_spec("numba") is None or not jit.enabled(),
-    reason="numba is not installed, or compiled kernels are turned off",
-)
 
 FRONT = (0.9, 0.2, 0.1)  # linear: the cut quad's colour where it stays
 BEHIND = (0.1, 0.3, 0.8)  # the quad behind

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import needs_numba
 
 from splatwright.core import jit, mesh_render, scenes, sh
 from splatwright.core.camera import Camera
@@ -717,12 +718,6 @@ def test_rasteriser_pixel_filters_are_cycles_own(edge):
         mesh_to_splats(v, np.array([[0, 1, 2], [0, 2, 3]]), max_splats=10, calibrate=False, pixel_filter="lanczos")
     with pytest.raises(ValueError, match="filter_width"):
         mesh_to_splats(v, np.array([[0, 1, 2], [0, 2, 3]]), max_splats=10, filter_width=0.0)
-
-
-needs_numba = pytest.mark.skipif(
-    importlib.util.find_spec("numba") is None or not jit.enabled(),
-    reason="numba is not installed, or compiled kernels are turned off",
-)
 
 
 def assert_backends_agree(surface, cam):

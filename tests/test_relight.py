@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import needs_numba
 from reference_render import reference_render
 from shadow_reference import plane_cloud, sphere_cloud
 
@@ -141,6 +142,7 @@ def test_shadow_maps_report_progress_first_and_a_raise_stops_them(scene):
     assert calls == ["shadows"] * 3
 
 
+@needs_numba
 def test_display_dc_shows_the_radiance_as_display_srgb_on_both_paths(monkeypatch):
     """The lit colours' degree-0 coefficients: the compiled kernel and the NumPy path against the sRGB
     curve written out, across black, the curve's linear toe, mid-greys and highlights past 1."""
