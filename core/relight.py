@@ -79,6 +79,7 @@ def visibilities(
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
     blockers: dict[int, np.ndarray] | None = None,
+    mesh_blockers: dict[int, list] | None = None,
 ) -> dict[int | str, np.ndarray]:
     """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
     the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told; and
@@ -86,8 +87,13 @@ def visibilities(
     the world is occluded (World.occlusion directions) and not black. They do not depend on the
     camera: a viewport makes them once for many views. progress(done, total, label) follows all the
     maps together; shapes, core.render.Shapes of the cloud, are made here unless given. blockers:
-    shadow linking, a light's index to the (N,) bool splats that may shadow its light (absent: all;
-    the meshes shadow every light)."""
+    shadow linking, a light's index to the (N,) bool splats that may shadow its light (absent: all);
+    mesh_blockers: the same for meshes, a light's index to the meshes (a list as `meshes`) that
+    shadow it in place of `meshes` (absent: `meshes`; the world's occlusion always takes `meshes`)."""
+    for name, links in (("blockers", blockers), ("mesh_blockers", mesh_blockers)):
+        wrong = [index for index in links or {} if not 0 <= index < len(lights)]
+        if wrong:
+            raise ValueError(f"{name} names light {wrong[0]}, but there are {len(lights)} lights")
     casting = [index for index, light in enumerate(lights) if light.cast_shadow]
     occluded = world is not None and world.occluded
     parts = len(casting) + occluded
@@ -97,7 +103,7 @@ def visibilities(
         index: shadows.visibility(
             cloud,
             lights[index],
-            occluders=meshes,
+            occluders=(mesh_blockers or {}).get(index, meshes),
             resolution=_resolution(shadow_resolution, lights[index]),
             blocking=(blockers or {}).get(index),
             threads=threads,
@@ -130,6 +136,7 @@ def lit_colors(
     visible: dict[int | str, np.ndarray] | None = None,
     receivers: dict[int, np.ndarray] | None = None,
     blockers: dict[int, np.ndarray] | None = None,
+    mesh_blockers: dict[int, list] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
 ):
@@ -137,8 +144,8 @@ def lit_colors(
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
     the lights that cast shadows and an occluded world: all splats and `meshes` occlude; `progress`
     and `shapes` as visibilities') and, with `receivers` (light linking: a light's index to the (N,)
-    bool splats it lights), given only to the splats each light is linked to; `blockers` as
-    visibilities' (when the visibilities are made here)."""
+    bool splats it lights), given only to the splats each light is linked to; `blockers` and
+    `mesh_blockers` as visibilities' (when the visibilities are made here)."""
     rows = material.carried(cloud)
     if not rows.any():
         return rows, None
@@ -153,6 +160,7 @@ def lit_colors(
             progress=progress,
             shapes=shapes,
             blockers=blockers,
+            mesh_blockers=mesh_blockers,
         )
     receivers = linked_masks(receivers, len(cloud))
     if rows.all():
@@ -208,6 +216,7 @@ def render_lit(
     visible: dict[int | str, np.ndarray] | None = None,
     receivers: dict[int, np.ndarray] | None = None,
     blockers: dict[int, np.ndarray] | None = None,
+    mesh_blockers: dict[int, list] | None = None,
     **render_options,
 ) -> LitRender:
     """Render `cloud` through `camera` lit by `lights` (core.lights.Light) and `world`.
@@ -217,10 +226,10 @@ def render_lit(
     shadow_resolution: texels a side of the shadow maps, one number or a dict by light kind
     (default SHADOW_RESOLUTION). visible: visibilities()'s result when the caller has it (they do
     not depend on the camera), else made here. receivers: light linking, a light's index to the (N,)
-    bool splats it lights (absent: all; core.shading.shade); blockers: shadow linking, the splats
-    that shadow each light (visibilities'). Other keywords go to core.render (mode, tile_size,
-    backend, ...); its `progress` follows the shadow maps first (label "shadows"; the world's,
-    "world occlusion"), then the render's tiles."""
+    bool splats it lights (absent: all; core.shading.shade); blockers and mesh_blockers: shadow
+    linking, the splats and the meshes that shadow each light (visibilities'). Other keywords go to
+    core.render (mode, tile_size, backend, ...); its `progress` follows the shadow maps first (label
+    "shadows"; the world's, "world occlusion"), then the render's tiles."""
     t0 = time.perf_counter()
     # The splats' shapes, made once for the shadow maps and the picture (the lit copy keeps them).
     shapes = Shapes(cloud, threads)
@@ -235,6 +244,7 @@ def render_lit(
         visible=visible,
         receivers=receivers,
         blockers=blockers,
+        mesh_blockers=mesh_blockers,
         progress=render_options.get("progress"),
         shapes=shapes,
     )

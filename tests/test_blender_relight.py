@@ -294,6 +294,40 @@ def test_shadow_linking_takes_a_blocker_out_of_a_lights_shadows(blender):
     assert np.abs(color["linked"] - color["moved"])[shaded].max() < 2e-3
 
 
+def test_shadow_linking_holds_for_meshes_and_for_the_splats_stand_in(blender):
+    """A key light's blocker collection: excluding a mesh ball that shadowed a relit splat ball, the
+    splat ball renders as with the mesh ball moved away; including the splat ball, Cycles' floor
+    keeps the splat ball's shadow (its stand-in blocks the key as the ball would), excluding it,
+    the floor is lit there as with no stand-in at all."""
+    from workers.relight import SHADOW_BALLS
+
+    res = blender.step("mesh_shadow_linking")
+    masks = res["masks"]
+    assert masks["point lit"] is None and masks["point blocking"] is None  # every splat shadows the key
+    assert masks["point mesh blocking"]["MeshBlocker"] == 0 and masks["point mesh blocking"]["Floor"] == 2
+    names = ("block_mesh_all", "block_mesh_out", "block_mesh_moved", "stand_in_in", "stand_in_out", "stand_in_none")
+    images = {n: exr(blender.out / f"{n}.exr") for n in names}
+    color = {n: channels(im, "Combined", "RGB").astype(np.float64) for n, im in images.items()}
+    alpha = channels(images["block_mesh_all"], "Splats", "RGBA")[..., 3]
+    cam = camera(res["camera"], np.array(res["origin"]))
+    centres, depth = cam.project(np.array([c for c, _ in SHADOW_BALLS.values()]) - np.array(res["origin"]))
+    radius = cam.fx * np.array([r for _, r in SHADOW_BALLS.values()]) / depth
+    rows, cols = np.mgrid[0 : alpha.shape[0], 0 : alpha.shape[1]] + 0.5
+    within = [np.hypot(cols - x, rows - y) / r for (x, y), r in zip(centres, radius, strict=True)]
+    ball = (alpha > 0.9) & (within[0] < 0.9) & (within[1] > 1.5)
+    assert ball.sum() > 50
+    assert (color["block_mesh_moved"] - color["block_mesh_all"]).mean(axis=-1)[ball].max() > 0.05  # shadowed
+    assert np.abs(color["block_mesh_out"] - color["block_mesh_moved"])[ball].max() < 2e-3
+    # the splat ball's shadow on the floor: darker with the stand-in (no linking) than without it
+    floor = (alpha < 1e-3) & (within[1] > 1.5)
+    depth_of = (color["stand_in_none"] - color["block_mesh_moved"]).mean(axis=-1)
+    shadow = floor & (depth_of > 0.02)
+    assert shadow.sum() > 20
+    depth_of = depth_of[shadow].mean()
+    assert np.abs(color["stand_in_in"] - color["block_mesh_moved"]).mean(axis=-1)[shadow].mean() < 0.1 * depth_of
+    assert np.abs(color["stand_in_out"] - color["stand_in_none"]).mean(axis=-1)[shadow].mean() < 0.1 * depth_of
+
+
 def test_meshes_shadow_relit_splats(blender):
     """A mesh ball over a relit splat floor: the splats' Diffuse pass is darker inside the closed-form
     shadow than outside it, away from the ball itself."""

@@ -200,6 +200,25 @@ def test_shadow_linking_leaves_out_the_splats_that_do_not_block(scene, name):
         shadows.visibility(cloud, light, blocking=plane[:-1])
 
 
+def test_mesh_shadow_linking_gives_each_light_its_own_meshes():
+    """Two lights over a splat plane and a mesh between: with the mesh left out of the first light's
+    mesh blockers the plane is lit everywhere under it (to the bit, as with no meshes), the second
+    keeps the mesh's shadow (to the bit, as without linking); a light index past the lights is
+    refused."""
+    from splatwright.core import relight
+
+    plane = plane_cloud(1.5, 40)
+    mesh = Surface(np.array([[-0.5, -0.5, 0.6], [0.5, -0.5, 0.6], [0.0, 0.5, 0.6]]), np.array([[0, 1, 2]]))
+    lights = [Light("point", position=(0.2, 0.0, 3.0), radius=0.1), LIGHTS["tilted sun"]]
+    linked = relight.visibilities(plane, lights, meshes=[mesh], mesh_blockers={0: []})
+    unlinked = relight.visibilities(plane, lights, meshes=[mesh])
+    assert (unlinked[0] < 0.5).sum() > 50 and (unlinked[1] < 0.5).sum() > 50  # the mesh shadows both
+    np.testing.assert_array_equal(linked[0], relight.visibilities(plane, lights[:1])[0])
+    np.testing.assert_array_equal(linked[1], unlinked[1])
+    with pytest.raises(ValueError, match="mesh_blockers names light 2, but there are 2 lights"):
+        relight.visibilities(plane, lights, meshes=[mesh], mesh_blockers={2: []})
+
+
 def test_spot_lights_see_what_a_point_light_there_sees(scene):
     cloud, n = scene
     point = Light("point", position=(0.3, -0.2, 2.5), radius=0.2)

@@ -11,8 +11,11 @@ line starting with REPLY, and ends when stdin closes:
 
 With "environment", the film is transparent and the Environment pass is written too: the world
 seen through each pixel, apart from the meshes. "shadow_casters" (optional) names an .npz of
-"vertices" (V,3) and "faces" (F,3), world space: the relit splats' stand-in mesh
-(core/shadow_casters.py), added visible to shadow rays only, so the meshes get the splats' shadows.
+"vertices" (V,3) and "faces" (F,3), world space, and "groups" (F,) each face's part: the relit
+splats' stand-in mesh (core/shadow_casters.py), added visible to shadow rays only, so the meshes get
+the splats' shadows, one object per part. "caster_links" (with it) lists [blocker collection name,
+[state per part]]: each part is linked into the lights' blocker collections with that state
+("INCLUDE", "EXCLUDE"; null: not linked), so shadow linking holds for it as for its splat objects.
 """
 
 import json
@@ -35,7 +38,7 @@ def render(request):
             obj.hide_render = True
     scene.frame_set(request["frame"], subframe=request["subframe"])
     if request.get("shadow_casters"):
-        add_shadow_casters(bpy, scene, request["shadow_casters"])
+        add_shadow_casters(bpy, scene, request["shadow_casters"], request.get("caster_links", []))
     if request.get("camera"):
         scene.camera = bpy.data.objects[request["camera"]]
     settings = scene.render
@@ -58,12 +61,35 @@ def render(request):
     bpy.ops.render.render(write_still=True, scene=scene.name, layer=layer.name)
 
 
-def add_shadow_casters(bpy, scene, path):
-    """The stand-in mesh in `path` as an object of `scene` that only shadow rays see."""
+def add_shadow_casters(bpy, scene, path, links=()):
+    """The stand-in mesh in `path` as objects of `scene` (one per part) that only shadow rays see,
+    each linked into the blocker collections `links` names with its state there."""
     import numpy as np
 
     with np.load(path) as arrays:
         vertices, faces = arrays["vertices"].astype(np.float32), arrays["faces"].astype(np.int32)
+        groups = arrays["groups"] if "groups" in arrays else np.zeros(len(faces), np.int32)
+    parts = [_caster_object(bpy, scene, vertices, faces[groups == g]) for g in range(int(groups.max()) + 1)]
+    for name, states in links:
+        collection = bpy.data.collections.get(name)
+        for obj, state in zip(parts, states, strict=True):
+            if collection is None or obj is None or state is None:
+                continue
+            collection.objects.link(obj)
+            # an entry's state sits beside the collection's objects, in their order (no name lookup)
+            entry = collection.collection_objects[list(collection.objects).index(obj)]
+            entry.light_linking.link_state = state
+
+
+def _caster_object(bpy, scene, vertices, faces):
+    """One part of the stand-in: the `faces` of `vertices` as an object only shadow rays see (None
+    without faces)."""
+    import numpy as np
+
+    if not len(faces):
+        return None
+    used, faces = np.unique(faces, return_inverse=True)
+    vertices, faces = vertices[used], faces.reshape(-1, 3).astype(np.int32)
     mesh = bpy.data.meshes.new(CASTERS)
     mesh.vertices.add(len(vertices))
     mesh.vertices.foreach_set("co", vertices.ravel())
@@ -77,6 +103,7 @@ def add_shadow_casters(bpy, scene, path):
     for ray in ("camera", "diffuse", "glossy", "transmission", "volume_scatter"):
         setattr(obj, f"visible_{ray}", False)
     obj.visible_shadow = True
+    return obj
 
 
 def main():

@@ -61,7 +61,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
         with data.reported_warnings(self.report):
             cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
-            casters = relit.shadow_casters(cloud, lit, origin)
+            casters = relit.shadow_casters(cloud, lit, origin, owners, lights.blocker_collections(depsgraph))
         transparent = scene.render.film_transparent
         meshes = self._mesh_layer(depsgraph, width, height, casters)
         layer = None if meshes is None else meshes.as_layer()
@@ -146,15 +146,15 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
     def _lit_image(self, depsgraph, cloud, lit, owners, cam, background, layer, origin, passes):
         """The RenderResult of `cloud` with its `lit` splats (those with a material; `owners` their
         objects, scene_cloud's) shaded by the scene's lights and world and shadowed by the cloud and
-        the meshes (the lights' light and shadow linking read for the splats), the others with their
+        the meshes (the lights' light and shadow linking read), the others with their
         own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
         whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
         passes when `passes`."""
         from ...core.relight import render_lit  # only when something is relit
 
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
-        occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else []
-        lights, receivers, blockers = relit.linked_lights(depsgraph, origin, owners)
+        occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else None
+        lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
         lit_render = render_lit(
             cloud,
             cam,
@@ -162,7 +162,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             scene_world(depsgraph.scene),
             receivers=receivers,
             blockers=blockers,
-            meshes=occluders,
+            mesh_blockers=mesh_blockers,
+            meshes=occluders.surfaces if occluders is not None else None,
             background=background,
             layer=layer,
             passes=passes,

@@ -54,6 +54,19 @@ def linking_of(light_object, kind):
     return included, excluded
 
 
+def blocker_collections(depsgraph):
+    """[(collection name, linking_of's rule)] of every distinct blocker collection of the lights the
+    depsgraph renders: where the relit splats' stand-in must be set for Cycles (relit.StandIn)."""
+    found = {}
+    for inst in depsgraph.object_instances:  # instance data is only valid during iteration
+        obj = inst.object
+        if obj.type == "LIGHT":
+            collection = getattr(getattr(obj.original, "light_linking", None), "blocker_collection", None)
+            if collection is not None and collection.name not in found:
+                found[collection.name] = linking_of(obj.original, "blocker")
+    return list(found.items())
+
+
 def takes_in(link, name):
     """Whether linking `link` (linking_of's) takes in the object called `name` (a light lights it,
     or it shadows the light)."""

@@ -149,8 +149,9 @@ def render(
 ):
     """Render the mesh layer of the depsgraph's scene and view layer at its current frame with
     `engine` (an ENGINE_CHOICES key); returns a MeshLayer of width x height. progress(fraction) is
-    called while Cycles reports its samples. `shadow_casters`, (vertices (V,3), faces (F,3)) in world
-    space, is a mesh the child adds visible to shadow rays only (relit splats' shadows on meshes)."""
+    called while Cycles reports its samples. `shadow_casters`, a relit.StandIn, is a mesh the child
+    adds visible to shadow rays only (relit splats' shadows on meshes), in the lights' shadow
+    linking as its parts' objects are."""
     start = time.perf_counter()
     scene = depsgraph.scene
     work = _workdir()
@@ -174,9 +175,10 @@ def render(
             "autoexec": not bpy.app.autoexec_fail,
             "environment": apart,
         }
-        if shadow_casters is not None and len(shadow_casters[1]):
-            np.savez(casters, vertices=shadow_casters[0], faces=shadow_casters[1])
-            request["shadow_casters"] = str(casters)
+        if shadow_casters is not None and len(shadow_casters.faces):
+            stand_in = shadow_casters
+            np.savez(casters, vertices=stand_in.vertices, faces=stand_in.faces, groups=stand_in.groups)
+            request.update(shadow_casters=str(casters), caster_links=stand_in.links)
         reply = _child().ask(request, test_break, progress)
         if not reply.get("ok"):
             raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")

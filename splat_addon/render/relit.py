@@ -9,6 +9,7 @@ that joining keeps the extras (data.instances_cloud joins only those every cloud
 """
 
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 
@@ -59,20 +60,28 @@ def scene_cloud(depsgraph, origin):
 OWNER = "splatwright_owner"  # each splat's object while the scene's cloud is joined (scene_cloud)
 
 
-def linked_lights(depsgraph, origin, owners):
-    """(lights, receivers, blockers): the scene's lights (lights.scene_lights) and their light and
-    shadow linking as core.relight takes them, {light index: (N,) bool} the splats (of the objects
-    `owners`, scene_cloud's, names) each light lights and the splats that shadow it, for the lights
-    that leave an object out (meshes shadow every light)."""
+def linked_lights(depsgraph, origin, owners, meshes=None):
+    """(lights, receivers, blockers, mesh_blockers): the scene's lights (lights.scene_lights) and
+    their light and shadow linking as core.relight takes them, {light index: (N,) bool} the splats
+    (of the objects `owners`, scene_cloud's) each light lights and the splats that shadow it, and
+    {light index: [Surface]} the meshes (of `meshes`, occluders()') that shadow it, for the lights
+    that leave an object out."""
+    from ...core.mesh import Surface
+
     links = []
     found = scene_lights(depsgraph, origin, links)
     receiving, blocking = zip(*links) if links else ((), ())
-    return found, _linked(receiving, owners), _linked(blocking, owners)
+    mesh_blockers = {}
+    if meshes is not None and meshes.owners is not None:
+        (surface,) = meshes.surfaces
+        for k, taken in _linked(blocking, meshes.owners).items():
+            mesh_blockers[k] = [Surface(surface.vertices, surface.faces[taken])] if taken.any() else []
+    return found, _linked(receiving, owners), _linked(blocking, owners), mesh_blockers
 
 
 def _linked(rules, owners):
-    """{light index: (N,) bool} of the splats each rule (lights.linking_of's) takes in, for the rules
-    that leave an object out; {} without owners."""
+    """{light index: (N,) bool} of the splats (or triangles) each rule (lights.linking_of's) takes
+    in, for the rules that leave an object out; {} without owners ((names, (N,) index into names))."""
     if owners is None:
         return {}
     names, index = owners
@@ -104,30 +113,58 @@ def _marked(obj, cloud):
     return cloud.replace(extras={**cloud.extras, **extras})
 
 
+class Occluders(NamedTuple):
+    """The scene's surfaces that shadow the relit splats (occluders()): `surfaces`, one
+    core.mesh.Surface in the engine's frame in a list (empty when there are none), and `owners`,
+    (object names, (T,) int index into them) each triangle's object, for shadow linking."""
+
+    surfaces: list
+    owners: tuple | None = None
+
+
 def occluders(depsgraph, origin):
-    """The scene's surfaces that shadow rays see (not splats), as one core.mesh.Surface in the frame
-    shifted by -`origin`, in a list (empty when there are none): what shadows the relit splats."""
+    """The scene's surfaces that shadow rays see (not splats), as Occluders in the frame shifted by
+    -`origin`: what shadows the relit splats."""
     from ...core.mesh import Surface
 
-    corners, _ = surface_triangles(depsgraph, shadow_casters_only=True)
+    owners = []
+    corners, _ = surface_triangles(depsgraph, shadow_casters_only=True, owners=owners)
     if not len(corners):
-        return []
+        return Occluders([])
     vertices = corners.reshape(-1, 3) - np.asarray(origin, np.float64)
-    return [Surface(vertices, np.arange(len(vertices)).reshape(-1, 3))]
+    names = [name for name, _ in owners]
+    index = np.repeat(np.arange(len(owners)), [count for _, count in owners])
+    return Occluders([Surface(vertices, np.arange(len(vertices)).reshape(-1, 3))], (names, index))
 
 
-def shadow_casters(cloud, lit, origin, budget=None):
-    """(vertices, faces) in world space of the relit splats' shadow stand-in (core.shadow_casters),
-    for the meshes' engine; None when nothing is relit. Its memory in the meshes' Blender is held
-    to `budget` bytes (default: core.memory.default_budget()): past the finest shape's, each splat
-    gets the plain octahedron, and past that the meshes get no shadow from the splats (warned)."""
+class StandIn(NamedTuple):
+    """The relit splats' shadow stand-in for the meshes' engine (shadow_casters()): `vertices` (V,3)
+    float32 world space, `faces` (F,3) int32, `groups` (F,) int32 the part each face belongs to, and
+    `links`, [(blocker collection name, [state per part])] how each part enters each light's shadow
+    linking: "INCLUDE" or "EXCLUDE", None where it is left out of the collection (it then blocks as
+    the collection's other unlisted objects do)."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    groups: np.ndarray
+    links: list
+
+
+def shadow_casters(cloud, lit, origin, owners=None, collections=(), budget=None):
+    """The relit splats' shadow stand-in (core.shadow_casters) as a StandIn, None when nothing is
+    relit. With `owners` (scene_cloud's) and `collections` (lights.blocker_collections'), the splats
+    fall into parts by the blocker collections that take them in, so that each light's shadow
+    linking holds for them as for their objects. Its memory in the meshes' Blender is held to
+    `budget` bytes (default: core.memory.default_budget()): past the finest shape's, each splat gets
+    the plain octahedron, and past that the meshes get no shadow from the splats (warned)."""
     from ...core.memory import default_budget, human_bytes
     from ...core.shadow_casters import BYTES_PER_TRIANGLE, SHAPES, casting, ellipsoids, shape_within
 
     if cloud is None or lit is None:
         return None
     part = cloud[lit]
-    count = int(casting(part).sum())
+    casts = casting(part)
+    count = int(casts.sum())
     budget = default_budget() if budget is None else budget
     shape = shape_within(count, budget)
     if shape is not SHAPES[0]:
@@ -142,7 +179,28 @@ def shadow_casters(cloud, lit, origin, budget=None):
     if shape is None:
         return None
     vertices, faces = ellipsoids(part, shape=shape)
-    return vertices + np.asarray(origin, np.float32), faces
+    parts, links = _stand_in_parts(owners, lit, collections)
+    groups = np.repeat(parts[casts], len(shape[1])).astype(np.int32)  # ellipsoids' faces: a run per splat
+    return StandIn(vertices + np.asarray(origin, np.float32), faces, groups, links)
+
+
+def _stand_in_parts(owners, lit, collections):
+    """((M,) int the part of each relit splat, [(collection name, [state per part])]): splats whose
+    objects the blocker collections take in alike share a part (one part without collections)."""
+    count = int(lit.sum())
+    if owners is None or not collections:
+        return np.zeros(count, np.int64), []
+    names, index = owners
+    taken = np.array([[takes_in(rule, name) for _, rule in collections] for name in names], bool)
+    kinds, per_object = np.unique(taken, axis=0, return_inverse=True)
+    links = []
+    for k, (collection, (included, _)) in enumerate(collections):
+        # Set INCLUDE only where the collection includes objects already: one included object makes
+        # Blender leave out every object not included. A part taken in by a collection of
+        # exclusions only blocks unlisted, as the objects it stands for.
+        states = [("INCLUDE" if included else None) if kind[k] else "EXCLUDE" for kind in kinds]
+        links.append((collection, states))
+    return per_object.reshape(-1)[index[lit]], links
 
 
 # the lit render ------------------------------------------------------------------------------------

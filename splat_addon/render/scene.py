@@ -33,10 +33,11 @@ def scene_splats(depsgraph, origin, prepare=None):
 SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}  # what to_mesh() turns into triangles
 
 
-def surface_triangles(depsgraph, shadow_casters_only=False):
+def surface_triangles(depsgraph, shadow_casters_only=False, owners=None):
     """Every visible surface that is not a splat object as world-space triangles (T,3,3) with the
     viewport colour (T,3) of each face's material (the object's colour without one); with
-    `shadow_casters_only`, only objects that shadow rays see (Object > Visibility > Shadow)."""
+    `shadow_casters_only`, only objects that shadow rays see (Object > Visibility > Shadow).
+    `owners`, a list if given, receives (object name, triangle count) for each object, in order."""
     corners, colors = [], []
     for inst in depsgraph.object_instances:
         obj = inst.object
@@ -65,6 +66,8 @@ def surface_triangles(depsgraph, shadow_casters_only=False):
             world = co.reshape(-1, 3) @ matrix[:3, :3].T + matrix[:3, 3]
             corners.append(world[tris.reshape(-1, 3)])
             colors.append(palette[np.minimum(slots, len(palette) - 1)])
+            if owners is not None:
+                owners.append((obj.name, n))
         finally:
             obj.to_mesh_clear()
     if not corners:

@@ -53,10 +53,11 @@ class Lighting:
     updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
     light or recolouring the world does not make its many maps again."""
 
-    def __init__(self, lights, world, occluders, kept=None, receivers=None, blockers=None):
+    def __init__(self, lights, world, occluders, kept=None, linking=({}, {}, {})):
         self.lights, self.world, self.occluders = lights, world, occluders
         self.kept = {} if kept is None else kept
-        self.receivers, self.blockers = receivers, blockers  # light and shadow linking (relit.linked_lights)
+        # light and shadow linking (relit.linked_lights): receivers, blockers, mesh_blockers
+        self.receivers, self.blockers, self.mesh_blockers = linking
         self.visible = None
 
     def shade(self, cloud, camera, check=None):
@@ -66,7 +67,14 @@ class Lighting:
 
         if self.visible is None:
             progress = None if check is None else (lambda *_: check())
-            visible = visibilities(cloud, self.lights, meshes=self.occluders, progress=progress, blockers=self.blockers)
+            visible = visibilities(
+                cloud,
+                self.lights,
+                meshes=self.occluders,
+                progress=progress,
+                blockers=self.blockers,
+                mesh_blockers=self.mesh_blockers,
+            )
             if self.world.occluded:
                 visible["world"] = self._world_visibility(cloud, progress)
             self.visible = visible
@@ -97,9 +105,10 @@ def picture_inputs(depsgraph, kept=None):
     background = None if scene.render.film_transparent else linear_to_srgb(world_color(scene))
     lighting = None
     if lit is not None:
-        occluders = relit.occluders(depsgraph, origin) if len(meshes) else []
-        lights, receivers, blockers = relit.linked_lights(depsgraph, origin, owners)
-        lighting = Lighting(lights, scene_world(scene), occluders, kept, receivers, blockers)
+        occluders = relit.occluders(depsgraph, origin) if len(meshes) else None
+        lights, *linking = relit.linked_lights(depsgraph, origin, owners, occluders)
+        surfaces = occluders.surfaces if occluders is not None else []
+        lighting = Lighting(lights, scene_world(scene), surfaces, kept, tuple(linking))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 

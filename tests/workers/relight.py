@@ -98,6 +98,7 @@ class Worker(BlenderWorker):
         "meshes_shadow_splats",
         "light_linking",
         "shadow_linking",
+        "mesh_shadow_linking",
         "rig",
     )
     keep_objects = ("Camera",)
@@ -375,22 +376,74 @@ class Worker(BlenderWorker):
         for name, (centre, radius) in SHADOW_BALLS.items():
             cloud = self.material_cloud(ball_arrays(centre, radius, 1500), BALL["albedo"])
             balls[name] = self.splat_object(name, cloud)
-        key = self.add_light("Key", "POINT", KEY["location"], (0, 0, 0), (1, 1, 1), dict(energy=KEY["energy"]))
-        key.data.shadow_soft_size = 0.05
-        bpy.context.view_layer.update()
+        key = self.key_light()
         self.write("block_all")
-        blockers = bpy.data.collections.new("Key Blockers")
-        blockers.objects.link(balls["Blocker"])
-        blockers.collection_objects[0].light_linking.link_state = "EXCLUDE"
-        key.light_linking.blocker_collection = blockers
-        bpy.context.view_layer.update()
+        self.blockers_excluding(key, balls["Blocker"])
         self.write("block_linked")
-        res = {"camera": self.camera_record(), "origin": list(bpy.context.scene.camera.matrix_world.translation)}
-        res["masks"] = self.linking_masks()
+        res = self.linking_record()
         balls["Blocker"].location = (0.0, 0.0, 20.0)  # far above: out of the key's way
         bpy.context.view_layer.update()
         self.write("block_moved")
         return res
+
+    def mesh_shadow_linking(self):
+        """A relit splat ball over a Cycles floor, a mesh ball between it and a key light, the sun
+        off. The key's blocker collection excluding the mesh ball (block_mesh_out) against the mesh
+        ball moved out of the way (block_mesh_moved) and left where it is unlinked (block_mesh_all);
+        then, the mesh ball away, the collection including the splat ball (stand_in_in), excluding
+        it (stand_in_out), and the ball unlit (stand_in_none: no stand-in); the engine's masks."""
+        self.stage("CYCLES")
+        bpy = self.bpy
+        bpy.data.lights["Sun"].energy = 0.0
+        self.floor_mesh()
+        centre, radius = SHADOW_BALLS["Shaded"]
+        shaded = self.splat_object("Shaded", self.material_cloud(ball_arrays(centre, radius, 1500), BALL["albedo"]))
+        centre, radius = SHADOW_BALLS["Blocker"]
+        bpy.ops.mesh.primitive_uv_sphere_add(radius=radius, location=centre, segments=32, ring_count=16)
+        blocker = bpy.context.active_object
+        blocker.name = "MeshBlocker"
+        key = self.key_light()
+        self.write("block_mesh_all")
+        blockers = self.blockers_excluding(key, blocker)
+        self.write("block_mesh_out")
+        res = self.linking_record()
+        key.light_linking.blocker_collection = None
+        blocker.location = (0.0, 0.0, 20.0)  # far above: out of the key's way
+        bpy.context.view_layer.update()
+        self.write("block_mesh_moved")
+        blockers.objects.unlink(blocker)
+        blockers.objects.link(shaded)
+        key.light_linking.blocker_collection = blockers
+        for state, name in (("INCLUDE", "stand_in_in"), ("EXCLUDE", "stand_in_out")):
+            blockers.collection_objects[0].light_linking.link_state = state
+            bpy.context.view_layer.update()
+            self.write(name)
+        key.light_linking.blocker_collection = None
+        shaded.splatwright_relight = False
+        bpy.context.view_layer.update()
+        self.write("stand_in_none")
+        return res
+
+    def key_light(self):
+        """The shadow linking steps' key light, a small point light."""
+        key = self.add_light("Key", "POINT", KEY["location"], (0, 0, 0), (1, 1, 1), dict(energy=KEY["energy"]))
+        key.data.shadow_soft_size = 0.05
+        self.bpy.context.view_layer.update()
+        return key
+
+    def blockers_excluding(self, light, obj):
+        """A new blocker collection of `light` that excludes `obj` (and names nothing else)."""
+        blockers = self.bpy.data.collections.new("Key Blockers")
+        blockers.objects.link(obj)
+        blockers.collection_objects[0].light_linking.link_state = "EXCLUDE"
+        light.light_linking.blocker_collection = blockers
+        self.bpy.context.view_layer.update()
+        return blockers
+
+    def linking_record(self):
+        """The camera, the engine's frame origin and the engine's linking masks (linking_masks)."""
+        origin = list(self.bpy.context.scene.camera.matrix_world.translation)
+        return {"camera": self.camera_record(), "origin": origin, "masks": self.linking_masks()}
 
     def linking_masks(self):
         """Per light the engine reads: how many splats of each ball it lights and how many shadow it
@@ -399,7 +452,8 @@ class Worker(BlenderWorker):
         relit = self.module("splat_addon.render.relit")
         depsgraph = bpy.context.evaluated_depsgraph_get()
         cloud, lit, owners = relit.scene_cloud(depsgraph, np.zeros(3))
-        found, receivers, blockers = relit.linked_lights(depsgraph, np.zeros(3), owners)
+        meshes = relit.occluders(depsgraph, np.zeros(3))
+        found, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, np.zeros(3), owners, meshes)
         names, index = owners
         out = {}
         for kind, masks in (("lit", receivers), ("blocking", blockers)):
@@ -407,6 +461,10 @@ class Worker(BlenderWorker):
                 mask = masks.get(k)
                 counts = None if mask is None else {n: int(mask[index == i].sum()) for i, n in enumerate(names)}
                 out[f"{light.kind} {kind}"] = counts
+        for k, surfaces in mesh_blockers.items():  # only the lights whose blockers leave a mesh out
+            mesh_names, triangle_owner = meshes.owners
+            taken = np.concatenate([triangle_owner[s.faces[:, 0] // 3] for s in surfaces] or [np.zeros(0, int)])
+            out[f"{found[k].kind} mesh blocking"] = {n: int((taken == i).sum()) for i, n in enumerate(mesh_names)}
         return out
 
     def stand_in_within_budgets(self):
