@@ -296,9 +296,9 @@ def test_shadow_linking_takes_a_blocker_out_of_a_lights_shadows(blender):
 
 def test_shadow_linking_holds_for_meshes_and_for_the_splats_stand_in(blender):
     """A key light's blocker collection: excluding a mesh ball that shadowed a relit splat ball, the
-    splat ball renders as with the mesh ball moved away; including the splat ball, Cycles' floor
-    keeps the splat ball's shadow (its stand-in blocks the key as the ball would), excluding it,
-    the floor is lit there as with no stand-in at all."""
+    splat ball renders (and shows in the Rendered viewport) as with the mesh ball moved away;
+    including the splat ball, Cycles' floor keeps the splat ball's shadow (its stand-in blocks the
+    key as the ball would), excluding it, the floor is lit there as with no stand-in at all."""
     from workers.relight import SHADOW_BALLS
 
     res = blender.step("mesh_shadow_linking")
@@ -318,6 +318,9 @@ def test_shadow_linking_holds_for_meshes_and_for_the_splats_stand_in(blender):
     assert ball.sum() > 50
     assert (color["block_mesh_moved"] - color["block_mesh_all"]).mean(axis=-1)[ball].max() > 0.05  # shadowed
     assert np.abs(color["block_mesh_out"] - color["block_mesh_moved"])[ball].max() < 2e-3
+    viewport = {n: blender.npz(f"viewport_mesh_{n}")["rgba"][..., :3] for n in ("all", "out", "moved")}
+    assert (viewport["moved"] - viewport["all"]).mean(axis=-1)[ball].max() > 0.05  # the viewport's too
+    assert np.abs(viewport["out"] - viewport["moved"])[ball].max() < 2e-3
     # the splat ball's shadow on the floor: darker with the stand-in (no linking) than without it
     floor = (alpha < 1e-3) & (within[1] > 1.5)
     depth_of = (color["stand_in_none"] - color["block_mesh_moved"]).mean(axis=-1)

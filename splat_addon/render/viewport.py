@@ -53,11 +53,11 @@ class Lighting:
     updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
     light or recolouring the world does not make its many maps again."""
 
-    def __init__(self, lights, world, occluders, kept=None, linking=({}, {}, {})):
+    def __init__(self, lights, world, occluders, kept=None, linking=None):
         self.lights, self.world, self.occluders = lights, world, occluders
         self.kept = {} if kept is None else kept
         # light and shadow linking (relit.linked_lights): receivers, blockers, mesh_blockers
-        self.receivers, self.blockers, self.mesh_blockers = linking
+        self.receivers, self.blockers, self.mesh_blockers = linking or ({}, {}, {})
         self.visible = None
 
     def shade(self, cloud, camera, check=None):

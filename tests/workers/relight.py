@@ -389,7 +389,8 @@ class Worker(BlenderWorker):
     def mesh_shadow_linking(self):
         """A relit splat ball over a Cycles floor, a mesh ball between it and a key light, the sun
         off. The key's blocker collection excluding the mesh ball (block_mesh_out) against the mesh
-        ball moved out of the way (block_mesh_moved) and left where it is unlinked (block_mesh_all);
+        ball moved out of the way (block_mesh_moved) and left where it is unlinked (block_mesh_all),
+        rendered and in the Rendered viewport (viewport_mesh_*);
         then, the mesh ball away, the collection including the splat ball (stand_in_in), excluding
         it (stand_in_out), and the ball unlit (stand_in_none: no stand-in); the engine's masks."""
         self.stage("CYCLES")
@@ -404,13 +405,16 @@ class Worker(BlenderWorker):
         blocker.name = "MeshBlocker"
         key = self.key_light()
         self.write("block_mesh_all")
+        self.viewport_picture("viewport_mesh_all")
         blockers = self.blockers_excluding(key, blocker)
         self.write("block_mesh_out")
+        self.viewport_picture("viewport_mesh_out")
         res = self.linking_record()
         key.light_linking.blocker_collection = None
         blocker.location = (0.0, 0.0, 20.0)  # far above: out of the key's way
         bpy.context.view_layer.update()
         self.write("block_mesh_moved")
+        self.viewport_picture("viewport_mesh_moved")
         blockers.objects.unlink(blocker)
         blockers.objects.link(shaded)
         key.light_linking.blocker_collection = blockers
