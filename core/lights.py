@@ -71,7 +71,9 @@ class Light:
     here). radius: point/spot soft size (m). angle: sun disc diameter (rad). spot_size: full cone angle
     (rad, in (0, pi]); spot_blend in [0, 1]. size_x, size_y: area extent (m; SQUARE and DISK use
     size_x for both); shape: one of AREA_SHAPES; x_axis: (3,) the area light's local +X in world
-    (made orthogonal to direction here).
+    (made orthogonal to direction here). cast_shadow: whether it casts shadows. diffuse, specular:
+    >= 0, the light's weight in diffuse and in specular reflection (0: none, as a Blender light whose
+    Diffuse or Glossy ray visibility is off, which Cycles reads so).
     """
 
     kind: str
@@ -88,6 +90,8 @@ class Light:
     shape: str = "SQUARE"
     x_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
     cast_shadow: bool = True
+    diffuse: float = 1.0
+    specular: float = 1.0
 
     def __post_init__(self):
         problems: list[str] = []
@@ -114,6 +118,8 @@ class Light:
             "spot_blend": (self.spot_blend, 0.0, 1.0, True),
             "size_x": (self.size_x, 0.0, math.inf, False),
             "size_y": (self.size_y, 0.0, math.inf, False),
+            "diffuse": (self.diffuse, 0.0, math.inf, True),
+            "specular": (self.specular, 0.0, math.inf, True),
         }
         for name, (value, low, high, closed_low) in values.items():
             ok = isinstance(value, int | float | np.floating | np.integer) and math.isfinite(value)

@@ -81,8 +81,9 @@ def visibilities(
     blockers: dict[int, np.ndarray] | None = None,
     mesh_blockers: dict[int, list] | None = None,
 ) -> dict[int | str, np.ndarray]:
-    """{light index: (N,) visibility} of every light that casts shadows: what reaches each splat past
-    the whole cloud and `meshes` (core.shadows.visibility), at SHADOW_RESOLUTION unless told; and
+    """{light index: (N,) visibility} of every light that casts shadows (and gives some light to
+    reflect): what reaches each splat past the whole cloud and `meshes` (core.shadows.visibility),
+    at SHADOW_RESOLUTION unless told; and
     under "world" the (N,2) share of `world` each splat sees (core.ambient.world_visibility) when
     the world is occluded (World.occlusion directions) and not black. They do not depend on the
     camera: a viewport makes them once for many views. progress(done, total, label) follows all the
@@ -94,7 +95,8 @@ def visibilities(
         wrong = [index for index in links or {} if not 0 <= index < len(lights)]
         if wrong:
             raise ValueError(f"{name} names light {wrong[0]}, but there are {len(lights)} lights")
-    casting = [index for index, light in enumerate(lights) if light.cast_shadow]
+    # a light that casts no shadow, or gives no light to reflect, needs no maps
+    casting = [i for i, light in enumerate(lights) if light.cast_shadow and (light.diffuse > 0 or light.specular > 0)]
     occluded = world is not None and world.occluded
     parts = len(casting) + occluded
     if parts and shapes is None:

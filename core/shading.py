@@ -209,8 +209,8 @@ def _light_terms(light, points, normal, view, alpha, f0) -> tuple[np.ndarray, np
         scalar *= inc.strength
         tinted += scalar * (1.0 - weight)
         white += scalar * weight
-    specular = (f0 * tinted[:, None] + white[:, None]) * light.color
-    return diffuse[:, None] * light.color, specular
+    specular = (f0 * tinted[:, None] + white[:, None]) * (light.color * light.specular)
+    return diffuse[:, None] * (light.color * light.diffuse), specular
 
 
 def shade(
@@ -379,7 +379,9 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     if isinstance(eye, Camera):
         eye = -eye.forward if ortho else eye.center
     eye = np.asarray(eye, np.float64).reshape(3)
-    colors = np.array([light.color for light in lights], np.float64).reshape(-1, 3)
+    # each light's colour in diffuse reflection, then in specular
+    colors = np.array([[*light.color * light.diffuse, *light.color * light.specular] for light in lights])
+    colors = colors.reshape(-1, 6)
     world_color = np.zeros(3) if world is None else np.asarray(world.color, np.float64)
     seen_world = _world_visibility(visibility, n)
     scale, bias = _albedo_table()
@@ -514,7 +516,7 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
             total = 0.0
             for c in range(3):
                 dc = acc[k, 0] * colors[k, c] * base[c] / math.pi
-                sc = (f0[c] * acc[k, 1] + acc[k, 2]) * colors[k, c] * boost[c]
+                sc = (f0[c] * acc[k, 1] + acc[k, 2]) * colors[k, 3 + c] * boost[c]
                 out_d[c] += visible * dc
                 out_s[c] += visible * sc
                 total += dc + sc

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import euler_matrix
-from workers.relight import COLORS, EXPOSURE, INSTANCE_OFFSET, LIGHTS, ORIGIN
+from workers.relight import COLORS, EXPOSURE, INSTANCE_OFFSET, LIGHTS, ORIGIN, RAYS
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
@@ -27,6 +27,8 @@ def expected_light(name, kind, location, rotation, scale, settings, exposure, no
         "position": np.subtract(location, ORIGIN),
         "direction": -r[:, 2] / np.linalg.norm(r[:, 2]),
         "cast_shadow": settings.get("use_shadow", True),
+        "diffuse": float(RAYS.get(name, {}).get("visible_diffuse", True)),
+        "specular": float(RAYS.get(name, {}).get("visible_glossy", True)),
     }
     power = settings["energy"] * (2.0**EXPOSURE if exposure and name == "Sun" else 1.0)
     if kind == "SUN":
@@ -115,6 +117,22 @@ def channels(image, name, letters):
     if joined is not None:
         return joined[..., : len(letters)]
     return np.stack([image[f"ViewLayer.{name}.{c}"] for c in letters], axis=-1)
+
+
+def test_a_lights_diffuse_and_glossy_ray_visibility_reach_the_relit_splats(blender):
+    """With the sun's Diffuse ray visibility off, its light leaves the Diffuse pass (which is then
+    the one rendered with the sun hidden) and stays in the Specular pass; with Glossy off, the
+    reverse: Cycles' reading of a light's ray visibility."""
+    blender.step("passes")
+    names = ("passes", "passes_no_diffuse", "passes_no_glossy", "passes_no_sun")
+    images = {n: exr(blender.out / f"{n}.exr") for n in names}
+    diffuse = {n: channels(im, "Diffuse", "RGB").astype(np.float64) for n, im in images.items()}
+    specular = {n: channels(im, "Specular", "RGB").astype(np.float64) for n, im in images.items()}
+    assert (diffuse["passes"] - diffuse["passes_no_sun"]).max() > 0.05  # the sun lights both
+    assert (specular["passes"] - specular["passes_no_sun"]).max() > 1e-3
+    for off, gone, kept in (("diffuse", diffuse, specular), ("glossy", specular, diffuse)):
+        np.testing.assert_allclose(gone[f"passes_no_{off}"], gone["passes_no_sun"], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(kept[f"passes_no_{off}"], kept["passes"], rtol=0, atol=1e-6)
 
 
 def test_relit_passes_in_the_exr_are_the_shaded_splats_blended(blender):

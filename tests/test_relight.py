@@ -118,6 +118,16 @@ class _Stop(Exception):
     pass
 
 
+def test_a_light_that_gives_no_light_to_reflect_gets_no_shadow_maps(scene):
+    """Diffuse and specular weights of 0 (both ray visibilities off in Blender): no maps are made for
+    that light, and the frame is the one without it."""
+    dark = Light("point", power=300.0, position=(0.5, 0.5, 2.0), diffuse=0.0, specular=0.0)
+    seen = relight.visibilities(scene, [LIGHTS[0], dark])
+    assert sorted(seen) == [0]
+    without = relight.render_lit(scene, CAMERA, LIGHTS[:1]).color
+    np.testing.assert_array_equal(relight.render_lit(scene, CAMERA, [LIGHTS[0], dark]).color, without)
+
+
 def test_shadow_maps_report_progress_first_and_a_raise_stops_them(scene):
     """A lit render's progress follows every light's shadow maps ("shadows", rising from 0 towards 1
     over both lights), then the render's tiles; an exception raised from it (a cancel) while the

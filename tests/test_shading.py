@@ -295,6 +295,31 @@ def test_light_linking_leaves_a_light_out_of_the_splats_it_is_not_linked_to(back
         shade(cloud, eye, two, receivers={5: np.array([True, False])}, backend=backend)
 
 
+@pytest.mark.parametrize("backend", ["auto", "numpy"])
+def test_a_lights_diffuse_and_specular_weights_scale_its_two_reflections(backend):
+    """A light's diffuse and specular weights (Blender's Diffuse and Glossy ray visibility of the
+    light) scale its diffuse and specular light alone; a light that gives neither counts as no light
+    in the Shadow pass; a negative weight is refused."""
+    eye = np.array([0.0, -2.0, 3.0])
+    cloud = cloud_of([[0, 0, 0], [0.3, 0.2, 0]], [[0, 0, 1], [0.2, 0, 1]], [[0.8, 0.6, 0.4]] * 2, 0.4, 0.3)
+    spec = dict(kind="point", power=50.0, position=(0.5, 1.0, 1.5), radius=0.1)
+    plain = shade(cloud, eye, [Light(**spec)], backend=backend)
+    weighted = shade(cloud, eye, [Light(**spec, diffuse=2.0, specular=0.5)], backend=backend)
+    assert plain.diffuse.min() > 0 and plain.specular.min() > 0
+    np.testing.assert_allclose(weighted.diffuse, 2.0 * plain.diffuse, rtol=1e-6)
+    np.testing.assert_allclose(weighted.specular, 0.5 * plain.specular, rtol=1e-6)
+    glossy_only = shade(cloud, eye, [Light(**spec, diffuse=0.0)], backend=backend)
+    assert not glossy_only.diffuse.any()
+    np.testing.assert_array_equal(glossy_only.specular, plain.specular)
+    sun = Light("sun", power=2.0, direction=(0, 0, -1))
+    dark = Light(**spec, diffuse=0.0, specular=0.0)
+    shaded = shade(cloud, eye, [sun, dark], visibility={1: np.zeros(2)}, backend=backend)
+    np.testing.assert_array_equal(shaded.radiance, shade(cloud, eye, [sun], backend=backend).radiance)
+    assert not shaded.shadow.any()  # the dark light's shadow takes no light away
+    with pytest.raises(ValueError, match="specular must be finite, >= 0"):
+        Light(**spec, specular=-1.0)
+
+
 def test_orthographic_camera_views_along_its_axis_and_no_material_is_refused():
     cam = Camera.look_at_ortho(eye=(0, 0, 5), target=(0, 0, 0), up=(0, 1, 0))
     light = Light("point", power=100.0, position=(1.0, 0.0, 1.0))
@@ -332,8 +357,8 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         Light("point", power=300.0, position=(0.5, -0.4, 2.0), radius=0.2),
         Light("spot", power=500.0, position=(-1.0, 0.5, 2.0), direction=(0.4, -0.2, -1.0), spot_size=0.9),
         Light("spot", power=200.0, position=(0.0, 0.0, 2.5), direction=(0.0, 0.0, -1.0), spot_blend=0.0),
-        Light("sun", power=2.0, direction=(0.3, 0.2, -1.0), angle=0.05, color=(1.0, 0.8, 0.6)),
-        Light("area", power=100.0, position=(1.0, 1.0, 2.0), direction=(-0.3, -0.3, -1.0), size_x=0.8),
+        Light("sun", power=2.0, direction=(0.3, 0.2, -1.0), angle=0.05, color=(1.0, 0.8, 0.6), specular=0.3),
+        Light("area", power=100.0, position=(1.0, 1.0, 2.0), direction=(-0.3, -0.3, -1.0), size_x=0.8, diffuse=0.0),
         Light("area", power=80.0, position=(0, -1, 2), size_x=0.6, size_y=0.3, shape="ELLIPSE", x_axis=(0, 1, 0)),
     ]
     visibility = {0: rng.uniform(0.0, 1.0, n), 3: rng.uniform(0.0, 1.0, n), 4: np.zeros(n)}

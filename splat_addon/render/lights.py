@@ -3,7 +3,8 @@ the engine renders: every visible point, spot, sun and area light, instances inc
 engine's frame (world space shifted by -origin, see engine.py), with Cycles' reading of each
 setting (intern/cycles/blender/light.cpp): strength = colour x temperature colour x power x
 2^exposure; a light whose Normalize is off emits its power per unit of its own area; area sizes
-follow the object's scale; the light points along its object's -Z, an area's width along +X."""
+follow the object's scale; the light points along its object's -Z, an area's width along +X; its
+object's Diffuse and Glossy ray visibility say whether it lights diffuse and glossy reflection."""
 
 import math
 
@@ -25,7 +26,7 @@ def scene_lights(depsgraph, origin, links=None):
         obj = inst.object
         if obj.type != "LIGHT":
             continue
-        light = light_from_blender(obj.data, np.array(inst.matrix_world, dtype=np.float64), origin)
+        light = light_from_blender(obj.data, np.array(inst.matrix_world, dtype=np.float64), origin, obj)
         if light is not None:
             found.append(light)
             if links is not None:
@@ -84,20 +85,24 @@ def scene_world(scene):
     return World(world_color(scene), int(getattr(scene, WORLD_OCCLUSION, 0)))
 
 
-def light_from_blender(light, matrix, origin=(0.0, 0.0, 0.0)):
+def light_from_blender(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
     """core.lights.Light of Blender light datablock `light` placed by world `matrix` (4,4), in the frame
-    shifted by -`origin`; None for a light that gives no light (zero power or colour)."""
+    shifted by -`origin` (`obj`, its object, see light_fields); None for a light that gives no light
+    (zero power or colour)."""
     from ...core.lights import Light
 
-    fields = light_fields(light, matrix, origin)
+    fields = light_fields(light, matrix, origin, obj)
     if fields is None:
         return None
     return Light(**fields)
 
 
-def light_fields(light, matrix, origin=(0.0, 0.0, 0.0)):
+def light_fields(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
     """The keyword arguments of core.lights.Light for `light` at `matrix` (see light_from_blender), or
-    None for a light that gives no light; kept apart so tests can compare them with plain numbers."""
+    None for a light that gives no light; kept apart so tests can compare them with plain numbers.
+    With the light's object `obj`, its Ray Visibility's Diffuse and Glossy too, which Cycles reads as
+    the light's part in diffuse and glossy reflection (a light with Glossy off makes no highlights;
+    Blender's Diffuse and Specular factors are EEVEE's alone, and Cycles leaves them out)."""
     kind = KINDS.get(light.type)
     if kind is None:
         return None
@@ -116,6 +121,9 @@ def light_fields(light, matrix, origin=(0.0, 0.0, 0.0)):
         "direction": _unit(-axes[:, 2]),
         "cast_shadow": bool(light.use_shadow),
     }
+    if obj is not None:
+        fields["diffuse"] = float(getattr(obj, "visible_diffuse", True))
+        fields["specular"] = float(getattr(obj, "visible_glossy", True))
     if kind == "sun":
         fields["angle"] = float(light.angle)
     elif kind == "area":

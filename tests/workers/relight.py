@@ -29,6 +29,7 @@ LIGHTS = {
     "Disk": ("AREA", (2.0, 0.0, 1.0), (0.0, 0.7, 0.0), (0.5, 0.5, 0.5), dict(energy=10.0, shape="DISK", size=1.0)),
 }
 COLORS = {"Point": (1.0, 0.5, 0.25), "Spot": (0.2, 0.4, 1.0)}
+RAYS = {"Spot": dict(visible_glossy=False), "Area": dict(visible_diffuse=False)}  # a light object's ray visibility
 INSTANCE_OFFSET = (5.0, 0.0, 0.0)  # a collection instance of the point light, moved by this
 EXPOSURE = 1.0  # Blender 4.5+? set where the light has it: power x 2
 
@@ -127,7 +128,9 @@ class Worker(BlenderWorker):
         for obj in [o for o in scene.objects if o.type == "LIGHT"]:
             bpy.data.objects.remove(obj)
         for name, spec in LIGHTS.items():
-            self.add_light(name, *spec)
+            obj = self.add_light(name, *spec)
+            for key, value in RAYS.get(name, {}).items():
+                setattr(obj, key, value)
         has_exposure = hasattr(bpy.data.lights["Point"], "exposure")
         if has_exposure:
             bpy.data.lights["Sun"].exposure = EXPOSURE
@@ -147,7 +150,7 @@ class Worker(BlenderWorker):
         for inst in depsgraph.object_instances:
             if inst.object.type == "LIGHT":
                 matrix = np.array(inst.matrix_world, dtype=np.float64)
-                record = lights.light_fields(inst.object.data, matrix, np.array(ORIGIN))
+                record = lights.light_fields(inst.object.data, matrix, np.array(ORIGIN), inst.object)
                 record = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in record.items()}
                 fields.append({"name": inst.object.name, **record})
         made = []
@@ -277,7 +280,8 @@ class Worker(BlenderWorker):
 
     def passes(self):
         """A relit splat ball beside an unlit cloud, splats only: the Diffuse, Specular and Shadow passes
-        in a multilayer EXR, and what the engine read to make them."""
+        in a multilayer EXR, and what the engine read to make them; then with the sun's Diffuse, then
+        Glossy ray visibility off, and with the sun hidden."""
         self.stage("NONE")
         ball = self.splat_object(
             "Ball",
@@ -291,6 +295,16 @@ class Worker(BlenderWorker):
         res = self.engine_inputs("passes_inputs")
         self.write("passes")
         res["viewport_lit"] = self.viewport_picture("passes_viewport")
+        sun = self.bpy.data.objects["Sun"]
+        for ray in ("diffuse", "glossy"):  # the sun's ray visibility, one at a time
+            setattr(sun, f"visible_{ray}", False)
+            self.bpy.context.view_layer.update()
+            self.write(f"passes_no_{ray}")
+            setattr(sun, f"visible_{ray}", True)
+        sun.hide_render = True
+        self.bpy.context.view_layer.update()
+        self.write("passes_no_sun")
+        sun.hide_render = False
         panel = self.module("splat_addon.ui.panel")
         res.update(
             camera=self.camera_record(),
