@@ -14,7 +14,9 @@ A Light lives in the world frame of the cloud it lights. Its units are those Cyc
 - area: a one-sided rectangle or ellipse of `size_x` by `size_y` metres emitting radiance
   P / (pi * area) towards its -Z side (`direction`; so P / area W/m^2 leave its surface), sampled
   at a stratified grid of points, each a small cosine-weighted (Lambertian) emitter (see
-  area_points), the grid as fine as the lit point's distance needs (area_grids).
+  area_points), the grid as fine as the lit point's distance needs (area_grids). Blender's Spread
+  narrows it (spread_factor): radiance times (tan(s/2) - tan a) / (tan(s/2) - s/2) at an angle a from
+  its axis, none past s/2, the same power in all (Cycles' soft-box grid).
 
 Irradiance is the power per square metre arriving on a surface, colour included; a diffuse surface of
 albedo a then reflects radiance a * E / pi. Lights are evaluated per splat, vectorised (`incident`
@@ -39,10 +41,14 @@ AREA_GRID = 4
 AREA_SAMPLES = AREA_GRID * AREA_GRID  # the most a point gets
 AREA_REACH = 6.0
 AREA_GLOSS = 1.5  # samples across a glossy lobe's width (area_grids' lobes; docs/DESIGN.md's figures)
+# A light narrowed by its Spread reaches a point from a disc of radius t tan(spread/2) on it (t: the
+# point's height over its plane): g at least AREA_SPREAD side / (t tan(spread/2)), within AREA_GRID.
+AREA_SPREAD = 3.0
 # Radiance of an area light per watt per square metre of its surface: 1/pi, so that its radiant
 # exitance (pi * radiance) is power / area. Measured: Cycles' renders agree within 0.1%
 # (tests/test_blender_lights.py); its kernel's 0.25 / area comes with a 4/pi from Blender's side.
 AREA_RADIANCE = 1.0 / math.pi
+MIN_SPREAD = math.radians(1.0)  # narrower spreads are taken as this, as Cycles takes them
 
 
 def _vector(value, name: str, problems: list[str], unit: bool = False) -> np.ndarray:
@@ -73,7 +79,8 @@ class Light:
     size_x for both); shape: one of AREA_SHAPES; x_axis: (3,) the area light's local +X in world
     (made orthogonal to direction here). cast_shadow: whether it casts shadows. diffuse, specular:
     >= 0, the light's weight in diffuse and in specular reflection (0: none, as a Blender light whose
-    Diffuse or Glossy ray visibility is off, which Cycles reads so).
+    Diffuse or Glossy ray visibility is off, which Cycles reads so). spread: an area light's Spread
+    (rad, in (0, pi]; pi: a plain Lambertian emitter; see spread_factor).
     """
 
     kind: str
@@ -92,6 +99,7 @@ class Light:
     cast_shadow: bool = True
     diffuse: float = 1.0
     specular: float = 1.0
+    spread: float = math.pi
 
     def __post_init__(self):
         problems: list[str] = []
@@ -120,6 +128,7 @@ class Light:
             "size_y": (self.size_y, 0.0, math.inf, False),
             "diffuse": (self.diffuse, 0.0, math.inf, True),
             "specular": (self.specular, 0.0, math.inf, True),
+            "spread": (self.spread, 0.0, math.pi * (1.0 + 1e-6), False),  # Blender's float32 pi passes
         }
         for name, (value, low, high, closed_low) in values.items():
             ok = isinstance(value, int | float | np.floating | np.integer) and math.isfinite(value)
@@ -136,6 +145,7 @@ class Light:
         object.__setattr__(self, "x_axis", x_axis)
         object.__setattr__(self, "position", position)
         object.__setattr__(self, "cast_shadow", bool(self.cast_shadow))
+        object.__setattr__(self, "spread", min(float(self.spread), math.pi))
 
     @property
     def extent(self) -> tuple[float, float]:
@@ -205,6 +215,32 @@ def spot_cone(light: Light, cos_angle: np.ndarray) -> np.ndarray:
     return x * x * (3.0 - 2.0 * x)
 
 
+def spread_terms(light: Light) -> tuple[float, float]:
+    """(tan(s/2), 1 / (tan(s/2) - s/2)) of an area light's spread s (at least MIN_SPREAD), from which
+    spread_factor follows; (0, 1) for a full spread of pi (no narrowing)."""
+    if light.spread >= math.pi:
+        return 0.0, 1.0
+    half = 0.5 * max(light.spread, MIN_SPREAD)
+    tan_half = math.tan(half)
+    # tan h - h loses digits for small h: its series h^3/3 + 2h^5/15 + 17h^7/315 there
+    gap = tan_half - half if half > 0.05 else half**3 / 3 + 2 * half**5 / 15 + 17 * half**7 / 315
+    return tan_half, 1.0 / gap
+
+
+def spread_factor(light: Light, cos_emit: np.ndarray) -> np.ndarray:
+    """(N,) what an area light's Spread leaves of its radiance towards directions at cos_emit (N,) to
+    its axis: (tan(s/2) - tan a) / (tan(s/2) - s/2), 0 past s/2. The divisor keeps the light's power:
+    the integral of cos a sin a over the cone times it is 1/2, a Lambertian hemisphere's; 1 for a
+    spread of pi."""
+    tan_half, scale = spread_terms(light)
+    cos_emit = np.asarray(cos_emit, np.float64)
+    if tan_half == 0.0:
+        return np.ones_like(cos_emit)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tan_a = np.sqrt(np.maximum(1.0 - cos_emit * cos_emit, 0.0)) / cos_emit
+    return np.where(cos_emit > 0.0, np.maximum(tan_half - tan_a, 0.0) * scale, 0.0)
+
+
 def area_points(light: Light, grid: int = AREA_GRID) -> tuple[np.ndarray, np.ndarray]:
     """The area light's sample points (grid*grid, 3) in world and each one's share of its area (m^2):
     cell centres of a grid x grid split of the rectangle, or of the unit square mapped to the disc by
@@ -237,16 +273,22 @@ def area_table(light: Light) -> np.ndarray:
 
 def area_grids(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) -> np.ndarray:
     """(N,) int: the sampling grid (g of g x g, 1..AREA_GRID) of the area light at each point (N,3),
-    from its distance to the light's centre (see AREA_REACH); the finest where it is undefined.
+    from its distance to the light's centre (see AREA_REACH) and, for a light narrowed by its
+    Spread, its height over the light's plane (AREA_SPREAD); the finest where it is undefined.
     lobes: (N,) angular widths (radians) of glossy reflections to be lit: the samples' spacing, the
     side over g distance, stays within a lobe's width, or a glossy highlight takes the shape of
     too few samples."""
-    distance = towards(light.position, np.asarray(points, np.float64).reshape(-1, 3))[1]
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    distance = towards(light.position, points)[1]
     side = max(light.extent)
+    tan_half = spread_terms(light)[0]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         grids = np.ceil(AREA_REACH * side / distance)
         if lobes is not None:
             grids = np.maximum(grids, np.ceil(AREA_GLOSS * side / (distance * lobes)))
+        if tan_half > 0.0:  # a Spread: the part of the light that reaches the point
+            height = np.abs((points - light.position) @ light.direction)
+            grids = np.maximum(grids, np.ceil(AREA_SPREAD * side / (height * tan_half)))
     return np.clip(np.nan_to_num(grids, nan=AREA_GRID), 1, AREA_GRID).astype(np.int64)
 
 
@@ -284,7 +326,7 @@ def incident(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) 
         direction, distance = towards(table[grids, k], points)
         # one-sided Lambertian patch: its cosine towards each point, 0 behind it
         cos_emit = np.maximum(-(direction @ light.direction), 0.0)
-        scalar = radiance * share * cos_emit / np.maximum(distance, 1e-300) ** 2
+        scalar = radiance * share * cos_emit * spread_factor(light, cos_emit) / np.maximum(distance, 1e-300) ** 2
         scalar = np.where((distance > 1e-300) & (k < grids * grids), scalar, 0.0)
         out.append(Incident(direction, distance, scalar, np.sqrt(share / math.pi)))
     return out

@@ -44,11 +44,13 @@ from .lights import (
     AREA_GRID,
     AREA_RADIANCE,
     AREA_REACH,
+    AREA_SPREAD,
     Incident,
     Light,
     World,
     area_table,
     incident,
+    spread_terms,
     towards,
 )
 from .parallel import in_chunks
@@ -326,8 +328,8 @@ def _world_visibility(visibility: dict | None, n: int) -> Floats:
 
 SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # kind, light index, position (3), direction (3: towards the sun; the spot's or area's axis),
-# strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and 0),
-# emitter radius (the sun's: its half angle)
+# strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and
+# the tan of half its light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
 SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_shade_loop")
 
@@ -347,22 +349,27 @@ def _emitters(lights: list[Light]) -> np.ndarray:
             rows.append([kind, index, *light.position, *light.direction, strength, cos_half, width, light.radius])
         else:
             table = area_table(light)
+            tan_half, spread_scale = spread_terms(light)
             for grid in range(1, AREA_GRID + 1):  # 1 + 4 + 9 + 16 samples
                 share = light.area / (grid * grid)
-                strength = AREA_RADIANCE * light.power / light.area * share
+                strength = AREA_RADIANCE * light.power / light.area * share * spread_scale
+                radius = math.sqrt(share / math.pi)
                 for sample in table[grid, : grid * grid]:
-                    rows.append([AREA, index, *sample, *light.direction, strength, grid, 0, math.sqrt(share / math.pi)])
+                    rows.append([AREA, index, *sample, *light.direction, strength, grid, tan_half, radius])
     return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS)
 
 
 def _area_reaches(lights: list[Light]) -> np.ndarray:
-    """(L, 5) float64: per light, the centre (3), AREA_REACH times the longer side of an area light
-    and that side, from which a splat's grid follows (core.lights.area_grids); 0 for other lights."""
+    """(L, 9) float64: per light, the centre (3), AREA_REACH and AREA_GLOSS times the longer side of
+    an area light (0 for other lights), its axis (3) and AREA_SPREAD times that side over the tan of
+    half its spread (0 without one), from which a splat's grid follows (core.lights.area_grids)."""
     rows = []
     for light in lights:  # a loop over lights
         side = max(light.extent) if light.kind == "area" else 0.0
-        rows.append([*light.position, AREA_REACH * side, AREA_GLOSS * side])
-    return np.array(rows, np.float64).reshape(-1, 5)
+        tan_half = spread_terms(light)[0] if light.kind == "area" else 0.0
+        spread = AREA_SPREAD * side / tan_half if tan_half > 0.0 else 0.0
+        rows.append([*light.position, AREA_REACH * side, AREA_GLOSS * side, *light.direction, spread])
+    return np.array(rows, np.float64).reshape(-1, 9)
 
 
 def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter):
@@ -466,6 +473,9 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
             grids[k] = AREA_GRID  # as core.lights.area_grids with the splat's lobe; also at 0 and NaN
             if distance > 0.0:
                 grid = max(np.ceil(reaches[k, 3] / distance), np.ceil(reaches[k, 4] / (distance * alpha)))
+                if reaches[k, 8] > 0.0:  # a Spread: its height over the light's plane matters too
+                    height = abs(dx * reaches[k, 5] + dy * reaches[k, 6] + dz * reaches[k, 7])
+                    grid = max(grid, np.ceil(reaches[k, 8] / height)) if height > 0.0 else AREA_GRID
                 grids[k] = min(max(grid, 1.0), AREA_GRID)
         for e in range(emitters.shape[0]):
             kind, index, strength = emitters[e, 0], int(emitters[e, 1]), emitters[e, 8]
@@ -488,6 +498,8 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                         strength *= x * x * (3.0 - 2.0 * x)
                 elif kind == AREA:
                     strength *= max(out, 0.0)
+                    if emitters[e, 10] > 0.0 and out > 0.0:  # its Spread (core.lights.spread_factor)
+                        strength *= max(emitters[e, 10] - math.sqrt(max(1.0 - out * out, 0.0)) / out, 0.0)
                 strength = strength / (safe * safe) if distance > 1e-300 else 0.0
             cos_l = m0 * lx + m1 * ly + m2 * lz
             if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone

@@ -49,7 +49,7 @@ def light_from_record(rec):
     if kind == "sun":
         common["angle"] = rec["angle"]
     if kind == "area":
-        common.update(shape=rec["shape"], size_x=rec["size"], size_y=rec["size_y"])
+        common.update(shape=rec["shape"], size_x=rec["size"], size_y=rec["size_y"], spread=rec["spread"])
     light = Light(kind, **common)
     if kind == "area" and not rec["normalize"]:  # Normalize off: the power is per square metre
         light = dataclasses.replace(light, power=light.power * light.area)

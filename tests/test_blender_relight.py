@@ -38,6 +38,7 @@ def expected_light(name, kind, location, rotation, scale, settings, exposure, no
         out["size_x"] = settings["size"] * scale[0]
         out["size_y"] = settings.get("size_y", settings["size"]) * scale[1]
         out["x_axis"] = r[:, 0] / np.linalg.norm(r[:, 0])
+        out["spread"] = settings.get("spread", math.pi)
         if name == "Disk" and not normalize:  # power per square metre of the disk
             power *= math.pi / 4 * out["size_x"] * out["size_y"]
     else:

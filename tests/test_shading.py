@@ -360,6 +360,7 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         Light("sun", power=2.0, direction=(0.3, 0.2, -1.0), angle=0.05, color=(1.0, 0.8, 0.6), specular=0.3),
         Light("area", power=100.0, position=(1.0, 1.0, 2.0), direction=(-0.3, -0.3, -1.0), size_x=0.8, diffuse=0.0),
         Light("area", power=80.0, position=(0, -1, 2), size_x=0.6, size_y=0.3, shape="ELLIPSE", x_axis=(0, 1, 0)),
+        Light("area", power=90.0, position=(-0.5, 0.5, 1.5), size_x=0.7, spread=math.radians(70.0)),
     ]
     visibility = {0: rng.uniform(0.0, 1.0, n), 3: rng.uniform(0.0, 1.0, n), 4: np.zeros(n)}
     visibility["world"] = rng.uniform(0.0, 1.0, (n, 2))

@@ -140,13 +140,17 @@ def light_fields(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
 
 
 def _area_fields(light, axes):
-    """An area light's shape and its sizes in the world (the object's scale applied, as Cycles does)."""
+    """An area light's shape, its sizes in the world (the object's scale applied, as Cycles does) and
+    its Spread (at least core.lights.MIN_SPREAD, as Cycles takes it)."""
+    from ...core.lights import MIN_SPREAD
+
     shape = light.shape
     size_x = float(light.size) * float(np.linalg.norm(axes[:, 0]))
     size_y = float(light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size) * float(
         np.linalg.norm(axes[:, 1])
     )
-    return {"shape": shape, "size_x": size_x, "size_y": size_y, "x_axis": _unit(axes[:, 0])}
+    spread = min(max(float(getattr(light, "spread", math.pi)), MIN_SPREAD), math.pi)
+    return {"shape": shape, "size_x": size_x, "size_y": size_y, "x_axis": _unit(axes[:, 0]), "spread": spread}
 
 
 def emitter_area(fields):

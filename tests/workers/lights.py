@@ -36,6 +36,13 @@ LIGHTS = {
         (math.radians(15.0), math.radians(-10.0), math.radians(30.0)),
     ),
     "area_disk": ("AREA", dict(energy=80.0, shape="DISK", size=1.2), (-0.2, 0.3, 0.9), (0, 0, 0)),
+    # Spread narrows the light to a cone (Cycles' soft-box grid), its power kept
+    "area_spread": (
+        "AREA",
+        dict(energy=120.0, shape="RECTANGLE", size=1.2, size_y=0.8, spread=math.radians(70.0)),
+        (0.3, -0.2, 1.0),
+        (math.radians(10.0), 0.0, 0.0),
+    ),
     # Normalize off (Blender 4.5+): the power is per square metre of the light, not spread over it
     "area_unnormalized": (
         "AREA",
@@ -137,7 +144,7 @@ class Worker(BlenderWorker):
         rec = {"type": data.type, "energy": data.energy, "color": list(data.color)}
         rec["exposure"] = getattr(data, "exposure", 0.0)
         rec["normalize"] = getattr(data, "normalize", True)
-        for key in ("shadow_soft_size", "spot_size", "spot_blend", "angle", "shape", "size", "size_y"):
+        for key in ("shadow_soft_size", "spot_size", "spot_blend", "angle", "shape", "size", "size_y", "spread"):
             if hasattr(data, key):
                 rec[key] = getattr(data, key)
         rec["matrix_world"] = [list(row) for row in obj.matrix_world]
@@ -165,6 +172,9 @@ class Worker(BlenderWorker):
 
     def area_disk(self):
         return self.run_light("area_disk")
+
+    def area_spread(self):
+        return self.run_light("area_spread")
 
     def area_unnormalized(self):
         return self.run_light("area_unnormalized")

@@ -24,7 +24,7 @@ LIGHTS = {
         (0.0, -2.0, 1.0),
         (1.2, 0.0, 0.3),
         (2.0, 3.0, 1.0),
-        dict(energy=50.0, shape="RECTANGLE", size=2.0, size_y=0.5),
+        dict(energy=50.0, shape="RECTANGLE", size=2.0, size_y=0.5, spread=1.2),
     ),
     "Disk": ("AREA", (2.0, 0.0, 1.0), (0.0, 0.7, 0.0), (0.5, 0.5, 0.5), dict(energy=10.0, shape="DISK", size=1.0)),
 }
