@@ -56,11 +56,24 @@ class Row:
 def paired(baseline, ours, repeat=5, clock=time.perf_counter, warmup=True):
     """(baseline Timing, our Timing) from runs that alternate, so both meet the same load on a shared
     machine; one untimed warm-up each (unless not `warmup`: for long runs whose code is warm)."""
-    pairs = [
+    pairs = _pairs(baseline, ours, repeat, clock, warmup)
+    return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
+
+
+def paired_ratio(baseline, ours, repeat=5, clock=time.perf_counter, warmup=True):
+    """paired()'s two Timings and the median of the ratios ours / baseline of each pair: a pair's two
+    runs meet the same load, so their ratio holds still where the ratio of the two medians moves
+    with every load that falls on one side's median run."""
+    pairs = _pairs(baseline, ours, repeat, clock, warmup)
+    ratio = statistics.median(mine.median / base.median for base, mine in pairs)
+    return (*(_combine([p[side] for p in pairs]) for side in (0, 1)), ratio)
+
+
+def _pairs(baseline, ours, repeat, clock, warmup):
+    return [
         (timeit(baseline, 1, int(i == 0 and warmup), clock), timeit(ours, 1, int(i == 0 and warmup), clock))
         for i in range(repeat)
     ]
-    return tuple(_combine([p[side] for p in pairs]) for side in (0, 1))
 
 
 def _combine(timings):
