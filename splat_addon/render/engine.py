@@ -153,7 +153,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         from ...core.relight import render_lit  # only when something is relit
 
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
-        occluders = relit.occluders(depsgraph, origin) if mesh_engine(depsgraph.scene) != "NONE" else None
+        drawn = mesh_engine(depsgraph.scene) != "NONE"
+        occluders = relit.occluders(depsgraph, origin) if drawn else relit.Occluders([])
         lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
         lit_render = render_lit(
             cloud,
@@ -163,7 +164,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             receivers=receivers,
             blockers=blockers,
             mesh_blockers=mesh_blockers,
-            meshes=occluders.surfaces if occluders is not None else None,
+            meshes=occluders.surfaces,
             background=background,
             layer=layer,
             passes=passes,

@@ -85,12 +85,13 @@ def _linked(rules, owners):
     if owners is None:
         return {}
     names, index = owners
-    out = {}
-    for k, rule in enumerate(rules):
-        taken = np.array([takes_in(rule, name) for name in names], bool)
-        if not taken.all():
-            out[k] = taken[index]
-    return out
+    taken = _taken(rules, names)
+    return {k: taken[index, k] for k in range(len(rules)) if not taken[:, k].all()}
+
+
+def _taken(rules, names):
+    """(len(names), len(rules)) bool: whether each rule (lights.linking_of's) takes in each object."""
+    return np.array([[takes_in(rule, name) for rule in rules] for name in names], bool).reshape(len(names), len(rules))
 
 
 def _marked(obj, cloud):
@@ -191,7 +192,7 @@ def _stand_in_parts(owners, lit, collections):
     if owners is None or not collections:
         return np.zeros(count, np.int64), []
     names, index = owners
-    taken = np.array([[takes_in(rule, name) for _, rule in collections] for name in names], bool)
+    taken = _taken([rule for _, rule in collections], names)
     kinds, per_object = np.unique(taken, axis=0, return_inverse=True)
     links = []
     for k, (collection, (included, _)) in enumerate(collections):

@@ -105,10 +105,9 @@ def picture_inputs(depsgraph, kept=None):
     background = None if scene.render.film_transparent else linear_to_srgb(world_color(scene))
     lighting = None
     if lit is not None:
-        occluders = relit.occluders(depsgraph, origin) if len(meshes) else None
+        occluders = relit.occluders(depsgraph, origin) if len(meshes) else relit.Occluders([])
         lights, *linking = relit.linked_lights(depsgraph, origin, owners, occluders)
-        surfaces = occluders.surfaces if occluders is not None else []
-        lighting = Lighting(lights, scene_world(scene), surfaces, kept, tuple(linking))
+        lighting = Lighting(lights, scene_world(scene), occluders.surfaces, kept, tuple(linking))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 
