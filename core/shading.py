@@ -331,14 +331,19 @@ SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and
 # the tan of half its light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
-SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_shade_loop")
+SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_asin", "_shade_loop")
+ASIN_SERIES = 0.3  # _asin sums its series below this sine, calls asin above
 
 
-def _emitters(lights: list[Light]) -> np.ndarray:
+def _emitters(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
     """(E, EMITTER_FIELDS) float64: every light's emitters (an area light's samples on every grid, see
-    core.lights.incident: each splat takes those of its own grid)."""
-    rows = []
+    core.lights.incident: each splat takes those of its own grid), and (L, AREA_GRID + 1, 2) int64:
+    the rows [start, stop) of light k's emitters on grid g (any g for a light without a grid), so
+    the loop reads a splat's own samples only."""
+    rows: list[list[float]] = []
+    spans = np.zeros((len(lights), AREA_GRID + 1, 2), np.int64)
     for index, light in enumerate(lights):  # a loop over lights
+        spans[index] = len(rows), len(rows) + 1
         if light.kind == "sun":
             rows.append([SUN, index, 0, 0, 0, *(-light.direction), light.power, 0, 0, 0.5 * light.angle])
         elif light.kind in ("point", "spot"):
@@ -354,9 +359,10 @@ def _emitters(lights: list[Light]) -> np.ndarray:
                 share = light.area / (grid * grid)
                 strength = AREA_RADIANCE * light.power / light.area * share * spread_scale
                 radius = math.sqrt(share / math.pi)
+                spans[index, grid] = len(rows), len(rows) + grid * grid
                 for sample in table[grid, : grid * grid]:
                     rows.append([AREA, index, *sample, *light.direction, strength, grid, tan_half, radius])
-    return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS)
+    return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS), spans
 
 
 def _area_reaches(lights: list[Light]) -> np.ndarray:
@@ -395,13 +401,13 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
-    emitters, reaches = _emitters(lights), _area_reaches(lights)
+    (emitters, spans), reaches = _emitters(lights), _area_reaches(lights)
     flags = np.array([ortho, multiscatter, world is not None])
     in_chunks(
         n,
         lambda lo, hi: kernel(
-            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, reaches, colors,
-            vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
+            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, reaches,
+            colors, vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -435,19 +441,31 @@ def _table_one(table, cos_v, roughness):
     return low * (1 - fy) + high * fy
 
 
-def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, reaches, colors, vis,
-                reach, world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
+def _asin(x):
+    """math.asin of x in [0, 1] by its Taylor series up to x^11 below ASIN_SERIES (within 3e-8 of it
+    relative there: float32 outputs cannot tell), the library's asin above: most emitters subtend a
+    small angle, and the series is a few multiplications where asin costs a fifth of an area
+    sample's shading."""
+    if x >= ASIN_SERIES:
+        return math.asin(x)
+    x2 = x * x
+    tail = 3.0 / 40.0 + x2 * (5.0 / 112.0 + x2 * (35.0 / 1152.0 + x2 * (63.0 / 2816.0)))
+    return x * (1.0 + x2 * (1.0 / 6.0 + x2 * tail))
+
+
+def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, reaches, colors,
+                vis, reach, world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
-    grids = np.empty(n_lights)  # each area light's grid at this splat (core.lights.area_grids)
     f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     out_d, out_s = np.empty(3), np.empty(3)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
     for i in range(lo, hi):
+        p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
         if flags[0]:
             v0, v1, v2 = eye[0], eye[1], eye[2]
         else:
-            v0, v1, v2 = eye[0] - points[i, 0], eye[1] - points[i, 1], eye[2] - points[i, 2]
+            v0, v1, v2 = eye[0] - p0, eye[1] - p1, eye[2] - p2
             length = max(math.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-300)
             v0, v1, v2 = v0 / length, v1 / length, v2 / length
         sign = -1.0 if nx[i] * v0 + ny[i] * v1 + nz[i] * v2 < 0.0 else 1.0
@@ -466,59 +484,58 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
         tan2_v = _tan2(cos_vg)  # the view's part of Smith's Lambda, the same for every emitter
         acc[:] = 0.0
         for k in range(n_lights):
-            if reaches[k, 3] <= 0.0:
-                continue  # not an area light: no grid to choose
-            dx, dy, dz = reaches[k, 0] - points[i, 0], reaches[k, 1] - points[i, 1], reaches[k, 2] - points[i, 2]
-            distance = math.sqrt(dx * dx + dy * dy + dz * dz)
-            grids[k] = AREA_GRID  # as core.lights.area_grids with the splat's lobe; also at 0 and NaN
-            if distance > 0.0:
-                grid = max(np.ceil(reaches[k, 3] / distance), np.ceil(reaches[k, 4] / (distance * alpha)))
-                if reaches[k, 8] > 0.0:  # a Spread: its height over the light's plane matters too
-                    height = abs(dx * reaches[k, 5] + dy * reaches[k, 6] + dz * reaches[k, 7])
-                    grid = max(grid, np.ceil(reaches[k, 8] / height)) if height > 0.0 else AREA_GRID
-                grids[k] = min(max(grid, 1.0), AREA_GRID)
-        for e in range(emitters.shape[0]):
-            kind, index, strength = emitters[e, 0], int(emitters[e, 1]), emitters[e, 8]
-            if kind == AREA and emitters[e, 9] != grids[index]:
-                continue  # a sample of another grid than this splat's
-            if kind == SUN:
-                lx, ly, lz, distance = emitters[e, 5], emitters[e, 6], emitters[e, 7], math.inf
-            else:
-                lx, ly, lz = emitters[e, 2] - points[i, 0], emitters[e, 3] - points[i, 1], emitters[e, 4] - points[i, 2]
-                distance = math.sqrt(lx * lx + ly * ly + lz * lz)
-                safe = max(distance, 1e-300)
-                lx, ly, lz = lx / safe, ly / safe, lz / safe
-                out = -(lx * emitters[e, 5] + ly * emitters[e, 6] + lz * emitters[e, 7])  # cos to the axis
-                if kind == SPOT:
-                    cos_half, width = emitters[e, 9], emitters[e, 10]
-                    if width <= 0.0:
-                        strength *= 1.0 if out > cos_half else 0.0
-                    else:
-                        x = min(max((out - cos_half) / width, 0.0), 1.0)
-                        strength *= x * x * (3.0 - 2.0 * x)
-                elif kind == AREA:
-                    strength *= max(out, 0.0)
-                    if emitters[e, 10] > 0.0 and out > 0.0:  # its Spread (core.lights.spread_factor)
-                        strength *= max(emitters[e, 10] - math.sqrt(max(1.0 - out * out, 0.0)) / out, 0.0)
-                strength = strength / (safe * safe) if distance > 1e-300 else 0.0
-            cos_l = m0 * lx + m1 * ly + m2 * lz
-            if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone
-                continue
-            acc[index, 0] += strength * cos_l
-            radius = emitters[e, 11]
-            if kind != SUN:  # the emitter's angular radius (angular_radius)
-                radius = math.asin(min(max(radius / max(distance, 1e-300), 0.0), 1.0))
-            a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
-            hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
-            h_len = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
-            cos_h = min(max((m0 * hx + m1 * hy + m2 * hz) / h_len, 0.0), 1.0)
-            weight = (1.0 - min(max((v0 * hx + v1 * hy + v2 * hz) / h_len, 0.0), 1.0)) ** 5
-            denom = cos_h * cos_h * (a2 - 1.0) + 1.0
-            # D G / (4 n.v), D = a2 / (pi denom^2), G = 1 / (1 + Lambda(v) + Lambda(l)), in one division
-            lambdas = 1.0 + _lambda_sq(tan2_v, a2) + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)
-            value = strength * a2 / (math.pi * denom * denom * lambdas * 4.0 * cos_vg)
-            acc[index, 1] += value * (1.0 - weight)
-            acc[index, 2] += value * weight
+            g = 0  # no grid but an area light's: its grid at this splat, as core.lights.area_grids
+            if reaches[k, 3] > 0.0:
+                dx, dy, dz = reaches[k, 0] - p0, reaches[k, 1] - p1, reaches[k, 2] - p2
+                distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+                g = AREA_GRID  # also at 0 and NaN
+                if distance > 0.0:
+                    grid = max(np.ceil(reaches[k, 3] / distance), np.ceil(reaches[k, 4] / (distance * alpha)))
+                    if reaches[k, 8] > 0.0:  # a Spread: its height over the light's plane matters too
+                        height = abs(dx * reaches[k, 5] + dy * reaches[k, 6] + dz * reaches[k, 7])
+                        grid = max(grid, np.ceil(reaches[k, 8] / height)) if height > 0.0 else AREA_GRID
+                    g = int(min(max(grid, 1.0), AREA_GRID))
+            for e in range(spans[k, g, 0], spans[k, g, 1]):  # the light's emitters (an area light's on g)
+                kind, strength = emitters[e, 0], emitters[e, 8]
+                if kind == SUN:
+                    lx, ly, lz, distance = emitters[e, 5], emitters[e, 6], emitters[e, 7], math.inf
+                else:
+                    lx, ly, lz = emitters[e, 2] - p0, emitters[e, 3] - p1, emitters[e, 4] - p2
+                    distance = math.sqrt(lx * lx + ly * ly + lz * lz)
+                    inverse = 1.0 / max(distance, 1e-300)
+                    lx, ly, lz = lx * inverse, ly * inverse, lz * inverse
+                    out = -(lx * emitters[e, 5] + ly * emitters[e, 6] + lz * emitters[e, 7])  # cos to the axis
+                    if kind == SPOT:
+                        cos_half, width = emitters[e, 9], emitters[e, 10]
+                        if width <= 0.0:
+                            strength *= 1.0 if out > cos_half else 0.0
+                        else:
+                            x = min(max((out - cos_half) / width, 0.0), 1.0)
+                            strength *= x * x * (3.0 - 2.0 * x)
+                    elif kind == AREA:
+                        strength *= max(out, 0.0)
+                        if emitters[e, 10] > 0.0 and out > 0.0:  # its Spread (core.lights.spread_factor)
+                            strength *= max(emitters[e, 10] - math.sqrt(max(1.0 - out * out, 0.0)) / out, 0.0)
+                    strength = strength * inverse * inverse if distance > 1e-300 else 0.0
+                cos_l = m0 * lx + m1 * ly + m2 * lz
+                if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone
+                    continue
+                acc[k, 0] += strength * cos_l
+                radius = emitters[e, 11]
+                if kind != SUN:  # the emitter's angular radius (angular_radius)
+                    radius = _asin(min(max(radius * inverse, 0.0), 1.0))
+                a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
+                hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
+                h_inverse = 1.0 / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
+                cos_h = min(max((m0 * hx + m1 * hy + m2 * hz) * h_inverse, 0.0), 1.0)
+                schlick = 1.0 - min(max((v0 * hx + v1 * hy + v2 * hz) * h_inverse, 0.0), 1.0)
+                weight = schlick * schlick * schlick * schlick * schlick
+                denom = cos_h * cos_h * (a2 - 1.0) + 1.0
+                # D G / (4 n.v), D = a2 / (pi denom^2), G = 1 / (1 + Lambda(v) + Lambda(l)), in one division
+                lambdas = 1.0 + _lambda_sq(tan2_v, a2) + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)
+                value = strength * a2 / (math.pi * denom * denom * lambdas * 4.0 * cos_vg)
+                acc[k, 1] += value * (1.0 - weight)
+                acc[k, 2] += value * weight
         lit, seen = 0.0, 0.0
         out_d[:] = 0.0
         out_s[:] = 0.0

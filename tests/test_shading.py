@@ -377,3 +377,16 @@ def test_compiled_shade_matches_the_numpy_path(eye):
             got, want = getattr(compiled, name), getattr(reference, name)
             assert got.dtype == want.dtype == np.float32
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+
+
+def test_the_shading_loops_asin_is_asin_within_float32_rounding():
+    """core.shading._asin (the series below ASIN_SERIES, the library's asin above), compiled and
+    as plain Python, against math.asin in float64 over [0, 1], the threshold on both sides."""
+    from splatwright.core import shading
+
+    shading._shade_kernel()  # compiles the loop's helpers in place where numba loads
+    x = np.concatenate([np.linspace(0.0, 1.0, 2001), shading.ASIN_SERIES + np.array([-1e-12, 0.0, 1e-12])])
+    want = np.arcsin(x)
+    for asin in {shading._asin, getattr(shading._asin, "py_func", shading._asin)}:
+        got = np.array([asin(float(v)) for v in x])
+        np.testing.assert_allclose(got, want, rtol=3e-8, atol=0.0)
