@@ -6,8 +6,9 @@ and every way it can fail to load (not installed, built for another NumPy, a bro
 
 Compiled code is cached on disk, so only the first use on a machine pays for compiling (a few
 seconds). The cache lives in the user's cache folder, not beside the sources: an installed Blender
-extension or a site-packages folder may not be writable. It is found by the source's content, not
-its place on disk, so a reinstalled extension loads its kernels instead of compiling them again.
+extension or a site-packages folder may not be writable. It is found by the content of the source and of the
+package modules it imports from (numba freezes imported constants into the compiled code), not its
+place on disk, so a reinstalled extension loads its kernels instead of compiling them again.
 Every version of a kernel file gets a folder of its own, so folders no process has used for
 STALE_DAYS are removed when kernels are first loaded (an upgraded extension would otherwise leave
 its old kernels behind for good). SPLATWRIGHT_CACHE_DIR overrides the folder;
@@ -17,6 +18,7 @@ SPLATWRIGHT_JIT=0 turns compiled kernels off (read when a kernel is first needed
 import hashlib
 import importlib
 import os
+import re
 import shutil
 import sys
 import threading
@@ -205,10 +207,42 @@ def prune_stale(root, days=STALE_DAYS):
 
 
 def _cache_subpath(module, py_file):
-    """The cache folder of a module's kernels: its folder's name and a hash of its name and source,
-    not of where it lies, so an extension installed again (a new folder each time in some setups)
-    finds its kernels compiled, two versions of the package never overwrite each other's, and the
-    same file imported under another name (pip's splatwright, Blender's bl_ext...) keeps its own."""
-    with open(py_file, "rb") as f:
-        digest = hashlib.sha1(module.encode() + b"\0" + f.read()).hexdigest()
-    return f"{os.path.basename(os.path.dirname(os.path.abspath(py_file)))}_{digest}"
+    """The cache folder of a module's kernels: its folder's name and a hash of its name and of its
+    sources (kernel_sources), not of where it lies, so an extension installed again (a new folder
+    each time in some setups) finds its kernels compiled, two versions of the package never
+    overwrite each other's, and the same file imported under another name (pip's splatwright,
+    Blender's bl_ext...) keeps its own."""
+    digest = hashlib.sha1(module.encode())
+    for path in kernel_sources(py_file):
+        with open(path, "rb") as f:
+            digest.update(b"\0" + f.read())
+    return f"{os.path.basename(os.path.dirname(os.path.abspath(py_file)))}_{digest.hexdigest()}"
+
+
+_RELATIVE_IMPORT = re.compile(rb"^[ \t]*from[ \t]+(\.+)([\w.]*)[ \t]+import[ \t]+(\([^)]*\)|[^\n]*)", re.MULTILINE)
+
+
+def kernel_sources(py_file) -> list[str]:
+    """The files whose text a module's compiled kernels depend on, sorted: the module and, through
+    its relative imports, every module of the package it reads from. numba freezes a kernel's
+    global constants into the compiled code, so a constant changed in a module the kernel imports it
+    from (core.lights' SPREAD_ANGLES in core.shading's loop) must change the kernel's folder too."""
+    seen: set[str] = set()
+    todo = [os.path.abspath(py_file)]
+    while todo:  # a loop over the package's modules, each read once
+        path = todo.pop()
+        if path in seen or not os.path.isfile(path):
+            continue
+        seen.add(path)
+        with open(path, "rb") as f:
+            text = f.read()
+        for dots, name, names in _RELATIVE_IMPORT.findall(text):
+            base = os.path.dirname(path)
+            for _ in range(len(dots) - 1):
+                base = os.path.dirname(base)
+            if name:
+                target = os.path.join(base, *name.decode().split("."))
+                todo += [target + ".py", os.path.join(target, "__init__.py")]
+            else:  # from . import a, b
+                todo += [os.path.join(base, word.decode() + ".py") for word in re.findall(rb"\w+", names)]
+    return sorted(seen)

@@ -632,6 +632,33 @@ def test_kernel_folders_unused_for_a_month_are_removed_and_in_use_ones_kept(tmp_
     assert folder.stat().st_mtime > time.time() - day
 
 
+def test_a_kernels_cache_folder_follows_the_constants_it_imports(tmp_path):
+    """numba freezes a kernel's imported constants into its compiled code: the cache folder hashes
+    the module and the package modules it imports from (relative imports, transitively, one-line
+    and parenthesised), so a constant changed there compiles the kernel again; a module it does not
+    import changes nothing."""
+    from splatwright.core import jit
+
+    package = tmp_path / "pkg"
+    (package / "sub").mkdir(parents=True)
+    (package / "sub" / "kernels.py").write_text("from ..constants import (\n    GRID,\n)\nfrom . import helpers\n")
+    (package / "sub" / "helpers.py").write_text("from .deeper import SCALE\n")
+    (package / "sub" / "deeper.py").write_text("SCALE = 2\n")
+    (package / "constants.py").write_text("GRID = 4\n")
+    (package / "other.py").write_text("UNUSED = 1\n")
+    kernels = package / "sub" / "kernels.py"
+    names = [os.path.basename(path) for path in jit.kernel_sources(kernels)]
+    assert names == ["constants.py", "deeper.py", "helpers.py", "kernels.py"]
+    before = jit._cache_subpath("pkg.sub.kernels", kernels)
+    (package / "other.py").write_text("UNUSED = 2\n")
+    assert jit._cache_subpath("pkg.sub.kernels", kernels) == before
+    for changed in (package / "constants.py", package / "sub" / "deeper.py"):
+        changed.write_text(changed.read_text().replace("= ", "= 1 + "))
+        after = jit._cache_subpath("pkg.sub.kernels", kernels)
+        assert after != before and after.startswith("sub_")
+        before = after
+
+
 def test_only_our_own_kernels_are_cached_in_our_folder():
     """numba functions of other packages (a peer library in a virtual environment inside the
     project's folder, say) keep numba's own cache place."""
