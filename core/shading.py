@@ -45,6 +45,10 @@ from .lights import (
     AREA_RADIANCE,
     AREA_REACH,
     AREA_SPREAD,
+    SPREAD_ANGLES,
+    SPREAD_RINGS,
+    SPREAD_SAMPLES,
+    SPREAD_SHAPES,
     Incident,
     Light,
     World,
@@ -52,6 +56,7 @@ from .lights import (
     incident,
     spread_terms,
     towards,
+    y_axis,
 )
 from .parallel import in_chunks
 from .splats import SplatCloud
@@ -331,7 +336,7 @@ SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and
 # the tan of half its light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
-SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_asin", "_shade_loop")
+SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_asin", "_ring_arcs", "_shade_loop")
 ASIN_SERIES = 0.3  # _asin sums its series below this sine, calls asin above
 
 
@@ -365,17 +370,40 @@ def _emitters(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
     return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS), spans
 
 
-def _area_reaches(lights: list[Light]) -> np.ndarray:
-    """(L, 9) float64: per light, the centre (3), AREA_REACH and AREA_GLOSS times the longer side of
-    an area light (0 for other lights), its axis (3) and AREA_SPREAD times that side over the tan of
-    half its spread (0 without one), from which a splat's grid follows (core.lights.area_grids)."""
+# An area light's numbers in a row of AREA_FIELDS (0 for other lights): its centre (3), AREA_REACH and
+# AREA_GLOSS times its longer side, its axis (3), AREA_SPREAD times that side over tan(spread/2) (0
+# without a Spread), from which a splat's grid follows (core.lights.area_grids); its local x and y
+# axes (6), half extents (2), 1 for a round shape, tan(spread/2) where a splat may sample its
+# reachable disc (core.lights.reachable_discs; else 0), its area, and the radiance (times the
+# spread's scale) a square metre of it sends.
+AREA_FIELDS = 21
+
+
+def _area_terms(lights: list[Light]) -> np.ndarray:
+    """(L, AREA_FIELDS) float64: every light's row of area terms (see AREA_FIELDS)."""
     rows = []
     for light in lights:  # a loop over lights
-        side = max(light.extent) if light.kind == "area" else 0.0
-        tan_half = spread_terms(light)[0] if light.kind == "area" else 0.0
+        if light.kind != "area":
+            rows.append([0.0] * AREA_FIELDS)
+            continue
+        side = max(light.extent)
+        tan_half, spread_scale = spread_terms(light)
         spread = AREA_SPREAD * side / tan_half if tan_half > 0.0 else 0.0
-        rows.append([*light.position, AREA_REACH * side, AREA_GLOSS * side, *light.direction, spread])
-    return np.array(rows, np.float64).reshape(-1, 9)
+        disc = tan_half if light.shape in SPREAD_SHAPES else 0.0
+        half_x, half_y = 0.5 * light.extent[0], 0.5 * light.extent[1]
+        radiance = AREA_RADIANCE * light.power / light.area * spread_scale
+        rows.append(
+            [*light.position, AREA_REACH * side, AREA_GLOSS * side, *light.direction, spread]
+            + [*light.x_axis, *y_axis(light), half_x, half_y, float(light.round), disc, light.area, radiance]
+        )
+    return np.array(rows, np.float64).reshape(-1, AREA_FIELDS)
+
+
+def _disc_nodes() -> np.ndarray:
+    """(SPREAD_RINGS, 2): the reachable disc's ring radii (fractions of its radius) and weights, as
+    core.lights.spread_samples takes them (Gauss-Legendre on [0, 1])."""
+    nodes, weights = np.polynomial.legendre.leggauss(SPREAD_RINGS)
+    return np.stack([0.5 * (nodes + 1.0), 0.5 * weights], axis=1)
 
 
 def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter):
@@ -401,13 +429,13 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
-    (emitters, spans), reaches = _emitters(lights), _area_reaches(lights)
+    (emitters, spans), terms = _emitters(lights), _area_terms(lights)
     flags = np.array([ortho, multiscatter, world is not None])
     in_chunks(
         n,
         lambda lo, hi: kernel(
-            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, reaches,
-            colors, vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
+            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms,
+            _disc_nodes(), colors, vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -453,12 +481,52 @@ def _asin(x):
     return x * (1.0 + x2 * (1.0 / 6.0 + x2 * tail))
 
 
-def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, reaches, colors,
-                vis, reach, world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
+def _ring_arcs(x0, y0, radius, a, b, round_shape, cuts, lengths):
+    """core.lights.ring_arcs of one circle (centre x0, y0 in the light's local x, y; radius > 0) of
+    a light of half extents a, b: cuts (9,) the sorted angles of its pieces' starts (and 2 pi),
+    lengths (8,) the pieces' lengths inside the light (0 outside). Returns their sum."""
+    count = 1
+    cuts[0] = 0.0
+    if round_shape:
+        reach = math.sqrt(x0 * x0 + y0 * y0)
+        c = (a * a - reach * reach - radius * radius) / (2.0 * radius * reach) if reach > 0.0 else 2.0
+        if abs(c) < 1.0:
+            psi, turn = math.atan2(y0, x0), math.acos(c)
+            cuts[1], cuts[2], count = psi + turn, psi - turn, 3
+    else:
+        for k in range(4):
+            edge = a if k == 0 else -a if k == 1 else b if k == 2 else -b
+            q = (edge - (x0 if k < 2 else y0)) / radius
+            if abs(q) < 1.0:
+                angle = math.acos(q) if k < 2 else math.asin(q)
+                cuts[count], cuts[count + 1] = angle, -angle if k < 2 else math.pi - angle
+                count += 2
+    for k in range(count):  # into [0, 2 pi), then sorted (insertion: at most 9)
+        cuts[k] = cuts[k] % (2.0 * math.pi)
+        j = k
+        while j > 0 and cuts[j - 1] > cuts[j]:
+            cuts[j - 1], cuts[j] = cuts[j], cuts[j - 1]
+            j -= 1
+    for k in range(count, 9):
+        cuts[k] = 2.0 * math.pi  # a full turn closes the last piece
+    total = 0.0
+    for k in range(8):
+        length = cuts[k + 1] - cuts[k]
+        middle = cuts[k] + 0.5 * length
+        x, y = x0 + radius * math.cos(middle), y0 + radius * math.sin(middle)
+        inside = x * x / (a * a) + y * y / (b * b) <= 1.0 if round_shape else abs(x) <= a and abs(y) <= b
+        lengths[k] = length if inside else 0.0
+        total += lengths[k]
+    return total
+
+
+def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, terms, rings,
+                colors, vis, reach, world, seen_world, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
     f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     out_d, out_s = np.empty(3), np.empty(3)
+    cuts, lengths = np.empty(9), np.empty(8)  # a reachable disc's ring pieces (_ring_arcs)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
     for i in range(lo, hi):
         p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
@@ -484,29 +552,60 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
         tan2_v = _tan2(cos_vg)  # the view's part of Smith's Lambda, the same for every emitter
         acc[:] = 0.0
         for k in range(n_lights):
-            g = 0  # no grid but an area light's: its grid at this splat, as core.lights.area_grids
-            if reaches[k, 3] > 0.0:
-                dx, dy, dz = reaches[k, 0] - p0, reaches[k, 1] - p1, reaches[k, 2] - p2
+            g, disc, rho, fx, fy = 0, False, 0.0, 0.0, 0.0  # grid (area lights), reachable disc
+            if terms[k, 3] > 0.0:  # an area light: its grid at this splat, as core.lights.area_grids
+                dx, dy, dz = terms[k, 0] - p0, terms[k, 1] - p1, terms[k, 2] - p2
                 distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+                height = -(dx * terms[k, 5] + dy * terms[k, 6] + dz * terms[k, 7])  # over its plane
                 g = AREA_GRID  # also at 0 and NaN
                 if distance > 0.0:
-                    grid = max(np.ceil(reaches[k, 3] / distance), np.ceil(reaches[k, 4] / (distance * alpha)))
-                    if reaches[k, 8] > 0.0:  # a Spread: its height over the light's plane matters too
-                        height = abs(dx * reaches[k, 5] + dy * reaches[k, 6] + dz * reaches[k, 7])
-                        grid = max(grid, np.ceil(reaches[k, 8] / height)) if height > 0.0 else AREA_GRID
+                    grid = max(np.ceil(terms[k, 3] / distance), np.ceil(terms[k, 4] / (distance * alpha)))
+                    if terms[k, 8] > 0.0:  # a Spread: its height over the light's plane matters too
+                        grid = max(grid, np.ceil(terms[k, 8] / abs(height))) if height != 0.0 else AREA_GRID
                     g = int(min(max(grid, 1.0), AREA_GRID))
-            for e in range(spans[k, g, 0], spans[k, g, 1]):  # the light's emitters (an area light's on g)
-                kind, strength = emitters[e, 0], emitters[e, 8]
-                if kind == SUN:
-                    lx, ly, lz, distance = emitters[e, 5], emitters[e, 6], emitters[e, 7], math.inf
+                rho = max(height, 0.0) * terms[k, 18]  # core.lights.reachable_discs
+                disc = rho > 0.0 and math.pi * rho * rho < terms[k, 19]
+                if disc:  # the splat's foot on the light, in its local x, y
+                    fx = -(dx * terms[k, 9] + dy * terms[k, 10] + dz * terms[k, 11])
+                    fy = -(dx * terms[k, 12] + dy * terms[k, 13] + dz * terms[k, 14])
+            first = spans[k, g, 0]
+            kind = emitters[first, 0]
+            count = SPREAD_SAMPLES if disc else spans[k, g, 1] - first
+            total = 0.0
+            for j in range(count):  # the light's emitters: an area light's samples on g, or of its disc
+                if disc:
+                    ring, share = j // SPREAD_ANGLES, j % SPREAD_ANGLES
+                    if share == 0:
+                        total = _ring_arcs(
+                            fx, fy, rings[ring, 0] * rho, terms[k, 15], terms[k, 16], terms[k, 17] > 0.5, cuts, lengths
+                        )
+                    if total <= 0.0:
+                        continue  # a ring wholly outside the light
+                    along, piece = (share + 0.5) / SPREAD_ANGLES * total, 0
+                    while piece < 7 and along >= lengths[piece]:  # the piece holding `along`
+                        along -= lengths[piece]
+                        piece += 1
+                    angle = cuts[piece] + along
+                    x, y = fx + rings[ring, 0] * rho * math.cos(angle), fy + rings[ring, 0] * rho * math.sin(angle)
+                    ex = terms[k, 0] + x * terms[k, 9] + y * terms[k, 12]
+                    ey = terms[k, 1] + x * terms[k, 10] + y * terms[k, 13]
+                    ez = terms[k, 2] + x * terms[k, 11] + y * terms[k, 14]
+                    area = rings[ring, 1] * rings[ring, 0] * rho * rho * total / SPREAD_ANGLES
+                    strength, radius = terms[k, 20] * area, math.sqrt(area / math.pi)
                 else:
-                    lx, ly, lz = emitters[e, 2] - p0, emitters[e, 3] - p1, emitters[e, 4] - p2
+                    e = first + j
+                    ex, ey, ez = emitters[e, 2], emitters[e, 3], emitters[e, 4]
+                    strength, radius = emitters[e, 8], emitters[e, 11]
+                if kind == SUN:
+                    lx, ly, lz, distance = emitters[first, 5], emitters[first, 6], emitters[first, 7], math.inf
+                else:
+                    lx, ly, lz = ex - p0, ey - p1, ez - p2
                     distance = math.sqrt(lx * lx + ly * ly + lz * lz)
                     inverse = 1.0 / max(distance, 1e-300)
                     lx, ly, lz = lx * inverse, ly * inverse, lz * inverse
-                    out = -(lx * emitters[e, 5] + ly * emitters[e, 6] + lz * emitters[e, 7])  # cos to the axis
+                    out = -(lx * emitters[first, 5] + ly * emitters[first, 6] + lz * emitters[first, 7])  # to the axis
                     if kind == SPOT:
-                        cos_half, width = emitters[e, 9], emitters[e, 10]
+                        cos_half, width = emitters[first, 9], emitters[first, 10]
                         if width <= 0.0:
                             strength *= 1.0 if out > cos_half else 0.0
                         else:
@@ -514,16 +613,15 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                             strength *= x * x * (3.0 - 2.0 * x)
                     elif kind == AREA:
                         strength *= max(out, 0.0)
-                        if emitters[e, 10] > 0.0 and out > 0.0:  # its Spread (core.lights.spread_factor)
-                            strength *= max(emitters[e, 10] - math.sqrt(max(1.0 - out * out, 0.0)) / out, 0.0)
+                        tan_half = emitters[first, 10]
+                        if tan_half > 0.0 and out > 0.0:  # its Spread (core.lights.spread_factor)
+                            strength *= max(tan_half - math.sqrt(max(1.0 - out * out, 0.0)) / out, 0.0)
                     strength = strength * inverse * inverse if distance > 1e-300 else 0.0
+                    radius = _asin(min(max(radius * inverse, 0.0), 1.0))  # the angular radius (angular_radius)
                 cos_l = m0 * lx + m1 * ly + m2 * lz
                 if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone
                     continue
                 acc[k, 0] += strength * cos_l
-                radius = emitters[e, 11]
-                if kind != SUN:  # the emitter's angular radius (angular_radius)
-                    radius = _asin(min(max(radius * inverse, 0.0), 1.0))
                 a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
                 hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
                 h_inverse = 1.0 / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)

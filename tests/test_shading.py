@@ -10,7 +10,7 @@ import pytest
 
 from splatwright.core import SplatCloud
 from splatwright.core.camera import Camera
-from splatwright.core.lights import Light, World
+from splatwright.core.lights import Light, World, reachable_discs
 from splatwright.core.material import with_material
 from splatwright.core.shading import (
     DIELECTRIC_F0,
@@ -361,7 +361,22 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         Light("area", power=100.0, position=(1.0, 1.0, 2.0), direction=(-0.3, -0.3, -1.0), size_x=0.8, diffuse=0.0),
         Light("area", power=80.0, position=(0, -1, 2), size_x=0.6, size_y=0.3, shape="ELLIPSE", x_axis=(0, 1, 0)),
         Light("area", power=90.0, position=(-0.5, 0.5, 1.5), size_x=0.7, spread=math.radians(70.0)),
+        # narrow spreads close by: many splats sample the reachable disc (a disc light's, a turned rectangle's)
+        Light("area", power=60.0, position=(0.3, -0.2, 1.2), size_x=0.9, shape="DISK", spread=math.radians(25.0)),
+        Light(
+            "area",
+            power=60.0,
+            position=(-0.2, 0.1, 1.1),
+            direction=(0.1, 0.0, -1.0),
+            size_x=0.8,
+            size_y=0.5,
+            shape="RECTANGLE",
+            x_axis=(1.0, 1.0, 0.0),
+            spread=math.radians(40.0),
+        ),
     ]
+    for light in lights[-2:]:
+        assert reachable_discs(light, cloud.positions)[0].sum() > 100
     visibility = {0: rng.uniform(0.0, 1.0, n), 3: rng.uniform(0.0, 1.0, n), 4: np.zeros(n)}
     visibility["world"] = rng.uniform(0.0, 1.0, (n, 2))
     cam = Camera.look_at((3, -4, 3), (0, 0, 0), up=(0, 0, 1), fov_deg=50, width=64, height=48)

@@ -43,6 +43,20 @@ LIGHTS = {
         (0.3, -0.2, 1.0),
         (math.radians(10.0), 0.0, 0.0),
     ),
+    # narrow spreads close over the plane: each point sees a small disc of the light (its samples
+    # then lie on that disc, core.lights.spread_samples; the light's 16 would leave most points dark)
+    "area_spread_narrow": (
+        "AREA",
+        dict(energy=200.0, shape="RECTANGLE", size=2.0, size_y=1.4, spread=math.radians(30.0)),
+        (0.1, 0.2, 0.8),
+        (math.radians(8.0), 0.0, math.radians(20.0)),
+    ),
+    "area_spread_disk": (
+        "AREA",
+        dict(energy=150.0, shape="DISK", size=2.0, spread=math.radians(25.0)),
+        (-0.2, 0.1, 0.7),
+        (0.0, math.radians(-6.0), 0.0),
+    ),
     # Normalize off (Blender 4.5+): the power is per square metre of the light, not spread over it
     "area_unnormalized": (
         "AREA",
@@ -175,6 +189,12 @@ class Worker(BlenderWorker):
 
     def area_spread(self):
         return self.run_light("area_spread")
+
+    def area_spread_narrow(self):
+        return self.run_light("area_spread_narrow")
+
+    def area_spread_disk(self):
+        return self.run_light("area_spread_disk")
 
     def area_unnormalized(self):
         return self.run_light("area_unnormalized")
