@@ -429,13 +429,13 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
-    (emitters, spans), terms = _emitters(lights), _area_terms(lights)
+    (emitters, spans), terms, rings = _emitters(lights), _area_terms(lights), _disc_nodes()
     flags = np.array([ortho, multiscatter, world is not None])
     in_chunks(
         n,
         lambda lo, hi: kernel(
             lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms,
-            _disc_nodes(), colors, vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
+            rings, colors, vis, reach, world_color, seen_world, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -598,6 +598,7 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                     strength, radius = emitters[e, 8], emitters[e, 11]
                 if kind == SUN:
                     lx, ly, lz, distance = emitters[first, 5], emitters[first, 6], emitters[first, 7], math.inf
+                    inverse = 0.0
                 else:
                     lx, ly, lz = ex - p0, ey - p1, ez - p2
                     distance = math.sqrt(lx * lx + ly * ly + lz * lz)
@@ -617,11 +618,12 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                         if tan_half > 0.0 and out > 0.0:  # its Spread (core.lights.spread_factor)
                             strength *= max(tan_half - math.sqrt(max(1.0 - out * out, 0.0)) / out, 0.0)
                     strength = strength * inverse * inverse if distance > 1e-300 else 0.0
-                    radius = _asin(min(max(radius * inverse, 0.0), 1.0))  # the angular radius (angular_radius)
                 cos_l = m0 * lx + m1 * ly + m2 * lz
                 if cos_l <= 0.0 or strength <= 0.0:  # adds nothing: behind the surface, the emitter or the cone
                     continue
                 acc[k, 0] += strength * cos_l
+                if kind != SUN:  # the emitter's angular radius (angular_radius)
+                    radius = _asin(min(max(radius * inverse, 0.0), 1.0))
                 a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
                 hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
                 h_inverse = 1.0 / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
