@@ -405,3 +405,28 @@ def test_the_shading_loops_asin_is_asin_within_float32_rounding():
     for asin in {shading._asin, getattr(shading._asin, "py_func", shading._asin)}:
         got = np.array([asin(float(v)) for v in x])
         np.testing.assert_allclose(got, want, rtol=3e-8, atol=0.0)
+
+
+def test_the_numpy_path_shades_in_chunks_as_in_one_piece(monkeypatch):
+    """The NumPy path takes the points TERMS_CHUNK at a time (an area light's sample slots are arrays
+    per point): chunks that cut the cloud anywhere give the same shading."""
+    from splatwright.core import shading
+
+    rng = np.random.default_rng(5)
+    n = 50
+    cloud = cloud_of(
+        rng.uniform(-1.0, 1.0, (n, 3)),
+        unit(rng.normal(size=(n, 3))),
+        rng.uniform(0.0, 1.0, (n, 3)),
+        rng.uniform(0.0, 1.0, n),
+        rng.uniform(0.0, 1.0, n),
+    )
+    lights = [
+        Light("area", power=60.0, position=(0.3, -0.2, 1.2), size_x=0.9, shape="DISK", spread=math.radians(25.0)),
+        Light("point", power=100.0, position=(0.0, 0.0, 2.0)),
+    ]
+    whole = shade(cloud, (2.0, -3.0, 2.0), lights, backend="numpy")
+    monkeypatch.setattr(shading, "TERMS_CHUNK", 7)
+    chunked = shade(cloud, (2.0, -3.0, 2.0), lights, backend="numpy")
+    for name in ("diffuse", "specular", "shadow"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
