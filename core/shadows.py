@@ -20,6 +20,11 @@ light size x (receiver - blocker) / blocker, and the covered fraction of a disc 
 is the shadow. The disc has the light's radius for point and spot lights, the angle's tangent for
 the sun, and the radius of a disc of the same area for area lights. Where the search finds nothing
 in front, the splat is lit.
+
+An area light narrowed by its Spread reaches a point only from within the spread around its axis:
+close to the light, where that cone meets less of the panel than its whole, the point is shadowed
+as by a sun along the axis whose disc is the spread (the splats ahead of the light casting); far
+from it, by the panel's own maps; in between, by a blend of the two (_along_axis).
 """
 
 import math
@@ -33,6 +38,7 @@ from . import jit, material, shadow_cameras
 from . import normals as normal_estimate
 from .arrays import Floats
 from .camera import Camera
+from .lights import Light, spread_terms
 from .mesh_render import rasterize
 from .normals import TOO_ROUND
 from .parallel import WORKERS, in_chunks, map_threads
@@ -54,6 +60,9 @@ TEXEL_BIAS = 2.5  # texels of depth slope that count as its own surface
 MAX_SLOPE = 5.0
 CHUNK = 1 << 16  # points per step of the NumPy filter
 SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides the depth
+# An area light's Spread: the reachable disc's radius over the light's, below which its shadows are a
+# sun's along its axis and above which its panel's; blended in between (_along_axis)
+SPREAD_BLEND = (1.0, 2.0)
 MAP_TILE = 16  # the maps' render tiles: a few percent faster than the picture's 8 at 512 texels, the same maps
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
 CASTER_REACH = 24.0  # texels a splat's 3 sigma may span in a map and still be left out of it
@@ -111,14 +120,64 @@ def visibility(
     MAX_SLOPE), so a wide disc of taps on a surface tilted to the light does not find that surface
     in front of the splat (core.ambient's wide suns). blocking: (N,) bool, the splats that may
     shadow (shadow linking; default all: every splat still receives). A light with cast_shadow False
-    gives all ones.
+    gives all ones. An area light narrowed by its Spread shadows as a sun along its axis close to
+    it, as its panel far from it, and as a blend between (_along_axis).
     progress(done, total, "shadows") follows the maps as core.render's progress follows tiles (an
     exception it raises, a cancel, stops the work there). shapes: core.render.Shapes of the cloud,
     when the caller has them (a lit frame makes them once for its maps and its picture)."""
     n = len(cloud)
-    out = np.ones(n, np.float32)
     if n == 0 or not getattr(light, "cast_shadow", True):
-        return out
+        return np.ones(n, np.float32)
+    settings = dict(occluders=occluders, resolution=resolution, taps=taps, sigma_bias=sigma_bias, texel_bias=texel_bias)
+    settings.update(soft=soft, receiver_plane=receiver_plane, threads=threads, shapes=shapes)
+    along = _along_axis(light, cloud.positions)
+    if along is None:
+        return _own_maps(cloud, light, blocking=blocking, progress=progress, **settings)
+    # an area light's Spread: a sun along its axis, its panel, or a blend of the two (_along_axis)
+    parts = [bool((along > 0).any()), bool((along < 1).any())]
+    steps = iter(part_progress(progress, k, sum(parts)) for k in range(sum(parts)))
+    out = np.ones(n, np.float32)
+    if parts[0]:
+        ahead = (cloud.positions - light.position) @ light.direction > 0.0  # only these can block the light
+        blockers = ahead if blocking is None else ahead & _blocking(blocking, n)
+        sun = Light("sun", direction=light.direction, angle=light.spread)
+        out = _own_maps(cloud, sun, blocking=blockers, progress=next(steps), **settings)
+    if parts[1]:
+        whole = _own_maps(cloud, light, blocking=blocking, progress=next(steps), **settings)
+        out = (along * out + (1.0 - along) * whole).astype(np.float32)
+    return out
+
+
+def _blocking(blocking, n):
+    """(n,) bool: the splats that may shadow (visibility's `blocking`), checked."""
+    blocking = np.asarray(blocking).reshape(-1)
+    if blocking.shape != (n,):
+        raise ValueError(f"blocking must be {n} values, one per splat, got {blocking.shape[0]}")
+    return blocking.astype(bool)
+
+
+def _along_axis(light, positions):
+    """(N,) the weight, in [0, 1], of an area light narrowed by its Spread as a sun along its axis
+    whose disc is the spread, at positions (N,3); None for any other light. A point at height t over
+    the light's plane sees the light only within t tan(spread/2) of its foot: where that disc is
+    smaller than the light (than R, the radius of the light's area), the light reaches it along the
+    axis from within the spread, as a sun's, wherever the panel is (weight 1); where the disc is
+    over twice R, the panel sets its shadows from the panel's centre (weight 0); a blend between
+    (SPREAD_BLEND). Measured against the float64 ray reference: docs/DESIGN.md."""
+    if light.kind != "area" or spread_terms(light)[0] <= 0.0:
+        return None
+    low, high = SPREAD_BLEND
+    height = (np.asarray(positions, np.float64) - light.position) @ light.direction
+    ratio = np.maximum(height, 0.0) * spread_terms(light)[0] / math.sqrt(light.area / math.pi)
+    return np.clip((high - ratio) / (high - low), 0.0, 1.0)
+
+
+def _own_maps(
+    cloud, light, *, occluders, resolution, taps, sigma_bias, texel_bias, soft, receiver_plane, blocking, threads,
+    progress, shapes,
+):  # fmt: skip
+    """visibility() of a light by its own maps (a cube's faces for point and area lights)."""
+    out = np.ones(len(cloud), np.float32)
     views = shadow_views(
         cloud,
         light,
@@ -172,10 +231,7 @@ def shadow_views(
     bare.antialiased = cloud.antialiased
     masks &= casters
     if blocking is not None:
-        blocking = np.asarray(blocking).reshape(-1)
-        if blocking.shape != (len(cloud),):
-            raise ValueError(f"blocking must be {len(cloud)} values, one per splat, got {blocking.shape[0]}")
-        masks &= blocking.astype(bool)
+        masks &= _blocking(blocking, len(cloud))
     if shapes is None or not shapes.fits(bare):
         shapes = Shapes(bare, threads)
     views = []

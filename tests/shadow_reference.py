@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from splatwright.core import geometry
+from splatwright.core.lights import spread_factor
 from splatwright.core.splats import SplatCloud, logit
 
 OWN_SURFACE = 3.0  # standard deviations along the ray that belong to the receiver and its neighbour
@@ -145,8 +146,19 @@ def reference_visibility(cloud, light, receivers, samples=1, meshes=()):
         light_left = np.exp(np.log1p(-alpha).sum(axis=1))
         for mesh in meshes:
             light_left = light_left * ~_hits_mesh(mesh, pos[i], d, length)
-        out[row] = light_left.mean()
+        out[row] = np.average(light_left, weights=_sample_weights(light, d, length))
     return out
+
+
+def _sample_weights(light, d, length):
+    """(S,) what each light sample sends to the receiver, up to a common factor: equal, but for an
+    area light narrowed by its Spread, its radiance towards the receiver (spread_factor) times its
+    cosine over the squared distance (the light reaches it from a disc of the light only)."""
+    if light.kind != "area" or light.spread >= math.pi:
+        return np.ones(len(d))
+    cos_emit = np.maximum(-(d @ np.asarray(light.direction, np.float64)), 0.0)
+    weights = cos_emit * spread_factor(light, cos_emit) / length**2
+    return weights if weights.sum() > 0 else np.ones(len(d))
 
 
 def _near_rays(rel, dirs, widest):
