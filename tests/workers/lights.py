@@ -74,12 +74,21 @@ PRINCIPLED = {
     "principled_rough_metal": ((0.9, 0.6, 0.3), 0.8, 1.0, "MULTI_GGX"),
     "principled_rough_dielectric": ((0.3, 0.6, 0.4), 0.7, 0.0, "MULTI_GGX"),
 }
+# A narrow softbox over the plane with a square (0.6 m, 0.5 m up, off the light's centre, unseen by
+# the camera) shadowing it: its shadow falls along the light's axis (core.shadows' Spread model)
+SPREAD_SHADOW = (
+    "AREA",
+    dict(energy=300.0, shape="SQUARE", size=2.5, spread=math.radians(30.0)),
+    (0.0, 0.0, 1.2),
+    (0.0, 0.0, 0.0),
+)
+OCCLUDER = ((0.6, 0.3, 0.5), 0.6)  # centre, side
 TILT = math.radians(40.0)
 PRINCIPLED_LIGHT = ("POINT", dict(energy=60.0, shadow_soft_size=0.02), (0.2, 1.3, 1.5), (0, 0, 0))
 
 
 class Worker(BlenderWorker):
-    steps = (*LIGHTS, *PRINCIPLED)
+    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow")
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "lights")
 
@@ -128,7 +137,8 @@ class Worker(BlenderWorker):
         self.image_format(render.image_settings, "OPEN_EXR", color_depth="32")
 
     def light(self, name):
-        kind, settings, location, rotation = LIGHTS.get(name, PRINCIPLED_LIGHT)
+        spec = SPREAD_SHADOW if name == "area_spread_shadow" else LIGHTS.get(name, PRINCIPLED_LIGHT)
+        kind, settings, location, rotation = spec
         bpy = self.bpy
         data = bpy.data.lights.new(name, kind)
         for key, value in settings.items():
@@ -198,6 +208,23 @@ class Worker(BlenderWorker):
 
     def area_unnormalized(self):
         return self.run_light("area_unnormalized")
+
+    def area_spread_shadow(self):
+        """SPREAD_SHADOW's light over the plane, OCCLUDER's square between them (it casts shadows but
+        no camera ray sees it); its corners go back to the test."""
+        bpy = self.bpy
+        self.scene()
+        obj = self.light("area_spread_shadow")
+        centre, side = OCCLUDER
+        bpy.ops.mesh.primitive_plane_add(size=side, location=centre)
+        square = bpy.context.active_object
+        square.visible_camera = False
+        corners = [list(square.matrix_world @ v.co) for v in square.data.vertices]
+        faces = [list(p.vertices) for p in square.data.polygons]
+        images = [self.render("area_spread_shadow", seed) for seed in (0, 1)]
+        self.save("area_spread_shadow", first=images[0], second=images[1])
+        record = {"light": self.record(obj), "albedo": ALBEDO, "size": SIZE, "ortho_scale": ORTHO_SCALE}
+        return {**record, "occluder": {"vertices": corners, "faces": faces}}
 
     def principled_dielectric(self):
         return self.run_light("principled_dielectric")
