@@ -32,6 +32,13 @@ def cloud_of(positions, normals, albedo, roughness=0.5, metallic=0.0):
     return with_material(cloud, albedo=albedo, normals=normals, roughness=roughness, metallic=metallic)
 
 
+def random_cloud(n, rng):
+    """n splats in the cube [-1, 1]^3 facing every way, with random albedo, roughness and metallic."""
+    positions, normals = rng.uniform(-1.0, 1.0, (n, 3)), unit(rng.normal(size=(n, 3)))
+    albedo, roughness, metallic = rng.uniform(0.0, 1.0, (n, 3)), rng.uniform(0.0, 1.0, n), rng.uniform(0.0, 1.0, n)
+    return cloud_of(positions, normals, albedo, roughness, metallic)
+
+
 def unit(v):
     v = np.asarray(v, dtype=np.float64)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
@@ -346,13 +353,7 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         pytest.skip("compiled kernels are not available here")
     rng = np.random.default_rng(11)
     n = 2000
-    cloud = cloud_of(
-        rng.uniform(-1.0, 1.0, (n, 3)),
-        unit(rng.normal(size=(n, 3))),
-        rng.uniform(0.0, 1.0, (n, 3)),
-        rng.uniform(0.0, 1.0, n),
-        rng.uniform(0.0, 1.0, n),
-    )
+    cloud = random_cloud(n, rng)
     lights = [
         Light("point", power=300.0, position=(0.5, -0.4, 2.0), radius=0.2),
         Light("spot", power=500.0, position=(-1.0, 0.5, 2.0), direction=(0.4, -0.2, -1.0), spot_size=0.9),
@@ -412,15 +413,7 @@ def test_the_numpy_path_shades_in_chunks_as_in_one_piece(monkeypatch):
     per point): chunks that cut the cloud anywhere give the same shading."""
     from splatwright.core import shading
 
-    rng = np.random.default_rng(5)
-    n = 50
-    cloud = cloud_of(
-        rng.uniform(-1.0, 1.0, (n, 3)),
-        unit(rng.normal(size=(n, 3))),
-        rng.uniform(0.0, 1.0, (n, 3)),
-        rng.uniform(0.0, 1.0, n),
-        rng.uniform(0.0, 1.0, n),
-    )
+    cloud = random_cloud(50, np.random.default_rng(5))
     lights = [
         Light("area", power=60.0, position=(0.3, -0.2, 1.2), size_x=0.9, shape="DISK", spread=math.radians(25.0)),
         Light("point", power=100.0, position=(0.0, 0.0, 2.0)),
