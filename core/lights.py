@@ -48,12 +48,15 @@ AREA_SPREAD = 3.0
 # Where that disc is smaller than the light (a narrow Spread close up, where a grid over the whole
 # light puts few or no samples in it), a point samples the disc itself instead: SPREAD_RINGS rings
 # at Gauss-Legendre radii (the spread factor is linear in the radius), SPREAD_ANGLES samples on each
-# spread evenly over the ring's arcs inside the light, cut exactly at a rectangle's edges or a disc's
-# rim (an ellipse keeps the grid). docs/DESIGN.md has the measured errors.
+# spread evenly over the ring's arcs inside the light, cut where the ring crosses the light's rim:
+# exactly at a rectangle's edges or a disc's rim, an ellipse's by bisection (ELLIPSE_SCAN steps
+# around the ring find where it crosses, ELLIPSE_BISECTIONS halvings place each crossing).
+# docs/DESIGN.md has the measured errors.
 SPREAD_RINGS = 6
 SPREAD_ANGLES = 4
 SPREAD_SAMPLES = SPREAD_RINGS * SPREAD_ANGLES
-SPREAD_SHAPES = ("SQUARE", "RECTANGLE", "DISK")
+ELLIPSE_SCAN = 32
+ELLIPSE_BISECTIONS = 24
 # Radiance of an area light per watt per square metre of its surface: 1/pi, so that its radiant
 # exitance (pi * radiance) is power / area. Measured: Cycles' renders agree within 0.1%
 # (tests/test_blender_lights.py); its kernel's 0.25 / area comes with a 4/pi from Blender's side.
@@ -309,28 +312,30 @@ def y_axis(light: Light) -> np.ndarray:
 def reachable_discs(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The discs of a light narrowed by its Spread that reach points (N,3) (a point at height t
     over its plane sees the light within t tan(spread/2) of its foot): (N,) bool where the disc is
-    smaller than the light and is sampled itself (SPREAD_SHAPES only), the foot (N,2) in the light's
-    local x, y and the disc's radius (N,)."""
+    smaller than the light and is sampled itself, the foot (N,2) in the light's local x, y and the
+    disc's radius (N,)."""
     points = np.asarray(points, np.float64).reshape(-1, 3)
     tan_half = spread_terms(light)[0]
     offset = points - light.position
     height = offset @ light.direction
     foot = np.stack([offset @ light.x_axis, offset @ y_axis(light)], axis=1)
     radius = np.maximum(height, 0.0) * tan_half
-    sampled = (tan_half > 0.0) & (light.shape in SPREAD_SHAPES) & (height > 0.0)
+    sampled = (tan_half > 0.0) & (height > 0.0)
     return sampled & (math.pi * radius * radius < light.area), foot, radius
 
 
 def ring_arcs(light: Light, centre: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The arcs inside the light (a rectangle, or a disc for DISK) of circles about centre (N,2, the
-    light's local x, y) of radius (N,) > 0: (N,8) start angles and (N,8) lengths (0 for the pieces
-    outside), between the angles where the circle crosses the light's edges."""
+    """The arcs inside the light of circles about centre (N,2, the light's local x, y) of radius
+    (N,) > 0: (N,8) start angles and (N,8) lengths (0 for the pieces outside), between the angles
+    where the circle crosses the light's rim."""
     a, b = 0.5 * light.extent[0], 0.5 * light.extent[1]
     x0, y0 = centre[:, 0], centre[:, 1]
     cuts = np.full((len(radius), 9), np.nan)
     cuts[:, 0] = 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        if light.round:  # |centre + r e(phi)| = a: cos(phi - psi) = (a^2 - |centre|^2 - r^2) / (2 r |centre|)
+        if light.round and a != b:
+            cuts[:, 1:5] = ellipse_crossings(x0, y0, radius, a, b)
+        elif light.round:  # |centre + r e(phi)| = a: cos(phi - psi) = (a^2 - |centre|^2 - r^2) / (2 r |centre|)
             reach = np.hypot(x0, y0)
             c = (a * a - reach * reach - radius * radius) / (2.0 * radius * reach)
             crosses = np.abs(c) < 1.0
@@ -352,6 +357,38 @@ def ring_arcs(light: Light, centre: np.ndarray, radius: np.ndarray) -> tuple[np.
     x, y = x0[:, None] + radius[:, None] * np.cos(middle), y0[:, None] + radius[:, None] * np.sin(middle)
     inside = (x * x / (a * a) + y * y / (b * b) <= 1.0) if light.round else (np.abs(x) <= a) & (np.abs(y) <= b)
     return start, np.where(inside, length, 0.0)
+
+
+def ellipse_rim(x0, y0, radius, a, b, angle):
+    """Where a circle about (x0, y0) of `radius` is at `angle`, relative to an ellipse of half axes
+    a, b about the origin: (x/a)^2 + (y/b)^2 - 1 there (< 0 inside), as its Fourier series,
+    A0 + A1 cos t + B1 sin t + A2 cos 2t."""
+    ia2, ib2 = 1.0 / (a * a), 1.0 / (b * b)
+    c, s = np.cos(angle), np.sin(angle)
+    constant = x0 * x0 * ia2 + y0 * y0 * ib2 + 0.5 * radius * radius * (ia2 + ib2) - 1.0
+    twice = 0.5 * radius * radius * (ia2 - ib2) * (2.0 * c * c - 1.0)
+    return constant + 2.0 * radius * (x0 * ia2 * c + y0 * ib2 * s) + twice
+
+
+def ellipse_crossings(x0, y0, radius, a, b) -> np.ndarray:
+    """(N,4) the angles where circles about (x0, y0) (N,) of radius (N,) cross the rim of an
+    ellipse of half axes a, b, NaN past the last (at most four): found as sign changes of
+    ellipse_rim at ELLIPSE_SCAN steps around the circle, each halved ELLIPSE_BISECTIONS times (a
+    circle that only touches the rim between two steps is taken as not crossing it)."""
+    steps = np.linspace(0.0, 2.0 * math.pi, ELLIPSE_SCAN + 1)
+    rim = ellipse_rim(x0[:, None], y0[:, None], radius[:, None], a, b, steps[None, :])
+    row, step = np.nonzero((rim[:, :-1] < 0.0) != (rim[:, 1:] < 0.0))
+    low, high = steps[step], steps[step + 1]
+    below = rim[row, step] < 0.0
+    for _ in range(ELLIPSE_BISECTIONS):  # a loop over halvings, every crossing at once
+        middle = 0.5 * (low + high)
+        same = (ellipse_rim(x0[row], y0[row], radius[row], a, b, middle) < 0.0) == below
+        low, high = np.where(same, middle, low), np.where(same, high, middle)
+    out = np.full((len(radius), 4), np.nan)
+    rank = np.arange(len(row)) - np.searchsorted(row, row)  # the crossing's place in its row
+    keep = rank < 4
+    out[row[keep], rank[keep]] = 0.5 * (low + high)[keep]
+    return out
 
 
 def spread_samples(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

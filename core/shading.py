@@ -45,10 +45,11 @@ from .lights import (
     AREA_RADIANCE,
     AREA_REACH,
     AREA_SPREAD,
+    ELLIPSE_BISECTIONS,
+    ELLIPSE_SCAN,
     SPREAD_ANGLES,
     SPREAD_RINGS,
     SPREAD_SAMPLES,
-    SPREAD_SHAPES,
     Incident,
     Light,
     World,
@@ -341,7 +342,7 @@ SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and
 # the tan of half its light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
-SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_asin", "_ring_arcs", "_shade_loop")
+SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_asin", "_ellipse_rim_one", "_ring_arcs", "_shade_loop")
 ASIN_SERIES = 0.3  # _asin sums its series below this sine, calls asin above
 
 
@@ -378,9 +379,9 @@ def _emitters(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
 # An area light's numbers in a row of AREA_FIELDS (0 for other lights): its centre (3), AREA_REACH and
 # AREA_GLOSS times its longer side, its axis (3), AREA_SPREAD times that side over tan(spread/2) (0
 # without a Spread), from which a splat's grid follows (core.lights.area_grids); its local x and y
-# axes (6), half extents (2), 1 for a round shape, tan(spread/2) where a splat may sample its
-# reachable disc (core.lights.reachable_discs; else 0), its area, and the radiance (times the
-# spread's scale) a square metre of it sends.
+# axes (6), half extents (2), 1 for a round shape, tan(spread/2) (0 without a Spread: no reachable
+# disc, core.lights.reachable_discs), its area, and the radiance (times the spread's scale) a square
+# metre of it sends.
 AREA_FIELDS = 21
 
 
@@ -394,12 +395,11 @@ def _area_terms(lights: list[Light]) -> np.ndarray:
         side = max(light.extent)
         tan_half, spread_scale = spread_terms(light)
         spread = AREA_SPREAD * side / tan_half if tan_half > 0.0 else 0.0
-        disc = tan_half if light.shape in SPREAD_SHAPES else 0.0
         half_x, half_y = 0.5 * light.extent[0], 0.5 * light.extent[1]
         radiance = AREA_RADIANCE * light.power / light.area * spread_scale
         rows.append(
             [*light.position, AREA_REACH * side, AREA_GLOSS * side, *light.direction, spread]
-            + [*light.x_axis, *y_axis(light), half_x, half_y, float(light.round), disc, light.area, radiance]
+            + [*light.x_axis, *y_axis(light), half_x, half_y, float(light.round), tan_half, light.area, radiance]
         )
     return np.array(rows, np.float64).reshape(-1, AREA_FIELDS)
 
@@ -486,13 +486,38 @@ def _asin(x):
     return x * (1.0 + x2 * (1.0 / 6.0 + x2 * tail))
 
 
+def _ellipse_rim_one(x0, y0, radius, a, b, angle):
+    """core.lights.ellipse_rim at one angle."""
+    ia2, ib2 = 1.0 / (a * a), 1.0 / (b * b)
+    c, s = math.cos(angle), math.sin(angle)
+    constant = x0 * x0 * ia2 + y0 * y0 * ib2 + 0.5 * radius * radius * (ia2 + ib2) - 1.0
+    twice = 0.5 * radius * radius * (ia2 - ib2) * (2.0 * c * c - 1.0)
+    return constant + 2.0 * radius * (x0 * ia2 * c + y0 * ib2 * s) + twice
+
+
 def _ring_arcs(x0, y0, radius, a, b, round_shape, cuts, lengths):
     """core.lights.ring_arcs of one circle (centre x0, y0 in the light's local x, y; radius > 0) of
     a light of half extents a, b: cuts (9,) the sorted angles of its pieces' starts (and 2 pi),
     lengths (8,) the pieces' lengths inside the light (0 outside). Returns their sum."""
     count = 1
     cuts[0] = 0.0
-    if round_shape:
+    if round_shape and a != b:  # an ellipse: core.lights.ellipse_crossings, one crossing at a time
+        step = 2.0 * math.pi / ELLIPSE_SCAN
+        before = _ellipse_rim_one(x0, y0, radius, a, b, 0.0) < 0.0
+        for k in range(ELLIPSE_SCAN):
+            low, high = k * step, (k + 1) * step
+            after = _ellipse_rim_one(x0, y0, radius, a, b, high) < 0.0
+            if after != before and count < 5:
+                for _ in range(ELLIPSE_BISECTIONS):
+                    middle = 0.5 * (low + high)
+                    if (_ellipse_rim_one(x0, y0, radius, a, b, middle) < 0.0) == before:
+                        low = middle
+                    else:
+                        high = middle
+                cuts[count] = 0.5 * (low + high)
+                count += 1
+            before = after
+    elif round_shape:
         reach = math.sqrt(x0 * x0 + y0 * y0)
         c = (a * a - reach * reach - radius * radius) / (2.0 * radius * reach) if reach > 0.0 else 2.0
         if abs(c) < 1.0:

@@ -362,8 +362,9 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         Light("area", power=100.0, position=(1.0, 1.0, 2.0), direction=(-0.3, -0.3, -1.0), size_x=0.8, diffuse=0.0),
         Light("area", power=80.0, position=(0, -1, 2), size_x=0.6, size_y=0.3, shape="ELLIPSE", x_axis=(0, 1, 0)),
         Light("area", power=90.0, position=(-0.5, 0.5, 1.5), size_x=0.7, spread=math.radians(70.0)),
-        # narrow spreads close by: many splats sample the reachable disc (a disc light's, a turned rectangle's)
+        # narrow spreads close by: many splats sample the reachable disc (of a disc, a turned rectangle, an ellipse)
         Light("area", power=60.0, position=(0.3, -0.2, 1.2), size_x=0.9, shape="DISK", spread=math.radians(25.0)),
+        Light("area", power=50.0, position=(0.0, 0.3, 1.3), size_x=1.2, size_y=0.6, shape="ELLIPSE", spread=0.6),
         Light(
             "area",
             power=60.0,
@@ -376,7 +377,7 @@ def test_compiled_shade_matches_the_numpy_path(eye):
             spread=math.radians(40.0),
         ),
     ]
-    for light in lights[-2:]:
+    for light in lights[-3:]:
         assert reachable_discs(light, cloud.positions)[0].sum() > 100
     visibility = {0: rng.uniform(0.0, 1.0, n), 3: rng.uniform(0.0, 1.0, n), 4: np.zeros(n)}
     visibility["world"] = rng.uniform(0.0, 1.0, (n, 2))
