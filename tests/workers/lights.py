@@ -57,6 +57,12 @@ LIGHTS = {
         (-0.2, 0.1, 0.7),
         (0.0, math.radians(-6.0), 0.0),
     ),
+    "area_spread_ellipse": (
+        "AREA",
+        dict(energy=150.0, shape="ELLIPSE", size=2.4, size_y=1.2, spread=math.radians(30.0)),
+        (0.1, -0.1, 0.8),
+        (math.radians(5.0), 0.0, math.radians(-25.0)),
+    ),
     # Normalize off (Blender 4.5+): the power is per square metre of the light, not spread over it
     "area_unnormalized": (
         "AREA",
@@ -205,6 +211,9 @@ class Worker(BlenderWorker):
 
     def area_spread_disk(self):
         return self.run_light("area_spread_disk")
+
+    def area_spread_ellipse(self):
+        return self.run_light("area_spread_ellipse")
 
     def area_unnormalized(self):
         return self.run_light("area_unnormalized")
