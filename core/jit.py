@@ -164,12 +164,16 @@ def _install_cache_locator():
     package = __package__.rpartition(".")[0]  # "splatwright", or the name Blender imports it by
     root = cache_dir()
     prune_stale(root)
+    folders = {}  # (module, file) -> its folder: hashed once per process, not once per kernel function
 
     class SplatwrightCacheLocator(caching._SourceFileBackedLocatorMixin, caching._CacheLocator):
         def __init__(self, py_func, py_file):
             self._py_file = py_file
             self._lineno = py_func.__code__.co_firstlineno
-            self._cache_path = str(root / _cache_subpath(py_func.__module__, py_file))
+            key = (py_func.__module__, py_file)
+            if key not in folders:
+                folders[key] = str(root / _cache_subpath(*key))
+            self._cache_path = folders[key]
             try:
                 os.utime(self._cache_path)  # in use: not stale
             except OSError:

@@ -391,6 +391,13 @@ def ellipse_crossings(x0, y0, radius, a, b) -> np.ndarray:
     return out
 
 
+def disc_rings() -> np.ndarray:
+    """(SPREAD_RINGS, 2): the reachable disc's ring radii, as fractions of its radius, and their
+    weights (Gauss-Legendre on [0, 1])."""
+    nodes, weights = np.polynomial.legendre.leggauss(SPREAD_RINGS)
+    return np.stack([0.5 * (nodes + 1.0), 0.5 * weights], axis=1)
+
+
 def spread_samples(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The samples of each point's reachable disc (reachable_discs): (N,) bool where it is sampled,
     positions (SPREAD_SAMPLES, N, 3) in world and each one's area (SPREAD_SAMPLES, N) m^2 (0 where
@@ -403,8 +410,7 @@ def spread_samples(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.nda
     if not len(rows):
         return sampled, positions, areas
     foot, radius = foot[rows], radius[rows]
-    nodes, weights = np.polynomial.legendre.leggauss(SPREAD_RINGS)
-    for ring, (node, weight) in enumerate(zip(0.5 * (nodes + 1.0), 0.5 * weights, strict=True)):  # rings
+    for ring, (node, weight) in enumerate(disc_rings()):  # a loop over rings
         start, length = ring_arcs(light, foot, node * radius)
         total, ends = length.sum(axis=1), np.cumsum(length, axis=1)
         for k in range(SPREAD_ANGLES):  # a loop over a ring's samples: midpoints of equal shares of its arcs

@@ -48,12 +48,12 @@ from .lights import (
     ELLIPSE_BISECTIONS,
     ELLIPSE_SCAN,
     SPREAD_ANGLES,
-    SPREAD_RINGS,
     SPREAD_SAMPLES,
     Incident,
     Light,
     World,
     area_table,
+    disc_rings,
     incident,
     spread_terms,
     towards,
@@ -339,8 +339,8 @@ def _world_visibility(visibility: dict | None, n: int) -> Floats:
 
 SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # kind, light index, position (3), direction (3: towards the sun; the spot's or area's axis),
-# strength factor, spot cos(size/2) and edge width (an area sample's: the g of its g x g grid and
-# the tan of half its light's spread, 0 for none), emitter radius (the sun's: its half angle)
+# strength factor, spot cos(size/2) and edge width (an area sample's: 0 and the tan of half its
+# light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
 SHADE_KERNEL = ("_tan2", "_lambda_sq", "_table_one", "_asin", "_ellipse_rim_one", "_ring_arcs", "_shade_loop")
 ASIN_SERIES = 0.3  # _asin sums its series below this sine, calls asin above
@@ -372,7 +372,7 @@ def _emitters(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
                 radius = math.sqrt(share / math.pi)
                 spans[index, grid] = len(rows), len(rows) + grid * grid
                 for sample in table[grid, : grid * grid]:
-                    rows.append([AREA, index, *sample, *light.direction, strength, grid, tan_half, radius])
+                    rows.append([AREA, index, *sample, *light.direction, strength, 0, tan_half, radius])
     return np.array(rows, np.float64).reshape(-1, EMITTER_FIELDS), spans
 
 
@@ -404,13 +404,6 @@ def _area_terms(lights: list[Light]) -> np.ndarray:
     return np.array(rows, np.float64).reshape(-1, AREA_FIELDS)
 
 
-def _disc_nodes() -> np.ndarray:
-    """(SPREAD_RINGS, 2): the reachable disc's ring radii (fractions of its radius) and weights, as
-    core.lights.spread_samples takes them (Gauss-Legendre on [0, 1])."""
-    nodes, weights = np.polynomial.legendre.leggauss(SPREAD_RINGS)
-    return np.stack([0.5 * (nodes + 1.0), 0.5 * weights], axis=1)
-
-
 def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter):
     """shade() by the compiled kernel, on every core (it releases the GIL). It reads the material's
     columns as they are stored (float32 albedo, float64 normals) rather than (N,3) float64 copies."""
@@ -434,7 +427,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
-    (emitters, spans), terms, rings = _emitters(lights), _area_terms(lights), _disc_nodes()
+    (emitters, spans), terms, rings = _emitters(lights), _area_terms(lights), disc_rings()
     flags = np.array([ortho, multiscatter, world is not None])
     in_chunks(
         n,

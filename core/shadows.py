@@ -130,20 +130,21 @@ def visibility(
         return np.ones(n, np.float32)
     settings = dict(occluders=occluders, resolution=resolution, taps=taps, sigma_bias=sigma_bias, texel_bias=texel_bias)
     settings.update(soft=soft, receiver_plane=receiver_plane, threads=threads, shapes=shapes)
-    along = _along_axis(light, cloud.positions)
-    if along is None:
+    if light.kind != "area" or spread_terms(light)[0] <= 0.0:
         return _own_maps(cloud, light, blocking=blocking, progress=progress, **settings)
     # an area light's Spread: a sun along its axis, its panel, or a blend of the two (_along_axis)
-    parts = [bool((along > 0).any()), bool((along < 1).any())]
-    steps = iter(part_progress(progress, k, sum(parts)) for k in range(sum(parts)))
+    height = (cloud.positions - light.position) @ light.direction  # over the light's plane
+    along = _along_axis(light, height)
+    sun_part, panel_part = bool((along > 0).any()), bool((along < 1).any())
+    parts = int(sun_part) + int(panel_part)
     out = np.ones(n, np.float32)
-    if parts[0]:
-        ahead = (cloud.positions - light.position) @ light.direction > 0.0  # only these can block the light
-        blockers = ahead if blocking is None else ahead & _blocking(blocking, n)
+    if sun_part:
+        blockers = height > 0.0 if blocking is None else (height > 0.0) & _blocking(blocking, n)  # ahead of it
         sun = Light("sun", direction=light.direction, angle=light.spread)
-        out = _own_maps(cloud, sun, blocking=blockers, progress=next(steps), **settings)
-    if parts[1]:
-        whole = _own_maps(cloud, light, blocking=blocking, progress=next(steps), **settings)
+        out = _own_maps(cloud, sun, blocking=blockers, progress=part_progress(progress, 0, parts), **settings)
+    if panel_part:
+        step = part_progress(progress, parts - 1, parts)
+        whole = _own_maps(cloud, light, blocking=blocking, progress=step, **settings)
         out = (along * out + (1.0 - along) * whole).astype(np.float32)
     return out
 
@@ -156,18 +157,15 @@ def _blocking(blocking, n):
     return blocking.astype(bool)
 
 
-def _along_axis(light, positions):
+def _along_axis(light, height):
     """(N,) the weight, in [0, 1], of an area light narrowed by its Spread as a sun along its axis
-    whose disc is the spread, at positions (N,3); None for any other light. A point at height t over
+    whose disc is the spread, at points `height` (N,) over the light's plane. A point at height t over
     the light's plane sees the light only within t tan(spread/2) of its foot: where that disc is
     smaller than the light (than R, the radius of the light's area), the light reaches it along the
     axis from within the spread, as a sun's, wherever the panel is (weight 1); where the disc is
     over twice R, the panel sets its shadows from the panel's centre (weight 0); a blend between
     (SPREAD_BLEND). Measured against the float64 ray reference: docs/DESIGN.md."""
-    if light.kind != "area" or spread_terms(light)[0] <= 0.0:
-        return None
     low, high = SPREAD_BLEND
-    height = (np.asarray(positions, np.float64) - light.position) @ light.direction
     ratio = np.maximum(height, 0.0) * spread_terms(light)[0] / math.sqrt(light.area / math.pi)
     return np.clip((high - ratio) / (high - low), 0.0, 1.0)
 
