@@ -186,6 +186,36 @@ def test_point_light_cube_keeps_only_faces_with_splats(scene):
     assert own <= kept  # every splat is tested on the face it would have had in the whole cube
 
 
+def test_maps_drawn_side_by_side_are_the_maps_drawn_in_turn(scene, monkeypatch):
+    """A point light beside the sphere sees it on several cube faces: drawn side by side, one core
+    each, they are the very maps drawn one after another on every core, in the cube's order."""
+    cloud, _ = scene
+    light = Light("point", position=(0.45, 0.0, 0.8), radius=0.05)  # beside the sphere, over the plane
+    monkeypatch.setattr(shadows, "_side_by_side", lambda sizes, threads: False)
+    in_turn = shadows.shadow_views(cloud, light, resolution=96, threads=2)
+    monkeypatch.setattr(shadows, "_side_by_side", lambda sizes, threads: True)
+    side = shadows.shadow_views(cloud, light, resolution=96, threads=2)
+    assert len(in_turn) >= 3 and sum(np.isfinite(v.depth).any() for v in in_turn) >= 3
+    for a, b in zip(in_turn, side, strict=True):
+        np.testing.assert_array_equal(a.camera.forward, b.camera.forward)
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.alpha, b.alpha)
+
+
+@pytest.mark.parametrize(
+    ("sizes", "threads", "expected"),
+    [
+        ((114, 43, 20), 2, True),  # greedy loads 114 / 63: sooner than 177 / 1.4 = 126 in turn
+        ((131, 46, 4), 2, False),  # 131 / 50 against 181 / 1.4 = 129: one map dominates
+        ((50, 50, 50, 50, 50, 50), 4, True),  # 100 against 300 / 2.8 = 107
+        ((160,), 2, False),  # one map has every core
+        ((114, 43, 20), 1, False),
+    ],
+)
+def test_maps_go_side_by_side_where_they_split_evenly_over_the_cores(sizes, threads, expected):
+    assert shadows._side_by_side(np.array(sizes), threads) is expected
+
+
 @pytest.mark.parametrize("name", LIGHTS)
 def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch, name):
     cloud, _ = scene
