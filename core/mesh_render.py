@@ -180,25 +180,27 @@ def _rays(cam, px, py):
     return np.column_stack([(px + 0.5 - cam.cx) / cam.fx, (py + 0.5 - cam.cy) / cam.fy, np.ones(len(px))])
 
 
-def rasterize(surface, cam, backend="auto"):
+def rasterize(surface, cam, backend="auto", beyond=-np.inf):
     """Nearest face per pixel that stops the ray: (face (H,W) int64, -1 where none; bary (H,W,3);
-    depth (H,W)). Of faces at the same depth, the lowest index wins. On alpha-cut materials
+    depth (H,W)), of the hits at `beyond` camera depth or farther (a clip plane across the view).
+    Of faces at the same depth, the lowest index wins. On alpha-cut materials
     (core.mesh.Material.alpha_mode) a hit stops the ray where its Surface.hit_alpha is at least
     1/2 (a MASK's alpha test; a BLEND's, as Cycles' Depth pass takes the first surface at least
     half opaque); cut-out hits are seen through (rasterize_layers).
 
     backend: "auto" (or None: the compiled kernel where numba loads, else NumPy), "compiled"
     (an error if it cannot load) or "numpy". Both give the same buffers."""
-    return _first_stopping(rasterize_layers(surface, cam, backend))
+    return _first_stopping(rasterize_layers(surface, cam, backend, beyond=beyond))
 
 
-def rasterize_layers(surface, cam, backend="auto", max_layers=MAX_LAYERS):
+def rasterize_layers(surface, cam, backend="auto", max_layers=MAX_LAYERS, beyond=-np.inf):
     """The hits along each pixel's ray, nearest first, as far as alpha-cut materials let it through:
     a list of layers (face (H,W), bary (H,W,3), depth (H,W), alpha (H,W): Surface.hit_alpha, 0
     where no hit), the first every pixel's nearest hit, each next one only where the rays so far
     were not wholly stopped (depth peeling: the same rasteriser again, taking only hits beyond the
     last layer's depth and face). An opaque mesh has one layer; at most `max_layers` (Cycles'
-    default transparent bounces), after which what is left sees the background."""
+    default transparent bounces), after which what is left sees the background. Hits nearer than
+    `beyond` (camera depth) are left out."""
     backend = "auto" if backend is None else backend
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -206,7 +208,7 @@ def rasterize_layers(surface, cam, backend="auto", max_layers=MAX_LAYERS):
     if kernels is None and backend == "compiled":
         raise RuntimeError(f"compiled mesh rasteriser is not available: {jit.status(KERNELS)}")
     n = cam.height * cam.width
-    zmin, fmin, left = np.full(n, -np.inf), np.full(n, -1, np.int64), np.ones(n)
+    zmin, fmin, left = np.full(n, float(beyond)), np.full(n, -1, np.int64), np.ones(n)
     layers = []
     for _ in range(max_layers):
         face, bary, depth = _rasterize(kernels, surface, cam, zmin, fmin)

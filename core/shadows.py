@@ -145,7 +145,8 @@ def visibility(
     if sun_part:
         blockers = height > 0.0 if blocking is None else (height > 0.0) & _blocking(blocking, n)  # ahead of it
         sun = Light("sun", direction=light.direction, angle=light.spread)
-        out = _own_maps(cloud, sun, blocking=blockers, progress=part_progress(progress, 0, parts), **settings)
+        step = part_progress(progress, 0, parts)
+        out = _own_maps(cloud, sun, blocking=blockers, ahead_of=light.position, progress=step, **settings)
     if panel_part:
         step = part_progress(progress, parts - 1, parts)
         whole = _own_maps(cloud, light, blocking=blocking, progress=step, **settings)
@@ -176,9 +177,10 @@ def _along_axis(light, height):
 
 def _own_maps(
     cloud, light, *, occluders, resolution, taps, sigma_bias, texel_bias, soft, receiver_plane, blocking, threads,
-    progress, shapes,
+    progress, shapes, ahead_of=None,
 ):  # fmt: skip
-    """visibility() of a light by its own maps (a cube's faces for point and area lights)."""
+    """visibility() of a light by its own maps (a cube's faces for point and area lights); ahead_of
+    as shadow_views'."""
     out = np.ones(len(cloud), np.float32)
     views = shadow_views(
         cloud,
@@ -189,6 +191,7 @@ def _own_maps(
         threads=threads,
         progress=progress,
         shapes=shapes,
+        ahead_of=ahead_of,
     )
     size = _light_size(light)
     kernel = jit.compiled(__name__, FILTER_KERNEL)
@@ -210,10 +213,13 @@ def _own_maps(
 
 
 def shadow_views(
-    cloud, light, *, occluders=None, resolution=512, blocking=None, threads=None, progress=None, shapes=None
-) -> list[ShadowView]:
+    cloud, light, *, occluders=None, resolution=512, blocking=None, threads=None, progress=None, shapes=None,
+    ahead_of=None,
+) -> list[ShadowView]:  # fmt: skip
     """The light's shadow-map views (see the module notes); blocking, progress and shapes as
-    visibility's."""
+    visibility's. ahead_of: for a sun, a point (3,) of a plane across its direction: the meshes
+    shadow only beyond that plane (a Spread's sun part: nothing behind the panel reaches what it
+    lights; its splats there are left out by `blocking`)."""
     position = None if light.kind == "sun" else np.asarray(light.position, np.float64)
     reach, gap = shadow_cameras.reach_and_gap(cloud, position)
     meshes = list(occluders or [])
@@ -245,8 +251,9 @@ def shadow_views(
 
     def draw(k):
         each = None if side_by_side else part_progress(progress, k, len(cameras), "shadows")
-        rows = np.flatnonzero(masks[k])
-        return _map_view(bare, cameras[k], rows, meshes, shapes, 1 if side_by_side else threads, each)
+        rows, camera = np.flatnonzero(masks[k]), cameras[k]
+        beyond = -np.inf if ahead_of is None else float((np.asarray(ahead_of) - camera.center) @ camera.forward)
+        return _map_view(bare, camera, rows, meshes, shapes, 1 if side_by_side else threads, each, beyond)
 
     views: list = [None] * len(cameras)
     if progress is not None:
@@ -271,10 +278,10 @@ def _side_by_side(sizes, threads):
     return bool(loads.max() < sizes.sum() / (MAP_SPEEDUP * threads))
 
 
-def _map_view(cloud, camera, rows, meshes, shapes, threads, progress):
+def _map_view(cloud, camera, rows, meshes, shapes, threads, progress, beyond=-np.inf):
     """The ShadowView of `camera`: the splats `rows` of `cloud` (with their `shapes`) and `meshes`
-    drawn as depth (inf where nothing is) and alpha, on up to `threads` cores, progress as
-    core.render's."""
+    (their parts at depth `beyond` or farther) drawn as depth (inf where nothing is) and alpha, on
+    up to `threads` cores, progress as core.render's."""
     depth = np.full((camera.height, camera.width), np.inf, np.float32)
     alpha = np.zeros((camera.height, camera.width), np.float32)
     if len(rows):
@@ -283,7 +290,7 @@ def _map_view(cloud, camera, rows, meshes, shapes, threads, progress):
         alpha = result.alpha
         depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
     for mesh in meshes:
-        depth, alpha = _with_mesh(depth, alpha, mesh, camera)
+        depth, alpha = _with_mesh(depth, alpha, mesh, camera, beyond)
     return ShadowView(camera, depth, alpha)
 
 
@@ -546,10 +553,10 @@ def _casters_numpy(positions, nx, ny, nz, log_scales, reach, cameras, boxes, sou
 # meshes ---------------------------------------------------------------------------------------------
 
 
-def _with_mesh(depth, alpha, mesh, camera):
-    """The map with a mesh's depth folded in: the mesh covers fully; where a fairly solid splat
-    surface is in front of it, the splats' depth stays."""
-    face, _, mesh_depth = rasterize(mesh, camera)
+def _with_mesh(depth, alpha, mesh, camera, beyond=-np.inf):
+    """The map with a mesh's depth folded in, of its parts at depth `beyond` or farther: the mesh
+    covers fully; where a fairly solid splat surface is in front of it, the splats' depth stays."""
+    face, _, mesh_depth = rasterize(mesh, camera, beyond=beyond)
     hit = face >= 0
     splat_first = (alpha >= SOLID_ALPHA) & (depth < mesh_depth)
     depth = np.where(hit & ~splat_first, mesh_depth, depth).astype(np.float32)

@@ -1,9 +1,10 @@
 """Alpha-cut materials (core.mesh.Material's alpha_mode) in the reference mesh rasteriser: a quad
 with a cut-out pattern over a coloured quad behind it, against a float64 ray cast that walks every
 hit along each pixel's ray, and both rasteriser backends against each other; a BLEND quad against
-the closed form of its mix with what lies behind."""
+the closed form of its mix with what lies behind; the rasteriser's clip depth."""
 
 import numpy as np
+import pytest
 from helpers import needs_numba
 
 from splatwright.core import color
@@ -181,3 +182,24 @@ def test_splats_of_a_blend_material_carry_its_alpha_in_their_opacity():
     assert front.sum() > 1000 and (~front).sum() > 1000  # every splat kept
     np.testing.assert_allclose(cloud.opacities[front], 0.4 * OPAQUE, rtol=1e-5)
     np.testing.assert_allclose(cloud.opacities[~front], OPAQUE, rtol=1e-5)
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("compiled", marks=needs_numba)])
+def test_a_clip_depth_leaves_out_what_lies_nearer(backend):
+    """rasterize(beyond=d), a clip plane across an orthographic view: a quad tilted through depth
+    d shows only its far half, and where it is clipped the flat quad behind it shows; every depth
+    is the closed form of its plane."""
+    tilted = [[-1, -1, 0.5], [1, -1, -0.5], [1, 1, -0.5], [-1, 1, 0.5]]  # z = -x / 2
+    flat = [[-2, -2, -1], [2, -2, -1], [2, 2, -1], [-2, 2, -1]]
+    surface = Surface(np.array(tilted + flat, float), np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]]))
+    cam = Camera.look_at_ortho((0, 0, 5), (0, 0, 0), ortho_scale=1.6, width=40, height=40)  # within the tilted quad
+    u, v = np.meshgrid(np.arange(40) + 0.5, np.arange(40) + 0.5)
+    local = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.zeros_like(u)], axis=-1)
+    x = (local @ cam.rotation + cam.center)[..., 0]  # each pixel's world x
+    face, _, depth = rasterize(surface, cam, backend=backend, beyond=5.0)
+    near = x < 0  # the tilted quad's half nearer the camera than depth 5 (z > 0)
+    assert near.sum() > 500 and (~near).sum() > 500
+    np.testing.assert_array_equal(face[near] >= 2, True)  # the flat quad behind
+    np.testing.assert_allclose(depth[near], 6.0, atol=1e-9)
+    np.testing.assert_array_equal(face[~near] < 2, True)
+    np.testing.assert_allclose(depth[~near], 5.0 + x[~near] / 2, atol=1e-9)
