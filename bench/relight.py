@@ -15,6 +15,7 @@ reference of tests/shadow_reference.py (64 samples over the light's disc).
     python bench/relight.py [--quick]
 """
 
+import itertools
 import math
 import sys
 import time
@@ -126,6 +127,45 @@ def run(quick=False):
     rows += kind_rows(cloud, camera, world, repeat)
     rows += resolution_sweep(cloud, camera, world, repeat)
     rows += world_occlusion_rows(cloud, camera, world, 2 if quick else 3)
+    rows += kept_rows(cloud, camera, world, repeat)
+    return rows
+
+
+def kept_rows(cloud, camera, world, repeat):
+    """Frames of a still scene from a moving camera with the shadows kept from frame to frame
+    (core.relight.KeptVisibilities, as an animation render keeps them): a point light, then the
+    world occluded from 24 directions as well; each against the unlit frame, and a kept frame
+    against the same frame made afresh."""
+    moved = Camera.look_at(
+        (4.3, -4.7, 3.5), (0, 0, 0.3), up=(0, 0, 1), fov_deg=50, width=camera.width, height=camera.height
+    )
+    rows = []
+    for name, occluded in (
+        ("1 light (point)", World(world.color)),
+        ("1 light (point), world occlusion (24 directions)", World(world.color, 24)),
+    ):
+        kept, views = relight.KeptVisibilities(), itertools.cycle([camera, moved])
+        relight.render_lit(cloud, camera, LIGHTS[:1], occluded, kept=kept)  # the first frame makes them
+        base, lit, ratio = paired_ratio(
+            lambda: render(cloud, camera),
+            lambda: relight.render_lit(cloud, next(views), LIGHTS[:1], occluded, kept=kept),
+            repeat,
+        )
+        fresh = relight.render_lit(cloud, moved, LIGHTS[:1], occluded).color
+        difference = np.abs(relight.render_lit(cloud, moved, LIGHTS[:1], occluded, kept=kept).color - fresh).max()
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}, shadows kept, the camera moving",
+                lit,
+                base,
+                extra={
+                    "lit_over_unlit": f"{ratio:.2f}",
+                    "error against": "the frame made afresh",
+                    "worst error": f"{difference:.1e}",
+                },
+            )
+        )
     return rows
 
 

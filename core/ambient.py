@@ -16,7 +16,6 @@ Light that the surroundings reflect back (the floor's bounce under a sphere) is 
 occluded direction counts as black.
 """
 
-import hashlib
 import math
 from collections.abc import Callable
 from typing import Annotated
@@ -104,17 +103,3 @@ def world_visibility(
     out = np.ones((n, 2), np.float32)
     out[rows] = np.where(weight > 0.0, seen / np.where(weight > 0.0, weight, 1.0), 1.0)
     return out
-
-
-def geometry_key(cloud: SplatCloud, occluders=None, directions: int = DIRECTIONS) -> bytes:
-    """A digest of what world_visibility depends on: the splats' centres, shapes, opacities and
-    normals, the occluders' triangles and the directions (not the lights, the world's colour or the
-    view). Equal keys give equal visibilities, so a viewport keeps them while only lights move."""
-    digest = hashlib.blake2b(str(directions).encode(), digest_size=16)
-    normals = material.normal_columns(cloud) or ()
-    for array in (cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, *normals):
-        digest.update(np.ascontiguousarray(array).data)
-    for mesh in occluders or []:  # a loop over meshes
-        digest.update(np.ascontiguousarray(mesh.vertices).data)
-        digest.update(np.ascontiguousarray(mesh.faces).data)
-    return digest.digest()

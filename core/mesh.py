@@ -334,6 +334,22 @@ class Surface:
         """Whether any material's alpha cuts or thins the surface (Material.cut)."""
         return any(m.cut for m in self.materials)
 
+    def occluding_arrays(self) -> list[np.ndarray]:
+        """What decides where this surface stops a ray (rasterize, hit_alpha): its triangles and, where
+        alpha cuts it, the face materials, the corners' uvs and each material's alpha texture, mode,
+        cutoff, base alpha and uv transform. Equal arrays, equal shadows (core.relight.KeptVisibilities)."""
+        arrays = [self.vertices, self.faces]
+        if not self.cut:
+            return arrays
+        arrays += [self.face_materials, np.zeros(0) if self.corner_uvs is None else self.corner_uvs]
+        for material in self.materials:  # a loop over materials
+            rules = [ALPHA_MODES.index(material.alpha_mode) if material.cut else 0, material.alpha_cutoff]
+            rules.append(material.base_alpha)
+            texture = material.alpha_texture() if material.cut else None
+            arrays += [np.array(rules + list(material.uv_scale) + list(material.uv_offset), np.float64)]
+            arrays.append(np.zeros(0, np.float32) if texture is None else texture)
+        return arrays
+
     def coverage(self, tri, bary, covariance=None):
         """(n,) float64 the alpha at barycentric points on faces tri: 1 on materials whose alpha
         does not cut (Material.cut), else the bilinear alpha, or with `covariance` (n,2,2), as in

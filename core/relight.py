@@ -11,6 +11,7 @@ shadows. The passes (diffuse, specular, shadow) are extra renders of the same sp
 when asked for.
 """
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -91,10 +92,7 @@ def visibilities(
     shadow linking, a light's index to the (N,) bool splats that may shadow its light (absent: all);
     mesh_blockers: the same for meshes, a light's index to the meshes (a list as `meshes`) that
     shadow it in place of `meshes` (absent: `meshes`; the world's occlusion always takes `meshes`)."""
-    for name, links in (("blockers", blockers), ("mesh_blockers", mesh_blockers)):
-        wrong = [index for index in links or {} if not 0 <= index < len(lights)]
-        if wrong:
-            raise ValueError(f"{name} names light {wrong[0]}, but there are {len(lights)} lights")
+    _check_linking(lights, blockers, mesh_blockers)
     # a light that casts no shadow, or gives no light to reflect, needs no maps
     casting = [i for i, light in enumerate(lights) if light.cast_shadow and (light.diffuse > 0 or light.specular > 0)]
     occluded = world is not None and world.occluded
@@ -126,6 +124,101 @@ def visibilities(
     return visible
 
 
+class KeptVisibilities:
+    """visibilities() kept from one call to the next. While the splats' centres, shapes, opacities
+    and normals, the meshes (Surface.occluding_arrays) and the shadow linking are those of the last
+    call, a light keeps its visibility as long as it and its map resolution are unchanged, and the
+    world its occlusion as long as its directions are: only what changed is made again. For frames
+    of a still scene under a moving camera or a moving light (a `blender -b` animation, the
+    viewport's updates), where the maps are most of a lit frame and the world's occlusion many
+    frames. Holds a copy of the splats' geometry (about 56 bytes a splat) to compare with."""
+
+    def __init__(self):
+        self._scene: list[np.ndarray] = []
+        self._kept: dict = {}  # a light's or the world's inputs -> its visibility (None: casts none)
+
+    def __call__(
+        self,
+        cloud: SplatCloud,
+        lights: list[Light],
+        world: World | None = None,
+        *,
+        meshes=None,
+        shadow_resolution: dict | int | None = None,
+        blockers: dict[int, np.ndarray] | None = None,
+        mesh_blockers: dict[int, list] | None = None,
+        **options,
+    ) -> dict[int | str, np.ndarray]:
+        """visibilities()'s result for these inputs (its keywords, `options` threads, progress and
+        shapes too), made only for the lights and world not kept."""
+        _check_linking(lights, blockers, mesh_blockers)
+        meshes, linked = list(meshes or []), {i: list(m) for i, m in (mesh_blockers or {}).items()}
+        surfaces = list({id(m): m for m in meshes + [m for ms in linked.values() for m in ms]}.values())
+        self._hold(_scene_arrays(cloud, surfaces))
+        place = {id(m): k for k, m in enumerate(surfaces)}
+        keys = {
+            index: (
+                _light_values(light),
+                _resolution(shadow_resolution, light),
+                None if index not in (blockers or {}) else np.packbits(np.asarray(blockers[index], bool)).tobytes(),
+                tuple(place[id(m)] for m in linked.get(index, meshes)),
+            )
+            for index, light in enumerate(lights)  # a loop over lights
+        }
+        world_key = ("world", world.occlusion) if world is not None and world.occluded else None
+        missing = [index for index, key in keys.items() if key not in self._kept]
+        if missing or (world_key is not None and world_key not in self._kept):
+            made = visibilities(
+                cloud,
+                [lights[index] for index in missing],
+                world if world_key is not None and world_key not in self._kept else None,
+                meshes=meshes,
+                shadow_resolution=shadow_resolution,
+                blockers={k: blockers[i] for k, i in enumerate(missing) if i in (blockers or {})},
+                mesh_blockers={k: linked[i] for k, i in enumerate(missing) if i in linked},
+                **options,
+            )
+            self._kept.update({keys[index]: made.get(k) for k, index in enumerate(missing)})
+            if "world" in made:
+                self._kept[world_key] = made["world"]
+        used = [*keys.values()] + ([world_key] if world_key is not None else [])
+        self._kept = {key: self._kept[key] for key in used}  # a light moved every frame keeps one
+        visible = {index: self._kept[key] for index, key in keys.items() if self._kept[key] is not None}
+        if world_key is not None:
+            visible["world"] = self._kept[world_key]
+        return visible
+
+    def _hold(self, scene):
+        """Keep `scene` (arrays), forgetting every kept visibility, unless it equals the held one."""
+        same = len(scene) == len(self._scene) and all(
+            a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
+            for a, b in zip(scene, self._scene, strict=True)  # the centres first: a moved scene fails there
+        )
+        if not same:
+            self._scene, self._kept = [np.array(a, copy=True) for a in scene], {}
+
+
+def _scene_arrays(cloud, surfaces):
+    """What every shadow map of `cloud` and `surfaces` depends on, as arrays."""
+    normals = material.normal_columns(cloud) or ()
+    splats = [cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, *normals]
+    return [np.asarray(a) for a in splats] + [np.asarray(a) for m in surfaces for a in m.occluding_arrays()]
+
+
+def _light_values(light):
+    """A light's fields as a tuple that compares by value (its arrays as bytes)."""
+    values = (getattr(light, f.name) for f in dataclasses.fields(light))
+    return tuple(np.asarray(v).tobytes() if isinstance(v, np.ndarray) else v for v in values)
+
+
+def _check_linking(lights, blockers, mesh_blockers):
+    """ValueError where shadow linking names a light that is not there."""
+    for name, links in (("blockers", blockers), ("mesh_blockers", mesh_blockers)):
+        wrong = [index for index in links or {} if not 0 <= index < len(lights)]
+        if wrong:
+            raise ValueError(f"{name} names light {wrong[0]}, but there are {len(lights)} lights")
+
+
 def lit_colors(
     cloud: SplatCloud,
     camera: Camera,
@@ -141,18 +234,19 @@ def lit_colors(
     mesh_blockers: dict[int, list] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
+    kept: KeptVisibilities | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
     the lights that cast shadows and an occluded world: all splats and `meshes` occlude; `progress`
     and `shapes` as visibilities') and, with `receivers` (light linking: a light's index to the (N,)
     bool splats it lights), given only to the splats each light is linked to; `blockers` and
-    `mesh_blockers` as visibilities' (when the visibilities are made here)."""
+    `mesh_blockers` as visibilities' (when the visibilities are made here, by `kept` when given)."""
     rows = material.carried(cloud)
     if not rows.any():
         return rows, None
     if visible is None:
-        visible = visibilities(
+        visible = (kept or visibilities)(
             cloud,
             lights,
             world,
@@ -219,6 +313,7 @@ def render_lit(
     receivers: dict[int, np.ndarray] | None = None,
     blockers: dict[int, np.ndarray] | None = None,
     mesh_blockers: dict[int, list] | None = None,
+    kept: KeptVisibilities | None = None,
     **render_options,
 ) -> LitRender:
     """Render `cloud` through `camera` lit by `lights` (core.lights.Light) and `world`.
@@ -229,7 +324,8 @@ def render_lit(
     (default SHADOW_RESOLUTION). visible: visibilities()'s result when the caller has it (they do
     not depend on the camera), else made here. receivers: light linking, a light's index to the (N,)
     bool splats it lights (absent: all; core.shading.shade); blockers and mesh_blockers: shadow
-    linking, the splats and the meshes that shadow each light (visibilities'). Other keywords go to
+    linking, the splats and the meshes that shadow each light (visibilities'). kept: a
+    KeptVisibilities that makes them, keeping what an earlier frame made. Other keywords go to
     core.render (mode, tile_size, backend, ...); its `progress` follows the shadow maps first (label
     "shadows"; the world's, "world occlusion"), then the render's tiles."""
     t0 = time.perf_counter()
@@ -249,6 +345,7 @@ def render_lit(
         mesh_blockers=mesh_blockers,
         progress=render_options.get("progress"),
         shapes=shapes,
+        kept=kept,
     )
     shading_time = time.perf_counter() - t0
     options = dict(render_options, threads=threads, shapes=shapes)

@@ -119,17 +119,3 @@ def test_the_lit_render_occludes_the_world_it_is_told_to():
     rows, hidden = relight.lit_colors(floor, np.array([0.0, 0.0, 5.0]), [], World((0.2, 0.2, 0.2), 8), meshes=disc)
     ratio = hidden.radiance[:, 0] / open_sky.radiance[:, 0]
     np.testing.assert_allclose(ratio, visible["world"][:, 0], rtol=1e-5)
-
-
-def test_the_geometry_key_follows_what_the_world_visibility_depends_on():
-    floor = _with_albedo(plane_cloud(1.0, 10))
-    disc = [_disc(0.5, 0.5)]
-    key = ambient.geometry_key(floor, disc)
-    assert ambient.geometry_key(floor.replace(), [_disc(0.5, 0.5)]) == key  # equal copies
-    recoloured = material.with_material(floor, albedo=np.full((100, 3), 0.9))
-    assert ambient.geometry_key(recoloured, disc) == key  # colours do not occlude
-    moved = floor.replace(positions=floor.positions + np.float32(0.01))
-    assert ambient.geometry_key(moved, disc) != key
-    assert ambient.geometry_key(floor, [_disc(0.5, 0.6)]) != key
-    assert ambient.geometry_key(floor, disc, directions=8) != key
-    assert ambient.geometry_key(floor) != key

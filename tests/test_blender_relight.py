@@ -418,6 +418,22 @@ def test_rendered_viewport_shows_the_relit_look(blender):
     assert np.abs(linear_to_srgb(np.clip(picture, 0, None)) - linear_to_srgb(np.clip(final, 0, None))).max() <= 2 / 255
 
 
+def test_an_animation_keeps_the_shadows_of_what_did_not_move(blender):
+    """An animation render (`blender -b -a`) makes the sun's maps at frame 1 and again only where the
+    sun turns (frame 3, not frame 2 where only the camera moved), the world's occlusion once; every
+    frame is the still render of that frame, to the last bit of its Combined and Shadow passes."""
+    res = blender.step("animation_frames")
+    assert res == {"sun": [1, 3], "world": [1]}
+    frames = []
+    for frame in (1, 2, 3):
+        animated, still = exr(blender.out / f"animation_{frame:04d}.exr"), exr(blender.out / f"still_{frame}.exr")
+        for name, letters in (("Combined", "RGBA"), ("Shadow", "X")):
+            np.testing.assert_array_equal(channels(animated, name, letters), channels(still, name, letters))
+        frames.append(channels(still, "Shadow", "X"))
+    assert (frames[0] > 0.5).mean() > 0.005  # the ball's shadow on the floor (measured 0.9% of the frame)
+    assert np.abs(frames[2] - frames[1]).max() > 0.5  # the turned sun moves it
+
+
 def test_the_world_occlusion_setting_darkens_the_floor_under_a_mesh_ball(blender):
     """With the sun hidden, the relit floor's Diffuse pass is the world's light alone; with World
     Occlusion on, it is scaled by the share of the sky the floor sees past the mesh ball. For a ball

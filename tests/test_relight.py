@@ -1,6 +1,7 @@
 """The lit render (core.relight.render_lit) against the float64 brute-force renderer of the same
 splats coloured plainly per splat by their shading, and its passes and material-less splats."""
 
+import copy
 import math
 
 import numpy as np
@@ -12,6 +13,7 @@ from shadow_reference import plane_cloud, sphere_cloud
 from splatwright.core import material, relight, shadows
 from splatwright.core.camera import Camera
 from splatwright.core.lights import Light, World
+from splatwright.core.mesh import Material, Surface
 from splatwright.core.render import render
 from splatwright.core.shading import shade
 from splatwright.core.splats import SplatCloud
@@ -150,6 +152,59 @@ def test_shadow_maps_report_progress_first_and_a_raise_stops_them(scene):
     with pytest.raises(_Stop):
         relight.render_lit(scene, CAMERA, LIGHTS, progress=cancel)
     assert calls == ["shadows"] * 3
+
+
+def _quad(height, alpha=None):
+    """A 0.6 m square mesh at `height` over the scene; with `alpha` (4x4), cut by it (MASK)."""
+    corners = np.array([[-0.3, -0.3, height], [0.3, -0.3, height], [0.3, 0.3, height], [-0.3, 0.3, height]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    if alpha is None:
+        return Surface(corners, faces)
+    texture = np.concatenate([np.ones((4, 4, 3), np.float32), alpha[..., None]], axis=2)
+    uvs = np.array([[[0, 0], [1, 0], [1, 1]], [[0, 0], [1, 1], [0, 1]]], float)
+    return Surface(corners, faces, uvs, None, [Material(texture=texture, alpha_mode="MASK")])
+
+
+def test_kept_visibilities_make_again_only_what_changed(scene, monkeypatch):
+    """KeptVisibilities against visibilities() made afresh, call by call: equal copies of the inputs
+    make nothing; a moved light remakes its own maps alone (the world's occlusion stays); moved
+    splats, a moved mesh, a mesh's alpha cut changed, or a light's shadow linking changed remake what
+    depends on them."""
+    made = []
+    original = shadows.visibility
+    monkeypatch.setattr(
+        shadows, "visibility", lambda cloud, light, **kw: made.append(light.kind) or original(cloud, light, **kw)
+    )
+    world = World((0.1, 0.1, 0.1), 4)
+    kept = relight.KeptVisibilities()
+
+    def check(cloud, lights, meshes, blockers=None):
+        """kept's result, compared with visibilities() made afresh; the maps kept made."""
+        made.clear()
+        got = kept(cloud, lights, world, meshes=meshes, blockers=blockers)
+        count = list(made)
+        want = relight.visibilities(cloud, lights, world, meshes=meshes, blockers=blockers)
+        assert got.keys() == want.keys()
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key])
+        return count
+
+    cut = np.ones((4, 4), np.float32)
+    cut[:2] = 0.0  # half the quad lets light through
+    meshes = [_quad(1.4, cut)]
+    assert check(scene, LIGHTS, meshes) == ["point", "sun"] + ["sun"] * 4  # the lights, then the world's 4 suns
+    same, copies = copy.deepcopy(scene), copy.deepcopy(LIGHTS)  # equal values in new arrays
+    assert check(same, copies, [_quad(1.4, cut.copy())]) == []
+    moved = [LIGHTS[0], Light("sun", power=2.0, direction=(-0.4, 0.3, -1), angle=math.radians(4))]
+    assert check(scene, moved, meshes) == ["sun"]  # the moved sun alone; the point light and the world kept
+    assert check(scene, moved, [_quad(1.4)]) == ["point", "sun"] + ["sun"] * 4  # the quad no longer cut
+    assert check(scene, moved, [_quad(1.5)]) == ["point", "sun"] + ["sun"] * 4  # moved
+    lifted = scene.replace(positions=scene.positions + np.float32([0, 0, 0.01]))
+    assert check(lifted, moved, [_quad(1.5)]) == ["point", "sun"] + ["sun"] * 4
+    blockers = {0: np.arange(len(scene)) % 2 == 0}
+    assert check(lifted, moved, [_quad(1.5)], blockers) == ["point"]  # its linking changed
+    with pytest.raises(ValueError, match="blockers names light 2, but there are 2 lights"):
+        kept(lifted, moved, world, blockers={2: blockers[0]})
 
 
 @needs_numba

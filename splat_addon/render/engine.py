@@ -15,7 +15,18 @@ from . import lights, mesh_layer, relit, viewport
 from .lights import WORLD_OCCLUSION, scene_world
 from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_color
 
+ORIGIN_GRID = 16.0  # metres: a power of two, so the snapped origin is exact (render_origin)
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
+
+
+def render_origin(camera_object) -> np.ndarray:
+    """(3,) float64: the origin of the frame a final render works in, the camera's position snapped
+    to a grid of ORIGIN_GRID metres. Splat centres are float32, and a scene far from the world's
+    origin keeps its precision only near the camera; snapped, the frames of an animation whose
+    camera moves within a cell share their splats' coordinates, so the shadows of what stays still
+    are kept from frame to frame (_FRAMES)."""
+    position = np.array(camera_object.matrix_world.translation, dtype=np.float64)
+    return np.round(position / ORIGIN_GRID) * ORIGIN_GRID
 
 
 def render_size(render):
@@ -27,6 +38,9 @@ def render_size(render):
 _Cancelled = mesh_layer.Cancelled
 
 SPLAT_PASSES = "splatwright_use_pass_splats"  # ViewLayer property: write the Splats (and Meshes) pass
+# An animation's relit shadows, kept from frame to frame (core.relight.KeptVisibilities: a still
+# scene's lights and world occlusion are made once for a moving camera); a still render lets them go.
+_FRAMES: dict = {}
 
 
 class SplatwrightRenderEngine(bpy.types.RenderEngine):
@@ -54,10 +68,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         width, height = render_size(scene.render)
         if scene.camera is None:
             raise blender_camera.CameraError("the scene has no camera to render from")
-        # Render in a frame centred on the camera: splat centres are float32, and a scene far from
-        # the origin keeps its precision only relative to the camera.
         cam_obj = scene.camera.evaluated_get(depsgraph)
-        origin = np.array(cam_obj.matrix_world.translation, dtype=np.float64)
+        origin = render_origin(cam_obj)
         cam = blender_camera.from_object(cam_obj, scene, width, height, origin)
         with data.reported_warnings(self.report):
             cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
@@ -150,7 +162,11 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
         whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
         passes when `passes`."""
-        from ...core.relight import render_lit  # only when something is relit
+        from ...core.relight import KeptVisibilities, render_lit  # only when something is relit
+
+        if not self.is_animation:
+            _FRAMES.clear()
+        kept = _FRAMES.setdefault("shadows", KeptVisibilities()) if self.is_animation else None
 
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
         drawn = mesh_engine(depsgraph.scene) != "NONE"
@@ -169,6 +185,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             layer=layer,
             passes=passes,
             progress=self._progress,
+            kept=kept,
         )
         return lit_render.result, (relit.lit_passes(lit_render) if passes else {})
 

@@ -50,8 +50,8 @@ class Lighting:
     """What shades the relit splats (those with a material) of a viewport picture: the lights, the
     world and the meshes that shadow them; the shadows themselves (view-independent) are made once
     per scene update, on the picture's thread, and kept. `kept` (a dict the viewport holds across
-    updates) keeps the world's occlusion while neither the splats nor the meshes change: moving a
-    light or recolouring the world does not make its many maps again."""
+    updates) holds a core.relight.KeptVisibilities: a scene update makes again only the shadows of
+    what changed (moving a light remakes its maps alone; recolouring the world, none)."""
 
     def __init__(self, lights, world, occluders, kept=None, linking=None):
         self.lights, self.world, self.occluders = lights, world, occluders
@@ -63,36 +63,23 @@ class Lighting:
     def shade(self, cloud, camera, check=None):
         """`cloud` with the relit splats' colours for an eye at `camera`; `check()`, called as the
         shadow maps are made, may raise to stop them (a newer scene or view)."""
-        from ...core.relight import lit_cloud, lit_colors, visibilities  # only when something is relit
+        from ...core.relight import KeptVisibilities, lit_cloud, lit_colors  # only when something is relit
 
         if self.visible is None:
-            progress = None if check is None else (lambda *_: check())
-            visible = visibilities(
+            kept = self.kept.setdefault("shadows", KeptVisibilities())
+            self.visible = kept(
                 cloud,
                 self.lights,
+                self.world,
                 meshes=self.occluders,
-                progress=progress,
+                progress=None if check is None else (lambda *_: check()),
                 blockers=self.blockers,
                 mesh_blockers=self.mesh_blockers,
             )
-            if self.world.occluded:
-                visible["world"] = self._world_visibility(cloud, progress)
-            self.visible = visible
         rows, shading = lit_colors(
             cloud, camera, self.lights, self.world, visible=self.visible, receivers=self.receivers
         )
         return cloud if shading is None else lit_cloud(cloud, rows, shading)
-
-    def _world_visibility(self, cloud, progress):
-        from ...core import ambient
-
-        key = ambient.geometry_key(cloud, self.occluders, self.world.occlusion)
-        if self.kept.get("key") != key:
-            seen = ambient.world_visibility(
-                cloud, occluders=self.occluders, directions=self.world.occlusion, progress=progress
-            )
-            self.kept.update(key=key, seen=seen)
-        return self.kept["seen"]
 
 
 def picture_inputs(depsgraph, kept=None):
@@ -119,7 +106,7 @@ class Viewport:
         self.inputs = (SplatCloud.empty(), Triangles.empty(), None, None)
         self.progressive = Progressive(self.picture, on_ready=lambda: _redraw(engine_ref))
         self.texture, self.drawn = None, None
-        self.kept = {}  # the world's occlusion across scene updates (Lighting)
+        self.kept = {}  # the shadows across scene updates (Lighting)
 
     def update(self, depsgraph):
         self.inputs = picture_inputs(depsgraph, self.kept)

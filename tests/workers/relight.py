@@ -97,6 +97,7 @@ class Worker(BlenderWorker):
         "passes",
         "splats_shadow_meshes",
         "meshes_shadow_splats",
+        "animation_frames",
         "light_linking",
         "shadow_linking",
         "mesh_shadow_linking",
@@ -235,7 +236,7 @@ class Worker(BlenderWorker):
         bpy = self.bpy
         scene = bpy.context.scene
         depsgraph = bpy.context.evaluated_depsgraph_get()
-        origin = np.array(scene.camera.matrix_world.translation)
+        origin = self.origin()
         relit = self.module("splat_addon.render.relit")
         lights = self.module("splat_addon.render.lights")
         import warnings
@@ -266,6 +267,10 @@ class Worker(BlenderWorker):
             "origin": origin.tolist(),
             "warnings": [str(w.message) for w in caught],
         }
+
+    def origin(self):
+        """The frame the engine renders in (engine.render_origin of the scene's camera)."""
+        return self.module("splat_addon.render.engine").render_origin(self.bpy.context.scene.camera)
 
     def write(self, name):
         scene = self.bpy.context.scene
@@ -369,7 +374,7 @@ class Worker(BlenderWorker):
         key.light_linking.receiver_collection = receivers
         bpy.context.view_layer.update()
         self.write("link_left")
-        res = {"camera": self.camera_record(), "origin": list(bpy.context.scene.camera.matrix_world.translation)}
+        res = {"camera": self.camera_record(), "origin": list(self.origin())}
         res["included"] = self.linking_masks()
         right.light_linking.link_state, left.light_linking.link_state = "INCLUDE", "EXCLUDE"
         bpy.context.view_layer.update()
@@ -460,7 +465,7 @@ class Worker(BlenderWorker):
 
     def linking_record(self):
         """The camera, the engine's frame origin and the engine's linking masks (linking_masks)."""
-        origin = list(self.bpy.context.scene.camera.matrix_world.translation)
+        origin = list(self.origin())
         return {"camera": self.camera_record(), "origin": origin, "masks": self.linking_masks()}
 
     def linking_masks(self):
@@ -524,6 +529,55 @@ class Worker(BlenderWorker):
         res["viewport_world_maps"] = self.viewport_world_maps()
         scene.splatwright_world_occlusion = 0
         return res
+
+    def animation_frames(self):
+        """A relit splat ball over a relit splat floor (splats only, the world occluded from 8
+        directions) rendered as an animation of three frames, the camera moved from frame 1 to 2 and
+        the sun turned from 2 to 3, then each frame as a still: the frames at which the sun's maps and
+        the world's occlusion were made during the animation."""
+        bpy = self.bpy
+        self.stage("NONE")
+        scene = bpy.context.scene
+        ball = ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")})
+        self.splat_object("SplatFloor", self.material_cloud(floor_arrays(FLOOR["size"], 0.05), FLOOR["color"]))
+        self.splat_object("Ball", self.material_cloud(ball, BALL["albedo"]))
+        scene.splatwright_world_occlusion = 8
+        cam, sun = scene.camera, bpy.data.objects["Sun"]
+        cam.keyframe_insert("location", frame=1)
+        cam.location.x += 0.3
+        cam.keyframe_insert("location", frame=2)
+        sun.keyframe_insert("rotation_euler", frame=2)
+        sun.rotation_euler.x += 0.2
+        sun.keyframe_insert("rotation_euler", frame=3)
+        scene.frame_start, scene.frame_end = 1, 3
+        shadows, ambient = self.module("core.shadows"), self.module("core.ambient")
+        originals = shadows.visibility, ambient.world_visibility
+        made, inside = {"sun": [], "world": []}, []
+
+        def counted(name, original):
+            def call(*args, **kwargs):
+                if not inside:  # the world's occlusion draws suns of its own
+                    made[name].append(scene.frame_current)
+                inside.append(name == "world")
+                try:
+                    return original(*args, **kwargs)
+                finally:
+                    inside.pop()
+
+            return call
+
+        self.image_format(scene.render.image_settings, "OPEN_EXR_MULTILAYER", color_depth="32", exr_codec="ZIP")
+        scene.render.filepath = str(self.out / "animation_####")
+        shadows.visibility, ambient.world_visibility = counted("sun", originals[0]), counted("world", originals[1])
+        try:
+            bpy.ops.render.render(animation=True)
+        finally:
+            shadows.visibility, ambient.world_visibility = originals
+        for frame in (1, 2, 3):
+            scene.frame_set(frame)
+            self.write(f"still_{frame}")
+        scene.splatwright_world_occlusion = 0
+        return made
 
     def viewport_world_maps(self):
         """How often the Rendered viewport makes the world's occlusion over four scene updates: the
