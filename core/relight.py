@@ -152,6 +152,7 @@ class KeptVisibilities:
         """visibilities()'s result for these inputs (its keywords, `options` threads, progress and
         shapes too), made only for the lights and world not kept."""
         _check_linking(lights, blockers, mesh_blockers)
+        blockers = blockers or {}
         meshes, linked = list(meshes or []), {i: list(m) for i, m in (mesh_blockers or {}).items()}
         surfaces = list({id(m): m for m in meshes + [m for ms in linked.values() for m in ms]}.values())
         self._hold(_scene_arrays(cloud, surfaces))
@@ -160,21 +161,22 @@ class KeptVisibilities:
             index: (
                 _light_values(light),
                 _resolution(shadow_resolution, light),
-                None if index not in (blockers or {}) else np.packbits(np.asarray(blockers[index], bool)).tobytes(),
+                None if index not in blockers else np.packbits(np.asarray(blockers[index], bool)).tobytes(),
                 tuple(place[id(m)] for m in linked.get(index, meshes)),
             )
             for index, light in enumerate(lights)  # a loop over lights
         }
         world_key = ("world", world.occlusion) if world is not None and world.occluded else None
         missing = [index for index, key in keys.items() if key not in self._kept]
-        if missing or (world_key is not None and world_key not in self._kept):
+        world_missing = world_key is not None and world_key not in self._kept
+        if missing or world_missing:
             made = visibilities(
                 cloud,
                 [lights[index] for index in missing],
-                world if world_key is not None and world_key not in self._kept else None,
+                world if world_missing else None,
                 meshes=meshes,
                 shadow_resolution=shadow_resolution,
-                blockers={k: blockers[i] for k, i in enumerate(missing) if i in (blockers or {})},
+                blockers={k: blockers[i] for k, i in enumerate(missing) if i in blockers},
                 mesh_blockers={k: linked[i] for k, i in enumerate(missing) if i in linked},
                 **options,
             )

@@ -65,7 +65,7 @@ SOLID_ALPHA = 0.5  # a splat map texel this covered in front of a mesh decides t
 SPREAD_BLEND = (1.0, 2.0)
 # A map's render on T cores ran 0.7 T times as fast as on one (1.4 on two, 512-texel cube faces of
 # the relight bench): maps that split evenly enough over the cores are drawn side by side instead
-# (_side_by_side; on two cores a point light's three faces 9% sooner).
+# (_side_by_side; on two cores a point light's three faces 10-14% sooner).
 MAP_SPEEDUP = 0.7
 MAP_TILE = 16  # the maps' render tiles: a few percent faster than the picture's 8 at 512 texels, the same maps
 CASTER_CELL = 8  # texels a side of the cells in which the casters' test looks behind a splat
@@ -245,8 +245,8 @@ def shadow_views(
     # Maps that split evenly over the cores render side by side, one core each (_side_by_side), and
     # report as each comes in; else one after another on every core, each reporting its tiles. The
     # calling thread reports, and a cancel there stops the maps not yet begun.
-    pool, sizes = Pool(threads), masks.sum(axis=1)
-    side_by_side = _side_by_side(sizes, pool.threads)
+    sizes = masks.sum(axis=1)
+    side_by_side = _side_by_side(sizes, Pool(threads).threads)
     order = np.argsort(-sizes, kind="stable") if side_by_side else np.arange(len(cameras))
 
     def draw(k):
@@ -258,7 +258,7 @@ def shadow_views(
     views: list = [None] * len(cameras)
     if progress is not None:
         progress(0, len(cameras), "shadows")
-    with pool if side_by_side else Pool(1) as maps:
+    with Pool(threads if side_by_side else 1) as maps:
         for done, (k, view) in enumerate(zip(order, maps.imap(draw, order)), 1):
             views[k] = view
             if progress is not None:

@@ -164,9 +164,11 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         passes when `passes`."""
         from ...core.relight import KeptVisibilities, render_lit  # only when something is relit
 
-        if not self.is_animation:
+        if self.is_animation:
+            kept = _FRAMES.setdefault("shadows", KeptVisibilities())
+        else:
             _FRAMES.clear()
-        kept = _FRAMES.setdefault("shadows", KeptVisibilities()) if self.is_animation else None
+            kept = None
 
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
         drawn = mesh_engine(depsgraph.scene) != "NONE"
