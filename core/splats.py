@@ -81,6 +81,16 @@ def logit(p: ArrayLike, eps: float = 1e-7) -> Floats:
     return np.log(p) - np.log1p(-p)
 
 
+def _float32(values) -> np.ndarray:
+    """values as a float32 array, the same object when it is one already: np.asarray makes a new
+    view of an array whose float32 dtype is an equal but other object (one unpickled, as from
+    another process), and a replaced cloud's arrays would then no longer be its own
+    (core.render.Shapes tells a cloud by them)."""
+    if type(values) is np.ndarray and values.dtype == np.float32:
+        return values
+    return np.asarray(values, dtype=np.float32)
+
+
 @dataclass(eq=False)
 class SplatCloud:
     """N Gaussians. Arrays are float32; see the field table in the design notes.
@@ -103,7 +113,7 @@ class SplatCloud:
 
     def __post_init__(self) -> None:
         for name in FIELDS:
-            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float32))
+            setattr(self, name, _float32(getattr(self, name)))
         self.extras = {k: np.asarray(v) for k, v in self.extras.items()}
         self.antialiased = bool(self.antialiased)
         self._check_shapes()

@@ -121,3 +121,23 @@ def test_the_render_mode_splats_were_made_for_travels_with_them():
     assert not SplatCloud.concatenate([random_cloud(4), random_cloud(5)]).antialiased
     with pytest.raises(ValueError, match="antialiased rendering with splats made for classic"):
         SplatCloud.concatenate([made, random_cloud(4, sh_degree=1)])
+
+
+def test_a_cloud_from_another_process_keeps_its_arrays_when_replaced():
+    """An unpickled float32 array's dtype is an equal but other object, for which np.asarray makes a
+    new view: a replaced cloud must still hold the same arrays, or the shapes made for it (which tell
+    a cloud by its arrays) refuse its lit copy, as render_lit raised for a cloud from a pickle."""
+    import pickle
+
+    from splatwright.core import material, relight
+    from splatwright.core.camera import Camera
+    from splatwright.core.lights import Light
+
+    cloud = pickle.loads(pickle.dumps(random_cloud(50, sh_degree=1)))
+    assert cloud.positions.dtype is not np.dtype(np.float32)  # the case itself
+    replaced = cloud.replace(sh=cloud.sh[:, :1])
+    assert all(getattr(replaced, name) is getattr(cloud, name) for name in ("positions", "rotations", "log_scales"))
+    lit = material.with_material(cloud, albedo=np.full((50, 3), 0.5))
+    camera = Camera.look_at((0, -3, 1), (0, 0, 0), up=(0, 0, 1), fov_deg=50, width=32, height=24)
+    frame = relight.render_lit(lit, camera, [Light("sun", power=2.0, direction=(0, 0.3, -1))])
+    assert frame.alpha.max() > 0.1
