@@ -12,18 +12,23 @@ Unoccluded, V is 1 whatever the count, so a white furnace stays white. Splats ar
 (core.shading flips a normal towards the eye), so both sides are kept: V of the splat's normal and
 of its opposite. Like the lights' shadows they do not depend on the camera.
 
+A glossy surface reflects the world from around its mirror direction, which depends on the eye: the
+result keeps each direction's visibility too, from which core.shading weighs the specular lobe's
+own share (shading.lobe_sky); the cosine-weighted V would light a metal's concave parts with the
+world they reflect themselves in (Suzanne's eye sockets in Cycles are dark, the metal's reflection
+of the head itself, while V lit them at 0.7 of the open sky).
+
 Light that the surroundings reflect back (the floor's bounce under a sphere) is not modelled: an
 occluded direction counts as black.
 """
 
-import math
 from collections.abc import Callable
 from typing import Annotated
 
 import numpy as np
 
 from . import material, shadows
-from .lights import Light
+from .lights import Light, cone_angle, sphere_directions
 from .render import Shapes
 from .splats import SplatCloud
 from .steps import part_progress
@@ -41,22 +46,6 @@ CONE_SHARE = 0.75
 RESOLUTION = 256  # texels a side of each map: the cones' soft shadows need no finer ones
 
 
-def sphere_directions(count: int) -> Annotated[np.ndarray, "(K, 3)"]:
-    """(count, 3) float64 unit vectors spread evenly over the sphere (a Fibonacci spiral): each has
-    an equal share of the sphere, 4 pi / count steradians."""
-    k = np.arange(count) + 0.5
-    z = 1.0 - 2.0 * k / count
-    ring = np.sqrt(np.maximum(1.0 - z * z, 0.0))
-    turn = k * math.pi * (3.0 - math.sqrt(5.0))  # the golden angle
-    return np.stack([ring * np.cos(turn), ring * np.sin(turn), z], axis=1)
-
-
-def cone_angle(count: int) -> float:
-    """The full angle (rad) of a cone holding 1/count of the sphere, 2 pi (1 - cos half) = 4 pi / count;
-    at most pi (a hemisphere: a sun is no wider)."""
-    return 2.0 * math.acos(min(max(1.0 - 2.0 / count, 0.0), 1.0))
-
-
 def world_visibility(
     cloud: SplatCloud,
     *,
@@ -66,21 +55,23 @@ def world_visibility(
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
-) -> Annotated[np.ndarray, "(N, 2)"]:
-    """(N, 2) float32 in [0, 1]: the share of a uniform world each splat sees on the side its normal
-    points to (column 0) and on the other side (column 1), past the whole cloud and `occluders`
-    (core.mesh.Surface meshes); 1 for splats without a normal. progress(done, total, "world
+) -> Annotated[np.ndarray, "(N, 2 + K)"]:
+    """(N, 2 + K) float32 in [0, 1], K = `directions`: the share of a uniform world each splat sees on
+    the side its normal points to (column 0) and on the other side (column 1), past the whole cloud
+    and `occluders` (core.mesh.Surface meshes), then its visibility towards each of the K directions
+    of core.lights.sphere_directions(K) (columns 2..); 1 for splats without a normal. progress(done, total, "world
     occlusion") follows the maps; shapes as core.shadows.visibility's."""
     if directions < 1:
         raise ValueError(f"the world's occlusion needs at least 1 direction, got {directions}")
     n = len(cloud)
     rows = material.carried(cloud)
     if not rows.any():
-        return np.ones((n, 2), np.float32)
+        return np.ones((n, 2 + directions), np.float32)
     if shapes is None:
         shapes = Shapes(cloud, threads)  # once for every map
     normals = material.normals(cloud)[rows]
     seen, weight = np.zeros((len(normals), 2)), np.zeros((len(normals), 2))
+    out = np.ones((n, 2 + directions), np.float32)
     angle = cone_angle(directions) * CONE_SHARE
     for k, towards in enumerate(sphere_directions(directions)):  # a loop over directions
         sun = Light("sun", direction=-towards, angle=angle)
@@ -97,9 +88,9 @@ def world_visibility(
         cos = normals @ towards
         sides = np.stack([np.maximum(cos, 0.0), np.maximum(-cos, 0.0)], axis=1)
         seen += sides * vis[:, None]
+        out[rows, 2 + k] = vis
         weight += sides
         if progress is not None:
             progress(k + 1, directions, "world occlusion")  # a map that drew nothing reports no end
-    out = np.ones((n, 2), np.float32)
-    out[rows] = np.where(weight > 0.0, seen / np.where(weight > 0.0, weight, 1.0), 1.0)
+    out[rows, :2] = np.where(weight > 0.0, seen / np.where(weight > 0.0, weight, 1.0), 1.0)
     return out

@@ -26,7 +26,7 @@ and `irradiance`), with the light's direction and distance per point.
 
 import math
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Annotated, NamedTuple
 
 import numpy as np
 
@@ -180,8 +180,8 @@ class Light:
 @dataclass(frozen=True, eq=False)
 class World:
     """A uniform environment: scene-linear radiance `color` (3,) from every direction (Blender's
-    world Background colour times its strength). occlusion: the directions sampled for what the
-    splats and meshes hide of it (core.ambient); 0 leaves it unoccluded."""
+    world Background colour times its strength). occlusion: the directions (sphere_directions) sampled
+    for what the splats and meshes hide of it (core.ambient); 0 leaves it unoccluded."""
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3))
     occlusion: int = 0
@@ -201,6 +201,22 @@ class World:
         """Whether relighting tests what of the world the splats and meshes hide: some directions
         asked for, and some light to hide."""
         return self.occlusion > 0 and bool(self.color.any())
+
+
+def sphere_directions(count: int) -> Annotated[np.ndarray, "(K, 3)"]:
+    """(count, 3) float64 unit vectors spread evenly over the sphere (a Fibonacci spiral): each has
+    an equal share of the sphere, 4 pi / count steradians."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    ring = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    turn = k * math.pi * (3.0 - math.sqrt(5.0))  # the golden angle
+    return np.stack([ring * np.cos(turn), ring * np.sin(turn), z], axis=1)
+
+
+def cone_angle(count: int) -> float:
+    """The full angle (rad) of a cone holding 1/count of the sphere, 2 pi (1 - cos half) = 4 pi / count;
+    at most pi (a hemisphere: a sun is no wider)."""
+    return 2.0 * math.acos(min(max(1.0 - 2.0 / count, 0.0), 1.0))
 
 
 class Incident(NamedTuple):
