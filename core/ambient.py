@@ -59,8 +59,8 @@ def world_visibility(
     """(N, 2 + K) float32 in [0, 1], K = `directions`: the share of a uniform world each splat sees on
     the side its normal points to (column 0) and on the other side (column 1), past the whole cloud
     and `occluders` (core.mesh.Surface meshes), then its visibility towards each of the K directions
-    of core.lights.sphere_directions(K) (columns 2..); 1 for splats without a normal. progress(done, total, "world
-    occlusion") follows the maps; shapes as core.shadows.visibility's."""
+    of core.lights.sphere_directions(K) (columns 2..); 1 for splats without a normal.
+    progress(done, total, "world occlusion") follows the maps; shapes as core.shadows.visibility's."""
     if directions < 1:
         raise ValueError(f"the world's occlusion needs at least 1 direction, got {directions}")
     n = len(cloud)

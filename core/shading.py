@@ -303,9 +303,9 @@ def lobe_sky(
     Against the lobe integrated over 200k directions of a soft-edged sky (a random half of the
     sphere, its edge 0.4 wide in cosine), with 24 directions, mean |error| at roughness 0.2 / 0.35 /
     0.5 / 0.7 / 1: 0.084 / 0.064 / 0.045 / 0.027 / 0.020 (the cosine-weighted share: 0.27 / 0.23 /
-    0.16 / 0.080 / 0.023; tests/test_shading.py); Blender's Suzanne (metallic, roughness 0.35) against Cycles, world
-    occluded, point light: 32.7 -> 34.0 dB at 0.5x, 33.5 -> 33.9 at 1x (rays through the lobe
-    itself against the mesh: 34.1 / 33.9)."""
+    0.16 / 0.080 / 0.023; tests/test_shading.py). Blender's Suzanne (metallic, roughness 0.35)
+    against Cycles, world occluded, point light: 32.7 -> 33.9 dB at 0.5x, 33.5 -> 33.9 at 1x (rays
+    through the lobe itself against the mesh: 34.1 / 33.9)."""
     k, out = seen.shape[1], np.array(open_sky, np.float64)
     for lo in range(0, len(normal), TERMS_CHUNK):  # a loop over chunks: (chunk * K, 3) temporaries
         part = slice(lo, lo + TERMS_CHUNK)
@@ -360,7 +360,7 @@ def _world_visibility(visibility: dict | None, n: int) -> Floats:
     (N,2) array made)."""
     if visibility is None or "world" not in visibility:
         return np.ones((1, 2), np.float32)
-    seen = np.asarray(visibility["world"], dtype=np.float32)  # float32 as made: a copy of 2 + K columns costs
+    seen = np.asarray(visibility["world"], dtype=np.float32)  # as made: a float64 copy of 2 + K columns costs
     if seen.ndim != 2 or seen.shape[0] != n or seen.shape[1] < 2 or not np.isfinite(seen).all():
         raise ValueError(f"the world's visibility must be ({n}, 2 + K) finite values, got shape {seen.shape}")
     return seen
