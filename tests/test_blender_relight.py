@@ -434,6 +434,23 @@ def test_an_animation_keeps_the_shadows_of_what_did_not_move(blender):
     assert np.abs(frames[2] - frames[1]).max() > 0.5  # the turned sun moves it
 
 
+def test_a_world_driven_by_nodes_lights_by_its_plain_colour_and_says_so(blender):
+    """An Environment Texture on the Background's Color (or any node on its Strength) is not read:
+    the relit splats take the world's Viewport Display colour, and the engine reports a warning that
+    names the node; a plain Background gives its own colour and no warning."""
+    from workers.relight import WORLD
+
+    res = blender.step("textured_world")
+    for name, node in (("texture", "Sky HDRI"), ("strength", "Brightness")):
+        color, caught = res[name]
+        np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the world's plain colour (stage())
+        assert len(caught) == 1 and caught[0].startswith("RelightWarning") and f"'{node}'" in caught[0]
+        assert "Viewport Display colour" in caught[0]
+    color, caught = res["plain"]
+    np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the Background's own, set to WORLD as well
+    assert caught == []
+
+
 def test_the_world_occlusion_setting_darkens_the_floor_under_a_mesh_ball(blender):
     """With the sun hidden, the relit floor's Diffuse pass is the world's light alone; with World
     Occlusion on, it is scaled by the share of the sky the floor sees past the mesh ball. For a ball

@@ -27,7 +27,7 @@ from .attributes import (
     sh_attribute,
     splat_count,
 )
-from .errors import EXPECTED_ERRORS, SplatModeWarning, SplatObjectError, reported_warnings
+from .errors import EXPECTED_ERRORS, RelightWarning, SplatModeWarning, SplatObjectError, reported_warnings
 from .forms import (
     built_datablock,
     cloud_to_mesh,

@@ -11,6 +11,10 @@ class SplatModeWarning(UserWarning):
     """Splats made for antialiased rendering shown or written classic beside classic ones."""
 
 
+class RelightWarning(UserWarning):
+    """Something of the scene that relighting cannot shade as Cycles would (the engine reports it)."""
+
+
 @contextlib.contextmanager
 def reported_warnings(report):
     """Python warnings raised inside (a format's notes, mixed render modes) passed on to `report`, an

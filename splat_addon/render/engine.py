@@ -174,11 +174,13 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         drawn = mesh_engine(depsgraph.scene) != "NONE"
         occluders = relit.occluders(depsgraph, origin) if drawn else relit.Occluders([])
         lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
+        with data.reported_warnings(self.report):
+            world = scene_world(depsgraph.scene)
         lit_render = render_lit(
             cloud,
             cam,
             lights,
-            scene_world(depsgraph.scene),
+            world,
             receivers=receivers,
             blockers=blockers,
             mesh_blockers=mesh_blockers,

@@ -7,11 +7,13 @@ follow the object's scale; the light points along its object's -Z, an area's wid
 object's Diffuse and Glossy ray visibility say whether it lights diffuse and glossy reflection."""
 
 import math
+import warnings
 
 import bpy
 import numpy as np
 
-from .scene import world_color
+from ..data import RelightWarning
+from .scene import world_background
 
 KINDS = {"POINT": "point", "SPOT": "spot", "SUN": "sun", "AREA": "area"}
 
@@ -79,10 +81,22 @@ def takes_in(link, name):
 
 def scene_world(scene):
     """The world as a uniform environment (core.lights.World) of the world's background colour,
-    occluded by the splats and meshes from the scene's World Occlusion directions (0: not)."""
+    occluded by the splats and meshes from the scene's World Occlusion directions (0: not). A
+    RelightWarning when nodes drive the background (an environment map): relighting then takes the
+    world's plain colour, a uniform light, and says so rather than light the splats unlike Cycles
+    without a word."""
     from ...core.lights import World
 
-    return World(world_color(scene), int(getattr(scene, WORLD_OCCLUSION, 0)))
+    color, driven = world_background(scene)
+    if driven is not None:
+        warnings.warn(
+            f"the world's Background is driven by the node '{driven}', which relighting does not read: "
+            f"relit splats are lit by the world's Viewport Display colour instead, uniform from every "
+            f"direction (environment maps are not modelled)",
+            RelightWarning,
+            stacklevel=2,
+        )
+    return World(color, int(getattr(scene, WORLD_OCCLUSION, 0)))
 
 
 def light_from_blender(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):

@@ -15,12 +15,9 @@ import numpy as np
 
 from ...core import material
 from .. import data
+from ..data import RelightWarning
 from .lights import is_relit, scene_lights, takes_in
 from .scene import scene_splats, surface_triangles
-
-
-class RelightWarning(UserWarning):
-    """A relit object that cannot be shaded (the engine reports it)."""
 
 
 def wants_relight(depsgraph):

@@ -79,14 +79,26 @@ def world_color(scene):
     """The world's background colour (scene-linear RGB): colour x strength of the Background node
     feeding the world output; the world's plain colour when it uses no nodes or a texture drives
     the background; black without a world."""
+    return world_background(scene)[0]
+
+
+def world_background(scene):
+    """(world_color's colour, what drives it): the name of the node that feeds the Background's
+    Color or Strength (an Environment Texture, say), whose light is not read, so that the colour is
+    the world's plain one; None when the colour is the Background's own (or there is none)."""
     world = scene.world
     if world is None:
-        return np.zeros(3)
+        return np.zeros(3), None
     uses_nodes = world.node_tree is not None and (bpy.app.version >= (5, 0, 0) or world.use_nodes)
     node = _background_node(world.node_tree) if uses_nodes else None
-    if node is None or node.inputs["Color"].is_linked or node.inputs["Strength"].is_linked:
-        return np.array(world.color[:3], dtype=np.float64)
-    return np.array(node.inputs["Color"].default_value[:3], dtype=np.float64) * node.inputs["Strength"].default_value
+    plain = np.array(world.color[:3], dtype=np.float64)
+    if node is None:
+        return plain, None
+    color, strength = node.inputs["Color"], node.inputs["Strength"]
+    for socket in (color, strength):
+        if socket.is_linked:
+            return plain, socket.links[0].from_node.name
+    return np.array(color.default_value[:3], dtype=np.float64) * strength.default_value, None
 
 
 def _background_node(tree):

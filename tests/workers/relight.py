@@ -97,6 +97,7 @@ class Worker(BlenderWorker):
         "passes",
         "splats_shadow_meshes",
         "meshes_shadow_splats",
+        "textured_world",
         "animation_frames",
         "light_linking",
         "shadow_linking",
@@ -529,6 +530,36 @@ class Worker(BlenderWorker):
         res["viewport_world_maps"] = self.viewport_world_maps()
         scene.splatwright_world_occlusion = 0
         return res
+
+    def textured_world(self):
+        """The world a relit scene sees when an Environment Texture feeds its Background's Color, then
+        a Value node its Strength, then neither: (colour, warnings) of lights.scene_world each time."""
+        import warnings
+
+        bpy = self.bpy
+        self.stage("NONE")
+        scene = bpy.context.scene
+        tree = scene.world.node_tree
+        background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        lights = self.module("splat_addon.render.lights")
+        texture, value = tree.nodes.new("ShaderNodeTexEnvironment"), tree.nodes.new("ShaderNodeValue")
+        texture.name, value.name = "Sky HDRI", "Brightness"
+        out = {}
+        for name in ("texture", "strength", "plain"):
+            for link in list(tree.links):
+                if link.to_node == background:
+                    tree.links.remove(link)
+            if name == "texture":
+                tree.links.new(texture.outputs["Color"], background.inputs["Color"])
+            if name == "strength":
+                tree.links.new(value.outputs["Value"], background.inputs["Strength"])
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                world = lights.scene_world(scene)
+            out[name] = (list(world.color), [f"{w.category.__name__}: {w.message}" for w in caught])
+        tree.nodes.remove(texture)
+        tree.nodes.remove(value)
+        return out
 
     def animation_frames(self):
         """A relit splat ball over a relit splat floor (splats only, the world occluded from 8
