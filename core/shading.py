@@ -591,9 +591,9 @@ def _lobe_sky_one(seen, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallbac
         if cos_l <= 0.0:
             continue
         hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
-        h_inverse = 1.0 / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)
-        cos_h = min(max((m0 * hx + m1 * hy + m2 * hz) * h_inverse, 0.0), 1.0)
-        denom = cos_h * cos_h * (a2 - 1.0) + 1.0
+        along = m0 * hx + m1 * hy + m2 * hz  # n.h unnormalised, > 0 with v and l above the surface
+        cos2_h = min(along * along / max(hx * hx + hy * hy + hz * hz, 1e-300), 1.0)  # no square root
+        denom = cos2_h * (a2 - 1.0) + 1.0
         # D G / (4 n.v) without the factors every direction shares (a2 / (4 pi n.v)): only ratios count
         weight = 1.0 / (denom * denom * (lambda_v + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)))
         total += weight
