@@ -263,7 +263,8 @@ def test_relit_splats_shadow_the_mesh_floor(blender):
 
 def test_light_linking_lights_only_the_linked_splats(blender):
     """A key light whose receiver collection includes the left ball: the left ball renders as with no
-    linking, the right one as with the key hidden; the engine's masks follow Include and Exclude."""
+    linking, the right one as with the key hidden; the engine's masks follow Include and Exclude, and
+    for a key drawn by a collection instance, its instancer's receiver collection."""
     from workers.relight import LINKED_BALLS, LINKED_RADIUS
 
     res = blender.step("light_linking")
@@ -271,6 +272,7 @@ def test_light_linking_lights_only_the_linked_splats(blender):
     unlinked = {"sun lit": None, "sun blocking": None, "point blocking": None}
     assert res["included"] == {**unlinked, "point lit": {"Left": per_ball, "Right": 0}}
     assert res["excluded"] == {**unlinked, "point lit": {"Left": 0, "Right": per_ball}}
+    assert res["instanced"] == res["excluded"]  # the key as a collection instance, its instancer linked
     images = {n: exr(blender.out / f"link_{n}.exr") for n in ("all", "left", "none")}
     color = {n: channels(im, "Combined", "RGB").astype(np.float64) for n, im in images.items()}
     alpha = channels(images["all"], "Splats", "RGBA")[..., 3]
@@ -292,12 +294,18 @@ def test_light_linking_lights_only_the_linked_splats(blender):
 def test_shadow_linking_takes_a_blocker_out_of_a_lights_shadows(blender):
     """A ball between a key light and another: with the key's blocker collection excluding it, the
     shaded ball renders as with the blocker moved out of the way, and the blocker's shadow had
-    darkened it before."""
+    darkened it before. Drawn by a collection instance, the blocker shadows alike, and excluding its
+    instancer takes it out (Cycles takes an instance in or out where its object or its instancer is
+    listed)."""
     from workers.relight import SHADOW_BALLS
 
     res = blender.step("shadow_linking")
     assert res["masks"] == {"point lit": None, "point blocking": {"Shaded": 1500, "Blocker": 0}}
-    images = {n: exr(blender.out / f"block_{n}.exr") for n in ("all", "linked", "moved")}
+    # drawn by a collection instance, the blocker is left out through its instancer (as Cycles does)
+    blocking = {"Shaded": 1500, "Blocker in Blocker Instancer": 0}
+    assert res["instanced_masks"] == {"point lit": None, "point blocking": blocking}
+    names = ("all", "linked", "moved", "instanced", "instancer_out")
+    images = {n: exr(blender.out / f"block_{n}.exr") for n in names}
     color = {n: channels(im, "Combined", "RGB").astype(np.float64) for n, im in images.items()}
     alpha = channels(images["all"], "Splats", "RGBA")[..., 3]
     cam = camera(res["camera"], np.array(res["origin"]))
@@ -311,6 +319,8 @@ def test_shadow_linking_takes_a_blocker_out_of_a_lights_shadows(blender):
     shadow = (color["moved"] - color["all"]).mean(axis=-1)[shaded]
     assert shadow.max() > 0.05  # the blocker's shadow shows on the shaded ball
     assert np.abs(color["linked"] - color["moved"])[shaded].max() < 2e-3
+    assert np.abs(color["instanced"] - color["all"])[shaded].max() < 2e-3  # the instance shadows alike
+    assert np.abs(color["instancer_out"] - color["moved"])[shaded].max() < 2e-3
 
 
 def test_shadow_linking_holds_for_meshes_and_for_the_splats_stand_in(blender):

@@ -32,8 +32,17 @@ def scene_lights(depsgraph, origin, links=None):
         if light is not None:
             found.append(light)
             if links is not None:
-                links.append((linking_of(obj.original, "receiver"), linking_of(obj.original, "blocker")))
+                links.append(tuple(linking_of(_linking_owner(inst, kind), kind) for kind in ("receiver", "blocker")))
     return found
+
+
+def _linking_owner(inst, kind):
+    """The object whose light linking of `kind` ("receiver" or "blocker") a light instance follows,
+    as Cycles reads it: its instancer's where that one sets a collection of that kind, else its own."""
+    parent = inst.parent.original if inst.is_instance and inst.parent else None
+    if getattr(getattr(parent, "light_linking", None), f"{kind}_collection", None) is not None:
+        return parent
+    return inst.object.original
 
 
 def linking_of(light_object, kind):
@@ -62,21 +71,23 @@ def blocker_collections(depsgraph):
     depsgraph renders: where the relit splats' stand-in must be set for Cycles (relit.StandIn)."""
     found = {}
     for inst in depsgraph.object_instances:  # instance data is only valid during iteration
-        obj = inst.object
-        if obj.type == "LIGHT":
-            collection = getattr(getattr(obj.original, "light_linking", None), "blocker_collection", None)
+        if inst.object.type == "LIGHT":
+            owner = _linking_owner(inst, "blocker")
+            collection = getattr(getattr(owner, "light_linking", None), "blocker_collection", None)
             if collection is not None and collection.name not in found:
-                found[collection.name] = linking_of(obj.original, "blocker")
+                found[collection.name] = linking_of(owner, "blocker")
     return list(found.items())
 
 
-def takes_in(link, name):
-    """Whether linking `link` (linking_of's) takes in the object called `name` (a light lights it,
-    or it shadows the light)."""
+def takes_in(link, names):
+    """Whether linking `link` (linking_of's) takes in the object known by `names` (scene.linking_names:
+    its own name, and its instancer's for an instance): whether a light lights it, or it shadows the
+    light. An instance is taken in where either name is included, left out where either is excluded,
+    as Cycles renders a collection instance whose instancer or object is listed."""
     if link is None:
         return True
     included, excluded = link
-    return (not included or name in included) and name not in excluded
+    return (not included or not included.isdisjoint(names)) and excluded.isdisjoint(names)
 
 
 def scene_world(scene):

@@ -17,7 +17,7 @@ from ...core import material
 from .. import data
 from ..data import RelightWarning
 from .lights import is_relit, scene_lights, takes_in
-from .scene import scene_splats, surface_triangles
+from .scene import drawn_splats, linking_names, scene_splats, surface_triangles
 
 
 def wants_relight(depsgraph):
@@ -28,33 +28,29 @@ def wants_relight(depsgraph):
 def scene_cloud(depsgraph, origin):
     """(cloud, lit, owners) of the depsgraph's splats (world shifted by -`origin`, see scene_splats):
     lit is an (N,) bool mask of the relit splats, or None when none is relit (the cloud is then as an
-    unlit render reads it, and owners None); owners, (names, (N,) int index into names) the object
-    each splat comes from, for light linking (receivers)."""
+    unlit render reads it, and owners None); owners, (names, (N,) int index into names) the
+    scene.linking_names of the object (and instancer) each splat comes from, for light linking."""
     from ...core.material import carried
 
     if not wants_relight(depsgraph):
         return scene_splats(depsgraph, origin), None, None
-    names = []
+    instances, sizes = drawn_splats(depsgraph), {}
 
     def prepare(obj, cloud):
-        names.append(obj.name)
-        owner = np.full(len(cloud), len(names) - 1, np.float32)
-        marked = _marked(obj, cloud)
-        return marked.replace(extras={**marked.extras, OWNER: owner})
+        sizes[obj.name] = len(cloud)
+        return _marked(obj, cloud)
 
-    cloud = scene_splats(depsgraph, origin, prepare=prepare)
+    cloud = scene_splats(depsgraph, origin, prepare=prepare, instances=instances)
     if cloud is None:
         return None, None, None
-    extras = dict(cloud.extras)
-    index = extras.pop(OWNER).reshape(-1).astype(np.int32)
-    cloud = cloud.replace(extras=extras)
     lit = carried(cloud)
     if not lit.any():
         return cloud, None, None
+    # the cloud joins the instances in their order, each with its object's splats
+    keys = [linking_names(i.obj, i.instancer) for i in instances]
+    names = list(dict.fromkeys(keys))
+    index = np.repeat([names.index(k) for k in keys], [sizes[i.obj.name] for i in instances]).astype(np.int32)
     return cloud, lit, (names, index)
-
-
-OWNER = "splatwright_owner"  # each splat's object while the scene's cloud is joined (scene_cloud)
 
 
 def linked_lights(depsgraph, origin, owners, meshes=None):
@@ -114,7 +110,8 @@ def _marked(obj, cloud):
 class Occluders(NamedTuple):
     """The scene's surfaces that shadow the relit splats (occluders()): `surfaces`, one
     core.mesh.Surface in the engine's frame in a list (empty when there are none), and `owners`,
-    (object names, (T,) int index into them) each triangle's object, for shadow linking."""
+    (names, (T,) int index into them) the scene.linking_names of each triangle's object, for shadow
+    linking."""
 
     surfaces: list
     owners: tuple | None = None

@@ -15,19 +15,31 @@ def mesh_engine(scene):
     return getattr(scene, MESH_ENGINE, "NONE")
 
 
-def scene_splats(depsgraph, origin, prepare=None):
-    """Every splat object and instance the depsgraph renders as one cloud, in world space shifted by
-    -`origin` (None if there are none); `prepare(obj, cloud) -> cloud` is applied to each object's
-    splats first (see data.instances_cloud). Instances whose transform collapses them (zero scale)
-    show nothing."""
-    shift = np.eye(4)
-    shift[:3, 3] = -origin
-    instances = [
-        (i.obj, i.matrix)
+def drawn_splats(depsgraph):
+    """The data.SplatInstance of every splat object and instance the depsgraph renders: instances
+    whose transform collapses them (zero scale) show nothing."""
+    return [
+        i
         for i in data.splat_instances(depsgraph)
         if (i.instancer is not None or not i.obj.hide_render) and abs(np.linalg.det(i.matrix[:3, :3])) > 0
     ]
-    return data.instances_cloud(depsgraph, instances, shift, prepare) if instances else None
+
+
+def scene_splats(depsgraph, origin, prepare=None, instances=None):
+    """Every splat object and instance the depsgraph renders (`instances`, drawn_splats' when given)
+    as one cloud, in their order, in world space shifted by -`origin` (None if there are none);
+    `prepare(obj, cloud) -> cloud` is applied to each object's splats first (see
+    data.instances_cloud)."""
+    shift = np.eye(4)
+    shift[:3, 3] = -origin
+    drawn = [(i.obj, i.matrix) for i in (drawn_splats(depsgraph) if instances is None else instances)]
+    return data.instances_cloud(depsgraph, drawn, shift, prepare) if drawn else None
+
+
+def linking_names(obj, instancer=None):
+    """The names by which light and shadow linking may take in object `obj`: its own and, for an
+    instance, its instancer's (Cycles takes an instance in where either is listed)."""
+    return (obj.name,) if instancer is None else (obj.name, instancer.name)
 
 
 SURFACE_TYPES = {"MESH", "CURVE", "SURFACE", "FONT", "META"}  # what to_mesh() turns into triangles
@@ -37,7 +49,7 @@ def surface_triangles(depsgraph, shadow_casters_only=False, owners=None):
     """Every visible surface that is not a splat object as world-space triangles (T,3,3) with the
     viewport colour (T,3) of each face's material (the object's colour without one); with
     `shadow_casters_only`, only objects that shadow rays see (Object > Visibility > Shadow).
-    `owners`, a list if given, receives (object name, triangle count) for each object, in order."""
+    `owners`, a list if given, receives (linking_names, triangle count) for each object, in order."""
     corners, colors = [], []
     for inst in depsgraph.object_instances:
         obj = inst.object
@@ -67,7 +79,8 @@ def surface_triangles(depsgraph, shadow_casters_only=False, owners=None):
             corners.append(world[tris.reshape(-1, 3)])
             colors.append(palette[np.minimum(slots, len(palette) - 1)])
             if owners is not None:
-                owners.append((obj.name, n))
+                instancer = inst.parent.original if inst.is_instance and inst.parent else None
+                owners.append((linking_names(obj, instancer), n))
         finally:
             obj.to_mesh_clear()
     if not corners:

@@ -90,6 +90,12 @@ def bpy_camera(worker, viewport):
     return viewport.region_camera(Region, RegionData)
 
 
+def _named(names):
+    """An owner's linking names (the object's, and its instancer's) as one key: "Ball" or "Ball in
+    Instancer"."""
+    return " in ".join(names)
+
+
 class Worker(BlenderWorker):
     steps = (
         "install",
@@ -264,7 +270,7 @@ class Worker(BlenderWorker):
                 light_fields.append({k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in fields.items()})
         return {
             "lights": light_fields,
-            "world": list(lights.world_color(scene)),
+            "world": list(self.module("splat_addon.render.scene").world_color(scene)),
             "origin": origin.tolist(),
             "warnings": [str(w.message) for w in caught],
         }
@@ -383,6 +389,20 @@ class Worker(BlenderWorker):
         key.hide_render = True
         bpy.context.view_layer.update()
         self.write("link_none")
+        # The key drawn only by a collection instance whose instancer sets the receiver collection:
+        # the instancer's linking rules the instance's light, as Cycles reads it
+        key.hide_render, key.light_linking.receiver_collection = False, None
+        source = bpy.data.collections.new("Key Source")
+        for collection in list(key.users_collection):
+            collection.objects.unlink(key)
+        source.objects.link(key)
+        instancer = bpy.data.objects.new("Key Instancer", None)
+        instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+        bpy.context.scene.collection.objects.link(instancer)
+        instancer.light_linking.receiver_collection = receivers
+        bpy.context.view_layer.update()
+        res["instanced"] = self.linking_masks()
+        bpy.data.objects.remove(instancer)
         return res
 
     def shadow_linking(self):
@@ -404,6 +424,23 @@ class Worker(BlenderWorker):
         balls["Blocker"].location = (0.0, 0.0, 20.0)  # far above: out of the key's way
         bpy.context.view_layer.update()
         self.write("block_moved")
+        # The blocker back in place, drawn only as a collection instance: linked by its instancer
+        balls["Blocker"].location = (0.0, 0.0, 0.0)
+        source = bpy.data.collections.new("Blocker Source")  # not in the scene: drawn by the instancer
+        for collection in list(balls["Blocker"].users_collection):
+            collection.objects.unlink(balls["Blocker"])
+        source.objects.link(balls["Blocker"])
+        instancer = bpy.data.objects.new("Blocker Instancer", None)
+        instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+        bpy.context.scene.collection.objects.link(instancer)
+        key.light_linking.blocker_collection = None
+        bpy.context.view_layer.update()
+        self.write("block_instanced")  # no linking: the instance shadows as the ball did
+        self.blockers_excluding(key, instancer)
+        self.write("block_instancer_out")  # its instancer excluded: as with the ball moved away
+        res["instanced_masks"] = self.linking_masks()
+        key.light_linking.blocker_collection = None
+        bpy.data.objects.remove(instancer)
         return res
 
     def mesh_shadow_linking(self):
@@ -483,12 +520,13 @@ class Worker(BlenderWorker):
         for kind, masks in (("lit", receivers), ("blocking", blockers)):
             for k, light in enumerate(found):
                 mask = masks.get(k)
-                counts = None if mask is None else {n: int(mask[index == i].sum()) for i, n in enumerate(names)}
+                counts = None if mask is None else {_named(n): int(mask[index == i].sum()) for i, n in enumerate(names)}
                 out[f"{light.kind} {kind}"] = counts
         for k, surfaces in mesh_blockers.items():  # only the lights whose blockers leave a mesh out
             mesh_names, triangle_owner = meshes.owners
             taken = np.concatenate([triangle_owner[s.faces[:, 0] // 3] for s in surfaces] or [np.zeros(0, int)])
-            out[f"{found[k].kind} mesh blocking"] = {n: int((taken == i).sum()) for i, n in enumerate(mesh_names)}
+            counts = {_named(n): int((taken == i).sum()) for i, n in enumerate(mesh_names)}
+            out[f"{found[k].kind} mesh blocking"] = counts
         return out
 
     def stand_in_within_budgets(self):
