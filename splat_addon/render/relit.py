@@ -48,8 +48,9 @@ def scene_cloud(depsgraph, origin):
         return cloud, None, None
     # the cloud joins the instances in their order, each with its object's splats
     keys = [linking_names(i.obj, i.instancer) for i in instances]
-    names = list(dict.fromkeys(keys))
-    index = np.repeat([names.index(k) for k in keys], [sizes[i.obj.name] for i in instances]).astype(np.int32)
+    position = {key: k for k, key in enumerate(dict.fromkeys(keys))}  # a dict: scenes of many instances
+    index = np.repeat([position[key] for key in keys], [sizes[i.obj.name] for i in instances]).astype(np.int32)
+    names = list(position)
     return cloud, lit, (names, index)
 
 
