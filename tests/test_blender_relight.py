@@ -444,13 +444,25 @@ def test_an_animation_keeps_the_shadows_of_what_did_not_move(blender):
     assert np.abs(frames[2] - frames[1]).max() > 0.5  # the turned sun moves it
 
 
-def test_a_world_driven_by_nodes_lights_by_its_plain_colour_and_says_so(blender):
-    """An Environment Texture on the Background's Color (or any node on its Strength) is not read:
-    the relit splats take the world's Viewport Display colour, and the engine reports a warning that
-    names the node; a plain Background gives its own colour and no warning."""
-    from workers.relight import WORLD
+def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blender):
+    """An equirectangular Environment Texture on the Background's Color lights the relit splats by
+    its mean radiance over the sphere times the Strength (a map bright above 30 degrees of latitude:
+    a quarter of the sphere, the closed form (1 - sin 30) / 2; an sRGB image decoded to linear),
+    and the engine reports that its directions are not modelled. Nodes it cannot read (a texture
+    without an image, any node on the Strength) leave the world's Viewport Display colour, and a
+    warning that names the node; a plain Background gives its own colour and no warning."""
+    from workers.relight import HDRI_CAP, WORLD
+
+    from splatwright.core.color import srgb_to_linear
 
     res = blender.step("textured_world")
+    assert res["cap_space"] != "sRGB" and res["grey_space"] == "sRGB"  # the two decodings are met
+    for name, want in (("hdri", 2.0 * (1 - math.sin(math.radians(30))) / 2 * np.array(HDRI_CAP)),
+                       ("srgb", np.full(3, srgb_to_linear(np.array(128 / 255))))):  # 0.5 stored as a byte  # fmt: skip
+        color, caught = res[name]
+        np.testing.assert_allclose(color, want, rtol=2e-3)  # rows' midpoints: measured within 0.1%
+        assert len(caught) == 1 and caught[0].startswith("RelightWarning") and "'Sky HDRI'" in caught[0]
+        assert "mean radiance" in caught[0]
     for name, node in (("texture", "Sky HDRI"), ("strength", "Brightness")):
         color, caught = res[name]
         np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the world's plain colour (stage())

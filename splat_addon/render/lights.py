@@ -91,22 +91,15 @@ def takes_in(link, names):
 
 
 def scene_world(scene):
-    """The world as a uniform environment (core.lights.World) of the world's background colour,
-    occluded by the splats and meshes from the scene's World Occlusion directions (0: not). A
-    RelightWarning when nodes drive the background (an environment map): relighting then takes the
-    world's plain colour, a uniform light, and says so rather than light the splats unlike Cycles
-    without a word."""
+    """The world as a uniform environment (core.lights.World) of the world's background colour
+    (scene.world_color), occluded by the splats and meshes from the scene's World Occlusion
+    directions (0: not). A RelightWarning where nodes drive the background (an environment map):
+    the colour then stands in for them, and the render says how."""
     from ...core.lights import World
 
-    color, driven = world_background(scene)
-    if driven is not None:
-        warnings.warn(
-            f"the world's Background is driven by the node '{driven}', which relighting does not read: "
-            f"relit splats are lit by the world's Viewport Display colour instead, uniform from every "
-            f"direction (environment maps are not modelled)",
-            RelightWarning,
-            stacklevel=2,
-        )
+    color, note = world_background(scene)
+    if note is not None:
+        warnings.warn(note, RelightWarning, stacklevel=2)
     return World(color, int(getattr(scene, WORLD_OCCLUSION, 0)))
 
 

@@ -90,15 +90,16 @@ def surface_triangles(depsgraph, shadow_casters_only=False, owners=None):
 
 def world_color(scene):
     """The world's background colour (scene-linear RGB): colour x strength of the Background node
-    feeding the world output; the world's plain colour when it uses no nodes or a texture drives
+    feeding the world output, an equirectangular Environment Texture's mean radiance standing for its
+    colour (environment_mean); the world's plain colour when it uses no nodes or other nodes drive
     the background; black without a world."""
     return world_background(scene)[0]
 
 
 def world_background(scene):
-    """(world_color's colour, what drives it): the name of the node that feeds the Background's
-    Color or Strength (an Environment Texture, say), whose light is not read, so that the colour is
-    the world's plain one; None when the colour is the Background's own (or there is none)."""
+    """(world_color's colour, a note or None): the note says how the colour stands in for a
+    Background that nodes drive (the environment's mean, or the world's plain colour where the
+    nodes are not read), for the engine to report; None where the colour is the Background's own."""
     world = scene.world
     if world is None:
         return np.zeros(3), None
@@ -108,10 +109,76 @@ def world_background(scene):
     if node is None:
         return plain, None
     color, strength = node.inputs["Color"], node.inputs["Strength"]
-    for socket in (color, strength):
-        if socket.is_linked:
-            return plain, socket.links[0].from_node.name
+    if strength.is_linked:
+        return plain, _unread(strength.links[0].from_node.name)
+    if color.is_linked:
+        source = color.links[0].from_node
+        mean = environment_mean(source)
+        if mean is None:
+            return plain, _unread(source.name)
+        return mean * strength.default_value, (
+            f"the world's Environment Texture '{source.name}' lights relit splats by its mean radiance, "
+            "uniform from every direction (the map's directions are not modelled)"
+        )
     return np.array(color.default_value[:3], dtype=np.float64) * strength.default_value, None
+
+
+def _unread(name):
+    return (
+        f"the world's Background is driven by the node '{name}', which relighting does not read: relit "
+        "splats are lit by the world's Viewport Display colour instead, uniform from every direction"
+    )
+
+
+LINEAR_SPACES = {"Linear", "Linear Rec.709", "Linear CIE-XYZ E", "Non-Color", "Raw"}
+
+
+def environment_mean(node):
+    """(3,) the mean scene-linear radiance over the sphere of an equirectangular Environment Texture
+    node's image (each row weighted by the cosine of its latitude: its share of the sphere), or None
+    for another node, another projection, no image, colours in a space other than sRGB or linear
+    ones (LINEAR_SPACES), or pixels past the memory budget (core.memory.default_budget)."""
+    image = getattr(node, "image", None)
+    if node.bl_idname != "ShaderNodeTexEnvironment" or node.projection != "EQUIRECTANGULAR" or image is None:
+        return None
+    space = image.colorspace_settings.name
+    width, height = image.size
+    if (space != "sRGB" and space not in LINEAR_SPACES) or not width or not height:
+        return None
+    # An image file's mean is kept: the viewport asks on every scene update, and a 4k map is 0.1-0.3 s
+    key = (image.name, image.filepath_raw, width, height, space) if image.filepath_raw and not image.is_dirty else None
+    if key is not None and key in _MEANS:
+        return _MEANS[key]
+    mean = _equirect_mean(image, width, height, space)
+    if key is not None:
+        _MEANS.clear()  # one environment at a time
+        _MEANS[key] = mean
+    return mean
+
+
+_MEANS: dict = {}
+
+
+def _equirect_mean(image, width, height, space):
+    """environment_mean of `image`'s pixels, or None where they would not fit the memory budget."""
+    from ...core.memory import default_budget
+
+    if width * height * image.channels * 4 > default_budget():
+        return None
+    pixels = np.empty(width * height * image.channels, np.float32)
+    image.pixels.foreach_get(pixels)  # rows from the bottom (latitude -90 degrees) up
+    rows = pixels.reshape(height, width, image.channels)
+    weight = np.cos((np.arange(height) + 0.5) / height * np.pi - np.pi / 2)  # each row's latitude
+    total = np.zeros(3)
+    for lo in range(0, height, MEAN_BAND):  # a loop over bands of rows: no float64 copy of the map
+        band = rows[lo : lo + MEAN_BAND, :, :3]
+        if space == "sRGB":
+            band = srgb_to_linear(band, np.float32)
+        total += (band.mean(axis=1, dtype=np.float64) * weight[lo : lo + MEAN_BAND, None]).sum(axis=0)
+    return total / weight.sum()
+
+
+MEAN_BAND = 256  # rows of an environment map averaged at a time
 
 
 def _background_node(tree):

@@ -41,6 +41,7 @@ WORLD = (0.05, 0.05, 0.06)
 FLOOR = dict(size=5.0, color=(0.6, 0.6, 0.6))
 CAMERA = dict(location=(2.6, -3.4, 2.9), look_at=(0.0, 0.0, 0.3), lens=30.0)
 SAMPLES = 8
+HDRI_CAP = (0.8, 1.6, 2.4)  # textured_world's environment radiance above 30 degrees of latitude
 LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
 LINKED_RADIUS = 0.35
 KEY = dict(location=(0.0, -2.0, 2.0), energy=300.0)
@@ -570,8 +571,10 @@ class Worker(BlenderWorker):
         return res
 
     def textured_world(self):
-        """The world a relit scene sees when an Environment Texture feeds its Background's Color, then
-        a Value node its Strength, then neither: (colour, warnings) of lights.scene_world each time."""
+        """The world a relit scene sees when an Environment Texture without an image feeds its
+        Background's Color, one with a float image bright above 30 degrees of latitude (its Strength
+        2), one with an sRGB image of grey 0.5, a Value node its Strength, then neither:
+        (colour, warnings) of lights.scene_world each time."""
         import warnings
 
         bpy = self.bpy
@@ -582,12 +585,21 @@ class Worker(BlenderWorker):
         lights = self.module("splat_addon.render.lights")
         texture, value = tree.nodes.new("ShaderNodeTexEnvironment"), tree.nodes.new("ShaderNodeValue")
         texture.name, value.name = "Sky HDRI", "Brightness"
-        out = {}
-        for name in ("texture", "strength", "plain"):
+        cap = bpy.data.images.new("Cap", 64, 48, float_buffer=True)
+        pixels = np.zeros((48, 64, 4), np.float32)
+        pixels[32:, :, :3] = HDRI_CAP  # rows from the bottom: the top 16 of 48 lie above 30 degrees
+        pixels[..., 3] = 1.0
+        cap.pixels.foreach_set(pixels.ravel())
+        grey = bpy.data.images.new("Grey", 16, 8)  # 8-bit, sRGB
+        grey.pixels.foreach_set(np.full(16 * 8 * 4, 0.5, np.float32))
+        out = {"cap_space": cap.colorspace_settings.name, "grey_space": grey.colorspace_settings.name}
+        for name in ("texture", "hdri", "srgb", "strength", "plain"):
             for link in list(tree.links):
                 if link.to_node == background:
                     tree.links.remove(link)
-            if name == "texture":
+            texture.image = {"hdri": cap, "srgb": grey}.get(name)
+            background.inputs["Strength"].default_value = 2.0 if name == "hdri" else 1.0
+            if name in ("texture", "hdri", "srgb"):
                 tree.links.new(texture.outputs["Color"], background.inputs["Color"])
             if name == "strength":
                 tree.links.new(value.outputs["Value"], background.inputs["Strength"])
@@ -595,8 +607,11 @@ class Worker(BlenderWorker):
                 warnings.simplefilter("always")
                 world = lights.scene_world(scene)
             out[name] = (list(world.color), [f"{w.category.__name__}: {w.message}" for w in caught])
+        background.inputs["Strength"].default_value = 1.0
         tree.nodes.remove(texture)
         tree.nodes.remove(value)
+        bpy.data.images.remove(cap)
+        bpy.data.images.remove(grey)
         return out
 
     def animation_frames(self):
