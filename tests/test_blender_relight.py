@@ -473,6 +473,24 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
     assert caught == []
 
 
+def test_a_lights_emission_node_scales_its_colour_and_other_nodes_are_reported(blender):
+    """A light's Emission node multiplies its colour by its Color x Strength, as Cycles renders it
+    (an Emission Strength of 2 doubles a Cycles light, its Color tints it: measured in 5.0); a node
+    driving the Strength is not read, the light keeps its own colour, and a warning names the node."""
+    from workers.relight import LIGHT_NODE
+
+    res = blender.step("light_nodes")
+    plain, caught = res["plain"]
+    assert caught == []
+    color, caught = res["emission"]
+    want = np.array(plain) * np.array(LIGHT_NODE["color"]) * LIGHT_NODE["strength"]
+    np.testing.assert_allclose(color, want, rtol=1e-6)
+    assert caught == []
+    color, caught = res["driven"]
+    np.testing.assert_allclose(color, plain, rtol=1e-6)
+    assert len(caught) == 1 and caught[0].startswith("RelightWarning") and "'IES Stand-in'" in caught[0]
+
+
 def test_the_world_occlusion_setting_darkens_the_floor_under_a_mesh_ball(blender):
     """With the sun hidden, the relit floor's Diffuse pass is the world's light alone; with World
     Occlusion on, it is scaled by the share of the sky the floor sees past the mesh ball. For a ball

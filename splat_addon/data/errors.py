@@ -18,12 +18,13 @@ class RelightWarning(UserWarning):
 @contextlib.contextmanager
 def reported_warnings(report):
     """Python warnings raised inside (a format's notes, mixed render modes) passed on to `report`, an
-    operator's or render engine's, as Blender warnings."""
+    operator's or render engine's, as Blender warnings, each message once (a thousand instances of
+    one light say the same)."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield
-    for w in caught:
-        report({"WARNING"}, str(w.message))
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        report({"WARNING"}, message)
 
 
 class SplatObjectError(ValueError):

@@ -173,8 +173,8 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         self.update_stats("", f"Splatwright: shading {int(lit.sum())} splats with the scene's lights")
         drawn = mesh_engine(depsgraph.scene) != "NONE"
         occluders = relit.occluders(depsgraph, origin) if drawn else relit.Occluders([])
-        lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
-        with data.reported_warnings(self.report):
+        with data.reported_warnings(self.report):  # lights' and the world's nodes that are not read
+            lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
             world = scene_world(depsgraph.scene)
         lit_render = render_lit(
             cloud,

@@ -29,6 +29,9 @@ def scene_lights(depsgraph, origin, links=None):
         if obj.type != "LIGHT":
             continue
         light = light_from_blender(obj.data, np.array(inst.matrix_world, dtype=np.float64), origin, obj)
+        note = light_nodes(obj.data)[1]
+        if note is not None:
+            warnings.warn(note, RelightWarning, stacklevel=2)
         if light is not None:
             found.append(light)
             if links is not None:
@@ -128,6 +131,7 @@ def light_fields(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
     color = np.array(light.color[:3], dtype=np.float64)
     if getattr(light, "use_temperature", False):  # 5.0+: a blackbody tint on top of the colour
         color = color * np.array(light.temperature_color[:3], dtype=np.float64)
+    color = color * light_nodes(light)[0]
     power = float(light.energy) * 2.0 ** float(getattr(light, "exposure", 0.0))
     if power <= 0.0 or not color.any():
         return None
@@ -155,6 +159,29 @@ def light_fields(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
         power *= emitter_area(fields)
     fields["power"] = power
     return fields
+
+
+def light_nodes(light):
+    """((3,) factor, note or None): what a light's shader nodes multiply its colour by, as Cycles
+    reads them (measured: an Emission Strength of 2 doubles the light, its Color tints it): the
+    Emission node feeding the Light Output, Color x Strength. Nodes that drive those inputs (an IES
+    texture, say) or another shader are not read: the factor is then 1, and the note names them.
+    Blender before 5.0 reads the nodes only with Use Nodes on."""
+    tree = light.node_tree
+    if tree is None or (bpy.app.version < (5, 0, 0) and not light.use_nodes):  # 5.0+: always read (deprecated)
+        return np.ones(3), None
+    output = next((n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputLight" and n.is_active_output), None)
+    if output is None or not output.inputs["Surface"].is_linked:
+        return np.ones(3), None
+    shader = output.inputs["Surface"].links[0].from_node
+    inputs = [shader.inputs[name] for name in ("Color", "Strength")] if shader.bl_idname == "ShaderNodeEmission" else []
+    driven = [socket.links[0].from_node.name for socket in inputs if socket.is_linked]
+    if not inputs or driven:
+        return np.ones(3), (
+            f"light '{light.name}': its node '{driven[0] if driven else shader.name}' is not read by relighting, "
+            "which lights the splats by the light's own colour and power"
+        )
+    return np.array(inputs[0].default_value[:3], dtype=np.float64) * float(inputs[1].default_value), None
 
 
 def _area_fields(light, axes):

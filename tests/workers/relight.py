@@ -42,6 +42,7 @@ FLOOR = dict(size=5.0, color=(0.6, 0.6, 0.6))
 CAMERA = dict(location=(2.6, -3.4, 2.9), look_at=(0.0, 0.0, 0.3), lens=30.0)
 SAMPLES = 8
 HDRI_CAP = (0.8, 1.6, 2.4)  # textured_world's environment radiance above 30 degrees of latitude
+LIGHT_NODE = dict(strength=2.5, color=(1.0, 0.5, 0.25))  # light_nodes' Emission node
 LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
 LINKED_RADIUS = 0.35
 KEY = dict(location=(0.0, -2.0, 2.0), energy=300.0)
@@ -105,6 +106,7 @@ class Worker(BlenderWorker):
         "splats_shadow_meshes",
         "meshes_shadow_splats",
         "textured_world",
+        "light_nodes",
         "animation_frames",
         "light_linking",
         "shadow_linking",
@@ -612,6 +614,42 @@ class Worker(BlenderWorker):
         tree.nodes.remove(value)
         bpy.data.images.remove(cap)
         bpy.data.images.remove(grey)
+        return out
+
+    def light_nodes(self):
+        """A point light whose nodes set its Emission Strength and Color (Use Nodes on where Blender
+        has it), then a Value node on the Strength: (colour, warnings) of lights.scene_lights' light
+        each time, beside its colour without nodes."""
+        import warnings
+
+        bpy = self.bpy
+        self.stage("NONE")
+        bpy.data.lights["Sun"].energy = 0.0  # a light of no power is left out
+        key = self.add_light("Key", "POINT", KEY["location"], (0, 0, 0), (1, 1, 1), dict(energy=KEY["energy"]))
+        lights = self.module("splat_addon.render.lights")
+
+        def read():
+            bpy.context.view_layer.update()
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                (light,) = lights.scene_lights(bpy.context.evaluated_depsgraph_get(), np.zeros(3))
+            return list(light.color), [f"{w.category.__name__}: {w.message}" for w in caught]
+
+        out = {"plain": read()}
+        if key.data.node_tree is None or bpy.app.version < (5, 0, 0):  # Use Nodes makes them (deprecated in 5)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                key.data.use_nodes = True
+        tree = key.data.node_tree
+        emission = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeEmission")
+        emission.inputs["Strength"].default_value = LIGHT_NODE["strength"]
+        emission.inputs["Color"].default_value = (*LIGHT_NODE["color"], 1.0)
+        out["emission"] = read()
+        value = tree.nodes.new("ShaderNodeValue")
+        value.name = "IES Stand-in"
+        tree.links.new(value.outputs["Value"], emission.inputs["Strength"])
+        out["driven"] = read()
+        bpy.data.objects.remove(key)
         return out
 
     def animation_frames(self):
