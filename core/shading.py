@@ -306,11 +306,11 @@ def lobe_sky(
     0.16 / 0.080 / 0.023; tests/test_shading.py). Blender's Suzanne (metallic, roughness 0.35)
     against Cycles, world occluded, point light: 32.7 -> 33.9 dB at 0.5x, 33.5 -> 33.9 at 1x (rays
     through the lobe itself against the mesh: 34.1 / 33.9)."""
-    k, out = seen.shape[1], np.array(open_sky, np.float64)
+    k, out, sky = seen.shape[1], np.array(open_sky, np.float64), sphere_directions(seen.shape[1])
     for lo in range(0, len(normal), TERMS_CHUNK):  # a loop over chunks: (chunk * K, 3) temporaries
         part = slice(lo, lo + TERMS_CHUNK)
         m = len(normal[part])
-        directions = np.broadcast_to(sphere_directions(k)[None], (m, k, 3)).reshape(-1, 3)
+        directions = np.broadcast_to(sky[None], (m, k, 3)).reshape(-1, 3)
         rows = (np.repeat(normal[part], k, 0), np.repeat(view[part], k, 0))
         weight = ggx_parts(*rows, directions, np.repeat(alpha[part], k))[0].reshape(m, k)
         total = weight.sum(axis=1)

@@ -17,7 +17,8 @@ import math
 import numpy as np
 
 from splatwright.core import geometry
-from splatwright.core.lights import spread_factor
+from splatwright.core.lights import sphere_directions, spread_factor
+from splatwright.core.shading import ggx_parts
 from splatwright.core.splats import SplatCloud, logit
 
 OWN_SURFACE = 3.0  # standard deviations along the ray that belong to the receiver and its neighbour
@@ -191,3 +192,18 @@ def _hits_mesh(mesh, origin, dirs, length):
     t = np.einsum("fi,fi->f", e2, qv)[None, :] * inv
     hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9) & (t < length[:, None])
     return hit.any(axis=1)
+
+
+def lobe_open_share(points, eye, roughness, open_sky, count):
+    """Each floor point's (M,3; normal +z) share of its GGX lobe (D G / (4 n.v), seen from `eye`)
+    over the upper half of `count` directions of the sphere (float64) whose rays `open_sky(point,
+    directions (D,3)) -> (D,) bool` leaves open: the world's light a glossy floor reflects."""
+    up = sphere_directions(count)
+    up = up[up[:, 2] > 0]
+    shares = []
+    for p in points:  # a loop over a test's points
+        view = (eye - p) / np.linalg.norm(eye - p)
+        weight, _ = ggx_parts(np.tile([0.0, 0.0, 1.0], (len(up), 1)), np.tile(view, (len(up), 1)), up,
+                              np.full(len(up), max(roughness**2, 1e-3)))  # fmt: skip
+        shares.append((weight * open_sky(p, up)).sum() / weight.sum())
+    return np.array(shares)

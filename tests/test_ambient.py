@@ -5,9 +5,9 @@ import math
 
 import numpy as np
 import pytest
-from shadow_reference import ball_surface, plane_cloud, sphere_cloud
+from shadow_reference import ball_surface, lobe_open_share, plane_cloud, sphere_cloud
 
-from splatwright.core import ambient, lights, material, relight, shading
+from splatwright.core import ambient, lights, material, relight
 from splatwright.core.lights import World
 from splatwright.core.mesh import Surface
 from splatwright.core.splats import SplatCloud
@@ -125,19 +125,14 @@ def test_the_lit_render_occludes_the_world_it_is_told_to():
 
 
 def _lobe_through_disc(points, eye, roughness, radius, height, count=40_000):
-    """The share of each floor point's GGX lobe (D G / (4 n.v) over `count` directions of the upper
-    hemisphere, float64) whose rays miss an opaque disc of `radius` at `height` over the origin."""
-    directions = lights.sphere_directions(2 * count)
-    up = directions[directions[:, 2] > 0]
-    shares = []
-    for p in points:  # a loop over a few test points
-        view = (eye - p) / np.linalg.norm(eye - p)
-        weight, _ = shading.ggx_parts(np.tile([0.0, 0.0, 1.0], (len(up), 1)), np.tile(view, (len(up), 1)), up,
-                                      np.full(len(up), max(roughness**2, 1e-3)))  # fmt: skip
+    """The share of each floor point's GGX lobe (over `count` directions of the upper hemisphere,
+    float64) whose rays miss an opaque disc of `radius` at `height` over the origin."""
+
+    def open_sky(p, up):
         at = p + up * ((height - p[2]) / up[:, 2])[:, None]  # where each ray crosses the disc's plane
-        open_sky = np.linalg.norm(at[:, :2], axis=1) > radius
-        shares.append((weight * open_sky).sum() / weight.sum())
-    return np.array(shares)
+        return np.linalg.norm(at[:, :2], axis=1) > radius
+
+    return lobe_open_share(points, eye, roughness, open_sky, 2 * count)
 
 
 @pytest.mark.parametrize("eye", [(0.0, 0.0, 3.0), (3.0, 0.0, 0.8)])

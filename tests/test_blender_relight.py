@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import euler_matrix
+from shadow_reference import lobe_open_share
 from workers.relight import COLORS, EXPOSURE, INSTANCE_OFFSET, LIGHTS, ORIGIN, RAYS
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
@@ -545,19 +546,11 @@ def test_the_world_occlusion_setting_darkens_the_floor_under_a_mesh_ball(blender
 
 
 def lobe_past_sphere(points, eye, centre, radius, roughness, count=20_000):
-    """Each floor point's (M,3) share of its GGX lobe (D G / (4 n.v), normal +z, seen from `eye`)
-    whose rays leave past a sphere, over `count` directions of the sphere (float64)."""
-    from splatwright.core.lights import sphere_directions
-    from splatwright.core.shading import ggx_parts
+    """Each floor point's (M,3) share of its GGX lobe (normal +z, seen from `eye`) whose rays leave
+    past a sphere, over `count` directions of the sphere (float64)."""
 
-    up = sphere_directions(count)
-    up = up[up[:, 2] > 0]
-    shares = []
-    for p in points:  # a loop over the test's points
-        view = (eye - p) / np.linalg.norm(eye - p)
-        weight, _ = ggx_parts(np.tile([0.0, 0.0, 1.0], (len(up), 1)), np.tile(view, (len(up), 1)), up,
-                              np.full(len(up), roughness**2))  # fmt: skip
+    def open_sky(p, up):
         along = (np.asarray(centre) - p) @ up.T  # the ray's nearest approach to the centre
-        miss = (along <= 0) | (np.linalg.norm(np.asarray(centre) - p - along[:, None] * up, axis=1) >= radius)
-        shares.append((weight * miss).sum() / weight.sum())
-    return np.array(shares)
+        return (along <= 0) | (np.linalg.norm(np.asarray(centre) - p - along[:, None] * up, axis=1) >= radius)
+
+    return lobe_open_share(points, eye, roughness, open_sky, count)

@@ -95,6 +95,7 @@ from .scene import (
     evaluated_cloud,
     frame_range,
     generated_cloud,
+    instancer_of,
     instances_cloud,
     is_modified,
     modified_cloud,

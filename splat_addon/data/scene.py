@@ -142,6 +142,12 @@ class SplatInstance(NamedTuple):
     matrix: np.ndarray  # (4, 4) float64 world matrix of this instance
 
 
+def instancer_of(inst):
+    """The original object that generated depsgraph instance `inst` (a collection instance's empty, a
+    mesh instancing by vertices or faces), or None for an object drawn as itself."""
+    return inst.parent.original if inst.is_instance and inst.parent else None
+
+
 def splat_instances(depsgraph):
     """A SplatInstance for every splat object the depsgraph draws: objects, linked duplicates and
     instances (collection instances, instancing by vertices or faces), each with its own matrix. The
@@ -150,7 +156,7 @@ def splat_instances(depsgraph):
     for inst in depsgraph.object_instances:  # instance data is only valid during iteration
         evaluated = inst.object
         original = evaluated.original
-        instancer = inst.parent.original if inst.is_instance and inst.parent else None
+        instancer = instancer_of(inst)
         if evaluated.type == original.type and is_splat_object(original):
             found.append(SplatInstance(original, instancer, np.array(inst.matrix_world, dtype=np.float64)))
         elif _generated(evaluated, original):

@@ -12,7 +12,7 @@ import warnings
 import bpy
 import numpy as np
 
-from ..data import RelightWarning
+from ..data import RelightWarning, instancer_of
 from .scene import world_background
 
 KINDS = {"POINT": "point", "SPOT": "spot", "SUN": "sun", "AREA": "area"}
@@ -29,9 +29,6 @@ def scene_lights(depsgraph, origin, links=None):
         if obj.type != "LIGHT":
             continue
         light = light_from_blender(obj.data, np.array(inst.matrix_world, dtype=np.float64), origin, obj)
-        note = light_nodes(obj.data)[1]
-        if note is not None:
-            warnings.warn(note, RelightWarning, stacklevel=2)
         if light is not None:
             found.append(light)
             if links is not None:
@@ -42,7 +39,7 @@ def scene_lights(depsgraph, origin, links=None):
 def _linking_owner(inst, kind):
     """The object whose light linking of `kind` ("receiver" or "blocker") a light instance follows,
     as Cycles reads it: its instancer's where that one sets a collection of that kind, else its own."""
-    parent = inst.parent.original if inst.is_instance and inst.parent else None
+    parent = instancer_of(inst)
     if getattr(getattr(parent, "light_linking", None), f"{kind}_collection", None) is not None:
         return parent
     return inst.object.original
@@ -123,7 +120,8 @@ def light_fields(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
     None for a light that gives no light; kept apart so tests can compare them with plain numbers.
     With the light's object `obj`, its Ray Visibility's Diffuse and Glossy too, which Cycles reads as
     the light's part in diffuse and glossy reflection (a light with Glossy off makes no highlights;
-    Blender's Diffuse and Specular factors are EEVEE's alone, and Cycles leaves them out)."""
+    Blender's Diffuse and Specular factors are EEVEE's alone, and Cycles leaves them out). A
+    RelightWarning for shader nodes that light_nodes does not read."""
     kind = KINDS.get(light.type)
     if kind is None:
         return None
@@ -131,7 +129,10 @@ def light_fields(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):
     color = np.array(light.color[:3], dtype=np.float64)
     if getattr(light, "use_temperature", False):  # 5.0+: a blackbody tint on top of the colour
         color = color * np.array(light.temperature_color[:3], dtype=np.float64)
-    color = color * light_nodes(light)[0]
+    factor, note = light_nodes(light)
+    if note is not None:  # nodes it cannot read: the engine reports it
+        warnings.warn(note, RelightWarning, stacklevel=2)
+    color = color * factor
     power = float(light.energy) * 2.0 ** float(getattr(light, "exposure", 0.0))
     if power <= 0.0 or not color.any():
         return None

@@ -79,8 +79,7 @@ def surface_triangles(depsgraph, shadow_casters_only=False, owners=None):
             corners.append(world[tris.reshape(-1, 3)])
             colors.append(palette[np.minimum(slots, len(palette) - 1)])
             if owners is not None:
-                instancer = inst.parent.original if inst.is_instance and inst.parent else None
-                owners.append((linking_names(obj, instancer), n))
+                owners.append((linking_names(obj, data.instancer_of(inst)), n))
         finally:
             obj.to_mesh_clear()
     if not corners:

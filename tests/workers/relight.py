@@ -3,6 +3,8 @@ workers/base.py): the scene's lights as the engine reads them, relit splats rend
 Diffuse, Specular and Shadow passes, a splat sphere's shadow on a mesh floor, and the demo rig
 converted with its material, relit and rendered over two frames."""
 
+import warnings
+
 import numpy as np
 
 from workers.base import BlenderWorker, worker_main
@@ -90,6 +92,14 @@ def bpy_camera(worker, viewport):
         view_matrix, window_matrix = cam.matrix_world.inverted(), projection
 
     return viewport.region_camera(Region, RegionData)
+
+
+def _warned(call):
+    """(call(), ["Category: message", ...] of the warnings it raised)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        value = call()
+    return value, [f"{w.category.__name__}: {w.message}" for w in caught]
 
 
 def _named(names):
@@ -249,8 +259,6 @@ class Worker(BlenderWorker):
         origin = self.origin()
         relit = self.module("splat_addon.render.relit")
         lights = self.module("splat_addon.render.lights")
-        import warnings
-
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cloud, lit, _ = relit.scene_cloud(depsgraph, origin)
@@ -535,8 +543,6 @@ class Worker(BlenderWorker):
     def stand_in_within_budgets(self):
         """The relit ball's shadow stand-in under an ample budget, one that holds only the coarse
         shape, and one that holds neither: (triangles or None, warnings) each, and the splat count."""
-        import warnings
-
         relit = self.module("splat_addon.render.relit")
         casters = self.module("core.shadow_casters")
         cloud, lit, _ = relit.scene_cloud(self.bpy.context.evaluated_depsgraph_get(), np.zeros(3))
@@ -577,8 +583,6 @@ class Worker(BlenderWorker):
         Background's Color, one with a float image bright above 30 degrees of latitude (its Strength
         2), one with an sRGB image of grey 0.5, a Value node its Strength, then neither:
         (colour, warnings) of lights.scene_world each time."""
-        import warnings
-
         bpy = self.bpy
         self.stage("NONE")
         scene = bpy.context.scene
@@ -605,10 +609,8 @@ class Worker(BlenderWorker):
                 tree.links.new(texture.outputs["Color"], background.inputs["Color"])
             if name == "strength":
                 tree.links.new(value.outputs["Value"], background.inputs["Strength"])
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                world = lights.scene_world(scene)
-            out[name] = (list(world.color), [f"{w.category.__name__}: {w.message}" for w in caught])
+            world, caught = _warned(lambda: lights.scene_world(scene))
+            out[name] = (list(world.color), caught)
         background.inputs["Strength"].default_value = 1.0
         tree.nodes.remove(texture)
         tree.nodes.remove(value)
@@ -620,8 +622,6 @@ class Worker(BlenderWorker):
         """A point light whose nodes set its Emission Strength and Color (Use Nodes on where Blender
         has it), then a Value node on the Strength: (colour, warnings) of lights.scene_lights' light
         each time, beside its colour without nodes."""
-        import warnings
-
         bpy = self.bpy
         self.stage("NONE")
         bpy.data.lights["Sun"].energy = 0.0  # a light of no power is left out
@@ -630,10 +630,9 @@ class Worker(BlenderWorker):
 
         def read():
             bpy.context.view_layer.update()
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                (light,) = lights.scene_lights(bpy.context.evaluated_depsgraph_get(), np.zeros(3))
-            return list(light.color), [f"{w.category.__name__}: {w.message}" for w in caught]
+            found, caught = _warned(lambda: lights.scene_lights(bpy.context.evaluated_depsgraph_get(), np.zeros(3)))
+            (light,) = found
+            return list(light.color), caught
 
         out = {"plain": read()}
         if key.data.node_tree is None or bpy.app.version < (5, 0, 0):  # Use Nodes makes them (deprecated in 5)
