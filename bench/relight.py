@@ -30,7 +30,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 from common import Row, machine, paired_ratio, print_rows  # noqa: E402
 from shadow_reference import ball_surface, plane_cloud, reference_visibility, sphere_cloud  # noqa: E402
 
-from splatwright.core import ambient, material, relight, shadows  # noqa: E402
+from splatwright.core import ambient, material, relight, shading, shadows  # noqa: E402
 from splatwright.core.camera import Camera  # noqa: E402
 from splatwright.core.lights import Light, World  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
@@ -125,6 +125,7 @@ def run(quick=False):
             )
         )
     rows += kind_rows(cloud, camera, world, repeat)
+    rows += glossy_rows(cloud, camera, world, repeat)
     rows += resolution_sweep(cloud, camera, world, repeat)
     rows += world_occlusion_rows(cloud, camera, world, 2 if quick else 3)
     rows += kept_rows(cloud, camera, world, repeat)
@@ -187,6 +188,59 @@ def kind_rows(cloud, camera, world, repeat):
             )
         )
     return rows
+
+
+def glossy_rows(cloud, camera, world, repeat):
+    """Glossy splats under the (square) area light: their smooth lobes integrated (core.ltc) against
+    the same light sampled (core.lights' grid, 16 samples a splat for such lobes), the shading alone,
+    each with its highlight's error against the GGX BRDF summed over the light (tests/test_ltc.py's
+    metal point and six eyes, the worst over them, relative to the brightest)."""
+    light = LIGHTS[3]
+    rows = []
+    for roughness in (0.1, 0.2):
+        glossy = material.with_material(cloud, roughness=np.full(len(cloud), roughness, np.float32))
+        sampled, integrated, _ = paired_ratio(
+            lambda: shading.shade(glossy, camera, [light], world, integrate=False),
+            lambda: shading.shade(glossy, camera, [light], world),
+            repeat,
+        )
+        rows.append(
+            Row(
+                TOPIC,
+                f"shading glossy splats (roughness {roughness}) under the area light, integrated",
+                integrated,
+                sampled,
+                {
+                    name: highlight_error(roughness, name == "baseline_err")
+                    for name in ("highlight_err", "baseline_err")
+                },
+                {
+                    "baseline": "the same light sampled",
+                    "error against": "GGX summed over the light",
+                    "splats": len(cloud),
+                },
+            )
+        )
+    return rows
+
+
+def highlight_error(roughness, sampled):
+    """The worst error over six eyes of a metal point's highlight under a 1 m square light 1.5 m up,
+    relative to the brightest, against the BRDF summed over the light (tests/test_ltc.py's case)."""
+    from test_ltc import EYES, UP, light_quadrature
+    from test_shading import cloud_of
+
+    light = Light("area", power=40.0, shape="SQUARE", size_x=1.0, position=(0.3, 0.0, 1.5))
+    albedo = np.array([0.9, 0.6, 0.3])
+    point = cloud_of([np.zeros(3)], [UP], [albedo], roughness, 1.0)
+    got, reference = [], []
+    for eye in EYES:  # a loop over six eyes
+        eye = np.array(eye)
+        got.append(shading.shade(point, eye, [light], multiscatter=False, integrate=not sampled).specular[0])
+        view = eye / np.linalg.norm(eye)
+        reference.append(light_quadrature(light, np.zeros(3), UP, view, roughness, f0=albedo, n=1200)[1])
+    got, reference = np.array(got), np.array(reference)
+    return float(np.abs(got - reference).max() / reference.max())
 
 
 def resolution_sweep(cloud, camera, world, repeat):

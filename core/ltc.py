@@ -1,0 +1,243 @@
+"""A rectangular area light's diffuse and GGX specular, integrated over the light rather than sampled.
+
+The diffuse is exact: a uniform Lambertian polygon's irradiance is the integral of the clamped cosine
+over the spherical polygon it spans (Lambert's contour formula: per edge, the angle it subtends times
+the normal's component along the edge plane's normal, summed and divided by 2 pi), the polygon first
+clipped to the surface's upper hemisphere.
+
+The specular uses linearly transformed cosines (Heitz, Dupuy, Hill and Neubelt 2016): the GGX lobe
+towards one view, normalised, is close to a clamped cosine seen through a 3x3 matrix, so its integral
+over a polygon is the cosine's integral over the polygon taken back through the inverse matrix, the
+same contour formula. The inverse matrices, fitted per view angle and roughness by tools/fit_ltc.py
+(core.ltc_table), are looked up bilinearly; the lobe's own albedo (core.shading's Fresnel split) scales
+the share. In the splat's frame the normal is +z and the view lies in the xz plane (x >= 0).
+
+Only smooth lobes are integrated (roughness up to ROUGHNESS): there the sampled grid of core.lights,
+at most 16 samples, leaves a highlight the shape of its samples (28% of its peak off at roughness
+0.1), the fitted cosines within 2%; rougher lobes at grazing views are no transformed cosine (their
+tail towards the normal), 7-14% off at roughness 0.45-1, where the samples keep within 1%
+(tests/test_ltc.py). A smooth splat's cost is then two polygons whatever its distance, where the
+grid needed 16 samples. Rougher splats, discs, ellipses and lights narrowed by a Spread are sampled
+(core.lights.incident).
+
+Each function has a scalar twin (`_..._one`) for the compiled shading kernel, written the same way.
+"""
+
+import math
+from typing import Annotated
+
+import numpy as np
+
+from .lights import Light, spread_terms, y_axis
+from .ltc_table import INVERSE, ROUGHNESS, SIZE
+
+CORNERS = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))  # a rectangle's corners in its half extents
+MAX_VERTICES = 5  # a quadrilateral cut by a plane keeps at most five
+EDGE_DEGREE = 8  # of the compiled contour formula's polynomial (_edge_polynomial): 2e-7 relative
+KERNEL = ("_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_rectangle_one")
+
+
+def integrated(light: Light) -> bool:
+    """Whether the light's shading is integrated here for smooth splats (roughness up to ROUGHNESS):
+    a square or rectangular area light without a Spread narrowing it."""
+    return light.kind == "area" and not light.round and spread_terms(light)[0] <= 0.0
+
+
+def corners(light: Light) -> Annotated[np.ndarray, "(4, 3)"]:
+    """The rectangle's corners (4,3), in order around it."""
+    half_x, half_y = 0.5 * light.extent[0], 0.5 * light.extent[1]
+    x, y = light.x_axis * half_x, y_axis(light) * half_y
+    return np.array([light.position + sx * x + sy * y for sx, sy in CORNERS])
+
+
+def inverse_params(cos_v: np.ndarray, roughness: np.ndarray) -> Annotated[np.ndarray, "(N, 4)"]:
+    """(N,4) the inverse matrix's (a, b, c, d) (core.ltc_table) at each view's n.v (N,) and
+    roughness (N,, up to ROUGHNESS), bilinear in sqrt(1 - n.v) and roughness."""
+    x = np.sqrt(np.clip(1.0 - np.clip(cos_v, 0.0, 1.0), 0.0, 1.0)) * (SIZE - 1)
+    y = np.clip(roughness / ROUGHNESS, 0.0, 1.0) * (SIZE - 1)
+    i, j = np.minimum(x.astype(np.int64), SIZE - 2), np.minimum(y.astype(np.int64), SIZE - 2)
+    fx, fy = (x - i)[:, None], (y - j)[:, None]
+    low = INVERSE[i, j] * (1 - fx) + INVERSE[i + 1, j] * fx
+    high = INVERSE[i, j + 1] * (1 - fx) + INVERSE[i + 1, j + 1] * fx
+    return low * (1 - fy) + high * fy
+
+
+def clipped_share(vertices: Annotated[np.ndarray, "(N, 4, 3)"]) -> Annotated[np.ndarray, "(N,)"]:
+    """(N,) the integral of the clamped cosine max(z, 0) / pi over the spherical polygon each row's
+    four vertices (directions from the origin, any length) span: the polygon clipped to z >= 0
+    (Sutherland-Hodgman), then Lambert's contour formula."""
+    n = len(vertices)
+    nxt = np.roll(vertices, -1, axis=1)
+    z, z_next = vertices[..., 2], nxt[..., 2]
+    up, up_next = z >= 0.0, z_next >= 0.0
+    t = np.where(up != up_next, z / np.where(z != z_next, z - z_next, 1.0), 0.0)
+    crossing = vertices + t[..., None] * (nxt - vertices)
+    crossing[..., 2] = 0.0
+    # each edge gives its start (if above) then its crossing (if it crosses): 8 slots, in order
+    slots = np.stack([vertices, crossing], axis=2).reshape(n, 8, 3)
+    kept = np.stack([up, up != up_next], axis=2).reshape(n, 8)
+    order = np.argsort(~kept, axis=1, kind="stable")  # the kept slots first, in their order
+    points = np.take_along_axis(slots, order[..., None], axis=1)[:, :MAX_VERTICES]
+    count = kept.sum(axis=1)
+    length = np.linalg.norm(points, axis=2, keepdims=True)
+    unit = points / np.where(length > 0.0, length, 1.0)
+    index = np.arange(MAX_VERTICES)
+    following = np.where(index[None] + 1 < count[:, None], index[None] + 1, 0)
+    ahead = np.take_along_axis(unit, following[..., None], axis=1)
+    cross_z = unit[..., 0] * ahead[..., 1] - unit[..., 1] * ahead[..., 0]
+    sine = np.linalg.norm(np.cross(unit, ahead), axis=2)
+    cosine = np.einsum("nvi,nvi->nv", unit, ahead)
+    angle_over_sine = np.where(sine > 1e-12, np.arctan2(sine, cosine) / np.where(sine > 1e-12, sine, 1.0), 1.0)
+    terms = np.where(index[None] < count[:, None], angle_over_sine * cross_z, 0.0)
+    total = np.abs(terms.sum(axis=1)) / (2.0 * math.pi)
+    return np.where(count >= 3, total, 0.0)
+
+
+def frames(normal: np.ndarray, view: np.ndarray) -> Annotated[np.ndarray, "(N, 3, 3)"]:
+    """(N,3,3) rows x, y, z of each splat's frame: z its normal (N,3, facing the eye), x along the
+    view's (N,3) part in the tangent plane (any tangent where the view is the normal)."""
+    along = view - normal * np.einsum("ij,ij->i", normal, view)[:, None]
+    size = np.linalg.norm(along, axis=1)
+    other = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    other = other - normal * np.einsum("ij,ij->i", normal, other)[:, None]
+    along = np.where((size > 1e-9)[:, None], along, other)
+    x = along / np.linalg.norm(along, axis=1, keepdims=True)
+    return np.stack([x, np.cross(normal, x), normal], axis=1)
+
+
+def rectangle_shares(
+    light: Light,
+    points: Annotated[np.ndarray, "(N, 3)"],
+    normal: Annotated[np.ndarray, "(N, 3)"],
+    view: Annotated[np.ndarray, "(N, 3)"],
+    roughness: Annotated[np.ndarray, "(N,)"],
+) -> tuple[np.ndarray, np.ndarray]:
+    """(form factor (N,), lobe share (N,)) of a rectangular area light at each point: the share of
+    the clamped cosine about `normal` (facing the eye) and of the normalised GGX lobe towards `view`
+    (roughness up to ROUGHNESS) that the light covers (0 behind it: it emits forwards only).
+    Irradiance is pi L times the first, the specular radiance L times the second times the lobe's
+    albedo (L the light's radiance)."""
+    frame = frames(normal, view)
+    local = np.einsum("nij,nvj->nvi", frame, corners(light)[None] - points[:, None, :])
+    ahead = (points - light.position) @ light.direction > 0.0
+    diffuse = np.where(ahead, clipped_share(local), 0.0)
+    cos_v = np.einsum("ij,ij->i", normal, view)
+    a, b, c, d = inverse_params(cos_v, roughness).T
+    x, y, z = local[..., 0], local[..., 1], local[..., 2]
+    lobe = np.stack([a[:, None] * x + b[:, None] * z, c[:, None] * y, d[:, None] * x + z], axis=2)
+    return diffuse, np.where(ahead, clipped_share(lobe), 0.0)
+
+
+# the compiled kernel's scalar twins ----------------------------------------------------------------
+
+
+def _lookup_one(table, cos_v, roughness):
+    """inverse_params of one view and roughness: (a, b, c, d)."""
+    x = math.sqrt(min(max(1.0 - min(max(cos_v, 0.0), 1.0), 0.0), 1.0)) * (SIZE - 1)
+    y = min(max(roughness / ROUGHNESS, 0.0), 1.0) * (SIZE - 1)
+    i, j = min(int(x), SIZE - 2), min(int(y), SIZE - 2)
+    fx, fy = x - i, y - j
+    w00, w10, w01, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+    return (
+        w00 * table[i, j, 0] + w10 * table[i + 1, j, 0] + w01 * table[i, j + 1, 0] + w11 * table[i + 1, j + 1, 0],
+        w00 * table[i, j, 1] + w10 * table[i + 1, j, 1] + w01 * table[i, j + 1, 1] + w11 * table[i + 1, j + 1, 1],
+        w00 * table[i, j, 2] + w10 * table[i + 1, j, 2] + w01 * table[i, j + 1, 2] + w11 * table[i + 1, j + 1, 2],
+        w00 * table[i, j, 3] + w10 * table[i + 1, j, 3] + w01 * table[i, j + 1, 3] + w11 * table[i + 1, j + 1, 3],
+    )
+
+
+def _edge_polynomial(degree: int = EDGE_DEGREE) -> np.ndarray:
+    """Coefficients (lowest first) of a polynomial in c = cos(angle) on [0, 1] for angle / sin(angle) =
+    acos(c) / sqrt(1 - c^2), which is smooth there (1 at c = 1, pi / 2 at 0): a Chebyshev
+    least-squares fit, within 2e-7 relative at degree 8 (tests/test_ltc.py; at 5, 4e-5 left a
+    point by a rectangle's rim 0.3% off, where the edges' terms nearly cancel)."""
+    c = np.linspace(0.0, 1.0, 4001)
+    value = np.ones_like(c)
+    inside = c < 1.0
+    value[inside] = np.arccos(c[inside]) / np.sqrt(1.0 - c[inside] ** 2)
+    fit = np.polynomial.Chebyshev.fit(c, value, degree, domain=[0.0, 1.0])
+    return fit.convert(kind=np.polynomial.Polynomial, domain=[0.0, 1.0], window=[0.0, 1.0]).coef
+
+
+EDGE = _edge_polynomial()
+
+
+def _angle_over_sine_one(c):
+    """angle / sin(angle) of two unit directions at cosine c: EDGE's polynomial for c >= 0, and
+    through acos(c) = pi - acos(-c) below (a library atan2 per edge was most of a rectangle's cost)."""
+    x = abs(c)
+    value = EDGE[EDGE.shape[0] - 1]
+    for k in range(EDGE.shape[0] - 2, -1, -1):
+        value = value * x + EDGE[k]
+    if c >= 0.0:
+        return value
+    return math.pi / math.sqrt(max(1.0 - c * c, 1e-24)) - value
+
+
+def _edge_one(x0, y0, z0, x1, y1, z1):
+    """One edge's term of the contour formula between unit directions: angle / sine times the z of
+    their cross product."""
+    return _angle_over_sine_one(x0 * x1 + y0 * y1 + z0 * z1) * (x0 * y1 - y0 * x1)
+
+
+def _clipped_share_one(quad, poly):
+    """clipped_share of one quadrilateral quad (4,3); poly (MAX_VERTICES, 3) scratch. (Whole arrays
+    and indices, no slices: a slice made per splat cost more than the formula.)"""
+    m = 0
+    for i in range(4):
+        j = (i + 1) % 4
+        if quad[i, 2] >= 0.0:
+            poly[m, 0], poly[m, 1], poly[m, 2] = quad[i, 0], quad[i, 1], quad[i, 2]
+            m += 1
+        if (quad[i, 2] >= 0.0) != (quad[j, 2] >= 0.0):
+            t = quad[i, 2] / (quad[i, 2] - quad[j, 2])
+            poly[m, 0] = quad[i, 0] + t * (quad[j, 0] - quad[i, 0])
+            poly[m, 1] = quad[i, 1] + t * (quad[j, 1] - quad[i, 1])
+            poly[m, 2] = 0.0
+            m += 1
+    if m < 3:
+        return 0.0
+    for k in range(m):
+        length = math.sqrt(poly[k, 0] * poly[k, 0] + poly[k, 1] * poly[k, 1] + poly[k, 2] * poly[k, 2])
+        inverse = 1.0 / length if length > 0.0 else 1.0
+        poly[k, 0], poly[k, 1], poly[k, 2] = poly[k, 0] * inverse, poly[k, 1] * inverse, poly[k, 2] * inverse
+    total = 0.0
+    for k in range(m):
+        n = k + 1 if k + 1 < m else 0
+        total += _edge_one(poly[k, 0], poly[k, 1], poly[k, 2], poly[n, 0], poly[n, 1], poly[n, 2])
+    return abs(total) / (2.0 * math.pi)
+
+
+def _rectangle_one(terms, row, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, quad, poly):
+    """rectangle_shares of one point p (facing-the-eye normal m, view v) for the light whose area
+    terms are row `row` of core.shading's `terms`; quad (4,3) and poly (MAX_VERTICES, 3) scratch.
+    Returns the form factor and the lobe share."""
+    c0, c1, c2 = terms[row, 0], terms[row, 1], terms[row, 2]
+    if (p0 - c0) * terms[row, 5] + (p1 - c1) * terms[row, 6] + (p2 - c2) * terms[row, 7] <= 0.0:
+        return 0.0, 0.0  # behind the light
+    # the frame: x along the view's tangent part
+    t0, t1, t2 = v0 - m0 * cos_v, v1 - m1 * cos_v, v2 - m2 * cos_v
+    size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    if size <= 1e-9:
+        t0, t1, t2 = (1.0, 0.0, 0.0) if abs(m0) < 0.9 else (0.0, 1.0, 0.0)
+        along = t0 * m0 + t1 * m1 + t2 * m2
+        t0, t1, t2 = t0 - m0 * along, t1 - m1 * along, t2 - m2 * along
+        size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    t0, t1, t2 = t0 / size, t1 / size, t2 / size
+    b0, b1, b2 = m1 * t2 - m2 * t1, m2 * t0 - m0 * t2, m0 * t1 - m1 * t0
+    hx, hy = terms[row, 15], terms[row, 16]
+    for k in range(4):  # the corners, in core.ltc.CORNERS' order
+        sx = -hx if k == 0 or k == 3 else hx
+        sy = -hy if k < 2 else hy
+        r0 = c0 + sx * terms[row, 9] + sy * terms[row, 12] - p0
+        r1 = c1 + sx * terms[row, 10] + sy * terms[row, 13] - p1
+        r2 = c2 + sx * terms[row, 11] + sy * terms[row, 14] - p2
+        quad[k, 0] = r0 * t0 + r1 * t1 + r2 * t2
+        quad[k, 1] = r0 * b0 + r1 * b1 + r2 * b2
+        quad[k, 2] = r0 * m0 + r1 * m1 + r2 * m2
+    diffuse = _clipped_share_one(quad, poly)
+    a, b, c, d = _lookup_one(table, cos_v, roughness)
+    for k in range(4):
+        x, z = quad[k, 0], quad[k, 2]
+        quad[k, 0], quad[k, 1], quad[k, 2] = a * x + b * z, c * quad[k, 1], d * x + z
+    return diffuse, _clipped_share_one(quad, poly)
