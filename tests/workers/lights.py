@@ -79,6 +79,17 @@ PRINCIPLED = {
     "principled_metal": ((0.9, 0.6, 0.3), 0.5, 1.0, "GGX"),
     "principled_rough_metal": ((0.9, 0.6, 0.3), 0.8, 1.0, "MULTI_GGX"),
     "principled_rough_dielectric": ((0.3, 0.6, 0.4), 0.7, 0.0, "MULTI_GGX"),
+    "principled_glossy_area": ((0.9, 0.6, 0.3), 0.15, 1.0, "GGX"),
+}
+# The lights of the Principled planes: a small point light, but a rectangle mirrored by the glossy
+# metal (a highlight core.ltc integrates)
+PRINCIPLED_LIGHTS = {
+    "principled_glossy_area": (
+        "AREA",
+        dict(energy=8.0, shape="RECTANGLE", size=0.5, size_y=0.3),
+        (0.2, 1.3, 1.5),
+        (0, 0, 0),
+    ),
 }
 # A narrow softbox over the plane with a square (0.6 m, 0.5 m up, off the light's centre, unseen by
 # the camera) shadowing it: its shadow falls along the light's axis (core.shadows' Spread model)
@@ -143,7 +154,8 @@ class Worker(BlenderWorker):
         self.image_format(render.image_settings, "OPEN_EXR", color_depth="32")
 
     def light(self, name):
-        spec = SPREAD_SHADOW if name == "area_spread_shadow" else LIGHTS.get(name, PRINCIPLED_LIGHT)
+        spec = SPREAD_SHADOW if name == "area_spread_shadow" else LIGHTS.get(name) or PRINCIPLED_LIGHTS.get(name)
+        spec = spec or PRINCIPLED_LIGHT
         kind, settings, location, rotation = spec
         bpy = self.bpy
         data = bpy.data.lights.new(name, kind)
@@ -246,6 +258,9 @@ class Worker(BlenderWorker):
 
     def principled_rough_dielectric(self):
         return self.run_light("principled_rough_dielectric")
+
+    def principled_glossy_area(self):
+        return self.run_light("principled_glossy_area")
 
 
 if __name__ == "__main__":
