@@ -15,6 +15,7 @@ reference of tests/shadow_reference.py (64 samples over the light's disc).
     python bench/relight.py [--quick]
 """
 
+import dataclasses
 import itertools
 import math
 import sys
@@ -191,13 +192,13 @@ def kind_rows(cloud, camera, world, repeat):
 
 
 def glossy_rows(cloud, camera, world, repeat):
-    """Glossy splats under the (square) area light: their smooth lobes integrated (core.ltc) against
+    """Glossy splats under the area light, square or a disc: their smooth lobes integrated (core.ltc) against
     the same light sampled (core.lights' grid, 16 samples a splat for such lobes), the shading alone,
     each with its highlight's error against the GGX BRDF summed over the light (tests/test_ltc.py's
     metal point and six eyes, the worst over them, relative to the brightest)."""
-    light = LIGHTS[3]
     rows = []
-    for roughness in (0.1, 0.2):
+    for shape, roughness in (("SQUARE", 0.1), ("SQUARE", 0.2), ("DISK", 0.1)):
+        light = dataclasses.replace(LIGHTS[3], shape=shape)
         glossy = material.with_material(cloud, roughness=np.full(len(cloud), roughness, np.float32))
         sampled, integrated, _ = paired_ratio(
             lambda: shading.shade(glossy, camera, [light], world, integrate=False),
@@ -207,11 +208,11 @@ def glossy_rows(cloud, camera, world, repeat):
         rows.append(
             Row(
                 TOPIC,
-                f"shading glossy splats (roughness {roughness}) under the area light, integrated",
+                f"shading glossy splats (roughness {roughness}) under the area light ({shape.lower()}), integrated",
                 integrated,
                 sampled,
                 {
-                    name: highlight_error(roughness, name == "baseline_err")
+                    name: highlight_error(shape, roughness, name == "baseline_err")
                     for name in ("highlight_err", "baseline_err")
                 },
                 {
@@ -224,13 +225,14 @@ def glossy_rows(cloud, camera, world, repeat):
     return rows
 
 
-def highlight_error(roughness, sampled):
-    """The worst error over six eyes of a metal point's highlight under a 1 m square light 1.5 m up,
-    relative to the brightest, against the BRDF summed over the light (tests/test_ltc.py's case)."""
+def highlight_error(shape, roughness, sampled):
+    """The worst error over six eyes of a metal point's highlight under a 1 m square or disc light
+    1.5 m up, relative to the brightest, against the BRDF summed over the light (tests/test_ltc.py's
+    case)."""
     from test_ltc import EYES, UP, light_quadrature
     from test_shading import cloud_of
 
-    light = Light("area", power=40.0, shape="SQUARE", size_x=1.0, position=(0.3, 0.0, 1.5))
+    light = Light("area", power=40.0, shape=shape, size_x=1.0, position=(0.3, 0.0, 1.5))
     albedo = np.array([0.9, 0.6, 0.3])
     point = cloud_of([np.zeros(3)], [UP], [albedo], roughness, 1.0)
     got, reference = [], []

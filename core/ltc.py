@@ -1,9 +1,11 @@
-"""A rectangular area light's diffuse and GGX specular, integrated over the light rather than sampled.
+"""An area light's diffuse and GGX specular, integrated over the light rather than sampled.
 
-The diffuse is exact: a uniform Lambertian polygon's irradiance is the integral of the clamped cosine
-over the spherical polygon it spans (Lambert's contour formula: per edge, the angle it subtends times
-the normal's component along the edge plane's normal, summed and divided by 2 pi), the polygon first
-clipped to the surface's upper hemisphere.
+The light is a polygon: a square or rectangle its four corners, a disc or ellipse ROUND_SIDES sides
+of the same area. The diffuse is then exact (for a round light, up to that polygon): a uniform
+Lambertian polygon's irradiance is the integral of the clamped cosine over the spherical polygon it
+spans (Lambert's contour formula: per edge, the angle it subtends times the normal's component along
+the edge plane's normal, summed and divided by 2 pi), the polygon first clipped to the surface's
+upper hemisphere.
 
 The specular uses linearly transformed cosines (Heitz, Dupuy, Hill and Neubelt 2016): the GGX lobe
 towards one view, normalised, is close to a clamped cosine seen through a 3x3 matrix, so its integral
@@ -17,7 +19,7 @@ at most 16 samples, leaves a highlight the shape of its samples (28% of its peak
 0.1), the fitted cosines within 2%; rougher lobes at grazing views are no transformed cosine (their
 tail towards the normal), 7-14% off at roughness 0.45-1, where the samples keep within 1%
 (tests/test_ltc.py). A smooth splat's cost is then two polygons whatever its distance, where the
-grid needed 16 samples. Rougher splats, discs, ellipses and lights narrowed by a Spread are sampled
+grid needed 16 samples. Rougher splats and lights narrowed by a Spread are sampled
 (core.lights.incident).
 
 Each function has a scalar twin (`_..._one`) for the compiled shading kernel, written the same way.
@@ -32,22 +34,35 @@ from .lights import Light, spread_terms, y_axis
 from .ltc_table import INVERSE, ROUGHNESS, SIZE
 
 CORNERS = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))  # a rectangle's corners in its half extents
-MAX_VERTICES = 5  # a quadrilateral cut by a plane keeps at most five
-EDGE_DEGREE = 8  # of the compiled contour formula's polynomial (_edge_polynomial): 2e-7 relative
-KERNEL = ("_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_rectangle_one")
+# A disc or ellipse is a polygon of this many sides and the same area: its rim within 1.3% of the
+# round one's radius, a mirror image's corners finer than a pixel's worth of most highlights.
+ROUND_SIDES = 16
+MAX_VERTICES = ROUND_SIDES + 1  # a convex polygon cut by a plane keeps at most one vertex more
+EDGE_DEGREE = 10  # of the compiled contour formula's polynomial (_edge_polynomial): 6e-9 relative
+KERNEL = ("_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_light_one")
 
 
 def integrated(light: Light) -> bool:
     """Whether the light's shading is integrated here for smooth splats (roughness up to ROUGHNESS):
-    a square or rectangular area light without a Spread narrowing it."""
-    return light.kind == "area" and not light.round and spread_terms(light)[0] <= 0.0
+    an area light without a Spread narrowing it."""
+    return light.kind == "area" and spread_terms(light)[0] <= 0.0
 
 
-def corners(light: Light) -> Annotated[np.ndarray, "(4, 3)"]:
-    """The rectangle's corners (4,3), in order around it."""
-    half_x, half_y = 0.5 * light.extent[0], 0.5 * light.extent[1]
-    x, y = light.x_axis * half_x, y_axis(light) * half_y
-    return np.array([light.position + sx * x + sy * y for sx, sy in CORNERS])
+def outline(light: Light) -> Annotated[np.ndarray, "(V, 2)"]:
+    """The light's polygon (V,2) in its own x and y (metres), in order around it: a rectangle's
+    corners, or ROUND_SIDES vertices on the disc or ellipse scaled to keep its area."""
+    half = np.array(light.extent) / 2.0
+    if not light.round:
+        return np.array(CORNERS) * half
+    angle = 2.0 * math.pi * np.arange(ROUND_SIDES) / ROUND_SIDES
+    same_area = math.sqrt(2.0 * math.pi / (ROUND_SIDES * math.sin(2.0 * math.pi / ROUND_SIDES)))
+    return np.c_[np.cos(angle), np.sin(angle)] * half * same_area
+
+
+def vertices(light: Light) -> Annotated[np.ndarray, "(V, 3)"]:
+    """The light's polygon (outline) in world space (V,3)."""
+    local = outline(light)
+    return light.position + local[:, :1] * light.x_axis + local[:, 1:] * y_axis(light)
 
 
 def inverse_params(cos_v: np.ndarray, roughness: np.ndarray) -> Annotated[np.ndarray, "(N, 4)"]:
@@ -62,26 +77,26 @@ def inverse_params(cos_v: np.ndarray, roughness: np.ndarray) -> Annotated[np.nda
     return low * (1 - fy) + high * fy
 
 
-def clipped_share(vertices: Annotated[np.ndarray, "(N, 4, 3)"]) -> Annotated[np.ndarray, "(N,)"]:
+def clipped_share(polygons: Annotated[np.ndarray, "(N, V, 3)"]) -> Annotated[np.ndarray, "(N,)"]:
     """(N,) the integral of the clamped cosine max(z, 0) / pi over the spherical polygon each row's
-    four vertices (directions from the origin, any length) span: the polygon clipped to z >= 0
-    (Sutherland-Hodgman), then Lambert's contour formula."""
-    n = len(vertices)
-    nxt = np.roll(vertices, -1, axis=1)
-    z, z_next = vertices[..., 2], nxt[..., 2]
+    V vertices (directions from the origin, any length; a convex polygon) span: the polygon clipped
+    to z >= 0 (Sutherland-Hodgman), then Lambert's contour formula."""
+    n, v = polygons.shape[:2]
+    nxt = np.roll(polygons, -1, axis=1)
+    z, z_next = polygons[..., 2], nxt[..., 2]
     up, up_next = z >= 0.0, z_next >= 0.0
     t = np.where(up != up_next, z / np.where(z != z_next, z - z_next, 1.0), 0.0)
-    crossing = vertices + t[..., None] * (nxt - vertices)
+    crossing = polygons + t[..., None] * (nxt - polygons)
     crossing[..., 2] = 0.0
-    # each edge gives its start (if above) then its crossing (if it crosses): 8 slots, in order
-    slots = np.stack([vertices, crossing], axis=2).reshape(n, 8, 3)
-    kept = np.stack([up, up != up_next], axis=2).reshape(n, 8)
+    # each edge gives its start (if above) then its crossing (if it crosses): 2 V slots, in order
+    slots = np.stack([polygons, crossing], axis=2).reshape(n, 2 * v, 3)
+    kept = np.stack([up, up != up_next], axis=2).reshape(n, 2 * v)
     order = np.argsort(~kept, axis=1, kind="stable")  # the kept slots first, in their order
-    points = np.take_along_axis(slots, order[..., None], axis=1)[:, :MAX_VERTICES]
+    points = np.take_along_axis(slots, order[..., None], axis=1)[:, : v + 1]
     count = kept.sum(axis=1)
     length = np.linalg.norm(points, axis=2, keepdims=True)
     unit = points / np.where(length > 0.0, length, 1.0)
-    index = np.arange(MAX_VERTICES)
+    index = np.arange(v + 1)
     following = np.where(index[None] + 1 < count[:, None], index[None] + 1, 0)
     ahead = np.take_along_axis(unit, following[..., None], axis=1)
     cross_z = unit[..., 0] * ahead[..., 1] - unit[..., 1] * ahead[..., 0]
@@ -105,20 +120,20 @@ def frames(normal: np.ndarray, view: np.ndarray) -> Annotated[np.ndarray, "(N, 3
     return np.stack([x, np.cross(normal, x), normal], axis=1)
 
 
-def rectangle_shares(
+def light_shares(
     light: Light,
     points: Annotated[np.ndarray, "(N, 3)"],
     normal: Annotated[np.ndarray, "(N, 3)"],
     view: Annotated[np.ndarray, "(N, 3)"],
     roughness: Annotated[np.ndarray, "(N,)"],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(form factor (N,), lobe share (N,)) of a rectangular area light at each point: the share of
+    """(form factor (N,), lobe share (N,)) of an area light (its polygon) at each point: the share of
     the clamped cosine about `normal` (facing the eye) and of the normalised GGX lobe towards `view`
     (roughness up to ROUGHNESS) that the light covers (0 behind it: it emits forwards only).
     Irradiance is pi L times the first, the specular radiance L times the second times the lobe's
     albedo (L the light's radiance)."""
     frame = frames(normal, view)
-    local = np.einsum("nij,nvj->nvi", frame, corners(light)[None] - points[:, None, :])
+    local = np.einsum("nij,nvj->nvi", frame, vertices(light)[None] - points[:, None, :])
     ahead = (points - light.position) @ light.direction > 0.0
     diffuse = np.where(ahead, clipped_share(local), 0.0)
     cos_v = np.einsum("ij,ij->i", normal, view)
@@ -149,8 +164,9 @@ def _lookup_one(table, cos_v, roughness):
 def _edge_polynomial(degree: int = EDGE_DEGREE) -> np.ndarray:
     """Coefficients (lowest first) of a polynomial in c = cos(angle) on [0, 1] for angle / sin(angle) =
     acos(c) / sqrt(1 - c^2), which is smooth there (1 at c = 1, pi / 2 at 0): a Chebyshev
-    least-squares fit, within 2e-7 relative at degree 8 (tests/test_ltc.py; at 5, 4e-5 left a
-    point by a rectangle's rim 0.3% off, where the edges' terms nearly cancel)."""
+    least-squares fit, within 6e-9 relative at degree 10 (tests/test_ltc.py): points beside a light's
+    plane, where the edges' terms nearly cancel, carry its error a thousandfold (at degree 5, 4e-5
+    left such a point 0.3% off; at 8, 2e-7, 1e-4)."""
     c = np.linspace(0.0, 1.0, 4001)
     value = np.ones_like(c)
     inside = c < 1.0
@@ -180,19 +196,19 @@ def _edge_one(x0, y0, z0, x1, y1, z1):
     return _angle_over_sine_one(x0 * x1 + y0 * y1 + z0 * z1) * (x0 * y1 - y0 * x1)
 
 
-def _clipped_share_one(quad, poly):
-    """clipped_share of one quadrilateral quad (4,3); poly (MAX_VERTICES, 3) scratch. (Whole arrays
-    and indices, no slices: a slice made per splat cost more than the formula.)"""
+def _clipped_share_one(shape, count, poly):
+    """clipped_share of one polygon, the first `count` rows of shape (V,3); poly (MAX_VERTICES, 3)
+    scratch. (Whole arrays and indices, no slices: a slice made per splat cost more than the formula.)"""
     m = 0
-    for i in range(4):
-        j = (i + 1) % 4
-        if quad[i, 2] >= 0.0:
-            poly[m, 0], poly[m, 1], poly[m, 2] = quad[i, 0], quad[i, 1], quad[i, 2]
+    for i in range(count):
+        j = i + 1 if i + 1 < count else 0
+        if shape[i, 2] >= 0.0:
+            poly[m, 0], poly[m, 1], poly[m, 2] = shape[i, 0], shape[i, 1], shape[i, 2]
             m += 1
-        if (quad[i, 2] >= 0.0) != (quad[j, 2] >= 0.0):
-            t = quad[i, 2] / (quad[i, 2] - quad[j, 2])
-            poly[m, 0] = quad[i, 0] + t * (quad[j, 0] - quad[i, 0])
-            poly[m, 1] = quad[i, 1] + t * (quad[j, 1] - quad[i, 1])
+        if (shape[i, 2] >= 0.0) != (shape[j, 2] >= 0.0):
+            t = shape[i, 2] / (shape[i, 2] - shape[j, 2])
+            poly[m, 0] = shape[i, 0] + t * (shape[j, 0] - shape[i, 0])
+            poly[m, 1] = shape[i, 1] + t * (shape[j, 1] - shape[i, 1])
             poly[m, 2] = 0.0
             m += 1
     if m < 3:
@@ -208,9 +224,10 @@ def _clipped_share_one(quad, poly):
     return abs(total) / (2.0 * math.pi)
 
 
-def _rectangle_one(terms, row, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, quad, poly):
-    """rectangle_shares of one point p (facing-the-eye normal m, view v) for the light whose area
-    terms are row `row` of core.shading's `terms`; quad (4,3) and poly (MAX_VERTICES, 3) scratch.
+def _light_one(terms, row, outlines, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, shape, poly):
+    """light_shares of one point p (facing-the-eye normal m, view v) for the light whose area terms
+    are row `row` of core.shading's `terms` (its vertex count in column 21) and whose outline is
+    outlines[row] (ROUND_SIDES, 2); shape (ROUND_SIDES, 3) and poly (MAX_VERTICES, 3) scratch.
     Returns the form factor and the lobe share."""
     c0, c1, c2 = terms[row, 0], terms[row, 1], terms[row, 2]
     if (p0 - c0) * terms[row, 5] + (p1 - c1) * terms[row, 6] + (p2 - c2) * terms[row, 7] <= 0.0:
@@ -225,19 +242,18 @@ def _rectangle_one(terms, row, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, roughn
         size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
     t0, t1, t2 = t0 / size, t1 / size, t2 / size
     b0, b1, b2 = m1 * t2 - m2 * t1, m2 * t0 - m0 * t2, m0 * t1 - m1 * t0
-    hx, hy = terms[row, 15], terms[row, 16]
-    for k in range(4):  # the corners, in core.ltc.CORNERS' order
-        sx = -hx if k == 0 or k == 3 else hx
-        sy = -hy if k < 2 else hy
-        r0 = c0 + sx * terms[row, 9] + sy * terms[row, 12] - p0
-        r1 = c1 + sx * terms[row, 10] + sy * terms[row, 13] - p1
-        r2 = c2 + sx * terms[row, 11] + sy * terms[row, 14] - p2
-        quad[k, 0] = r0 * t0 + r1 * t1 + r2 * t2
-        quad[k, 1] = r0 * b0 + r1 * b1 + r2 * b2
-        quad[k, 2] = r0 * m0 + r1 * m1 + r2 * m2
-    diffuse = _clipped_share_one(quad, poly)
+    count = int(terms[row, 21])
+    for k in range(count):  # the light's vertices, from the point, in the point's frame
+        x, y = outlines[row, k, 0], outlines[row, k, 1]
+        r0 = c0 + x * terms[row, 9] + y * terms[row, 12] - p0
+        r1 = c1 + x * terms[row, 10] + y * terms[row, 13] - p1
+        r2 = c2 + x * terms[row, 11] + y * terms[row, 14] - p2
+        shape[k, 0] = r0 * t0 + r1 * t1 + r2 * t2
+        shape[k, 1] = r0 * b0 + r1 * b1 + r2 * b2
+        shape[k, 2] = r0 * m0 + r1 * m1 + r2 * m2
+    diffuse = _clipped_share_one(shape, count, poly)
     a, b, c, d = _lookup_one(table, cos_v, roughness)
-    for k in range(4):
-        x, z = quad[k, 0], quad[k, 2]
-        quad[k, 0], quad[k, 1], quad[k, 2] = a * x + b * z, c * quad[k, 1], d * x + z
-    return diffuse, _clipped_share_one(quad, poly)
+    for k in range(count):
+        x, z = shape[k, 0], shape[k, 2]
+        shape[k, 0], shape[k, 1], shape[k, 2] = a * x + b * z, c * shape[k, 1], d * x + z
+    return diffuse, _clipped_share_one(shape, count, poly)

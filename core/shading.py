@@ -12,9 +12,9 @@ What is modelled, per splat, vectorised over splats (float64 inside, float32 out
   disc and each area-light sample give a highlight of about their size instead of a needle (the
   highlight of a 1 m disc 1.5 m away comes within 12% of the BRDF integrated over the disc at
   roughness 0.3, 4% at 0.45, 1% at 0.7; at 0.1 a 0.5 m disc's is 29% dim: tests/test_shading.py);
-  a square or rectangular light's smooth lobes (roughness up to core.ltc.ROUGHNESS) are integrated
+  an area light's smooth lobes (roughness up to core.ltc.ROUGHNESS; no Spread) are integrated
   over the light instead, the diffuse exactly and the specular by fitted cosines (core.ltc: within
-  2% of the highlight where 16 samples left 8-29%);
+  2% of the highlight where 16 samples left up to a third);
 - world: a uniform environment of radiance W gives diffuse albedo * (1 - metallic) * (1 - E) * W and
   specular E * W (white furnace: albedo 1, metallic 0 sends back exactly W), each scaled by the share
   of the world the splat sees on its eye's side when that is given (core.ambient), else unoccluded:
@@ -223,8 +223,8 @@ TERMS_CHUNK = 1 << 15  # points per step of the NumPy path: an area light's 24 s
 def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tuple[np.ndarray, np.ndarray]:
     """One light's unshadowed diffuse factor (irradiance on the surface, E cos) and specular radiance,
     (N,3) each. Per emitter only (N,) scalars are summed: the light's colour and Schlick's F0 come in
-    once at the end (F = F0 (1 - w) + w). A rectangular light's smooth splats are integrated
-    (core.ltc, unless not `integrate`): the lobe's share times its albedo, split the same way."""
+    once at the end (F = F0 (1 - w) + w). An area light's smooth splats are integrated (core.ltc,
+    unless not `integrate`): the lobe's share times its albedo, split the same way."""
     n = len(points)
     diffuse, tinted, white = (np.zeros(n) for _ in range(3))
     alpha = np.maximum(rough * rough, ALPHA_MIN)
@@ -233,7 +233,7 @@ def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tupl
         if integrate and ltc.integrated(light):  # its smooth splats integrated, the others sampled
             smooth, part = part[rough[part] <= ltc.ROUGHNESS], part[rough[part] > ltc.ROUGHNESS]
             radiance = AREA_RADIANCE * light.power / light.area
-            form, share = ltc.rectangle_shares(light, points[smooth], normal[smooth], view[smooth], rough[smooth])
+            form, share = ltc.light_shares(light, points[smooth], normal[smooth], view[smooth], rough[smooth])
             cos_v = np.maximum(np.einsum("ij,ij->i", normal[smooth], view[smooth]), 0.0)
             scale, bias = albedo_parts(cos_v, rough[smooth])
             diffuse[smooth] = math.pi * radiance * form
@@ -271,8 +271,8 @@ def shade(
     others get none of its light, and it counts as no shadow on them.
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
     default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
-    integrate: a rectangular light's smooth lobes integrated (core.ltc); False samples them as every
-    other area light is sampled.
+    integrate: an area light's smooth lobes integrated (core.ltc); False samples them as rougher
+    lobes are sampled.
     backend: "auto" (the compiled kernel where numba loads, core.jit) or "numpy" (the reference)."""
     if not material.has_material(cloud):
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
@@ -440,7 +440,8 @@ def _emitters(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
 # without a Spread), from which a splat's grid follows (core.lights.area_grids); its local x and y
 # axes (6), half extents (2), 1 for a round shape, tan(spread/2) (0 without a Spread: no reachable
 # disc, core.lights.reachable_discs), its area, the radiance (times the spread's scale) a square
-# metre of it sends, and 1 where its shading is integrated (core.ltc.integrated), not sampled.
+# metre of it sends, and the number of its polygon's vertices where its smooth splats' shading is
+# integrated (core.ltc.integrated, outline), 0 where it is sampled.
 AREA_FIELDS = 22
 
 
@@ -459,7 +460,7 @@ def _area_terms(lights: list[Light], integrate: bool = True) -> np.ndarray:
         rows.append(
             [*light.position, AREA_REACH * side, AREA_GLOSS * side, *light.direction, spread]
             + [*light.x_axis, *y_axis(light), half_x, half_y, float(light.round), tan_half, light.area, radiance]
-            + [float(integrate and ltc.integrated(light))]
+            + [float(len(ltc.outline(light)) if integrate and ltc.integrated(light) else 0)]
         )
     return np.array(rows, np.float64).reshape(-1, AREA_FIELDS)
 
@@ -489,12 +490,16 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     rough, metal = material.roughness(cloud), material.metallic(cloud)
     diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
     (emitters, spans), terms, rings = _emitters(lights), _area_terms(lights, integrate), disc_rings()
+    outlines = np.zeros((len(lights), ltc.ROUND_SIDES, 2))  # each integrated light's polygon (core.ltc)
+    for index, light in enumerate(lights):  # a loop over lights
+        if terms[index, 21] > 0.0:
+            outlines[index, : int(terms[index, 21])] = ltc.outline(light)
     flags = np.array([ortho, multiscatter, world is not None])
     in_chunks(
         n,
         lambda lo, hi: kernel(
-            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms, rings, ltc.INVERSE,
-            colors, vis, reach, world_color, seen_world, sky, scale, bias, diffuse, specular, shadow,
+            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
+            ltc.INVERSE, colors, vis, reach, world_color, seen_world, sky, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -502,7 +507,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
 
 def _shade_kernel():
     """The compiled twin of shade (core.jit), or None: NumPy then does the work."""
-    if jit.compiled(ltc.__name__, ltc.KERNEL) is None:  # its rectangles' twins, which the loop calls
+    if jit.compiled(ltc.__name__, ltc.KERNEL) is None:  # its lights' polygon twins, which the loop calls
         return None
     return jit.compiled(__name__, SHADE_KERNEL)
 
@@ -628,14 +633,14 @@ def _lobe_sky_one(seen, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallbac
     return share / total if total > 0.0 else fallback
 
 
-def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, terms, rings, table,
-                colors, vis, reach, world, seen_world, sky, scale, bias, diffuse, specular, shadow):  # fmt: skip
+def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
+                table, colors, vis, reach, world, seen_world, sky, scale, bias, diffuse, specular, shadow):  # fmt: skip
     """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
     f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     out_d, out_s = np.empty(3), np.empty(3)
     cuts, lengths = np.empty(9), np.empty(8)  # a reachable disc's ring pieces (_ring_arcs)
-    quad, poly = np.empty((4, 3)), np.empty((ltc.MAX_VERTICES, 3))  # a rectangle's polygons (core.ltc)
+    shape, poly = np.empty((ltc.ROUND_SIDES, 3)), np.empty((ltc.MAX_VERTICES, 3))  # a light's polygons (core.ltc)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
     for i in range(lo, hi):
         p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
@@ -661,9 +666,9 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
         tan2_v = _tan2(cos_vg)  # the view's part of Smith's Lambda, the same for every emitter
         acc[:] = 0.0
         for k in range(n_lights):
-            if terms[k, 21] > 0.5 and r <= ltc.ROUGHNESS:  # a rectangle and a smooth lobe: integrated (core.ltc)
-                form, share = ltc._rectangle_one(
-                    terms, k, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, r, table, quad, poly
+            if terms[k, 21] > 0.5 and r <= ltc.ROUGHNESS:  # a smooth lobe: the light integrated (core.ltc)
+                form, share = ltc._light_one(
+                    terms, k, outlines, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, r, table, shape, poly
                 )
                 acc[k, 0] += math.pi * terms[k, 20] * form
                 acc[k, 1] += terms[k, 20] * share * s_tab
