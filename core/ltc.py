@@ -1,11 +1,13 @@
-"""An area light's diffuse and GGX specular, integrated over the light rather than sampled.
+"""A light's diffuse and GGX specular, integrated over the light rather than sampled.
 
-The light is a polygon: a square or rectangle its four corners, a disc or ellipse ROUND_SIDES sides
-of the same area. The diffuse is then exact (for a round light, up to that polygon): a uniform
-Lambertian polygon's irradiance is the integral of the clamped cosine over the spherical polygon it
-spans (Lambert's contour formula: per edge, the angle it subtends times the normal's component along
-the edge plane's normal, summed and divided by 2 pi), the polygon first clipped to the surface's
-upper hemisphere.
+An area light is a polygon: a square or rectangle its four corners, a disc or ellipse ROUND_SIDES
+sides of the same area. A sphere light (a point or spot light with a radius) or the sun's disc is
+seen from a point as a disc across the direction to it, that polygon too (disc_shares): only its
+highlight is integrated, its diffuse being a point's. An area light's diffuse is then exact (for a
+round light, up to that polygon): a uniform Lambertian polygon's irradiance is the integral of the
+clamped cosine over the spherical polygon it spans (Lambert's contour formula: per edge, the angle
+it subtends times the normal's component along the edge plane's normal, summed and divided by
+2 pi), the polygon first clipped to the surface's upper hemisphere.
 
 The specular uses linearly transformed cosines (Heitz, Dupuy, Hill and Neubelt 2016): the GGX lobe
 towards one view, normalised, is close to a clamped cosine seen through a 3x3 matrix, so its integral
@@ -20,7 +22,8 @@ at most 16 samples, leaves a highlight the shape of its samples (28% of its peak
 tail towards the normal), 7-14% off at roughness 0.45-1, where the samples keep within 1%
 (tests/test_ltc.py). A smooth splat's cost is then two polygons whatever its distance, where the
 grid needed 16 samples. Rougher splats and lights narrowed by a Spread are sampled
-(core.lights.incident).
+(core.lights.incident); a round light's rougher highlight is its widened lobe (core.shading), which
+left a smooth one's 16-36% off, the polygon 0.2-1.5% (up to 15% at a near mirror's rim).
 
 Each function has a scalar twin (`_..._one`) for the compiled shading kernel, written the same way.
 """
@@ -39,7 +42,10 @@ CORNERS = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))  # a rectangle's 
 ROUND_SIDES = 16
 MAX_VERTICES = ROUND_SIDES + 1  # a convex polygon cut by a plane keeps at most one vertex more
 EDGE_DEGREE = 10  # of the compiled contour formula's polynomial (_edge_polynomial): 6e-9 relative
-KERNEL = ("_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_light_one")
+KERNEL = (
+    "_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_frame_one", "_lobe_share_one",
+    "_light_one", "_disc_one",
+)  # fmt: skip
 
 
 def integrated(light: Light) -> bool:
@@ -48,15 +54,22 @@ def integrated(light: Light) -> bool:
     return light.kind == "area" and spread_terms(light)[0] <= 0.0
 
 
+def _unit_round() -> np.ndarray:
+    """(ROUND_SIDES, 2) the polygon standing for a unit disc: its vertices at the radius that keeps
+    the disc's area, in order around it."""
+    angle = 2.0 * math.pi * np.arange(ROUND_SIDES) / ROUND_SIDES
+    same_area = math.sqrt(2.0 * math.pi / (ROUND_SIDES * math.sin(2.0 * math.pi / ROUND_SIDES)))
+    return np.c_[np.cos(angle), np.sin(angle)] * same_area
+
+
+ROUND = _unit_round()
+
+
 def outline(light: Light) -> Annotated[np.ndarray, "(V, 2)"]:
     """The light's polygon (V,2) in its own x and y (metres), in order around it: a rectangle's
     corners, or ROUND_SIDES vertices on the disc or ellipse scaled to keep its area."""
     half = np.array(light.extent) / 2.0
-    if not light.round:
-        return np.array(CORNERS) * half
-    angle = 2.0 * math.pi * np.arange(ROUND_SIDES) / ROUND_SIDES
-    same_area = math.sqrt(2.0 * math.pi / (ROUND_SIDES * math.sin(2.0 * math.pi / ROUND_SIDES)))
-    return np.c_[np.cos(angle), np.sin(angle)] * half * same_area
+    return ROUND * half if light.round else np.array(CORNERS) * half
 
 
 def vertices(light: Light) -> Annotated[np.ndarray, "(V, 3)"]:
@@ -136,11 +149,39 @@ def light_shares(
     local = np.einsum("nij,nvj->nvi", frame, vertices(light)[None] - points[:, None, :])
     ahead = (points - light.position) @ light.direction > 0.0
     diffuse = np.where(ahead, clipped_share(local), 0.0)
+    return diffuse, np.where(ahead, _lobe_share(local, normal, view, roughness), 0.0)
+
+
+def disc_shares(
+    direction: Annotated[np.ndarray, "(N, 3)"],
+    half_angle: Annotated[np.ndarray, "(N,)"],
+    normal: Annotated[np.ndarray, "(N, 3)"],
+    view: Annotated[np.ndarray, "(N, 3)"],
+    roughness: Annotated[np.ndarray, "(N,)"],
+) -> Annotated[np.ndarray, "(N,)"]:
+    """(N,) the share of the normalised GGX lobe towards `view` (roughness up to ROUGHNESS) that a
+    round light covers: a sphere light or the sun's disc, seen from each point as a disc of
+    `half_angle` (N,) about the unit `direction` (N,3) towards its centre (the disc across that
+    direction at distance 1, radius tan(half_angle), as ROUND's polygon). Its specular radiance is L
+    times this times the lobe's albedo, L = E / (pi sin^2(half_angle)) for the irradiance E it gives
+    a surface facing it."""
+    helper = np.where(np.abs(direction[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    across = np.cross(direction, helper)
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    other = np.cross(direction, across)
+    radius = np.tan(half_angle)[:, None, None]
+    ring = direction[:, None, :] + radius * (ROUND[None, :, :1] * across[:, None] + ROUND[None, :, 1:] * other[:, None])
+    local = np.einsum("nij,nvj->nvi", frames(normal, view), ring)
+    return _lobe_share(local, normal, view, roughness)
+
+
+def _lobe_share(local, normal, view, roughness):
+    """(N,) clipped_share of the polygons `local` (N,V,3, in each point's frame) taken through the
+    point's fitted inverse matrix."""
     cos_v = np.einsum("ij,ij->i", normal, view)
     a, b, c, d = inverse_params(cos_v, roughness).T
     x, y, z = local[..., 0], local[..., 1], local[..., 2]
-    lobe = np.stack([a[:, None] * x + b[:, None] * z, c[:, None] * y, d[:, None] * x + z], axis=2)
-    return diffuse, np.where(ahead, clipped_share(lobe), 0.0)
+    return clipped_share(np.stack([a[:, None] * x + b[:, None] * z, c[:, None] * y, d[:, None] * x + z], axis=2))
 
 
 # the compiled kernel's scalar twins ----------------------------------------------------------------
@@ -224,15 +265,8 @@ def _clipped_share_one(shape, count, poly):
     return abs(total) / (2.0 * math.pi)
 
 
-def _light_one(terms, row, outlines, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, shape, poly):
-    """light_shares of one point p (facing-the-eye normal m, view v) for the light whose area terms
-    are row `row` of core.shading's `terms` (its vertex count in column 21) and whose outline is
-    outlines[row] (ROUND_SIDES, 2); shape (ROUND_SIDES, 3) and poly (MAX_VERTICES, 3) scratch.
-    Returns the form factor and the lobe share."""
-    c0, c1, c2 = terms[row, 0], terms[row, 1], terms[row, 2]
-    if (p0 - c0) * terms[row, 5] + (p1 - c1) * terms[row, 6] + (p2 - c2) * terms[row, 7] <= 0.0:
-        return 0.0, 0.0  # behind the light
-    # the frame: x along the view's tangent part
+def _frame_one(m0, m1, m2, v0, v1, v2, cos_v):
+    """frames() of one point: its x axis (the view's tangent part) and y = m x x."""
     t0, t1, t2 = v0 - m0 * cos_v, v1 - m1 * cos_v, v2 - m2 * cos_v
     size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
     if size <= 1e-9:
@@ -241,19 +275,60 @@ def _light_one(terms, row, outlines, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, 
         t0, t1, t2 = t0 - m0 * along, t1 - m1 * along, t2 - m2 * along
         size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
     t0, t1, t2 = t0 / size, t1 / size, t2 / size
-    b0, b1, b2 = m1 * t2 - m2 * t1, m2 * t0 - m0 * t2, m0 * t1 - m1 * t0
-    count = int(terms[row, 21])
-    for k in range(count):  # the light's vertices, from the point, in the point's frame
-        x, y = outlines[row, k, 0], outlines[row, k, 1]
-        r0 = c0 + x * terms[row, 9] + y * terms[row, 12] - p0
-        r1 = c1 + x * terms[row, 10] + y * terms[row, 13] - p1
-        r2 = c2 + x * terms[row, 11] + y * terms[row, 14] - p2
-        shape[k, 0] = r0 * t0 + r1 * t1 + r2 * t2
-        shape[k, 1] = r0 * b0 + r1 * b1 + r2 * b2
-        shape[k, 2] = r0 * m0 + r1 * m1 + r2 * m2
-    diffuse = _clipped_share_one(shape, count, poly)
+    return t0, t1, t2, m1 * t2 - m2 * t1, m2 * t0 - m0 * t2, m0 * t1 - m1 * t0
+
+
+def _lobe_share_one(shape, count, poly, table, cos_v, roughness):
+    """_lobe_share of one polygon, the first `count` rows of shape (V,3) (overwritten)."""
     a, b, c, d = _lookup_one(table, cos_v, roughness)
     for k in range(count):
         x, z = shape[k, 0], shape[k, 2]
         shape[k, 0], shape[k, 1], shape[k, 2] = a * x + b * z, c * shape[k, 1], d * x + z
-    return diffuse, _clipped_share_one(shape, count, poly)
+    return _clipped_share_one(shape, count, poly)
+
+
+def _light_one(terms, row, outlines, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, shape, poly):
+    """light_shares of one point p (facing-the-eye normal m, view v) for the light whose area terms
+    are row `row` of core.shading's `terms` (its vertex count in column 21) and whose outline is
+    outlines[row] (ROUND_SIDES, 2); shape (ROUND_SIDES, 3) and poly (MAX_VERTICES, 3) scratch.
+    Returns the form factor and the lobe share."""
+    c0, c1, c2 = terms[row, 0], terms[row, 1], terms[row, 2]
+    if (p0 - c0) * terms[row, 5] + (p1 - c1) * terms[row, 6] + (p2 - c2) * terms[row, 7] <= 0.0:
+        return 0.0, 0.0  # behind the light
+    t0, t1, t2, b0, b1, b2 = _frame_one(m0, m1, m2, v0, v1, v2, cos_v)
+    # the centre (from the point) and the light's axes in the point's frame: each vertex is then a sum
+    r0, r1, r2 = c0 - p0, c1 - p1, c2 - p2
+    cx, cy, cz = r0 * t0 + r1 * t1 + r2 * t2, r0 * b0 + r1 * b1 + r2 * b2, r0 * m0 + r1 * m1 + r2 * m2
+    x0, x1, x2 = terms[row, 9], terms[row, 10], terms[row, 11]
+    xx, xy, xz = x0 * t0 + x1 * t1 + x2 * t2, x0 * b0 + x1 * b1 + x2 * b2, x0 * m0 + x1 * m1 + x2 * m2
+    y0, y1, y2 = terms[row, 12], terms[row, 13], terms[row, 14]
+    yx, yy, yz = y0 * t0 + y1 * t1 + y2 * t2, y0 * b0 + y1 * b1 + y2 * b2, y0 * m0 + y1 * m1 + y2 * m2
+    count = int(terms[row, 21])
+    for k in range(count):  # the light's vertices, from the point, in the point's frame
+        x, y = outlines[row, k, 0], outlines[row, k, 1]
+        shape[k, 0], shape[k, 1], shape[k, 2] = cx + x * xx + y * yx, cy + x * xy + y * yy, cz + x * xz + y * yz
+    diffuse = _clipped_share_one(shape, count, poly)
+    return diffuse, _lobe_share_one(shape, count, poly, table, cos_v, roughness)
+
+
+def _disc_one(l0, l1, l2, tan_half, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, shape, poly):
+    """disc_shares of one point for a round light about the unit direction l with tan(half angle)."""
+    h0, h1, h2 = (1.0, 0.0, 0.0) if abs(l0) < 0.9 else (0.0, 1.0, 0.0)
+    a0, a1, a2 = l1 * h2 - l2 * h1, l2 * h0 - l0 * h2, l0 * h1 - l1 * h0
+    size = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    a0, a1, a2 = a0 / size, a1 / size, a2 / size
+    o0, o1, o2 = l1 * a2 - l2 * a1, l2 * a0 - l0 * a2, l0 * a1 - l1 * a0
+    t0, t1, t2, b0, b1, b2 = _frame_one(m0, m1, m2, v0, v1, v2, cos_v)
+    a, b, c, d = _lookup_one(table, cos_v, roughness)
+    # the disc's centre and axes in the point's frame and through the inverse matrix (both linear):
+    # each vertex is then a sum
+    lx, ly, lz = l0 * t0 + l1 * t1 + l2 * t2, l0 * b0 + l1 * b1 + l2 * b2, l0 * m0 + l1 * m1 + l2 * m2
+    ax, ay, az = a0 * t0 + a1 * t1 + a2 * t2, a0 * b0 + a1 * b1 + a2 * b2, a0 * m0 + a1 * m1 + a2 * m2
+    ox, oy, oz = o0 * t0 + o1 * t1 + o2 * t2, o0 * b0 + o1 * b1 + o2 * b2, o0 * m0 + o1 * m1 + o2 * m2
+    lx, ly, lz = a * lx + b * lz, c * ly, d * lx + lz
+    ax, ay, az = tan_half * (a * ax + b * az), tan_half * c * ay, tan_half * (d * ax + az)
+    ox, oy, oz = tan_half * (a * ox + b * oz), tan_half * c * oy, tan_half * (d * ox + oz)
+    for k in range(ROUND_SIDES):
+        x, y = ROUND[k, 0], ROUND[k, 1]
+        shape[k, 0], shape[k, 1], shape[k, 2] = lx + x * ax + y * ox, ly + x * ay + y * oy, lz + x * az + y * oz
+    return _clipped_share_one(shape, ROUND_SIDES, poly)

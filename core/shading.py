@@ -12,9 +12,9 @@ What is modelled, per splat, vectorised over splats (float64 inside, float32 out
   disc and each area-light sample give a highlight of about their size instead of a needle (the
   highlight of a 1 m disc 1.5 m away comes within 12% of the BRDF integrated over the disc at
   roughness 0.3, 4% at 0.45, 1% at 0.7; at 0.1 a 0.5 m disc's is 29% dim: tests/test_shading.py);
-  an area light's smooth lobes (roughness up to core.ltc.ROUGHNESS; no Spread) are integrated
-  over the light instead, the diffuse exactly and the specular by fitted cosines (core.ltc: within
-  2% of the highlight where 16 samples left up to a third);
+  smooth lobes (roughness up to core.ltc.ROUGHNESS) are integrated over the light instead by fitted
+  cosines (core.ltc: within 2% of the highlight where the samples or the widened lobe left up to a
+  third): an area light without a Spread, its diffuse exactly too, a sphere light or the sun's disc;
 - world: a uniform environment of radiance W gives diffuse albedo * (1 - metallic) * (1 - E) * W and
   specular E * W (white furnace: albedo 1, metallic 0 sends back exactly W), each scaled by the share
   of the world the splat sees on its eye's side when that is given (core.ambient), else unoccluded:
@@ -223,8 +223,9 @@ TERMS_CHUNK = 1 << 15  # points per step of the NumPy path: an area light's 24 s
 def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tuple[np.ndarray, np.ndarray]:
     """One light's unshadowed diffuse factor (irradiance on the surface, E cos) and specular radiance,
     (N,3) each. Per emitter only (N,) scalars are summed: the light's colour and Schlick's F0 come in
-    once at the end (F = F0 (1 - w) + w). An area light's smooth splats are integrated (core.ltc,
-    unless not `integrate`): the lobe's share times its albedo, split the same way."""
+    once at the end (F = F0 (1 - w) + w). Smooth splats' highlights are integrated over the light
+    (core.ltc, unless not `integrate`): the lobe's share times its albedo, split the same way; under
+    an area light their diffuse too."""
     n = len(points)
     diffuse, tinted, white = (np.zeros(n) for _ in range(3))
     alpha = np.maximum(rough * rough, ALPHA_MIN)
@@ -240,9 +241,19 @@ def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tupl
             tinted[smooth], white[smooth] = radiance * share * scale, radiance * share * bias
         for inc in incident(light, points[part], alpha[part]):  # one emitter, or an area light's samples
             diffuse[part] += inc.strength * np.maximum(np.einsum("ij,ij->i", normal[part], inc.direction), 0.0)
-            widened = np.minimum(np.hypot(alpha[part], 0.5 * angular_radius(light, inc)), 1.0)
+            half = angular_radius(light, inc)
+            widened = np.minimum(np.hypot(alpha[part], 0.5 * half), 1.0)
             scalar, weight = ggx_parts(normal[part], view[part], inc.direction, widened)
             scalar *= inc.strength
+            if integrate and light.kind != "area":  # a round light's smooth highlights integrated
+                disc = _round_light(half, rough[part]) & (scalar > 0.0)
+                scalar[disc] = 0.0
+                at = part[disc]
+                share = ltc.disc_shares(inc.direction[disc], half[disc], normal[at], view[at], rough[at])
+                scale, bias = albedo_parts(np.maximum(np.einsum("ij,ij->i", normal[at], view[at]), 0.0), rough[at])
+                radiance = inc.strength[disc] / (math.pi * np.sin(half[disc]) ** 2)
+                tinted[at] += radiance * share * scale
+                white[at] += radiance * share * bias
             tinted[part] += scalar * (1.0 - weight)
             white[part] += scalar * weight
     specular = (f0 * tinted[:, None] + white[:, None]) * (light.color * light.specular)
@@ -341,6 +352,16 @@ def lobe_sky(
         lit = total > 0.0
         out[part][lit] = np.einsum("ik,ik->i", weight[lit], seen[part][lit]) / total[lit]
     return out
+
+
+ROUND_LIGHT_MAX = 1.4  # radians: a sphere light wider than this as seen (a splat at its surface) stays sampled
+
+
+def _round_light(half: np.ndarray, roughness: np.ndarray) -> np.ndarray:
+    """(N,) bool: where a sphere light or the sun, seen `half` (N,) radians wide, has its highlight
+    integrated (core.ltc.disc_shares) on splats of `roughness` (N,): a smooth lobe, a light with a
+    size, not so close that it fills the sky."""
+    return (roughness <= ltc.ROUGHNESS) & (half > 0.0) & (half < ROUND_LIGHT_MAX)
 
 
 def _visibility(visibility: dict[int, np.ndarray] | None, index: int, n: int) -> Floats:
@@ -494,7 +515,7 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     for index, light in enumerate(lights):  # a loop over lights
         if terms[index, 21] > 0.0:
             outlines[index, : int(terms[index, 21])] = ltc.outline(light)
-    flags = np.array([ortho, multiscatter, world is not None])
+    flags = np.array([ortho, multiscatter, world is not None, integrate])
     in_chunks(
         n,
         lambda lo, hi: kernel(
@@ -746,6 +767,13 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                 acc[k, 0] += strength * cos_l
                 if kind != SUN:  # the emitter's angular radius (angular_radius)
                     radius = _asin(min(max(radius * inverse, 0.0), 1.0))
+                if flags[3] and kind != AREA and 0.0 < radius < ROUND_LIGHT_MAX and r <= ltc.ROUGHNESS:
+                    # a round light's smooth highlight, integrated (core.ltc, _round_light)
+                    tan_half, sine = math.tan(radius), math.sin(radius)
+                    share = ltc._disc_one(lx, ly, lz, tan_half, m0, m1, m2, v0, v1, v2, cos_v, r, table, shape, poly)
+                    acc[k, 1] += strength / (math.pi * sine * sine) * share * s_tab
+                    acc[k, 2] += strength / (math.pi * sine * sine) * share * b_tab
+                    continue
                 a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
                 hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
                 h_inverse = 1.0 / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-300)

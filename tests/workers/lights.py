@@ -80,10 +80,12 @@ PRINCIPLED = {
     "principled_rough_metal": ((0.9, 0.6, 0.3), 0.8, 1.0, "MULTI_GGX"),
     "principled_rough_dielectric": ((0.3, 0.6, 0.4), 0.7, 0.0, "MULTI_GGX"),
     "principled_glossy_area": ((0.9, 0.6, 0.3), 0.15, 1.0, "GGX"),
+    "principled_glossy_sphere": ((0.9, 0.6, 0.3), 0.1, 1.0, "GGX"),
 }
-# The lights of the Principled planes: a small point light, but a rectangle mirrored by the glossy
-# metal (a highlight core.ltc integrates)
+# The lights of the Principled planes: a small point light, but a rectangle and a sphere mirrored by
+# the glossy metals (highlights core.ltc integrates)
 PRINCIPLED_LIGHTS = {
+    "principled_glossy_sphere": ("POINT", dict(energy=20.0, shadow_soft_size=0.15), (0.2, 1.3, 1.5), (0, 0, 0)),
     "principled_glossy_area": (
         "AREA",
         dict(energy=8.0, shape="RECTANGLE", size=0.5, size_y=0.3),
@@ -261,6 +263,9 @@ class Worker(BlenderWorker):
 
     def principled_glossy_area(self):
         return self.run_light("principled_glossy_area")
+
+    def principled_glossy_sphere(self):
+        return self.run_light("principled_glossy_sphere")
 
 
 if __name__ == "__main__":
