@@ -192,32 +192,37 @@ def kind_rows(cloud, camera, world, repeat):
 
 
 def glossy_rows(cloud, camera, world, repeat):
-    """Glossy splats under the area light, square or a disc: their smooth lobes integrated (core.ltc) against
-    the same light sampled (core.lights' grid, 16 samples a splat for such lobes), the shading alone,
-    each with its highlight's error against the GGX BRDF summed over the light (tests/test_ltc.py's
-    metal point and six eyes, the worst over them, relative to the brightest)."""
+    """Glossy splats under the area light (square, then a disc) and the point light (a sphere): their
+    smooth highlights integrated (core.ltc) against the same light sampled (16 samples a splat for
+    such lobes) or, for the sphere, its widened lobe; the shading alone, each with its highlight's
+    error against the BRDF over the light (tests/test_ltc.py's metal point and eyes, the worst over
+    them relative to the brightest)."""
     rows = []
-    for shape, roughness in (("SQUARE", 0.1), ("SQUARE", 0.2), ("DISK", 0.1)):
-        light = dataclasses.replace(LIGHTS[3], shape=shape)
+    cases = [
+        (dataclasses.replace(LIGHTS[3], shape="SQUARE"), 0.1),
+        (dataclasses.replace(LIGHTS[3], shape="SQUARE"), 0.2),
+        (dataclasses.replace(LIGHTS[3], shape="DISK"), 0.1),
+        (LIGHTS[0], 0.1),
+    ]
+    for light, roughness in cases:
         glossy = material.with_material(cloud, roughness=np.full(len(cloud), roughness, np.float32))
         sampled, integrated, _ = paired_ratio(
             lambda: shading.shade(glossy, camera, [light], world, integrate=False),
             lambda: shading.shade(glossy, camera, [light], world),
             repeat,
         )
+        error, baseline_error = highlight_error(light, roughness)
+        name = f"{light.shape.lower()} area light" if light.kind == "area" else "point light (a sphere)"
         rows.append(
             Row(
                 TOPIC,
-                f"shading glossy splats (roughness {roughness}) under the area light ({shape.lower()}), integrated",
+                f"shading glossy splats (roughness {roughness}) under the {name}, integrated",
                 integrated,
                 sampled,
+                {"highlight_err": error, "baseline_err": baseline_error},
                 {
-                    name: highlight_error(shape, roughness, name == "baseline_err")
-                    for name in ("highlight_err", "baseline_err")
-                },
-                {
-                    "baseline": "the same light sampled",
-                    "error against": "GGX summed over the light",
+                    "baseline": "the same light sampled (a sphere: its widened lobe)",
+                    "error against": "GGX over the light",
                     "splats": len(cloud),
                 },
             )
@@ -225,24 +230,22 @@ def glossy_rows(cloud, camera, world, repeat):
     return rows
 
 
-def highlight_error(shape, roughness, sampled):
-    """The worst error over six eyes of a metal point's highlight under a 1 m square or disc light
-    1.5 m up, relative to the brightest, against the BRDF summed over the light (tests/test_ltc.py's
-    case)."""
-    from test_ltc import EYES, UP, light_quadrature
-    from test_shading import cloud_of
+def highlight_error(light, roughness):
+    """(integrated, sampled): the worst highlight error of tests/test_ltc.py's metal point under a 1 m
+    area light of `light`'s shape 1.5 m up (six eyes), or under a point light of `light`'s radius
+    (eyes at its mirror image and off it), against the BRDF over the light."""
+    from test_ltc import EYES, METAL, UP, highlight_errors, light_quadrature, mirror_eyes, round_light_reference
 
-    light = Light("area", power=40.0, shape=shape, size_x=1.0, position=(0.3, 0.0, 1.5))
-    albedo = np.array([0.9, 0.6, 0.3])
-    point = cloud_of([np.zeros(3)], [UP], [albedo], roughness, 1.0)
-    got, reference = [], []
-    for eye in EYES:  # a loop over six eyes
-        eye = np.array(eye)
-        got.append(shading.shade(point, eye, [light], multiscatter=False, integrate=not sampled).specular[0])
-        view = eye / np.linalg.norm(eye)
-        reference.append(light_quadrature(light, np.zeros(3), UP, view, roughness, f0=albedo, n=1200)[1])
-    got, reference = np.array(got), np.array(reference)
-    return float(np.abs(got - reference).max() / reference.max())
+    if light.kind == "area":
+        small = Light("area", power=40.0, shape=light.shape, size_x=1.0, position=(0.3, 0.0, 1.5))
+        reference = lambda view: light_quadrature(small, np.zeros(3), UP, view, roughness, METAL, 1200)[1]  # noqa: E731
+        return highlight_errors(small, roughness, EYES, reference)
+    position = np.array([0.3, 0.0, 1.5])
+    small = Light("point", power=100.0, position=position, radius=light.radius)
+    towards, half = position / np.linalg.norm(position), math.asin(light.radius / np.linalg.norm(position))
+    radiance = 100.0 / (4.0 * math.pi**2 * light.radius**2)
+    reference = lambda view: round_light_reference(towards, half, view, roughness, METAL, radiance)  # noqa: E731
+    return highlight_errors(small, roughness, mirror_eyes(towards, half), reference)
 
 
 def resolution_sweep(cloud, camera, world, repeat):
