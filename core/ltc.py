@@ -93,8 +93,13 @@ def inverse_params(cos_v: np.ndarray, roughness: np.ndarray) -> Annotated[np.nda
 def clipped_share(polygons: Annotated[np.ndarray, "(N, V, 3)"]) -> Annotated[np.ndarray, "(N,)"]:
     """(N,) the integral of the clamped cosine max(z, 0) / pi over the spherical polygon each row's
     V vertices (directions from the origin, any length; a convex polygon) span: the polygon clipped
-    to z >= 0 (Sutherland-Hodgman), then Lambert's contour formula."""
+    to z >= 0 (Sutherland-Hodgman), then Lambert's contour formula. Rows wholly above the plane (most)
+    skip the clipping."""
     n, v = polygons.shape[:2]
+    out = np.empty(n)
+    cut = (polygons[..., 2] < 0.0).any(axis=1)
+    out[~cut] = _contour(polygons[~cut], np.full(int((~cut).sum()), v))
+    polygons = polygons[cut]
     nxt = np.roll(polygons, -1, axis=1)
     z, z_next = polygons[..., 2], nxt[..., 2]
     up, up_next = z >= 0.0, z_next >= 0.0
@@ -102,23 +107,30 @@ def clipped_share(polygons: Annotated[np.ndarray, "(N, V, 3)"]) -> Annotated[np.
     crossing = polygons + t[..., None] * (nxt - polygons)
     crossing[..., 2] = 0.0
     # each edge gives its start (if above) then its crossing (if it crosses): 2 V slots, in order
-    slots = np.stack([polygons, crossing], axis=2).reshape(n, 2 * v, 3)
-    kept = np.stack([up, up != up_next], axis=2).reshape(n, 2 * v)
+    slots = np.stack([polygons, crossing], axis=2).reshape(-1, 2 * v, 3)
+    kept = np.stack([up, up != up_next], axis=2).reshape(-1, 2 * v)
     order = np.argsort(~kept, axis=1, kind="stable")  # the kept slots first, in their order
-    points = np.take_along_axis(slots, order[..., None], axis=1)[:, : v + 1]
-    count = kept.sum(axis=1)
+    out[cut] = _contour(np.take_along_axis(slots, order[..., None], axis=1)[:, : v + 1], kept.sum(axis=1))
+    return out
+
+
+def _contour(points: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(M,) Lambert's contour formula over the first count (M,) of each row's points (M, V, 3), a
+    polygon above the plane z = 0; 0 for fewer than three."""
     length = np.linalg.norm(points, axis=2, keepdims=True)
     unit = points / np.where(length > 0.0, length, 1.0)
-    index = np.arange(v + 1)
-    following = np.where(index[None] + 1 < count[:, None], index[None] + 1, 0)
-    ahead = np.take_along_axis(unit, following[..., None], axis=1)
+    index = np.arange(points.shape[1])
+    if (count == points.shape[1]).all():  # whole polygons (unclipped): each vertex's next is the row's next
+        ahead = np.roll(unit, -1, axis=1)
+    else:
+        following = np.where(index[None] + 1 < count[:, None], index[None] + 1, 0)
+        ahead = np.take_along_axis(unit, following[..., None], axis=1)
     cross_z = unit[..., 0] * ahead[..., 1] - unit[..., 1] * ahead[..., 0]
-    sine = np.linalg.norm(np.cross(unit, ahead), axis=2)
-    cosine = np.einsum("nvi,nvi->nv", unit, ahead)
-    angle_over_sine = np.where(sine > 1e-12, np.arctan2(sine, cosine) / np.where(sine > 1e-12, sine, 1.0), 1.0)
+    cosine = np.clip(np.einsum("nvi,nvi->nv", unit, ahead), -1.0, 1.0)
+    sine = np.sqrt(np.maximum(1.0 - cosine * cosine, 1e-300))
+    angle_over_sine = np.where(cosine < 1.0 - 1e-12, np.arccos(cosine) / sine, 1.0)  # 1 in the limit
     terms = np.where(index[None] < count[:, None], angle_over_sine * cross_z, 0.0)
-    total = np.abs(terms.sum(axis=1)) / (2.0 * math.pi)
-    return np.where(count >= 3, total, 0.0)
+    return np.where(count >= 3, np.abs(terms.sum(axis=1)) / (2.0 * math.pi), 0.0)
 
 
 def frames(normal: np.ndarray, view: np.ndarray) -> Annotated[np.ndarray, "(N, 3, 3)"]:
@@ -146,7 +158,11 @@ def light_shares(
     Irradiance is pi L times the first, the specular radiance L times the second times the lobe's
     albedo (L the light's radiance)."""
     frame = frames(normal, view)
-    local = np.einsum("nij,nvj->nvi", frame, vertices(light)[None] - points[:, None, :])
+    # the light's centre (from each point) and axes in the point's frame: the vertices are sums of them
+    centre = np.einsum("nij,nj->ni", frame, light.position - points)
+    x_axis, y_axis_ = (frame @ axis for axis in (light.x_axis, y_axis(light)))
+    shape = outline(light)
+    local = centre[:, None] + shape[None, :, :1] * x_axis[:, None] + shape[None, :, 1:] * y_axis_[:, None]
     ahead = (points - light.position) @ light.direction > 0.0
     diffuse = np.where(ahead, clipped_share(local), 0.0)
     return diffuse, np.where(ahead, _lobe_share(local, normal, view, roughness), 0.0)
@@ -169,10 +185,12 @@ def disc_shares(
     across = np.cross(direction, helper)
     across /= np.linalg.norm(across, axis=1, keepdims=True)
     other = np.cross(direction, across)
+    # the centre and the disc's axes in each point's frame: the vertices are then sums of them
+    frame = frames(normal, view)
+    centre, across, other = (np.einsum("nij,nj->ni", frame, vector) for vector in (direction, across, other))
     radius = np.tan(half_angle)[:, None, None]
-    ring = direction[:, None, :] + radius * (ROUND[None, :, :1] * across[:, None] + ROUND[None, :, 1:] * other[:, None])
-    local = np.einsum("nij,nvj->nvi", frames(normal, view), ring)
-    return _lobe_share(local, normal, view, roughness)
+    ring = centre[:, None] + radius * (ROUND[None, :, :1] * across[:, None] + ROUND[None, :, 1:] * other[:, None])
+    return _lobe_share(ring, normal, view, roughness)
 
 
 def _lobe_share(local, normal, view, roughness):
