@@ -90,14 +90,15 @@ def takes_in(link, names):
     return (not included or not included.isdisjoint(names)) and excluded.isdisjoint(names)
 
 
-def scene_world(scene):
+def scene_world(scene, backdrop=None):
     """The world as a uniform environment (core.lights.World) of the world's background colour
     (scene.world_color), occluded by the splats and meshes from the scene's World Occlusion
     directions (0: not). A RelightWarning where nodes drive the background (an environment map):
-    the colour then stands in for them, and the render says how."""
+    the colour then stands in for them, and the render says how. backdrop: world_background(scene)
+    when the caller has read it (the viewport's backdrop: an environment image read once)."""
     from ...core.lights import World
 
-    color, note = world_background(scene)
+    color, note = world_background(scene) if backdrop is None else backdrop
     if note is not None:
         warnings.warn(note, RelightWarning, stacklevel=2)
     return World(color, int(getattr(scene, WORLD_OCCLUSION, 0)))

@@ -19,7 +19,7 @@ from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_
 from ...core.splats import SplatCloud
 from . import relit
 from .lights import scene_world
-from .scene import mesh_engine, surface_triangles, to_scene_linear, world_color
+from .scene import mesh_engine, surface_triangles, to_scene_linear, world_background
 
 
 class View:
@@ -89,12 +89,13 @@ def picture_inputs(depsgraph, kept=None):
     origin = np.zeros(3)
     cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
     meshes = triangles(depsgraph) if mesh_engine(scene) != "NONE" else Triangles.empty()
-    background = None if scene.render.film_transparent else linear_to_srgb(world_color(scene))
+    backdrop = world_background(scene)  # read once for the backdrop and the lighting
+    background = None if scene.render.film_transparent else linear_to_srgb(backdrop[0])
     lighting = None
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else relit.Occluders([])
         lights, *linking = relit.linked_lights(depsgraph, origin, owners, occluders)
-        lighting = Lighting(lights, scene_world(scene), occluders.surfaces, kept, tuple(linking))
+        lighting = Lighting(lights, scene_world(scene, backdrop), occluders.surfaces, kept, tuple(linking))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 
