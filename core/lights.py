@@ -440,6 +440,12 @@ def spread_samples(light: Light, points: np.ndarray) -> tuple[np.ndarray, np.nda
     return sampled, positions, areas
 
 
+def area_radiance(light: Light) -> float:
+    """The radiance (W / (sr m^2), before its colour) an area light's surface sends forwards:
+    AREA_RADIANCE times its power per square metre (a Spread's scale not included)."""
+    return AREA_RADIANCE * light.power / light.area
+
+
 def towards(source: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unit directions (N,3) from points to `source` ((3,) or one per point (N,3)) and the distances
     (N,), float64."""
@@ -468,7 +474,7 @@ def incident(light: Light, points: np.ndarray, lobes: np.ndarray | None = None) 
     grids = area_grids(light, points, lobes)
     table = area_table(light)
     disc, disc_points, disc_areas = spread_samples(light, points)
-    radiance = AREA_RADIANCE * light.power / light.area
+    radiance = area_radiance(light)
     slots = max(int(grids.max(initial=1)) ** 2, SPREAD_SAMPLES if disc.any() else 0)
     out = []
     for k in range(slots):  # a loop over sample slots, not points

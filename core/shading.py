@@ -46,7 +46,6 @@ from .camera import Camera
 from .lights import (
     AREA_GLOSS,
     AREA_GRID,
-    AREA_RADIANCE,
     AREA_REACH,
     AREA_SPREAD,
     ELLIPSE_BISECTIONS,
@@ -56,6 +55,7 @@ from .lights import (
     Incident,
     Light,
     World,
+    area_radiance,
     area_table,
     disc_rings,
     incident,
@@ -233,7 +233,7 @@ def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tupl
         part = np.arange(lo, min(lo + TERMS_CHUNK, n))
         if integrate and ltc.integrated(light):  # its smooth splats integrated, the others sampled
             smooth, part = part[rough[part] <= ltc.ROUGHNESS], part[rough[part] > ltc.ROUGHNESS]
-            radiance = AREA_RADIANCE * light.power / light.area
+            radiance = area_radiance(light)
             form, share = ltc.light_shares(light, points[smooth], normal[smooth], view[smooth], rough[smooth])
             cos_v = np.maximum(np.einsum("ij,ij->i", normal[smooth], view[smooth]), 0.0)
             scale, bias = albedo_parts(cos_v, rough[smooth])
@@ -282,8 +282,8 @@ def shade(
     others get none of its light, and it counts as no shadow on them.
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
     default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
-    integrate: an area light's smooth lobes integrated (core.ltc); False samples them as rougher
-    lobes are sampled.
+    integrate: smooth lobes integrated over the light (core.ltc); False shades them as rougher ones
+    (an area light's samples, a round light's widened lobe).
     backend: "auto" (the compiled kernel where numba loads, core.jit) or "numpy" (the reference)."""
     if not material.has_material(cloud):
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
@@ -448,7 +448,7 @@ def _emitters(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
             tan_half, spread_scale = spread_terms(light)
             for grid in range(1, AREA_GRID + 1):  # 1 + 4 + 9 + 16 samples
                 share = light.area / (grid * grid)
-                strength = AREA_RADIANCE * light.power / light.area * share * spread_scale
+                strength = area_radiance(light) * share * spread_scale
                 radius = math.sqrt(share / math.pi)
                 spans[index, grid] = len(rows), len(rows) + grid * grid
                 for sample in table[grid, : grid * grid]:
@@ -477,7 +477,7 @@ def _area_terms(lights: list[Light], integrate: bool = True) -> np.ndarray:
         tan_half, spread_scale = spread_terms(light)
         spread = AREA_SPREAD * side / tan_half if tan_half > 0.0 else 0.0
         half_x, half_y = 0.5 * light.extent[0], 0.5 * light.extent[1]
-        radiance = AREA_RADIANCE * light.power / light.area * spread_scale
+        radiance = area_radiance(light) * spread_scale
         rows.append(
             [*light.position, AREA_REACH * side, AREA_GLOSS * side, *light.direction, spread]
             + [*light.x_axis, *y_axis(light), half_x, half_y, float(light.round), tan_half, light.area, radiance]
