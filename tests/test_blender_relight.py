@@ -474,6 +474,19 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
     assert caught == []
 
 
+def test_the_final_render_reports_the_world_and_lights_it_cannot_read_once_each(blender):
+    """F12 of a relit ball under an environment texture and a light whose Emission Strength a node
+    drives, drawn by three collection instances: the engine reports the world's stand-in (its mean,
+    directions not modelled) and the light's unread node as Blender warnings, each once."""
+    reports = blender.step("engine_reports")
+    warned = [message for kinds, message in reports if kinds == ["WARNING"]]
+    world = [m for m in warned if "Environment Texture 'Sky HDRI'" in m]
+    light = [m for m in warned if "'IES Stand-in'" in m]
+    assert len(world) == 1 and "mean radiance" in world[0], reports
+    assert len(light) == 1, reports
+    assert not [kinds for kinds, _ in reports if "ERROR" in kinds], reports
+
+
 def test_a_lights_emission_node_scales_its_colour_and_other_nodes_are_reported(blender):
     """A light's Emission node multiplies its colour by its Color x Strength, as Cycles renders it
     (an Emission Strength of 2 doubles a Cycles light, its Color tints it: measured in 5.0); a node

@@ -117,6 +117,7 @@ class Worker(BlenderWorker):
         "meshes_shadow_splats",
         "textured_world",
         "light_nodes",
+        "engine_reports",
         "animation_frames",
         "light_linking",
         "shadow_linking",
@@ -650,6 +651,61 @@ class Worker(BlenderWorker):
         out["driven"] = read()
         bpy.data.objects.remove(key)
         return out
+
+    def engine_reports(self):
+        """A final render (F12) of a relit ball under an environment texture (Background's Color)
+        and a light whose Emission Strength a Value node drives, drawn three times by collection
+        instances: the warnings the engine reports, (kinds, message) each, as it hands them to its
+        `report`."""
+        bpy = self.bpy
+        self.stage("NONE")
+        scene = bpy.context.scene
+        tree = scene.world.node_tree
+        background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        texture = tree.nodes.new("ShaderNodeTexEnvironment")
+        texture.name = "Sky HDRI"
+        texture.image = bpy.data.images.new("Sky", 16, 8, float_buffer=True)
+        tree.links.new(texture.outputs["Color"], background.inputs["Color"])
+        keys = bpy.data.collections.new("Keys")  # in no scene: drawn only by its instances
+        key = self.add_light("Key", "POINT", KEY["location"], (0, 0, 0), (1, 1, 1), dict(energy=KEY["energy"]), keys)
+        if key.data.node_tree is None or bpy.app.version < (5, 0, 0):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                key.data.use_nodes = True
+        nodes = key.data.node_tree
+        value = nodes.nodes.new("ShaderNodeValue")
+        value.name = "IES Stand-in"
+        emission = next(n for n in nodes.nodes if n.bl_idname == "ShaderNodeEmission")
+        nodes.links.new(value.outputs["Value"], emission.inputs["Strength"])
+        instancers = []
+        for k in range(3):
+            instancer = bpy.data.objects.new(f"Keys{k}", None)
+            instancer.instance_type, instancer.instance_collection = "COLLECTION", keys
+            instancer.location = (0.3 * k, 0.0, 0.0)
+            scene.collection.objects.link(instancer)
+            instancers.append(instancer)
+        cloud = self.material_cloud(ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")}), BALL["albedo"])
+        ball = self.splat_object("Ball", cloud)
+        # what the engine hands its report (a RenderEngine's own report cannot be replaced from Python)
+        data = self.module("splat_addon.data")
+        reported_warnings, reports = data.reported_warnings, []
+
+        def kept(report):
+            return reported_warnings(
+                lambda kinds, message: (reports.append((sorted(kinds), message)), report(kinds, message))
+            )
+
+        data.reported_warnings = kept
+        try:
+            bpy.ops.render.render()
+        finally:
+            data.reported_warnings = reported_warnings
+            for obj in (ball, *instancers, key):
+                bpy.data.objects.remove(obj)
+            bpy.data.collections.remove(keys)
+            bpy.data.images.remove(texture.image)
+            tree.nodes.remove(texture)
+        return reports
 
     def animation_frames(self):
         """A relit splat ball over a relit splat floor (splats only, the world occluded from 8
