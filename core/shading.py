@@ -220,12 +220,12 @@ def angular_radius(light: Light, emitter: Incident) -> np.ndarray:
 TERMS_CHUNK = 1 << 15  # points per step of the NumPy path: an area light's 24 sample slots in under 100 MB
 
 
-def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tuple[np.ndarray, np.ndarray]:
+def _light_terms(light, points, normal, view, rough, f0, parts, integrate=True) -> tuple[np.ndarray, np.ndarray]:
     """One light's unshadowed diffuse factor (irradiance on the surface, E cos) and specular radiance,
     (N,3) each. Per emitter only (N,) scalars are summed: the light's colour and Schlick's F0 come in
     once at the end (F = F0 (1 - w) + w). Smooth splats' highlights are integrated over the light
-    (core.ltc, unless not `integrate`): the lobe's share times its albedo, split the same way; under
-    an area light their diffuse too."""
+    (core.ltc, unless not `integrate`): the lobe's share times its albedo (`parts`, albedo_parts'
+    (scale, bias) of every splat), split the same way; under an area light their diffuse too."""
     n = len(points)
     diffuse, tinted, white = (np.zeros(n) for _ in range(3))
     alpha = np.maximum(rough * rough, ALPHA_MIN)
@@ -235,8 +235,7 @@ def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tupl
             smooth, part = part[rough[part] <= ltc.ROUGHNESS], part[rough[part] > ltc.ROUGHNESS]
             radiance = area_radiance(light)
             form, share = ltc.light_shares(light, points[smooth], normal[smooth], view[smooth], rough[smooth])
-            cos_v = np.maximum(np.einsum("ij,ij->i", normal[smooth], view[smooth]), 0.0)
-            scale, bias = albedo_parts(cos_v, rough[smooth])
+            scale, bias = parts[0][smooth], parts[1][smooth]
             diffuse[smooth] = math.pi * radiance * form
             tinted[smooth], white[smooth] = radiance * share * scale, radiance * share * bias
         for inc in incident(light, points[part], alpha[part]):  # one emitter, or an area light's samples
@@ -250,7 +249,7 @@ def _light_terms(light, points, normal, view, rough, f0, integrate=True) -> tupl
                 scalar[disc] = 0.0
                 at = part[disc]
                 share = ltc.disc_shares(inc.direction[disc], half[disc], normal[at], view[at], rough[at])
-                scale, bias = albedo_parts(np.maximum(np.einsum("ij,ij->i", normal[at], view[at]), 0.0), rough[at])
+                scale, bias = parts[0][at], parts[1][at]
                 radiance = inc.strength[disc] / (math.pi * np.sin(half[disc]) ** 2)
                 tinted[at] += radiance * share * scale
                 white[at] += radiance * share * bias
@@ -303,11 +302,12 @@ def shade(
     cos_v = np.maximum(np.einsum("ij,ij->i", normal, view), 0.0)
     boost = multiscatter_compensation(cos_v, rough, f0) if multiscatter else np.ones((n, 3))
     layer = specular_albedo(cos_v, rough, f0) * boost  # what the specular layer takes from the base
+    parts = albedo_parts(cos_v, rough)  # the lobe's albedo split for F0, for lights integrated (core.ltc)
     base = albedo * (1.0 - metal)[:, None] * np.clip(1.0 - layer, 0.0, 1.0)
     diffuse, specular = np.zeros((n, 3)), np.zeros((n, 3))
     lit, seen = np.zeros(n), np.zeros(n)
     for index, light in enumerate(lights):  # a loop over lights
-        d, s = _light_terms(light, points, normal, view, rough, f0, integrate)
+        d, s = _light_terms(light, points, normal, view, rough, f0, parts, integrate)
         d, s = d * base / math.pi, s * boost
         linked = reach[index] if reach.shape[1] > 1 else reach[index, 0]
         vis = _visibility(visibility, index, n) * linked
@@ -769,10 +769,13 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
                     radius = _asin(min(max(radius * inverse, 0.0), 1.0))
                 if flags[3] and kind != AREA and 0.0 < radius < ROUND_LIGHT_MAX and r <= ltc.ROUGHNESS:
                     # a round light's smooth highlight, integrated (core.ltc, _round_light)
-                    tan_half, sine = math.tan(radius), math.sin(radius)
-                    share = ltc._disc_one(lx, ly, lz, tan_half, m0, m1, m2, v0, v1, v2, cos_v, r, table, shape, poly)
-                    acc[k, 1] += strength / (math.pi * sine * sine) * share * s_tab
-                    acc[k, 2] += strength / (math.pi * sine * sine) * share * b_tab
+                    share = ltc._disc_one(
+                        lx, ly, lz, math.tan(radius), m0, m1, m2, v0, v1, v2, cos_v, r, table, shape, poly
+                    )
+                    sine = math.sin(radius)
+                    radiance = strength / (math.pi * sine * sine)  # the light's, seen as its disc
+                    acc[k, 1] += radiance * share * s_tab
+                    acc[k, 2] += radiance * share * b_tab
                     continue
                 a2 = min(alpha * alpha + 0.25 * radius * radius, 1.0)  # the widened lobe's alpha^2
                 hx, hy, hz = v0 + lx, v1 + ly, v2 + lz

@@ -10,7 +10,7 @@ from test_shading import cloud_of, unit
 
 from splatwright.core import jit, ltc
 from splatwright.core.lights import AREA_RADIANCE, Light, y_axis
-from splatwright.core.shading import ALPHA_MIN, DIELECTRIC_F0, ggx_reflect, shade, specular_albedo
+from splatwright.core.shading import ALPHA_MIN, DIELECTRIC_F0, ggx_d, ggx_reflect, shade, specular_albedo
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -192,8 +192,8 @@ def round_light_reference(direction, half_angle, view, roughness, f0, radiance, 
     )
     # the estimator of a lobe drawn by D: f cos / pdf, pdf = D (n.h) / (4 v.h)
     cos_hi = cos_h[inside]
-    d = alpha**2 / (math.pi * (cos_hi**2 * (alpha**2 - 1.0) + 1.0) ** 2)
-    return radiance * (spec / (d * cos_hi / (4.0 * vh[inside]))[:, None]).sum(axis=0) / len(u1)
+    pdf = ggx_d(cos_hi, np.full(m, alpha)) * cos_hi / (4.0 * vh[inside])
+    return radiance * (spec / pdf[:, None]).sum(axis=0) / len(u1)
 
 
 # (radius m, roughness) -> the largest error of the highlight of a point light of that radius 1.5 m

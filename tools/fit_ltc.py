@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from splatwright.core.shading import ALPHA_MIN, ggx_parts
+from splatwright.core.shading import ALPHA_MIN, ggx_d, ggx_parts
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "core" / "ltc_table.py"
@@ -46,10 +46,19 @@ def lobe_samples(view, alpha, u1, u2):
     phi = 2.0 * math.pi * u2
     half = np.stack([sin_h * np.cos(phi), sin_h * np.sin(phi), cos_h], axis=1)
     vh = half @ view
-    directions = 2.0 * vh[:, None] * half - view
-    a2 = alpha * alpha
-    d = a2 / (math.pi * (cos_h * cos_h * (a2 - 1.0) + 1.0) ** 2)
-    return directions, d * cos_h / (4.0 * np.maximum(np.abs(vh), 1e-12))
+    return 2.0 * vh[:, None] * half - view, _half_density(cos_h, vh, alpha)
+
+
+def lobe_density(view, alpha, directions):
+    """(S,) the density of lobe_samples at `directions` (S,3)."""
+    half = directions + view
+    half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-300)
+    return _half_density(np.clip(half[:, 2], 0.0, 1.0), half @ view, alpha)
+
+
+def _half_density(cos_h, vh, alpha):
+    """A reflected direction's density from its half-vector's, D (n.h), over |dl / dh| = 4 |v.h|."""
+    return ggx_d(cos_h, np.full(len(cos_h), alpha)) * cos_h / (4.0 * np.maximum(np.abs(vh), 1e-12))
 
 
 def inverse_matrix(params):
@@ -73,28 +82,16 @@ def ltc_samples(inverse, u1, u2):
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
-def fit_error(params, view, alpha, norm, fixed, u):
-    """The mean cubed density difference over the lobe's samples `fixed` and the LTC's own."""
+def fit_error(params, view, alpha, norm, lobe_dirs, u):
+    """The mean cubed density difference over the lobe's samples `lobe_dirs` and the LTC's own."""
     inverse = inverse_matrix(params)
     if not np.all(np.isfinite(inverse)) or np.linalg.det(inverse) <= 1e-12 or params[0] <= 0 or params[2] <= 0:
         return 1e30
-    lobe_dirs, _ = fixed
-    own = ltc_samples(inverse, *u)
-    dirs = np.concatenate([lobe_dirs, own])
+    dirs = np.concatenate([lobe_dirs, ltc_samples(inverse, *u)])
     target = lobe(view, dirs, alpha) / norm
-    _, lobe_pdf = lobe_samples_pdf(view, alpha, dirs)
-    mix = 0.5 * lobe_pdf + 0.5 * ltc_density(inverse, dirs)
-    return float(np.mean(np.abs(ltc_density(inverse, dirs) - target) ** 3 / np.maximum(mix, 1e-30)))
-
-
-def lobe_samples_pdf(view, alpha, directions):
-    """(None, (S,) the density of lobe_samples at `directions`)."""
-    half = directions + view
-    half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-300)
-    cos_h = np.clip(half[:, 2], 0.0, 1.0)
-    a2 = alpha * alpha
-    d = a2 / (math.pi * (cos_h * cos_h * (a2 - 1.0) + 1.0) ** 2)
-    return None, d * cos_h / (4.0 * np.maximum(np.abs(half @ view), 1e-12))
+    density = ltc_density(inverse, dirs)
+    mix = 0.5 * lobe_density(view, alpha, dirs) + 0.5 * density
+    return float(np.mean(np.abs(density - target) ** 3 / np.maximum(mix, 1e-30)))
 
 
 def nelder_mead(f, x0, step, iterations=400, tolerance=1e-9):
@@ -149,9 +146,8 @@ def fit(size, samples, roughness):
             lobe_dirs, lobe_pdf = lobe_samples(view, alpha, *u)
             values = lobe(view, lobe_dirs, alpha)
             norm = float(np.mean(values / np.maximum(lobe_pdf, 1e-300)))  # the lobe's integral
-            fixed = (lobe_dirs, lobe_pdf)
             scale = max(abs(guess[0]), abs(guess[2]))
-            best, error = nelder_mead(lambda p: fit_error(p, view, alpha, norm, fixed, u), guess, 0.05 * scale)
+            best, error = nelder_mead(lambda p: fit_error(p, view, alpha, norm, lobe_dirs, u), guess, 0.05 * scale)
             table[i, j] = best
             guess = best
             if i == 0:
