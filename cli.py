@@ -718,7 +718,10 @@ def main(argv=None):
     a defect and keeps its traceback."""
     args = build_parser().parse_args(argv)
     from .core import SplatValidationError
+    from .core.memory import numpy_huge_pages
     from .io import SplatFileError
+
+    numpy_huge_pages(False)  # fresh large arrays fault without waiting for compaction (core.memory)
 
     try:
         check_ranges(args)

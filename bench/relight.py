@@ -31,7 +31,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 from common import Row, machine, paired_ratio, print_rows  # noqa: E402
 from shadow_reference import ball_surface, plane_cloud, reference_visibility, sphere_cloud  # noqa: E402
 
-from splatwright.core import ambient, material, relight, shading, shadows  # noqa: E402
+from splatwright.core import ambient, material, relight, scratch, shading, shadows  # noqa: E402
 from splatwright.core.camera import Camera  # noqa: E402
 from splatwright.core.lights import Light, World  # noqa: E402
 from splatwright.core.render import render  # noqa: E402
@@ -130,7 +130,45 @@ def run(quick=False):
     rows += resolution_sweep(cloud, camera, world, repeat)
     rows += world_occlusion_rows(cloud, camera, world, 2 if quick else 3)
     rows += kept_rows(cloud, camera, world, repeat)
+    rows += memory_rows(cloud, camera, world, repeat)
     return rows
+
+
+def memory_rows(cloud, camera, world, repeat):
+    """The unlit frame and a lit one on kept working memory (core.scratch) against the same frame
+    on memory fresh from the system each time (scratch handing out nothing): the images must agree
+    to the bit."""
+    rows = []
+    frames = {
+        "unlit frame": lambda: render(cloud, camera),
+        "1 light (point)": lambda: relight.render_lit(cloud, camera, LIGHTS[:1], world),
+    }
+    for name, frame in frames.items():
+        fresh = lambda: _on_fresh_memory(frame)  # noqa: E731
+        base, kept, ratio = paired_ratio(fresh, frame, repeat)
+        difference = float(np.abs(fresh().color - frame().color).max())
+        rows.append(
+            Row(
+                TOPIC,
+                f"{name}, working memory kept (core.scratch)",
+                kept,
+                base,
+                {"max abs difference": difference},
+                {"baseline": "the same frame on fresh memory", "kept_over_fresh": f"{ratio:.2f}"},
+            )
+        )
+    return rows
+
+
+def _on_fresh_memory(frame):
+    """frame() with every request going to the allocator (scratch's buffers stay for the next kept
+    frame, as they would in a loop of kept frames)."""
+    saved = scratch.MIN_BYTES
+    scratch.MIN_BYTES = 1 << 62
+    try:
+        return frame()
+    finally:
+        scratch.MIN_BYTES = saved
 
 
 def kept_rows(cloud, camera, world, repeat):

@@ -140,6 +140,9 @@ def main(argv=None):
         help="run only this part of the topic (a key of its PARTS); rows merged into its section",
     )
     args = parser.parse_args(argv)
+    from splatwright.core.memory import numpy_huge_pages
+
+    numpy_huge_pages(False)  # as the Blender extension and the command line run (core.memory)
     report = Path(args.report)
     report.parent.mkdir(parents=True, exist_ok=True)
     sections, failed = [], []

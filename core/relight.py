@@ -19,7 +19,7 @@ from typing import Annotated
 
 import numpy as np
 
-from . import ambient, color, jit, material, shadows
+from . import ambient, color, jit, material, scratch, shadows
 from . import sh as shmod
 from .arrays import Image
 from .camera import Camera
@@ -282,7 +282,7 @@ def display_dc(radiance: Annotated[np.ndarray, "(N, 3)"]) -> Annotated[np.ndarra
     if kernel is None:
         srgb = color.linear_to_srgb(np.maximum(radiance, 0.0), np.float32)
         return shmod.rgb_to_dc(srgb).astype(np.float32)
-    out = np.empty(radiance.shape, np.float32)
+    out = scratch.empty(radiance.shape, np.float32)
     in_chunks(len(radiance), lambda lo, hi: kernel(lo, hi, radiance, out))
     return out
 

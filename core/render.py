@@ -43,7 +43,7 @@ from typing import Annotated
 import numpy as np
 from numpy.typing import NDArray
 
-from . import geometry, jit
+from . import geometry, jit, scratch
 from . import sh as shmod
 from .arrays import Floats, Image
 from .camera import Camera
@@ -544,7 +544,7 @@ def _shape_values(kernels, cloud, pool):
     """Shapes' (n, 10) values of `cloud`, chunk by chunk on every core."""
     n = len(cloud)
     fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32) for name in Shapes.FIELDS]
-    values = np.empty((n, 10))
+    values = scratch.empty((n, 10))
     pool.map(
         lambda lo: kernels.shape_range(*fields, EVERY, lo, min(lo + PROJECT_CHUNK, n), values, 0),
         list(range(0, n, PROJECT_CHUNK)),
@@ -563,8 +563,8 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     ]
     fields.append(np.zeros((0, 10)) if shapes is None or shapes.values is None else shapes.values)
     records = new_records(n)
-    index, depth = np.empty(n, np.int64), np.empty(n, np.float32)
-    r2, bbox = np.empty(n), np.empty((n, 4), np.int32)
+    index, depth = scratch.empty(n, np.int64), scratch.empty(n, np.float32)
+    r2, bbox = scratch.empty(n), scratch.empty((n, 4), np.int32)
     w, h = camera.width, camera.height
     mx, my = (FRUSTUM_MARGIN - 1) / 2 * w, (FRUSTUM_MARGIN - 1) / 2 * h
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
@@ -608,15 +608,15 @@ def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None
     parts = pool.map(run, list(range(0, n, PROJECT_CHUNK)))
     rows = np.concatenate([np.arange(lo, lo + count) for lo, count, _ in parts] or [np.zeros(0, np.int64)])
     # float32 depth keys, ties in index order (see project())
-    by_depth = np.empty_like(rows)
+    by_depth = scratch.empty(rows.shape, rows.dtype)
     kernels.stable_order(depth.view(np.uint32), rows, by_depth)
     rows = by_depth
     m = len(rows)
     proj = Projected(
-        np.empty(m, np.int64),
+        scratch.empty(m, np.int64),
         new_records(m),
-        np.empty(m),
-        np.empty((m, 4), np.int32),
+        scratch.empty(m),
+        scratch.empty((m, 4), np.int32),
         sum(skipped for _, _, skipped in parts),
     )
     bounds = np.linspace(0, m, pool.threads + 1).astype(np.int64)
@@ -642,7 +642,7 @@ def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
     rows = proj.bbox[:, 3] // ts - proj.bbox[:, 1] // ts + 1  # tile rows of each splat
     first_row = np.zeros(n + 1, np.int64)
     np.cumsum(rows, out=first_row[1:])
-    spans = np.empty((int(first_row[-1]), 2), np.int32)  # tile columns per splat and row
+    spans = scratch.empty((int(first_row[-1]), 2), np.int32)  # tile columns per splat and row
     counts = np.zeros((len(chunks), n_tiles), np.int64)
     pool.map(
         lambda k: kernels.count_tiles(
@@ -653,7 +653,7 @@ def _bin_compiled(kernels, proj, camera, tile_size, pool, number=None):
     offsets = np.zeros(n_tiles + 1, dtype=np.int64)
     np.cumsum(counts.sum(axis=0), out=offsets[1:])
     cursor = offsets[:-1] + np.cumsum(counts, axis=0) - counts  # where each chunk's run begins
-    entry_splat = np.empty(int(offsets[-1]), dtype=np.int32)
+    entry_splat = scratch.empty(int(offsets[-1]), np.int32)
     pool.map(
         lambda k: kernels.fill_tiles(
             proj.bbox, bounds[k], bounds[k + 1], ts, tiles_x, first_row, spans, number, cursor[k], entry_splat
@@ -674,7 +674,7 @@ def _by_first_tile(proj, camera, tile_size):
         block *= 2
     blocks_x = -(-camera.width // block)
     order = stable_argsort(proj.bbox[:, 1] // block * blocks_x + proj.bbox[:, 0] // block, 1 << 16)
-    number = np.empty(len(order), np.int32)
+    number = scratch.empty(len(order), np.int32)
     number[order] = np.arange(len(order), dtype=np.int32)
     return order, number
 
@@ -706,8 +706,8 @@ class _CompiledCompositor:
         self.spare = spare  # (records, bbox) at least as long as proj's, free to overwrite
         self.dtype, self.t_min, self.pool = dtype, float(t_min), pool
         h, w = camera.height, camera.width
-        self.color = np.empty((h, w, 3), np.float32)
-        self.weight, self.depth_sum = np.empty((h, w), np.float32), np.empty((h, w), np.float32)
+        self.color = scratch.empty((h, w, 3), np.float32)
+        self.weight, self.depth_sum = scratch.empty((h, w), np.float32), scratch.empty((h, w), np.float32)
         self.counts = np.empty((h, w), np.int32) if want_counts else np.zeros((0, 0), np.int32)
         self.peaks = np.zeros(len(bins.entry_splat), np.float32) if want_weights else np.zeros(0, np.float32)
         # the gather image and each entry's sum of weight x image (written by the kernel)
@@ -737,7 +737,7 @@ class _CompiledCompositor:
         """The records and boxes in the order the entries number them."""
         proj, n = self.proj, len(self.proj)
         if self.spare is None:
-            records, bbox = new_records(n), np.empty((n, 4), np.int32)
+            records, bbox = new_records(n), scratch.empty((n, 4), np.int32)
         else:
             records, bbox = self.spare[0][:n], self.spare[1][:n]
         empty, empty_index = np.zeros(0), np.zeros(0, np.int64)  # r2 and index stay behind
@@ -837,7 +837,7 @@ def _finish(
     its colour at the T each pixel reached it with (layer_t) goes in, before the background.
     The compiled kernels (when given) do it on every core of `pool`."""
     if kernels is not None:
-        alpha, depth = np.empty_like(weight), np.empty_like(weight)
+        alpha, depth = scratch.empty(weight.shape, np.float32), scratch.empty(weight.shape, np.float32)
         bounds = np.linspace(0, len(weight), pool.threads + 1).astype(np.int64)
         bg32 = np.zeros(0, np.float32) if bg is None else bg.astype(np.float32)
         none = np.zeros((0, 0), np.float32)

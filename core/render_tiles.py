@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import scratch
 from .parallel import Pool
 from .render_constants import FRUSTUM_MARGIN
 from .spatial import ramp
@@ -39,7 +40,7 @@ class Projected:
 def new_records(n):
     """Room for n records plus the padding record, each record on one cache line (64-byte aligned:
     NumPy's large arrays start 16 bytes past a page, which would put every record across two)."""
-    raw = np.zeros((n + 2) * 64, np.uint8)
+    raw = scratch.zeros((n + 2) * 64, np.uint8)
     start = -raw.ctypes.data % 64
     rec = raw[start : start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
     record_floats(rec[n:])[:, 0] = -1e30  # padding: exp(-1e30) = 0

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import jit, ltc, material
+from . import jit, ltc, material, scratch
 from .arrays import Floats
 from .camera import Camera
 from .lights import (
@@ -492,10 +492,9 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     n = len(cloud)
     normals = material.normal_columns(cloud)
     albedo = np.ascontiguousarray(cloud.extras[material.ALBEDO].reshape(n, 3), np.float32)
-    vis = np.ones((len(lights), n))
+    vis = scratch.empty((len(lights), n))
     for index in range(len(lights)):  # a loop over lights
-        if visibility is not None and index in visibility:
-            vis[index] = _visibility(visibility, index, n)
+        vis[index] = _visibility(visibility, index, n) if visibility is not None and index in visibility else 1.0
     ortho = isinstance(eye, Camera) and eye.is_orthographic
     if isinstance(eye, Camera):
         eye = -eye.forward if ortho else eye.center
@@ -509,7 +508,8 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
     scale, bias = _albedo_table()
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
-    diffuse, specular, shadow = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32), np.empty(n, np.float32)
+    diffuse, specular = scratch.empty((n, 3), np.float32), scratch.empty((n, 3), np.float32)
+    shadow = scratch.empty(n, np.float32)
     (emitters, spans), terms, rings = _emitters(lights), _area_terms(lights, integrate), disc_rings()
     outlines = np.zeros((len(lights), ltc.ROUND_SIDES, 2))  # each integrated light's polygon (core.ltc)
     for index, light in enumerate(lights):  # a loop over lights

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from . import jit
+from . import jit, scratch
 from .camera import Camera, look_at_matrix
 from .parallel import in_chunks
 
@@ -32,7 +32,7 @@ def reach_and_gap(cloud, source):
     n = len(cloud)
     kernel = jit.compiled(__name__, ("_reach_loop",))
     if kernel is not None:
-        reach, gap = np.empty(n), np.empty(n if source is not None else 0)
+        reach, gap = scratch.empty(n), scratch.empty(n if source is not None else 0)
         fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.log_scales)]
         origin = np.zeros(3) if source is None else source
         in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, origin, reach, gap))
@@ -162,7 +162,7 @@ def near_masks(cameras, positions, reach):
         return np.array([_near_mask(camera, points, reach) for camera in cameras]).reshape(len(cameras), -1)
     params = np.array([_near_params(camera) for camera in cameras]).reshape(-1, 7)
     rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
-    out = np.empty((len(cameras), len(positions)), np.bool_)
+    out = scratch.empty((len(cameras), len(positions)), np.bool_)
     positions = np.ascontiguousarray(positions, np.float32)
     in_chunks(len(positions), lambda lo, hi: kernel(lo, hi, positions, reach, params, rotations, out))
     return out

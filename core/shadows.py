@@ -34,7 +34,7 @@ from typing import Annotated
 
 import numpy as np
 
-from . import jit, material, shadow_cameras
+from . import jit, material, scratch, shadow_cameras
 from . import normals as normal_estimate
 from .arrays import Floats
 from .camera import Camera
@@ -181,7 +181,8 @@ def _own_maps(
 ):  # fmt: skip
     """visibility() of a light by its own maps (a cube's faces for point and area lights); ahead_of
     as shadow_views'."""
-    out = np.ones(len(cloud), np.float32)
+    out = scratch.empty(len(cloud), np.float32)
+    out.fill(1.0)
     views = shadow_views(
         cloud,
         light,
@@ -234,7 +235,7 @@ def shadow_views(
     # coefficient stands for every splat's: copying out the splats' own would read all their SH).
     # Each map draws its own rows, the casters near it, out of the whole cloud: nothing is copied,
     # and the shapes are made once (or given) for every map and the picture.
-    black = np.zeros((len(cloud), 1, 3), np.float32)
+    black = scratch.zeros((len(cloud), 1, 3), np.float32)
     bare = SplatCloud(cloud.positions, cloud.rotations, cloud.log_scales, cloud.opacity_logits, black)
     bare.antialiased = cloud.antialiased
     masks &= casters
@@ -282,13 +283,15 @@ def _map_view(cloud, camera, rows, meshes, shapes, threads, progress, beyond=-np
     """The ShadowView of `camera`: the splats `rows` of `cloud` (with their `shapes`) and `meshes`
     (their parts at depth `beyond` or farther) drawn as depth (inf where nothing is) and alpha, on
     up to `threads` cores, progress as core.render's."""
-    depth = np.full((camera.height, camera.width), np.inf, np.float32)
-    alpha = np.zeros((camera.height, camera.width), np.float32)
+    depth = scratch.empty((camera.height, camera.width), np.float32)
+    depth.fill(np.inf)
     if len(rows):
         draw = dict(background=None, threads=threads, progress=progress, shapes=shapes, rows=rows)
         result = render(cloud, camera, tile_size=MAP_TILE, **draw)
         alpha = result.alpha
-        depth = np.where(alpha > 0, result.depth, np.float32(np.inf)).astype(np.float32)
+        np.copyto(depth, result.depth, where=alpha > 0)
+    else:
+        alpha = scratch.zeros((camera.height, camera.width), np.float32)
     for mesh in meshes:
         depth, alpha = _with_mesh(depth, alpha, mesh, camera, beyond)
     return ShadowView(camera, depth, alpha)
@@ -328,7 +331,7 @@ def _casters(cloud, light, cameras, near, reach):
         cams = np.array([_camera_row(camera) for camera in cameras])
         rotations = np.ascontiguousarray(cloud.rotations, np.float32)
         args = (positions, rotations, *normals, log_scales, reach, cams, boxes, *light_args)
-        keep = np.empty(len(cloud), np.bool_)
+        keep = scratch.empty(len(cloud), np.bool_)
         in_chunks(len(cloud), lambda lo, hi: kernel(lo, hi, *args, keep))
     return keep & near.any(axis=0)
 
@@ -599,7 +602,7 @@ def _extent_and_slope(cloud, light):
 def _extent_compiled(kernel, cloud, light):
     """_extent_and_slope by the compiled kernel, on every core."""
     n = len(cloud)
-    sigma, slope = np.empty(n), np.empty(n)
+    sigma, slope = scratch.empty(n), scratch.empty(n)
     args = _extent_args(cloud, light)
     in_chunks(n, lambda lo, hi: kernel(lo, hi, *args, sigma, slope))
     return sigma, slope
@@ -750,7 +753,9 @@ def _visibility_compiled(kernel, cloud, light, views, settings, discs, out):
     from any shadow)."""
     cams = np.array([_camera_row(view.camera) for view in views])
     # each texel's depth and alpha side by side: a tap reads one cache line, not two
-    texels = np.stack([np.stack([view.depth, view.alpha], axis=-1) for view in views])
+    texels = scratch.empty((len(views), *views[0].depth.shape, 2), np.float32)
+    for k, view in enumerate(views):
+        texels[k, ..., 0], texels[k, ..., 1] = view.depth, view.alpha
     occupied = _occupied_cells(texels[..., 0])
     params = np.array(settings, np.float64)
     args = (*_extent_args(cloud, light), cams, texels, occupied, *discs, params, out)

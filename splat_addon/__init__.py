@@ -11,7 +11,8 @@ from .data import bundled_pxr
 
 bundled_pxr.expose("pxr")  # before any io format module imports it
 
-from . import command  # noqa: E402,I001
+from ..core.memory import numpy_huge_pages  # noqa: E402,I001
+from . import command  # noqa: E402
 from .convert import from_mesh  # noqa: E402
 from .edit import blender_apply, cleanup, normals, objects  # noqa: E402
 from .files import animation, import_export, landing, webp  # noqa: E402
@@ -34,9 +35,12 @@ CLASSES = (
     + panel.CLASSES
 )
 MENUS = import_export.MENUS + objects.MENUS + from_mesh.MENUS + armature.MENUS + collide.MENUS
+_HUGE_PAGES: list = []  # NumPy's setting before register, restored by unregister
 
 
 def register():
+    # Fresh large arrays fault without waiting for the system to compact memory (core.memory)
+    _HUGE_PAGES[:] = [numpy_huge_pages(False)]
     for cls in CLASSES:
         bpy.utils.register_class(cls)
     for menu, draw in MENUS:
@@ -62,3 +66,5 @@ def unregister():
         menu.remove(draw)
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)
+    if _HUGE_PAGES and _HUGE_PAGES[0] is not None:
+        numpy_huge_pages(_HUGE_PAGES.pop())

@@ -548,3 +548,5 @@ def test_unregister_register_twice_leaves_nothing_behind(blender):
     assert off["engine_panels"] == 0 and off["types_left"] == []
     assert not off["engine"] and MODULE not in off["addons"]
     assert res["re_enabled_menus"] == MENUS
+    # NumPy's huge-page advice is off while the extension is enabled, NumPy's default after it
+    assert res["enabled"]["huge_pages"] is False and off["huge_pages"] is True

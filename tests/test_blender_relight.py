@@ -432,9 +432,13 @@ def test_rendered_viewport_shows_the_relit_look(blender):
 def test_an_animation_keeps_the_shadows_of_what_did_not_move(blender):
     """An animation render (`blender -b -a`) makes the sun's maps at frame 1 and again only where the
     sun turns (frame 3, not frame 2 where only the camera moved), the world's occlusion once; every
-    frame is the still render of that frame, to the last bit of its Combined and Shadow passes."""
+    frame is the still render of that frame, to the last bit of its Combined and Shadow passes. The
+    frames share their working memory (core.scratch keeps what one frame gave back for the next) and
+    the job's end gives it back."""
     res = blender.step("animation_frames")
-    assert res == {"sun": [1, 3], "world": [1]}
+    assert res["made"] == {"sun": [1, 3], "world": [1]}
+    assert len(res["free_after_frames"]) == 3 and min(res["free_after_frames"]) > 0
+    assert res["free_after_job"] == 0
     frames = []
     for frame in (1, 2, 3):
         animated, still = exr(blender.out / f"animation_{frame:04d}.exr"), exr(blender.out / f"still_{frame}.exr")

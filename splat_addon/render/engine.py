@@ -8,6 +8,7 @@ import traceback
 import bpy
 import numpy as np
 
+from ...core import scratch
 from ...core.color import linear_to_srgb
 from .. import data
 from ..data import camera as blender_camera
@@ -328,11 +329,23 @@ def register():
     )
     for panel in _generic_panels():
         panel.COMPAT_ENGINES.add(SplatwrightRenderEngine.bl_idname)
+    for handlers in (bpy.app.handlers.render_complete, bpy.app.handlers.render_cancel):
+        handlers.append(_release_memory)
     mesh_layer.register()
     lights.register()
 
 
+@bpy.app.handlers.persistent
+def _release_memory(*_):
+    """A render job done (a still, or an animation's last frame) gives its working memory back:
+    the frames of an animation share it (core.scratch), Blender's other work may want it after."""
+    scratch.release()
+
+
 def unregister():
+    for handlers in (bpy.app.handlers.render_complete, bpy.app.handlers.render_cancel):
+        if _release_memory in handlers:
+            handlers.remove(_release_memory)
     lights.unregister()
     mesh_layer.unregister()
     for panel in _generic_panels():

@@ -14,6 +14,7 @@ import weakref
 
 import numpy as np
 
+from ...core import scratch
 from ...core.color import linear_to_srgb
 from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
 from ...core.splats import SplatCloud
@@ -139,6 +140,7 @@ class Viewport:
 
     def stop(self):
         self.progressive.stop()
+        scratch.release()  # the working memory its frames shared (core.scratch)
 
 
 def _redraw(engine_ref):

@@ -501,6 +501,13 @@ class Worker(BlenderWorker):
             "frames": sorted(p.name for p in self.out.glob("anim_*.png")),
         }
 
+    def numpy_huge_pages(self):
+        """NumPy's huge-page advice in this Blender, read by setting it and setting it back."""
+        switch = self.module("core.memory").numpy_huge_pages
+        now = switch(True)
+        switch(now)
+        return now
+
     def reregister(self):
         import addon_utils
 
@@ -511,6 +518,7 @@ class Worker(BlenderWorker):
             "menus": self.added_menus(),
             "engine_panels": self.engine_panels(),
             "operators": hasattr(bpy.types, "SPLAT_OT_import_file"),
+            "huge_pages": self.numpy_huge_pages(),
         }
         addon_utils.disable(MODULE, default_set=True)
         engine = self.engine_registered()
@@ -525,6 +533,7 @@ class Worker(BlenderWorker):
             "engine": engine,
             "types_left": left,
             "addons": [a.module for a in bpy.context.preferences.addons],
+            "huge_pages": self.numpy_huge_pages(),
         }
         addon_utils.enable(MODULE, default_set=True)
         return {"enabled": enabled, "disabled": disabled, "re_enabled_menus": self.added_menus()}

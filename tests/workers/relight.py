@@ -711,7 +711,8 @@ class Worker(BlenderWorker):
         """A relit splat ball over a relit splat floor (splats only, the world occluded from 8
         directions) rendered as an animation of three frames, the camera moved from frame 1 to 2 and
         the sun turned from 2 to 3, then each frame as a still: the frames at which the sun's maps and
-        the world's occlusion were made during the animation."""
+        the world's occlusion were made during the animation, and the free bytes core.scratch keeps
+        after each of its frames and after the job."""
         bpy = self.bpy
         self.stage("NONE")
         scene = bpy.context.scene
@@ -728,8 +729,9 @@ class Worker(BlenderWorker):
         sun.keyframe_insert("rotation_euler", frame=3)
         scene.frame_start, scene.frame_end = 1, 3
         shadows, ambient = self.module("core.shadows"), self.module("core.ambient")
+        scratch = self.module("core.scratch")
         originals = shadows.visibility, ambient.world_visibility
-        made, inside = {"sun": [], "world": []}, []
+        made, inside, kept = {"sun": [], "world": []}, [], []
 
         def counted(name, original):
             def call(*args, **kwargs):
@@ -745,16 +747,23 @@ class Worker(BlenderWorker):
 
         self.image_format(scene.render.image_settings, "OPEN_EXR_MULTILAYER", color_depth="32", exr_codec="ZIP")
         scene.render.filepath = str(self.out / "animation_####")
+
+        def after_frame(*_):
+            kept.append(scratch.kept_bytes()[1])
+
         shadows.visibility, ambient.world_visibility = counted("sun", originals[0]), counted("world", originals[1])
+        bpy.app.handlers.render_post.append(after_frame)
         try:
             bpy.ops.render.render(animation=True)
         finally:
             shadows.visibility, ambient.world_visibility = originals
+            bpy.app.handlers.render_post.remove(after_frame)
+        after_job = scratch.kept_bytes()[1]
         for frame in (1, 2, 3):
             scene.frame_set(frame)
             self.write(f"still_{frame}")
         scene.splatwright_world_occlusion = 0
-        return made
+        return dict(made=made, free_after_frames=kept, free_after_job=after_job)
 
     def viewport_world_maps(self):
         """How often the Rendered viewport makes the world's occlusion over four scene updates: the
