@@ -10,8 +10,8 @@ A buffer is free again when nothing else holds it: every array made from it (a v
 that kept it) holds a reference to it, so the references decide, and an array handed out can be
 kept, returned or dropped like any other. Requests round up to a size class (an eighth of a
 power of two) so that work whose sizes change a little from call to call (a moving camera's
-visible splats) still meets its buffers. At most IDLE_LIMIT bytes of free buffers are kept, the
-least recently used given back first; release() gives all of them back (a job done).
+visible splats) still meets its buffers. At most KEPT_LIMIT bytes are kept, the least recently used
+free buffers given back first to make room; release() gives all the free ones back (a job done).
 """
 
 import sys
@@ -20,10 +20,11 @@ import threading
 import numpy as np
 
 MIN_BYTES = 1 << 20  # smaller requests come from the allocator, which keeps such blocks itself
-# Bytes of free buffers kept at most. A lit 1920x1080 frame of 410k splats gives back about 250 MB;
-# a 500k-splat conversion ran 5% slower keeping 1 GiB (the memory its other work would have
-# reused) and as fast as without keeping any at 256 MiB.
-IDLE_LIMIT = 256 << 20
+# Bytes of buffers kept at most, in use or free: what one frame or job leaves behind is bounded by
+# it even when nothing asks for memory again. A lit 1920x1080 frame of 410k splats takes about 280
+# MB of them; a 500k-splat conversion ran 5% slower with 1 GiB kept idle (memory its other work
+# would have reused) and as fast as without at this limit. Beyond it requests get plain arrays.
+KEPT_LIMIT = 384 << 20
 _ALIGN = 64  # a cache line: kernels that lay records on cache lines rely on it
 
 _lock = threading.Lock()
@@ -80,8 +81,8 @@ def _size_class(need: int) -> int:
 
 
 def _take(size: int) -> np.ndarray:
-    """A free kept buffer of `size` bytes (marked most recently used), or a new one; free buffers
-    past IDLE_LIMIT are dropped, the least recently used first."""
+    """A free kept buffer of `size` bytes (marked most recently used), or a new one, kept when room
+    can be made for it under KEPT_LIMIT by dropping free buffers, the least recently used first."""
     with _lock:
         free = _free()
         for i in range(len(_buffers) - 1, -1, -1):
@@ -89,13 +90,15 @@ def _take(size: int) -> np.ndarray:
                 buffer = _buffers.pop(i)
                 _buffers.append(buffer)
                 return buffer
-        idle, dropped = sum(b.nbytes for b, f in zip(_buffers, free) if f), set()
+        buffer = np.empty(size, np.uint8)
+        if sum(b.nbytes for b, f in zip(_buffers, free) if not f) + size > KEPT_LIMIT:
+            return buffer  # no room even without the free ones: not kept
+        kept, dropped = sum(b.nbytes for b in _buffers), set()
         for i in (i for i, f in enumerate(free) if f):  # the least recently used first
-            if idle + size <= IDLE_LIMIT:
+            if kept + size <= KEPT_LIMIT:
                 break
-            idle -= _buffers[i].nbytes
+            kept -= _buffers[i].nbytes
             dropped.add(i)
         _buffers[:] = [b for i, b in enumerate(_buffers) if i not in dropped]
-        buffer = np.empty(size, np.uint8)
         _buffers.append(buffer)
         return buffer

@@ -61,17 +61,22 @@ def test_small_requests_and_alignment():
         assert _address(scratch.empty(n, np.uint8)) % 64 == 0
 
 
-def test_free_buffers_past_the_limit_are_dropped_least_recently_used_first(monkeypatch):
-    monkeypatch.setattr(scratch, "IDLE_LIMIT", 10 * MB)
-    arrays = [scratch.empty(4 * MB, np.uint8) for _ in range(3)]  # 12 MB in use: allowed
-    assert scratch.kept_bytes()[1] == 0
-    kept = arrays.pop()  # the most recently made stays held
-    del arrays
-    big = scratch.empty(6 * MB, np.uint8)  # 8 MB free + 6 MB > 10: the oldest free one goes
+def test_at_most_the_limit_is_kept_least_recently_used_free_buffers_dropped_first(monkeypatch):
+    monkeypatch.setattr(scratch, "KEPT_LIMIT", 10 * MB)
+    arrays = [scratch.empty(3 * MB, np.uint8) for _ in range(3)]  # 9+ MiB kept, all in use
+    over = scratch.empty(3 * MB, np.uint8)  # no room: a plain array, not kept
     busy, free = scratch.kept_bytes()
-    assert busy >= kept.nbytes + big.nbytes and free <= 10 * MB - big.nbytes
+    assert busy == sum(a.base.nbytes for a in arrays) <= 10 * MB and free == 0
+    assert not any(np.shares_memory(over, a) for a in arrays)
+    oldest, newest = id(arrays[0].base), id(arrays[2].base)
+    del arrays, over
+    assert scratch.kept_bytes() == (0, sum(b.nbytes for b in scratch._buffers))  # all free, none new
+    big = scratch.empty(5 * MB, np.uint8)  # room made: the least recently used free ones go
+    kept = {id(b) for b in scratch._buffers}
+    assert sum(b.nbytes for b in scratch._buffers) <= 10 * MB and id(big.base) in kept
+    assert oldest not in kept and newest in kept
     scratch.release()
-    assert scratch.kept_bytes()[1] == 0 and scratch.kept_bytes()[0] >= kept.nbytes + big.nbytes
+    assert scratch.kept_bytes() == (big.base.nbytes, 0)
 
 
 def test_threads_never_share_a_buffer():
