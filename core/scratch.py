@@ -31,6 +31,17 @@ _lock = threading.Lock()
 _buffers: list[np.ndarray] = []  # uint8 buffers, the most recently handed out last
 
 
+def _count_alone() -> int:
+    """What sys.getrefcount says, in _free's own words, of an array that only a list holds: 2 on the
+    CPythons of today (the list and the call's argument), but an interpreter that lends the
+    argument would say 1, and comparing with a fixed 2 would then hand out arrays in use."""
+    probe = [np.empty(1, np.uint8)]
+    return [sys.getrefcount(probe[i]) for i in range(1)][0]
+
+
+_ALONE = _count_alone()
+
+
 def empty(shape, dtype=np.float64) -> np.ndarray:
     """np.empty(shape, dtype), on kept memory when the request is large enough to be worth it."""
     dtype = np.dtype(dtype)
@@ -68,9 +79,8 @@ def kept_bytes() -> tuple[int, int]:
 
 
 def _free() -> list[bool]:
-    """Whether each kept buffer is free: held by the list alone (getrefcount counts its own
-    argument too, and the subscript hands it nothing else)."""
-    return [sys.getrefcount(_buffers[i]) == 2 for i in range(len(_buffers))]
+    """Whether each kept buffer is free: held by the list alone (_ALONE)."""
+    return [sys.getrefcount(_buffers[i]) == _ALONE for i in range(len(_buffers))]
 
 
 def _size_class(need: int) -> int:
