@@ -161,6 +161,22 @@ def test_instances_render_like_the_same_splats_as_objects(blender):
     assert_same_image(blender, "inst_render", "inst_reference")
 
 
+def test_splats_drawn_through_nested_collection_instances_export_and_render_where_blender_draws_them(blender):
+    """Two levels of collection instances (an instancing Empty inside an instanced collection):
+    the splats export once, under the outer matrix times the inner one, whether every visible
+    splat or the outer Empty selected is exported, and render as those exported splats do."""
+    res = blender.step("nested_instances")
+    for key in ("visible", "selected_outer", "render", "reference_render"):
+        finished(res[key])
+    inner, outer = (np.array(res["matrices"][k]) for k in ("inner", "outer"))
+    np.testing.assert_allclose(outer[:3, 3], DUPLICATE["location"], atol=1e-6)
+    np.testing.assert_allclose(inner[:3, 3], INSTANCE["location"], atol=1e-6)
+    source = random_cloud(N, 3, seed=4)
+    for name in ("nested_visible.ply", "nested_outer.ply"):
+        check_transformed(source, read(blender.out / name), outer @ inner)
+    assert_same_image(blender, "nested_render", "nested_reference")
+
+
 # Blender's own Apply -----------------------------------------------------------------------------------
 
 

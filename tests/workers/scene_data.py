@@ -50,7 +50,16 @@ FOREACH = {
 
 
 class Worker(BlenderWorker):
-    steps = ("install", "edit_mode", "modifiers", "instances", "blender_apply", "native_forms", "native_rig")
+    steps = (
+        "install",
+        "edit_mode",
+        "modifiers",
+        "instances",
+        "nested_instances",
+        "blender_apply",
+        "native_forms",
+        "native_rig",
+    )
     keep_objects = ("Camera", "Light")
     orphan_kinds = ("meshes", "armatures", "materials", "collections", "pointclouds", "node_groups", "actions")
 
@@ -279,6 +288,47 @@ class Worker(BlenderWorker):
         }
         reference = self.reimported("reference", self.out / "inst_visible.ply")
         res["reference_render"] = self.render("inst_reference", [reference])
+        return res
+
+    def nested_instances(self):
+        """A splat object drawn through two levels of collection instances: an Empty in a collection
+        left out of the view layer instances the splats' collection (also left out), and an Empty
+        in the scene instances that collection. Export of the visible splats and of the outer Empty
+        selected, the two Empties' matrices, and F12 of the splats so drawn against the exported splats
+        reimported as an object."""
+        bpy = self.bpy
+        scene = bpy.context.scene
+
+        def left_out(name):
+            collection = bpy.data.collections.new(name)
+            scene.collection.children.link(collection)
+            bpy.context.view_layer.layer_collection.children[collection.name].exclude = True
+            return collection
+
+        def instancer(name, collection, transform, home):
+            empty = bpy.data.objects.new(name, None)
+            empty.instance_type, empty.instance_collection = "COLLECTION", collection
+            for key, value in transform.items():
+                setattr(empty, key, value)
+            home.objects.link(empty)
+            return empty
+
+        sources, middle = left_out("Nested Source"), left_out("Nested Middle")
+        source = self.splats("nested source", random_cloud_arrays(N, 3, seed=4), form=None)
+        scene.collection.objects.unlink(source)
+        sources.objects.link(source)
+        inner = instancer("inner instancer", sources, INSTANCE, middle)
+        outer = instancer("outer instancer", middle, DUPLICATE, scene.collection)
+        res = {
+            "visible": self.export("nested_visible.ply"),
+            "selected_outer": self.export("nested_outer.ply", [outer]),
+            "matrices": {"inner": self.matrix(inner), "outer": self.matrix(outer)},
+            "render": self.render("nested_render"),
+        }
+        # the splats as exported (the outer scale is not uniform: under the inner rotation it shears,
+        # which an object's matrix cannot hold but the splats' covariances can)
+        reference = self.reimported("reference", self.out / "nested_visible.ply")
+        res["reference_render"] = self.render("nested_reference", [reference])
         return res
 
     def blender_apply(self):
