@@ -4,7 +4,7 @@ rotated directions, least-squares fits, and numerical quadrature on the sphere."
 import numpy as np
 import pytest
 
-from splatwright.core import geometry, sh
+from splatwright.core import geometry, jit, sh
 
 
 def random_rotations(rng, n):
@@ -338,6 +338,34 @@ def test_a_broken_splat_does_not_spread(rng):
     ok = np.arange(10) != 3
     assert np.isfinite(rotated[ok]).all()
     np.testing.assert_allclose(rotated[ok], sh.rotate(coeffs[ok], rotations[ok]), atol=1e-14)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_compiled_rotation_is_its_numpy_reference(rng, dtype):
+    """sh._rotate_loop (every splat on its own) against _rotate_each_numpy (band by band over rows
+    of splats), degrees 1-4: random rotations and mirrors, and the Euler angles' hard cases, turns
+    about z alone (sin b = 0) and z turns after a half turn (cos b = -1), exact and 1e-9 off."""
+    if jit.compiled(sh.__name__, sh.ROTATE_KERNEL) is None:
+        pytest.skip("numba is not available here")
+    turns = [np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1]]) for t in (0, 0.3, np.pi, -2)]
+    flip = np.diag([1.0, -1.0, -1.0])  # a half turn about x: cos b = -1
+    hard = np.array([*turns, *(t @ flip for t in turns), *(t @ flip @ turns[1] for t in turns)])
+    axes = unit(rng.normal(size=(len(hard), 3)))
+    tiny = geometry.quaternions_to_matrices(np.concatenate([np.ones((len(hard), 1)), 0.5e-9 * axes], axis=1))
+    nudged = tiny @ hard
+    rotations = np.concatenate([random_rotations(rng, 300), hard, nudged])
+    rotations[::7] *= -1  # mirrors among them
+    for degree in (1, 2, 3, 4):
+        coeffs = rng.normal(0, 0.5, size=(len(rotations), (degree + 1) ** 2, 3)).astype(dtype)
+        got = sh._rotate_each(coeffs, rotations, np.empty(coeffs.shape, dtype))
+        want = sh._rotate_each_numpy(coeffs, rotations, np.empty(coeffs.shape, dtype))
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 if dtype == np.float64 else 1e-6)
+    # a coefficient that is not finite spoils what depends on it there, and nothing else
+    coeffs[3, 0, 0], coeffs[5, 9, 1] = np.inf, np.nan
+    got = sh._rotate_each(coeffs, rotations, np.empty(coeffs.shape, dtype))
+    want = sh._rotate_each_numpy(coeffs, rotations, np.empty(coeffs.shape, dtype))
+    np.testing.assert_array_equal(np.isfinite(got), np.isfinite(want))
+    assert np.isfinite(got[3, 1:]).all() and np.isfinite(got[5, :, 0]).all()
 
 
 def test_one_coefficient_set_under_many_rotations(rng):
