@@ -26,7 +26,7 @@ CACHE = REPO / ".cache" / "interop"
 DRIVERS = Path(__file__).resolve().parent / "interop"
 
 NPM_PACKAGES = [
-    "@playcanvas/splat-transform@3.7.0",
+    "@playcanvas/splat-transform@3.10.2",
     "@adobe/spz@0.2.3",
     "spz-js@1.2.5",
     "@gltf-transform/core@4.5.1",

@@ -38,7 +38,7 @@ from splatwright.io import read_splats, spz, usd, write_splats
 
 pytestmark = pytest.mark.slow
 DEGREES = [0, 1, 2, 3]
-# SPZ in the PLY's axes (RDF), with no turn to SPZ's RUB: how splat-transform 3.7.0, gsply and spz-js
+# SPZ in the PLY's axes (RDF), with no turn to SPZ's RUB: how splat-transform 3.10.2, gsply and spz-js
 # store it (our files so written name the axes in a coordinate-system record)
 SPZ_RDF = {"spz_axes": "rdf"}
 
@@ -270,7 +270,7 @@ def test_spz_rounding_ties_go_away_from_zero(tmp_path):
 
 @pytest.mark.parametrize("degree", DEGREES)
 def test_spz_splat_transform_in_ply_axes_both_ways_and_byte_identical(tmp_path, degree):
-    """splat-transform 3.7.0 takes SPZ's values for the PLY's axes (no turn from SPZ's RUB; it reads
+    """splat-transform 3.10.2 takes SPZ's values for the PLY's axes (no turn from SPZ's RUB; it reads
     no axes record), and writes v4 by default: our SPZ written with spz_axes="rdf" opens in it as
     its PLY source (within SPZ's quantisation, versions 2 to 4), and its SPZ (v3, v4: Niantic's code
     inside) read with spz_axes="rdf" is its source, in our writer's very bytes."""
@@ -294,7 +294,7 @@ def test_spz_splat_transform_in_ply_axes_both_ways_and_byte_identical(tmp_path, 
 
 
 def test_spz_splat_transform_default_axes_turn_y_and_z(tmp_path):
-    """Our default SPZ holds SPZ's RUB axes, which splat-transform 3.7.0 takes for the PLY's: it turns
+    """Our default SPZ holds SPZ's RUB axes, which splat-transform 3.10.2 takes for the PLY's: it turns
     our file into a PLY with y and z reversed (exactly), and its own SPZ of a PLY, read as SPZ says,
     is that PLY reversed so. This fails the day splat-transform turns SPZ's axes."""
     cloud = in_range_cloud(300, degree=3, seed=29)
@@ -435,7 +435,7 @@ def sog_work(tmp_path_factory):
 
 @pytest.mark.parametrize("degree", DEGREES)
 def test_sog_both_ways(sog_work, degree):
-    """SOG version 2, which splat-transform 3.7.0 writes as .sog or loose beside a meta.json (with SH
+    """SOG version 2, which splat-transform 3.10.2 writes as .sog or loose beside a meta.json (with SH
     bands it needs `-g cpu` without a GPU): our files, bundled and loose, have the layout its writer
     makes and its reader expects, and it reads them as we do; gsply too. Its files read the same for
     us as for it, and are the source within SOG's quantisation."""
@@ -472,7 +472,7 @@ def test_sog_both_ways(sog_work, degree):
     )
     nearest = np.abs(cloud.log_scales[..., None] - books["scales"]).min(axis=-1)
     assert (np.abs(got.log_scales - cloud.log_scales) <= nearest + 1e-6).all()
-    # splat-transform (2.7.1 and 3.7.0 alike) gives the odd splat (1-2 of 500 when it writes SH bands)
+    # splat-transform (2.7.1 to 3.10.2 alike) gives the odd splat (1-2 of 500 when it writes SH bands)
     # the codebook's first colour on all three channels; every other DC colour is the nearest entry
     nearest = np.abs(cloud.sh[:, 0, :, None] - books["sh0"]).min(axis=-1)
     within = (np.abs(got.sh[:, 0] - cloud.sh[:, 0]) <= nearest + 1e-6).all(axis=1)
@@ -491,7 +491,7 @@ def sog_codebooks(path):
     return {key: np.asarray(meta[key]["codebook"], np.float64) for key in ("scales", "sh0")}
 
 
-# SOG version 2's layout, as PlayCanvas's specification states it and splat-transform 3.7.0's writer
+# SOG version 2's layout, as PlayCanvas's specification states it and splat-transform 3.10.2's writer
 # (writeSogSource) and reader (readSogSourceV2) implement it
 FILES_PER_SPLAT = ["means_l.webp", "means_u.webp", "scales.webp", "quats.webp", "sh0.webp"]
 SOG_FILES = {

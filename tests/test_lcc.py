@@ -1,5 +1,5 @@
 """XGRIDS's first-generation LCC (`.lcc`): scenes written here from XGRIDS's white paper (meta.lcc,
-index.bin, data.bin, shcoef.bin, environment.bin), read by us and by splat-transform 3.7.0 level by
+index.bin, data.bin, shcoef.bin, environment.bin), read by us and by splat-transform 3.10.2 level by
 level to the same splats, and by us to the source within the format's quantisation; hostile
 indexes, files and folders are refused by name."""
 
@@ -169,7 +169,7 @@ def check_quantised(got, source):
 @pytest.mark.slow
 @pytest.mark.parametrize("degree", [3, 0])
 def test_lcc_splat_transform_reads_what_we_read(tmp_path, degree):
-    """splat-transform 3.7.0 reads the scene ("Quality" with SH, "Portable" without) to the splats we
+    """splat-transform 3.10.2 reads the scene ("Quality" with SH, "Portable" without) to the splats we
     read, level by level and in any order, within float32; ours is the source within quantisation."""
     levels, environment = scene_clouds(degree)
     path = write_lcc(tmp_path, levels, environment)

@@ -3,7 +3,7 @@
 
 No tool writes `.ksplat` outside a browser, so the tests write it themselves (`write_ksplat`, below,
 from the layout GaussianSplats3D's SplatBuffer documents in its code: its bucketing, rounding and
-clamping) and splat-transform 3.7.0 reads the same files: both readings must agree, and match the
+clamping) and splat-transform 3.10.2 reads the same files: both readings must agree, and match the
 source within each compression level's quantisation. splat-transform writes streamed SOG on the CPU,
 so those files are theirs; hostile variants are built from our own SOG writer. LCC2 scenes are built
 to XGRIDS's white paper from our SOG and SPZ writers, and splat-transform reads them too.
@@ -233,7 +233,7 @@ def test_ksplat_sh_range_of_zero_means_the_default(tmp_path):
 @pytest.mark.parametrize("level", LEVELS)
 @pytest.mark.parametrize("degree", DEGREES)
 def test_ksplat_splat_transform_reads_what_we_read(tmp_path, level, degree):
-    """splat-transform 3.7.0 converts our test .ksplat to PLY: its decoding and ours agree to float32
+    """splat-transform 3.10.2 converts our test .ksplat to PLY: its decoding and ours agree to float32
     round-off, and both are the source within the level's quantisation."""
     # 148 splats a section: the second section's buckets start on a 4-byte boundary at every level
     # (splat-transform, like GaussianSplats3D, views them as a Float32Array, which must be aligned)
@@ -580,7 +580,7 @@ def write_lcc2(folder, kind=".sog", legacy=False, **overrides):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind, legacy", [(".sog", False), (".spz", False), (".sog", True)])
 def test_lcc2_splat_transform_reads_what_we_read(tmp_path, kind, legacy):
-    """splat-transform 3.7.0 reads an LCC2 scene built to the white paper (SOG or SPZ chunks, current
+    """splat-transform 3.10.2 reads an LCC2 scene built to the white paper (SOG or SPZ chunks, current
     or older field names) as we do, level by level; ours (every level and the environment) is the
     source turned from Z up to the PLY's axes, within SOG's quantisation."""
     path = write_lcc2(tmp_path, kind, legacy)
