@@ -27,7 +27,7 @@ VERSIONS = {
     "4.5": ("3.11", ["bpy==4.5.15"]),
     "5.0": ("3.11", ["bpy==5.0.1"]),
     "5.1": ("3.13", ["bpy==5.1.2"]),
-    "5.2": ("3.13", ["bpy==5.2.3"]),
+    "5.2": ("3.13", ["bpy==5.2.4"]),
     "5.3": ("3.13", ["bpy==5.3.0"]),
 }
 PRIMARY = "5.0"  # the version of the project's own environment (pyproject.toml's dev extra)
