@@ -43,8 +43,8 @@ ROUND_SIDES = 16
 MAX_VERTICES = ROUND_SIDES + 1  # a convex polygon cut by a plane keeps at most one vertex more
 EDGE_DEGREE = 10  # of the compiled contour formula's polynomial (_edge_polynomial): 6e-9 relative
 KERNEL = (
-    "_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_frame_one", "_lobe_share_one",
-    "_light_one", "_disc_one",
+    "_lookup_one", "_angle_over_sine_one", "_edge_one", "_clipped_share_one", "_tangent_one", "_frame_one",
+    "_lobe_share_one", "_light_one", "_disc_one",
 )  # fmt: skip
 
 
@@ -138,11 +138,17 @@ def frames(normal: np.ndarray, view: np.ndarray) -> Annotated[np.ndarray, "(N, 3
     view's (N,3) part in the tangent plane (any tangent where the view is the normal)."""
     along = view - normal * np.einsum("ij,ij->i", normal, view)[:, None]
     size = np.linalg.norm(along, axis=1)
-    other = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    other = other - normal * np.einsum("ij,ij->i", normal, other)[:, None]
-    along = np.where((size > 1e-9)[:, None], along, other)
+    along = np.where((size > 1e-9)[:, None], along, tangents(normal))
     x = along / np.linalg.norm(along, axis=1, keepdims=True)
     return np.stack([x, np.cross(normal, x), normal], axis=1)
+
+
+def tangents(normal: np.ndarray) -> Annotated[np.ndarray, "(N, 3)"]:
+    """(N,3) a unit vector across each unit `normal` (N,3): x or, near it, y with the normal's part
+    taken out."""
+    other = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    other = other - normal * np.einsum("ij,ij->i", normal, other)[:, None]
+    return other / np.linalg.norm(other, axis=1, keepdims=True)
 
 
 def light_shares(
@@ -181,9 +187,7 @@ def disc_shares(
     direction at distance 1, radius tan(half_angle), as ROUND's polygon). Its specular radiance is L
     times this times the lobe's albedo, L = E / (pi sin^2(half_angle)) for the irradiance E it gives
     a surface facing it."""
-    helper = np.where(np.abs(direction[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    across = np.cross(direction, helper)
-    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    across = tangents(direction)
     other = np.cross(direction, across)
     # the centre and the disc's axes in each point's frame: the vertices are then sums of them
     frame = frames(normal, view)
@@ -288,12 +292,19 @@ def _frame_one(m0, m1, m2, v0, v1, v2, cos_v):
     t0, t1, t2 = v0 - m0 * cos_v, v1 - m1 * cos_v, v2 - m2 * cos_v
     size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
     if size <= 1e-9:
-        t0, t1, t2 = (1.0, 0.0, 0.0) if abs(m0) < 0.9 else (0.0, 1.0, 0.0)
-        along = t0 * m0 + t1 * m1 + t2 * m2
-        t0, t1, t2 = t0 - m0 * along, t1 - m1 * along, t2 - m2 * along
-        size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-    t0, t1, t2 = t0 / size, t1 / size, t2 / size
+        t0, t1, t2 = _tangent_one(m0, m1, m2)
+    else:
+        t0, t1, t2 = t0 / size, t1 / size, t2 / size
     return t0, t1, t2, m1 * t2 - m2 * t1, m2 * t0 - m0 * t2, m0 * t1 - m1 * t0
+
+
+def _tangent_one(m0, m1, m2):
+    """tangents() of one unit normal m."""
+    t0, t1, t2 = (1.0, 0.0, 0.0) if abs(m0) < 0.9 else (0.0, 1.0, 0.0)
+    along = t0 * m0 + t1 * m1 + t2 * m2
+    t0, t1, t2 = t0 - m0 * along, t1 - m1 * along, t2 - m2 * along
+    size = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    return t0 / size, t1 / size, t2 / size
 
 
 def _lobe_share_one(shape, count, poly, table, cos_v, roughness):
@@ -331,10 +342,7 @@ def _light_one(terms, row, outlines, p0, p1, p2, m0, m1, m2, v0, v1, v2, cos_v, 
 
 def _disc_one(l0, l1, l2, tan_half, m0, m1, m2, v0, v1, v2, cos_v, roughness, table, shape, poly):
     """disc_shares of one point for a round light about the unit direction l with tan(half angle)."""
-    h0, h1, h2 = (1.0, 0.0, 0.0) if abs(l0) < 0.9 else (0.0, 1.0, 0.0)
-    a0, a1, a2 = l1 * h2 - l2 * h1, l2 * h0 - l0 * h2, l0 * h1 - l1 * h0
-    size = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-    a0, a1, a2 = a0 / size, a1 / size, a2 / size
+    a0, a1, a2 = _tangent_one(l0, l1, l2)
     o0, o1, o2 = l1 * a2 - l2 * a1, l2 * a0 - l0 * a2, l0 * a1 - l1 * a0
     t0, t1, t2, b0, b1, b2 = _frame_one(m0, m1, m2, v0, v1, v2, cos_v)
     a, b, c, d = _lookup_one(table, cos_v, roughness)
