@@ -391,16 +391,12 @@ def _rotate_each(coeffs, rot, out):
     by the compiled twin where it loads (_rotate_loop: a third of NumPy's time, whose rows of a few
     thousand splats leave the cache between its band-by-band operations)."""
     kernel = jit.compiled(__name__, ROTATE_KERNEL)
-    if kernel is None:
+    if kernel is None or coeffs.shape[1] == 1:  # degree 0 only checks the rotations
         return _rotate_each_numpy(coeffs, rot, out)
     deviation = np.zeros(len(rot))
-    if coeffs.shape[1] == 1:
-        out[...] = coeffs
-        deviation[:] = _orthogonality_error(np.moveaxis(rot, 0, -1))
-    else:
-        order, (columns, values) = _working_order(degree_of(coeffs.shape[1])), _x_tables(coeffs.shape[1])
-        args = (coeffs, np.ascontiguousarray(rot), order, columns, values, _ORTHOGONALITY_TOLERANCE, out, deviation)
-        in_chunks(len(coeffs), lambda lo, hi: kernel(lo, hi, *args))
+    order, (columns, values) = _working_order(degree_of(coeffs.shape[1])), _x_tables(coeffs.shape[1])
+    args = (coeffs, np.ascontiguousarray(rot), order, columns, values, _ORTHOGONALITY_TOLERANCE, out, deviation)
+    in_chunks(len(coeffs), lambda lo, hi: kernel(lo, hi, *args))
     return _checked_rotations(deviation, out)
 
 
