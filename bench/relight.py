@@ -126,6 +126,7 @@ def run(quick=False):
             )
         )
     rows += kind_rows(cloud, camera, world, repeat)
+    rows += closeup_rows(cloud, camera, world, repeat)
     rows += glossy_rows(cloud, camera, world, repeat)
     rows += resolution_sweep(cloud, camera, world, repeat)
     rows += world_occlusion_rows(cloud, camera, world, 2 if quick else 3)
@@ -207,6 +208,51 @@ def kept_rows(cloud, camera, world, repeat):
             )
         )
     return rows
+
+
+def closeup_rows(cloud, camera, world, repeat):
+    """A close-up of one sphere (a third of the splats in the frame), one light of each cube kind:
+    the lit frame testing and shading the splats the picture may show (render_lit) against the
+    same frame testing and shading every splat (lit_colors, then render: what render_lit did before),
+    each also against the unlit frame; the two pictures must agree."""
+    centre = np.array(_first_sphere_centre())
+    close = Camera.look_at(
+        centre + (1.2, -1.5, 0.8), centre, up=(0, 0, 1), fov_deg=40, width=camera.width, height=camera.height
+    )
+    shown = float(relight.may_show(cloud, close).mean())
+    rows = []
+    for light in (LIGHTS[0], LIGHTS[3]):
+
+        def everywhere():
+            rows_, shading = relight.lit_colors(cloud, close, [light], world)
+            return render(relight.lit_cloud(cloud, rows_, shading), close)
+
+        picture = lambda: relight.render_lit(cloud, close, [light], world)  # noqa: E731
+        base, lit, ratio = paired_ratio(everywhere, picture, repeat)
+        unlit = paired_ratio(lambda: render(cloud, close), picture, repeat)[2]
+        unlit_everywhere = paired_ratio(lambda: render(cloud, close), everywhere, repeat)[2]
+        difference = float(np.abs(picture().color - everywhere().color).max())
+        rows.append(
+            Row(
+                TOPIC,
+                f"1 light ({light.kind}), a close-up: the splats the picture may show tested and shaded",
+                lit,
+                base,
+                {"max abs difference": difference},
+                {
+                    "baseline": "every splat tested and shaded",
+                    "lit_over_unlit": f"{unlit:.2f} (every splat: {unlit_everywhere:.2f})",
+                    "shown": f"{shown:.2f}",
+                },
+            )
+        )
+    return rows
+
+
+def _first_sphere_centre():
+    """The centre of scene()'s first sphere (its generator's first draws)."""
+    rng = np.random.default_rng(0)
+    return (rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(0.4, 1.0))
 
 
 def kind_rows(cloud, camera, world, repeat):

@@ -4,7 +4,9 @@ core.render call.
 Per splat, the radiance towards the camera is computed from its material under the lights and the
 world, each light's share scaled by its visibility from the shadow maps; that radiance becomes the
 splat's display-sRGB colour (a degree-0 SH coefficient) in a shallow copy of the cloud, which core.render
-draws as it draws any cloud. A lit frame is thus one frame plus the lights' shadow maps. Splats
+draws as it draws any cloud. A lit frame is thus one frame plus the lights' shadow maps; made for
+one picture, it tests the shadows and shades the splats that picture may show alone (may_show; of
+those, a light's shadows only where the seen side faces it), the others never drawn. Splats
 without a material (a cloud with none, or rows whose albedo or normal is NaN, e.g. captured splats
 joined with converted ones) keep their own colours, view dependence included, and still cast
 shadows. The passes (diffuse, specular, shadow) are extra renders of the same splats, made only
@@ -19,7 +21,7 @@ from typing import Annotated
 
 import numpy as np
 
-from . import ambient, color, jit, material, scratch, shadows
+from . import ambient, color, jit, material, scratch, shadow_cameras, shadows
 from . import sh as shmod
 from .arrays import Image
 from .camera import Camera
@@ -81,6 +83,8 @@ def visibilities(
     shapes: Shapes | None = None,
     blockers: dict[int, np.ndarray] | None = None,
     mesh_blockers: dict[int, list] | None = None,
+    camera: Camera | None = None,
+    shown: np.ndarray | None = None,
 ) -> dict[int | str, np.ndarray]:
     """{light index: (N,) visibility} of every light that casts shadows (and gives some light to
     reflect): what reaches each splat past the whole cloud and `meshes` (core.shadows.visibility),
@@ -91,7 +95,10 @@ def visibilities(
     maps together; shapes, core.render.Shapes of the cloud, are made here unless given. blockers:
     shadow linking, a light's index to the (N,) bool splats that may shadow its light (absent: all);
     mesh_blockers: the same for meshes, a light's index to the meshes (a list as `meshes`) that
-    shadow it in place of `meshes` (absent: `meshes`; the world's occlusion always takes `meshes`)."""
+    shadow it in place of `meshes` (absent: `meshes`; the world's occlusion always takes `meshes`).
+    camera and shown: for one picture through `camera` that may show the splats `shown` (N,) bool
+    (may_show): a light's visibility is tested only at those whose seen side faces it (core.shadows'
+    receiving and eye), the others hold 1 (good for that picture alone: not for KeptVisibilities)."""
     _check_linking(lights, blockers, mesh_blockers)
     # a light that casts no shadow, or gives no light to reflect, needs no maps
     casting = [i for i, light in enumerate(lights) if light.cast_shadow and (light.diffuse > 0 or light.specular > 0)]
@@ -106,6 +113,8 @@ def visibilities(
             occluders=(mesh_blockers or {}).get(index, meshes),
             resolution=_resolution(shadow_resolution, lights[index]),
             blocking=(blockers or {}).get(index),
+            receiving=shown,
+            eye=camera,
             threads=threads,
             progress=part_progress(progress, step, parts),
             shapes=shapes,
@@ -237,34 +246,42 @@ def lit_colors(
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
     kept: KeptVisibilities | None = None,
+    shown: np.ndarray | None = None,
 ):
     """(rows (N,) bool, Shading of cloud[rows]): the splats with a material and their shading,
     each light's share scaled by its visibility (`visible`, visibilities()'s result, or made here for
     the lights that cast shadows and an occluded world: all splats and `meshes` occlude; `progress`
     and `shapes` as visibilities') and, with `receivers` (light linking: a light's index to the (N,)
     bool splats it lights), given only to the splats each light is linked to; `blockers` and
-    `mesh_blockers` as visibilities' (when the visibilities are made here, by `kept` when given)."""
+    `mesh_blockers` as visibilities' (when the visibilities are made here, by `kept` when given).
+    shown: (N,) bool, the splats a picture through `camera` may show (may_show): only they are
+    shaded (the others' shading is 0) and, where the visibilities are made here without `kept`,
+    tested for shadows (visibilities' camera and shown)."""
     rows = material.carried(cloud)
     if not rows.any():
         return rows, None
     if visible is None:
-        visible = (kept or visibilities)(
-            cloud,
-            lights,
-            world,
-            meshes=meshes,
-            shadow_resolution=shadow_resolution,
-            threads=threads,
-            progress=progress,
-            shapes=shapes,
-            blockers=blockers,
-            mesh_blockers=mesh_blockers,
-        )
+        options = dict(shadow_resolution=shadow_resolution, threads=threads, progress=progress, shapes=shapes)
+        options.update(meshes=meshes, blockers=blockers, mesh_blockers=mesh_blockers)
+        if kept is None and shown is not None:
+            visible = visibilities(cloud, lights, world, camera=camera, shown=shown, **options)
+        else:
+            visible = (kept or visibilities)(cloud, lights, world, **options)
     receivers = linked_masks(receivers, len(cloud))
     if rows.all():
-        return rows, shade(cloud, camera, lights, world, visible, receivers=receivers)
+        return rows, shade(cloud, camera, lights, world, visible, receivers=receivers, shown=shown)
     part = {i: v[rows] for i, v in visible.items()}
-    return rows, shade(cloud[rows], camera, lights, world, part, receivers={i: m[rows] for i, m in receivers.items()})
+    linked = {i: m[rows] for i, m in receivers.items()}
+    return rows, shade(
+        cloud[rows], camera, lights, world, part, receivers=linked, shown=None if shown is None else shown[rows]
+    )
+
+
+def may_show(cloud: SplatCloud, camera: Camera) -> Annotated[np.ndarray, "(N,)"]:
+    """(N,) bool: a superset of the splats core.render draws of `cloud` through `camera`
+    (core.shadow_cameras.may_show): a picture needs the light of no others."""
+    reach, _ = shadow_cameras.reach_and_gap(cloud, None)
+    return shadow_cameras.may_show(camera, cloud.positions, reach)
 
 
 def lit_cloud(cloud: SplatCloud, rows: np.ndarray, shading) -> SplatCloud:
@@ -333,6 +350,7 @@ def render_lit(
     t0 = time.perf_counter()
     # The splats' shapes, made once for the shadow maps and the picture (the lit copy keeps them).
     shapes = Shapes(cloud, threads)
+    shown = may_show(cloud, camera) if isinstance(camera, Camera) else None
     rows, shading = lit_colors(
         cloud,
         camera,
@@ -348,6 +366,7 @@ def render_lit(
         progress=render_options.get("progress"),
         shapes=shapes,
         kept=kept,
+        shown=shown,
     )
     shading_time = time.perf_counter() - t0
     options = dict(render_options, threads=threads, shapes=shapes)

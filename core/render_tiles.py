@@ -39,10 +39,12 @@ class Projected:
 
 def new_records(n):
     """Room for n records plus the padding record, each record on one cache line (64-byte aligned:
-    NumPy's large arrays start 16 bytes past a page, which would put every record across two)."""
-    raw = scratch.zeros((n + 2) * 64, np.uint8)
+    NumPy's large arrays start 16 bytes past a page, which would put every record across two).
+    Only the padding record is set: every projection writes each field of the records it keeps."""
+    raw = scratch.empty((n + 2) * 64, np.uint8)
     start = -raw.ctypes.data % 64
     rec = raw[start : start + (n + 1) * 64].view(np.float64).reshape(n + 1, 8)
+    rec[n] = 0.0
     record_floats(rec[n:])[:, 0] = -1e30  # padding: exp(-1e30) = 0
     return rec
 

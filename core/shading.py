@@ -267,6 +267,7 @@ def shade(
     visibility: dict[int | str, np.ndarray] | None = None,
     *,
     receivers: dict[int, np.ndarray] | None = None,
+    shown: np.ndarray | None = None,
     multiscatter: bool = True,
     integrate: bool = True,
     backend: str = "auto",
@@ -279,6 +280,8 @@ def shade(
     (N, 2 + K); absent: 1).
     receivers: light linking, a light's index to the (N,) bool splats it lights (absent: all); the
     others get none of its light, and it counts as no shadow on them.
+    shown: (N,) bool, the splats to shade (absent: all; a picture's, core.relight); the others' terms
+    are 0.
     multiscatter: compensate the GGX lobe's lost energy (multiscatter_compensation) as Blender's
     default Multiscatter GGX does; False for the plain single-scattering GGX distribution.
     integrate: smooth lobes integrated over the light (core.ltc); False shades them as rougher ones
@@ -288,8 +291,13 @@ def shade(
         raise ValueError("the cloud has no material to shade: it needs albedo and normals (core.material)")
     kernel = _shade_kernel() if backend != "numpy" else None
     reach = _reach(receivers, len(lights), len(cloud))
+    if shown is not None:
+        shown = np.asarray(shown, bool).reshape(-1)
+        if shown.shape != (len(cloud),):
+            raise ValueError(f"shown must be {len(cloud)} values, one per splat, got {shown.shape[0]}")
     if kernel is not None:
-        return _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter, integrate)
+        flags = (multiscatter, integrate)
+        return _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown, *flags)
     normals, albedo = material.normals(cloud), material.albedo(cloud)
     points = cloud.positions.astype(np.float64)
     n = len(points)
@@ -323,6 +331,8 @@ def shade(
         diffuse += base * world.color * seen_world[:, None]
         specular += layer * world.color * glossy[:, None]
     shadow = np.where(lit > 0.0, 1.0 - seen / np.where(lit > 0.0, lit, 1.0), 0.0)
+    if shown is not None:
+        diffuse[~shown], specular[~shown], shadow[~shown] = 0.0, 0.0, 0.0
     return Shading(diffuse.astype(np.float32), specular.astype(np.float32), np.clip(shadow, 0, 1).astype(np.float32))
 
 
@@ -486,7 +496,7 @@ def _area_terms(lights: list[Light], integrate: bool = True) -> np.ndarray:
     return np.array(rows, np.float64).reshape(-1, AREA_FIELDS)
 
 
-def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multiscatter, integrate):
+def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown, multiscatter, integrate):
     """shade() by the compiled kernel, on every core (it releases the GIL). It reads the material's
     columns as they are stored (float32 albedo, float64 normals) rather than (N,3) float64 copies."""
     n = len(cloud)
@@ -516,10 +526,11 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, multis
         if terms[index, 21] > 0.0:
             outlines[index, : int(terms[index, 21])] = ltc.outline(light)
     flags = np.array([ortho, multiscatter, world is not None, integrate])
+    shown = np.zeros(0, bool) if shown is None else shown
     in_chunks(
         n,
         lambda lo, hi: kernel(
-            lo, hi, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
+            lo, hi, shown, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
             ltc.INVERSE, colors, vis, reach, world_color, seen_world, sky, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
@@ -654,9 +665,11 @@ def _lobe_sky_one(seen, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallbac
     return share / total if total > 0.0 else fallback
 
 
-def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
-                table, colors, vis, reach, world, seen_world, sky, scale, bias, diffuse, specular, shadow):  # fmt: skip
-    """shade() for splats lo..hi, written into diffuse, specular (N,3) and shadow (N,)."""
+def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, terms,
+                outlines, rings, table, colors, vis, reach, world, seen_world, sky, scale, bias, diffuse, specular,
+                shadow):  # fmt: skip
+    """shade() for splats lo..hi (those `shown`, when not empty; 0 for the others), written into
+    diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
     f0, boost, layer, base = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     out_d, out_s = np.empty(3), np.empty(3)
@@ -664,6 +677,11 @@ def _shade_loop(lo, hi, points, nx, ny, nz, albedo, rough, metal, eye, flags, em
     shape, poly = np.empty((ltc.ROUND_SIDES, 3)), np.empty((ltc.MAX_VERTICES, 3))  # a light's polygons (core.ltc)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
     for i in range(lo, hi):
+        if shown.shape[0] and not shown[i]:
+            for c in range(3):
+                diffuse[i, c], specular[i, c] = 0.0, 0.0
+            shadow[i] = 0.0
+            continue
         p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
         if flags[0]:
             v0, v1, v2 = eye[0], eye[1], eye[2]

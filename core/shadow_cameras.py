@@ -18,10 +18,13 @@ import numpy as np
 from . import jit, scratch
 from .camera import Camera, look_at_matrix
 from .parallel import in_chunks
+from .render_constants import FRUSTUM_MARGIN
 
 CUBE_MARGIN = 32  # texels of a cube face beyond its 90 degrees
 SPOT_CUBE_ANGLE = math.radians(120.0)  # wider cones use the cube
 BOUNDS_CHUNK = 1 << 13  # splats per step of the sun's framing (one box each, merged)
+SHOWN_SIGMAS = math.sqrt(2.0 * math.log(255.0))  # the render's reach of a splat, opacity 1 (may_show)
+SHOWN_PAD = 4.0  # pixels: the low-pass's 1.83 and the box's rounding
 
 
 def reach_and_gap(cloud, source):
@@ -153,14 +156,15 @@ def near_plane(position, gap, meshes):
     return float(np.clip(0.5 * nearest, 1e-4, 0.05))
 
 
-def near_masks(cameras, positions, reach):
+def near_masks(cameras, positions, reach, pad=2.0, margin=1.0):
     """(F, N) bool: _near_mask of every camera, by the compiled kernel in one pass over the splats
     when it loads."""
     kernel = jit.compiled(__name__, ("_near_loop",))
     if kernel is None:
         points = positions.astype(np.float64)
-        return np.array([_near_mask(camera, points, reach) for camera in cameras]).reshape(len(cameras), -1)
-    params = np.array([_near_params(camera) for camera in cameras]).reshape(-1, 7)
+        masks = [_near_mask(camera, points, reach, pad, margin) for camera in cameras]
+        return np.array(masks).reshape(len(cameras), -1)
+    params = np.array([_near_params(camera, pad, margin) for camera in cameras]).reshape(-1, 10)
     rotations = np.array([camera.rotation for camera in cameras], np.float64).reshape(-1, 3, 3)
     out = scratch.empty((len(cameras), len(positions)), np.bool_)
     positions = np.ascontiguousarray(positions, np.float32)
@@ -168,41 +172,55 @@ def near_masks(cameras, positions, reach):
     return out
 
 
-def _near_params(camera):
-    """(centre (3), half_x, half_y, near, orthographic) of a camera for _near_loop."""
-    half_x = (camera.width / 2 + 2) / camera.fx
-    half_y = (camera.height / 2 + 2) / camera.fy
-    return [*camera.center, half_x, half_y, camera.near, float(camera.is_orthographic)]
+def may_show(camera: Camera, positions, reach) -> np.ndarray:
+    """(N,) bool: every splat core.render draws through `camera` (a superset), from the centres
+    `positions` (N,3) and three standard deviations of the widest axes, `reach` (N,)
+    (reach_and_gap's). The render draws a splat to alpha 1/255: sqrt(2 ln 255) = 3.33 standard
+    deviations of its screen covariance widened by the 0.3 px^2 low-pass (at most 1.83 px more),
+    whose Jacobian grows the splat by sqrt(1 + t^2) at a view tangent t clamped to FRUSTUM_MARGIN
+    times the image's."""
+    reach = np.asarray(reach, np.float64) * (SHOWN_SIGMAS / 3.0)
+    return near_masks([camera], positions, reach, pad=SHOWN_PAD, margin=FRUSTUM_MARGIN)[0]
+
+
+def _near_params(camera, pad, margin):
+    """A camera as _near_loop reads it: centre (3), the image's tangent bounds x0, x1, y0, y1 (in
+    metres across for an orthographic camera) `pad` pixels beyond its edges, the near plane,
+    orthographic, and the growth of a reach seen at `margin` times the widest tangent."""
+    x0, x1 = (-camera.cx - pad) / camera.fx, (camera.width - camera.cx + pad) / camera.fx
+    y0, y1 = (-camera.cy - pad) / camera.fy, (camera.height - camera.cy + pad) / camera.fy
+    widest = math.sqrt(1 + (margin * max(-x0, x1, -y0, y1)) ** 2)
+    return [*camera.center, x0, x1, y0, y1, camera.near, float(camera.is_orthographic), widest]
 
 
 def _near_loop(lo, hi, positions, reach, params, rotations, out):
     """_near_mask for splats lo..hi and every camera (rows of params and rotations) into out (F,N)."""
     for f in range(params.shape[0]):
-        half_x, half_y, near, ortho = params[f, 3], params[f, 4], params[f, 5], params[f, 6] > 0.5
-        widest = math.sqrt(1 + max(half_x, half_y) ** 2)
+        x0, x1, y0, y1 = params[f, 3], params[f, 4], params[f, 5], params[f, 6]
+        near, ortho, widest = params[f, 7], params[f, 8] > 0.5, params[f, 9]
         for i in range(lo, hi):
             px, py, pz = positions[i, 0] - params[f, 0], positions[i, 1] - params[f, 1], positions[i, 2] - params[f, 2]
             x = rotations[f, 0, 0] * px + rotations[f, 0, 1] * py + rotations[f, 0, 2] * pz
             y = rotations[f, 1, 0] * px + rotations[f, 1, 1] * py + rotations[f, 1, 2] * pz
             r = reach[i]
             if ortho:
-                out[f, i] = abs(x) <= half_x + r and abs(y) <= half_y + r
+                out[f, i] = x0 - r <= x <= x1 + r and y0 - r <= y <= y1 + r
                 continue
             z = rotations[f, 2, 0] * px + rotations[f, 2, 1] * py + rotations[f, 2, 2] * pz
             slack = r * widest
-            out[f, i] = z + r > near and abs(x) <= half_x * z + slack and abs(y) <= half_y * z + slack
+            out[f, i] = z + r > near and x0 * z - slack <= x <= x1 * z + slack and y0 * z - slack <= y <= y1 * z + slack
 
 
-def _near_mask(camera, points, reach):
-    """Splats whose 3-sigma extent may reach the camera's image (a cone or box test, padded)."""
-    c = camera.to_camera(points)
-    half_x = (camera.width / 2 + 2) / camera.fx
-    half_y = (camera.height / 2 + 2) / camera.fy
+def _near_mask(camera, points, reach, pad=2.0, margin=1.0):
+    """Splats whose `reach` may meet the camera's image `pad` pixels beyond its edges (a cone or box
+    test, the reach grown as near_params says)."""
+    *_, x0, x1, y0, y1, _, _, widest = _near_params(camera, pad, margin)
+    x, y, z = camera.to_camera(points).T
     if camera.is_orthographic:
-        return (np.abs(c[:, 0]) <= half_x + reach) & (np.abs(c[:, 1]) <= half_y + reach)
-    z = c[:, 2]
-    slack = reach * math.sqrt(1 + max(half_x, half_y) ** 2)
-    return (z + reach > camera.near) & (np.abs(c[:, 0]) <= half_x * z + slack) & (np.abs(c[:, 1]) <= half_y * z + slack)
+        return (x0 - reach <= x) & (x <= x1 + reach) & (y0 - reach <= y) & (y <= y1 + reach)
+    slack = reach * widest
+    inside_x = (x0 * z - slack <= x) & (x <= x1 * z + slack)
+    return (z + reach > camera.near) & inside_x & (y0 * z - slack <= y) & (y <= y1 * z + slack)
 
 
 def face_of(cameras, points):

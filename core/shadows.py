@@ -6,7 +6,8 @@ meshes (core.mesh_render.rasterize) folded in, through the light's cameras (core
 one for a spot or the sun, a cube's faces for point and area lights; each splat is tested in the
 one looking most nearly at it).
 The maps draw the splats that may shadow something (the casters section): a floor with nothing
-under it is left out.
+under it is left out. For one picture, only the splats it may show whose seen side faces the light
+are tested (`receiving`, `eye`): the others reflect none of the light there.
 
 A splat is tested at its centre: covered by the map's texel where the map is nearer the light than
 the splat by more than a bias, partly (by the texel's alpha) where the covering splats are faint.
@@ -80,6 +81,7 @@ FILTER_KERNEL = (
     "_pcss_one",
     "_extent_one",
     "_extent_at",
+    "_facing_one",
     "_visibility_loop",
 )
 EXTENT_KERNEL = (*SPLAT_AXES, "_extent_one", "_extent_at", "_extent_loop")
@@ -109,6 +111,8 @@ def visibility(
     soft: bool = True,
     receiver_plane: bool = False,
     blocking: np.ndarray | None = None,
+    receiving: np.ndarray | None = None,
+    eye: Camera | None = None,
     threads: int | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     shapes: Shapes | None = None,
@@ -123,7 +127,11 @@ def visibility(
     against the depth of the splat's own tangent plane there (its material normal; slope capped at
     MAX_SLOPE), so a wide disc of taps on a surface tilted to the light does not find that surface
     in front of the splat (core.ambient's wide suns). blocking: (N,) bool, the splats that may
-    shadow (shadow linking; default all: every splat still receives). A light with cast_shadow False
+    shadow (shadow linking; default all: every splat still receives). receiving: (N,) bool, the
+    splats whose visibility is wanted (default all; those a picture may show, core.relight): the
+    others hold 1, untested, though they still cast. eye: the camera of that picture: of the splats
+    with a material normal, those whose seen side (the normal core.shading turns to the eye) faces
+    away from the whole light hold 1 too (they reflect none of it). A light with cast_shadow False
     gives all ones. An area light narrowed by its Spread shadows as a sun along its axis close to
     it, as its panel far from it, and as a blend between (_along_axis).
     progress(done, total, "shadows") follows the maps as core.render's progress follows tiles (an
@@ -134,6 +142,7 @@ def visibility(
         return np.ones(n, np.float32)
     settings = dict(occluders=occluders, resolution=resolution, taps=taps, sigma_bias=sigma_bias, texel_bias=texel_bias)
     settings.update(soft=soft, receiver_plane=receiver_plane, threads=threads, shapes=shapes)
+    settings.update(receiving=None if receiving is None else _mask(receiving, n, "receiving"), eye=eye)
     if light.kind != "area" or spread_terms(light)[0] <= 0.0:
         return _own_maps(cloud, light, blocking=blocking, progress=progress, **settings)
     # an area light's Spread: a sun along its axis, its panel, or a blend of the two (_along_axis)
@@ -156,10 +165,15 @@ def visibility(
 
 def _blocking(blocking, n):
     """(n,) bool: the splats that may shadow (visibility's `blocking`), checked."""
-    blocking = np.asarray(blocking).reshape(-1)
-    if blocking.shape != (n,):
-        raise ValueError(f"blocking must be {n} values, one per splat, got {blocking.shape[0]}")
-    return blocking.astype(bool)
+    return _mask(blocking, n, "blocking")
+
+
+def _mask(values, n, name):
+    """(n,) bool of `values`, one per splat, or ValueError naming `name`."""
+    values = np.asarray(values).reshape(-1)
+    if values.shape != (n,):
+        raise ValueError(f"{name} must be {n} values, one per splat, got {values.shape[0]}")
+    return values.astype(bool)
 
 
 def _along_axis(light, height):
@@ -176,11 +190,12 @@ def _along_axis(light, height):
 
 
 def _own_maps(
-    cloud, light, *, occluders, resolution, taps, sigma_bias, texel_bias, soft, receiver_plane, blocking, threads,
-    progress, shapes, ahead_of=None,
+    cloud, light, *, occluders, resolution, taps, sigma_bias, texel_bias, soft, receiver_plane, blocking, receiving,
+    eye, threads, progress, shapes, ahead_of=None,
 ):  # fmt: skip
-    """visibility() of a light by its own maps (a cube's faces for point and area lights); ahead_of
-    as shadow_views'."""
+    """visibility() of a light by its own maps (a cube's faces for point and area lights) at the
+    splats `receiving` (all where None) that face it from `eye`'s side (_facing); ahead_of as
+    shadow_views'."""
     out = scratch.empty(len(cloud), np.float32)
     out.fill(1.0)
     views = shadow_views(
@@ -197,13 +212,18 @@ def _own_maps(
     size = _light_size(light)
     kernel = jit.compiled(__name__, FILTER_KERNEL)
     if kernel is not None and len({v.depth.shape for v in views}) == 1:
-        settings = (size if soft else 0.0, sigma_bias, texel_bias, float(receiver_plane))
+        settings = (size if soft else 0.0, sigma_bias, texel_bias, float(receiver_plane), *_eye_terms(eye, light))
         discs = (_spiral(_search_taps(taps)), _spiral(taps))
-        return _visibility_compiled(kernel, cloud, light, views, settings, discs, out)
+        rows = np.zeros(0, np.int64) if receiving is None else np.flatnonzero(receiving)
+        return _visibility_compiled(kernel, cloud, light, views, settings, discs, rows, out)
     sigma, slope = _extent_and_slope(cloud, light)
     points = cloud.positions.astype(np.float64)
     normals = material.normals(cloud) if receiver_plane else None
     face = shadow_cameras.face_of([view.camera for view in views], points)
+    if receiving is not None:
+        face[~receiving] = -1
+    if eye is not None and material.normal_columns(cloud) is not None:
+        face[~_facing(cloud, light, eye)] = -1
     for k, view in enumerate(views):
         idx = np.flatnonzero(face == k)
         if len(idx):
@@ -676,6 +696,55 @@ def _light_size(light):
     return float(getattr(light, "radius", 0.0))
 
 
+def _bounding_radius(light):
+    """The radius (m) of a sphere about the light's position holding all of its emitting area (for
+    the sun, the sine of its half angle): a surface whose plane passes farther behind sees none."""
+    if light.kind == "sun":
+        return math.sin(0.5 * float(getattr(light, "angle", 0.0)))
+    if light.kind == "area":
+        return 0.5 * math.hypot(*light.extent)
+    return float(getattr(light, "radius", 0.0))
+
+
+def _facing(cloud, light, eye):
+    """(N,) bool: the splats whose seen side from the camera `eye` (the material normal turned to
+    it, as core.shading's two-sided shading turns it) faces some of the light (_bounding_radius);
+    False where a normal is not finite. The cloud must have normals."""
+    points = cloud.positions.astype(np.float64)
+    normals = material.normals(cloud)
+    toward_eye = -eye.forward[None] if eye.is_orthographic else eye.center - points
+    seen = np.where(np.einsum("ni,ni->n", normals, toward_eye) < 0.0, -1.0, 1.0)
+    toward_light = -unit(light.direction)[None] if light.kind == "sun" else light.position - points
+    with np.errstate(invalid="ignore"):
+        return seen * np.einsum("ni,ni->n", normals, toward_light) > -_bounding_radius(light)
+
+
+def _eye_terms(eye, light):
+    """_facing's terms as _visibility_loop reads them (for a cloud with normals): 1 (0 without an
+    eye: every splat tested),
+    the eye's centre (or the direction to it, orthographic), 1 for orthographic, the light's
+    _bounding_radius."""
+    if eye is None:
+        return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    ortho = eye.is_orthographic
+    return (1.0, *(-eye.forward if ortho else eye.center), float(ortho), _bounding_radius(light))
+
+
+def _facing_one(positions, nx, ny, nz, source, sun, params, i):
+    """_facing of splat i (params[4:10]: _eye_terms; source and sun: _extent_args')."""
+    p0, p1, p2 = np.float64(positions[i, 0]), np.float64(positions[i, 1]), np.float64(positions[i, 2])
+    if params[8] > 0.5:
+        v0, v1, v2 = params[5], params[6], params[7]
+    else:
+        v0, v1, v2 = params[5] - p0, params[6] - p1, params[7] - p2
+    seen = -1.0 if nx[i] * v0 + ny[i] * v1 + nz[i] * v2 < 0.0 else 1.0
+    if sun:
+        l0, l1, l2 = -source[0], -source[1], -source[2]
+    else:
+        l0, l1, l2 = source[0] - p0, source[1] - p1, source[2] - p2
+    return seen * (nx[i] * l0 + ny[i] * l1 + nz[i] * l2) > -params[9]
+
+
 def _spiral(taps):
     """(taps, 2) points of a golden-angle spiral filling the unit disc evenly (area per tap equal)."""
     k = np.arange(taps) + 0.5
@@ -746,11 +815,11 @@ def _penumbra(z, blocker, scale, ortho):
     return np.where(np.isfinite(blocker), np.maximum(radius, 0.5), 0.0)
 
 
-def _visibility_compiled(kernel, cloud, light, views, settings, discs, out):
-    """visibility()'s test of every splat in its view (shadow_cameras.face_of, _filtered) by one
-    compiled loop on every core: the splat's projection, extent, bias, search and filter without (N,)
-    temporaries per view (the extent only where a search is made: most splats of a scene lie far
-    from any shadow)."""
+def _visibility_compiled(kernel, cloud, light, views, settings, discs, rows, out):
+    """visibility()'s test of every splat (the splats `rows` where not empty) in its view
+    (shadow_cameras.face_of, _filtered) by one compiled loop on every core: the splat's projection,
+    extent, bias, search and filter without (N,) temporaries per view (the extent only where a
+    search is made: most splats of a scene lie far from any shadow)."""
     cams = np.array([_camera_row(view.camera) for view in views])
     # each texel's depth and alpha side by side: a tap reads one cache line, not two
     texels = scratch.empty((len(views), *views[0].depth.shape, 2), np.float32)
@@ -758,8 +827,8 @@ def _visibility_compiled(kernel, cloud, light, views, settings, discs, out):
         texels[k, ..., 0], texels[k, ..., 1] = view.depth, view.alpha
     occupied = _occupied_cells(texels[..., 0])
     params = np.array(settings, np.float64)
-    args = (*_extent_args(cloud, light), cams, texels, occupied, *discs, params, out)
-    in_chunks(len(out), lambda lo, hi: kernel(lo, hi, *args))
+    args = (rows, *_extent_args(cloud, light), cams, texels, occupied, *discs, params, out)
+    in_chunks(len(rows) if len(rows) else len(out), lambda lo, hi: kernel(lo, hi, *args))
     return out
 
 
@@ -785,15 +854,21 @@ def _camera_row(camera):
     return [*camera.rotation.ravel(), *camera.center, camera.fx, camera.fy, camera.cx, camera.cy, *flags]
 
 
-def _visibility_loop(lo, hi, positions, rotations, log_scales, nx, ny, nz, source, sun, cams, texels, occupied,
+def _visibility_loop(lo, hi, rows, positions, rotations, log_scales, nx, ny, nz, source, sun, cams, texels, occupied,
                      search_disc, disc, params, out):  # fmt: skip
-    """visibility() for splats lo..hi into out: each splat's view (face_of: with several, the one
-    looking most nearly at it, none behind them all), then _filtered's test there, skipped where the
-    map holds nothing within the search's reach (_occupied_cells: lit all the same)."""
+    """visibility() for splats lo..hi (rows[lo..hi] where rows is not empty) into out: each splat's
+    view (face_of: with several, the one looking most nearly at it, none behind them all), then
+    _filtered's test there, skipped where the map holds nothing within the search's reach
+    (_occupied_cells: lit all the same)."""
     size, sigma_bias, texel_bias = params[0], params[1], params[2]
     plane = params[3] > 0.5 and nx.shape[0] > 0  # without normals (empty columns) the plain test
+    facing = params[4] > 0.5 and nx.shape[0] > 0
     h, w = texels.shape[1], texels.shape[2]
-    for i in range(lo, hi):
+    every = rows.shape[0] == 0
+    for j in range(lo, hi):
+        i = j if every else rows[j]
+        if facing and not _facing_one(positions, nx, ny, nz, source, sun, params, i):
+            continue  # its seen side gets none of the light: out stays 1
         f = _face_one(positions, i, cams)
         if f < 0:
             continue  # behind an area light: out stays 1

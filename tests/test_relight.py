@@ -2,6 +2,7 @@
 splats coloured plainly per splat by their shading, and its passes and material-less splats."""
 
 import copy
+import dataclasses
 import math
 
 import numpy as np
@@ -224,3 +225,73 @@ def test_display_dc_shows_the_radiance_as_display_srgb_on_both_paths(monkeypatch
     for got in (compiled, numpy_path):
         assert got.dtype == np.float32 and got.shape == radiance.shape
         np.testing.assert_allclose(got, want, rtol=0, atol=2e-6)
+
+
+def _scattered_cloud(n=20000, seed=5):
+    """Splats all around a camera looking at the origin from (0, -4, 1): small and large (up to 0.6
+    m), needles and discs, faint and opaque, most outside any one view."""
+    rng = np.random.default_rng(seed)
+    positions = rng.uniform(-8, 8, (n, 3)).astype(np.float32)
+    rotations = rng.normal(size=(n, 4)).astype(np.float32)
+    log_scales = rng.uniform(np.log(0.002), np.log(0.6), (n, 3)).astype(np.float32)
+    logits = rng.uniform(-4, 9, n).astype(np.float32)  # opacity 0.02 .. 0.9999
+    return SplatCloud(positions, rotations, log_scales, logits, np.zeros((n, 1, 3), np.float32))
+
+
+def _views():
+    base = Camera.look_at((0, -4, 1), (0, 0, 0), up=(0, 0, 1), fov_deg=45, width=64, height=48)
+    wide = Camera.look_at((0, -4, 1), (0, 0, 0), up=(0, 0, 1), fov_deg=120, width=80, height=40)
+    shifted = dataclasses.replace(base, cx=base.cx + 40.0, cy=base.cy - 25.0)  # a lens shift
+    ortho = Camera.look_at_ortho((0, -4, 1), (0, 0, 0), up=(0, 0, 1), ortho_scale=5.0, width=64, height=48)
+    return {"perspective": base, "wide": wide, "lens shift": shifted, "orthographic": ortho}
+
+
+@pytest.mark.parametrize("view", ["perspective", "wide", "lens shift", "orthographic"])
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_may_show_holds_every_splat_the_render_draws(view, mode):
+    """may_show against core.render's own projection (its culling: alpha 1/255 under the 0.3 px^2
+    low-pass, the Jacobian clamped at the frustum margin, the near plane): never a drawn splat left
+    out, and most of a cloud all around the camera left out."""
+    from splatwright.core.render import project
+
+    cloud, camera = _scattered_cloud(), _views()[view]
+    cloud.antialiased = mode == "antialiased"
+    drawn = project(cloud, camera, mode=mode).index
+    shown = relight.may_show(cloud, camera)
+    assert len(drawn) > 40
+    assert shown[drawn].all()
+    assert shown.sum() < min(0.6 * len(cloud), 2.5 * len(drawn))
+    # The splats just past the image's edges: their centres outside, their tails drawn.
+    uv, z = camera.project(cloud.positions.astype(np.float64))
+    outside = (z > 0) & ((uv[:, 0] < 0) | (uv[:, 0] > camera.width) | (uv[:, 1] < 0) | (uv[:, 1] > camera.height))
+    assert outside[drawn].sum() > 5
+
+
+def test_a_picture_tests_and_shades_only_what_it_shows_with_the_same_pixels(scene, monkeypatch):
+    """render_lit made for one picture tests the shadows only at the splats it may show whose seen
+    side faces the light, and shades only those it may show: the same picture, to float32 round-off,
+    as shading every splat under visibilities made everywhere, for a close-up that leaves much of the
+    scene out."""
+    close = Camera.look_at((0.9, -0.9, 1.0), (0.2, 0.0, 0.4), up=(0, 0, 1), fov_deg=40, width=64, height=48)
+    world = World((0.05, 0.06, 0.08))
+    tested = []
+    visibility = shadows.visibility
+
+    def counted(cloud, light, **options):
+        tested.append(options.get("receiving"))
+        return visibility(cloud, light, **options)
+
+    monkeypatch.setattr(shadows, "visibility", counted)
+    got = relight.render_lit(scene, close, LIGHTS, world, background=(0.1, 0.1, 0.1))
+    restricted = [mask.sum() for mask in tested]
+    assert len(restricted) == 2 and max(restricted) < 0.8 * len(scene)
+    everywhere = relight.visibilities(scene, LIGHTS, world)
+    rows, shading = relight.lit_colors(scene, close, LIGHTS, world, visible=everywhere)
+    want = render(relight.lit_cloud(scene, rows, shading), close, (0.1, 0.1, 0.1))
+    assert np.abs(got.color - want.color).max() < 1e-6
+    assert np.abs(got.alpha - want.alpha).max() < 1e-6
+    # Left out of the tests: splats the picture may show whose seen side faces away from the point light.
+    seen = relight.may_show(scene, close)
+    facing = shadows._facing(scene, LIGHTS[0], close)
+    assert (seen & ~facing).sum() > 50
+    assert (everywhere[0][seen & ~facing] < 0.5).sum() > 20  # in shadow there, yet reflecting none of it

@@ -446,6 +446,15 @@ def test_compiled_shade_matches_the_numpy_path(eye):
             got, want = getattr(compiled, name), getattr(reference, name)
             assert got.dtype == want.dtype == np.float32
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    # A picture's splats alone (shown): theirs as before on both paths, the others' 0.
+    shown = rng.uniform(size=n) < 0.6
+    for backend in ("auto", "numpy"):
+        part = shade(*args, multiscatter=False, receivers=linked, shown=shown, backend=backend)  # as the last pair
+        whole = compiled if backend == "auto" else reference
+        for name in ("diffuse", "specular", "shadow"):
+            got, want = getattr(part, name), getattr(whole, name)
+            assert np.array_equal(got[shown], want[shown]) and (got[~shown] == 0.0).all()
+            assert np.abs(want[~shown]).max() > 0.01
 
 
 def test_the_shading_loops_asin_is_asin_within_float32_rounding():

@@ -9,6 +9,7 @@ import pytest
 from shadow_reference import plane_cloud, reference_visibility, sphere_cloud
 
 from splatwright.core import material, shadow_cameras, shadows
+from splatwright.core.camera import Camera
 from splatwright.core.lights import Light
 from splatwright.core.mesh import Surface
 from splatwright.core.render import render
@@ -57,6 +58,7 @@ def test_sphere_shadow_disc_matches_closed_form(scene, kind):
     assert 0 <= shadowed - math.pi * edge**2 < 2 * math.pi * edge * 3.5 * texel
 
 
+EYE = Camera.look_at((2.0, -2.5, 1.5), (0, 0, 0.4), up=(0, 0, 1), fov_deg=50, width=96, height=64)
 LIGHTS = {
     "soft point": Light("point", position=(0.5, 0.3, 3.0), radius=0.3),
     "spot": Light("spot", position=(0.3, -0.2, 2.5), direction=(0, 0, -1), radius=0.2, spot_size=math.radians(90)),
@@ -244,10 +246,18 @@ def test_compiled_filter_matches_the_numpy_path(scene, monkeypatch, name):
     compiled = shadows.visibility(cloud, light, resolution=256)
     hard = shadows.visibility(cloud, light, resolution=256, soft=False)
     plane = shadows.visibility(cloud, light, resolution=256, receiver_plane=True)
+    # One picture's: a third of the splats not wanted, and those whose seen side faces away untested.
+    picture = dict(receiving=np.arange(len(cloud)) % 3 != 0, eye=EYE)
+    seen = shadows.visibility(cloud, light, resolution=256, **picture)
+    tested = picture["receiving"] & shadows._facing(cloud, light, EYE)
+    assert tested.sum() < picture["receiving"].sum() - 200  # the sphere's far side
+    assert np.array_equal(seen[tested], compiled[tested]) and (seen[~tested] == 1.0).all()
+    assert (compiled[~tested] < 0.5).sum() > 100  # in shadow, yet not wanted or reflecting none of it
     monkeypatch.setattr(shadows.jit, "compiled", lambda *args: None)
     assert np.abs(shadows.visibility(cloud, light, resolution=256) - compiled).max() < 1e-5
     assert np.abs(shadows.visibility(cloud, light, resolution=256, soft=False) - hard).max() < 1e-5
     assert np.abs(shadows.visibility(cloud, light, resolution=256, receiver_plane=True) - plane).max() < 1e-5
+    assert np.abs(shadows.visibility(cloud, light, resolution=256, **picture) - seen).max() < 1e-5
 
 
 @pytest.mark.parametrize("name", ["soft point", "tilted sun"])
