@@ -29,6 +29,7 @@ sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent / "tests"))
 
 from common import Row, machine, paired_ratio, print_rows  # noqa: E402
+from environment_reference import irradiance, sunny_sky  # noqa: E402
 from shadow_reference import ball_surface, plane_cloud, reference_visibility, sphere_cloud  # noqa: E402
 
 from splatwright.core import ambient, material, relight, scratch, shading, shadows  # noqa: E402
@@ -127,6 +128,7 @@ def run(quick=False):
         )
     rows += kind_rows(cloud, camera, world, repeat)
     rows += closeup_rows(cloud, camera, world, repeat)
+    rows += environment_rows(cloud, camera, repeat)
     rows += glossy_rows(cloud, camera, world, repeat)
     rows += resolution_sweep(cloud, camera, world, repeat)
     rows += world_occlusion_rows(cloud, camera, world, 2 if quick else 3)
@@ -253,6 +255,40 @@ def _first_sphere_centre():
     """The centre of scene()'s first sphere (its generator's first draws)."""
     rng = np.random.default_rng(0)
     return (rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(0.4, 1.0))
+
+
+def environment_rows(cloud, camera, repeat):
+    """The world as an environment map (core.environment): the shading of every splat under a sunny
+    sky's nine coefficients against the same shading under its mean (a uniform world), with the
+    bands' irradiance error against the brute-force integral of the map (300 normals); and the
+    projection of a 4096 x 2048 map."""
+    from splatwright.core import environment
+
+    sky = sunny_sky(256, 512)
+    coefficients = environment.from_equirect(sky)
+    mapped, uniform = World(environment=coefficients), World(environment.mean(coefficients))
+    base, mapped_time, _ = paired_ratio(
+        lambda: shading.shade(cloud, camera, [], uniform), lambda: shading.shade(cloud, camera, [], mapped), repeat
+    )
+    error = irradiance_error(sky, coefficients)
+    big = np.tile(sunny_sky(256, 512).astype(np.float32), (8, 8, 1))
+    projection = paired_ratio(lambda: None, lambda: environment.from_equirect(big), max(repeat // 2, 2))[1]
+    return [
+        Row(TOPIC, "shading under an environment map (a sunny sky, bands 0-2)", mapped_time, base, error,
+            {"baseline": "the same shading under its mean (a uniform world)", "splats": len(cloud)}),
+        Row(TOPIC, "an environment map's coefficients from 4096 x 2048 pixels", projection),
+    ]  # fmt: skip
+
+
+def irradiance_error(sky, coefficients):
+    """Max and mean |bands' irradiance - the map's| over 300 normals, over the brightest."""
+    from splatwright.core import environment
+
+    normals = np.random.default_rng(4).normal(size=(300, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    brute = irradiance(sky, normals)
+    error = np.abs(environment.diffuse(coefficients, normals) - brute) / brute.max(axis=0)
+    return {"irradiance_max_err": float(error.max()), "irradiance_mean_err": float(error.mean())}
 
 
 def kind_rows(cloud, camera, world, repeat):

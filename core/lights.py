@@ -1,4 +1,5 @@
-"""Blender's lights (point, spot, sun, area) and a uniform world, in Blender's units, for relighting.
+"""Blender's lights (point, spot, sun, area) and the world (uniform, or an environment map's bands:
+core.environment), in Blender's units, for relighting.
 
 A Light lives in the world frame of the cloud it lights. Its units are those Cycles renders with
 (tests/test_blender_lights.py checks every factor against Cycles renders of a white diffuse plane):
@@ -29,6 +30,8 @@ from dataclasses import dataclass, field
 from typing import Annotated, NamedTuple
 
 import numpy as np
+
+from . import sh
 
 KINDS = ("point", "spot", "sun", "area")
 AREA_SHAPES = ("SQUARE", "RECTANGLE", "DISK", "ELLIPSE")
@@ -179,15 +182,24 @@ class Light:
 
 @dataclass(frozen=True, eq=False)
 class World:
-    """A uniform environment: scene-linear radiance `color` (3,) from every direction (Blender's
-    world Background colour times its strength). occlusion: the directions (sphere_directions) sampled
-    for what the splats and meshes hide of it (core.ambient); 0 leaves it unoccluded."""
+    """The world's light: scene-linear radiance `color` (3,) from every direction (Blender's world
+    Background colour times its strength), or with `environment` the (9, 3) SH coefficients of an
+    environment map's radiance (core.environment; Blender's Environment Texture), `color` then its
+    mean. occlusion: the directions (sphere_directions) sampled for what the splats and meshes hide
+    of it (core.ambient); 0 leaves it unoccluded."""
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3))
     occlusion: int = 0
+    environment: np.ndarray | None = None
 
     def __post_init__(self):
         problems: list[str] = []
+        if self.environment is not None:
+            environment = np.array(self.environment, np.float64)
+            if environment.shape != (9, 3) or not np.isfinite(environment).all():
+                raise ValueError("invalid world: environment must be (9, 3) finite SH coefficients (core.environment)")
+            object.__setattr__(self, "environment", environment)
+            object.__setattr__(self, "color", np.maximum(environment[0] * sh.C0, 0.0))  # its mean
         color = _vector(self.color, "color", problems)
         if problems or (color < 0).any():
             raise ValueError(f"invalid world: color must be 3 finite numbers >= 0, got {self.color!r}")

@@ -18,7 +18,9 @@ What is modelled, per splat, vectorised over splats (float64 inside, float32 out
 - world: a uniform environment of radiance W gives diffuse albedo * (1 - metallic) * (1 - E) * W and
   specular E * W (white furnace: albedo 1, metallic 0 sends back exactly W), each scaled by the share
   of the world the splat sees on its eye's side when that is given (core.ambient), else unoccluded:
-  the diffuse by the cosine-weighted share, the specular by its lobe's (lobe_sky);
+  the diffuse by the cosine-weighted share, the specular by its lobe's (lobe_sky); an environment
+  map (World.environment) gives in place of W its irradiance over pi at the normal and its
+  radiance, filtered by the lobe, towards the view's mirror direction (core.environment);
 - two-sided: a normal facing away from the eye is flipped towards it (splats are seen from both
   sides), so a splat's back is lit as its front would be;
 - shadows come in as visibility per light (core.shadows): a light's contribution is scaled by it.
@@ -40,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import jit, ltc, material, scratch
+from . import environment, jit, ltc, material, scratch
 from .arrays import Floats
 from .camera import Camera
 from .lights import (
@@ -328,12 +330,24 @@ def shade(
         shares = np.clip(_world_visibility(visibility, n), 0.0, 1.0)
         seen_world = shares[np.arange(n) if len(shares) > 1 else 0, np.where(front, 0, 1)]
         glossy = lobe_sky(shares[:, 2:], normal, view, alpha, seen_world) if shares.shape[1] > 2 else seen_world
-        diffuse += base * world.color * seen_world[:, None]
-        specular += layer * world.color * glossy[:, None]
+        diffuse_light, glossy_light = _world_light(world, normal, view, alpha)
+        diffuse += base * diffuse_light * seen_world[:, None]
+        specular += layer * glossy_light * glossy[:, None]
     shadow = np.where(lit > 0.0, 1.0 - seen / np.where(lit > 0.0, lit, 1.0), 0.0)
     if shown is not None:
         diffuse[~shown], specular[~shown], shadow[~shown] = 0.0, 0.0, 0.0
     return Shading(diffuse.astype(np.float32), specular.astype(np.float32), np.clip(shadow, 0, 1).astype(np.float32))
+
+
+def _world_light(world: World, normal: np.ndarray, view: np.ndarray, alpha: np.ndarray):
+    """(diffuse (N,3) or (3,), glossy): the world's light on a white Lambertian surface facing
+    `normal` (N,3) and on a lobe of width `alpha` (N,) seen along `view` (N,3): a uniform world's
+    colour both ways, an environment map's (core.environment) at the normal and at the view's
+    mirror direction."""
+    if world.environment is None:
+        return world.color, world.color
+    mirror = 2.0 * np.einsum("ij,ij->i", normal, view)[:, None] * normal - view
+    return environment.diffuse(world.environment, normal), environment.glossy(world.environment, mirror, alpha)
 
 
 def lobe_sky(
@@ -512,7 +526,11 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown,
     # each light's colour in diffuse reflection, then in specular
     colors = np.array([[*light.color * light.diffuse, *light.color * light.specular] for light in lights])
     colors = colors.reshape(-1, 6)
-    world_color = np.zeros(3) if world is None else np.asarray(world.color, np.float64)
+    world_light = np.zeros((1 + environment.COEFFICIENTS, 3))  # the world's colour, its environment's coefficients
+    if world is not None:
+        world_light[0] = world.color
+        if world.environment is not None:
+            world_light[1:] = world.environment
     seen_world = _world_visibility(visibility, n)
     sky = sphere_directions(seen_world.shape[1] - 2)  # the directions of its columns 2..
     scale, bias = _albedo_table()
@@ -525,13 +543,14 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown,
     for index, light in enumerate(lights):  # a loop over lights
         if terms[index, 21] > 0.0:
             outlines[index, : int(terms[index, 21])] = ltc.outline(light)
-    flags = np.array([ortho, multiscatter, world is not None, integrate])
+    mapped = world is not None and world.environment is not None
+    flags = np.array([ortho, multiscatter, world is not None, integrate, mapped])
     shown = np.zeros(0, bool) if shown is None else shown
     in_chunks(
         n,
         lambda lo, hi: kernel(
             lo, hi, shown, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
-            ltc.INVERSE, colors, vis, reach, world_color, seen_world, sky, scale, bias, diffuse, specular, shadow,
+            ltc.INVERSE, colors, vis, reach, world_light, seen_world, sky, scale, bias, diffuse, specular, shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -540,6 +559,8 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown,
 def _shade_kernel():
     """The compiled twin of shade (core.jit), or None: NumPy then does the work."""
     if jit.compiled(ltc.__name__, ltc.KERNEL) is None:  # its lights' polygon twins, which the loop calls
+        return None
+    if jit.compiled(environment.__name__, environment.KERNEL) is None:  # and the environment's
         return None
     return jit.compiled(__name__, SHADE_KERNEL)
 
@@ -676,6 +697,8 @@ def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, fl
     cuts, lengths = np.empty(9), np.empty(8)  # a reachable disc's ring pieces (_ring_arcs)
     shape, poly = np.empty((ltc.ROUND_SIDES, 3)), np.empty((ltc.MAX_VERTICES, 3))  # a light's polygons (core.ltc)
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
+    seen_d, seen_s = np.empty(3), np.empty(3)  # the world's light on the diffuse and the glossy lobe
+    basis, cosine, lobe = np.empty(environment.COEFFICIENTS), np.array(environment.COSINE), np.ones(3)
     for i in range(lo, hi):
         if shown.shape[0] and not shown[i]:
             for c in range(3):
@@ -828,9 +851,20 @@ def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, fl
         if flags[2] and sky.shape[0] > 0:
             glossy = _lobe_sky_one(seen_world, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, open_sky)
         for c in range(3):
+            seen_d[c], seen_s[c] = world[0, c], world[0, c]  # a uniform world: its colour both ways
+        if flags[4]:  # an environment map: at the normal and the view's mirror direction (core.environment)
+            environment._basis_one(m0, m1, m2, basis)
+            lobe[1], lobe[2] = math.exp(-0.5 * alpha * alpha), math.exp(-1.5 * alpha * alpha)
+            for c in range(3):
+                seen_d[c] = environment._radiance_one(world[1:], basis, cosine, c)
+            twice = 2.0 * (m0 * v0 + m1 * v1 + m2 * v2)
+            environment._basis_one(twice * m0 - v0, twice * m1 - v1, twice * m2 - v2, basis)
+            for c in range(3):
+                seen_s[c] = environment._radiance_one(world[1:], basis, lobe, c)
+        for c in range(3):
             if flags[2]:
-                out_d[c] += base[c] * world[c] * open_sky
-                out_s[c] += layer[c] * world[c] * glossy
+                out_d[c] += base[c] * seen_d[c] * open_sky
+                out_s[c] += layer[c] * seen_s[c] * glossy
             diffuse[i, c] = out_d[c]
             specular[i, c] = out_s[c]
         shadow[i] = min(max(1.0 - seen / lit, 0.0), 1.0) if lit > 0.0 else 0.0

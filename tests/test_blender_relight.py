@@ -451,42 +451,54 @@ def test_an_animation_keeps_the_shadows_of_what_did_not_move(blender):
 
 def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blender):
     """An equirectangular Environment Texture on the Background's Color lights the relit splats by
-    its mean radiance over the sphere times the Strength (a map bright above 30 degrees of latitude:
-    a quarter of the sphere, the closed form (1 - sin 30) / 2; an sRGB image decoded to linear),
-    and the engine reports that its directions are not modelled. Nodes it cannot read (a texture
-    without an image, any node on the Strength) leave the world's Viewport Display colour, and a
-    warning that names the node; a plain Background gives its own colour and no warning."""
+    the SH coefficients of its pixels (core.environment.from_equirect) times the Strength, its mean
+    radiance over the sphere the world's colour (a map bright above 30 degrees of latitude: a
+    quarter of the sphere, the closed form (1 - sin 30) / 2; an sRGB image decoded to linear), and
+    the engine reports what of the map is left out (a map turned by nodes lights by its mean, from
+    every direction, and says so). Nodes it cannot read (a texture without an
+    image, any node on the Strength) leave the world's Viewport Display colour, and a warning that
+    names the node; a plain Background gives its own colour and no warning."""
     from workers.relight import HDRI_CAP, WORLD
 
+    from splatwright.core import environment
     from splatwright.core.color import srgb_to_linear
 
     res = blender.step("textured_world")
     assert res["cap_space"] != "sRGB" and res["grey_space"] == "sRGB"  # the two decodings are met
-    for name, want in (("hdri", 2.0 * (1 - math.sin(math.radians(30))) / 2 * np.array(HDRI_CAP)),
-                       ("srgb", np.full(3, srgb_to_linear(np.array(128 / 255))))):  # 0.5 stored as a byte  # fmt: skip
-        color, caught = res[name]
+    cap = np.zeros((48, 64, 3))
+    cap[32:] = HDRI_CAP  # the worker's map, rows from the bottom
+    grey = np.full((8, 16, 3), srgb_to_linear(np.array(128 / 255)))  # 0.5 stored as a byte
+    for name, want, pixels in (("hdri", 2.0 * (1 - math.sin(math.radians(30))) / 2 * np.array(HDRI_CAP), 2.0 * cap),
+                               ("srgb", grey[0, 0], grey)):  # fmt: skip
+        color, caught, coefficients = res[name]
         np.testing.assert_allclose(color, want, rtol=2e-3)  # rows' midpoints: measured within 0.1%
+        np.testing.assert_allclose(coefficients, environment.from_equirect(pixels), rtol=1e-5, atol=1e-6)
         assert len(caught) == 1 and caught[0].startswith("RelightWarning") and "'Sky HDRI'" in caught[0]
-        assert "mean radiance" in caught[0]
+        assert "broad light" in caught[0] and "no shadows" in caught[0]
+    assert res["hdri"][2][2][0] > 0.3  # the map's light from above: band 1's z, C1 2 sin-weighted cap
+    color, caught, coefficients = res["remapped"]  # turned by nodes not read: its mean, from everywhere
+    np.testing.assert_allclose(color, res["hdri"][0], rtol=1e-12)
+    assert coefficients is None and len(caught) == 1 and "Vector input" in caught[0]
     for name, node in (("texture", "Sky HDRI"), ("strength", "Brightness")):
-        color, caught = res[name]
+        color, caught, coefficients = res[name]
         np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the world's plain colour (stage())
+        assert coefficients is None
         assert len(caught) == 1 and caught[0].startswith("RelightWarning") and f"'{node}'" in caught[0]
         assert "Viewport Display colour" in caught[0]
-    color, caught = res["plain"]
+    color, caught, coefficients = res["plain"]
     np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the Background's own, set to WORLD as well
-    assert caught == []
+    assert caught == [] and coefficients is None
 
 
 def test_the_final_render_reports_the_world_and_lights_it_cannot_read_once_each(blender):
     """F12 of a relit ball under an environment texture and a light whose Emission Strength a node
-    drives, drawn by three collection instances: the engine reports the world's stand-in (its mean,
-    directions not modelled) and the light's unread node as Blender warnings, each once."""
+    drives, drawn by three collection instances: the engine reports what of the world's map is left
+    out (its sharp features) and the light's unread node as Blender warnings, each once."""
     reports = blender.step("engine_reports")
     warned = [message for kinds, message in reports if kinds == ["WARNING"]]
     world = [m for m in warned if "Environment Texture 'Sky HDRI'" in m]
     light = [m for m in warned if "'IES Stand-in'" in m]
-    assert len(world) == 1 and "mean radiance" in world[0], reports
+    assert len(world) == 1 and "broad light" in world[0], reports
     assert len(light) == 1, reports
     assert not [kinds for kinds, _ in reports if "ERROR" in kinds], reports
 

@@ -438,7 +438,12 @@ def test_compiled_shade_matches_the_numpy_path(eye):
         cam = Camera(64, 48, 20.0, 20.0, 32, 24, cam.world_to_camera, 0.1, projection="orthographic")
     where = (0.5, -3.0, 1.5) if eye == "point" else cam
     linked = {1: rng.uniform(size=n) < 0.5, 4: rng.uniform(size=n) < 0.3}  # light linking
-    for world, multiscatter, receivers in ((World((0.1, 0.2, 0.3)), True, None), (None, False, linked)):
+    mapped = World(environment=np.concatenate([[[1.2, 0.9, 0.7]], rng.normal(0.0, 0.3, (8, 3))]))  # core.environment
+    for world, multiscatter, receivers in (
+        (World((0.1, 0.2, 0.3)), True, None),
+        (mapped, True, None),
+        (None, False, linked),
+    ):
         args = (cloud, where, lights, world, visibility)
         compiled = shade(*args, multiscatter=multiscatter, receivers=receivers)
         reference = shade(*args, multiscatter=multiscatter, receivers=receivers, backend="numpy")
@@ -455,6 +460,31 @@ def test_compiled_shade_matches_the_numpy_path(eye):
             got, want = getattr(part, name), getattr(whole, name)
             assert np.array_equal(got[shown], want[shown]) and (got[~shown] == 0.0).all()
             assert np.abs(want[~shown]).max() > 0.01
+
+
+@pytest.mark.parametrize("backend", ["auto", "numpy"])
+def test_a_uniform_environment_shades_as_the_world_colour(backend):
+    """An environment of band 0 alone (a uniform map) gives exactly the uniform world's shading, its
+    colour the map's mean; a map brighter above lights the splats facing up more, by the cosine's
+    band-1 share (2/3) on the diffuse of a rough white splat."""
+    from splatwright.core.sh import C0, C1
+
+    rng = np.random.default_rng(12)
+    cloud = random_cloud(500, rng)
+    eye = np.array([0.3, -4.0, 2.0])
+    uniform = np.zeros((9, 3))
+    uniform[0] = np.array([0.2, 0.3, 0.4]) / C0
+    plain = shade(cloud, eye, [], World((0.2, 0.3, 0.4)), backend=backend)
+    mapped = shade(cloud, eye, [], World(environment=uniform), backend=backend)
+    for name in ("diffuse", "specular"):
+        np.testing.assert_allclose(getattr(mapped, name), getattr(plain, name), rtol=1e-6, atol=1e-7)
+    sky = uniform.copy()
+    sky[2] = np.array([0.2, 0.3, 0.4]) / C0 * 0.5  # band 1's z: L = W (1 + 0.5 sqrt(3) z)
+    n = len(cloud)
+    up = with_material(cloud, normals=np.tile([0.0, 0.0, 1.0], (n, 1)), roughness=np.ones(n), metallic=np.zeros(n))
+    lit, flat = (shade(up, eye, [], World(environment=e), backend=backend).diffuse for e in (sky, uniform))
+    want = 1.0 + 2.0 / 3.0 * 0.5 * C1 / C0  # the cosine's band 1 over band 0
+    np.testing.assert_allclose(lit / flat, want, rtol=1e-5)
 
 
 def test_the_shading_loops_asin_is_asin_within_float32_rounding():

@@ -5,6 +5,7 @@ meshes, and the conversion of a display-sRGB picture to Blender's scene-linear."
 import bpy
 import numpy as np
 
+from ...core import environment
 from ...core.color import srgb_to_linear
 from .. import data
 
@@ -90,36 +91,54 @@ def surface_triangles(depsgraph, shadow_casters_only=False, owners=None):
 def world_color(scene):
     """The world's background colour (scene-linear RGB): colour x strength of the Background node
     feeding the world output, an equirectangular Environment Texture's mean radiance standing for its
-    colour (environment_mean); the world's plain colour when it uses no nodes or other nodes drive
+    colour (environment_map); the world's plain colour when it uses no nodes or other nodes drive
     the background; black without a world."""
     return world_background(scene)[0]
 
 
 def world_background(scene):
-    """(world_color's colour, a note or None): the note says how the colour stands in for a
-    Background that nodes drive (the environment's mean, or the world's plain colour where the
-    nodes are not read), for the engine to report; None where the colour is the Background's own."""
+    """(world_color's colour, a note or None, the environment or None): the environment is the SH
+    coefficients (core.environment) of an equirectangular Environment Texture on the Background's
+    Color times its Strength (environment_map), the colour then its mean; the note says how the
+    world's light is read where nodes drive the Background (the map's bands, its mean where its
+    directions are remapped, or the world's plain colour where the nodes are not read), for the
+    engine to report; None where the colour is the Background's own."""
     world = scene.world
     if world is None:
-        return np.zeros(3), None
+        return np.zeros(3), None, None
     uses_nodes = world.node_tree is not None and (bpy.app.version >= (5, 0, 0) or world.use_nodes)
     node = _background_node(world.node_tree) if uses_nodes else None
     plain = np.array(world.color[:3], dtype=np.float64)
     if node is None:
-        return plain, None
+        return plain, None, None
     color, strength = node.inputs["Color"], node.inputs["Strength"]
     if strength.is_linked:
-        return plain, _unread(strength.links[0].from_node.name)
+        return plain, _unread(strength.links[0].from_node.name), None
     if color.is_linked:
         source = color.links[0].from_node
-        mean = environment_mean(source)
-        if mean is None:
-            return plain, _unread(source.name)
-        return mean * strength.default_value, (
-            f"the world's Environment Texture '{source.name}' lights relit splats by its mean radiance, "
-            "uniform from every direction (the map's directions are not modelled)"
+        coefficients = environment_map(source)
+        if coefficients is None:
+            return plain, _unread(source.name), None
+        coefficients = coefficients * strength.default_value
+        if source.inputs["Vector"].is_linked:  # a remapped map: its directions are not read, its mean is
+            return (
+                environment.mean(coefficients),
+                (
+                    f"the world's Environment Texture '{source.name}' lights relit splats by its mean radiance, "
+                    "uniform from every direction (its Vector input, which turns the map, is not read)"
+                ),
+                None,
+            )
+        return (
+            environment.mean(coefficients),
+            (
+                f"the world's Environment Texture '{source.name}' lights relit splats by its broad light (its "
+                "spherical harmonics to band 2): the map's sharp features, a sun in it, cast no shadows and "
+                "make no sharp highlights"
+            ),
+            coefficients,
         )
-    return np.array(color.default_value[:3], dtype=np.float64) * strength.default_value, None
+    return np.array(color.default_value[:3], dtype=np.float64) * strength.default_value, None, None
 
 
 def _unread(name):
@@ -132,11 +151,11 @@ def _unread(name):
 LINEAR_SPACES = {"Linear", "Linear Rec.709", "Linear CIE-XYZ E", "Non-Color", "Raw"}
 
 
-def environment_mean(node):
-    """(3,) the mean scene-linear radiance over the sphere of an equirectangular Environment Texture
-    node's image (each row weighted by the cosine of its latitude: its share of the sphere), or None
-    for another node, another projection, no image, colours in a space other than sRGB or linear
-    ones (LINEAR_SPACES), or pixels past the memory budget (core.memory.default_budget)."""
+def environment_map(node):
+    """(9, 3) the SH coefficients of the scene-linear radiance (core.environment.from_equirect) of an
+    equirectangular Environment Texture node's image, or None for another node, another projection,
+    no image, colours in a space other than sRGB or linear ones (LINEAR_SPACES), or pixels past the
+    memory budget (core.memory.default_budget)."""
     image = getattr(node, "image", None)
     if node.bl_idname != "ShaderNodeTexEnvironment" or node.projection != "EQUIRECTANGULAR" or image is None:
         return None
@@ -144,40 +163,35 @@ def environment_mean(node):
     width, height = image.size
     if (space != "sRGB" and space not in LINEAR_SPACES) or not width or not height:
         return None
-    # An image file's mean is kept: the viewport asks on every scene update, and a 4k map is 0.1-0.3 s
+    # An image file's coefficients are kept: the viewport asks on every scene update, and reading a
+    # 4k map takes 0.1-0.3 s
     key = (image.name, image.filepath_raw, width, height, space) if image.filepath_raw and not image.is_dirty else None
-    if key is not None and key in _MEANS:
-        return _MEANS[key]
-    mean = _equirect_mean(image, width, height, space)
+    if key is not None and key in _MAPS:
+        return _MAPS[key]
+    coefficients = _equirect_map(image, width, height, space)
     if key is not None:
-        _MEANS.clear()  # one environment at a time
-        _MEANS[key] = mean
-    return mean
+        _MAPS.clear()  # one environment at a time
+        _MAPS[key] = coefficients
+    return coefficients
 
 
-_MEANS: dict = {}
+_MAPS: dict = {}
 
 
-def _equirect_mean(image, width, height, space):
-    """environment_mean of `image`'s pixels, or None where they would not fit the memory budget."""
+def _equirect_map(image, width, height, space):
+    """environment_map of `image`'s pixels, or None where they would not fit the memory budget (the
+    pixels, and their linear copy for an sRGB image)."""
     from ...core.memory import default_budget
 
-    if width * height * image.channels * 4 > default_budget():
+    copies = 2 if space == "sRGB" else 1
+    if width * height * image.channels * 4 * copies > default_budget():
         return None
     pixels = np.empty(width * height * image.channels, np.float32)
     image.pixels.foreach_get(pixels)  # rows from the bottom (latitude -90 degrees) up
-    rows = pixels.reshape(height, width, image.channels)
-    weight = np.cos((np.arange(height) + 0.5) / height * np.pi - np.pi / 2)  # each row's latitude
-    total = np.zeros(3)
-    for lo in range(0, height, MEAN_BAND):  # a loop over bands of rows: no float64 copy of the map
-        band = rows[lo : lo + MEAN_BAND, :, :3]
-        if space == "sRGB":
-            band = srgb_to_linear(band, np.float32)
-        total += (band.mean(axis=1, dtype=np.float64) * weight[lo : lo + MEAN_BAND, None]).sum(axis=0)
-    return total / weight.sum()
-
-
-MEAN_BAND = 256  # rows of an environment map averaged at a time
+    rows = pixels.reshape(height, width, image.channels)[..., :3]
+    if space == "sRGB":
+        rows = srgb_to_linear(rows, np.float32)
+    return environment.from_equirect(rows)
 
 
 def _background_node(tree):

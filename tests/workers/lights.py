@@ -106,8 +106,34 @@ TILT = math.radians(40.0)
 PRINCIPLED_LIGHT = ("POINT", dict(energy=60.0, shadow_soft_size=0.02), (0.2, 1.3, 1.5), (0, 0, 0))
 
 
+# environment's map: a radiance of bands 0-2, different per channel, as functions of the direction
+# (x, y, z); positive everywhere (R from 0.2, G from 0.2, B from 0.2)
+ENVIRONMENT = (
+    lambda x, y, z: 1.0 + 0.6 * y + 0.4 * x * z,
+    lambda x, y, z: 1.0 + 0.5 * z + 0.3 * (x * x - y * y),
+    lambda x, y, z: 0.6 - 0.4 * x + 0.3 * z * z,
+)
+ENVIRONMENT_SIZE = (128, 64)  # the map's pixels, width by height
+BALL_ORTHO_SCALE = 2.4  # the camera's view of environment's ball (radius 1)
+
+
+def environment_pixels():
+    """(H, W, 4) float32 ENVIRONMENT's map at its pixels' centres, rows from the bottom, with the
+    directions Blender reads an equirectangular map with (measured in Cycles: u = 0.5 looks along +X,
+    0.25 along +Y; row 0 at latitude -90 degrees)."""
+    width, height = ENVIRONMENT_SIZE
+    longitude = math.pi * (1.0 - 2.0 * (np.arange(width) + 0.5) / width)
+    latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
+    lon, lat = np.meshgrid(longitude, latitude)
+    x, y, z = np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)
+    pixels = np.ones((height, width, 4), np.float32)
+    for channel, radiance in enumerate(ENVIRONMENT):
+        pixels[..., channel] = radiance(x, y, z)
+    return pixels
+
+
 class Worker(BlenderWorker):
-    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow")
+    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow", "environment")
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "lights")
 
@@ -248,6 +274,45 @@ class Worker(BlenderWorker):
         self.save("area_spread_shadow", first=images[0], second=images[1])
         record = {"light": self.record(obj), "albedo": ALBEDO, "size": SIZE, "ortho_scale": ORTHO_SCALE}
         return {**record, "occluder": {"vertices": corners, "faces": faces}}
+
+    def environment(self):
+        """A white diffuse ball (radius 1, smooth) alone under an equirectangular Environment Texture
+        of ENVIRONMENT's map, seen along +Y by the orthographic camera: the map's pixels and two
+        renders."""
+        bpy = self.bpy
+        self.scene()
+        scene = bpy.context.scene
+        plane = bpy.context.active_object
+        material = plane.data.materials[0]
+        bpy.data.objects.remove(plane)
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=192, ring_count=96, radius=1.0, location=(0.0, 0.0, 0.0))
+        ball = bpy.context.active_object
+        ball.data.materials.append(material)
+        bpy.ops.object.shade_smooth()
+        cam = scene.camera
+        cam.location, cam.rotation_euler = (0.0, -10.0, 0.0), (math.pi / 2, 0.0, 0.0)
+        cam.data.ortho_scale = BALL_ORTHO_SCALE
+        width, height = ENVIRONMENT_SIZE
+        image = bpy.data.images.new("Environment", width, height, float_buffer=True)
+        pixels = environment_pixels()
+        image.pixels.foreach_set(pixels.ravel())
+        tree = scene.world.node_tree
+        background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        texture = tree.nodes.new("ShaderNodeTexEnvironment")
+        texture.image = image
+        tree.links.new(texture.outputs["Color"], background.inputs["Color"])
+        background.inputs["Strength"].default_value = 1.0
+        scene.render.film_transparent = True  # the map itself out of the picture
+        try:
+            images = [self.render("environment", seed) for seed in (0, 1)]
+        finally:
+            scene.render.film_transparent = False
+            tree.nodes.remove(texture)
+            bpy.data.images.remove(image)
+            bpy.data.objects.remove(ball)
+        self.save("environment", first=images[0], second=images[1], map=pixels[..., :3])
+        camera = [list(row) for row in cam.matrix_world]
+        return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE, "camera": camera}
 
     def principled_dielectric(self):
         return self.run_light("principled_dielectric")

@@ -582,8 +582,9 @@ class Worker(BlenderWorker):
     def textured_world(self):
         """The world a relit scene sees when an Environment Texture without an image feeds its
         Background's Color, one with a float image bright above 30 degrees of latitude (its Strength
-        2), one with an sRGB image of grey 0.5, a Value node its Strength, then neither:
-        (colour, warnings) of lights.scene_world each time."""
+        2), one with an sRGB image of grey 0.5, the float one turned by a Mapping node, a Value node
+        its Strength, then neither:
+        (colour, warnings, environment coefficients or None) of lights.scene_world each time."""
         bpy = self.bpy
         self.stage("NONE")
         scene = bpy.context.scene
@@ -600,21 +601,25 @@ class Worker(BlenderWorker):
         grey = bpy.data.images.new("Grey", 16, 8)  # 8-bit, sRGB
         grey.pixels.foreach_set(np.full(16 * 8 * 4, 0.5, np.float32))
         out = {"cap_space": cap.colorspace_settings.name, "grey_space": grey.colorspace_settings.name}
-        for name in ("texture", "hdri", "srgb", "strength", "plain"):
+        mapping = tree.nodes.new("ShaderNodeMapping")  # turns the map: "remapped"
+        for name in ("texture", "hdri", "srgb", "remapped", "strength", "plain"):
             for link in list(tree.links):
-                if link.to_node == background:
+                if link.to_node in (background, texture):
                     tree.links.remove(link)
-            texture.image = {"hdri": cap, "srgb": grey}.get(name)
-            background.inputs["Strength"].default_value = 2.0 if name == "hdri" else 1.0
-            if name in ("texture", "hdri", "srgb"):
+            texture.image = {"hdri": cap, "srgb": grey, "remapped": cap}.get(name)
+            background.inputs["Strength"].default_value = 2.0 if name in ("hdri", "remapped") else 1.0
+            if name in ("texture", "hdri", "srgb", "remapped"):
                 tree.links.new(texture.outputs["Color"], background.inputs["Color"])
+            if name == "remapped":
+                tree.links.new(mapping.outputs["Vector"], texture.inputs["Vector"])
             if name == "strength":
                 tree.links.new(value.outputs["Value"], background.inputs["Strength"])
             world, caught = _warned(lambda: lights.scene_world(scene))
-            out[name] = (list(world.color), caught)
+            out[name] = (list(world.color), caught, None if world.environment is None else world.environment.tolist())
         background.inputs["Strength"].default_value = 1.0
         tree.nodes.remove(texture)
         tree.nodes.remove(value)
+        tree.nodes.remove(mapping)
         bpy.data.images.remove(cap)
         bpy.data.images.remove(grey)
         return out

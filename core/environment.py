@@ -1,0 +1,124 @@
+"""An environment map (Blender's world Environment Texture) as light for relit splats: its radiance
+L as spherical harmonics of bands 0-2, nine coefficients per colour in core.sh's basis (the 3DGS
+ordering and signs, orthonormal over the sphere).
+
+Nine coefficients carry what a diffuse surface and a rough lobe see of a map: the clamped cosine
+filters a map's bands by pi, 2 pi / 3 and pi / 4 and the rest by at most pi / 24, so the irradiance
+E(n) = sum_l A_l L_lm Y_lm(n) of bands 0-2 is within a few percent of the whole map's for natural
+light (Ramamoorthi and Hanrahan 2001; tests/test_environment.py measures the bands' share of a sky
+with a sun). A glossy lobe takes the map's radiance towards its mirror direction, filtered as a
+von Mises-Fisher lobe of the GGX width alpha (sharpness 2 / alpha^2, bands attenuated by
+exp(-l (l + 1) alpha^2 / 4)); its total then comes from core.shading's specular albedo, as a uniform
+world's does. What nine coefficients cannot hold is left out: a sun in the map makes no sharp
+highlight and casts no shadow of its own (the world's occlusion, core.ambient, darkens the whole
+map alike where the splats and meshes hide the sky).
+
+An equirectangular map is read as Blender reads one: row 0 at the bottom (latitude -90 degrees),
+column u at longitude pi (1 - 2u) from +X towards +Y (u = 0.5 looks along +X, 0.25 along +Y),
+each pixel its share of the sphere.
+
+Each evaluation has a scalar twin (`_..._one`) for the compiled shading loop, written the same way.
+"""
+
+import math
+from typing import Annotated
+
+import numpy as np
+
+from . import sh
+
+COEFFICIENTS = 9  # bands 0-2
+COSINE = (1.0, 2.0 / 3.0, 0.25)  # the clamped cosine's bands over pi (Funk-Hecke): E / pi from L
+BAND_OF = (0, 1, 1, 1, 2, 2, 2, 2, 2)
+ROWS = 64  # map rows per step of the projection: no (H, W) float64 temporaries for a large map
+KERNEL = ("_basis_one", "_radiance_one")
+
+Environment = Annotated[np.ndarray, "(9, 3) float64"]
+
+
+def from_equirect(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> Environment:
+    """(9, 3) the SH coefficients of an equirectangular map's radiance (its first three channels,
+    scene-linear; rows from the bottom, see the module notes), integrated over its pixels as the
+    midpoint rule does, the pixels' solid angles scaled to sum to 4 pi (so band 0 is the map's mean
+    over the sphere exactly). Separable: per row, the sums of its pixels times 1, cos and sin of
+    the longitude and of twice it, then each coefficient's latitude factor."""
+    height, width = rows.shape[:2]
+    if height == 0 or width == 0 or rows.ndim != 3 or rows.shape[2] < 3:
+        raise ValueError(f"an environment map needs rows of pixels with 3 colours, got shape {rows.shape}")
+    longitude = math.pi * (1.0 - 2.0 * (np.arange(width) + 0.5) / width)
+    waves = np.stack([np.ones(width), *_waves(longitude, 1), *_waves(longitude, 2)])
+    latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
+    share = np.cos(latitude)
+    share *= 4.0 * math.pi / (share.sum() * width)  # each pixel's solid angle: rows of equal latitude span
+    sums = np.empty((height, 5, 3))
+    for lo in range(0, height, ROWS):  # a loop over bands of rows
+        band = np.asarray(rows[lo : lo + ROWS, :, :3], np.float64)
+        if not np.isfinite(band).all():
+            raise ValueError("the environment map has pixels that are not finite numbers")
+        sums[lo : lo + ROWS] = np.einsum("hwc,fw->hfc", band, waves)
+    c, s = np.cos(latitude), np.sin(latitude)
+    one, cos1, sin1, cos2, sin2 = (sums[:, f] for f in range(5))
+    c1, c2 = sh.C1, sh.C2
+    terms = [
+        sh.C0 * one,
+        -c1 * c[:, None] * sin1,
+        c1 * s[:, None] * one,
+        -c1 * c[:, None] * cos1,
+        c2[0] * 0.5 * (c * c)[:, None] * sin2,  # x y = cos^2 sin(2 phi) / 2
+        c2[1] * (c * s)[:, None] * sin1,
+        c2[2] * (2 * s * s - c * c)[:, None] * one,
+        c2[3] * (c * s)[:, None] * cos1,
+        c2[4] * (c * c)[:, None] * cos2,  # x^2 - y^2 = cos^2 cos(2 phi)
+    ]
+    return np.stack([(share[:, None] * term).sum(axis=0) for term in terms])
+
+
+def _waves(angle, multiple):
+    """cos and sin of `multiple` times `angle`."""
+    return np.cos(multiple * angle), np.sin(multiple * angle)
+
+
+def mean(environment: Environment) -> np.ndarray:
+    """(3,) the map's mean radiance over the sphere: its band 0."""
+    return np.asarray(environment[0], np.float64) * sh.C0
+
+
+def rotated(environment: Environment, rotation: np.ndarray) -> Environment:
+    """The coefficients of the map turned by `rotation` (3, 3): L'(d) = L(rotation^T d)."""
+    return sh.rotate(np.asarray(environment, np.float64), np.asarray(rotation, np.float64))
+
+
+def diffuse(environment: Environment, normals: Annotated[np.ndarray, "(N, 3)"]) -> np.ndarray:
+    """(N, 3) E(n) / pi, the radiance a white Lambertian surface facing `normals` (unit) sends back
+    under the whole map (0 where the bands' ringing would make it negative)."""
+    weights = np.array([COSINE[band] for band in BAND_OF])
+    return np.maximum(sh.basis(normals, 2) @ (weights[:, None] * environment), 0.0)
+
+
+def glossy(environment: Environment, directions: Annotated[np.ndarray, "(N, 3)"], alpha: np.ndarray) -> np.ndarray:
+    """(N, 3) the map's radiance towards `directions` (unit mirror directions) averaged over a lobe
+    of GGX width `alpha` (N,): the bands attenuated as the module notes say (0 where negative)."""
+    band = np.array(BAND_OF, np.float64)
+    attenuation = np.exp(-np.outer(np.asarray(alpha, np.float64) ** 2 / 4.0, band * (band + 1.0)))
+    return np.maximum(np.einsum("nk,nk,kc->nc", sh.basis(directions, 2), attenuation, environment), 0.0)
+
+
+def _basis_one(x, y, z, out):
+    """core.sh.basis of bands 0-2 at the unit direction (x, y, z), into out (9,)."""
+    out[0] = sh.C0
+    out[1], out[2], out[3] = -sh.C1 * y, sh.C1 * z, -sh.C1 * x
+    out[4] = sh.C2[0] * x * y
+    out[5] = sh.C2[1] * y * z
+    out[6] = sh.C2[2] * (2.0 * z * z - x * x - y * y)
+    out[7] = sh.C2[3] * x * z
+    out[8] = sh.C2[4] * (x * x - y * y)
+
+
+def _radiance_one(environment, basis, filters, channel):
+    """sum_k filters[band k] environment[k, channel] basis[k], at least 0: diffuse's sum with the
+    cosine's bands, glossy's with a lobe's (filters (3,), per band)."""
+    total = 0.0
+    for k in range(COEFFICIENTS):
+        band = 0 if k == 0 else (1 if k < 4 else 2)
+        total += filters[band] * environment[k, channel] * basis[k]
+    return max(total, 0.0)

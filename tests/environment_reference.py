@@ -1,0 +1,35 @@
+"""Equirectangular maps and their light by brute force, for tests/test_environment.py and
+bench/relight.py: every pixel a direction as Blender reads the map, its irradiance the sum of the
+pixels over each normal's hemisphere."""
+
+import math
+
+import numpy as np
+
+
+def directions(height, width):
+    """(H, W, 3) the directions of an equirectangular map's pixel centres as Blender reads it, rows from
+    the bottom, and (H, W) their solid angles (the midpoint rule's, summing to 4 pi)."""
+    longitude = math.pi * (1.0 - 2.0 * (np.arange(width) + 0.5) / width)
+    latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
+    lon, lat = np.meshgrid(longitude, latitude)
+    d = np.stack([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)], axis=-1)
+    share = np.cos(lat)
+    return d, share * 4.0 * math.pi / share.sum()
+
+
+def sunny_sky(height, width):
+    """(H, W, 3) a sky (a blue gradient over a dark ground) with a sun, a 4-degree patch 40 degrees up
+    whose irradiance on a surface facing it is 3 pi: most of the light there."""
+    d, share = directions(height, width)
+    z = d[..., 2:]
+    sky = np.where(z > 0, np.array([0.3, 0.5, 0.9]) * (1.0 - 0.5 * z), 0.05)
+    sun = d @ np.array([math.cos(math.radians(40)), 0.0, math.sin(math.radians(40))]) > math.cos(math.radians(2.0))
+    return sky + sun[..., None] * (3.0 * math.pi / (share * sun).sum()) * np.array([1.0, 0.95, 0.9])
+
+
+def irradiance(pixels, normals):
+    """(N, 3) E(n) / pi of the map `pixels` (H, W, 3) for unit `normals` (N, 3), by brute force."""
+    d, share = directions(*pixels.shape[:2])
+    cosines = np.maximum(d.reshape(-1, 3) @ np.asarray(normals).T, 0.0)
+    return (cosines * share.reshape(-1, 1)).T @ pixels.reshape(-1, 3) / math.pi
