@@ -33,3 +33,12 @@ def irradiance(pixels, normals):
     d, share = directions(*pixels.shape[:2])
     cosines = np.maximum(d.reshape(-1, 3) @ np.asarray(normals).T, 0.0)
     return (cosines * share.reshape(-1, 1)).T @ pixels.reshape(-1, 3) / math.pi
+
+
+def euler_xyz(angles):
+    """Blender's Euler XYZ rotation as a matrix: about X first, then Y, then Z."""
+    (ca, cb, cc), (sa, sb, sc) = np.cos(angles), np.sin(angles)
+    x = np.array([[1.0, 0.0, 0.0], [0.0, ca, -sa], [0.0, sa, ca]])
+    y = np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
+    z = np.array([[cc, -sc, 0.0], [sc, cc, 0.0], [0.0, 0.0, 1.0]])
+    return z @ y @ x

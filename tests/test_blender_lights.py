@@ -232,16 +232,22 @@ def test_a_narrow_spreads_shadow_falls_along_its_axis_as_in_cycles(blender, monk
     assert (np.abs(ours - rendered) - 5 * sigma).max() < 0.13 * peak
 
 
-def test_cycles_lights_a_ball_by_the_environment_maps_bands(blender):
+@pytest.mark.parametrize("turned", [False, True])
+def test_cycles_lights_a_ball_by_the_environment_maps_bands(blender, turned):
     """A white diffuse ball alone under an equirectangular map whose radiance is of bands 0-2 (its
     pixels read as Blender reads them: tests/workers/lights.py's environment_pixels), rendered by
     Cycles: every pixel on the ball shows albedo x core.environment.diffuse of the map's coefficients
-    (core.environment.from_equirect of its pixels) at the ball's normal there, within Cycles' noise.
-    A map read along other axes (longitude mirrored, or turned a quarter) fails by far."""
+    (core.environment.from_equirect of its pixels) at the ball's normal there, within Cycles' noise;
+    `turned`, the map looked up through a Mapping node's rotation R of the Generated direction, its
+    coefficients turned so that the light at d is the map's at R d. A map read along other axes
+    (longitude mirrored, turned a quarter, or R taken the other way) fails by far."""
+    from environment_reference import euler_xyz
+    from workers.lights import ENVIRONMENT_TURN
+
     from splatwright.core import environment
 
     rec = blender.step("environment")
-    images = blender.npz("environment")
+    images = blender.npz("environment_turned" if turned else "environment")
     first, second = images["first"].astype(np.float64), images["second"].astype(np.float64)
     rendered, sigma = 0.5 * (first + second), np.abs(first - second) / 2.0
     size, half = rec["size"], 0.5 * rec["ortho_scale"]
@@ -249,19 +255,23 @@ def test_cycles_lights_a_ball_by_the_environment_maps_bands(blender):
     z, x = np.meshgrid(-centres, centres, indexing="ij")  # row 0 at the top
     inside = x * x + z * z < 0.95**2  # clear of the outline's partly covered pixels
     normals = np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
-    coefficients = environment.from_equirect(images["map"])
+    coefficients = environment.from_equirect(blender.npz("environment")["map"])
+    turn = euler_xyz(np.array(ENVIRONMENT_TURN)) if turned else np.eye(3)
 
     def predicted(env):
         return rec["albedo"] * environment.diffuse(env, normals)
 
     seen = rendered[inside]
-    ours = predicted(coefficients)
+    ours = predicted(environment.rotated(coefficients, turn.T))
     mean_error = np.abs(seen.sum(axis=0) / ours.sum(axis=0) - 1.0).max()
     worst = (np.abs(seen - ours) - 5.0 * sigma[inside]).max() / ours.max()
-    # measured in all six Blenders: 0.02% of the sum per channel, the worst pixel beyond 5 sigma 0.4% of
-    # the brightest; the wrong axes 43-62% off
+    # measured in all six Blenders, plain and turned: 0.01-0.03% of the sum per channel, the worst pixel
+    # beyond 5 sigma 0.3-0.4% of the brightest; the wrong axes 43-62% off
     assert inside.sum() > 1000 and mean_error < 0.01 and worst < 0.02, (mean_error, worst)
     mirrored = coefficients * np.array([1, -1, 1, 1, -1, -1, 1, 1, 1])[:, None]  # y -> -y
     quarter = environment.rotated(coefficients, np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))
-    for wrong in (mirrored, quarter):
+    wrongs = [environment.rotated(mirrored, turn.T), environment.rotated(quarter, turn.T)]
+    if turned:
+        wrongs.append(environment.rotated(coefficients, turn))
+    for wrong in wrongs:
         assert np.abs(seen - predicted(wrong)).max() > 0.1 * ours.max()

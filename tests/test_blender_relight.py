@@ -454,11 +454,13 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
     the SH coefficients of its pixels (core.environment.from_equirect) times the Strength, its mean
     radiance over the sphere the world's colour (a map bright above 30 degrees of latitude: a
     quarter of the sphere, the closed form (1 - sin 30) / 2; an sRGB image decoded to linear), and
-    the engine reports what of the map is left out (a map turned by nodes lights by its mean, from
-    every direction, and says so). Nodes it cannot read (a texture without an
+    the engine reports what of the map is left out; a Mapping node turning the Generated direction
+    (Point or Texture) turns the coefficients, other nodes on the map's Vector leave its mean, from
+    every direction, and say so. Nodes it cannot read (a texture without an
     image, any node on the Strength) leave the world's Viewport Display colour, and a warning that
     names the node; a plain Background gives its own colour and no warning."""
-    from workers.relight import HDRI_CAP, WORLD
+    from environment_reference import euler_xyz
+    from workers.relight import HDRI_CAP, MAP_TURN, WORLD
 
     from splatwright.core import environment
     from splatwright.core.color import srgb_to_linear
@@ -476,6 +478,13 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
         assert len(caught) == 1 and caught[0].startswith("RelightWarning") and "'Sky HDRI'" in caught[0]
         assert "broad light" in caught[0] and "no shadows" in caught[0]
     assert res["hdri"][2][2][0] > 0.3  # the map's light from above: band 1's z, C1 2 sin-weighted cap
+    turn = euler_xyz(np.array(MAP_TURN))
+    for name, lookup in (("point", turn), ("texture_turn", turn.T)):  # the light at d: the map's at lookup d
+        color, caught, coefficients = res[name]
+        want = environment.rotated(environment.from_equirect(2.0 * cap), lookup.T)
+        np.testing.assert_allclose(coefficients, want, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(color, res["hdri"][0], rtol=1e-6)  # a turn keeps the mean
+        assert len(caught) == 1 and "broad light" in caught[0]
     color, caught, coefficients = res["remapped"]  # turned by nodes not read: its mean, from everywhere
     np.testing.assert_allclose(color, res["hdri"][0], rtol=1e-12)
     assert coefficients is None and len(caught) == 1 and "Vector input" in caught[0]

@@ -4,6 +4,7 @@ meshes, and the conversion of a display-sRGB picture to Blender's scene-linear."
 
 import bpy
 import numpy as np
+from mathutils import Euler
 
 from ...core import environment
 from ...core.color import srgb_to_linear
@@ -99,10 +100,11 @@ def world_color(scene):
 def world_background(scene):
     """(world_color's colour, a note or None, the environment or None): the environment is the SH
     coefficients (core.environment) of an equirectangular Environment Texture on the Background's
-    Color times its Strength (environment_map), the colour then its mean; the note says how the
-    world's light is read where nodes drive the Background (the map's bands, its mean where its
-    directions are remapped, or the world's plain colour where the nodes are not read), for the
-    engine to report; None where the colour is the Background's own."""
+    Color times its Strength (environment_map), turned as its Vector input turns the lookup
+    (map_lookup), the colour then its mean; the note says how the world's light is read where nodes
+    drive the Background (the map's bands, its mean where nodes remap its directions otherwise, or
+    the world's plain colour where the nodes are not read), for the engine to report; None where
+    the colour is the Background's own."""
     world = scene.world
     if world is None:
         return np.zeros(3), None, None
@@ -120,25 +122,27 @@ def world_background(scene):
         if coefficients is None:
             return plain, _unread(source.name), None
         coefficients = coefficients * strength.default_value
-        if source.inputs["Vector"].is_linked:  # a remapped map: its directions are not read, its mean is
-            return (
-                environment.mean(coefficients),
-                (
-                    f"the world's Environment Texture '{source.name}' lights relit splats by its mean radiance, "
-                    "uniform from every direction (its Vector input, which turns the map, is not read)"
-                ),
-                None,
-            )
-        return (
-            environment.mean(coefficients),
-            (
-                f"the world's Environment Texture '{source.name}' lights relit splats by its broad light (its "
-                "spherical harmonics to band 2): the map's sharp features, a sun in it, cast no shadows and "
-                "make no sharp highlights"
-            ),
-            coefficients,
-        )
+        lookup = map_lookup(source)
+        if lookup is None:  # remapped by nodes not read: its directions are not, its mean is
+            return environment.mean(coefficients), _remapped(source.name), None
+        coefficients = environment.rotated(coefficients, lookup.T)  # its light at d: the map's at lookup d
+        return environment.mean(coefficients), _bands(source.name), coefficients
     return np.array(color.default_value[:3], dtype=np.float64) * strength.default_value, None, None
+
+
+def _bands(name):
+    return (
+        f"the world's Environment Texture '{name}' lights relit splats by its broad light (its spherical "
+        "harmonics to band 2): the map's sharp features, a sun in it, cast no shadows and make no sharp highlights"
+    )
+
+
+def _remapped(name):
+    return (
+        f"the world's Environment Texture '{name}' lights relit splats by its mean radiance, uniform from every "
+        "direction (the nodes on its Vector input are not read: a Mapping node's rotation of the Generated "
+        "coordinates is)"
+    )
 
 
 def _unread(name):
@@ -149,6 +153,38 @@ def _unread(name):
 
 
 LINEAR_SPACES = {"Linear", "Linear Rec.709", "Linear CIE-XYZ E", "Non-Color", "Raw"}
+
+
+def map_lookup(texture):
+    """(3, 3) M: the Environment Texture `texture` shows in direction d its map's radiance at M d: the
+    identity where its Vector input is the world's own direction (unlinked, or the Texture
+    Coordinate's Generated), a Mapping node's rotation of that direction (Point and Vector types: M
+    = R; Texture: M = R^T; its scale uniform, no location on a Point or Texture), else None (other
+    nodes, or inputs they drive, are not read)."""
+    vector = texture.inputs["Vector"]
+    if not vector.is_linked or _generated(vector):
+        return np.eye(3)
+    node = vector.links[0].from_node
+    if node.bl_idname != "ShaderNodeMapping" or node.vector_type not in ("POINT", "TEXTURE", "VECTOR"):
+        return None
+    inputs = [node.inputs[name] for name in ("Location", "Rotation", "Scale")]
+    if not _generated(node.inputs["Vector"]) or any(socket.is_linked for socket in inputs):
+        return None
+    location, rotation, scale = (np.array(socket.default_value[:3], np.float64) for socket in inputs)
+    moved = node.vector_type != "VECTOR" and location.any()  # a Vector mapping leaves location out
+    if moved or not (scale[0] > 0 and (scale == scale[0]).all()):
+        return None
+    turn = np.array(Euler(rotation, "XYZ").to_matrix(), np.float64)
+    return turn.T if node.vector_type == "TEXTURE" else turn
+
+
+def _generated(socket):
+    """Whether `socket` is fed the Texture Coordinate node's Generated output: in a world, the
+    direction looked along."""
+    if not socket.is_linked:
+        return False
+    link = socket.links[0]
+    return link.from_node.bl_idname == "ShaderNodeTexCoord" and link.from_socket.identifier == "Generated"
 
 
 def environment_map(node):

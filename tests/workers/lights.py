@@ -114,6 +114,7 @@ ENVIRONMENT = (
     lambda x, y, z: 0.6 - 0.4 * x + 0.3 * z * z,
 )
 ENVIRONMENT_SIZE = (128, 64)  # the map's pixels, width by height
+ENVIRONMENT_TURN = (0.4, -0.2, 1.1)  # environment's second render: a Mapping node's rotation (Euler XYZ)
 BALL_ORTHO_SCALE = 2.4  # the camera's view of environment's ball (radius 1)
 
 
@@ -278,7 +279,7 @@ class Worker(BlenderWorker):
     def environment(self):
         """A white diffuse ball (radius 1, smooth) alone under an equirectangular Environment Texture
         of ENVIRONMENT's map, seen along +Y by the orthographic camera: the map's pixels and two
-        renders."""
+        renders, then two with the map looked up through a Mapping node (ENVIRONMENT_TURN)."""
         bpy = self.bpy
         self.scene()
         scene = bpy.context.scene
@@ -305,12 +306,21 @@ class Worker(BlenderWorker):
         scene.render.film_transparent = True  # the map itself out of the picture
         try:
             images = [self.render("environment", seed) for seed in (0, 1)]
+            # the same map looked up through a Mapping node (Point) turning the Generated direction
+            coordinates, mapping = tree.nodes.new("ShaderNodeTexCoord"), tree.nodes.new("ShaderNodeMapping")
+            mapping.inputs["Rotation"].default_value = ENVIRONMENT_TURN
+            tree.links.new(coordinates.outputs["Generated"], mapping.inputs["Vector"])
+            tree.links.new(mapping.outputs["Vector"], texture.inputs["Vector"])
+            images += [self.render("environment_turned", seed) for seed in (0, 1)]
+            tree.nodes.remove(coordinates)
+            tree.nodes.remove(mapping)
         finally:
             scene.render.film_transparent = False
             tree.nodes.remove(texture)
             bpy.data.images.remove(image)
             bpy.data.objects.remove(ball)
         self.save("environment", first=images[0], second=images[1], map=pixels[..., :3])
+        self.save("environment_turned", first=images[2], second=images[3])
         camera = [list(row) for row in cam.matrix_world]
         return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE, "camera": camera}
 

@@ -44,6 +44,7 @@ FLOOR = dict(size=5.0, color=(0.6, 0.6, 0.6))
 CAMERA = dict(location=(2.6, -3.4, 2.9), look_at=(0.0, 0.0, 0.3), lens=30.0)
 SAMPLES = 8
 HDRI_CAP = (0.8, 1.6, 2.4)  # textured_world's environment radiance above 30 degrees of latitude
+MAP_TURN = (0.5, -0.3, 0.9)  # textured_world's Mapping node's rotation (Euler XYZ)
 LIGHT_NODE = dict(strength=2.5, color=(1.0, 0.5, 0.25))  # light_nodes' Emission node
 LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
 LINKED_RADIUS = 0.35
@@ -582,8 +583,9 @@ class Worker(BlenderWorker):
     def textured_world(self):
         """The world a relit scene sees when an Environment Texture without an image feeds its
         Background's Color, one with a float image bright above 30 degrees of latitude (its Strength
-        2), one with an sRGB image of grey 0.5, the float one turned by a Mapping node, a Value node
-        its Strength, then neither:
+        2), one with an sRGB image of grey 0.5, the float one looked up through a Mapping node turning
+        the Generated direction by MAP_TURN (Point, then Texture), then through one fed nothing, a
+        Value node its Strength, then neither:
         (colour, warnings, environment coefficients or None) of lights.scene_world each time."""
         bpy = self.bpy
         self.stage("NONE")
@@ -601,17 +603,23 @@ class Worker(BlenderWorker):
         grey = bpy.data.images.new("Grey", 16, 8)  # 8-bit, sRGB
         grey.pixels.foreach_set(np.full(16 * 8 * 4, 0.5, np.float32))
         out = {"cap_space": cap.colorspace_settings.name, "grey_space": grey.colorspace_settings.name}
-        mapping = tree.nodes.new("ShaderNodeMapping")  # turns the map: "remapped"
-        for name in ("texture", "hdri", "srgb", "remapped", "strength", "plain"):
+        mapping, coordinates = tree.nodes.new("ShaderNodeMapping"), tree.nodes.new("ShaderNodeTexCoord")
+        mapping.inputs["Rotation"].default_value = MAP_TURN
+        turned = {"point": "POINT", "texture_turn": "TEXTURE", "remapped": "POINT"}  # the map through the mapping
+        for name in ("texture", "hdri", "srgb", "point", "texture_turn", "remapped", "strength", "plain"):
             for link in list(tree.links):
-                if link.to_node in (background, texture):
+                if link.to_node in (background, texture, mapping):
                     tree.links.remove(link)
-            texture.image = {"hdri": cap, "srgb": grey, "remapped": cap}.get(name)
-            background.inputs["Strength"].default_value = 2.0 if name in ("hdri", "remapped") else 1.0
-            if name in ("texture", "hdri", "srgb", "remapped"):
+            plain = name in ("texture", "strength", "plain")  # no image
+            texture.image = grey if name == "srgb" else (None if plain else cap)
+            background.inputs["Strength"].default_value = 1.0 if plain or name == "srgb" else 2.0
+            if texture.image is not None or name == "texture":
                 tree.links.new(texture.outputs["Color"], background.inputs["Color"])
-            if name == "remapped":
+            if name in turned:
+                mapping.vector_type = turned[name]
                 tree.links.new(mapping.outputs["Vector"], texture.inputs["Vector"])
+                if name != "remapped":  # the Generated direction turned; remapped: the mapping fed nothing
+                    tree.links.new(coordinates.outputs["Generated"], mapping.inputs["Vector"])
             if name == "strength":
                 tree.links.new(value.outputs["Value"], background.inputs["Strength"])
             world, caught = _warned(lambda: lights.scene_world(scene))
@@ -620,6 +628,7 @@ class Worker(BlenderWorker):
         tree.nodes.remove(texture)
         tree.nodes.remove(value)
         tree.nodes.remove(mapping)
+        tree.nodes.remove(coordinates)
         bpy.data.images.remove(cap)
         bpy.data.images.remove(grey)
         return out
