@@ -9,9 +9,11 @@ light (Ramamoorthi and Hanrahan 2001; tests/test_environment.py measures the ban
 with a sun). A glossy lobe takes the map's radiance towards its mirror direction, filtered as a
 von Mises-Fisher lobe of the GGX width alpha (sharpness 2 / alpha^2, bands attenuated by
 exp(-l (l + 1) alpha^2 / 4)); its total then comes from core.shading's specular albedo, as a uniform
-world's does. What nine coefficients cannot hold is left out: a sun in the map makes no sharp
-highlight and casts no shadow of its own (the world's occlusion, core.ambient, darkens the whole
-map alike where the splats and meshes hide the sky).
+world's does. Where the world is occluded (core.ambient), each of its directions' visibility is
+weighed by the map's light there as well as by the cosine or the lobe (core.shading's cosine_sky,
+lobe_sky): under a roof a splat keeps the ground's light, not half the sky's. What nine
+coefficients cannot hold is left out: a sun in the map makes no sharp highlight and casts no shadow
+of its own.
 
 An equirectangular map is read as Blender reads one: row 0 at the bottom (latitude -90 degrees),
 column u at longitude pi (1 - 2u) from +X towards +Y (u = 0.5 looks along +X, 0.25 along +Y),
@@ -86,6 +88,11 @@ def mean(environment: Environment) -> np.ndarray:
 def rotated(environment: Environment, rotation: np.ndarray) -> Environment:
     """The coefficients of the map turned by `rotation` (3, 3): L'(d) = L(rotation^T d)."""
     return sh.rotate(np.asarray(environment, np.float64), np.asarray(rotation, np.float64))
+
+
+def radiance(environment: Environment, directions: Annotated[np.ndarray, "(N, 3)"]) -> np.ndarray:
+    """(N, 3) the bands' radiance towards unit `directions` (0 where negative)."""
+    return np.maximum(sh.basis(directions, 2) @ environment, 0.0)
 
 
 def diffuse(environment: Environment, normals: Annotated[np.ndarray, "(N, 3)"]) -> np.ndarray:

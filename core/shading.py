@@ -329,10 +329,16 @@ def shade(
     if world is not None:
         shares = np.clip(_world_visibility(visibility, n), 0.0, 1.0)
         seen_world = shares[np.arange(n) if len(shares) > 1 else 0, np.where(front, 0, 1)]
-        glossy = lobe_sky(shares[:, 2:], normal, view, alpha, seen_world) if shares.shape[1] > 2 else seen_world
         diffuse_light, glossy_light = _world_light(world, normal, view, alpha)
-        diffuse += base * diffuse_light * seen_world[:, None]
-        specular += layer * glossy_light * glossy[:, None]
+        sky_light = _sky_light(world, shares.shape[1] - 2)
+        if sky_light is None:
+            glossy = lobe_sky(shares[:, 2:], normal, view, alpha, seen_world) if shares.shape[1] > 2 else seen_world
+            diffuse_share, glossy = seen_world[:, None], glossy[:, None]
+        else:  # an environment's light: each direction's visibility weighed by its radiance as well
+            diffuse_share = cosine_sky(shares[:, 2:], normal, seen_world, sky_light)
+            glossy = lobe_sky(shares[:, 2:], normal, view, alpha, seen_world, sky_light)
+        diffuse += base * diffuse_light * diffuse_share
+        specular += layer * glossy_light * glossy
     shadow = np.where(lit > 0.0, 1.0 - seen / np.where(lit > 0.0, lit, 1.0), 0.0)
     if shown is not None:
         diffuse[~shown], specular[~shown], shadow[~shown] = 0.0, 0.0, 0.0
@@ -351,13 +357,19 @@ def _world_light(world: World, normal: np.ndarray, view: np.ndarray, alpha: np.n
 
 
 def lobe_sky(
-    seen: np.ndarray, normal: np.ndarray, view: np.ndarray, alpha: np.ndarray, open_sky: np.ndarray
+    seen: np.ndarray,
+    normal: np.ndarray,
+    view: np.ndarray,
+    alpha: np.ndarray,
+    open_sky: np.ndarray,
+    sky_light: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N,) the share of a uniform world that each splat's specular lobe sees, from its visibility
     (N,K) in [0, 1] towards the K directions of core.lights.sphere_directions(K) (core.ambient's
     columns 2..), each weighted by the lobe there: GGX's D G / (4 n.v) of alpha (N,) for the normal
     (N,3) facing the eye `view` (N,3), 0 below its horizon. open_sky (N,), the cosine-weighted share
-    of that side, stands in where no direction lies above it.
+    of that side, stands in where no direction lies above it. With `sky_light` (K,3), an
+    environment's radiance towards the directions, (N,3): each direction weighed by it too.
 
     Against the lobe integrated over 200k directions of a soft-edged sky (a random half of the
     sphere, its edge 0.4 wide in cosine), with 24 directions, mean |error| at roughness 0.2 / 0.35 /
@@ -365,17 +377,42 @@ def lobe_sky(
     0.16 / 0.080 / 0.023; tests/test_shading.py). Blender's Suzanne (metallic, roughness 0.35)
     against Cycles, world occluded, point light: 32.7 -> 33.9 dB at 0.5x, 33.5 -> 33.9 at 1x (rays
     through the lobe itself against the mesh: 34.1 / 33.9)."""
-    k, out, sky = seen.shape[1], np.array(open_sky, np.float64), sphere_directions(seen.shape[1])
+    k, sky = seen.shape[1], sphere_directions(seen.shape[1])
+    light = np.ones((k, 1)) if sky_light is None else np.asarray(sky_light, np.float64)
+    out = np.repeat(np.asarray(open_sky, np.float64)[:, None], light.shape[1], axis=1)
     for lo in range(0, len(normal), TERMS_CHUNK):  # a loop over chunks: (chunk * K, 3) temporaries
         part = slice(lo, lo + TERMS_CHUNK)
         m = len(normal[part])
         directions = np.broadcast_to(sky[None], (m, k, 3)).reshape(-1, 3)
         rows = (np.repeat(normal[part], k, 0), np.repeat(view[part], k, 0))
         weight = ggx_parts(*rows, directions, np.repeat(alpha[part], k))[0].reshape(m, k)
-        total = weight.sum(axis=1)
-        lit = total > 0.0
-        out[part][lit] = np.einsum("ik,ik->i", weight[lit], seen[part][lit]) / total[lit]
-    return out
+        out[part] = _weighed_share(weight, seen[part], light, out[part])
+    return out[:, 0] if sky_light is None else out
+
+
+def cosine_sky(seen: np.ndarray, normal: np.ndarray, open_sky: np.ndarray, sky_light: np.ndarray) -> np.ndarray:
+    """(N,3) the share of an environment's irradiance each splat sees, from its visibility (N,K)
+    towards the K directions of sphere_directions(K) (as lobe_sky's), each weighed by the cosine to
+    the normal (N,3) and by the radiance `sky_light` (K,3) there; open_sky (N,) where none lights it."""
+    weight = np.maximum(normal @ sphere_directions(seen.shape[1]).T, 0.0)
+    fallback = np.repeat(np.asarray(open_sky, np.float64)[:, None], 3, axis=1)
+    return _weighed_share(weight, seen, np.asarray(sky_light, np.float64), fallback)
+
+
+def _weighed_share(weight, seen, light, fallback):
+    """(N,C) sum_k weight seen light / sum_k weight light over the K directions (weight and seen
+    (N,K), light (K,C)), fallback (N,C) where the sum is 0."""
+    total = weight @ light
+    share = (weight * np.clip(seen, 0.0, 1.0)) @ light
+    return np.where(total > 0.0, share / np.where(total > 0.0, total, 1.0), fallback)
+
+
+def _sky_light(world: World, directions: int) -> np.ndarray | None:
+    """(K,3) an environment's radiance towards the K directions of the world's occlusion, or None for
+    a uniform world (or no directions)."""
+    if world.environment is None or directions <= 0:
+        return None
+    return environment.radiance(world.environment, sphere_directions(directions))
 
 
 ROUND_LIGHT_MAX = 1.4  # radians: a sphere light wider than this as seen (a splat at its surface) stays sampled
@@ -445,7 +482,8 @@ SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
 SHADE_KERNEL = (
-    "_tan2", "_lambda_sq", "_table_one", "_asin", "_ellipse_rim_one", "_ring_arcs", "_lobe_sky_one", "_shade_loop",
+    "_tan2", "_lambda_sq", "_table_one", "_asin", "_ellipse_rim_one", "_ring_arcs", "_lobe_sky_one", "_sky_shares_one",
+    "_shade_loop",
 )  # fmt: skip
 ASIN_SERIES = 0.3  # _asin sums its series below this sine, calls asin above
 
@@ -533,6 +571,8 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown,
             world_light[1:] = world.environment
     seen_world = _world_visibility(visibility, n)
     sky = sphere_directions(seen_world.shape[1] - 2)  # the directions of its columns 2..
+    sky_light = None if world is None else _sky_light(world, len(sky))
+    sky_light = np.zeros((0, 3)) if sky_light is None else sky_light
     scale, bias = _albedo_table()
     points = np.ascontiguousarray(cloud.positions, np.float32)
     rough, metal = material.roughness(cloud), material.metallic(cloud)
@@ -550,7 +590,8 @@ def _shade_compiled(kernel, cloud, eye, lights, world, visibility, reach, shown,
         n,
         lambda lo, hi: kernel(
             lo, hi, shown, points, *normals, albedo, rough, metal, eye, flags, emitters, spans, terms, outlines, rings,
-            ltc.INVERSE, colors, vis, reach, world_light, seen_world, sky, scale, bias, diffuse, specular, shadow,
+            ltc.INVERSE, colors, vis, reach, world_light, seen_world, sky, sky_light, scale, bias, diffuse, specular,
+            shadow,
         ),
     )  # fmt: skip
     return Shading(diffuse, specular, shadow)
@@ -686,9 +727,36 @@ def _lobe_sky_one(seen, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallbac
     return share / total if total > 0.0 else fallback
 
 
+def _sky_shares_one(seen, row, sky, light, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallback, sums, diffuse, glossy):
+    """cosine_sky and lobe_sky (weighed by the radiance `light` (K,3)) of one splat, per colour, into
+    diffuse and glossy (3,); sums (4,3) is room for their numerators and denominators."""
+    a2 = alpha * alpha
+    lambda_v = 1.0 + _lambda_sq(tan2_v, a2)
+    sums[:] = 0.0
+    for k in range(sky.shape[0]):
+        lx, ly, lz = sky[k, 0], sky[k, 1], sky[k, 2]
+        cos_l = m0 * lx + m1 * ly + m2 * lz
+        if cos_l <= 0.0:
+            continue
+        hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
+        along = m0 * hx + m1 * hy + m2 * hz
+        cos2_h = min(along * along / max(hx * hx + hy * hy + hz * hz, 1e-300), 1.0)
+        denom = cos2_h * (a2 - 1.0) + 1.0
+        lobe = 1.0 / (denom * denom * (lambda_v + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)))  # as _lobe_sky_one
+        visible = min(max(seen[row, 2 + k], 0.0), 1.0)
+        for c in range(3):
+            sums[0, c] += cos_l * light[k, c]
+            sums[1, c] += cos_l * light[k, c] * visible
+            sums[2, c] += lobe * light[k, c]
+            sums[3, c] += lobe * light[k, c] * visible
+    for c in range(3):
+        diffuse[c] = sums[1, c] / sums[0, c] if sums[0, c] > 0.0 else fallback
+        glossy[c] = sums[3, c] / sums[2, c] if sums[2, c] > 0.0 else fallback
+
+
 def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, flags, emitters, spans, terms,
-                outlines, rings, table, colors, vis, reach, world, seen_world, sky, scale, bias, diffuse, specular,
-                shadow):  # fmt: skip
+                outlines, rings, table, colors, vis, reach, world, seen_world, sky, sky_light, scale, bias, diffuse,
+                specular, shadow):  # fmt: skip
     """shade() for splats lo..hi (those `shown`, when not empty; 0 for the others), written into
     diffuse, specular (N,3) and shadow (N,)."""
     n_lights = colors.shape[0]
@@ -699,6 +767,7 @@ def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, fl
     acc = np.empty((n_lights, 3))  # per light: diffuse factor, tinted and white specular sums
     seen_d, seen_s = np.empty(3), np.empty(3)  # the world's light on the diffuse and the glossy lobe
     basis, cosine, lobe = np.empty(environment.COEFFICIENTS), np.array(environment.COSINE), np.ones(3)
+    share_d, share_s, sums = np.empty(3), np.empty(3), np.empty((4, 3))  # the world's shares seen, per colour
     for i in range(lo, hi):
         if shown.shape[0] and not shown[i]:
             for c in range(3):
@@ -848,8 +917,15 @@ def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, fl
         row = i if seen_world.shape[0] > 1 else 0  # one row: the whole world everywhere
         open_sky = min(max(seen_world[row, 0] if sign > 0.0 else seen_world[row, 1], 0.0), 1.0)  # the eye's side
         glossy = open_sky
-        if flags[2] and sky.shape[0] > 0:
+        weighed = flags[4] and sky_light.shape[0] > 0  # an environment's shares, weighed by its light
+        if flags[2] and sky.shape[0] > 0 and not weighed:
             glossy = _lobe_sky_one(seen_world, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, open_sky)
+        for c in range(3):
+            share_d[c], share_s[c] = open_sky, glossy
+        if weighed:
+            _sky_shares_one(
+                seen_world, row, sky, sky_light, m0, m1, m2, v0, v1, v2, tan2_v, alpha, open_sky, sums, share_d, share_s
+            )
         for c in range(3):
             seen_d[c], seen_s[c] = world[0, c], world[0, c]  # a uniform world: its colour both ways
         if flags[4]:  # an environment map: at the normal and the view's mirror direction (core.environment)
@@ -863,8 +939,8 @@ def _shade_loop(lo, hi, shown, points, nx, ny, nz, albedo, rough, metal, eye, fl
                 seen_s[c] = environment._radiance_one(world[1:], basis, lobe, c)
         for c in range(3):
             if flags[2]:
-                out_d[c] += base[c] * seen_d[c] * open_sky
-                out_s[c] += layer[c] * seen_s[c] * glossy
+                out_d[c] += base[c] * seen_d[c] * share_d[c]
+                out_s[c] += layer[c] * seen_s[c] * share_s[c]
             diffuse[i, c] = out_d[c]
             specular[i, c] = out_s[c]
         shadow[i] = min(max(1.0 - seen / lit, 0.0), 1.0) if lit > 0.0 else 0.0

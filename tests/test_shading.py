@@ -518,3 +518,44 @@ def test_the_numpy_path_shades_in_chunks_as_in_one_piece(monkeypatch):
     chunked = shade(*args, backend="numpy")
     for name in ("diffuse", "specular", "shadow"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
+
+
+@pytest.mark.parametrize("backend", ["auto", "numpy"])
+def test_an_environments_hidden_sky_is_weighed_by_its_light(backend):
+    """Splats facing sideways under a roof (every direction above the horizon hidden, core.ambient's 24
+    directions) and an environment of a bright sky over a dark ground: the share of the map's
+    irradiance they keep is that of the ground they see, each direction weighed by the map's light
+    there, against the brute-force integral of the map's bands over the open directions (within the
+    24 directions' coarseness); the cosine share alone (half the directions) would keep half of the
+    sky's light too."""
+    from environment_reference import directions as map_directions
+
+    from splatwright.core import environment
+
+    d, solid = map_directions(128, 256)
+    sky = np.where(d[..., 2:] > 0.0, [2.0, 2.2, 2.6], [0.2, 0.15, 0.1])
+    world = World(environment=environment.from_equirect(sky), occlusion=24)
+    n = 200
+    rng = np.random.default_rng(14)
+    splats = SplatCloud(
+        rng.uniform(-0.1, 0.1, (n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), -4.0), np.zeros(n),
+        np.zeros((n, 1, 3)),
+    )  # fmt: skip
+    sideways = np.tile([1.0, 0.0, 0.0], (n, 1))
+    rough = dict(roughness=np.ones(n), metallic=np.zeros(n))
+    cloud = with_material(splats, albedo=np.full((n, 3), 0.7), normals=sideways, **rough)
+    sky_directions = sphere_directions(24)
+    below = (sky_directions[:, 2] < 0.0).astype(np.float32)
+    cosines = np.maximum(sky_directions[:, 0], 0.0)
+    share = float((cosines * below).sum() / cosines.sum())  # the cosine share of the normal's side
+    seen = np.tile(np.concatenate([[share, share], below]), (n, 1)).astype(np.float32)
+    eye = np.array([5.0, 0.0, 0.0])
+    hidden = shade(cloud, eye, [], world, {"world": seen}, backend=backend).diffuse
+    whole = shade(cloud, eye, [], world, backend=backend).diffuse
+    ours = (hidden / whole).mean(axis=0)
+    bands = environment.radiance(world.environment, d.reshape(-1, 3))
+    facing = np.maximum(d.reshape(-1, 3)[:, 0], 0.0) * solid.ravel()
+    open_ground = d.reshape(-1, 3)[:, 2] < 0.0
+    want = (facing[open_ground, None] * bands[open_ground]).sum(axis=0) / (facing[:, None] * bands).sum(axis=0)
+    np.testing.assert_allclose(ours, want, rtol=0.05)  # measured within 1.3%
+    assert (share > 2.0 * want).all() and 0.3 < share < 0.7
