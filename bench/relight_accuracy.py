@@ -38,7 +38,9 @@ per mesh gives its conversion's unlit error against Cycles' emission render (ben
 reference): what shading cannot beat. Another gives the world alone (WORLD_ALONE grey, no light)
 against Cycles, occluded and not: what the world's occlusion is worth by itself; its time is the
 occlusion's (core.ambient.world_visibility), which depends on neither the view nor the lights,
-against the unlit frame.
+against the unlit frame. Another, an environment map alone (an overcast sky glowing to one side, as
+the world's Environment Texture; no light): its nine SH coefficients (core.environment), occluded
+and not, against Cycles lighting the mesh by the map.
 
     python bench/relight_accuracy.py [--quick]
     ./run bench relight_accuracy [--quick] [--only sphere|suzanne|duck|cylinder|box]
@@ -58,9 +60,11 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent / "tests"))
 
 from _cycles_reference import _cycles_main, cycles_render  # noqa: E402
 from common import Row, Timing, print_rows  # noqa: E402
+from environment_reference import directions  # noqa: E402
 from mesh2splats import (  # noqa: E402
     DISTANCES,
     blender_primitives,
@@ -84,6 +88,7 @@ SAMPLES, QUICK_SAMPLES = 96, 32
 IRRADIANCE = 2.5  # W/m^2 at the mesh's centre on a surface facing the light
 WORLD = (0.03, 0.03, 0.03)  # dim uniform grey, scene-linear
 WORLD_ALONE = (0.5, 0.5, 0.5)  # the world-alone rows' grey: no light, so the world's occlusion is all there is
+MAP_SIZE = (128, 256)  # the environment rows' map, rows by columns
 LIGHT_SEED = 11
 KINDS = ("point", "spot", "sun", "area")
 PENUMBRA = (0.05, 0.95)  # render_lit's shadow pass between these: a penumbra; above: full shadow
@@ -205,13 +210,19 @@ def light_spec(light: Light) -> dict:
 # Cycles ------------------------------------------------------------------------------------------
 
 
-def cycles_lit(mesh, cameras, folder, light, samples, shadows=True, seed=0, smooth=False, world=WORLD):
-    """Cycles' images of the mesh under `light` and `world` (see the module notes), smooth-shaded
-    (Blender's vertex normals) or flat."""
+def cycles_lit(mesh, cameras, folder, light, samples, shadows=True, seed=0, smooth=False, world=WORLD, sky=None):
+    """Cycles' images of the mesh under `light` and `world` (see the module notes), or the map `sky`
+    (H, W, 3) rows from the bottom as an Environment Texture, smooth-shaded (Blender's vertex
+    normals) or flat."""
+    sky_path = None
+    if sky is not None:
+        sky_path = str(folder / "sky.npy")
+        np.save(sky_path, np.asarray(sky, np.float32))
     spec = {
         "smooth": smooth,
         "light": light_spec(light),
         "world": list(world),
+        "sky": sky_path,
         "shadows": shadows,
         "seed": seed,
         "surfaces": [(m.roughness, m.metallic) for m in mesh.materials or [Material()]],
@@ -241,6 +252,15 @@ def _relit_scene(spec_path, scene, obj, world):
 
     spec = json.loads(str(np.load(spec_path)["relight"]))
     world.node_tree.nodes["Background"].inputs["Color"].default_value = (*spec["world"], 1.0)
+    if spec["sky"] is not None:  # an equirectangular map on the Background's Color
+        rows = np.load(spec["sky"])
+        image = bpy.data.images.new("sky", rows.shape[1], rows.shape[0], float_buffer=True)
+        pixels = np.ones((*rows.shape[:2], 4), np.float32)
+        pixels[..., :3] = rows
+        image.pixels.foreach_set(pixels.ravel())
+        texture = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+        texture.image = image
+        world.node_tree.links.new(texture.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
     light = spec["light"]
     data = bpy.data.lights.new("light", light["kind"].upper())
     data.color, data.energy = light["color"], light["power"]
@@ -272,15 +292,17 @@ def _relit_scene(spec_path, scene, obj, world):
 # splats ------------------------------------------------------------------------------------------
 
 
-def lit_frames(cloud, cameras, lights, shadows=True, passes=True, occluded=True, timed=False, world=WORLD):
-    """render_lit frames of the cloud under `lights` and `world` (occluded from core.ambient's
-    default directions, as Cycles occludes it, or not), and the seconds of each. Timed frames
-    make their shadow maps each, as the engine does; the others share the lights' and the world's
-    (they do not depend on the camera)."""
+def lit_frames(
+    cloud, cameras, lights, shadows=True, passes=True, occluded=True, timed=False, world=WORLD, environment=None
+):
+    """render_lit frames of the cloud under `lights` and `world` (or the SH coefficients
+    `environment`; occluded from core.ambient's default directions, as Cycles occludes it, or not),
+    and the seconds of each. Timed frames make their shadow maps each, as the engine does; the
+    others share the lights' and the world's (they do not depend on the camera)."""
     from splatwright.core.relight import render_lit, visibilities
 
     lights = [light if shadows else dataclasses.replace(light, cast_shadow=False) for light in lights]
-    world = World(world, ambient.DIRECTIONS if occluded else 0)
+    world = World(world, ambient.DIRECTIONS if occluded else 0, environment)
     visible = None if timed else visibilities(cloud, lights, world)
     frames, seconds = [], []
     for camera in cameras:
@@ -406,6 +428,51 @@ def world_row(scene, cloud, cams, folder, samples, unlit_seconds):
     )
 
 
+def glow_sky(height, width):
+    """(H, W, 3) an overcast sky brighter towards a low glow 30 degrees to the side of +X, over a dim
+    brown ground: broad light from one side (no sun: what nine SH coefficients hold)."""
+    d, _ = directions(height, width)
+    glow = np.array([math.cos(math.radians(15)) * math.cos(0.5), math.cos(math.radians(15)) * math.sin(0.5), 0.26])
+    toward = np.maximum(d @ glow, 0.0)[..., None]
+    sky = np.array([0.35, 0.4, 0.5]) + toward**3 * np.array([1.6, 1.1, 0.6])
+    return np.where(d[..., 2:] > 0.0, sky, np.array([0.12, 0.09, 0.06]))
+
+
+def environment_row(scene, cloud, cams, folder, samples, unlit_seconds):
+    """An environment map alone (glow_sky as the world's Environment Texture, no light): render_lit
+    with its SH coefficients (core.environment), the world occluded from core.ambient's default
+    directions and unoccluded, against Cycles lighting the mesh by the map itself; the time of a
+    frame (the occlusion shared by the views, as for a still scene) against the unlit frame."""
+    from splatwright.core import environment
+
+    cameras = [cam for _, cam in cams]
+    dark = dataclasses.replace(scene_lights(scene.mesh)["sun"], power=0.0)
+    sky = glow_sky(*MAP_SIZE)
+    coefficients = environment.from_equirect(sky)
+    ref = cycles_lit(scene.mesh, cameras, folder, dark, samples, smooth=scene.normals is not None, sky=sky)
+    occluded, _ = lit_frames(cloud, cameras, [], passes=False, environment=coefficients)
+    open_world, _ = lit_frames(cloud, cameras, [], passes=False, occluded=False, environment=coefficients)
+    timed = [cam for d, cam in cams if d == 1.0]
+    _, seconds = lit_frames(cloud, timed, [], passes=False, environment=coefficients)
+    error = psnr_by_distance([display(f.color) for f in occluded], cams, ref)
+    error["worst dB"] = min(error.values())
+    unoccluded = psnr_by_distance([display(f.color) for f in open_world], cams, ref)
+    return Row(
+        TOPIC,
+        f"{scene.name}: an environment map (a glowing overcast sky, no light), occluded from "
+        f"{ambient.DIRECTIONS} directions",
+        _timing(seconds),
+        _timing(unlit_seconds),
+        error=error,
+        extra={
+            "environment unoccluded dB 0.5x / 1x / 3x": _triple(unoccluded),
+            "mean error, occluded / unoccluded": " / ".join(
+                f"{_mean_error(frames, ref):+.4f}" for frames in (occluded, open_world)
+            ),
+        },
+    )
+
+
 def _mean_error(frames, references) -> float:
     """The mean of our display colour minus Cycles' over every pixel of every view."""
     return float(np.mean([np.mean(display(f.color) - r) for f, r in zip(frames, references, strict=True)]))
@@ -436,6 +503,7 @@ def scene_rows(scene, folder, size, per_distance, samples) -> list[Row]:
             extra={"splats": len(cloud), "faces": len(scene.mesh.faces)},
         ),
         world_row(scene, cloud, cams, folder, samples, unlit_seconds),
+        environment_row(scene, cloud, cams, folder, samples, unlit_seconds),
     ]
     print_rows(rows)
     for kind, light in scene_lights(scene.mesh).items():
