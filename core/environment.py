@@ -11,9 +11,13 @@ von Mises-Fisher lobe of the GGX width alpha (sharpness 2 / alpha^2, bands atten
 exp(-l (l + 1) alpha^2 / 4)); its total then comes from core.shading's specular albedo, as a uniform
 world's does. Where the world is occluded (core.ambient), each of its directions' visibility is
 weighed by the map's light there as well as by the cosine or the lobe (core.shading's cosine_sky,
-lobe_sky): under a roof a splat keeps the ground's light, not half the sky's. What nine
-coefficients cannot hold is left out: a sun in the map makes no sharp highlight and casts no shadow
-of its own.
+lobe_sky): under a roof a splat keeps the ground's light, not half the sky's.
+
+A sun in the map is what nine coefficients hold worst (a sky with a 4-degree sun: 8.2% of the
+brightest irradiance off, tests/test_environment.py) and what a relit picture needs most (its
+shadows, its highlight). light_of takes it out (sun_of: a brightest pixel SUN_CONTRAST times the
+map's mean or more) as a sun light of the map's own direction, irradiance, colour and size, and
+reads the rest of the map with the sky around the sun in its place: together within 0.5%.
 
 An equirectangular map is read as Blender reads one: row 0 at the bottom (latitude -90 degrees),
 column u at longitude pi (1 - 2u) from +X towards +Y (u = 0.5 looks along +X, 0.25 along +Y),
@@ -23,27 +27,38 @@ Each evaluation has a scalar twin (`_..._one`) for the compiled shading loop, wr
 """
 
 import math
-from typing import Annotated
+from typing import Annotated, NamedTuple
 
 import numpy as np
 
 from . import sh
+from .lights import Light
 
 COEFFICIENTS = 9  # bands 0-2
 COSINE = (1.0, 2.0 / 3.0, 0.25)  # the clamped cosine's bands over pi (Funk-Hecke): E / pi from L
 BAND_OF = (0, 1, 1, 1, 2, 2, 2, 2, 2)
 ROWS = 64  # map rows per step of the projection: no (H, W) float64 temporaries for a large map
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # scene-linear Rec. 709
+# A sun in a map: its brightest pixel SUN_CONTRAST times the map's mean luminance or more (a clear
+# sky's sun is thousands of times its sky; an overcast sky's brightest patch a few times), the pixels
+# within SUN_CAP of it brighter than SUN_LEVEL times the mean, the sky behind it the ring out to
+# SUN_RING times SUN_CAP.
+SUN_CONTRAST = 50.0
+SUN_LEVEL = 10.0
+SUN_CAP = math.radians(6.0)
+SUN_RING = 1.5
 KERNEL = ("_basis_one", "_radiance_one")
 
 Environment = Annotated[np.ndarray, "(9, 3) float64"]
 
 
-def from_equirect(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> Environment:
+def from_equirect(rows: Annotated[np.ndarray, "(H, W, C>=3)"], replaced: "Patch | None" = None) -> Environment:
     """(9, 3) the SH coefficients of an equirectangular map's radiance (its first three channels,
     scene-linear; rows from the bottom, see the module notes), integrated over its pixels as the
     midpoint rule does, the pixels' solid angles scaled to sum to 4 pi (so band 0 is the map's mean
     over the sphere exactly). Separable: per row, the sums of its pixels times 1, cos and sin of
-    the longitude and of twice it, then each coefficient's latitude factor."""
+    the longitude and of twice it, then each coefficient's latitude factor. replaced: pixels read
+    with other values (a sun's, sun_of), the map itself unchanged."""
     height, width = rows.shape[:2]
     if height == 0 or width == 0 or rows.ndim != 3 or rows.shape[2] < 3:
         raise ValueError(f"an environment map needs rows of pixels with 3 colours, got shape {rows.shape}")
@@ -54,9 +69,12 @@ def from_equirect(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> Environment:
     share *= 4.0 * math.pi / (share.sum() * width)  # each pixel's solid angle: rows of equal latitude span
     sums = np.empty((height, 5, 3))
     for lo in range(0, height, ROWS):  # a loop over bands of rows
-        band = np.asarray(rows[lo : lo + ROWS, :, :3], np.float64)
+        band = np.array(rows[lo : lo + ROWS, :, :3], np.float64)  # a copy: `replaced` writes into it
         if not np.isfinite(band).all():
             raise ValueError("the environment map has pixels that are not finite numbers")
+        if replaced is not None:
+            here = (replaced.rows >= lo) & (replaced.rows < lo + ROWS)
+            band[replaced.rows[here] - lo, replaced.columns[here]] = replaced.values[here]
         sums[lo : lo + ROWS] = np.einsum("hwc,fw->hfc", band, waves)
     c, s = np.cos(latitude), np.sin(latitude)
     one, cos1, sin1, cos2, sin2 = (sums[:, f] for f in range(5))
@@ -75,9 +93,92 @@ def from_equirect(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> Environment:
     return np.stack([(share[:, None] * term).sum(axis=0) for term in terms])
 
 
+class Patch(NamedTuple):
+    """Pixels of a map read with other values: row and column indices (P,) and the values (P, 3)."""
+
+    rows: np.ndarray
+    columns: np.ndarray
+    values: np.ndarray
+
+
+def light_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Environment, Light | None]:
+    """(the map's coefficients, its sun or None): a sun that stands out of the map (sun_of) becomes
+    a sun light, with shadows and its own highlights, and leaves the coefficients (read with the sky
+    around it in its place); else the whole map's coefficients."""
+    found = sun_of(rows)
+    if found is None:
+        return from_equirect(rows), None
+    sun, patch = found
+    return from_equirect(rows, patch), sun
+
+
+def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] | None:
+    """(a sun light, the pixels it takes with the sky around it in their place) of an equirectangular
+    map (read as from_equirect reads it) whose brightest pixel is SUN_CONTRAST times the map's mean
+    luminance or more, else None. The sun is the pixels within SUN_CAP of the brightest brighter
+    than SUN_LEVEL times the mean, less the mean of the ring around them (SUN_RING: the sky behind
+    the sun): its irradiance on a surface facing it is the sum of that excess over their solid
+    angles, its direction their mean weighed by it, its diameter that of a uniform disc of the same
+    spread."""
+    height, width = rows.shape[:2]
+    latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
+    share = np.cos(latitude) * 4.0 * math.pi / (np.cos(latitude).sum() * width)  # each pixel's solid angle
+    luminance = np.empty((height, width), np.float32)
+    for lo in range(0, height, ROWS):  # a loop over bands of rows
+        luminance[lo : lo + ROWS] = np.asarray(rows[lo : lo + ROWS, :, :3], np.float32) @ LUMINANCE
+    mean = float(share @ luminance.sum(axis=1, dtype=np.float64)) / (4.0 * math.pi)
+    peak = int(np.argmax(luminance))
+    if not (mean > 0.0 and luminance.flat[peak] >= SUN_CONTRAST * mean):
+        return None
+    reach = SUN_CAP * SUN_RING
+    centre = _pixel_direction(*divmod(peak, width), height, width)
+    near = np.flatnonzero(np.abs(latitude - math.asin(centre[2])) <= reach + math.pi / height)  # rows it may touch
+    longitude = math.pi * (1.0 - 2.0 * (np.arange(width) + 0.5) / width)
+    band = np.stack(np.broadcast_arrays(*_unit(latitude[near, None], longitude[None])), axis=-1)  # (R, W, 3)
+    apart = np.arccos(np.clip(band @ centre, -1.0, 1.0))
+    pixels = np.asarray(rows[near][..., :3], np.float64)
+    sun = (apart < SUN_CAP) & (luminance[near] > SUN_LEVEL * mean)
+    ring = (apart >= SUN_CAP) & (apart < reach)
+    weights = np.broadcast_to(share[near, None], apart.shape)
+    sky = (weights[ring, None] * pixels[ring]).sum(axis=0) / max(weights[ring].sum(), 1e-300)
+    excess = np.maximum(pixels[sun] - sky, 0.0) * weights[sun, None]  # (P, 3) radiance x solid angle
+    strength = excess @ LUMINANCE
+    direction = unit_vector(strength @ band[sun])
+    spread = np.arccos(np.clip(band[sun] @ direction, -1.0, 1.0))
+    radius = math.sqrt(2.0 * float(strength @ spread**2) / max(float(strength.sum()), 1e-300))  # a disc's r^2 / 2
+    irradiance = excess.sum(axis=0)
+    power = float(irradiance.max())
+    light = Light("sun", color=irradiance / power, power=power, direction=-direction, angle=2.0 * radius)
+    row_index, column_index = np.nonzero(sun)
+    return light, Patch(near[row_index], column_index, np.broadcast_to(sky, (len(row_index), 3)))
+
+
+def _unit(latitude, longitude):
+    """x, y, z of the directions at `latitude` and `longitude` (broadcast)."""
+    return np.cos(latitude) * np.cos(longitude), np.cos(latitude) * np.sin(longitude), np.sin(latitude) + 0 * longitude
+
+
+def _pixel_direction(row, column, height, width):
+    """(3,) the direction of pixel (row from the bottom, column)."""
+    latitude = math.pi * ((row + 0.5) / height - 0.5)
+    longitude = math.pi * (1.0 - 2.0 * (column + 0.5) / width)
+    return np.array(_unit(latitude, longitude), np.float64)
+
+
+def unit_vector(v):
+    return np.asarray(v, np.float64) / max(float(np.linalg.norm(v)), 1e-300)
+
+
 def _waves(angle, multiple):
     """cos and sin of `multiple` times `angle`."""
     return np.cos(multiple * angle), np.sin(multiple * angle)
+
+
+def with_sun(environment: Environment, sun: Light) -> Environment:
+    """The coefficients with a sun light (light_of's) given back as a point of the map: its
+    irradiance on a surface facing it, E, is a delta of that weight towards it (-direction)."""
+    towards = -np.asarray(sun.direction, np.float64)
+    return environment + np.outer(sh.basis(towards[None], 2)[0], sun.power * np.asarray(sun.color, np.float64))
 
 
 def mean(environment: Environment) -> np.ndarray:

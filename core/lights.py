@@ -185,15 +185,19 @@ class World:
     """The world's light: scene-linear radiance `color` (3,) from every direction (Blender's world
     Background colour times its strength), or with `environment` the (9, 3) SH coefficients of an
     environment map's radiance (core.environment; Blender's Environment Texture), `color` then its
-    mean. occlusion: the directions (sphere_directions) sampled for what the splats and meshes hide
-    of it (core.ambient); 0 leaves it unoccluded."""
+    mean; `sun`, the sun taken out of that map (core.environment.light_of), a sun Light that the
+    callers light with beside their own (lights()). occlusion: the directions (sphere_directions)
+    sampled for what the splats and meshes hide of it (core.ambient); 0 leaves it unoccluded."""
 
     color: np.ndarray = field(default_factory=lambda: np.zeros(3))
     occlusion: int = 0
     environment: np.ndarray | None = None
+    sun: Light | None = None
 
     def __post_init__(self):
         problems: list[str] = []
+        if self.sun is not None and not (isinstance(self.sun, Light) and self.sun.kind == "sun"):
+            raise ValueError(f"invalid world: its sun must be a sun Light, got {self.sun!r}")
         if self.environment is not None:
             environment = np.array(self.environment, np.float64)
             if environment.shape != (9, 3) or not np.isfinite(environment).all():
@@ -207,6 +211,10 @@ class World:
             raise ValueError(f"invalid world: occlusion must be a whole number >= 0, got {self.occlusion!r}")
         object.__setattr__(self, "color", color)
         object.__setattr__(self, "occlusion", int(self.occlusion))
+
+    def lights(self, lights: list[Light]) -> list[Light]:
+        """`lights` and the world's sun after them (light linking's indices stay theirs)."""
+        return list(lights) if self.sun is None else [*lights, self.sun]
 
     @property
     def occluded(self) -> bool:

@@ -42,3 +42,19 @@ def euler_xyz(angles):
     y = np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
     z = np.array([[cc, -sc, 0.0], [sc, cc, 0.0], [0.0, 0.0, 1.0]])
     return z @ y @ x
+
+
+def add_sun(pixels, latitude, longitude, diameter, irradiance):
+    """`pixels` (H, W, C) with a sun drawn in: a disc of `diameter` (radians) about the direction at
+    `latitude` and `longitude` (radians, as directions() reads a map) whose radiance gives a surface
+    facing it `irradiance` (W/m^2) over the disc's pixels, added to their first three channels."""
+    d, _ = directions(*pixels.shape[:2])
+    ring = math.cos(latitude)
+    towards = np.array([ring * math.cos(longitude), ring * math.sin(longitude), math.sin(latitude)])
+    disc = d @ towards > math.cos(diameter / 2)
+    height, width = pixels.shape[:2]
+    row_latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
+    solid = np.cos(row_latitude)[:, None] * (2 * math.pi / width) * (math.pi / height)  # each pixel's
+    out = np.array(pixels, copy=True)
+    out[disc, :3] += irradiance / float((solid * disc).sum())
+    return out

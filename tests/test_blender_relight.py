@@ -449,6 +449,25 @@ def test_an_animation_keeps_the_shadows_of_what_did_not_move(blender):
     assert np.abs(frames[2] - frames[1]).max() > 0.5  # the turned sun moves it
 
 
+def test_a_sun_in_the_worlds_map_shadows_the_floor_as_a_sun_light(blender):
+    """No light but the world, an Environment Texture of a dim sky with a sun in it: the final render's
+    Shadow pass shows the relit ball's shadow on the relit floor where the closed-form shadow of the
+    map's sun falls (the sun taken out of the map as a sun light of its own), and none elsewhere."""
+    from workers.relight import BALL, SUNNY_MAP
+
+    res = blender.step("sunny_map")
+    origin = np.array(res["origin"])
+    cam = camera(res["camera"], origin)
+    points, row, col = floor_samples(cam, origin)
+    elevation, azimuth = np.radians(SUNNY_MAP["elevation"]), np.radians(SUNNY_MAP["azimuth"])
+    towards = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    ratio = sphere_shadow(points, -towards, BALL["centre"], BALL["radius"])
+    shadow = channels(exr(blender.out / "sunny_map.exr"), "Shadow", "X")
+    shade_in, shade_out, n_in, n_out = inside_outside(np.repeat(shadow, 3, axis=-1), row, col, ratio)
+    assert n_in > 20 and n_out > 200, (n_in, n_out)
+    assert shade_in > 0.9 and shade_out < 0.02, (shade_in, shade_out)  # measured 0.9995 and 0.0025 in all six
+
+
 def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blender):
     """An equirectangular Environment Texture on the Background's Color lights the relit splats by
     the SH coefficients of its pixels (core.environment.from_equirect) times the Strength, its mean
@@ -460,7 +479,7 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
     image, any node on the Strength) leave the world's Viewport Display colour, and a warning that
     names the node; a plain Background gives its own colour and no warning."""
     from environment_reference import euler_xyz
-    from workers.relight import HDRI_CAP, MAP_TURN, WORLD
+    from workers.relight import HDRI_CAP, MAP_TURN, SUNNY_PATCH, WORLD
 
     from splatwright.core import environment
     from splatwright.core.color import srgb_to_linear
@@ -472,7 +491,8 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
     grey = np.full((8, 16, 3), srgb_to_linear(np.array(128 / 255)))  # 0.5 stored as a byte
     for name, want, pixels in (("hdri", 2.0 * (1 - math.sin(math.radians(30))) / 2 * np.array(HDRI_CAP), 2.0 * cap),
                                ("srgb", grey[0, 0], grey)):  # fmt: skip
-        color, caught, coefficients = res[name]
+        color, caught, coefficients, sun = res[name]
+        assert sun is None
         np.testing.assert_allclose(color, want, rtol=2e-3)  # rows' midpoints: measured within 0.1%
         np.testing.assert_allclose(coefficients, environment.from_equirect(pixels), rtol=1e-5, atol=1e-6)
         assert len(caught) == 1 and caught[0].startswith("RelightWarning") and "'Sky HDRI'" in caught[0]
@@ -480,21 +500,31 @@ def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blende
     assert res["hdri"][2][2][0] > 0.3  # the map's light from above: band 1's z, C1 2 sin-weighted cap
     turn = euler_xyz(np.array(MAP_TURN))
     for name, lookup in (("point", turn), ("texture_turn", turn.T)):  # the light at d: the map's at lookup d
-        color, caught, coefficients = res[name]
+        color, caught, coefficients, _ = res[name]
         want = environment.rotated(environment.from_equirect(2.0 * cap), lookup.T)
         np.testing.assert_allclose(coefficients, want, rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(color, res["hdri"][0], rtol=1e-6)  # a turn keeps the mean
         assert len(caught) == 1 and "broad light" in caught[0]
-    color, caught, coefficients = res["remapped"]  # turned by nodes not read: its mean, from everywhere
+    color, caught, coefficients, sun = res["remapped"]  # turned by nodes not read: its mean, from everywhere
     np.testing.assert_allclose(color, res["hdri"][0], rtol=1e-12)
-    assert coefficients is None and len(caught) == 1 and "Vector input" in caught[0]
+    assert coefficients is None and sun is None and len(caught) == 1 and "Vector input" in caught[0]
+    # A sun in the map: a sun light of its own (core.environment.light_of), turned with the map
+    sunny = 2.0 * cap
+    sunny[36:38, 40:42] = 2.0 * np.array(SUNNY_PATCH)
+    want_coefficients, want_sun = environment.light_of(sunny)
+    for name, lookup in (("sunny", np.eye(3)), ("sunny_turned", turn)):
+        color, caught, coefficients, (direction, power, tint) = res[name]
+        np.testing.assert_allclose(coefficients, environment.rotated(want_coefficients, lookup.T), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(direction, lookup.T @ want_sun.direction, atol=1e-6)
+        np.testing.assert_allclose(np.multiply(power, tint), want_sun.power * want_sun.color, rtol=1e-5)
+        assert len(caught) == 1 and "and its sun" in caught[0]
     for name, node in (("texture", "Sky HDRI"), ("strength", "Brightness")):
-        color, caught, coefficients = res[name]
+        color, caught, coefficients, _ = res[name]
         np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the world's plain colour (stage())
         assert coefficients is None
         assert len(caught) == 1 and caught[0].startswith("RelightWarning") and f"'{node}'" in caught[0]
         assert "Viewport Display colour" in caught[0]
-    color, caught, coefficients = res["plain"]
+    color, caught, coefficients, _ = res["plain"]
     np.testing.assert_allclose(color, WORLD, rtol=1e-6)  # the Background's own, set to WORLD as well
     assert caught == [] and coefficients is None
 

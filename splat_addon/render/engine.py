@@ -177,6 +177,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         with data.reported_warnings(self.report):  # lights' and the world's nodes that are not read
             lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
             world = scene_world(depsgraph.scene)
+            lights = world.lights(lights)  # an environment map's sun after the scene's lights
         lit_render = render_lit(
             cloud,
             cam,

@@ -98,10 +98,11 @@ def scene_world(scene, backdrop=None):
     when the caller has read it (the viewport's backdrop: an environment image read once)."""
     from ...core.lights import World
 
-    color, note, environment = world_background(scene) if backdrop is None else backdrop
-    if note is not None:
-        warnings.warn(note, RelightWarning, stacklevel=2)
-    return World(color, int(getattr(scene, WORLD_OCCLUSION, 0)), environment)
+    background = world_background(scene) if backdrop is None else backdrop
+    if background.note is not None:
+        warnings.warn(background.note, RelightWarning, stacklevel=2)
+    occlusion = int(getattr(scene, WORLD_OCCLUSION, 0))
+    return World(background.color, occlusion, background.environment, background.sun)
 
 
 def light_from_blender(light, matrix, origin=(0.0, 0.0, 0.0), obj=None):

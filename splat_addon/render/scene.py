@@ -2,6 +2,9 @@
 viewport (viewport.py): its splats in one cloud, the world's colour, the engine that draws the
 meshes, and the conversion of a display-sRGB picture to Blender's scene-linear."""
 
+import dataclasses
+from typing import NamedTuple
+
 import bpy
 import numpy as np
 from mathutils import Euler
@@ -97,43 +100,65 @@ def world_color(scene):
     return world_background(scene)[0]
 
 
+class Background(NamedTuple):
+    """The world's light as world_background reads it: its colour (scene-linear RGB), a note or
+    None, and an environment map's SH coefficients (core.environment) and sun (a core.lights sun
+    Light), or None."""
+
+    color: np.ndarray
+    note: str | None = None
+    environment: np.ndarray | None = None
+    sun: object = None
+
+
 def world_background(scene):
-    """(world_color's colour, a note or None, the environment or None): the environment is the SH
-    coefficients (core.environment) of an equirectangular Environment Texture on the Background's
-    Color times its Strength (environment_map), turned as its Vector input turns the lookup
-    (map_lookup), the colour then its mean; the note says how the world's light is read where nodes
-    drive the Background (the map's bands, its mean where nodes remap its directions otherwise, or
-    the world's plain colour where the nodes are not read), for the engine to report; None where
-    the colour is the Background's own."""
+    """The world's Background (see Background): its colour x strength; an equirectangular
+    Environment Texture on its Color gives the map's coefficients and sun (environment_map) times
+    the Strength, turned as its Vector input turns the lookup (map_lookup), the colour then its
+    mean; the note says how the world's light is read where nodes drive the Background (the map's
+    bands and sun, its mean where nodes remap its directions otherwise, or the world's plain colour
+    where the nodes are not read), for the engine to report; None where the colour is the
+    Background's own."""
     world = scene.world
     if world is None:
-        return np.zeros(3), None, None
+        return Background(np.zeros(3))
     uses_nodes = world.node_tree is not None and (bpy.app.version >= (5, 0, 0) or world.use_nodes)
     node = _background_node(world.node_tree) if uses_nodes else None
     plain = np.array(world.color[:3], dtype=np.float64)
     if node is None:
-        return plain, None, None
+        return Background(plain)
     color, strength = node.inputs["Color"], node.inputs["Strength"]
     if strength.is_linked:
-        return plain, _unread(strength.links[0].from_node.name), None
+        return Background(plain, _unread(strength.links[0].from_node.name))
     if color.is_linked:
         source = color.links[0].from_node
-        coefficients = environment_map(source)
-        if coefficients is None:
-            return plain, _unread(source.name), None
-        coefficients = coefficients * strength.default_value
+        found = environment_map(source)
+        if found is None:
+            return Background(plain, _unread(source.name))
+        (coefficients, sun), scale = found, strength.default_value
+        coefficients = coefficients * scale
+        sun = None if sun is None else dataclasses.replace(sun, power=sun.power * scale)
         lookup = map_lookup(source)
-        if lookup is None:  # remapped by nodes not read: its directions are not, its mean is
-            return environment.mean(coefficients), _remapped(source.name), None
+        if lookup is None:  # remapped by nodes not read: its directions are not, its mean is (the sun's too)
+            whole = coefficients if sun is None else environment.with_sun(coefficients, sun)
+            return Background(environment.mean(whole), _remapped(source.name))
         coefficients = environment.rotated(coefficients, lookup.T)  # its light at d: the map's at lookup d
-        return environment.mean(coefficients), _bands(source.name), coefficients
-    return np.array(color.default_value[:3], dtype=np.float64) * strength.default_value, None, None
+        if sun is not None:  # the map's sun seen in direction d where lookup d is its own
+            sun = dataclasses.replace(sun, direction=lookup.T @ sun.direction)
+        return Background(environment.mean(coefficients), _bands(source.name, sun), coefficients, sun)
+    return Background(np.array(color.default_value[:3], dtype=np.float64) * strength.default_value)
 
 
-def _bands(name):
+def _bands(name, sun):
+    if sun is not None:
+        return (
+            f"the world's Environment Texture '{name}' lights relit splats by its broad light (its spherical "
+            "harmonics to band 2) and its sun, a sun light of its own with shadows and highlights: the map's other "
+            "sharp features cast no shadows and make no sharp highlights"
+        )
     return (
         f"the world's Environment Texture '{name}' lights relit splats by its broad light (its spherical "
-        "harmonics to band 2): the map's sharp features, a sun in it, cast no shadows and make no sharp highlights"
+        "harmonics to band 2): the map's sharp features cast no shadows and make no sharp highlights"
     )
 
 
@@ -188,10 +213,11 @@ def _generated(socket):
 
 
 def environment_map(node):
-    """(9, 3) the SH coefficients of the scene-linear radiance (core.environment.from_equirect) of an
-    equirectangular Environment Texture node's image, or None for another node, another projection,
-    no image, colours in a space other than sRGB or linear ones (LINEAR_SPACES), or pixels past the
-    memory budget (core.memory.default_budget)."""
+    """(coefficients (9, 3), sun or None) of the scene-linear radiance of an equirectangular
+    Environment Texture node's image (core.environment.light_of: a sun that stands out of the map
+    becomes a sun light), or None for another node, another projection, no image, colours in a
+    space other than sRGB or linear ones (LINEAR_SPACES), or pixels past the memory budget
+    (core.memory.default_budget)."""
     image = getattr(node, "image", None)
     if node.bl_idname != "ShaderNodeTexEnvironment" or node.projection != "EQUIRECTANGULAR" or image is None:
         return None
@@ -199,16 +225,16 @@ def environment_map(node):
     width, height = image.size
     if (space != "sRGB" and space not in LINEAR_SPACES) or not width or not height:
         return None
-    # An image file's coefficients are kept: the viewport asks on every scene update, and reading a
-    # 4k map takes 0.1-0.3 s
+    # An image file's light is kept: the viewport asks on every scene update, and reading a 4k map
+    # takes 0.2-0.4 s
     key = (image.name, image.filepath_raw, width, height, space) if image.filepath_raw and not image.is_dirty else None
     if key is not None and key in _MAPS:
         return _MAPS[key]
-    coefficients = _equirect_map(image, width, height, space)
+    found = _equirect_map(image, width, height, space)
     if key is not None:
         _MAPS.clear()  # one environment at a time
-        _MAPS[key] = coefficients
-    return coefficients
+        _MAPS[key] = found
+    return found
 
 
 _MAPS: dict = {}
@@ -227,7 +253,7 @@ def _equirect_map(image, width, height, space):
     rows = pixels.reshape(height, width, image.channels)[..., :3]
     if space == "sRGB":
         rows = srgb_to_linear(rows, np.float32)
-    return environment.from_equirect(rows)
+    return environment.light_of(rows)
 
 
 def _background_node(tree):

@@ -96,7 +96,8 @@ def picture_inputs(depsgraph, kept=None):
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else relit.Occluders([])
         lights, *linking = relit.linked_lights(depsgraph, origin, owners, occluders)
-        lighting = Lighting(lights, scene_world(scene, backdrop), occluders.surfaces, kept, tuple(linking))
+        world = scene_world(scene, backdrop)
+        lighting = Lighting(world.lights(lights), world, occluders.surfaces, kept, tuple(linking))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 
 

@@ -126,6 +126,20 @@ class BlenderWorker:
         for name, value in values.items():
             setattr(settings, name, value)
 
+    def world_map(self, pixels, name="Map"):
+        """An Environment Texture of `pixels` (H, W, 4) float32, rows from the bottom, on the scene
+        world's Background Color: (the texture node, its image), for the caller to remove."""
+        bpy = self.bpy
+        height, width = pixels.shape[:2]
+        image = bpy.data.images.new(name, width, height, float_buffer=True)
+        image.pixels.foreach_set(np.ascontiguousarray(pixels, np.float32).ravel())
+        tree = bpy.context.scene.world.node_tree
+        background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        texture = tree.nodes.new("ShaderNodeTexEnvironment")
+        texture.image = image
+        tree.links.new(texture.outputs["Color"], background.inputs["Color"])
+        return texture, image
+
     def two_bone_armature(self, name, location=(0.0, 0.0, 0.0)):
         """An armature object `name` at `location` in the scene: bone Lower from (0,0,0) to (0,0,1),
         Upper connected above it to (0,0,2)."""

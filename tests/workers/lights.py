@@ -7,6 +7,7 @@ extension is used: the lights' settings and matrices go back to the test, which 
 import math
 
 import numpy as np
+from environment_reference import add_sun, directions
 
 from workers.base import BlenderWorker, worker_main
 
@@ -115,21 +116,27 @@ ENVIRONMENT = (
 )
 ENVIRONMENT_SIZE = (128, 64)  # the map's pixels, width by height
 ENVIRONMENT_TURN = (0.4, -0.2, 1.1)  # environment's second render: a Mapping node's rotation (Euler XYZ)
+# environment's third: the map at 512 x 256 with a sun (a disc of this diameter at this latitude and
+# longitude, radians, giving this irradiance, W/m^2, to a surface facing it)
+SUN_IN_MAP = dict(
+    diameter=math.radians(4.0), latitude=math.radians(35.0), longitude=math.radians(-60.0), irradiance=15.0
+)
 BALL_ORTHO_SCALE = 2.4  # the camera's view of environment's ball (radius 1)
 
 
-def environment_pixels():
+def environment_pixels(size=ENVIRONMENT_SIZE, sun=False):
     """(H, W, 4) float32 ENVIRONMENT's map at its pixels' centres, rows from the bottom, with the
     directions Blender reads an equirectangular map with (measured in Cycles: u = 0.5 looks along +X,
-    0.25 along +Y; row 0 at latitude -90 degrees)."""
-    width, height = ENVIRONMENT_SIZE
-    longitude = math.pi * (1.0 - 2.0 * (np.arange(width) + 0.5) / width)
-    latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
-    lon, lat = np.meshgrid(longitude, latitude)
-    x, y, z = np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)
+    0.25 along +Y; row 0 at latitude -90 degrees); with `sun`, SUN_IN_MAP's disc on it."""
+    width, height = size
+    d, _ = directions(height, width)
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
     pixels = np.ones((height, width, 4), np.float32)
     for channel, radiance in enumerate(ENVIRONMENT):
         pixels[..., channel] = radiance(x, y, z)
+    if sun:
+        sun_in_map = {k: SUN_IN_MAP[k] for k in ("latitude", "longitude", "diameter", "irradiance")}
+        pixels = add_sun(pixels, **sun_in_map).astype(np.float32)
     return pixels
 
 
@@ -279,7 +286,8 @@ class Worker(BlenderWorker):
     def environment(self):
         """A white diffuse ball (radius 1, smooth) alone under an equirectangular Environment Texture
         of ENVIRONMENT's map, seen along +Y by the orthographic camera: the map's pixels and two
-        renders, then two with the map looked up through a Mapping node (ENVIRONMENT_TURN)."""
+        renders, then two with the map looked up through a Mapping node (ENVIRONMENT_TURN), then two
+        of the map with a sun in it (SUN_IN_MAP)."""
         bpy = self.bpy
         self.scene()
         scene = bpy.context.scene
@@ -293,15 +301,10 @@ class Worker(BlenderWorker):
         cam = scene.camera
         cam.location, cam.rotation_euler = (0.0, -10.0, 0.0), (math.pi / 2, 0.0, 0.0)
         cam.data.ortho_scale = BALL_ORTHO_SCALE
-        width, height = ENVIRONMENT_SIZE
-        image = bpy.data.images.new("Environment", width, height, float_buffer=True)
         pixels = environment_pixels()
-        image.pixels.foreach_set(pixels.ravel())
+        texture, image = self.world_map(pixels, "Environment")
         tree = scene.world.node_tree
         background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
-        texture = tree.nodes.new("ShaderNodeTexEnvironment")
-        texture.image = image
-        tree.links.new(texture.outputs["Color"], background.inputs["Color"])
         background.inputs["Strength"].default_value = 1.0
         scene.render.film_transparent = True  # the map itself out of the picture
         try:
@@ -314,6 +317,10 @@ class Worker(BlenderWorker):
             images += [self.render("environment_turned", seed) for seed in (0, 1)]
             tree.nodes.remove(coordinates)
             tree.nodes.remove(mapping)
+            sunny = environment_pixels((512, 256), sun=True)  # a sun in the map, fine enough to hold it
+            image.scale(512, 256)
+            image.pixels.foreach_set(sunny.ravel())
+            images += [self.render("environment_sun", seed) for seed in (0, 1)]
         finally:
             scene.render.film_transparent = False
             tree.nodes.remove(texture)
@@ -321,6 +328,7 @@ class Worker(BlenderWorker):
             bpy.data.objects.remove(ball)
         self.save("environment", first=images[0], second=images[1], map=pixels[..., :3])
         self.save("environment_turned", first=images[2], second=images[3])
+        self.save("environment_sun", first=images[4], second=images[5], map=sunny[..., :3])
         camera = [list(row) for row in cam.matrix_world]
         return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE, "camera": camera}
 

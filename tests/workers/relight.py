@@ -3,9 +3,11 @@ workers/base.py): the scene's lights as the engine reads them, relit splats rend
 Diffuse, Specular and Shadow passes, a splat sphere's shadow on a mesh floor, and the demo rig
 converted with its material, relit and rendered over two frames."""
 
+import math
 import warnings
 
 import numpy as np
+from environment_reference import add_sun
 
 from workers.base import BlenderWorker, worker_main
 
@@ -45,6 +47,10 @@ CAMERA = dict(location=(2.6, -3.4, 2.9), look_at=(0.0, 0.0, 0.3), lens=30.0)
 SAMPLES = 8
 HDRI_CAP = (0.8, 1.6, 2.4)  # textured_world's environment radiance above 30 degrees of latitude
 MAP_TURN = (0.5, -0.3, 0.9)  # textured_world's Mapping node's rotation (Euler XYZ)
+SUNNY_PATCH = (900.0, 850.0, 800.0)  # textured_world's sun: 2 x 2 pixels of its map this bright
+# sunny_map's world: a dim sky and a sun of this elevation and azimuth (degrees from +X towards +Y),
+# diameter (degrees) and irradiance (W/m^2 facing it), drawn into a map of this many pixels
+SUNNY_MAP = dict(elevation=50.0, azimuth=60.0, diameter=3.0, irradiance=4.0, sky=0.05, size=(512, 256))
 LIGHT_NODE = dict(strength=2.5, color=(1.0, 0.5, 0.25))  # light_nodes' Emission node
 LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
 LINKED_RADIUS = 0.35
@@ -120,6 +126,7 @@ class Worker(BlenderWorker):
         "light_nodes",
         "engine_reports",
         "animation_frames",
+        "sunny_map",
         "light_linking",
         "shadow_linking",
         "mesh_shadow_linking",
@@ -584,9 +591,10 @@ class Worker(BlenderWorker):
         """The world a relit scene sees when an Environment Texture without an image feeds its
         Background's Color, one with a float image bright above 30 degrees of latitude (its Strength
         2), one with an sRGB image of grey 0.5, the float one looked up through a Mapping node turning
-        the Generated direction by MAP_TURN (Point, then Texture), then through one fed nothing, a
-        Value node its Strength, then neither:
-        (colour, warnings, environment coefficients or None) of lights.scene_world each time."""
+        the Generated direction by MAP_TURN (Point, then Texture), then through one fed nothing, the
+        float one with a sun in it (SUNNY_PATCH) plain and turned, a Value node its Strength, then
+        neither: (colour, warnings, environment coefficients or None, the sun's direction, power and
+        colour or None) of lights.scene_world each time."""
         bpy = self.bpy
         self.stage("NONE")
         scene = bpy.context.scene
@@ -600,18 +608,22 @@ class Worker(BlenderWorker):
         pixels[32:, :, :3] = HDRI_CAP  # rows from the bottom: the top 16 of 48 lie above 30 degrees
         pixels[..., 3] = 1.0
         cap.pixels.foreach_set(pixels.ravel())
+        sunny = bpy.data.images.new("Sunny", 64, 48, float_buffer=True)
+        pixels[36:38, 40:42, :3] = SUNNY_PATCH  # a sun: 4 pixels far brighter than the rest
+        sunny.pixels.foreach_set(pixels.ravel())
         grey = bpy.data.images.new("Grey", 16, 8)  # 8-bit, sRGB
         grey.pixels.foreach_set(np.full(16 * 8 * 4, 0.5, np.float32))
         out = {"cap_space": cap.colorspace_settings.name, "grey_space": grey.colorspace_settings.name}
         mapping, coordinates = tree.nodes.new("ShaderNodeMapping"), tree.nodes.new("ShaderNodeTexCoord")
         mapping.inputs["Rotation"].default_value = MAP_TURN
-        turned = {"point": "POINT", "texture_turn": "TEXTURE", "remapped": "POINT"}  # the map through the mapping
-        for name in ("texture", "hdri", "srgb", "point", "texture_turn", "remapped", "strength", "plain"):
+        turned = {"point": "POINT", "texture_turn": "TEXTURE", "remapped": "POINT", "sunny_turned": "POINT"}
+        names = ("texture", "hdri", "srgb", "point", "texture_turn", "remapped", "sunny", "sunny_turned")
+        for name in (*names, "strength", "plain"):
             for link in list(tree.links):
                 if link.to_node in (background, texture, mapping):
                     tree.links.remove(link)
             plain = name in ("texture", "strength", "plain")  # no image
-            texture.image = grey if name == "srgb" else (None if plain else cap)
+            texture.image = {"srgb": grey, "sunny": sunny, "sunny_turned": sunny}.get(name, None if plain else cap)
             background.inputs["Strength"].default_value = 1.0 if plain or name == "srgb" else 2.0
             if texture.image is not None or name == "texture":
                 tree.links.new(texture.outputs["Color"], background.inputs["Color"])
@@ -623,13 +635,16 @@ class Worker(BlenderWorker):
             if name == "strength":
                 tree.links.new(value.outputs["Value"], background.inputs["Strength"])
             world, caught = _warned(lambda: lights.scene_world(scene))
-            out[name] = (list(world.color), caught, None if world.environment is None else world.environment.tolist())
+            environment = None if world.environment is None else world.environment.tolist()
+            sun = None if world.sun is None else (list(world.sun.direction), world.sun.power, list(world.sun.color))
+            out[name] = (list(world.color), caught, environment, sun)
         background.inputs["Strength"].default_value = 1.0
         tree.nodes.remove(texture)
         tree.nodes.remove(value)
         tree.nodes.remove(mapping)
         tree.nodes.remove(coordinates)
         bpy.data.images.remove(cap)
+        bpy.data.images.remove(sunny)
         bpy.data.images.remove(grey)
         return out
 
@@ -778,6 +793,34 @@ class Worker(BlenderWorker):
             self.write(f"still_{frame}")
         scene.splatwright_world_occlusion = 0
         return dict(made=made, free_after_frames=kept, free_after_job=after_job)
+
+    def sunny_map(self):
+        """A relit splat ball over a relit splat floor (splats only) with no light but the world: an
+        Environment Texture of a dim sky with a sun in it (SUNNY_MAP); the multilayer EXR (its
+        Shadow pass) and the camera."""
+        bpy = self.bpy
+        self.stage("NONE")
+        scene = bpy.context.scene
+        bpy.data.objects["Sun"].hide_render = True
+        ball = ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")})
+        floor = self.splat_object("SplatFloor", self.material_cloud(floor_arrays(FLOOR["size"], 0.05), FLOOR["color"]))
+        ball = self.splat_object("Ball", self.material_cloud(ball, BALL["albedo"]))
+        width, height = SUNNY_MAP["size"]
+        sky = np.full((height, width, 4), SUNNY_MAP["sky"], np.float32)
+        sky[..., 3] = 1.0
+        sun = dict(diameter=math.radians(SUNNY_MAP["diameter"]), irradiance=SUNNY_MAP["irradiance"])
+        sun.update(latitude=math.radians(SUNNY_MAP["elevation"]), longitude=math.radians(SUNNY_MAP["azimuth"]))
+        texture, image = self.world_map(add_sun(sky, **sun), "Sunny")
+        tree = scene.world.node_tree
+        try:
+            self.write("sunny_map")
+        finally:
+            tree.nodes.remove(texture)
+            bpy.data.images.remove(image)
+            bpy.data.objects["Sun"].hide_render = False
+            for obj in (floor, ball):
+                bpy.data.objects.remove(obj)
+        return {"camera": self.camera_record(), "origin": self.origin().tolist()}
 
     def viewport_world_maps(self):
         """How often the Rendered viewport makes the world's occlusion over four scene updates: the
