@@ -38,9 +38,9 @@ per mesh gives its conversion's unlit error against Cycles' emission render (ben
 reference): what shading cannot beat. Another gives the world alone (WORLD_ALONE grey, no light)
 against Cycles, occluded and not: what the world's occlusion is worth by itself; its time is the
 occlusion's (core.ambient.world_visibility), which depends on neither the view nor the lights,
-against the unlit frame. Another, an environment map alone (an overcast sky glowing to one side, as
-the world's Environment Texture; no light): its nine SH coefficients (core.environment), occluded
-and not, against Cycles lighting the mesh by the map.
+against the unlit frame. Two more, an environment map alone (an overcast sky glowing to one side,
+then a sunny sky, as the world's Environment Texture; no light): its nine SH coefficients and its sun
+as a light (core.environment.light_of), occluded and not, against Cycles lighting the mesh by the map.
 
     python bench/relight_accuracy.py [--quick]
     ./run bench relight_accuracy [--quick] [--only sphere|suzanne|duck|cylinder|box]
@@ -64,7 +64,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 
 from _cycles_reference import _cycles_main, cycles_render  # noqa: E402
 from common import Row, Timing, print_rows  # noqa: E402
-from environment_reference import directions  # noqa: E402
+from environment_reference import directions, sunny_sky  # noqa: E402
 from mesh2splats import (  # noqa: E402
     DISTANCES,
     blender_primitives,
@@ -438,29 +438,38 @@ def glow_sky(height, width):
     return np.where(d[..., 2:] > 0.0, sky, np.array([0.12, 0.09, 0.06]))
 
 
-def environment_row(scene, cloud, cams, folder, samples, unlit_seconds):
-    """An environment map alone (glow_sky as the world's Environment Texture, no light): render_lit
-    with its SH coefficients (core.environment), the world occluded from core.ambient's default
-    directions and unoccluded, against Cycles lighting the mesh by the map itself; the time of a
-    frame (the occlusion shared by the views, as for a still scene) against the unlit frame."""
+MAPS = {
+    "a glowing overcast sky": lambda: glow_sky(*MAP_SIZE),
+    # fine enough for its 4-degree sun, which gives IRRADIANCE as the light rows' lights do
+    "a sunny sky": lambda: sunny_sky(2 * MAP_SIZE[0], 2 * MAP_SIZE[1]) * (IRRADIANCE / (3.0 * math.pi)),
+}
+
+
+def environment_row(scene, cloud, cams, folder, samples, unlit_seconds, name):
+    """An environment map alone (MAPS[name] as the world's Environment Texture, no light): render_lit
+    with its SH coefficients and its sun (core.environment.light_of), the world occluded from
+    core.ambient's default directions and unoccluded, against Cycles lighting the mesh by the map
+    itself; the time of a frame (the occlusion and the sun's shadows shared by the views, as for a
+    still scene) against the unlit frame."""
     from splatwright.core import environment
 
     cameras = [cam for _, cam in cams]
     dark = dataclasses.replace(scene_lights(scene.mesh)["sun"], power=0.0)
-    sky = glow_sky(*MAP_SIZE)
-    coefficients = environment.from_equirect(sky)
+    sky = MAPS[name]()
+    coefficients, sun = environment.light_of(sky)
+    suns = [] if sun is None else [sun]
     ref = cycles_lit(scene.mesh, cameras, folder, dark, samples, smooth=scene.normals is not None, sky=sky)
-    occluded, _ = lit_frames(cloud, cameras, [], passes=False, environment=coefficients)
-    open_world, _ = lit_frames(cloud, cameras, [], passes=False, occluded=False, environment=coefficients)
+    occluded, _ = lit_frames(cloud, cameras, suns, passes=False, environment=coefficients)
+    open_world, _ = lit_frames(cloud, cameras, suns, passes=False, occluded=False, environment=coefficients)
     timed = [cam for d, cam in cams if d == 1.0]
-    _, seconds = lit_frames(cloud, timed, [], passes=False, environment=coefficients)
+    _, seconds = lit_frames(cloud, timed, suns, passes=False, environment=coefficients)
     error = psnr_by_distance([display(f.color) for f in occluded], cams, ref)
     error["worst dB"] = min(error.values())
     unoccluded = psnr_by_distance([display(f.color) for f in open_world], cams, ref)
     return Row(
         TOPIC,
-        f"{scene.name}: an environment map (a glowing overcast sky, no light), occluded from "
-        f"{ambient.DIRECTIONS} directions",
+        f"{scene.name}: an environment map ({name}{', its sun a light' if sun else ''}, no light), occluded "
+        f"from {ambient.DIRECTIONS} directions",
         _timing(seconds),
         _timing(unlit_seconds),
         error=error,
@@ -503,7 +512,7 @@ def scene_rows(scene, folder, size, per_distance, samples) -> list[Row]:
             extra={"splats": len(cloud), "faces": len(scene.mesh.faces)},
         ),
         world_row(scene, cloud, cams, folder, samples, unlit_seconds),
-        environment_row(scene, cloud, cams, folder, samples, unlit_seconds),
+        *(environment_row(scene, cloud, cams, folder, samples, unlit_seconds, name) for name in MAPS),
     ]
     print_rows(rows)
     for kind, light in scene_lights(scene.mesh).items():
