@@ -44,6 +44,7 @@ LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # scene-linear Rec. 
 # within SUN_CAP of it brighter than SUN_LEVEL times the mean, the sky behind it the ring out to
 # SUN_RING times SUN_CAP.
 SUN_CONTRAST = 50.0
+SUN_SHARE = 0.05  # ... and its irradiance facing it at least this share of pi x the map's mean (a glint is no sun)
 SUN_LEVEL = 10.0
 SUN_CAP = math.radians(6.0)
 SUN_RING = 1.5
@@ -115,7 +116,8 @@ def light_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Environment, 
 def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] | None:
     """(a sun light, the pixels it takes with the sky around it in their place) of an equirectangular
     map (read as from_equirect reads it) whose brightest pixel is SUN_CONTRAST times the map's mean
-    luminance or more, else None. The sun is the pixels within SUN_CAP of the brightest brighter
+    luminance or more, and whose sun gives a surface facing it SUN_SHARE of the irradiance of a
+    uniform map of that mean or more, else None. The sun is the pixels within SUN_CAP of the brightest brighter
     than SUN_LEVEL times the mean, less the mean of the ring around them (SUN_RING: the sky behind
     the sun): its irradiance on a surface facing it is the sum of that excess over their solid
     angles, its direction their mean weighed by it, its diameter that of a uniform disc of the same
@@ -148,6 +150,8 @@ def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] |
     radius = math.sqrt(2.0 * float(strength @ spread**2) / max(float(strength.sum()), 1e-300))  # a disc's r^2 / 2
     irradiance = excess.sum(axis=0)
     power = float(irradiance.max())
+    if float(irradiance @ LUMINANCE) < SUN_SHARE * math.pi * mean:
+        return None
     light = Light("sun", color=irradiance / power, power=power, direction=-direction, angle=2.0 * radius)
     row_index, column_index = np.nonzero(sun)
     return light, Patch(near[row_index], column_index, np.broadcast_to(sky, (len(row_index), 3)))

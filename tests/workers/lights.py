@@ -140,8 +140,12 @@ def environment_pixels(size=ENVIRONMENT_SIZE, sun=False):
     return pixels
 
 
+# Blender's own world HDRIs (datafiles/studiolights/world: Poly Haven's, CC0) that light studio_worlds' ball
+STUDIO_WORLDS = ("sunrise", "forest", "courtyard", "interior")
+
+
 class Worker(BlenderWorker):
-    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow", "environment")
+    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow", "environment", "studio_worlds")
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "lights")
 
@@ -331,6 +335,46 @@ class Worker(BlenderWorker):
         self.save("environment_sun", first=images[4], second=images[5], map=sunny[..., :3])
         camera = [list(row) for row in cam.matrix_world]
         return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE, "camera": camera}
+
+    def studio_worlds(self):
+        """environment's ball under each of Blender's own world HDRIs of STUDIO_WORLDS, as Blender
+        reads the file: each map's pixels and two renders."""
+        bpy = self.bpy
+        self.scene()
+        scene = bpy.context.scene
+        plane = bpy.context.active_object
+        material = plane.data.materials[0]
+        bpy.data.objects.remove(plane)
+        bpy.ops.mesh.primitive_uv_sphere_add(segments=192, ring_count=96, radius=1.0, location=(0.0, 0.0, 0.0))
+        ball = bpy.context.active_object
+        ball.data.materials.append(material)
+        bpy.ops.object.shade_smooth()
+        cam = scene.camera
+        cam.location, cam.rotation_euler = (0.0, -10.0, 0.0), (math.pi / 2, 0.0, 0.0)
+        cam.data.ortho_scale = BALL_ORTHO_SCALE
+        folder = bpy.utils.system_resource("DATAFILES", path="studiolights/world")
+        tree = scene.world.node_tree
+        background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        background.inputs["Strength"].default_value = 1.0
+        texture = tree.nodes.new("ShaderNodeTexEnvironment")
+        tree.links.new(texture.outputs["Color"], background.inputs["Color"])
+        scene.render.film_transparent = True
+        try:
+            for name in STUDIO_WORLDS:
+                image = bpy.data.images.load(f"{folder}/{name}.exr")
+                texture.image = image
+                width, height = image.size
+                pixels = np.empty(width * height * image.channels, np.float32)
+                image.pixels.foreach_get(pixels)
+                images = [self.render(f"studio_{name}", seed) for seed in (0, 1)]
+                rows = pixels.reshape(height, width, image.channels)[..., :3]
+                self.save(f"studio_{name}", first=images[0], second=images[1], map=rows)
+                bpy.data.images.remove(image)
+        finally:
+            scene.render.film_transparent = False
+            tree.nodes.remove(texture)
+            bpy.data.objects.remove(ball)
+        return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE}
 
     def principled_dielectric(self):
         return self.run_light("principled_dielectric")
