@@ -115,13 +115,12 @@ def light_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Environment, 
 
 def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] | None:
     """(a sun light, the pixels it takes with the sky around it in their place) of an equirectangular
-    map (read as from_equirect reads it) whose brightest pixel is SUN_CONTRAST times the map's mean
-    luminance or more, and whose sun gives a surface facing it SUN_SHARE of the irradiance of a
-    uniform map of that mean or more, else None. The sun is the pixels within SUN_CAP of the brightest brighter
-    than SUN_LEVEL times the mean, less the mean of the ring around them (SUN_RING: the sky behind
-    the sun): its irradiance on a surface facing it is the sum of that excess over their solid
-    angles, its direction their mean weighed by it, its diameter that of a uniform disc of the same
-    spread."""
+    map (read as from_equirect reads it), or None. The sun is the pixels within SUN_CAP of the
+    brightest one brighter than SUN_LEVEL times the map's mean luminance, less the mean of the ring
+    around them (SUN_RING: the sky behind the sun): its irradiance on a surface facing it is the sum
+    of that excess over their solid angles, its direction their mean weighed by it, its diameter that
+    of a uniform disc of the same spread. There is one where the brightest pixel is SUN_CONTRAST
+    times the mean or more and the sun's irradiance SUN_SHARE of a uniform map's of that mean."""
     height, width = rows.shape[:2]
     latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
     share = np.cos(latitude) * 4.0 * math.pi / (np.cos(latitude).sum() * width)  # each pixel's solid angle
@@ -136,7 +135,7 @@ def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] |
     centre = _pixel_direction(*divmod(peak, width), height, width)
     near = np.flatnonzero(np.abs(latitude - math.asin(centre[2])) <= reach + math.pi / height)  # rows it may touch
     longitude = math.pi * (1.0 - 2.0 * (np.arange(width) + 0.5) / width)
-    band = np.stack(np.broadcast_arrays(*_unit(latitude[near, None], longitude[None])), axis=-1)  # (R, W, 3)
+    band = np.stack(np.broadcast_arrays(*_direction(latitude[near, None], longitude[None])), axis=-1)  # (R, W, 3)
     apart = np.arccos(np.clip(band @ centre, -1.0, 1.0))
     pixels = np.asarray(rows[near][..., :3], np.float64)
     sun = (apart < SUN_CAP) & (luminance[near] > SUN_LEVEL * mean)
@@ -144,33 +143,30 @@ def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] |
     weights = np.broadcast_to(share[near, None], apart.shape)
     sky = (weights[ring, None] * pixels[ring]).sum(axis=0) / max(weights[ring].sum(), 1e-300)
     excess = np.maximum(pixels[sun] - sky, 0.0) * weights[sun, None]  # (P, 3) radiance x solid angle
-    strength = excess @ LUMINANCE
-    direction = unit_vector(strength @ band[sun])
-    spread = np.arccos(np.clip(band[sun] @ direction, -1.0, 1.0))
-    radius = math.sqrt(2.0 * float(strength @ spread**2) / max(float(strength.sum()), 1e-300))  # a disc's r^2 / 2
     irradiance = excess.sum(axis=0)
-    power = float(irradiance.max())
-    if float(irradiance @ LUMINANCE) < SUN_SHARE * math.pi * mean:
+    if not float(irradiance @ LUMINANCE) >= SUN_SHARE * math.pi * mean:  # a glint, or no excess at all
         return None
+    strength = excess @ LUMINANCE
+    direction = strength @ band[sun]
+    direction /= np.linalg.norm(direction)
+    spread = np.arccos(np.clip(band[sun] @ direction, -1.0, 1.0))
+    radius = math.sqrt(2.0 * float(strength @ spread**2) / float(strength.sum()))  # a uniform disc's mean is r^2 / 2
+    power = float(irradiance.max())
     light = Light("sun", color=irradiance / power, power=power, direction=-direction, angle=2.0 * radius)
     row_index, column_index = np.nonzero(sun)
     return light, Patch(near[row_index], column_index, np.broadcast_to(sky, (len(row_index), 3)))
 
 
-def _unit(latitude, longitude):
-    """x, y, z of the directions at `latitude` and `longitude` (broadcast)."""
-    return np.cos(latitude) * np.cos(longitude), np.cos(latitude) * np.sin(longitude), np.sin(latitude) + 0 * longitude
+def _direction(latitude, longitude):
+    """x, y, z of the unit directions at `latitude` and `longitude`."""
+    return np.cos(latitude) * np.cos(longitude), np.cos(latitude) * np.sin(longitude), np.sin(latitude)
 
 
 def _pixel_direction(row, column, height, width):
     """(3,) the direction of pixel (row from the bottom, column)."""
     latitude = math.pi * ((row + 0.5) / height - 0.5)
     longitude = math.pi * (1.0 - 2.0 * (column + 0.5) / width)
-    return np.array(_unit(latitude, longitude), np.float64)
-
-
-def unit_vector(v):
-    return np.asarray(v, np.float64) / max(float(np.linalg.norm(v)), 1e-300)
+    return np.array(_direction(latitude, longitude), np.float64)
 
 
 def _waves(angle, multiple):
