@@ -482,8 +482,8 @@ SUN, POINT, SPOT, AREA = 0, 1, 2, 3
 # light's spread, 0 for none), emitter radius (the sun's: its half angle)
 EMITTER_FIELDS = 12
 SHADE_KERNEL = (
-    "_tan2", "_lambda_sq", "_table_one", "_asin", "_ellipse_rim_one", "_ring_arcs", "_lobe_sky_one", "_sky_shares_one",
-    "_shade_loop",
+    "_tan2", "_lambda_sq", "_table_one", "_asin", "_ellipse_rim_one", "_ring_arcs", "_lobe_weight_one",
+    "_lobe_sky_one", "_sky_shares_one", "_shade_loop",
 )  # fmt: skip
 ASIN_SERIES = 0.3  # _asin sums its series below this sine, calls asin above
 
@@ -716,15 +716,21 @@ def _lobe_sky_one(seen, row, sky, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallbac
         cos_l = m0 * lx + m1 * ly + m2 * lz
         if cos_l <= 0.0:
             continue
-        hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
-        along = m0 * hx + m1 * hy + m2 * hz  # n.h unnormalised, > 0 with v and l above the surface
-        cos2_h = min(along * along / max(hx * hx + hy * hy + hz * hz, 1e-300), 1.0)  # no square root
-        denom = cos2_h * (a2 - 1.0) + 1.0
-        # D G / (4 n.v) without the factors every direction shares (a2 / (4 pi n.v)): only ratios count
-        weight = 1.0 / (denom * denom * (lambda_v + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)))
+        weight = _lobe_weight_one(m0, m1, m2, v0, v1, v2, lx, ly, lz, cos_l, lambda_v, a2)
         total += weight
         share += weight * min(max(seen[row, 2 + k], 0.0), 1.0)
     return share / total if total > 0.0 else fallback
+
+
+def _lobe_weight_one(m0, m1, m2, v0, v1, v2, lx, ly, lz, cos_l, lambda_v, a2):
+    """The GGX lobe of alpha^2 `a2` for the normal m facing the eye v, towards the direction l above
+    the surface (cos_l = m.l > 0), lambda_v 1 + the view's Smith Lambda: D G / (4 n.v) without the
+    factors every direction shares (a2 / (4 pi n.v)), for ratios over directions."""
+    hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
+    along = m0 * hx + m1 * hy + m2 * hz  # n.h unnormalised, > 0 with v and l above the surface
+    cos2_h = min(along * along / max(hx * hx + hy * hy + hz * hz, 1e-300), 1.0)  # no square root
+    denom = cos2_h * (a2 - 1.0) + 1.0
+    return 1.0 / (denom * denom * (lambda_v + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)))
 
 
 def _sky_shares_one(seen, row, sky, light, m0, m1, m2, v0, v1, v2, tan2_v, alpha, fallback, sums, diffuse, glossy):
@@ -738,11 +744,7 @@ def _sky_shares_one(seen, row, sky, light, m0, m1, m2, v0, v1, v2, tan2_v, alpha
         cos_l = m0 * lx + m1 * ly + m2 * lz
         if cos_l <= 0.0:
             continue
-        hx, hy, hz = v0 + lx, v1 + ly, v2 + lz
-        along = m0 * hx + m1 * hy + m2 * hz
-        cos2_h = min(along * along / max(hx * hx + hy * hy + hz * hz, 1e-300), 1.0)
-        denom = cos2_h * (a2 - 1.0) + 1.0
-        lobe = 1.0 / (denom * denom * (lambda_v + _lambda_sq(_tan2(max(cos_l, COS_MIN)), a2)))  # as _lobe_sky_one
+        lobe = _lobe_weight_one(m0, m1, m2, v0, v1, v2, lx, ly, lz, cos_l, lambda_v, a2)
         visible = min(max(seen[row, 2 + k], 0.0), 1.0)
         for c in range(3):
             sums[0, c] += cos_l * light[k, c]
