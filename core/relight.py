@@ -263,8 +263,9 @@ def lit_colors(
     if visible is None:
         options = dict(shadow_resolution=shadow_resolution, threads=threads, progress=progress, shapes=shapes)
         options.update(meshes=meshes, blockers=blockers, mesh_blockers=mesh_blockers)
-        if kept is None and shown is not None:
-            visible = visibilities(cloud, lights, world, camera=camera, shown=shown, **options)
+        if kept is None and shown is not None:  # for this picture alone (an eye's position: no facing test)
+            picture = camera if isinstance(camera, Camera) else None
+            visible = visibilities(cloud, lights, world, camera=picture, shown=shown, **options)
         else:
             visible = (kept or visibilities)(cloud, lights, world, **options)
     receivers = linked_masks(receivers, len(cloud))
