@@ -696,19 +696,10 @@ def _light_size(light):
     return float(getattr(light, "radius", 0.0))
 
 
-def _bounding_radius(light):
-    """The radius (m) of a sphere about the light's position holding all of its emitting area (for
-    the sun, the sine of its half angle): a surface whose plane passes farther behind sees none."""
-    if light.kind == "sun":
-        return math.sin(0.5 * float(getattr(light, "angle", 0.0)))
-    if light.kind == "area":
-        return 0.5 * math.hypot(*light.extent)
-    return float(getattr(light, "radius", 0.0))
-
-
 def _facing(cloud, light, eye):
     """(N,) bool: the splats whose seen side from the camera `eye` (the material normal turned to
-    it, as core.shading's two-sided shading turns it) faces some of the light (_bounding_radius);
+    it, as core.shading's two-sided shading turns it) faces some of the light (its extent,
+    _light_source's size: a surface whose plane passes farther behind its centre sees none of it);
     False where a normal is not finite. The cloud must have normals."""
     points = cloud.positions.astype(np.float64)
     normals = material.normals(cloud)
@@ -716,18 +707,17 @@ def _facing(cloud, light, eye):
     seen = np.where(np.einsum("ni,ni->n", normals, toward_eye) < 0.0, -1.0, 1.0)
     toward_light = -unit(light.direction)[None] if light.kind == "sun" else light.position - points
     with np.errstate(invalid="ignore"):
-        return seen * np.einsum("ni,ni->n", normals, toward_light) > -_bounding_radius(light)
+        return seen * np.einsum("ni,ni->n", normals, toward_light) > -_light_source(light)[1]
 
 
 def _eye_terms(eye, light):
     """_facing's terms as _visibility_loop reads them (for a cloud with normals): 1 (0 without an
-    eye: every splat tested),
-    the eye's centre (or the direction to it, orthographic), 1 for orthographic, the light's
-    _bounding_radius."""
+    eye: every splat tested), the eye's centre (or the direction to it, orthographic), 1 for
+    orthographic, the light's extent (_light_source's size)."""
     if eye is None:
         return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     ortho = eye.is_orthographic
-    return (1.0, *(-eye.forward if ortho else eye.center), float(ortho), _bounding_radius(light))
+    return (1.0, *(-eye.forward if ortho else eye.center), float(ortho), _light_source(light)[1])
 
 
 def _facing_one(positions, nx, ny, nz, source, sun, params, i):
