@@ -409,18 +409,24 @@ def world_row(scene, cloud, cams, folder, samples, unlit_seconds):
         start = time.perf_counter()
         ambient.world_visibility(cloud)
         seconds.append(time.perf_counter() - start)
+    case = f"{scene.name}: the world alone (grey {WORLD_ALONE[0]:g}, no light)"
+    return _world_row(case, "world", seconds, unlit_seconds, cams, ref, occluded, open_world)
+
+
+def _world_row(case, light, seconds, unlit_seconds, cams, ref, occluded, open_world):
+    """A row of the world's light alone: `case`, occluded from core.ambient's default directions
+    (its dB by distance), the `light`'s unoccluded dB and both mean errors against Cycles' `ref`."""
     error = psnr_by_distance([display(f.color) for f in occluded], cams, ref)
     error["worst dB"] = min(error.values())
     unoccluded = psnr_by_distance([display(f.color) for f in open_world], cams, ref)
     return Row(
         TOPIC,
-        f"{scene.name}: the world alone (grey {WORLD_ALONE[0]:g}, no light), occluded from "
-        f"{ambient.DIRECTIONS} directions",
+        f"{case}, occluded from {ambient.DIRECTIONS} directions",
         _timing(seconds),
         _timing(unlit_seconds),
         error=error,
         extra={
-            "world unoccluded dB 0.5x / 1x / 3x": _triple(unoccluded),
+            f"{light} unoccluded dB 0.5x / 1x / 3x": _triple(unoccluded),
             "mean error, occluded / unoccluded": " / ".join(
                 f"{_mean_error(frames, ref):+.4f}" for frames in (occluded, open_world)
             ),
@@ -463,23 +469,8 @@ def environment_row(scene, cloud, cams, folder, samples, unlit_seconds, name):
     open_world, _ = lit_frames(cloud, cameras, suns, passes=False, occluded=False, environment=coefficients)
     timed = [cam for d, cam in cams if d == 1.0]
     _, seconds = lit_frames(cloud, timed, suns, passes=False, environment=coefficients)
-    error = psnr_by_distance([display(f.color) for f in occluded], cams, ref)
-    error["worst dB"] = min(error.values())
-    unoccluded = psnr_by_distance([display(f.color) for f in open_world], cams, ref)
-    return Row(
-        TOPIC,
-        f"{scene.name}: an environment map ({name}{', its sun a light' if sun else ''}, no light), occluded "
-        f"from {ambient.DIRECTIONS} directions",
-        _timing(seconds),
-        _timing(unlit_seconds),
-        error=error,
-        extra={
-            "environment unoccluded dB 0.5x / 1x / 3x": _triple(unoccluded),
-            "mean error, occluded / unoccluded": " / ".join(
-                f"{_mean_error(frames, ref):+.4f}" for frames in (occluded, open_world)
-            ),
-        },
-    )
+    case = f"{scene.name}: an environment map ({name}{', its sun a light' if sun else ''}, no light)"
+    return _world_row(case, "environment", seconds, unlit_seconds, cams, ref, occluded, open_world)
 
 
 def _mean_error(frames, references) -> float:

@@ -65,6 +65,13 @@ def plane_points(size, ortho_scale):
     return np.stack([x.ravel(), y.ravel(), np.zeros(size * size)], axis=1)
 
 
+def two_renders(images):
+    """(the mean of a step's two renders (seeds 0 and 1), and per pixel |a - b| / 2: |a - b| / sqrt(2)
+    estimates one render's noise, / sqrt(2) again the mean's)."""
+    first, second = images["first"].astype(np.float64), images["second"].astype(np.float64)
+    return 0.5 * (first + second), np.abs(first - second) / 2.0
+
+
 def compare(blender, name):
     rec = blender.step(name)
     light = light_from_record(rec["light"])
@@ -72,10 +79,7 @@ def compare(blender, name):
     points = plane_points(size, rec["ortho_scale"])
     normals = np.broadcast_to([0.0, 0.0, 1.0], points.shape)
     predicted = (rec["albedo"] / math.pi * irradiance(light, points, normals)).reshape(size, size, 3)
-    images = blender.npz(name)
-    first, second = images["first"].astype(np.float64), images["second"].astype(np.float64)
-    rendered = 0.5 * (first + second)
-    sigma = np.abs(first - second) / 2.0  # per pixel: |a - b| / sqrt(2) estimates one render's, / sqrt(2) again
+    rendered, sigma = two_renders(blender.npz(name))
     return predicted, rendered, sigma
 
 
@@ -232,6 +236,30 @@ def test_a_narrow_spreads_shadow_falls_along_its_axis_as_in_cycles(blender, monk
     assert (np.abs(ours - rendered) - 5 * sigma).max() < 0.13 * peak
 
 
+def ball_normals(rec):
+    """(inside (H,W) bool, normals (M,3)): the pixels of tests/workers/lights.py's ball (radius 1 at
+    the origin, seen along +Y by the orthographic camera, +Z up, row 0 at the top) clear of its
+    outline's partly covered ones, and the ball's normal seen at each."""
+    size, half = rec["size"], 0.5 * rec["ortho_scale"]
+    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half
+    z, x = np.meshgrid(-centres, centres, indexing="ij")
+    inside = x * x + z * z < 0.95**2
+    return inside, np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
+
+
+def map_light(albedo, pixels, normals):
+    """(albedo x (the map's bands + its sun on a Lambertian surface) at `normals`, the sun or None):
+    core.environment.light_of's prediction of a white diffuse ball under the map `pixels`."""
+    from splatwright.core import environment
+    from splatwright.core.lights import irradiance
+
+    coefficients, sun = environment.light_of(pixels)
+    lit = environment.diffuse(coefficients, normals)
+    if sun is not None:
+        lit = lit + irradiance(sun, np.zeros_like(normals), normals) / math.pi
+    return albedo * lit, sun
+
+
 @pytest.mark.parametrize("turned", [False, True])
 def test_cycles_lights_a_ball_by_the_environment_maps_bands(blender, turned):
     """A white diffuse ball alone under an equirectangular map whose radiance is of bands 0-2 (its
@@ -247,14 +275,8 @@ def test_cycles_lights_a_ball_by_the_environment_maps_bands(blender, turned):
     from splatwright.core import environment
 
     rec = blender.step("environment")
-    images = blender.npz("environment_turned" if turned else "environment")
-    first, second = images["first"].astype(np.float64), images["second"].astype(np.float64)
-    rendered, sigma = 0.5 * (first + second), np.abs(first - second) / 2.0
-    size, half = rec["size"], 0.5 * rec["ortho_scale"]
-    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half  # the camera looks along +Y, +Z up
-    z, x = np.meshgrid(-centres, centres, indexing="ij")  # row 0 at the top
-    inside = x * x + z * z < 0.95**2  # clear of the outline's partly covered pixels
-    normals = np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
+    rendered, sigma = two_renders(blender.npz("environment_turned" if turned else "environment"))
+    inside, normals = ball_normals(rec)
     coefficients = environment.from_equirect(blender.npz("environment")["map"])
     turn = euler_xyz(np.array(ENVIRONMENT_TURN)) if turned else np.eye(3)
 
@@ -285,21 +307,14 @@ def test_cycles_lights_a_ball_by_a_maps_sun_as_by_a_sun_light_and_the_rest_by_it
     from workers.lights import SUN_IN_MAP
 
     from splatwright.core import environment
-    from splatwright.core.lights import irradiance
 
     rec = blender.step("environment")
     images = blender.npz("environment_sun")
-    first, second = images["first"].astype(np.float64), images["second"].astype(np.float64)
-    rendered, sigma = 0.5 * (first + second), np.abs(first - second) / 2.0
-    size, half = rec["size"], 0.5 * rec["ortho_scale"]
-    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half
-    z, x = np.meshgrid(-centres, centres, indexing="ij")
-    inside = x * x + z * z < 0.95**2
-    normals = np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
-    coefficients, sun = environment.light_of(images["map"])
+    rendered, sigma = two_renders(images)
+    inside, normals = ball_normals(rec)
+    ours, sun = map_light(rec["albedo"], images["map"], normals)
     assert sun is not None and abs(sun.power * sun.color.mean() - SUN_IN_MAP["irradiance"]) < 0.1
-    lit = environment.diffuse(coefficients, normals) + irradiance(sun, np.zeros_like(normals), normals) / math.pi
-    ours, seen = rec["albedo"] * lit, rendered[inside]
+    seen = rendered[inside]
     mean_error = np.abs(seen.sum(axis=0) / ours.sum(axis=0) - 1.0).max()
     worst = (np.abs(seen - ours) - 5.0 * sigma[inside]).max() / ours.max()
     # measured in all six Blenders: 0.02-0.06% of the sum, the worst pixel beyond 5 sigma 1.0-1.8% of the
@@ -318,23 +333,14 @@ def test_cycles_lights_a_ball_by_blenders_own_world_hdris_as_their_bands_and_sun
     from workers.lights import STUDIO_WORLDS
 
     from splatwright.core import environment
-    from splatwright.core.lights import irradiance
 
     rec = blender.step("studio_worlds")
-    size, half = rec["size"], 0.5 * rec["ortho_scale"]
-    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half
-    z, x = np.meshgrid(-centres, centres, indexing="ij")
-    inside = x * x + z * z < 0.95**2
-    normals = np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
+    inside, normals = ball_normals(rec)
     found = {}
     for name in STUDIO_WORLDS:
         images = blender.npz(f"studio_{name}")
-        seen = 0.5 * (images["first"] + images["second"]).astype(np.float64)[inside]
-        coefficients, sun = environment.light_of(images["map"])
-        lit = environment.diffuse(coefficients, normals)
-        if sun is not None:
-            lit = lit + irradiance(sun, np.zeros_like(normals), normals) / math.pi
-        ours = rec["albedo"] * lit
+        seen = two_renders(images)[0][inside]
+        ours, sun = map_light(rec["albedo"], images["map"], normals)
         mean_error = np.abs(seen.sum(axis=0) / ours.sum(axis=0) - 1.0).max()
         worst = np.abs(seen - ours).max() / ours.max()
         bands = rec["albedo"] * environment.diffuse(environment.from_equirect(images["map"]), normals)

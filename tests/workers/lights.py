@@ -287,14 +287,11 @@ class Worker(BlenderWorker):
         record = {"light": self.record(obj), "albedo": ALBEDO, "size": SIZE, "ortho_scale": ORTHO_SCALE}
         return {**record, "occluder": {"vertices": corners, "faces": faces}}
 
-    def environment(self):
-        """A white diffuse ball (radius 1, smooth) alone under an equirectangular Environment Texture
-        of ENVIRONMENT's map, seen along +Y by the orthographic camera: the map's pixels and two
-        renders, then two with the map looked up through a Mapping node (ENVIRONMENT_TURN), then two
-        of the map with a sun in it (SUN_IN_MAP)."""
+    def ball_scene(self):
+        """scene()'s settings and material with a white diffuse ball (radius 1, smooth) in place of the
+        plane, seen along +Y by the orthographic camera (BALL_ORTHO_SCALE): the ball."""
         bpy = self.bpy
         self.scene()
-        scene = bpy.context.scene
         plane = bpy.context.active_object
         material = plane.data.materials[0]
         bpy.data.objects.remove(plane)
@@ -302,9 +299,19 @@ class Worker(BlenderWorker):
         ball = bpy.context.active_object
         ball.data.materials.append(material)
         bpy.ops.object.shade_smooth()
-        cam = scene.camera
+        cam = bpy.context.scene.camera
         cam.location, cam.rotation_euler = (0.0, -10.0, 0.0), (math.pi / 2, 0.0, 0.0)
         cam.data.ortho_scale = BALL_ORTHO_SCALE
+        return ball
+
+    def environment(self):
+        """A white diffuse ball (radius 1, smooth) alone under an equirectangular Environment Texture
+        of ENVIRONMENT's map, seen along +Y by the orthographic camera: the map's pixels and two
+        renders, then two with the map looked up through a Mapping node (ENVIRONMENT_TURN), then two
+        of the map with a sun in it (SUN_IN_MAP)."""
+        bpy = self.bpy
+        ball = self.ball_scene()
+        scene = bpy.context.scene
         pixels = environment_pixels()
         texture, image = self.world_map(pixels, "Environment")
         tree = scene.world.node_tree
@@ -333,25 +340,15 @@ class Worker(BlenderWorker):
         self.save("environment", first=images[0], second=images[1], map=pixels[..., :3])
         self.save("environment_turned", first=images[2], second=images[3])
         self.save("environment_sun", first=images[4], second=images[5], map=sunny[..., :3])
-        camera = [list(row) for row in cam.matrix_world]
+        camera = [list(row) for row in scene.camera.matrix_world]
         return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE, "camera": camera}
 
     def studio_worlds(self):
         """environment's ball under each of Blender's own world HDRIs of STUDIO_WORLDS, as Blender
         reads the file: each map's pixels and two renders."""
         bpy = self.bpy
-        self.scene()
+        ball = self.ball_scene()
         scene = bpy.context.scene
-        plane = bpy.context.active_object
-        material = plane.data.materials[0]
-        bpy.data.objects.remove(plane)
-        bpy.ops.mesh.primitive_uv_sphere_add(segments=192, ring_count=96, radius=1.0, location=(0.0, 0.0, 0.0))
-        ball = bpy.context.active_object
-        ball.data.materials.append(material)
-        bpy.ops.object.shade_smooth()
-        cam = scene.camera
-        cam.location, cam.rotation_euler = (0.0, -10.0, 0.0), (math.pi / 2, 0.0, 0.0)
-        cam.data.ortho_scale = BALL_ORTHO_SCALE
         folder = bpy.utils.system_resource("DATAFILES", path="studiolights/world")
         tree = scene.world.node_tree
         background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
