@@ -241,18 +241,17 @@ _MAPS: dict = {}
 
 
 def _equirect_map(image, width, height, space):
-    """environment_map of `image`'s pixels, or None where they would not fit the memory budget (the
-    pixels, and their linear copy for an sRGB image)."""
+    """environment_map of `image`'s pixels, or None where they would not fit the memory budget."""
     from ...core.memory import default_budget
 
-    copies = 2 if space == "sRGB" else 1
-    if width * height * image.channels * 4 * copies > default_budget():
+    if width * height * image.channels * 4 > default_budget():
         return None
     pixels = np.empty(width * height * image.channels, np.float32)
     image.pixels.foreach_get(pixels)  # rows from the bottom (latitude -90 degrees) up
     rows = pixels.reshape(height, width, image.channels)[..., :3]
-    if space == "sRGB":
-        rows = srgb_to_linear(rows, np.float32)
+    if space == "sRGB":  # decoded in place, band by band: no second copy of the map
+        for lo in range(0, height, environment.ROWS):
+            rows[lo : lo + environment.ROWS] = srgb_to_linear(rows[lo : lo + environment.ROWS], np.float32)
     return environment.light_of(rows)
 
 
