@@ -75,11 +75,11 @@ def loaded(name):
     return name in _modules or not enabled()
 
 
-def compiled(module_name, names):
+def compiled(module_name, names, fast=False):
     """The functions `names` of the loaded module `module_name` compiled in order with njit, each
     rebound in its module (a later one may call an earlier one: numba resolves it as a global), and
     the last returned; None when numba cannot be loaded or kernels are turned off. For kernels that
-    live beside their NumPy path; compiled once per process, on first use."""
+    live beside their NumPy path; compiled once per process, on first use. fast: njit's `fast`."""
     key = f"{module_name}:{names[-1]}"
     if key in _modules:  # the hot path (forward kinematics of one configuration):
         return _modules[key]  # no environment lookup once a kernel is in use
@@ -93,7 +93,7 @@ def compiled(module_name, names):
                 for name in names:
                     function = getattr(module, name)
                     if not hasattr(function, "py_func"):  # not compiled by an earlier kernel
-                        setattr(module, name, njit(function))
+                        setattr(module, name, njit(function, fast=fast))
                 _modules[key] = getattr(module, names[-1])
             except Exception as exc:  # any failure to load or compile means: use NumPy
                 _modules[key], _reasons[key] = None, f"{type(exc).__name__}: {exc}"
@@ -109,15 +109,22 @@ def status(name):
     return "compiled" if _modules[name] is not None else f"unavailable ({_reasons[name]})"
 
 
-def njit(fn=None, *, contract=False):
+FAST = {"contract", "arcp", "nsz", "afn"}  # no flag that assumes finite numbers: NaN and inf still flow
+
+
+def njit(fn=None, *, contract=False, fast=False):
     """numba.njit for our kernels: no GIL (they run on core.parallel's threads), cached on disk.
     contract=True lets the compiler fuse a * b + c into one FMA instruction (a rounding less, so
-    results may differ from NumPy's in the last bit): `@njit(contract=True)`."""
+    results may differ from NumPy's in the last bit): `@njit(contract=True)`. fast=True adds FAST:
+    a division may become a multiplication by a reciprocal kept for several, and library functions
+    their faster forms (results within a few units in the last place of NumPy's; the shading loop's
+    divisions and square roots per light sample: 8-10% of its time)."""
     if fn is None:
-        return lambda f: njit(f, contract=contract)
+        return lambda f: njit(f, contract=contract, fast=fast)
     import numba
 
-    options = {"nogil": True, "error_model": "numpy", **({"fastmath": {"contract"}} if contract else {})}
+    flags = FAST if fast else {"contract"} if contract else set()
+    options = {"nogil": True, "error_model": "numpy", **({"fastmath": flags} if flags else {})}
     try:
         return numba.njit(cache=True, **options)(fn)
     except RuntimeError:  # no writable cache folder anywhere: compile in every process

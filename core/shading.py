@@ -603,7 +603,7 @@ def _shade_kernel():
         return None
     if jit.compiled(environment.__name__, environment.KERNEL) is None:  # and the environment's
         return None
-    return jit.compiled(__name__, SHADE_KERNEL)
+    return jit.compiled(__name__, SHADE_KERNEL, fast=True)
 
 
 def _tan2(cos_t):
