@@ -278,10 +278,11 @@ def lit_colors(
     )
 
 
-def may_show(cloud: SplatCloud, camera: Camera) -> Annotated[np.ndarray, "(N,)"]:
+def may_show(cloud: SplatCloud, camera: Camera, shapes: Shapes | None = None) -> Annotated[np.ndarray, "(N,)"]:
     """(N,) bool: a superset of the splats core.render draws of `cloud` through `camera`
-    (core.shadow_cameras.may_show): a picture needs the light of no others."""
-    reach, _ = shadow_cameras.reach_and_gap(cloud, None)
+    (core.shadow_cameras.may_show): a picture needs the light of no others. shapes: the cloud's
+    core.render.Shapes, when the caller has them."""
+    reach, _ = shadow_cameras.reach_and_gap(cloud, None, shapes)
     return shadow_cameras.may_show(camera, cloud.positions, reach)
 
 
@@ -351,7 +352,7 @@ def render_lit(
     t0 = time.perf_counter()
     # The splats' shapes, made once for the shadow maps and the picture (the lit copy keeps them).
     shapes = Shapes(cloud, threads)
-    shown = may_show(cloud, camera) if isinstance(camera, Camera) else None
+    shown = may_show(cloud, camera, shapes) if isinstance(camera, Camera) else None
     rows, shading = lit_colors(
         cloud,
         camera,

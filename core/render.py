@@ -351,7 +351,8 @@ def _check_kernels(kernels):
     )
     camera = Camera.look_at((0.4, 0.3, 0.0), (0, 0, 3), fov_deg=50, width=24, height=20)
     gather = rng.normal(size=(camera.height, camera.width, 2)).astype(np.float32)
-    shapes = SimpleNamespace(values=_shape_values(kernels, cloud, Pool(1)))  # Shapes, without loading kernels
+    values, widest = _shape_values(kernels, cloud, Pool(1))
+    shapes = SimpleNamespace(values=values, widest=widest)  # Shapes, without loading kernels
     for mode in MODES:
         args = (cloud, camera, np.zeros(3), (0, 0, 0), mode, True, True, 8, 32, T_MIN, None, np.float32, 1, None)
         for layer in (None, _check_layer(camera)):
@@ -520,7 +521,9 @@ class Shapes:
     times its scales) and opacity, in float64 (80 bytes a splat). Renders of the same splats from
     many cameras (a refinement's measures, a bake's fit) pass one to render(): the projection
     kernel then runs about 40% faster (the Franka hand's 497k splats on one core: 33 ms a view
-    instead of 55, plus 18 ms once for these), a whole 256 px render about 10%.
+    instead of 55, plus 18 ms once for these), a whole 256 px render about 10%. Beside them, each
+    splat's widest scale (`widest`, (n,) float64), which a light's maps and a picture's culling
+    take their splats' reach from (core.shadow_cameras.reach_and_gap).
 
     It holds the arrays it was made from, and render() takes it only with a cloud holding those
     very arrays (positions and colours may be others: a shifted or recoloured copy). Arrays changed
@@ -533,7 +536,7 @@ class Shapes:
         self.sources = tuple(getattr(cloud, name) for name in self.FIELDS)
         kernels = jit.load(KERNELS, check=_check_kernels)
         with Pool(threads) as pool:
-            self.values = None if kernels is None else _shape_values(kernels, cloud, pool)
+            self.values, self.widest = (None, None) if kernels is None else _shape_values(kernels, cloud, pool)
 
     def fits(self, cloud):
         """Whether `cloud` holds the arrays these were made from."""
@@ -541,15 +544,15 @@ class Shapes:
 
 
 def _shape_values(kernels, cloud, pool):
-    """Shapes' (n, 10) values of `cloud`, chunk by chunk on every core."""
+    """Shapes' (n, 10) values and (n,) widest scales of `cloud`, chunk by chunk on every core."""
     n = len(cloud)
     fields = [np.ascontiguousarray(getattr(cloud, name), dtype=np.float32) for name in Shapes.FIELDS]
-    values = scratch.empty((n, 10))
+    values, widest = scratch.empty((n, 10)), scratch.empty(n)
     pool.map(
-        lambda lo: kernels.shape_range(*fields, EVERY, lo, min(lo + PROJECT_CHUNK, n), values, 0),
+        lambda lo: kernels.shape_range(*fields, EVERY, lo, min(lo + PROJECT_CHUNK, n), values, 0, widest),
         list(range(0, n, PROJECT_CHUNK)),
     )
-    return values
+    return values, widest
 
 
 def _project_compiled(kernels, cloud, camera, mode, max_sigma, pool, shapes=None, rows=None):

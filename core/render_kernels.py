@@ -53,15 +53,19 @@ def band4_color(x, y, z, c):
 
 
 @njit
-def shape_range(rotations, log_scales, logits, rows, lo, hi, out, base):
+def shape_range(rotations, log_scales, logits, rows, lo, hi, out, base, widest):
     """Rows t - base of out (n, 10) for t in lo..hi-1, of splats rows[t] (of splat t where rows is
     empty): what projecting them needs that no camera changes, in float64. out[:, :9] is R S row by
     row, the rotation (the normalised quaternion; zero or non-finite norms: the identity) times the
-    scales, out[:, 9] the opacity, NaN where the rotation, scales or logit is not finite."""
+    scales, out[:, 9] the opacity, NaN where the rotation, scales or logit is not finite. widest
+    (n,), unless empty: the splat's widest scale, exp of its largest log-scale (as
+    core.shadow_cameras.reach_and_gap takes it)."""
     every = rows.shape[0] == 0
     for t in range(lo, hi):
         i = t if every else rows[t]
         row = t - base
+        if widest.shape[0]:
+            widest[row] = math.exp(np.float64(max(max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])))
         finite = np.isfinite(logits[i])
         for j in range(3):
             finite &= np.isfinite(log_scales[i, j])
@@ -142,10 +146,11 @@ def project_range(
     own = shapes.shape[0] == 0
     every = rows.shape[0] == 0
     rs = np.empty((SHAPE_PIECE, 10)) if own else shapes  # R S and opacity: of the piece's t - start, or of splat i
+    no_widest = np.empty(0)
     for start in range(lo, hi, SHAPE_PIECE):
         stop = min(start + SHAPE_PIECE, hi)
         if own:
-            shape_range(rotations, log_scales, logits, rows, start, stop, rs, start)
+            shape_range(rotations, log_scales, logits, rows, start, stop, rs, start, no_widest)
         for t in range(start, stop):
             i = t if every else rows[t]
             s = t - start if own else i

@@ -27,18 +27,20 @@ SHOWN_SIGMAS = math.sqrt(2.0 * math.log(255.0))  # the render's reach of a splat
 SHOWN_PAD = 4.0  # pixels: the low-pass's 1.83 and the box's rounding
 
 
-def reach_and_gap(cloud, source):
+def reach_and_gap(cloud, source, shapes=None):
     """((N,) float64 three standard deviations of each splat's widest axis, (N,) float64 each splat's
     centre's distance to `source` (3,) less that reach, or None without a source), by the compiled
     kernel in one pass where it loads (exp is monotonic: the widest log-scale's exp is the widest
-    scale)."""
+    scale), the widest scales read from `shapes` (core.render.Shapes of the cloud) when given."""
     n = len(cloud)
     kernel = jit.compiled(__name__, ("_reach_loop",))
     if kernel is not None:
+        given = shapes is not None and shapes.widest is not None and shapes.fits(cloud)
         reach, gap = scratch.empty(n), scratch.empty(n if source is not None else 0)
         fields = [np.ascontiguousarray(a, np.float32) for a in (cloud.positions, cloud.log_scales)]
+        widest = shapes.widest if given else np.zeros(0)
         origin = np.zeros(3) if source is None else source
-        in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, origin, reach, gap))
+        in_chunks(n, lambda lo, hi: kernel(lo, hi, *fields, widest, origin, reach, gap))
         return reach, (gap if source is not None else None)
     log_scales = cloud.log_scales  # column by column: a reduction along rows of three is slow
     widest = np.maximum(np.maximum(log_scales[:, 0], log_scales[:, 1]), log_scales[:, 2])
@@ -50,11 +52,16 @@ def reach_and_gap(cloud, source):
     return reach, np.sqrt(np.einsum("ij,ij->i", rel, rel)) - reach
 
 
-def _reach_loop(lo, hi, positions, log_scales, source, reach, gap):
-    """reach_and_gap for splats lo..hi (gap only when it has room for them)."""
+def _reach_loop(lo, hi, positions, log_scales, widest, source, reach, gap):
+    """reach_and_gap for splats lo..hi (from their widest scales where that is not empty; gap only
+    when it has room for them)."""
+    given = widest.shape[0] > 0
     for i in range(lo, hi):
-        widest = max(max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
-        reach[i] = 3.0 * math.exp(np.float64(widest))  # inf past float64's range, as NumPy's exp
+        if given:
+            reach[i] = 3.0 * widest[i]
+        else:
+            largest = max(max(log_scales[i, 0], log_scales[i, 1]), log_scales[i, 2])
+            reach[i] = 3.0 * math.exp(np.float64(largest))  # inf past float64's range, as NumPy's exp
         if gap.shape[0]:
             dx, dy = positions[i, 0] - source[0], positions[i, 1] - source[1]
             dz = positions[i, 2] - source[2]

@@ -242,7 +242,9 @@ def shadow_views(
     shadow only beyond that plane (a Spread's sun part: nothing behind the panel reaches what it
     lights; its splats there are left out by `blocking`)."""
     position = None if light.kind == "sun" else np.asarray(light.position, np.float64)
-    reach, gap = shadow_cameras.reach_and_gap(cloud, position)
+    if shapes is None or not shapes.fits(cloud):
+        shapes = Shapes(cloud, threads)
+    reach, gap = shadow_cameras.reach_and_gap(cloud, position, shapes)
     meshes = list(occluders or [])
     cameras = shadow_cameras.light_cameras(light, cloud.positions, reach, gap, meshes, int(resolution))
     masks = shadow_cameras.near_masks(cameras, cloud.positions, reach)
@@ -261,8 +263,6 @@ def shadow_views(
     masks &= casters
     if blocking is not None:
         masks &= _blocking(blocking, len(cloud))
-    if shapes is None or not shapes.fits(bare):
-        shapes = Shapes(bare, threads)
     # Maps that split evenly over the cores render side by side, one core each (_side_by_side), and
     # report as each comes in; else one after another on every core, each reporting its tiles. The
     # calling thread reports, and a cancel there stops the maps not yet begun.

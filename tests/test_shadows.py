@@ -12,7 +12,7 @@ from splatwright.core import material, shadow_cameras, shadows
 from splatwright.core.camera import Camera
 from splatwright.core.lights import Light
 from splatwright.core.mesh import Surface
-from splatwright.core.render import render
+from splatwright.core.render import Shapes, render
 from splatwright.core.splats import SplatCloud
 
 CENTRE, RADIUS = np.array([0.0, 0.0, 0.8]), 0.3
@@ -329,6 +329,8 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     source = None if light.kind == "sun" else light.position
     compiled = shadows._extent_and_slope(cloud, light)
     reach, gap = shadow_cameras.reach_and_gap(cloud, source)
+    shapes = Shapes(cloud)  # their widest scales, made with the projection's shapes: the same reach
+    np.testing.assert_array_equal(shadow_cameras.reach_and_gap(cloud, source, shapes)[0], reach)
     frame = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))[0]  # any rotation
     bounds = shadow_cameras.bounds_in(frame, cloud.positions, reach)
     views = shadows.shadow_views(cloud, light, resolution=128)
@@ -355,6 +357,7 @@ def test_compiled_light_rays_and_masks_match_the_numpy_path(scene, monkeypatch, 
     assert (gap is None) == (source is None)
     if gap is not None:
         np.testing.assert_allclose(gap, want_gap, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(shadow_cameras.reach_and_gap(cloud, source, shapes)[1], gap, rtol=1e-15)
     want_masks = shadow_cameras.near_masks(cameras, cloud.positions, want_reach)
     assert np.array_equal(masks, want_masks)
     assert np.array_equal(casters, shadows._casters(cloud, light, cameras, want_masks, want_reach))
