@@ -149,6 +149,17 @@ class Camera:
         p = np.asarray(points, dtype=np.float64) - self.center
         return p @ self.rotation.T
 
+    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(unit world directions (H,W,3) through the pixels' centres, each pixel's solid angle (H,W))
+        of a perspective camera: what a picture of a distant light (a sky, a sun) sums over."""
+        if self.is_orthographic:
+            raise ValueError("pixel_rays: an orthographic camera's pixels span no solid angle")
+        x = (np.arange(self.width) + 0.5 - self.cx) / self.fx
+        y = (np.arange(self.height) + 0.5 - self.cy) / self.fy
+        along = np.stack(np.broadcast_arrays(x[None, :], y[:, None], 1.0), axis=-1)  # camera space, z = 1
+        length = np.linalg.norm(along, axis=-1)
+        return (along / length[..., None]) @ self.rotation, 1.0 / (self.fx * self.fy * length**3)
+
     def project(self, points):
         """World points (N,3) -> (pixel coordinates (N,2) in x right / y down, camera depth z (N,)).
 

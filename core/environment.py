@@ -143,18 +143,49 @@ def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] |
     weights = np.broadcast_to(share[near, None], apart.shape)
     sky = (weights[ring, None] * pixels[ring]).sum(axis=0) / max(weights[ring].sum(), 1e-300)
     excess = np.maximum(pixels[sun] - sky, 0.0) * weights[sun, None]  # (P, 3) radiance x solid angle
-    irradiance = excess.sum(axis=0)
-    if not float(irradiance @ LUMINANCE) >= SUN_SHARE * math.pi * mean:  # a glint, or no excess at all
+    if not float(excess.sum(axis=0) @ LUMINANCE) >= SUN_SHARE * math.pi * mean:  # a glint, or no excess at all
         return None
+    row_index, column_index = np.nonzero(sun)
+    patch = Patch(near[row_index], column_index, np.broadcast_to(sky, (len(row_index), 3)))
+    return _sun_light(excess, band[sun]), patch
+
+
+def _sun_light(excess: Annotated[np.ndarray, "(P, 3)"], directions: Annotated[np.ndarray, "(P, 3)"]) -> Light:
+    """The sun light of pixels looking along `directions` whose radiance over the sky behind them,
+    times their solid angles, is `excess`: its irradiance on a surface facing it their sum, its
+    direction their mean weighed by their luminance, its diameter that of a uniform disc of the same
+    angular spread."""
+    irradiance = excess.sum(axis=0)
     strength = excess @ LUMINANCE
-    direction = strength @ band[sun]
+    direction = strength @ directions
     direction /= np.linalg.norm(direction)
-    spread = np.arccos(np.clip(band[sun] @ direction, -1.0, 1.0))
+    spread = np.arccos(np.clip(directions @ direction, -1.0, 1.0))
     radius = math.sqrt(2.0 * float(strength @ spread**2) / float(strength.sum()))  # a uniform disc's mean is r^2 / 2
     power = float(irradiance.max())
-    light = Light("sun", color=irradiance / power, power=power, direction=-direction, angle=2.0 * radius)
-    row_index, column_index = np.nonzero(sun)
-    return light, Patch(near[row_index], column_index, np.broadcast_to(sky, (len(row_index), 3)))
+    return Light("sun", color=irradiance / power, power=power, direction=-direction, angle=2.0 * radius)
+
+
+def peak_direction(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> Annotated[np.ndarray, "(3,)"]:
+    """The direction of an equirectangular map's brightest pixel (by luminance; read as from_equirect
+    reads the map): where a close view finds a sun too small for the map's pixels (sun_in_view)."""
+    height, width = rows.shape[:2]
+    luminance = np.asarray(rows[..., :3], np.float32) @ LUMINANCE
+    return _pixel_direction(*divmod(int(np.argmax(luminance)), width), height, width)
+
+
+def sun_in_view(
+    excess: Annotated[np.ndarray, "(H, W, C>=3)"], directions: Annotated[np.ndarray, "(H, W, 3)"], solid_angles
+) -> Light | None:
+    """The sun a close view shows as `excess` radiance over the sky behind it (a picture of the sun
+    less the same picture without it), its pixels looking along `directions` and spanning
+    `solid_angles` (H, W) (core.camera.Camera.pixel_rays), or None where it shows none: a sun disc a
+    map's pixels are too coarse to measure (a sky's half-degree sun in a 128-pixel map takes a
+    fraction of one, and a few samples a pixel measure its light to tens of percent)."""
+    radiance = np.maximum(np.asarray(excess, np.float64)[..., :3], 0.0)
+    bright = radiance @ LUMINANCE > 0.0
+    if not bright.any():
+        return None
+    return _sun_light(radiance[bright] * np.asarray(solid_angles, np.float64)[bright, None], directions[bright])
 
 
 def _direction(latitude, longitude):

@@ -453,19 +453,45 @@ def test_a_sun_in_the_worlds_map_shadows_the_floor_as_a_sun_light(blender):
     """No light but the world, an Environment Texture of a dim sky with a sun in it: the final render's
     Shadow pass shows the relit ball's shadow on the relit floor where the closed-form shadow of the
     map's sun falls (the sun taken out of the map as a sun light of its own), and none elsewhere."""
-    from workers.relight import BALL, SUNNY_MAP
+    from workers.relight import SUNNY_MAP
 
     res = blender.step("sunny_map")
+    assert_world_sun_shadow(blender, res, "sunny_map", SUNNY_MAP["elevation"], SUNNY_MAP["azimuth"])
+
+
+def test_a_sky_textures_sun_shadows_the_floor_and_the_render_says_how_the_world_lights(blender):
+    """No light but a Sky Texture world with its sun disc (Nishita before Blender 5.0, Multiple
+    Scattering from 5.0), whose nodes no reading stands for: the final render has Cycles render the
+    world (splat_addon/render/world_panorama.py) and its Shadow pass shows the relit ball's shadow
+    on the relit floor where the closed-form shadow of the node's sun falls (its elevation; its
+    rotation turning it from +Y towards +X, as Cycles puts it: tests/test_blender_lights.py), none
+    elsewhere; the engine says once how the world lights the splats, and the Rendered viewport lights
+    them by what it read (rendering the world there would hold up every scene update)."""
+    from workers.relight import SKY_SUN
+
+    res = blender.step("sky_sun")
+    assert_world_sun_shadow(blender, res, "sky_sun", SKY_SUN["elevation"], 90.0 - SKY_SUN["rotation"])
+    said = [message for kinds, message in res["reports"] if "as Cycles renders the world" in message]
+    assert len(said) == 1 and "and its sun" in said[0], res["reports"]
+    assert res["after"]  # the Rendered viewport then lights by what the final render read, its sun included
+
+
+def assert_world_sun_shadow(blender, res, name, elevation, azimuth):
+    """The Shadow pass of step `name` (world_shadow's ball and floor) holds the ball's shadow from a
+    sun `elevation` degrees up at `azimuth` degrees from +X towards +Y, and nothing outside it."""
+    from workers.relight import BALL
+
     origin = np.array(res["origin"])
     cam = camera(res["camera"], origin)
     points, row, col = floor_samples(cam, origin)
-    elevation, azimuth = np.radians(SUNNY_MAP["elevation"]), np.radians(SUNNY_MAP["azimuth"])
+    elevation, azimuth = np.radians(elevation), np.radians(azimuth)
     towards = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
     ratio = sphere_shadow(points, -towards, BALL["centre"], BALL["radius"])
-    shadow = channels(exr(blender.out / "sunny_map.exr"), "Shadow", "X")
+    shadow = channels(exr(blender.out / f"{name}.exr"), "Shadow", "X")
     shade_in, shade_out, n_in, n_out = inside_outside(np.repeat(shadow, 3, axis=-1), row, col, ratio)
     assert n_in > 20 and n_out > 200, (n_in, n_out)
-    assert shade_in > 0.9 and shade_out < 0.02, (shade_in, shade_out)  # measured 0.9995 and 0.0025 in all six
+    # measured in all six: the map's sun 0.9995 and 0.0025, the sky's 0.9996 and 0.0025
+    assert shade_in > 0.9 and shade_out < 0.02, (shade_in, shade_out)
 
 
 def test_a_world_driven_by_nodes_lights_by_what_stands_for_it_and_says_so(blender):

@@ -10,6 +10,7 @@ import pytest
 from environment_reference import directions, irradiance, sunny_sky
 
 from splatwright.core import environment, sh
+from splatwright.core.camera import Camera
 from splatwright.core.lights import World
 
 
@@ -155,3 +156,27 @@ def test_maps_without_a_sun_keep_all_their_light_in_their_bands():
         coefficients, sun = environment.light_of(pixels)
         assert sun is None and environment.sun_of(pixels) is None
         np.testing.assert_array_equal(coefficients, environment.from_equirect(pixels))
+
+
+def test_a_close_view_of_a_small_sun_measures_it_as_a_sun_light():
+    """A half-degree disc of uniform radiance 40 degrees up (a sky's sun, a fraction of a map pixel),
+    seen in a 3-degree close view whose pixels each hold the disc's covered share (8 x 8 samples a
+    pixel): sun_in_view gives its irradiance, the radiance times pi r^2, its direction and its width;
+    the brightest pixel of a map holding it is its direction within a pixel; a view without it, none."""
+    radius, radiance = math.radians(0.25), np.array([5000.0, 4500.0, 4000.0])
+    towards = np.array([math.cos(math.radians(40)), 0.0, math.sin(math.radians(40))])
+    aim = towards + np.array([0.0, 0.004, -0.003])  # the view a little off the sun, as a map pixel leaves it
+    camera = Camera.look_at(np.zeros(3), aim, up=(0.0, 0.0, 1.0), fov_deg=3.0, width=96, height=96)
+    fine = camera.with_(width=768, height=768, fx=camera.fx * 8, fy=camera.fy * 8, cx=camera.cx * 8, cy=camera.cy * 8)
+    rays, _ = fine.pixel_rays()
+    covered = (rays @ towards > math.cos(radius)).reshape(96, 8, 96, 8).mean(axis=(1, 3))
+    looking, solid_angles = camera.pixel_rays()
+    sun = environment.sun_in_view(covered[..., None] * radiance, looking, solid_angles)
+    np.testing.assert_allclose(sun.power * sun.color, radiance * math.pi * radius**2, rtol=5e-3)
+    assert np.degrees(np.arccos(np.clip(-sun.direction @ towards, -1.0, 1.0))) < 0.005
+    assert abs(sun.angle / (2.0 * radius) - 1.0) < 0.03
+    assert environment.sun_in_view(np.zeros((96, 96, 3)), looking, solid_angles) is None
+    sky = np.full((64, 128, 3), 0.5)
+    d, _ = directions(64, 128)
+    sky.reshape(-1, 3)[np.argmax(d.reshape(-1, 3) @ towards)] += 100.0  # the map pixel nearest the sun
+    assert np.degrees(np.arccos(environment.peak_direction(sky) @ towards)) < 2.0  # half a 2.8-degree pixel's diagonal

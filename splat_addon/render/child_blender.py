@@ -10,7 +10,22 @@ line starting with REPLY, and ends when stdin closes:
      "autoexec": true, "environment": true, "shadow_casters": casters.npz}
 
 With "environment", the film is transparent and the Environment pass is written too: the world
-seen through each pixel, apart from the meshes. "shadow_casters" (optional) names an .npz of
+seen through each pixel, apart from the meshes. Without "out", no mesh layer is rendered.
+
+"world" (optional) renders the scene's world alone, with Cycles, in a scene of its own at the
+request's frame (world_panorama.py reads what it writes):
+
+    {"discs": [Sky Texture node names whose sun disc is on], "samples": 16,
+     "panorama": {"size": [128, 64], "out": world.exr, "lit": lit.exr or null, "lit_samples": 256}}
+    {"discs": [...], "samples": 16,
+     "view": {"size": 128, "fov": radians, "rotation": 3 x 3 camera to world, "on": on.exr, "off": off.exr}}
+
+A panorama is equirectangular as an Environment Texture lays out its image, the discs off (and on,
+into "lit", with "lit_samples" samples a pixel); a view is a square perspective picture with the
+discs on, then off. "reuse": true keeps the file the last request opened (the world scene it made
+included) instead of opening it.
+
+"shadow_casters" (optional) names an .npz of
 "vertices" (V,3) and "faces" (F,3), world space, and "groups" (F,) each face's part: the relit
 splats' stand-in mesh (core/shadow_casters.py), added visible to shadow rays only, so the meshes get
 the splats' shadows, one object per part. "caster_links" (with it) lists [blocker collection name,
@@ -27,11 +42,26 @@ REPLY = "@splatwright-mesh-layer "
 CASTERS = "Splatwright Shadow Casters"
 
 
+WORLD = "Splatwright World"  # the scene (and camera) the world is rendered alone in
+# An equirectangular camera at the origin with this rotation (XYZ Euler) writes the world in an
+# Environment Texture's layout: u = 0.5 looks along +X, 0.25 along +Y, the bottom row down.
+PANORAMA_EULER = (1.5707963267948966, 0.0, -1.5707963267948966)
+
+
 def render(request):
     import bpy
 
-    bpy.ops.wm.open_mainfile(filepath=request["blend"], load_ui=False, use_scripts=request.get("autoexec", False))
+    if not request.get("reuse"):
+        bpy.ops.wm.open_mainfile(filepath=request["blend"], load_ui=False, use_scripts=request.get("autoexec", False))
     scene = bpy.data.scenes[request["scene"]]
+    if request.get("out"):
+        render_layer(bpy, scene, request)
+    if request.get("world"):
+        render_world(bpy, scene, request["world"], (request["frame"], request["subframe"]))
+
+
+def render_layer(bpy, scene, request):
+    """The mesh layer of `scene` as the request asks (see the module notes)."""
     for name in request["hide"]:
         obj = bpy.data.objects.get(name)
         if obj is not None:
@@ -47,18 +77,94 @@ def render(request):
     settings.use_compositing = False  # the render layer itself, not what the compositor makes of it
     settings.use_sequencer = False
     settings.filepath = request["out"]
-    image = settings.image_settings
-    if hasattr(image, "media_type"):
-        image.media_type = "MULTI_LAYER_IMAGE"
-    image.file_format = "OPEN_EXR_MULTILAYER"
-    image.color_depth = "32"
-    image.exr_codec = "NONE"
+    exr_output(settings, multilayer=True)
     layer = scene.view_layers[request["view_layer"]]
     layer.use_pass_combined = layer.use_pass_z = True
     if request.get("environment"):
         settings.film_transparent = True
         layer.use_pass_environment = True
     bpy.ops.render.render(write_still=True, scene=scene.name, layer=layer.name)
+
+
+def exr_output(settings, multilayer):
+    """Uncompressed 32-bit EXR output (io/exr_plain.py reads it): multilayer, or the Combined pass
+    alone."""
+    image = settings.image_settings
+    if hasattr(image, "media_type"):
+        image.media_type = "MULTI_LAYER_IMAGE" if multilayer else "IMAGE"
+    image.file_format = "OPEN_EXR_MULTILAYER" if multilayer else "OPEN_EXR"
+    image.color_depth = "32"
+    image.exr_codec = "NONE"
+
+
+def render_world(bpy, scene, ask, frame):
+    """The world of `scene` alone at `frame` (frame, subframe), as `ask` says (see the module notes)."""
+    from mathutils import Matrix
+
+    view = bpy.data.scenes.get(WORLD) or world_scene(bpy, scene)
+    view.frame_set(frame[0], subframe=frame[1])
+    tree = view.world.node_tree
+    discs = [tree.nodes[name] for name in ask.get("discs", ()) if name in tree.nodes]
+    camera = view.camera
+    view.cycles.samples = ask["samples"]
+    if "panorama" in ask:
+        pano = ask["panorama"]
+        camera.data.type = "PANO"
+        camera.data.panorama_type = "EQUIRECTANGULAR"
+        camera.matrix_world = Matrix.Identity(4)
+        camera.rotation_euler = PANORAMA_EULER
+        if discs and pano.get("lit"):
+            view.cycles.samples = pano["lit_samples"]
+            shoot(bpy, view, pano["size"], pano["lit"], discs, True)
+            view.cycles.samples = ask["samples"]
+        shoot(bpy, view, pano["size"], pano["out"], discs, False)
+    if "view" in ask:
+        close = ask["view"]
+        camera.data.type = "PERSP"
+        camera.data.sensor_fit = "AUTO"
+        camera.data.angle = close["fov"]
+        camera.data.shift_x = camera.data.shift_y = 0.0
+        camera.matrix_world = Matrix(close["rotation"]).to_4x4()
+        size = (close["size"], close["size"])
+        shoot(bpy, view, size, close["on"], discs, True)
+        shoot(bpy, view, size, close["off"], discs, False)
+
+
+def world_scene(bpy, scene):
+    """A scene holding `scene`'s world and a camera and nothing else, set to render
+    with Cycles: the world seen by camera rays, each pixel the mean over its own area (a box
+    filter), no denoising, the same sampling seed in every render (a picture less the same one
+    with a sun left out is the sun alone)."""
+    view = bpy.data.scenes.new(WORLD)
+    view.world = scene.world
+    visibility = getattr(scene.world, "cycles_visibility", None)
+    if visibility is not None:
+        visibility.camera = True
+    settings = view.render
+    settings.engine = "CYCLES"
+    settings.film_transparent = False
+    settings.use_compositing = settings.use_sequencer = False
+    settings.resolution_percentage = 100
+    settings.pixel_aspect_x = settings.pixel_aspect_y = 1.0
+    exr_output(settings, multilayer=False)
+    view.cycles.use_denoising = False
+    view.cycles.use_adaptive_sampling = False  # every pixel all its samples: a small sun is found
+    view.cycles.pixel_filter_type = "BOX"
+    view.cycles.filter_width = 1.0
+    view.cycles.seed = 0
+    camera = bpy.data.objects.new(WORLD, bpy.data.cameras.new(WORLD))
+    view.collection.objects.link(camera)
+    view.camera = camera
+    return view
+
+
+def shoot(bpy, view, size, path, discs, on):
+    """Render `view` at `size` (width, height) into `path` with the sun `discs` on or off."""
+    for node in discs:
+        node.sun_disc = on
+    view.render.resolution_x, view.render.resolution_y = size
+    view.render.filepath = path
+    bpy.ops.render.render(write_still=True, scene=view.name)
 
 
 def add_shadow_casters(bpy, scene, path, links=()):

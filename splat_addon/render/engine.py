@@ -12,9 +12,9 @@ from ...core import scratch
 from ...core.color import linear_to_srgb
 from .. import data
 from ..data import camera as blender_camera
-from . import lights, mesh_layer, relit, viewport
+from . import lights, mesh_layer, relit, viewport, world_panorama
 from .lights import WORLD_OCCLUSION, scene_world
-from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_color
+from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_background, world_color
 
 ORIGIN_GRID = 16.0  # metres: a power of two, so the snapped origin is exact (render_origin)
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
@@ -76,7 +76,9 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
             casters = relit.shadow_casters(cloud, lit, origin, owners, lights.blocker_collections(depsgraph))
         transparent = scene.render.film_transparent
-        meshes = self._mesh_layer(depsgraph, width, height, casters)
+        # Nodes that world_background does not read light relit splats as Cycles renders the world
+        rendered = lit is not None and world_panorama.wanted(world_background(scene))
+        meshes, world_light = self._mesh_layer(depsgraph, width, height, casters, rendered)
         layer = None if meshes is None else meshes.as_layer()
         background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")
@@ -85,7 +87,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             image, lit_passes = self._image(cloud, cam, background, layer), {}
         else:
             image, lit_passes = self._lit_image(
-                depsgraph, cloud, lit, owners, cam, background, layer, origin, want_passes
+                depsgraph, cloud, lit, owners, cam, background, layer, origin, want_passes, world_light
             )
         passes = {**splat_passes(image, layer, meshes, background), **lit_passes} if want_passes else {}
         world = None if meshes is None else meshes.world()
@@ -120,21 +122,29 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
 
     # final renders ------------------------------------------------------------------------------------
 
-    def _mesh_layer(self, depsgraph, width, height, shadow_casters=None):
-        """The scene's meshes and world rendered by the chosen engine, or None (splats only, or
-        nothing but splats to render); `shadow_casters` is the relit splats' stand-in (see relit.py)."""
+    def _mesh_layer(self, depsgraph, width, height, shadow_casters=None, world=False):
+        """(the scene's meshes and world rendered by the chosen engine, or None: splats only, or
+        nothing but splats to render; with `world`, the world's light as Cycles renders it
+        (world_panorama.py), else None); `shadow_casters` is the relit splats' stand-in (see
+        relit.py)."""
         engine = mesh_engine(depsgraph.scene)
-        if engine == "NONE" or not (mesh_layer.has_geometry(depsgraph) or textured_world(depsgraph.scene)):
-            return None
-        self.update_stats("", f"Splatwright: rendering the meshes with {engine.title()}")
+        layer = engine != "NONE" and (mesh_layer.has_geometry(depsgraph) or textured_world(depsgraph.scene))
+        if not (layer or world):
+            return None, None
+        if layer:
+            self.update_stats("", f"Splatwright: rendering the meshes with {engine.title()}")
+        else:
+            self.update_stats("", "Splatwright: rendering the world's light with Cycles")
         return mesh_layer.render(
             depsgraph,
-            engine,
+            engine if layer else "CYCLES",
             width,
             height,
             test_break=self.test_break,
             progress=self.update_progress,
             shadow_casters=shadow_casters,
+            layer=layer,
+            world=world,
         )
 
     def _image(self, cloud, cam, background, layer=None):
@@ -156,13 +166,14 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if self.test_break():
             raise _Cancelled
 
-    def _lit_image(self, depsgraph, cloud, lit, owners, cam, background, layer, origin, passes):
+    def _lit_image(self, depsgraph, cloud, lit, owners, cam, background, layer, origin, passes, world_light=None):
         """The RenderResult of `cloud` with its `lit` splats (those with a material; `owners` their
         objects, scene_cloud's) shaded by the scene's lights and world and shadowed by the cloud and
         the meshes (the lights' light and shadow linking read), the others with their
         own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
         whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
-        passes when `passes`."""
+        passes when `passes`; `world_light`: the world's Background as Cycles rendered it, where its
+        nodes are more than world_background reads (world_panorama.py)."""
         from ...core.relight import KeptVisibilities, render_lit  # only when something is relit
 
         if self.is_animation:
@@ -176,7 +187,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         occluders = relit.occluders(depsgraph, origin) if drawn else relit.Occluders([])
         with data.reported_warnings(self.report):  # lights' and the world's nodes that are not read
             lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
-            world = scene_world(depsgraph.scene)
+            world = scene_world(depsgraph.scene, world_light)
             lights = world.lights(lights)  # an environment map's sun after the scene's lights
         lit_render = render_lit(
             cloud,

@@ -43,6 +43,7 @@ from ...core.color import linear_to_srgb
 from ...core.render import Layer
 from ...io.exr_plain import read_plain_exr
 from .. import data
+from . import world_panorama
 
 CHILD_SCRIPT = Path(__file__).with_name("child_blender.py")
 REPLY = "@splatwright-mesh-layer "  # the child's answer lines start with this (child_blender.REPLY)
@@ -145,18 +146,33 @@ def has_geometry(depsgraph):
 
 
 def render(
-    depsgraph, engine, width, height, test_break=lambda: False, progress=lambda fraction: None, shadow_casters=None
+    depsgraph,
+    engine,
+    width,
+    height,
+    test_break=lambda: False,
+    progress=lambda fraction: None,
+    shadow_casters=None,
+    layer=True,
+    world=False,
 ):
     """Render the mesh layer of the depsgraph's scene and view layer at its current frame with
-    `engine` (an ENGINE_CHOICES key); returns a MeshLayer of width x height. progress(fraction) is
-    called while Cycles reports its samples. `shadow_casters`, a relit.StandIn, is a mesh the child
-    adds visible to shadow rays only (relit splats' shadows on meshes), in the lights' shadow
-    linking as its parts' objects are."""
+    `engine` (an ENGINE_CHOICES key), and with `world` the world's light (world_panorama.py); returns
+    (a MeshLayer of width x height or None without `layer`, the world's scene.Background or None).
+    progress(fraction) is called while Cycles reports its samples. `shadow_casters`, a
+    relit.StandIn, is a mesh the child adds visible to shadow rays only (relit splats' shadows on
+    meshes), in the lights' shadow linking as its parts' objects are."""
     start = time.perf_counter()
     scene = depsgraph.scene
+    light = world_panorama.kept(scene.world) if world else None
+    rendering = world and light is None  # a world as the last one rendered is not rendered again
+    if not (layer or rendering):
+        return None, light
+    discs = world_panorama.sun_discs(scene.world) if rendering else {}
     work = _workdir()
     stamp = f"{os.getpid()}_{next(_counter)}"
     blend, exr, casters = work / f"scene_{stamp}.blend", work / f"layer_{stamp}.exr", work / f"casters_{stamp}.npz"
+    pictures = world_panorama.files(work, stamp)
     try:
         hide = on_main_thread(lambda: write_snapshot(scene.name, blend), test_break)
         # Cycles renders the world apart (its Environment pass) when the film is opaque, so that
@@ -171,7 +187,7 @@ def render(
             "camera": scene.camera.name if scene.camera else "",
             "engine": engine_id(engine),
             "hide": hide,
-            "out": str(exr),
+            "out": str(exr) if layer else "",
             "autoexec": not bpy.app.autoexec_fail,
             "environment": apart,
         }
@@ -179,14 +195,40 @@ def render(
             stand_in = shadow_casters
             np.savez(casters, vertices=stand_in.vertices, faces=stand_in.faces, groups=stand_in.groups)
             request.update(shadow_casters=str(casters), caster_links=stand_in.links)
-        reply = _child().ask(request, test_break, progress)
-        if not reply.get("ok"):
-            raise MeshLayerError(f"{engine.title()} could not render the meshes: {reply.get('error')}")
-        channels = read_plain_exr(exr)
+        if rendering:
+            request["world"] = world_panorama.panorama_ask(discs, pictures)
+        child = _child()
+        _asked(child, request, test_break, progress, f"{engine.title()} could not render the meshes")
+        meshes = None
+        if layer:
+            channels = read_plain_exr(exr)
+            meshes = _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart, 0.0)
+        close = None
+        if rendering:
+            if discs:  # the sun's close view, in the file and world scene the request left open
+                ask, close = world_panorama.sun_view(discs, pictures)
+                again = {"reuse": True, "scene": scene.name, "world": ask, **_frame(request)}
+                _asked(child, again, test_break, progress, "Cycles could not render the world's sun")
+            light = world_panorama.world_light(pictures, close)
+            world_panorama.keep(scene.world, light)
     finally:
-        for path in (blend, exr, casters):
+        for path in (blend, exr, casters, *pictures.values()):
             path.unlink(missing_ok=True)
-    return _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart, time.perf_counter() - start)
+    if meshes is not None:
+        meshes.seconds = time.perf_counter() - start
+    return meshes, light
+
+
+def _frame(request):
+    return {"frame": request["frame"], "subframe": request["subframe"]}
+
+
+def _asked(child, request, test_break, progress, failure):
+    """The child's reply to `request`, or MeshLayerError: `failure` and the child's error."""
+    reply = child.ask(request, test_break, progress)
+    if not reply.get("ok"):
+        raise MeshLayerError(f"{failure}: {reply.get('error')}")
+    return reply
 
 
 def _layer_from_channels(channels, view_layer, width, height, environment, seconds):

@@ -18,7 +18,7 @@ from ...core import scratch
 from ...core.color import linear_to_srgb
 from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
 from ...core.splats import SplatCloud
-from . import relit
+from . import relit, world_panorama
 from .lights import scene_world
 from .scene import mesh_engine, surface_triangles, to_scene_linear, world_background
 
@@ -96,7 +96,10 @@ def picture_inputs(depsgraph, kept=None):
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else relit.Occluders([])
         lights, *linking = relit.linked_lights(depsgraph, origin, owners, occluders)
-        world = scene_world(scene, backdrop)
+        # the world's light as a final render last had Cycles render it, where nodes drive it that
+        # world_background does not read (rendering it here would hold up every scene update)
+        rendered = world_panorama.kept(scene.world) if world_panorama.wanted(backdrop) else None
+        world = scene_world(scene, rendered or backdrop)
         lighting = Lighting(world.lights(lights), world, occluders.surfaces, kept, tuple(linking))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
 

@@ -2,7 +2,9 @@
 large white diffuse plane under one light of each kind, seen straight down by an orthographic camera,
 so that every pixel is the radiance the plane reflects at a known point: albedo * irradiance / pi.
 Each scene renders twice with different seeds (the difference measures Cycles' noise). Nothing of the
-extension is used: the lights' settings and matrices go back to the test, which converts them."""
+extension is used but by sky_worlds: the lights' settings and matrices go back to the test, which
+converts them; sky_worlds also asks the installed extension what it reads of each Sky Texture world
+(splat_addon/render/world_panorama.py), beside Cycles' renders under it."""
 
 import math
 
@@ -144,8 +146,17 @@ def environment_pixels(size=ENVIRONMENT_SIZE, sun=False):
 STUDIO_WORLDS = ("sunrise", "forest", "courtyard", "interior")
 
 
+# Sky Texture worlds that light sky_worlds' ball: the sky model of each Blender (Nishita before 5.0,
+# its disc model's successor from 5.0; Hosek / Wilkie in both), the sun's elevation and rotation
+# (degrees) and whether its disc shows; every other setting the node's default
+SKY_WORLDS = {
+    "disc": (("NISHITA", "MULTIPLE_SCATTERING"), 35.0, 40.0, True),
+    "smooth": (("HOSEK_WILKIE", "HOSEK_WILKIE"), 35.0, 40.0, False),
+}
+
+
 class Worker(BlenderWorker):
-    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow", "environment", "studio_worlds")
+    steps = (*LIGHTS, *PRINCIPLED, "area_spread_shadow", "environment", "studio_worlds", "sky_worlds")
     keep_objects = ("Camera",)
     orphan_kinds = ("meshes", "materials", "lights")
 
@@ -372,6 +383,50 @@ class Worker(BlenderWorker):
             tree.nodes.remove(texture)
             bpy.data.objects.remove(ball)
         return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE}
+
+    def sky_worlds(self):
+        """environment's ball under each Sky Texture world of SKY_WORLDS: two renders each, and what
+        the installed extension reads of the world's light (mesh_layer.render's world: its
+        coefficients and sun), for the SPLATWRIGHT engine to light relit splats with; and whether
+        reading each world again gave what it kept, and reading it changed did not."""
+        bpy = self.bpy
+        self.install_extension()
+        mesh_layer = self.module("splat_addon.render.mesh_layer")
+        ball = self.ball_scene()
+        scene = bpy.context.scene
+        tree = scene.world.node_tree
+        background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+        background.inputs["Strength"].default_value = 1.0
+        sky = tree.nodes.new("ShaderNodeTexSky")
+        sun_size = float(sky.sun_size)
+        tree.links.new(sky.outputs["Color"], background.inputs["Color"])
+        scene.render.film_transparent = True
+        kept = []
+
+        def read():
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            return mesh_layer.render(depsgraph, "CYCLES", SIZE, SIZE, layer=False, world=True)[1]
+
+        try:
+            for name, (models, elevation, rotation, disc) in SKY_WORLDS.items():
+                sky.sky_type = models[bpy.app.version >= (5, 0, 0)]
+                sky.sun_elevation, sky.sun_rotation = math.radians(elevation), math.radians(rotation)
+                sky.sun_disc = disc
+                images = [self.render(f"sky_{name}", seed) for seed in (0, 1)]
+                light = read()
+                kept.append(read() is light)  # the same world again: not rendered again
+                sun = light.sun
+                found = {} if sun is None else {"towards": -sun.direction, "angle": sun.angle}
+                if sun is not None:
+                    found["irradiance"] = sun.power * sun.color
+                self.save(f"sky_{name}", first=images[0], second=images[1], coefficients=light.environment, **found)
+            sky.sun_elevation += 0.1
+            kept.append(read() is light)  # a changed world: rendered again
+        finally:
+            scene.render.film_transparent = False
+            tree.nodes.remove(sky)
+            bpy.data.objects.remove(ball)
+        return {"albedo": ALBEDO, "size": SIZE, "ortho_scale": BALL_ORTHO_SCALE, "sun_size": sun_size, "kept": kept}
 
     def principled_dielectric(self):
         return self.run_light("principled_dielectric")

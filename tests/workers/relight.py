@@ -51,6 +51,9 @@ SUNNY_PATCH = (900.0, 850.0, 800.0)  # textured_world's sun: 2 x 2 pixels of its
 # sunny_map's world: a dim sky and a sun of this elevation and azimuth (degrees from +X towards +Y),
 # diameter (degrees) and irradiance (W/m^2 facing it), drawn into a map of this many pixels
 SUNNY_MAP = dict(elevation=50.0, azimuth=60.0, diameter=3.0, irradiance=4.0, sky=0.05, size=(512, 256))
+# sky_sun's world: a Sky Texture with its sun disc (Nishita before Blender 5.0, Multiple Scattering
+# from 5.0), the sun's elevation and rotation (degrees), the Background's Strength
+SKY_SUN = dict(models=("NISHITA", "MULTIPLE_SCATTERING"), elevation=50.0, rotation=30.0, strength=0.05)
 LIGHT_NODE = dict(strength=2.5, color=(1.0, 0.5, 0.25))  # light_nodes' Emission node
 LINKED_BALLS = {"Left": (-0.7, 0.3, 0.6), "Right": (0.7, -0.3, 0.6)}  # light_linking's balls
 LINKED_RADIUS = 0.35
@@ -127,6 +130,7 @@ class Worker(BlenderWorker):
         "engine_reports",
         "animation_frames",
         "sunny_map",
+        "sky_sun",
         "light_linking",
         "shadow_linking",
         "mesh_shadow_linking",
@@ -715,7 +719,19 @@ class Worker(BlenderWorker):
             instancers.append(instancer)
         cloud = self.material_cloud(ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")}), BALL["albedo"])
         ball = self.splat_object("Ball", cloud)
-        # what the engine hands its report (a RenderEngine's own report cannot be replaced from Python)
+        try:
+            reports = self.reported(bpy.ops.render.render)
+        finally:
+            for obj in (ball, *instancers, key):
+                bpy.data.objects.remove(obj)
+            bpy.data.collections.remove(keys)
+            bpy.data.images.remove(texture.image)
+            tree.nodes.remove(texture)
+        return reports
+
+    def reported(self, call):
+        """The warnings the engine reports while call() runs, (kinds, message) each, as it hands them
+        to its `report` (a RenderEngine's own report cannot be replaced from Python)."""
         data = self.module("splat_addon.data")
         reported_warnings, reports = data.reported_warnings, []
 
@@ -726,14 +742,9 @@ class Worker(BlenderWorker):
 
         data.reported_warnings = kept
         try:
-            bpy.ops.render.render()
+            call()
         finally:
             data.reported_warnings = reported_warnings
-            for obj in (ball, *instancers, key):
-                bpy.data.objects.remove(obj)
-            bpy.data.collections.remove(keys)
-            bpy.data.images.remove(texture.image)
-            tree.nodes.remove(texture)
         return reports
 
     def animation_frames(self):
@@ -795,32 +806,63 @@ class Worker(BlenderWorker):
         return dict(made=made, free_after_frames=kept, free_after_job=after_job)
 
     def sunny_map(self):
-        """A relit splat ball over a relit splat floor (splats only) with no light but the world: an
-        Environment Texture of a dim sky with a sun in it (SUNNY_MAP); the multilayer EXR (its
-        Shadow pass) and the camera."""
-        bpy = self.bpy
-        self.stage("NONE")
-        scene = bpy.context.scene
-        bpy.data.objects["Sun"].hide_render = True
-        ball = ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")})
-        floor = self.splat_object("SplatFloor", self.material_cloud(floor_arrays(FLOOR["size"], 0.05), FLOOR["color"]))
-        ball = self.splat_object("Ball", self.material_cloud(ball, BALL["albedo"]))
+        """world_shadow under an Environment Texture of a dim sky with a sun in it (SUNNY_MAP)."""
         width, height = SUNNY_MAP["size"]
         sky = np.full((height, width, 4), SUNNY_MAP["sky"], np.float32)
         sky[..., 3] = 1.0
         sun = dict(diameter=math.radians(SUNNY_MAP["diameter"]), irradiance=SUNNY_MAP["irradiance"])
         sun.update(latitude=math.radians(SUNNY_MAP["elevation"]), longitude=math.radians(SUNNY_MAP["azimuth"]))
-        texture, image = self.world_map(add_sun(sky, **sun), "Sunny")
-        tree = scene.world.node_tree
+
+        def world():
+            texture, image = self.world_map(add_sun(sky, **sun), "Sunny")
+            return lambda: (
+                self.bpy.context.scene.world.node_tree.nodes.remove(texture),
+                self.bpy.data.images.remove(image),
+            )
+
+        return self.world_shadow("sunny_map", world)
+
+    def sky_sun(self):
+        """world_shadow under a Sky Texture with its sun disc (SKY_SUN; the model of each Blender)."""
+        bpy = self.bpy
+
+        def world():
+            tree = bpy.context.scene.world.node_tree
+            background = next(n for n in tree.nodes if n.bl_idname == "ShaderNodeBackground")
+            sky = tree.nodes.new("ShaderNodeTexSky")
+            sky.sky_type = SKY_SUN["models"][bpy.app.version >= (5, 0, 0)]
+            sky.sun_elevation, sky.sun_rotation = math.radians(SKY_SUN["elevation"]), math.radians(SKY_SUN["rotation"])
+            tree.links.new(sky.outputs["Color"], background.inputs["Color"])
+            background.inputs["Strength"].default_value = SKY_SUN["strength"]
+            return lambda: tree.nodes.remove(sky)
+
+        def viewport_sun():  # what the Rendered viewport lights with now: the final render's world light
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            lighting = self.module("splat_addon.render.viewport").picture_inputs(depsgraph)[3]
+            return lighting.world.sun is not None
+
+        return self.world_shadow("sky_sun", world, viewport_sun)
+
+    def world_shadow(self, name, world, after=lambda: None):
+        """A relit splat ball over a relit splat floor (splats only) with no light but the world that
+        world() sets up (returning what undoes it): the multilayer EXR `name` (its Shadow pass), the
+        camera, the warnings the engine reported and what after() gives once it has rendered."""
+        bpy = self.bpy
+        self.stage("NONE")
+        bpy.data.objects["Sun"].hide_render = True
+        ball = ball_arrays(**{k: BALL[k] for k in ("centre", "radius", "count")})
+        floor = self.splat_object("SplatFloor", self.material_cloud(floor_arrays(FLOOR["size"], 0.05), FLOOR["color"]))
+        ball = self.splat_object("Ball", self.material_cloud(ball, BALL["albedo"]))
+        undo = world()
         try:
-            self.write("sunny_map")
+            reports = self.reported(lambda: self.write(name))
+            later = after()
         finally:
-            tree.nodes.remove(texture)
-            bpy.data.images.remove(image)
+            undo()
             bpy.data.objects["Sun"].hide_render = False
             for obj in (floor, ball):
                 bpy.data.objects.remove(obj)
-        return {"camera": self.camera_record(), "origin": self.origin().tolist()}
+        return {"camera": self.camera_record(), "origin": self.origin().tolist(), "reports": reports, "after": later}
 
     def viewport_world_maps(self):
         """How often the Rendered viewport makes the world's occlusion over four scene updates: the

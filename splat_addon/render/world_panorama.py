@@ -1,0 +1,198 @@
+"""The world's light for relit splats where its nodes are more than scene.world_background reads (a
+Sky Texture, textures mixed, a Mapping with a location): Cycles renders the world alone in the
+child Blender (mesh_layer.py; child_blender.py's "world" request) and core.environment reads the
+picture as it reads an Environment Texture's image.
+
+- A panorama, PANORAMA pixels in an Environment Texture's layout, PANORAMA_SAMPLES samples a pixel
+  each the mean over its own area: its broad light (spherical harmonics to band 2) and, where one
+  stands out of it, its sun (core.environment.light_of).
+- A sky's sun disc (a Sky Texture of a model with one, its disc on) is a fraction of a panorama
+  pixel, whose few samples measure its light to tens of percent or miss it: the panorama is rendered
+  with the discs off, and once with them on, with enough samples that SUN_HITS of them are expected
+  on the disc, to find the sun (the brightest pixel of the difference); a close view of it,
+  SUN_VIEW pixels a side with the discs on and then off, measures it as a sun light
+  (core.environment.sun_in_view).
+
+Read as the camera sees the world: a world whose nodes show the camera something else than they
+light with (Light Path's Is Camera Ray) is read as the camera sees it.
+"""
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ...core import environment
+from ...core.camera import Camera
+from ...io.exr_plain import read_plain_exr
+from .scene import Background
+
+PANORAMA = (128, 64)  # pixels: 2.8 degrees each, ten times finer than band 2's features
+PANORAMA_SAMPLES = 16
+# The panorama with the discs on: samples enough that this many are expected on the smallest disc
+# (none with a chance of e^-12), within what a second of Cycles renders (128 x 64 pixels, 2 cores:
+# 16 samples 0.2 s, 256 0.4-0.5 s, 1024 1.2-1.5 s)
+SUN_HITS = 12.0
+LIT_SAMPLES = (16, 1024)
+SUN_VIEW = 96  # pixels a side of the close view of a sky's sun
+SUN_VIEW_SAMPLES = 16
+SUN_SKIES = {"NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING"}  # the sky models with a sun disc
+# The close view's half-width: the brightest panorama pixel's centre is within its half-diagonal
+# of the sun's edge, so this many of those plus the disc's radius (sun_size / 2) with room to spare
+PIXEL_REACH = 1.25
+DISC_REACH = 0.75
+
+
+def wanted(background: Background) -> bool:
+    """Whether the world's light needs rendering: nodes drive it that world_background does not read
+    (it stands the world's plain colour or a map's mean in for them, with a note)."""
+    return background.note is not None and background.environment is None
+
+
+def sun_discs(world) -> dict[str, float]:
+    """The world's Sky Texture nodes whose sun disc is on: name -> the disc's angular diameter."""
+    tree = getattr(world, "node_tree", None)
+    if tree is None:
+        return {}
+    return {
+        node.name: float(node.sun_size)
+        for node in tree.nodes
+        if node.bl_idname == "ShaderNodeTexSky" and node.sky_type in SUN_SKIES and node.sun_disc
+    }
+
+
+# A node's settings that only change how it looks in the editor
+UI_SETTINGS = {
+    "rna_type", "name", "label", "location", "width", "height", "dimensions", "select", "show_options",
+    "show_preview", "show_texture", "hide", "use_custom_color", "color", "parent", "inputs", "outputs",
+    "internal_links", "width_hidden", "bl_width_default", "bl_width_min", "bl_width_max", "bl_height_default",
+    "bl_height_min", "bl_height_max", "bl_icon", "bl_static_type", "bl_label", "bl_description", "type",
+    "location_absolute", "warning_propagation", "id_data",
+}  # fmt: skip
+_KEPT: dict = {}  # one world's state -> its light: a still world renders once for an animation
+
+
+def kept(world) -> Background | None:
+    """The light world_light last gave for a world in this very state (state()), or None."""
+    return _KEPT.get(state(world))
+
+
+def keep(world, light: Background) -> None:
+    """Keep `light` for the world's present state, in place of any other."""
+    _KEPT.clear()
+    _KEPT[state(world)] = light
+
+
+def state(world) -> str:
+    """What decides the world's picture, as text: its nodes' settings and input values (the
+    values a frame's animation and drivers gave them, in an evaluated world), the images they
+    show (by name, file and whether edited), node groups' own nodes, and the links."""
+    return repr(_tree_state(world.node_tree, depth=0)) if getattr(world, "node_tree", None) else ""
+
+
+def _tree_state(tree, depth):
+    nodes = []
+    for node in tree.nodes:  # a loop over nodes, not pixels
+        inputs = [(socket.identifier, _value(getattr(socket, "default_value", None), depth)) for socket in node.inputs]
+        nodes.append((node.bl_idname, node.name, node.mute, _settings(node, depth), inputs))
+    links = [(k.from_node.name, k.from_socket.identifier, k.to_node.name, k.to_socket.identifier) for k in tree.links]
+    return nodes, links
+
+
+def _settings(struct, depth):
+    names = [p.identifier for p in struct.bl_rna.properties if p.identifier not in UI_SETTINGS]
+    return [(name, _value(getattr(struct, name, None), depth)) for name in names]
+
+
+def _value(value, depth):
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if hasattr(value, "nodes") and hasattr(value, "links"):  # a node group's tree
+        return _tree_state(value, depth + 1) if depth < 4 else value.name
+    if hasattr(value, "filepath"):  # an image
+        return (value.name, value.filepath, getattr(value, "is_dirty", False))
+    if hasattr(value, "name") and hasattr(value, "users"):  # another data-block
+        return value.name
+    try:
+        return [_value(item, depth) for item in value]  # a vector, colour or collection (a ramp's elements)
+    except TypeError:
+        pass
+    if hasattr(value, "bl_rna") and depth < 4:  # a nested setting (a colour ramp, a texture mapping)
+        return _settings(value, depth + 1)
+    return repr(value)
+
+
+def files(folder: Path, stamp: str) -> dict[str, Path]:
+    """The EXR files of one world's pictures in `folder`."""
+    return {name: folder / f"world_{name}_{stamp}.exr" for name in ("panorama", "lit", "on", "off")}
+
+
+def panorama_ask(discs: dict[str, float], paths: dict[str, Path]) -> dict:
+    """The child's "world" request for the panorama (and, with sun discs (sun_discs'), the one with
+    them on)."""
+    lit = str(paths["lit"]) if discs else None
+    # a disc of diameter s takes s^2 / 16 of the sphere (its solid angle pi s^2 / 4 over 4 pi)
+    smallest = max(min(discs.values(), default=1.0), 1e-6)
+    samples = SUN_HITS * 16.0 / (PANORAMA[0] * PANORAMA[1] * smallest**2)
+    lit_samples = int(np.clip(math.ceil(samples), *LIT_SAMPLES))
+    return {
+        "discs": sorted(discs),
+        "samples": PANORAMA_SAMPLES,
+        "panorama": {"size": list(PANORAMA), "out": str(paths["panorama"]), "lit": lit, "lit_samples": lit_samples},
+    }
+
+
+def sun_view(discs: dict[str, float], paths: dict[str, Path]) -> tuple[dict, Camera]:
+    """(the child's "world" request for the close view of the sun, its core Camera), the sun found
+    in the panoramas with the `discs` (sun_discs') on and off."""
+    excess = _panorama(paths["lit"]) - _panorama(paths["panorama"])
+    towards = environment.peak_direction(excess)
+    half_diagonal = math.sqrt(0.5) * 2.0 * math.pi / PANORAMA[0]
+    fov = 2.0 * (PIXEL_REACH * half_diagonal + DISC_REACH * 0.5 * max(discs.values(), default=0.0))
+    camera = Camera.look_at(np.zeros(3), towards, up=(0.0, 0.0, 1.0), fov_deg=math.degrees(fov), width=SUN_VIEW,
+                            height=SUN_VIEW)  # fmt: skip
+    rows = camera.rotation  # right, down, forward; a Blender camera's axes: right, up, backward
+    to_world = np.column_stack([rows[0], -rows[1], -rows[2]])
+    view = {
+        "size": SUN_VIEW,
+        "fov": fov,
+        "rotation": to_world.tolist(),
+        "on": str(paths["on"]),
+        "off": str(paths["off"]),
+    }
+    return {"discs": sorted(discs), "samples": SUN_VIEW_SAMPLES, "view": view}, camera
+
+
+def world_light(paths: dict[str, Path], camera: Camera | None = None) -> Background:
+    """The world's Background as the pictures in `paths` show it: the panorama's bands and sun,
+    and the close view's sun (its `camera`) where there is one."""
+    coefficients, sun = environment.light_of(_panorama(paths["panorama"]))
+    if camera is not None:
+        directions, solid_angles = camera.pixel_rays()
+        disc = environment.sun_in_view(_rgb(paths["on"]) - _rgb(paths["off"]), directions, solid_angles)
+        if disc is not None:
+            if sun is not None:  # the sky's own brightest part stays in its light
+                coefficients = environment.with_sun(coefficients, sun)
+            sun = disc
+    return Background(environment.mean(coefficients), _note(sun), coefficients, sun)
+
+
+def _panorama(path: Path) -> np.ndarray:
+    """(H, W, 3) a panorama the child wrote, rows from the bottom as an Environment Texture's."""
+    return _rgb(path)[::-1]
+
+
+def _rgb(path: Path) -> np.ndarray:
+    """(H, W, 3) float64 scene-linear RGB of a one-layer EXR the child wrote, rows top first."""
+    channels = read_plain_exr(path)
+    return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float64)
+
+
+def _note(sun) -> str:
+    what = "its broad light (spherical harmonics to band 2)"
+    if sun is not None:
+        what += " and its sun, a sun light of its own with shadows and highlights"
+    return (
+        f"the world's nodes light relit splats as Cycles renders the world: {what}, read from a "
+        f"{PANORAMA[0]} x {PANORAMA[1]} panorama; its other sharp features cast no shadows and make no sharp highlights"
+    )
