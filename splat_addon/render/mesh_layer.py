@@ -198,7 +198,8 @@ def render(
         if rendering:
             request["world"] = world_panorama.panorama_ask(discs, pictures)
         child = _child()
-        _asked(child, request, test_break, progress, f"{engine.title()} could not render the meshes")
+        failure = f"{engine.title()} could not render the meshes" if layer else "Cycles could not render the world"
+        _asked(child, request, test_break, progress, failure)
         meshes = None
         if layer:
             channels = read_plain_exr(exr)
