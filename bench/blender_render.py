@@ -148,8 +148,9 @@ def blender_python():
         ) from None
 
 
-def run_blender(job, work):
-    """Run the child on `job` (written into `work`); its results.json."""
+def run_blender(job, work, child=CHILD):
+    """Run the `child` script on `job` (written into `work`) in Blender BLENDER's bpy-only Python,
+    the extension zip built for it; its results.json."""
     python = blender_python()
     from helpers import build_extension_zip
 
@@ -158,7 +159,7 @@ def run_blender(job, work):
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
     env["BLENDER_USER_RESOURCES"] = str(work / "user")
     proc = subprocess.run(
-        [python, str(CHILD), str(work / "job.json")],
+        [python, str(child), str(work / "job.json")],
         check=False,
         cwd=work,
         env=env,

@@ -466,14 +466,20 @@ def test_a_sky_textures_sun_shadows_the_floor_and_the_render_says_how_the_world_
     on the relit floor where the closed-form shadow of the node's sun falls (its elevation; its
     rotation turning it from +Y towards +X, as Cycles puts it: tests/test_blender_lights.py), none
     elsewhere; the engine says once how the world lights the splats, and the Rendered viewport lights
-    them by what it read (rendering the world there would hold up every scene update)."""
+    them by what it read; the sun raised, the viewport has Cycles render the world on a thread (a
+    scene update does not wait for it), lights by the world's colour meanwhile, and then by the raised
+    sun."""
     from workers.relight import SKY_SUN
 
     res = blender.step("sky_sun")
     assert_world_sun_shadow(blender, res, "sky_sun", SKY_SUN["elevation"], 90.0 - SKY_SUN["rotation"])
     said = [message for kinds, message in res["reports"] if "as Cycles renders the world" in message]
     assert len(said) == 1 and "and its sun" in said[0], res["reports"]
-    assert res["after"]  # the Rendered viewport then lights by what the final render read, its sun included
+    seen = res["after"]  # the Rendered viewport: what the final render read, its sun included
+    assert seen["after"] and seen["asked"] and seen["ready"] == 1, seen
+    up, around = np.radians(SKY_SUN["elevation"] + 10.0), np.radians(90.0 - SKY_SUN["rotation"])
+    raised = np.array([np.cos(up) * np.cos(around), np.cos(up) * np.sin(around), np.sin(up)])
+    assert np.degrees(np.arccos(np.clip(np.dot(seen["raised"], raised), -1, 1))) < 0.3, seen
 
 
 def assert_world_sun_shadow(blender, res, name, elevation, azimuth):

@@ -12,8 +12,8 @@ line starting with REPLY, and ends when stdin closes:
 With "environment", the film is transparent and the Environment pass is written too: the world
 seen through each pixel, apart from the meshes. Without "out", no mesh layer is rendered.
 
-"world" (optional) renders the scene's world alone, with Cycles, in a scene of its own at the
-request's frame (world_panorama.py reads what it writes):
+"world" (optional) renders the world named "world_name" alone, with Cycles, in a scene of its own
+at the request's frame (world_panorama.py reads what it writes); "blend" may hold that world alone:
 
     {"discs": [Sky Texture node names whose sun disc is on], "samples": 16,
      "panorama": {"size": [128, 64], "out": world.exr, "lit": lit.exr or null, "lit_samples": 256}}
@@ -53,11 +53,11 @@ def render(request):
 
     if not request.get("reuse"):
         bpy.ops.wm.open_mainfile(filepath=request["blend"], load_ui=False, use_scripts=request.get("autoexec", False))
-    scene = bpy.data.scenes[request["scene"]]
     if request.get("out"):
-        render_layer(bpy, scene, request)
+        render_layer(bpy, bpy.data.scenes[request["scene"]], request)
     if request.get("world"):
-        render_world(bpy, scene, request["world"], (request["frame"], request["subframe"]))
+        world = bpy.data.worlds[request["world_name"]]
+        render_world(bpy, world, request["world"], (request["frame"], request["subframe"]))
 
 
 def render_layer(bpy, scene, request):
@@ -97,11 +97,11 @@ def exr_output(settings, multilayer):
     image.exr_codec = "NONE"
 
 
-def render_world(bpy, scene, ask, frame):
-    """The world of `scene` alone at `frame` (frame, subframe), as `ask` says (see the module notes)."""
+def render_world(bpy, world, ask, frame):
+    """`world` alone at `frame` (frame, subframe), as `ask` says (see the module notes)."""
     from mathutils import Matrix
 
-    view = bpy.data.scenes.get(WORLD) or world_scene(bpy, scene)
+    view = bpy.data.scenes.get(WORLD) or world_scene(bpy, world)
     view.frame_set(frame[0], subframe=frame[1])
     tree = view.world.node_tree
     discs = [tree.nodes[name] for name in ask.get("discs", ()) if name in tree.nodes]
@@ -130,14 +130,14 @@ def render_world(bpy, scene, ask, frame):
         shoot(bpy, view, size, close["off"], discs, False)
 
 
-def world_scene(bpy, scene):
-    """A scene holding `scene`'s world and a camera and nothing else, set to render
+def world_scene(bpy, world):
+    """A scene holding `world` and a camera and nothing else, set to render
     with Cycles: the world seen by camera rays, each pixel the mean over its own area (a box
     filter), no denoising, the same sampling seed in every render (a picture less the same one
     with a sun left out is the sun alone)."""
     view = bpy.data.scenes.new(WORLD)
-    view.world = scene.world
-    visibility = getattr(scene.world, "cycles_visibility", None)
+    view.world = world
+    visibility = getattr(world, "cycles_visibility", None)
     if visibility is not None:
         visibility.camera = True
     settings = view.render

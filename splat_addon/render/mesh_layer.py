@@ -33,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,17 +165,20 @@ def render(
     meshes), in the lights' shadow linking as its parts' objects are."""
     start = time.perf_counter()
     scene = depsgraph.scene
-    light = world_panorama.kept(scene.world) if world else None
+    key = world_panorama.state(scene.world) if world else ""
+    light = world_panorama.kept(key) if world else None
     rendering = world and light is None  # a world as the last one rendered is not rendered again
     if not (layer or rendering):
         return None, light
-    discs = world_panorama.sun_discs(scene.world) if rendering else {}
     work = _workdir()
     stamp = f"{os.getpid()}_{next(_counter)}"
     blend, exr, casters = work / f"scene_{stamp}.blend", work / f"layer_{stamp}.exr", work / f"casters_{stamp}.npz"
     pictures = world_panorama.files(work, stamp)
     try:
-        hide = on_main_thread(lambda: write_snapshot(scene.name, blend), test_break)
+        if layer:
+            hide = on_main_thread(lambda: write_snapshot(scene.name, blend), test_break)
+        else:  # the world alone: a file of it and what it uses, not of the whole scene
+            hide = on_main_thread(lambda: write_world(scene.world.name, blend), test_break)
         # Cycles renders the world apart (its Environment pass) when the film is opaque, so that
         # splats behind a translucent surface show through it; the others render the film as set.
         apart = engine == "CYCLES" and not scene.render.film_transparent
@@ -190,34 +194,46 @@ def render(
             "out": str(exr) if layer else "",
             "autoexec": not bpy.app.autoexec_fail,
             "environment": apart,
+            "world_name": scene.world.name if rendering else "",
         }
         if shadow_casters is not None and len(shadow_casters.faces):
             stand_in = shadow_casters
             np.savez(casters, vertices=stand_in.vertices, faces=stand_in.faces, groups=stand_in.groups)
             request.update(shadow_casters=str(casters), caster_links=stand_in.links)
-        if rendering:
-            request["world"] = world_panorama.panorama_ask(discs, pictures)
-        child = _child()
+        discs = world_panorama.sun_discs(scene.world) if rendering else None
         failure = f"{engine.title()} could not render the meshes" if layer else "Cycles could not render the world"
-        _asked(child, request, test_break, progress, failure)
+        found = _rendered(request, discs, pictures, test_break, progress, failure)
+        if rendering:
+            light = found
+            world_panorama.keep(key, light)
         meshes = None
         if layer:
             channels = read_plain_exr(exr)
             meshes = _layer_from_channels(channels, depsgraph.view_layer.name, width, height, apart, 0.0)
-        close = None
-        if rendering:
-            if discs:  # the sun's close view, in the file and world scene the request left open
-                ask, close = world_panorama.sun_view(discs, pictures)
-                again = {"reuse": True, "scene": scene.name, "world": ask, **_frame(request)}
-                _asked(child, again, test_break, progress, "Cycles could not render the world's sun")
-            light = world_panorama.world_light(pictures, close)
-            world_panorama.keep(scene.world, light)
+            meshes.seconds = time.perf_counter() - start
     finally:
         for path in (blend, exr, casters, *pictures.values()):
             path.unlink(missing_ok=True)
-    if meshes is not None:
-        meshes.seconds = time.perf_counter() - start
     return meshes, light
+
+
+def _rendered(request, discs, pictures, test_break, progress, failure):
+    """Send `request` to the child (MeshLayerError: `failure` and the child's error) and, with
+    `discs` (world_panorama.sun_discs'; None: the world not asked for), the world of its
+    "world_name" too: its light, as world_panorama reads the pictures, else None."""
+    child = _child()
+    with child.busy:  # the sun's close view reuses the file the request opened: nothing between them
+        if discs is not None:
+            request = {**request, "world": world_panorama.panorama_ask(discs, pictures)}
+        _asked(child, request, test_break, progress, failure)
+        if discs is None:
+            return None
+        close = None
+        if discs:
+            ask, close = world_panorama.sun_view(discs, pictures)
+            again = {"reuse": True, "world_name": request["world_name"], "world": ask, **_frame(request)}
+            _asked(child, again, test_break, progress, "Cycles could not render the world's sun")
+    return world_panorama.world_light(pictures, close)
 
 
 def _frame(request):
@@ -230,6 +246,66 @@ def _asked(child, request, test_break, progress, failure):
     if not reply.get("ok"):
         raise MeshLayerError(f"{failure}: {reply.get('error')}")
     return reply
+
+
+# the world's light for the Rendered viewport ---------------------------------------------------------
+
+
+def render_world_soon(world, frame, subframe, done=lambda: None):
+    """Have the child render `world`'s light (world_panorama.py) on a thread of its own and keep it
+    (world_panorama.kept then finds it), then call done() from that thread. Called on the main
+    thread, which writes the world's file at once (the world and what it uses: small). A world
+    already under way or waiting is not asked for twice; a newer one takes the place of one waiting."""
+    key = world_panorama.state(world)
+    with _lock:
+        running, waiting = _jobs["running"], _jobs["waiting"]
+        if key == running or (waiting is not None and waiting["key"] == key):
+            return
+    work = _workdir()
+    stamp = f"{os.getpid()}_{next(_counter)}"
+    blend = work / f"world_{stamp}.blend"
+    write_world(world.name, blend)
+    request = {"blend": str(blend), "world_name": world.name, "frame": frame, "subframe": subframe}
+    request["autoexec"] = not bpy.app.autoexec_fail
+    discs, pictures = world_panorama.sun_discs(world), world_panorama.files(work, stamp)
+    job = dict(key=key, request=request, discs=discs, pictures=pictures, done=done)
+    with _lock:
+        replaced, _jobs["waiting"] = _jobs["waiting"], job
+        if _jobs["thread"] is None:
+            _jobs["thread"] = threading.Thread(target=_world_jobs, daemon=True)
+            _jobs["thread"].start()
+    if replaced is not None:
+        Path(replaced["request"]["blend"]).unlink(missing_ok=True)
+
+
+def wait_world_jobs(timeout=None):
+    """Wait for the worlds render_world_soon was asked for (the thread's end)."""
+    with _lock:
+        thread = _jobs["thread"]
+    if thread is not None:
+        thread.join(timeout)
+
+
+def _world_jobs():
+    """The thread of render_world_soon: the waiting world, then the next, until none waits. A world
+    that fails is left (its traceback printed): the viewport keeps lighting by the world's colour."""
+    while True:
+        with _lock:
+            job, _jobs["waiting"] = _jobs["waiting"], None
+            _jobs["running"] = None if job is None else job["key"]
+            if job is None:
+                _jobs["thread"] = None
+                return
+        try:
+            failure = "Cycles could not render the world"
+            light = _rendered(job["request"], job["discs"], job["pictures"], lambda: False, lambda f: None, failure)
+            world_panorama.keep(job["key"], light)
+            job["done"]()
+        except Exception:  # noqa: BLE001 - a viewport's helper thread: nothing above it to hand it to
+            traceback.print_exc()
+        finally:
+            for path in (Path(job["request"]["blend"]), *job["pictures"].values()):
+                path.unlink(missing_ok=True)
 
 
 def _layer_from_channels(channels, view_layer, width, height, environment, seconds):
@@ -251,6 +327,12 @@ def _layer_from_channels(channels, view_layer, width, height, environment, secon
     if bad.any():
         raise MeshLayerError(f"the mesh layer holds NaN or Inf at {int(bad.sum())} pixels")
     return MeshLayer(rgba, depth, env, seconds)
+
+
+def write_world(world_name, path):
+    """Write the world and everything it uses to `path` (main thread only)."""
+    bpy.data.libraries.write(str(path), {bpy.data.worlds[world_name]}, path_remap="ABSOLUTE", fake_user=True)
+    return []
 
 
 def write_snapshot(scene_name, path):
@@ -310,6 +392,7 @@ def _serve_main_thread():
 _counter = iter(range(1, 1 << 62))
 _lock = threading.Lock()
 _state = {"child": None, "workdir": None}
+_jobs = {"thread": None, "running": None, "waiting": None}  # render_world_soon's
 
 
 def child_command():
@@ -341,7 +424,7 @@ class _Child:
         except OSError as exc:
             raise MeshLayerError(f"cannot start a Blender to render the meshes ({child_command()[0]}): {exc}") from exc
         self.replies, self.log = queue.Queue(), collections.deque(maxlen=40)
-        self.busy = threading.Lock()  # one request at a time
+        self.busy = threading.RLock()  # one request (or one world's two) at a time
         self.samples = None  # (done, total) of the frame being rendered
         threading.Thread(target=self._read, daemon=True).start()
 

@@ -18,7 +18,7 @@ from ...core import scratch
 from ...core.color import linear_to_srgb
 from ...core.preview import Progressive, Triangles, camera_from_opengl, preview_image, scaled, view_key
 from ...core.splats import SplatCloud
-from . import relit, world_panorama
+from . import mesh_layer, relit, world_panorama
 from .lights import scene_world
 from .scene import mesh_engine, surface_triangles, to_scene_linear, world_background
 
@@ -83,9 +83,12 @@ class Lighting:
         return cloud if shading is None else lit_cloud(cloud, rows, shading)
 
 
-def picture_inputs(depsgraph, kept=None):
+def picture_inputs(depsgraph, kept=None, world_ready=None):
     """(splats, triangles, background, lighting) of the depsgraph's scene for the viewport picture;
-    lighting is a Lighting (with `kept`, see Lighting), or None when no splat is relit."""
+    lighting is a Lighting (with `kept`, see Lighting), or None when no splat is relit. A world whose
+    light needs Cycles' render (world_panorama.py) lights by what a render last read of it as it is
+    now; with `world_ready`, one not read yet is rendered on a thread (mesh_layer.render_world_soon),
+    which calls world_ready() once it is kept, and meanwhile lights by the world's colour."""
     scene = depsgraph.scene
     origin = np.zeros(3)
     cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
@@ -96,9 +99,11 @@ def picture_inputs(depsgraph, kept=None):
     if lit is not None:
         occluders = relit.occluders(depsgraph, origin) if len(meshes) else relit.Occluders([])
         lights, *linking = relit.linked_lights(depsgraph, origin, owners, occluders)
-        # the world's light as a final render last had Cycles render it, where nodes drive it that
-        # world_background does not read (rendering it here would hold up every scene update)
-        rendered = world_panorama.kept(scene.world) if world_panorama.wanted(backdrop) else None
+        rendered = None
+        if world_panorama.wanted(backdrop):  # nodes world_background does not read drive the world
+            rendered = world_panorama.kept(world_panorama.state(scene.world))
+            if rendered is None and world_ready is not None:  # rendered on a thread: no scene update waits
+                mesh_layer.render_world_soon(scene.world, scene.frame_current, scene.frame_subframe, world_ready)
         world = scene_world(scene, rendered or backdrop)
         lighting = Lighting(world.lights(lights), world, occluders.surfaces, kept, tuple(linking))
     return (cloud if cloud is not None else SplatCloud.empty()), meshes, background, lighting
@@ -109,13 +114,14 @@ class Viewport:
 
     def __init__(self, engine):
         engine_ref = weakref.ref(engine)
+        self.world_ready = lambda: _updated(engine_ref)  # the world's light rendered: read the scene again
         self.inputs = (SplatCloud.empty(), Triangles.empty(), None, None)
         self.progressive = Progressive(self.picture, on_ready=lambda: _redraw(engine_ref))
         self.texture, self.drawn = None, None
         self.kept = {}  # the shadows across scene updates (Lighting)
 
     def update(self, depsgraph):
-        self.inputs = picture_inputs(depsgraph, self.kept)
+        self.inputs = picture_inputs(depsgraph, self.kept, self.world_ready)
         self.progressive.refresh()
 
     def picture(self, view, scale, check):
@@ -145,6 +151,15 @@ class Viewport:
     def stop(self):
         self.progressive.stop()
         scratch.release()  # the working memory its frames shared (core.scratch)
+
+
+def _updated(engine_ref):
+    engine = engine_ref()
+    if engine is not None:
+        try:
+            engine.tag_update()
+        except ReferenceError:  # the viewport closed meanwhile
+            pass
 
 
 def _redraw(engine_ref):

@@ -72,15 +72,15 @@ UI_SETTINGS = {
 _KEPT: dict = {}  # one world's state -> its light: a still world renders once for an animation
 
 
-def kept(world) -> Background | None:
-    """The light world_light last gave for a world in this very state (state()), or None."""
-    return _KEPT.get(state(world))
+def kept(key: str) -> Background | None:
+    """The light world_light last gave for a world in the state `key` (state()), or None."""
+    return _KEPT.get(key)
 
 
-def keep(world, light: Background) -> None:
-    """Keep `light` for the world's present state, in place of any other."""
+def keep(key: str, light: Background) -> None:
+    """Keep `light` for a world in the state `key`, in place of any other."""
     _KEPT.clear()
-    _KEPT[state(world)] = light
+    _KEPT[key] = light
 
 
 def state(world) -> str:

@@ -836,12 +836,26 @@ class Worker(BlenderWorker):
             background.inputs["Strength"].default_value = SKY_SUN["strength"]
             return lambda: tree.nodes.remove(sky)
 
-        def viewport_sun():  # what the Rendered viewport lights with now: the final render's world light
-            depsgraph = bpy.context.evaluated_depsgraph_get()
-            lighting = self.module("splat_addon.render.viewport").picture_inputs(depsgraph)[3]
-            return lighting.world.sun is not None
+        def viewport():
+            """The Rendered viewport's world light: the sun the final render read ("after"); once the
+            sun is raised 10 degrees, none at first and the world asked for ("asked"), then, with
+            that render done ("ready"), the raised sun's direction ("raised")."""
+            viewport, mesh_layer = (self.module(f"splat_addon.render.{name}") for name in ("viewport", "mesh_layer"))
+            ready = []
 
-        return self.world_shadow("sky_sun", world, viewport_sun)
+            def sun():
+                depsgraph = bpy.context.evaluated_depsgraph_get()
+                return viewport.picture_inputs(depsgraph, world_ready=lambda: ready.append(1))[3].world.sun
+
+            after = sun() is not None
+            sky = next(n for n in bpy.context.scene.world.node_tree.nodes if n.bl_idname == "ShaderNodeTexSky")
+            sky.sun_elevation += math.radians(10.0)
+            asked = sun() is None
+            mesh_layer.wait_world_jobs(timeout=120)
+            raised = sun()
+            return {"after": after, "asked": asked, "ready": len(ready), "raised": list(-raised.direction)}
+
+        return self.world_shadow("sky_sun", world, viewport)
 
     def world_shadow(self, name, world, after=lambda: None):
         """A relit splat ball over a relit splat floor (splats only) with no light but the world that
