@@ -29,21 +29,28 @@ import numpy as np
 MODULE = "bl_ext.user_default.splatwright"  # the extension's package once installed
 
 
-def main(job_path):
+def main(job_path, run=None):
+    """Run the job of `job_path` (by `run`, default this bench's) into its folder's results.json,
+    the error's traceback there if it fails."""
     job = json.loads(Path(job_path).read_text())
     work = Path(job["work"])
     results = {"runs": {}, "notes": {}}
     try:
-        _run(job, work, results)
+        (run or _run)(job, work, results)
     except Exception:  # noqa: BLE001 - handed to the bench, which raises it with the log
         results["error"] = traceback.format_exc()
     (work / "results.json").write_text(json.dumps(results, indent=1))
 
 
+def install(bpy, job):
+    """Install and enable the job's extension zip, as Install from Disk does."""
+    bpy.ops.extensions.package_install_files(filepath=job["zip"], repo="user_default", enable_on_install=True)
+
+
 def _run(job, work, results):
     import bpy
 
-    bpy.ops.extensions.package_install_files(filepath=job["zip"], repo="user_default", enable_on_install=True)
+    install(bpy, job)
     camera = importlib.import_module(f"{MODULE}.splat_addon.data.camera")
     scene = _scene(bpy, job, results)
     results["core_camera"] = _core_camera(bpy, camera, scene)

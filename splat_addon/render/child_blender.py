@@ -16,14 +16,13 @@ seen through each pixel, apart from the meshes. Without "out", no mesh layer is 
 at the request's frame (world_panorama.py reads what it writes); "blend" may hold that world alone:
 
     {"discs": [Sky Texture node names whose sun disc is on], "samples": 16,
-     "panorama": {"size": [128, 64], "out": world.exr, "lit": lit.exr or null, "lit_samples": 256}}
-    {"discs": [...], "samples": 16,
-     "view": {"size": 128, "fov": radians, "rotation": 3 x 3 camera to world, "on": on.exr, "off": off.exr}}
+     "panorama": {"size": [128, 64], "out": world.exr, "lit": lit.exr, "lit_samples": 256},
+     "view": {"size": 96, "fov": radians, "rotation": 3 x 3 camera to world, "on": on.exr}}
 
-A panorama is equirectangular as an Environment Texture lays out its image, the discs off (and on,
-into "lit", with "lit_samples" samples a pixel); a view is a square perspective picture with the
-discs on, then off. "reuse": true keeps the file the last request opened (the world scene it made
-included) instead of opening it.
+A panorama is equirectangular as an Environment Texture lays out its image, into "out" with the
+discs off and into "lit" with them on ("lit_samples" samples a pixel), each where given; a view is a
+square perspective picture with the discs on. "reuse": true keeps the file the last request opened
+(the world scene it made included) instead of opening it.
 
 "shadow_casters" (optional) names an .npz of
 "vertices" (V,3) and "faces" (F,3), world space, and "groups" (F,) each face's part: the relit
@@ -117,7 +116,8 @@ def render_world(bpy, world, ask, frame):
             view.cycles.samples = pano["lit_samples"]
             shoot(bpy, view, pano["size"], pano["lit"], discs, True)
             view.cycles.samples = ask["samples"]
-        shoot(bpy, view, pano["size"], pano["out"], discs, False)
+        if pano.get("out"):
+            shoot(bpy, view, pano["size"], pano["out"], discs, False)
     if "view" in ask:
         close = ask["view"]
         camera.data.type = "PERSP"
@@ -125,9 +125,7 @@ def render_world(bpy, world, ask, frame):
         camera.data.angle = close["fov"]
         camera.data.shift_x = camera.data.shift_y = 0.0
         camera.matrix_world = Matrix(close["rotation"]).to_4x4()
-        size = (close["size"], close["size"])
-        shoot(bpy, view, size, close["on"], discs, True)
-        shoot(bpy, view, size, close["off"], discs, False)
+        shoot(bpy, view, (close["size"], close["size"]), close["on"], discs, True)
 
 
 def world_scene(bpy, world):

@@ -222,17 +222,20 @@ def _rendered(request, discs, pictures, test_break, progress, failure):
     `discs` (world_panorama.sun_discs'; None: the world not asked for), the world of its
     "world_name" too: its light, as world_panorama reads the pictures, else None."""
     child = _child()
-    with child.busy:  # the sun's close view reuses the file the request opened: nothing between them
+    with child.busy:  # a search for the sun reuses the file the request opened: nothing between them
+        close = None
         if discs is not None:
-            request = {**request, "world": world_panorama.panorama_ask(discs, pictures)}
+            ask, close = world_panorama.first_ask(discs, pictures)
+            request = {**request, "world": ask}
         _asked(child, request, test_break, progress, failure)
         if discs is None:
             return None
-        close = None
-        if discs:
-            ask, close = world_panorama.sun_view(discs, pictures)
-            again = {"reuse": True, "world_name": request["world_name"], "world": ask, **_frame(request)}
-            _asked(child, again, test_break, progress, "Cycles could not render the world's sun")
+        if discs and (close is None or not world_panorama.shows_sun(pictures, close)):  # not where the node puts it
+            again = {"reuse": True, "world_name": request["world_name"], **_frame(request)}
+            failure = "Cycles could not render the world's sun"
+            _asked(child, {**again, "world": world_panorama.search_ask(discs, pictures)}, test_break, progress, failure)
+            ask, close = world_panorama.found_ask(discs, pictures)
+            _asked(child, {**again, "world": ask}, test_break, progress, failure)
     return world_panorama.world_light(pictures, close)
 
 

@@ -114,9 +114,9 @@ class Viewport:
 
     def __init__(self, engine):
         engine_ref = weakref.ref(engine)
-        self.world_ready = lambda: _updated(engine_ref)  # the world's light rendered: read the scene again
+        self.world_ready = lambda: _tag(engine_ref, "tag_update")  # the world's light rendered: read the scene again
         self.inputs = (SplatCloud.empty(), Triangles.empty(), None, None)
-        self.progressive = Progressive(self.picture, on_ready=lambda: _redraw(engine_ref))
+        self.progressive = Progressive(self.picture, on_ready=lambda: _tag(engine_ref, "tag_redraw"))
         self.texture, self.drawn = None, None
         self.kept = {}  # the shadows across scene updates (Lighting)
 
@@ -153,20 +153,13 @@ class Viewport:
         scratch.release()  # the working memory its frames shared (core.scratch)
 
 
-def _updated(engine_ref):
+def _tag(engine_ref, what):
+    """Ask the viewport's engine for an update ("tag_update") or a redraw ("tag_redraw"), from any
+    thread, unless the viewport has closed."""
     engine = engine_ref()
     if engine is not None:
         try:
-            engine.tag_update()
-        except ReferenceError:  # the viewport closed meanwhile
-            pass
-
-
-def _redraw(engine_ref):
-    engine = engine_ref()
-    if engine is not None:
-        try:
-            engine.tag_redraw()
+            getattr(engine, what)()
         except ReferenceError:  # the viewport closed meanwhile
             pass
 

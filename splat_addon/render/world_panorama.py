@@ -8,10 +8,13 @@ picture as it reads an Environment Texture's image.
   stands out of it, its sun (core.environment.light_of).
 - A sky's sun disc (a Sky Texture of a model with one, its disc on) is a fraction of a panorama
   pixel, whose few samples measure its light to tens of percent or miss it: the panorama is rendered
-  with the discs off, and once with them on, with enough samples that SUN_HITS of them are expected
-  on the disc, to find the sun (the brightest pixel of the difference); a close view of it,
-  SUN_VIEW pixels a side with the discs on and then off, measures it as a sun light
-  (core.environment.sun_in_view).
+  with the discs off, and a close view of the sun, SUN_VIEW pixels a side with the discs on,
+  measures it as a sun light (core.environment.sun_in_view: the view less the panorama's light
+  there). The view looks where the node puts the sun (its elevation; its rotation turning it from
+  +Y towards +X, measured in Cycles), AIMED disc radii wide; where nodes drive the node's Vector
+  input (the disc models leave it unavailable in every Blender tested), or the view shows no sun
+  there, the panorama is rendered once more with the discs on, with enough samples that SUN_HITS
+  of them are expected on the disc, and the view looks at the brightest pixel of the difference.
 
 Read as the camera sees the world: a world whose nodes show the camera something else than they
 light with (Light Path's Is Camera Ray) is read as the camera sees it.
@@ -19,6 +22,7 @@ light with (Light Path's Is Camera Ray) is read as the camera sees it.
 
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -37,10 +41,21 @@ LIT_SAMPLES = (16, 1024)
 SUN_VIEW = 96  # pixels a side of the close view of a sky's sun
 SUN_VIEW_SAMPLES = 16
 SUN_SKIES = {"NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING"}  # the sky models with a sun disc
-# The close view's half-width: the brightest panorama pixel's centre is within its half-diagonal
-# of the sun's edge, so this many of those plus the disc's radius (sun_size / 2) with room to spare
+# The close view's half-width: where the node puts the sun, this many disc radii and AIM_SLACK; found
+# in the panorama, whose brightest pixel's centre is within its half-diagonal of the sun's edge, this
+# many of those plus the disc's radius (sun_size / 2) with room to spare
+AIMED = 2.0
+AIM_SLACK = math.radians(0.25)
 PIXEL_REACH = 1.25
 DISC_REACH = 0.75
+
+
+class Disc(NamedTuple):
+    """A Sky Texture's sun disc: its angular diameter (radians) and the unit direction towards it
+    where the node puts it, None where nodes drive its Vector input (turning the sky)."""
+
+    size: float
+    towards: np.ndarray | None
 
 
 def wanted(background: Background) -> bool:
@@ -49,16 +64,26 @@ def wanted(background: Background) -> bool:
     return background.note is not None and background.environment is None
 
 
-def sun_discs(world) -> dict[str, float]:
-    """The world's Sky Texture nodes whose sun disc is on: name -> the disc's angular diameter."""
+def sun_discs(world) -> dict[str, Disc]:
+    """The world's Sky Texture nodes whose sun disc is on, by name."""
     tree = getattr(world, "node_tree", None)
     if tree is None:
         return {}
-    return {
-        node.name: float(node.sun_size)
-        for node in tree.nodes
-        if node.bl_idname == "ShaderNodeTexSky" and node.sky_type in SUN_SKIES and node.sun_disc
-    }
+    skies = [n for n in tree.nodes if n.bl_idname == "ShaderNodeTexSky" and n.sky_type in SUN_SKIES and n.sun_disc]
+    return {node.name: Disc(float(node.sun_size), None if _turned(node) else sun_direction(node)) for node in skies}
+
+
+def _turned(node) -> bool:
+    """Whether nodes drive the sky's Vector input (the disc models leave it unavailable, so far)."""
+    vector = next((socket for socket in node.inputs if socket.identifier == "Vector"), None)
+    return vector is not None and vector.enabled and vector.is_linked
+
+
+def sun_direction(node) -> np.ndarray:
+    """(3,) where a Sky Texture puts its sun: its elevation up, its rotation turning it from +Y
+    towards +X (measured in Cycles, the same in every Blender tested: tests/test_blender_lights.py)."""
+    up, around = float(node.sun_elevation), float(node.sun_rotation)
+    return np.array([math.cos(up) * math.sin(around), math.cos(up) * math.cos(around), math.sin(up)])
 
 
 # A node's settings that only change how it looks in the editor
@@ -124,43 +149,68 @@ def _value(value, depth):
 
 def files(folder: Path, stamp: str) -> dict[str, Path]:
     """The EXR files of one world's pictures in `folder`."""
-    return {name: folder / f"world_{name}_{stamp}.exr" for name in ("panorama", "lit", "on", "off")}
+    return {name: folder / f"world_{name}_{stamp}.exr" for name in ("panorama", "lit", "on")}
 
 
-def panorama_ask(discs: dict[str, float], paths: dict[str, Path]) -> dict:
-    """The child's "world" request for the panorama (and, with sun discs (sun_discs'), the one with
-    them on)."""
-    lit = str(paths["lit"]) if discs else None
+def first_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> tuple[dict, Camera | None]:
+    """(the child's "world" request, the close view's core Camera or None): the panorama with the
+    `discs` (sun_discs') off and, where the node puts the one sun, the close view of it."""
+    ask = {"discs": sorted(discs), "samples": PANORAMA_SAMPLES}
+    ask["panorama"] = {"size": list(PANORAMA), "out": str(paths["panorama"])}
+    aims = [disc for disc in discs.values() if disc.towards is not None]
+    if len(discs) != 1 or len(aims) != 1:
+        return ask, None
+    fov = 2.0 * (AIMED * 0.5 * aims[0].size + AIM_SLACK)
+    ask["view"], camera = _view(aims[0].towards, fov, paths)
+    return ask, camera
+
+
+def search_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> dict:
+    """The child's "world" request for the panorama with the `discs` on, samples enough that
+    SUN_HITS are expected on the smallest."""
     # a disc of diameter s takes s^2 / 16 of the sphere (its solid angle pi s^2 / 4 over 4 pi)
-    smallest = max(min(discs.values(), default=1.0), 1e-6)
+    smallest = max(min((disc.size for disc in discs.values()), default=1.0), 1e-6)
     samples = SUN_HITS * 16.0 / (PANORAMA[0] * PANORAMA[1] * smallest**2)
     lit_samples = int(np.clip(math.ceil(samples), *LIT_SAMPLES))
-    return {
-        "discs": sorted(discs),
-        "samples": PANORAMA_SAMPLES,
-        "panorama": {"size": list(PANORAMA), "out": str(paths["panorama"]), "lit": lit, "lit_samples": lit_samples},
-    }
+    pano = {"size": list(PANORAMA), "lit": str(paths["lit"]), "lit_samples": lit_samples}
+    return {"discs": sorted(discs), "samples": PANORAMA_SAMPLES, "panorama": pano}
 
 
-def sun_view(discs: dict[str, float], paths: dict[str, Path]) -> tuple[dict, Camera]:
+def found_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> tuple[dict, Camera]:
     """(the child's "world" request for the close view of the sun, its core Camera), the sun found
-    in the panoramas with the `discs` (sun_discs') on and off."""
-    excess = _panorama(paths["lit"]) - _panorama(paths["panorama"])
-    towards = environment.peak_direction(excess)
+    in the panoramas with the `discs` on and off."""
+    towards = environment.peak_direction(_panorama(paths["lit"]) - _panorama(paths["panorama"]))
     half_diagonal = math.sqrt(0.5) * 2.0 * math.pi / PANORAMA[0]
-    fov = 2.0 * (PIXEL_REACH * half_diagonal + DISC_REACH * 0.5 * max(discs.values(), default=0.0))
+    largest = max((disc.size for disc in discs.values()), default=0.0)
+    fov = 2.0 * (PIXEL_REACH * half_diagonal + DISC_REACH * 0.5 * largest)
+    view, camera = _view(towards, fov, paths)
+    return {"discs": sorted(discs), "samples": SUN_VIEW_SAMPLES, "view": view}, camera
+
+
+def _view(towards, fov, paths):
+    """(the "view" of a request looking along `towards` `fov` radians wide, its core Camera)."""
     camera = Camera.look_at(np.zeros(3), towards, up=(0.0, 0.0, 1.0), fov_deg=math.degrees(fov), width=SUN_VIEW,
                             height=SUN_VIEW)  # fmt: skip
     rows = camera.rotation  # right, down, forward; a Blender camera's axes: right, up, backward
     to_world = np.column_stack([rows[0], -rows[1], -rows[2]])
-    view = {
-        "size": SUN_VIEW,
-        "fov": fov,
-        "rotation": to_world.tolist(),
-        "on": str(paths["on"]),
-        "off": str(paths["off"]),
-    }
-    return {"discs": sorted(discs), "samples": SUN_VIEW_SAMPLES, "view": view}, camera
+    view = {"size": SUN_VIEW, "fov": fov, "rotation": to_world.tolist(), "on": str(paths["on"])}
+    return view, camera
+
+
+def shows_sun(paths: dict[str, Path], camera: Camera) -> bool:
+    """Whether the close view through `camera` holds a sun clear of its edges."""
+    sun = _view_sun(paths, camera)
+    if sun is None:
+        return False
+    half = math.atan(0.5 * camera.width / camera.fx)
+    return math.acos(min(float(-sun.direction @ camera.forward), 1.0)) + 0.5 * sun.angle < half
+
+
+def _view_sun(paths, camera):
+    """The sun of the close view through `camera`: the view less the panorama's light there."""
+    directions, solid_angles = camera.pixel_rays()
+    sky = environment.radiance(environment.from_equirect(_panorama(paths["panorama"])), directions.reshape(-1, 3))
+    return environment.sun_in_view(_rgb(paths["on"]) - sky.reshape(directions.shape), directions, solid_angles)
 
 
 def world_light(paths: dict[str, Path], camera: Camera | None = None) -> Background:
@@ -168,8 +218,7 @@ def world_light(paths: dict[str, Path], camera: Camera | None = None) -> Backgro
     and the close view's sun (its `camera`) where there is one."""
     coefficients, sun = environment.light_of(_panorama(paths["panorama"]))
     if camera is not None:
-        directions, solid_angles = camera.pixel_rays()
-        disc = environment.sun_in_view(_rgb(paths["on"]) - _rgb(paths["off"]), directions, solid_angles)
+        disc = _view_sun(paths, camera)
         if disc is not None:
             if sun is not None:  # the sky's own brightest part stays in its light
                 coefficients = environment.with_sun(coefficients, sun)

@@ -148,10 +148,13 @@ STUDIO_WORLDS = ("sunrise", "forest", "courtyard", "interior")
 
 # Sky Texture worlds that light sky_worlds' ball: the sky model of each Blender (Nishita before 5.0,
 # its disc model's successor from 5.0; Hosek / Wilkie in both), the sun's elevation and rotation
-# (degrees) and whether its disc shows; every other setting the node's default
+# (degrees), whether its disc shows, and whether the engine is made to look for the sun elsewhere
+# first (world_panorama.sun_direction pointing away: it must search the panorama); every other
+# setting the node's default
 SKY_WORLDS = {
-    "disc": (("NISHITA", "MULTIPLE_SCATTERING"), 35.0, 40.0, True),
-    "smooth": (("HOSEK_WILKIE", "HOSEK_WILKIE"), 35.0, 40.0, False),
+    "disc": (("NISHITA", "MULTIPLE_SCATTERING"), 35.0, 40.0, True, False),
+    "smooth": (("HOSEK_WILKIE", "HOSEK_WILKIE"), 35.0, 40.0, False, False),
+    "searched": (("NISHITA", "MULTIPLE_SCATTERING"), 50.0, 120.0, True, True),
 }
 
 
@@ -392,6 +395,8 @@ class Worker(BlenderWorker):
         bpy = self.bpy
         self.install_extension()
         mesh_layer = self.module("splat_addon.render.mesh_layer")
+        world_panorama = self.module("splat_addon.render.world_panorama")
+        aimed = world_panorama.sun_direction
         ball = self.ball_scene()
         scene = bpy.context.scene
         tree = scene.world.node_tree
@@ -408,12 +413,17 @@ class Worker(BlenderWorker):
             return mesh_layer.render(depsgraph, "CYCLES", SIZE, SIZE, layer=False, world=True)[1]
 
         try:
-            for name, (models, elevation, rotation, disc) in SKY_WORLDS.items():
+            for name, (models, elevation, rotation, disc, searched) in SKY_WORLDS.items():
                 sky.sky_type = models[bpy.app.version >= (5, 0, 0)]
                 sky.sun_elevation, sky.sun_rotation = math.radians(elevation), math.radians(rotation)
                 sky.sun_disc = disc
                 images = [self.render(f"sky_{name}", seed) for seed in (0, 1)]
-                light = read()
+                if searched:
+                    world_panorama.sun_direction = lambda node: -aimed(node)
+                try:
+                    light = read()
+                finally:
+                    world_panorama.sun_direction = aimed
                 kept.append(read() is light)  # the same world again: not rendered again
                 sun = light.sun
                 found = {} if sun is None else {"towards": -sun.direction, "angle": sun.angle}
