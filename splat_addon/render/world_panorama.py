@@ -3,8 +3,8 @@ Sky Texture, textures mixed, a Mapping with a location): Cycles renders the worl
 child Blender (mesh_layer.py; child_blender.py's "world" request) and core.environment reads the
 picture as it reads an Environment Texture's image.
 
-- A panorama, PANORAMA pixels in an Environment Texture's layout, PANORAMA_SAMPLES samples a pixel
-  each the mean over its own area: its broad light (spherical harmonics to band 2) and, where one
+- A panorama, PANORAMA pixels in an Environment Texture's layout, SAMPLES samples a pixel each
+  the mean over its own area: its broad light (spherical harmonics to band 2) and, where one
   stands out of it, its sun (core.environment.light_of).
 - A sky's sun disc (a Sky Texture of a model with one, its disc on) is a fraction of a panorama
   pixel, whose few samples measure its light to tens of percent or miss it: the panorama is rendered
@@ -32,14 +32,13 @@ from ...io.exr_plain import read_plain_exr
 from .scene import Background
 
 PANORAMA = (128, 64)  # pixels: 2.8 degrees each, ten times finer than band 2's features
-PANORAMA_SAMPLES = 16
+SAMPLES = 16  # a pixel, in the panorama and the sun's close view
 # The panorama with the discs on: samples enough that this many are expected on the smallest disc
 # (none with a chance of e^-12), within what a second of Cycles renders (128 x 64 pixels, 2 cores:
 # 16 samples 0.2 s, 256 0.4-0.5 s, 1024 1.2-1.5 s)
 SUN_HITS = 12.0
 LIT_SAMPLES = (16, 1024)
 SUN_VIEW = 96  # pixels a side of the close view of a sky's sun
-SUN_VIEW_SAMPLES = 16
 SUN_SKIES = {"NISHITA", "SINGLE_SCATTERING", "MULTIPLE_SCATTERING"}  # the sky models with a sun disc
 # The close view's half-width: where the node puts the sun, this many disc radii and AIM_SLACK; found
 # in the panorama, whose brightest pixel's centre is within its half-diagonal of the sun's edge, this
@@ -155,7 +154,7 @@ def files(folder: Path, stamp: str) -> dict[str, Path]:
 def first_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> tuple[dict, Camera | None]:
     """(the child's "world" request, the close view's core Camera or None): the panorama with the
     `discs` (sun_discs') off and, where the node puts the one sun, the close view of it."""
-    ask = {"discs": sorted(discs), "samples": PANORAMA_SAMPLES}
+    ask = {"discs": sorted(discs), "samples": SAMPLES}
     ask["panorama"] = {"size": list(PANORAMA), "out": str(paths["panorama"])}
     aims = [disc for disc in discs.values() if disc.towards is not None]
     if len(discs) != 1 or len(aims) != 1:
@@ -173,7 +172,7 @@ def search_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> dict:
     samples = SUN_HITS * 16.0 / (PANORAMA[0] * PANORAMA[1] * smallest**2)
     lit_samples = int(np.clip(math.ceil(samples), *LIT_SAMPLES))
     pano = {"size": list(PANORAMA), "lit": str(paths["lit"]), "lit_samples": lit_samples}
-    return {"discs": sorted(discs), "samples": PANORAMA_SAMPLES, "panorama": pano}
+    return {"discs": sorted(discs), "samples": SAMPLES, "panorama": pano}
 
 
 def found_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> tuple[dict, Camera]:
@@ -184,7 +183,7 @@ def found_ask(discs: dict[str, Disc], paths: dict[str, Path]) -> tuple[dict, Cam
     largest = max((disc.size for disc in discs.values()), default=0.0)
     fov = 2.0 * (PIXEL_REACH * half_diagonal + DISC_REACH * 0.5 * largest)
     view, camera = _view(towards, fov, paths)
-    return {"discs": sorted(discs), "samples": SUN_VIEW_SAMPLES, "view": view}, camera
+    return {"discs": sorted(discs), "samples": SAMPLES, "view": view}, camera
 
 
 def _view(towards, fov, paths):
