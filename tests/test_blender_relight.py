@@ -468,7 +468,7 @@ def test_a_sky_textures_sun_shadows_the_floor_and_the_render_says_how_the_world_
     elsewhere; the engine says once how the world lights the splats, and the Rendered viewport lights
     them by what it read; the sun raised, the viewport has Cycles render the world on a thread (a
     scene update does not wait for it), lights by the world's colour meanwhile, and then by the raised
-    sun."""
+    sun; a world that fails to render is tried once and lit by its colour."""
     from workers.relight import SKY_SUN
 
     res = blender.step("sky_sun")
@@ -480,6 +480,7 @@ def test_a_sky_textures_sun_shadows_the_floor_and_the_render_says_how_the_world_
     up, around = np.radians(SKY_SUN["elevation"] + 10.0), np.radians(90.0 - SKY_SUN["rotation"])
     raised = np.array([np.cos(up) * np.cos(around), np.cos(up) * np.sin(around), np.sin(up)])
     assert np.degrees(np.arccos(np.clip(np.dot(seen["raised"], raised), -1, 1))) < 0.3, seen
+    assert seen["failed"] == [True] * 3 and seen["tries"] == 1, seen  # a failing world: tried once
 
 
 def assert_world_sun_shadow(blender, res, name, elevation, azimuth):

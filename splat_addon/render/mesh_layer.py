@@ -258,11 +258,12 @@ def render_world_soon(world, frame, subframe, done=lambda: None):
     """Have the child render `world`'s light (world_panorama.py) on a thread of its own and keep it
     (world_panorama.kept then finds it), then call done() from that thread. Called on the main
     thread, which writes the world's file at once (the world and what it uses: small). A world
-    already under way or waiting is not asked for twice; a newer one takes the place of one waiting."""
+    already under way, waiting or failed is not asked for again; a newer one takes the place of one
+    waiting."""
     key = world_panorama.state(world)
     with _lock:
         running, waiting = _jobs["running"], _jobs["waiting"]
-        if key == running or (waiting is not None and waiting["key"] == key):
+        if key == running or key in _jobs["failed"] or (waiting is not None and waiting["key"] == key):
             return
     work = _workdir()
     stamp = f"{os.getpid()}_{next(_counter)}"
@@ -306,6 +307,8 @@ def _world_jobs():
             job["done"]()
         except Exception:  # noqa: BLE001 - a viewport's helper thread: nothing above it to hand it to
             traceback.print_exc()
+            with _lock:
+                _jobs["failed"].add(job["key"])  # not asked for again while the world stays so
         finally:
             for path in (Path(job["request"]["blend"]), *job["pictures"].values()):
                 path.unlink(missing_ok=True)
@@ -395,7 +398,7 @@ def _serve_main_thread():
 _counter = iter(range(1, 1 << 62))
 _lock = threading.Lock()
 _state = {"child": None, "workdir": None}
-_jobs = {"thread": None, "running": None, "waiting": None}  # render_world_soon's
+_jobs = {"thread": None, "running": None, "waiting": None, "failed": set()}  # render_world_soon's
 
 
 def child_command():

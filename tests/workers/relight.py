@@ -853,7 +853,24 @@ class Worker(BlenderWorker):
             asked = sun() is None
             mesh_layer.wait_world_jobs(timeout=120)
             raised = sun()
-            return {"after": after, "asked": asked, "ready": len(ready), "raised": list(-raised.direction)}
+            # a world whose render fails: asked for once, lit by its colour on every update after
+            rendered, tries = mesh_layer._rendered, []
+
+            def failing(*args):
+                tries.append(1)
+                raise RuntimeError("a world that cannot be rendered")
+
+            mesh_layer._rendered = failing
+            try:
+                sky.sun_elevation += math.radians(5.0)
+                failed = []
+                for _ in range(3):  # three scene updates, each after the last one's render is over
+                    failed.append(sun() is None)
+                    mesh_layer.wait_world_jobs(timeout=120)
+            finally:
+                mesh_layer._rendered = rendered
+            out = {"after": after, "asked": asked, "ready": len(ready), "raised": list(-raised.direction)}
+            return {**out, "failed": failed, "tries": len(tries)}
 
         return self.world_shadow("sky_sun", world, viewport)
 
