@@ -17,7 +17,9 @@ A sun in the map is what nine coefficients hold worst (a sky with a 4-degree sun
 brightest irradiance off, tests/test_environment.py) and what a relit picture needs most (its
 shadows, its highlight). light_of takes it out (sun_of: a brightest pixel SUN_CONTRAST times the
 map's mean or more) as a sun light of the map's own direction, irradiance, colour and size, and
-reads the rest of the map with the sky around the sun in its place: together within 0.5%.
+reads the rest of the map with the sky around the sun in its place: together within 0.5%. A sun
+too small for a map's pixels (a sky's half-degree disc, rendered) is measured in a close view of it
+instead (sun_in_view; peak_direction finds it in a map holding it).
 
 An equirectangular map is read as Blender reads one: row 0 at the bottom (latitude -90 degrees),
 column u at longitude pi (1 - 2u) from +X towards +Y (u = 0.5 looks along +X, 0.25 along +Y),
@@ -177,7 +179,7 @@ def sun_in_view(
     excess: Annotated[np.ndarray, "(H, W, C>=3)"], directions: Annotated[np.ndarray, "(H, W, 3)"], solid_angles
 ) -> Light | None:
     """The sun a close view shows as `excess` radiance over the sky behind it (a picture of the sun
-    less the same picture without it), its pixels looking along `directions` and spanning
+    less the sky's light there), its pixels looking along `directions` and spanning
     `solid_angles` (H, W) (core.camera.Camera.pixel_rays), or None where it shows none: a sun disc a
     map's pixels are too coarse to measure (a sky's half-degree sun in a 128-pixel map takes a
     fraction of one, and a few samples a pixel measure its light to tens of percent)."""

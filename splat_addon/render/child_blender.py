@@ -129,10 +129,9 @@ def render_world(bpy, world, ask, frame):
 
 
 def world_scene(bpy, world):
-    """A scene holding `world` and a camera and nothing else, set to render
-    with Cycles: the world seen by camera rays, each pixel the mean over its own area (a box
-    filter), no denoising, the same sampling seed in every render (a picture less the same one
-    with a sun left out is the sun alone)."""
+    """A scene holding `world` and a camera and nothing else, set to render with Cycles: the world
+    seen by camera rays, each pixel the mean over its own area (a box filter) of all its samples (no
+    adaptive sampling: a small sun is not passed over), no denoising, one seed."""
     view = bpy.data.scenes.new(WORLD)
     view.world = world
     visibility = getattr(world, "cycles_visibility", None)
@@ -146,7 +145,7 @@ def world_scene(bpy, world):
     settings.pixel_aspect_x = settings.pixel_aspect_y = 1.0
     exr_output(settings, multilayer=False)
     view.cycles.use_denoising = False
-    view.cycles.use_adaptive_sampling = False  # every pixel all its samples: a small sun is found
+    view.cycles.use_adaptive_sampling = False
     view.cycles.pixel_filter_type = "BOX"
     view.cycles.filter_width = 1.0
     view.cycles.seed = 0
