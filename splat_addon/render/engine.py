@@ -14,7 +14,7 @@ from .. import data
 from ..data import camera as blender_camera
 from . import lights, mesh_layer, relit, viewport, world_panorama
 from .lights import WORLD_OCCLUSION, scene_world
-from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_background, world_color
+from .scene import MESH_ENGINE, mesh_engine, textured_world, to_scene_linear, world_background
 
 ORIGIN_GRID = 16.0  # metres: a power of two, so the snapped origin is exact (render_origin)
 EMPTY_DEPTH = 1e10  # what Blender's own engines write in the Depth pass where nothing was hit
@@ -76,18 +76,19 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
             cloud, lit, owners = relit.scene_cloud(depsgraph, origin)
             casters = relit.shadow_casters(cloud, lit, origin, owners, lights.blocker_collections(depsgraph))
         transparent = scene.render.film_transparent
+        backdrop = world_background(scene)  # read once: the picture's background and the splats' light
         # Nodes that world_background does not read light relit splats as Cycles renders the world
-        rendered = lit is not None and world_panorama.wanted(world_background(scene))
+        rendered = lit is not None and world_panorama.wanted(backdrop)
         meshes, world_light = self._mesh_layer(depsgraph, width, height, casters, rendered)
         layer = None if meshes is None else meshes.as_layer()
-        background = None if transparent or layer is not None else linear_to_srgb(world_color(scene))
+        background = None if transparent or layer is not None else linear_to_srgb(backdrop.color)
         self.update_stats("", f"Splatwright: {len(cloud) if cloud is not None else 0} splats")
         want_passes = getattr(depsgraph.view_layer, SPLAT_PASSES, False)
         if lit is None:
             image, lit_passes = self._image(cloud, cam, background, layer), {}
         else:
             image, lit_passes = self._lit_image(
-                depsgraph, cloud, lit, owners, cam, background, layer, origin, want_passes, world_light
+                depsgraph, cloud, lit, owners, cam, background, layer, origin, want_passes, world_light or backdrop
             )
         passes = {**splat_passes(image, layer, meshes, background), **lit_passes} if want_passes else {}
         world = None if meshes is None else meshes.world()
@@ -166,14 +167,14 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         if self.test_break():
             raise _Cancelled
 
-    def _lit_image(self, depsgraph, cloud, lit, owners, cam, background, layer, origin, passes, world_light=None):
+    def _lit_image(self, depsgraph, cloud, lit, owners, cam, background, layer, origin, passes, backdrop):
         """The RenderResult of `cloud` with its `lit` splats (those with a material; `owners` their
         objects, scene_cloud's) shaded by the scene's lights and world and shadowed by the cloud and
         the meshes (the lights' light and shadow linking read), the others with their
         own colour, in ONE core.render (core.relight.render_lit; the Depth and Splats passes need the
         whole RenderResult, a layer's transmittance with it), and the Diffuse, Specular and Shadow
-        passes when `passes`; `world_light`: the world's Background as Cycles rendered it, where its
-        nodes are more than world_background reads (world_panorama.py)."""
+        passes when `passes`; `backdrop`: the world's scene.Background (world_background's, or as
+        Cycles rendered it where its nodes are more than that reads: world_panorama.py)."""
         from ...core.relight import KeptVisibilities, render_lit  # only when something is relit
 
         if self.is_animation:
@@ -187,7 +188,7 @@ class SplatwrightRenderEngine(bpy.types.RenderEngine):
         occluders = relit.occluders(depsgraph, origin) if drawn else relit.Occluders([])
         with data.reported_warnings(self.report):  # lights' and the world's nodes that are not read
             lights, receivers, blockers, mesh_blockers = relit.linked_lights(depsgraph, origin, owners, occluders)
-            world = scene_world(depsgraph.scene, world_light)
+            world = scene_world(depsgraph.scene, backdrop)
             lights = world.lights(lights)  # an environment map's sun after the scene's lights
         lit_render = render_lit(
             cloud,
