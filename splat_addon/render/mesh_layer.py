@@ -230,13 +230,15 @@ def _rendered(request, discs, pictures, test_break, progress, failure):
         _asked(child, request, test_break, progress, failure)
         if discs is None:
             return None
-        if discs and (close is None or not world_panorama.shows_sun(pictures, close)):  # not where the node puts it
+        disc = None if close is None else world_panorama.view_sun(pictures, close)
+        if discs and not world_panorama.shows_sun(disc, close):  # not where the node puts it: searched for
             again = {"reuse": True, "world_name": request["world_name"], **_frame(request)}
             failure = "Cycles could not render the world's sun"
             _asked(child, {**again, "world": world_panorama.search_ask(discs, pictures)}, test_break, progress, failure)
             ask, close = world_panorama.found_ask(discs, pictures)
             _asked(child, {**again, "world": ask}, test_break, progress, failure)
-    return world_panorama.world_light(pictures, close)
+            disc = world_panorama.view_sun(pictures, close)
+    return world_panorama.world_light(pictures, disc)
 
 
 def _frame(request):

@@ -196,32 +196,30 @@ def _view(towards, fov, paths):
     return view, camera
 
 
-def shows_sun(paths: dict[str, Path], camera: Camera) -> bool:
-    """Whether the close view through `camera` holds a sun clear of its edges."""
-    sun = _view_sun(paths, camera)
+def shows_sun(sun, camera: Camera | None) -> bool:
+    """Whether `sun` (view_sun's, or None) lies in the close view through `camera` clear of its edges."""
     if sun is None:
         return False
     half = math.atan(0.5 * camera.width / camera.fx)
     return math.acos(min(float(-sun.direction @ camera.forward), 1.0)) + 0.5 * sun.angle < half
 
 
-def _view_sun(paths, camera):
-    """The sun of the close view through `camera`: the view less the panorama's light there."""
+def view_sun(paths: dict[str, Path], camera: Camera):
+    """The sun of the close view through `camera` (core.environment.sun_in_view): the view less the
+    panorama's light there, or None."""
     directions, solid_angles = camera.pixel_rays()
     sky = environment.radiance(environment.from_equirect(_panorama(paths["panorama"])), directions.reshape(-1, 3))
     return environment.sun_in_view(_rgb(paths["on"]) - sky.reshape(directions.shape), directions, solid_angles)
 
 
-def world_light(paths: dict[str, Path], camera: Camera | None = None) -> Background:
-    """The world's Background as the pictures in `paths` show it: the panorama's bands and sun,
-    and the close view's sun (its `camera`) where there is one."""
+def world_light(paths: dict[str, Path], disc=None) -> Background:
+    """The world's Background as the panorama in `paths` shows it (its bands and sun), the close
+    view's sun `disc` (view_sun's) in place of the panorama's where there is one."""
     coefficients, sun = environment.light_of(_panorama(paths["panorama"]))
-    if camera is not None:
-        disc = _view_sun(paths, camera)
-        if disc is not None:
-            if sun is not None:  # the sky's own brightest part stays in its light
-                coefficients = environment.with_sun(coefficients, sun)
-            sun = disc
+    if disc is not None:
+        if sun is not None:  # the sky's own brightest part stays in its light
+            coefficients = environment.with_sun(coefficients, sun)
+        sun = disc
     return Background(environment.mean(coefficients), _note(sun), coefficients, sun)
 
 
