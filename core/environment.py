@@ -126,9 +126,7 @@ def sun_of(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> tuple[Light, Patch] |
     height, width = rows.shape[:2]
     latitude = math.pi * ((np.arange(height) + 0.5) / height - 0.5)
     share = np.cos(latitude) * 4.0 * math.pi / (np.cos(latitude).sum() * width)  # each pixel's solid angle
-    luminance = np.empty((height, width), np.float32)
-    for lo in range(0, height, ROWS):  # a loop over bands of rows
-        luminance[lo : lo + ROWS] = np.asarray(rows[lo : lo + ROWS, :, :3], np.float32) @ LUMINANCE
+    luminance = _luminance(rows)
     mean = float(share @ luminance.sum(axis=1, dtype=np.float64)) / (4.0 * math.pi)
     peak = int(np.argmax(luminance))
     if not (mean > 0.0 and luminance.flat[peak] >= SUN_CONTRAST * mean):
@@ -171,8 +169,17 @@ def peak_direction(rows: Annotated[np.ndarray, "(H, W, C>=3)"]) -> Annotated[np.
     """The direction of an equirectangular map's brightest pixel (by luminance; read as from_equirect
     reads the map): where a close view finds a sun too small for the map's pixels (sun_in_view)."""
     height, width = rows.shape[:2]
-    luminance = np.asarray(rows[..., :3], np.float32) @ LUMINANCE
-    return _pixel_direction(*divmod(int(np.argmax(luminance)), width), height, width)
+    return _pixel_direction(*divmod(int(np.argmax(_luminance(rows))), width), height, width)
+
+
+def _luminance(rows):
+    """(H, W) float32 luminance of a map's pixels, a band of rows at a time (no float32 copy of a
+    large map's colours)."""
+    height, width = rows.shape[:2]
+    luminance = np.empty((height, width), np.float32)
+    for lo in range(0, height, ROWS):  # a loop over bands of rows
+        luminance[lo : lo + ROWS] = np.asarray(rows[lo : lo + ROWS, :, :3], np.float32) @ LUMINANCE
+    return luminance
 
 
 def sun_in_view(
