@@ -15,7 +15,6 @@ what lit relit splats before (the world's Viewport Display colour, uniform) and 
 (no sun light).
 """
 
-import math
 import sys
 import tempfile
 import time
@@ -28,9 +27,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 
 from blender_render import run_blender, timing  # noqa: E402
 from common import Row, print_rows  # noqa: E402
-
-from splatwright.core import environment  # noqa: E402
-from splatwright.core.lights import Light, irradiance  # noqa: E402
+from environment_reference import ball_normals, lambert, sun_light  # noqa: E402
 
 TOPIC = "world_light"
 CHILD = HERE / "_world_light_child.py"
@@ -44,23 +41,10 @@ WORLDS = {  # the node's model, its sun's elevation and rotation (degrees), its 
 }
 
 
-def ball_normals(size):
-    """(inside (H,W) bool, normals (M,3)) of the ball's pixels clear of its outline."""
-    half = 0.5 * ORTHO_SCALE
-    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half
-    z, x = np.meshgrid(-centres, centres, indexing="ij")
-    inside = x * x + z * z < 0.95**2
-    return inside, np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
-
-
 def predicted(coefficients, sun, normals):
-    """albedo x (the bands + the sun on a Lambertian surface) at `normals`."""
-    lit = environment.diffuse(np.asarray(coefficients), normals)
-    if sun is not None:
-        power, towards = max(sun["irradiance"]), np.array(sun["towards"])
-        light = Light("sun", power=power, color=np.array(sun["irradiance"]) / power, direction=-towards)
-        lit = lit + irradiance(light, np.zeros_like(normals), normals) / math.pi
-    return ALBEDO * lit
+    """albedo x (the bands + the sun, a saved reading's dict or None, on a Lambertian surface) at `normals`."""
+    light = None if sun is None else sun_light(sun["towards"], sun["irradiance"])
+    return ALBEDO * lambert(coefficients, light, normals)
 
 
 def errors(seen, ours, peak):
@@ -77,7 +61,7 @@ def run(quick=False):
         work = Path(tmp)
         results = run_blender(job, work, CHILD)
         pictures = {name: np.load(work / f"{name}.npy") for name in worlds}
-    inside, normals = ball_normals(size)
+    inside, normals = ball_normals(size, ORTHO_SCALE)
     rows = []
     for name in worlds:
         read = results["worlds"][name]

@@ -1,6 +1,7 @@
 """Equirectangular maps and their light by brute force, for tests/test_environment.py and
 bench/relight.py: every pixel a direction as Blender reads the map, its irradiance the sum of the
-pixels over each normal's hemisphere."""
+pixels over each normal's hemisphere; and a white ball's pixels and light under a world's bands and
+sun, for tests/test_blender_lights.py and bench/world_light.py."""
 
 import math
 
@@ -58,3 +59,36 @@ def add_sun(pixels, latitude, longitude, diameter, irradiance):
     out = np.array(pixels, copy=True)
     out[disc, :3] += irradiance / float((solid * disc).sum())
     return out
+
+
+def ball_normals(size, ortho_scale):
+    """(inside (H,W) bool, normals (M,3)): the pixels of a ball of radius 1 at the origin, seen along
+    +Y by an orthographic camera `ortho_scale` wide at `size` x `size` pixels (+Z up, row 0 at the
+    top; tests/workers/lights.py's, bench/world_light.py's), clear of its outline's partly covered
+    ones, and the ball's normal seen at each."""
+    half = 0.5 * ortho_scale
+    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half
+    z, x = np.meshgrid(-centres, centres, indexing="ij")
+    inside = x * x + z * z < 0.95**2
+    return inside, np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
+
+
+def sun_light(towards, irradiance):
+    """The core sun Light shining from `towards` (3,) with `irradiance` (3,) on a surface facing it."""
+    from splatwright.core.lights import Light
+
+    power = float(np.max(irradiance))
+    return Light("sun", power=power, color=np.asarray(irradiance, np.float64) / power, direction=-np.asarray(towards))
+
+
+def lambert(coefficients, sun, normals):
+    """(M,3) what a white Lambertian surface at `normals` sends back under a world of SH bands
+    `coefficients` (core.environment) and a sun Light (or None): the bands' diffuse light plus the
+    sun's irradiance over pi."""
+    from splatwright.core import environment
+    from splatwright.core.lights import irradiance
+
+    lit = environment.diffuse(np.asarray(coefficients, np.float64), normals)
+    if sun is not None:
+        lit = lit + irradiance(sun, np.zeros_like(normals), normals) / math.pi
+    return lit

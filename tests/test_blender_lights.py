@@ -9,6 +9,7 @@ Runs in every Blender of the version matrix (a few seconds each); the units are 
 import dataclasses
 import math
 
+import environment_reference
 import numpy as np
 import pytest
 from blender_session import blender_fixture
@@ -237,27 +238,17 @@ def test_a_narrow_spreads_shadow_falls_along_its_axis_as_in_cycles(blender, monk
 
 
 def ball_normals(rec):
-    """(inside (H,W) bool, normals (M,3)): the pixels of tests/workers/lights.py's ball (radius 1 at
-    the origin, seen along +Y by the orthographic camera, +Z up, row 0 at the top) clear of its
-    outline's partly covered ones, and the ball's normal seen at each."""
-    size, half = rec["size"], 0.5 * rec["ortho_scale"]
-    centres = ((np.arange(size) + 0.5) / size * 2.0 - 1.0) * half
-    z, x = np.meshgrid(-centres, centres, indexing="ij")
-    inside = x * x + z * z < 0.95**2
-    return inside, np.stack([x, -np.sqrt(np.maximum(1.0 - x * x - z * z, 0.0)), z], axis=-1)[inside]
+    """environment_reference.ball_normals of tests/workers/lights.py's ball and camera (`rec`)."""
+    return environment_reference.ball_normals(rec["size"], rec["ortho_scale"])
 
 
 def map_light(albedo, pixels, normals):
     """(albedo x (the map's bands + its sun on a Lambertian surface) at `normals`, the sun or None):
     core.environment.light_of's prediction of a white diffuse ball under the map `pixels`."""
     from splatwright.core import environment
-    from splatwright.core.lights import irradiance
 
     coefficients, sun = environment.light_of(pixels)
-    lit = environment.diffuse(coefficients, normals)
-    if sun is not None:
-        lit = lit + irradiance(sun, np.zeros_like(normals), normals) / math.pi
-    return albedo * lit, sun
+    return albedo * environment_reference.lambert(coefficients, sun, normals), sun
 
 
 @pytest.mark.parametrize("turned", [False, True])
@@ -365,22 +356,18 @@ def test_cycles_lights_a_ball_by_a_sky_texture_as_the_engine_reads_the_world(ble
     again is not rendered again; changed, it is."""
     from workers.lights import SKY_WORLDS
 
-    from splatwright.core import environment
-    from splatwright.core.lights import Light, irradiance
-
     rec = blender.step("sky_worlds")
     assert rec["kept"] == [True] * len(SKY_WORLDS) + [False]  # a world as it was is not rendered again
     inside, normals = ball_normals(rec)
     for name, (_, elevation, rotation, disc, _) in SKY_WORLDS.items():
         images = blender.npz(f"sky_{name}")
         seen = two_renders(images)[0][inside]
-        bands = rec["albedo"] * environment.diffuse(images["coefficients"], normals)
+        bands = rec["albedo"] * environment_reference.lambert(images["coefficients"], None, normals)
         assert ("towards" in images) == disc
         ours = bands
         if disc:
-            power = float(images["irradiance"].max())
-            sun = Light("sun", power=power, color=images["irradiance"] / power, direction=-images["towards"])
-            ours = bands + rec["albedo"] * irradiance(sun, np.zeros_like(normals), normals) / math.pi
+            sun = environment_reference.sun_light(images["towards"], images["irradiance"])
+            ours = rec["albedo"] * environment_reference.lambert(images["coefficients"], sun, normals)
             up, around = math.radians(elevation), math.radians(90.0 - rotation)
             want = np.array([math.cos(up) * math.cos(around), math.cos(up) * math.sin(around), math.sin(up)])
             assert np.degrees(np.arccos(np.clip(images["towards"] @ want, -1, 1))) < 0.3  # measured 0.0 degrees
