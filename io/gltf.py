@@ -12,12 +12,21 @@ and colour space ("srgb_rec709_display"), with the attributes
                                                the extension stops at degree 3 (45 coefficients), so a
                                                degree-4 cloud is written at degree 3 with a warning
     COLOR_0                                    optional VEC4 fallback colour for point renderers
+    NORMAL                                     VEC3 float unit normals: the extras nx, ny, nz (when
+                                               every one is a unit vector; else written as the
+                                               other extras are)
+    _<name>                                    an application-specific attribute (glTF 2.0's leading
+                                               underscore) per float extra of 1 to 4 columns, its
+                                               name kept: albedo VEC3, roughness and metallic SCALAR
 Axes: glTF is +Y up with +Z to the front and +X to the left (LUF); the model's 3DGS axes (RDF) are a
 half turn about Z from it, so x and y change sign (positions, quaternion x and y, SH by parity), as
 PlayCanvas does. Node transforms above a splat primitive are applied on reading.
 
 The writer stores float32 values: quaternions normalised, scales and opacities activated (exp and
-sigmoid, so reading back is exact to float32 round-off, about 1e-7 relative). Extras are not stored.
+sigmoid, so reading back is exact to float32 round-off, about 1e-7 relative). Extras are stored as
+float32 (a float64 one reads back as float32); integer and boolean extras, and those of more than four
+columns, have no glTF attribute that keeps them and are left out with a warning naming them. Reading,
+every `_<name>` attribute of a splat primitive becomes the extra <name> (float32).
 
 A buffer in a file is read only under the reading policy (io/policy.py): a regular file in the
 glTF's folder or below (the folder of the file a symbolic link names, where the writer puts it),
@@ -40,7 +49,7 @@ import numpy as np
 
 from ..core import SplatCloud
 from ..core import sh as shmod
-from ..core.splats import logit, sigmoid
+from ..core.splats import NORMAL_EXTRAS, logit, sigmoid
 from .common import (
     SplatFileError,
     SplatFileWarning,
@@ -63,6 +72,9 @@ GLB_MAGIC, JSON_CHUNK, BIN_CHUNK = 0x46546C67, 0x4E4F534A, 0x004E4942
 LUF = [-1, -1, 1]  # the half turn about Z between RDF and glTF's axes
 COMPONENTS = {5120: "i1", 5121: "u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+TYPE = {width: kind for kind, width in WIDTH.items()}
+CUSTOM = "_"  # glTF 2.0: application-specific attribute semantics start with an underscore
+UNIT_NORMAL = 1e-3  # |length - 1| within which normals are written as glTF's NORMAL (unit vectors)
 MAX_BYTES = 1 << 34  # a buffer claiming more than this is refused before reading
 # Numbers the accessors of a file may decode to: any file this many, a larger one this many per byte
 # its buffers hold. A file read once decodes to at most one number per byte (normalised bytes); the
@@ -337,7 +349,29 @@ def _primitive_cloud(path, doc, buffers, primitive, notes):
         opacities = np.clip(opacities, 0, 1)
     with np.errstate(invalid="ignore"):
         logits = np.where(np.isfinite(opacities), logit(opacities), opacities)
-    return SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], log_scales_from_linear(scales, notes), logits, sh)
+    extras = _extras(path, doc, attributes, get, n, notes)
+    return SplatCloud(positions, xyzw[:, [3, 0, 1, 2]], log_scales_from_linear(scales, notes), logits, sh, extras)
+
+
+def _extras(path, doc, attributes, get, n, notes):
+    """{name: float32 (n,) or (n, k)}: NORMAL as the extras nx, ny, nz, every `_<name>` as <name>
+    (another tool's of a matrix type left out, with a note)."""
+    extras, accessors = {}, _list(path, doc, "accessors")
+    if "NORMAL" in attributes:
+        extras.update(zip(NORMAL_EXTRAS, get("NORMAL", 3).T.astype(np.float32), strict=True))
+    for name, index in attributes.items():
+        if not name.startswith(CUSTOM) or len(name) == len(CUSTOM):
+            continue
+        kind = accessors[index].get("type") if isinstance(index, int) and 0 <= index < len(accessors) else None
+        if kind is not None and kind not in WIDTH:
+            notes.append(f"attribute {name} ({kind}) not read")
+            continue
+        values = get(name, None).astype(np.float32)
+        extras[name[len(CUSTOM) :]] = values[:, 0] if values.shape[1] == 1 else values
+    for name, values in extras.items():
+        if len(values) != n:
+            raise SplatFileError(path, f"extra '{name}' has {len(values)} entries for {n} positions")
+    return extras
 
 
 def _sh(path, attributes, get, n, notes):
@@ -472,6 +506,7 @@ def encode(cloud, generator="Splatwright"):
         (sh_name(d, c), cloud.sh[:, d * d + c], "VEC3") for d in range(cloud.sh_degree + 1) for c in range(2 * d + 1)
     ]
     arrays.append(("COLOR_0", np.clip(np.rint(rgba * 255), 0, 255).astype(np.uint8), "VEC4"))
+    arrays += extra_attributes(cloud.extras)[0]
     blobs, views, accessors, attributes, at = [], [], [], {}, 0
     for name, values, kind in arrays:
         values = np.ascontiguousarray(values, np.uint8 if values.dtype == np.uint8 else "<f4")
@@ -523,13 +558,39 @@ def encode(cloud, generator="Splatwright"):
     return doc, b"".join(blobs)
 
 
+def extra_attributes(extras):
+    """([(attribute, (N, k) float32, type)], names left out) for a cloud's extras in glTF's axes:
+    unit normals as NORMAL, other float extras of 1 to 4 columns as `_<name>`."""
+    extras, attributes = dict(extras), []
+    if all(name in extras for name in NORMAL_EXTRAS):
+        normals = np.stack([np.asarray(extras[name], np.float32).reshape(-1) for name in NORMAL_EXTRAS], axis=1)
+        with np.errstate(invalid="ignore"):
+            unit = np.abs(np.linalg.norm(normals.astype(np.float64), axis=1) - 1.0) <= UNIT_NORMAL
+        if unit.all():
+            attributes.append(("NORMAL", normals, "VEC3"))
+            for name in NORMAL_EXTRAS:
+                del extras[name]
+    left = []
+    for name, values in extras.items():
+        values = np.asarray(values)
+        columns = {1: 1, 2: values.shape[-1]}.get(values.ndim, 0)
+        if values.dtype.kind != "f" or not 1 <= columns <= 4:
+            left.append(name)
+            continue
+        attributes.append((CUSTOM + name, values.reshape(len(values), columns).astype(np.float32), TYPE[columns]))
+    return attributes, sorted(left)
+
+
 def write(path, cloud, nonfinite="raise"):
     """Write a .glb (one file) or a .gltf with its buffer in `<name>.bin` beside it (through a
     symbolic link: beside the file it names, as `<that name>.bin`)."""
     cloud = apply_nonfinite_policy(path, cloud, nonfinite, "write")
-    if cloud.extras:
+    left = extra_attributes(cloud.extras)[1]
+    if left:
         warnings.warn(
-            f"{path}: glTF splats carry no extras; {sorted(cloud.extras)} not written", SplatFileWarning, stacklevel=2
+            f"{path}: glTF attributes hold float extras of 1 to 4 columns only; {left} not written",
+            SplatFileWarning,
+            stacklevel=2,
         )
     notes = []
     cloud = reduced_sh(cloud, MAX_SH_DEGREE, EXTENSION, notes)

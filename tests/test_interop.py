@@ -34,6 +34,7 @@ from interop import (
 )
 from test_spz_splat import FLIP_SIGNS, check_spz_error, in_range_cloud, spz_rotation_bound, v2_rotation_bound
 
+from splatwright.core import material
 from splatwright.io import read_splats, spz, usd, write_splats
 
 pytestmark = pytest.mark.slow
@@ -566,6 +567,16 @@ def gltf_cloud(degree):
     return random_cloud(200, sh_degree=degree, seed=40 + degree)
 
 
+def gltf_material(cloud):
+    """`cloud` with a material (albedo, normals, roughness, metallic): the extras our glTF carries."""
+    rng = np.random.default_rng(len(cloud))
+    n = len(cloud)
+    return material.with_material(
+        cloud, albedo=rng.uniform(0, 1, (n, 3)), normals=rng.normal(size=(n, 3)), roughness=rng.uniform(0, 1, n),
+        metallic=rng.uniform(0, 1, n),
+    )  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def gltf_work(tmp_path_factory):
     """For each SH degree (folders d0..d3): glTF Transform reading our .glb and .gltf (one run), and
@@ -575,7 +586,7 @@ def gltf_work(tmp_path_factory):
         cloud, here = gltf_cloud(degree), work / folder
         here.mkdir()
         for ext in (".glb", ".gltf"):
-            write_splats(here / f"ours{ext}", cloud)
+            write_splats(here / f"ours{ext}", gltf_material(cloud))
         write_splats(here / "src.ply", cloud)
         splat_transform(here / "src.ply", here / "theirs.glb")
     jobs = [["{}/ours.glb", "{}/read.glb.json"], ["{}/ours.gltf", "{}/read.gltf.json"]]
@@ -605,6 +616,13 @@ def test_gltf_both_ways(gltf_work, degree, ext):
                 np.testing.assert_array_equal(
                     np.float32(attributes[name]), cloud.sh[:, d * d + c] * GLTF_SH_SIGNS[d * d + c]
                 )
+    # the material: unit normals as NORMAL in glTF's axes, the other parts as `_<name>` attributes
+    lit = gltf_material(cloud)
+    np.testing.assert_array_equal(np.float32(attributes["NORMAL"]), material.normals(lit) * np.float32([-1, -1, 1]))
+    assert np.abs(np.linalg.norm(np.float64(attributes["NORMAL"]), axis=1) - 1).max() < 1e-6
+    np.testing.assert_array_equal(np.float32(attributes["_albedo"]), material.albedo(lit))
+    for name, part in (("_roughness", material.roughness(lit)), ("_metallic", material.metallic(lit))):
+        np.testing.assert_array_equal(np.reshape(np.float32(attributes[name]), -1), part)
     # theirs (splat-transform's .glb of the PLY): the PLY's values, the same ellipsoids (the quaternion
     # may differ by a half turn about a scale axis)
     theirs = matched(read_splats(work / "theirs.glb"), cloud)

@@ -246,6 +246,33 @@ def test_gltf_hand_built_file_with_quantised_rotations(tmp_path):
         read_splats(tmp_path / "spz.gltf")
 
 
+def test_gltf_extras_another_tool_wrote(tmp_path):
+    """Another tool's attributes: a quantised NORMAL (normalised bytes, as KHR_mesh_quantization
+    allows) read as the normals in the model's axes, `_TEMPERATURE` as the extra TEMPERATURE, a
+    matrix-typed `_FRAME` left out with a warning; a `_` attribute with too few entries refused."""
+    values = {
+        "POSITION": (np.float32([[1, 2, 3], [-4, 5, 0.5]]), 5126, "VEC3", False),
+        "KHR_gaussian_splatting:ROTATION": (np.float32([[0, 0, 0, 1]] * 2), 5126, "VEC4", False),
+        "KHR_gaussian_splatting:SCALE": (np.float32([[0.1, 0.2, 0.3]] * 2), 5126, "VEC3", False),
+        "KHR_gaussian_splatting:OPACITY": (np.float32([0.5, 1.0]), 5126, "SCALAR", False),
+        "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0": (np.float32([[0.1, 0.2, 0.3]] * 2), 5126, "VEC3", False),
+        "NORMAL": (np.int8([[127, 0, 0], [0, 0, -127]]), 5120, "VEC3", True),
+        "_TEMPERATURE": (np.float32([20.5, -3.0]), 5126, "SCALAR", False),
+        "_FRAME": (np.zeros((2, 16), np.float32), 5126, "MAT4", False),
+    }
+    hand_gltf(tmp_path / "theirs.gltf", values)
+    with pytest.warns(SplatFileWarning, match="_FRAME"):
+        got = read_splats(tmp_path / "theirs.gltf")
+    assert sorted(got.extras) == ["TEMPERATURE", "nx", "ny", "nz"]
+    np.testing.assert_array_equal(got.extras["TEMPERATURE"], [20.5, -3.0])
+    normals = np.stack([got.extras[k] for k in ("nx", "ny", "nz")], axis=1)
+    np.testing.assert_array_equal(normals, [[-1, 0, 0], [0, 0, -1]])  # x and y reversed from glTF's
+    values["_TEMPERATURE"] = (np.float32([20.5]), 5126, "SCALAR", False)
+    hand_gltf(tmp_path / "short.gltf", values)
+    with pytest.raises(SplatFileError, match="'TEMPERATURE' has 1 entries for 2 positions"):
+        read_splats(tmp_path / "short.gltf")
+
+
 def test_gltf_node_transforms_apply(tmp_path):
     cloud = random_cloud(30, sh_degree=1, seed=3)
     write_splats(tmp_path / "a.glb", cloud)
