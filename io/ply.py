@@ -319,12 +319,13 @@ class _Converter:
         if all(p in extras for p in NORMALS) and not any(extras[p].any() for p in NORMALS):
             for p in NORMALS:  # all zero: the reference writer's placeholder, nothing to keep
                 del extras[p]
-        return SplatCloud(**self.arrays, extras=_material_columns(extras), antialiased=self.antialiased)
+        return SplatCloud(**self.arrays, extras=material_columns(extras), antialiased=self.antialiased)
 
 
-def _material_columns(extras):
+def material_columns(extras):
     """The extras with the albedo's columns (written as albedo_0..2, as 2-D extras are) one (N,3)
-    extra again, as core.material names it; other 2-D extras stay columns, as they were read."""
+    extra again, as core.material names it; other 2-D extras stay columns, as they were read (the
+    Blender extension reads a PLY's properties that Blender's own importer kept so too)."""
     names = [f"{material.ALBEDO}_{i}" for i in range(3)]
     if material.ALBEDO in extras or not all(n in extras for n in names) or f"{material.ALBEDO}_3" in extras:
         return extras

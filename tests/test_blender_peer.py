@@ -22,7 +22,16 @@ import numpy as np
 import pytest
 from blender_session import blender_fixture
 from helpers import covariances, euler_matrix, quat_matrices, random_cloud
-from workers.peer import DEGREES, HALF_USD, MOVE, USD_EXTENSIONS, blender_importer, peer_files, spz_names
+from workers.peer import (
+    DEGREES,
+    HALF_USD,
+    MATERIAL_FILES,
+    MOVE,
+    USD_EXTENSIONS,
+    blender_importer,
+    peer_files,
+    spz_names,
+)
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
@@ -49,6 +58,24 @@ def _write_inputs(work):
                 write_splats(work / f"d{degree}{ext}", cloud)
             if degree == 3:
                 write_splats(work / HALF_USD, cloud, half=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # glTF has no attribute for the integer extra: said on writing
+        for name in MATERIAL_FILES:
+            write_splats(work / name, material_cloud())
+
+
+def material_cloud():
+    """Splats with a material (albedo, normals, roughness, metallic) and a float and an integer extra."""
+    from splatwright.core import material
+
+    n = 200
+    rng = np.random.default_rng(7)
+    cloud = material.with_material(
+        random_cloud(n, 1, 7), albedo=rng.uniform(0, 1, (n, 3)), normals=rng.normal(size=(n, 3)),
+        roughness=rng.uniform(0, 1, n), metallic=rng.uniform(0, 1, n),
+    )  # fmt: skip
+    extras = {"confidence": rng.uniform(0, 1, n).astype(np.float32), "label": np.arange(n, dtype=np.int32)}
+    return cloud.replace(extras={**cloud.extras, **extras})
 
 
 blender = blender_fixture("workers.peer", _write_inputs, since="5.3")
@@ -307,3 +334,30 @@ def test_blenders_own_usd_export_is_not_read_back_as_splats(blender):
     np.testing.assert_array_equal(np.array(prim.GetAttribute("primvars:scale").Get(), np.float32), stored)
     again = res["reimport"]
     assert again["data_type"] == ["POINTS"] and "radiance:base" not in again["attributes"], again
+
+
+@pytest.mark.parametrize("name", MATERIAL_FILES)
+def test_what_blenders_importers_keep_of_a_material_is_read_and_exported(blender, name):
+    """Blender's PLY importer keeps a PLY's extra properties as point attributes (an integer one as
+    FLOAT) and its glTF importer a glTF's `_<name>` attributes; both drop the normals. Splatwright reads
+    what they kept as the file's extras (albedo_0..2 as one albedo), exports them (plyfile reads the
+    PLY's columns as the source's), and a Relight of such a cloud says that the normals are missing."""
+    from splatwright.core import material
+
+    res = blender.step("material")[name]
+    assert res["import"]["error"] is None and res["type"] == "GAUSSIAN_SPLAT", res
+    source = material_cloud()
+    read = blender.npz(f"material_{name.replace('.', '_')}")
+    kept = {"albedo", "roughness", "metallic", "confidence"} | ({"label"} if name.endswith(".ply") else set())
+    assert set(read) == kept, sorted(read)  # the normals: dropped by both importers
+    for key in sorted(kept - {"label"}):
+        np.testing.assert_array_equal(read[key], source.extras[key].astype(np.float32), err_msg=key)
+    if "label" in kept:
+        np.testing.assert_array_equal(read["label"], source.extras["label"].astype(np.float32))
+    assert res["export"]["error"] is None, res
+    written = ply_columns(blender.out / f"material_{name.replace('.', '_')}.ply")
+    np.testing.assert_array_equal(np.stack([written[f"albedo_{i}"] for i in range(3)], 1), material.albedo(source))
+    for key in ("roughness", "metallic", "confidence"):
+        np.testing.assert_array_equal(written[key], source.extras[key].astype(np.float32), err_msg=key)
+    assert not np.any([written[k] for k in ("nx", "ny", "nz")])  # the placeholder zeros: no normals
+    assert len(res["warnings"]) == 1 and "carry no normals" in res["warnings"][0], res["warnings"]

@@ -9,8 +9,9 @@ import numpy as np
 
 from ...core import sh as shmod
 from ...core.splats import logit, sigmoid
+from ...io.ply import material_columns
 from .errors import SplatObjectError
-from .keys import EXTRA_PREFIX, EXTRAS_SPEC, MAX_NAME, SH_PREFIX
+from .keys import EXTRA_PREFIX, EXTRAS_SPEC, MAX_NAME, NATIVE_REQUIRED, NATIVE_SH_PREFIX, SH_PREFIX
 
 # Blender attribute type -> (foreach property, components, NumPy buffer dtype)
 _TYPES = {
@@ -23,6 +24,7 @@ _TYPES = {
     "INT": ("value", 1, np.int32),
     "BOOLEAN": ("value", 1, bool),
 }
+_EXTRA_TYPES = ("FLOAT", "FLOAT2", "FLOAT_VECTOR", "INT", "BOOLEAN")  # the types extras are stored as
 
 
 def splat_count(geometry):
@@ -221,3 +223,34 @@ def _read_extras(geometry, owner, spec_owner):
             values = _get(geometry, attr.name, attr.data_type, owner)
             extras[name] = values[:, 0] if values.shape[1] == 1 else values
     return extras
+
+
+# Point attributes of a point cloud that are no extra: the splat's own (NATIVE_REQUIRED, SH), Blender's
+# point size, and what Splatwright keeps (names starting "splat_" or hidden ones, starting ".").
+_NOT_FOREIGN = (*NATIVE_REQUIRED, "radius")
+_OURS = ("splat_", ".")
+GLTF_CUSTOM = "_"  # glTF's application-specific attributes: `_<name>`, as Blender's glTF importer names them
+
+
+def foreign_extras(geometry, owner, original, taken=()):
+    """{name: (N,) or (N, k)}: the point attributes besides the splats' own that an importer left on a
+    native cloud, as extras (what Splatwright's own reader would make of the file): Blender's PLY
+    importer keeps a PLY's extra properties by name (albedo_0..2 joined into one (N,3) albedo, as
+    io.ply reads them), its glTF importer a glTF's `_<name>` attributes (the extra <name>). Only those
+    the `original` datablock holds (not what geometry nodes add to an evaluated one), none in `taken`."""
+    extras = {}
+    for attr in geometry.attributes:
+        name = attr.name
+        if (
+            name in _NOT_FOREIGN
+            or name.startswith((*_OURS, NATIVE_SH_PREFIX))
+            or attr.domain != "POINT"
+            or attr.data_type not in _EXTRA_TYPES
+            or name not in original.attributes
+        ):
+            continue
+        values = _get(geometry, name, attr.data_type, owner)
+        extras[name[len(GLTF_CUSTOM) :] if name.startswith(GLTF_CUSTOM) else name] = (
+            values[:, 0] if values.shape[1] == 1 else values
+        )
+    return {name: values for name, values in material_columns(extras).items() if name not in taken}

@@ -26,6 +26,9 @@ a point cloud with
                           Splatwright wrote the values: used only while exp and the sigmoid of them
                           still give `scale` and the opacity bit for bit, so an edit made elsewhere wins
     splat_extra_<name>    extras, as in the mesh form
+    <name>, _<name>       other point attributes Blender's importers kept of a file (a PLY's extra
+                          properties, albedo_0..2 joined into one albedo; a glTF's `_<name>`
+                          attributes): read as the extras <name> (attributes.foreign_extras)
 
 What the attributes are called: keys.py; how they are read and written: attributes.py.
 """
@@ -53,6 +56,7 @@ from .attributes import (
     _write_extra,
     _write_extras,
     base_type,
+    foreign_extras,
     native_log_scales,
     native_opacity_logits,
     sh_attribute,
@@ -317,11 +321,10 @@ def geometry_cloud(geometry, owner=None, form=None, spec_owner=None):
             raise SplatObjectError(f"'{owner}' is not a splat cloud (mesh without the '{MARKER}' marker)")
     read = _read_mesh_form if form == MESH_FORM else _read_native_form
     spec_owner = spec_owner or geometry
-    return SplatCloud(
-        **read(geometry, owner),
-        extras=_read_extras(geometry, owner, spec_owner),
-        antialiased=made_antialiased(spec_owner),
-    )
+    extras = _read_extras(geometry, owner, spec_owner)
+    if form == NATIVE_FORM:  # what Blender's importers kept of a file besides the splats
+        extras = {**foreign_extras(geometry, owner, spec_owner, taken=extras), **extras}
+    return SplatCloud(**read(geometry, owner), extras=extras, antialiased=made_antialiased(spec_owner))
 
 
 def made_antialiased(geometry):

@@ -93,9 +93,12 @@ def _marked(obj, cloud):
     object is not relit, so core.relight keeps its colours)."""
     relit = is_relit(obj)
     if relit and not material.has_material(cloud):  # once per render: objects are read once
+        missing = [part for part, keys in (("albedo", [material.ALBEDO]), ("normals", material.NORMALS)) if
+                   not all(key in cloud.extras for key in keys)]  # fmt: skip
         warnings.warn(
-            f"{obj.name}: Relight is on but its splats carry no material (albedo and normals): rendered "
-            "unlit; convert the mesh with Material for Relighting, or estimate normals",
+            f"{obj.name}: Relight is on but its splats carry no {' and no '.join(missing)} (a material needs "
+            "albedo and normals): rendered unlit; convert the mesh with Material for Relighting, or estimate "
+            "normals",
             RelightWarning,
             stacklevel=2,
         )

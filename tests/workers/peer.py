@@ -4,6 +4,8 @@ writes, and Blender's imports written back through Splatwright (see tests/test_b
 Each import is saved as it stands in Blender: the point attributes as stored and the object's world
 matrix; the test makes world-space splats of them."""
 
+import warnings
+
 import numpy as np
 
 from workers.base import BlenderWorker, point_attributes, worker_main
@@ -11,6 +13,7 @@ from workers.base import BlenderWorker, point_attributes, worker_main
 DEGREES = (0, 3, 4)
 USD_EXTENSIONS = (".usda", ".usdc", ".usdz")
 HALF_USD = "d3_half.usdc"  # written with half floats (use_half)
+MATERIAL_FILES = ("material.ply", "material.glb")  # a material and extras, for Blender's own importers
 # An object transform given on Blender's side before export: a turn with a stretch along the object's
 # own axes (shear-free), so the SH turn with the rotation alone.
 MOVE = {"location": (0.25, -1.5, 2.0), "rotation_euler": (0.4, -0.9, 1.3), "scale": (1.0, 2.5, 0.5)}
@@ -35,7 +38,7 @@ def blender_importer(name):
 
 
 class PeerWorker(BlenderWorker):
-    steps = ("imports", "round_trips", "moved", "blender_usd")
+    steps = ("imports", "round_trips", "moved", "blender_usd", "material")
 
     def __init__(self, work, zip_path):
         super().__init__(work, zip_path)
@@ -48,6 +51,9 @@ class PeerWorker(BlenderWorker):
         return [o for o in self.bpy.data.objects if o not in before], outcome
 
     def blender_import(self, name):
+        if name.endswith(".glb"):
+            op = self.bpy.ops.import_scene.gltf
+            return self.new_objects(lambda: self.call(op, filepath=str(self.work / name)))
         op = getattr(self.bpy.ops.wm, blender_importer(name))
         return self.new_objects(lambda: self.call(op, filepath=str(self.work / name)))
 
@@ -143,6 +149,32 @@ class PeerWorker(BlenderWorker):
         self.bpy.data.objects.remove(obj)
         made = self.new_objects(lambda: self.call(self.bpy.ops.wm.usd_import, filepath=str(path)))
         return {**res, "reimport": self.describe(*made, "blender_usd_reimport")}
+
+    def material(self):
+        """The files of MATERIAL_FILES opened by Blender's own importers: the extras Splatwright reads
+        of the cloud (saved as `material_<file>`), Export to PLY, and the render engine's word on a
+        Relight the cloud without normals cannot take."""
+        data, relit = self.module("splat_addon.data"), self.module("splat_addon.render.relit")
+        res = {}
+        for name in MATERIAL_FILES:
+            (obj,), outcome = self.blender_import(name)
+            stem = name.replace(".", "_")
+            cloud = data.object_cloud(obj)
+            self.save(f"material_{stem}", **{k: np.asarray(v) for k, v in cloud.extras.items()})
+            self.select([obj])
+            res[name] = {
+                "import": outcome,
+                "type": getattr(obj.data, "type", None),
+                "extras": {k: str(np.asarray(v).dtype) for k, v in cloud.extras.items()},
+                "export": self.export(f"material_{stem}.ply"),
+            }
+            setattr(obj, self.module("splat_addon.render.lights").RELIGHT, True)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                relit._marked(obj, cloud)
+            res[name]["warnings"] = [str(w.message) for w in caught]
+            self.bpy.data.objects.remove(obj)
+        return res
 
 
 if __name__ == "__main__":
