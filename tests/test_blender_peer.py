@@ -341,7 +341,8 @@ def test_what_blenders_importers_keep_of_a_material_is_read_and_exported(blender
     """Blender's PLY importer keeps a PLY's extra properties as point attributes (an integer one as
     FLOAT) and its glTF importer a glTF's `_<name>` attributes; both drop the normals. Splatwright reads
     what they kept as the file's extras (albedo_0..2 as one albedo), exports them (plyfile reads the
-    PLY's columns as the source's), and a Relight of such a cloud says that the normals are missing."""
+    PLY's columns as the source's), and a Relight of such a cloud says that the normals are missing
+    until Estimate Normals gives it some."""
     from splatwright.core import material
 
     res = blender.step("material")[name]
@@ -361,3 +362,7 @@ def test_what_blenders_importers_keep_of_a_material_is_read_and_exported(blender
         np.testing.assert_array_equal(written[key], source.extras[key].astype(np.float32), err_msg=key)
     assert not np.any([written[k] for k in ("nx", "ny", "nz")])  # the placeholder zeros: no normals
     assert len(res["warnings"]) == 1 and "carry no normals" in res["warnings"][0], res["warnings"]
+    # Estimate Normals completes it: relit, with the file's albedo
+    assert res["estimate"]["result"] == ["FINISHED"] and res["warnings_estimated"] == [], res
+    estimated = blender.npz(f"material_{name.replace('.', '_')}_estimated")
+    np.testing.assert_array_equal(estimated["albedo"], material.albedo(source))

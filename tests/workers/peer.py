@@ -173,6 +173,14 @@ class PeerWorker(BlenderWorker):
                 warnings.simplefilter("always")
                 relit._marked(obj, cloud)
             res[name]["warnings"] = [str(w.message) for w in caught]
+            # Estimate Normals completes the material: the cloud is then relit, its albedo the file's
+            res[name]["estimate"] = self.call(self.bpy.ops.splat.estimate_normals, orient="CENTRE")
+            estimated = data.object_cloud(obj)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                marked = relit._marked(obj, estimated)
+            res[name]["warnings_estimated"] = [str(w.message) for w in caught]
+            self.save(f"material_{stem}_estimated", albedo=np.asarray(marked.extras["albedo"]))
             self.bpy.data.objects.remove(obj)
         return res
 
