@@ -9,6 +9,7 @@ import numpy as np
 
 from ...core import sh as shmod
 from ...core.splats import logit, sigmoid
+from ...io.gltf import CUSTOM as GLTF_CUSTOM  # glTF's application-specific `_<name>` attributes
 from ...io.ply import material_columns
 from .errors import SplatObjectError
 from .keys import EXTRA_PREFIX, EXTRAS_SPEC, MAX_NAME, NATIVE_REQUIRED, NATIVE_SH_PREFIX, SH_PREFIX
@@ -229,7 +230,6 @@ def _read_extras(geometry, owner, spec_owner):
 # point size, and what Splatwright keeps (names starting "splat_" or hidden ones, starting ".").
 _NOT_FOREIGN = (*NATIVE_REQUIRED, "radius")
 _OURS = ("splat_", ".")
-GLTF_CUSTOM = "_"  # glTF's application-specific attributes: `_<name>`, as Blender's glTF importer names them
 
 
 def foreign_extras(geometry, owner, original, taken=()):
